@@ -1,0 +1,25 @@
+"""The agent core: transactional blackboard, plugins, agent host and the task language."""
+
+from blackboard.errors import ConfigError, ErniError, PluginError, TaskError, TransactionError
+from blackboard.objects import BBObject, new_uid
+from blackboard.tasks import (
+    AllocationResult,
+    Link,
+    Neighbor,
+    NetInfo,
+    Params,
+    Pose,
+    Position,
+    Route,
+    Task,
+    TaskState,
+    language_table,
+    register_preposition,
+    register_verb,
+)
+
+__all__ = [
+    "AllocationResult", "BBObject", "ConfigError", "ErniError", "Link", "Neighbor", "NetInfo",
+    "Params", "PluginError", "Pose", "Position", "Route", "Task", "TaskError", "TaskState",
+    "TransactionError", "language_table", "new_uid", "register_preposition", "register_verb",
+]

@@ -1,0 +1,31 @@
+"""Blackboard objects: frozen pydantic models with a stable `uid`."""
+
+from __future__ import annotations
+
+import uuid
+from typing import Any, Self
+
+from pydantic import BaseModel, ConfigDict, Field
+
+
+def new_uid() -> str:
+    """Return a fresh, globally unique object id."""
+    return uuid.uuid4().hex[:16]
+
+
+class BBObject(BaseModel):
+    """Base of everything published on a blackboard.
+
+    Objects are immutable: a change is published as a new version with the same `uid`
+    (`obj.evolve(field=value)`), so a plugin's view can never be altered under its feet.
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    uid: str = Field(default_factory=new_uid)
+
+    def evolve(self, **changes: Any) -> Self:
+        """Return a validated copy of this object with `changes` applied (same uid)."""
+        data = self.model_dump()
+        data.update(changes)
+        return type(self).model_validate(data)

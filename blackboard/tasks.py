@@ -1,0 +1,458 @@
+"""The task language (paper 004, Table 2): verbs, prepositions with typed parameters, results.
+
+A `Task` names a verb (`NetWatch`, `BotMotion`, `RemoteBotMotion`, or an extension), a
+preposition (the sub-task, e.g. `goto`), and parameters validated by the preposition's own
+pydantic model. Invalid tasks are refused with a `TaskError` whose message names the field:
+`goto: missing 'x'`. Units everywhere: metres, seconds, degrees for task parameters.
+"""
+
+from __future__ import annotations
+
+import enum
+import time
+from dataclasses import dataclass
+from typing import Any, Self
+
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    JsonValue,
+    SerializeAsAny,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
+
+from blackboard.errors import TaskError
+from blackboard.objects import BBObject
+
+
+class Params(BaseModel):
+    """Base of every preposition's parameters: unknown keys are refused."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+
+# --- parameter models -------------------------------------------------------------------
+
+
+class NoParams(Params):
+    """No parameters."""
+
+
+class WatchParams(Params):
+    rate_hz: float = Field(1.0, gt=0, le=100, description="monitoring rate (Hz)")
+
+
+class PathCostParams(WatchParams):
+    destination: str | None = Field(None, description="node name or address; all if omitted")
+
+
+class LinkQualityParams(WatchParams):
+    neighbor: str | None = Field(None, description="one neighbour; all if omitted")
+
+
+class RandomWalkParams(Params):
+    speed: float = Field(0.3, gt=0, le=2.0, description="cruise speed (m/s)")
+    duration: float | None = Field(None, gt=0, description="stop after this long (s)")
+    seed: int | None = Field(None, description="random seed for a repeatable walk")
+
+
+class GotoParams(Params):
+    x: float = Field(description="goal x (m)")
+    y: float = Field(description="goal y (m)")
+    speed: float = Field(0.3, gt=0, le=2.0, description="cruise speed (m/s)")
+    tolerance: float = Field(0.1, gt=0, description="arrival radius (m)")
+    timeout: float | None = Field(None, gt=0, description="fail after this long (s)")
+
+
+class TurnParams(Params):
+    angle: float = Field(description="relative turn (deg, positive = left/counter-clockwise)")
+    rate: float = Field(45.0, gt=0, le=360, description="turn rate (deg/s)")
+    tolerance: float = Field(2.0, gt=0, description="accepted heading error (deg)")
+
+
+class TeleportParams(Params):
+    x: float = Field(description="new x (m)")
+    y: float = Field(description="new y (m)")
+    heading: float = Field(0.0, description="new heading (deg)")
+
+
+class VelocityParams(Params):
+    v: float = Field(0.0, ge=-2.0, le=2.0, description="linear velocity (m/s)")
+    w: float = Field(0.0, ge=-360, le=360, description="angular velocity (deg/s)")
+    duration: float | None = Field(None, gt=0, description="hold for this long (s)")
+
+
+class AvoidParams(Params):
+    distance: float = Field(0.5, gt=0, le=5.0, description="stop distance to an obstacle (m)")
+    enabled: bool = Field(True, description="false removes obstacle avoidance")
+
+
+class DistanceParams(Params):
+    distance: float = Field(gt=0, description="distance to travel (m)")
+    speed: float = Field(0.3, gt=0, le=2.0, description="speed (m/s)")
+    timeout: float | None = Field(None, gt=0, description="fail after this long (s)")
+
+
+class CancelParams(Params):
+    task: str | None = Field(None, description="uid of the task to cancel; all if omitted")
+
+
+# --- the language -----------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Preposition:
+    """One sub-task of a verb: its parameter model and a one-line description."""
+
+    verb: str
+    name: str
+    params: type[Params]
+    doc: str
+
+
+@dataclass(frozen=True)
+class Verb:
+    """A verb of the language: scope (`local` or `team`) and the plugin that handles it."""
+
+    name: str
+    scope: str
+    handled_by: str
+    doc: str
+
+
+VERBS: dict[str, Verb] = {}
+PREPOSITIONS: dict[tuple[str, str], Preposition] = {}
+
+
+def register_verb(name: str, *, scope: str, handled_by: str, doc: str) -> Verb:
+    """Add a verb to the language (extensions use this for new task families)."""
+    verb = Verb(name, scope, handled_by, doc)
+    VERBS[name] = verb
+    return verb
+
+
+def register_preposition(verb: str, name: str, params: type[Params], doc: str) -> Preposition:
+    """Add a preposition (sub-task) with its parameter model to an existing verb."""
+    if verb not in VERBS:
+        raise TaskError(f"cannot register {name!r}: unknown verb {verb!r}")
+    prep = Preposition(verb, normalize_preposition(name), params, doc)
+    PREPOSITIONS[(verb, prep.name)] = prep
+    return prep
+
+
+def normalize_preposition(name: str) -> str:
+    """`'Avoid obstacles'`, `'avoid-obstacles'` and `'avoid_obstacles'` name the same sub-task."""
+    return "_".join(name.strip().lower().replace("-", " ").split())
+
+
+def prepositions_of(verb: str) -> list[str]:
+    """Return the prepositions of `verb` in registration order."""
+    return [p for (v, p) in PREPOSITIONS if v == verb]
+
+
+def lookup(verb: str, preposition: str) -> Preposition:
+    """Return the preposition, or raise TaskError naming what is known."""
+    if verb not in VERBS:
+        raise TaskError(f"unknown verb {verb!r}; expected one of {', '.join(VERBS)}")
+    key = (verb, normalize_preposition(preposition))
+    if key not in PREPOSITIONS:
+        raise TaskError(
+            f"{verb}: unknown preposition {preposition!r}; expected one of "
+            f"{', '.join(prepositions_of(verb))}"
+        )
+    return PREPOSITIONS[key]
+
+
+register_verb("NetWatch", scope="local", handled_by="MobiNetControl",
+              doc="subscribe to information about the network")
+register_verb("BotMotion", scope="local", handled_by="RobotMotionControl",
+              doc="control low-level motion behaviours")
+register_verb("RemoteBotMotion", scope="team", handled_by="MissionControl",
+              doc="task a remote robot's movement")
+
+for _name, _model, _doc in [
+    ("node_position", WatchParams, "positions of the nodes as the network knows them"),
+    ("network_topology", WatchParams, "links of the whole network, articulation points"),
+    ("path_cost", PathCostParams, "routes: next hop, hop count and path cost"),
+    ("link_quality", LinkQualityParams, "delivery ratio (0..1) of each one-hop link"),
+    ("neighbor_list", WatchParams, "symmetric one-hop neighbours"),
+]:
+    register_preposition("NetWatch", _name, _model, _doc)
+
+for _name, _model, _doc in [
+    ("randomwalk", RandomWalkParams, "wander, turning away from obstacles"),
+    ("goto", GotoParams, "drive to (x, y)"),
+    ("stop", NoParams, "halt: a stop behaviour on top of the stack"),
+    ("turn", TurnParams, "turn in place by an angle"),
+    ("teleport", TeleportParams, "set the pose (simulator moves, robot re-localises)"),
+    ("clear", NoParams, "empty the behaviour stack, cancelling its tasks"),
+    ("velocity", VelocityParams, "hold a linear and angular velocity"),
+    ("avoid_obstacles", AvoidParams, "override motion when an obstacle is near"),
+    ("forward", DistanceParams, "drive straight ahead a distance"),
+    ("backward", DistanceParams, "drive straight back a distance"),
+]:
+    register_preposition("BotMotion", _name, _model, _doc)
+
+for _name, _model, _doc in [
+    ("randomwalk", RandomWalkParams, "the robot wanders"),
+    ("goto", GotoParams, "the robot drives to (x, y), expanded into local sub-tasks"),
+    ("cancel", CancelParams, "cancel the robot's remote tasks and stop it"),
+    ("teleport", TeleportParams, "set the robot's pose"),
+    ("forward", DistanceParams, "the robot drives ahead a distance"),
+]:
+    register_preposition("RemoteBotMotion", _name, _model, _doc)
+
+
+# --- results ----------------------------------------------------------------------------
+
+
+class TaskState(str, enum.Enum):
+    """Where a task stands. The last three are final."""
+
+    PENDING = "pending"
+    RUNNING = "running"
+    SUCCEEDED = "succeeded"
+    FAILED = "failed"
+    CANCELLED = "cancelled"
+
+    @property
+    def done(self) -> bool:
+        """True for succeeded, failed and cancelled."""
+        return self in (TaskState.SUCCEEDED, TaskState.FAILED, TaskState.CANCELLED)
+
+
+class AllocationResult(BaseModel):
+    """What the performer of a task reports: state, confidence, progress and typed values."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    state: TaskState = TaskState.PENDING
+    confidence: float = Field(1.0, ge=0.0, le=1.0)
+    progress: float = Field(0.0, ge=0.0, le=1.0)
+    values: dict[str, JsonValue] = Field(default_factory=dict)
+    message: str = ""
+    stamp: float = Field(default_factory=time.time)
+
+
+class Task(BBObject):
+    """A unit of work: verb + preposition + typed parameters, with the performer's result.
+
+    The requester publishes the task; the performer publishes changes carrying `result`.
+    Removing a task from the blackboard cancels it (Cougaar's rescind).
+    """
+
+    verb: str
+    preposition: str
+    params: SerializeAsAny[Params] = Field(default_factory=NoParams)
+    source: str = ""
+    destination: str | None = None
+    parent: str | None = None
+    result: AllocationResult | None = None
+    created: float = Field(default_factory=time.time)
+
+    def __init__(self, **data: Any) -> None:
+        try:
+            super().__init__(**data)
+        except ValidationError as err:
+            raise TaskError(describe_error(err, _label(data))) from None
+
+    @classmethod
+    def parse(cls, data: Any) -> Self:
+        """Validate a task from plain data (a dict or JSON text); raise TaskError if invalid."""
+        try:
+            if isinstance(data, (str, bytes)):
+                return cls.model_validate_json(data)
+            return cls.model_validate(data)
+        except ValidationError as err:
+            raise TaskError(describe_error(err, _label(data))) from None
+
+    @model_validator(mode="before")
+    @classmethod
+    def _typed_params(cls, data: Any) -> Any:
+        if not isinstance(data, dict):
+            return data
+        verb, prep = data.get("verb"), data.get("preposition")
+        if not isinstance(verb, str) or not isinstance(prep, str):
+            return data  # field validation reports the missing or mistyped field
+        spec = lookup(verb, prep)
+        raw = data.get("params")
+        if raw is None:
+            raw = {}
+        if isinstance(raw, Params):
+            if not isinstance(raw, spec.params):
+                raw = raw.model_dump()
+            else:
+                return {**data, "preposition": spec.name}
+        if not isinstance(raw, dict):
+            raise TaskError(f"{spec.name}: params: expected a table of parameters, got {raw!r}")
+        try:
+            params = spec.params.model_validate(raw)
+        except ValidationError as err:
+            raise TaskError(describe_error(err, spec.name)) from None
+        return {**data, "preposition": spec.name, "params": params}
+
+    @field_validator("verb")
+    @classmethod
+    def _known_verb(cls, verb: str) -> str:
+        if verb not in VERBS:
+            raise TaskError(f"unknown verb {verb!r}; expected one of {', '.join(VERBS)}")
+        return verb
+
+    @property
+    def state(self) -> TaskState:
+        """The result's state, `pending` while there is no result."""
+        return self.result.state if self.result else TaskState.PENDING
+
+    @property
+    def done(self) -> bool:
+        """True once the performer reported a final state."""
+        return self.state.done
+
+    def with_result(self, state: TaskState | str | None = None, **fields: Any) -> Self:
+        """Return this task with its result updated (unspecified fields kept)."""
+        base = self.result.model_dump() if self.result else {}
+        base.pop("stamp", None)
+        if state is not None:
+            base["state"] = TaskState(state)
+        base.update(fields)
+        return self.evolve(result=AllocationResult(**base))
+
+    def describe(self) -> str:
+        """One line for logs and the CLI: `BotMotion goto x=1.0 y=2.0 -> robot2`."""
+        args = " ".join(f"{k}={v}" for k, v in self.params.model_dump(exclude_none=True).items())
+        dest = f" -> {self.destination}" if self.destination else ""
+        return f"{self.verb} {self.preposition} {args}".rstrip() + dest
+
+
+def _label(data: Any) -> str:
+    if isinstance(data, dict) and isinstance(data.get("preposition"), str):
+        return normalize_preposition(data["preposition"])
+    return "task"
+
+
+def describe_error(err: ValidationError, label: str) -> str:
+    """Turn a pydantic error into one line per problem, naming the field: `goto: missing 'x'`."""
+    lines = []
+    for e in err.errors():
+        loc = ".".join(str(p) for p in e["loc"]) or label
+        field = str(e["loc"][-1]) if e["loc"] else label
+        kind = e["type"]
+        if kind == "missing":
+            lines.append(f"{label}: missing {field!r}")
+        elif kind == "extra_forbidden":
+            lines.append(f"{label}: unknown parameter {field!r}")
+        elif kind in ("value_error", "assertion_error") and "ctx" in e:
+            msg = str(e["ctx"].get("error", e["msg"]))
+            lines.append(msg if not e["loc"] else f"{label}: {loc}: {msg}")
+        else:
+            lines.append(f"{label}: {loc}: {e['msg']} (got {e.get('input')!r})")
+    return "; ".join(lines)
+
+
+# --- things published beside tasks -----------------------------------------------------
+
+
+class Pose(BBObject):
+    """Where a robot is and how it is doing; one per robot, changed in place (`pose:<robot>`)."""
+
+    robot: str
+    x: float = 0.0
+    y: float = 0.0
+    theta: float = Field(0.0, description="heading (rad, counter-clockwise from +x)")
+    v: float = Field(0.0, description="linear velocity (m/s)")
+    w: float = Field(0.0, description="angular velocity (rad/s)")
+    battery: float | None = Field(None, description="battery voltage (V)")
+    stall_left: bool = False
+    stall_right: bool = False
+    bumpers: int = 0
+    motors_enabled: bool = True
+    sonar: list[float] = Field(default_factory=list, description="sonar ranges (m)")
+    stamp: float = Field(default_factory=time.time)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _stable_uid(cls, data: Any) -> Any:
+        if isinstance(data, dict) and "uid" not in data and "robot" in data:
+            return {**data, "uid": f"pose:{data['robot']}"}
+        return data
+
+    @property
+    def stalled(self) -> bool:
+        """True when either wheel is stalled."""
+        return self.stall_left or self.stall_right
+
+
+class Neighbor(BaseModel):
+    """A one-hop neighbour as the network subsystem reports it."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    name: str
+    address: str = ""
+    quality: float = Field(0.0, ge=0.0, le=1.0, description="link delivery ratio")
+    symmetric: bool = True
+    metric: int | None = None
+
+
+class Link(BaseModel):
+    """An edge of the network topology."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    a: str
+    b: str
+    quality: float = Field(0.0, ge=0.0, le=1.0)
+    metric: int | None = None
+
+
+class Route(BaseModel):
+    """A route from this node: next hop, hop count and path cost."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    destination: str
+    next_hop: str = ""
+    hops: int = 0
+    cost: float = 0.0
+
+
+class Position(BaseModel):
+    """A node position as the network knows it (m, deg)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    x: float
+    y: float
+    heading: float = 0.0
+
+
+class NetInfo(BBObject):
+    """Network state answering one NetWatch preposition; `degraded` when the source failed."""
+
+    node: str
+    kind: str = Field(description="the NetWatch preposition this answers")
+    task: str | None = Field(None, description="uid of the NetWatch task")
+    neighbors: list[Neighbor] = Field(default_factory=list)
+    links: list[Link] = Field(default_factory=list)
+    routes: list[Route] = Field(default_factory=list)
+    positions: dict[str, Position] = Field(default_factory=dict)
+    articulation_points: list[str] = Field(default_factory=list)
+    degraded: bool = False
+    message: str = ""
+    stamp: float = Field(default_factory=time.time)
+
+
+def language_table() -> str:
+    """Return the task language as a Markdown table (README and `erni tasks`)."""
+    rows = ["| verb | preposition | parameters (units) | what it does |", "|---|---|---|---|"]
+    for (verb, name), prep in PREPOSITIONS.items():
+        params = []
+        for fname, f in prep.params.model_fields.items():
+            req = "" if not f.is_required() else " (required)"
+            default = "" if f.is_required() else f" = {f.default}"
+            params.append(f"`{fname}`{default}{req}: {f.description or ''}".rstrip(": "))
+        rows.append(f"| {verb} | `{name}` | {'; '.join(params) or '—'} | {prep.doc} |")
+    return "\n".join(rows)
