@@ -1,7 +1,10 @@
 """The agent core: transactional blackboard, plugins, agent host and the task language."""
 
+from blackboard.agent import Agent
+from blackboard.blackboard import Blackboard, Subscription, Transaction
 from blackboard.errors import ConfigError, ErniError, PluginError, TaskError, TransactionError
 from blackboard.objects import BBObject, new_uid
+from blackboard.plugin import Plugin
 from blackboard.tasks import (
     AllocationResult,
     Link,
@@ -19,6 +22,7 @@ from blackboard.tasks import (
 )
 
 __all__ = [
+    "Agent", "Blackboard", "Plugin", "Subscription", "Transaction",
     "AllocationResult", "BBObject", "ConfigError", "ErniError", "Link", "Neighbor", "NetInfo",
     "Params", "PluginError", "Pose", "Position", "Route", "Task", "TaskError", "TaskState",
     "TransactionError", "language_table", "new_uid", "register_preposition", "register_verb",

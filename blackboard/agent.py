@@ -1,0 +1,382 @@
+"""The agent host: a blackboard, a worker pool that runs plugins, timers, start and stop."""
+
+from __future__ import annotations
+
+import heapq
+import importlib
+import itertools
+import logging
+import queue
+import threading
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from importlib.metadata import entry_points
+from pathlib import Path
+from typing import Any
+
+from pydantic import BaseModel, ValidationError
+
+from blackboard.blackboard import Blackboard, Transaction
+from blackboard.errors import PluginError
+from blackboard.plugin import NoSettings, Plugin
+
+ENTRY_POINT_GROUP = "erni.plugins"
+
+
+class Scheduler:
+    """Runs plugins on a pool of worker threads; one plugin never runs concurrently with itself."""
+
+    def __init__(self, agent: Agent, workers: int, slow_seconds: float):
+        self.agent = agent
+        self.workers = workers
+        self.slow_seconds = slow_seconds
+        self._queue: queue.SimpleQueue[Plugin | None] = queue.SimpleQueue()
+        self._threads: list[threading.Thread] = []
+        self._accepting = False
+        self._log = logging.getLogger(f"erni.{agent.name}")
+        self.running: set[Plugin] = set()
+        self._running_lock = threading.Lock()
+
+    def start(self) -> None:
+        """Start the worker threads."""
+        self._accepting = True
+        for i in range(self.workers):
+            t = threading.Thread(target=self._work, name=f"erni-{self.agent.name}-worker-{i}",
+                                 daemon=True)
+            t.start()
+            self._threads.append(t)
+
+    def signal(self, plugin: Plugin) -> None:
+        """Ask for a run of `plugin`; signals coalesce, and one during a run causes one more."""
+        with plugin._sched_lock:
+            if not self._accepting or plugin._disabled:
+                return
+            if plugin._running:
+                plugin._dirty = True
+            elif not plugin._scheduled:
+                plugin._scheduled = True
+                self._queue.put(plugin)
+
+    def stop(self, deadline: float) -> list[str]:
+        """Stop accepting work, let running plugins finish, join workers; return laggards."""
+        self._accepting = False
+        for _ in self._threads:
+            self._queue.put(None)
+        late = []
+        for t in self._threads:
+            t.join(max(0.0, deadline - time.monotonic()))
+            if t.is_alive():
+                late.append(t.name)
+        self._threads = []
+        return late
+
+    def _work(self) -> None:
+        while True:
+            plugin = self._queue.get()
+            if plugin is None:
+                return
+            if not self._accepting:  # stopping: queued runs are dropped
+                with plugin._sched_lock:
+                    plugin._scheduled = False
+                continue
+            with plugin._sched_lock:
+                plugin._scheduled = False
+                plugin._running = True
+                plugin._dirty = False
+                plugin._run_started = time.monotonic()
+                plugin._slow_reported = False
+            with self._running_lock:
+                self.running.add(plugin)
+            try:
+                self._run(plugin)
+            finally:
+                with self._running_lock:
+                    self.running.discard(plugin)
+                with plugin._sched_lock:
+                    plugin._running = False
+                    again = plugin._dirty and self._accepting and not plugin._disabled
+                    plugin._dirty = False
+                    if again:
+                        plugin._scheduled = True
+                        self._queue.put(plugin)
+
+    def _run(self, plugin: Plugin) -> None:
+        board = self.agent.blackboard
+        subs = plugin._subs
+        for sub, inbox in zip(subs, board._drain(subs)):
+            sub._open(inbox)
+        woken, plugin._woken = plugin._woken, False
+        laters = []
+        while plugin._later:
+            laters.append(plugin._later.popleft())
+        if not (woken or laters or any(s.has_changes for s in subs)):
+            return
+        plugin.runs += 1
+        try:
+            with plugin.transaction():
+                for fn in laters:
+                    fn()
+                plugin.execute()
+        except Exception:
+            plugin.failures += 1
+            plugin.log.exception("execute() failed in agent %s, plugin %s; its transaction "
+                                 "published nothing", self.agent.name, plugin.name)
+        finally:
+            for sub in subs:
+                sub._close()
+
+    def check_slow(self) -> None:
+        """Report each plugin run that exceeded the slow limit (once per run)."""
+        now = time.monotonic()
+        with self._running_lock:
+            running = list(self.running)
+        for plugin in running:
+            elapsed = now - plugin._run_started
+            if elapsed > self.slow_seconds and not plugin._slow_reported:
+                plugin._slow_reported = True
+                plugin.log.warning("plugin %s of agent %s has been running for %.1f s (limit %.1f s)",
+                                   plugin.name, self.agent.name, elapsed, self.slow_seconds)
+
+
+class Timer:
+    """A pending wake-up; `cancel()` stops it."""
+
+    def __init__(self, plugin: Plugin, when: float, period: float | None):
+        self.plugin = plugin
+        self.when = when
+        self.period = period
+        self.cancelled = False
+
+    def cancel(self) -> None:
+        """Do not fire again."""
+        self.cancelled = True
+
+
+class Timers:
+    """One thread that fires plugin wake-ups and watches for slow plugins."""
+
+    def __init__(self, agent: Agent):
+        self.agent = agent
+        self._heap: list[tuple[float, int, Timer]] = []
+        self._seq = itertools.count()
+        self._cond = threading.Condition()
+        self._stopping = False
+        self._thread: threading.Thread | None = None
+
+    def start(self) -> None:
+        """Start the timer thread."""
+        self._stopping = False
+        self._thread = threading.Thread(target=self._loop, name=f"erni-{self.agent.name}-timers",
+                                        daemon=True)
+        self._thread.start()
+
+    def schedule(self, plugin: Plugin, delay: float, period: float | None) -> Timer:
+        """Wake `plugin` after `delay` seconds, then every `period` seconds if given."""
+        timer = Timer(plugin, time.monotonic() + max(0.0, delay), period)
+        with self._cond:
+            heapq.heappush(self._heap, (timer.when, next(self._seq), timer))
+            self._cond.notify()
+        return timer
+
+    def stop(self, deadline: float) -> bool:
+        """Stop the thread; return True when it was joined in time."""
+        with self._cond:
+            self._stopping = True
+            self._heap.clear()
+            self._cond.notify()
+        if self._thread is not None:
+            self._thread.join(max(0.0, deadline - time.monotonic()))
+            alive = self._thread.is_alive()
+            self._thread = None
+            return not alive
+        return True
+
+    def _loop(self) -> None:
+        watch = max(0.01, min(0.25, self.agent.scheduler.slow_seconds / 4))
+        while True:
+            due: list[Timer] = []
+            with self._cond:
+                if self._stopping:
+                    return
+                now = time.monotonic()
+                while self._heap and self._heap[0][0] <= now:
+                    _, _, timer = heapq.heappop(self._heap)
+                    if timer.cancelled:
+                        continue
+                    due.append(timer)
+                    if timer.period:
+                        timer.when = max(timer.when + timer.period, now)
+                        heapq.heappush(self._heap, (timer.when, next(self._seq), timer))
+                wait = watch
+                if self._heap:
+                    wait = min(wait, self._heap[0][0] - now)
+                if not due:
+                    self._cond.wait(max(0.0, wait))
+            for timer in due:
+                timer.plugin.wake()
+            self.agent.scheduler.check_slow()
+
+
+class Agent:
+    """One agent: a named blackboard with its plugins, run by a worker pool."""
+
+    def __init__(self, name: str, *, workers: int = 4, slow_plugin_seconds: float = 1.0):
+        if workers < 1:
+            raise ValueError(f"workers: expected at least 1, got {workers}")
+        self.name = name
+        self.blackboard = Blackboard(name)
+        self.scheduler = Scheduler(self, workers, slow_plugin_seconds)
+        self.timers = Timers(self)
+        self.blackboard.signal = self.scheduler.signal
+        self.plugins: list[Plugin] = []
+        self.log = logging.getLogger(f"erni.{name}")
+        self.started = False
+        self.components: list[Any] = []  # non-plugin parts with start()/stop() (e.g. transport)
+
+    @classmethod
+    def from_config(cls, path: str | Path) -> Agent:
+        """Build an agent from a TOML config file (raises ConfigError)."""
+        from blackboard.config import load_agent
+
+        return load_agent(path)
+
+    # -- plugins --------------------------------------------------------------------------
+
+    def add_plugin(self, plugin: type[Plugin] | str | Plugin, settings: dict[str, Any] | BaseModel | None = None,
+                   name: str | None = None) -> Plugin:
+        """Add a plugin (class, instance, `module:Class` path or entry point name)."""
+        cls = resolve_plugin(plugin) if not isinstance(plugin, Plugin) else type(plugin)
+        instance = plugin if isinstance(plugin, Plugin) else cls()
+        name = name or cls.__name__
+        if any(p.name == name for p in self.plugins):
+            raise PluginError(f"agent {self.name}: a plugin named {name!r} is already loaded")
+        instance._bind(self, name, validate_settings(cls, settings))
+        self.plugins.append(instance)
+        if self.started:
+            self._setup(instance)
+        return instance
+
+    def plugin(self, name: str) -> Plugin:
+        """Return the plugin with this name."""
+        for p in self.plugins:
+            if p.name == name:
+                return p
+        raise PluginError(f"agent {self.name}: no plugin named {name!r}")
+
+    def _setup(self, plugin: Plugin) -> None:
+        plugin._in_setup = True
+        try:
+            with plugin.transaction():
+                plugin.setup()
+        except Exception:
+            plugin._disabled = True
+            plugin.failures += 1
+            plugin.log.exception("setup() failed in agent %s, plugin %s; the plugin is disabled, "
+                                 "the agent goes on", self.name, plugin.name)
+        finally:
+            plugin._in_setup = False
+
+    # -- life cycle -----------------------------------------------------------------------
+
+    def start(self) -> Agent:
+        """Start workers and timers, then set up every plugin."""
+        if self.started:
+            return self
+        self.scheduler.start()
+        self.timers.start()
+        self.started = True
+        for plugin in list(self.plugins):
+            self._setup(plugin)
+        for component in self.components:
+            component.start()
+        self.log.info("agent %s started with %d plugin(s)", self.name, len(self.plugins))
+        return self
+
+    def stop(self, timeout: float = 1.0) -> None:
+        """Stop plugins, components, workers and timers; returns within `timeout` for
+        well-behaved plugins, with every thread of the agent joined."""
+        if not self.started:
+            return
+        deadline = time.monotonic() + timeout
+        self.started = False
+        late = self.scheduler.stop(deadline)
+        for plugin in self.plugins:
+            try:
+                plugin.teardown()
+            except Exception:
+                plugin.log.exception("teardown() failed in agent %s, plugin %s", self.name, plugin.name)
+        for component in reversed(self.components):
+            try:
+                component.stop()
+            except Exception:
+                self.log.exception("stopping %s failed", type(component).__name__)
+        if not self.timers.stop(deadline):
+            late.append("timers")
+        if late:
+            self.log.warning("agent %s: threads still busy at stop: %s", self.name, ", ".join(late))
+        self.log.info("agent %s stopped", self.name)
+
+    def __enter__(self) -> Agent:
+        return self.start()
+
+    def __exit__(self, *exc: Any) -> None:
+        self.stop()
+
+    # -- access from outside threads ------------------------------------------------------
+
+    @contextmanager
+    def transaction(self, label: str = "outside") -> Iterator[Transaction]:
+        """Open a transaction for code outside any plugin; commit on success."""
+        with self.blackboard.transaction(f"{self.name}/{label}") as tx:
+            yield tx
+
+    def query(self, kind: type | Callable[[Any], bool] | None = None,
+              where: Callable[[Any], bool] | None = None) -> list[Any]:
+        """Return a snapshot of the committed objects matching a type and/or predicate."""
+        return self.blackboard.query(kind, where)
+
+
+def resolve_plugin(spec: type[Plugin] | str) -> type[Plugin]:
+    """Return the plugin class named by a class, a `module:Class` path or an entry point name."""
+    if isinstance(spec, type):
+        if not issubclass(spec, Plugin):
+            raise PluginError(f"{spec.__qualname__} is not a Plugin subclass")
+        return spec
+    if not isinstance(spec, str) or not spec.strip():
+        raise PluginError(f"expected a plugin class, 'module:Class' or an entry point name, got {spec!r}")
+    if ":" not in spec and "." not in spec:
+        found = [ep for ep in entry_points(group=ENTRY_POINT_GROUP) if ep.name == spec]
+        if not found:
+            known = sorted(ep.name for ep in entry_points(group=ENTRY_POINT_GROUP))
+            raise PluginError(f"unknown plugin {spec!r}; known entry points: {', '.join(known) or 'none'}; "
+                              "or give 'module:Class'")
+        try:
+            obj = found[0].load()
+        except Exception as err:
+            raise PluginError(f"cannot load plugin {spec!r} ({found[0].value}): {err}") from None
+    else:
+        module_name, _, attr = spec.partition(":") if ":" in spec else spec.rpartition(".")
+        try:
+            module = importlib.import_module(module_name)
+        except Exception as err:
+            raise PluginError(f"cannot import {spec!r}: {err}") from None
+        obj = getattr(module, attr, None)
+        if obj is None:
+            raise PluginError(f"cannot import {spec!r}: module {module_name!r} has no {attr!r}")
+    if not isinstance(obj, type) or not issubclass(obj, Plugin):
+        raise PluginError(f"{spec!r} is not a Plugin subclass")
+    return obj
+
+
+def validate_settings(cls: type[Plugin], settings: dict[str, Any] | BaseModel | None) -> BaseModel:
+    """Validate a plugin's settings against its `Settings` model (raises ValidationError)."""
+    model = getattr(cls, "Settings", NoSettings) or NoSettings
+    if isinstance(settings, model):
+        return settings
+    if isinstance(settings, BaseModel):
+        settings = settings.model_dump()
+    return model.model_validate(settings or {})
+
+
+__all__ = ["Agent", "ENTRY_POINT_GROUP", "Scheduler", "Timers", "ValidationError", "resolve_plugin"]

@@ -1,0 +1,332 @@
+"""The transactional blackboard: objects by uid, atomic commits, subscriptions with deltas.
+
+Changes are staged in a `Transaction` and applied at commit, all at once and in publish
+order. Each `Subscription` receives the committed events in an inbox; its owner's view
+(members and `added` / `changed` / `removed`) moves forward only when the owner opens its
+next run, so a plugin's view is frozen while it executes.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable, Iterator
+from typing import TYPE_CHECKING, Any, Generic, TypeVar
+
+from blackboard.errors import TransactionError
+from blackboard.objects import BBObject
+
+if TYPE_CHECKING:
+    from blackboard.plugin import Plugin
+
+T = TypeVar("T", bound=BBObject)
+
+ADD, CHANGE, REMOVE = "add", "change", "remove"
+
+Op = tuple[str, BBObject, tuple[Any, ...]]
+"""One staged publication: (kind, object, change reports)."""
+
+
+class Subscription(Generic[T]):
+    """The objects matching a predicate, with the deltas since the owner's last run."""
+
+    def __init__(self, owner: Plugin | None, kind: type | None, where: Callable[[Any], bool] | None):
+        self._owner = owner
+        self._kind = kind
+        self._where = where
+        self._committed: set[str] = set()  # membership as of the latest commit (under bb lock)
+        self._inbox: list[tuple[str, BBObject, tuple[Any, ...]]] = []  # under bb lock
+        self._members: dict[str, T] = {}  # the owner's view
+        self.added: list[T] = []
+        self.changed: list[T] = []
+        self.removed: list[T] = []
+        self._reports: dict[str, list[Any]] = {}
+
+    # -- the owner's view -----------------------------------------------------------------
+
+    def __iter__(self) -> Iterator[T]:
+        return iter(list(self._members.values()))
+
+    def __len__(self) -> int:
+        return len(self._members)
+
+    def __contains__(self, obj: object) -> bool:
+        uid = obj.uid if isinstance(obj, BBObject) else obj
+        return uid in self._members
+
+    def get(self, uid: str) -> T | None:
+        """Return the member with this uid as the owner sees it, or None."""
+        return self._members.get(uid)
+
+    def reports(self, obj: BBObject | str) -> list[Any]:
+        """Return the change reports attached to this object's changes since the last run."""
+        uid = obj.uid if isinstance(obj, BBObject) else obj
+        return list(self._reports.get(uid, ()))
+
+    @property
+    def has_changes(self) -> bool:
+        """True when the current view carries any delta."""
+        return bool(self.added or self.changed or self.removed)
+
+    # -- the blackboard's side ------------------------------------------------------------
+
+    def matches(self, obj: BBObject) -> bool:
+        """Return True when the object belongs to this subscription."""
+        if self._kind is not None and not isinstance(obj, self._kind):
+            return False
+        return self._where is None or bool(self._where(obj))
+
+    def _offer(self, kind: str, obj: BBObject, reports: tuple[Any, ...]) -> bool:
+        """Record a committed event; return True when it concerns this subscription."""
+        uid = obj.uid
+        was = uid in self._committed
+        now = kind != REMOVE and self._safe_match(obj)
+        if now and not was:
+            self._committed.add(uid)
+            self._inbox.append((ADD, obj, ()))
+        elif now and was:
+            self._inbox.append((CHANGE, obj, reports))
+        elif was and not now:
+            self._committed.discard(uid)
+            self._inbox.append((REMOVE, obj, ()))
+        else:
+            return False
+        return True
+
+    def _safe_match(self, obj: BBObject) -> bool:
+        try:
+            return self.matches(obj)
+        except Exception:  # a predicate that raises simply does not match
+            return False
+
+    def _open(self, inbox: list[tuple[str, BBObject, tuple[Any, ...]]]) -> None:
+        """Fold the events committed since the last run into the view and its net deltas."""
+        added: dict[str, T] = {}
+        changed: dict[str, T] = {}
+        removed: dict[str, T] = {}
+        reports: dict[str, list[Any]] = {}
+        members = self._members
+        for kind, obj, reps in inbox:
+            uid = obj.uid
+            if kind == ADD:
+                if uid in removed:  # left and came back within one window: a change
+                    del removed[uid]
+                    changed[uid] = obj  # type: ignore[assignment]
+                else:
+                    added[uid] = obj  # type: ignore[assignment]
+                members[uid] = obj  # type: ignore[assignment]
+            elif kind == CHANGE:
+                if uid in added:
+                    added[uid] = obj  # type: ignore[assignment]
+                else:
+                    changed[uid] = obj  # type: ignore[assignment]
+                    reports.setdefault(uid, []).extend(reps)
+                members[uid] = obj  # type: ignore[assignment]
+            else:
+                if uid in added:
+                    del added[uid]
+                else:
+                    changed.pop(uid, None)
+                    reports.pop(uid, None)
+                    removed[uid] = obj  # type: ignore[assignment]
+                members.pop(uid, None)
+        self.added = list(added.values())
+        self.changed = list(changed.values())
+        self.removed = list(removed.values())
+        self._reports = reports
+
+    def _close(self) -> None:
+        self.added, self.changed, self.removed = [], [], []
+        self._reports = {}
+
+
+class Transaction:
+    """Publications staged by one thread; applied atomically by `commit()`."""
+
+    def __init__(self, board: Blackboard, label: str = ""):
+        self._board = board
+        self.label = label
+        self.ops: list[Op] = []
+        self._staged: dict[str, BBObject | None] = {}  # uid -> latest staged version (None = removed)
+        self.closed = False
+
+    def _exists(self, uid: str) -> bool:
+        if uid in self._staged:
+            return self._staged[uid] is not None
+        return self._board.contains(uid)
+
+    def _check_open(self) -> None:
+        if self.closed:
+            raise TransactionError(f"transaction {self.label!r} is closed; publish inside an open one")
+
+    def add(self, obj: BBObject) -> BBObject:
+        """Stage a new object; its uid must not be on the blackboard yet."""
+        self._check_open()
+        if not isinstance(obj, BBObject):
+            raise TransactionError(f"add: expected a BBObject, got {type(obj).__name__}")
+        if self._exists(obj.uid):
+            raise TransactionError(f"add: {type(obj).__name__} {obj.uid} is already on the blackboard")
+        self.ops.append((ADD, obj, ()))
+        self._staged[obj.uid] = obj
+        return obj
+
+    def change(self, obj: BBObject, reports: Any = ()) -> BBObject:
+        """Stage a new version of an object already on the blackboard."""
+        self._check_open()
+        if not isinstance(obj, BBObject):
+            raise TransactionError(f"change: expected a BBObject, got {type(obj).__name__}")
+        if not self._exists(obj.uid):
+            raise TransactionError(f"change: {type(obj).__name__} {obj.uid} is not on the blackboard")
+        reps = (reports,) if isinstance(reports, str) else tuple(reports)
+        self.ops.append((CHANGE, obj, reps))
+        self._staged[obj.uid] = obj
+        return obj
+
+    def remove(self, obj: BBObject | str) -> None:
+        """Stage the removal of an object (or uid) that is on the blackboard."""
+        self._check_open()
+        uid = obj if isinstance(obj, str) else obj.uid
+        if not self._exists(uid):
+            raise TransactionError(f"remove: {uid} is not on the blackboard")
+        current = self._staged.get(uid) or self._board.get(uid)
+        assert current is not None
+        self.ops.append((REMOVE, current, ()))
+        self._staged[uid] = None
+
+    def commit(self) -> None:
+        """Apply every staged publication at once, in order, and wake the subscribers."""
+        self._check_open()
+        self.closed = True
+        if self.ops:
+            self._board._commit(self.ops)
+
+    def abort(self) -> None:
+        """Drop everything staged."""
+        self.closed = True
+        self.ops = []
+
+    def __enter__(self) -> Transaction:
+        return self
+
+    def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> None:
+        if exc_type is None:
+            self.commit()
+        else:
+            self.abort()
+
+
+class Blackboard:
+    """Objects by uid, shared by the plugins of one agent."""
+
+    def __init__(self, name: str = "agent"):
+        self.name = name
+        self._lock = threading.Lock()
+        self._objects: dict[str, BBObject] = {}
+        self._by_type: dict[type, list[Subscription[Any]]] = {}
+        self._general: list[Subscription[Any]] = []
+        self._listeners: list[Callable[[list[Op]], None]] = []
+        self.signal: Callable[[Plugin], None] = lambda plugin: None
+        self.commits = 0
+
+    def contains(self, uid: str) -> bool:
+        """Return True when an object with this uid is on the blackboard."""
+        return uid in self._objects
+
+    def get(self, uid: str) -> BBObject | None:
+        """Return the committed object with this uid, or None."""
+        return self._objects.get(uid)
+
+    def __len__(self) -> int:
+        return len(self._objects)
+
+    def query(self, kind: type | Callable[[Any], bool] | None = None,
+              where: Callable[[Any], bool] | None = None) -> list[Any]:
+        """Return a snapshot list of the committed objects matching a type and/or predicate."""
+        sub: Subscription[Any] = _make_subscription(None, kind, where)
+        with self._lock:
+            objects = list(self._objects.values())
+        return [o for o in objects if sub._safe_match(o)]
+
+    def transaction(self, label: str = "") -> Transaction:
+        """Open a transaction (use as a context manager: commit on success, nothing on error)."""
+        return Transaction(self, label)
+
+    def subscribe(self, owner: Plugin | None, kind: type | Callable[[Any], bool] | None = None,
+                  where: Callable[[Any], bool] | None = None) -> Subscription[Any]:
+        """Create a subscription; the objects already here arrive as its first `added`."""
+        sub: Subscription[Any] = _make_subscription(owner, kind, where)
+        with self._lock:
+            if sub._kind is not None:
+                self._by_type.setdefault(sub._kind, []).append(sub)
+            else:
+                self._general.append(sub)
+            for obj in self._objects.values():
+                sub._offer(ADD, obj, ())
+            pending = bool(sub._inbox)
+        if pending and owner is not None:
+            self.signal(owner)
+        return sub
+
+    def unsubscribe(self, sub: Subscription[Any]) -> None:
+        """Stop delivering events to a subscription."""
+        with self._lock:
+            for subs in (self._by_type.get(sub._kind, []) if sub._kind else self._general,):
+                if sub in subs:
+                    subs.remove(sub)
+
+    def add_listener(self, fn: Callable[[list[Op]], None]) -> None:
+        """Call `fn(ops)` after every commit, in commit order (journals, recorders, transport)."""
+        self._listeners.append(fn)
+
+    def _subscriptions_for(self, obj: BBObject) -> list[Subscription[Any]]:
+        subs: list[Subscription[Any]] = []
+        for cls in type(obj).__mro__:
+            found = self._by_type.get(cls)
+            if found:
+                subs.extend(found)
+        subs.extend(self._general)
+        return subs
+
+    def _commit(self, ops: list[Op]) -> None:
+        owners: dict[int, Plugin] = {}
+        with self._lock:
+            # validate everything first so a conflicting commit publishes nothing
+            state: dict[str, bool] = {}
+            for kind, obj, _ in ops:
+                present = state.get(obj.uid, obj.uid in self._objects)
+                if kind == ADD and present:
+                    raise TransactionError(f"commit: {obj.uid} was added by another transaction")
+                if kind != ADD and not present:
+                    raise TransactionError(f"commit: {obj.uid} was removed by another transaction")
+                state[obj.uid] = kind != REMOVE
+            for kind, obj, reports in ops:
+                if kind == REMOVE:
+                    self._objects.pop(obj.uid, None)
+                else:
+                    self._objects[obj.uid] = obj
+                for sub in self._subscriptions_for(obj):
+                    if sub._offer(kind, obj, reports) and sub._owner is not None:
+                        owners[id(sub._owner)] = sub._owner
+            self.commits += 1
+            for listener in self._listeners:
+                listener(ops)
+        for owner in owners.values():
+            self.signal(owner)
+
+    def _drain(self, subs: list[Subscription[Any]]) -> list[list[tuple[str, BBObject, tuple[Any, ...]]]]:
+        """Take each subscription's inbox atomically (the start of its owner's run)."""
+        with self._lock:
+            inboxes = [s._inbox for s in subs]
+            for s in subs:
+                s._inbox = []
+        return inboxes
+
+
+def _make_subscription(owner: Plugin | None, kind: type | Callable[[Any], bool] | None,
+                       where: Callable[[Any], bool] | None) -> Subscription[Any]:
+    if kind is None or isinstance(kind, type):
+        return Subscription(owner, kind, where)
+    if callable(kind):
+        if where is not None:
+            raise TypeError("subscribe(predicate) takes no `where`; combine the two predicates")
+        return Subscription(owner, None, kind)
+    raise TypeError(f"subscribe: expected a type or a predicate, got {kind!r}")

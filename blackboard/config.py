@@ -1,0 +1,122 @@
+"""Agent configuration: a TOML file validated with pydantic; errors read `FILE: field.path: message`."""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from blackboard.agent import Agent, resolve_plugin, validate_settings
+from blackboard.errors import ConfigError, PluginError
+
+
+class AgentSection(BaseModel):
+    """The `[agent]` table."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    name: str = Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,62}$",
+                      description="agent name: letters, digits, '_', '.', '-'")
+    workers: int = Field(4, ge=1, le=64, description="worker threads that run plugins")
+    slow_plugin_seconds: float = Field(1.0, gt=0, description="report plugin runs longer than this")
+    log_level: str = Field("INFO", pattern=r"^(DEBUG|INFO|WARNING|ERROR)$")
+
+
+class PluginSection(BaseModel):
+    """One `[[plugin]]` table."""
+
+    model_config = ConfigDict(extra="forbid", populate_by_name=True)
+
+    class_: str = Field(alias="class", description="'module:Class' or an entry point name")
+    name: str | None = None
+    enabled: bool = True
+    settings: dict[str, Any] = Field(default_factory=dict)
+
+
+class AgentConfig(BaseModel):
+    """A whole agent config file."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    agent: AgentSection
+    plugin: list[PluginSection] = Field(default_factory=list)
+
+
+def _where(loc: tuple[Any, ...], config: AgentConfig | None = None) -> str:
+    parts: list[str] = []
+    for i, p in enumerate(loc):
+        if isinstance(p, int) and parts:
+            parts[-1] += f"[{p}]"
+        else:
+            parts.append(str(p))
+    return ".".join(parts)
+
+
+def format_errors(source: str, err: ValidationError, prefix: str = "") -> str:
+    """Return one `FILE: field.path: message` line per problem."""
+    lines = []
+    for e in err.errors():
+        where = _where(tuple(e["loc"]))
+        where = f"{prefix}.{where}" if prefix and where else (prefix or where)
+        if e["type"] == "missing":
+            msg = "missing (required)"
+        elif e["type"] == "extra_forbidden":
+            msg = "unknown key"
+        else:
+            msg = f"{e['msg']} (got {e.get('input')!r})"
+        lines.append(f"{source}: {where}: {msg}")
+    return "\n".join(lines)
+
+
+def parse_config(text: str, source: str = "<config>") -> AgentConfig:
+    """Parse and validate config text (raises ConfigError)."""
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as err:
+        raise ConfigError(f"{source}: invalid TOML: {err}") from None
+    try:
+        return AgentConfig.model_validate(data)
+    except ValidationError as err:
+        raise ConfigError(format_errors(source, err)) from None
+
+
+def read_config(path: str | Path) -> AgentConfig:
+    """Read and validate a config file (raises ConfigError)."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as err:
+        raise ConfigError(f"{path}: cannot read: {err.strerror or err}") from None
+    except UnicodeDecodeError:
+        raise ConfigError(f"{path}: not UTF-8 text; expected a TOML file") from None
+    return parse_config(text, str(path))
+
+
+def build_agent(config: AgentConfig, source: str = "<config>") -> Agent:
+    """Make an agent from a validated config; plugin errors raise ConfigError."""
+    agent = Agent(config.agent.name, workers=config.agent.workers,
+                  slow_plugin_seconds=config.agent.slow_plugin_seconds)
+    for i, section in enumerate(config.plugin):
+        here = f"plugin[{i}]"
+        if not section.enabled:
+            continue
+        try:
+            cls = resolve_plugin(section.class_)
+        except PluginError as err:
+            raise ConfigError(f"{source}: {here}.class: {err}") from None
+        try:
+            settings = validate_settings(cls, section.settings)
+        except ValidationError as err:
+            raise ConfigError(format_errors(source, err, f"{here}.settings")) from None
+        try:
+            agent.add_plugin(cls, settings, name=section.name)
+        except PluginError as err:
+            raise ConfigError(f"{source}: {here}: {err}") from None
+    return agent
+
+
+def load_agent(path: str | Path) -> Agent:
+    """Read a config file and build its agent (raises ConfigError)."""
+    return build_agent(read_config(path), str(path))

@@ -1,0 +1,170 @@
+"""The plugin base class: subscriptions, publishing, wake-ups and hand-offs from other threads."""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections import deque
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from typing import TYPE_CHECKING, Any, ClassVar
+
+from pydantic import BaseModel, ConfigDict
+
+from blackboard.blackboard import Subscription, Transaction
+from blackboard.errors import TransactionError
+from blackboard.objects import BBObject
+
+if TYPE_CHECKING:
+    from blackboard.agent import Agent
+
+
+class NoSettings(BaseModel):
+    """Settings of a plugin that takes none."""
+
+    model_config = ConfigDict(extra="forbid")
+
+
+class Plugin:
+    """Base of every plugin: override `setup()`, `execute()` and, if needed, `teardown()`.
+
+    `setup()` and `execute()` run inside a transaction opened by the agent; any other
+    thread of the plugin publishes inside `with self.transaction():` or hands work over
+    with `self.later(fn)`.
+    """
+
+    Settings: ClassVar[type[BaseModel]] = NoSettings
+
+    def __init__(self) -> None:
+        self.name = type(self).__name__
+        self.agent_name = ""
+        self.settings: Any = None
+        self.log = logging.getLogger(f"erni.plugin.{self.name}")
+        self._agent: Agent | None = None
+        self._subs: list[Subscription[Any]] = []
+        self._local = threading.local()
+        self._later: deque[Callable[[], Any]] = deque()
+        self._in_setup = False
+        # scheduling state, guarded by _sched_lock (owned by the agent's scheduler)
+        self._sched_lock = threading.Lock()
+        self._scheduled = False
+        self._running = False
+        self._dirty = False
+        self._woken = False
+        self._disabled = False
+        self._run_started = 0.0
+        self._slow_reported = False
+        self.runs = 0
+        self.failures = 0
+
+    # -- to override ----------------------------------------------------------------------
+
+    def setup(self) -> None:
+        """Make subscriptions and publish initial objects (inside a transaction)."""
+
+    def execute(self) -> None:
+        """React to subscription deltas and wake-ups (inside a transaction)."""
+
+    def teardown(self) -> None:
+        """Stop and join the plugin's own threads (outside any transaction)."""
+
+    # -- subscriptions ----------------------------------------------------------------------
+
+    def subscribe(self, kind: type | Callable[[Any], bool],
+                  where: Callable[[Any], bool] | None = None) -> Subscription[Any]:
+        """Subscribe to a type and/or predicate; only allowed in `setup()`."""
+        if not self._in_setup:
+            raise TransactionError(f"{self.name}: subscribe() is only allowed in setup()")
+        sub = self._board.subscribe(self, kind, where)
+        self._subs.append(sub)
+        return sub
+
+    def query(self, kind: type | Callable[[Any], bool] | None = None,
+              where: Callable[[Any], bool] | None = None) -> list[Any]:
+        """Return a snapshot of the committed objects matching a type and/or predicate."""
+        return self._board.query(kind, where)
+
+    # -- publishing -----------------------------------------------------------------------
+
+    def _tx(self, verb: str) -> Transaction:
+        tx: Transaction | None = getattr(self._local, "tx", None)
+        if tx is None or tx.closed:
+            raise TransactionError(
+                f"{self.agent_name}/{self.name}: {verb}() outside a transaction; publish in "
+                "setup()/execute() or inside `with self.transaction():`"
+            )
+        return tx
+
+    def add(self, obj: BBObject) -> BBObject:
+        """Publish a new object (visible to others when the transaction commits)."""
+        return self._tx("add").add(obj)
+
+    def change(self, obj: BBObject, reports: Any = ()) -> BBObject:
+        """Publish a new version of an object, with optional change reports."""
+        return self._tx("change").change(obj, reports)
+
+    def remove(self, obj: BBObject | str) -> None:
+        """Remove an object (for a task: cancel it)."""
+        self._tx("remove").remove(obj)
+
+    @contextmanager
+    def transaction(self) -> Iterator[Transaction]:
+        """Open a transaction on the calling thread; commit on success, publish nothing on error."""
+        if getattr(self._local, "tx", None) is not None and not self._local.tx.closed:
+            yield self._local.tx  # already inside one on this thread: join it
+            return
+        tx = self._board.transaction(f"{self.agent_name}/{self.name}")
+        self._local.tx = tx
+        try:
+            yield tx
+        except BaseException:
+            tx.abort()
+            raise
+        else:
+            tx.commit()
+        finally:
+            self._local.tx = None
+
+    # -- wake-ups and hand-offs -----------------------------------------------------------
+
+    def wake(self) -> None:
+        """Ask for one more run of `execute()` soon."""
+        self._woken = True
+        self._signal()
+
+    def wake_in(self, seconds: float) -> Any:
+        """Run `execute()` once after `seconds`; returns a handle with `cancel()`."""
+        return self._require_agent().timers.schedule(self, seconds, None)
+
+    def wake_every(self, seconds: float) -> Any:
+        """Run `execute()` every `seconds`; returns a handle with `cancel()`."""
+        if seconds <= 0:
+            raise ValueError(f"wake_every: period must be > 0 s, got {seconds}")
+        return self._require_agent().timers.schedule(self, seconds, seconds)
+
+    def later(self, fn: Callable[[], Any]) -> None:
+        """Run `fn()` at the start of the next `execute()`, inside its transaction."""
+        self._later.append(fn)
+        self._signal()
+
+    # -- internals ------------------------------------------------------------------------
+
+    @property
+    def _board(self) -> Any:
+        return self._require_agent().blackboard
+
+    def _require_agent(self) -> Agent:
+        if self._agent is None:
+            raise TransactionError(f"{self.name}: plugin is not part of an agent yet")
+        return self._agent
+
+    def _signal(self) -> None:
+        if self._agent is not None:
+            self._agent.scheduler.signal(self)
+
+    def _bind(self, agent: Agent, name: str, settings: Any) -> None:
+        self._agent = agent
+        self.name = name
+        self.agent_name = agent.name
+        self.settings = settings
+        self.log = logging.getLogger(f"erni.{agent.name}.{name}")

@@ -1,0 +1,54 @@
+"""`erni agent CONFIG`: run one agent until SIGINT or SIGTERM."""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+import threading
+from typing import Any
+
+from blackboard.config import build_agent, read_config
+from blackboard.errors import ConfigError
+from erni.logs import setup_logging
+
+
+def register(sub: Any) -> None:
+    """Add the `agent` sub-command."""
+    p = sub.add_parser("agent", help="run one agent from a TOML config until Ctrl-C",
+                       description="Run one agent (robot or control node) from a TOML config.")
+    p.add_argument("config", help="agent config file (TOML)")
+    p.add_argument("--log-level", choices=["DEBUG", "INFO", "WARNING", "ERROR"],
+                   help="override the config's [agent] log_level")
+    p.add_argument("--check", action="store_true", help="validate the config and exit")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Load the config, start the agent, wait for a signal, stop cleanly."""
+    try:
+        config = read_config(args.config)
+        agent = build_agent(config, args.config)
+    except ConfigError as err:
+        print(err, file=sys.stderr)
+        return 2
+    if args.check:
+        print(f"{args.config}: ok (agent {config.agent.name}, "
+              f"{len(agent.plugins)} plugin(s): {', '.join(p.name for p in agent.plugins)})")
+        return 0
+    setup_logging(args.log_level or config.agent.log_level)
+    stop = threading.Event()
+
+    def on_signal(signum: int, frame: Any) -> None:
+        stop.set()
+
+    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        agent.start()
+        while not stop.wait(0.5):
+            pass
+    finally:
+        agent.stop()
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+    return 0
