@@ -1,0 +1,303 @@
+"""The ARCOS / P2OS wire protocol, client side: framing, checksums, commands and SIP decoding.
+
+Sans-I/O: `encode_command` turns a command into bytes, `PacketReader` turns any byte stream
+(line noise included) into checksummed packets and counts what it had to skip, and
+`parse_sip` decodes a server information packet into raw integer fields. Unit conversion
+(mm, rad, m/s) lives in the driver with the robot model's conversion factors.
+"""
+
+from __future__ import annotations
+
+import enum
+import struct
+from dataclasses import dataclass, field
+
+HEADER = b"\xfa\xfb"
+MAX_COUNT = 249  # the count byte: ID + args + checksum; real robots stay below ~200
+
+ARG_INT = 0x3B  # a positive 16-bit integer follows
+ARG_NINT = 0x1B  # the absolute value of a negative 16-bit integer follows
+ARG_STR = 0x2B  # a length byte, the characters, a NUL
+
+
+class Cmd(enum.IntEnum):
+    """ARCOS client command numbers (the packet ID byte)."""
+
+    PULSE = 0
+    SYNC0 = 0
+    OPEN = 1
+    SYNC1 = 1
+    CLOSE = 2
+    SYNC2 = 2
+    POLLING = 3
+    ENABLE = 4
+    SETA = 5
+    SETV = 6
+    SETO = 7
+    MOVE = 8
+    ROTATE = 9
+    SETRV = 10
+    VEL = 11
+    HEAD = 12
+    DHEAD = 13
+    SAY = 15
+    CONFIG = 18
+    RVEL = 21
+    SETRA = 23
+    SONAR = 28
+    STOP = 29
+    DIGOUT = 30
+    VEL2 = 32
+    BUMPSTALL = 44
+    HOSTBAUD = 50
+    ESTOP = 55
+    SIM_SET_POSE = 224
+    SIM_RESET = 225
+
+
+SIP_STOPPED = 0x32
+SIP_MOVING = 0x33
+CONFIG_REPLY = 0x20
+
+
+class ProtocolError(ValueError):
+    """A packet or argument does not fit the ARCOS wire format."""
+
+
+def checksum(body: bytes) -> int:
+    """Return the ARCOS checksum of `body` (ID byte through last argument byte)."""
+    total = 0
+    n = len(body)
+    for i in range(0, n - 1, 2):
+        total = (total + ((body[i] << 8) | body[i + 1])) & 0xFFFF
+    if n % 2:
+        total ^= body[-1]
+    return total
+
+
+def frame(body: bytes) -> bytes:
+    """Wrap `body` (ID byte + arguments) into a complete packet with header, count and checksum."""
+    if not body:
+        raise ProtocolError("packet body is empty; expected at least the ID byte")
+    count = len(body) + 2
+    if count > MAX_COUNT:
+        raise ProtocolError(f"packet body of {len(body)} bytes is too long; expected <= {MAX_COUNT - 2}")
+    return HEADER + bytes([count]) + body + struct.pack(">H", checksum(body))
+
+
+def int_arg(value: int) -> bytes:
+    """Encode a signed integer argument (`0x3B` + little-endian value or `0x1B` + magnitude)."""
+    value = int(value)
+    if not -0xFFFF <= value <= 0xFFFF:
+        raise ProtocolError(f"integer argument {value} out of range; expected -65535..65535")
+    if value >= 0:
+        return bytes([ARG_INT]) + struct.pack("<H", value)
+    return bytes([ARG_NINT]) + struct.pack("<H", -value)
+
+
+def str_arg(text: bytes | str) -> bytes:
+    """Encode a string argument (`0x2B`, length byte, characters, NUL)."""
+    data = text.encode("latin-1") if isinstance(text, str) else bytes(text)
+    if len(data) > 200:
+        raise ProtocolError(f"string argument of {len(data)} bytes too long; expected <= 200")
+    return bytes([ARG_STR, len(data)]) + data + b"\x00"
+
+
+def encode_command(cmd: int, arg: int | bytes | str | None = None) -> bytes:
+    """Return the packet for command `cmd` with no argument, an integer or a string argument."""
+    if not 0 <= int(cmd) <= 255:
+        raise ProtocolError(f"command number {cmd} out of range; expected 0..255")
+    if arg is None:
+        body = bytes([int(cmd)])
+    elif isinstance(arg, (bytes, str)):
+        body = bytes([int(cmd)]) + str_arg(arg)
+    else:
+        body = bytes([int(cmd)]) + int_arg(arg)
+    return frame(body)
+
+
+def encode_ints(cmd: int, *values: int) -> bytes:
+    """Return a packet carrying several integer arguments (SIM_SET_POSE: x, y, th)."""
+    return frame(bytes([int(cmd)]) + b"".join(int_arg(v) for v in values))
+
+
+def decode_args(body: bytes) -> list[int | bytes]:
+    """Decode the typed arguments after the ID byte; raise ProtocolError on a malformed one."""
+    args: list[int | bytes] = []
+    i = 1
+    while i < len(body):
+        kind = body[i]
+        if kind in (ARG_INT, ARG_NINT):
+            if i + 3 > len(body):
+                raise ProtocolError(f"integer argument truncated at byte {i}")
+            value = body[i + 1] | (body[i + 2] << 8)
+            args.append(value if kind == ARG_INT else -value)
+            i += 3
+        elif kind == ARG_STR:
+            if i + 2 > len(body) or i + 2 + body[i + 1] > len(body):
+                raise ProtocolError(f"string argument truncated at byte {i}")
+            n = body[i + 1]
+            args.append(bytes(body[i + 2:i + 2 + n]))
+            i += 2 + n
+            if i < len(body) and body[i] == 0:
+                i += 1
+        else:
+            raise ProtocolError(f"unknown argument type 0x{kind:02X} at byte {i}; expected 0x3B, 0x1B or 0x2B")
+    return args
+
+
+@dataclass
+class ReaderStats:
+    """What a PacketReader has seen: good packets and everything it skipped."""
+
+    packets: int = 0
+    bytes_skipped: int = 0
+    bad_checksum: int = 0
+    bad_count: int = 0
+
+    @property
+    def errors(self) -> int:
+        """Packets or bytes that had to be dropped."""
+        return self.bad_checksum + self.bad_count + (1 if self.bytes_skipped else 0)
+
+
+class PacketReader:
+    """Turns a byte stream into packet bodies (ID + args); skips and counts anything malformed."""
+
+    def __init__(self) -> None:
+        self._buf = bytearray()
+        self.stats = ReaderStats()
+
+    def feed(self, data: bytes) -> list[bytes]:
+        """Add bytes from the wire; return every complete, checksum-valid packet body found."""
+        self._buf += data
+        out: list[bytes] = []
+        buf = self._buf
+        while True:
+            start = buf.find(HEADER)
+            if start < 0:
+                keep = 1 if buf[-1:] == b"\xfa" else 0
+                self.stats.bytes_skipped += len(buf) - keep
+                del buf[:len(buf) - keep]
+                break
+            if start:
+                self.stats.bytes_skipped += start
+                del buf[:start]
+            if len(buf) < 3:
+                break
+            count = buf[2]
+            if count < 3 or count > MAX_COUNT:
+                self.stats.bad_count += 1
+                del buf[:2]  # resynchronise on the next header
+                continue
+            if len(buf) < 3 + count:
+                break
+            body = bytes(buf[3:1 + count])
+            (check,) = struct.unpack(">H", buf[1 + count:3 + count])
+            if checksum(body) != check:
+                self.stats.bad_checksum += 1
+                del buf[:2]  # a header inside the bad packet may start a good one
+                continue
+            del buf[:3 + count]
+            self.stats.packets += 1
+            out.append(body)
+        return out
+
+    def reset(self) -> None:
+        """Drop any partial packet (after a reconnect)."""
+        self._buf.clear()
+
+
+@dataclass
+class RawSip:
+    """A decoded standard SIP in wire units (before conversion factors)."""
+
+    moving: bool
+    xpos: int
+    ypos: int
+    thpos: int
+    lvel: int
+    rvel: int
+    battery: int
+    stall_bumpers: int
+    control: int
+    flags: int
+    compass: int
+    sonar: dict[int, int] = field(default_factory=dict)
+    grip: int | None = None
+    anport: int | None = None
+    analog: int | None = None
+    digin: int | None = None
+    digout: int | None = None
+    battery_x10: int | None = None
+    charge_stage: int | None = None
+    rotvel: int | None = None
+    fault_flags: int | None = None
+
+    @property
+    def stall_left(self) -> bool:
+        """Left wheel stalled (bit 0)."""
+        return bool(self.stall_bumpers & 0x0001)
+
+    @property
+    def stall_right(self) -> bool:
+        """Right wheel stalled (bit 8)."""
+        return bool(self.stall_bumpers & 0x0100)
+
+    @property
+    def bumpers(self) -> int:
+        """Front bumpers in bits 0-6, rear bumpers in bits 7-13."""
+        return ((self.stall_bumpers >> 1) & 0x7F) | (((self.stall_bumpers >> 9) & 0x7F) << 7)
+
+    @property
+    def motors_enabled(self) -> bool:
+        """Motors are enabled (FLAGS bit 0)."""
+        return bool(self.flags & 0x0001)
+
+
+_SIP_HEAD = struct.Struct("<HHhhhBHhHB")  # xpos ypos thpos lvel rvel battery stallbump control flags compass
+_TAIL = [("grip", "B"), ("anport", "B"), ("analog", "B"), ("digin", "B"), ("digout", "B"),
+         ("battery_x10", "H"), ("charge_stage", "B"), ("rotvel", "h"), ("fault_flags", "H")]
+
+
+def is_sip(body: bytes) -> bool:
+    """True for a standard SIP (ID 0x32 stopped or 0x33 moving)."""
+    return bool(body) and body[0] in (SIP_STOPPED, SIP_MOVING)
+
+
+def parse_sip(body: bytes) -> RawSip:
+    """Decode a standard SIP body (ID byte first); raise ProtocolError if it is truncated."""
+    if not is_sip(body):
+        raise ProtocolError(f"packet ID 0x{body[0]:02X} is not a SIP; expected 0x32 or 0x33")
+    need = 1 + _SIP_HEAD.size + 1
+    if len(body) < need:
+        raise ProtocolError(f"SIP of {len(body)} bytes truncated; expected at least {need}")
+    fields = _SIP_HEAD.unpack_from(body, 1)
+    i = 1 + _SIP_HEAD.size
+    count = body[i]
+    i += 1
+    if len(body) < i + 3 * count:
+        raise ProtocolError(f"SIP announces {count} sonar readings but only {(len(body) - i) // 3} fit")
+    sonar = {}
+    for _ in range(count):
+        num, rng = struct.unpack_from("<BH", body, i)
+        sonar[num] = rng
+        i += 3
+    sip = RawSip(body[0] == SIP_MOVING, *fields, sonar=sonar)
+    for name, fmt in _TAIL:
+        size = struct.calcsize(fmt)
+        if len(body) < i + size:
+            break
+        (value,) = struct.unpack_from("<" + fmt, body, i)
+        setattr(sip, name, value)
+        i += size
+    return sip
+
+
+def parse_sync2(body: bytes) -> tuple[str, str, str]:
+    """Return (name, class, subclass) from a SYNC2 reply; missing strings are empty."""
+    parts = bytes(body[1:]).split(b"\x00")
+    names = [p.decode("latin-1", "replace") for p in parts[:3]]
+    while len(names) < 3:
+        names.append("")
+    return names[0], names[1], names[2]
