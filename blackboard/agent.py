@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import heapq
 import importlib
 import itertools
@@ -370,13 +371,25 @@ def resolve_plugin(spec: type[Plugin] | str) -> type[Plugin]:
 
 
 def validate_settings(cls: type[Plugin], settings: dict[str, Any] | BaseModel | None) -> BaseModel:
-    """Validate a plugin's settings against its `Settings` model (raises ValidationError)."""
+    """Validate a plugin's settings against its `Settings` model (raises ValidationError).
+
+    Unknown keys are refused even when the model itself would ignore them: a typo in a
+    config must not pass silently.
+    """
     model = getattr(cls, "Settings", NoSettings) or NoSettings
     if isinstance(settings, model):
         return settings
     if isinstance(settings, BaseModel):
         settings = settings.model_dump()
-    return model.model_validate(settings or {})
+    return _strict(model).model_validate(settings or {})
+
+
+@functools.lru_cache(maxsize=None)
+def _strict(model: type[BaseModel]) -> type[BaseModel]:
+    if model.model_config.get("extra") is not None:
+        return model
+    return type(model.__name__, (model,), {"model_config": {**model.model_config, "extra": "forbid"},
+                                           "__module__": model.__module__})
 
 
 __all__ = ["Agent", "ENTRY_POINT_GROUP", "Scheduler", "Timers", "ValidationError", "resolve_plugin"]

@@ -1,0 +1,27 @@
+"""Suite-wide guards: every test must join the threads it started."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import pytest
+
+
+def _extra_threads(before: set[threading.Thread]) -> list[threading.Thread]:
+    return [t for t in threading.enumerate() if t not in before and t.is_alive()]
+
+
+@pytest.fixture(autouse=True)
+def no_leaked_threads():
+    """Fail a test that leaves a thread running (after a 2 s grace for joins in progress)."""
+    before = set(threading.enumerate())
+    yield
+    deadline = time.monotonic() + 2.0
+    leaked = _extra_threads(before)
+    while leaked and time.monotonic() < deadline:
+        time.sleep(0.01)
+        leaked = _extra_threads(before)
+    if leaked:
+        names = ", ".join(sorted(t.name for t in leaked))
+        pytest.fail(f"test leaked {len(leaked)} thread(s): {names}", pytrace=False)

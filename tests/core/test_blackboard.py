@@ -1,0 +1,200 @@
+"""Transactions and subscriptions: atomic commits, frozen views, net deltas, change reports."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import pytest
+
+from blackboard import Agent, Plugin, Task, TransactionError
+from blackboard.testing import wait_until
+
+from tests.core.helpers import Item, Recorder
+
+
+@pytest.fixture
+def agent():
+    a = Agent("t", workers=2)
+    yield a
+    a.stop()
+
+
+def test_commit_makes_all_changes_visible_at_once_in_order(agent):
+    rec = agent.add_plugin(Recorder)
+    agent.start()
+    items = [Item(value=i) for i in range(5)]
+    with agent.transaction() as tx:
+        for item in items:
+            tx.add(item)
+        assert agent.query(Item) == []  # nothing visible before commit
+    wait_until(lambda: len(rec.all("added")) == 5)
+    assert len(rec.views) == 1, "the commit arrived as one view"
+    assert [o.value for o in rec.views[0]["added"]] == [0, 1, 2, 3, 4]
+
+
+def test_exception_in_transaction_publishes_nothing(agent):
+    agent.start()
+    with pytest.raises(RuntimeError):
+        with agent.transaction() as tx:
+            tx.add(Item(value=1))
+            raise RuntimeError("boom")
+    assert agent.query(Item) == []
+
+
+def test_publishing_outside_a_transaction_is_an_error(agent):
+    plugin = agent.add_plugin(Recorder)
+    agent.start()
+    with pytest.raises(TransactionError, match="add\\(\\) outside a transaction"):
+        plugin.add(Item())
+    with plugin.transaction():
+        plugin.add(Item())
+    assert len(agent.query(Item)) == 1
+
+
+def test_add_change_remove_are_checked(agent):
+    agent.start()
+    item = Item()
+    with pytest.raises(TransactionError, match="not on the blackboard"):
+        with agent.transaction() as tx:
+            tx.change(item)
+    with agent.transaction() as tx:
+        tx.add(item)
+    with pytest.raises(TransactionError, match="already on the blackboard"):
+        with agent.transaction() as tx:
+            tx.add(item)
+    with pytest.raises(TransactionError, match="expected a BBObject"):
+        with agent.transaction() as tx:
+            tx.add({"uid": "x"})  # type: ignore[arg-type]
+    with agent.transaction() as tx:
+        tx.remove(item)
+    assert agent.query(Item) == []
+
+
+def test_conflicting_commits_publish_nothing():
+    agent = Agent("c")
+    item = Item()
+    tx1, tx2 = agent.blackboard.transaction(), agent.blackboard.transaction()
+    tx1.add(item)
+    tx2.add(Item(value=7))
+    tx2.add(item)  # valid when staged, conflicts at commit
+    tx1.commit()
+    with pytest.raises(TransactionError, match="added by another transaction"):
+        tx2.commit()
+    assert [o.value for o in agent.query(Item)] == [0]
+
+
+def test_view_is_frozen_while_execute_runs():
+    started, release = threading.Event(), threading.Event()
+    seen = {}
+
+    class Slow(Plugin):
+        def setup(self):
+            self.sub = self.subscribe(Item)
+
+        def execute(self):
+            before = {o.uid: o.value for o in self.sub}
+            started.set()
+            release.wait(5)
+            seen.setdefault("before", before)
+            seen.setdefault("after", {o.uid: o.value for o in self.sub})
+            seen.setdefault("added_after", [o.value for o in self.sub.added])
+
+    agent = Agent("f", workers=2)
+    agent.add_plugin(Slow)
+    agent.start()
+    try:
+        item = Item(value=1)
+        with agent.transaction() as tx:
+            tx.add(item)
+        started.wait(5)
+        with agent.transaction() as tx:
+            tx.change(item.evolve(value=2))
+            tx.add(Item(value=3))
+        release.set()
+        wait_until(lambda: "added_after" in seen)
+        assert seen["before"] == seen["after"] == {item.uid: 1}
+        assert seen["added_after"] == [1]
+    finally:
+        release.set()
+        agent.stop()
+
+
+def test_deltas_are_net_since_the_last_run_with_reports(agent):
+    rec = agent.add_plugin(Recorder)
+    keep, gone, brief = Item(value=1), Item(value=2), Item(value=3)
+    with agent.transaction() as tx:
+        tx.add(keep)
+        tx.add(gone)
+    agent.start()  # objects already present arrive as the first `added`
+    wait_until(lambda: rec.views)
+    assert {o.uid for o in rec.views[0]["added"]} == {keep.uid, gone.uid}
+    # between two runs: change keep twice, remove gone, add then remove brief
+    with agent.transaction() as tx:
+        tx.change(keep.evolve(value=10), reports="first")
+        tx.change(keep.evolve(value=11), reports=["second", "third"])
+        tx.remove(gone)
+        tx.add(brief)
+        tx.remove(brief)
+    wait_until(lambda: len(rec.views) >= 2)
+    view = rec.views[1]
+    assert [o.value for o in view["changed"]] == [11]
+    assert view["reports"][keep.uid] == ["first", "second", "third"]
+    assert [o.uid for o in view["removed"]] == [gone.uid]
+    assert view["added"] == []
+    assert set(view["members"]) == {keep.uid}
+
+
+def test_predicate_subscriptions_follow_membership_changes(agent):
+    class Big(Recorder):
+        where = staticmethod(lambda o: o.value >= 10)
+
+    rec = agent.add_plugin(Big)
+    agent.start()
+    item = Item(value=1)
+    with agent.transaction() as tx:
+        tx.add(item)
+    with agent.transaction() as tx:
+        tx.change(item.evolve(value=20))  # starts matching: an add
+    wait_until(lambda: rec.all("added"))
+    with agent.transaction() as tx:
+        tx.change(item.evolve(value=5))  # stops matching: a remove
+    wait_until(lambda: rec.all("removed"))
+    assert [o.value for o in rec.all("added")] == [20]
+    assert [o.value for o in rec.all("removed")] == [5]
+
+
+def test_callable_subscription_and_query(agent):
+    class Tasks(Recorder):
+        kind = staticmethod(lambda o: isinstance(o, Task) and o.verb == "BotMotion")
+
+    rec = agent.add_plugin(Tasks)
+    agent.start()
+    with agent.transaction() as tx:
+        tx.add(Task(verb="BotMotion", preposition="stop"))
+        tx.add(Task(verb="NetWatch", preposition="neighbor_list"))
+        tx.add(Item())
+    wait_until(lambda: rec.all("added"))
+    assert [t.verb for t in rec.all("added")] == ["BotMotion"]
+    assert len(agent.query(Task)) == 2
+    assert len(agent.query(Task, where=lambda t: t.verb == "NetWatch")) == 1
+
+
+def test_subscribe_outside_setup_is_refused(agent):
+    plugin = agent.add_plugin(Recorder)
+    agent.start()
+    with pytest.raises(TransactionError, match="only allowed in setup"):
+        plugin.subscribe(Item)
+
+
+def test_listeners_see_every_commit_in_order(agent):
+    seen = []
+    agent.blackboard.add_listener(lambda ops: seen.append([(k, o.value) for k, o, _ in ops]))
+    agent.start()
+    item = Item(value=1)
+    with agent.transaction() as tx:
+        tx.add(item)
+    with agent.transaction() as tx:
+        tx.change(item.evolve(value=2))
+        tx.remove(item)
+    assert seen == [[("add", 1)], [("change", 2), ("remove", 2)]]

@@ -1,0 +1,177 @@
+"""Scheduling, wake-ups, hand-offs, isolation and shutdown of the agent host."""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+
+import pytest
+
+from blackboard import Agent, Plugin
+from blackboard.testing import wait_until
+
+from tests.core.helpers import Item, Recorder, Sleeper
+
+
+def test_execute_runs_only_with_news():
+    agent = Agent("s")
+    rec = agent.add_plugin(Recorder)
+    agent.start()
+    try:
+        with agent.transaction() as tx:
+            tx.add(Item())
+        wait_until(lambda: rec.runs == 1)
+        agent.scheduler.signal(rec)  # a signal with no delta and no wake-up
+        time.sleep(0.05)
+        assert rec.runs == 1
+    finally:
+        agent.stop()
+
+
+def test_plugin_never_runs_concurrently_and_signals_coalesce():
+    agent = Agent("s", workers=4)
+    sleeper = agent.add_plugin(Sleeper)
+    agent.start()
+    try:
+        sleeper.wake()
+        wait_until(lambda: sleeper.active == 1)
+        for _ in range(20):  # 20 signals during one run ...
+            sleeper.wake()
+        wait_until(lambda: sleeper.count == 2 and sleeper.active == 0)
+        time.sleep(sleeper.delay * 3)
+        assert sleeper.count == 2, "... cause exactly one more run"
+        assert sleeper.max_active == 1
+    finally:
+        agent.stop()
+
+
+def test_worker_pool_runs_plugins_in_parallel():
+    agent = Agent("p", workers=3)
+    sleepers = [agent.add_plugin(Sleeper, name=f"s{i}") for i in range(3)]
+    barrier = threading.Barrier(3, timeout=5)
+    for s in sleepers:
+        s.execute = lambda: barrier.wait()  # type: ignore[method-assign]
+    agent.start()
+    try:
+        for s in sleepers:
+            s.wake()
+        wait_until(lambda: all(s.runs == 1 for s in sleepers))
+        assert all(s.failures == 0 for s in sleepers), "three plugins met at the barrier at once"
+    finally:
+        agent.stop()
+
+
+def test_wake_in_and_wake_every():
+    agent = Agent("w")
+    once, periodic = agent.add_plugin(Sleeper, name="once"), agent.add_plugin(Sleeper, name="periodic")
+    once.delay = periodic.delay = 0
+    agent.start()
+    try:
+        once.wake_in(0.05)
+        handle = periodic.wake_every(0.02)
+        wait_until(lambda: once.count == 1 and periodic.count >= 5)
+        handle.cancel()
+        count = periodic.count
+        time.sleep(0.1)
+        assert periodic.count <= count + 1
+        assert once.count == 1
+        with pytest.raises(ValueError, match="period must be > 0"):
+            periodic.wake_every(0)
+    finally:
+        agent.stop()
+
+
+def test_later_runs_inside_the_next_execute_and_can_publish():
+    agent = Agent("l")
+    rec = agent.add_plugin(Recorder)
+    agent.start()
+    try:
+        ran_in: list[str] = []
+
+        def work():
+            ran_in.append(threading.current_thread().name)
+            rec.add(Item(value=42))  # publishing is allowed: we are inside its transaction
+
+        threading.Thread(target=lambda: rec.later(work), name="outside").start()
+        wait_until(lambda: agent.query(Item))
+        assert ran_in and ran_in[0].startswith("erni-l-worker")
+        assert [o.value for o in agent.query(Item)] == [42]
+    finally:
+        agent.stop()
+
+
+def test_exceptions_are_isolated_and_logged_with_names(caplog):
+    class BadSetup(Plugin):
+        def setup(self):
+            raise RuntimeError("no robot here")
+
+    class BadExecute(Recorder):
+        def execute(self):
+            self.add(Item(value=99))
+            raise ValueError("bad math")
+
+    agent = Agent("iso")
+    agent.add_plugin(BadSetup)
+    bad = agent.add_plugin(BadExecute)
+    good = agent.add_plugin(Recorder, name="good")
+    with caplog.at_level(logging.ERROR):
+        agent.start()
+        try:
+            with agent.transaction() as tx:
+                tx.add(Item(value=1))
+            wait_until(lambda: good.runs >= 1 and bad.failures >= 1)
+        finally:
+            agent.stop()
+    text = caplog.text
+    assert "setup() failed in agent iso, plugin BadSetup" in text
+    assert "execute() failed in agent iso, plugin BadExecute" in text
+    assert "bad math" in text and "no robot here" in text
+    assert [o.value for o in agent.query(Item)] == [1], "the failed run published nothing"
+    assert [o.value for o in good.all("added")] == [1]
+
+
+def test_slow_plugin_is_reported(caplog):
+    agent = Agent("slow", slow_plugin_seconds=0.05)
+    sleeper = agent.add_plugin(Sleeper)
+    sleeper.delay = 0.3
+    with caplog.at_level(logging.WARNING):
+        agent.start()
+        try:
+            sleeper.wake()
+            wait_until(lambda: "has been running for" in caplog.text, timeout=3)
+        finally:
+            agent.stop()
+    assert "plugin Sleeper of agent slow" in caplog.text
+
+
+def test_stop_returns_within_one_second_with_threads_joined():
+    agent = Agent("stop", workers=8)
+    for i in range(16):
+        agent.add_plugin(Recorder, name=f"r{i}").kind = Item
+    agent.start()
+    with agent.transaction() as tx:
+        for i in range(100):
+            tx.add(Item(value=i))
+    names = {t.name for t in threading.enumerate() if t.name.startswith("erni-stop")}
+    assert len(names) == 9  # 8 workers and the timer thread
+    t0 = time.monotonic()
+    agent.stop()
+    assert time.monotonic() - t0 < 1.0
+    assert not [t for t in threading.enumerate() if t.name.startswith("erni-stop")]
+
+
+def test_teardown_is_called_outside_transactions():
+    calls = []
+
+    class Owner(Plugin):
+        def teardown(self):
+            calls.append("teardown")
+            with self.transaction():
+                self.add(Item(value=5))  # may still publish in a transaction of its own
+
+    agent = Agent("td")
+    agent.add_plugin(Owner)
+    agent.start()
+    agent.stop()
+    assert calls == ["teardown"] and len(agent.query(Item)) == 1

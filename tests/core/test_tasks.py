@@ -1,0 +1,123 @@
+"""The task language: typed parameters per preposition, clear refusals, results."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from blackboard import AllocationResult, NetInfo, Pose, Task, TaskError, TaskState
+from blackboard.tasks import PREPOSITIONS, VERBS, GotoParams, language_table
+
+
+def test_every_preposition_of_table_2_exists():
+    expected = {
+        "NetWatch": {"node_position", "network_topology", "path_cost", "link_quality", "neighbor_list"},
+        "BotMotion": {"randomwalk", "goto", "stop", "turn", "teleport", "clear", "velocity",
+                      "avoid_obstacles", "forward", "backward"},
+        "RemoteBotMotion": {"randomwalk", "goto", "cancel", "teleport", "forward"},
+    }
+    for verb, preps in expected.items():
+        assert {p for (v, p) in PREPOSITIONS if v == verb} == preps
+    assert set(VERBS) >= set(expected)
+
+
+def test_params_are_typed_by_preposition():
+    task = Task(verb="BotMotion", preposition="goto", params={"x": "1.5", "y": 2}, source="r1")
+    assert isinstance(task.params, GotoParams)
+    assert (task.params.x, task.params.y, task.params.speed) == (1.5, 2.0, 0.3)
+
+
+@pytest.mark.parametrize("data, message", [
+    ({"verb": "BotMotion", "preposition": "goto", "params": {"y": 1}}, "goto: missing 'x'"),
+    ({"verb": "BotMotion", "preposition": "goto", "params": {}}, "goto: missing 'x'; goto: missing 'y'"),
+    ({"verb": "BotMotion", "preposition": "fly"}, "BotMotion: unknown preposition 'fly'"),
+    ({"verb": "Dance", "preposition": "goto"}, "unknown verb 'Dance'"),
+    ({"verb": "BotMotion", "preposition": "forward", "params": {"distance": 1, "speed": -1}},
+     "forward: speed: Input should be greater than 0"),
+    ({"verb": "BotMotion", "preposition": "goto", "params": {"x": 1, "y": 1, "z": 1}},
+     "goto: unknown parameter 'z'"),
+    ({"verb": "BotMotion", "preposition": "turn", "params": {"angle": "left"}},
+     "turn: angle: Input should be a valid number"),
+    ({"verb": "BotMotion", "preposition": "goto", "params": "x=1"},
+     "goto: params: expected a table of parameters"),
+    ({"preposition": "goto"}, "goto: missing 'verb'"),
+])
+def test_invalid_tasks_are_refused_naming_the_field(data, message):
+    with pytest.raises(TaskError) as info:
+        Task(**data)
+    assert str(info.value).startswith(message)
+    with pytest.raises(TaskError) as info:
+        Task.parse(json.dumps(data))
+    assert message.split(";")[0] in str(info.value)
+
+
+def test_preposition_spellings_normalize():
+    for spelling in ("avoid obstacles", "Avoid-Obstacles", "avoid_obstacles"):
+        assert Task(verb="BotMotion", preposition=spelling).preposition == "avoid_obstacles"
+
+
+def test_json_round_trip_keeps_types():
+    task = Task(verb="NetWatch", preposition="path_cost", params={"rate_hz": 2, "destination": "r3"},
+                source="r1", destination="r2", parent="p1")
+    task = task.with_result(TaskState.RUNNING, progress=0.25, values={"pose": {"x": 1.0}, "hops": 3})
+    back = Task.parse(task.model_dump_json())
+    assert back == task
+    assert back.params.destination == "r3"
+    assert back.result.values["hops"] == 3
+
+
+def test_with_result_keeps_unspecified_fields_and_uid():
+    task = Task(verb="BotMotion", preposition="stop")
+    t1 = task.with_result(TaskState.RUNNING, progress=0.5, message="halfway")
+    t2 = t1.with_result(progress=0.75)
+    assert t2.uid == task.uid and t2.state is TaskState.RUNNING
+    assert t2.result.message == "halfway" and t2.result.progress == 0.75
+    assert not t2.done and t2.with_result(TaskState.FAILED).done
+
+
+def test_result_bounds_are_checked():
+    with pytest.raises(ValueError):
+        AllocationResult(progress=1.5)
+    with pytest.raises(ValueError):
+        AllocationResult(confidence=-0.1)
+
+
+def test_objects_are_frozen():
+    pose = Pose(robot="r1", x=1.0)
+    with pytest.raises(ValueError):
+        pose.x = 2.0  # type: ignore[misc]
+    assert pose.uid == "pose:r1" and pose.evolve(x=2.0).uid == "pose:r1"
+
+
+def test_netinfo_carries_typed_network_state():
+    info = NetInfo(node="r1", kind="neighbor_list",
+                   neighbors=[{"name": "r2", "quality": 0.9}], articulation_points=["r1"])
+    assert info.neighbors[0].quality == 0.9
+    with pytest.raises(ValueError):
+        NetInfo(node="r1", kind="neighbor_list", neighbors=[{"name": "r2", "quality": 2}])
+
+
+def test_language_table_lists_every_preposition():
+    table = language_table()
+    for (verb, prep) in PREPOSITIONS:
+        assert f"| {verb} | `{prep}` |" in table
+
+
+@given(x=st.floats(allow_nan=False, allow_infinity=False, width=32),
+       y=st.floats(allow_nan=False, allow_infinity=False, width=32),
+       speed=st.floats(min_value=0.01, max_value=2.0))
+def test_goto_round_trips_any_finite_target(x, y, speed):
+    task = Task(verb="RemoteBotMotion", preposition="goto", params={"x": x, "y": y, "speed": speed})
+    assert Task.parse(task.model_dump_json()).params == task.params
+
+
+@given(st.dictionaries(st.text(max_size=5), st.one_of(st.integers(), st.text(max_size=5), st.none()),
+                       max_size=4))
+def test_random_params_either_validate_or_raise_task_error(params):
+    try:
+        Task(verb="BotMotion", preposition="goto", params=params)
+    except TaskError as err:
+        assert str(err).startswith("goto: ")
