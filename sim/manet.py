@@ -1,0 +1,330 @@
+"""Simulated MANET network subsystem: radio links, neighbours, ETX routing, known positions.
+
+The model is what a proactive link-state MANET (NHDP + OLSRv2 with an ETX-like metric)
+would converge to, computed directly from node positions:
+
+- **Radio.** The delivery ratio of a link is 1 up to `lossless_range`, falls linearly to 0
+  at `comm_range` (R) and is 0 beyond R. Links are symmetric.
+- **Neighbours.** A node hears every node with a delivery ratio > 0; a neighbour is
+  *symmetric* (usable for routing) when the ratio is at least `min_quality`.
+- **Metric.** A link's metric is its ETX (1 / (forward ratio * reverse ratio)) scaled by
+  `METRIC_UNIT` = 1024 into OLSRv2's compressed range (max 16776960); a path's cost is the
+  sum of its link metrics. Routes are Dijkstra on that metric over symmetric links.
+- **Positions as the network knows them.** Each node reports its own position (its SNMP
+  SET, or `set_position()`); the report reaches every node of the reporter's connected
+  component, at once and again whenever the topology changes; partitioned nodes keep
+  what they knew.
+
+`ManetNetwork` is thread-safe: the SNMP agent reads views while a simulator moves nodes.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import math
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import netgraph
+
+METRIC_UNIT = 1024
+MAX_METRIC = 16776960
+
+
+@dataclass(frozen=True)
+class RadioModel:
+    """Link delivery ratio as a function of distance (metres)."""
+
+    comm_range: float
+    lossless_range: float
+    min_quality: float = 0.1
+
+    def __post_init__(self) -> None:
+        if not self.comm_range > 0:
+            raise ValueError(f"radio: comm_range must be > 0 m, got {self.comm_range}")
+        if not 0 <= self.lossless_range <= self.comm_range:
+            raise ValueError(f"radio: lossless_range must be in [0, comm_range={self.comm_range}] m, "
+                             f"got {self.lossless_range}")
+        if not 0 < self.min_quality <= 1:
+            raise ValueError(f"radio: min_quality must be in (0, 1], got {self.min_quality}")
+
+    def quality(self, distance: float) -> float:
+        """Delivery ratio in [0, 1] of a link of length `distance`."""
+        if distance <= self.lossless_range:
+            return 1.0
+        if distance >= self.comm_range:
+            return 0.0
+        return (self.comm_range - distance) / (self.comm_range - self.lossless_range)
+
+
+def link_metric(quality: float) -> int:
+    """OLSRv2 link metric (ETX * METRIC_UNIT, capped at MAX_METRIC) of a symmetric link."""
+    if quality <= 0:
+        return MAX_METRIC
+    return min(MAX_METRIC, round(METRIC_UNIT / (quality * quality)))
+
+
+@dataclass(frozen=True)
+class KnownPosition:
+    """A node position as the network knows it (m, deg) and when it was reported."""
+
+    x: float
+    y: float
+    heading: float = 0.0
+    reported: float = field(default_factory=time.monotonic)
+
+
+@dataclass(frozen=True)
+class NeighborState:
+    """A one-hop neighbour seen by a node."""
+
+    name: str
+    index: int
+    address: str
+    quality: float
+    symmetric: bool
+    metric: int
+
+
+@dataclass(frozen=True)
+class NodeInfo:
+    """A node's identity in the network."""
+
+    name: str
+    index: int
+    address: str
+
+
+@dataclass(frozen=True)
+class NodeView:
+    """What one node's network subsystem knows: the data its SNMP agent serves."""
+
+    node: NodeInfo
+    version: int
+    neighbors: tuple[NeighborState, ...]
+    topology: tuple[tuple[str, str, int], ...]
+    routes: dict[str, netgraph.RouteEntry]
+    positions: dict[str, KnownPosition]
+    known_nodes: tuple[NodeInfo, ...]
+    position_updates: int
+
+
+@dataclass(frozen=True)
+class GroundTruth:
+    """The simulator's truth: true positions, link qualities, components, cut vertices."""
+
+    positions: dict[str, tuple[float, float]]
+    links: dict[frozenset[str], float]
+    symmetric: dict[str, dict[str, int]]
+    components: list[set[str]]
+    articulation_points: set[str]
+
+    def routes(self, name: str) -> dict[str, netgraph.RouteEntry]:
+        """Routing table of `name` over symmetric links (costs in metric units)."""
+        return netgraph.routes_from(self.symmetric, name)
+
+
+class ManetNetwork:
+    """A simulated MANET: add and move nodes, report positions, read per-node views and truth."""
+
+    def __init__(self, radio: RadioModel, subnet: str = "10.0.0.0/16", gps: bool = False) -> None:
+        self.radio = radio
+        self.gps = gps
+        self._net = ipaddress.ip_network(subnet)
+        self._lock = threading.RLock()
+        self._nodes: dict[str, NodeInfo] = {}
+        self._by_address: dict[str, str] = {}
+        self._pos: dict[str, tuple[float, float]] = {}
+        self._known: dict[str, dict[str, KnownPosition]] = {}
+        self._updates: dict[str, int] = {}
+        self._version = 0
+        self._topo_version = 0
+        self._truth: GroundTruth | None = None
+        self._truth_version = -1
+        self._views: dict[str, NodeView] = {}
+
+    # -- building and moving -------------------------------------------------------------
+
+    def add_node(self, name: str, x: float, y: float, heading: float = 0.0) -> NodeInfo:
+        """Add a node at (x, y); its initial position is known to its component."""
+        if not name or not isinstance(name, str):
+            raise ValueError(f"node name must be a non-empty string, got {name!r}")
+        _check_xy(name, x, y)
+        with self._lock:
+            if name in self._nodes:
+                raise ValueError(f"node {name!r} already exists")
+            index = len(self._nodes) + 1
+            if index >= self._net.num_addresses - 1:
+                raise ValueError(f"subnet {self._net} has no address left for node {name!r}")
+            address = str(self._net.network_address + index)
+            info = NodeInfo(name, index, address)
+            self._nodes[name] = info
+            self._by_address[address] = name
+            self._pos[name] = (float(x), float(y))
+            self._known[name] = {}
+            self._updates[name] = 0
+            self._changed()
+            self._report(name, KnownPosition(float(x), float(y), float(heading)))
+            return info
+
+    def move(self, name: str, x: float, y: float) -> None:
+        """Move a node to its new true position (what the simulator's world says)."""
+        self.move_many({name: (x, y)})
+
+    def move_many(self, positions: dict[str, tuple[float, float]]) -> None:
+        """Move several nodes at once (one topology change)."""
+        with self._lock:
+            for name, (x, y) in positions.items():
+                self._require(name)
+                _check_xy(name, x, y)
+            for name, (x, y) in positions.items():
+                self._pos[name] = (float(x), float(y))
+            self._changed()
+            if self.gps:
+                for name, (x, y) in positions.items():
+                    old = self._known[name].get(name)
+                    self._report(name, KnownPosition(float(x), float(y), old.heading if old else 0.0))
+
+    def set_position(self, name: str, x: float, y: float, heading: float = 0.0) -> None:
+        """Record the position node `name` reports about itself (its SNMP SET)."""
+        _check_xy(name, x, y)
+        if not math.isfinite(heading):
+            raise ValueError(f"node {name!r}: heading must be finite, got {heading!r}")
+        with self._lock:
+            self._require(name)
+            self._updates[name] += 1
+            self._report(name, KnownPosition(float(x), float(y), float(heading)))
+            self._version += 1
+            self._views.clear()
+
+    # -- reading --------------------------------------------------------------------------
+
+    @property
+    def version(self) -> int:
+        """Counter bumped by every change (moves, reports)."""
+        return self._version
+
+    def names(self) -> list[str]:
+        """Node names in index order."""
+        with self._lock:
+            return list(self._nodes)
+
+    def info(self, name: str) -> NodeInfo:
+        """Identity (index, address) of a node."""
+        with self._lock:
+            return self._require(name)
+
+    def name_of(self, address: str) -> str | None:
+        """The node name owning `address`, or None."""
+        return self._by_address.get(address)
+
+    def truth(self) -> GroundTruth:
+        """The ground truth of the whole network (cached until the next change)."""
+        with self._lock:
+            if self._truth is None or self._truth_version != self._topo_version:
+                self._truth = self._compute_truth()
+                self._truth_version = self._topo_version
+            return self._truth
+
+    def view(self, name: str) -> NodeView:
+        """What node `name` knows (cached until the next change)."""
+        with self._lock:
+            view = self._views.get(name)
+            if view is not None:
+                return view
+            info = self._require(name)
+            truth = self.truth()
+            comp = next(c for c in truth.components if name in c)
+            neighbors = []
+            for other, o_info in self._nodes.items():
+                if other == name:
+                    continue
+                q = truth.links.get(frozenset((name, other)), 0.0)
+                if q <= 0:
+                    continue
+                sym = other in truth.symmetric[name]
+                neighbors.append(NeighborState(other, o_info.index, o_info.address, q, sym,
+                                               link_metric(q)))
+            topology = tuple(
+                (a, b, m) for a in sorted(comp, key=self._index) for b, m in
+                sorted(truth.symmetric[a].items(), key=lambda kv: self._index(kv[0]))
+            )
+            routes = netgraph.routes_from({n: truth.symmetric[n] for n in comp}, name)
+            known = dict(self._known[name])
+            names = set(comp) | set(known) | {n.name for n in neighbors}
+            view = NodeView(
+                node=info, version=self._version, neighbors=tuple(neighbors), topology=topology,
+                routes=routes, positions=known,
+                known_nodes=tuple(sorted((self._nodes[n] for n in names), key=lambda i: i.index)),
+                position_updates=self._updates[name],
+            )
+            self._views[name] = view
+            return view
+
+    # -- internals ------------------------------------------------------------------------
+
+    def _index(self, name: str) -> int:
+        return self._nodes[name].index
+
+    def _require(self, name: str) -> NodeInfo:
+        try:
+            return self._nodes[name]
+        except KeyError:
+            raise KeyError(f"unknown node {name!r}; known: {', '.join(self._nodes) or 'none'}") from None
+
+    def _changed(self) -> None:
+        self._version += 1
+        self._topo_version += 1
+        self._views.clear()
+        self._disseminate()
+
+    def _report(self, name: str, pos: KnownPosition) -> None:
+        comp = next(c for c in self.truth().components if name in c)
+        for member in comp:
+            self._known[member][name] = pos
+        self._views.clear()
+
+    def _disseminate(self) -> None:
+        """Within each component, every node learns the newest report of every origin."""
+        for comp in self.truth().components:
+            newest: dict[str, KnownPosition] = {}
+            for member in comp:
+                for origin, pos in self._known[member].items():
+                    if origin not in newest or pos.reported > newest[origin].reported:
+                        newest[origin] = pos
+            for member in comp:
+                self._known[member].update(newest)
+
+    def _compute_truth(self) -> GroundTruth:
+        names = list(self._nodes)
+        links: dict[frozenset[str], float] = {}
+        sym: dict[str, dict[str, int]] = {n: {} for n in names}
+        rng, min_q = self.radio.comm_range, self.radio.min_quality
+        for i, a in enumerate(names):
+            ax, ay = self._pos[a]
+            for b in names[i + 1:]:
+                bx, by = self._pos[b]
+                d = math.hypot(ax - bx, ay - by)
+                if d >= rng:
+                    continue
+                q = self.radio.quality(d)
+                if q <= 0:
+                    continue
+                links[frozenset((a, b))] = q
+                if q >= min_q:
+                    m = link_metric(q)
+                    sym[a][b] = m
+                    sym[b][a] = m
+        return GroundTruth(
+            positions=dict(self._pos), links=links, symmetric=sym,
+            components=netgraph.connected_components(sym),
+            articulation_points=netgraph.articulation_points(sym),
+        )
+
+
+def _check_xy(name: Any, x: Any, y: Any) -> None:
+    for label, v in (("x", x), ("y", y)):
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            raise ValueError(f"node {name!r}: {label} must be a finite number of metres, got {v!r}")

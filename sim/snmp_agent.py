@@ -1,0 +1,324 @@
+"""SNMP agent of the simulated MANET: every node served on its own UDP endpoint, one thread.
+
+One asyncio loop (thread `manet-snmp`) serves any number of nodes, each on its own
+(host, port), speaking SNMPv1 and SNMPv2c (GET, GETNEXT, GETBULK, SET) with pysnmp's
+protocol layer. Each node answers from its `NodeView` (sim/manet.py) through the table of
+sim/manet_mib.py; a SET of the position scalars reports the node's position to the
+network. Malformed datagrams and wrong communities are dropped and counted.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import bisect
+import ipaddress
+import logging
+import threading
+from collections import Counter
+from typing import Any
+
+from pyasn1.codec.ber import decoder, encoder
+from pyasn1.error import PyAsn1Error
+from pyasn1.type import univ
+from pysnmp.proto import api
+from pysnmp.proto.api import v1, v2c
+
+from sim.manet import ManetNetwork
+from sim.manet_mib import INT32, OID, WRITABLE, Value, build_table, parse_position_write
+
+log = logging.getLogger("erni.sim.snmp")
+
+MAX_VARBINDS = 500           # per response (GETBULK is trimmed to this)
+MAX_RESPONSE_BYTES = 60000   # stays under the UDP datagram limit
+# SNMP error-status codes (RFC 3416)
+NO_SUCH_NAME, BAD_VALUE, GEN_ERR = 2, 3, 5
+WRONG_TYPE, WRONG_VALUE, NOT_WRITABLE = 7, 10, 17
+
+
+class _Table:
+    """A node's served OIDs, rebuilt when the network's version changes."""
+
+    __slots__ = ("version", "keys", "values")
+
+    def __init__(self, version: int, rows: list[tuple[OID, Value]]) -> None:
+        self.version = version
+        self.keys = [r[0] for r in rows]
+        self.values = [r[1] for r in rows]
+
+    def get(self, oid: OID) -> Value | None:
+        i = bisect.bisect_left(self.keys, oid)
+        if i < len(self.keys) and self.keys[i] == oid:
+            return self.values[i]
+        return None
+
+    def next(self, oid: OID) -> tuple[OID, Value] | None:
+        i = bisect.bisect_right(self.keys, oid)
+        if i < len(self.keys):
+            return self.keys[i], self.values[i]
+        return None
+
+    def has_prefix(self, prefix: OID) -> bool:
+        i = bisect.bisect_left(self.keys, prefix)
+        return i < len(self.keys) and self.keys[i][: len(prefix)] == prefix
+
+
+def _encode_value(version: int, val: Value) -> Any:
+    val = val.resolve()
+    k, v = val.kind, val.value
+    if k == "str":
+        return v2c.OctetString(v.encode() if isinstance(v, str) else v)
+    if k == "ip":
+        return (v1 if version == 0 else v2c).IpAddress(ipaddress.IPv4Address(str(v)).packed)
+    if version == 0:
+        cls = {"int": v1.Integer, "gauge": v1.Gauge, "uns": v1.Gauge, "counter": v1.Counter,
+               "ticks": v1.TimeTicks}[k]
+    else:
+        cls = {"int": v2c.Integer32, "gauge": v2c.Gauge32, "uns": v2c.Unsigned32,
+               "counter": v2c.Counter32, "ticks": v2c.TimeTicks}[k]
+    return cls(int(v))
+
+
+class _NodeEndpoint(asyncio.DatagramProtocol):
+    def __init__(self, agent: ManetSnmpAgent, name: str) -> None:
+        self.agent = agent
+        self.name = name
+        self.transport: asyncio.DatagramTransport | None = None
+
+    def connection_made(self, transport: Any) -> None:
+        self.transport = transport
+
+    def datagram_received(self, data: bytes, addr: Any) -> None:
+        reply = self.agent.handle(self.name, data)
+        if reply is not None and self.transport is not None:
+            self.transport.sendto(reply, addr)
+
+
+class ManetSnmpAgent:
+    """Serve the nodes of a `ManetNetwork` over SNMP v1/v2c, one UDP endpoint per node."""
+
+    def __init__(self, network: ManetNetwork, community: str = "public") -> None:
+        self.network = network
+        self.community = community.encode()
+        self.stats: Counter[str] = Counter()
+        self._tables: dict[str, _Table] = {}
+        self._endpoints: dict[str, tuple[str, int]] = {}
+        self._transports: dict[str, asyncio.DatagramTransport] = {}
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._thread: threading.Thread | None = None
+        self._lock = threading.Lock()
+
+    # -- life cycle -----------------------------------------------------------------------
+
+    def start(self) -> ManetSnmpAgent:
+        """Start the agent's thread (endpoints are opened with `serve`)."""
+        if self._thread is not None:
+            return self
+        loop = asyncio.new_event_loop()
+        ready = threading.Event()
+
+        def run() -> None:
+            asyncio.set_event_loop(loop)
+            loop.call_soon(ready.set)
+            loop.run_forever()
+            loop.run_until_complete(loop.shutdown_asyncgens())
+            loop.close()
+
+        self._loop = loop
+        self._thread = threading.Thread(target=run, name="manet-snmp", daemon=True)
+        self._thread.start()
+        ready.wait(5.0)
+        return self
+
+    def serve(self, name: str, host: str = "127.0.0.1", port: int = 0) -> tuple[str, int]:
+        """Open node `name`'s UDP endpoint (port 0: any free port); return (host, port)."""
+        self.network.info(name)  # raises KeyError for an unknown node
+        if self._loop is None:
+            self.start()
+        assert self._loop is not None
+
+        async def open_endpoint() -> tuple[str, int]:
+            transport, _ = await self._loop.create_datagram_endpoint(  # type: ignore[union-attr]
+                lambda: _NodeEndpoint(self, name), local_addr=(host, port))
+            self._transports[name] = transport
+            bound = transport.get_extra_info("sockname")
+            return bound[0], bound[1]
+
+        fut = asyncio.run_coroutine_threadsafe(open_endpoint(), self._loop)
+        try:
+            address = fut.result(5.0)
+        except OSError as err:
+            raise OSError(f"node {name!r}: cannot serve SNMP on {host}:{port}: {err.strerror}") from None
+        self._endpoints[name] = address
+        return address
+
+    def serve_all(self, ports: dict[str, int] | None = None, host: str = "127.0.0.1") -> dict[str, tuple[str, int]]:
+        """Serve every node of the network (ports by name, default any free port)."""
+        ports = ports or {}
+        for name in self.network.names():
+            if name not in self._endpoints:
+                self.serve(name, host, ports.get(name, 0))
+        return self.addresses()
+
+    def addresses(self) -> dict[str, tuple[str, int]]:
+        """(host, port) of every served node."""
+        return dict(self._endpoints)
+
+    def close(self) -> None:
+        """Close every endpoint and join the agent's thread."""
+        loop, thread = self._loop, self._thread
+        if loop is None or thread is None:
+            return
+
+        def shutdown() -> None:
+            for t in self._transports.values():
+                t.close()
+            loop.call_soon(loop.stop)
+
+        loop.call_soon_threadsafe(shutdown)
+        thread.join(5.0)
+        self._loop = self._thread = None
+        self._transports.clear()
+        self._endpoints.clear()
+
+    def __enter__(self) -> ManetSnmpAgent:
+        return self.start()
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    # -- request handling (runs on the agent's thread) -------------------------------------
+
+    def table(self, name: str) -> _Table:
+        """The node's current OID table (rebuilt after a network change)."""
+        version = self.network.version
+        table = self._tables.get(name)
+        if table is None or table.version != version:
+            view = self.network.view(name)
+            table = _Table(view.version, build_table(view, self.network.radio.comm_range))
+            self._tables[name] = table
+        return table
+
+    def handle(self, name: str, data: bytes) -> bytes | None:
+        """Answer one datagram addressed to node `name`; None drops it (counted)."""
+        try:
+            version = int(api.decodeMessageVersion(data))
+            if version not in api.PROTOCOL_MODULES:
+                self.stats["bad_version"] += 1
+                return None
+            p_mod = api.PROTOCOL_MODULES[version]
+            msg, _ = decoder.decode(data, asn1Spec=p_mod.Message())
+            if bytes(p_mod.apiMessage.get_community(msg)) != self.community:
+                self.stats["bad_community"] += 1
+                return None
+            req = p_mod.apiMessage.get_pdu(msg)
+            rsp_msg = p_mod.apiMessage.get_response(msg)
+            rsp = p_mod.apiMessage.get_pdu(rsp_msg)
+            binds = p_mod.apiPDU.get_varbinds(req)
+        except (PyAsn1Error, ValueError, TypeError, KeyError, IndexError, AttributeError):
+            self.stats["malformed"] += 1
+            return None
+        try:
+            status, index, out = self._dispatch(name, version, p_mod, req, binds)
+        except Exception:  # a bug must not kill the endpoint; the client sees genErr
+            log.exception("node %s: failed to answer a request", name)
+            status, index, out = GEN_ERR, 1, binds
+        p_mod.apiPDU.set_error_status(rsp, status)
+        p_mod.apiPDU.set_error_index(rsp, index)
+        p_mod.apiPDU.set_varbinds(rsp, out)
+        self.stats["answered"] += 1
+        return encoder.encode(rsp_msg)
+
+    def _dispatch(self, name: str, version: int, p_mod: Any, req: Any,
+                  binds: list[tuple[Any, Any]]) -> tuple[int, int, list[tuple[Any, Any]]]:
+        if req.isSameTypeWith(p_mod.SetRequestPDU()):
+            self.stats["set"] += 1
+            return self._set(name, version, binds)
+        table = self.table(name)
+        if req.isSameTypeWith(p_mod.GetRequestPDU()):
+            self.stats["get"] += 1
+            return self._get(table, version, binds)
+        if req.isSameTypeWith(p_mod.GetNextRequestPDU()):
+            self.stats["getnext"] += 1
+            return self._next(table, version, binds)
+        if version == 1 and req.isSameTypeWith(v2c.GetBulkRequestPDU()):
+            self.stats["getbulk"] += 1
+            non_rep = int(v2c.apiBulkPDU.get_non_repeaters(req))
+            max_rep = int(v2c.apiBulkPDU.get_max_repetitions(req))
+            return self._bulk(table, binds, non_rep, max_rep)
+        self.stats["unsupported_pdu"] += 1
+        return GEN_ERR, 0, binds
+
+    def _get(self, table: _Table, version: int, binds: list[tuple[Any, Any]]):
+        out = []
+        for i, (oid, _) in enumerate(binds):
+            key = tuple(oid)
+            val = table.get(key)
+            if val is not None:
+                out.append((oid, _encode_value(version, val)))
+            elif version == 0:
+                return NO_SUCH_NAME, i + 1, binds
+            elif len(key) >= 10 and table.has_prefix(key[:-1]):
+                out.append((oid, v2c.NoSuchInstance("")))
+            else:
+                out.append((oid, v2c.NoSuchObject("")))
+        return 0, 0, out
+
+    def _next(self, table: _Table, version: int, binds: list[tuple[Any, Any]]):
+        out = []
+        for i, (oid, _) in enumerate(binds):
+            found = table.next(tuple(oid))
+            if found is not None:
+                out.append((v2c.ObjectIdentifier(found[0]), _encode_value(version, found[1])))
+            elif version == 0:
+                return NO_SUCH_NAME, i + 1, binds
+            else:
+                out.append((oid, v2c.EndOfMibView("")))
+        return 0, 0, out
+
+    def _bulk(self, table: _Table, binds: list[tuple[Any, Any]], non_rep: int, max_rep: int):
+        non_rep = max(0, min(non_rep, len(binds)))
+        out = list(self._next(table, 1, binds[:non_rep])[2])
+        cursors = [tuple(oid) for oid, _ in binds[non_rep:]]
+        size = 0
+        for _ in range(max(0, max_rep) if cursors else 0):
+            row = []
+            ended = True
+            for j, cur in enumerate(cursors):
+                found = table.next(cur) if cur is not None else None
+                if found is None:
+                    row.append((v2c.ObjectIdentifier(cur or binds[non_rep + j][0]), v2c.EndOfMibView("")))
+                    cursors[j] = None  # type: ignore[call-overload]
+                else:
+                    ended = False
+                    cursors[j] = found[0]
+                    row.append((v2c.ObjectIdentifier(found[0]), _encode_value(1, found[1])))
+            size += sum(len(r[0]) * 2 + 16 for r in row)
+            if len(out) + len(row) > MAX_VARBINDS or size > MAX_RESPONSE_BYTES:
+                break
+            out.extend(row)
+            if ended:
+                break
+        return 0, 0, out
+
+    def _set(self, name: str, version: int, binds: list[tuple[Any, Any]]):
+        writes: dict[str, int] = {}
+        for i, (oid, value) in enumerate(binds):
+            key = tuple(oid)
+            field = WRITABLE.get(key)
+            if field is None:
+                self.stats["set_refused"] += 1
+                return (NO_SUCH_NAME if version == 0 else NOT_WRITABLE), i + 1, binds
+            if value.tagSet != univ.Integer.tagSet:
+                self.stats["set_refused"] += 1
+                return (BAD_VALUE if version == 0 else WRONG_TYPE), i + 1, binds
+            number = int(value)
+            if not INT32[0] <= number <= INT32[1]:
+                self.stats["set_refused"] += 1
+                return (BAD_VALUE if version == 0 else WRONG_VALUE), i + 1, binds
+            writes[field] = number
+        view = self.network.view(name)
+        own = view.positions.get(name)
+        current = (own.x, own.y, own.heading) if own else (0.0, 0.0, 0.0)
+        x, y, heading = parse_position_write(current, writes)
+        self.network.set_position(name, x, y, heading)
+        return 0, 0, binds
