@@ -10,8 +10,7 @@ import logging
 import queue
 import threading
 import time
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from importlib.metadata import entry_points
 from pathlib import Path
 from typing import Any
@@ -36,8 +35,6 @@ class Scheduler:
         self._threads: list[threading.Thread] = []
         self._accepting = False
         self._log = logging.getLogger(f"erni.{agent.name}")
-        self.running: set[Plugin] = set()
-        self._running_lock = threading.Lock()
 
     def start(self) -> None:
         """Start the worker threads."""
@@ -87,13 +84,9 @@ class Scheduler:
                 plugin._dirty = False
                 plugin._run_started = time.monotonic()
                 plugin._slow_reported = False
-            with self._running_lock:
-                self.running.add(plugin)
             try:
                 self._run(plugin)
             finally:
-                with self._running_lock:
-                    self.running.discard(plugin)
                 with plugin._sched_lock:
                     plugin._running = False
                     again = plugin._dirty and self._accepting and not plugin._disabled
@@ -114,25 +107,29 @@ class Scheduler:
         if not (woken or laters or any(s.has_changes for s in subs)):
             return
         plugin.runs += 1
+        tx = Transaction(board, plugin.name)
+        plugin._local.tx = tx
         try:
-            with plugin.transaction():
-                for fn in laters:
-                    fn()
-                plugin.execute()
+            for fn in laters:
+                fn()
+            plugin.execute()
+            tx.commit()
         except Exception:
+            tx.abort()
             plugin.failures += 1
             plugin.log.exception("execute() failed in agent %s, plugin %s; its transaction "
                                  "published nothing", self.agent.name, plugin.name)
         finally:
+            plugin._local.tx = None
             for sub in subs:
                 sub._close()
 
     def check_slow(self) -> None:
         """Report each plugin run that exceeded the slow limit (once per run)."""
         now = time.monotonic()
-        with self._running_lock:
-            running = list(self.running)
-        for plugin in running:
+        for plugin in list(self.agent.plugins):
+            if not plugin._running:
+                continue
             elapsed = now - plugin._run_started
             if elapsed > self.slow_seconds and not plugin._slow_reported:
                 plugin._slow_reported = True
@@ -326,11 +323,9 @@ class Agent:
 
     # -- access from outside threads ------------------------------------------------------
 
-    @contextmanager
-    def transaction(self, label: str = "outside") -> Iterator[Transaction]:
-        """Open a transaction for code outside any plugin; commit on success."""
-        with self.blackboard.transaction(f"{self.name}/{label}") as tx:
-            yield tx
+    def transaction(self, label: str = "outside") -> Transaction:
+        """Open a transaction for code outside any plugin (`with`: commit on success)."""
+        return self.blackboard.transaction(label)
 
     def query(self, kind: type | Callable[[Any], bool] | None = None,
               where: Callable[[Any], bool] | None = None) -> list[Any]:

@@ -224,6 +224,7 @@ class Blackboard:
         self._by_type: dict[type, list[Subscription[Any]]] = {}
         self._general: list[Subscription[Any]] = []
         self._listeners: list[Callable[[list[Op]], None]] = []
+        self._route: dict[type, list[Subscription[Any]]] = {}  # type -> subscriptions, cached
         self.signal: Callable[[Plugin], None] = lambda plugin: None
         self.commits = 0
 
@@ -259,6 +260,7 @@ class Blackboard:
                 self._by_type.setdefault(sub._kind, []).append(sub)
             else:
                 self._general.append(sub)
+            self._route = {}
             for obj in self._objects.values():
                 sub._offer(ADD, obj, ())
             pending = bool(sub._inbox)
@@ -269,21 +271,22 @@ class Blackboard:
     def unsubscribe(self, sub: Subscription[Any]) -> None:
         """Stop delivering events to a subscription."""
         with self._lock:
-            for subs in (self._by_type.get(sub._kind, []) if sub._kind else self._general,):
-                if sub in subs:
-                    subs.remove(sub)
+            subs = self._by_type.get(sub._kind, []) if sub._kind else self._general
+            if sub in subs:
+                subs.remove(sub)
+            self._route = {}
 
     def add_listener(self, fn: Callable[[list[Op]], None]) -> None:
         """Call `fn(ops)` after every commit, in commit order (journals, recorders, transport)."""
         self._listeners.append(fn)
 
     def _subscriptions_for(self, obj: BBObject) -> list[Subscription[Any]]:
-        subs: list[Subscription[Any]] = []
-        for cls in type(obj).__mro__:
-            found = self._by_type.get(cls)
-            if found:
-                subs.extend(found)
-        subs.extend(self._general)
+        """Return the subscriptions that may match this object's type (cached; under lock)."""
+        kind = type(obj)
+        subs = self._route.get(kind)
+        if subs is None:
+            subs = [s for cls in kind.__mro__ for s in self._by_type.get(cls, ())] + self._general
+            self._route[kind] = subs
         return subs
 
     def _commit(self, ops: list[Op]) -> None:
