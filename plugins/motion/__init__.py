@@ -1,0 +1,11 @@
+"""Robot motion: BotMotion tasks performed by a behaviour stack on an ARCOS robot (Pioneer, AmigoBot)."""
+
+from plugins.motion.driver import ArcosDriver, LinkError, RobotInfo, RobotState
+from plugins.motion.plugin import MotionSettings, RobotMotionControl, pose_of
+from plugins.motion.resource import RobotMotionResource, TaskUpdate
+from plugins.motion.robots import MODELS, RobotModel, resolve_model
+
+__all__ = [
+    "ArcosDriver", "LinkError", "MODELS", "MotionSettings", "RobotInfo", "RobotModel",
+    "RobotMotionControl", "RobotMotionResource", "RobotState", "TaskUpdate", "pose_of", "resolve_model",
+]

@@ -27,6 +27,8 @@ class RobotModel(BaseModel):
     axle: float = Field(0.33, gt=0, description="wheel separation (m)")
     max_v: float = Field(1.2, gt=0, description="top speed the behaviours ask for (m/s)")
     max_rv: float = Field(180.0, gt=0, description="top turn rate the behaviours ask for (deg/s)")
+    decel: float = Field(0.5, gt=0, description="deceleration the behaviours plan with (m/s^2)")
+    rot_decel: float = Field(120.0, gt=0, description="rotational deceleration planned with (deg/s^2)")
     sonar_angles: tuple[float, ...] = Field(PIONEER3_SONAR, description="sonar bearings (deg, 0 = ahead)")
 
 

@@ -1,0 +1,491 @@
+"""Reactive motion behaviours and the stack that arbitrates between them (paper 004, 4.2.2).
+
+Each cycle the stack scans its behaviours from the top; the first that fires (proposes a
+`Command`) drives the robot for that cycle, and only that one. The top is decided by
+priority, then by push order: teleport > stop > obstacle avoidance > motion behaviours
+(newest first). Obstacle avoidance fires only when the behaviour below it would drive
+towards an obstacle closer than its distance, so it overrides motion commands and nothing else.
+
+Behaviours are pure logic: they see a `Context` (the robot state, the clock, the model) and
+report their outcome in `state`, `progress`, `values` and `message`; no I/O happens here.
+"""
+
+from __future__ import annotations
+
+import math
+import random
+from dataclasses import dataclass, field
+from typing import Any, Callable, ClassVar
+
+from blackboard import TaskState
+from blackboard.tasks import (
+    AvoidParams,
+    DistanceParams,
+    GotoParams,
+    RandomWalkParams,
+    TeleportParams,
+    TurnParams,
+    VelocityParams,
+)
+from plugins.motion.driver import RobotState
+from plugins.motion.robots import RobotModel
+
+
+@dataclass(frozen=True)
+class Command:
+    """What the winning behaviour asks of the robot this cycle: v (m/s), w (deg/s), a teleport."""
+
+    v: float = 0.0
+    w: float = 0.0
+    teleport: tuple[float, float, float] | None = None  # x (m), y (m), heading (deg)
+
+
+STOP = Command()
+
+
+@dataclass
+class Context:
+    """What behaviours see in one cycle."""
+
+    state: RobotState
+    now: float
+    model: RobotModel
+    below: Callable[[], Command | None] = lambda: None
+
+    def path_clearance(self, direction: int, corridor: float | None = None) -> float:
+        """Return the free distance (m) ahead (direction 1) or behind (-1) within the body's corridor."""
+        r = self.model.radius
+        half = (corridor if corridor is not None else r + 0.05)
+        best = math.inf
+        for num, rng in self.state.sonar.items():
+            if num >= len(self.model.sonar_angles):
+                continue
+            a = math.radians(self.model.sonar_angles[num])
+            px, py = (r + rng) * math.cos(a), (r + rng) * math.sin(a)
+            ahead = px * direction
+            if ahead > 0 and abs(py) <= half:
+                best = min(best, ahead - r)
+        return best
+
+    def side_space(self) -> float:
+        """Return free space on the left minus on the right (m), to choose a way out."""
+        left = right = 0.0
+        for num, rng in self.state.sonar.items():
+            if num < len(self.model.sonar_angles):
+                a = self.model.sonar_angles[num]
+                if 0 < a < 180:
+                    left += min(rng, 3.0) * math.sin(math.radians(a))
+                elif -180 < a < 0:
+                    right += min(rng, 3.0) * -math.sin(math.radians(a))
+        return left - right
+
+
+def wrap(a: float) -> float:
+    """Wrap an angle in radians to [-pi, pi)."""
+    return (a + math.pi) % (2 * math.pi) - math.pi
+
+
+def _brake(remaining: float, decel: float, floor: float = 0.04) -> float:
+    """Return the speed from which `decel` stops the robot within `remaining`, plus a creep floor."""
+    return math.sqrt(2 * decel * max(0.0, remaining)) + floor
+
+
+def clip(value: float, limit: float) -> float:
+    """Clip to [-limit, limit]."""
+    return max(-limit, min(limit, value))
+
+
+class Behaviour:
+    """One reactive behaviour, usually backing one BotMotion task (`task_uid`)."""
+
+    priority: ClassVar[int] = 0
+    kind: ClassVar[str] = "behaviour"
+
+    def __init__(self, task_uid: str | None = None, timeout: float | None = None) -> None:
+        self.task_uid = task_uid
+        self.timeout = timeout
+        self.state = TaskState.PENDING
+        self.progress = 0.0
+        self.values: dict[str, Any] = {}
+        self.message = ""
+        self.started: float | None = None
+        self.seq = 0
+        self.blocked_since: float | None = None
+        self.blocked_by = 0.0
+        self.stalled_since: float | None = None
+        self.version = 0  # bumped on every outcome change worth publishing
+
+    def begin(self, ctx: Context) -> None:
+        """Called once, in the first cycle the behaviour is on the stack."""
+        self.started = ctx.now
+        self.state = TaskState.RUNNING
+        self.version += 1
+
+    def propose(self, ctx: Context) -> Command | None:
+        """Return the command this behaviour wants this cycle, or None if it does not fire."""
+        raise NotImplementedError
+
+    def check(self, ctx: Context) -> None:
+        """Apply the time limit; called every cycle for every behaviour on the stack."""
+        if self.timeout is not None and self.started is not None and ctx.now - self.started > self.timeout:
+            self.fail(f"timed out after {self.timeout:g} s")
+
+    def report(self, progress: float | None = None, message: str | None = None, **values: Any) -> None:
+        """Update progress and values; significant changes bump `version`."""
+        old = (round(self.progress, 2), self.message, self._rounded(self.values))
+        if progress is not None:
+            self.progress = max(0.0, min(1.0, progress))
+        if message is not None:
+            self.message = message
+        self.values.update(values)
+        if (round(self.progress, 2), self.message, self._rounded(self.values)) != old:
+            self.version += 1
+
+    @staticmethod
+    def _rounded(values: dict[str, Any]) -> tuple:
+        return tuple(sorted((k, round(v, 2) if isinstance(v, float) else v) for k, v in values.items()))
+
+    def succeed(self, message: str = "done", **values: Any) -> None:
+        """Finish successfully."""
+        if not self.state.done:
+            self.values.update(values)
+            self.state, self.progress, self.message = TaskState.SUCCEEDED, 1.0, message
+            self.version += 1
+
+    def fail(self, reason: str) -> None:
+        """Finish with a failure reason (stalled, blocked, timed out, link lost)."""
+        if not self.state.done:
+            self.state, self.message = TaskState.FAILED, reason
+            self.version += 1
+
+    def cancel(self, reason: str) -> None:
+        """Finish because the stack dropped the behaviour (clear)."""
+        if not self.state.done:
+            self.state, self.message = TaskState.CANCELLED, reason
+            self.version += 1
+
+    def overridden(self, ctx: Context, obstacle: float, limit: float) -> None:
+        """Avoidance held this behaviour back this cycle; fail as blocked after `limit` s."""
+        if self.blocked_since is None:
+            self.blocked_since = ctx.now
+        self.blocked_by = obstacle
+        if ctx.now - self.blocked_since > limit:
+            self.fail(f"blocked by an obstacle {obstacle:.2f} m away")
+        else:
+            self.report(message=f"held by obstacle avoidance ({obstacle:.2f} m)")
+
+    def drove(self, ctx: Context) -> None:
+        """This behaviour drove the robot this cycle."""
+        if self.blocked_since is not None:
+            self.blocked_since = None
+            self.report(message="")
+
+    def __repr__(self) -> str:
+        return f"<{type(self).__name__} {self.task_uid} {self.state.value}>"
+
+
+class Stop(Behaviour):
+    """Halt and hold the robot while on the stack (the task stays running until removed)."""
+
+    priority = 2
+    kind = "stop"
+
+    def propose(self, ctx: Context) -> Command | None:
+        s = ctx.state
+        if abs(s.v) < 0.01 and abs(s.w) < 0.02 and not self.values.get("halted"):
+            self.report(1.0, "halted; holding until the task is removed", halted=True)
+        return STOP
+
+
+class Teleport(Behaviour):
+    """Set the pose once, then wait until the robot reports it."""
+
+    priority = 3
+    kind = "teleport"
+
+    def __init__(self, params: TeleportParams, task_uid: str | None = None, timeout: float = 3.0) -> None:
+        super().__init__(task_uid, timeout)
+        self.target = (params.x, params.y, params.heading)
+        self.sent = False
+
+    def propose(self, ctx: Context) -> Command | None:
+        if not self.sent:
+            self.sent = True
+            return Command(teleport=self.target)
+        s = ctx.state
+        x, y, hdg = self.target
+        if math.hypot(s.x - x, s.y - y) < 0.05 and abs(wrap(s.theta - math.radians(hdg))) < math.radians(3):
+            self.succeed("pose set", x=s.x, y=s.y, heading=math.degrees(s.theta))
+        return STOP
+
+    def check(self, ctx: Context) -> None:
+        if self.timeout is not None and self.started is not None and ctx.now - self.started > self.timeout:
+            self.fail(f"timed out after {self.timeout:g} s: the robot did not report the new pose")
+
+
+class AvoidObstacles(Behaviour):
+    """Override motion that would bring the robot closer than `distance` to an obstacle."""
+
+    priority = 1
+    kind = "avoid_obstacles"
+
+    def __init__(self, params: AvoidParams, task_uid: str | None = None, blocked_timeout: float = 10.0) -> None:
+        super().__init__(task_uid)
+        self.distance = params.distance
+        self.blocked_timeout = blocked_timeout
+        self.victim: Behaviour | None = None
+        self.fired = 0
+
+    def propose(self, ctx: Context) -> Command | None:
+        if self.values.get("distance") != self.distance:
+            self.report(message="watching", distance=self.distance)
+        wanted = ctx.below()
+        if wanted is None or abs(wanted.v) < 1e-3:
+            return None
+        free = ctx.path_clearance(1 if wanted.v > 0 else -1)
+        v = abs(ctx.state.v)
+        if free >= self.distance + v * v / (2 * ctx.model.decel) + 0.1 * v:
+            return None
+        self.fired += 1
+        self.report(obstacle=round(free, 2), overrides=self.fired)
+        return Command(0.0, wanted.w)
+
+
+class GoTo(Behaviour):
+    """Drive to (x, y): turn towards the goal, then drive, slowing down near it."""
+
+    kind = "goto"
+
+    def __init__(self, params: GotoParams, task_uid: str | None = None, timeout: float | None = None) -> None:
+        super().__init__(task_uid, params.timeout or timeout)
+        self.p = params
+        self.initial = 0.0
+
+    def begin(self, ctx: Context) -> None:
+        super().begin(ctx)
+        self.initial = max(1e-6, math.hypot(self.p.x - ctx.state.x, self.p.y - ctx.state.y))
+
+    def propose(self, ctx: Context) -> Command | None:
+        s = ctx.state
+        dx, dy = self.p.x - s.x, self.p.y - s.y
+        dist = math.hypot(dx, dy)
+        if dist <= self.p.tolerance:
+            self.succeed("arrived", distance_remaining=round(dist, 3))
+            return STOP
+        err = wrap(math.atan2(dy, dx) - s.theta)
+        w = clip(math.degrees(2.5 * err), ctx.model.max_rv)
+        v = 0.0
+        if abs(err) < math.radians(60):
+            v = min(self.p.speed, ctx.model.max_v, _brake(dist, ctx.model.decel)) * math.cos(err)
+        self.report(1.0 - dist / self.initial, distance_remaining=round(dist, 3))
+        return Command(v, w)
+
+
+class Turn(Behaviour):
+    """Turn in place by a relative angle, counting the rotation actually made."""
+
+    kind = "turn"
+
+    def __init__(self, params: TurnParams, task_uid: str | None = None, timeout: float | None = None) -> None:
+        super().__init__(task_uid, timeout)
+        self.p = params
+        self.turned = 0.0
+        self.last = 0.0
+
+    def begin(self, ctx: Context) -> None:
+        super().begin(ctx)
+        self.last = ctx.state.theta
+        if self.timeout is None:
+            self.timeout = abs(self.p.angle) / self.p.rate * 3 + 5.0
+
+    def propose(self, ctx: Context) -> Command | None:
+        th = ctx.state.theta
+        self.turned += math.degrees(wrap(th - self.last))
+        self.last = th
+        left = self.p.angle - self.turned
+        if abs(left) <= self.p.tolerance:
+            self.succeed("turned", angle_remaining=round(left, 2), turned=round(self.turned, 2))
+            return STOP
+        rate = min(self.p.rate, ctx.model.max_rv, max(4.0, _brake(abs(left), ctx.model.rot_decel, 0.0)))
+        self.report(self.turned / self.p.angle if self.p.angle else 1.0, angle_remaining=round(left, 1))
+        return Command(0.0, math.copysign(rate, left))
+
+
+class Straight(Behaviour):
+    """Drive a distance forward (or backward), holding the starting heading."""
+
+    def __init__(self, params: DistanceParams, direction: int, task_uid: str | None = None,
+                 timeout: float | None = None) -> None:
+        super().__init__(task_uid, params.timeout or timeout)
+        self.p = params
+        self.direction = direction
+        self.kind = "forward" if direction > 0 else "backward"  # type: ignore[misc]
+        self.origin = (0.0, 0.0, 0.0)
+
+    def begin(self, ctx: Context) -> None:
+        super().begin(ctx)
+        self.origin = (ctx.state.x, ctx.state.y, ctx.state.theta)
+
+    def propose(self, ctx: Context) -> Command | None:
+        s = ctx.state
+        x0, y0, th0 = self.origin
+        along = ((s.x - x0) * math.cos(th0) + (s.y - y0) * math.sin(th0)) * self.direction
+        left = self.p.distance - along
+        if left <= 0.01:
+            self.succeed("distance covered", travelled=round(along, 3), distance_remaining=0.0)
+            return STOP
+        v = min(self.p.speed, ctx.model.max_v, _brake(left, ctx.model.decel)) * self.direction
+        w = clip(math.degrees(2.0 * wrap(th0 - s.theta)), 30.0)
+        self.report(along / self.p.distance, distance_remaining=round(left, 3))
+        return Command(v, w)
+
+
+class Velocity(Behaviour):
+    """Hold a linear and angular velocity, for `duration` or until removed."""
+
+    kind = "velocity"
+
+    def __init__(self, params: VelocityParams, task_uid: str | None = None) -> None:
+        super().__init__(task_uid)
+        self.p = params
+
+    def propose(self, ctx: Context) -> Command | None:
+        assert self.started is not None
+        elapsed = ctx.now - self.started
+        if self.p.duration is not None:
+            if elapsed >= self.p.duration:
+                self.succeed("duration elapsed", elapsed=round(elapsed, 2))
+                return STOP
+            self.report(elapsed / self.p.duration)
+        return Command(self.p.v, self.p.w)
+
+
+class RandomWalk(Behaviour):
+    """Wander at cruise speed, turning away from obstacles, for `duration` or until removed."""
+
+    kind = "randomwalk"
+
+    def __init__(self, params: RandomWalkParams, task_uid: str | None = None, turn_distance: float = 0.8) -> None:
+        super().__init__(task_uid)
+        self.p = params
+        self.rng = random.Random(params.seed)
+        self.turn_distance = turn_distance
+        self.escape = 0.0  # turning direction while escaping, 0 when cruising
+        self.wander = 0.0
+        self.next_wander = 0.0
+        self.travelled = 0.0
+        self.last: tuple[float, float] | None = None
+
+    def propose(self, ctx: Context) -> Command | None:
+        assert self.started is not None
+        s = ctx.state
+        if self.last is not None:
+            self.travelled += math.hypot(s.x - self.last[0], s.y - self.last[1])
+        self.last = (s.x, s.y)
+        elapsed = ctx.now - self.started
+        if self.p.duration is not None and elapsed >= self.p.duration:
+            self.succeed("duration elapsed", travelled=round(self.travelled, 2))
+            return STOP
+        self.report(elapsed / self.p.duration if self.p.duration else 0.0, travelled=round(self.travelled, 1))
+        free = ctx.path_clearance(1)
+        rate = min(60.0, ctx.model.max_rv)
+        if self.escape:
+            if free > self.turn_distance * 1.3:
+                self.escape = 0.0
+            else:
+                return Command(0.0, self.escape * rate)
+        if free < self.turn_distance:
+            side = ctx.side_space()
+            self.escape = 1.0 if side > 0 or (side == 0 and self.rng.random() < 0.5) else -1.0
+            return Command(0.0, self.escape * rate)
+        if ctx.now >= self.next_wander:
+            self.wander = self.rng.uniform(-25.0, 25.0)
+            self.next_wander = ctx.now + self.rng.uniform(1.0, 3.0)
+        return Command(min(self.p.speed, ctx.model.max_v), self.wander)
+
+
+@dataclass
+class CycleResult:
+    """The outcome of one stack cycle."""
+
+    command: Command
+    winner: Behaviour | None
+    finished: list[Behaviour] = field(default_factory=list)
+
+
+class BehaviourStack:
+    """An ordered set of behaviours; `cycle()` lets the first that fires drive the robot."""
+
+    def __init__(self, blocked_timeout: float = 10.0, stall_timeout: float = 1.0) -> None:
+        self.items: list[Behaviour] = []
+        self.blocked_timeout = blocked_timeout
+        self.stall_timeout = stall_timeout
+        self._seq = 0
+
+    def push(self, behaviour: Behaviour) -> None:
+        """Put a behaviour on the stack (above others of the same priority)."""
+        self._seq += 1
+        behaviour.seq = self._seq
+        self.items.append(behaviour)
+
+    def ordered(self) -> list[Behaviour]:
+        """The behaviours from the top of the stack down."""
+        return sorted(self.items, key=lambda b: (b.priority, b.seq), reverse=True)
+
+    def find(self, task_uid: str) -> Behaviour | None:
+        """Return the behaviour backing a task."""
+        return next((b for b in self.items if b.task_uid == task_uid), None)
+
+    def remove(self, behaviour: Behaviour) -> None:
+        """Take a behaviour off the stack."""
+        if behaviour in self.items:
+            self.items.remove(behaviour)
+
+    def clear(self, keep: Callable[[Behaviour], bool] = lambda b: False) -> list[Behaviour]:
+        """Empty the stack (except what `keep` accepts); return what was removed."""
+        gone = [b for b in self.items if not keep(b)]
+        self.items = [b for b in self.items if keep(b)]
+        return gone
+
+    def cycle(self, state: RobotState, now: float, model: RobotModel) -> CycleResult:
+        """Run one control cycle: check every behaviour, let the first that fires drive."""
+        order = self.ordered()
+        base = Context(state, now, model)
+        for b in order:
+            if b.started is None:
+                b.begin(base)
+            b.check(base)
+        order = [b for b in order if not b.state.done]
+        cache: dict[int, tuple[int | None, Command | None]] = {}
+
+        def first_from(i: int) -> tuple[int | None, Command | None]:
+            if i not in cache:
+                if i >= len(order):
+                    cache[i] = (None, None)
+                else:
+                    ctx = Context(state, now, model, below=lambda: first_from(i + 1)[1])
+                    cmd = order[i].propose(ctx)
+                    cache[i] = (i, cmd) if cmd is not None else first_from(i + 1)
+            return cache[i]
+
+        index, command = first_from(0)
+        winner = order[index] if index is not None else None
+        if winner is not None:
+            winner.drove(base)
+            below = cache.get(index + 1)
+            if isinstance(winner, AvoidObstacles) and below and below[0] is not None:
+                order[below[0]].overridden(base, winner.values.get("obstacle", 0.0), self.blocked_timeout)
+            self._watch_stall(winner, state, now, command)
+        finished = [b for b in self.items if b.state.done]
+        for b in finished:
+            self.items.remove(b)
+        return CycleResult(command or STOP, winner, finished)
+
+    def _watch_stall(self, b: Behaviour, state: RobotState, now: float, command: Command | None) -> None:
+        if command is not None and abs(command.v) > 1e-3 and state.stalled:
+            if b.stalled_since is None:
+                b.stalled_since = now
+            elif now - b.stalled_since > self.stall_timeout:
+                b.fail("stalled: the wheels cannot turn (bumped into something?)")
+        else:
+            b.stalled_since = None

@@ -1,0 +1,163 @@
+"""RobotMotionControl: performs BotMotion tasks on an ARCOS robot and publishes its Pose.
+
+The plugin subscribes to BotMotion tasks addressed to its agent (or to nobody), hands them
+to its RobotMotionResource (whose threads do all robot I/O), and publishes, from the
+resource's poll thread, each task's AllocationResult and the robot's `Pose` in short
+transactions of their own.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from blackboard import AllocationResult, Plugin, Pose, Task, TransactionError
+from plugins.motion.driver import ArcosDriver, RobotState
+from plugins.motion.resource import RobotMotionResource, TaskUpdate
+from plugins.motion.robots import RobotModel, resolve_model
+
+_URL = re.compile(r"^(sim|[a-zA-Z][a-zA-Z0-9+.-]*://.*|/dev/\S+|COM\d+|/\S+)$")
+
+
+class MotionSettings(BaseModel):
+    """Settings of RobotMotionControl (the `[plugin.settings]` table)."""
+
+    model_config = ConfigDict(extra="forbid", arbitrary_types_allowed=True)
+
+    url: str = Field("sim", description="serial device, pyserial URL (socket://host:8101) or 'sim'")
+    model: str | dict[str, Any] = Field("pioneer3", description="'pioneer3', 'amigobot' or a table of factors")
+    baudrate: int = Field(9600, gt=0)
+    rate_hz: float = Field(20.0, gt=0, le=200, description="behaviour stack rate (Hz)")
+    pose_rate_hz: float = Field(10.0, gt=0, le=100, description="Pose publishing rate (Hz)")
+    avoid_distance: float = Field(0.4, ge=0, le=5, description="built-in obstacle avoidance (m); 0 = off")
+    blocked_timeout: float = Field(10.0, gt=0, description="fail a task held by avoidance this long (s)")
+    stall_timeout: float = Field(1.0, gt=0, description="fail a task whose wheels stall this long (s)")
+    link_timeout: float = Field(1.0, gt=0, description="no SIP for this long = link lost (s)")
+    link_grace: float = Field(2.0, ge=0, description="fail tasks after the link is lost this long (s)")
+    default_timeout: float | None = Field(None, gt=0, description="time limit of goto/turn/forward/backward (s)")
+    sync_timeout: float = Field(0.5, gt=0, description="wait for each SYNC reply (s)")
+    sync_attempts: int = Field(5, ge=1)
+    pulse_interval: float = Field(0.5, gt=0, description="PULSE when idle this long (s)")
+    teleport: Literal["auto", "sim", "odometry"] = Field(
+        "auto", description="sim: SIM_SET_POSE moves the robot; odometry: re-localise; auto: sim for simulators")
+    sim_world: str | None = Field(None, description="world TOML for url = 'sim'")
+    sim_sip_period: float = Field(0.1, gt=0, description="SIP period of the in-process simulator (s)")
+
+    @field_validator("url")
+    @classmethod
+    def _check_url(cls, url: str) -> str:
+        url = url.strip()
+        if not _URL.match(url):
+            raise ValueError(f"expected 'sim', a serial device (/dev/ttyUSB0) or a pyserial URL "
+                             f"(socket://host:8101), got {url!r}")
+        return url
+
+    @field_validator("model")
+    @classmethod
+    def _check_model(cls, model: str | dict[str, Any]) -> str | dict[str, Any]:
+        resolve_model(model)
+        return model
+
+    def robot_model(self) -> RobotModel:
+        """Return the resolved robot model."""
+        return resolve_model(self.model)
+
+
+def pose_of(robot: str, s: RobotState) -> Pose:
+    """Return the blackboard Pose for a robot state."""
+    sonar = [round(s.sonar[i], 3) for i in sorted(s.sonar)] if s.sonar else []
+    return Pose(robot=robot, x=s.x, y=s.y, theta=s.theta, v=s.v, w=s.w, battery=s.battery,
+                stall_left=s.stall_left, stall_right=s.stall_right, bumpers=s.bumpers,
+                motors_enabled=s.motors_enabled, sonar=sonar)
+
+
+class RobotMotionControl(Plugin):
+    """Performs BotMotion tasks with a behaviour stack on an ARCOS robot; publishes its Pose."""
+
+    Settings = MotionSettings
+
+    def setup(self) -> None:
+        s: MotionSettings = self.settings
+        me = self.agent_name
+        self.tasks = self.subscribe(Task, where=lambda t: t.verb == "BotMotion" and t.destination in (None, "", me))
+        self.sim_host: Any = None
+        url = s.url
+        teleport = s.teleport
+        if url == "sim":
+            url = self._start_sim(s)
+        if teleport == "auto":
+            teleport = "sim" if s.url == "sim" or url.startswith("socket://") else "odometry"
+        driver = ArcosDriver(url, s.robot_model(), name=me, baudrate=s.baudrate, sync_timeout=s.sync_timeout,
+                             sync_attempts=s.sync_attempts, pulse_interval=s.pulse_interval,
+                             link_timeout=s.link_timeout)
+        self.pose: Pose | None = None
+        self.resource = RobotMotionResource(
+            driver, self._publish, name=me, rate_hz=s.rate_hz, pose_rate_hz=s.pose_rate_hz,
+            avoid_distance=s.avoid_distance, blocked_timeout=s.blocked_timeout,
+            stall_timeout=s.stall_timeout, link_grace=s.link_grace, default_timeout=s.default_timeout,
+            teleport=teleport)
+        self.resource.start()
+
+    def _start_sim(self, s: MotionSettings) -> str:
+        from sim.robot import RobotHost, SimRobotConfig
+        from sim.world import World
+
+        world = World.load(s.sim_world) if s.sim_world else World()
+        m = s.robot_model()
+        cfg = SimRobotConfig(name=self.agent_name, sip_period=s.sim_sip_period,
+                             dist_conv=m.dist_conv, vel_conv=m.vel_conv, radius=m.radius,
+                             axle=m.axle, sonar_angles=tuple(m.sonar_angles))
+        self.sim_host = RobotHost(world)
+        self.sim_host.add_robot(cfg)
+        self.sim_host.start()
+        return str(self.sim_host.url(0))
+
+    def execute(self) -> None:
+        for task in self.tasks.added:
+            if not task.done:
+                self.resource.submit(task)
+        for task in self.tasks.removed:
+            self.resource.cancel(task.uid)
+
+    def teardown(self) -> None:
+        self.resource.close()
+        if self.sim_host is not None:
+            self.sim_host.stop()
+
+    def _publish(self, updates: list[TaskUpdate], state: RobotState | None) -> None:
+        """Publish outcome changes and the pose, each in a short transaction (poll thread)."""
+        for u in updates:
+            try:
+                with self.transaction():
+                    current = self._current(u.uid)
+                    if current is None or current.done:
+                        continue
+                    result = AllocationResult(state=u.state, progress=u.progress,
+                                              values=_jsonable(u.values), message=u.message)
+                    self.change(current.evolve(result=result), reports=[u.state.value])
+            except TransactionError:
+                pass  # the task was removed (cancelled) meanwhile: nothing to report to
+        if state is not None:
+            pose = pose_of(self.agent_name, state)
+            with self.transaction():
+                if self.pose is None and not self.query(Pose, where=lambda p: p.uid == pose.uid):
+                    self.add(pose)
+                else:
+                    self.change(pose)
+            self.pose = pose
+
+    def _current(self, uid: str) -> Task | None:
+        found = self.query(Task, where=lambda t: t.uid == uid)
+        return found[0] if found else None
+
+
+def _jsonable(values: dict[str, Any]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for k, v in values.items():
+        if isinstance(v, float) and not math.isfinite(v):
+            v = None
+        out[k] = v
+    return out

@@ -1,0 +1,304 @@
+"""RobotMotionResource: the behaviour-stack thread and the poll thread around one robot driver.
+
+The stack thread (`motion-stack-<robot>`) services the behaviour stack at `rate_hz`: it turns
+BotMotion tasks into behaviours, lets the winning behaviour drive the robot through the
+driver, and records each task's outcome. The poll thread (`motion-poll-<robot>`) hands the
+latest robot state and the outcome changes to `publish` at `pose_rate_hz` (at once for final
+outcomes). Neither thread touches the blackboard itself: `publish` does, in its own short
+transactions, so serial I/O never happens inside one.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+from blackboard import Task, TaskState
+from blackboard.tasks import AvoidParams
+from plugins.motion.behaviours import (
+    AvoidObstacles,
+    Behaviour,
+    BehaviourStack,
+    Command,
+    GoTo,
+    RandomWalk,
+    Stop,
+    Straight,
+    Teleport,
+    Turn,
+    Velocity,
+)
+from plugins.motion.driver import ArcosDriver, RobotState
+
+log = logging.getLogger("erni.motion.resource")
+
+
+@dataclass(frozen=True)
+class TaskUpdate:
+    """A change of a task's outcome, to be published as its AllocationResult."""
+
+    uid: str
+    state: TaskState
+    progress: float = 0.0
+    values: dict[str, Any] = field(default_factory=dict)
+    message: str = ""
+
+
+Publish = Callable[[list[TaskUpdate], RobotState | None], None]
+
+
+class RobotMotionResource:
+    """Executes BotMotion tasks on one robot; thread-safe `submit`/`cancel`, `close()` joins."""
+
+    def __init__(self, driver: ArcosDriver, publish: Publish, *, name: str = "robot",
+                 rate_hz: float = 20.0, pose_rate_hz: float = 10.0, avoid_distance: float = 0.4,
+                 blocked_timeout: float = 10.0, stall_timeout: float = 1.0, link_grace: float = 2.0,
+                 default_timeout: float | None = None, teleport: str = "sim", resend: float = 0.5,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        if rate_hz <= 0 or pose_rate_hz <= 0:
+            raise ValueError(f"rate_hz and pose_rate_hz must be > 0, got {rate_hz} and {pose_rate_hz}")
+        if teleport not in ("sim", "odometry"):
+            raise ValueError(f"teleport: expected 'sim' or 'odometry', got {teleport!r}")
+        self.driver = driver
+        self.publish = publish
+        self.name = name
+        self.period = 1.0 / rate_hz
+        self.pose_period = 1.0 / pose_rate_hz
+        self.avoid_distance = avoid_distance
+        self.link_grace = link_grace
+        self.default_timeout = default_timeout
+        self.teleport = teleport
+        self.resend = resend
+        self.clock = clock
+        self.stack = BehaviourStack(blocked_timeout=blocked_timeout, stall_timeout=stall_timeout)
+        self._inbox: deque[tuple[str, Any]] = deque()
+        self._wake = threading.Event()
+        self._poll_wake = threading.Event()
+        self._stop = threading.Event()
+        self._lock = threading.Lock()
+        self._updates: dict[str, TaskUpdate] = {}
+        self._published: dict[int, int] = {}
+        self._last_sent: tuple[float, float] | None = None
+        self._last_sent_at = 0.0
+        self._link_down_since: float | None = None
+        self._threads: list[threading.Thread] = []
+        self.cycles = 0
+        self.winner: Behaviour | None = None
+        if avoid_distance > 0:
+            self.stack.push(self._default_avoid())
+
+    def _default_avoid(self) -> AvoidObstacles:
+        return AvoidObstacles(AvoidParams(distance=self.avoid_distance),
+                              blocked_timeout=self.stack.blocked_timeout)
+
+    # --- life cycle ---------------------------------------------------------------------
+
+    def start(self) -> "RobotMotionResource":
+        """Open the driver (without waiting for the robot) and start both threads."""
+        self.driver.open(wait=False)
+        for target, kind in ((self._control_loop, "stack"), (self._poll_loop, "poll")):
+            t = threading.Thread(target=target, name=f"motion-{kind}-{self.name}", daemon=True)
+            t.start()
+            self._threads.append(t)
+        return self
+
+    def close(self) -> None:
+        """Stop the threads (joined), halt the robot and close the driver."""
+        self._stop.set()
+        self._wake.set()
+        self._poll_wake.set()
+        for t in self._threads:
+            t.join(timeout=5)
+        self._threads.clear()
+        self.driver.close()
+
+    def submit(self, task: Task) -> None:
+        """Queue a BotMotion task; the stack thread picks it up at once."""
+        self._inbox.append(("submit", task))
+        self._wake.set()
+
+    def cancel(self, uid: str) -> None:
+        """Drop the behaviour of a task that was removed (cancelled) by its requester."""
+        self._inbox.append(("cancel", uid))
+        self._wake.set()
+
+    # --- the stack thread ---------------------------------------------------------------
+
+    def _control_loop(self) -> None:
+        next_tick = self.clock()
+        while not self._stop.is_set():
+            delay = next_tick - self.clock()
+            if delay > 0:
+                self._wake.wait(delay)
+                self._wake.clear()
+            if self._stop.is_set():
+                break
+            now = self.clock()
+            try:
+                self._drain_inbox(now)
+                self._cycle(now)
+            except Exception:
+                log.exception("%s: behaviour stack cycle failed", self.name)
+            if now >= next_tick:
+                next_tick = max(next_tick + self.period, now + self.period / 2)
+        if self.driver.connected:
+            self.driver.stop()
+
+    def _drain_inbox(self, now: float) -> None:
+        while self._inbox:
+            op, item = self._inbox.popleft()
+            if op == "cancel":
+                b = self.stack.find(item)
+                if b is not None:
+                    self.stack.remove(b)
+                    self._published.pop(id(b), None)
+                    if isinstance(b, AvoidObstacles):
+                        self._restore_avoid()
+            else:
+                self._accept(item, now)
+
+    def _accept(self, task: Task, now: float) -> None:
+        if task.done or self.stack.find(task.uid) is not None:
+            return
+        prep = task.preposition
+        p = task.params
+        if prep == "clear":
+            gone = self.stack.clear(keep=lambda b: b.task_uid is None)
+            for b in gone:
+                b.cancel(f"cleared by task {task.uid}")
+                self._record(b)
+            self._emit(TaskUpdate(task.uid, TaskState.SUCCEEDED, 1.0, {"cleared": len(gone)},
+                                  f"behaviour stack cleared ({len(gone)} removed)"))
+            return
+        if prep == "avoid_obstacles":
+            assert isinstance(p, AvoidParams)
+            for b in [b for b in self.stack.items if isinstance(b, AvoidObstacles)]:
+                self.stack.remove(b)
+                if b.task_uid:
+                    b.cancel(f"avoidance replaced by task {task.uid}")
+                    self._record(b)
+            if not p.enabled:
+                self._emit(TaskUpdate(task.uid, TaskState.SUCCEEDED, 1.0, {"enabled": False},
+                                      "obstacle avoidance off"))
+                return
+        behaviour = self._behaviour(task)
+        if behaviour is None:
+            self._emit(TaskUpdate(task.uid, TaskState.FAILED, 0.0, {},
+                                  f"RobotMotionControl cannot perform BotMotion {prep!r}"))
+            return
+        self.stack.push(behaviour)
+
+    def _behaviour(self, task: Task) -> Behaviour | None:
+        p, uid, prep = task.params, task.uid, task.preposition
+        blocked = self.stack.blocked_timeout
+        makers: dict[str, Callable[[], Behaviour]] = {
+            "goto": lambda: GoTo(p, uid, self.default_timeout),  # type: ignore[arg-type]
+            "turn": lambda: Turn(p, uid, self.default_timeout),  # type: ignore[arg-type]
+            "forward": lambda: Straight(p, 1, uid, self.default_timeout),  # type: ignore[arg-type]
+            "backward": lambda: Straight(p, -1, uid, self.default_timeout),  # type: ignore[arg-type]
+            "velocity": lambda: Velocity(p, uid),  # type: ignore[arg-type]
+            "randomwalk": lambda: RandomWalk(p, uid, turn_distance=max(0.6, 2 * self.avoid_distance)),  # type: ignore[arg-type]
+            "stop": lambda: Stop(uid),
+            "teleport": lambda: Teleport(p, uid),  # type: ignore[arg-type]
+            "avoid_obstacles": lambda: AvoidObstacles(p, uid, blocked),  # type: ignore[arg-type]
+        }
+        maker = makers.get(prep)
+        return maker() if maker else None
+
+    def _restore_avoid(self) -> None:
+        if self.avoid_distance > 0 and not any(isinstance(b, AvoidObstacles) for b in self.stack.items):
+            self.stack.push(self._default_avoid())
+
+    def _cycle(self, now: float) -> None:
+        state = self.driver.state
+        if not self.driver.connected or state is None:
+            self._link_down(now)
+            return
+        self._link_down_since = None
+        result = self.stack.cycle(state, now, self.driver.model)
+        self.cycles += 1
+        self.winner = result.winner
+        cmd = result.command
+        if cmd.teleport is not None:
+            x, y, heading = cmd.teleport
+            if self.teleport == "sim":
+                self.driver.sim_set_pose(x, y, heading)
+            else:
+                self.driver.relocalise(x, y, math.radians(heading))
+            self._last_sent = None
+        self._drive(cmd, now)
+        for b in result.finished:
+            if isinstance(b, AvoidObstacles):
+                self._restore_avoid()
+        for b in list(self.stack.items) + result.finished:
+            self._record(b)
+
+    def _drive(self, cmd: Command, now: float) -> None:
+        wanted = (round(cmd.v, 3), round(cmd.w))
+        if wanted != self._last_sent or now - self._last_sent_at > self.resend:
+            if self.driver.vel(cmd.v) and self.driver.rvel(cmd.w):
+                self._last_sent, self._last_sent_at = wanted, now
+
+    def _link_down(self, now: float) -> None:
+        if self._link_down_since is None:
+            self._link_down_since = now
+            self._last_sent = None
+        if now - self._link_down_since < self.link_grace:
+            return
+        reason = f"link lost: {self.driver.last_error or 'no answer from the robot'}"
+        for b in self.stack.clear(keep=lambda b: b.task_uid is None):
+            b.fail(reason)
+            self._record(b)
+
+    # --- outcomes -----------------------------------------------------------------------
+
+    def _record(self, b: Behaviour) -> None:
+        if b.task_uid is None or self._published.get(id(b)) == b.version:
+            return
+        self._published[id(b)] = b.version
+        if b.state.done:
+            self._published.pop(id(b), None)
+        self._emit(TaskUpdate(b.task_uid, b.state, b.progress, dict(b.values), b.message))
+
+    def _emit(self, update: TaskUpdate) -> None:
+        with self._lock:
+            self._updates[update.uid] = update
+        if update.state.done:
+            self._poll_wake.set()
+
+    def take_updates(self) -> list[TaskUpdate]:
+        """Return and forget the outcome changes not yet published."""
+        with self._lock:
+            updates = list(self._updates.values())
+            self._updates.clear()
+        return updates
+
+    # --- the poll thread ----------------------------------------------------------------
+
+    def _poll_loop(self) -> None:
+        last_seq = -1
+        while not self._stop.is_set():
+            self._poll_wake.wait(self.pose_period)
+            self._poll_wake.clear()
+            state = self.driver.state
+            fresh = state if state is not None and state.seq != last_seq else None
+            updates = self.take_updates()
+            if fresh is None and not updates:
+                continue
+            if fresh is not None:
+                last_seq = fresh.seq
+            try:
+                self.publish(updates, fresh)
+            except Exception:
+                log.exception("%s: publishing pose and task results failed", self.name)
+        updates = self.take_updates()
+        if updates:
+            try:
+                self.publish(updates, None)
+            except Exception:
+                log.exception("%s: publishing final task results failed", self.name)
