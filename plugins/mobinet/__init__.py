@@ -1,0 +1,13 @@
+"""MobiNet: NetWatch tasks answered from the robot's network subsystem over SNMP.
+
+`MobiNetControl` is the plugin; `MobiNetResource` owns the SNMP thread; `NetworkSource`
+is the one interface a network subsystem is read through (`SnmpSource` speaks SNMPv2c).
+"""
+
+from plugins.mobinet.control import MobiNetControl
+from plugins.mobinet.resource import MobiNetResource
+from plugins.mobinet.snmp import SnmpSource
+from plugins.mobinet.source import NetView, NetworkSource, SourceError
+
+__all__ = ["MobiNetControl", "MobiNetResource", "NetView", "NetworkSource", "SnmpSource",
+           "SourceError"]

@@ -1,0 +1,185 @@
+"""MobiNetControl: answers NetWatch tasks with NetInfo objects and writes the robot's pose.
+
+For each NetWatch task (addressed to this agent or to nobody) the plugin publishes one
+`NetInfo` (uid `netinfo:<task uid>`, changed in place at the task's `rate_hz`) and keeps
+the task's result RUNNING with a summary in `values`. Removing the task stops the watch
+and removes its NetInfo. Every `Pose` of this robot is written to the network subsystem
+(paper 004, Figure 6 step 6). All SNMP I/O happens on MobiNetResource's thread; results
+come back through `later()`, so `execute()` only decides and publishes.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from blackboard import NetInfo, Plugin, Pose, Position, Task, TaskState
+from plugins.mobinet.resource import MobiNetResource
+from plugins.mobinet.snmp import SnmpSource, articulation_points
+from plugins.mobinet.source import NEIGHBORS, POSITIONS, ROUTES, TOPOLOGY, NetView, NetworkSource
+
+PARTS_OF = {
+    "node_position": frozenset({POSITIONS}),
+    "network_topology": frozenset({TOPOLOGY}),
+    "path_cost": frozenset({ROUTES}),
+    "link_quality": frozenset({NEIGHBORS}),
+    "neighbor_list": frozenset({NEIGHBORS}),
+}
+
+
+class MobiNetControl(Plugin):
+    """NetWatch performer: monitors the network subsystem over SNMP and reports on the blackboard."""
+
+    class Settings(BaseModel):
+        model_config = ConfigDict(extra="forbid")
+
+        host: str = Field("127.0.0.1", description="SNMP agent of this robot's network subsystem")
+        port: int = Field(1161, ge=1, le=65535, description="its UDP port")
+        community: str = Field("public", description="SNMPv2c community (read and write)")
+        timeout: float = Field(0.5, gt=0, le=30, description="per-request timeout (s)")
+        retries: int = Field(0, ge=0, le=5, description="retries after a timeout")
+        max_repetitions: int = Field(40, ge=1, le=500, description="GETBULK rows per request")
+        robot: str | None = Field(None, description="whose Pose to write (default: this agent)")
+        write_pose: bool = Field(True, description="write every Pose to the network subsystem")
+        log_interval: float = Field(10.0, gt=0, description="at most one warning per kind per interval (s)")
+
+    def make_source(self) -> NetworkSource:
+        """The source the resource reads through (override to plug in another subsystem)."""
+        s = self.settings
+        return SnmpSource(s.host, s.port, s.community, s.timeout, s.retries, s.max_repetitions)
+
+    def setup(self) -> None:
+        me = self.agent_name
+        robot = self.settings.robot or me
+        self.tasks = self.subscribe(
+            Task, where=lambda t: t.verb == "NetWatch" and t.destination in (None, "", me))
+        self.poses = self.subscribe(Pose, where=lambda p: p.robot == robot)
+        self._watching: dict[str, tuple[str, Any]] = {}   # task uid -> (preposition, params)
+        self._infos: dict[str, NetInfo] = {}               # task uid -> last published NetInfo
+        self._polls: dict[str, int] = {}
+        self.resource = MobiNetResource(self.make_source, self._delivered, self.log,
+                                        self.settings.log_interval, name=f"mobinet-{me}")
+        self.resource.start()
+
+    def teardown(self) -> None:
+        self.resource.close()
+
+    # -- the resource's thread calls this; it only hands over ------------------------------
+
+    def _delivered(self, uid: str, view: NetView | None, error: str) -> None:
+        self.later(lambda: self._apply(uid, view, error))
+
+    # -- inside transactions ----------------------------------------------------------------
+
+    def execute(self) -> None:
+        for task in self.tasks.added:
+            self._start(task)
+        for task in self.tasks.changed:
+            known = self._watching.get(task.uid)
+            if known is None:
+                self._start(task)
+            elif known != (task.preposition, task.params):
+                self.resource.unwatch(task.uid)
+                self._watching.pop(task.uid, None)
+                self._start(task)
+        for task in self.tasks.removed:
+            self._stop(task.uid)
+        if self.settings.write_pose:
+            latest = None
+            for pose in list(self.poses.added) + list(self.poses.changed):
+                if latest is None or pose.stamp >= latest.stamp:
+                    latest = pose
+            if latest is not None:
+                self.resource.write_position(
+                    Position(x=latest.x, y=latest.y, heading=math.degrees(latest.theta)))
+
+    def _start(self, task: Task) -> None:
+        if task.done or task.preposition not in PARTS_OF:
+            return
+        rate = task.params.rate_hz
+        self._watching[task.uid] = (task.preposition, task.params)
+        self._polls[task.uid] = 0
+        info = NetInfo(uid=f"netinfo:{task.uid}", node=self.agent_name, kind=task.preposition,
+                       task=task.uid, message="waiting for the first reading")
+        if task.uid in self._infos:
+            self.change(info)
+        else:
+            self.add(info)
+        self._infos[task.uid] = info
+        self.change(task.with_result(TaskState.RUNNING, message=f"monitoring at {rate:g} Hz",
+                                     values={"netinfo": info.uid}))
+        self.resource.watch(task.uid, PARTS_OF[task.preposition], rate)
+
+    def _stop(self, uid: str) -> None:
+        if self._watching.pop(uid, None) is None:
+            return
+        self.resource.unwatch(uid)
+        self._polls.pop(uid, None)
+        info = self._infos.pop(uid, None)
+        if info is not None:
+            self.remove(info)
+
+    def _apply(self, uid: str, view: NetView | None, error: str) -> None:
+        task = self.tasks.get(uid)
+        info = self._infos.get(uid)
+        if task is None or info is None or uid not in self._watching:
+            return  # cancelled while the reading was on its way
+        self._polls[uid] += 1
+        if view is None:
+            new_info = info.evolve(degraded=True, message=error, stamp=time.time())
+            values = dict(task.result.values) if task.result else {}
+            message = f"degraded: {error}"
+        else:
+            new_info, values, message = self._answer(task, info, view)
+        self.change(new_info)
+        self._infos[uid] = new_info
+        values["netinfo"] = new_info.uid
+        old = task.result
+        if old is None or old.values != values or old.message != message or old.state != TaskState.RUNNING:
+            self.change(task.with_result(TaskState.RUNNING, message=message, values=values,
+                                         confidence=0.0 if view is None else 1.0))
+
+    def _answer(self, task: Task, info: NetInfo, view: NetView) -> tuple[NetInfo, dict[str, Any], str]:
+        kind, params = task.preposition, task.params
+        fields: dict[str, Any] = {"degraded": False, "message": "", "stamp": time.time(),
+                                  "node": view.node or self.agent_name}
+        values: dict[str, Any] = {}
+        message = ""
+        if kind == "neighbor_list":
+            nbrs = [n for n in view.neighbors if n.symmetric]
+            fields["neighbors"] = nbrs
+            values["neighbors"] = [n.name for n in nbrs]
+        elif kind == "link_quality":
+            nbrs = list(view.neighbors)
+            if params.neighbor is not None:
+                nbrs = [n for n in nbrs if params.neighbor in (n.name, n.address)]
+                if not nbrs:
+                    message = f"{params.neighbor} is not a neighbour"
+            fields["neighbors"] = nbrs
+            values["quality"] = {n.name: round(n.quality, 3) for n in nbrs}
+            values["best"] = max((n.quality for n in nbrs), default=0.0)
+        elif kind == "path_cost":
+            routes = list(view.routes)
+            if params.destination is not None:
+                routes = [r for r in routes if params.destination in (r.destination,
+                          next((a for a, n in view.names.items() if n == r.destination), ""))]
+                if not routes:
+                    message = f"no route to {params.destination}"
+            fields["routes"] = routes
+            values["routes"] = {r.destination: {"next_hop": r.next_hop, "hops": r.hops,
+                                                "cost": round(r.cost, 4)} for r in routes}
+        elif kind == "network_topology":
+            cuts = articulation_points(view.links)
+            nodes = {n for link in view.links for n in (link.a, link.b)} | {view.node}
+            fields["links"] = view.links
+            fields["articulation_points"] = cuts
+            values.update(nodes=len(nodes), links=len(view.links), articulation_points=cuts,
+                          articulation_point=view.node in cuts)
+        elif kind == "node_position":
+            fields["positions"] = view.positions
+            values["positions"] = {n: {"x": p.x, "y": p.y, "heading": p.heading}
+                                   for n, p in sorted(view.positions.items())}
+        return info.evolve(**fields), values, message

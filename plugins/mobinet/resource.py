@@ -1,0 +1,244 @@
+"""`MobiNetResource`: the thread that polls the network subsystem and writes the robot's pose.
+
+It owns one asyncio loop (thread `mobinet-<agent>`) and one `NetworkSource` created inside
+it. Watches (one per NetWatch task) are polled at their own rates; watches due at about
+the same time share one read. Results and failures go to a callback that must not block
+(MobiNetControl hands them to the blackboard with `later()`). Pose writes keep only the
+latest pose. Nothing here ever touches the blackboard, and no call made from another
+thread waits for SNMP.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from blackboard import Position
+from plugins.mobinet.source import NetView, NetworkSource, SourceError
+
+Delivery = Callable[[str, "NetView | None", str], None]   # (watch key, view or None, error)
+
+
+class RateLimitedLog:
+    """Log a warning per key at most once per `interval` seconds, counting what was held back."""
+
+    def __init__(self, log: logging.Logger, interval: float) -> None:
+        self.log = log
+        self.interval = interval
+        self._last: dict[str, float] = {}
+        self._held: dict[str, int] = {}
+
+    def warning(self, key: str, message: str) -> bool:
+        """Emit `message` unless the same key was logged within the interval; True if logged."""
+        now = time.monotonic()
+        if now - self._last.get(key, -1e18) < self.interval:
+            self._held[key] = self._held.get(key, 0) + 1
+            return False
+        held = self._held.pop(key, 0)
+        suffix = f" ({held} similar message(s) suppressed)" if held else ""
+        self.log.warning("%s%s", message, suffix)
+        self._last[key] = now
+        return True
+
+
+@dataclass
+class _Watch:
+    key: str
+    parts: frozenset[str]
+    period: float
+    due: float
+
+
+class MobiNetResource:
+    """Poll watches at their rates and write poses through a `NetworkSource` on its own thread."""
+
+    def __init__(self, make_source: Callable[[], NetworkSource], deliver: Delivery,
+                 log: logging.Logger, log_interval: float = 10.0, name: str = "mobinet",
+                 retry_delay: float = 1.0) -> None:
+        self.retry_delay = retry_delay
+        self._make_source = make_source
+        self._deliver = deliver
+        self.log = log
+        self.limited = RateLimitedLog(log, log_interval)
+        self.name = name
+        self._watches: dict[str, _Watch] = {}
+        self._pose: Position | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._thread: threading.Thread | None = None
+        self._kick: asyncio.Event | None = None
+        self._pose_event: asyncio.Event | None = None
+        self._stopping = False
+        self.source: NetworkSource | None = None
+        self.stats = {"reads": 0, "read_errors": 0, "writes": 0, "write_errors": 0}
+
+    # -- called from any thread (never blocks on SNMP) ------------------------------------
+
+    def start(self) -> MobiNetResource:
+        """Start the SNMP thread."""
+        if self._thread is not None:
+            return self
+        self._loop = asyncio.new_event_loop()
+        self._thread = threading.Thread(target=self._run, name=self.name, daemon=True)
+        self._thread.start()
+        return self
+
+    def watch(self, key: str, parts: frozenset[str], rate_hz: float) -> None:
+        """Poll `parts` every 1/rate_hz seconds and deliver under `key` (replaces an old watch)."""
+        period = 1.0 / rate_hz
+
+        def add() -> None:
+            self._watches[key] = _Watch(key, parts, period, time.monotonic())
+            self._wake()
+
+        self._call(add)
+
+    def unwatch(self, key: str) -> None:
+        """Stop polling for `key`; nothing more is delivered for it."""
+        def drop() -> None:
+            self._watches.pop(key, None)
+        self._call(drop)
+
+    def write_position(self, position: Position) -> None:
+        """Write this position to the network subsystem soon (a newer one replaces it)."""
+        def store() -> None:
+            self._pose = position
+            if self._pose_event is not None:
+                self._pose_event.set()
+        self._call(store)
+
+    def close(self, timeout: float = 3.0) -> None:
+        """Stop polling, close the source and join the thread."""
+        loop, thread = self._loop, self._thread
+        if loop is None or thread is None:
+            return
+
+        def stop() -> None:
+            self._stopping = True
+            self._wake()
+            if self._pose_event is not None:
+                self._pose_event.set()
+        self._call(stop)
+        thread.join(timeout)
+        if thread.is_alive():
+            self.log.warning("MobiNet SNMP thread did not stop within %.1f s", timeout)
+        self._thread = None
+
+    # -- the loop --------------------------------------------------------------------------
+
+    def _call(self, fn: Callable[[], Any]) -> None:
+        loop = self._loop
+        if loop is None or loop.is_closed():
+            return
+        try:
+            loop.call_soon_threadsafe(fn)
+        except RuntimeError:  # loop closed meanwhile
+            pass
+
+    def _wake(self) -> None:
+        if self._kick is not None:
+            self._kick.set()
+
+    def _run(self) -> None:
+        assert self._loop is not None
+        asyncio.set_event_loop(self._loop)
+        try:
+            self._loop.run_until_complete(self._main())
+        except Exception:
+            self.log.exception("MobiNet SNMP thread failed")
+        finally:
+            self._loop.run_until_complete(self._loop.shutdown_asyncgens())
+            self._loop.close()
+
+    async def _main(self) -> None:
+        self._kick = asyncio.Event()
+        self._pose_event = asyncio.Event()
+        if self._pose is not None:
+            self._pose_event.set()
+        try:
+            self.source = self._make_source()
+        except Exception as err:
+            self.log.error("cannot create the network source: %s", err)
+            return
+        writer = asyncio.ensure_future(self._pose_writer())
+        try:
+            await self._poller()
+        finally:
+            writer.cancel()
+            try:
+                await writer
+            except asyncio.CancelledError:
+                pass
+            try:
+                await self.source.aclose()
+            except Exception as err:  # closing must not hide the shutdown
+                self.log.debug("closing the network source: %s", err)
+
+    async def _poller(self) -> None:
+        assert self._kick is not None
+        while not self._stopping:
+            now = time.monotonic()
+            # a watch due within a fifth of its period joins this read
+            due = [w for w in self._watches.values() if w.due - now <= 0.2 * w.period]
+            if not due:
+                nxt = min((w.due for w in self._watches.values()), default=now + 1.0)
+                self._kick.clear()
+                try:
+                    await asyncio.wait_for(self._kick.wait(), max(0.0, nxt - now))
+                except asyncio.TimeoutError:
+                    pass
+                continue
+            parts = frozenset().union(*(w.parts for w in due))
+            view, error = await self._read(parts)
+            done = time.monotonic()
+            for w in due:
+                if self._watches.get(w.key) is not w:
+                    continue  # cancelled or replaced during the read
+                w.due = w.due + w.period if w.due + w.period > done else done + w.period
+                try:
+                    self._deliver(w.key, view, error)
+                except Exception:
+                    self.log.exception("delivering a MobiNet result failed")
+
+    async def _read(self, parts: frozenset[str]) -> tuple[NetView | None, str]:
+        assert self.source is not None
+        self.stats["reads"] += 1
+        try:
+            return await self.source.read(parts), ""
+        except SourceError as err:
+            message = str(err)
+        except Exception as err:  # a source bug degrades the result, it never stops polling
+            message = f"{type(err).__name__}: {err}"
+        self.stats["read_errors"] += 1
+        self.limited.warning("read", f"network read failed: {message}")
+        return None, message
+
+    async def _pose_writer(self) -> None:
+        assert self._pose_event is not None and self.source is not None
+        while not self._stopping:
+            await self._pose_event.wait()
+            self._pose_event.clear()
+            pose, self._pose = self._pose, None
+            if pose is None or self._stopping:
+                continue
+            self.stats["writes"] += 1
+            try:
+                await self.source.write_position(pose)
+            except Exception as err:
+                self.stats["write_errors"] += 1
+                self.limited.warning("write", f"writing the position failed: {err}")
+                if self._pose is None:  # retry the same pose unless a newer one arrived
+                    self._pose = pose
+                try:
+                    await asyncio.wait_for(self._wait_stopping(), self.retry_delay)
+                except asyncio.TimeoutError:
+                    pass
+                self._pose_event.set()
+
+    async def _wait_stopping(self) -> None:
+        while not self._stopping:
+            await asyncio.sleep(0.05)

@@ -1,0 +1,331 @@
+"""`SnmpSource`: the network subsystem read and written over SNMPv2c (pysnmp 7 asyncio API).
+
+Each part of a view is one table walk done with GETBULK over all the part's columns at
+once (several round trips only for large tables); the parts of one read run concurrently.
+Every value is type-checked: a missing answer, an error status, a wrong type or a
+malformed value raises `SourceError` naming the OID and what was expected.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import ipaddress
+import math
+from collections.abc import Iterable
+from typing import Any
+
+from pyasn1.type import univ
+from pysnmp.hlapi.v3arch.asyncio import (
+    CommunityData,
+    ContextData,
+    ObjectIdentity,
+    ObjectType,
+    SnmpEngine,
+    UdpTransportTarget,
+    bulk_cmd,
+    get_cmd,
+    set_cmd,
+)
+from pysnmp.proto import rfc1902, rfc1905
+
+import netgraph
+from blackboard import Link, Neighbor, Position, Route
+from plugins.mobinet import mib
+from plugins.mobinet.source import NEIGHBORS, POSITIONS, ROUTES, TOPOLOGY, NetView, SourceError
+
+_INT = univ.Integer.tagSet
+_STR = univ.OctetString.tagSet
+_TYPES = {
+    "Integer32": (_INT,),
+    "OCTET STRING": (_STR,),
+    "IpAddress": (rfc1902.IpAddress.tagSet,),
+    "Unsigned32/Gauge32": (rfc1902.Unsigned32.tagSet, rfc1902.Gauge32.tagSet),
+    "Counter32": (rfc1902.Counter32.tagSet,),
+}
+_EXCEPTIONS = (rfc1905.NoSuchObject.tagSet, rfc1905.NoSuchInstance.tagSet,
+               rfc1905.EndOfMibView.tagSet)
+
+
+def _typed(oid: mib.OID, value: Any, expected: str) -> Any:
+    if value.tagSet not in _TYPES[expected]:
+        shown = value.prettyPrint() if hasattr(value, "prettyPrint") else repr(value)
+        raise SourceError(f"{mib.label(oid)} ({mib.dotted(oid)}): expected {expected}, got "
+                          f"{type(value).__name__} {shown[:40]!r}")
+    return value
+
+
+def _int(oid: mib.OID, value: Any, expected: str = "Integer32") -> int:
+    return int(_typed(oid, value, expected))
+
+
+def _text(oid: mib.OID, value: Any) -> str:
+    raw = bytes(_typed(oid, value, "OCTET STRING"))
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError:
+        raise SourceError(f"{mib.label(oid)}: expected UTF-8 text, got {raw[:20]!r}") from None
+
+
+def _ip(oid: mib.OID, value: Any) -> str:
+    raw = bytes(_typed(oid, value, "IpAddress"))
+    if len(raw) != 4:
+        raise SourceError(f"{mib.label(oid)}: expected a 4-byte IpAddress, got {len(raw)} byte(s)")
+    return str(ipaddress.IPv4Address(raw))
+
+
+def _inet(oid: mib.OID, value: Any) -> str:
+    raw = bytes(_typed(oid, value, "OCTET STRING"))
+    if len(raw) != 4:
+        raise SourceError(f"{mib.label(oid)}: expected a 4-byte IPv4 InetAddress, got "
+                          f"{len(raw)} byte(s)")
+    return str(ipaddress.IPv4Address(raw))
+
+
+def _quality_of_metric(metric: int) -> float:
+    return min(1.0, math.sqrt(mib.METRIC_UNIT / metric)) if metric > 0 else 1.0
+
+
+class SnmpSource:
+    """A `NetworkSource` speaking SNMPv2c to one node's network subsystem."""
+
+    def __init__(self, host: str, port: int, community: str = "public", timeout: float = 0.5,
+                 retries: int = 0, max_repetitions: int = 40) -> None:
+        self.host, self.port = host, port
+        self.community = community
+        self.timeout, self.retries = timeout, retries
+        self.max_repetitions = max_repetitions
+        self._engine: SnmpEngine | None = None
+        self._target: UdpTransportTarget | None = None
+        self._rows: dict[tuple[mib.OID, ...], int] = {}  # rows seen by the last walk of a column set
+        self.requests = 0
+
+    @property
+    def where(self) -> str:
+        """`host:port` of the agent."""
+        return f"{self.host}:{self.port}"
+
+    async def _session(self) -> tuple[SnmpEngine, UdpTransportTarget]:
+        if self._engine is None:
+            self._engine = SnmpEngine()  # created inside the running loop, as pysnmp requires
+        if self._target is None:
+            try:
+                self._target = await UdpTransportTarget.create(
+                    (self.host, self.port), timeout=self.timeout, retries=self.retries)
+            except Exception as err:
+                raise SourceError(f"SNMP agent {self.where}: cannot resolve: {err}") from None
+        return self._engine, self._target
+
+    def _auth(self) -> CommunityData:
+        return CommunityData(self.community, mpModel=1)
+
+    def _check(self, what: str, err_ind: Any, err_stat: Any, err_idx: Any, binds: Any) -> None:
+        if err_ind:
+            raise SourceError(f"SNMP {what} to {self.where}: {err_ind} (timeout {self.timeout:g} s, "
+                              f"{self.retries} retr{'y' if self.retries == 1 else 'ies'})")
+        if int(err_stat):
+            where = ""
+            i = int(err_idx)
+            if 0 < i <= len(binds):
+                where = f" at {mib.label(tuple(binds[i - 1][0]))}"
+            raise SourceError(f"SNMP {what} to {self.where}: agent answered "
+                              f"{err_stat.prettyPrint()}{where}")
+
+    async def get(self, oids: Iterable[mib.OID]) -> dict[mib.OID, Any]:
+        """GET scalars; a missing one raises SourceError."""
+        engine, target = await self._session()
+        oids = list(oids)
+        self.requests += 1
+        res = await get_cmd(engine, self._auth(), target, ContextData(),
+                            *(ObjectType(ObjectIdentity(mib.dotted(o))) for o in oids),
+                            lookupMib=False)
+        self._check("GET", *res)
+        out = {}
+        for oid, val in res[3]:
+            key = tuple(oid)
+            if val.tagSet in _EXCEPTIONS:
+                raise SourceError(f"SNMP GET to {self.where}: {mib.label(key)} not served "
+                                  f"({type(val).__name__})")
+            out[key] = val
+        return out
+
+    async def walk(self, columns: list[mib.OID]) -> dict[mib.OID, dict[mib.OID, Any]]:
+        """Walk table columns together: {column: {index: value}}."""
+        engine, target = await self._session()
+        result: dict[mib.OID, dict[mib.OID, Any]] = {c: {} for c in columns}
+        cursors: dict[mib.OID, mib.OID] = {c: c for c in columns}
+        key_set = tuple(columns)
+        # ask for one row more than last time: steady-state walks take one round trip
+        reps = min(self.max_repetitions, self._rows.get(key_set, 8) + 1)
+        for _ in range(10000):
+            pending = list(cursors)
+            if not pending:
+                break
+            self.requests += 1
+            res = await bulk_cmd(engine, self._auth(), target, ContextData(), 0, reps,
+                                 *(ObjectType(ObjectIdentity(mib.dotted(cursors[c]))) for c in pending),
+                                 lookupMib=False)
+            self._check("GETBULK", *res)
+            binds = res[3]
+            if not binds:
+                break
+            for n, (oid, val) in enumerate(binds):
+                col = pending[n % len(pending)]
+                if col not in cursors:
+                    continue
+                key = tuple(oid)
+                if val.tagSet in _EXCEPTIONS or key[: len(col)] != col:
+                    del cursors[col]
+                    continue
+                if key <= cursors[col] and cursors[col] != col:
+                    raise SourceError(f"SNMP GETBULK to {self.where}: OID not increasing at "
+                                      f"{mib.label(key)}")
+                result[col][key[len(col):]] = val
+                cursors[col] = key
+            reps = self.max_repetitions
+        self._rows[key_set] = max((len(v) for v in result.values()), default=0)
+        return result
+
+    async def read(self, parts: frozenset[str]) -> NetView:
+        """Read the requested parts (plus the node's identity and the node table)."""
+        jobs: dict[str, Any] = {"ident": self.get([mib.ERNI_NODE_NAME, mib.ERNI_NODE_ADDRESS])}
+        cols = [mib.ERNI_NODES_NAME, mib.ERNI_NODES_ADDRESS]
+        if POSITIONS in parts:
+            cols += [mib.ERNI_NODES_X, mib.ERNI_NODES_Y, mib.ERNI_NODES_HEADING]
+        jobs["nodes"] = self.walk(cols)
+        if NEIGHBORS in parts:
+            jobs[NEIGHBORS] = self.walk([mib.NHDP_DISC_IF_ADDR, mib.NHDP_NIB_SYMMETRIC,
+                                         mib.OLSRV2_LINK_IN_METRIC, mib.ERNI_LINK_QUALITY,
+                                         mib.NHDP_PERF_RECVD, mib.NHDP_PERF_EXPECTED])
+        if TOPOLOGY in parts:
+            jobs[TOPOLOGY] = self.walk([mib.OLSRV2_TOPO_FROM, mib.OLSRV2_TOPO_TO,
+                                        mib.OLSRV2_TOPO_METRIC])
+        if ROUTES in parts:
+            jobs[ROUTES] = self.walk([mib.OLSRV2_ROUTE_NEXT_HOP, mib.OLSRV2_ROUTE_DIST,
+                                      mib.OLSRV2_ROUTE_METRIC])
+        done = await asyncio.gather(*jobs.values(), return_exceptions=True)
+        got = dict(zip(jobs, done))
+        for value in done:
+            if isinstance(value, BaseException):
+                if isinstance(value, SourceError):
+                    raise value
+                raise SourceError(f"SNMP agent {self.where}: {type(value).__name__}: {value}") from value
+        ident = got["ident"]
+        view = NetView(node=_text(mib.ERNI_NODE_NAME, ident[mib.ERNI_NODE_NAME]),
+                       address=_ip(mib.ERNI_NODE_ADDRESS, ident[mib.ERNI_NODE_ADDRESS]))
+        self._decode_nodes(view, got["nodes"], POSITIONS in parts)
+        if NEIGHBORS in parts:
+            self._decode_neighbors(view, got[NEIGHBORS])
+        if TOPOLOGY in parts:
+            self._decode_topology(view, got[TOPOLOGY])
+        if ROUTES in parts:
+            self._decode_routes(view, got[ROUTES])
+        return view
+
+    async def write_position(self, position: Position) -> None:
+        """SET the node's position scalars (mm, mm, centidegrees) in one request."""
+        engine, target = await self._session()
+        heading = ((position.heading + 180.0) % 360.0) - 180.0
+        values = [(mib.ERNI_POS_X, round(position.x * 1000)), (mib.ERNI_POS_Y, round(position.y * 1000)),
+                  (mib.ERNI_POS_HEADING, round(heading * 100))]
+        for oid, v in values:
+            if not -(2**31) <= v < 2**31:
+                raise SourceError(f"{mib.label(oid)}: {v} does not fit an Integer32 (position too far)")
+        self.requests += 1
+        res = await set_cmd(engine, self._auth(), target, ContextData(),
+                            *(ObjectType(ObjectIdentity(mib.dotted(o)), rfc1902.Integer32(v))
+                              for o, v in values), lookupMib=False)
+        self._check("SET", *res)
+
+    async def aclose(self) -> None:
+        """Close the engine's transport."""
+        if self._engine is not None:
+            self._engine.close_dispatcher()
+            self._engine = None
+
+    # -- decoding -------------------------------------------------------------------------
+
+    def _name(self, view: NetView, address: str) -> str:
+        return view.names.get(address, address)
+
+    def _decode_nodes(self, view: NetView, cols: dict[mib.OID, dict], positions: bool) -> None:
+        names = cols[mib.ERNI_NODES_NAME]
+        by_index: dict[mib.OID, str] = {}
+        for idx, val in names.items():
+            by_index[idx] = _text(mib.ERNI_NODES_NAME + idx, val)
+        for idx, val in cols[mib.ERNI_NODES_ADDRESS].items():
+            addr = _ip(mib.ERNI_NODES_ADDRESS + idx, val)
+            if idx in by_index:
+                view.names[addr] = by_index[idx]
+        view.names.setdefault(view.address, view.node)
+        if not positions:
+            return
+        xs, ys, hs = (cols[mib.ERNI_NODES_X], cols[mib.ERNI_NODES_Y], cols[mib.ERNI_NODES_HEADING])
+        for idx, name in by_index.items():
+            if idx not in xs or idx not in ys:
+                continue  # position not known to this node
+            x = _int(mib.ERNI_NODES_X + idx, xs[idx]) / 1000.0
+            y = _int(mib.ERNI_NODES_Y + idx, ys[idx]) / 1000.0
+            h = _int(mib.ERNI_NODES_HEADING + idx, hs[idx]) / 100.0 if idx in hs else 0.0
+            view.positions[name] = Position(x=x, y=y, heading=h)
+
+    def _decode_neighbors(self, view: NetView, cols: dict[mib.OID, dict]) -> None:
+        sym = cols[mib.NHDP_NIB_SYMMETRIC]
+        metric = {idx[-1:]: v for idx, v in cols[mib.OLSRV2_LINK_IN_METRIC].items()}
+        quality = cols[mib.ERNI_LINK_QUALITY]
+        recvd, expected = cols[mib.NHDP_PERF_RECVD], cols[mib.NHDP_PERF_EXPECTED]
+        for idx, val in sorted(cols[mib.NHDP_DISC_IF_ADDR].items()):
+            addr = _inet(mib.NHDP_DISC_IF_ADDR + idx, val)
+            truth = _int(mib.NHDP_NIB_SYMMETRIC + idx, sym[idx]) if idx in sym else 2
+            if truth not in (1, 2):
+                raise SourceError(f"{mib.label(mib.NHDP_NIB_SYMMETRIC + idx)}: expected TruthValue "
+                                  f"1 or 2, got {truth}")
+            if idx in quality:
+                q = _int(mib.ERNI_LINK_QUALITY + idx, quality[idx], "Unsigned32/Gauge32") / 1000.0
+            elif idx in recvd and idx in expected:
+                exp = _int(mib.NHDP_PERF_EXPECTED + idx, expected[idx], "Counter32")
+                got = _int(mib.NHDP_PERF_RECVD + idx, recvd[idx], "Counter32")
+                q = got / exp if exp else 0.0
+            else:
+                q = 0.0
+            if not 0.0 <= q <= 1.0:
+                raise SourceError(f"{mib.label(mib.ERNI_LINK_QUALITY + idx)}: expected 0..1000, "
+                                  f"got {round(q * 1000)}")
+            m = (_int(mib.OLSRV2_LINK_IN_METRIC + (1,) + idx, metric[idx], "Unsigned32/Gauge32")
+                 if idx in metric else None)
+            view.neighbors.append(Neighbor(name=self._name(view, addr), address=addr, quality=q,
+                                           symmetric=truth == 1, metric=m))
+
+    def _decode_topology(self, view: NetView, cols: dict[mib.OID, dict]) -> None:
+        froms, tos, metrics = (cols[mib.OLSRV2_TOPO_FROM], cols[mib.OLSRV2_TOPO_TO],
+                               cols[mib.OLSRV2_TOPO_METRIC])
+        seen: dict[frozenset[str], Link] = {}
+        for idx, val in sorted(froms.items()):
+            if idx not in tos or idx not in metrics:
+                continue
+            a = self._name(view, _inet(mib.OLSRV2_TOPO_FROM + idx, val))
+            b = self._name(view, _inet(mib.OLSRV2_TOPO_TO + idx, tos[idx]))
+            m = _int(mib.OLSRV2_TOPO_METRIC + idx, metrics[idx], "Unsigned32/Gauge32")
+            key = frozenset((a, b))
+            if a != b and key not in seen:
+                seen[key] = Link(a=min(a, b), b=max(a, b), quality=_quality_of_metric(m), metric=m)
+        view.links = list(seen.values())
+
+    def _decode_routes(self, view: NetView, cols: dict[mib.OID, dict]) -> None:
+        hops, dists, metrics = (cols[mib.OLSRV2_ROUTE_NEXT_HOP], cols[mib.OLSRV2_ROUTE_DIST],
+                                cols[mib.OLSRV2_ROUTE_METRIC])
+        for idx, val in sorted(hops.items()):
+            if len(idx) != 7 or idx[0] != 1 or idx[1] != 4 or max(idx[2:6]) > 255:
+                raise SourceError(f"{mib.label(mib.OLSRV2_ROUTE_NEXT_HOP + idx)}: expected an "
+                                  "index 1.4.a.b.c.d.prefixLen")
+            dest = str(ipaddress.IPv4Address(bytes(idx[2:6])))
+            hop = _inet(mib.OLSRV2_ROUTE_NEXT_HOP + idx, val)
+            dist = _int(mib.OLSRV2_ROUTE_DIST + idx, dists[idx], "Unsigned32/Gauge32") if idx in dists else 0
+            cost = (_int(mib.OLSRV2_ROUTE_METRIC + idx, metrics[idx], "Unsigned32/Gauge32")
+                    if idx in metrics else 0)
+            view.routes.append(Route(destination=self._name(view, dest), next_hop=self._name(view, hop),
+                                     hops=dist, cost=cost / mib.METRIC_UNIT))
+
+
+def articulation_points(links: Iterable[Link]) -> list[str]:
+    """Cut vertices of the topology given by `links`, sorted."""
+    return sorted(netgraph.articulation_points(netgraph.from_edges((l.a, l.b) for l in links)))
