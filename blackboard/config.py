@@ -111,7 +111,8 @@ def build_agent(config: AgentConfig, source: str = "<config>") -> Agent:
         except ValidationError as err:
             raise ConfigError(format_errors(source, err, f"{here}.settings")) from None
         try:
-            agent.add_plugin(cls, settings, name=section.name)
+            default = section.class_ if section.class_.isidentifier() else None  # entry point name
+            agent.add_plugin(cls, settings, name=section.name or default)
         except PluginError as err:
             raise ConfigError(f"{source}: {here}: {err}") from None
     return agent

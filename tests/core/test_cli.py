@@ -49,8 +49,9 @@ def test_agent_runs_until_sigterm_and_stops_cleanly():
                             cwd=ROOT, stderr=subprocess.PIPE, text=True,
                             env={**os.environ, "PYTHONUNBUFFERED": "1"})
     try:
-        line = proc.stderr.readline()
-        assert "erni.robot1: agent robot1 started with 1 plugin(s)" in line
+        lines = [proc.stderr.readline() for _ in range(3)]
+        assert any("erni.robot1: agent robot1 started with 2 plugin(s)" in ln for ln in lines), lines
+        assert any("WITHOUT authentication" in ln for ln in lines), "insecure mode is warned about"
         time.sleep(0.2)
         t0 = time.monotonic()
         proc.send_signal(signal.SIGTERM)

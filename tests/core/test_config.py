@@ -50,7 +50,7 @@ delay = "0.25"
     ("[agent]\nname='r1'\n[[plugin]]\nclass='echo'\n[plugin.settings]\ndelay=-1", "plugin[0].settings.delay: Input should be greater than or equal to 0"),
     ("[agent]\nname='r1'\n[[plugin]]\nclass='echo'\n[plugin.settings]\nspeed=1", "plugin[0].settings.speed: unknown key"),
     ("[agent]\nname='r1'\n[[plugin]]\nname='x'", "plugin[0].class: missing (required)"),
-    ("[agent]\nname='r1'\n[[plugin]]\nclass='echo'\n[[plugin]]\nclass='echo'", "plugin[1]: agent r1: a plugin named 'EchoPlugin' is already loaded"),
+    ("[agent]\nname='r1'\n[[plugin]]\nclass='echo'\n[[plugin]]\nclass='echo'", "plugin[1]: agent r1: a plugin named 'echo' is already loaded"),
 ])
 def test_bad_configs_name_the_file_and_field(tmp_path, text, message):
     path = write(tmp_path, text)

@@ -1,0 +1,44 @@
+"""Options and helpers shared by the commands that talk to a running team."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from typing import Any
+
+from transport.endpoint import Address, parse_address
+
+
+def add_client_options(p: argparse.ArgumentParser) -> None:
+    """Add --via, --discovery-port, --key-env, --insecure and --json."""
+    p.add_argument("--via", metavar="HOST:PORT", help="an agent's transport address "
+                   "(default: find one by its beacons)")
+    p.add_argument("--discovery-port", type=int, default=47000, help="beacon port (default 47000)")
+    p.add_argument("--key-env", default="ERNI_TEAM_KEY", help="environment variable with the team key")
+    p.add_argument("--insecure", action="store_true", help="send unauthenticated frames")
+    p.add_argument("--json", action="store_true", help="one JSON object per line")
+
+
+def via_address(args: argparse.Namespace) -> Address | None:
+    """Return the --via address, or None (raises ValueError naming the problem)."""
+    return parse_address(args.via) if args.via else None
+
+
+def make_client(args: argparse.Namespace) -> Any:
+    """Build a Client from the shared options."""
+    from transport.client import Client
+
+    return Client(via_address(args), discovery_port=args.discovery_port, key_env=args.key_env,
+                  insecure=args.insecure)
+
+
+def stamp(t: float | None = None) -> str:
+    """Return HH:MM:SS.mmm for a wall-clock time."""
+    t = time.time() if t is None else t
+    return time.strftime("%H:%M:%S", time.localtime(t)) + f".{int(t % 1 * 1000):03d}"
+
+
+def dumps(obj: Any) -> str:
+    """Return compact JSON."""
+    return json.dumps(obj, separators=(",", ":"), default=str)

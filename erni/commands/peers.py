@@ -1,0 +1,57 @@
+"""`erni peers`: list the agents a team member knows, with liveness."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from typing import Any
+
+from erni.commands._client import add_client_options, dumps, make_client
+from transport.bridge import PeerList
+
+
+def register(sub: Any) -> None:
+    """Add the `peers` sub-command."""
+    p = sub.add_parser("peers", help="list known agents and whether they are heard",
+                       description="Ask one agent (--via, or one found by its beacons) for its directory.")
+    add_client_options(p)
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Print the directory as a table or JSON lines."""
+    from transport.client import ClientError
+
+    try:
+        client = make_client(args)
+    except ValueError as err:
+        print(f"erni peers: {err}", file=sys.stderr)
+        return 2
+    with client:
+        try:
+            addr = client.find(None)
+            client.send(addr, "peers.request", None)
+            deadline = time.monotonic() + 5.0
+            while time.monotonic() < deadline:
+                msg = client.receive(0.2)
+                if msg is not None and msg.kind == "peers.reply" and isinstance(msg.body, PeerList):
+                    break
+            else:
+                raise ClientError(f"no answer from {addr[0]}:{addr[1]} within 5 s")
+        except ClientError as err:
+            print(f"erni peers: {err}", file=sys.stderr)
+            return 1
+    now = time.time()
+    peers = sorted(msg.body.peers, key=lambda p: p.name)
+    if args.json:
+        for p in peers:
+            print(dumps({"via": msg.body.agent, **p.model_dump(mode="json")}))
+        return 0
+    print(f"agents known to {msg.body.agent} ({addr[0]}:{addr[1]}):")
+    print(f"{'name':<16} {'state':<5} {'address':<22} {'role':<10} {'heard':>8}  capabilities")
+    for p in peers:
+        heard = f"{now - p.last_heard:.1f}s" if p.last_heard else "never"
+        print(f"{p.name:<16} {'up' if p.up else 'down':<5} {p.address:<22} {p.role:<10} {heard:>8}  "
+              f"{','.join(p.capabilities)}")
+    return 0

@@ -1,0 +1,76 @@
+"""`erni watch`: stream poses, task results and peer events of a running team as lines."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from typing import Any
+
+from erni.commands._client import add_client_options, dumps, make_client, stamp
+from transport.bridge import WatchEvent, WatchRequest
+
+LEASE = 10.0
+
+
+def register(sub: Any) -> None:
+    """Add the `watch` sub-command."""
+    p = sub.add_parser("watch", help="stream poses, results and peer events as lines",
+                       description="Stream what one agent's blackboard sees (Ctrl-C stops).")
+    p.add_argument("--count", type=int, default=0, help="stop after N events (0 = never)")
+    p.add_argument("--seconds", type=float, default=0, help="stop after S seconds (0 = never)")
+    add_client_options(p)
+    p.set_defaults(func=run)
+
+
+def describe(event: WatchEvent) -> str:
+    """One human line for an event."""
+    d = event.data
+    if event.type == "Pose":
+        text = (f"{d['robot']} x={d['x']:.2f} y={d['y']:.2f} th={d['theta']:.2f} v={d['v']:.2f}"
+                + (f" bat={d['battery']:.1f}V" if d.get("battery") is not None else ""))
+    elif event.type == "Task":
+        r = d.get("result") or {}
+        text = (f"{d['uid']} {d['verb']} {d['preposition']} -> {d.get('destination') or event.agent} "
+                f"{r.get('state', 'pending')} {r.get('progress', 0):.0%} {r.get('message', '')}")
+    elif event.type == "Peer":
+        text = f"{d['name']} {'up' if d['up'] else 'down'} {d['address']}"
+    else:
+        text = f"{d.get('node', '')} {d.get('kind', '')}" + (" degraded" if d.get("degraded") else "")
+    return f"{stamp()} {event.agent} {event.op:<6} {event.type:<7} {text.rstrip()}"
+
+
+def run(args: argparse.Namespace) -> int:
+    """Lease a watch from one agent and print its events until stopped."""
+    from transport.client import ClientError
+
+    try:
+        client = make_client(args)
+    except ValueError as err:
+        print(f"erni watch: {err}", file=sys.stderr)
+        return 2
+    seen = 0
+    end = time.monotonic() + args.seconds if args.seconds else None
+    with client:
+        try:
+            addr = client.find(None)
+        except ClientError as err:
+            print(f"erni watch: {err}", file=sys.stderr)
+            return 1
+        renew = 0.0
+        try:
+            while not (end and time.monotonic() > end):
+                if time.monotonic() >= renew:
+                    client.send(addr, "watch.request", WatchRequest(lease=LEASE))
+                    renew = time.monotonic() + LEASE / 2
+                msg = client.receive(0.2)
+                if msg is None or msg.kind != "watch.event" or not isinstance(msg.body, WatchEvent):
+                    continue
+                ev = msg.body
+                print(dumps(ev.model_dump(mode="json")) if args.json else describe(ev), flush=True)
+                seen += 1
+                if args.count and seen >= args.count:
+                    break
+        except KeyboardInterrupt:
+            pass
+    return 0

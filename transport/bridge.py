@@ -1,0 +1,370 @@
+"""The transport plugin: remote tasking through the blackboard, discovery, peer liveness, watchers.
+
+- A task whose `destination` is another agent is sent (reliably) when it is published and
+  cancelled there when it is removed here.
+- A task received from a peer appears on this blackboard as a task from that source; its
+  result changes travel back to the peer it came from (UDP, and TCP for final states).
+- Beacons go to the configured broadcast/unicast addresses, to static peers and to addresses
+  learned from MobiNet's `NetInfo`; every agent heard is a `Peer` on the blackboard, marked
+  down when silent for `peer_timeout`.
+- Clients (`erni watch`) may lease a stream of blackboard changes.
+
+All network traffic is handed to the endpoint's sender pool; received messages are handed
+to `execute()` with `later()`, so nothing here does I/O inside a transaction.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field, SecretStr, model_validator
+
+from blackboard import BBObject, NetInfo, Plugin, Pose, Task, TaskState
+from blackboard.tasks import AllocationResult
+from transport.endpoint import Address, Endpoint, parse_address, team_key
+from transport.wire import Message, register_type
+
+
+class Peer(BBObject):
+    """An agent known to this one: where it is, what it is, whether it is heard."""
+
+    name: str
+    address: str = ""
+    role: str = ""
+    capabilities: list[str] = Field(default_factory=list)
+    last_heard: float = 0.0
+    up: bool = False
+    epoch: int = 0
+
+
+class Beacon(BaseModel):
+    """What an agent announces about itself."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    role: str = ""
+    capabilities: list[str] = Field(default_factory=list)
+
+
+class ResultUpdate(BaseModel):
+    """A performer's new result for a task."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    uid: str
+    result: AllocationResult
+
+
+class Cancel(BaseModel):
+    """The requester removed a task."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    uid: str
+
+
+class PeerList(BaseModel):
+    """The directory of an agent, sent to a client."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    agent: str
+    peers: list[Peer]
+
+
+class WatchRequest(BaseModel):
+    """A client asks for blackboard changes for `lease` seconds."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    lease: float = Field(10.0, gt=0, le=3600)
+
+
+class WatchEvent(BaseModel):
+    """One blackboard change sent to a watcher."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    agent: str
+    op: str
+    type: str
+    data: dict[str, Any]
+
+
+for _cls in (Peer, Beacon, ResultUpdate, Cancel, PeerList, WatchRequest, WatchEvent):
+    register_type(_cls)
+
+WATCHED = (Task, Pose, NetInfo, Peer)
+
+
+class TransportSettings(BaseModel):
+    """The `[plugin.settings]` of the transport plugin."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    listen: str = Field("127.0.0.1:0", description="HOST:PORT for TCP and UDP (0 = any free port)")
+    key: SecretStr | None = Field(None, description="team key (prefer key_env)")
+    key_env: str = Field("ERNI_TEAM_KEY", description="environment variable holding the team key")
+    insecure: bool = Field(False, description="run without authentication (warned about)")
+    role: str = "robot"
+    capabilities: list[str] = Field(default_factory=list)
+    discovery_port: int = Field(47000, ge=0, le=65535, description="shared beacon port; 0 disables")
+    beacon_to: list[str] = Field(default_factory=lambda: ["127.255.255.255"],
+                                 description="broadcast or unicast hosts that get beacons")
+    beacon_period: float = Field(1.0, gt=0)
+    peer_timeout: float = Field(4.0, gt=0)
+    peers: list[str] = Field(default_factory=list, description="static peers, NAME@HOST:PORT")
+    senders: int = Field(4, ge=1, le=64)
+    queue_limit: int = Field(1000, ge=1)
+    max_frame: int = Field(256 * 1024, ge=1024, le=16 * 1024 * 1024)
+    task_ttl: float = Field(30.0, gt=0, description="give up delivering a task after this long (s)")
+    ack_timeout: float = Field(1.0, gt=0)
+    connect_timeout: float = Field(1.0, gt=0)
+
+    @model_validator(mode="after")
+    def _check(self) -> TransportSettings:
+        parse_address(self.listen)
+        for peer in self.peers:
+            name, sep, addr = peer.partition("@")
+            if not sep or not name:
+                raise ValueError(f"peers: {peer!r}: expected NAME@HOST:PORT")
+            parse_address(addr)
+        if not self.insecure and not team_key(self.key.get_secret_value() if self.key else None,
+                                              self.key_env):
+            raise ValueError(f"no team key: set key, the {self.key_env} environment variable, "
+                             "or insecure = true")
+        return self
+
+    def make_endpoint(self, name: str) -> Endpoint:
+        """Build the endpoint these settings describe."""
+        key = team_key(self.key.get_secret_value() if self.key else None, self.key_env)
+        return Endpoint(name, listen=parse_address(self.listen), key=key, insecure=self.insecure,
+                        senders=self.senders, queue_limit=self.queue_limit, max_frame=self.max_frame,
+                        ack_timeout=self.ack_timeout, connect_timeout=self.connect_timeout,
+                        ttl=self.task_ttl, discovery_port=self.discovery_port or None)
+
+
+class TransportPlugin(Plugin):
+    """Bridges this agent's blackboard to the other agents of the team."""
+
+    Settings = TransportSettings
+
+    endpoint_factory: Any = None  # tests may inject a mock network endpoint
+
+    def setup(self) -> None:
+        s: TransportSettings = self.settings
+        factory = self.endpoint_factory or s.make_endpoint
+        self.endpoint: Endpoint = factory(self.agent_name)
+        if s.insecure:
+            self.log.warning("transport of %s runs WITHOUT authentication (insecure = true): any "
+                             "host on the network can task this agent", self.agent_name)
+        self.tasks = self.subscribe(Task)
+        self.watched = self.subscribe(lambda o: isinstance(o, WATCHED))
+        self.netinfo = self.subscribe(NetInfo)
+        self.directory: dict[str, Peer] = {}
+        self.sent_to: dict[str, str] = {}  # task uid -> peer it was sent to
+        self.received_from: dict[str, str] = {}  # task uid -> peer it came from
+        self.last_result: dict[str, tuple[int, int]] = {}  # task uid -> (epoch, seq) applied
+        self.pending: dict[str, tuple[str, float]] = {}  # task uid -> (destination, deadline)
+        self.watchers: dict[str, tuple[Address, float]] = {}
+        self.learned: set[str] = set()
+        self.addresses: dict[str, Address] = {}  # reply address of every sender, clients included
+        for spec in s.peers:
+            name, _, addr = spec.partition("@")
+            host, port = parse_address(addr)
+            self.directory[name] = Peer(uid=f"peer:{name}", name=name, address=f"{host}:{port}")
+            self.add(self.directory[name])
+        self.endpoint.on_message = lambda msg: self.later(lambda: self._handle(msg))
+        self.endpoint.on_undeliverable = lambda addr, mid, kind, body: self.later(
+            lambda: self._undeliverable(addr, kind, body))
+        self.endpoint.start()
+        self.address = self.endpoint.address
+        self.log.info("agent %s listening on %s:%d (TCP+UDP), beacons on port %s", self.agent_name,
+                      *self.address, s.discovery_port or "off")
+        self.wake_every(s.beacon_period)
+        self.wake()
+
+    def teardown(self) -> None:
+        self.endpoint.stop()
+
+    # -- each run -------------------------------------------------------------------------
+
+    def execute(self) -> None:
+        me = self.agent_name
+        now = time.time()
+        for task in self.tasks.added:
+            if task.destination not in (None, "", me) and self.received_from.get(task.uid) != task.destination:
+                self._send_task(task)
+        for task in self.tasks.changed:
+            origin = self.received_from.get(task.uid)
+            if origin and task.result is not None:
+                self._send_result(origin, task)
+        for task in self.tasks.removed:
+            dest = self.sent_to.pop(task.uid, None)
+            self.pending.pop(task.uid, None)
+            if dest:
+                self._send_to_peer(dest, "task.cancel", Cancel(uid=task.uid), reliable=True)
+            self.received_from.pop(task.uid, None)
+            self.last_result.pop(task.uid, None)
+        for info in self.netinfo.added + self.netinfo.changed:
+            for n in info.neighbors:
+                if n.address:
+                    self.learned.add(n.address.rsplit(":", 1)[0] if n.address.count(":") == 1 else n.address)
+        self._retry_pending(now)
+        self._forward_to_watchers(now)
+        self._beacon_and_liveness(now)
+
+    # -- outgoing -------------------------------------------------------------------------
+
+    def _address_of(self, name: str) -> Address | None:
+        peer = self.directory.get(name)
+        if peer is not None and peer.address:
+            return parse_address(peer.address)
+        return self.addresses.get(name)
+
+    def _send_to_peer(self, name: str, kind: str, body: Any, *, reliable: bool) -> bool:
+        addr = self._address_of(name)
+        if addr is None:
+            return False
+        self.endpoint.send(addr, kind, body, reliable=reliable)
+        return True
+
+    def _send_task(self, task: Task) -> None:
+        dest = task.destination
+        assert dest is not None
+        self.sent_to[task.uid] = dest
+        if not self._send_to_peer(dest, "task.add", task, reliable=True):
+            self.pending[task.uid] = (dest, time.monotonic() + self.settings.task_ttl)
+            self.log.info("task %s waits for agent %s to be discovered", task.uid, dest)
+        elif not task.result:
+            self.change(task.with_result(TaskState.PENDING, message=f"sent to {dest}"))
+
+    def _retry_pending(self, now: float) -> None:
+        mono = time.monotonic()
+        for uid, (dest, deadline) in list(self.pending.items()):
+            task = self.tasks.get(uid)
+            if task is None:
+                del self.pending[uid]
+            elif self._address_of(dest) is not None:
+                del self.pending[uid]
+                self._send_task(task)
+            elif mono > deadline:
+                del self.pending[uid]
+                self.change(task.with_result(TaskState.FAILED, message=f"unknown agent {dest}: "
+                                             "never discovered"))
+
+    def _send_result(self, origin: str, task: Task) -> None:
+        update = ResultUpdate(uid=task.uid, result=task.result)
+        self._send_to_peer(origin, "task.result", update, reliable=False)
+        if task.done:  # a final state must arrive: send it reliably as well
+            self._send_to_peer(origin, "task.result", update, reliable=True)
+
+    def _undeliverable(self, addr: Address, kind: str, body: Any) -> None:
+        if kind == "task.add" and isinstance(body, Task):
+            task = self.tasks.get(body.uid)
+            if task is not None and not task.done:
+                self.change(task.with_result(
+                    TaskState.FAILED, message=f"link lost: could not deliver to {task.destination} "
+                    f"at {addr[0]}:{addr[1]}"))
+
+    # -- incoming -------------------------------------------------------------------------
+
+    def _handle(self, msg: Message) -> None:
+        self.addresses[msg.sender] = msg.reply
+        self._heard(msg.sender, msg.reply, msg.epoch, msg.body if msg.kind == "beacon" else None)
+        kind, body = msg.kind, msg.body
+        if kind == "task.add" and isinstance(body, Task):
+            if self._board.contains(body.uid):
+                return
+            self.received_from[body.uid] = msg.sender
+            self.add(body)
+        elif kind == "task.cancel" and isinstance(body, Cancel):
+            if self.received_from.get(body.uid) == msg.sender and self._board.contains(body.uid):
+                self.remove(body.uid)
+        elif kind == "task.result" and isinstance(body, ResultUpdate):
+            self._apply_result(msg, body)
+        elif kind == "peers.request":
+            peers = PeerList(agent=self.agent_name, peers=list(self.directory.values()))
+            self.endpoint.send(msg.reply, "peers.reply", peers, reliable=True)
+        elif kind == "watch.request" and isinstance(body, WatchRequest):
+            new = msg.sender not in self.watchers
+            self.watchers[msg.sender] = (msg.reply, time.monotonic() + body.lease)
+            if new:  # start the stream with the current state
+                for obj in self.query(lambda o: isinstance(o, WATCHED)):
+                    self._watch_event(msg.reply, "add", obj)
+
+    def _apply_result(self, msg: Message, update: ResultUpdate) -> None:
+        if self.sent_to.get(update.uid) != msg.sender:
+            return
+        task = self._board.get(update.uid)
+        if not isinstance(task, Task) or task.done:
+            return  # a final state is never overwritten
+        stamp = (msg.epoch, msg.seq)
+        if stamp <= self.last_result.get(update.uid, (0, 0)):
+            return  # an older update never overwrites a newer one
+        self.last_result[update.uid] = stamp
+        self.change(task.evolve(result=update.result), reports=[f"result from {msg.sender}"])
+
+    def _heard(self, name: str, reply: tuple[str, int], epoch: int, beacon: Any) -> None:
+        if not name or name == self.agent_name or name.startswith("cli-"):
+            return
+        now = time.time()
+        old = self.directory.get(name)
+        address = f"{reply[0]}:{reply[1]}"
+        fields: dict[str, Any] = {"address": address, "epoch": epoch, "last_heard": now, "up": True}
+        if isinstance(beacon, Beacon):
+            fields.update(role=beacon.role, capabilities=beacon.capabilities)
+        if old is None:
+            peer = Peer(uid=f"peer:{name}", name=name, **fields)
+            self.directory[name] = peer
+            self.add(peer)
+            self.log.info("peer %s is up at %s", name, address)
+            return
+        changed = any(getattr(old, k) != v for k, v in fields.items() if k != "last_heard")
+        if changed or now - old.last_heard > self.settings.peer_timeout / 4:
+            peer = old.evolve(**fields)
+            self.directory[name] = peer
+            report = "up" if not old.up else ("restarted" if old.epoch and old.epoch != epoch else "heard")
+            if report != "heard":
+                self.log.info("peer %s is %s at %s", name, report, address)
+            self.change(peer, reports=[report])
+
+    # -- periodic -------------------------------------------------------------------------
+
+    def _beacon_and_liveness(self, now: float) -> None:
+        s: TransportSettings = self.settings
+        if not hasattr(self, "_next_beacon") or time.monotonic() >= self._next_beacon:
+            self._next_beacon = time.monotonic() + s.beacon_period * 0.9
+            beacon = Beacon(role=s.role, capabilities=s.capabilities)
+            targets: set[Address] = set()
+            if s.discovery_port:
+                targets |= {(host, s.discovery_port) for host in s.beacon_to}
+                targets |= {(host, s.discovery_port) for host in self.learned}
+            targets |= {parse_address(p.address) for p in self.directory.values() if p.address}
+            for addr in targets:
+                self.endpoint.send(addr, "beacon", beacon, reliable=False)
+        for name, peer in list(self.directory.items()):
+            if peer.up and now - peer.last_heard > s.peer_timeout:
+                peer = peer.evolve(up=False)
+                self.directory[name] = peer
+                self.log.warning("peer %s is down: not heard for %.1f s", name, now - peer.last_heard)
+                self.change(peer, reports=["down"])
+
+    def _forward_to_watchers(self, now: float) -> None:
+        mono = time.monotonic()
+        for name, (_, until) in list(self.watchers.items()):
+            if until < mono:
+                del self.watchers[name]
+        if not self.watchers:
+            return
+        for op, objs in (("add", self.watched.added), ("change", self.watched.changed),
+                         ("remove", self.watched.removed)):
+            for obj in objs:
+                for addr, _ in self.watchers.values():
+                    self._watch_event(addr, op, obj)
+
+    def _watch_event(self, addr: Address, op: str, obj: BBObject) -> None:
+        event = WatchEvent(agent=self.agent_name, op=op, type=type(obj).__name__,
+                           data=obj.model_dump(mode="json"))
+        self.endpoint.send(addr, "watch.event", event, reliable=False)

@@ -1,0 +1,107 @@
+"""A short-lived client of a running team (the `erni task`, `erni peers`, `erni watch` commands).
+
+The client is an endpoint of its own named `cli-<pid>`. It reaches the team through one
+agent: the one given with `--via HOST:PORT`, or, without it, one found by listening for
+beacons on the discovery port.
+"""
+
+from __future__ import annotations
+
+import os
+import queue
+import socket
+import sys
+import time
+from typing import Any
+
+from transport.bridge import Beacon
+from transport.endpoint import Address, Endpoint, team_key
+from transport.wire import Message
+
+
+class ClientError(Exception):
+    """The team could not be reached or answered unexpectedly."""
+
+
+class Client:
+    """Send requests to one agent of the team and receive what it sends back."""
+
+    def __init__(self, via: Address | None, *, discovery_port: int = 47000, key_env: str = "ERNI_TEAM_KEY",
+                 insecure: bool = False, discover_seconds: float = 3.0):
+        key = team_key(None, key_env)
+        if key is None and not insecure:
+            print(f"erni: {key_env} is not set: sending unauthenticated frames "
+                  "(only agents with insecure = true will listen)", file=sys.stderr)
+            insecure = True
+        self.via = via
+        self.discovery_port = discovery_port
+        self.discover_seconds = discover_seconds
+        self.inbox: queue.Queue[Message] = queue.Queue()
+        self.failed: queue.Queue[str] = queue.Queue()
+        self.delivered: set[str] = set()
+        local = _local_ip_towards(via[0]) if via else "127.0.0.1"
+        self.endpoint = Endpoint(f"cli-{os.getpid()}", listen=(local, 0), key=key, insecure=insecure,
+                                 senders=1, discovery_port=None if via else discovery_port)
+        self.endpoint.log.propagate = False  # a client prints its own errors
+        self.endpoint.on_message = self.inbox.put
+        self.endpoint.on_undeliverable = lambda addr, mid, kind, body: self.failed.put(mid)
+        self.endpoint.on_delivered = lambda addr, mid: self.delivered.add(mid)
+        self.beacons: dict[str, tuple[Address, Beacon]] = {}
+
+    def __enter__(self) -> Client:
+        self.endpoint.start()
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.endpoint.stop()
+
+    def find(self, agent: str | None) -> Address:
+        """Return the address to talk to: `--via`, or the agent heard in beacons (any, if None)."""
+        if self.via:
+            return self.via
+        deadline = time.monotonic() + self.discover_seconds
+        while time.monotonic() < deadline:
+            try:
+                msg = self.inbox.get(timeout=0.1)
+            except queue.Empty:
+                continue
+            if msg.kind == "beacon" and isinstance(msg.body, Beacon):
+                self.beacons[msg.sender] = (msg.reply, msg.body)
+            if agent is None and self.beacons:
+                return next(iter(self.beacons.values()))[0]
+            if agent in self.beacons:
+                return self.beacons[agent][0]
+        heard = ", ".join(sorted(self.beacons)) or "no agent"
+        raise ClientError(f"no beacon from {agent or 'any agent'} on port {self.discovery_port} within "
+                          f"{self.discover_seconds:.0f} s (heard: {heard}); give --via HOST:PORT")
+
+    def send(self, addr: Address, kind: str, body: Any, reliable: bool = True) -> str:
+        """Send a message; return its id."""
+        return self.endpoint.send(addr, kind, body, reliable=reliable, ttl=5.0)
+
+    def receive(self, timeout: float) -> Message | None:
+        """Return the next message, or None after `timeout` seconds."""
+        try:
+            return self.inbox.get(timeout=timeout)
+        except queue.Empty:
+            return None
+
+    def check_failed(self, msg_id: str) -> None:
+        """Raise ClientError if the message with this id could not be delivered."""
+        while True:
+            try:
+                failed = self.failed.get_nowait()
+            except queue.Empty:
+                return
+            if failed == msg_id:
+                raise ClientError("could not reach the agent: no acknowledgement within 5 s")
+
+
+def _local_ip_towards(host: str) -> str:
+    """Return the local address that routes to `host` (so replies can reach us)."""
+    try:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            s.connect((host, 9))
+            return s.getsockname()[0]
+    except OSError:
+        return "127.0.0.1"
