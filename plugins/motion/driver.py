@@ -326,6 +326,8 @@ class ArcosDriver:
                 self._service()
         finally:
             self._disconnect(goodbye=True)
+            with self._cond:
+                self._cond.notify_all()
 
     def _connect(self) -> bool:
         try:
