@@ -152,6 +152,7 @@ class MobiNetResource:
             self.log.exception("MobiNet SNMP thread failed")
         finally:
             self._loop.run_until_complete(self._loop.shutdown_asyncgens())
+            self._loop.run_until_complete(self._loop.shutdown_default_executor())
             self._loop.close()
 
     async def _main(self) -> None:

@@ -1,0 +1,139 @@
+"""The simulated MANET model: radio, neighbours, routes, articulation points, known positions."""
+
+from __future__ import annotations
+
+import math
+
+import networkx as nx
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from sim.manet import METRIC_UNIT, ManetNetwork, RadioModel, link_metric
+from sim.manet_scenario import ScenarioError, load_scenario
+from tests.mobinet.conftest import line_network
+
+
+def test_radio_quality_is_lossless_then_falls_to_zero_at_range():
+    radio = RadioModel(100.0, 50.0)
+    assert radio.quality(0) == radio.quality(50) == 1.0
+    assert radio.quality(75) == pytest.approx(0.5)
+    assert radio.quality(100) == radio.quality(150) == 0.0
+    qs = [radio.quality(d) for d in range(0, 120, 5)]
+    assert qs == sorted(qs, reverse=True)
+
+
+def test_radio_and_node_input_errors_are_clear():
+    with pytest.raises(ValueError, match="lossless_range must be in"):
+        RadioModel(10.0, 20.0)
+    net = ManetNetwork(RadioModel(10.0, 5.0))
+    net.add_node("a", 0, 0)
+    with pytest.raises(ValueError, match="already exists"):
+        net.add_node("a", 1, 1)
+    with pytest.raises(ValueError, match="x must be a finite number"):
+        net.move("a", float("nan"), 0)
+    with pytest.raises(KeyError, match="unknown node 'zz'"):
+        net.move("zz", 0, 0)
+
+
+def test_link_metric_is_scaled_etx():
+    assert link_metric(1.0) == METRIC_UNIT
+    assert link_metric(0.5) == 4 * METRIC_UNIT
+    assert link_metric(0.0) == 16776960
+
+
+def test_line_neighbours_routes_and_cut_vertices():
+    net = line_network()
+    truth = net.truth()
+    assert truth.articulation_points == {"robot2", "robot3", "robot4"}
+    view = net.view("robot1")
+    assert [n.name for n in view.neighbors] == ["robot2"]
+    assert view.neighbors[0].quality == pytest.approx(0.8)
+    route = view.routes["robot5"]
+    assert (route.next_hop, route.hops) == ("robot2", 4)
+    assert route.cost == 4 * link_metric(0.8)
+
+
+def test_moves_change_neighbours_routes_and_articulation_points():
+    net = line_network()
+    before = net.version
+    net.move("robot5", 150.0, 40.0)   # now close to robot3 and robot4
+    assert net.version > before
+    truth = net.truth()
+    assert truth.articulation_points == {"robot2", "robot3"}
+    assert {n.name for n in net.view("robot5").neighbors} >= {"robot3", "robot4"}
+    net.move("robot2", 60.0, 200.0)   # robot1 is cut off
+    truth = net.truth()
+    assert len(truth.components) == 3
+    assert net.view("robot1").routes == {}
+    assert "robot1" not in net.view("robot3").routes
+
+
+def test_weak_links_are_heard_but_not_used_for_routing():
+    net = ManetNetwork(RadioModel(100.0, 50.0, min_quality=0.3))
+    net.add_node("a", 0, 0)
+    net.add_node("b", 90, 0)       # quality 0.2: heard, not symmetric
+    nb = net.view("a").neighbors
+    assert [(n.name, n.symmetric) for n in nb] == [("b", False)]
+    assert net.view("a").routes == {}
+
+
+def test_positions_spread_within_a_component_and_go_stale_across_a_partition():
+    net = line_network()
+    net.set_position("robot3", 121.0, 1.0, 90.0)
+    assert net.view("robot1").positions["robot3"].x == 121.0
+    net.move("robot2", 60.0, 200.0)            # robot1 alone now
+    net.set_position("robot3", 130.0, 0.0, 0.0)
+    assert net.view("robot5").positions["robot3"].x == 130.0
+    assert net.view("robot1").positions["robot3"].x == 121.0   # stale: partitioned
+    net.move("robot2", 60.0, 0.0)              # healed: the newest report spreads
+    assert net.view("robot1").positions["robot3"].x == 130.0
+    assert net.view("robot3").position_updates == 2
+
+
+def test_gps_mode_reports_moves():
+    net = ManetNetwork(RadioModel(100.0, 50.0), gps=True)
+    net.add_node("a", 0, 0)
+    net.add_node("b", 10, 0)
+    net.move("b", 20, 5)
+    assert (net.view("a").positions["b"].x, net.view("a").positions["b"].y) == (20.0, 5.0)
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.tuples(st.floats(0, 300), st.floats(0, 300)), min_size=2, max_size=14))
+def test_truth_matches_networkx_on_random_layouts(points):
+    net = ManetNetwork(RadioModel(100.0, 40.0, 0.1))
+    for i, (x, y) in enumerate(points):
+        net.add_node(f"n{i}", x, y)
+    g = nx.Graph()
+    g.add_nodes_from(net.names())
+    for i, (ax, ay) in enumerate(points):
+        for j in range(i + 1, len(points)):
+            q = net.radio.quality(math.dist((ax, ay), points[j]))
+            if q >= 0.1:
+                g.add_edge(f"n{i}", f"n{j}", weight=link_metric(q))
+    truth = net.truth()
+    assert truth.articulation_points == set(nx.articulation_points(g))
+    costs = nx.single_source_dijkstra_path_length(g, "n0")
+    routes = net.view("n0").routes
+    assert set(routes) == set(costs) - {"n0"}
+    for dest, r in routes.items():
+        assert r.cost == pytest.approx(costs[dest])
+
+
+def test_scenario_files(tmp_path):
+    good = load_scenario("examples/net-line.toml")
+    net = good.build()
+    assert net.names() == ["robot1", "robot2", "robot3", "robot4", "robot5"]
+    assert good.ports()["robot2"] == 1162
+    bad = tmp_path / "bad.toml"
+    bad.write_text('comm_range = 100\nlossless_range = 50\nnodes = [{name = "a", x = 0, y = 0}]\n'
+                   'moves = [{at = 1, node = "zz", x = 0, y = 0}]\n')
+    with pytest.raises(ScenarioError, match="unknown node 'zz'"):
+        load_scenario(bad)
+    bad.write_text("comm_range = 'far'\n")
+    with pytest.raises(ScenarioError, match="comm_range: Input should be a valid number"):
+        load_scenario(bad)
+    bad.write_text("nodes = [\n")
+    with pytest.raises(ScenarioError, match="not valid TOML"):
+        load_scenario(bad)
