@@ -121,6 +121,8 @@ class TransportSettings(BaseModel):
     task_ttl: float = Field(30.0, gt=0, description="give up delivering a task after this long (s)")
     ack_timeout: float = Field(1.0, gt=0)
     connect_timeout: float = Field(1.0, gt=0)
+    udp_loss: float = Field(0.0, ge=0.0, le=1.0, description="fault injection: drop this share of "
+                            "outgoing datagrams")
 
     @model_validator(mode="after")
     def _check(self) -> TransportSettings:
@@ -142,7 +144,8 @@ class TransportSettings(BaseModel):
         return Endpoint(name, listen=parse_address(self.listen), key=key, insecure=self.insecure,
                         senders=self.senders, queue_limit=self.queue_limit, max_frame=self.max_frame,
                         ack_timeout=self.ack_timeout, connect_timeout=self.connect_timeout,
-                        ttl=self.task_ttl, discovery_port=self.discovery_port or None)
+                        ttl=self.task_ttl, discovery_port=self.discovery_port or None,
+                        udp_loss=self.udp_loss)
 
 
 class TransportPlugin(Plugin):

@@ -13,6 +13,7 @@ import heapq
 import itertools
 import logging
 import os
+import random
 import selectors
 import socket
 import threading
@@ -106,7 +107,8 @@ class Endpoint:
                  insecure: bool = False, senders: int = 4, queue_limit: int = 1000,
                  max_frame: int = DEFAULT_MAX_FRAME, ack_timeout: float = 1.0,
                  connect_timeout: float = 1.0, retry_base: float = 0.05, retry_max: float = 2.0,
-                 ttl: float = 30.0, discovery_port: int | None = None, epoch: int | None = None):
+                 ttl: float = 30.0, discovery_port: int | None = None, epoch: int | None = None,
+                 udp_loss: float = 0.0, seed: int | None = None):
         if not key and not insecure:
             raise ValueError("no team key: give a key or run with insecure = true")
         self.name = name
@@ -121,6 +123,10 @@ class Endpoint:
         self.connect_timeout = connect_timeout
         self.retry_base, self.retry_max, self.ttl = retry_base, retry_max, ttl
         self.discovery_port = discovery_port
+        if not 0.0 <= udp_loss <= 1.0:
+            raise ValueError(f"udp_loss: expected a probability in 0..1, got {udp_loss}")
+        self.udp_loss = udp_loss  # fault injection: drop this share of outgoing datagrams
+        self._rng = random.Random(seed)
         self.epoch = epoch if epoch is not None else time.time_ns()
         self._seq = itertools.count(1)
         self.log = logging.getLogger(f"erni.{name}.transport")
@@ -295,7 +301,11 @@ class Endpoint:
             if out is None:
                 break
             try:
-                self._udp.sendto(self._frame(out, min(self.max_frame, UDP_MAX_FRAME)), dest.addr)
+                frame = self._frame(out, min(self.max_frame, UDP_MAX_FRAME))
+                if self.udp_loss and self._rng.random() < self.udp_loss:
+                    self.count("dropped.injected")
+                    continue
+                self._udp.sendto(frame, dest.addr)
                 self.count("sent.fast")
             except FrameError as err:
                 self.count("dropped.too_big")

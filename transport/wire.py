@@ -100,8 +100,13 @@ def body_of(kind_type: str | None, body: Any) -> Any:
     if cls is None:
         raise FrameError("parse", f"unknown body type {kind_type!r}")
     try:
-        return cls.model_validate(body)
-    except (ValidationError, ErniError, ValueError) as err:
+        parse = getattr(cls, "parse", None)  # Task.parse names the bad field
+        return parse(body) if callable(parse) else cls.model_validate(body)
+    except ValidationError as err:
+        first = err.errors()[0]
+        where = ".".join(str(p) for p in first["loc"]) or kind_type
+        raise FrameError("parse", f"invalid {kind_type}: {where}: {first['msg']}") from None
+    except (ErniError, ValueError, TypeError) as err:
         raise FrameError("parse", f"invalid {kind_type}: {str(err).splitlines()[0]}") from None
 
 

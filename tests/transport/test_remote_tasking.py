@@ -1,0 +1,178 @@
+"""Remote tasking through the blackboard between real agents on loopback sockets."""
+
+from __future__ import annotations
+
+import socket
+import statistics
+import threading
+import time
+
+import pytest
+
+from blackboard import Agent, BBObject, Plugin, Task, TaskState
+from blackboard.testing import wait_until
+from transport import Peer
+
+from tests.transport.helpers import free_port, make_agent
+
+
+@pytest.fixture
+def team():
+    agents: list[Agent] = []
+    port = free_port()
+
+    def spawn(name: str, **kw):
+        agent = make_agent(name, kw.pop("discovery_port", port), **kw)
+        agents.append(agent)
+        return agent
+
+    yield spawn
+    for a in agents:
+        a.stop()
+
+
+def task_to(dest: str, prep: str = "forward", **params) -> Task:
+    params = params or {"distance": 1.0}
+    return Task(verb="BotMotion", preposition=prep, params=params, source="control", destination=dest)
+
+
+def test_two_agents_task_and_result_flow_back(team):
+    control, robot = team("control", echo=False), team("robot1")
+    wait_until(lambda: any(p.name == "robot1" and p.up for p in control.query(Peer)))
+    task = task_to("robot1")
+    with control.transaction() as tx:
+        tx.add(task)
+    final = wait_until(lambda: (t := control.blackboard.get(task.uid)) is not None and t.done and t)
+    assert final.state is TaskState.SUCCEEDED and final.result.values["params"]["distance"] == 1.0
+    remote = robot.blackboard.get(task.uid)
+    assert remote.source == "control" and remote.destination == "robot1" and remote.done
+
+
+def test_cancel_travels_down(team):
+    control, robot = team("control", echo=False), team("robot1", echo=False)
+    wait_until(lambda: any(p.up for p in control.query(Peer)))
+    task = task_to("robot1")
+    with control.transaction() as tx:
+        tx.add(task)
+    wait_until(lambda: robot.blackboard.contains(task.uid))
+    with control.transaction() as tx:
+        tx.remove(task)
+    wait_until(lambda: not robot.blackboard.contains(task.uid))
+
+
+def test_five_agents_each_performs_its_own_tasks(team):
+    control = team("control", echo=False)
+    robots = [team(f"robot{i}") for i in range(1, 5)]
+    wait_until(lambda: sum(p.up for p in control.query(Peer)) == 4, timeout=5)
+    tasks = [task_to(r.name, distance=float(i + 1)) for i, r in enumerate(robots) for _ in range(3)]
+    with control.transaction() as tx:
+        for t in tasks:
+            tx.add(t)
+    wait_until(lambda: all(control.blackboard.get(t.uid).done for t in tasks), timeout=10)
+    for robot in robots:
+        mine = robot.query(Task)
+        assert len(mine) == 3 and all(t.destination == robot.name for t in mine)
+    assert all(control.blackboard.get(t.uid).state is TaskState.SUCCEEDED for t in tasks)
+
+
+def test_unknown_destination_fails_with_a_reason(team):
+    control = team("control", echo=False, task_ttl=0.5)
+    task = task_to("ghost")
+    with control.transaction() as tx:
+        tx.add(task)
+    final = wait_until(lambda: (t := control.blackboard.get(task.uid)).done and t, timeout=5)
+    assert final.state is TaskState.FAILED and "unknown agent ghost" in final.result.message
+
+
+def test_retried_message_never_executes_twice(team):
+    control, robot = team("control", echo=False), team("robot1")
+    wait_until(lambda: any(p.up for p in control.query(Peer)))
+    ep = control.plugin("transport").endpoint
+    addr = robot.plugin("transport").endpoint.address
+    task = task_to("robot1").evolve(source="control")
+    for _ in range(3):  # the same message id three times: a retry after a lost ack
+        ep.send(addr, "task.add", task, reliable=True, msg_id="same-id")
+    ep.send(addr, "task.add", task, reliable=True)  # a new id, same task: still one task
+    wait_until(lambda: robot.plugin("transport").endpoint.counters.get("duplicates", 0) == 2)
+    wait_until(lambda: robot.plugin("transport").endpoint.counters.get("received", 0) >= 4)
+    time.sleep(0.2)
+    assert len(robot.query(Task)) == 1
+    assert robot.plugin("motion").runs >= 1
+
+
+def test_peer_restart_gets_queued_tasks_exactly_once(team):
+    port = free_port(socket.SOCK_STREAM)
+    control = team("control", echo=False, peers=[f"robot1@127.0.0.1:{port}"], discovery_port=0,
+                   task_ttl=20.0)
+    tasks = [task_to("robot1", distance=float(i + 1)) for i in range(5)]
+    with control.transaction() as tx:
+        for t in tasks:
+            tx.add(t)
+    time.sleep(0.5)  # the robot is not there yet: tasks wait in the queue, retried
+    assert control.plugin("transport").endpoint.counters.get("retries", 0) >= 1
+    robot = team("robot1", listen=f"127.0.0.1:{port}", discovery_port=0,
+                 peers=[f"control@127.0.0.1:{control.plugin('transport').address[1]}"])
+    wait_until(lambda: all(control.blackboard.get(t.uid).done for t in tasks), timeout=10)
+    assert sorted(t.params.distance for t in robot.query(Task)) == [1.0, 2.0, 3.0, 4.0, 5.0]
+    epoch = control.blackboard.get("peer:robot1").epoch
+    robot.stop()  # restart: a new boot epoch on the same address
+    robot2 = team("robot1", listen=f"127.0.0.1:{port}", discovery_port=0,
+                  peers=[f"control@127.0.0.1:{control.plugin('transport').address[1]}"])
+    late = task_to("robot1", distance=9.0)
+    with control.transaction() as tx:
+        tx.add(late)
+    wait_until(lambda: control.blackboard.get(late.uid).done, timeout=10)
+    assert [t.params.distance for t in robot2.query(Task)] == [9.0]
+    peer = control.blackboard.get("peer:robot1")
+    assert peer.up and peer.epoch != epoch, "the restarted robot was accepted with its new epoch"
+
+
+class Stamp(BBObject):
+    n: int = 0
+
+
+class Sink(Plugin):
+    def setup(self):
+        self.sub = self.subscribe(Stamp)
+        self.got = threading.Event()
+
+    def execute(self):
+        if self.sub.added:
+            self.got.set()
+
+
+def _latency(agent: Agent, sink: Sink, i: int) -> float:
+    sink.got.clear()
+    t0 = time.perf_counter()
+    with agent.transaction() as tx:
+        tx.add(Stamp(n=i))
+    sink.got.wait(2)
+    return time.perf_counter() - t0
+
+
+def test_dead_peer_does_not_stall_other_plugins(team):
+    """Two agents in one run, sampled alternately: one sends to a dead peer, one does not."""
+    hole = socket.socket()  # a black hole: accepts connections, never reads, never acknowledges
+    hole.bind(("127.0.0.1", 0))
+    hole.listen(16)
+    try:
+        dead_peer = [f"ghost@127.0.0.1:{hole.getsockname()[1]}"]
+        normal = team("normal", echo=False, discovery_port=0, peers=dead_peer, ack_timeout=2.0)
+        stalled = team("stalled", echo=False, discovery_port=0, peers=dead_peer, ack_timeout=2.0)
+        sinks = {a.name: a.add_plugin(Sink) for a in (normal, stalled)}
+        with stalled.transaction() as tx:
+            for i in range(50):
+                tx.add(task_to("ghost", distance=float(i + 1)))
+        hole.settimeout(5)
+        conn, _ = hole.accept()  # the stalled agent's sender is now waiting on the dead peer
+        samples: dict[str, list[float]] = {"normal": [], "stalled": []}
+        for i in range(400):
+            for agent in (normal, stalled) if i % 2 else (stalled, normal):
+                samples[agent.name].append(_latency(agent, sinks[agent.name], i))
+        ratio = statistics.median(samples["stalled"]) / statistics.median(samples["normal"])
+        print(f"transaction latency median: normal {statistics.median(samples['normal']) * 1e6:.0f} us, "
+              f"dead peer {statistics.median(samples['stalled']) * 1e6:.0f} us, ratio {ratio:.2f}")
+        assert ratio <= 1.2
+        conn.close()
+    finally:
+        hole.close()
