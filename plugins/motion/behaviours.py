@@ -304,9 +304,11 @@ class Turn(Behaviour):
         self.last = th
         left = self.p.angle - self.turned
         if abs(left) <= self.p.tolerance:
-            self.succeed("turned", angle_remaining=round(left, 2), turned=round(self.turned, 2))
+            if abs(math.degrees(ctx.state.w)) < 3.0:  # settled inside the band
+                self.succeed("turned", angle_remaining=round(left, 2), turned=round(self.turned, 2))
             return STOP
-        rate = min(self.p.rate, ctx.model.max_rv, max(4.0, _brake(abs(left), ctx.model.rot_decel, 0.0)))
+        aim = abs(left) - self.p.tolerance / 2  # brake to stop inside the band, not at its edge
+        rate = min(self.p.rate, ctx.model.max_rv, max(4.0, _brake(aim, ctx.model.rot_decel, 0.0)))
         self.report(self.turned / self.p.angle if self.p.angle else 1.0, angle_remaining=round(left, 1))
         return Command(0.0, math.copysign(rate, left))
 

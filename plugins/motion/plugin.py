@@ -14,7 +14,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from blackboard import AllocationResult, Plugin, Pose, Task, TransactionError
+from blackboard import AllocationResult, ConfigError, Plugin, Pose, Task, TransactionError
 from plugins.motion.driver import ArcosDriver, RobotState
 from plugins.motion.resource import RobotMotionResource, TaskUpdate
 from plugins.motion.robots import RobotModel, resolve_model
@@ -58,7 +58,10 @@ class MotionSettings(BaseModel):
     @field_validator("model")
     @classmethod
     def _check_model(cls, model: str | dict[str, Any]) -> str | dict[str, Any]:
-        resolve_model(model)
+        try:
+            resolve_model(model)
+        except ConfigError as err:
+            raise ValueError(str(err).removeprefix("model: ")) from None
         return model
 
     def robot_model(self) -> RobotModel:

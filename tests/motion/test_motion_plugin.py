@@ -1,0 +1,238 @@
+"""RobotMotionControl end to end: an agent drives the robot through every BotMotion preposition.
+
+Without ERNI_ROBOT_URL the robot is the simulated firmware over TCP; with it, the same tests
+drive a real robot (the tests that need the simulator's walls are skipped then).
+"""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from blackboard import Agent, Pose, Task, TaskState
+from blackboard.errors import ErniError
+from blackboard.testing import wait_until
+from plugins.motion import RobotMotionControl
+from sim.world import World
+from tests.motion.conftest import FAST_MODEL, REAL_URL, sim_only
+
+SETTINGS = dict(model=FAST_MODEL, rate_hz=50, pose_rate_hz=25, avoid_distance=0.4, sync_timeout=0.3,
+                link_timeout=0.3, link_grace=0.3, blocked_timeout=0.6, stall_timeout=0.3)
+
+
+@pytest.fixture
+def start_agent():
+    agents: list[Agent] = []
+
+    def start(url: str, **settings: object) -> tuple[Agent, RobotMotionControl]:
+        agent = Agent("robot1", workers=2)
+        plugin = agent.add_plugin(RobotMotionControl, settings={**SETTINGS, "url": url, **settings}, name="motion")
+        agents.append(agent)
+        agent.start()
+        wait_until(lambda: agent.query(Pose), timeout=5, message="no Pose published")
+        return agent, plugin  # type: ignore[return-value]
+
+    yield start
+    for a in agents:
+        a.stop()
+
+
+def pose(agent: Agent) -> Pose:
+    return agent.query(Pose)[0]
+
+
+def post(agent: Agent, preposition: str, **params: object) -> Task:
+    task = Task(verb="BotMotion", preposition=preposition, params=params, source="test")
+    with agent.transaction() as tx:
+        tx.add(task)
+    return task
+
+
+def current(agent: Agent, task: Task) -> Task:
+    return next(t for t in agent.query(Task) if t.uid == task.uid)
+
+
+def finish(agent: Agent, task: Task, timeout: float = 10.0) -> Task:
+    return wait_until(lambda: (t := current(agent, task)).done and t, timeout=timeout,
+                      message=f"{task.describe()} did not finish")
+
+
+def halted(agent: Agent) -> bool:
+    p = pose(agent)
+    return abs(p.v) < 0.005 and abs(p.w) < 0.01
+
+
+def test_pose_is_published_with_battery_sonar_and_motors(start_agent, robot_url):
+    agent, _ = start_agent(robot_url)
+    p = pose(agent)
+    assert p.uid == "pose:robot1" and 8 < (p.battery or 0) < 16
+    assert len(p.sonar) >= 8 and all(r > 0 for r in p.sonar)
+    first = p.stamp
+    wait_until(lambda: pose(agent).stamp > first, timeout=2)
+
+
+def test_goto_reaches_the_goal_within_tolerance(start_agent, robot_url):
+    agent, _ = start_agent(robot_url)
+    p0 = pose(agent)
+    gx, gy = p0.x + 0.6, p0.y + 0.4
+    task = post(agent, "goto", x=gx, y=gy, speed=0.8, tolerance=0.08)
+    seen = wait_until(lambda: (t := current(agent, task)).state == TaskState.RUNNING and t, timeout=3)
+    assert "distance_remaining" in seen.result.values
+    done = finish(agent, task)
+    assert done.state == TaskState.SUCCEEDED and done.result.progress == 1.0
+    assert done.result.values["distance_remaining"] <= 0.08
+    wait_until(lambda: halted(agent), timeout=3)
+    assert math.hypot(pose(agent).x - gx, pose(agent).y - gy) < 0.08 + 0.05  # braking after arrival
+
+
+def test_turn_reaches_the_heading_within_tolerance(start_agent, robot_url):
+    agent, _ = start_agent(robot_url)
+    th0 = pose(agent).theta
+    done = finish(agent, post(agent, "turn", angle=-120, rate=180, tolerance=2))
+    assert done.state == TaskState.SUCCEEDED
+    wait_until(lambda: halted(agent), timeout=3)
+    turned = math.degrees(math.remainder(pose(agent).theta - th0, 2 * math.pi))
+    assert turned == pytest.approx(-120, abs=3.0)
+
+
+def test_forward_then_backward_return_to_the_start(start_agent, robot_url):
+    agent, _ = start_agent(robot_url)
+    p0 = pose(agent)
+    assert finish(agent, post(agent, "forward", distance=0.5, speed=0.8)).state == TaskState.SUCCEEDED
+    wait_until(lambda: halted(agent), timeout=3)
+    p1 = pose(agent)
+    assert math.hypot(p1.x - p0.x, p1.y - p0.y) == pytest.approx(0.5, abs=0.05)
+    assert finish(agent, post(agent, "backward", distance=0.5, speed=0.8)).state == TaskState.SUCCEEDED
+    wait_until(lambda: halted(agent), timeout=3)
+    assert math.hypot(pose(agent).x - p0.x, pose(agent).y - p0.y) < 0.06
+
+
+def test_velocity_holds_then_stop_halts_and_removing_the_stop_resumes(start_agent, robot_url):
+    agent, plugin = start_agent(robot_url)
+    vel = post(agent, "velocity", v=0.3, w=0)
+    wait_until(lambda: pose(agent).v > 0.25, timeout=3)
+    stop = post(agent, "stop")
+    held = wait_until(lambda: (t := current(agent, stop)).result and t.result.values.get("halted") and t, timeout=3)
+    assert held.state == TaskState.RUNNING and halted(agent)
+    assert current(agent, vel).state == TaskState.RUNNING  # waiting under the stop
+    with agent.transaction() as tx:
+        tx.remove(stop.uid)
+    wait_until(lambda: pose(agent).v > 0.25, timeout=3)
+    with agent.transaction() as tx:
+        tx.remove(vel.uid)  # cancelling the task stops the robot
+    wait_until(lambda: halted(agent), timeout=3)
+
+
+def test_stop_takes_over_within_one_stack_cycle(start_agent, robot_url):
+    agent, plugin = start_agent(robot_url)
+    post(agent, "velocity", v=0.3)
+    wait_until(lambda: pose(agent).v > 0.25, timeout=3)
+    resource = plugin.resource
+    stop = post(agent, "stop")
+    wait_until(lambda: resource.stack.find(stop.uid) is not None, timeout=2)
+    before = resource.cycles
+    wait_until(lambda: type(resource.winner).__name__ == "Stop", timeout=2)
+    assert resource.cycles - before <= 1
+
+
+def test_velocity_duration_and_randomwalk_finish(start_agent, robot_url):
+    agent, _ = start_agent(robot_url)
+    done = finish(agent, post(agent, "velocity", v=0.0, w=45, duration=0.4))
+    assert done.state == TaskState.SUCCEEDED and done.result.values["elapsed"] >= 0.4
+    walk = finish(agent, post(agent, "randomwalk", speed=0.4, duration=1.0, seed=5))
+    assert walk.state == TaskState.SUCCEEDED and walk.result.values["travelled"] > 0.1
+
+
+def test_teleport_sets_the_pose(start_agent, robot_url):
+    agent, _ = start_agent(robot_url)
+    done = finish(agent, post(agent, "teleport", x=2.0, y=-1.0, heading=90))
+    assert done.state == TaskState.SUCCEEDED
+    p = pose(agent)
+    assert (p.x, p.y) == pytest.approx((2.0, -1.0), abs=0.05)
+    assert math.degrees(p.theta) == pytest.approx(90, abs=3)
+
+
+def test_clear_cancels_every_task_on_the_stack_and_halts(start_agent, robot_url):
+    agent, _ = start_agent(robot_url)
+    a = post(agent, "velocity", v=0.2)
+    b = post(agent, "turn", angle=720, rate=30)
+    wait_until(lambda: current(agent, b).state == TaskState.RUNNING, timeout=3)
+    done = finish(agent, post(agent, "clear"))
+    assert done.state == TaskState.SUCCEEDED and done.result.values["cleared"] == 2
+    for t in (a, b):
+        c = finish(agent, t)
+        assert c.state == TaskState.CANCELLED and c.result.message.startswith("cleared by task")
+    wait_until(lambda: halted(agent), timeout=3)
+
+
+@sim_only
+def test_avoid_obstacles_stops_short_of_a_wall_then_the_task_fails_blocked(start_agent, make_host):
+    host = make_host(World(wall=[{"a": (1.2, -2), "b": (1.2, 2)}]))
+    agent, _ = start_agent(host.url(), avoid_distance=0.0)
+    avoid = post(agent, "avoid_obstacles", distance=0.35)
+    wait_until(lambda: current(agent, avoid).state == TaskState.RUNNING, timeout=3)
+    fwd = finish(agent, post(agent, "forward", distance=3.0, speed=0.8))
+    assert fwd.state == TaskState.FAILED and fwd.result.message.startswith("blocked by an obstacle")
+    robot = host.robots[0]
+    gap = 1.2 - robot.x - robot.config.radius
+    assert 0.1 < gap < 0.5 and robot.bumpers == 0 and not robot.stall_left
+    assert current(agent, avoid).result.values["overrides"] > 0
+
+
+@sim_only
+def test_without_avoidance_the_robot_bumps_and_the_task_fails_stalled(start_agent, make_host):
+    host = make_host(World(wall=[{"a": (0.8, -2), "b": (0.8, 2)}]))
+    agent, _ = start_agent(host.url())
+    off = finish(agent, post(agent, "avoid_obstacles", enabled=False))
+    assert off.state == TaskState.SUCCEEDED and off.result.values == {"enabled": False}
+    fwd = finish(agent, post(agent, "forward", distance=2.0, speed=0.5))
+    assert fwd.state == TaskState.FAILED and fwd.result.message.startswith("stalled")
+    assert host.robots[0].bumpers & 0x01
+
+
+@sim_only
+def test_link_lost_fails_the_running_task(start_agent, make_host):
+    host = make_host()
+    agent, _ = start_agent(host.url())
+    task = post(agent, "velocity", v=0.2)
+    wait_until(lambda: current(agent, task).state == TaskState.RUNNING, timeout=3)
+    host.stop()  # the robot is gone
+    done = finish(agent, task, timeout=5)
+    assert done.state == TaskState.FAILED and done.result.message.startswith("link lost")
+
+
+def test_tasks_for_other_robots_are_ignored(start_agent, robot_url):
+    agent, plugin = start_agent(robot_url)
+    other = Task(verb="BotMotion", preposition="stop", source="test", destination="robot9")
+    with agent.transaction() as tx:
+        tx.add(other)
+    mine = finish(agent, post(agent, "velocity", v=0.0, duration=0.1))
+    assert mine.state == TaskState.SUCCEEDED and current(agent, other).result is None
+
+
+def test_in_process_simulator_url(start_agent):
+    agent, plugin = start_agent("sim", sim_sip_period=0.02)
+    assert plugin.sim_host is not None
+    assert finish(agent, post(agent, "forward", distance=0.3, speed=0.5)).state == TaskState.SUCCEEDED
+
+
+@pytest.mark.parametrize("settings,needle", [
+    ({"url": "ttyUSB0"}, "url"),
+    ({"model": "roomba"}, "unknown robot model 'roomba'"),
+    ({"rate_hz": 0}, "rate_hz"),
+    ({"teleport": "magic"}, "teleport"),
+])
+def test_bad_settings_are_refused_with_the_field_named(settings, needle, tmp_path):
+    agent = Agent("robot1", workers=1)
+    with pytest.raises((ErniError, ValueError), match=needle):
+        agent.add_plugin(RobotMotionControl, settings=settings)
+    config = tmp_path / "robot.toml"
+    key, value = next(iter(settings.items()))
+    config.write_text(f'[agent]\nname = "r"\n[[plugin]]\nclass = "motion"\n[plugin.settings]\n{key} = {value!r}\n')
+    with pytest.raises(ErniError, match=rf"robot.toml.*{key}"):
+        Agent.from_config(config)
+
+
+def test_real_robot_variable_selects_the_url(robot_url):
+    assert robot_url == REAL_URL if REAL_URL else robot_url.startswith("socket://127.0.0.1:")
