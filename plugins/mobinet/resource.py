@@ -103,6 +103,10 @@ class MobiNetResource:
             self._watches.pop(key, None)
         self._call(drop)
 
+    def watching(self) -> list[str]:
+        """Keys of the watches currently polled."""
+        return list(self._watches)
+
     def write_position(self, position: Position) -> None:
         """Write this position to the network subsystem soon (a newer one replaces it)."""
         def store() -> None:

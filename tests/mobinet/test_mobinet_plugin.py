@@ -1,0 +1,222 @@
+"""MobiNetControl in a real agent, against the simulated MANET over real UDP SNMP."""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+
+import pytest
+
+from blackboard import Agent, NetInfo, Pose, Task, TaskState
+from blackboard.testing import wait_until
+from sim.manet import METRIC_UNIT, link_metric
+from sim.snmp_agent import ManetSnmpAgent
+
+PREPOSITIONS = ["node_position", "network_topology", "path_cost", "link_quality", "neighbor_list"]
+
+
+@pytest.fixture
+def make_agent():
+    agents: list[Agent] = []
+
+    def make(name: str, address: tuple[str, int], **settings) -> tuple[Agent, object]:
+        agent = Agent(name, workers=2)
+        plugin = agent.add_plugin("plugins.mobinet:MobiNetControl",
+                                  settings={"host": address[0], "port": address[1], **settings},
+                                  name="mobinet")
+        agent.start()
+        agents.append(agent)
+        return agent, plugin
+
+    yield make
+    for agent in agents:
+        agent.stop()
+
+
+def watch(agent: Agent, preposition: str, rate_hz: float = 20.0, **params) -> Task:
+    task = Task(verb="NetWatch", preposition=preposition, params={"rate_hz": rate_hz, **params},
+                source="test")
+    with agent.transaction() as tx:
+        tx.add(task)
+    return task
+
+
+def info_of(agent: Agent, task: Task) -> NetInfo | None:
+    found = agent.query(NetInfo, where=lambda i: i.task == task.uid)
+    return found[0] if found else None
+
+
+def fresh(agent: Agent, task: Task, check=lambda info: True, timeout: float = 5.0) -> NetInfo:
+    """Wait for a non-degraded NetInfo of `task` that satisfies `check`."""
+    def ok():
+        info = info_of(agent, task)
+        return info if info and info.stamp and not info.degraded and not info.message \
+            and check(info) else None
+    return wait_until(ok, timeout=timeout)
+
+
+def result_of(agent: Agent, task: Task) -> Task:
+    return agent.query(Task, where=lambda t: t.uid == task.uid)[0]
+
+
+def test_every_netwatch_preposition_is_answered_from_live_snmp(served, net, make_agent):
+    agent, _ = make_agent("robot2", served["robot2"])
+    tasks = {p: watch(agent, p) for p in PREPOSITIONS}
+    truth = net.truth()
+
+    nbrs = fresh(agent, tasks["neighbor_list"], lambda i: i.neighbors)
+    assert [n.name for n in nbrs.neighbors] == ["robot1", "robot3"]
+    assert nbrs.node == "robot2" and nbrs.kind == "neighbor_list"
+    assert nbrs.uid == f"netinfo:{tasks['neighbor_list'].uid}"
+
+    quality = fresh(agent, tasks["link_quality"], lambda i: i.neighbors)
+    assert {n.name: n.quality for n in quality.neighbors} == {"robot1": 0.8, "robot3": 0.8}
+    assert all(n.metric == link_metric(0.8) for n in quality.neighbors)
+
+    topo = fresh(agent, tasks["network_topology"], lambda i: i.links)
+    assert {frozenset((l.a, l.b)) for l in topo.links} == set(truth.links)
+    assert set(topo.articulation_points) == truth.articulation_points
+
+    paths = fresh(agent, tasks["path_cost"], lambda i: i.routes)
+    to5 = next(r for r in paths.routes if r.destination == "robot5")
+    assert (to5.next_hop, to5.hops, to5.cost) == ("robot3", 3, 3 * link_metric(0.8) / METRIC_UNIT)
+
+    pos = fresh(agent, tasks["node_position"], lambda i: i.positions)
+    assert {n: (p.x, p.y) for n, p in pos.positions.items()} == {
+        n: xy for n, xy in truth.positions.items()}
+
+    for prep, task in tasks.items():
+        res = wait_until(lambda: (t := result_of(agent, task)).result and t.result.values.get(
+            "netinfo") and len(t.result.values) > 1 and t)
+        assert res.result.state == TaskState.RUNNING, prep
+        assert res.result.values["netinfo"] == f"netinfo:{task.uid}"
+    topo_task = result_of(agent, tasks["network_topology"])
+    assert topo_task.result.values["articulation_point"] is True
+    assert result_of(agent, tasks["neighbor_list"]).result.values["neighbors"] == ["robot1", "robot3"]
+
+
+def test_poses_are_written_to_the_network_subsystem(served, net, make_agent):
+    agent, plugin = make_agent("robot2", served["robot2"])
+    with agent.transaction() as tx:
+        tx.add(Pose(robot="robot2", x=61.25, y=3.5, theta=math.pi / 2))
+        tx.add(Pose(robot="robot9", x=999.0, y=999.0))          # another robot: not ours
+    wait_until(lambda: net.view("robot5").positions["robot2"].x == 61.25)
+    known = net.view("robot5").positions["robot2"]
+    assert (known.y, known.heading) == (3.5, 90.0)
+    pose = agent.query(Pose, where=lambda p: p.robot == "robot2")[0]
+    with agent.transaction() as tx:
+        tx.change(pose.evolve(x=62.0, theta=-math.pi / 4))
+    wait_until(lambda: net.view("robot1").positions["robot2"].x == 62.0)
+    assert net.view("robot1").positions["robot2"].heading == -45.0
+    assert net.view("robot2").position_updates == 2
+    assert plugin.resource.stats["write_errors"] == 0
+
+
+def test_cancelling_a_task_stops_its_monitoring(served, net, make_agent):
+    agent, plugin = make_agent("robot2", served["robot2"])
+    task = watch(agent, "neighbor_list", rate_hz=50)
+    other = watch(agent, "path_cost", rate_hz=1)
+    fresh(agent, task, lambda i: i.neighbors)
+    with agent.transaction() as tx:
+        tx.remove(task)
+    wait_until(lambda: info_of(agent, task) is None)
+    wait_until(lambda: plugin.resource.watching() == [other.uid])
+    assert info_of(agent, other) is not None
+
+
+def test_moving_nodes_changes_what_the_plugin_publishes(served, net, make_agent):
+    agent, _ = make_agent("robot3", served["robot3"])
+    nbrs = watch(agent, "neighbor_list")
+    topo = watch(agent, "network_topology")
+    paths = watch(agent, "path_cost", destination="robot5")
+    fresh(agent, topo, lambda i: set(i.articulation_points) == {"robot2", "robot3", "robot4"})
+    net.move("robot5", 150.0, 40.0)      # robot5 comes next to robot3 and robot4
+    fresh(agent, topo, lambda i: set(i.articulation_points) == {"robot2", "robot3"})
+    fresh(agent, nbrs, lambda i: {n.name for n in i.neighbors} == {"robot2", "robot4", "robot5"})
+    route = fresh(agent, paths, lambda i: i.routes and i.routes[0].hops == 1).routes
+    assert [r.destination for r in route] == ["robot5"]
+    net.move("robot2", 60.0, 300.0)      # robot1 and robot2 leave: robot3 is no longer a cut vertex
+    fresh(agent, topo, lambda i: i.articulation_points == [] and len(i.links) == 3)
+    fresh(agent, nbrs, lambda i: {n.name for n in i.neighbors} == {"robot4", "robot5"})
+    res = wait_until(lambda: (t := result_of(agent, topo)).result.values.get(
+        "articulation_point") is False and t)
+    assert res.result.values["articulation_points"] == []
+
+
+def test_filters_and_missing_targets(served, net, make_agent):
+    agent, _ = make_agent("robot1", served["robot1"])
+    to3 = watch(agent, "path_cost", destination="10.0.0.3")
+    nowhere = watch(agent, "path_cost", destination="robot42")
+    one = watch(agent, "link_quality", neighbor="robot2")
+    stranger = watch(agent, "link_quality", neighbor="robot5")
+    info = fresh(agent, to3, lambda i: i.routes)
+    assert [(r.destination, r.hops) for r in info.routes] == [("robot3", 2)]
+    assert fresh(agent, one, lambda i: i.neighbors).neighbors[0].name == "robot2"
+    wait_until(lambda: (t := result_of(agent, nowhere)).result
+               and t.result.message == "no route to robot42")
+    wait_until(lambda: (t := result_of(agent, stranger)).result
+               and t.result.message == "robot5 is not a neighbour")
+
+
+def test_tasks_for_other_agents_are_ignored(served, make_agent):
+    agent, plugin = make_agent("robot2", served["robot2"])
+    task = Task(verb="NetWatch", preposition="neighbor_list", destination="robot4", source="t")
+    mine = watch(agent, "neighbor_list")
+    with agent.transaction() as tx:
+        tx.add(task)
+    fresh(agent, mine, lambda i: i.neighbors)
+    assert info_of(agent, task) is None
+    assert plugin.resource.watching() == [mine.uid]
+
+
+@pytest.mark.parametrize("mode, expected", [
+    ("silent", "No SNMP response received before timeout"),
+    ("garbage", "No SNMP response received before timeout"),
+    ("wrongtype", "erniNodeName (1.3.6.1.4.1.32473.1.1.1.0): expected OCTET STRING"),
+])
+def test_bad_agents_give_degraded_results_without_stalling(mode, expected, bad_agent, make_agent,
+                                                           caplog):
+    bad = bad_agent(mode)
+    caplog.set_level(logging.WARNING)
+    agent, plugin = make_agent("robot2", bad.address, timeout=0.1, log_interval=60.0)
+    task = watch(agent, "neighbor_list", rate_hz=20)
+    info = wait_until(lambda: (i := info_of(agent, task)) and i.degraded and i)
+    assert expected in info.message
+    res = wait_until(lambda: (t := result_of(agent, task)).result
+                     and t.result.message.startswith("degraded:") and t)
+    assert res.result.state == TaskState.RUNNING and res.result.confidence == 0.0
+    assert expected in res.result.message
+    wait_until(lambda: plugin.resource.stats["read_errors"] >= 3)
+    # the agent is not frozen: the blackboard still takes work at once
+    t0 = time.monotonic()
+    with agent.transaction() as tx:
+        tx.add(Pose(robot="robot2", x=1.0, y=2.0))
+    assert time.monotonic() - t0 < 0.5
+    lines = [r for r in caplog.records if "network read failed" in r.getMessage()]
+    assert len(lines) == 1, [r.getMessage() for r in lines]
+
+
+def test_degraded_then_recovered_when_the_agent_comes_back(net, make_agent):
+    snmp = ManetSnmpAgent(net).start()
+    try:
+        host, port = snmp.serve("robot2")
+        snmp.close()                                   # nobody answers on that port now
+        agent, _ = make_agent("robot2", (host, port), timeout=0.1)
+        task = watch(agent, "neighbor_list", rate_hz=20)
+        wait_until(lambda: (i := info_of(agent, task)) and i.degraded)
+        snmp = ManetSnmpAgent(net).start()
+        snmp.serve("robot2", host, port)
+        info = fresh(agent, task, lambda i: i.neighbors)
+        assert not info.degraded and [n.name for n in info.neighbors] == ["robot1", "robot3"]
+        wait_until(lambda: (t := result_of(agent, task)).result.message == ""
+                   and t.result.confidence == 1.0)
+    finally:
+        snmp.close()
+
+
+def test_agent_from_the_example_config_loads():
+    agent = Agent.from_config("examples/robot-mobinet.toml")
+    assert agent.name == "robot2"
+    plugin = agent.plugin("mobinet")
+    assert (plugin.settings.host, plugin.settings.port) == ("127.0.0.1", 1162)
