@@ -199,7 +199,7 @@ class TransportPlugin(Plugin):
         for task in self.tasks.added:
             if task.destination not in (None, "", me) and self.received_from.get(task.uid) != task.destination:
                 self._send_task(task)
-        for task in self.tasks.changed:
+        for task in self.tasks.added + self.tasks.changed:  # added and changed in one window: added
             origin = self.received_from.get(task.uid)
             if origin and task.result is not None:
                 self._send_result(origin, task)
@@ -213,7 +213,7 @@ class TransportPlugin(Plugin):
         for info in self.netinfo.added + self.netinfo.changed:
             for n in info.neighbors:
                 if n.address:
-                    self.learned.add(n.address.rsplit(":", 1)[0] if n.address.count(":") == 1 else n.address)
+                    self.learned.add(n.address)
         self._retry_pending(now)
         self._forward_to_watchers(now)
         self._beacon_and_liveness(now)
@@ -343,7 +343,11 @@ class TransportPlugin(Plugin):
             targets: set[Address] = set()
             if s.discovery_port:
                 targets |= {(host, s.discovery_port) for host in s.beacon_to}
-                targets |= {(host, s.discovery_port) for host in self.learned}
+                for learned in self.learned:  # HOST (beacon port) or HOST:PORT (data port)
+                    try:
+                        targets.add(parse_address(learned, s.discovery_port))
+                    except ValueError:
+                        continue
             targets |= {parse_address(p.address) for p in self.directory.values() if p.address}
             for addr in targets:
                 self.endpoint.send(addr, "beacon", beacon, reliable=False)

@@ -1,0 +1,73 @@
+"""Discovery by beacons, the peer directory on the blackboard, liveness, static and learned peers."""
+
+from __future__ import annotations
+
+from blackboard import Agent, NetInfo, Task
+from blackboard.testing import wait_until
+from transport import Peer
+
+from tests.transport.helpers import free_port, make_agent
+
+
+def peers(agent: Agent) -> dict[str, Peer]:
+    return {p.name: p for p in agent.query(Peer)}
+
+
+def test_agents_find_each_other_without_a_peer_list():
+    port = free_port()
+    agents = [make_agent(f"a{i}", port, role="robot" if i else "control", capabilities=[f"c{i}"])
+              for i in range(3)]
+    try:
+        for agent in agents:
+            wait_until(lambda agent=agent: sum(p.up for p in peers(agent).values()) == 2)
+        seen = peers(agents[1])["a0"]
+        assert seen.role == "control" and seen.capabilities == ["c0"]
+        assert seen.address == "%s:%d" % agents[0].plugin("transport").address
+    finally:
+        for a in agents:
+            a.stop()
+
+
+def test_silent_peer_is_marked_down_and_up_again():
+    port = free_port()
+    a, b = make_agent("a", port), make_agent("b", port)
+    try:
+        wait_until(lambda: peers(a).get("b") and peers(a)["b"].up)
+        b.stop()
+        wait_until(lambda: not peers(a)["b"].up, timeout=3)
+        b = make_agent("b", port)
+        wait_until(lambda: peers(a)["b"].up, timeout=3)
+    finally:
+        a.stop()
+        b.stop()
+
+
+def test_static_peer_list_works_with_discovery_off():
+    a = make_agent("a", 0)
+    addr = "%s:%d" % a.plugin("transport").address
+    b = make_agent("b", 0, peers=[f"a@{addr}"])
+    try:
+        wait_until(lambda: peers(a).get("b") and peers(a)["b"].up)  # a learns b from b's beacons
+        task = Task(verb="BotMotion", preposition="stop", source="b", destination="a")
+        with b.transaction() as tx:
+            tx.add(task)
+        wait_until(lambda: b.blackboard.get(task.uid).done)
+    finally:
+        a.stop()
+        b.stop()
+
+
+def test_addresses_learned_from_the_network_topology():
+    port = free_port()
+    # beacons go nowhere by default here: only addresses learned from NetInfo are tried
+    a = make_agent("a", port, beacon_to=[])
+    b = make_agent("b", port, beacon_to=[])
+    try:
+        assert not peers(a).get("b")
+        a_addr = "%s:%d" % a.plugin("transport").address
+        with b.transaction() as tx:
+            tx.add(NetInfo(node="b", kind="neighbor_list", neighbors=[{"name": "a", "address": a_addr}]))
+        wait_until(lambda: peers(a).get("b") and peers(a)["b"].up)
+    finally:
+        a.stop()
+        b.stop()

@@ -1,0 +1,136 @@
+"""The mock network: seeded loss, delay, duplication, reordering and partitions, usable by plugin tests."""
+
+from __future__ import annotations
+
+import threading
+
+import pytest
+
+from blackboard import Agent, Task, TaskState
+from blackboard.testing import wait_until
+from transport import MockNetwork, TransportPlugin
+from transport.wire import Message
+
+
+def pair(net: MockNetwork):
+    a, b = net.endpoint("a"), net.endpoint("b")
+    got: list[Message] = []
+    lock = threading.Lock()
+
+    def collect(m: Message) -> None:
+        with lock:
+            got.append(m)
+
+    b.on_message = collect
+    a.start()
+    b.start()
+    return a, b, got
+
+
+def test_loss_hits_fast_messages_and_reliable_ones_still_arrive():
+    net = MockNetwork(seed=3, loss=0.3)
+    a, b, got = pair(net)
+    try:
+        for i in range(200):
+            a.send(b.address, "fast", i, reliable=False)
+        for i in range(50):
+            a.send(b.address, "rel", i, reliable=True)
+        wait_until(lambda: sum(m.kind == "rel" for m in got) == 50)
+        fast = sum(m.kind == "fast" for m in got)
+        assert 100 < fast < 180, fast
+        assert sorted(m.body for m in got if m.kind == "rel") == list(range(50))
+    finally:
+        a.stop()
+        b.stop()
+
+
+def test_same_seed_same_losses():
+    def run(seed: int) -> list[int]:
+        net = MockNetwork(seed=seed, loss=0.5)
+        a, b, got = pair(net)
+        try:
+            for i in range(100):
+                a.send(b.address, "fast", i, reliable=False)
+            wait_until(lambda: net.counters["delivered"] + net.counters["lost"] == 100)
+            return sorted(m.body for m in got)
+        finally:
+            a.stop()
+            b.stop()
+
+    assert run(7) == run(7)
+    assert run(7) != run(8)
+
+
+def test_duplicates_and_reordering():
+    net = MockNetwork(seed=1, duplicate=0.5, jitter=0.02)
+    a, b, got = pair(net)
+    try:
+        for i in range(100):
+            a.send(b.address, "fast", i, reliable=False)
+        for i in range(30):
+            a.send(b.address, "rel", i, reliable=True)
+        wait_until(lambda: sum(m.kind == "rel" for m in got) == 30)
+        wait_until(lambda: sum(m.kind == "fast" for m in got) > 100)  # duplicated
+        bodies = [m.body for m in got if m.kind == "fast"]
+        assert bodies != sorted(bodies), "jitter reorders"
+        assert sorted(m.body for m in got if m.kind == "rel") == list(range(30)), "reliable: once each"
+    finally:
+        a.stop()
+        b.stop()
+
+
+def test_partition_holds_reliable_messages_until_healed_and_ttl_gives_up():
+    net = MockNetwork(seed=2)
+    a, b, got = pair(net)
+    failed: list[str] = []
+    a.on_undeliverable = lambda addr, mid, kind, body: failed.append(body)
+    try:
+        net.partition({"a"}, {"b"})
+        a.send(b.address, "rel", "held", reliable=True)
+        a.send(b.address, "rel", "expires", reliable=True, ttl=0.1)
+        a.send(b.address, "fast", "lost", reliable=False)
+        wait_until(lambda: failed == ["expires"])
+        assert got == []
+        net.heal()
+        wait_until(lambda: [m.body for m in got] == ["held"])
+    finally:
+        a.stop()
+        b.stop()
+
+
+def test_probabilities_are_checked():
+    with pytest.raises(ValueError, match="loss: expected a probability in 0..1, got 1.5"):
+        MockNetwork(loss=1.5)
+
+
+def test_transport_plugin_runs_unchanged_on_the_mock_network():
+    net = MockNetwork(seed=5, loss=0.2, jitter=0.005)
+
+    class Mocked(TransportPlugin):
+        endpoint_factory = staticmethod(net.endpoint)
+
+    agents = []
+    for name in ("control", "robot1"):
+        agent = Agent(name)
+        agent.add_plugin(Mocked, settings={"insecure": True, "discovery_port": 0, "beacon_period": 0.05},
+                         name="transport")
+        agents.append(agent)
+    control, robot = agents
+    robot.add_plugin("echo", settings={"verbs": ["BotMotion"]}, name="motion")
+    # a static peer entry pointing at the robot's mock address
+    robot.start()
+    addr = robot.plugin("transport").address
+    control.plugin("transport").settings = control.plugin("transport").settings.model_copy(
+        update={"peers": [f"robot1@{addr[0]}:{addr[1]}"]})
+    control.start()
+    try:
+        tasks = [Task(verb="BotMotion", preposition="forward", params={"distance": i + 1}, source="control",
+                      destination="robot1") for i in range(10)]
+        with control.transaction() as tx:
+            for t in tasks:
+                tx.add(t)
+        wait_until(lambda: all(control.blackboard.get(t.uid).state is TaskState.SUCCEEDED for t in tasks))
+        assert len(robot.query(Task)) == 10
+    finally:
+        control.stop()
+        robot.stop()
