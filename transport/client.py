@@ -7,6 +7,7 @@ beacons on the discovery port.
 
 from __future__ import annotations
 
+import logging
 import os
 import queue
 import socket
@@ -43,6 +44,7 @@ class Client:
         self.endpoint = Endpoint(f"cli-{os.getpid()}", listen=(local, 0), key=key, insecure=insecure,
                                  senders=1, discovery_port=None if via else discovery_port)
         self.endpoint.log.propagate = False  # a client prints its own errors
+        self.endpoint.log.addHandler(logging.NullHandler())
         self.endpoint.on_message = self.inbox.put
         self.endpoint.on_undeliverable = lambda addr, mid, kind, body: self.failed.put(mid)
         self.endpoint.on_delivered = lambda addr, mid: self.delivered.add(mid)

@@ -22,7 +22,12 @@ def add_client_options(p: argparse.ArgumentParser) -> None:
 
 def via_address(args: argparse.Namespace) -> Address | None:
     """Return the --via address, or None (raises ValueError naming the problem)."""
-    return parse_address(args.via) if args.via else None
+    if not args.via:
+        return None
+    host, port = parse_address(args.via)
+    if port == 0:
+        raise ValueError(f"--via {args.via!r}: expected HOST:PORT")
+    return host, port
 
 
 def make_client(args: argparse.Namespace) -> Any:

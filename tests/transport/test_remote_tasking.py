@@ -176,3 +176,84 @@ def test_dead_peer_does_not_stall_other_plugins(team):
         conn.close()
     finally:
         hole.close()
+
+
+class Stepper(Plugin):
+    """Reports progress in 20 steps, then success."""
+
+    def setup(self):
+        self.tasks = self.subscribe(Task, where=lambda t: t.verb == "BotMotion")
+        self.wake_every(0.005)
+
+    def execute(self):
+        for task in self.tasks:
+            if task.done:
+                continue
+            step = round((task.result.progress if task.result else 0) * 20) + 1
+            if step >= 20:
+                self.change(task.with_result(TaskState.SUCCEEDED, progress=1.0))
+            else:
+                self.change(task.with_result(TaskState.RUNNING, progress=step / 20))
+
+
+class Progress(Plugin):
+    """Records the progress the requester sees, per task, and whether it ever went back."""
+
+    def setup(self):
+        self.tasks = self.subscribe(Task)
+        self.seen: list[float] = []
+        self.last: dict[str, float] = {}
+        self.regressions = 0
+
+    def execute(self):
+        for task in self.tasks.changed:
+            if task.result:
+                self.seen.append(task.result.progress)
+                if task.result.progress < self.last.get(task.uid, 0.0):
+                    self.regressions += 1
+                self.last[task.uid] = task.result.progress
+
+
+def test_udp_loss_drops_updates_but_never_regresses_and_final_state_arrives(team):
+    control = team("control", echo=False)
+    progress = control.add_plugin(Progress)
+    robot = team("robot1", echo=False, udp_loss=0.3)
+    robot.add_plugin(Stepper)
+    wait_until(lambda: any(p.up for p in control.query(Peer)))
+    tasks = [task_to("robot1", distance=float(i + 1)) for i in range(5)]
+    with control.transaction() as tx:
+        for t in tasks:
+            tx.add(t)
+    wait_until(lambda: all(control.blackboard.get(t.uid).state is TaskState.SUCCEEDED for t in tasks),
+               timeout=10)
+    assert robot.plugin("transport").endpoint.counters.get("dropped.injected", 0) > 0
+    assert progress.seen  # some updates made it
+    assert len(progress.seen) < 5 * 20, "and some were lost on the way"
+    assert progress.regressions == 0
+    assert all(control.blackboard.get(t.uid).result.progress == 1.0 for t in tasks)
+
+
+def test_older_result_never_overwrites_newer(team):
+    control, robot = team("control", echo=False), team("robot1", echo=False)
+    wait_until(lambda: any(p.up for p in control.query(Peer)))
+    task = task_to("robot1")
+    with control.transaction() as tx:
+        tx.add(task)
+    wait_until(lambda: robot.blackboard.contains(task.uid))
+    bridge = control.plugin("transport")
+    from transport.bridge import ResultUpdate
+    from transport.wire import Message
+
+    def deliver(seq: int, progress: float) -> None:
+        update = ResultUpdate(uid=task.uid, result={"state": "running", "progress": progress})
+        bridge.later(lambda: bridge._handle(Message("robot1", ("127.0.0.1", 1), 1, seq, f"m{seq}",
+                                                    "task.result", update)))
+
+    deliver(10, 0.5)
+    wait_until(lambda: control.blackboard.get(task.uid).result.progress == 0.5)
+    deliver(9, 0.2)  # arrives late: older
+    deliver(11, 0.7)
+    wait_until(lambda: control.blackboard.get(task.uid).result.progress == 0.7)
+    deliver(8, 0.1)
+    time.sleep(0.1)
+    assert control.blackboard.get(task.uid).result.progress == 0.7
