@@ -1,0 +1,68 @@
+"""`erni robot-sim` as a user runs it: a separate process that an ARCOS client connects to."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from blackboard import Agent
+from plugins.motion import ArcosDriver
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def erni(*args: str) -> subprocess.Popen[str]:
+    return subprocess.Popen([sys.executable, "-m", "erni", *args], cwd=ROOT, text=True,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+
+
+def test_robot_sim_serves_robots_from_a_world_file_until_interrupted():
+    proc = erni("robot-sim", "--port", "0", "--robots", "2", "--world", "examples/world-corridor.toml",
+                "--sip-period", "0.02", "--log-level", "WARNING")
+    try:
+        assert proc.stdout is not None
+        lines = [proc.stdout.readline() for _ in range(2)]
+        assert lines[0].startswith("robot1: socket://127.0.0.1:") and lines[1].startswith("robot2: socket://")
+        driver = ArcosDriver(lines[1].split()[1], name="cli", sync_timeout=0.3)
+        with driver:
+            s = driver.wait_for_sip()
+            assert s is not None and (s.x, s.y) == pytest.approx((0.0, -1.0), abs=1e-3)  # robot2's start
+            driver.vel(0.3)
+            assert driver.wait_for(lambda s: s.v > 0.2, 3.0)
+    finally:
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=10) == 0
+
+
+def test_robot_sim_pty_prints_the_device_path():
+    proc = erni("robot-sim", "--pty", "--sip-period", "0.02", "--log-level", "WARNING")
+    try:
+        assert proc.stdout is not None
+        path = proc.stdout.readline().split()[1]
+        assert path.startswith("/dev/")
+        with ArcosDriver(path, name="pty", sync_timeout=0.3) as driver:
+            assert driver.wait_for_sip() is not None and driver.info.robot_class == "Pioneer"
+    finally:
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=10) == 0
+
+
+@pytest.mark.parametrize("args,needle", [
+    (["--world", "missing.toml"], "missing.toml: no such world file"),
+    (["--robots", "0"], "--robots: expected at least 1"),
+    (["--port", "70000"], "--port: expected"),
+])
+def test_robot_sim_bad_arguments_exit_2_with_one_clear_line(args, needle):
+    proc = erni("robot-sim", *args)
+    out, err = proc.communicate(timeout=20)
+    assert proc.returncode == 2 and needle in err and len(err.strip().splitlines()) == 1
+
+
+def test_example_agent_config_loads():
+    agent = Agent.from_config(ROOT / "examples" / "robot-motion.toml")
+    plugin = agent.plugin("motion")
+    assert plugin.settings.url == "socket://127.0.0.1:8101" and plugin.settings.avoid_distance == 0.4
