@@ -6,6 +6,11 @@ import threading
 import time
 
 import pytest
+from hypothesis import HealthCheck, settings
+
+# Shared 2-core machines are noisy: no per-example deadline, no "too slow" health check.
+settings.register_profile("erni", deadline=None, suppress_health_check=[HealthCheck.too_slow])
+settings.load_profile("erni")
 
 
 def _extra_threads(before: set[threading.Thread]) -> list[threading.Thread]:

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import hashlib
 import hmac
-import json
 import struct
 import time
 from collections import OrderedDict
@@ -125,13 +124,11 @@ def decode(frame: bytes, key: bytes | None, max_frame: int = DEFAULT_MAX_FRAME) 
         if not hmac.compare_digest(expect, tag):
             raise FrameError("auth", "HMAC does not match the team key")
     try:
-        data = json.loads(payload)
-    except (UnicodeDecodeError, ValueError) as err:
-        raise FrameError("parse", f"envelope is not JSON ({err})") from None
-    try:
-        return Envelope.model_validate(data)
+        return Envelope.model_validate_json(payload)
     except ValidationError as err:
         first = err.errors()[0]
+        if first["type"] in ("json_invalid", "json_type", "model_type"):
+            raise FrameError("parse", f"envelope is not a JSON object ({first['msg']})") from None
         where = ".".join(str(p) for p in first["loc"])
         raise FrameError("parse", f"envelope field {where}: {first['msg']}") from None
 

@@ -1,0 +1,207 @@
+"""Transport benchmark on loopback: ERNI endpoints beside raw Python sockets, in the same run.
+
+- UDP status one-way latency: `send(..., reliable=False)` -> `on_message` at the receiver,
+  beside a raw `sendto` -> `recvfrom` one-way floor.
+- TCP task send -> ack: `send(..., reliable=True)` -> acknowledgement, beside a raw TCP
+  request/response ping-pong floor.
+- Status throughput (messages/s received), beside a raw UDP burst floor.
+Every ERNI frame is HMAC-signed, JSON-encoded and verified; the floors do none of that.
+
+    python bench/bench_transport.py [--rounds 5] [--pings 500] [--burst 5000]
+"""
+
+from __future__ import annotations
+
+import argparse
+import socket
+import statistics
+import sys
+import threading
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from blackboard import Pose  # noqa: E402
+from transport import Endpoint  # noqa: E402
+
+KEY = b"bench-team-key"
+
+
+def pct(values: list[float], q: float) -> float:
+    s = sorted(values)
+    return s[min(len(s) - 1, int(q * len(s)))]
+
+
+def _settle(count: list[int], quiet: float = 0.3) -> None:
+    """Wait until the counter stops moving for `quiet` seconds."""
+    seen = -1
+    while seen != count[0]:
+        seen = count[0]
+        time.sleep(quiet)
+
+
+def erni_round(pings: int, burst: int) -> tuple[list[float], list[float], float]:
+    a, b = Endpoint("a", key=KEY, senders=2), Endpoint("b", key=KEY, senders=2)
+    sent: dict[str, float] = {}
+    udp_lat: list[float] = []
+    got = threading.Event()
+    count = [0]
+    target = [0]
+
+    def on_b(msg):
+        now = time.perf_counter()
+        if msg.kind == "status":
+            udp_lat.append(now - sent[msg.id])
+            got.set()
+        else:
+            count[0] += 1
+            last[0] = now
+            if count[0] >= target[0]:
+                got.set()
+
+    last = [0.0]
+    acked = threading.Event()
+    ack_at: dict[str, float] = {}
+
+    def on_delivered(addr, mid):
+        ack_at[mid] = time.perf_counter()
+        acked.set()
+
+    b.on_message = on_b
+    a.on_delivered = on_delivered
+    a.start()
+    b.start()
+    pose = Pose(robot="r1", x=1.0, y=2.0, theta=0.5, v=0.3, battery=12.5)
+    try:
+        for i in range(pings):
+            got.clear()
+            mid = f"s{i}"
+            sent[mid] = time.perf_counter()
+            a.send(b.address, "status", pose, reliable=False, msg_id=mid)
+            got.wait(1)
+        tcp_lat = []
+        for i in range(pings):
+            acked.clear()
+            mid = f"t{i}"
+            t0 = time.perf_counter()
+            a.send(b.address, "task", pose, reliable=True, msg_id=mid)
+            acked.wait(2)
+            tcp_lat.append(ack_at[mid] - t0)
+        got.clear()
+        target[0] = burst
+        t0 = time.perf_counter()
+        for i in range(burst):
+            a.send(b.address, "bulk", pose, reliable=False)
+            if i % 500 == 499:
+                time.sleep(0.001)  # let the receiver keep up, as a status stream would
+        _settle(count)
+        rate = count[0] / (last[0] - t0)  # received per second, until the last arrival
+        return udp_lat, tcp_lat, rate
+    finally:
+        a.stop()
+        b.stop()
+
+
+def floor_round(pings: int, burst: int) -> tuple[list[float], list[float], float]:
+    payload = Pose(robot="r1", x=1.0, y=2.0, theta=0.5, v=0.3, battery=12.5).model_dump_json().encode()
+    rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    rx.bind(("127.0.0.1", 0))
+    tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    lat: list[float] = []
+    count = [0]
+    stop = threading.Event()
+    got = threading.Event()
+
+    def receive():
+        rx.settimeout(0.2)
+        while not stop.is_set():
+            try:
+                rx.recvfrom(65536)
+            except socket.timeout:
+                continue
+            now = time.perf_counter()
+            lat.append(now)
+            count[0] += 1
+            got.set()
+
+    t = threading.Thread(target=receive, daemon=True)
+    t.start()
+    udp_lat = []
+    for _ in range(pings):
+        got.clear()
+        t0 = time.perf_counter()
+        tx.sendto(payload, rx.getsockname())
+        got.wait(1)
+        udp_lat.append(lat[-1] - t0)
+    # TCP request/response
+    srv = socket.socket()
+    srv.bind(("127.0.0.1", 0))
+    srv.listen(1)
+
+    def echo():
+        conn, _ = srv.accept()
+        conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        while True:
+            data = conn.recv(65536)
+            if not data:
+                break
+            conn.sendall(b"ack")
+        conn.close()
+
+    et = threading.Thread(target=echo, daemon=True)
+    et.start()
+    cli = socket.create_connection(srv.getsockname())
+    cli.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+    tcp_lat = []
+    for _ in range(pings):
+        t0 = time.perf_counter()
+        cli.sendall(payload)
+        cli.recv(16)
+        tcp_lat.append(time.perf_counter() - t0)
+    cli.close()
+    et.join(2)
+    srv.close()
+    # UDP burst
+    count[0] = 0
+    t0 = time.perf_counter()
+    for i in range(burst):
+        tx.sendto(payload, rx.getsockname())
+        if i % 500 == 499:
+            time.sleep(0.001)
+    _settle(count)
+    rate = count[0] / (lat[-1] - t0)
+    stop.set()
+    t.join(1)
+    rx.close()
+    tx.close()
+    return udp_lat, tcp_lat, rate
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--rounds", type=int, default=5)
+    parser.add_argument("--pings", type=int, default=500)
+    parser.add_argument("--burst", type=int, default=5000)
+    args = parser.parse_args()
+    rows = []
+    for _ in range(args.rounds):
+        eu, et, er = erni_round(args.pings, args.burst)
+        fu, ft, fr = floor_round(args.pings, args.burst)
+        rows.append((pct(eu, .5), pct(fu, .5), pct(eu, .99), pct(fu, .99), pct(et, .5), pct(ft, .5),
+                     pct(et, .99), pct(ft, .99), er, fr))
+    m = [statistics.median(col) for col in zip(*rows)]
+    print(f"transport benchmark on loopback: {args.rounds} rounds x {args.pings} pings, burst "
+          f"{args.burst}; medians of rounds; floor = raw Python sockets, same run")
+    print(f"{'measure':<28} {'ERNI':>10} {'floor':>10} {'ratio':>7}")
+    for label, ours, floor, unit in (
+        ("UDP status one-way p50", m[0], m[1], "us"), ("UDP status one-way p99", m[2], m[3], "us"),
+        ("TCP task send->ack p50", m[4], m[5], "us"), ("TCP task send->ack p99", m[6], m[7], "us"),
+    ):
+        print(f"{label:<28} {ours * 1e6:>8.0f}{unit} {floor * 1e6:>8.0f}{unit} {ours / floor:>7.2f}")
+    print(f"{'status throughput':<28} {m[8]:>7.0f}/s {m[9]:>7.0f}/s {m[8] / m[9]:>7.2f}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
