@@ -109,6 +109,7 @@ class NodeView:
     positions: dict[str, KnownPosition]
     known_nodes: tuple[NodeInfo, ...]
     position_updates: int
+    topology_version: int = 0
 
 
 @dataclass(frozen=True)
@@ -258,7 +259,7 @@ class ManetNetwork:
                 node=info, version=self._version, neighbors=tuple(neighbors), topology=topology,
                 routes=routes, positions=known,
                 known_nodes=tuple(sorted((self._nodes[n] for n in names), key=lambda i: i.index)),
-                position_updates=self._updates[name],
+                position_updates=self._updates[name], topology_version=self._topo_version,
             )
             self._views[name] = view
             return view

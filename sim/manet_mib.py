@@ -40,6 +40,9 @@ ERNI_POS_X = ERNI + (1, 4, 0)            # mm, read-write
 ERNI_POS_Y = ERNI + (1, 5, 0)            # mm, read-write
 ERNI_POS_HEADING = ERNI + (1, 6, 0)      # centidegrees, read-write
 ERNI_POS_UPDATES = ERNI + (1, 7, 0)      # accepted position reports of this node
+ERNI_COMM_RANGE = ERNI + (1, 8, 0)       # mm
+ERNI_TOPOLOGY_VERSION = ERNI + (1, 9, 0)  # changes whenever links, metrics or routes may have
+ERNI_STATE_VERSION = ERNI + (1, 10, 0)   # changes whenever anything served may have
 ERNI_NODE_TABLE = ERNI + (2, 1)          # index: router index
 ERNI_LINK_TABLE = ERNI + (3, 1)          # index: neighbour router index
 
@@ -92,7 +95,9 @@ def build_table(view: NodeView, comm_range: float) -> list[tuple[OID, Value]]:
     add((ERNI_POS_Y, Value("int", _mm(own.y) if own else 0)))
     add((ERNI_POS_HEADING, Value("int", _cdeg(own.heading) if own else 0)))
     add((ERNI_POS_UPDATES, Value("counter", view.position_updates)))
-    add((ERNI + (1, 8, 0), Value("int", _mm(comm_range))))
+    add((ERNI_COMM_RANGE, Value("int", _mm(comm_range))))
+    add((ERNI_TOPOLOGY_VERSION, Value("counter", view.topology_version % 2**32)))
+    add((ERNI_STATE_VERSION, Value("counter", view.version % 2**32)))
     for node in view.known_nodes:
         idx = (node.index,)
         add((ERNI_NODE_TABLE + (2,) + idx, Value("str", node.name)))

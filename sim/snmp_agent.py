@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import asyncio
 import bisect
-import ipaddress
 import logging
 import threading
 from collections import Counter
@@ -21,8 +20,9 @@ from pyasn1.codec.ber import decoder, encoder
 from pyasn1.error import PyAsn1Error
 from pyasn1.type import univ
 from pysnmp.proto import api
-from pysnmp.proto.api import v1, v2c
+from pysnmp.proto.api import v2c
 
+from sim import snmp_ber as ber
 from sim.manet import ManetNetwork
 from sim.manet_mib import INT32, OID, WRITABLE, Value, build_table, parse_position_write
 
@@ -36,46 +36,41 @@ WRONG_TYPE, WRONG_VALUE, NOT_WRITABLE = 7, 10, 17
 
 
 class _Table:
-    """A node's served OIDs, rebuilt when the network's version changes."""
+    """A node's served OIDs with pre-encoded TLVs, rebuilt when the network's version changes."""
 
-    __slots__ = ("version", "keys", "values")
+    __slots__ = ("version", "keys", "oids", "values")
 
     def __init__(self, version: int, rows: list[tuple[OID, Value]]) -> None:
         self.version = version
         self.keys = [r[0] for r in rows]
-        self.values = [r[1] for r in rows]
+        self.oids = [ber.oid(r[0]) for r in rows]
+        self.values = [r[1] if r[1].kind == "age" else ber.value(r[1].kind, r[1].value)
+                       for r in rows]
 
-    def get(self, oid: OID) -> Value | None:
+    def _bind(self, i: int) -> bytes:
+        val = self.values[i]
+        if isinstance(val, Value):  # computed when read (ages)
+            now = val.resolve()
+            val = ber.value(now.kind, now.value)
+        return ber.varbind(self.oids[i], val)
+
+    def get(self, oid: OID) -> bytes | None:
+        """The encoded varbind of `oid`, or None."""
         i = bisect.bisect_left(self.keys, oid)
         if i < len(self.keys) and self.keys[i] == oid:
-            return self.values[i]
+            return self._bind(i)
         return None
 
-    def next(self, oid: OID) -> tuple[OID, Value] | None:
+    def next(self, oid: OID) -> tuple[OID, bytes] | None:
+        """The first OID after `oid` and its encoded varbind, or None at the end."""
         i = bisect.bisect_right(self.keys, oid)
         if i < len(self.keys):
-            return self.keys[i], self.values[i]
+            return self.keys[i], self._bind(i)
         return None
 
     def has_prefix(self, prefix: OID) -> bool:
         i = bisect.bisect_left(self.keys, prefix)
         return i < len(self.keys) and self.keys[i][: len(prefix)] == prefix
-
-
-def _encode_value(version: int, val: Value) -> Any:
-    val = val.resolve()
-    k, v = val.kind, val.value
-    if k == "str":
-        return v2c.OctetString(v.encode() if isinstance(v, str) else v)
-    if k == "ip":
-        return (v1 if version == 0 else v2c).IpAddress(ipaddress.IPv4Address(str(v)).packed)
-    if version == 0:
-        cls = {"int": v1.Integer, "gauge": v1.Gauge, "uns": v1.Gauge, "counter": v1.Counter,
-               "ticks": v1.TimeTicks}[k]
-    else:
-        cls = {"int": v2c.Integer32, "gauge": v2c.Gauge32, "uns": v2c.Unsigned32,
-               "counter": v2c.Counter32, "ticks": v2c.TimeTicks}[k]
-    return cls(int(v))
 
 
 class _NodeEndpoint(asyncio.DatagramProtocol):
@@ -207,13 +202,13 @@ class ManetSnmpAgent:
                 return None
             p_mod = api.PROTOCOL_MODULES[version]
             msg, _ = decoder.decode(data, asn1Spec=p_mod.Message())
-            if bytes(p_mod.apiMessage.get_community(msg)) != self.community:
+            community = bytes(p_mod.apiMessage.get_community(msg))
+            if community != self.community:
                 self.stats["bad_community"] += 1
                 return None
             req = p_mod.apiMessage.get_pdu(msg)
-            rsp_msg = p_mod.apiMessage.get_response(msg)
-            rsp = p_mod.apiMessage.get_pdu(rsp_msg)
-            binds = p_mod.apiPDU.get_varbinds(req)
+            request_id = int(p_mod.apiPDU.get_request_id(req))
+            binds = [(tuple(o), v) for o, v in p_mod.apiPDU.get_varbinds(req)]
         except (PyAsn1Error, ValueError, TypeError, KeyError, IndexError, AttributeError):
             self.stats["malformed"] += 1
             return None
@@ -221,15 +216,14 @@ class ManetSnmpAgent:
             status, index, out = self._dispatch(name, version, p_mod, req, binds)
         except Exception:  # a bug must not kill the endpoint; the client sees genErr
             log.exception("node %s: failed to answer a request", name)
-            status, index, out = GEN_ERR, 1, binds
-        p_mod.apiPDU.set_error_status(rsp, status)
-        p_mod.apiPDU.set_error_index(rsp, index)
-        p_mod.apiPDU.set_varbinds(rsp, out)
+            status, index, out = GEN_ERR, 1, None
+        if out is None:  # errors echo the request's varbinds
+            out = [ber.varbind(ber.oid(o), encoder.encode(v)) for o, v in binds]
         self.stats["answered"] += 1
-        return encoder.encode(rsp_msg)
+        return ber.response(version, community, request_id, status, index, out)
 
     def _dispatch(self, name: str, version: int, p_mod: Any, req: Any,
-                  binds: list[tuple[Any, Any]]) -> tuple[int, int, list[tuple[Any, Any]]]:
+                  binds: list[tuple[OID, Any]]) -> tuple[int, int, list[bytes] | None]:
         if req.isSameTypeWith(p_mod.SetRequestPDU()):
             self.stats["set"] += 1
             return self._set(name, version, binds)
@@ -246,53 +240,53 @@ class ManetSnmpAgent:
             max_rep = int(v2c.apiBulkPDU.get_max_repetitions(req))
             return self._bulk(table, binds, non_rep, max_rep)
         self.stats["unsupported_pdu"] += 1
-        return GEN_ERR, 0, binds
+        return GEN_ERR, 0, None
 
-    def _get(self, table: _Table, version: int, binds: list[tuple[Any, Any]]):
+    def _get(self, table: _Table, version: int, binds: list[tuple[OID, Any]]):
         out = []
-        for i, (oid, _) in enumerate(binds):
-            key = tuple(oid)
-            val = table.get(key)
-            if val is not None:
-                out.append((oid, _encode_value(version, val)))
+        for i, (key, _) in enumerate(binds):
+            bound = table.get(key)
+            if bound is not None:
+                out.append(bound)
             elif version == 0:
-                return NO_SUCH_NAME, i + 1, binds
+                return NO_SUCH_NAME, i + 1, None
             elif len(key) >= 10 and table.has_prefix(key[:-1]):
-                out.append((oid, v2c.NoSuchInstance("")))
+                out.append(ber.varbind(ber.oid(key), ber.NO_SUCH_INSTANCE))
             else:
-                out.append((oid, v2c.NoSuchObject("")))
+                out.append(ber.varbind(ber.oid(key), ber.NO_SUCH_OBJECT))
         return 0, 0, out
 
-    def _next(self, table: _Table, version: int, binds: list[tuple[Any, Any]]):
+    def _next(self, table: _Table, version: int, binds: list[tuple[OID, Any]]):
         out = []
-        for i, (oid, _) in enumerate(binds):
-            found = table.next(tuple(oid))
+        for i, (key, _) in enumerate(binds):
+            found = table.next(key)
             if found is not None:
-                out.append((v2c.ObjectIdentifier(found[0]), _encode_value(version, found[1])))
+                out.append(found[1])
             elif version == 0:
-                return NO_SUCH_NAME, i + 1, binds
+                return NO_SUCH_NAME, i + 1, None
             else:
-                out.append((oid, v2c.EndOfMibView("")))
+                out.append(ber.varbind(ber.oid(key), ber.END_OF_MIB_VIEW))
         return 0, 0, out
 
-    def _bulk(self, table: _Table, binds: list[tuple[Any, Any]], non_rep: int, max_rep: int):
+    def _bulk(self, table: _Table, binds: list[tuple[OID, Any]], non_rep: int, max_rep: int):
         non_rep = max(0, min(non_rep, len(binds)))
-        out = list(self._next(table, 1, binds[:non_rep])[2])
-        cursors = [tuple(oid) for oid, _ in binds[non_rep:]]
-        size = 0
+        out = list(self._next(table, 1, binds[:non_rep])[2] or [])
+        cursors: list[OID | None] = [key for key, _ in binds[non_rep:]]
+        size = sum(map(len, out))
         for _ in range(max(0, max_rep) if cursors else 0):
             row = []
             ended = True
             for j, cur in enumerate(cursors):
                 found = table.next(cur) if cur is not None else None
                 if found is None:
-                    row.append((v2c.ObjectIdentifier(cur or binds[non_rep + j][0]), v2c.EndOfMibView("")))
-                    cursors[j] = None  # type: ignore[call-overload]
+                    last = cur if cur is not None else binds[non_rep + j][0]
+                    row.append(ber.varbind(ber.oid(last), ber.END_OF_MIB_VIEW))
+                    cursors[j] = None
                 else:
                     ended = False
                     cursors[j] = found[0]
-                    row.append((v2c.ObjectIdentifier(found[0]), _encode_value(1, found[1])))
-            size += sum(len(r[0]) * 2 + 16 for r in row)
+                    row.append(found[1])
+            size += sum(map(len, row))
             if len(out) + len(row) > MAX_VARBINDS or size > MAX_RESPONSE_BYTES:
                 break
             out.extend(row)
@@ -300,25 +294,24 @@ class ManetSnmpAgent:
                 break
         return 0, 0, out
 
-    def _set(self, name: str, version: int, binds: list[tuple[Any, Any]]):
+    def _set(self, name: str, version: int, binds: list[tuple[OID, Any]]):
         writes: dict[str, int] = {}
-        for i, (oid, value) in enumerate(binds):
-            key = tuple(oid)
+        for i, (key, value) in enumerate(binds):
             field = WRITABLE.get(key)
             if field is None:
                 self.stats["set_refused"] += 1
-                return (NO_SUCH_NAME if version == 0 else NOT_WRITABLE), i + 1, binds
+                return (NO_SUCH_NAME if version == 0 else NOT_WRITABLE), i + 1, None
             if value.tagSet != univ.Integer.tagSet:
                 self.stats["set_refused"] += 1
-                return (BAD_VALUE if version == 0 else WRONG_TYPE), i + 1, binds
+                return (BAD_VALUE if version == 0 else WRONG_TYPE), i + 1, None
             number = int(value)
             if not INT32[0] <= number <= INT32[1]:
                 self.stats["set_refused"] += 1
-                return (BAD_VALUE if version == 0 else WRONG_VALUE), i + 1, binds
+                return (BAD_VALUE if version == 0 else WRONG_VALUE), i + 1, None
             writes[field] = number
         view = self.network.view(name)
         own = view.positions.get(name)
         current = (own.x, own.y, own.heading) if own else (0.0, 0.0, 0.0)
         x, y, heading = parse_position_write(current, writes)
         self.network.set_position(name, x, y, heading)
-        return 0, 0, binds
+        return 0, 0, None

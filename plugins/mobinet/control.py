@@ -41,7 +41,9 @@ class MobiNetControl(Plugin):
         community: str = Field("public", description="SNMPv2c community (read and write)")
         timeout: float = Field(0.5, gt=0, le=30, description="per-request timeout (s)")
         retries: int = Field(0, ge=0, le=5, description="retries after a timeout")
-        max_repetitions: int = Field(40, ge=1, le=500, description="GETBULK rows per request")
+        max_repetitions: int = Field(100, ge=1, le=500, description="GETBULK rows per request")
+        cache_seconds: float = Field(5.0, ge=0, description="reuse a walk while the agent's change "
+                                     "counter stands still, at most this long (0: always walk)")
         robot: str | None = Field(None, description="whose Pose to write (default: this agent)")
         write_pose: bool = Field(True, description="write every Pose to the network subsystem")
         log_interval: float = Field(10.0, gt=0, description="at most one warning per kind per interval (s)")
@@ -49,7 +51,8 @@ class MobiNetControl(Plugin):
     def make_source(self) -> NetworkSource:
         """The source the resource reads through (override to plug in another subsystem)."""
         s = self.settings
-        return SnmpSource(s.host, s.port, s.community, s.timeout, s.retries, s.max_repetitions)
+        return SnmpSource(s.host, s.port, s.community, s.timeout, s.retries, s.max_repetitions,
+                          s.cache_seconds)
 
     def setup(self) -> None:
         me = self.agent_name

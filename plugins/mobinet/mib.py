@@ -32,6 +32,8 @@ ERNI_NODE_ADDRESS = ERNI + (1, 3, 0)             # IpAddress
 ERNI_POS_X = ERNI + (1, 4, 0)                    # Integer32 mm, read-write
 ERNI_POS_Y = ERNI + (1, 5, 0)                    # Integer32 mm, read-write
 ERNI_POS_HEADING = ERNI + (1, 6, 0)              # Integer32 centidegrees, read-write
+ERNI_TOPOLOGY_VERSION = ERNI + (1, 9, 0)         # Counter32: changes when links/routes may have
+ERNI_STATE_VERSION = ERNI + (1, 10, 0)           # Counter32: changes when anything may have
 ERNI_NODES_NAME = ERNI + (2, 1, 2)               # .<node>  OCTET STRING
 ERNI_NODES_ADDRESS = ERNI + (2, 1, 3)            # .<node>  IpAddress
 ERNI_NODES_X = ERNI + (2, 1, 4)                  # .<node>  Integer32 mm
@@ -48,7 +50,8 @@ NAMES: dict[OID, str] = {
     OLSRV2_ROUTE_NEXT_HOP: "olsrv2TibRoutingSetNextIfAddr", OLSRV2_ROUTE_DIST: "olsrv2TibRoutingSetDist",
     OLSRV2_ROUTE_METRIC: "olsrv2TibRoutingSetMetricValue", INET_CIDR_METRIC1: "inetCidrRouteMetric1",
     ERNI_NODE_NAME: "erniNodeName", ERNI_NODE_ADDRESS: "erniNodeAddress", ERNI_POS_X: "erniPosX",
-    ERNI_POS_Y: "erniPosY", ERNI_POS_HEADING: "erniPosHeading", ERNI_NODES_NAME: "erniNodesName",
+    ERNI_POS_Y: "erniPosY", ERNI_POS_HEADING: "erniPosHeading",
+    ERNI_TOPOLOGY_VERSION: "erniTopologyVersion", ERNI_STATE_VERSION: "erniStateVersion", ERNI_NODES_NAME: "erniNodesName",
     ERNI_NODES_ADDRESS: "erniNodesAddress", ERNI_NODES_X: "erniNodesX", ERNI_NODES_Y: "erniNodesY",
     ERNI_NODES_HEADING: "erniNodesHeading", ERNI_LINK_QUALITY: "erniLinkQuality",
 }

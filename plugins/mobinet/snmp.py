@@ -2,6 +2,9 @@
 
 Each part of a view is one table walk done with GETBULK over all the part's columns at
 once (several round trips only for large tables); the parts of one read run concurrently.
+When the agent serves the ERNI change counters (erniTopologyVersion, erniStateVersion), a
+part whose counter has not moved is answered from the last walk (for at most
+`cache_seconds`), so a steady network costs one GET per read.
 Every value is type-checked: a missing answer, an error status, a wrong type or a
 malformed value raises `SourceError` naming the OID and what was expected.
 """
@@ -11,6 +14,7 @@ from __future__ import annotations
 import asyncio
 import ipaddress
 import math
+import time
 from collections.abc import Iterable
 from typing import Any
 
@@ -89,7 +93,7 @@ class SnmpSource:
     """A `NetworkSource` speaking SNMPv2c to one node's network subsystem."""
 
     def __init__(self, host: str, port: int, community: str = "public", timeout: float = 0.5,
-                 retries: int = 0, max_repetitions: int = 40) -> None:
+                 retries: int = 0, max_repetitions: int = 100, cache_seconds: float = 5.0) -> None:
         self.host, self.port = host, port
         self.community = community
         self.timeout, self.retries = timeout, retries
@@ -97,6 +101,8 @@ class SnmpSource:
         self._engine: SnmpEngine | None = None
         self._target: UdpTransportTarget | None = None
         self._rows: dict[tuple[mib.OID, ...], int] = {}  # rows seen by the last walk of a column set
+        self.cache_seconds = cache_seconds
+        self._cache: dict[str, tuple[Any, float, Any]] = {}  # job -> (key, when, walked columns)
         self.requests = 0
 
     @property
@@ -130,8 +136,9 @@ class SnmpSource:
             raise SourceError(f"SNMP {what} to {self.where}: agent answered "
                               f"{err_stat.prettyPrint()}{where}")
 
-    async def get(self, oids: Iterable[mib.OID]) -> dict[mib.OID, Any]:
-        """GET scalars; a missing one raises SourceError."""
+    async def get(self, oids: Iterable[mib.OID],
+                  optional: frozenset[mib.OID] = frozenset()) -> dict[mib.OID, Any]:
+        """GET scalars; a missing one raises SourceError unless it is `optional` (then absent)."""
         engine, target = await self._session()
         oids = list(oids)
         self.requests += 1
@@ -143,6 +150,8 @@ class SnmpSource:
         for oid, val in res[3]:
             key = tuple(oid)
             if val.tagSet in _EXCEPTIONS:
+                if key in optional:
+                    continue
                 raise SourceError(f"SNMP GET to {self.where}: {mib.label(key)} not served "
                                   f"({type(val).__name__})")
             out[key] = val
@@ -187,32 +196,49 @@ class SnmpSource:
 
     async def read(self, parts: frozenset[str]) -> NetView:
         """Read the requested parts (plus the node's identity and the node table)."""
-        jobs: dict[str, Any] = {"ident": self.get([mib.ERNI_NODE_NAME, mib.ERNI_NODE_ADDRESS])}
-        cols = [mib.ERNI_NODES_NAME, mib.ERNI_NODES_ADDRESS]
+        versions = frozenset({mib.ERNI_TOPOLOGY_VERSION, mib.ERNI_STATE_VERSION})
+        ident = await self.get([mib.ERNI_NODE_NAME, mib.ERNI_NODE_ADDRESS, *versions], versions)
+        view = NetView(node=_text(mib.ERNI_NODE_NAME, ident[mib.ERNI_NODE_NAME]),
+                       address=_ip(mib.ERNI_NODE_ADDRESS, ident[mib.ERNI_NODE_ADDRESS]))
+        topo_v, state_v = (
+            _int(oid, ident[oid], "Counter32") if oid in ident else None
+            for oid in (mib.ERNI_TOPOLOGY_VERSION, mib.ERNI_STATE_VERSION))
+        node_cols = [mib.ERNI_NODES_NAME, mib.ERNI_NODES_ADDRESS]
         if POSITIONS in parts:
-            cols += [mib.ERNI_NODES_X, mib.ERNI_NODES_Y, mib.ERNI_NODES_HEADING]
-        jobs["nodes"] = self.walk(cols)
+            node_cols += [mib.ERNI_NODES_X, mib.ERNI_NODES_Y, mib.ERNI_NODES_HEADING]
+        wanted: dict[str, tuple[list[mib.OID], int | None]] = {
+            "nodes" + ("+positions" if POSITIONS in parts else ""): (node_cols, state_v)}
         if NEIGHBORS in parts:
-            jobs[NEIGHBORS] = self.walk([mib.NHDP_DISC_IF_ADDR, mib.NHDP_NIB_SYMMETRIC,
-                                         mib.OLSRV2_LINK_IN_METRIC, mib.ERNI_LINK_QUALITY,
-                                         mib.NHDP_PERF_RECVD, mib.NHDP_PERF_EXPECTED])
+            wanted[NEIGHBORS] = ([mib.NHDP_DISC_IF_ADDR, mib.NHDP_NIB_SYMMETRIC,
+                                  mib.OLSRV2_LINK_IN_METRIC, mib.ERNI_LINK_QUALITY,
+                                  mib.NHDP_PERF_RECVD, mib.NHDP_PERF_EXPECTED], topo_v)
         if TOPOLOGY in parts:
-            jobs[TOPOLOGY] = self.walk([mib.OLSRV2_TOPO_FROM, mib.OLSRV2_TOPO_TO,
-                                        mib.OLSRV2_TOPO_METRIC])
+            wanted[TOPOLOGY] = ([mib.OLSRV2_TOPO_FROM, mib.OLSRV2_TOPO_TO, mib.OLSRV2_TOPO_METRIC],
+                                topo_v)
         if ROUTES in parts:
-            jobs[ROUTES] = self.walk([mib.OLSRV2_ROUTE_NEXT_HOP, mib.OLSRV2_ROUTE_DIST,
-                                      mib.OLSRV2_ROUTE_METRIC])
-        done = await asyncio.gather(*jobs.values(), return_exceptions=True)
-        got = dict(zip(jobs, done))
+            wanted[ROUTES] = ([mib.OLSRV2_ROUTE_NEXT_HOP, mib.OLSRV2_ROUTE_DIST,
+                               mib.OLSRV2_ROUTE_METRIC], topo_v)
+        now = time.monotonic()
+        got: dict[str, Any] = {}
+        walks: dict[str, Any] = {}
+        for job, (cols, version) in wanted.items():
+            entry = self._cache.get(job)
+            key = (view.node, version)
+            if (version is not None and entry is not None and entry[0] == key
+                    and now - entry[1] < self.cache_seconds):
+                got[job] = entry[2]
+            else:
+                walks[job] = self.walk(cols)
+        done = await asyncio.gather(*walks.values(), return_exceptions=True)
         for value in done:
             if isinstance(value, BaseException):
                 if isinstance(value, SourceError):
                     raise value
                 raise SourceError(f"SNMP agent {self.where}: {type(value).__name__}: {value}") from value
-        ident = got["ident"]
-        view = NetView(node=_text(mib.ERNI_NODE_NAME, ident[mib.ERNI_NODE_NAME]),
-                       address=_ip(mib.ERNI_NODE_ADDRESS, ident[mib.ERNI_NODE_ADDRESS]))
-        self._decode_nodes(view, got["nodes"], POSITIONS in parts)
+        for job, cols in zip(walks, done):
+            got[job] = cols
+            self._cache[job] = ((view.node, wanted[job][1]), now, cols)
+        self._decode_nodes(view, got[next(iter(wanted))], POSITIONS in parts)
         if NEIGHBORS in parts:
             self._decode_neighbors(view, got[NEIGHBORS])
         if TOPOLOGY in parts:

@@ -14,6 +14,8 @@ from pysnmp.proto.api import v2c
 from sim.manet import ManetNetwork, RadioModel
 from sim.snmp_agent import ManetSnmpAgent
 
+NAME = (1, 3, 6, 1, 4, 1, 32473, 1, 1, 1, 0)
+ADDRESS = (1, 3, 6, 1, 4, 1, 32473, 1, 1, 3, 0)
 LINE = [("robot1", 0.0, 0.0), ("robot2", 60.0, 0.0), ("robot3", 120.0, 0.0),
         ("robot4", 180.0, 0.0), ("robot5", 240.0, 0.0)]
 
@@ -93,7 +95,10 @@ class BadAgent:
         walking = not req.isSameTypeWith(p_mod.GetRequestPDU())
         for oid, _ in p_mod.apiPDU.get_varbinds(req):
             oid = tuple(oid)
-            if walking and self.mode == "wrongtype":
+            if not walking and self.mode == "loop":   # a valid identity, then looping walks
+                binds.append((oid, {NAME: v2c.OctetString(b"loopy"),
+                                    ADDRESS: v2c.IpAddress("10.9.9.9")}.get(oid, v2c.NoSuchObject(""))))
+            elif walking and self.mode == "wrongtype":
                 binds.append((oid + (1,), v2c.Integer32(7)) if len(oid) < 14
                              else (oid, v2c.EndOfMibView("")))
             else:

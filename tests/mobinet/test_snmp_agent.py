@@ -186,3 +186,43 @@ def snmp_agent_unstarted():
     from sim.snmp_agent import ManetSnmpAgent
     from tests.mobinet.conftest import line_network
     return ManetSnmpAgent(line_network())
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.lists(st.integers(0, 2**32), min_size=2, max_size=20).map(
+           lambda a: (1, 3) + tuple(a[2:]) if a else (1, 3)),
+       st.integers(-(2**31), 2**31 - 1), st.integers(0, 2**32 - 1), st.binary(max_size=300))
+def test_fast_ber_encoder_agrees_with_pyasn1(arcs, number, unsigned, octets):
+    from pyasn1.codec.ber import decoder
+    from pyasn1.type import univ as u
+
+    from sim import snmp_ber as ber
+    assert tuple(decoder.decode(ber.oid(arcs), asn1Spec=u.ObjectIdentifier())[0]) == arcs
+    assert int(decoder.decode(ber.value("int", number), asn1Spec=u.Integer())[0]) == number
+    assert int(decoder.decode(ber.value("counter", unsigned), asn1Spec=v2c.Counter32())[0]) == unsigned
+    assert int(decoder.decode(ber.value("gauge", unsigned), asn1Spec=v2c.Gauge32())[0]) == unsigned
+    assert bytes(decoder.decode(ber.value("str", octets), asn1Spec=u.OctetString())[0]) == octets
+    msg = ber.response(1, b"public", number, 0, 0,
+                       [ber.varbind(ber.oid(arcs), ber.value("uns", unsigned))])
+    decoded, rest = decoder.decode(msg, asn1Spec=v2c.Message())
+    assert rest == b""
+    pdu = v2c.apiMessage.get_pdu(decoded)
+    assert int(v2c.apiPDU.get_request_id(pdu)) == number
+    [(oid, val)] = v2c.apiPDU.get_varbinds(pdu)
+    assert tuple(oid) == arcs and int(val) == unsigned
+
+
+def test_change_counters_are_served(served, net):
+    rows = parse(snmp("snmpget", served["robot1"], "1.3.6.1.4.1.32473.1.1.9.0",
+                      "1.3.6.1.4.1.32473.1.1.10.0").stdout)
+    topo = int(rows["1.3.6.1.4.1.32473.1.1.9.0"][1])
+    state = int(rows["1.3.6.1.4.1.32473.1.1.10.0"][1])
+    assert rows["1.3.6.1.4.1.32473.1.1.9.0"][0] == "Counter32"
+    net.set_position("robot4", 1.0, 2.0)      # a report: state changes, topology does not
+    rows = parse(snmp("snmpget", served["robot1"], "1.3.6.1.4.1.32473.1.1.9.0",
+                      "1.3.6.1.4.1.32473.1.1.10.0").stdout)
+    assert int(rows["1.3.6.1.4.1.32473.1.1.9.0"][1]) == topo
+    assert int(rows["1.3.6.1.4.1.32473.1.1.10.0"][1]) > state
+    net.move("robot4", 170.0, 0.0)
+    rows = parse(snmp("snmpget", served["robot1"], "1.3.6.1.4.1.32473.1.1.9.0").stdout)
+    assert int(rows["1.3.6.1.4.1.32473.1.1.9.0"][1]) > topo

@@ -111,3 +111,39 @@ def test_an_agent_that_never_advances_is_caught(bad_agent):
 def test_unknown_host_is_a_source_error():
     with pytest.raises(SourceError, match="cannot resolve"):
         run(_read(("no-such-host.invalid", 1161), timeout=0.2))
+
+
+def test_unchanged_network_is_read_with_one_get_and_changes_are_walked(served, net):
+    async def go():
+        src = SnmpSource(*served["robot3"], cache_seconds=60.0)
+        try:
+            first = await src.read(PARTS)
+            r0 = src.requests
+            again = await src.read(PARTS)
+            steady = src.requests - r0
+            net.move("robot5", 150.0, 40.0)
+            r1 = src.requests
+            moved = await src.read(PARTS)
+            after_move = src.requests - r1
+            return first, again, steady, moved, after_move
+        finally:
+            await src.aclose()
+    first, again, steady, moved, after_move = run(go())
+    assert steady == 1                       # only the identity and change counters
+    assert again.links == first.links and again.routes == first.routes
+    assert after_move > 1
+    assert "robot5" in {n.name for n in moved.neighbors}
+    assert set(articulation_points(moved.links)) == {"robot2", "robot3"}
+
+
+def test_cache_can_be_turned_off(served):
+    async def go():
+        src = SnmpSource(*served["robot3"], cache_seconds=0.0)
+        try:
+            await src.read(PARTS)
+            r0 = src.requests
+            await src.read(PARTS)
+            return src.requests - r0
+        finally:
+            await src.aclose()
+    assert run(go()) > 1
