@@ -33,7 +33,8 @@ def register(sub: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Start the robots, print where they listen, serve until SIGINT or SIGTERM."""
-    from sim.robot import RobotHost, SimRobotConfig
+    from sim.robot import SimRobotConfig
+    from sim.robot_host import RobotHost
     from sim.world import World, WorldError
 
     setup_logging(args.log_level)

@@ -105,7 +105,8 @@ class RobotMotionControl(Plugin):
         self.resource.start()
 
     def _start_sim(self, s: MotionSettings) -> str:
-        from sim.robot import RobotHost, SimRobotConfig
+        from sim.robot import SimRobotConfig
+        from sim.robot_host import RobotHost
         from sim.world import World
 
         world = World.load(s.sim_world) if s.sim_world else World()

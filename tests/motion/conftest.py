@@ -7,7 +7,8 @@ from collections.abc import Iterator
 
 import pytest
 
-from sim.robot import RobotHost, SimRobotConfig
+from sim.robot import SimRobotConfig
+from sim.robot_host import RobotHost
 from sim.world import World
 
 REAL_URL = os.environ.get("ERNI_ROBOT_URL", "").strip()

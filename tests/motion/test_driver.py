@@ -15,9 +15,10 @@ from plugins.motion import arcos
 from plugins.motion.arcos import Cmd
 from plugins.motion.driver import ArcosDriver, LinkError, _Unwrapper
 from plugins.motion.robots import RobotModel, resolve_model
-from sim.robot import RobotHost, SimRobotConfig
+from sim.robot import SimRobotConfig
+from sim.robot_host import RobotHost
 from sim.world import World
-from tests.motion.conftest import REAL_URL, fast_config, sim_only
+from tests.motion.conftest import REAL_URL, sim_only
 
 
 @pytest.fixture
@@ -229,3 +230,41 @@ def test_commands_from_many_threads_arrive_whole(make_host, drivers):
         t.join()
     wait_until(lambda: len(host.robots[0].said) == 200, timeout=3)
     assert fw.counts["bad"] == 0 and fw.counts["packets"] - before >= 200
+
+
+@sim_only
+def test_position_heading_and_limit_commands_through_the_wire(make_host, drivers):
+    host = make_host(accel=2.0, decel=2.0)
+    robot = host.robots[0]
+    d = drivers(host.url()).open()
+    d.head(90)
+    assert d.wait_for(lambda s: abs(math.degrees(s.theta) - 90) < 1 and not s.moving, 3.0)
+    d.dhead(-45)
+    assert d.wait_for(lambda s: abs(math.degrees(s.theta) - 45) < 1 and not s.moving, 3.0)
+    d.move(0.4)
+    s = d.wait_for(lambda s: math.hypot(s.x, s.y) > 0.39 and not s.moving, 3.0)
+    assert s is not None and math.hypot(s.x, s.y) == pytest.approx(0.4, abs=0.01)
+    d.seto()
+    assert d.wait_for(lambda s: abs(s.x) < 1e-3 and abs(s.y) < 1e-3 and abs(s.theta) < 0.01, 2.0)
+    d.setv(0.25)
+    d.seta(0.5)
+    d.vel(1.0)
+    s = d.wait_for(lambda s: s.v > 0.24, 3.0)
+    assert s is not None and robot.max_v == pytest.approx(0.25) and robot.accel == pytest.approx(0.5)
+    d.estop()
+    assert d.wait_for(lambda s: s.v == 0 and s.seq > 0, 1.0)
+    d.sonar(False)
+    wait_until(lambda: not robot.sonar_on, timeout=2)
+    d.vel2(-0.2, 0.2)
+    assert d.wait_for(lambda s: s.left < -0.15 and s.right > 0.15, 2.0)
+
+
+@sim_only
+def test_idle_driver_pulses_so_the_watchdog_never_trips(make_host, drivers):
+    host = make_host(watchdog=0.3)
+    d = drivers(host.url(), pulse_interval=0.1).open()
+    d.vel(0.2)
+    first = d.wait_for(lambda s: s.v > 0.15, 2.0)
+    assert first is not None
+    later = d.wait_for(lambda s: s.stamp > first.stamp + 1.0, 3.0)  # three watchdog periods later
+    assert later is not None and later.v > 0.15 and not host.robots[0].watchdog_tripped

@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 import math
+import socket
 
 import pytest
 
+from blackboard.testing import wait_until
 from plugins.motion import arcos
 from plugins.motion.arcos import Cmd, PacketReader
-from sim.robot import P0_WATTS, ArcosFirmware, RobotHost, SimRobot, SimRobotConfig
+from sim.robot import P0_WATTS, ArcosFirmware, SimRobot, SimRobotConfig
+from sim.robot_host import RobotHost
 from sim.world import World
 
 
@@ -179,3 +182,37 @@ def test_host_serves_several_robots_on_consecutive_ports_and_they_see_each_other
         assert front == pytest.approx(0.5, abs=0.03)
     finally:
         host.stop()
+
+
+def test_host_runs_on_an_injected_clock_without_its_thread():
+    now = [100.0]
+    host = RobotHost(physics_hz=50, clock=lambda: now[0])
+    try:
+        robot = host.add_robot(SimRobotConfig(accel=100, decel=100, sip_period=0.1))
+        client = socket.create_connection(("127.0.0.1", int(host.url().rsplit(":", 1)[1])))
+        reader = PacketReader()
+        host.run_once(0.1)  # accept
+        for sync in (0, 1, 2):
+            client.sendall(arcos.encode_command(sync))
+            wait_until(lambda: (host.run_once(0.01), reader.feed(_recv(client)))[1], timeout=2)
+        client.sendall(arcos.encode_command(Cmd.OPEN) + arcos.encode_command(Cmd.ENABLE, 1)
+                       + arcos.encode_command(Cmd.VEL, 500))
+        wait_until(lambda: (host.run_once(0.01), robot.target_v == 0.5)[1], timeout=2)
+        reader.feed(_recv(client))
+        for _ in range(50):  # one simulated second in 20 ms steps, as fast as the CPU goes
+            now[0] += 0.02
+            host.run_once(0)
+        assert robot.x == pytest.approx(0.5, abs=1e-6)
+        sips = [b for b in reader.feed(_recv(client)) if arcos.is_sip(b)]
+        assert 10 <= len(sips) <= 11  # a 0.1 s SIP period on the injected clock
+        client.close()
+    finally:
+        host.stop()
+
+
+def _recv(sock: socket.socket) -> bytes:
+    sock.setblocking(False)
+    try:
+        return sock.recv(65536)
+    except BlockingIOError:
+        return b""
