@@ -213,8 +213,9 @@ class SnmpSource:
                                   mib.OLSRV2_LINK_IN_METRIC, mib.ERNI_LINK_QUALITY,
                                   mib.NHDP_PERF_RECVD, mib.NHDP_PERF_EXPECTED], topo_v)
         if TOPOLOGY in parts:
-            wanted[TOPOLOGY] = ([mib.OLSRV2_TOPO_FROM, mib.OLSRV2_TOPO_TO, mib.OLSRV2_TOPO_METRIC],
-                                topo_v)
+            # the index is (from router, to router): the node table names them, so only the
+            # metric column is walked (the address columns only for routers it does not list)
+            wanted[TOPOLOGY] = ([mib.OLSRV2_TOPO_METRIC], topo_v)
         if ROUTES in parts:
             wanted[ROUTES] = ([mib.OLSRV2_ROUTE_NEXT_HOP, mib.OLSRV2_ROUTE_DIST,
                                mib.OLSRV2_ROUTE_METRIC], topo_v)
@@ -238,11 +239,16 @@ class SnmpSource:
         for job, cols in zip(walks, done):
             got[job] = cols
             self._cache[job] = ((view.node, wanted[job][1]), now, cols)
-        self._decode_nodes(view, got[next(iter(wanted))], POSITIONS in parts)
+        by_index = self._decode_nodes(view, got[next(iter(wanted))], POSITIONS in parts)
         if NEIGHBORS in parts:
             self._decode_neighbors(view, got[NEIGHBORS])
         if TOPOLOGY in parts:
-            self._decode_topology(view, got[TOPOLOGY])
+            metrics = got[TOPOLOGY][mib.OLSRV2_TOPO_METRIC]
+            if any(len(i) != 2 or i[:1] not in by_index or i[1:] not in by_index for i in metrics):
+                ends = await self.walk([mib.OLSRV2_TOPO_FROM, mib.OLSRV2_TOPO_TO])
+                self._decode_topology(view, {**ends, mib.OLSRV2_TOPO_METRIC: metrics})
+            else:
+                self._decode_topology_by_index(view, metrics, by_index)
         if ROUTES in parts:
             self._decode_routes(view, got[ROUTES])
         return view
@@ -273,7 +279,8 @@ class SnmpSource:
     def _name(self, view: NetView, address: str) -> str:
         return view.names.get(address, address)
 
-    def _decode_nodes(self, view: NetView, cols: dict[mib.OID, dict], positions: bool) -> None:
+    def _decode_nodes(self, view: NetView, cols: dict[mib.OID, dict],
+                      positions: bool) -> dict[mib.OID, str]:
         names = cols[mib.ERNI_NODES_NAME]
         by_index: dict[mib.OID, str] = {}
         for idx, val in names.items():
@@ -284,7 +291,7 @@ class SnmpSource:
                 view.names[addr] = by_index[idx]
         view.names.setdefault(view.address, view.node)
         if not positions:
-            return
+            return by_index
         xs, ys, hs = (cols[mib.ERNI_NODES_X], cols[mib.ERNI_NODES_Y], cols[mib.ERNI_NODES_HEADING])
         for idx, name in by_index.items():
             if idx not in xs or idx not in ys:
@@ -293,6 +300,7 @@ class SnmpSource:
             y = _int(mib.ERNI_NODES_Y + idx, ys[idx]) / 1000.0
             h = _int(mib.ERNI_NODES_HEADING + idx, hs[idx]) / 100.0 if idx in hs else 0.0
             view.positions[name] = Position(x=x, y=y, heading=h)
+        return by_index
 
     def _decode_neighbors(self, view: NetView, cols: dict[mib.OID, dict]) -> None:
         sym = cols[mib.NHDP_NIB_SYMMETRIC]
@@ -320,6 +328,17 @@ class SnmpSource:
                  if idx in metric else None)
             view.neighbors.append(Neighbor(name=self._name(view, addr), address=addr, quality=q,
                                            symmetric=truth == 1, metric=m))
+
+    def _decode_topology_by_index(self, view: NetView, metrics: dict[mib.OID, Any],
+                                  by_index: dict[mib.OID, str]) -> None:
+        seen: dict[frozenset[str], Link] = {}
+        for idx, val in sorted(metrics.items()):
+            a, b = by_index[idx[:1]], by_index[idx[1:]]
+            m = _int(mib.OLSRV2_TOPO_METRIC + idx, val, "Unsigned32/Gauge32")
+            key = frozenset((a, b))
+            if a != b and key not in seen:
+                seen[key] = Link(a=min(a, b), b=max(a, b), quality=_quality_of_metric(m), metric=m)
+        view.links = list(seen.values())
 
     def _decode_topology(self, view: NetView, cols: dict[mib.OID, dict]) -> None:
         froms, tos, metrics = (cols[mib.OLSRV2_TOPO_FROM], cols[mib.OLSRV2_TOPO_TO],

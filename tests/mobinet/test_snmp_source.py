@@ -147,3 +147,18 @@ def test_cache_can_be_turned_off(served):
         finally:
             await src.aclose()
     assert run(go()) > 1
+
+
+def test_topology_of_routers_missing_from_the_node_table_is_read_by_address(served, net):
+    class NoNodeTable(SnmpSource):
+        def _decode_nodes(self, view, cols, positions):
+            super()._decode_nodes(view, cols, positions)
+            return {}          # as if the agent listed no routers: fall back to address columns
+    async def go():
+        src = NoNodeTable(*served["robot2"])
+        try:
+            return await src.read(frozenset({"topology"}))
+        finally:
+            await src.aclose()
+    view = run(go())
+    assert {frozenset((l.a, l.b)) for l in view.links} == set(net.truth().links)
