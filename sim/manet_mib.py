@@ -8,6 +8,7 @@ change. OIDs and units are documented in the README's MobiNet section; the clien
 
 from __future__ import annotations
 
+import functools
 import ipaddress
 import time
 from dataclasses import dataclass
@@ -70,6 +71,7 @@ class Value:
         return self
 
 
+@functools.lru_cache(maxsize=4096)
 def _addr(address: str) -> bytes:
     return ipaddress.IPv4Address(address).packed
 

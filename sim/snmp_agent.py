@@ -36,23 +36,26 @@ WRONG_TYPE, WRONG_VALUE, NOT_WRITABLE = 7, 10, 17
 
 
 class _Table:
-    """A node's served OIDs with pre-encoded TLVs, rebuilt when the network's version changes."""
+    """A node's served OIDs, rebuilt when the network's version changes; each varbind is
+    encoded the first time it is read (ages every time)."""
 
-    __slots__ = ("version", "keys", "oids", "values")
+    __slots__ = ("version", "keys", "values", "encoded")
 
     def __init__(self, version: int, rows: list[tuple[OID, Value]]) -> None:
         self.version = version
         self.keys = [r[0] for r in rows]
-        self.oids = [ber.oid(r[0]) for r in rows]
-        self.values = [r[1] if r[1].kind == "age" else ber.value(r[1].kind, r[1].value)
-                       for r in rows]
+        self.values = [r[1] for r in rows]
+        self.encoded: list[bytes | None] = [None] * len(rows)
 
     def _bind(self, i: int) -> bytes:
-        val = self.values[i]
-        if isinstance(val, Value):  # computed when read (ages)
-            now = val.resolve()
-            val = ber.value(now.kind, now.value)
-        return ber.varbind(self.oids[i], val)
+        done = self.encoded[i]
+        if done is not None:
+            return done
+        val = self.values[i].resolve()
+        bound = ber.varbind(ber.oid(self.keys[i]), ber.value(val.kind, val.value))
+        if self.values[i].kind != "age":
+            self.encoded[i] = bound
+        return bound
 
     def get(self, oid: OID) -> bytes | None:
         """The encoded varbind of `oid`, or None."""

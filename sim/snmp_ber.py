@@ -7,6 +7,7 @@ a response is then a concatenation of bytes. Tags follow RFC 1157 / RFC 3416.
 
 from __future__ import annotations
 
+import functools
 import ipaddress
 
 TAG_INTEGER, TAG_OCTETS, TAG_NULL, TAG_OID, TAG_SEQUENCE = 0x02, 0x04, 0x05, 0x06, 0x30
@@ -47,6 +48,7 @@ def unsigned(tag: int, value: int) -> bytes:
     return tlv(tag, value.to_bytes(size, "big"))
 
 
+@functools.lru_cache(maxsize=65536)
 def _base128(n: int) -> bytes:
     chunk = [n & 0x7F]
     n >>= 7
@@ -61,7 +63,9 @@ def oid(arcs: tuple[int, ...]) -> bytes:
     if len(arcs) < 2 or arcs[0] not in (0, 1, 2) or (arcs[0] < 2 and not 0 <= arcs[1] < 40) \
             or min(arcs) < 0:
         raise ValueError(f"invalid OID {arcs!r}")
-    return tlv(TAG_OID, _base128(arcs[0] * 40 + arcs[1]) + b"".join(_base128(a) for a in arcs[2:]))
+    if max(arcs) < 128:  # the common case: one byte per arc
+        return tlv(TAG_OID, bytes((arcs[0] * 40 + arcs[1],)) + bytes(arcs[2:]))
+    return tlv(TAG_OID, _base128(arcs[0] * 40 + arcs[1]) + b"".join(map(_base128, arcs[2:])))
 
 
 def value(kind: str, v: object) -> bytes:
