@@ -219,7 +219,8 @@ class Timers:
 class Agent:
     """One agent: a named blackboard with its plugins, run by a worker pool."""
 
-    def __init__(self, name: str, *, workers: int = 4, slow_plugin_seconds: float = 1.0):
+    def __init__(self, name: str, *, workers: int = 4, slow_plugin_seconds: float = 1.0,
+                 journal: str | Path | None = None):
         if workers < 1:
             raise ValueError(f"workers: expected at least 1, got {workers}")
         self.name = name
@@ -230,7 +231,10 @@ class Agent:
         self.plugins: list[Plugin] = []
         self.log = logging.getLogger(f"erni.{name}")
         self.started = False
-        self.components: list[Any] = []  # non-plugin parts with start()/stop() (e.g. transport)
+        self.components: list[Any] = []  # non-plugin parts with start()/stop()
+        self.journal_path = Path(journal) if journal else None
+        self.journal: Any = None
+        self.rehydrated: set[str] = set()
 
     @classmethod
     def from_config(cls, path: str | Path) -> Agent:
@@ -281,6 +285,8 @@ class Agent:
         """Start workers and timers, then set up every plugin."""
         if self.started:
             return self
+        if self.journal_path is not None:
+            self._rehydrate()
         self.scheduler.start()
         self.timers.start()
         self.started = True
@@ -311,9 +317,32 @@ class Agent:
                 self.log.exception("stopping %s failed", type(component).__name__)
         if not self.timers.stop(deadline):
             late.append("timers")
+        if self.journal is not None:
+            self.journal.stop()
+            self.journal = None
         if late:
             self.log.warning("agent %s: threads still busy at stop: %s", self.name, ", ".join(late))
         self.log.info("agent %s stopped", self.name)
+
+    def _rehydrate(self) -> None:
+        """Open the journal, put its objects back on the blackboard, then journal every commit."""
+        from blackboard.journal import Journal
+
+        assert self.journal_path is not None
+        self.journal = Journal(self.journal_path, self.name)
+        objects, problems = self.journal.load()
+        for line in problems:
+            self.log.warning("%s", line)
+        if objects:
+            with self.blackboard.transaction("rehydrate") as tx:
+                for obj in objects:
+                    if not self.blackboard.contains(obj.uid):
+                        tx.add(obj)
+            self.rehydrated = {obj.uid for obj in objects}
+            self.log.info("agent %s rehydrated %d object(s) from %s", self.name, len(objects),
+                          self.journal_path)
+        self.blackboard.add_listener(self.journal.listener)
+        self.journal.start()
 
     def __enter__(self) -> Agent:
         return self.start()

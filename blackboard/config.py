@@ -22,6 +22,8 @@ class AgentSection(BaseModel):
     workers: int = Field(4, ge=1, le=64, description="worker threads that run plugins")
     slow_plugin_seconds: float = Field(1.0, gt=0, description="report plugin runs longer than this")
     log_level: str = Field("INFO", pattern=r"^(DEBUG|INFO|WARNING|ERROR)$")
+    journal: str | None = Field(None, description="SQLite file that keeps tasks across a crash; "
+                                "omit for none")
 
 
 class PluginSection(BaseModel):
@@ -97,7 +99,7 @@ def read_config(path: str | Path) -> AgentConfig:
 def build_agent(config: AgentConfig, source: str = "<config>") -> Agent:
     """Make an agent from a validated config; plugin errors raise ConfigError."""
     agent = Agent(config.agent.name, workers=config.agent.workers,
-                  slow_plugin_seconds=config.agent.slow_plugin_seconds)
+                  slow_plugin_seconds=config.agent.slow_plugin_seconds, journal=config.agent.journal)
     for i, section in enumerate(config.plugin):
         here = f"plugin[{i}]"
         if not section.enabled:

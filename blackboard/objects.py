@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import uuid
-from typing import Any, Self
+from typing import Any, ClassVar, Self
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -21,6 +21,9 @@ class BBObject(BaseModel):
     """
 
     model_config = ConfigDict(frozen=True, extra="forbid")
+
+    durable: ClassVar[bool] = False
+    """True for objects the agent's journal keeps across a crash (tasks, mission state)."""
 
     uid: str = Field(default_factory=new_uid)
 

@@ -84,6 +84,11 @@ class Plugin:
         """Return a snapshot of the committed objects matching a type and/or predicate."""
         return self._board.query(kind, where)
 
+    def rehydrated(self, obj: BBObject | str) -> bool:
+        """True when this object came back from the journal after a restart (not new work)."""
+        uid = obj if isinstance(obj, str) else obj.uid
+        return self._agent is not None and uid in self._agent.rehydrated
+
     # -- publishing -----------------------------------------------------------------------
 
     def _tx(self, verb: str) -> Transaction:

@@ -11,7 +11,7 @@ from __future__ import annotations
 import enum
 import time
 from dataclasses import dataclass
-from typing import Any, Self
+from typing import Any, ClassVar, Self
 
 from pydantic import (
     BaseModel,
@@ -243,6 +243,8 @@ class Task(BBObject):
     The requester publishes the task; the performer publishes changes carrying `result`.
     Removing a task from the blackboard cancels it (Cougaar's rescind).
     """
+
+    durable: ClassVar[bool] = True
 
     verb: str
     preposition: str

@@ -197,7 +197,9 @@ class TransportPlugin(Plugin):
         me = self.agent_name
         now = time.time()
         for task in self.tasks.added:
-            if task.destination not in (None, "", me) and self.received_from.get(task.uid) != task.destination:
+            if self.rehydrated(task) and task.uid not in self.received_from:
+                self._reconcile(task)
+            elif task.destination not in (None, "", me) and self.received_from.get(task.uid) != task.destination:
                 self._send_task(task)
         for task in self.tasks.added + self.tasks.changed:  # added and changed in one window: added
             origin = self.received_from.get(task.uid)
@@ -243,6 +245,18 @@ class TransportPlugin(Plugin):
         elif not task.result:
             self.change(task.with_result(TaskState.PENDING, message=f"sent to {dest}"))
 
+    def _reconcile(self, task: Task) -> None:
+        """After a restart: re-send unfinished tasks we gave away; report on tasks we were given."""
+        me = self.agent_name
+        if task.destination not in (None, "", me) and task.source == me:
+            if not task.done:
+                self.log.info("re-sending task %s to %s after restart", task.uid, task.destination)
+                self._send_task(task)
+        elif task.destination == me and task.source not in ("", me):
+            self.received_from[task.uid] = task.source
+            if task.result is not None:
+                self._send_result(task.source, task)
+
     def _retry_pending(self, now: float) -> None:
         mono = time.monotonic()
         for uid, (dest, deadline) in list(self.pending.items()):
@@ -278,10 +292,19 @@ class TransportPlugin(Plugin):
         self._heard(msg.sender, msg.reply, msg.epoch, msg.body if msg.kind == "beacon" else None)
         kind, body = msg.kind, msg.body
         if kind == "task.add" and isinstance(body, Task):
-            if self._board.contains(body.uid):
+            known = self._board.get(body.uid)
+            if known is not None:  # the requester restarted and re-sent it: tell it where we are
+                if self.received_from.get(body.uid, msg.sender) == msg.sender and isinstance(known, Task):
+                    self.received_from[body.uid] = msg.sender
+                    if known.result is not None:
+                        self._send_result(msg.sender, known)
                 return
             self.received_from[body.uid] = msg.sender
             self.add(body)
+        elif kind == "task.rescind" and isinstance(body, Cancel):
+            if self.received_from.get(body.uid) == msg.sender and self._board.contains(body.uid):
+                self.log.info("task %s was rescinded by %s (it no longer has it)", body.uid, msg.sender)
+                self.remove(body.uid)
         elif kind == "task.cancel" and isinstance(body, Cancel):
             if self.received_from.get(body.uid) == msg.sender and self._board.contains(body.uid):
                 self.remove(body.uid)
@@ -298,9 +321,12 @@ class TransportPlugin(Plugin):
                     self._watch_event(msg.reply, "add", obj)
 
     def _apply_result(self, msg: Message, update: ResultUpdate) -> None:
+        task = self._board.get(update.uid)
+        if task is None:  # a result for a task we no longer have: stale, rescind it there
+            self.endpoint.send(msg.reply, "task.rescind", Cancel(uid=update.uid), reliable=True)
+            return
         if self.sent_to.get(update.uid) != msg.sender:
             return
-        task = self._board.get(update.uid)
         if not isinstance(task, Task) or task.done:
             return  # a final state is never overwritten
         stamp = (msg.epoch, msg.seq)

@@ -9,7 +9,7 @@ import threading
 from typing import Any
 
 from blackboard.config import build_agent, read_config
-from blackboard.errors import ConfigError
+from blackboard.errors import ConfigError, ErniError
 from erni.logs import setup_logging
 
 
@@ -44,7 +44,11 @@ def run(args: argparse.Namespace) -> int:
 
     previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
-        agent.start()
+        try:
+            agent.start()
+        except (ErniError, OSError) as err:
+            print(f"{args.config}: cannot start agent {config.agent.name}: {err}", file=sys.stderr)
+            return 2
         while not stop.wait(0.5):
             pass
     finally:

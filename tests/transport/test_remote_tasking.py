@@ -90,11 +90,14 @@ def test_retried_message_never_executes_twice(team):
     ep = control.plugin("transport").endpoint
     addr = robot.plugin("transport").endpoint.address
     task = task_to("robot1").evolve(source="control")
+    with control.transaction() as tx:  # the requester has it (a result for an unknown task is rescinded)
+        tx.add(task)
+    wait_until(lambda: robot.blackboard.contains(task.uid))
     for _ in range(3):  # the same message id three times: a retry after a lost ack
         ep.send(addr, "task.add", task, reliable=True, msg_id="same-id")
     ep.send(addr, "task.add", task, reliable=True)  # a new id, same task: still one task
     wait_until(lambda: robot.plugin("transport").endpoint.counters.get("duplicates", 0) == 2)
-    wait_until(lambda: robot.plugin("transport").endpoint.counters.get("received", 0) >= 4)
+    wait_until(lambda: control.blackboard.get(task.uid).done)
     time.sleep(0.2)
     assert len(robot.query(Task)) == 1
     assert robot.plugin("motion").runs >= 1
@@ -257,3 +260,45 @@ def test_older_result_never_overwrites_newer(team):
     deliver(8, 0.1)
     time.sleep(0.1)
     assert control.blackboard.get(task.uid).result.progress == 0.7
+
+
+def test_restarted_requester_gets_its_tasks_reconciled(team, tmp_path):
+    journal = tmp_path / "control.sqlite"
+    control = Agent("control", journal=journal)
+    control.add_plugin("transport", settings={"key": "test-team-key", "discovery_port": 0,
+                                              "peers": []}, name="transport")
+    robot = team("robot1", echo=False, discovery_port=0)
+    robot_addr = "%s:%d" % robot.plugin("transport").address
+    control.plugin("transport").settings = control.plugin("transport").settings.model_copy(
+        update={"peers": [f"robot1@{robot_addr}"]})
+    control.start()
+    task = task_to("robot1")
+    with control.transaction() as tx:
+        tx.add(task)
+    wait_until(lambda: robot.blackboard.contains(task.uid))
+    control.stop()  # the control node goes away; the robot finishes the task meanwhile
+    with robot.transaction() as tx:
+        tx.change(robot.blackboard.get(task.uid).with_result(TaskState.SUCCEEDED, progress=1.0))
+    again = Agent("control", journal=journal)
+    again.add_plugin("transport", settings={"key": "test-team-key", "discovery_port": 0,
+                                            "peers": [f"robot1@{robot_addr}"]}, name="transport")
+    again.start()
+    try:
+        final = wait_until(lambda: (t := again.blackboard.get(task.uid)) is not None and t.done and t)
+        assert final.state is TaskState.SUCCEEDED
+        assert len(robot.query(Task)) == 1, "the re-sent task was not executed twice"
+    finally:
+        again.stop()
+
+
+def test_stale_task_of_a_forgetful_requester_is_rescinded(team):
+    control, robot = team("control", echo=False), team("robot1", echo=False)
+    wait_until(lambda: any(p.up for p in control.query(Peer)))
+    task = task_to("robot1")
+    with control.transaction() as tx:
+        tx.add(task)
+    wait_until(lambda: robot.blackboard.contains(task.uid))
+    control.blackboard._objects.pop(task.uid)  # the requester lost it (restarted without a journal)
+    with robot.transaction() as tx:
+        tx.change(robot.blackboard.get(task.uid).with_result(TaskState.RUNNING, progress=0.5))
+    wait_until(lambda: not robot.blackboard.contains(task.uid))
