@@ -121,6 +121,10 @@ class TransportSettings(BaseModel):
     task_ttl: float = Field(30.0, gt=0, description="give up delivering a task after this long (s)")
     ack_timeout: float = Field(1.0, gt=0)
     connect_timeout: float = Field(1.0, gt=0)
+    share: list[str] = Field(default_factory=lambda: ["Pose", "NetInfo"],
+                             description="object types sent as status to the peers below")
+    share_with_roles: list[str] = Field(default_factory=lambda: ["control"],
+                                        description="peers of these roles receive shared status")
     udp_loss: float = Field(0.0, ge=0.0, le=1.0, description="fault injection: drop this share of "
                             "outgoing datagrams")
 
@@ -165,6 +169,9 @@ class TransportPlugin(Plugin):
         self.tasks = self.subscribe(Task)
         self.watched = self.subscribe(lambda o: isinstance(o, WATCHED))
         self.netinfo = self.subscribe(NetInfo)
+        shared = set(s.share)
+        self.shared = self.subscribe(lambda o: type(o).__name__ in shared)
+        self.status_in: dict[str, tuple[int, int]] = {}  # uid of a status received -> (epoch, seq)
         self.directory: dict[str, Peer] = {}
         self.sent_to: dict[str, str] = {}  # task uid -> peer it was sent to
         self.received_from: dict[str, str] = {}  # task uid -> peer it came from
@@ -216,6 +223,7 @@ class TransportPlugin(Plugin):
             for n in info.neighbors:
                 if n.address:
                     self.learned.add(n.address)
+        self._share_status()
         self._retry_pending(now)
         self._forward_to_watchers(now)
         self._beacon_and_liveness(now)
@@ -310,6 +318,8 @@ class TransportPlugin(Plugin):
                 self.remove(body.uid)
         elif kind == "task.result" and isinstance(body, ResultUpdate):
             self._apply_result(msg, body)
+        elif kind == "status" and isinstance(body, BBObject):
+            self._apply_status(msg, body)
         elif kind == "peers.request":
             peers = PeerList(agent=self.agent_name, peers=list(self.directory.values()))
             self.endpoint.send(msg.reply, "peers.reply", peers, reliable=True)
@@ -383,6 +393,31 @@ class TransportPlugin(Plugin):
                 self.directory[name] = peer
                 self.log.warning("peer %s is down: not heard for %.1f s", name, now - peer.last_heard)
                 self.change(peer, reports=["down"])
+
+    def _share_status(self) -> None:
+        """Send this agent's own shared objects (poses, network info) to the status peers."""
+        objs = [o for o in self.shared.added + self.shared.changed if o.uid not in self.status_in]
+        if not objs:
+            return
+        roles = set(self.settings.share_with_roles)
+        targets = [parse_address(p.address) for p in self.directory.values()
+                   if p.up and p.address and p.role in roles]
+        for obj in objs:
+            for addr in targets:
+                self.endpoint.send(addr, "status", obj, reliable=False)
+
+    def _apply_status(self, msg: Message, obj: BBObject) -> None:
+        stamp = (msg.epoch, msg.seq)
+        if stamp <= self.status_in.get(obj.uid, (0, 0)):
+            return  # an older status never overwrites a newer one
+        known = self._board.get(obj.uid)
+        if known is not None and obj.uid not in self.status_in:
+            return  # never overwrite an object of our own with a peer's
+        self.status_in[obj.uid] = stamp
+        if known is None:
+            self.add(obj)
+        else:
+            self.change(obj, reports=[f"status from {msg.sender}"])
 
     def _forward_to_watchers(self, now: float) -> None:
         mono = time.monotonic()

@@ -302,3 +302,21 @@ def test_stale_task_of_a_forgetful_requester_is_rescinded(team):
     with robot.transaction() as tx:
         tx.change(robot.blackboard.get(task.uid).with_result(TaskState.RUNNING, progress=0.5))
     wait_until(lambda: not robot.blackboard.contains(task.uid))
+
+
+def test_robot_poses_reach_the_control_node_newest_first(team):
+    from blackboard import Pose
+
+    control = team("control", echo=False, role="control")
+    robot = team("robot1", echo=False)
+    wait_until(lambda: any(p.up and p.role == "control" for p in robot.query(Peer)))
+    pose = Pose(robot="robot1", x=1.0)
+    with robot.transaction() as tx:
+        tx.add(pose)
+    for x in (2.0, 3.0, 4.0):
+        with robot.transaction() as tx:
+            tx.change(pose.evolve(x=x))
+    wait_until(lambda: (p := control.blackboard.get("pose:robot1")) is not None and p.x == 4.0)
+    other = team("robot2", echo=False)  # a robot does not receive another robot's pose
+    time.sleep(0.3)
+    assert other.blackboard.get("pose:robot1") is None
