@@ -396,7 +396,7 @@ class ArcosDriver:
         try:
             data = port.read(port.in_waiting or 1)
         except (serial.SerialException, OSError) as err:
-            self._lose(f"read failed: {err}")
+            self._lose(str(err) if "failed" in str(err) else f"read failed: {err}")
             return
         if data:
             for body in self._reader.feed(data):

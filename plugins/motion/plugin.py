@@ -25,7 +25,7 @@ _URL = re.compile(r"^(sim|[a-zA-Z][a-zA-Z0-9+.-]*://.*|/dev/\S+|COM\d+|/\S+)$")
 class MotionSettings(BaseModel):
     """Settings of RobotMotionControl (the `[plugin.settings]` table)."""
 
-    model_config = ConfigDict(extra="forbid", arbitrary_types_allowed=True)
+    model_config = ConfigDict(extra="forbid")
 
     url: str = Field("sim", description="serial device, pyserial URL (socket://host:8101) or 'sim'")
     model: str | dict[str, Any] = Field("pioneer3", description="'pioneer3', 'amigobot' or a table of factors")

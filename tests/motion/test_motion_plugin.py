@@ -22,7 +22,7 @@ SETTINGS = dict(model=FAST_MODEL, rate_hz=50, pose_rate_hz=25, avoid_distance=0.
 
 
 @pytest.fixture
-def start_agent():
+def start_agent(make_host):  # after make_host, so agents stop before their simulated robots
     agents: list[Agent] = []
 
     def start(url: str, **settings: object) -> tuple[Agent, RobotMotionControl]:
