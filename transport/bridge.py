@@ -125,6 +125,8 @@ class TransportSettings(BaseModel):
                              description="object types sent as status to the peers below")
     share_with_roles: list[str] = Field(default_factory=lambda: ["control"],
                                         description="peers of these roles receive shared status")
+    reachability: str | None = Field(None, description="simulation: JSON file saying which agents "
+                                     "the simulated radio connects (written by `erni sim`)")
     udp_loss: float = Field(0.0, ge=0.0, le=1.0, description="fault injection: drop this share of "
                             "outgoing datagrams")
 
@@ -149,7 +151,7 @@ class TransportSettings(BaseModel):
                         senders=self.senders, queue_limit=self.queue_limit, max_frame=self.max_frame,
                         ack_timeout=self.ack_timeout, connect_timeout=self.connect_timeout,
                         ttl=self.task_ttl, discovery_port=self.discovery_port or None,
-                        udp_loss=self.udp_loss)
+                        udp_loss=self.udp_loss, reachability=self.reachability)
 
 
 class TransportPlugin(Plugin):

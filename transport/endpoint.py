@@ -108,7 +108,7 @@ class Endpoint:
                  max_frame: int = DEFAULT_MAX_FRAME, ack_timeout: float = 1.0,
                  connect_timeout: float = 1.0, retry_base: float = 0.05, retry_max: float = 2.0,
                  ttl: float = 30.0, discovery_port: int | None = None, epoch: int | None = None,
-                 udp_loss: float = 0.0, seed: int | None = None):
+                 udp_loss: float = 0.0, seed: int | None = None, reachability: str | None = None):
         if not key and not insecure:
             raise ValueError("no team key: give a key or run with insecure = true")
         self.name = name
@@ -127,6 +127,7 @@ class Endpoint:
             raise ValueError(f"udp_loss: expected a probability in 0..1, got {udp_loss}")
         self.udp_loss = udp_loss  # fault injection: drop this share of outgoing datagrams
         self._rng = random.Random(seed)
+        self.reach = Reachability(reachability, name) if reachability else None
         self.epoch = epoch if epoch is not None else time.time_ns()
         self._seq = itertools.count(1)
         self.log = logging.getLogger(f"erni.{name}.transport")
@@ -384,6 +385,9 @@ class Endpoint:
             env = decode(raw, self._verify_key, self.max_frame)
             if env.sender == self.name and env.epoch == self.epoch:
                 return None  # our own beacon, heard back
+            if self.reach is not None and not self.reach.allows(env.sender):
+                self.count("dropped.unreachable")
+                return None  # the simulated radio cannot carry this frame
             with self._replay_lock:
                 self._replay.check(env.sender, env.epoch, env.seq)
             body = body_of(env.type, env.body)
@@ -475,6 +479,47 @@ class Endpoint:
             self.on_message(msg)
         except Exception:
             self.log.exception("handling %s from %s failed", msg.kind, msg.sender)
+
+
+class Reachability:
+    """Which senders a simulated radio lets this agent hear, read from a JSON file.
+
+    The simulator rewrites the file (atomically, by rename) as robots move:
+    `{"reachable": {"robot1": ["robot2", "control"], ...}}`: for each agent, the agents it can
+    reach directly or over several hops. Agents absent from the map are not restricted.
+    """
+
+    def __init__(self, path: str, name: str, period: float = 0.05):
+        self.path, self.name, self.period = path, name, period
+        self._mtime = -1.0
+        self._checked = 0.0
+        self._allowed: set[str] | None = None
+        self._lock = threading.Lock()
+
+    def allows(self, sender: str) -> bool:
+        """Return True when `sender` can reach this agent now."""
+        now = time.monotonic()
+        with self._lock:
+            if now - self._checked >= self.period:
+                self._checked = now
+                self._reload()
+            allowed = self._allowed
+        return allowed is None or sender in allowed or sender.startswith("cli-")
+
+    def _reload(self) -> None:
+        import json
+
+        try:
+            mtime = os.stat(self.path).st_mtime
+            if mtime == self._mtime:
+                return
+            with open(self.path, encoding="utf-8") as f:
+                data = json.load(f)
+            reach = data.get("reachable", {})
+            self._mtime = mtime
+            self._allowed = set(reach[self.name]) if self.name in reach else None
+        except (OSError, ValueError, AttributeError, TypeError):
+            return  # keep the last good map
 
 
 def _close(sock: socket.socket | None) -> None:

@@ -71,3 +71,39 @@ def test_addresses_learned_from_the_network_topology():
     finally:
         a.stop()
         b.stop()
+
+
+def test_simulated_radio_drops_traffic_between_unconnected_agents(tmp_path):
+    import json
+    import os
+
+    from blackboard import Task, TaskState
+
+    reach = tmp_path / "reach.json"
+
+    def write(mapping):
+        tmp = tmp_path / "reach.tmp"
+        tmp.write_text(json.dumps({"reachable": mapping}))
+        os.replace(tmp, reach)
+
+    write({"a": ["b"], "b": ["a"]})
+    port = free_port()
+    a = make_agent("a", port, reachability=str(reach), peer_timeout=0.5)
+    b = make_agent("b", port, reachability=str(reach), peer_timeout=0.5)
+    try:
+        wait_until(lambda: peers(a).get("b") and peers(a)["b"].up)
+        write({"a": [], "b": []})  # b drives out of range
+        wait_until(lambda: not peers(a)["b"].up, timeout=3)
+        task = Task(verb="BotMotion", preposition="stop", source="a", destination="b")
+        with a.transaction() as tx:
+            tx.add(task)
+        import time
+        time.sleep(0.5)
+        assert not b.blackboard.contains(task.uid)
+        assert a.plugin("transport").endpoint.counters.get("retries", 0) + \
+            b.plugin("transport").endpoint.counters.get("dropped.unreachable", 0) > 0
+        write({"a": ["b"], "b": ["a"]})  # back in range: the queued task gets through
+        wait_until(lambda: a.blackboard.get(task.uid).state is TaskState.SUCCEEDED, timeout=5)
+    finally:
+        a.stop()
+        b.stop()
