@@ -25,9 +25,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from plugins.mobinet import mib  # noqa: E402
+from plugins.mobinet import snmp as mib  # noqa: E402
 from plugins.mobinet.snmp import SnmpSource  # noqa: E402
-from plugins.mobinet.source import NEIGHBORS, PARTS, TOPOLOGY  # noqa: E402
+from plugins.mobinet.resource import NEIGHBORS, PARTS, TOPOLOGY  # noqa: E402
 from sim.manet import ManetNetwork, RadioModel  # noqa: E402
 from sim.manet_mib import build_table  # noqa: E402
 

@@ -13,10 +13,11 @@ from netgraph.graph import (
     connected_components,
     dijkstra,
     from_edges,
+    rng_edges,
+    rng_neighbors,
     routes_from,
     shortest_path,
 )
-from netgraph.geometry import rng_edges, rng_neighbors
 
 __all__ = [
     "Adjacency", "RouteEntry", "add_edge", "articulation_points", "connected_components",

@@ -3,7 +3,7 @@
 `build_table(view)` turns a node's `NodeView` into a sorted list of `(oid, value)` pairs
 (`oid` a tuple of ints, `value` a `Value`); `WRITABLE` lists the scalars an SNMP SET may
 change. OIDs and units are documented in the README's MobiNet section; the client side
-(plugins/mobinet/mib.py) keeps its own copy, and a test checks both agree.
+(plugins/mobinet/snmp.py) keeps its own copy, and a test checks both agree.
 """
 
 from __future__ import annotations

@@ -19,7 +19,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from blackboard import NetInfo, Plugin, Pose, Position, Task, TaskState
 from plugins.mobinet.resource import MobiNetResource
 from plugins.mobinet.snmp import SnmpSource, articulation_points
-from plugins.mobinet.source import NEIGHBORS, POSITIONS, ROUTES, TOPOLOGY, NetView, NetworkSource
+from plugins.mobinet.resource import NEIGHBORS, POSITIONS, ROUTES, TOPOLOGY, NetView, NetworkSource
 
 PARTS_OF = {
     "node_position": frozenset({POSITIONS}),

@@ -34,8 +34,78 @@ from pysnmp.proto import rfc1902, rfc1905
 
 import netgraph
 from blackboard import Link, Neighbor, Position, Route
-from plugins.mobinet import mib
-from plugins.mobinet.source import NEIGHBORS, POSITIONS, ROUTES, TOPOLOGY, NetView, SourceError
+from plugins.mobinet.resource import NEIGHBORS, POSITIONS, ROUTES, TOPOLOGY, NetView, SourceError
+
+# --- the OIDs read and written (numeric: pysnmp ships none of these MIBs) -------------
+# ERNI units: positions in mm, headings in centidegrees, link quality in thousandths;
+# OLSRv2 link metrics are ETX scaled by METRIC_UNIT (a loss-free link costs 1024).
+
+OID = tuple[int, ...]
+
+METRIC_UNIT = 1024
+
+NHDP = (1, 3, 6, 1, 2, 1, 213, 1)
+NHDP_DISC_IF_ADDR = NHDP + (2, 3, 1, 4)          # .<nbr>  OCTET STRING (4): neighbour address
+NHDP_NIB_SYMMETRIC = NHDP + (2, 6, 1, 1)         # .<nbr>  TruthValue: symmetric neighbour
+NHDP_PERF_RECVD = NHDP + (3, 2, 1, 1)            # .<nbr>  Counter32: HELLOs received
+NHDP_PERF_EXPECTED = NHDP + (3, 2, 1, 2)         # .<nbr>  Counter32: HELLOs expected
+OLSRV2 = (1, 3, 6, 1, 2, 1, 219, 1)
+OLSRV2_LINK_IN_METRIC = OLSRV2 + (2, 1, 1, 1)    # .<ifIndex>.<nbr>  Unsigned32
+OLSRV2_TOPO_FROM = OLSRV2 + (2, 8, 1, 2)         # .<from>.<to>  OCTET STRING (4)
+OLSRV2_TOPO_TO = OLSRV2 + (2, 8, 1, 4)           # .<from>.<to>  OCTET STRING (4)
+OLSRV2_TOPO_METRIC = OLSRV2 + (2, 8, 1, 6)       # .<from>.<to>  Unsigned32
+OLSRV2_ROUTE_NEXT_HOP = OLSRV2 + (2, 11, 1, 5)   # .1.4.<a.b.c.d>.32  OCTET STRING (4)
+OLSRV2_ROUTE_DIST = OLSRV2 + (2, 11, 1, 8)       # .1.4.<a.b.c.d>.32  Unsigned32 hops
+OLSRV2_ROUTE_METRIC = OLSRV2 + (2, 11, 1, 9)     # .1.4.<a.b.c.d>.32  Unsigned32 path cost
+INET_CIDR_METRIC1 = (1, 3, 6, 1, 2, 1, 4, 24, 7, 1, 12)  # Integer32 path cost (fallback)
+
+ERNI = (1, 3, 6, 1, 4, 1, 32473, 1)
+ERNI_NODE_NAME = ERNI + (1, 1, 0)                # OCTET STRING
+ERNI_NODE_ADDRESS = ERNI + (1, 3, 0)             # IpAddress
+ERNI_POS_X = ERNI + (1, 4, 0)                    # Integer32 mm, read-write
+ERNI_POS_Y = ERNI + (1, 5, 0)                    # Integer32 mm, read-write
+ERNI_POS_HEADING = ERNI + (1, 6, 0)              # Integer32 centidegrees, read-write
+ERNI_TOPOLOGY_VERSION = ERNI + (1, 9, 0)         # Counter32: changes when links/routes may have
+ERNI_STATE_VERSION = ERNI + (1, 10, 0)           # Counter32: changes when anything may have
+ERNI_NODES_NAME = ERNI + (2, 1, 2)               # .<node>  OCTET STRING
+ERNI_NODES_ADDRESS = ERNI + (2, 1, 3)            # .<node>  IpAddress
+ERNI_NODES_X = ERNI + (2, 1, 4)                  # .<node>  Integer32 mm
+ERNI_NODES_Y = ERNI + (2, 1, 5)                  # .<node>  Integer32 mm
+ERNI_NODES_HEADING = ERNI + (2, 1, 6)            # .<node>  Integer32 centidegrees
+ERNI_LINK_QUALITY = ERNI + (3, 1, 3)             # .<nbr>  Gauge32 thousandths
+
+NAMES: dict[OID, str] = {
+    NHDP_DISC_IF_ADDR: "nhdpDiscIfSetIpAddr", NHDP_NIB_SYMMETRIC: "nhdpNibNeighborSetSymmetric",
+    NHDP_PERF_RECVD: "nhdpDiscIfRecvdPackets", NHDP_PERF_EXPECTED: "nhdpDiscIfExpectedPackets",
+    OLSRV2_LINK_IN_METRIC: "olsrv2IibLinkSetInMetric", OLSRV2_TOPO_FROM: "olsrv2TibRouterTopologySetFromOrigAddr",
+    OLSRV2_TOPO_TO: "olsrv2TibRouterTopologySetToOrigAddr",
+    OLSRV2_TOPO_METRIC: "olsrv2TibRouterTopologySetMetricValue",
+    OLSRV2_ROUTE_NEXT_HOP: "olsrv2TibRoutingSetNextIfAddr", OLSRV2_ROUTE_DIST: "olsrv2TibRoutingSetDist",
+    OLSRV2_ROUTE_METRIC: "olsrv2TibRoutingSetMetricValue", INET_CIDR_METRIC1: "inetCidrRouteMetric1",
+    ERNI_NODE_NAME: "erniNodeName", ERNI_NODE_ADDRESS: "erniNodeAddress", ERNI_POS_X: "erniPosX",
+    ERNI_POS_Y: "erniPosY", ERNI_POS_HEADING: "erniPosHeading",
+    ERNI_TOPOLOGY_VERSION: "erniTopologyVersion", ERNI_STATE_VERSION: "erniStateVersion", ERNI_NODES_NAME: "erniNodesName",
+    ERNI_NODES_ADDRESS: "erniNodesAddress", ERNI_NODES_X: "erniNodesX", ERNI_NODES_Y: "erniNodesY",
+    ERNI_NODES_HEADING: "erniNodesHeading", ERNI_LINK_QUALITY: "erniLinkQuality",
+}
+
+
+def label(oid: OID) -> str:
+    """`name.index` for a known column or scalar, else the dotted OID."""
+    for n in range(len(oid), 0, -1):
+        name = NAMES.get(oid[:n])
+        if name:
+            rest = ".".join(map(str, oid[n:]))
+            return f"{name}.{rest}" if rest else name
+    return ".".join(map(str, oid))
+
+
+def dotted(oid: OID) -> str:
+    """The OID as `1.3.6...`."""
+    return ".".join(map(str, oid))
+
+
+# --- typed decoding -------------------------------------------------------------------
 
 _INT = univ.Integer.tagSet
 _STR = univ.OctetString.tagSet
@@ -50,43 +120,43 @@ _EXCEPTIONS = (rfc1905.NoSuchObject.tagSet, rfc1905.NoSuchInstance.tagSet,
                rfc1905.EndOfMibView.tagSet)
 
 
-def _typed(oid: mib.OID, value: Any, expected: str) -> Any:
+def _typed(oid: OID, value: Any, expected: str) -> Any:
     if value.tagSet not in _TYPES[expected]:
         shown = value.prettyPrint() if hasattr(value, "prettyPrint") else repr(value)
-        raise SourceError(f"{mib.label(oid)} ({mib.dotted(oid)}): expected {expected}, got "
+        raise SourceError(f"{label(oid)} ({dotted(oid)}): expected {expected}, got "
                           f"{type(value).__name__} {shown[:40]!r}")
     return value
 
 
-def _int(oid: mib.OID, value: Any, expected: str = "Integer32") -> int:
+def _int(oid: OID, value: Any, expected: str = "Integer32") -> int:
     return int(_typed(oid, value, expected))
 
 
-def _text(oid: mib.OID, value: Any) -> str:
+def _text(oid: OID, value: Any) -> str:
     raw = bytes(_typed(oid, value, "OCTET STRING"))
     try:
         return raw.decode("utf-8")
     except UnicodeDecodeError:
-        raise SourceError(f"{mib.label(oid)}: expected UTF-8 text, got {raw[:20]!r}") from None
+        raise SourceError(f"{label(oid)}: expected UTF-8 text, got {raw[:20]!r}") from None
 
 
-def _ip(oid: mib.OID, value: Any) -> str:
+def _ip(oid: OID, value: Any) -> str:
     raw = bytes(_typed(oid, value, "IpAddress"))
     if len(raw) != 4:
-        raise SourceError(f"{mib.label(oid)}: expected a 4-byte IpAddress, got {len(raw)} byte(s)")
+        raise SourceError(f"{label(oid)}: expected a 4-byte IpAddress, got {len(raw)} byte(s)")
     return str(ipaddress.IPv4Address(raw))
 
 
-def _inet(oid: mib.OID, value: Any) -> str:
+def _inet(oid: OID, value: Any) -> str:
     raw = bytes(_typed(oid, value, "OCTET STRING"))
     if len(raw) != 4:
-        raise SourceError(f"{mib.label(oid)}: expected a 4-byte IPv4 InetAddress, got "
+        raise SourceError(f"{label(oid)}: expected a 4-byte IPv4 InetAddress, got "
                           f"{len(raw)} byte(s)")
     return str(ipaddress.IPv4Address(raw))
 
 
 def _quality_of_metric(metric: int) -> float:
-    return min(1.0, math.sqrt(mib.METRIC_UNIT / metric)) if metric > 0 else 1.0
+    return min(1.0, math.sqrt(METRIC_UNIT / metric)) if metric > 0 else 1.0
 
 
 class SnmpSource:
@@ -100,7 +170,7 @@ class SnmpSource:
         self.max_repetitions = max_repetitions
         self._engine: SnmpEngine | None = None
         self._target: UdpTransportTarget | None = None
-        self._rows: dict[tuple[mib.OID, ...], int] = {}  # rows seen by the last walk of a column set
+        self._rows: dict[tuple[OID, ...], int] = {}  # rows seen by the last walk of a column set
         self.cache_seconds = cache_seconds
         self._cache: dict[str, tuple[Any, float, Any]] = {}  # job -> (key, when, walked columns)
         self.requests = 0
@@ -132,18 +202,18 @@ class SnmpSource:
             where = ""
             i = int(err_idx)
             if 0 < i <= len(binds):
-                where = f" at {mib.label(tuple(binds[i - 1][0]))}"
+                where = f" at {label(tuple(binds[i - 1][0]))}"
             raise SourceError(f"SNMP {what} to {self.where}: agent answered "
                               f"{err_stat.prettyPrint()}{where}")
 
-    async def get(self, oids: Iterable[mib.OID],
-                  optional: frozenset[mib.OID] = frozenset()) -> dict[mib.OID, Any]:
+    async def get(self, oids: Iterable[OID],
+                  optional: frozenset[OID] = frozenset()) -> dict[OID, Any]:
         """GET scalars; a missing one raises SourceError unless it is `optional` (then absent)."""
         engine, target = await self._session()
         oids = list(oids)
         self.requests += 1
         res = await get_cmd(engine, self._auth(), target, ContextData(),
-                            *(ObjectType(ObjectIdentity(mib.dotted(o))) for o in oids),
+                            *(ObjectType(ObjectIdentity(dotted(o))) for o in oids),
                             lookupMib=False)
         self._check("GET", *res)
         out = {}
@@ -152,16 +222,16 @@ class SnmpSource:
             if val.tagSet in _EXCEPTIONS:
                 if key in optional:
                     continue
-                raise SourceError(f"SNMP GET to {self.where}: {mib.label(key)} not served "
+                raise SourceError(f"SNMP GET to {self.where}: {label(key)} not served "
                                   f"({type(val).__name__})")
             out[key] = val
         return out
 
-    async def walk(self, columns: list[mib.OID]) -> dict[mib.OID, dict[mib.OID, Any]]:
+    async def walk(self, columns: list[OID]) -> dict[OID, dict[OID, Any]]:
         """Walk table columns together: {column: {index: value}}."""
         engine, target = await self._session()
-        result: dict[mib.OID, dict[mib.OID, Any]] = {c: {} for c in columns}
-        cursors: dict[mib.OID, mib.OID] = {c: c for c in columns}
+        result: dict[OID, dict[OID, Any]] = {c: {} for c in columns}
+        cursors: dict[OID, OID] = {c: c for c in columns}
         key_set = tuple(columns)
         # ask for one row more than last time: steady-state walks take one round trip
         reps = min(self.max_repetitions, self._rows.get(key_set, 8) + 1)
@@ -171,7 +241,7 @@ class SnmpSource:
                 break
             self.requests += 1
             res = await bulk_cmd(engine, self._auth(), target, ContextData(), 0, reps,
-                                 *(ObjectType(ObjectIdentity(mib.dotted(cursors[c]))) for c in pending),
+                                 *(ObjectType(ObjectIdentity(dotted(cursors[c]))) for c in pending),
                                  lookupMib=False)
             self._check("GETBULK", *res)
             binds = res[3]
@@ -187,7 +257,7 @@ class SnmpSource:
                     continue
                 if key <= cursors[col]:
                     raise SourceError(f"SNMP GETBULK to {self.where}: OID not increasing at "
-                                      f"{mib.label(key)}")
+                                      f"{label(key)}")
                 result[col][key[len(col):]] = val
                 cursors[col] = key
             reps = self.max_repetitions
@@ -196,29 +266,29 @@ class SnmpSource:
 
     async def read(self, parts: frozenset[str]) -> NetView:
         """Read the requested parts (plus the node's identity and the node table)."""
-        versions = frozenset({mib.ERNI_TOPOLOGY_VERSION, mib.ERNI_STATE_VERSION})
-        ident = await self.get([mib.ERNI_NODE_NAME, mib.ERNI_NODE_ADDRESS, *versions], versions)
-        view = NetView(node=_text(mib.ERNI_NODE_NAME, ident[mib.ERNI_NODE_NAME]),
-                       address=_ip(mib.ERNI_NODE_ADDRESS, ident[mib.ERNI_NODE_ADDRESS]))
+        versions = frozenset({ERNI_TOPOLOGY_VERSION, ERNI_STATE_VERSION})
+        ident = await self.get([ERNI_NODE_NAME, ERNI_NODE_ADDRESS, *versions], versions)
+        view = NetView(node=_text(ERNI_NODE_NAME, ident[ERNI_NODE_NAME]),
+                       address=_ip(ERNI_NODE_ADDRESS, ident[ERNI_NODE_ADDRESS]))
         topo_v, state_v = (
             _int(oid, ident[oid], "Counter32") if oid in ident else None
-            for oid in (mib.ERNI_TOPOLOGY_VERSION, mib.ERNI_STATE_VERSION))
-        node_cols = [mib.ERNI_NODES_NAME, mib.ERNI_NODES_ADDRESS]
+            for oid in (ERNI_TOPOLOGY_VERSION, ERNI_STATE_VERSION))
+        node_cols = [ERNI_NODES_NAME, ERNI_NODES_ADDRESS]
         if POSITIONS in parts:
-            node_cols += [mib.ERNI_NODES_X, mib.ERNI_NODES_Y, mib.ERNI_NODES_HEADING]
-        wanted: dict[str, tuple[list[mib.OID], int | None]] = {
+            node_cols += [ERNI_NODES_X, ERNI_NODES_Y, ERNI_NODES_HEADING]
+        wanted: dict[str, tuple[list[OID], int | None]] = {
             "nodes" + ("+positions" if POSITIONS in parts else ""): (node_cols, state_v)}
         if NEIGHBORS in parts:
-            wanted[NEIGHBORS] = ([mib.NHDP_DISC_IF_ADDR, mib.NHDP_NIB_SYMMETRIC,
-                                  mib.OLSRV2_LINK_IN_METRIC, mib.ERNI_LINK_QUALITY,
-                                  mib.NHDP_PERF_RECVD, mib.NHDP_PERF_EXPECTED], topo_v)
+            wanted[NEIGHBORS] = ([NHDP_DISC_IF_ADDR, NHDP_NIB_SYMMETRIC,
+                                  OLSRV2_LINK_IN_METRIC, ERNI_LINK_QUALITY,
+                                  NHDP_PERF_RECVD, NHDP_PERF_EXPECTED], topo_v)
         if TOPOLOGY in parts:
             # the index is (from router, to router): the node table names them, so only the
             # metric column is walked (the address columns only for routers it does not list)
-            wanted[TOPOLOGY] = ([mib.OLSRV2_TOPO_METRIC], topo_v)
+            wanted[TOPOLOGY] = ([OLSRV2_TOPO_METRIC], topo_v)
         if ROUTES in parts:
-            wanted[ROUTES] = ([mib.OLSRV2_ROUTE_NEXT_HOP, mib.OLSRV2_ROUTE_DIST,
-                               mib.OLSRV2_ROUTE_METRIC], topo_v)
+            wanted[ROUTES] = ([OLSRV2_ROUTE_NEXT_HOP, OLSRV2_ROUTE_DIST,
+                               OLSRV2_ROUTE_METRIC], topo_v)
         now = time.monotonic()
         got: dict[str, Any] = {}
         walks: dict[str, Any] = {}
@@ -243,10 +313,10 @@ class SnmpSource:
         if NEIGHBORS in parts:
             self._decode_neighbors(view, got[NEIGHBORS])
         if TOPOLOGY in parts:
-            metrics = got[TOPOLOGY][mib.OLSRV2_TOPO_METRIC]
+            metrics = got[TOPOLOGY][OLSRV2_TOPO_METRIC]
             if any(len(i) != 2 or i[:1] not in by_index or i[1:] not in by_index for i in metrics):
-                ends = await self.walk([mib.OLSRV2_TOPO_FROM, mib.OLSRV2_TOPO_TO])
-                self._decode_topology(view, {**ends, mib.OLSRV2_TOPO_METRIC: metrics})
+                ends = await self.walk([OLSRV2_TOPO_FROM, OLSRV2_TOPO_TO])
+                self._decode_topology(view, {**ends, OLSRV2_TOPO_METRIC: metrics})
             else:
                 self._decode_topology_by_index(view, metrics, by_index)
         if ROUTES in parts:
@@ -257,14 +327,14 @@ class SnmpSource:
         """SET the node's position scalars (mm, mm, centidegrees) in one request."""
         engine, target = await self._session()
         heading = ((position.heading + 180.0) % 360.0) - 180.0
-        values = [(mib.ERNI_POS_X, round(position.x * 1000)), (mib.ERNI_POS_Y, round(position.y * 1000)),
-                  (mib.ERNI_POS_HEADING, round(heading * 100))]
+        values = [(ERNI_POS_X, round(position.x * 1000)), (ERNI_POS_Y, round(position.y * 1000)),
+                  (ERNI_POS_HEADING, round(heading * 100))]
         for oid, v in values:
             if not -(2**31) <= v < 2**31:
-                raise SourceError(f"{mib.label(oid)}: {v} does not fit an Integer32 (position too far)")
+                raise SourceError(f"{label(oid)}: {v} does not fit an Integer32 (position too far)")
         self.requests += 1
         res = await set_cmd(engine, self._auth(), target, ContextData(),
-                            *(ObjectType(ObjectIdentity(mib.dotted(o)), rfc1902.Integer32(v))
+                            *(ObjectType(ObjectIdentity(dotted(o)), rfc1902.Integer32(v))
                               for o, v in values), lookupMib=False)
         self._check("SET", *res)
 
@@ -279,96 +349,96 @@ class SnmpSource:
     def _name(self, view: NetView, address: str) -> str:
         return view.names.get(address, address)
 
-    def _decode_nodes(self, view: NetView, cols: dict[mib.OID, dict],
-                      positions: bool) -> dict[mib.OID, str]:
-        names = cols[mib.ERNI_NODES_NAME]
-        by_index: dict[mib.OID, str] = {}
+    def _decode_nodes(self, view: NetView, cols: dict[OID, dict],
+                      positions: bool) -> dict[OID, str]:
+        names = cols[ERNI_NODES_NAME]
+        by_index: dict[OID, str] = {}
         for idx, val in names.items():
-            by_index[idx] = _text(mib.ERNI_NODES_NAME + idx, val)
-        for idx, val in cols[mib.ERNI_NODES_ADDRESS].items():
-            addr = _ip(mib.ERNI_NODES_ADDRESS + idx, val)
+            by_index[idx] = _text(ERNI_NODES_NAME + idx, val)
+        for idx, val in cols[ERNI_NODES_ADDRESS].items():
+            addr = _ip(ERNI_NODES_ADDRESS + idx, val)
             if idx in by_index:
                 view.names[addr] = by_index[idx]
         view.names.setdefault(view.address, view.node)
         if not positions:
             return by_index
-        xs, ys, hs = (cols[mib.ERNI_NODES_X], cols[mib.ERNI_NODES_Y], cols[mib.ERNI_NODES_HEADING])
+        xs, ys, hs = (cols[ERNI_NODES_X], cols[ERNI_NODES_Y], cols[ERNI_NODES_HEADING])
         for idx, name in by_index.items():
             if idx not in xs or idx not in ys:
                 continue  # position not known to this node
-            x = _int(mib.ERNI_NODES_X + idx, xs[idx]) / 1000.0
-            y = _int(mib.ERNI_NODES_Y + idx, ys[idx]) / 1000.0
-            h = _int(mib.ERNI_NODES_HEADING + idx, hs[idx]) / 100.0 if idx in hs else 0.0
+            x = _int(ERNI_NODES_X + idx, xs[idx]) / 1000.0
+            y = _int(ERNI_NODES_Y + idx, ys[idx]) / 1000.0
+            h = _int(ERNI_NODES_HEADING + idx, hs[idx]) / 100.0 if idx in hs else 0.0
             view.positions[name] = Position(x=x, y=y, heading=h)
         return by_index
 
-    def _decode_neighbors(self, view: NetView, cols: dict[mib.OID, dict]) -> None:
-        sym = cols[mib.NHDP_NIB_SYMMETRIC]
-        metric = {idx[-1:]: v for idx, v in cols[mib.OLSRV2_LINK_IN_METRIC].items()}
-        quality = cols[mib.ERNI_LINK_QUALITY]
-        recvd, expected = cols[mib.NHDP_PERF_RECVD], cols[mib.NHDP_PERF_EXPECTED]
-        for idx, val in sorted(cols[mib.NHDP_DISC_IF_ADDR].items()):
-            addr = _inet(mib.NHDP_DISC_IF_ADDR + idx, val)
-            truth = _int(mib.NHDP_NIB_SYMMETRIC + idx, sym[idx]) if idx in sym else 2
+    def _decode_neighbors(self, view: NetView, cols: dict[OID, dict]) -> None:
+        sym = cols[NHDP_NIB_SYMMETRIC]
+        metric = {idx[-1:]: v for idx, v in cols[OLSRV2_LINK_IN_METRIC].items()}
+        quality = cols[ERNI_LINK_QUALITY]
+        recvd, expected = cols[NHDP_PERF_RECVD], cols[NHDP_PERF_EXPECTED]
+        for idx, val in sorted(cols[NHDP_DISC_IF_ADDR].items()):
+            addr = _inet(NHDP_DISC_IF_ADDR + idx, val)
+            truth = _int(NHDP_NIB_SYMMETRIC + idx, sym[idx]) if idx in sym else 2
             if truth not in (1, 2):
-                raise SourceError(f"{mib.label(mib.NHDP_NIB_SYMMETRIC + idx)}: expected TruthValue "
+                raise SourceError(f"{label(NHDP_NIB_SYMMETRIC + idx)}: expected TruthValue "
                                   f"1 or 2, got {truth}")
             if idx in quality:
-                q = _int(mib.ERNI_LINK_QUALITY + idx, quality[idx], "Unsigned32/Gauge32") / 1000.0
+                q = _int(ERNI_LINK_QUALITY + idx, quality[idx], "Unsigned32/Gauge32") / 1000.0
             elif idx in recvd and idx in expected:
-                exp = _int(mib.NHDP_PERF_EXPECTED + idx, expected[idx], "Counter32")
-                got = _int(mib.NHDP_PERF_RECVD + idx, recvd[idx], "Counter32")
+                exp = _int(NHDP_PERF_EXPECTED + idx, expected[idx], "Counter32")
+                got = _int(NHDP_PERF_RECVD + idx, recvd[idx], "Counter32")
                 q = got / exp if exp else 0.0
             else:
                 q = 0.0
             if not 0.0 <= q <= 1.0:
-                raise SourceError(f"{mib.label(mib.ERNI_LINK_QUALITY + idx)}: expected 0..1000, "
+                raise SourceError(f"{label(ERNI_LINK_QUALITY + idx)}: expected 0..1000, "
                                   f"got {round(q * 1000)}")
-            m = (_int(mib.OLSRV2_LINK_IN_METRIC + (1,) + idx, metric[idx], "Unsigned32/Gauge32")
+            m = (_int(OLSRV2_LINK_IN_METRIC + (1,) + idx, metric[idx], "Unsigned32/Gauge32")
                  if idx in metric else None)
             view.neighbors.append(Neighbor(name=self._name(view, addr), address=addr, quality=q,
                                            symmetric=truth == 1, metric=m))
 
-    def _decode_topology_by_index(self, view: NetView, metrics: dict[mib.OID, Any],
-                                  by_index: dict[mib.OID, str]) -> None:
+    def _decode_topology_by_index(self, view: NetView, metrics: dict[OID, Any],
+                                  by_index: dict[OID, str]) -> None:
         seen: dict[frozenset[str], Link] = {}
         for idx, val in sorted(metrics.items()):
             a, b = by_index[idx[:1]], by_index[idx[1:]]
-            m = _int(mib.OLSRV2_TOPO_METRIC + idx, val, "Unsigned32/Gauge32")
+            m = _int(OLSRV2_TOPO_METRIC + idx, val, "Unsigned32/Gauge32")
             key = frozenset((a, b))
             if a != b and key not in seen:
                 seen[key] = Link(a=min(a, b), b=max(a, b), quality=_quality_of_metric(m), metric=m)
         view.links = list(seen.values())
 
-    def _decode_topology(self, view: NetView, cols: dict[mib.OID, dict]) -> None:
-        froms, tos, metrics = (cols[mib.OLSRV2_TOPO_FROM], cols[mib.OLSRV2_TOPO_TO],
-                               cols[mib.OLSRV2_TOPO_METRIC])
+    def _decode_topology(self, view: NetView, cols: dict[OID, dict]) -> None:
+        froms, tos, metrics = (cols[OLSRV2_TOPO_FROM], cols[OLSRV2_TOPO_TO],
+                               cols[OLSRV2_TOPO_METRIC])
         seen: dict[frozenset[str], Link] = {}
         for idx, val in sorted(froms.items()):
             if idx not in tos or idx not in metrics:
                 continue
-            a = self._name(view, _inet(mib.OLSRV2_TOPO_FROM + idx, val))
-            b = self._name(view, _inet(mib.OLSRV2_TOPO_TO + idx, tos[idx]))
-            m = _int(mib.OLSRV2_TOPO_METRIC + idx, metrics[idx], "Unsigned32/Gauge32")
+            a = self._name(view, _inet(OLSRV2_TOPO_FROM + idx, val))
+            b = self._name(view, _inet(OLSRV2_TOPO_TO + idx, tos[idx]))
+            m = _int(OLSRV2_TOPO_METRIC + idx, metrics[idx], "Unsigned32/Gauge32")
             key = frozenset((a, b))
             if a != b and key not in seen:
                 seen[key] = Link(a=min(a, b), b=max(a, b), quality=_quality_of_metric(m), metric=m)
         view.links = list(seen.values())
 
-    def _decode_routes(self, view: NetView, cols: dict[mib.OID, dict]) -> None:
-        hops, dists, metrics = (cols[mib.OLSRV2_ROUTE_NEXT_HOP], cols[mib.OLSRV2_ROUTE_DIST],
-                                cols[mib.OLSRV2_ROUTE_METRIC])
+    def _decode_routes(self, view: NetView, cols: dict[OID, dict]) -> None:
+        hops, dists, metrics = (cols[OLSRV2_ROUTE_NEXT_HOP], cols[OLSRV2_ROUTE_DIST],
+                                cols[OLSRV2_ROUTE_METRIC])
         for idx, val in sorted(hops.items()):
             if len(idx) != 7 or idx[0] != 1 or idx[1] != 4 or max(idx[2:6]) > 255:
-                raise SourceError(f"{mib.label(mib.OLSRV2_ROUTE_NEXT_HOP + idx)}: expected an "
+                raise SourceError(f"{label(OLSRV2_ROUTE_NEXT_HOP + idx)}: expected an "
                                   "index 1.4.a.b.c.d.prefixLen")
             dest = str(ipaddress.IPv4Address(bytes(idx[2:6])))
-            hop = _inet(mib.OLSRV2_ROUTE_NEXT_HOP + idx, val)
-            dist = _int(mib.OLSRV2_ROUTE_DIST + idx, dists[idx], "Unsigned32/Gauge32") if idx in dists else 0
-            cost = (_int(mib.OLSRV2_ROUTE_METRIC + idx, metrics[idx], "Unsigned32/Gauge32")
+            hop = _inet(OLSRV2_ROUTE_NEXT_HOP + idx, val)
+            dist = _int(OLSRV2_ROUTE_DIST + idx, dists[idx], "Unsigned32/Gauge32") if idx in dists else 0
+            cost = (_int(OLSRV2_ROUTE_METRIC + idx, metrics[idx], "Unsigned32/Gauge32")
                     if idx in metrics else 0)
             view.routes.append(Route(destination=self._name(view, dest), next_hop=self._name(view, hop),
-                                     hops=dist, cost=cost / mib.METRIC_UNIT))
+                                     hops=dist, cost=cost / METRIC_UNIT))
 
 
 def articulation_points(links: Iterable[Link]) -> list[str]:

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from pyasn1.codec.ber import encoder
 from pysnmp.proto.api import v2c
 
-import plugins.mobinet.mib as client_mib
+import plugins.mobinet.snmp as client_mib
 import sim.manet_mib as agent_mib
 from sim.manet import link_metric
 

@@ -9,7 +9,7 @@ import pytest
 
 from blackboard import Position
 from plugins.mobinet.snmp import SnmpSource, articulation_points
-from plugins.mobinet.source import PARTS, NetworkSource, SourceError
+from plugins.mobinet.resource import PARTS, NetworkSource, SourceError
 from sim.manet import METRIC_UNIT
 
 
