@@ -100,6 +100,46 @@ class CancelParams(Params):
     task: str | None = Field(None, description="uid of the task to cancel; all if omitted")
 
 
+class SayParams(Params):
+    tones: list[tuple[int, int]] = Field(
+        default_factory=lambda: [(10, 72)], min_length=1, max_length=20,
+        description="(duration in 20 ms units, MIDI note) pairs played by the robot (ARCOS SAY)")
+
+
+class WidepParams(Params):
+    x: float = Field(description="point of interest x (m)")
+    y: float = Field(description="point of interest y (m)")
+    range: float = Field(4.5, gt=0, description="communication range R (m)")
+    tolerance: float = Field(0.5, gt=0, description="arrival radius at the PoI (m)")
+    period: float = Field(1.0, gt=0, description="seconds between deployment steps")
+
+
+class SpreadParams(Params):
+    distance: float = Field(5.0, gt=0, description="desired distance d between robots (m)")
+    gain: float = Field(2.0, gt=0, description="control gain k")
+    dt: float = Field(0.2, gt=0, description="control period (s)")
+    range: float = Field(15.0, gt=0, description="sensing/communication range (m)")
+    neighbourhood: str = Field("physical", pattern="^(physical|delaunay)$",
+                               description="physical (within range) or delaunay neighbours")
+    model: str = Field("nonholonomic", pattern="^(holonomic|nonholonomic)$", description="robot model")
+    duration: float | None = Field(None, gt=0, description="stop after this long (s)")
+
+
+class RelayParams(Params):
+    source: str = Field(description="agent at one end of the relayed flow")
+    destination: str = Field(description="agent at the other end")
+    tolerance: float = Field(0.05, gt=0, le=1, description="accepted link quality imbalance")
+
+
+class PatrolParams(Params):
+    xmin: float = Field(description="territory block (m)")
+    ymin: float = Field(description="territory block (m)")
+    xmax: float = Field(description="territory block (m)")
+    ymax: float = Field(description="territory block (m)")
+    heartbeat: float = Field(1.0, gt=0, description="seconds between heartbeats")
+    silence: float = Field(5.0, gt=0, description="a neighbour silent this long has failed (s)")
+
+
 # --- the language -----------------------------------------------------------------------
 
 
@@ -193,6 +233,7 @@ for _name, _model, _doc in [
     ("avoid_obstacles", AvoidParams, "override motion when an obstacle is near"),
     ("forward", DistanceParams, "drive straight ahead a distance"),
     ("backward", DistanceParams, "drive straight back a distance"),
+    ("say", SayParams, "play a tone sequence on the robot (audio cue)"),
 ]:
     register_preposition("BotMotion", _name, _model, _doc)
 
@@ -204,6 +245,16 @@ for _name, _model, _doc in [
     ("forward", DistanceParams, "the robot drives ahead a distance"),
 ]:
     register_preposition("RemoteBotMotion", _name, _model, _doc)
+
+register_verb("Deploy", scope="team", handled_by="MissionControl",
+              doc="run a deployment strategy (papers 000, 001, 002)")
+for _name, _model, _doc in [
+    ("widep", WidepParams, "PoI coverage (WiDep): step toward the PoI keeping RNG connectivity"),
+    ("spread", SpreadParams, "potential-field self-deployment to distance d from neighbours"),
+    ("relay", RelayParams, "hold position between source and destination, balancing link quality"),
+    ("patrol", PatrolParams, "patrol a territory; take over a silent neighbour's block"),
+]:
+    register_preposition("Deploy", _name, _model, _doc)
 
 
 # --- results ----------------------------------------------------------------------------

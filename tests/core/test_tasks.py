@@ -16,8 +16,9 @@ def test_every_preposition_of_table_2_exists():
     expected = {
         "NetWatch": {"node_position", "network_topology", "path_cost", "link_quality", "neighbor_list"},
         "BotMotion": {"randomwalk", "goto", "stop", "turn", "teleport", "clear", "velocity",
-                      "avoid_obstacles", "forward", "backward"},
+                      "avoid_obstacles", "forward", "backward", "say"},
         "RemoteBotMotion": {"randomwalk", "goto", "cancel", "teleport", "forward"},
+        "Deploy": {"widep", "spread", "relay", "patrol"},
     }
     for verb, preps in expected.items():
         assert {p for (v, p) in PREPOSITIONS if v == verb} == preps
