@@ -120,6 +120,7 @@ class MobiNetResource:
         self._kick: asyncio.Event | None = None
         self._pose_event: asyncio.Event | None = None
         self._stopping = False
+        self._tasks: list[asyncio.Future[Any]] = []
         self.source: NetworkSource | None = None
         self.stats = {"reads": 0, "read_errors": 0, "writes": 0, "write_errors": 0}
 
@@ -170,9 +171,8 @@ class MobiNetResource:
 
         def stop() -> None:
             self._stopping = True
-            self._wake()
-            if self._pose_event is not None:
-                self._pose_event.set()
+            for task in self._tasks:  # a read or write in flight is abandoned, not awaited
+                task.cancel()
         self._call(stop)
         thread.join(timeout)
         if thread.is_alive():
@@ -216,15 +216,16 @@ class MobiNetResource:
         except Exception as err:
             self.log.error("cannot create the network source: %s", err)
             return
-        writer = asyncio.ensure_future(self._pose_writer())
+        self._tasks = [asyncio.ensure_future(self._poller()),
+                       asyncio.ensure_future(self._pose_writer())]
+        if self._stopping:
+            for task in self._tasks:
+                task.cancel()
         try:
-            await self._poller()
+            for outcome in await asyncio.gather(*self._tasks, return_exceptions=True):
+                if isinstance(outcome, Exception):
+                    self.log.error("MobiNet SNMP task failed: %r", outcome)
         finally:
-            writer.cancel()
-            try:
-                await writer
-            except asyncio.CancelledError:
-                pass
             try:
                 await self.source.aclose()
             except Exception as err:  # closing must not hide the shutdown
@@ -285,12 +286,5 @@ class MobiNetResource:
                 self.limited.warning("write", f"writing the position failed: {err}")
                 if self._pose is None:  # retry the same pose unless a newer one arrived
                     self._pose = pose
-                try:
-                    await asyncio.wait_for(self._wait_stopping(), self.retry_delay)
-                except asyncio.TimeoutError:
-                    pass
+                await asyncio.sleep(self.retry_delay)
                 self._pose_event.set()
-
-    async def _wait_stopping(self) -> None:
-        while not self._stopping:
-            await asyncio.sleep(0.05)

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import logging
 import math
-import time
 
 import pytest
 
@@ -188,11 +187,10 @@ def test_bad_agents_give_degraded_results_without_stalling(mode, expected, bad_a
     assert res.result.state == TaskState.RUNNING and res.result.confidence == 0.0
     assert expected in res.result.message
     wait_until(lambda: plugin.resource.stats["read_errors"] >= 3)
-    # the agent is not frozen: the blackboard still takes work at once
-    t0 = time.monotonic()
+    # the plugin still runs: a pose published now is handed to the resource
     with agent.transaction() as tx:
         tx.add(Pose(robot="robot2", x=1.0, y=2.0))
-    assert time.monotonic() - t0 < 0.5
+    wait_until(lambda: plugin.resource.stats["writes"] >= 1)
     lines = [r for r in caplog.records if "network read failed" in r.getMessage()]
     assert len(lines) == 1, [r.getMessage() for r in lines]
 

@@ -1,0 +1,134 @@
+"""MobiNetResource scheduling, isolated from SNMP with a scripted NetworkSource."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import threading
+import time
+
+from blackboard import Position
+from blackboard.testing import wait_until
+from plugins.mobinet.resource import MobiNetResource, NetView, NetworkSource, SourceError
+
+
+class ScriptedSource:
+    """A NetworkSource whose reads and writes take `delay` s and fail while `failing`."""
+
+    def __init__(self, delay: float = 0.0) -> None:
+        self.delay = delay
+        self.failing = False
+        self.reads: list[frozenset[str]] = []
+        self.writes: list[Position] = []
+        self.closed = False
+
+    async def read(self, parts):
+        self.reads.append(parts)
+        await asyncio.sleep(self.delay)
+        if self.failing:
+            raise SourceError("scripted failure")
+        return NetView(node="me", address="10.0.0.1")
+
+    async def write_position(self, position):
+        await asyncio.sleep(self.delay)
+        if self.failing:
+            raise SourceError("scripted write failure")
+        self.writes.append(position)
+
+    async def aclose(self):
+        self.closed = True
+
+
+class Recorder:
+    def __init__(self) -> None:
+        self.lock = threading.Lock()
+        self.got: list[tuple[str, NetView | None, str]] = []
+
+    def __call__(self, key, view, error):
+        with self.lock:
+            self.got.append((key, view, error))
+
+    def keys(self):
+        with self.lock:
+            return [k for k, _, _ in self.got]
+
+
+def make(source, **kw):
+    rec = Recorder()
+    res = MobiNetResource(lambda: source, rec, logging.getLogger("test.mobinet"), **kw).start()
+    return res, rec
+
+
+def test_scripted_source_satisfies_the_protocol():
+    assert isinstance(ScriptedSource(), NetworkSource)
+
+
+def test_watches_at_the_same_rate_share_reads_and_unwatch_stops_delivery():
+    src = ScriptedSource()
+    res, rec = make(src)
+    try:
+        res.watch("a", frozenset({"neighbors"}), 50.0)
+        res.watch("b", frozenset({"topology"}), 50.0)
+        wait_until(lambda: rec.keys().count("a") >= 5 and rec.keys().count("b") >= 5)
+        assert frozenset({"neighbors", "topology"}) in src.reads      # one read served both
+        assert len(src.reads) < len(rec.keys())
+        res.unwatch("a")
+        wait_until(lambda: res.watching() == ["b"])
+        n = rec.keys().count("a")
+        wait_until(lambda: rec.keys().count("b") >= 15)
+        assert rec.keys().count("a") == n
+    finally:
+        res.close()
+    assert src.closed
+
+
+def test_calls_never_wait_for_a_slow_source_and_close_abandons_it():
+    src = ScriptedSource(delay=5.0)                      # every read hangs for 5 s
+    res, rec = make(src)
+    try:
+        res.watch("a", frozenset({"routes"}), 10.0)
+        wait_until(lambda: src.reads)
+        t0 = time.monotonic()
+        res.watch("b", frozenset({"topology"}), 10.0)
+        res.write_position(Position(x=1, y=2))
+        res.unwatch("a")
+        assert time.monotonic() - t0 < 1.0           # far below the 5 s a read takes
+    finally:
+        t0 = time.monotonic()
+        res.close()
+        assert time.monotonic() - t0 < 3.0           # did not wait for the hung read
+    assert rec.got == []
+
+
+def test_failures_are_delivered_and_logged_once_per_interval(caplog):
+    caplog.set_level(logging.WARNING, logger="test.mobinet")
+    src = ScriptedSource()
+    src.failing = True
+    res, rec = make(src, log_interval=60.0)
+    try:
+        res.watch("a", frozenset({"neighbors"}), 100.0)
+        wait_until(lambda: len(rec.got) >= 5)
+        assert all(view is None and err == "scripted failure" for _, view, err in rec.got)
+        src.failing = False
+        wait_until(lambda: rec.got[-1][1] is not None and rec.got[-1][2] == "")
+    finally:
+        res.close()
+    lines = [r.getMessage() for r in caplog.records]
+    assert lines == ["network read failed: scripted failure"]
+
+
+def test_only_the_latest_pose_is_written_and_failed_writes_are_retried():
+    src = ScriptedSource(delay=0.05)
+    res, _ = make(src, retry_delay=0.05)
+    try:
+        for i in range(20):                              # faster than the source can write
+            res.write_position(Position(x=float(i), y=0.0))
+        wait_until(lambda: src.writes and src.writes[-1].x == 19.0)
+        assert len(src.writes) < 20
+        src.failing = True
+        res.write_position(Position(x=42.0, y=0.0))
+        wait_until(lambda: res.stats["write_errors"] >= 2)   # retried without a new pose
+        src.failing = False
+        wait_until(lambda: src.writes[-1].x == 42.0)
+    finally:
+        res.close()
