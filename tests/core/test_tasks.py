@@ -122,3 +122,10 @@ def test_random_params_either_validate_or_raise_task_error(params):
         Task(verb="BotMotion", preposition="goto", params=params)
     except TaskError as err:
         assert str(err).startswith("goto: ")
+
+
+def test_readme_table_is_the_language():
+    from pathlib import Path
+
+    readme = (Path(__file__).resolve().parents[2] / "README.md").read_text()
+    assert language_table() in readme, "README's task table is stale: paste `erni tasks` into it"
