@@ -13,7 +13,7 @@ from sim.world import World
 
 REAL_URL = os.environ.get("ERNI_ROBOT_URL", "").strip()
 
-sim_only = pytest.mark.skipif(bool(REAL_URL), reason="needs the simulator's world (ERNI_ROBOT_URL is set)")
+sim_only = pytest.mark.skipif(bool(REAL_URL), reason="needs the simulator itself (ERNI_ROBOT_URL is set)")
 
 FAST = dict(sip_period=0.02, accel=3.0, decel=3.0, max_v=2.0, rot_accel=720.0, max_rv=360.0)
 FAST_MODEL = {"base": "pioneer3", "decel": 2.5, "rot_decel": 500.0, "max_rv": 300.0, "max_v": 2.0}

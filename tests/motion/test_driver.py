@@ -9,6 +9,8 @@ import time
 
 import pytest
 import serial
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from blackboard.testing import wait_until
 from plugins.motion import arcos
@@ -268,3 +270,14 @@ def test_idle_driver_pulses_so_the_watchdog_never_trips(make_host, drivers):
     assert first is not None
     later = d.wait_for(lambda s: s.stamp > first.stamp + 1.0, 3.0)  # three watchdog periods later
     assert later is not None and later.v > 0.15 and not host.robots[0].watchdog_tripped
+
+
+@settings(max_examples=300, deadline=None)
+@given(bodies=st.lists(st.binary(min_size=1, max_size=120), max_size=8), junk=st.binary(max_size=64))
+def test_valid_frames_with_garbage_contents_never_crash_the_decoder(bodies, junk):
+    d = ArcosDriver("loop://", name="fuzz")  # never opened: bytes are pushed by hand
+    wire = junk + b"".join(arcos.frame(bytes([0x32 + (b[0] & 1)]) + b[1:]) for b in bodies)
+    for body in d._reader.feed(wire):
+        d._packet(body)
+    assert d.stats.sips + d.stats.bad_sips + d.stats.other_packets == d.stats.reader.packets
+    assert d.stats.sips == 0 or d.state is not None

@@ -1,12 +1,14 @@
 """RobotMotionControl end to end: an agent drives the robot through every BotMotion preposition.
 
 Without ERNI_ROBOT_URL the robot is the simulated firmware over TCP; with it, the same tests
-drive a real robot (the tests that need the simulator's walls are skipped then).
+drive a real robot (model from ERNI_ROBOT_MODEL, default pioneer3; the tests that need the
+simulator's walls are skipped then). Give the robot a metre of free space all around.
 """
 
 from __future__ import annotations
 
 import math
+import os
 
 import pytest
 
@@ -17,7 +19,8 @@ from plugins.motion import RobotMotionControl
 from sim.world import World
 from tests.motion.conftest import FAST_MODEL, REAL_URL, sim_only
 
-SETTINGS = dict(model=FAST_MODEL, rate_hz=50, pose_rate_hz=25, avoid_distance=0.4, sync_timeout=0.3,
+ROBOT_MODEL = os.environ.get("ERNI_ROBOT_MODEL", "pioneer3") if REAL_URL else FAST_MODEL
+SETTINGS = dict(model=ROBOT_MODEL, rate_hz=50, pose_rate_hz=25, avoid_distance=0.4, sync_timeout=0.3,
                 link_timeout=0.3, link_grace=0.3, blocked_timeout=0.6, stall_timeout=0.3)
 
 
