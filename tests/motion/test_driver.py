@@ -281,3 +281,16 @@ def test_valid_frames_with_garbage_contents_never_crash_the_decoder(bodies, junk
         d._packet(body)
     assert d.stats.sips + d.stats.bad_sips + d.stats.other_packets == d.stats.reader.packets
     assert d.stats.sips == 0 or d.state is not None
+
+
+def test_relocalise_rebases_odometry_for_robots_that_cannot_be_teleported(make_host, drivers):
+    host = make_host()
+    d = drivers(host.url()).open()
+    d.wait_for_sip()
+    d.relocalise(5.0, 2.0, math.pi / 2)  # the robot is declared to stand at (5, 2) facing +y
+    assert (d.state.x, d.state.y) == pytest.approx((5.0, 2.0))
+    d.move(0.3)  # straight ahead in its own frame is +y on the map
+    s = d.wait_for(lambda s: s.y > 2.29 and not s.moving, 3.0)
+    assert s is not None and s.x == pytest.approx(5.0, abs=0.01) and s.y == pytest.approx(2.3, abs=0.01)
+    assert math.degrees(s.theta) == pytest.approx(90, abs=0.5)
+    assert host.robots[0].x == pytest.approx(0.3, abs=0.01)  # the simulated robot never jumped

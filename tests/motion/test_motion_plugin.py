@@ -156,6 +156,17 @@ def test_teleport_sets_the_pose(start_agent, robot_url):
     assert math.degrees(p.theta) == pytest.approx(90, abs=3)
 
 
+@sim_only
+def test_teleport_in_odometry_mode_relocalises_without_moving_the_robot(start_agent, make_host):
+    host = make_host()
+    agent, _ = start_agent(host.url(), teleport="odometry")
+    done = finish(agent, post(agent, "teleport", x=-3.0, y=4.0, heading=180))
+    assert done.state == TaskState.SUCCEEDED
+    p = pose(agent)
+    assert (p.x, p.y) == pytest.approx((-3.0, 4.0), abs=0.01) and abs(p.theta) == pytest.approx(math.pi, abs=0.02)
+    assert (host.robots[0].x, host.robots[0].y) == pytest.approx((0.0, 0.0), abs=0.01)
+
+
 def test_clear_cancels_every_task_on_the_stack_and_halts(start_agent, robot_url):
     agent, _ = start_agent(robot_url)
     a = post(agent, "velocity", v=0.2)
