@@ -1,0 +1,151 @@
+"""`erni sim [SCENARIO.toml]`: run a whole simulated team (robots, radio, agents, control node)."""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+import time
+from typing import Any
+
+
+def register(sub: Any) -> None:
+    """Add the `sim` sub-command."""
+    p = sub.add_parser(
+        "sim", help="run a whole simulated team on this machine until Ctrl-C",
+        description="Start a simulated team: the world, one simulated ARCOS robot and one simulated "
+                    "SNMP network node per robot, one agent process per robot on 127.0.1.N, and the "
+                    "control node. Traffic between robots the radio cannot connect is dropped.")
+    p.add_argument("scenario", nargs="?", help="scenario TOML or the name of one in examples/ "
+                   "(default: four robots in an open room)")
+    p.add_argument("--robots", type=int, help="number of robots (overrides the scenario)")
+    p.add_argument("--headless", action="store_true", help="no GUI on the control node")
+    p.add_argument("--duration", type=float, help="stop after S seconds (default: the scenario's, "
+                   "else run until Ctrl-C)")
+    p.add_argument("--seed", type=int, help="random seed (start layout, robots)")
+    p.add_argument("--control-port", type=int, default=47100,
+                   help="control node's port on 127.0.1.250 (default 47100; any free one if taken)")
+    p.add_argument("--run-dir", help="directory for agent configs, logs and journals "
+                   "(default: a new temporary directory)")
+    p.add_argument("--log-level", choices=["DEBUG", "INFO", "WARNING", "ERROR"], default="WARNING",
+                   help="log level of the agents (their logs are in RUN_DIR/logs)")
+    p.add_argument("--timeout", type=float, default=180.0, help="give up starting after S seconds")
+    p.set_defaults(func=run)
+
+
+def load(args: argparse.Namespace) -> Any:
+    """Return the scenario the arguments ask for (raises ScenarioError)."""
+    from sim.scenario import Scenario, ScenarioError, find_scenario, load_scenario
+
+    scenario = load_scenario(find_scenario(args.scenario)) if args.scenario else Scenario()
+    if args.robots is not None:
+        scenario = scenario.with_robots(args.robots)
+    if args.seed is not None:
+        scenario = scenario.model_copy(update={"seed": args.seed})
+    if args.duration is not None:
+        if args.duration <= 0:
+            raise ScenarioError(f"--duration: expected a positive number of seconds, got {args.duration}")
+        scenario = scenario.model_copy(update={"duration": args.duration})
+    return scenario
+
+
+def run(args: argparse.Namespace) -> int:
+    """Start the team, print how to reach it, run the scenario's tasks, stop cleanly on Ctrl-C."""
+    from sim.progress import Progress
+    from sim.scenario import ScenarioError
+    from sim.team import Team, TeamError
+
+    try:
+        scenario = load(args)
+        team = Team(scenario, run_dir=args.run_dir, headless=args.headless,
+                    control_port=args.control_port, log_level=args.log_level)
+    except (ScenarioError, TeamError) as err:
+        print(f"erni sim: {err}", file=sys.stderr)
+        return 2
+
+    def on_term(signum: int, frame: Any) -> None:
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, on_term)
+    progress = Progress()
+    code = 0
+    try:
+        print(f"erni sim: {scenario.title} ({scenario.name}): {scenario.count} robot(s), "
+              f"R = {scenario.radio.comm_range:g} m; starting...", flush=True)
+        t0 = time.monotonic()
+        team.start(progress, timeout=args.timeout)
+        progress.done()
+        _print_team(team, time.monotonic() - t0)
+        _run_scenario(team, scenario)
+    except TeamError as err:
+        progress.done()
+        print(f"erni sim: {err}", file=sys.stderr)
+        code = 1
+    except KeyboardInterrupt:
+        progress.done()
+    finally:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C must not cut the clean stop short
+        print("erni sim: stopping the team...", flush=True)
+        team.stop()
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        signal.signal(signal.SIGTERM, previous)
+        print(f"erni sim: stopped; configs and logs in {team.run_dir}", flush=True)
+    return code
+
+
+def _print_team(team: Any, seconds: float) -> None:
+    host, port = team.control_address
+    print(f"team up in {seconds:.1f} s: {len(team.names)} robot agent(s) and the control node")
+    for i, name in enumerate(team.names):
+        r = team.robots[i]
+        print(f"  {name:<10} agent {team.agents[name].address[0]:<12} robot {team.host.url(i):<26} "
+              f"at ({r.x:6.2f}, {r.y:6.2f})")
+    print(f"  control    agent {host}:{port}" + (f"   GUI {team.url}" if team.url else
+                                                 "   (no GUI: headless or not installed)"))
+    print(f"to task the team from another terminal:\n"
+          f"  export ERNI_TEAM_KEY=$(cat {team.key_file})\n"
+          f"  erni peers --via {host}:{port}\n"
+          f"  erni task --via {host}:{port} {team.names[0]} BotMotion goto x=1 y=2 --wait\n"
+          f"  erni watch --via {host}:{port}")
+    print("Ctrl-C stops the team", flush=True)
+
+
+def _run_scenario(team: Any, scenario: Any) -> None:
+    from blackboard import Task
+    from transport.bridge import ResultUpdate
+
+    client = team.client()
+    start = time.monotonic()
+    pending = sorted(scenario.task, key=lambda t: t.at)
+    failures = sorted(scenario.failure, key=lambda f: f.at)
+    sent: dict[str, str] = {}
+    next_status = start + 10.0
+    while True:
+        now = time.monotonic() - start
+        if scenario.duration is not None and now >= scenario.duration:
+            print(f"t={now:6.1f} s  duration reached", flush=True)
+            return
+        while pending and pending[0].at <= now:
+            spec = pending.pop(0)
+            for name in (team.names if spec.to == "all" else [spec.to]):
+                task = Task(verb=spec.verb, preposition=spec.preposition, params=spec.params,
+                            destination=name, source=client.endpoint.name)
+                client.send(team.control_address, "task.add", task)
+                sent[task.uid] = name
+                print(f"t={now:6.1f} s  {name}: {task.describe()}", flush=True)
+        while failures and failures[0].at <= now:
+            f = failures.pop(0)
+            team.fail(f.robot)
+            print(f"t={now:6.1f} s  {f.robot} fails (agent killed)", flush=True)
+        msg = client.receive(0.2)
+        if msg is not None and msg.kind == "task.result" and isinstance(msg.body, ResultUpdate):
+            res = msg.body.result
+            if msg.body.uid in sent and res.state.done:
+                print(f"t={now:6.1f} s  {sent.pop(msg.body.uid)}: {res.state.value} {res.message}".rstrip(),
+                      flush=True)
+        if time.monotonic() >= next_status:
+            next_status += 10.0
+            st = team.status
+            alive = sum(1 for n in team.names if team.agents[n].alive)
+            print(f"t={now:6.1f} s  {alive}/{len(team.names)} agents running, {st.components} network "
+                  f"component(s), control reaches {st.control_reach}/{len(team.names)}", flush=True)

@@ -1,0 +1,444 @@
+"""Team: a whole simulated team on one machine, with real agent processes on loopback addresses.
+
+The sim process hosts the world: one `RobotHost` serving a simulated ARCOS robot per robot
+(TCP, `socket://127.0.0.1:PORT`), one `ManetNetwork` whose robot nodes are served over SNMP
+(robot N on `127.0.1.N`), and a feed thread that moves the network's nodes with the robots
+and rewrites the transport's reachability file whenever the radio's connectivity changes.
+
+Every robot runs `python -m erni agent` with the plugins it would run on a robot
+(transport on `127.0.1.N`, motion, mobinet, mission when installed); only the serial URL and
+the SNMP address differ. The control node runs the same agent with the transport in role
+`control` (and the UI plugin when installed). A random team key authenticates every frame.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import json
+import logging
+import math
+import os
+import secrets
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+from sim.manet import ManetNetwork, RadioModel
+from sim.robot import SimRobot, SimRobotConfig
+from sim.robot_host import RobotHost
+from sim.scenario import MAX_AGENT_ROBOTS, Scenario
+from sim.snmp_agent import ManetSnmpAgent
+from sim.world import World
+
+log = logging.getLogger("erni.sim.team")
+
+CONTROL = "control"
+CONTROL_HOST = "127.0.1.250"
+KEY_ENV = "ERNI_SIM_TEAM_KEY"  # where the sim process keeps the key for its own client
+
+
+class TeamError(RuntimeError):
+    """The team could not be started (a port is busy, an agent died, it did not come up)."""
+
+
+def robot_address(index: int) -> str:
+    """Loopback address of robot `index` (0-based): 127.0.1.1, 127.0.1.2, ..."""
+    return f"127.0.1.{index + 1}"
+
+
+def plugin_available(module: str, cls: str) -> bool:
+    """True when `module` defines `cls` (optional plugins are included only once they exist)."""
+    import importlib
+
+    try:
+        return hasattr(importlib.import_module(module), cls)
+    except Exception:  # a half-written plugin must not stop the simulator
+        return False
+
+
+def free_port(host: str = "127.0.0.1", kind: int = socket.SOCK_DGRAM) -> int:
+    """Return a port the OS says is free on `host` now."""
+    with socket.socket(socket.AF_INET, kind) as s:
+        s.bind((host, 0))
+        return s.getsockname()[1]
+
+
+def port_free(host: str, port: int) -> bool:
+    """True when both TCP and UDP `host:port` can be bound now."""
+    for kind in (socket.SOCK_STREAM, socket.SOCK_DGRAM):
+        with socket.socket(socket.AF_INET, kind) as s:
+            if kind == socket.SOCK_STREAM:  # as the transport does: TIME_WAIT does not block it
+                s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            try:
+                s.bind((host, port))
+            except OSError:
+                return False
+    return True
+
+
+def toml_value(v: Any) -> str:
+    """Render a str, number, bool, list or dict as a TOML value."""
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (int, float)):
+        return repr(v)
+    if isinstance(v, str):
+        return json.dumps(v)
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(toml_value(x) for x in v) + "]"
+    if isinstance(v, dict):
+        return "{ " + ", ".join(f"{k} = {toml_value(x)}" for k, x in v.items()) + " }"
+    raise TypeError(f"cannot write {v!r} as TOML")
+
+
+def agent_toml(name: str, plugins: list[tuple[str, dict[str, Any]]], *, journal: str | None = None,
+               workers: int = 4, comment: str = "") -> str:
+    """Return an agent config file with the given `(class, settings)` plugins."""
+    lines = [f"# {comment}" if comment else "", "[agent]", f"name = {toml_value(name)}",
+             f"workers = {workers}"]
+    if journal:
+        lines.append(f"journal = {toml_value(journal)}")
+    for cls, settings in plugins:
+        lines += ["", "[[plugin]]", f"class = {toml_value(cls)}", "[plugin.settings]"]
+        lines += [f"{k} = {toml_value(v)}" for k, v in settings.items()]
+    return "\n".join(lines).lstrip() + "\n"
+
+
+def _die_with_parent() -> None:  # runs in the child between fork and exec
+    try:
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except OSError:
+        pass
+
+
+@dataclass
+class AgentProcess:
+    """One agent process of the team."""
+
+    name: str
+    config: Path
+    log: Path
+    address: tuple[str, int]
+    proc: subprocess.Popen | None = None
+    failed: bool = False
+
+    @property
+    def alive(self) -> bool:
+        """True while the process runs."""
+        return self.proc is not None and self.proc.poll() is None
+
+
+@dataclass
+class Sample:
+    """The robots at one instant of the feed loop (for experiments and status)."""
+
+    t: float
+    x: list[float]
+    y: list[float]
+    th: list[float]
+    v: list[float]
+    energy: list[float]
+    components: int
+    control_reach: int
+
+
+@dataclass
+class TeamStatus:
+    """What the feed loop saw last."""
+
+    components: int = 0
+    control_reach: int = 0
+    reach: dict[str, list[str]] = field(default_factory=dict)
+    writes: int = 0
+
+
+class Team:
+    """Start, watch and stop a simulated team: world, radio, robots, agents and control node."""
+
+    def __init__(self, scenario: Scenario, *, run_dir: str | Path | None = None, headless: bool = False,
+                 control_port: int = 47100, log_level: str = "WARNING", physics_hz: float = 50.0,
+                 feed_hz: float = 10.0, record: bool = False, mission: bool | None = None,
+                 ui: bool | None = None, transport: dict[str, Any] | None = None) -> None:
+        if scenario.count > MAX_AGENT_ROBOTS:
+            raise TeamError(f"--robots: at most {MAX_AGENT_ROBOTS} robot agents (one loopback "
+                            f"address each), got {scenario.count}; use the kinematic mode of "
+                            "`erni experiment` for larger teams")
+        self.scenario = scenario
+        self.run_dir = Path(run_dir) if run_dir else Path(tempfile.mkdtemp(prefix="erni-sim-"))
+        self.headless = headless
+        self.log_level = log_level
+        self.feed_period = 1.0 / feed_hz
+        self.record = record
+        self.transport = {"peer_timeout": 3.0, **(transport or {})}
+        self.mission = plugin_available("plugins.mission", "MissionControl") if mission is None else mission
+        self.ui = (not headless and plugin_available("plugins.ui", "UIPlugin")) if ui is None else ui
+        self.key = secrets.token_hex(16)
+        self.key_file = self.run_dir / "team.key"
+        self.reach_file = self.run_dir / "reach.json"
+        self.discovery_port = free_port()
+        self.control_port = control_port if control_port and port_free(CONTROL_HOST, control_port) \
+            else free_port(CONTROL_HOST, socket.SOCK_STREAM)
+        self.names = scenario.robot_names()
+        starts = [s.model_dump() for s in scenario.starts()]  # the scenario's start poses win
+        self.world = World.model_validate({**scenario.world.model_dump(), "robot": starts})
+        world = self.world
+        self.host = RobotHost(world, physics_hz=physics_hz)
+        r = scenario.radio
+        self.network = ManetNetwork(RadioModel(r.comm_range, r.lossless_range, r.min_quality),
+                                    subnet="127.0.1.0/24")
+        self.snmp = ManetSnmpAgent(self.network)
+        self.agents: dict[str, AgentProcess] = {}
+        self.samples: list[Sample] = []
+        self.status = TeamStatus()
+        self.url: str | None = None
+        self._stop = threading.Event()
+        self._feed: threading.Thread | None = None
+        self._fed: dict[str, tuple[float, float]] = {}
+        self._t0 = time.monotonic()
+        self._started = False
+        self._stopped = False
+        self._client: Any = None
+
+    # --- addresses ----------------------------------------------------------------------
+
+    @property
+    def control_address(self) -> tuple[str, int]:
+        """The control node's transport address (for `erni task --via HOST:PORT`)."""
+        return CONTROL_HOST, self.control_port
+
+    @property
+    def robots(self) -> list[SimRobot]:
+        """The simulated robots, in agent order."""
+        return self.host.robots
+
+    def robot(self, name: str) -> SimRobot:
+        """The simulated robot of agent `name`."""
+        return self.host.robots[self.names.index(name)]
+
+    # --- start --------------------------------------------------------------------------
+
+    def start(self, progress: Callable[[str, int, int], None] | None = None, timeout: float = 120.0) -> Team:
+        """Start world, radio, agents and control node; return when the control node hears the team."""
+        say = progress or (lambda what, done, total: None)
+        self._started = True
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        for sub in ("agents", "logs", "journal"):
+            (self.run_dir / sub).mkdir(exist_ok=True)
+        self.key_file.write_text(self.key + "\n", encoding="utf-8")
+        os.chmod(self.key_file, 0o600)
+        n = len(self.names)
+        say("world and robots", 0, n)
+        model = self.scenario.robots.model
+        for i, name in enumerate(self.names):
+            cfg = SimRobotConfig.amigobot(name=name, seed=self.scenario.seed + i) if model == "amigobot" \
+                else SimRobotConfig(name=name, seed=self.scenario.seed + i)
+            self.host.add_robot(cfg, port=0)
+        self.host.start()
+        say("radio network", 0, n)
+        for start, robot in zip(self.scenario.starts(), self.host.robots):
+            self.network.add_node(start.name, robot.x, robot.y, start.heading)
+        c = self.scenario.control
+        self.network.add_node(CONTROL, c.x, c.y)
+        self.snmp.start()
+        snmp_ports = {name: self.snmp.serve(name, robot_address(i), 0)[1] for i, name in enumerate(self.names)}
+        self._update_network(force=True)
+        self._feed = threading.Thread(target=self._feed_loop, name="sim-feed", daemon=True)
+        self._feed.start()
+        say("agent configs", 0, n)
+        self._write_configs(snmp_ports)
+        env = {**os.environ, "ERNI_TEAM_KEY": self.key, "PYTHONUNBUFFERED": "1"}
+        order = [CONTROL] + self.names
+        for k, name in enumerate(order):
+            self._spawn(self.agents[name], env)
+            say("agents launched", k + 1, len(order))
+        self._wait_up(say, timeout)
+        return self
+
+    def _write_configs(self, snmp_ports: dict[str, int]) -> None:
+        common = dict(discovery_port=self.discovery_port, beacon_to=["127.255.255.255"],
+                      reachability=str(self.reach_file), **self.transport)
+        for i, name in enumerate(self.names):
+            addr = robot_address(i)
+            port = 0  # any free port: two simulations side by side never collide
+            plugins: list[tuple[str, dict[str, Any]]] = [
+                ("transport", dict(listen=f"{addr}:{port}", role="robot",
+                                   capabilities=["motion", "mobinet"] + (["mission"] if self.mission else []),
+                                   **common)),
+                ("motion", dict(url=self.host.url(i), model=self.scenario.robots.model)),
+                ("mobinet", dict(host=addr, port=snmp_ports[name])),
+            ]
+            if self.mission:
+                plugins.append(("mission", {}))
+            self._add_agent(name, (addr, port), plugins, f"robot {name} of scenario {self.scenario.name}")
+        plugins = [("transport", dict(listen=f"{CONTROL_HOST}:{self.control_port}", role="control", **common))]
+        if self.ui:
+            plugins.append(("ui", {}))
+        self._add_agent(CONTROL, (CONTROL_HOST, self.control_port), plugins,
+                        f"control node of scenario {self.scenario.name}", workers=2)
+
+    def _add_agent(self, name: str, address: tuple[str, int], plugins: list[tuple[str, dict[str, Any]]],
+                   comment: str, workers: int = 4) -> None:
+        config = self.run_dir / "agents" / f"{name}.toml"
+        journal = str(self.run_dir / "journal" / f"{name}.sqlite")
+        config.write_text(agent_toml(name, plugins, journal=journal, workers=workers, comment=comment),
+                          encoding="utf-8")
+        self.agents[name] = AgentProcess(name, config, self.run_dir / "logs" / f"{name}.log", address)
+
+    def _spawn(self, agent: AgentProcess, env: dict[str, str]) -> None:
+        with open(agent.log, "ab") as out:
+            agent.proc = subprocess.Popen(
+                [sys.executable, "-m", "erni", "agent", str(agent.config), "--log-level", self.log_level],
+                stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT, env=env,
+                start_new_session=True, preexec_fn=_die_with_parent)
+
+    def client(self) -> Any:
+        """A started transport client of this team, reaching it through the control node."""
+        if self._client is None:
+            from transport.client import Client
+
+            os.environ[KEY_ENV] = self.key
+            self._client = Client(self.control_address, key_env=KEY_ENV)
+            self._client.endpoint.start()
+        return self._client
+
+    def peers(self, timeout: float = 2.0) -> dict[str, Any]:
+        """The control node's directory: agent name -> Peer ({} when it does not answer)."""
+        from transport.bridge import PeerList
+
+        client = self.client()
+        client.send(self.control_address, "peers.request", None)
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            msg = client.receive(0.1)
+            if msg is not None and msg.kind == "peers.reply" and isinstance(msg.body, PeerList):
+                return {p.name: p for p in msg.body.peers}
+        return {}
+
+    def _wait_up(self, say: Callable[[str, int, int], None], timeout: float) -> None:
+        deadline = time.monotonic() + timeout
+        n = len(self.names)
+        while True:
+            for agent in self.agents.values():
+                if not agent.alive:
+                    tail = _tail(agent.log)
+                    raise TeamError(f"agent {agent.name} exited with code {agent.proc.returncode if agent.proc else '?'}"
+                                    f" during start-up; its log ({agent.log}) ends:\n{tail}")
+            connected = sum(1 for ep in self.host.endpoints if ep.conn is not None)
+            expected = set(self.status.reach.get(CONTROL, []))
+            up = {name for name, p in self.peers(1.0).items() if p.up} if connected == n else set()
+            heard = len(up & expected)
+            say("robots connected", connected, n) if connected < n else say("robots heard by control", heard, len(expected))
+            if connected == n and expected <= up:
+                return
+            if time.monotonic() > deadline:
+                raise TeamError(f"the team did not come up within {timeout:.0f} s: {connected}/{n} robots "
+                                f"connected, control hears {heard}/{len(expected)} reachable robots; "
+                                f"logs in {self.run_dir / 'logs'}")
+            time.sleep(0.3)
+
+    # --- running ------------------------------------------------------------------------
+
+    def elapsed(self) -> float:
+        """Seconds since the team object was made."""
+        return time.monotonic() - self._t0
+
+    def fail(self, name: str) -> None:
+        """Make robot `name` fail: its agent is killed at once (its robot stops on the watchdog)."""
+        agent = self.agents[name]
+        agent.failed = True
+        if agent.alive:
+            assert agent.proc is not None
+            agent.proc.kill()
+            agent.proc.wait(5)
+
+    def teleport(self, name: str, x: float, y: float, heading: float = 0.0) -> None:
+        """Move robot `name` in the world (the simulator's hand, not a task)."""
+        robot = self.robot(name)
+        with self.host._lock:
+            robot.set_pose(x, y, math.radians(heading))
+
+    def _feed_loop(self) -> None:
+        while not self._stop.wait(self.feed_period):
+            try:
+                self._update_network()
+            except Exception:  # the feed must outlive one bad step
+                log.exception("sim feed loop error")
+
+    def _update_network(self, force: bool = False) -> None:
+        robots = self.host.robots
+        moved = {}
+        for name, r in zip(self.names, robots):
+            old = self._fed.get(name)
+            if force or old is None or math.hypot(r.x - old[0], r.y - old[1]) > 0.02:
+                moved[name] = (r.x, r.y)
+        if moved:
+            self.network.move_many(moved)
+            self._fed.update(moved)
+        truth = self.network.truth()
+        reach: dict[str, list[str]] = {}
+        for comp in truth.components:
+            for name in comp:
+                reach[name] = sorted(comp - {name})
+        control_reach = len(reach.get(CONTROL, []))
+        if force or reach != self.status.reach:
+            tmp = self.reach_file.with_suffix(".tmp")
+            tmp.write_text(json.dumps({"reachable": reach}), encoding="utf-8")
+            os.replace(tmp, self.reach_file)
+            self.status.writes += 1
+        self.status.reach = reach
+        self.status.components = len(truth.components)
+        self.status.control_reach = control_reach
+        if self.record:
+            self.samples.append(Sample(
+                self.elapsed(), [r.x for r in robots], [r.y for r in robots], [r.th for r in robots],
+                [r.v for r in robots], [r.energy for r in robots], len(truth.components), control_reach))
+
+    # --- stop ---------------------------------------------------------------------------
+
+    def stop(self, timeout: float = 8.0) -> None:
+        """Stop every agent (SIGTERM, then SIGKILL), the feed, the SNMP agent and the robots."""
+        if self._stopped:
+            return
+        self._stopped = True
+        procs = [a.proc for a in self.agents.values() if a.proc is not None]
+        for p in procs:
+            if p.poll() is None:
+                try:
+                    p.send_signal(signal.SIGTERM)
+                except ProcessLookupError:
+                    pass
+        deadline = time.monotonic() + timeout
+        for p in procs:
+            try:
+                p.wait(max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait(5)
+        self._stop.set()
+        if self._feed is not None:
+            self._feed.join(5)
+        if self._client is not None:
+            self._client.endpoint.stop()
+            self._client = None
+        self.snmp.close()
+        self.host.stop()
+
+    def __enter__(self) -> Team:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+
+def _tail(path: Path, lines: int = 8) -> str:
+    try:
+        return "\n".join(path.read_text(encoding="utf-8", errors="replace").splitlines()[-lines:])
+    except OSError:
+        return "(no log)"

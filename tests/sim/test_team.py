@@ -1,0 +1,102 @@
+"""A simulated team of real agent processes: remote tasking through the control node, radio range."""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+
+from blackboard import Task, TaskState
+from blackboard.testing import wait_until
+from sim.scenario import Scenario
+from sim.team import CONTROL, Team
+from transport.bridge import ResultUpdate
+
+FAST = {"beacon_period": 0.3, "peer_timeout": 1.5, "task_ttl": 10.0}
+
+
+def make_team(tmp_path, count: int, **radio) -> Team:
+    scenario = Scenario(robots={"count": count, "spacing": 1.5},
+                        radio={"comm_range": 10.0, "lossless_range": 6.0, **radio})
+    return Team(scenario, run_dir=tmp_path / "run", headless=True, control_port=0, transport=FAST,
+                mission=False, ui=False)
+
+
+def send(team: Team, robot: str, verb: str, prep: str, **params) -> Task:
+    client = team.client()
+    task = Task(verb=verb, preposition=prep, params=params, destination=robot, source=client.endpoint.name)
+    client.send(team.control_address, "task.add", task)
+    return task
+
+
+def final_result(team: Team, uid: str, timeout: float):
+    client = team.client()
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        msg = client.receive(0.1)
+        if msg and msg.kind == "task.result" and isinstance(msg.body, ResultUpdate) and msg.body.uid == uid:
+            if msg.body.result.state.done:
+                return msg.body.result
+    raise AssertionError(f"no final result for task {uid} within {timeout} s")
+
+
+def test_remote_goto_from_the_control_node_reaches_its_goal(tmp_path):
+    team = make_team(tmp_path, 3)
+    try:
+        team.start(timeout=60)
+        assert set(team.peers()) >= {"robot1", "robot2", "robot3"}
+        robot = team.robot("robot2")
+        goal = (robot.x + 1.0, robot.y + 1.5)
+        task = send(team, "robot2", "BotMotion", "goto", x=goal[0], y=goal[1], speed=0.8, tolerance=0.1)
+        result = final_result(team, task.uid, timeout=30)
+        assert result.state is TaskState.SUCCEEDED, result.message
+        assert math.hypot(robot.x - goal[0], robot.y - goal[1]) < 0.2
+        others = [team.robot("robot1"), team.robot("robot3")]
+        assert all(math.hypot(r.x - r.start[0], r.y - r.start[1]) < 0.05 for r in others)
+    finally:
+        team.stop()
+    assert not any(a.alive for a in team.agents.values())
+
+
+def test_a_robot_out_of_radio_range_is_lost_and_receives_no_traffic(tmp_path):
+    team = make_team(tmp_path, 3)
+    try:
+        team.start(timeout=60)
+        wait_until(lambda: all(p.up for p in team.peers().values()) and len(team.peers()) == 3, timeout=10)
+        team.teleport("robot3", 40.0, 0.0)  # 40 m from everyone: R is 10 m
+        wait_until(lambda: "robot3" not in team.status.reach[CONTROL], timeout=5)
+        reach = json.loads(team.reach_file.read_text())["reachable"]
+        assert reach["robot3"] == [] and "robot3" not in reach["robot1"]
+        wait_until(lambda: not team.peers()["robot3"].up, timeout=10)
+        assert team.peers()["robot1"].up and team.peers()["robot2"].up
+        robot = team.robot("robot3")
+        before = (robot.x, robot.y)
+        task = send(team, "robot3", "BotMotion", "forward", distance=1.0, speed=0.5)
+        time.sleep(2.0)  # the task would have driven the robot within this time if delivered
+        assert math.hypot(robot.x - before[0], robot.y - before[1]) < 0.01
+        team.teleport("robot3", 2.0, 2.0)  # back in range: the queued task gets through
+        result = final_result(team, task.uid, timeout=20)
+        assert result.state is TaskState.SUCCEEDED, result.message
+        assert team.peers()["robot3"].up
+    finally:
+        team.stop()
+
+
+def test_relayed_robot_stays_reachable_over_several_hops(tmp_path):
+    team = Team(Scenario(robots={"count": 3}, radio={"comm_range": 4.0, "lossless_range": 3.0},
+                         robot=[{"x": 0.0, "y": 1.0}, {"x": 0.0, "y": 4.0}, {"x": 0.0, "y": 7.0}],
+                         control={"x": 0.0, "y": -2.0}),
+                run_dir=tmp_path / "run", headless=True, control_port=0, transport=FAST,
+                mission=False, ui=False)
+    try:
+        team.start(timeout=60)
+        reach = team.status.reach
+        truth = team.network.truth()
+        assert frozenset((CONTROL, "robot3")) not in truth.links  # 9 m apart: no direct link
+        assert "robot3" in reach[CONTROL]
+        wait_until(lambda: team.peers().get("robot3") is not None and team.peers()["robot3"].up, timeout=10)
+        team.teleport("robot2", 20.0, 4.0)  # the relay leaves: robot3 is cut off
+        wait_until(lambda: "robot3" not in team.status.reach[CONTROL], timeout=5)
+        wait_until(lambda: not team.peers()["robot3"].up, timeout=10)
+    finally:
+        team.stop()
