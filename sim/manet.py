@@ -145,6 +145,7 @@ class ManetNetwork:
         self._truth: GroundTruth | None = None
         self._truth_version = -1
         self._views: dict[str, NodeView] = {}
+        self._topologies: dict[str, tuple[tuple[str, str, int], ...]] = {}
 
     # -- building and moving -------------------------------------------------------------
 
@@ -248,10 +249,14 @@ class ManetNetwork:
                 sym = other in truth.symmetric[name]
                 neighbors.append(NeighborState(other, o_info.index, o_info.address, q, sym,
                                                link_metric(q)))
-            topology = tuple(
-                (a, b, m) for a in sorted(comp, key=self._index) for b, m in
-                sorted(truth.symmetric[a].items(), key=lambda kv: self._index(kv[0]))
-            )
+            key = min(comp, key=self._index)
+            topology = self._topologies.get(key)  # shared by every node of the component
+            if topology is None:
+                topology = tuple(
+                    (a, b, m) for a in sorted(comp, key=self._index) for b, m in
+                    sorted(truth.symmetric[a].items(), key=lambda kv: self._index(kv[0]))
+                )
+                self._topologies[key] = topology
             routes = netgraph.routes_from({n: truth.symmetric[n] for n in comp}, name)
             known = dict(self._known[name])
             names = set(comp) | set(known) | {n.name for n in neighbors}
@@ -279,6 +284,7 @@ class ManetNetwork:
         self._version += 1
         self._topo_version += 1
         self._views.clear()
+        self._topologies.clear()
         self._disseminate()
 
     def _report(self, name: str, pos: KnownPosition) -> None:

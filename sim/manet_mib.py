@@ -11,8 +11,7 @@ from __future__ import annotations
 import functools
 import ipaddress
 import time
-from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, NamedTuple
 
 from sim.manet import NodeView
 
@@ -56,8 +55,7 @@ TRUE, FALSE = 1, 2  # SNMPv2-TC TruthValue
 Kind = Literal["int", "str", "ip", "gauge", "counter", "ticks", "uns", "age"]
 
 
-@dataclass(frozen=True)
-class Value:
+class Value(NamedTuple):
     """A typed SNMP value; kind `age` is a TimeTicks computed when it is read."""
 
     kind: Kind
@@ -84,8 +82,26 @@ def _cdeg(degrees: float) -> int:
     return round(((degrees + 180.0) % 360.0 - 180.0) * 100)
 
 
-def build_table(view: NodeView, comm_range: float) -> list[tuple[OID, Value]]:
-    """Every OID the node serves, sorted, with its value."""
+def topology_rows(view: NodeView) -> list[tuple[OID, Value]]:
+    """The OLSRv2 router topology set of the node's component, sorted (same for every member)."""
+    index = {n.name: n for n in view.known_nodes}
+    rows: list[tuple[OID, Value]] = []
+    add = rows.append
+    for a, b, metric in view.topology:
+        ia, ib = index[a], index[b]
+        idx = (ia.index, ib.index)
+        add((OLSRV2_TOPOLOGY + (1,) + idx, Value("int", 1)))
+        add((OLSRV2_TOPOLOGY + (2,) + idx, Value("str", _addr(ia.address))))
+        add((OLSRV2_TOPOLOGY + (3,) + idx, Value("int", 1)))
+        add((OLSRV2_TOPOLOGY + (4,) + idx, Value("str", _addr(ib.address))))
+        add((OLSRV2_TOPOLOGY + (6,) + idx, Value("uns", metric)))
+    rows.sort(key=lambda r: r[0])
+    return rows
+
+
+def build_table(view: NodeView, comm_range: float,
+                with_topology: bool = True) -> list[tuple[OID, Value]]:
+    """Every OID the node serves, sorted, with its value (without the topology set if asked)."""
     rows: list[tuple[OID, Value]] = []
     add = rows.append
     me = view.node
@@ -131,14 +147,8 @@ def build_table(view: NodeView, comm_range: float) -> list[tuple[OID, Value]]:
             add((OLSRV2_NIB_NEIGHBOR + (3,) + idx, Value("uns", nb.metric)))
             add((OLSRV2_NIB_NEIGHBOR + (4,) + idx, Value("uns", nb.metric)))
     index = {n.name: n for n in view.known_nodes}
-    for a, b, metric in view.topology:
-        ia, ib = index[a], index[b]
-        idx = (ia.index, ib.index)
-        add((OLSRV2_TOPOLOGY + (1,) + idx, Value("int", 1)))
-        add((OLSRV2_TOPOLOGY + (2,) + idx, Value("str", _addr(ia.address))))
-        add((OLSRV2_TOPOLOGY + (3,) + idx, Value("int", 1)))
-        add((OLSRV2_TOPOLOGY + (4,) + idx, Value("str", _addr(ib.address))))
-        add((OLSRV2_TOPOLOGY + (6,) + idx, Value("uns", metric)))
+    if with_topology:
+        rows.extend(topology_rows(view))
     for dest, route in view.routes.items():
         d, hop = index[dest], index[route.next_hop]
         dest_addr = tuple(_addr(d.address))

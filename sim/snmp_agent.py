@@ -24,7 +24,15 @@ from pysnmp.proto.api import v2c
 
 from sim import snmp_ber as ber
 from sim.manet import ManetNetwork
-from sim.manet_mib import INT32, OID, WRITABLE, Value, build_table, parse_position_write
+from sim.manet_mib import (
+    INT32,
+    OID,
+    WRITABLE,
+    Value,
+    build_table,
+    parse_position_write,
+    topology_rows,
+)
 
 log = logging.getLogger("erni.sim.snmp")
 
@@ -35,27 +43,50 @@ NO_SUCH_NAME, BAD_VALUE, GEN_ERR = 2, 3, 5
 WRONG_TYPE, WRONG_VALUE, NOT_WRITABLE = 7, 10, 17
 
 
-class _Table:
-    """A node's served OIDs, rebuilt when the network's version changes; each varbind is
-    encoded the first time it is read (ages every time)."""
+class _Rows:
+    """Sorted OIDs whose entries are a `Value` until first read, then the encoded varbind
+    (ages are encoded at every read)."""
 
-    __slots__ = ("version", "keys", "values", "encoded")
+    __slots__ = ("keys", "entries")
 
-    def __init__(self, version: int, rows: list[tuple[OID, Value]]) -> None:
-        self.version = version
+    def __init__(self, rows: list[tuple[OID, Value]]) -> None:
         self.keys = [r[0] for r in rows]
-        self.values = [r[1] for r in rows]
-        self.encoded: list[bytes | None] = [None] * len(rows)
+        self.entries: list[Value | bytes] = [r[1] for r in rows]
+
+    def bind(self, i: int) -> bytes:
+        entry = self.entries[i]
+        if isinstance(entry, bytes):
+            return entry
+        val = entry.resolve()
+        bound = ber.varbind(ber.oid(self.keys[i]), ber.value(val.kind, val.value))
+        if entry.kind != "age":
+            self.entries[i] = bound
+        return bound
+
+
+class _Table:
+    """A node's served OIDs, rebuilt when the network's version changes: its own rows with
+    an optional block shared by several nodes (the component's topology) spliced in."""
+
+    __slots__ = ("version", "keys", "own", "block", "at")
+
+    def __init__(self, version: int, own: _Rows, block: _Rows | None = None) -> None:
+        self.version = version
+        self.own = own
+        self.block = block if block is not None and block.keys else None
+        if self.block is None:
+            self.keys, self.at = own.keys, len(own.keys)
+        else:
+            self.at = bisect.bisect_left(own.keys, self.block.keys[0])
+            self.keys = own.keys[: self.at] + self.block.keys + own.keys[self.at:]
 
     def _bind(self, i: int) -> bytes:
-        done = self.encoded[i]
-        if done is not None:
-            return done
-        val = self.values[i].resolve()
-        bound = ber.varbind(ber.oid(self.keys[i]), ber.value(val.kind, val.value))
-        if self.values[i].kind != "age":
-            self.encoded[i] = bound
-        return bound
+        if i < self.at or self.block is None:
+            return self.own.bind(i)
+        j = i - self.at
+        if j < len(self.block.keys):
+            return self.block.bind(j)
+        return self.own.bind(i - len(self.block.keys))
 
     def get(self, oid: OID) -> bytes | None:
         """The encoded varbind of `oid`, or None."""
@@ -99,6 +130,7 @@ class ManetSnmpAgent:
         self.community = community.encode()
         self.stats: Counter[str] = Counter()
         self._tables: dict[str, _Table] = {}
+        self._blocks: dict[int, tuple[Any, _Rows, int]] = {}
         self._endpoints: dict[str, tuple[str, int]] = {}
         self._transports: dict[str, asyncio.DatagramTransport] = {}
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -192,9 +224,21 @@ class ManetSnmpAgent:
         table = self._tables.get(name)
         if table is None or table.version != version:
             view = self.network.view(name)
-            table = _Table(view.version, build_table(view, self.network.radio.comm_range))
+            rows = build_table(view, self.network.radio.comm_range, with_topology=False)
+            table = _Table(view.version, _Rows(rows), self._topology_block(view))
             self._tables[name] = table
         return table
+
+    def _topology_block(self, view: Any) -> _Rows:
+        """The topology rows of the view's component, built (and encoded) once per topology."""
+        cached = self._blocks.get(id(view.topology))
+        if cached is not None and cached[0] is view.topology:
+            return cached[1]
+        if self._blocks and next(iter(self._blocks.values()))[2] != view.topology_version:
+            self._blocks.clear()
+        block = _Rows(topology_rows(view))
+        self._blocks[id(view.topology)] = (view.topology, block, view.topology_version)
+        return block
 
     def handle(self, name: str, data: bytes) -> bytes | None:
         """Answer one datagram addressed to node `name`; None drops it (counted)."""

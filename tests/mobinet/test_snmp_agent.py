@@ -226,3 +226,27 @@ def test_change_counters_are_served(served, net):
     net.move("robot4", 170.0, 0.0)
     rows = parse(snmp("snmpget", served["robot1"], "1.3.6.1.4.1.32473.1.1.9.0").stdout)
     assert int(rows["1.3.6.1.4.1.32473.1.1.9.0"][1]) > topo
+
+
+def test_tables_with_the_shared_topology_block_are_complete_and_ordered():
+    from sim.manet_mib import build_table
+    from sim.snmp_agent import ManetSnmpAgent
+    from tests.mobinet.conftest import line_network
+    net = line_network()
+    agent = ManetSnmpAgent(net)
+    for step in range(3):
+        for name in net.names():
+            table = agent.table(name)
+            full = build_table(net.view(name), net.radio.comm_range)
+            assert table.keys == [k for k, _ in full]
+            assert all(a < b for a, b in zip(table.keys, table.keys[1:]))
+        net.move("robot5", 150.0 + step * 30, 40.0)
+
+
+def test_walking_the_whole_tree_is_strictly_increasing(served, net):
+    res = snmp("snmpwalk", served["robot3"], "1.3")
+    assert res.returncode == 0, res.stderr
+    assert "not increasing" not in res.stderr
+    rows = parse(res.stdout)
+    assert len(rows) > 100
+    assert any(k.startswith("1.3.6.1.2.1.219.1.2.8.1.6.") for k in rows)
