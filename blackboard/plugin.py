@@ -79,6 +79,10 @@ class Plugin:
         self._subs.append(sub)
         return sub
 
+    def get(self, uid: str) -> BBObject | None:
+        """Return the committed object with this uid, or None."""
+        return self._board.get(uid)
+
     def query(self, kind: type | Callable[[Any], bool] | None = None,
               where: Callable[[Any], bool] | None = None) -> list[Any]:
         """Return a snapshot of the committed objects matching a type and/or predicate."""

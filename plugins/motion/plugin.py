@@ -154,8 +154,8 @@ class RobotMotionControl(Plugin):
             self.pose = pose
 
     def _current(self, uid: str) -> Task | None:
-        found = self.query(Task, where=lambda t: t.uid == uid)
-        return found[0] if found else None
+        found = self.get(uid)
+        return found if isinstance(found, Task) else None
 
 
 def _jsonable(values: dict[str, Any]) -> dict[str, Any]:

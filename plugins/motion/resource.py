@@ -175,6 +175,15 @@ class RobotMotionResource:
             self._emit(TaskUpdate(task.uid, TaskState.SUCCEEDED, 1.0, {"cleared": len(gone)},
                                   f"behaviour stack cleared ({len(gone)} removed)"))
             return
+        if prep == "say":
+            tones = bytes(b for d, n in task.params.tones  # type: ignore[attr-defined]
+                          for b in (max(1, min(255, d)), max(1, min(127, n))))
+            if self.driver.say(tones):
+                self._emit(TaskUpdate(task.uid, TaskState.SUCCEEDED, 1.0, {"tones": len(tones) // 2},
+                                      "tones played"))
+            else:
+                self._emit(TaskUpdate(task.uid, TaskState.FAILED, 0.0, {}, "link lost: SAY not sent"))
+            return
         if prep == "avoid_obstacles":
             assert isinstance(p, AvoidParams)
             for b in [b for b in self.stack.items if isinstance(b, AvoidObstacles)]:

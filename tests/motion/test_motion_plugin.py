@@ -250,3 +250,14 @@ def test_bad_settings_are_refused_with_the_field_named(settings, needle, tmp_pat
 
 def test_real_robot_variable_selects_the_url(robot_url):
     assert robot_url == REAL_URL if REAL_URL else robot_url.startswith("socket://127.0.0.1:")
+
+
+def test_say_plays_tones_on_the_robot(start_agent):
+    agent, plugin = start_agent("sim", sim_sip_period=0.02)
+    task = Task(verb="BotMotion", preposition="say", params={"tones": [(10, 60), (20, 72)]}, source="test")
+    with agent.transaction() as tx:
+        tx.add(task)
+    assert finish(agent, task).state == TaskState.SUCCEEDED
+    robot = plugin.sim_host.robots[0]
+    wait_until(lambda: robot.said)
+    assert robot.said[-1] == bytes([10, 60, 20, 72])
