@@ -1,0 +1,272 @@
+"""The command grammar against a table of utterances: valid ones give the exact tasks, invalid
+ones the exact spoken refusal; listening state and sticky targets; generated utterances."""
+
+from __future__ import annotations
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from blackboard.tasks import PREPOSITIONS, NoParams, register_preposition
+from plugins.ui import Dialogue, Naming, Refusal, parse, vocabulary
+from plugins.ui.dialogue import LISTENING, ROGER, STANDING_BY, tasks_for
+
+KNOWN = [f"robot{i}" for i in range(1, 7)]
+ALL = KNOWN
+FT = 0.3048
+
+# (utterance, expected): expected is the refusal to say, or (robots, preposition, params) in
+# the BotMotion tier. Utterances without a subject go to the last targets: robot2 here.
+TABLE: list[tuple[str, object]] = [
+    ("robots 5 and 6 turn right 90 degrees", (["robot5", "robot6"], "turn", {"angle": -90.0})),
+    ("go forward 2 feet", (["robot2"], "forward", {"distance": 0.6096})),
+    ("robot 3 go to 4 5", (["robot3"], "goto", {"x": 4.0, "y": 5.0})),
+    ("everyone stop", (ALL, "clear", {})),
+    ("cancel", (["robot2"], "clear", {})),
+    ("random walk", (["robot2"], "randomwalk", {})),
+    ("robot three go to minus two point five and one", (["robot3"], "goto", {"x": -2.5, "y": 1.0})),
+    ("robot 1 go forward one metre", (["robot1"], "forward", {"distance": 1.0})),
+    ("robot 1 forward 50 centimetres", (["robot1"], "forward", {"distance": 0.5})),
+    ("robot 1 go back 3 feet", (["robot1"], "backward", {"distance": 0.9144})),
+    ("robot 1 back up 1 metre", (["robot1"], "backward", {"distance": 1.0})),
+    ("robot 1 move backward 2", (["robot1"], "backward", {"distance": 2.0})),
+    ("robot 4 turn left", (["robot4"], "turn", {"angle": 90.0})),
+    ("robot 4 turn right", (["robot4"], "turn", {"angle": -90.0})),
+    ("robot 4 turn around", (["robot4"], "turn", {"angle": 180.0})),
+    ("robot 4 turn left 45 degrees", (["robot4"], "turn", {"angle": 45.0})),
+    ("robot 4 turn 30 degrees right", (["robot4"], "turn", {"angle": -30.0})),
+    ("robot 4 turn by forty five degrees", (["robot4"], "turn", {"angle": 45.0})),
+    ("robot 4 rotate right one hundred eighty degrees", (["robot4"], "turn", {"angle": -180.0})),
+    ("robot 2 goto 1.5 -2", (["robot2"], "goto", {"x": 1.5, "y": -2.0})),
+    ("robot 2 go to x 3 y 4", (["robot2"], "goto", {"x": 3.0, "y": 4.0})),
+    ("robot 2 drive to 10 20", (["robot2"], "goto", {"x": 10.0, "y": 20.0})),
+    ("robot 2 head to twenty five and minus three", (["robot2"], "goto", {"x": 25.0, "y": -3.0})),
+    ("robot 2 teleport to 1 1", (["robot2"], "teleport", {"x": 1.0, "y": 1.0})),
+    ("robot 2 teleport to 0 0 facing 90", (["robot2"], "teleport", {"x": 0.0, "y": 0.0, "heading": 90.0})),
+    ("robot 2 jump to 2 feet 3 feet", (["robot2"], "teleport", {"x": 2 * FT, "y": 0.9144})),
+    ("robot 6 wander", (["robot6"], "randomwalk", {})),
+    ("robot 6 explore", (["robot6"], "randomwalk", {})),
+    ("robot 6 randomwalk", (["robot6"], "randomwalk", {})),
+    ("all robots halt", (ALL, "clear", {})),
+    ("everybody random walk", (ALL, "randomwalk", {})),
+    ("team go forward 1", (ALL, "forward", {"distance": 1.0})),
+    ("all stop", (ALL, "clear", {})),
+    ("robot 1 and robot 2 stop", (["robot1", "robot2"], "clear", {})),
+    ("robots 1, 2 and 3 go forward 1 meter", (["robot1", "robot2", "robot3"], "forward", {"distance": 1.0})),
+    ("robots one two and three freeze", (["robot1", "robot2", "robot3"], "clear", {})),
+    ("Robot 5, go forward 2 feet.", (["robot5"], "forward", {"distance": 0.6096})),
+    ("robot 5 go forward 2 feet please", (["robot5"], "forward", {"distance": 0.6096})),
+    ("robot 1 go forward 1.25 m", (["robot1"], "forward", {"distance": 1.25})),
+    ("robot 1 go forward 12 inches", (["robot1"], "forward", {"distance": 0.3048})),
+    ("robot 1 go forward one foot", (["robot1"], "forward", {"distance": 0.3048})),
+    ("robot 1 go forward zero point five metres", (["robot1"], "forward", {"distance": 0.5})),
+    ("robot 1 go to one hundred and five 0", (["robot1"], "goto", {"x": 105.0, "y": 0.0})),
+    ("robot 1 abort", (["robot1"], "clear", {})),
+    ("robot 1 cancel that", (["robot1"], "clear", {})),
+    ("robot 1 go to 3 3 now", (["robot1"], "goto", {"x": 3.0, "y": 3.0})),
+    ("ROBOT 2 STOP", (["robot2"], "clear", {})),
+    ("robot 2 go-to 1 2", (["robot2"], "goto", {"x": 1.0, "y": 2.0})),
+    ("robots 6 and 6 stop", (["robot6"], "clear", {})),
+    ("turn left 90 degrees", (["robot2"], "turn", {"angle": 90.0})),
+    # refusals: the exact sentence said back
+    ("robot 9 stop", "I don't know robot 9"),
+    ("robots 8 and 9 stop", "I don't know robots 8 and 9"),
+    ("robots 1 and 9 stop", "I don't know robot 9"),
+    ("robots 7, 8 and 9 turn left", "I don't know robots 7, 8 and 9"),
+    ("robot 1 fly", "I didn't understand fly"),
+    ("fly to the moon", "I didn't understand fly"),
+    ("robot 1 go forward", "How far?"),
+    ("robot 1 go back", "How far?"),
+    ("robot 1 go to 4", "Where to? Say x and y"),
+    ("robot 1 go to", "Where to? Say x and y"),
+    ("robot 1 go forward 0 metres", "The distance must be more than zero"),
+    ("robot 1 go forward minus 2 metres", "The distance must be more than zero"),
+    ("robot stop", "Which robot?"),
+    ("robot 1", "What should they do?"),
+    ("robot 1 turn", "Turn which way?"),
+    ("robot 1 go", "Go where?"),
+    ("", "I didn't hear a command"),
+    ("...", "I didn't hear a command"),
+    ("robot 1 stop banana", "I didn't understand banana"),
+    ("robot 1.5 stop", "I don't know robot 1.5"),
+    ("robot 1 teleport to 1 2 facing", "Facing which heading?"),
+    ("[unk]", "I didn't understand"),
+    ("robot 1 go forward 2 feet and back", "I didn't understand and back"),
+    ("robot 1 randomwalk fast", "I didn't understand fast"),
+]
+
+
+def dialogue(verb: str = "BotMotion", **kw: object) -> Dialogue:
+    d = Dialogue(Naming("robot{n}"), verb=verb, source="control", **kw)  # type: ignore[arg-type]
+    d.select(["robot2"])
+    return d
+
+
+def test_the_table_is_large_enough():
+    assert len(TABLE) >= 60 and len({u for u, _ in TABLE}) == len(TABLE)
+
+
+@pytest.mark.parametrize("utterance,expected", TABLE, ids=[u or "<empty>" for u, _ in TABLE])
+def test_utterance_gives_exact_tasks_or_refusal(utterance, expected):
+    reply = dialogue().hear(utterance, KNOWN)
+    if isinstance(expected, str):
+        assert (reply.say, reply.accepted, reply.tasks) == (expected, False, [])
+        return
+    robots, prep, params = expected  # type: ignore[misc]
+    assert reply.say == ROGER and reply.accepted
+    got = [(t.verb, t.preposition, t.destination, t.source, t.params.model_dump(exclude_defaults=True))
+           for t in reply.tasks]
+    assert got == [("BotMotion", prep, r, "control", pytest.approx(params)) for r in robots]
+    assert reply.targets == robots
+
+
+def test_remote_tier_uses_remotebotmotion_and_documented_fallbacks():
+    d = dialogue("RemoteBotMotion")
+    goto = d.hear("robot 3 go to 4 5", KNOWN).tasks[0]
+    assert (goto.verb, goto.preposition, goto.params.x, goto.params.y) == ("RemoteBotMotion", "goto", 4.0, 5.0)
+    assert [(t.verb, t.preposition) for t in d.hear("cancel", KNOWN).tasks] == [("RemoteBotMotion", "cancel")]
+    assert d.hear("forward 1", KNOWN).tasks[0].verb == "RemoteBotMotion"
+    stop = d.hear("stop", KNOWN).tasks[0]
+    remote_stop = ("RemoteBotMotion", "stop") in PREPOSITIONS
+    assert (stop.verb, stop.preposition) == (("RemoteBotMotion", "stop") if remote_stop else ("RemoteBotMotion", "cancel"))
+    turn = d.hear("turn right 45 degrees", KNOWN).tasks[0]
+    remote_turn = ("RemoteBotMotion", "turn") in PREPOSITIONS
+    assert turn.verb == ("RemoteBotMotion" if remote_turn else "BotMotion") and turn.params.angle == -45.0
+    assert turn.destination == "robot3"
+
+
+def test_attention_and_sleep_gate_what_is_heard():
+    d = Dialogue(Naming(), verb="BotMotion", listening=False)
+    ignored = d.hear("robot 1 stop", KNOWN)
+    assert ignored.say is None and ignored.tasks == []
+    assert d.hear("robot 9 fly", KNOWN).say is None  # refusals are not spoken while standing by
+    assert d.hear("Attention!", KNOWN).say == LISTENING
+    assert d.hear("robot 1 stop", KNOWN).say == ROGER
+    assert d.hear("go to sleep", KNOWN).say == STANDING_BY
+    assert d.hear("robot 1 go forward 1", KNOWN).tasks == []
+    assert d.hear("attention", KNOWN).say == LISTENING and d.listening
+
+
+def test_targets_stay_until_new_ones_are_named():
+    d = Dialogue(Naming(), verb="BotMotion")
+    assert d.hear("go forward 1", KNOWN).say == "Which robots?"
+    d.hear("robots 5 and 6 turn right 90 degrees", KNOWN)
+    assert [t.destination for t in d.hear("go forward 2 feet", KNOWN).tasks] == ["robot5", "robot6"]
+    assert d.hear("robot 9 stop", KNOWN).say == "I don't know robot 9"  # a refusal keeps the targets
+    assert [t.destination for t in d.hear("cancel", KNOWN).tasks] == ["robot5", "robot6"]
+    d.hear("everyone stop", KNOWN)
+    assert [t.destination for t in d.hear("turn left", KNOWN).tasks] == KNOWN
+    assert d.hear("everyone stop", []).say == "I don't know any robots"
+
+
+def test_robot_numbers_map_to_configured_agent_names():
+    naming = Naming("amigo-{n}")
+    assert (naming.name(3), naming.number("amigo-12"), naming.number("robot3")) == ("amigo-3", 12, None)
+    d = Dialogue(naming, verb="BotMotion")
+    assert [t.destination for t in d.hear("robot 3 stop", ["amigo-3"]).tasks] == ["amigo-3"]
+    assert d.hear("robot 3 stop", ["robot3"]).say == "I don't know robot 3"
+    with pytest.raises(ValueError, match=r"robot naming 'robot': expected a pattern with one \{n\}"):
+        Naming("robot")
+
+
+def test_deployment_strategies_of_the_task_language_are_spoken_by_name():
+    register_preposition("RemoteBotMotion", "spread_out", NoParams, "test strategy")
+    try:
+        assert "spread" in vocabulary() and "out" in vocabulary()
+        task = dialogue("RemoteBotMotion").hear("everyone spread out", KNOWN).tasks
+        assert [(t.verb, t.preposition, t.destination) for t in task] == [
+            ("RemoteBotMotion", "spread_out", r) for r in KNOWN]
+    finally:
+        del PREPOSITIONS[("RemoteBotMotion", "spread_out")]
+    assert dialogue("RemoteBotMotion").hear("everyone spread out", KNOWN).say == "I didn't understand spread"
+
+
+def test_an_action_the_tier_lacks_is_refused_by_name():
+    with pytest.raises(Refusal, match="They can't dance"):
+        tasks_for("dance", {}, ["robot1"], verb="BotMotion", source="control")
+
+
+def test_vocabulary_covers_every_word_of_the_table():
+    vocab = set(vocabulary())
+    from plugins.ui.grammar import tokens
+
+    for utterance, expected in TABLE:
+        if isinstance(expected, str):
+            continue
+        for word in tokens(utterance):
+            if word.isalpha() and word not in ("m", "goto", "randomwalk"):
+                assert word in vocab, (word, utterance)
+
+
+# --- generated utterances -----------------------------------------------------------------------
+
+ONES = "zero one two three four five six seven eight nine".split()
+TEENS = "ten eleven twelve thirteen fourteen fifteen sixteen seventeen eighteen nineteen".split()
+TENS = "_ _ twenty thirty forty fifty sixty seventy eighty ninety".split()
+
+
+def words(n: int) -> str:
+    """English words for 0..999 (the test's own spelling, independent of the grammar)."""
+    if n < 10:
+        return ONES[n]
+    if n < 20:
+        return TEENS[n - 10]
+    if n < 100:
+        return TENS[n // 10] + ("" if n % 10 == 0 else " " + ONES[n % 10])
+    rest = n % 100
+    return ONES[n // 100] + " hundred" + ("" if rest == 0 else " " + words(rest))
+
+
+@given(st.integers(0, 999), st.booleans())
+def test_numbers_as_words_or_digits_parse_to_the_same_distance(n, as_words):
+    spoken = words(n) if as_words else str(n)
+    if n == 0:
+        assert dialogue().hear(f"robot 1 go forward {spoken} metres", KNOWN).say == "The distance must be more than zero"
+        return
+    cmd = parse(f"robot 1 go forward {spoken} metres")
+    assert (cmd.robots, cmd.action, cmd.params) == ((1,), "forward", {"distance": float(n)})
+
+
+numbers = st.one_of(st.integers(-99, 99).map(lambda n: (float(n), (("minus " if n < 0 else "") + words(abs(n))))),
+                    st.integers(-999, 999).map(lambda n: (n / 10, f"{n / 10:g}")))
+units = st.sampled_from([("metres", 1.0), ("feet", FT), ("centimetres", 0.01), ("", 1.0)])
+subjects = st.one_of(st.just(((), "")), st.lists(st.integers(1, 6), min_size=1, max_size=3, unique=True).map(
+    lambda ns: (tuple(ns), ("robot " if len(ns) == 1 else "robots ") + " and ".join(map(str, ns)) + " ")))
+
+
+@given(subjects, numbers, numbers, st.sampled_from(["go to", "goto", "move to", "drive to"]))
+def test_generated_gotos_give_the_named_point(subject, x, y, verb):
+    robots, said = subject
+    cmd = parse(f"{said}{verb} {x[1]} and {y[1]}")
+    assert (cmd.robots, cmd.action) == (robots, "goto")
+    assert cmd.params == {"x": pytest.approx(x[0]), "y": pytest.approx(y[0])}
+
+
+@given(subjects, numbers, units, st.sampled_from(["forward", "back"]))
+def test_generated_moves_give_metres(subject, amount, unit, way):
+    robots, said = subject
+    reply = dialogue().hear(f"{said}go {way} {amount[1]} {unit[0]}", KNOWN)
+    metres = round(amount[0] * unit[1], 6)
+    if metres <= 0:
+        assert reply.say == "The distance must be more than zero"
+        return
+    names = [f"robot{n}" for n in robots] or ["robot2"]
+    prep = "forward" if way == "forward" else "backward"
+    assert [(t.preposition, t.destination, t.params.distance) for t in reply.tasks] == [
+        (prep, n, pytest.approx(metres)) for n in names]
+
+
+@given(st.text(max_size=60))
+def test_any_text_is_answered_never_crashes(text):
+    reply = dialogue().hear(text, KNOWN)
+    assert reply.say is not None
+    assert reply.accepted or not reply.tasks
+    assert reply.accepted or reply.say not in (ROGER, LISTENING, STANDING_BY)
+
+
+@given(st.lists(st.sampled_from(vocabulary() + ["1", "2.5", "-3", "9"]), max_size=10))
+def test_any_sequence_of_grammar_words_is_answered(words_):
+    reply = dialogue().hear(" ".join(words_), KNOWN)
+    assert reply.say is not None
+    for task in reply.tasks:
+        assert task.destination in KNOWN
