@@ -162,7 +162,8 @@ def test_teleport_in_odometry_mode_relocalises_without_moving_the_robot(start_ag
     agent, _ = start_agent(host.url(), teleport="odometry")
     done = finish(agent, post(agent, "teleport", x=-3.0, y=4.0, heading=180))
     assert done.state == TaskState.SUCCEEDED
-    p = pose(agent)
+    # the Pose of the relocalised odometry follows within a poll period or two
+    p = wait_until(lambda: (q := pose(agent)) and abs(q.x + 3.0) < 0.01 and q, timeout=3)
     assert (p.x, p.y) == pytest.approx((-3.0, 4.0), abs=0.01) and abs(p.theta) == pytest.approx(math.pi, abs=0.02)
     assert (host.robots[0].x, host.robots[0].y) == pytest.approx((0.0, 0.0), abs=0.01)
 
