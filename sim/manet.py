@@ -143,7 +143,6 @@ class ManetNetwork:
         self._version = 0
         self._topo_version = 0
         self._truth: GroundTruth | None = None
-        self._truth_version = -1
         self._views: dict[str, NodeView] = {}
         self._topologies: dict[str, tuple[tuple[str, str, int], ...]] = {}
 
@@ -167,7 +166,7 @@ class ManetNetwork:
             self._pos[name] = (float(x), float(y))
             self._known[name] = {}
             self._updates[name] = 0
-            self._changed()
+            self._changed(nodes_changed=True)
             self._report(name, KnownPosition(float(x), float(y), float(heading)))
             return info
 
@@ -198,14 +197,12 @@ class ManetNetwork:
             self._require(name)
             self._updates[name] += 1
             self._report(name, KnownPosition(float(x), float(y), float(heading)))
-            self._version += 1
-            self._views.clear()
 
     # -- reading --------------------------------------------------------------------------
 
     @property
     def version(self) -> int:
-        """Counter bumped by every change (moves, reports)."""
+        """Counter bumped whenever anything a node serves changes (links, routes, reports)."""
         return self._version
 
     def names(self) -> list[str]:
@@ -225,9 +222,8 @@ class ManetNetwork:
     def truth(self) -> GroundTruth:
         """The ground truth of the whole network (cached until the next change)."""
         with self._lock:
-            if self._truth is None or self._truth_version != self._topo_version:
+            if self._truth is None:
                 self._truth = self._compute_truth()
-                self._truth_version = self._topo_version
             return self._truth
 
     def view(self, name: str) -> NodeView:
@@ -280,7 +276,12 @@ class ManetNetwork:
         except KeyError:
             raise KeyError(f"unknown node {name!r}; known: {', '.join(self._nodes) or 'none'}") from None
 
-    def _changed(self) -> None:
+    def _changed(self, nodes_changed: bool = False) -> None:
+        """Recompute the truth after moves; bump versions only if what nodes serve changed."""
+        old, new = self._truth, self._compute_truth()
+        self._truth = new
+        if not nodes_changed and old is not None and _same_links(old, new):
+            return  # e.g. moves within the loss-free range: links, metrics and routes stand
         self._version += 1
         self._topo_version += 1
         self._views.clear()
@@ -291,6 +292,7 @@ class ManetNetwork:
         comp = next(c for c in self.truth().components if name in c)
         for member in comp:
             self._known[member][name] = pos
+        self._version += 1
         self._views.clear()
 
     def _disseminate(self) -> None:
@@ -329,6 +331,13 @@ class ManetNetwork:
             components=netgraph.connected_components(sym),
             articulation_points=netgraph.articulation_points(sym),
         )
+
+
+def _same_links(a: GroundTruth, b: GroundTruth) -> bool:
+    """True when two truths serve the same links: metrics and qualities (to 1/1000) agree."""
+    if a.symmetric != b.symmetric or a.links.keys() != b.links.keys():
+        return False
+    return all(round(q * 1000) == round(b.links[k] * 1000) for k, q in a.links.items())
 
 
 def _check_xy(name: Any, x: Any, y: Any) -> None:

@@ -137,3 +137,21 @@ def test_scenario_files(tmp_path):
     bad.write_text("nodes = [\n")
     with pytest.raises(ScenarioError, match="not valid TOML"):
         load_scenario(bad)
+
+
+def test_moves_that_change_no_link_change_nothing_served():
+    net = ManetNetwork(RadioModel(100.0, 50.0))
+    net.add_node("a", 0, 0)
+    net.add_node("b", 10, 0)
+    net.add_node("c", 300, 0)                  # out of everyone's range
+    before, view = net.version, net.view("a")
+    net.move("b", 12, 3)                       # a-b stays loss-free: nothing served changes
+    assert net.truth().positions["b"] == (12.0, 3.0)
+    assert net.version == before
+    assert net.view("a") is view
+    net.move("c", 80, 0)                       # c joins through lossy links
+    assert net.version > before
+    assert {n.name for n in net.view("a").neighbors} == {"b", "c"}
+    before = net.version
+    net.set_position("a", 1, 1)                # a report is served: version moves
+    assert net.version > before
