@@ -25,11 +25,11 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from plugins.mobinet import snmp as mib  # noqa: E402
-from plugins.mobinet.snmp import SnmpSource  # noqa: E402
-from plugins.mobinet.resource import NEIGHBORS, PARTS, TOPOLOGY  # noqa: E402
-from sim.manet import ManetNetwork, RadioModel  # noqa: E402
-from sim.snmp_agent import ManetSnmpAgent  # noqa: E402
+from plugins.mobinet import snmp as mib
+from plugins.mobinet.resource import NEIGHBORS, PARTS, TOPOLOGY
+from plugins.mobinet.snmp import SnmpSource
+from sim.manet import ManetNetwork, RadioModel
+from sim.snmp_agent import ManetSnmpAgent
 
 ECHO = """
 import socket, sys

@@ -47,7 +47,7 @@ class _Rows:
     """Sorted OIDs whose entries are a `Value` until first read, then the encoded varbind
     (ages are encoded at every read)."""
 
-    __slots__ = ("keys", "entries")
+    __slots__ = ("entries", "keys")
 
     def __init__(self, rows: list[tuple[OID, Value]]) -> None:
         self.keys = [r[0] for r in rows]
@@ -68,7 +68,7 @@ class _Table:
     """A node's served OIDs, rebuilt when the network's version changes: its own rows with
     an optional block shared by several nodes (the component's topology) spliced in."""
 
-    __slots__ = ("version", "keys", "own", "block", "at")
+    __slots__ = ("at", "block", "keys", "own", "version")
 
     def __init__(self, version: int, own: _Rows, block: _Rows | None = None) -> None:
         self.version = version
@@ -213,7 +213,7 @@ class ManetSnmpAgent:
     def __enter__(self) -> ManetSnmpAgent:
         return self.start()
 
-    def __exit__(self, *exc: Any) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     # -- request handling (runs on the agent's thread) -------------------------------------

@@ -5,9 +5,8 @@ is the one interface a network subsystem is read through (`SnmpSource` speaks SN
 """
 
 from plugins.mobinet.control import MobiNetControl
-from plugins.mobinet.resource import MobiNetResource
+from plugins.mobinet.resource import MobiNetResource, NetView, NetworkSource, SourceError
 from plugins.mobinet.snmp import SnmpSource
-from plugins.mobinet.resource import NetView, NetworkSource, SourceError
 
 __all__ = ["MobiNetControl", "MobiNetResource", "NetView", "NetworkSource", "SnmpSource",
            "SourceError"]

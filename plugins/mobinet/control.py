@@ -17,9 +17,16 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field
 
 from blackboard import NetInfo, Plugin, Pose, Position, Task, TaskState
-from plugins.mobinet.resource import MobiNetResource
+from plugins.mobinet.resource import (
+    NEIGHBORS,
+    POSITIONS,
+    ROUTES,
+    TOPOLOGY,
+    MobiNetResource,
+    NetView,
+    NetworkSource,
+)
 from plugins.mobinet.snmp import SnmpSource, articulation_points
-from plugins.mobinet.resource import NEIGHBORS, POSITIONS, ROUTES, TOPOLOGY, NetView, NetworkSource
 
 PARTS_OF = {
     "node_position": frozenset({POSITIONS}),

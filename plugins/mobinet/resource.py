@@ -242,7 +242,7 @@ class MobiNetResource:
                 self._kick.clear()
                 try:
                     await asyncio.wait_for(self._kick.wait(), max(0.0, nxt - now))
-                except asyncio.TimeoutError:
+                except TimeoutError:
                     pass
                 continue
             parts = frozenset().union(*(w.parts for w in due))

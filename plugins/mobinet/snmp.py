@@ -34,7 +34,14 @@ from pysnmp.proto import rfc1902, rfc1905
 
 import netgraph
 from blackboard import Link, Neighbor, Position, Route
-from plugins.mobinet.resource import NEIGHBORS, POSITIONS, ROUTES, TOPOLOGY, NetView, SourceError
+from plugins.mobinet.resource import (
+    NEIGHBORS,
+    POSITIONS,
+    ROUTES,
+    TOPOLOGY,
+    NetView,
+    SourceError,
+)
 
 # --- the OIDs read and written (numeric: pysnmp ships none of these MIBs) -------------
 # ERNI units: positions in mm, headings in centidegrees, link quality in thousandths;

@@ -70,7 +70,7 @@ class BadAgent:
         while not self._stop.is_set():
             try:
                 data, peer = self.sock.recvfrom(65535)
-            except (TimeoutError, socket.timeout):
+            except TimeoutError:
                 continue
             except OSError:
                 return

@@ -86,8 +86,8 @@ def test_every_netwatch_preposition_is_answered_from_live_snmp(served, net, make
         n: xy for n, xy in truth.positions.items()}
 
     for prep, task in tasks.items():
-        res = wait_until(lambda: (t := result_of(agent, task)).result and t.result.values.get(
-            "netinfo") and len(t.result.values) > 1 and t)
+        res = wait_until(lambda task=task: (t := result_of(agent, task)).result and
+                         t.result.values.get("netinfo") and len(t.result.values) > 1 and t)
         assert res.result.state == TaskState.RUNNING, prep
         assert res.result.values["netinfo"] == f"netinfo:{task.uid}"
     topo_task = result_of(agent, tasks["network_topology"])

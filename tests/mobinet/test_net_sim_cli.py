@@ -8,8 +8,6 @@ import signal
 import subprocess
 import sys
 
-import pytest
-
 ADDR_RE = re.compile(r"^\s+(\S+)\s+(\d+\.\d+\.\d+\.\d+)\s+snmp udp:([\d.]+):(\d+)$")
 
 

@@ -9,7 +9,12 @@ import time
 
 from blackboard import Position
 from blackboard.testing import wait_until
-from plugins.mobinet.resource import MobiNetResource, NetView, NetworkSource, SourceError
+from plugins.mobinet.resource import (
+    MobiNetResource,
+    NetView,
+    NetworkSource,
+    SourceError,
+)
 
 
 class ScriptedSource:

@@ -8,8 +8,8 @@ import time
 import pytest
 
 from blackboard import Position
-from plugins.mobinet.snmp import SnmpSource, articulation_points
 from plugins.mobinet.resource import PARTS, NetworkSource, SourceError
+from plugins.mobinet.snmp import SnmpSource, articulation_points
 from sim.manet import METRIC_UNIT
 
 
