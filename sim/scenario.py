@@ -106,7 +106,7 @@ class RobotsSpec(_Strict):
     origin: tuple[float, float] = (0.0, 0.0)
     spacing: float = Field(1.5, gt=0, description="distance between neighbours in line and grid (m)")
     area: float = Field(2.0, gt=0, description="side of the square of the random layout (m)")
-    heading: float | None = Field(90.0, description="start heading (deg); none = random")
+    heading: float | Literal["random"] = Field(90.0, description="start heading (deg), or 'random'")
 
 
 class ControlSpec(_Strict):
@@ -234,7 +234,7 @@ class Scenario(_Strict):
             else:
                 half = spec.area / 2
                 x, y = ox + rng.uniform(-half, half), oy + rng.uniform(-half, half)
-            heading = spec.heading if spec.heading is not None else rng.uniform(-180.0, 180.0)
+            heading = rng.uniform(-180.0, 180.0) if spec.heading == "random" else float(spec.heading)
             out.append(RobotStart(name=f"robot{i + 1}", x=x, y=y, heading=heading))
         return out
 
@@ -275,7 +275,7 @@ def parse_scenario(data: dict[str, Any], source: str = "<scenario>", base: Path 
     try:
         return Scenario.model_validate(data)
     except ValidationError as err:
-        raise ScenarioError(format_errors(source, err)) from None
+        raise ScenarioError(format_errors(source, err).replace("Value error, ", "")) from None
 
 
 def load_scenario(path: str | Path) -> Scenario:

@@ -1,0 +1,63 @@
+"""Drawing helpers shared by the experiments' figures: the world, robots, and tidy axes."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from sim.world import World
+
+COLORS = ["#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e", "#8c564b", "#e377c2", "#17becf"]
+
+
+def color(i: int) -> str:
+    """The i-th colour of the experiments' palette."""
+    return COLORS[i % len(COLORS)]
+
+
+def draw_world(ax: Any, world: World) -> None:
+    """Draw walls, bounds and polygons as dark lines and circles as grey discs."""
+    from matplotlib.patches import Circle, Polygon
+
+    first = True
+    for a, b in world.segments():
+        (x1, y1), (x2, y2) = a, b
+        ax.plot([x1, x2], [y1, y2], color="#333333", lw=2.5, solid_capstyle="butt",
+                label="wall" if first else None, zorder=2)
+        first = False
+    for i, c in enumerate(world.circle):
+        ax.add_patch(Circle(c.center, c.radius, facecolor="#9e9e9e", edgecolor="#424242", lw=1.2,
+                            label="obstacle" if i == 0 else None, zorder=2))
+    for poly in world.polygon:
+        ax.add_patch(Polygon(poly.points, closed=True, facecolor="#bdbdbd", edgecolor="#424242", zorder=2))
+
+
+def map_axes(ax: Any, title: str) -> None:
+    """Equal-scale x/y axes in metres with a light grid."""
+    ax.set_aspect("equal", adjustable="box")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_title(title)
+    ax.grid(True, color="#e0e0e0", lw=0.6)
+
+
+def time_axes(ax: Any, title: str, ylabel: str) -> None:
+    """A time axis in seconds with a light grid."""
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.grid(True, color="#e0e0e0", lw=0.6)
+
+
+def headings(ax: Any, pos: np.ndarray, th: np.ndarray, length: float, **kw: Any) -> None:
+    """Draw each robot's heading as a short arrow."""
+    ax.quiver(pos[:, 0], pos[:, 1], np.cos(th) * length, np.sin(th) * length, angles="xy",
+              scale_units="xy", scale=1, width=0.0025, headwidth=3.5, headlength=4, **kw)
+
+
+def range_circle(ax: Any, x: float, y: float, r: float, **kw: Any) -> None:
+    """Draw a dashed circle of radius r (a communication or sensing range)."""
+    a = np.linspace(0, 2 * math.pi, 120)
+    ax.plot(x + r * np.cos(a), y + r * np.sin(a), ls="--", lw=0.8, **kw)
