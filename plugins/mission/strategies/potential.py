@@ -1,0 +1,269 @@
+"""Potential-field self-deployment (paper 001, section 3, equations 6, 8, 15 and 16).
+
+Each robot i is a point mass m with moment of inertia I, pose (x, y, theta). Its artificial
+potential is U_i = sum_j w/2 (|p_j - p_i| - d_ij)^2 + chi/2 (phi_i - theta_i)^2, where the
+sum runs over its neighbourhood (robots, plus the nearest point of each obstacle and wall in
+sensing range, with desired distances d_ij = a, b or c) and phi_i is the direction of the
+neighbourhood's weighted centre s_i = (1/n) sum_j w (p_j - p_i). With Rayleigh damping k:
+- holonomic (15):    m a = -dU/dp - k v,         I theta'' = -dU/dtheta - k theta'
+- nonholonomic (16): the velocity stays along the heading h = (cos theta, sin theta):
+                     m v' = (-dU/dp) . h - k v,  I theta'' = -dU/dtheta - k theta'
+Integration is semi-implicit Euler with period dt.
+
+Neighbourhoods: "physical" (robots within `range`) or "delaunay" (one-hop neighbours of the
+Delaunay triangulation of all robots, scipy.spatial.Delaunay). Obstacles and walls count only
+within `range`.
+
+Inputs (pure, numpy): `pos` (N, 2) m; `theta` (N,) rad; `vel` (N, 2) m/s (for nonholonomic
+robots the velocity along the heading times h); `omega` (N,) rad/s; `obstacles` (M, 3) circles
+(x, y, r) m; `walls` (K, 4) segments (x1, y1, x2, y2) m. Output of `spread_step`: the next
+(pos, theta, vel, omega). Scenario constants of the paper: d = 5, k = 2, chi = w = 1, dt = 0.2,
+120 robots starting in [-1, 1]^2; corridor walls at y = +-15.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+EPS = 1e-9
+
+
+@dataclass(frozen=True)
+class SpreadConfig:
+    """Constants of the deployment motion (units: m, s, kg, kg m^2)."""
+
+    distance: float = 5.0          # desired robot-robot distance a (m)
+    obstacle_distance: float = 2.0  # desired robot-obstacle distance b (m)
+    wall_distance: float = 2.5     # desired robot-wall distance c (m)
+    gain: float = 2.0              # viscous damping k (kx = ky = ktheta)
+    dt: float = 0.2                # integration period (s)
+    range: float = 15.0            # sensing/communication range (m)
+    neighbourhood: str = "physical"  # "physical" or "delaunay"
+    model: str = "holonomic"       # "holonomic" or "nonholonomic"
+    chi: float = 1.0               # weight of the heading term
+    weight: float = 1.0            # w_ij
+    mass: float = 1.0
+    inertia: float = 1.0
+    vmax: float | None = None      # speed limit (m/s), None = unlimited
+    wmax: float | None = None      # turn-rate limit (rad/s), None = unlimited
+
+    def __post_init__(self) -> None:
+        for name in ("distance", "gain", "dt", "range", "mass", "inertia"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name}: expected a positive number, got {getattr(self, name)!r}")
+        if self.neighbourhood not in ("physical", "delaunay"):
+            raise ValueError(f"neighbourhood: expected 'physical' or 'delaunay', got {self.neighbourhood!r}")
+        if self.model not in ("holonomic", "nonholonomic"):
+            raise ValueError(f"model: expected 'holonomic' or 'nonholonomic', got {self.model!r}")
+
+
+def wrap(a: np.ndarray | float) -> np.ndarray | float:
+    """Wrap angles (rad) into [-pi, pi)."""
+    return (np.asarray(a) + math.pi) % (2 * math.pi) - math.pi
+
+
+def neighbourhoods(pos: ArrayLike, mode: str = "physical", rng: float = 15.0) -> list[np.ndarray]:
+    """Return, for each robot, the indices of its neighbours (physical: within `rng`; or Delaunay)."""
+    p = np.asarray(pos, dtype=float)
+    n = len(p)
+    if mode == "physical":
+        d = np.hypot(*(p[:, None, :] - p[None, :, :]).transpose(2, 0, 1))
+        np.fill_diagonal(d, math.inf)
+        return [np.flatnonzero(d[i] <= rng) for i in range(n)]
+    if mode != "delaunay":
+        raise ValueError(f"mode: expected 'physical' or 'delaunay', got {mode!r}")
+    if n < 2:
+        return [np.zeros(0, dtype=int) for _ in range(n)]
+    try:
+        from scipy.spatial import Delaunay, QhullError
+
+        tri = Delaunay(p)
+    except (QhullError, ValueError):  # fewer than 3 points or all collinear: everyone is a neighbour
+        return [np.delete(np.arange(n), i) for i in range(n)]
+    indptr, indices = tri.vertex_neighbor_vertices
+    out = [np.sort(indices[indptr[i]:indptr[i + 1]]) for i in range(n)]
+    # points Qhull dropped as coincident get the neighbours of the point they coincide with
+    for i in range(n):
+        if len(out[i]) == 0:
+            j = tri.coplanar[tri.coplanar[:, 0] == i, 2] if len(tri.coplanar) else np.zeros(0, dtype=int)
+            out[i] = np.array(sorted(set(out[int(j[0])]) | {int(j[0])} - {i}), dtype=int) if len(j) else \
+                np.delete(np.arange(n), i)
+    return out
+
+
+def nearest_on_segments(p: np.ndarray, walls: np.ndarray) -> np.ndarray:
+    """Return the nearest point (K, 2) on each wall segment (x1, y1, x2, y2) to point p."""
+    a, b = walls[:, :2], walls[:, 2:]
+    ab = b - a
+    length2 = np.einsum("ij,ij->i", ab, ab)
+    s = np.where(length2 > EPS, np.einsum("ij,ij->i", p - a, ab) / np.where(length2 > EPS, length2, 1.0), 0.0)
+    return a + np.clip(s, 0.0, 1.0)[:, None] * ab
+
+
+def nearest_on_circles(p: np.ndarray, obstacles: np.ndarray) -> np.ndarray:
+    """Return the nearest point (M, 2) on each circle (x, y, r) to point p (the centre if p is inside)."""
+    c, r = obstacles[:, :2], obstacles[:, 2]
+    off = p - c
+    dist = np.hypot(off[:, 0], off[:, 1])
+    unit = np.where(dist[:, None] > EPS, off / np.where(dist > EPS, dist, 1.0)[:, None], 0.0)
+    return c + unit * np.minimum(r, dist)[:, None]
+
+
+def forces(pos: ArrayLike, theta: ArrayLike, cfg: SpreadConfig, obstacles: ArrayLike | None = None,
+           walls: ArrayLike | None = None, nbrs: list[np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Return (-dU/dp (N, 2), -dU/dtheta (N,)): the potential's force and torque on each robot."""
+    p = np.asarray(pos, dtype=float)
+    th = np.asarray(theta, dtype=float)
+    n = len(p)
+    obs = np.zeros((0, 3)) if obstacles is None or np.size(obstacles) == 0 else np.asarray(obstacles, float).reshape(-1, 3)
+    wal = np.zeros((0, 4)) if walls is None or np.size(walls) == 0 else np.asarray(walls, float).reshape(-1, 4)
+    if nbrs is None:
+        nbrs = neighbourhoods(p, cfg.neighbourhood, cfg.range)
+    force = np.zeros((n, 2))
+    torque = np.zeros(n)
+    w = cfg.weight
+    for i in range(n):
+        pts = [p[nbrs[i]]]
+        want = [np.full(len(nbrs[i]), cfg.distance)]
+        if len(obs):
+            q = nearest_on_circles(p[i], obs)
+            near = np.hypot(*(q - p[i]).T) <= cfg.range
+            pts.append(q[near])
+            want.append(np.full(int(near.sum()), cfg.obstacle_distance))
+        if len(wal):
+            q = nearest_on_segments(p[i], wal)
+            near = np.hypot(*(q - p[i]).T) <= cfg.range
+            pts.append(q[near])
+            want.append(np.full(int(near.sum()), cfg.wall_distance))
+        others = np.concatenate(pts)
+        if len(others) == 0:
+            continue
+        dij = np.concatenate(want)
+        rel = others - p[i]
+        dist = np.hypot(rel[:, 0], rel[:, 1])
+        ok = dist > EPS
+        unit = np.zeros_like(rel)
+        unit[ok] = rel[ok] / dist[ok, None]
+        if not ok.all():  # coincident: push apart in a direction fixed by the robot's index
+            ang = 2.0 * math.pi * ((i * 0.618034) % 1.0)
+            unit[~ok] = (math.cos(ang), math.sin(ang))
+        force[i] = (w * (dist - dij)[:, None] * unit).sum(axis=0)
+        # heading term: turn toward the neighbourhood's weighted centre s = mean(w (p_j - p_i))
+        s = w * rel.mean(axis=0)
+        s2 = float(s @ s)
+        if s2 > 1e-6:
+            s2 = max(s2, (0.1 * cfg.distance) ** 2)  # regularised: |s| floored at d / 10
+            err = float(wrap(math.atan2(s[1], s[0]) - th[i]))
+            torque[i] = cfg.chi * err
+            force[i] += cfg.chi * err * w * np.array([-s[1], s[0]]) / s2
+    return force, torque
+
+
+def _clip_norm(v: np.ndarray, vmax: float | None) -> np.ndarray:
+    if vmax is None:
+        return v
+    speed = np.hypot(v[:, 0], v[:, 1])
+    scale = np.where(speed > vmax, vmax / np.where(speed > 0, speed, 1.0), 1.0)
+    return v * scale[:, None]
+
+
+def spread_step(pos: ArrayLike, theta: ArrayLike, vel: ArrayLike, omega: ArrayLike, cfg: SpreadConfig,
+                obstacles: ArrayLike | None = None, walls: ArrayLike | None = None
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Advance every robot one period `cfg.dt` by equation (15) or (16); return (pos, theta, vel, omega)."""
+    p = np.asarray(pos, dtype=float)
+    th = np.asarray(theta, dtype=float)
+    v = np.asarray(vel, dtype=float).reshape(-1, 2)
+    om = np.asarray(omega, dtype=float)
+    if not (len(p) == len(th) == len(v) == len(om)):
+        raise ValueError("spread_step: pos, theta, vel and omega must describe the same robots")
+    nbrs = neighbourhoods(p, cfg.neighbourhood, cfg.range)
+    # substeps keep the stiffest neighbourhood's spring stable: h * sqrt(n w / m) <= 0.5
+    degree = max((len(x) for x in nbrs), default=0) + 2
+    substeps = min(50, max(1, math.ceil(cfg.dt * math.sqrt(degree * cfg.weight / cfg.mass) / 0.5)))
+    h = cfg.dt / substeps
+    for _ in range(substeps):
+        p, th, v, om = _integrate(p, th, v, om, cfg, h, obstacles, walls, nbrs)
+    return p, th, v, om
+
+
+def _integrate(p: np.ndarray, th: np.ndarray, v: np.ndarray, om: np.ndarray, cfg: SpreadConfig, dt: float,
+               obstacles: ArrayLike | None, walls: ArrayLike | None, nbrs: list[np.ndarray]
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    f, tq = forces(p, th, cfg, obstacles, walls, nbrs)
+    k = cfg.gain
+    om = om + dt * (tq - k * om) / cfg.inertia
+    if cfg.wmax is not None:
+        om = np.clip(om, -cfg.wmax, cfg.wmax)
+    th = np.asarray(wrap(th + dt * om))
+    if cfg.model == "holonomic":
+        v = _clip_norm(v + dt * (f - k * v) / cfg.mass, cfg.vmax)
+    else:
+        hd = np.stack([np.cos(th), np.sin(th)], axis=1)
+        speed = np.einsum("ij,ij->i", v, hd)  # keep the longitudinal part only
+        speed = speed + dt * (np.einsum("ij,ij->i", f, hd) - k * speed) / cfg.mass
+        if cfg.vmax is not None:
+            speed = np.clip(speed, -cfg.vmax, cfg.vmax)
+        v = speed[:, None] * hd
+    return p + dt * v, th, v, om
+
+
+def robot_command(pos: ArrayLike, theta: float, speed: float, omega: float, i: int, cfg: SpreadConfig,
+                  obstacles: ArrayLike | None = None, walls: ArrayLike | None = None) -> tuple[float, float]:
+    """Return one nonholonomic robot's next (v m/s, w rad/s) from its neighbours' positions `pos`."""
+    p = np.asarray(pos, dtype=float)
+    th = np.zeros(len(p))
+    th[i] = theta
+    vel = np.zeros((len(p), 2))
+    vel[i] = speed * np.array([math.cos(theta), math.sin(theta)])
+    om = np.zeros(len(p))
+    om[i] = omega
+    f, tq = forces(p, th, cfg, obstacles, walls)
+    om_i = omega + cfg.dt * (tq[i] - cfg.gain * omega) / cfg.inertia
+    h = np.array([math.cos(theta), math.sin(theta)])
+    if cfg.model == "holonomic":  # a wheeled robot steers toward the holonomic velocity
+        v_i = vel[i] + cfg.dt * (f[i] - cfg.gain * vel[i]) / cfg.mass
+        sp = float(np.hypot(*v_i))
+        if sp < 1e-3:
+            return 0.0, 0.0
+        err = float(wrap(math.atan2(v_i[1], v_i[0]) - theta))
+        if abs(err) > math.pi / 2:  # drive backwards rather than turn around
+            err = float(wrap(err + math.pi))
+            sp = -sp
+        sp *= max(0.0, math.cos(err))
+        out_w = err / max(cfg.dt, 0.5)
+    else:
+        sp = speed + cfg.dt * (float(f[i] @ h) - cfg.gain * speed) / cfg.mass
+        out_w = om_i
+    if cfg.vmax is not None:
+        sp = max(-cfg.vmax, min(cfg.vmax, sp))
+    if cfg.wmax is not None:
+        out_w = max(-cfg.wmax, min(cfg.wmax, out_w))
+    return float(sp), float(out_w)
+
+
+def mean_nn_distance(pos: ArrayLike) -> float:
+    """Return the mean distance (m) from each robot to its nearest other robot."""
+    p = np.asarray(pos, dtype=float)
+    if len(p) < 2:
+        return 0.0
+    d = np.hypot(*(p[:, None, :] - p[None, :, :]).transpose(2, 0, 1))
+    np.fill_diagonal(d, math.inf)
+    return float(d.min(axis=1).mean())
+
+
+def simulate(pos: ArrayLike, theta: ArrayLike, cfg: SpreadConfig, seconds: float,
+             obstacles: ArrayLike | None = None, walls: ArrayLike | None = None
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """Run the deployment from rest for `seconds`; return the final (pos, theta)."""
+    p = np.asarray(pos, dtype=float).copy()
+    th = np.asarray(theta, dtype=float).copy()
+    v = np.zeros_like(p)
+    om = np.zeros(len(p))
+    for _ in range(round(seconds / cfg.dt)):
+        p, th, v, om = spread_step(p, th, v, om, cfg, obstacles, walls)
+    return p, th

@@ -1,0 +1,111 @@
+"""Potential-field self-deployment (paper 001, eqs. 15 and 16): forces, neighbourhoods, convergence."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from plugins.mission.strategies.potential import (
+    SpreadConfig,
+    forces,
+    mean_nn_distance,
+    neighbourhoods,
+    robot_command,
+    simulate,
+    spread_step,
+)
+
+
+def test_pair_force_pushes_apart_when_close_and_pulls_when_far():
+    cfg = SpreadConfig(distance=5.0, chi=0.0)
+    close = np.array([[0.0, 0.0], [2.0, 0.0]])
+    f, _ = forces(close, np.zeros(2), cfg)
+    assert f[0] == pytest.approx([-3.0, 0.0]) and f[1] == pytest.approx([3.0, 0.0])
+    far = np.array([[0.0, 0.0], [7.0, 0.0]])
+    f, _ = forces(far, np.zeros(2), cfg)
+    assert f[0] == pytest.approx([2.0, 0.0])
+    out_of_range = np.array([[0.0, 0.0], [20.0, 0.0]])
+    f, _ = forces(out_of_range, np.zeros(2), cfg)
+    assert f == pytest.approx(np.zeros((2, 2)))
+
+
+def test_heading_torque_turns_toward_the_neighbourhood_centre():
+    cfg = SpreadConfig(chi=1.0)
+    pos = np.array([[0.0, 0.0], [0.0, 5.0]])
+    _, tq = forces(pos, np.array([0.0, 0.0]), cfg)
+    assert tq[0] == pytest.approx(math.pi / 2)   # centre straight up, heading along +x
+    assert tq[1] == pytest.approx(-math.pi / 2)
+
+
+def test_walls_and_obstacles_keep_their_own_distances():
+    cfg = SpreadConfig(distance=5.0, wall_distance=2.0, obstacle_distance=1.5, chi=0.0)
+    pos = np.array([[0.0, 14.0]])
+    f, _ = forces(pos, np.zeros(1), cfg, walls=[[-50, 15, 50, 15]])
+    assert f[0] == pytest.approx([0.0, -1.0])  # 1 m from the wall, 2 m wanted: pushed down by 1
+    f, _ = forces(np.array([[0.0, 0.0]]), np.zeros(1), cfg, obstacles=[[3.0, 0.0, 1.0]])
+    assert f[0] == pytest.approx([0.5, 0.0])   # nearest point 2 m away, 1.5 wanted: pulled by 0.5
+
+
+def test_delaunay_neighbourhood_is_symmetric_and_local():
+    rng = np.random.default_rng(0)
+    pos = rng.uniform(0, 30, (40, 2))
+    nb = neighbourhoods(pos, "delaunay")
+    for i, js in enumerate(nb):
+        assert len(js) >= 2
+        for j in js:
+            assert i in nb[j]
+    phys = neighbourhoods(pos, "physical", 6.0)
+    assert all(np.all(np.hypot(*(pos[js] - pos[i]).T) <= 6.0) for i, js in enumerate(phys))
+    # degenerate layouts (collinear, two robots) fall back to "everyone"
+    assert [list(x) for x in neighbourhoods(np.array([[0, 0], [1, 0], [2, 0]]), "delaunay")] == \
+        [[1, 2], [0, 2], [0, 1]]
+
+
+def test_nonholonomic_velocity_stays_along_the_heading():
+    rng = np.random.default_rng(3)
+    pos = rng.uniform(-1, 1, (8, 2))
+    th = rng.uniform(-math.pi, math.pi, 8)
+    v, om = np.zeros((8, 2)), np.zeros(8)
+    cfg = SpreadConfig(model="nonholonomic")
+    for _ in range(20):
+        pos, th, v, om = spread_step(pos, th, v, om, cfg)
+        side = v[:, 0] * np.sin(th) - v[:, 1] * np.cos(th)   # x' sin(theta) - y' cos(theta) = 0
+        assert np.abs(side) == pytest.approx(np.zeros(8), abs=1e-9)
+
+
+@pytest.mark.parametrize("model,mode,rng_m,low", [
+    ("holonomic", "physical", 6.0, 0.9),
+    ("nonholonomic", "physical", 6.0, 0.8),
+    ("holonomic", "delaunay", 15.0, 0.75),
+])
+def test_spreading_converges_near_the_desired_distance(model, mode, rng_m, low):
+    rng = np.random.default_rng(11)
+    pos = rng.uniform(-1, 1, (12, 2))
+    th = rng.uniform(-math.pi, math.pi, 12)
+    start = mean_nn_distance(pos)
+    cfg = SpreadConfig(distance=5.0, gain=2.0, dt=0.2, range=rng_m, neighbourhood=mode, model=model)
+    final, final_th = simulate(pos, th, cfg, 60.0)
+    nn = mean_nn_distance(final)
+    assert start < 1.0
+    assert low * 5.0 <= nn <= 1.1 * 5.0, nn
+    # settled: another 10 s barely moves anyone
+    later, _ = simulate(final, final_th, cfg, 10.0)
+    assert np.max(np.hypot(*(later - final).T)) < 0.5
+
+
+def test_robot_command_drives_toward_a_far_neighbour():
+    cfg = SpreadConfig(distance=5.0, model="nonholonomic", chi=0.0, vmax=0.5)
+    pos = np.array([[0.0, 0.0], [10.0, 0.0]])
+    v, _ = robot_command(pos, 0.0, 0.0, 0.0, 0, cfg)
+    assert 0 < v <= 0.5
+    v, _w = robot_command(pos, math.pi, 0.0, 0.0, 0, cfg)
+    assert v < 0  # facing away: backing up is allowed by (16)
+
+
+def test_bad_config_is_named():
+    with pytest.raises(ValueError, match="neighbourhood"):
+        SpreadConfig(neighbourhood="voronoi")
+    with pytest.raises(ValueError, match="dt"):
+        SpreadConfig(dt=0)
