@@ -144,6 +144,7 @@ class Sample:
     y: list[float]
     th: list[float]
     v: list[float]
+    target_v: list[float]
     energy: list[float]
     components: int
     control_reach: int
@@ -205,6 +206,7 @@ class Team:
         self._started = False
         self._stopped = False
         self._client: Any = None
+        self.results: dict[str, Any] = {}  # uid -> final result, of tasks sent with send_task
 
     # --- addresses ----------------------------------------------------------------------
 
@@ -398,7 +400,33 @@ class Team:
         if self.record:
             self.samples.append(Sample(
                 self.elapsed(), [r.x for r in robots], [r.y for r in robots], [r.th for r in robots],
-                [r.v for r in robots], [r.energy for r in robots], len(truth.components), control_reach))
+                [r.v for r in robots], [r.target_v if r.trans_mode == "vel" else r.v for r in robots],
+                [r.energy for r in robots], len(truth.components), control_reach))
+
+    def send_task(self, robot: str, verb: str, preposition: str, **params: Any) -> Any:
+        """Send a task to agent `robot` through the control node; return the Task sent."""
+        from blackboard import Task
+
+        client = self.client()
+        task = Task(verb=verb, preposition=preposition, params=params, destination=robot,
+                    source=client.endpoint.name)
+        client.send(self.control_address, "task.add", task)
+        return task
+
+    def wait_result(self, uid: str, timeout: float) -> Any:
+        """Return the final AllocationResult of a task sent with `send_task` (TeamError after timeout)."""
+        from transport.bridge import ResultUpdate
+
+        client = self.client()
+        deadline = time.monotonic() + timeout
+        while uid not in self.results and time.monotonic() < deadline:
+            msg = client.receive(0.1)
+            if msg and msg.kind == "task.result" and isinstance(msg.body, ResultUpdate):
+                if msg.body.result.state.done:
+                    self.results[msg.body.uid] = msg.body.result
+        if uid in self.results:
+            return self.results[uid]
+        raise TeamError(f"task {uid}: no final result within {timeout:g} s")
 
     # --- stop ---------------------------------------------------------------------------
 

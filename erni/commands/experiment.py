@@ -1,0 +1,91 @@
+"""`erni experiment NAME [--plot OUT.png] [--csv OUT.csv]`: reproduce one of the papers' experiments."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from typing import Any
+
+
+def register(sub: Any) -> None:
+    """Add the `experiment` sub-command."""
+    from sim.experiments import EXPERIMENTS
+
+    names = "; ".join(f"{e.name} (paper {e.paper}: {e.title})" for e in EXPERIMENTS.values())
+    p = sub.add_parser(
+        "experiment", help="run one of the papers' experiments headless and write its figure and metrics",
+        description=f"Run an experiment on its scenario (examples/scenario-NAME.toml) and print its "
+                    f"metrics, with the paper's numbers beside ours. Experiments: {names}.")
+    p.add_argument("name", nargs="?", help="experiment name (omit, or --list, to list them)")
+    p.add_argument("--plot", metavar="OUT.png", help="write the figure (PNG, SVG or PDF)")
+    p.add_argument("--csv", metavar="OUT.csv", help="write every number (section, t, robot, quantity, value, unit)")
+    p.add_argument("--scenario", metavar="FILE.toml", help="run on this scenario instead of the named one")
+    p.add_argument("--duration", type=float, help="override the scenario's duration (s)")
+    p.add_argument("--robots", type=int, help="override the number of robots")
+    p.add_argument("--seed", type=int, help="override the random seed")
+    p.add_argument("--list", action="store_true", help="list the experiments and exit")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the experiment; exit 0, 1 when it failed, 2 on bad input."""
+    from sim.experiments import EXPERIMENTS, run as run_experiment
+    from sim.progress import Progress
+    from sim.scenario import ScenarioError, find_scenario, load_scenario
+
+    if args.list or not args.name:
+        print(f"{'name':<16} {'paper':<6} {'mode':<10} what")
+        for e in EXPERIMENTS.values():
+            print(f"{e.name:<16} {e.paper:<6} {e.mode:<10} {e.title}")
+        return 0 if args.list else 2
+    if args.name not in EXPERIMENTS:
+        print(f"erni experiment: unknown experiment {args.name!r}; expected one of "
+              f"{', '.join(EXPERIMENTS)}", file=sys.stderr)
+        return 2
+    exp = EXPERIMENTS[args.name]
+    for flag, path in (("--plot", args.plot), ("--csv", args.csv)):
+        if path is not None and not _writable(path):
+            print(f"erni experiment: {flag} {path}: cannot write there (no such directory?)", file=sys.stderr)
+            return 2
+    try:
+        scenario = load_scenario(args.scenario or find_scenario(exp.scenario))
+        if args.robots is not None:
+            scenario = scenario.with_robots(args.robots)
+        updates: dict[str, Any] = {}
+        if args.duration is not None:
+            if args.duration <= 0:
+                raise ScenarioError(f"--duration: expected a positive number of seconds, got {args.duration}")
+            updates["duration"] = args.duration
+        if args.seed is not None:
+            updates["seed"] = args.seed
+        scenario = scenario.model_copy(update=updates) if updates else scenario
+    except ScenarioError as err:
+        print(f"erni experiment: {err}", file=sys.stderr)
+        return 2
+    print(f"erni experiment {exp.name}: paper {exp.paper}, {exp.title} ({exp.mode} mode, "
+          f"{scenario.count} robot(s))", flush=True)
+    progress = Progress()
+    t0 = time.monotonic()
+    try:
+        result = run_experiment(exp.name, scenario, progress)
+    except (ValueError, RuntimeError, OSError) as err:
+        progress.done()
+        print(f"erni experiment {exp.name}: {err}", file=sys.stderr)
+        return 1
+    progress.done(f"done in {time.monotonic() - t0:.1f} s")
+    print(result.report(), flush=True)
+    if args.plot:
+        result.plot(args.plot)
+        print(f"figure: {args.plot}")
+    if args.csv:
+        result.write_csv(args.csv)
+        print(f"numbers: {args.csv}")
+    return 0
+
+
+def _writable(path: str) -> bool:
+    from pathlib import Path
+
+    parent = Path(path).resolve().parent
+    return parent.is_dir()
