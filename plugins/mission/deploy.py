@@ -1,0 +1,295 @@
+"""Deploy tasks on one robot: each strategy's runner turns the pure strategy into BotMotion sub-tasks.
+
+A runner is ticked by MissionControl inside `execute()` (cheap decisions only) and talks to
+the blackboard through the small `Ops` interface the plugin implements: issue or withdraw a
+BotMotion sub-task, read a sub-task, report on the Deploy task, read the team's positions
+and this robot's link qualities. Every runner meters the robot's energy (paper 000's model)
+from its poses and reports it in its result values (`energy_j`, `distance_m`, `moving_s`,
+`elapsed_s`).
+
+- widep: one WiDep step per `period`: a BotMotion goto to the step's target; succeeds when
+  the PoI is covered (this robot or a known one within `tolerance`).
+- spread: every `dt` a BotMotion velocity from equation (15)/(16) with this robot and its
+  known neighbours; succeeds after `duration` (runs until cancelled without one).
+- relay: every `relay_period` a relay decision from the link qualities to `source` and
+  `destination`; a goto when it must move; stays running (balanced or not) until cancelled.
+- patrol: sweeps its blocks with gotos, publishes a `Territory` heartbeat every `heartbeat`
+  s, and takes over a silent neighbour's block (TakeoverTable); runs until cancelled.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Protocol
+
+import numpy as np
+
+from blackboard import Pose, Task, TaskState
+from plugins.mission.strategies import patrol as patrol_core
+from plugins.mission.strategies.energy import EnergyMeter
+from plugins.mission.strategies.potential import SpreadConfig, robot_command
+from plugins.mission.strategies.relay import relay_step
+from plugins.mission.strategies.widep import widep_step
+from plugins.mission.team import TeamView, Territory
+
+
+class Ops(Protocol):
+    """What a runner may do (implemented by MissionControl)."""
+
+    agent_name: str
+    team: TeamView
+
+    def issue(self, parent: str, preposition: str, params: dict[str, Any]) -> str: ...
+    def withdraw(self, uid: str | None) -> None: ...
+    def sub(self, uid: str | None) -> Task | None: ...
+    def report(self, uid: str, state: TaskState, message: str = "", *, progress: float | None = None,
+               values: dict[str, Any] | None = None, force: bool = False) -> None: ...
+    def link_qualities(self) -> dict[str, float]: ...
+    def publish_territory(self, territory: Territory) -> None: ...
+
+
+class Runner:
+    """Base of the strategy runners: energy metering, the current motion sub-task, value reports."""
+
+    kind = ""
+
+    def __init__(self, task: Task, ops: Ops, settings: Any, now: float) -> None:
+        self.uid = task.uid
+        self.p = task.params
+        self.ops = ops
+        self.s = settings
+        self.meter = EnergyMeter()
+        self.started = now
+        self.motion: str | None = None  # uid of the BotMotion sub-task moving the robot
+        self.due = now
+        self.done = False
+        self.extra: dict[str, Any] = {}
+        self.message = ""
+
+    def pose(self, pose: Pose) -> None:
+        """Meter this robot's motion."""
+        self.meter.update(pose.stamp, pose.x, pose.y)
+
+    def values(self) -> dict[str, Any]:
+        """Result values: the strategy's own plus the energy meter's."""
+        return {**self.extra, **self.meter.values()}
+
+    def motion_state(self) -> TaskState | None:
+        """State of the current motion sub-task (None when there is none or it is gone)."""
+        t = self.ops.sub(self.motion)
+        return None if t is None else t.state
+
+    def move(self, preposition: str, params: dict[str, Any]) -> None:
+        """Replace the current motion sub-task with a new one."""
+        self.ops.withdraw(self.motion)
+        self.motion = self.ops.issue(self.uid, preposition, params)
+
+    def finish(self, state: TaskState, message: str) -> None:
+        """End the Deploy task (its sub-task withdrawn)."""
+        self.ops.withdraw(self.motion)
+        self.motion = None
+        self.done = True
+        self.ops.report(self.uid, state, message, values=self.values(), force=True,
+                        progress=1.0 if state == TaskState.SUCCEEDED else None)
+
+    def stop(self) -> None:
+        """Withdraw everything this runner issued."""
+        self.ops.withdraw(self.motion)
+        self.motion = None
+
+    def tick(self, now: float) -> float:
+        """Decide; return the seconds until the next tick."""
+        raise NotImplementedError
+
+    def heard(self, territory: Territory, now: float) -> None:
+        """A patrol heartbeat of another robot (only the patrol runner cares)."""
+
+
+class WidepRunner(Runner):
+    """PoI coverage: WiDep steps toward the PoI under the RNG connectivity bound."""
+
+    kind = "widep"
+
+    def tick(self, now: float) -> float:
+        p = self.p
+        period = p.period
+        names, pos = self.ops.team.array(now)
+        if not names or names[0] != self.ops.agent_name:
+            self.ops.report(self.uid, TaskState.RUNNING, "waiting for this robot's pose")
+            return period
+        poi = np.array([p.x, p.y])
+        dists = np.hypot(*(pos - poi).T)
+        within = [n for n, d in zip(names, dists) if d <= p.tolerance]
+        if within:
+            self.extra.update(covered_by=within[0])
+            self.finish(TaskState.SUCCEEDED, f"PoI ({p.x:g}, {p.y:g}) covered by {within[0]}")
+            return period
+        state = self.motion_state()
+        if state is not None and not state.done:
+            return min(period, 0.25)
+        start = self.extra.setdefault("start_distance", round(float(dists[0]), 3))
+        step = widep_step(pos, 0, poi, p.range, tolerance=p.tolerance, obstacles=self._obstacles(),
+                          margin=self.s.obstacle_margin, separation=self.s.separation)
+        self.extra.update(neighbours=len(names) - 1, bound_m=round(step.limit, 3),
+                          distance_m_to_poi=round(float(dists[0]), 3), auxiliary=step.auxiliary)
+        progress = max(0.0, 1.0 - float(dists[0]) / start) if start > 0 else 0.0
+        if step.length < 0.05:
+            self.ops.report(self.uid, TaskState.RUNNING, "holding: the connectivity bound allows no step",
+                            progress=progress, values=self.values())
+            return period
+        self.move("goto", {"x": round(float(step.target[0]), 3), "y": round(float(step.target[1]), 3),
+                           "speed": self.s.speed, "tolerance": 0.1})
+        msg = "heading for an auxiliary PoI" if step.auxiliary else "stepping toward the PoI"
+        self.ops.report(self.uid, TaskState.RUNNING, msg, progress=progress, values=self.values())
+        return period
+
+    def _obstacles(self) -> np.ndarray | None:
+        return np.array(self.s.obstacles, dtype=float) if self.s.obstacles else None
+
+
+class SpreadRunner(Runner):
+    """Potential-field self-deployment: velocity commands from equation (15) or (16)."""
+
+    kind = "spread"
+
+    def __init__(self, task: Task, ops: Ops, settings: Any, now: float) -> None:
+        super().__init__(task, ops, settings, now)
+        p = self.p
+        self.cfg = SpreadConfig(distance=p.distance, gain=p.gain, dt=p.dt, range=p.range,
+                                neighbourhood=p.neighbourhood, model=p.model, vmax=settings.speed,
+                                wmax=math.radians(90), obstacle_distance=settings.obstacle_distance,
+                                wall_distance=settings.wall_distance)
+
+    def tick(self, now: float) -> float:
+        p = self.p
+        period = max(p.dt, self.s.control_period)
+        if p.duration is not None and now - self.started >= p.duration:
+            self.finish(TaskState.SUCCEEDED, f"spread for {p.duration:g} s")
+            return period
+        mine = self.ops.team.where.get(self.ops.agent_name)
+        names, pos = self.ops.team.array(now)
+        if mine is None or not names or names[0] != self.ops.agent_name:
+            self.ops.report(self.uid, TaskState.RUNNING, "waiting for this robot's pose")
+            return period
+        theta = mine[2]
+        speed, omega = self.extra.get("_v", 0.0), self.extra.get("_w", 0.0)
+        cfg = self.cfg if period == p.dt else SpreadConfig(**{**self.cfg.__dict__, "dt": period})
+        v, w = robot_command(pos, theta, speed, omega, 0, cfg, self._obstacles(), self._walls())
+        if abs(v) < 0.01 and abs(w) < 0.02:
+            v, w = 0.0, 0.0
+        self.extra["_v"], self.extra["_w"] = v, w
+        if len(pos) > 1:
+            d = np.hypot(*(pos[1:] - pos[0]).T)
+            self.extra["nearest_m"] = round(float(d.min()), 3)
+        self.extra["neighbours"] = len(names) - 1
+        self.move("velocity", {"v": round(v, 3), "w": round(math.degrees(w), 2),
+                               "duration": round(max(3 * period, 1.0), 2)})
+        self.ops.report(self.uid, TaskState.RUNNING, "spreading", values=self.values())
+        return period
+
+    def values(self) -> dict[str, Any]:
+        return {k: v for k, v in super().values().items() if not k.startswith("_")}
+
+    def _obstacles(self) -> np.ndarray | None:
+        return np.array(self.s.obstacles, dtype=float) if self.s.obstacles else None
+
+    def _walls(self) -> np.ndarray | None:
+        return np.array(self.s.walls, dtype=float) if self.s.walls else None
+
+
+class RelayRunner(Runner):
+    """Relay positioning: move along source-destination toward the worse link until balanced."""
+
+    kind = "relay"
+
+    def tick(self, now: float) -> float:
+        p = self.p
+        period = self.s.relay_period
+        state = self.motion_state()
+        if state is not None and not state.done:
+            return min(period, 0.25)
+        where = self.ops.team.fresh(now)
+        missing = [n for n in (self.ops.agent_name, p.source, p.destination) if n not in where]
+        if missing:
+            self.ops.report(self.uid, TaskState.RUNNING, f"waiting for the position of {', '.join(missing)}")
+            return period
+        q = self.ops.link_qualities()
+        qs, qd = q.get(p.source), q.get(p.destination)
+        me, src, dst = (np.array(where[n][:2]) for n in (self.ops.agent_name, p.source, p.destination))
+        move = relay_step(me, src, dst, qs, qd, tolerance=p.tolerance, max_step=self.s.relay_step)
+        self.extra.update(q_source=qs, q_destination=qd, imbalance=round(move.imbalance, 3),
+                          balanced=move.balanced)
+        off = float(np.hypot(*(move.target - me)))
+        if off >= 0.1:
+            self.move("goto", {"x": round(float(move.target[0]), 3), "y": round(float(move.target[1]), 3),
+                               "speed": self.s.speed, "tolerance": 0.05})
+        msg = "balanced" if move.balanced else f"moving toward {p.source if move.along < 0 else p.destination}"
+        self.ops.report(self.uid, TaskState.RUNNING, msg, values=self.values())
+        return period
+
+
+class PatrolRunner(Runner):
+    """Territory patrol with heartbeats and takeover of a silent neighbour's block."""
+
+    kind = "patrol"
+
+    def __init__(self, task: Task, ops: Ops, settings: Any, now: float) -> None:
+        super().__init__(task, ops, settings, now)
+        p = self.p
+        block = (p.xmin, p.ymin, p.xmax, p.ymax)
+        self.table = patrol_core.TakeoverTable(ops.agent_name, block, silence=p.silence,
+                                               base=settings.backoff_base or 2.0 * p.heartbeat + 0.5)
+        self.path: list[tuple[float, float]] = []
+        self.waypoint = 0
+        self.beat = 0
+        self.next_beat = now
+        self._replan()
+
+    def _replan(self) -> None:
+        holds = self.table.holds
+        order = [self.ops.agent_name] + sorted(n for n in holds if n != self.ops.agent_name)
+        path: list[tuple[float, float]] = []
+        for name in order:
+            pts = patrol_core.sweep_path(holds[name], self.s.patrol_spacing, self.s.obstacle_margin)
+            path.extend((round(float(x), 3), round(float(y), 3)) for x, y in pts)
+        self.path = path
+        self.waypoint = self.waypoint % len(path) if path else 0
+        self.extra["holds"] = sorted(holds)
+
+    def heard(self, territory: Territory, now: float) -> None:
+        events = self.table.heard(territory.robot, territory.block, now, tuple(territory.holds),
+                                  territory.claims)
+        self._events(events)
+
+    def _events(self, events: list[patrol_core.Event]) -> None:
+        if not events:
+            return
+        for ev in events:
+            self.extra.setdefault("events", []).append(f"{ev.kind} {ev.about}")
+        self._replan()
+        last = events[-1]
+        text = {"silent": "{} fell silent", "claim": "took over the block of {}", "yield": "yielded {}'s block",
+                "return": "gave {}'s block back"}[last.kind].format(last.about)
+        self.ops.report(self.uid, TaskState.RUNNING, text, values=self.values(), force=True)
+
+    def tick(self, now: float) -> float:
+        p = self.p
+        self._events(self.table.tick(now))
+        if now >= self.next_beat:
+            self.beat += 1
+            hb = self.table.heartbeat()
+            self.ops.publish_territory(Territory(uid=f"territory:{self.ops.agent_name}", robot=self.ops.agent_name,
+                                                 task=self.uid, block=tuple(hb["block"]), holds=hb["holds"],
+                                                 claims=hb["claims"], beat=self.beat, stamp=now))
+            self.next_beat = now + p.heartbeat
+        state = self.motion_state()
+        if self.path and (state is None or state.done):
+            if state is not None:
+                self.waypoint = (self.waypoint + 1) % len(self.path)
+            x, y = self.path[self.waypoint]
+            self.move("goto", {"x": x, "y": y, "speed": self.s.speed, "tolerance": 0.2})
+            self.ops.report(self.uid, TaskState.RUNNING, self.message or "patrolling", values=self.values())
+        return min(p.heartbeat, max(0.1, self.next_beat - now))
+
+
+RUNNERS: dict[str, type[Runner]] = {r.kind: r for r in (WidepRunner, SpreadRunner, RelayRunner, PatrolRunner)}

@@ -1,0 +1,87 @@
+"""Network-aware behaviour (paper 004, 4.2.3): is this robot's connectivity at risk, and since when.
+
+The guard reads the NetInfo of two NetWatch tasks of the mission: `network_topology` (is this
+robot an articulation point: would the network split without it?) and `link_quality` (the
+delivery ratio of its best one-hop link). Connectivity is at risk when the robot is a cut
+vertex (if `articulation` is on) or its best link is below `min_quality`. A risk is declared
+at once; it is cleared only after `resume_after` seconds without risk (hysteresis, so a robot
+on the edge does not stutter). Degraded readings (the network subsystem did not answer)
+change nothing. The guard also remembers the last position where connectivity was good (for
+the `retreat` policy).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass
+class GuardState:
+    """The latest readings and the decision derived from them."""
+
+    articulation: bool | None = None
+    best: float | None = None
+    at_risk: bool = False
+    reason: str = ""
+    ok_since: float | None = None
+
+
+class NetGuard:
+    """Turns topology and link-quality readings into `at risk` / `clear` transitions."""
+
+    def __init__(self, me: str, *, min_quality: float = 0.3, articulation: bool = True,
+                 resume_after: float = 1.0) -> None:
+        self.me = me
+        self.min_quality = min_quality
+        self.use_articulation = articulation
+        self.resume_after = resume_after
+        self.state = GuardState()
+        self.last_good: tuple[float, float] | None = None
+
+    def topology(self, articulation_points: list[str], links: int) -> None:
+        """Take in a topology reading: the network's cut vertices (with `links` links known)."""
+        self.state.articulation = self.me in articulation_points if links else False
+
+    def quality(self, qualities: list[float]) -> None:
+        """Take in a link-quality reading: the delivery ratios of this robot's one-hop links."""
+        self.state.best = max(qualities, default=0.0)
+
+    def risk(self) -> str:
+        """Why connectivity is at risk now ("" when it is not, or nothing was read yet)."""
+        s = self.state
+        if self.use_articulation and s.articulation:
+            return f"{self.me} is an articulation point of the network"
+        if s.best is not None and s.best < self.min_quality:
+            return f"best link quality {s.best:.2f} is below {self.min_quality:.2f}"
+        return ""
+
+    def update(self, now: float, position: tuple[float, float] | None) -> str | None:
+        """Re-evaluate; return "risk" or "clear" on a transition, else None."""
+        reason = self.risk()
+        s = self.state
+        if reason:
+            s.ok_since = None
+            s.reason = reason
+            if not s.at_risk:
+                s.at_risk = True
+                return "risk"
+            return None
+        if position is not None and s.best is not None:
+            self.last_good = position
+        if not s.at_risk:
+            return None
+        if s.ok_since is None:
+            s.ok_since = now
+        if now - s.ok_since >= self.resume_after:
+            s.at_risk = False
+            s.reason = ""
+            s.ok_since = None
+            return "clear"
+        return None
+
+    def pending_clear_in(self, now: float) -> float | None:
+        """Seconds until a pending clear is due (None when none is pending)."""
+        s = self.state
+        if s.at_risk and s.ok_since is not None:
+            return max(0.0, self.resume_after - (now - s.ok_since))
+        return None

@@ -1,0 +1,501 @@
+"""MissionControl: remote tasks expanded into local BotMotion sub-tasks, network-aware, with deployment strategies.
+
+- RemoteBotMotion tasks addressed to this agent (they arrive through the transport) are
+  planned into BotMotion sub-tasks (`parent` = the remote task, `source` = this agent,
+  no destination), performed one after the other; the sub-tasks' results are aggregated into
+  the remote task's result, which changes only on significant news (see `remote.py`).
+  Removing a remote task, or a RemoteBotMotion `cancel`, withdraws its sub-tasks and halts
+  the robot with a BotMotion `stop` that is removed once the robot reports it halted.
+- Deploy tasks addressed to this agent run a strategy runner (`deploy.py`).
+- Network awareness: NetWatch `network_topology` and `link_quality` tasks feed a `NetGuard`;
+  when connectivity is at risk while a remote motion task runs, the configured policy
+  (`hold`, `stop` or `retreat`) applies, the remote task's message says why, and `hold` /
+  `retreat` resume when connectivity returns.
+- Audio cues: a remote task received and every connectivity change play a BotMotion `say`.
+One driving job at a time: a new remote motion or Deploy task supersedes the previous one.
+Local BotMotion tasks of other plugins are never touched (mixed initiative).
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from blackboard import AllocationResult, NetInfo, Plugin, Pose, Task, TaskState, TransactionError
+from plugins.mission.deploy import RUNNERS, Runner
+from plugins.mission.netaware import NetGuard
+from plugins.mission.remote import RemoteJob, Significance, plan
+from plugins.mission.team import TeamView, Territory
+
+CUE_TASK = [(4, 72), (4, 79)]          # remote task received: short rising fifth
+CUE_LOST = [(10, 67), (10, 60)]        # connectivity at risk: falling
+CUE_BACK = [(10, 60), (10, 67)]        # connectivity back: rising
+
+
+class MissionSettings(BaseModel):
+    """Settings of MissionControl (the `[plugin.settings]` table)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    network_aware: bool = Field(True, description="watch topology and link quality; guard remote motion")
+    policy: Literal["hold", "stop", "retreat"] = Field("hold", description="what connectivity at risk does")
+    min_link_quality: float = Field(0.3, ge=0, le=1, description="best link below this = at risk")
+    articulation: bool = Field(True, description="being an articulation point = at risk")
+    resume_after: float = Field(1.0, ge=0, description="connectivity good this long clears the risk (s)")
+    net_rate_hz: float = Field(2.0, gt=0, le=100, description="rate of the mission's NetWatch tasks (Hz)")
+    progress_step: float = Field(0.25, gt=0, le=1, description="report progress in steps of this size")
+    report_period: float = Field(5.0, gt=0, description="Deploy tasks: refresh result values this often (s)")
+    goto_mode: Literal["goto", "turn_forward"] = Field("goto", description="how a remote goto is expanded")
+    obstacles: list[tuple[float, float, float]] = Field(default_factory=list,
+                                                        description="known obstacles: circles (x, y, r) in m")
+    walls: list[tuple[float, float, float, float]] = Field(default_factory=list,
+                                                           description="known walls (x1, y1, x2, y2) in m (spread)")
+    obstacle_margin: float = Field(0.4, ge=0, description="clearance kept from known obstacles (m)")
+    obstacle_distance: float = Field(2.0, gt=0, description="spread: desired distance to obstacles (m)")
+    wall_distance: float = Field(2.5, gt=0, description="spread: desired distance to walls (m)")
+    audio: bool = Field(True, description="play audio cues (BotMotion say)")
+    speed: float = Field(0.3, gt=0, le=2.0, description="cruise speed of deployment moves (m/s)")
+    separation: float = Field(0.5, ge=0, description="widep: never step closer than this to a robot (m)")
+    position_timeout: float = Field(5.0, gt=0, description="forget other robots' positions older than this (s)")
+    halt_timeout: float = Field(5.0, gt=0, description="give up waiting for the robot to halt (s)")
+    control_period: float = Field(0.2, gt=0, description="spread: shortest period between commands (s)")
+    relay_period: float = Field(2.0, gt=0, description="relay: seconds between decisions")
+    relay_step: float = Field(1.0, gt=0, description="relay: longest move per decision (m)")
+    patrol_spacing: float = Field(1.0, gt=0, description="patrol: lane spacing of the sweep (m)")
+    backoff_base: float | None = Field(None, gt=0, description="patrol: back-off unit (s); "
+                                       "default 2 heartbeats + 0.5 s")
+
+
+class MissionControl(Plugin):
+    """Seat of the robot's autonomy: two-tier tasking, network-aware behaviour, deployment."""
+
+    Settings = MissionSettings
+
+    def setup(self) -> None:
+        me = self.agent_name
+        s: MissionSettings = self.settings
+        self.remote = self.subscribe(Task, where=lambda t: t.verb in ("RemoteBotMotion", "Deploy")
+                                     and t.destination == me)
+        self.mine = self.subscribe(Task, where=lambda t: t.source == me and t.verb in ("BotMotion", "NetWatch")
+                                   and t.destination in (None, "", me))
+        self.poses = self.subscribe(Pose)
+        self.infos = self.subscribe(NetInfo)
+        self.territories = self.subscribe(Territory)
+        self.team = TeamView(me, s.position_timeout)
+        self.guard = NetGuard(me, min_quality=s.min_link_quality, articulation=s.articulation,
+                              resume_after=s.resume_after)
+        self.jobs: dict[str, RemoteJob] = {}
+        self.runners: dict[str, Runner] = {}
+        self.results: dict[str, AllocationResult] = {}    # remote/deploy uid -> last result published
+        self.reports: dict[str, Significance] = {}
+        self.last_values: dict[str, float] = {}           # deploy uid -> when values were last refreshed
+        self.issued: dict[str, Task] = {}                  # my sub-tasks not yet seen back
+        self.parent_of: dict[str, str | None] = {}         # my BotMotion sub-task -> parent
+        self.halts: dict[str, tuple[str | None, float]] = {}  # stop uid -> (cancel task uid, deadline)
+        self.says: dict[str, float] = {}
+        self.watches: dict[str, str] = {}
+        self.qualities: dict[str, float] = {}
+        self.guard_stop: str | None = None
+        self.retreat: str | None = None
+        self.territory: Territory | None = None
+        self.due: dict[str, float] = {}
+        self._timer: Any = None
+        self._timer_at = 0.0
+        for old in self.query(Task, where=lambda t: t.source == me and t.verb in ("BotMotion", "NetWatch")
+                              and t.destination in (None, "", me)):
+            self.remove(old)  # a restart: never repeat stale motion; watches are made afresh
+        if s.network_aware:
+            self.watch("network_topology")
+            self.watch("link_quality")
+        self.wake_every(1.0)
+
+    # -- the Ops interface of the runners ------------------------------------------------
+
+    def issue(self, parent: str | None, preposition: str, params: dict[str, Any]) -> str:
+        """Publish a BotMotion sub-task of `parent`; return its uid."""
+        task = Task(verb="BotMotion", preposition=preposition, params=params, source=self.agent_name,
+                    parent=parent)
+        self.add(task)
+        self.issued[task.uid] = task
+        self.parent_of[task.uid] = parent
+        return task.uid
+
+    def withdraw(self, uid: str | None) -> None:
+        """Remove one of my sub-tasks (cancelling it) if it is still there."""
+        if uid is None:
+            return
+        self.issued.pop(uid, None)
+        self.parent_of.pop(uid, None)
+        try:
+            self.remove(uid)
+        except TransactionError:
+            pass
+
+    def sub(self, uid: str | None) -> Task | None:
+        """The newest known version of one of my sub-tasks (None once gone)."""
+        if uid is None or uid not in self.parent_of:
+            return None
+        return self.mine.get(uid) or self.issued.get(uid)
+
+    def link_qualities(self) -> dict[str, float]:
+        """This robot's one-hop link qualities by neighbour name (latest reading)."""
+        if "link_quality" not in self.watches:
+            self.watch("link_quality")
+        return dict(self.qualities)
+
+    def publish_territory(self, territory: Territory) -> None:
+        """Publish or update this robot's patrol heartbeat."""
+        if self.territory is None and self.territories.get(territory.uid) is None:
+            self.add(territory)
+        else:
+            self.change(territory)
+        self.territory = territory
+
+    def watch(self, kind: str) -> None:
+        """Start a NetWatch task of this mission (once per kind)."""
+        if kind in self.watches:
+            return
+        task = Task(verb="NetWatch", preposition=kind, params={"rate_hz": self.settings.net_rate_hz},
+                    source=self.agent_name)
+        self.add(task)
+        self.watches[kind] = task.uid
+
+    def report(self, uid: str, state: TaskState, message: str = "", *, progress: float | None = None,
+               values: dict[str, Any] | None = None, force: bool = False) -> None:
+        """Update a remote or Deploy task's result; publish it only when significant (or forced)."""
+        task = self.remote.get(uid)
+        old = self.results.get(uid)
+        if task is None or task.done or (old is not None and old.state.done):
+            return
+        base = old.model_dump() if old else {}
+        base.pop("stamp", None)
+        base["state"] = state
+        if message:
+            base["message"] = message
+        if progress is not None:
+            base["progress"] = max(0.0, min(1.0, progress))
+        if values is not None:
+            base["values"] = {**base.get("values", {}), **values}
+        new = AllocationResult(**base)
+        sig = self.reports.setdefault(uid, Significance(self.settings.progress_step))
+        self.results[uid] = new
+        if sig.significant(new) or force:
+            try:
+                self.change(task.evolve(result=new), reports=[new.state.value])
+            except TransactionError:
+                pass
+
+    # -- each run -----------------------------------------------------------------------
+
+    def execute(self) -> None:
+        now = time.time()
+        me = self.agent_name
+        for pose in self.poses.added + self.poses.changed:
+            self.team.pose(pose)
+            if pose.robot == me:
+                for r in self.runners.values():
+                    r.pose(pose)
+        self._read_network()
+        for task in self.remote.removed:
+            self._dropped(task)
+        for task in self.remote.added:
+            self._received(task, now)
+        for task in self.mine.removed:
+            self.issued.pop(task.uid, None)
+            if self.guard_stop == task.uid:
+                self.guard_stop = None
+        for task in self.mine.added + self.mine.changed:
+            self.issued.pop(task.uid, None)
+            self._sub_result(task, now)
+        for terr in self.territories.added + self.territories.changed:
+            if terr.robot != me:
+                for r in self.runners.values():
+                    r.heard(terr, now)
+        self._tick_runners(now)
+        self._guard(now)
+        self._housekeeping(now)
+
+    # -- network readings ----------------------------------------------------------------
+
+    def _read_network(self) -> None:
+        mine = set(self.watches.values())
+        for info in self.infos.added + self.infos.changed:
+            if info.kind == "node_position":
+                self.team.netinfo(info)
+            if info.task not in mine or info.degraded:
+                continue
+            if info.kind == "network_topology":
+                self.guard.topology(info.articulation_points, len(info.links))
+            elif info.kind == "link_quality":
+                self.qualities = {n.name: n.quality for n in info.neighbors}
+                self.guard.quality([n.quality for n in info.neighbors])
+
+    # -- remote tasks --------------------------------------------------------------------
+
+    def _received(self, task: Task, now: float) -> None:
+        if task.done or task.uid in self.jobs or task.uid in self.runners:
+            return
+        if self.rehydrated(task):
+            self.report(task.uid, TaskState.FAILED, f"interrupted: {self.agent_name} restarted", force=True)
+            return
+        self._say(CUE_TASK)
+        if task.verb == "RemoteBotMotion" and task.preposition == "cancel":
+            self._cancel_task(task, now)
+            return
+        self._supersede(task.uid)
+        self.report(task.uid, TaskState.PENDING, f"accepted by {self.agent_name}")
+        if task.verb == "Deploy":
+            if task.preposition in ("widep", "spread", "relay"):
+                self.watch("node_position")
+            runner = RUNNERS[task.preposition](task, self, self.settings, now)
+            for pose in self.poses:
+                if pose.robot == self.agent_name:
+                    runner.pose(pose)
+            self.runners[task.uid] = runner
+            self.report(task.uid, TaskState.RUNNING, f"{task.preposition} started")
+            self.last_values[task.uid] = now
+            return
+        self.jobs[task.uid] = RemoteJob(task.uid, [])
+        self.later(lambda: self._begin(task.uid))  # "accepted" is committed on its own first
+
+    def _begin(self, uid: str) -> None:
+        job, task = self.jobs.get(uid), self.remote.get(uid)
+        if job is None or task is None or job.steps:
+            return
+        mine = next((p for p in self.poses if p.robot == self.agent_name), None)
+        job.steps = plan(task, mine, mode=self.settings.goto_mode, obstacles=self.settings.obstacles,
+                         margin=self.settings.obstacle_margin)
+        self._start_step(job)
+        self.report(uid, TaskState.RUNNING, f"started: {len(job.steps)} step(s)", progress=0.0)
+        if job.moving and self.guard.state.at_risk:
+            self._apply_policy([job], self.guard.state.reason)
+
+    def _start_step(self, job: RemoteJob) -> None:
+        step = job.steps[job.index]
+        job.sub = self.issue(job.uid, step.preposition, step.params)
+        job.subs.append(job.sub)
+
+    def _supersede(self, newcomer: str) -> None:
+        for uid in list(self.jobs):
+            self._end_job(uid, TaskState.CANCELLED, f"superseded by task {newcomer}")
+        for uid in list(self.runners):
+            self._end_runner(uid, TaskState.CANCELLED, f"superseded by task {newcomer}")
+
+    def _end_job(self, uid: str, state: TaskState, message: str, **values: Any) -> None:
+        job = self.jobs.pop(uid, None)
+        if job is None:
+            return
+        for sub in job.subs:
+            self.withdraw(sub)
+        self.report(uid, state, message, values=values or None, force=True,
+                    progress=1.0 if state == TaskState.SUCCEEDED else None)
+        if not any(j.moving for j in self.jobs.values()):
+            self._release_guard()
+
+    def _end_runner(self, uid: str, state: TaskState, message: str) -> None:
+        runner = self.runners.pop(uid, None)
+        self.due.pop(uid, None)
+        if runner is None:
+            return
+        runner.stop()
+        self.report(uid, state, message, values=runner.values(), force=True)
+
+    def _dropped(self, task: Task) -> None:
+        """The remote source removed (cancelled) its task: withdraw everything and halt."""
+        had = task.uid in self.jobs or task.uid in self.runners
+        job = self.jobs.pop(task.uid, None)
+        if job is not None:
+            for sub in job.subs:
+                self.withdraw(sub)
+        runner = self.runners.pop(task.uid, None)
+        self.due.pop(task.uid, None)
+        if runner is not None:
+            runner.stop()
+        self.results.pop(task.uid, None)
+        self.reports.pop(task.uid, None)
+        if had:
+            if not any(j.moving for j in self.jobs.values()):
+                self._release_guard()
+            self._halt(None)
+
+    def _cancel_task(self, task: Task, now: float) -> None:
+        target = task.params.task
+        active = list(self.jobs) + list(self.runners)
+        if target is not None and target not in active:
+            self.report(task.uid, TaskState.FAILED, f"cancel: no running remote task {target} on "
+                        f"{self.agent_name}", force=True)
+            return
+        victims = [target] if target is not None else active
+        for uid in victims:
+            self._end_job(uid, TaskState.CANCELLED, f"cancelled by task {task.uid}")
+            self._end_runner(uid, TaskState.CANCELLED, f"cancelled by task {task.uid}")
+        self._release_guard()
+        self.report(task.uid, TaskState.RUNNING, f"stopping; cancelled {len(victims)} task(s)",
+                    values={"cancelled": victims})
+        self._halt(task.uid)
+
+    def _halt(self, cancel: str | None) -> None:
+        uid = self.issue(cancel, "stop", {})
+        self.halts[uid] = (cancel, time.time() + self.settings.halt_timeout)
+
+    def _sub_result(self, sub: Task, now: float) -> None:
+        uid = sub.uid
+        if uid in self.halts:
+            if sub.state == TaskState.FAILED or sub.result is not None and (
+                    sub.result.values.get("halted") or sub.result.progress >= 1.0):
+                cancel, _ = self.halts.pop(uid)
+                self.withdraw(uid)
+                if cancel is not None:
+                    ok = sub.state != TaskState.FAILED
+                    self.report(cancel, TaskState.SUCCEEDED if ok else TaskState.FAILED,
+                                "robot halted" if ok else f"halt failed: {sub.result.message}", force=True)
+            return
+        if uid in self.says:
+            if sub.done:
+                del self.says[uid]
+                self.withdraw(uid)
+            return
+        if uid == self.retreat and sub.done:
+            self.retreat = None
+            self.withdraw(uid)
+            if self.guard.state.at_risk and self.guard_stop is None:
+                self.guard_stop = self.issue(None, "stop", {})
+            return
+        parent = self.parent_of.get(uid)
+        job = self.jobs.get(parent) if parent else None
+        if job is None or job.sub != uid:
+            return
+        r = sub.result
+        if r is None:
+            return
+        values = dict(r.values)
+        if r.state == TaskState.SUCCEEDED:
+            if job.index + 1 < len(job.steps):
+                job.index += 1
+                self._start_step(job)
+                self.report(job.uid, TaskState.RUNNING, job.held and f"holding: {job.held}" or
+                            f"step {job.index + 1} of {len(job.steps)}", progress=job.progress(0.0), values=values)
+            else:
+                self._end_job(job.uid, TaskState.SUCCEEDED, r.message or "done", **values)
+        elif r.state == TaskState.FAILED:
+            self._end_job(job.uid, TaskState.FAILED, f"{sub.preposition} failed: {r.message}", **values)
+        elif r.state == TaskState.CANCELLED:
+            self._end_job(job.uid, TaskState.CANCELLED, f"{sub.preposition} cancelled: {r.message}", **values)
+        else:
+            msg = f"holding: {job.held}" if job.held else ""
+            self.report(job.uid, TaskState.RUNNING, msg, progress=job.progress(r.progress), values=values)
+
+    # -- deployment ----------------------------------------------------------------------
+
+    def _tick_runners(self, now: float) -> None:
+        for uid, runner in list(self.runners.items()):
+            if now >= runner.due:
+                try:
+                    runner.due = now + runner.tick(now)
+                except ValueError as err:  # bad strategy input: fail the task, say why
+                    runner.finish(TaskState.FAILED, f"{runner.kind}: {err}")
+            if runner.done:
+                self.runners.pop(uid, None)
+                self.due.pop(uid, None)
+                continue
+            if now - self.last_values.get(uid, 0.0) >= self.settings.report_period:
+                self.last_values[uid] = now
+                self.report(uid, TaskState.RUNNING, values=runner.values(), force=True)
+            self.due[uid] = runner.due
+
+    # -- network-aware behaviour ---------------------------------------------------------
+
+    def _guard(self, now: float) -> None:
+        if not self.settings.network_aware:
+            return
+        mine = self.team.mine()
+        change = self.guard.update(now, None if mine is None else mine[:2])
+        moving = [j for j in self.jobs.values() if j.moving]
+        if change == "risk":
+            self.log.info("connectivity at risk: %s", self.guard.state.reason)
+            self._say(CUE_LOST)
+            self._apply_policy(moving, self.guard.state.reason)
+        elif change == "clear":
+            self.log.info("connectivity restored")
+            self._say(CUE_BACK)
+            self._release_guard()
+            for job in moving:
+                if job.held:
+                    job.held = ""
+                    self.report(job.uid, TaskState.RUNNING, "resumed: connectivity restored")
+        wait = self.guard.pending_clear_in(now)
+        if wait is not None:
+            self.due["guard"] = now + wait + 0.01
+        else:
+            self.due.pop("guard", None)
+
+    def _apply_policy(self, jobs: list[RemoteJob], reason: str) -> None:
+        if not jobs:
+            return
+        policy = self.settings.policy
+        if policy == "stop":
+            for job in jobs:
+                self._end_job(job.uid, TaskState.FAILED, f"stopped: {reason}")
+            self._halt(None)
+            return
+        target = self.guard.last_good
+        mine = self.team.mine()
+        if policy == "retreat" and target is not None and mine is not None and \
+                ((mine[0] - target[0]) ** 2 + (mine[1] - target[1]) ** 2) ** 0.5 > 0.3:
+            if self.retreat is None:
+                self.retreat = self.issue(None, "goto", {"x": round(target[0], 3), "y": round(target[1], 3),
+                                                         "speed": self.settings.speed, "tolerance": 0.15})
+            why = f"retreating to ({target[0]:.2f}, {target[1]:.2f}): {reason}"
+        else:
+            if self.guard_stop is None:
+                self.guard_stop = self.issue(None, "stop", {})
+            why = f"holding: {reason}"
+        for job in jobs:
+            job.held = reason
+            self.report(job.uid, TaskState.RUNNING, why)
+
+    def _release_guard(self) -> None:
+        self.withdraw(self.guard_stop)
+        self.guard_stop = None
+        self.withdraw(self.retreat)
+        self.retreat = None
+
+    # -- audio cues and housekeeping -----------------------------------------------------
+
+    def _say(self, tones: list[tuple[int, int]]) -> None:
+        if self.settings.audio:
+            uid = self.issue(None, "say", {"tones": tones})
+            self.says[uid] = time.time() + 10.0
+
+    def _housekeeping(self, now: float) -> None:
+        for uid, (cancel, deadline) in list(self.halts.items()):
+            if now >= deadline:
+                del self.halts[uid]
+                self.withdraw(uid)
+                if cancel is not None:
+                    self.report(cancel, TaskState.FAILED, f"the robot did not report halting within "
+                                f"{self.settings.halt_timeout:g} s", force=True)
+        for uid, deadline in list(self.says.items()):
+            if now >= deadline:
+                del self.says[uid]
+                self.withdraw(uid)
+        for uid in list(self.results):
+            if uid not in self.jobs and uid not in self.runners and self.results[uid].state.done:
+                self.results.pop(uid, None)
+                self.reports.pop(uid, None)
+        soon = [t for t in list(self.due.values()) + [d for _, d in self.halts.values()] if t > now]
+        if not soon:
+            return
+        when = min(soon)
+        if self._timer is not None and self._timer_at <= when + 1e-3 and self._timer_at > now:
+            return  # an earlier wake-up is already scheduled
+        if self._timer is not None:
+            self._timer.cancel()
+        self._timer = self.wake_in(max(0.02, when - now))
+        self._timer_at = when
+
+    def teardown(self) -> None:
+        if self._timer is not None:
+            self._timer.cancel()

@@ -1,0 +1,83 @@
+"""What the mission knows about the team: positions (Pose and NetWatch node_position) and patrol heartbeats.
+
+`TeamView` keeps the newest known position of every robot, from `Pose` objects on the
+blackboard (this robot's own, and peers' poses shared by the transport) and from the
+positions MobiNet reports for a NetWatch `node_position` task; a position older than
+`timeout` seconds is forgotten. `Territory` is the patrol heartbeat a robot publishes (uid
+`territory:<robot>`), shared with the other robots by the transport (`share` setting).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+from pydantic import Field
+
+from blackboard import BBObject, NetInfo, Pose
+
+try:  # the transport carries the heartbeat between robots when it knows the type
+    from transport.wire import register_type
+except ImportError:  # pragma: no cover - the transport is part of the distribution
+    register_type = None  # type: ignore[assignment]
+
+
+class Territory(BBObject):
+    """A patrolling robot's heartbeat: its block, the robots whose blocks it holds, its claims."""
+
+    robot: str
+    task: str = ""
+    block: tuple[float, float, float, float]
+    holds: list[str] = Field(default_factory=list)
+    claims: dict[str, float] = Field(default_factory=dict, description="silent robot -> claim time (s)")
+    beat: int = 0
+    stamp: float = Field(default_factory=time.time)
+
+
+if register_type is not None:
+    register_type(Territory)
+
+
+class TeamView:
+    """Newest known (x, y, heading rad) of each robot, with the time it was learned."""
+
+    def __init__(self, me: str, timeout: float = 5.0) -> None:
+        self.me = me
+        self.timeout = timeout
+        self.where: dict[str, tuple[float, float, float, float]] = {}  # name -> (x, y, theta, stamp)
+
+    def pose(self, pose: Pose) -> None:
+        """Take in a Pose (newest stamp wins)."""
+        self._put(pose.robot, pose.x, pose.y, pose.theta, pose.stamp)
+
+    def netinfo(self, info: NetInfo) -> None:
+        """Take in the positions of a node_position NetInfo (never overriding this robot's own Pose)."""
+        if info.degraded:
+            return
+        for name, p in info.positions.items():
+            if name == self.me and self.me in self.where:
+                continue
+            self._put(name, p.x, p.y, math.radians(p.heading), info.stamp)
+
+    def _put(self, name: str, x: float, y: float, theta: float, stamp: float) -> None:
+        old = self.where.get(name)
+        if old is None or stamp >= old[3]:
+            self.where[name] = (x, y, theta, stamp)
+
+    def fresh(self, now: float | None = None) -> dict[str, tuple[float, float, float]]:
+        """Positions learned within `timeout` seconds (this robot's own is always kept)."""
+        now = time.time() if now is None else now
+        return {n: (x, y, th) for n, (x, y, th, s) in self.where.items()
+                if n == self.me or now - s <= self.timeout}
+
+    def mine(self) -> tuple[float, float, float] | None:
+        """This robot's (x, y, theta), or None before its first Pose."""
+        w = self.where.get(self.me)
+        return None if w is None else w[:3]
+
+    def array(self, now: float | None = None) -> tuple[list[str], np.ndarray]:
+        """Names and an (N, 2) array of fresh positions, this robot first."""
+        fresh = self.fresh(now)
+        names = [self.me] + sorted(n for n in fresh if n != self.me) if self.me in fresh else sorted(fresh)
+        return names, np.array([fresh[n][:2] for n in names], dtype=float).reshape(-1, 2)
