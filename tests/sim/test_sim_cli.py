@@ -1,0 +1,122 @@
+"""`erni sim` as a user runs it: starts, reports the team up, and Ctrl-C leaves nothing behind."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def processes_mentioning(text: str) -> list[int]:
+    """PIDs of processes whose command line contains `text` (this test's unique run directory)."""
+    pids = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            cmd = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+        except OSError:
+            continue
+        if text in cmd and int(entry.name) != os.getpid():
+            pids.append(int(entry.name))
+    return pids
+
+
+class SimProcess:
+    """`erni sim` in its own session; always killed with everything it started, even on failure."""
+
+    def __init__(self, run_dir: Path, *args: str) -> None:
+        self.run_dir = run_dir
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "erni", "sim", "--headless", "--run-dir", str(run_dir), *args],
+            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True,
+            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+        self.lines: list[str] = []
+        self._reader = threading.Thread(target=self._read, name="sim-cli-reader", daemon=True)
+        self._reader.start()
+
+    def _read(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            self.lines.append(line.rstrip("\n"))
+
+    def wait_for(self, text: str, timeout: float) -> str:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            for line in self.lines:
+                if text in line:
+                    return line
+            if self.proc.poll() is not None and not self._reader.is_alive():
+                break
+            time.sleep(0.05)
+        raise AssertionError(f"no line with {text!r} within {timeout} s; output:\n" + "\n".join(self.lines))
+
+    def cleanup(self) -> None:
+        if self.proc.poll() is None:
+            os.killpg(self.proc.pid, signal.SIGKILL)
+            self.proc.wait(10)
+        for pid in processes_mentioning(str(self.run_dir)):
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+        self._reader.join(10)
+
+
+@pytest.fixture
+def sim(tmp_path):
+    started: list[SimProcess] = []
+
+    def start(*args: str) -> SimProcess:
+        p = SimProcess(tmp_path / "run", *args)
+        started.append(p)
+        return p
+
+    yield start
+    for p in started:
+        p.cleanup()
+
+
+def test_ctrl_c_stops_the_whole_team_and_frees_its_ports(sim, tmp_path):
+    p = sim("--robots", "2", "--control-port", "0")
+    p.wait_for("Ctrl-C stops the team", timeout=90)
+    line = p.wait_for("erni peers --via", timeout=1)
+    host, port = line.split("--via")[1].strip().split(":")
+    agents = processes_mentioning(str(tmp_path / "run" / "agents"))
+    assert len(agents) == 3  # two robots and the control node, each a real process
+    p.proc.send_signal(signal.SIGINT)
+    assert p.proc.wait(30) == 0
+    p.wait_for("erni sim: stopped", timeout=5)
+    assert processes_mentioning(str(tmp_path / "run")) == []
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        s.bind((host, int(port)))  # the control node's port is free again
+
+
+def test_duration_ends_the_run_with_exit_code_zero(sim):
+    p = sim("--robots", "1", "--duration", "1", "--control-port", "0")
+    assert p.proc.wait(90) == 0
+    p.wait_for("duration reached", timeout=5)
+    p.wait_for("team up in", timeout=1)
+
+
+def test_bad_scenario_is_one_clear_line_and_exit_2(tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text('name = "x"\n[radio]\ncomm_range = -3\n[robots]\ncount = 2\n')
+    out = subprocess.run([sys.executable, "-m", "erni", "sim", str(bad), "--headless"], cwd=ROOT,
+                         capture_output=True, text=True, timeout=30)
+    assert out.returncode == 2
+    assert out.stderr.strip() == (f"erni sim: {bad}: radio.comm_range: Input should be greater than 0 "
+                                  "(got -3)")
+    out = subprocess.run([sys.executable, "-m", "erni", "sim", "no-such-scenario", "--headless"], cwd=ROOT,
+                         capture_output=True, text=True, timeout=30)
+    assert out.returncode == 2 and "no such scenario" in out.stderr and "Traceback" not in out.stderr
