@@ -1,0 +1,409 @@
+"""UIPlugin: the control node's web GUI and speech front end, meeting the team on the blackboard.
+
+The plugin watches robots' `Pose`, `NetInfo` and `transport.Peer` objects and the tasks
+sent to robots, and hands a JSON-ready picture of the team to its web server (thread
+`ui-http`) at `rate_hz`. Commands from the page, typed utterances and recognised speech come
+back through `later()` and become tasks for the robots (`RemoteBotMotion`, or `BotMotion`
+with `verb = "BotMotion"`). Spoken feedback runs on thread `ui-voice`, recognition on
+`ui-speech`; no I/O happens inside a transaction.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import secrets
+import threading
+import time
+from collections import deque
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, SecretStr, field_validator
+
+import netgraph
+from blackboard import NetInfo, Plugin, Pose, Task
+from plugins.ui.dialogue import Dialogue, Naming, Reply, tasks_for
+from plugins.ui.grammar import STANDARD_ACTIONS, Refusal, strategies
+from plugins.ui.protocol import CancelTaskMsg, CommandMsg, MicMsg, SayMsg, SelectMsg
+from plugins.ui.server import WebServer
+from plugins.ui.speech import Listener, Microphone, Recognizer, SpeechError, model_path, wav_frames
+from plugins.ui.voice import Speaker
+from transport import Peer, parse_address
+
+_LOOPBACK_NAMES = {"localhost", "ip6-localhost"}
+
+
+class UISettings(BaseModel):
+    """Settings of the UI plugin (the `[plugin.settings]` table)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    listen: str = Field("127.0.0.1:8080", description="HOST:PORT of the GUI (0 = any free port)")
+    token: SecretStr | None = Field(None, description="access token; generated when listening beyond localhost")
+    verb: Literal["RemoteBotMotion", "BotMotion"] = Field(
+        "RemoteBotMotion", description="verb of the tasks sent to robots (BotMotion: teams without MissionControl)")
+    robot_names: str = Field("robot{n}", description="agent name of robot n")
+    low_battery: float = Field(11.5, ge=0, description="battery voltage below which a robot shows as low (V)")
+    rate_hz: float = Field(10.0, gt=0, le=50, description="GUI updates per second")
+    supersede: bool = Field(True, description="a new motion command cancels the robot's previous one")
+    history: int = Field(60, ge=1, le=10000, description="finished tasks kept in the task list")
+    speak: bool = Field(True, description="spoken feedback through espeak-ng on the control node")
+    voice: str = Field("en-us", description="espeak-ng voice")
+    vosk_model: str | None = Field(None, description="vosk model directory (default: VOSK_MODEL_PATH)")
+    microphone: bool = Field(False, description="listen to the control node's own microphone (arecord)")
+    microphone_device: str | None = Field(None, description="ALSA device of the local microphone")
+    wav: str | None = Field(None, description="a WAV file of commands to recognise at start")
+
+    @field_validator("listen")
+    @classmethod
+    def _check_listen(cls, v: str) -> str:
+        parse_address(v)
+        return v
+
+    @field_validator("robot_names")
+    @classmethod
+    def _check_names(cls, v: str) -> str:
+        Naming(v)
+        return v
+
+
+def is_loopback(host: str) -> bool:
+    """True for localhost, 127.0.0.0/8 and ::1."""
+    if host.lower() in _LOOPBACK_NAMES:
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False
+
+
+class UIPlugin(Plugin):
+    """The control node's GUI and speech front end."""
+
+    Settings = UISettings
+
+    def setup(self) -> None:
+        s: UISettings = self.settings
+        me = self.agent_name
+        self.naming = Naming(s.robot_names)
+        self.typed = Dialogue(self.naming, verb=s.verb, source=me, listening=True)
+        self.spoken = Dialogue(self.naming, verb=s.verb, source=me, listening=False)
+        self.poses = self.subscribe(Pose)
+        self.netinfo = self.subscribe(NetInfo)
+        self.peers = self.subscribe(Peer)
+        self.tasks = self.subscribe(Task, where=lambda t: t.destination not in (None, "", me))
+        self.logs: deque[dict[str, Any]] = deque(maxlen=200)
+        self.mic_clients: set[str] = set()
+        self._ended: set[str] = set()
+        self.retired: deque[dict[str, Any]] = deque(maxlen=s.history)  # tasks this UI cancelled
+        self._lock = threading.Lock()
+        self._dirty = True
+        self._threads: list[Any] = []
+        self._stopping = threading.Event()
+        host, port = parse_address(s.listen)
+        token = s.token.get_secret_value() if s.token else None
+        if token is None and not is_loopback(host):
+            token = secrets.token_urlsafe(12)
+        self.speaker = Speaker(voice=s.voice).start() if s.speak else None
+        self.listener: Listener | None = None
+        self.speech_error = ""
+        self._start_speech(s)
+        self.server = WebServer(host, port, token=token, on_message=self._from_page, on_audio=self._audio,
+                                on_close=self._page_closed, rate_hz=s.rate_hz)
+        self.server.publish(self.picture())
+        try:
+            self.server.start()
+        except OSError:
+            self.teardown()
+            raise
+        self.url = self.server.url
+        self.log.info("GUI of %s at %s", me, self.url)
+        print(f"ERNI GUI: {self.url}", flush=True)
+        self._log("info", f"control node {me} serving the GUI; tasks go as {s.verb}")
+        if self.speech_error:
+            self._log("warn", self.speech_error)
+        self.wake_every(1.0 / s.rate_hz)
+
+    def _start_speech(self, s: UISettings) -> None:
+        try:
+            recognizer = Recognizer(model_path(s.vosk_model), self._words())
+        except SpeechError as err:
+            self.speech_error = str(err)
+            self.log.warning("speech recognition off: %s", err)
+            return
+        self.listener = Listener(recognizer, self._recognised).start()
+        if s.microphone:
+            try:
+                mic = Microphone(lambda pcm: self._feed("local", pcm), s.microphone_device).start()
+                self._threads.append(mic)
+            except (SpeechError, OSError) as err:
+                self.log.warning("local microphone off: %s", err)
+        if s.wav:
+            feeder = threading.Thread(target=self._play_wav, args=(s.wav,), name="ui-wav", daemon=True)
+            feeder.start()
+            self._threads.append(feeder)
+
+    @staticmethod
+    def _words() -> list[str]:
+        from plugins.ui.grammar import vocabulary
+
+        return vocabulary()
+
+    def teardown(self) -> None:
+        """Stop the web server, the microphone, the recogniser and the voice; join their threads."""
+        if hasattr(self, "_stopping"):
+            self._stopping.set()
+        for part in [getattr(self, "server", None), *getattr(self, "_threads", []),
+                     getattr(self, "listener", None), getattr(self, "speaker", None)]:
+            if isinstance(part, threading.Thread):
+                part.join(timeout=10)
+            elif part is not None:
+                part.stop()
+
+    # -- each run ---------------------------------------------------------------------------
+
+    def execute(self) -> None:
+        for peer in self.peers.added:
+            if peer.role != "control":
+                self._log("info" if peer.up else "warn", f"{peer.name} {'joined' if peer.up else 'is not heard'}")
+        for peer in self.peers.changed:
+            reports = self.peers.reports(peer)
+            if "down" in reports:
+                self._log("error", f"{peer.name}: link lost (not heard for {time.time() - peer.last_heard:.0f} s)")
+            elif "up" in reports:
+                self._log("info", f"{peer.name}: link back")
+            elif "restarted" in reports:
+                self._log("warn", f"{peer.name} restarted")
+        for task in self.tasks.added + self.tasks.changed:
+            if task.done:
+                self._task_ended(task)
+        for sub in (self.poses, self.netinfo, self.peers, self.tasks):
+            if sub.added or sub.changed or sub.removed:
+                self._dirty = True
+        self._forget_old_tasks()
+        if self._dirty:
+            self._dirty = False
+            self.server.publish(self.picture())
+
+    def _task_ended(self, task: Task) -> None:
+        r = task.result
+        if r is None:
+            return
+        if task.uid in self._ended:
+            return
+        self._ended.add(task.uid)
+        level = {"succeeded": "info", "cancelled": "dim"}.get(r.state.value, "error")
+        self._log(level, f"{task.destination}: {task.preposition} {r.state.value}"
+                  + (f" — {r.message}" if r.message else ""))
+
+    def _forget_old_tasks(self) -> None:
+        mine = [t for t in self.tasks if t.done and t.source == self.agent_name]
+        if len(mine) > self.settings.history:
+            mine.sort(key=lambda t: t.created)
+            for t in mine[: len(mine) - self.settings.history]:
+                self.remove(t)
+                self._ended.discard(t.uid)
+
+    # -- the picture of the team ------------------------------------------------------------
+
+    def robots(self) -> list[str]:
+        """Agent names of the robots: those with a Pose, and peers that announce role robot."""
+        names = {p.robot for p in self.poses}
+        names |= {p.name for p in self.peers if p.role == "robot"}
+        names.discard(self.agent_name)
+        return sorted(names, key=lambda n: (self.naming.number(n) is None, self.naming.number(n) or 0, n))
+
+    def picture(self) -> dict[str, Any]:
+        """Return what the page shows: robots, links, metrics, tasks, log, settings."""
+        s: UISettings = self.settings
+        poses = {p.robot: p for p in self.poses}
+        peers = {p.name: p for p in self.peers}
+        names = self.robots()
+        running: dict[str, Task] = {}
+        for t in sorted(self.tasks, key=lambda t: t.created):
+            if not t.done and t.destination:
+                running[t.destination] = t
+        robots = []
+        for i, name in enumerate(names):
+            pose, peer = poses.get(name), peers.get(name)
+            reasons = []
+            if pose is not None:
+                if pose.battery is not None and pose.battery < s.low_battery:
+                    reasons.append(f"battery {pose.battery:.1f} V")
+                if pose.stalled:
+                    reasons.append("stalled")
+                if not pose.motors_enabled:
+                    reasons.append("motors off")
+                if pose.bumpers:
+                    reasons.append("bumper")
+            up = peer.up if peer is not None else pose is not None
+            task = running.get(name)
+            robots.append({
+                "name": name, "number": self.naming.number(name) or i + 1, "up": up,
+                "state": "lost" if not up else ("warn" if reasons else "ok"), "reasons": reasons,
+                "pose": None if pose is None else {
+                    "x": pose.x, "y": pose.y, "theta": pose.theta, "v": pose.v, "w": pose.w,
+                    "battery": pose.battery, "sonar": pose.sonar, "stamp": pose.stamp},
+                "address": peer.address if peer else "", "last_heard": peer.last_heard if peer else None,
+                "task": task.describe().split(" -> ")[0] if task else "",
+            })
+        links = self._links(set(names))
+        rows = [_task_row(t) for t in self.tasks] + list(self.retired)
+        rows.sort(key=lambda r: r["created"], reverse=True)
+        return {
+            "agent": self.agent_name, "time": time.time(), "verb": s.verb,
+            "actions": list(STANDARD_ACTIONS), "strategies": sorted(strategies().values()),
+            "speech": {"available": self.listener is not None, "error": self.speech_error},
+            "listening": self.spoken.listening,
+            "robots": robots, "links": links,
+            "metrics": {**_metrics(names, robots, links), "network_known": any(True for _ in self.netinfo)},
+            "tasks": rows[: s.history + 20], "log": list(self.logs),
+        }
+
+    def _links(self, names: set[str]) -> list[dict[str, Any]]:
+        best: dict[tuple[str, str], float] = {}
+        for info in self.netinfo:
+            if info.degraded:
+                continue
+            pairs = [(link.a, link.b, link.quality) for link in info.links]
+            pairs += [(info.node, n.name, n.quality) for n in info.neighbors]
+            for a, b, q in pairs:
+                if a == b or a not in names or b not in names:
+                    continue
+                key = (min(a, b), max(a, b))
+                best[key] = max(q, best.get(key, 0.0))
+        return [{"a": a, "b": b, "quality": round(q, 3)} for (a, b), q in sorted(best.items())]
+
+    def _log(self, level: str, text: str) -> None:
+        self.logs.append({"t": time.time(), "level": level, "text": text})
+        self._dirty = True
+
+    # -- from the page (server thread) ------------------------------------------------------
+
+    def _from_page(self, client: str, msg: Any) -> None:
+        if isinstance(msg, MicMsg):
+            self._mic(client, msg.on)
+        else:
+            self.later(lambda: self._page_message(client, msg))
+
+    def _page_closed(self, client: str) -> None:
+        self._mic(client, False)
+
+    def _mic(self, client: str, on: bool) -> None:
+        if on and self.listener is None:
+            self.server.emit({"type": "error", "message": f"speech recognition off: {self.speech_error}"}, client)
+            return
+        with self._lock:
+            was = client in self.mic_clients
+            (self.mic_clients.add if on else self.mic_clients.discard)(client)
+        if was and not on and self.listener is not None:
+            self.listener.end_utterance(client)
+
+    def _audio(self, client: str, pcm: bytes) -> None:
+        with self._lock:
+            listening = client in self.mic_clients
+        if listening:
+            self._feed(client, pcm)
+
+    def _feed(self, source: str, pcm: bytes) -> None:
+        if self.listener is not None:
+            self.listener.feed(source, pcm)
+
+    def _play_wav(self, path: str) -> None:
+        try:
+            for frame in wav_frames(path):
+                if self._stopping.is_set():
+                    return
+                self._feed("wav", frame)
+                time.sleep(0.01)  # no faster than the recogniser needs: keep its queue short
+        except SpeechError as err:
+            self.log.warning("%s", err)
+        if self.listener is not None:
+            self.listener.end_utterance("wav")
+
+    def _recognised(self, source: str, text: str) -> None:
+        self.later(lambda: self._answer(self.spoken.hear(text, self.robots()), "voice", source))
+
+    def _page_message(self, client: str, msg: Any) -> None:
+        if isinstance(msg, CommandMsg):
+            self._command(client, msg)
+        elif isinstance(msg, SayMsg):
+            if msg.selection:
+                self.typed.select(msg.selection)
+            self._answer(self.typed.hear(msg.text, self.robots()), "typed", client)
+        elif isinstance(msg, SelectMsg):
+            self.typed.select(msg.robots)
+            self.spoken.select(msg.robots)
+        elif isinstance(msg, CancelTaskMsg):
+            task = self.tasks.get(msg.uid)
+            if task is None or task.done:
+                self.server.emit({"type": "error", "message": f"no running task {msg.uid}"}, client)
+            else:
+                self._retire(task, "cancelled from the GUI")
+                self._log("dim", f"{task.destination}: {task.preposition} cancelled from the GUI")
+
+    def _command(self, client: str, msg: CommandMsg) -> None:
+        known = set(strategies().values()) | set(STANDARD_ACTIONS)
+        if msg.action not in known:
+            self.server.emit({"type": "error", "message": f"unknown action {msg.action!r}; expected one of "
+                              f"{', '.join(sorted(known))}"}, client)
+            return
+        try:
+            tasks = tasks_for(msg.action, msg.params, msg.robots, verb=self.settings.verb, source=self.agent_name)
+        except Refusal as why:
+            self.server.emit({"type": "error", "message": str(why)}, client)
+            return
+        self._send(msg.action, tasks)
+        self._log("info", f"{tasks[0].describe().split(' -> ')[0]} -> {', '.join(msg.robots)}")
+
+    def _answer(self, reply: Reply, channel: str, client: str) -> None:
+        if reply.say is None:
+            self._log("dim", f"({channel}, standing by) \u201c{reply.heard}\u201d ignored")
+            return
+        if reply.tasks:
+            self._send(reply.action, reply.tasks)
+        if reply.targets:
+            self.typed.select(reply.targets)
+            self.spoken.select(reply.targets)
+            self.server.emit({"type": "select", "robots": reply.targets})
+        if self.speaker is not None:
+            self.speaker.say(reply.say)
+        self.server.emit({"type": "reply", "text": reply.say, "heard": reply.heard, "channel": channel,
+                          "client": client, "accepted": reply.accepted})
+        detail = f" ({', '.join(reply.targets)})" if reply.targets else ""
+        self._log("info" if reply.accepted else "warn",
+                  f"{channel}: \u201c{reply.heard}\u201d \u2192 {reply.say}{detail}")
+
+    def _send(self, action: str, tasks: list[Task]) -> None:
+        """Publish tasks; a motion command first cancels the robot's previous unfinished task."""
+        if self.settings.supersede and action != "teleport":
+            targets = {t.destination for t in tasks}
+            for old in list(self.tasks):
+                if old.source == self.agent_name and old.destination in targets and not old.done:
+                    self._retire(old, f"superseded by {action}")
+        for task in tasks:
+            self.add(task)
+
+
+    def _retire(self, task: Task, why: str) -> None:
+        """Cancel a task (remove it) and keep it in the task list as cancelled."""
+        self.remove(task)
+        self.retired.append({**_task_row(task), "state": "cancelled", "message": why})
+
+
+def _task_row(t: Task) -> dict[str, Any]:
+    r = t.result
+    return {"uid": t.uid, "robot": t.destination, "verb": t.verb, "preposition": t.preposition,
+            "text": t.describe().split(" -> ")[0], "source": t.source, "created": t.created,
+            "state": t.state.value, "progress": r.progress if r else 0.0, "message": r.message if r else "",
+            "values": {k: v for k, v in (r.values if r else {}).items() if isinstance(v, (int, float, str))}}
+
+
+def _metrics(names: list[str], robots: list[dict[str, Any]], links: list[dict[str, Any]]) -> dict[str, Any]:
+    adj = netgraph.from_edges(((lk["a"], lk["b"], 1.0) for lk in links if lk["quality"] > 0), nodes=names)
+    comps = netgraph.connected_components(adj) if names else []
+    cut = sorted(netgraph.articulation_points(adj)) if names else []
+    quality = [lk["quality"] for lk in links]
+    return {"robots": len(names), "up": sum(1 for r in robots if r["up"]), "links": len(links),
+            "mean_quality": round(sum(quality) / len(quality), 3) if quality else None,
+            "components": len(comps), "articulation_points": cut,
+            "degree": round(2 * len(links) / len(names), 2) if names else 0}

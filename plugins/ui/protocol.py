@@ -1,0 +1,96 @@
+"""Messages the GUI page sends over its WebSocket, validated before anything acts on them.
+
+Text frames are JSON objects with a `type`; binary frames are microphone audio (16 kHz mono
+int16 little-endian) while the page's microphone is on. `parse_message` returns the typed
+message or raises `BadMessage` with one line naming what was wrong and what was expected.
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
+
+AgentName = Annotated[str, Field(pattern=r"^[A-Za-z0-9_.-]{1,64}$")]
+Number = Annotated[float, Field(allow_inf_nan=False)]
+
+
+class _Msg(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class CommandMsg(_Msg):
+    """Task the robots with an action of the grammar (goto, forward, turn, stop, ...)."""
+
+    type: Literal["command"]
+    robots: list[AgentName] = Field(min_length=1, max_length=256)
+    action: Annotated[str, Field(pattern=r"^[a-z_]{1,40}$")]
+    params: dict[Annotated[str, Field(pattern=r"^[a-z_]{1,40}$")], Number | int | bool | None] = Field(
+        default_factory=dict, max_length=16)
+
+
+class SayMsg(_Msg):
+    """A typed utterance, with the robots selected on the page (the default targets)."""
+
+    type: Literal["say"]
+    text: Annotated[str, Field(min_length=1, max_length=300)]
+    selection: list[AgentName] = Field(default_factory=list, max_length=256)
+
+
+class SelectMsg(_Msg):
+    """The page's selection changed."""
+
+    type: Literal["select"]
+    robots: list[AgentName] = Field(max_length=256)
+
+
+class CancelTaskMsg(_Msg):
+    """Cancel one task shown in the task list."""
+
+    type: Literal["cancel_task"]
+    uid: Annotated[str, Field(min_length=1, max_length=100)]
+
+
+class MicMsg(_Msg):
+    """The page's microphone starts or stops streaming; audio must be 16 kHz."""
+
+    type: Literal["mic"]
+    on: bool
+    rate: Literal[16000] = 16000
+
+
+class PingMsg(_Msg):
+    """Keep-alive."""
+
+    type: Literal["ping"]
+
+
+PageMessage = Annotated[CommandMsg | SayMsg | SelectMsg | CancelTaskMsg | MicMsg | PingMsg,
+                        Field(discriminator="type")]
+_ADAPTER: TypeAdapter[Any] = TypeAdapter(PageMessage)
+TYPES = ("command", "say", "select", "cancel_task", "mic", "ping")
+
+
+class BadMessage(ValueError):
+    """A page message that is not valid JSON or not one of the known messages."""
+
+
+def parse_message(text: str | bytes) -> Any:
+    """Return the typed page message in a JSON text, or raise BadMessage naming the problem."""
+    try:
+        data = json.loads(text)
+    except (ValueError, UnicodeDecodeError) as err:
+        raise BadMessage(f"message is not JSON ({err}); expected an object with a 'type'") from None
+    if not isinstance(data, dict) or data.get("type") not in TYPES:
+        got = data.get("type") if isinstance(data, dict) else type(data).__name__
+        raise BadMessage(f"unknown message type {got!r}; expected one of {', '.join(TYPES)}")
+    try:
+        return _ADAPTER.validate_python(data)
+    except ValidationError as err:
+        problems = []
+        for e in err.errors():
+            loc = ".".join(str(p) for p in e["loc"][1:]) or "message"
+            got = repr(e.get("input"))
+            problems.append(f"{loc}: {e['msg']} (got {got[:60]})")
+        raise BadMessage(f"{data['type']}: " + "; ".join(problems)) from None

@@ -1,0 +1,579 @@
+// ERNI control page: a live map of the team over one WebSocket to the control node.
+"use strict";
+
+const SVGNS = "http://www.w3.org/2000/svg";
+const $ = (id) => document.getElementById(id);
+const ROBOT_RADIUS = 0.25;          // m, drawn size of a robot (at least MIN_PX)
+const MIN_PX = 13;
+const TRAIL = 120;                  // positions kept per robot
+
+const ui = {
+  ws: null, client: null, state: null, connected: false, everConnected: false,
+  lastMessage: 0, retry: 500,
+  selection: new Set(),
+  view: { scale: 60, ox: 0, oy: 0, fitted: false },
+  armed: null,                       // {action: "goto"|"teleport", robots: [...]}
+  drag: null,                        // pointer gesture in progress
+  trails: new Map(), showTrails: true,
+  mic: null,
+};
+
+// ---- geometry -------------------------------------------------------------------------
+function toScreen(x, y) { return [ui.view.ox + x * ui.view.scale, ui.view.oy - y * ui.view.scale]; }
+function toWorld(sx, sy) { return [(sx - ui.view.ox) / ui.view.scale, (ui.view.oy - sy) / ui.view.scale]; }
+function svgPoint(ev) { const r = $("map").getBoundingClientRect(); return [ev.clientX - r.left, ev.clientY - r.top]; }
+function el(tag, attrs, parent) {
+  const e = document.createElementNS(SVGNS, tag);
+  for (const k in attrs) e.setAttribute(k, attrs[k]);
+  if (parent) parent.appendChild(e);
+  return e;
+}
+function h(tag, attrs, text) {
+  const e = document.createElement(tag);
+  for (const k in (attrs || {})) e.setAttribute(k, attrs[k]);
+  if (text !== undefined) e.textContent = text;
+  return e;
+}
+function fmt(v, d) { return (v === null || v === undefined) ? "–" : Number(v).toFixed(d); }
+function qualityColour(q) {
+  const a = [224, 82, 58], b = [224, 180, 58], c = [62, 196, 109];
+  const [p, r, t] = q < 0.5 ? [a, b, q / 0.5] : [b, c, (q - 0.5) / 0.5];
+  return `rgb(${p.map((v, i) => Math.round(v + (r[i] - v) * t)).join(",")})`;
+}
+
+// ---- connection -------------------------------------------------------------------------
+function connect() {
+  setConn("connecting");
+  const proto = location.protocol === "https:" ? "wss" : "ws";
+  const ws = new WebSocket(`${proto}://${location.host}/ws${location.search}`);
+  ws.binaryType = "arraybuffer";
+  ui.ws = ws;
+  ws.onopen = () => { ui.retry = 500; ui.lastMessage = Date.now(); setConn("ok"); };
+  ws.onmessage = (ev) => { ui.lastMessage = Date.now(); onMessage(JSON.parse(ev.data)); };
+  ws.onclose = () => {
+    if (ui.ws !== ws) return;
+    ui.ws = null;
+    stopMic();
+    setConn("lost");
+    setTimeout(connect, ui.retry);
+    ui.retry = Math.min(ui.retry * 2, 4000);
+  };
+}
+function send(msg) {
+  if (ui.ws && ui.ws.readyState === WebSocket.OPEN) { ui.ws.send(JSON.stringify(msg)); return true; }
+  logLocal("error", "not connected to the control node: command not sent");
+  return false;
+}
+setInterval(() => {
+  if (!ui.ws || ui.ws.readyState !== WebSocket.OPEN) return;
+  if (Date.now() - ui.lastMessage > 6000) { ui.ws.close(); return; }   // silent server: reconnect
+  ui.ws.send('{"type":"ping"}');
+}, 2000);
+function setConn(s) {
+  ui.connected = s === "ok";
+  if (s === "ok") ui.everConnected = true;
+  const c = $("conn");
+  c.className = "conn " + s;
+  $("conn-text").textContent = s === "ok" ? "control node connected" : s === "lost" ? "control node lost" : "connecting…";
+  $("banner").classList.toggle("hidden", s === "ok" || !ui.everConnected);
+  document.body.dataset.conn = s;
+}
+
+function onMessage(m) {
+  if (m.type === "hello") ui.client = m.client;
+  else if (m.type === "state") { ui.state = m; render(); }
+  else if (m.type === "select") setSelection(m.robots);
+  else if (m.type === "reply") onReply(m);
+  else if (m.type === "error") { logLocal("error", m.message); showReply("", m.message, false); }
+}
+
+// ---- rendering ----------------------------------------------------------------------------
+function render() {
+  const s = ui.state;
+  if (!s || !s.robots) return;
+  $("agent").textContent = s.agent;
+  $("mode").innerHTML = `tasks as <b>${s.verb}</b>`;
+  for (const r of s.robots) {
+    if (!r.pose) continue;
+    const t = ui.trails.get(r.name) || [];
+    const last = t[t.length - 1];
+    if (!last || Math.hypot(last[0] - r.pose.x, last[1] - r.pose.y) > 0.02) t.push([r.pose.x, r.pose.y]);
+    if (t.length > TRAIL) t.shift();
+    ui.trails.set(r.name, t);
+  }
+  if (!ui.view.fitted && s.robots.some((r) => r.pose)) fit();
+  renderMetrics(s);
+  renderMap();
+  renderRobotTable(s);
+  renderStrategies(s);
+  renderTasks(s);
+  renderLog(s);
+  $("listening").textContent = s.speech && s.speech.available ? (s.listening ? "voice: listening" : "voice: standing by — say “attention”") : "voice: no recogniser";
+  $("mic").disabled = !(s.speech && s.speech.available);
+  $("mic").title = s.speech && s.speech.available ? "stream the microphone to the control node's recogniser" : (s.speech ? s.speech.error : "");
+}
+
+function renderMetrics(s) {
+  const m = s.metrics, box = $("metrics");
+  box.innerHTML = "";
+  const add = (label, value, bad, title) => {
+    const d = h("span", { class: "metric" + (bad ? " bad" : ""), title: title || "" }, label);
+    d.appendChild(h("b", {}, value));
+    box.appendChild(d);
+  };
+  add("robots up", `${m.up}/${m.robots}`, m.up < m.robots);
+  if (!m.network_known) { add("network", "no NetInfo yet", false, "robots share NetInfo when MobiNet watches the network"); return; }
+  add("links", String(m.links));
+  add("mean quality", m.mean_quality === null ? "–" : m.mean_quality.toFixed(2), m.mean_quality !== null && m.mean_quality < 0.5);
+  add("components", String(m.components), m.components > 1, "connected parts of the network");
+  add("cut nodes", m.articulation_points.length ? m.articulation_points.join(" ") : "none",
+      m.articulation_points.length > 0, "articulation points: robots whose loss splits the network");
+  add("mean degree", String(m.degree));
+}
+
+function renderGrid(w, hgt) {
+  const g = $("grid");
+  g.innerHTML = "";
+  const [x0, y1] = toWorld(0, 0), [x1, y0] = toWorld(w, hgt);
+  let step = 1;
+  while (step * ui.view.scale < 35) step *= 2;
+  while (step * ui.view.scale > 160 && step > 0.25) step /= 2;
+  for (let x = Math.floor(x0 / step) * step; x <= x1; x += step) {
+    const [sx] = toScreen(x, 0);
+    const major = Math.abs(x / (step * 5) - Math.round(x / (step * 5))) < 1e-6;
+    el("line", { x1: sx, y1: 0, x2: sx, y2: hgt, class: Math.abs(x) < 1e-9 ? "axis" : "grid-line" + (major ? " grid-major" : "") }, g);
+    if (sx > 24) el("text", { x: sx + 3, y: hgt - 6, class: "grid-label" }, g).textContent = `${+x.toFixed(2)}`;
+  }
+  for (let y = Math.floor(y0 / step) * step; y <= y1; y += step) {
+    const [, sy] = toScreen(0, y);
+    const major = Math.abs(y / (step * 5) - Math.round(y / (step * 5))) < 1e-6;
+    el("line", { x1: 0, y1: sy, x2: w, y2: sy, class: Math.abs(y) < 1e-9 ? "axis" : "grid-line" + (major ? " grid-major" : "") }, g);
+    if (sy < hgt - 24 && sy > 110) el("text", { x: 4, y: sy - 3, class: "grid-label" }, g).textContent = `${+y.toFixed(2)}`;
+  }
+  const px = step * ui.view.scale;
+  $("scale-bar").style.width = px + "px";
+  $("scale-text").textContent = `${+step.toFixed(2)} m`;
+}
+
+function renderMap() {
+  const svg = $("map"), w = svg.clientWidth, hgt = svg.clientHeight, s = ui.state;
+  renderGrid(w, hgt);
+  const byName = new Map(s.robots.map((r) => [r.name, r]));
+  // links
+  const lg = $("links");
+  lg.innerHTML = "";
+  for (const l of s.links) {
+    const a = byName.get(l.a), b = byName.get(l.b);
+    if (!a || !b || !a.pose || !b.pose) continue;
+    const [ax, ay] = toScreen(a.pose.x, a.pose.y), [bx, by] = toScreen(b.pose.x, b.pose.y);
+    const line = el("line", { x1: ax, y1: ay, x2: bx, y2: by, class: "link-line", stroke: qualityColour(l.quality),
+      "stroke-width": 1.5 + 3 * l.quality, "data-a": l.a, "data-b": l.b, "data-quality": l.quality }, lg);
+    el("title", {}, line).textContent = `${l.a} – ${l.b}: delivery ratio ${l.quality.toFixed(2)}`;
+    el("text", { x: (ax + bx) / 2 + 4, y: (ay + by) / 2 - 4, class: "link-label" }, lg).textContent = l.quality.toFixed(2);
+  }
+  // trails
+  const tg = $("trails");
+  tg.innerHTML = "";
+  if (ui.showTrails) {
+    for (const r of s.robots) {
+      const t = ui.trails.get(r.name);
+      if (!t || t.length < 2) continue;
+      el("polyline", { points: t.map((p) => toScreen(p[0], p[1]).join(",")).join(" "), class: "trail",
+        stroke: r.state === "ok" ? "#35b86b" : r.state === "warn" ? "#e65c9c" : "#7b828e" }, tg);
+    }
+  }
+  // goals of running gotos
+  const gg = $("goals");
+  gg.innerHTML = "";
+  for (const t of s.tasks) {
+    if (t.preposition !== "goto" || t.state === "succeeded" || t.state === "failed" || t.state === "cancelled") continue;
+    const r = byName.get(t.robot);
+    const m = /x=(-?[\d.e-]+) y=(-?[\d.e-]+)/.exec(t.text);
+    if (!m) continue;
+    const [gx, gy] = toScreen(parseFloat(m[1]), parseFloat(m[2]));
+    if (r && r.pose) { const [rx, ry] = toScreen(r.pose.x, r.pose.y); el("line", { x1: rx, y1: ry, x2: gx, y2: gy, class: "goal-path" }, gg); }
+    el("path", { d: `M${gx - 7},${gy - 7}L${gx + 7},${gy + 7}M${gx - 7},${gy + 7}L${gx + 7},${gy - 7}`, class: "goal", "data-robot": t.robot }, gg);
+  }
+  // robots
+  const rg = $("robots");
+  rg.innerHTML = "";
+  const rad = Math.max(MIN_PX, ROBOT_RADIUS * ui.view.scale);
+  for (const r of s.robots) {
+    if (!r.pose) continue;
+    let [sx, sy] = toScreen(r.pose.x, r.pose.y);
+    const g = el("g", { class: `robot ${r.state}${ui.selection.has(r.name) ? " selected" : ""}`, "data-name": r.name,
+      "data-state": r.state, "data-x": r.pose.x, "data-y": r.pose.y, transform: `translate(${sx},${sy})` }, rg);
+    el("circle", { r: rad + 5, class: "ring" }, g);
+    el("circle", { r: rad, class: "body" }, g);
+    const th = r.pose.theta;
+    el("line", { x1: 0, y1: 0, x2: Math.cos(th) * (rad + 10), y2: -Math.sin(th) * (rad + 10), class: "heading" }, g);
+    el("text", { class: "num" }, g).textContent = r.number;
+    el("text", { x: rad + 6, y: -rad + 2, class: "tag" }, g).textContent = r.name;
+    if (r.state === "lost") el("text", { x: rad + 6, y: -rad + 15, class: "lost-tag" }, g).textContent = "LINK LOST";
+    else if (r.reasons.length) el("text", { x: rad + 6, y: -rad + 15, class: "lost-tag" }, g).textContent = r.reasons.join(", ");
+    el("title", {}, g).textContent = `${r.name} (${r.state})\nx ${fmt(r.pose.x, 2)} m, y ${fmt(r.pose.y, 2)} m, heading ${fmt(r.pose.theta * 180 / Math.PI, 0)}°\n` +
+      `v ${fmt(r.pose.v, 2)} m/s, battery ${fmt(r.pose.battery, 1)} V${r.task ? "\n" + r.task : ""}`;
+  }
+  if (ui.drag && ui.drag.kind === "robot" && ui.drag.moved) {
+    el("circle", { cx: ui.drag.at[0], cy: ui.drag.at[1], r: rad, class: "ghost" }, rg);
+  }
+}
+
+// Rows are kept and updated in place, so a click never lands on a row being replaced.
+function keyed(box, items, key, create, update) {
+  const old = new Map([...box.children].filter((c) => c.dataset.key !== undefined).map((c) => [c.dataset.key, c]));
+  let prev = null;
+  for (const item of items) {
+    const k = key(item);
+    let row = old.get(k);
+    if (row) old.delete(k); else { row = create(item); row.dataset.key = k; }
+    update(row, item);
+    const next = prev ? prev.nextSibling : box.firstChild;
+    if (row !== next) box.insertBefore(row, next);
+    prev = row;
+  }
+  for (const row of old.values()) row.remove();
+}
+
+function renderRobotTable(s) {
+  $("no-robots").classList.toggle("hidden", s.robots.length > 0);
+  keyed(document.querySelector("#robot-table tbody"), s.robots, (r) => r.name, (r) => {
+    const tr = h("tr", { "data-name": r.name });
+    const cb = h("input", { type: "checkbox", class: "sel", "data-name": r.name });
+    cb.addEventListener("change", () => { cb.checked ? ui.selection.add(r.name) : ui.selection.delete(r.name); selectionChanged(); });
+    const td0 = h("td"); td0.appendChild(cb); tr.appendChild(td0);
+    tr.appendChild(h("td", { class: "num" }));
+    const name = h("td", { class: "name" });
+    name.appendChild(h("span", { class: "state-dot" }));
+    name.appendChild(h("span", { class: "label" }));
+    tr.appendChild(name);
+    for (const c of ["batt", "vel", "doing"]) tr.appendChild(h("td", { class: c }));
+    tr.addEventListener("contextmenu", (ev) => { ev.preventDefault(); openMenu(r.name, ev.clientX, ev.clientY); });
+    return tr;
+  }, (tr, r) => {
+    tr.className = (ui.selection.has(r.name) ? "selected " : "") + r.state;
+    tr.dataset.state = r.state;
+    tr.querySelector("input").checked = ui.selection.has(r.name);
+    tr.querySelector(".num").textContent = r.number;
+    tr.querySelector(".name").title = r.reasons.join(", ") || r.address;
+    tr.querySelector(".state-dot").className = "state-dot " + r.state;
+    tr.querySelector(".label").textContent = r.name + (r.state === "lost" ? " — link lost" : "");
+    tr.querySelector(".batt").textContent = r.pose ? fmt(r.pose.battery, 1) : "–";
+    tr.querySelector(".vel").textContent = r.pose ? fmt(r.pose.v, 2) : "–";
+    const doing = tr.querySelector(".doing");
+    doing.textContent = r.task ? r.task.replace(/^\S+ /, "") : "idle";
+    doing.title = r.task;
+  });
+  $("sel-count").textContent = ui.selection.size ? `${ui.selection.size} selected` : "select robots first";
+}
+
+function renderStrategies(s) {
+  const box = $("strategies");
+  const want = (s.strategies || []).join(",");
+  if (box.dataset.have === want) return;
+  box.dataset.have = want;
+  box.innerHTML = "";
+  for (const name of s.strategies || []) {
+    const b = h("button", { "data-act": name, title: "deployment strategy" }, name.replace(/_/g, " "));
+    b.addEventListener("click", () => command(name, {}));
+    box.appendChild(b);
+  }
+}
+
+function renderTasks(s) {
+  const box = $("tasks");
+  $("no-tasks").classList.toggle("hidden", s.tasks.length > 0);
+  keyed(box, s.tasks, (t) => t.uid, (t) => {
+    const row = h("div", { "data-uid": t.uid, "data-robot": t.robot });
+    row.appendChild(h("span", { class: "who" }, t.robot));
+    const what = h("span", { class: "what" });
+    what.appendChild(h("span", { class: "badge" }));
+    what.appendChild(h("span", { class: "text" }));
+    row.appendChild(what);
+    const x = h("button", { class: "x", title: "cancel this task" }, "×");
+    x.addEventListener("click", () => send({ type: "cancel_task", uid: t.uid }));
+    row.appendChild(x);
+    row.appendChild(h("span", { class: "msg" }));
+    const bar = h("div", { class: "bar" });
+    bar.appendChild(h("i"));
+    row.appendChild(bar);
+    return row;
+  }, (row, t) => {
+    const done = ["succeeded", "failed", "cancelled"].includes(t.state);
+    row.className = `task ${t.state}${done ? " done" : ""}`;
+    row.dataset.state = t.state;
+    row.querySelector(".what").title = `${t.verb} ${t.text} (from ${t.source})`;
+    const badge = row.querySelector(".badge");
+    badge.className = "badge " + t.state;
+    badge.textContent = t.state;
+    row.querySelector(".text").textContent = t.text.replace(/^\S+ /, "");
+    row.querySelector(".x").style.visibility = done ? "hidden" : "visible";
+    const vals = Object.entries(t.values).map(([k, v]) => `${k}=${typeof v === "number" ? +v.toFixed(2) : v}`).join(" ");
+    const msg = row.querySelector(".msg");
+    msg.textContent = [t.message, vals].filter(Boolean).join(" · ");
+    msg.title = t.message;
+    row.querySelector(".bar i").style.width = `${Math.round(100 * (t.state === "succeeded" ? 1 : t.progress))}%`;
+  });
+}
+
+const localLog = [];
+function logLocal(level, text) { localLog.push({ t: Date.now() / 1000, level, text, local: true }); if (ui.state) renderLog(ui.state); }
+function renderLog(s) {
+  const box = $("log");
+  const atBottom = box.scrollHeight - box.scrollTop - box.clientHeight < 20;
+  box.innerHTML = "";
+  const lines = s.log.concat(localLog).sort((a, b) => a.t - b.t).slice(-200);
+  for (const l of lines) {
+    const d = h("div", { class: "logline " + l.level });
+    d.appendChild(h("span", { class: "t" }, new Date(l.t * 1000).toLocaleTimeString([], { hour12: false })));
+    d.appendChild(document.createTextNode(l.text));
+    box.appendChild(d);
+  }
+  if (atBottom) box.scrollTop = box.scrollHeight;
+}
+
+// ---- view ------------------------------------------------------------------------------------
+function fit() {
+  const s = ui.state, svg = $("map");
+  const pts = s.robots.filter((r) => r.pose).map((r) => [r.pose.x, r.pose.y]);
+  if (!pts.length || !svg.clientWidth) return;
+  const xs = pts.map((p) => p[0]), ys = pts.map((p) => p[1]);
+  const [x0, x1, y0, y1] = [Math.min(...xs) - 2, Math.max(...xs) + 2, Math.min(...ys) - 2, Math.max(...ys) + 2];
+  const scale = Math.min(svg.clientWidth / (x1 - x0), svg.clientHeight / (y1 - y0));
+  ui.view.scale = Math.max(8, Math.min(300, scale));
+  ui.view.ox = svg.clientWidth / 2 - ((x0 + x1) / 2) * ui.view.scale;
+  ui.view.oy = svg.clientHeight / 2 + ((y0 + y1) / 2) * ui.view.scale;
+  ui.view.fitted = true;
+}
+function zoomAt(sx, sy, factor) {
+  const [wx, wy] = toWorld(sx, sy);
+  ui.view.scale = Math.max(4, Math.min(600, ui.view.scale * factor));
+  ui.view.ox = sx - wx * ui.view.scale;
+  ui.view.oy = sy + wy * ui.view.scale;
+  if (ui.state) renderMap();
+}
+
+// ---- selection and commands -------------------------------------------------------------------
+function setSelection(names) {
+  ui.selection = new Set(names);
+  if (ui.state) { renderMap(); renderRobotTable(ui.state); }
+}
+function selectionChanged() {
+  send({ type: "select", robots: [...ui.selection] });
+  if (ui.state) { renderMap(); renderRobotTable(ui.state); }
+}
+function targets(robots) {
+  const list = robots || [...ui.selection];
+  if (!list.length) { logLocal("warn", "select one or more robots first (checkbox, click, or shift-drag a rectangle)"); return null; }
+  return list;
+}
+function command(action, params, robots) {
+  const list = targets(robots);
+  if (!list) return;
+  send({ type: "command", action, params, robots: list });
+}
+function num(id) { return parseFloat($(id).value); }
+function doAction(act, robots) {
+  const speed = num("p-speed");
+  if (act === "goto" || act === "teleport") arm(act, robots);
+  else if (act === "forward" || act === "backward") command(act, { distance: num("p-distance"), speed }, robots);
+  else if (act === "turn-left") command("turn", { angle: Math.abs(num("p-angle")) }, robots);
+  else if (act === "turn-right") command("turn", { angle: -Math.abs(num("p-angle")) }, robots);
+  else if (act === "randomwalk") command("randomwalk", { speed }, robots);
+  else command(act, {}, robots);
+}
+function arm(action, robots) {
+  const list = targets(robots);
+  if (!list) return;
+  ui.armed = { action, robots: list };
+  $("map").classList.add("arming");
+  $("cmd-goto").classList.toggle("armed", action === "goto");
+  const hint = $("hint");
+  hint.classList.add("armed");
+  hint.textContent = `${action === "goto" ? "Go to" : "Teleport"}: click the map to send ${list.join(", ")} there · Esc to cancel`;
+}
+function disarm() {
+  ui.armed = null;
+  $("map").classList.remove("arming");
+  $("cmd-goto").classList.remove("armed");
+  const hint = $("hint");
+  hint.classList.remove("armed");
+  hint.textContent = "Click a robot, then the map to send it there · drag a robot to teleport it · shift-drag to select · wheel to zoom · drag to pan · right-click a robot for its menu";
+}
+function robotAt(target) {
+  const g = target.closest ? target.closest("g.robot") : null;
+  return g ? g.dataset.name : null;
+}
+function robotByName(name) { return ui.state ? ui.state.robots.find((r) => r.name === name) : null; }
+
+// ---- pointer gestures on the map -------------------------------------------------------------
+function onPointerDown(ev) {
+  if (ev.button !== 0) return;
+  closeMenu();
+  const at = svgPoint(ev), name = robotAt(ev.target);
+  $("map").setPointerCapture(ev.pointerId);
+  if (name) ui.drag = { kind: "robot", name, start: at, at, moved: false };
+  else if (ev.shiftKey) ui.drag = { kind: "rect", start: at, at, moved: false };
+  else ui.drag = { kind: "pan", start: at, at, moved: false, ox: ui.view.ox, oy: ui.view.oy };
+}
+function onPointerMove(ev) {
+  const at = svgPoint(ev), [wx, wy] = toWorld(at[0], at[1]);
+  $("cursor").textContent = `x ${wx.toFixed(2)} m   y ${wy.toFixed(2)} m`;
+  const d = ui.drag;
+  if (!d) return;
+  d.at = at;
+  if (Math.hypot(at[0] - d.start[0], at[1] - d.start[1]) > 5) d.moved = true;
+  if (!d.moved) return;
+  if (d.kind === "pan") {
+    ui.view.ox = d.ox + at[0] - d.start[0]; ui.view.oy = d.oy + at[1] - d.start[1];
+    $("map").classList.add("panning");
+    renderMap();
+  } else if (d.kind === "rect") {
+    const r = $("rubber");
+    r.classList.remove("hidden");
+    r.setAttribute("x", Math.min(d.start[0], at[0])); r.setAttribute("y", Math.min(d.start[1], at[1]));
+    r.setAttribute("width", Math.abs(at[0] - d.start[0])); r.setAttribute("height", Math.abs(at[1] - d.start[1]));
+  } else if (d.kind === "robot") renderMap();
+}
+function onPointerUp(ev) {
+  const d = ui.drag;
+  ui.drag = null;
+  $("map").classList.remove("panning");
+  if (!d) return;
+  const at = svgPoint(ev), [wx, wy] = toWorld(at[0], at[1]);
+  if (d.kind === "robot") {
+    if (d.moved) {
+      const r = robotByName(d.name);
+      const heading = r && r.pose ? r.pose.theta * 180 / Math.PI : 0;
+      command("teleport", { x: round(wx), y: round(wy), heading: round(heading) }, [d.name]);
+    } else {
+      if (ev.ctrlKey || ev.metaKey || ev.shiftKey) ui.selection.has(d.name) ? ui.selection.delete(d.name) : ui.selection.add(d.name);
+      else ui.selection = new Set([d.name]);
+      selectionChanged();
+      if (ui.selection.size) arm("goto");
+    }
+    renderMap();
+  } else if (d.kind === "rect") {
+    $("rubber").classList.add("hidden");
+    const [x0, x1] = [Math.min(d.start[0], at[0]), Math.max(d.start[0], at[0])];
+    const [y0, y1] = [Math.min(d.start[1], at[1]), Math.max(d.start[1], at[1])];
+    if (!(ev.ctrlKey || ev.metaKey)) ui.selection.clear();
+    for (const r of ui.state ? ui.state.robots : []) {
+      if (!r.pose) continue;
+      const [sx, sy] = toScreen(r.pose.x, r.pose.y);
+      if (sx >= x0 && sx <= x1 && sy >= y0 && sy <= y1) ui.selection.add(r.name);
+    }
+    selectionChanged();
+  } else if (d.kind === "pan" && !d.moved && ui.armed) {
+    const a = ui.armed;
+    disarm();
+    if (a.action === "goto") command("goto", { x: round(wx), y: round(wy), speed: num("p-speed") }, a.robots);
+    else command("teleport", { x: round(wx), y: round(wy) }, a.robots);
+  }
+}
+function round(v) { return Math.round(v * 100) / 100; }
+
+// ---- context menu -------------------------------------------------------------------------------
+function openMenu(name, x, y) {
+  const m = $("menu");
+  m.innerHTML = "";
+  m.appendChild(h("div", { class: "title" }, name));
+  const items = [["Go to…", "goto"], ["Random walk", "randomwalk"], ["Forward", "forward"], ["Back", "backward"],
+    ["Turn left", "turn-left"], ["Turn right", "turn-right"], ["Stop", "stop"], ["Cancel tasks", "cancel"], ["Teleport to…", "teleport"]];
+  for (const s of (ui.state && ui.state.strategies) || []) items.push([s.replace(/_/g, " "), s]);
+  for (const [label, act] of items) {
+    const b = h("button", { "data-act": act }, label);
+    b.addEventListener("click", () => { closeMenu(); doAction(act, [name]); });
+    m.appendChild(b);
+  }
+  const only = h("button", {}, "Select only this robot");
+  only.addEventListener("click", () => { closeMenu(); setSelection([name]); selectionChanged(); });
+  m.appendChild(only);
+  m.style.left = Math.min(x, innerWidth - 190) + "px";
+  m.style.top = Math.min(y, innerHeight - 330) + "px";
+  m.classList.remove("hidden");
+}
+function closeMenu() { $("menu").classList.add("hidden"); }
+
+// ---- speech: typed, microphone, replies -----------------------------------------------------
+function onReply(m) {
+  if (m.channel === "voice" && ui.state) ui.state.listening = m.text === "Listening" ? true : m.text === "Standing by" ? false : ui.state.listening;
+  const mine = m.client === ui.client || m.channel === "voice";
+  if (mine) showReply(m.heard, m.text, m.accepted);
+  if (mine && $("speak-browser").checked && window.speechSynthesis) {
+    try { speechSynthesis.speak(new SpeechSynthesisUtterance(m.text)); } catch (e) { /* no voices */ }
+  }
+}
+function showReply(heard, said, ok) {
+  const r = $("last-reply");
+  r.className = "reply " + (ok ? "ok" : "no");
+  r.innerHTML = "";
+  if (heard) r.appendChild(h("span", { class: "heard" }, `“${heard}” → `));
+  r.appendChild(h("span", { class: "said" }, said));
+}
+async function startMic() {
+  if (!navigator.mediaDevices) { logLocal("error", "no microphone access on this page (needs https or localhost)"); return; }
+  try {
+    const stream = await navigator.mediaDevices.getUserMedia({ audio: { channelCount: 1, echoCancellation: true, noiseSuppression: true } });
+    const ctx = new AudioContext({ sampleRate: 16000 });
+    const src = ctx.createMediaStreamSource(stream);
+    const proc = ctx.createScriptProcessor(4096, 1, 1);
+    proc.onaudioprocess = (e) => {
+      if (!ui.ws || ui.ws.readyState !== WebSocket.OPEN) return;
+      ui.ws.send(toPcm16(e.inputBuffer.getChannelData(0), ctx.sampleRate));
+    };
+    src.connect(proc); proc.connect(ctx.destination);
+    ui.mic = { stream, ctx, proc };
+    send({ type: "mic", on: true, rate: 16000 });
+    $("mic").classList.add("on");
+  } catch (err) { logLocal("error", `microphone: ${err.message || err}`); }
+}
+function toPcm16(f32, rate) {
+  const step = rate / 16000, n = Math.floor(f32.length / step), out = new Int16Array(n);
+  for (let i = 0; i < n; i++) { const v = Math.max(-1, Math.min(1, f32[Math.floor(i * step)])); out[i] = v < 0 ? v * 32768 : v * 32767; }
+  return out.buffer;
+}
+function stopMic() {
+  if (!ui.mic) return;
+  ui.mic.proc.disconnect(); ui.mic.stream.getTracks().forEach((t) => t.stop()); ui.mic.ctx.close();
+  ui.mic = null;
+  $("mic").classList.remove("on");
+  if (ui.ws && ui.ws.readyState === WebSocket.OPEN) send({ type: "mic", on: false, rate: 16000 });
+}
+
+// ---- wiring ------------------------------------------------------------------------------------
+function wire() {
+  const svg = $("map");
+  svg.addEventListener("pointerdown", onPointerDown);
+  svg.addEventListener("pointermove", onPointerMove);
+  svg.addEventListener("pointerup", onPointerUp);
+  svg.addEventListener("wheel", (ev) => { ev.preventDefault(); const [sx, sy] = svgPoint(ev); zoomAt(sx, sy, ev.deltaY < 0 ? 1.15 : 1 / 1.15); }, { passive: false });
+  svg.addEventListener("contextmenu", (ev) => {
+    ev.preventDefault();
+    const name = robotAt(ev.target);
+    if (name) openMenu(name, ev.clientX, ev.clientY); else closeMenu();
+  });
+  document.addEventListener("keydown", (ev) => {
+    if (ev.key === "Escape") { disarm(); closeMenu(); }
+  });
+  document.addEventListener("click", (ev) => { if (!$("menu").contains(ev.target)) closeMenu(); });
+  $("zoom-in").onclick = () => zoomAt(svg.clientWidth / 2, svg.clientHeight / 2, 1.3);
+  $("zoom-out").onclick = () => zoomAt(svg.clientWidth / 2, svg.clientHeight / 2, 1 / 1.3);
+  $("zoom-fit").onclick = () => { fit(); if (ui.state) renderMap(); };
+  $("trails-toggle").onclick = (ev) => { ui.showTrails = !ui.showTrails; ev.target.classList.toggle("on", ui.showTrails); if (ui.state) renderMap(); };
+  $("sel-all").onclick = () => { setSelection(ui.state ? ui.state.robots.map((r) => r.name) : []); selectionChanged(); };
+  $("sel-none").onclick = () => { setSelection([]); selectionChanged(); };
+  for (const b of document.querySelectorAll(".panel .buttons button[data-act]")) b.addEventListener("click", () => doAction(b.dataset.act));
+  $("say-form").addEventListener("submit", (ev) => {
+    ev.preventDefault();
+    const text = $("say-text").value.trim();
+    if (!text) return;
+    if (send({ type: "say", text, selection: [...ui.selection] })) $("say-text").value = "";
+  });
+  $("mic").onclick = () => (ui.mic ? stopMic() : startMic());
+  window.addEventListener("resize", () => { if (ui.state) renderMap(); });
+}
+
+window.erni = { ui, toScreen, toWorld };   // for scripted tests and the console
+wire();
+connect();

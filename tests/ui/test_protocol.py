@@ -1,0 +1,57 @@
+"""Page messages: every valid message parses to its type, anything else is refused in one line."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from plugins.ui.protocol import BadMessage, CommandMsg, MicMsg, SayMsg, parse_message
+
+
+def test_valid_messages_parse_to_their_types():
+    cmd = parse_message('{"type":"command","robots":["robot1"],"action":"goto","params":{"x":1,"y":-2.5}}')
+    assert isinstance(cmd, CommandMsg) and cmd.params == {"x": 1, "y": -2.5}
+    say = parse_message(json.dumps({"type": "say", "text": "robot 1 stop", "selection": ["robot2"]}))
+    assert isinstance(say, SayMsg) and say.selection == ["robot2"]
+    assert parse_message('{"type":"mic","on":true}') == MicMsg(type="mic", on=True)
+
+
+@pytest.mark.parametrize("text,message", [
+    ("{nope", "message is not JSON"),
+    ("[1,2]", "unknown message type 'list'; expected one of command, say, select, cancel_task, mic, ping"),
+    ('{"type":"launch"}', "unknown message type 'launch'; expected one of command, say, select, cancel_task, mic, ping"),
+    ('{"type":"command","robots":[],"action":"stop"}', "command: robots: List should have at least 1 item"),
+    ('{"type":"command","robots":["robot 1"],"action":"stop"}', "command: robots.0: String should match pattern"),
+    ('{"type":"command","robots":["r1"],"action":"goto","params":{"x":NaN,"y":0}}', "command: params.x"),
+    ('{"type":"command","robots":["r1"],"action":"stop","extra":1}', "command: extra: Extra inputs are not permitted"),
+    ('{"type":"say","text":""}', "say: text: String should have at least 1 character"),
+    ('{"type":"mic","on":true,"rate":44100}', "mic: rate: Input should be 16000"),
+    ('{"type":"cancel_task"}', "cancel_task: uid: Field required"),
+])
+def test_bad_messages_are_refused_naming_the_field(text, message):
+    with pytest.raises(BadMessage) as err:
+        parse_message(text)
+    assert str(err.value).startswith(message) and "\n" not in str(err.value)
+
+
+json_values = st.recursive(st.none() | st.booleans() | st.floats() | st.integers() | st.text(max_size=20),
+                           lambda inner: st.lists(inner, max_size=4) | st.dictionaries(st.text(max_size=8), inner, max_size=4),
+                           max_leaves=12)
+
+
+@given(st.dictionaries(st.sampled_from(["type", "robots", "action", "params", "text", "selection", "uid", "on", "rate"]),
+                       json_values, max_size=6) | json_values)
+def test_any_json_is_a_message_or_a_one_line_refusal(data):
+    try:
+        text = json.dumps(data)
+    except ValueError:
+        return
+    try:
+        msg = parse_message(text)
+    except BadMessage as err:
+        assert "\n" not in str(err)
+    else:
+        assert msg.type in ("command", "say", "select", "cancel_task", "mic", "ping")

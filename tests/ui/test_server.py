@@ -1,0 +1,191 @@
+"""The UI plugin's web server over real HTTP and WebSocket: page, state, token, page messages
+turned into tasks, hostile messages answered without dropping the connection."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import socket
+from collections.abc import Iterator
+from typing import Any
+
+import aiohttp
+import pytest
+
+from blackboard import Agent, Pose, Task
+from blackboard.testing import wait_until
+from plugins.ui import UIPlugin
+from plugins.ui.plugin import is_loopback
+
+
+@pytest.fixture
+def control(monkeypatch) -> Iterator[Any]:
+    """Factory of started control agents with the UI plugin (no transport: tasks stay local)."""
+    monkeypatch.delenv("VOSK_MODEL_PATH", raising=False)
+    agents: list[Agent] = []
+
+    def start(robots: tuple[str, ...] = ("robot1", "robot2"), **settings: Any) -> tuple[Agent, UIPlugin]:
+        agent = Agent("control", workers=2)
+        ui = agent.add_plugin(UIPlugin, settings={"listen": "127.0.0.1:0", "speak": False, "verb": "BotMotion",
+                                                  "rate_hz": 20, **settings}, name="ui")
+        agents.append(agent)
+        agent.start()
+        with agent.transaction() as tx:
+            for i, name in enumerate(robots):
+                tx.add(Pose(robot=name, x=float(i), y=1.0, battery=12.5))
+        return agent, ui  # type: ignore[return-value]
+
+    yield start
+    for a in agents:
+        a.stop()
+
+
+def base(ui: UIPlugin) -> str:
+    return f"http://127.0.0.1:{ui.server.port}"
+
+
+async def fetch(url: str) -> tuple[int, str]:
+    async with aiohttp.ClientSession() as s, s.get(url) as r:
+        return r.status, await r.text()
+
+
+def get(url: str) -> tuple[int, str]:
+    return asyncio.run(fetch(url))
+
+
+async def talk(url: str, sends: list[Any], until: Any, timeout: float = 5.0) -> list[dict[str, Any]]:
+    """Open the WebSocket, send each message (text or bytes), collect messages until `until(msgs)`."""
+    got: list[dict[str, Any]] = []
+    async with aiohttp.ClientSession() as s, s.ws_connect(url) as ws:
+        for m in sends:
+            await (ws.send_bytes(m) if isinstance(m, bytes) else ws.send_str(m if isinstance(m, str) else json.dumps(m)))
+        loop = asyncio.get_running_loop()
+        end = loop.time() + timeout
+        while not until(got):
+            left = end - loop.time()
+            if left <= 0:
+                raise AssertionError(f"no expected message within {timeout} s; got {[m['type'] for m in got]}")
+            msg = await ws.receive(timeout=left)
+            if msg.type != aiohttp.WSMsgType.TEXT:
+                raise AssertionError(f"WebSocket closed: {msg.type}")
+            got.append(json.loads(msg.data))
+    return got
+
+
+def ws_run(ui: UIPlugin, sends: list[Any], until: Any, query: str = "") -> list[dict[str, Any]]:
+    return asyncio.run(talk(f"ws://127.0.0.1:{ui.server.port}/ws{query}", sends, until))
+
+
+def of(msgs: list[dict[str, Any]], kind: str) -> list[dict[str, Any]]:
+    return [m for m in msgs if m["type"] == kind]
+
+
+def test_page_assets_and_state_are_served(control):
+    agent, ui = control()
+    assert ui.url == f"http://127.0.0.1:{ui.server.port}/"
+    status, html = get(base(ui) + "/")
+    assert status == 200 and '<svg id="map"' in html and "static/app.js" in html
+    for asset, marker in [("app.js", "new WebSocket"), ("style.css", ".robot.lost"), ("icon.svg", "<svg")]:
+        status, text = get(f"{base(ui)}/static/{asset}")
+        assert status == 200 and marker in text
+    assert get(base(ui) + "/static/missing.js")[0] == 404
+    state = wait_until(lambda: (s := json.loads(get(base(ui) + "/api/state")[1])).get("robots") and s, timeout=5)
+    assert [(r["name"], r["number"], r["state"], r["pose"]["x"]) for r in state["robots"]] == [
+        ("robot1", 1, "ok", 0.0), ("robot2", 2, "ok", 1.0)]
+    assert state["verb"] == "BotMotion" and state["speech"]["available"] is False
+    assert "alphacephei.com/vosk/models" in state["speech"]["error"]
+
+
+def test_low_battery_and_stall_show_as_abnormal(control):
+    agent, ui = control(low_battery=11.0)
+    with agent.transaction() as tx:
+        tx.change(Pose(robot="robot1", battery=10.4))
+        tx.change(Pose(robot="robot2", battery=12.0, stall_left=True))
+    state = wait_until(lambda: (s := ui.server.state())["robots"][1:] and s["robots"][1]["reasons"] and s,
+                       timeout=5)
+    assert [(r["state"], r["reasons"]) for r in state["robots"]] == [
+        ("warn", ["battery 10.4 V"]), ("warn", ["stalled"])]
+
+
+def test_a_token_is_required_when_set_and_generated_beyond_localhost(control):
+    agent, ui = control(token="s3cret")
+    assert ui.url.endswith("/?token=s3cret")
+    status, text = get(base(ui) + "/")
+    assert status == 403 and "open the URL the control node printed" in text
+    assert get(base(ui) + "/?token=wrong")[0] == 403
+    assert get(base(ui) + "/?token=s3cret")[0] == 200
+    assert get(base(ui) + "/static/app.js")[0] == 200  # assets are not secret
+    msgs = ws_run(ui, [], lambda m: of(m, "state"), query="?token=s3cret")
+    assert of(msgs, "hello")
+    with pytest.raises(aiohttp.WSServerHandshakeError):
+        ws_run(ui, [], lambda m: False)
+    assert is_loopback("127.0.0.1") and is_loopback("localhost") and is_loopback("::1")
+    assert not is_loopback("0.0.0.0") and not is_loopback("10.0.0.5")
+    agent2, open_ui = control(listen="0.0.0.0:0")
+    token = open_ui.url.split("?token=")[1]
+    assert len(token) >= 16 and get(f"http://127.0.0.1:{open_ui.server.port}/")[0] == 403
+
+
+def test_typed_utterance_becomes_tasks_and_a_spoken_reply(control):
+    agent, ui = control()
+    msgs = ws_run(ui, [{"type": "say", "text": "robots 1 and 2 go forward 2 feet", "selection": []}],
+                  lambda m: of(m, "reply"))
+    reply = of(msgs, "reply")[0]
+    assert (reply["text"], reply["accepted"], reply["channel"]) == ("Roger", True, "typed")
+    assert reply["client"] == of(msgs, "hello")[0]["client"]
+    tasks = wait_until(lambda: len(t := agent.query(Task)) == 2 and t, timeout=5)
+    assert sorted((t.verb, t.preposition, t.destination, t.params.distance, t.source) for t in tasks) == [
+        ("BotMotion", "forward", "robot1", 0.6096, "control"), ("BotMotion", "forward", "robot2", 0.6096, "control")]
+    msgs = ws_run(ui, [{"type": "say", "text": "robot 9 stop", "selection": []}], lambda m: of(m, "reply"))
+    assert of(msgs, "reply")[0]["text"] == "I don't know robot 9"
+    # the page's selection is the default target of an utterance without a subject
+    ws_run(ui, [{"type": "say", "text": "turn left", "selection": ["robot2"]}], lambda m: of(m, "reply"))
+    turn = wait_until(lambda: [t for t in agent.query(Task) if t.preposition == "turn"], timeout=5)
+    assert [(t.destination, t.params.angle) for t in turn] == [("robot2", 90.0)]
+    wait_until(lambda: any("robot 9 stop" in line["text"] and "I don't know robot 9" in line["text"]
+                           for line in ui.server.state()["log"]), timeout=5)
+
+
+def test_commands_supersede_the_robots_previous_task_and_cancel_removes_one(control):
+    agent, ui = control()
+    goto = {"type": "command", "robots": ["robot1"], "action": "goto", "params": {"x": 3, "y": 4}}
+    ws_run(ui, [goto], lambda m: of(m, "state"))
+    first = wait_until(lambda: agent.query(Task), timeout=5)[0]
+    assert (first.preposition, first.params.x, first.params.y, first.destination) == ("goto", 3.0, 4.0, "robot1")
+    ws_run(ui, [{**goto, "action": "randomwalk", "params": {"speed": 0.5}}], lambda m: of(m, "state"))
+    walk = wait_until(lambda: [t for t in agent.query(Task) if t.preposition == "randomwalk"], timeout=5)[0]
+    assert [t.uid for t in agent.query(Task)] == [walk.uid]  # the goto was cancelled
+    ws_run(ui, [{**goto, "action": "teleport", "params": {"x": 1, "y": 1, "heading": 30}}], lambda m: of(m, "state"))
+    wait_until(lambda: len(agent.query(Task)) == 2, timeout=5)  # teleport does not cancel the walk
+    ws_run(ui, [{"type": "cancel_task", "uid": walk.uid}], lambda m: of(m, "state"))
+    wait_until(lambda: walk.uid not in {t.uid for t in agent.query(Task)}, timeout=5)
+    msgs = ws_run(ui, [{"type": "cancel_task", "uid": walk.uid}], lambda m: of(m, "error"))
+    assert of(msgs, "error")[0]["message"] == f"no running task {walk.uid}"
+
+
+@pytest.mark.parametrize("message,error", [
+    ("not json", "message is not JSON"),
+    ('{"type":"fly"}', "unknown message type 'fly'"),
+    ('{"type":"command","robots":["robot1"],"action":"dance"}', "unknown action 'dance'; expected one of"),
+    ('{"type":"command","robots":["robot1"],"action":"goto","params":{"x":1}}', "I can't do that: goto: missing 'y'"),
+    ('{"type":"command","robots":["robot1"],"action":"forward","params":{"distance":-1}}',
+     "I can't do that: forward: distance: Input should be greater than 0 (got -1"),
+    ('{"type":"mic","on":true}', "speech recognition off: no vosk model"),
+    (b"\x01\x02\x03", "audio frame of odd length: expected 16-bit samples"),
+])
+def test_hostile_messages_get_one_line_errors_and_the_connection_stays(control, message, error):
+    agent, ui = control()
+    msgs = ws_run(ui, [message, {"type": "ping"}], lambda m: of(m, "error") and of(m, "pong"))
+    assert of(msgs, "error")[0]["message"].startswith(error)
+    assert not agent.query(Task)
+
+
+def test_a_busy_port_disables_only_the_ui_and_names_the_address(control, caplog):
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen(1)
+        port = s.getsockname()[1]
+        agent, ui = control(listen=f"127.0.0.1:{port}")
+        assert ui._disabled
+    assert f"cannot serve the GUI on 127.0.0.1:{port}" in caplog.text
+    assert agent.query(Pose)  # the agent goes on
