@@ -112,8 +112,10 @@ class MobiNetControl(Plugin):
         rate = task.params.rate_hz
         self._watching[task.uid] = (task.preposition, task.params)
         self._polls[task.uid] = 0
+        # no reading yet is no data: degraded until the first answer, so that nobody mistakes
+        # the empty lists for "no neighbours"
         info = NetInfo(uid=f"netinfo:{task.uid}", node=self.agent_name, kind=task.preposition,
-                       task=task.uid, message="waiting for the first reading")
+                       task=task.uid, degraded=True, message="waiting for the first reading")
         if task.uid in self._infos:
             self.change(info)
         else:

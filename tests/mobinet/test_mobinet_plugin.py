@@ -180,7 +180,10 @@ def test_bad_agents_give_degraded_results_without_stalling(mode, expected, bad_a
     caplog.set_level(logging.WARNING)
     agent, plugin = make_agent("robot2", bad.address, timeout=0.1, log_interval=60.0)
     task = watch(agent, "neighbor_list", rate_hz=20)
-    info = wait_until(lambda: (i := info_of(agent, task)) and i.degraded and i)
+    first = wait_until(lambda: info_of(agent, task))
+    assert first.degraded       # "waiting for the first reading", or already the failure
+    info = wait_until(lambda: (i := info_of(agent, task)) and i.degraded
+                      and i.message != "waiting for the first reading" and i)
     assert expected in info.message
     res = wait_until(lambda: (t := result_of(agent, task)).result
                      and t.result.message.startswith("degraded:") and t)
@@ -202,7 +205,7 @@ def test_degraded_then_recovered_when_the_agent_comes_back(net, make_agent):
         snmp.close()                                   # nobody answers on that port now
         agent, _ = make_agent("robot2", (host, port), timeout=0.1)
         task = watch(agent, "neighbor_list", rate_hz=20)
-        wait_until(lambda: (i := info_of(agent, task)) and i.degraded)
+        wait_until(lambda: (i := info_of(agent, task)) and i.degraded and "timeout" in i.message)
         snmp = ManetSnmpAgent(net).start()
         snmp.serve("robot2", host, port)
         info = fresh(agent, task, lambda i: i.neighbors)
@@ -218,3 +221,14 @@ def test_agent_from_the_example_config_loads():
     assert agent.name == "robot2"
     plugin = agent.plugin("mobinet")
     assert (plugin.settings.host, plugin.settings.port) == ("127.0.0.1", 1162)
+
+
+def test_a_new_watch_is_degraded_until_its_first_reading(bad_agent, make_agent):
+    silent = bad_agent("silent")
+    agent, _ = make_agent("robot2", silent.address, timeout=2.0)
+    task = watch(agent, "link_quality", rate_hz=1)
+    info = wait_until(lambda: info_of(agent, task))
+    assert info.degraded and info.message == "waiting for the first reading"
+    assert info.neighbors == []
+    res = wait_until(lambda: (t := result_of(agent, task)).result and t)
+    assert res.result.state == TaskState.RUNNING and res.result.message == "monitoring at 1 Hz"
