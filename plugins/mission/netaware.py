@@ -6,12 +6,14 @@ delivery ratio of its best one-hop link). Connectivity is at risk when the robot
 vertex (if `articulation` is on) or its best link is below `min_quality`. A risk is declared
 at once; it is cleared only after `resume_after` seconds without risk (hysteresis, so a robot
 on the edge does not stutter). Degraded readings (the network subsystem did not answer)
-change nothing. The guard also remembers the last position where connectivity was good (for
-the `retreat` policy).
+change nothing. The guard also keeps a trail of positions where connectivity was good; the
+`retreat` policy goes back along it (`retreat_point`).
 """
 
 from __future__ import annotations
 
+import math
+from collections import deque
 from dataclasses import dataclass
 
 
@@ -37,6 +39,7 @@ class NetGuard:
         self.resume_after = resume_after
         self.state = GuardState()
         self.last_good: tuple[float, float] | None = None
+        self.trail: deque[tuple[float, float]] = deque(maxlen=200)  # good positions, 0.2 m apart
 
     def topology(self, articulation_points: list[str], links: int) -> None:
         """Take in a topology reading: the network's cut vertices (with `links` links known)."""
@@ -66,8 +69,10 @@ class NetGuard:
                 s.at_risk = True
                 return "risk"
             return None
-        if position is not None and s.best is not None:
+        if position is not None and s.best is not None and not s.at_risk:
             self.last_good = position
+            if not self.trail or math.dist(self.trail[-1], position) >= 0.2:
+                self.trail.append(position)
         if not s.at_risk:
             return None
         if s.ok_since is None:
@@ -85,3 +90,10 @@ class NetGuard:
         if s.at_risk and s.ok_since is not None:
             return max(0.0, self.resume_after - (now - s.ok_since))
         return None
+
+    def retreat_point(self, here: tuple[float, float], distance: float) -> tuple[float, float] | None:
+        """The latest good position at least `distance` m from `here` (else the oldest); None if none."""
+        for point in reversed(self.trail):
+            if math.dist(point, here) >= distance:
+                return point
+        return self.trail[0] if self.trail else None

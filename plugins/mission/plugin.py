@@ -23,7 +23,15 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from blackboard import AllocationResult, NetInfo, Plugin, Pose, Task, TaskState, TransactionError
+from blackboard import (
+    AllocationResult,
+    NetInfo,
+    Plugin,
+    Pose,
+    Task,
+    TaskState,
+    TransactionError,
+)
 from plugins.mission.deploy import RUNNERS, Runner
 from plugins.mission.netaware import NetGuard
 from plugins.mission.remote import RemoteJob, Significance, plan
@@ -44,6 +52,7 @@ class MissionSettings(BaseModel):
     min_link_quality: float = Field(0.3, ge=0, le=1, description="best link below this = at risk")
     articulation: bool = Field(True, description="being an articulation point = at risk")
     resume_after: float = Field(1.0, ge=0, description="connectivity good this long clears the risk (s)")
+    retreat_distance: float = Field(1.0, gt=0, description="retreat: go back this far along the good trail (m)")
     net_rate_hz: float = Field(2.0, gt=0, le=100, description="rate of the mission's NetWatch tasks (Hz)")
     progress_step: float = Field(0.25, gt=0, le=1, description="report progress in steps of this size")
     report_period: float = Field(5.0, gt=0, description="Deploy tasks: refresh result values this often (s)")
@@ -440,10 +449,10 @@ class MissionControl(Plugin):
                 self._end_job(job.uid, TaskState.FAILED, f"stopped: {reason}")
             self._halt(None)
             return
-        target = self.guard.last_good
         mine = self.team.mine()
+        target = None if mine is None else self.guard.retreat_point(mine[:2], self.settings.retreat_distance)
         if policy == "retreat" and target is not None and mine is not None and \
-                ((mine[0] - target[0]) ** 2 + (mine[1] - target[1]) ** 2) ** 0.5 > 0.3:
+                ((mine[0] - target[0]) ** 2 + (mine[1] - target[1]) ** 2) ** 0.5 > 0.2:
             if self.retreat is None:
                 self.retreat = self.issue(None, "goto", {"x": round(target[0], 3), "y": round(target[1], 3),
                                                          "speed": self.settings.speed, "tolerance": 0.15})

@@ -93,7 +93,7 @@ class Significance:
 
     def significant(self, result: AllocationResult) -> bool:
         """True when `result` differs significantly from the last one reported (and records it)."""
-        bucket = int(math.floor(result.progress / self.step + 1e-9)) if self.step > 0 else 0
+        bucket = math.floor(result.progress / self.step + 1e-9) if self.step > 0 else 0
         news = (result.state != self.state or result.message != self.message or bucket > self.bucket)
         if news:
             self.state, self.message, self.bucket = result.state, result.message, max(bucket, self.bucket)

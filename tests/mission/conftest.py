@@ -13,10 +13,10 @@ from sim.robot import SimRobotConfig
 from sim.robot_host import RobotHost
 from sim.world import RobotStart, World
 
-FAST = dict(sip_period=0.02, accel=3.0, decel=3.0, max_v=2.0, rot_accel=720.0, max_rv=360.0)
+FAST = {"sip_period": 0.02, "accel": 3.0, "decel": 3.0, "max_v": 2.0, "rot_accel": 720.0, "max_rv": 360.0}
 FAST_MODEL = {"base": "pioneer3", "decel": 2.5, "rot_decel": 500.0, "max_rv": 300.0, "max_v": 2.0}
-MOTION = dict(model=FAST_MODEL, rate_hz=50, pose_rate_hz=25, avoid_distance=0.0, sync_timeout=0.3,
-              link_timeout=0.5, link_grace=0.5, blocked_timeout=1.0, stall_timeout=0.5)
+MOTION = {"model": FAST_MODEL, "rate_hz": 50, "pose_rate_hz": 25, "avoid_distance": 0.0, "sync_timeout": 0.3,
+              "link_timeout": 0.5, "link_grace": 0.5, "blocked_timeout": 1.0, "stall_timeout": 0.5}
 
 
 @pytest.fixture
@@ -80,3 +80,8 @@ def pose_of(agent: Agent, robot: str | None = None) -> Pose:
 
 def subs_of(agent: Agent, parent: str) -> list[Task]:
     return agent.query(Task, where=lambda t: t.parent == parent and t.verb == "BotMotion")
+
+
+def plugin(agent: Agent, name: str = "mission") -> Any:
+    """The agent's plugin called `name`."""
+    return next(p for p in agent.plugins if p.name == name)

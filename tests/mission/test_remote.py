@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 import threading
 
@@ -62,7 +63,7 @@ def test_remote_goto_is_expanded_performed_and_reported_only_on_significant_chan
     progress = [r.progress for r in versions]
     assert progress == sorted(progress)
     keys = [(r.state, r.message, math.floor(r.progress / 0.25 + 1e-9)) for r in versions]
-    assert all(a != b for a, b in zip(keys, keys[1:])), keys  # every update carries news
+    assert all(a != b for a, b in itertools.pairwise(keys)), keys  # every update carries news
     assert len(versions) <= 8, versions  # accepted, started, 3 progress steps, done (+ slack)
     goto_updates = [v for v in rec.versions(subs[0].uid) if v.result is not None]
     assert len(goto_updates) > len(versions)  # the sub-task chattered; the remote task did not

@@ -1,0 +1,127 @@
+"""Network-aware behaviour: a robot that becomes a cut vertex (or loses its links) holds, stops or retreats."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import pytest
+
+from blackboard import Task, TaskState
+from blackboard.testing import wait_until
+from plugins.mission.netaware import NetGuard
+from sim.manet import ManetNetwork, RadioModel
+from sim.snmp_agent import ManetSnmpAgent
+from tests.mission.conftest import current, plugin, pose_of, send, subs_of
+
+
+@pytest.fixture
+def manet() -> Iterator[tuple[ManetNetwork, dict[str, tuple[str, int]]]]:
+    """robot0 - robot1 - robot2 in a line, 30 m apart, R = 40 m: robot1 is a cut vertex."""
+    net = ManetNetwork(RadioModel(40.0, 20.0, 0.1))
+    for name, x in (("robot0", -30.0), ("robot1", 0.0), ("robot2", 30.0)):
+        net.add_node(name, x, 0.0)
+    agent = ManetSnmpAgent(net).start()
+    try:
+        yield net, agent.serve_all()
+    finally:
+        agent.close()
+
+
+def mobinet(addresses, name="robot1"):
+    host, port = addresses[name]
+    return ("mobinet", {"host": host, "port": port, "timeout": 0.3, "cache_seconds": 0.0}, "mobinet")
+
+
+def message(agent, task) -> str:
+    t = current(agent, task.uid)
+    return t.result.message if t is not None and t.result else ""
+
+
+def guard_stops(agent) -> list[Task]:
+    return agent.query(Task, where=lambda t: t.preposition == "stop" and t.source == agent.name and not t.parent)
+
+
+def test_hold_when_a_cut_vertex_and_resume_when_no_longer(robots, manet):
+    net, addresses = manet
+    agent = robots("robot1", extra=[mobinet(addresses)],
+                   mission={"network_aware": True, "policy": "hold", "min_link_quality": 0.05,
+                            "resume_after": 0.3, "net_rate_hz": 10.0})
+    watches = agent.query(Task, where=lambda t: t.verb == "NetWatch" and t.source == "robot1")
+    assert sorted(t.preposition for t in watches) == ["link_quality", "network_topology"]
+    task = send(agent, "goto", x=3.0, y=0.0, speed=1.2)
+    wait_until(lambda: "articulation point" in message(agent, task), timeout=5,
+               message="the guard never held the robot")
+    assert message(agent, task).startswith("holding: robot1 is an articulation point")
+    assert len(guard_stops(agent)) == 1
+    assert current(agent, task.uid).state == TaskState.RUNNING
+    held_at = pose_of(agent).x
+    assert held_at < 0.5
+    net.move("robot2", -30.0, 10.0)  # robot2 next to robot0: robot1 is now a leaf
+    wait_until(lambda: message(agent, task) == "resumed: connectivity restored", timeout=5,
+               message="never resumed")
+    assert not guard_stops(agent)
+    done = wait_until(lambda: (t := current(agent, task.uid)).done and t, timeout=10)
+    assert done.state == TaskState.SUCCEEDED
+    assert pose_of(agent).x > 2.8
+    # a cut vertex again: nothing runs, so nothing is held
+    net.move("robot2", 30.0, 0.0)
+    wait_until(lambda: plugin(agent).guard.state.at_risk, timeout=5)
+    assert not guard_stops(agent)
+
+
+def test_stop_policy_fails_the_task_with_the_reason_when_the_best_link_is_poor(robots, manet):
+    net, addresses = manet
+    net.move("robot0", -36.0, 0.0)
+    net.move("robot2", 60.0, 0.0)  # robot1 s only link: 36 m, quality (40 - 36) / (40 - 20) = 0.2
+    agent = robots("robot1", extra=[mobinet(addresses)],
+                   mission={"network_aware": True, "policy": "stop", "min_link_quality": 0.5,
+                            "articulation": False, "net_rate_hz": 10.0})
+    wait_until(lambda: plugin(agent).guard.state.at_risk, timeout=5,
+               message="poor link not noticed")
+    task = send(agent, "forward", distance=5.0, speed=0.5)
+    done = wait_until(lambda: (t := current(agent, task.uid)).done and t, timeout=5)
+    assert done.state == TaskState.FAILED
+    assert done.result.message == "stopped: best link quality 0.20 is below 0.50"
+    assert not subs_of(agent, task.uid)
+    assert abs(pose_of(agent).v) < 0.05
+
+
+def test_retreat_policy_goes_back_along_the_good_trail_then_resumes(robots, manet):
+    net, addresses = manet
+    net.move("robot2", -30.0, 10.0)  # robot1 is a leaf: connectivity good where it stands
+    agent = robots("robot1", extra=[mobinet(addresses)],
+                   mission={"network_aware": True, "policy": "retreat", "min_link_quality": 0.05,
+                            "resume_after": 0.2, "net_rate_hz": 10.0, "speed": 1.0, "retreat_distance": 1.0})
+    task = send(agent, "goto", x=4.0, y=0.0, speed=1.0)
+    wait_until(lambda: pose_of(agent).x > 2.0, timeout=5, message="never moved")
+    net.move("robot2", 30.0, 0.0)  # cut vertex again, mid-way
+    wait_until(lambda: message(agent, task).startswith("retreating to ("), timeout=5)
+    risk_at = pose_of(agent).x
+    wait_until(lambda: guard_stops(agent), timeout=10, message="no hold after the retreat")
+    back = pose_of(agent).x
+    assert risk_at - back > 0.7, (risk_at, back)
+    net.move("robot2", -30.0, 10.0)
+    wait_until(lambda: message(agent, task) == "resumed: connectivity restored", timeout=5)
+    assert wait_until(lambda: (t := current(agent, task.uid)).done and t, timeout=10).state == TaskState.SUCCEEDED
+
+
+def test_guard_hysteresis_and_degraded_readings():
+    g = NetGuard("a", min_quality=0.3, resume_after=1.0)
+    assert g.update(0.0, (0, 0)) is None  # nothing read yet
+    g.topology(["a"], links=2)
+    assert g.update(0.1, (0, 0)) == "risk"
+    g.topology([], links=2)
+    g.quality([0.9, 0.2])
+    assert g.update(0.5, (1, 1)) is None and g.pending_clear_in(0.5) == pytest.approx(1.0)
+    g.quality([0.1])
+    assert g.update(0.8, (1, 1)) is None and g.state.reason.startswith("best link quality 0.10")
+    g.quality([0.4])
+    assert g.update(1.0, (2, 2)) is None
+    assert g.update(2.1, (2, 2)) == "clear"
+    assert g.last_good is None  # no good reading was ever taken outside a risk
+    for x in (3.0, 3.1, 3.3, 4.0, 5.0):
+        assert g.update(3.0 + x, (x, 0.0)) is None
+    assert g.last_good == (5.0, 0.0)
+    assert list(g.trail) == [(3.0, 0.0), (3.3, 0.0), (4.0, 0.0), (5.0, 0.0)]
+    assert g.retreat_point((5.0, 0.0), 1.0) == (4.0, 0.0)
+    assert g.retreat_point((5.0, 0.0), 9.0) == (3.0, 0.0)
