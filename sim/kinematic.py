@@ -64,7 +64,7 @@ def coverage(pos: ArrayLike, radius: float, box: tuple[float, float, float, floa
     if box is None:
         box = (p[:, 0].min() - radius, p[:, 1].min() - radius, p[:, 0].max() + radius, p[:, 1].max() + radius)
     xmin, ymin, xmax, ymax = box
-    cell = cell or max(radius / 8, (xmax - xmin) / 400, (ymax - ymin) / 400)
+    cell = cell or max(radius / 20, (xmax - xmin) / 500, (ymax - ymin) / 500)
     xs = np.arange(xmin + cell / 2, xmax, cell)
     ys = np.arange(ymin + cell / 2, ymax, cell)
     covered = np.zeros((len(ys), len(xs)), dtype=bool)

@@ -64,7 +64,6 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from blackboard.config import format_errors
 from blackboard.errors import TaskError
 from blackboard.tasks import Task
 from sim.world import RobotStart, World, WorldError
@@ -228,7 +227,7 @@ class Scenario(_Strict):
                 x = ox + (i % cols - (cols - 1) / 2) * spec.spacing
                 y = oy + (i // cols) * spec.spacing
             elif spec.layout == "circle":
-                radius = max(spec.spacing, spec.spacing * n / (2 * math.pi))
+                radius = spec.spacing / (2 * math.sin(math.pi / n)) if n > 1 else 0.0  # neighbours `spacing` apart
                 a = 2 * math.pi * i / n
                 x, y = ox + radius * math.cos(a), oy + radius * math.sin(a)
             else:
@@ -250,6 +249,25 @@ class Scenario(_Strict):
         data["task"] = [t for t in data["task"] if t["to"] == "all" or t["to"] in names]
         data["failure"] = [f for f in data["failure"] if f["robot"] in names]
         return Scenario.model_validate(data)
+
+
+def _format(source: str, err: ValidationError) -> str:
+    """One `SOURCE: field.path: message` line per problem (no dump of whole tables)."""
+    lines = []
+    for e in err.errors():
+        where = ""
+        for p in e["loc"]:
+            where += f"[{p}]" if isinstance(p, int) and where else (f".{p}" if where else str(p))
+        if e["type"] == "missing":
+            msg = "missing (required)"
+        elif e["type"] == "extra_forbidden":
+            msg = "unknown key"
+        else:
+            msg = e["msg"].removeprefix("Value error, ")
+            if where and not isinstance(e.get("input"), (dict, list)):
+                msg += f" (got {e.get('input')!r})"
+        lines.append(f"{source}: {where}: {msg}" if where else f"{source}: {msg}")
+    return "\n".join(lines)
 
 
 def _world_from(value: Any, base: Path | None) -> Any:
@@ -275,7 +293,7 @@ def parse_scenario(data: dict[str, Any], source: str = "<scenario>", base: Path 
     try:
         return Scenario.model_validate(data)
     except ValidationError as err:
-        raise ScenarioError(format_errors(source, err).replace("Value error, ", "")) from None
+        raise ScenarioError(_format(source, err)) from None
 
 
 def load_scenario(path: str | Path) -> Scenario:

@@ -166,7 +166,7 @@ class Team:
     def __init__(self, scenario: Scenario, *, run_dir: str | Path | None = None, headless: bool = False,
                  control_port: int = 47100, log_level: str = "WARNING", physics_hz: float = 50.0,
                  feed_hz: float = 10.0, record: bool = False, mission: bool | None = None,
-                 ui: bool | None = None, transport: dict[str, Any] | None = None) -> None:
+                 ui: bool | None = None, transport: dict[str, Any] | None = None, gui_port: int = 8080) -> None:
         if scenario.count > MAX_AGENT_ROBOTS:
             raise TeamError(f"--robots: at most {MAX_AGENT_ROBOTS} robot agents (one loopback "
                             f"address each), got {scenario.count}; use the kinematic mode of "
@@ -178,6 +178,7 @@ class Team:
         self.feed_period = 1.0 / feed_hz
         self.record = record
         self.transport = {"peer_timeout": 3.0, **(transport or {})}
+        self.gui_port = gui_port
         self.mission = plugin_available("plugins.mission", "MissionControl") if mission is None else mission
         self.ui = (not headless and plugin_available("plugins.ui", "UIPlugin")) if ui is None else ui
         self.key = secrets.token_hex(16)
@@ -277,13 +278,26 @@ class Team:
                 ("mobinet", dict(host=addr, port=snmp_ports[name])),
             ]
             if self.mission:
-                plugins.append(("mission", {}))
+                plugins.append(("mission", self._mission_settings()))
             self._add_agent(name, (addr, port), plugins, f"robot {name} of scenario {self.scenario.name}")
         plugins = [("transport", dict(listen=f"{CONTROL_HOST}:{self.control_port}", role="control", **common))]
         if self.ui:
-            plugins.append(("ui", {}))
+            gui_port = self.gui_port if port_free("127.0.0.1", self.gui_port) else free_port("127.0.0.1", socket.SOCK_STREAM)
+            plugins.append(("ui", {"listen": f"127.0.0.1:{gui_port}"}))
+            self.url = f"http://127.0.0.1:{gui_port}/"
         self._add_agent(CONTROL, (CONTROL_HOST, self.control_port), plugins,
                         f"control node of scenario {self.scenario.name}", workers=2)
+
+    def _mission_settings(self) -> dict[str, Any]:
+        """What the mission plugin knows of the world: obstacles (circles) and walls."""
+        world = self.scenario.world
+        out: dict[str, Any] = {}
+        if world.circle:
+            out["obstacles"] = [[c.center[0], c.center[1], c.radius] for c in world.circle]
+        walls = [[a[0], a[1], b[0], b[1]] for a, b in world.segments()]
+        if walls:
+            out["walls"] = walls
+        return out
 
     def _add_agent(self, name: str, address: tuple[str, int], plugins: list[tuple[str, dict[str, Any]]],
                    comment: str, workers: int = 4) -> None:
