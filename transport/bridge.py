@@ -125,6 +125,8 @@ class TransportSettings(BaseModel):
                              description="object types sent as status to the peers below")
     share_with_roles: list[str] = Field(default_factory=lambda: ["control"],
                                         description="peers of these roles receive shared status")
+    forward_tasks: bool = Field(True, description="false: never send tasks to other agents "
+                                "(a replaying control node)")
     reachability: str | None = Field(None, description="simulation: JSON file saying which agents "
                                      "the simulated radio connects (written by `erni sim`)")
     udp_loss: float = Field(0.0, ge=0.0, le=1.0, description="fault injection: drop this share of "
@@ -208,7 +210,8 @@ class TransportPlugin(Plugin):
         for task in self.tasks.added:
             if self.rehydrated(task) and task.uid not in self.received_from:
                 self._reconcile(task)
-            elif task.destination not in (None, "", me) and self.received_from.get(task.uid) != task.destination:
+            elif (task.destination not in (None, "", me) and self.settings.forward_tasks
+                  and self.received_from.get(task.uid) != task.destination):
                 self._send_task(task)
         for task in self.tasks.added + self.tasks.changed:  # added and changed in one window: added
             origin = self.received_from.get(task.uid)

@@ -1,0 +1,65 @@
+"""`erni record [--via HOST:PORT] OUT`: record what one agent of a running team sees."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from typing import Any
+
+from erni.commands._client import add_client_options, make_client
+from erni.replay import LogError, Recorder
+from transport.bridge import WatchEvent, WatchRequest
+
+LEASE = 10.0
+
+
+def register(sub: Any) -> None:
+    """Add the `record` sub-command."""
+    p = sub.add_parser("record", help="record a team's tasks, results, poses and peer events",
+                       description="Record every blackboard change one agent (usually the control "
+                       "node) sees, as JSON lines, until Ctrl-C. Replay it with `erni replay`.")
+    p.add_argument("out", help="log file to write (JSON lines)")
+    p.add_argument("--seconds", type=float, default=0, help="stop after S seconds (0 = at Ctrl-C)")
+    add_client_options(p)
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Lease a watch and write every event to the log, with a progress line on stderr."""
+    from transport.client import ClientError
+
+    try:
+        client = make_client(args)
+    except ValueError as err:
+        print(f"erni record: {err}", file=sys.stderr)
+        return 2
+    end = time.monotonic() + args.seconds if args.seconds else None
+    with client:
+        try:
+            addr = client.find(None)
+            recorder = Recorder(args.out, f"{addr[0]}:{addr[1]}")
+        except (ClientError, LogError) as err:
+            print(f"erni record: {err}", file=sys.stderr)
+            return 1 if isinstance(err, ClientError) else 2
+        print(f"recording {addr[0]}:{addr[1]} into {args.out} (Ctrl-C stops)", file=sys.stderr)
+        renew = shown = 0.0
+        try:
+            while not (end and time.monotonic() > end):
+                now = time.monotonic()
+                if now >= renew:
+                    client.send(addr, "watch.request", WatchRequest(lease=LEASE))
+                    renew = now + LEASE / 2
+                if now >= shown and sys.stderr.isatty():
+                    print(f"\r{recorder.count} events", end="", file=sys.stderr, flush=True)
+                    shown = now + 0.5
+                msg = client.receive(0.1)
+                if msg is not None and msg.kind == "watch.event" and isinstance(msg.body, WatchEvent):
+                    ev = msg.body
+                    recorder.write(ev.agent, ev.op, ev.type, ev.data)
+        except KeyboardInterrupt:
+            pass
+        finally:
+            recorder.close()
+    print(f"\nrecorded {recorder.count} events into {args.out}", file=sys.stderr)
+    return 0

@@ -1,0 +1,104 @@
+"""`erni replay LOG [--speed X]`: play a recorded log into a control node, as if live."""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import select
+import sys
+import threading
+import time
+from typing import Any
+
+from blackboard import Agent
+from blackboard.errors import ErniError
+from erni.logs import setup_logging
+from erni.replay import LogError, ReplayPlugin, read_log
+
+
+def register(sub: Any) -> None:
+    """Add the `replay` sub-command."""
+    p = sub.add_parser("replay", help="replay a recorded log into a control node",
+                       description="Start a control node that publishes a recorded log on its "
+                       "blackboard at the recorded pace; `erni watch --via` it or open its GUI. "
+                       "Type p + Enter to pause or resume, a number + Enter to set the speed.")
+    p.add_argument("log", help="log file written by `erni record`")
+    p.add_argument("--speed", type=float, default=1.0, help="1 = recorded pace, 0.25 = slow motion")
+    p.add_argument("--listen", default="127.0.0.1:47100", help="transport address of the replay node")
+    p.add_argument("--name", default="control", help="agent name of the replay node")
+    p.add_argument("--loop", action="store_true", help="start again at the end")
+    p.add_argument("--no-gui", action="store_true", help="do not start the web GUI")
+    p.add_argument("--insecure", action="store_true", help="accept unauthenticated clients")
+    p.set_defaults(func=run)
+
+
+def _commands(plugin: ReplayPlugin, stop: threading.Event) -> None:
+    while not stop.is_set():
+        ready, _, _ = select.select([sys.stdin], [], [], 0.2)
+        if not ready:
+            continue
+        line = sys.stdin.readline()
+        if not line:
+            return
+        word = line.strip().lower()
+        if word in ("p", "pause", ""):
+            plugin.pause(not plugin.paused.is_set())
+            print("paused" if plugin.paused.is_set() else "playing", file=sys.stderr)
+        elif word in ("q", "quit"):
+            stop.set()
+        else:
+            try:
+                plugin.speed = max(0.01, float(word))
+                print(f"speed {plugin.speed:g}", file=sys.stderr)
+            except ValueError:
+                print(f"unknown command {word!r}: p (pause/resume), a speed such as 0.5, q", file=sys.stderr)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Check the log, start the replay node, report progress until the end or Ctrl-C."""
+    try:
+        _, events, problems = read_log(args.log)
+    except LogError as err:
+        print(f"erni replay: {err}", file=sys.stderr)
+        return 2
+    if args.speed <= 0:
+        print(f"erni replay: --speed: expected a positive number, got {args.speed}", file=sys.stderr)
+        return 2
+    for line in problems:
+        print(f"erni replay: skipping {line}", file=sys.stderr)
+    setup_logging("WARNING")
+    agent = Agent(args.name, workers=2)
+    try:
+        agent.add_plugin("transport", settings={"listen": args.listen, "role": "control", "discovery_port": 0,
+                                                "forward_tasks": False, "insecure": args.insecure},
+                         name="transport")
+        plugin = agent.add_plugin(ReplayPlugin, settings={"log": args.log, "speed": args.speed,
+                                                          "loop": args.loop}, name="replay")
+        if not args.no_gui and importlib.util.find_spec("plugins.ui") is not None:
+            try:
+                agent.add_plugin("ui", name="ui")
+            except ErniError as err:
+                print(f"erni replay: no GUI: {err}", file=sys.stderr)
+    except (ErniError, ValueError) as err:
+        print(f"erni replay: {str(err).splitlines()[0]}", file=sys.stderr)
+        return 2
+    stop = threading.Event()
+    try:
+        agent.start()
+        duration = events[-1].t if events else 0.0
+        print(f"replaying {len(events)} events ({duration:.1f} s at x{args.speed:g}) as agent "
+              f"{args.name} on {args.listen}; `erni watch --via {args.listen}` to see them",
+              file=sys.stderr)
+        if sys.stdin.isatty():
+            threading.Thread(target=_commands, args=(plugin, stop), name="replay-keys", daemon=True).start()
+        while not stop.is_set() and not plugin.finished.is_set():
+            time.sleep(0.2)
+        if plugin.finished.is_set():
+            print(f"replay finished ({plugin.position} events)", file=sys.stderr)
+            time.sleep(0.5)  # let watchers receive the last events
+    except KeyboardInterrupt:
+        pass
+    finally:
+        stop.set()
+        agent.stop()
+    return 0

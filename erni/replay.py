@@ -1,0 +1,170 @@
+"""Recorded team logs: the file format, reading it back, and a plugin that replays it.
+
+A log is JSON lines. The first line is a header `{"erni_record": 1, "via": ..., "started": t}`;
+every other line is one blackboard change seen by the recorded agent:
+`{"t": seconds since start, "agent": ..., "op": "add"|"change"|"remove", "type": "Pose", "data": {...}}`.
+Replaying publishes the same objects, in order and with the same spacing divided by the speed,
+on a control node's blackboard, so its GUI and `erni watch` see them as they saw the live team.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from pydantic import BaseModel, Field
+
+from blackboard import BBObject, Plugin
+from blackboard.errors import ErniError
+from transport.wire import TYPES
+
+FORMAT = 1
+
+
+class LogError(ErniError):
+    """A log file cannot be replayed."""
+
+
+@dataclass
+class Event:
+    """One recorded change."""
+
+    t: float
+    agent: str
+    op: str
+    obj: BBObject
+
+
+def read_log(path: str | Path) -> tuple[dict[str, Any], list[Event], list[str]]:
+    """Return the header, the events, and one problem line per line that could not be read."""
+    path = Path(path)
+    try:
+        lines = path.read_text(encoding="utf-8").splitlines()
+    except (OSError, UnicodeDecodeError) as err:
+        raise LogError(f"{path}: cannot read: {err}") from None
+    if not lines:
+        raise LogError(f"{path}: empty; expected a log written by `erni record`")
+    try:
+        header = json.loads(lines[0])
+    except ValueError:
+        header = None
+    if not isinstance(header, dict) or header.get("erni_record") != FORMAT:
+        raise LogError(f"{path}:1: not an ERNI record (expected a header line with \"erni_record\": {FORMAT})")
+    events: list[Event] = []
+    problems: list[str] = []
+    for number, line in enumerate(lines[1:], start=2):
+        if not line.strip():
+            continue
+        try:
+            raw = json.loads(line)
+            cls = TYPES.get(raw["type"])
+            if cls is None or not issubclass(cls, BBObject):
+                raise ValueError(f"unknown object type {raw['type']!r}")
+            if raw["op"] not in ("add", "change", "remove"):
+                raise ValueError(f"unknown op {raw['op']!r}")
+            events.append(Event(float(raw["t"]), str(raw["agent"]), raw["op"], cls.model_validate(raw["data"])))
+        except (ValueError, KeyError, TypeError) as err:
+            problems.append(f"{path}:{number}: {str(err).splitlines()[0]}")
+    events.sort(key=lambda e: e.t)
+    return header, events, problems
+
+
+class Recorder:
+    """Append events to a log file as they arrive."""
+
+    def __init__(self, path: str | Path, via: str):
+        self.path = Path(path)
+        self.start = time.monotonic()
+        self.count = 0
+        try:
+            self._f = self.path.open("w", encoding="utf-8")
+        except OSError as err:
+            raise LogError(f"{self.path}: cannot write: {err.strerror or err}") from None
+        self._f.write(json.dumps({"erni_record": FORMAT, "via": via, "started": time.time()}) + "\n")
+
+    def write(self, agent: str, op: str, type_name: str, data: dict[str, Any]) -> None:
+        """Record one change, stamped with the time since the recording started."""
+        line = {"t": round(time.monotonic() - self.start, 6), "agent": agent, "op": op,
+                "type": type_name, "data": data}
+        self._f.write(json.dumps(line, separators=(",", ":")) + "\n")
+        self.count += 1
+
+    def close(self) -> None:
+        """Flush and close the file."""
+        self._f.close()
+
+
+class ReplayPlugin(Plugin):
+    """Publishes a recorded log on this agent's blackboard at the recorded pace × speed."""
+
+    class Settings(BaseModel):
+        log: str = Field(description="log file written by `erni record`")
+        speed: float = Field(1.0, gt=0, le=1000, description="1 = recorded pace, 0.5 = slow motion")
+        loop: bool = False
+
+    def setup(self) -> None:
+        _, self.events, problems = read_log(self.settings.log)
+        for line in problems:
+            self.log.warning("skipped %s", line)
+        self.speed = self.settings.speed
+        self.position = 0
+        self.paused = threading.Event()
+        self.finished = threading.Event()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name=f"erni-{self.agent_name}-replay", daemon=True)
+        self._thread.start()
+
+    def teardown(self) -> None:
+        self._stop.set()
+        self._thread.join(2)
+
+    def pause(self, paused: bool = True) -> None:
+        """Hold the replay (True) or go on (False)."""
+        (self.paused.set if paused else self.paused.clear)()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            clock, last_t = time.monotonic(), 0.0
+            for index in range(len(self.events)):
+                event = self.events[index]
+                wait = (event.t - last_t) / self.speed
+                deadline = clock + wait
+                while not self._stop.is_set():
+                    if self.paused.is_set():
+                        held = time.monotonic()
+                        self._stop.wait(0.05)
+                        deadline += time.monotonic() - held
+                        continue
+                    left = deadline - time.monotonic()
+                    if left <= 0:
+                        break
+                    self._stop.wait(min(left, 0.05))
+                if self._stop.is_set():
+                    return
+                clock, last_t = time.monotonic(), event.t
+                self._publish(event)
+                self.position = index + 1
+            self.finished.set()
+            if not self.settings.loop:
+                return
+            with self.transaction():
+                for obj in self.query(lambda o: type(o).__name__ in TYPES and not o.uid.startswith("peer:")):
+                    self.remove(obj)
+
+    def _publish(self, event: Event) -> None:
+        try:
+            with self.transaction():
+                present = self.get(event.obj.uid) is not None
+                if event.op == "remove":
+                    if present:
+                        self.remove(event.obj.uid)
+                elif present:
+                    self.change(event.obj, reports=["replayed"])
+                else:
+                    self.add(event.obj)
+        except ErniError as err:
+            self.log.warning("replay: %s", err)
