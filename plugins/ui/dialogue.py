@@ -18,7 +18,7 @@ from typing import Any
 from blackboard import Task
 from blackboard.errors import TaskError
 from blackboard.tasks import PREPOSITIONS
-from plugins.ui.grammar import Command, Refusal, parse
+from plugins.ui.grammar import STRATEGY_VERB, Command, Refusal, parse
 
 LISTENING = "Listening"
 STANDING_BY = "Standing by"
@@ -55,13 +55,15 @@ def tasks_for(action: str, params: Mapping[str, Any], robots: Iterable[str], *, 
               source: str) -> list[Task]:
     """Return one task per robot for a grammar action, in the configured tier.
 
-    With `verb = "RemoteBotMotion"`, prepositions the team verb lacks go as BotMotion straight
+    Deployment strategies are `Deploy` tasks in either tier. With `verb = "RemoteBotMotion"`, prepositions the team verb lacks go as BotMotion straight
     to the robot (turn, backward), and `stop` becomes RemoteBotMotion `cancel` (cancel the
     robot's remote tasks and stop it). With `verb = "BotMotion"`, `stop` and `cancel` become
     `clear` (empty the behaviour stack, which halts the robot).
     """
     prep, args = action, dict(params)
-    if verb == "BotMotion":
+    if (STRATEGY_VERB, prep) in PREPOSITIONS:
+        verb = STRATEGY_VERB  # deployment strategies have a verb of their own, run by MissionControl
+    elif verb == "BotMotion":
         if prep in ("stop", "cancel"):
             prep = "clear"
     elif (verb, prep) not in PREPOSITIONS:
@@ -129,7 +131,8 @@ class Dialogue:
             return reply
         try:
             targets = self._targets(cmd, known)
-            reply.tasks = tasks_for(cmd.action, cmd.params, targets, verb=self.verb, source=self.source)
+            params = self._relay_ends(cmd, known) if cmd.action == "relay" else cmd.params
+            reply.tasks = tasks_for(cmd.action, params, targets, verb=self.verb, source=self.source)
         except Refusal as why:
             reply.say = str(why)
             return reply
@@ -137,6 +140,14 @@ class Dialogue:
         reply.targets, reply.action = list(targets), cmd.action
         reply.say, reply.accepted = ROGER, True
         return reply
+
+    def _relay_ends(self, cmd: Command, known: list[str]) -> dict[str, Any]:
+        names = {k: self.naming.name(cmd.params[k]) for k in ("source", "destination")}
+        missing = [cmd.params[k] for k, name in names.items() if name not in known]
+        if missing:
+            noun = "robot" if len(missing) == 1 else "robots"
+            raise Refusal(f"I don't know {noun} {spoken_list(missing)}")
+        return {**cmd.params, **names}
 
     def _targets(self, cmd: Command, known: list[str]) -> list[str]:
         if cmd.everyone:

@@ -16,9 +16,10 @@ from typing import Any
 
 from blackboard.tasks import PREPOSITIONS
 
-# Actions the grammar always knows; deployment strategies come from the task language.
+# Actions the grammar always knows; deployment strategies come from the task language's
+# `Deploy` verb (spread, widep, relay, patrol, and any other registered there).
 STANDARD_ACTIONS = ("goto", "forward", "backward", "turn", "stop", "cancel", "randomwalk", "teleport")
-_REMOTE_CORE = {"goto", "randomwalk", "cancel", "teleport", "forward"}
+STRATEGY_VERB = "Deploy"
 
 ONES = {"zero": 0, "oh": 0, "one": 1, "two": 2, "three": 3, "four": 4, "five": 5, "six": 6,
         "seven": 7, "eight": 8, "nine": 9}
@@ -36,6 +37,7 @@ FILLER = {"please", "now"}
 MOVE = {"go", "move", "drive", "head"}
 
 ATTENTION = ("attention", "wake up")
+_SPOKEN_STRATEGIES = {"spread", "widep", "relay", "patrol"}
 SLEEP = ("go to sleep", "sleep", "stand by")
 
 _TOKEN = re.compile(r"\[unk\]|-?\d+(?:\.\d+)?|-?\.\d+|[a-z]+")
@@ -65,15 +67,19 @@ class Command:
         return self.everyone or bool(self.robots)
 
 
-def strategies() -> dict[str, str]:
-    """Return the extra team prepositions (deployment strategies) spoken as words -> name."""
+def strategies() -> list[str]:
+    """Return the deployment strategies of the task language (the `Deploy` prepositions)."""
+    return [name for (verb, name) in PREPOSITIONS if verb == STRATEGY_VERB]
+
+
+def _plain_strategies() -> dict[str, str]:
+    """Strategies without a spoken form of their own, said by name: words -> name."""
     found = {}
     for (verb, name), prep in PREPOSITIONS.items():
-        if verb != "RemoteBotMotion" or name in _REMOTE_CORE:
+        if verb != STRATEGY_VERB or name in _SPOKEN_STRATEGIES:
             continue
-        if any(f.is_required() for f in prep.params.model_fields.values()):
-            continue
-        found[name.replace("_", " ")] = name
+        if not any(f.is_required() for f in prep.params.model_fields.values()):
+            found[name.replace("_", " ")] = name
     return found
 
 
@@ -245,7 +251,17 @@ def _verb_object(r: _Reader) -> tuple[str, dict[str, Any]]:
     if r.take_seq("random walk") or r.take("randomwalk", "wander", "explore"):
         r.take("around")
         return "randomwalk", {}
-    for words, name in strategies().items():
+    if r.take("spread"):
+        r.take("out")
+        d = r.distance()
+        return "spread", {} if d is None else {"distance": _positive(d)}
+    if r.take("cover") or r.take_seq("deploy to"):
+        return "widep", _point(r, "widep")
+    if r.take("relay"):
+        return "relay", _relay(r)
+    if r.take("patrol"):
+        return "patrol", _patrol(r)
+    for words, name in _plain_strategies().items():
         if r.take_seq(words):
             return name, {}
     if r.take("teleport", "jump"):
@@ -270,13 +286,42 @@ def _verb_object(r: _Reader) -> tuple[str, dict[str, Any]]:
     raise Refusal(f"I didn't understand {word}")
 
 
+def _positive(d: float) -> float:
+    if d <= 0:
+        raise Refusal("The distance must be more than zero")
+    return d
+
+
 def _distance(r: _Reader) -> dict[str, Any]:
     d = r.distance()
     if d is None:
         raise Refusal("How far?")
-    if d <= 0:
-        raise Refusal("The distance must be more than zero")
-    return {"distance": d}
+    return {"distance": _positive(d)}
+
+
+def _relay(r: _Reader) -> dict[str, Any]:
+    """`relay between [robot] A and [robot] B`: robot numbers, named by the dialogue."""
+    r.take("between", "for")
+    ends = []
+    for _ in range(2):
+        r.take("robot")
+        value = r.number()
+        if value is None or value != int(value) or value < 0:
+            raise Refusal("Relay between which robots?")
+        ends.append(int(value))
+        r.take("and")
+    return {"source": ends[0], "destination": ends[1]}
+
+
+def _patrol(r: _Reader) -> dict[str, Any]:
+    """`patrol [from] X1 Y1 to X2 Y2`: the territory block's corners."""
+    r.take("from")
+    a = _point(r, "patrol")
+    if not r.take("to"):
+        raise Refusal("Patrol from where to where?")
+    b = _point(r, "patrol")
+    return {"xmin": min(a["x"], b["x"]), "ymin": min(a["y"], b["y"]),
+            "xmax": max(a["x"], b["x"]), "ymax": max(a["y"], b["y"])}
 
 
 def _turn(r: _Reader) -> dict[str, Any]:
@@ -323,9 +368,9 @@ def vocabulary() -> list[str]:
         words.update(group)
     for phrase in ATTENTION + SLEEP:
         words.update(phrase.split())
-    for spoken in strategies():
+    for spoken in _plain_strategies():
         words.update(spoken.split())
-    words.update("""robot robots and a hundred point stop halt freeze cancel abort that it random walk
+    words.update("""spread out cover deploy relay between for patrol from robot robots and a hundred point stop halt freeze cancel abort that it random walk
         wander explore around teleport jump to turn rotate left right by goto forward forwards
         ahead back backward backwards reverse up x y comma facing heading""".split())
     words -= {"m", "cm", "ft", "deg", "randomwalk", "goto", "backup"}  # written forms only

@@ -244,14 +244,14 @@ class UIPlugin(Plugin):
                     "x": pose.x, "y": pose.y, "theta": pose.theta, "v": pose.v, "w": pose.w,
                     "battery": pose.battery, "sonar": pose.sonar, "stamp": pose.stamp},
                 "address": peer.address if peer else "", "last_heard": peer.last_heard if peer else None,
-                "task": task.describe().split(" -> ")[0] if task else "",
+                "task": short(task) if task else "",
             })
         links = self._links(set(names))
         rows = [_task_row(t) for t in self.tasks] + list(self.retired)
         rows.sort(key=lambda r: r["created"], reverse=True)
         return {
             "agent": self.agent_name, "time": time.time(), "verb": s.verb,
-            "actions": list(STANDARD_ACTIONS), "strategies": sorted(strategies().values()),
+            "actions": list(STANDARD_ACTIONS), "strategies": strategies(),
             "speech": {"available": self.listener is not None, "error": self.speech_error},
             "listening": self.spoken.listening,
             "robots": robots, "links": links,
@@ -342,7 +342,7 @@ class UIPlugin(Plugin):
                 self._log("dim", f"{task.destination}: {task.preposition} cancelled from the GUI")
 
     def _command(self, client: str, msg: CommandMsg) -> None:
-        known = set(strategies().values()) | set(STANDARD_ACTIONS)
+        known = set(strategies()) | set(STANDARD_ACTIONS)
         if msg.action not in known:
             self.server.emit({"type": "error", "message": f"unknown action {msg.action!r}; expected one of "
                               f"{', '.join(sorted(known))}"}, client)
@@ -353,7 +353,7 @@ class UIPlugin(Plugin):
             self.server.emit({"type": "error", "message": str(why)}, client)
             return
         self._send(msg.action, tasks)
-        self._log("info", f"{tasks[0].describe().split(' -> ')[0]} -> {', '.join(msg.robots)}")
+        self._log("info", f"{tasks[0].verb} {short(tasks[0])} -> {', '.join(msg.robots)}")
 
     def _answer(self, reply: Reply, channel: str, client: str) -> None:
         if reply.say is None:
@@ -374,8 +374,13 @@ class UIPlugin(Plugin):
                   f"{channel}: \u201c{reply.heard}\u201d \u2192 {reply.say}{detail}")
 
     def _send(self, action: str, tasks: list[Task]) -> None:
-        """Publish tasks; a motion command first cancels the robot's previous unfinished task."""
-        if self.settings.supersede and action != "teleport":
+        """Publish tasks; a motion command first cancels the robot's previous unfinished task.
+
+        A RemoteBotMotion `cancel` is left to do that on the robot (MissionControl cancels the
+        robot's remote tasks and reports them), so the UI does not withdraw them as well.
+        """
+        remote_cancel = any(t.verb == "RemoteBotMotion" and t.preposition == "cancel" for t in tasks)
+        if self.settings.supersede and action != "teleport" and not remote_cancel:
             targets = {t.destination for t in tasks}
             for old in list(self.tasks):
                 if old.source == self.agent_name and old.destination in targets and not old.done:
@@ -390,10 +395,17 @@ class UIPlugin(Plugin):
         self.retired.append({**_task_row(task), "state": "cancelled", "message": why})
 
 
+def short(t: Task) -> str:
+    """`goto x=1.0 y=2.0`: the preposition and the parameters that differ from their defaults."""
+    args = " ".join(f"{k}={v}" for k, v in t.params.model_dump(exclude_defaults=True).items())
+    return f"{t.preposition} {args}".rstrip()
+
+
 def _task_row(t: Task) -> dict[str, Any]:
     r = t.result
+    params = {k: v for k, v in t.params.model_dump().items() if isinstance(v, (int, float, str))}
     return {"uid": t.uid, "robot": t.destination, "verb": t.verb, "preposition": t.preposition,
-            "text": t.describe().split(" -> ")[0], "source": t.source, "created": t.created,
+            "text": short(t), "params": params, "source": t.source, "created": t.created,
             "state": t.state.value, "progress": r.progress if r else 0.0, "message": r.message if r else "",
             "values": {k: v for k, v in (r.values if r else {}).items() if isinstance(v, (int, float, str))}}
 

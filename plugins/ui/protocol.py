@@ -26,7 +26,7 @@ class CommandMsg(_Msg):
     type: Literal["command"]
     robots: list[AgentName] = Field(min_length=1, max_length=256)
     action: Annotated[str, Field(pattern=r"^[a-z_]{1,40}$")]
-    params: dict[Annotated[str, Field(pattern=r"^[a-z_]{1,40}$")], Number | int | bool | None] = Field(
+    params: dict[Annotated[str, Field(pattern=r"^[a-z_]{1,40}$")], Number | int | bool | AgentName | None] = Field(
         default_factory=dict, max_length=16)
 
 

@@ -70,8 +70,12 @@ class Team:
         self.host.stop()
 
 
-def start_team(robots: int = 3, *, ui: dict[str, Any] | None = None) -> Team:
-    """Start simulated robots, their agents and a control agent with the UI; wait until all are seen."""
+def start_team(robots: int = 3, *, ui: dict[str, Any] | None = None, mission: dict[str, Any] | None = None) -> Team:
+    """Start simulated robots, their agents and a control agent with the UI; wait until all are seen.
+
+    With `mission` (MissionControl settings) the robots run MissionControl and the UI sends
+    RemoteBotMotion tasks (the two-tier design); without it the UI sends BotMotion.
+    """
     world = World(robot=[RobotStart(name=f"sim{i + 1}", x=x, y=y, heading=h) for i, (x, y, h) in
                          enumerate(STARTS[:robots])])
     host = RobotHost(world, physics_hz=100)
@@ -87,11 +91,14 @@ def start_team(robots: int = 3, *, ui: dict[str, Any] | None = None) -> Team:
             agent.add_plugin("transport", settings=transport_settings(discovery, "robot"), name="transport")
             agent.add_plugin("plugins.motion:RobotMotionControl", settings={**MOTION, "url": host.url(i)},
                              name="motion")
+            if mission is not None:
+                agent.add_plugin("plugins.mission:MissionControl", settings=mission, name="mission")
             agents.append(agent.start())
         control = Agent("control", workers=2)
         bridge = control.add_plugin("transport", settings=transport_settings(discovery, "control"),
                                     name="transport")
-        plugin = control.add_plugin(UIPlugin, settings={"listen": "127.0.0.1:0", "verb": "BotMotion",
+        verb = "BotMotion" if mission is None else "RemoteBotMotion"
+        plugin = control.add_plugin(UIPlugin, settings={"listen": "127.0.0.1:0", "verb": verb,
                                                         "speak": False, "rate_hz": 20, **(ui or {})}, name="ui")
         control.start()
         team = Team(control, plugin, bridge, agents, host)  # type: ignore[arg-type]

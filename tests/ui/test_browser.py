@@ -203,6 +203,35 @@ def test_network_links_are_drawn_coloured_by_quality(team, page):
         tx.remove("netinfo:test")
 
 
+def test_deployment_strategy_buttons_send_deploy_tasks(team, page):
+    def deploy(prep: str) -> Task:
+        return wait_until(lambda: [t for t in team.robots[0].query(Task) if (t.verb, t.preposition) == ("Deploy", prep)],
+                          timeout=5, message=f"no Deploy {prep} reached robot1")[0]
+
+    names = page.eval_on_selector_all("#strategies button", "bs => bs.map(b => b.dataset.act)")
+    assert {"widep", "spread", "relay", "patrol"} <= set(names)
+    page.check('#robot-table input[data-name="robot1"]')
+    page.click('#strategies button[data-act="widep"]')
+    assert "point of interest" in page.inner_text("#hint")
+    page.mouse.click(*screen(page, 4.0, -1.0))
+    widep = deploy("widep")
+    assert (widep.params.x, widep.params.y) == (pytest.approx(4.0, abs=0.03), pytest.approx(-1.0, abs=0.03))
+    page.click('#strategies button[data-act="patrol"]')
+    page.mouse.move(*screen(page, -1.0, -1.0))
+    page.mouse.down()
+    page.mouse.move(*screen(page, 2.0, -3.0), steps=5)
+    page.mouse.up()
+    patrol = deploy("patrol").params
+    assert [patrol.xmin, patrol.ymin, patrol.xmax, patrol.ymax] == pytest.approx([-1.0, -3.0, 2.0, -1.0], abs=0.03)
+    page.click('#strategies button[data-act="relay"]')
+    for name in ("robot2", "robot3"):
+        p = own_pose(team, name)
+        page.mouse.click(*screen(page, p.x, p.y))
+    relay = deploy("relay").params
+    assert (relay.source, relay.destination) == ("robot2", "robot3")
+    shot(page, "06b-strategies")
+
+
 def test_a_killed_robot_is_shown_as_lost(team, page):
     team.kill("robot3")
     page.wait_for_selector('g.robot[data-name="robot3"][data-state="lost"]', timeout=8000)

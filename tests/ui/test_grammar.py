@@ -15,8 +15,8 @@ KNOWN = [f"robot{i}" for i in range(1, 7)]
 ALL = KNOWN
 FT = 0.3048
 
-# (utterance, expected): expected is the refusal to say, or (robots, preposition, params) in
-# the BotMotion tier. Utterances without a subject go to the last targets: robot2 here.
+# (utterance, expected): expected is the refusal to say, or (robots, preposition, params[, verb]),
+# verb BotMotion unless given. Utterances without a subject go to the last targets: robot2 here.
 TABLE: list[tuple[str, object]] = [
     ("robots 5 and 6 turn right 90 degrees", (["robot5", "robot6"], "turn", {"angle": -90.0})),
     ("go forward 2 feet", (["robot2"], "forward", {"distance": 0.6096})),
@@ -68,6 +68,15 @@ TABLE: list[tuple[str, object]] = [
     ("robot 2 go-to 1 2", (["robot2"], "goto", {"x": 1.0, "y": 2.0})),
     ("robots 6 and 6 stop", (["robot6"], "clear", {})),
     ("turn left 90 degrees", (["robot2"], "turn", {"angle": 90.0})),
+    # deployment strategies: Deploy tasks in either tier
+    ("everyone spread out", (ALL, "spread", {}, "Deploy")),
+    ("robots 1 and 2 spread out 3 metres", (["robot1", "robot2"], "spread", {"distance": 3.0}, "Deploy")),
+    ("robot 1 cover 4 5", (["robot1"], "widep", {"x": 4.0, "y": 5.0}, "Deploy")),
+    ("robot 1 deploy to 2 feet 0", (["robot1"], "widep", {"x": 0.6096, "y": 0.0}, "Deploy")),
+    ("robot 2 relay between robot 1 and robot 3", (["robot2"], "relay", {"source": "robot1", "destination": "robot3"},
+                                                   "Deploy")),
+    ("robots 1 and 2 patrol from 0 0 to 5 -5", (["robot1", "robot2"], "patrol",
+                                                {"xmin": 0.0, "ymin": -5.0, "xmax": 5.0, "ymax": 0.0}, "Deploy")),
     # refusals: the exact sentence said back
     ("robot 9 stop", "I don't know robot 9"),
     ("robots 8 and 9 stop", "I don't know robots 8 and 9"),
@@ -93,6 +102,10 @@ TABLE: list[tuple[str, object]] = [
     ("[unk]", "I didn't understand"),
     ("robot 1 go forward 2 feet and back", "I didn't understand and back"),
     ("robot 1 randomwalk fast", "I didn't understand fast"),
+    ("robot 2 relay between 1 and 9", "I don't know robot 9"),
+    ("robot 1 relay", "Relay between which robots?"),
+    ("patrol 1 1", "Patrol from where to where?"),
+    ("robot 1 spread out 0 metres", "The distance must be more than zero"),
 ]
 
 
@@ -112,11 +125,11 @@ def test_utterance_gives_exact_tasks_or_refusal(utterance, expected):
     if isinstance(expected, str):
         assert (reply.say, reply.accepted, reply.tasks) == (expected, False, [])
         return
-    robots, prep, params = expected  # type: ignore[misc]
+    robots, prep, params, *verb = expected  # type: ignore[misc]
     assert reply.say == ROGER and reply.accepted
     got = [(t.verb, t.preposition, t.destination, t.source, t.params.model_dump(exclude_defaults=True))
            for t in reply.tasks]
-    assert got == [("BotMotion", prep, r, "control", pytest.approx(params)) for r in robots]
+    assert got == [((verb or ["BotMotion"])[0], prep, r, "control", pytest.approx(params)) for r in robots]
     assert reply.targets == robots
 
 
@@ -169,16 +182,15 @@ def test_robot_numbers_map_to_configured_agent_names():
         Naming("robot")
 
 
-def test_deployment_strategies_of_the_task_language_are_spoken_by_name():
-    register_preposition("RemoteBotMotion", "spread_out", NoParams, "test strategy")
+def test_a_strategy_without_a_spoken_form_is_said_by_name():
+    register_preposition("Deploy", "form_line", NoParams, "test strategy")
     try:
-        assert "spread" in vocabulary() and "out" in vocabulary()
-        task = dialogue("RemoteBotMotion").hear("everyone spread out", KNOWN).tasks
-        assert [(t.verb, t.preposition, t.destination) for t in task] == [
-            ("RemoteBotMotion", "spread_out", r) for r in KNOWN]
+        assert "form" in vocabulary() and "line" in vocabulary()
+        task = dialogue("RemoteBotMotion").hear("everyone form line", KNOWN).tasks
+        assert [(t.verb, t.preposition, t.destination) for t in task] == [("Deploy", "form_line", r) for r in KNOWN]
     finally:
-        del PREPOSITIONS[("RemoteBotMotion", "spread_out")]
-    assert dialogue("RemoteBotMotion").hear("everyone spread out", KNOWN).say == "I didn't understand spread"
+        del PREPOSITIONS[("Deploy", "form_line")]
+    assert dialogue("RemoteBotMotion").hear("everyone form line", KNOWN).say == "I didn't understand form"
 
 
 def test_an_action_the_tier_lacks_is_refused_by_name():

@@ -186,11 +186,10 @@ function renderMap() {
   const gg = $("goals");
   gg.innerHTML = "";
   for (const t of s.tasks) {
-    if (t.preposition !== "goto" || t.state === "succeeded" || t.state === "failed" || t.state === "cancelled") continue;
+    if (!["goto", "widep"].includes(t.preposition) || ["succeeded", "failed", "cancelled"].includes(t.state)) continue;
+    if (typeof t.params.x !== "number" || typeof t.params.y !== "number") continue;
     const r = byName.get(t.robot);
-    const m = /x=(-?[\d.e-]+) y=(-?[\d.e-]+)/.exec(t.text);
-    if (!m) continue;
-    const [gx, gy] = toScreen(parseFloat(m[1]), parseFloat(m[2]));
+    const [gx, gy] = toScreen(t.params.x, t.params.y);
     if (r && r.pose) { const [rx, ry] = toScreen(r.pose.x, r.pose.y); el("line", { x1: rx, y1: ry, x2: gx, y2: gy, class: "goal-path" }, gg); }
     el("path", { d: `M${gx - 7},${gy - 7}L${gx + 7},${gy + 7}M${gx - 7},${gy + 7}L${gx + 7},${gy - 7}`, class: "goal", "data-robot": t.robot }, gg);
   }
@@ -261,7 +260,7 @@ function renderRobotTable(s) {
     tr.querySelector(".batt").textContent = r.pose ? fmt(r.pose.battery, 1) : "–";
     tr.querySelector(".vel").textContent = r.pose ? fmt(r.pose.v, 2) : "–";
     const doing = tr.querySelector(".doing");
-    doing.textContent = r.task ? r.task.replace(/^\S+ /, "") : "idle";
+    doing.textContent = r.task || "idle";
     doing.title = r.task;
   });
   $("sel-count").textContent = ui.selection.size ? `${ui.selection.size} selected` : "select robots first";
@@ -274,8 +273,8 @@ function renderStrategies(s) {
   box.dataset.have = want;
   box.innerHTML = "";
   for (const name of s.strategies || []) {
-    const b = h("button", { "data-act": name, title: "deployment strategy" }, name.replace(/_/g, " "));
-    b.addEventListener("click", () => command(name, {}));
+    const b = h("button", { "data-act": name, title: STRATEGY_HELP[name] || "deployment strategy" }, name.replace(/_/g, " "));
+    b.addEventListener("click", () => doAction(name));
     box.appendChild(b);
   }
 }
@@ -306,7 +305,7 @@ function renderTasks(s) {
     const badge = row.querySelector(".badge");
     badge.className = "badge " + t.state;
     badge.textContent = t.state;
-    row.querySelector(".text").textContent = t.text.replace(/^\S+ /, "");
+    row.querySelector(".text").textContent = t.text;
     row.querySelector(".x").style.visibility = done ? "hidden" : "visible";
     const vals = Object.entries(t.values).map(([k, v]) => `${k}=${typeof v === "number" ? +v.toFixed(2) : v}`).join(" ");
     const msg = row.querySelector(".msg");
@@ -373,9 +372,22 @@ function command(action, params, robots) {
   send({ type: "command", action, params, robots: list });
 }
 function num(id) { return parseFloat($(id).value); }
+const STRATEGY_HELP = {
+  spread: "spread out: keep distance d from neighbours (potential field)",
+  widep: "WiDep: click the point of interest to cover",
+  patrol: "patrol: drag the territory block on the map",
+  relay: "relay: click the source robot, then the destination robot",
+};
+const ARMED_HINT = {
+  goto: "Go to: click the map to send {r} there",
+  teleport: "Teleport: click the map to put {r} there",
+  widep: "WiDep: click the point of interest {r} should cover",
+  patrol: "Patrol: drag the territory block for {r}",
+  relay: "Relay: click the source robot, then the destination robot, for {r}",
+};
 function doAction(act, robots) {
   const speed = num("p-speed");
-  if (act === "goto" || act === "teleport") arm(act, robots);
+  if (act in ARMED_HINT) arm(act, robots);
   else if (act === "forward" || act === "backward") command(act, { distance: num("p-distance"), speed }, robots);
   else if (act === "turn-left") command("turn", { angle: Math.abs(num("p-angle")) }, robots);
   else if (act === "turn-right") command("turn", { angle: -Math.abs(num("p-angle")) }, robots);
@@ -385,17 +397,17 @@ function doAction(act, robots) {
 function arm(action, robots) {
   const list = targets(robots);
   if (!list) return;
-  ui.armed = { action, robots: list };
+  ui.armed = { action, robots: list, ends: [] };
   $("map").classList.add("arming");
-  $("cmd-goto").classList.toggle("armed", action === "goto");
+  for (const b of document.querySelectorAll("button[data-act]")) b.classList.toggle("armed", b.dataset.act === action && !b.closest("#menu"));
   const hint = $("hint");
   hint.classList.add("armed");
-  hint.textContent = `${action === "goto" ? "Go to" : "Teleport"}: click the map to send ${list.join(", ")} there · Esc to cancel`;
+  hint.textContent = ARMED_HINT[action].replace("{r}", list.join(", ")) + " · Esc to cancel";
 }
 function disarm() {
   ui.armed = null;
   $("map").classList.remove("arming");
-  $("cmd-goto").classList.remove("armed");
+  for (const b of document.querySelectorAll("button.armed")) b.classList.remove("armed");
   const hint = $("hint");
   hint.classList.remove("armed");
   hint.textContent = "Click a robot, then the map to send it there · drag a robot to teleport it · shift-drag to select · wheel to zoom · drag to pan · right-click a robot for its menu";
@@ -412,7 +424,12 @@ function onPointerDown(ev) {
   closeMenu();
   const at = svgPoint(ev), name = robotAt(ev.target);
   $("map").setPointerCapture(ev.pointerId);
-  if (name) ui.drag = { kind: "robot", name, start: at, at, moved: false };
+  if (ui.armed && ui.armed.action === "relay") {
+    if (name) pickRelayEnd(name);
+    return;
+  }
+  if (ui.armed && ui.armed.action === "patrol") ui.drag = { kind: "rect", start: at, at, moved: false, patrol: true };
+  else if (name) ui.drag = { kind: "robot", name, start: at, at, moved: false };
   else if (ev.shiftKey) ui.drag = { kind: "rect", start: at, at, moved: false };
   else ui.drag = { kind: "pan", start: at, at, moved: false, ox: ui.view.ox, oy: ui.view.oy };
 }
@@ -453,6 +470,13 @@ function onPointerUp(ev) {
       if (ui.selection.size) arm("goto");
     }
     renderMap();
+  } else if (d.kind === "rect" && d.patrol) {
+    $("rubber").classList.add("hidden");
+    if (!d.moved) return;
+    const a = ui.armed, [ax, ay] = toWorld(d.start[0], d.start[1]);
+    disarm();
+    command("patrol", { xmin: round(Math.min(ax, wx)), ymin: round(Math.min(ay, wy)), xmax: round(Math.max(ax, wx)),
+      ymax: round(Math.max(ay, wy)) }, a.robots);
   } else if (d.kind === "rect") {
     $("rubber").classList.add("hidden");
     const [x0, x1] = [Math.min(d.start[0], at[0]), Math.max(d.start[0], at[0])];
@@ -468,8 +492,16 @@ function onPointerUp(ev) {
     const a = ui.armed;
     disarm();
     if (a.action === "goto") command("goto", { x: round(wx), y: round(wy), speed: num("p-speed") }, a.robots);
+    else if (a.action === "widep") command("widep", { x: round(wx), y: round(wy) }, a.robots);
     else command("teleport", { x: round(wx), y: round(wy) }, a.robots);
   }
+}
+function pickRelayEnd(name) {
+  const a = ui.armed;
+  a.ends.push(name);
+  if (a.ends.length < 2) { $("hint").textContent = `Relay: source ${name}; now click the destination robot · Esc to cancel`; return; }
+  disarm();
+  command("relay", { source: a.ends[0], destination: a.ends[1] }, a.robots);
 }
 function round(v) { return Math.round(v * 100) / 100; }
 
