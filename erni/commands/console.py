@@ -1,0 +1,220 @@
+"""`erni console [--via HOST:PORT]`: task the team by typing commands in the speech grammar.
+
+Each line is one utterance (`robot 3 go to 4 5`, `everyone stop`, `turn left 90 degrees`);
+the console answers like the speech front end ("Roger", "I don't know robot 9") and prints
+the results of the tasks it sent as they arrive. Lines from a pipe are read to the end, then
+the console waits for the tasks it sent to finish (`--timeout`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import queue
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any, TextIO
+
+from blackboard import Task
+from erni.commands._client import add_client_options, make_client, stamp
+from transport.bridge import Cancel, PeerList, ResultUpdate
+
+HELP = """examples:  robot 1 go to 2 3 | robots 1 and 2 turn right 90 degrees | go forward 2 feet
+           everyone stop | cancel | random walk | attention | go to sleep | quit"""
+
+
+def register(sub: Any) -> None:
+    """Add the `console` sub-command."""
+    p = sub.add_parser("console", help="type commands to the team in the speech grammar",
+                       description="Type commands such as 'robot 3 go to 4 5' or 'everyone stop'; they go to "
+                       "the robots through one agent (--via, or one found by its beacons). Exit 0, or 1 when a "
+                       "piped command was refused or a task failed; 2 on bad arguments.",
+                       epilog=HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--verb", choices=["RemoteBotMotion", "BotMotion"], default="RemoteBotMotion",
+                   help="verb of the tasks (BotMotion for teams without MissionControl)")
+    p.add_argument("--robot-names", default="robot{n}", help="agent name of robot n (default robot{n})")
+    p.add_argument("--timeout", type=float, default=30.0,
+                   help="after piped input ends, wait this long for the tasks to finish (s)")
+    p.add_argument("--history-file", default=os.path.expanduser("~/.erni_console_history"),
+                   help="readline history (interactive only)")
+    add_client_options(p)
+    p.set_defaults(func=run)
+
+
+class Console:
+    """One operator's typed session: a Dialogue whose tasks travel through a Client."""
+
+    def __init__(self, client: Any, addr: Any, dialogue: Any, out: TextIO, *, json_lines: bool = False) -> None:
+        self.client, self.addr, self.dialogue, self.out = client, addr, dialogue, out
+        self.json = json_lines
+        self.peers: queue.Queue[PeerList] = queue.Queue()
+        self.known: list[str] = []
+        self.open: dict[str, Task] = {}  # uid -> task sent and not finished
+        self.last: dict[str, str] = {}   # robot -> uid of its last motion task
+        self.running: set[str] = set()   # tasks whose start was printed
+        self.failed = 0
+        self.refused = 0
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._receive, name="console-receive", daemon=True)
+
+    def start(self) -> Console:
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5)
+
+    def robots(self) -> list[str]:
+        """Ask the agent for its peers; return the robots' names (the last answer if it is slow)."""
+        self.client.send(self.addr, "peers.request", None, reliable=True)
+        try:
+            reply = self.peers.get(timeout=2.0)
+            self.known = [p.name for p in reply.peers if p.role == "robot"]
+        except queue.Empty:
+            self.print(f"(no peer list from {self.addr[0]}:{self.addr[1]}; using the last one)")
+        return self.known
+
+    def say(self, line: str) -> None:
+        """Answer one typed line and send its tasks."""
+        reply = self.dialogue.hear(line, self.robots())
+        if reply.say is None:
+            self.print("(standing by: say 'attention')")
+            return
+        if not reply.accepted:
+            self.refused += 1
+        for task in reply.tasks:
+            if reply.action != "teleport":
+                self._supersede(task.destination)
+            with self._lock:
+                self.open[task.uid] = task
+                self.last[task.destination] = task.uid
+            self.client.send(self.addr, "task.add", task)
+        who = f" ({', '.join(reply.targets)})" if reply.targets else ""
+        self.print(f"{reply.say}{who}")
+
+    def _supersede(self, robot: str | None) -> None:
+        with self._lock:
+            uid = self.last.pop(robot or "", None)
+            still = self.open.pop(uid, None) if uid else None
+        if uid and still:
+            self.client.send(self.addr, "task.cancel", Cancel(uid=uid))
+
+    def wait(self, timeout: float) -> None:
+        """Wait until every task sent has finished, or `timeout` seconds."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            with self._lock:
+                if not self.open:
+                    return
+            time.sleep(0.05)
+        with self._lock:
+            left = list(self.open.values())
+        for task in left:
+            self.print(f"{task.destination}: {task.preposition} not finished within {timeout:g} s; cancelling")
+            self.client.send(self.addr, "task.cancel", Cancel(uid=task.uid))
+            self.failed += 1
+        time.sleep(0.2)
+
+    def print(self, text: str) -> None:
+        print(text, file=self.out, flush=True)
+
+    def _receive(self) -> None:
+        while not self._stop.is_set():
+            msg = self.client.receive(0.1)
+            if msg is None:
+                continue
+            if msg.kind == "peers.reply" and isinstance(msg.body, PeerList):
+                self.peers.put(msg.body)
+            elif msg.kind == "task.result" and isinstance(msg.body, ResultUpdate):
+                self._result(msg.body)
+
+    def _result(self, update: ResultUpdate) -> None:
+        with self._lock:
+            task = self.open.get(update.uid)
+            if task is None:
+                return
+            if update.result.state.done:
+                del self.open[update.uid]
+        r = update.result
+        if not r.state.done and r.state.value != "running":
+            return
+        if r.state.value == "running":
+            if update.uid in self.running:
+                return
+            self.running.add(update.uid)
+        if r.state.value == "failed":
+            self.failed += 1
+        message = f" — {r.message}" if r.message else ""
+        self.print(f"{stamp(r.stamp)} {task.destination}: {task.preposition} {r.state.value}{message}")
+
+
+def _readline(history: str) -> Any:
+    try:
+        import readline
+    except ImportError:  # not on every platform: plain input() then
+        return None
+    try:
+        readline.read_history_file(history)
+    except OSError:
+        pass
+    readline.set_history_length(1000)
+    return readline
+
+
+def run(args: argparse.Namespace) -> int:
+    """Read commands until EOF or `quit`."""
+    from plugins.ui.dialogue import Dialogue, Naming
+    from transport.client import ClientError
+
+    try:
+        naming = Naming(args.robot_names)
+        client = make_client(args)
+    except ValueError as err:
+        print(f"erni console: {err}", file=sys.stderr)
+        return 2
+    interactive = sys.stdin.isatty()
+    with client:
+        try:
+            addr = client.find(None)
+        except ClientError as err:
+            print(f"erni console: {err}", file=sys.stderr)
+            return 1
+        dialogue = Dialogue(naming, verb=args.verb, source=client.endpoint.name, listening=True)
+        console = Console(client, addr, dialogue, sys.stdout).start()
+        rl = _readline(args.history_file) if interactive else None
+        try:
+            if interactive:
+                print(f"erni console through {addr[0]}:{addr[1]}; tasks as {args.verb}\n{HELP}")
+            while True:
+                try:
+                    line = input("erni> " if interactive else "")
+                except EOFError:
+                    break
+                line = line.strip()
+                if not line or line.startswith("#"):
+                    continue
+                if line in ("quit", "exit"):
+                    break
+                if line in ("help", "?"):
+                    print(HELP)
+                    continue
+                if not interactive:
+                    print(f"> {line}", flush=True)
+                console.say(line)
+            if not interactive:
+                console.wait(args.timeout)
+        except KeyboardInterrupt:
+            print()
+        finally:
+            console.stop()
+            if rl is not None:
+                try:
+                    Path(args.history_file).parent.mkdir(parents=True, exist_ok=True)
+                    rl.write_history_file(args.history_file)
+                except OSError:
+                    pass
+    return 1 if not interactive and (console.failed or console.refused) else 0

@@ -1,0 +1,62 @@
+"""`erni console`: typed commands in the speech grammar reach a running team through its control
+node, with the same feedback, and the results of the tasks it sent are printed."""
+
+from __future__ import annotations
+
+import math
+import os
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from tests.ui.team import KEY, Team, start_team
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture(scope="module")
+def team() -> Iterator[Team]:
+    team = start_team(2)
+    yield team
+    team.stop()
+
+
+def console(team: Team, lines: str, *args: str, key: str = KEY) -> subprocess.CompletedProcess[str]:
+    env = {**os.environ, "ERNI_TEAM_KEY": key}
+    return subprocess.run([sys.executable, "-m", "erni", "console", "--via", team.via, "--verb", "BotMotion",
+                           "--timeout", "15", *args], input=lines, text=True, capture_output=True, env=env,
+                          cwd=ROOT, timeout=60)
+
+
+def test_typed_commands_task_the_team_and_print_feedback_and_results(team):
+    p0 = team.pose("robot1")
+    out = console(team, "robot 1 go forward 2 feet\nrobot 9 stop\n# a comment\nturn left 90 degrees\n")
+    lines = out.stdout.splitlines()
+    assert "Roger (robot1)" in lines and "I don't know robot 9" in lines
+    assert lines.count("Roger (robot1)") == 2  # the turn went to the last target
+    assert "robot1: turn succeeded" in out.stdout
+    assert out.returncode == 1  # a piped command was refused
+    p1 = team.pose("robot1")
+    assert math.hypot(p1.x - p0.x, p1.y - p0.y) < 0.2  # the forward was superseded by the turn
+    assert math.degrees(abs(math.remainder(p1.theta - p0.theta, 2 * math.pi))) == pytest.approx(90, abs=4)
+
+
+def test_all_accepted_and_succeeded_exits_zero(team):
+    p0 = team.pose("robot2")
+    out = console(team, "attention\nrobot 2 go forward 0.5 metres\n")
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert out.stdout.splitlines()[:4] == ["> attention", "Listening", "> robot 2 go forward 0.5 metres", "Roger (robot2)"]
+    assert "robot2: forward succeeded" in out.stdout
+    p1 = team.pose("robot2")
+    assert math.hypot(p1.x - p0.x, p1.y - p0.y) == pytest.approx(0.5, abs=0.08)
+
+
+def test_bad_arguments_exit_two_with_one_line(team):
+    out = console(team, "", "--robot-names", "robot")
+    assert out.returncode == 2 and out.stderr.strip().startswith("erni console: robot naming 'robot': expected")
+    out = subprocess.run([sys.executable, "-m", "erni", "console", "--via", "localhost"], input="", text=True,
+                         capture_output=True, cwd=ROOT, timeout=60)
+    assert out.returncode == 2 and "erni console: --via 'localhost': expected HOST:PORT" in out.stderr
