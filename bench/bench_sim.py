@@ -5,7 +5,8 @@ team's start-up time; then every robot random-walks while a watcher on the contr
 records every Pose for `--window` seconds. A robot agent publishes its Pose every 0.1 s from
 its motion loop, so the spread of the intervals between consecutive Pose stamps (made by the
 robot's agent) is the jitter of its control loop, and the share of those Poses that reach
-the control node says whether the team keeps up. CPU (% of one core) and RSS per agent come
+the control node says whether the team keeps up. Poses are read from every robot's own
+agent (its loop) and from the control node (what the GUI sees). CPU (% of one core) and RSS per agent come
 from /proc. In the same run, the import floor: a process that only imports what a robot
 agent imports (blackboard, transport, motion, mobinet, mission), and a bare interpreter.
 
@@ -89,19 +90,25 @@ def agents_run(n: int, window: float) -> dict[str, float]:
         pids = {name: a.proc.pid for name, a in team.agents.items() if a.proc}
         cpu0 = {name: cpu_seconds(pid) for name, pid in pids.items()}
         sim0 = cpu_seconds(os.getpid())
-        stamps: dict[str, list[float]] = {name: [] for name in team.names}
+        from transport.endpoint import parse_address
+
+        addresses = {p.name: parse_address(p.address) for p in team.peers().values() if p.address}
+        stamps: dict[str, list[float]] = {name: [] for name in team.names}  # at each robot's own agent
+        relayed: dict[str, list[float]] = {name: [] for name in team.names}  # as the control node has them
         start = time.monotonic()
         next_lease = 0.0
         while time.monotonic() - start < window:
             if time.monotonic() >= next_lease:
-                client.send(team.control_address, "watch.request", WatchRequest(lease=5.0), reliable=False)
+                for addr in [team.control_address, *addresses.values()]:
+                    client.send(addr, "watch.request", WatchRequest(lease=5.0), reliable=False)
                 next_lease = time.monotonic() + 2.0
             msg = client.receive(0.05)
             if msg is None or msg.kind != "watch.event" or not isinstance(msg.body, WatchEvent):
                 continue
             ev = msg.body
-            if ev.type == "Pose" and ev.data.get("robot") in stamps:
-                stamps[ev.data["robot"]].append(float(ev.data["stamp"]))
+            robot = ev.data.get("robot")
+            if ev.type == "Pose" and robot in stamps:
+                (relayed if ev.agent == "control" else stamps)[robot].append(float(ev.data["stamp"]))
         elapsed = time.monotonic() - start
         cpu = {name: (cpu_seconds(pid) - cpu0[name]) / elapsed * 100 for name, pid in pids.items()}
         sim_cpu = (cpu_seconds(os.getpid()) - sim0) / elapsed * 100
@@ -113,11 +120,13 @@ def agents_run(n: int, window: float) -> dict[str, float]:
         seq = sorted(set(seq))
         intervals += list(np.diff(seq))
     received = sum(len(set(s)) for s in stamps.values())
+    at_control = sum(len(set(s)) for s in relayed.values())
     robots = [name for name in team.names]
     return {
         "robots": n, "startup_s": startup,
         "pose_interval_p50_ms": pct(intervals, 0.5) * 1000, "pose_interval_p99_ms": pct(intervals, 0.99) * 1000,
         "poses_delivered_share": received / (n * 10.0 * elapsed),
+        "poses_at_control_share": at_control / max(1, received),
         "robot_cpu_pct_median": statistics.median(cpu[r] for r in robots),
         "control_cpu_pct": cpu["control"], "sim_process_cpu_pct": sim_cpu,
         "robot_rss_mb_median": statistics.median(rss[r] for r in robots), "control_rss_mb": rss["control"],
@@ -156,13 +165,14 @@ def main() -> int:
     floor = import_floor(AGENT_IMPORTS)
     print(f"import floor: bare interpreter {bare:.1f} MB RSS; a robot agent's imports {floor:.1f} MB RSS")
     print("\nagents mode (one process per robot agent; robots random-walk; 10 Poses/s per robot expected)")
-    head = ("robots", "start s", "pose p50 ms", "pose p99 ms", "delivered", "robot CPU %", "control CPU %",
+    head = ("robots", "start s", "pose p50 ms", "pose p99 ms", "poses/10Hz", "at control", "robot CPU %",
+            "control CPU %",
             "sim CPU %", "robot RSS MB", "RSS/floor")
     print(" ".join(f"{h:>12}" for h in head), flush=True)
     for n in [int(x) for x in args.robots.split(",") if x]:
         r = agents_run(n, args.window)
         row = (n, r["startup_s"], r["pose_interval_p50_ms"], r["pose_interval_p99_ms"], r["poses_delivered_share"],
-               r["robot_cpu_pct_median"], r["control_cpu_pct"], r["sim_process_cpu_pct"], r["robot_rss_mb_median"],
+               r["poses_at_control_share"], r["robot_cpu_pct_median"], r["control_cpu_pct"], r["sim_process_cpu_pct"], r["robot_rss_mb_median"],
                r["robot_rss_mb_median"] / floor)
         print(" ".join(f"{v:>12.3g}" if isinstance(v, float) else f"{v:>12}" for v in row), flush=True)
     print(f"\nkinematic mode: {args.kinematic_robots} robots, {args.kinematic_seconds:g} s simulated (dt = 0.2 s)")
