@@ -108,7 +108,8 @@ class UIPlugin(Plugin):
         self.speech_error = ""
         self._start_speech(s)
         self.server = WebServer(host, port, token=token, on_message=self._from_page, on_audio=self._audio,
-                                on_close=self._page_closed, rate_hz=s.rate_hz)
+                                on_close=self._page_closed, rate_hz=s.rate_hz,
+                                announce=lambda url: print(f"ERNI GUI: {url}", flush=True))
         self.server.publish(self.picture())
         try:
             self.server.start()
@@ -117,7 +118,6 @@ class UIPlugin(Plugin):
             raise
         self.url = self.server.url
         self.log.info("GUI of %s at %s", me, self.url)
-        print(f"ERNI GUI: {self.url}", flush=True)
         self._log("info", f"control node {me} serving the GUI; tasks go as {s.verb}")
         if self.speech_error:
             self._log("warn", self.speech_error)

@@ -42,12 +42,14 @@ class WebServer:
 
     def __init__(self, host: str, port: int, *, token: str | None, on_message: Callable[[str, Any], None],
                  on_audio: Callable[[str, bytes], None], on_close: Callable[[str], None],
-                 rate_hz: float = 10.0, static_dir: Path = STATIC) -> None:
+                 rate_hz: float = 10.0, static_dir: Path = STATIC,
+                 announce: Callable[[str], None] | None = None) -> None:
         self.host, self.port = host, port
         self.token = token
         self.on_message, self.on_audio, self.on_close = on_message, on_audio, on_close
         self.period = 1.0 / rate_hz
         self.static_dir = static_dir
+        self.announce = announce
         self.clients: dict[str, web.WebSocketResponse] = {}
         self.bad_messages = 0
         self._lock = threading.Lock()
@@ -129,6 +131,8 @@ class WebServer:
             site = web.TCPSite(runner, self.host, self.port, reuse_address=True)
             await site.start()
             self.port = site._server.sockets[0].getsockname()[1]  # type: ignore[union-attr]
+            if self.announce is not None:
+                self.announce(self.url)
             self._ready.set()
             pump = asyncio.create_task(self._pump())
             await self._stopping.wait()

@@ -109,6 +109,25 @@ def test_page_shows_every_robot_and_follows_their_motion(team, page):
     shot(page, "01-team-moving")
 
 
+def test_wheel_zooms_about_the_cursor_drag_pans_and_fit_shows_everyone(team, page):
+    scale0 = page.evaluate("erni.ui.view.scale")
+    anchor = screen(page, 0.5, 0.5)
+    page.mouse.move(*anchor)
+    page.mouse.wheel(0, -400)
+    page.wait_for_function("s => erni.ui.view.scale > s * 1.1", arg=scale0)
+    assert screen(page, 0.5, 0.5) == pytest.approx(anchor, abs=1.5)  # the point under the cursor stays put
+    page.mouse.move(anchor[0] + 150, anchor[1] + 40)
+    page.mouse.down()
+    page.mouse.move(anchor[0] - 50, anchor[1] - 60, steps=5)
+    page.mouse.up()
+    assert screen(page, 0.5, 0.5) == pytest.approx((anchor[0] - 200, anchor[1] - 100), abs=1.5)
+    page.click("#zoom-fit")
+    inside = page.evaluate("""() => { const m = document.getElementById('map').getBoundingClientRect();
+        return [...document.querySelectorAll('g.robot circle.body')].map(c => { const b = c.getBoundingClientRect();
+          return b.left >= m.left && b.right <= m.right && b.top >= m.top && b.bottom <= m.bottom; }); }""")
+    assert inside == [True, True, True]
+
+
 def test_click_a_robot_then_the_map_sends_a_goto_it_executes(team, page):
     start = own_pose(team, "robot2")
     page.fill("#p-speed", "0.8")

@@ -205,7 +205,8 @@ function renderMap() {
     el("circle", { r: rad + 5, class: "ring" }, g);
     el("circle", { r: rad, class: "body" }, g);
     const th = r.pose.theta;
-    el("line", { x1: 0, y1: 0, x2: Math.cos(th) * (rad + 10), y2: -Math.sin(th) * (rad + 10), class: "heading" }, g);
+    el("line", { x1: Math.cos(th) * rad * 0.45, y1: -Math.sin(th) * rad * 0.45, x2: Math.cos(th) * (rad + 10),
+      y2: -Math.sin(th) * (rad + 10), class: "heading" }, g);
     el("text", { class: "num" }, g).textContent = r.number;
     el("text", { x: rad + 6, y: -rad + 2, class: "tag" }, g).textContent = r.name;
     if (r.state === "lost") el("text", { x: rad + 6, y: -rad + 15, class: "lost-tag" }, g).textContent = "LINK LOST";

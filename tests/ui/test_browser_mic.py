@@ -1,0 +1,134 @@
+"""The browser's microphone, end to end: Chromium captures a WAV file as its microphone, the page
+streams it over the WebSocket, the control node's recogniser receives 16 kHz mono PCM, and
+what it recognises is answered on the page. With VOSK_MODEL_PATH set, the real recogniser
+hears espeak-ng saying "attention"."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+import plugins.ui.plugin as ui_plugin
+from blackboard import Agent, Pose
+from blackboard.testing import wait_until
+from plugins.ui import UIPlugin
+from plugins.ui.speech import MODELS_URL, RATE
+from tests.ui.test_browser import ARGS, CHROMIUM
+from tests.ui.test_speech import dominant_hz, write_wav
+
+pytestmark = pytest.mark.skipif(not os.path.exists(CHROMIUM), reason=f"no Chromium at {CHROMIUM} (apt install chromium)")
+ARTIFACTS = Path(__file__).resolve().parents[2] / "artifacts" / "ui"
+
+
+class Recorder:
+    """Stands in for vosk to capture what reaches the recogniser; 'hears' a text at each flush."""
+
+    def __init__(self, text: str | None) -> None:
+        self.text = text
+        self.pcm = bytearray()
+        self.chunks = 0
+        self.threads: set[str] = set()
+        self.lock = threading.Lock()
+
+    def feed(self, pcm: bytes) -> str | None:
+        with self.lock:
+            self.pcm += pcm
+            self.chunks += 1
+            self.threads.add(threading.current_thread().name)
+        return None
+
+    def flush(self) -> str | None:
+        return self.text
+
+
+def start_control(settings: dict[str, Any]) -> tuple[Agent, UIPlugin]:
+    agent = Agent("control", workers=2)
+    ui = agent.add_plugin(UIPlugin, settings={"listen": "127.0.0.1:0", "speak": False, "verb": "BotMotion",
+                                              "rate_hz": 20, **settings}, name="ui")
+    agent.start()
+    with agent.transaction() as tx:
+        tx.add(Pose(robot="robot1", x=0.0, y=0.0))
+    return agent, ui  # type: ignore[return-value]
+
+
+def open_with_microphone(wav: Path, url: str, body: Any) -> Any:
+    """Run `body(page)` in a Chromium whose microphone plays `wav`."""
+    from playwright.sync_api import sync_playwright
+
+    args = ARGS + ["--use-fake-ui-for-media-stream", "--use-fake-device-for-media-stream",
+                   f"--use-file-for-fake-audio-capture={wav}", "--autoplay-policy=no-user-gesture-required"]
+    with sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=CHROMIUM, args=args)
+        try:
+            page = browser.new_page(viewport={"width": 1400, "height": 850})
+            page.goto(url)
+            page.wait_for_selector('g.robot[data-name="robot1"]')
+            return body(page)
+        finally:
+            browser.close()
+
+
+@pytest.fixture
+def recorder(monkeypatch) -> Iterator[Recorder]:
+    rec = Recorder("attention")
+    monkeypatch.setattr(ui_plugin, "model_path", lambda configured: Path("model"))
+    monkeypatch.setattr(ui_plugin, "Recognizer", lambda path, words: rec)
+    yield rec
+
+
+def test_the_page_streams_its_microphone_as_16k_mono_pcm(tmp_path, recorder):
+    rate = 48000
+    t = np.arange(rate * 3) / rate
+    wav = write_wav(tmp_path / "tone.wav", 9000 * np.sin(2 * np.pi * 440.0 * t), rate)
+    agent, ui = start_control({})
+    try:
+        def body(page: Any) -> str:
+            page.wait_for_selector("#mic:not([disabled])")
+            page.click("#mic")
+            page.wait_for_selector("#mic.on")
+            wait_until(lambda: len(recorder.pcm) >= 2 * RATE * 2, timeout=15, message="no microphone audio arrived")
+            page.click("#mic")  # off: the utterance ends, the recogniser is flushed
+            page.wait_for_function("document.querySelector('#last-reply .said') && "
+                                   "document.querySelector('#last-reply .said').textContent === 'Listening'")
+            (ARTIFACTS / "10-microphone.png").parent.mkdir(parents=True, exist_ok=True)
+            (ARTIFACTS / "10-microphone.png").write_bytes(page.screenshot())
+            return page.inner_text("#listening")
+
+        listening = open_with_microphone(wav, ui.url, body)
+    finally:
+        agent.stop()
+    with recorder.lock:
+        pcm = bytes(recorder.pcm)
+    assert len(pcm) % 2 == 0 and recorder.threads == {"ui-speech"}
+    second = pcm[RATE * 2 // 2: RATE * 2 // 2 + RATE * 2]  # one second, past the start-up
+    assert dominant_hz(second) == pytest.approx(440.0, abs=5)  # 16 kHz: a 440 Hz tone stays at 440 Hz
+    level = np.abs(np.frombuffer(second, dtype="<i2")).max()
+    assert 3000 < level < 20000  # a mono signal at the file's level, not silence or clipping
+    assert listening == "voice: listening"
+
+
+@pytest.mark.skipif(not os.environ.get("VOSK_MODEL_PATH", "").strip(),
+                    reason=f"VOSK_MODEL_PATH is not set: no vosk model to recognise with (get one from {MODELS_URL})")
+@pytest.mark.skipif(shutil.which("espeak-ng") is None, reason="espeak-ng is not installed")
+def test_vosk_hears_attention_through_the_browser_microphone(tmp_path):
+    wav = tmp_path / "attention.wav"
+    subprocess.run(["espeak-ng", "-v", "en-us", "-w", str(wav), "attention"], check=True, timeout=30)
+    agent, ui = start_control({})
+    try:
+        def body(page: Any) -> None:
+            page.click("#mic")
+            page.wait_for_function("document.querySelector('#last-reply .said') && "
+                                   "document.querySelector('#last-reply .said').textContent === 'Listening'",
+                                   timeout=20000)
+
+        open_with_microphone(wav, ui.url, body)
+    finally:
+        agent.stop()
