@@ -22,7 +22,7 @@ from pydantic import BaseModel, ConfigDict, Field, SecretStr, field_validator
 import netgraph
 from blackboard import NetInfo, Plugin, Pose, Task
 from plugins.ui.dialogue import Dialogue, Naming, Reply, tasks_for
-from plugins.ui.grammar import STANDARD_ACTIONS, Refusal, strategies
+from plugins.ui.grammar import STANDARD_ACTIONS, Refusal, strategies, vocabulary
 from plugins.ui.protocol import CancelTaskMsg, CommandMsg, MicMsg, SayMsg, SelectMsg
 from plugins.ui.server import WebServer
 from plugins.ui.speech import Listener, Microphone, Recognizer, SpeechError, model_path, wav_frames
@@ -125,12 +125,13 @@ class UIPlugin(Plugin):
 
     def _start_speech(self, s: UISettings) -> None:
         try:
-            recognizer = Recognizer(model_path(s.vosk_model), self._words())
+            path = model_path(s.vosk_model)
         except SpeechError as err:
             self.speech_error = str(err)
             self.log.warning("speech recognition off: %s", err)
             return
-        self.listener = Listener(recognizer, self._recognised).start()
+        self.listener = Listener(lambda: Recognizer(path, vocabulary()), self._recognised,
+                                 on_error=lambda why: self.later(lambda: self._speech_failed(why))).start()
         if s.microphone:
             try:
                 mic = Microphone(lambda pcm: self._feed("local", pcm), s.microphone_device).start()
@@ -142,11 +143,10 @@ class UIPlugin(Plugin):
             feeder.start()
             self._threads.append(feeder)
 
-    @staticmethod
-    def _words() -> list[str]:
-        from plugins.ui.grammar import vocabulary
-
-        return vocabulary()
+    def _speech_failed(self, why: str) -> None:
+        self.speech_error = why
+        self.log.warning("speech recognition off: %s", why)
+        self._log("warn", why)
 
     def teardown(self) -> None:
         """Stop the web server, the microphone, the recogniser and the voice; join their threads."""
@@ -252,7 +252,7 @@ class UIPlugin(Plugin):
         return {
             "agent": self.agent_name, "time": time.time(), "verb": s.verb,
             "actions": list(STANDARD_ACTIONS), "strategies": strategies(),
-            "speech": {"available": self.listener is not None, "error": self.speech_error},
+            "speech": {"available": self.listener is not None and not self.speech_error, "error": self.speech_error},
             "listening": self.spoken.listening,
             "robots": robots, "links": links,
             "metrics": {**_metrics(names, robots, links), "network_known": any(True for _ in self.netinfo)},
@@ -289,8 +289,9 @@ class UIPlugin(Plugin):
         self._mic(client, False)
 
     def _mic(self, client: str, on: bool) -> None:
-        if on and self.listener is None:
-            self.server.emit({"type": "error", "message": f"speech recognition off: {self.speech_error}"}, client)
+        if on and (self.listener is None or self.listener.error):
+            why = self.listener.error if self.listener is not None else self.speech_error
+            self.server.emit({"type": "error", "message": f"speech recognition off: {why}"}, client)
             return
         with self._lock:
             was = client in self.mic_clients

@@ -132,13 +132,20 @@ class Recognizer:
 
 
 class Listener:
-    """Runs a recogniser on thread `ui-speech`: `feed()` audio from any thread, texts go to `on_text`."""
+    """Runs a recogniser on thread `ui-speech`: `feed()` audio from any thread, texts go to `on_text`.
+
+    Given a loader instead of a recogniser, the thread loads it first (a vosk model takes
+    seconds to load: never on the blackboard's threads); a SpeechError goes to `on_error`.
+    """
 
     FLUSH = b""
 
-    def __init__(self, recognizer: Any, on_text: Callable[[str, str], None], *, max_queue: int = 200) -> None:
-        self.recognizer = recognizer
+    def __init__(self, recognizer: Any, on_text: Callable[[str, str], None], *, max_queue: int = 200,
+                 on_error: Callable[[str], None] | None = None) -> None:
+        self.recognizer = recognizer  # a recogniser, or a callable that loads one on the thread
         self.on_text = on_text
+        self.on_error = on_error
+        self.error = ""
         self.queue: queue.Queue[tuple[str, bytes] | None] = queue.Queue(max_queue)
         self.dropped = 0
         self._thread = threading.Thread(target=self._run, name="ui-speech", daemon=True)
@@ -180,6 +187,16 @@ class Listener:
         self._thread.join(timeout=5)
 
     def _run(self) -> None:
+        if not hasattr(self.recognizer, "feed"):
+            try:
+                self.recognizer = self.recognizer()
+            except SpeechError as err:
+                self.error = str(err)
+                if self.on_error is not None:
+                    self.on_error(self.error)
+                while self.queue.get() is not None:  # audio goes nowhere until stop()
+                    pass
+                return
         while (item := self.queue.get()) is not None:
             source, pcm = item
             try:

@@ -189,3 +189,16 @@ def test_a_busy_port_disables_only_the_ui_and_names_the_address(control, caplog)
         assert ui._disabled
     assert f"cannot serve the GUI on 127.0.0.1:{port}" in caplog.text
     assert agent.query(Pose)  # the agent goes on
+
+
+def test_a_broken_vosk_model_leaves_typed_commands_working(control, tmp_path):
+    (tmp_path / "am").mkdir()
+    (tmp_path / "conf").mkdir()
+    agent, ui = control(vosk_model=str(tmp_path))
+    state = wait_until(lambda: (s := ui.server.state())["speech"]["error"] and s, timeout=20)
+    assert state["speech"]["available"] is False
+    assert state["speech"]["error"].startswith(f"cannot load the vosk model at {tmp_path}")
+    msgs = ws_run(ui, [{"type": "mic", "on": True}, {"type": "say", "text": "robot 1 stop", "selection": []}],
+                  lambda m: of(m, "error") and of(m, "reply"))
+    assert of(msgs, "error")[0]["message"].startswith("speech recognition off: cannot load the vosk model")
+    assert of(msgs, "reply")[0]["text"] == "Roger"

@@ -178,3 +178,18 @@ def test_vosk_recognises_espeak_commands_through_the_grammar(tmp_path):
     assert said[0].say == "Listening"
     assert [(t.preposition, t.destination, t.params.distance) for t in said[1].tasks] == [("forward", "robot3", 2.0)]
     assert [t.destination for t in said[2].tasks] == ["robot1", "robot2", "robot3"]
+
+
+def test_a_model_that_fails_to_load_is_reported_and_audio_is_dropped(tmp_path):
+    errors: list[str] = []
+
+    def load() -> None:
+        raise SpeechError(f"cannot load the vosk model at {tmp_path}: broken")
+
+    listener = Listener(load, lambda s, t: None, on_error=errors.append).start()
+    try:
+        wait_until(lambda: errors, timeout=5)
+        listener.feed("page1", b"\x00\x00" * 1600)  # never blocks, never raises
+    finally:
+        listener.stop()
+    assert errors == [f"cannot load the vosk model at {tmp_path}: broken"] and listener.error == errors[0]
