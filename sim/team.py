@@ -164,7 +164,7 @@ class Team:
     """Start, watch and stop a simulated team: world, radio, robots, agents and control node."""
 
     def __init__(self, scenario: Scenario, *, run_dir: str | Path | None = None, headless: bool = False,
-                 control_port: int = 47100, log_level: str = "WARNING", physics_hz: float = 50.0,
+                 control_port: int = 47100, log_level: str = "WARNING", physics_hz: float | None = None,
                  feed_hz: float = 10.0, record: bool = False, mission: bool | None = None,
                  ui: bool | None = None, transport: dict[str, Any] | None = None, gui_port: int = 8080) -> None:
         if scenario.count > MAX_AGENT_ROBOTS:
@@ -191,7 +191,8 @@ class Team:
         starts = [s.model_dump() for s in scenario.starts()]  # the scenario's start poses win
         self.world = World.model_validate({**scenario.world.model_dump(), "robot": starts})
         world = self.world
-        self.host = RobotHost(world, physics_hz=physics_hz)
+        # physics costs grow with the square of the team (every robot senses every other): big teams step slower
+        self.host = RobotHost(world, physics_hz=physics_hz or (50.0 if scenario.count <= 10 else 20.0))
         r = scenario.radio
         self.network = ManetNetwork(RadioModel(r.comm_range, r.lossless_range, r.min_quality),
                                     subnet="127.0.1.0/24")
