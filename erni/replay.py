@@ -61,7 +61,12 @@ def read_log(path: str | Path) -> tuple[dict[str, Any], list[Event], list[str]]:
             continue
         try:
             raw = json.loads(line)
-            cls = TYPES.get(raw["type"])
+            if not isinstance(raw, dict):
+                raise ValueError(f"expected a JSON object, got {type(raw).__name__}")
+            missing = [k for k in ("t", "agent", "op", "type", "data") if k not in raw]
+            if missing:
+                raise ValueError(f"missing {', '.join(missing)}")
+            cls = TYPES.get(raw["type"]) if isinstance(raw["type"], str) else None
             if cls is None or not issubclass(cls, BBObject):
                 raise ValueError(f"unknown object type {raw['type']!r}")
             if raw["op"] not in ("add", "change", "remove"):

@@ -232,6 +232,10 @@ class SnmpSource:
                 raise SourceError(f"SNMP GET to {self.where}: {label(key)} not served "
                                   f"({type(val).__name__})")
             out[key] = val
+        missing = [o for o in oids if o not in out and o not in optional]
+        if missing:  # an answer about other objects than asked: a broken or hostile agent
+            raise SourceError(f"SNMP GET to {self.where}: the answer lacks {label(missing[0])} "
+                              f"(it named {', '.join(label(k) for k in out) or 'nothing'})")
         return out
 
     async def walk(self, columns: list[OID]) -> dict[OID, dict[OID, Any]]:

@@ -1,0 +1,213 @@
+"""Fuzzing of the input surfaces owned by the core, transport, motion and MobiNet.
+
+Every surface takes hypothesis-generated input and must either accept it or refuse it with the
+surface's own error type; nothing else may escape, nothing may hang, nothing reaches the
+blackboard unvalidated. `ERNI_FUZZ_EXAMPLES` sets the budget (CI: the default; on demand:
+`ERNI_FUZZ_EXAMPLES=20000 pytest tests/reliability/test_fuzz.py`); the number of inputs each
+surface was given is written to `artifacts/fuzz-counts.json`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import socket
+import threading
+from collections import Counter
+from pathlib import Path
+
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from blackboard import ConfigError, Task, TaskError
+from blackboard.config import build_agent, parse_config
+from erni.replay import LogError, read_log
+from plugins.motion.arcos import PacketReader, ProtocolError, is_sip, parse_sip, parse_sync2
+from transport.wire import Envelope, FrameError, StreamDecoder, body_of, decode, encode
+
+EXAMPLES = int(os.environ.get("ERNI_FUZZ_EXAMPLES", "300"))
+FUZZ = settings(max_examples=EXAMPLES, deadline=None,
+                suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
+COUNTS: Counter[str] = Counter()
+KEY = b"fuzz-key"
+
+
+@pytest.fixture(scope="module", autouse=True)
+def report():
+    yield
+    out = Path(__file__).resolve().parents[2] / "artifacts"
+    out.mkdir(exist_ok=True)
+    (out / "fuzz-counts.json").write_text(json.dumps({"examples_per_test": EXAMPLES, **COUNTS}, indent=2))
+
+
+def _valid_frame(seq: int) -> bytes:
+    task = Task(verb="BotMotion", preposition="goto", params={"x": 1, "y": 2})
+    env = Envelope(sender="r1", reply=("127.0.0.1", 1), epoch=1, seq=seq, id=str(seq), kind="task.add",
+                   type="Task", body=task.model_dump(mode="json"))
+    return encode(env, KEY)
+
+
+@FUZZ
+@given(data=st.binary(max_size=400), flips=st.lists(st.integers(0, 10_000), max_size=8))
+def test_transport_frames(data, flips):
+    COUNTS["transport frames"] += 1
+    frame = bytearray(_valid_frame(1))
+    for f in flips:  # mutated valid frames reach deeper than random bytes
+        frame[f % len(frame)] ^= 1 + f % 255
+    for candidate in (data, bytes(frame)):
+        try:
+            env = decode(candidate, None)  # no key: exercise the parser, not only the HMAC
+            body_of(env.type, env.body)
+        except FrameError:
+            pass
+        try:
+            StreamDecoder(4096).feed(candidate)
+        except FrameError:
+            pass
+
+
+@FUZZ
+@given(st.lists(st.binary(max_size=80), max_size=12))
+def test_arcos_bytes(chunks):
+    COUNTS["ARCOS bytes"] += 1
+    reader = PacketReader()
+    for chunk in chunks:
+        for body in reader.feed(chunk):
+            try:
+                if is_sip(body):
+                    parse_sip(body)
+                else:
+                    parse_sync2(body)
+            except ProtocolError:
+                pass
+
+
+@FUZZ
+@given(st.recursive(st.none() | st.booleans() | st.integers() | st.floats(allow_nan=True) | st.text(max_size=8),
+                    lambda inner: st.lists(inner, max_size=3) | st.dictionaries(st.text(max_size=8), inner,
+                                                                                  max_size=3),
+                    max_leaves=12),
+       st.sampled_from(["BotMotion", "RemoteBotMotion", "NetWatch", "Deploy", "Nope"]),
+       st.sampled_from(["goto", "turn", "forward", "say", "spread", "patrol", "path_cost", "fly"]))
+def test_task_parameters(params, verb, prep):
+    COUNTS["task parameters"] += 1
+    try:
+        Task.parse({"verb": verb, "preposition": prep, "params": params})
+    except TaskError as err:
+        assert "\n" not in str(err)
+
+
+toml_values = st.one_of(st.integers(-5, 100), st.text(max_size=12), st.booleans(), st.floats(-1, 100),
+                        st.lists(st.text(max_size=6), max_size=3))
+
+
+@FUZZ
+@given(agent=st.dictionaries(st.sampled_from(["name", "workers", "slow_plugin_seconds", "log_level",
+                                              "journal", "colour"]), toml_values, max_size=5),
+       plugins=st.lists(st.dictionaries(st.sampled_from(["class", "name", "enabled", "settings"]),
+                                        toml_values, max_size=4), max_size=3),
+       garbage=st.none() | st.text(max_size=30))
+def test_config_files(agent, plugins, garbage):
+    COUNTS["config files"] += 1
+    lines = ["[agent]"] + [f"{k} = {json.dumps(v)}" for k, v in agent.items()]
+    for p in plugins:
+        lines.append("[[plugin]]")
+        lines += [f"{k} = {json.dumps(v)}" for k, v in p.items() if k != "settings"]
+    text = "\n".join(lines) + ("\n" + garbage if garbage is not None else "")
+    try:
+        config = parse_config(text, "fuzz.toml")
+        build_agent(config, "fuzz.toml")  # resolves plugins, validates settings; does not start
+    except ConfigError as err:
+        assert str(err).startswith("fuzz.toml: ")
+
+
+@FUZZ
+@given(lines=st.lists(st.one_of(st.text(max_size=60), st.builds(json.dumps, st.dictionaries(
+    st.sampled_from(["t", "agent", "op", "type", "data"]), toml_values, max_size=5))), max_size=6))
+def test_replay_logs(tmp_path_factory, lines):
+    COUNTS["replay logs"] += 1
+    path = tmp_path_factory.mktemp("log") / "x.jsonl"
+    path.write_text("\n".join([json.dumps({"erni_record": 1, "via": "x"}), *lines]))
+    _, events, problems = read_log(path)
+    assert all(p.startswith(f"{path}:") and "\n" not in p for p in problems)
+
+
+class _MutatingProxy:
+    """A UDP 'agent' that forwards to the real simulated agent and mutates its answers."""
+
+    def __init__(self, target: tuple[str, int]):
+        self.target = target
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.settimeout(0.05)
+        self.mutate = lambda data: data
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="fuzz-snmp-proxy", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        up = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        up.settimeout(0.5)
+        while not self._stop.is_set():
+            try:
+                request, client = self.sock.recvfrom(65536)
+            except (socket.timeout, OSError):
+                continue
+            try:
+                up.sendto(request, self.target)
+                reply, _ = up.recvfrom(65536)
+            except (socket.timeout, OSError):
+                continue
+            self.sock.sendto(self.mutate(reply), client)
+        up.close()
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(2)
+        self.sock.close()
+
+
+@pytest.fixture(scope="module")
+def snmp_proxy():
+    from sim.manet import ManetNetwork, RadioModel
+    from sim.snmp_agent import ManetSnmpAgent
+
+    net = ManetNetwork(RadioModel(100.0, 50.0))
+    for i in range(4):
+        net.add_node(f"n{i}", i * 60.0, 0.0)
+    with ManetSnmpAgent(net) as agent:
+        proxy = _MutatingProxy(agent.serve("n1"))
+        yield proxy
+        proxy.close()
+
+
+@settings(max_examples=max(20, EXAMPLES // 10), deadline=None,
+          suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
+@given(flips=st.lists(st.tuples(st.integers(0, 2000), st.integers(1, 255)), min_size=1, max_size=6),
+       truncate=st.integers(0, 400))
+def test_snmp_responses(snmp_proxy, flips, truncate):
+    from plugins.mobinet.resource import PARTS, SourceError
+    from plugins.mobinet.snmp import SnmpSource
+
+    COUNTS["SNMP responses"] += 1
+
+    def mutate(data: bytes) -> bytes:
+        b = bytearray(data)
+        for pos, x in flips:
+            b[pos % len(b)] ^= x
+        return bytes(b[:truncate]) if truncate and truncate < len(b) else bytes(b)
+
+    snmp_proxy.mutate = mutate
+
+    async def go():
+        src = SnmpSource(*snmp_proxy.sock.getsockname(), timeout=0.2, retries=0)
+        try:
+            return await src.read(frozenset(PARTS))
+        except SourceError:
+            return None
+        finally:
+            await src.aclose()
+
+    asyncio.run(asyncio.wait_for(go(), 10))
