@@ -6,6 +6,8 @@ import json
 import math
 import time
 
+import pytest
+
 from blackboard import Task, TaskState
 from blackboard.testing import wait_until
 from sim.scenario import Scenario
@@ -15,11 +17,11 @@ from transport.bridge import ResultUpdate
 FAST = {"beacon_period": 0.3, "peer_timeout": 1.5, "task_ttl": 10.0}
 
 
-def make_team(tmp_path, count: int, **radio) -> Team:
+def make_team(tmp_path, count: int, mission: bool = False, **radio) -> Team:
     scenario = Scenario(robots={"count": count, "spacing": 1.5},
                         radio={"comm_range": 10.0, "lossless_range": 6.0, **radio})
     return Team(scenario, run_dir=tmp_path / "run", headless=True, control_port=0, transport=FAST,
-                mission=False, ui=False)
+                mission=mission, ui=False)
 
 
 def send(team: Team, robot: str, verb: str, prep: str, **params) -> Task:
@@ -40,14 +42,15 @@ def final_result(team: Team, uid: str, timeout: float):
     raise AssertionError(f"no final result for task {uid} within {timeout} s")
 
 
-def test_remote_goto_from_the_control_node_reaches_its_goal(tmp_path):
-    team = make_team(tmp_path, 3)
+@pytest.mark.parametrize("verb, mission", [("BotMotion", False), ("RemoteBotMotion", True)])
+def test_remote_goto_from_the_control_node_reaches_its_goal(tmp_path, verb, mission):
+    team = make_team(tmp_path, 3, mission=mission)
     try:
         team.start(timeout=60)
         assert set(team.peers()) >= {"robot1", "robot2", "robot3"}
         robot = team.robot("robot2")
         goal = (robot.x + 1.0, robot.y + 1.5)
-        task = send(team, "robot2", "BotMotion", "goto", x=goal[0], y=goal[1], speed=0.8, tolerance=0.1)
+        task = send(team, "robot2", verb, "goto", x=goal[0], y=goal[1], speed=0.8, tolerance=0.1)
         result = final_result(team, task.uid, timeout=30)
         assert result.state is TaskState.SUCCEEDED, result.message
         assert math.hypot(robot.x - goal[0], robot.y - goal[1]) < 0.2
