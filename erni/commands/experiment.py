@@ -38,6 +38,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"{'name':<16} {'paper':<6} {'mode':<10} what")
         for e in EXPERIMENTS.values():
             print(f"{e.name:<16} {e.paper:<6} {e.mode:<10} {e.title}")
+        if not args.list:
+            print("erni experiment: name an experiment, e.g. `erni experiment poi --plot poi.png`", file=sys.stderr)
         return 0 if args.list else 2
     if args.name not in EXPERIMENTS:
         print(f"erni experiment: unknown experiment {args.name!r}; expected one of "
