@@ -120,3 +120,21 @@ def test_bad_scenario_is_one_clear_line_and_exit_2(tmp_path):
     out = subprocess.run([sys.executable, "-m", "erni", "sim", "no-such-scenario", "--headless"], cwd=ROOT,
                          capture_output=True, text=True, timeout=30)
     assert out.returncode == 2 and "no such scenario" in out.stderr and "Traceback" not in out.stderr
+
+
+def test_scenario_tasks_and_failures_happen_on_time(sim, tmp_path):
+    scenario = tmp_path / "s.toml"
+    scenario.write_text(
+        'name = "timed"\nduration = 5.0\n[robots]\ncount = 2\n'
+        '[[task]]\nat = 0.0\nto = "robot1"\nverb = "BotMotion"\npreposition = "forward"\n'
+        'params = { distance = 0.5, speed = 0.5 }\n'
+        '[[failure]]\nat = 1.0\nrobot = "robot2"\n')
+    p = sim(str(scenario), "--control-port", "0")
+    assert p.proc.wait(90) == 0
+    sent = p.wait_for("robot1: BotMotion forward", timeout=1)
+    done = p.wait_for("robot1: succeeded", timeout=1)
+    failed = p.wait_for("robot2 fails (agent killed)", timeout=1)
+    assert float(sent.split("t=")[1].split()[0]) < 1.0
+    assert float(failed.split("t=")[1].split()[0]) >= 1.0
+    assert float(done.split("t=")[1].split()[0]) < 4.5
+    assert processes_mentioning(str(tmp_path / "run")) == []
