@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from blackboard import Task
-from erni.commands._client import add_client_options, make_client, stamp
+from erni.commands._client import add_client_options, dumps, make_client, stamp
 from transport.bridge import Cancel, PeerList, ResultUpdate
 
 HELP = """examples:  robot 1 go to 2 3 | robots 1 and 2 turn right 90 degrees | go forward 2 feet
@@ -82,7 +82,7 @@ class Console:
         """Answer one typed line and send its tasks."""
         reply = self.dialogue.hear(line, self.robots())
         if reply.say is None:
-            self.print("(standing by: say 'attention')")
+            self.emit("(standing by: say 'attention')", {"heard": line, "ignored": True})
             return
         if not reply.accepted:
             self.refused += 1
@@ -94,7 +94,8 @@ class Console:
                 self.last[task.destination] = task.uid
             self.client.send(self.addr, "task.add", task)
         who = f" ({', '.join(reply.targets)})" if reply.targets else ""
-        self.print(f"{reply.say}{who}")
+        self.emit(f"{reply.say}{who}", {"heard": line, "say": reply.say, "accepted": reply.accepted,
+                                        "targets": reply.targets, "tasks": [t.uid for t in reply.tasks]})
 
     def _supersede(self, robot: str | None) -> None:
         with self._lock:
@@ -121,6 +122,10 @@ class Console:
 
     def print(self, text: str) -> None:
         print(text, file=self.out, flush=True)
+
+    def emit(self, text: str, data: dict[str, Any]) -> None:
+        """Print a line of text, or with --json the same as one JSON object."""
+        self.print(dumps(data) if self.json else text)
 
     def _receive(self) -> None:
         while not self._stop.is_set():
@@ -149,7 +154,9 @@ class Console:
         if r.state.value == "failed":
             self.failed += 1
         message = f" — {r.message}" if r.message else ""
-        self.print(f"{stamp(r.stamp)} {task.destination}: {task.preposition} {r.state.value}{message}")
+        self.emit(f"{stamp(r.stamp)} {task.destination}: {task.preposition} {r.state.value}{message}",
+                  {"uid": task.uid, "agent": task.destination, "preposition": task.preposition,
+                   **r.model_dump(mode="json")})
 
 
 def _readline(history: str) -> Any:
@@ -184,7 +191,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"erni console: {err}", file=sys.stderr)
             return 1
         dialogue = Dialogue(naming, verb=args.verb, source=client.endpoint.name, listening=True)
-        console = Console(client, addr, dialogue, sys.stdout).start()
+        console = Console(client, addr, dialogue, sys.stdout, json_lines=args.json).start()
         rl = _readline(args.history_file) if interactive else None
         try:
             if interactive:
@@ -202,7 +209,7 @@ def run(args: argparse.Namespace) -> int:
                 if line in ("help", "?"):
                     print(HELP)
                     continue
-                if not interactive:
+                if not interactive and not args.json:
                     print(f"> {line}", flush=True)
                 console.say(line)
             if not interactive:

@@ -14,6 +14,7 @@ import json
 import logging
 import threading
 from collections import deque
+from concurrent.futures import ThreadPoolExecutor
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -108,6 +109,7 @@ class WebServer:
 
     def _run(self) -> None:
         self._loop = asyncio.new_event_loop()
+        self._loop.set_default_executor(ThreadPoolExecutor(max_workers=2, thread_name_prefix="ui-http-io"))
         try:
             self._loop.run_until_complete(self._main())
         except BaseException as err:  # reported by start()

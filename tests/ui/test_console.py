@@ -3,6 +3,7 @@ node, with the same feedback, and the results of the tasks it sent are printed."
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import subprocess
@@ -52,6 +53,16 @@ def test_all_accepted_and_succeeded_exits_zero(team):
     assert "robot2: forward succeeded" in out.stdout
     p1 = team.pose("robot2")
     assert math.hypot(p1.x - p0.x, p1.y - p0.y) == pytest.approx(0.5, abs=0.08)
+
+
+def test_json_lines(team):
+    out = console(team, "robot 1 turn left 30 degrees\nrobot 7 stop\n", "--json")
+    rows = [json.loads(line) for line in out.stdout.splitlines()]
+    assert rows[0]["say"] == "Roger" and rows[0]["targets"] == ["robot1"] and len(rows[0]["tasks"]) == 1
+    assert rows[1] == {"heard": "robot 7 stop", "say": "I don't know robot 7", "accepted": False, "targets": [],
+                       "tasks": []}
+    final = [r for r in rows if r.get("uid") == rows[0]["tasks"][0] and r["state"] == "succeeded"]
+    assert final and final[0]["agent"] == "robot1"
 
 
 def test_bad_arguments_exit_two_with_one_line(team):
