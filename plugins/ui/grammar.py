@@ -187,10 +187,11 @@ class _Reader:
         unit = self.take(*UNITS)
         return _round(value * (UNITS[unit] if unit else 1.0))
 
-    def robot_number(self) -> int:
+    def robot_number(self) -> int | None:
+        """Consume a robot number; None (consuming nothing) when no number comes next."""
         value = self.number()
         if value is None:
-            raise Refusal("Which robot?")
+            return None
         if value != int(value) or value < 0:
             raise Refusal(f"I don't know robot {value:g}")
         return int(value)
@@ -220,22 +221,22 @@ def parse(text: str) -> Command:
 def _subject(r: _Reader) -> tuple[tuple[int, ...], bool]:
     if r.take(*EVERYONE):
         r.take("robots")
-        r.take(",")
         return (), True
     if not r.take("robot", "robots"):
         return (), False
-    numbers = [r.robot_number()]
+    first = r.robot_number()
+    if first is None:
+        raise Refusal("Which robot?")
+    numbers = [first]
     while True:
         mark = r.i
         r.take("and")
         r.take("robot")
-        value = r.number()
-        if value is None:
+        more = r.robot_number()
+        if more is None:
             r.i = mark
             break
-        if value != int(value) or value < 0:
-            raise Refusal(f"I don't know robot {value:g}")
-        numbers.append(int(value))
+        numbers.append(more)
     return tuple(dict.fromkeys(numbers)), False
 
 
@@ -256,7 +257,7 @@ def _verb_object(r: _Reader) -> tuple[str, dict[str, Any]]:
         d = r.distance()
         return "spread", {} if d is None else {"distance": _positive(d)}
     if r.take("cover") or r.take_seq("deploy to"):
-        return "widep", _point(r, "widep")
+        return "widep", _point(r)
     if r.take("relay"):
         return "relay", _relay(r)
     if r.take("patrol"):
@@ -266,14 +267,14 @@ def _verb_object(r: _Reader) -> tuple[str, dict[str, Any]]:
             return name, {}
     if r.take("teleport", "jump"):
         r.take("to")
-        return "teleport", _point(r, "teleport", heading=True)
+        return "teleport", _point(r, heading=True)
     if r.take("turn", "rotate"):
         return "turn", _turn(r)
     if r.take("goto"):
-        return "goto", _point(r, "goto")
+        return "goto", _point(r)
     moved = r.take(*MOVE)
     if moved and r.take("to"):
-        return "goto", _point(r, "goto")
+        return "goto", _point(r)
     if r.take("forward", "forwards", "ahead"):
         return "forward", _distance(r)
     if r.take("back", "backward", "backwards", "backup", "reverse"):
@@ -305,10 +306,10 @@ def _relay(r: _Reader) -> dict[str, Any]:
     ends = []
     for _ in range(2):
         r.take("robot")
-        value = r.number()
-        if value is None or value != int(value) or value < 0:
+        end = r.robot_number()
+        if end is None:
             raise Refusal("Relay between which robots?")
-        ends.append(int(value))
+        ends.append(end)
         r.take("and")
     return {"source": ends[0], "destination": ends[1]}
 
@@ -316,10 +317,10 @@ def _relay(r: _Reader) -> dict[str, Any]:
 def _patrol(r: _Reader) -> dict[str, Any]:
     """`patrol [from] X1 Y1 to X2 Y2`: the territory block's corners."""
     r.take("from")
-    a = _point(r, "patrol")
+    a = _point(r)
     if not r.take("to"):
         raise Refusal("Patrol from where to where?")
-    b = _point(r, "patrol")
+    b = _point(r)
     return {"xmin": min(a["x"], b["x"]), "ymin": min(a["y"], b["y"]),
             "xmax": max(a["x"], b["x"]), "ymax": max(a["y"], b["y"])}
 
@@ -343,7 +344,7 @@ def _turn(r: _Reader) -> dict[str, Any]:
     return {"angle": _round(angle)}
 
 
-def _point(r: _Reader, what: str, heading: bool = False) -> dict[str, Any]:
+def _point(r: _Reader, heading: bool = False) -> dict[str, Any]:
     r.take("x")
     x = r.distance()
     r.take("and", "comma")
