@@ -22,6 +22,7 @@ from pydantic import BaseModel, ConfigDict, Field, SecretStr, field_validator
 import netgraph
 from blackboard import NetInfo, Plugin, Pose, Task
 from plugins.ui.dialogue import Dialogue, Naming, Reply, tasks_for
+from plugins.ui.floorplan import load_floorplan
 from plugins.ui.grammar import STANDARD_ACTIONS, Refusal, strategies, vocabulary
 from plugins.ui.protocol import CancelTaskMsg, CommandMsg, MicMsg, SayMsg, SelectMsg
 from plugins.ui.server import WebServer
@@ -52,11 +53,19 @@ class UISettings(BaseModel):
     microphone: bool = Field(False, description="listen to the control node's own microphone (arecord)")
     microphone_device: str | None = Field(None, description="ALSA device of the local microphone")
     wav: str | None = Field(None, description="a WAV file of commands to recognise at start")
+    floorplan: str | None = Field(None, description="walls and obstacles to draw: a world TOML file")
 
     @field_validator("listen")
     @classmethod
     def _check_listen(cls, v: str) -> str:
         parse_address(v)
+        return v
+
+    @field_validator("floorplan")
+    @classmethod
+    def _check_floorplan(cls, v: str | None) -> str | None:
+        if v is not None:
+            load_floorplan(v)
         return v
 
     @field_validator("robot_names")
@@ -99,6 +108,7 @@ class UIPlugin(Plugin):
         self._dirty = True
         self._threads: list[Any] = []
         self._stopping = threading.Event()
+        self.floorplan = load_floorplan(s.floorplan) if s.floorplan else None
         host, port = parse_address(s.listen)
         token = s.token.get_secret_value() if s.token else None
         if token is None and not is_loopback(host):
@@ -254,7 +264,7 @@ class UIPlugin(Plugin):
             "actions": list(STANDARD_ACTIONS), "strategies": strategies(),
             "speech": {"available": self.listener is not None and not self.speech_error, "error": self.speech_error},
             "listening": self.spoken.listening,
-            "robots": robots, "links": links,
+            "robots": robots, "links": links, "floorplan": self.floorplan,
             "metrics": {**_metrics(names, robots, links), "network_known": any(True for _ in self.netinfo)},
             "tasks": rows[: s.history + 20], "log": list(self.logs),
         }

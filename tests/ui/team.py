@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import socket
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from blackboard import Agent, Pose
@@ -12,14 +13,14 @@ from blackboard.testing import wait_until
 from plugins.ui import UIPlugin
 from sim.robot import SimRobotConfig
 from sim.robot_host import RobotHost
-from sim.world import RobotStart, World
+from sim.world import World
 
 KEY = "ui-test-team-key"
 FAST = dict(sip_period=0.05, accel=3.0, decel=3.0, max_v=2.0, rot_accel=720.0, max_rv=360.0)
 MOTION = dict(model={"base": "pioneer3", "decel": 2.5, "rot_decel": 500.0, "max_rv": 300.0, "max_v": 2.0},
               rate_hz=20, pose_rate_hz=10, avoid_distance=0.3, sync_timeout=0.5, link_timeout=2.0,
               link_grace=3.0, blocked_timeout=5.0, stall_timeout=1.0)  # loose: shared machines stall
-STARTS = [(0.0, 0.0, 0.0), (2.0, 1.0, 90.0), (-1.5, 2.0, 180.0), (1.0, -2.0, -45.0)]
+ARENA = Path(__file__).with_name("arena.toml")
 
 
 def free_port() -> int:
@@ -76,8 +77,8 @@ def start_team(robots: int = 3, *, ui: dict[str, Any] | None = None, mission: di
     With `mission` (MissionControl settings) the robots run MissionControl and the UI sends
     RemoteBotMotion tasks (the two-tier design); without it the UI sends BotMotion.
     """
-    world = World(robot=[RobotStart(name=f"sim{i + 1}", x=x, y=y, heading=h) for i, (x, y, h) in
-                         enumerate(STARTS[:robots])])
+    world = World.load(ARENA)
+    assert robots <= len(world.robot), f"{ARENA} has starts for {len(world.robot)} robots"
     host = RobotHost(world, physics_hz=100)
     for i in range(robots):
         host.add_robot(SimRobotConfig(name=f"sim{i + 1}", **FAST), port=0)  # type: ignore[arg-type]
@@ -99,7 +100,8 @@ def start_team(robots: int = 3, *, ui: dict[str, Any] | None = None, mission: di
                                     name="transport")
         verb = "BotMotion" if mission is None else "RemoteBotMotion"
         plugin = control.add_plugin(UIPlugin, settings={"listen": "127.0.0.1:0", "verb": verb,
-                                                        "speak": False, "rate_hz": 20, **(ui or {})}, name="ui")
+                                                        "speak": False, "rate_hz": 20, "floorplan": str(ARENA),
+                                                        **(ui or {})}, name="ui")
         control.start()
         team = Team(control, plugin, bridge, agents, host)  # type: ignore[arg-type]
         wait_until(lambda: len(control.query(Pose)) == robots, timeout=10,

@@ -202,3 +202,21 @@ def test_a_broken_vosk_model_leaves_typed_commands_working(control, tmp_path):
                   lambda m: of(m, "error") and of(m, "reply"))
     assert of(msgs, "error")[0]["message"].startswith("speech recognition off: cannot load the vosk model")
     assert of(msgs, "reply")[0]["text"] == "Roger"
+
+
+def test_the_floorplan_is_served_and_bad_files_are_refused_by_name(control, tmp_path):
+    plan = tmp_path / "plan.toml"
+    plan.write_text('bounds = [0, 0, 4, 3]\n[[wall]]\na = [1, 0]\nb = [1, 2]\n[[circle]]\ncenter = [3, 1]\nradius = 0.2\n'
+                    '[[robot]]\nx = 0.5\n')
+    agent, ui = control(floorplan=str(plan))
+    fp = json.loads(get(base(ui) + "/api/state")[1])["floorplan"]
+    assert fp == {"bounds": [0.0, 0.0, 4.0, 3.0], "wall": [{"a": [1.0, 0.0], "b": [1.0, 2.0]}],
+                  "circle": [{"center": [3.0, 1.0], "radius": 0.2}], "polygon": []}
+    from pydantic import ValidationError
+
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[[circle]]\ncenter = [1, 1]\nradius = -1\n")
+    for path, why in [(tmp_path / "none.toml", "none.toml: no such floor plan file"),
+                      (bad, "bad.toml: circle.0.radius: Input should be greater than 0")]:
+        with pytest.raises(ValidationError, match=why):
+            Agent("x").add_plugin(UIPlugin, settings={"floorplan": str(path)})

@@ -155,9 +155,30 @@ function renderGrid(w, hgt) {
   $("scale-text").textContent = `${+step.toFixed(2)} m`;
 }
 
+function renderFloorplan(fp) {
+  const g = $("floor");
+  g.innerHTML = "";
+  if (!fp) return;
+  const pts = (list) => list.map((p) => toScreen(p[0], p[1]).join(",")).join(" ");
+  if (fp.bounds) {
+    const [x0, y0, x1, y1] = fp.bounds;
+    el("polygon", { points: pts([[x0, y0], [x1, y0], [x1, y1], [x0, y1]]), class: "fp-bounds" }, g);
+  }
+  for (const wl of fp.wall) {
+    const [ax, ay] = toScreen(wl.a[0], wl.a[1]), [bx, by] = toScreen(wl.b[0], wl.b[1]);
+    el("line", { x1: ax, y1: ay, x2: bx, y2: by, class: "fp-wall" }, g);
+  }
+  for (const c of fp.circle) {
+    const [cx, cy] = toScreen(c.center[0], c.center[1]);
+    el("circle", { cx, cy, r: c.radius * ui.view.scale, class: "fp-solid" }, g);
+  }
+  for (const p of fp.polygon) el("polygon", { points: pts(p.points), class: "fp-solid" }, g);
+}
+
 function renderMap() {
   const svg = $("map"), w = svg.clientWidth, hgt = svg.clientHeight, s = ui.state;
   renderGrid(w, hgt);
+  renderFloorplan(s.floorplan);
   const byName = new Map(s.robots.map((r) => [r.name, r]));
   // links
   const lg = $("links");
@@ -336,6 +357,7 @@ function renderLog(s) {
 function fit() {
   const s = ui.state, svg = $("map");
   const pts = s.robots.filter((r) => r.pose).map((r) => [r.pose.x, r.pose.y]);
+  if (s.floorplan && s.floorplan.bounds) pts.push(s.floorplan.bounds.slice(0, 2), s.floorplan.bounds.slice(2));
   if (!pts.length || !svg.clientWidth) return;
   const xs = pts.map((p) => p[0]), ys = pts.map((p) => p[1]);
   const [x0, x1, y0, y1] = [Math.min(...xs) - 2, Math.max(...xs) + 2, Math.min(...ys) - 2, Math.max(...ys) + 2];
