@@ -298,6 +298,8 @@ class Team:
         walls = [[a[0], a[1], b[0], b[1]] for a, b in world.segments()]
         if walls:
             out["walls"] = walls
+        if "speed" in self.scenario.strategy:  # the scenario's deployment speed (m/s)
+            out["speed"] = float(self.scenario.strategy["speed"])
         return out
 
     def _add_agent(self, name: str, address: tuple[str, int], plugins: list[tuple[str, dict[str, Any]]],

@@ -24,6 +24,8 @@ def register(sub: Any) -> None:
     p.add_argument("--duration", type=float, help="override the scenario's duration (s)")
     p.add_argument("--robots", type=int, help="override the number of robots")
     p.add_argument("--seed", type=int, help="override the random seed")
+    p.add_argument("--mode", choices=["kinematic", "agents"], help="kinematic: strategies in-process; agents: "
+                   "real agent processes tasked through the control node (where the experiment offers both)")
     p.add_argument("--list", action="store_true", help="list the experiments and exit")
     p.set_defaults(func=run)
 
@@ -35,9 +37,9 @@ def run(args: argparse.Namespace) -> int:
     from sim.scenario import ScenarioError, find_scenario, load_scenario
 
     if args.list or not args.name:
-        print(f"{'name':<16} {'paper':<6} {'mode':<10} what")
+        print(f"{'name':<16} {'paper':<6} {'mode':<18} what")
         for e in EXPERIMENTS.values():
-            print(f"{e.name:<16} {e.paper:<6} {e.mode:<10} {e.title}")
+            print(f"{e.name:<16} {e.paper:<6} {'/'.join(e.modes or (e.mode,)):<18} {e.title}")
         if not args.list:
             print("erni experiment: name an experiment, e.g. `erni experiment poi --plot poi.png`", file=sys.stderr)
         return 0 if args.list else 2
@@ -65,12 +67,12 @@ def run(args: argparse.Namespace) -> int:
     except ScenarioError as err:
         print(f"erni experiment: {err}", file=sys.stderr)
         return 2
-    print(f"erni experiment {exp.name}: paper {exp.paper}, {exp.title} ({exp.mode} mode, "
+    print(f"erni experiment {exp.name}: paper {exp.paper}, {exp.title} ({args.mode or exp.mode} mode, "
           f"{scenario.count} robot(s))", flush=True)
     progress = Progress()
     t0 = time.monotonic()
     try:
-        result = run_experiment(exp.name, scenario, progress)
+        result = run_experiment(exp.name, scenario, progress, **({"mode": args.mode} if args.mode else {}))
     except (ValueError, RuntimeError, OSError) as err:
         progress.done()
         print(f"erni experiment {exp.name}: {err}", file=sys.stderr)

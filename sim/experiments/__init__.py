@@ -28,6 +28,7 @@ class Experiment:
     title: str
     mode: str  # "agents": real agent processes; "kinematic": strategies run in-process
     module: str
+    modes: tuple[str, ...] = ()  # the modes it can run in (default: just `mode`)
 
     def runner(self) -> Callable[..., Result]:
         """The module's `run(scenario, progress, **options) -> Result`."""
@@ -38,7 +39,7 @@ EXPERIMENTS: dict[str, Experiment] = {e.name: e for e in [
     Experiment("energy", "energy", "000", "5 m run: speed and power; standby and moving power",
                "agents", "energy"),
     Experiment("poi", "poi", "000", "PoI coverage by three robots around an obstacle (WiDep)",
-               "kinematic", "poi"),
+               "kinematic", "poi", ("kinematic", "agents")),
     Experiment("relay1", "relay1", "000", "one robot relaying between a source and a destination",
                "kinematic", "relay"),
     Experiment("relay2", "relay2", "000", "two robots relaying between a source and a destination",
@@ -126,4 +127,7 @@ def _fmt(v: float) -> str:
 def run(name: str, scenario: Any, progress: Progress | None = None, **options: Any) -> Result:
     """Run experiment `name` on `scenario`; `progress(label, done, total)` hears how far it got."""
     exp = EXPERIMENTS[name]
+    mode = options.get("mode")
+    if mode is not None and mode not in (exp.modes or (exp.mode,)):
+        raise ValueError(f"{name} runs in {' or '.join(exp.modes or (exp.mode,))} mode, not {mode!r}")
     return exp.runner()(scenario, progress or (lambda *a: None), experiment=exp, **options)

@@ -23,52 +23,27 @@ from sim.experiments.plots import color, draw_world, map_axes, range_circle, tim
 from sim.scenario import Scenario
 
 
-def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, **_: Any) -> Result:
-    """Run WiDep rounds until the PoI is covered or the duration ends; return figure and metrics."""
+def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode: str | None = None,
+        **_: Any) -> Result:
+    """Cover the PoI (kinematic WiDep rounds, or real agents given `Deploy widep`); return figure and metrics."""
     if not scenario.poi:
         raise ValueError(f"{scenario.name}: the PoI experiment needs a [[poi]] in the scenario")
     s = scenario.strategy
     poi = np.array([scenario.poi[0].x, scenario.poi[0].y])
     R = float(s.get("range", scenario.radio.comm_range))
     tolerance = float(s.get("tolerance", 0.5))
-    period = float(s.get("period", 4.0))
-    speed = float(s.get("speed", 0.3))
-    dt = float(s.get("dt", 0.1))
-    separation = float(s.get("separation", 0.8))
     duration = scenario.duration or 300.0
-    starts = scenario.starts()
-    names = [st.name for st in starts]
+    names = scenario.robot_names()
     base = np.array([[scenario.control.x, scenario.control.y]])
-    pos = np.array([[st.x, st.y] for st in starts])
-    th = np.radians([st.heading for st in starts])
     obstacles = np.array([[c.center[0], c.center[1], c.radius] for c in scenario.world.circle]).reshape(-1, 3)
-    n = len(pos)
-    movable = np.r_[np.ones(n, dtype=bool), False]
-    track = kinematic.Track()
-    track.add(0.0, pos, th, np.zeros(n))
-    t = 0.0
-    covered_at: float | None = None
+    n = len(names)
+    battery: list[float] = []  # agents mode: energy each simulated robot's battery gave (J)
+    if (mode or experiment.mode) == "agents":
+        ts, ps, covered_at, rounds = _agents(scenario, progress, poi, tolerance, duration, battery)
+    else:
+        ts, ps, covered_at, rounds = _kinematic(scenario, progress, poi, R, tolerance, duration, base, obstacles)
     decisions: list[tuple[float, np.ndarray]] = []
-    while t < duration:
-        if widep.covered(pos, poi, tolerance):
-            covered_at = t
-            break
-        everyone = np.vstack([pos, base])
-        targets, _ = widep.widep_round(everyone, poi, R, tolerance=tolerance, obstacles=obstacles,
-                                       separation=separation, movable=movable)
-        decisions.append((t, targets[:n].copy()))
-        round_end = t + period
-        while t < round_end - 1e-9:
-            pos, th, sp = kinematic.drive(pos, th, targets[:n], dt, speed)
-            t += dt
-            track.add(t, pos, th, sp)
-        progress("WiDep rounds", round(t, 1), duration)
-    for _ in range(int(5.0 / dt)):  # the team holds its place a little after covering the PoI
-        t += dt
-        track.add(t, pos, th, np.zeros(n))
-    progress("WiDep rounds", duration, duration)
-    ts, ps, _, sp = track.arrays()
-    res = Result(experiment.name, experiment.title, "kinematic")
+    res = Result(experiment.name, experiment.title, mode or experiment.mode)
     connected_share = []
     for k in range(len(ts)):
         everyone = np.vstack([ps[k], base])
@@ -76,7 +51,8 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, **_: 
     res.series["team/connected_to_base"] = (list(ts), connected_share, "share")
     res.series["team/distance_to_poi"] = (list(ts), list(np.min(np.hypot(*(ps - poi).transpose(2, 0, 1)), axis=1)), "m")
     res.metrics["PoI covered at"] = (covered_at if covered_at is not None else math.nan, "s")
-    res.metrics["WiDep rounds"] = (float(len(decisions)), "rounds")
+    if rounds is not None:
+        res.metrics["WiDep rounds"] = (float(rounds), "rounds")
     res.metrics["connected to the base the whole run"] = (float(min(connected_share) == 1.0), "yes=1")
     res.metrics["lowest share connected to the base"] = (min(connected_share), "share")
     res.metrics["closest approach to the obstacle surface"] = (_clearance(ps, obstacles), "m")
@@ -87,13 +63,94 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, **_: 
         energies.append(e)
         res.robots[name] = {"distance_m": round(dist, 2), "energy_j": round(e, 1),
                             "from_base_m": round(final_from_base, 2)}
+        if battery:
+            res.robots[name]["battery_j"] = round(battery[i], 1)
     res.metrics["energy, whole team"] = (float(sum(energies)), "J")
     res.notes.append("paper 000 gives no numbers for this run (its Figure 5 shows the trajectories); "
                      f"R = {R:g} m and the PoI ({poi[0]:g}, {poi[1]:g}) are the paper's")
     if covered_at is None:
         res.notes.append(f"the PoI was not covered within {duration:g} s")
     res.draw = lambda fig: _draw(fig, scenario, names, ts, ps, base[0], poi, R, res, decisions)
+    if (mode or experiment.mode) == "agents":
+        res.notes.append("agents mode: each robot's mission plugin ran Deploy widep on what its agent knows")
     return res
+
+
+def _kinematic(scenario: Scenario, progress: Progress, poi: np.ndarray, R: float, tolerance: float,
+               duration: float, base: np.ndarray, obstacles: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray, float | None, int]:
+    """WiDep rounds from one snapshot each `period` s, robots driven as unicycles in between."""
+    s = scenario.strategy
+    period = float(s.get("period", 4.0))
+    speed = float(s.get("speed", 0.3))
+    dt = float(s.get("dt", 0.1))
+    separation = float(s.get("separation", 0.8))
+    starts = scenario.starts()
+    pos = np.array([[st.x, st.y] for st in starts])
+    th = np.radians([st.heading for st in starts])
+    n = len(pos)
+    movable = np.r_[np.ones(n, dtype=bool), False]
+    track = kinematic.Track()
+    track.add(0.0, pos, th, np.zeros(n))
+    t = 0.0
+    covered_at: float | None = None
+    rounds = 0
+    while t < duration:
+        if widep.covered(pos, poi, tolerance):
+            covered_at = t
+            break
+        everyone = np.vstack([pos, base])
+        targets, _ = widep.widep_round(everyone, poi, R, tolerance=tolerance, obstacles=obstacles,
+                                       separation=separation, movable=movable)
+        rounds += 1
+        round_end = t + period
+        while t < round_end - 1e-9:
+            pos, th, sp = kinematic.drive(pos, th, targets[:n], dt, speed)
+            t += dt
+            track.add(t, pos, th, sp)
+        progress("WiDep rounds", round(t, 1), duration)
+    for _ in range(int(5.0 / dt)):  # the team holds its place a little after covering the PoI
+        t += dt
+        track.add(t, pos, th, np.zeros(n))
+    progress("WiDep rounds", duration, duration)
+    ts, ps, _, _ = track.arrays()
+    return ts, ps, covered_at, rounds
+
+
+def _agents(scenario: Scenario, progress: Progress, poi: np.ndarray, tolerance: float, duration: float,
+            battery: list[float]) -> tuple[np.ndarray, np.ndarray, float | None, None]:
+    """Real agents: the scenario's tasks (Deploy widep) through the control node; the simulator records."""
+    from sim.team import Team, plugin_available
+
+    if not plugin_available("plugins.mission", "MissionControl"):
+        raise ValueError("agents mode needs the mission plugin (plugins.mission.MissionControl)")
+    if not scenario.task:
+        raise ValueError(f"{scenario.name}: agents mode sends the scenario's [[task]]s; it has none")
+    team = Team(scenario, headless=True, control_port=0, record=True, ui=False, mission=True)
+    covered_at: float | None = None
+    try:
+        team.start(lambda label, done, total: progress(label, done, total), timeout=90)
+        t0 = team.elapsed()
+        for spec in scenario.task:
+            for name in (team.names if spec.to == "all" else [spec.to]):
+                team.send_task(name, spec.verb, spec.preposition, **spec.params)
+        import time
+
+        while team.elapsed() - t0 < duration:
+            time.sleep(0.5)
+            progress("robots deploying", round(team.elapsed() - t0), round(duration))
+            pos = np.array([[r.x, r.y] for r in team.robots])
+            if covered_at is None and widep.covered(pos, poi, tolerance):
+                covered_at = team.elapsed() - t0
+            if covered_at is not None and team.elapsed() - t0 > covered_at + 5.0:
+                break
+    finally:
+        team.stop()
+    samples = [x for x in team.samples if x.t >= t0]
+    ts = np.array([x.t - t0 for x in samples])
+    ps = np.array([np.stack([x.x, x.y], axis=1) for x in samples])
+    battery.extend(b - a for a, b in zip(samples[0].energy, samples[-1].energy))
+    return ts, ps, covered_at, None
 
 
 def _clearance(ps: np.ndarray, obstacles: np.ndarray) -> float:

@@ -107,7 +107,6 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, varia
 def _draw(fig: Any, scenario: Scenario, tracks: dict[str, kinematic.Track], res: Result, duration: float,
           pos0: np.ndarray) -> None:
     gs = fig.add_gridspec(2, 3, width_ratios=[1, 1, 0.9])
-    n = len(pos0)
     extent = max(float(np.abs(tr.pos[-1]).max()) for tr in tracks.values()) + 3
     for k, (v, track) in enumerate(tracks.items()):
         ax = fig.add_subplot(gs[k // 2, k % 2])

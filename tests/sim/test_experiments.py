@@ -130,3 +130,22 @@ def test_experiment_command_writes_figure_and_csv_and_refuses_bad_input(tmp_path
     out = subprocess.run([sys.executable, "-m", "erni", "experiment", "--list"], cwd=ROOT, capture_output=True,
                          text=True, timeout=60)
     assert out.returncode == 0 and all(name in out.stdout for name in experiments.EXPERIMENTS)
+
+
+@pytest.mark.slow
+def test_poi_coverage_by_real_agents_running_the_mission_plugin(tmp_path):
+    sc = scenario("poi")
+    data = sc.model_dump()
+    data["poi"] = [{"name": "poi", "x": 0.0, "y": 6.5}]
+    data["world"]["circle"] = []
+    data["task"][0]["params"] = {"x": 0.0, "y": 6.5, "range": 4.5}
+    data["duration"] = 60.0
+    data["strategy"]["speed"] = 0.8
+    sc = type(sc).model_validate(data)
+    result = experiments.run("poi", sc, mode="agents")
+    covered = result.metrics["PoI covered at"][0]
+    assert math.isfinite(covered), result.report()
+    assert result.metrics["lowest share connected to the base"][0] == 1.0
+    assert all(v["battery_j"] > paper.P0 * covered for v in result.robots.values())
+    with pytest.raises(ValueError, match="runs in kinematic mode, not 'agents'"):
+        experiments.run("relay1", scenario("relay1"), mode="agents")
