@@ -267,6 +267,9 @@ class Agent:
         raise PluginError(f"agent {self.name}: no plugin named {name!r}")
 
     def _setup(self, plugin: Plugin) -> None:
+        """Run setup() as the plugin's first run: signals meanwhile cause one run after it."""
+        with plugin._sched_lock:
+            plugin._running = True
         plugin._in_setup = True
         try:
             with plugin.transaction():
@@ -278,6 +281,11 @@ class Agent:
                                  "the agent goes on", self.name, plugin.name)
         finally:
             plugin._in_setup = False
+            with plugin._sched_lock:
+                plugin._running = False
+                again, plugin._dirty = plugin._dirty, False
+            if again:
+                self.scheduler.signal(plugin)
 
     # -- life cycle -----------------------------------------------------------------------
 

@@ -175,3 +175,28 @@ def test_teardown_is_called_outside_transactions():
     agent.start()
     agent.stop()
     assert calls == ["teardown"] and len(agent.query(Item)) == 1
+
+
+def test_signals_during_setup_run_execute_only_after_setup_committed():
+    order: list[str] = []
+
+    class Slow(Plugin):
+        def setup(self):
+            self.sub = self.subscribe(Item)
+            self.wake()  # e.g. a socket thread started here hands work over at once
+            time.sleep(0.1)
+            self.add(Item(value=1))
+            order.append("setup")
+
+        def execute(self):
+            order.append("execute")
+            assert self.query(Item), "setup's publications are visible to the first run"
+
+    agent = Agent("su", workers=2)
+    plugin = agent.add_plugin(Slow)
+    agent.start()
+    try:
+        wait_until(lambda: plugin.runs >= 1)
+        assert order[0] == "setup" and plugin.failures == 0
+    finally:
+        agent.stop()
