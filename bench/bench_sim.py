@@ -133,6 +133,34 @@ def agents_run(n: int, window: float) -> dict[str, float]:
     }
 
 
+def host_cost(n: int, steps: int = 25) -> tuple[float, float]:
+    """Milliseconds of one physics step and of one SIP round (sonar cast) for n moving robots in one host."""
+    from sim.robot import SimRobotConfig
+    from sim.robot_host import RobotHost
+    from sim.world import World
+
+    cols = max(1, int(np.ceil(np.sqrt(n))))
+    host = RobotHost(World(bounds=(-2.0, -2.0, cols * 3.0, cols * 3.0)))
+    try:
+        for i in range(n):
+            host.add_robot(SimRobotConfig(name=f"r{i}"), port=0)
+        for i, ep in enumerate(host.endpoints):
+            ep.robot.x, ep.robot.y = (i % cols) * 3.0, (i // cols) * 3.0
+            ep.robot.motors_enabled = True
+            ep.robot.set_velocity(0.3)
+        t0 = time.perf_counter()
+        for k in range(steps):
+            host.advance(0.02, k * 0.02)
+        step = (time.perf_counter() - t0) / steps
+        t0 = time.perf_counter()
+        for ep in host.endpoints:
+            ep.firmware.sip()
+        sip = time.perf_counter() - t0
+    finally:
+        host.stop()
+    return step * 1000, sip * 1000
+
+
 def kinematic_run(n: int, seconds: float) -> list[tuple[str, float, float]]:
     """Time the spread of n robots for `seconds` simulated; return (variant, wall s, real-time factor)."""
     from plugins.mission.strategies.potential import SpreadConfig, spread_step
@@ -175,6 +203,11 @@ def main() -> int:
                r["poses_at_control_share"], r["robot_cpu_pct_median"], r["control_cpu_pct"], r["sim_process_cpu_pct"], r["robot_rss_mb_median"],
                r["robot_rss_mb_median"] / floor)
         print(" ".join(f"{v:>12.3g}" if isinstance(v, float) else f"{v:>12}" for v in row), flush=True)
+    print("\nthe simulator's robot host alone (all simulated robots in the erni sim process)")
+    for n in (10, 30, 120):
+        step, sip = host_cost(n)
+        print(f"  {n:>4} robots: physics step {step:7.1f} ms (x 50/s = {step * 5:5.0f}% of a core), "
+              f"SIP round {sip:7.1f} ms (x 10/s = {sip:5.0f}% of a core)", flush=True)
     print(f"\nkinematic mode: {args.kinematic_robots} robots, {args.kinematic_seconds:g} s simulated (dt = 0.2 s)")
     for variant, wall, factor in kinematic_run(args.kinematic_robots, args.kinematic_seconds):
         print(f"  {variant:<24} {wall:6.2f} s wall   {factor:5.2f} x real time", flush=True)
