@@ -16,7 +16,7 @@ to `execute()` with `later()`, so nothing here does I/O inside a transaction.
 from __future__ import annotations
 
 import time
-from typing import Any
+from typing import Any, ClassVar
 
 from pydantic import BaseModel, ConfigDict, Field, SecretStr, model_validator
 
@@ -36,6 +36,15 @@ class Peer(BBObject):
     last_heard: float = 0.0
     up: bool = False
     epoch: int = 0
+
+
+class Received(BBObject):
+    """Durable note of which peer gave this agent a task, so results find their way after a restart."""
+
+    durable: ClassVar[bool] = True
+
+    task: str
+    sender: str
 
 
 class Beacon(BaseModel):
@@ -92,7 +101,7 @@ class WatchEvent(BaseModel):
     data: dict[str, Any]
 
 
-for _cls in (Peer, Beacon, ResultUpdate, Cancel, PeerList, WatchRequest, WatchEvent):
+for _cls in (Peer, Received, Beacon, ResultUpdate, Cancel, PeerList, WatchRequest, WatchEvent):
     register_type(_cls)
 
 WATCHED = (Task, Pose, NetInfo, Peer)
@@ -171,6 +180,7 @@ class TransportPlugin(Plugin):
             self.log.warning("transport of %s runs WITHOUT authentication (insecure = true): any "
                              "host on the network can task this agent", self.agent_name)
         self.tasks = self.subscribe(Task)
+        self.receipts = self.subscribe(Received)
         self.watched = self.subscribe(lambda o: isinstance(o, WATCHED))
         self.netinfo = self.subscribe(NetInfo)
         shared = set(s.share)
@@ -207,8 +217,10 @@ class TransportPlugin(Plugin):
     def execute(self) -> None:
         me = self.agent_name
         now = time.time()
+        for receipt in self.receipts.added:  # after a restart: who gave us which task
+            self.received_from.setdefault(receipt.task, receipt.sender)
         for task in self.tasks.added:
-            if self.rehydrated(task) and task.uid not in self.received_from:
+            if self.rehydrated(task):
                 self._reconcile(task)
             elif (task.destination not in (None, "", me) and self.settings.forward_tasks
                   and self.received_from.get(task.uid) != task.destination):
@@ -222,7 +234,8 @@ class TransportPlugin(Plugin):
             self.pending.pop(task.uid, None)
             if dest:
                 self._send_to_peer(dest, "task.cancel", Cancel(uid=task.uid), reliable=True)
-            self.received_from.pop(task.uid, None)
+            if self.received_from.pop(task.uid, None) and self.get(f"received:{task.uid}") is not None:
+                self.remove(f"received:{task.uid}")
             self.last_result.pop(task.uid, None)
         for info in self.netinfo.added + self.netinfo.changed:
             for n in info.neighbors:
@@ -259,16 +272,15 @@ class TransportPlugin(Plugin):
             self.change(task.with_result(TaskState.PENDING, message=f"sent to {dest}"))
 
     def _reconcile(self, task: Task) -> None:
-        """After a restart: re-send unfinished tasks we gave away; report on tasks we were given."""
+        """After a restart: re-send unfinished tasks we pass on; report on tasks we were given."""
         me = self.agent_name
-        if task.destination not in (None, "", me) and task.source == me:
-            if not task.done:
+        if task.destination not in (None, "", me) and self.settings.forward_tasks:
+            if not task.done:  # ours or relayed: the receiver de-duplicates by uid
                 self.log.info("re-sending task %s to %s after restart", task.uid, task.destination)
                 self._send_task(task)
-        elif task.destination == me and task.source not in ("", me):
-            self.received_from[task.uid] = task.source
-            if task.result is not None:
-                self._send_result(task.source, task)
+        origin = self.received_from.get(task.uid)
+        if origin and task.result is not None and task.destination in (None, "", me):
+            self._send_result(origin, task)
 
     def _retry_pending(self, now: float) -> None:
         mono = time.monotonic()
@@ -314,6 +326,7 @@ class TransportPlugin(Plugin):
                 return
             self.received_from[body.uid] = msg.sender
             self.add(body)
+            self.add(Received(uid=f"received:{body.uid}", task=body.uid, sender=msg.sender))
         elif kind == "task.rescind" and isinstance(body, Cancel):
             if self.received_from.get(body.uid) == msg.sender and self._board.contains(body.uid):
                 self.log.info("task %s was rescinded by %s (it no longer has it)", body.uid, msg.sender)

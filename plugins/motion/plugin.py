@@ -14,7 +14,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from blackboard import AllocationResult, ConfigError, Plugin, Pose, Task, TransactionError
+from blackboard import AllocationResult, ConfigError, Plugin, Pose, Task, TaskState, TransactionError
 from plugins.motion.driver import ArcosDriver, RobotState
 from plugins.motion.resource import RobotMotionResource, TaskUpdate
 from plugins.motion.robots import RobotModel, resolve_model
@@ -77,6 +77,10 @@ def pose_of(robot: str, s: RobotState) -> Pose:
                 motors_enabled=s.motors_enabled, sonar=sonar)
 
 
+RELATIVE = frozenset({"forward", "backward", "turn", "say"})
+"""Prepositions whose effect depends on where the robot was when they started."""
+
+
 class RobotMotionControl(Plugin):
     """Performs BotMotion tasks with a behaviour stack on an ARCOS robot; publishes its Pose."""
 
@@ -121,8 +125,15 @@ class RobotMotionControl(Plugin):
 
     def execute(self) -> None:
         for task in self.tasks.added:
-            if not task.done:
-                self.resource.submit(task)
+            if task.done:
+                continue
+            if self.rehydrated(task) and task.preposition in RELATIVE:
+                # after a crash we cannot know how much of a relative move was done: never repeat it
+                self.change(task.with_result(
+                    TaskState.FAILED, message=f"interrupted by a restart of agent {self.agent_name}; "
+                    f"a relative {task.preposition} is not repeated"))
+                continue
+            self.resource.submit(task)  # absolute tasks (goto, velocity, stop, ...) resume
         for task in self.tasks.removed:
             self.resource.cancel(task.uid)
 

@@ -262,3 +262,27 @@ def test_say_plays_tones_on_the_robot(start_agent):
     robot = plugin.sim_host.robots[0]
     wait_until(lambda: robot.said)
     assert robot.said[-1] == bytes([10, 60, 20, 72])
+
+
+def test_after_a_restart_absolute_tasks_resume_and_relative_ones_fail_explicitly(make_host, tmp_path):
+    host = make_host()
+    journal = tmp_path / "robot1.sqlite"
+
+    def start() -> Agent:
+        agent = Agent("robot1", workers=2, journal=journal)
+        agent.add_plugin(RobotMotionControl, settings={**SETTINGS, "url": host.url()}, name="motion")
+        return agent.start()
+
+    agent = start()
+    goto = post(agent, "goto", x=1.0, y=0.0, speed=0.2)
+    fwd = post(agent, "forward", distance=2.0, speed=0.2)
+    wait_until(lambda: current(agent, goto).state == TaskState.RUNNING, timeout=3)
+    agent.journal.flush()
+    agent.stop()  # as far as the tasks know, the agent died mid-task
+    again = start()
+    try:
+        failed = finish(again, fwd)
+        assert failed.state == TaskState.FAILED and "not repeated" in failed.result.message
+        assert finish(again, goto, timeout=20).state == TaskState.SUCCEEDED
+    finally:
+        again.stop()
