@@ -428,11 +428,11 @@ class TransportPlugin(Plugin):
         stamp = (msg.epoch, msg.seq)
         if stamp <= self.status_in.get(obj.uid, (0, 0)):
             return  # an older status never overwrites a newer one
-        known = self._board.get(obj.uid)
-        if known is not None and obj.uid not in self.status_in:
+        first = obj.uid not in self.status_in  # (two statuses of a new object may come in one run)
+        if first and self._board.get(obj.uid) is not None:
             return  # never overwrite an object of our own with a peer's
         self.status_in[obj.uid] = stamp
-        if known is None:
+        if first:
             self.add(obj)
         else:
             self.change(obj, reports=[f"status from {msg.sender}"])

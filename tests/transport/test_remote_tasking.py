@@ -320,3 +320,23 @@ def test_robot_poses_reach_the_control_node_newest_first(team):
     other = team("robot2", echo=False)  # a robot does not receive another robot's pose
     time.sleep(0.3)
     assert other.blackboard.get("pose:robot1") is None
+
+
+def test_two_statuses_of_a_new_object_in_one_run_lose_nothing(team):
+    from blackboard import Pose
+    from transport.wire import Message
+
+    control = team("control", echo=False, role="control")
+    bridge = control.plugin("transport")
+    task = task_to("robot1")
+
+    def burst():
+        for seq, x in ((1, 1.0), (2, 2.0)):
+            bridge._handle(Message("robot1", ("127.0.0.1", 1), 5, seq, f"s{seq}", "status",
+                                   Pose(robot="robot1", x=x)))
+        bridge.add(task)  # other work of the same run must survive
+
+    bridge.later(burst)
+    wait_until(lambda: control.blackboard.get("pose:robot1") is not None)
+    assert control.blackboard.get("pose:robot1").x == 2.0
+    assert control.blackboard.contains(task.uid) and bridge.failures == 0
