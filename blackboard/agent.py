@@ -110,8 +110,15 @@ class Scheduler:
         tx = Transaction(board, plugin.name)
         plugin._local.tx = tx
         try:
-            for fn in laters:
-                fn()
+            for fn in laters:  # each hand-off fails alone: its publications are dropped
+                mark = tx.savepoint()
+                try:
+                    fn()
+                except Exception:
+                    tx.rollback_to(mark)
+                    plugin.failures += 1
+                    plugin.log.exception("work handed to agent %s, plugin %s with later() failed; "
+                                         "it published nothing, the run goes on", self.agent.name, plugin.name)
             plugin.execute()
             tx.commit()
         except Exception:

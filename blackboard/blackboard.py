@@ -192,6 +192,16 @@ class Transaction:
         self.ops.append((REMOVE, current, ()))
         self._staged[uid] = None
 
+    def savepoint(self) -> tuple[int, dict[str, BBObject | None]]:
+        """Return a mark that `rollback_to` can return to (drops what was staged after it)."""
+        return len(self.ops), dict(self._staged)
+
+    def rollback_to(self, mark: tuple[int, dict[str, BBObject | None]]) -> None:
+        """Drop every publication staged since `mark`."""
+        count, staged = mark
+        del self.ops[count:]
+        self._staged = dict(staged)
+
     def commit(self) -> None:
         """Apply every staged publication at once, in order, and wake the subscribers."""
         self._check_open()

@@ -200,3 +200,24 @@ def test_signals_during_setup_run_execute_only_after_setup_committed():
         assert order[0] == "setup" and plugin.failures == 0
     finally:
         agent.stop()
+
+
+def test_a_failing_later_hand_off_drops_only_its_own_publications(caplog):
+    agent = Agent("lt")
+    rec = agent.add_plugin(Recorder)
+    agent.start()
+    try:
+        def good(v):
+            return lambda: rec.add(Item(value=v))
+
+        def bad():
+            rec.add(Item(value=99))
+            raise RuntimeError("bad frame")
+
+        for fn in (good(1), bad, good(2)):
+            rec.later(fn)
+        wait_until(lambda: len(agent.query(Item)) == 2)
+        assert sorted(o.value for o in agent.query(Item)) == [1, 2]
+        assert rec.failures == 1 and "bad frame" in caplog.text
+    finally:
+        agent.stop()
