@@ -481,6 +481,10 @@ function onPointerUp(ev) {
   $("map").classList.remove("panning");
   if (!d) return;
   const at = svgPoint(ev), [wx, wy] = toWorld(at[0], at[1]);
+  if (d.kind === "pan" && d.moved) {  // the release point, even when the last moves were coalesced
+    ui.view.ox = d.ox + at[0] - d.start[0]; ui.view.oy = d.oy + at[1] - d.start[1];
+    renderMap();
+  }
   if (d.kind === "robot") {
     if (d.moved) {
       const r = robotByName(d.name);
