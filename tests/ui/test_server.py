@@ -220,3 +220,23 @@ def test_the_floorplan_is_served_and_bad_files_are_refused_by_name(control, tmp_
                       (bad, "bad.toml: circle.0.radius: Input should be greater than 0")]:
         with pytest.raises(ValidationError, match=why):
             Agent("x").add_plugin(UIPlugin, settings={"floorplan": str(path)})
+
+
+def test_a_wav_file_setting_is_recognised_and_answered(control, tmp_path, monkeypatch):
+    import numpy as np
+
+    import plugins.ui.plugin as ui_plugin
+    from plugins.ui.speech import RATE, read_wav
+    from tests.ui.test_browser_mic import Recorder
+    from tests.ui.test_speech import write_wav
+
+    wav = write_wav(tmp_path / "cmd.wav", 5000 * np.sin(np.arange(RATE * 2) / 3.0), 22050)
+    rec = Recorder("attention")
+    monkeypatch.setattr(ui_plugin, "model_path", lambda configured: tmp_path)
+    monkeypatch.setattr(ui_plugin, "Recognizer", lambda path, words: rec)
+    agent, ui = control(wav=str(wav))
+    wait_until(lambda: any("voice: \u201cattention\u201d \u2192 Listening" in line["text"]
+                           for line in ui.server.state()["log"]), timeout=20)
+    with rec.lock:
+        assert bytes(rec.pcm) == read_wav(wav)  # every frame of the file, in order, at 16 kHz
+    assert ui.server.state()["listening"] is True
