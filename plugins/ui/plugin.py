@@ -252,7 +252,7 @@ class UIPlugin(Plugin):
                 "state": "lost" if not up else ("warn" if reasons else "ok"), "reasons": reasons,
                 "pose": None if pose is None else {
                     "x": pose.x, "y": pose.y, "theta": pose.theta, "v": pose.v, "w": pose.w,
-                    "battery": pose.battery, "sonar": pose.sonar, "stamp": pose.stamp},
+                    "battery": pose.battery, "stamp": pose.stamp},
                 "address": peer.address if peer else "", "last_heard": peer.last_heard if peer else None,
                 "task": short(task) if task else "",
             })

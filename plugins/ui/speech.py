@@ -101,7 +101,7 @@ def grammar_phrases(words: list[str]) -> str:
 
 
 class Recognizer:
-    """A vosk recogniser restricted to the command grammar's words; feed 16 kHz mono int16."""
+    """A vosk model with the command grammar; `stream()` gives one recogniser per audio source."""
 
     def __init__(self, model_dir: Path, words: list[str]) -> None:
         try:
@@ -113,7 +113,19 @@ class Recognizer:
             self.model = vosk.Model(str(model_dir))
         except Exception as err:  # vosk raises a bare Exception for unreadable models
             raise SpeechError(f"cannot load the vosk model at {model_dir}: {err}") from None
-        self.rec = vosk.KaldiRecognizer(self.model, RATE, grammar_phrases(words))
+        self.grammar = grammar_phrases(words)
+        self._vosk = vosk
+
+    def stream(self) -> Stream:
+        """Return a fresh recogniser for one source (a page, the local microphone, a file)."""
+        return Stream(self._vosk.KaldiRecognizer(self.model, RATE, self.grammar))
+
+
+class Stream:
+    """One source's utterances: feed 16 kHz mono int16, get texts when utterances end."""
+
+    def __init__(self, rec: Any) -> None:
+        self.rec = rec
 
     def feed(self, pcm: bytes) -> str | None:
         """Accept audio; return the text of an utterance that just ended, if any."""
@@ -134,6 +146,9 @@ class Recognizer:
 class Listener:
     """Runs a recogniser on thread `ui-speech`: `feed()` audio from any thread, texts go to `on_text`.
 
+    Each source (a page, the local microphone, a file) has a stream of its own, so two
+    microphones never mix into one utterance.
+
     Given a loader instead of a recogniser, the thread loads it first (a vosk model takes
     seconds to load: never on the blackboard's threads); a SpeechError goes to `on_error`.
     """
@@ -142,12 +157,13 @@ class Listener:
 
     def __init__(self, recognizer: Any, on_text: Callable[[str, str], None], *, max_queue: int = 200,
                  on_error: Callable[[str], None] | None = None) -> None:
-        self.recognizer = recognizer  # a recogniser, or a callable that loads one on the thread
+        self.recognizer = recognizer  # has stream(); or a callable that loads one on the thread
         self.on_text = on_text
         self.on_error = on_error
         self.error = ""
         self.queue: queue.Queue[tuple[str, bytes] | None] = queue.Queue(max_queue)
         self.dropped = 0
+        self.streams: dict[str, Any] = {}
         self._thread = threading.Thread(target=self._run, name="ui-speech", daemon=True)
 
     def start(self) -> Listener:
@@ -187,7 +203,7 @@ class Listener:
         self._thread.join(timeout=5)
 
     def _run(self) -> None:
-        if not hasattr(self.recognizer, "feed"):
+        if not hasattr(self.recognizer, "stream"):
             try:
                 self.recognizer = self.recognizer()
             except SpeechError as err:
@@ -200,7 +216,12 @@ class Listener:
         while (item := self.queue.get()) is not None:
             source, pcm = item
             try:
-                text = self.recognizer.flush() if pcm == self.FLUSH else self.recognizer.feed(pcm)
+                if pcm == self.FLUSH:
+                    stream = self.streams.pop(source, None)
+                    text = stream.flush() if stream is not None else None
+                else:
+                    stream = self.streams.get(source) or self.streams.setdefault(source, self.recognizer.stream())
+                    text = stream.feed(pcm)
             except Exception:  # a recogniser failure must not end speech input
                 log.exception("speech recogniser failed")
                 continue

@@ -45,6 +45,9 @@ class Recorder:
             self.threads.add(threading.current_thread().name)
         return None
 
+    def stream(self) -> Recorder:
+        return self
+
     def flush(self) -> str | None:
         return self.text
 

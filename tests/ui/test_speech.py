@@ -133,6 +133,9 @@ class ScriptedRecognizer:
         self.fed += len(pcm)
         return None
 
+    def stream(self) -> ScriptedRecognizer:
+        return self
+
     def flush(self) -> str | None:
         return self.text if self.fed >= self.after else None
 
@@ -168,16 +171,49 @@ def test_speaker_runs_espeak_on_its_own_thread(tmp_path):
                     f"(get one from {MODELS_URL})")
 @needs_espeak
 def test_vosk_recognises_espeak_commands_through_the_grammar(tmp_path):
-    rec = Recognizer(model_path(None), vocabulary())
+    model = Recognizer(model_path(None), vocabulary())
     d = Dialogue(Naming(), verb="BotMotion", listening=False)
     said = []
     for i, text in enumerate(["attention", "robot three go forward two metres", "everyone stop"]):
+        rec = model.stream()
         texts = [t for f in wav_frames(espeak_wav(tmp_path, text, f"u{i}.wav")) if (t := rec.feed(f))]
         texts += [t for t in [rec.flush()] if t]
         said.append(d.hear(" ".join(texts), ["robot1", "robot2", "robot3"]))
     assert said[0].say == "Listening"
     assert [(t.preposition, t.destination, t.params.distance) for t in said[1].tasks] == [("forward", "robot3", 2.0)]
     assert [t.destination for t in said[2].tasks] == ["robot1", "robot2", "robot3"]
+
+
+class Echo:
+    """Stands in for vosk: each stream 'recognises' the bytes it was fed, as text."""
+
+    def stream(self) -> Echo:
+        return Echo()
+
+    def __init__(self) -> None:
+        self.got = b""
+
+    def feed(self, pcm: bytes) -> str | None:
+        self.got += pcm
+        return None
+
+    def flush(self) -> str | None:
+        return self.got.decode()
+
+
+def test_each_source_has_its_own_stream_so_microphones_never_mix():
+    heard: list[tuple[str, str]] = []
+    listener = Listener(Echo(), lambda source, text: heard.append((source, text))).start()
+    try:
+        for a, b in zip(["ro", "bot ", "one"], ["every", "one ", "stop"]):
+            listener.feed("page1", a.encode())
+            listener.feed("page2", b.encode())
+        listener.end_utterance("page2")
+        listener.end_utterance("page1")
+        wait_until(lambda: len(heard) == 2, timeout=5)
+    finally:
+        listener.stop()
+    assert heard == [("page2", "everyone stop"), ("page1", "robot one")]
 
 
 def test_a_model_that_fails_to_load_is_reported_and_audio_is_dropped(tmp_path):
