@@ -7,8 +7,13 @@ and this robot's link qualities. Every runner meters the robot's energy (paper 0
 from its poses and reports it in its result values (`energy_j`, `distance_m`, `moving_s`,
 `elapsed_s`).
 
-- widep: one WiDep step per `period`: a BotMotion goto to the step's target; succeeds when
-  the PoI is covered (this robot or a known one within `tolerance`).
+- widep: lockstep rounds of `period` s on the wall clock (shared by the team): at the start
+  of a round every robot takes one WiDep step (a BotMotion goto) short enough to end within
+  half a round, so all decisions of a round see the same, settled layout, as in the
+  synchronous algorithm whose bound keeps the team connected. A robot late or slow on a busy
+  machine may still be seen mid-move, at most one step off, so links are kept one step (at
+  least `widep_slack`) shorter than R and a witness must be two steps closer (robust RNG).
+  Succeeds when the PoI is covered (a known robot within `tolerance`).
 - spread: every `dt` a BotMotion velocity from equation (15)/(16) with this robot and its
   known neighbours; succeeds after `duration` (runs until cancelled without one).
 - relay: every `relay_period` a relay decision from the link qualities to `source` and
@@ -44,7 +49,7 @@ class Ops(Protocol):
     def sub(self, uid: str | None) -> Task | None: ...
     def report(self, uid: str, state: TaskState, message: str = "", *, progress: float | None = None,
                values: dict[str, Any] | None = None, force: bool = False) -> None: ...
-    def link_qualities(self) -> dict[str, float]: ...
+    def link_qualities(self) -> dict[str, float] | None: ...
     def publish_territory(self, territory: Territory) -> None: ...
 
 
@@ -106,17 +111,18 @@ class Runner:
 
 
 class WidepRunner(Runner):
-    """PoI coverage: WiDep steps toward the PoI under the RNG connectivity bound."""
+    """PoI coverage: WiDep steps toward the PoI under the RNG connectivity bound, in lockstep rounds."""
 
     kind = "widep"
 
     def tick(self, now: float) -> float:
         p = self.p
         period = p.period
+        next_round = (math.floor(now / period) + 1) * period - now + 1e-3
         names, pos = self.ops.team.array(now)
         if not names or names[0] != self.ops.agent_name:
             self.ops.report(self.uid, TaskState.RUNNING, "waiting for this robot's pose")
-            return period
+            return next_round
         poi = np.array([p.x, p.y])
         dists = np.hypot(*(pos - poi).T)
         within = [n for n, d in zip(names, dists) if d <= p.tolerance]
@@ -126,22 +132,26 @@ class WidepRunner(Runner):
             return period
         state = self.motion_state()
         if state is not None and not state.done:
-            return min(period, 0.25)
+            return next_round  # still finishing the last step: sit this round out
         start = self.extra.setdefault("start_distance", round(float(dists[0]), 3))
+        cap = min(self.s.widep_step_cap, 0.5 * self.s.speed * period)  # done within half a round
+        # a neighbour seen mid-move is at most one step off: keep links a step shorter than R and
+        # only trust witnesses two steps closer (robust RNG)
         step = widep_step(pos, 0, poi, p.range, tolerance=p.tolerance, obstacles=self._obstacles(),
-                          margin=self.s.obstacle_margin, separation=self.s.separation)
+                          margin=self.s.obstacle_margin, separation=self.s.separation, step_cap=cap,
+                          witness_margin=2 * cap, slack=max(self.s.widep_slack, cap))
         self.extra.update(neighbours=len(names) - 1, bound_m=round(step.limit, 3),
                           distance_m_to_poi=round(float(dists[0]), 3), auxiliary=step.auxiliary)
         progress = max(0.0, 1.0 - float(dists[0]) / start) if start > 0 else 0.0
-        if step.length < 0.05:
+        if step.length < 0.02:
             self.ops.report(self.uid, TaskState.RUNNING, "holding: the connectivity bound allows no step",
                             progress=progress, values=self.values())
-            return period
+            return next_round
         self.move("goto", {"x": round(float(step.target[0]), 3), "y": round(float(step.target[1]), 3),
-                           "speed": self.s.speed, "tolerance": 0.1})
+                           "speed": self.s.speed, "tolerance": 0.05})
         msg = "heading for an auxiliary PoI" if step.auxiliary else "stepping toward the PoI"
         self.ops.report(self.uid, TaskState.RUNNING, msg, progress=progress, values=self.values())
-        return period
+        return next_round
 
     def _obstacles(self) -> np.ndarray | None:
         return np.array(self.s.obstacles, dtype=float) if self.s.obstacles else None
@@ -159,6 +169,8 @@ class SpreadRunner(Runner):
                                 neighbourhood=p.neighbourhood, model=p.model, vmax=settings.speed,
                                 wmax=math.radians(90), obstacle_distance=settings.obstacle_distance,
                                 wall_distance=settings.wall_distance)
+        self.speed = 0.0
+        self.omega = 0.0
 
     def tick(self, now: float) -> float:
         p = self.p
@@ -172,12 +184,11 @@ class SpreadRunner(Runner):
             self.ops.report(self.uid, TaskState.RUNNING, "waiting for this robot's pose")
             return period
         theta = mine[2]
-        speed, omega = self.extra.get("_v", 0.0), self.extra.get("_w", 0.0)
+        speed, omega = self.speed, self.omega  # the robot's measured velocities (last Pose)
         cfg = self.cfg if period == p.dt else SpreadConfig(**{**self.cfg.__dict__, "dt": period})
         v, w = robot_command(pos, theta, speed, omega, 0, cfg, self._obstacles(), self._walls())
         if abs(v) < 0.01 and abs(w) < 0.02:
             v, w = 0.0, 0.0
-        self.extra["_v"], self.extra["_w"] = v, w
         if len(pos) > 1:
             d = np.hypot(*(pos[1:] - pos[0]).T)
             self.extra["nearest_m"] = round(float(d.min()), 3)
@@ -187,8 +198,9 @@ class SpreadRunner(Runner):
         self.ops.report(self.uid, TaskState.RUNNING, "spreading", values=self.values())
         return period
 
-    def values(self) -> dict[str, Any]:
-        return {k: v for k, v in super().values().items() if not k.startswith("_")}
+    def pose(self, pose: Pose) -> None:
+        super().pose(pose)
+        self.speed, self.omega = pose.v, pose.w
 
     def _obstacles(self) -> np.ndarray | None:
         return np.array(self.s.obstacles, dtype=float) if self.s.obstacles else None
@@ -214,7 +226,10 @@ class RelayRunner(Runner):
             self.ops.report(self.uid, TaskState.RUNNING, f"waiting for the position of {', '.join(missing)}")
             return period
         q = self.ops.link_qualities()
-        qs, qd = q.get(p.source), q.get(p.destination)
+        if q is None:
+            self.ops.report(self.uid, TaskState.RUNNING, "waiting for link quality readings")
+            return period
+        qs, qd = q.get(p.source), q.get(p.destination)  # not a neighbour: no link (quality 0)
         me, src, dst = (np.array(where[n][:2]) for n in (self.ops.agent_name, p.source, p.destination))
         move = relay_step(me, src, dst, qs, qd, tolerance=p.tolerance, max_step=self.s.relay_step)
         self.extra.update(q_source=qs, q_destination=qd, imbalance=round(move.imbalance, 3),
@@ -270,6 +285,7 @@ class PatrolRunner(Runner):
         last = events[-1]
         text = {"silent": "{} fell silent", "claim": "took over the block of {}", "yield": "yielded {}'s block",
                 "return": "gave {}'s block back"}[last.kind].format(last.about)
+        self.message = text
         self.ops.report(self.uid, TaskState.RUNNING, text, values=self.values(), force=True)
 
     def tick(self, now: float) -> float:

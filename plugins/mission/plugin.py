@@ -67,6 +67,8 @@ class MissionSettings(BaseModel):
     audio: bool = Field(True, description="play audio cues (BotMotion say)")
     speed: float = Field(0.3, gt=0, le=2.0, description="cruise speed of deployment moves (m/s)")
     separation: float = Field(0.5, ge=0, description="widep: never step closer than this to a robot (m)")
+    widep_step_cap: float = Field(1.0, gt=0, description="widep: longest step (m); also at most half a round at `speed`")
+    widep_slack: float = Field(0.2, ge=0, description="widep: keep links this much shorter than R (m)")
     position_timeout: float = Field(5.0, gt=0, description="forget other robots' positions older than this (s)")
     halt_timeout: float = Field(5.0, gt=0, description="give up waiting for the robot to halt (s)")
     control_period: float = Field(0.2, gt=0, description="spread: shortest period between commands (s)")
@@ -105,7 +107,7 @@ class MissionControl(Plugin):
         self.halts: dict[str, tuple[str | None, float]] = {}  # stop uid -> (cancel task uid, deadline)
         self.says: dict[str, float] = {}
         self.watches: dict[str, str] = {}
-        self.qualities: dict[str, float] = {}
+        self.qualities: dict[str, float] | None = None
         self.guard_stop: str | None = None
         self.retreat: str | None = None
         self.territory: Territory | None = None
@@ -148,11 +150,11 @@ class MissionControl(Plugin):
             return None
         return self.mine.get(uid) or self.issued.get(uid)
 
-    def link_qualities(self) -> dict[str, float]:
-        """This robot's one-hop link qualities by neighbour name (latest reading)."""
+    def link_qualities(self) -> dict[str, float] | None:
+        """This robot's one-hop link qualities by neighbour name (latest reading; None before the first)."""
         if "link_quality" not in self.watches:
             self.watch("link_quality")
-        return dict(self.qualities)
+        return None if self.qualities is None else dict(self.qualities)
 
     def publish_territory(self, territory: Territory) -> None:
         """Publish or update this robot's patrol heartbeat."""

@@ -59,10 +59,10 @@ def robots(hosts) -> Iterator:
         a.stop()
 
 
-def send(agent: Agent, preposition: str, verb: str = "RemoteBotMotion", source: str = "control",
+def send(agent: Agent, preposition: str, verb: str = "RemoteBotMotion", sender: str = "control",
          **params: object) -> Task:
-    """Publish a task from `source` addressed to the agent (as the transport would deliver it)."""
-    task = Task(verb=verb, preposition=preposition, params=params, source=source, destination=agent.name)
+    """Publish a task from `sender` addressed to the agent (as the transport would deliver it)."""
+    task = Task(verb=verb, preposition=preposition, params=params, source=sender, destination=agent.name)
     with agent.transaction() as tx:
         tx.add(task)
     return task

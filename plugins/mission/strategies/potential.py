@@ -214,31 +214,33 @@ def _integrate(p: np.ndarray, th: np.ndarray, v: np.ndarray, om: np.ndarray, cfg
 
 def robot_command(pos: ArrayLike, theta: float, speed: float, omega: float, i: int, cfg: SpreadConfig,
                   obstacles: ArrayLike | None = None, walls: ArrayLike | None = None) -> tuple[float, float]:
-    """Return one nonholonomic robot's next (v m/s, w rad/s) from its neighbours' positions `pos`."""
+    """Return robot i's (v m/s, w rad/s) command: the velocity equation (15)/(16) settles to under the current force.
+
+    On a real robot the lower-level controller owns acceleration, so the command is the terminal
+    velocity of m a = F - k v (v = F / k): along the heading for the nonholonomic model
+    (v = F.h / k, w = torque / k_theta); for the holonomic model the wheeled robot steers toward
+    F / k (driving backwards rather than turning around). `speed` and `omega` (the robot's
+    measured velocities) are accepted for interface stability and ignored. Limits: cfg.vmax, cfg.wmax.
+    """
     p = np.asarray(pos, dtype=float)
     th = np.zeros(len(p))
     th[i] = theta
-    vel = np.zeros((len(p), 2))
-    vel[i] = speed * np.array([math.cos(theta), math.sin(theta)])
-    om = np.zeros(len(p))
-    om[i] = omega
     f, tq = forces(p, th, cfg, obstacles, walls)
-    om_i = omega + cfg.dt * (tq[i] - cfg.gain * omega) / cfg.inertia
     h = np.array([math.cos(theta), math.sin(theta)])
-    if cfg.model == "holonomic":  # a wheeled robot steers toward the holonomic velocity
-        v_i = vel[i] + cfg.dt * (f[i] - cfg.gain * vel[i]) / cfg.mass
-        sp = float(np.hypot(*v_i))
+    if cfg.model == "holonomic":
+        u = f[i] / cfg.gain
+        sp = float(np.hypot(*u))
         if sp < 1e-3:
             return 0.0, 0.0
-        err = float(wrap(math.atan2(v_i[1], v_i[0]) - theta))
+        err = float(wrap(math.atan2(u[1], u[0]) - theta))
         if abs(err) > math.pi / 2:  # drive backwards rather than turn around
             err = float(wrap(err + math.pi))
             sp = -sp
         sp *= max(0.0, math.cos(err))
-        out_w = err / max(cfg.dt, 0.5)
+        out_w = err / max(cfg.dt, 1.0)
     else:
-        sp = speed + cfg.dt * (float(f[i] @ h) - cfg.gain * speed) / cfg.mass
-        out_w = om_i
+        sp = float(f[i] @ h) / cfg.gain
+        out_w = float(tq[i]) / cfg.gain
     if cfg.vmax is not None:
         sp = max(-cfg.vmax, min(cfg.vmax, sp))
     if cfg.wmax is not None:

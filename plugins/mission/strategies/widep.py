@@ -12,7 +12,9 @@ Inputs and units (pure functions, no blackboard):
 - `positions`: float array (N, 2) of robot positions (m); `i`: the index of the moving robot.
 - `poi`: (2,) target point (m); `R`: communication range (m); `tolerance`: arrival radius (m).
 - `obstacles`: array (M, 3) of circles (x, y, radius) in m, or None; `margin`: clearance (m)
-  kept from obstacles; `separation`: distance (m) a step never closes below to another robot.
+  kept from obstacles; `separation`: distance (m) a step never closes below to another robot;
+  `step_cap`: longest step (m); `witness_margin`, `slack` (m): robustness to stale positions
+  for robots deciding asynchronously (a witness must be that much closer; R is reduced by slack).
 
 Outputs: `widep_step` -> `Step` (target point, step length, the waypoint steered for,
 whether it is an auxiliary PoI, whether the robot is at the PoI); `widep_round` -> new
@@ -81,22 +83,27 @@ def rng_adjacency(positions: ArrayLike, R: float) -> np.ndarray:
     return rng
 
 
-def farthest_rng(positions: ArrayLike, i: int, R: float) -> float:
-    """Return d+(u): the distance (m) from robot i to its farthest RNG neighbour (0 if none)."""
+def farthest_rng(positions: ArrayLike, i: int, R: float, witness_margin: float = 0.0) -> float:
+    """Return d+(u): the distance (m) from robot i to its farthest RNG neighbour (0 if none).
+
+    With `witness_margin` > 0 a robot w only removes the edge u-v when it is that much closer
+    to both (max(d(u,w), d(v,w)) < d(u,v) - margin): a robust RNG for positions that may be
+    stale by up to margin / 2 per robot, as on robots deciding asynchronously.
+    """
     pos = _points(positions)
     d = np.hypot(*(pos - pos[i]).T)
     best = 0.0
     for v in np.flatnonzero((d <= R) & (np.arange(len(pos)) != i)):
         dm = np.maximum(d, np.hypot(*(pos - pos[v]).T))
         dm[i] = dm[v] = math.inf
-        if not np.any(dm < d[v]):
+        if not np.any(dm < d[v] - witness_margin):
             best = max(best, float(d[v]))
     return best
 
 
-def max_step(positions: ArrayLike, i: int, R: float) -> float:
-    """Return the largest connectivity-safe step (m) of robot i: (R - d+(u)) / 2, never negative."""
-    return max(0.0, (R - farthest_rng(positions, i, R)) / 2.0)
+def max_step(positions: ArrayLike, i: int, R: float, witness_margin: float = 0.0, slack: float = 0.0) -> float:
+    """Return the largest connectivity-safe step (m) of robot i: (R - slack - d+(u)) / 2, never negative."""
+    return max(0.0, (R - slack - farthest_rng(positions, i, R, witness_margin)) / 2.0)
 
 
 def connected(positions: ArrayLike, R: float) -> bool:
@@ -200,8 +207,11 @@ def _separation_limit(p: np.ndarray, u: np.ndarray, others: np.ndarray, sep: flo
 
 def widep_step(positions: ArrayLike, i: int, poi: ArrayLike, R: float, *, tolerance: float = 0.5,
                obstacles: ArrayLike | None = None, margin: float = 0.3, separation: float = 0.0,
-               step_cap: float | None = None) -> Step:
-    """Return robot i's next WiDep move toward `poi` under the RNG connectivity bound."""
+               step_cap: float | None = None, witness_margin: float = 0.0, slack: float = 0.0) -> Step:
+    """Return robot i's next WiDep move toward `poi` under the RNG connectivity bound.
+
+    `witness_margin` and `slack` (m) make the bound robust to stale positions (see `farthest_rng`).
+    """
     pos = _points(positions)
     if not 0 <= i < len(pos):
         raise ValueError(f"i: expected a robot index in 0..{len(pos) - 1}, got {i}")
@@ -209,7 +219,7 @@ def widep_step(positions: ArrayLike, i: int, poi: ArrayLike, R: float, *, tolera
         raise ValueError(f"R: expected a positive communication range (m), got {R!r}")
     p = pos[i]
     goal = np.asarray(poi, dtype=float).reshape(2)
-    limit = max_step(pos, i, R)
+    limit = max_step(pos, i, R, witness_margin, slack)
     if float(np.hypot(*(goal - p))) <= tolerance:
         return Step(p.copy(), 0.0, goal, False, True, limit)
     aux = auxiliary_poi(p, goal, obstacles, margin)
