@@ -48,6 +48,8 @@ def page(browser, team) -> Iterator[Any]:
     pg = browser.new_page(viewport={"width": 1400, "height": 850})
     errors: list[str] = []
     pg.on("pageerror", lambda e: errors.append(str(e)))
+    pg.add_init_script("window.spoken = []; if (window.speechSynthesis) { const say = speechSynthesis.speak.bind("
+                       "speechSynthesis); speechSynthesis.speak = (u) => { window.spoken.push(u.text); say(u); }; }")
     pg.goto(team.ui.url)
     pg.wait_for_selector('g.robot[data-name="robot3"]', timeout=30000)
     yield pg
@@ -106,6 +108,10 @@ def test_page_shows_every_robot_and_follows_their_motion(team, page):
     page.wait_for_function("x => Math.abs(+document.querySelector('g.robot[data-name=robot1]').dataset.x - x) < 0.03",
                            arg=own_pose(team, "robot1").x)
     assert say(page, "robot 9 stop") == "I don't know robot 9"
+    assert page.evaluate("window.spoken") == ["Roger", "I don't know robot 9"]  # the browser says the replies
+    page.uncheck("#speak-browser")
+    say(page, "robot 8 stop")
+    assert page.evaluate("window.spoken") == ["Roger", "I don't know robot 9"]
     shot(page, "01-team-moving")
 
 
