@@ -51,7 +51,7 @@ relay_period = 0.5
 
 def cli(env, *args: str, timeout: float = 40):
     return subprocess.run([sys.executable, "-m", "erni", *args], capture_output=True, text=True,
-                          timeout=timeout, cwd=ROOT, env=env)
+                          timeout=timeout, cwd=ROOT, env=env, check=False)
 
 
 @pytest.fixture(scope="module")

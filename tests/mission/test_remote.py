@@ -151,3 +151,26 @@ def test_teleport_and_audio_cue_on_reception(robots, hosts):
     assert robot.said[0] == bytes(b for tone in CUE_TASK for b in tone)
     wait_until(lambda: not agent.query(Task, where=lambda t: t.preposition == "say"),
                message="finished say tasks are removed")
+
+
+def test_after_a_restart_interrupted_remote_tasks_fail_and_stale_sub_tasks_are_withdrawn(tmp_path):
+    journal = tmp_path / "robot1.sqlite"
+    first = Agent("robot1", workers=2, journal=journal)
+    first.add_plugin("mission", settings={"audio": False, "network_aware": False}, name="mission")
+    first.start()
+    try:
+        task = send(first, "forward", distance=3.0)
+        wait_until(lambda: subs_of(first, task.uid), message="no sub-task issued")
+        stale = subs_of(first, task.uid)[0]
+    finally:
+        first.stop()
+    second = Agent("robot1", workers=2, journal=journal)
+    second.add_plugin("mission", settings={"audio": False, "network_aware": False}, name="mission")
+    second.start()
+    try:
+        done = wait_until(lambda: (t := current(second, task.uid)) is not None and t.done and t,
+                          message="the rehydrated remote task was never settled")
+        assert done.state == TaskState.FAILED and done.result.message == "interrupted: robot1 restarted"
+        assert current(second, stale.uid) is None  # never repeated on the robot
+    finally:
+        second.stop()
