@@ -127,7 +127,7 @@ class UIPlugin(Plugin):
             self.teardown()
             raise
         self.url = self.server.url
-        self.log.info("GUI of %s at %s", me, self.url)
+        self.log.info("GUI of %s at %s", me, self.url.split("?")[0] + (" (token required)" if token else ""))
         self._log("info", f"control node {me} serving the GUI; tasks go as {s.verb}")
         if self.speech_error:
             self._log("warn", self.speech_error)
@@ -233,7 +233,7 @@ class UIPlugin(Plugin):
             if not t.done and t.destination:
                 running[t.destination] = t
         robots = []
-        for i, name in enumerate(names):
+        for name in names:
             pose, peer = poses.get(name), peers.get(name)
             reasons = []
             if pose is not None:
@@ -248,7 +248,8 @@ class UIPlugin(Plugin):
             up = peer.up if peer is not None else pose is not None
             task = running.get(name)
             robots.append({
-                "name": name, "number": self.naming.number(name) or i + 1, "up": up,
+                "name": name, "number": number if (number := self.naming.number(name)) is not None else name[:2],
+                "up": up,
                 "state": "lost" if not up else ("warn" if reasons else "ok"), "reasons": reasons,
                 "pose": None if pose is None else {
                     "x": pose.x, "y": pose.y, "theta": pose.theta, "v": pose.v, "w": pose.w,

@@ -240,3 +240,13 @@ def test_a_wav_file_setting_is_recognised_and_answered(control, tmp_path, monkey
     with rec.lock:
         assert bytes(rec.pcm) == read_wav(wav)  # every frame of the file, in order, at 16 kHz
     assert ui.server.state()["listening"] is True
+
+
+def test_robots_outside_the_naming_pattern_are_shown_by_name_and_the_token_is_not_logged(control, caplog):
+    import logging
+
+    caplog.set_level(logging.INFO, logger="erni")
+    agent, ui = control(robots=("robot2", "scout"), token="hush")
+    state = wait_until(lambda: len((s := ui.server.state())["robots"]) == 2 and s, timeout=5)
+    assert [(r["name"], r["number"]) for r in state["robots"]] == [("robot2", 2), ("scout", "sc")]
+    assert "hush" not in caplog.text and "(token required)" in caplog.text
