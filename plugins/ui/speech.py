@@ -95,6 +95,21 @@ def wav_frames(path: str | Path) -> Iterator[bytes]:
     yield from frames(read_wav(path))
 
 
+def put_dropping_oldest(q: queue.Queue[Any], item: Any) -> int:
+    """Put `item` without blocking, dropping the oldest entries until it fits; return how many."""
+    dropped = 0
+    while True:
+        try:
+            q.put_nowait(item)
+            return dropped
+        except queue.Full:
+            try:
+                q.get_nowait()
+                dropped += 1
+            except queue.Empty:
+                pass
+
+
 def grammar_phrases(words: list[str]) -> str:
     """Return the JSON phrase list a vosk recogniser is restricted to (the words plus [unk])."""
     return json.dumps(sorted(set(words)) + ["[unk]"])
@@ -172,16 +187,7 @@ class Listener:
 
     def feed(self, source: str, pcm: bytes) -> None:
         """Queue audio from `source` (never blocks: the oldest audio is dropped when full)."""
-        while True:
-            try:
-                self.queue.put_nowait((source, pcm))
-                return
-            except queue.Full:
-                try:
-                    self.queue.get_nowait()
-                    self.dropped += 1
-                except queue.Empty:
-                    pass
+        self.dropped += put_dropping_oldest(self.queue, (source, pcm))
 
     def end_utterance(self, source: str) -> None:
         """Finish what `source` was saying (the microphone was turned off, the file ended)."""
@@ -191,15 +197,7 @@ class Listener:
         """Stop the thread (joined)."""
         if not self._thread.is_alive():
             return
-        while True:
-            try:
-                self.queue.put(None, timeout=0.1)
-                break
-            except queue.Full:
-                try:
-                    self.queue.get_nowait()
-                except queue.Empty:
-                    pass
+        put_dropping_oldest(self.queue, None)
         self._thread.join(timeout=5)
 
     def _run(self) -> None:

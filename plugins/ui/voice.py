@@ -8,6 +8,8 @@ import shutil
 import subprocess
 import threading
 
+from plugins.ui.speech import put_dropping_oldest
+
 log = logging.getLogger("erni.ui.voice")
 
 
@@ -51,15 +53,7 @@ class Speaker:
         proc = self._proc
         if proc is not None and proc.poll() is None:
             proc.terminate()
-        while True:
-            try:
-                self.queue.put(None, timeout=0.1)
-                break
-            except queue.Full:
-                try:
-                    self.queue.get_nowait()
-                except queue.Empty:
-                    pass
+        put_dropping_oldest(self.queue, None)  # sentences not yet said are dropped
         self._thread.join(timeout=5)
 
     def _run(self) -> None:
