@@ -54,6 +54,7 @@ class UISettings(BaseModel):
     microphone_device: str | None = Field(None, description="ALSA device of the local microphone")
     wav: str | None = Field(None, description="a WAV file of commands to recognise at start")
     floorplan: str | None = Field(None, description="walls and obstacles to draw: a world TOML file")
+    netinfo_max_age: float = Field(10.0, ge=0, description="network info older than this is stale (s); 0 = never")
 
     @field_validator("listen")
     @classmethod
@@ -257,7 +258,7 @@ class UIPlugin(Plugin):
                 "address": peer.address if peer else "", "last_heard": peer.last_heard if peer else None,
                 "task": short(task) if task else "",
             })
-        links = self._links(set(names))
+        links = self._links(set(names), {r["name"] for r in robots if r["up"]})
         rows = [_task_row(t) for t in self.tasks] + list(self.retired)
         rows.sort(key=lambda r: r["created"], reverse=True)
         return {
@@ -270,19 +271,25 @@ class UIPlugin(Plugin):
             "tasks": rows[: s.history + 20], "log": list(self.logs),
         }
 
-    def _links(self, names: set[str]) -> list[dict[str, Any]]:
-        best: dict[tuple[str, str], float] = {}
+    def _links(self, names: set[str], up: set[str]) -> list[dict[str, Any]]:
+        """Links between robots from their NetInfo, best quality first; `stale` when old or an end is lost."""
+        best: dict[tuple[str, str], tuple[float, bool]] = {}
+        max_age, now = self.settings.netinfo_max_age, time.time()
         for info in self.netinfo:
             if info.degraded:
                 continue
+            old = bool(max_age) and now - info.stamp > max_age
             pairs = [(link.a, link.b, link.quality) for link in info.links]
             pairs += [(info.node, n.name, n.quality) for n in info.neighbors]
             for a, b, q in pairs:
                 if a == b or a not in names or b not in names:
                     continue
                 key = (min(a, b), max(a, b))
-                best[key] = max(q, best.get(key, 0.0))
-        return [{"a": a, "b": b, "quality": round(q, 3)} for (a, b), q in sorted(best.items())]
+                stale = old or a not in up or b not in up
+                if key not in best or (best[key][1], -best[key][0]) > (stale, -q):
+                    best[key] = (q, stale)
+        return [{"a": a, "b": b, "quality": round(q, 3), "stale": stale}
+                for (a, b), (q, stale) in sorted(best.items())]
 
     def _log(self, level: str, text: str) -> None:
         self.logs.append({"t": time.time(), "level": level, "text": text})
@@ -423,6 +430,7 @@ def _task_row(t: Task) -> dict[str, Any]:
 
 
 def _metrics(names: list[str], robots: list[dict[str, Any]], links: list[dict[str, Any]]) -> dict[str, Any]:
+    links = [lk for lk in links if not lk["stale"]]
     adj = netgraph.from_edges(((lk["a"], lk["b"], 1.0) for lk in links if lk["quality"] > 0), nodes=names)
     comps = netgraph.connected_components(adj) if names else []
     cut = sorted(netgraph.articulation_points(adj)) if names else []

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 import os
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -225,8 +226,11 @@ def test_network_links_are_drawn_coloured_by_quality(team, page):
     assert colours[0.9] != colours[0.2]
     assert "cut nodes" in page.inner_text("#metrics") and "robot2" in page.inner_text("#metrics")
     shot(page, "06-links")
-    with team.robots[0].transaction() as tx:
-        tx.remove("netinfo:test")
+    with team.robots[0].transaction() as tx:  # old news: shown stale, left out of the metrics
+        tx.change(NetInfo(uid="netinfo:test", node="robot1", kind="network_topology", stamp=time.time() - 60,
+                          links=[Link(a="robot1", b="robot2", quality=0.9)]))
+    page.wait_for_selector('#links line.link-line.stale[data-a="robot1"]', state="attached", timeout=20000)
+    assert "links0" in page.inner_text("#metrics").replace("\n", "").replace(" ", "")
 
 
 def test_deployment_strategy_buttons_send_deploy_tasks(team, page):

@@ -187,10 +187,11 @@ function renderMap() {
     const a = byName.get(l.a), b = byName.get(l.b);
     if (!a || !b || !a.pose || !b.pose) continue;
     const [ax, ay] = toScreen(a.pose.x, a.pose.y), [bx, by] = toScreen(b.pose.x, b.pose.y);
-    const line = el("line", { x1: ax, y1: ay, x2: bx, y2: by, class: "link-line", stroke: qualityColour(l.quality),
-      "stroke-width": 1.5 + 3 * l.quality, "data-a": l.a, "data-b": l.b, "data-quality": l.quality }, lg);
-    el("title", {}, line).textContent = `${l.a} – ${l.b}: delivery ratio ${l.quality.toFixed(2)}`;
-    el("text", { x: (ax + bx) / 2 + 4, y: (ay + by) / 2 - 4, class: "link-label" }, lg).textContent = l.quality.toFixed(2);
+    const line = el("line", { x1: ax, y1: ay, x2: bx, y2: by, class: "link-line" + (l.stale ? " stale" : ""),
+      stroke: l.stale ? "#59626f" : qualityColour(l.quality), "stroke-width": l.stale ? 1.5 : 1.5 + 3 * l.quality,
+      "data-a": l.a, "data-b": l.b, "data-quality": l.quality, "data-stale": l.stale }, lg);
+    el("title", {}, line).textContent = `${l.a} – ${l.b}: delivery ratio ${l.quality.toFixed(2)}${l.stale ? " (stale)" : ""}`;
+    if (!l.stale) el("text", { x: (ax + bx) / 2 + 4, y: (ay + by) / 2 - 4, class: "link-label" }, lg).textContent = l.quality.toFixed(2);
   }
   // trails
   const tg = $("trails");
