@@ -45,6 +45,7 @@ class Received(BBObject):
 
     task: str
     sender: str
+    address: str = Field("", description="the sender's reply address, HOST:PORT")
 
 
 class Beacon(BaseModel):
@@ -217,8 +218,10 @@ class TransportPlugin(Plugin):
     def execute(self) -> None:
         me = self.agent_name
         now = time.time()
-        for receipt in self.receipts.added:  # after a restart: who gave us which task
+        for receipt in self.receipts.added:  # after a restart: who gave us which task, and where
             self.received_from.setdefault(receipt.task, receipt.sender)
+            if receipt.address and receipt.sender not in self.addresses:
+                self.addresses[receipt.sender] = parse_address(receipt.address)
         for task in self.tasks.added:
             if self.rehydrated(task):
                 self._reconcile(task)
@@ -326,7 +329,8 @@ class TransportPlugin(Plugin):
                 return
             self.received_from[body.uid] = msg.sender
             self.add(body)
-            self.add(Received(uid=f"received:{body.uid}", task=body.uid, sender=msg.sender))
+            self.add(Received(uid=f"received:{body.uid}", task=body.uid, sender=msg.sender,
+                              address=f"{msg.reply[0]}:{msg.reply[1]}"))
         elif kind == "task.rescind" and isinstance(body, Cancel):
             if self.received_from.get(body.uid) == msg.sender and self._board.contains(body.uid):
                 self.log.info("task %s was rescinded by %s (it no longer has it)", body.uid, msg.sender)
