@@ -13,7 +13,9 @@ from its poses and reports it in its result values (`energy_j`, `distance_m`, `m
   synchronous algorithm whose bound keeps the team connected. A robot late or slow on a busy
   machine may still be seen mid-move, at most one step off, so links are kept one step (at
   least `widep_slack`) shorter than R and a witness must be two steps closer (robust RNG).
-  Succeeds when the PoI is covered (a known robot within `tolerance`).
+  A robot whose position is older than `position_timeout` stops everyone who knows it
+  (holding) until it is heard again. Succeeds when the PoI is covered (a known robot within
+  `tolerance`).
 - spread: every `dt` a BotMotion velocity from equation (15)/(16) with this robot and its
   known neighbours; succeeds after `duration` (runs until cancelled without one).
 - relay: every `relay_period` a relay decision from the link qualities to `source` and
@@ -119,7 +121,8 @@ class WidepRunner(Runner):
         p = self.p
         period = p.period
         next_round = (math.floor(now / period) + 1) * period - now + 1e-3
-        names, pos = self.ops.team.array(now)
+        # every robot ever heard counts: one that fell out of view must not free this robot
+        names, pos = self.ops.team.array(now, everyone=True)
         if not names or names[0] != self.ops.agent_name:
             self.ops.report(self.uid, TaskState.RUNNING, "waiting for this robot's pose")
             return next_round
@@ -133,6 +136,10 @@ class WidepRunner(Runner):
         state = self.motion_state()
         if state is not None and not state.done:
             return next_round  # still finishing the last step: sit this round out
+        stale = self.ops.team.stale(names, now)
+        if stale:
+            self.ops.report(self.uid, TaskState.RUNNING, f"holding: no fresh position of {', '.join(stale)}")
+            return next_round
         start = self.extra.setdefault("start_distance", round(float(dists[0]), 3))
         cap = min(self.s.widep_step_cap, 0.5 * self.s.speed * period)  # done within half a round
         # a neighbour seen mid-move is at most one step off: keep links a step shorter than R and

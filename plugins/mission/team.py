@@ -76,8 +76,16 @@ class TeamView:
         w = self.where.get(self.me)
         return None if w is None else w[:3]
 
-    def array(self, now: float | None = None) -> tuple[list[str], np.ndarray]:
-        """Names and an (N, 2) array of fresh positions, this robot first."""
-        fresh = self.fresh(now)
-        names = [self.me] + sorted(n for n in fresh if n != self.me) if self.me in fresh else sorted(fresh)
-        return names, np.array([fresh[n][:2] for n in names], dtype=float).reshape(-1, 2)
+    def array(self, now: float | None = None, *, everyone: bool = False) -> tuple[list[str], np.ndarray]:
+        """Names and an (N, 2) array of fresh positions (or all known with `everyone`), this robot first."""
+        if everyone:
+            known = {n: w[:3] for n, w in self.where.items()}
+        else:
+            known = self.fresh(now)
+        names = [self.me] + sorted(n for n in known if n != self.me) if self.me in known else sorted(known)
+        return names, np.array([known[n][:2] for n in names], dtype=float).reshape(-1, 2)
+
+    def stale(self, names: list[str], now: float | None = None) -> list[str]:
+        """The robots among `names` (this one excepted) whose position is older than `timeout`."""
+        now = time.time() if now is None else now
+        return [n for n in names if n != self.me and n in self.where and now - self.where[n][3] > self.timeout]

@@ -49,7 +49,7 @@ def test_hold_when_a_cut_vertex_and_resume_when_no_longer(robots, manet):
     watches = agent.query(Task, where=lambda t: t.verb == "NetWatch" and t.source == "robot1")
     assert sorted(t.preposition for t in watches) == ["link_quality", "network_topology"]
     task = send(agent, "goto", x=3.0, y=0.0, speed=1.2)
-    wait_until(lambda: "articulation point" in message(agent, task), timeout=5,
+    wait_until(lambda: "articulation point" in message(agent, task), timeout=10,
                message="the guard never held the robot")
     assert message(agent, task).startswith("holding: robot1 is an articulation point")
     assert len(guard_stops(agent)) == 1
@@ -57,7 +57,7 @@ def test_hold_when_a_cut_vertex_and_resume_when_no_longer(robots, manet):
     held_at = pose_of(agent).x
     assert held_at < 0.5
     net.move("robot2", -30.0, 10.0)  # robot2 next to robot0: robot1 is now a leaf
-    wait_until(lambda: message(agent, task) == "resumed: connectivity restored", timeout=5,
+    wait_until(lambda: message(agent, task) == "resumed: connectivity restored", timeout=10,
                message="never resumed")
     assert not guard_stops(agent)
     done = wait_until(lambda: (t := current(agent, task.uid)).done and t, timeout=10)
@@ -65,7 +65,7 @@ def test_hold_when_a_cut_vertex_and_resume_when_no_longer(robots, manet):
     assert pose_of(agent).x > 2.8
     # a cut vertex again: nothing runs, so nothing is held
     net.move("robot2", 30.0, 0.0)
-    wait_until(lambda: plugin(agent).guard.state.at_risk, timeout=5)
+    wait_until(lambda: plugin(agent).guard.state.at_risk, timeout=10)
     assert not guard_stops(agent)
 
 
@@ -76,7 +76,7 @@ def test_stop_policy_fails_the_task_with_the_reason_when_the_best_link_is_poor(r
     agent = robots("robot1", extra=[mobinet(addresses)],
                    mission={"network_aware": True, "policy": "stop", "min_link_quality": 0.5,
                             "articulation": False, "net_rate_hz": 10.0})
-    wait_until(lambda: plugin(agent).guard.state.at_risk, timeout=5,
+    wait_until(lambda: plugin(agent).guard.state.at_risk, timeout=10,
                message="poor link not noticed")
     task = send(agent, "forward", distance=5.0, speed=0.5)
     done = wait_until(lambda: (t := current(agent, task.uid)).done and t, timeout=5)
@@ -92,17 +92,18 @@ def test_retreat_policy_goes_back_along_the_good_trail_then_resumes(robots, mane
     agent = robots("robot1", extra=[mobinet(addresses)],
                    mission={"network_aware": True, "policy": "retreat", "min_link_quality": 0.05,
                             "resume_after": 0.2, "net_rate_hz": 10.0, "speed": 1.0, "retreat_distance": 1.0})
-    task = send(agent, "goto", x=4.0, y=0.0, speed=1.0)
+    task = send(agent, "goto", x=8.0, y=0.0, speed=1.0)
     wait_until(lambda: pose_of(agent).x > 2.0, timeout=5, message="never moved")
     net.move("robot2", 30.0, 0.0)  # cut vertex again, mid-way
-    wait_until(lambda: message(agent, task).startswith("retreating to ("), timeout=5)
+    wait_until(lambda: message(agent, task).startswith("retreating to ("), timeout=10)
     risk_at = pose_of(agent).x
     wait_until(lambda: guard_stops(agent), timeout=10, message="no hold after the retreat")
     back = pose_of(agent).x
     assert risk_at - back > 0.7, (risk_at, back)
     net.move("robot2", -30.0, 10.0)
-    wait_until(lambda: message(agent, task) == "resumed: connectivity restored", timeout=5)
-    assert wait_until(lambda: (t := current(agent, task.uid)).done and t, timeout=10).state == TaskState.SUCCEEDED
+    wait_until(lambda: message(agent, task) == "resumed: connectivity restored", timeout=10)
+    wait_until(lambda: pose_of(agent).x > back + 0.5, timeout=5, message="did not carry on after resuming")
+    assert not guard_stops(agent) and current(agent, task.uid).state == TaskState.RUNNING
 
 
 def test_guard_hysteresis_and_degraded_readings():
