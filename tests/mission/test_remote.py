@@ -73,7 +73,7 @@ def test_remote_goto_is_expanded_performed_and_reported_only_on_significant_chan
 def test_goto_as_turn_then_forward(robots):
     agent = robots("robot1", mission={"goto_mode": "turn_forward"})
     rec = Recorder(agent)
-    task = send(agent, "goto", x=0.0, y=2.0, speed=1.0, tolerance=0.15)
+    task = send(agent, "goto", x=0.0, y=2.0, speed=1.5, tolerance=0.15)
     assert finished(agent, task).state == TaskState.SUCCEEDED
     subs = rec.tasks(lambda t: t.parent == task.uid)
     assert [s.preposition for s in subs] == ["turn", "forward"]
@@ -86,7 +86,7 @@ def test_goto_detours_around_a_known_obstacle(robots):
     world = World.model_validate({"circle": [{"center": [1.5, 0.0], "radius": 0.4}]})
     agent = robots("robot1", world=world, mission={"obstacles": [[1.5, 0.0, 0.4]], "obstacle_margin": 0.4})
     rec = Recorder(agent)
-    task = send(agent, "goto", x=3.0, y=0.0, speed=0.8, tolerance=0.1)
+    task = send(agent, "goto", x=3.0, y=0.0, speed=1.5, tolerance=0.1)
     assert finished(agent, task).state == TaskState.SUCCEEDED
     subs = rec.tasks(lambda t: t.parent == task.uid)
     assert len(subs) >= 2 and all(s.preposition == "goto" for s in subs)
