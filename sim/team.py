@@ -274,6 +274,8 @@ class Team:
             plugins: list[tuple[str, dict[str, Any]]] = [
                 ("transport", dict(listen=f"{addr}:{port}", role="robot",
                                    capabilities=["motion", "mobinet"] + (["mission"] if self.mission else []),
+                                   # patrol heartbeats travel between robots; poses only to the control node
+                                   **({"share_with": {"Territory": ["control", "robot"]}} if self.mission else {}),
                                    **common)),
                 ("motion", dict(url=self.host.url(i), model=self.scenario.robots.model)),
                 ("mobinet", dict(host=addr, port=snmp_ports[name])),

@@ -135,6 +135,9 @@ class TransportSettings(BaseModel):
                              description="object types sent as status to the peers below")
     share_with_roles: list[str] = Field(default_factory=lambda: ["control"],
                                         description="peers of these roles receive shared status")
+    share_with: dict[str, list[str]] = Field(default_factory=dict,
+                                             description="per type, the roles that receive it, e.g. "
+                                             "{Territory = [\"control\", \"robot\"]}")
     forward_tasks: bool = Field(True, description="false: never send tasks to other agents "
                                 "(a replaying control node)")
     reachability: str | None = Field(None, description="simulation: JSON file saying which agents "
@@ -184,7 +187,7 @@ class TransportPlugin(Plugin):
         self.receipts = self.subscribe(Received)
         self.watched = self.subscribe(lambda o: isinstance(o, WATCHED))
         self.netinfo = self.subscribe(NetInfo)
-        shared = set(s.share)
+        shared = set(s.share) | set(s.share_with)
         self.shared = self.subscribe(lambda o: type(o).__name__ in shared)
         self.status_in: dict[str, tuple[int, int]] = {}  # uid of a status received -> (epoch, seq)
         self.directory: dict[str, Peer] = {}
@@ -421,12 +424,13 @@ class TransportPlugin(Plugin):
         objs = [o for o in self.shared.added + self.shared.changed if o.uid not in self.status_in]
         if not objs:
             return
-        roles = set(self.settings.share_with_roles)
-        targets = [parse_address(p.address) for p in self.directory.values()
-                   if p.up and p.address and p.role in roles]
+        s: TransportSettings = self.settings
+        peers = [p for p in self.directory.values() if p.up and p.address]
         for obj in objs:
-            for addr in targets:
-                self.endpoint.send(addr, "status", obj, reliable=False)
+            roles = s.share_with.get(type(obj).__name__, s.share_with_roles)
+            for peer in peers:
+                if peer.role in roles:
+                    self.endpoint.send(parse_address(peer.address), "status", obj, reliable=False)
 
     def _apply_status(self, msg: Message, obj: BBObject) -> None:
         stamp = (msg.epoch, msg.seq)

@@ -340,3 +340,24 @@ def test_two_statuses_of_a_new_object_in_one_run_lose_nothing(team):
     wait_until(lambda: control.blackboard.get("pose:robot1") is not None)
     assert control.blackboard.get("pose:robot1").x == 2.0
     assert control.blackboard.contains(task.uid) and bridge.failures == 0
+
+
+def test_share_with_sends_a_type_to_more_roles_than_the_rest(team):
+    from blackboard import BBObject, Pose
+    from transport import register_type
+
+    class Beat(BBObject):
+        robot: str
+
+    register_type(Beat)
+    settings = {"share_with": {"Beat": ["control", "robot"]}}
+    control = team("control", echo=False, role="control")
+    a, b = team("robotA", echo=False, **settings), team("robotB", echo=False, **settings)
+    wait_until(lambda: sum(p.up for p in a.query(Peer)) == 2)
+    with a.transaction() as tx:
+        tx.add(Beat(uid="beat:robotA", robot="robotA"))
+        tx.add(Pose(robot="robotA", x=1.0))
+    wait_until(lambda: b.blackboard.contains("beat:robotA") and control.blackboard.contains("beat:robotA"))
+    wait_until(lambda: control.blackboard.contains("pose:robotA"))
+    time.sleep(0.2)
+    assert not b.blackboard.contains("pose:robotA"), "poses go to the control node only"
