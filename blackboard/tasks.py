@@ -118,7 +118,8 @@ class SpreadParams(Params):
     distance: float = Field(5.0, gt=0, description="desired distance d between robots (m)")
     gain: float = Field(2.0, gt=0, description="control gain k")
     dt: float = Field(0.2, gt=0, description="control period (s)")
-    range: float = Field(15.0, gt=0, description="sensing/communication range (m)")
+    range: float = Field(6.0, gt=0, description="neighbourhood range (m); about 1.2 d spreads, "
+                         "much more pulls the team together")
     neighbourhood: str = Field("physical", pattern="^(physical|delaunay)$",
                                description="physical (within range) or delaunay neighbours")
     model: str = Field("nonholonomic", pattern="^(holonomic|nonholonomic)$", description="robot model")
