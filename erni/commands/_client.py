@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
+from collections.abc import Iterator
 from typing import Any
 
 from transport.endpoint import Address, parse_address
@@ -36,6 +38,34 @@ def make_client(args: argparse.Namespace) -> Any:
 
     return Client(via_address(args), discovery_port=args.discovery_port, key_env=args.key_env,
                   insecure=args.insecure)
+
+
+def open_client(args: argparse.Namespace, command: str) -> Any:
+    """Build the client for `erni COMMAND`, or print the one-line reason and return None."""
+    try:
+        return make_client(args)
+    except ValueError as err:
+        print(f"erni {command}: {err}", file=sys.stderr)
+        return None
+
+
+def watch_events(client: Any, addr: Address, end: float | None, lease: float = 10.0) -> Iterator[Any]:
+    """Lease a watch from the agent at `addr`, renewing it, and yield its events until `end`.
+
+    Yields None about every 0.1 s without an event, so callers can show progress.
+    """
+    from transport.bridge import WatchEvent, WatchRequest
+
+    renew = 0.0
+    while not (end and time.monotonic() > end):
+        if time.monotonic() >= renew:
+            client.send(addr, "watch.request", WatchRequest(lease=lease))
+            renew = time.monotonic() + lease / 2
+        msg = client.receive(0.1)
+        if msg is not None and msg.kind == "watch.event" and isinstance(msg.body, WatchEvent):
+            yield msg.body
+        else:
+            yield None
 
 
 def stamp(t: float | None = None) -> str:

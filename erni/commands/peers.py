@@ -7,7 +7,7 @@ import sys
 import time
 from typing import Any
 
-from erni.commands._client import add_client_options, dumps, make_client
+from erni.commands._client import add_client_options, dumps, open_client
 from transport.bridge import PeerList
 
 
@@ -23,10 +23,8 @@ def run(args: argparse.Namespace) -> int:
     """Print the directory as a table or JSON lines."""
     from transport.client import ClientError
 
-    try:
-        client = make_client(args)
-    except ValueError as err:
-        print(f"erni peers: {err}", file=sys.stderr)
+    client = open_client(args, "peers")
+    if client is None:
         return 2
     with client:
         try:

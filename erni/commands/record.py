@@ -7,9 +7,8 @@ import sys
 import time
 from typing import Any
 
-from erni.commands._client import add_client_options, make_client
+from erni.commands._client import add_client_options, open_client, watch_events
 from erni.replay import LogError, Recorder
-from transport.bridge import WatchEvent, WatchRequest
 
 LEASE = 10.0
 
@@ -29,10 +28,8 @@ def run(args: argparse.Namespace) -> int:
     """Lease a watch and write every event to the log, with a progress line on stderr."""
     from transport.client import ClientError
 
-    try:
-        client = make_client(args)
-    except ValueError as err:
-        print(f"erni record: {err}", file=sys.stderr)
+    client = open_client(args, "record")
+    if client is None:
         return 2
     end = time.monotonic() + args.seconds if args.seconds else None
     with client:
@@ -43,20 +40,14 @@ def run(args: argparse.Namespace) -> int:
             print(f"erni record: {err}", file=sys.stderr)
             return 1 if isinstance(err, ClientError) else 2
         print(f"recording {addr[0]}:{addr[1]} into {args.out} (Ctrl-C stops)", file=sys.stderr)
-        renew = shown = 0.0
+        shown = 0.0
         try:
-            while not (end and time.monotonic() > end):
-                now = time.monotonic()
-                if now >= renew:
-                    client.send(addr, "watch.request", WatchRequest(lease=LEASE))
-                    renew = now + LEASE / 2
-                if now >= shown and sys.stderr.isatty():
-                    print(f"\r{recorder.count} events", end="", file=sys.stderr, flush=True)
-                    shown = now + 0.5
-                msg = client.receive(0.1)
-                if msg is not None and msg.kind == "watch.event" and isinstance(msg.body, WatchEvent):
-                    ev = msg.body
+            for ev in watch_events(client, addr, end, LEASE):
+                if ev is not None:
                     recorder.write(ev.agent, ev.op, ev.type, ev.data)
+                if sys.stderr.isatty() and time.monotonic() >= shown:
+                    print(f"\r{recorder.count} events", end="", file=sys.stderr, flush=True)
+                    shown = time.monotonic() + 0.5
         except KeyboardInterrupt:
             pass
         finally:

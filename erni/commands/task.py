@@ -9,7 +9,7 @@ import time
 from typing import Any
 
 from blackboard import Task, TaskError
-from erni.commands._client import add_client_options, dumps, make_client, stamp
+from erni.commands._client import add_client_options, dumps, open_client, stamp
 from transport.bridge import Cancel, ResultUpdate
 
 
@@ -58,10 +58,8 @@ def run(args: argparse.Namespace) -> int:
     except (TaskError, ValueError) as err:
         print(f"erni task: {err}", file=sys.stderr)
         return 2
-    try:
-        client = make_client(args)
-    except ValueError as err:
-        print(f"erni task: {err}", file=sys.stderr)
+    client = open_client(args, "task")
+    if client is None:
         return 2
     from transport.client import ClientError
 

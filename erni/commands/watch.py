@@ -7,8 +7,8 @@ import sys
 import time
 from typing import Any
 
-from erni.commands._client import add_client_options, dumps, make_client, stamp
-from transport.bridge import WatchEvent, WatchRequest
+from erni.commands._client import add_client_options, dumps, open_client, stamp, watch_events
+from transport.bridge import WatchEvent
 
 LEASE = 10.0
 
@@ -44,10 +44,8 @@ def run(args: argparse.Namespace) -> int:
     """Lease a watch from one agent and print its events until stopped."""
     from transport.client import ClientError
 
-    try:
-        client = make_client(args)
-    except ValueError as err:
-        print(f"erni watch: {err}", file=sys.stderr)
+    client = open_client(args, "watch")
+    if client is None:
         return 2
     seen = 0
     end = time.monotonic() + args.seconds if args.seconds else None
@@ -57,16 +55,10 @@ def run(args: argparse.Namespace) -> int:
         except ClientError as err:
             print(f"erni watch: {err}", file=sys.stderr)
             return 1
-        renew = 0.0
         try:
-            while not (end and time.monotonic() > end):
-                if time.monotonic() >= renew:
-                    client.send(addr, "watch.request", WatchRequest(lease=LEASE))
-                    renew = time.monotonic() + LEASE / 2
-                msg = client.receive(0.2)
-                if msg is None or msg.kind != "watch.event" or not isinstance(msg.body, WatchEvent):
+            for ev in watch_events(client, addr, end, LEASE):
+                if ev is None:
                     continue
-                ev = msg.body
                 print(dumps(ev.model_dump(mode="json")) if args.json else describe(ev), flush=True)
                 seen += 1
                 if args.count and seen >= args.count:
