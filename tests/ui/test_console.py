@@ -40,8 +40,9 @@ def test_typed_commands_task_the_team_and_print_feedback_and_results(team):
     assert lines.count("Roger (robot1)") == 2  # the turn went to the last target
     assert "robot1: turn succeeded" in out.stdout
     assert out.returncode == 1  # a piped command was refused
+    assert "robot1: forward succeeded" not in out.stdout  # superseded by the turn: cancelled on the robot
     p1 = team.pose("robot1")
-    assert math.hypot(p1.x - p0.x, p1.y - p0.y) < 0.2  # the forward was superseded by the turn
+    assert math.hypot(p1.x - p0.x, p1.y - p0.y) < 0.6096 - 0.05
     assert math.degrees(abs(math.remainder(p1.theta - p0.theta, 2 * math.pi))) == pytest.approx(90, abs=4)
 
 
