@@ -237,6 +237,7 @@ class Blackboard:
         self._route: dict[type, list[Subscription[Any]]] = {}  # type -> subscriptions, cached
         self.signal: Callable[[Plugin], None] = lambda plugin: None
         self.commits = 0
+        self.moot = 0  # changes/removals dropped because another transaction removed the object
 
     def contains(self, uid: str) -> bool:
         """Return True when an object with this uid is on the blackboard."""
@@ -302,15 +303,21 @@ class Blackboard:
     def _commit(self, ops: list[Op]) -> None:
         owners: dict[int, Plugin] = {}
         with self._lock:
-            # validate everything first so a conflicting commit publishes nothing
+            # validate everything first so a conflicting commit publishes nothing; a change or
+            # removal of an object another transaction removed meanwhile is moot and dropped
             state: dict[str, bool] = {}
-            for kind, obj, _ in ops:
+            kept: list[Op] = []
+            for op in ops:
+                kind, obj, _ = op
                 present = state.get(obj.uid, obj.uid in self._objects)
                 if kind == ADD and present:
                     raise TransactionError(f"commit: {obj.uid} was added by another transaction")
                 if kind != ADD and not present:
-                    raise TransactionError(f"commit: {obj.uid} was removed by another transaction")
+                    self.moot += 1
+                    continue
                 state[obj.uid] = kind != REMOVE
+                kept.append(op)
+            ops = kept
             for kind, obj, reports in ops:
                 if kind == REMOVE:
                     self._objects.pop(obj.uid, None)
@@ -320,8 +327,9 @@ class Blackboard:
                     if sub._offer(kind, obj, reports) and sub._owner is not None:
                         owners[id(sub._owner)] = sub._owner
             self.commits += 1
-            for listener in self._listeners:
-                listener(ops)
+            if ops:
+                for listener in self._listeners:
+                    listener(ops)
         for owner in owners.values():
             self.signal(owner)
 

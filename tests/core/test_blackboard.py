@@ -198,3 +198,19 @@ def test_listeners_see_every_commit_in_order(agent):
         tx.change(item.evolve(value=2))
         tx.remove(item)
     assert seen == [[("add", 1)], [("change", 2), ("remove", 2)]]
+
+
+def test_change_or_removal_of_an_object_removed_meanwhile_is_moot_not_fatal():
+    agent = Agent("m")
+    task, other = Item(value=1), Item(value=2)
+    with agent.transaction() as tx:
+        tx.add(task)
+    canceller, performer = agent.blackboard.transaction(), agent.blackboard.transaction()
+    canceller.remove(task)
+    performer.change(task.evolve(value=5))  # valid when staged ...
+    performer.remove(task)
+    performer.add(other)
+    canceller.commit()
+    performer.commit()  # ... moot at commit: dropped, and the rest of the run still lands
+    assert [o.value for o in agent.query(Item)] == [2]
+    assert agent.blackboard.moot == 2
