@@ -286,7 +286,11 @@ class Team:
         plugins = [("transport", dict(listen=f"{CONTROL_HOST}:{self.control_port}", role="control", **common))]
         if self.ui:
             gui_port = self.gui_port if port_free("127.0.0.1", self.gui_port) else free_port("127.0.0.1", socket.SOCK_STREAM)
-            plugins.append(("ui", {"listen": f"127.0.0.1:{gui_port}"}))
+            plan = self.run_dir / "world.toml"  # the GUI draws the scenario's walls and obstacles
+            world = self.world.model_dump(mode="json", exclude={"robot", "name"}, exclude_none=True)
+            plan.write_text("".join(f"{k} = {toml_value(v)}\n" for k, v in world.items() if v),
+                            encoding="utf-8")
+            plugins.append(("ui", {"listen": f"127.0.0.1:{gui_port}", "floorplan": str(plan)}))
             self.url = f"http://127.0.0.1:{gui_port}/"
         self._add_agent(CONTROL, (CONTROL_HOST, self.control_port), plugins,
                         f"control node of scenario {self.scenario.name}", workers=2)

@@ -139,7 +139,7 @@ def test_poi_coverage_by_real_agents_running_the_mission_plugin(tmp_path):
     data["poi"] = [{"name": "poi", "x": 0.0, "y": 6.5}]
     data["world"]["circle"] = []
     data["task"][0]["params"] = {"x": 0.0, "y": 6.5, "range": 4.5}
-    data["duration"] = 60.0
+    data["duration"] = 150.0  # the run stops 5 s after coverage; headroom for a loaded machine
     data["strategy"]["speed"] = 0.8
     sc = type(sc).model_validate(data)
     result = experiments.run("poi", sc, mode="agents")
