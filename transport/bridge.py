@@ -345,6 +345,9 @@ class TransportPlugin(Plugin):
             self._apply_result(msg, body)
         elif kind == "status" and isinstance(body, BBObject):
             self._apply_status(msg, body)
+        elif kind == "status.remove" and isinstance(body, Cancel):
+            if self.status_in.pop(body.uid, None) is not None and self.get(body.uid) is not None:
+                self.remove(body.uid)
         elif kind == "peers.request":
             peers = PeerList(agent=self.agent_name, peers=list(self.directory.values()))
             self.endpoint.send(msg.reply, "peers.reply", peers, reliable=True)
@@ -422,15 +425,17 @@ class TransportPlugin(Plugin):
     def _share_status(self) -> None:
         """Send this agent's own shared objects (poses, network info) to the status peers."""
         objs = [o for o in self.shared.added + self.shared.changed if o.uid not in self.status_in]
-        if not objs:
+        gone = [o for o in self.shared.removed if o.uid not in self.status_in]
+        if not objs and not gone:
             return
         s: TransportSettings = self.settings
         peers = [p for p in self.directory.values() if p.up and p.address]
-        for obj in objs:
+        for obj in objs + gone:
             roles = s.share_with.get(type(obj).__name__, s.share_with_roles)
+            kind, body = ("status", obj) if obj in objs else ("status.remove", Cancel(uid=obj.uid))
             for peer in peers:
-                if peer.role in roles:
-                    self.endpoint.send(parse_address(peer.address), "status", obj, reliable=False)
+                if peer.role in roles:  # removals reliably: a stale object would stay forever
+                    self.endpoint.send(parse_address(peer.address), kind, body, reliable=kind != "status")
 
     def _apply_status(self, msg: Message, obj: BBObject) -> None:
         stamp = (msg.epoch, msg.seq)

@@ -320,6 +320,9 @@ def test_robot_poses_reach_the_control_node_newest_first(team):
     other = team("robot2", echo=False)  # a robot does not receive another robot's pose
     time.sleep(0.3)
     assert other.blackboard.get("pose:robot1") is None
+    with robot.transaction() as tx:  # gone on the robot: gone on the control node
+        tx.remove("pose:robot1")
+    wait_until(lambda: control.blackboard.get("pose:robot1") is None)
 
 
 def test_two_statuses_of_a_new_object_in_one_run_lose_nothing(team):
