@@ -31,6 +31,18 @@ def _mean_power(samples: list[Sample]) -> float:
     return (samples[-1].energy[0] - samples[0].energy[0]) / (samples[-1].t - samples[0].t)
 
 
+def _steady_power(samples: list[Sample], v: float, tol: float = 0.005) -> tuple[float, int]:
+    """Mean power over consecutive sample pairs both at speed `v` (transients between them excluded)."""
+    energy = duration = 0.0
+    pairs = 0
+    for a, b in zip(samples, samples[1:]):
+        if abs(a.v[0] - v) < tol and abs(b.v[0] - v) < tol and b.t > a.t:
+            energy += b.energy[0] - a.energy[0]
+            duration += b.t - a.t
+            pairs += 1
+    return (energy / duration if pairs >= 2 else float("nan")), pairs
+
+
 def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, **_: Any) -> Result:
     """Run standby, the 5 m run and the speed sweep on a real agent; return figure and metrics."""
     s = scenario.strategy
@@ -81,8 +93,9 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, **_: 
                 except TeamError:
                     if team.elapsed() > tv0 + hold * 4 + 5:
                         raise TeamError(f"velocity {v:g} m/s: no result within {hold * 4 + 5:g} s") from None
-            steady = [x for x in _window(team.samples, tv0, team.elapsed()) if abs(x.v[0] - v) < 0.005]
-            levels.append((v, _mean_power(steady) if len(steady) > 2 else float("nan"), len(steady)))
+            window = _window(team.samples, tv0, team.elapsed())
+            power, n = _steady_power(window, v)
+            levels.append((v, power, n))
         progress("done", round(total), round(total))
     finally:
         team.stop()
