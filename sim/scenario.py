@@ -59,6 +59,7 @@ from __future__ import annotations
 import math
 import random
 import tomllib
+import sys
 from pathlib import Path
 from typing import Any, Literal
 
@@ -317,8 +318,10 @@ def load_scenario(path: str | Path) -> Scenario:
 
 
 def examples_dir() -> Path | None:
-    """The `examples/` directory of a source tree (beside the package, or in the working directory)."""
-    for candidate in (Path(__file__).resolve().parent.parent / "examples", Path.cwd() / "examples"):
+    """The `examples/` directory: of a source tree (beside the package, or in the working
+    directory), else the one installed with the package (<prefix>/share/erni/examples)."""
+    for candidate in (Path(__file__).resolve().parent.parent / "examples", Path.cwd() / "examples",
+                      Path(sys.prefix) / "share" / "erni" / "examples"):
         if candidate.is_dir():
             return candidate
     return None
