@@ -278,7 +278,9 @@ class Team:
                                    **({"share_with": {"Territory": ["control", "robot"]}} if self.mission else {}),
                                    **common)),
                 ("motion", dict(url=self.host.url(i), model=self.scenario.robots.model)),
-                ("mobinet", dict(host=addr, port=snmp_ports[name])),
+                # one retry: a busy laptop running a whole team must not turn a late answer into
+                # a degraded network view that holds every deployment
+                ("mobinet", dict(host=addr, port=snmp_ports[name], timeout=1.0, retries=1)),
             ]
             if self.mission:
                 plugins.append(("mission", self._mission_settings()))

@@ -75,7 +75,9 @@ def team_on_manet(robots, manets, R, clean, fixed, starts, mission):
     agents = {}
     for name, (x, y) in starts.items():
         host, port = addresses[name]
-        mobinet = ("mobinet", {"host": host, "port": port, "timeout": 0.3, "cache_seconds": 0.0}, "mobinet")
+        # generous SNMP timing: a starved 2-core machine must slow the deployment, not stall it
+        mobinet = ("mobinet", {"host": host, "port": port, "timeout": 1.0, "retries": 1, "cache_seconds": 0.0},
+                   "mobinet")
         agents[name] = robots(name, x, y, heading=90.0, extra=[mobinet], mission=mission)
         m.follow(agents[name])
     return m, agents
@@ -90,11 +92,11 @@ def test_widep_covers_the_poi_and_never_breaks_connectivity(manets, robots):
     R = 4.5
     starts = {"robot1": (1.0, 0.5), "robot2": (-1.0, 0.5), "robot3": (0.0, 1.6)}
     m, agents = team_on_manet(robots, manets, R, 3.0, {"base": (0.0, 0.0)}, starts,
-                              {"speed": 1.0, "separation": 0.6, "net_rate_hz": 10.0, "position_timeout": 2.0})
+                              {"speed": 1.0, "separation": 0.6, "net_rate_hz": 10.0, "position_timeout": 5.0})
     poi = (0.0, 6.0)
     tasks = {n: send(a, "widep", verb="Deploy", x=poi[0], y=poi[1], range=R, tolerance=0.5, period=0.6)
              for n, a in agents.items()}
-    results = {n: done(agents[n], t, 40.0) for n, t in tasks.items()}
+    results = {n: done(agents[n], t, 120.0) for n, t in tasks.items()}  # typically 7-16 s
     assert all(r.state == TaskState.SUCCEEDED for r in results.values()), {n: r.result for n, r in results.items()}
     final = {n: m.where[n] for n in starts}
     assert min(math.dist(p, poi) for p in final.values()) <= 0.5 + 0.15
@@ -111,17 +113,18 @@ def test_widep_covers_the_poi_and_never_breaks_connectivity(manets, robots):
 def test_spreading_robots_approach_the_desired_distance(manets, robots):
     starts = {"robot1": (0.0, 0.0), "robot2": (0.7, 0.0), "robot3": (0.0, 0.7), "robot4": (0.7, 0.7)}
     m, agents = team_on_manet(robots, manets, 50.0, 40.0, {}, starts,
-                              {"speed": 0.8, "net_rate_hz": 10.0, "position_timeout": 2.0})
+                              {"speed": 0.8, "net_rate_hz": 10.0, "position_timeout": 5.0})
     start_nn = mean_nn_distance(np.array(list(starts.values())))
+    # 30 s of deployment: a few seconds suffice on an idle machine, a starved one needs more
     tasks = {n: send(a, "spread", verb="Deploy", distance=2.5, gain=2.0, dt=0.2, range=3.2,
-                     model="holonomic", duration=12.0) for n, a in agents.items()}
-    results = {n: done(agents[n], t, 20.0) for n, t in tasks.items()}
+                     model="holonomic", duration=30.0) for n, a in agents.items()}
+    results = {n: done(agents[n], t, 60.0) for n, t in tasks.items()}
     assert all(r.state == TaskState.SUCCEEDED for r in results.values())
     nn = mean_nn_distance(np.array([m.where[n] for n in starts]))
     assert start_nn < 1.0
     # the team spread out to about d (the exact convergence of the law is tested on the pure model)
     assert 0.6 * 2.5 <= nn <= 1.6 * 2.5, nn
-    assert all(r.result.values["energy_j"] > 8.568 * 11 for r in results.values())  # 12 s, moving or not
+    assert all(r.result.values["energy_j"] > 8.568 * 29 for r in results.values())  # 30 s, moving or not
 
 
 def test_relay_settles_between_source_and_destination(manets, robots):
