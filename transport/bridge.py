@@ -430,9 +430,10 @@ class TransportPlugin(Plugin):
             return
         s: TransportSettings = self.settings
         peers = [p for p in self.directory.values() if p.up and p.address]
-        for obj in objs + gone:
+        messages = [("status", obj, obj) for obj in objs]
+        messages += [("status.remove", obj, Cancel(uid=obj.uid)) for obj in gone]
+        for kind, obj, body in messages:
             roles = s.share_with.get(type(obj).__name__, s.share_with_roles)
-            kind, body = ("status", obj) if obj in objs else ("status.remove", Cancel(uid=obj.uid))
             for peer in peers:
                 if peer.role in roles:  # removals reliably: a stale object would stay forever
                     self.endpoint.send(parse_address(peer.address), kind, body, reliable=kind != "status")
