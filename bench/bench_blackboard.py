@@ -19,7 +19,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from blackboard import Agent, BBObject, Plugin  # noqa: E402
+from erni.blackboard import Agent, BBObject, Plugin  # noqa: E402
 
 
 class Stamp(BBObject):

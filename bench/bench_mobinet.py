@@ -22,14 +22,13 @@ import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from erni.plugins.mobinet import snmp as mib
+from erni.plugins.mobinet.resource import NEIGHBORS, PARTS, TOPOLOGY
+from erni.plugins.mobinet.snmp import SnmpSource
+from erni.sim.manet import ManetNetwork, RadioModel
+from erni.sim.snmp_agent import ManetSnmpAgent
 
-from plugins.mobinet import snmp as mib
-from plugins.mobinet.resource import NEIGHBORS, PARTS, TOPOLOGY
-from plugins.mobinet.snmp import SnmpSource
-from sim.manet import ManetNetwork, RadioModel
-from sim.snmp_agent import ManetSnmpAgent
+ROOT = Path(__file__).resolve().parents[1]
 
 ECHO = """
 import socket, sys

@@ -22,9 +22,9 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from blackboard import Agent, Pose, Task  # noqa: E402
-from blackboard.testing import wait_until  # noqa: E402
-from plugins.motion import ArcosDriver, RobotMotionControl  # noqa: E402
+from erni.blackboard import Agent, Pose, Task  # noqa: E402
+from erni.blackboard.testing import wait_until  # noqa: E402
+from erni.plugins.motion import ArcosDriver, RobotMotionControl  # noqa: E402
 
 
 def start_sim(period: float) -> tuple[subprocess.Popen[str], list[str]]:
@@ -113,7 +113,7 @@ def main() -> int:
         raw = ArcosDriver(urls[1], name="floor", sync_timeout=0.5)
         try:
             agent.start()
-            wait_until(lambda: agent.query(Pose), timeout=10)
+            wait_until(lambda agent=agent: agent.query(Pose), timeout=10)
             plugin = agent.plugin("motion")
             assert isinstance(plugin, RobotMotionControl)
             raw.open()

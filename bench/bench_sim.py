@@ -30,13 +30,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np  # noqa: E402
 
-from sim.scenario import Scenario  # noqa: E402
-from sim.team import Team  # noqa: E402
-from transport.bridge import WatchEvent, WatchRequest  # noqa: E402
+from erni.sim.scenario import Scenario  # noqa: E402
+from erni.sim.team import Team  # noqa: E402
+from erni.transport.bridge import WatchEvent, WatchRequest  # noqa: E402
 
 TICK = os.sysconf("SC_CLK_TCK")
 PAGE = os.sysconf("SC_PAGE_SIZE")
-AGENT_IMPORTS = "import blackboard, transport.bridge, plugins.motion, plugins.mobinet, plugins.mission"
+AGENT_IMPORTS = "import erni.blackboard, erni.transport.bridge, erni.plugins.motion, erni.plugins.mobinet, erni.plugins.mission"
 
 
 def pct(values: list[float], q: float) -> float:
@@ -90,7 +90,7 @@ def agents_run(n: int, window: float) -> dict[str, float]:
         pids = {name: a.proc.pid for name, a in team.agents.items() if a.proc}
         cpu0 = {name: cpu_seconds(pid) for name, pid in pids.items()}
         sim0 = cpu_seconds(os.getpid())
-        from transport.endpoint import parse_address
+        from erni.transport.endpoint import parse_address
 
         addresses = {p.name: parse_address(p.address) for p in team.peers().values() if p.address}
         stamps: dict[str, list[float]] = {name: [] for name in team.names}  # at each robot's own agent
@@ -135,9 +135,9 @@ def agents_run(n: int, window: float) -> dict[str, float]:
 
 def host_cost(n: int, steps: int = 25) -> tuple[float, float]:
     """Milliseconds of one physics step and of one SIP round (sonar cast) for n moving robots in one host."""
-    from sim.robot import SimRobotConfig
-    from sim.robot_host import RobotHost
-    from sim.world import World
+    from erni.sim.robot import SimRobotConfig
+    from erni.sim.robot_host import RobotHost
+    from erni.sim.world import World
 
     cols = max(1, int(np.ceil(np.sqrt(n))))
     host = RobotHost(World(bounds=(-2.0, -2.0, cols * 3.0, cols * 3.0)))
@@ -163,7 +163,7 @@ def host_cost(n: int, steps: int = 25) -> tuple[float, float]:
 
 def kinematic_run(n: int, seconds: float) -> list[tuple[str, float, float]]:
     """Time the spread of n robots for `seconds` simulated; return (variant, wall s, real-time factor)."""
-    from plugins.mission.strategies.potential import SpreadConfig, spread_step
+    from erni.strategies.potential import SpreadConfig, spread_step
 
     rng = np.random.default_rng(1)
     out = []

@@ -22,8 +22,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from blackboard import Pose  # noqa: E402
-from transport import Endpoint  # noqa: E402
+from erni.blackboard import Pose  # noqa: E402
+from erni.transport import Endpoint  # noqa: E402
 
 KEY = b"bench-team-key"
 
@@ -118,7 +118,7 @@ def floor_round(pings: int, burst: int) -> tuple[list[float], list[float], float
         while not stop.is_set():
             try:
                 rx.recvfrom(65536)
-            except socket.timeout:
+            except TimeoutError:
                 continue
             now = time.perf_counter()
             lat.append(now)

@@ -19,7 +19,6 @@ import argparse
 import asyncio
 import json
 import random
-import statistics
 import sys
 import time
 from pathlib import Path
@@ -29,8 +28,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import aiohttp  # noqa: E402
 from aiohttp import web  # noqa: E402
 
-from blackboard import Agent, Pose, Task  # noqa: E402
-from plugins.ui import UIPlugin, parse  # noqa: E402
+from erni.blackboard import Agent, Pose, Task  # noqa: E402
+from erni.plugins.ui import UIPlugin, parse  # noqa: E402
 
 
 def pct(values: list[float], q: float) -> float:

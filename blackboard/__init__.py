@@ -1,11 +1,11 @@
 """The agent core: transactional blackboard, plugins, agent host and the task language."""
 
-from blackboard.agent import Agent
-from blackboard.blackboard import Blackboard, Subscription, Transaction
-from blackboard.errors import ConfigError, ErniError, PluginError, TaskError, TransactionError
-from blackboard.objects import BBObject, new_uid
-from blackboard.plugin import Plugin
-from blackboard.tasks import (
+from erni.blackboard.agent import Agent
+from erni.blackboard.blackboard import Blackboard, Subscription, Transaction
+from erni.blackboard.errors import ConfigError, ErniError, PluginError, TaskError, TransactionError
+from erni.blackboard.objects import BBObject, new_uid
+from erni.blackboard.plugin import Plugin
+from erni.blackboard.tasks import (
     AllocationResult,
     Link,
     Neighbor,

@@ -17,9 +17,9 @@ from typing import Any
 
 from pydantic import BaseModel, ValidationError
 
-from blackboard.blackboard import Blackboard, Transaction
-from blackboard.errors import PluginError
-from blackboard.plugin import NoSettings, Plugin
+from erni.blackboard.blackboard import Blackboard, Transaction
+from erni.blackboard.errors import PluginError
+from erni.blackboard.plugin import NoSettings, Plugin
 
 ENTRY_POINT_GROUP = "erni.plugins"
 
@@ -246,7 +246,7 @@ class Agent:
     @classmethod
     def from_config(cls, path: str | Path) -> Agent:
         """Build an agent from a TOML config file (raises ConfigError)."""
-        from blackboard.config import load_agent
+        from erni.blackboard.config import load_agent
 
         return load_agent(path)
 
@@ -341,7 +341,7 @@ class Agent:
 
     def _rehydrate(self) -> None:
         """Open the journal, put its objects back on the blackboard, then journal every commit."""
-        from blackboard.journal import Journal
+        from erni.blackboard.journal import Journal
 
         assert self.journal_path is not None
         self.journal = Journal(self.journal_path, self.name)
@@ -423,7 +423,7 @@ def validate_settings(cls: type[Plugin], settings: dict[str, Any] | BaseModel | 
     return _strict(model).model_validate(settings or {})
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _strict(model: type[BaseModel]) -> type[BaseModel]:
     if model.model_config.get("extra") is not None:
         return model

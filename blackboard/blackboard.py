@@ -12,11 +12,11 @@ import threading
 from collections.abc import Callable, Iterator
 from typing import TYPE_CHECKING, Any, Generic, TypeVar
 
-from blackboard.errors import TransactionError
-from blackboard.objects import BBObject
+from erni.blackboard.errors import TransactionError
+from erni.blackboard.objects import BBObject
 
 if TYPE_CHECKING:
-    from blackboard.plugin import Plugin
+    from erni.blackboard.plugin import Plugin
 
 T = TypeVar("T", bound=BBObject)
 

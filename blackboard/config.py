@@ -8,8 +8,8 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from blackboard.agent import Agent, resolve_plugin, validate_settings
-from blackboard.errors import ConfigError, PluginError
+from erni.blackboard.agent import Agent, resolve_plugin, validate_settings
+from erni.blackboard.errors import ConfigError, PluginError
 
 
 class AgentSection(BaseModel):
@@ -48,7 +48,7 @@ class AgentConfig(BaseModel):
 
 def _where(loc: tuple[Any, ...], config: AgentConfig | None = None) -> str:
     parts: list[str] = []
-    for i, p in enumerate(loc):
+    for p in loc:
         if isinstance(p, int) and parts:
             parts[-1] += f"[{p}]"
         else:

@@ -17,9 +17,9 @@ import time
 from pathlib import Path
 from typing import Any
 
-from blackboard.blackboard import REMOVE, Op
-from blackboard.errors import ConfigError
-from blackboard.objects import BBObject
+from erni.blackboard.blackboard import REMOVE, Op
+from erni.blackboard.errors import ConfigError
+from erni.blackboard.objects import BBObject
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS objects (

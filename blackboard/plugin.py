@@ -11,12 +11,12 @@ from typing import TYPE_CHECKING, Any, ClassVar
 
 from pydantic import BaseModel, ConfigDict
 
-from blackboard.blackboard import Subscription, Transaction
-from blackboard.errors import TransactionError
-from blackboard.objects import BBObject
+from erni.blackboard.blackboard import Subscription, Transaction
+from erni.blackboard.errors import TransactionError
+from erni.blackboard.objects import BBObject
 
 if TYPE_CHECKING:
-    from blackboard.agent import Agent
+    from erni.blackboard.agent import Agent
 
 
 class NoSettings(BaseModel):

@@ -24,8 +24,8 @@ from pydantic import (
     model_validator,
 )
 
-from blackboard.errors import TaskError
-from blackboard.objects import BBObject
+from erni.blackboard.errors import TaskError
+from erni.blackboard.objects import BBObject
 
 
 class Params(BaseModel):

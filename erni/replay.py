@@ -18,9 +18,9 @@ from typing import Any
 
 from pydantic import BaseModel, Field
 
-from blackboard import BBObject, Plugin
-from blackboard.errors import ErniError
-from transport.wire import TYPES
+from erni.blackboard import BBObject, Plugin
+from erni.blackboard.errors import ErniError
+from erni.transport.wire import TYPES
 
 FORMAT = 1
 

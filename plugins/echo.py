@@ -11,7 +11,7 @@ import time
 
 from pydantic import BaseModel, Field
 
-from blackboard import Plugin, Task, TaskState
+from erni.blackboard import Plugin, Task, TaskState
 
 
 class EchoPlugin(Plugin):

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike
 
-import netgraph
+from erni import netgraph
 
 
 def distances(pos: ArrayLike) -> np.ndarray:

@@ -27,7 +27,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Any
 
-import netgraph
+from erni import netgraph
 
 METRIC_UNIT = 1024
 MAX_METRIC = 16776960

@@ -13,7 +13,7 @@ import ipaddress
 import time
 from typing import Literal, NamedTuple
 
-from sim.manet import NodeView
+from erni.sim.manet import NodeView
 
 OID = tuple[int, ...]
 

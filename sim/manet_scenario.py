@@ -7,7 +7,7 @@ from pathlib import Path
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from sim.manet import ManetNetwork, RadioModel
+from erni.sim.manet import ManetNetwork, RadioModel
 
 
 class _Strict(BaseModel):

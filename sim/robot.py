@@ -20,12 +20,12 @@ import logging
 import math
 import random
 import struct
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from sim.world import World
+from erni.sim.world import World
 
 log = logging.getLogger("erni.sim.robot")
 
@@ -66,7 +66,7 @@ class SimRobotConfig(BaseModel):
     seed: int = 0
 
     @classmethod
-    def amigobot(cls, **kw: object) -> "SimRobotConfig":
+    def amigobot(cls, **kw: object) -> SimRobotConfig:
         """An AmigoBot with old-firmware conversion factors."""
         base = dict(robot_class="AmigoBot", subclass="amigo-sim", radius=0.18, axle=0.28, max_v=0.75,
                     sonar_angles=AMIGOBOT_SONAR, dist_conv=0.5083, vel_conv=0.6154)

@@ -17,11 +17,11 @@ import socket
 import threading
 import time
 import tty
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
-from sim.robot import ArcosFirmware, SimRobot, SimRobotConfig
-from sim.world import World
+from erni.sim.robot import ArcosFirmware, SimRobot, SimRobotConfig
+from erni.sim.world import World
 
 log = logging.getLogger("erni.sim.robot")
 
@@ -112,7 +112,7 @@ class RobotHost:
 
     # --- running ------------------------------------------------------------------------
 
-    def start(self) -> "RobotHost":
+    def start(self) -> RobotHost:
         """Serve the robots from a thread named `robot-sim`; returns self."""
         if self._thread is None:
             self._last = self.clock()
@@ -133,7 +133,7 @@ class RobotHost:
             self._thread = None
         self._close_all()
 
-    def __enter__(self) -> "RobotHost":
+    def __enter__(self) -> RobotHost:
         return self.start()
 
     def __exit__(self, *exc: object) -> None:

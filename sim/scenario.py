@@ -56,18 +56,18 @@ Units: metres, seconds, degrees. Errors read `FILE: field.path: message`.
 
 from __future__ import annotations
 
+import importlib.resources
 import math
 import random
 import tomllib
-import sys
 from pathlib import Path
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from blackboard.errors import TaskError
-from blackboard.tasks import Task
-from sim.world import RobotStart, World, WorldError
+from erni.blackboard.errors import TaskError
+from erni.blackboard.tasks import Task
+from erni.sim.world import RobotStart, World, WorldError
 
 NAME = r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,62}$"
 MAX_AGENT_ROBOTS = 240  # one loopback address 127.0.1.N per robot agent
@@ -318,13 +318,10 @@ def load_scenario(path: str | Path) -> Scenario:
 
 
 def examples_dir() -> Path | None:
-    """The `examples/` directory: of a source tree (beside the package, or in the working
-    directory), else the one installed with the package (<prefix>/share/erni/examples)."""
-    for candidate in (Path(__file__).resolve().parent.parent / "examples", Path.cwd() / "examples",
-                      Path(sys.prefix) / "share" / "erni" / "examples"):
-        if candidate.is_dir():
-            return candidate
-    return None
+    """The example scenarios, worlds and configs shipped inside the package (`erni/examples`),
+    found through importlib.resources wherever the package is installed."""
+    found = importlib.resources.files("erni").joinpath("examples")
+    return found if isinstance(found, Path) and found.is_dir() else None
 
 
 def find_scenario(name: str) -> Path:

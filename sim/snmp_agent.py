@@ -22,9 +22,9 @@ from pyasn1.type import univ
 from pysnmp.proto import api
 from pysnmp.proto.api import v2c
 
-from sim import snmp_ber as ber
-from sim.manet import ManetNetwork
-from sim.manet_mib import (
+from erni.sim import snmp_ber as ber
+from erni.sim.manet import ManetNetwork
+from erni.sim.manet_mib import (
     INT32,
     OID,
     WRITABLE,

@@ -26,16 +26,17 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
-from sim.manet import ManetNetwork, RadioModel
-from sim.robot import SimRobot, SimRobotConfig
-from sim.robot_host import RobotHost
-from sim.scenario import MAX_AGENT_ROBOTS, Scenario
-from sim.snmp_agent import ManetSnmpAgent
-from sim.world import World
+from erni.sim.manet import ManetNetwork, RadioModel
+from erni.sim.robot import SimRobot, SimRobotConfig
+from erni.sim.robot_host import RobotHost
+from erni.sim.scenario import MAX_AGENT_ROBOTS, Scenario
+from erni.sim.snmp_agent import ManetSnmpAgent
+from erni.sim.world import World
 
 log = logging.getLogger("erni.sim.team")
 
@@ -179,8 +180,8 @@ class Team:
         self.record = record
         self.transport = {"peer_timeout": 3.0, **(transport or {})}
         self.gui_port = gui_port
-        self.mission = plugin_available("plugins.mission", "MissionControl") if mission is None else mission
-        self.ui = (not headless and plugin_available("plugins.ui", "UIPlugin")) if ui is None else ui
+        self.mission = plugin_available("erni.plugins.mission", "MissionControl") if mission is None else mission
+        self.ui = (not headless and plugin_available("erni.plugins.ui", "UIPlugin")) if ui is None else ui
         self.key = secrets.token_hex(16)
         self.key_file = self.run_dir / "team.key"
         self.reach_file = self.run_dir / "reach.json"
@@ -328,7 +329,7 @@ class Team:
     def client(self) -> Any:
         """A started transport client of this team, reaching it through the control node."""
         if self._client is None:
-            from transport.client import Client
+            from erni.transport.client import Client
 
             os.environ[KEY_ENV] = self.key
             self._client = Client(self.control_address, key_env=KEY_ENV)
@@ -337,7 +338,7 @@ class Team:
 
     def peers(self, timeout: float = 2.0) -> dict[str, Any]:
         """The control node's directory: agent name -> Peer ({} when it does not answer)."""
-        from transport.bridge import PeerList
+        from erni.transport.bridge import PeerList
 
         client = self.client()
         client.send(self.control_address, "peers.request", None)
@@ -430,7 +431,7 @@ class Team:
 
     def send_task(self, robot: str, verb: str, preposition: str, **params: Any) -> Any:
         """Send a task to agent `robot` through the control node; return the Task sent."""
-        from blackboard import Task
+        from erni.blackboard import Task
 
         client = self.client()
         task = Task(verb=verb, preposition=preposition, params=params, destination=robot,
@@ -440,7 +441,7 @@ class Team:
 
     def wait_result(self, uid: str, timeout: float) -> Any:
         """Return the final AllocationResult of a task sent with `send_task` (TeamError after timeout)."""
-        from transport.bridge import ResultUpdate
+        from erni.transport.bridge import ResultUpdate
 
         client = self.client()
         deadline = time.monotonic() + timeout

@@ -30,8 +30,8 @@ from __future__ import annotations
 
 import math
 import tomllib
+from collections.abc import Iterable, Iterator
 from pathlib import Path
-from typing import Iterable, Iterator
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
@@ -88,7 +88,7 @@ class World(_Model):
     robot: list[RobotStart] = Field(default_factory=list)
 
     @model_validator(mode="after")
-    def _check_bounds(self) -> "World":
+    def _check_bounds(self) -> World:
         if self.bounds is not None:
             xmin, ymin, xmax, ymax = self.bounds
             if xmin >= xmax or ymin >= ymax:
@@ -98,7 +98,7 @@ class World(_Model):
     # --- loading ------------------------------------------------------------------------
 
     @classmethod
-    def load(cls, path: str | Path) -> "World":
+    def load(cls, path: str | Path) -> World:
         """Read a world TOML file; raise WorldError naming the file and the bad field."""
         path = Path(path)
         try:
@@ -110,7 +110,7 @@ class World(_Model):
         return cls.from_dict(data, source=str(path))
 
     @classmethod
-    def from_dict(cls, data: dict, source: str = "world") -> "World":
+    def from_dict(cls, data: dict, source: str = "world") -> World:
         """Validate a world from plain data; raise WorldError with one line per problem."""
         try:
             return cls.model_validate(data)

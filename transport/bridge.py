@@ -20,10 +20,10 @@ from typing import Any, ClassVar
 
 from pydantic import BaseModel, ConfigDict, Field, SecretStr, model_validator
 
-from blackboard import BBObject, NetInfo, Plugin, Pose, Task, TaskState
-from blackboard.tasks import AllocationResult
-from transport.endpoint import Address, Endpoint, parse_address, team_key
-from transport.wire import Message, register_type
+from erni.blackboard import BBObject, NetInfo, Plugin, Pose, Task, TaskState
+from erni.blackboard.tasks import AllocationResult
+from erni.transport.endpoint import Address, Endpoint, parse_address, team_key
+from erni.transport.wire import Message, register_type
 
 
 class Peer(BBObject):

@@ -15,9 +15,9 @@ import sys
 import time
 from typing import Any
 
-from transport.bridge import Beacon
-from transport.endpoint import Address, Endpoint, team_key
-from transport.wire import Message
+from erni.transport.bridge import Beacon
+from erni.transport.endpoint import Address, Endpoint, team_key
+from erni.transport.wire import Message
 
 
 class ClientError(Exception):

@@ -25,8 +25,8 @@ from typing import Any
 
 from pydantic import BaseModel
 
-from blackboard import new_uid
-from transport.wire import (
+from erni.blackboard import new_uid
+from erni.transport.wire import (
     DEFAULT_MAX_FRAME,
     UDP_MAX_FRAME,
     Envelope,

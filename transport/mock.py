@@ -20,8 +20,8 @@ from typing import Any
 
 from pydantic import BaseModel
 
-from blackboard import new_uid
-from transport.wire import Envelope, Message, SeenIds, body_of, decode, encode
+from erni.blackboard import new_uid
+from erni.transport.wire import Envelope, Message, SeenIds, body_of, decode, encode
 
 Address = tuple[str, int]
 _KEY = b"mock-network"

@@ -19,8 +19,8 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from blackboard import AllocationResult, NetInfo, Pose, Task
-from blackboard.errors import ErniError
+from erni.blackboard import AllocationResult, NetInfo, Pose, Task
+from erni.blackboard.errors import ErniError
 
 HEADER = struct.Struct(">I")
 TAG_SIZE = 32

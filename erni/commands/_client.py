@@ -9,7 +9,7 @@ import time
 from collections.abc import Iterator
 from typing import Any
 
-from transport.endpoint import Address, parse_address
+from erni.transport.endpoint import Address, parse_address
 
 
 def add_client_options(p: argparse.ArgumentParser) -> None:
@@ -34,7 +34,7 @@ def via_address(args: argparse.Namespace) -> Address | None:
 
 def make_client(args: argparse.Namespace) -> Any:
     """Build a Client from the shared options."""
-    from transport.client import Client
+    from erni.transport.client import Client
 
     return Client(via_address(args), discovery_port=args.discovery_port, key_env=args.key_env,
                   insecure=args.insecure)
@@ -54,7 +54,7 @@ def watch_events(client: Any, addr: Address, end: float | None, lease: float = 1
 
     Yields None about every 0.1 s without an event, so callers can show progress.
     """
-    from transport.bridge import WatchEvent, WatchRequest
+    from erni.transport.bridge import WatchEvent, WatchRequest
 
     renew = 0.0
     while not (end and time.monotonic() > end):

@@ -8,8 +8,8 @@ import sys
 import threading
 from typing import Any
 
-from blackboard.config import build_agent, read_config
-from blackboard.errors import ConfigError, ErniError
+from erni.blackboard.config import build_agent, read_config
+from erni.blackboard.errors import ConfigError, ErniError
 from erni.logs import setup_logging
 
 

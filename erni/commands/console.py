@@ -17,9 +17,9 @@ import time
 from pathlib import Path
 from typing import Any, TextIO
 
-from blackboard import Task
+from erni.blackboard import Task
 from erni.commands._client import add_client_options, dumps, make_client, stamp
-from transport.bridge import Cancel, PeerList, ResultUpdate
+from erni.transport.bridge import Cancel, PeerList, ResultUpdate
 
 HELP = """examples:  robot 1 go to 2 3 | robots 1 and 2 turn right 90 degrees | go forward 2 feet
            everyone stop | cancel | random walk | attention | go to sleep | quit"""
@@ -174,8 +174,8 @@ def _readline(history: str) -> Any:
 
 def run(args: argparse.Namespace) -> int:
     """Read commands until EOF or `quit`."""
-    from plugins.ui.dialogue import Dialogue, Naming
-    from transport.client import ClientError
+    from erni.plugins.ui.dialogue import Dialogue, Naming
+    from erni.transport.client import ClientError
 
     try:
         naming = Naming(args.robot_names)

@@ -10,7 +10,7 @@ from typing import Any
 
 def register(sub: Any) -> None:
     """Add the `experiment` sub-command."""
-    from sim.experiments import EXPERIMENTS
+    from erni.sim.experiments import EXPERIMENTS
 
     names = "; ".join(f"{e.name} (paper {e.paper}: {e.title})" for e in EXPERIMENTS.values())
     p = sub.add_parser(
@@ -32,9 +32,10 @@ def register(sub: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run the experiment; exit 0, 1 when it failed, 2 on bad input."""
-    from sim.experiments import EXPERIMENTS, run as run_experiment
-    from sim.progress import Progress
-    from sim.scenario import ScenarioError, find_scenario, load_scenario
+    from erni.sim.experiments import EXPERIMENTS
+    from erni.sim.experiments import run as run_experiment
+    from erni.sim.progress import Progress
+    from erni.sim.scenario import ScenarioError, find_scenario, load_scenario
 
     if args.list or not args.name:
         print(f"{'name':<16} {'paper':<6} {'mode':<18} what")

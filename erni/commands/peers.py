@@ -8,7 +8,7 @@ import time
 from typing import Any
 
 from erni.commands._client import add_client_options, dumps, open_client
-from transport.bridge import PeerList
+from erni.transport.bridge import PeerList
 
 
 def register(sub: Any) -> None:
@@ -21,7 +21,7 @@ def register(sub: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Print the directory as a table or JSON lines."""
-    from transport.client import ClientError
+    from erni.transport.client import ClientError
 
     client = open_client(args, "peers")
     if client is None:

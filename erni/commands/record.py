@@ -26,7 +26,7 @@ def register(sub: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Lease a watch and write every event to the log, with a progress line on stderr."""
-    from transport.client import ClientError
+    from erni.transport.client import ClientError
 
     client = open_client(args, "record")
     if client is None:

@@ -10,8 +10,8 @@ import threading
 import time
 from typing import Any
 
-from blackboard import Agent
-from blackboard.errors import ErniError
+from erni.blackboard import Agent
+from erni.blackboard.errors import ErniError
 from erni.logs import setup_logging
 from erni.replay import LogError, ReplayPlugin, read_log
 
@@ -74,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
                          name="transport")
         plugin = agent.add_plugin(ReplayPlugin, settings={"log": args.log, "speed": args.speed,
                                                           "loop": args.loop}, name="replay")
-        if not args.no_gui and importlib.util.find_spec("plugins.ui") is not None:
+        if not args.no_gui and importlib.util.find_spec("erni.plugins.ui") is not None:
             try:
                 agent.add_plugin("ui", name="ui")
             except ErniError as err:

@@ -33,9 +33,9 @@ def register(sub: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Start the robots, print where they listen, serve until SIGINT or SIGTERM."""
-    from sim.robot import SimRobotConfig
-    from sim.robot_host import RobotHost
-    from sim.world import World, WorldError
+    from erni.sim.robot import SimRobotConfig
+    from erni.sim.robot_host import RobotHost
+    from erni.sim.world import World, WorldError
 
     setup_logging(args.log_level)
     problems = []

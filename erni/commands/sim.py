@@ -35,7 +35,7 @@ def register(sub: Any) -> None:
 
 def load(args: argparse.Namespace) -> Any:
     """Return the scenario the arguments ask for (raises ScenarioError)."""
-    from sim.scenario import Scenario, ScenarioError, find_scenario, load_scenario
+    from erni.sim.scenario import Scenario, ScenarioError, find_scenario, load_scenario
 
     scenario = load_scenario(find_scenario(args.scenario)) if args.scenario else Scenario()
     if args.robots is not None:
@@ -51,9 +51,9 @@ def load(args: argparse.Namespace) -> Any:
 
 def run(args: argparse.Namespace) -> int:
     """Start the team, print how to reach it, run the scenario's tasks, stop cleanly on Ctrl-C."""
-    from sim.progress import Progress
-    from sim.scenario import ScenarioError
-    from sim.team import Team, TeamError
+    from erni.sim.progress import Progress
+    from erni.sim.scenario import ScenarioError
+    from erni.sim.team import Team, TeamError
 
     try:
         scenario = load(args)
@@ -111,8 +111,8 @@ def _print_team(team: Any, seconds: float) -> None:
 
 
 def _run_scenario(team: Any, scenario: Any) -> None:
-    from blackboard import Task
-    from transport.bridge import ResultUpdate
+    from erni.blackboard import Task
+    from erni.transport.bridge import ResultUpdate
 
     client = team.client()
     start = time.monotonic()

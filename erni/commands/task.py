@@ -8,9 +8,9 @@ import sys
 import time
 from typing import Any
 
-from blackboard import Task, TaskError
+from erni.blackboard import Task, TaskError
 from erni.commands._client import add_client_options, dumps, open_client, stamp
-from transport.bridge import Cancel, ResultUpdate
+from erni.transport.bridge import Cancel, ResultUpdate
 
 
 def register(sub: Any) -> None:
@@ -61,7 +61,7 @@ def run(args: argparse.Namespace) -> int:
     client = open_client(args, "task")
     if client is None:
         return 2
-    from transport.client import ClientError
+    from erni.transport.client import ClientError
 
     with client:
         task = task.evolve(source=client.endpoint.name)

@@ -6,7 +6,7 @@ import argparse
 import json
 from typing import Any
 
-from blackboard.tasks import PREPOSITIONS, VERBS, language_table
+from erni.blackboard.tasks import PREPOSITIONS, VERBS, language_table
 
 
 def register(sub: Any) -> None:

@@ -8,7 +8,7 @@ import time
 from typing import Any
 
 from erni.commands._client import add_client_options, dumps, open_client, stamp, watch_events
-from transport.bridge import WatchEvent
+from erni.transport.bridge import WatchEvent
 
 LEASE = 10.0
 
@@ -42,7 +42,7 @@ def describe(event: WatchEvent) -> str:
 
 def run(args: argparse.Namespace) -> int:
     """Lease a watch from one agent and print its events until stopped."""
-    from transport.client import ClientError
+    from erni.transport.client import ClientError
 
     client = open_client(args, "watch")
     if client is None:

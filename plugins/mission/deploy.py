@@ -31,13 +31,13 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from blackboard import Pose, Task, TaskState
-from plugins.mission.strategies import patrol as patrol_core
-from plugins.mission.strategies.energy import EnergyMeter
-from plugins.mission.strategies.potential import SpreadConfig, robot_command
-from plugins.mission.strategies.relay import relay_step
-from plugins.mission.strategies.widep import widep_step
-from plugins.mission.team import TeamView, Territory
+from erni.blackboard import Pose, Task, TaskState
+from erni.plugins.mission.team import TeamView, Territory
+from erni.strategies import patrol as patrol_core
+from erni.strategies.energy import EnergyMeter
+from erni.strategies.potential import SpreadConfig, robot_command
+from erni.strategies.relay import relay_step
+from erni.strategies.widep import widep_step
 
 
 class Ops(Protocol):

@@ -23,7 +23,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from blackboard import (
+from erni.blackboard import (
     AllocationResult,
     NetInfo,
     Plugin,
@@ -32,10 +32,10 @@ from blackboard import (
     TaskState,
     TransactionError,
 )
-from plugins.mission.deploy import RUNNERS, Runner
-from plugins.mission.netaware import NetGuard
-from plugins.mission.remote import RemoteJob, Significance, plan
-from plugins.mission.team import TeamView, Territory
+from erni.plugins.mission.deploy import RUNNERS, Runner
+from erni.plugins.mission.netaware import NetGuard
+from erni.plugins.mission.remote import RemoteJob, Significance, plan
+from erni.plugins.mission.team import TeamView, Territory
 
 CUE_TASK = [(4, 72), (4, 79)]          # remote task received: short rising fifth
 CUE_LOST = [(10, 67), (10, 60)]        # connectivity at risk: falling

@@ -21,8 +21,8 @@ from typing import Any
 
 import numpy as np
 
-from blackboard import AllocationResult, Pose, Task, TaskState
-from plugins.mission.strategies.widep import auxiliary_poi
+from erni.blackboard import AllocationResult, Pose, Task, TaskState
+from erni.strategies.widep import auxiliary_poi
 
 
 @dataclass(frozen=True)

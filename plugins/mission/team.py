@@ -15,10 +15,10 @@ import time
 import numpy as np
 from pydantic import Field
 
-from blackboard import BBObject, NetInfo, Pose
+from erni.blackboard import BBObject, NetInfo, Pose
 
 try:  # the transport carries the heartbeat between robots when it knows the type
-    from transport.wire import register_type
+    from erni.transport.wire import register_type
 except ImportError:  # pragma: no cover - the transport is part of the distribution
     register_type = None  # type: ignore[assignment]
 

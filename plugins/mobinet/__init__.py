@@ -4,9 +4,9 @@
 is the one interface a network subsystem is read through (`SnmpSource` speaks SNMPv2c).
 """
 
-from plugins.mobinet.control import MobiNetControl
-from plugins.mobinet.resource import MobiNetResource, NetView, NetworkSource, SourceError
-from plugins.mobinet.snmp import SnmpSource
+from erni.plugins.mobinet.control import MobiNetControl
+from erni.plugins.mobinet.resource import MobiNetResource, NetView, NetworkSource, SourceError
+from erni.plugins.mobinet.snmp import SnmpSource
 
 __all__ = ["MobiNetControl", "MobiNetResource", "NetView", "NetworkSource", "SnmpSource",
            "SourceError"]

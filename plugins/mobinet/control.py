@@ -16,8 +16,8 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from blackboard import NetInfo, Plugin, Pose, Position, Task, TaskState
-from plugins.mobinet.resource import (
+from erni.blackboard import NetInfo, Plugin, Pose, Position, Task, TaskState
+from erni.plugins.mobinet.resource import (
     NEIGHBORS,
     POSITIONS,
     ROUTES,
@@ -26,7 +26,7 @@ from plugins.mobinet.resource import (
     NetView,
     NetworkSource,
 )
-from plugins.mobinet.snmp import SnmpSource, articulation_points
+from erni.plugins.mobinet.snmp import SnmpSource, articulation_points
 
 PARTS_OF = {
     "node_position": frozenset({POSITIONS}),

@@ -19,7 +19,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Protocol, runtime_checkable
 
-from blackboard import Link, Neighbor, Position, Route
+from erni.blackboard import Link, Neighbor, Position, Route
 
 # what a read may ask for
 NEIGHBORS = "neighbors"

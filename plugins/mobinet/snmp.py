@@ -32,9 +32,9 @@ from pysnmp.hlapi.v3arch.asyncio import (
 )
 from pysnmp.proto import rfc1902, rfc1905
 
-import netgraph
-from blackboard import Link, Neighbor, Position, Route
-from plugins.mobinet.resource import (
+from erni import netgraph
+from erni.blackboard import Link, Neighbor, Position, Route
+from erni.plugins.mobinet.resource import (
     NEIGHBORS,
     POSITIONS,
     ROUTES,

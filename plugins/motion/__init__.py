@@ -1,9 +1,9 @@
 """Robot motion: BotMotion tasks performed by a behaviour stack on an ARCOS robot (Pioneer, AmigoBot)."""
 
-from plugins.motion.driver import ArcosDriver, LinkError, RobotInfo, RobotState
-from plugins.motion.plugin import MotionSettings, RobotMotionControl, pose_of
-from plugins.motion.resource import RobotMotionResource, TaskUpdate
-from plugins.motion.robots import MODELS, RobotModel, resolve_model
+from erni.plugins.motion.driver import ArcosDriver, LinkError, RobotInfo, RobotState
+from erni.plugins.motion.plugin import MotionSettings, RobotMotionControl, pose_of
+from erni.plugins.motion.resource import RobotMotionResource, TaskUpdate
+from erni.plugins.motion.robots import MODELS, RobotModel, resolve_model
 
 __all__ = [
     "ArcosDriver", "LinkError", "MODELS", "MotionSettings", "RobotInfo", "RobotModel",

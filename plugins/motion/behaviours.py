@@ -14,11 +14,12 @@ from __future__ import annotations
 
 import math
 import random
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Callable, ClassVar
+from typing import Any, ClassVar
 
-from blackboard import TaskState
-from blackboard.tasks import (
+from erni.blackboard import TaskState
+from erni.blackboard.tasks import (
     AvoidParams,
     DistanceParams,
     GotoParams,
@@ -27,8 +28,8 @@ from blackboard.tasks import (
     TurnParams,
     VelocityParams,
 )
-from plugins.motion.driver import RobotState
-from plugins.motion.robots import RobotModel
+from erni.plugins.motion.driver import RobotState
+from erni.plugins.motion.robots import RobotModel
 
 
 @dataclass(frozen=True)

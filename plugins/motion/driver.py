@@ -13,14 +13,14 @@ import logging
 import math
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from typing import Callable
 
 import serial
 
-from plugins.motion import arcos
-from plugins.motion.arcos import Cmd
-from plugins.motion.robots import RobotModel
+from erni.plugins.motion import arcos
+from erni.plugins.motion.arcos import Cmd
+from erni.plugins.motion.robots import RobotModel
 
 log = logging.getLogger("erni.motion.driver")
 
@@ -152,7 +152,7 @@ class ArcosDriver:
 
     # --- life cycle ---------------------------------------------------------------------
 
-    def open(self, wait: bool = True, timeout: float | None = None) -> "ArcosDriver":
+    def open(self, wait: bool = True, timeout: float | None = None) -> ArcosDriver:
         """Start the reader thread; with wait=True, block until connected or raise LinkError."""
         if self._thread is None:
             self._stop.clear()
@@ -178,7 +178,7 @@ class ArcosDriver:
             self._thread.join(timeout=5)
             self._thread = None
 
-    def __enter__(self) -> "ArcosDriver":
+    def __enter__(self) -> ArcosDriver:
         return self.open()
 
     def __exit__(self, *exc: object) -> None:

@@ -14,10 +14,10 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from blackboard import AllocationResult, ConfigError, Plugin, Pose, Task, TaskState, TransactionError
-from plugins.motion.driver import ArcosDriver, RobotState
-from plugins.motion.resource import RobotMotionResource, TaskUpdate
-from plugins.motion.robots import RobotModel, resolve_model
+from erni.blackboard import AllocationResult, ConfigError, Plugin, Pose, Task, TaskState, TransactionError
+from erni.plugins.motion.driver import ArcosDriver, RobotState
+from erni.plugins.motion.resource import RobotMotionResource, TaskUpdate
+from erni.plugins.motion.robots import RobotModel, resolve_model
 
 _URL = re.compile(r"^(sim|[a-zA-Z][a-zA-Z0-9+.-]*://.*|/dev/\S+|COM\d+|/\S+)$")
 
@@ -109,9 +109,9 @@ class RobotMotionControl(Plugin):
         self.resource.start()
 
     def _start_sim(self, s: MotionSettings) -> str:
-        from sim.robot import SimRobotConfig
-        from sim.robot_host import RobotHost
-        from sim.world import World
+        from erni.sim.robot import SimRobotConfig
+        from erni.sim.robot_host import RobotHost
+        from erni.sim.world import World
 
         world = World.load(s.sim_world) if s.sim_world else World()
         m = s.robot_model()

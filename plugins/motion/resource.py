@@ -15,12 +15,13 @@ import math
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any
 
-from blackboard import Task, TaskState
-from blackboard.tasks import AvoidParams
-from plugins.motion.behaviours import (
+from erni.blackboard import Task, TaskState
+from erni.blackboard.tasks import AvoidParams
+from erni.plugins.motion.behaviours import (
     AvoidObstacles,
     Behaviour,
     BehaviourStack,
@@ -33,7 +34,7 @@ from plugins.motion.behaviours import (
     Turn,
     Velocity,
 )
-from plugins.motion.driver import ArcosDriver, RobotState
+from erni.plugins.motion.driver import ArcosDriver, RobotState
 
 log = logging.getLogger("erni.motion.resource")
 
@@ -98,7 +99,7 @@ class RobotMotionResource:
 
     # --- life cycle ---------------------------------------------------------------------
 
-    def start(self) -> "RobotMotionResource":
+    def start(self) -> RobotMotionResource:
         """Open the driver (without waiting for the robot) and start both threads."""
         self.driver.open(wait=False)
         for target, kind in ((self._control_loop, "stack"), (self._poll_loop, "poll")):

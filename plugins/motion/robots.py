@@ -6,7 +6,7 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from blackboard.errors import ConfigError
+from erni.blackboard.errors import ConfigError
 
 PIONEER3_SONAR = (90, 50, 30, 10, -10, -30, -50, -90, -90, -130, -150, -170, 170, 150, 130, 90)
 AMIGOBOT_SONAR = (90, 41, 15, -15, -41, -90, -145, 145)

@@ -1,8 +1,8 @@
 """The control node's UI: web GUI, speech and typed command grammar, spoken feedback."""
 
-from plugins.ui.dialogue import Dialogue, Naming, Reply, tasks_for
-from plugins.ui.grammar import Command, Refusal, parse, vocabulary
-from plugins.ui.plugin import UIPlugin, UISettings
+from erni.plugins.ui.dialogue import Dialogue, Naming, Reply, tasks_for
+from erni.plugins.ui.grammar import Command, Refusal, parse, vocabulary
+from erni.plugins.ui.plugin import UIPlugin, UISettings
 
 __all__ = ["Command", "Dialogue", "Naming", "Refusal", "Reply", "UIPlugin", "UISettings", "parse",
            "tasks_for", "vocabulary"]

@@ -15,10 +15,10 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from blackboard import Task
-from blackboard.errors import TaskError
-from blackboard.tasks import PREPOSITIONS
-from plugins.ui.grammar import STRATEGY_VERB, Command, Refusal, parse
+from erni.blackboard import Task
+from erni.blackboard.errors import TaskError
+from erni.blackboard.tasks import PREPOSITIONS
+from erni.plugins.ui.grammar import STRATEGY_VERB, Command, Refusal, parse
 
 LISTENING = "Listening"
 STANDING_BY = "Standing by"

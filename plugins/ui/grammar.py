@@ -14,7 +14,7 @@ import re
 from dataclasses import dataclass, field
 from typing import Any
 
-from blackboard.tasks import PREPOSITIONS
+from erni.blackboard.tasks import PREPOSITIONS
 
 # Actions the grammar always knows; deployment strategies come from the task language's
 # `Deploy` verb (spread, widep, relay, patrol, and any other registered there).

@@ -19,16 +19,16 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, SecretStr, field_validator
 
-import netgraph
-from blackboard import NetInfo, Plugin, Pose, Task
-from plugins.ui.dialogue import Dialogue, Naming, Reply, tasks_for
-from plugins.ui.floorplan import load_floorplan
-from plugins.ui.grammar import STANDARD_ACTIONS, Refusal, strategies, vocabulary
-from plugins.ui.protocol import CancelTaskMsg, CommandMsg, MicMsg, SayMsg, SelectMsg
-from plugins.ui.server import WebServer
-from plugins.ui.speech import Listener, Microphone, Recognizer, SpeechError, model_path, wav_frames
-from plugins.ui.voice import Speaker
-from transport import Peer, parse_address
+from erni import netgraph
+from erni.blackboard import NetInfo, Plugin, Pose, Task
+from erni.plugins.ui.dialogue import Dialogue, Naming, Reply, tasks_for
+from erni.plugins.ui.floorplan import load_floorplan
+from erni.plugins.ui.grammar import STANDARD_ACTIONS, Refusal, strategies, vocabulary
+from erni.plugins.ui.protocol import CancelTaskMsg, CommandMsg, MicMsg, SayMsg, SelectMsg
+from erni.plugins.ui.server import WebServer
+from erni.plugins.ui.speech import Listener, Microphone, Recognizer, SpeechError, model_path, wav_frames
+from erni.plugins.ui.voice import Speaker
+from erni.transport import Peer, parse_address
 
 _LOOPBACK_NAMES = {"localhost", "ip6-localhost"}
 

@@ -14,14 +14,14 @@ import json
 import logging
 import threading
 from collections import deque
-from concurrent.futures import ThreadPoolExecutor
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
 from aiohttp import WSMsgType, web
 
-from plugins.ui.protocol import BadMessage, PingMsg, parse_message
+from erni.plugins.ui.protocol import BadMessage, PingMsg, parse_message
 
 STATIC = Path(__file__).with_name("static")
 MAX_AUDIO_FRAME = 64 * 1024
@@ -235,5 +235,5 @@ class WebServer:
     async def _send(ws: web.WebSocketResponse, text: str) -> None:
         try:
             await asyncio.wait_for(ws.send_str(text), timeout=2.0)
-        except (ConnectionResetError, asyncio.TimeoutError, RuntimeError):
+        except (TimeoutError, ConnectionResetError, RuntimeError):
             pass

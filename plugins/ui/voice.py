@@ -8,7 +8,7 @@ import shutil
 import subprocess
 import threading
 
-from plugins.ui.speech import put_dropping_oldest
+from erni.plugins.ui.speech import put_dropping_oldest
 
 log = logging.getLogger("erni.ui.voice")
 

@@ -11,9 +11,10 @@ from __future__ import annotations
 
 import csv
 import importlib
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 Progress = Callable[[str, float, float], None]
 
@@ -32,7 +33,7 @@ class Experiment:
 
     def runner(self) -> Callable[..., Result]:
         """The module's `run(scenario, progress, **options) -> Result`."""
-        return importlib.import_module(f"sim.experiments.{self.module}").run
+        return importlib.import_module(f"erni.sim.experiments.{self.module}").run
 
 
 EXPERIMENTS: dict[str, Experiment] = {e.name: e for e in [

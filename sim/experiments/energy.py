@@ -14,11 +14,11 @@ from typing import Any
 
 import numpy as np
 
-from plugins.mission.strategies import energy as paper
-from sim.experiments import Experiment, Progress, Result
-from sim.experiments.plots import color, time_axes
-from sim.scenario import Scenario
-from sim.team import Sample, Team, TeamError
+from erni.sim.experiments import Experiment, Progress, Result
+from erni.sim.experiments.plots import color, time_axes
+from erni.sim.scenario import Scenario
+from erni.sim.team import Sample, Team, TeamError
+from erni.strategies import energy as paper
 
 
 def _window(samples: list[Sample], t0: float, t1: float) -> list[Sample]:

@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from sim.world import World
+from erni.sim.world import World
 
 COLORS = ["#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e", "#8c564b", "#e377c2", "#17becf"]
 

@@ -15,12 +15,12 @@ from typing import Any
 
 import numpy as np
 
-from plugins.mission.strategies import energy as paper_energy
-from plugins.mission.strategies import widep
-from sim import kinematic
-from sim.experiments import Experiment, Progress, Result
-from sim.experiments.plots import color, draw_world, map_axes, range_circle, time_axes
-from sim.scenario import Scenario
+from erni.sim import kinematic
+from erni.sim.experiments import Experiment, Progress, Result
+from erni.sim.experiments.plots import color, draw_world, map_axes, range_circle, time_axes
+from erni.sim.scenario import Scenario
+from erni.strategies import energy as paper_energy
+from erni.strategies import widep
 
 
 def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode: str | None = None,
@@ -120,10 +120,10 @@ def _kinematic(scenario: Scenario, progress: Progress, poi: np.ndarray, R: float
 def _agents(scenario: Scenario, progress: Progress, poi: np.ndarray, tolerance: float, duration: float,
             battery: list[float]) -> tuple[np.ndarray, np.ndarray, float | None, None]:
     """Real agents: the scenario's tasks (Deploy widep) through the control node; the simulator records."""
-    from sim.team import Team, plugin_available
+    from erni.sim.team import Team, plugin_available
 
-    if not plugin_available("plugins.mission", "MissionControl"):
-        raise ValueError("agents mode needs the mission plugin (plugins.mission.MissionControl)")
+    if not plugin_available("erni.plugins.mission", "MissionControl"):
+        raise ValueError("agents mode needs the mission plugin (erni.plugins.mission.MissionControl)")
     if not scenario.task:
         raise ValueError(f"{scenario.name}: agents mode sends the scenario's [[task]]s; it has none")
     team = Team(scenario, headless=True, control_port=0, record=True, ui=False, mission=True)

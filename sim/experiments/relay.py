@@ -15,12 +15,12 @@ from typing import Any
 
 import numpy as np
 
-from plugins.mission.strategies import relay
-from sim import kinematic
-from sim.experiments import Experiment, Progress, Result
-from sim.experiments.plots import color
-from sim.manet import RadioModel
-from sim.scenario import Scenario
+from erni.sim import kinematic
+from erni.sim.experiments import Experiment, Progress, Result
+from erni.sim.experiments.plots import color
+from erni.sim.manet import RadioModel
+from erni.sim.scenario import Scenario
+from erni.strategies import relay
 
 
 def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, **_: Any) -> Result:
@@ -49,7 +49,7 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, **_: 
     length = float(np.hypot(*(dst - src)))
     unit = (dst - src) / length
     decisions = int(duration // period)
-    along = [list(((pos - src) @ unit))]
+    along = [list((pos - src) @ unit)]
     qualities: list[list[tuple[float, float]]] = []
     track = kinematic.Track()
     track.add(0.0, pos, th, np.zeros(n))

@@ -15,12 +15,12 @@ from typing import Any
 
 import numpy as np
 
-from plugins.mission.strategies import energy as energy_model
-from plugins.mission.strategies.potential import SpreadConfig, mean_nn_distance, spread_step
-from sim import kinematic
-from sim.experiments import Experiment, Progress, Result
-from sim.experiments.plots import color, draw_world, headings, map_axes, time_axes
-from sim.scenario import Scenario
+from erni.sim import kinematic
+from erni.sim.experiments import Experiment, Progress, Result
+from erni.sim.experiments.plots import color, draw_world, headings, map_axes, time_axes
+from erni.sim.scenario import Scenario
+from erni.strategies import energy as energy_model
+from erni.strategies.potential import SpreadConfig, mean_nn_distance, spread_step
 
 VARIANTS = ["holonomic/physical", "holonomic/delaunay", "nonholonomic/physical", "nonholonomic/delaunay"]
 

@@ -16,12 +16,12 @@ from typing import Any
 
 import numpy as np
 
-from plugins.mission.strategies import energy as paper_energy
-from plugins.mission.strategies import patrol
-from sim import kinematic
-from sim.experiments import Experiment, Progress, Result
-from sim.experiments.plots import color, map_axes, time_axes
-from sim.scenario import Scenario
+from erni.sim import kinematic
+from erni.sim.experiments import Experiment, Progress, Result
+from erni.sim.experiments.plots import color, map_axes, time_axes
+from erni.sim.scenario import Scenario
+from erni.strategies import energy as paper_energy
+from erni.strategies import patrol
 
 
 def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, **_: Any) -> Result:
@@ -171,7 +171,7 @@ def _draw(fig: Any, scenario: Scenario, names: list[str], blocks: list[patrol.Bl
     for row, name in enumerate(names):
         end = fail_at.get(name, duration)
         ax.barh(row, end, left=0, color=color(row), alpha=0.35, height=0.6)
-        for t, who, kind, about in events:
+        for t, who, kind, _about in events:
             if who != name:
                 continue
             marker = {"silent": "|", "claim": "*", "yield": "x", "return": "o", "fails": "X"}[kind]

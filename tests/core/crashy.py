@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from blackboard import Plugin, Task, new_uid
+from erni.blackboard import Plugin, Task, new_uid
 
 
 class Flood(Plugin):

@@ -6,7 +6,7 @@ import threading
 import time
 from typing import Any
 
-from blackboard import BBObject, Plugin
+from erni.blackboard import BBObject, Plugin
 
 
 class Item(BBObject):

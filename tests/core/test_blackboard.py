@@ -3,13 +3,11 @@
 from __future__ import annotations
 
 import threading
-import time
 
 import pytest
 
-from blackboard import Agent, Plugin, Task, TransactionError
-from blackboard.testing import wait_until
-
+from erni.blackboard import Agent, Plugin, Task, TransactionError
+from erni.blackboard.testing import wait_until
 from tests.core.helpers import Item, Recorder
 
 

@@ -9,7 +9,7 @@ import sys
 import time
 from pathlib import Path
 
-from blackboard.tasks import PREPOSITIONS
+from erni.blackboard.tasks import PREPOSITIONS
 
 ROOT = Path(__file__).resolve().parents[2]
 

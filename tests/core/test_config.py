@@ -6,8 +6,8 @@ from pathlib import Path
 
 import pytest
 
-from blackboard import ConfigError
-from blackboard.config import load_agent, parse_config
+from erni.blackboard import ConfigError
+from erni.blackboard.config import load_agent, parse_config
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -29,7 +29,7 @@ def test_plugin_settings_are_validated_and_typed(tmp_path):
 [agent]
 name = "r1"
 [[plugin]]
-class = "plugins.echo:EchoPlugin"
+class = "erni.plugins.echo:EchoPlugin"
 name = "motion"
 [plugin.settings]
 delay = "0.25"
@@ -46,7 +46,7 @@ delay = "0.25"
     ("[agent]\nname = 'r1'\nworkers = 0", "agent.workers: Input should be greater than or equal to 1"),
     ("[agent]\nname='r1'\n[[plugin]]\nclass='nosuch.module:Thing'", "plugin[0].class: cannot import 'nosuch.module:Thing'"),
     ("[agent]\nname='r1'\n[[plugin]]\nclass='nosuchentry'", "plugin[0].class: unknown plugin 'nosuchentry'"),
-    ("[agent]\nname='r1'\n[[plugin]]\nclass='blackboard.tasks:Task'", "plugin[0].class: 'blackboard.tasks:Task' is not a Plugin subclass"),
+    ("[agent]\nname='r1'\n[[plugin]]\nclass='erni.blackboard.tasks:Task'", "plugin[0].class: 'erni.blackboard.tasks:Task' is not a Plugin subclass"),
     ("[agent]\nname='r1'\n[[plugin]]\nclass='echo'\n[plugin.settings]\ndelay=-1", "plugin[0].settings.delay: Input should be greater than or equal to 0"),
     ("[agent]\nname='r1'\n[[plugin]]\nclass='echo'\n[plugin.settings]\nspeed=1", "plugin[0].settings.speed: unknown key"),
     ("[agent]\nname='r1'\n[[plugin]]\nname='x'", "plugin[0].class: missing (required)"),

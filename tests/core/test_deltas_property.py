@@ -5,8 +5,7 @@ from __future__ import annotations
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from blackboard import Blackboard
-
+from erni.blackboard import Blackboard
 from tests.core.helpers import Item
 
 # an action: ("add"|"change"|"remove", index into live objects, new value) or ("view",)

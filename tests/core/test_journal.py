@@ -10,10 +10,9 @@ import sys
 import time
 from pathlib import Path
 
-from blackboard import Agent, Pose, Task, TaskState
-from blackboard.journal import Journal
-from blackboard.testing import wait_until
-
+from erni.blackboard import Agent, Pose, Task, TaskState
+from erni.blackboard.journal import Journal
+from erni.blackboard.testing import wait_until
 from tests.core.helpers import Recorder
 
 ROOT = Path(__file__).resolve().parents[2]

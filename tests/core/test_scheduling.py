@@ -8,9 +8,8 @@ import time
 
 import pytest
 
-from blackboard import Agent, Plugin
-from blackboard.testing import wait_until
-
+from erni.blackboard import Agent, Plugin
+from erni.blackboard.testing import wait_until
 from tests.core.helpers import Item, Recorder, Sleeper
 
 

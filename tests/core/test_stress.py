@@ -5,9 +5,8 @@ from __future__ import annotations
 import random
 import threading
 
-from blackboard import Agent, Plugin
-from blackboard.testing import wait_until
-
+from erni.blackboard import Agent, Plugin
+from erni.blackboard.testing import wait_until
 from tests.core.helpers import Item, Recorder
 
 THREADS, PER_THREAD = 6, 150

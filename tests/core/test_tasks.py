@@ -8,8 +8,8 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from blackboard import AllocationResult, NetInfo, Pose, Task, TaskError, TaskState
-from blackboard.tasks import PREPOSITIONS, VERBS, GotoParams, language_table
+from erni.blackboard import AllocationResult, NetInfo, Pose, Task, TaskError, TaskState
+from erni.blackboard.tasks import PREPOSITIONS, VERBS, GotoParams, language_table
 
 
 def test_every_preposition_of_table_2_exists():

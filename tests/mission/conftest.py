@@ -7,11 +7,11 @@ from typing import Any
 
 import pytest
 
-from blackboard import Agent, Pose, Task
-from blackboard.testing import wait_until
-from sim.robot import SimRobotConfig
-from sim.robot_host import RobotHost
-from sim.world import RobotStart, World
+from erni.blackboard import Agent, Pose, Task
+from erni.blackboard.testing import wait_until
+from erni.sim.robot import SimRobotConfig
+from erni.sim.robot_host import RobotHost
+from erni.sim.world import RobotStart, World
 
 FAST = {"sip_period": 0.02, "accel": 3.0, "decel": 3.0, "max_v": 2.0, "rot_accel": 720.0, "max_rv": 360.0}
 FAST_MODEL = {"base": "pioneer3", "decel": 2.5, "rot_decel": 500.0, "max_rv": 300.0, "max_v": 2.0}

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from blackboard.testing import wait_until
+from erni.blackboard.testing import wait_until
 from tests.transport.helpers import KEY, free_port
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -9,15 +9,15 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 
-from blackboard import Agent, Pose, Task, TaskState
-from blackboard.testing import wait_until
-from plugins.mission.strategies.potential import mean_nn_distance
-from plugins.mission.strategies.widep import connected
-from plugins.mission.team import Territory
-from sim.manet import ManetNetwork, RadioModel
-from sim.snmp_agent import ManetSnmpAgent
+from erni.blackboard import Agent, Pose, Task, TaskState
+from erni.blackboard.testing import wait_until
+from erni.plugins.mission.team import Territory
+from erni.sim.manet import ManetNetwork, RadioModel
+from erni.sim.snmp_agent import ManetSnmpAgent
+from erni.strategies.potential import mean_nn_distance
+from erni.strategies.widep import connected
+from erni.transport import MockNetwork, TransportPlugin
 from tests.mission.conftest import current, plugin, send
-from transport import MockNetwork, TransportPlugin
 
 
 class Manet:

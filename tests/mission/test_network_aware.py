@@ -6,11 +6,11 @@ from collections.abc import Iterator
 
 import pytest
 
-from blackboard import Task, TaskState
-from blackboard.testing import wait_until
-from plugins.mission.netaware import NetGuard
-from sim.manet import ManetNetwork, RadioModel
-from sim.snmp_agent import ManetSnmpAgent
+from erni.blackboard import Task, TaskState
+from erni.blackboard.testing import wait_until
+from erni.plugins.mission.netaware import NetGuard
+from erni.sim.manet import ManetNetwork, RadioModel
+from erni.sim.snmp_agent import ManetSnmpAgent
 from tests.mission.conftest import current, plugin, pose_of, send, subs_of
 
 

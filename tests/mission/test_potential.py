@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from plugins.mission.strategies.potential import (
+from erni.strategies.potential import (
     SpreadConfig,
     forces,
     mean_nn_distance,

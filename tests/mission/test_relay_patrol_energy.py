@@ -9,14 +9,14 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from plugins.mission.strategies.energy import (
+from erni.strategies.energy import (
     P0,
     EnergyMeter,
     energy,
     power,
     track_energy,
 )
-from plugins.mission.strategies.patrol import (
+from erni.strategies.patrol import (
     TakeoverTable,
     backoff,
     claim_order,
@@ -24,7 +24,7 @@ from plugins.mission.strategies.patrol import (
     sweep_path,
     touching,
 )
-from plugins.mission.strategies.relay import (
+from erni.strategies.relay import (
     chain_slots,
     distance_quality,
     project,

@@ -6,10 +6,10 @@ import itertools
 import math
 import threading
 
-from blackboard import Agent, Pose, Task, TaskState
-from blackboard.testing import wait_until
-from plugins.mission.plugin import CUE_TASK
-from sim.world import World
+from erni.blackboard import Agent, Pose, Task, TaskState
+from erni.blackboard.testing import wait_until
+from erni.plugins.mission.plugin import CUE_TASK
+from erni.sim.world import World
 from tests.mission.conftest import current, pose_of, send, subs_of
 
 

@@ -9,8 +9,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from netgraph import rng_neighbors
-from plugins.mission.strategies.widep import (
+from erni.netgraph import rng_neighbors
+from erni.strategies.widep import (
     auxiliary_poi,
     comm_adjacency,
     connected,

@@ -11,8 +11,8 @@ from pyasn1.codec.ber import decoder, encoder
 from pysnmp.proto import api
 from pysnmp.proto.api import v2c
 
-from sim.manet import ManetNetwork, RadioModel
-from sim.snmp_agent import ManetSnmpAgent
+from erni.sim.manet import ManetNetwork, RadioModel
+from erni.sim.snmp_agent import ManetSnmpAgent
 
 NAME = (1, 3, 6, 1, 4, 1, 32473, 1, 1, 1, 0)
 ADDRESS = (1, 3, 6, 1, 4, 1, 32473, 1, 1, 3, 0)

@@ -10,8 +10,8 @@ import subprocess
 import sys
 from pathlib import Path
 
-from blackboard import Agent, NetInfo, Pose, Task, TaskState
-from blackboard.testing import wait_until
+from erni.blackboard import Agent, NetInfo, Pose, Task, TaskState
+from erni.blackboard.testing import wait_until
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
 ADDR_RE = re.compile(r"^\s+(\S+)\s+\S+\s+snmp udp:([\d.]+):(\d+)$")

@@ -9,8 +9,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from sim.manet import METRIC_UNIT, ManetNetwork, RadioModel, link_metric
-from sim.manet_scenario import ScenarioError, load_scenario
+from erni.sim.manet import METRIC_UNIT, ManetNetwork, RadioModel, link_metric
+from erni.sim.manet_scenario import ScenarioError, load_scenario
 from tests.mobinet.conftest import line_network
 
 

@@ -7,10 +7,10 @@ import math
 
 import pytest
 
-from blackboard import Agent, NetInfo, Pose, Task, TaskState
-from blackboard.testing import wait_until
-from sim.manet import METRIC_UNIT, link_metric
-from sim.snmp_agent import ManetSnmpAgent
+from erni.blackboard import Agent, NetInfo, Pose, Task, TaskState
+from erni.blackboard.testing import wait_until
+from erni.sim.manet import METRIC_UNIT, link_metric
+from erni.sim.snmp_agent import ManetSnmpAgent
 
 PREPOSITIONS = ["node_position", "network_topology", "path_cost", "link_quality", "neighbor_list"]
 
@@ -21,7 +21,7 @@ def make_agent():
 
     def make(name: str, address: tuple[str, int], **settings) -> tuple[Agent, object]:
         agent = Agent(name, workers=2)
-        plugin = agent.add_plugin("plugins.mobinet:MobiNetControl",
+        plugin = agent.add_plugin("erni.plugins.mobinet:MobiNetControl",
                                   settings={"host": address[0], "port": address[1], **settings},
                                   name="mobinet")
         agent.start()

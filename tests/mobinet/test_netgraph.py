@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-import netgraph as ng
+from erni import netgraph as ng
 
 
 def to_nx(adj):

@@ -7,9 +7,9 @@ import logging
 import threading
 import time
 
-from blackboard import Position
-from blackboard.testing import wait_until
-from plugins.mobinet.resource import (
+from erni.blackboard import Position
+from erni.blackboard.testing import wait_until
+from erni.plugins.mobinet.resource import (
     MobiNetResource,
     NetView,
     NetworkSource,

@@ -13,9 +13,9 @@ from hypothesis import strategies as st
 from pyasn1.codec.ber import encoder
 from pysnmp.proto.api import v2c
 
-import plugins.mobinet.snmp as client_mib
-import sim.manet_mib as agent_mib
-from sim.manet import link_metric
+import erni.plugins.mobinet.snmp as client_mib
+import erni.sim.manet_mib as agent_mib
+from erni.sim.manet import link_metric
 
 pytestmark = pytest.mark.skipif(shutil.which("snmpget") is None,
                                 reason="net-snmp tools (Debian package 'snmp') not installed")
@@ -183,7 +183,7 @@ def test_any_bytes_never_crash_the_handler(snmp_agent_unstarted, data):
 
 @pytest.fixture(scope="module")
 def snmp_agent_unstarted():
-    from sim.snmp_agent import ManetSnmpAgent
+    from erni.sim.snmp_agent import ManetSnmpAgent
     from tests.mobinet.conftest import line_network
     return ManetSnmpAgent(line_network())
 
@@ -196,7 +196,7 @@ def test_fast_ber_encoder_agrees_with_pyasn1(arcs, number, unsigned, octets):
     from pyasn1.codec.ber import decoder
     from pyasn1.type import univ as u
 
-    from sim import snmp_ber as ber
+    from erni.sim import snmp_ber as ber
     assert tuple(decoder.decode(ber.oid(arcs), asn1Spec=u.ObjectIdentifier())[0]) == arcs
     assert int(decoder.decode(ber.value("int", number), asn1Spec=u.Integer())[0]) == number
     assert int(decoder.decode(ber.value("counter", unsigned), asn1Spec=v2c.Counter32())[0]) == unsigned
@@ -229,8 +229,8 @@ def test_change_counters_are_served(served, net):
 
 
 def test_tables_with_the_shared_topology_block_are_complete_and_ordered():
-    from sim.manet_mib import build_table
-    from sim.snmp_agent import ManetSnmpAgent
+    from erni.sim.manet_mib import build_table
+    from erni.sim.snmp_agent import ManetSnmpAgent
     from tests.mobinet.conftest import line_network
     net = line_network()
     agent = ManetSnmpAgent(net)

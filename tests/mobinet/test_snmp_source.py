@@ -7,10 +7,10 @@ import time
 
 import pytest
 
-from blackboard import Position
-from plugins.mobinet.resource import PARTS, NetworkSource, SourceError
-from plugins.mobinet.snmp import SnmpSource, articulation_points
-from sim.manet import METRIC_UNIT
+from erni.blackboard import Position
+from erni.plugins.mobinet.resource import PARTS, NetworkSource, SourceError
+from erni.plugins.mobinet.snmp import SnmpSource, articulation_points
+from erni.sim.manet import METRIC_UNIT
 
 
 def run(coro):
@@ -44,8 +44,8 @@ def test_read_matches_the_simulators_ground_truth(served, net):
 
 
 def test_large_tables_take_several_bulk_requests():
-    from sim.manet import ManetNetwork, RadioModel
-    from sim.snmp_agent import ManetSnmpAgent
+    from erni.sim.manet import ManetNetwork, RadioModel
+    from erni.sim.snmp_agent import ManetSnmpAgent
     net = ManetNetwork(RadioModel(100.0, 50.0))
     for i in range(30):   # a dense 30-node cluster: 435 links
         net.add_node(f"n{i}", (i % 6) * 8.0, (i // 6) * 8.0)

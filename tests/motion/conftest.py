@@ -7,9 +7,9 @@ from collections.abc import Iterator
 
 import pytest
 
-from sim.robot import SimRobotConfig
-from sim.robot_host import RobotHost
-from sim.world import World
+from erni.sim.robot import SimRobotConfig
+from erni.sim.robot_host import RobotHost
+from erni.sim.world import World
 
 REAL_URL = os.environ.get("ERNI_ROBOT_URL", "").strip()
 

@@ -9,10 +9,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from plugins.motion import arcos
-from plugins.motion.arcos import Cmd, PacketReader
-from sim.robot import ArcosFirmware, SimRobot, SimRobotConfig
-from sim.world import World
+from erni.plugins.motion import arcos
+from erni.plugins.motion.arcos import Cmd, PacketReader
+from erni.sim.robot import ArcosFirmware, SimRobot, SimRobotConfig
+from erni.sim.world import World
 
 VECTORS = [  # /work/shared/reference/arcos.md, "Test vectors"
     ("SYNC0", Cmd.SYNC0, None, "FA FB 03 00 00 00"),

@@ -6,8 +6,8 @@ import math
 
 import pytest
 
-from blackboard import TaskState
-from blackboard.tasks import (
+from erni.blackboard import TaskState
+from erni.blackboard.tasks import (
     AvoidParams,
     DistanceParams,
     GotoParams,
@@ -16,7 +16,7 @@ from blackboard.tasks import (
     TurnParams,
     VelocityParams,
 )
-from plugins.motion.behaviours import (
+from erni.plugins.motion.behaviours import (
     STOP,
     AvoidObstacles,
     BehaviourStack,
@@ -29,8 +29,8 @@ from plugins.motion.behaviours import (
     Turn,
     Velocity,
 )
-from plugins.motion.driver import RobotState
-from plugins.motion.robots import MODELS
+from erni.plugins.motion.driver import RobotState
+from erni.plugins.motion.robots import MODELS
 
 MODEL = MODELS["pioneer3"]
 FREE = {i: 5.0 for i in range(16)}

@@ -12,14 +12,14 @@ import serial
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from blackboard.testing import wait_until
-from plugins.motion import arcos
-from plugins.motion.arcos import Cmd
-from plugins.motion.driver import ArcosDriver, LinkError, _Unwrapper
-from plugins.motion.robots import RobotModel, resolve_model
-from sim.robot import SimRobotConfig
-from sim.robot_host import RobotHost
-from sim.world import World
+from erni.blackboard.testing import wait_until
+from erni.plugins.motion import arcos
+from erni.plugins.motion.arcos import Cmd
+from erni.plugins.motion.driver import ArcosDriver, LinkError, _Unwrapper
+from erni.plugins.motion.robots import RobotModel, resolve_model
+from erni.sim.robot import SimRobotConfig
+from erni.sim.robot_host import RobotHost
+from erni.sim.world import World
 from tests.motion.conftest import REAL_URL, sim_only
 
 

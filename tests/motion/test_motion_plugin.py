@@ -12,11 +12,11 @@ import os
 
 import pytest
 
-from blackboard import Agent, Pose, Task, TaskState
-from blackboard.errors import ErniError
-from blackboard.testing import wait_until
-from plugins.motion import RobotMotionControl
-from sim.world import World
+from erni.blackboard import Agent, Pose, Task, TaskState
+from erni.blackboard.errors import ErniError
+from erni.blackboard.testing import wait_until
+from erni.plugins.motion import RobotMotionControl
+from erni.sim.world import World
 from tests.motion.conftest import FAST_MODEL, REAL_URL, sim_only
 
 ROBOT_MODEL = os.environ.get("ERNI_ROBOT_MODEL", "pioneer3") if REAL_URL else FAST_MODEL

@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from blackboard import Agent
-from plugins.motion import ArcosDriver
+from erni.blackboard import Agent
+from erni.plugins.motion import ArcosDriver
 
 ROOT = Path(__file__).resolve().parents[2]
 

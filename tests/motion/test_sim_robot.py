@@ -7,12 +7,12 @@ import socket
 
 import pytest
 
-from blackboard.testing import wait_until
-from plugins.motion import arcos
-from plugins.motion.arcos import Cmd, PacketReader
-from sim.robot import P0_WATTS, ArcosFirmware, SimRobot, SimRobotConfig
-from sim.robot_host import RobotHost
-from sim.world import World
+from erni.blackboard.testing import wait_until
+from erni.plugins.motion import arcos
+from erni.plugins.motion.arcos import Cmd, PacketReader
+from erni.sim.robot import P0_WATTS, ArcosFirmware, SimRobot, SimRobotConfig
+from erni.sim.robot_host import RobotHost
+from erni.sim.world import World
 
 
 def run(robot: SimRobot, seconds: float, dt: float = 0.01, t0: float = 0.0, feed: bool = True) -> float:

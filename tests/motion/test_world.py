@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from sim.world import World, WorldError
+from erni.sim.world import World, WorldError
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
 

@@ -14,11 +14,11 @@ import time
 
 import pytest
 
-from blackboard import TaskState
-from blackboard.testing import wait_until
-from sim.scenario import Scenario
-from sim.team import Team
-from transport.bridge import ResultUpdate
+from erni.blackboard import TaskState
+from erni.blackboard.testing import wait_until
+from erni.sim.scenario import Scenario
+from erni.sim.team import Team
+from erni.transport.bridge import ResultUpdate
 
 pytestmark = [pytest.mark.fault, pytest.mark.slow]
 

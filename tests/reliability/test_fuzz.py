@@ -21,11 +21,11 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from blackboard import ConfigError, Task, TaskError
-from blackboard.config import build_agent, parse_config
-from erni.replay import LogError, read_log
-from plugins.motion.arcos import PacketReader, ProtocolError, is_sip, parse_sip, parse_sync2
-from transport.wire import Envelope, FrameError, StreamDecoder, body_of, decode, encode
+from erni.blackboard import ConfigError, Task, TaskError
+from erni.blackboard.config import build_agent, parse_config
+from erni.plugins.motion.arcos import PacketReader, ProtocolError, is_sip, parse_sip, parse_sync2
+from erni.replay import read_log
+from erni.transport.wire import Envelope, FrameError, StreamDecoder, body_of, decode, encode
 
 EXAMPLES = int(os.environ.get("ERNI_FUZZ_EXAMPLES", "300"))
 FUZZ = settings(max_examples=EXAMPLES, deadline=None,
@@ -153,12 +153,12 @@ class _MutatingProxy:
         while not self._stop.is_set():
             try:
                 request, client = self.sock.recvfrom(65536)
-            except (socket.timeout, OSError):
+            except (TimeoutError, OSError):
                 continue
             try:
                 up.sendto(request, self.target)
                 reply, _ = up.recvfrom(65536)
-            except (socket.timeout, OSError):
+            except (TimeoutError, OSError):
                 continue
             self.sock.sendto(self.mutate(reply), client)
         up.close()
@@ -171,8 +171,8 @@ class _MutatingProxy:
 
 @pytest.fixture(scope="module")
 def snmp_proxy():
-    from sim.manet import ManetNetwork, RadioModel
-    from sim.snmp_agent import ManetSnmpAgent
+    from erni.sim.manet import ManetNetwork, RadioModel
+    from erni.sim.snmp_agent import ManetSnmpAgent
 
     net = ManetNetwork(RadioModel(100.0, 50.0))
     for i in range(4):
@@ -188,8 +188,8 @@ def snmp_proxy():
 @given(flips=st.lists(st.tuples(st.integers(0, 2000), st.integers(1, 255)), min_size=1, max_size=6),
        truncate=st.integers(0, 400))
 def test_snmp_responses(snmp_proxy, flips, truncate):
-    from plugins.mobinet.resource import PARTS, SourceError
-    from plugins.mobinet.snmp import SnmpSource
+    from erni.plugins.mobinet.resource import PARTS, SourceError
+    from erni.plugins.mobinet.snmp import SnmpSource
 
     COUNTS["SNMP responses"] += 1
 

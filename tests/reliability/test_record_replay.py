@@ -11,11 +11,10 @@ from pathlib import Path
 
 import pytest
 
-from blackboard import Pose, Task, TaskState
-from blackboard.testing import wait_until
+from erni.blackboard import Pose, Task, TaskState
+from erni.blackboard.testing import wait_until
 from erni.replay import LogError, read_log
-from transport import Peer
-
+from erni.transport import Peer
 from tests.transport.helpers import KEY, free_port, make_agent
 
 ROOT = Path(__file__).resolve().parents[2]

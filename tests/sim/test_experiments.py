@@ -11,9 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from plugins.mission.strategies import energy as paper
-from sim import experiments, kinematic
-from sim.scenario import find_scenario, load_scenario
+from erni.sim import experiments, kinematic
+from erni.sim.scenario import find_scenario, load_scenario
+from erni.strategies import energy as paper
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from sim.experiments import EXPERIMENTS
-from sim.scenario import Scenario, ScenarioError, find_scenario, load_scenario, parse_scenario
+from erni.sim.experiments import EXPERIMENTS
+from erni.sim.scenario import Scenario, ScenarioError, find_scenario, load_scenario, parse_scenario
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
 
@@ -116,18 +116,3 @@ def test_a_world_file_is_read_relative_to_the_scenario(tmp_path):
     (tmp_path / "w.toml").write_text("name = \"w\"\nbounds = [0.0, 0.0, 4.0, 4.0]\n")
     (tmp_path / "s.toml").write_text("world = \"w.toml\"\n")
     assert load_scenario(tmp_path / "s.toml").world.bounds == (0.0, 0.0, 4.0, 4.0)
-
-
-def test_scenarios_are_found_where_pip_installs_them(tmp_path, monkeypatch):
-    import shutil
-    import sys
-
-    from sim import scenario as mod
-
-    installed = tmp_path / "prefix" / "share" / "erni" / "examples"
-    installed.mkdir(parents=True)
-    shutil.copy(mod.examples_dir() / "scenario-relay1.toml", installed)
-    monkeypatch.setattr(sys, "prefix", str(tmp_path / "prefix"))
-    monkeypatch.setattr(mod, "__file__", str(tmp_path / "site" / "sim" / "scenario.py"))
-    monkeypatch.chdir(tmp_path)  # no examples/ beside the package nor here: the installed copy
-    assert mod.find_scenario("relay1") == installed / "scenario-relay1.toml"

@@ -8,11 +8,11 @@ import time
 
 import pytest
 
-from blackboard import Task, TaskState
-from blackboard.testing import wait_until
-from sim.scenario import Scenario
-from sim.team import CONTROL, Team
-from transport.bridge import ResultUpdate
+from erni.blackboard import Task, TaskState
+from erni.blackboard.testing import wait_until
+from erni.sim.scenario import Scenario
+from erni.sim.team import CONTROL, Team
+from erni.transport.bridge import ResultUpdate
 
 FAST = {"beacon_period": 0.3, "peer_timeout": 1.5, "task_ttl": 10.0}
 

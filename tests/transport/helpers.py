@@ -5,7 +5,7 @@ from __future__ import annotations
 import socket
 from typing import Any
 
-from blackboard import Agent
+from erni.blackboard import Agent
 
 KEY = "test-team-key"
 

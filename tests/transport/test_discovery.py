@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
-from blackboard import Agent, NetInfo, Task
-from blackboard.testing import wait_until
-from transport import Peer
-
+from erni.blackboard import Agent, NetInfo, Task
+from erni.blackboard.testing import wait_until
+from erni.transport import Peer
 from tests.transport.helpers import free_port, make_agent
 
 
@@ -22,7 +21,7 @@ def test_agents_find_each_other_without_a_peer_list():
             wait_until(lambda agent=agent: sum(p.up for p in peers(agent).values()) == 2)
         seen = peers(agents[1])["a0"]
         assert seen.role == "control" and seen.capabilities == ["c0"]
-        assert seen.address == "%s:%d" % agents[0].plugin("transport").address
+        assert seen.address == "{}:{}".format(*agents[0].plugin("transport").address)
     finally:
         for a in agents:
             a.stop()
@@ -44,7 +43,7 @@ def test_silent_peer_is_marked_down_and_up_again():
 
 def test_static_peer_list_works_with_discovery_off():
     a = make_agent("a", 0)
-    addr = "%s:%d" % a.plugin("transport").address
+    addr = "{}:{}".format(*a.plugin("transport").address)
     b = make_agent("b", 0, peers=[f"a@{addr}"])
     try:
         wait_until(lambda: peers(a).get("b") and peers(a)["b"].up)  # a learns b from b's beacons
@@ -64,7 +63,7 @@ def test_addresses_learned_from_the_network_topology():
     b = make_agent("b", port, beacon_to=[])
     try:
         assert not peers(a).get("b")
-        a_addr = "%s:%d" % a.plugin("transport").address
+        a_addr = "{}:{}".format(*a.plugin("transport").address)
         with b.transaction() as tx:
             tx.add(NetInfo(node="b", kind="neighbor_list", neighbors=[{"name": "a", "address": a_addr}]))
         wait_until(lambda: peers(a).get("b") and peers(a)["b"].up)
@@ -77,7 +76,7 @@ def test_simulated_radio_drops_traffic_between_unconnected_agents(tmp_path):
     import json
     import os
 
-    from blackboard import Task, TaskState
+    from erni.blackboard import Task, TaskState
 
     reach = tmp_path / "reach.json"
 

@@ -9,11 +9,10 @@ import time
 
 import pytest
 
-from blackboard import Task
-from blackboard.testing import wait_until
-from transport import Peer
-from transport.wire import Envelope, encode
-
+from erni.blackboard import Task
+from erni.blackboard.testing import wait_until
+from erni.transport import Peer
+from erni.transport.wire import Envelope, encode
 from tests.transport.helpers import KEY, free_port, make_agent
 
 
@@ -120,7 +119,7 @@ def test_agent_without_the_team_key_cannot_task(robot):
 def test_insecure_mode_must_be_explicit():
     from pydantic import ValidationError
 
-    from transport import TransportSettings
+    from erni.transport import TransportSettings
 
     with pytest.raises(ValidationError, match="no team key: set key, the NO_SUCH_VAR environment"):
         TransportSettings(key_env="NO_SUCH_VAR")
@@ -128,7 +127,7 @@ def test_insecure_mode_must_be_explicit():
 
 
 def test_key_never_appears_in_logs_or_reprs(caplog):
-    from transport import TransportSettings
+    from erni.transport import TransportSettings
 
     s = TransportSettings(key="s3cret-team-key")
     assert "s3cret" not in repr(s) and "s3cret" not in str(s.model_dump())

@@ -6,10 +6,10 @@ import threading
 
 import pytest
 
-from blackboard import Agent, Task, TaskState
-from blackboard.testing import wait_until
-from transport import MockNetwork, TransportPlugin
-from transport.wire import Message
+from erni.blackboard import Agent, Task, TaskState
+from erni.blackboard.testing import wait_until
+from erni.transport import MockNetwork, TransportPlugin
+from erni.transport.wire import Message
 
 
 def pair(net: MockNetwork):

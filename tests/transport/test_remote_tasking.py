@@ -9,10 +9,9 @@ import time
 
 import pytest
 
-from blackboard import Agent, BBObject, Plugin, Task, TaskState
-from blackboard.testing import wait_until
-from transport import Peer
-
+from erni.blackboard import Agent, BBObject, Plugin, Task, TaskState
+from erni.blackboard.testing import wait_until
+from erni.transport import Peer
 from tests.transport.helpers import free_port, make_agent
 
 
@@ -244,8 +243,8 @@ def test_older_result_never_overwrites_newer(team):
         tx.add(task)
     wait_until(lambda: robot.blackboard.contains(task.uid))
     bridge = control.plugin("transport")
-    from transport.bridge import ResultUpdate
-    from transport.wire import Message
+    from erni.transport.bridge import ResultUpdate
+    from erni.transport.wire import Message
 
     def deliver(seq: int, progress: float) -> None:
         update = ResultUpdate(uid=task.uid, result={"state": "running", "progress": progress})
@@ -268,7 +267,7 @@ def test_restarted_requester_gets_its_tasks_reconciled(team, tmp_path):
     control.add_plugin("transport", settings={"key": "test-team-key", "discovery_port": 0,
                                               "peers": []}, name="transport")
     robot = team("robot1", echo=False, discovery_port=0)
-    robot_addr = "%s:%d" % robot.plugin("transport").address
+    robot_addr = "{}:{}".format(*robot.plugin("transport").address)
     control.plugin("transport").settings = control.plugin("transport").settings.model_copy(
         update={"peers": [f"robot1@{robot_addr}"]})
     control.start()
@@ -305,7 +304,7 @@ def test_stale_task_of_a_forgetful_requester_is_rescinded(team):
 
 
 def test_robot_poses_reach_the_control_node_newest_first(team):
-    from blackboard import Pose
+    from erni.blackboard import Pose
 
     control = team("control", echo=False, role="control")
     robot = team("robot1", echo=False)
@@ -326,8 +325,8 @@ def test_robot_poses_reach_the_control_node_newest_first(team):
 
 
 def test_two_statuses_of_a_new_object_in_one_run_lose_nothing(team):
-    from blackboard import Pose
-    from transport.wire import Message
+    from erni.blackboard import Pose
+    from erni.transport.wire import Message
 
     control = team("control", echo=False, role="control")
     bridge = control.plugin("transport")
@@ -346,8 +345,8 @@ def test_two_statuses_of_a_new_object_in_one_run_lose_nothing(team):
 
 
 def test_share_with_sends_a_type_to_more_roles_than_the_rest(team):
-    from blackboard import BBObject, Pose
-    from transport import register_type
+    from erni.blackboard import BBObject, Pose
+    from erni.transport import register_type
 
     class Beat(BBObject):
         robot: str

@@ -8,8 +8,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from blackboard import Pose, Task
-from transport.wire import (
+from erni.blackboard import Pose, Task
+from erni.transport.wire import (
     HEADER,
     TAG_SIZE,
     Envelope,

@@ -8,12 +8,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from blackboard import Agent, Pose
-from blackboard.testing import wait_until
-from plugins.ui import UIPlugin
-from sim.robot import SimRobotConfig
-from sim.robot_host import RobotHost
-from sim.world import World
+from erni.blackboard import Agent, Pose
+from erni.blackboard.testing import wait_until
+from erni.plugins.ui import UIPlugin
+from erni.sim.robot import SimRobotConfig
+from erni.sim.robot_host import RobotHost
+from erni.sim.world import World
 
 KEY = "ui-test-team-key"
 FAST = dict(sip_period=0.05, accel=3.0, decel=3.0, max_v=2.0, rot_accel=720.0, max_rv=360.0)
@@ -90,10 +90,10 @@ def start_team(robots: int = 3, *, ui: dict[str, Any] | None = None, mission: di
         for i in range(robots):
             agent = Agent(f"robot{i + 1}", workers=2)
             agent.add_plugin("transport", settings=transport_settings(discovery, "robot"), name="transport")
-            agent.add_plugin("plugins.motion:RobotMotionControl", settings={**MOTION, "url": host.url(i)},
+            agent.add_plugin("erni.plugins.motion:RobotMotionControl", settings={**MOTION, "url": host.url(i)},
                              name="motion")
             if mission is not None:
-                agent.add_plugin("plugins.mission:MissionControl", settings=mission, name="mission")
+                agent.add_plugin("erni.plugins.mission:MissionControl", settings=mission, name="mission")
             agents.append(agent.start())
         control = Agent("control", workers=2)
         bridge = control.add_plugin("transport", settings=transport_settings(discovery, "control"),

@@ -14,9 +14,9 @@ from typing import Any
 
 import pytest
 
-from blackboard import Agent, Link, NetInfo, Neighbor, Pose, Task
-from blackboard.testing import wait_until
-from plugins.ui import UIPlugin
+from erni.blackboard import Agent, Link, Neighbor, NetInfo, Pose, Task
+from erni.blackboard.testing import wait_until
+from erni.plugins.ui import UIPlugin
 from tests.ui.team import Team, start_team, transport_settings
 
 CHROMIUM = "/usr/bin/chromium"
@@ -185,8 +185,8 @@ def test_rectangle_selection_and_command_buttons(team, page):
     assert checked == [True, True, False]
     page.fill("#p-angle", "45")
     page.click("#cmd-turn-left")
-    for i, name in enumerate(("robot1", "robot2")):
-        turn = wait_until(lambda: [t for t in team.robots[i].query(Task) if t.preposition == "turn"], timeout=20)[0]
+    for robot in team.robots[:2]:
+        turn = wait_until(lambda robot=robot: [t for t in robot.query(Task) if t.preposition == "turn"], timeout=20)[0]
         assert turn.params.angle == 45.0
     assert not [t for t in team.robots[2].query(Task) if t.preposition == "turn"]
     page.click("#cmd-randomwalk")

@@ -16,11 +16,11 @@ from typing import Any
 import numpy as np
 import pytest
 
-import plugins.ui.plugin as ui_plugin
-from blackboard import Agent, Pose
-from blackboard.testing import wait_until
-from plugins.ui import UIPlugin
-from plugins.ui.speech import MODELS_URL, RATE
+import erni.plugins.ui.plugin as ui_plugin
+from erni.blackboard import Agent, Pose
+from erni.blackboard.testing import wait_until
+from erni.plugins.ui import UIPlugin
+from erni.plugins.ui.speech import MODELS_URL, RATE
 from tests.ui.test_browser import ARGS, CHROMIUM
 from tests.ui.test_speech import dominant_hz, write_wav
 

@@ -7,9 +7,9 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from blackboard.tasks import PREPOSITIONS, NoParams, register_preposition
-from plugins.ui import Dialogue, Naming, Refusal, parse, vocabulary
-from plugins.ui.dialogue import LISTENING, ROGER, STANDING_BY, tasks_for
+from erni.blackboard.tasks import PREPOSITIONS, NoParams, register_preposition
+from erni.plugins.ui import Dialogue, Naming, Refusal, parse, vocabulary
+from erni.plugins.ui.dialogue import LISTENING, ROGER, STANDING_BY, tasks_for
 
 KNOWN = [f"robot{i}" for i in range(1, 7)]
 ALL = KNOWN
@@ -200,7 +200,7 @@ def test_an_action_the_tier_lacks_is_refused_by_name():
 
 def test_vocabulary_covers_every_word_of_the_table():
     vocab = set(vocabulary())
-    from plugins.ui.grammar import tokens
+    from erni.plugins.ui.grammar import tokens
 
     for utterance, expected in TABLE:
         if isinstance(expected, str):

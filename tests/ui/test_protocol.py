@@ -8,7 +8,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from plugins.ui.protocol import BadMessage, CommandMsg, MicMsg, SayMsg, parse_message
+from erni.plugins.ui.protocol import BadMessage, CommandMsg, MicMsg, SayMsg, parse_message
 
 
 def test_valid_messages_parse_to_their_types():

@@ -12,10 +12,10 @@ from typing import Any
 import aiohttp
 import pytest
 
-from blackboard import Agent, Pose, Task
-from blackboard.testing import wait_until
-from plugins.ui import UIPlugin
-from plugins.ui.plugin import is_loopback
+from erni.blackboard import Agent, Pose, Task
+from erni.blackboard.testing import wait_until
+from erni.plugins.ui import UIPlugin
+from erni.plugins.ui.plugin import is_loopback
 
 
 @pytest.fixture
@@ -225,8 +225,8 @@ def test_the_floorplan_is_served_and_bad_files_are_refused_by_name(control, tmp_
 def test_a_wav_file_setting_is_recognised_and_answered(control, tmp_path, monkeypatch):
     import numpy as np
 
-    import plugins.ui.plugin as ui_plugin
-    from plugins.ui.speech import RATE, read_wav
+    import erni.plugins.ui.plugin as ui_plugin
+    from erni.plugins.ui.speech import RATE, read_wav
     from tests.ui.test_browser_mic import Recorder
     from tests.ui.test_speech import write_wav
 

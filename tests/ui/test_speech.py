@@ -13,9 +13,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from blackboard.testing import wait_until
-from plugins.ui import Dialogue, Naming, vocabulary
-from plugins.ui.speech import (
+from erni.blackboard.testing import wait_until
+from erni.plugins.ui import Dialogue, Naming, vocabulary
+from erni.plugins.ui.speech import (
     FRAME_SAMPLES,
     MODELS_URL,
     RATE,
@@ -27,7 +27,7 @@ from plugins.ui.speech import (
     read_wav,
     wav_frames,
 )
-from plugins.ui.voice import Speaker
+from erni.plugins.ui.voice import Speaker
 
 ESPEAK = shutil.which("espeak-ng")
 needs_espeak = pytest.mark.skipif(ESPEAK is None, reason="espeak-ng is not installed (apt install espeak-ng)")

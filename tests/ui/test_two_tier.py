@@ -9,8 +9,8 @@ from collections.abc import Iterator
 
 import pytest
 
-from blackboard import Task
-from blackboard.testing import wait_until
+from erni.blackboard import Task
+from erni.blackboard.testing import wait_until
 from tests.ui.team import Team, start_team
 from tests.ui.test_server import of, talk
 

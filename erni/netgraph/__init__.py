@@ -5,7 +5,7 @@ listed from both ends). Nodes are any hashable, orderable values (robot names in
 Nothing here imports the rest of ERNI, so the simulator and every plugin can share it.
 """
 
-from netgraph.graph import (
+from erni.netgraph.graph import (
     Adjacency,
     RouteEntry,
     add_edge,
