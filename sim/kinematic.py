@@ -14,15 +14,16 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 
 from erni import netgraph
 
 
-def distances(pos: ArrayLike) -> np.ndarray:
+def distances(pos: ArrayLike) -> NDArray[np.float64]:
     """Pairwise distances (N, N) of positions (N, 2)."""
     p = np.asarray(pos, dtype=float)
-    return np.hypot(*(p[:, None, :] - p[None, :, :]).transpose(2, 0, 1))
+    d: NDArray[np.float64] = np.hypot(*(p[:, None, :] - p[None, :, :]).transpose(2, 0, 1))
+    return d
 
 
 def links(pos: ArrayLike, comm_range: float) -> dict[int, set[int]]:
@@ -77,9 +78,9 @@ def coverage(pos: ArrayLike, radius: float, box: tuple[float, float, float, floa
     return float(covered.sum() * cell * cell)
 
 
-def drive(pos: np.ndarray, th: np.ndarray, targets: np.ndarray, dt: float, vmax: float,
-          wmax: float = math.radians(90), tolerance: float = 0.02,
-          moving: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def drive(pos: NDArray[np.float64], th: NDArray[np.float64], targets: NDArray[np.float64], dt: float, vmax: float,
+          wmax: float = math.radians(90), tolerance: float = 0.02, moving: NDArray[np.bool_] | None = None
+          ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """Step unicycles toward `targets` for dt; return (pos, th, speed): turn first, then drive."""
     rel = targets - pos
     dist = np.hypot(rel[:, 0], rel[:, 1])
@@ -101,28 +102,29 @@ class Track:
     """Every pose of every robot over time: t (T,), pos (T, N, 2), th (T, N), speed (T, N)."""
 
     t: list[float] = field(default_factory=list)
-    pos: list[np.ndarray] = field(default_factory=list)
-    th: list[np.ndarray] = field(default_factory=list)
-    speed: list[np.ndarray] = field(default_factory=list)
+    pos: list[NDArray[np.float64]] = field(default_factory=list)
+    th: list[NDArray[np.float64]] = field(default_factory=list)
+    speed: list[NDArray[np.float64]] = field(default_factory=list)
 
-    def add(self, t: float, pos: np.ndarray, th: np.ndarray, speed: np.ndarray) -> None:
+    def add(self, t: float, pos: ArrayLike, th: ArrayLike, speed: ArrayLike) -> None:
         """Record one instant (arrays are copied)."""
         self.t.append(float(t))
         self.pos.append(np.array(pos, dtype=float))
         self.th.append(np.array(th, dtype=float))
         self.speed.append(np.array(speed, dtype=float))
 
-    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def arrays(self) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
         """Return (t, pos, th, speed) as numpy arrays."""
-        return np.array(self.t), np.array(self.pos), np.array(self.th), np.array(self.speed)
+        return (np.array(self.t, dtype=float), np.array(self.pos, dtype=float), np.array(self.th, dtype=float),
+                np.array(self.speed, dtype=float))
 
-    def at(self, t: float) -> np.ndarray:
+    def at(self, t: float) -> NDArray[np.float64]:
         """Positions (N, 2) at the recorded instant closest to `t`."""
         i = int(np.argmin(np.abs(np.array(self.t) - t)))
         return self.pos[i]
 
 
-def convergence_time(t: np.ndarray, speed: np.ndarray, threshold: float) -> float | None:
+def convergence_time(t: NDArray[np.float64], speed: NDArray[np.float64], threshold: float) -> float | None:
     """First time after which every robot's speed stays below `threshold` (None if never)."""
     moving = (np.abs(speed) >= threshold).any(axis=1)
     if not moving.any():
@@ -131,14 +133,16 @@ def convergence_time(t: np.ndarray, speed: np.ndarray, threshold: float) -> floa
     return float(t[last + 1]) if last + 1 < len(t) else None
 
 
-def blocked_by_walls(old: np.ndarray, new: np.ndarray, walls: np.ndarray) -> np.ndarray:
+def blocked_by_walls(old: NDArray[np.float64], new: NDArray[np.float64], walls: ArrayLike) -> NDArray[np.bool_]:
     """Mask (N,) of robots whose straight move old -> new crosses any wall (K, 4: x1, y1, x2, y2)."""
     hit = np.zeros(len(old), dtype=bool)
     for x1, y1, x2, y2 in np.asarray(walls, dtype=float).reshape(-1, 4):
         a, b = np.array([x1, y1]), np.array([x2, y2])
 
-        def orient(p: np.ndarray, q: np.ndarray, r: np.ndarray) -> np.ndarray:
-            return (q[..., 0] - p[..., 0]) * (r[..., 1] - p[..., 1]) - (q[..., 1] - p[..., 1]) * (r[..., 0] - p[..., 0])
+        def orient(p: NDArray[np.float64], q: NDArray[np.float64], r: NDArray[np.float64]) -> NDArray[np.float64]:
+            cross: NDArray[np.float64] = ((q[..., 0] - p[..., 0]) * (r[..., 1] - p[..., 1])
+                                          - (q[..., 1] - p[..., 1]) * (r[..., 0] - p[..., 0]))
+            return cross
 
         d1, d2 = orient(a, b, old), orient(a, b, new)
         d3, d4 = orient(old, new, a), orient(old, new, b)

@@ -17,7 +17,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 
 P0 = 8.568          # W, standing (standby mode)
 PMOV_SLOPE = 11.55  # W per m/s
@@ -25,17 +25,22 @@ PMOV_BASE = 14.838  # W, moving at (almost) zero speed
 MOVING = 1e-3       # m/s: slower than this is standing
 
 
-def power(v: ArrayLike) -> np.ndarray:
+def power(v: ArrayLike) -> NDArray[np.float64]:
     """Power drawn (W) at speeds `v` (m/s): P0 standing, 11.55|v| + 14.838 moving."""
     speed = np.abs(np.asarray(v, dtype=float))
-    return np.where(speed < MOVING, P0, PMOV_SLOPE * speed + PMOV_BASE)
+    watts: NDArray[np.float64] = np.where(speed < MOVING, P0, PMOV_SLOPE * speed + PMOV_BASE)
+    return watts
 
 
-def energy(v: ArrayLike, dt: float) -> np.ndarray:
-    """Energy (J) of speeds sampled every `dt` s along the last axis (one value per robot)."""
+def energy(v: ArrayLike, dt: float) -> NDArray[np.float64] | np.float64:
+    """Energy (J) of speeds sampled every `dt` s along the last axis (one value per robot).
+
+    One robot's speeds (1-D) give a scalar, several robots' (N, T) an array (N,).
+    """
     if not dt > 0:
         raise ValueError(f"dt: expected a positive sampling period (s), got {dt!r}")
-    return power(v).sum(axis=-1) * dt
+    joules: NDArray[np.float64] | np.float64 = power(v).sum(axis=-1) * dt
+    return joules
 
 
 def track_energy(t: ArrayLike, x: ArrayLike, y: ArrayLike) -> tuple[float, float]:

@@ -23,8 +23,10 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import TypedDict
 
 import numpy as np
+from numpy.typing import NDArray
 
 Block = tuple[float, float, float, float]
 
@@ -47,7 +49,7 @@ def split(territory: Block, nx: int, ny: int) -> list[Block]:
             for j in range(ny) for i in range(nx)]
 
 
-def centre(block: Block) -> np.ndarray:
+def centre(block: Block) -> NDArray[np.float64]:
     """The centre (2,) of a block."""
     xmin, ymin, xmax, ymax = block
     return np.array([(xmin + xmax) / 2, (ymin + ymax) / 2])
@@ -58,7 +60,7 @@ def touching(a: Block, b: Block, slack: float = 1e-6) -> bool:
     return (a[0] <= b[2] + slack and b[0] <= a[2] + slack and a[1] <= b[3] + slack and b[1] <= a[3] + slack)
 
 
-def sweep_path(block: Block, spacing: float = 1.0, margin: float = 0.3) -> np.ndarray:
+def sweep_path(block: Block, spacing: float = 1.0, margin: float = 0.3) -> NDArray[np.float64]:
     """Return lawnmower waypoints (K, 2) covering the block, lanes `spacing` m apart, `margin` m inside."""
     xmin, ymin, xmax, ymax = check_block(block)
     if not spacing > 0:
@@ -71,11 +73,11 @@ def sweep_path(block: Block, spacing: float = 1.0, margin: float = 0.3) -> np.nd
         y0 = y1 = (ymin + ymax) / 2
     lanes = max(1, math.floor((y1 - y0) / spacing) + 1)
     ys = np.linspace(y0, y1, lanes) if lanes > 1 else np.array([(y0 + y1) / 2])
-    pts = []
+    pts: list[tuple[float, float]] = []
     for k, y in enumerate(ys):
         xs = (x0, x1) if k % 2 == 0 else (x1, x0)
-        pts.extend([(xs[0], y), (xs[1], y)])
-    return np.array(pts)
+        pts.extend([(xs[0], float(y)), (xs[1], float(y))])
+    return np.array(pts, dtype=float)
 
 
 def claim_order(failed: Block, candidates: dict[str, Block]) -> list[str]:
@@ -93,6 +95,15 @@ def backoff(rank: int, base: float = 1.0) -> float:
     if rank < 0 or not base > 0:
         raise ValueError(f"backoff: expected rank >= 0 and base > 0, got {rank}, {base}")
     return base * (1 + rank)
+
+
+class Heartbeat(TypedDict):
+    """What a robot's heartbeat says (`TakeoverTable.heartbeat()`)."""
+
+    robot: str
+    block: list[float]          # xmin, ymin, xmax, ymax (m)
+    holds: list[str]            # the robots whose blocks it patrols (itself included)
+    claims: dict[str, float]    # silent robot -> claim time (s)
 
 
 @dataclass
@@ -183,7 +194,7 @@ class TakeoverTable:
                 events.append(Event("claim", name))
         return events
 
-    def heartbeat(self) -> dict:
+    def heartbeat(self) -> Heartbeat:
         """What my heartbeat says: my block, the robots whose blocks I hold, my claims."""
         return {"robot": self.me, "block": list(self.block), "holds": sorted(self.holds),
                 "claims": dict(self.claims)}

@@ -27,7 +27,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 
 EPS = 1e-9
 
@@ -61,12 +61,12 @@ class SpreadConfig:
             raise ValueError(f"model: expected 'holonomic' or 'nonholonomic', got {self.model!r}")
 
 
-def wrap(a: np.ndarray | float) -> np.ndarray | float:
+def wrap(a: NDArray[np.float64] | float) -> NDArray[np.float64] | np.float64:
     """Wrap angles (rad) into [-pi, pi)."""
     return (np.asarray(a) + math.pi) % (2 * math.pi) - math.pi
 
 
-def neighbourhoods(pos: ArrayLike, mode: str = "physical", rng: float = 15.0) -> list[np.ndarray]:
+def neighbourhoods(pos: ArrayLike, mode: str = "physical", rng: float = 15.0) -> list[NDArray[np.intp]]:
     """Return, for each robot, the indices of its neighbours (physical: within `rng`; or Delaunay)."""
     p = np.asarray(pos, dtype=float)
     n = len(p)
@@ -95,7 +95,7 @@ def neighbourhoods(pos: ArrayLike, mode: str = "physical", rng: float = 15.0) ->
     return out
 
 
-def nearest_on_segments(p: np.ndarray, walls: np.ndarray) -> np.ndarray:
+def nearest_on_segments(p: NDArray[np.float64], walls: NDArray[np.float64]) -> NDArray[np.float64]:
     """Return the nearest point (K, 2) on each wall segment (x1, y1, x2, y2) to point p."""
     a, b = walls[:, :2], walls[:, 2:]
     ab = b - a
@@ -104,17 +104,19 @@ def nearest_on_segments(p: np.ndarray, walls: np.ndarray) -> np.ndarray:
     return a + np.clip(s, 0.0, 1.0)[:, None] * ab
 
 
-def nearest_on_circles(p: np.ndarray, obstacles: np.ndarray) -> np.ndarray:
+def nearest_on_circles(p: NDArray[np.float64], obstacles: NDArray[np.float64]) -> NDArray[np.float64]:
     """Return the nearest point (M, 2) on each circle (x, y, r) to point p (the centre if p is inside)."""
     c, r = obstacles[:, :2], obstacles[:, 2]
     off = p - c
     dist = np.hypot(off[:, 0], off[:, 1])
-    unit = np.where(dist[:, None] > EPS, off / np.where(dist > EPS, dist, 1.0)[:, None], 0.0)
+    unit: NDArray[np.float64] = np.where(
+        dist[:, None] > EPS, off / np.where(dist > EPS, dist, 1.0)[:, None], 0.0)
     return c + unit * np.minimum(r, dist)[:, None]
 
 
 def forces(pos: ArrayLike, theta: ArrayLike, cfg: SpreadConfig, obstacles: ArrayLike | None = None,
-           walls: ArrayLike | None = None, nbrs: list[np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
+           walls: ArrayLike | None = None, nbrs: list[NDArray[np.intp]] | None = None
+           ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Return (-dU/dp (N, 2), -dU/dtheta (N,)): the potential's force and torque on each robot."""
     p = np.asarray(pos, dtype=float)
     th = np.asarray(theta, dtype=float)
@@ -163,7 +165,7 @@ def forces(pos: ArrayLike, theta: ArrayLike, cfg: SpreadConfig, obstacles: Array
     return force, torque
 
 
-def _clip_norm(v: np.ndarray, vmax: float | None) -> np.ndarray:
+def _clip_norm(v: NDArray[np.float64], vmax: float | None) -> NDArray[np.float64]:
     if vmax is None:
         return v
     speed = np.hypot(v[:, 0], v[:, 1])
@@ -173,7 +175,7 @@ def _clip_norm(v: np.ndarray, vmax: float | None) -> np.ndarray:
 
 def spread_step(pos: ArrayLike, theta: ArrayLike, vel: ArrayLike, omega: ArrayLike, cfg: SpreadConfig,
                 obstacles: ArrayLike | None = None, walls: ArrayLike | None = None
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """Advance every robot one period `cfg.dt` by equation (15) or (16); return (pos, theta, vel, omega)."""
     p = np.asarray(pos, dtype=float)
     th = np.asarray(theta, dtype=float)
@@ -191,9 +193,10 @@ def spread_step(pos: ArrayLike, theta: ArrayLike, vel: ArrayLike, omega: ArrayLi
     return p, th, v, om
 
 
-def _integrate(p: np.ndarray, th: np.ndarray, v: np.ndarray, om: np.ndarray, cfg: SpreadConfig, dt: float,
-               obstacles: ArrayLike | None, walls: ArrayLike | None, nbrs: list[np.ndarray]
-               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _integrate(p: NDArray[np.float64], th: NDArray[np.float64], v: NDArray[np.float64], om: NDArray[np.float64],
+               cfg: SpreadConfig, dt: float, obstacles: ArrayLike | None, walls: ArrayLike | None,
+               nbrs: list[NDArray[np.intp]]
+               ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     f, tq = forces(p, th, cfg, obstacles, walls, nbrs)
     k = cfg.gain
     om = om + dt * (tq - k * om) / cfg.inertia
@@ -260,7 +263,7 @@ def mean_nn_distance(pos: ArrayLike) -> float:
 
 def simulate(pos: ArrayLike, theta: ArrayLike, cfg: SpreadConfig, seconds: float,
              obstacles: ArrayLike | None = None, walls: ArrayLike | None = None
-             ) -> tuple[np.ndarray, np.ndarray]:
+             ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Run the deployment from rest for `seconds`; return the final (pos, theta)."""
     p = np.asarray(pos, dtype=float).copy()
     th = np.asarray(theta, dtype=float).copy()

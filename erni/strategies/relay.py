@@ -18,20 +18,20 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 
 
 @dataclass(frozen=True)
 class RelayMove:
     """One relay decision."""
 
-    target: np.ndarray   # (2,) point on the S-D segment to move to (m)
-    along: float         # signed move along S -> D (m): negative = toward the source
-    imbalance: float     # q_destination - q_source
-    balanced: bool       # |imbalance| <= tolerance: hold position
+    target: NDArray[np.float64]  # (2,) point on the S-D segment to move to (m)
+    along: float                 # signed move along S -> D (m): negative = toward the source
+    imbalance: float             # q_destination - q_source
+    balanced: bool               # |imbalance| <= tolerance: hold position
 
 
-def project(pos: ArrayLike, source: ArrayLike, destination: ArrayLike) -> tuple[np.ndarray, float]:
+def project(pos: ArrayLike, source: ArrayLike, destination: ArrayLike) -> tuple[NDArray[np.float64], float]:
     """Return (nearest point on segment S-D to pos, its fraction 0..1 from S)."""
     p, s, d = (np.asarray(a, dtype=float).reshape(2) for a in (pos, source, destination))
     sd = d - s
@@ -66,18 +66,20 @@ def relay_step(pos: ArrayLike, source: ArrayLike, destination: ArrayLike, q_sour
     return RelayMove(s + t_new * (d - s), (t_new - t) * length, imbalance, False)
 
 
-def chain_slots(source: ArrayLike, destination: ArrayLike, n: int) -> np.ndarray:
+def chain_slots(source: ArrayLike, destination: ArrayLike, n: int) -> NDArray[np.float64]:
     """Return (n, 2) equally spaced relay positions strictly between S and D (k / (n + 1))."""
     if n < 0:
         raise ValueError(f"n: expected a number of relays >= 0, got {n}")
     s, d = (np.asarray(a, dtype=float).reshape(2) for a in (source, destination))
     frac = np.arange(1, n + 1) / (n + 1)
-    return s + frac[:, None] * (d - s)
+    slots: NDArray[np.float64] = s + frac[:, None] * (d - s)
+    return slots
 
 
-def distance_quality(distance: ArrayLike, R: float, clean: float) -> np.ndarray:
+def distance_quality(distance: ArrayLike, R: float, clean: float) -> NDArray[np.float64]:
     """A fading link model for tests and kinematic runs: 1 up to `clean` m, falling to 0 at R."""
     dist = np.asarray(distance, dtype=float)
     if not 0 <= clean < R:
         raise ValueError("distance_quality: expected 0 <= clean < R")
-    return np.clip((R - dist) / (R - clean), 0.0, 1.0)
+    quality: NDArray[np.float64] = np.clip((R - dist) / (R - clean), 0.0, 1.0)
+    return quality

@@ -27,12 +27,12 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 
 EPS = 1e-9
 
 
-def _points(positions: ArrayLike) -> np.ndarray:
+def _points(positions: ArrayLike) -> NDArray[np.float64]:
     pos = np.asarray(positions, dtype=float)
     if pos.ndim != 2 or pos.shape[1] != 2:
         raise ValueError(f"positions: expected an (N, 2) array of x, y in metres, got shape {pos.shape}")
@@ -41,7 +41,7 @@ def _points(positions: ArrayLike) -> np.ndarray:
     return pos
 
 
-def _circles(obstacles: ArrayLike | None) -> np.ndarray:
+def _circles(obstacles: ArrayLike | None) -> NDArray[np.float64]:
     if obstacles is None:
         return np.zeros((0, 3))
     obs = np.asarray(obstacles, dtype=float).reshape(-1, 3) if np.size(obstacles) else np.zeros((0, 3))
@@ -50,14 +50,14 @@ def _circles(obstacles: ArrayLike | None) -> np.ndarray:
     return obs
 
 
-def distances(positions: ArrayLike) -> np.ndarray:
+def distances(positions: ArrayLike) -> NDArray[np.float64]:
     """Return the (N, N) matrix of Euclidean distances (m)."""
     pos = _points(positions)
     diff = pos[:, None, :] - pos[None, :, :]
     return np.hypot(diff[..., 0], diff[..., 1])
 
 
-def comm_adjacency(positions: ArrayLike, R: float) -> np.ndarray:
+def comm_adjacency(positions: ArrayLike, R: float) -> NDArray[np.bool_]:
     """Return the boolean (N, N) adjacency of the communication graph: distinct robots within R."""
     d = distances(positions)
     adj = d <= R
@@ -65,7 +65,7 @@ def comm_adjacency(positions: ArrayLike, R: float) -> np.ndarray:
     return adj
 
 
-def rng_adjacency(positions: ArrayLike, R: float) -> np.ndarray:
+def rng_adjacency(positions: ArrayLike, R: float) -> NDArray[np.bool_]:
     """Return the boolean (N, N) RNG of the communication graph (witnesses: every robot)."""
     d = distances(positions)
     n = len(d)
@@ -123,7 +123,7 @@ def connected(positions: ArrayLike, R: float) -> bool:
     return bool(seen.all())
 
 
-def segment_hits(a: ArrayLike, b: ArrayLike, obstacles: ArrayLike | None, margin: float = 0.0) -> np.ndarray:
+def segment_hits(a: ArrayLike, b: ArrayLike, obstacles: ArrayLike | None, margin: float = 0.0) -> NDArray[np.bool_]:
     """Return a boolean mask of the circles (x, y, r) that the segment a-b passes within r + margin of."""
     obs = _circles(obstacles)
     if len(obs) == 0:
@@ -137,11 +137,12 @@ def segment_hits(a: ArrayLike, b: ArrayLike, obstacles: ArrayLike | None, margin
     else:
         s = np.clip(((centres - pa) @ ab) / length2, 0.0, 1.0)
     nearest = pa + s[:, None] * ab
-    return np.hypot(*(centres - nearest).T) < obs[:, 2] + margin
+    hit: NDArray[np.bool_] = np.hypot(*(centres - nearest).T) < obs[:, 2] + margin
+    return hit
 
 
 def auxiliary_poi(p: ArrayLike, target: ArrayLike, obstacles: ArrayLike | None,
-                  margin: float = 0.3) -> np.ndarray | None:
+                  margin: float = 0.3) -> NDArray[np.float64] | None:
     """Return an auxiliary PoI beside the first obstacle blocking p -> target, or None if clear.
 
     The point lies on the perpendicular to p -> target through the obstacle's centre, on the
@@ -167,7 +168,7 @@ def auxiliary_poi(p: ArrayLike, target: ArrayLike, obstacles: ArrayLike | None,
     direction = -normal if side > 0 else normal
     one = obs[first:first + 1]
     reach = r + margin
-    aux = centre + direction * reach * 1.05
+    aux: NDArray[np.float64] = centre + direction * reach * 1.05
     for _ in range(8):
         aux = centre + direction * reach * 1.05
         if not segment_hits(pa, aux, one, margin).any() and not segment_hits(aux, pt, one, margin).any():
@@ -180,15 +181,16 @@ def auxiliary_poi(p: ArrayLike, target: ArrayLike, obstacles: ArrayLike | None,
 class Step:
     """One robot's WiDep decision: where to go and why."""
 
-    target: np.ndarray      # (2,) the point to move to (m)
+    target: NDArray[np.float64]      # (2,) the point to move to (m)
     length: float           # distance to it (m)
-    waypoint: np.ndarray    # (2,) the point steered for: the PoI or an auxiliary PoI (m)
+    waypoint: NDArray[np.float64]    # (2,) the point steered for: the PoI or an auxiliary PoI (m)
     auxiliary: bool         # True when steering for an auxiliary PoI
     arrived: bool           # True when the robot is within tolerance of the PoI
     limit: float            # the connectivity bound (R - d+(u)) / 2 (m)
 
 
-def _separation_limit(p: np.ndarray, u: np.ndarray, others: np.ndarray, sep: float, length: float) -> float:
+def _separation_limit(p: NDArray[np.float64], u: NDArray[np.float64], others: NDArray[np.float64], sep: float,
+                      length: float) -> float:
     limit = length
     for q in others:
         w = p - q
@@ -256,7 +258,8 @@ def covered(positions: ArrayLike, poi: ArrayLike, tolerance: float) -> bool:
 
 def widep_round(positions: ArrayLike, poi: ArrayLike, R: float, *, tolerance: float = 0.5,
                 obstacles: ArrayLike | None = None, margin: float = 0.3, separation: float = 0.0,
-                step_cap: float | None = None, movable: ArrayLike | None = None) -> tuple[np.ndarray, bool]:
+                step_cap: float | None = None, movable: ArrayLike | None = None
+                ) -> tuple[NDArray[np.float64], bool]:
     """Move every movable robot one WiDep step from the same snapshot; return (positions, covered).
 
     Once the PoI is covered nobody moves. `movable` is a boolean mask (default: all robots;

@@ -26,18 +26,26 @@ from its poses and reports it in its result values (`energy_j`, `distance_m`, `m
 
 from __future__ import annotations
 
+import dataclasses
 import math
-from typing import Any, Protocol
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, ClassVar, Protocol
 
 import numpy as np
+from numpy.typing import NDArray
+from pydantic import JsonValue
 
-from erni.blackboard import Pose, Task, TaskState
+from erni.blackboard import Params, Pose, Task, TaskState
+from erni.blackboard.tasks import GotoParams, PatrolParams, RelayParams, SpreadParams, VelocityParams, WidepParams
 from erni.plugins.mission.team import TeamView, Territory
 from erni.strategies import patrol as patrol_core
 from erni.strategies.energy import EnergyMeter
 from erni.strategies.potential import SpreadConfig, robot_command
 from erni.strategies.relay import relay_step
 from erni.strategies.widep import widep_step
+
+if TYPE_CHECKING:
+    from erni.plugins.mission.plugin import MissionSettings
 
 
 class Ops(Protocol):
@@ -46,23 +54,25 @@ class Ops(Protocol):
     agent_name: str
     team: TeamView
 
-    def issue(self, parent: str, preposition: str, params: dict[str, Any]) -> str: ...
+    def issue(self, parent: str | None, preposition: str, params: Params) -> str: ...
     def withdraw(self, uid: str | None) -> None: ...
     def sub(self, uid: str | None) -> Task | None: ...
     def report(self, uid: str, state: TaskState, message: str = "", *, progress: float | None = None,
-               values: dict[str, Any] | None = None, force: bool = False) -> None: ...
+               values: Mapping[str, JsonValue] | None = None, force: bool = False) -> None: ...
     def link_qualities(self) -> dict[str, float] | None: ...
     def publish_territory(self, territory: Territory) -> None: ...
 
 
 class Runner:
-    """Base of the strategy runners: energy metering, the current motion sub-task, value reports."""
+    """Base of the strategy runners: energy metering, the current motion sub-task, value reports.
 
-    kind = ""
+    Each runner reads its own preposition's parameters (`task.params_as(WidepParams)`, ...) as `self.p`.
+    """
 
-    def __init__(self, task: Task, ops: Ops, settings: Any, now: float) -> None:
+    kind: ClassVar[str] = ""
+
+    def __init__(self, task: Task, ops: Ops, settings: MissionSettings, now: float) -> None:
         self.uid = task.uid
-        self.p = task.params
         self.ops = ops
         self.s = settings
         self.meter = EnergyMeter()
@@ -70,14 +80,14 @@ class Runner:
         self.motion: str | None = None  # uid of the BotMotion sub-task moving the robot
         self.due = now
         self.done = False
-        self.extra: dict[str, Any] = {}
+        self.extra: dict[str, JsonValue] = {}  # the strategy's own result values
         self.message = ""
 
     def pose(self, pose: Pose) -> None:
         """Meter this robot's motion."""
         self.meter.update(pose.stamp, pose.x, pose.y)
 
-    def values(self) -> dict[str, Any]:
+    def values(self) -> dict[str, JsonValue]:
         """Result values: the strategy's own plus the energy meter's."""
         return {**self.extra, **self.meter.values()}
 
@@ -86,7 +96,7 @@ class Runner:
         t = self.ops.sub(self.motion)
         return None if t is None else t.state
 
-    def move(self, preposition: str, params: dict[str, Any]) -> None:
+    def move(self, preposition: str, params: Params) -> None:
         """Replace the current motion sub-task with a new one."""
         self.ops.withdraw(self.motion)
         self.motion = self.ops.issue(self.uid, preposition, params)
@@ -117,6 +127,11 @@ class WidepRunner(Runner):
 
     kind = "widep"
 
+    def __init__(self, task: Task, ops: Ops, settings: MissionSettings, now: float) -> None:
+        super().__init__(task, ops, settings, now)
+        self.p = task.params_as(WidepParams)
+        self.start_distance: float | None = None  # to the PoI when the first step was decided (m)
+
     def tick(self, now: float) -> float:
         p = self.p
         period = p.period
@@ -140,7 +155,10 @@ class WidepRunner(Runner):
         if stale:
             self.ops.report(self.uid, TaskState.RUNNING, f"holding: no fresh position of {', '.join(stale)}")
             return next_round
-        start = self.extra.setdefault("start_distance", round(float(dists[0]), 3))
+        if self.start_distance is None:
+            self.start_distance = round(float(dists[0]), 3)
+            self.extra["start_distance"] = self.start_distance
+        start = self.start_distance
         cap = min(self.s.widep_step_cap, 0.5 * self.s.speed * period)  # done within half a round
         # a neighbour seen mid-move is at most one step off: keep links a step shorter than R and
         # only trust witnesses two steps closer (robust RNG)
@@ -154,13 +172,13 @@ class WidepRunner(Runner):
             self.ops.report(self.uid, TaskState.RUNNING, "holding: the connectivity bound allows no step",
                             progress=progress, values=self.values())
             return next_round
-        self.move("goto", {"x": round(float(step.target[0]), 3), "y": round(float(step.target[1]), 3),
-                           "speed": self.s.speed, "tolerance": 0.05})
+        self.move("goto", GotoParams(x=round(float(step.target[0]), 3), y=round(float(step.target[1]), 3),
+                                     speed=self.s.speed, tolerance=0.05))
         msg = "heading for an auxiliary PoI" if step.auxiliary else "stepping toward the PoI"
         self.ops.report(self.uid, TaskState.RUNNING, msg, progress=progress, values=self.values())
         return next_round
 
-    def _obstacles(self) -> np.ndarray | None:
+    def _obstacles(self) -> NDArray[np.float64] | None:
         return np.array(self.s.obstacles, dtype=float) if self.s.obstacles else None
 
 
@@ -169,9 +187,9 @@ class SpreadRunner(Runner):
 
     kind = "spread"
 
-    def __init__(self, task: Task, ops: Ops, settings: Any, now: float) -> None:
+    def __init__(self, task: Task, ops: Ops, settings: MissionSettings, now: float) -> None:
         super().__init__(task, ops, settings, now)
-        p = self.p
+        p = self.p = task.params_as(SpreadParams)
         self.cfg = SpreadConfig(distance=p.distance, gain=p.gain, dt=p.dt, range=p.range,
                                 neighbourhood=p.neighbourhood, model=p.model, vmax=settings.speed,
                                 wmax=math.radians(90), obstacle_distance=settings.obstacle_distance,
@@ -192,7 +210,7 @@ class SpreadRunner(Runner):
             return period
         theta = mine[2]
         speed, omega = self.speed, self.omega  # the robot's measured velocities (last Pose)
-        cfg = self.cfg if period == p.dt else SpreadConfig(**{**self.cfg.__dict__, "dt": period})
+        cfg = self.cfg if period == p.dt else dataclasses.replace(self.cfg, dt=period)
         v, w = robot_command(pos, theta, speed, omega, 0, cfg, self._obstacles(), self._walls())
         if abs(v) < 0.01 and abs(w) < 0.02:
             v, w = 0.0, 0.0
@@ -200,8 +218,8 @@ class SpreadRunner(Runner):
             d = np.hypot(*(pos[1:] - pos[0]).T)
             self.extra["nearest_m"] = round(float(d.min()), 3)
         self.extra["neighbours"] = len(names) - 1
-        self.move("velocity", {"v": round(v, 3), "w": round(math.degrees(w), 2),
-                               "duration": round(max(3 * period, 1.0), 2)})
+        self.move("velocity", VelocityParams(v=round(v, 3), w=round(math.degrees(w), 2),
+                                             duration=round(max(3 * period, 1.0), 2)))
         self.ops.report(self.uid, TaskState.RUNNING, "spreading", values=self.values())
         return period
 
@@ -209,10 +227,10 @@ class SpreadRunner(Runner):
         super().pose(pose)
         self.speed, self.omega = pose.v, pose.w
 
-    def _obstacles(self) -> np.ndarray | None:
+    def _obstacles(self) -> NDArray[np.float64] | None:
         return np.array(self.s.obstacles, dtype=float) if self.s.obstacles else None
 
-    def _walls(self) -> np.ndarray | None:
+    def _walls(self) -> NDArray[np.float64] | None:
         return np.array(self.s.walls, dtype=float) if self.s.walls else None
 
 
@@ -220,6 +238,10 @@ class RelayRunner(Runner):
     """Relay positioning: move along source-destination toward the worse link until balanced."""
 
     kind = "relay"
+
+    def __init__(self, task: Task, ops: Ops, settings: MissionSettings, now: float) -> None:
+        super().__init__(task, ops, settings, now)
+        self.p = task.params_as(RelayParams)
 
     def tick(self, now: float) -> float:
         p = self.p
@@ -243,8 +265,8 @@ class RelayRunner(Runner):
                           balanced=move.balanced)
         off = float(np.hypot(*(move.target - me)))
         if off >= 0.1:
-            self.move("goto", {"x": round(float(move.target[0]), 3), "y": round(float(move.target[1]), 3),
-                               "speed": self.s.speed, "tolerance": 0.05})
+            self.move("goto", GotoParams(x=round(float(move.target[0]), 3), y=round(float(move.target[1]), 3),
+                                         speed=self.s.speed, tolerance=0.05))
         msg = "balanced" if move.balanced else f"moving toward {p.source if move.along < 0 else p.destination}"
         self.ops.report(self.uid, TaskState.RUNNING, msg, values=self.values())
         return period
@@ -255,10 +277,11 @@ class PatrolRunner(Runner):
 
     kind = "patrol"
 
-    def __init__(self, task: Task, ops: Ops, settings: Any, now: float) -> None:
+    def __init__(self, task: Task, ops: Ops, settings: MissionSettings, now: float) -> None:
         super().__init__(task, ops, settings, now)
-        p = self.p
+        p = self.p = task.params_as(PatrolParams)
         block = (p.xmin, p.ymin, p.xmax, p.ymax)
+        self.events: list[JsonValue] = []  # "kind robot" of every takeover event, oldest first
         self.table = patrol_core.TakeoverTable(ops.agent_name, block, silence=p.silence,
                                                base=settings.backoff_base or 2.0 * p.heartbeat + 0.5)
         self.path: list[tuple[float, float]] = []
@@ -276,7 +299,7 @@ class PatrolRunner(Runner):
             path.extend((round(float(x), 3), round(float(y), 3)) for x, y in pts)
         self.path = path
         self.waypoint = self.waypoint % len(path) if path else 0
-        self.extra["holds"] = sorted(holds)
+        self.extra["holds"] = [*sorted(holds)]
 
     def heard(self, territory: Territory, now: float) -> None:
         events = self.table.heard(territory.robot, territory.block, now, tuple(territory.holds),
@@ -286,8 +309,9 @@ class PatrolRunner(Runner):
     def _events(self, events: list[patrol_core.Event]) -> None:
         if not events:
             return
+        self.extra["events"] = self.events
         for ev in events:
-            self.extra.setdefault("events", []).append(f"{ev.kind} {ev.about}")
+            self.events.append(f"{ev.kind} {ev.about}")
         self._replan()
         last = events[-1]
         text = {"silent": "{} fell silent", "claim": "took over the block of {}", "yield": "yielded {}'s block",
@@ -301,8 +325,9 @@ class PatrolRunner(Runner):
         if now >= self.next_beat:
             self.beat += 1
             hb = self.table.heartbeat()
+            xmin, ymin, xmax, ymax = hb["block"]
             self.ops.publish_territory(Territory(uid=f"territory:{self.ops.agent_name}", robot=self.ops.agent_name,
-                                                 task=self.uid, block=tuple(hb["block"]), holds=hb["holds"],
+                                                 task=self.uid, block=(xmin, ymin, xmax, ymax), holds=hb["holds"],
                                                  claims=hb["claims"], beat=self.beat, stamp=now))
             self.next_beat = now + p.heartbeat
         state = self.motion_state()
@@ -310,7 +335,7 @@ class PatrolRunner(Runner):
             if state is not None:
                 self.waypoint = (self.waypoint + 1) % len(self.path)
             x, y = self.path[self.waypoint]
-            self.move("goto", {"x": x, "y": y, "speed": self.s.speed, "tolerance": 0.2})
+            self.move("goto", GotoParams(x=x, y=y, speed=self.s.speed, tolerance=0.2))
             self.ops.report(self.uid, TaskState.RUNNING, self.message or "patrolling", values=self.values())
         return min(p.heartbeat, max(0.1, self.next_beat - now))
 

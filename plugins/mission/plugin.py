@@ -19,23 +19,29 @@ Local BotMotion tasks of other plugins are never touched (mixed initiative).
 from __future__ import annotations
 
 import time
-from typing import Any, Literal
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, JsonValue
 
 from erni.blackboard import (
     AllocationResult,
     NetInfo,
+    Params,
     Plugin,
     Pose,
     Task,
     TaskState,
     TransactionError,
 )
+from erni.blackboard.tasks import CancelParams, GotoParams, SayParams, StopParams
 from erni.plugins.mission.deploy import RUNNERS, Runner
 from erni.plugins.mission.netaware import NetGuard
 from erni.plugins.mission.remote import RemoteJob, Significance, plan
 from erni.plugins.mission.team import TeamView, Territory
+
+if TYPE_CHECKING:
+    from erni.blackboard.agent import Timer
 
 CUE_TASK = [(4, 72), (4, 79)]          # remote task received: short rising fifth
 CUE_LOST = [(10, 67), (10, 60)]        # connectivity at risk: falling
@@ -79,14 +85,12 @@ class MissionSettings(BaseModel):
                                        "default 2 heartbeats + 0.5 s")
 
 
-class MissionControl(Plugin):
+class MissionControl(Plugin[MissionSettings]):
     """Seat of the robot's autonomy: two-tier tasking, network-aware behaviour, deployment."""
-
-    Settings = MissionSettings
 
     def setup(self) -> None:
         me = self.agent_name
-        s: MissionSettings = self.settings
+        s = self.settings
         self.remote = self.subscribe(Task, where=lambda t: t.verb in ("RemoteBotMotion", "Deploy")
                                      and t.destination == me)
         self.mine = self.subscribe(Task, where=lambda t: t.source == me and t.verb in ("BotMotion", "NetWatch")
@@ -112,7 +116,7 @@ class MissionControl(Plugin):
         self.retreat: str | None = None
         self.territory: Territory | None = None
         self.due: dict[str, float] = {}
-        self._timer: Any = None
+        self._timer: Timer | None = None
         self._timer_at = 0.0
         for old in self.query(Task, where=lambda t: t.source == me and t.verb in ("BotMotion", "NetWatch")
                               and t.destination in (None, "", me)):
@@ -124,7 +128,7 @@ class MissionControl(Plugin):
 
     # -- the Ops interface of the runners ------------------------------------------------
 
-    def issue(self, parent: str | None, preposition: str, params: dict[str, Any]) -> str:
+    def issue(self, parent: str | None, preposition: str, params: Params) -> str:
         """Publish a BotMotion sub-task of `parent`; return its uid."""
         task = Task(verb="BotMotion", preposition=preposition, params=params, source=self.agent_name,
                     parent=parent)
@@ -174,7 +178,7 @@ class MissionControl(Plugin):
         self.watches[kind] = task.uid
 
     def report(self, uid: str, state: TaskState, message: str = "", *, progress: float | None = None,
-               values: dict[str, Any] | None = None, force: bool = False) -> None:
+               values: Mapping[str, JsonValue] | None = None, force: bool = False) -> None:
         """Update a remote or Deploy task's result; publish it only when significant (or forced)."""
         task = self.remote.get(uid)
         old = self.results.get(uid)
@@ -294,7 +298,7 @@ class MissionControl(Plugin):
         for uid in list(self.runners):
             self._end_runner(uid, TaskState.CANCELLED, f"superseded by task {newcomer}")
 
-    def _end_job(self, uid: str, state: TaskState, message: str, **values: Any) -> None:
+    def _end_job(self, uid: str, state: TaskState, message: str, **values: JsonValue) -> None:
         job = self.jobs.pop(uid, None)
         if job is None:
             return
@@ -332,7 +336,7 @@ class MissionControl(Plugin):
             self._halt(None)
 
     def _cancel_task(self, task: Task, now: float) -> None:
-        target = task.params.task
+        target = task.params_as(CancelParams).task
         active = list(self.jobs) + list(self.runners)
         if target is not None and target not in active:
             self.report(task.uid, TaskState.FAILED, f"cancel: no running remote task {target} on "
@@ -344,24 +348,24 @@ class MissionControl(Plugin):
             self._end_runner(uid, TaskState.CANCELLED, f"cancelled by task {task.uid}")
         self._release_guard()
         self.report(task.uid, TaskState.RUNNING, f"stopping; cancelled {len(victims)} task(s)",
-                    values={"cancelled": victims})
+                    values={"cancelled": [*victims]})
         self._halt(task.uid)
 
     def _halt(self, cancel: str | None) -> None:
-        uid = self.issue(cancel, "stop", {})
+        uid = self.issue(cancel, "stop", StopParams())
         self.halts[uid] = (cancel, time.time() + self.settings.halt_timeout)
 
     def _sub_result(self, sub: Task, now: float) -> None:
         uid = sub.uid
         if uid in self.halts:
-            if sub.state == TaskState.FAILED or sub.result is not None and (
-                    sub.result.values.get("halted") or sub.result.progress >= 1.0):
+            r = sub.result  # a failed halt has a result too
+            if r is not None and (r.state == TaskState.FAILED or r.values.get("halted") or r.progress >= 1.0):
                 cancel, _ = self.halts.pop(uid)
                 self.withdraw(uid)
                 if cancel is not None:
-                    ok = sub.state != TaskState.FAILED
+                    ok = r.state != TaskState.FAILED
                     self.report(cancel, TaskState.SUCCEEDED if ok else TaskState.FAILED,
-                                "robot halted" if ok else f"halt failed: {sub.result.message}", force=True)
+                                "robot halted" if ok else f"halt failed: {r.message}", force=True)
             return
         if uid in self.says:
             if sub.done:
@@ -372,7 +376,7 @@ class MissionControl(Plugin):
             self.retreat = None
             self.withdraw(uid)
             if self.guard.state.at_risk and self.guard_stop is None:
-                self.guard_stop = self.issue(None, "stop", {})
+                self.guard_stop = self.issue(None, "stop", StopParams())
             return
         parent = self.parent_of.get(uid)
         job = self.jobs.get(parent) if parent else None
@@ -456,12 +460,12 @@ class MissionControl(Plugin):
         if policy == "retreat" and target is not None and mine is not None and \
                 ((mine[0] - target[0]) ** 2 + (mine[1] - target[1]) ** 2) ** 0.5 > 0.2:
             if self.retreat is None:
-                self.retreat = self.issue(None, "goto", {"x": round(target[0], 3), "y": round(target[1], 3),
-                                                         "speed": self.settings.speed, "tolerance": 0.15})
+                self.retreat = self.issue(None, "goto", GotoParams(x=round(target[0], 3), y=round(target[1], 3),
+                                                                   speed=self.settings.speed, tolerance=0.15))
             why = f"retreating to ({target[0]:.2f}, {target[1]:.2f}): {reason}"
         else:
             if self.guard_stop is None:
-                self.guard_stop = self.issue(None, "stop", {})
+                self.guard_stop = self.issue(None, "stop", StopParams())
             why = f"holding: {reason}"
         for job in jobs:
             job.held = reason
@@ -477,7 +481,7 @@ class MissionControl(Plugin):
 
     def _say(self, tones: list[tuple[int, int]]) -> None:
         if self.settings.audio:
-            uid = self.issue(None, "say", {"tones": tones})
+            uid = self.issue(None, "say", SayParams(tones=tones))
             self.says[uid] = time.time() + 10.0
 
     def _housekeeping(self, now: float) -> None:

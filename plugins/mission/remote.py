@@ -16,12 +16,13 @@ message, and progress crossing the next multiple of `step` (0.25 by default). Ev
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 
-from erni.blackboard import AllocationResult, Pose, Task, TaskState
+from erni.blackboard import AllocationResult, Params, Pose, Task, TaskState
+from erni.blackboard.tasks import CancelParams, ForwardParams, GotoParams, TurnParams
 from erni.strategies.widep import auxiliary_poi
 
 
@@ -30,22 +31,21 @@ class StepSpec:
     """One local BotMotion sub-task of a plan."""
 
     preposition: str
-    params: dict[str, Any]
+    params: Params
 
 
 MOVING = frozenset({"goto", "forward", "randomwalk"})
 
 
-def plan(task: Task, pose: Pose | None, *, mode: str = "goto", obstacles: list[tuple[float, float, float]] = (),
+def plan(task: Task, pose: Pose | None, *, mode: str = "goto", obstacles: Sequence[tuple[float, float, float]] = (),
          margin: float = 0.4) -> list[StepSpec]:
     """Return the BotMotion steps performing a RemoteBotMotion task (cancel has none)."""
-    prep, p = task.preposition, task.params.model_dump(exclude_none=True)
-    if prep == "cancel":
+    if isinstance(task.params, CancelParams):
         return []
-    if prep != "goto":
-        return [StepSpec(prep, p)]
-    goal = (p["x"], p["y"])
-    common = {k: p[k] for k in ("speed", "timeout") if k in p}
+    if not isinstance(task.params, GotoParams):  # randomwalk, teleport, forward: one step, the same parameters
+        return [StepSpec(task.preposition, task.params)]
+    p = task.params
+    goal = (p.x, p.y)
     if pose is None:
         return [StepSpec("goto", p)]
     here = np.array([pose.x, pose.y])
@@ -60,20 +60,20 @@ def plan(task: Task, pose: Pose | None, *, mode: str = "goto", obstacles: list[t
             points.append((round(float(aux[0]), 3), round(float(aux[1]), 3)))
             start = aux
     if points:
-        legs = [StepSpec("goto", {"x": x, "y": y, "tolerance": max(0.2, p.get("tolerance", 0.1)), **common})
+        legs = [StepSpec("goto", GotoParams(x=x, y=y, tolerance=max(0.2, p.tolerance), speed=p.speed,
+                                            timeout=p.timeout))
                 for x, y in points]
         return legs + [StepSpec("goto", p)]
     if mode == "turn_forward":
         dx, dy = goal[0] - pose.x, goal[1] - pose.y
         dist = math.hypot(dx, dy)
-        if dist <= p.get("tolerance", 0.1):
+        if dist <= p.tolerance:
             return [StepSpec("goto", p)]
         angle = math.degrees(_wrap(math.atan2(dy, dx) - pose.theta))
-        steps = []
+        steps: list[StepSpec] = []
         if abs(angle) > 2.0:
-            steps.append(StepSpec("turn", {"angle": round(angle, 2)}))
-        fwd = {"distance": round(dist, 3), **common}
-        steps.append(StepSpec("forward", fwd))
+            steps.append(StepSpec("turn", TurnParams(angle=round(angle, 2))))
+        steps.append(StepSpec("forward", ForwardParams(distance=round(dist, 3), speed=p.speed, timeout=p.timeout)))
         return steps
     return [StepSpec("goto", p)]
 

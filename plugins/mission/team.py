@@ -13,14 +13,10 @@ import math
 import time
 
 import numpy as np
+from numpy.typing import NDArray
 from pydantic import Field
 
 from erni.blackboard import BBObject, NetInfo, Pose
-
-try:  # the transport carries the heartbeat between robots when it knows the type
-    from erni.transport.wire import register_type
-except ImportError:  # pragma: no cover - the transport is part of the distribution
-    register_type = None  # type: ignore[assignment]
 
 
 class Territory(BBObject):
@@ -35,7 +31,11 @@ class Territory(BBObject):
     stamp: float = Field(default_factory=time.time)
 
 
-if register_type is not None:
+try:  # the transport carries the heartbeat between robots when it knows the type
+    from erni.transport.wire import register_type
+except ImportError:  # pragma: no cover - the transport is part of the distribution
+    pass
+else:
     register_type(Territory)
 
 
@@ -76,7 +76,7 @@ class TeamView:
         w = self.where.get(self.me)
         return None if w is None else w[:3]
 
-    def array(self, now: float | None = None, *, everyone: bool = False) -> tuple[list[str], np.ndarray]:
+    def array(self, now: float | None = None, *, everyone: bool = False) -> tuple[list[str], NDArray[np.float64]]:
         """Names and an (N, 2) array of fresh positions (or all known with `everyone`), this robot first."""
         if everyone:
             known = {n: w[:3] for n, w in self.where.items()}

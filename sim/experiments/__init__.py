@@ -14,7 +14,10 @@ import importlib
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from erni.sim.scenario import Scenario
 
 Progress = Callable[[str, float, float], None]
 
@@ -33,7 +36,8 @@ class Experiment:
 
     def runner(self) -> Callable[..., Result]:
         """The module's `run(scenario, progress, **options) -> Result`."""
-        return importlib.import_module(f"erni.sim.experiments.{self.module}").run
+        runner: Callable[..., Result] = importlib.import_module(f"erni.sim.experiments.{self.module}").run
+        return runner
 
 
 EXPERIMENTS: dict[str, Experiment] = {e.name: e for e in [
@@ -61,7 +65,7 @@ class Result:
     name: str
     title: str
     mode: str
-    metrics: dict[str, tuple[float, str]] = field(default_factory=dict)  # name -> (value, unit)
+    metrics: dict[str, tuple[float | str, str]] = field(default_factory=dict)  # name -> (value or robot, unit)
     robots: dict[str, dict[str, float]] = field(default_factory=dict)  # robot -> quantity -> value
     series: dict[str, tuple[list[float], list[float], str]] = field(default_factory=dict)  # t, v, unit
     paper: list[tuple[str, float, float, str]] = field(default_factory=list)  # quantity, ours, theirs, unit
@@ -119,13 +123,13 @@ class Result:
                 w.writerow(["paper", "", "", quantity, theirs, unit])
 
 
-def _fmt(v: float) -> str:
+def _fmt(v: float | str) -> str:
     if isinstance(v, float):
         return f"{v:.4g}" if abs(v) < 1e5 else f"{v:.0f}"
     return str(v)
 
 
-def run(name: str, scenario: Any, progress: Progress | None = None, **options: Any) -> Result:
+def run(name: str, scenario: Scenario, progress: Progress | None = None, **options: Any) -> Result:
     """Run experiment `name` on `scenario`; `progress(label, done, total)` hears how far it got."""
     exp = EXPERIMENTS[name]
     mode = options.get("mode")

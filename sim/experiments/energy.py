@@ -13,6 +13,7 @@ import time
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from erni.sim.experiments import Experiment, Progress, Result
 from erni.sim.experiments.plots import color, time_axes
@@ -82,20 +83,20 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, **_: 
             raise TeamError(f"the {distance:g} m run failed: {result.message}")
         time.sleep(1.0)  # the robot at rest after the run
         run_t1 = team.elapsed()
-        levels = []
-        for v in sweep:
+        levels: list[tuple[float, float, int]] = []  # speed, mean power, samples
+        for level in sweep:
             tv0 = team.elapsed()
-            task = team.send_task(robot, "BotMotion", "velocity", v=v, w=0.0, duration=hold)
+            task = team.send_task(robot, "BotMotion", "velocity", v=level, w=0.0, duration=hold)
             while task.uid not in team.results:
-                tick(f"holding {v:g} m/s")
+                tick(f"holding {level:g} m/s")
                 try:
                     team.wait_result(task.uid, 0.2)
                 except TeamError:
                     if team.elapsed() > tv0 + hold * 4 + 5:
-                        raise TeamError(f"velocity {v:g} m/s: no result within {hold * 4 + 5:g} s") from None
+                        raise TeamError(f"velocity {level:g} m/s: no result within {hold * 4 + 5:g} s") from None
             window = _window(team.samples, tv0, team.elapsed())
-            power, n = _steady_power(window, v)
-            levels.append((v, power, n))
+            power, n = _steady_power(window, level)
+            levels.append((level, power, n))
         progress("done", round(total), round(total))
     finally:
         team.stop()
@@ -135,9 +136,9 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, **_: 
     return res
 
 
-def _draw(fig: Any, t: np.ndarray, v: np.ndarray, tv: np.ndarray, pw: np.ndarray, p0: float,
-          levels: list[tuple[float, float, int]], slope: float, intercept: float, speed: float,
-          distance: float) -> None:
+def _draw(fig: Any, t: NDArray[np.float64], v: NDArray[np.float64], tv: NDArray[np.float64],
+          pw: NDArray[np.float64], p0: float, levels: list[tuple[float, float, int]], slope: float,
+          intercept: float, speed: float, distance: float) -> None:
     gs = fig.add_gridspec(2, 2, width_ratios=[1.3, 1])
     ax = fig.add_subplot(gs[0, 0])
     ax.plot(t, tv, color=color(1), ls="--", lw=1.5, label="desired (commanded) speed")

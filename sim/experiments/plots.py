@@ -6,6 +6,7 @@ import math
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from erni.sim.world import World
 
@@ -51,7 +52,7 @@ def time_axes(ax: Any, title: str, ylabel: str) -> None:
     ax.grid(True, color="#e0e0e0", lw=0.6)
 
 
-def headings(ax: Any, pos: np.ndarray, th: np.ndarray, length: float, **kw: Any) -> None:
+def headings(ax: Any, pos: NDArray[np.float64], th: NDArray[np.float64], length: float, **kw: Any) -> None:
     """Draw each robot's heading as a short arrow."""
     ax.quiver(pos[:, 0], pos[:, 1], np.cos(th) * length, np.sin(th) * length, angles="xy",
               scale_units="xy", scale=1, width=0.0025, headwidth=3.5, headlength=4, **kw)

@@ -14,6 +14,7 @@ import math
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from erni.sim import kinematic
 from erni.sim.experiments import Experiment, Progress, Result
@@ -42,7 +43,7 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode:
         ts, ps, covered_at, rounds = _agents(scenario, progress, poi, tolerance, duration, battery)
     else:
         ts, ps, covered_at, rounds = _kinematic(scenario, progress, poi, R, tolerance, duration, base, obstacles)
-    decisions: list[tuple[float, np.ndarray]] = []
+    decisions: list[tuple[float, NDArray[np.float64]]] = []
     res = Result(experiment.name, experiment.title, mode or experiment.mode)
     connected_share = []
     for k in range(len(ts)):
@@ -70,15 +71,15 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode:
                      f"R = {R:g} m and the PoI ({poi[0]:g}, {poi[1]:g}) are the paper's")
     if covered_at is None:
         res.notes.append(f"the PoI was not covered within {duration:g} s")
-    res.draw = lambda fig: _draw(fig, scenario, names, ts, ps, base[0], poi, R, res, decisions)
+    res.draw = lambda fig: _draw(fig, scenario, names, ts, ps, base[0], poi, R, res, decisions, covered_at)
     if (mode or experiment.mode) == "agents":
         res.notes.append("agents mode: each robot's mission plugin ran Deploy widep on what its agent knows")
     return res
 
 
-def _kinematic(scenario: Scenario, progress: Progress, poi: np.ndarray, R: float, tolerance: float,
-               duration: float, base: np.ndarray, obstacles: np.ndarray
-               ) -> tuple[np.ndarray, np.ndarray, float | None, int]:
+def _kinematic(scenario: Scenario, progress: Progress, poi: NDArray[np.float64], R: float, tolerance: float,
+               duration: float, base: NDArray[np.float64], obstacles: NDArray[np.float64]
+               ) -> tuple[NDArray[np.float64], NDArray[np.float64], float | None, int]:
     """WiDep rounds from one snapshot each `period` s, robots driven as unicycles in between."""
     s = scenario.strategy
     period = float(s.get("period", 4.0))
@@ -117,8 +118,8 @@ def _kinematic(scenario: Scenario, progress: Progress, poi: np.ndarray, R: float
     return ts, ps, covered_at, rounds
 
 
-def _agents(scenario: Scenario, progress: Progress, poi: np.ndarray, tolerance: float, duration: float,
-            battery: list[float]) -> tuple[np.ndarray, np.ndarray, float | None, None]:
+def _agents(scenario: Scenario, progress: Progress, poi: NDArray[np.float64], tolerance: float, duration: float,
+            battery: list[float]) -> tuple[NDArray[np.float64], NDArray[np.float64], float | None, None]:
     """Real agents: the scenario's tasks (Deploy widep) through the control node; the simulator records."""
     from erni.sim.team import Team, plugin_available
 
@@ -153,7 +154,7 @@ def _agents(scenario: Scenario, progress: Progress, poi: np.ndarray, tolerance: 
     return ts, ps, covered_at, None
 
 
-def _clearance(ps: np.ndarray, obstacles: np.ndarray) -> float:
+def _clearance(ps: NDArray[np.float64], obstacles: NDArray[np.float64]) -> float:
     if len(obstacles) == 0:
         return math.nan
     best = math.inf
@@ -162,8 +163,9 @@ def _clearance(ps: np.ndarray, obstacles: np.ndarray) -> float:
     return best
 
 
-def _draw(fig: Any, scenario: Scenario, names: list[str], ts: np.ndarray, ps: np.ndarray, base: np.ndarray,
-          poi: np.ndarray, R: float, res: Result, decisions: list[tuple[float, np.ndarray]]) -> None:
+def _draw(fig: Any, scenario: Scenario, names: list[str], ts: NDArray[np.float64], ps: NDArray[np.float64],
+          base: NDArray[np.float64], poi: NDArray[np.float64], R: float, res: Result,
+          decisions: list[tuple[float, NDArray[np.float64]]], covered_at: float | None) -> None:
     gs = fig.add_gridspec(2, 2, width_ratios=[1.0, 1.1])
     ax = fig.add_subplot(gs[:, 0])
     draw_world(ax, scenario.world)
@@ -184,10 +186,10 @@ def _draw(fig: Any, scenario: Scenario, names: list[str], ts: np.ndarray, ps: np
     ax.plot([], [], "o", color="grey", label="end")
     ax.plot([], [], ls="--", color="grey", label=f"range R = {R:g} m")
     ax.plot([], [], color="#555555", lw=0.8, label="radio link at the end")
-    b = scenario.world.bounds
-    if b is not None:
-        ax.set_xlim(b[0] - 0.5, b[2] + 0.5)
-        ax.set_ylim(b[1] - 0.5, b[3] + 0.5)
+    bounds = scenario.world.bounds
+    if bounds is not None:
+        ax.set_xlim(bounds[0] - 0.5, bounds[2] + 0.5)
+        ax.set_ylim(bounds[1] - 0.5, bounds[3] + 0.5)
     map_axes(ax, "Trajectories (WiDep, one obstacle)")
     ax.legend(loc="upper left", fontsize=7.5, framealpha=0.92)
     ax = fig.add_subplot(gs[0, 1])
@@ -198,9 +200,8 @@ def _draw(fig: Any, scenario: Scenario, names: list[str], ts: np.ndarray, ps: np
     ax2.plot(t, np.array(share) * 100, color=color(2), ls="--", label="robots connected to the base")
     ax2.set_ylabel("robots connected to the base (%)")
     ax2.set_ylim(0, 110)
-    covered = res.metrics["PoI covered at"][0]
-    if np.isfinite(covered):
-        ax.axvline(covered, color="#e6a100", lw=1, label=f"PoI covered at {covered:.0f} s")
+    if covered_at is not None:
+        ax.axvline(covered_at, color="#e6a100", lw=1, label=f"PoI covered at {covered_at:.0f} s")
     time_axes(ax, "Coverage and connectivity over time", "distance to the PoI (m)")
     lines = ax.get_legend_handles_labels()
     more = ax2.get_legend_handles_labels()

@@ -14,6 +14,7 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from erni.sim import kinematic
 from erni.sim.experiments import Experiment, Progress, Result
@@ -105,8 +106,8 @@ def _probe(radio: RadioModel, distance: float, probes: int, rng: np.random.Gener
     return float(rng.binomial(probes, radio.quality(distance)) / probes)
 
 
-def _draw(fig: Any, scenario: Scenario, names: list[str], a: np.ndarray, slots: np.ndarray, length: float,
-          qualities: list[list[tuple[float, float]]], period: float) -> None:
+def _draw(fig: Any, scenario: Scenario, names: list[str], a: NDArray[np.float64], slots: NDArray[np.float64],
+          length: float, qualities: list[list[tuple[float, float]]], period: float) -> None:
     gs = fig.add_gridspec(2, 1, height_ratios=[1.6, 1])
     ax = fig.add_subplot(gs[0])
     steps = np.arange(len(a))

@@ -14,6 +14,7 @@ import math
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from erni.sim import kinematic
 from erni.sim.experiments import Experiment, Progress, Result
@@ -35,7 +36,7 @@ def _config(scenario: Scenario, variant: str) -> SpreadConfig:
                         neighbourhood=neighbourhood, model=model)
 
 
-def _obstacles(scenario: Scenario) -> tuple[np.ndarray, np.ndarray]:
+def _obstacles(scenario: Scenario) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     walls = np.array([[a[0], a[1], b[0], b[1]] for a, b in scenario.world.segments()], dtype=float).reshape(-1, 4)
     circles = np.array([[c.center[0], c.center[1], c.radius] for c in scenario.world.circle],
                        dtype=float).reshape(-1, 3)
@@ -59,6 +60,7 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, varia
     threshold = float(scenario.strategy.get("still_speed", 0.05))
     res = Result(experiment.name, experiment.title, "kinematic")
     tracks: dict[str, kinematic.Track] = {}
+    converged: dict[str, bool] = {}  # variant -> every robot came to rest
     total = 0
     cfgs = {v: _config(scenario, v) for v in variants}
     steps = {v: int(round(duration / cfgs[v].dt)) for v in variants}
@@ -79,13 +81,14 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, varia
             if total % 5 == 0 or total == all_steps:
                 progress(v, total, all_steps)
         tracks[v] = track
-        t, p, _, sp = track.arrays()
+        t, p, _th, sp = track.arrays()
         share = [kinematic.largest_share(p[i], R) for i in range(0, len(t), 5)]
         res.series[f"{v}/largest_component"] = (list(t[::5]), share, "share")
         res.series[f"{v}/mean_nn_distance"] = (list(t[::5]), [mean_nn_distance(p[i]) for i in range(0, len(t), 5)], "m")
         final = p[-1]
         energies = [energy_model.track_energy(t, p[:, i, 0], p[:, i, 1])[0] for i in range(p.shape[1])]
         conv = kinematic.convergence_time(t, sp, threshold)
+        converged[v] = conv is not None
         res.metrics[f"{v}: mean NN distance at t={duration:g}"] = (mean_nn_distance(final), "m")
         res.metrics[f"{v}: spread x * y"] = (float(np.ptp(final[:, 0])) * float(np.ptp(final[:, 1])), "m^2")
         res.metrics[f"{v}: area covered (r={sensing:g} m)"] = (kinematic.coverage(final, sensing), "m^2")
@@ -96,7 +99,7 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, varia
         for i, e in enumerate(energies):
             res.robots.setdefault(starts[i].name, {})[f"{v} energy_j"] = round(e, 2)
     res.paper.append(("desired distance d", cfgs[variants[0]].distance, 5.0, "m"))
-    if any(math.isnan(res.metrics[f"{v}: convergence (v<{threshold:g} m/s)"][0]) for v in variants):
+    if not all(converged.values()):
         res.notes.append(f"convergence NaN: some robot still moved faster than {threshold:g} m/s at the end")
     res.notes.append(f"kinematic mode: {len(pos0)} robots stepped in-process by the mission's spread_step "
                      f"(neighbourhood range {cfgs[variants[0]].range:g} m)")
@@ -105,7 +108,7 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, varia
 
 
 def _draw(fig: Any, scenario: Scenario, tracks: dict[str, kinematic.Track], res: Result, duration: float,
-          pos0: np.ndarray) -> None:
+          pos0: NDArray[np.float64]) -> None:
     gs = fig.add_gridspec(2, 3, width_ratios=[1, 1, 0.9])
     extent = max(float(np.abs(tr.pos[-1]).max()) for tr in tracks.values()) + 3
     for k, (v, track) in enumerate(tracks.items()):

@@ -15,6 +15,7 @@ import math
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from erni.sim import kinematic
 from erni.sim.experiments import Experiment, Progress, Result
@@ -27,9 +28,10 @@ from erni.strategies import patrol
 def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, **_: Any) -> Result:
     """Patrol, fail, detect, take over; return figure and metrics."""
     s = scenario.strategy
-    territory = tuple(float(v) for v in s.get("territory", (0.0, 0.0, 30.0, 20.0)))
+    xmin, ymin, xmax, ymax = (float(v) for v in s.get("territory", (0.0, 0.0, 30.0, 20.0)))
+    territory: patrol.Block = (xmin, ymin, xmax, ymax)
     nx, ny = int(s.get("nx", 3)), int(s.get("ny", 2))
-    blocks = patrol.split(territory, nx, ny)  # type: ignore[arg-type]
+    blocks = patrol.split(territory, nx, ny)
     starts = scenario.starts()
     names = [st.name for st in starts]
     n = len(names)
@@ -82,11 +84,11 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, **_: 
                             for ev in tables[j].heard(names[i], blocks[i], t, tuple(beat["holds"]), beat["claims"]):
                                 events.append((t, names[j], ev.kind, ev.about))
                                 _reroute(routes, waypoint, j, tables[j], blocks, names, spacing)
-        for i in np.flatnonzero(alive):
+        for i in np.flatnonzero(alive).tolist():
             for ev in tables[i].tick(t):
                 events.append((t, names[i], ev.kind, ev.about))
                 if ev.kind in ("claim", "yield", "return"):
-                    _reroute(routes, waypoint, int(i), tables[i], blocks, names, spacing)
+                    _reroute(routes, waypoint, i, tables[i], blocks, names, spacing)
         targets = np.array([routes[i][waypoint[i]] for i in range(n)])
         pos, th, sp = kinematic.drive(pos, th, targets, dt, speed, moving=alive)
         for i in range(n):
@@ -104,7 +106,7 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, **_: 
             coverage_v.append(float((last_visit >= t - window).mean()))
             holdings.append((t, "", tuple(",".join(sorted(tb.holds)) for tb in tables)))
             progress("patrolling", round(t), round(duration))
-    ts, ps, _, _ = track.arrays()
+    ts, ps, _th, _speed = track.arrays()
     res = Result(experiment.name, experiment.title, "kinematic")
     res.series["team/territory_visited_in_window"] = (coverage_t, coverage_v, "share")
     failed = [name for name in names if name in fail_at]
@@ -119,7 +121,7 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, **_: 
         res.metrics[f"{name}: takeover after the failure"] = ((claims[0][0] - t_fail) if claims else math.nan, "s")
         res.metrics[f"{name}: claims made (1 is right)"] = (float(len(claims)), "claims")
         res.metrics[f"{name}: neighbours that yielded"] = (float(len(yields)), "robots")
-        res.metrics[f"{name}: block taken over by"] = (claims[0][1] if claims else "nobody", "")  # type: ignore[assignment]
+        res.metrics[f"{name}: block taken over by"] = (claims[0][1] if claims else "nobody", "")
     before = [v for t, v in zip(coverage_t, coverage_v) if t <= min(fail_at.values(), default=duration)]
     res.metrics["territory visited within the window, before failure"] = (max(before) if before else math.nan, "share")
     res.metrics["territory visited within the window, at the end"] = (coverage_v[-1], "share")
@@ -138,19 +140,19 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, **_: 
     return res
 
 
-def _reroute(routes: list[list[np.ndarray]], waypoint: list[int], i: int, table: patrol.TakeoverTable,
+def _reroute(routes: list[list[NDArray[np.float64]]], waypoint: list[int], i: int, table: patrol.TakeoverTable,
              blocks: list[patrol.Block], names: list[str], spacing: float) -> None:
     """Robot i patrols its own block, then every block it holds."""
     held = [names.index(r) for r in sorted(table.holds, key=names.index)]
-    route: list[np.ndarray] = []
+    route: list[NDArray[np.float64]] = []
     for b in [i] + [j for j in held if j != i]:
         route += list(patrol.sweep_path(blocks[b], spacing))
     routes[i] = route
     waypoint[i] = min(waypoint[i], len(route) - 1)
 
 
-def _draw(fig: Any, scenario: Scenario, names: list[str], blocks: list[patrol.Block], ps: np.ndarray,
-          ts: np.ndarray, events: list[tuple[float, str, str, str]], res: Result, fail_at: dict[str, float],
+def _draw(fig: Any, scenario: Scenario, names: list[str], blocks: list[patrol.Block], ps: NDArray[np.float64],
+          ts: NDArray[np.float64], events: list[tuple[float, str, str, str]], res: Result, fail_at: dict[str, float],
           duration: float, window: float) -> None:
     from matplotlib.patches import Rectangle
 
@@ -186,8 +188,8 @@ def _draw(fig: Any, scenario: Scenario, names: list[str], blocks: list[patrol.Bl
     ax.set_xlim(0, duration)
     ax.legend(loc="lower right", fontsize=8, ncol=2)
     ax = fig.add_subplot(gs[1, 1])
-    t, v, _ = res.series["team/territory_visited_in_window"]
-    ax.plot(t, np.array(v) * 100, color=color(0), lw=1.8)
+    times, visited, _ = res.series["team/territory_visited_in_window"]
+    ax.plot(times, np.array(visited) * 100, color=color(0), lw=1.8)
     for name, at in fail_at.items():
         ax.axvline(at, color="black", ls="--", lw=1, label=f"{name} fails")
     claims = [e for e in events if e[2] == "claim"]
