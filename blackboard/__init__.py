@@ -1,10 +1,20 @@
 """The agent core: transactional blackboard, plugins, agent host and the task language."""
 
 from erni.blackboard.agent import Agent
-from erni.blackboard.blackboard import Blackboard, Subscription, Transaction
-from erni.blackboard.errors import ConfigError, ErniError, PluginError, TaskError, TransactionError
+from erni.blackboard.blackboard import Blackboard, Predicate, Subscription, Transaction
+from erni.blackboard.errors import (
+    ConfigError,
+    ErniError,
+    NetworkError,
+    NotFoundError,
+    PluginError,
+    TaskError,
+    TransactionError,
+    UsageError,
+)
 from erni.blackboard.objects import BBObject, new_uid
-from erni.blackboard.plugin import Plugin
+from erni.blackboard.plugin import NoSettings, Plugin
+from erni.blackboard.schemas import Peer
 from erni.blackboard.tasks import (
     AllocationResult,
     Link,
@@ -22,8 +32,8 @@ from erni.blackboard.tasks import (
 )
 
 __all__ = [
-    "Agent", "Blackboard", "Plugin", "Subscription", "Transaction",
-    "AllocationResult", "BBObject", "ConfigError", "ErniError", "Link", "Neighbor", "NetInfo",
-    "Params", "PluginError", "Pose", "Position", "Route", "Task", "TaskError", "TaskState",
-    "TransactionError", "language_table", "new_uid", "register_preposition", "register_verb",
+    "Agent", "AllocationResult", "BBObject", "Blackboard", "ConfigError", "ErniError", "Link", "Neighbor",
+    "NetInfo", "NetworkError", "NoSettings", "NotFoundError", "Params", "Peer", "Plugin", "PluginError", "Pose",
+    "Position", "Predicate", "Route", "Subscription", "Task", "TaskError", "TaskState", "Transaction",
+    "TransactionError", "UsageError", "language_table", "new_uid", "register_preposition", "register_verb",
 ]

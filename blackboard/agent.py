@@ -13,13 +13,16 @@ import time
 from collections.abc import Callable
 from importlib.metadata import entry_points
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar, overload
 
 from pydantic import BaseModel, ValidationError
 
-from erni.blackboard.blackboard import Blackboard, Transaction
-from erni.blackboard.errors import PluginError
+from erni.blackboard.blackboard import Blackboard, Predicate, T, Transaction
+from erni.blackboard.errors import ConfigError, PluginError, UsageError, describe_validation
+from erni.blackboard.objects import BBObject
 from erni.blackboard.plugin import NoSettings, Plugin
+
+P = TypeVar("P", bound=Plugin[Any])
 
 ENTRY_POINT_GROUP = "erni.plugins"
 
@@ -31,7 +34,7 @@ class Scheduler:
         self.agent = agent
         self.workers = workers
         self.slow_seconds = slow_seconds
-        self._queue: queue.SimpleQueue[Plugin | None] = queue.SimpleQueue()
+        self._queue: queue.SimpleQueue[Plugin[Any] | None] = queue.SimpleQueue()
         self._threads: list[threading.Thread] = []
         self._accepting = False
         self._log = logging.getLogger(f"erni.{agent.name}")
@@ -45,7 +48,7 @@ class Scheduler:
             t.start()
             self._threads.append(t)
 
-    def signal(self, plugin: Plugin) -> None:
+    def signal(self, plugin: Plugin[Any]) -> None:
         """Ask for a run of `plugin`; signals coalesce, and one during a run causes one more."""
         with plugin._sched_lock:
             if not self._accepting or plugin._disabled:
@@ -95,7 +98,7 @@ class Scheduler:
                         plugin._scheduled = True
                         self._queue.put(plugin)
 
-    def _run(self, plugin: Plugin) -> None:
+    def _run(self, plugin: Plugin[Any]) -> None:
         board = self.agent.blackboard
         subs = plugin._subs
         for sub, inbox in zip(subs, board._drain(subs)):
@@ -147,7 +150,7 @@ class Scheduler:
 class Timer:
     """A pending wake-up; `cancel()` stops it."""
 
-    def __init__(self, plugin: Plugin, when: float, period: float | None):
+    def __init__(self, plugin: Plugin[Any], when: float, period: float | None):
         self.plugin = plugin
         self.when = when
         self.period = period
@@ -176,7 +179,7 @@ class Timers:
                                         daemon=True)
         self._thread.start()
 
-    def schedule(self, plugin: Plugin, delay: float, period: float | None) -> Timer:
+    def schedule(self, plugin: Plugin[Any], delay: float, period: float | None) -> Timer:
         """Wake `plugin` after `delay` seconds, then every `period` seconds if given."""
         timer = Timer(plugin, time.monotonic() + max(0.0, delay), period)
         with self._cond:
@@ -229,13 +232,13 @@ class Agent:
     def __init__(self, name: str, *, workers: int = 4, slow_plugin_seconds: float = 1.0,
                  journal: str | Path | None = None):
         if workers < 1:
-            raise ValueError(f"workers: expected at least 1, got {workers}")
+            raise UsageError(f"workers: expected at least 1, got {workers}")
         self.name = name
         self.blackboard = Blackboard(name)
         self.scheduler = Scheduler(self, workers, slow_plugin_seconds)
         self.timers = Timers(self)
         self.blackboard.signal = self.scheduler.signal
-        self.plugins: list[Plugin] = []
+        self.plugins: list[Plugin[Any]] = []
         self.log = logging.getLogger(f"erni.{name}")
         self.started = False
         self.components: list[Any] = []  # non-plugin parts with start()/stop()
@@ -252,31 +255,45 @@ class Agent:
 
     # -- plugins --------------------------------------------------------------------------
 
-    def add_plugin(self, plugin: type[Plugin] | str | Plugin, settings: dict[str, Any] | BaseModel | None = None,
-                   name: str | None = None) -> Plugin:
+    @overload
+    def add_plugin(self, plugin: type[P] | P, settings: dict[str, Any] | BaseModel | None = None,
+                   name: str | None = None) -> P: ...
+
+    @overload
+    def add_plugin(self, plugin: str, settings: dict[str, Any] | BaseModel | None = None,
+                   name: str | None = None) -> Plugin[Any]: ...
+
+    def add_plugin(self, plugin: type[Plugin[Any]] | Plugin[Any] | str,
+                   settings: dict[str, Any] | BaseModel | None = None, name: str | None = None) -> Plugin[Any]:
         """Add a plugin (class, instance, `module:Class` path or entry point name)."""
         cls = resolve_plugin(plugin) if not isinstance(plugin, Plugin) else type(plugin)
         instance = plugin if isinstance(plugin, Plugin) else cls()
         name = name or cls.__name__
         if any(p.name == name for p in self.plugins):
             raise PluginError(f"agent {self.name}: a plugin named {name!r} is already loaded")
-        instance._bind(self, name, validate_settings(cls, settings))
+        try:
+            valid = validate_settings(cls, settings)
+        except ValidationError as err:
+            raise ConfigError(describe_validation(err, f"agent {self.name}, plugin {name}", "settings")) from None
+        instance._bind(self, name, valid)
         self.plugins.append(instance)
         if self.started:
             self._setup(instance)
         return instance
 
-    def plugin(self, name: str) -> Plugin:
+    def plugin(self, name: str) -> Plugin[Any]:
         """Return the plugin with this name."""
         for p in self.plugins:
             if p.name == name:
                 return p
         raise PluginError(f"agent {self.name}: no plugin named {name!r}")
 
-    def _setup(self, plugin: Plugin) -> None:
+    def _setup(self, plugin: Plugin[Any]) -> None:
         """Run setup() as the plugin's first run: signals meanwhile cause one run after it."""
         with plugin._sched_lock:
             plugin._running = True
+            plugin._run_started = time.monotonic()  # a setup is a run: timed like one
+            plugin._slow_reported = False
         plugin._in_setup = True
         try:
             with plugin.transaction():
@@ -371,13 +388,27 @@ class Agent:
         """Open a transaction for code outside any plugin (`with`: commit on success)."""
         return self.blackboard.transaction(label)
 
-    def query(self, kind: type | Callable[[Any], bool] | None = None,
+    @overload
+    def query(self, kind: type[T], where: Callable[[T], bool] | None = None) -> list[T]: ...
+
+    @overload
+    def query(self, kind: Predicate | None = None) -> list[BBObject]: ...
+
+    def query(self, kind: type[Any] | Predicate | None = None,
               where: Callable[[Any], bool] | None = None) -> list[Any]:
         """Return a snapshot of the committed objects matching a type and/or predicate."""
-        return self.blackboard.query(kind, where)
+        return self.blackboard.query(kind, where)  # type: ignore[arg-type]  # the overloads above type it
 
 
-def resolve_plugin(spec: type[Plugin] | str) -> type[Plugin]:
+@overload
+def resolve_plugin(spec: type[P]) -> type[P]: ...
+
+
+@overload
+def resolve_plugin(spec: str) -> type[Plugin[Any]]: ...
+
+
+def resolve_plugin(spec: type[Plugin[Any]] | str) -> type[Plugin[Any]]:
     """Return the plugin class named by a class, a `module:Class` path or an entry point name."""
     if isinstance(spec, type):
         if not issubclass(spec, Plugin):
@@ -409,7 +440,7 @@ def resolve_plugin(spec: type[Plugin] | str) -> type[Plugin]:
     return obj
 
 
-def validate_settings(cls: type[Plugin], settings: dict[str, Any] | BaseModel | None) -> BaseModel:
+def validate_settings(cls: type[Plugin[Any]], settings: dict[str, Any] | BaseModel | None) -> BaseModel:
     """Validate a plugin's settings against its `Settings` model (raises ValidationError).
 
     Unknown keys are refused even when the model itself would ignore them: a typo in a

@@ -10,15 +10,18 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Callable, Iterator
-from typing import TYPE_CHECKING, Any, Generic, TypeVar
+from typing import TYPE_CHECKING, Any, Generic, TypeVar, overload
 
-from erni.blackboard.errors import TransactionError
+from erni.blackboard.errors import TransactionError, UsageError
 from erni.blackboard.objects import BBObject
 
 if TYPE_CHECKING:
     from erni.blackboard.plugin import Plugin
 
 T = TypeVar("T", bound=BBObject)
+
+Predicate = Callable[[BBObject], bool]
+"""A test an object must pass to belong to a subscription or a query."""
 
 ADD, CHANGE, REMOVE = "add", "change", "remove"
 
@@ -29,7 +32,7 @@ Op = tuple[str, BBObject, tuple[Any, ...]]
 class Subscription(Generic[T]):
     """The objects matching a predicate, with the deltas since the owner's last run."""
 
-    def __init__(self, owner: Plugin | None, kind: type | None, where: Callable[[Any], bool] | None):
+    def __init__(self, owner: Plugin[Any] | None, kind: type[T] | None, where: Callable[[T], bool] | None):
         self._owner = owner
         self._kind = kind
         self._where = where
@@ -73,7 +76,7 @@ class Subscription(Generic[T]):
         """Return True when the object belongs to this subscription."""
         if self._kind is not None and not isinstance(obj, self._kind):
             return False
-        return self._where is None or bool(self._where(obj))
+        return self._where is None or bool(self._where(obj))  # type: ignore[arg-type]  # of type T once _kind passed
 
     def _offer(self, kind: str, obj: BBObject, reports: tuple[Any, ...]) -> bool:
         """Record a committed event; return True when it concerns this subscription."""
@@ -158,7 +161,7 @@ class Transaction:
         if self.closed:
             raise TransactionError(f"transaction {self.label!r} is closed; publish inside an open one")
 
-    def add(self, obj: BBObject) -> BBObject:
+    def add(self, obj: T) -> T:
         """Stage a new object; its uid must not be on the blackboard yet."""
         self._check_open()
         if not isinstance(obj, BBObject):
@@ -169,7 +172,7 @@ class Transaction:
         self._staged[obj.uid] = obj
         return obj
 
-    def change(self, obj: BBObject, reports: Any = ()) -> BBObject:
+    def change(self, obj: T, reports: Any = ()) -> T:
         """Stage a new version of an object already on the blackboard."""
         self._check_open()
         if not isinstance(obj, BBObject):
@@ -235,7 +238,7 @@ class Blackboard:
         self._general: list[Subscription[Any]] = []
         self._listeners: list[Callable[[list[Op]], None]] = []
         self._route: dict[type, list[Subscription[Any]]] = {}  # type -> subscriptions, cached
-        self.signal: Callable[[Plugin], None] = lambda plugin: None
+        self.signal: Callable[[Plugin[Any]], None] = lambda plugin: None
         self.commits = 0
         self.moot = 0  # changes/removals dropped because another transaction removed the object
 
@@ -250,7 +253,13 @@ class Blackboard:
     def __len__(self) -> int:
         return len(self._objects)
 
-    def query(self, kind: type | Callable[[Any], bool] | None = None,
+    @overload
+    def query(self, kind: type[T], where: Callable[[T], bool] | None = None) -> list[T]: ...
+
+    @overload
+    def query(self, kind: Predicate | None = None) -> list[BBObject]: ...
+
+    def query(self, kind: type[Any] | Predicate | None = None,
               where: Callable[[Any], bool] | None = None) -> list[Any]:
         """Return a snapshot list of the committed objects matching a type and/or predicate."""
         sub: Subscription[Any] = _make_subscription(None, kind, where)
@@ -262,7 +271,7 @@ class Blackboard:
         """Open a transaction (use as a context manager: commit on success, nothing on error)."""
         return Transaction(self, label)
 
-    def subscribe(self, owner: Plugin | None, kind: type | Callable[[Any], bool] | None = None,
+    def subscribe(self, owner: Plugin[Any] | None, kind: type[Any] | Predicate | None = None,
                   where: Callable[[Any], bool] | None = None) -> Subscription[Any]:
         """Create a subscription; the objects already here arrive as its first `added`."""
         sub: Subscription[Any] = _make_subscription(owner, kind, where)
@@ -301,7 +310,7 @@ class Blackboard:
         return subs
 
     def _commit(self, ops: list[Op]) -> None:
-        owners: dict[int, Plugin] = {}
+        owners: dict[int, Plugin[Any]] = {}
         with self._lock:
             # validate everything first so a conflicting commit publishes nothing; a change or
             # removal of an object another transaction removed meanwhile is moot and dropped
@@ -342,12 +351,12 @@ class Blackboard:
         return inboxes
 
 
-def _make_subscription(owner: Plugin | None, kind: type | Callable[[Any], bool] | None,
+def _make_subscription(owner: Plugin[Any] | None, kind: type[Any] | Predicate | None,
                        where: Callable[[Any], bool] | None) -> Subscription[Any]:
     if kind is None or isinstance(kind, type):
         return Subscription(owner, kind, where)
     if callable(kind):
         if where is not None:
-            raise TypeError("subscribe(predicate) takes no `where`; combine the two predicates")
+            raise UsageError("subscribe(predicate) takes no `where`; combine the two predicates")
         return Subscription(owner, None, kind)
-    raise TypeError(f"subscribe: expected a type or a predicate, got {kind!r}")
+    raise UsageError(f"subscribe: expected a type or a predicate, got {kind!r}")

@@ -9,7 +9,7 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from erni.blackboard.agent import Agent, resolve_plugin, validate_settings
-from erni.blackboard.errors import ConfigError, PluginError
+from erni.blackboard.errors import ConfigError, PluginError, describe_validation
 
 
 class AgentSection(BaseModel):
@@ -46,32 +46,6 @@ class AgentConfig(BaseModel):
     plugin: list[PluginSection] = Field(default_factory=list)
 
 
-def _where(loc: tuple[Any, ...], config: AgentConfig | None = None) -> str:
-    parts: list[str] = []
-    for p in loc:
-        if isinstance(p, int) and parts:
-            parts[-1] += f"[{p}]"
-        else:
-            parts.append(str(p))
-    return ".".join(parts)
-
-
-def format_errors(source: str, err: ValidationError, prefix: str = "") -> str:
-    """Return one `FILE: field.path: message` line per problem."""
-    lines = []
-    for e in err.errors():
-        where = _where(tuple(e["loc"]))
-        where = f"{prefix}.{where}" if prefix and where else (prefix or where)
-        if e["type"] == "missing":
-            msg = "missing (required)"
-        elif e["type"] == "extra_forbidden":
-            msg = "unknown key"
-        else:
-            msg = f"{e['msg']} (got {e.get('input')!r})"
-        lines.append(f"{source}: {where}: {msg}")
-    return "\n".join(lines)
-
-
 def parse_config(text: str, source: str = "<config>") -> AgentConfig:
     """Parse and validate config text (raises ConfigError)."""
     try:
@@ -81,7 +55,7 @@ def parse_config(text: str, source: str = "<config>") -> AgentConfig:
     try:
         return AgentConfig.model_validate(data)
     except ValidationError as err:
-        raise ConfigError(format_errors(source, err)) from None
+        raise ConfigError(describe_validation(err, source, sep="\n")) from None
 
 
 def read_config(path: str | Path) -> AgentConfig:
@@ -111,7 +85,7 @@ def build_agent(config: AgentConfig, source: str = "<config>") -> Agent:
         try:
             settings = validate_settings(cls, section.settings)
         except ValidationError as err:
-            raise ConfigError(format_errors(source, err, f"{here}.settings")) from None
+            raise ConfigError(describe_validation(err, source, f"{here}.settings", sep="\n")) from None
         try:
             default = section.class_ if section.class_.isidentifier() else None  # entry point name
             agent.add_plugin(cls, settings, name=section.name or default)

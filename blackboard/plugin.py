@@ -7,16 +7,17 @@ import threading
 from collections import deque
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from typing import TYPE_CHECKING, Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar, Generic, get_args, get_origin, overload
 
 from pydantic import BaseModel, ConfigDict
+from typing_extensions import TypeVar
 
-from erni.blackboard.blackboard import Subscription, Transaction
-from erni.blackboard.errors import TransactionError
+from erni.blackboard.blackboard import Blackboard, Predicate, Subscription, T, Transaction
+from erni.blackboard.errors import TransactionError, UsageError
 from erni.blackboard.objects import BBObject
 
 if TYPE_CHECKING:
-    from erni.blackboard.agent import Agent
+    from erni.blackboard.agent import Agent, Timer
 
 
 class NoSettings(BaseModel):
@@ -25,20 +26,36 @@ class NoSettings(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
 
-class Plugin:
+SettingsT = TypeVar("SettingsT", bound=BaseModel, default=NoSettings)
+
+
+class Plugin(Generic[SettingsT]):
     """Base of every plugin: override `setup()`, `execute()` and, if needed, `teardown()`.
 
+    `class Motion(Plugin[MotionSettings])` makes `MotionSettings` the model that validates the
+    plugin's `[plugin.settings]` and the type of `self.settings`; a plain `Plugin` takes none.
     `setup()` and `execute()` run inside a transaction opened by the agent; any other
     thread of the plugin publishes inside `with self.transaction():` or hands work over
     with `self.later(fn)`.
     """
 
     Settings: ClassVar[type[BaseModel]] = NoSettings
+    settings: SettingsT
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        if "Settings" in cls.__dict__:
+            return
+        for base in getattr(cls, "__orig_bases__", ()):
+            origin, args = get_origin(base), get_args(base)
+            if isinstance(origin, type) and issubclass(origin, Plugin) and args \
+                    and isinstance(args[0], type) and issubclass(args[0], BaseModel):
+                cls.Settings = args[0]
+                return
 
     def __init__(self) -> None:
         self.name = type(self).__name__
         self.agent_name = ""
-        self.settings: Any = None
         self.log = logging.getLogger(f"erni.plugin.{self.name}")
         self._agent: Agent | None = None
         self._subs: list[Subscription[Any]] = []
@@ -70,9 +87,15 @@ class Plugin:
 
     # -- subscriptions ----------------------------------------------------------------------
 
-    def subscribe(self, kind: type | Callable[[Any], bool],
+    @overload
+    def subscribe(self, kind: type[T], where: Callable[[T], bool] | None = None) -> Subscription[T]: ...
+
+    @overload
+    def subscribe(self, kind: Predicate) -> Subscription[BBObject]: ...
+
+    def subscribe(self, kind: type[Any] | Predicate,
                   where: Callable[[Any], bool] | None = None) -> Subscription[Any]:
-        """Subscribe to a type and/or predicate; only allowed in `setup()`."""
+        """Subscribe to a type (members typed as it) and/or a predicate; only allowed in `setup()`."""
         if not self._in_setup:
             raise TransactionError(f"{self.name}: subscribe() is only allowed in setup()")
         sub = self._board.subscribe(self, kind, where)
@@ -83,10 +106,16 @@ class Plugin:
         """Return the committed object with this uid, or None."""
         return self._board.get(uid)
 
-    def query(self, kind: type | Callable[[Any], bool] | None = None,
+    @overload
+    def query(self, kind: type[T], where: Callable[[T], bool] | None = None) -> list[T]: ...
+
+    @overload
+    def query(self, kind: Predicate | None = None) -> list[BBObject]: ...
+
+    def query(self, kind: type[Any] | Predicate | None = None,
               where: Callable[[Any], bool] | None = None) -> list[Any]:
         """Return a snapshot of the committed objects matching a type and/or predicate."""
-        return self._board.query(kind, where)
+        return self._board.query(kind, where)  # type: ignore[arg-type]  # the overloads above type it
 
     def rehydrated(self, obj: BBObject | str) -> bool:
         """True when this object came back from the journal after a restart (not new work)."""
@@ -104,11 +133,11 @@ class Plugin:
             )
         return tx
 
-    def add(self, obj: BBObject) -> BBObject:
+    def add(self, obj: T) -> T:
         """Publish a new object (visible to others when the transaction commits)."""
         return self._tx("add").add(obj)
 
-    def change(self, obj: BBObject, reports: Any = ()) -> BBObject:
+    def change(self, obj: T, reports: Any = ()) -> T:
         """Publish a new version of an object, with optional change reports."""
         return self._tx("change").change(obj, reports)
 
@@ -141,14 +170,14 @@ class Plugin:
         self._woken = True
         self._signal()
 
-    def wake_in(self, seconds: float) -> Any:
+    def wake_in(self, seconds: float) -> Timer:
         """Run `execute()` once after `seconds`; returns a handle with `cancel()`."""
         return self._require_agent().timers.schedule(self, seconds, None)
 
-    def wake_every(self, seconds: float) -> Any:
+    def wake_every(self, seconds: float) -> Timer:
         """Run `execute()` every `seconds`; returns a handle with `cancel()`."""
-        if seconds <= 0:
-            raise ValueError(f"wake_every: period must be > 0 s, got {seconds}")
+        if not seconds > 0:
+            raise UsageError(f"wake_every: expected a period > 0 s, got {seconds}")
         return self._require_agent().timers.schedule(self, seconds, seconds)
 
     def later(self, fn: Callable[[], Any]) -> None:
@@ -159,7 +188,7 @@ class Plugin:
     # -- internals ------------------------------------------------------------------------
 
     @property
-    def _board(self) -> Any:
+    def _board(self) -> Blackboard:
         return self._require_agent().blackboard
 
     def _require_agent(self) -> Agent:
@@ -171,7 +200,7 @@ class Plugin:
         if self._agent is not None:
             self._agent.scheduler.signal(self)
 
-    def _bind(self, agent: Agent, name: str, settings: Any) -> None:
+    def _bind(self, agent: Agent, name: str, settings: SettingsT) -> None:
         self._agent = agent
         self.name = name
         self.agent_name = agent.name

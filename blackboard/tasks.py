@@ -11,7 +11,7 @@ from __future__ import annotations
 import enum
 import time
 from dataclasses import dataclass
-from typing import Any, ClassVar, Self
+from typing import Any, ClassVar, Self, TypeVar
 
 from pydantic import (
     BaseModel,
@@ -24,14 +24,21 @@ from pydantic import (
     model_validator,
 )
 
-from erni.blackboard.errors import TaskError
+from erni.blackboard.errors import TaskError, describe_validation
 from erni.blackboard.objects import BBObject
 
 
 class Params(BaseModel):
-    """Base of every preposition's parameters: unknown keys are refused."""
+    """Base of every preposition's parameters: unknown keys are refused.
+
+    Each preposition of the built-in language has its own class, so a plugin dispatches with
+    `match task.params: case GotoParams(x=x, y=y): ...` and a type checker knows the fields.
+    """
 
     model_config = ConfigDict(frozen=True, extra="forbid")
+
+
+P = TypeVar("P", bound=Params)
 
 
 # --- parameter models -------------------------------------------------------------------
@@ -41,8 +48,28 @@ class NoParams(Params):
     """No parameters."""
 
 
+class StopParams(NoParams):
+    """BotMotion stop: halt and hold."""
+
+
+class ClearParams(NoParams):
+    """BotMotion clear: empty the behaviour stack."""
+
+
 class WatchParams(Params):
     rate_hz: float = Field(1.0, gt=0, le=100, description="monitoring rate (Hz)")
+
+
+class NodePositionParams(WatchParams):
+    """NetWatch node_position."""
+
+
+class TopologyParams(WatchParams):
+    """NetWatch network_topology."""
+
+
+class NeighborListParams(WatchParams):
+    """NetWatch neighbor_list."""
 
 
 class PathCostParams(WatchParams):
@@ -94,6 +121,14 @@ class DistanceParams(Params):
     distance: float = Field(gt=0, description="distance to travel (m)")
     speed: float = Field(0.3, gt=0, le=2.0, description="speed (m/s)")
     timeout: float | None = Field(None, gt=0, description="fail after this long (s)")
+
+
+class ForwardParams(DistanceParams):
+    """Drive straight ahead."""
+
+
+class BackwardParams(DistanceParams):
+    """Drive straight back."""
 
 
 class CancelParams(Params):
@@ -214,47 +249,51 @@ register_verb("BotMotion", scope="local", handled_by="RobotMotionControl",
 register_verb("RemoteBotMotion", scope="team", handled_by="MissionControl",
               doc="task a remote robot's movement")
 
-for _name, _model, _doc in [
-    ("node_position", WatchParams, "positions of the nodes as the network knows them"),
-    ("network_topology", WatchParams, "links of the whole network, articulation points"),
+_NETWATCH: list[tuple[str, type[Params], str]] = [
+    ("node_position", NodePositionParams, "positions of the nodes as the network knows them"),
+    ("network_topology", TopologyParams, "links of the whole network, articulation points"),
     ("path_cost", PathCostParams, "routes: next hop, hop count and path cost"),
     ("link_quality", LinkQualityParams, "delivery ratio (0..1) of each one-hop link"),
-    ("neighbor_list", WatchParams, "symmetric one-hop neighbours"),
-]:
+    ("neighbor_list", NeighborListParams, "symmetric one-hop neighbours"),
+]
+for _name, _model, _doc in _NETWATCH:
     register_preposition("NetWatch", _name, _model, _doc)
 
-for _name, _model, _doc in [
+_BOTMOTION: list[tuple[str, type[Params], str]] = [
     ("randomwalk", RandomWalkParams, "wander, turning away from obstacles"),
     ("goto", GotoParams, "drive to (x, y)"),
-    ("stop", NoParams, "halt: a stop behaviour on top of the stack"),
+    ("stop", StopParams, "halt: a stop behaviour on top of the stack"),
     ("turn", TurnParams, "turn in place by an angle"),
     ("teleport", TeleportParams, "set the pose (simulator moves, robot re-localises)"),
-    ("clear", NoParams, "empty the behaviour stack, cancelling its tasks"),
+    ("clear", ClearParams, "empty the behaviour stack, cancelling its tasks"),
     ("velocity", VelocityParams, "hold a linear and angular velocity"),
     ("avoid_obstacles", AvoidParams, "override motion when an obstacle is near"),
-    ("forward", DistanceParams, "drive straight ahead a distance"),
-    ("backward", DistanceParams, "drive straight back a distance"),
+    ("forward", ForwardParams, "drive straight ahead a distance"),
+    ("backward", BackwardParams, "drive straight back a distance"),
     ("say", SayParams, "play a tone sequence on the robot (audio cue)"),
-]:
+]
+for _name, _model, _doc in _BOTMOTION:
     register_preposition("BotMotion", _name, _model, _doc)
 
-for _name, _model, _doc in [
+_REMOTEBOTMOTION: list[tuple[str, type[Params], str]] = [
     ("randomwalk", RandomWalkParams, "the robot wanders"),
     ("goto", GotoParams, "the robot drives to (x, y), expanded into local sub-tasks"),
     ("cancel", CancelParams, "cancel the robot's remote tasks and stop it"),
     ("teleport", TeleportParams, "set the robot's pose"),
-    ("forward", DistanceParams, "the robot drives ahead a distance"),
-]:
+    ("forward", ForwardParams, "the robot drives ahead a distance"),
+]
+for _name, _model, _doc in _REMOTEBOTMOTION:
     register_preposition("RemoteBotMotion", _name, _model, _doc)
 
 register_verb("Deploy", scope="team", handled_by="MissionControl",
               doc="run a deployment strategy (papers 000, 001, 002)")
-for _name, _model, _doc in [
+_DEPLOY: list[tuple[str, type[Params], str]] = [
     ("widep", WidepParams, "PoI coverage (WiDep): step toward the PoI keeping RNG connectivity"),
     ("spread", SpreadParams, "potential-field self-deployment to distance d from neighbours"),
     ("relay", RelayParams, "hold position between source and destination, balancing link quality"),
     ("patrol", PatrolParams, "patrol a territory; take over a silent neighbour's block"),
-]:
+]
+for _name, _model, _doc in _DEPLOY:
     register_preposition("Deploy", _name, _model, _doc)
 
 
@@ -311,7 +350,7 @@ class Task(BBObject):
         try:
             super().__init__(**data)
         except ValidationError as err:
-            raise TaskError(describe_error(err, _label(data))) from None
+            raise TaskError(describe_validation(err, _label(data))) from None
 
     @classmethod
     def parse(cls, data: Any) -> Self:
@@ -321,7 +360,7 @@ class Task(BBObject):
                 return cls.model_validate_json(data)
             return cls.model_validate(data)
         except ValidationError as err:
-            raise TaskError(describe_error(err, _label(data))) from None
+            raise TaskError(describe_validation(err, _label(data))) from None
 
     @model_validator(mode="before")
     @classmethod
@@ -345,7 +384,7 @@ class Task(BBObject):
         try:
             params = spec.params.model_validate(raw)
         except ValidationError as err:
-            raise TaskError(describe_error(err, spec.name)) from None
+            raise TaskError(describe_validation(err, spec.name)) from None
         return {**data, "preposition": spec.name, "params": params}
 
     @field_validator("verb")
@@ -364,6 +403,16 @@ class Task(BBObject):
     def done(self) -> bool:
         """True once the performer reported a final state."""
         return self.state.done
+
+    def params_as(self, kind: type[P]) -> P:
+        """Return the parameters typed as `kind`; TaskError when this task's preposition has others.
+
+        `match task.params: case GotoParams(): ...` narrows the same way inside a dispatch.
+        """
+        if not isinstance(self.params, kind):
+            raise TaskError(f"{self.verb} {self.preposition}: parameters are {type(self.params).__name__}, "
+                            f"not {kind.__name__}")
+        return self.params
 
     def with_result(self, state: TaskState | str | None = None, **fields: Any) -> Self:
         """Return this task with its result updated (unspecified fields kept)."""
@@ -385,25 +434,6 @@ def _label(data: Any) -> str:
     if isinstance(data, dict) and isinstance(data.get("preposition"), str):
         return normalize_preposition(data["preposition"])
     return "task"
-
-
-def describe_error(err: ValidationError, label: str) -> str:
-    """Turn a pydantic error into one line per problem, naming the field: `goto: missing 'x'`."""
-    lines = []
-    for e in err.errors():
-        loc = ".".join(str(p) for p in e["loc"]) or label
-        field = str(e["loc"][-1]) if e["loc"] else label
-        kind = e["type"]
-        if kind == "missing":
-            lines.append(f"{label}: missing {field!r}")
-        elif kind == "extra_forbidden":
-            lines.append(f"{label}: unknown parameter {field!r}")
-        elif kind in ("value_error", "assertion_error") and "ctx" in e:
-            msg = str(e["ctx"].get("error", e["msg"]))
-            lines.append(msg if not e["loc"] else f"{label}: {loc}: {msg}")
-        else:
-            lines.append(f"{label}: {loc}: {e['msg']} (got {e.get('input')!r})")
-    return "; ".join(lines)
 
 
 # --- things published beside tasks -----------------------------------------------------

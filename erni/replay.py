@@ -62,17 +62,17 @@ def read_log(path: str | Path) -> tuple[dict[str, Any], list[Event], list[str]]:
         try:
             raw = json.loads(line)
             if not isinstance(raw, dict):
-                raise ValueError(f"expected a JSON object, got {type(raw).__name__}")
+                raise LogError(f"expected a JSON object, got {type(raw).__name__}")
             missing = [k for k in ("t", "agent", "op", "type", "data") if k not in raw]
             if missing:
-                raise ValueError(f"missing {', '.join(missing)}")
+                raise LogError(f"missing {', '.join(missing)}")
             cls = TYPES.get(raw["type"]) if isinstance(raw["type"], str) else None
             if cls is None or not issubclass(cls, BBObject):
-                raise ValueError(f"unknown object type {raw['type']!r}")
+                raise LogError(f"unknown object type {raw['type']!r}")
             if raw["op"] not in ("add", "change", "remove"):
-                raise ValueError(f"unknown op {raw['op']!r}")
+                raise LogError(f"unknown op {raw['op']!r}")
             events.append(Event(float(raw["t"]), str(raw["agent"]), raw["op"], cls.model_validate(raw["data"])))
-        except (ValueError, KeyError, TypeError) as err:
+        except (LogError, ValueError, KeyError, TypeError) as err:
             problems.append(f"{path}:{number}: {str(err).splitlines()[0]}")
     events.sort(key=lambda e: e.t)
     return header, events, problems
@@ -103,13 +103,16 @@ class Recorder:
         self._f.close()
 
 
-class ReplayPlugin(Plugin):
-    """Publishes a recorded log on this agent's blackboard at the recorded pace × speed."""
+class ReplaySettings(BaseModel):
+    """The `[plugin.settings]` of the replay plugin."""
 
-    class Settings(BaseModel):
-        log: str = Field(description="log file written by `erni record`")
-        speed: float = Field(1.0, gt=0, le=1000, description="1 = recorded pace, 0.5 = slow motion")
-        loop: bool = False
+    log: str = Field(description="log file written by `erni record`")
+    speed: float = Field(1.0, gt=0, le=1000, description="1 = recorded pace, 0.5 = slow motion")
+    loop: bool = False
+
+
+class ReplayPlugin(Plugin[ReplaySettings]):
+    """Publishes a recorded log on this agent's blackboard at the recorded pace × speed."""
 
     def setup(self) -> None:
         _, self.events, problems = read_log(self.settings.log)

@@ -14,12 +14,15 @@ from pydantic import BaseModel, Field
 from erni.blackboard import Plugin, Task, TaskState
 
 
-class EchoPlugin(Plugin):
-    """Succeeds every task of `verbs` (optionally after `delay` seconds), echoing its params."""
+class EchoSettings(BaseModel):
+    """The `[plugin.settings]` of the echo plugin."""
 
-    class Settings(BaseModel):
-        verbs: list[str] = Field(default_factory=lambda: ["BotMotion"])
-        delay: float = Field(0.0, ge=0, description="seconds before the task succeeds")
+    verbs: list[str] = Field(default_factory=lambda: ["BotMotion"])
+    delay: float = Field(0.0, ge=0, description="seconds before the task succeeds")
+
+
+class EchoPlugin(Plugin[EchoSettings]):
+    """Succeeds every task of `verbs` (optionally after `delay` seconds), echoing its params."""
 
     def setup(self) -> None:
         verbs = set(self.settings.verbs)
@@ -38,11 +41,11 @@ class EchoPlugin(Plugin):
         for task in self.tasks.removed:
             self.due.pop(task.uid, None)
         for uid, when in list(self.due.items()):
-            task = self.tasks.get(uid)
-            if task is None:
+            current = self.tasks.get(uid)
+            if current is None:
                 del self.due[uid]
             elif when <= now:
                 del self.due[uid]
-                self.change(task.with_result(
+                self.change(current.with_result(
                     TaskState.SUCCEEDED, progress=1.0, message="echo: done",
-                    values={"params": task.params.model_dump(mode="json")}))
+                    values={"params": current.params.model_dump(mode="json")}))

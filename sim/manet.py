@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from erni import netgraph
+from erni.blackboard.errors import NotFoundError, UsageError
 
 METRIC_UNIT = 1024
 MAX_METRIC = 16776960
@@ -43,12 +44,12 @@ class RadioModel:
 
     def __post_init__(self) -> None:
         if not self.comm_range > 0:
-            raise ValueError(f"radio: comm_range must be > 0 m, got {self.comm_range}")
+            raise UsageError(f"radio: comm_range must be > 0 m, got {self.comm_range}")
         if not 0 <= self.lossless_range <= self.comm_range:
-            raise ValueError(f"radio: lossless_range must be in [0, comm_range={self.comm_range}] m, "
+            raise UsageError(f"radio: lossless_range must be in [0, comm_range={self.comm_range}] m, "
                              f"got {self.lossless_range}")
         if not 0 < self.min_quality <= 1:
-            raise ValueError(f"radio: min_quality must be in (0, 1], got {self.min_quality}")
+            raise UsageError(f"radio: min_quality must be in (0, 1], got {self.min_quality}")
 
     def quality(self, distance: float) -> float:
         """Delivery ratio in [0, 1] of a link of length `distance`."""
@@ -151,14 +152,14 @@ class ManetNetwork:
     def add_node(self, name: str, x: float, y: float, heading: float = 0.0) -> NodeInfo:
         """Add a node at (x, y); its initial position is known to its component."""
         if not name or not isinstance(name, str):
-            raise ValueError(f"node name must be a non-empty string, got {name!r}")
+            raise UsageError(f"node name must be a non-empty string, got {name!r}")
         _check_xy(name, x, y)
         with self._lock:
             if name in self._nodes:
-                raise ValueError(f"node {name!r} already exists")
+                raise UsageError(f"node {name!r} already exists")
             index = len(self._nodes) + 1
             if index >= self._net.num_addresses - 1:
-                raise ValueError(f"subnet {self._net} has no address left for node {name!r}")
+                raise UsageError(f"subnet {self._net} has no address left for node {name!r}")
             address = str(self._net.network_address + index)
             info = NodeInfo(name, index, address)
             self._nodes[name] = info
@@ -192,7 +193,7 @@ class ManetNetwork:
         """Record the position node `name` reports about itself (its SNMP SET)."""
         _check_xy(name, x, y)
         if not math.isfinite(heading):
-            raise ValueError(f"node {name!r}: heading must be finite, got {heading!r}")
+            raise UsageError(f"node {name!r}: heading must be finite, got {heading!r}")
         with self._lock:
             self._require(name)
             self._updates[name] += 1
@@ -274,7 +275,7 @@ class ManetNetwork:
         try:
             return self._nodes[name]
         except KeyError:
-            raise KeyError(f"unknown node {name!r}; known: {', '.join(self._nodes) or 'none'}") from None
+            raise NotFoundError(f"unknown node {name!r}; known: {', '.join(self._nodes) or 'none'}") from None
 
     def _changed(self, nodes_changed: bool = False) -> None:
         """Recompute the truth after moves; bump versions only if what nodes serve changed."""
@@ -343,4 +344,4 @@ def _same_links(a: GroundTruth, b: GroundTruth) -> bool:
 def _check_xy(name: Any, x: Any, y: Any) -> None:
     for label, v in (("x", x), ("y", y)):
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-            raise ValueError(f"node {name!r}: {label} must be a finite number of metres, got {v!r}")
+            raise UsageError(f"node {name!r}: {label} must be a finite number of metres, got {v!r}")

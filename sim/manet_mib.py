@@ -116,6 +116,7 @@ def build_table(view: NodeView, comm_range: float,
     add((ERNI_COMM_RANGE, Value("int", _mm(comm_range))))
     add((ERNI_TOPOLOGY_VERSION, Value("counter", view.topology_version % 2**32)))
     add((ERNI_STATE_VERSION, Value("counter", view.version % 2**32)))
+    idx: tuple[int, ...]
     for node in view.known_nodes:
         idx = (node.index,)
         add((ERNI_NODE_TABLE + (2,) + idx, Value("str", node.name)))
@@ -151,7 +152,7 @@ def build_table(view: NodeView, comm_range: float,
         rows.extend(topology_rows(view))
     for dest, route in view.routes.items():
         d, hop = index[dest], index[route.next_hop]
-        dest_addr = tuple(_addr(d.address))
+        dest_addr: tuple[int, ...] = tuple(_addr(d.address))
         idx = (1, 4) + dest_addr + (32,)
         cost = min(UINT32_MAX, round(route.cost))
         add((OLSRV2_ROUTING + (5,) + idx, Value("str", _addr(hop.address))))

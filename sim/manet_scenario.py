@@ -7,7 +7,9 @@ from pathlib import Path
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from erni.blackboard.errors import describe_validation
 from erni.sim.manet import ManetNetwork, RadioModel
+from erni.sim.scenario import ScenarioError
 
 
 class _Strict(BaseModel):
@@ -76,10 +78,6 @@ class Scenario(_Strict):
                 for i, n in enumerate(self.nodes)}
 
 
-class ScenarioError(ValueError):
-    """A scenario file that cannot be used; the message names the file and the problem."""
-
-
 def load_scenario(path: str | Path) -> Scenario:
     """Read and validate a scenario TOML file (raises ScenarioError with one clear line)."""
     path = Path(path)
@@ -92,8 +90,4 @@ def load_scenario(path: str | Path) -> Scenario:
     try:
         return Scenario.model_validate(data)
     except ValidationError as err:
-        problems = []
-        for e in err.errors():
-            loc = ".".join(str(p) for p in e["loc"]) or "scenario"
-            problems.append(f"{loc}: {e['msg']}")
-        raise ScenarioError(f"{path}: " + "; ".join(problems)) from None
+        raise ScenarioError(describe_validation(err, str(path))) from None

@@ -74,6 +74,11 @@ class SimRobotConfig(BaseModel):
         return cls(**base)  # type: ignore[arg-type]
 
 
+def heading_units(angle: float) -> int:
+    """An angle (rad) in ARCOS heading units (4096 per turn, -2048..2047)."""
+    return round(_wrap(angle) * 2048 / math.pi) or 0
+
+
 def _wrap(a: float) -> float:
     return (a + math.pi) % (2 * math.pi) - math.pi
 
@@ -487,7 +492,6 @@ class ArcosFirmware:
         stall = (1 if r.stall_left else 0) | (0x100 if r.stall_right else 0)
         stall |= ((r.bumpers & 0x7F) << 1) | (((r.bumpers >> 7) & 0x7F) << 9)
         flags = (1 if r.motors_enabled else 0) | (0x2 if r.sonar_on else 0)
-        heading_units = lambda a: round(_wrap(a) * 2048 / math.pi) or 0  # noqa: E731
         control = heading_units(r.head_target) if r.rot_mode == "head" else heading_units(th)
         body = struct.pack(
             "<BHHhhhBHhHB",

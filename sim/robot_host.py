@@ -20,6 +20,7 @@ import tty
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+from erni.blackboard.errors import NetworkError, UsageError
 from erni.sim.robot import ArcosFirmware, SimRobot, SimRobotConfig
 from erni.sim.world import World
 
@@ -43,7 +44,7 @@ class RobotHost:
     def __init__(self, world: World | None = None, *, physics_hz: float = 100.0,
                  clock: Callable[[], float] = time.monotonic, host: str = "127.0.0.1") -> None:
         if physics_hz <= 0:
-            raise ValueError(f"physics_hz must be > 0, got {physics_hz}")
+            raise UsageError(f"physics_hz must be > 0, got {physics_hz}")
         self.world = world or World()
         self.clock = clock
         self.host = host
@@ -69,13 +70,13 @@ class RobotHost:
                   pty: bool = False) -> SimRobot:
         """Add a robot on TCP `port` (0 = any free port) or, with pty=True, on a new pty."""
         if self._thread is not None:
-            raise RuntimeError("add robots before start(): the host thread owns the selector")
+            raise UsageError("add robots before start(): the host thread owns the selector")
         index = len(self.endpoints)
         config = config or SimRobotConfig(name=f"sim{index + 1}")
         start = self.world.start_pose(index, config.name)
         robot = SimRobot(config, self.world, start.x, start.y, math.radians(start.heading))
         robot.start = (robot.x, robot.y, robot.th)
-        robot.others = lambda r=robot: [((o.x, o.y), o.config.radius) for o in self.robots if o is not r]
+        robot.others = self._others_of(robot)
         ep = _Endpoint(robot, ArcosFirmware(robot))
         if pty:
             ep.master, ep.slave = os.openpty()
@@ -90,7 +91,7 @@ class RobotHost:
                 lst.bind((self.host, port))
             except OSError as err:
                 lst.close()
-                raise OSError(err.errno, f"cannot listen on {self.host}:{port} for robot "
+                raise NetworkError(err.errno, f"cannot listen on {self.host}:{port} for robot "
                                          f"{config.name!r}: {err.strerror}") from None
             lst.listen(2)
             lst.setblocking(False)
@@ -98,9 +99,13 @@ class RobotHost:
             ep.url = f"socket://{self.host}:{lst.getsockname()[1]}"
             self._sel.register(lst, selectors.EVENT_READ, ("listen", ep))
         else:
-            raise ValueError("a robot needs a TCP port (0 for any) or pty=True")
+            raise UsageError("a robot needs a TCP port (0 for any) or pty=True")
         self.endpoints.append(ep)
         return robot
+
+    def _others_of(self, robot: SimRobot) -> Callable[[], list[tuple[tuple[float, float], float]]]:
+        """What `robot` can bump into or sense besides the world: the other robots (centre, radius)."""
+        return lambda: [((o.x, o.y), o.config.radius) for o in self.robots if o is not robot]
 
     def url(self, index: int = 0) -> str:
         """Return the pyserial URL (or pty path) a driver opens to reach robot `index`."""

@@ -65,7 +65,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from erni.blackboard.errors import TaskError
+from erni.blackboard.errors import ConfigError, TaskError, describe_validation
 from erni.blackboard.tasks import Task
 from erni.sim.world import RobotStart, World, WorldError
 
@@ -73,7 +73,7 @@ NAME = r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,62}$"
 MAX_AGENT_ROBOTS = 240  # one loopback address 127.0.1.N per robot agent
 
 
-class ScenarioError(ValueError):
+class ScenarioError(ConfigError):
     """A scenario that cannot be used; the message names the file, the field and the problem."""
 
 
@@ -252,25 +252,6 @@ class Scenario(_Strict):
         return Scenario.model_validate(data)
 
 
-def _format(source: str, err: ValidationError) -> str:
-    """One `SOURCE: field.path: message` line per problem (no dump of whole tables)."""
-    lines = []
-    for e in err.errors():
-        where = ""
-        for p in e["loc"]:
-            where += f"[{p}]" if isinstance(p, int) and where else (f".{p}" if where else str(p))
-        if e["type"] == "missing":
-            msg = "missing (required)"
-        elif e["type"] == "extra_forbidden":
-            msg = "unknown key"
-        else:
-            msg = e["msg"].removeprefix("Value error, ")
-            if where and not isinstance(e.get("input"), (dict, list)):
-                msg += f" (got {e.get('input')!r})"
-        lines.append(f"{source}: {where}: {msg}" if where else f"{source}: {msg}")
-    return "\n".join(lines)
-
-
 def _world_from(value: Any, base: Path | None) -> Any:
     """Resolve `world = "file.toml"` (relative to the scenario) into the world's table."""
     if not isinstance(value, str):
@@ -294,7 +275,7 @@ def parse_scenario(data: dict[str, Any], source: str = "<scenario>", base: Path 
     try:
         return Scenario.model_validate(data)
     except ValidationError as err:
-        raise ScenarioError(_format(source, err)) from None
+        raise ScenarioError(describe_validation(err, source, sep="\n")) from None
 
 
 def load_scenario(path: str | Path) -> Scenario:

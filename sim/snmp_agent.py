@@ -22,6 +22,7 @@ from pyasn1.type import univ
 from pysnmp.proto import api
 from pysnmp.proto.api import v2c
 
+from erni.blackboard.errors import NetworkError
 from erni.sim import snmp_ber as ber
 from erni.sim.manet import ManetNetwork
 from erni.sim.manet_mib import (
@@ -41,6 +42,10 @@ MAX_RESPONSE_BYTES = 60000   # stays under the UDP datagram limit
 # SNMP error-status codes (RFC 3416)
 NO_SUCH_NAME, BAD_VALUE, GEN_ERR = 2, 3, 5
 WRONG_TYPE, WRONG_VALUE, NOT_WRITABLE = 7, 10, 17
+
+
+Answer = tuple[int, int, list[bytes] | None]
+"""What a PDU handler returns: error status, error index, the encoded varbinds (None on error)."""
 
 
 class _Rows:
@@ -177,7 +182,7 @@ class ManetSnmpAgent:
         try:
             address = fut.result(5.0)
         except OSError as err:
-            raise OSError(f"node {name!r}: cannot serve SNMP on {host}:{port}: {err.strerror}") from None
+            raise NetworkError(f"node {name!r}: cannot serve SNMP on {host}:{port}: {err.strerror}") from None
         self._endpoints[name] = address
         return address
 
@@ -270,7 +275,7 @@ class ManetSnmpAgent:
         return ber.response(version, community, request_id, status, index, out)
 
     def _dispatch(self, name: str, version: int, p_mod: Any, req: Any,
-                  binds: list[tuple[OID, Any]]) -> tuple[int, int, list[bytes] | None]:
+                  binds: list[tuple[OID, Any]]) -> Answer:
         if req.isSameTypeWith(p_mod.SetRequestPDU()):
             self.stats["set"] += 1
             return self._set(name, version, binds)
@@ -289,8 +294,8 @@ class ManetSnmpAgent:
         self.stats["unsupported_pdu"] += 1
         return GEN_ERR, 0, None
 
-    def _get(self, table: _Table, version: int, binds: list[tuple[OID, Any]]):
-        out = []
+    def _get(self, table: _Table, version: int, binds: list[tuple[OID, Any]]) -> Answer:
+        out: list[bytes] = []
         for i, (key, _) in enumerate(binds):
             bound = table.get(key)
             if bound is not None:
@@ -303,8 +308,8 @@ class ManetSnmpAgent:
                 out.append(ber.varbind(ber.oid(key), ber.NO_SUCH_OBJECT))
         return 0, 0, out
 
-    def _next(self, table: _Table, version: int, binds: list[tuple[OID, Any]]):
-        out = []
+    def _next(self, table: _Table, version: int, binds: list[tuple[OID, Any]]) -> Answer:
+        out: list[bytes] = []
         for i, (key, _) in enumerate(binds):
             found = table.next(key)
             if found is not None:
@@ -315,13 +320,13 @@ class ManetSnmpAgent:
                 out.append(ber.varbind(ber.oid(key), ber.END_OF_MIB_VIEW))
         return 0, 0, out
 
-    def _bulk(self, table: _Table, binds: list[tuple[OID, Any]], non_rep: int, max_rep: int):
+    def _bulk(self, table: _Table, binds: list[tuple[OID, Any]], non_rep: int, max_rep: int) -> Answer:
         non_rep = max(0, min(non_rep, len(binds)))
         out = list(self._next(table, 1, binds[:non_rep])[2] or [])
         cursors: list[OID | None] = [key for key, _ in binds[non_rep:]]
         size = sum(map(len, out))
         for _ in range(max(0, max_rep) if cursors else 0):
-            row = []
+            row: list[bytes] = []
             ended = True
             for j, cur in enumerate(cursors):
                 found = table.next(cur) if cur is not None else None
@@ -341,7 +346,7 @@ class ManetSnmpAgent:
                 break
         return 0, 0, out
 
-    def _set(self, name: str, version: int, binds: list[tuple[OID, Any]]):
+    def _set(self, name: str, version: int, binds: list[tuple[OID, Any]]) -> Answer:
         writes: dict[str, int] = {}
         for i, (key, value) in enumerate(binds):
             field = WRITABLE.get(key)

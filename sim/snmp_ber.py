@@ -10,6 +10,8 @@ from __future__ import annotations
 import functools
 import ipaddress
 
+from erni.blackboard.errors import UsageError
+
 TAG_INTEGER, TAG_OCTETS, TAG_NULL, TAG_OID, TAG_SEQUENCE = 0x02, 0x04, 0x05, 0x06, 0x30
 TAG_IPADDRESS, TAG_COUNTER32, TAG_GAUGE32, TAG_TIMETICKS = 0x40, 0x41, 0x42, 0x43
 TAG_NO_SUCH_OBJECT, TAG_NO_SUCH_INSTANCE, TAG_END_OF_MIB_VIEW = 0x80, 0x81, 0x82
@@ -43,7 +45,7 @@ def signed(tag: int, value: int) -> bytes:
 def unsigned(tag: int, value: int) -> bytes:
     """An unsigned application TLV (Counter32, Gauge32, TimeTicks): leading 0 when needed."""
     if value < 0:
-        raise ValueError(f"unsigned SNMP value must be >= 0, got {value}")
+        raise UsageError(f"unsigned SNMP value must be >= 0, got {value}")
     size = value.bit_length() // 8 + 1
     return tlv(tag, value.to_bytes(size, "big"))
 
@@ -62,7 +64,7 @@ def oid(arcs: tuple[int, ...]) -> bytes:
     """An OBJECT IDENTIFIER TLV."""
     if len(arcs) < 2 or arcs[0] not in (0, 1, 2) or (arcs[0] < 2 and not 0 <= arcs[1] < 40) \
             or min(arcs) < 0:
-        raise ValueError(f"invalid OID {arcs!r}")
+        raise UsageError(f"invalid OID {arcs!r}")
     if max(arcs) < 128:  # the common case: one byte per arc
         return tlv(TAG_OID, bytes((arcs[0] * 40 + arcs[1],)) + bytes(arcs[2:]))
     return tlv(TAG_OID, _base128(arcs[0] * 40 + arcs[1]) + b"".join(map(_base128, arcs[2:])))
@@ -73,7 +75,7 @@ def value(kind: str, v: object) -> bytes:
     if kind == "int":
         return signed(TAG_INTEGER, int(v))  # type: ignore[call-overload]
     if kind == "str":
-        return tlv(TAG_OCTETS, v.encode() if isinstance(v, str) else bytes(v))  # type: ignore[arg-type]
+        return tlv(TAG_OCTETS, v.encode() if isinstance(v, str) else bytes(v))  # type: ignore[call-overload]  # bytes-like by contract
     if kind == "ip":
         return tlv(TAG_IPADDRESS, ipaddress.IPv4Address(str(v)).packed)
     if kind in ("gauge", "uns"):
@@ -82,7 +84,7 @@ def value(kind: str, v: object) -> bytes:
         return unsigned(TAG_COUNTER32, int(v))  # type: ignore[call-overload]
     if kind == "ticks":
         return unsigned(TAG_TIMETICKS, int(v))  # type: ignore[call-overload]
-    raise ValueError(f"unknown SNMP value kind {kind!r}")
+    raise UsageError(f"unknown SNMP value kind {kind!r}")
 
 
 def response(version: int, community: bytes, request_id: int, error_status: int,

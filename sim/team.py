@@ -3,9 +3,11 @@
 The sim process hosts the world: one `RobotHost` serving a simulated ARCOS robot per robot
 (TCP, `socket://127.0.0.1:PORT`), one `ManetNetwork` whose robot nodes are served over SNMP
 (robot N on `127.0.1.N`), and a feed thread that moves the network's nodes with the robots
-and rewrites the transport's reachability file whenever the radio's connectivity changes.
+and tells every agent's transport which agents its simulated radio can hear whenever the radio's
+connectivity changes (through a pipe each agent inherits: see `erni.sim.radio`).
 
-Every robot runs `python -m erni agent` with the plugins it would run on a robot
+Every robot runs `python -m erni.sim.radio` (the `erni agent` command behind the simulated
+radio) with the plugins it would run on a robot
 (transport on `127.0.1.N`, motion, mobinet, mission when installed); only the serial URL and
 the SNMP address differ. The control node runs the same agent with the transport in role
 `control` (and the UI plugin when installed). A random team key authenticates every frame.
@@ -31,7 +33,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from erni.blackboard.errors import ErniError, UsageError
 from erni.sim.manet import ManetNetwork, RadioModel
+from erni.sim.radio import FD_ENV
 from erni.sim.robot import SimRobot, SimRobotConfig
 from erni.sim.robot_host import RobotHost
 from erni.sim.scenario import MAX_AGENT_ROBOTS, Scenario
@@ -45,7 +49,7 @@ CONTROL_HOST = "127.0.1.250"
 KEY_ENV = "ERNI_SIM_TEAM_KEY"  # where the sim process keeps the key for its own client
 
 
-class TeamError(RuntimeError):
+class TeamError(ErniError):
     """The team could not be started (a port is busy, an agent died, it did not come up)."""
 
 
@@ -68,7 +72,7 @@ def free_port(host: str = "127.0.0.1", kind: int = socket.SOCK_DGRAM) -> int:
     """Return a port the OS says is free on `host` now."""
     with socket.socket(socket.AF_INET, kind) as s:
         s.bind((host, 0))
-        return s.getsockname()[1]
+        return int(s.getsockname()[1])
 
 
 def port_free(host: str, port: int) -> bool:
@@ -96,7 +100,7 @@ def toml_value(v: Any) -> str:
         return "[" + ", ".join(toml_value(x) for x in v) + "]"
     if isinstance(v, dict):
         return "{ " + ", ".join(f"{k} = {toml_value(x)}" for k, x in v.items()) + " }"
-    raise TypeError(f"cannot write {v!r} as TOML")
+    raise UsageError(f"cannot write {v!r} as TOML")
 
 
 def agent_toml(name: str, plugins: list[tuple[str, dict[str, Any]]], *, journal: str | None = None,
@@ -127,8 +131,9 @@ class AgentProcess:
     config: Path
     log: Path
     address: tuple[str, int]
-    proc: subprocess.Popen | None = None
+    proc: subprocess.Popen[bytes] | None = None
     failed: bool = False
+    radio: int | None = None  # write end of the agent's radio pipe
 
     @property
     def alive(self) -> bool:
@@ -184,7 +189,6 @@ class Team:
         self.ui = (not headless and plugin_available("erni.plugins.ui", "UIPlugin")) if ui is None else ui
         self.key = secrets.token_hex(16)
         self.key_file = self.run_dir / "team.key"
-        self.reach_file = self.run_dir / "reach.json"
         self.discovery_port = free_port()
         self.control_port = control_port if control_port and port_free(CONTROL_HOST, control_port) \
             else free_port(CONTROL_HOST, socket.SOCK_STREAM)
@@ -198,6 +202,7 @@ class Team:
         self.network = ManetNetwork(RadioModel(r.comm_range, r.lossless_range, r.min_quality),
                                     subnet="127.0.1.0/24")
         self.snmp = ManetSnmpAgent(self.network)
+        self._radio_lock = threading.Lock()
         self.agents: dict[str, AgentProcess] = {}
         self.samples: list[Sample] = []
         self.status = TeamStatus()
@@ -267,8 +272,7 @@ class Team:
         return self
 
     def _write_configs(self, snmp_ports: dict[str, int]) -> None:
-        common = dict(discovery_port=self.discovery_port, beacon_to=["127.255.255.255"],
-                      reachability=str(self.reach_file), **self.transport)
+        common = dict(discovery_port=self.discovery_port, beacon_to=["127.255.255.255"], **self.transport)
         for i, name in enumerate(self.names):
             addr = robot_address(i)
             port = 0  # any free port: two simulations side by side never collide
@@ -320,11 +324,32 @@ class Team:
         self.agents[name] = AgentProcess(name, config, self.run_dir / "logs" / f"{name}.log", address)
 
     def _spawn(self, agent: AgentProcess, env: dict[str, str]) -> None:
-        with open(agent.log, "ab") as out:
-            agent.proc = subprocess.Popen(
-                [sys.executable, "-m", "erni", "agent", str(agent.config), "--log-level", self.log_level],
-                stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT, env=env,
-                start_new_session=True, preexec_fn=_die_with_parent)
+        read, write = os.pipe()  # the agent's radio: reachability lines from us
+        os.set_blocking(write, False)  # the feed loop never waits on an agent
+        with self._radio_lock:  # the feed thread pushes too: the agent's first line is the latest
+            agent.radio = write
+            self._tell_radio(agent, self.status.reach.get(agent.name))
+        try:
+            with open(agent.log, "ab") as out:
+                agent.proc = subprocess.Popen(
+                    [sys.executable, "-m", "erni.sim.radio", str(agent.config), "--log-level", self.log_level],
+                    stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT,
+                    env={**env, FD_ENV: str(read)}, pass_fds=(read,),
+                    start_new_session=True, preexec_fn=_die_with_parent)
+        finally:
+            os.close(read)
+
+    def _tell_radio(self, agent: AgentProcess, names: list[str] | None) -> None:
+        """Push the names `agent` can hear now into its radio pipe (never blocks)."""
+        if agent.radio is None:
+            return
+        try:
+            os.write(agent.radio, (json.dumps(names) + "\n").encode())
+        except BlockingIOError:
+            log.warning("radio pipe of %s is full: it is not reading (stuck?)", agent.name)
+        except OSError:  # the agent is gone
+            os.close(agent.radio)
+            agent.radio = None
 
     def client(self) -> Any:
         """A started transport client of this team, reaching it through the control node."""
@@ -338,7 +363,7 @@ class Team:
 
     def peers(self, timeout: float = 2.0) -> dict[str, Any]:
         """The control node's directory: agent name -> Peer ({} when it does not answer)."""
-        from erni.transport.bridge import PeerList
+        from erni.blackboard.schemas import PeerList
 
         client = self.client()
         client.send(self.control_address, "peers.request", None)
@@ -415,12 +440,13 @@ class Team:
             for name in comp:
                 reach[name] = sorted(comp - {name})
         control_reach = len(reach.get(CONTROL, []))
-        if force or reach != self.status.reach:
-            tmp = self.reach_file.with_suffix(".tmp")
-            tmp.write_text(json.dumps({"reachable": reach}), encoding="utf-8")
-            os.replace(tmp, self.reach_file)
-            self.status.writes += 1
-        self.status.reach = reach
+        with self._radio_lock:
+            if force or reach != self.status.reach:
+                for name, agent in self.agents.items():
+                    if force or reach.get(name) != self.status.reach.get(name):
+                        self._tell_radio(agent, reach.get(name))
+                self.status.writes += 1
+            self.status.reach = reach
         self.status.components = len(truth.components)
         self.status.control_reach = control_reach
         if self.record:
@@ -441,7 +467,7 @@ class Team:
 
     def wait_result(self, uid: str, timeout: float) -> Any:
         """Return the final AllocationResult of a task sent with `send_task` (TeamError after timeout)."""
-        from erni.transport.bridge import ResultUpdate
+        from erni.blackboard.schemas import ResultUpdate
 
         client = self.client()
         deadline = time.monotonic() + timeout
@@ -478,6 +504,10 @@ class Team:
         self._stop.set()
         if self._feed is not None:
             self._feed.join(5)
+        for agent in self.agents.values():
+            if agent.radio is not None:
+                os.close(agent.radio)
+                agent.radio = None
         if self._client is not None:
             self._client.endpoint.stop()
             self._client = None

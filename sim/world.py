@@ -29,42 +29,24 @@ the radio model (walls between two nodes).
 from __future__ import annotations
 
 import math
-import tomllib
 from collections.abc import Iterable, Iterator
 from pathlib import Path
+from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-Point = tuple[float, float]
+from erni.blackboard.errors import ConfigError, describe_validation
+from erni.blackboard.schemas import FloorPlan, Point, read_toml
+
 Segment = tuple[Point, Point]
 
 
-class WorldError(ValueError):
+class WorldError(ConfigError):
     """A world file is missing, unreadable or invalid."""
 
 
 class _Model(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
-
-
-class Wall(_Model):
-    """A straight wall from `a` to `b` (m)."""
-
-    a: Point
-    b: Point
-
-
-class Circle(_Model):
-    """A round obstacle (m)."""
-
-    center: Point
-    radius: float = Field(gt=0)
-
-
-class Polygon(_Model):
-    """A closed polygonal obstacle; its edges block like walls and its inside is solid."""
-
-    points: list[Point] = Field(min_length=3)
 
 
 class RobotStart(_Model):
@@ -76,50 +58,26 @@ class RobotStart(_Model):
     heading: float = 0.0
 
 
-class World(_Model):
-    """Obstacles and robot start poses; all coordinates in metres."""
+class World(FloorPlan):
+    """Obstacles (the floor plan) and robot start poses; all coordinates in metres."""
 
     name: str = "world"
-    bounds: tuple[float, float, float, float] | None = Field(
-        None, description="xmin, ymin, xmax, ymax: adds four enclosing walls")
-    wall: list[Wall] = Field(default_factory=list)
-    circle: list[Circle] = Field(default_factory=list)
-    polygon: list[Polygon] = Field(default_factory=list)
     robot: list[RobotStart] = Field(default_factory=list)
-
-    @model_validator(mode="after")
-    def _check_bounds(self) -> World:
-        if self.bounds is not None:
-            xmin, ymin, xmax, ymax = self.bounds
-            if xmin >= xmax or ymin >= ymax:
-                raise ValueError(f"bounds {list(self.bounds)}: expected xmin < xmax and ymin < ymax")
-        return self
 
     # --- loading ------------------------------------------------------------------------
 
     @classmethod
     def load(cls, path: str | Path) -> World:
         """Read a world TOML file; raise WorldError naming the file and the bad field."""
-        path = Path(path)
-        try:
-            data = tomllib.loads(path.read_text(encoding="utf-8"))
-        except FileNotFoundError:
-            raise WorldError(f"{path}: no such world file") from None
-        except tomllib.TOMLDecodeError as err:
-            raise WorldError(f"{path}: not valid TOML: {err}") from None
-        return cls.from_dict(data, source=str(path))
+        return cls.from_dict(read_toml(path, "world", WorldError), source=str(path))
 
     @classmethod
-    def from_dict(cls, data: dict, source: str = "world") -> World:
+    def from_dict(cls, data: dict[str, Any], source: str = "world") -> World:
         """Validate a world from plain data; raise WorldError with one line per problem."""
         try:
             return cls.model_validate(data)
         except ValidationError as err:
-            problems = []
-            for e in err.errors():
-                loc = ".".join(str(p) for p in e["loc"]) or "world"
-                problems.append(f"{loc}: {e['msg']} (got {e.get('input')!r})")
-            raise WorldError(f"{source}: " + "; ".join(problems)) from None
+            raise WorldError(describe_validation(err, source)) from None
 
     def start_pose(self, index: int, name: str = "") -> RobotStart:
         """Return the start pose for robot `name` (or the index-th start, or the origin)."""

@@ -5,6 +5,7 @@ from __future__ import annotations
 import ast
 import json
 import os
+import re
 import subprocess
 import sys
 import zipfile
@@ -109,3 +110,84 @@ def test_the_package_passes_mypy_strict() -> None:
     result = subprocess.run([sys.executable, "-m", "mypy", "--no-error-summary"], cwd=ROOT, capture_output=True,
                             text=True, timeout=900)
     assert result.returncode == 0, result.stdout[-6000:] + result.stderr[-2000:]
+
+
+def _package_files() -> list[Path]:
+    """Every source file of the package once (the linked folders through their own names)."""
+    files = [p for folder in (*RUNTIME, "sim") for p in (ROOT / folder).rglob("*.py")]
+    return sorted(files + [p for p in (ROOT / "erni").rglob("*.py") if not any(
+        (ROOT / "erni" / link) in p.parents for link in ("blackboard", "transport", "plugins", "sim"))])
+
+
+def test_every_error_class_of_the_package_derives_from_erni_error() -> None:
+    import importlib
+    import inspect
+
+    from erni import ErniError
+
+    errors = {}
+    for path in _package_files():
+        rel = path.relative_to(ROOT).with_suffix("")
+        parts = rel.parts if rel.parts[0] == "erni" else ("erni", *rel.parts)
+        name = ".".join(parts).removesuffix(".__init__")
+        if name.endswith("__main__"):
+            continue
+        module = importlib.import_module(name)
+        for cls_name, cls in inspect.getmembers(module, inspect.isclass):
+            if issubclass(cls, BaseException) and cls.__module__ == name:
+                errors[f"{name}.{cls_name}"] = cls
+    assert len(errors) >= 15, sorted(errors)
+    assert sorted(n for n, cls in errors.items() if not issubclass(cls, ErniError)) == []
+
+
+def test_no_builtin_exception_is_raised_outside_pydantic_validators() -> None:
+    import builtins
+
+    builtin = {n for n in dir(builtins) if isinstance(getattr(builtins, n), type)
+               and issubclass(getattr(builtins, n), BaseException)}
+    allowed = {"NotImplementedError", "SystemExit", "KeyboardInterrupt", "AssertionError"}
+    offenders = []
+    for path in _package_files():
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+        in_validator = {id(node) for fn in ast.walk(tree) if isinstance(fn, ast.FunctionDef)
+                        and any("validator" in ast.unparse(d) for d in fn.decorator_list) for node in ast.walk(fn)}
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Raise) and node.exc is not None and id(node) not in in_validator:
+                exc = node.exc.func if isinstance(node.exc, ast.Call) else node.exc
+                if isinstance(exc, ast.Name) and exc.id in builtin - allowed:
+                    offenders.append(f"{path.relative_to(ROOT)}:{node.lineno}: raise {exc.id}")
+    assert offenders == []
+
+
+def _smallest_plugin() -> str:
+    text = (ROOT / "docs" / "plugins.md").read_text(encoding="utf-8")
+    section = text.split("## The smallest plugin", 1)[1]
+    return section.split("```python\n", 1)[1].split("```", 1)[0]
+
+
+def test_the_documented_smallest_plugin_is_strictly_typed(tmp_path: Path) -> None:
+    example = tmp_path / "greeter.py"
+    example.write_text(_smallest_plugin() + "\nreveal_type(Greeter().settings.greeting)\n", encoding="utf-8")
+    result = subprocess.run([sys.executable, "-m", "mypy", "--strict", "--no-incremental", "--follow-imports=silent",
+                             "--config-file", str(ROOT / "pyproject.toml"), str(example)],
+                            cwd=ROOT, capture_output=True, text=True, timeout=600,
+                            env={**os.environ, "MYPYPATH": str(ROOT)})
+    assert re.search(r'Revealed type is "(builtins\.)?str"', result.stdout), result.stdout
+    assert "error:" not in result.stdout, result.stdout
+
+
+def test_the_documented_smallest_plugin_runs() -> None:
+    from erni import Agent, Task, TaskState
+    from erni.blackboard.testing import wait_until
+
+    namespace: dict[str, object] = {}
+    exec(compile(_smallest_plugin(), "docs/plugins.md", "exec"), namespace)
+    agent = Agent("robot1", workers=1)
+    agent.add_plugin(namespace["Greeter"], settings={"greeting": "hi"})  # type: ignore[call-overload]
+    goto = Task(verb="BotMotion", preposition="goto", params={"x": 1, "y": 2})
+    with agent:
+        with agent.transaction() as tx:
+            tx.add(goto)
+        done = wait_until(lambda: [t for t in agent.query(Task) if t.done])
+    assert done[0].state is TaskState.SUCCEEDED and done[0].result is not None
+    assert done[0].result.message == "hi: going to (1.0, 2.0)"

@@ -1,7 +1,8 @@
 """Message transport between agents: framing, authentication, TCP/UDP endpoint, the bridge
 plugin that carries tasks and results between blackboards, discovery, and a mock network."""
 
-from erni.transport.bridge import Peer, TransportPlugin, TransportSettings
+from erni.blackboard.schemas import Peer
+from erni.transport.bridge import TransportPlugin, TransportSettings
 from erni.transport.endpoint import Endpoint, parse_address, team_key
 from erni.transport.mock import MockEndpoint, MockNetwork
 from erni.transport.wire import FrameError, Message, register_type

@@ -21,21 +21,9 @@ from typing import Any, ClassVar
 from pydantic import BaseModel, ConfigDict, Field, SecretStr, model_validator
 
 from erni.blackboard import BBObject, NetInfo, Plugin, Pose, Task, TaskState
-from erni.blackboard.tasks import AllocationResult
-from erni.transport.endpoint import Address, Endpoint, parse_address, team_key
+from erni.blackboard.schemas import Beacon, Cancel, Peer, PeerList, ResultUpdate, WatchEvent, WatchRequest
+from erni.transport.endpoint import CLIENT_ROLE, Address, Endpoint, InboundFilter, parse_address, team_key
 from erni.transport.wire import Message, register_type
-
-
-class Peer(BBObject):
-    """An agent known to this one: where it is, what it is, whether it is heard."""
-
-    name: str
-    address: str = ""
-    role: str = ""
-    capabilities: list[str] = Field(default_factory=list)
-    last_heard: float = 0.0
-    up: bool = False
-    epoch: int = 0
 
 
 class Received(BBObject):
@@ -46,60 +34,6 @@ class Received(BBObject):
     task: str
     sender: str
     address: str = Field("", description="the sender's reply address, HOST:PORT")
-
-
-class Beacon(BaseModel):
-    """What an agent announces about itself."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    role: str = ""
-    capabilities: list[str] = Field(default_factory=list)
-
-
-class ResultUpdate(BaseModel):
-    """A performer's new result for a task."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    uid: str
-    result: AllocationResult
-
-
-class Cancel(BaseModel):
-    """The requester removed a task."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    uid: str
-
-
-class PeerList(BaseModel):
-    """The directory of an agent, sent to a client."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    agent: str
-    peers: list[Peer]
-
-
-class WatchRequest(BaseModel):
-    """A client asks for blackboard changes for `lease` seconds."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    lease: float = Field(10.0, gt=0, le=3600)
-
-
-class WatchEvent(BaseModel):
-    """One blackboard change sent to a watcher."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    agent: str
-    op: str
-    type: str
-    data: dict[str, Any]
 
 
 for _cls in (Peer, Received, Beacon, ResultUpdate, Cancel, PeerList, WatchRequest, WatchEvent):
@@ -140,8 +74,6 @@ class TransportSettings(BaseModel):
                                              "{Territory = [\"control\", \"robot\"]}")
     forward_tasks: bool = Field(True, description="false: never send tasks to other agents "
                                 "(a replaying control node)")
-    reachability: str | None = Field(None, description="simulation: JSON file saying which agents "
-                                     "the simulated radio connects (written by `erni sim`)")
     udp_loss: float = Field(0.0, ge=0.0, le=1.0, description="fault injection: drop this share of "
                             "outgoing datagrams")
 
@@ -159,27 +91,32 @@ class TransportSettings(BaseModel):
                              "or insecure = true")
         return self
 
-    def make_endpoint(self, name: str) -> Endpoint:
+    def make_endpoint(self, name: str, inbound_filter: InboundFilter | None = None) -> Endpoint:
         """Build the endpoint these settings describe."""
         key = team_key(self.key.get_secret_value() if self.key else None, self.key_env)
         return Endpoint(name, listen=parse_address(self.listen), key=key, insecure=self.insecure,
                         senders=self.senders, queue_limit=self.queue_limit, max_frame=self.max_frame,
                         ack_timeout=self.ack_timeout, connect_timeout=self.connect_timeout,
                         ttl=self.task_ttl, discovery_port=self.discovery_port or None,
-                        udp_loss=self.udp_loss, reachability=self.reachability)
+                        udp_loss=self.udp_loss, role=self.role, inbound_filter=inbound_filter)
 
 
-class TransportPlugin(Plugin):
+class TransportPlugin(Plugin[TransportSettings]):
     """Bridges this agent's blackboard to the other agents of the team."""
 
-    Settings = TransportSettings
 
     endpoint_factory: Any = None  # tests may inject a mock network endpoint
+    inbound_filter: InboundFilter | None = None
+    """Set before the agent starts: `(sender, role) -> bool` decides which verified frames are
+    delivered (`erni sim` hands its simulated radio to the transport this way)."""
 
     def setup(self) -> None:
-        s: TransportSettings = self.settings
-        factory = self.endpoint_factory or s.make_endpoint
-        self.endpoint: Endpoint = factory(self.agent_name)
+        s = self.settings
+        if self.endpoint_factory is not None:
+            self.endpoint: Endpoint = self.endpoint_factory(self.agent_name)
+            self.endpoint.inbound_filter = self.inbound_filter
+        else:
+            self.endpoint = s.make_endpoint(self.agent_name, self.inbound_filter)
         if s.insecure:
             self.log.warning("transport of %s runs WITHOUT authentication (insecure = true): any "
                              "host on the network can task this agent", self.agent_name)
@@ -197,7 +134,8 @@ class TransportPlugin(Plugin):
         self.pending: dict[str, tuple[str, float]] = {}  # task uid -> (destination, deadline)
         self.watchers: dict[str, tuple[Address, float]] = {}
         self.learned: set[str] = set()
-        self.addresses: dict[str, Address] = {}  # reply address of every sender, clients included
+        self.addresses: dict[str, Address] = {}
+        self._next_beacon = 0.0  # reply address of every sender, clients included
         for spec in s.peers:
             name, _, addr = spec.partition("@")
             host, port = parse_address(addr)
@@ -303,6 +241,8 @@ class TransportPlugin(Plugin):
                                              "never discovered"))
 
     def _send_result(self, origin: str, task: Task) -> None:
+        if task.result is None:
+            return
         update = ResultUpdate(uid=task.uid, result=task.result)
         self._send_to_peer(origin, "task.result", update, reliable=False)
         if task.done:  # a final state must arrive: send it reliably as well
@@ -320,7 +260,8 @@ class TransportPlugin(Plugin):
 
     def _handle(self, msg: Message) -> None:
         self.addresses[msg.sender] = msg.reply
-        self._heard(msg.sender, msg.reply, msg.epoch, msg.body if msg.kind == "beacon" else None)
+        if msg.role != CLIENT_ROLE:  # a command-line client is not a peer
+            self._heard(msg.sender, msg.reply, msg.epoch, msg.body if msg.kind == "beacon" else None)
         kind, body = msg.kind, msg.body
         if kind == "task.add" and isinstance(body, Task):
             known = self._board.get(body.uid)
@@ -374,7 +315,7 @@ class TransportPlugin(Plugin):
         self.change(task.evolve(result=update.result), reports=[f"result from {msg.sender}"])
 
     def _heard(self, name: str, reply: tuple[str, int], epoch: int, beacon: Any) -> None:
-        if not name or name == self.agent_name or name.startswith("cli-"):
+        if not name or name == self.agent_name:
             return
         now = time.time()
         old = self.directory.get(name)
@@ -400,8 +341,8 @@ class TransportPlugin(Plugin):
     # -- periodic -------------------------------------------------------------------------
 
     def _beacon_and_liveness(self, now: float) -> None:
-        s: TransportSettings = self.settings
-        if not hasattr(self, "_next_beacon") or time.monotonic() >= self._next_beacon:
+        s = self.settings
+        if time.monotonic() >= self._next_beacon:
             self._next_beacon = time.monotonic() + s.beacon_period * 0.9
             beacon = Beacon(role=s.role, capabilities=s.capabilities)
             targets: set[Address] = set()
@@ -428,9 +369,9 @@ class TransportPlugin(Plugin):
         gone = [o for o in self.shared.removed if o.uid not in self.status_in]
         if not objs and not gone:
             return
-        s: TransportSettings = self.settings
+        s = self.settings
         peers = [p for p in self.directory.values() if p.up and p.address]
-        messages = [("status", obj, obj) for obj in objs]
+        messages: list[tuple[str, BBObject, BaseModel]] = [("status", obj, obj) for obj in objs]
         messages += [("status.remove", obj, Cancel(uid=obj.uid)) for obj in gone]
         for kind, obj, body in messages:
             roles = s.share_with.get(type(obj).__name__, s.share_with_roles)

@@ -1,6 +1,6 @@
 """A short-lived client of a running team (the `erni task`, `erni peers`, `erni watch` commands).
 
-The client is an endpoint of its own named `cli-<pid>`. It reaches the team through one
+The client is an endpoint of its own named `cli-<pid>`, in role `cli` (agents never list it as a peer). It reaches the team through one
 agent: the one given with `--via HOST:PORT`, or, without it, one found by listening for
 beacons on the discovery port.
 """
@@ -15,12 +15,13 @@ import sys
 import time
 from typing import Any
 
-from erni.transport.bridge import Beacon
-from erni.transport.endpoint import Address, Endpoint, team_key
+from erni.blackboard.errors import ErniError
+from erni.blackboard.schemas import Beacon
+from erni.transport.endpoint import CLIENT_ROLE, Address, Endpoint, team_key
 from erni.transport.wire import Message
 
 
-class ClientError(Exception):
+class ClientError(ErniError):
     """The team could not be reached or answered unexpectedly."""
 
 
@@ -42,7 +43,7 @@ class Client:
         self.delivered: set[str] = set()
         local = _local_ip_towards(via[0]) if via else "127.0.0.1"
         self.endpoint = Endpoint(f"cli-{os.getpid()}", listen=(local, 0), key=key, insecure=insecure,
-                                 senders=1, discovery_port=None if via else discovery_port)
+                                 senders=1, discovery_port=None if via else discovery_port, role=CLIENT_ROLE)
         self.endpoint.log.propagate = False  # a client prints its own errors
         self.endpoint.log.addHandler(logging.NullHandler())
         self.endpoint.on_message = self.inbox.put
@@ -104,6 +105,6 @@ def _local_ip_towards(host: str) -> str:
     try:
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
             s.connect((host, 9))
-            return s.getsockname()[0]
+            return str(s.getsockname()[0])
     except OSError:
         return "127.0.0.1"

@@ -26,6 +26,7 @@ from typing import Any
 from pydantic import BaseModel
 
 from erni.blackboard import new_uid
+from erni.blackboard.errors import ConfigError, NetworkError
 from erni.transport.wire import (
     DEFAULT_MAX_FRAME,
     UDP_MAX_FRAME,
@@ -42,6 +43,12 @@ from erni.transport.wire import (
 
 Address = tuple[str, int]
 
+CLIENT_ROLE = "cli"
+"""The role of a command-line client's endpoint (`erni task`, `erni watch` ...): never a peer."""
+
+InboundFilter = Callable[[str, str], bool]
+"""`(sender, role) -> bool`: whether a verified frame may be delivered (False: dropped and counted)."""
+
 
 def parse_address(text: str, default_port: int = 0) -> Address:
     """Parse `host:port` (or `host`, with a default port); raise ValueError naming the problem."""
@@ -49,13 +56,13 @@ def parse_address(text: str, default_port: int = 0) -> Address:
     if not sep:
         host, port = text.strip(), str(default_port)
     if not host:
-        raise ValueError(f"address {text!r}: expected HOST:PORT")
+        raise ConfigError(f"address {text!r}: expected HOST:PORT")
     try:
         number = int(port)
     except ValueError:
-        raise ValueError(f"address {text!r}: port {port!r} is not a number") from None
+        raise ConfigError(f"address {text!r}: port {port!r} is not a number") from None
     if not 0 <= number <= 65535:
-        raise ValueError(f"address {text!r}: port {number} is outside 0..65535")
+        raise ConfigError(f"address {text!r}: port {number} is outside 0..65535")
     return host, number
 
 
@@ -108,9 +115,10 @@ class Endpoint:
                  max_frame: int = DEFAULT_MAX_FRAME, ack_timeout: float = 1.0,
                  connect_timeout: float = 1.0, retry_base: float = 0.05, retry_max: float = 2.0,
                  ttl: float = 30.0, discovery_port: int | None = None, epoch: int | None = None,
-                 udp_loss: float = 0.0, seed: int | None = None, reachability: str | None = None):
+                 udp_loss: float = 0.0, seed: int | None = None, role: str = "",
+                 inbound_filter: InboundFilter | None = None):
         if not key and not insecure:
-            raise ValueError("no team key: give a key or run with insecure = true")
+            raise ConfigError("no team key: give a key or run with insecure = true")
         self.name = name
         self._listen = listen
         self._sign_key = key or b""
@@ -124,10 +132,11 @@ class Endpoint:
         self.retry_base, self.retry_max, self.ttl = retry_base, retry_max, ttl
         self.discovery_port = discovery_port
         if not 0.0 <= udp_loss <= 1.0:
-            raise ValueError(f"udp_loss: expected a probability in 0..1, got {udp_loss}")
+            raise ConfigError(f"udp_loss: expected a probability in 0..1, got {udp_loss}")
         self.udp_loss = udp_loss  # fault injection: drop this share of outgoing datagrams
         self._rng = random.Random(seed)
-        self.reach = Reachability(reachability, name) if reachability else None
+        self.role = role
+        self.inbound_filter = inbound_filter
         self.epoch = epoch if epoch is not None else time.time_ns()
         self._seq = itertools.count(1)
         self.log = logging.getLogger(f"erni.{name}.transport")
@@ -172,7 +181,7 @@ class Endpoint:
         except OSError as err:
             self._udp.close()
             self._tcp.close()
-            raise OSError(err.errno, f"cannot listen on {host}:{port}: {err.strerror}") from None
+            raise NetworkError(err.errno, f"cannot listen on {host}:{port}: {err.strerror}") from None
         self._tcp.listen(64)
         self._tcp.setblocking(False)
         self._udp.setblocking(False)
@@ -258,7 +267,7 @@ class Endpoint:
             self._cond.notify()
 
     def _frame(self, out: _Outgoing, max_frame: int | None = None) -> bytes:
-        env = Envelope.model_construct(v=1, sender=self.name, reply=self.address, epoch=self.epoch,
+        env = Envelope.model_construct(v=1, sender=self.name, role=self.role, reply=self.address, epoch=self.epoch,
                                        seq=next(self._seq), id=out.id, kind=out.kind, type=out.type,
                                        body=out.body)  # our own fields: no need to validate
         return encode(env, self._sign_key, max_frame or self.max_frame)
@@ -266,7 +275,7 @@ class Endpoint:
     def _send_loop(self) -> None:
         while True:
             with self._cond:
-                dest = None
+                dest: _Dest | None = None
                 while not self._stopping:
                     now = time.monotonic()
                     while self._delayed and self._delayed[0][0] <= now:
@@ -280,7 +289,7 @@ class Endpoint:
                         break
                     wait = self._delayed[0][0] - now if self._delayed else None
                     self._cond.wait(wait)
-                if self._stopping:
+                if self._stopping or dest is None:
                     return
             try:
                 self._service(dest)
@@ -385,9 +394,9 @@ class Endpoint:
             env = decode(raw, self._verify_key, self.max_frame)
             if env.sender == self.name and env.epoch == self.epoch:
                 return None  # our own beacon, heard back
-            if self.reach is not None and not self.reach.allows(env.sender):
+            if self.inbound_filter is not None and not self.inbound_filter(env.sender, env.role):
                 self.count("dropped.unreachable")
-                return None  # the simulated radio cannot carry this frame
+                return None  # e.g. a simulated radio that cannot carry this frame
             with self._replay_lock:
                 self._replay.check(env.sender, env.epoch, env.seq)
             body = body_of(env.type, env.body)
@@ -396,7 +405,7 @@ class Endpoint:
             self._drops.warning(err.reason, f"dropped a {channel} frame: {err}")
             return None
         self.count("received")
-        return Message(env.sender, tuple(env.reply), env.epoch, env.seq, env.id, env.kind, body)
+        return Message(env.sender, env.role, (env.reply[0], env.reply[1]), env.epoch, env.seq, env.id, env.kind, body)
 
     def _receive_loop(self) -> None:
         sel = selectors.DefaultSelector()
@@ -479,47 +488,6 @@ class Endpoint:
             self.on_message(msg)
         except Exception:
             self.log.exception("handling %s from %s failed", msg.kind, msg.sender)
-
-
-class Reachability:
-    """Which senders a simulated radio lets this agent hear, read from a JSON file.
-
-    The simulator rewrites the file (atomically, by rename) as robots move:
-    `{"reachable": {"robot1": ["robot2", "control"], ...}}`: for each agent, the agents it can
-    reach directly or over several hops. Agents absent from the map are not restricted.
-    """
-
-    def __init__(self, path: str, name: str, period: float = 0.05):
-        self.path, self.name, self.period = path, name, period
-        self._mtime = -1.0
-        self._checked = 0.0
-        self._allowed: set[str] | None = None
-        self._lock = threading.Lock()
-
-    def allows(self, sender: str) -> bool:
-        """Return True when `sender` can reach this agent now."""
-        now = time.monotonic()
-        with self._lock:
-            if now - self._checked >= self.period:
-                self._checked = now
-                self._reload()
-            allowed = self._allowed
-        return allowed is None or sender in allowed or sender.startswith("cli-")
-
-    def _reload(self) -> None:
-        import json
-
-        try:
-            mtime = os.stat(self.path).st_mtime
-            if mtime == self._mtime:
-                return
-            with open(self.path, encoding="utf-8") as f:
-                data = json.load(f)
-            reach = data.get("reachable", {})
-            self._mtime = mtime
-            self._allowed = set(reach[self.name]) if self.name in reach else None
-        except (OSError, ValueError, AttributeError, TypeError):
-            return  # keep the last good map
 
 
 def _close(sock: socket.socket | None) -> None:

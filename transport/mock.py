@@ -21,9 +21,10 @@ from typing import Any
 from pydantic import BaseModel
 
 from erni.blackboard import new_uid
+from erni.blackboard.errors import UsageError
+from erni.transport.endpoint import Address, InboundFilter
 from erni.transport.wire import Envelope, Message, SeenIds, body_of, decode, encode
 
-Address = tuple[str, int]
 _KEY = b"mock-network"
 
 
@@ -34,7 +35,7 @@ class MockNetwork:
                  duplicate: float = 0.0, retry: float = 0.02):
         for name, p in (("loss", loss), ("duplicate", duplicate)):
             if not 0.0 <= p <= 1.0:
-                raise ValueError(f"{name}: expected a probability in 0..1, got {p}")
+                raise UsageError(f"{name}: expected a probability in 0..1, got {p}")
         self.rng = random.Random(seed)
         self.loss, self.delay, self.jitter, self.duplicate, self.retry = loss, delay, jitter, duplicate, retry
         self._endpoints: dict[Address, MockEndpoint] = {}
@@ -108,9 +109,9 @@ class MockNetwork:
 
     def _transmit(self, src: MockEndpoint, addr: Address, frame: bytes, reliable: bool,
                   deadline: float, msg_id: str, kind: str, body: Any) -> None:
-        dest = self._endpoints.get(addr)
+        found = self._endpoints.get(addr)
         with self._cond:
-            if dest is None or not dest.running or not self.connected(src.name, dest.name):
+            if found is None or not found.running or not self.connected(src.name, found.name):
                 lost = True
                 self.counters["held" if reliable else "lost"] += 1
             else:
@@ -127,6 +128,8 @@ class MockNetwork:
                     self._later(self.retry, lambda: self._transmit(src, addr, frame, True, deadline,
                                                                     msg_id, kind, body))
             return
+        dest = found
+        assert dest is not None  # not lost: it was found
         self._later(latency, lambda: dest._receive(frame, reliable))
         if dup:
             self.counters["duplicated"] += 1
@@ -136,8 +139,9 @@ class MockNetwork:
 class MockEndpoint:
     """An endpoint of a `MockNetwork`, with the interface of `transport.Endpoint`."""
 
-    def __init__(self, net: MockNetwork, name: str, address: Address):
-        self.net, self.name, self.address = net, name, address
+    def __init__(self, net: MockNetwork, name: str, address: Address, role: str = ""):
+        self.net, self.name, self.address, self.role = net, name, address, role
+        self.inbound_filter: InboundFilter | None = None
         self.epoch = time.time_ns()
         self._seq = itertools.count(1)
         self._seen = SeenIds()
@@ -161,7 +165,7 @@ class MockEndpoint:
              msg_id: str | None = None, ttl: float | None = None) -> str:
         """Queue a message for `addr`; return its id."""
         msg_id = msg_id or new_uid()
-        env = Envelope(sender=self.name, reply=self.address, epoch=self.epoch, seq=next(self._seq),
+        env = Envelope(sender=self.name, role=self.role, reply=self.address, epoch=self.epoch, seq=next(self._seq),
                        id=msg_id, kind=kind,
                        type=type(body).__name__ if isinstance(body, BaseModel) else None,
                        body=body.model_dump(mode="json") if isinstance(body, BaseModel) else body)
@@ -177,7 +181,10 @@ class MockEndpoint:
         if reliable and not self._seen.first_time(env.sender, env.id):
             self.counters["duplicates"] = self.counters.get("duplicates", 0) + 1
             return
+        if self.inbound_filter is not None and not self.inbound_filter(env.sender, env.role):
+            self.counters["dropped.unreachable"] = self.counters.get("dropped.unreachable", 0) + 1
+            return
         self.net.counters["delivered"] += 1
-        msg = Message(env.sender, tuple(env.reply), env.epoch, env.seq, env.id, env.kind,
+        msg = Message(env.sender, env.role, (env.reply[0], env.reply[1]), env.epoch, env.seq, env.id, env.kind,
                       body_of(env.type, env.body))
         self.on_message(msg)

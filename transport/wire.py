@@ -57,6 +57,7 @@ class Envelope(BaseModel):
 
     v: int = VERSION
     sender: str = Field(min_length=1, max_length=64)
+    role: str = Field("", max_length=32, description="the sender's role: robot, control, cli (a client) ...")
     reply: tuple[str, int] = ("", 0)
     epoch: int = Field(ge=0)
     seq: int = Field(ge=0)
@@ -71,6 +72,7 @@ class Message:
     """A verified, decoded message: who sent it and its typed body."""
 
     sender: str
+    role: str
     reply: tuple[str, int]
     epoch: int
     seq: int

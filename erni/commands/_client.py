@@ -9,6 +9,7 @@ import time
 from collections.abc import Iterator
 from typing import Any
 
+from erni.blackboard.errors import UsageError
 from erni.transport.endpoint import Address, parse_address
 
 
@@ -28,7 +29,7 @@ def via_address(args: argparse.Namespace) -> Address | None:
         return None
     host, port = parse_address(args.via)
     if port == 0:
-        raise ValueError(f"--via {args.via!r}: expected HOST:PORT")
+        raise UsageError(f"--via {args.via!r}: expected HOST:PORT")
     return host, port
 
 
@@ -54,7 +55,7 @@ def watch_events(client: Any, addr: Address, end: float | None, lease: float = 1
 
     Yields None about every 0.1 s without an event, so callers can show progress.
     """
-    from erni.transport.bridge import WatchEvent, WatchRequest
+    from erni.blackboard.schemas import WatchEvent, WatchRequest
 
     renew = 0.0
     while not (end and time.monotonic() > end):

@@ -6,8 +6,10 @@ import argparse
 import signal
 import sys
 import threading
+from collections.abc import Callable
 from typing import Any
 
+from erni.blackboard.agent import Agent
 from erni.blackboard.config import build_agent, read_config
 from erni.blackboard.errors import ConfigError, ErniError
 from erni.logs import setup_logging
@@ -17,21 +19,31 @@ def register(sub: Any) -> None:
     """Add the `agent` sub-command."""
     p = sub.add_parser("agent", help="run one agent from a TOML config until Ctrl-C",
                        description="Run one agent (robot or control node) from a TOML config.")
+    add_arguments(p)
+    p.set_defaults(func=run)
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The arguments of `erni agent` (shared with launchers that run the same agent)."""
     p.add_argument("config", help="agent config file (TOML)")
     p.add_argument("--log-level", choices=["DEBUG", "INFO", "WARNING", "ERROR"],
                    help="override the config's [agent] log_level")
     p.add_argument("--check", action="store_true", help="validate the config and exit")
-    p.set_defaults(func=run)
 
 
-def run(args: argparse.Namespace) -> int:
-    """Load the config, start the agent, wait for a signal, stop cleanly."""
+def run(args: argparse.Namespace, prepare: Callable[[Agent], None] | None = None) -> int:
+    """Load the config, start the agent, wait for a signal, stop cleanly.
+
+    `prepare(agent)` runs after the agent is built and before it starts (a launcher's hook).
+    """
     try:
         config = read_config(args.config)
         agent = build_agent(config, args.config)
     except ConfigError as err:
         print(err, file=sys.stderr)
         return 2
+    if prepare is not None:
+        prepare(agent)
     if args.check:
         print(f"{args.config}: ok (agent {config.agent.name}, "
               f"{len(agent.plugins)} plugin(s): {', '.join(p.name for p in agent.plugins)})")

@@ -18,8 +18,8 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from erni.blackboard import Task
+from erni.blackboard.schemas import Cancel, PeerList, ResultUpdate
 from erni.commands._client import add_client_options, dumps, make_client, stamp
-from erni.transport.bridge import Cancel, PeerList, ResultUpdate
 
 HELP = """examples:  robot 1 go to 2 3 | robots 1 and 2 turn right 90 degrees | go forward 2 feet
            everyone stop | cancel | random walk | attention | go to sleep | quit"""

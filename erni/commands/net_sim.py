@@ -32,7 +32,8 @@ def _topology_line(net: Any) -> str:
 
 def run(args: argparse.Namespace) -> int:
     """Load the scenario, serve every node, apply moves; exit code 0, or 2 on bad input."""
-    from erni.sim.manet_scenario import ScenarioError, load_scenario
+    from erni.sim.manet_scenario import load_scenario
+    from erni.sim.scenario import ScenarioError
     from erni.sim.snmp_agent import ManetSnmpAgent
 
     try:

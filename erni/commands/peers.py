@@ -7,8 +7,8 @@ import sys
 import time
 from typing import Any
 
+from erni.blackboard.schemas import PeerList
 from erni.commands._client import add_client_options, dumps, open_client
-from erni.transport.bridge import PeerList
 
 
 def register(sub: Any) -> None:

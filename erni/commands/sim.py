@@ -112,7 +112,7 @@ def _print_team(team: Any, seconds: float) -> None:
 
 def _run_scenario(team: Any, scenario: Any) -> None:
     from erni.blackboard import Task
-    from erni.transport.bridge import ResultUpdate
+    from erni.blackboard.schemas import ResultUpdate
 
     client = team.client()
     start = time.monotonic()

@@ -9,8 +9,9 @@ import time
 from typing import Any
 
 from erni.blackboard import Task, TaskError
+from erni.blackboard.errors import UsageError
+from erni.blackboard.schemas import Cancel, ResultUpdate
 from erni.commands._client import add_client_options, dumps, open_client, stamp
-from erni.transport.bridge import Cancel, ResultUpdate
 
 
 def register(sub: Any) -> None:
@@ -34,7 +35,7 @@ def parse_params(items: list[str]) -> dict[str, Any]:
     for item in items:
         key, sep, value = item.partition("=")
         if not sep or not key:
-            raise ValueError(f"parameter {item!r}: expected KEY=VALUE")
+            raise UsageError(f"parameter {item!r}: expected KEY=VALUE")
         try:
             params[key] = json.loads(value)
         except ValueError:

@@ -7,8 +7,8 @@ import sys
 import time
 from typing import Any
 
+from erni.blackboard.schemas import WatchEvent
 from erni.commands._client import add_client_options, dumps, open_client, stamp, watch_events
-from erni.transport.bridge import WatchEvent
 
 LEASE = 10.0
 

@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import heapq
 import math
-from collections.abc import Hashable, Iterable, Mapping
+from collections.abc import Hashable, Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from typing import Any
+
+from erni.blackboard.errors import NotFoundError, UsageError
 
 Node = Hashable
 Adjacency = Mapping[Any, Mapping[Any, float]]
@@ -18,10 +20,10 @@ def from_edges(edges: Iterable[tuple[Any, Any] | tuple[Any, Any, float]],
     adj: dict[Any, dict[Any, float]] = {n: {} for n in nodes}
     for edge in edges:
         if len(edge) == 2:
-            a, b = edge  # type: ignore[misc]
+            a, b = edge
             w = 1.0
         else:
-            a, b, w = edge  # type: ignore[misc]
+            a, b, w = edge
         add_edge(adj, a, b, w)
     return adj
 
@@ -29,7 +31,7 @@ def from_edges(edges: Iterable[tuple[Any, Any] | tuple[Any, Any, float]],
 def add_edge(adj: dict[Any, dict[Any, float]], a: Any, b: Any, weight: float = 1.0) -> None:
     """Add the undirected edge a-b with `weight` (self-loops are ignored; weight must be >= 0)."""
     if weight < 0 or math.isnan(weight):
-        raise ValueError(f"edge {a!r}-{b!r}: weight must be >= 0, got {weight!r}")
+        raise UsageError(f"edge {a!r}-{b!r}: weight must be >= 0, got {weight!r}")
     adj.setdefault(a, {})
     adj.setdefault(b, {})
     if a == b:
@@ -80,7 +82,7 @@ def articulation_points(adj: Adjacency) -> set[Any]:
         counter += 1
         root_children = 0
         # iterative DFS: (node, parent, iterator over neighbours)
-        stack = [(root, None, iter(adj.get(root, ())))]
+        stack: list[tuple[Any, Any, Iterator[Any]]] = [(root, None, iter(adj.get(root, ())))]
         while stack:
             u, parent, it = stack[-1]
             advanced = False
@@ -112,7 +114,7 @@ def articulation_points(adj: Adjacency) -> set[Any]:
 def dijkstra(adj: Adjacency, source: Any) -> tuple[dict[Any, float], dict[Any, Any], dict[Any, int]]:
     """Return (cost, predecessor, hops) from `source`; equal costs prefer fewer hops."""
     if source not in adj:
-        raise KeyError(f"unknown source node {source!r}")
+        raise NotFoundError(f"unknown source node {source!r}")
     cost: dict[Any, float] = {source: 0.0}
     hops: dict[Any, int] = {source: 0}
     prev: dict[Any, Any] = {}
@@ -196,7 +198,7 @@ def rng_edges(positions: Mapping[Any, Point],
     kept: set[frozenset[Any]] = set()
     for a, b in candidates:
         if a not in positions or b not in positions:
-            raise KeyError(f"edge {a!r}-{b!r}: node without a position")
+            raise NotFoundError(f"edge {a!r}-{b!r}: node without a position")
         pa, pb = positions[a], positions[b]
         dab = _dist(pa, pb)
         blocked = False
@@ -216,7 +218,7 @@ def rng_neighbors(positions: Mapping[Any, Point], node: Any,
                   edges: Iterable[tuple[Any, Any]] | None = None) -> set[Any]:
     """Return the RNG neighbours of `node` (candidates restricted to `edges` if given)."""
     if node not in positions:
-        raise KeyError(f"unknown node {node!r}")
+        raise NotFoundError(f"unknown node {node!r}")
     if edges is None:
         cand = [(node, other) for other in positions if other != node]
     else:

@@ -19,6 +19,8 @@ import math
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from erni.blackboard.errors import UsageError
+
 P0 = 8.568          # W, standing (standby mode)
 PMOV_SLOPE = 11.55  # W per m/s
 PMOV_BASE = 14.838  # W, moving at (almost) zero speed
@@ -38,7 +40,7 @@ def energy(v: ArrayLike, dt: float) -> NDArray[np.float64] | np.float64:
     One robot's speeds (1-D) give a scalar, several robots' (N, T) an array (N,).
     """
     if not dt > 0:
-        raise ValueError(f"dt: expected a positive sampling period (s), got {dt!r}")
+        raise UsageError(f"dt: expected a positive sampling period (s), got {dt!r}")
     joules: NDArray[np.float64] | np.float64 = power(v).sum(axis=-1) * dt
     return joules
 
@@ -47,12 +49,12 @@ def track_energy(t: ArrayLike, x: ArrayLike, y: ArrayLike) -> tuple[float, float
     """Return (energy J, distance m) of one robot's track sampled at increasing times `t`."""
     ta, xa, ya = (np.asarray(a, dtype=float) for a in (t, x, y))
     if not (ta.ndim == xa.ndim == ya.ndim == 1 and len(ta) == len(xa) == len(ya)):
-        raise ValueError("track_energy: t, x and y must be 1-D arrays of the same length")
+        raise UsageError("track_energy: t, x and y must be 1-D arrays of the same length")
     if len(ta) < 2:
         return 0.0, 0.0
     dt = np.diff(ta)
     if np.any(dt < 0):
-        raise ValueError("track_energy: times must not decrease")
+        raise UsageError("track_energy: times must not decrease")
     step = np.hypot(np.diff(xa), np.diff(ya))
     with np.errstate(divide="ignore", invalid="ignore"):
         speed = np.where(dt > 0, step / np.where(dt > 0, dt, 1.0), 0.0)

@@ -28,6 +28,8 @@ from typing import TypedDict
 import numpy as np
 from numpy.typing import NDArray
 
+from erni.blackboard.errors import UsageError
+
 Block = tuple[float, float, float, float]
 
 
@@ -35,7 +37,7 @@ def check_block(block: Block) -> Block:
     """Return the block as floats, or raise ValueError if it is not xmin < xmax, ymin < ymax."""
     xmin, ymin, xmax, ymax = (float(v) for v in block)
     if not (xmin < xmax and ymin < ymax):
-        raise ValueError(f"block: expected xmin < xmax and ymin < ymax, got {block!r}")
+        raise UsageError(f"block: expected xmin < xmax and ymin < ymax, got {block!r}")
     return (xmin, ymin, xmax, ymax)
 
 
@@ -43,7 +45,7 @@ def split(territory: Block, nx: int, ny: int) -> list[Block]:
     """Cut a territory into nx * ny equal blocks, row by row from (xmin, ymin)."""
     xmin, ymin, xmax, ymax = check_block(territory)
     if nx < 1 or ny < 1:
-        raise ValueError(f"split: expected nx, ny >= 1, got {nx}, {ny}")
+        raise UsageError(f"split: expected nx, ny >= 1, got {nx}, {ny}")
     w, h = (xmax - xmin) / nx, (ymax - ymin) / ny
     return [(xmin + i * w, ymin + j * h, xmin + (i + 1) * w, ymin + (j + 1) * h)
             for j in range(ny) for i in range(nx)]
@@ -64,7 +66,7 @@ def sweep_path(block: Block, spacing: float = 1.0, margin: float = 0.3) -> NDArr
     """Return lawnmower waypoints (K, 2) covering the block, lanes `spacing` m apart, `margin` m inside."""
     xmin, ymin, xmax, ymax = check_block(block)
     if not spacing > 0:
-        raise ValueError(f"spacing: expected a positive lane spacing (m), got {spacing!r}")
+        raise UsageError(f"spacing: expected a positive lane spacing (m), got {spacing!r}")
     x0, x1 = xmin + margin, xmax - margin
     y0, y1 = ymin + margin, ymax - margin
     if x0 > x1:
@@ -93,7 +95,7 @@ def backoff(rank: int, base: float = 1.0) -> float:
     the next claimant then hears the first claim before its own back-off expires.
     """
     if rank < 0 or not base > 0:
-        raise ValueError(f"backoff: expected rank >= 0 and base > 0, got {rank}, {base}")
+        raise UsageError(f"backoff: expected rank >= 0 and base > 0, got {rank}, {base}")
     return base * (1 + rank)
 
 

@@ -29,6 +29,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from erni.blackboard.errors import UsageError
+
 EPS = 1e-9
 
 
@@ -54,11 +56,11 @@ class SpreadConfig:
     def __post_init__(self) -> None:
         for name in ("distance", "gain", "dt", "range", "mass", "inertia"):
             if not getattr(self, name) > 0:
-                raise ValueError(f"{name}: expected a positive number, got {getattr(self, name)!r}")
+                raise UsageError(f"{name}: expected a positive number, got {getattr(self, name)!r}")
         if self.neighbourhood not in ("physical", "delaunay"):
-            raise ValueError(f"neighbourhood: expected 'physical' or 'delaunay', got {self.neighbourhood!r}")
+            raise UsageError(f"neighbourhood: expected 'physical' or 'delaunay', got {self.neighbourhood!r}")
         if self.model not in ("holonomic", "nonholonomic"):
-            raise ValueError(f"model: expected 'holonomic' or 'nonholonomic', got {self.model!r}")
+            raise UsageError(f"model: expected 'holonomic' or 'nonholonomic', got {self.model!r}")
 
 
 def wrap(a: NDArray[np.float64] | float) -> NDArray[np.float64] | np.float64:
@@ -75,7 +77,7 @@ def neighbourhoods(pos: ArrayLike, mode: str = "physical", rng: float = 15.0) ->
         np.fill_diagonal(d, math.inf)
         return [np.flatnonzero(d[i] <= rng) for i in range(n)]
     if mode != "delaunay":
-        raise ValueError(f"mode: expected 'physical' or 'delaunay', got {mode!r}")
+        raise UsageError(f"mode: expected 'physical' or 'delaunay', got {mode!r}")
     if n < 2:
         return [np.zeros(0, dtype=int) for _ in range(n)]
     try:
@@ -182,7 +184,7 @@ def spread_step(pos: ArrayLike, theta: ArrayLike, vel: ArrayLike, omega: ArrayLi
     v = np.asarray(vel, dtype=float).reshape(-1, 2)
     om = np.asarray(omega, dtype=float)
     if not (len(p) == len(th) == len(v) == len(om)):
-        raise ValueError("spread_step: pos, theta, vel and omega must describe the same robots")
+        raise UsageError("spread_step: pos, theta, vel and omega must describe the same robots")
     nbrs = neighbourhoods(p, cfg.neighbourhood, cfg.range)
     # substeps keep the stiffest neighbourhood's spring stable: h * sqrt(n w / m) <= 0.5
     degree = max((len(x) for x in nbrs), default=0) + 2

@@ -20,6 +20,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from erni.blackboard.errors import UsageError
+
 
 @dataclass(frozen=True)
 class RelayMove:
@@ -50,9 +52,9 @@ def relay_step(pos: ArrayLike, source: ArrayLike, destination: ArrayLike, q_sour
     qd = 0.0 if q_destination is None else float(q_destination)
     for name, q in (("q_source", qs), ("q_destination", qd)):
         if not 0.0 <= q <= 1.0:
-            raise ValueError(f"{name}: expected a link quality in 0..1, got {q!r}")
+            raise UsageError(f"{name}: expected a link quality in 0..1, got {q!r}")
     if not tolerance > 0 or not 0 < min_step <= max_step:
-        raise ValueError("relay_step: expected tolerance > 0 and 0 < min_step <= max_step")
+        raise UsageError("relay_step: expected tolerance > 0 and 0 < min_step <= max_step")
     s, d = (np.asarray(a, dtype=float).reshape(2) for a in (source, destination))
     on_line, t = project(pos, s, d)
     length = float(np.hypot(*(d - s)))
@@ -69,7 +71,7 @@ def relay_step(pos: ArrayLike, source: ArrayLike, destination: ArrayLike, q_sour
 def chain_slots(source: ArrayLike, destination: ArrayLike, n: int) -> NDArray[np.float64]:
     """Return (n, 2) equally spaced relay positions strictly between S and D (k / (n + 1))."""
     if n < 0:
-        raise ValueError(f"n: expected a number of relays >= 0, got {n}")
+        raise UsageError(f"n: expected a number of relays >= 0, got {n}")
     s, d = (np.asarray(a, dtype=float).reshape(2) for a in (source, destination))
     frac = np.arange(1, n + 1) / (n + 1)
     slots: NDArray[np.float64] = s + frac[:, None] * (d - s)
@@ -80,6 +82,6 @@ def distance_quality(distance: ArrayLike, R: float, clean: float) -> NDArray[np.
     """A fading link model for tests and kinematic runs: 1 up to `clean` m, falling to 0 at R."""
     dist = np.asarray(distance, dtype=float)
     if not 0 <= clean < R:
-        raise ValueError("distance_quality: expected 0 <= clean < R")
+        raise UsageError("distance_quality: expected 0 <= clean < R")
     quality: NDArray[np.float64] = np.clip((R - dist) / (R - clean), 0.0, 1.0)
     return quality

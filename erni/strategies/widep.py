@@ -29,15 +29,17 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from erni.blackboard.errors import UsageError
+
 EPS = 1e-9
 
 
 def _points(positions: ArrayLike) -> NDArray[np.float64]:
     pos = np.asarray(positions, dtype=float)
     if pos.ndim != 2 or pos.shape[1] != 2:
-        raise ValueError(f"positions: expected an (N, 2) array of x, y in metres, got shape {pos.shape}")
+        raise UsageError(f"positions: expected an (N, 2) array of x, y in metres, got shape {pos.shape}")
     if not np.all(np.isfinite(pos)):
-        raise ValueError("positions: expected finite coordinates")
+        raise UsageError("positions: expected finite coordinates")
     return pos
 
 
@@ -46,7 +48,7 @@ def _circles(obstacles: ArrayLike | None) -> NDArray[np.float64]:
         return np.zeros((0, 3))
     obs = np.asarray(obstacles, dtype=float).reshape(-1, 3) if np.size(obstacles) else np.zeros((0, 3))
     if np.any(obs[:, 2] < 0):
-        raise ValueError("obstacles: expected circles (x, y, radius) with radius >= 0")
+        raise UsageError("obstacles: expected circles (x, y, radius) with radius >= 0")
     return obs
 
 
@@ -216,9 +218,9 @@ def widep_step(positions: ArrayLike, i: int, poi: ArrayLike, R: float, *, tolera
     """
     pos = _points(positions)
     if not 0 <= i < len(pos):
-        raise ValueError(f"i: expected a robot index in 0..{len(pos) - 1}, got {i}")
+        raise UsageError(f"i: expected a robot index in 0..{len(pos) - 1}, got {i}")
     if not R > 0:
-        raise ValueError(f"R: expected a positive communication range (m), got {R!r}")
+        raise UsageError(f"R: expected a positive communication range (m), got {R!r}")
     p = pos[i]
     goal = np.asarray(poi, dtype=float).reshape(2)
     limit = max_step(pos, i, R, witness_margin, slack)

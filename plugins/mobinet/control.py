@@ -17,6 +17,14 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field
 
 from erni.blackboard import NetInfo, Plugin, Pose, Position, Task, TaskState
+from erni.blackboard.tasks import (
+    LinkQualityParams,
+    NeighborListParams,
+    NodePositionParams,
+    PathCostParams,
+    TopologyParams,
+    WatchParams,
+)
 from erni.plugins.mobinet.resource import (
     NEIGHBORS,
     POSITIONS,
@@ -37,23 +45,26 @@ PARTS_OF = {
 }
 
 
-class MobiNetControl(Plugin):
+class MobiNetSettings(BaseModel):
+    """The `[plugin.settings]` of MobiNetControl."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    host: str = Field("127.0.0.1", description="SNMP agent of this robot's network subsystem")
+    port: int = Field(1161, ge=1, le=65535, description="its UDP port")
+    community: str = Field("public", description="SNMPv2c community (read and write)")
+    timeout: float = Field(0.5, gt=0, le=30, description="per-request timeout (s)")
+    retries: int = Field(0, ge=0, le=5, description="retries after a timeout")
+    max_repetitions: int = Field(100, ge=1, le=500, description="GETBULK rows per request")
+    cache_seconds: float = Field(5.0, ge=0, description="reuse a walk while the agent's change "
+                                 "counter stands still, at most this long (0: always walk)")
+    robot: str | None = Field(None, description="whose Pose to write (default: this agent)")
+    write_pose: bool = Field(True, description="write every Pose to the network subsystem")
+    log_interval: float = Field(10.0, gt=0, description="at most one warning per kind per interval (s)")
+
+
+class MobiNetControl(Plugin[MobiNetSettings]):
     """NetWatch performer: monitors the network subsystem over SNMP and reports on the blackboard."""
-
-    class Settings(BaseModel):
-        model_config = ConfigDict(extra="forbid")
-
-        host: str = Field("127.0.0.1", description="SNMP agent of this robot's network subsystem")
-        port: int = Field(1161, ge=1, le=65535, description="its UDP port")
-        community: str = Field("public", description="SNMPv2c community (read and write)")
-        timeout: float = Field(0.5, gt=0, le=30, description="per-request timeout (s)")
-        retries: int = Field(0, ge=0, le=5, description="retries after a timeout")
-        max_repetitions: int = Field(100, ge=1, le=500, description="GETBULK rows per request")
-        cache_seconds: float = Field(5.0, ge=0, description="reuse a walk while the agent's change "
-                                     "counter stands still, at most this long (0: always walk)")
-        robot: str | None = Field(None, description="whose Pose to write (default: this agent)")
-        write_pose: bool = Field(True, description="write every Pose to the network subsystem")
-        log_interval: float = Field(10.0, gt=0, description="at most one warning per kind per interval (s)")
 
     def make_source(self) -> NetworkSource:
         """The source the resource reads through (override to plug in another subsystem)."""
@@ -67,7 +78,7 @@ class MobiNetControl(Plugin):
         self.tasks = self.subscribe(
             Task, where=lambda t: t.verb == "NetWatch" and t.destination in (None, "", me))
         self.poses = self.subscribe(Pose, where=lambda p: p.robot == robot)
-        self._watching: dict[str, tuple[str, Any]] = {}   # task uid -> (preposition, params)
+        self._watching: dict[str, tuple[str, WatchParams]] = {}   # task uid -> (preposition, params)
         self._infos: dict[str, NetInfo] = {}               # task uid -> last published NetInfo
         self._polls: dict[str, int] = {}
         self.resource = MobiNetResource(self.make_source, self._delivered, self.log,
@@ -109,8 +120,9 @@ class MobiNetControl(Plugin):
     def _start(self, task: Task) -> None:
         if task.done or task.preposition not in PARTS_OF:
             return
-        rate = task.params.rate_hz
-        self._watching[task.uid] = (task.preposition, task.params)
+        params = task.params_as(WatchParams)
+        rate = params.rate_hz
+        self._watching[task.uid] = (task.preposition, params)
         self._polls[task.uid] = 0
         # no reading yet is no data: degraded until the first answer, so that nobody mistakes
         # the empty lists for "no neighbours"
@@ -155,43 +167,56 @@ class MobiNetControl(Plugin):
                                          confidence=0.0 if view is None else 1.0))
 
     def _answer(self, task: Task, info: NetInfo, view: NetView) -> tuple[NetInfo, dict[str, Any], str]:
-        kind, params = task.preposition, task.params
         fields: dict[str, Any] = {"degraded": False, "message": "", "stamp": time.time(),
                                   "node": view.node or self.agent_name}
         values: dict[str, Any] = {}
         message = ""
-        if kind == "neighbor_list":
-            nbrs = [n for n in view.neighbors if n.symmetric]
-            fields["neighbors"] = nbrs
-            values["neighbors"] = [n.name for n in nbrs]
-        elif kind == "link_quality":
-            nbrs = list(view.neighbors)
-            if params.neighbor is not None:
-                nbrs = [n for n in nbrs if params.neighbor in (n.name, n.address)]
-                if not nbrs:
-                    message = f"{params.neighbor} is not a neighbour"
-            fields["neighbors"] = nbrs
-            values["quality"] = {n.name: round(n.quality, 3) for n in nbrs}
-            values["best"] = max((n.quality for n in nbrs), default=0.0)
-        elif kind == "path_cost":
-            routes = list(view.routes)
-            if params.destination is not None:
-                routes = [r for r in routes if params.destination in (r.destination,
-                          next((a for a, n in view.names.items() if n == r.destination), ""))]
-                if not routes:
-                    message = f"no route to {params.destination}"
-            fields["routes"] = routes
-            values["routes"] = {r.destination: {"next_hop": r.next_hop, "hops": r.hops,
-                                                "cost": round(r.cost, 4)} for r in routes}
-        elif kind == "network_topology":
-            cuts = articulation_points(view.links)
-            nodes = {n for link in view.links for n in (link.a, link.b)} | {view.node}
-            fields["links"] = view.links
-            fields["articulation_points"] = cuts
-            values.update(nodes=len(nodes), links=len(view.links), articulation_points=cuts,
-                          articulation_point=view.node in cuts)
-        elif kind == "node_position":
-            fields["positions"] = view.positions
-            values["positions"] = {n: {"x": p.x, "y": p.y, "heading": p.heading}
-                                   for n, p in sorted(view.positions.items())}
+        match task.params:
+            case NeighborListParams():
+                nbrs = [n for n in view.neighbors if n.symmetric]
+                fields["neighbors"] = nbrs
+                values["neighbors"] = [n.name for n in nbrs]
+            case LinkQualityParams() as params:
+                message = self._link_quality(view, params, fields, values)
+            case PathCostParams() as params:
+                message = self._path_cost(view, params, fields, values)
+            case TopologyParams():
+                cuts = articulation_points(view.links)
+                nodes = {n for link in view.links for n in (link.a, link.b)} | {view.node}
+                fields["links"] = view.links
+                fields["articulation_points"] = cuts
+                values.update(nodes=len(nodes), links=len(view.links), articulation_points=cuts,
+                              articulation_point=view.node in cuts)
+            case NodePositionParams():
+                fields["positions"] = view.positions
+                values["positions"] = {n: {"x": p.x, "y": p.y, "heading": p.heading}
+                                       for n, p in sorted(view.positions.items())}
         return info.evolve(**fields), values, message
+
+    @staticmethod
+    def _link_quality(view: NetView, params: LinkQualityParams, fields: dict[str, Any],
+                      values: dict[str, Any]) -> str:
+        message = ""
+        nbrs = list(view.neighbors)
+        if params.neighbor is not None:
+            nbrs = [n for n in nbrs if params.neighbor in (n.name, n.address)]
+            if not nbrs:
+                message = f"{params.neighbor} is not a neighbour"
+        fields["neighbors"] = nbrs
+        values["quality"] = {n.name: round(n.quality, 3) for n in nbrs}
+        values["best"] = max((n.quality for n in nbrs), default=0.0)
+        return message
+
+    @staticmethod
+    def _path_cost(view: NetView, params: PathCostParams, fields: dict[str, Any], values: dict[str, Any]) -> str:
+        message = ""
+        routes = list(view.routes)
+        if params.destination is not None:
+            routes = [r for r in routes if params.destination in (r.destination,
+                      next((a for a, n in view.names.items() if n == r.destination), ""))]
+            if not routes:
+                message = f"no route to {params.destination}"
+        fields["routes"] = routes
+        values["routes"] = {r.destination: {"next_hop": r.next_hop, "hops": r.hops,
+                                            "cost": round(r.cost, 4)} for r in routes}
+        return message

@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 from typing import Any, Protocol, runtime_checkable
 
 from erni.blackboard import Link, Neighbor, Position, Route
+from erni.blackboard.errors import ErniError
 
 # what a read may ask for
 NEIGHBORS = "neighbors"
@@ -29,7 +30,7 @@ POSITIONS = "positions"
 PARTS = frozenset({NEIGHBORS, TOPOLOGY, ROUTES, POSITIONS})
 
 
-class SourceError(Exception):
+class SourceError(ErniError):
     """The network subsystem could not be read or written; the message says why, in one line."""
 
 

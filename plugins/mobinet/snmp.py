@@ -16,7 +16,7 @@ import ipaddress
 import math
 import time
 from collections.abc import Iterable
-from typing import Any
+from typing import Any, cast
 
 from pyasn1.type import univ
 from pysnmp.hlapi.v3arch.asyncio import (
@@ -284,7 +284,7 @@ class SnmpSource:
         topo_v, state_v = (
             _int(oid, ident[oid], "Counter32") if oid in ident else None
             for oid in (ERNI_TOPOLOGY_VERSION, ERNI_STATE_VERSION))
-        node_cols = [ERNI_NODES_NAME, ERNI_NODES_ADDRESS]
+        node_cols: list[OID] = [ERNI_NODES_NAME, ERNI_NODES_ADDRESS]
         if POSITIONS in parts:
             node_cols += [ERNI_NODES_X, ERNI_NODES_Y, ERNI_NODES_HEADING]
         wanted: dict[str, tuple[list[OID], int | None]] = {
@@ -305,7 +305,7 @@ class SnmpSource:
         entry = self._cache.get("view")
         if (None not in whole and entry is not None and entry[0] == whole
                 and now - entry[1] < self.cache_seconds):
-            return entry[2]  # nothing changed: the last decoded view stands
+            return cast(NetView, entry[2])  # nothing changed: the last decoded view stands
         got: dict[str, Any] = {}
         walks: dict[str, Any] = {}
         oldest = now  # the view is as old as the oldest walk it is made of
@@ -324,8 +324,8 @@ class SnmpSource:
                 if isinstance(value, SourceError):
                     raise value
                 raise SourceError(f"SNMP agent {self.where}: {type(value).__name__}: {value}") from value
-        for job, cols in zip(walks, done):
-            got[job] = cols
+        for job, walked in zip(walks, done):
+            got[job] = walked
             self._cache[job] = ((view.node, wanted[job][1]), now, cols)
         by_index = self._decode_nodes(view, got[next(iter(wanted))], POSITIONS in parts)
         if NEIGHBORS in parts:
@@ -368,7 +368,7 @@ class SnmpSource:
     def _name(self, view: NetView, address: str) -> str:
         return view.names.get(address, address)
 
-    def _decode_nodes(self, view: NetView, cols: dict[OID, dict],
+    def _decode_nodes(self, view: NetView, cols: dict[OID, dict[OID, Any]],
                       positions: bool) -> dict[OID, str]:
         names = cols[ERNI_NODES_NAME]
         by_index: dict[OID, str] = {}
@@ -391,7 +391,7 @@ class SnmpSource:
             view.positions[name] = Position(x=x, y=y, heading=h)
         return by_index
 
-    def _decode_neighbors(self, view: NetView, cols: dict[OID, dict]) -> None:
+    def _decode_neighbors(self, view: NetView, cols: dict[OID, dict[OID, Any]]) -> None:
         sym = cols[NHDP_NIB_SYMMETRIC]
         metric = {idx[-1:]: v for idx, v in cols[OLSRV2_LINK_IN_METRIC].items()}
         quality = cols[ERNI_LINK_QUALITY]
@@ -429,7 +429,7 @@ class SnmpSource:
                 seen[key] = Link(a=min(a, b), b=max(a, b), quality=_quality_of_metric(m), metric=m)
         view.links = list(seen.values())
 
-    def _decode_topology(self, view: NetView, cols: dict[OID, dict]) -> None:
+    def _decode_topology(self, view: NetView, cols: dict[OID, dict[OID, Any]]) -> None:
         froms, tos, metrics = (cols[OLSRV2_TOPO_FROM], cols[OLSRV2_TOPO_TO],
                                cols[OLSRV2_TOPO_METRIC])
         seen: dict[frozenset[str], Link] = {}
@@ -444,7 +444,7 @@ class SnmpSource:
                 seen[key] = Link(a=min(a, b), b=max(a, b), quality=_quality_of_metric(m), metric=m)
         view.links = list(seen.values())
 
-    def _decode_routes(self, view: NetView, cols: dict[OID, dict]) -> None:
+    def _decode_routes(self, view: NetView, cols: dict[OID, dict[OID, Any]]) -> None:
         hops, dists, metrics = (cols[OLSRV2_ROUTE_NEXT_HOP], cols[OLSRV2_ROUTE_DIST],
                                 cols[OLSRV2_ROUTE_METRIC])
         for idx, val in sorted(hops.items()):

@@ -12,6 +12,8 @@ import enum
 import struct
 from dataclasses import dataclass, field
 
+from erni.blackboard.errors import ErniError
+
 HEADER = b"\xfa\xfb"
 MAX_COUNT = 249  # the count byte: ID + args + checksum; real robots stay below ~200
 
@@ -60,7 +62,7 @@ SIP_MOVING = 0x33
 CONFIG_REPLY = 0x20
 
 
-class ProtocolError(ValueError):
+class ProtocolError(ErniError, ValueError):
     """A packet or argument does not fit the ARCOS wire format."""
 
 
@@ -283,7 +285,9 @@ def parse_sip(body: bytes) -> RawSip:
         num, rng = struct.unpack_from("<BH", body, i)
         sonar[num] = rng
         i += 3
-    sip = RawSip(body[0] == SIP_MOVING, *fields, sonar=sonar)
+    xpos, ypos, thpos, lvel, rvel, battery, stall_bumpers, control, flags, compass = fields
+    sip = RawSip(body[0] == SIP_MOVING, xpos, ypos, thpos, lvel, rvel, battery, stall_bumpers, control, flags,
+                 compass, sonar=sonar)
     for name, fmt in _TAIL:
         size = struct.calcsize(fmt)
         if len(body) < i + size:

@@ -143,7 +143,7 @@ class Behaviour:
             self.version += 1
 
     @staticmethod
-    def _rounded(values: dict[str, Any]) -> tuple:
+    def _rounded(values: dict[str, Any]) -> tuple[tuple[str, Any], ...]:
         return tuple(sorted((k, round(v, 2) if isinstance(v, float) else v) for k, v in values.items()))
 
     def succeed(self, message: str = "done", **values: Any) -> None:
@@ -473,7 +473,7 @@ class BehaviourStack:
 
         index, command = first_from(0)
         winner = order[index] if index is not None else None
-        if winner is not None:
+        if winner is not None and index is not None:
             winner.drove(base)
             below = cache.get(index + 1)
             if isinstance(winner, AvoidObstacles) and below and below[0] is not None:

@@ -11,13 +11,16 @@ from __future__ import annotations
 
 import logging
 import math
+import pkgutil
 import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from importlib.metadata import entry_points
 
 import serial
 
+from erni.blackboard.errors import NetworkError
 from erni.plugins.motion import arcos
 from erni.plugins.motion.arcos import Cmd
 from erni.plugins.motion.robots import RobotModel
@@ -25,7 +28,37 @@ from erni.plugins.motion.robots import RobotModel
 log = logging.getLogger("erni.motion.driver")
 
 
-class LinkError(ConnectionError):
+URL_HANDLERS = "erni.serial_handlers"
+"""Entry point group: NAME = package of pyserial handlers for the URL scheme NAME:// (the simulator
+declares `simrobot`); the driver adds each package to pyserial's search list before it opens a URL."""
+
+
+def register_url_handlers() -> list[str]:
+    """Add the URL handler packages installed distributions declare to pyserial; return the schemes."""
+    schemes = []
+    for ep in entry_points(group=URL_HANDLERS):
+        schemes.append(ep.name)
+        if ep.value not in serial.protocol_handler_packages:
+            serial.protocol_handler_packages.append(ep.value)
+    return schemes
+
+
+def known_url_schemes() -> list[str]:
+    """The URL schemes a driver can open: pyserial's own (socket://, rfc2217://, loop:// ...) and
+    those registered through the `erni.serial_handlers` entry points."""
+    import serial.urlhandler
+
+    builtin = [m.name.removeprefix("protocol_") for m in pkgutil.iter_modules(serial.urlhandler.__path__)
+               if m.name.startswith("protocol_")]
+    return sorted(set(builtin) | set(register_url_handlers()))
+
+
+def _sync_reply(sync: int) -> Callable[[bytes], bool]:
+    """Whether a packet body is the reply to SYNC`sync` (SYNC0/1 echo one byte; SYNC2 names the robot)."""
+    return lambda body: body[0] == sync and (sync == 2 or len(body) == 1)
+
+
+class LinkError(NetworkError, ConnectionError):
     """The robot could not be reached or did not complete the ARCOS handshake."""
 
 
@@ -330,6 +363,7 @@ class ArcosDriver:
                 self._cond.notify_all()
 
     def _connect(self) -> bool:
+        register_url_handlers()
         try:
             port = serial.serial_for_url(self.url, baudrate=self.baudrate, timeout=0.02,
                                          write_timeout=1.0)
@@ -371,14 +405,15 @@ class ArcosDriver:
                 self._stop.wait(0.05)
             port.reset_input_buffer()
             self._reader.reset()
-            reply = b""
+            reply: bytes | None = None
             for sync in (0, 1, 2):
                 self._write(arcos.encode_command(sync), during_handshake=True)
-                reply = self._await(port, lambda b, s=sync: b[0] == s and (s == 2 or len(b) == 1))
+                reply = self._await(port, _sync_reply(sync))
                 if reply is None:
                     self.last_error = f"no SYNC{sync} reply (attempt {attempt + 1}/{self.sync_attempts})"
                     break
             else:
+                assert reply is not None  # the loop ran to its end: SYNC2 answered
                 return RobotInfo(*arcos.parse_sync2(reply))
         return None
 

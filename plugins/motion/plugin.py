@@ -15,11 +15,13 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from erni.blackboard import AllocationResult, ConfigError, Plugin, Pose, Task, TaskState, TransactionError
-from erni.plugins.motion.driver import ArcosDriver, RobotState
+from erni.plugins.motion.driver import ArcosDriver, RobotState, known_url_schemes
 from erni.plugins.motion.resource import RobotMotionResource, TaskUpdate
 from erni.plugins.motion.robots import RobotModel, resolve_model
 
-_URL = re.compile(r"^(sim|[a-zA-Z][a-zA-Z0-9+.-]*://.*|/dev/\S+|COM\d+|/\S+)$")
+_URL = re.compile(r"^([a-zA-Z][a-zA-Z0-9+.-]*://.*|/dev/\S+|COM\d+|/\S+)$")
+SIMULATORS = ("simrobot", "socket")
+"""URL schemes of simulators (the in-process one, MobileSim/AMRISim on TCP): `teleport = auto` moves them."""
 
 
 class MotionSettings(BaseModel):
@@ -27,7 +29,8 @@ class MotionSettings(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    url: str = Field("sim", description="serial device, pyserial URL (socket://host:8101) or 'sim'")
+    url: str = Field("simrobot://", description="serial device (/dev/ttyUSB0) or pyserial URL: "
+                     "socket://host:8101 (MobileSim/AMRISim), simrobot:// (a simulated robot in this process)")
     model: str | dict[str, Any] = Field("pioneer3", description="'pioneer3', 'amigobot' or a table of factors")
     baudrate: int = Field(9600, gt=0)
     rate_hz: float = Field(20.0, gt=0, le=200, description="behaviour stack rate (Hz)")
@@ -43,16 +46,18 @@ class MotionSettings(BaseModel):
     pulse_interval: float = Field(0.5, gt=0, description="PULSE when idle this long (s)")
     teleport: Literal["auto", "sim", "odometry"] = Field(
         "auto", description="sim: SIM_SET_POSE moves the robot; odometry: re-localise; auto: sim for simulators")
-    sim_world: str | None = Field(None, description="world TOML for url = 'sim'")
-    sim_sip_period: float = Field(0.1, gt=0, description="SIP period of the in-process simulator (s)")
 
     @field_validator("url")
     @classmethod
     def _check_url(cls, url: str) -> str:
         url = url.strip()
         if not _URL.match(url):
-            raise ValueError(f"expected 'sim', a serial device (/dev/ttyUSB0) or a pyserial URL "
-                             f"(socket://host:8101), got {url!r}")
+            raise ValueError(f"expected a serial device (/dev/ttyUSB0) or a pyserial URL (socket://host:8101, "
+                             f"simrobot://), got {url!r}")
+        scheme = url.split("://", 1)[0].lower() if "://" in url else None
+        if scheme is not None and scheme not in (known := known_url_schemes()):
+            raise ValueError(f"unknown URL scheme {scheme + '://'!r} in {url!r}; expected one of "
+                             f"{', '.join(s + '://' for s in known)}")
         return url
 
     @field_validator("model")
@@ -81,22 +86,18 @@ RELATIVE = frozenset({"forward", "backward", "turn", "say"})
 """Prepositions whose effect depends on where the robot was when they started."""
 
 
-class RobotMotionControl(Plugin):
+class RobotMotionControl(Plugin[MotionSettings]):
     """Performs BotMotion tasks with a behaviour stack on an ARCOS robot; publishes its Pose."""
 
-    Settings = MotionSettings
 
     def setup(self) -> None:
-        s: MotionSettings = self.settings
+        s = self.settings
         me = self.agent_name
         self.tasks = self.subscribe(Task, where=lambda t: t.verb == "BotMotion" and t.destination in (None, "", me))
-        self.sim_host: Any = None
         url = s.url
         teleport = s.teleport
-        if url == "sim":
-            url = self._start_sim(s)
         if teleport == "auto":
-            teleport = "sim" if s.url == "sim" or url.startswith("socket://") else "odometry"
+            teleport = "sim" if url.split("://", 1)[0].lower() in SIMULATORS else "odometry"
         driver = ArcosDriver(url, s.robot_model(), name=me, baudrate=s.baudrate, sync_timeout=s.sync_timeout,
                              sync_attempts=s.sync_attempts, pulse_interval=s.pulse_interval,
                              link_timeout=s.link_timeout)
@@ -107,21 +108,6 @@ class RobotMotionControl(Plugin):
             stall_timeout=s.stall_timeout, link_grace=s.link_grace, default_timeout=s.default_timeout,
             teleport=teleport)
         self.resource.start()
-
-    def _start_sim(self, s: MotionSettings) -> str:
-        from erni.sim.robot import SimRobotConfig
-        from erni.sim.robot_host import RobotHost
-        from erni.sim.world import World
-
-        world = World.load(s.sim_world) if s.sim_world else World()
-        m = s.robot_model()
-        cfg = SimRobotConfig(name=self.agent_name, sip_period=s.sim_sip_period,
-                             dist_conv=m.dist_conv, vel_conv=m.vel_conv, radius=m.radius,
-                             axle=m.axle, sonar_angles=tuple(m.sonar_angles))
-        self.sim_host = RobotHost(world)
-        self.sim_host.add_robot(cfg)
-        self.sim_host.start()
-        return str(self.sim_host.url(0))
 
     def execute(self) -> None:
         for task in self.tasks.added:
@@ -139,8 +125,6 @@ class RobotMotionControl(Plugin):
 
     def teardown(self) -> None:
         self.resource.close()
-        if self.sim_host is not None:
-            self.sim_host.stop()
 
     def _publish(self, updates: list[TaskUpdate], state: RobotState | None) -> None:
         """Publish outcome changes and the pose, each in a short transaction (poll thread)."""

@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from erni.blackboard import Task, TaskState
+from erni.blackboard.errors import UsageError
 from erni.blackboard.tasks import AvoidParams
 from erni.plugins.motion.behaviours import (
     AvoidObstacles,
@@ -62,9 +63,9 @@ class RobotMotionResource:
                  default_timeout: float | None = None, teleport: str = "sim", resend: float = 0.5,
                  clock: Callable[[], float] = time.monotonic) -> None:
         if rate_hz <= 0 or pose_rate_hz <= 0:
-            raise ValueError(f"rate_hz and pose_rate_hz must be > 0, got {rate_hz} and {pose_rate_hz}")
+            raise UsageError(f"rate_hz and pose_rate_hz must be > 0, got {rate_hz} and {pose_rate_hz}")
         if teleport not in ("sim", "odometry"):
-            raise ValueError(f"teleport: expected 'sim' or 'odometry', got {teleport!r}")
+            raise UsageError(f"teleport: expected 'sim' or 'odometry', got {teleport!r}")
         self.driver = driver
         self.publish = publish
         self.name = name
@@ -249,7 +250,7 @@ class RobotMotionResource:
             self._record(b)
 
     def _drive(self, cmd: Command, now: float) -> None:
-        wanted = (round(cmd.v, 3), round(cmd.w))
+        wanted = (round(cmd.v, 3), float(round(cmd.w)))
         if wanted != self._last_sent or now - self._last_sent_at > self.resend:
             if self.driver.vel(cmd.v) and self.driver.rvel(cmd.w):
                 self._last_sent, self._last_sent_at = wanted, now

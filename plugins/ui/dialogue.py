@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from erni.blackboard import Task
-from erni.blackboard.errors import TaskError
+from erni.blackboard.errors import ConfigError, TaskError
 from erni.blackboard.tasks import PREPOSITIONS
 from erni.plugins.ui.grammar import STRATEGY_VERB, Command, Refusal, parse
 
@@ -30,7 +30,7 @@ class Naming:
 
     def __init__(self, pattern: str = "robot{n}") -> None:
         if pattern.count("{n}") != 1:
-            raise ValueError(f"robot naming {pattern!r}: expected a pattern with one {{n}}, e.g. 'robot{{n}}'")
+            raise ConfigError(f"robot naming {pattern!r}: expected a pattern with one {{n}}, e.g. 'robot{{n}}'")
         head, tail = pattern.split("{n}")
         self.pattern = pattern
         self._re = re.compile(re.escape(head) + r"(\d+)" + re.escape(tail))

@@ -14,6 +14,7 @@ import re
 from dataclasses import dataclass, field
 from typing import Any
 
+from erni.blackboard.errors import ErniError
 from erni.blackboard.tasks import PREPOSITIONS
 
 # Actions the grammar always knows; deployment strategies come from the task language's
@@ -43,7 +44,7 @@ SLEEP = ("go to sleep", "sleep", "stand by")
 _TOKEN = re.compile(r"\[unk\]|-?\d+(?:\.\d+)?|-?\.\d+|[a-z]+")
 
 
-class Refusal(Exception):
+class Refusal(ErniError):
     """An utterance that asks for nothing the team can do; the message is what to say back."""
 
 

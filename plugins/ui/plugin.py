@@ -21,14 +21,14 @@ from pydantic import BaseModel, ConfigDict, Field, SecretStr, field_validator
 
 from erni import netgraph
 from erni.blackboard import NetInfo, Plugin, Pose, Task
+from erni.blackboard.schemas import Peer, load_floorplan
 from erni.plugins.ui.dialogue import Dialogue, Naming, Reply, tasks_for
-from erni.plugins.ui.floorplan import load_floorplan
 from erni.plugins.ui.grammar import STANDARD_ACTIONS, Refusal, strategies, vocabulary
 from erni.plugins.ui.protocol import CancelTaskMsg, CommandMsg, MicMsg, SayMsg, SelectMsg
 from erni.plugins.ui.server import WebServer
 from erni.plugins.ui.speech import Listener, Microphone, Recognizer, SpeechError, model_path, wav_frames
 from erni.plugins.ui.voice import Speaker
-from erni.transport import Peer, parse_address
+from erni.transport import parse_address
 
 _LOOPBACK_NAMES = {"localhost", "ip6-localhost"}
 
@@ -86,13 +86,12 @@ def is_loopback(host: str) -> bool:
         return False
 
 
-class UIPlugin(Plugin):
+class UIPlugin(Plugin[UISettings]):
     """The control node's GUI and speech front end."""
 
-    Settings = UISettings
 
     def setup(self) -> None:
-        s: UISettings = self.settings
+        s = self.settings
         me = self.agent_name
         self.naming = Naming(s.robot_names)
         self.typed = Dialogue(self.naming, verb=s.verb, source=me, listening=True)
@@ -109,7 +108,7 @@ class UIPlugin(Plugin):
         self._dirty = True
         self._threads: list[Any] = []
         self._stopping = threading.Event()
-        self.floorplan = load_floorplan(s.floorplan) if s.floorplan else None
+        self.floorplan = load_floorplan(s.floorplan).model_dump(mode="json") if s.floorplan else None
         host, port = parse_address(s.listen)
         token = s.token.get_secret_value() if s.token else None
         if token is None and not is_loopback(host):
@@ -225,7 +224,7 @@ class UIPlugin(Plugin):
 
     def picture(self) -> dict[str, Any]:
         """Return what the page shows: robots, links, metrics, tasks, log, settings."""
-        s: UISettings = self.settings
+        s = self.settings
         poses = {p.robot: p for p in self.poses}
         peers = {p.name: p for p in self.peers}
         names = self.robots()
@@ -233,7 +232,8 @@ class UIPlugin(Plugin):
         for t in sorted(self.tasks, key=lambda t: t.created):
             if not t.done and t.destination:
                 running[t.destination] = t
-        robots = []
+        robots: list[dict[str, Any]] = []
+        up_names: set[str] = set()
         for name in names:
             pose, peer = poses.get(name), peers.get(name)
             reasons = []
@@ -247,6 +247,8 @@ class UIPlugin(Plugin):
                 if pose.bumpers:
                     reasons.append("bumper")
             up = peer.up if peer is not None else pose is not None
+            if up:
+                up_names.add(name)
             task = running.get(name)
             robots.append({
                 "name": name, "number": number if (number := self.naming.number(name)) is not None else name[:2],
@@ -258,7 +260,7 @@ class UIPlugin(Plugin):
                 "address": peer.address if peer else "", "last_heard": peer.last_heard if peer else None,
                 "task": short(task) if task else "",
             })
-        links = self._links(set(names), {r["name"] for r in robots if r["up"]})
+        links = self._links(set(names), up_names)
         rows = [_task_row(t) for t in self.tasks] + list(self.retired)
         rows.sort(key=lambda r: r["created"], reverse=True)
         return {

@@ -12,6 +12,8 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
 
+from erni.blackboard.errors import ErniError, describe_validation
+
 AgentName = Annotated[str, Field(pattern=r"^[A-Za-z0-9_.-]{1,64}$")]
 Number = Annotated[float, Field(allow_inf_nan=False)]
 
@@ -72,7 +74,7 @@ _ADAPTER: TypeAdapter[Any] = TypeAdapter(PageMessage)
 TYPES = ("command", "say", "select", "cancel_task", "mic", "ping")
 
 
-class BadMessage(ValueError):
+class BadMessage(ErniError, ValueError):
     """A page message that is not valid JSON or not one of the known messages."""
 
 
@@ -88,9 +90,4 @@ def parse_message(text: str | bytes) -> Any:
     try:
         return _ADAPTER.validate_python(data)
     except ValidationError as err:
-        problems = []
-        for e in err.errors():
-            loc = ".".join(str(p) for p in e["loc"][1:]) or "message"
-            got = repr(e.get("input"))
-            problems.append(f"{loc}: {e['msg']} (got {got[:60]})")
-        raise BadMessage(f"{data['type']}: " + "; ".join(problems)) from None
+        raise BadMessage(describe_validation(err, str(data["type"]), skip=1)) from None

@@ -21,6 +21,7 @@ from typing import Any
 
 from aiohttp import WSMsgType, web
 
+from erni.blackboard.errors import NetworkError
 from erni.plugins.ui.protocol import BadMessage, PingMsg, parse_message
 
 STATIC = Path(__file__).with_name("static")
@@ -72,7 +73,7 @@ class WebServer:
         self._ready.wait(timeout=15)
         if self._error is not None:
             self._thread.join(timeout=5)
-            raise OSError(f"cannot serve the GUI on {self.host}:{self.port}: {self._error}")
+            raise NetworkError(f"cannot serve the GUI on {self.host}:{self.port}: {self._error}")
         return self
 
     def stop(self) -> None:
@@ -151,7 +152,8 @@ class WebServer:
             if not hmac.compare_digest(given.encode(), self.token.encode()):
                 return web.Response(status=403, text="missing or wrong token: open the URL the control "
                                     "node printed (it ends with ?token=...)\n")
-        return await handler(request)
+        response: web.StreamResponse = await handler(request)
+        return response
 
     async def _index(self, request: web.Request) -> web.StreamResponse:
         body, kind = self.assets["index.html"]

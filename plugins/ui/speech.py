@@ -23,6 +23,8 @@ from typing import Any
 
 import numpy as np
 
+from erni.blackboard.errors import ErniError
+
 RATE = 16000
 FRAME_SAMPLES = 1600  # 100 ms
 MODELS_URL = "https://alphacephei.com/vosk/models"
@@ -30,7 +32,7 @@ MODELS_URL = "https://alphacephei.com/vosk/models"
 log = logging.getLogger("erni.ui.speech")
 
 
-class SpeechError(Exception):
+class SpeechError(ErniError):
     """Speech input cannot work: no model, unreadable audio, no device; the message says which."""
 
 

@@ -16,6 +16,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from erni.sim.scenario import ScenarioError
+
 if TYPE_CHECKING:
     from erni.sim.scenario import Scenario
 
@@ -100,7 +102,7 @@ class Result:
 
         fig = Figure(figsize=(12, 7.5), dpi=110, layout="constrained")
         if self.draw is None:
-            raise ValueError(f"{self.name}: this experiment draws no figure")
+            raise ScenarioError(f"{self.name}: this experiment draws no figure")
         self.draw(fig)
         fig.savefig(path)
 
@@ -134,5 +136,5 @@ def run(name: str, scenario: Scenario, progress: Progress | None = None, **optio
     exp = EXPERIMENTS[name]
     mode = options.get("mode")
     if mode is not None and mode not in (exp.modes or (exp.mode,)):
-        raise ValueError(f"{name} runs in {' or '.join(exp.modes or (exp.mode,))} mode, not {mode!r}")
+        raise ScenarioError(f"{name} runs in {' or '.join(exp.modes or (exp.mode,))} mode, not {mode!r}")
     return exp.runner()(scenario, progress or (lambda *a: None), experiment=exp, **options)

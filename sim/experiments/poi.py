@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 from erni.sim import kinematic
 from erni.sim.experiments import Experiment, Progress, Result
 from erni.sim.experiments.plots import color, draw_world, map_axes, range_circle, time_axes
-from erni.sim.scenario import Scenario
+from erni.sim.scenario import Scenario, ScenarioError
 from erni.strategies import energy as paper_energy
 from erni.strategies import widep
 
@@ -28,7 +28,7 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode:
         **_: Any) -> Result:
     """Cover the PoI (kinematic WiDep rounds, or real agents given `Deploy widep`); return figure and metrics."""
     if not scenario.poi:
-        raise ValueError(f"{scenario.name}: the PoI experiment needs a [[poi]] in the scenario")
+        raise ScenarioError(f"{scenario.name}: the PoI experiment needs a [[poi]] in the scenario")
     s = scenario.strategy
     poi = np.array([scenario.poi[0].x, scenario.poi[0].y])
     R = float(s.get("range", scenario.radio.comm_range))
@@ -124,9 +124,9 @@ def _agents(scenario: Scenario, progress: Progress, poi: NDArray[np.float64], to
     from erni.sim.team import Team, plugin_available
 
     if not plugin_available("erni.plugins.mission", "MissionControl"):
-        raise ValueError("agents mode needs the mission plugin (erni.plugins.mission.MissionControl)")
+        raise ScenarioError("agents mode needs the mission plugin (erni.plugins.mission.MissionControl)")
     if not scenario.task:
-        raise ValueError(f"{scenario.name}: agents mode sends the scenario's [[task]]s; it has none")
+        raise ScenarioError(f"{scenario.name}: agents mode sends the scenario's [[task]]s; it has none")
     team = Team(scenario, headless=True, control_port=0, record=True, ui=False, mission=True)
     covered_at: float | None = None
     try:

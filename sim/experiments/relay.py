@@ -20,7 +20,7 @@ from erni.sim import kinematic
 from erni.sim.experiments import Experiment, Progress, Result
 from erni.sim.experiments.plots import color
 from erni.sim.manet import RadioModel
-from erni.sim.scenario import Scenario
+from erni.sim.scenario import Scenario, ScenarioError
 from erni.strategies import relay
 
 
@@ -28,7 +28,7 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, **_: 
     """Run the relays' decisions for the scenario's duration; return figure and metrics."""
     s = scenario.strategy
     if len(scenario.poi) < 2:
-        raise ValueError(f"{scenario.name}: the relay experiment needs two [[poi]]: the source and the destination")
+        raise ScenarioError(f"{scenario.name}: the relay experiment needs two [[poi]]: the source and the destination")
     src = np.array([scenario.poi[0].x, scenario.poi[0].y])
     dst = np.array([scenario.poi[1].x, scenario.poi[1].y])
     radio = RadioModel(scenario.radio.comm_range, scenario.radio.lossless_range, scenario.radio.min_quality)

@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 from erni.sim import kinematic
 from erni.sim.experiments import Experiment, Progress, Result
 from erni.sim.experiments.plots import color, draw_world, headings, map_axes, time_axes
-from erni.sim.scenario import Scenario
+from erni.sim.scenario import Scenario, ScenarioError
 from erni.strategies import energy as energy_model
 from erni.strategies.potential import SpreadConfig, mean_nn_distance, spread_step
 
@@ -49,7 +49,7 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, varia
     variants = variants or list(scenario.strategy.get("variants", VARIANTS))
     for v in variants:
         if v not in VARIANTS:
-            raise ValueError(f"strategy.variants: unknown variant {v!r}; expected some of {', '.join(VARIANTS)}")
+            raise ScenarioError(f"strategy.variants: unknown variant {v!r}; expected some of {', '.join(VARIANTS)}")
     duration = scenario.duration or 30.0
     starts = scenario.starts()
     pos0 = np.array([[s.x, s.y] for s in starts])

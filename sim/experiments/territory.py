@@ -20,7 +20,7 @@ from numpy.typing import NDArray
 from erni.sim import kinematic
 from erni.sim.experiments import Experiment, Progress, Result
 from erni.sim.experiments.plots import color, map_axes, time_axes
-from erni.sim.scenario import Scenario
+from erni.sim.scenario import Scenario, ScenarioError
 from erni.strategies import energy as paper_energy
 from erni.strategies import patrol
 
@@ -36,7 +36,7 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, **_: 
     names = [st.name for st in starts]
     n = len(names)
     if n != len(blocks):
-        raise ValueError(f"{scenario.name}: {n} robots for {len(blocks)} blocks; expected one robot per block")
+        raise ScenarioError(f"{scenario.name}: {n} robots for {len(blocks)} blocks; expected one robot per block")
     heartbeat = float(s.get("heartbeat", 1.0))
     silence = float(s.get("silence", 5.0))
     base = float(s.get("base", 1.5))

@@ -35,7 +35,7 @@ def test_bad_config_is_one_line_without_traceback(tmp_path):
     path.write_text("[agent]\nname = 'r1'\nspeed = 3\n")
     out = erni("agent", str(path))
     assert out.returncode == 2
-    assert out.stderr.strip() == f"{path}: agent.speed: unknown key"
+    assert out.stderr.strip() == f"{path}: agent: unknown key 'speed'"
     assert "Traceback" not in out.stderr
 
 

@@ -40,16 +40,16 @@ delay = "0.25"
 
 @pytest.mark.parametrize("text, message", [
     ("[agent\nname='x'", "invalid TOML"),
-    ("[agent]\nname = 'r1'\ncolour = 'red'", "agent.colour: unknown key"),
-    ("[agent]\n", "agent.name: missing (required)"),
+    ("[agent]\nname = 'r1'\ncolour = 'red'", "agent: unknown key 'colour'"),
+    ("[agent]\n", "agent: missing 'name'"),
     ("[agent]\nname = 'bad name!'", "agent.name: String should match pattern"),
     ("[agent]\nname = 'r1'\nworkers = 0", "agent.workers: Input should be greater than or equal to 1"),
     ("[agent]\nname='r1'\n[[plugin]]\nclass='nosuch.module:Thing'", "plugin[0].class: cannot import 'nosuch.module:Thing'"),
     ("[agent]\nname='r1'\n[[plugin]]\nclass='nosuchentry'", "plugin[0].class: unknown plugin 'nosuchentry'"),
     ("[agent]\nname='r1'\n[[plugin]]\nclass='erni.blackboard.tasks:Task'", "plugin[0].class: 'erni.blackboard.tasks:Task' is not a Plugin subclass"),
     ("[agent]\nname='r1'\n[[plugin]]\nclass='echo'\n[plugin.settings]\ndelay=-1", "plugin[0].settings.delay: Input should be greater than or equal to 0"),
-    ("[agent]\nname='r1'\n[[plugin]]\nclass='echo'\n[plugin.settings]\nspeed=1", "plugin[0].settings.speed: unknown key"),
-    ("[agent]\nname='r1'\n[[plugin]]\nname='x'", "plugin[0].class: missing (required)"),
+    ("[agent]\nname='r1'\n[[plugin]]\nclass='echo'\n[plugin.settings]\nspeed=1", "plugin[0].settings: unknown key 'speed'"),
+    ("[agent]\nname='r1'\n[[plugin]]\nname='x'", "plugin[0]: missing 'class'"),
     ("[agent]\nname='r1'\n[[plugin]]\nclass='echo'\n[[plugin]]\nclass='echo'", "plugin[1]: agent r1: a plugin named 'echo' is already loaded"),
 ])
 def test_bad_configs_name_the_file_and_field(tmp_path, text, message):

@@ -75,7 +75,7 @@ def test_wake_in_and_wake_every():
         time.sleep(0.1)
         assert periodic.count <= count + 1
         assert once.count == 1
-        with pytest.raises(ValueError, match="period must be > 0"):
+        with pytest.raises(ValueError, match="period > 0"):
             periodic.wake_every(0)
     finally:
         agent.stop()
@@ -220,3 +220,32 @@ def test_a_failing_later_hand_off_drops_only_its_own_publications(caplog):
         assert rec.failures == 1 and "bad frame" in caplog.text
     finally:
         agent.stop()
+
+
+def test_a_setup_within_the_limit_is_never_reported_as_slow(caplog):
+    class Careful(Plugin):
+        def setup(self):
+            time.sleep(0.4)  # the slow-plugin watch looks at least once meanwhile (every 0.25 s)
+
+    agent = Agent("quiet", slow_plugin_seconds=1.0)
+    agent.add_plugin(Careful)
+    with caplog.at_level("WARNING"):
+        agent.start()
+        time.sleep(0.3)
+        agent.stop()
+    assert [r.getMessage() for r in caplog.records if "has been running" in r.getMessage()] == []
+
+
+def test_a_slow_setup_is_reported_with_its_own_duration(caplog):
+    class Sluggish(Plugin):
+        def setup(self):
+            time.sleep(0.8)
+
+    agent = Agent("slow", slow_plugin_seconds=0.3)
+    agent.add_plugin(Sluggish)
+    with caplog.at_level("WARNING"):
+        agent.start()
+        agent.stop()
+    (line,) = [r.getMessage() for r in caplog.records if "has been running" in r.getMessage()]
+    seconds = float(line.split("running for ")[1].split(" s")[0])
+    assert 0.3 <= seconds < 0.8, line

@@ -39,7 +39,7 @@ def test_params_are_typed_by_preposition():
     ({"verb": "BotMotion", "preposition": "forward", "params": {"distance": 1, "speed": -1}},
      "forward: speed: Input should be greater than 0"),
     ({"verb": "BotMotion", "preposition": "goto", "params": {"x": 1, "y": 1, "z": 1}},
-     "goto: unknown parameter 'z'"),
+     "goto: unknown key 'z'"),
     ({"verb": "BotMotion", "preposition": "turn", "params": {"angle": "left"}},
      "turn: angle: Input should be a valid number"),
     ({"verb": "BotMotion", "preposition": "goto", "params": "x=1"},

@@ -33,8 +33,7 @@ ROBOT = """
 class = "motion"
 name = "motion"
 [plugin.settings]
-url = "sim"
-sim_sip_period = 0.05
+url = "simrobot://?sip_period=0.05"
 model = { base = "pioneer3", max_v = 1.5 }
 avoid_distance = 0.0
 [[plugin]]

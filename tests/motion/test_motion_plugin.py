@@ -226,10 +226,31 @@ def test_tasks_for_other_robots_are_ignored(start_agent, robot_url):
     assert mine.state == TaskState.SUCCEEDED and current(agent, other).result is None
 
 
-def test_in_process_simulator_url(start_agent):
-    agent, plugin = start_agent("sim", sim_sip_period=0.02)
-    assert plugin.sim_host is not None
+@sim_only
+def test_the_in_process_simulator_is_one_more_pyserial_url(start_agent):
+    agent, plugin = start_agent("simrobot://?sip_period=0.02&name=robot1")
+    assert plugin.resource.driver.info is not None and plugin.resource.driver.info.name == "robot1"
     assert finish(agent, post(agent, "forward", distance=0.3, speed=0.5)).state == TaskState.SUCCEEDED
+
+
+@pytest.mark.parametrize("url,needle", [
+    ("simrobot://?colour=red", "unknown option 'colour'"),
+    ("simrobot://?model=roomba", "model: expected pioneer3 or amigobot"),
+    ("simrobot://?sip_period=-1", "sip_period"),
+])
+def test_a_bad_simrobot_url_is_reported_by_the_driver(url, needle):
+    from erni.plugins.motion.driver import ArcosDriver
+
+    driver = ArcosDriver(url, name="r", sync_timeout=0.2, sync_attempts=1)
+    with pytest.raises(ErniError, match=needle):
+        driver.open(timeout=3)
+    driver.close()
+
+
+def test_an_unknown_url_scheme_is_refused_in_the_config_naming_the_known_ones():
+    agent = Agent("robot1", workers=1)
+    with pytest.raises(ErniError, match=r"unknown URL scheme 'simrobt://'.*simrobot://.*socket://"):
+        agent.add_plugin(RobotMotionControl, settings={"url": "simrobt://"})
 
 
 @pytest.mark.parametrize("settings,needle", [
@@ -240,7 +261,7 @@ def test_in_process_simulator_url(start_agent):
 ])
 def test_bad_settings_are_refused_with_the_field_named(settings, needle, tmp_path):
     agent = Agent("robot1", workers=1)
-    with pytest.raises((ErniError, ValueError), match=needle):
+    with pytest.raises(ErniError, match=needle):
         agent.add_plugin(RobotMotionControl, settings=settings)
     config = tmp_path / "robot.toml"
     key, value = next(iter(settings.items()))
@@ -253,13 +274,15 @@ def test_real_robot_variable_selects_the_url(robot_url):
     assert robot_url == REAL_URL if REAL_URL else robot_url.startswith("socket://127.0.0.1:")
 
 
-def test_say_plays_tones_on_the_robot(start_agent):
-    agent, plugin = start_agent("sim", sim_sip_period=0.02)
+@sim_only
+def test_say_plays_tones_on_the_robot(start_agent, make_host):
+    host = make_host()
+    agent, plugin = start_agent(host.url())
     task = Task(verb="BotMotion", preposition="say", params={"tones": [(10, 60), (20, 72)]}, source="test")
     with agent.transaction() as tx:
         tx.add(task)
     assert finish(agent, task).state == TaskState.SUCCEEDED
-    robot = plugin.sim_host.robots[0]
+    robot = host.robots[0]
     wait_until(lambda: robot.said)
     assert robot.said[-1] == bytes([10, 60, 20, 72])
 

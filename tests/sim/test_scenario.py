@@ -86,7 +86,7 @@ def test_tasks_and_failures_are_checked_against_the_language_and_the_robots():
      "radio: lossless_range (5.0 m) must not exceed comm_range (3.0 m)"),
     ("[robots]\ncount = 0\n", "robots.count: Input should be greater than or equal to 1 (got 0)"),
     ("[robots]\nlayout = \"spiral\"\n", "robots.layout: Input should be 'line', 'grid', 'random' or 'circle'"),
-    ("colour = 1\n", "colour: unknown key"),
+    ("colour = 1\n", "unknown key 'colour'"),
     ("world = \"no-such-world.toml\"\n", "world: "),
     ("[[robot]]\nname = \"control\"\n", "control"),
     ("duration = -1\n", "duration: Input should be greater than 0 (got -1)"),

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import math
 import time
 
@@ -68,7 +67,7 @@ def test_a_robot_out_of_radio_range_is_lost_and_receives_no_traffic(tmp_path):
         wait_until(lambda: all(p.up for p in team.peers().values()) and len(team.peers()) == 3, timeout=10)
         team.teleport("robot3", 40.0, 0.0)  # 40 m from everyone: R is 10 m
         wait_until(lambda: "robot3" not in team.status.reach[CONTROL], timeout=5)
-        reach = json.loads(team.reach_file.read_text())["reachable"]
+        reach = team.status.reach
         assert reach["robot3"] == [] and "robot3" not in reach["robot1"]
         wait_until(lambda: not team.peers()["robot3"].up, timeout=10)
         assert team.peers()["robot1"].up and team.peers()["robot2"].up

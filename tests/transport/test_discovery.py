@@ -72,37 +72,48 @@ def test_addresses_learned_from_the_network_topology():
         b.stop()
 
 
-def test_simulated_radio_drops_traffic_between_unconnected_agents(tmp_path):
+def test_an_inbound_filter_fed_through_a_pipe_drops_traffic_between_unconnected_agents():
     import json
     import os
+    import time
 
     from erni.blackboard import Task, TaskState
+    from erni.sim.radio import RadioFilter, install
 
-    reach = tmp_path / "reach.json"
+    def radio() -> tuple[RadioFilter, int]:
+        read, write = os.pipe()
+        return RadioFilter(read), write
 
-    def write(mapping):
-        tmp = tmp_path / "reach.tmp"
-        tmp.write_text(json.dumps({"reachable": mapping}))
-        os.replace(tmp, reach)
+    def tell(write: int, names: list[str]) -> None:
+        os.write(write, (json.dumps(names) + "\n").encode())
 
-    write({"a": ["b"], "b": ["a"]})
+    (radio_a, pipe_a), (radio_b, pipe_b) = radio(), radio()
+    tell(pipe_a, ["b"])
+    tell(pipe_b, ["a"])
+    wait_until(lambda: radio_a.updates and radio_b.updates)
     port = free_port()
-    a = make_agent("a", port, reachability=str(reach), peer_timeout=0.5)
-    b = make_agent("b", port, reachability=str(reach), peer_timeout=0.5)
+    a = make_agent("a", port, peer_timeout=0.5, start=False)
+    b = make_agent("b", port, peer_timeout=0.5, start=False)
+    install(a, radio_a)
+    install(b, radio_b)
+    a.start()
+    b.start()
     try:
         wait_until(lambda: peers(a).get("b") and peers(a)["b"].up)
-        write({"a": [], "b": []})  # b drives out of range
+        tell(pipe_a, [])  # b drives out of range
+        tell(pipe_b, [])
         wait_until(lambda: not peers(a)["b"].up, timeout=3)
         task = Task(verb="BotMotion", preposition="stop", source="a", destination="b")
         with a.transaction() as tx:
             tx.add(task)
-        import time
         time.sleep(0.5)
         assert not b.blackboard.contains(task.uid)
-        assert a.plugin("transport").endpoint.counters.get("retries", 0) + \
-            b.plugin("transport").endpoint.counters.get("dropped.unreachable", 0) > 0
-        write({"a": ["b"], "b": ["a"]})  # back in range: the queued task gets through
+        assert b.plugin("transport").endpoint.counters.get("dropped.unreachable", 0) > 0
+        tell(pipe_a, ["b"])  # back in range: the queued task gets through
+        tell(pipe_b, ["a"])
         wait_until(lambda: a.blackboard.get(task.uid).state is TaskState.SUCCEEDED, timeout=5)
     finally:
         a.stop()
         b.stop()
+        os.close(pipe_a)
+        os.close(pipe_b)

@@ -248,7 +248,7 @@ def test_older_result_never_overwrites_newer(team):
 
     def deliver(seq: int, progress: float) -> None:
         update = ResultUpdate(uid=task.uid, result={"state": "running", "progress": progress})
-        bridge.later(lambda: bridge._handle(Message("robot1", ("127.0.0.1", 1), 1, seq, f"m{seq}",
+        bridge.later(lambda: bridge._handle(Message("robot1", "robot", ("127.0.0.1", 1), 1, seq, f"m{seq}",
                                                     "task.result", update)))
 
     deliver(10, 0.5)
@@ -334,7 +334,7 @@ def test_two_statuses_of_a_new_object_in_one_run_lose_nothing(team):
 
     def burst():
         for seq, x in ((1, 1.0), (2, 2.0)):
-            bridge._handle(Message("robot1", ("127.0.0.1", 1), 5, seq, f"s{seq}", "status",
+            bridge._handle(Message("robot1", "robot", ("127.0.0.1", 1), 5, seq, f"s{seq}", "status",
                                    Pose(robot="robot1", x=x)))
         bridge.add(task)  # other work of the same run must survive
 

@@ -1,0 +1,156 @@
+"""Shapes of data that pass between the layers of ERNI, declared once and imported by both sides.
+
+- `Peer`: an agent as the transport knows it, published on every blackboard (the UI, the
+  mission and `erni peers` read it).
+- The messages the transport exchanges with command-line clients and other agents besides
+  tasks: `Beacon`, `ResultUpdate`, `Cancel`, `PeerList`, `WatchRequest`, `WatchEvent`.
+- Floor-plan geometry in metres: `Wall`, `Circle`, `Polygon`, `FloorPlan`. The simulator's
+  world extends `FloorPlan` with robot start poses; the GUI draws a `FloorPlan`.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from erni.blackboard.errors import ConfigError, describe_validation
+from erni.blackboard.objects import BBObject
+from erni.blackboard.tasks import AllocationResult
+
+# --- agents ---------------------------------------------------------------------------------
+
+
+class Peer(BBObject):
+    """An agent known to this one: where it is, what it is, whether it is heard."""
+
+    name: str
+    address: str = ""
+    role: str = ""
+    capabilities: list[str] = Field(default_factory=list)
+    last_heard: float = 0.0
+    up: bool = False
+    epoch: int = 0
+
+
+class _Message(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class Beacon(_Message):
+    """What an agent announces about itself."""
+
+    role: str = ""
+    capabilities: list[str] = Field(default_factory=list)
+
+
+class ResultUpdate(_Message):
+    """A performer's new result for a task."""
+
+    uid: str
+    result: AllocationResult
+
+
+class Cancel(_Message):
+    """The requester removed a task (or a shared object was removed)."""
+
+    uid: str
+
+
+class PeerList(_Message):
+    """The directory of an agent, sent to a client."""
+
+    agent: str
+    peers: list[Peer]
+
+
+class WatchRequest(_Message):
+    """A client asks for blackboard changes for `lease` seconds."""
+
+    lease: float = Field(10.0, gt=0, le=3600)
+
+
+class WatchEvent(_Message):
+    """One blackboard change sent to a watcher."""
+
+    agent: str
+    op: str
+    type: str
+    data: dict[str, Any]
+
+
+# --- floor-plan geometry --------------------------------------------------------------------
+
+Point = tuple[float, float]
+
+
+class _Shape(BaseModel):
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+
+class Wall(_Shape):
+    """A straight wall from `a` to `b` (m)."""
+
+    a: Point
+    b: Point
+
+
+class Circle(_Shape):
+    """A round obstacle (m)."""
+
+    center: Point
+    radius: float = Field(gt=0)
+
+
+class Polygon(_Shape):
+    """A closed polygonal obstacle; its edges block like walls and its inside is solid."""
+
+    points: list[Point] = Field(min_length=3)
+
+
+class FloorPlan(_Shape):
+    """Obstacles and room bounds in metres: what a map shows and a simulated world is made of."""
+
+    bounds: tuple[float, float, float, float] | None = Field(
+        None, description="xmin, ymin, xmax, ymax: adds four enclosing walls")
+    wall: list[Wall] = Field(default_factory=list)
+    circle: list[Circle] = Field(default_factory=list)
+    polygon: list[Polygon] = Field(default_factory=list)
+
+    @model_validator(mode="after")
+    def _check_bounds(self) -> FloorPlan:
+        if self.bounds is not None:
+            xmin, ymin, xmax, ymax = self.bounds
+            if not (xmin < xmax and ymin < ymax):
+                raise ValueError(f"bounds {list(self.bounds)}: expected xmin < xmax and ymin < ymax")
+        return self
+
+
+def read_toml(path: str | Path, what: str, error: type[ConfigError] = ConfigError) -> dict[str, Any]:
+    """Return a TOML file's table, or raise `error` naming the file and saying what was expected."""
+    path = Path(path)
+    try:
+        return tomllib.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise error(f"{path}: no such {what} file") from None
+    except IsADirectoryError:
+        raise error(f"{path}: is a directory; expected a {what} TOML file") from None
+    except UnicodeDecodeError:
+        raise error(f"{path}: not UTF-8 text; expected a {what} TOML file") from None
+    except OSError as err:
+        raise error(f"{path}: cannot read: {err.strerror or err}") from None
+    except tomllib.TOMLDecodeError as err:
+        raise error(f"{path}: not valid TOML: {err}") from None
+
+
+def load_floorplan(path: str | Path) -> FloorPlan:
+    """Read the obstacles of a floor plan or world file (other tables, such as robot starts, are
+    ignored); raise ConfigError naming the file and the bad field."""
+    data = read_toml(path, "floor plan")
+    shapes = {key: data[key] for key in FloorPlan.model_fields if key in data}
+    try:
+        return FloorPlan.model_validate(shapes)
+    except ValidationError as err:
+        raise ConfigError(describe_validation(err, str(path))) from None
