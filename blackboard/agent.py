@@ -10,16 +10,14 @@ import logging
 import queue
 import threading
 import time
-from collections.abc import Callable
 from importlib.metadata import entry_points
 from pathlib import Path
 from typing import Any, TypeVar, overload
 
 from pydantic import BaseModel, ValidationError
 
-from erni.blackboard.blackboard import Blackboard, Predicate, T, Transaction
+from erni.blackboard.blackboard import Blackboard, Query, Transaction
 from erni.blackboard.errors import ConfigError, PluginError, UsageError, describe_validation
-from erni.blackboard.objects import BBObject
 from erni.blackboard.plugin import NoSettings, Plugin
 
 P = TypeVar("P", bound=Plugin[Any])
@@ -388,16 +386,10 @@ class Agent:
         """Open a transaction for code outside any plugin (`with`: commit on success)."""
         return self.blackboard.transaction(label)
 
-    @overload
-    def query(self, kind: type[T], where: Callable[[T], bool] | None = None) -> list[T]: ...
-
-    @overload
-    def query(self, kind: Predicate | None = None) -> list[BBObject]: ...
-
-    def query(self, kind: type[Any] | Predicate | None = None,
-              where: Callable[[Any], bool] | None = None) -> list[Any]:
-        """Return a snapshot of the committed objects matching a type and/or predicate."""
-        return self.blackboard.query(kind, where)  # type: ignore[arg-type]  # the overloads above type it
+    @property
+    def query(self) -> Query:
+        """`query(Type, where=...)`: a snapshot of the committed objects matching a type and/or predicate."""
+        return self.blackboard.query
 
 
 @overload

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Callable, Iterator
-from typing import TYPE_CHECKING, Any, Generic, TypeVar, overload
+from typing import TYPE_CHECKING, Any, Generic, Protocol, TypeVar, overload
 
 from erni.blackboard.errors import TransactionError, UsageError
 from erni.blackboard.objects import BBObject
@@ -27,6 +27,17 @@ ADD, CHANGE, REMOVE = "add", "change", "remove"
 
 Op = tuple[str, BBObject, tuple[Any, ...]]
 """One staged publication: (kind, object, change reports)."""
+
+
+class Query(Protocol):
+    """`query(Type, where=...)` -> `list[Type]`, or `query(predicate)` -> `list[BBObject]`: a snapshot
+    of the committed objects that match."""
+
+    @overload
+    def __call__(self, kind: type[T], where: Callable[[T], bool] | None = None) -> list[T]: ...
+
+    @overload
+    def __call__(self, kind: Predicate | None = None) -> list[BBObject]: ...
 
 
 class Subscription(Generic[T]):
@@ -239,6 +250,7 @@ class Blackboard:
         self._listeners: list[Callable[[list[Op]], None]] = []
         self._route: dict[type, list[Subscription[Any]]] = {}  # type -> subscriptions, cached
         self.signal: Callable[[Plugin[Any]], None] = lambda plugin: None
+        self.query: Query = self._query
         self.commits = 0
         self.moot = 0  # changes/removals dropped because another transaction removed the object
 
@@ -253,14 +265,8 @@ class Blackboard:
     def __len__(self) -> int:
         return len(self._objects)
 
-    @overload
-    def query(self, kind: type[T], where: Callable[[T], bool] | None = None) -> list[T]: ...
-
-    @overload
-    def query(self, kind: Predicate | None = None) -> list[BBObject]: ...
-
-    def query(self, kind: type[Any] | Predicate | None = None,
-              where: Callable[[Any], bool] | None = None) -> list[Any]:
+    def _query(self, kind: type[Any] | Predicate | None = None,
+               where: Callable[[Any], bool] | None = None) -> list[Any]:
         """Return a snapshot list of the committed objects matching a type and/or predicate."""
         sub: Subscription[Any] = _make_subscription(None, kind, where)
         with self._lock:

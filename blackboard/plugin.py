@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Any, ClassVar, Generic, get_args, get_origin, 
 from pydantic import BaseModel, ConfigDict
 from typing_extensions import TypeVar
 
-from erni.blackboard.blackboard import Blackboard, Predicate, Subscription, T, Transaction
+from erni.blackboard.blackboard import Blackboard, Predicate, Query, Subscription, T, Transaction
 from erni.blackboard.errors import TransactionError, UsageError
 from erni.blackboard.objects import BBObject
 
@@ -106,16 +106,10 @@ class Plugin(Generic[SettingsT]):
         """Return the committed object with this uid, or None."""
         return self._board.get(uid)
 
-    @overload
-    def query(self, kind: type[T], where: Callable[[T], bool] | None = None) -> list[T]: ...
-
-    @overload
-    def query(self, kind: Predicate | None = None) -> list[BBObject]: ...
-
-    def query(self, kind: type[Any] | Predicate | None = None,
-              where: Callable[[Any], bool] | None = None) -> list[Any]:
-        """Return a snapshot of the committed objects matching a type and/or predicate."""
-        return self._board.query(kind, where)  # type: ignore[arg-type]  # the overloads above type it
+    @property
+    def query(self) -> Query:
+        """`query(Type, where=...)`: a snapshot of the committed objects matching a type and/or predicate."""
+        return self._board.query
 
     def rehydrated(self, obj: BBObject | str) -> bool:
         """True when this object came back from the journal after a restart (not new work)."""

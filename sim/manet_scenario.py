@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-import tomllib
 from pathlib import Path
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from erni.blackboard.errors import describe_validation
+from erni.blackboard.schemas import read_toml
 from erni.sim.manet import ManetNetwork, RadioModel
 from erni.sim.scenario import ScenarioError
 
@@ -81,12 +81,7 @@ class Scenario(_Strict):
 def load_scenario(path: str | Path) -> Scenario:
     """Read and validate a scenario TOML file (raises ScenarioError with one clear line)."""
     path = Path(path)
-    try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise ScenarioError(f"{path}: no such scenario file") from None
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as err:
-        raise ScenarioError(f"{path}: not valid TOML: {err}") from None
+    data = read_toml(path, "scenario", ScenarioError)
     try:
         return Scenario.model_validate(data)
     except ValidationError as err:

@@ -59,13 +59,13 @@ from __future__ import annotations
 import importlib.resources
 import math
 import random
-import tomllib
 from pathlib import Path
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from erni.blackboard.errors import ConfigError, TaskError, describe_validation
+from erni.blackboard.schemas import read_toml
 from erni.blackboard.tasks import Task
 from erni.sim.world import RobotStart, World, WorldError
 
@@ -281,20 +281,7 @@ def parse_scenario(data: dict[str, Any], source: str = "<scenario>", base: Path 
 def load_scenario(path: str | Path) -> Scenario:
     """Read and validate a scenario TOML file (raises ScenarioError naming file and field)."""
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise ScenarioError(f"{path}: no such scenario file") from None
-    except IsADirectoryError:
-        raise ScenarioError(f"{path}: is a directory; expected a scenario TOML file") from None
-    except UnicodeDecodeError:
-        raise ScenarioError(f"{path}: not UTF-8 text; expected a scenario TOML file") from None
-    except OSError as err:
-        raise ScenarioError(f"{path}: cannot read: {err.strerror or err}") from None
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as err:
-        raise ScenarioError(f"{path}: not valid TOML: {err}") from None
+    data = read_toml(path, "scenario", ScenarioError)
     return parse_scenario(data, str(path), path.parent)
 
 
