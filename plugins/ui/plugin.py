@@ -22,7 +22,7 @@ from pydantic import BaseModel, ConfigDict, Field, SecretStr, field_validator
 from erni import netgraph
 from erni.blackboard import NetInfo, Plugin, Pose, Task
 from erni.blackboard.schemas import Peer, load_floorplan
-from erni.plugins.ui.dialogue import Dialogue, Naming, Reply, tasks_for
+from erni.plugins.ui.dialogue import ROGER, Dialogue, Naming, Reply, RobotView, restate, tasks_for
 from erni.plugins.ui.grammar import STANDARD_ACTIONS, Refusal, strategies, vocabulary
 from erni.plugins.ui.protocol import CancelTaskMsg, CommandMsg, MicMsg, SayMsg, SelectMsg
 from erni.plugins.ui.server import WebServer
@@ -94,8 +94,8 @@ class UIPlugin(Plugin[UISettings]):
         s = self.settings
         me = self.agent_name
         self.naming = Naming(s.robot_names)
-        self.typed = Dialogue(self.naming, verb=s.verb, source=me, listening=True)
-        self.spoken = Dialogue(self.naming, verb=s.verb, source=me, listening=False)
+        self.typed = Dialogue(self.naming, verb=s.verb, source=me, listening=True, control=me)
+        self.spoken = Dialogue(self.naming, verb=s.verb, source=me, listening=False, control=me)
         self.poses = self.subscribe(Pose)
         self.netinfo = self.subscribe(NetInfo)
         self.peers = self.subscribe(Peer)
@@ -103,7 +103,9 @@ class UIPlugin(Plugin[UISettings]):
         self.logs: deque[dict[str, Any]] = deque(maxlen=200)
         self.mic_clients: set[str] = set()
         self._ended: set[str] = set()
-        self.retired: deque[dict[str, Any]] = deque(maxlen=s.history)  # tasks this UI cancelled
+        self.retired: deque[dict[str, Any]] = deque(maxlen=s.history)  # tasks cancelled before they ended
+        self._retired_uids: set[str] = set()
+        self._published: dict[str, Any] | None = None
         self._lock = threading.Lock()
         self._dirty = True
         self._threads: list[Any] = []
@@ -186,13 +188,26 @@ class UIPlugin(Plugin[UISettings]):
         for task in self.tasks.added + self.tasks.changed:
             if task.done:
                 self._task_ended(task)
+        for task in self.tasks.removed:
+            if not task.done and task.uid not in self._retired_uids:
+                # withdrawn before it ended (by the client that sent it through this node): keep its row
+                self._keep_row(task, f"withdrawn by {task.source}")
+                self._log("dim", f"{task.destination}: {task.preposition} cancelled \u2014 withdrawn by {task.source}")
+            self._retired_uids.discard(task.uid)
         for sub in (self.poses, self.netinfo, self.peers, self.tasks):
             if sub.added or sub.changed or sub.removed:
                 self._dirty = True
         self._forget_old_tasks()
         if self._dirty:
             self._dirty = False
-            self.server.publish(self.picture())
+            self._publish()
+
+    def _publish(self) -> None:
+        """Hand the page a new picture only when something it shows changed: an idle page does no work."""
+        picture = self.picture()
+        if picture != self._published:
+            self._published = picture
+            self.server.publish(picture)
 
     def _task_ended(self, task: Task) -> None:
         r = task.result
@@ -254,17 +269,18 @@ class UIPlugin(Plugin[UISettings]):
                 "name": name, "number": number if (number := self.naming.number(name)) is not None else name[:2],
                 "up": up,
                 "state": "lost" if not up else ("warn" if reasons else "ok"), "reasons": reasons,
-                "pose": None if pose is None else {
-                    "x": pose.x, "y": pose.y, "theta": pose.theta, "v": pose.v, "w": pose.w,
-                    "battery": pose.battery, "stamp": pose.stamp},
-                "address": peer.address if peer else "", "last_heard": peer.last_heard if peer else None,
+                "pose": None if pose is None else {  # rounded: sensor noise below this redraws nothing
+                    "x": round(pose.x, 3), "y": round(pose.y, 3), "theta": round(pose.theta, 3),
+                    "v": round(pose.v, 2), "w": round(pose.w, 2),
+                    "battery": None if pose.battery is None else round(pose.battery, 1)},
+                "address": peer.address if peer else "",
                 "task": short(task) if task else "",
             })
         links = self._links(set(names), up_names)
         rows = [_task_row(t) for t in self.tasks] + list(self.retired)
         rows.sort(key=lambda r: r["created"], reverse=True)
         return {
-            "agent": self.agent_name, "time": time.time(), "verb": s.verb,
+            "agent": self.agent_name, "verb": s.verb,
             "actions": list(STANDARD_ACTIONS), "strategies": strategies(),
             "speech": {"available": self.listener is not None and not self.speech_error, "error": self.speech_error},
             "listening": self.spoken.listening,
@@ -272,6 +288,40 @@ class UIPlugin(Plugin[UISettings]):
             "metrics": {**_metrics(names, robots, links), "network_known": any(True for _ in self.netinfo)},
             "tasks": rows[: s.history + 20], "log": list(self.logs),
         }
+
+    def views(self) -> dict[str, RobotView]:
+        """What the dialogue may tell the operator about each robot: pose, task, battery, link."""
+        poses = {p.robot: p for p in self.poses}
+        peers = {p.name: p for p in self.peers}
+        names = self.robots()
+        running: dict[str, Task] = {}
+        for t in sorted(self.tasks, key=lambda t: t.created):
+            if not t.done and t.destination:
+                running[t.destination] = t
+        best: dict[str, float] = {}
+        for lk in self._links(set(names), set(names)):
+            for end in (lk["a"], lk["b"]):
+                best[end] = max(best.get(end, 0.0), lk["quality"])
+        now = time.time()
+        out = {}
+        for name in names:
+            pose, peer, task = poses.get(name), peers.get(name), running.get(name)
+            doing = ""
+            if task is not None:
+                r = task.result
+                progress = f" {r.progress:.0%}" if r is not None and r.progress else ""
+                try:
+                    what = restate(task.preposition, task.params.model_dump())
+                except KeyError:
+                    what = short(task)
+                doing = f"busy: {what} ({task.state.value}{progress})"
+            out[name] = RobotView(
+                name, up=peer.up if peer is not None else pose is not None,
+                x=pose.x if pose else None, y=pose.y if pose else None, theta=pose.theta if pose else None,
+                battery=pose.battery if pose else None, doing=doing,
+                silent=now - peer.last_heard if peer is not None and peer.last_heard else None,
+                link=best.get(name))
+        return out
 
     def _links(self, names: set[str], up: set[str]) -> list[dict[str, Any]]:
         """Links between robots from their NetInfo, best quality first; `stale` when old or an end is lost."""
@@ -342,7 +392,7 @@ class UIPlugin(Plugin[UISettings]):
             self.listener.end_utterance("wav")
 
     def _recognised(self, source: str, text: str) -> None:
-        self.later(lambda: self._answer(self.spoken.hear(text, self.robots()), "voice", source))
+        self.later(lambda: self._answer(self.spoken.hear(text, self.views()), "voice", source))
 
     def _page_message(self, client: str, msg: Any) -> None:
         if isinstance(msg, CommandMsg):
@@ -350,7 +400,7 @@ class UIPlugin(Plugin[UISettings]):
         elif isinstance(msg, SayMsg):
             if msg.selection:
                 self.typed.select(msg.selection)
-            self._answer(self.typed.hear(msg.text, self.robots()), "typed", client)
+            self._answer(self.typed.hear(msg.text, self.views()), "typed", client)
         elif isinstance(msg, SelectMsg):
             self.typed.select(msg.robots)
             self.spoken.select(msg.robots)
@@ -360,7 +410,6 @@ class UIPlugin(Plugin[UISettings]):
                 self.server.emit({"type": "error", "message": f"no running task {msg.uid}"}, client)
             else:
                 self._retire(task, "cancelled from the GUI")
-                self._log("dim", f"{task.destination}: {task.preposition} cancelled from the GUI")
 
     def _command(self, client: str, msg: CommandMsg) -> None:
         known = set(strategies()) | set(STANDARD_ACTIONS)
@@ -368,13 +417,29 @@ class UIPlugin(Plugin[UISettings]):
             self.server.emit({"type": "error", "message": f"unknown action {msg.action!r}; expected one of "
                               f"{', '.join(sorted(known))}"}, client)
             return
+        robots = list(msg.robots)
+        if not robots and msg.action == "stop":
+            robots = self.robots()  # the Stop button with nothing selected stops everyone
         try:
-            tasks = tasks_for(msg.action, msg.params, msg.robots, verb=self.settings.verb, source=self.agent_name)
+            if not robots:
+                raise Refusal("Select robots first (checkbox, click, or shift-drag a rectangle)")
+            tasks = tasks_for(msg.action, msg.params, robots, verb=self.settings.verb, source=self.agent_name)
         except Refusal as why:
-            self.server.emit({"type": "error", "message": str(why)}, client)
+            self.server.emit({"type": "reply", "text": str(why), "heard": "", "channel": "page", "client": client,
+                              "accepted": False})
             return
         self._send(msg.action, tasks)
-        self._log("info", f"{tasks[0].verb} {short(tasks[0])} -> {', '.join(msg.robots)}")
+        views = self.views()
+        try:
+            what = restate(msg.action, tasks[0].params.model_dump())
+        except KeyError:
+            what = short(tasks[0])
+        lost = [r for r in robots if r in views and not views[r].up]
+        say = f"{ROGER}: {self.typed.who(robots, False, views)}, {what}" + (
+            f" ({', '.join(lost)} {'is' if len(lost) == 1 else 'are'} lost)" if lost else "")
+        self.server.emit({"type": "reply", "text": say, "heard": "", "channel": "page", "client": client,
+                          "accepted": True})
+        self._log("info", f"page: {tasks[0].verb} {short(tasks[0])} -> {', '.join(robots)}")
 
     def _answer(self, reply: Reply, channel: str, client: str) -> None:
         if reply.say is None:
@@ -401,7 +466,7 @@ class UIPlugin(Plugin[UISettings]):
         robot's remote tasks and reports them), so the UI does not withdraw them as well.
         """
         remote_cancel = any(t.verb == "RemoteBotMotion" and t.preposition == "cancel" for t in tasks)
-        if self.settings.supersede and action != "teleport" and not remote_cancel:
+        if self.settings.supersede and action not in ("teleport", "avoid_obstacles") and not remote_cancel:
             targets = {t.destination for t in tasks}
             for old in list(self.tasks):
                 if old.source == self.agent_name and old.destination in targets and not old.done:
@@ -411,9 +476,15 @@ class UIPlugin(Plugin[UISettings]):
 
 
     def _retire(self, task: Task, why: str) -> None:
-        """Cancel a task (remove it) and keep it in the task list as cancelled."""
+        """Cancel a task (remove it) and keep it in the task list as cancelled, with a line in the log."""
         self.remove(task)
+        self._retired_uids.add(task.uid)
+        self._keep_row(task, why)
+        self._log("dim", f"{task.destination}: {task.preposition} cancelled \u2014 {why}")
+
+    def _keep_row(self, task: Task, why: str) -> None:
         self.retired.append({**_task_row(task), "state": "cancelled", "message": why})
+        self._dirty = True
 
 
 def short(t: Task) -> str:

@@ -26,7 +26,7 @@ class CommandMsg(_Msg):
     """Task the robots with an action of the grammar (goto, forward, turn, stop, ...)."""
 
     type: Literal["command"]
-    robots: list[AgentName] = Field(min_length=1, max_length=256)
+    robots: list[AgentName] = Field(max_length=256)  # empty: stop means everyone; others are refused
     action: Annotated[str, Field(pattern=r"^[a-z_]{1,40}$")]
     params: dict[Annotated[str, Field(pattern=r"^[a-z_]{1,40}$")], Number | int | bool | AgentName | None] = Field(
         default_factory=dict, max_length=16)

@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 
 from erni.blackboard.tasks import PREPOSITIONS, NoParams, register_preposition
 from erni.plugins.ui import Dialogue, Naming, Refusal, parse, vocabulary
-from erni.plugins.ui.dialogue import LISTENING, ROGER, STANDING_BY, tasks_for
+from erni.plugins.ui.dialogue import LISTENING, ROGER, STANDING_BY, RobotView, tasks_for
 
 KNOWN = [f"robot{i}" for i in range(1, 7)]
 ALL = KNOWN
@@ -64,6 +64,29 @@ TABLE: list[tuple[str, object]] = [
     ("robot 1 abort", (["robot1"], "clear", {})),
     ("robot 1 cancel that", (["robot1"], "clear", {})),
     ("robot 1 go to 3 3 now", (["robot1"], "goto", {"x": 3.0, "y": 3.0})),
+    ("robot 1 go to the origin", (["robot1"], "goto", {"x": 0.0, "y": 0.0})),
+    ("robots one and two do a random walk", (["robot1", "robot2"], "randomwalk", {})),
+    ("back up half a meter", (["robot2"], "backward", {"distance": 0.5})),
+    ("robot 1 go forward one and a half metres", (["robot1"], "forward", {"distance": 1.5})),
+    ("robot 1 set velocity to 0.3", (["robot1"], "velocity", {"v": 0.3})),
+    ("robot 2 set speed to half a meter per second", (["robot2"], "velocity", {"v": 0.5})),
+    ("robot 2 drive at minus 0.2 m/s", (["robot2"], "velocity", {"v": -0.2})),
+    ("robot 3 avoid obstacles", (["robot3"], "avoid_obstacles", {})),
+    ("robot 3 avoid obstacles within 80 centimetres", (["robot3"], "avoid_obstacles", {"distance": 0.8})),
+    ("robot 3 stop avoiding obstacles", (["robot3"], "avoid_obstacles", {"enabled": False})),
+    ("robot 3 do not avoid obstacles", (["robot3"], "avoid_obstacles", {"enabled": False})),
+    ("robot 1 clear", (["robot1"], "clear", {})),
+    ("clear all tasks", (["robot2"], "clear", {})),
+    ("please stop", (["robot2"], "clear", {})),
+    ("robot 1 please turn left 90 degrees", (["robot1"], "turn", {"angle": 90.0})),
+    ("uh robot two go forward one meter", (["robot2"], "forward", {"distance": 1.0})),
+    ("hey robot one, could you stop", (["robot1"], "clear", {})),
+    ("um robots 1 and 3 uh turn to the right thank you", (["robot1", "robot3"], "turn", {"angle": -90.0})),
+    ("stop, everyone", (ALL, "clear", {})),
+    ("robot 1 relay between robot 2 and control", (["robot1"], "relay", {"source": "robot2", "destination": "control"},
+                                                   "Deploy")),
+    ("robot stop", (ALL, "clear", {})),  # who is unclear: everyone stops
+    ("robot 1 stop banana", (["robot1"], "clear", {})),  # a stop is never refused
     ("ROBOT 2 STOP", (["robot2"], "clear", {})),
     ("robot 2 go-to 1 2", (["robot2"], "goto", {"x": 1.0, "y": 2.0})),
     ("robots 6 and 6 stop", (["robot6"], "clear", {})),
@@ -80,31 +103,39 @@ TABLE: list[tuple[str, object]] = [
     # refusals: the exact sentence said back
     ("robot 9 stop", "I don't know robot 9"),
     ("robots 8 and 9 stop", "I don't know robots 8 and 9"),
-    ("robots 1 and 9 stop", "I don't know robot 9"),
-    ("robots 7, 8 and 9 turn left", "I don't know robots 7, 8 and 9"),
-    ("robot 1 fly", "I didn't understand fly"),
-    ("fly to the moon", "I didn't understand fly"),
-    ("robot 1 go forward", "How far?"),
-    ("robot 1 go back", "How far?"),
-    ("robot 1 go to 4", "Where to? Say x and y"),
-    ("robot 1 go to", "Where to? Say x and y"),
+    ("robots 1 and 9 turn left", "I don't know robot 9; I know robots 1, 2, 3, 4, 5 and 6"),
+    ("robots 7, 8 and 9 turn left", "I don't know robots 7, 8 and 9; I know robots 1, 2, 3, 4, 5 and 6"),
+    ("robot 1 fly", "I didn't understand fly; say a command like robot 1 go forward 2 metres"),
+    ("robot 1 tern left", "I didn't understand tern; did you mean turn?"),
+    ("robot 1 stpo", "I didn't understand stpo; did you mean stop?"),
+    ("fly to the moon", "I didn't understand fly; say a command like robot 1 go forward 2 metres"),
+    ("robot 1 go forward", "How far? Say a distance, like forward 2 metres"),
+    ("robot 1 go back", "How far? Say a distance, like forward 2 metres"),
+    ("robot 1 go to 4", "Where to? Say x and y, like go to 3 4"),
+    ("robot 1 go to", "Where to? Say x and y, like go to 3 4"),
     ("robot 1 go forward 0 metres", "The distance must be more than zero"),
     ("robot 1 go forward minus 2 metres", "The distance must be more than zero"),
-    ("robot stop", "Which robot?"),
-    ("robot 1", "What should they do?"),
-    ("robot 1 turn", "Turn which way?"),
-    ("robot 1 go", "Go where?"),
+    ("robot turn left", "Which robot? Say robot and its number, like robot 3"),
+    ("robot 1 turn", "Turn which way? Say turn left, turn right 45 degrees or turn around"),
+    ("robot 1 go", "Go where? Say go to 3 4, go forward 2 metres or go back 1 metre"),
     ("", "I didn't hear a command"),
     ("...", "I didn't hear a command"),
-    ("robot 1 stop banana", "I didn't understand banana"),
-    ("robot 1.5 stop", "I don't know robot 1.5"),
-    ("robot 1 teleport to 1 2 facing", "Facing which heading?"),
-    ("[unk]", "I didn't understand"),
-    ("robot 1 go forward 2 feet and back", "I didn't understand and back"),
-    ("robot 1 randomwalk fast", "I didn't understand fast"),
+    ("robot 1 turn left banana", "I didn't understand banana; say one command at a time, like robot 1 go forward 2 metres"),
+    ("robot 1.5 turn left", "I don't know robot 1.5; robots have whole numbers, like robot 3"),
+    ("robot 1 teleport to 1 2 facing", "Facing which heading? Say facing 90 degrees"),
+    ("[unk]", "I didn't understand; say a command like robot 1 go forward 2 metres"),
+    ("robot 1 go forward 2 feet and back", "I didn't understand and back; say one command at a time, like robot 1 go forward 2 metres"),
+    ("robot 1 randomwalk fast", "I didn't understand fast; say one command at a time, like robot 1 go forward 2 metres"),
     ("robot 2 relay between 1 and 9", "I don't know robot 9"),
-    ("robot 1 relay", "Relay between which robots?"),
-    ("patrol 1 1", "Patrol from where to where?"),
+    ("robot 2 relay between robot 2 and robot 3", "Robot 2 can't relay for itself; name two other ends"),
+    ("robots 1 and 3 relay between 3 and control", "Robot 3 can't relay for itself; name two other ends"),
+    ("robot 1 relay between 3 and 3", "A relay needs two different ends; say relay between robot 1 and robot 3"),
+    ("robot 1 set velocity to 5", "5 metres per second is too fast; at most 2"),
+    ("robot 1 set speed", "How fast? Say set velocity to 0.3 metres per second"),
+    ("robot 1 avoid walls", "Avoid what? Say avoid obstacles"),
+    ("what is robot 2", "What about them? Ask what is robot 2 doing, or robot 2 status"),
+    ("robot 1 relay", "Relay between which robots? Say relay between robot 1 and robot 3"),
+    ("patrol 1 1", "Patrol from where to where? Say patrol from 0 0 to 5 5"),
     ("robot 1 spread out 0 metres", "The distance must be more than zero"),
 ]
 
@@ -126,7 +157,7 @@ def test_utterance_gives_exact_tasks_or_refusal(utterance, expected):
         assert (reply.say, reply.accepted, reply.tasks) == (expected, False, [])
         return
     robots, prep, params, *verb = expected  # type: ignore[misc]
-    assert reply.say == ROGER and reply.accepted
+    assert reply.say.startswith(f"{ROGER}: ") and reply.accepted
     got = [(t.verb, t.preposition, t.destination, t.source, t.params.model_dump(exclude_defaults=True))
            for t in reply.tasks]
     assert got == [((verb or ["BotMotion"])[0], prep, r, "control", pytest.approx(params)) for r in robots]
@@ -150,26 +181,136 @@ def test_remote_tier_uses_remotebotmotion_and_documented_fallbacks():
 
 def test_attention_and_sleep_gate_what_is_heard():
     d = Dialogue(Naming(), verb="BotMotion", listening=False)
-    ignored = d.hear("robot 1 stop", KNOWN)
+    ignored = d.hear("robot 1 go forward 1", KNOWN)
     assert ignored.say is None and ignored.tasks == []
     assert d.hear("robot 9 fly", KNOWN).say is None  # refusals are not spoken while standing by
+    assert d.hear("robot 2 status", KNOWN).say is None
     assert d.hear("Attention!", KNOWN).say == LISTENING
-    assert d.hear("robot 1 stop", KNOWN).say == ROGER
+    assert d.hear("robot 1 turn left", KNOWN).say == "Roger: robot 1, turn left 90 degrees"
     assert d.hear("go to sleep", KNOWN).say == STANDING_BY
     assert d.hear("robot 1 go forward 1", KNOWN).tasks == []
     assert d.hear("attention", KNOWN).say == LISTENING and d.listening
 
 
+@pytest.mark.parametrize("state", ["standing by from the start", "after go to sleep", "listening"])
+@pytest.mark.parametrize("utterance,robots", [
+    ("stop", KNOWN), ("everyone stop", KNOWN), ("halt", KNOWN), ("freeze", KNOWN), ("all robots halt", KNOWN),
+    ("robot 2 freeze", ["robot2"]), ("robots 1 and 3 stop", ["robot1", "robot3"]), ("please stop now", KNOWN),
+    ("stop stop stop", KNOWN)])
+def test_stop_is_never_gated(state, utterance, robots):
+    d = Dialogue(Naming(), verb="RemoteBotMotion", listening=state == "listening")
+    if state == "after go to sleep":
+        assert d.hear("attention", KNOWN).say == LISTENING and d.hear("go to sleep", KNOWN).say == STANDING_BY
+    reply = d.hear(utterance, KNOWN)
+    assert reply.stop and reply.accepted and reply.say.startswith("Roger: ") and reply.say.endswith(", stop")
+    assert [(t.verb, t.preposition, t.destination) for t in reply.tasks] == [
+        ("RemoteBotMotion", "cancel", r) for r in robots]
+    assert d.listening is (state == "listening")  # a stop answers without waking the dialogue
+
+
+def test_stop_reaches_lost_robots_and_says_so():
+    team = {n: RobotView(n, up=n != "robot3", silent=12.4 if n == "robot3" else 0.2) for n in KNOWN[:3]}
+    d = Dialogue(Naming(), verb="BotMotion", listening=False)
+    reply = d.hear("everyone stop", team)
+    assert [t.destination for t in reply.tasks] == ["robot1", "robot2", "robot3"]
+    assert reply.say == "Roger: everyone, stop (robot 3 is lost (not heard for 12 s): it gets the stop when heard again)"
+    reply = d.hear("robots 1 and 9 stop", team)
+    assert [t.destination for t in reply.tasks] == ["robot1"] and reply.say == "Roger: robot 1, stop (I don't know robot 9)"
+
+
+def test_commands_to_lost_robots_are_refused_or_leave_them_out():
+    team = {n: RobotView(n, up=n != "robot3", silent=30.0 if n == "robot3" else 0.1) for n in KNOWN[:3]}
+    d = Dialogue(Naming(), verb="BotMotion")
+    refused = d.hear("robot 3 turn left", team)
+    assert (refused.say, refused.tasks, refused.accepted) == ("Robot 3 is lost (not heard for 30 s): nothing sent", [],
+                                                              False)
+    assert d.hear("robots 1 and 3 go forward 1", team).say == "Robot 3 is lost (not heard for 30 s): nothing sent"
+    walk = d.hear("everyone random walk", team)
+    assert [t.destination for t in walk.tasks] == ["robot1", "robot2"]
+    assert walk.say == "Roger: robots 1 and 2, random walk (robot 3 is lost (not heard for 30 s), left out)"
+    assert d.hear("how many robots", team).say == "3 robots, 2 up; robot 3 is lost (not heard for 30 s)"
+
+
+def test_naming_robots_without_a_verb_selects_them():
+    d = Dialogue(Naming(), verb="BotMotion")
+    d.select(["robot2"])
+    reply = d.hear("robots one and three", KNOWN)
+    assert (reply.say, reply.targets, reply.tasks, reply.accepted) == ("Selected robots 1 and 3", ["robot1", "robot3"],
+                                                                      [], True)
+    assert [(t.destination, t.params.angle) for t in d.hear("turn left 10 degrees", KNOWN).tasks] == [
+        ("robot1", 10.0), ("robot3", 10.0)]
+    assert d.hear("everybody", KNOWN).say == "Selected everyone" and d.targets == KNOWN
+    assert d.hear("robot 9", KNOWN).say == "I don't know robot 9; I know robots 1, 2, 3, 4, 5 and 6"
+    assert d.targets == KNOWN  # a refusal keeps the targets
+
+
+@pytest.mark.parametrize("utterance,say", [
+    ("robots 5 and 6 turn right 90 degrees", "Roger: robots 5 and 6, turn right 90 degrees"),
+    ("go forward 2 feet", "Roger: robot 2, go forward 0.61 metres"),
+    ("robot 3 go to minus two point five and 1", "Roger: robot 3, go to x -2.5, y 1"),
+    ("everyone random walk", "Roger: everyone, random walk"),
+    ("robot 1 go back 1 metre", "Roger: robot 1, go back 1 metre"),
+    ("robot 4 turn around", "Roger: robot 4, turn around"),
+    ("robot 2 teleport to 0 0 facing 90", "Roger: robot 2, teleport to x 0, y 0, facing 90 degrees"),
+    ("robot 1 set velocity to 0.3", "Roger: robot 1, drive at 0.3 metres per second"),
+    ("robot 1 stop avoiding obstacles", "Roger: robot 1, stop avoiding obstacles"),
+    ("robot 2 relay between robot 1 and robot 3", "Roger: robot 2, relay between robot 1 and robot 3"),
+    ("robot 1 relay between 2 and base", "Roger: robot 1, relay between robot 2 and the control node"),
+    ("robots 1 and 2 patrol from 0 0 to 5 -5", "Roger: robots 1 and 2, patrol from 0, -5 to 5, 0"),
+    ("cancel", "Roger: robot 2, cancel your tasks"),
+])
+def test_roger_restates_what_will_be_done(utterance, say):
+    assert dialogue().hear(utterance, KNOWN).say == say
+
+
+def test_status_questions_are_answered_from_the_team_state():
+    team = {"robot1": RobotView("robot1", x=1.234, y=-2.0, theta=1.5708, battery=12.46, link=0.93,
+                                doing="busy: go to x 3, y 4 (running 40%)"),
+            "robot2": RobotView("robot2", x=0.0, y=0.0, theta=0.0, battery=11.0),
+            "robot3": RobotView("robot3", up=False, silent=61.0)}
+    d = Dialogue(Naming(), verb="BotMotion")
+    ask = lambda text: d.hear(text, team)  # noqa: E731
+    assert ask("robot one status").say == ("Robot 1: at x 1.2, y -2.0, heading 90 degrees; busy: go to x 3, y 4 "
+                                           "(running 40%); battery 12.5 volts; link up, best link quality 0.93")
+    assert ask("where are you").say == "Robot 1 is at x 1.2, y -2.0, heading 90 degrees"  # the last robot named
+    assert ask("what is robot 2 doing").say == "Robot 2 is idle"
+    assert ask("what are you doing").say == "Robot 2 is idle"
+    assert ask("what is your battery").say == "Robot 2 battery 11.0 volts"
+    assert ask("robot 3 what is your link quality").say == "Robot 3 link lost, not heard for 61 s"
+    assert ask("where is robot 3").say == "Robot 3: position unknown (link lost, not heard for 61 s)"
+    assert ask("how many robots are there").say == "3 robots, 2 up; robot 3 is lost (not heard for 61 s)"
+    assert ask("where is everyone").say.count(";") == 2
+    for text in ("robot one status", "where is everyone", "how many robots"):
+        assert ask(text).tasks == [] and ask(text).accepted
+
+
+FILLERS = ["please", "uh", "um", "hey", "okay", "now", "thank you", "could you"]
+
+
+@given(st.sampled_from([(u, e) for u, e in TABLE if not isinstance(e, str)]),
+       st.lists(st.tuples(st.integers(0, 12), st.sampled_from(FILLERS)), max_size=3))
+def test_politeness_and_fillers_anywhere_change_nothing(entry, fillers):
+    utterance, _ = entry
+    words = utterance.split()
+    for at, filler in fillers:
+        words.insert(min(at, len(words)), filler)
+    plain, polite = dialogue().hear(utterance, KNOWN), dialogue().hear(" ".join(words), KNOWN)
+    assert (polite.say, polite.targets) == (plain.say, plain.targets)
+    assert [(t.verb, t.preposition, t.destination, t.params) for t in polite.tasks] == [
+        (t.verb, t.preposition, t.destination, t.params) for t in plain.tasks]
+
+
 def test_targets_stay_until_new_ones_are_named():
     d = Dialogue(Naming(), verb="BotMotion")
-    assert d.hear("go forward 1", KNOWN).say == "Which robots?"
+    assert d.hear("go forward 1", KNOWN).say == "Which robots? Say robot 1, robots 1 and 2, or everyone"
     d.hear("robots 5 and 6 turn right 90 degrees", KNOWN)
     assert [t.destination for t in d.hear("go forward 2 feet", KNOWN).tasks] == ["robot5", "robot6"]
-    assert d.hear("robot 9 stop", KNOWN).say == "I don't know robot 9"  # a refusal keeps the targets
+    assert d.hear("robot 9 turn left", KNOWN).say.startswith("I don't know robot 9")  # a refusal keeps the targets
     assert [t.destination for t in d.hear("cancel", KNOWN).tasks] == ["robot5", "robot6"]
     d.hear("everyone stop", KNOWN)
     assert [t.destination for t in d.hear("turn left", KNOWN).tasks] == KNOWN
-    assert d.hear("everyone stop", []).say == "I don't know any robots"
+    assert d.hear("everyone turn left", []).say == "I don't know any robots yet"
+    assert d.hear("everyone stop", []).say == "I don't know any robots to stop"
 
 
 def test_robot_numbers_map_to_configured_agent_names():
@@ -178,6 +319,7 @@ def test_robot_numbers_map_to_configured_agent_names():
     d = Dialogue(naming, verb="BotMotion")
     assert [t.destination for t in d.hear("robot 3 stop", ["amigo-3"]).tasks] == ["amigo-3"]
     assert d.hear("robot 3 stop", ["robot3"]).say == "I don't know robot 3"
+    assert d.hear("robot 3 turn left", ["robot3"]).say == "I don't know robot 3"
     with pytest.raises(ValueError, match=r"robot naming 'robot': expected a pattern with one \{n\}"):
         Naming("robot")
 
@@ -190,7 +332,8 @@ def test_a_strategy_without_a_spoken_form_is_said_by_name():
         assert [(t.verb, t.preposition, t.destination) for t in task] == [("Deploy", "form_line", r) for r in KNOWN]
     finally:
         del PREPOSITIONS[("Deploy", "form_line")]
-    assert dialogue("RemoteBotMotion").hear("everyone form line", KNOWN).say == "I didn't understand form"
+    assert dialogue("RemoteBotMotion").hear("everyone form line", KNOWN).say == ("I didn't understand form; say a command like "
+                                                                              "robot 1 go forward 2 metres")
 
 
 def test_an_action_the_tier_lacks_is_refused_by_name():
@@ -206,7 +349,7 @@ def test_vocabulary_covers_every_word_of_the_table():
         if isinstance(expected, str):
             continue
         for word in tokens(utterance):
-            if word.isalpha() and word not in ("m", "goto", "randomwalk"):
+            if word.isalpha() and word not in ("m", "goto", "randomwalk", "banana"):
                 assert word in vocab, (word, utterance)
 
 
