@@ -39,7 +39,10 @@ class UISettings(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     listen: str = Field("127.0.0.1:8080", description="HOST:PORT of the GUI (0 = any free port)")
-    token: SecretStr | None = Field(None, description="access token; generated when listening beyond localhost")
+    token: SecretStr | None = Field(None, description="access token of the page (printed in its URL); generated "
+                                    "when not set, on localhost too")
+    allowed_hosts: list[str] = Field(default_factory=list, description="extra host names the page may be "
+                                     "opened by (a reverse proxy's, a DNS name of this host)")
     verb: Literal["RemoteBotMotion", "BotMotion"] = Field(
         "RemoteBotMotion", description="verb of the tasks sent to robots (BotMotion: teams without MissionControl)")
     robot_names: str = Field("robot{n}", description="agent name of robot n")
@@ -60,6 +63,13 @@ class UISettings(BaseModel):
     @classmethod
     def _check_listen(cls, v: str) -> str:
         parse_address(v)
+        return v
+
+    @field_validator("token")
+    @classmethod
+    def _check_token(cls, v: SecretStr | None) -> SecretStr | None:
+        if v is not None and len(v.get_secret_value()) < 8:
+            raise ValueError("expected at least 8 characters (or leave it out: one is generated)")
         return v
 
     @field_validator("floorplan")
@@ -112,16 +122,16 @@ class UIPlugin(Plugin[UISettings]):
         self._stopping = threading.Event()
         self.floorplan = load_floorplan(s.floorplan).model_dump(mode="json") if s.floorplan else None
         host, port = parse_address(s.listen)
-        token = s.token.get_secret_value() if s.token else None
-        if token is None and not is_loopback(host):
-            token = secrets.token_urlsafe(12)
+        # always a token, on localhost too: any local program or web page could otherwise drive the robots
+        token = s.token.get_secret_value() if s.token else secrets.token_urlsafe(16)
         self.speaker = Speaker(voice=s.voice).start() if s.speak else None
         self.listener: Listener | None = None
         self.speech_error = ""
         self._start_speech(s)
         self.server = WebServer(host, port, token=token, on_message=self._from_page, on_audio=self._audio,
                                 on_close=self._page_closed, rate_hz=s.rate_hz,
-                                announce=lambda url: print(f"ERNI GUI: {url}", flush=True))
+                                announce=lambda url: print(f"ERNI GUI: {url}", flush=True),
+                                allowed_hosts=tuple(s.allowed_hosts))
         self.server.publish(self.picture())
         try:
             self.server.start()
@@ -129,7 +139,7 @@ class UIPlugin(Plugin[UISettings]):
             self.teardown()
             raise
         self.url = self.server.url
-        self.log.info("GUI of %s at %s", me, self.url.split("?")[0] + (" (token required)" if token else ""))
+        self.log.info("GUI of %s at %s (token required)", me, self.url.split("?")[0])
         self._log("info", f"control node {me} serving the GUI; tasks go as {s.verb}")
         if self.speech_error:
             self._log("warn", self.speech_error)
@@ -425,8 +435,7 @@ class UIPlugin(Plugin[UISettings]):
                 raise Refusal("Select robots first (checkbox, click, or shift-drag a rectangle)")
             tasks = tasks_for(msg.action, msg.params, robots, verb=self.settings.verb, source=self.agent_name)
         except Refusal as why:
-            self.server.emit({"type": "reply", "text": str(why), "heard": "", "channel": "page", "client": client,
-                              "accepted": False})
+            self.server.emit({"type": "error", "message": str(why)}, client)
             return
         self._send(msg.action, tasks)
         views = self.views()

@@ -1,17 +1,25 @@
 """The GUI's web server: aiohttp (HTTP + WebSocket) on thread `ui-http` with its own asyncio loop.
 
 The plugin hands the server plain data (`publish(state)`, `emit(event)`) under a lock; a pump
-on the server's loop sends the newest state to every page at most `rate_hz` times a second,
-and events as they come. Page messages are validated (`protocol.parse_message`) and handed
-to the plugin's callbacks; nothing on this thread touches the blackboard.
+on the server's loop sends the newest state to every page when it changed, at most `rate_hz`
+times a second, and events at once. Page messages are validated (`protocol.parse_message`)
+and handed to the plugin's callbacks; nothing on this thread touches the blackboard.
+
+Every request is checked before it is served (`_guard`): the `Host` header must name this
+control node (a local address, localhost, this host's name, or a name in `allowed_hosts`), so
+a page whose own domain was rebound to this address (DNS rebinding) is refused; a request that
+carries an `Origin` must come from this same origin, so a page of another site cannot open the
+WebSocket or read the state; and everything but the page's static assets needs the token.
 """
 
 from __future__ import annotations
 
 import asyncio
 import hmac
+import ipaddress
 import json
 import logging
+import socket
 import threading
 from collections import deque
 from collections.abc import Callable
@@ -39,15 +47,72 @@ def load_assets(folder: Path) -> dict[str, tuple[bytes, str]]:
             for f in sorted(folder.iterdir()) if f.is_file()}
 
 
+_ANY = ("0.0.0.0", "", "::")
+
+
+def public_address(family: int = socket.AF_INET) -> str:
+    """This host's address on its default route (what a remote operator can open); loopback if none.
+
+    A UDP socket "connected" to a documentation address sends nothing but makes the kernel pick
+    the outgoing interface, whose address is the answer.
+    """
+    probe = ("192.0.2.1", 9) if family == socket.AF_INET else ("2001:db8::1", 9)
+    try:
+        with socket.socket(family, socket.SOCK_DGRAM) as s:
+            s.connect(probe)
+            address = str(s.getsockname()[0])
+    except OSError:
+        address = ""
+    if address and not ipaddress.ip_address(address).is_unspecified:
+        return address
+    try:
+        address = socket.gethostbyname(socket.gethostname())
+    except OSError:
+        address = ""
+    return address or ("127.0.0.1" if family == socket.AF_INET else "::1")
+
+
+def is_local_address(host: str) -> bool:
+    """True when `host` is an IP address of this machine (it can be bound)."""
+    try:
+        ip = ipaddress.ip_address(host.strip("[]"))
+    except ValueError:
+        return False
+    family = socket.AF_INET6 if ip.version == 6 else socket.AF_INET
+    try:
+        with socket.socket(family, socket.SOCK_DGRAM) as s:
+            s.bind((str(ip), 0))
+        return True
+    except OSError:
+        return False
+
+
+def split_host(value: str) -> tuple[str, int | None]:
+    """`host:port`, `[v6]:port`, `host` -> (lower-case host, port or None)."""
+    value = value.strip().lower()
+    if value.startswith("["):
+        end = value.find("]")
+        host, rest = value[1:end], value[end + 1:]
+        return host, int(rest[1:]) if rest.startswith(":") and rest[1:].isdigit() else None
+    if value.count(":") == 1:
+        host, _, port = value.partition(":")
+        return host, int(port) if port.isdigit() else None
+    return value, None
+
+
 class WebServer:
     """Serves the page and its WebSocket; `start()` returns once the port is bound."""
 
-    def __init__(self, host: str, port: int, *, token: str | None, on_message: Callable[[str, Any], None],
+    def __init__(self, host: str, port: int, *, token: str, on_message: Callable[[str, Any], None],
                  on_audio: Callable[[str, bytes], None], on_close: Callable[[str], None],
                  rate_hz: float = 10.0, static_dir: Path = STATIC,
-                 announce: Callable[[str], None] | None = None) -> None:
+                 announce: Callable[[str], None] | None = None, allowed_hosts: tuple[str, ...] = ()) -> None:
+        if not token:
+            raise NetworkError("the GUI needs a token (an empty one would let any local program in)")
         self.host, self.port = host, port
         self.token = token
+        self.allowed_hosts = {h.lower() for h in allowed_hosts}
+        self._host_ok: dict[str, bool] = {}
         self.on_message, self.on_audio, self.on_close = on_message, on_audio, on_close
         self.period = 1.0 / rate_hz
         self.static_dir = static_dir
@@ -63,6 +128,8 @@ class WebServer:
         self._error: BaseException | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._stopping: asyncio.Event | None = None
+        self._wake: asyncio.Event | None = None
+        self.refused = 0
         self._thread = threading.Thread(target=self._run, name="ui-http", daemon=True)
 
     # -- from the plugin's threads ----------------------------------------------------------
@@ -85,16 +152,49 @@ class WebServer:
 
     @property
     def url(self) -> str:
-        """The address to open, with the token when one is required."""
-        host = "127.0.0.1" if self.host in ("0.0.0.0", "") else self.host
+        """The address a browser opens, with the token; bound to any address: this host's real address."""
+        host = self.host
+        if host in _ANY:
+            host = public_address(socket.AF_INET6 if host == "::" else socket.AF_INET)
         host = f"[{host}]" if ":" in host else host
-        return f"http://{host}:{self.port}/" + (f"?token={self.token}" if self.token else "")
+        return f"http://{host}:{self.port}/?token={self.token}"
+
+    def host_allowed(self, name: str) -> bool:
+        """True when a Host header naming `name` addresses this control node (not a rebound domain).
+
+        Accepted: an IP address of this machine (what a user types), localhost, this host's own
+        names, and the names in `allowed_hosts`. Any other domain name is refused: a page whose
+        domain was rebound to this address still sends its own name.
+        """
+        name = name.lower().strip("[]")
+        ok = self._host_ok.get(name)
+        if ok is None:
+            if name in self.allowed_hosts or name in ("localhost", socket.gethostname().lower(),
+                                                      socket.getfqdn().lower()):
+                ok = True
+            elif _is_ip(name):
+                ok = not ipaddress.ip_address(name).is_unspecified and is_local_address(name)
+            else:
+                ok = False
+            if len(self._host_ok) < 256:  # hostile Host headers must not grow the cache without end
+                self._host_ok[name] = ok
+        return ok
 
     def publish(self, state: dict[str, Any]) -> None:
         """Make `state` (JSON-ready data) the newest state; pages get it on the next pump."""
         with self._lock:
             self._state = state
             self._version += 1
+        self._nudge()
+
+    def _nudge(self) -> None:
+        """Wake the pump now (from any thread)."""
+        loop, wake = self._loop, self._wake
+        if loop is not None and wake is not None and not loop.is_closed():
+            try:
+                loop.call_soon_threadsafe(wake.set)
+            except RuntimeError:  # the loop closed meanwhile
+                pass
 
     def state(self) -> dict[str, Any]:
         """Return the newest published state."""
@@ -102,9 +202,10 @@ class WebServer:
             return self._state
 
     def emit(self, event: dict[str, Any], client: str | None = None) -> None:
-        """Send an event to one page (`client`) or to all."""
+        """Send an event to one page (`client`) or to all, at once."""
         with self._lock:
             self._events.append((client, event))
+        self._nudge()
 
     # -- the server's thread ----------------------------------------------------------------
 
@@ -122,7 +223,8 @@ class WebServer:
 
     async def _main(self) -> None:
         self._stopping = asyncio.Event()
-        app = web.Application(middlewares=[self._auth], client_max_size=MAX_AUDIO_FRAME)
+        self._wake = asyncio.Event()
+        app = web.Application(middlewares=[self._guard], client_max_size=MAX_AUDIO_FRAME)
         self.assets = load_assets(self.static_dir)
         app.router.add_get("/", self._index)
         app.router.add_get("/ws", self._websocket)
@@ -138,6 +240,7 @@ class WebServer:
                 self.announce(self.url)
             self._ready.set()
             pump = asyncio.create_task(self._pump())
+            self._nudge()
             await self._stopping.wait()
             pump.cancel()
             for ws in list(self.clients.values()):
@@ -145,13 +248,36 @@ class WebServer:
         finally:
             await runner.cleanup()
 
+    def refusal(self, request: web.Request) -> str | None:
+        """Why a request may not be served (one line), or None: Host, Origin and token are checked."""
+        host_header = request.headers.get("Host", "")
+        host, _ = split_host(host_header)
+        if not host or not self.host_allowed(host):
+            return (f"Host {host_header!r} is not this control node (a page of another site, or a domain "
+                    "rebound to this address); open the URL the control node printed, or add the name "
+                    "to the UI's allowed_hosts")
+        origin = request.headers.get("Origin")
+        if origin is not None:
+            scheme, _, rest = origin.lower().partition("://")
+            if scheme not in ("http", "https") or rest != host_header.lower():
+                return f"a page from {origin[:100]!r} may not use this control node (only its own page may)"
+        if request.path.startswith("/static/"):
+            return None  # the page's assets are not secret
+        given = request.query.get("token", "")
+        bearer = request.headers.get("Authorization", "")
+        if bearer.startswith("Bearer "):
+            given = given or bearer[7:]
+        if not hmac.compare_digest(given.encode(), self.token.encode()):
+            return "missing or wrong token: open the URL the control node printed (it ends with ?token=...)"
+        return None
+
     @web.middleware
-    async def _auth(self, request: web.Request, handler: Callable[..., Any]) -> web.StreamResponse:
-        if self.token and not request.path.startswith("/static/"):
-            given = request.query.get("token", "")
-            if not hmac.compare_digest(given.encode(), self.token.encode()):
-                return web.Response(status=403, text="missing or wrong token: open the URL the control "
-                                    "node printed (it ends with ?token=...)\n")
+    async def _guard(self, request: web.Request, handler: Callable[..., Any]) -> web.StreamResponse:
+        why = self.refusal(request)
+        if why is not None:
+            self.refused += 1
+            log.info("refused %s %s: %s", request.method, request.path, why)
+            return web.Response(status=403, text=why + "\n")
         response: web.StreamResponse = await handler(request)
         return response
 
@@ -216,15 +342,26 @@ class WebServer:
         await ws.send_str(json.dumps({"type": "error", "message": why}))
 
     async def _pump(self) -> None:
-        sent = -1
+        """Send events at once and the state when it changed, at most once a period; idle, send nothing."""
+        assert self._wake is not None
+        loop = asyncio.get_running_loop()
+        sent, last = -1, -self.period
         while True:
-            await asyncio.sleep(self.period)
+            with self._lock:
+                pending = self._version != sent
+            wait = max(0.0, last + self.period - loop.time()) if pending else None
+            if wait is None or wait > 0:
+                try:
+                    await asyncio.wait_for(self._wake.wait(), timeout=wait)
+                except TimeoutError:
+                    pass
+            self._wake.clear()
             with self._lock:
                 version, state = self._version, self._state
                 events = list(self._events)
                 self._events.clear()
-            if version != sent:
-                sent = version
+            if version != sent and loop.time() - last >= self.period:
+                sent, last = version, loop.time()
                 text = json.dumps({"type": "state", **state})
                 await asyncio.gather(*(self._send(ws, text) for ws in list(self.clients.values())))
             for client, event in events:
@@ -239,3 +376,11 @@ class WebServer:
             await asyncio.wait_for(ws.send_str(text), timeout=2.0)
         except (TimeoutError, ConnectionResetError, RuntimeError):
             pass
+
+
+def _is_ip(host: str) -> bool:
+    try:
+        ipaddress.ip_address(host.strip("[]"))
+        return True
+    except ValueError:
+        return False

@@ -44,19 +44,29 @@ def base(ui: UIPlugin) -> str:
     return f"http://127.0.0.1:{ui.server.port}"
 
 
-async def fetch(url: str) -> tuple[int, str]:
-    async with aiohttp.ClientSession() as s, s.get(url) as r:
+def token(ui: UIPlugin) -> str:
+    return ui.server.token
+
+
+def tok(ui: UIPlugin, path: str) -> str:
+    """The URL of `path` with the page's token."""
+    return f"{base(ui)}{path}{'&' if '?' in path else '?'}token={token(ui)}"
+
+
+async def fetch(url: str, headers: dict[str, str] | None = None) -> tuple[int, str]:
+    async with aiohttp.ClientSession() as s, s.get(url, headers=headers or {}) as r:
         return r.status, await r.text()
 
 
-def get(url: str) -> tuple[int, str]:
-    return asyncio.run(fetch(url))
+def get(url: str, headers: dict[str, str] | None = None) -> tuple[int, str]:
+    return asyncio.run(fetch(url, headers))
 
 
-async def talk(url: str, sends: list[Any], until: Any, timeout: float = 5.0) -> list[dict[str, Any]]:
+async def talk(url: str, sends: list[Any], until: Any, timeout: float = 5.0,
+               headers: dict[str, str] | None = None) -> list[dict[str, Any]]:
     """Open the WebSocket, send each message (text or bytes), collect messages until `until(msgs)`."""
     got: list[dict[str, Any]] = []
-    async with aiohttp.ClientSession() as s, s.ws_connect(url) as ws:
+    async with aiohttp.ClientSession() as s, s.ws_connect(url, headers=headers or {}) as ws:
         for m in sends:
             await (ws.send_bytes(m) if isinstance(m, bytes) else ws.send_str(m if isinstance(m, str) else json.dumps(m)))
         loop = asyncio.get_running_loop()
@@ -72,8 +82,10 @@ async def talk(url: str, sends: list[Any], until: Any, timeout: float = 5.0) -> 
     return got
 
 
-def ws_run(ui: UIPlugin, sends: list[Any], until: Any, query: str = "") -> list[dict[str, Any]]:
-    return asyncio.run(talk(f"ws://127.0.0.1:{ui.server.port}/ws{query}", sends, until))
+def ws_run(ui: UIPlugin, sends: list[Any], until: Any, query: str | None = None,
+           headers: dict[str, str] | None = None) -> list[dict[str, Any]]:
+    query = f"?token={token(ui)}" if query is None else query
+    return asyncio.run(talk(f"ws://127.0.0.1:{ui.server.port}/ws{query}", sends, until, headers=headers))
 
 
 def of(msgs: list[dict[str, Any]], kind: str) -> list[dict[str, Any]]:
@@ -82,14 +94,14 @@ def of(msgs: list[dict[str, Any]], kind: str) -> list[dict[str, Any]]:
 
 def test_page_assets_and_state_are_served(control):
     agent, ui = control()
-    assert ui.url == f"http://127.0.0.1:{ui.server.port}/"
-    status, html = get(base(ui) + "/")
+    assert ui.url == f"http://127.0.0.1:{ui.server.port}/?token={token(ui)}" and len(token(ui)) >= 16
+    status, html = get(ui.url)
     assert status == 200 and '<svg id="map"' in html and "static/app.js" in html
     for asset, marker in [("app.js", "new WebSocket"), ("style.css", ".robot.lost"), ("icon.svg", "<svg")]:
         status, text = get(f"{base(ui)}/static/{asset}")
         assert status == 200 and marker in text
     assert get(base(ui) + "/static/missing.js")[0] == 404
-    state = wait_until(lambda: (s := json.loads(get(base(ui) + "/api/state")[1])).get("robots") and s, timeout=5)
+    state = wait_until(lambda: (s := json.loads(get(tok(ui, "/api/state"))[1])).get("robots") and s, timeout=5)
     assert [(r["name"], r["number"], r["state"], r["pose"]["x"]) for r in state["robots"]] == [
         ("robot1", 1, "ok", 0.0), ("robot2", 2, "ok", 1.0)]
     assert state["verb"] == "BotMotion" and state["speech"]["available"] is False
@@ -107,23 +119,69 @@ def test_low_battery_and_stall_show_as_abnormal(control):
         ("warn", ["battery 10.4 V"]), ("warn", ["stalled"])]
 
 
-def test_a_token_is_required_when_set_and_generated_beyond_localhost(control):
-    agent, ui = control(token="s3cret")
-    assert ui.url.endswith("/?token=s3cret")
-    status, text = get(base(ui) + "/")
-    assert status == 403 and "open the URL the control node printed" in text
-    assert get(base(ui) + "/?token=wrong")[0] == 403
-    assert get(base(ui) + "/?token=s3cret")[0] == 200
-    assert get(base(ui) + "/static/app.js")[0] == 200  # assets are not secret
-    msgs = ws_run(ui, [], lambda m: of(m, "state"), query="?token=s3cret")
-    assert of(msgs, "hello")
-    with pytest.raises(aiohttp.WSServerHandshakeError):
-        ws_run(ui, [], lambda m: False)
+def test_a_token_is_required_on_localhost_too(control):
+    agent, ui = control()
+    for path in ("/", "/api/state"):
+        status, text = get(base(ui) + path)
+        assert status == 403 and text.startswith("missing or wrong token: open the URL the control node printed")
+        assert get(base(ui) + path + "?token=wrong")[0] == 403
+        assert get(tok(ui, path))[0] == 200
+    assert get(base(ui) + "/api/state", {"Authorization": f"Bearer {token(ui)}"})[0] == 200
+    assert get(base(ui) + "/static/app.js")[0] == 200  # the page's assets are not secret
+    with pytest.raises(aiohttp.WSServerHandshakeError) as refused:
+        ws_run(ui, [], lambda m: False, query="")
+    assert refused.value.status == 403
+    assert of(ws_run(ui, [], lambda m: of(m, "state")), "hello")
+    agent2, set_ui = control(token="s3cret-enough")
+    assert set_ui.url.endswith("/?token=s3cret-enough") and get(set_ui.url)[0] == 200
     assert is_loopback("127.0.0.1") and is_loopback("localhost") and is_loopback("::1")
     assert not is_loopback("0.0.0.0") and not is_loopback("10.0.0.5")
-    agent2, open_ui = control(listen="0.0.0.0:0")
-    token = open_ui.url.split("?token=")[1]
-    assert len(token) >= 16 and get(f"http://127.0.0.1:{open_ui.server.port}/")[0] == 403
+    from erni import ConfigError
+
+    with pytest.raises(ConfigError, match="token: expected at least 8 characters"):
+        Agent("x").add_plugin(UIPlugin, settings={"token": "short"})
+
+
+def test_a_page_of_another_origin_can_neither_open_the_websocket_nor_read_the_state(control):
+    agent, ui = control()
+    for origin in ("http://evil.example", f"http://evil.example:{ui.server.port}", "null",
+                   f"http://127.0.0.1:{ui.server.port + 1}", f"https://localhost:{ui.server.port}"):
+        with pytest.raises(aiohttp.WSServerHandshakeError) as refused:  # the token leaked: still refused
+            ws_run(ui, [{"type": "command", "robots": ["robot1"], "action": "forward", "params": {"distance": 1}}],
+                   lambda m: False, headers={"Origin": origin})
+        assert refused.value.status == 403, origin
+        status, text = get(tok(ui, "/api/state"), {"Origin": origin})
+        assert status == 403 and "may not use this control node" in text, origin
+    assert not agent.query(Task)
+    same = {"Origin": f"http://127.0.0.1:{ui.server.port}"}  # the page itself
+    assert of(ws_run(ui, [], lambda m: of(m, "state"), headers=same), "hello")
+    assert ui.server.refused == 10
+
+
+def test_dns_rebinding_is_refused_by_the_host_header(control):
+    agent, ui = control()
+    port = ui.server.port
+    for host in (f"evil.example:{port}", "evil.example", f"rebind.127.0.0.1.nip.io:{port}", f"0.0.0.0:{port}"):
+        for path in ("/", "/api/state", "/static/app.js"):
+            status, text = get(tok(ui, path), {"Host": host})
+            assert status == 403 and text.startswith(f"Host {host!r} is not this control node"), (host, path)
+        with pytest.raises(aiohttp.WSServerHandshakeError):
+            ws_run(ui, [], lambda m: False, headers={"Host": host, "Origin": f"http://{host}"})
+    for host in (f"localhost:{port}", f"127.0.0.1:{port}", f"[::1]:{port}", f"127.0.0.1"):
+        assert get(tok(ui, "/"), {"Host": host})[0] == 200, host
+    agent2, named = control(allowed_hosts=["gui.lab.example"])
+    assert get(f"{base(named)}/?token={token(named)}", {"Host": "gui.lab.example"})[0] == 200
+
+
+def test_bound_to_any_address_the_printed_url_names_this_host(control):
+    from erni.plugins.ui.server import is_local_address, public_address
+
+    agent, ui = control(listen="0.0.0.0:0")
+    host = ui.url.split("//")[1].split(":")[0]
+    assert host == public_address() and is_local_address(host)
+    if not is_loopback(public_address()):  # a machine with a network: never the useless 127.0.0.1
+        assert host != "127.0.0.1"
+    assert get(ui.url)[0] == 200 and get(ui.url.split("?")[0])[0] == 403
 
 
 def test_typed_utterance_becomes_tasks_and_a_spoken_reply(control):
@@ -131,7 +189,8 @@ def test_typed_utterance_becomes_tasks_and_a_spoken_reply(control):
     msgs = ws_run(ui, [{"type": "say", "text": "robots 1 and 2 go forward 2 feet", "selection": []}],
                   lambda m: of(m, "reply"))
     reply = of(msgs, "reply")[0]
-    assert (reply["text"], reply["accepted"], reply["channel"]) == ("Roger", True, "typed")
+    assert (reply["text"], reply["accepted"], reply["channel"]) == ("Roger: robots 1 and 2, go forward 0.61 metres",
+                                                                    True, "typed")
     assert reply["client"] == of(msgs, "hello")[0]["client"]
     tasks = wait_until(lambda: len(t := agent.query(Task)) == 2 and t, timeout=5)
     assert sorted((t.verb, t.preposition, t.destination, t.params.distance, t.source) for t in tasks) == [
@@ -201,7 +260,7 @@ def test_a_broken_vosk_model_leaves_typed_commands_working(control, tmp_path):
     msgs = ws_run(ui, [{"type": "mic", "on": True}, {"type": "say", "text": "robot 1 stop", "selection": []}],
                   lambda m: of(m, "error") and of(m, "reply"))
     assert of(msgs, "error")[0]["message"].startswith("speech recognition off: cannot load the vosk model")
-    assert of(msgs, "reply")[0]["text"] == "Roger"
+    assert of(msgs, "reply")[0]["text"] == "Roger: robot 1, stop"
 
 
 def test_the_floorplan_is_served_and_bad_files_are_refused_by_name(control, tmp_path):
@@ -209,7 +268,7 @@ def test_the_floorplan_is_served_and_bad_files_are_refused_by_name(control, tmp_
     plan.write_text('bounds = [0, 0, 4, 3]\n[[wall]]\na = [1, 0]\nb = [1, 2]\n[[circle]]\ncenter = [3, 1]\nradius = 0.2\n'
                     '[[robot]]\nx = 0.5\n')
     agent, ui = control(floorplan=str(plan))
-    fp = json.loads(get(base(ui) + "/api/state")[1])["floorplan"]
+    fp = json.loads(get(tok(ui, "/api/state"))[1])["floorplan"]
     assert fp == {"bounds": [0.0, 0.0, 4.0, 3.0], "wall": [{"a": [1.0, 0.0], "b": [1.0, 2.0]}],
                   "circle": [{"center": [3.0, 1.0], "radius": 0.2}], "polygon": []}
     from erni import ConfigError
@@ -246,7 +305,45 @@ def test_robots_outside_the_naming_pattern_are_shown_by_name_and_the_token_is_no
     import logging
 
     caplog.set_level(logging.INFO, logger="erni")
-    agent, ui = control(robots=("robot2", "scout"), token="hush")
+    agent, ui = control(robots=("robot2", "scout"), token="hush-hush-hush")
     state = wait_until(lambda: len((s := ui.server.state())["robots"]) == 2 and s, timeout=5)
     assert [(r["name"], r["number"]) for r in state["robots"]] == [("robot2", 2), ("scout", "sc")]
-    assert "hush" not in caplog.text and "(token required)" in caplog.text
+    assert "hush-hush-hush" not in caplog.text and "(token required)" in caplog.text
+
+
+def test_stop_acts_in_every_state_by_voice_typing_and_the_button(control):
+    agent, ui = control(robots=("robot1", "robot2", "robot3"))
+    assert ui.spoken.listening is False  # voice starts standing by
+    ui._recognised("wav", "everyone stop")  # heard while standing by: still acts, and is answered
+    stops = wait_until(lambda: len(t := [t for t in agent.query(Task) if t.preposition == "clear"]) == 3 and t,
+                       timeout=5)
+    assert sorted(t.destination for t in stops) == ["robot1", "robot2", "robot3"]
+    wait_until(lambda: any("voice: \u201ceveryone stop\u201d \u2192 Roger: everyone, stop" in line["text"]
+                           for line in ui.server.state()["log"]), timeout=5)
+    assert ui.spoken.listening is False
+    msgs = ws_run(ui, [{"type": "say", "text": "go to sleep", "selection": []},
+                       {"type": "say", "text": "freeze", "selection": []}],
+                  lambda m: len(of(m, "reply")) == 2)
+    assert [r["text"] for r in of(msgs, "reply")] == ["Standing by", "Roger: everyone, stop"]
+    before = len(agent.query(Task))
+    msgs = ws_run(ui, [{"type": "command", "robots": [], "action": "stop", "params": {}}], lambda m: of(m, "reply"))
+    assert of(msgs, "reply")[0]["text"] == "Roger: robots 1, 2 and 3, stop"  # nothing selected: everyone
+    wait_until(lambda: len(agent.query(Task)) >= before, timeout=5)
+    msgs = ws_run(ui, [{"type": "command", "robots": [], "action": "forward", "params": {"distance": 1}}],
+                  lambda m: of(m, "error"))
+    assert of(msgs, "error")[0]["message"].startswith("Select robots first")
+
+
+def test_a_task_withdrawn_by_its_client_keeps_a_row_and_a_line(control):
+    agent, ui = control()
+    walk = Task(verb="BotMotion", preposition="randomwalk", source="cli-1234", destination="robot1")
+    with agent.transaction() as tx:
+        tx.add(walk)
+    wait_until(lambda: any(r["uid"] == walk.uid for r in ui.server.state()["tasks"]), timeout=5)
+    with agent.transaction() as tx:  # as the transport does when the client cancels a task relayed here
+        tx.remove(walk)
+    row = wait_until(lambda: [r for r in ui.server.state()["tasks"] if r["uid"] == walk.uid
+                              and r["state"] == "cancelled"], timeout=5)[0]
+    assert row["message"] == "withdrawn by cli-1234"
+    assert any(line["text"] == "robot1: randomwalk cancelled \u2014 withdrawn by cli-1234"
+               for line in ui.server.state()["log"])
