@@ -1,9 +1,12 @@
 """`erni console [--via HOST:PORT]`: task the team by typing commands in the speech grammar.
 
-Each line is one utterance (`robot 3 go to 4 5`, `everyone stop`, `turn left 90 degrees`);
-the console answers like the speech front end ("Roger", "I don't know robot 9") and prints
-the results of the tasks it sent as they arrive. Lines from a pipe are read to the end, then
-the console waits for the tasks it sent to finish (`--timeout`).
+Each line is one utterance (`robot 3 go to 4 5`, `everyone stop`, `turn left 90 degrees`,
+`robot 2 status`); the console answers like the speech front end ("Roger: robot 3, go to x 4,
+y 5", "I don't know robot 9") and prints a line when each task it sent starts and when it ends,
+also when it was stopped or superseded. Status questions are answered from the agent's
+directory (link) and the poses and tasks it streams to the console (pose, battery, task).
+Lines from a pipe are read to the end, then the console waits for the tasks it sent to finish
+(`--timeout`).
 """
 
 from __future__ import annotations
@@ -18,11 +21,14 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from erni.blackboard import Task
-from erni.blackboard.schemas import Cancel, PeerList, ResultUpdate
+from erni.blackboard.schemas import Cancel, PeerList, ResultUpdate, WatchEvent, WatchRequest
 from erni.commands._client import add_client_options, dumps, make_client, stamp
 
+WATCH_LEASE = 10.0
+
 HELP = """examples:  robot 1 go to 2 3 | robots 1 and 2 turn right 90 degrees | go forward 2 feet
-           everyone stop | cancel | random walk | attention | go to sleep | quit"""
+           everyone stop | cancel | random walk | robot 2 status | where are you | how many robots
+           attention | go to sleep | quit"""
 
 
 def register(sub: Any) -> None:
@@ -50,7 +56,9 @@ class Console:
         self.client, self.addr, self.dialogue, self.out = client, addr, dialogue, out
         self.json = json_lines
         self.peers: queue.Queue[PeerList] = queue.Queue()
-        self.known: list[str] = []
+        self.known: list[Any] = []  # the robots' Peer entries
+        self.poses: dict[str, dict[str, Any]] = {}  # robot -> its last Pose (from the watch stream)
+        self.doing: dict[str, tuple[float, str]] = {}  # robot -> (created, its running task in words)
         self.open: dict[str, Task] = {}  # uid -> task sent and not finished
         self.last: dict[str, str] = {}   # robot -> uid of its last motion task
         self.running: set[str] = set()   # tasks whose start was printed
@@ -58,6 +66,8 @@ class Console:
         self.refused = 0
         self._lock = threading.Lock()
         self._stop = threading.Event()
+        self._posed = threading.Event()  # the first Pose arrived through the watch
+        self._waited = False
         self._thread = threading.Thread(target=self._receive, name="console-receive", daemon=True)
 
     def start(self) -> Console:
@@ -68,15 +78,31 @@ class Console:
         self._stop.set()
         self._thread.join(timeout=5)
 
-    def robots(self) -> list[str]:
-        """Ask the agent for its peers; return the robots' names (the last answer if it is slow)."""
+    def robots(self) -> dict[str, Any]:
+        """Ask the agent for its peers; return what the dialogue may tell of each robot (the last answer if slow)."""
+        from erni.plugins.ui.dialogue import RobotView
+
         self.client.send(self.addr, "peers.request", None, reliable=True)
         try:
             reply = self.peers.get(timeout=2.0)
-            self.known = [p.name for p in reply.peers if p.role == "robot"]
+            self.known = [p for p in reply.peers if p.role == "robot"]
+            control = [p.name for p in reply.peers if p.role == "control"]
+            self.dialogue.control = control[0] if control else reply.agent
         except queue.Empty:
             self.print(f"(no peer list from {self.addr[0]}:{self.addr[1]}; using the last one)")
-        return self.known
+        if not self._waited:  # once: give the watch a moment to bring the robots' poses
+            self._waited = True
+            self._posed.wait(1.5)
+        now = time.time()
+        views = {}
+        with self._lock:
+            for peer in self.known:
+                pose = self.poses.get(peer.name, {})
+                views[peer.name] = RobotView(
+                    peer.name, up=peer.up, x=pose.get("x"), y=pose.get("y"), theta=pose.get("theta"),
+                    battery=pose.get("battery"), doing=self.doing.get(peer.name, (0.0, ""))[1],
+                    silent=now - peer.last_heard if peer.last_heard else None)
+        return views
 
     def say(self, line: str) -> None:
         """Answer one typed line and send its tasks."""
@@ -86,23 +112,29 @@ class Console:
             return
         if not reply.accepted:
             self.refused += 1
+        # a RemoteBotMotion cancel (a stop) ends the robot's tasks there, and they report it
+        remote_cancel = any(t.verb == "RemoteBotMotion" and t.preposition == "cancel" for t in reply.tasks)
         for task in reply.tasks:
-            if reply.action != "teleport":
-                self._supersede(task.destination)
+            if reply.action not in ("teleport", "avoid_obstacles") and not remote_cancel:
+                self._supersede(task.destination, reply.action)
             with self._lock:
                 self.open[task.uid] = task
-                self.last[task.destination] = task.uid
+                self.last[task.destination or ""] = task.uid
             self.client.send(self.addr, "task.add", task)
-        who = f" ({', '.join(reply.targets)})" if reply.targets else ""
-        self.emit(f"{reply.say}{who}", {"heard": line, "say": reply.say, "accepted": reply.accepted,
-                                        "targets": reply.targets, "tasks": [t.uid for t in reply.tasks]})
+        self.emit(reply.say, {"heard": line, "say": reply.say, "accepted": reply.accepted,
+                              "targets": reply.targets, "tasks": [t.uid for t in reply.tasks]})
 
-    def _supersede(self, robot: str | None) -> None:
+    def _supersede(self, robot: str | None, action: str) -> None:
+        """Withdraw the robot's previous unfinished task from this console, and say it ended."""
         with self._lock:
             uid = self.last.pop(robot or "", None)
             still = self.open.pop(uid, None) if uid else None
         if uid and still:
             self.client.send(self.addr, "task.cancel", Cancel(uid=uid))
+            why = f"superseded by {action}"
+            self.emit(f"{stamp()} {still.destination}: {still.preposition} cancelled \u2014 {why}",
+                      {"uid": uid, "agent": still.destination, "preposition": still.preposition,
+                       "state": "cancelled", "message": why})
 
     def wait(self, timeout: float) -> None:
         """Wait until every task sent has finished, or `timeout` seconds."""
@@ -114,6 +146,7 @@ class Console:
             time.sleep(0.05)
         with self._lock:
             left = list(self.open.values())
+            self.open.clear()
         for task in left:
             self.print(f"{task.destination}: {task.preposition} not finished within {timeout:g} s; cancelling")
             self.client.send(self.addr, "task.cancel", Cancel(uid=task.uid))
@@ -128,7 +161,11 @@ class Console:
         self.print(dumps(data) if self.json else text)
 
     def _receive(self) -> None:
+        renew = 0.0
         while not self._stop.is_set():
+            if time.monotonic() >= renew:  # poses and tasks for status questions
+                self.client.send(self.addr, "watch.request", WatchRequest(lease=WATCH_LEASE))
+                renew = time.monotonic() + WATCH_LEASE / 2
             msg = self.client.receive(0.1)
             if msg is None:
                 continue
@@ -136,6 +173,23 @@ class Console:
                 self.peers.put(msg.body)
             elif msg.kind == "task.result" and isinstance(msg.body, ResultUpdate):
                 self._result(msg.body)
+            elif msg.kind == "watch.event" and isinstance(msg.body, WatchEvent):
+                self._watched(msg.body)
+
+    def _watched(self, event: WatchEvent) -> None:
+        d = event.data
+        with self._lock:
+            if event.type == "Pose" and event.op != "remove" and isinstance(d.get("robot"), str):
+                self.poses[d["robot"]] = d
+                self._posed.set()
+            elif event.type == "Task" and isinstance(d.get("destination"), str):
+                robot, state = d["destination"], (d.get("result") or {}).get("state", "pending")
+                created = float(d.get("created") or 0.0)
+                if event.op == "remove" or state in ("succeeded", "failed", "cancelled"):
+                    if self.doing.get(robot, (0.0, ""))[0] <= created:
+                        self.doing.pop(robot, None)
+                elif created >= self.doing.get(robot, (0.0, ""))[0]:
+                    self.doing[robot] = (created, f"busy: {d.get('preposition', '?')} ({state})")
 
     def _result(self, update: ResultUpdate) -> None:
         with self._lock:
@@ -153,7 +207,7 @@ class Console:
             self.running.add(update.uid)
         if r.state.value == "failed":
             self.failed += 1
-        message = f" — {r.message}" if r.message else ""
+        message = f" \u2014 {r.message}" if r.message else ""
         self.emit(f"{stamp(r.stamp)} {task.destination}: {task.preposition} {r.state.value}{message}",
                   {"uid": task.uid, "agent": task.destination, "preposition": task.preposition,
                    **r.model_dump(mode="json")})

@@ -23,6 +23,7 @@ CHROMIUM = "/usr/bin/chromium"
 ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
         "--disable-sync", "--no-first-run"]
 ARTIFACTS = Path(__file__).resolve().parents[2] / "artifacts" / "ui"
+NINE = "I don't know robot 9; I know robots 1, 2 and 3"
 
 pytestmark = pytest.mark.skipif(not os.path.exists(CHROMIUM), reason=f"no Chromium at {CHROMIUM} (apt install chromium)")
 
@@ -101,18 +102,18 @@ def test_page_shows_every_robot_and_follows_their_motion(team, page):
     assert page.locator("#robot-table tbody tr").count() == 3
     assert page.inner_text("#conn-text") == "control node connected"
     x0 = drawn(page, "robot1")["x"]
-    assert say(page, "robot 1 go forward 1 metre") == "Roger"
+    assert say(page, "robot 1 go forward 1 metre") == "Roger: robot 1, go forward 1 metre"
     page.wait_for_function("x0 => +document.querySelector('g.robot[data-name=robot1]').dataset.x > x0 + 0.3", arg=x0)
     page.wait_for_selector('#tasks .task[data-robot="robot1"][data-state="succeeded"]', timeout=20000)
     settle(team, "robot1")
     assert own_pose(team, "robot1").x == pytest.approx(x0 + 1.0, abs=0.08)
     page.wait_for_function("x => Math.abs(+document.querySelector('g.robot[data-name=robot1]').dataset.x - x) < 0.03",
                            arg=own_pose(team, "robot1").x)
-    assert say(page, "robot 9 stop") == "I don't know robot 9"
-    assert page.evaluate("window.spoken") == ["Roger", "I don't know robot 9"]  # the browser says the replies
+    assert say(page, "robot 9 turn left") == NINE
+    assert page.evaluate("window.spoken") == ["Roger: robot 1, go forward 1 metre", NINE]  # the browser says the replies
     page.uncheck("#speak-browser")
-    say(page, "robot 8 stop")
-    assert page.evaluate("window.spoken") == ["Roger", "I don't know robot 9"]
+    say(page, "robot 8 turn left")
+    assert page.evaluate("window.spoken") == ["Roger: robot 1, go forward 1 metre", NINE]
     shot(page, "01-team-moving")
 
 
@@ -281,8 +282,8 @@ def test_losing_the_control_node_is_shown_and_the_page_reconnects(team, page):
     control = Agent("control", workers=2)
     discovery = team.transport.settings.discovery_port
     control.add_plugin("transport", settings=transport_settings(discovery, "control"), name="transport")
-    ui = control.add_plugin(UIPlugin, settings={"listen": f"127.0.0.1:{port}", "verb": "BotMotion", "speak": False},
-                            name="ui")
+    ui = control.add_plugin(UIPlugin, settings={"listen": f"127.0.0.1:{port}", "verb": "BotMotion", "speak": False,
+                                                "token": team.ui.server.token}, name="ui")  # the URL stays valid
     team.control = control.start()
     team.ui = ui  # type: ignore[assignment]
     try:

@@ -34,13 +34,14 @@ def console(team: Team, lines: str, *args: str, key: str = KEY) -> subprocess.Co
 
 def test_typed_commands_task_the_team_and_print_feedback_and_results(team):
     p0 = team.pose("robot1")
-    out = console(team, "robot 1 go forward 2 feet\nrobot 9 stop\n# a comment\nturn left 90 degrees\n")
+    out = console(team, "robot 1 go forward 2 feet\nrobot 9 turn left\n# a comment\nturn left 90 degrees\n")
     lines = out.stdout.splitlines()
-    assert "Roger (robot1)" in lines and "I don't know robot 9" in lines
-    assert lines.count("Roger (robot1)") == 2  # the turn went to the last target
+    assert "Roger: robot 1, go forward 0.61 metres" in lines and "I don't know robot 9; I know robots 1 and 2" in lines
+    assert "Roger: robot 1, turn left 90 degrees" in lines  # the turn went to the last target
     assert "robot1: turn succeeded" in out.stdout
     assert out.returncode == 1  # a piped command was refused
     assert "robot1: forward succeeded" not in out.stdout  # superseded by the turn: cancelled on the robot
+    assert "robot1: forward cancelled \u2014 superseded by turn" in out.stdout  # and its end is printed
     p1 = team.pose("robot1")
     assert math.hypot(p1.x - p0.x, p1.y - p0.y) < 0.6096 - 0.05
     assert math.degrees(abs(math.remainder(p1.theta - p0.theta, 2 * math.pi))) == pytest.approx(90, abs=4)
@@ -50,7 +51,8 @@ def test_all_accepted_and_succeeded_exits_zero(team):
     p0 = team.pose("robot2")
     out = console(team, "attention\nrobot 2 go forward 0.5 metres\n")
     assert out.returncode == 0, out.stdout + out.stderr
-    assert out.stdout.splitlines()[:4] == ["> attention", "Listening", "> robot 2 go forward 0.5 metres", "Roger (robot2)"]
+    assert out.stdout.splitlines()[:4] == ["> attention", "Listening", "> robot 2 go forward 0.5 metres",
+                                           "Roger: robot 2, go forward 0.5 metres"]
     assert "robot2: forward succeeded" in out.stdout
     p1 = team.pose("robot2")
     assert math.hypot(p1.x - p0.x, p1.y - p0.y) == pytest.approx(0.5, abs=0.08)
@@ -59,9 +61,9 @@ def test_all_accepted_and_succeeded_exits_zero(team):
 def test_json_lines(team):
     out = console(team, "robot 1 turn left 30 degrees\nrobot 7 stop\n", "--json")
     rows = [json.loads(line) for line in out.stdout.splitlines()]
-    assert rows[0]["say"] == "Roger" and rows[0]["targets"] == ["robot1"] and len(rows[0]["tasks"]) == 1
+    assert rows[0]["say"] == "Roger: robot 1, turn left 30 degrees" and rows[0]["targets"] == ["robot1"] and len(rows[0]["tasks"]) == 1
     assert rows[1] == {"heard": "robot 7 stop", "say": "I don't know robot 7", "accepted": False, "targets": [],
-                       "tasks": []}
+                       "tasks": []}  # a stop to no known robot sends nothing
     final = [r for r in rows if r.get("uid") == rows[0]["tasks"][0] and r["state"] == "succeeded"]
     assert final and final[0]["agent"] == "robot1"
 
@@ -72,3 +74,28 @@ def test_bad_arguments_exit_two_with_one_line(team):
     out = subprocess.run([sys.executable, "-m", "erni", "console", "--via", "localhost"], input="", text=True,
                          capture_output=True, cwd=ROOT, timeout=60)
     assert out.returncode == 2 and "erni console: --via 'localhost': expected HOST:PORT" in out.stderr
+
+
+def test_after_sleep_everyone_stop_stops_every_moving_robot_and_every_task_ends_with_a_line(team):
+    out = console(team, "everyone random walk\ngo to sleep\nrobot 1 turn left\neveryone stop\nrobot 2 status\n"
+                  "how many robots\n")
+    lines = out.stdout.splitlines()
+    assert "Roger: everyone, random walk" in lines and "Standing by" in lines
+    assert "(standing by: say 'attention')" in lines  # the turn was ignored while standing by ...
+    assert "Roger: everyone, stop" in lines  # ... the stop was not
+    for robot in ("robot1", "robot2"):
+        assert any(f"{robot}: randomwalk cancelled" in line for line in lines), out.stdout
+        pose = team.pose(robot)
+        assert pose is not None and abs(pose.v) < 0.05
+    assert not any("turn" in line and "robot1:" in line for line in lines)
+
+
+def test_status_questions_are_answered_from_the_streamed_poses_and_the_directory(team):
+    out = console(team, "robot 2 status\nwhere is robot 1\nhow many robots\n")
+    lines = out.stdout.splitlines()
+    p1 = team.pose("robot1")
+    assert p1 is not None
+    status = next(line for line in lines if line.startswith("Robot 2: "))
+    assert "at x " in status and "battery " in status and status.endswith("link up")
+    assert f"Robot 1 is at x {p1.x:.1f}, y {p1.y:.1f}" in out.stdout
+    assert "2 robots, 2 up" in lines

@@ -25,13 +25,13 @@ def team() -> Iterator[Team]:
 
 
 def say(team: Team, text: str) -> dict:
-    url = f"ws://127.0.0.1:{team.ui.server.port}/ws"
+    url = f"ws://127.0.0.1:{team.ui.server.port}/ws?token={team.ui.server.token}"
     msgs = asyncio.run(talk(url, [{"type": "say", "text": text, "selection": []}], lambda m: of(m, "reply")))
     return of(msgs, "reply")[0]
 
 
 def test_spoken_goto_travels_as_remotebotmotion_and_the_robot_arrives(team):
-    assert say(team, "robot 2 go to 3 2")["text"] == "Roger"
+    assert say(team, "robot 2 go to 3 2")["text"] == "Roger: robot 2, go to x 3, y 2"
     remote = wait_until(lambda: [t for t in team.control.query(Task) if t.verb == "RemoteBotMotion"], timeout=20)[0]
     assert (remote.preposition, remote.destination, remote.params.x, remote.params.y) == ("goto", "robot2", 3.0, 2.0)
     sub = wait_until(lambda: [t for t in team.robots[1].query(Task) if t.verb == "BotMotion" and t.parent == remote.uid],
@@ -48,9 +48,9 @@ def test_spoken_goto_travels_as_remotebotmotion_and_the_robot_arrives(team):
 
 
 def test_stop_cancels_the_remote_task_and_halts_the_robot(team):
-    assert say(team, "robot 1 random walk")["text"] == "Roger"
+    assert say(team, "robot 1 random walk")["text"] == "Roger: robot 1, random walk"
     wait_until(lambda: (p := team.pose("robot1")) is not None and p.v > 0.1, timeout=20)
-    assert say(team, "stop")["text"] == "Roger"  # the last target, robot1
+    assert say(team, "stop")["text"] == "Roger: robot 1, stop"  # the last target, robot1
     cancel = wait_until(lambda: [t for t in team.control.query(Task) if t.preposition == "cancel"], timeout=20)[0]
     assert (cancel.verb, cancel.destination) == ("RemoteBotMotion", "robot1")
     wait_until(lambda: abs(team.pose("robot1").v) < 0.01, timeout=20, message="robot1 did not halt")
