@@ -167,7 +167,7 @@ def test_dns_rebinding_is_refused_by_the_host_header(control):
             assert status == 403 and text.startswith(f"Host {host!r} is not this control node"), (host, path)
         with pytest.raises(aiohttp.WSServerHandshakeError):
             ws_run(ui, [], lambda m: False, headers={"Host": host, "Origin": f"http://{host}"})
-    for host in (f"localhost:{port}", f"127.0.0.1:{port}", f"[::1]:{port}", f"127.0.0.1"):
+    for host in (f"localhost:{port}", f"127.0.0.1:{port}", f"[::1]:{port}", "127.0.0.1"):
         assert get(tok(ui, "/"), {"Host": host})[0] == 200, host
     agent2, named = control(allowed_hosts=["gui.lab.example"])
     assert get(f"{base(named)}/?token={token(named)}", {"Host": "gui.lab.example"})[0] == 200
