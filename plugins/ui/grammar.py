@@ -551,5 +551,6 @@ def vocabulary() -> list[str]:
     for spoken in _plain_strategies():
         words.update(spoken.split())
     words.update(PHRASES)
-    words -= {"m", "cm", "ft", "deg", "randomwalk", "goto", "backup", "t", "s", "ok"}  # written forms only
+    # written forms and spellings of hesitations that pronouncing dictionaries lack: typed only
+    words -= {"m", "cm", "ft", "deg", "randomwalk", "goto", "backup", "t", "s", "ok", "erm", "uhm", "umm"}
     return sorted(words)

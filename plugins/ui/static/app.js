@@ -16,7 +16,16 @@ const ui = {
   drag: null,                        // pointer gesture in progress
   trails: new Map(), showTrails: true,
   mic: null,
+  renders: 0, drawn: {},             // states rendered; JSON of each part as last drawn
 };
+
+// True when `value` differs from what part `key` showed last: an unchanged part is not redrawn.
+function changed(key, value) {
+  const text = JSON.stringify(value);
+  if (ui.drawn[key] === text) return false;
+  ui.drawn[key] = text;
+  return true;
+}
 
 // ---- geometry -------------------------------------------------------------------------
 function toScreen(x, y) { return [ui.view.ox + x * ui.view.scale, ui.view.oy - y * ui.view.scale]; }
@@ -91,6 +100,7 @@ function onMessage(m) {
 function render() {
   const s = ui.state;
   if (!s || !s.robots) return;
+  ui.renders++;
   $("agent").textContent = s.agent;
   $("mode").innerHTML = `tasks as <b>${s.verb}</b>`;
   for (const r of s.robots) {
@@ -101,13 +111,14 @@ function render() {
     if (t.length > TRAIL) t.shift();
     ui.trails.set(r.name, t);
   }
-  if (!ui.view.fitted && s.robots.some((r) => r.pose)) fit();
-  renderMetrics(s);
-  renderMap();
-  renderRobotTable(s);
+  const fitting = !ui.view.fitted && s.robots.some((r) => r.pose);
+  if (fitting) fit();
+  if (changed("metrics", s.metrics)) renderMetrics(s);
+  if (changed("map", [s.robots, s.links, s.tasks, s.floorplan]) || fitting) renderMap();
+  if (changed("robots", s.robots)) renderRobotTable(s);
   renderStrategies(s);
-  renderTasks(s);
-  renderLog(s);
+  if (changed("tasks", s.tasks)) renderTasks(s);
+  if (changed("log", s.log)) renderLog(s);
   $("listening").textContent = s.speech && s.speech.available ? (s.listening ? "voice: listening" : "voice: standing by — say “attention”") : "voice: no recogniser";
   $("mic").disabled = !(s.speech && s.speech.available);
   $("mic").title = s.speech && s.speech.available ? "stream the microphone to the control node's recogniser" : (s.speech ? s.speech.error : "");
@@ -391,7 +402,8 @@ function targets(robots) {
   return list;
 }
 function command(action, params, robots) {
-  const list = targets(robots);
+  // Stop is never refused: with nothing selected it stops every robot
+  const list = action === "stop" && !(robots || ui.selection.size) ? [] : targets(robots);
   if (!list) return;
   send({ type: "command", action, params, robots: list });
 }
