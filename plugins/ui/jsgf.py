@@ -3,7 +3,7 @@
 `jsgf()` writes the grammar from the same tables the parser reads (numbers, units, subjects,
 questions, control phrases, fillers, strategies), so a recogniser restricted to it hears
 "robots five and six turn right ninety degrees" rather than any string of the vocabulary.
-Fillers are allowed before and after a command (the parser drops them anywhere).
+The recogniser's grammar is the spoken core (see `jsgf()`); the parser accepts more.
 """
 
 from __future__ import annotations
@@ -29,59 +29,47 @@ def _phrases(phrases: tuple[str, ...] | list[str]) -> str:
     return " | ".join(f"({p})" if " " in p else p for p in phrases)
 
 
-def jsgf() -> str:
-    """Return the JSGF grammar of every utterance the command grammar understands (public rule <utterance>)."""
-    units = [u for u in g.UNITS if _spoken(u)]
-    degrees = [d for d in g.DEGREES if _spoken(d)]
-    fillers = [f for f in g.FILLER if _spoken(f)] + list(g.FILLER_PHRASES)
+def jsgf(robots: int = 20) -> str:
+    """Return the JSGF grammar of the commands as spoken (public rule <utterance>).
+
+    It is the spoken core of the parser's grammar: each command in its plain spoken forms, numbers
+    in words, robot numbers up to `robots`, "please" at the end. Every optional word a recogniser
+    may insert is a chance to mishear, so the typed variants (digits, "m/s", fillers anywhere,
+    "could you") are left to the parser; everything this grammar produces, the parser understands.
+    """
+    units = sorted(u for u in g.UNITS if _spoken(u) and ("metre" not in u))  # one spelling per sound
     digits = [w for w, v in g.ONES.items() if v > 0]
+    robot_numbers = [w for w, v in {**g.ONES, **g.TEENS, **g.TENS}.items() if 0 < v <= robots]
     questions = [p for phrases in g.QUESTIONS.values() for p in phrases]
-    strategies = [words for words in g._plain_strategies()]
+    strategies = list(g._plain_strategies())
     rules = {
         "digit": _alts(digits),
-        "zero": "zero | oh",
         "teen": _alts(g.TEENS),
         "tens": _alts(g.TENS),
         "small": "<digit> | <teen> | <tens> [<digit>]",
-        "int": "<small> | zero | [a | <digit>] hundred [and] [<small>]",
-        "number": "[minus | negative] (<int> [point (<digit> | <zero>)+] [and a half] | half [a | an] | a half)",
+        "int": "<small> | zero | <digit> hundred [<small>]",
+        "number": "[minus] <int> [point <digit>]",
         "unit": _alts(units),
         "distance": "<number> [<unit>]",
-        "subject": "robot [number] <small> | robots <small> ([and] [robot] <small>)* | everyone | everybody "
-                   "| all [robots] | team | every robot | all of you | you all",
-        "point": "[x] <distance> [and | comma] [y] <distance> | origin",
-        "stop": "(stop | halt | freeze)+ [everything | moving | all]",
-        "cancel": "(cancel | abort) [that | it | everything] [all tasks | tasks | task]",
-        "clear": "clear [all | everything] [tasks | behaviours | behaviors | stack]",
-        "walk": "[do a | start a | start | do] (random walk | wander | explore) [around]",
-        "turn": f"(turn | rotate) (around | [to] (left | right) [[by] <number> [{_alts(degrees)}]] "
-                f"| [by] <number> [{_alts(degrees)}] [to] (left | right))",
-        "goto": "(go | move | drive | head) to <point>",
-        "forward": "[go | move | drive | head] (forward | forwards | ahead | straight) [ahead] <distance>",
-        "backward": "[go | move | drive | head] (back | backward | backwards | reverse) [up] <distance>",
-        "teleport": f"(teleport | jump) [to] <point> [(facing | heading) <number> [{_alts(degrees)}]]",
-        "velocity": "(set velocity | set speed | velocity | speed | drive at | move at | go at) [to | of] <distance> "
-                    "[per second]",
-        "avoid": "avoid obstacles [on | off | (at | within | by) <distance>] | stop avoiding obstacles "
-                 "| do not avoid obstacles",
-        "spread": "spread [out] [<distance>]",
-        "cover": "(cover | deploy to) <point>",
-        "end": "[robot] <small> | control [node] | base [station]",
-        "relay": "relay [between | for] <end> [and] <end>",
-        "patrol": "patrol [from] <point> to <point>",
-        "action": "<stop> | <cancel> | <clear> | <walk> | <turn> | <goto> | <forward> | <backward> | <teleport> "
-                  "| <velocity> | <avoid> | <spread> | <cover> | <relay> | <patrol>"
-                  + "".join(f" | ({s})" for s in strategies),
+        "n": _alts(robot_numbers),
+        "subject": "robot <n> | robots <n> and <n> | everyone | all robots",
+        "point": "<number> <number> | x <number> y <number>",
+        "action": " | ".join([
+            "stop", "halt", "freeze", "cancel", "clear", "random walk", "turn around",
+            "turn (left | right) [<number> degrees]",
+            "go to <point>", "go forward <distance>", "go back <distance>", "teleport to <point>",
+            "set velocity to <number> [meters per second]", "avoid obstacles", "stop avoiding obstacles",
+            "spread out [<distance>]", "cover <point>", "relay between robot <n> and (robot <n> | control)",
+            "patrol from <point> to <point>", *(f"({s})" for s in strategies)]),
         "question": _phrases(questions),
-        "ask": "(where is | where are | how is | how are) <subject> [doing] | (what is | what are) <subject> doing",
+        "ask": "where is <subject> | what is <subject> doing",
         "count": _phrases(g.COUNT_QUESTIONS),
         "control": _phrases(g.ATTENTION + g.SLEEP),
-        "filler": _phrases(fillers),
     }
     lines = [HEADER]
     lines += [f"<{name}> = {body};" for name, body in rules.items()]
-    lines.append("public <utterance> = (<control> | <count> | <ask> | <subject> "
-                 "| [<subject>] (<action> | <question>) | <action> <subject>) [please];")
+    lines.append("public <utterance> = (<control> | <count> | <ask> | <subject> | [<subject>] (<action> | <question>))"
+                 ";")
     return "\n".join(lines) + "\n"
 
 

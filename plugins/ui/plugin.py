@@ -23,10 +23,10 @@ from erni import netgraph
 from erni.blackboard import NetInfo, Plugin, Pose, Task
 from erni.blackboard.schemas import Peer, load_floorplan
 from erni.plugins.ui.dialogue import ROGER, Dialogue, Naming, Reply, RobotView, restate, tasks_for
-from erni.plugins.ui.grammar import STANDARD_ACTIONS, Refusal, strategies, vocabulary
+from erni.plugins.ui.grammar import STANDARD_ACTIONS, Refusal, strategies
 from erni.plugins.ui.protocol import CancelTaskMsg, CommandMsg, MicMsg, SayMsg, SelectMsg
 from erni.plugins.ui.server import WebServer
-from erni.plugins.ui.speech import Listener, Microphone, Recognizer, SpeechError, model_path, wav_frames
+from erni.plugins.ui.speech import Listener, Microphone, SpeechError, choose_recognizer, wav_frames
 from erni.plugins.ui.voice import Speaker
 from erni.transport import parse_address
 
@@ -52,6 +52,8 @@ class UISettings(BaseModel):
     history: int = Field(60, ge=1, le=10000, description="finished tasks kept in the task list")
     speak: bool = Field(True, description="spoken feedback through espeak-ng on the control node")
     voice: str = Field("en-us", description="espeak-ng voice")
+    recogniser: Literal["auto", "vosk", "pocketsphinx"] = Field(
+        "auto", description="speech recogniser: auto = vosk when a vosk model is given, else pocketsphinx")
     vosk_model: str | None = Field(None, description="vosk model directory (default: VOSK_MODEL_PATH)")
     microphone: bool = Field(False, description="listen to the control node's own microphone (arecord)")
     microphone_device: str | None = Field(None, description="ALSA device of the local microphone")
@@ -127,6 +129,7 @@ class UIPlugin(Plugin[UISettings]):
         self.speaker = Speaker(voice=s.voice).start() if s.speak else None
         self.listener: Listener | None = None
         self.speech_error = ""
+        self.recogniser_name = ""
         self._start_speech(s)
         self.server = WebServer(host, port, token=token, on_message=self._from_page, on_audio=self._audio,
                                 on_close=self._page_closed, rate_hz=s.rate_hz,
@@ -147,12 +150,13 @@ class UIPlugin(Plugin[UISettings]):
 
     def _start_speech(self, s: UISettings) -> None:
         try:
-            path = model_path(s.vosk_model)
+            load = choose_recognizer(s.recogniser, s.vosk_model)
         except SpeechError as err:
             self.speech_error = str(err)
             self.log.warning("speech recognition off: %s", err)
             return
-        self.listener = Listener(lambda: Recognizer(path, vocabulary()), self._recognised,
+        self.recogniser_name = "vosk" if getattr(load, "backend", "") == "vosk" else "pocketsphinx"
+        self.listener = Listener(load, self._recognised,
                                  on_error=lambda why: self.later(lambda: self._speech_failed(why))).start()
         if s.microphone:
             try:
@@ -292,7 +296,8 @@ class UIPlugin(Plugin[UISettings]):
         return {
             "agent": self.agent_name, "verb": s.verb,
             "actions": list(STANDARD_ACTIONS), "strategies": strategies(),
-            "speech": {"available": self.listener is not None and not self.speech_error, "error": self.speech_error},
+            "speech": {"available": self.listener is not None and not self.speech_error, "error": self.speech_error,
+                       "recogniser": self.recogniser_name},
             "listening": self.spoken.listening,
             "robots": robots, "links": links, "floorplan": self.floorplan,
             "metrics": {**_metrics(names, robots, links), "network_known": any(True for _ in self.netinfo)},

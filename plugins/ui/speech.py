@@ -1,9 +1,15 @@
-"""Speech input: audio sources delivering 16 kHz mono 16-bit PCM, and a vosk recogniser thread.
+"""Speech input: audio sources delivering 16 kHz mono 16-bit PCM, and a recogniser thread.
 
 Audio reaches the recogniser as 16 kHz mono little-endian int16 frames, whatever its source:
 a WAV file (any PCM rate and channel count, resampled here), a local microphone (`arecord`,
 optional), or the browser's microphone streamed over the GUI's WebSocket. `Listener` owns
 the recogniser on a thread of its own and hands each recognised utterance to a callback.
+
+Two recognisers, both restricted to the command grammar: vosk (`Recognizer`) when a vosk model
+is given, and CMU PocketSphinx (`SphinxRecognizer`) with the US English acoustic model and
+pronouncing dictionary shipped in its PyPI package, decoding ERNI's grammar as JSGF
+(`erni.plugins.ui.jsgf`). A model whose vocabulary lacks words of the grammar is refused with
+one line naming them: it would otherwise "work" and never hear those words.
 """
 
 from __future__ import annotations
@@ -112,6 +118,18 @@ def put_dropping_oldest(q: queue.Queue[Any], item: Any) -> int:
                 pass
 
 
+def missing_words(words: list[str], known: Callable[[str], bool]) -> list[str]:
+    """The words of the grammar a model's vocabulary lacks."""
+    return [w for w in sorted(set(words)) if not known(w)]
+
+
+def lacking(model: str | Path, missing: list[str], total: int) -> SpeechError:
+    """The one-line refusal of a model that lacks words of the grammar."""
+    shown = ", ".join(missing[:12]) + (f" and {len(missing) - 12} more" if len(missing) > 12 else "")
+    return SpeechError(f"the speech model at {model} lacks {len(missing)} of the grammar's {total} words "
+                       f"({shown}): it could never hear them; give an English model that has them")
+
+
 def grammar_phrases(words: list[str]) -> str:
     """Return the JSON phrase list a vosk recogniser is restricted to (the words plus [unk])."""
     return json.dumps(sorted(set(words)) + ["[unk]"])
@@ -130,6 +148,9 @@ class Recognizer:
             self.model = vosk.Model(str(model_dir))
         except Exception as err:  # vosk raises a bare Exception for unreadable models
             raise SpeechError(f"cannot load the vosk model at {model_dir}: {err}") from None
+        missing = missing_words(words, lambda w: self.model.vosk_model_find_word(w) >= 0)
+        if missing:
+            raise lacking(model_dir, missing, len(set(words)))
         self.grammar = grammar_phrases(words)
         self._vosk = vosk
 
@@ -158,6 +179,121 @@ class Stream:
     def _text(result: str) -> str | None:
         text = json.loads(result).get("text", "").strip()
         return text if text and text != "[unk]" else None
+
+
+def sphinx_model() -> tuple[Path, Path]:
+    """The US English acoustic model and pronouncing dictionary of the pocketsphinx package."""
+    try:
+        import pocketsphinx
+    except ImportError:
+        raise SpeechError("pocketsphinx is not installed: pip install 'erni[speech]'") from None
+    root = Path(pocketsphinx.get_model_path())
+    return root / "en-us" / "en-us", root / "en-us" / "cmudict-en-us.dict"
+
+
+class SphinxRecognizer:
+    """CMU PocketSphinx decoding ERNI's grammar (JSGF); `stream()` gives one decoder per audio source."""
+
+    def __init__(self, grammar: str, *, model: Path | None = None, dictionary: Path | None = None) -> None:
+        from erni.plugins.ui.jsgf import words
+
+        default_model, default_dict = sphinx_model()
+        self.model, self.dictionary = model or default_model, dictionary or default_dict
+        if not (self.model / "mdef").is_file():
+            raise SpeechError(f"no PocketSphinx acoustic model at {self.model} (expected a directory with mdef)")
+        try:
+            known = {line.split(maxsplit=1)[0].split("(")[0] for line in
+                     self.dictionary.read_text(encoding="utf-8", errors="replace").splitlines() if line.strip()}
+        except OSError as err:
+            raise SpeechError(f"cannot read the pronouncing dictionary {self.dictionary}: {err.strerror}") from None
+        needed = words(grammar)
+        missing = missing_words(needed, known.__contains__)
+        if missing:
+            raise lacking(self.dictionary, missing, len(needed))
+        self.grammar = grammar
+
+    def stream(self) -> SphinxStream:
+        """Return a fresh decoder for one source (a page, the local microphone, a file)."""
+        from pocketsphinx import Decoder, Endpointer
+
+        try:
+            decoder = Decoder(hmm=str(self.model), dict=str(self.dictionary), lm=None, samprate=RATE,
+                              loglevel="FATAL")
+            decoder.add_jsgf_string("erni", self.grammar)
+            decoder.activate_search("erni")
+        except (RuntimeError, ValueError) as err:
+            raise SpeechError(f"cannot start PocketSphinx with {self.model}: {err}") from None
+        return SphinxStream(decoder, Endpointer(sample_rate=RATE))
+
+
+class SphinxStream:
+    """One source's utterances through PocketSphinx: a voice activity detector cuts the audio into
+    utterances, each decoded against the grammar when it ends (or at `flush()`)."""
+
+    def __init__(self, decoder: Any, endpointer: Any) -> None:
+        self.decoder, self.ep = decoder, endpointer
+        self.buffer = bytearray()
+        self.in_utterance = False
+
+    def feed(self, pcm: bytes) -> str | None:
+        """Accept audio; return the text of an utterance that just ended, if any."""
+        self.buffer += pcm
+        size = self.ep.frame_bytes
+        text = None
+        while len(self.buffer) >= size:
+            frame = bytes(self.buffer[:size])
+            del self.buffer[:size]
+            speech = self.ep.process(frame)
+            if speech is None:
+                continue
+            if not self.in_utterance:
+                self.decoder.start_utt()
+                self.in_utterance = True
+            self.decoder.process_raw(speech, False, False)
+            if not self.ep.in_speech:
+                text = self._end() or text
+        return text
+
+    def flush(self) -> str | None:
+        """End the current utterance (the source stopped); return its text, if any."""
+        if self.buffer and self.in_utterance:
+            self.decoder.process_raw(bytes(self.buffer), False, False)
+        self.buffer.clear()
+        return self._end() if self.in_utterance else None
+
+    def _end(self) -> str | None:
+        self.decoder.end_utt()
+        self.in_utterance = False
+        hyp = self.decoder.hyp()
+        text = hyp.hypstr.strip() if hyp is not None else ""
+        return text or None
+
+
+def choose_recognizer(kind: str, vosk_model: str | None) -> Callable[[], Any]:
+    """Return a loader of the recogniser to use (run on the speech thread), or raise SpeechError saying why none.
+
+    `auto`: vosk when a vosk model is given (setting or VOSK_MODEL_PATH), else PocketSphinx.
+    """
+    from erni.plugins.ui.grammar import vocabulary
+    from erni.plugins.ui.jsgf import jsgf
+
+    given = vosk_model or os.environ.get("VOSK_MODEL_PATH", "").strip()
+    if kind == "vosk" or (kind == "auto" and given):
+        path = model_path(vosk_model)
+        return _Loader("vosk", lambda: Recognizer(path, vocabulary()))
+    sphinx_model()  # installed?
+    grammar = jsgf()
+    return _Loader("pocketsphinx", lambda: SphinxRecognizer(grammar))
+
+
+class _Loader:
+    """A recogniser loader that says which recogniser it loads."""
+
+    def __init__(self, backend: str, load: Callable[[], Any]) -> None:
+        self.backend, self.load = backend, load
+
+    def __call__(self) -> Any:
+        return self.load()
 
 
 class Listener:
