@@ -90,9 +90,13 @@ class Console:
             self.dialogue.control = control[0] if control else reply.agent
         except queue.Empty:
             self.print(f"(no peer list from {self.addr[0]}:{self.addr[1]}; using the last one)")
-        if not self._waited:  # once: give the watch a moment to bring the robots' poses
+        if not self._waited:  # once: give the watch a moment to bring every robot's pose
             self._waited = True
-            self._posed.wait(1.5)
+            end = time.monotonic() + 3.0
+            while time.monotonic() < end and self._posed.wait(0.1) is not None:
+                with self._lock:
+                    if all(p.name in self.poses for p in self.known):
+                        break
         now = time.time()
         views = {}
         with self._lock:

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import os
 import shutil
-import subprocess
 import threading
 from collections.abc import Iterator
 from pathlib import Path
@@ -20,7 +19,7 @@ import erni.plugins.ui.plugin as ui_plugin
 from erni.blackboard import Agent, Pose
 from erni.blackboard.testing import wait_until
 from erni.plugins.ui import UIPlugin
-from erni.plugins.ui.speech import MODELS_URL, RATE
+from erni.plugins.ui.speech import RATE
 from tests.ui.test_browser import ARGS, CHROMIUM
 from tests.ui.test_speech import dominant_hz, write_wav
 
@@ -82,8 +81,7 @@ def open_with_microphone(wav: Path, url: str, body: Any) -> Any:
 @pytest.fixture
 def recorder(monkeypatch) -> Iterator[Recorder]:
     rec = Recorder("attention")
-    monkeypatch.setattr(ui_plugin, "model_path", lambda configured: Path("model"))
-    monkeypatch.setattr(ui_plugin, "Recognizer", lambda path, words: rec)
+    monkeypatch.setattr(ui_plugin, "choose_recognizer", lambda kind, vosk_model: lambda: rec)
     yield rec
 
 
@@ -118,19 +116,22 @@ def test_the_page_streams_its_microphone_as_16k_mono_pcm(tmp_path, recorder):
     assert listening == "voice: listening"
 
 
-@pytest.mark.skipif(not os.environ.get("VOSK_MODEL_PATH", "").strip(),
-                    reason=f"VOSK_MODEL_PATH is not set: no vosk model to recognise with (get one from {MODELS_URL})")
 @pytest.mark.skipif(shutil.which("espeak-ng") is None, reason="espeak-ng is not installed")
-def test_vosk_hears_attention_through_the_browser_microphone(tmp_path):
-    wav = tmp_path / "attention.wav"
-    subprocess.run(["espeak-ng", "-v", "en-us", "-w", str(wav), "attention"], check=True, timeout=30)
+def test_pocketsphinx_hears_listen_through_the_browser_microphone(tmp_path, monkeypatch):
+    pytest.importorskip("pocketsphinx")
+    from tests.ui.test_recognition import as_heard, speak
+
+    monkeypatch.delenv("VOSK_MODEL_PATH", raising=False)
+    pcm = as_heard(speak(tmp_path, "listen"), np.random.default_rng(3))
+    wav = write_wav(tmp_path / "listen.wav", np.frombuffer(pcm, dtype="<i2"), RATE)
     agent, ui = start_control({})
     try:
         def body(page: Any) -> None:
+            page.wait_for_selector("#mic:not([disabled])", timeout=20000)
             page.click("#mic")
             page.wait_for_function("document.querySelector('#last-reply .said') && "
                                    "document.querySelector('#last-reply .said').textContent === 'Listening'",
-                                   timeout=20000)
+                                   timeout=30000)
 
         open_with_microphone(wav, ui.url, body)
     finally:

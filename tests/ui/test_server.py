@@ -27,7 +27,7 @@ def control(monkeypatch) -> Iterator[Any]:
     def start(robots: tuple[str, ...] = ("robot1", "robot2"), **settings: Any) -> tuple[Agent, UIPlugin]:
         agent = Agent("control", workers=2)
         ui = agent.add_plugin(UIPlugin, settings={"listen": "127.0.0.1:0", "speak": False, "verb": "BotMotion",
-                                                  "rate_hz": 20, **settings}, name="ui")
+                                                  "rate_hz": 20, "recogniser": "vosk", **settings}, name="ui")
         agents.append(agent)
         agent.start()
         with agent.transaction() as tx:
@@ -291,8 +291,7 @@ def test_a_wav_file_setting_is_recognised_and_answered(control, tmp_path, monkey
 
     wav = write_wav(tmp_path / "cmd.wav", 5000 * np.sin(np.arange(RATE * 2) / 3.0), 22050)
     rec = Recorder("attention")
-    monkeypatch.setattr(ui_plugin, "model_path", lambda configured: tmp_path)
-    monkeypatch.setattr(ui_plugin, "Recognizer", lambda path, words: rec)
+    monkeypatch.setattr(ui_plugin, "choose_recognizer", lambda kind, vosk_model: lambda: rec)
     agent, ui = control(wav=str(wav))
     wait_until(lambda: any("voice: \u201cattention\u201d \u2192 Listening" in line["text"]
                            for line in ui.server.state()["log"]), timeout=20)
