@@ -140,6 +140,11 @@ class AgentProcess:
         """True while the process runs."""
         return self.proc is not None and self.proc.poll() is None
 
+    @property
+    def pid(self) -> int | None:
+        """The process id, once started."""
+        return self.proc.pid if self.proc is not None else None
+
 
 @dataclass
 class Sample:
@@ -172,7 +177,8 @@ class Team:
     def __init__(self, scenario: Scenario, *, run_dir: str | Path | None = None, headless: bool = False,
                  control_port: int = 47100, log_level: str = "WARNING", physics_hz: float | None = None,
                  feed_hz: float = 10.0, record: bool = False, mission: bool | None = None,
-                 ui: bool | None = None, transport: dict[str, Any] | None = None, gui_port: int = 8080) -> None:
+                 ui: bool | None = None, transport: dict[str, Any] | None = None, gui_port: int = 8080,
+                 gui_listen: str | None = None) -> None:
         if scenario.count > MAX_AGENT_ROBOTS:
             raise TeamError(f"--robots: at most {MAX_AGENT_ROBOTS} robot agents (one loopback "
                             f"address each), got {scenario.count}; use the kinematic mode of "
@@ -185,6 +191,8 @@ class Team:
         self.record = record
         self.transport = {"peer_timeout": 3.0, **(transport or {})}
         self.gui_port = gui_port
+        self.gui_listen = gui_listen  # HOST:PORT of the GUI (default 127.0.0.1:gui_port)
+        self.gui_token = secrets.token_urlsafe(16)  # the GUI always asks for it: printed in the URL
         self.mission = plugin_available("erni.plugins.mission", "MissionControl") if mission is None else mission
         self.ui = (not headless and plugin_available("erni.plugins.ui", "UIPlugin")) if ui is None else ui
         self.key = secrets.token_hex(16)
@@ -292,13 +300,26 @@ class Team:
             self._add_agent(name, (addr, port), plugins, f"robot {name} of scenario {self.scenario.name}")
         plugins = [("transport", dict(listen=f"{CONTROL_HOST}:{self.control_port}", role="control", **common))]
         if self.ui:
-            gui_port = self.gui_port if port_free("127.0.0.1", self.gui_port) else free_port("127.0.0.1", socket.SOCK_STREAM)
+            gui_host, gui_port = "127.0.0.1", self.gui_port
+            if self.gui_listen:
+                from erni.transport import parse_address
+
+                gui_host, gui_port = parse_address(self.gui_listen)
+            bind = "0.0.0.0" if gui_host in ("", "0.0.0.0") else gui_host
+            if not gui_port or not port_free(bind, gui_port):
+                gui_port = free_port(bind, socket.SOCK_STREAM)
             plan = self.run_dir / "world.toml"  # the GUI draws the scenario's walls and obstacles
             world = self.world.model_dump(mode="json", exclude={"robot", "name"}, exclude_none=True)
             plan.write_text("".join(f"{k} = {toml_value(v)}\n" for k, v in world.items() if v),
                             encoding="utf-8")
-            plugins.append(("ui", {"listen": f"127.0.0.1:{gui_port}", "floorplan": str(plan)}))
-            self.url = f"http://127.0.0.1:{gui_port}/"
+            plugins.append(("ui", {"listen": f"{bind}:{gui_port}", "floorplan": str(plan), "token": self.gui_token}))
+            shown = bind
+            if bind in ("0.0.0.0", "::"):
+                from erni.plugins.ui.server import public_address
+
+                shown = public_address()
+            shown = f"[{shown}]" if ":" in shown else shown
+            self.url = f"http://{shown}:{gui_port}/?token={self.gui_token}"
         self._add_agent(CONTROL, (CONTROL_HOST, self.control_port), plugins,
                         f"control node of scenario {self.scenario.name}", workers=2)
 

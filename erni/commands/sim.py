@@ -20,6 +20,9 @@ def register(sub: Any) -> None:
                    "(default: four robots in an open room)")
     p.add_argument("--robots", type=int, help="number of robots (overrides the scenario)")
     p.add_argument("--headless", action="store_true", help="no GUI on the control node")
+    p.add_argument("--gui-listen", metavar="HOST:PORT", help="where the GUI listens (default 127.0.0.1:8080; "
+                   "0.0.0.0:8080 for operators on other machines: the printed URL names this host and "
+                   "carries the token the page needs)")
     p.add_argument("--duration", type=float, help="stop after S seconds (default: the scenario's, "
                    "else run until Ctrl-C)")
     p.add_argument("--seed", type=int, help="random seed (start layout, robots)")
@@ -57,9 +60,13 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         scenario = load(args)
+        if args.gui_listen:
+            from erni.transport import parse_address
+
+            parse_address(args.gui_listen)
         team = Team(scenario, run_dir=args.run_dir, headless=args.headless,
-                    control_port=args.control_port, log_level=args.log_level)
-    except (ScenarioError, TeamError) as err:
+                    control_port=args.control_port, log_level=args.log_level, gui_listen=args.gui_listen)
+    except (ScenarioError, TeamError, ValueError) as err:
         print(f"erni sim: {err}", file=sys.stderr)
         return 2
 
@@ -72,6 +79,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         print(f"erni sim: {scenario.title} ({scenario.name}): {scenario.count} robot(s), "
               f"R = {scenario.radio.comm_range:g} m; starting...", flush=True)
+        print(f"erni sim: run directory {team.run_dir} (agent configs, logs, journals, team key)", flush=True)
         t0 = time.monotonic()
         team.start(progress, timeout=args.timeout)
         progress.done()
@@ -95,13 +103,14 @@ def run(args: argparse.Namespace) -> int:
 
 def _print_team(team: Any, seconds: float) -> None:
     host, port = team.control_address
-    print(f"team up in {seconds:.1f} s: {len(team.names)} robot agent(s) and the control node")
+    print(f"team up in {seconds:.1f} s: {len(team.names)} robot agent(s) and the control node; "
+          f"run directory {team.run_dir}")
     for i, name in enumerate(team.names):
         r = team.robots[i]
-        print(f"  {name:<10} agent {team.agents[name].address[0]:<12} robot {team.host.url(i):<26} "
-              f"at ({r.x:6.2f}, {r.y:6.2f})")
-    print(f"  control    agent {host}:{port}" + (f"   GUI {team.url}" if team.url else
-                                                 "   (no GUI: headless or not installed)"))
+        print(f"  {name:<10} agent {team.agents[name].address[0]:<12} pid {team.agents[name].pid or '-':<8} "
+              f"robot {team.host.url(i):<26} at ({r.x:6.2f}, {r.y:6.2f})")
+    print(f"  control    agent {host}:{port}  pid {team.agents['control'].pid or '-'}")
+    print(f"  GUI        {team.url}" if team.url else "  GUI        none (headless, or the UI plugin is not installed)")
     print(f"to task the team from another terminal:\n"
           f"  export ERNI_TEAM_KEY=$(cat {team.key_file})\n"
           f"  erni peers --via {host}:{port}\n"
@@ -145,7 +154,21 @@ def _run_scenario(team: Any, scenario: Any) -> None:
                       flush=True)
         if time.monotonic() >= next_status:
             next_status += 10.0
-            st = team.status
-            alive = sum(1 for n in team.names if team.agents[n].alive)
-            print(f"t={now:6.1f} s  {alive}/{len(team.names)} agents running, {st.components} network "
-                  f"component(s), control reaches {st.control_reach}/{len(team.names)}", flush=True)
+            print(f"t={now:6.1f} s  {status_line(team)}", flush=True)
+
+
+def status_line(team: Any) -> str:
+    """Robot agents running, and the robots the control node hears (its own directory, not the radio model)."""
+    names = team.names
+    dead = [n for n in names if not team.agents[n].alive]
+    line = f"{len(names) - len(dead)}/{len(names)} robot agents running" + (
+        f" ({', '.join(dead)} exited)" if dead else "")
+    if not team.agents["control"].alive:
+        return line + "; the control node is not running"
+    peers = team.peers(1.0)
+    heard = [n for n in names if n in peers and peers[n].up]
+    if not peers:
+        return line + "; the control node does not answer"
+    return line + f"; control hears {len(heard)}/{len(names)}" + (
+        f" (not {', '.join(n for n in names if n not in heard)})" if len(heard) < len(names) else "") + (
+        f"; {team.status.components} radio component(s)")
