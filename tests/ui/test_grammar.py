@@ -425,3 +425,18 @@ def test_any_sequence_of_grammar_words_is_answered(words_):
     assert reply.say is not None
     for task in reply.tasks:
         assert task.destination in KNOWN
+
+
+def test_operator_lines_written_from_paper_004_are_understood():
+    """Lines written from paper 004 (4.2 task language, 4.3.2 speech) before the grammar was read."""
+    from pathlib import Path
+
+    lines = [line.strip() for line in Path(__file__).with_name("paper_utterances.txt").read_text().splitlines()
+             if line.strip() and not line.startswith("#")]
+    refused = []
+    for line in lines:
+        d = dialogue("RemoteBotMotion")
+        if not d.hear(line, KNOWN).accepted:
+            refused.append(line)
+    assert len(lines) == 60
+    assert refused == ["robot three go home", "robot one come back"]  # 58 of 60: home and "come back" are unknown
