@@ -14,6 +14,13 @@ would converge to, computed directly from node positions:
   SET, or `set_position()`); the report reaches every node of the reporter's connected
   component, at once and again whenever the topology changes; partitioned nodes keep
   what they knew.
+- **Protocol bookkeeping.** What an NHDP/OLSRv2 router would count is kept with the
+  network's clock: HELLOs expected and received from each neighbour (one every
+  `HELLO_INTERVAL`, each received with the link's delivery ratio; counters only grow), the
+  changes of each node's Neighbor Set, its ANSN (bumped when its advertised neighbours or
+  their metrics change), and its MPR-set and routing-set recalculations. Every router
+  selects all its symmetric neighbours as MPRs and advertises all of them (RFC 7181 allows
+  both), so the advertised topology is the set of symmetric links.
 
 `ManetNetwork` is thread-safe: the SNMP agent reads views while a simulator moves nodes.
 """
@@ -24,6 +31,7 @@ import ipaddress
 import math
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -32,6 +40,12 @@ from erni.blackboard.errors import NotFoundError, UsageError
 
 METRIC_UNIT = 1024
 MAX_METRIC = 16776960
+# protocol constants: RFC 6130 (NHDP) and RFC 7181 (OLSRv2) defaults, in seconds
+HELLO_INTERVAL = 2.0
+L_HOLD_TIME = 6.0        # a link is heard until 3 HELLO intervals without one
+H_HOLD_TIME = 6.0        # 2-hop information lasts as long
+TC_INTERVAL = 5.0
+T_HOLD_TIME = 15.0       # topology information lasts 3 TC intervals
 
 
 @dataclass(frozen=True)
@@ -99,6 +113,17 @@ class NodeInfo:
 
 
 @dataclass(frozen=True)
+class NodeCounters:
+    """A node's protocol counters at the time of its view (they only grow)."""
+
+    neighbor_changes: int = 0     # tuples added to, removed from or changed in its Neighbor Set
+    ansn: int = 0                 # advertised neighbour sequence number (unbounded; mod 2**16 on the wire)
+    mpr_recalcs: int = 0          # MPR set recalculations
+    route_recalcs: int = 0        # routing set recalculations
+    routes_at: float = 0.0        # network clock time of the last routing set recalculation
+
+
+@dataclass(frozen=True)
 class NodeView:
     """What one node's network subsystem knows: the data its SNMP agent serves."""
 
@@ -111,6 +136,19 @@ class NodeView:
     known_nodes: tuple[NodeInfo, ...]
     position_updates: int
     topology_version: int = 0
+    counters: NodeCounters = field(default_factory=NodeCounters)
+    ansn: dict[str, int] = field(default_factory=dict)   # ANSN of every router of the component
+
+
+@dataclass
+class _LinkRecord:
+    """HELLO bookkeeping of one (undirected) link: seconds heard and delivered, folded at changes."""
+
+    heard: float
+    delivered: float
+    at: float          # when the sums were last folded
+    quality: float     # delivery ratio since `at` (0: not heard)
+    since: float       # when the link was last (re)established
 
 
 @dataclass(frozen=True)
@@ -131,9 +169,11 @@ class GroundTruth:
 class ManetNetwork:
     """A simulated MANET: add and move nodes, report positions, read per-node views and truth."""
 
-    def __init__(self, radio: RadioModel, subnet: str = "10.0.0.0/16", gps: bool = False) -> None:
+    def __init__(self, radio: RadioModel, subnet: str = "10.0.0.0/16", gps: bool = False,
+                 clock: Callable[[], float] = time.monotonic) -> None:
         self.radio = radio
         self.gps = gps
+        self.clock = clock
         self._net = ipaddress.ip_network(subnet)
         self._lock = threading.RLock()
         self._nodes: dict[str, NodeInfo] = {}
@@ -146,6 +186,9 @@ class ManetNetwork:
         self._truth: GroundTruth | None = None
         self._views: dict[str, NodeView] = {}
         self._topologies: dict[str, tuple[tuple[str, str, int], ...]] = {}
+        self._records: dict[frozenset[str], _LinkRecord] = {}
+        self._served_hellos: dict[tuple[str, str], tuple[int, int]] = {}
+        self._counters: dict[str, NodeCounters] = {}
 
     # -- building and moving -------------------------------------------------------------
 
@@ -167,8 +210,9 @@ class ManetNetwork:
             self._pos[name] = (float(x), float(y))
             self._known[name] = {}
             self._updates[name] = 0
+            self._counters[name] = NodeCounters(routes_at=self.clock())
             self._changed(nodes_changed=True)
-            self._report(name, KnownPosition(float(x), float(y), float(heading)))
+            self._report(name, KnownPosition(float(x), float(y), float(heading), self.clock()))
             return info
 
     def move(self, name: str, x: float, y: float) -> None:
@@ -187,7 +231,8 @@ class ManetNetwork:
             if self.gps:
                 for name, (x, y) in positions.items():
                     old = self._known[name].get(name)
-                    self._report(name, KnownPosition(float(x), float(y), old.heading if old else 0.0))
+                    self._report(name, KnownPosition(float(x), float(y), old.heading if old else 0.0,
+                                                     self.clock()))
 
     def set_position(self, name: str, x: float, y: float, heading: float = 0.0) -> None:
         """Record the position node `name` reports about itself (its SNMP SET)."""
@@ -197,7 +242,7 @@ class ManetNetwork:
         with self._lock:
             self._require(name)
             self._updates[name] += 1
-            self._report(name, KnownPosition(float(x), float(y), float(heading)))
+            self._report(name, KnownPosition(float(x), float(y), float(heading), self.clock()))
 
     # -- reading --------------------------------------------------------------------------
 
@@ -262,9 +307,32 @@ class ManetNetwork:
                 routes=routes, positions=known,
                 known_nodes=tuple(sorted((self._nodes[n] for n in names), key=lambda i: i.index)),
                 position_updates=self._updates[name], topology_version=self._topo_version,
+                counters=self._counters[name], ansn={n: self._counters[n].ansn for n in comp},
             )
             self._views[name] = view
             return view
+
+    def hello_counts(self, name: str, neighbor: str) -> tuple[int, int]:
+        """HELLOs (received, expected) by `name` from `neighbor` so far; both only grow."""
+        with self._lock:
+            record = self._records.get(frozenset((name, neighbor)))
+            if record is None:
+                return 0, 0
+            now = self.clock()
+            live = max(0.0, now - record.at)
+            heard = record.heard + (live if record.quality > 0 else 0.0)
+            delivered = record.delivered + live * record.quality
+            counts = (int(delivered / HELLO_INTERVAL), int(heard / HELLO_INTERVAL))
+            last = self._served_hellos.get((name, neighbor), (0, 0))
+            counts = (max(counts[0], last[0]), max(counts[1], last[1]))  # float folding never undoes a count
+            self._served_hellos[(name, neighbor)] = counts
+            return counts
+
+    def link_since(self, name: str, neighbor: str) -> float | None:
+        """Network clock time the link between two nodes was last established (None: never heard)."""
+        with self._lock:
+            record = self._records.get(frozenset((name, neighbor)))
+            return None if record is None or record.quality <= 0 else record.since
 
     # -- internals ------------------------------------------------------------------------
 
@@ -281,13 +349,60 @@ class ManetNetwork:
         """Recompute the truth after moves; bump versions only if what nodes serve changed."""
         old, new = self._truth, self._compute_truth()
         self._truth = new
+        now = self.clock()
+        self._fold_links(new, now)
         if not nodes_changed and old is not None and _same_links(old, new):
             return  # e.g. moves within the loss-free range: links, metrics and routes stand
+        self._count_changes(old, new, now)
         self._version += 1
         self._topo_version += 1
         self._views.clear()
         self._topologies.clear()
         self._disseminate()
+
+    def _fold_links(self, new: GroundTruth, now: float) -> None:
+        """Add the time since the last fold to every link's HELLO sums; start or stop links."""
+        for key in set(self._records) | set(new.links):
+            quality = new.links.get(key, 0.0)
+            record = self._records.get(key)
+            if record is None:
+                self._records[key] = _LinkRecord(0.0, 0.0, now, quality, now)
+                continue
+            live = max(0.0, now - record.at)
+            if record.quality > 0:
+                record.heard += live
+                record.delivered += live * record.quality
+            if record.quality <= 0 < quality:
+                record.since = now
+            record.quality, record.at = quality, now
+
+    def _count_changes(self, old: GroundTruth | None, new: GroundTruth, now: float) -> None:
+        """Bump each node's protocol counters for what this change did to its neighbourhood."""
+        heard_old = _heard(old.links) if old is not None else {}
+        heard_new = _heard(new.links)
+        sym_old = old.symmetric if old is not None else {}
+        component_of = {n: i for i, comp in enumerate(new.components) for n in comp}
+        topo_changed = set()
+        for i, comp in enumerate(new.components):
+            edges_new = {(a, b, m) for a in comp for b, m in new.symmetric[a].items()}
+            edges_old = {(a, b, m) for a in comp for b, m in sym_old.get(a, {}).items()}
+            if edges_new != edges_old:
+                topo_changed.add(i)
+        for name in new.symmetric:
+            c = self._counters[name]
+            h_old, h_new = heard_old.get(name, {}), heard_new.get(name, {})
+            s_old, s_new = sym_old.get(name, {}), new.symmetric[name]
+            tuples = len(h_old.keys() ^ h_new.keys()) + sum(
+                1 for n in h_old.keys() & h_new.keys() if (n in s_old) != (n in s_new))
+            two_old = {(n, m, k) for n in s_old for m, k in sym_old.get(n, {}).items() if m != name}
+            two_new = {(n, m, k) for n in s_new for m, k in new.symmetric[n].items() if m != name}
+            recalc = component_of[name] in topo_changed
+            self._counters[name] = NodeCounters(
+                neighbor_changes=c.neighbor_changes + tuples,
+                ansn=c.ansn + (s_old != s_new),
+                mpr_recalcs=c.mpr_recalcs + (s_old.keys() != s_new.keys() or two_old != two_new),
+                route_recalcs=c.route_recalcs + recalc,
+                routes_at=now if recalc else c.routes_at)
 
     def _report(self, name: str, pos: KnownPosition) -> None:
         comp = next(c for c in self.truth().components if name in c)
@@ -332,6 +447,16 @@ class ManetNetwork:
             components=netgraph.connected_components(sym),
             articulation_points=netgraph.articulation_points(sym),
         )
+
+
+def _heard(links: dict[frozenset[str], float]) -> dict[str, dict[str, float]]:
+    """Every node's heard neighbours with their delivery ratios."""
+    out: dict[str, dict[str, float]] = {}
+    for key, q in links.items():
+        a, b = tuple(key)
+        out.setdefault(a, {})[b] = q
+        out.setdefault(b, {})[a] = q
+    return out
 
 
 def _same_links(a: GroundTruth, b: GroundTruth) -> bool:
