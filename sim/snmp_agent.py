@@ -1,10 +1,19 @@
 """SNMP agent of the simulated MANET: every node served on its own UDP endpoint, one thread.
 
 One asyncio loop (thread `manet-snmp`) serves any number of nodes, each on its own
-(host, port), speaking SNMPv1 and SNMPv2c (GET, GETNEXT, GETBULK, SET) with pysnmp's
-protocol layer. Each node answers from its `NodeView` (sim/manet.py) through the table of
-sim/manet_mib.py; a SET of the position scalars reports the node's position to the
-network. Malformed datagrams and wrong communities are dropped and counted.
+(host, port) and each its own SNMP entity (sysUpTime from when it was served, its own snmp
+counters), speaking SNMPv1 and SNMPv2c: GET, GETNEXT, GETBULK and SET as RFC 3416 defines
+them (errors mapped to v1 as RFC 3584 says), from the node's `NodeView` through the rows of
+sim/manet_mib.py. A node has a read community and, optionally, a distinct write community:
+a SET with the read community is refused (noAccess; v1 noSuchName) and counted in
+snmpInBadCommunityUses; a SET of the position scalars with the write community reports the
+node's position to the network.
+
+Dropped and counted, never answered: undecodable datagrams (snmpInASNParseErrs), other SNMP
+versions (snmpInBadVersions), unknown communities (snmpInBadCommunityNames), and every
+response-class or notification PDU — GetResponse, Trap, Report, InformRequest — for which a
+command responder has no handler (snmpUnknownPDUHandlers, RFC 3412 4.2.2.1): no datagram,
+spoofed or not, makes two agents answer each other.
 """
 
 from __future__ import annotations
@@ -20,96 +29,121 @@ from pyasn1.codec.ber import decoder, encoder
 from pyasn1.error import PyAsn1Error
 from pyasn1.type import univ
 from pysnmp.proto import api
+from pysnmp.proto.api import v1 as pv1
 from pysnmp.proto.api import v2c
 
-from erni.blackboard.errors import NetworkError
+from erni.blackboard.errors import NetworkError, UsageError
 from erni.sim import snmp_ber as ber
-from erni.sim.manet import ManetNetwork
+from erni.sim.manet import ManetNetwork, NodeView
 from erni.sim.manet_mib import (
-    INT32,
     OID,
+    UINT32_MAX,
     WRITABLE,
-    Value,
+    Row,
     build_table,
+    object_of,
+    own_topology_prefixes,
     parse_position_write,
+    resolve,
     topology_rows,
 )
 
 log = logging.getLogger("erni.sim.snmp")
 
-MAX_VARBINDS = 500           # per response (GETBULK is trimmed to this)
-MAX_RESPONSE_BYTES = 60000   # stays under the UDP datagram limit
+MAX_VARBINDS = 500           # per GETBULK response
+MAX_RESPONSE_BYTES = 60000   # the local constraint on a response message (under the UDP limit)
 # SNMP error-status codes (RFC 3416)
-NO_SUCH_NAME, BAD_VALUE, GEN_ERR = 2, 3, 5
-WRONG_TYPE, WRONG_VALUE, NOT_WRITABLE = 7, 10, 17
-
+TOO_BIG, NO_SUCH_NAME, BAD_VALUE, GEN_ERR, NO_ACCESS = 1, 2, 3, 5, 6
+WRONG_TYPE, WRONG_VALUE, NO_CREATION, NOT_WRITABLE = 7, 10, 11, 17
+V1_OF = {NO_ACCESS: NO_SUCH_NAME, WRONG_TYPE: BAD_VALUE, WRONG_VALUE: BAD_VALUE,
+         NO_CREATION: NO_SUCH_NAME, NOT_WRITABLE: NO_SUCH_NAME}   # RFC 3584 section 4.4
+V1, V2C = 0, 1
 
 Answer = tuple[int, int, list[bytes] | None]
-"""What a PDU handler returns: error status, error index, the encoded varbinds (None on error)."""
+"""What a PDU handler returns: error status, error index, the encoded varbinds (None: echo the request)."""
 
 
-class _Rows:
-    """Sorted OIDs whose entries are a `Value` until first read, then the encoded varbind
-    (ages are encoded at every read)."""
+class _Encoded:
+    """Sorted rows whose static values are encoded once, at first read."""
 
     __slots__ = ("entries", "keys")
 
-    def __init__(self, rows: list[tuple[OID, Value]]) -> None:
+    def __init__(self, rows: list[Row]) -> None:
         self.keys = [r[0] for r in rows]
-        self.entries: list[Value | bytes] = [r[1] for r in rows]
+        self.entries: list[Row | bytes] = rows  # type: ignore[assignment]  # list is invariant; rows become bytes as they are read
 
-    def bind(self, i: int) -> bytes:
+    def bind(self, i: int, ctx: _Node) -> bytes:
         entry = self.entries[i]
         if isinstance(entry, bytes):
             return entry
-        val = entry.resolve()
-        bound = ber.varbind(ber.oid(self.keys[i]), ber.value(val.kind, val.value))
-        if entry.kind != "age":
+        _, kind, value = entry
+        dynamic = callable(value)
+        bound = ber.varbind(ber.oid(self.keys[i]), ber.value(kind, resolve(value, ctx)))
+        if not dynamic:
             self.entries[i] = bound
         return bound
 
 
 class _Table:
-    """A node's served OIDs, rebuilt when the network's version changes: its own rows with
-    an optional block shared by several nodes (the component's topology) spliced in."""
+    """A node's served OIDs: sorted, non-overlapping slices of row sets (its own rows and the
+    topology set its component shares, without the links the node advertises itself)."""
 
-    __slots__ = ("at", "block", "keys", "own", "version")
+    __slots__ = ("segments", "starts", "version")
 
-    def __init__(self, version: int, own: _Rows, block: _Rows | None = None) -> None:
+    def __init__(self, version: int, segments: list[tuple[_Encoded, int, int]]) -> None:
         self.version = version
-        self.own = own
-        self.block = block if block is not None and block.keys else None
-        if self.block is None:
-            self.keys, self.at = own.keys, len(own.keys)
-        else:
-            self.at = bisect.bisect_left(own.keys, self.block.keys[0])
-            self.keys = own.keys[: self.at] + self.block.keys + own.keys[self.at:]
+        self.segments = [s for s in segments if s[1] < s[2]]
+        self.starts = [rows.keys[lo] for rows, lo, _ in self.segments]
 
-    def _bind(self, i: int) -> bytes:
-        if i < self.at or self.block is None:
-            return self.own.bind(i)
-        j = i - self.at
-        if j < len(self.block.keys):
-            return self.block.bind(j)
-        return self.own.bind(i - len(self.block.keys))
+    @property
+    def keys(self) -> list[OID]:
+        """Every served OID in order (for tests)."""
+        return [k for rows, lo, hi in self.segments for k in rows.keys[lo:hi]]
 
-    def get(self, oid: OID) -> bytes | None:
+    def get(self, oid: OID, ctx: _Node) -> bytes | None:
         """The encoded varbind of `oid`, or None."""
-        i = bisect.bisect_left(self.keys, oid)
-        if i < len(self.keys) and self.keys[i] == oid:
-            return self._bind(i)
+        j = bisect.bisect_right(self.starts, oid) - 1
+        if j < 0:
+            return None
+        rows, lo, hi = self.segments[j]
+        i = bisect.bisect_left(rows.keys, oid, lo, hi)
+        return rows.bind(i, ctx) if i < hi and rows.keys[i] == oid else None
+
+    def next(self, oid: OID, ctx: _Node) -> tuple[OID, bytes] | None:
+        """The first OID after `oid` and its encoded varbind, or None at the end of the MIB view."""
+        j = max(0, bisect.bisect_right(self.starts, oid) - 1)
+        for rows, lo, hi in self.segments[j:]:
+            i = bisect.bisect_right(rows.keys, oid, lo, hi)
+            if i < hi:
+                return rows.keys[i], rows.bind(i, ctx)
         return None
 
-    def next(self, oid: OID) -> tuple[OID, bytes] | None:
-        """The first OID after `oid` and its encoded varbind, or None at the end."""
-        i = bisect.bisect_right(self.keys, oid)
-        if i < len(self.keys):
-            return self.keys[i], self._bind(i)
-        return None
 
-    def has_prefix(self, prefix: OID) -> bool:
-        i = bisect.bisect_left(self.keys, prefix)
-        return i < len(self.keys) and self.keys[i][: len(prefix)] == prefix
+class _Node:
+    """One served node: its SNMP entity's communities, start time and counters."""
+
+    def __init__(self, network: ManetNetwork, name: str, read: bytes, write: bytes | None) -> None:
+        self.network = network
+        self.name = name
+        self.read = read
+        self.write = write
+        self.started = network.clock()
+        self.stats: Counter[str] = Counter()
+        self.table: _Table | None = None
+        self.transport: asyncio.DatagramTransport | None = None
+
+    # NodeContext (sim/manet_mib.py)
+    def now(self) -> float:
+        return self.network.clock()
+
+    def stamp(self, when: float) -> int:
+        return min(UINT32_MAX, int(max(0.0, when - self.started) * 100))
+
+    def uptime(self) -> int:
+        return self.stamp(self.now())
+
+    def counter(self, name: str) -> int:
+        return self.stats[name]
 
 
 class _NodeEndpoint(asyncio.DatagramProtocol):
@@ -128,19 +162,24 @@ class _NodeEndpoint(asyncio.DatagramProtocol):
 
 
 class ManetSnmpAgent:
-    """Serve the nodes of a `ManetNetwork` over SNMP v1/v2c, one UDP endpoint per node."""
+    """Serve the nodes of a `ManetNetwork` over SNMP v1/v2c, one UDP endpoint per node.
 
-    def __init__(self, network: ManetNetwork, community: str = "public") -> None:
+    `read_community` reads; `write_community` (None: the agent accepts no SET) reads and
+    writes. `serve()` may give a node communities of its own.
+    """
+
+    def __init__(self, network: ManetNetwork, read_community: str = "public",
+                 write_community: str | None = None) -> None:
+        _check_communities(read_community, write_community)
         self.network = network
-        self.community = community.encode()
-        self.stats: Counter[str] = Counter()
-        self._tables: dict[str, _Table] = {}
-        self._blocks: dict[int, tuple[Any, _Rows, int]] = {}
+        self.read_community = read_community
+        self.write_community = write_community
+        self.stats: Counter[str] = Counter()   # every node's counters added up
+        self._nodes: dict[str, _Node] = {}
+        self._blocks: dict[int, tuple[Any, _Encoded, int]] = {}
         self._endpoints: dict[str, tuple[str, int]] = {}
-        self._transports: dict[str, asyncio.DatagramTransport] = {}
         self._loop: asyncio.AbstractEventLoop | None = None
         self._thread: threading.Thread | None = None
-        self._lock = threading.Lock()
 
     # -- life cycle -----------------------------------------------------------------------
 
@@ -164,17 +203,26 @@ class ManetSnmpAgent:
         ready.wait(5.0)
         return self
 
-    def serve(self, name: str, host: str = "127.0.0.1", port: int = 0) -> tuple[str, int]:
-        """Open node `name`'s UDP endpoint (port 0: any free port); return (host, port)."""
-        self.network.info(name)  # raises KeyError for an unknown node
+    def serve(self, name: str, host: str = "127.0.0.1", port: int = 0, read_community: str | None = None,
+              write_community: str | None = None) -> tuple[str, int]:
+        """Open node `name`'s UDP endpoint (port 0: any free port); return (host, port).
+
+        The node's communities default to the agent's.
+        """
+        self.network.info(name)  # raises NotFoundError for an unknown node
+        read = read_community if read_community is not None else self.read_community
+        write = write_community if write_community is not None else self.write_community
+        _check_communities(read, write)
         if self._loop is None:
             self.start()
         assert self._loop is not None
+        node = self.node(name)
+        node.read, node.write = read.encode(), write.encode() if write is not None else None
 
         async def open_endpoint() -> tuple[str, int]:
             transport, _ = await self._loop.create_datagram_endpoint(  # type: ignore[union-attr]
                 lambda: _NodeEndpoint(self, name), local_addr=(host, port))
-            self._transports[name] = transport
+            node.transport = transport
             bound = transport.get_extra_info("sockname")
             return bound[0], bound[1]
 
@@ -198,6 +246,10 @@ class ManetSnmpAgent:
         """(host, port) of every served node."""
         return dict(self._endpoints)
 
+    def node_stats(self, name: str) -> Counter[str]:
+        """The SNMP counters of one node (snmpInPkts, snmpUnknownPDUHandlers, ...)."""
+        return self.node(name).stats
+
     def close(self) -> None:
         """Close every endpoint and join the agent's thread."""
         loop, thread = self._loop, self._thread
@@ -205,14 +257,15 @@ class ManetSnmpAgent:
             return
 
         def shutdown() -> None:
-            for t in self._transports.values():
-                t.close()
+            for node in self._nodes.values():
+                if node.transport is not None:
+                    node.transport.close()
+                    node.transport = None
             loop.call_soon(loop.stop)
 
         loop.call_soon_threadsafe(shutdown)
         thread.join(5.0)
         self._loop = self._thread = None
-        self._transports.clear()
         self._endpoints.clear()
 
     def __enter__(self) -> ManetSnmpAgent:
@@ -223,147 +276,236 @@ class ManetSnmpAgent:
 
     # -- request handling (runs on the agent's thread) -------------------------------------
 
+    def node(self, name: str) -> _Node:
+        """The SNMP entity of node `name` (made with the agent's communities on first use)."""
+        node = self._nodes.get(name)
+        if node is None:
+            self.network.info(name)
+            node = _Node(self.network, name, self.read_community.encode(),
+                         self.write_community.encode() if self.write_community is not None else None)
+            self._nodes[name] = node
+        return node
+
     def table(self, name: str) -> _Table:
         """The node's current OID table (rebuilt after a network change)."""
+        node = self.node(name)
         version = self.network.version
-        table = self._tables.get(name)
+        table = node.table
         if table is None or table.version != version:
             view = self.network.view(name)
-            rows = build_table(view, self.network.radio.comm_range, with_topology=False)
-            table = _Table(view.version, _Rows(rows), self._topology_block(view))
-            self._tables[name] = table
+            own = _Encoded(build_table(view, self.network, with_topology=False))
+            block = self._topology_block(view)
+            segments: list[tuple[_Encoded, int, int]] = []
+            if block.keys:
+                at = bisect.bisect_left(own.keys, block.keys[0])
+                cuts = [0]
+                for prefix in own_topology_prefixes(view):  # the node's own links: not in its set
+                    cuts.append(bisect.bisect_left(block.keys, prefix))
+                    cuts.append(bisect.bisect_left(block.keys, prefix[:-1] + (prefix[-1] + 1,)))
+                cuts.append(len(block.keys))
+                segments.append((own, 0, at))
+                segments.extend((block, cuts[k], cuts[k + 1]) for k in range(0, len(cuts), 2))
+                segments.append((own, at, len(own.keys)))
+            else:
+                segments.append((own, 0, len(own.keys)))
+            table = _Table(view.version, segments)
+            node.table = table
         return table
 
-    def _topology_block(self, view: Any) -> _Rows:
+    def _topology_block(self, view: NodeView) -> _Encoded:
         """The topology rows of the view's component, built (and encoded) once per topology."""
         cached = self._blocks.get(id(view.topology))
         if cached is not None and cached[0] is view.topology:
             return cached[1]
         if self._blocks and next(iter(self._blocks.values()))[2] != view.topology_version:
             self._blocks.clear()
-        block = _Rows(topology_rows(view))
+        block = _Encoded(topology_rows(view))
         self._blocks[id(view.topology)] = (view.topology, block, view.topology_version)
         return block
 
+    def _count(self, node: _Node, key: str) -> None:
+        node.stats[key] += 1
+        self.stats[key] += 1
+
     def handle(self, name: str, data: bytes) -> bytes | None:
         """Answer one datagram addressed to node `name`; None drops it (counted)."""
+        node = self.node(name)
+        self._count(node, "snmpInPkts")
         try:
             version = int(api.decodeMessageVersion(data))
-            if version not in api.PROTOCOL_MODULES:
-                self.stats["bad_version"] += 1
-                return None
-            p_mod = api.PROTOCOL_MODULES[version]
-            msg, _ = decoder.decode(data, asn1Spec=p_mod.Message())
-            community = bytes(p_mod.apiMessage.get_community(msg))
-            if community != self.community:
-                self.stats["bad_community"] += 1
-                return None
-            req = p_mod.apiMessage.get_pdu(msg)
-            request_id = int(p_mod.apiPDU.get_request_id(req))
-            binds = [(tuple(o), v) for o, v in p_mod.apiPDU.get_varbinds(req)]
         except (PyAsn1Error, ValueError, TypeError, KeyError, IndexError, AttributeError):
-            self.stats["malformed"] += 1
+            self._count(node, "snmpInASNParseErrs")
             return None
+        if version not in (V1, V2C):
+            self._count(node, "snmpInBadVersions")
+            return None
+        p_mod = pv1 if version == V1 else v2c
         try:
-            status, index, out = self._dispatch(name, version, p_mod, req, binds)
+            msg, rest = decoder.decode(data, asn1Spec=p_mod.Message())
+            if rest:
+                raise ValueError("trailing bytes after the message")
+            community = bytes(p_mod.apiMessage.get_community(msg))
+            req = p_mod.apiMessage.get_pdu(msg)
+            kind = _pdu_kind(p_mod, req)
+            if kind != "other":
+                request_id = int(p_mod.apiPDU.get_request_id(req))
+                binds = [(tuple(o), v) for o, v in p_mod.apiPDU.get_varbinds(req)]
+        except (PyAsn1Error, ValueError, TypeError, KeyError, IndexError, AttributeError):
+            self._count(node, "snmpInASNParseErrs")
+            return None
+        if community == node.write and node.write is not None:
+            may_write = True
+        elif community == node.read:
+            may_write = False
+        else:
+            self._count(node, "snmpInBadCommunityNames")
+            return None
+        if kind == "other":
+            # responses, traps, reports and informs: a command responder has no handler for them
+            self._count(node, "snmpUnknownPDUHandlers")
+            return None
+        self._count(node, kind)
+        try:
+            status, index, out = self._dispatch(node, version, kind, req, binds, may_write)
         except Exception:  # a bug must not kill the endpoint; the client sees genErr
             log.exception("node %s: failed to answer a request", name)
             status, index, out = GEN_ERR, 1, None
+        if status and version == V1:
+            status = V1_OF.get(status, status)
+        reply = self._response(version, community, request_id, status, index, out, binds)
+        if len(reply) > MAX_RESPONSE_BYTES:  # RFC 3416 4.2.1: the alternate tooBig response
+            reply = self._response(version, community, request_id, TOO_BIG, 0,
+                                   None if version == V1 else [], binds)
+            if len(reply) > MAX_RESPONSE_BYTES:
+                self._count(node, "snmpSilentDrops")
+                return None
+        self._count(node, "answered")
+        return reply
+
+    @staticmethod
+    def _response(version: int, community: bytes, request_id: int, status: int, index: int,
+                  out: list[bytes] | None, binds: list[tuple[OID, Any]]) -> bytes:
         if out is None:  # errors echo the request's varbinds
             out = [ber.varbind(ber.oid(o), encoder.encode(v)) for o, v in binds]
-        self.stats["answered"] += 1
         return ber.response(version, community, request_id, status, index, out)
 
-    def _dispatch(self, name: str, version: int, p_mod: Any, req: Any,
-                  binds: list[tuple[OID, Any]]) -> Answer:
-        if req.isSameTypeWith(p_mod.SetRequestPDU()):
-            self.stats["set"] += 1
-            return self._set(name, version, binds)
-        table = self.table(name)
-        if req.isSameTypeWith(p_mod.GetRequestPDU()):
-            self.stats["get"] += 1
-            return self._get(table, version, binds)
-        if req.isSameTypeWith(p_mod.GetNextRequestPDU()):
-            self.stats["getnext"] += 1
-            return self._next(table, version, binds)
-        if version == 1 and req.isSameTypeWith(v2c.GetBulkRequestPDU()):
-            self.stats["getbulk"] += 1
-            non_rep = int(v2c.apiBulkPDU.get_non_repeaters(req))
-            max_rep = int(v2c.apiBulkPDU.get_max_repetitions(req))
-            return self._bulk(table, binds, non_rep, max_rep)
-        self.stats["unsupported_pdu"] += 1
-        return GEN_ERR, 0, None
+    def _dispatch(self, node: _Node, version: int, kind: str, req: Any, binds: list[tuple[OID, Any]],
+                  may_write: bool) -> Answer:
+        if kind == "set":
+            if not may_write:
+                self._count(node, "snmpInBadCommunityUses")
+                return NO_ACCESS, 1 if binds else 0, None
+            return self._set(node, binds)
+        table = self.table(node.name)
+        if kind == "get":
+            return self._get(table, node, version, binds)
+        if kind == "getnext":
+            return self._next(table, node, version, binds)
+        non_rep = int(v2c.apiBulkPDU.get_non_repeaters(req))
+        max_rep = int(v2c.apiBulkPDU.get_max_repetitions(req))
+        return self._bulk(table, node, binds, non_rep, max_rep)
 
-    def _get(self, table: _Table, version: int, binds: list[tuple[OID, Any]]) -> Answer:
+    @staticmethod
+    def _get(table: _Table, node: _Node, version: int, binds: list[tuple[OID, Any]]) -> Answer:
         out: list[bytes] = []
         for i, (key, _) in enumerate(binds):
-            bound = table.get(key)
+            bound = table.get(key, node)
             if bound is not None:
                 out.append(bound)
-            elif version == 0:
+            elif version == V1:
                 return NO_SUCH_NAME, i + 1, None
-            elif len(key) >= 10 and table.has_prefix(key[:-1]):
+            elif object_of(key) is not None:  # a served object without that instance
                 out.append(ber.varbind(ber.oid(key), ber.NO_SUCH_INSTANCE))
             else:
                 out.append(ber.varbind(ber.oid(key), ber.NO_SUCH_OBJECT))
         return 0, 0, out
 
-    def _next(self, table: _Table, version: int, binds: list[tuple[OID, Any]]) -> Answer:
+    @staticmethod
+    def _next(table: _Table, node: _Node, version: int, binds: list[tuple[OID, Any]]) -> Answer:
         out: list[bytes] = []
         for i, (key, _) in enumerate(binds):
-            found = table.next(key)
+            found = table.next(key, node)
             if found is not None:
                 out.append(found[1])
-            elif version == 0:
+            elif version == V1:
                 return NO_SUCH_NAME, i + 1, None
             else:
                 out.append(ber.varbind(ber.oid(key), ber.END_OF_MIB_VIEW))
         return 0, 0, out
 
-    def _bulk(self, table: _Table, binds: list[tuple[OID, Any]], non_rep: int, max_rep: int) -> Answer:
+    @staticmethod
+    def _bulk(table: _Table, node: _Node, binds: list[tuple[OID, Any]], non_rep: int, max_rep: int) -> Answer:
+        """RFC 3416 4.2.3: N non-repeaters, then up to M rows of the R repeaters; past the end a
+        repeater names the last OID it reached (or its request OID) with endOfMibView."""
         non_rep = max(0, min(non_rep, len(binds)))
-        out = list(self._next(table, 1, binds[:non_rep])[2] or [])
-        cursors: list[OID | None] = [key for key, _ in binds[non_rep:]]
+        out = list(ManetSnmpAgent._next(table, node, V2C, binds[:non_rep])[2] or [])
         size = sum(map(len, out))
+        cursors: list[OID] = [key for key, _ in binds[non_rep:]]
+        ended = [False] * len(cursors)
         for _ in range(max(0, max_rep) if cursors else 0):
             row: list[bytes] = []
-            ended = True
             for j, cur in enumerate(cursors):
-                found = table.next(cur) if cur is not None else None
+                found = None if ended[j] else table.next(cur, node)
                 if found is None:
-                    last = cur if cur is not None else binds[non_rep + j][0]
-                    row.append(ber.varbind(ber.oid(last), ber.END_OF_MIB_VIEW))
-                    cursors[j] = None
+                    ended[j] = True
+                    row.append(ber.varbind(ber.oid(cur), ber.END_OF_MIB_VIEW))
                 else:
-                    ended = False
                     cursors[j] = found[0]
                     row.append(found[1])
             size += sum(map(len, row))
-            if len(out) + len(row) > MAX_VARBINDS or size > MAX_RESPONSE_BYTES:
+            if len(out) + len(row) > MAX_VARBINDS or size > MAX_RESPONSE_BYTES - 200:
                 break
             out.extend(row)
-            if ended:
+            if all(ended):
                 break
         return 0, 0, out
 
-    def _set(self, name: str, version: int, binds: list[tuple[OID, Any]]) -> Answer:
+    def _set(self, node: _Node, binds: list[tuple[OID, Any]]) -> Answer:
+        """RFC 3416 4.2.5: check every varbind first, then apply them all (or none)."""
         writes: dict[str, int] = {}
         for i, (key, value) in enumerate(binds):
-            field = WRITABLE.get(key)
-            if field is None:
-                self.stats["set_refused"] += 1
-                return (NO_SUCH_NAME if version == 0 else NOT_WRITABLE), i + 1, None
-            if value.tagSet != univ.Integer.tagSet:
-                self.stats["set_refused"] += 1
-                return (BAD_VALUE if version == 0 else WRONG_TYPE), i + 1, None
-            number = int(value)
-            if not INT32[0] <= number <= INT32[1]:
-                self.stats["set_refused"] += 1
-                return (BAD_VALUE if version == 0 else WRONG_VALUE), i + 1, None
-            writes[field] = number
-        view = self.network.view(name)
-        own = view.positions.get(name)
-        current = (own.x, own.y, own.heading) if own else (0.0, 0.0, 0.0)
-        x, y, heading = parse_position_write(current, writes)
-        self.network.set_position(name, x, y, heading)
+            status = self._check_write(key, value)
+            if status:
+                self._count(node, "set_refused")
+                return status, i + 1, None
+            writes[WRITABLE[key[:-1]]] = int(value)
+        if writes:
+            view = self.network.view(node.name)
+            own = view.positions.get(node.name)
+            current = (own.x, own.y, own.heading) if own else (0.0, 0.0, 0.0)
+            x, y, heading = parse_position_write(current, writes)
+            self.network.set_position(node.name, x, y, heading)
         return 0, 0, None
+
+    @staticmethod
+    def _check_write(key: OID, value: Any) -> int:
+        """0 if `value` may be written to `key`, else the error status (RFC 3416 order)."""
+        obj = object_of(key)
+        if obj is None or obj.oid not in WRITABLE:
+            return NOT_WRITABLE
+        if key != obj.oid + (0,):
+            return NO_CREATION
+        if value.tagSet != univ.Integer.tagSet:
+            return WRONG_TYPE
+        low, high = obj.range or (-(2**31), 2**31 - 1)
+        if not low <= int(value) <= high:
+            return WRONG_VALUE
+        return 0
+
+
+def _check_communities(read: str, write: str | None) -> None:
+    if not read:
+        raise UsageError("SNMP read community must not be empty")
+    if write is not None and (not write or write == read):
+        raise UsageError(f"SNMP write community must be non-empty and differ from the read community "
+                         f"{read!r}, got {write!r}")
+
+
+def _pdu_kind(p_mod: Any, pdu: Any) -> str:
+    for kind, spec in (("get", p_mod.GetRequestPDU()), ("getnext", p_mod.GetNextRequestPDU()),
+                       ("set", p_mod.SetRequestPDU())):
+        if pdu.isSameTypeWith(spec):
+            return kind
+    if p_mod is v2c and pdu.isSameTypeWith(v2c.GetBulkRequestPDU()):
+        return "getbulk"
+    return "other"

@@ -61,7 +61,7 @@ def _base128(n: int) -> bytes:
 
 
 def oid(arcs: tuple[int, ...]) -> bytes:
-    """An OBJECT IDENTIFIER TLV."""
+    """An OBJECT IDENTIFIER TLV (zeroDotZero, 0.0, included)."""
     if len(arcs) < 2 or arcs[0] not in (0, 1, 2) or (arcs[0] < 2 and not 0 <= arcs[1] < 40) \
             or min(arcs) < 0:
         raise UsageError(f"invalid OID {arcs!r}")
@@ -71,7 +71,7 @@ def oid(arcs: tuple[int, ...]) -> bytes:
 
 
 def value(kind: str, v: object) -> bytes:
-    """A typed value TLV: kinds int, str, ip, gauge, uns, counter, ticks."""
+    """A typed value TLV: kinds int, str, ip, gauge, uns, counter, ticks, oid."""
     if kind == "int":
         return signed(TAG_INTEGER, int(v))  # type: ignore[call-overload]
     if kind == "str":
@@ -84,6 +84,8 @@ def value(kind: str, v: object) -> bytes:
         return unsigned(TAG_COUNTER32, int(v))  # type: ignore[call-overload]
     if kind == "ticks":
         return unsigned(TAG_TIMETICKS, int(v))  # type: ignore[call-overload]
+    if kind == "oid":
+        return oid(tuple(v))  # type: ignore[arg-type]  # a tuple of arcs by contract
     raise UsageError(f"unknown SNMP value kind {kind!r}")
 
 

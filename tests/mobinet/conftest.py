@@ -16,6 +16,8 @@ from erni.sim.snmp_agent import ManetSnmpAgent
 
 NAME = (1, 3, 6, 1, 4, 1, 32473, 1, 1, 1, 0)
 ADDRESS = (1, 3, 6, 1, 4, 1, 32473, 1, 1, 3, 0)
+SYS_NAME = (1, 3, 6, 1, 2, 1, 1, 5, 0)
+WRITE = "test-writer"   # the write community of the agents the fixtures serve
 LINE = [("robot1", 0.0, 0.0), ("robot2", 60.0, 0.0), ("robot3", 120.0, 0.0),
         ("robot4", 180.0, 0.0), ("robot5", 240.0, 0.0)]
 
@@ -35,7 +37,7 @@ def net() -> ManetNetwork:
 
 @pytest.fixture
 def served(net: ManetNetwork) -> Iterator[dict[str, tuple[str, int]]]:
-    agent = ManetSnmpAgent(net).start()
+    agent = ManetSnmpAgent(net, write_community=WRITE).start()
     try:
         yield agent.serve_all()
     finally:
@@ -44,7 +46,7 @@ def served(net: ManetNetwork) -> Iterator[dict[str, tuple[str, int]]]:
 
 @pytest.fixture
 def snmp_agent(net: ManetNetwork) -> Iterator[ManetSnmpAgent]:
-    agent = ManetSnmpAgent(net).start()
+    agent = ManetSnmpAgent(net, write_community=WRITE).start()
     agent.serve_all()
     try:
         yield agent
@@ -53,7 +55,8 @@ def snmp_agent(net: ManetNetwork) -> Iterator[ManetSnmpAgent]:
 
 
 class BadAgent:
-    """A raw UDP 'agent': silent, garbage, wrong types (`wrongtype`) or non-increasing OIDs (`loop`)."""
+    """A raw UDP 'agent': silent, garbage, wrong types (`wrongtype`), non-increasing OIDs (`loop`)
+    or noSuchObject for everything (`nothing`)."""
 
     def __init__(self, mode: str) -> None:
         self.mode = mode
@@ -95,8 +98,10 @@ class BadAgent:
         walking = not req.isSameTypeWith(p_mod.GetRequestPDU())
         for oid, _ in p_mod.apiPDU.get_varbinds(req):
             oid = tuple(oid)
-            if not walking and self.mode == "loop":   # a valid identity, then looping walks
-                binds.append((oid, {NAME: v2c.OctetString(b"loopy"),
+            if self.mode == "nothing":                 # an SNMP agent serving none of it
+                binds.append((oid, v2c.NoSuchObject("")))
+            elif not walking and self.mode == "loop":   # a valid identity, then looping walks
+                binds.append((oid, {NAME: v2c.OctetString(b"loopy"), SYS_NAME: v2c.OctetString(b"loopy"),
                                     ADDRESS: v2c.IpAddress("10.9.9.9")}.get(oid, v2c.NoSuchObject(""))))
             elif walking and self.mode == "wrongtype":
                 binds.append((oid + (1,), v2c.Integer32(7)) if len(oid) < 14
