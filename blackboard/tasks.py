@@ -527,6 +527,11 @@ class NetInfo(BBObject):
     degraded: bool = False
     message: str = ""
     stamp: float = Field(default_factory=time.time)
+    provenance: dict[str, str] = Field(
+        default_factory=dict,
+        description="field name -> where its data came from (source and table, e.g. "
+                    "'snmp 127.0.0.1:1162 OLSRv2-MIB olsrv2TibRoutingSetTable'), or "
+                    "'missing: <why>' when the source does not provide it")
 
 
 def language_table() -> str:

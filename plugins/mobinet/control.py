@@ -4,8 +4,11 @@ For each NetWatch task (addressed to this agent or to nobody) the plugin publish
 `NetInfo` (uid `netinfo:<task uid>`, changed in place at the task's `rate_hz`) and keeps
 the task's result RUNNING with a summary in `values`. Removing the task stops the watch
 and removes its NetInfo. Every `Pose` of this robot is written to the network subsystem
-(paper 004, Figure 6 step 6). All SNMP I/O happens on MobiNetResource's thread; results
-come back through `later()`, so `execute()` only decides and publishes.
+(paper 004, Figure 6 step 6) when a write community is configured. All SNMP I/O happens on
+MobiNetResource's thread; results come back through `later()`, so `execute()` only decides
+and publishes. Each NetInfo's `provenance` names the source and table of every field it
+fills; when the source does not provide what a watch needs (an agent without NHDP-MIB asked
+for neighbours), the NetInfo is degraded and its message says what is missing.
 """
 
 from __future__ import annotations
@@ -43,6 +46,8 @@ PARTS_OF = {
     "link_quality": frozenset({NEIGHBORS}),
     "neighbor_list": frozenset({NEIGHBORS}),
 }
+FIELDS_OF = {NEIGHBORS: ("neighbors",), TOPOLOGY: ("links", "articulation_points"),
+             ROUTES: ("routes",), POSITIONS: ("positions",)}   # the NetInfo fields a part fills
 
 
 class MobiNetSettings(BaseModel):
@@ -52,7 +57,9 @@ class MobiNetSettings(BaseModel):
 
     host: str = Field("127.0.0.1", description="SNMP agent of this robot's network subsystem")
     port: int = Field(1161, ge=1, le=65535, description="its UDP port")
-    community: str = Field("public", description="SNMPv2c community (read and write)")
+    community: str = Field("public", description="SNMPv2c read community")
+    write_community: str | None = Field(None, min_length=1, description="SNMPv2c write community "
+                                        "(SETs the pose); none: the pose is not written")
     timeout: float = Field(0.5, gt=0, le=30, description="per-request timeout (s)")
     retries: int = Field(0, ge=0, le=5, description="retries after a timeout")
     max_repetitions: int = Field(100, ge=1, le=500, description="GETBULK rows per request")
@@ -69,8 +76,9 @@ class MobiNetControl(Plugin[MobiNetSettings]):
     def make_source(self) -> NetworkSource:
         """The source the resource reads through (override to plug in another subsystem)."""
         s = self.settings
-        return SnmpSource(s.host, s.port, s.community, s.timeout, s.retries, s.max_repetitions,
-                          s.cache_seconds)
+        return SnmpSource(s.host, s.port, community=s.community, timeout=s.timeout, retries=s.retries,
+                          max_repetitions=s.max_repetitions, cache_seconds=s.cache_seconds,
+                          write_community=s.write_community)
 
     def setup(self) -> None:
         me = self.agent_name
@@ -84,6 +92,9 @@ class MobiNetControl(Plugin[MobiNetSettings]):
         self.resource = MobiNetResource(self.make_source, self._delivered, self.log,
                                         self.settings.log_interval, name=f"mobinet-{me}")
         self.resource.start()
+        self._write_pose = self.settings.write_pose and self.settings.write_community is not None
+        if self.settings.write_pose and not self._write_pose:
+            self.log.warning("poses are not written to the network subsystem: no write_community")
 
     def teardown(self) -> None:
         self.resource.close()
@@ -108,7 +119,7 @@ class MobiNetControl(Plugin[MobiNetSettings]):
                 self._start(task)
         for task in self.tasks.removed:
             self._stop(task.uid)
-        if self.settings.write_pose:
+        if self._write_pose:
             latest = None
             for pose in list(self.poses.added) + list(self.poses.changed):
                 if latest is None or pose.stamp >= latest.stamp:
@@ -164,22 +175,31 @@ class MobiNetControl(Plugin[MobiNetSettings]):
         old = task.result
         if old is None or old.values != values or old.message != message or old.state != TaskState.RUNNING:
             self.change(task.with_result(TaskState.RUNNING, message=message, values=values,
-                                         confidence=0.0 if view is None else 1.0))
+                                         confidence=0.0 if new_info.degraded else 1.0))
 
     def _answer(self, task: Task, info: NetInfo, view: NetView) -> tuple[NetInfo, dict[str, Any], str]:
-        fields: dict[str, Any] = {"degraded": False, "message": "", "stamp": time.time(),
-                                  "node": view.node or self.agent_name}
+        provenance = {"node": view.sources.get("node", "")}
+        for part in PARTS_OF[task.preposition]:
+            for name in FIELDS_OF[part]:
+                provenance[name] = (f"missing: {view.missing[part]}" if part in view.missing
+                                    else view.sources.get(part, ""))
+        if TOPOLOGY in PARTS_OF[task.preposition] and TOPOLOGY not in view.missing:
+            provenance["articulation_points"] = "computed from links"
+        lacking = [view.missing[p] for p in sorted(PARTS_OF[task.preposition]) if p in view.missing]
+        fields: dict[str, Any] = {"degraded": bool(lacking), "message": "; ".join(lacking),
+                                  "stamp": time.time(), "node": view.node or self.agent_name,
+                                  "provenance": provenance}
         values: dict[str, Any] = {}
-        message = ""
+        message = f"degraded: {fields['message']}" if lacking else ""
         match task.params:
             case NeighborListParams():
                 nbrs = [n for n in view.neighbors if n.symmetric]
                 fields["neighbors"] = nbrs
                 values["neighbors"] = [n.name for n in nbrs]
             case LinkQualityParams() as params:
-                message = self._link_quality(view, params, fields, values)
+                message = self._link_quality(view, params, fields, values) or message
             case PathCostParams() as params:
-                message = self._path_cost(view, params, fields, values)
+                message = self._path_cost(view, params, fields, values) or message
             case TopologyParams():
                 cuts = articulation_points(view.links)
                 nodes = {n for link in view.links for n in (link.a, link.b)} | {view.node}

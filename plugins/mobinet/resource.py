@@ -36,7 +36,12 @@ class SourceError(ErniError):
 
 @dataclass
 class NetView:
-    """One reading of the network subsystem (only the requested parts are filled)."""
+    """One reading of the network subsystem (only the requested parts are filled).
+
+    `sources` maps "node" and each filled part (a PARTS name) to where it came from, e.g.
+    "snmp 127.0.0.1:1162 NHDP-MIB nhdpDiscIfSetTable"; `missing` maps each requested part
+    the subsystem does not provide to the reason, e.g. "NHDP-MIB not served by ...".
+    """
 
     node: str
     address: str
@@ -45,6 +50,8 @@ class NetView:
     links: list[Link] = field(default_factory=list)
     routes: list[Route] = field(default_factory=list)
     positions: dict[str, Position] = field(default_factory=dict)
+    sources: dict[str, str] = field(default_factory=dict)
+    missing: dict[str, str] = field(default_factory=dict)
 
 
 @runtime_checkable
@@ -52,12 +59,14 @@ class NetworkSource(Protocol):
     """Reads and writes the network subsystem; methods run on MobiNet's asyncio thread.
 
     Implementations raise `SourceError` (one clear line) for timeouts, error answers and
-    malformed or mistyped data. The SNMP implementation is `SnmpSource`; another (for
-    example an olsrd2 JSON reader) only has to provide these three coroutines.
+    malformed or mistyped data, and list the parts they cannot provide in `NetView.missing`
+    instead of failing. The SNMP implementation is `SnmpSource`; another (for example a
+    babeld or olsrd2 reader) only has to provide these three coroutines.
     """
 
     async def read(self, parts: frozenset[str]) -> NetView:
-        """Return a view with the requested parts (a subset of PARTS)."""
+        """Return a view with the requested parts (a subset of PARTS), each either filled
+        (named in `sources`) or named in `missing`."""
         ...
 
     async def write_position(self, position: Position) -> None:

@@ -1,12 +1,30 @@
 """`SnmpSource`: the network subsystem read and written over SNMPv2c (pysnmp 7 asyncio API).
 
-Each part of a view is one table walk done with GETBULK over all the part's columns at
-once (several round trips only for large tables); the parts of one read run concurrently.
-When the agent serves the ERNI change counters (erniTopologyVersion, erniStateVersion), a
-part whose counter has not moved is answered from the last walk (for at most
-`cache_seconds`), so a steady network costs one GET per read.
-Every value is type-checked: a missing answer, an error status, a wrong type or a
-malformed value raises `SourceError` naming the OID and what was expected.
+The source reads the standard MIB modules by their standard layout and works with any
+agent: one GET asks for the node's identity (SNMPv2-MIB sysName, ERNI-MOBINET-MIB's
+erniNodeName and address when served) and for one scalar of each module it may use —
+nhdpUpTime (NHDP-MIB, RFC 7939), olsrv2NibNeighborSetTableAnsn (OLSRv2-MIB, RFC 7184),
+inetCidrRouteNumber (IP-FORWARD-MIB, RFC 4292), erniNodeName — so it knows which modules
+the agent implements. Each requested part comes from the first module that provides it:
+
+- neighbours: NHDP-MIB nhdpDiscIfSetTable and nhdpNibNeighborSetTable; the link metric from
+  OLSRv2-MIB olsrv2NibNeighborSetTable; the link quality from erniLinkTable, else from the
+  HELLOs received/expected (nhdpDiscIfSetPerfTable) since the previous reading;
+- topology: OLSRv2-MIB olsrv2TibRouterTopologySetTable plus the node's own advertised links
+  (olsrv2NibNeighborSetTable);
+- routes: OLSRv2-MIB olsrv2TibRoutingSetTable, else IP-FORWARD-MIB inetCidrRouteTable (next
+  hop and inetCidrRouteMetric1, in the agent's routing protocol's units);
+- positions: ERNI-MOBINET-MIB erniPositionTable.
+
+A part no served module provides is listed in `NetView.missing` (e.g. a Debian snmpd serves
+routes but neither NHDP nor OLSRv2), never an error; `NetView.sources` names the table each
+filled part came from. Each table is walked with GETBULK over its columns at once; the
+parts of one read run concurrently. When the agent serves the ERNI change counters
+(erniTopologyVersion, erniStateVersion), a part whose counter has not moved is answered from
+the last walk (for at most `cache_seconds`), so a steady network costs one GET per read.
+Every value is type-checked: a missing answer, an error status, a wrong type or a malformed
+value raises `SourceError` naming the OID and what was expected. Positions are written with
+SET and the write community; the read community never writes.
 """
 
 from __future__ import annotations
@@ -16,7 +34,7 @@ import ipaddress
 import math
 import time
 from collections.abc import Iterable
-from typing import Any, cast
+from typing import Any
 
 from pyasn1.type import univ
 from pysnmp.hlapi.v3arch.asyncio import (
@@ -50,23 +68,40 @@ from erni.plugins.mobinet.resource import (
 OID = tuple[int, ...]
 
 METRIC_UNIT = 1024
+HELLO_WINDOW = 4    # HELLOs expected between two readings before their ratio is a link quality
 
-NHDP = (1, 3, 6, 1, 2, 1, 213, 1)
-NHDP_DISC_IF_ADDR = NHDP + (2, 3, 1, 4)          # .<nbr>  OCTET STRING (4): neighbour address
-NHDP_NIB_SYMMETRIC = NHDP + (2, 6, 1, 1)         # .<nbr>  TruthValue: symmetric neighbour
-NHDP_PERF_RECVD = NHDP + (3, 2, 1, 1)            # .<nbr>  Counter32: HELLOs received
-NHDP_PERF_EXPECTED = NHDP + (3, 2, 1, 2)         # .<nbr>  Counter32: HELLOs expected
-OLSRV2 = (1, 3, 6, 1, 2, 1, 219, 1)
-OLSRV2_LINK_IN_METRIC = OLSRV2 + (2, 1, 1, 1)    # .<ifIndex>.<nbr>  Unsigned32
-OLSRV2_TOPO_FROM = OLSRV2 + (2, 8, 1, 2)         # .<from>.<to>  OCTET STRING (4)
-OLSRV2_TOPO_TO = OLSRV2 + (2, 8, 1, 4)           # .<from>.<to>  OCTET STRING (4)
-OLSRV2_TOPO_METRIC = OLSRV2 + (2, 8, 1, 6)       # .<from>.<to>  Unsigned32
-OLSRV2_ROUTE_NEXT_HOP = OLSRV2 + (2, 11, 1, 5)   # .1.4.<a.b.c.d>.32  OCTET STRING (4)
-OLSRV2_ROUTE_DIST = OLSRV2 + (2, 11, 1, 8)       # .1.4.<a.b.c.d>.32  Unsigned32 hops
-OLSRV2_ROUTE_METRIC = OLSRV2 + (2, 11, 1, 9)     # .1.4.<a.b.c.d>.32  Unsigned32 path cost
-INET_CIDR_METRIC1 = (1, 3, 6, 1, 2, 1, 4, 24, 7, 1, 12)  # Integer32 path cost (fallback)
+SYS_NAME = (1, 3, 6, 1, 2, 1, 1, 5, 0)                         # SNMPv2-MIB (RFC 3418)
+SYS_UP_TIME = (1, 3, 6, 1, 2, 1, 1, 3, 0)
+NHDP = (1, 3, 6, 1, 2, 1, 213, 1)                              # NHDP-MIB (RFC 7939) nhdpObjects
+NHDP_UP_TIME = NHDP + (2, 1, 0)
+NHDP_DISC_IF = NHDP + (2, 3, 1)                                # INDEX { nhdpDiscIfSetIndex }
+NHDP_DISC_IF_INDEX = NHDP_DISC_IF + (2,)                       # NeighborIfIndex
+NHDP_DISC_ROUTER_INDEX = NHDP_DISC_IF + (3,)                   # NeighborRouterIndex
+NHDP_DISC_IF_ADDR_TYPE = NHDP_DISC_IF + (4,)                   # InetAddressType
+NHDP_DISC_IF_ADDR = NHDP_DISC_IF + (5,)                        # InetAddress
+NHDP_NIB_SYMMETRIC = NHDP + (2, 6, 1, 1)                       # .<router>  TruthValue
+NHDP_PERF_RECVD = NHDP + (3, 2, 1, 1)                          # .<ifIndex>  Counter32 HELLOs received
+NHDP_PERF_EXPECTED = NHDP + (3, 2, 1, 2)                       # .<ifIndex>  Counter32 HELLOs expected
+OLSRV2 = (1, 3, 6, 1, 2, 1, 219, 1)                            # OLSRv2-MIB (RFC 7184) olsrv2MIBObjects
+OLSRV2_ORIG_ADDR_TYPE = OLSRV2 + (1, 3, 0)
+OLSRV2_ORIG_ADDR = OLSRV2 + (1, 4, 0)
+OLSRV2_ANSN = OLSRV2 + (2, 6, 0)
+OLSRV2_NIB_ADDR = OLSRV2 + (2, 5, 1, 2)                        # .<router>  N_orig_addr
+OLSRV2_NIB_IN_METRIC = OLSRV2 + (2, 5, 1, 3)                   # .<router>  N_in_metric
+OLSRV2_NIB_OUT_METRIC = OLSRV2 + (2, 5, 1, 4)                  # .<router>  N_out_metric
+OLSRV2_TOPO_METRIC = OLSRV2 + (2, 8, 1, 6)                     # .<from type,addr>.<to type,addr>
+OLSRV2_ROUTE_NEXT_TYPE = OLSRV2 + (2, 11, 1, 4)                # .<dest type,addr>.<prefix>
+OLSRV2_ROUTE_NEXT = OLSRV2 + (2, 11, 1, 5)
+OLSRV2_ROUTE_DIST = OLSRV2 + (2, 11, 1, 8)                     # hops
+OLSRV2_ROUTE_METRIC = OLSRV2 + (2, 11, 1, 9)                   # path cost
+IP_FORWARD = (1, 3, 6, 1, 2, 1, 4, 24)                         # IP-FORWARD-MIB (RFC 4292)
+INET_CIDR_ROUTE_NUMBER = IP_FORWARD + (6, 0)
+INET_CIDR_ROUTE = IP_FORWARD + (7, 1)   # .<dest>.<pfxLen>.<policy>.<next hop>
+INET_CIDR_TYPE = INET_CIDR_ROUTE + (8,)
+INET_CIDR_METRIC1 = INET_CIDR_ROUTE + (12,)
+INET_CIDR_STATUS = INET_CIDR_ROUTE + (17,)
 
-ERNI = (1, 3, 6, 1, 4, 1, 32473, 1)
+ERNI = (1, 3, 6, 1, 4, 1, 32473, 1)                            # ERNI-MOBINET-MIB
 ERNI_NODE_NAME = ERNI + (1, 1, 0)                # OCTET STRING
 ERNI_NODE_ADDRESS = ERNI + (1, 3, 0)             # IpAddress
 ERNI_POS_X = ERNI + (1, 4, 0)                    # Integer32 mm, read-write
@@ -74,27 +109,38 @@ ERNI_POS_Y = ERNI + (1, 5, 0)                    # Integer32 mm, read-write
 ERNI_POS_HEADING = ERNI + (1, 6, 0)              # Integer32 centidegrees, read-write
 ERNI_TOPOLOGY_VERSION = ERNI + (1, 9, 0)         # Counter32: changes when links/routes may have
 ERNI_STATE_VERSION = ERNI + (1, 10, 0)           # Counter32: changes when anything may have
-ERNI_NODES_NAME = ERNI + (2, 1, 2)               # .<node>  OCTET STRING
-ERNI_NODES_ADDRESS = ERNI + (2, 1, 3)            # .<node>  IpAddress
-ERNI_NODES_X = ERNI + (2, 1, 4)                  # .<node>  Integer32 mm
-ERNI_NODES_Y = ERNI + (2, 1, 5)                  # .<node>  Integer32 mm
-ERNI_NODES_HEADING = ERNI + (2, 1, 6)            # .<node>  Integer32 centidegrees
-ERNI_LINK_QUALITY = ERNI + (3, 1, 3)             # .<nbr>  Gauge32 thousandths
+ERNI_NODES_NAME = ERNI + (2, 1, 1, 2)            # .<node>  DisplayString
+ERNI_NODES_ADDRESS = ERNI + (2, 1, 1, 3)         # .<node>  IpAddress
+ERNI_POSITION_X = ERNI + (2, 2, 1, 1)            # .<node>  Integer32 mm
+ERNI_POSITION_Y = ERNI + (2, 2, 1, 2)            # .<node>  Integer32 mm
+ERNI_POSITION_HEADING = ERNI + (2, 2, 1, 3)      # .<node>  Integer32 centidegrees
+ERNI_LINK_QUALITY = ERNI + (3, 1, 1, 3)          # .<router>  Gauge32 thousandths
 
 NAMES: dict[OID, str] = {
-    NHDP_DISC_IF_ADDR: "nhdpDiscIfSetIpAddr", NHDP_NIB_SYMMETRIC: "nhdpNibNeighborSetSymmetric",
-    NHDP_PERF_RECVD: "nhdpDiscIfRecvdPackets", NHDP_PERF_EXPECTED: "nhdpDiscIfExpectedPackets",
-    OLSRV2_LINK_IN_METRIC: "olsrv2IibLinkSetInMetric", OLSRV2_TOPO_FROM: "olsrv2TibRouterTopologySetFromOrigAddr",
-    OLSRV2_TOPO_TO: "olsrv2TibRouterTopologySetToOrigAddr",
+    SYS_NAME: "sysName", SYS_UP_TIME: "sysUpTime", NHDP_UP_TIME: "nhdpUpTime",
+    NHDP_DISC_IF_INDEX: "nhdpDiscIfIndex", NHDP_DISC_ROUTER_INDEX: "nhdpDiscRouterIndex",
+    NHDP_DISC_IF_ADDR_TYPE: "nhdpDiscIfSetIpAddrType", NHDP_DISC_IF_ADDR: "nhdpDiscIfSetIpAddr",
+    NHDP_NIB_SYMMETRIC: "nhdpNibNeighborSetNSymmetric", NHDP_PERF_RECVD: "nhdpDiscIfRecvdPackets",
+    NHDP_PERF_EXPECTED: "nhdpDiscIfExpectedPackets", OLSRV2_ORIG_ADDR_TYPE: "olsrv2OrigIpAddrType",
+    OLSRV2_ORIG_ADDR: "olsrv2OrigIpAddr", OLSRV2_ANSN: "olsrv2NibNeighborSetTableAnsn",
+    OLSRV2_NIB_ADDR: "olsrv2NibNeighborSetNOrigIpAddr", OLSRV2_NIB_IN_METRIC: "olsrv2NibNeighborSetNInMetricValue",
+    OLSRV2_NIB_OUT_METRIC: "olsrv2NibNeighborSetNOutMetricValue",
     OLSRV2_TOPO_METRIC: "olsrv2TibRouterTopologySetMetricValue",
-    OLSRV2_ROUTE_NEXT_HOP: "olsrv2TibRoutingSetNextIfAddr", OLSRV2_ROUTE_DIST: "olsrv2TibRoutingSetDist",
-    OLSRV2_ROUTE_METRIC: "olsrv2TibRoutingSetMetricValue", INET_CIDR_METRIC1: "inetCidrRouteMetric1",
+    OLSRV2_ROUTE_NEXT_TYPE: "olsrv2TibRoutingSetNextIfIpAddrType", OLSRV2_ROUTE_NEXT: "olsrv2TibRoutingSetNextIfIpAddr",
+    OLSRV2_ROUTE_DIST: "olsrv2TibRoutingSetDist", OLSRV2_ROUTE_METRIC: "olsrv2TibRoutingSetMetricValue",
+    INET_CIDR_ROUTE_NUMBER: "inetCidrRouteNumber", INET_CIDR_TYPE: "inetCidrRouteType",
+    INET_CIDR_METRIC1: "inetCidrRouteMetric1", INET_CIDR_STATUS: "inetCidrRouteStatus",
     ERNI_NODE_NAME: "erniNodeName", ERNI_NODE_ADDRESS: "erniNodeAddress", ERNI_POS_X: "erniPosX",
     ERNI_POS_Y: "erniPosY", ERNI_POS_HEADING: "erniPosHeading",
-    ERNI_TOPOLOGY_VERSION: "erniTopologyVersion", ERNI_STATE_VERSION: "erniStateVersion", ERNI_NODES_NAME: "erniNodesName",
-    ERNI_NODES_ADDRESS: "erniNodesAddress", ERNI_NODES_X: "erniNodesX", ERNI_NODES_Y: "erniNodesY",
-    ERNI_NODES_HEADING: "erniNodesHeading", ERNI_LINK_QUALITY: "erniLinkQuality",
+    ERNI_TOPOLOGY_VERSION: "erniTopologyVersion", ERNI_STATE_VERSION: "erniStateVersion",
+    ERNI_NODES_NAME: "erniNodesName", ERNI_NODES_ADDRESS: "erniNodesAddress", ERNI_POSITION_X: "erniPositionX",
+    ERNI_POSITION_Y: "erniPositionY", ERNI_POSITION_HEADING: "erniPositionHeading",
+    ERNI_LINK_QUALITY: "erniLinkQuality",
 }
+
+# one scalar per module tells whether the agent implements it
+PROBES: dict[str, OID] = {"NHDP-MIB": NHDP_UP_TIME, "OLSRv2-MIB": OLSRV2_ANSN,
+                          "IP-FORWARD-MIB": INET_CIDR_ROUTE_NUMBER, "ERNI-MOBINET-MIB": ERNI_NODE_NAME}
 
 
 def label(oid: OID) -> str:
@@ -122,6 +168,7 @@ _TYPES = {
     "IpAddress": (rfc1902.IpAddress.tagSet,),
     "Unsigned32/Gauge32": (rfc1902.Unsigned32.tagSet, rfc1902.Gauge32.tagSet),
     "Counter32": (rfc1902.Counter32.tagSet,),
+    "TimeTicks": (rfc1902.TimeTicks.tagSet,),
 }
 _EXCEPTIONS = (rfc1905.NoSuchObject.tagSet, rfc1905.NoSuchInstance.tagSet,
                rfc1905.EndOfMibView.tagSet)
@@ -154,25 +201,52 @@ def _ip(oid: OID, value: Any) -> str:
     return str(ipaddress.IPv4Address(raw))
 
 
-def _inet(oid: OID, value: Any) -> str:
-    raw = bytes(_typed(oid, value, "OCTET STRING"))
-    if len(raw) != 4:
-        raise SourceError(f"{label(oid)}: expected a 4-byte IPv4 InetAddress, got "
-                          f"{len(raw)} byte(s)")
-    return str(ipaddress.IPv4Address(raw))
+def _address(oid: OID, raw: bytes, kind: int | None = None) -> str:
+    """An InetAddress of 4 (ipv4) or 16 (ipv6) bytes as text; `kind` its InetAddressType if known."""
+    if len(raw) == 4 and kind in (None, 1):
+        return str(ipaddress.IPv4Address(raw))
+    if len(raw) == 16 and kind in (None, 2):
+        return str(ipaddress.IPv6Address(raw))
+    raise SourceError(f"{label(oid)}: expected an IPv4 (4 bytes) or IPv6 (16 bytes) InetAddress, got "
+                      f"{len(raw)} byte(s) of type {kind}")
+
+
+def _inet(oid: OID, value: Any, kind: int | None = None) -> str:
+    return _address(oid, bytes(_typed(oid, value, "OCTET STRING")), kind)
+
+
+def _inet_index(oid: OID, idx: OID, at: int) -> tuple[str, int]:
+    """An `InetAddressType, InetAddress` pair inside an index: (text, position after it).
+
+    An unknown(0) type with a zero-length address gives ""."""
+    if len(idx) < at + 2:
+        raise SourceError(f"{label(oid)}: index too short for an InetAddressType and InetAddress")
+    kind, size = idx[at], idx[at + 1]
+    octets = idx[at + 2: at + 2 + size]
+    if len(octets) != size or any(o > 255 for o in octets):
+        raise SourceError(f"{label(oid)}: malformed InetAddress in the index")
+    if kind == 0 and size == 0:
+        return "", at + 2
+    return _address(oid, bytes(octets), kind), at + 2 + size
 
 
 def _quality_of_metric(metric: int) -> float:
     return min(1.0, math.sqrt(METRIC_UNIT / metric)) if metric > 0 else 1.0
 
 
+Columns = dict[OID, dict[OID, Any]]
+
+
 class SnmpSource:
-    """A `NetworkSource` speaking SNMPv2c to one node's network subsystem."""
+    """A `NetworkSource` speaking SNMPv2c to one node's network subsystem (any standard agent)."""
 
     def __init__(self, host: str, port: int, community: str = "public", timeout: float = 0.5,
-                 retries: int = 0, max_repetitions: int = 100, cache_seconds: float = 5.0) -> None:
+                 retries: int = 0, max_repetitions: int = 100, cache_seconds: float = 5.0,
+                 write_community: str | None = None, modules: frozenset[str] | None = None) -> None:
         self.host, self.port = host, port
+        self.modules = modules   # the PROBES modules to use; None: every one the agent serves
         self.community = community
+        self.write_community = write_community
         self.timeout, self.retries = timeout, retries
         self.max_repetitions = max_repetitions
         self._engine: SnmpEngine | None = None
@@ -180,6 +254,7 @@ class SnmpSource:
         self._rows: dict[tuple[OID, ...], int] = {}  # rows seen by the last walk of a column set
         self.cache_seconds = cache_seconds
         self._cache: dict[str, tuple[Any, float, Any]] = {}  # job -> (key, when, walked columns)
+        self._hellos: dict[str, tuple[int, int]] = {}        # neighbour address -> HELLO baseline
         self.requests = 0
 
     @property
@@ -198,8 +273,9 @@ class SnmpSource:
                 raise SourceError(f"SNMP agent {self.where}: cannot resolve: {err}") from None
         return self._engine, self._target
 
-    def _auth(self) -> CommunityData:
-        return CommunityData(self.community, mpModel=1)
+    def _auth(self, write: bool = False) -> CommunityData:
+        community = self.write_community if write and self.write_community else self.community
+        return CommunityData(community, mpModel=1)
 
     def _check(self, what: str, err_ind: Any, err_stat: Any, err_idx: Any, binds: Any) -> None:
         if err_ind:
@@ -238,10 +314,10 @@ class SnmpSource:
                               f"(it named {', '.join(label(k) for k in out) or 'nothing'})")
         return out
 
-    async def walk(self, columns: list[OID]) -> dict[OID, dict[OID, Any]]:
+    async def walk(self, columns: list[OID]) -> Columns:
         """Walk table columns together: {column: {index: value}}."""
         engine, target = await self._session()
-        result: dict[OID, dict[OID, Any]] = {c: {} for c in columns}
+        result: Columns = {c: {} for c in columns}
         cursors: dict[OID, OID] = {c: c for c in columns}
         key_set = tuple(columns)
         # ask for one row more than last time: steady-state walks take one round trip
@@ -275,43 +351,33 @@ class SnmpSource:
         self._rows[key_set] = max((len(v) for v in result.values()), default=0)
         return result
 
+    # -- reading --------------------------------------------------------------------------
+
     async def read(self, parts: frozenset[str]) -> NetView:
-        """Read the requested parts (plus the node's identity and the node table)."""
-        versions = frozenset({ERNI_TOPOLOGY_VERSION, ERNI_STATE_VERSION})
-        ident = await self.get([ERNI_NODE_NAME, ERNI_NODE_ADDRESS, *versions], versions)
-        view = NetView(node=_text(ERNI_NODE_NAME, ident[ERNI_NODE_NAME]),
-                       address=_ip(ERNI_NODE_ADDRESS, ident[ERNI_NODE_ADDRESS]))
-        topo_v, state_v = (
-            _int(oid, ident[oid], "Counter32") if oid in ident else None
-            for oid in (ERNI_TOPOLOGY_VERSION, ERNI_STATE_VERSION))
-        node_cols: list[OID] = [ERNI_NODES_NAME, ERNI_NODES_ADDRESS]
-        if POSITIONS in parts:
-            node_cols += [ERNI_NODES_X, ERNI_NODES_Y, ERNI_NODES_HEADING]
-        wanted: dict[str, tuple[list[OID], int | None]] = {
-            "nodes" + ("+positions" if POSITIONS in parts else ""): (node_cols, state_v)}
-        if NEIGHBORS in parts:
-            wanted[NEIGHBORS] = ([NHDP_DISC_IF_ADDR, NHDP_NIB_SYMMETRIC,
-                                  OLSRV2_LINK_IN_METRIC, ERNI_LINK_QUALITY,
-                                  NHDP_PERF_RECVD, NHDP_PERF_EXPECTED], topo_v)
-        if TOPOLOGY in parts:
-            # the index is (from router, to router): the node table names them, so only the
-            # metric column is walked (the address columns only for routers it does not list)
-            wanted[TOPOLOGY] = ([OLSRV2_TOPO_METRIC], topo_v)
-        if ROUTES in parts:
-            wanted[ROUTES] = ([OLSRV2_ROUTE_NEXT_HOP, OLSRV2_ROUTE_DIST,
-                               OLSRV2_ROUTE_METRIC], topo_v)
+        """Read the requested parts from whichever served modules provide them."""
+        versions = [ERNI_TOPOLOGY_VERSION, ERNI_STATE_VERSION]
+        scalars = [SYS_NAME, ERNI_NODE_NAME, ERNI_NODE_ADDRESS, OLSRV2_ORIG_ADDR_TYPE, OLSRV2_ORIG_ADDR,
+                   *PROBES.values(), *versions]
+        ident = await self.get(dict.fromkeys(scalars), frozenset(scalars))
+        served = {module for module, oid in PROBES.items()
+                  if oid in ident and (self.modules is None or module in self.modules)}
+        view = self._identity(ident, served)
+        topo_v, state_v = (_int(oid, ident[oid], "Counter32") if oid in ident and "ERNI-MOBINET-MIB" in served
+                           else None for oid in versions)
         now = time.monotonic()
         whole = ("view", view.node, topo_v, state_v, parts)
         entry = self._cache.get("view")
         if (None not in whole and entry is not None and entry[0] == whole
                 and now - entry[1] < self.cache_seconds):
-            return cast(NetView, entry[2])  # nothing changed: the last decoded view stands
-        got: dict[str, Any] = {}
+            return self._copy(entry[2])  # nothing changed: the last decoded view stands
+        jobs = self._jobs(parts, served, view)
+        got: dict[str, Columns] = {}
         walks: dict[str, Any] = {}
         oldest = now  # the view is as old as the oldest walk it is made of
-        for job, (cols, version) in wanted.items():
+        for job, cols in jobs.items():
+            version = state_v if job in ("nodes", POSITIONS) else topo_v
             entry = self._cache.get(job)
-            key = (view.node, version)
+            key = (view.node, version, tuple(cols))
             if (version is not None and entry is not None and entry[0] == key
                     and now - entry[1] < self.cache_seconds):
                 got[job] = entry[2]
@@ -325,25 +391,109 @@ class SnmpSource:
                     raise value
                 raise SourceError(f"SNMP agent {self.where}: {type(value).__name__}: {value}") from value
         for job, walked in zip(walks, done):
-            got[job] = walked
-            self._cache[job] = ((view.node, wanted[job][1]), now, cols)
-        by_index = self._decode_nodes(view, got[next(iter(wanted))], POSITIONS in parts)
-        if NEIGHBORS in parts:
+            got[job] = walked  # type: ignore[assignment]  # exceptions were raised above
+            version = state_v if job in ("nodes", POSITIONS) else topo_v
+            self._cache[job] = ((view.node, version, tuple(jobs[job])), now, walked)
+        by_index = self._decode_nodes(view, got.get("nodes", {}))
+        if NEIGHBORS in parts and NEIGHBORS in jobs:
             self._decode_neighbors(view, got[NEIGHBORS])
-        if TOPOLOGY in parts:
-            metrics = got[TOPOLOGY][OLSRV2_TOPO_METRIC]
-            if any(len(i) != 2 or i[:1] not in by_index or i[1:] not in by_index for i in metrics):
-                ends = await self.walk([OLSRV2_TOPO_FROM, OLSRV2_TOPO_TO])
-                self._decode_topology(view, {**ends, OLSRV2_TOPO_METRIC: metrics})
+        if TOPOLOGY in parts and TOPOLOGY in jobs:
+            self._decode_topology(view, got[TOPOLOGY])
+        if ROUTES in parts and ROUTES in jobs:
+            if "OLSRv2-MIB" in served:
+                self._decode_routes(view, got[ROUTES])
             else:
-                self._decode_topology_by_index(view, metrics, by_index)
-        if ROUTES in parts:
-            self._decode_routes(view, got[ROUTES])
+                self._decode_cidr_routes(view, got[ROUTES])
+        if POSITIONS in parts and POSITIONS in jobs:
+            self._decode_positions(view, got[POSITIONS], by_index)
         self._cache["view"] = (whole, oldest, view)
         return view
 
+    @staticmethod
+    def _copy(view: NetView) -> NetView:
+        return NetView(node=view.node, address=view.address, names=dict(view.names),
+                       neighbors=list(view.neighbors), links=list(view.links), routes=list(view.routes),
+                       positions=dict(view.positions), sources=dict(view.sources), missing=dict(view.missing))
+
+    def _identity(self, ident: dict[OID, Any], served: set[str]) -> NetView:
+        """The node's name and address: ERNI's when served, else sysName and the OLSRv2 originator."""
+        erni = "ERNI-MOBINET-MIB" in served
+        if erni:
+            name, source = _text(ERNI_NODE_NAME, ident[ERNI_NODE_NAME]), "ERNI-MOBINET-MIB erniNodeName"
+        elif SYS_NAME in ident:
+            name, source = _text(SYS_NAME, ident[SYS_NAME]), "SNMPv2-MIB sysName"
+        else:
+            raise SourceError(f"SNMP agent {self.where}: serves neither sysName (SNMPv2-MIB) nor "
+                              "erniNodeName: not an SNMPv2 agent")
+        address = ""
+        if erni and ERNI_NODE_ADDRESS in ident:
+            address = _ip(ERNI_NODE_ADDRESS, ident[ERNI_NODE_ADDRESS])
+        elif "OLSRv2-MIB" in served and OLSRV2_ORIG_ADDR in ident:
+            kind = (_int(OLSRV2_ORIG_ADDR_TYPE, ident[OLSRV2_ORIG_ADDR_TYPE])
+                    if OLSRV2_ORIG_ADDR_TYPE in ident else None)
+            address = _inet(OLSRV2_ORIG_ADDR, ident[OLSRV2_ORIG_ADDR], kind)
+        view = NetView(node=name, address=address)
+        view.sources["node"] = f"snmp {self.where} {source}"
+        return view
+
+    def _jobs(self, parts: frozenset[str], served: set[str], view: NetView) -> dict[str, list[OID]]:
+        """The columns to walk for each part the served modules provide; the rest go to `missing`."""
+        jobs: dict[str, list[OID]] = {}
+        erni, nhdp, olsrv2 = "ERNI-MOBINET-MIB" in served, "NHDP-MIB" in served, "OLSRv2-MIB" in served
+        where = f"snmp {self.where}"
+
+        def lacks(part: str, *modules: str) -> None:
+            view.missing[part] = f"{' and '.join(modules)} not served by {self.where}"
+
+        if erni:
+            jobs["nodes"] = [ERNI_NODES_NAME, ERNI_NODES_ADDRESS]
+        if NEIGHBORS in parts:
+            if nhdp:
+                cols: list[OID] = [NHDP_DISC_IF_INDEX, NHDP_DISC_ROUTER_INDEX, NHDP_DISC_IF_ADDR_TYPE, NHDP_DISC_IF_ADDR,
+                        NHDP_NIB_SYMMETRIC, NHDP_PERF_RECVD, NHDP_PERF_EXPECTED]
+                tables = "NHDP-MIB nhdpDiscIfSetTable, nhdpNibNeighborSetTable"
+                if olsrv2:
+                    cols.append(OLSRV2_NIB_IN_METRIC)
+                    tables += "; metric: OLSRv2-MIB olsrv2NibNeighborSetTable"
+                if erni:
+                    cols.append(ERNI_LINK_QUALITY)
+                    tables += "; quality: ERNI-MOBINET-MIB erniLinkTable"
+                else:
+                    tables += "; quality: NHDP-MIB nhdpDiscIfSetPerfTable (HELLOs received/expected)"
+                jobs[NEIGHBORS] = cols
+                view.sources[NEIGHBORS] = f"{where} {tables}"
+            else:
+                lacks(NEIGHBORS, "NHDP-MIB")
+        if TOPOLOGY in parts:
+            if olsrv2:
+                jobs[TOPOLOGY] = [OLSRV2_TOPO_METRIC, OLSRV2_NIB_ADDR, OLSRV2_NIB_OUT_METRIC]
+                view.sources[TOPOLOGY] = (f"{where} OLSRv2-MIB olsrv2TibRouterTopologySetTable and "
+                                          "olsrv2NibNeighborSetTable (this node's advertised links)")
+            else:
+                lacks(TOPOLOGY, "OLSRv2-MIB")
+        if ROUTES in parts:
+            if olsrv2:
+                jobs[ROUTES] = [OLSRV2_ROUTE_NEXT_TYPE, OLSRV2_ROUTE_NEXT, OLSRV2_ROUTE_DIST, OLSRV2_ROUTE_METRIC]
+                view.sources[ROUTES] = f"{where} OLSRv2-MIB olsrv2TibRoutingSetTable"
+            elif "IP-FORWARD-MIB" in served:
+                jobs[ROUTES] = [INET_CIDR_TYPE, INET_CIDR_METRIC1, INET_CIDR_STATUS]
+                view.sources[ROUTES] = (f"{where} IP-FORWARD-MIB inetCidrRouteTable (cost: inetCidrRouteMetric1 "
+                                        "in the routing protocol's units; hops 1 for local routes, else 0: unknown)")
+            else:
+                lacks(ROUTES, "OLSRv2-MIB", "IP-FORWARD-MIB")
+        if POSITIONS in parts:
+            if erni:
+                jobs[POSITIONS] = [ERNI_POSITION_X, ERNI_POSITION_Y, ERNI_POSITION_HEADING]
+                view.sources[POSITIONS] = f"{where} ERNI-MOBINET-MIB erniPositionTable"
+            else:
+                lacks(POSITIONS, "ERNI-MOBINET-MIB")
+        return jobs
+
     async def write_position(self, position: Position) -> None:
-        """SET the node's position scalars (mm, mm, centidegrees) in one request."""
+        """SET the node's position scalars (mm, mm, centidegrees) in one request (write community)."""
+        if not self.write_community:
+            raise SourceError(f"SNMP SET to {self.where}: no write community configured "
+                              "(MobiNet setting write_community)")
         engine, target = await self._session()
         heading = ((position.heading + 180.0) % 360.0) - 180.0
         values = [(ERNI_POS_X, round(position.x * 1000)), (ERNI_POS_Y, round(position.y * 1000)),
@@ -352,7 +502,7 @@ class SnmpSource:
             if not -(2**31) <= v < 2**31:
                 raise SourceError(f"{label(oid)}: {v} does not fit an Integer32 (position too far)")
         self.requests += 1
-        res = await set_cmd(engine, self._auth(), target, ContextData(),
+        res = await set_cmd(engine, self._auth(write=True), target, ContextData(),
                             *(ObjectType(ObjectIdentity(dotted(o)), rfc1902.Integer32(v))
                               for o, v in values), lookupMib=False)
         self._check("SET", *res)
@@ -368,96 +518,146 @@ class SnmpSource:
     def _name(self, view: NetView, address: str) -> str:
         return view.names.get(address, address)
 
-    def _decode_nodes(self, view: NetView, cols: dict[OID, dict[OID, Any]],
-                      positions: bool) -> dict[OID, str]:
-        names = cols[ERNI_NODES_NAME]
+    def _decode_nodes(self, view: NetView, cols: Columns) -> dict[OID, str]:
         by_index: dict[OID, str] = {}
-        for idx, val in names.items():
+        for idx, val in cols.get(ERNI_NODES_NAME, {}).items():
             by_index[idx] = _text(ERNI_NODES_NAME + idx, val)
-        for idx, val in cols[ERNI_NODES_ADDRESS].items():
+        for idx, val in cols.get(ERNI_NODES_ADDRESS, {}).items():
             addr = _ip(ERNI_NODES_ADDRESS + idx, val)
             if idx in by_index:
                 view.names[addr] = by_index[idx]
-        view.names.setdefault(view.address, view.node)
-        if not positions:
-            return by_index
-        xs, ys, hs = (cols[ERNI_NODES_X], cols[ERNI_NODES_Y], cols[ERNI_NODES_HEADING])
-        for idx, name in by_index.items():
-            if idx not in xs or idx not in ys:
-                continue  # position not known to this node
-            x = _int(ERNI_NODES_X + idx, xs[idx]) / 1000.0
-            y = _int(ERNI_NODES_Y + idx, ys[idx]) / 1000.0
-            h = _int(ERNI_NODES_HEADING + idx, hs[idx]) / 100.0 if idx in hs else 0.0
-            view.positions[name] = Position(x=x, y=y, heading=h)
+        if view.address:
+            view.names.setdefault(view.address, view.node)
         return by_index
 
-    def _decode_neighbors(self, view: NetView, cols: dict[OID, dict[OID, Any]]) -> None:
-        sym = cols[NHDP_NIB_SYMMETRIC]
-        metric = {idx[-1:]: v for idx, v in cols[OLSRV2_LINK_IN_METRIC].items()}
-        quality = cols[ERNI_LINK_QUALITY]
-        recvd, expected = cols[NHDP_PERF_RECVD], cols[NHDP_PERF_EXPECTED]
-        for idx, val in sorted(cols[NHDP_DISC_IF_ADDR].items()):
-            addr = _inet(NHDP_DISC_IF_ADDR + idx, val)
-            truth = _int(NHDP_NIB_SYMMETRIC + idx, sym[idx]) if idx in sym else 2
+    def _decode_positions(self, view: NetView, cols: Columns, by_index: dict[OID, str]) -> None:
+        xs, ys, hs = cols[ERNI_POSITION_X], cols[ERNI_POSITION_Y], cols[ERNI_POSITION_HEADING]
+        for idx in sorted(xs):
+            if idx not in ys:
+                continue
+            name = by_index.get(idx, ".".join(map(str, idx)))
+            x = _int(ERNI_POSITION_X + idx, xs[idx]) / 1000.0
+            y = _int(ERNI_POSITION_Y + idx, ys[idx]) / 1000.0
+            h = _int(ERNI_POSITION_HEADING + idx, hs[idx]) / 100.0 if idx in hs else 0.0
+            view.positions[name] = Position(x=x, y=y, heading=h)
+
+    def _decode_neighbors(self, view: NetView, cols: Columns) -> None:
+        routers: dict[int, list[tuple[int, str]]] = {}   # router index -> [(if index, address)]
+        for idx, val in sorted(cols[NHDP_DISC_ROUTER_INDEX].items()):
+            router = _int(NHDP_DISC_ROUTER_INDEX + idx, val, "Unsigned32/Gauge32")
+            if idx not in cols[NHDP_DISC_IF_ADDR]:
+                continue
+            kind = (_int(NHDP_DISC_IF_ADDR_TYPE + idx, cols[NHDP_DISC_IF_ADDR_TYPE][idx])
+                    if idx in cols[NHDP_DISC_IF_ADDR_TYPE] else None)
+            addr = _inet(NHDP_DISC_IF_ADDR + idx, cols[NHDP_DISC_IF_ADDR][idx], kind)
+            if_index = (_int(NHDP_DISC_IF_INDEX + idx, cols[NHDP_DISC_IF_INDEX][idx], "Unsigned32/Gauge32")
+                        if idx in cols[NHDP_DISC_IF_INDEX] else 0)
+            routers.setdefault(router, []).append((if_index, addr))
+        sym, metric = cols[NHDP_NIB_SYMMETRIC], cols.get(OLSRV2_NIB_IN_METRIC, {})
+        quality = cols.get(ERNI_LINK_QUALITY, {})
+        for router, ifaces in sorted(routers.items()):
+            r = (router,)
+            addr = ifaces[0][1]
+            truth = _int(NHDP_NIB_SYMMETRIC + r, sym[r]) if r in sym else 2
             if truth not in (1, 2):
-                raise SourceError(f"{label(NHDP_NIB_SYMMETRIC + idx)}: expected TruthValue "
-                                  f"1 or 2, got {truth}")
-            if idx in quality:
-                q = _int(ERNI_LINK_QUALITY + idx, quality[idx], "Unsigned32/Gauge32") / 1000.0
-            elif idx in recvd and idx in expected:
-                exp = _int(NHDP_PERF_EXPECTED + idx, expected[idx], "Counter32")
-                got = _int(NHDP_PERF_RECVD + idx, recvd[idx], "Counter32")
-                q = got / exp if exp else 0.0
+                raise SourceError(f"{label(NHDP_NIB_SYMMETRIC + r)}: expected TruthValue 1 or 2, got {truth}")
+            if r in quality:
+                q = _int(ERNI_LINK_QUALITY + r, quality[r], "Unsigned32/Gauge32") / 1000.0
+                if not 0.0 <= q <= 1.0:
+                    raise SourceError(f"{label(ERNI_LINK_QUALITY + r)}: expected 0..1000, got {round(q * 1000)}")
             else:
-                q = 0.0
-            if not 0.0 <= q <= 1.0:
-                raise SourceError(f"{label(ERNI_LINK_QUALITY + idx)}: expected 0..1000, "
-                                  f"got {round(q * 1000)}")
-            m = (_int(OLSRV2_LINK_IN_METRIC + (1,) + idx, metric[idx], "Unsigned32/Gauge32")
-                 if idx in metric else None)
+                q = self._hello_quality(addr, cols, [i for i, _ in ifaces])
+            m = (_int(OLSRV2_NIB_IN_METRIC + r, metric[r], "Unsigned32/Gauge32")
+                 if r in metric and truth == 1 else None)
             view.neighbors.append(Neighbor(name=self._name(view, addr), address=addr, quality=q,
                                            symmetric=truth == 1, metric=m))
 
-    def _decode_topology_by_index(self, view: NetView, metrics: dict[OID, Any],
-                                  by_index: dict[OID, str]) -> None:
+    def _hello_quality(self, address: str, cols: Columns, if_indexes: list[int]) -> float:
+        """HELLOs received / expected since a baseline at least HELLO_WINDOW HELLOs old (else since ever)."""
+        recvd = expected = 0
+        for i in if_indexes:
+            k = (i,)
+            if k in cols[NHDP_PERF_RECVD] and k in cols[NHDP_PERF_EXPECTED]:
+                recvd += _int(NHDP_PERF_RECVD + k, cols[NHDP_PERF_RECVD][k], "Counter32")
+                expected += _int(NHDP_PERF_EXPECTED + k, cols[NHDP_PERF_EXPECTED][k], "Counter32")
+        base = self._hellos.get(address)
+        if base is None or expected < base[1]:          # first reading, or a counter discontinuity
+            self._hellos[address] = (recvd, expected)
+            return min(1.0, recvd / expected) if expected else 0.0
+        d_recvd, d_expected = recvd - base[0], expected - base[1]
+        if d_expected < HELLO_WINDOW:
+            if base[1] == 0:
+                return 0.0
+            d_recvd, d_expected = recvd, expected
+        else:
+            self._hellos[address] = (recvd, expected)
+        return max(0.0, min(1.0, d_recvd / d_expected))
+
+    def _decode_topology(self, view: NetView, cols: Columns) -> None:
         seen: dict[frozenset[str], Link] = {}
-        for idx, val in sorted(metrics.items()):
-            a, b = by_index[idx[:1]], by_index[idx[1:]]
-            m = _int(OLSRV2_TOPO_METRIC + idx, val, "Unsigned32/Gauge32")
+
+        def add(a: str, b: str, m: int) -> None:
             key = frozenset((a, b))
             if a != b and key not in seen:
                 seen[key] = Link(a=min(a, b), b=max(a, b), quality=_quality_of_metric(m), metric=m)
+
+        for idx, val in sorted(cols[OLSRV2_TOPO_METRIC].items()):
+            oid = OLSRV2_TOPO_METRIC + idx
+            src, at = _inet_index(oid, idx, 0)
+            dst, end = _inet_index(oid, idx, at)
+            if end != len(idx) or not src or not dst:
+                raise SourceError(f"{label(oid)}: expected an index of two InetAddressType, InetAddress pairs")
+            add(self._name(view, src), self._name(view, dst), _int(oid, val, "Unsigned32/Gauge32"))
+        me = view.node
+        addresses, outs = cols[OLSRV2_NIB_ADDR], cols[OLSRV2_NIB_OUT_METRIC]
+        for idx, val in sorted(outs.items()):   # this node's own links: its symmetric neighbours
+            m = _int(OLSRV2_NIB_OUT_METRIC + idx, val, "Unsigned32/Gauge32")
+            if idx in addresses and m < 16776960:     # MAXIMUM_METRIC: no symmetric link
+                add(me, self._name(view, _inet(OLSRV2_NIB_ADDR + idx, addresses[idx])), m)
         view.links = list(seen.values())
 
-    def _decode_topology(self, view: NetView, cols: dict[OID, dict[OID, Any]]) -> None:
-        froms, tos, metrics = (cols[OLSRV2_TOPO_FROM], cols[OLSRV2_TOPO_TO],
-                               cols[OLSRV2_TOPO_METRIC])
-        seen: dict[frozenset[str], Link] = {}
-        for idx, val in sorted(froms.items()):
-            if idx not in tos or idx not in metrics:
-                continue
-            a = self._name(view, _inet(OLSRV2_TOPO_FROM + idx, val))
-            b = self._name(view, _inet(OLSRV2_TOPO_TO + idx, tos[idx]))
-            m = _int(OLSRV2_TOPO_METRIC + idx, metrics[idx], "Unsigned32/Gauge32")
-            key = frozenset((a, b))
-            if a != b and key not in seen:
-                seen[key] = Link(a=min(a, b), b=max(a, b), quality=_quality_of_metric(m), metric=m)
-        view.links = list(seen.values())
-
-    def _decode_routes(self, view: NetView, cols: dict[OID, dict[OID, Any]]) -> None:
-        hops, dists, metrics = (cols[OLSRV2_ROUTE_NEXT_HOP], cols[OLSRV2_ROUTE_DIST],
-                                cols[OLSRV2_ROUTE_METRIC])
+    def _decode_routes(self, view: NetView, cols: Columns) -> None:
+        hops, dists, metrics = cols[OLSRV2_ROUTE_NEXT], cols[OLSRV2_ROUTE_DIST], cols[OLSRV2_ROUTE_METRIC]
+        kinds = cols[OLSRV2_ROUTE_NEXT_TYPE]
         for idx, val in sorted(hops.items()):
-            if len(idx) != 7 or idx[0] != 1 or idx[1] != 4 or max(idx[2:6]) > 255:
-                raise SourceError(f"{label(OLSRV2_ROUTE_NEXT_HOP + idx)}: expected an "
-                                  "index 1.4.a.b.c.d.prefixLen")
-            dest = str(ipaddress.IPv4Address(bytes(idx[2:6])))
-            hop = _inet(OLSRV2_ROUTE_NEXT_HOP + idx, val)
+            oid = OLSRV2_ROUTE_NEXT + idx
+            dest, at = _inet_index(oid, idx, 0)
+            if at + 1 != len(idx) or not dest:
+                raise SourceError(f"{label(oid)}: expected an index InetAddressType.InetAddress.prefixLen")
+            kind = _int(OLSRV2_ROUTE_NEXT_TYPE + idx, kinds[idx]) if idx in kinds else None
+            hop = _inet(oid, val, kind)
             dist = _int(OLSRV2_ROUTE_DIST + idx, dists[idx], "Unsigned32/Gauge32") if idx in dists else 0
             cost = (_int(OLSRV2_ROUTE_METRIC + idx, metrics[idx], "Unsigned32/Gauge32")
                     if idx in metrics else 0)
-            view.routes.append(Route(destination=self._name(view, dest), next_hop=self._name(view, hop),
-                                     hops=dist, cost=cost / METRIC_UNIT))
+            view.routes.append(Route(destination=self._destination(view, dest, idx[at]),
+                                     next_hop=self._name(view, hop), hops=dist, cost=cost / METRIC_UNIT))
+
+    def _destination(self, view: NetView, address: str, prefix: int) -> str:
+        host = prefix == ipaddress.ip_address(address).max_prefixlen
+        return self._name(view, address) if host else f"{address}/{prefix}"
+
+    def _decode_cidr_routes(self, view: NetView, cols: Columns) -> None:
+        types, metrics, status = cols[INET_CIDR_TYPE], cols[INET_CIDR_METRIC1], cols[INET_CIDR_STATUS]
+        for idx, val in sorted(types.items()):
+            oid = INET_CIDR_TYPE + idx
+            dest, at = _inet_index(oid, idx, 0)
+            if len(idx) < at + 2 or len(idx) < at + 2 + idx[at + 1]:
+                raise SourceError(f"{label(oid)}: index too short for a prefix length and a policy")
+            prefix, policy_len = idx[at], idx[at + 1]
+            next_hop, end = _inet_index(oid, idx, at + 2 + policy_len)
+            if end != len(idx) or not dest:
+                raise SourceError(f"{label(oid)}: malformed inetCidrRouteTable index")
+            kind = _int(oid, val)
+            if kind not in (1, 3, 4) or (idx in status and _int(INET_CIDR_STATUS + idx, status[idx]) != 1):
+                continue  # reject, blackhole, or a row that is not active: not a path
+            destination = self._destination(view, dest, prefix)
+            if kind == 3:  # local: the next hop is the destination (a host) or the link itself
+                hop = destination if "/" not in destination else ""
+            else:
+                hop = self._name(view, next_hop) if next_hop else ""
+            cost = _int(INET_CIDR_METRIC1 + idx, metrics[idx]) if idx in metrics else 0
+            view.routes.append(Route(destination=destination, next_hop=hop, hops=1 if kind == 3 else 0,
+                                     cost=float(cost)))
 
 
 def articulation_points(links: Iterable[Link]) -> list[str]:

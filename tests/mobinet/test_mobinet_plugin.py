@@ -11,6 +11,7 @@ from erni.blackboard import Agent, NetInfo, Pose, Task, TaskState
 from erni.blackboard.testing import wait_until
 from erni.sim.manet import METRIC_UNIT, link_metric
 from erni.sim.snmp_agent import ManetSnmpAgent
+from tests.mobinet.conftest import WRITE
 
 PREPOSITIONS = ["node_position", "network_topology", "path_cost", "link_quality", "neighbor_list"]
 
@@ -22,7 +23,8 @@ def make_agent():
     def make(name: str, address: tuple[str, int], **settings) -> tuple[Agent, object]:
         agent = Agent(name, workers=2)
         plugin = agent.add_plugin("erni.plugins.mobinet:MobiNetControl",
-                                  settings={"host": address[0], "port": address[1], **settings},
+                                  settings={"host": address[0], "port": address[1],
+                                            "write_community": WRITE, **settings},
                                   name="mobinet")
         agent.start()
         agents.append(agent)

@@ -10,15 +10,17 @@ import pytest
 from erni.blackboard import Position
 from erni.plugins.mobinet.resource import PARTS, NetworkSource, SourceError
 from erni.plugins.mobinet.snmp import SnmpSource, articulation_points
-from erni.sim.manet import METRIC_UNIT
+from erni.sim.manet import METRIC_UNIT, ManetNetwork, RadioModel
+from erni.sim.snmp_agent import ManetSnmpAgent
+from tests.mobinet.conftest import WRITE
 
 
 def run(coro):
     return asyncio.run(coro)
 
 
-async def _read(address, parts=PARTS, **kw):
-    src = SnmpSource(*address, **kw)
+async def _read(address, parts=PARTS, modules=None, **kw):
+    src = SnmpSource(*address, modules=modules, **kw)
     try:
         return await src.read(frozenset(parts))
     finally:
@@ -41,11 +43,12 @@ def test_read_matches_the_simulators_ground_truth(served, net):
     assert {r.destination: (r.next_hop, r.hops, r.cost) for r in view.routes} == {
         d: (e.next_hop, e.hops, e.cost / METRIC_UNIT) for d, e in expected.items()}
     assert view.positions["robot5"] == Position(x=240.0, y=0.0, heading=0.0)
+    assert view.missing == {}
+    assert view.sources["routes"].endswith("OLSRv2-MIB olsrv2TibRoutingSetTable")
+    assert view.sources["neighbors"].startswith(f"snmp 127.0.0.1:{served['robot3'][1]} NHDP-MIB")
 
 
 def test_large_tables_take_several_bulk_requests():
-    from erni.sim.manet import ManetNetwork, RadioModel
-    from erni.sim.snmp_agent import ManetSnmpAgent
     net = ManetNetwork(RadioModel(100.0, 50.0))
     for i in range(30):   # a dense 30-node cluster: 435 links
         net.add_node(f"n{i}", (i % 6) * 8.0, (i // 6) * 8.0)
@@ -68,7 +71,7 @@ def test_large_tables_take_several_bulk_requests():
 
 def test_write_position_reaches_every_node(served, net):
     async def go():
-        src = SnmpSource(*served["robot1"])
+        src = SnmpSource(*served["robot1"], write_community=WRITE)
         try:
             await src.write_position(Position(x=-3.25, y=7.5, heading=270.0))
         finally:
@@ -76,6 +79,22 @@ def test_write_position_reaches_every_node(served, net):
     run(go())
     known = net.view("robot5").positions["robot1"]
     assert (known.x, known.y, known.heading) == (-3.25, 7.5, -90.0)
+
+
+def test_writes_need_the_write_community(served, net):
+    async def go(**kw):
+        src = SnmpSource(*served["robot1"], **kw)
+        try:
+            await src.write_position(Position(x=5.0, y=5.0))
+        finally:
+            await src.aclose()
+    with pytest.raises(SourceError, match="no write community configured"):
+        run(go())
+    with pytest.raises(SourceError, match=r"SNMP SET to .*: agent answered noAccess at erniPosX"):
+        run(go(write_community="public"))          # the read community, used to write
+    with pytest.raises(SourceError, match="timeout"):
+        run(go(write_community="guessed", timeout=0.2))   # unknown: dropped, never answered
+    assert net.view("robot1").positions["robot1"].x == 0.0
 
 
 def test_silent_agent_times_out_with_a_clear_message(bad_agent):
@@ -99,6 +118,12 @@ def test_wrong_types_are_named(bad_agent):
     with pytest.raises(SourceError, match=r"erniNodeName \(1\.3\.6\.1\.4\.1\.32473\.1\.1\.1\.0\): "
                                           r"expected OCTET STRING, got Integer .7."):
         run(_read(agent.address, {"positions"}, timeout=0.5))
+
+
+def test_an_agent_without_any_identity_is_refused(bad_agent):
+    agent = bad_agent("nothing")
+    with pytest.raises(SourceError, match="serves neither sysName"):
+        run(_read(agent.address, {"routes"}, timeout=0.5))
 
 
 def test_an_agent_that_never_advances_is_caught(bad_agent):
@@ -149,16 +174,60 @@ def test_cache_can_be_turned_off(served):
     assert run(go()) > 1
 
 
-def test_topology_of_routers_missing_from_the_node_table_is_read_by_address(served, net):
-    class NoNodeTable(SnmpSource):
-        def _decode_nodes(self, view, cols, positions):
-            super()._decode_nodes(view, cols, positions)
-            return {}          # as if the agent listed no routers: fall back to address columns
-    async def go():
-        src = NoNodeTable(*served["robot2"])
-        try:
-            return await src.read(frozenset({"topology"}))
-        finally:
-            await src.aclose()
-    view = run(go())
-    assert {frozenset((l.a, l.b)) for l in view.links} == set(net.truth().links)
+def test_without_erni_names_the_standard_tables_still_give_the_topology_by_address(served, net):
+    view = run(_read(served["robot2"], {"topology", "routes", "neighbors", "positions"},
+                     modules=frozenset({"NHDP-MIB", "OLSRv2-MIB"})))
+    truth = net.truth()
+    address = {name: net.info(name).address for name in net.names()}
+    assert view.node == "robot2" and view.address == "10.0.0.2"        # sysName, olsrv2OrigIpAddr
+    assert view.sources["node"].endswith("SNMPv2-MIB sysName")
+    assert {frozenset((l.a, l.b)) for l in view.links} == {
+        frozenset(address[n] if n != "robot2" else "robot2" for n in key) for key in truth.links}
+    assert {r.destination: r.next_hop for r in view.routes} == {
+        "10.0.0.1": "10.0.0.1", "10.0.0.3": "10.0.0.3", "10.0.0.4": "10.0.0.3", "10.0.0.5": "10.0.0.3"}
+    assert view.missing == {"positions": f"ERNI-MOBINET-MIB not served by 127.0.0.1:{served['robot2'][1]}"}
+    # without erniLinkQuality, the first reading's quality is the HELLO ratio so far
+    assert all(0.0 <= n.quality <= 1.0 for n in view.neighbors) and len(view.neighbors) == 2
+
+
+def test_routes_from_ip_forward_match_the_olsrv2_routing_set(served, net):
+    olsr = run(_read(served["robot1"], {"routes"}))
+    cidr = run(_read(served["robot1"], {"routes"}, modules=frozenset({"IP-FORWARD-MIB", "ERNI-MOBINET-MIB"})))
+    assert cidr.sources["routes"].split(" ", 2)[2].startswith("IP-FORWARD-MIB inetCidrRouteTable")
+    assert {r.destination: r.next_hop for r in cidr.routes} == {r.destination: r.next_hop for r in olsr.routes}
+    assert {r.destination: r.cost for r in cidr.routes} == {r.destination: r.cost * METRIC_UNIT
+                                                           for r in olsr.routes}
+    assert {r.destination: r.hops for r in cidr.routes} == {"robot2": 1, "robot3": 0, "robot4": 0, "robot5": 0}
+
+
+def test_hello_counters_give_the_link_quality_between_readings():
+    class Clock:
+        t = 0.0
+
+        def __call__(self) -> float:
+            return self.t
+    clock = Clock()
+    net = ManetNetwork(RadioModel(100.0, 50.0, 0.1), clock=clock)
+    net.add_node("a", 0.0, 0.0)
+    net.add_node("b", 60.0, 0.0)                                   # quality 0.8
+    with ManetSnmpAgent(net) as agent:
+        address = agent.serve("a")
+
+        async def go():
+            src = SnmpSource(*address, modules=frozenset({"NHDP-MIB", "OLSRv2-MIB"}))
+            qualities = []
+            try:
+                for step in range(8):
+                    clock.t += 10.0
+                    if step == 4:
+                        net.move("b", 75.0, 0.0)                     # quality 0.5 from now on
+                    view = await src.read(frozenset({"neighbors"}))
+                    qualities.append(view.neighbors[0].quality)
+            finally:
+                await src.aclose()
+            return qualities, view
+        qualities, view = run(go())
+    assert "nhdpDiscIfSetPerfTable" in view.sources["neighbors"]
+    assert qualities[0] == pytest.approx(0.8, abs=0.05)
+    assert qualities[-1] == pytest.approx(0.5, abs=0.1)   # the window follows the change
+    assert view.neighbors[0].metric == round(1024 / 0.25)
