@@ -17,12 +17,14 @@ class _Strict(BaseModel):
 
 
 class NodeSpec(_Strict):
-    """One node of the scenario: its name and initial position (m)."""
+    """One node of the scenario: its name, initial position (m) and optionally its own write community."""
 
     name: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$")
     x: float
     y: float
     heading: float = 0.0
+    write_community: str | None = Field(None, min_length=1, description="this node's write community "
+                                        "(default: the scenario's)")
 
 
 class MoveSpec(_Strict):
@@ -43,7 +45,9 @@ class Scenario(_Strict):
     gps: bool = Field(False, description="moves also update the positions the network knows")
     host: str = "127.0.0.1"
     base_port: int = Field(1161, ge=0, le=65535, description="node i serves base_port + i - 1; 0 = any")
-    community: str = "public"
+    read_community: str = Field("public", min_length=1, description="SNMP community that reads")
+    write_community: str | None = Field(None, min_length=1, description="SNMP community that reads and "
+                                        "SETs a node's position; none: the network is read-only")
     nodes: list[NodeSpec] = Field(min_length=1)
     moves: list[MoveSpec] = Field(default_factory=list)
 
@@ -60,6 +64,10 @@ class Scenario(_Strict):
             if m.node not in names:
                 raise ValueError(f"move at {m.at} s: unknown node {m.node!r}; expected one of "
                                  f"{', '.join(names)}")
+        for n in self.nodes:
+            if (n.write_community or self.write_community) == self.read_community:
+                raise ValueError(f"node {n.name!r}: the write community must differ from the read "
+                                 f"community {self.read_community!r}")
         if self.base_port and self.base_port + len(self.nodes) - 1 > 65535:
             raise ValueError(f"base_port {self.base_port} + {len(self.nodes)} nodes exceeds 65535")
         return self
@@ -71,6 +79,10 @@ class Scenario(_Strict):
         for n in self.nodes:
             net.add_node(n.name, n.x, n.y, n.heading)
         return net
+
+    def write_communities(self) -> dict[str, str | None]:
+        """Each node's write community (None: the node accepts no SET)."""
+        return {n.name: n.write_community or self.write_community for n in self.nodes}
 
     def ports(self) -> dict[str, int]:
         """UDP port of each node (0 everywhere when base_port is 0: the OS picks)."""

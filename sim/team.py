@@ -210,6 +210,7 @@ class Team:
         self.network = ManetNetwork(RadioModel(r.comm_range, r.lossless_range, r.min_quality),
                                     subnet="127.0.1.0/24")
         self.snmp = ManetSnmpAgent(self.network)
+        self.write_communities: dict[str, str] = {}   # robot -> its node's SNMP write community
         self._radio_lock = threading.Lock()
         self.agents: dict[str, AgentProcess] = {}
         self.samples: list[Sample] = []
@@ -265,7 +266,11 @@ class Team:
         c = self.scenario.control
         self.network.add_node(CONTROL, c.x, c.y)
         self.snmp.start()
-        snmp_ports = {name: self.snmp.serve(name, robot_address(i), 0)[1] for i, name in enumerate(self.names)}
+        # each robot's node gets its own write community: a robot can SET only its own position
+        self.write_communities.update({name: secrets.token_hex(8) for name in self.names})
+        snmp_ports = {name: self.snmp.serve(name, robot_address(i), 0,
+                                            write_community=self.write_communities[name])[1]
+                      for i, name in enumerate(self.names)}
         self._update_network(force=True)
         self._feed = threading.Thread(target=self._feed_loop, name="sim-feed", daemon=True)
         self._feed.start()
@@ -293,7 +298,8 @@ class Team:
                 ("motion", dict(url=self.host.url(i), model=self.scenario.robots.model)),
                 # one retry: a busy laptop running a whole team must not turn a late answer into
                 # a degraded network view that holds every deployment
-                ("mobinet", dict(host=addr, port=snmp_ports[name], timeout=1.0, retries=1)),
+                ("mobinet", dict(host=addr, port=snmp_ports[name], timeout=1.0, retries=1,
+                                 write_community=self.write_communities[name])),
             ]
             if self.mission:
                 plugins.append(("mission", self._mission_settings()))
@@ -342,6 +348,7 @@ class Team:
         journal = str(self.run_dir / "journal" / f"{name}.sqlite")
         config.write_text(agent_toml(name, plugins, journal=journal, workers=workers, comment=comment),
                           encoding="utf-8")
+        os.chmod(config, 0o600)  # it holds the node's SNMP write community
         self.agents[name] = AgentProcess(name, config, self.run_dir / "logs" / f"{name}.log", address)
 
     def _spawn(self, agent: AgentProcess, env: dict[str, str]) -> None:

@@ -13,7 +13,8 @@ def register(sub: Any) -> None:
     p = sub.add_parser(
         "net-sim", help="simulate a MANET and serve each node's NHDP/OLSRv2/ERNI MIBs over SNMP",
         description="Serve a simulated MANET: each node answers SNMP v1/v2c on its own UDP port "
-                    "until Ctrl-C; scenario moves are applied at their times.")
+                    "(SNMPv2-MIB, NHDP-MIB, OLSRv2-MIB, IP-FORWARD-MIB, ERNI-MOBINET-MIB) until "
+                    "Ctrl-C; scenario moves are applied at their times.")
     p.add_argument("scenario", help="scenario TOML (nodes, comm_range, lossless_range, moves)")
     p.add_argument("--host", help="address to serve on (default: the scenario's host)")
     p.add_argument("--base-port", type=int, help="port of the first node, 0 = any free port "
@@ -46,15 +47,20 @@ def run(args: argparse.Namespace) -> int:
         return 2
     host = args.host or scenario.host
     net = scenario.build()
-    agent = ManetSnmpAgent(net, community=scenario.community).start()
+    agent = ManetSnmpAgent(net, read_community=scenario.read_community).start()
     try:
+        writes = scenario.write_communities()
         try:
-            addresses = agent.serve_all(scenario.ports(), host=host)
+            for name, port in scenario.ports().items():
+                agent.serve(name, host, port, write_community=writes[name])
         except OSError as err:
             print(f"erni net-sim: {err}", file=sys.stderr)
             return 2
+        addresses = agent.addresses()
+        writable = sum(1 for w in writes.values() if w is not None)
         print(f"net-sim: {len(addresses)} node(s), R = {scenario.comm_range} m, "
-              f"loss-free to {scenario.lossless_range} m, community {scenario.community!r}")
+              f"loss-free to {scenario.lossless_range} m, read community {scenario.read_community!r}, "
+              f"{writable} node(s) writable with their write community")
         for name, (h, port) in addresses.items():
             print(f"  {name:<12} {net.info(name).address:<12} snmp udp:{h}:{port}")
         print(f"  {_topology_line(net)}")
@@ -80,6 +86,8 @@ def run(args: argparse.Namespace) -> int:
         pass
     finally:
         agent.close()
-        print(f"net-sim: stopped ({agent.stats['answered']} request(s) answered, "
-              f"{agent.stats['malformed']} malformed dropped)", flush=True)
+        st = agent.stats
+        print(f"net-sim: stopped ({st['answered']} request(s) answered; dropped: "
+              f"{st['snmpInASNParseErrs']} undecodable, {st['snmpInBadCommunityNames']} unknown community, "
+              f"{st['snmpUnknownPDUHandlers']} response/notification PDU(s))", flush=True)
     return 0
