@@ -155,3 +155,70 @@ def test_moves_that_change_no_link_change_nothing_served():
     before = net.version
     net.set_position("a", 1, 1)                # a report is served: version moves
     assert net.version > before
+
+
+class Clock:
+    """A network clock the test moves by hand."""
+
+    def __init__(self) -> None:
+        self.t = 100.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def test_hello_counters_grow_with_time_and_the_link_quality():
+    clock = Clock()
+    net = ManetNetwork(RadioModel(100.0, 50.0, 0.1), clock=clock)
+    net.add_node("a", 0, 0)
+    net.add_node("b", 75, 0)                 # quality 0.5
+    assert net.hello_counts("a", "b") == (0, 0)
+    clock.t += 40.0                          # 20 HELLO intervals
+    assert net.hello_counts("a", "b") == (10, 20)
+    net.move("b", 50, 0)                     # loss-free from now on
+    clock.t += 20.0
+    assert net.hello_counts("b", "a") == (20, 30)
+    net.move("b", 500, 0)                    # gone: nothing more is expected
+    clock.t += 60.0
+    assert net.hello_counts("a", "b") == (20, 30)
+    assert net.link_since("a", "b") is None
+    net.move("b", 50, 0)                     # back: the counters go on from where they were
+    assert net.link_since("a", "b") == clock.t
+    clock.t += 4.0
+    assert net.hello_counts("a", "b") == (22, 32)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(st.floats(0, 3), st.floats(0, 150)), min_size=1, max_size=12))
+def test_hello_counters_never_go_down(steps):
+    clock = Clock()
+    net = ManetNetwork(RadioModel(100.0, 50.0, 0.1), clock=clock)
+    net.add_node("a", 0, 0)
+    net.add_node("b", 60, 0)
+    last = (0, 0)
+    for dt, x in steps:
+        clock.t += dt
+        net.move("b", x, 0)
+        now = net.hello_counts("a", "b")
+        assert now[0] >= last[0] and now[1] >= last[1] and now[0] <= now[1]
+        last = now
+
+
+def test_neighbour_set_changes_ansn_and_recalculations_are_counted():
+    net = line_network()
+    c = net.view("robot3").counters
+    net.move("robot5", 150.0, 40.0)          # robot5 becomes robot3's neighbour
+    after = net.view("robot3").counters
+    assert after.neighbor_changes == c.neighbor_changes + 1
+    assert after.ansn == c.ansn + 1          # its advertised neighbours changed
+    assert after.mpr_recalcs == c.mpr_recalcs + 1
+    assert after.route_recalcs == c.route_recalcs + 1
+    far = net.view("robot1").counters
+    assert far.neighbor_changes == 1          # robot2, when it came; robot5 never was its neighbour
+    net.move("robot5", 150.0, 40.0)           # no link changes: nothing is counted
+    assert net.view("robot1").counters == far
+    net.move("robot2", 60.0, 200.0)           # robot1 loses its only neighbour
+    alone = net.view("robot1").counters
+    assert (alone.neighbor_changes, alone.ansn) == (far.neighbor_changes + 1, far.ansn + 1)
+    assert alone.route_recalcs == far.route_recalcs + 1
+    assert net.view("robot1").ansn == {"robot1": alone.ansn}

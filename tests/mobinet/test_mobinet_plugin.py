@@ -234,3 +234,35 @@ def test_a_new_watch_is_degraded_until_its_first_reading(bad_agent, make_agent):
     assert info.neighbors == []
     res = wait_until(lambda: (t := result_of(agent, task)).result and t)
     assert res.result.state == TaskState.RUNNING and res.result.message == "monitoring at 1 Hz"
+
+
+def test_every_field_names_its_source_and_table(served, net, make_agent):
+    agent, _ = make_agent("robot2", served["robot2"])
+    tasks = {p: watch(agent, p) for p in PREPOSITIONS}
+    where = f"snmp 127.0.0.1:{served['robot2'][1]}"
+    expected = {
+        "neighbor_list": {"neighbors": f"{where} NHDP-MIB nhdpDiscIfSetTable"},
+        "link_quality": {"neighbors": f"{where} NHDP-MIB nhdpDiscIfSetTable"},
+        "path_cost": {"routes": f"{where} OLSRv2-MIB olsrv2TibRoutingSetTable"},
+        "network_topology": {"links": f"{where} OLSRv2-MIB olsrv2TibRouterTopologySetTable",
+                             "articulation_points": "computed from links"},
+        "node_position": {"positions": f"{where} ERNI-MOBINET-MIB erniPositionTable"},
+    }
+    for prep, task in tasks.items():
+        info = fresh(agent, task, lambda i: i.provenance)
+        assert info.provenance["node"] == f"{where} ERNI-MOBINET-MIB erniNodeName"
+        assert set(info.provenance) == {"node", *expected[prep]}, prep
+        for name, source in expected[prep].items():
+            assert info.provenance[name].startswith(source), (prep, info.provenance[name])
+
+
+def test_without_a_write_community_no_pose_is_written(served, net, make_agent, caplog):
+    caplog.set_level(logging.WARNING)
+    agent, plugin = make_agent("robot2", served["robot2"], write_community=None)
+    task = watch(agent, "neighbor_list")
+    with agent.transaction() as tx:
+        tx.add(Pose(robot="robot2", x=99.0, y=9.0))
+    fresh(agent, task, lambda i: i.neighbors)
+    assert plugin.resource.stats["writes"] == 0
+    assert net.view("robot2").position_updates == 0
+    assert any("no write_community" in r.getMessage() for r in caplog.records)

@@ -14,8 +14,8 @@ ADDR_RE = re.compile(r"^\s+(\S+)\s+(\d+\.\d+\.\d+\.\d+)\s+snmp udp:([\d.]+):(\d+
 def test_net_sim_serves_every_node_until_interrupted(tmp_path):
     scenario = tmp_path / "three.toml"
     scenario.write_text(
-        "comm_range = 100.0\nlossless_range = 50.0\nbase_port = 0\n"
-        'nodes = [{name = "a", x = 0, y = 0}, {name = "b", x = 60, y = 0}, '
+        "comm_range = 100.0\nlossless_range = 50.0\nbase_port = 0\nwrite_community = 'w-all'\n"
+        'nodes = [{name = "a", x = 0, y = 0}, {name = "b", x = 60, y = 0, write_community = "w-b"}, '
         '{name = "c", x = 120, y = 0}]\n'
         'moves = [{at = 0.2, node = "c", x = 30, y = 30}]\n')
     proc = subprocess.Popen([sys.executable, "-m", "erni", "net-sim", str(scenario)],
@@ -40,11 +40,30 @@ def test_net_sim_serves_every_node_until_interrupted(tmp_path):
                                   f"udp:{host}:{port}", "1.3.6.1.4.1.32473.1.1.1.0"],
                                  capture_output=True, text=True, timeout=10).stdout
             assert 'STRING: "b"' in out
+
+            def set_x(community: str) -> str:
+                res = subprocess.run(["snmpset", "-v2c", "-c", community, "-On", "-m", "", "-t", "1",
+                                      "-r", "0", f"udp:{host}:{port}", "1.3.6.1.4.1.32473.1.1.4.0", "i", "5"],
+                                     capture_output=True, text=True, timeout=10)
+                return res.stdout + res.stderr
+            assert "noAccess" in set_x("public")         # the read community never writes
+            assert "Timeout" in set_x("w-all")           # b has a write community of its own
+            assert "INTEGER: 5" in set_x("w-b")
     finally:
         proc.send_signal(signal.SIGINT)
         out, err = proc.communicate(timeout=10)
     assert proc.returncode == 0, err
     assert "net-sim: stopped" in out
+
+
+def test_net_sim_refuses_a_write_community_equal_to_the_read_one(tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text('comm_range = 10\nlossless_range = 5\nwrite_community = "public"\n'
+                   'nodes = [{name = "a", x = 0, y = 0}]\n')
+    res = subprocess.run([sys.executable, "-m", "erni", "net-sim", str(bad)],
+                         capture_output=True, text=True, timeout=30)
+    assert res.returncode == 2
+    assert "node 'a': the write community must differ from the read community 'public'" in res.stderr
 
 
 def test_net_sim_rejects_a_bad_scenario(tmp_path):
