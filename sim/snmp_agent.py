@@ -342,8 +342,9 @@ class ManetSnmpAgent:
         p_mod = pv1 if version == V1 else v2c
         try:
             msg, rest = decoder.decode(data, asn1Spec=p_mod.Message())
-            if rest:
-                raise ValueError("trailing bytes after the message")
+            if rest:  # trailing bytes after the message
+                self._count(node, "snmpInASNParseErrs")
+                return None
             community = bytes(p_mod.apiMessage.get_community(msg))
             req = p_mod.apiMessage.get_pdu(msg)
             kind = _pdu_kind(p_mod, req)
