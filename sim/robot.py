@@ -3,14 +3,19 @@
 Two layers, each usable alone:
 
 - `SimRobot` is the physics: a differential-drive base with velocity and acceleration limits,
-  position and heading controllers (MOVE, HEAD), a watchdog, a sonar ring cast against a
-  `World`, bumpers and stall, and a battery drained by paper 000's energy model
-  (P0 = 8.568 W standing, Pmov = 11.55 v + 14.838 W moving). `step(dt, now)` advances it,
-  so any clock can drive it.
-- `ArcosFirmware` is the robot end of the ARCOS protocol, sans I/O: `receive(bytes)` handles
-  client packets (SYNC, OPEN, VEL, HEAD, MOVE, ... SIM_SET_POSE), `tick(now)` emits SIPs,
-  and `take_output()` returns the bytes to put on the wire.
+  position and heading controllers (MOVE, HEAD), a watchdog, a sonar ring of transducers at
+  their published positions cast against a `World`, bumpers and stall, and a battery drained
+  by paper 000's energy model (P0 = 8.568 W standing, Pmov = 11.55 v + 14.838 W moving).
+  `step(dt, now)` advances it, so any clock can drive it.
+- `ArcosFirmware` is the robot end of the ARCOS protocol, sans I/O, as real firmware and the
+  MobileSim/AMRISim simulators speak it: `receive(bytes)` handles client packets (SYNC, OPEN,
+  CONFIG, VEL, HEAD, MOVE, ... SIM_SET_POSE, SIM_STAT, BATTERYINFO), `tick(now)` emits SIPs
+  (each carrying the sonar readings fired since the last one), and `take_output()` returns the
+  bytes to put on the wire. Commands are in the firmware's units (mm, mm/s, degrees), never
+  scaled; only what the robot reports is in the model's wire units (DistConvFactor, ...).
 
+`SimRobotConfig.for_model("amigo")` builds a robot from the published model table, so ARIA or
+any other client finds the subtype it knows (`p3dx-sh`, `amigo`, ...).
 `sim.robot_host.RobotHost` puts robots on TCP ports and ptys.
 """
 
@@ -22,9 +27,12 @@ import random
 import struct
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from erni.blackboard.errors import ConfigError
+from erni.plugins.motion.robots import MODELS, Transducer, lookup
 from erni.sim.world import World
 
 log = logging.getLogger("erni.sim.robot")
@@ -33,8 +41,20 @@ P0_WATTS = 8.568  # paper 000: power standing still
 PMOV_SLOPE = 11.55  # paper 000: W per m/s while moving
 PMOV_BASE = 14.838  # paper 000: W while moving, at v -> 0
 
-PIONEER3_SONAR = (90, 50, 30, 10, -10, -30, -50, -90, -90, -130, -150, -170, 170, 150, 130, 90)
-AMIGOBOT_SONAR = (90, 41, 15, -15, -41, -90, -145, 145)
+SERIAL = "SIM"
+"""The serial number simulators give in CONFIG (MobileSim and AMRISim do too): clients may move them."""
+FIRMWARE = "ERNI-S1.0"
+
+COMMAND_NAMES = {0: "PULSE", 1: "OPEN", 2: "CLOSE", 3: "POLLING", 4: "ENABLE", 5: "SETA", 6: "SETV", 7: "SETO",
+                 8: "MOVE", 9: "ROTATE", 10: "SETRV", 11: "VEL", 12: "HEAD", 13: "DHEAD", 15: "SAY", 18: "CONFIG",
+                 19: "ENCODER", 21: "RVEL", 23: "SETRA", 28: "SONAR", 29: "STOP", 30: "DIGOUT", 32: "VEL2",
+                 40: "IOREQUEST", 44: "BUMPSTALL", 50: "HOSTBAUD", 55: "ESTOP", 62: "BATTERYINFO",
+                 224: "SIM_SET_POSE", 225: "SIM_RESET", 236: "SIM_CTRL", 237: "SIM_STAT", 238: "SIM_MESSAGE",
+                 239: "SIM_EXIT"}
+
+_P3DX = MODELS["p3dx-sh"]
+PIONEER3_SONAR: tuple[Transducer | None, ...] = _P3DX.sonar
+AMIGOBOT_SONAR: tuple[Transducer | None, ...] = MODELS["amigo"].sonar
 
 
 class SimRobotConfig(BaseModel):
@@ -44,39 +64,57 @@ class SimRobotConfig(BaseModel):
 
     name: str = "sim"
     robot_class: str = "Pioneer"
-    subclass: str = "p3dx-sim"
+    subclass: str = Field(_P3DX.subclass, description="subtype named in SYNC2 and CONFIG")
     radius: float = Field(0.25, gt=0, description="body radius (m)")
     axle: float = Field(0.33, gt=0, description="wheel separation (m)")
-    max_v: float = Field(1.5, gt=0, description="top speed (m/s)")
+    max_v: float = Field(1.5, gt=0, description="top speed at start (m/s, SETV changes it)")
     accel: float = Field(1.0, gt=0, description="translational acceleration (m/s^2)")
     decel: float = Field(1.0, gt=0, description="translational deceleration (m/s^2)")
-    max_rv: float = Field(300.0, gt=0, description="top turn rate (deg/s)")
+    max_rv: float = Field(300.0, gt=0, description="top turn rate at start (deg/s)")
     rot_accel: float = Field(300.0, gt=0, description="rotational acceleration (deg/s^2)")
+    rot_decel: float | None = Field(None, gt=0, description="rotational deceleration (deg/s^2); default rot_accel")
+    top_v: float = Field(2.2, gt=0, description="highest SETV accepted (m/s), CONFIG TransVelTop")
+    top_rv: float = Field(500.0, gt=0, description="highest SETRV accepted (deg/s), CONFIG RotVelTop")
+    top_accel: float = Field(2.0, gt=0, description="highest SETA accepted (m/s^2), CONFIG TransAccTop")
+    top_rot_accel: float = Field(500.0, gt=0, description="highest SETRA accepted (deg/s^2), CONFIG RotAccTop")
     watchdog: float = Field(2.0, gt=0, description="stop after this long without a command (s)")
     sip_period: float = Field(0.1, gt=0, description="SIP period (s)")
-    sonar_angles: tuple[float, ...] = PIONEER3_SONAR
+    sonar: tuple[Transducer | None, ...] = Field(PIONEER3_SONAR, description="transducer poses (m, m, deg)")
+    sonar_cycle: float = Field(0.04, ge=0, description="firing period of one transducer per bank of 8 (s); "
+                               "0: every transducer in every SIP")
     sonar_range: float = Field(5.0, gt=0, description="maximum sonar range (m)")
     battery_full: float = Field(13.0, gt=0, description="voltage when full (V)")
     battery_empty: float = Field(11.0, gt=0, description="voltage when empty (V)")
     battery_wh: float = Field(100.0, gt=0, description="usable energy (Wh)")
     dist_conv: float = Field(1.0, gt=0, description="mm per position unit on the wire")
     vel_conv: float = Field(1.0, gt=0, description="mm/s per velocity unit on the wire")
+    angle_conv: float = Field(0.001534, gt=0, description="rad per heading unit on the wire")
+    range_conv: float = Field(1.0, gt=0, description="mm per sonar range unit on the wire")
+    vel2_divisor: float = Field(20.0, gt=0, description="mm/s per VEL2 wheel unit")
     line_noise: float = Field(0.0, ge=0, le=1, description="probability a sent packet is damaged")
     garbage_first: int = Field(0, ge=0, description="answer this many SYNC0s with garbage")
+    answer_config: bool = Field(True, description="reply to CONFIG (old firmware does not)")
     seed: int = 0
 
     @classmethod
-    def amigobot(cls, **kw: object) -> SimRobotConfig:
-        """An AmigoBot with old-firmware conversion factors."""
-        base = dict(robot_class="AmigoBot", subclass="amigo-sim", radius=0.18, axle=0.28, max_v=0.75,
-                    sonar_angles=AMIGOBOT_SONAR, dist_conv=0.5083, vel_conv=0.6154)
+    def for_model(cls, model: str, **kw: Any) -> SimRobotConfig:
+        """A robot of a published model (`p3dx-sh`, `amigo`, `p3at-sh`, ... or `pioneer3`, `amigobot`)."""
+        m = lookup(model)
+        if m is None:
+            raise ConfigError(f"model: unknown robot model {model!r}; expected one of {', '.join(MODELS)} "
+                              "(or pioneer3, amigobot)")
+        base: dict[str, Any] = dict(
+            robot_class=m.robot_class, subclass=m.subclass, radius=m.radius, axle=m.track, sonar=m.sonar,
+            dist_conv=m.dist_conv, vel_conv=m.vel_conv, angle_conv=m.angle_conv, range_conv=m.range_conv,
+            vel2_divisor=m.vel2_divisor, top_v=m.top_v, top_rv=m.top_rv, max_v=min(1.5, m.top_v),
+            max_rv=min(300.0, m.top_rv))
         base.update(kw)
-        return cls(**base)  # type: ignore[arg-type]
+        return cls(**base)
 
-
-def heading_units(angle: float) -> int:
-    """An angle (rad) in ARCOS heading units (4096 per turn, -2048..2047)."""
-    return round(_wrap(angle) * 2048 / math.pi) or 0
+    @classmethod
+    def amigobot(cls, **kw: Any) -> SimRobotConfig:
+        """An AmigoBot with its original controller (subtype `amigo`: DistConv 0.5083, VelConv 0.6154)."""
+        return cls.for_model("amigo", **{"max_v": 0.75, **kw})
 
 
 def _wrap(a: float) -> float:
@@ -122,6 +160,7 @@ class SimRobot:
         self.decel = self.config.decel
         self.max_rv = math.radians(self.config.max_rv)
         self.rot_accel = math.radians(self.config.rot_accel)
+        self.rot_decel = math.radians(self.config.rot_decel or self.config.rot_accel)
         self.last_command = -math.inf
         self.watchdog_tripped = False
         self.stall_left = self.stall_right = False
@@ -177,10 +216,20 @@ class SimRobot:
             self.v = self.w = 0.0
 
     def set_pose(self, x: float, y: float, th: float) -> None:
-        """Place the robot (teleport) and make odometry agree with the world pose."""
+        """Place the robot by hand and make odometry read the world pose again (as at start)."""
         self.x, self.y, self.th = x, y, _wrap(th)
         self.odo = (0.0, 0.0, 0.0)
         self.stop(emergency=True)
+        self.stall_left = self.stall_right = False
+        self.bumpers = 0
+
+    def set_true_pose(self, x: float, y: float, th: float) -> None:
+        """Move the robot's true pose, leaving odometry untouched (SIM_SET_POSE): the encoders never turned."""
+        ox, oy, oth = self.odometry()
+        self.x, self.y, self.th = x, y, _wrap(th)
+        origin_th = _wrap(self.th - oth)
+        c, s = math.cos(origin_th), math.sin(origin_th)
+        self.odo = (x - (c * ox - s * oy), y - (s * ox + c * oy), origin_th)
         self.stall_left = self.stall_right = False
         self.bumpers = 0
 
@@ -207,7 +256,7 @@ class SimRobot:
         if not self.motors_enabled or self.watchdog_tripped:
             tv = tw = 0.0
         self.v = _approach(self.v, tv, self.accel * dt, self.decel * dt)
-        self.w = _approach(self.w, tw, self.rot_accel * dt, self.rot_accel * dt)
+        self.w = _approach(self.w, tw, self.rot_accel * dt, self.rot_decel * dt)
         self._integrate(dt, tv)
         speed = (abs(self.v - self.w * self.config.axle / 2) + abs(self.v + self.w * self.config.axle / 2)) / 2
         power = P0_WATTS if speed < 1e-3 else PMOV_SLOPE * speed + PMOV_BASE
@@ -230,7 +279,7 @@ class SimRobot:
             if abs(err) < math.radians(0.3):
                 tw = 0.0
             else:
-                tw = math.copysign(min(self.max_rv, math.sqrt(2 * self.rot_accel * abs(err)), 8 * abs(err)), err)
+                tw = math.copysign(min(self.max_rv, math.sqrt(2 * self.rot_decel * abs(err)), 8 * abs(err)), err)
         return tv, tw
 
     def _integrate(self, dt: float, tv: float) -> None:
@@ -269,26 +318,37 @@ class SimRobot:
 
     # --- sensors ------------------------------------------------------------------------
 
-    def sonar(self) -> list[float]:
-        """Return each sonar's range (m) from the body surface to the nearest echo."""
-        out = []
+    def sonar_reading(self, num: int, others: list[tuple[tuple[float, float], float]] | None = None) -> float | None:
+        """Range (m) from transducer `num` to the nearest echo within its cone; None if it is not fitted."""
+        pose = self.config.sonar[num] if 0 <= num < len(self.config.sonar) else None
+        if pose is None:
+            return None
+        sx, sy, deg = pose
+        c, s = math.cos(self.th), math.sin(self.th)
+        ox, oy = self.x + c * sx - s * sy, self.y + s * sx + c * sy
+        a = self.th + math.radians(deg)
+        rng = self.config.sonar_range
+        others = self.others() if others is None else others
+        best = rng
+        for spread in (-0.13, 0.0, 0.13):
+            best = min(best, self.world.ray(ox, oy, a + spread, rng, others))
+        return best
+
+    def sonar(self) -> list[float | None]:
+        """Every transducer's range (m), by sonar number (None where none is fitted)."""
         others = self.others()
-        for deg in self.config.sonar_angles:
-            a = self.th + math.radians(deg)
-            ox = self.x + self.config.radius * math.cos(a)
-            oy = self.y + self.config.radius * math.sin(a)
-            best = self.config.sonar_range
-            for spread in (-0.13, 0.0, 0.13):
-                best = min(best, self.world.ray(ox, oy, a + spread, self.config.sonar_range, others))
-            out.append(best)
-        return out
+        return [self.sonar_reading(i, others) for i in range(len(self.config.sonar))]
+
+    @property
+    def state_of_charge(self) -> float:
+        """Fraction of the battery's energy left (0..1)."""
+        return max(0.0, 1.0 - self.energy / (self.config.battery_wh * 3600.0))
 
     @property
     def battery(self) -> float:
         """Battery voltage (V), falling linearly with the energy drawn."""
         c = self.config
-        soc = max(0.0, 1.0 - self.energy / (c.battery_wh * 3600.0))
-        return c.battery_empty + (c.battery_full - c.battery_empty) * soc
+        return c.battery_empty + (c.battery_full - c.battery_empty) * self.state_of_charge
 
     @property
     def moving(self) -> bool:
@@ -328,11 +388,24 @@ def _args(body: bytes) -> list[int | bytes]:
     return out
 
 
+def _u16(value: float) -> bytes:
+    return struct.pack("<H", max(0, min(0xFFFF, round(value))))
+
+
+def _u8(value: float) -> bytes:
+    return bytes([max(0, min(255, round(value)))])
+
+
+def _cstr(text: str) -> bytes:
+    return text.encode("latin-1", "replace") + b"\x00"
+
+
 class ArcosFirmware:
     """The robot end of an ARCOS link: handshake, command handling and the SIP stream."""
 
-    def __init__(self, robot: SimRobot) -> None:
+    def __init__(self, robot: SimRobot, label: str = "") -> None:
         self.robot = robot
+        self.label = label or robot.config.name
         self.state = "sync0"
         self._buf = bytearray()
         self._out = bytearray()
@@ -341,6 +414,24 @@ class ArcosFirmware:
         self._garbage_left = robot.config.garbage_first
         self.counts = {"packets": 0, "bad": 0, "sips": 0, "unknown": 0}
         self.now = 0.0
+        self.host_baud = 0  # HOSTBAUD code last asked for (0 = 9600)
+        self.simstat = False  # SIM_STAT 2: a SIMSTAT after every SIP
+        self.battery_info = False  # BATTERYINFO 2: a battery packet after every SIP
+        n = len(robot.config.sonar)
+        self.banks = max(1, (n + 7) // 8)
+        self.polling: list[list[int]] = [[i for i in range(b * 8, min(n, b * 8 + 8))] for b in range(self.banks)]
+        self._fired: dict[int, float] = {}
+        self._next_fire = 0.0
+        self._fire_index = 0
+        self.said_messages: list[str] = []
+
+    @property
+    def tops(self) -> tuple[float, float, float, float]:
+        """The highest speed (m/s), turn rate (deg/s), acceleration (m/s^2) and rotational acceleration
+        (deg/s^2) the firmware accepts: the configured tops, raised to the robot's own starting values."""
+        c = self.robot.config
+        return (max(c.top_v, c.max_v), max(c.top_rv, c.max_rv), max(c.top_accel, c.accel, c.decel),
+                max(c.top_rot_accel, c.rot_accel, c.rot_decel or 0.0))
 
     def receive(self, data: bytes, now: float) -> None:
         """Consume bytes from the client, handling every complete packet."""
@@ -352,6 +443,8 @@ class ArcosFirmware:
             if i < 0:
                 del buf[:max(0, len(buf) - 1)]
                 return
+            if i:
+                log.debug("%s: %d bytes of line noise skipped", self.label, i)
             del buf[:i]
             if len(buf) < 3 or len(buf) < 3 + buf[2]:
                 return
@@ -359,17 +452,19 @@ class ArcosFirmware:
             body, check = bytes(buf[3:1 + n]), bytes(buf[1 + n:3 + n])
             if n < 3 or _checksum(body) != int.from_bytes(check, "big"):
                 self.counts["bad"] += 1
+                log.debug("%s: bad packet dropped (count %d, checksum %s)", self.label, n, check.hex())
                 del buf[:2]
                 continue
             del buf[:3 + n]
             self.counts["packets"] += 1
-            self._handle(body[0], _args(body))
+            self._handle(body)
 
     def close(self) -> None:
         """The client went away: stop the robot and wait for a new handshake."""
         self.state = "sync0"
         self.robot.stop()
         self.robot.motors_enabled = False
+        self.simstat = self.battery_info = False
         self._buf.clear()
 
     def _send(self, body: bytes) -> None:
@@ -390,58 +485,47 @@ class ArcosFirmware:
         self._out.clear()
         return out
 
-    def _handle(self, cmd: int, args: list[int | bytes]) -> None:
+    def _handle(self, body: bytes) -> None:
         r = self.robot
+        cmd = body[0]
+        args = _args(body) if cmd != 224 else []
         arg = next((a for a in args if isinstance(a, int)), 0)
         if self.state != "open":
-            if cmd == 0:
-                if self._garbage_left:
-                    self._garbage_left -= 1
-                    self._out += bytes(self._rng.randrange(256) for _ in range(7))
-                    return
-                self.state = "sync1"
-                self._send(b"\x00")
-            elif cmd == 1 and self.state == "sync1":
-                self.state = "sync2"
-                self._send(b"\x01")
-            elif cmd == 2 and self.state == "sync2":
-                self.state = "ready"
-                c = r.config
-                self._send(b"\x02" + b"\x00".join(s.encode() for s in (c.name, c.robot_class, c.subclass)) + b"\x00")
-            elif cmd == 1 and self.state == "ready":
-                self.state = "open"
-                self._next_sip = self.now
-                r.touch(self.now)
-            elif cmd == 2:
-                self.state = "sync0"
+            self._handshake(cmd)
             return
         r.touch(self.now)
         c = r.config
+        if cmd != 0:
+            log.debug("%s: %s %s", self.label, COMMAND_NAMES.get(cmd, f"command {cmd}"),
+                      " ".join(repr(a) for a in args) if cmd != 224 else body[1:].hex())
         if cmd == 0:  # PULSE
             return
         if cmd == 2:  # CLOSE
+            log.debug("%s: client closed the connection", self.label)
             self.close()
+        elif cmd == 3:  # POLLING: the firing sequence, as sonar numbers 1..32
+            self._set_polling(next((a for a in args if isinstance(a, bytes)), b""))
         elif cmd == 4:  # ENABLE
             r.motors_enabled = bool(arg)
             if not arg:
                 r.stop()
         elif cmd == 5:  # SETA: positive accel, negative decel (mm/s^2)
             if arg > 0:
-                r.accel = arg / 1000.0
+                r.accel = min(arg / 1000.0, self.tops[2])
             elif arg < 0:
-                r.decel = -arg / 1000.0
-        elif cmd == 6:  # SETV
-            r.max_v = max(0.0, arg * c.vel_conv / 1000.0)
+                r.decel = min(-arg / 1000.0, self.tops[2])
+        elif cmd == 6:  # SETV (mm/s)
+            r.max_v = max(0.0, min(arg / 1000.0, self.tops[0]))
         elif cmd == 7:  # SETO
             r.reset_odometry()
         elif cmd == 8:  # MOVE (mm)
-            r.move(arg * c.dist_conv / 1000.0)
+            r.move(arg / 1000.0)
         elif cmd in (9, 21):  # ROTATE, RVEL (deg/s)
             r.set_rotation(math.radians(arg))
-        elif cmd == 10:  # SETRV
-            r.max_rv = math.radians(abs(arg))
+        elif cmd == 10:  # SETRV (deg/s)
+            r.max_rv = math.radians(min(abs(arg), self.tops[1]))
         elif cmd == 11:  # VEL (mm/s)
-            r.set_velocity(arg * c.vel_conv / 1000.0)
+            r.set_velocity(arg / 1000.0)
         elif cmd == 12:  # HEAD (deg, odometric)
             r.set_heading(math.radians(arg))
         elif cmd == 13:  # DHEAD
@@ -449,38 +533,161 @@ class ArcosFirmware:
             r.set_heading(base + math.radians(arg))
         elif cmd == 15:  # SAY
             r.said.append(next((a for a in args if isinstance(a, bytes)), b""))
-        elif cmd == 23:  # SETRA
-            if arg:
-                r.rot_accel = math.radians(abs(arg))
+        elif cmd == 18:  # CONFIG
+            if c.answer_config:
+                self._send(self.config_packet())
+            else:
+                self._unknown(body, "CONFIG not answered by this robot:")
+        elif cmd == 23:  # SETRA: positive accel, negative decel (deg/s^2)
+            if arg > 0:
+                r.rot_accel = math.radians(min(arg, self.tops[3]))
+            elif arg < 0:
+                r.rot_decel = math.radians(min(-arg, self.tops[3]))
         elif cmd == 28:  # SONAR
             r.sonar_on = bool(arg)
         elif cmd == 29:  # STOP
             r.stop()
-        elif cmd == 32:  # VEL2: high byte left, low byte right, signed, x20 mm/s
+        elif cmd == 32:  # VEL2: high byte left, low byte right, signed, x Vel2Divisor mm/s
             raw = arg & 0xFFFF
             left, right = struct.unpack("bb", bytes([raw >> 8, raw & 0xFF]))
-            r.set_wheels(left * 20 * c.vel_conv / 1000.0, right * 20 * c.vel_conv / 1000.0)
+            r.set_wheels(left * c.vel2_divisor / 1000.0, right * c.vel2_divisor / 1000.0)
+        elif cmd == 50:  # HOSTBAUD: on a serial line the rate changes after this packet
+            self.host_baud = arg
+            log.debug("%s: host serial rate code %d", self.label, arg)
         elif cmd == 55:  # ESTOP
             r.stop(emergency=True)
-        elif cmd == 224:  # SIM_SET_POSE x mm, y mm, th deg
-            ints = [a for a in args if isinstance(a, int)] + [0, 0, 0]
-            r.set_pose(ints[0] / 1000.0, ints[1] / 1000.0, math.radians(ints[2]))
-        elif cmd == 225:  # SIM_RESET
+        elif cmd == 62:  # BATTERYINFO: 0 stop, 1 one packet, 2 one after every SIP
+            self.battery_info = arg == 2
+            if arg in (1, 2):
+                self._send(self.battery_packet())
+        elif cmd == 224:  # SIM_SET_POSE: type byte, x mm, y mm, th deg as 32-bit little-endian
+            if len(body) < 14:
+                self._unknown(body, "SIM_SET_POSE too short")
+                return
+            x, y, th = struct.unpack_from("<iii", body, 2)
+            log.debug("%s: true pose set to %d mm, %d mm, %d deg; odometry untouched", self.label, x, y, th)
+            r.set_true_pose(x / 1000.0, y / 1000.0, math.radians(th))
+        elif cmd == 225:  # SIM_RESET: back to the start, odometry reading it
             r.set_pose(*r.start)
-        elif cmd in (3, 18, 30, 44, 50):
-            pass  # POLLING, CONFIG, DIGOUT, BUMPSTALL, HOSTBAUD: accepted, nothing to simulate
+        elif cmd == 237:  # SIM_STAT: 0 stop, 1 one packet, 2 one after every SIP
+            self.simstat = arg == 2
+            if arg in (1, 2):
+                self._send(self.simstat_packet())
+        elif cmd == 238:  # SIM_MESSAGE
+            text = next((a for a in args if isinstance(a, bytes)), b"").decode("latin-1")
+            self.said_messages.append(text)
+            log.info("%s: message from the client: %s", self.label, text)
+        elif cmd in (19, 30, 40, 44, 236):
+            pass  # ENCODER, DIGOUT, IOREQUEST, BUMPSTALL, SIM_CTRL: accepted, nothing to simulate
         else:
-            self.counts["unknown"] += 1
+            self._unknown(body, "unknown command")
+
+    def _unknown(self, body: bytes, why: str) -> None:
+        self.counts["unknown"] += 1
+        log.debug("%s: %s %d ignored: %s", self.label, why, body[0], body.hex(" "))
+
+    def _handshake(self, cmd: int) -> None:
+        c = self.robot.config
+        if cmd == 0:
+            if self._garbage_left:
+                self._garbage_left -= 1
+                self._out += bytes(self._rng.randrange(256) for _ in range(7))
+                return
+            self.state = "sync1"
+            self._send(b"\x00")
+        elif cmd == 1 and self.state == "sync1":
+            self.state = "sync2"
+            self._send(b"\x01")
+        elif cmd == 2 and self.state == "sync2":
+            self.state = "ready"
+            self._send(b"\x02" + _cstr(c.name) + _cstr(c.robot_class) + _cstr(c.subclass))
+            log.debug("%s: handshake done: %s %s %s", self.label, c.name, c.robot_class, c.subclass)
+        elif cmd == 1 and self.state == "ready":
+            self.state = "open"
+            self._next_sip = self.now
+            self._next_fire = self.now
+            self.robot.touch(self.now)
+            log.debug("%s: OPEN: streaming SIPs every %.0f ms", self.label, c.sip_period * 1000)
+        elif cmd == 2:
+            self.state = "sync0"
+        else:
+            log.debug("%s: command %d during the handshake (state %s) ignored", self.label, cmd, self.state)
+
+    def _set_polling(self, sequence: bytes) -> None:
+        n = len(self.robot.config.sonar)
+        order = [b - 1 for b in sequence if 1 <= b <= n]
+        banks: list[list[int]] = [[] for _ in range(self.banks)]
+        for num in order:
+            banks[num // 8].append(num)
+        self.polling = banks
+        log.debug("%s: sonar polling sequence %s", self.label, order)
+
+    def config_packet(self) -> bytes:
+        """The CONFIG reply (ID 0x20), fields in the order ARCOS gives them."""
+        r, c = self.robot, self.robot.config
+        front = any(t is not None and abs(t[2]) <= 90 for t in c.sonar[:8])
+        rear = any(t is not None for t in c.sonar[8:16])
+        h, b = _u16, _u8
+        return b"".join([
+            b"\x20", _cstr(c.robot_class), _cstr(c.subclass), _cstr(SERIAL), b(0),
+            h(self.tops[1]), h(self.tops[0] * 1000), h(self.tops[3]), h(self.tops[2] * 1000), h(500),
+            _cstr(c.name), b(c.sip_period * 1000), b(self.host_baud), b(0), h(0), h(front), b(rear),
+            h((c.battery_empty + 0.5) * 10), h(0), h(c.watchdog * 1000), b(1), h(0), h(0), h(0), h(0),
+            h(math.degrees(r.max_rv)), h(r.max_v * 1000), h(math.degrees(r.rot_accel)),
+            h(math.degrees(r.rot_decel)), h(0), h(0), h(0), h(r.accel * 1000), h(r.decel * 1000), h(0), h(0), h(0),
+            b(0), b(0), b(0), b(c.sonar_cycle * 1000), b(2), b(0), struct.pack("<h", 0), b(0), b(0), h(0),
+            h(c.battery_empty * 10), _cstr(FIRMWARE), h(0), h(0), b(0), h(0), h(0), h(0), h(0), h(0), h(0),
+        ])
+
+    def simstat_packet(self) -> bytes:
+        """SIMSTAT (ID 0x62) as the simulators send it: the true pose, not odometry."""
+        r = self.robot
+        period = round(self.robot.config.sip_period * 1000)
+        return (b"\x62" + b"\x00\x00" + struct.pack("<IHHH", 0, period, period, period)
+                + struct.pack("<iiii", round(r.x * 1000), round(r.y * 1000), 0, round(math.degrees(r.th)))
+                + struct.pack("<iiii", 0, 0, 0, -1) + struct.pack("<iii", 0, 0, 0))
+
+    def battery_packet(self) -> bytes:
+        """BATTERYINFO reply (ID 0xFA): one battery, five bytes: three flag bytes, relative and absolute charge."""
+        soc = round(self.robot.state_of_charge * 100)
+        return bytes([0xFA, 1, 5, 0, 0, 0, soc, soc])
 
     def tick(self, now: float) -> None:
-        """Emit a SIP if one is due."""
+        """Fire the sonar due and emit a SIP if one is due."""
         self.now = now
-        if self.state != "open" or now < self._next_sip:
+        if self.state != "open":
+            return
+        self._fire(now)
+        if now < self._next_sip:
             return
         period = self.robot.config.sip_period
         self._next_sip = max(self._next_sip + period, now - period)
         self._send(self.sip())
         self.counts["sips"] += 1
+        if self.simstat:
+            self._send(self.simstat_packet())
+        if self.battery_info:
+            self._send(self.battery_packet())
+
+    def _fire(self, now: float) -> None:
+        r, c = self.robot, self.robot.config
+        if not r.sonar_on or c.sonar_cycle <= 0 or not c.sonar:
+            return
+        others = None
+        fired = 0
+        while now >= self._next_fire and fired < 64:
+            others = others if others is not None else r.others()
+            for bank in self.polling:
+                if bank:
+                    num = bank[self._fire_index % len(bank)]
+                    rng = r.sonar_reading(num, others)
+                    if rng is not None:
+                        self._fired[num] = rng
+            self._fire_index += 1
+            self._next_fire += c.sonar_cycle
+            fired += 1
+        if now >= self._next_fire:  # far behind (a stalled clock): skip ahead, never burst
+            self._next_fire = now + c.sonar_cycle
 
     def sip(self) -> bytes:
         """Return the body of a standard SIP describing the robot now."""
@@ -491,23 +698,32 @@ class ArcosFirmware:
         rvel = round((r.v + half) * 1000 / c.vel_conv)
         stall = (1 if r.stall_left else 0) | (0x100 if r.stall_right else 0)
         stall |= ((r.bumpers & 0x7F) << 1) | (((r.bumpers >> 7) & 0x7F) << 9)
-        flags = (1 if r.motors_enabled else 0) | (0x2 if r.sonar_on else 0)
-        control = heading_units(r.head_target) if r.rot_mode == "head" else heading_units(th)
+        flags = (1 if r.motors_enabled else 0) | (0x1E if r.sonar_on else 0)
+        def heading(a: float) -> int:
+            return max(-2048, min(2047, round(_wrap(a) / c.angle_conv)))
+
+        control = heading(r.head_target) if r.rot_mode == "head" else heading(th)
         body = struct.pack(
             "<BHHhhhBHhHB",
             0x33 if r.moving else 0x32,
             round(x * 1000 / c.dist_conv) & 0x7FFF,
             round(y * 1000 / c.dist_conv) & 0x7FFF,
-            max(-2048, min(2047, heading_units(th))),
-            lvel, rvel,
+            heading(th),
+            max(-32768, min(32767, lvel)), max(-32768, min(32767, rvel)),
             max(0, min(255, round(r.battery * 10))),
             stall, control, flags,
             round((math.degrees(r.th) % 360) / 2) % 180,
         )
-        ranges = r.sonar() if r.sonar_on else []
-        body += bytes([len(ranges)])
-        for i, rng in enumerate(ranges):
-            body += struct.pack("<BH", i, min(0xFFFF, round(rng * 1000)))
-        body += struct.pack("<BBBBBHBhH", 0, 0, 0, 0, 0, round(r.battery * 10) & 0xFFFF, 0,
-                            max(-32768, min(32767, round(math.degrees(r.w) * 10))), 0)
+        if not r.sonar_on:
+            readings: dict[int, float] = {}
+        elif c.sonar_cycle > 0:
+            readings, self._fired = self._fired, {}
+        else:
+            readings = {i: rng for i, rng in enumerate(r.sonar()) if rng is not None}
+        body += bytes([len(readings)])
+        for num in sorted(readings):
+            body += struct.pack("<BH", num, min(0xFFFF, round(readings[num] * 1000 / c.range_conv)))
+        body += struct.pack("<BBBBBHBhHhbB", 0, 0, 0, 0, 0, round(r.battery * 10) & 0xFFFF, 0,
+                            max(-32768, min(32767, round(math.degrees(r.w) * 10))), 0, 0, -127,
+                            round(r.state_of_charge * 100))
         return body

@@ -100,7 +100,9 @@ class RobotHost:
             self._sel.register(lst, selectors.EVENT_READ, ("listen", ep))
         else:
             raise UsageError("a robot needs a TCP port (0 for any) or pty=True")
+        ep.firmware.label = f"{config.name} ({ep.url})"
         self.endpoints.append(ep)
+        log.debug("robot %s (%s %s) serves %s", config.name, config.robot_class, config.subclass, ep.url)
         return robot
 
     def _others_of(self, robot: SimRobot) -> Callable[[], list[tuple[tuple[float, float], float]]]:
@@ -184,10 +186,12 @@ class RobotHost:
     def _accept(self, ep: _Endpoint) -> None:
         assert ep.listener is not None
         try:
-            conn, _ = ep.listener.accept()
+            conn, peer = ep.listener.accept()
         except OSError:
             return
+        log.debug("%s: client %s:%d connected", ep.firmware.label, *peer[:2])
         if ep.conn is not None:
+            log.debug("%s: the previous client is dropped for the new one", ep.firmware.label)
             self._drop(ep)
         conn.setblocking(False)
         conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
@@ -197,6 +201,8 @@ class RobotHost:
 
     def _drop(self, ep: _Endpoint) -> None:
         if ep.conn is not None:
+            log.debug("%s: client disconnected (%d packets, %d bad, %d unknown commands, %d SIPs sent)",
+                      ep.firmware.label, *(ep.firmware.counts[k] for k in ("packets", "bad", "unknown", "sips")))
             self._sel.unregister(ep.conn)
             ep.conn.close()
             ep.conn = None

@@ -22,9 +22,13 @@ def register(sub: Any) -> None:
     p.add_argument("--robots", type=int, default=1, help="how many robots (default 1)")
     p.add_argument("--pty", action="store_true", help="serve each robot on a pty and print its path")
     p.add_argument("--world", help="world file (TOML: walls, circles, polygons, robot start poses)")
-    p.add_argument("--model", choices=["pioneer3", "amigobot"], default="pioneer3",
-                   help="robot model (conversion factors, body, sonar ring)")
+    p.add_argument("--model", default="p3dx-sh", metavar="MODEL",
+                   help="robot model, as the subtype ARIA knows: p3dx-sh (default), p3at-sh, amigo, amigo-sh, "
+                        "peoplebot-sh, powerbot-sh, p3dx, ...; pioneer3 and amigobot are aliases")
     p.add_argument("--sip-period", type=float, default=0.1, help="seconds between SIPs (default 0.1)")
+    p.add_argument("--sonar-cycle", type=float, default=0.04,
+                   help="seconds between firings in each bank of 8 sonar, as real firmware (default 0.04); "
+                        "0 puts every reading in every SIP")
     p.add_argument("--watchdog", type=float, default=2.0, help="stop after this long without commands (s)")
     p.add_argument("--physics-hz", type=float, default=100.0, help="physics steps per second")
     p.add_argument("--log-level", choices=["DEBUG", "INFO", "WARNING", "ERROR"], default="INFO")
@@ -33,6 +37,7 @@ def register(sub: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Start the robots, print where they listen, serve until SIGINT or SIGTERM."""
+    from erni.plugins.motion.robots import MODELS, lookup
     from erni.sim.robot import SimRobotConfig
     from erni.sim.robot_host import RobotHost
     from erni.sim.world import World, WorldError
@@ -45,6 +50,12 @@ def run(args: argparse.Namespace) -> int:
         problems.append(f"--port: expected 0..{65536 - args.robots}, got {args.port}")
     if args.sip_period <= 0 or args.watchdog <= 0 or args.physics_hz <= 0:
         problems.append("--sip-period, --watchdog and --physics-hz: expected positive numbers")
+    if args.sonar_cycle < 0:
+        problems.append(f"--sonar-cycle: expected seconds >= 0, got {args.sonar_cycle}")
+    model = lookup(args.model)
+    if model is None:
+        problems.append(f"--model: unknown robot model {args.model!r}; expected one of {', '.join(MODELS)} "
+                        "(or pioneer3, amigobot)")
     if problems:
         print("erni robot-sim: " + "; ".join(problems), file=sys.stderr)
         return 2
@@ -58,8 +69,9 @@ def run(args: argparse.Namespace) -> int:
         for i in range(args.robots):
             start = world.start_pose(i)
             name = start.name or f"robot{i + 1}"
-            kw = dict(name=name, sip_period=args.sip_period, watchdog=args.watchdog)
-            cfg = SimRobotConfig.amigobot(**kw) if args.model == "amigobot" else SimRobotConfig(**kw)
+            assert model is not None
+            cfg = SimRobotConfig.for_model(model.name, name=name, sip_period=args.sip_period,
+                                           watchdog=args.watchdog, sonar_cycle=args.sonar_cycle)
             port = None if args.pty else (args.port + i if args.port else 0)
             host.add_robot(cfg, port=port, pty=args.pty)
     except OSError as err:
@@ -75,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         host.start()
         for i, robot in enumerate(host.robots):
-            print(f"{robot.config.name}: {host.url(i)}  ({args.model}, world {world.name!r}, "
+            print(f"{robot.config.name}: {host.url(i)}  ({robot.config.subclass}, world {world.name!r}, "
                   f"start {robot.x:.2f} {robot.y:.2f})", flush=True)
         while not stop.wait(0.5):
             pass

@@ -3,9 +3,10 @@
 from erni.plugins.motion.driver import ArcosDriver, LinkError, RobotInfo, RobotState
 from erni.plugins.motion.plugin import MotionSettings, RobotMotionControl, pose_of
 from erni.plugins.motion.resource import RobotMotionResource, TaskUpdate
-from erni.plugins.motion.robots import MODELS, RobotModel, resolve_model
+from erni.plugins.motion.robots import MODELS, ModelSpec, RobotModel, lookup, model_spec, resolve_model
 
 __all__ = [
-    "ArcosDriver", "LinkError", "MODELS", "MotionSettings", "RobotInfo", "RobotModel",
-    "RobotMotionControl", "RobotMotionResource", "RobotState", "TaskUpdate", "pose_of", "resolve_model",
+    "ArcosDriver", "LinkError", "MODELS", "ModelSpec", "MotionSettings", "RobotInfo", "RobotModel",
+    "RobotMotionControl", "RobotMotionResource", "RobotState", "TaskUpdate", "lookup", "model_spec", "pose_of",
+    "resolve_model",
 ]

@@ -2,8 +2,11 @@
 
 Sans-I/O: `encode_command` turns a command into bytes, `PacketReader` turns any byte stream
 (line noise included) into checksummed packets and counts what it had to skip, and
-`parse_sip` decodes a server information packet into raw integer fields. Unit conversion
-(mm, rad, m/s) lives in the driver with the robot model's conversion factors.
+`parse_sip` decodes a server information packet into raw integer fields; `parse_config`,
+`parse_simstat` and `parse_battery_info` decode the CONFIG (0x20), SIMSTAT (0x62) and battery
+(0xFA) replies. Unit conversion (mm, rad, m/s) of what the robot reports lives in the driver
+with the robot model's conversion factors; commands are never converted (VEL is mm/s, MOVE is
+mm, HEAD is degrees on every ARCOS robot and simulator).
 """
 
 from __future__ import annotations
@@ -44,22 +47,34 @@ class Cmd(enum.IntEnum):
     DHEAD = 13
     SAY = 15
     CONFIG = 18
+    ENCODER = 19
     RVEL = 21
     SETRA = 23
     SONAR = 28
     STOP = 29
     DIGOUT = 30
     VEL2 = 32
+    IOREQUEST = 40
     BUMPSTALL = 44
     HOSTBAUD = 50
     ESTOP = 55
+    BATTERYINFO = 62
     SIM_SET_POSE = 224
     SIM_RESET = 225
+    SIM_CTRL = 236
+    SIM_STAT = 237
+    SIM_MESSAGE = 238
+    SIM_EXIT = 239
 
 
 SIP_STOPPED = 0x32
 SIP_MOVING = 0x33
 CONFIG_REPLY = 0x20
+SIMSTAT_REPLY = 0x62
+BATTERY_REPLY = 0xFA
+
+BAUD_CODES = {9600: 0, 19200: 1, 38400: 2, 57600: 3, 115200: 4}
+"""HOSTBAUD argument (and CONFIG's HostBaud field) for each serial rate."""
 
 
 class ProtocolError(ErniError, ValueError):
@@ -119,8 +134,29 @@ def encode_command(cmd: int, arg: int | bytes | str | None = None) -> bytes:
 
 
 def encode_ints(cmd: int, *values: int) -> bytes:
-    """Return a packet carrying several integer arguments (SIM_SET_POSE: x, y, th)."""
+    """Return a packet carrying several typed integer arguments."""
     return frame(bytes([int(cmd)]) + b"".join(int_arg(v) for v in values))
+
+
+def encode_sim_set_pose(x_mm: int, y_mm: int, th_deg: int) -> bytes:
+    """SIM_SET_POSE as MobileSim, AMRISim and ARIA's ArSimUtil put it on the wire.
+
+    One argument-type byte (0, ignored by the simulators) and three signed 32-bit little-endian
+    integers: x (mm), y (mm), heading (deg). The simulator moves the robot's true pose there;
+    its odometry is left alone.
+    """
+    for label, value in (("x", x_mm), ("y", y_mm), ("heading", th_deg)):
+        if not -0x80000000 <= int(value) <= 0x7FFFFFFF:
+            raise ProtocolError(f"SIM_SET_POSE {label} {value} out of range; expected a 32-bit integer")
+    return frame(bytes([Cmd.SIM_SET_POSE, 0]) + struct.pack("<iii", int(x_mm), int(y_mm), int(th_deg)))
+
+
+def decode_sim_set_pose(body: bytes) -> tuple[int, int, int]:
+    """The (x mm, y mm, heading deg) of a SIM_SET_POSE body; raise ProtocolError if it is short."""
+    if len(body) < 14 or body[0] != Cmd.SIM_SET_POSE:
+        raise ProtocolError(f"SIM_SET_POSE body of {len(body)} bytes; expected the ID, a type byte and 12 bytes")
+    x, y, th = struct.unpack_from("<iii", body, 2)
+    return x, y, th
 
 
 def decode_args(body: bytes) -> list[int | bytes]:
@@ -235,6 +271,9 @@ class RawSip:
     charge_stage: int | None = None
     rotvel: int | None = None
     fault_flags: int | None = None
+    lat_vel: int | None = None
+    temperature: int | None = None
+    state_of_charge: int | None = None
 
     @property
     def stall_left(self) -> bool:
@@ -259,7 +298,8 @@ class RawSip:
 
 _SIP_HEAD = struct.Struct("<HHhhhBHhHB")  # xpos ypos thpos lvel rvel battery stallbump control flags compass
 _TAIL = [("grip", "B"), ("anport", "B"), ("analog", "B"), ("digin", "B"), ("digout", "B"),
-         ("battery_x10", "H"), ("charge_stage", "B"), ("rotvel", "h"), ("fault_flags", "H")]
+         ("battery_x10", "H"), ("charge_stage", "B"), ("rotvel", "h"), ("fault_flags", "H"), ("lat_vel", "h"),
+         ("temperature", "b"), ("state_of_charge", "B")]
 
 
 def is_sip(body: bytes) -> bool:
@@ -305,3 +345,184 @@ def parse_sync2(body: bytes) -> tuple[str, str, str]:
     while len(names) < 3:
         names.append("")
     return names[0], names[1], names[2]
+
+
+class _Cursor:
+    """Reads the fields of a server packet in order; `None` once the packet has run out."""
+
+    def __init__(self, body: bytes) -> None:
+        self.body, self.i = body, 1
+
+    def take(self, fmt: str) -> int | str | None:
+        if fmt == "z":  # a NUL-terminated string
+            if self.i >= len(self.body):
+                return None
+            end = self.body.find(b"\x00", self.i)
+            end = len(self.body) if end < 0 else end
+            text = bytes(self.body[self.i:end]).decode("latin-1")
+            self.i = end + 1
+            return text
+        size = struct.calcsize(fmt)
+        if self.i + size > len(self.body):
+            return None
+        (value,) = struct.unpack_from("<" + fmt, self.body, self.i)
+        self.i += size
+        return int(value)
+
+
+CONFIG_FIELDS: tuple[tuple[str, str], ...] = (
+    ("robot_class", "z"), ("subclass", "z"), ("serial", "z"), ("four_mots", "B"), ("rot_vel_top", "H"),
+    ("trans_vel_top", "H"), ("rot_accel_top", "H"), ("trans_accel_top", "H"), ("pwm_max", "H"), ("name", "z"),
+    ("sip_cycle", "B"), ("host_baud", "B"), ("aux1_baud", "B"), ("has_gripper", "H"), ("front_sonar", "H"),
+    ("rear_sonar", "B"), ("low_battery", "H"), ("rev_count", "H"), ("watchdog", "H"), ("normal_mpacs", "B"),
+    ("stall_val", "H"), ("stall_count", "H"), ("joy_vel", "H"), ("joy_rot_vel", "H"), ("rot_vel_max", "H"),
+    ("trans_vel_max", "H"), ("rot_accel", "H"), ("rot_decel", "H"), ("rot_kp", "H"), ("rot_kv", "H"),
+    ("rot_ki", "H"), ("trans_accel", "H"), ("trans_decel", "H"), ("trans_kp", "H"), ("trans_kv", "H"),
+    ("trans_ki", "H"), ("front_bumps", "B"), ("rear_bumps", "B"), ("has_charger", "B"), ("sonar_cycle", "B"),
+    ("autobaud", "B"), ("has_gyro", "B"), ("drift_factor", "h"), ("aux2_baud", "B"), ("aux3_baud", "B"),
+    ("ticks_mm", "H"), ("shutdown_volts", "H"), ("firmware", "z"), ("gyro_cw", "H"), ("gyro_ccw", "H"),
+    ("kinematics_delay", "B"), ("lat_vel_top", "H"), ("lat_accel_top", "H"), ("lat_vel_max", "H"),
+    ("lat_accel", "H"), ("lat_decel", "H"), ("charge_threshold", "H"),
+)
+"""The CONFIG reply (ID 0x20) in wire order: strings NUL-terminated, integers little-endian, speeds in
+mm/s and deg/s, accelerations in mm/s^2 and deg/s^2, SipCycle and Watchdog in ms, HostBaud a
+HOSTBAUD code. Later firmware appends more; what a robot leaves off stays unknown."""
+
+
+@dataclass
+class RobotConfig:
+    """A decoded CONFIG reply; fields the robot did not send are None."""
+
+    robot_class: str | None = None
+    subclass: str | None = None
+    serial: str | None = None
+    four_mots: int | None = None
+    rot_vel_top: int | None = None
+    trans_vel_top: int | None = None
+    rot_accel_top: int | None = None
+    trans_accel_top: int | None = None
+    pwm_max: int | None = None
+    name: str | None = None
+    sip_cycle: int | None = None
+    host_baud: int | None = None
+    aux1_baud: int | None = None
+    has_gripper: int | None = None
+    front_sonar: int | None = None
+    rear_sonar: int | None = None
+    low_battery: int | None = None
+    rev_count: int | None = None
+    watchdog: int | None = None
+    normal_mpacs: int | None = None
+    stall_val: int | None = None
+    stall_count: int | None = None
+    joy_vel: int | None = None
+    joy_rot_vel: int | None = None
+    rot_vel_max: int | None = None
+    trans_vel_max: int | None = None
+    rot_accel: int | None = None
+    rot_decel: int | None = None
+    rot_kp: int | None = None
+    rot_kv: int | None = None
+    rot_ki: int | None = None
+    trans_accel: int | None = None
+    trans_decel: int | None = None
+    trans_kp: int | None = None
+    trans_kv: int | None = None
+    trans_ki: int | None = None
+    front_bumps: int | None = None
+    rear_bumps: int | None = None
+    has_charger: int | None = None
+    sonar_cycle: int | None = None
+    autobaud: int | None = None
+    has_gyro: int | None = None
+    drift_factor: int | None = None
+    aux2_baud: int | None = None
+    aux3_baud: int | None = None
+    ticks_mm: int | None = None
+    shutdown_volts: int | None = None
+    firmware: str | None = None
+    gyro_cw: int | None = None
+    gyro_ccw: int | None = None
+    kinematics_delay: int | None = None
+    lat_vel_top: int | None = None
+    lat_accel_top: int | None = None
+    lat_vel_max: int | None = None
+    lat_accel: int | None = None
+    lat_decel: int | None = None
+    charge_threshold: int | None = None
+
+    @property
+    def simulator(self) -> bool:
+        """MobileSim, AMRISim and ERNI's simulator give the serial number `SIM`."""
+        return self.serial == "SIM"
+
+    @property
+    def can_switch_baud(self) -> bool:
+        """The firmware accepts HOSTBAUD (AutoBaud = 2)."""
+        return self.autobaud == 2
+
+
+def parse_config(body: bytes) -> RobotConfig:
+    """Decode a CONFIG reply body (ID 0x20 first); raise ProtocolError if it is not one."""
+    if not body or body[0] != CONFIG_REPLY:
+        raise ProtocolError(f"packet ID 0x{body[0] if body else 0:02X} is not a CONFIG reply; expected 0x20")
+    cursor = _Cursor(body)
+    config = RobotConfig()
+    for name, fmt in CONFIG_FIELDS:
+        value = cursor.take(fmt)
+        if value is None:
+            break
+        setattr(config, name, value)
+    if config.robot_class is None or config.serial is None:
+        raise ProtocolError(f"CONFIG reply of {len(body)} bytes truncated; expected at least class, subclass "
+                            "and serial number")
+    return config
+
+
+@dataclass(frozen=True)
+class SimStat:
+    """A simulator's SIMSTAT reply (ID 0x62): the robot's true pose and the simulation's timing."""
+
+    flags: int
+    sim_interval: int  # ms of simulated time per update
+    real_interval: int  # ms of real time per update
+    last_interval: int  # ms the last update took
+    x: int  # true pose: mm, mm, mm, deg
+    y: int
+    z: int
+    th: int
+
+
+def parse_simstat(body: bytes) -> SimStat:
+    """Decode a SIMSTAT body: two (empty) strings, flags u32, three u16 intervals, x y z th i32."""
+    if not body or body[0] != SIMSTAT_REPLY:
+        raise ProtocolError(f"packet ID 0x{body[0] if body else 0:02X} is not SIMSTAT; expected 0x62")
+    cursor = _Cursor(body)
+    cursor.take("z")
+    cursor.take("z")
+    values = [cursor.take(f) for f in ("I", "H", "H", "H", "i", "i", "i", "i")]
+    if any(v is None for v in values):
+        raise ProtocolError(f"SIMSTAT of {len(body)} bytes truncated; expected flags, timing and the true pose")
+    return SimStat(*(int(v) for v in values if v is not None))
+
+
+@dataclass(frozen=True)
+class BatteryInfo:
+    """A BATTERYINFO reply (ID 0xFA): per battery, flag bytes and states of charge (%)."""
+
+    batteries: tuple[tuple[int, ...], ...]
+
+    @property
+    def relative_soc(self) -> list[int]:
+        """Relative state of charge (%) of each battery that reports one (the 4th byte)."""
+        return [b[3] for b in self.batteries if len(b) > 3]
+
+
+def parse_battery_info(body: bytes) -> BatteryInfo:
+    """Decode a BATTERYINFO body: battery count, bytes per battery, then the bytes of each battery."""
+    if len(body) < 3 or body[0] != BATTERY_REPLY:
+        raise ProtocolError("not a BATTERYINFO reply; expected ID 0xFA, a count and a size")
+    count, size = body[1], body[2]
+    if len(body) < 3 + count * size:
+        raise ProtocolError(f"BATTERYINFO announces {count} batteries of {size} bytes but has {len(body) - 3}")
+    return BatteryInfo(tuple(tuple(body[3 + i * size:3 + (i + 1) * size]) for i in range(count)))

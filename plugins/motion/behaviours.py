@@ -46,38 +46,65 @@ STOP = Command()
 
 @dataclass
 class Context:
-    """What behaviours see in one cycle."""
+    """What behaviours see in one cycle.
+
+    `lead` is how far ahead of the state a command sent now acts: the SIP's age plus the
+    robot's reaction time. Behaviours that must stop on a mark plan from `predicted()`, the
+    pose extrapolated over the lead, so the robot ends on the mark after it has stopped.
+    """
 
     state: RobotState
     now: float
     model: RobotModel
     below: Callable[[], Command | None] = lambda: None
+    lead: float = 0.0
+
+    def predicted(self) -> tuple[float, float, float]:
+        """The pose (x, y, theta) the robot will have when a command sent now starts to act."""
+        s, t = self.state, self.lead
+        th = s.theta + s.w * t / 2  # mid-point heading of the arc
+        return s.x + s.v * t * math.cos(th), s.y + s.v * t * math.sin(th), s.theta + s.w * t
+
+    def stopped(self) -> bool:
+        """The robot reports no translation or rotation."""
+        return abs(self.state.v) < 0.005 and abs(self.state.w) < math.radians(1.0)
+
+    def echoes(self) -> list[tuple[float, float, float]]:
+        """Each sonar echo as (x, y) in the robot's frame (m, ahead and left) and the transducer's bearing."""
+        out = []
+        sonar = self.model.sonar
+        for num, rng in self.state.sonar.items():
+            pose = sonar[num] if 0 <= num < len(sonar) else None
+            if pose is None:
+                continue
+            sx, sy, deg = pose
+            a = math.radians(deg)
+            out.append((sx + rng * math.cos(a), sy + rng * math.sin(a), deg))
+        return out
 
     def path_clearance(self, direction: int, corridor: float | None = None) -> float:
         """Return the free distance (m) ahead (direction 1) or behind (-1) within the body's corridor."""
         r = self.model.radius
         half = (corridor if corridor is not None else r + 0.05)
         best = math.inf
-        for num, rng in self.state.sonar.items():
-            if num >= len(self.model.sonar_angles):
-                continue
-            a = math.radians(self.model.sonar_angles[num])
-            px, py = (r + rng) * math.cos(a), (r + rng) * math.sin(a)
+        for px, py, _ in self.echoes():
             ahead = px * direction
             if ahead > 0 and abs(py) <= half:
-                best = min(best, ahead - r)
+                best = min(best, max(0.0, ahead - r))
         return best
 
     def side_space(self) -> float:
         """Return free space on the left minus on the right (m), to choose a way out."""
         left = right = 0.0
         for num, rng in self.state.sonar.items():
-            if num < len(self.model.sonar_angles):
-                a = self.model.sonar_angles[num]
-                if 0 < a < 180:
-                    left += min(rng, 3.0) * math.sin(math.radians(a))
-                elif -180 < a < 0:
-                    right += min(rng, 3.0) * -math.sin(math.radians(a))
+            pose = self.model.sonar[num] if 0 <= num < len(self.model.sonar) else None
+            if pose is None:
+                continue
+            a = pose[2]
+            if 0 < a < 180:
+                left += min(rng, 3.0) * math.sin(math.radians(a))
+            elif -180 < a < 0:
+                right += min(rng, 3.0) * -math.sin(math.radians(a))
         return left - right
 
 
@@ -199,29 +226,59 @@ class Stop(Behaviour):
 
 
 class Teleport(Behaviour):
-    """Set the pose once, then wait until the robot reports it."""
+    """Set the pose once, then confirm it.
+
+    The resource performs the teleport and tells the behaviour how (`performed`): on a
+    simulator with SIM_SET_POSE, which succeeds once the SIPs and the simulator's SIMSTAT both
+    put the robot at the target (a simulator that sends no SIMSTAT within `confirm` seconds is
+    taken at its SIPs' word); on a real robot by re-localising odometry only, which says so.
+    """
 
     priority = 3
     kind = "teleport"
 
-    def __init__(self, params: TeleportParams, task_uid: str | None = None, timeout: float = 3.0) -> None:
+    def __init__(self, params: TeleportParams, task_uid: str | None = None, timeout: float = 3.0,
+                 confirm: float = 1.0) -> None:
         super().__init__(task_uid, timeout)
         self.target = (params.x, params.y, params.heading)
+        self.confirm = confirm
         self.sent = False
+        self.mode: str | None = None
+        self.sent_at = math.inf
+
+    def performed(self, mode: str, now: float) -> None:
+        """The resource moved the robot (`sim`) or re-localised its odometry (`odometry`) at `now`."""
+        self.mode, self.sent_at = mode, now
+
+    def _near(self, x: float, y: float, theta: float) -> bool:
+        tx, ty, hdg = self.target
+        return math.hypot(x - tx, y - ty) < 0.05 and abs(wrap(theta - math.radians(hdg))) < math.radians(3)
 
     def propose(self, ctx: Context) -> Command | None:
         if not self.sent:
             self.sent = True
             return Command(teleport=self.target)
         s = ctx.state
-        x, y, hdg = self.target
-        if math.hypot(s.x - x, s.y - y) < 0.05 and abs(wrap(s.theta - math.radians(hdg))) < math.radians(3):
-            self.succeed("pose set", x=s.x, y=s.y, heading=math.degrees(s.theta))
+        if self.mode == "odometry":
+            self.succeed("odometry re-localised: this robot cannot be moved by software, its pose now reads "
+                         "the target", x=s.x, y=s.y, heading=math.degrees(s.theta), moved=False)
+        elif self.mode == "sim" and self._near(s.x, s.y, s.theta):
+            true = s.sim_pose if s.sim_stamp >= self.sent_at else None
+            if true is not None and self._near(*true):
+                self.succeed("pose set; the simulator reports the robot there", x=s.x, y=s.y,
+                             heading=math.degrees(s.theta), moved=True)
+            elif true is None and ctx.now - self.sent_at > self.confirm:
+                self.succeed("pose set (the simulator sent no SIMSTAT to confirm it)", x=s.x, y=s.y,
+                             heading=math.degrees(s.theta), moved=True)
         return STOP
 
     def check(self, ctx: Context) -> None:
         if self.timeout is not None and self.started is not None and ctx.now - self.started > self.timeout:
-            self.fail(f"timed out after {self.timeout:g} s: the robot did not report the new pose")
+            s = ctx.state
+            true = s.sim_pose if s.sim_stamp >= self.sent_at else None
+            where = f"; the simulator reports it at ({true[0]:.2f}, {true[1]:.2f}, " \
+                    f"{math.degrees(true[2]):.0f} deg)" if true else ""
+            self.fail(f"timed out after {self.timeout:g} s: the robot did not reach the new pose{where}")
 
 
 class AvoidObstacles(Behaviour):
@@ -245,15 +302,56 @@ class AvoidObstacles(Behaviour):
             return None
         free = ctx.path_clearance(1 if wanted.v > 0 else -1)
         v = abs(ctx.state.v)
-        if free >= self.distance + v * v / (2 * ctx.model.decel) + 0.1 * v:
+        if free >= self.distance + v * v / (2 * ctx.model.limit("decel")) + (0.1 + ctx.lead) * v:
             return None
         self.fired += 1
         self.report(obstacle=round(free, 2), overrides=self.fired)
         return Command(0.0, wanted.w)
 
 
-class GoTo(Behaviour):
-    """Drive to (x, y): turn towards the goal, then drive, slowing down near it."""
+STRAIGHT_TOLERANCE = 0.02
+"""How far (m) from the requested distance a forward or backward may end, measured once stopped."""
+
+
+class _Settling(Behaviour):
+    """A behaviour that brakes onto a mark, waits until the robot has stopped, then checks the error.
+
+    Phase `drive` plans from the predicted pose (`Context.predicted`), so latency does not carry
+    the robot past the mark; when the prediction reaches the mark the behaviour asks for a halt
+    (`settle`). Once the robot reports standing still, the error is measured: inside the
+    tolerance the task succeeds, otherwise it drives again to correct, from a standstill.
+    """
+
+    def __init__(self, task_uid: str | None, timeout: float | None) -> None:
+        super().__init__(task_uid, timeout)
+        self.phase = "drive"
+        self.settle_seq = -1
+        self.corrections = 0
+        self.sign = 0.0  # which way this drive goes to the mark, set when it starts
+
+    def passed(self, ahead: float, left: float, aim: float) -> bool:
+        """The (predicted) position is on the mark, or beyond it, seen from where this drive started."""
+        if not self.sign:
+            self.sign = 1.0 if left >= 0 else -1.0
+        return ahead * self.sign <= aim
+
+    def settle(self, ctx: Context) -> Command:
+        self.phase = "settle"
+        self.settle_seq = ctx.state.seq
+        return STOP
+
+    def settled(self, ctx: Context) -> bool:
+        """The robot has stopped, seen in a SIP that came after the halt was asked for."""
+        return ctx.state.seq > self.settle_seq and ctx.stopped()
+
+    def redrive(self) -> None:
+        self.phase = "drive"
+        self.sign = 0.0
+        self.corrections += 1
+
+
+class GoTo(_Settling):
+    """Drive to (x, y): turn towards the goal, then drive, braking to stop inside the tolerance."""
 
     kind = "goto"
 
@@ -268,21 +366,30 @@ class GoTo(Behaviour):
 
     def propose(self, ctx: Context) -> Command | None:
         s = ctx.state
-        dx, dy = self.p.x - s.x, self.p.y - s.y
-        dist = math.hypot(dx, dy)
-        if dist <= self.p.tolerance:
-            self.succeed("arrived", distance_remaining=round(dist, 3))
-            return STOP
-        err = wrap(math.atan2(dy, dx) - s.theta)
-        w = clip(math.degrees(2.5 * err), ctx.model.max_rv)
+        dist = math.hypot(self.p.x - s.x, self.p.y - s.y)
+        self.report(1.0 - dist / self.initial, distance_remaining=round(dist, 3))
+        if self.phase == "settle":
+            if not self.settled(ctx):
+                return STOP
+            if dist <= self.p.tolerance:
+                self.succeed("arrived", distance_remaining=round(dist, 3), corrections=self.corrections)
+                return STOP
+            self.redrive()
+        px, py, pth = ctx.predicted()
+        dx, dy = self.p.x - px, self.p.y - py
+        ahead = math.hypot(dx, dy)
+        aim = self.p.tolerance / 2  # stop well inside the tolerance, not on its edge
+        if ahead <= aim or (dist <= self.p.tolerance and ctx.stopped()):
+            return self.settle(ctx)
+        err = wrap(math.atan2(dy, dx) - pth)
+        w = clip(math.degrees(2.5 * err), ctx.model.limit("max_rv"))
         v = 0.0
         if abs(err) < math.radians(60):
-            v = min(self.p.speed, ctx.model.max_v, _brake(dist, ctx.model.decel)) * math.cos(err)
-        self.report(1.0 - dist / self.initial, distance_remaining=round(dist, 3))
+            v = min(self.p.speed, ctx.model.limit("max_v"), _brake(ahead - aim, ctx.model.limit("decel"))) * math.cos(err)
         return Command(v, w)
 
 
-class Turn(Behaviour):
+class Turn(_Settling):
     """Turn in place by a relative angle, counting the rotation actually made."""
 
     kind = "turn"
@@ -304,18 +411,26 @@ class Turn(Behaviour):
         self.turned += math.degrees(wrap(th - self.last))
         self.last = th
         left = self.p.angle - self.turned
-        if abs(left) <= self.p.tolerance:
-            if abs(math.degrees(ctx.state.w)) < 3.0:  # settled inside the band
-                self.succeed("turned", angle_remaining=round(left, 2), turned=round(self.turned, 2))
-            return STOP
-        aim = abs(left) - self.p.tolerance / 2  # brake to stop inside the band, not at its edge
-        rate = min(self.p.rate, ctx.model.max_rv, max(4.0, _brake(aim, ctx.model.rot_decel, 0.0)))
         self.report(self.turned / self.p.angle if self.p.angle else 1.0, angle_remaining=round(left, 1))
-        return Command(0.0, math.copysign(rate, left))
+        if self.phase == "settle":
+            if not self.settled(ctx):
+                return STOP
+            if abs(left) <= self.p.tolerance:
+                self.succeed("turned", angle_remaining=round(left, 2), turned=round(self.turned, 2),
+                             corrections=self.corrections)
+                return STOP
+            self.redrive()
+        ahead = left - math.degrees(ctx.state.w) * ctx.lead
+        aim = self.p.tolerance / 2
+        if self.passed(ahead, left, aim):
+            return self.settle(ctx)
+        rate = min(self.p.rate, ctx.model.limit("max_rv"),
+                   max(3.0, _brake(abs(ahead) - aim, ctx.model.limit("rot_decel"), 0.0)))
+        return Command(0.0, math.copysign(rate, ahead))
 
 
-class Straight(Behaviour):
-    """Drive a distance forward (or backward), holding the starting heading."""
+class Straight(_Settling):
+    """Drive a distance forward (or backward), holding the starting heading, ending within 2 cm."""
 
     def __init__(self, params: DistanceParams, direction: int, task_uid: str | None = None,
                  timeout: float | None = None) -> None:
@@ -329,18 +444,31 @@ class Straight(Behaviour):
         super().begin(ctx)
         self.origin = (ctx.state.x, ctx.state.y, ctx.state.theta)
 
+    def _along(self, x: float, y: float) -> float:
+        x0, y0, th0 = self.origin
+        return ((x - x0) * math.cos(th0) + (y - y0) * math.sin(th0)) * self.direction
+
     def propose(self, ctx: Context) -> Command | None:
         s = ctx.state
-        x0, y0, th0 = self.origin
-        along = ((s.x - x0) * math.cos(th0) + (s.y - y0) * math.sin(th0)) * self.direction
+        along = self._along(s.x, s.y)
         left = self.p.distance - along
-        if left <= 0.01:
-            self.succeed("distance covered", travelled=round(along, 3), distance_remaining=0.0)
-            return STOP
-        v = min(self.p.speed, ctx.model.max_v, _brake(left, ctx.model.decel)) * self.direction
-        w = clip(math.degrees(2.0 * wrap(th0 - s.theta)), 30.0)
         self.report(along / self.p.distance, distance_remaining=round(left, 3))
-        return Command(v, w)
+        if self.phase == "settle":
+            if not self.settled(ctx):
+                return STOP
+            if abs(left) <= STRAIGHT_TOLERANCE:
+                self.succeed("distance covered", travelled=round(along, 3), distance_remaining=round(left, 3),
+                             corrections=self.corrections)
+                return STOP
+            self.redrive()
+        px, py, _ = ctx.predicted()
+        ahead = self.p.distance - self._along(px, py)
+        aim = STRAIGHT_TOLERANCE / 4
+        if self.passed(ahead, left, aim):
+            return self.settle(ctx)
+        speed = min(self.p.speed, ctx.model.limit("max_v"), _brake(abs(ahead) - aim, ctx.model.limit("decel")))
+        w = clip(math.degrees(2.0 * wrap(self.origin[2] - s.theta)), 30.0)
+        return Command(math.copysign(speed, ahead) * self.direction, w)
 
 
 class Velocity(Behaviour):
@@ -391,7 +519,7 @@ class RandomWalk(Behaviour):
             return STOP
         self.report(elapsed / self.p.duration if self.p.duration else 0.0, travelled=round(self.travelled, 1))
         free = ctx.path_clearance(1)
-        rate = min(60.0, ctx.model.max_rv)
+        rate = min(60.0, ctx.model.limit("max_rv"))
         if self.escape:
             if free > self.turn_distance * 1.3:
                 self.escape = 0.0
@@ -404,7 +532,7 @@ class RandomWalk(Behaviour):
         if ctx.now >= self.next_wander:
             self.wander = self.rng.uniform(-25.0, 25.0)
             self.next_wander = ctx.now + self.rng.uniform(1.0, 3.0)
-        return Command(min(self.p.speed, ctx.model.max_v), self.wander)
+        return Command(min(self.p.speed, ctx.model.limit("max_v")), self.wander)
 
 
 @dataclass
@@ -450,10 +578,10 @@ class BehaviourStack:
         self.items = [b for b in self.items if keep(b)]
         return gone
 
-    def cycle(self, state: RobotState, now: float, model: RobotModel) -> CycleResult:
+    def cycle(self, state: RobotState, now: float, model: RobotModel, lead: float = 0.0) -> CycleResult:
         """Run one control cycle: check every behaviour, let the first that fires drive."""
         order = self.ordered()
-        base = Context(state, now, model)
+        base = Context(state, now, model, lead=lead)
         for b in order:
             if b.started is None:
                 b.begin(base)
@@ -466,7 +594,7 @@ class BehaviourStack:
                 if i >= len(order):
                     cache[i] = (None, None)
                 else:
-                    ctx = Context(state, now, model, below=lambda: first_from(i + 1)[1])
+                    ctx = Context(state, now, model, below=lambda: first_from(i + 1)[1], lead=lead)
                     cmd = order[i].propose(ctx)
                     cache[i] = (i, cmd) if cmd is not None else first_from(i + 1)
             return cache[i]

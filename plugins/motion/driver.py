@@ -2,9 +2,12 @@
 
 `ArcosDriver(url, model)` opens `/dev/ttyUSB0`, `socket://host:8101` (MobileSim, AMRISim, the
 built-in simulator) or any other pyserial URL. One thread, `arcos-<name>`, owns the port: it
-connects (SYNC0/1/2 with retries, OPEN, ENABLE), turns bytes into packets and SIPs into
-`RobotState` (SI units, 15-bit positions unwrapped), sends PULSE when the link is idle, and
-reconnects when the link drops. Commands may be sent from any thread.
+connects as ARIA does (SYNC0/1/2 with retries; the model from the SYNC2 subtype; OPEN; CONFIG,
+whose reply gives firmware, serial number, top speeds and current accelerations; HOSTBAUD to
+38400 on a serial line when the firmware allows it; ENABLE; SETV/SETRV/SETA/SETRA so the robot
+brakes as the planner assumes), turns bytes into packets and SIPs into `RobotState` (SI units,
+15-bit positions unwrapped), sends PULSE when the link is idle, and reconnects when the link
+drops. Commands may be sent from any thread.
 """
 
 from __future__ import annotations
@@ -14,16 +17,17 @@ import math
 import pkgutil
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 from importlib.metadata import entry_points
+from typing import Any
 
 import serial
 
 from erni.blackboard.errors import NetworkError
 from erni.plugins.motion import arcos
 from erni.plugins.motion.arcos import Cmd
-from erni.plugins.motion.robots import RobotModel
+from erni.plugins.motion.robots import DEFAULT_LIMITS, ModelSpec, RobotModel, model_spec
 
 log = logging.getLogger("erni.motion.driver")
 
@@ -91,6 +95,8 @@ class RobotState:
     sonar: dict[int, float]
     stamp: float
     seq: int
+    sim_pose: tuple[float, float, float] | None = None  # a simulator's true pose (m, m, rad), from SIMSTAT
+    sim_stamp: float = -math.inf  # when that SIMSTAT arrived
 
     @property
     def stalled(self) -> bool:
@@ -105,6 +111,7 @@ class DriverStats:
     sips: int = 0
     bad_sips: int = 0
     other_packets: int = 0
+    bad_packets: int = 0
     commands: int = 0
     dropped_commands: int = 0
     connects: int = 0
@@ -138,19 +145,27 @@ class _Unwrapper:
 
 
 class ArcosDriver:
-    """One ARCOS robot on one pyserial URL; thread-safe commands, callbacks from the reader thread."""
+    """One ARCOS robot on one pyserial URL; thread-safe commands, callbacks from the reader thread.
 
-    def __init__(self, url: str, model: RobotModel | None = None, *, name: str = "robot",
-                 baudrate: int = 9600, sync_timeout: float = 0.5, sync_attempts: int = 5,
+    `model` is 'auto' (the model the robot names in SYNC2), a model name, a table with a `base`
+    and overrides, or a RobotModel. After each handshake `model` is the model in use, its
+    planner limits filled in from the configuration, the robot's CONFIG reply and the ARCOS
+    defaults, and sent to the robot (SETV, SETRV, SETA, SETRA).
+    """
+
+    def __init__(self, url: str, model: str | Mapping[str, Any] | RobotModel | ModelSpec | None = None, *,
+                 name: str = "robot", baudrate: int = 9600, sync_timeout: float = 0.5, sync_attempts: int = 5,
                  pulse_interval: float = 0.5, link_timeout: float = 1.0, reconnect: bool = True,
-                 reconnect_delay: float = 0.5, enable_motors: bool = True,
+                 reconnect_delay: float = 0.5, enable_motors: bool = True, config_timeout: float = 1.0,
+                 switch_baud: bool = True, send_limits: bool = True,
                  on_sip: Callable[[RobotState], None] | None = None,
                  on_link: Callable[[bool, str], None] | None = None,
                  clock: Callable[[], float] = time.monotonic) -> None:
         if not url or not isinstance(url, str):
             raise LinkError(f"url: expected a serial device or pyserial URL, got {url!r}")
         self.url = url
-        self.model = model or RobotModel(name="pioneer3")
+        self.spec = model_spec(model if model is not None else "auto")
+        self.model = fill_limits(self.spec.resolve()[0], None)
         self.name = name
         self.baudrate = baudrate
         self.sync_timeout = sync_timeout
@@ -160,11 +175,18 @@ class ArcosDriver:
         self.reconnect = reconnect
         self.reconnect_delay = reconnect_delay
         self.enable_motors = enable_motors
+        self.config_timeout = config_timeout
+        self.switch_baud = switch_baud
+        self.send_limits = send_limits
         self.on_sip = on_sip
         self.on_link = on_link
         self.clock = clock
         self.info = RobotInfo()
+        self.robot_config: arcos.RobotConfig | None = None
+        self.battery_info: arcos.BatteryInfo | None = None
+        self.line_baud: int | None = None  # the serial rate in use on a serial line
         self.stats = DriverStats()
+        self.sip_interval = 0.1  # seconds between SIPs, averaged
         self._reader = arcos.PacketReader()
         self.stats.reader = self._reader.stats
         self._port: serial.SerialBase | None = None
@@ -178,9 +200,11 @@ class ArcosDriver:
         self._last_write = 0.0
         self._last_sip = 0.0
         self._ux, self._uy = _Unwrapper(), _Unwrapper()
-        self._rebase: tuple[int, int, float] | None = None
         self._frame = (0.0, 0.0, 0.0)  # map pose of the odometric origin (odometry re-localisation)
+        self._raw_odo = (0.0, 0.0, 0.0)
         self._sonar: dict[int, float] = {}
+        self._sim_pose: tuple[float, float, float] | None = None
+        self._sim_stamp = -math.inf
         self.last_error = ""
 
     # --- life cycle ---------------------------------------------------------------------
@@ -192,7 +216,8 @@ class ArcosDriver:
             self._thread = threading.Thread(target=self._run, name=f"arcos-{self.name}", daemon=True)
             self._thread.start()
         if wait:
-            limit = timeout if timeout is not None else self.sync_timeout * 3 * self.sync_attempts + 2.0
+            limit = timeout if timeout is not None else \
+                self.sync_timeout * 3 * self.sync_attempts + self.config_timeout + 3.0
             with self._cond:
                 ok = self._cond.wait_for(lambda: self._connected or not self._thread_alive(), limit)
             if not ok or not self._connected:
@@ -227,6 +252,11 @@ class ArcosDriver:
         """The latest decoded SIP, or None before the first."""
         return self._state
 
+    @property
+    def is_simulator(self) -> bool:
+        """The robot's CONFIG reply says it is a simulator (serial number SIM: MobileSim, AMRISim, ERNI)."""
+        return self.robot_config is not None and self.robot_config.simulator
+
     def wait_for(self, predicate: Callable[[RobotState], bool], timeout: float) -> RobotState | None:
         """Block until a SIP satisfies `predicate`; return that state, or None on timeout."""
         with self._cond:
@@ -237,7 +267,7 @@ class ArcosDriver:
         """Block until a SIP newer than sequence number `after` arrives."""
         return self.wait_for(lambda s: s.seq > after, timeout)
 
-    # --- commands -----------------------------------------------------------------------
+    # --- commands (never converted: mm, mm/s, degrees and deg/s on every ARCOS robot) ----
 
     def command(self, cmd: int, arg: int | bytes | str | None = None) -> bool:
         """Send one command; return False (and count it) when there is no link."""
@@ -261,16 +291,16 @@ class ArcosDriver:
             return True
 
     def vel(self, v: float) -> bool:
-        """Translate at v (m/s)."""
-        return self.command(Cmd.VEL, _clamp16(round(v * 1000 / self.model.vel_conv)))
+        """Translate at v (m/s): VEL in mm/s."""
+        return self.command(Cmd.VEL, _clamp16(round(v * 1000)))
 
     def rvel(self, deg_s: float) -> bool:
         """Rotate at deg_s (deg/s, positive counter-clockwise)."""
         return self.command(Cmd.RVEL, _clamp16(round(deg_s)))
 
     def vel2(self, left: float, right: float) -> bool:
-        """Drive the wheels at left/right (m/s)."""
-        unit = self.model.vel2_divisor * self.model.vel_conv / 1000.0
+        """Drive the wheels at left/right (m/s): VEL2 in units of Vel2Divisor mm/s."""
+        unit = self.model.vel2_divisor / 1000.0
         lb = max(-128, min(127, round(left / unit))) & 0xFF
         rb = max(-128, min(127, round(right / unit))) & 0xFF
         raw = (lb << 8) | rb
@@ -285,16 +315,24 @@ class ArcosDriver:
         return self.command(Cmd.DHEAD, _clamp16(round(deg)))
 
     def move(self, distance: float) -> bool:
-        """Travel `distance` (m) straight ahead (negative: back)."""
-        return self.command(Cmd.MOVE, _clamp16(round(distance * 1000 / self.model.dist_conv)))
+        """Travel `distance` (m) straight ahead (negative: back): MOVE in mm."""
+        return self.command(Cmd.MOVE, _clamp16(round(distance * 1000)))
 
     def setv(self, v: float) -> bool:
-        """Set the robot's top translational speed (m/s)."""
-        return self.command(Cmd.SETV, _clamp16(round(v * 1000 / self.model.vel_conv)))
+        """Set the robot's top translational speed (m/s): SETV in mm/s."""
+        return self.command(Cmd.SETV, _clamp16(round(v * 1000)))
+
+    def setrv(self, deg_s: float) -> bool:
+        """Set the robot's top turn rate (deg/s)."""
+        return self.command(Cmd.SETRV, _clamp16(round(deg_s)))
 
     def seta(self, accel: float) -> bool:
-        """Set acceleration (m/s^2, positive) or deceleration (negative)."""
+        """Set acceleration (m/s^2, positive) or deceleration (negative): SETA in mm/s^2."""
         return self.command(Cmd.SETA, _clamp16(round(accel * 1000)))
+
+    def setra(self, accel: float) -> bool:
+        """Set rotational acceleration (deg/s^2, positive) or deceleration (negative)."""
+        return self.command(Cmd.SETRA, _clamp16(round(accel)))
 
     def seto(self) -> bool:
         """Reset the robot's odometry to the origin."""
@@ -324,21 +362,27 @@ class ArcosDriver:
         """Keep the watchdog fed."""
         return self.command(Cmd.PULSE)
 
+    def sim_stat(self) -> bool:
+        """Ask a simulator for one SIMSTAT packet (its true pose); real robots ignore it."""
+        return self.command(Cmd.SIM_STAT, 1)
+
     def sim_set_pose(self, x: float, y: float, heading_deg: float) -> bool:
-        """Move a simulated robot to (x, y) m with heading (deg); odometry follows the move."""
-        xmm, ymm = round(x * 1000), round(y * 1000)
-        with self._cond:
-            self._frame = (0.0, 0.0, 0.0)
-            units_x, units_y = round(xmm / self.model.dist_conv), round(ymm / self.model.dist_conv)
-            self._rebase = (units_x, units_y, self.clock() + 2.0)
-        return self._write(arcos.encode_ints(Cmd.SIM_SET_POSE, _clamp16(xmm), _clamp16(ymm),
-                                             _clamp16(round(heading_deg))))
+        """Move a simulated robot's true pose to (x, y) m, heading (deg), and re-base odometry there.
+
+        The simulator leaves its odometry alone (a real robot's encoders would not see a hand
+        lifting it), so the map pose of the odometric frame is re-based on the new pose, and a
+        SIMSTAT is requested: `state.sim_pose` confirms where the simulator put the robot.
+        """
+        if not self._write(arcos.encode_sim_set_pose(round(x * 1000), round(y * 1000), round(heading_deg))):
+            return False
+        self.relocalise(x, y, math.radians(heading_deg))
+        return self.sim_stat()
 
     def relocalise(self, x: float, y: float, theta: float) -> None:
         """Declare that the robot is now at map pose (x, y, theta rad): odometry is re-based."""
         with self._cond:
             s = self._state
-            ox, oy, oth = self._odometric() if s is not None else (0.0, 0.0, 0.0)
+            ox, oy, oth = self._raw_odo if s is not None else (0.0, 0.0, 0.0)
             fth = theta - oth
             c, sn = math.cos(fth), math.sin(fth)
             self._frame = (x - (c * ox - sn * oy), y - (sn * ox + c * oy), fth)
@@ -373,27 +417,61 @@ class ArcosDriver:
             return False
         self._port = port
         try:
-            info = self._handshake(port)
+            ok = self._start_session(port)
         except (serial.SerialException, OSError) as err:
-            info = None
+            ok = False
             self.last_error = f"link error during handshake: {err}"
-        if info is None:
+        if not ok:
             self.stats.handshake_failures += 1
             self._disconnect(goodbye=False)
             return False
-        self.info = info
-        self._write(arcos.encode_command(Cmd.OPEN), during_handshake=True)
-        if self.enable_motors:
-            self._write(arcos.encode_command(Cmd.ENABLE, 1), during_handshake=True)
         self._last_sip = self.clock()
         self._broken = False
         with self._cond:
             self._connected = True
             self._cond.notify_all()
         self.stats.connects += 1
-        log.info("%s: connected to %s %s %s", self.url, info.name, info.robot_class, info.subclass)
+        info, cfg, m = self.info, self.robot_config, self.model
+        log.info("%s: connected to %r, %s %s%s; model %s (DistConv %g, VelConv %g), limits %.2f m/s %g deg/s, "
+                 "accel %.2f decel %.2f m/s2, rot %g/%g deg/s2", self.url, info.name, info.robot_class,
+                 info.subclass, f", firmware {cfg.firmware}, serial {cfg.serial}" if cfg else ", no CONFIG reply",
+                 m.name, m.dist_conv, m.vel_conv, m.limit("max_v"), m.limit("max_rv"), m.limit("accel"),
+                 m.limit("decel"), m.limit("rot_accel"), m.limit("rot_decel"))
         if self.on_link:
             self.on_link(True, f"connected to {info.robot_class} {info.subclass}".strip())
+        return True
+
+    def _start_session(self, port: serial.SerialBase) -> bool:
+        """Handshake, OPEN, CONFIG, HOSTBAUD, ENABLE and the limits: everything before the link is up."""
+        info = self._handshake(port)
+        if info is None:
+            return False
+        self.info = info
+        model, warnings = self.spec.resolve(info.subclass)
+        for w in warnings:
+            log.warning("%s: %s", self.url, w)
+        self._ux, self._uy = _Unwrapper(), _Unwrapper()
+        self._write(arcos.encode_command(Cmd.OPEN), during_handshake=True)
+        self.robot_config = self._request_config(port)
+        if self.robot_config is None:
+            log.info("%s: no CONFIG reply within %.1f s; using the model's values", self.url, self.config_timeout)
+        elif self.robot_config.subclass and info.subclass and self.robot_config.subclass != info.subclass:
+            log.warning("%s: SYNC2 names subtype %r but CONFIG %r", self.url, info.subclass,
+                        self.robot_config.subclass)
+        self.line_baud = port.baudrate if isinstance(port, serial.Serial) else None
+        if (self.switch_baud and isinstance(port, serial.Serial) and self.robot_config is not None
+                and self.robot_config.can_switch_baud and model.switch_baud > port.baudrate):
+            self._switch_baud(port, model.switch_baud)
+        if self.enable_motors:
+            self._write(arcos.encode_command(Cmd.ENABLE, 1), during_handshake=True)
+        self.model = fill_limits(model, self.robot_config)
+        if self.send_limits:
+            m = self.model
+            for cmd, value in ((Cmd.SETV, m.limit("max_v") * 1000), (Cmd.SETRV, m.limit("max_rv")),
+                               (Cmd.SETA, m.limit("accel") * 1000), (Cmd.SETA, -m.limit("decel") * 1000),
+                               (Cmd.SETRA, m.limit("rot_accel")), (Cmd.SETRA, -m.limit("rot_decel"))):
+                self._write(arcos.encode_command(cmd, _clamp16(round(value))), during_handshake=True)
+        self._write(arcos.encode_command(Cmd.BATTERYINFO, 1), during_handshake=True)
         return True
 
     def _handshake(self, port: serial.SerialBase) -> RobotInfo | None:
@@ -408,7 +486,7 @@ class ArcosDriver:
             reply: bytes | None = None
             for sync in (0, 1, 2):
                 self._write(arcos.encode_command(sync), during_handshake=True)
-                reply = self._await(port, _sync_reply(sync))
+                reply = self._await(port, _sync_reply(sync), self.sync_timeout)
                 if reply is None:
                     self.last_error = f"no SYNC{sync} reply (attempt {attempt + 1}/{self.sync_attempts})"
                     break
@@ -417,12 +495,52 @@ class ArcosDriver:
                 return RobotInfo(*arcos.parse_sync2(reply))
         return None
 
-    def _await(self, port: serial.SerialBase, match: Callable[[bytes], bool]) -> bytes | None:
-        deadline = self.clock() + self.sync_timeout
+    def _request_config(self, port: serial.SerialBase) -> arcos.RobotConfig | None:
+        """Send CONFIG and wait for the reply, decoding the SIPs that arrive meanwhile."""
+        if self.config_timeout <= 0:
+            return None
+        self._write(arcos.encode_command(Cmd.CONFIG, 1), during_handshake=True)
+        reply = self._await(port, lambda b: b[0] == arcos.CONFIG_REPLY, self.config_timeout, self._packet)
+        if reply is None:
+            return None
+        try:
+            return arcos.parse_config(reply)
+        except arcos.ProtocolError as err:
+            log.warning("%s: bad CONFIG reply: %s", self.url, err)
+            return None
+
+    def _switch_baud(self, port: serial.SerialBase, baud: int) -> None:
+        """HOSTBAUD, then the same rate on our side; back to the old rate if the robot falls silent."""
+        code = arcos.BAUD_CODES.get(baud)
+        if code is None:
+            log.warning("%s: switch_baud %d is not a HOSTBAUD rate; expected one of %s", self.url, baud,
+                        ", ".join(map(str, arcos.BAUD_CODES)))
+            return
+        old = port.baudrate
+        self._write(arcos.encode_command(Cmd.HOSTBAUD, code), during_handshake=True)
+        port.flush()
+        self._stop.wait(0.01)
+        port.baudrate = baud
+        self._reader.reset()
+        self._stop.wait(0.01)
+        self._write(arcos.encode_command(Cmd.PULSE), during_handshake=True)
+        if self._await(port, lambda b: True, 0.9, None) is None:
+            log.warning("%s: the robot did not answer at %d baud; staying at %d", self.url, baud, old)
+            port.baudrate = old
+            self._reader.reset()
+        else:
+            log.info("%s: serial line switched from %d to %d baud", self.url, old, baud)
+        self.line_baud = port.baudrate
+
+    def _await(self, port: serial.SerialBase, match: Callable[[bytes], bool], timeout: float,
+               other: Callable[[bytes], None] | None = None) -> bytes | None:
+        deadline = self.clock() + timeout
         while self.clock() < deadline and not self._stop.is_set():
             for body in self._reader.feed(port.read(port.in_waiting or 1)):
                 if match(body):
                     return body
+                if other is not None:
+                    other(body)
         return None
 
     def _service(self) -> None:
@@ -473,30 +591,48 @@ class ArcosDriver:
             pass
 
     def _packet(self, body: bytes) -> None:
-        if not arcos.is_sip(body):
-            self.stats.other_packets += 1
-            return
+        kind = body[0]
         try:
-            sip = arcos.parse_sip(body)
-        except arcos.ProtocolError:
-            self.stats.bad_sips += 1
+            if arcos.is_sip(body):
+                sip = arcos.parse_sip(body)
+            elif kind == arcos.SIMSTAT_REPLY:
+                self._simstat(arcos.parse_simstat(body))
+                return
+            elif kind == arcos.BATTERY_REPLY:
+                self.battery_info = arcos.parse_battery_info(body)
+                return
+            elif kind == arcos.CONFIG_REPLY:
+                self.robot_config = arcos.parse_config(body)
+                return
+            else:
+                self.stats.other_packets += 1
+                return
+        except arcos.ProtocolError as err:
+            if arcos.is_sip(body):
+                self.stats.bad_sips += 1
+            else:
+                self.stats.bad_packets += 1
+                log.debug("%s: %s", self.url, err)
             return
-        self._last_sip = self.clock()
+        now = self.clock()
+        if self.stats.sips:
+            self.sip_interval += 0.1 * (min(now - self._last_sip, 1.0) - self.sip_interval)
+        self._last_sip = now
         state = self._decode(sip)
         if self.on_sip:
             self.on_sip(state)
 
+    def _simstat(self, stat: arcos.SimStat) -> None:
+        with self._cond:
+            self._sim_pose = (stat.x / 1000.0, stat.y / 1000.0, _wrap(math.radians(stat.th)))
+            self._sim_stamp = self.clock()
+            if self._state is not None:
+                self._state = replace(self._state, sim_pose=self._sim_pose, sim_stamp=self._sim_stamp)
+            self._cond.notify_all()
+
     def _decode(self, sip: arcos.RawSip) -> RobotState:
         m = self.model
         with self._cond:
-            if self._rebase is not None:
-                ex, ey, deadline = self._rebase
-                if abs(_wrap15(sip.xpos - ex)) < 100 and abs(_wrap15(sip.ypos - ey)) < 100:
-                    self._ux.rebase(sip.xpos, ex + _wrap15(sip.xpos - ex))
-                    self._uy.rebase(sip.ypos, ey + _wrap15(sip.ypos - ey))
-                    self._rebase = None
-                elif self.clock() > deadline:
-                    self._rebase = None
             ux, uy = self._ux.update(sip.xpos), self._uy.update(sip.ypos)
             ox, oy = ux * m.dist_conv / 1000.0, uy * m.dist_conv / 1000.0
             oth = _wrap(sip.thpos * m.angle_conv)
@@ -504,24 +640,49 @@ class ArcosDriver:
             c, s = math.cos(fth), math.sin(fth)
             left = sip.lvel * m.vel_conv / 1000.0
             right = sip.rvel * m.vel_conv / 1000.0
-            w = math.radians(sip.rotvel / 10.0) if sip.rotvel is not None else (right - left) / m.axle
+            w = math.radians(sip.rotvel / 10.0) if sip.rotvel is not None else (right - left) / 2 * m.diff_conv
             for num, rng in sip.sonar.items():
                 self._sonar[num] = rng * m.range_conv / 1000.0
             seq = self._state.seq + 1 if self._state else 0
             self._raw_odo = (ox, oy, oth)
+            moving = sip.moving or sip.lvel != 0 or sip.rvel != 0 or bool(sip.rotvel)
             self._state = RobotState(
                 x=fx + c * ox - s * oy, y=fy + s * ox + c * oy, theta=_wrap(oth + fth),
                 v=(left + right) / 2, w=w, left=left, right=right,
                 battery=(sip.battery_x10 / 10.0 if sip.battery_x10 else sip.battery / 10.0),
                 stall_left=sip.stall_left, stall_right=sip.stall_right, bumpers=sip.bumpers,
-                motors_enabled=sip.motors_enabled, moving=sip.moving, sonar=dict(self._sonar),
-                stamp=self._last_sip, seq=seq)
+                motors_enabled=sip.motors_enabled, moving=moving, sonar=dict(self._sonar),
+                stamp=self._last_sip, seq=seq, sim_pose=self._sim_pose, sim_stamp=self._sim_stamp)
             self.stats.sips += 1
             self._cond.notify_all()
             return self._state
 
-    def _odometric(self) -> tuple[float, float, float]:
-        return getattr(self, "_raw_odo", (0.0, 0.0, 0.0))
+
+def fill_limits(model: RobotModel, config: arcos.RobotConfig | None) -> RobotModel:
+    """The model with every planner limit set: configured, else the robot's current, else the ARCOS default,
+    never above the robot's top (CONFIG's *Top fields, else the model's published absolute maxima)."""
+    values: dict[str, float] = {}
+    for name, current, top, scale in (("max_v", "trans_vel_max", "trans_vel_top", 1000.0),
+                                      ("max_rv", "rot_vel_max", "rot_vel_top", 1.0),
+                                      ("accel", "trans_accel", "trans_accel_top", 1000.0),
+                                      ("decel", "trans_decel", "trans_accel_top", 1000.0),
+                                      ("rot_accel", "rot_accel", "rot_accel_top", 1.0),
+                                      ("rot_decel", "rot_decel", "rot_accel_top", 1.0)):
+        value = getattr(model, name)
+        reported = getattr(config, current) if config is not None else None
+        if value is None and reported:
+            value = reported / scale
+        if value is None:
+            value = DEFAULT_LIMITS[name]
+        ceiling = getattr(config, top) if config is not None else None
+        if ceiling:
+            value = min(value, ceiling / scale)
+        elif name == "max_v":
+            value = min(value, model.top_v)
+        elif name == "max_rv":
+            value = min(value, model.top_rv)
+        values[name] = float(value)
+    return model.model_copy(update=values)
 
 
 def _wrap(a: float) -> float:

@@ -17,11 +17,9 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 from erni.blackboard import AllocationResult, ConfigError, Plugin, Pose, Task, TaskState, TransactionError
 from erni.plugins.motion.driver import ArcosDriver, RobotState, known_url_schemes
 from erni.plugins.motion.resource import RobotMotionResource, TaskUpdate
-from erni.plugins.motion.robots import RobotModel, resolve_model
+from erni.plugins.motion.robots import ModelSpec, model_spec
 
 _URL = re.compile(r"^([a-zA-Z][a-zA-Z0-9+.-]*://.*|/dev/\S+|COM\d+|/\S+)$")
-SIMULATORS = ("simrobot", "socket")
-"""URL schemes of simulators (the in-process one, MobileSim/AMRISim on TCP): `teleport = auto` moves them."""
 
 
 class MotionSettings(BaseModel):
@@ -31,8 +29,14 @@ class MotionSettings(BaseModel):
 
     url: str = Field("simrobot://", description="serial device (/dev/ttyUSB0) or pyserial URL: "
                      "socket://host:8101 (MobileSim/AMRISim), simrobot:// (a simulated robot in this process)")
-    model: str | dict[str, Any] = Field("pioneer3", description="'pioneer3', 'amigobot' or a table of factors")
-    baudrate: int = Field(9600, gt=0)
+    model: str | dict[str, Any] = Field(
+        "auto", description="'auto' (the model the robot names in SYNC2), a model such as 'p3dx-sh', 'amigo', "
+        "'pioneer3', 'amigobot', or a table: a base and the values to override")
+    baudrate: int = Field(9600, gt=0, description="serial rate to connect at (ARCOS starts at 9600)")
+    switch_baud: bool = Field(True, description="on a serial line, switch to the model's faster rate (HOSTBAUD)")
+    config_timeout: float = Field(1.0, ge=0, description="wait this long for the CONFIG reply at connect (s)")
+    latency: float | None = Field(None, ge=0, le=2, description="command latency to plan stops with (s); "
+                                  "default: the SIP's age + half a SIP period + one stack cycle")
     rate_hz: float = Field(20.0, gt=0, le=200, description="behaviour stack rate (Hz)")
     pose_rate_hz: float = Field(10.0, gt=0, le=100, description="Pose publishing rate (Hz)")
     avoid_distance: float = Field(0.4, ge=0, le=5, description="built-in obstacle avoidance (m); 0 = off")
@@ -45,7 +49,8 @@ class MotionSettings(BaseModel):
     sync_attempts: int = Field(5, ge=1)
     pulse_interval: float = Field(0.5, gt=0, description="PULSE when idle this long (s)")
     teleport: Literal["auto", "sim", "odometry"] = Field(
-        "auto", description="sim: SIM_SET_POSE moves the robot; odometry: re-localise; auto: sim for simulators")
+        "auto", description="sim: SIM_SET_POSE moves the robot; odometry: re-localise; auto: sim when the "
+        "robot's CONFIG says it is a simulator (serial number SIM), else odometry")
 
     @field_validator("url")
     @classmethod
@@ -64,14 +69,14 @@ class MotionSettings(BaseModel):
     @classmethod
     def _check_model(cls, model: str | dict[str, Any]) -> str | dict[str, Any]:
         try:
-            resolve_model(model)
+            model_spec(model)
         except ConfigError as err:
             raise ValueError(str(err).removeprefix("model: ")) from None
         return model
 
-    def robot_model(self) -> RobotModel:
-        """Return the resolved robot model."""
-        return resolve_model(self.model)
+    def model_spec(self) -> ModelSpec:
+        """The model setting, parsed: resolved against the robot's subtype at connect."""
+        return model_spec(self.model)
 
 
 def pose_of(robot: str, s: RobotState) -> Pose:
@@ -94,19 +99,16 @@ class RobotMotionControl(Plugin[MotionSettings]):
         s = self.settings
         me = self.agent_name
         self.tasks = self.subscribe(Task, where=lambda t: t.verb == "BotMotion" and t.destination in (None, "", me))
-        url = s.url
-        teleport = s.teleport
-        if teleport == "auto":
-            teleport = "sim" if url.split("://", 1)[0].lower() in SIMULATORS else "odometry"
-        driver = ArcosDriver(url, s.robot_model(), name=me, baudrate=s.baudrate, sync_timeout=s.sync_timeout,
+        driver = ArcosDriver(s.url, s.model_spec(), name=me, baudrate=s.baudrate, sync_timeout=s.sync_timeout,
                              sync_attempts=s.sync_attempts, pulse_interval=s.pulse_interval,
-                             link_timeout=s.link_timeout)
+                             link_timeout=s.link_timeout, config_timeout=s.config_timeout,
+                             switch_baud=s.switch_baud)
         self.pose: Pose | None = None
         self.resource = RobotMotionResource(
             driver, self._publish, name=me, rate_hz=s.rate_hz, pose_rate_hz=s.pose_rate_hz,
             avoid_distance=s.avoid_distance, blocked_timeout=s.blocked_timeout,
             stall_timeout=s.stall_timeout, link_grace=s.link_grace, default_timeout=s.default_timeout,
-            teleport=teleport)
+            teleport=s.teleport, latency=s.latency)
         self.resource.start()
 
     def execute(self) -> None:

@@ -60,12 +60,14 @@ class RobotMotionResource:
     def __init__(self, driver: ArcosDriver, publish: Publish, *, name: str = "robot",
                  rate_hz: float = 20.0, pose_rate_hz: float = 10.0, avoid_distance: float = 0.4,
                  blocked_timeout: float = 10.0, stall_timeout: float = 1.0, link_grace: float = 2.0,
-                 default_timeout: float | None = None, teleport: str = "sim", resend: float = 0.5,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 default_timeout: float | None = None, teleport: str = "auto", resend: float = 0.5,
+                 latency: float | None = None, clock: Callable[[], float] = time.monotonic) -> None:
         if rate_hz <= 0 or pose_rate_hz <= 0:
             raise UsageError(f"rate_hz and pose_rate_hz must be > 0, got {rate_hz} and {pose_rate_hz}")
-        if teleport not in ("sim", "odometry"):
-            raise UsageError(f"teleport: expected 'sim' or 'odometry', got {teleport!r}")
+        if teleport not in ("auto", "sim", "odometry"):
+            raise UsageError(f"teleport: expected 'auto', 'sim' or 'odometry', got {teleport!r}")
+        if latency is not None and not 0 <= latency <= 2:
+            raise UsageError(f"latency: expected seconds in 0..2, got {latency}")
         self.driver = driver
         self.publish = publish
         self.name = name
@@ -76,6 +78,7 @@ class RobotMotionResource:
         self.default_timeout = default_timeout
         self.teleport = teleport
         self.resend = resend
+        self.latency = latency
         self.clock = clock
         self.stack = BehaviourStack(blocked_timeout=blocked_timeout, stall_timeout=stall_timeout)
         self._inbox: deque[tuple[str, Any]] = deque()
@@ -231,16 +234,19 @@ class RobotMotionResource:
             self._link_down(now)
             return
         self._link_down_since = None
-        result = self.stack.cycle(state, now, self.driver.model)
+        result = self.stack.cycle(state, now, self.driver.model, self.lead(state, now))
         self.cycles += 1
         self.winner = result.winner
         cmd = result.command
         if cmd.teleport is not None:
             x, y, heading = cmd.teleport
-            if self.teleport == "sim":
+            mode = self.teleport_mode()
+            if mode == "sim":
                 self.driver.sim_set_pose(x, y, heading)
             else:
                 self.driver.relocalise(x, y, math.radians(heading))
+            if isinstance(result.winner, Teleport):
+                result.winner.performed(mode, now)
             self._last_sent = None
         self._drive(cmd, now)
         for b in result.finished:
@@ -248,6 +254,19 @@ class RobotMotionResource:
                 self._restore_avoid()
         for b in list(self.stack.items) + result.finished:
             self._record(b)
+
+    def teleport_mode(self) -> str:
+        """How a teleport is done: `sim` (SIM_SET_POSE) on a simulator, `odometry` on a real robot."""
+        if self.teleport != "auto":
+            return self.teleport
+        return "sim" if self.driver.is_simulator else "odometry"
+
+    def lead(self, state: RobotState, now: float) -> float:
+        """How far ahead of `state` a command sent now acts (s): the SIP's age, half a SIP period of
+        staleness inside the robot, and one control period before the next correction."""
+        if self.latency is not None:
+            return self.latency
+        return max(0.0, now - state.stamp) + self.driver.sip_interval / 2 + self.period
 
     def _drive(self, cmd: Command, now: float) -> None:
         wanted = (round(cmd.v, 3), float(round(cmd.w)))

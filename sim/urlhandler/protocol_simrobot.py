@@ -2,7 +2,7 @@
 
     simrobot://                                      a Pioneer 3 in an empty world
     simrobot://?world=examples/world-corridor.toml   in that world (its first start pose)
-    simrobot://?model=amigobot&sip_period=0.05&name=robot1
+    simrobot://?model=amigo&sip_period=0.05&name=robot1&sonar_cycle=0
 
 Opening the URL starts a `RobotHost` with one robot on a free loopback TCP port and connects
 to it as `socket://` does; closing the port stops the host. Everything on the wire is ARCOS
@@ -18,11 +18,12 @@ from serial import SerialException
 from serial.urlhandler.protocol_socket import Serial as SocketSerial
 
 from erni.blackboard.errors import ConfigError
+from erni.plugins.motion.robots import MODELS, lookup
 from erni.sim.robot import SimRobotConfig
 from erni.sim.robot_host import RobotHost
 from erni.sim.world import World
 
-OPTIONS = ("world", "model", "sip_period", "name")
+OPTIONS = ("world", "model", "sip_period", "name", "sonar_cycle")
 
 
 def robot_config(query: dict[str, str]) -> tuple[World, SimRobotConfig]:
@@ -31,19 +32,24 @@ def robot_config(query: dict[str, str]) -> tuple[World, SimRobotConfig]:
     if unknown:
         raise ConfigError(f"simrobot://: unknown option {unknown[0]!r}; expected some of {', '.join(OPTIONS)}")
     world = World.load(query["world"]) if query.get("world") else World()
-    model = query.get("model", "pioneer3").strip().lower()
+    model = query.get("model", "p3dx-sh").strip()
     name = query.get("name", "sim")
-    try:
-        period = float(query.get("sip_period", "0.1"))
-    except ValueError:
-        period = math.nan
+    period, cycle = _seconds(query, "sip_period", 0.1), _seconds(query, "sonar_cycle", 0.04)
     if not 0 < period <= 10:
         raise ConfigError(f"simrobot://: sip_period: expected seconds in (0, 10], got {query['sip_period']!r}")
-    if model in ("amigobot", "amigo"):
-        return world, SimRobotConfig.amigobot(name=name, sip_period=period)
-    if model in ("pioneer3", "p3", "p3dx", "p3at"):
-        return world, SimRobotConfig(name=name, sip_period=period)
-    raise ConfigError(f"simrobot://: model: expected pioneer3 or amigobot, got {model!r}")
+    if not 0 <= cycle <= 1:
+        raise ConfigError(f"simrobot://: sonar_cycle: expected seconds in [0, 1], got {query['sonar_cycle']!r}")
+    if lookup(model) is None:
+        raise ConfigError(f"simrobot://: model: unknown robot model {model!r}; expected one of "
+                          f"{', '.join(MODELS)} (or pioneer3, amigobot)")
+    return world, SimRobotConfig.for_model(model, name=name, sip_period=period, sonar_cycle=cycle)
+
+
+def _seconds(query: dict[str, str], key: str, default: float) -> float:
+    try:
+        return float(query.get(key, default))
+    except ValueError:
+        return math.nan
 
 
 class Serial(SocketSerial):  # type: ignore[misc]  # pyserial ships no type information

@@ -63,7 +63,7 @@ def test_bad_arguments_are_refused_with_a_clear_message():
 
 def _robot(**state: float) -> SimRobot:
     world = World(wall=[{"a": (1.0, -3.0), "b": (1.0, 3.0)}])
-    robot = SimRobot(SimRobotConfig(), world)
+    robot = SimRobot(SimRobotConfig(sonar_cycle=0), world)  # every reading in every SIP
     for k, v in state.items():
         setattr(robot, k, v)
     return robot
@@ -87,21 +87,24 @@ def test_simulator_sip_decodes_to_the_robot_state(x, y, th, v, w, energy):
     assert len(sip.sonar) == 16
 
 
-def test_sonar_readings_see_the_wall():
+def test_sonar_readings_see_the_wall_from_the_transducers():
     robot = _robot(x=0.0, y=0.0, th=0.0)
     sip = arcos.parse_sip(ArcosFirmware(robot).sip())
-    ahead = [sip.sonar[i] for i in (3, 4)]  # the +-10 degree front sonars
-    assert all(abs(r - (1000 - 250) / math.cos(math.radians(10))) < 60 for r in ahead)
-    assert sip.sonar[10] == 5000  # rear sonar: nothing within range
+    ahead = [sip.sonar[i] for i in (3, 4)]  # the +-10 degree front transducers, 166 mm ahead of the centre
+    assert all(abs(r - (1000 - 166) / math.cos(math.radians(10))) < 15 for r in ahead)
+    assert sip.sonar[0] == 5000 and sip.sonar[10] == 5000  # side and rear: nothing within range
 
 
 def test_sip_without_the_optional_tail_and_truncated_sips():
     full = ArcosFirmware(_robot()).sip()
     head_len = 1 + 18 + 1 + 16 * 3
+    assert len(full) == head_len + 5 + 2 + 1 + 2 + 2 + 2 + 1 + 1  # ... rotvel, faults, latvel, temperature, charge
     short = arcos.parse_sip(full[:head_len])
     assert short.battery_x10 is None and short.rotvel is None and len(short.sonar) == 16
     partial = arcos.parse_sip(full[:head_len + 6])  # grip..digout and half of nothing more
     assert partial.grip == 0 and partial.battery_x10 is None
+    whole = arcos.parse_sip(full)
+    assert whole.temperature == -127 and whole.state_of_charge == 100 and whole.lat_vel == 0
     with pytest.raises(arcos.ProtocolError, match="sonar readings"):
         arcos.parse_sip(full[:head_len - 2])
     with pytest.raises(arcos.ProtocolError, match="truncated"):

@@ -114,7 +114,7 @@ def _session(robot: SimRobot) -> tuple[ArcosFirmware, PacketReader]:
         fw.receive(arcos.encode_command(sync), 0.0)
     replies = reader.feed(fw.take_output())
     assert [b[0] for b in replies] == [0, 1, 2]
-    assert arcos.parse_sync2(replies[2]) == ("sim", "Pioneer", "p3dx-sim")
+    assert arcos.parse_sync2(replies[2]) == ("sim", "Pioneer", robot.config.subclass)
     fw.receive(arcos.encode_command(Cmd.OPEN, 1) + arcos.encode_command(Cmd.ENABLE, 1), 0.0)
     return fw, reader
 
@@ -148,8 +148,10 @@ def test_firmware_commands_reach_the_physics():
     assert robot.wheels == pytest.approx((-0.1, 0.1))
     fw.receive(bytes.fromhex("FA FB 03 37 00 37"), 0.1)  # ESTOP
     assert robot.v == 0 and robot.target_v == 0
-    fw.receive(arcos.encode_ints(Cmd.SIM_SET_POSE, 2500, -1000, 90), 0.2)
+    odometry = robot.odometry()
+    fw.receive(arcos.encode_sim_set_pose(2500, -1000, 90), 0.2)
     assert (robot.x, robot.y, robot.th) == pytest.approx((2.5, -1.0, math.pi / 2))
+    assert robot.odometry() == pytest.approx(odometry)  # the true pose moved, odometry did not
     fw.receive(arcos.encode_command(Cmd.SAY, b"\x0a\x3c"), 0.2)
     assert robot.said == [b"\x0a\x3c"]
     fw.receive(arcos.encode_command(Cmd.SETO), 0.2)
@@ -178,8 +180,8 @@ def test_host_serves_several_robots_on_consecutive_ports_and_they_see_each_other
         a = host.add_robot(SimRobotConfig(name="a"))
         host.add_robot(SimRobotConfig(name="b"))
         assert host.url(0) != host.url(1) and host.url(0).startswith("socket://127.0.0.1:")
-        front = a.sonar()[3]  # robot b stands 1 m ahead: 1 - 0.25 (a's body) - 0.25 (b's body)
-        assert front == pytest.approx(0.5, abs=0.03)
+        front = a.sonar()[3]  # robot b stands 1 m ahead: 1 - 0.166 (the transducer) - 0.25 (b's body)
+        assert front == pytest.approx(0.584, abs=0.03)
     finally:
         host.stop()
 
