@@ -11,6 +11,9 @@ import pytest
 
 from erni.blackboard import Agent
 from erni.plugins.motion import ArcosDriver
+from tests.motion.conftest import sim_only_because
+
+pytestmark = sim_only_because("tests the `erni robot-sim` simulator itself")
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -38,6 +41,26 @@ def test_robot_sim_serves_robots_from_a_world_file_until_interrupted():
         assert proc.wait(timeout=10) == 0
 
 
+def test_robot_sim_serves_the_model_asked_for_and_logs_its_clients_at_debug():
+    proc = erni("robot-sim", "--port", "0", "--model", "amigo", "--sip-period", "0.02", "--log-level", "DEBUG")
+    try:
+        assert proc.stdout is not None
+        line = proc.stdout.readline()
+        assert "(amigo," in line
+        with ArcosDriver(line.split()[1], name="cli", sync_timeout=0.3) as driver:
+            assert driver.info.subclass == "amigo" and driver.model.dist_conv == 0.5083
+            driver.command(99, 1)  # nothing a robot knows
+            driver.vel(0.2)
+            assert driver.wait_for(lambda s: s.v > 0.15, 3.0)
+    finally:
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=10)
+    assert proc.returncode == 0
+    for needle in ("client 127.0.0.1:", "handshake done: robot1 Pioneer amigo", "CONFIG 1", "SETA -",
+                   "VEL 200", "unknown command 99 ignored", "client closed the connection"):
+        assert needle in err, needle
+
+
 def test_robot_sim_pty_prints_the_device_path():
     proc = erni("robot-sim", "--pty", "--sip-period", "0.02", "--log-level", "WARNING")
     try:
@@ -55,6 +78,8 @@ def test_robot_sim_pty_prints_the_device_path():
     (["--world", "missing.toml"], "missing.toml: no such world file"),
     (["--robots", "0"], "--robots: expected at least 1"),
     (["--port", "70000"], "--port: expected"),
+    (["--model", "roomba"], "--model: unknown robot model 'roomba'; expected one of p3dx-sh, p3at-sh"),
+    (["--sonar-cycle", "-1"], "--sonar-cycle: expected seconds >= 0"),
 ])
 def test_robot_sim_bad_arguments_exit_2_with_one_clear_line(args, needle):
     proc = erni("robot-sim", *args)

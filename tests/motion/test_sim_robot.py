@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import math
 import socket
 
@@ -13,6 +14,9 @@ from erni.plugins.motion.arcos import Cmd, PacketReader
 from erni.sim.robot import P0_WATTS, ArcosFirmware, SimRobot, SimRobotConfig
 from erni.sim.robot_host import RobotHost
 from erni.sim.world import World
+from tests.motion.conftest import sim_only_because
+
+pytestmark = sim_only_because("tests ERNI's simulator itself")
 
 
 def run(robot: SimRobot, seconds: float, dt: float = 0.01, t0: float = 0.0, feed: bool = True) -> float:
@@ -218,3 +222,103 @@ def _recv(sock: socket.socket) -> bytes:
         return sock.recv(65536)
     except BlockingIOError:
         return b""
+
+
+def _open(robot: SimRobot) -> tuple[ArcosFirmware, PacketReader]:
+    fw = ArcosFirmware(robot)
+    for cmd in (0, 1, 2, 1):
+        fw.receive(arcos.encode_command(cmd), 0.0)
+    reader = PacketReader()
+    reader.feed(fw.take_output())
+    return fw, reader
+
+
+def _sonar_per_sip(fw: ArcosFirmware, reader: PacketReader, seconds: float, dt: float = 0.005) -> list[dict[int, int]]:
+    out = []
+    for i in range(1, round(seconds / dt) + 1):
+        fw.tick(i * dt)
+        out += [arcos.parse_sip(b).sonar for b in reader.feed(fw.take_output()) if arcos.is_sip(b)]
+    return out
+
+
+def test_sonar_fires_one_transducer_per_bank_every_cycle_as_real_firmware():
+    robot = SimRobot(SimRobotConfig(sip_period=0.1, sonar_cycle=0.04))  # 16 transducers: two banks of 8
+    fw, reader = _open(robot)
+    sips = _sonar_per_sip(fw, reader, 1.0)
+    assert 9 <= len(sips) <= 11
+    counts = [len(s) for s in sips[1:]]
+    assert all(4 <= n <= 6 for n in counts)  # 2.5 firings of 2 banks per 100 ms SIP
+    seen: set[int] = set()
+    for s in sips[:4]:
+        seen |= set(s)
+    assert seen == set(range(16))  # the whole ring within 8 x 40 ms
+    first = sorted(sips[1])
+    assert all(n < 8 for n in first[: len(first) // 2]) and all(n >= 8 for n in first[len(first) // 2:])
+    every = SimRobot(SimRobotConfig(sip_period=0.1, sonar_cycle=0))  # 0: the whole ring in every SIP
+    fw0, reader0 = _open(every)
+    assert all(len(s) == 16 for s in _sonar_per_sip(fw0, reader0, 0.3))
+
+
+def test_polling_sets_the_firing_sequence_and_sonar_off_empties_the_sips():
+    robot = SimRobot(SimRobotConfig.for_model("amigo", sip_period=0.1, sonar_cycle=0.04))  # one bank of 8
+    fw, reader = _open(robot)
+    fw.receive(arcos.encode_command(Cmd.POLLING, bytes([1, 4, 5, 8])), 0.0)  # sonar numbers from 1
+    seen = set().union(*_sonar_per_sip(fw, reader, 0.6))
+    assert seen == {0, 3, 4, 7}
+    fw.receive(arcos.encode_command(Cmd.SONAR, 0), 0.6)
+    assert all(s == {} for s in _sonar_per_sip(fw, reader, 0.3)[1:])
+
+
+def test_ranges_are_measured_from_each_transducer_and_in_range_units():
+    world = World(wall=[{"a": (1.0, -3.0), "b": (1.0, 3.0)}])
+    amigo = SimRobot(SimRobotConfig.for_model("amigo"), world)
+    cone = 0.13  # the echo comes from the nearest point within the beam (+-0.13 rad)
+    assert amigo.sonar_reading(2) == pytest.approx((1.0 - 0.150) / math.cos(math.radians(15) - cone), abs=0.002)
+    assert amigo.sonar_reading(0) == 5.0 and amigo.sonar_reading(8) is None
+    p2 = SimRobot(SimRobotConfig.for_model("p2dx", sonar_cycle=0), world)  # RangeConvFactor 0.268
+    sip = arcos.parse_sip(ArcosFirmware(p2).sip())
+    assert sip.sonar[3] * 0.268 == pytest.approx((1.0 - 0.166) / math.cos(math.radians(10) - cone) * 1000, abs=1)
+    power = SimRobot(SimRobotConfig.for_model("powerbot-sh", sonar_cycle=0), world)
+    assert 7 not in arcos.parse_sip(ArcosFirmware(power).sip()).sonar  # no transducer in socket 7
+
+
+def test_sim_set_pose_moves_the_true_pose_and_sim_reset_goes_back_to_the_start():
+    robot = SimRobot(SimRobotConfig(accel=100, decel=100), World(), x=1.0, y=1.0)
+    robot.start = (1.0, 1.0, 0.0)
+    robot.odo = (1.0, 1.0, 0.0)  # odometry starts at zero where the robot stands
+    robot.motors_enabled = True
+    robot.move(0.5)
+    run(robot, 2.0)
+    assert robot.odometry() == pytest.approx((0.5, 0.0, 0.0), abs=1e-6)
+    fw, reader = _open(robot)
+    fw.receive(arcos.encode_sim_set_pose(-3000, 4000, 180), 1.0)
+    assert (robot.x, robot.y, abs(robot.th)) == pytest.approx((-3.0, 4.0, math.pi))
+    assert robot.odometry() == pytest.approx((0.5, 0.0, 0.0), abs=1e-6)
+    robot.move(0.5)  # driving on: odometry and the world agree on the distance
+    run(robot, 2.0)
+    assert robot.odometry()[0] == pytest.approx(1.0, abs=1e-6) and robot.x == pytest.approx(-3.5, abs=1e-6)
+    fw.receive(arcos.encode_command(Cmd.SIM_RESET), 5.0)
+    assert (robot.x, robot.y, robot.th) == (1.0, 1.0, 0.0)
+
+
+def test_debug_log_tells_clients_commands_and_unknown_packets(caplog):
+    host = RobotHost(physics_hz=50)
+    try:
+        host.add_robot(SimRobotConfig(name="r1", sip_period=0.05))
+        host.start()
+        with caplog.at_level(logging.DEBUG, logger="erni.sim.robot"):
+            client = socket.create_connection(("127.0.0.1", int(host.url().rsplit(":", 1)[1])))
+            client.sendall(b"".join(arcos.encode_command(c) for c in (0, 1, 2)))
+            wait_until(lambda: any("handshake done" in r.getMessage() for r in caplog.records), timeout=3)
+            client.sendall(arcos.encode_command(Cmd.OPEN) + arcos.encode_command(Cmd.VEL, 200)
+                           + arcos.encode_command(99, 7) + b"\xfa\xfb\x06\x0b\x3b\xc8\x00\x00\x00")
+            wait_until(lambda: any("unknown command 99" in r.getMessage() for r in caplog.records), timeout=3)
+            client.close()
+            wait_until(lambda: any("client disconnected" in r.getMessage() for r in caplog.records), timeout=3)
+        text = "\n".join(r.getMessage() for r in caplog.records)
+        assert "r1 (socket://127.0.0.1:" in text and "client 127.0.0.1:" in text and "connected" in text
+        assert "handshake done: r1 Pioneer p3dx-sh" in text and "VEL 200" in text
+        assert "bad packet dropped" in text and "unknown command 99 ignored: 63 3b 07 00" in text
+        assert "1 unknown commands" in text
+    finally:
+        host.stop()

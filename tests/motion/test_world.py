@@ -8,6 +8,9 @@ from pathlib import Path
 import pytest
 
 from erni.sim.world import World, WorldError
+from tests.motion.conftest import sim_only_because
+
+pytestmark = sim_only_because("tests ERNI's simulated world itself")
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
 
