@@ -569,9 +569,9 @@ class ArcosFirmware:
             r.set_true_pose(x / 1000.0, y / 1000.0, math.radians(th))
         elif cmd == 225:  # SIM_RESET: back to the start, odometry reading it
             r.set_pose(*r.start)
-        elif cmd == 237:  # SIM_STAT: 0 stop, 1 one packet, 2 one after every SIP
+        elif cmd == 237:  # SIM_STAT: 0 stop, 1 one packet now, 2 one after every SIP from now on
             self.simstat = arg == 2
-            if arg in (1, 2):
+            if arg == 1:
                 self._send(self.simstat_packet())
         elif cmd == 238:  # SIM_MESSAGE
             text = next((a for a in args if isinstance(a, bytes)), b"").decode("latin-1")
