@@ -58,12 +58,29 @@ class Context:
     model: RobotModel
     below: Callable[[], Command | None] = lambda: None
     lead: float = 0.0
+    commanded: tuple[float, float] = (0.0, 0.0)  # the last v (m/s) and w (deg/s) sent to the robot
+
+    def _toward(self, value: float, target: float, up: float, down: float) -> float:
+        """Where a speed moving toward `target` with the given accelerations is after `lead` seconds."""
+        step = (up if abs(target) > abs(value) and value * target >= 0 else down) * self.lead
+        return value + max(-step, min(step, target - value))
+
+    def speeds(self) -> tuple[float, float]:
+        """The translational (m/s) and rotational (rad/s) speeds when a command sent now starts to act:
+        the robot keeps heading for the last command meanwhile, within its accelerations."""
+        m, s = self.model, self.state
+        v = self._toward(s.v, self.commanded[0], m.limit("accel"), m.limit("decel"))
+        w = self._toward(s.w, math.radians(self.commanded[1]), math.radians(m.limit("rot_accel")),
+                         math.radians(m.limit("rot_decel")))
+        return v, w
 
     def predicted(self) -> tuple[float, float, float]:
         """The pose (x, y, theta) the robot will have when a command sent now starts to act."""
         s, t = self.state, self.lead
-        th = s.theta + s.w * t / 2  # mid-point heading of the arc
-        return s.x + s.v * t * math.cos(th), s.y + s.v * t * math.sin(th), s.theta + s.w * t
+        v1, w1 = self.speeds()
+        v, w = (s.v + v1) / 2, (s.w + w1) / 2
+        th = s.theta + w * t / 2  # mid-point heading of the arc
+        return s.x + v * t * math.cos(th), s.y + v * t * math.sin(th), s.theta + w * t
 
     def stopped(self) -> bool:
         """The robot reports no translation or rotation."""
@@ -349,6 +366,11 @@ class _Settling(Behaviour):
         self.sign = 0.0
         self.corrections += 1
 
+    def creep(self, speed: float, residual: float, floor: float) -> float:
+        """A correction from a standstill goes no faster than covers 1.5 times the residual per second,
+        so its own latency and braking cannot carry it past the mark again."""
+        return speed if not self.corrections else min(speed, max(floor, 1.5 * abs(residual)))
+
 
 class GoTo(_Settling):
     """Drive to (x, y): turn towards the goal, then drive, braking to stop inside the tolerance."""
@@ -379,13 +401,16 @@ class GoTo(_Settling):
         dx, dy = self.p.x - px, self.p.y - py
         ahead = math.hypot(dx, dy)
         aim = self.p.tolerance / 2  # stop well inside the tolerance, not on its edge
-        if ahead <= aim or (dist <= self.p.tolerance and ctx.stopped()):
-            return self.settle(ctx)
+        decel = ctx.model.limit("decel")
         err = wrap(math.atan2(dy, dx) - pth)
+        coasting = max(0.0, ctx.speeds()[0]) ** 2 / (2 * decel) * math.cos(err)  # still covered once halted
+        if ahead - coasting <= aim or (dist <= self.p.tolerance and ctx.stopped()):
+            return self.settle(ctx)
         w = clip(math.degrees(2.5 * err), ctx.model.limit("max_rv"))
         v = 0.0
         if abs(err) < math.radians(60):
-            v = min(self.p.speed, ctx.model.limit("max_v"), _brake(ahead - aim, ctx.model.limit("decel"))) * math.cos(err)
+            v = self.creep(min(self.p.speed, ctx.model.limit("max_v"), _brake(ahead - aim, decel)), dist, 0.04)
+            v *= math.cos(err)
         return Command(v, w)
 
 
@@ -403,8 +428,9 @@ class Turn(_Settling):
     def begin(self, ctx: Context) -> None:
         super().begin(ctx)
         self.last = ctx.state.theta
-        if self.timeout is None:
-            self.timeout = abs(self.p.angle) / self.p.rate * 3 + 5.0
+        if self.timeout is None:  # the turn, its accelerations, room for corrections
+            rate = min(self.p.rate, ctx.model.limit("max_rv"))
+            self.timeout = (abs(self.p.angle) / rate + 2 * rate / ctx.model.limit("rot_accel")) * 2 + 8.0
 
     def propose(self, ctx: Context) -> Command | None:
         th = ctx.state.theta
@@ -420,12 +446,14 @@ class Turn(_Settling):
                              corrections=self.corrections)
                 return STOP
             self.redrive()
-        ahead = left - math.degrees(ctx.state.w) * ctx.lead
+        w = math.degrees(ctx.speeds()[1])
+        ahead = left - (math.degrees(ctx.state.w) + w) / 2 * ctx.lead
         aim = self.p.tolerance / 2
-        if self.passed(ahead, left, aim):
-            return self.settle(ctx)
-        rate = min(self.p.rate, ctx.model.limit("max_rv"),
-                   max(3.0, _brake(abs(ahead) - aim, ctx.model.limit("rot_decel"), 0.0)))
+        rot_decel = ctx.model.limit("rot_decel")
+        if self.passed(ahead - math.copysign(w * w / (2 * rot_decel), ahead), left, aim):
+            return self.settle(ctx)  # halting now stops the turn on the mark
+        rate = min(self.p.rate, ctx.model.limit("max_rv"), max(3.0, _brake(abs(ahead) - aim, rot_decel, 0.0)))
+        rate = self.creep(rate, left, 3.0)
         return Command(0.0, math.copysign(rate, ahead))
 
 
@@ -464,9 +492,11 @@ class Straight(_Settling):
         px, py, _ = ctx.predicted()
         ahead = self.p.distance - self._along(px, py)
         aim = STRAIGHT_TOLERANCE / 4
-        if self.passed(ahead, left, aim):
-            return self.settle(ctx)
-        speed = min(self.p.speed, ctx.model.limit("max_v"), _brake(abs(ahead) - aim, ctx.model.limit("decel")))
+        decel = ctx.model.limit("decel")
+        v = ctx.speeds()[0]
+        if self.passed(ahead - math.copysign(v * v / (2 * decel), ahead), left, aim):
+            return self.settle(ctx)  # halting now stops the robot on the mark
+        speed = self.creep(min(self.p.speed, ctx.model.limit("max_v"), _brake(abs(ahead) - aim, decel)), left, 0.04)
         w = clip(math.degrees(2.0 * wrap(self.origin[2] - s.theta)), 30.0)
         return Command(math.copysign(speed, ahead) * self.direction, w)
 
@@ -578,10 +608,11 @@ class BehaviourStack:
         self.items = [b for b in self.items if keep(b)]
         return gone
 
-    def cycle(self, state: RobotState, now: float, model: RobotModel, lead: float = 0.0) -> CycleResult:
+    def cycle(self, state: RobotState, now: float, model: RobotModel, lead: float = 0.0,
+              commanded: tuple[float, float] = (0.0, 0.0)) -> CycleResult:
         """Run one control cycle: check every behaviour, let the first that fires drive."""
         order = self.ordered()
-        base = Context(state, now, model, lead=lead)
+        base = Context(state, now, model, lead=lead, commanded=commanded)
         for b in order:
             if b.started is None:
                 b.begin(base)
@@ -594,7 +625,8 @@ class BehaviourStack:
                 if i >= len(order):
                     cache[i] = (None, None)
                 else:
-                    ctx = Context(state, now, model, below=lambda: first_from(i + 1)[1], lead=lead)
+                    ctx = Context(state, now, model, below=lambda: first_from(i + 1)[1], lead=lead,
+                                  commanded=commanded)
                     cmd = order[i].propose(ctx)
                     cache[i] = (i, cmd) if cmd is not None else first_from(i + 1)
             return cache[i]

@@ -234,7 +234,7 @@ class RobotMotionResource:
             self._link_down(now)
             return
         self._link_down_since = None
-        result = self.stack.cycle(state, now, self.driver.model, self.lead(state, now))
+        result = self.stack.cycle(state, now, self.driver.model, self.lead(state, now), self._last_sent or (0.0, 0.0))
         self.cycles += 1
         self.winner = result.winner
         cmd = result.command
@@ -262,11 +262,12 @@ class RobotMotionResource:
         return "sim" if self.driver.is_simulator else "odometry"
 
     def lead(self, state: RobotState, now: float) -> float:
-        """How far ahead of `state` a command sent now acts (s): the SIP's age, half a SIP period of
-        staleness inside the robot, and one control period before the next correction."""
+        """How far ahead of `state` a command sent now acts (s): the SIP's age, a SIP period (the
+        robot measured the SIP's pose up to a period before sending it and acts on a command at its
+        next cycle), and one control period before the next correction."""
         if self.latency is not None:
             return self.latency
-        return max(0.0, now - state.stamp) + self.driver.sip_interval / 2 + self.period
+        return max(0.0, now - state.stamp) + self.driver.sip_interval + self.period
 
     def _drive(self, cmd: Command, now: float) -> None:
         wanted = (round(cmd.v, 3), float(round(cmd.w)))

@@ -187,9 +187,10 @@ def test_straight_brakes_early_by_the_latency_and_corrects_from_a_standstill():
     stack = BehaviourStack()
     stack.push(b)
     stack.cycle(state(), 0.0, MODEL)
-    # 0.85 m done at 0.5 m/s: without latency it would still drive; 0.3 s of lead covers the rest
-    assert stack.cycle(state(x=0.85, v=0.5), 0.05, MODEL, lead=0.0).command.v > 0
-    assert stack.cycle(state(x=0.85, v=0.5), 0.1, MODEL, lead=0.3).command == STOP
+    # 0.7 m done at 0.5 m/s (0.25 m to brake): without latency it may drive on; 0.3 s of lead (0.15 m)
+    # at the speed last asked for leaves too little room: halt now
+    assert stack.cycle(state(x=0.7, v=0.5), 0.05, MODEL, lead=0.0, commanded=(0.5, 0)).command.v > 0
+    assert stack.cycle(state(x=0.7, v=0.5), 0.1, MODEL, lead=0.3, commanded=(0.5, 0)).command == STOP
     stack.cycle(state(x=0.95, v=0.0), 0.2, MODEL, lead=0.3)  # stopped 5 cm short: drive again
     assert b.state == TaskState.RUNNING and b.phase == "drive" and b.corrections == 1
     assert 0 < stack.cycle(state(x=0.95), 0.3, MODEL).command.v < 0.3

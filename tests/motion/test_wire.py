@@ -17,7 +17,7 @@ from erni.plugins.motion import arcos
 from erni.plugins.motion.arcos import Cmd, PacketReader
 from erni.plugins.motion.driver import ArcosDriver
 from erni.plugins.motion.robots import MODELS, model_spec
-from erni.sim.robot import ArcosFirmware, SimRobot, SimRobotConfig
+from erni.sim.robot import FIRMWARE, ArcosFirmware, SimRobot, SimRobotConfig
 from tests.motion.conftest import sim_only_because
 
 # --- what ARIA writes ---------------------------------------------------------------------
@@ -93,6 +93,72 @@ def test_vel2_is_in_vel2_divisor_units_only():
 
 
 # --- what the robot sends -----------------------------------------------------------------
+
+AMRISIM_SYNC2 = (
+    "FA FB 1B 02 41 4D 52 49 53 69 6D 00 50 69 6F 6E 65 65 72 00 70 33 64 78 2D 73 68 00 5F 52")
+AMRISIM_SIP = (  # a robot standing at the origin, motors on, all 16 sonar at 5 m, then the long tail
+    "FA FB 56 32 00 00 00 00 00 00 00 00 00 00 82 00 00 00 00 1F 00 00 10 00 88 13 01 88 13 02 88 13 03 88 13 04 "
+    "88 13 05 88 13 06 88 13 07 88 13 08 88 13 09 88 13 0A 88 13 0B 88 13 0C 88 13 0D 88 13 0E 88 13 0F 88 13 00 "
+    "00 00 FF FF 82 00 00 00 00 00 00 00 00 81 00 E8 2B")
+AMRISIM_CONFIG = (
+    "FA FB 7C 20 50 69 6F 6E 65 65 72 00 70 33 64 78 2D 73 68 00 53 49 4D 00 00 0F 27 0F 27 0F 27 0F 27 90 01 41 "
+    "4D 52 49 53 69 6D 00 64 00 00 00 00 01 00 01 00 00 00 00 D0 07 00 00 00 00 00 00 00 00 00 96 00 B8 0B 64 00 "
+    "64 00 00 00 00 00 00 00 2C 01 2C 01 00 00 00 00 00 00 00 00 00 00 02 00 00 00 00 00 00 00 00 00 53 2E 30 00 "
+    "00 00 00 00 00 0F 27 0F 27 00 00 00 00 00 00 00 00 77 85")
+AMRISIM_SIMSTAT = (  # true pose (0, 0, 0), odometry error simulated (flag bit 2) with its three error terms
+    "FA FB 3B 62 00 00 04 00 00 00 64 00 64 00 65 00 00 00 00 00 00 00 00 00 00 00 00 00 00 00 00 00 00 00 00 00 "
+    "00 00 00 00 00 00 00 00 FF FF FF FF ED 41 08 04 5E 5F 59 FC 2A 69 FF FF 6F FB")
+
+
+def _one(wire: str) -> bytes:
+    (body,) = PacketReader().feed(bytes.fromhex(wire))
+    return body
+
+
+def test_amrisims_sync2_names_a_real_subtype():
+    assert arcos.parse_sync2(_one(AMRISIM_SYNC2)) == ("AMRISim", "Pioneer", "p3dx-sh")
+    assert model_spec("auto").resolve("p3dx-sh")[0] is MODELS["p3dx-sh"]
+
+
+def test_amrisims_sip_decodes():
+    sip = arcos.parse_sip(_one(AMRISIM_SIP))
+    assert not sip.moving and (sip.xpos, sip.ypos, sip.thpos, sip.lvel, sip.rvel) == (0, 0, 0, 0, 0)
+    assert sip.battery == 130 and sip.motors_enabled and sip.flags == 0x1F
+    assert sip.sonar == {i: 5000 for i in range(16)}
+    assert (sip.digin, sip.digout, sip.battery_x10, sip.rotvel, sip.fault_flags) == (0xFF, 0xFF, 130, 0, 0)
+    assert (sip.lat_vel, sip.temperature, sip.state_of_charge) == (0, -127, 0)
+
+
+def test_amrisims_config_reply_decodes_field_by_field():
+    cfg = arcos.parse_config(_one(AMRISIM_CONFIG))
+    assert (cfg.robot_class, cfg.subclass, cfg.serial, cfg.name, cfg.firmware) == (
+        "Pioneer", "p3dx-sh", "SIM", "AMRISim", "S.0")
+    assert (cfg.rot_vel_top, cfg.trans_vel_top, cfg.rot_accel_top, cfg.trans_accel_top) == (9999,) * 4
+    assert (cfg.rot_vel_max, cfg.trans_vel_max, cfg.rot_accel, cfg.rot_decel) == (150, 3000, 100, 100)
+    assert (cfg.trans_accel, cfg.trans_decel, cfg.sip_cycle, cfg.watchdog) == (300, 300, 100, 2000)
+    assert (cfg.front_sonar, cfg.rear_sonar, cfg.autobaud, cfg.lat_vel_top, cfg.charge_threshold) == (1, 1, 2, 9999, 0)
+    assert cfg.simulator and cfg.can_switch_baud
+
+
+def test_amrisims_simstat_decodes():
+    stat = arcos.parse_simstat(_one(AMRISIM_SIMSTAT))
+    assert stat.flags == 0x04 and (stat.sim_interval, stat.real_interval, stat.last_interval) == (100, 100, 101)
+    assert (stat.x, stat.y, stat.z, stat.th) == (0, 0, 0, 0)
+
+
+@sim_only_because("compares the simulated firmware with AMRISim")
+def test_the_simulators_replies_have_amrisims_layout():
+    fw, reader = _session(SimRobotConfig(name="AMRISim", sonar_cycle=0))
+    fw.receive(arcos.encode_command(Cmd.CONFIG, 1) + arcos.encode_command(Cmd.SIM_STAT, 1), 0.0)
+    fw.tick(1.0)
+    ours = {b[0]: b for b in reader.feed(fw.take_output())}
+    theirs = {b[0]: b for b in (_one(AMRISIM_CONFIG), _one(AMRISIM_SIMSTAT), _one(AMRISIM_SIP))}
+    assert len(ours[0x62]) == len(theirs[0x62]) and ours[0x62][:3] == theirs[0x62][:3]
+    # the same fields one after the other: only the firmware strings differ in length
+    assert len(ours[0x20]) - len(FIRMWARE) == len(theirs[0x20]) - len("S.0")
+    assert ours[0x20][1:21] == theirs[0x20][1:21]  # class, subtype, serial number
+    assert ours[0x32][:13] == theirs[0x32][:13]  # a robot standing at the origin reads the same
+    assert len(ours[0x32]) == len(theirs[0x32])
 
 
 def _sync2(name: str, cls: str, sub: str) -> bytes:
