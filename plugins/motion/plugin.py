@@ -36,7 +36,7 @@ class MotionSettings(BaseModel):
     switch_baud: bool = Field(True, description="on a serial line, switch to the model's faster rate (HOSTBAUD)")
     config_timeout: float = Field(1.0, ge=0, description="wait this long for the CONFIG reply at connect (s)")
     latency: float | None = Field(None, ge=0, le=2, description="command latency to plan stops with (s); "
-                                  "default: the SIP's age + half a SIP period + one stack cycle")
+                                  "default: the SIP's age + one SIP period + one stack cycle")
     rate_hz: float = Field(20.0, gt=0, le=200, description="behaviour stack rate (Hz)")
     pose_rate_hz: float = Field(10.0, gt=0, le=100, description="Pose publishing rate (Hz)")
     avoid_distance: float = Field(0.4, ge=0, le=5, description="built-in obstacle avoidance (m); 0 = off")
