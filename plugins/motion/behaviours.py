@@ -84,7 +84,7 @@ class Context:
 
     def stopped(self) -> bool:
         """The robot reports no translation or rotation."""
-        return abs(self.state.v) < 0.005 and abs(self.state.w) < math.radians(1.0)
+        return abs(self.state.v) < 0.005 and abs(self.state.w) < math.radians(0.5)
 
     def echoes(self) -> list[tuple[float, float, float]]:
         """Each sonar echo as (x, y) in the robot's frame (m, ahead and left) and the transducer's bearing."""

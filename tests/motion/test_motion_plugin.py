@@ -22,7 +22,7 @@ from tests.motion.conftest import FAST_MODEL, REAL_URL, sim_only_because
 
 ROBOT_MODEL = os.environ.get("ERNI_ROBOT_MODEL", "auto") if REAL_URL else FAST_MODEL
 SETTINGS = dict(model=ROBOT_MODEL, rate_hz=50, pose_rate_hz=25, avoid_distance=0.4, sync_timeout=0.3,
-                link_timeout=0.3, link_grace=0.3, blocked_timeout=0.6, stall_timeout=0.3)
+                link_timeout=1.0, link_grace=1.0, blocked_timeout=0.6, stall_timeout=0.3)
 if REAL_URL:  # a real link: SIPs every 100 ms, a robot that takes its time
     SETTINGS.update(link_timeout=1.0, link_grace=2.0, blocked_timeout=3.0, stall_timeout=1.0)
 
