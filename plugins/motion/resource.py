@@ -312,17 +312,17 @@ class RobotMotionResource:
     # --- the poll thread ----------------------------------------------------------------
 
     def _poll_loop(self) -> None:
-        last_seq = -1
+        last: RobotState | None = None
         while not self._stop.is_set():
             self._poll_wake.wait(self.pose_period)
             self._poll_wake.clear()
-            state = self.driver.state
-            fresh = state if state is not None and state.seq != last_seq else None
-            updates = self.take_updates()
+            updates = self.take_updates()  # first: the state read next is at least as new as theirs
+            state = self.driver.state  # a new SIP, or the last one re-based (teleport, re-localisation)
+            fresh = state if state is not None and state is not last else None
             if fresh is None and not updates:
                 continue
             if fresh is not None:
-                last_seq = fresh.seq
+                last = fresh
             try:
                 self.publish(updates, fresh)
             except Exception:

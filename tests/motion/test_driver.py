@@ -22,7 +22,7 @@ from erni.plugins.motion.robots import MODELS, RobotModel, lookup, model_spec, r
 from erni.sim.robot import SimRobotConfig
 from erni.sim.robot_host import RobotHost
 from erni.sim.world import World
-from tests.motion.conftest import REAL_URL, sim_only, sim_only_because, skip_on_simulators_without_watchdog
+from tests.motion.conftest import REAL_URL, sim_only_because, skip_on_simulators_without_watchdog
 
 
 @pytest.fixture
@@ -54,6 +54,7 @@ def test_handshake_and_sip_round_trip(robot_url, drivers):
 
 
 @pytest.mark.parametrize("pty", [False, True], ids=["tcp", "pty"])
+@sim_only_because("serves the robot on a pty and checks it against the simulated robot's walls and true pose")
 def test_sip_round_trip_through_tcp_and_pty(make_host, drivers, pty):
     host = make_host(World(wall=[{"a": (1.5, -2), "b": (1.5, 2)}]), pty=pty)
     d = drivers(host.url()).open()
@@ -75,6 +76,7 @@ def test_sip_round_trip_through_tcp_and_pty(make_host, drivers, pty):
     assert robot.th == pytest.approx(s.theta, abs=0.3)
 
 
+@sim_only_because("puts the simulated robot 16 m out by the simulator's hand")
 def test_teleport_beyond_the_15_bit_range_and_driving_across_the_wrap(make_host, drivers):
     host = make_host()
     d = drivers(host.url()).open()
@@ -95,7 +97,7 @@ def test_unwrapper_follows_small_deltas_across_the_wrap():
     assert u.update(0x7FFF) == 0x7FFF
 
 
-@sim_only
+@sim_only_because("needs a robot that answers SYNC0 with garbage")
 def test_robot_that_first_answers_with_garbage_is_retried(make_host, drivers):
     host = make_host(garbage_first=2)
     d = drivers(host.url()).open()
@@ -103,7 +105,7 @@ def test_robot_that_first_answers_with_garbage_is_retried(make_host, drivers):
     assert "SYNC0" in d.last_error or d.last_error == ""  # failures were explained as they happened
 
 
-@sim_only
+@sim_only_because("talks to a silent socket instead of the robot")
 def test_handshake_failure_gives_a_clear_error(drivers):
     silent = socket.socket()
     silent.bind(("127.0.0.1", 0))
@@ -125,7 +127,7 @@ def test_bad_urls_are_refused_clearly(drivers):
         d.open(timeout=2)
 
 
-@sim_only
+@sim_only_because("needs a simulated line that damages packets")
 def test_line_noise_is_skipped_and_counted_and_the_robot_still_obeys(make_host, drivers):
     host = make_host(line_noise=0.3, seed=7)
     d = drivers(host.url(), sync_attempts=10).open()
@@ -137,7 +139,7 @@ def test_line_noise_is_skipped_and_counted_and_the_robot_still_obeys(make_host, 
     assert d.connected
 
 
-@sim_only
+@sim_only_because("drops the robot's end of the link")
 def test_link_drop_is_noticed_and_the_driver_reconnects(make_host, drivers):
     host = make_host()
     events: list[tuple[bool, str]] = []
@@ -152,7 +154,7 @@ def test_link_drop_is_noticed_and_the_driver_reconnects(make_host, drivers):
     assert d.wait_for(lambda s: s.v > 0.15, 2.0)
 
 
-@sim_only
+@sim_only_because("mutes the simulated firmware")
 def test_silent_robot_means_link_lost(make_host, drivers):
     host = make_host()
     d = drivers(host.url(), link_timeout=0.2, reconnect_delay=0.05, sync_attempts=1)
@@ -305,6 +307,7 @@ def test_hostbaud_switches_a_serial_line_to_38400_and_never_a_tcp_link(make_host
     assert tcp.firmware(0).host_baud == 0 and t.line_baud is None
 
 
+@sim_only_because("counts the packets the simulated firmware received")
 def test_commands_from_many_threads_arrive_whole(make_host, drivers):
     host = make_host()
     d = drivers(host.url()).open()
@@ -324,7 +327,7 @@ def test_commands_from_many_threads_arrive_whole(make_host, drivers):
     assert fw.counts["bad"] == 0 and fw.counts["packets"] - before >= 200
 
 
-@sim_only
+@sim_only_because("reads the limits back from the simulated robot")
 def test_position_heading_and_limit_commands_through_the_wire(make_host, drivers):
     host = make_host(accel=2.0, decel=2.0)
     robot = host.robots[0]
@@ -351,7 +354,7 @@ def test_position_heading_and_limit_commands_through_the_wire(make_host, drivers
     assert d.wait_for(lambda s: s.left < -0.15 and s.right > 0.15, 2.0)
 
 
-@sim_only
+@sim_only_because("shortens the simulated watchdog to 0.3 s")
 def test_idle_driver_pulses_so_the_watchdog_never_trips(make_host, drivers):
     host = make_host(watchdog=0.3)
     d = drivers(host.url(), pulse_interval=0.1).open()
