@@ -61,10 +61,13 @@ def test_all_accepted_and_succeeded_exits_zero(team):
 def test_json_lines(team):
     out = console(team, "robot 1 turn left 30 degrees\nrobot 7 stop\n", "--json")
     rows = [json.loads(line) for line in out.stdout.splitlines()]
-    assert rows[0]["say"] == "Roger: robot 1, turn left 30 degrees" and rows[0]["targets"] == ["robot1"] and len(rows[0]["tasks"]) == 1
-    assert rows[1] == {"heard": "robot 7 stop", "say": "I don't know robot 7", "accepted": False, "targets": [],
-                       "tasks": []}  # a stop to no known robot sends nothing
-    final = [r for r in rows if r.get("uid") == rows[0]["tasks"][0] and r["state"] == "succeeded"]
+    replies = [r for r in rows if "heard" in r]  # task updates may interleave with the replies
+    assert replies[0]["say"] == "Roger: robot 1, turn left 30 degrees" and replies[0]["targets"] == ["robot1"]
+    assert len(replies[0]["tasks"]) == 1
+    assert replies[1] == {"heard": "robot 7 stop", "say": "I don't know robot 7", "accepted": False, "targets": [],
+                          "tasks": []}  # a stop to no known robot sends nothing
+    assert len(replies) == 2 and all("uid" in r for r in rows if "heard" not in r)
+    final = [r for r in rows if r.get("uid") == replies[0]["tasks"][0] and r["state"] == "succeeded"]
     assert final and final[0]["agent"] == "robot1"
 
 
