@@ -228,7 +228,7 @@ class Agent:
     """One agent: a named blackboard with its plugins, run by a worker pool."""
 
     def __init__(self, name: str, *, workers: int = 4, slow_plugin_seconds: float = 1.0,
-                 journal: str | Path | None = None):
+                 journal: str | Path | None = None, retention: float | None = 600.0, reset_journal: bool = False):
         if workers < 1:
             raise UsageError(f"workers: expected at least 1, got {workers}")
         self.name = name
@@ -242,7 +242,17 @@ class Agent:
         self.components: list[Any] = []  # non-plugin parts with start()/stop()
         self.journal_path = Path(journal) if journal else None
         self.journal: Any = None
+        self.reset_journal = reset_journal  # a journal unreadable at start is moved aside, not fatal
         self.rehydrated: set[str] = set()
+        self.retention: Any = None
+        if retention is not None:
+            if not retention > 0:
+                raise UsageError(f"retention: expected a positive number of seconds, got {retention}")
+            from erni.blackboard.retention import Retention
+
+            self.retention = Retention(self, retention)
+            self.blackboard.add_listener(self.retention.listener)
+            self.components.append(self.retention)
 
     @classmethod
     def from_config(cls, path: str | Path) -> Agent:
@@ -286,6 +296,13 @@ class Agent:
                 return p
         raise PluginError(f"agent {self.name}: no plugin named {name!r}")
 
+    @property
+    def degraded(self) -> str:
+        """Why this agent cannot keep new work ('' when it can): its journal does not write."""
+        if self.journal is not None and self.journal.failed:
+            return f"journal write failed: {self.journal.failed}"
+        return ""
+
     def _setup(self, plugin: Plugin[Any]) -> None:
         """Run setup() as the plugin's first run: signals meanwhile cause one run after it."""
         with plugin._sched_lock:
@@ -293,14 +310,17 @@ class Agent:
             plugin._run_started = time.monotonic()  # a setup is a run: timed like one
             plugin._slow_reported = False
         plugin._in_setup = True
+        plugin._setup_ran = True
         try:
             with plugin.transaction():
                 plugin.setup()
-        except Exception:
+        except Exception as err:
             plugin._disabled = True
             plugin.failures += 1
-            plugin.log.exception("setup() failed in agent %s, plugin %s; the plugin is disabled, "
-                                 "the agent goes on", self.name, plugin.name)
+            plugin._setup_error = err
+            if not plugin.essential:  # an essential plugin's failure stops the start, with one line
+                plugin.log.exception("setup() failed in agent %s, plugin %s; the plugin is disabled, "
+                                     "the agent goes on", self.name, plugin.name)
         finally:
             plugin._in_setup = False
             with plugin._sched_lock:
@@ -322,12 +342,17 @@ class Agent:
         self.started = True
         for plugin in list(self.plugins):
             self._setup(plugin)
+            if plugin.essential and plugin._setup_error is not None:
+                err = plugin._setup_error
+                self.stop(announce=False)
+                detail = str(err).splitlines()[0] if str(err) else type(err).__name__
+                raise PluginError(f"plugin {plugin.name} could not start: {detail}")
         for component in self.components:
             component.start()
         self.log.info("agent %s started with %d plugin(s)", self.name, len(self.plugins))
         return self
 
-    def stop(self, timeout: float = 1.0) -> None:
+    def stop(self, timeout: float = 1.0, *, announce: bool = True) -> None:
         """Stop plugins, components, workers and timers; returns within `timeout` for
         well-behaved plugins, with every thread of the agent joined."""
         if not self.started:
@@ -336,6 +361,8 @@ class Agent:
         self.started = False
         late = self.scheduler.stop(deadline)
         for plugin in self.plugins:
+            if not plugin._setup_ran:
+                continue  # never set up (an essential plugin before it failed): nothing to tear down
             try:
                 plugin.teardown()
             except Exception:
@@ -352,15 +379,28 @@ class Agent:
             self.journal = None
         if late:
             self.log.warning("agent %s: threads still busy at stop: %s", self.name, ", ".join(late))
-        self.log.info("agent %s stopped", self.name)
+        if announce:
+            self.log.info("agent %s stopped", self.name)
 
     def _rehydrate(self) -> None:
-        """Open the journal, put its objects back on the blackboard, then journal every commit."""
-        from erni.blackboard.journal import Journal
+        """Open the journal, put its objects back on the blackboard, then journal every commit.
+
+        An unreadable journal raises JournalError (one line, with the recovery), unless
+        `reset_journal` asks to move it aside and start empty.
+        """
+        from erni.blackboard.journal import Journal, JournalError, move_aside
 
         assert self.journal_path is not None
-        self.journal = Journal(self.journal_path, self.name)
-        objects, problems = self.journal.load()
+        try:
+            self.journal = Journal(self.journal_path, self.name)
+            objects, problems = self.journal.load()
+        except JournalError as err:
+            if not self.reset_journal:
+                raise
+            aside = move_aside(self.journal_path)
+            self.log.warning("%s; moved to %s, starting with an empty journal", str(err).split(";")[0], aside)
+            self.journal = Journal(self.journal_path, self.name)
+            objects, problems = [], []
         for line in problems:
             self.log.warning("%s", line)
         if objects:

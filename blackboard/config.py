@@ -15,15 +15,17 @@ from erni.blackboard.errors import ConfigError, PluginError, describe_validation
 class AgentSection(BaseModel):
     """The `[agent]` table."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     name: str = Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,62}$",
                       description="agent name: letters, digits, '_', '.', '-'")
     workers: int = Field(4, ge=1, le=64, description="worker threads that run plugins")
-    slow_plugin_seconds: float = Field(1.0, gt=0, description="report plugin runs longer than this")
+    slow_plugin_seconds: float = Field(1.0, gt=0, le=3600, description="report plugin runs longer than this")
     log_level: str = Field("INFO", pattern=r"^(DEBUG|INFO|WARNING|ERROR)$")
     journal: str | None = Field(None, description="SQLite file that keeps tasks across a crash; "
                                 "omit for none")
+    retention: float = Field(600.0, gt=0, le=10 * 365 * 86400,
+                             description="finished tasks are dropped this long after they finished (s)")
 
 
 class PluginSection(BaseModel):
@@ -73,7 +75,8 @@ def read_config(path: str | Path) -> AgentConfig:
 def build_agent(config: AgentConfig, source: str = "<config>") -> Agent:
     """Make an agent from a validated config; plugin errors raise ConfigError."""
     agent = Agent(config.agent.name, workers=config.agent.workers,
-                  slow_plugin_seconds=config.agent.slow_plugin_seconds, journal=config.agent.journal)
+                  slow_plugin_seconds=config.agent.slow_plugin_seconds, journal=config.agent.journal,
+                  retention=config.agent.retention)
     for i, section in enumerate(config.plugin):
         here = f"plugin[{i}]"
         if not section.enabled:

@@ -5,11 +5,17 @@ thread, never by the committing thread: a commit only appends its operations to 
 Each batch is one SQLite transaction (WAL mode), so a crash mid-write leaves the journal as
 it was before or after the batch, never in between. On start the agent loads the journal
 back onto the blackboard before any plugin is set up.
+
+A batch that cannot be written (a full disk, an I/O error) is kept in memory and retried
+every second; meanwhile `failed` says why, and the agent reports itself degraded and refuses
+new tasks. A journal that cannot be read at start (corrupted, or an empty file where a
+journal was) raises `JournalError` with one line; `move_aside` makes room for an empty one.
 """
 
 from __future__ import annotations
 
 import logging
+import os
 import queue
 import sqlite3
 import threading
@@ -45,6 +51,28 @@ def durable_types() -> dict[str, type[BBObject]]:
     return found
 
 
+class JournalError(ConfigError):
+    """The journal cannot be opened or read: `FILE: what is wrong; what to do`."""
+
+
+RECOVERY = ("move it aside to start empty (`erni agent CONFIG --reset-journal` does, keeping the file), "
+            "or restore it from a copy")
+
+
+def move_aside(path: str | Path) -> Path:
+    """Rename a journal (and its -wal and -shm files) to `NAME.bad-N`; return the new path."""
+    path = Path(path)
+    n = 1
+    while path.with_name(f"{path.name}.bad-{n}").exists():
+        n += 1
+    target = path.with_name(f"{path.name}.bad-{n}")
+    for suffix in ("", "-wal", "-shm"):
+        src = path.with_name(path.name + suffix)
+        if src.exists():
+            os.replace(src, target.with_name(target.name + suffix))
+    return target
+
+
 class Journal:
     """Journal durable objects of one blackboard to a SQLite file."""
 
@@ -56,16 +84,30 @@ class Journal:
         self._flushed = threading.Condition()
         self._enqueued = 0
         self._written = 0
+        self._pending: dict[str, tuple[str, str] | None] = {}  # rows not written yet, retried
+        self.failed = ""  # why the last write failed ('' when writes succeed)
         self.batches = 0
         try:
+            if self.path.exists() and self.path.stat().st_size == 0:
+                raise JournalError(f"{self.path}: the journal is an empty file (0 bytes), not a journal: it "
+                                   f"was truncated or is not ERNI's; {RECOVERY}")
             self.path.parent.mkdir(parents=True, exist_ok=True)
             self._db = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None)
+        except OSError as err:
+            raise JournalError(f"{self.path}: cannot open the journal: {err.strerror or err}") from None
+        except sqlite3.Error as err:
+            raise JournalError(f"{self.path}: cannot open the journal: {err}") from None
+        try:
             self._db.execute("PRAGMA journal_mode=WAL")
             self._db.execute("PRAGMA synchronous=FULL")
             self._db.executescript(SCHEMA)
-            self._db.execute("PRAGMA quick_check").fetchone()
-        except sqlite3.DatabaseError as err:
-            raise ConfigError(f"{self.path}: cannot open the journal: {err}") from None
+            problems = [row[0] for row in self._db.execute("PRAGMA quick_check")]
+            if problems != ["ok"]:
+                raise sqlite3.DatabaseError(f"{len(problems)} problem(s), first: {str(problems[0])[:120]}")
+        except sqlite3.Error as err:
+            self._db.close()
+            raise JournalError(f"{self.path}: the journal is unreadable ({str(err).splitlines()[0]}); "
+                               f"{RECOVERY}") from None
 
     # -- reading back ---------------------------------------------------------------------
 
@@ -74,7 +116,13 @@ class Journal:
         types = durable_types()
         objects: list[BBObject] = []
         problems: list[str] = []
-        for uid, type_name, data in self._db.execute("SELECT uid, type, data FROM objects ORDER BY rowid"):
+        try:
+            rows = self._db.execute("SELECT uid, type, data FROM objects ORDER BY rowid").fetchall()
+        except sqlite3.Error as err:
+            self._db.close()
+            raise JournalError(f"{self.path}: the journal is unreadable ({str(err).splitlines()[0]}); "
+                               f"{RECOVERY}") from None
+        for uid, type_name, data in rows:
             cls = types.get(type_name)
             if cls is None:
                 problems.append(f"{self.path}: object {uid}: unknown type {type_name!r} (plugin not loaded?)")
@@ -100,7 +148,7 @@ class Journal:
         self._thread.start()
 
     def flush(self, timeout: float = 5.0) -> bool:
-        """Wait until everything queued so far is on disk; return False on timeout."""
+        """Wait until everything queued so far was tried; return True if it is on disk."""
         target = self._enqueued
         deadline = time.monotonic() + timeout
         with self._flushed:
@@ -109,7 +157,7 @@ class Journal:
                 if left <= 0:
                     return False
                 self._flushed.wait(left)
-        return True
+        return not self.failed
 
     def stop(self, timeout: float = 1.0) -> None:
         """Write what is queued, stop the thread and close the file."""
@@ -124,7 +172,11 @@ class Journal:
 
     def _run(self) -> None:
         while True:
-            batch = [self._queue.get()]
+            try:  # with rows waiting for a failed disk, retry every second
+                batch = [self._queue.get(timeout=1.0 if self._pending else None)]
+            except queue.Empty:
+                self._write([])
+                continue
             while True:  # take whatever else is waiting: one SQLite transaction for all of it
                 try:
                     batch.append(self._queue.get_nowait())
@@ -142,9 +194,12 @@ class Journal:
 
     def _write(self, ops: list[Op]) -> None:
         now = time.time()
-        rows: dict[str, Any] = {}
+        rows: dict[str, Any] = dict(self._pending)  # rows a failed write left behind come first
         for kind, obj, _ in ops:  # later operations on the same uid win
+            rows.pop(obj.uid, None)
             rows[obj.uid] = None if kind == REMOVE else (type(obj).__name__, obj.model_dump_json())
+        if not rows:
+            return
         try:
             self._db.execute("BEGIN IMMEDIATE")
             for uid, row in rows.items():
@@ -162,4 +217,13 @@ class Journal:
                 self._db.execute("ROLLBACK")
             except sqlite3.Error:
                 pass
-            self.log.error("journal write failed (%d object(s) not saved): %s", len(rows), err)
+            self._pending = rows
+            if not self.failed:  # one line when it starts failing, one when it recovers
+                self.log.error("journal write failed (%d object(s) kept in memory, retried every second; "
+                               "new tasks are refused meanwhile): %s", len(rows), err)
+            self.failed = str(err).splitlines()[0] if str(err) else type(err).__name__
+            return
+        self._pending = {}
+        if self.failed:
+            self.log.warning("journal writes again (%d object(s) saved)", len(rows))
+            self.failed = ""

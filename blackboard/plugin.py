@@ -40,6 +40,9 @@ class Plugin(Generic[SettingsT]):
     """
 
     Settings: ClassVar[type[BaseModel]] = NoSettings
+    essential: ClassVar[bool] = False
+    """True: the agent does not start without this plugin (a failed `setup()` stops it, one line
+    saying why); False: a failed setup disables the plugin and the agent goes on."""
     settings: SettingsT
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
@@ -69,6 +72,8 @@ class Plugin(Generic[SettingsT]):
         self._dirty = False
         self._woken = False
         self._disabled = False
+        self._setup_error: BaseException | None = None
+        self._setup_ran = False
         self._run_started = 0.0
         self._slow_reported = False
         self.runs = 0

@@ -9,9 +9,11 @@ pydantic model. Invalid tasks are refused with a `TaskError` whose message names
 from __future__ import annotations
 
 import enum
+import math
 import time
+import types
 from dataclasses import dataclass
-from typing import Any, ClassVar, Self, TypeVar
+from typing import Any, ClassVar, Self, TypeVar, Union, get_args, get_origin
 
 from pydantic import (
     BaseModel,
@@ -24,18 +26,45 @@ from pydantic import (
     model_validator,
 )
 
-from erni.blackboard.errors import TaskError, describe_validation
+from erni.blackboard.errors import TaskError, describe_validation, shown
 from erni.blackboard.objects import BBObject
 
 
+def _is_number(annotation: Any) -> bool:
+    """True for `float`, `int` and their optional forms (`float | None`)."""
+    if annotation in (float, int):
+        return True
+    if get_origin(annotation) in (Union, types.UnionType):
+        args = [a for a in get_args(annotation) if a is not type(None)]
+        return bool(args) and all(a in (float, int) for a in args)
+    return False
+
+
 class Params(BaseModel):
-    """Base of every preposition's parameters: unknown keys are refused.
+    """Base of every preposition's parameters: unknown keys are refused, numbers are strict.
 
     Each preposition of the built-in language has its own class, so a plugin dispatches with
     `match task.params: case GotoParams(x=x, y=y): ...` and a type checker knows the fields.
+    A number field never takes a boolean (`x=true` is not 1.0), NaN or an infinity (JSON
+    cannot carry those: they would travel as null); a numeric string ("1.5") is read as a number.
     """
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _strict_numbers(cls, data: Any) -> Any:
+        if not isinstance(data, dict):
+            return data
+        for name, value in data.items():
+            field = cls.model_fields.get(name) if isinstance(name, str) else None
+            if field is None or value is None or not _is_number(field.annotation):
+                continue
+            if isinstance(value, bool):
+                raise ValueError(f"{name}: expected a number, got {value} (a boolean)")
+            if isinstance(value, float) and not math.isfinite(value):
+                raise ValueError(f"{name}: expected a finite number, got {value}")
+        return data
 
 
 P = TypeVar("P", bound=Params)
@@ -232,11 +261,11 @@ def prepositions_of(verb: str) -> list[str]:
 def lookup(verb: str, preposition: str) -> Preposition:
     """Return the preposition, or raise TaskError naming what is known."""
     if verb not in VERBS:
-        raise TaskError(f"unknown verb {verb!r}; expected one of {', '.join(VERBS)}")
+        raise TaskError(f"unknown verb {shown(verb)}; expected one of {', '.join(VERBS)}")
     key = (verb, normalize_preposition(preposition))
     if key not in PREPOSITIONS:
         raise TaskError(
-            f"{verb}: unknown preposition {preposition!r}; expected one of "
+            f"{verb}: unknown preposition {shown(preposition)}; expected one of "
             f"{', '.join(prepositions_of(verb))}"
         )
     return PREPOSITIONS[key]
@@ -318,7 +347,7 @@ class TaskState(str, enum.Enum):
 class AllocationResult(BaseModel):
     """What the performer of a task reports: state, confidence, progress and typed values."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
     state: TaskState = TaskState.PENDING
     confidence: float = Field(1.0, ge=0.0, le=1.0)
@@ -380,7 +409,7 @@ class Task(BBObject):
             else:
                 return {**data, "preposition": spec.name}
         if not isinstance(raw, dict):
-            raise TaskError(f"{spec.name}: params: expected a table of parameters, got {raw!r}")
+            raise TaskError(f"{spec.name}: params: expected a table of parameters, got {shown(raw)}")
         try:
             params = spec.params.model_validate(raw)
         except ValidationError as err:
@@ -391,7 +420,7 @@ class Task(BBObject):
     @classmethod
     def _known_verb(cls, verb: str) -> str:
         if verb not in VERBS:
-            raise TaskError(f"unknown verb {verb!r}; expected one of {', '.join(VERBS)}")
+            raise TaskError(f"unknown verb {shown(verb)}; expected one of {', '.join(VERBS)}")
         return verb
 
     @property

@@ -29,6 +29,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--log-level", choices=["DEBUG", "INFO", "WARNING", "ERROR"],
                    help="override the config's [agent] log_level")
     p.add_argument("--check", action="store_true", help="validate the config and exit")
+    p.add_argument("--reset-journal", action="store_true",
+                   help="if the journal cannot be read, move it aside (NAME.bad-N) and start empty")
 
 
 def run(args: argparse.Namespace, prepare: Callable[[Agent], None] | None = None) -> int:
@@ -42,6 +44,7 @@ def run(args: argparse.Namespace, prepare: Callable[[Agent], None] | None = None
     except ConfigError as err:
         print(err, file=sys.stderr)
         return 2
+    agent.reset_journal = args.reset_journal
     if prepare is not None:
         prepare(agent)
     if args.check:
@@ -59,7 +62,8 @@ def run(args: argparse.Namespace, prepare: Callable[[Agent], None] | None = None
         try:
             agent.start()
         except (ErniError, OSError) as err:
-            print(f"{args.config}: cannot start agent {config.agent.name}: {err}", file=sys.stderr)
+            print(f"{args.config}: cannot start agent {config.agent.name}: {str(err).splitlines()[0]}",
+                  file=sys.stderr)
             return 2
         while not stop.wait(0.5):
             pass

@@ -76,15 +76,79 @@ def test_unreadable_rows_are_reported_not_fatal(tmp_path, caplog):
     assert "unknown type 'Rocket'" in caplog.text
 
 
-def test_a_file_that_is_not_a_journal_is_a_clear_error(tmp_path):
+def _start(config, *args):
+    return subprocess.run([sys.executable, "-m", "erni", "agent", str(config), *args], capture_output=True,
+                          text=True, timeout=30, cwd=ROOT)
+
+
+def _journal_with_rows(path: Path, rows: int = 300) -> None:
+    agent = Agent("r1", journal=path)
+    agent.start()
+    with agent.transaction() as tx:
+        for i in range(rows):
+            tx.add(Task(verb="BotMotion", preposition="forward", params={"distance": 1 + i}, source="c"))
+    assert agent.journal.flush()
+    agent.stop()
+
+
+def test_an_unreadable_journal_is_one_line_with_its_recovery(tmp_path):
     bad = tmp_path / "bad.sqlite"
     bad.write_bytes(b"this is not sqlite" * 100)
     config = tmp_path / "a.toml"
     config.write_text(f"[agent]\nname='r1'\njournal='{bad}'\n")
-    out = subprocess.run([sys.executable, "-m", "erni", "agent", str(config)], capture_output=True,
-                         text=True, timeout=30, cwd=ROOT)
+    out = _start(config)
+    assert out.returncode == 2 and "Traceback" not in out.stderr
+    (line,) = out.stderr.strip().splitlines()
+    assert "the journal is unreadable" in line and "--reset-journal" in line
+
+
+def test_a_corrupted_page_stops_the_start_and_reset_moves_the_journal_aside(tmp_path):
+    path = tmp_path / "r1.sqlite"
+    _journal_with_rows(path)
+    assert path.stat().st_size > 5 * 4096
+    with path.open("r+b") as f:  # a page in the middle turns to noise (a bad sector, a torn copy)
+        f.seek(3 * 4096)
+        f.write(os.urandom(4096))
+    config = tmp_path / "a.toml"
+    config.write_text(f"[agent]\nname='r1'\njournal='{path}'\nlog_level='WARNING'\n")
+    out = _start(config, "--check")
+    assert out.returncode == 0  # the config is fine; the journal is checked when the agent starts
+    proc = subprocess.Popen([sys.executable, "-m", "erni", "agent", str(config)], cwd=ROOT,
+                            stderr=subprocess.PIPE, text=True)
+    err = proc.stderr.read()
+    assert proc.wait(30) == 2 and "Traceback" not in err
+    (line,) = err.strip().splitlines()
+    assert "unreadable" in line and str(path) in line
+    assert path.exists(), "nothing is moved unless asked"
+    proc = subprocess.Popen([sys.executable, "-m", "erni", "agent", str(config), "--reset-journal"], cwd=ROOT,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        first = proc.stderr.readline()
+        assert "moved to" in first and "bad-1" in first and "starting with an empty journal" in first
+        wait_until(lambda: path.exists() and (tmp_path / "r1.sqlite.bad-1").exists())
+    finally:
+        proc.send_signal(signal.SIGINT)
+        proc.wait(10)
+        proc.stderr.close()
+    journal = Journal(path)
+    assert journal.load() == ([], [])
+    journal.stop()
+
+
+def test_an_empty_journal_file_is_not_taken_for_a_new_one(tmp_path):
+    path = tmp_path / "r1.sqlite"
+    path.write_bytes(b"")  # a journal truncated to nothing: its tasks are gone, and that must be said
+    config = tmp_path / "a.toml"
+    config.write_text(f"[agent]\nname='r1'\njournal='{path}'\n")
+    out = _start(config)
     assert out.returncode == 2
-    assert "cannot open the journal" in out.stderr and "Traceback" not in out.stderr
+    (line,) = out.stderr.strip().splitlines()
+    assert "empty file (0 bytes)" in line and "--reset-journal" in line
+    fresh = tmp_path / "new.sqlite"  # a journal that does not exist yet is simply created
+    agent = Agent("r1", journal=fresh)
+    agent.start()
+    agent.stop()
+    assert fresh.stat().st_size > 0
 
 
 def test_kill_9_mid_write_never_corrupts_the_journal(tmp_path):

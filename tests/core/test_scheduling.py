@@ -153,7 +153,7 @@ def test_stop_returns_within_one_second_with_threads_joined():
         for i in range(100):
             tx.add(Item(value=i))
     names = {t.name for t in threading.enumerate() if t.name.startswith("erni-stop")}
-    assert len(names) == 9  # 8 workers and the timer thread
+    assert len(names) == 10  # 8 workers, the timer thread and the retention sweeper
     t0 = time.monotonic()
     agent.stop()
     assert time.monotonic() - t0 < 1.0
