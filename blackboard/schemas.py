@@ -32,7 +32,8 @@ class Peer(BBObject):
     capabilities: list[str] = Field(default_factory=list)
     last_heard: float = 0.0
     up: bool = False
-    epoch: int = 0
+    epoch: int = Field(0, description="this agent's count of the peer's instances (a restart adds one)")
+    degraded: str = Field("", description="why the peer cannot take new tasks ('' when it can)")
 
 
 class _Message(BaseModel):
@@ -44,6 +45,7 @@ class Beacon(_Message):
 
     role: str = ""
     capabilities: list[str] = Field(default_factory=list)
+    degraded: str = Field("", description="why this agent refuses new tasks ('' when it takes them)")
 
 
 class ResultUpdate(_Message):

@@ -10,6 +10,7 @@ on a control node's blackboard, so its GUI and `erni watch` see them as they saw
 from __future__ import annotations
 
 import json
+import math
 import threading
 import time
 from dataclasses import dataclass
@@ -19,8 +20,8 @@ from typing import Any
 from pydantic import BaseModel, Field
 
 from erni.blackboard import BBObject, Plugin
-from erni.blackboard.errors import ErniError
-from erni.transport.wire import TYPES
+from erni.blackboard.errors import ErniError, shown
+from erni.transport.wire import TYPES, loads
 
 FORMAT = 1
 
@@ -49,7 +50,7 @@ def read_log(path: str | Path) -> tuple[dict[str, Any], list[Event], list[str]]:
     if not lines:
         raise LogError(f"{path}: empty; expected a log written by `erni record`")
     try:
-        header = json.loads(lines[0])
+        header = loads(lines[0])
     except ValueError:
         header = None
     if not isinstance(header, dict) or header.get("erni_record") != FORMAT:
@@ -60,20 +61,23 @@ def read_log(path: str | Path) -> tuple[dict[str, Any], list[Event], list[str]]:
         if not line.strip():
             continue
         try:
-            raw = json.loads(line)
+            raw = loads(line)
             if not isinstance(raw, dict):
                 raise LogError(f"expected a JSON object, got {type(raw).__name__}")
             missing = [k for k in ("t", "agent", "op", "type", "data") if k not in raw]
             if missing:
                 raise LogError(f"missing {', '.join(missing)}")
+            t = raw["t"]
+            if isinstance(t, bool) or not isinstance(t, (int, float)) or not math.isfinite(t) or t < 0:
+                raise LogError(f"t: expected a finite number of seconds >= 0, got {shown(t)}")
             cls = TYPES.get(raw["type"]) if isinstance(raw["type"], str) else None
             if cls is None or not issubclass(cls, BBObject):
-                raise LogError(f"unknown object type {raw['type']!r}")
+                raise LogError(f"unknown object type {shown(raw['type'])}")
             if raw["op"] not in ("add", "change", "remove"):
-                raise LogError(f"unknown op {raw['op']!r}")
-            events.append(Event(float(raw["t"]), str(raw["agent"]), raw["op"], cls.model_validate(raw["data"])))
-        except (LogError, ValueError, KeyError, TypeError) as err:
-            problems.append(f"{path}:{number}: {str(err).splitlines()[0]}")
+                raise LogError(f"unknown op {shown(raw['op'])}")
+            events.append(Event(float(t), str(raw["agent"])[:64], raw["op"], cls.model_validate(raw["data"])))
+        except (LogError, ValueError, KeyError, TypeError, RecursionError) as err:
+            problems.append(f"{path}:{number}: {str(err).splitlines()[0][:200]}")
     events.sort(key=lambda e: e.t)
     return header, events, problems
 

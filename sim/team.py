@@ -10,7 +10,8 @@ Every robot runs `python -m erni.sim.radio` (the `erni agent` command behind the
 radio) with the plugins it would run on a robot
 (transport on `127.0.1.N`, motion, mobinet, mission when installed); only the serial URL and
 the SNMP address differ. The control node runs the same agent with the transport in role
-`control` (and the UI plugin when installed). A random team key authenticates every frame.
+`control` (and the UI plugin when installed). A team authority made for the run (in
+`RUN/keys`) gives every agent, and the command-line client, its own identity.
 """
 
 from __future__ import annotations
@@ -20,7 +21,6 @@ import json
 import logging
 import math
 import os
-import secrets
 import signal
 import socket
 import subprocess
@@ -41,12 +41,13 @@ from erni.sim.robot_host import RobotHost
 from erni.sim.scenario import MAX_AGENT_ROBOTS, Scenario
 from erni.sim.snmp_agent import ManetSnmpAgent
 from erni.sim.world import World
+from erni.transport.identity import REVOKED, Authority
 
 log = logging.getLogger("erni.sim.team")
 
 CONTROL = "control"
 CONTROL_HOST = "127.0.1.250"
-KEY_ENV = "ERNI_SIM_TEAM_KEY"  # where the sim process keeps the key for its own client
+CLI = "cli"  # the identity of command-line clients of the run (RUN/keys/cli.pem)
 
 
 class TeamError(ErniError):
@@ -195,8 +196,8 @@ class Team:
         self.gui_token = secrets.token_urlsafe(16)  # the GUI always asks for it: printed in the URL
         self.mission = plugin_available("erni.plugins.mission", "MissionControl") if mission is None else mission
         self.ui = (not headless and plugin_available("erni.plugins.ui", "UIPlugin")) if ui is None else ui
-        self.key = secrets.token_hex(16)
-        self.key_file = self.run_dir / "team.key"
+        self.keys_dir = self.run_dir / "keys"
+        self.cli_identity = self.keys_dir / f"{CLI}.pem"
         self.discovery_port = free_port()
         self.control_port = control_port if control_port and port_free(CONTROL_HOST, control_port) \
             else free_port(CONTROL_HOST, socket.SOCK_STREAM)
@@ -250,8 +251,12 @@ class Team:
         self.run_dir.mkdir(parents=True, exist_ok=True)
         for sub in ("agents", "logs", "journal"):
             (self.run_dir / sub).mkdir(exist_ok=True)
-        self.key_file.write_text(self.key + "\n", encoding="utf-8")
-        os.chmod(self.key_file, 0o600)
+        authority = Authority(self.keys_dir) if (self.keys_dir / "authority.key").exists() else \
+            Authority.create(self.keys_dir, team=f"erni sim {self.scenario.name}")  # a reused run dir keeps its team
+        for name in self.names:
+            authority.issue(name, "robot")
+        authority.issue(CONTROL, "control")
+        authority.issue(CLI, "cli")
         n = len(self.names)
         say("world and robots", 0, n)
         model = self.scenario.robots.model
@@ -276,7 +281,7 @@ class Team:
         self._feed.start()
         say("agent configs", 0, n)
         self._write_configs(snmp_ports)
-        env = {**os.environ, "ERNI_TEAM_KEY": self.key, "PYTHONUNBUFFERED": "1"}
+        env = self.agent_env()
         order = [CONTROL] + self.names
         for k, name in enumerate(order):
             self._spawn(self.agents[name], env)
@@ -284,13 +289,21 @@ class Team:
         self._wait_up(say, timeout)
         return self
 
+    def agent_env(self) -> dict[str, str]:
+        """The environment agent processes of this team run in."""
+        return {**os.environ, "PYTHONUNBUFFERED": "1"}
+
+    def identity(self, name: str) -> dict[str, str]:
+        """Transport settings naming agent `name`'s identity and the team's revocation list."""
+        return {"identity": str(self.keys_dir / f"{name}.pem"), "revocations": str(self.keys_dir / REVOKED)}
+
     def _write_configs(self, snmp_ports: dict[str, int]) -> None:
         common = dict(discovery_port=self.discovery_port, beacon_to=["127.255.255.255"], **self.transport)
         for i, name in enumerate(self.names):
             addr = robot_address(i)
             port = 0  # any free port: two simulations side by side never collide
             plugins: list[tuple[str, dict[str, Any]]] = [
-                ("transport", dict(listen=f"{addr}:{port}", role="robot",
+                ("transport", dict(listen=f"{addr}:{port}", role="robot", **self.identity(name),
                                    capabilities=["motion", "mobinet"] + (["mission"] if self.mission else []),
                                    # patrol heartbeats travel between robots; poses only to the control node
                                    **({"share_with": {"Territory": ["control", "robot"]}} if self.mission else {}),
@@ -304,7 +317,8 @@ class Team:
             if self.mission:
                 plugins.append(("mission", self._mission_settings()))
             self._add_agent(name, (addr, port), plugins, f"robot {name} of scenario {self.scenario.name}")
-        plugins = [("transport", dict(listen=f"{CONTROL_HOST}:{self.control_port}", role="control", **common))]
+        plugins = [("transport", dict(listen=f"{CONTROL_HOST}:{self.control_port}", role="control",
+                                      **self.identity(CONTROL), **common))]
         if self.ui:
             gui_host, gui_port = "127.0.0.1", self.gui_port
             if self.gui_listen:
@@ -384,8 +398,7 @@ class Team:
         if self._client is None:
             from erni.transport.client import Client
 
-            os.environ[KEY_ENV] = self.key
-            self._client = Client(self.control_address, key_env=KEY_ENV)
+            self._client = Client(self.control_address, identity=self.cli_identity)
             self._client.endpoint.start()
         return self._client
 

@@ -1,13 +1,18 @@
 """The transport plugin: remote tasking through the blackboard, discovery, peer liveness, watchers.
 
 - A task whose `destination` is another agent is sent (reliably) when it is published and
-  cancelled there when it is removed here.
+  cancelled there when it is removed here. If its performer is not heard for `link_deadline`
+  seconds the task fails with `link lost: ...` (a performer back in time goes on as if nothing
+  happened; one back later is told to cancel the task).
 - A task received from a peer appears on this blackboard as a task from that source; its
-  result changes travel back to the peer it came from (UDP, and TCP for final states).
-- Beacons go to the configured broadcast/unicast addresses, to static peers and to addresses
-  learned from MobiNet's `NetInfo`; every agent heard is a `Peer` on the blackboard, marked
-  down when silent for `peer_timeout`.
-- Clients (`erni watch`) may lease a stream of blackboard changes.
+  result changes travel back to the peer it came from (UDP; a final state once, over TCP).
+  An agent that cannot keep tasks (its journal cannot write) refuses new ones with the reason.
+- Signed beacons go to the configured broadcast/unicast addresses and to addresses learned
+  from MobiNet's `NetInfo`: they only tell that an agent may be there. Known peers get beacons
+  inside their session; only session traffic (fresh by construction) marks a peer up, and a
+  peer silent for `peer_timeout` is down.
+- Clients (`erni watch`) may lease a stream of blackboard changes; `erni task --wait` asks
+  for a task's state (`task.query`).
 
 All network traffic is handed to the endpoint's sender pool; received messages are handed
 to `execute()` with `later()`, so nothing here does I/O inside a transaction.
@@ -16,13 +21,17 @@ to `execute()` with `later()`, so nothing here does I/O inside a transaction.
 from __future__ import annotations
 
 import time
+from pathlib import Path
 from typing import Any, ClassVar
 
 from pydantic import BaseModel, ConfigDict, Field, SecretStr, model_validator
 
-from erni.blackboard import BBObject, NetInfo, Plugin, Pose, Task, TaskState
+from erni.blackboard import AllocationResult, BBObject, NetInfo, Plugin, Pose, Task, TaskState
+from erni.blackboard.errors import ConfigError
 from erni.blackboard.schemas import Beacon, Cancel, Peer, PeerList, ResultUpdate, WatchEvent, WatchRequest
 from erni.transport.endpoint import CLIENT_ROLE, Address, Endpoint, InboundFilter, parse_address, team_key
+from erni.transport.identity import Identity, IdentityError, load_identity
+from erni.transport.limits import Limits
 from erni.transport.wire import Message, register_type
 
 
@@ -45,26 +54,37 @@ WATCHED = (Task, Pose, NetInfo, Peer)
 class TransportSettings(BaseModel):
     """The `[plugin.settings]` of the transport plugin."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     listen: str = Field("127.0.0.1:0", description="HOST:PORT for TCP and UDP (0 = any free port)")
-    key: SecretStr | None = Field(None, description="team key (prefer key_env)")
+    identity: str | None = Field(None, description="this agent's identity bundle from `erni keys issue` "
+                                 "(PEM: key, certificate, authority certificate)")
+    revocations: str | None = Field(None, description="the team's revocation list (CRL) from `erni keys "
+                                    "revoke`; a newer one learned from a peer is written here")
+    key: SecretStr | None = Field(None, description="shared team key instead of identities (prefer key_env)")
     key_env: str = Field("ERNI_TEAM_KEY", description="environment variable holding the team key")
-    insecure: bool = Field(False, description="run without authentication (warned about)")
+    insecure: bool = Field(False, description="run without authentication or encryption (warned about)")
     role: str = "robot"
     capabilities: list[str] = Field(default_factory=list)
     discovery_port: int = Field(47000, ge=0, le=65535, description="shared beacon port; 0 disables")
     beacon_to: list[str] = Field(default_factory=lambda: ["127.255.255.255"],
                                  description="broadcast or unicast hosts that get beacons")
-    beacon_period: float = Field(1.0, gt=0)
-    peer_timeout: float = Field(4.0, gt=0)
+    beacon_period: float = Field(1.0, ge=0.05, le=60.0)
+    peer_timeout: float = Field(4.0, gt=0, le=3600.0)
+    link_deadline: float = Field(30.0, gt=0, le=86400.0, description="a task whose performer is not heard "
+                                 "this long fails with 'link lost' (s)")
     peers: list[str] = Field(default_factory=list, description="static peers, NAME@HOST:PORT")
     senders: int = Field(4, ge=1, le=64)
-    queue_limit: int = Field(1000, ge=1)
+    queue_limit: int = Field(1000, ge=1, le=1_000_000)
     max_frame: int = Field(256 * 1024, ge=1024, le=16 * 1024 * 1024)
-    task_ttl: float = Field(30.0, gt=0, description="give up delivering a task after this long (s)")
-    ack_timeout: float = Field(1.0, gt=0)
-    connect_timeout: float = Field(1.0, gt=0)
+    task_ttl: float = Field(30.0, gt=0, le=86400.0, description="give up delivering a task after this long (s)")
+    ack_timeout: float = Field(1.0, gt=0, le=60.0)
+    connect_timeout: float = Field(1.0, gt=0, le=60.0)
+    max_connections: int = Field(256, ge=1, le=65536, description="TCP connections accepted at once")
+    max_connections_per_host: int = Field(32, ge=1, le=65536, description="... from one address")
+    idle_timeout: float = Field(60.0, gt=0, le=86400.0, description="close a connection idle this long (s)")
+    frame_timeout: float = Field(10.0, gt=0, le=3600.0, description="a frame (and a new connection's first "
+                                 "authenticated frame) must arrive within this time (s)")
     share: list[str] = Field(default_factory=lambda: ["Pose", "NetInfo"],
                              description="object types sent as status to the peers below")
     share_with_roles: list[str] = Field(default_factory=lambda: ["control"],
@@ -83,28 +103,48 @@ class TransportSettings(BaseModel):
         for peer in self.peers:
             name, sep, addr = peer.partition("@")
             if not sep or not name:
-                raise ValueError(f"peers: {peer!r}: expected NAME@HOST:PORT")
+                raise ValueError(f"peers: {peer[:80]!r}: expected NAME@HOST:PORT")
             parse_address(addr)
-        if not self.insecure and not team_key(self.key.get_secret_value() if self.key else None,
-                                              self.key_env):
-            raise ValueError(f"no team key: set key, the {self.key_env} environment variable, "
-                             "or insecure = true")
+        if self.peer_timeout <= self.beacon_period:
+            raise ValueError(f"peer_timeout ({self.peer_timeout:g} s) must be longer than beacon_period "
+                             f"({self.beacon_period:g} s)")
+        if self.identity is not None:
+            if self.insecure:
+                raise ValueError("identity and insecure = true: choose one")
+            self.load_identity()
+        elif not self.insecure and not self.team_key():
+            raise ValueError(f"no identity: set identity = \"KEYS/NAME.pem\" (made by `erni keys issue`), "
+                             f"a team key (key, or the {self.key_env} environment variable), or insecure = true")
         return self
 
+    def team_key(self) -> bytes | None:
+        """The shared team key, if one is configured."""
+        return team_key(self.key.get_secret_value() if self.key else None, self.key_env)
+
+    def load_identity(self) -> Identity | None:
+        """This agent's identity (IdentityError naming the file), or None without one."""
+        if self.identity is None:
+            return None
+        return load_identity(self.identity, self.revocations)
+
     def make_endpoint(self, name: str, inbound_filter: InboundFilter | None = None) -> Endpoint:
-        """Build the endpoint these settings describe."""
-        key = team_key(self.key.get_secret_value() if self.key else None, self.key_env)
-        return Endpoint(name, listen=parse_address(self.listen), key=key, insecure=self.insecure,
+        """Build the endpoint these settings describe (ConfigError if the identity does not fit)."""
+        identity = self.load_identity()
+        limits = Limits(max_connections=self.max_connections, max_connections_per_host=self.max_connections_per_host,
+                        idle_timeout=self.idle_timeout, frame_timeout=self.frame_timeout)
+        return Endpoint(name, listen=parse_address(self.listen), identity=identity,
+                        key=None if identity else self.team_key(), insecure=self.insecure,
                         senders=self.senders, queue_limit=self.queue_limit, max_frame=self.max_frame,
                         ack_timeout=self.ack_timeout, connect_timeout=self.connect_timeout,
                         ttl=self.task_ttl, discovery_port=self.discovery_port or None,
-                        udp_loss=self.udp_loss, role=self.role, inbound_filter=inbound_filter)
+                        udp_loss=self.udp_loss, role=self.role, inbound_filter=inbound_filter, limits=limits,
+                        revocations=Path(self.revocations) if self.revocations else None)
 
 
 class TransportPlugin(Plugin[TransportSettings]):
     """Bridges this agent's blackboard to the other agents of the team."""
 
-
+    essential: ClassVar[bool] = True  # an agent that cannot reach its team must not run deaf
     endpoint_factory: Any = None  # tests may inject a mock network endpoint
     inbound_filter: InboundFilter | None = None
     """Set before the agent starts: `(sender, role) -> bool` decides which verified frames are
@@ -116,10 +156,16 @@ class TransportPlugin(Plugin[TransportSettings]):
             self.endpoint: Endpoint = self.endpoint_factory(self.agent_name)
             self.endpoint.inbound_filter = self.inbound_filter
         else:
-            self.endpoint = s.make_endpoint(self.agent_name, self.inbound_filter)
+            try:
+                self.endpoint = s.make_endpoint(self.agent_name, self.inbound_filter)
+            except IdentityError as err:
+                raise ConfigError(str(err)) from None
         if s.insecure:
             self.log.warning("transport of %s runs WITHOUT authentication (insecure = true): any "
                              "host on the network can task this agent", self.agent_name)
+        elif s.identity is None:
+            self.log.info("transport of %s authenticates with a shared team key: any holder of the key "
+                          "can speak as any agent (give identities on a real team: erni keys)", self.agent_name)
         self.tasks = self.subscribe(Task)
         self.receipts = self.subscribe(Received)
         self.watched = self.subscribe(lambda o: isinstance(o, WATCHED))
@@ -128,14 +174,19 @@ class TransportPlugin(Plugin[TransportSettings]):
         self.shared = self.subscribe(lambda o: type(o).__name__ in shared)
         self.status_in: dict[str, tuple[int, int]] = {}  # uid of a status received -> (epoch, seq)
         self.directory: dict[str, Peer] = {}
+        self.heard_at: dict[str, float] = {}  # peer -> when a session frame of it last arrived (monotonic)
         self.sent_to: dict[str, str] = {}  # task uid -> peer it was sent to
+        self.sent_at: dict[str, float] = {}  # task uid -> when it was sent (monotonic)
+        self.lost: set[str] = set()  # tasks failed because their performer was not heard in time
         self.received_from: dict[str, str] = {}  # task uid -> peer it came from
+        self.reply_to: dict[str, Address] = {}  # task uid -> address of the agent or client it came from
+        self.final_sent: set[str] = set()  # tasks whose final state went back to their requester
         self.last_result: dict[str, tuple[int, int]] = {}  # task uid -> (epoch, seq) applied
         self.pending: dict[str, tuple[str, float]] = {}  # task uid -> (destination, deadline)
-        self.watchers: dict[str, tuple[Address, float]] = {}
+        self.watchers: dict[tuple[str, Address], float] = {}  # (client, its address) -> lease end
         self.learned: set[str] = set()
-        self.addresses: dict[str, Address] = {}
-        self._next_beacon = 0.0  # reply address of every sender, clients included
+        self.addresses: dict[str, Address] = {}  # reply address of every sender, clients included
+        self._next_beacon = 0.0
         for spec in s.peers:
             name, _, addr = spec.partition("@")
             host, port = parse_address(addr)
@@ -154,6 +205,10 @@ class TransportPlugin(Plugin[TransportSettings]):
     def teardown(self) -> None:
         self.endpoint.stop()
 
+    def _degraded(self) -> str:
+        """Why this agent cannot keep new tasks ('' when it can)."""
+        return str(getattr(self._require_agent(), "degraded", "") or "")
+
     # -- each run -------------------------------------------------------------------------
 
     def execute(self) -> None:
@@ -161,8 +216,13 @@ class TransportPlugin(Plugin[TransportSettings]):
         now = time.time()
         for receipt in self.receipts.added:  # after a restart: who gave us which task, and where
             self.received_from.setdefault(receipt.task, receipt.sender)
-            if receipt.address and receipt.sender not in self.addresses:
-                self.addresses[receipt.sender] = parse_address(receipt.address)
+            if receipt.address:
+                try:
+                    addr = parse_address(receipt.address)
+                except ConfigError:
+                    continue
+                self.reply_to.setdefault(receipt.task, addr)
+                self.addresses.setdefault(receipt.sender, addr)
         for task in self.tasks.added:
             if self.rehydrated(task):
                 self._reconcile(task)
@@ -176,10 +236,14 @@ class TransportPlugin(Plugin[TransportSettings]):
         for task in self.tasks.removed:
             dest = self.sent_to.pop(task.uid, None)
             self.pending.pop(task.uid, None)
+            self.sent_at.pop(task.uid, None)
+            self.lost.discard(task.uid)
             if dest:
                 self._send_to_peer(dest, "task.cancel", Cancel(uid=task.uid), reliable=True)
             if self.received_from.pop(task.uid, None) and self.get(f"received:{task.uid}") is not None:
                 self.remove(f"received:{task.uid}")
+            self.reply_to.pop(task.uid, None)
+            self.final_sent.discard(task.uid)
             self.last_result.pop(task.uid, None)
         for info in self.netinfo.added + self.netinfo.changed:
             for n in info.neighbors:
@@ -189,26 +253,30 @@ class TransportPlugin(Plugin[TransportSettings]):
         self._retry_pending(now)
         self._forward_to_watchers(now)
         self._beacon_and_liveness(now)
+        self._check_links()
 
     # -- outgoing -------------------------------------------------------------------------
 
-    def _address_of(self, name: str) -> Address | None:
+    def _address_of(self, name: str, uid: str | None = None) -> Address | None:
         peer = self.directory.get(name)
         if peer is not None and peer.address:
             return parse_address(peer.address)
+        if uid is not None and uid in self.reply_to:  # a client: the address its task came from
+            return self.reply_to[uid]
         return self.addresses.get(name)
 
-    def _send_to_peer(self, name: str, kind: str, body: Any, *, reliable: bool) -> bool:
-        addr = self._address_of(name)
+    def _send_to_peer(self, name: str, kind: str, body: Any, *, reliable: bool, uid: str | None = None) -> bool:
+        addr = self._address_of(name, uid)
         if addr is None:
             return False
-        self.endpoint.send(addr, kind, body, reliable=reliable)
+        self.endpoint.send(addr, kind, body, reliable=reliable, to=name)
         return True
 
     def _send_task(self, task: Task) -> None:
         dest = task.destination
         assert dest is not None
         self.sent_to[task.uid] = dest
+        self.sent_at[task.uid] = time.monotonic()
         if not self._send_to_peer(dest, "task.add", task, reliable=True):
             self.pending[task.uid] = (dest, time.monotonic() + self.settings.task_ttl)
             self.log.info("task %s waits for agent %s to be discovered", task.uid, dest)
@@ -224,6 +292,7 @@ class TransportPlugin(Plugin[TransportSettings]):
                 self._send_task(task)
         origin = self.received_from.get(task.uid)
         if origin and task.result is not None and task.destination in (None, "", me):
+            self.final_sent.discard(task.uid)  # the requester may have missed it while we were away
             self._send_result(origin, task)
 
     def _retry_pending(self, now: float) -> None:
@@ -240,13 +309,34 @@ class TransportPlugin(Plugin[TransportSettings]):
                 self.change(task.with_result(TaskState.FAILED, message=f"unknown agent {dest}: "
                                              "never discovered"))
 
+    def _check_links(self) -> None:
+        """Fail tasks whose performer has not been heard for `link_deadline` seconds."""
+        deadline = self.settings.link_deadline
+        mono = time.monotonic()
+        for uid, dest in list(self.sent_to.items()):
+            if uid in self.lost or uid in self.pending:
+                continue
+            since = max(self.heard_at.get(dest, 0.0), self.sent_at.get(uid, 0.0))
+            if mono - since <= deadline:
+                continue
+            task = self.tasks.get(uid)
+            if task is None or task.done:
+                continue
+            self.lost.add(uid)
+            self.log.warning("task %s: link lost: %s not heard for %.0f s", uid, dest, mono - since)
+            self.change(task.with_result(TaskState.FAILED, message=f"link lost: {dest} not heard for "
+                                         f"{mono - since:.0f} s (link_deadline {deadline:g} s)"))
+            self._send_to_peer(dest, "task.cancel", Cancel(uid=uid), reliable=True)
+
     def _send_result(self, origin: str, task: Task) -> None:
         if task.result is None:
             return
         update = ResultUpdate(uid=task.uid, result=task.result)
-        self._send_to_peer(origin, "task.result", update, reliable=False)
-        if task.done:  # a final state must arrive: send it reliably as well
-            self._send_to_peer(origin, "task.result", update, reliable=True)
+        if not task.done:
+            self._send_to_peer(origin, "task.result", update, reliable=False, uid=task.uid)
+        elif task.uid not in self.final_sent:  # a final state once, and reliably
+            self.final_sent.add(task.uid)
+            self._send_to_peer(origin, "task.result", update, reliable=True, uid=task.uid)
 
     def _undeliverable(self, addr: Address, kind: str, body: Any) -> None:
         if kind == "task.add" and isinstance(body, Task):
@@ -259,22 +349,16 @@ class TransportPlugin(Plugin[TransportSettings]):
     # -- incoming -------------------------------------------------------------------------
 
     def _handle(self, msg: Message) -> None:
+        if msg.hint:  # a broadcast beacon: signed but replayable, so only a hint of presence
+            if msg.kind == "beacon" and msg.role != CLIENT_ROLE:
+                self._hinted(msg)
+            return
         self.addresses[msg.sender] = msg.reply
         if msg.role != CLIENT_ROLE:  # a command-line client is not a peer
             self._heard(msg.sender, msg.reply, msg.epoch, msg.body if msg.kind == "beacon" else None)
         kind, body = msg.kind, msg.body
         if kind == "task.add" and isinstance(body, Task):
-            known = self._board.get(body.uid)
-            if known is not None:  # the requester restarted and re-sent it: tell it where we are
-                if self.received_from.get(body.uid, msg.sender) == msg.sender and isinstance(known, Task):
-                    self.received_from[body.uid] = msg.sender
-                    if known.result is not None:
-                        self._send_result(msg.sender, known)
-                return
-            self.received_from[body.uid] = msg.sender
-            self.add(body)
-            self.add(Received(uid=f"received:{body.uid}", task=body.uid, sender=msg.sender,
-                              address=f"{msg.reply[0]}:{msg.reply[1]}"))
+            self._task_added(msg, body)
         elif kind == "task.rescind" and isinstance(body, Cancel):
             if self.received_from.get(body.uid) == msg.sender and self._board.contains(body.uid):
                 self.log.info("task %s was rescinded by %s (it no longer has it)", body.uid, msg.sender)
@@ -284,6 +368,14 @@ class TransportPlugin(Plugin[TransportSettings]):
                 self.remove(body.uid)
         elif kind == "task.result" and isinstance(body, ResultUpdate):
             self._apply_result(msg, body)
+        elif kind == "task.query" and isinstance(body, Cancel):
+            known = self._board.get(body.uid)
+            if isinstance(known, Task):
+                self.endpoint.send(msg.reply, "task.result", ResultUpdate(uid=known.uid, result=known.result
+                                                                          or AllocationResult()),
+                                   reliable=False, to=msg.sender)
+            else:
+                self.endpoint.send(msg.reply, "task.unknown", body, reliable=False, to=msg.sender)
         elif kind == "status" and isinstance(body, BBObject):
             self._apply_status(msg, body)
         elif kind == "status.remove" and isinstance(body, Cancel):
@@ -291,38 +383,87 @@ class TransportPlugin(Plugin[TransportSettings]):
                 self.remove(body.uid)
         elif kind == "peers.request":
             peers = PeerList(agent=self.agent_name, peers=list(self.directory.values()))
-            self.endpoint.send(msg.reply, "peers.reply", peers, reliable=True)
+            self.endpoint.send(msg.reply, "peers.reply", peers, reliable=True, to=msg.sender)
         elif kind == "watch.request" and isinstance(body, WatchRequest):
-            new = msg.sender not in self.watchers
-            self.watchers[msg.sender] = (msg.reply, time.monotonic() + body.lease)
+            key = (msg.sender, msg.reply)
+            new = key not in self.watchers
+            self.watchers[key] = time.monotonic() + body.lease
             if new:  # start the stream with the current state
                 for obj in self.query(lambda o: isinstance(o, WATCHED)):
-                    self._watch_event(msg.reply, "add", obj)
+                    self._watch_event(key, "add", obj)
+
+    def _task_added(self, msg: Message, body: Task) -> None:
+        known = self._board.get(body.uid)
+        if known is not None:  # the requester restarted and re-sent it: tell it where we are
+            if self.received_from.get(body.uid, msg.sender) == msg.sender and isinstance(known, Task):
+                self.received_from[body.uid] = msg.sender
+                self.reply_to[body.uid] = msg.reply
+                if known.result is not None:
+                    self.final_sent.discard(body.uid)
+                    self._send_result(msg.sender, known)
+            return
+        reason = self._degraded()
+        if reason:  # never acknowledge what this agent cannot keep
+            self.log.warning("refused task %s from %s: %s", body.uid, msg.sender, reason)
+            refusal = AllocationResult(state=TaskState.FAILED, message=f"refused by {self.agent_name}: {reason}")
+            self.endpoint.send(msg.reply, "task.result", ResultUpdate(uid=body.uid, result=refusal),
+                               reliable=True, to=msg.sender)
+            return
+        self.received_from[body.uid] = msg.sender
+        self.reply_to[body.uid] = msg.reply
+        self.add(body)
+        self.add(Received(uid=f"received:{body.uid}", task=body.uid, sender=msg.sender,
+                          address=f"{msg.reply[0]}:{msg.reply[1]}"))
 
     def _apply_result(self, msg: Message, update: ResultUpdate) -> None:
         task = self._board.get(update.uid)
         if task is None:  # a result for a task we no longer have: stale, rescind it there
-            self.endpoint.send(msg.reply, "task.rescind", Cancel(uid=update.uid), reliable=True)
+            self.endpoint.send(msg.reply, "task.rescind", Cancel(uid=update.uid), reliable=True, to=msg.sender)
             return
         if self.sent_to.get(update.uid) != msg.sender:
             return
-        if not isinstance(task, Task) or task.done:
-            return  # a final state is never overwritten
+        if not isinstance(task, Task) or task.done:  # a final state is never overwritten
+            if update.uid in self.lost and not update.result.state.done:  # back too late: stop it there
+                self.endpoint.send(msg.reply, "task.cancel", Cancel(uid=update.uid), reliable=True, to=msg.sender)
+            return
         stamp = (msg.epoch, msg.seq)
         if stamp <= self.last_result.get(update.uid, (0, 0)):
             return  # an older update never overwrites a newer one
         self.last_result[update.uid] = stamp
         self.change(task.evolve(result=update.result), reports=[f"result from {msg.sender}"])
 
+    def _hinted(self, msg: Message) -> None:
+        """A signed beacon: learn where an unknown (or silent) agent may be; a session will tell."""
+        name = msg.sender
+        if not name or name == self.agent_name:
+            return
+        old = self.directory.get(name)
+        address = f"{msg.reply[0]}:{msg.reply[1]}"
+        beacon = msg.body if isinstance(msg.body, Beacon) else Beacon(role=msg.role)
+        if old is None:
+            peer = Peer(uid=f"peer:{name}", name=name, address=address, role=beacon.role,
+                        capabilities=beacon.capabilities)
+            self.directory[name] = peer
+            self.add(peer)
+            self.log.info("agent %s announces itself at %s", name, address)
+        elif not old.up and old.address != address:  # a replayed beacon never moves a peer that is up
+            peer = old.evolve(address=address)
+            self.directory[name] = peer
+            self.change(peer, reports=["moved"])
+        else:
+            return
+        self.endpoint.send(msg.reply, "beacon", self._beacon(), reliable=False, to=name)  # starts a session
+
     def _heard(self, name: str, reply: tuple[str, int], epoch: int, beacon: Any) -> None:
         if not name or name == self.agent_name:
             return
         now = time.time()
+        self.heard_at[name] = time.monotonic()
         old = self.directory.get(name)
         address = f"{reply[0]}:{reply[1]}"
         fields: dict[str, Any] = {"address": address, "epoch": epoch, "last_heard": now, "up": True}
         if isinstance(beacon, Beacon):
-            fields.update(role=beacon.role, capabilities=beacon.capabilities)
+            fields.update(role=beacon.role, capabilities=beacon.capabilities, degraded=beacon.degraded)
         if old is None:
             peer = Peer(uid=f"peer:{name}", name=name, **fields)
             self.directory[name] = peer
@@ -336,31 +477,46 @@ class TransportPlugin(Plugin[TransportSettings]):
             report = "up" if not old.up else ("restarted" if old.epoch and old.epoch != epoch else "heard")
             if report != "heard":
                 self.log.info("peer %s is %s at %s", name, report, address)
-            self.change(peer, reports=[report])
+            reports = [report]
+            if peer.degraded != old.degraded:
+                reports.append("degraded" if peer.degraded else "recovered")
+                if peer.degraded:
+                    self.log.warning("peer %s is degraded: %s", name, peer.degraded)
+                else:
+                    self.log.info("peer %s takes tasks again", name)
+            self.change(peer, reports=reports)
 
     # -- periodic -------------------------------------------------------------------------
 
+    def _beacon(self) -> Beacon:
+        s = self.settings
+        return Beacon(role=s.role, capabilities=s.capabilities, degraded=self._degraded())
+
     def _beacon_and_liveness(self, now: float) -> None:
         s = self.settings
-        if time.monotonic() >= self._next_beacon:
-            self._next_beacon = time.monotonic() + s.beacon_period * 0.9
-            beacon = Beacon(role=s.role, capabilities=s.capabilities)
-            targets: set[Address] = set()
+        mono = time.monotonic()
+        if mono >= self._next_beacon:
+            self._next_beacon = mono + s.beacon_period * 0.9
+            beacon = self._beacon()
+            announced: set[Address] = set()
             if s.discovery_port:
-                targets |= {(host, s.discovery_port) for host in s.beacon_to}
+                announced |= {(host, s.discovery_port) for host in s.beacon_to}
                 for learned in self.learned:  # HOST (beacon port) or HOST:PORT (data port)
                     try:
-                        targets.add(parse_address(learned, s.discovery_port))
-                    except ValueError:
+                        announced.add(parse_address(learned, s.discovery_port))
+                    except ConfigError:
                         continue
-            targets |= {parse_address(p.address) for p in self.directory.values() if p.address}
-            for addr in targets:
-                self.endpoint.send(addr, "beacon", beacon, reliable=False)
+            for addr in announced:
+                self.endpoint.announce(addr, "beacon", beacon)
+            for name, peer in self.directory.items():
+                if peer.address:
+                    self.endpoint.send(parse_address(peer.address), "beacon", beacon, reliable=False, to=name)
         for name, peer in list(self.directory.items()):
-            if peer.up and now - peer.last_heard > s.peer_timeout:
+            silent = mono - self.heard_at.get(name, 0.0)
+            if peer.up and silent > s.peer_timeout:
                 peer = peer.evolve(up=False)
                 self.directory[name] = peer
-                self.log.warning("peer %s is down: not heard for %.1f s", name, now - peer.last_heard)
+                self.log.warning("peer %s is down: not heard for %.1f s", name, silent)
                 self.change(peer, reports=["down"])
 
     def _share_status(self) -> None:
@@ -377,7 +533,8 @@ class TransportPlugin(Plugin[TransportSettings]):
             roles = s.share_with.get(type(obj).__name__, s.share_with_roles)
             for peer in peers:
                 if peer.role in roles:  # removals reliably: a stale object would stay forever
-                    self.endpoint.send(parse_address(peer.address), kind, body, reliable=kind != "status")
+                    self.endpoint.send(parse_address(peer.address), kind, body, reliable=kind != "status",
+                                       to=peer.name)
 
     def _apply_status(self, msg: Message, obj: BBObject) -> None:
         stamp = (msg.epoch, msg.seq)
@@ -394,18 +551,18 @@ class TransportPlugin(Plugin[TransportSettings]):
 
     def _forward_to_watchers(self, now: float) -> None:
         mono = time.monotonic()
-        for name, (_, until) in list(self.watchers.items()):
+        for key, until in list(self.watchers.items()):
             if until < mono:
-                del self.watchers[name]
+                del self.watchers[key]
         if not self.watchers:
             return
         for op, objs in (("add", self.watched.added), ("change", self.watched.changed),
                          ("remove", self.watched.removed)):
             for obj in objs:
-                for addr, _ in self.watchers.values():
-                    self._watch_event(addr, op, obj)
+                for key in self.watchers:
+                    self._watch_event(key, op, obj)
 
-    def _watch_event(self, addr: Address, op: str, obj: BBObject) -> None:
+    def _watch_event(self, watcher: tuple[str, Address], op: str, obj: BBObject) -> None:
         event = WatchEvent(agent=self.agent_name, op=op, type=type(obj).__name__,
                            data=obj.model_dump(mode="json"))
-        self.endpoint.send(addr, "watch.event", event, reliable=False)
+        self.endpoint.send(watcher[1], "watch.event", event, reliable=False, to=watcher[0])

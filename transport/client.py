@@ -1,8 +1,10 @@
 """A short-lived client of a running team (the `erni task`, `erni peers`, `erni watch` commands).
 
-The client is an endpoint of its own named `cli-<pid>`, in role `cli` (agents never list it as a peer). It reaches the team through one
-agent: the one given with `--via HOST:PORT`, or, without it, one found by listening for
-beacons on the discovery port.
+The client is an endpoint of its own in role `cli` (agents never list it as a peer). It proves
+who it is with an identity of role `cli` (`--identity FILE` or `ERNI_IDENTITY`, made by
+`erni keys issue DIR NAME --role cli`), or with the shared team key (`ERNI_TEAM_KEY`, named
+`cli-<pid>` then). It reaches the team through one agent: the one given with `--via HOST:PORT`,
+or, without it, one found by listening for beacons on the discovery port.
 """
 
 from __future__ import annotations
@@ -13,12 +15,16 @@ import queue
 import socket
 import sys
 import time
+from pathlib import Path
 from typing import Any
 
 from erni.blackboard.errors import ErniError
-from erni.blackboard.schemas import Beacon
+from erni.blackboard.schemas import Beacon, ResultUpdate
 from erni.transport.endpoint import CLIENT_ROLE, Address, Endpoint, team_key
+from erni.transport.identity import load_identity
 from erni.transport.wire import Message
+
+IDENTITY_ENV = "ERNI_IDENTITY"
 
 
 class ClientError(ErniError):
@@ -26,13 +32,18 @@ class ClientError(ErniError):
 
 
 class Client:
-    """Send requests to one agent of the team and receive what it sends back."""
+    """Send requests to one agent of the team and receive what it sends back.
 
-    def __init__(self, via: Address | None, *, discovery_port: int = 47000, key_env: str = "ERNI_TEAM_KEY",
-                 insecure: bool = False, discover_seconds: float = 3.0):
-        key = team_key(None, key_env)
-        if key is None and not insecure:
-            print(f"erni: {key_env} is not set: sending unauthenticated frames "
+    A final result of a task is delivered once, however many copies arrive.
+    """
+
+    def __init__(self, via: Address | None, *, discovery_port: int = 47000, identity: str | Path | None = None,
+                 key_env: str = "ERNI_TEAM_KEY", insecure: bool = False, discover_seconds: float = 3.0):
+        path = identity or os.environ.get(IDENTITY_ENV) or None
+        ident = load_identity(path) if path and not insecure else None
+        key = None if ident is not None or insecure else team_key(None, key_env)
+        if ident is None and key is None and not insecure:
+            print(f"erni: neither {IDENTITY_ENV} nor {key_env} is set: sending unauthenticated frames "
                   "(only agents with insecure = true will listen)", file=sys.stderr)
             insecure = True
         self.via = via
@@ -41,15 +52,26 @@ class Client:
         self.inbox: queue.Queue[Message] = queue.Queue()
         self.failed: queue.Queue[str] = queue.Queue()
         self.delivered: set[str] = set()
+        self.finals: set[str] = set()
+        self.duplicates = 0
         local = _local_ip_towards(via[0]) if via else "127.0.0.1"
-        self.endpoint = Endpoint(f"cli-{os.getpid()}", listen=(local, 0), key=key, insecure=insecure,
+        name = ident.name if ident is not None else f"cli-{os.getpid()}"
+        self.endpoint = Endpoint(name, listen=(local, 0), identity=ident, key=key, insecure=insecure,
                                  senders=1, discovery_port=None if via else discovery_port, role=CLIENT_ROLE)
         self.endpoint.log.propagate = False  # a client prints its own errors
         self.endpoint.log.addHandler(logging.NullHandler())
-        self.endpoint.on_message = self.inbox.put
+        self.endpoint.on_message = self._received
         self.endpoint.on_undeliverable = lambda addr, mid, kind, body: self.failed.put(mid)
         self.endpoint.on_delivered = lambda addr, mid: self.delivered.add(mid)
         self.beacons: dict[str, tuple[Address, Beacon]] = {}
+
+    def _received(self, msg: Message) -> None:
+        if msg.kind == "task.result" and isinstance(msg.body, ResultUpdate) and msg.body.result.state.done:
+            if msg.body.uid in self.finals:
+                self.duplicates += 1
+                return
+            self.finals.add(msg.body.uid)
+        self.inbox.put(msg)
 
     def __enter__(self) -> Client:
         self.endpoint.start()
@@ -97,7 +119,8 @@ class Client:
             except queue.Empty:
                 return
             if failed == msg_id:
-                raise ClientError("could not reach the agent: no acknowledgement within 5 s")
+                raise ClientError("could not reach the agent: no acknowledgement within 5 s (is it running, "
+                                  "and does it trust this identity?)")
 
 
 def _local_ip_towards(host: str) -> str:

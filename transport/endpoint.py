@@ -1,14 +1,25 @@
-"""An agent's network endpoint: one receive thread, a pool of sender threads, TCP and UDP.
+"""An agent's network endpoint: one receive thread, a pool of sender threads, TCP and UDP, sessions.
 
-Reliable messages travel over TCP, one connection per destination, each acknowledged by
-message id, retried with exponential backoff until their time to live runs out, and sent in
-order per destination (one sender thread serves a destination at a time). Fast messages
-travel as UDP datagrams from a bounded queue that drops the oldest. Nothing here ever runs
-inside a blackboard transaction: callers enqueue and return at once.
+Every message to a peer travels in a session with that peer's current instance (`session.py`):
+the first message to an address starts a handshake, which the sender pool drives without
+blocking (the handshake frames are retransmitted on a timer; the answer wakes the
+destination up again). Reliable messages travel over TCP, one connection per destination,
+each acknowledged by message id, retried with exponential backoff until their time to live
+runs out, and sent in order per destination (one sender thread serves a destination at a
+time). Fast messages travel as UDP datagrams from a bounded queue that drops the oldest.
+Beacons for unknown receivers are signed instead (`announce`). Nothing here ever runs inside a
+blackboard transaction: callers enqueue and return at once.
+
+Before a frame is authenticated nothing is spent without a bound (`limits.py`): connections
+per host and in total, bytes of incomplete frames, idle and partial-frame timeouts, handshakes
+and beacon signatures per second.
 """
 
 from __future__ import annotations
 
+import base64
+import errno
+import hashlib
 import heapq
 import itertools
 import logging
@@ -18,27 +29,51 @@ import selectors
 import socket
 import threading
 import time
-from collections import deque
+from collections import OrderedDict, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from pydantic import BaseModel
 
 from erni.blackboard import new_uid
 from erni.blackboard.errors import ConfigError, NetworkError
+from erni.transport.identity import Identity, IdentityError, read_crl, write_public
+from erni.transport.limits import HostBuckets, Limits, TokenBucket
+from erni.transport.session import (
+    Auth,
+    IdentityAuth,
+    Initiation,
+    Session,
+    TeamKeyAuth,
+    complete,
+    cut_signed,
+    initiate,
+    parse_hello,
+    respond,
+)
 from erni.transport.wire import (
+    BEACON,
+    DATA,
     DEFAULT_MAX_FRAME,
+    HELLO,
+    HINT,
+    KIND,
+    KINDS,
+    PLAIN,
+    REPLY,
+    SESSION_END,
     UDP_MAX_FRAME,
     Envelope,
     FrameError,
     Message,
-    ReplayWindow,
     SeenIds,
     StreamDecoder,
     body_of,
-    decode,
-    encode,
+    check_frame,
+    encode_plain,
+    parse_envelope,
 )
 
 Address = tuple[str, int]
@@ -49,20 +84,22 @@ CLIENT_ROLE = "cli"
 InboundFilter = Callable[[str, str], bool]
 """`(sender, role) -> bool`: whether a verified frame may be delivered (False: dropped and counted)."""
 
+INTERNAL = ("ack", "crl")  # kinds the endpoint handles itself
+
 
 def parse_address(text: str, default_port: int = 0) -> Address:
-    """Parse `host:port` (or `host`, with a default port); raise ValueError naming the problem."""
+    """Parse `host:port` (or `host`, with a default port); raise ConfigError naming the problem."""
     host, sep, port = text.strip().rpartition(":")
     if not sep:
         host, port = text.strip(), str(default_port)
     if not host:
-        raise ConfigError(f"address {text!r}: expected HOST:PORT")
+        raise ConfigError(f"address {text[:80]!r}: expected HOST:PORT")
     try:
         number = int(port)
     except ValueError:
-        raise ConfigError(f"address {text!r}: port {port!r} is not a number") from None
+        raise ConfigError(f"address {text[:80]!r}: port {port[:20]!r} is not a number") from None
     if not 0 <= number <= 65535:
-        raise ConfigError(f"address {text!r}: port {number} is outside 0..65535")
+        raise ConfigError(f"address {text[:80]!r}: port {number} is outside 0..65535")
     return host, number
 
 
@@ -73,6 +110,7 @@ class _Outgoing:
     type: str | None
     body: Any
     deadline: float
+    to: str = ""
     attempts: int = 0
 
 
@@ -81,12 +119,33 @@ class _Dest:
     addr: Address
     reliable: deque[_Outgoing] = field(default_factory=deque)
     fast: deque[_Outgoing] = field(default_factory=deque)
+    announce: deque[_Outgoing] = field(default_factory=deque)
     sock: socket.socket | None = None
+    sock_used: float = 0.0
     decoder: StreamDecoder | None = None
     busy: bool = False
-    queued: bool = False
+    ready: bool = False
+    again: bool = False
+    gen: int = 0
     next_try: float = 0.0
     backoff: float = 0.0
+    handshake: Initiation | None = None
+    hs_backoff: float = 0.0
+    hs_not_before: float = 0.0
+
+    def has_work(self) -> bool:
+        return bool(self.fast or self.reliable or self.announce)
+
+
+@dataclass
+class _Conn:
+    sock: socket.socket
+    peer: Address
+    decoder: StreamDecoder
+    opened: float
+    last_frame: float
+    partial_since: float | None = None
+    authed: bool = False
 
 
 class _RateLimitedLog:
@@ -108,27 +167,44 @@ class _RateLimitedLog:
 
 
 class Endpoint:
-    """Sockets and threads of one agent; deliver verified messages to `on_message`."""
+    """Sockets and threads of one agent; deliver verified messages to `on_message`.
 
-    def __init__(self, name: str, *, listen: Address = ("127.0.0.1", 0), key: bytes | None = None,
-                 insecure: bool = False, senders: int = 4, queue_limit: int = 1000,
-                 max_frame: int = DEFAULT_MAX_FRAME, ack_timeout: float = 1.0,
-                 connect_timeout: float = 1.0, retry_base: float = 0.05, retry_max: float = 2.0,
-                 ttl: float = 30.0, discovery_port: int | None = None, epoch: int | None = None,
-                 udp_loss: float = 0.0, seed: int | None = None, role: str = "",
-                 inbound_filter: InboundFilter | None = None):
-        if not key and not insecure:
-            raise ConfigError("no team key: give a key or run with insecure = true")
+    Give an `identity` (per-agent certificate), or a shared team `key`, or `insecure=True`.
+    """
+
+    def __init__(self, name: str, *, listen: Address = ("127.0.0.1", 0), identity: Identity | None = None,
+                 key: bytes | None = None, insecure: bool = False, senders: int = 4, queue_limit: int = 1000,
+                 max_frame: int = DEFAULT_MAX_FRAME, ack_timeout: float = 1.0, connect_timeout: float = 1.0,
+                 retry_base: float = 0.05, retry_max: float = 2.0, ttl: float = 30.0,
+                 discovery_port: int | None = None, udp_loss: float = 0.0, seed: int | None = None,
+                 role: str = "", inbound_filter: InboundFilter | None = None, limits: Limits | None = None,
+                 revocations: str | Path | None = None, handshake_timeout: float | None = None):
+        self.auth: Auth | None
+        if identity is not None:
+            if identity.name != name:
+                raise ConfigError(f"the identity is issued to {identity.name!r}, not to agent {name!r}")
+            if role and identity.role != role:
+                raise ConfigError(f"the identity of {name} is issued for role {identity.role!r}, not {role!r}")
+            role = identity.role
+            self.auth = IdentityAuth(identity)
+        elif key:
+            self.auth = TeamKeyAuth(name, role, key)
+        elif insecure:
+            self.auth = None
+        else:
+            raise ConfigError("no identity and no team key: give one, or run with insecure = true")
         self.name = name
+        self.identity = identity
+        self.revocations = Path(revocations) if revocations else None
+        self._crl_mtime = 0.0
         self._listen = listen
-        self._sign_key = key or b""
-        self._verify_key = None if insecure else key
-        self.insecure = insecure
+        self.insecure = self.auth is None
         self.senders = senders
         self.queue_limit = queue_limit
         self.max_frame = max_frame
         self.ack_timeout = ack_timeout
         self.connect_timeout = connect_timeout
+        self.handshake_timeout = handshake_timeout or max(1.0, connect_timeout)
         self.retry_base, self.retry_max, self.ttl = retry_base, retry_max, ttl
         self.discovery_port = discovery_port
         if not 0.0 <= udp_loss <= 1.0:
@@ -137,19 +213,32 @@ class Endpoint:
         self._rng = random.Random(seed)
         self.role = role
         self.inbound_filter = inbound_filter
-        self.epoch = epoch if epoch is not None else time.time_ns()
+        self.limits = limits or Limits()
+        self.inst = os.urandom(16).hex()
         self._seq = itertools.count(1)
         self.log = logging.getLogger(f"erni.{name}.transport")
         self._drops = _RateLimitedLog(self.log)
         self.counters: dict[str, int] = {}
         self._counter_lock = threading.Lock()
-        self._replay = ReplayWindow()
-        self._replay_lock = threading.Lock()
         self._seen = SeenIds()
+        # sessions (guarded by _sess_lock)
+        self._sess_lock = threading.RLock()
+        self._by_sid: OrderedDict[bytes, Session] = OrderedDict()
+        self._by_addr: dict[Address, Session] = {}
+        self._answers: dict[str, tuple[bytes, Session, float]] = {}  # digest of an 'H' -> our 'R'
+        self._initiations: dict[str, tuple[Initiation, _Dest]] = {}
+        self._completed: OrderedDict[str, None] = OrderedDict()
+        self._instances: OrderedDict[tuple[str, str], int] = OrderedDict()
+        self._last_epoch: dict[str, int] = {}
+        self._hs_hosts = HostBuckets(self.limits.handshakes_per_host)
+        self._hs_total = TokenBucket(self.limits.handshakes_total)
+        self._beacon_bucket = TokenBucket(self.limits.beacons_total)
+        self._hint_hosts = HostBuckets(2.0)
+        # sender pool
         self._dests: dict[Address, _Dest] = {}
         self._cond = threading.Condition()
         self._ready: deque[_Dest] = deque()
-        self._delayed: list[tuple[float, int, _Dest]] = []
+        self._delayed: list[tuple[float, int, int, _Dest]] = []
         self._tick = itertools.count()
         self._threads: list[threading.Thread] = []
         self._stopping = False
@@ -161,28 +250,17 @@ class Endpoint:
     # -- counters -------------------------------------------------------------------------
 
     def count(self, name: str, n: int = 1) -> None:
-        """Add to a named counter (sent, received, dropped.auth, dropped.queue, ...)."""
+        """Add to a named counter (thread-safe)."""
         with self._counter_lock:
             self.counters[name] = self.counters.get(name, 0) + n
 
     # -- life cycle -----------------------------------------------------------------------
 
     def start(self) -> None:
-        """Bind the sockets and start the receive thread and the sender pool."""
+        """Bind the sockets and start the receive thread and the sender pool (NetworkError if it cannot)."""
         self._stopping = False
-        self._udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self._udp.setsockopt(socket.SOL_SOCKET, socket.SO_BROADCAST, 1)
-        self._tcp = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-        self._tcp.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        host, port = self._listen
-        try:
-            self._tcp.bind((host, port))
-            self._udp.bind((host, self._tcp.getsockname()[1]))
-        except OSError as err:
-            self._udp.close()
-            self._tcp.close()
-            raise NetworkError(err.errno, f"cannot listen on {host}:{port}: {err.strerror}") from None
-        self._tcp.listen(64)
+        self._tcp, self._udp = self._bind_pair()
+        self._tcp.listen(128)
         self._tcp.setblocking(False)
         self._udp.setblocking(False)
         self.address = self._tcp.getsockname()[:2]
@@ -191,7 +269,13 @@ class Endpoint:
             self._disc = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
             self._disc.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
             self._disc.setsockopt(socket.SOL_SOCKET, socket.SO_BROADCAST, 1)
-            self._disc.bind(("", self.discovery_port))
+            try:
+                self._disc.bind(("", self.discovery_port))
+            except OSError as err:
+                for s in (self._disc, self._tcp, self._udp):
+                    s.close()
+                raise NetworkError(f"cannot listen for beacons on UDP port {self.discovery_port}: "
+                                   f"{err.strerror or err}") from None
             self._disc.setblocking(False)
         self._wake_r, self._wake_w = socket.socketpair()
         self._wake_r.setblocking(False)
@@ -202,6 +286,33 @@ class Endpoint:
             t = threading.Thread(target=self._send_loop, name=f"erni-{self.name}-net-tx-{i}", daemon=True)
             t.start()
             self._threads.append(t)
+
+    def _bind_pair(self) -> tuple[socket.socket, socket.socket]:
+        """TCP and UDP sockets on one port; with port 0, retry until both get the same free number."""
+        host, port = self._listen
+        attempts = 1 if port else 32
+        for attempt in range(attempts):
+            tcp = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+            tcp.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            udp.setsockopt(socket.SOL_SOCKET, socket.SO_BROADCAST, 1)
+            which, number = "TCP", port
+            try:
+                tcp.bind((host, port))
+                which, number = "UDP", tcp.getsockname()[1]
+                udp.bind((host, number))
+            except OSError as err:
+                tcp.close()
+                udp.close()
+                if port == 0 and which == "UDP" and err.errno == errno.EADDRINUSE and attempt < attempts - 1:
+                    continue  # the free TCP port is taken for UDP: draw another
+                raise NetworkError(f"cannot listen on {host}:{number} ({which}): {err.strerror or err}") from None
+            if tcp.getsockname()[1] != udp.getsockname()[1]:  # never expected; checked, not assumed
+                tcp.close()
+                udp.close()
+                raise NetworkError(f"cannot listen on {host}:{port}: TCP and UDP ports differ")
+            return tcp, udp
+        raise NetworkError(f"cannot listen on {host}:0: no port free for both TCP and UDP")  # pragma: no cover
 
     def stop(self, timeout: float = 1.0) -> None:
         """Stop every thread and close every socket."""
@@ -224,22 +335,131 @@ class Endpoint:
         for s in (self._udp, self._tcp, self._disc, self._wake_r, self._wake_w):
             _close(s)
 
+    # -- sessions -------------------------------------------------------------------------
+
+    def session_with(self, addr: Address) -> Session | None:
+        """The confirmed session used to send to `addr` now (None: the next send starts one)."""
+        with self._sess_lock:
+            session = self._by_addr.get(addr)
+            if session is None or session.stale or session.sid not in self._by_sid:
+                return None
+            return session
+
+    def _epoch(self, name: str, inst: str) -> int:
+        """This receiver's count of `name`'s instances: 1, 2 ... in the order they were confirmed."""
+        key = (name, inst)
+        epoch = self._instances.get(key)
+        if epoch is None:
+            epoch = self._instances[key] = self._last_epoch.get(name, 0) + 1
+            self._last_epoch[name] = epoch
+            if len(self._instances) > 8192:
+                self._instances.popitem(last=False)
+        return epoch
+
+    def _confirm(self, session: Session) -> None:
+        """A session is trusted: send on it from now on; forget older instances of that peer there."""
+        with self._sess_lock:
+            session.confirmed = True
+            session.epoch = self._epoch(session.peer, session.inst)
+            self._by_sid[session.sid] = session
+            for sid, other in list(self._by_sid.items()):
+                if other is not session and other.addr == session.addr and other.inst != session.inst:
+                    del self._by_sid[sid]
+            self._by_addr[session.addr] = session
+            while len(self._by_sid) > self.limits.max_sessions:
+                self._by_sid.popitem(last=False)
+        if self.identity is not None and session.crl < self.identity.trust.crl_number:
+            self._push_crl(session)
+        with self._cond:
+            dest = self._dests.get(session.addr)
+            if dest is not None:
+                dest.hs_backoff = dest.hs_not_before = 0.0
+                if dest.has_work():
+                    self._make_ready(dest)
+
+    def _forget(self, keep: Callable[[Session], bool]) -> int:
+        with self._sess_lock:
+            gone = [sid for sid, s in self._by_sid.items() if not keep(s)]
+            for sid in gone:
+                session = self._by_sid.pop(sid)
+                if self._by_addr.get(session.addr) is session:
+                    del self._by_addr[session.addr]
+        return len(gone)
+
+    # -- revocation -----------------------------------------------------------------------
+
+    def _push_crl(self, session: Session) -> None:
+        assert self.identity is not None
+        der = self.identity.trust.crl_der
+        if der:
+            self.send(session.addr, "crl", base64.b64encode(der).decode(), reliable=True, to=session.peer)
+
+    def _adopt_crl(self, der: bytes, source: str) -> None:
+        """Take a newer revocation list: drop revoked peers, keep it, pass it on."""
+        if self.identity is None or not self.identity.trust.adopt(der):
+            return
+        trust = self.identity.trust
+        self.log.warning("revocation list %d from %s: %d certificate(s) revoked", trust.crl_number, source,
+                         len(trust.revoked))
+        dropped = self._forget(lambda s: s.serial is None or s.serial not in trust.revoked)
+        if dropped:
+            self.count("sessions.revoked", dropped)
+        if self.revocations is not None and source != str(self.revocations):
+            try:
+                write_public(self.revocations, der)
+                self._crl_mtime = self.revocations.stat().st_mtime
+            except OSError as err:
+                self.log.warning("cannot keep the revocation list in %s: %s", self.revocations, err)
+        with self._sess_lock:
+            behind = [s for s in self._by_sid.values() if s.confirmed and s.crl < trust.crl_number]
+        for session in behind:
+            session.crl = trust.crl_number
+            self._push_crl(session)
+
+    def _reload_crl(self) -> None:
+        if self.revocations is None or self.identity is None:
+            return
+        try:
+            mtime = self.revocations.stat().st_mtime
+        except OSError:
+            return
+        if mtime == self._crl_mtime:
+            return
+        self._crl_mtime = mtime
+        try:
+            from cryptography.hazmat.primitives.serialization import Encoding
+
+            der = read_crl(self.revocations).public_bytes(Encoding.DER)
+        except IdentityError as err:
+            self.log.warning("%s", err)
+            return
+        self._adopt_crl(der, str(self.revocations))
+
     # -- sending --------------------------------------------------------------------------
 
     def send(self, addr: Address, kind: str, body: BaseModel | Any = None, *, reliable: bool,
-             msg_id: str | None = None, ttl: float | None = None) -> str:
-        """Queue a message for `addr`; return its id. Never blocks on the network."""
+             msg_id: str | None = None, ttl: float | None = None, to: str | None = None) -> str:
+        """Queue a message for `addr` (the agent `to`, when known); return its id. Never blocks."""
+        return self._enqueue(addr, kind, body, "reliable" if reliable else "fast", msg_id, ttl, to)
+
+    def announce(self, addr: Address, kind: str, body: BaseModel | Any = None) -> str:
+        """Queue a signed, sessionless datagram for receivers not known yet (beacons)."""
+        return self._enqueue(addr, kind, body, "announce", None, None, None)
+
+    def _enqueue(self, addr: Address, kind: str, body: Any, lane: str, msg_id: str | None,
+                 ttl: float | None, to: str | None) -> str:
         msg_id = msg_id or new_uid()
         type_name = type(body).__name__ if isinstance(body, BaseModel) else None
         payload = body.model_dump(mode="json") if isinstance(body, BaseModel) else body
-        out = _Outgoing(msg_id, kind, type_name, payload, time.monotonic() + (ttl or self.ttl))
+        out = _Outgoing(msg_id, kind, type_name, payload, time.monotonic() + (ttl or self.ttl), to or "")
+        undeliverable = False
         with self._cond:
             if self._stopping:
                 return msg_id
             dest = self._dests.get(addr)
             if dest is None:
                 dest = self._dests[addr] = _Dest(addr)
-            if reliable:
+            if lane == "reliable":
                 if len(dest.reliable) >= self.queue_limit:
                     self.count("dropped.queue_full")
                     self._drops.warning("queue", f"reliable queue to {addr[0]}:{addr[1]} is full "
@@ -247,30 +467,55 @@ class Endpoint:
                     undeliverable = True
                 else:
                     dest.reliable.append(out)
-                    undeliverable = False
             else:
-                if len(dest.fast) >= self.queue_limit:
-                    dest.fast.popleft()
+                queue = dest.fast if lane == "fast" else dest.announce
+                if len(queue) >= self.queue_limit:
+                    queue.popleft()
                     self.count("dropped.fast_oldest")
-                dest.fast.append(out)
-                undeliverable = False
-            self._make_ready(dest)
+                queue.append(out)
+            if not undeliverable:
+                self._make_ready(dest)
         if undeliverable:
             self.on_undeliverable(addr, msg_id, kind, body)
         return msg_id
 
     def _make_ready(self, dest: _Dest) -> None:
-        # under self._cond
-        if not dest.busy and not dest.queued:
-            dest.queued = True
+        # under self._cond: serve this destination now (a delayed wake-up of it becomes stale)
+        if dest.busy:
+            dest.again = True
+        elif not dest.ready:
+            dest.gen += 1
+            dest.ready = True
             self._ready.append(dest)
             self._cond.notify()
 
-    def _frame(self, out: _Outgoing, max_frame: int | None = None) -> bytes:
-        env = Envelope.model_construct(v=1, sender=self.name, role=self.role, reply=self.address, epoch=self.epoch,
-                                       seq=next(self._seq), id=out.id, kind=out.kind, type=out.type,
-                                       body=out.body)  # our own fields: no need to validate
-        return encode(env, self._sign_key, max_frame or self.max_frame)
+    def _schedule(self, dest: _Dest, when: float) -> None:
+        # under self._cond: serve this destination at `when`
+        if dest.busy or dest.ready:
+            return
+        dest.gen += 1
+        heapq.heappush(self._delayed, (when, next(self._tick), dest.gen, dest))
+        self._cond.notify()
+
+    def _envelope(self, out: _Outgoing, to: str) -> bytes:
+        env = Envelope.model_construct(v=2, sender=self.name, role=self.role, to=to, inst=self.inst,
+                                       reply=self.address, seq=next(self._seq), id=out.id, kind=out.kind,
+                                       type=out.type, body=out.body)  # our own fields: no need to validate
+        return env.model_dump_json().encode()
+
+    def _frame(self, out: _Outgoing, session: Session | None, max_frame: int) -> bytes:
+        if session is None:
+            env = Envelope.model_construct(v=2, sender=self.name, role=self.role, to=out.to, inst=self.inst,
+                                           reply=self.address, seq=next(self._seq), id=out.id, kind=out.kind,
+                                           type=out.type, body=out.body)
+            return encode_plain(env, max_frame)
+        return session.seal(self._envelope(out, session.peer), max_frame)
+
+    def _sendto(self, frame: bytes, addr: Address) -> None:
+        if self.udp_loss and self._rng.random() < self.udp_loss:
+            self.count("dropped.injected")
+            return
+        self._udp.sendto(frame, addr)
 
     def _send_loop(self) -> None:
         while True:
@@ -279,44 +524,57 @@ class Endpoint:
                 while not self._stopping:
                     now = time.monotonic()
                     while self._delayed and self._delayed[0][0] <= now:
-                        _, _, d = heapq.heappop(self._delayed)
-                        d.queued = False
-                        self._make_ready(d)
+                        _, _, gen, d = heapq.heappop(self._delayed)
+                        if gen == d.gen:
+                            self._make_ready(d)
                     if self._ready:
                         dest = self._ready.popleft()
-                        dest.queued = False
+                        dest.ready = False
                         dest.busy = True
                         break
-                    wait = self._delayed[0][0] - now if self._delayed else None
-                    self._cond.wait(wait)
+                    self._cond.wait(self._delayed[0][0] - now if self._delayed else None)
                 if self._stopping or dest is None:
                     return
+            when: float | None = None
             try:
-                self._service(dest)
+                when = self._service(dest)
             except Exception:  # never lose a sender thread
                 self.log.exception("sender failed on %s:%s", *dest.addr)
+                when = time.monotonic() + self.retry_max
             with self._cond:
                 dest.busy = False
-                if dest.fast or dest.reliable:
-                    if dest.reliable and not dest.fast and dest.next_try > time.monotonic():
-                        dest.queued = True
-                        heapq.heappush(self._delayed, (dest.next_try, next(self._tick), dest))
-                        self._cond.notify()
-                    else:
+                again, dest.again = dest.again, False
+                if dest.has_work():
+                    if again or when is None or when <= time.monotonic():
                         self._make_ready(dest)
+                    else:
+                        self._schedule(dest, when)
 
-    def _service(self, dest: _Dest) -> None:
-        while True:  # fast messages first: they are cheap and never wait
+    def _service(self, dest: _Dest) -> float | None:
+        """Send what can go now; return when to come back (None: when there is new work)."""
+        while True:  # signed announcements first: they need no session
+            with self._cond:
+                out = dest.announce.popleft() if dest.announce else None
+            if out is None:
+                break
+            self._announce(dest, out)
+        session: Session | None = None
+        if self.auth is not None:
+            session = self.session_with(dest.addr)
+            if session is None:
+                return self._handshake_step(dest)
+        while True:  # fast messages: they are cheap and never wait
             with self._cond:
                 out = dest.fast.popleft() if dest.fast else None
             if out is None:
                 break
+            if session is not None and out.to and out.to != session.peer:
+                self.count("dropped.wrong_peer")
+                self._drops.warning("wrong_peer", f"not sent: {dest.addr[0]}:{dest.addr[1]} is "
+                                    f"{session.peer}, not {out.to}")
+                continue
             try:
-                frame = self._frame(out, min(self.max_frame, UDP_MAX_FRAME))
-                if self.udp_loss and self._rng.random() < self.udp_loss:
-                    self.count("dropped.injected")
-                    continue
-                self._udp.sendto(frame, dest.addr)
+                self._sendto(self._frame(out, session, min(self.max_frame, UDP_MAX_FRAME)), dest.addr)
                 self.count("sent.fast")
             except FrameError as err:
                 self.count("dropped.too_big")
@@ -325,22 +583,27 @@ class Endpoint:
                 self.count("dropped.fast_error")
                 self._drops.warning("udp", f"UDP send to {dest.addr[0]}:{dest.addr[1]} failed: {err}")
         for _ in range(32):  # then a batch of reliable ones, in order
-            if time.monotonic() < dest.next_try or self._stopping:
-                return
+            now = time.monotonic()
+            if now < dest.next_try:
+                return dest.next_try
+            if self._stopping:
+                return None
             with self._cond:
                 out = dest.reliable[0] if dest.reliable else None
             if out is None:
-                return
-            if time.monotonic() > out.deadline:
+                return None
+            if self._expired(dest, out, now):
+                continue
+            if session is not None and out.to and out.to != session.peer:
                 with self._cond:
                     dest.reliable.popleft()
-                self.count("dropped.expired")
-                self._drops.warning("expired", f"gave up on {out.kind} {out.id} to "
-                                    f"{dest.addr[0]}:{dest.addr[1]} after {out.attempts} attempt(s)")
+                self.count("dropped.wrong_peer")
+                self._drops.warning("wrong_peer", f"{out.kind} {out.id} not delivered: {dest.addr[0]}:"
+                                    f"{dest.addr[1]} is {session.peer}, not {out.to}")
                 self.on_undeliverable(dest.addr, out.id, out.kind, out.body)
                 continue
             out.attempts += 1
-            if self._deliver(dest, out):
+            if self._deliver(dest, out, session):
                 with self._cond:
                     if dest.reliable and dest.reliable[0] is out:
                         dest.reliable.popleft()
@@ -353,11 +616,87 @@ class Endpoint:
                 dest.backoff = min(self.retry_max, max(self.retry_base, dest.backoff * 2))
                 dest.next_try = time.monotonic() + dest.backoff
                 self.count("retries")
-                return
+                if session is not None and self.session_with(dest.addr) is None:
+                    return None  # the peer does not know the session: a new handshake, at once
+                return dest.next_try
+        return None
 
-    def _deliver(self, dest: _Dest, out: _Outgoing) -> bool:
+    def _expired(self, dest: _Dest, out: _Outgoing, now: float) -> bool:
+        if now <= out.deadline:
+            return False
+        with self._cond:
+            if dest.reliable and dest.reliable[0] is out:
+                dest.reliable.popleft()
+        self.count("dropped.expired")
+        self._drops.warning("expired", f"gave up on {out.kind} {out.id} to "
+                            f"{dest.addr[0]}:{dest.addr[1]} after {out.attempts} attempt(s)")
+        self.on_undeliverable(dest.addr, out.id, out.kind, out.body)
+        return True
+
+    def _handshake_step(self, dest: _Dest) -> float | None:
+        """Start, retransmit or give up a handshake with `dest`; return when to look again."""
+        assert self.auth is not None
+        now = time.monotonic()
+        while True:
+            with self._cond:
+                out = dest.reliable[0] if dest.reliable else None
+            if out is None or not self._expired(dest, out, now):
+                break
+        if not dest.has_work():
+            return None
+        init = dest.handshake
+        if init is None:
+            if now < dest.hs_not_before:
+                return dest.hs_not_before
+            with self._cond:
+                first = dest.reliable[0] if dest.reliable else dest.fast[0] if dest.fast else None
+            expect = first.to if first is not None else ""
+            init = initiate(self.auth, self.inst, self.address, dest.addr, expect)
+            dest.handshake = init
+            with self._sess_lock:
+                self._initiations[init.digest] = (init, dest)
+        elif now - init.started > self.handshake_timeout:
+            with self._sess_lock:
+                self._initiations.pop(init.digest, None)
+            dest.handshake = None
+            dest.hs_backoff = min(5.0, max(0.5, dest.hs_backoff * 2))
+            dest.hs_not_before = now + dest.hs_backoff
+            with self._cond:
+                dropped = len(dest.fast)
+                dest.fast.clear()
+            self.count("handshakes.failed")
+            if dropped:
+                self.count("dropped.no_session", dropped)
+            self._drops.warning("handshake", f"no answer to a handshake with {dest.addr[0]}:{dest.addr[1]}"
+                                f"{' (' + init.expect + ')' if init.expect else ''} within "
+                                f"{self.handshake_timeout:g} s; {dropped} status message(s) dropped")
+            return dest.hs_not_before if dest.reliable else None
+        if now >= init.next_try:
+            try:
+                self._sendto(init.frame, dest.addr)
+                self.count("handshakes.sent")
+            except OSError as err:
+                self._drops.warning("udp", f"handshake to {dest.addr[0]}:{dest.addr[1]} failed: {err}")
+            init.attempts += 1
+            init.next_try = now + 0.1 * 2 ** min(init.attempts, 3)
+        return min(init.next_try, init.started + self.handshake_timeout + 0.001)
+
+    def _announce(self, dest: _Dest, out: _Outgoing) -> None:
+        env = Envelope.model_construct(v=2, sender=self.name, role=self.role, to="", inst=self.inst,
+                                       reply=self.address, seq=next(self._seq), id=out.id, kind=out.kind,
+                                       type=out.type, body=out.body)
         try:
-            frame = self._frame(out)
+            frame = encode_plain(env, UDP_MAX_FRAME) if self.auth is None else \
+                self.auth.sign(BEACON, env.model_dump_json().encode())
+            self._sendto(frame, dest.addr)
+            self.count("sent.announce")
+        except (OSError, FrameError) as err:
+            self.count("dropped.fast_error")
+            self._drops.warning("udp", f"beacon to {dest.addr[0]}:{dest.addr[1]} failed: {err}")
+
+    def _deliver(self, dest: _Dest, out: _Outgoing, session: Session | None) -> bool:
+        try:
+            frame = self._frame(out, session, self.max_frame)
         except FrameError as err:
             with self._cond:
                 dest.reliable.popleft()
@@ -365,10 +704,15 @@ class Endpoint:
             self._drops.warning("too_big", f"not sent: {err}")
             return True
         try:
+            now = time.monotonic()
+            if dest.sock is not None and now - dest.sock_used > self.limits.idle_timeout / 2:
+                _close(dest.sock)  # the receiver closes idle connections: never send into one
+                dest.sock = None
             if dest.sock is None:
                 dest.sock = socket.create_connection(dest.addr, timeout=self.connect_timeout)
                 dest.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
                 dest.decoder = StreamDecoder(self.max_frame)
+            dest.sock_used = now
             dest.sock.settimeout(self.ack_timeout)
             dest.sock.sendall(frame)
             deadline = time.monotonic() + self.ack_timeout
@@ -378,9 +722,11 @@ class Endpoint:
                     return False
                 assert dest.decoder is not None
                 for raw in dest.decoder.feed(data):
-                    msg = self._verify(raw, "tcp")
-                    if msg is not None and msg.kind == "ack" and msg.body == out.id:
+                    got = self._accept(raw, "tcp", dest.addr)
+                    if got is not None and got[0].kind == "ack" and got[0].body == out.id:
                         return True
+                if session is not None and session.stale:
+                    return False  # the peer does not know this session any more
             return False
         except (OSError, FrameError) as err:
             self._drops.warning("link", f"link to {dest.addr[0]}:{dest.addr[1]} failed: {err}")
@@ -388,24 +734,191 @@ class Endpoint:
 
     # -- receiving ------------------------------------------------------------------------
 
-    def _verify(self, raw: bytes, channel: str) -> Message | None:
-        """Check a frame; count and log what fails; return the message or None."""
+    def _dropped(self, channel: str, err: FrameError) -> None:
+        self.count(f"dropped.{err.reason}")
+        self._drops.warning(err.reason, f"dropped a {channel} frame: {err}")
+
+    def _accept(self, raw: bytes, channel: str, src: Address) -> tuple[Message, Session | None] | None:
+        """Check a frame; count and log what fails; return the message (and its session) or None."""
         try:
-            env = decode(raw, self._verify_key, self.max_frame)
-            if env.sender == self.name and env.epoch == self.epoch:
-                return None  # our own beacon, heard back
-            if self.inbound_filter is not None and not self.inbound_filter(env.sender, env.role):
-                self.count("dropped.unreachable")
-                return None  # e.g. a simulated radio that cannot carry this frame
-            with self._replay_lock:
-                self._replay.check(env.sender, env.epoch, env.seq)
-            body = body_of(env.type, env.body)
+            kind = check_frame(raw, self.max_frame)
+            if self.auth is None:
+                if kind != PLAIN:
+                    raise FrameError("auth", f"a {KINDS[kind]} frame at an agent running insecure")
+                msg = self._plain(raw)
+                return (msg, None) if msg is not None else None
+            if kind == DATA:
+                return self._data(raw, src)
+            if channel == "tcp":
+                raise FrameError("parse", f"a {KINDS[kind]} frame on a TCP stream")
+            if kind == HELLO:
+                self._on_hello(raw, src)
+            elif kind == REPLY:
+                self._on_reply(raw)
+            elif kind == BEACON:
+                msg = self._on_beacon(raw)
+                return (msg, None) if msg is not None else None
+            elif kind == HINT:
+                self._on_hint(raw, src)
+            else:
+                raise FrameError("auth", "an unauthenticated frame (is the sender running insecure?)")
         except FrameError as err:
-            self.count(f"dropped.{err.reason}")
-            self._drops.warning(err.reason, f"dropped a {channel} frame: {err}")
-            return None
+            self._dropped(channel, err)
+        return None
+
+    def _plain(self, raw: bytes) -> Message | None:
+        env = parse_envelope(raw[KIND.size:])
+        if env.sender == self.name and env.inst == self.inst:
+            return None  # our own beacon, heard back
+        if env.to and env.to != self.name:
+            raise FrameError("receiver", f"frame for {env.to} arrived at {self.name}")
+        self._filter(env.sender, env.role)
+        body = body_of(env.type, env.body)
         self.count("received")
-        return Message(env.sender, env.role, (env.reply[0], env.reply[1]), env.epoch, env.seq, env.id, env.kind, body)
+        return Message(env.sender, env.role, (env.reply[0], env.reply[1]), self._epoch(env.sender, env.inst),
+                       env.seq, env.id, env.kind, body, hint=env.kind == "beacon")
+
+    def _filter(self, sender: str, role: str) -> None:
+        if self.inbound_filter is not None and not self.inbound_filter(sender, role):
+            raise FrameError("unreachable", f"{sender} cannot reach {self.name} now")
+
+    def _data(self, raw: bytes, src: Address) -> tuple[Message, Session | None] | None:
+        sid = raw[KIND.size:KIND.size + 8]
+        session = self._by_sid.get(sid)
+        if session is None:
+            self._hint(sid, src)
+            raise FrameError("session", f"unknown session {sid.hex()} (its sender or this agent restarted)")
+        env = parse_envelope(session.open(raw))
+        if env.sender != session.peer or env.role != session.role or env.inst != session.inst:
+            raise FrameError("auth", f"envelope names {env.sender[:64]} but the session is with {session.peer}")
+        if env.to != self.name:
+            raise FrameError("receiver", f"frame for {env.to} arrived at {self.name}")
+        if not session.confirmed:
+            self._confirm(session)
+        with self._sess_lock:
+            if sid in self._by_sid:
+                self._by_sid.move_to_end(sid)
+        self._filter(session.peer, session.role)
+        if env.kind == "crl" and isinstance(env.body, str):
+            try:
+                self._adopt_crl(base64.b64decode(env.body, validate=True), session.peer)
+            except ValueError:
+                raise FrameError("parse", "revocation list is not base64") from None
+        body = body_of(env.type, env.body)
+        self.count("received")
+        return Message(session.peer, session.role, session.addr, session.epoch, env.seq, env.id, env.kind,
+                       body), session
+
+    def _hint(self, sid: bytes, src: Address, conn: socket.socket | None = None) -> None:
+        """Tell a sender we do not know its session (at most twice a second per host)."""
+        if not self._hint_hosts.take(src[0]):
+            return
+        frame = KIND.pack(1 + 8, HINT) + sid
+        try:
+            if conn is not None:
+                conn.send(frame)
+            else:
+                self._udp.sendto(frame, src)
+            self.count("hints.sent")
+        except OSError:
+            pass
+
+    def _on_hint(self, raw: bytes, src: Address) -> None:
+        if len(raw) != KIND.size + 8:
+            raise FrameError("size", "a hint frame is 13 bytes")
+        with self._sess_lock:
+            session = self._by_sid.get(raw[KIND.size:])
+            if session is None or session.addr[0] != src[0]:
+                return
+            now = time.monotonic()
+            if now - session.stale < 1.0:
+                return  # at most one new handshake a second for hints, which anyone can forge
+            session.stale = now
+            if self._by_addr.get(session.addr) is session:
+                del self._by_addr[session.addr]
+        self.count("hints.received")
+        with self._cond:
+            dest = self._dests.get(session.addr)
+            if dest is not None and dest.has_work():
+                self._make_ready(dest)
+
+    def _on_hello(self, raw: bytes, src: Address) -> None:
+        assert self.auth is not None
+        digest = hashlib.sha256(raw).hexdigest()
+        with self._sess_lock:
+            known = self._answers.get(digest)
+        if known is not None:  # a retransmission: the same answer again, no new keys
+            self._sendto(known[0], src)
+            return
+        now = time.monotonic()
+        if not self._hs_hosts.take(src[0], now) or not self._hs_total.take(now):
+            raise FrameError("rate", f"too many handshakes from {src[0]}")
+        if len(self._answers) >= 4 * self.limits.max_connections:
+            raise FrameError("rate", "too many handshakes waiting for their first frame")
+        signed = cut_signed(raw, self.max_frame)
+        hello = parse_hello(signed.body)
+        if hello.sender == self.name and hello.inst == self.inst:
+            return
+        if hello.to and hello.to != self.name:
+            raise FrameError("receiver", f"handshake for {hello.to} arrived at {self.name}")
+        serial = self.auth.verify(signed, hello.sender, hello.role)
+        self._filter(hello.sender, hello.role)
+        frame, session = respond(self.auth, hello, raw, serial, self.inst, self.address)
+        with self._sess_lock:
+            self._answers[digest] = (frame, session, now)
+            self._by_sid[session.sid] = session
+        self.count("handshakes.answered")
+        self._sendto(frame, src)
+
+    def _on_reply(self, raw: bytes) -> None:
+        assert self.auth is not None
+        signed = cut_signed(raw, self.max_frame)
+        answer = parse_hello(signed.body)
+        with self._sess_lock:
+            found = self._initiations.get(answer.answers)
+            if found is None and answer.answers in self._completed:
+                return  # a second answer to a retransmitted handshake: the first one made the session
+        if found is None:
+            raise FrameError("session", "an answer to no handshake of ours")
+        init, dest = found
+        if answer.to != self.name:
+            raise FrameError("receiver", f"handshake answer for {answer.to} arrived at {self.name}")
+        serial = self.auth.verify(signed, answer.sender, answer.role)
+        if init.expect and answer.sender != init.expect:
+            raise FrameError("wrong_peer", f"{init.addr[0]}:{init.addr[1]} answered as {answer.sender}, "
+                             f"expected {init.expect}")
+        self._filter(answer.sender, answer.role)
+        session = complete(self.auth, init, answer, raw, serial)
+        with self._sess_lock:
+            if self._initiations.pop(answer.answers, None) is None:
+                return  # answered twice: the first answer made the session
+            self._completed[answer.answers] = None
+            if len(self._completed) > 256:
+                self._completed.popitem(last=False)
+            if init.addr != session.addr:
+                self._by_addr[init.addr] = session
+        with self._cond:
+            if dest.handshake is init:
+                dest.handshake = None
+        self.count("handshakes.completed")
+        self._confirm(session)
+
+    def _on_beacon(self, raw: bytes) -> Message | None:
+        assert self.auth is not None
+        if not self._beacon_bucket.take():
+            raise FrameError("rate", "too many beacons to check")
+        signed = cut_signed(raw, self.max_frame)
+        env = parse_envelope(signed.body)
+        if env.sender == self.name and env.inst == self.inst:
+            return None  # our own beacon, heard back
+        if env.kind != "beacon":
+            raise FrameError("parse", f"a signed broadcast frame of kind {env.kind[:64]!r}: beacons only")
+        self.auth.verify(signed, env.sender, env.role)
+        self._filter(env.sender, env.role)
+        body = body_of(env.type, env.body)
+        self.count("received.beacons")
+        return Message(env.sender, env.role, (env.reply[0], env.reply[1]), 0, env.seq, env.id, env.kind,
+                       body, hint=True)
 
     def _receive_loop(self) -> None:
         sel = selectors.DefaultSelector()
@@ -414,48 +927,145 @@ class Endpoint:
         sel.register(self._wake_r, selectors.EVENT_READ, "wake")
         if self._disc is not None:
             sel.register(self._disc, selectors.EVENT_READ, "udp")
-        conns: dict[socket.socket, StreamDecoder] = {}
+        conns: dict[socket.socket, _Conn] = {}
+        per_host: dict[str, int] = {}
+        cap = self.limits.connection_cap()
+        listening = True
+        paused_until = 0.0
+        next_sweep = 0.0
         try:
             while not self._stopping:
-                for key, _ in sel.select(timeout=0.5):
-                    sock, role = key.fileobj, key.data
-                    if role == "wake":
+                now = time.monotonic()
+                if now >= next_sweep:
+                    next_sweep = now + 0.25
+                    for conn in self._sweep(conns, now):
+                        self._drop_conn(sel, conns, per_host, conn)
+                    if not listening and now >= paused_until:
+                        sel.register(self._tcp, selectors.EVENT_READ, "listen")
+                        listening = True
+                for key, _ in sel.select(timeout=0.25):
+                    sock, what = key.fileobj, key.data
+                    if what == "wake":
                         return
-                    if role == "listen":
-                        try:
-                            conn, _ = self._tcp.accept()
-                        except OSError:
-                            continue
-                        conn.setblocking(False)
-                        conns[conn] = StreamDecoder(self.max_frame)
-                        sel.register(conn, selectors.EVENT_READ, "conn")
-                    elif role == "udp":
-                        self._read_datagrams(sock)  # type: ignore[arg-type]
+                    if what == "listen":
+                        if not self._accept_all(sel, conns, per_host, cap):
+                            sel.unregister(self._tcp)  # out of file descriptors: pause, do not spin
+                            listening, paused_until = False, time.monotonic() + 0.5
+                    elif what == "udp":
+                        self._read_datagrams(sock)  # type: ignore[arg-type]  # a registered socket
                     else:
-                        if not self._read_stream(sock, conns[sock]):  # type: ignore[index,arg-type]
-                            sel.unregister(sock)
-                            conns.pop(sock, None)  # type: ignore[call-overload]
-                            _close(sock)  # type: ignore[arg-type]
+                        conn = conns.get(sock)  # type: ignore[call-overload]  # a registered socket
+                        if conn is not None and not self._read_stream(conn, conns):
+                            self._drop_conn(sel, conns, per_host, conn)
         finally:
-            for conn in conns:
-                _close(conn)
+            for conn in conns.values():
+                _close(conn.sock)
             sel.close()
+
+    def _accept_all(self, sel: selectors.BaseSelector, conns: dict[socket.socket, _Conn],
+                    per_host: dict[str, int], cap: int) -> bool:
+        """Accept waiting connections within the caps; False when out of file descriptors."""
+        for _ in range(64):
+            try:
+                sock, peer = self._tcp.accept()
+            except (BlockingIOError, InterruptedError):
+                return True
+            except OSError as err:
+                if err.errno in (errno.EMFILE, errno.ENFILE, errno.ENOBUFS, errno.ENOMEM):
+                    self.count("refused.no_files")
+                    self._drops.warning("accept", f"cannot accept a connection: {err.strerror} "
+                                        f"({len(conns)} open); pausing for 0.5 s")
+                    return False
+                return True
+            host = peer[0]
+            if len(conns) >= cap:  # full: the oldest connection that never authenticated makes room
+                stranger = min((c for c in conns.values() if not c.authed), key=lambda c: c.opened, default=None)
+                if stranger is not None:
+                    self._drop_conn(sel, conns, per_host, stranger)
+                    self.count("closed.evicted")
+            if len(conns) >= cap or per_host.get(host, 0) >= self.limits.max_connections_per_host:
+                _close(sock)
+                self.count("refused.connections")
+                self._drops.warning("conn_cap", f"refused a connection from {host}: {len(conns)} open "
+                                    f"(cap {cap}), {per_host.get(host, 0)} from that host "
+                                    f"(cap {self.limits.max_connections_per_host})")
+                continue
+            sock.setblocking(False)
+            now = time.monotonic()
+            conns[sock] = _Conn(sock, (host, peer[1]), StreamDecoder(self.max_frame), now, now)
+            per_host[host] = per_host.get(host, 0) + 1
+            sel.register(sock, selectors.EVENT_READ, "conn")
+        return True
+
+    def _drop_conn(self, sel: selectors.BaseSelector, conns: dict[socket.socket, _Conn],
+                   per_host: dict[str, int], conn: _Conn) -> None:
+        if conns.pop(conn.sock, None) is None:
+            return
+        try:
+            sel.unregister(conn.sock)
+        except (KeyError, ValueError):
+            pass
+        _close(conn.sock)
+        left = per_host.get(conn.peer[0], 1) - 1
+        if left > 0:
+            per_host[conn.peer[0]] = left
+        else:
+            per_host.pop(conn.peer[0], None)
+
+    def _sweep(self, conns: dict[socket.socket, _Conn], now: float) -> list[_Conn]:
+        """Connections past a timeout or over the byte budget; expired handshakes and sessions."""
+        limits = self.limits
+        late: list[_Conn] = []
+        buffered = 0
+        for conn in conns.values():
+            reason = ""
+            if conn.partial_since is not None and now - conn.partial_since > limits.frame_timeout:
+                reason = f"a frame incomplete for {limits.frame_timeout:g} s"
+            elif not conn.authed and now - conn.opened > limits.frame_timeout:
+                reason = f"no authenticated frame within {limits.frame_timeout:g} s"
+            elif now - conn.last_frame > limits.idle_timeout:
+                reason = f"idle for {limits.idle_timeout:g} s"
+            if reason:
+                late.append(conn)
+                self.count("closed.timeout")
+                self._drops.warning("timeout", f"closed a connection from {conn.peer[0]}: {reason}")
+            else:
+                buffered += conn.decoder.buffered
+        while buffered > limits.buffer_budget:
+            biggest = max((c for c in conns.values() if c not in late), key=lambda c: c.decoder.buffered)
+            late.append(biggest)
+            buffered -= biggest.decoder.buffered
+            self.count("closed.budget")
+            self._drops.warning("budget", f"closed a connection from {biggest.peer[0]}: incomplete frames "
+                                f"hold more than {limits.buffer_budget} bytes")
+        with self._sess_lock:
+            for digest, (_, session, made) in list(self._answers.items()):
+                if session.confirmed or now - made > 5 * self.handshake_timeout:
+                    del self._answers[digest]
+                    if not session.confirmed:
+                        self._by_sid.pop(session.sid, None)
+            for digest, (init, _) in list(self._initiations.items()):
+                if now - init.started > 3 * self.handshake_timeout:
+                    del self._initiations[digest]
+        self._forget(lambda s: now - max(s.last_rx, s.last_tx) < limits.session_idle)
+        self._reload_crl()
+        return late
 
     def _read_datagrams(self, sock: socket.socket) -> None:
         for _ in range(256):
             try:
-                data, _ = sock.recvfrom(65536)
+                data, src = sock.recvfrom(65536)
             except (BlockingIOError, InterruptedError):
                 return
             except OSError:
                 return
-            msg = self._verify(data, "udp")
-            if msg is not None:
-                self._dispatch(msg)
+            got = self._accept(data, "udp", src)
+            if got is not None and got[0].kind not in INTERNAL:
+                self._dispatch(got[0])
 
-    def _read_stream(self, conn: socket.socket, decoder: StreamDecoder) -> bool:
+    def _read_stream(self, conn: _Conn, conns: dict[socket.socket, _Conn]) -> bool:
         try:
-            data = conn.recv(65536)
+            data = conn.sock.recv(65536)
         except (BlockingIOError, InterruptedError):
             return True
         except OSError:
@@ -463,24 +1073,64 @@ class Endpoint:
         if not data:
             return False
         try:
-            frames = decoder.feed(data)
+            frames = conn.decoder.feed(data)
         except FrameError as err:
             self.count(f"dropped.{err.reason}")
-            self._drops.warning(err.reason, f"closed a TCP stream: {err}")
+            self._drops.warning(err.reason, f"closed a TCP stream from {conn.peer[0]}: {err}")
             return False
+        now = time.monotonic()
         for raw in frames:
-            msg = self._verify(raw, "tcp")
-            if msg is None:
-                continue
-            ack = _Outgoing(new_uid(), "ack", None, msg.id, 0.0)
-            try:
-                conn.sendall(self._frame(ack))
-            except OSError:
+            conn.last_frame = now
+            if not self._head_ok(raw, conn):
                 return False
+            got = self._accept(raw, "tcp", conn.peer)
+            if got is None:
+                continue
+            msg, session = got
+            conn.authed = True
+            if msg.kind == "ack":
+                continue
+            ack = _Outgoing(new_uid(), "ack", None, msg.id, 0.0, msg.sender)
+            try:
+                conn.sock.sendall(self._frame(ack, session, self.max_frame))
+            except (OSError, FrameError):
+                return False
+            if msg.kind in INTERNAL:
+                continue
             if self._seen.first_time(msg.sender, msg.id):
                 self._dispatch(msg)
             else:
                 self.count("duplicates")
+        if conn.decoder.buffered:
+            if conn.partial_since is None:
+                conn.partial_since = now
+            head = conn.decoder.head(SESSION_END)
+            if head is not None and not self._head_ok(head, conn):
+                return False  # a frame of no session of ours: not worth waiting for
+        else:
+            conn.partial_since = None
+        return True
+
+    def _head_ok(self, head: bytes, conn: _Conn) -> bool:
+        """Whether the start of a TCP frame belongs to one of our sessions (or insecure plain frames)."""
+        kind = head[HEADER_KIND]
+        if self.auth is None:
+            if kind != PLAIN:
+                self.count("dropped.auth")
+                return False
+            return True
+        if kind != DATA:
+            self.count("dropped.parse")
+            self._drops.warning("parse", f"closed a TCP stream from {conn.peer[0]}: a "
+                                f"{KINDS.get(kind, hex(kind))} frame where data frames belong")
+            return False
+        sid = head[KIND.size:KIND.size + 8]
+        if sid not in self._by_sid:
+            self._hint(sid, conn.peer, conn.sock)
+            self.count("dropped.session")
+            self._drops.warning("session", f"closed a TCP stream from {conn.peer[0]}: unknown session "
+                                f"{sid.hex()} (its sender or this agent restarted)")
+            return False
         return True
 
     def _dispatch(self, msg: Message) -> None:
@@ -488,6 +1138,9 @@ class Endpoint:
             self.on_message(msg)
         except Exception:
             self.log.exception("handling %s from %s failed", msg.kind, msg.sender)
+
+
+HEADER_KIND = 4  # offset of the kind byte in a frame
 
 
 def _close(sock: socket.socket | None) -> None:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import heapq
 import itertools
+import os
 import random
 import threading
 import time
@@ -23,9 +24,7 @@ from pydantic import BaseModel
 from erni.blackboard import new_uid
 from erni.blackboard.errors import UsageError
 from erni.transport.endpoint import Address, InboundFilter
-from erni.transport.wire import Envelope, Message, SeenIds, body_of, decode, encode
-
-_KEY = b"mock-network"
+from erni.transport.wire import Envelope, Message, SeenIds, body_of, decode_plain, encode_plain
 
 
 class MockNetwork:
@@ -108,7 +107,7 @@ class MockNetwork:
             fn()
 
     def _transmit(self, src: MockEndpoint, addr: Address, frame: bytes, reliable: bool,
-                  deadline: float, msg_id: str, kind: str, body: Any) -> None:
+                  deadline: float, msg_id: str, kind: str, body: Any, hint: bool = False) -> None:
         found = self._endpoints.get(addr)
         with self._cond:
             if found is None or not found.running or not self.connected(src.name, found.name):
@@ -130,10 +129,10 @@ class MockNetwork:
             return
         dest = found
         assert dest is not None  # not lost: it was found
-        self._later(latency, lambda: dest._receive(frame, reliable))
+        self._later(latency, lambda: dest._receive(frame, reliable, hint))
         if dup:
             self.counters["duplicated"] += 1
-            self._later(self._latency(), lambda: dest._receive(frame, reliable))
+            self._later(self._latency(), lambda: dest._receive(frame, reliable, hint))
 
 
 class MockEndpoint:
@@ -142,7 +141,8 @@ class MockEndpoint:
     def __init__(self, net: MockNetwork, name: str, address: Address, role: str = ""):
         self.net, self.name, self.address, self.role = net, name, address, role
         self.inbound_filter: InboundFilter | None = None
-        self.epoch = time.time_ns()
+        self.inst = os.urandom(16).hex()
+        self._epochs: dict[tuple[str, str], int] = {}
         self._seq = itertools.count(1)
         self._seen = SeenIds()
         self.running = False
@@ -162,22 +162,29 @@ class MockEndpoint:
             self.net._detach()
 
     def send(self, addr: Address, kind: str, body: BaseModel | Any = None, *, reliable: bool,
-             msg_id: str | None = None, ttl: float | None = None) -> str:
+             msg_id: str | None = None, ttl: float | None = None, to: str | None = None) -> str:
         """Queue a message for `addr`; return its id."""
+        return self._send(addr, kind, body, reliable, msg_id, ttl, to, hint=False)
+
+    def _send(self, addr: Address, kind: str, body: Any, reliable: bool, msg_id: str | None,
+              ttl: float | None, to: str | None, hint: bool) -> str:
         msg_id = msg_id or new_uid()
-        env = Envelope(sender=self.name, role=self.role, reply=self.address, epoch=self.epoch, seq=next(self._seq),
-                       id=msg_id, kind=kind,
+        env = Envelope(sender=self.name, role=self.role, to=to or "", inst=self.inst, reply=self.address,
+                       seq=next(self._seq), id=msg_id, kind=kind,
                        type=type(body).__name__ if isinstance(body, BaseModel) else None,
                        body=body.model_dump(mode="json") if isinstance(body, BaseModel) else body)
-        frame = encode(env, _KEY)
+        frame = encode_plain(env)
         self.counters["sent"] = self.counters.get("sent", 0) + 1
-        self.net._transmit(self, addr, frame, reliable, time.monotonic() + (ttl or 30.0), msg_id, kind, body)
+        self.net._transmit(self, addr, frame, reliable, time.monotonic() + (ttl or 30.0), msg_id, kind, body, hint)
         return msg_id
 
-    def _receive(self, frame: bytes, reliable: bool) -> None:
+    def _receive(self, frame: bytes, reliable: bool, hint: bool = False) -> None:
         if not self.running:
             return
-        env = decode(frame, _KEY)
+        env = decode_plain(frame)
+        if env.to and env.to != self.name:
+            self.counters["dropped.receiver"] = self.counters.get("dropped.receiver", 0) + 1
+            return
         if reliable and not self._seen.first_time(env.sender, env.id):
             self.counters["duplicates"] = self.counters.get("duplicates", 0) + 1
             return
@@ -185,6 +192,13 @@ class MockEndpoint:
             self.counters["dropped.unreachable"] = self.counters.get("dropped.unreachable", 0) + 1
             return
         self.net.counters["delivered"] += 1
-        msg = Message(env.sender, env.role, (env.reply[0], env.reply[1]), env.epoch, env.seq, env.id, env.kind,
-                      body_of(env.type, env.body))
+        key = (env.sender, env.inst)
+        if key not in self._epochs:
+            self._epochs[key] = 1 + max((e for (name, _), e in self._epochs.items() if name == env.sender), default=0)
+        msg = Message(env.sender, env.role, (env.reply[0], env.reply[1]), self._epochs[key], env.seq, env.id,
+                      env.kind, body_of(env.type, env.body), hint=hint)
         self.on_message(msg)
+
+    def announce(self, addr: Address, kind: str, body: BaseModel | Any = None) -> str:
+        """Send a beacon to a receiver not known yet: it arrives as a hint, as from a real endpoint."""
+        return self._send(addr, kind, body, False, None, None, None, hint=True)

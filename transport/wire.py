@@ -1,16 +1,22 @@
-"""Frames on the wire: length prefix, one typed JSON envelope, HMAC-SHA256, replay window.
+"""Frames on the wire: a length prefix, a kind byte, and a kind-specific body.
 
-A frame is `LEN (4 bytes, big-endian) | JSON envelope | TAG (32 bytes)`; LEN counts the
-envelope and the tag. TAG is HMAC-SHA256 with the team key over LEN and the envelope. The
-same bytes travel as one UDP datagram or on a TCP stream. The envelope carries the sender's
-name, reply address, boot epoch and sequence number, a message id, a kind and a body of a
-registered pydantic type, so any typed value travels (no "longs only").
+    frame    = LEN (4 bytes, big-endian, counts what follows) | KIND (1 byte) | body
+    'D' data = SESSION (8) | COUNTER (8) | ChaCha20-Poly1305(envelope JSON), the header as AAD
+    'H' hello, 'R' reply, 'B' beacon = BODYLEN (2) | JSON | CERTLEN (2) | certificate DER | proof
+    'K' hint = SESSION (8): "I do not know this session" (unauthenticated: it only starts a handshake)
+    'P' plain = envelope JSON (insecure mode only: no authentication, no encryption)
+
+The same bytes travel as one UDP datagram or on a TCP stream. The envelope names the sender,
+its role, the receiver, the sender's instance (random per start, never a clock), its reply
+address, a per-instance sequence number, a message id, a kind and a body of a registered
+pydantic type, so any typed value travels (no "longs only"). Sessions and handshakes are in
+`session.py`.
 """
 
 from __future__ import annotations
 
-import hashlib
-import hmac
+import json
+import re
 import struct
 import time
 from collections import OrderedDict
@@ -20,17 +26,24 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from erni.blackboard import AllocationResult, NetInfo, Pose, Task
-from erni.blackboard.errors import ErniError
+from erni.blackboard.errors import ErniError, UsageError, shown
 
 HEADER = struct.Struct(">I")
-TAG_SIZE = 32
+KIND = struct.Struct(">IB")  # length, kind
+DATA_HEADER = struct.Struct(">IB8sQ")  # length, kind, session, counter
+SESSION_END = 13  # a data frame's session id ends here: enough to refuse a stream early
+DATA, HELLO, REPLY, BEACON, HINT, PLAIN = b"D"[0], b"H"[0], b"R"[0], b"B"[0], b"K"[0], b"P"[0]
+KINDS = {DATA: "data", HELLO: "hello", REPLY: "reply", BEACON: "beacon", HINT: "hint", PLAIN: "plain"}
+TAG_SIZE = 16
+MIN_FRAME = HEADER.size + 1 + 8  # a hint: the shortest frame of any kind
 DEFAULT_MAX_FRAME = 256 * 1024
 UDP_MAX_FRAME = 60_000
-VERSION = 1
+VERSION = 2
+MAX_JSON_DEPTH = 64
 
 
 class FrameError(ErniError):
-    """A frame failed a size, parse, authentication or replay check; `reason` names which."""
+    """A frame failed a size, parse, authentication, session or replay check; `reason` names which."""
 
     def __init__(self, reason: str, detail: str):
         super().__init__(f"{reason}: {detail}")
@@ -51,25 +64,31 @@ for _cls in (Task, Pose, NetInfo, AllocationResult):
 
 
 class Envelope(BaseModel):
-    """The JSON part of a frame."""
+    """The JSON part of a frame (inside the encryption of a data frame)."""
 
     model_config = ConfigDict(extra="forbid")
 
     v: int = VERSION
     sender: str = Field(min_length=1, max_length=64)
     role: str = Field("", max_length=32, description="the sender's role: robot, control, cli (a client) ...")
+    to: str = Field("", max_length=64, description="the receiver's name ('' only where it is not known yet)")
+    inst: str = Field("", max_length=32, description="the sender's instance: random per start")
     reply: tuple[str, int] = ("", 0)
-    epoch: int = Field(ge=0)
-    seq: int = Field(ge=0)
+    seq: int = Field(0, ge=0)
     id: str = Field(max_length=64)
     kind: str = Field(max_length=64)
-    type: str | None = None
+    type: str | None = Field(None, max_length=64)
     body: Any = None
 
 
 @dataclass
 class Message:
-    """A verified, decoded message: who sent it and its typed body."""
+    """A verified, decoded message: who sent it and its typed body.
+
+    `epoch` is this receiver's count of the sender's instances (1 for the first one it heard,
+    2 after a restart ...), so (epoch, seq) orders a sender's messages across restarts without
+    any clock. `hint` marks a broadcast beacon: signed, but replayable, so only a hint.
+    """
 
     sender: str
     role: str
@@ -80,51 +99,16 @@ class Message:
     kind: str
     body: Any
     received: float = field(default_factory=time.monotonic)
+    hint: bool = False
 
 
-def encode(env: Envelope, key: bytes, max_frame: int = DEFAULT_MAX_FRAME) -> bytes:
-    """Serialise and sign an envelope; raise FrameError when it exceeds `max_frame`."""
-    payload = env.model_dump_json().encode()
-    length = len(payload) + TAG_SIZE
-    if length > max_frame:
-        raise FrameError("size", f"frame of {length} bytes exceeds the limit of {max_frame}")
-    head = HEADER.pack(length)
-    tag = hmac.new(key, head + payload, hashlib.sha256).digest()
-    return head + payload + tag
+def envelope_json(env: Envelope) -> bytes:
+    """Serialise an envelope (our own fields: no validation)."""
+    return env.model_dump_json().encode()
 
 
-def body_of(kind_type: str | None, body: Any) -> Any:
-    """Validate a body against its registered type (raise FrameError if unknown or invalid)."""
-    if kind_type is None:
-        return body
-    cls = TYPES.get(kind_type)
-    if cls is None:
-        raise FrameError("parse", f"unknown body type {kind_type!r}")
-    try:
-        parse = getattr(cls, "parse", None)  # Task.parse names the bad field
-        return parse(body) if callable(parse) else cls.model_validate(body)
-    except ValidationError as err:
-        first = err.errors()[0]
-        where = ".".join(str(p) for p in first["loc"]) or kind_type
-        raise FrameError("parse", f"invalid {kind_type}: {where}: {first['msg']}") from None
-    except (ErniError, ValueError, TypeError) as err:
-        raise FrameError("parse", f"invalid {kind_type}: {str(err).splitlines()[0]}") from None
-
-
-def decode(frame: bytes, key: bytes | None, max_frame: int = DEFAULT_MAX_FRAME) -> Envelope:
-    """Check and parse one whole frame; `key=None` skips authentication (insecure mode)."""
-    if len(frame) < HEADER.size + TAG_SIZE:
-        raise FrameError("size", f"frame of {len(frame)} bytes is shorter than the minimum")
-    (length,) = HEADER.unpack_from(frame)
-    if length > max_frame:
-        raise FrameError("size", f"declared length {length} exceeds the limit of {max_frame}")
-    if length != len(frame) - HEADER.size:
-        raise FrameError("size", f"declared length {length} but {len(frame) - HEADER.size} bytes follow")
-    payload, tag = frame[HEADER.size:-TAG_SIZE], frame[-TAG_SIZE:]
-    if key is not None:
-        expect = hmac.new(key, frame[:-TAG_SIZE], hashlib.sha256).digest()
-        if not hmac.compare_digest(expect, tag):
-            raise FrameError("auth", "HMAC does not match the team key")
+def parse_envelope(payload: bytes) -> Envelope:
+    """Parse the JSON of an envelope; raise FrameError('parse', ...) naming the problem."""
     try:
         return Envelope.model_validate_json(payload)
     except ValidationError as err:
@@ -135,6 +119,55 @@ def decode(frame: bytes, key: bytes | None, max_frame: int = DEFAULT_MAX_FRAME) 
         raise FrameError("parse", f"envelope field {where}: {first['msg']}") from None
 
 
+def encode_plain(env: Envelope, max_frame: int = DEFAULT_MAX_FRAME) -> bytes:
+    """A 'P' frame: the envelope in clear, unauthenticated (insecure mode and the mock network)."""
+    payload = envelope_json(env)
+    length = 1 + len(payload)
+    if HEADER.size + length > max_frame:
+        raise FrameError("size", f"frame of {HEADER.size + length} bytes exceeds the limit of {max_frame}")
+    return KIND.pack(length, PLAIN) + payload
+
+
+def check_frame(frame: bytes, max_frame: int = DEFAULT_MAX_FRAME) -> int:
+    """Check a whole frame's length prefix; return its kind byte (raise FrameError('size'|'parse'))."""
+    if len(frame) < MIN_FRAME:
+        raise FrameError("size", f"frame of {len(frame)} bytes is shorter than the minimum of {MIN_FRAME}")
+    if len(frame) > max_frame:
+        raise FrameError("size", f"frame of {len(frame)} bytes exceeds the limit of {max_frame}")
+    length, kind = KIND.unpack_from(frame)
+    if length != len(frame) - HEADER.size:
+        raise FrameError("size", f"declared length {length} but {len(frame) - HEADER.size} bytes follow")
+    if kind not in KINDS:
+        raise FrameError("parse", f"unknown frame kind {kind:#04x}")
+    return int(kind)
+
+
+def decode_plain(frame: bytes, max_frame: int = DEFAULT_MAX_FRAME) -> Envelope:
+    """Check and parse a 'P' frame."""
+    kind = check_frame(frame, max_frame)
+    if kind != PLAIN:
+        raise FrameError("auth", f"expected a plain frame, got a {KINDS[kind]} frame (is the sender secured?)")
+    return parse_envelope(frame[HEADER.size + 1:])
+
+
+def body_of(kind_type: str | None, body: Any) -> Any:
+    """Validate a body against its registered type (raise FrameError if unknown or invalid)."""
+    if kind_type is None:
+        return body
+    cls = TYPES.get(kind_type)
+    if cls is None:
+        raise FrameError("parse", f"unknown body type {shown(kind_type)}")
+    try:
+        parse = getattr(cls, "parse", None)  # Task.parse names the bad field
+        return parse(body) if callable(parse) else cls.model_validate(body)
+    except ValidationError as err:
+        first = err.errors()[0]
+        where = ".".join(str(p) for p in first["loc"]) or kind_type
+        raise FrameError("parse", f"invalid {kind_type}: {where}: {first['msg']}") from None
+    except (ErniError, ValueError, TypeError, RecursionError) as err:
+        raise FrameError("parse", f"invalid {kind_type}: {str(err).splitlines()[0][:200]}") from None
+
+
 class StreamDecoder:
     """Cut a TCP byte stream into frames; a bad length poisons the stream (FrameError)."""
 
@@ -142,13 +175,22 @@ class StreamDecoder:
         self.max_frame = max_frame
         self._buf = bytearray()
 
+    @property
+    def buffered(self) -> int:
+        """Bytes held for a frame not yet complete."""
+        return len(self._buf)
+
+    def head(self, size: int) -> bytes | None:
+        """The first `size` bytes of the frame being received, once they are there."""
+        return bytes(self._buf[:size]) if len(self._buf) >= size else None
+
     def feed(self, data: bytes) -> list[bytes]:
         """Add bytes; return the whole frames now available."""
         self._buf += data
         frames = []
         while len(self._buf) >= HEADER.size:
             (length,) = HEADER.unpack_from(self._buf)
-            if length > self.max_frame or length < TAG_SIZE + 2:
+            if length + HEADER.size > self.max_frame or length + HEADER.size < MIN_FRAME:
                 self._buf.clear()
                 raise FrameError("size", f"stream declares a frame of {length} bytes "
                                  f"(limit {self.max_frame})")
@@ -161,37 +203,36 @@ class StreamDecoder:
 
 
 class ReplayWindow:
-    """Accept each (sender, epoch, seq) once: a newer epoch resets, an older one is refused."""
+    """Accept each counter of one session once: a sliding window over the highest counter seen."""
 
     def __init__(self, size: int = 4096):
         self.size = size
-        self._state: dict[str, tuple[int, int, int]] = {}  # sender -> (epoch, highest seq, bitmap)
+        self._top = 0
+        self._bitmap = 0  # bit i: counter top - i was received
 
-    def check(self, sender: str, epoch: int, seq: int) -> None:
-        """Record the frame or raise FrameError('replay', ...)."""
-        known = self._state.get(sender)
-        if known is None or epoch > known[0]:
-            self._state[sender] = (epoch, seq, 1)
+    def fresh(self, counter: int) -> None:
+        """Raise FrameError('replay', ...) if `counter` was received already or is too old to tell."""
+        if counter > self._top:
             return
-        k_epoch, top, bitmap = known
-        if epoch < k_epoch:
-            raise FrameError("replay", f"{sender}: frame from an earlier boot (epoch {epoch} < {k_epoch})")
-        if seq > top:
-            shift = seq - top
-            bitmap = ((bitmap << shift) | 1) & ((1 << self.size) - 1) if shift < self.size else 1
-            self._state[sender] = (epoch, seq, bitmap)
-            return
-        offset = top - seq
+        offset = self._top - counter
         if offset >= self.size:
-            raise FrameError("replay", f"{sender}: sequence {seq} is older than the window")
-        if bitmap >> offset & 1:
-            raise FrameError("replay", f"{sender}: sequence {seq} was already received")
-        self._state[sender] = (epoch, top, bitmap | (1 << offset))
+            raise FrameError("replay", f"counter {counter} is older than the window")
+        if self._bitmap >> offset & 1:
+            raise FrameError("replay", f"counter {counter} was already received")
 
-    def epoch_of(self, sender: str) -> int | None:
-        """Return the boot epoch last seen from `sender`."""
-        known = self._state.get(sender)
-        return known[0] if known else None
+    def mark(self, counter: int) -> None:
+        """Record `counter` as received (after `fresh` and authentication)."""
+        if counter > self._top:
+            shift = counter - self._top
+            self._bitmap = ((self._bitmap << shift) | 1) & ((1 << self.size) - 1) if shift < self.size else 1
+            self._top = counter
+        else:
+            self._bitmap |= 1 << (self._top - counter)
+
+    def check(self, counter: int) -> None:
+        """`fresh` then `mark`."""
+        self.fresh(counter)
+        self.mark(counter)
 
 
 class SeenIds:
@@ -211,3 +252,30 @@ class SeenIds:
         if len(self._ids) > self.limit:
             self._ids.popitem(last=False)
         return True
+
+
+_TOKENS = re.compile(r'"(?:[^"\\]|\\.)*"|[\[\]{}]')
+
+
+def json_depth(text: str) -> int:
+    """The deepest nesting of arrays and objects in JSON text (strings skipped; no recursion)."""
+    depth = deepest = 0
+    for match in _TOKENS.finditer(text):
+        token = match.group()
+        if token in "[{":
+            depth += 1
+            deepest = max(deepest, depth)
+        elif token in "]}":
+            depth -= 1
+    return deepest
+
+
+def loads(text: str, max_depth: int = MAX_JSON_DEPTH) -> Any:
+    """`json.loads` with nesting bounded: UsageError beyond `max_depth` instead of a RecursionError.
+
+    NaN and infinities are read (as Python does) so that the validator of the field they land
+    in can name it; every number field of ERNI refuses them.
+    """
+    if text.count("[") + text.count("{") > max_depth and json_depth(text) > max_depth:
+        raise UsageError(f"JSON nested deeper than {max_depth} levels")
+    return json.loads(text)

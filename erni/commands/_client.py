@@ -4,23 +4,36 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import time
 from collections.abc import Iterator
 from typing import Any
 
-from erni.blackboard.errors import UsageError
+from erni.blackboard.errors import ErniError, UsageError
 from erni.transport.endpoint import Address, parse_address
 
 
 def add_client_options(p: argparse.ArgumentParser) -> None:
-    """Add --via, --discovery-port, --key-env, --insecure and --json."""
+    """Add --via, --discovery-port, --identity, --key-env, --insecure and --json."""
     p.add_argument("--via", metavar="HOST:PORT", help="an agent's transport address "
                    "(default: find one by its beacons)")
     p.add_argument("--discovery-port", type=int, default=47000, help="beacon port (default 47000)")
-    p.add_argument("--key-env", default="ERNI_TEAM_KEY", help="environment variable with the team key")
+    p.add_argument("--identity", metavar="FILE", help="this client's identity bundle, role cli "
+                   "(default: $ERNI_IDENTITY)")
+    p.add_argument("--key-env", default="ERNI_TEAM_KEY", help="environment variable with a shared team key "
+                   "(used without an identity)")
     p.add_argument("--insecure", action="store_true", help="send unauthenticated frames")
     p.add_argument("--json", action="store_true", help="one JSON object per line")
+
+
+def check_seconds(value: float | None, option: str, *, zero: bool = False) -> str:
+    """'' if `value` is a usable number of seconds (None: not given), else the one-line problem."""
+    if value is None or (zero and value == 0):
+        return ""
+    if not math.isfinite(value) or value <= 0:
+        return f"{option}: expected a finite number of seconds > 0{' (or 0)' if zero else ''}, got {value}"
+    return ""
 
 
 def via_address(args: argparse.Namespace) -> Address | None:
@@ -37,16 +50,16 @@ def make_client(args: argparse.Namespace) -> Any:
     """Build a Client from the shared options."""
     from erni.transport.client import Client
 
-    return Client(via_address(args), discovery_port=args.discovery_port, key_env=args.key_env,
-                  insecure=args.insecure)
+    return Client(via_address(args), discovery_port=args.discovery_port, identity=args.identity,
+                  key_env=args.key_env, insecure=args.insecure)
 
 
 def open_client(args: argparse.Namespace, command: str) -> Any:
     """Build the client for `erni COMMAND`, or print the one-line reason and return None."""
     try:
         return make_client(args)
-    except ValueError as err:
-        print(f"erni {command}: {err}", file=sys.stderr)
+    except (ErniError, ValueError) as err:
+        print(f"erni {command}: {str(err).splitlines()[0]}", file=sys.stderr)
         return None
 
 

@@ -51,5 +51,5 @@ def run(args: argparse.Namespace) -> int:
     for p in peers:
         heard = f"{now - p.last_heard:.1f}s" if p.last_heard else "never"
         print(f"{p.name:<16} {'up' if p.up else 'down':<5} {p.address:<22} {p.role:<10} {heard:>8}  "
-              f"{','.join(p.capabilities)}")
+              f"{','.join(p.capabilities)}" + (f"  DEGRADED: {p.degraded}" if p.degraded else ""))
     return 0

@@ -7,7 +7,7 @@ import sys
 import time
 from typing import Any
 
-from erni.commands._client import add_client_options, open_client, watch_events
+from erni.commands._client import add_client_options, check_seconds, open_client, watch_events
 from erni.replay import LogError, Recorder
 
 LEASE = 10.0
@@ -28,6 +28,10 @@ def run(args: argparse.Namespace) -> int:
     """Lease a watch and write every event to the log, with a progress line on stderr."""
     from erni.transport.client import ClientError
 
+    problem = check_seconds(args.seconds, "--seconds", zero=True)
+    if problem:
+        print(f"erni record: {problem}", file=sys.stderr)
+        return 2
     client = open_client(args, "record")
     if client is None:
         return 2

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
+import math
 import select
 import sys
 import threading
@@ -28,6 +29,8 @@ def register(sub: Any) -> None:
     p.add_argument("--name", default="control", help="agent name of the replay node")
     p.add_argument("--loop", action="store_true", help="start again at the end")
     p.add_argument("--no-gui", action="store_true", help="do not start the web GUI")
+    p.add_argument("--identity", metavar="FILE", help="identity bundle of the replay node (role control); "
+                   "without it the team key in ERNI_TEAM_KEY")
     p.add_argument("--insecure", action="store_true", help="accept unauthenticated clients")
     p.set_defaults(func=run)
 
@@ -48,9 +51,13 @@ def _commands(plugin: ReplayPlugin, stop: threading.Event) -> None:
             stop.set()
         else:
             try:
-                plugin.speed = max(0.01, float(word))
-                print(f"speed {plugin.speed:g}", file=sys.stderr)
+                speed = float(word)
             except ValueError:
+                speed = math.nan
+            if math.isfinite(speed) and speed > 0:
+                plugin.speed = max(0.01, min(1000.0, speed))
+                print(f"speed {plugin.speed:g}", file=sys.stderr)
+            else:
                 print(f"unknown command {word!r}: p (pause/resume), a speed such as 0.5, q", file=sys.stderr)
 
 
@@ -61,17 +68,17 @@ def run(args: argparse.Namespace) -> int:
     except LogError as err:
         print(f"erni replay: {err}", file=sys.stderr)
         return 2
-    if args.speed <= 0:
-        print(f"erni replay: --speed: expected a positive number, got {args.speed}", file=sys.stderr)
+    if not math.isfinite(args.speed) or args.speed <= 0:
+        print(f"erni replay: --speed: expected a finite number > 0, got {args.speed}", file=sys.stderr)
         return 2
     for line in problems:
         print(f"erni replay: skipping {line}", file=sys.stderr)
     setup_logging("WARNING")
     agent = Agent(args.name, workers=2)
     try:
+        auth = {"identity": args.identity} if args.identity else {"insecure": args.insecure}
         agent.add_plugin("transport", settings={"listen": args.listen, "role": "control", "discovery_port": 0,
-                                                "forward_tasks": False, "insecure": args.insecure},
-                         name="transport")
+                                                "forward_tasks": False, **auth}, name="transport")
         plugin = agent.add_plugin(ReplayPlugin, settings={"log": args.log, "speed": args.speed,
                                                           "loop": args.loop}, name="replay")
         if not args.no_gui and importlib.util.find_spec("erni.plugins.ui") is not None:

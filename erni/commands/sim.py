@@ -112,7 +112,7 @@ def _print_team(team: Any, seconds: float) -> None:
     print(f"  control    agent {host}:{port}  pid {team.agents['control'].pid or '-'}")
     print(f"  GUI        {team.url}" if team.url else "  GUI        none (headless, or the UI plugin is not installed)")
     print(f"to task the team from another terminal:\n"
-          f"  export ERNI_TEAM_KEY=$(cat {team.key_file})\n"
+          f"  export ERNI_IDENTITY={team.cli_identity}\n"
           f"  erni peers --via {host}:{port}\n"
           f"  erni task --via {host}:{port} {team.names[0]} BotMotion goto x=1 y=2 --wait\n"
           f"  erni watch --via {host}:{port}")

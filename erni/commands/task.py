@@ -3,15 +3,17 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from typing import Any
 
 from erni.blackboard import Task, TaskError
-from erni.blackboard.errors import UsageError
+from erni.blackboard.errors import UsageError, shown
 from erni.blackboard.schemas import Cancel, ResultUpdate
-from erni.commands._client import add_client_options, dumps, open_client, stamp
+from erni.commands._client import add_client_options, check_seconds, dumps, open_client, stamp
+from erni.transport.wire import loads
+
+QUERY_PERIOD = 2.0  # with --wait, ask the agent for the task's state this often
 
 
 def register(sub: Any) -> None:
@@ -24,7 +26,10 @@ def register(sub: Any) -> None:
     p.add_argument("preposition", help="the sub-task, e.g. goto")
     p.add_argument("params", nargs="*", metavar="KEY=VALUE", help="parameters (see `erni tasks`)")
     p.add_argument("--wait", action="store_true", help="print result updates until the task ends")
-    p.add_argument("--timeout", type=float, default=None, help="with --wait: give up after S seconds")
+    p.add_argument("--timeout", type=float, default=None, help="with --wait: give up (and cancel) after S seconds")
+    p.add_argument("--link-deadline", type=float, default=30.0,
+                   help="with --wait: give up when the agent reached through does not answer for S "
+                   "seconds (default 30)")
     add_client_options(p)
     p.set_defaults(func=run)
 
@@ -35,9 +40,11 @@ def parse_params(items: list[str]) -> dict[str, Any]:
     for item in items:
         key, sep, value = item.partition("=")
         if not sep or not key:
-            raise UsageError(f"parameter {item!r}: expected KEY=VALUE")
+            raise UsageError(f"parameter {shown(item)}: expected KEY=VALUE")
         try:
-            params[key] = json.loads(value)
+            params[key] = loads(value)
+        except UsageError as err:
+            raise UsageError(f"parameter {shown(key, 40)}: {err}") from None
         except ValueError:
             params[key] = value
     return params
@@ -52,11 +59,15 @@ def _line(args: argparse.Namespace, task: Task, result: Any) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Send the task; with --wait follow it to its end."""
+    """Send the task; with --wait follow it to its end (or until its link is lost)."""
+    problem = check_seconds(args.timeout, "--timeout") or check_seconds(args.link_deadline, "--link-deadline")
+    if problem:
+        print(f"erni task: {problem}", file=sys.stderr)
+        return 2
     try:
         task = Task(verb=args.verb, preposition=args.preposition, params=parse_params(args.params),
                     destination=args.agent, source="cli")
-    except (TaskError, ValueError) as err:
+    except (TaskError, UsageError) as err:
         print(f"erni task: {err}", file=sys.stderr)
         return 2
     client = open_client(args, "task")
@@ -82,26 +93,52 @@ def run(args: argparse.Namespace) -> int:
             print(dumps({"uid": task.uid, "agent": args.agent, "state": "sent"}) if args.json
                   else f"{task.uid} sent to {args.agent}: {task.describe()}")
             return 0
-        end = time.monotonic() + args.timeout if args.timeout else None
         try:
-            while True:
-                if end and time.monotonic() > end:
-                    print(f"erni task: no final result within {args.timeout} s; cancelling",
-                          file=sys.stderr)
-                    client.send(addr, "task.cancel", Cancel(uid=task.uid))
-                    time.sleep(0.2)
-                    return 1
-                msg = client.receive(0.2)
-                if msg is None or msg.kind != "task.result" or not isinstance(msg.body, ResultUpdate):
-                    continue
-                if msg.body.uid != task.uid:
-                    continue
-                result = msg.body.result
-                print(_line(args, task, result), flush=True)
-                if result.state.done:
-                    return 0 if result.state.value == "succeeded" else 1
+            return _follow(args, client, addr, task)
         except KeyboardInterrupt:
             client.send(addr, "task.cancel", Cancel(uid=task.uid))
             time.sleep(0.2)
             print(f"erni task: cancelled {task.uid}", file=sys.stderr)
             return 130
+
+
+def _follow(args: argparse.Namespace, client: Any, addr: tuple[str, int], task: Task) -> int:
+    """Print the task's updates until it is final, the timeout passes, or the agent goes silent."""
+    start = time.monotonic()
+    end = start + args.timeout if args.timeout else None
+    heard = start  # anything from the agent we reach the team through
+    next_query = start + QUERY_PERIOD
+    shown_last: dict[str, Any] | None = None
+    while True:
+        now = time.monotonic()
+        if end and now > end:
+            print(f"erni task: no final result within {args.timeout:g} s; cancelling", file=sys.stderr)
+            client.send(addr, "task.cancel", Cancel(uid=task.uid))
+            time.sleep(0.2)
+            return 1
+        if now - heard > args.link_deadline:
+            print(f"erni task: link lost: no answer from {addr[0]}:{addr[1]} for {now - heard:.0f} s; "
+                  f"task {task.uid} may still run there", file=sys.stderr)
+            return 1
+        if now >= next_query:  # the agent answers with the task's state: a heartbeat, and a lost update found
+            client.send(addr, "task.query", Cancel(uid=task.uid), reliable=False)
+            next_query = now + QUERY_PERIOD
+        msg = client.receive(0.2)
+        if msg is None:
+            continue
+        if msg.reply == addr or msg.kind in ("task.result", "task.unknown"):
+            heard = time.monotonic()
+        if msg.kind == "task.unknown" and isinstance(msg.body, Cancel) and msg.body.uid == task.uid:
+            print(f"erni task: {args.agent} no longer knows task {task.uid} (restarted without its journal?)",
+                  file=sys.stderr)
+            return 1
+        if msg.kind != "task.result" or not isinstance(msg.body, ResultUpdate) or msg.body.uid != task.uid:
+            continue
+        result = msg.body.result
+        same = result.model_dump(exclude={"stamp"})
+        if same == shown_last and not result.state.done:
+            continue  # an answer to a query that says nothing new
+        shown_last = same
+        print(_line(args, task, result), flush=True)
+        if result.state.done:
+            return 0 if result.state.value == "succeeded" else 1

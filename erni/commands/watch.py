@@ -8,7 +8,7 @@ import time
 from typing import Any
 
 from erni.blackboard.schemas import WatchEvent
-from erni.commands._client import add_client_options, dumps, open_client, stamp, watch_events
+from erni.commands._client import add_client_options, check_seconds, dumps, open_client, stamp, watch_events
 
 LEASE = 10.0
 
@@ -44,6 +44,10 @@ def run(args: argparse.Namespace) -> int:
     """Lease a watch from one agent and print its events until stopped."""
     from erni.transport.client import ClientError
 
+    problem = check_seconds(args.seconds, "--seconds", zero=True)
+    if problem:
+        print(f"erni watch: {problem}", file=sys.stderr)
+        return 2
     client = open_client(args, "watch")
     if client is None:
         return 2

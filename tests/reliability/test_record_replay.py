@@ -15,10 +15,10 @@ from erni.blackboard import Pose, Task, TaskState
 from erni.blackboard.testing import wait_until
 from erni.replay import LogError, read_log
 from erni.transport import Peer
-from tests.transport.helpers import KEY, free_port, make_agent
+from tests.transport.helpers import free_port, identity, make_agent
 
 ROOT = Path(__file__).resolve().parents[2]
-ENV = {**os.environ, "ERNI_TEAM_KEY": KEY, "PYTHONUNBUFFERED": "1"}
+ENV = {**os.environ, "ERNI_IDENTITY": identity("cli", "cli"), "PYTHONUNBUFFERED": "1"}
 
 
 def erni(*args: str) -> subprocess.Popen:
@@ -61,7 +61,8 @@ def test_record_then_replay_looks_live(tmp_path):
     assert any(isinstance(e.obj, Pose) and e.obj.x == 2.0 for e in events)
 
     replay_port = free_port()
-    replay = erni("replay", str(log), "--speed", "2", "--listen", f"127.0.0.1:{replay_port}", "--no-gui")
+    replay = erni("replay", str(log), "--speed", "2", "--listen", f"127.0.0.1:{replay_port}", "--no-gui",
+                  "--identity", identity("control", "control"))
     try:
         watch = subprocess.run([sys.executable, "-m", "erni", "watch", "--via", f"127.0.0.1:{replay_port}",
                                 "--json", "--seconds", "4"], cwd=ROOT, env=ENV, capture_output=True,
@@ -102,3 +103,27 @@ def test_bad_logs_are_clear_errors(tmp_path):
     out = subprocess.run([sys.executable, "-m", "erni", "replay", str(wrong)], capture_output=True, text=True,
                          timeout=30, cwd=ROOT)
     assert out.returncode == 2 and "not an ERNI record" in out.stderr and "Traceback" not in out.stderr
+
+
+def test_log_times_must_be_finite_and_nesting_is_bounded(tmp_path):
+    """A log line at t = NaN or infinity, or nested a hundred thousand deep, is one skipped line."""
+    log = tmp_path / "odd.jsonl"
+    good = {"t": 0.1, "agent": "c", "op": "add", "type": "Pose", "data": Pose(robot="r").model_dump(mode="json")}
+    lines = [json.dumps({"erni_record": 1, "via": "x"}), json.dumps(good)]
+    lines += [json.dumps(good).replace('"t": 0.1', f'"t": {bad}') for bad in ("NaN", "Infinity", "-1", "true", '"1"')]
+    lines.append("[" * 100_000 + "]" * 100_000)
+    log.write_text("\n".join(lines))
+    _, events, problems = read_log(log)
+    assert len(events) == 1 and len(problems) == 6
+    assert "t: expected a finite number of seconds >= 0, got nan" in problems[0]
+    assert "got inf" in problems[1] and "got True" in problems[3]
+    assert "nested deeper than 64 levels" in problems[5]
+    out = subprocess.run([sys.executable, "-m", "erni", "replay", str(log), "--no-gui", "--insecure",
+                          "--listen", f"127.0.0.1:{free_port()}", "--speed", "nan"],
+                         capture_output=True, text=True, timeout=30, cwd=ROOT)
+    assert out.returncode == 2 and "--speed: expected a finite number > 0, got nan" in out.stderr
+    out = subprocess.run([sys.executable, "-m", "erni", "replay", str(log), "--no-gui", "--insecure",
+                          "--listen", f"127.0.0.1:{free_port()}", "--speed", "50"],
+                         capture_output=True, text=True, timeout=30, cwd=ROOT)
+    assert out.returncode == 0 and "replay finished (1 events)" in out.stderr
+    assert out.stderr.count("skipping") == 6 and "Traceback" not in out.stderr

@@ -1,13 +1,43 @@
-"""Agents with a transport on loopback, for the transport tests."""
+"""Agents with a transport on loopback, for the transport tests: one team authority per test
+session, an identity per agent name (issued on first use)."""
 
 from __future__ import annotations
 
 import socket
+import tempfile
+import threading
+from pathlib import Path
 from typing import Any
 
 from erni.blackboard import Agent
 
-KEY = "test-team-key"
+try:
+    from erni.transport.identity import Authority
+except ImportError:  # a transport without identities (the tests then fall back to the team key)
+    Authority = None  # type: ignore[assignment,misc]
+
+KEY = "test-team-key"  # a shared team key, for the tests of that mode
+_KEYS: dict[str, Any] = {}
+_LOCK = threading.Lock()
+
+
+def authority() -> Authority:
+    """The test session's team authority (made once, in a temporary directory)."""
+    with _LOCK:
+        if "authority" not in _KEYS:
+            _KEYS["dir"] = tempfile.TemporaryDirectory(prefix="erni-test-keys-")
+            _KEYS["authority"] = Authority.create(_KEYS["dir"].name, team="erni tests")
+        return _KEYS["authority"]
+
+
+def identity(name: str, role: str = "robot") -> str:
+    """Path of the identity bundle of `name` in `role` (issued once per session)."""
+    auth = authority()
+    with _LOCK:
+        key = f"{name}/{role}"
+        if key not in _KEYS:
+            _KEYS[key] = str(auth.issue(name, role, Path(auth.dir) / f"{name}.{role}.pem"))
+        return str(_KEYS[key])
 
 
 def free_port(kind: int = socket.SOCK_DGRAM) -> int:
@@ -18,13 +48,148 @@ def free_port(kind: int = socket.SOCK_DGRAM) -> int:
 
 def make_agent(name: str, discovery_port: int, *, echo: bool = True, start: bool = True,
                **settings: Any) -> Agent:
-    """An agent with the transport (fast timings) and, optionally, the echo performer."""
+    """An agent with the transport (fast timings, its own identity) and, optionally, the echo performer."""
     agent = Agent(name, workers=2)
-    base: dict[str, Any] = {"key": KEY, "discovery_port": discovery_port, "beacon_period": 0.1,
+    role = settings.get("role", "robot")
+    base: dict[str, Any] = {"discovery_port": discovery_port, "beacon_period": 0.1,
                             "peer_timeout": 0.6, "ack_timeout": 0.3, "connect_timeout": 0.3,
                             "task_ttl": 5.0}
+    if not settings.get("insecure") and "key" not in settings:
+        if Authority is not None:
+            base["identity"] = identity(name, role)
+        else:
+            base["key"] = KEY
     base.update(settings)
     agent.add_plugin("transport", settings=base, name="transport")
     if echo:
         agent.add_plugin("echo", settings={"verbs": ["BotMotion"], "delay": 0.05}, name="motion")
     return agent.start() if start else agent
+
+
+def make_client(via: tuple[str, int] | None, **kw: Any) -> Any:
+    """A started command-line client of the test team (identity `cli`, role cli)."""
+    import os
+
+    from erni.transport.client import Client
+
+    if Authority is None:
+        os.environ["ERNI_TEST_KEY"] = KEY
+        client = Client(via, key_env="ERNI_TEST_KEY", **kw)
+    else:
+        client = Client(via, identity=identity("cli", "cli"), **kw)
+    client.endpoint.start()
+    return client
+
+
+class Tap:
+    """An eavesdropper on the path to one agent: TCP and UDP on one port forwarded to `target`,
+    everything the client side sends recorded as it crossed the wire."""
+
+    def __init__(self, target: tuple[str, int]):
+        self.target = target
+        for _ in range(32):
+            self._tcp = socket.socket()
+            self._tcp.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            self._tcp.bind(("127.0.0.1", 0))
+            self._udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            try:
+                self._udp.bind(self._tcp.getsockname())
+                break
+            except OSError:
+                self._tcp.close()
+                self._udp.close()
+        self.address: tuple[str, int] = self._tcp.getsockname()
+        self._tcp.listen(16)
+        self._tcp.settimeout(0.1)
+        self._udp.settimeout(0.1)
+        self.streams: list[bytearray] = []  # client -> agent, one per TCP connection
+        self.datagrams: list[bytes] = []  # client -> agent
+        self._client_udp: tuple[str, int] | None = None
+        self._stop = threading.Event()
+        self._threads = [threading.Thread(target=self._accept, daemon=True),
+                         threading.Thread(target=self._relay_udp, daemon=True)]
+        for t in self._threads:
+            t.start()
+
+    def _accept(self) -> None:
+        while not self._stop.is_set():
+            try:
+                conn, _ = self._tcp.accept()
+            except (TimeoutError, OSError):
+                continue
+            upstream = socket.create_connection(self.target)
+            record = bytearray()
+            self.streams.append(record)
+            for src, dst, rec in ((conn, upstream, record), (upstream, conn, None)):
+                t = threading.Thread(target=self._pump, args=(src, dst, rec), daemon=True)
+                t.start()
+                self._threads.append(t)
+
+    def _pump(self, src: socket.socket, dst: socket.socket, record: bytearray | None) -> None:
+        src.settimeout(0.1)
+        try:
+            while not self._stop.is_set():
+                try:
+                    data = src.recv(65536)
+                except TimeoutError:
+                    continue
+                if not data:
+                    break
+                if record is not None:
+                    record += data
+                dst.sendall(data)
+        except OSError:
+            pass
+        finally:
+            for s in (src, dst):
+                try:
+                    s.shutdown(socket.SHUT_RDWR)
+                except OSError:
+                    pass
+            src.close()
+
+    def _relay_udp(self) -> None:
+        while not self._stop.is_set():
+            try:
+                data, src = self._udp.recvfrom(65536)
+            except (TimeoutError, OSError):
+                continue
+            if src == self.target:
+                if self._client_udp is not None:
+                    self._udp.sendto(data, self._client_udp)
+            else:
+                self._client_udp = src
+                self.datagrams.append(data)
+                self._udp.sendto(data, self.target)
+
+    def close(self) -> None:
+        self._stop.set()
+        for t in self._threads:
+            t.join(2)
+        self._tcp.close()
+        self._udp.close()
+
+
+ECHO = """
+[[plugin]]
+class = "echo"
+name = "motion"
+[plugin.settings]
+verbs = ["BotMotion"]
+delay = {delay}
+"""
+
+
+def agent_config(path: Path, name: str, *, listen: str = "127.0.0.1:0", discovery_port: int = 0,
+                 role: str = "robot", echo: float | None = 0.2, agent: str = "", **settings: Any) -> Path:
+    """Write an `erni agent` config: the transport with this agent's identity, optionally the echo plugin."""
+    from erni.sim.team import toml_value
+
+    auth: dict[str, Any] = {"identity": identity(name, role)} if Authority is not None else {"key": KEY}
+    values = {"listen": listen, "discovery_port": discovery_port, "role": role, "beacon_period": 0.2,
+              **auth, **settings}
+    lines = ["[agent]", f"name = {toml_value(name)}", agent, "[[plugin]]", 'class = "transport"',
+             "[plugin.settings]"] + [f"{k} = {toml_value(v)}" for k, v in values.items()]
+    text = "\n".join(lines) + "\n" + (ECHO.format(delay=echo) if echo is not None else "")
+    path.write_text(text, encoding="utf-8")
+    return path

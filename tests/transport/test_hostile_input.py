@@ -1,32 +1,36 @@
-"""Garbage, truncated, oversized, wrongly keyed and replayed frames: dropped, counted, harmless."""
+"""Garbage, strangers, floods and resource exhaustion before authentication: dropped, counted, bounded.
+
+Also the agent's own sockets: an agent that cannot bind exits with one line; port 0 gives TCP
+and UDP the same, checked, number.
+"""
 
 from __future__ import annotations
 
+import os
 import random
+import resource
+import signal
 import socket
 import struct
+import subprocess
+import sys
 import time
+from pathlib import Path
 
 import pytest
 
 from erni.blackboard import Task
 from erni.blackboard.testing import wait_until
-from erni.transport import Peer
-from erni.transport.wire import Envelope, encode
-from tests.transport.helpers import KEY, free_port, make_agent
+from tests.transport.helpers import Tap, agent_config, free_port, make_agent, make_client
+
+ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture
 def robot():
-    agent = make_agent("robot1", free_port(), max_frame=4096)
+    agent = make_agent("robot1", free_port(), max_frame=4096, max_connections_per_host=8, frame_timeout=0.5)
     yield agent
     agent.stop()
-
-
-def frame_for(task: Task, key: bytes, seq: int, epoch: int = 1, sender: str = "intruder") -> bytes:
-    env = Envelope(sender=sender, reply=("127.0.0.1", 9), epoch=epoch, seq=seq, id=f"id{seq}",
-                   kind="task.add", type="Task", body=task.model_dump(mode="json"))
-    return encode(env, key)
 
 
 def task() -> Task:
@@ -38,82 +42,267 @@ def counters(agent) -> dict[str, int]:
     return agent.plugin("transport").endpoint.counters
 
 
+def addr_of(agent) -> tuple[str, int]:
+    return agent.plugin("transport").address
+
+
+def closed_by_peer(sock: socket.socket, timeout: float) -> bool:
+    """True when the other end closes the connection within `timeout` seconds (what it said first is read)."""
+    deadline = time.monotonic() + timeout
+    try:
+        while True:
+            sock.settimeout(max(0.001, deadline - time.monotonic()))
+            if sock.recv(65536) == b"":
+                return True
+    except (ConnectionResetError, BrokenPipeError):
+        return True
+    except (TimeoutError, OSError):
+        return False
+
+
 def test_garbage_datagrams_and_streams_reach_nothing(robot):
-    addr = robot.plugin("transport").address
+    addr = addr_of(robot)
     rng = random.Random(1)
     udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    good = frame_for(task(), KEY.encode(), 1)
     payloads = [bytes(rng.randrange(256) for _ in range(rng.randrange(1, 600))) for _ in range(200)]
-    payloads += [good[:n] for n in (3, 4, 10, len(good) - 1)]  # truncated
-    payloads += [struct.pack(">I", 2**31) + good[4:], b"\x00" * 4]  # absurd and empty lengths
+    payloads += [struct.pack(">I", 2**31) + b"D" + b"x" * 20, b"\x00" * 4, b"\x00\x00\x00\x09K12345678"]
     for i, p in enumerate(payloads):
         udp.sendto(p, addr)
         if i % 20 == 19:
             time.sleep(0.005)  # stay within the socket buffer: datagrams lost by the kernel go uncounted
     for chunk in (bytes(rng.randrange(256) for _ in range(3000)), struct.pack(">I", 10**9) + b"xx",
-                  good[: len(good) // 2]):
+                  b"\x00\x00\x00\x40D" + os.urandom(20)):
         with socket.create_connection(addr) as tcp:
             tcp.sendall(chunk)
     udp.close()
     wait_until(lambda: sum(v for k, v in counters(robot).items() if k.startswith("dropped.")) >= 150)
     time.sleep(0.2)
     assert robot.query(Task) == []
-    # the agent still works: a good frame after all that garbage is accepted
-    with socket.create_connection(addr) as tcp:
-        tcp.sendall(frame_for(task(), KEY.encode(), 2))
+    client = make_client(addr)  # the agent still works: a real client after all that garbage
+    try:
+        client.send(addr, "task.add", task())
         wait_until(lambda: robot.query(Task))
+    finally:
+        client.endpoint.stop()
 
 
-def test_wrong_key_is_refused_and_counted(robot):
-    addr = robot.plugin("transport").address
-    with socket.create_connection(addr) as tcp:
-        tcp.sendall(frame_for(task(), b"not-the-team-key", 1))
-        wait_until(lambda: counters(robot).get("dropped.auth", 0) >= 1)
-    assert robot.query(Task) == []
+def test_a_stranger_of_another_team_is_refused_and_never_listed(robot, tmp_path):
+    from erni.transport.identity import Authority
+
+    other = Authority.create(tmp_path / "other-team")
+    path = other.issue("outsider", "robot")
+    port = robot.plugin("transport").settings.discovery_port
+    outsider = make_agent("outsider", port, echo=False, identity=str(path))
+    try:
+        ep = outsider.plugin("transport").endpoint
+        ep.send(addr_of(robot), "task.add", task(), reliable=True, ttl=1.0)
+        wait_until(lambda: counters(robot).get("dropped.auth", 0) >= 2)  # its beacons and its handshakes
+        time.sleep(0.3)
+        assert robot.query(Task) == []
+        assert robot.blackboard.get("peer:outsider") is None
+    finally:
+        outsider.stop()
 
 
 def test_oversized_frames_are_refused(robot):
-    addr = robot.plugin("transport").address
-    big = Task(verb="BotMotion", preposition="forward", params={"distance": 1}, source="x" * 60,
-               destination="robot1").with_result(message="y" * 10_000)
-    with socket.create_connection(addr) as tcp:
-        tcp.sendall(frame_for(big, KEY.encode(), 1))
+    with socket.create_connection(addr_of(robot)) as tcp:
+        tcp.sendall(struct.pack(">I", 5000) + b"D" + b"\x00" * 100)
         wait_until(lambda: counters(robot).get("dropped.size", 0) >= 1)
-    assert robot.query(Task) == []
+        assert closed_by_peer(tcp, 2)
 
 
-def test_replayed_frames_are_refused_and_restarts_accepted(robot):
-    addr = robot.plugin("transport").address
-    first = frame_for(task(), KEY.encode(), 5, epoch=100)
-    udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    udp.sendto(first, addr)
-    wait_until(lambda: len(robot.query(Task)) == 1)
-    with robot.transaction() as tx:  # the performer's side forgets the task
-        tx.remove(robot.query(Task)[0])
-    udp.sendto(first, addr)  # the very same bytes again
-    wait_until(lambda: counters(robot).get("dropped.replay", 0) == 1)
-    older_boot = frame_for(task(), KEY.encode(), 99, epoch=50)
-    udp.sendto(older_boot, addr)
-    wait_until(lambda: counters(robot).get("dropped.replay", 0) == 2)
-    assert robot.query(Task) == []
-    restarted = frame_for(task(), KEY.encode(), 1, epoch=200)  # a rebooted sender starts at 1
-    udp.sendto(restarted, addr)
-    wait_until(lambda: len(robot.query(Task)) == 1)
-    udp.close()
-
-
-def test_agent_without_the_team_key_cannot_task(robot):
-    port = robot.plugin("transport").settings.discovery_port
-    outsider = make_agent("outsider", port, echo=False, key="another-key")
+def test_connections_beyond_the_caps_are_refused_and_others_still_served(robot):
+    flood = []
     try:
-        time.sleep(0.5)  # beacons both ways are refused
-        assert not [p for p in robot.query(Peer) if p.name == "outsider"]
-        ep = outsider.plugin("transport").endpoint
-        ep.send(robot.plugin("transport").address, "task.add", task(), reliable=True, ttl=1.0)
-        wait_until(lambda: counters(robot).get("dropped.auth", 0) >= 3)
-        assert robot.query(Task) == []
+        for _ in range(40):  # from one host, beyond its cap of 8
+            s = socket.socket()
+            s.bind(("127.0.0.3", 0))
+            s.connect(addr_of(robot))
+            flood.append(s)
+        wait_until(lambda: counters(robot).get("refused.connections", 0) >= 32)
+        assert sum(closed_by_peer(s, 0.05) for s in flood) >= 32
+        client = make_client(addr_of(robot))  # another host is not held up by that one
+        try:
+            client.send(addr_of(robot), "task.add", task())
+            wait_until(lambda: robot.query(Task))
+        finally:
+            client.endpoint.stop()
     finally:
-        outsider.stop()
+        for s in flood:
+            s.close()
+
+
+def test_idle_and_partial_frame_connections_are_closed(robot):
+    addr = addr_of(robot)
+    idle = socket.create_connection(addr)
+    unknown = socket.create_connection(addr)  # a frame of no session of ours: closed at once
+    unknown.sendall(struct.pack(">IB8sQ", 3000, ord("D"), b"12345678", 1) + b"x" * 1000)
+    assert closed_by_peer(unknown, 0.3)
+    client = make_client(addr)  # a real session, whose id an eavesdropper could read on the mesh
+    tap_sid = None
+    try:
+        client.send(addr, "watch.request", None)
+        wait_until(lambda: client.endpoint.session_with(addr) is not None)
+        tap_sid = client.endpoint.session_with(addr).sid
+        partial = socket.create_connection(addr)
+        partial.sendall(struct.pack(">IB8sQ", 3000, ord("D"), tap_sid, 10**9) + b"x" * 1000)
+        started = time.monotonic()
+        assert closed_by_peer(partial, 3.0), "a frame left half-sent is not held forever"
+        assert time.monotonic() - started >= 0.3
+        assert closed_by_peer(idle, 3.0), "a connection that never authenticates is closed"
+        assert counters(robot).get("closed.timeout", 0) >= 2 and counters(robot).get("dropped.session", 0) >= 1
+    finally:
+        client.endpoint.stop()
+        for s in (idle, unknown):
+            s.close()
+
+
+def _rss_kib(pid: int) -> int:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1])
+    raise AssertionError("no VmRSS")
+
+
+def _cpu_seconds(pid: int) -> float:
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _start(config: Path, nofile: int | None = None) -> subprocess.Popen[str]:
+    def limits() -> None:
+        if nofile:
+            resource.setrlimit(resource.RLIMIT_NOFILE, (nofile, nofile))
+
+    return subprocess.Popen([sys.executable, "-m", "erni", "agent", str(config)], cwd=ROOT,
+                            stderr=subprocess.PIPE, text=True, preexec_fn=limits,
+                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+
+
+def _stop(proc: subprocess.Popen[str]) -> str:
+    proc.send_signal(signal.SIGINT)
+    try:
+        proc.wait(10)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait(5)
+    return proc.stderr.read() if proc.stderr else ""
+
+
+def _peers_ok(addr: tuple[str, int]) -> bool:
+    client = make_client(addr)
+    try:
+        client.send(addr, "peers.request", None)
+        deadline = time.monotonic() + 3
+        while time.monotonic() < deadline:
+            msg = client.receive(0.1)
+            if msg is not None and msg.kind == "peers.reply":
+                return True
+        return False
+    finally:
+        client.endpoint.stop()
+
+
+@pytest.mark.slow
+def test_half_sent_frames_and_a_full_fd_table_cost_bounded_memory_and_no_spinning(tmp_path):
+    """400 connections each holding half of a 250 kB frame, at an agent limited to 256 open files."""
+    port = free_port(socket.SOCK_STREAM)
+    config = agent_config(tmp_path / "robot.toml", "robot1", listen=f"127.0.0.1:{port}", frame_timeout=3.0,
+                          max_connections=64, echo=None)
+    proc = _start(config, nofile=256)
+    flood: list[socket.socket] = []
+    tap = None
+    try:
+        addr = ("127.0.0.1", port)
+        wait_until(lambda: _peers_ok(addr), timeout=15, interval=0.3)
+        tap = Tap(addr)  # an eavesdropper learns a live session id
+        client = make_client(tap.address)
+        client.send(tap.address, "watch.request", None, reliable=False)
+        wait_until(lambda: any(d[4] == ord("D") for d in tap.datagrams))
+        sid = next(d for d in tap.datagrams if d[4] == ord("D"))[5:13]
+        client.endpoint.stop()
+        time.sleep(0.5)
+        before_rss, before_cpu = _rss_kib(proc.pid), _cpu_seconds(proc.pid)
+        half = struct.pack(">IB8sQ", 250_000, ord("D"), sid, 10**9) + os.urandom(125_000)
+        for i in range(400):
+            s = socket.socket()
+            s.bind((f"127.0.0.{10 + i % 20}", 0))
+            s.settimeout(2)
+            try:
+                s.connect(addr)
+                s.sendall(half)
+            except OSError:
+                pass  # refused or reset: the cap at work
+            flood.append(s)
+        time.sleep(1.0)
+        grown = (_rss_kib(proc.pid) - before_rss) / 1024
+        spent = _cpu_seconds(proc.pid) - before_cpu
+        assert _peers_ok(addr), "the agent still answers while the flood is held"
+        cpu_window = time.monotonic()
+        cpu_start = _cpu_seconds(proc.pid)
+        time.sleep(2.0)
+        busy = (_cpu_seconds(proc.pid) - cpu_start) / (time.monotonic() - cpu_window)
+        print(f"half frames: RSS +{grown:.1f} MiB, CPU {spent:.2f} s while flooded, then {busy:.0%} of a core")
+        assert grown < 24, f"memory held for unauthenticated frames grew by {grown:.0f} MiB"
+        assert busy < 0.25, "the receive loop spins"
+        alive = [s for s in flood if not closed_by_peer(s, 0.01)]
+        time.sleep(3.5)  # past frame_timeout: every half frame is dropped
+        assert all(closed_by_peer(s, 0.5) for s in alive)
+    finally:
+        for s in flood:
+            s.close()
+        if tap is not None:
+            tap.close()
+        log = _stop(proc)
+    assert "Traceback" not in log, log
+
+
+def test_an_agent_that_cannot_bind_exits_with_one_line(tmp_path):
+    busy = socket.socket()
+    busy.bind(("127.0.0.1", 0))
+    busy.listen(1)
+    port = busy.getsockname()[1]
+    config = agent_config(tmp_path / "robot.toml", "robot1", listen=f"127.0.0.1:{port}", echo=None)
+    try:
+        out = subprocess.run([sys.executable, "-m", "erni", "agent", str(config)], capture_output=True,
+                             text=True, timeout=30, cwd=ROOT)
+    finally:
+        busy.close()
+    assert out.returncode == 2
+    lines = out.stderr.strip().splitlines()
+    assert len(lines) == 1, out.stderr
+    assert f"cannot listen on 127.0.0.1:{port} (TCP)" in lines[0] and "in use" in lines[0]
+
+
+def test_port_zero_gives_tcp_and_udp_one_checked_number(monkeypatch):
+    """The first free TCP port is taken for UDP: the endpoint draws another, never two numbers."""
+    from erni.transport import endpoint as module
+
+    taken = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    taken.bind(("127.0.0.1", 0))
+    port = taken.getsockname()[1]
+    real = socket.socket
+    first = [True]
+
+    class Steered(real):  # the kernel's first TCP pick happens to be a number UDP holds
+        def bind(self, address):
+            if self.type == socket.SOCK_STREAM and address[1] == 0 and first[0]:
+                first[0] = False
+                return super().bind((address[0], port))
+            return super().bind(address)
+
+    monkeypatch.setattr(module.socket, "socket", Steered)
+    from erni.transport import Endpoint
+
+    ep = Endpoint("solo", insecure=True)
+    try:
+        ep.start()
+        assert not first[0], "the collision happened"
+        assert ep.address[1] != port
+        assert ep._tcp.getsockname()[1] == ep._udp.getsockname()[1] == ep.address[1]
+    finally:
+        ep.stop()
+        taken.close()
 
 
 def test_insecure_mode_must_be_explicit():
@@ -121,12 +310,14 @@ def test_insecure_mode_must_be_explicit():
 
     from erni.transport import TransportSettings
 
-    with pytest.raises(ValidationError, match="no team key: set key, the NO_SUCH_VAR environment"):
+    with pytest.raises(ValidationError, match="no identity: set identity"):
         TransportSettings(key_env="NO_SUCH_VAR")
+    with pytest.raises(ValidationError, match="cannot read the identity"):
+        TransportSettings(identity="/no/such/robot.pem")
     assert TransportSettings(insecure=True).insecure
 
 
-def test_key_never_appears_in_logs_or_reprs(caplog):
+def test_key_never_appears_in_logs_or_reprs():
     from erni.transport import TransportSettings
 
     s = TransportSettings(key="s3cret-team-key")

@@ -12,7 +12,7 @@ import pytest
 from erni.blackboard import Agent, BBObject, Plugin, Task, TaskState
 from erni.blackboard.testing import wait_until
 from erni.transport import Peer
-from tests.transport.helpers import free_port, make_agent
+from tests.transport.helpers import free_port, identity, make_agent
 
 
 @pytest.fixture
@@ -110,8 +110,8 @@ def test_peer_restart_gets_queued_tasks_exactly_once(team):
     with control.transaction() as tx:
         for t in tasks:
             tx.add(t)
-    time.sleep(0.5)  # the robot is not there yet: tasks wait in the queue, retried
-    assert control.plugin("transport").endpoint.counters.get("retries", 0) >= 1
+    time.sleep(0.5)  # the robot is not there yet: tasks wait in the queue, the handshake is retried
+    assert control.plugin("transport").endpoint.counters.get("handshakes.sent", 0) >= 2
     robot = team("robot1", listen=f"127.0.0.1:{port}", discovery_port=0,
                  peers=[f"control@127.0.0.1:{control.plugin('transport').address[1]}"])
     wait_until(lambda: all(control.blackboard.get(t.uid).done for t in tasks), timeout=10)
@@ -152,11 +152,53 @@ def _latency(agent: Agent, sink: Sink, i: int) -> float:
     return time.perf_counter() - t0
 
 
+class Ghost:
+    """A dead peer that still looks alive: it answers handshakes (UDP), then its TCP side accepts
+    connections and never reads nor acknowledges (a black hole)."""
+
+    def __init__(self):
+        from erni.transport.identity import load_identity
+        from erni.transport.session import IdentityAuth
+
+        self.auth = IdentityAuth(load_identity(identity("ghost")))
+        self.hole = socket.socket()
+        self.hole.bind(("127.0.0.1", 0))
+        self.hole.listen(16)
+        self.addr = self.hole.getsockname()
+        self.udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.udp.bind(self.addr)
+        self.udp.settimeout(0.1)
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self._answer, daemon=True)
+        self.thread.start()
+
+    def _answer(self):
+        from erni.transport.session import cut_signed, parse_hello, respond
+
+        while not self.stop.is_set():
+            try:
+                raw, src = self.udp.recvfrom(65536)
+            except TimeoutError:
+                continue
+            if raw[4:5] != b"H":
+                continue
+            signed = cut_signed(raw, 65536)
+            hello = parse_hello(signed.body)
+            serial = self.auth.verify(signed, hello.sender, hello.role)
+            frame, _ = respond(self.auth, hello, raw, serial, "0" * 32, self.addr)
+            self.udp.sendto(frame, src)
+
+    def close(self):
+        self.stop.set()
+        self.thread.join(2)
+        self.udp.close()
+        self.hole.close()
+
+
 def test_dead_peer_does_not_stall_other_plugins(team):
     """Two agents in one run, sampled alternately: one sends to a dead peer, one does not."""
-    hole = socket.socket()  # a black hole: accepts connections, never reads, never acknowledges
-    hole.bind(("127.0.0.1", 0))
-    hole.listen(16)
+    ghost = Ghost()
+    hole = ghost.hole
     try:
         dead_peer = [f"ghost@127.0.0.1:{hole.getsockname()[1]}"]
         normal = team("normal", echo=False, discovery_port=0, peers=dead_peer, ack_timeout=2.0)
@@ -177,7 +219,7 @@ def test_dead_peer_does_not_stall_other_plugins(team):
         assert ratio <= 1.2
         conn.close()
     finally:
-        hole.close()
+        ghost.close()
 
 
 class Stepper(Plugin):
@@ -264,7 +306,7 @@ def test_older_result_never_overwrites_newer(team):
 def test_restarted_requester_gets_its_tasks_reconciled(team, tmp_path):
     journal = tmp_path / "control.sqlite"
     control = Agent("control", journal=journal)
-    control.add_plugin("transport", settings={"key": "test-team-key", "discovery_port": 0,
+    control.add_plugin("transport", settings={"identity": identity("control"), "discovery_port": 0,
                                               "peers": []}, name="transport")
     robot = team("robot1", echo=False, discovery_port=0)
     robot_addr = "{}:{}".format(*robot.plugin("transport").address)
@@ -279,7 +321,7 @@ def test_restarted_requester_gets_its_tasks_reconciled(team, tmp_path):
     with robot.transaction() as tx:
         tx.change(robot.blackboard.get(task.uid).with_result(TaskState.SUCCEEDED, progress=1.0))
     again = Agent("control", journal=journal)
-    again.add_plugin("transport", settings={"key": "test-team-key", "discovery_port": 0,
+    again.add_plugin("transport", settings={"identity": identity("control"), "discovery_port": 0,
                                             "peers": [f"robot1@{robot_addr}"]}, name="transport")
     again.start()
     try:
