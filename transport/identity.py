@@ -40,6 +40,11 @@ _BEGIN = datetime.datetime(1970, 1, 1, tzinfo=datetime.UTC)
 _END = datetime.datetime(9999, 12, 31, 23, 59, 59, tzinfo=datetime.UTC)
 
 
+# what cryptography's lazy X.509 parser may raise on bad DER (found by fuzzing: KeyError, InvalidVersion)
+_MALFORMED = (ValueError, TypeError, KeyError, IndexError, OverflowError, x509.InvalidVersion,
+              x509.DuplicateExtension, x509.UnsupportedGeneralNameType)
+
+
 class IdentityError(ConfigError):
     """A key, certificate or revocation list is missing, unreadable or not of this team."""
 
@@ -101,6 +106,12 @@ class Trust:
 
     def _verify(self, der: bytes) -> Certified:
         try:
+            return self._read(der)
+        except _MALFORMED:  # cryptography parses lazily: a bad field surfaces here, even as KeyError
+            raise IdentityError("certificate is malformed") from None
+
+    def _read(self, der: bytes) -> Certified:
+        try:
             cert = x509.load_der_x509_certificate(der)
             cert.verify_directly_issued_by(self.authority)
         except (ValueError, TypeError, InvalidSignature):
@@ -122,14 +133,16 @@ class Trust:
         """Take a revocation list if it is the authority's and newer than ours; return True if taken."""
         try:
             crl = x509.load_der_x509_crl(der)
-            valid = crl.issuer == self.authority.subject and crl.is_signature_valid(self.authority_key)
-        except (ValueError, TypeError):
+            if crl.issuer != self.authority.subject or not crl.is_signature_valid(self.authority_key):
+                return False
+            number = _crl_number(crl)
+            revoked = frozenset(r.serial_number for r in crl)
+        except _MALFORMED:  # cryptography parses lazily: a bad field surfaces here, even as KeyError
             return False
-        number = _crl_number(crl)
-        if not valid or (self.crl_der and number <= self.crl_number):
+        if self.crl_der and number <= self.crl_number:
             return False
         with self._lock:
-            self.revoked = frozenset(r.serial_number for r in crl)
+            self.revoked = revoked
             self.crl_number, self.crl_der = number, der
         return True
 

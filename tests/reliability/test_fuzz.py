@@ -14,6 +14,7 @@ import json
 import os
 import socket
 import threading
+import time
 from collections import Counter
 from pathlib import Path
 
@@ -25,13 +26,12 @@ from erni.blackboard import ConfigError, Task, TaskError
 from erni.blackboard.config import build_agent, parse_config
 from erni.plugins.motion.arcos import PacketReader, ProtocolError, is_sip, parse_sip, parse_sync2
 from erni.replay import read_log
-from erni.transport.wire import Envelope, FrameError, StreamDecoder, body_of, decode, encode
+from erni.transport.wire import Envelope, FrameError, StreamDecoder, encode_plain
 
 EXAMPLES = int(os.environ.get("ERNI_FUZZ_EXAMPLES", "300"))
 FUZZ = settings(max_examples=EXAMPLES, deadline=None,
                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
 COUNTS: Counter[str] = Counter()
-KEY = b"fuzz-key"
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -42,30 +42,106 @@ def report():
     (out / "fuzz-counts.json").write_text(json.dumps({"examples_per_test": EXAMPLES, **COUNTS}, indent=2))
 
 
-def _valid_frame(seq: int) -> bytes:
+@pytest.fixture(scope="module")
+def receiver():
+    """A started endpoint with identities, a live session from a peer, and rate limits out of the way."""
+    from erni.transport.endpoint import Endpoint
+    from erni.transport.identity import load_identity
+    from erni.transport.limits import Limits
+    from tests.transport.helpers import authority, identity
+
+    limits = Limits(handshakes_per_host=1e9, handshakes_total=1e9, beacons_total=1e9)
+    rx = Endpoint("fuzz-rx", identity=load_identity(identity("fuzz-rx"), authority().dir / "revoked.crl"),
+                  limits=limits)
+    tx = Endpoint("fuzz-tx", identity=load_identity(identity("fuzz-tx")), limits=limits)
+    rx.start()
+    tx.start()
+    tx.send(rx.address, "hello", None, reliable=True)
+    deadline = time.monotonic() + 5
+    while tx.session_with(rx.address) is None or not tx.session_with(rx.address).confirmed:
+        assert time.monotonic() < deadline
+        time.sleep(0.01)
+    time.sleep(0.2)
+    yield rx, tx, tx.session_with(rx.address)
+    tx.stop()
+    rx.stop()
+
+
+def _frames(tx, session) -> list[bytes]:
+    """One valid frame of every kind a receiver takes."""
+    from erni.transport.session import initiate
+    from erni.transport.wire import BEACON
+
     task = Task(verb="BotMotion", preposition="goto", params={"x": 1, "y": 2})
-    env = Envelope(sender="r1", reply=("127.0.0.1", 1), epoch=1, seq=seq, id=str(seq), kind="task.add",
-                   type="Task", body=task.model_dump(mode="json"))
-    return encode(env, KEY)
+    env = Envelope(sender="fuzz-tx", role="robot", to="fuzz-rx", inst=tx.inst, reply=tx.address, seq=1, id="1",
+                   kind="task.add", type="Task", body=task.model_dump(mode="json"))
+    beacon = env.model_copy(update={"kind": "beacon", "type": "Beacon", "body": {"role": "robot"}, "to": ""})
+    return [session.seal(env.model_dump_json().encode(), 65536),
+            initiate(tx.auth, tx.inst, tx.address, ("127.0.0.1", 9), "fuzz-rx").frame,
+            tx.auth.sign(BEACON, beacon.model_dump_json().encode()),
+            encode_plain(env)]
 
 
 @FUZZ
-@given(data=st.binary(max_size=400), flips=st.lists(st.integers(0, 10_000), max_size=8))
-def test_transport_frames(data, flips):
+@given(data=st.binary(max_size=400), which=st.integers(0, 3),
+       flips=st.lists(st.tuples(st.integers(0, 10_000), st.integers(1, 255)), max_size=8),
+       cut=st.integers(0, 2000))
+def test_transport_frames(receiver, data, which, flips, cut):
+    """Random bytes and mutated valid frames of every kind through the whole receive path."""
     COUNTS["transport frames"] += 1
-    frame = bytearray(_valid_frame(1))
-    for f in flips:  # mutated valid frames reach deeper than random bytes
-        frame[f % len(frame)] ^= 1 + f % 255
+    rx, tx, session = receiver
+    frame = bytearray(_frames(tx, session)[which])
+    for pos, x in flips:  # mutated valid frames reach deeper than random bytes
+        frame[pos % len(frame)] ^= x
+    if cut and cut < len(frame):
+        frame = frame[:cut]
     for candidate in (data, bytes(frame)):
-        try:
-            env = decode(candidate, None)  # no key: exercise the parser, not only the HMAC
-            body_of(env.type, env.body)
-        except FrameError:
-            pass
+        got = rx._accept(candidate, "udp", ("127.0.0.1", 9))  # never raises: None or a verified message
+        assert got is None or got[0].sender == "fuzz-tx"
         try:
             StreamDecoder(4096).feed(candidate)
         except FrameError:
             pass
+
+
+json_values = st.recursive(st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=8),
+                           lambda inner: st.lists(inner, max_size=3) | st.dictionaries(st.text(max_size=8), inner,
+                                                                                         max_size=3), max_leaves=12)
+
+
+@FUZZ
+@given(envelope=st.dictionaries(st.sampled_from(["v", "sender", "role", "to", "inst", "reply", "seq", "id", "kind",
+                                                 "type", "body", "extra"]), json_values, max_size=11),
+       raw=st.binary(max_size=200))
+def test_authenticated_garbage(receiver, envelope, raw):
+    """What a key holder can send inside its own session: anything at all, sealed correctly."""
+    COUNTS["authenticated frames"] += 1
+    rx, tx, session = receiver
+    for payload in (json.dumps(envelope).encode(), raw):
+        got = rx._accept(session.seal(payload, 65536), "udp", ("127.0.0.1", 9))
+        assert got is None or got[0].sender == "fuzz-tx"
+
+
+@FUZZ
+@given(data=st.binary(max_size=600), flips=st.lists(st.tuples(st.integers(0, 5000), st.integers(1, 255)),
+                                                     max_size=6))
+def test_certificates_and_revocation_lists(receiver, data, flips):
+    """Certificates and revocation lists from the wire: valid ones mutated, and noise."""
+    from erni.transport.identity import IdentityError
+
+    COUNTS["certificates and revocation lists"] += 1
+    rx, tx, _ = receiver
+    trust = rx.identity.trust
+    for valid in (tx.identity.cert_der, trust.crl_der):
+        mutated = bytearray(valid)
+        for pos, x in flips:
+            mutated[pos % len(mutated)] ^= x
+        for candidate in (data, bytes(mutated)):
+            try:
+                trust.check(candidate)
+            except IdentityError:
+                pass
+            assert trust.adopt(candidate) in (True, False)
 
 
 @FUZZ
