@@ -298,10 +298,8 @@ class Agent:
 
     @property
     def degraded(self) -> str:
-        """Why this agent cannot keep new work ('' when it can): its journal does not write."""
-        if self.journal is not None and self.journal.failed:
-            return f"journal write failed: {self.journal.failed}"
-        return ""
+        """Why this agent cannot keep new work ('' when it can): its journal cannot write."""
+        return self.journal.problem() if self.journal is not None else ""
 
     def _setup(self, plugin: Plugin[Any]) -> None:
         """Run setup() as the plugin's first run: signals meanwhile cause one run after it."""

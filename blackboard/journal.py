@@ -8,7 +8,8 @@ back onto the blackboard before any plugin is set up.
 
 A batch that cannot be written (a full disk, an I/O error) is kept in memory and retried
 every second; meanwhile `failed` says why, and the agent reports itself degraded and refuses
-new tasks. A journal that cannot be read at start (corrupted, or an empty file where a
+new tasks. A file system with less than `RESERVE` bytes free counts as full before a write
+fails (`problem()`), so a task is refused rather than acknowledged into a write that would fail. A journal that cannot be read at start (corrupted, or an empty file where a
 journal was) raises `JournalError` with one line; `move_aside` makes room for an empty one.
 """
 
@@ -54,6 +55,9 @@ def durable_types() -> dict[str, type[BBObject]]:
 class JournalError(ConfigError):
     """The journal cannot be opened or read: `FILE: what is wrong; what to do`."""
 
+
+RESERVE = 1024 * 1024
+"""Bytes that must stay free on the journal's file system for the agent to take new tasks."""
 
 RECOVERY = ("move it aside to start empty (`erni agent CONFIG --reset-journal` does, keeping the file), "
             "or restore it from a copy")
@@ -108,6 +112,19 @@ class Journal:
             self._db.close()
             raise JournalError(f"{self.path}: the journal is unreadable ({str(err).splitlines()[0]}); "
                                f"{RECOVERY}") from None
+
+    def problem(self) -> str:
+        """Why this journal cannot keep new objects now ('' when it can): a failed write, a full disk."""
+        if self.failed:
+            return f"journal write failed: {self.failed}"
+        try:
+            stat = os.statvfs(self.path.parent)
+        except OSError as err:
+            return f"journal file system unreadable: {err.strerror or err}"
+        free = stat.f_bavail * stat.f_frsize
+        if free < RESERVE:
+            return f"disk full: {free // 1024} KiB free for the journal {self.path.name} (needs {RESERVE // 1024} KiB)"
+        return ""
 
     # -- reading back ---------------------------------------------------------------------
 

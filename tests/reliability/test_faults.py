@@ -8,7 +8,6 @@ explicitly), and the team converges again.
 
 from __future__ import annotations
 
-import os
 import socket
 import time
 
@@ -25,11 +24,11 @@ pytestmark = [pytest.mark.fault, pytest.mark.slow]
 FAST = {"beacon_period": 0.3, "peer_timeout": 1.5, "task_ttl": 60.0}
 
 
-def make_team(tmp_path, count: int = 3, **transport) -> Team:
+def make_team(tmp_path, count: int = 3, mission: bool = False, **transport) -> Team:
     scenario = Scenario(robots={"count": count, "spacing": 1.5},
                         radio={"comm_range": 10.0, "lossless_range": 6.0})
     team = Team(scenario, run_dir=tmp_path / "run", headless=True, control_port=0,
-                transport={**FAST, **transport}, mission=False, ui=False)
+                transport={**FAST, **transport}, mission=mission, ui=False)
     team.start(timeout=90)
     return team
 
@@ -41,7 +40,7 @@ def restart(team: Team, name: str) -> None:
         agent.proc.kill()
         agent.proc.wait(5)
     agent.failed = False
-    team._spawn(agent, {**os.environ, "ERNI_TEAM_KEY": team.key, "PYTHONUNBUFFERED": "1"})
+    team._spawn(agent, team.agent_env())
 
 
 def kill9(team: Team, name: str) -> None:
@@ -201,5 +200,40 @@ def test_partition_that_heals_delivers_the_queued_task(tmp_path):
         assert updates(team, task.uid, timeout=60)[-1].state is TaskState.SUCCEEDED
         wait_until(lambda: (p := team.peers().get("robot3")) is not None and p.up, timeout=15)
         assert_healthy(team)
+    finally:
+        team.stop()
+
+
+def test_remote_goto_on_a_robot_killed_and_restarted_resumes(tmp_path):
+    team = make_team(tmp_path, count=2, mission=True)
+    try:
+        robot = team.robot("robot2")
+        goal = (robot.x, robot.y + 2.5)
+        task = team.send_task("robot2", "RemoteBotMotion", "goto", x=goal[0], y=goal[1], speed=0.3)
+        running(team, task.uid)
+        time.sleep(1.5)
+        kill9(team, "robot2")
+        restart(team, "robot2")
+        seen = updates(team, task.uid, timeout=60)
+        assert seen[-1].state is TaskState.SUCCEEDED, seen[-1].message
+        assert any(r.message.startswith("resumed after a restart of robot2") for r in seen)
+        assert abs(robot.y - goal[1]) < 0.25
+        assert_healthy(team)
+    finally:
+        team.stop()
+
+
+def test_a_robot_killed_for_good_fails_its_task_with_link_lost_in_time(tmp_path):
+    team = make_team(tmp_path, count=2, link_deadline=4.0)
+    try:
+        robot = team.robot("robot1")
+        task = team.send_task("robot1", "BotMotion", "goto", x=robot.x, y=robot.y + 8.0, speed=0.2)
+        running(team, task.uid)
+        team.fail("robot1")
+        killed = time.monotonic()
+        final = updates(team, task.uid, timeout=20)[-1]
+        assert final.state is TaskState.FAILED and final.message.startswith("link lost: robot1 not heard for")
+        assert time.monotonic() - killed < 4.0 + 3.0  # the deadline, and a beacon period or two
+        assert not team.peers()["robot1"].up
     finally:
         team.stop()

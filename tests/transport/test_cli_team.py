@@ -12,43 +12,20 @@ from pathlib import Path
 import pytest
 
 from erni.blackboard.testing import wait_until
-from tests.transport.helpers import KEY, free_port
+from tests.transport.helpers import agent_config, free_port, identity
 
 ROOT = Path(__file__).resolve().parents[2]
-
-CONFIG = """
-[agent]
-name = "{name}"
-[[plugin]]
-class = "transport"
-[plugin.settings]
-listen = "127.0.0.1:{port}"
-discovery_port = {disc}
-beacon_period = 0.2
-task_ttl = 2.0
-{extra}
-"""
-
-ECHO = """
-[[plugin]]
-class = "echo"
-name = "motion"
-[plugin.settings]
-verbs = ["BotMotion"]
-delay = 0.2
-"""
-
 
 @pytest.fixture(scope="module")
 def team(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("team")
     disc = free_port()
-    env = {**os.environ, "ERNI_TEAM_KEY": KEY, "PYTHONUNBUFFERED": "1"}
+    env = {**os.environ, "ERNI_IDENTITY": identity("cli", "cli"), "PYTHONUNBUFFERED": "1"}
     procs, ports = [], {}
-    for name, extra in (("control", ""), ("robot1", ECHO)):
+    for name, echo in (("control", None), ("robot1", 0.2)):
         ports[name] = free_port()
-        path = tmp / f"{name}.toml"
-        path.write_text(CONFIG.format(name=name, port=ports[name], disc=disc, extra=extra))
+        path = agent_config(tmp / f"{name}.toml", name, listen=f"127.0.0.1:{ports[name]}", discovery_port=disc,
+                            echo=echo, task_ttl=2.0)
         procs.append(subprocess.Popen([sys.executable, "-m", "erni", "agent", str(path)], cwd=ROOT,
                                       env=env, stderr=subprocess.PIPE, text=True))
     logs = []
@@ -139,3 +116,91 @@ def test_watch_streams_task_results(team):
     finally:
         watch.terminate()
         watch.wait(timeout=5)
+
+
+@pytest.mark.parametrize("params, message", [
+    (["x=NaN", "y=1"], "erni task: goto: x: expected a finite number, got nan"),
+    (["x=Infinity", "y=1"], "erni task: goto: x: expected a finite number, got inf"),
+    (["x=true", "y=1"], "erni task: goto: x: expected a number, got True (a boolean)"),
+    (["x=1", "y=" + "9" * 100_000], "erni task: goto: y: Input should be a finite number"),
+    (["x=" + "a" * 100_000, "y=1"], "erni task: goto: x: Input should be a valid number"),
+    (["x=" + "[" * 100_000, "y=1"], "erni task: parameter 'x': JSON nested deeper than 64 levels"),
+    (["x=" + "[" * 1000 + "]" * 1000, "y=1"], "erni task: parameter 'x': JSON nested deeper than 64 levels"),
+])
+def test_bad_parameters_are_one_short_line_before_anything_is_sent(team, params, message):
+    out = cli(team["env"], "task", "--via", team["via"], "robot1", "BotMotion", "goto", *params)
+    assert out.returncode == 2
+    (line,) = out.stderr.strip().splitlines()
+    assert line.startswith(message) and len(line) < 300, line
+
+
+@pytest.mark.parametrize("option", [["--timeout", "nan"], ["--timeout", "-1"], ["--link-deadline", "inf"]])
+def test_bad_waiting_times_are_refused(team, option):
+    out = cli(team["env"], "task", "--via", team["via"], "robot1", "BotMotion", "stop", "--wait", *option)
+    assert out.returncode == 2
+    (line,) = out.stderr.strip().splitlines()
+    assert f"{option[0]}: expected a finite number of seconds > 0" in line
+
+
+def test_check_refuses_absurd_timing_with_one_line(tmp_path):
+    for setting, value, field in (("beacon_period", "1e-300", "beacon_period"),
+                                  ("peer_timeout", "nan", "peer_timeout"),
+                                  ("link_deadline", "inf", "link_deadline")):
+        path = agent_config(tmp_path / "a.toml", "robot1", echo=None, **{setting: float(value)})
+        out = cli(os.environ, "agent", str(path), "--check")
+        assert out.returncode == 2, out.stdout
+        (line,) = out.stderr.strip().splitlines()
+        assert field in line and "Traceback" not in out.stderr
+
+
+@pytest.fixture
+def mortal_team(tmp_path):
+    """A control node (link deadline 1.5 s) and a robot whose tasks take a minute; the test kills them."""
+    env = {**os.environ, "ERNI_IDENTITY": identity("cli", "cli"), "PYTHONUNBUFFERED": "1"}
+    disc = free_port()
+    procs, ports = {}, {}
+    for name, echo in (("control", None), ("robot1", 60.0)):
+        ports[name] = free_port()
+        path = agent_config(tmp_path / f"{name}.toml", name, listen=f"127.0.0.1:{ports[name]}",
+                            discovery_port=disc, echo=echo, link_deadline=1.5, peer_timeout=1.0)
+        procs[name] = subprocess.Popen([sys.executable, "-m", "erni", "agent", str(path)], cwd=ROOT, env=env,
+                                       stderr=subprocess.DEVNULL)
+    via = f"127.0.0.1:{ports['control']}"
+
+    def up() -> bool:
+        out = cli(env, "peers", "--via", via, "--json")
+        return out.returncode == 0 and any(json.loads(ln)["up"] for ln in out.stdout.splitlines())
+
+    wait_until(up, timeout=15, interval=0.3)
+    yield env, via, procs
+    for p in procs.values():
+        p.kill()
+        p.wait(5)
+
+
+def _wait_task(env, via: str, *extra: str) -> subprocess.Popen:
+    proc = subprocess.Popen([sys.executable, "-m", "erni", "task", "--via", via, "robot1", "BotMotion", "forward",
+                             "distance=1", "--wait", *extra], cwd=ROOT, env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    for _ in range(5):
+        if "running" in proc.stdout.readline():  # the robot took it
+            return proc
+    raise AssertionError("the task never ran")
+
+
+def test_wait_ends_with_link_lost_when_the_robot_dies(mortal_team):
+    env, via, procs = mortal_team
+    waiting = _wait_task(env, via)
+    procs["robot1"].kill()
+    out, err = waiting.communicate(timeout=15)
+    assert waiting.returncode == 1
+    assert "failed" in out and "link lost: robot1 not heard for" in out
+
+
+def test_wait_ends_with_link_lost_when_the_agent_it_goes_through_dies(mortal_team):
+    env, via, procs = mortal_team
+    waiting = _wait_task(env, via, "--link-deadline", "2")
+    procs["control"].kill()
+    out, err = waiting.communicate(timeout=15)
+    assert waiting.returncode == 1
+    assert f"erni task: link lost: no answer from {via}" in err
