@@ -37,7 +37,7 @@ from erni.blackboard import (
 from erni.blackboard.tasks import CancelParams, GotoParams, SayParams, StopParams
 from erni.plugins.mission.deploy import RUNNERS, Runner
 from erni.plugins.mission.netaware import NetGuard
-from erni.plugins.mission.remote import RemoteJob, Significance, plan
+from erni.plugins.mission.remote import RemoteJob, Significance, plan, resumable
 from erni.plugins.mission.team import TeamView, Territory
 
 if TYPE_CHECKING:
@@ -252,15 +252,19 @@ class MissionControl(Plugin[MissionSettings]):
     def _received(self, task: Task, now: float) -> None:
         if task.done or task.uid in self.jobs or task.uid in self.runners:
             return
-        if self.rehydrated(task):
-            self.report(task.uid, TaskState.FAILED, f"interrupted: {self.agent_name} restarted", force=True)
+        resumed = self.rehydrated(task)
+        if resumed and not resumable(task):
+            self.report(task.uid, TaskState.FAILED, f"interrupted: {self.agent_name} restarted; a "
+                        f"{task.preposition} is not resumed", force=True)
             return
-        self._say(CUE_TASK)
+        if not resumed:
+            self._say(CUE_TASK)
         if task.verb == "RemoteBotMotion" and task.preposition == "cancel":
             self._cancel_task(task, now)
             return
         self._supersede(task.uid)
-        self.report(task.uid, TaskState.PENDING, f"accepted by {self.agent_name}")
+        if not resumed:
+            self.report(task.uid, TaskState.PENDING, f"accepted by {self.agent_name}")
         if task.verb == "Deploy":
             if task.preposition in ("widep", "spread", "relay"):
                 self.watch("node_position")
@@ -272,7 +276,7 @@ class MissionControl(Plugin[MissionSettings]):
             self.report(task.uid, TaskState.RUNNING, f"{task.preposition} started")
             self.last_values[task.uid] = now
             return
-        self.jobs[task.uid] = RemoteJob(task.uid, [])
+        self.jobs[task.uid] = RemoteJob(task.uid, [], resumed=resumed)
         self.later(lambda: self._begin(task.uid))  # "accepted" is committed on its own first
 
     def _begin(self, uid: str) -> None:
@@ -283,7 +287,8 @@ class MissionControl(Plugin[MissionSettings]):
         job.steps = plan(task, mine, mode=self.settings.goto_mode, obstacles=self.settings.obstacles,
                          margin=self.settings.obstacle_margin)
         self._start_step(job)
-        self.report(uid, TaskState.RUNNING, f"started: {len(job.steps)} step(s)", progress=0.0)
+        begun = f"resumed after a restart of {self.agent_name}" if job.resumed else "started"
+        self.report(uid, TaskState.RUNNING, f"{begun}: {len(job.steps)} step(s)", progress=0.0)
         if job.moving and self.guard.state.at_risk:
             self._apply_policy([job], self.guard.state.reason)
 

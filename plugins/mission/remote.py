@@ -35,6 +35,14 @@ class StepSpec:
 
 
 MOVING = frozenset({"goto", "forward", "randomwalk"})
+RESUMABLE = frozenset({"goto", "teleport"})
+"""RemoteBotMotion prepositions with an absolute target: after a restart of the robot they are
+planned again from where it stands; the others (relative or timed) fail instead of repeating."""
+
+
+def resumable(task: Task) -> bool:
+    """True when `task`, interrupted by a restart of its robot, is resumed rather than failed."""
+    return task.verb == "RemoteBotMotion" and task.preposition in RESUMABLE
 
 
 def plan(task: Task, pose: Pose | None, *, mode: str = "goto", obstacles: Sequence[tuple[float, float, float]] = (),
@@ -110,6 +118,7 @@ class RemoteJob:
     sub: str | None = None             # uid of the running BotMotion sub-task
     subs: list[str] = field(default_factory=list)
     held: str = ""                     # why the network guard holds it ("" = not held)
+    resumed: bool = False              # planned again after a restart of this robot
     report: Significance = field(default_factory=Significance)
 
     @property

@@ -10,7 +10,7 @@ from erni.blackboard import Agent, Pose, Task, TaskState
 from erni.blackboard.testing import wait_until
 from erni.plugins.mission.plugin import CUE_TASK
 from erni.sim.world import World
-from tests.mission.conftest import current, pose_of, send, subs_of
+from tests.mission.conftest import FAST, MOTION, current, pose_of, send, subs_of
 
 
 class Recorder:
@@ -170,7 +170,41 @@ def test_after_a_restart_interrupted_remote_tasks_fail_and_stale_sub_tasks_are_w
     try:
         done = wait_until(lambda: (t := current(second, task.uid)) is not None and t.done and t,
                           message="the rehydrated remote task was never settled")
-        assert done.state == TaskState.FAILED and done.result.message == "interrupted: robot1 restarted"
+        assert done.state == TaskState.FAILED and done.result.message.startswith("interrupted: robot1 restarted")
         assert current(second, stale.uid) is None  # never repeated on the robot
+    finally:
+        second.stop()
+
+
+def test_after_a_restart_a_remote_goto_resumes_from_where_the_robot_stands(hosts, tmp_path):
+    from erni.sim.robot import SimRobotConfig
+    from erni.sim.robot_host import RobotHost
+    from erni.sim.world import RobotStart
+
+    host = RobotHost(World().model_copy(update={"robot": [RobotStart(name="robot1")]}), physics_hz=200)
+    host.add_robot(SimRobotConfig(name="robot1", **FAST), port=0)
+    hosts.append(host.start())
+    robot = host.robots[0]
+
+    def start() -> tuple[Agent, Recorder]:
+        agent = Agent("robot1", workers=2, journal=tmp_path / "robot1.sqlite")
+        agent.add_plugin("motion", settings={**MOTION, "url": host.url()}, name="motion")
+        agent.add_plugin("mission", settings={"audio": False, "network_aware": False}, name="mission")
+        rec = Recorder(agent)  # before it starts: every version of the remote task is seen
+        return agent.start(), rec
+
+    first, _ = start()
+    try:
+        task = send(first, "goto", x=3.0, y=0.0, speed=0.6, tolerance=0.1)
+        wait_until(lambda: robot.x > 0.8, timeout=10, message="the robot never got going")
+    finally:
+        first.stop()  # the agent dies mid-way (its journal keeps the remote task)
+    second, rec = start()
+    try:
+        done = finished(second, task, timeout=30)
+        assert done.state == TaskState.SUCCEEDED, done.result
+        assert math.hypot(robot.x - 3.0, robot.y) <= 0.15
+        messages = [v.result.message for v in rec.versions(task.uid) if v.result is not None]
+        assert any(m.startswith("resumed after a restart of robot1") for m in messages), messages
     finally:
         second.stop()
