@@ -319,6 +319,10 @@ class Authority:
         """The current revocation list."""
         return read_crl(self.dir / REVOKED)
 
+    def crl_number(self) -> int:
+        """The number of the current revocation list (each revocation adds one)."""
+        return _crl_number(self.crl())
+
     def revoke(self, name_or_serial: str) -> list[int]:
         """Revoke every certificate issued to an agent name (or one serial, in hex); return the serials."""
         crl = self.crl()

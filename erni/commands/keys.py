@@ -1,0 +1,74 @@
+"""`erni keys`: a team authority and the identities of its agents (init, issue, revoke, list, show)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import Any
+
+from erni.transport.identity import AUTHORITY_CERT, REVOKED, Authority, IdentityError, load_identity
+
+
+def register(sub: Any) -> None:
+    """Add the `keys` sub-command and its actions."""
+    p = sub.add_parser("keys", help="make a team authority, issue and revoke agent identities",
+                       description="Per-agent identities for the transport: a team authority (an Ed25519 "
+                       "CA kept in DIR) signs one certificate per agent; a revocation list (DIR/revoked.crl) "
+                       "withdraws them. Give each agent its NAME.pem (transport setting `identity`) and the "
+                       "control node DIR/revoked.crl (setting `revocations`); agents pass newer lists on.")
+    actions = p.add_subparsers(dest="action", metavar="ACTION", required=True)
+    a = actions.add_parser("init", help="create a team authority in DIR")
+    a.add_argument("dir")
+    a.add_argument("--team", default="ERNI team", help="the team's name in certificates")
+    a = actions.add_parser("issue", help="issue an identity for agent NAME (DIR/NAME.pem)")
+    a.add_argument("dir")
+    a.add_argument("name")
+    a.add_argument("--role", default="robot", help="robot, control, cli ... (default robot)")
+    a.add_argument("--out", help="where to write the bundle (default DIR/NAME.pem)")
+    a = actions.add_parser("revoke", help="revoke every identity issued to NAME (or one serial, in hex)")
+    a.add_argument("dir")
+    a.add_argument("name")
+    a = actions.add_parser("list", help="list the identities DIR issued, and which are revoked")
+    a.add_argument("dir")
+    a = actions.add_parser("show", help="say whose an identity bundle is (no secret printed)")
+    a.add_argument("file")
+    a.add_argument("--revocations", help="a revocation list to check it against")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Do the action; one line per result, one line per error (exit 2)."""
+    try:
+        if args.action == "init":
+            authority = Authority.create(args.dir, args.team)
+            print(f"team authority {args.team!r} in {authority.dir} ({AUTHORITY_CERT}, {REVOKED}); keep "
+                  f"{authority.dir / 'authority.key'} off the robots")
+        elif args.action == "issue":
+            path = Authority(args.dir).issue(args.name, args.role, args.out)
+            identity = load_identity(path)
+            print(f"{path}: {identity.name} ({identity.role}), serial {identity.serial:x}; set "
+                  f"identity = \"{path}\" in its transport settings")
+        elif args.action == "revoke":
+            authority = Authority(args.dir)
+            serials = authority.revoke(args.name)
+            number = authority.crl_number()
+            if serials:
+                print(f"revoked {len(serials)} certificate(s) of {args.name}: "
+                      f"{', '.join(f'{s:x}' for s in serials)}; {authority.dir / REVOKED} is now list {number}: "
+                      "give it to the control node (the agents pass it on)")
+            else:
+                print(f"{args.name}: already revoked (list {number})")
+        elif args.action == "list":
+            authority = Authority(args.dir)
+            revoked = {r.serial_number for r in authority.crl()}
+            for name, role, serial in authority.issued():
+                print(f"{name:<16} {role:<8} {serial:x}{'  REVOKED' if serial in revoked else ''}")
+        else:
+            identity = load_identity(args.file, args.revocations)
+            print(f"{args.file}: {identity.name} ({identity.role}), serial {identity.serial:x}, team authority "
+                  f"{identity.trust.fingerprint}" + (f", revocation list {identity.trust.crl_number}"
+                                                      if args.revocations else ""))
+    except IdentityError as err:
+        print(f"erni keys: {err}", file=sys.stderr)
+        return 2
+    return 0
