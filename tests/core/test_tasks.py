@@ -129,3 +129,30 @@ def test_readme_table_is_the_language():
 
     readme = (Path(__file__).resolve().parents[2] / "README.md").read_text()
     assert language_table() in readme, "README's task table is stale: paste `erni tasks` into it"
+
+
+@pytest.mark.parametrize("params, message", [
+    ({"x": float("nan"), "y": 1}, "goto: x: expected a finite number, got nan"),
+    ({"x": 1, "y": float("-inf")}, "goto: y: expected a finite number, got -inf"),
+    ({"x": True, "y": 1}, "goto: x: expected a number, got True (a boolean)"),
+    ({"x": "nan", "y": 1}, "goto: x: Input should be a finite number"),
+    ({"x": 1, "y": 2, "timeout": False}, "goto: timeout: expected a number, got False (a boolean)"),
+    ({"x": "z" * 100_000, "y": 1}, "goto: x: Input should be a valid number"),
+])
+def test_numbers_are_finite_and_never_booleans_and_long_values_are_cut(params, message):
+    with pytest.raises(TaskError) as info:
+        Task(verb="BotMotion", preposition="goto", params=params)
+    text = str(info.value)
+    assert text.startswith(message) and "\n" not in text and len(text) < 200, text
+    for verb, prep in (("z" * 100_000, "goto"), ("BotMotion", "y" * 100_000)):
+        with pytest.raises(TaskError) as info:
+            Task(verb=verb, preposition=prep)
+        assert len(str(info.value)) < 400
+
+
+def test_results_refuse_non_finite_numbers():
+    task = Task(verb="BotMotion", preposition="stop")
+    from pydantic import ValidationError
+
+    with pytest.raises(ValidationError, match="finite number"):
+        task.with_result("running", progress=float("nan"))

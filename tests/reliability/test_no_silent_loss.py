@@ -13,7 +13,7 @@ import pytest
 
 from erni.blackboard import Agent, Task, TaskState
 from erni.blackboard.testing import wait_until
-from tests.transport.helpers import free_port, identity, make_agent
+from tests.transport.helpers import auth_settings, free_port, make_agent
 
 
 @pytest.fixture
@@ -52,7 +52,7 @@ def journal_rows(path: Path) -> dict[str, str]:
 
 def robot_with_journal(name: str, port: int, journal: Path, delay: float = 0.05, **settings) -> Agent:
     agent = Agent(name, workers=2, journal=journal)
-    agent.add_plugin("transport", settings={"identity": identity(name), "discovery_port": port,
+    agent.add_plugin("transport", settings={**auth_settings(name), "discovery_port": port,
                                             "beacon_period": 0.1, "peer_timeout": 0.6, **settings},
                      name="transport")
     agent.add_plugin("echo", settings={"verbs": ["BotMotion"], "delay": delay}, name="motion")
@@ -127,11 +127,11 @@ def test_a_write_that_fails_is_kept_in_memory_retried_and_never_silent(small_dis
 def test_finished_tasks_leave_both_ends_after_the_retention(tmp_path):
     port = free_port()
     control = Agent("control", workers=2, journal=tmp_path / "control.sqlite", retention=0.5)
-    control.add_plugin("transport", settings={"identity": identity("control"), "discovery_port": port,
+    control.add_plugin("transport", settings={**auth_settings("control"), "discovery_port": port,
                                               "beacon_period": 0.1, "peer_timeout": 0.6}, name="transport")
     control.start()
     robot = Agent("robot1", workers=2, journal=tmp_path / "robot1.sqlite", retention=0.5)
-    robot.add_plugin("transport", settings={"identity": identity("robot1"), "discovery_port": port,
+    robot.add_plugin("transport", settings={**auth_settings("robot1"), "discovery_port": port,
                                             "beacon_period": 0.1, "peer_timeout": 0.6}, name="transport")
     robot.add_plugin("echo", settings={"verbs": ["BotMotion"], "delay": 0.0}, name="motion")
     robot.start()

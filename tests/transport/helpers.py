@@ -32,12 +32,20 @@ def authority() -> Authority:
 
 def identity(name: str, role: str = "robot") -> str:
     """Path of the identity bundle of `name` in `role` (issued once per session)."""
+    if Authority is None:
+        return ""
     auth = authority()
     with _LOCK:
         key = f"{name}/{role}"
         if key not in _KEYS:
             _KEYS[key] = str(auth.issue(name, role, Path(auth.dir) / f"{name}.{role}.pem"))
         return str(_KEYS[key])
+
+
+def auth_settings(name: str, role: str = "robot") -> dict[str, Any]:
+    """Transport settings that authenticate agent `name`: its identity (the team key where the
+    transport has no identities)."""
+    return {"identity": identity(name, role)} if Authority is not None else {"key": KEY}
 
 
 def free_port(kind: int = socket.SOCK_DGRAM) -> int:
@@ -54,11 +62,8 @@ def make_agent(name: str, discovery_port: int, *, echo: bool = True, start: bool
     base: dict[str, Any] = {"discovery_port": discovery_port, "beacon_period": 0.1,
                             "peer_timeout": 0.6, "ack_timeout": 0.3, "connect_timeout": 0.3,
                             "task_ttl": 5.0}
-    if not settings.get("insecure") and "key" not in settings:
-        if Authority is not None:
-            base["identity"] = identity(name, role)
-        else:
-            base["key"] = KEY
+    if not settings.get("insecure") and "key" not in settings and "identity" not in settings:
+        base.update(auth_settings(name, role))
     base.update(settings)
     agent.add_plugin("transport", settings=base, name="transport")
     if echo:
@@ -185,9 +190,8 @@ def agent_config(path: Path, name: str, *, listen: str = "127.0.0.1:0", discover
     """Write an `erni agent` config: the transport with this agent's identity, optionally the echo plugin."""
     from erni.sim.team import toml_value
 
-    auth: dict[str, Any] = {"identity": identity(name, role)} if Authority is not None else {"key": KEY}
     values = {"listen": listen, "discovery_port": discovery_port, "role": role, "beacon_period": 0.2,
-              **auth, **settings}
+              **auth_settings(name, role), **settings}
     lines = ["[agent]", f"name = {toml_value(name)}", agent, "[[plugin]]", 'class = "transport"',
              "[plugin.settings]"] + [f"{k} = {toml_value(v)}" for k, v in values.items()]
     text = "\n".join(lines) + "\n" + (ECHO.format(delay=echo) if echo is not None else "")

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from erni.blackboard.testing import wait_until
-from tests.transport.helpers import agent_config, free_port, identity
+from tests.transport.helpers import KEY, agent_config, free_port, identity
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -20,7 +20,7 @@ ROOT = Path(__file__).resolve().parents[2]
 def team(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("team")
     disc = free_port()
-    env = {**os.environ, "ERNI_IDENTITY": identity("cli", "cli"), "PYTHONUNBUFFERED": "1"}
+    env = {**os.environ, "ERNI_IDENTITY": identity("cli", "cli"), "ERNI_TEAM_KEY": KEY, "PYTHONUNBUFFERED": "1"}
     procs, ports = [], {}
     for name, echo in (("control", None), ("robot1", 0.2)):
         ports[name] = free_port()
@@ -156,7 +156,7 @@ def test_check_refuses_absurd_timing_with_one_line(tmp_path):
 @pytest.fixture
 def mortal_team(tmp_path):
     """A control node (link deadline 1.5 s) and a robot whose tasks take a minute; the test kills them."""
-    env = {**os.environ, "ERNI_IDENTITY": identity("cli", "cli"), "PYTHONUNBUFFERED": "1"}
+    env = {**os.environ, "ERNI_IDENTITY": identity("cli", "cli"), "ERNI_TEAM_KEY": KEY, "PYTHONUNBUFFERED": "1"}
     disc = free_port()
     procs, ports = {}, {}
     for name, echo in (("control", None), ("robot1", 60.0)):
