@@ -749,6 +749,9 @@ class Endpoint:
                 return (msg, None) if msg is not None else None
             if kind == DATA:
                 return self._data(raw, src)
+            if kind == HINT:  # on UDP, or on the TCP stream a sender is waiting for its ack on
+                self._on_hint(raw, src)
+                return None
             if channel == "tcp":
                 raise FrameError("parse", f"a {KINDS[kind]} frame on a TCP stream")
             if kind == HELLO:
@@ -758,8 +761,6 @@ class Endpoint:
             elif kind == BEACON:
                 msg = self._on_beacon(raw)
                 return (msg, None) if msg is not None else None
-            elif kind == HINT:
-                self._on_hint(raw, src)
             else:
                 raise FrameError("auth", "an unauthenticated frame (is the sender running insecure?)")
         except FrameError as err:

@@ -107,6 +107,8 @@ class Trust:
     def _verify(self, der: bytes) -> Certified:
         try:
             return self._read(der)
+        except IdentityError:
+            raise
         except _MALFORMED:  # cryptography parses lazily: a bad field surfaces here, even as KeyError
             raise IdentityError("certificate is malformed") from None
 
