@@ -401,15 +401,15 @@ class Endpoint:
         trust = self.identity.trust
         self.log.warning("revocation list %d from %s: %d certificate(s) revoked", trust.crl_number, source,
                          len(trust.revoked))
-        dropped = self._forget(lambda s: s.serial is None or s.serial not in trust.revoked)
-        if dropped:
-            self.count("sessions.revoked", dropped)
         if self.revocations is not None and source != str(self.revocations):
-            try:
+            try:  # kept before it is acted on: a restart never forgets a revocation it applied
                 write_public(self.revocations, der)
                 self._crl_mtime = self.revocations.stat().st_mtime
             except OSError as err:
                 self.log.warning("cannot keep the revocation list in %s: %s", self.revocations, err)
+        dropped = self._forget(lambda s: s.serial is None or s.serial not in trust.revoked)
+        if dropped:
+            self.count("sessions.revoked", dropped)
         with self._sess_lock:
             behind = [s for s in self._by_sid.values() if s.confirmed and s.crl < trust.crl_number]
         for session in behind:
