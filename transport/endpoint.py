@@ -366,8 +366,10 @@ class Endpoint:
                 if other is not session and other.addr == session.addr and other.inst != session.inst:
                     del self._by_sid[sid]
             self._by_addr[session.addr] = session
-            while len(self._by_sid) > self.limits.max_sessions:
-                self._by_sid.popitem(last=False)
+            if len(self._by_sid) > self.limits.max_sessions:  # the least recently used go first
+                idle = sorted(self._by_sid.values(), key=lambda s: max(s.last_rx, s.last_tx))
+                for old in idle[:len(self._by_sid) - self.limits.max_sessions]:
+                    del self._by_sid[old.sid]
         if self.identity is not None and session.crl < self.identity.trust.crl_number:
             self._push_crl(session)
         with self._cond:
@@ -796,9 +798,6 @@ class Endpoint:
             raise FrameError("receiver", f"frame for {env.to} arrived at {self.name}")
         if not session.confirmed:
             self._confirm(session)
-        with self._sess_lock:
-            if sid in self._by_sid:
-                self._by_sid.move_to_end(sid)
         self._filter(session.peer, session.role)
         if env.kind == "crl" and isinstance(env.body, str):
             try:
