@@ -182,6 +182,7 @@ class TransportPlugin(Plugin[TransportSettings]):
         self.reply_to: dict[str, Address] = {}  # task uid -> address of the agent or client it came from
         self.final_sent: set[str] = set()  # tasks whose final state went back to their requester
         self.last_result: dict[str, tuple[int, int]] = {}  # task uid -> (epoch, seq) applied
+        self.final_seen: set[str] = set()  # tasks whose final result from their performer was applied
         self.pending: dict[str, tuple[str, float]] = {}  # task uid -> (destination, deadline)
         self.watchers: dict[tuple[str, Address], float] = {}  # (client, its address) -> lease end
         self.learned: set[str] = set()
@@ -244,6 +245,7 @@ class TransportPlugin(Plugin[TransportSettings]):
                 self.remove(f"received:{task.uid}")
             self.reply_to.pop(task.uid, None)
             self.final_sent.discard(task.uid)
+            self.final_seen.discard(task.uid)
             self.last_result.pop(task.uid, None)
         for info in self.netinfo.added + self.netinfo.changed:
             for n in info.neighbors:
@@ -422,14 +424,17 @@ class TransportPlugin(Plugin[TransportSettings]):
             return
         if self.sent_to.get(update.uid) != msg.sender:
             return
-        if not isinstance(task, Task) or task.done:  # a final state is never overwritten
-            if update.uid in self.lost and not update.result.state.done:  # back too late: stop it there
+        if not isinstance(task, Task) or task.done or update.uid in self.final_seen:  # a final state is
+            if update.uid in self.lost and not update.result.state.done:  # never overwritten; back too late:
                 self.endpoint.send(msg.reply, "task.cancel", Cancel(uid=update.uid), reliable=True, to=msg.sender)
-            return
+            return  # stop it there
         stamp = (msg.epoch, msg.seq)
-        if stamp <= self.last_result.get(update.uid, (0, 0)):
+        final = update.result.state.done  # the last word, whatever its number: a status sent before it
+        if stamp <= self.last_result.get(update.uid, (0, 0)) and not final:  # may be numbered after it
             return  # an older update never overwrites a newer one
-        self.last_result[update.uid] = stamp
+        self.last_result[update.uid] = max(stamp, self.last_result.get(update.uid, (0, 0)))
+        if final:
+            self.final_seen.add(update.uid)
         self.change(task.evolve(result=update.result), reports=[f"result from {msg.sender}"])
 
     def _hinted(self, msg: Message) -> None:

@@ -588,8 +588,8 @@ class Endpoint:
             now = time.monotonic()
             if now < dest.next_try:
                 return dest.next_try
-            if self._stopping:
-                return None
+            if self._stopping or dest.fast:
+                return None  # status queued meanwhile goes first (and in the order it was queued)
             with self._cond:
                 out = dest.reliable[0] if dest.reliable else None
             if out is None:

@@ -303,6 +303,35 @@ def test_older_result_never_overwrites_newer(team):
     assert control.blackboard.get(task.uid).result.progress == 0.7
 
 
+def test_a_final_state_is_the_last_word_whatever_its_number(team):
+    """A status queued before the final state may be numbered after it (two lanes, one sender): the
+    final state wins anyway, and nothing after it changes the task again."""
+    control, robot = team("control", echo=False), team("robot1", echo=False)
+    wait_until(lambda: any(p.up for p in control.query(Peer)))
+    task = task_to("robot1")
+    with control.transaction() as tx:
+        tx.add(task)
+    wait_until(lambda: robot.blackboard.contains(task.uid))
+    bridge = control.plugin("transport")
+    from erni.transport.bridge import ResultUpdate
+    from erni.transport.wire import Message
+
+    def deliver(*updates):
+        def run():
+            for seq, state, progress in updates:
+                update = ResultUpdate(uid=task.uid, result={"state": state, "progress": progress})
+                bridge._handle(Message("robot1", "robot", ("127.0.0.1", 1), 1, seq, f"m{seq}", "task.result",
+                                       update))
+        bridge.later(run)
+
+    deliver((10, "succeeded", 1.0), (11, "running", 0.95))  # in one run: the final first, a late status after
+    wait_until(lambda: control.blackboard.get(task.uid).done)
+    deliver((12, "running", 0.5))
+    time.sleep(0.1)
+    result = control.blackboard.get(task.uid).result
+    assert result.state is TaskState.SUCCEEDED and result.progress == 1.0
+
+
 def test_restarted_requester_gets_its_tasks_reconciled(team, tmp_path):
     journal = tmp_path / "control.sqlite"
     control = Agent("control", journal=journal)
