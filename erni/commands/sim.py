@@ -79,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         print(f"erni sim: {scenario.title} ({scenario.name}): {scenario.count} robot(s), "
               f"R = {scenario.radio.comm_range:g} m; starting...", flush=True)
-        print(f"erni sim: run directory {team.run_dir} (agent configs, logs, journals, team key)", flush=True)
+        print(f"erni sim: run directory {team.run_dir} (agent configs, logs, journals, the team's keys)", flush=True)
         t0 = time.monotonic()
         team.start(progress, timeout=args.timeout)
         progress.done()
