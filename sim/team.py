@@ -21,6 +21,7 @@ import json
 import logging
 import math
 import os
+import random
 import secrets
 import signal
 import socket
@@ -75,6 +76,25 @@ def free_port(host: str = "127.0.0.1", kind: int = socket.SOCK_DGRAM) -> int:
     with socket.socket(socket.AF_INET, kind) as s:
         s.bind((host, 0))
         return int(s.getsockname()[1])
+
+
+def beacon_port() -> int:
+    """A free UDP port below the kernel's ephemeral range, so that no socket bound to port 0 (by
+    this run or any other program) can take it before every agent has bound it for beacons."""
+    try:
+        low = int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        low = 32768
+    rng = random.Random()
+    for _ in range(200):
+        port = rng.randrange(10_000, max(10_001, low))
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            try:
+                s.bind(("", port))
+            except OSError:
+                continue
+            return port
+    return free_port()  # pragma: no cover - a machine with every low port taken
 
 
 def port_free(host: str, port: int) -> bool:
@@ -199,7 +219,7 @@ class Team:
         self.ui = (not headless and plugin_available("erni.plugins.ui", "UIPlugin")) if ui is None else ui
         self.keys_dir = self.run_dir / "keys"
         self.cli_identity = self.keys_dir / f"{CLI}.pem"
-        self.discovery_port = free_port()
+        self.discovery_port = beacon_port()
         self.control_port = control_port if control_port and port_free(CONTROL_HOST, control_port) \
             else free_port(CONTROL_HOST, socket.SOCK_STREAM)
         self.names = scenario.robot_names()

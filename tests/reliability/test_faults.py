@@ -29,7 +29,11 @@ def make_team(tmp_path, count: int = 3, mission: bool = False, **transport) -> T
                         radio={"comm_range": 10.0, "lossless_range": 6.0})
     team = Team(scenario, run_dir=tmp_path / "run", headless=True, control_port=0,
                 transport={**FAST, **transport}, mission=mission, ui=False)
-    team.start(timeout=90)
+    try:
+        team.start(timeout=90)
+    except BaseException:
+        team.stop()  # a team that did not come up leaves no process and no thread behind
+        raise
     return team
 
 

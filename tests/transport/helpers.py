@@ -49,6 +49,23 @@ def auth_settings(name: str, role: str = "robot") -> dict[str, Any]:
 
 
 def free_port(kind: int = socket.SOCK_DGRAM) -> int:
+    """A port free for TCP and UDP now, below the ephemeral range: no socket bound to port 0 (in
+    this test run or in another program on the machine) takes it before the test binds it."""
+    import random
+
+    try:
+        low = int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        low = 32768
+    for _ in range(200):
+        port = random.randrange(10_000, max(10_001, low))
+        try:
+            for k in (socket.SOCK_STREAM, socket.SOCK_DGRAM):
+                with socket.socket(socket.AF_INET, k) as s:
+                    s.bind(("127.0.0.1", port))
+        except OSError:
+            continue
+        return port
     with socket.socket(socket.AF_INET, kind) as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
