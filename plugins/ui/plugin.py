@@ -251,16 +251,20 @@ class UIPlugin(Plugin[UISettings]):
         names.discard(self.agent_name)
         return sorted(names, key=lambda n: (self.naming.number(n) is None, self.naming.number(n) or 0, n))
 
-    def picture(self) -> dict[str, Any]:
-        """Return what the page shows: robots, links, metrics, tasks, log, settings."""
-        s = self.settings
+    def _known(self) -> tuple[dict[str, Pose], dict[str, Peer], list[str], dict[str, Task]]:
+        """Poses and peers by robot, the robots' names, and each robot's newest running task."""
         poses = {p.robot: p for p in self.poses}
         peers = {p.name: p for p in self.peers}
-        names = self.robots()
         running: dict[str, Task] = {}
         for t in sorted(self.tasks, key=lambda t: t.created):
             if not t.done and t.destination:
                 running[t.destination] = t
+        return poses, peers, self.robots(), running
+
+    def picture(self) -> dict[str, Any]:
+        """Return what the page shows: robots, links, metrics, tasks, log, settings."""
+        s = self.settings
+        poses, peers, names, running = self._known()
         robots: list[dict[str, Any]] = []
         up_names: set[str] = set()
         for name in names:
@@ -306,13 +310,7 @@ class UIPlugin(Plugin[UISettings]):
 
     def views(self) -> dict[str, RobotView]:
         """What the dialogue may tell the operator about each robot: pose, task, battery, link."""
-        poses = {p.robot: p for p in self.poses}
-        peers = {p.name: p for p in self.peers}
-        names = self.robots()
-        running: dict[str, Task] = {}
-        for t in sorted(self.tasks, key=lambda t: t.created):
-            if not t.done and t.destination:
-                running[t.destination] = t
+        poses, peers, names, running = self._known()
         best: dict[str, float] = {}
         for lk in self._links(set(names), set(names)):
             for end in (lk["a"], lk["b"]):
