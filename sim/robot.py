@@ -250,6 +250,19 @@ class SimRobot:
         """Advance the robot by dt seconds; `now` is the clock the watchdog compares against."""
         if dt <= 0:
             return
+        tv, nx, ny, th2 = self.propose(dt, now)
+        blocked = False
+        if abs(self.v) > 1e-9:
+            here = self.world.clearance(self.x, self.y, self.others())
+            there = self.world.clearance(nx, ny, self.others())
+            blocked = self.blocked(here, there)
+        self.commit(dt, tv, nx, ny, th2, blocked)
+
+    # The step in three parts, so a host can test every robot's move against the world and
+    # the other robots at once (`erni.sim.swarm`): propose -> clearances -> blocked -> commit.
+
+    def propose(self, dt: float, now: float) -> tuple[float, float, float, float]:
+        """Update the velocities for dt; return (target v, proposed x, y, heading) before collisions."""
         if self.last_command > -math.inf and now - self.last_command > self.config.watchdog:
             self.watchdog_tripped = True
         tv, tw = self._targets()
@@ -257,7 +270,23 @@ class SimRobot:
             tv = tw = 0.0
         self.v = _approach(self.v, tv, self.accel * dt, self.decel * dt)
         self.w = _approach(self.w, tw, self.rot_accel * dt, self.rot_decel * dt)
-        self._integrate(dt, tv)
+        th2 = self.th + self.w * dt
+        if abs(self.w) > 1e-9:
+            r = self.v / self.w
+            nx = self.x + r * (math.sin(th2) - math.sin(self.th))
+            ny = self.y - r * (math.cos(th2) - math.cos(self.th))
+        else:
+            nx = self.x + self.v * dt * math.cos(self.th)
+            ny = self.y + self.v * dt * math.sin(self.th)
+        return tv, nx, ny, th2
+
+    def blocked(self, here: float, there: float) -> bool:
+        """Whether a move from clearance `here` to clearance `there` (m) runs into something."""
+        return there < self.config.radius and there <= here
+
+    def commit(self, dt: float, tv: float, nx: float, ny: float, th2: float, blocked: bool) -> None:
+        """Finish the step: move to (nx, ny) unless blocked (then bump and stall), turn, draw energy."""
+        self._integrate(tv, nx, ny, th2, blocked)
         speed = (abs(self.v - self.w * self.config.axle / 2) + abs(self.v + self.w * self.config.axle / 2)) / 2
         power = P0_WATTS if speed < 1e-3 else PMOV_SLOPE * speed + PMOV_BASE
         self.energy += power * dt
@@ -282,20 +311,7 @@ class SimRobot:
                 tw = math.copysign(min(self.max_rv, math.sqrt(2 * self.rot_decel * abs(err)), 8 * abs(err)), err)
         return tv, tw
 
-    def _integrate(self, dt: float, tv: float) -> None:
-        th2 = self.th + self.w * dt
-        if abs(self.w) > 1e-9:
-            r = self.v / self.w
-            nx = self.x + r * (math.sin(th2) - math.sin(self.th))
-            ny = self.y - r * (math.cos(th2) - math.cos(self.th))
-        else:
-            nx = self.x + self.v * dt * math.cos(self.th)
-            ny = self.y + self.v * dt * math.sin(self.th)
-        blocked = False
-        if abs(self.v) > 1e-9:
-            here = self.world.clearance(self.x, self.y, self.others())
-            there = self.world.clearance(nx, ny, self.others())
-            blocked = there < self.config.radius and there <= here
+    def _integrate(self, tv: float, nx: float, ny: float, th2: float, blocked: bool) -> None:
         if blocked:
             self.v = 0.0
             bit = 0x01 if tv >= 0 else 0x80
@@ -652,12 +668,13 @@ class ArcosFirmware:
         soc = round(self.robot.state_of_charge * 100)
         return bytes([0xFA, 1, 5, 0, 0, 0, soc, soc])
 
-    def tick(self, now: float) -> None:
-        """Fire the sonar due and emit a SIP if one is due."""
+    def tick(self, now: float, fire: bool = True) -> None:
+        """Fire the sonar due (unless the host fired it already) and emit a SIP if one is due."""
         self.now = now
         if self.state != "open":
             return
-        self._fire(now)
+        if fire:
+            self._fire(now)
         if now < self._next_sip:
             return
         period = self.robot.config.sip_period
@@ -670,24 +687,35 @@ class ArcosFirmware:
             self._send(self.battery_packet())
 
     def _fire(self, now: float) -> None:
+        due = self.due_firings(now)
+        if due:
+            r = self.robot
+            others = r.others()
+            self.record_firings(due, [r.sonar_reading(num, others) for num in due])
+
+    def due_firings(self, now: float) -> list[int]:
+        """The transducers (sonar numbers, in firing order) due by `now`; advances the firing cycle."""
         r, c = self.robot, self.robot.config
-        if not r.sonar_on or c.sonar_cycle <= 0 or not c.sonar:
-            return
-        others = None
+        if self.state != "open" or not r.sonar_on or c.sonar_cycle <= 0 or not c.sonar:
+            return []
+        due: list[int] = []
         fired = 0
         while now >= self._next_fire and fired < 64:
-            others = others if others is not None else r.others()
             for bank in self.polling:
                 if bank:
-                    num = bank[self._fire_index % len(bank)]
-                    rng = r.sonar_reading(num, others)
-                    if rng is not None:
-                        self._fired[num] = rng
+                    due.append(bank[self._fire_index % len(bank)])
             self._fire_index += 1
             self._next_fire += c.sonar_cycle
             fired += 1
         if now >= self._next_fire:  # far behind (a stalled clock): skip ahead, never burst
             self._next_fire = now + c.sonar_cycle
+        return due
+
+    def record_firings(self, nums: list[int], ranges: list[float | None]) -> None:
+        """Keep the ranges (m) the transducers `nums` measured for the next SIP (None: not fitted)."""
+        for num, rng in zip(nums, ranges):
+            if rng is not None:
+                self._fired[num] = rng
 
     def sip(self) -> bytes:
         """Return the body of a standard SIP describing the robot now."""

@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 
 from erni.blackboard.errors import NetworkError, UsageError
 from erni.sim.robot import ArcosFirmware, SimRobot, SimRobotConfig
+from erni.sim.swarm import Swarm
 from erni.sim.world import World
 
 log = logging.getLogger("erni.sim.robot")
@@ -39,16 +40,23 @@ class _Endpoint:
 
 
 class RobotHost:
-    """Serves simulated robots over TCP (one port each) or ptys from one I/O and physics thread."""
+    """Serves simulated robots over TCP (one port each) or ptys from one I/O and physics thread.
+
+    The physics and the sonar of all robots are computed together (`erni.sim.swarm`);
+    `vectorised=False` steps them robot by robot instead (the reference the batch is checked against).
+    """
 
     def __init__(self, world: World | None = None, *, physics_hz: float = 100.0,
-                 clock: Callable[[], float] = time.monotonic, host: str = "127.0.0.1") -> None:
+                 clock: Callable[[], float] = time.monotonic, host: str = "127.0.0.1",
+                 vectorised: bool = True) -> None:
         if physics_hz <= 0:
             raise UsageError(f"physics_hz must be > 0, got {physics_hz}")
         self.world = world or World()
         self.clock = clock
         self.host = host
         self.period = 1.0 / physics_hz
+        self.vectorised = vectorised  # False: robot by robot (`SimRobot.step`, `ArcosFirmware.tick`)
+        self._swarm: Swarm | None = None
         self.endpoints: list[_Endpoint] = []
         self._sel = selectors.DefaultSelector()
         self._wake_r, self._wake_w = socket.socketpair()
@@ -177,8 +185,16 @@ class RobotHost:
             self._flush()
 
     def advance(self, dt: float, now: float | None = None) -> None:
-        """Step every robot's physics by dt and let each firmware emit its due SIPs."""
+        """Step every robot's physics by dt, fire the sonar due and let each firmware emit its due SIPs."""
         now = self.clock() if now is None else now
+        if self.vectorised:
+            if self._swarm is None or self._swarm.world is not self.world:
+                self._swarm = Swarm(self.world)
+            self._swarm.step(self.robots, dt, now)
+            self._swarm.fire([ep.firmware for ep in self.endpoints], now)
+            for ep in self.endpoints:
+                ep.firmware.tick(now, fire=False)
+            return
         for ep in self.endpoints:
             ep.robot.step(dt, now)
             ep.firmware.tick(now)
