@@ -75,7 +75,7 @@ class WorldArrays:
             s = self.segments
             ax, ay, ex, ey = s[:, 0], s[:, 1], s[:, 2] - s[:, 0], s[:, 3] - s[:, 1]
             length2 = ex * ex + ey * ey
-            with np.errstate(divide="ignore", invalid="ignore"):
+            with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
                 t = ((x[:, None] - ax) * ex + (y[:, None] - ay) * ey) / length2
             t = np.where(length2 == 0, 0.0, np.maximum(0.0, np.minimum(1.0, t)))
             d = np.hypot(x[:, None] - (ax + t * ex), y[:, None] - (ay + t * ey))
@@ -95,7 +95,7 @@ def ray_segments(x: NDArray[np.float64], y: NDArray[np.float64], dx: NDArray[np.
     ex, ey = segs[:, 2] - segs[:, 0], segs[:, 3] - segs[:, 1]
     denom = dx[:, None] * ey - dy[:, None] * ex
     ax, ay = segs[:, 0] - x[:, None], segs[:, 1] - y[:, None]
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         t = (ax * ey - ay * ex) / denom
         u = (ax * dy[:, None] - ay * dx[:, None]) / denom
     hit = (np.abs(denom) >= 1e-12) & (t >= 0.0) & (u >= 0.0) & (u <= 1.0)
@@ -122,7 +122,7 @@ def inside(x: NDArray[np.float64], y: NDArray[np.float64], pts: NDArray[np.float
     for i in range(len(pts)):
         (xi, yi), (xj, yj) = pts[i], pts[j]
         straddle = (yi > y) != (yj > y)
-        with np.errstate(divide="ignore", invalid="ignore"):
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             result ^= straddle & (x < (xj - xi) * (y - yi) / (yj - yi) + xi)
         j = i
     return result
