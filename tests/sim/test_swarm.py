@@ -114,9 +114,10 @@ def test_the_hosts_send_the_same_sip_bytes_with_and_without_the_batch() -> None:
     world = World.from_dict({"bounds": [-3, -3, 13, 3], "circle": [{"center": [1.0, 1.0], "radius": 0.3}],
                              "wall": [{"a": [-1, 2], "b": [1, 2]}]})
     streams = []
+    now = [0.0]
     for vectorised in (False, True):
-        now = [0.0]
-        host = RobotHost(world, clock=lambda now=now: now[0], vectorised=vectorised)
+        now[0] = 0.0
+        host = RobotHost(world, clock=lambda: now[0], vectorised=vectorised)
         try:
             for name in ("a", "b"):
                 host.add_robot(SimRobotConfig(name=name), port=0)
