@@ -73,9 +73,12 @@ def neighbourhoods(pos: ArrayLike, mode: str = "physical", rng: float = 15.0) ->
     p = np.asarray(pos, dtype=float)
     n = len(p)
     if mode == "physical":
-        d = np.hypot(*(p[:, None, :] - p[None, :, :]).transpose(2, 0, 1))
-        np.fill_diagonal(d, math.inf)
-        return [np.flatnonzero(d[i] <= rng) for i in range(n)]
+        from scipy.spatial import cKDTree
+
+        if n == 0:
+            return []
+        near = cKDTree(p).query_ball_point(p, rng, return_sorted=True)
+        return [np.array([j for j in near[i] if j != i], dtype=np.intp) for i in range(n)]
     if mode != "delaunay":
         raise UsageError(f"mode: expected 'physical' or 'delaunay', got {mode!r}")
     if n < 2:
@@ -127,44 +130,67 @@ def forces(pos: ArrayLike, theta: ArrayLike, cfg: SpreadConfig, obstacles: Array
     wal = np.zeros((0, 4)) if walls is None or np.size(walls) == 0 else np.asarray(walls, float).reshape(-1, 4)
     if nbrs is None:
         nbrs = neighbourhoods(p, cfg.neighbourhood, cfg.range)
-    force = np.zeros((n, 2))
-    torque = np.zeros(n)
-    w = cfg.weight
-    for i in range(n):
-        pts = [p[nbrs[i]]]
-        want = [np.full(len(nbrs[i]), cfg.distance)]
-        if len(obs):
-            q = nearest_on_circles(p[i], obs)
-            near = np.hypot(*(q - p[i]).T) <= cfg.range
-            pts.append(q[near])
-            want.append(np.full(int(near.sum()), cfg.obstacle_distance))
-        if len(wal):
-            q = nearest_on_segments(p[i], wal)
-            near = np.hypot(*(q - p[i]).T) <= cfg.range
-            pts.append(q[near])
-            want.append(np.full(int(near.sum()), cfg.wall_distance))
-        others = np.concatenate(pts)
-        if len(others) == 0:
+    # Every (robot, point it feels, distance it wants) in flat arrays: neighbours, then the nearest
+    # point of each obstacle and wall within range; sums per robot by bincount.
+    owner = [np.repeat(np.arange(n), [len(x) for x in nbrs])]
+    pts = [p[np.concatenate(nbrs)] if n and len(owner[0]) else np.zeros((0, 2))]
+    want = [np.full(len(owner[0]), cfg.distance)]
+    for q, dist_wanted in ((_nearest_on_circles(p, obs), cfg.obstacle_distance) if len(obs) else (None, 0.0),
+                           (_nearest_on_segments(p, wal), cfg.wall_distance) if len(wal) else (None, 0.0)):
+        if q is None:
             continue
-        dij = np.concatenate(want)
-        rel = others - p[i]
-        dist = np.hypot(rel[:, 0], rel[:, 1])
-        ok = dist > EPS
-        unit = np.zeros_like(rel)
-        unit[ok] = rel[ok] / dist[ok, None]
-        if not ok.all():  # coincident: push apart in a direction fixed by the robot's index
-            ang = 2.0 * math.pi * ((i * 0.618034) % 1.0)
-            unit[~ok] = (math.cos(ang), math.sin(ang))
-        force[i] = (w * (dist - dij)[:, None] * unit).sum(axis=0)
-        # heading term: turn toward the neighbourhood's weighted centre s = mean(w (p_j - p_i))
-        s = w * rel.mean(axis=0)
-        s2 = float(s @ s)
-        if s2 > 1e-6:
-            s2 = max(s2, (0.1 * cfg.distance) ** 2)  # regularised: |s| floored at d / 10
-            err = float(wrap(math.atan2(s[1], s[0]) - th[i]))
-            torque[i] = cfg.chi * err
-            force[i] += cfg.chi * err * w * np.array([-s[1], s[0]]) / s2
+        near = np.hypot(q[..., 0] - p[:, None, 0], q[..., 1] - p[:, None, 1]) <= cfg.range
+        i, k = np.nonzero(near)
+        owner.append(i)
+        pts.append(q[i, k])
+        want.append(np.full(len(i), dist_wanted))
+    who = np.concatenate(owner)
+    rel = np.concatenate(pts) - p[who]
+    dij = np.concatenate(want)
+    dist = np.hypot(rel[:, 0], rel[:, 1])
+    ok = dist > EPS
+    unit = np.zeros_like(rel)
+    unit[ok] = rel[ok] / dist[ok, None]
+    if not ok.all():  # coincident: push apart in a direction fixed by the robot's index
+        ang = 2.0 * math.pi * ((who[~ok] * 0.618034) % 1.0)
+        unit[~ok] = np.column_stack([np.cos(ang), np.sin(ang)])
+    w = cfg.weight
+    pull = w * (dist - dij)
+    force = np.column_stack([np.bincount(who, pull * unit[:, 0], minlength=n),
+                             np.bincount(who, pull * unit[:, 1], minlength=n)]).astype(float)
+    # heading term: turn toward the neighbourhood's weighted centre s = mean(w (p_j - p_i))
+    count = np.bincount(who, minlength=n)
+    felt = count > 0
+    s = np.zeros((n, 2))
+    s[felt] = w * np.column_stack([np.bincount(who, rel[:, 0], minlength=n),
+                                   np.bincount(who, rel[:, 1], minlength=n)]).astype(float)[felt] / count[felt, None]
+    s2 = np.einsum("ij,ij->i", s, s)
+    turn = s2 > 1e-6
+    s2 = np.maximum(s2, (0.1 * cfg.distance) ** 2)  # regularised: |s| floored at d / 10
+    err = np.where(turn, wrap(np.arctan2(s[:, 1], s[:, 0]) - th), 0.0)
+    torque: NDArray[np.float64] = cfg.chi * err
+    force += (cfg.chi * err * w / s2)[:, None] * np.column_stack([-s[:, 1], s[:, 0]])
     return force, torque
+
+
+def _nearest_on_circles(p: NDArray[np.float64], obstacles: NDArray[np.float64]) -> NDArray[np.float64]:
+    """`nearest_on_circles` for every point at once: (N, M, 2)."""
+    c, r = obstacles[None, :, :2], obstacles[None, :, 2]
+    off = p[:, None, :] - c
+    dist = np.hypot(off[..., 0], off[..., 1])
+    unit = np.where(dist[..., None] > EPS, off / np.where(dist > EPS, dist, 1.0)[..., None], 0.0)
+    out: NDArray[np.float64] = c + unit * np.minimum(r, dist)[..., None]
+    return out
+
+
+def _nearest_on_segments(p: NDArray[np.float64], walls: NDArray[np.float64]) -> NDArray[np.float64]:
+    """`nearest_on_segments` for every point at once: (N, K, 2)."""
+    a, ab = walls[None, :, :2], walls[None, :, 2:] - walls[None, :, :2]
+    length2 = np.einsum("ijk,ijk->ij", ab, ab)
+    along = np.einsum("ijk,ijk->ij", p[:, None, :] - a, ab)
+    t = np.where(length2 > EPS, along / np.where(length2 > EPS, length2, 1.0), 0.0)
+    out: NDArray[np.float64] = a + np.clip(t, 0.0, 1.0)[..., None] * ab
+    return out
 
 
 def _clip_norm(v: NDArray[np.float64], vmax: float | None) -> NDArray[np.float64]:

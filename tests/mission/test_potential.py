@@ -6,15 +6,22 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from numpy.typing import NDArray
 
 from erni.strategies.potential import (
+    EPS,
     SpreadConfig,
     forces,
     mean_nn_distance,
+    nearest_on_circles,
+    nearest_on_segments,
     neighbourhoods,
     robot_command,
     simulate,
     spread_step,
+    wrap,
 )
 
 
@@ -109,3 +116,84 @@ def test_bad_config_is_named():
         SpreadConfig(neighbourhood="voronoi")
     with pytest.raises(ValueError, match="dt"):
         SpreadConfig(dt=0)
+
+
+def forces_robot_by_robot(p: NDArray[np.float64], th: NDArray[np.float64], cfg: SpreadConfig,
+                          obs: NDArray[np.float64], wal: NDArray[np.float64]
+                          ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Equations 15/16's force and torque computed robot by robot: the reference for `forces`."""
+    n = len(p)
+    nbrs = neighbourhoods(p, cfg.neighbourhood, cfg.range)
+    force = np.zeros((n, 2))
+    torque = np.zeros(n)
+    w = cfg.weight
+    for i in range(n):
+        pts = [p[nbrs[i]]]
+        want = [np.full(len(nbrs[i]), cfg.distance)]
+        if len(obs):
+            q = nearest_on_circles(p[i], obs)
+            near = np.hypot(*(q - p[i]).T) <= cfg.range
+            pts.append(q[near])
+            want.append(np.full(int(near.sum()), cfg.obstacle_distance))
+        if len(wal):
+            q = nearest_on_segments(p[i], wal)
+            near = np.hypot(*(q - p[i]).T) <= cfg.range
+            pts.append(q[near])
+            want.append(np.full(int(near.sum()), cfg.wall_distance))
+        others = np.concatenate(pts)
+        if len(others) == 0:
+            continue
+        dij = np.concatenate(want)
+        rel = others - p[i]
+        dist = np.hypot(rel[:, 0], rel[:, 1])
+        ok = dist > EPS
+        unit = np.zeros_like(rel)
+        unit[ok] = rel[ok] / dist[ok, None]
+        if not ok.all():  # coincident: push apart in a direction fixed by the robot's index
+            ang = 2.0 * math.pi * ((i * 0.618034) % 1.0)
+            unit[~ok] = (math.cos(ang), math.sin(ang))
+        force[i] = (w * (dist - dij)[:, None] * unit).sum(axis=0)
+        # heading term: turn toward the neighbourhood's weighted centre s = mean(w (p_j - p_i))
+        s = w * rel.mean(axis=0)
+        s2 = float(s @ s)
+        if s2 > 1e-6:
+            s2 = max(s2, (0.1 * cfg.distance) ** 2)  # regularised: |s| floored at d / 10
+            err = float(wrap(math.atan2(s[1], s[0]) - th[i]))
+            torque[i] = cfg.chi * err
+            force[i] += cfg.chi * err * w * np.array([-s[1], s[0]]) / s2
+    return force, torque
+
+
+coord = st.floats(-20.0, 20.0, allow_nan=False)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(coord, coord), min_size=1, max_size=25), st.integers(0, 3), st.integers(0, 3),
+       st.sampled_from(["physical", "delaunay"]), st.data())
+def test_forces_equal_the_robot_by_robot_sums(points: list[tuple[float, float]], n_obs: int, n_walls: int,
+                                              hood: str, data: st.DataObject) -> None:
+    p = np.array(points)
+    p[len(p) // 2:] = np.round(p[len(p) // 2:])  # some coincident robots too
+    th = np.array([data.draw(st.floats(-math.pi, math.pi)) for _ in points])
+    obs = np.array([[data.draw(coord), data.draw(coord), data.draw(st.floats(0.1, 3.0))] for _ in range(n_obs)])
+    wal = np.array([[data.draw(coord) for _ in range(4)] for _ in range(n_walls)])
+    cfg = SpreadConfig(neighbourhood=hood, range=data.draw(st.floats(1.0, 30.0)), chi=data.draw(st.floats(0.0, 2.0)))
+    obs, wal = obs.reshape(-1, 3), wal.reshape(-1, 4)
+    f, tq = forces(p, th, cfg, obs, wal)
+    rf, rtq = forces_robot_by_robot(p, th, cfg, obs, wal)
+    assert f == pytest.approx(rf, rel=1e-9, abs=1e-9)
+    assert tq == pytest.approx(rtq, rel=1e-9, abs=1e-9)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(coord, coord), max_size=40), st.floats(0.5, 30.0))
+def test_physical_neighbourhoods_are_every_robot_within_range(points: list[tuple[float, float]], rng: float) -> None:
+    p = np.array(points, dtype=float).reshape(-1, 2)
+    d = np.hypot(p[:, None, 0] - p[None, :, 0], p[:, None, 1] - p[None, :, 1])
+    np.fill_diagonal(d, np.inf)
+    clear = np.abs(d - rng) > 1e-9  # a neighbour at the range to the last bit may fall either side
+    got = neighbourhoods(p, "physical", rng)
+    for i in range(len(p)):
+        want = set(np.flatnonzero(d[i] <= rng).tolist())
+        assert {j for j in got[i].tolist() if clear[i, j]} == {j for j in want if clear[i, j]}
+        assert list(got[i]) == sorted(got[i])
