@@ -10,10 +10,16 @@ agent (its loop) and from the control node (what the GUI sees). CPU (% of one co
 from /proc. In the same run, the import floor: a process that only imports what a robot
 agent imports (blackboard, transport, motion, mobinet, mission), and a bare interpreter.
 
-Kinematic mode (`erni experiment spread-*`): 120 robots stepped in-process by the mission's
-`spread_step`; the real-time factor is simulated seconds per wall-clock second.
+Robot host (`RobotHost`, every simulated robot of `erni sim` in one thread): for 10, 120 and
+1000 robots opened through ARCOS and driving with their sonar firing, the milliseconds of one
+core that 100 ms of simulated time costs (physics steps, sonar, SIPs), against the 100 ms
+real-time budget and against the robot-by-robot path (`vectorised=False`) in the same run.
 
-    python bench/bench_sim.py [--robots 5,10,20] [--window 10] [--kinematic-robots 120]
+Kinematic mode (`erni experiment spread-*`): 120 and 1000 robots stepped in-process by the
+mission's `spread_step`; the real-time factor is simulated seconds per wall-clock second.
+
+    python bench/bench_sim.py [--robots 5,10,20] [--window 10] [--host-robots 10,120,1000]
+                              [--physics-hz 20] [--kinematic-robots 120,1000]
 """
 
 from __future__ import annotations
@@ -133,44 +139,98 @@ def agents_run(n: int, window: float) -> dict[str, float]:
     }
 
 
-def host_cost(n: int, steps: int = 25) -> tuple[float, float]:
-    """Milliseconds of one physics step and of one SIP round (sonar cast) for n moving robots in one host."""
-    from erni.sim.robot import SimRobotConfig
+def _arcos(cmd: int, *args: int) -> bytes:
+    """A client packet as ARIA sends it (integer arguments only)."""
+    from erni.sim.robot import _packet
+
+    body = bytes([cmd]) + b"".join(bytes([0x3B if a >= 0 else 0x1B]) + abs(a).to_bytes(2, "little") for a in args)
+    return _packet(body)
+
+
+def host_tick(n: int, vectorised: bool, ticks: int, physics_hz: float) -> dict[str, float]:
+    """Milliseconds per 100 ms of simulated time for n robots in one `RobotHost`, by part.
+
+    Every robot is opened through the real ARCOS bytes (SYNC0-2, OPEN, ENABLE, VEL, RVEL), drives
+    and turns with its sonar firing (16 transducers, 2 banks, one per bank every 40 ms), in a
+    room with pillars, robots 3 m apart. One simulated 100 ms = physics_hz/10 physics steps, the
+    sonar due, and one SIP per robot (`RobotHost.advance`, taken apart to time each part).
+    """
     from erni.sim.robot_host import RobotHost
+    from erni.sim.swarm import Swarm
     from erni.sim.world import World
 
     cols = max(1, int(np.ceil(np.sqrt(n))))
-    host = RobotHost(World(bounds=(-2.0, -2.0, cols * 3.0, cols * 3.0)))
+    side = cols * 3.0
+    pillars = [{"center": [i * 3.0 + 1.5, j * 3.0 + 1.5], "radius": 0.2} for i in range(0, cols, 4) for j in range(0, cols, 4)]
+    world = World.from_dict({"bounds": [-2.0, -2.0, side, side], "circle": pillars,
+                             "wall": [{"a": [side / 2, -2.0], "b": [side / 2, side / 3]}]})
+    host = RobotHost(world, vectorised=vectorised, physics_hz=physics_hz)
+    rng = np.random.default_rng(1)
     try:
         for i in range(n):
-            host.add_robot(SimRobotConfig(name=f"r{i}"), port=0)
-        for i, ep in enumerate(host.endpoints):
-            ep.robot.x, ep.robot.y = (i % cols) * 3.0, (i // cols) * 3.0
-            ep.robot.motors_enabled = True
-            ep.robot.set_velocity(0.3)
-        t0 = time.perf_counter()
-        for k in range(steps):
-            host.advance(0.02, k * 0.02)
-        step = (time.perf_counter() - t0) / steps
-        t0 = time.perf_counter()
+            robot = host.add_robot(None, port=0)
+            robot.x, robot.y = (i % cols) * 3.0, (i // cols) * 3.0
+            robot.th = float(rng.uniform(-np.pi, np.pi))
+        opening = b"".join([_arcos(0), _arcos(1), _arcos(2), _arcos(1), _arcos(4, 1), _arcos(11, 300),
+                            _arcos(21, 10)])
         for ep in host.endpoints:
-            ep.firmware.sip()
-        sip = time.perf_counter() - t0
+            ep.firmware.receive(opening, 0.0)
+            ep.firmware.take_output()
+        dt = 1.0 / physics_hz
+        steps_per_tick = max(1, round(0.1 / dt))
+        robots, firmwares = host.robots, [ep.firmware for ep in host.endpoints]
+        swarm = Swarm(host.world)
+        parts = {"physics": 0.0, "sonar": 0.0, "sips": 0.0}
+        now = 0.0
+        sip_bytes = 0
+        for _ in range(ticks):
+            for _ in range(steps_per_tick):
+                now += dt
+                t0 = time.perf_counter()
+                if vectorised:  # what RobotHost.advance does
+                    swarm.step(robots, dt, now)
+                    t1 = time.perf_counter()
+                    swarm.fire(firmwares, now)
+                else:
+                    for r in robots:
+                        r.step(dt, now)
+                    t1 = time.perf_counter()
+                    for fw in firmwares:
+                        fw._fire(now)
+                t2 = time.perf_counter()
+                for fw in firmwares:
+                    fw.tick(now, fire=False)
+                t3 = time.perf_counter()
+                parts["physics"] += t1 - t0
+                parts["sonar"] += t2 - t1
+                parts["sips"] += t3 - t2
+            pulse = _arcos(0)
+            for fw in firmwares:  # the client's heartbeat feeds the watchdog (not timed)
+                fw.receive(pulse, now)
+                sip_bytes += len(fw.take_output())
     finally:
         host.stop()
-    return step * 1000, sip * 1000
+    out = {k: v / ticks * 1000 for k, v in parts.items()}
+    out["total"] = sum(out.values())
+    out["sip_bytes"] = sip_bytes / ticks / n
+    return out
 
 
-def kinematic_run(n: int, seconds: float) -> list[tuple[str, float, float]]:
-    """Time the spread of n robots for `seconds` simulated; return (variant, wall s, real-time factor)."""
+def kinematic_run(n: int, seconds: float, start: str = "packed") -> list[tuple[str, float, float]]:
+    """Time the spread of n robots for `seconds` simulated; return (variant, wall s, real-time factor).
+
+    start "packed": every robot in a 2 m x 2 m square (paper 001's start: everyone within everyone's
+    range); "spread": uniform at one robot per 25 m^2, so a robot's 6 m range holds a few neighbours.
+    """
     from erni.strategies.potential import SpreadConfig, spread_step
 
     rng = np.random.default_rng(1)
+    half = 1.0 if start == "packed" else 2.5 * np.sqrt(n)
     out = []
     for variant in ("holonomic/physical", "holonomic/delaunay", "nonholonomic/physical", "nonholonomic/delaunay"):
         model, _, hood = variant.partition("/")
         cfg = SpreadConfig(neighbourhood=hood, model=model, range=6.0)
-        pos = rng.uniform(-1, 1, (n, 2))
+        pos = rng.uniform(-half, half, (n, 2))
         th = rng.uniform(-np.pi, np.pi, n)
         vel, om = np.zeros_like(pos), np.zeros(n)
         t0 = time.perf_counter()
@@ -186,31 +246,44 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--robots", default="5,10,20", help="team sizes for the agents mode (comma-separated)")
     ap.add_argument("--window", type=float, default=10.0, help="seconds of watching per team size")
-    ap.add_argument("--kinematic-robots", type=int, default=120)
+    ap.add_argument("--host-robots", default="10,120,1000", help="robots in one robot host (comma-separated)")
+    ap.add_argument("--host-ticks", type=int, default=20, help="simulated 100 ms rounds timed per size")
+    ap.add_argument("--physics-hz", type=float, default=20.0, help="physics rate (erni sim: 20 Hz above 10 robots)")
+    ap.add_argument("--kinematic-robots", default="120,1000", help="team sizes for the kinematic mode")
     ap.add_argument("--kinematic-seconds", type=float, default=30.0)
     args = ap.parse_args()
     bare = import_floor("pass")
     floor = import_floor(AGENT_IMPORTS)
     print(f"import floor: bare interpreter {bare:.1f} MB RSS; a robot agent's imports {floor:.1f} MB RSS")
-    print("\nagents mode (one process per robot agent; robots random-walk; 10 Poses/s per robot expected)")
-    head = ("robots", "start s", "pose p50 ms", "pose p99 ms", "poses/10Hz", "at control", "robot CPU %",
-            "control CPU %",
-            "sim CPU %", "robot RSS MB", "RSS/floor")
-    print(" ".join(f"{h:>12}" for h in head), flush=True)
-    for n in [int(x) for x in args.robots.split(",") if x]:
-        r = agents_run(n, args.window)
-        row = (n, r["startup_s"], r["pose_interval_p50_ms"], r["pose_interval_p99_ms"], r["poses_delivered_share"],
-               r["poses_at_control_share"], r["robot_cpu_pct_median"], r["control_cpu_pct"], r["sim_process_cpu_pct"], r["robot_rss_mb_median"],
-               r["robot_rss_mb_median"] / floor)
-        print(" ".join(f"{v:>12.3g}" if isinstance(v, float) else f"{v:>12}" for v in row), flush=True)
-    print("\nthe simulator's robot host alone (all simulated robots in the erni sim process)")
-    for n in (10, 30, 120):
-        step, sip = host_cost(n)
-        print(f"  {n:>4} robots: physics step {step:7.1f} ms (x 50/s = {step * 5:5.0f}% of a core), "
-              f"SIP round {sip:7.1f} ms (x 10/s = {sip:5.0f}% of a core)", flush=True)
-    print(f"\nkinematic mode: {args.kinematic_robots} robots, {args.kinematic_seconds:g} s simulated (dt = 0.2 s)")
-    for variant, wall, factor in kinematic_run(args.kinematic_robots, args.kinematic_seconds):
-        print(f"  {variant:<24} {wall:6.2f} s wall   {factor:5.2f} x real time", flush=True)
+    if args.robots:
+        print("\nagents mode (one process per robot agent; robots random-walk; 10 Poses/s per robot expected)")
+        head = ("robots", "start s", "pose p50 ms", "pose p99 ms", "poses/10Hz", "at control", "robot CPU %",
+                "control CPU %",
+                "sim CPU %", "robot RSS MB", "RSS/floor")
+        print(" ".join(f"{h:>12}" for h in head), flush=True)
+        for n in [int(x) for x in args.robots.split(",") if x]:
+            r = agents_run(n, args.window)
+            row = (n, r["startup_s"], r["pose_interval_p50_ms"], r["pose_interval_p99_ms"], r["poses_delivered_share"],
+                   r["poses_at_control_share"], r["robot_cpu_pct_median"], r["control_cpu_pct"], r["sim_process_cpu_pct"], r["robot_rss_mb_median"],
+                   r["robot_rss_mb_median"] / floor)
+            print(" ".join(f"{v:>12.3g}" if isinstance(v, float) else f"{v:>12}" for v in row), flush=True)
+    print(f"\nthe simulator's robot host alone: ms of one core per 100 ms simulated (budget 100 ms: real time), "
+          f"physics at {args.physics_hz:g} Hz, sonar firing, a SIP per robot per 100 ms")
+    columns = ("robots", "path", "physics", "sonar", "SIPs", "total", "x budget", "speed-up")
+    print(" ".join(f"{h:>10}" for h in columns), flush=True)
+    for n in [int(x) for x in args.host_robots.split(",") if x]:
+        scalar = host_tick(n, False, max(1, min(args.host_ticks, 2000 // n)), args.physics_hz)
+        batch = host_tick(n, True, args.host_ticks, args.physics_hz)
+        for name, r in (("by robot", scalar), ("batch", batch)):
+            cells = (n, name, r["physics"], r["sonar"], r["sips"], r["total"], r["total"] / 100.0,
+                     scalar["total"] / r["total"])
+            print(" ".join(f"{v:>10.3g}" if isinstance(v, float) else f"{v:>10}" for v in cells), flush=True)
+    for n in [int(x) for x in args.kinematic_robots.split(",") if x]:
+        for start in ("packed", "spread"):
+            seconds = args.kinematic_seconds if n <= 200 or start == "spread" else min(args.kinematic_seconds, 2.0)
+            print(f"\nkinematic mode: {n} robots, start {start}, {seconds:g} s simulated (dt = 0.2 s)")
+            for variant, wall, factor in kinematic_run(n, seconds, start):
+                print(f"  {variant:<24} {wall:6.2f} s wall   {factor:6.2f} x real time", flush=True)
     return 0
 
 

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.spatial import cKDTree
 
 from erni import netgraph
 
@@ -27,11 +28,19 @@ def distances(pos: ArrayLike) -> NDArray[np.float64]:
 
 
 def links(pos: ArrayLike, comm_range: float) -> dict[int, set[int]]:
-    """The radio graph: i -> the nodes closer than `comm_range`."""
-    d = distances(pos)
-    n = len(d)
-    close = (d < comm_range) & ~np.eye(n, dtype=bool)
-    return {i: set(np.flatnonzero(close[i]).tolist()) for i in range(n)}
+    """The radio graph: i -> the nodes closer than `comm_range` (candidates from a k-d tree)."""
+    p = np.asarray(pos, dtype=float).reshape(-1, 2)
+    graph: dict[int, set[int]] = {i: set() for i in range(len(p))}
+    if len(p) < 2 or comm_range <= 0:
+        return graph
+    pairs = cKDTree(p).query_pairs(comm_range * (1 + 1e-9), output_type="ndarray")
+    if len(pairs):
+        i, j = pairs[:, 0], pairs[:, 1]
+        close = np.hypot(p[i, 0] - p[j, 0], p[i, 1] - p[j, 1]) < comm_range  # as `distances` measures
+        for a, b in zip(i[close].tolist(), j[close].tolist()):
+            graph[a].add(b)
+            graph[b].add(a)
+    return graph
 
 
 def components(pos: ArrayLike, comm_range: float) -> list[set[int]]:

@@ -9,9 +9,11 @@ from __future__ import annotations
 import math
 import random
 
+import numpy as np
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
+from erni.sim import kinematic
 from erni.sim.robot import ArcosFirmware, SimRobot, SimRobotConfig, _packet
 from erni.sim.robot_host import RobotHost
 from erni.sim.swarm import Swarm
@@ -139,3 +141,15 @@ def test_the_hosts_send_the_same_sip_bytes_with_and_without_the_batch() -> None:
             host.stop()
     assert streams[0] == streams[1]
     assert sum(len(b) for b in streams[0]) > 300 * 55 // 10  # SIPs with sonar readings were sent
+
+
+@settings(max_examples=80, deadline=None)
+@given(st.lists(st.tuples(st.integers(-20, 20), st.integers(-20, 20)), max_size=40),
+       st.sampled_from([0.0, 1.0, 2.0, 5.0, 7.5, 100.0]), st.sampled_from([1.0, 0.5, 0.1]))
+def test_radio_links_are_every_pair_closer_than_the_range(points: list[tuple[int, int]], comm_range: float,
+                                                          scale: float) -> None:
+    """Kinematic mode's radio graph (k-d tree) against the full distance matrix, ties at the range included."""
+    pos = np.array(points, dtype=float).reshape(-1, 2) * scale
+    d = kinematic.distances(pos) if len(pos) else np.zeros((0, 0))
+    close = (d < comm_range) & ~np.eye(len(pos), dtype=bool)
+    assert kinematic.links(pos, comm_range) == {i: set(np.flatnonzero(close[i]).tolist()) for i in range(len(pos))}
