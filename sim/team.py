@@ -200,7 +200,8 @@ class Team:
                  control_port: int = 47100, log_level: str = "WARNING", physics_hz: float | None = None,
                  feed_hz: float = 10.0, record: bool = False, mission: bool | None = None,
                  ui: bool | None = None, transport: dict[str, Any] | None = None, gui_port: int = 8080,
-                 gui_listen: str | None = None) -> None:
+                 gui_listen: str | None = None, mission_settings: dict[str, Any] | None = None,
+                 robot_settings: dict[str, Any] | None = None) -> None:
         if scenario.count > MAX_AGENT_ROBOTS:
             raise TeamError(f"--robots: at most {MAX_AGENT_ROBOTS} robot agents (one loopback "
                             f"address each), got {scenario.count}; use the kinematic mode of "
@@ -215,6 +216,8 @@ class Team:
         self.gui_port = gui_port
         self.gui_listen = gui_listen  # HOST:PORT of the GUI (default 127.0.0.1:gui_port)
         self.gui_token = secrets.token_urlsafe(16)  # the GUI always asks for it: printed in the URL
+        self.mission_extra = dict(mission_settings or {})  # experiments: mission settings for every robot
+        self.robot_extra = dict(robot_settings or {})      # experiments: simulated robot settings (inputs)
         self.mission = plugin_available("erni.plugins.mission", "MissionControl") if mission is None else mission
         self.ui = (not headless and plugin_available("erni.plugins.ui", "UIPlugin")) if ui is None else ui
         self.keys_dir = self.run_dir / "keys"
@@ -282,8 +285,8 @@ class Team:
         say("world and robots", 0, n)
         model = self.scenario.robots.model
         for i, name in enumerate(self.names):
-            cfg = SimRobotConfig.amigobot(name=name, seed=self.scenario.seed + i) if model == "amigobot" \
-                else SimRobotConfig(name=name, seed=self.scenario.seed + i)
+            cfg = SimRobotConfig.amigobot(name=name, seed=self.scenario.seed + i, **self.robot_extra) \
+                if model == "amigobot" else SimRobotConfig(name=name, seed=self.scenario.seed + i, **self.robot_extra)
             self.host.add_robot(cfg, port=0)
         self.host.start()
         say("radio network", 0, n)
@@ -375,7 +378,7 @@ class Team:
             out["walls"] = walls
         if "speed" in self.scenario.strategy:  # the scenario's deployment speed (m/s)
             out["speed"] = float(self.scenario.strategy["speed"])
-        return out
+        return {**out, **self.mission_extra}
 
     def _add_agent(self, name: str, address: tuple[str, int], plugins: list[tuple[str, dict[str, Any]]],
                    comment: str, workers: int = 4) -> None:

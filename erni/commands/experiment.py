@@ -12,20 +12,25 @@ def register(sub: Any) -> None:
     """Add the `experiment` sub-command."""
     from erni.sim.experiments import EXPERIMENTS
 
-    names = "; ".join(f"{e.name} (paper {e.paper}: {e.title})" for e in EXPERIMENTS.values())
+    names = "; ".join(f"{e.name} (paper {e.paper})" for e in EXPERIMENTS.values())
     p = sub.add_parser(
         "experiment", help="run one of the papers' experiments headless and write its figure and metrics",
         description=f"Run an experiment on its scenario (examples/scenario-NAME.toml) and print its "
                     f"metrics, with the paper's numbers beside ours. Experiments: {names}.")
     p.add_argument("name", nargs="?", help="experiment name (omit, or --list, to list them)")
-    p.add_argument("--plot", metavar="OUT.png", help="write the figure (PNG, SVG or PDF)")
+    p.add_argument("--plot", metavar="OUT.png", help="write the figure here (PNG, SVG or PDF; default "
+                   "NAME.png in the current directory)")
+    p.add_argument("--no-plot", action="store_true", help="draw no figure")
     p.add_argument("--csv", metavar="OUT.csv", help="write every number (section, t, robot, quantity, value, unit)")
     p.add_argument("--scenario", metavar="FILE.toml", help="run on this scenario instead of the named one")
     p.add_argument("--duration", type=float, help="override the scenario's duration (s)")
     p.add_argument("--robots", type=int, help="override the number of robots")
     p.add_argument("--seed", type=int, help="override the random seed")
-    p.add_argument("--mode", choices=["kinematic", "agents"], help="kinematic: strategies in-process; agents: "
-                   "real agent processes tasked through the control node (where the experiment offers both)")
+    p.add_argument("--mode", choices=["kinematic", "agents"], help="agents: real agent processes tasked through "
+                   "the control node (the default wherever the team is small enough); kinematic: the strategies "
+                   "stepped in one process (large teams)")
+    p.add_argument("--seeds", type=int, help="repeat over this many seeds (from --seed) and summarise "
+                   "(poi, netaware)")
     p.add_argument("--list", action="store_true", help="list the experiments and exit")
     p.set_defaults(func=run)
 
@@ -38,9 +43,14 @@ def run(args: argparse.Namespace) -> int:
     from erni.sim.scenario import ScenarioError, find_scenario, load_scenario
 
     if args.list or not args.name:
-        print(f"{'name':<16} {'paper':<6} {'mode':<18} what")
+        print(f"{'name':<16} {'paper':<6} {'mode (default first)':<22} what")
         for e in EXPERIMENTS.values():
-            print(f"{e.name:<16} {e.paper:<6} {'/'.join(e.modes or (e.mode,)):<18} {e.title}")
+            try:
+                default = e.default_mode(load_scenario(find_scenario(e.scenario)))
+            except ScenarioError:
+                default = e.default_mode()
+            modes = [default] + [m for m in e.modes if m != default]
+            print(f"{e.name:<16} {e.paper:<6} {' / '.join(modes):<22} {e.title}")
         if not args.list:
             print("erni experiment: name an experiment, e.g. `erni experiment poi --plot poi.png`", file=sys.stderr)
         return 0 if args.list else 2
@@ -49,6 +59,8 @@ def run(args: argparse.Namespace) -> int:
               f"{', '.join(EXPERIMENTS)}", file=sys.stderr)
         return 2
     exp = EXPERIMENTS[args.name]
+    if args.plot is None and not args.no_plot:
+        args.plot = f"{exp.name}.png"
     for flag, path in (("--plot", args.plot), ("--csv", args.csv)):
         if path is not None and not _writable(path):
             print(f"erni experiment: {flag} {path}: cannot write there (no such directory?)", file=sys.stderr)
@@ -65,27 +77,38 @@ def run(args: argparse.Namespace) -> int:
         if args.seed is not None:
             updates["seed"] = args.seed
         scenario = scenario.model_copy(update=updates) if updates else scenario
+        if args.seeds is not None and args.seeds < 1:
+            raise ScenarioError(f"--seeds: expected at least 1, got {args.seeds}")
+        if args.seeds is not None and not exp.seeds:
+            raise ScenarioError(f"--seeds: {exp.name} runs one seed at a time (use --seed K); "
+                                f"--seeds works with {', '.join(e.name for e in EXPERIMENTS.values() if e.seeds)}")
+        mode = args.mode or exp.default_mode(scenario)
+        if mode not in exp.modes:
+            raise ScenarioError(f"{exp.name} runs in {' or '.join(exp.modes)} mode, not {mode!r}")
     except ScenarioError as err:
         print(f"erni experiment: {err}", file=sys.stderr)
         return 2
-    print(f"erni experiment {exp.name}: paper {exp.paper}, {exp.title} ({args.mode or exp.mode} mode, "
-          f"{scenario.count} robot(s))", flush=True)
+    print(f"erni experiment {exp.name}: paper {exp.paper}, {exp.title} ({mode} mode, "
+          f"{scenario.count} robot(s){f', {args.seeds} seeds' if args.seeds else ''})", flush=True)
     progress = Progress()
     t0 = time.monotonic()
+    options: dict[str, Any] = {"mode": mode}
+    if args.seeds is not None:
+        options["seeds"] = args.seeds
     try:
-        result = run_experiment(exp.name, scenario, progress, **({"mode": args.mode} if args.mode else {}))
+        result = run_experiment(exp.name, scenario, progress, **options)
     except (ValueError, RuntimeError, OSError) as err:
         progress.done()
         print(f"erni experiment {exp.name}: {err}", file=sys.stderr)
         return 1
     progress.done(f"done in {time.monotonic() - t0:.1f} s")
-    print(result.report(), flush=True)
-    if args.plot:
-        result.plot(args.plot)
-        print(f"figure: {args.plot}")
     if args.csv:
         result.write_csv(args.csv)
         print(f"numbers: {args.csv}")
+    if args.plot and not args.no_plot:
+        result.plot(args.plot)
+        print(f"figure: {args.plot}")
+    print(result.report(), flush=True)
     return 0
 
 

@@ -12,7 +12,12 @@ Integration is semi-implicit Euler with period dt.
 
 Neighbourhoods: "physical" (robots within `range`) or "delaunay" (one-hop neighbours of the
 Delaunay triangulation of all robots, scipy.spatial.Delaunay). Obstacles and walls count only
-within `range`.
+within `range`, each as one object at its nearest point with desired distance b or c and
+weight `obstacle_weight` (the paper's w_ij; "a larger w_ij means a bigger influence"): with
+w = 1 for a wall, a crowd of neighbours pressing a robot toward it outweighs the wall's
+push (at most w c) and pins the robot there; `obstacle_weight = None` weighs an obstacle
+or wall as much as all the robots in the neighbourhood together, so the wall always holds
+its robots near the desired distance c.
 
 Inputs (pure, numpy): `pos` (N, 2) m; `theta` (N,) rad; `vel` (N, 2) m/s (for nonholonomic
 robots the velocity along the heading times h); `omega` (N,) rad/s; `obstacles` (M, 3) circles
@@ -47,7 +52,8 @@ class SpreadConfig:
     neighbourhood: str = "physical"  # "physical" or "delaunay"
     model: str = "holonomic"       # "holonomic" or "nonholonomic"
     chi: float = 1.0               # weight of the heading term
-    weight: float = 1.0            # w_ij
+    weight: float = 1.0            # w_ij of a robot
+    obstacle_weight: float | None = 1.0  # w_ij of an obstacle or wall; None: as many robots as are in the neighbourhood
     mass: float = 1.0
     inertia: float = 1.0
     vmax: float | None = None      # speed limit (m/s), None = unlimited
@@ -130,11 +136,16 @@ def forces(pos: ArrayLike, theta: ArrayLike, cfg: SpreadConfig, obstacles: Array
     wal = np.zeros((0, 4)) if walls is None or np.size(walls) == 0 else np.asarray(walls, float).reshape(-1, 4)
     if nbrs is None:
         nbrs = neighbourhoods(p, cfg.neighbourhood, cfg.range)
-    # Every (robot, point it feels, distance it wants) in flat arrays: neighbours, then the nearest
-    # point of each obstacle and wall within range; sums per robot by bincount.
-    owner = [np.repeat(np.arange(n), [len(x) for x in nbrs])]
+    # Every (robot, point it feels, distance it wants, weight) in flat arrays: neighbours, then the
+    # nearest point of each obstacle and wall within range; sums per robot by bincount.
+    w = cfg.weight
+    degree = np.array([len(x) for x in nbrs], dtype=int)
+    wobj = (np.full(n, float(cfg.obstacle_weight)) if cfg.obstacle_weight is not None
+            else np.maximum(1, degree).astype(float) * w)  # w_ij of an obstacle or wall, per robot
+    owner = [np.repeat(np.arange(n), degree)]
     pts = [p[np.concatenate(nbrs)] if n and len(owner[0]) else np.zeros((0, 2))]
     want = [np.full(len(owner[0]), cfg.distance)]
+    weights = [np.full(len(owner[0]), w)]
     for q, dist_wanted in ((_nearest_on_circles(p, obs), cfg.obstacle_distance) if len(obs) else (None, 0.0),
                            (_nearest_on_segments(p, wal), cfg.wall_distance) if len(wal) else (None, 0.0)):
         if q is None:
@@ -144,9 +155,11 @@ def forces(pos: ArrayLike, theta: ArrayLike, cfg: SpreadConfig, obstacles: Array
         owner.append(i)
         pts.append(q[i, k])
         want.append(np.full(len(i), dist_wanted))
+        weights.append(wobj[i])
     who = np.concatenate(owner)
     rel = np.concatenate(pts) - p[who]
     dij = np.concatenate(want)
+    wij = np.concatenate(weights)
     dist = np.hypot(rel[:, 0], rel[:, 1])
     ok = dist > EPS
     unit = np.zeros_like(rel)
@@ -154,22 +167,23 @@ def forces(pos: ArrayLike, theta: ArrayLike, cfg: SpreadConfig, obstacles: Array
     if not ok.all():  # coincident: push apart in a direction fixed by the robot's index
         ang = 2.0 * math.pi * ((who[~ok] * 0.618034) % 1.0)
         unit[~ok] = np.column_stack([np.cos(ang), np.sin(ang)])
-    w = cfg.weight
-    pull = w * (dist - dij)
+    pull = wij * (dist - dij)
     force = np.column_stack([np.bincount(who, pull * unit[:, 0], minlength=n),
                              np.bincount(who, pull * unit[:, 1], minlength=n)]).astype(float)
     # heading term: turn toward the neighbourhood's weighted centre s = mean(w (p_j - p_i))
     count = np.bincount(who, minlength=n)
     felt = count > 0
     s = np.zeros((n, 2))
-    s[felt] = w * np.column_stack([np.bincount(who, rel[:, 0], minlength=n),
-                                   np.bincount(who, rel[:, 1], minlength=n)]).astype(float)[felt] / count[felt, None]
+    s[felt] = np.column_stack([np.bincount(who, wij * rel[:, 0], minlength=n),
+                               np.bincount(who, wij * rel[:, 1], minlength=n)]).astype(float)[felt] / count[felt, None]
+    wmean = np.zeros(n)
+    wmean[felt] = np.bincount(who, wij, minlength=n)[felt] / count[felt]
     s2 = np.einsum("ij,ij->i", s, s)
     turn = s2 > 1e-6
     s2 = np.maximum(s2, (0.1 * cfg.distance) ** 2)  # regularised: |s| floored at d / 10
     err = np.where(turn, wrap(np.arctan2(s[:, 1], s[:, 0]) - th), 0.0)
     torque: NDArray[np.float64] = cfg.chi * err
-    force += (cfg.chi * err * w / s2)[:, None] * np.column_stack([-s[:, 1], s[:, 0]])
+    force += (cfg.chi * err * wmean / s2)[:, None] * np.column_stack([-s[:, 1], s[:, 0]])
     return force, torque
 
 
@@ -213,8 +227,10 @@ def spread_step(pos: ArrayLike, theta: ArrayLike, vel: ArrayLike, omega: ArrayLi
         raise UsageError("spread_step: pos, theta, vel and omega must describe the same robots")
     nbrs = neighbourhoods(p, cfg.neighbourhood, cfg.range)
     # substeps keep the stiffest neighbourhood's spring stable: h * sqrt(n w / m) <= 0.5
-    degree = max((len(x) for x in nbrs), default=0) + 2
-    substeps = min(50, max(1, math.ceil(cfg.dt * math.sqrt(degree * cfg.weight / cfg.mass) / 0.5)))
+    degree = max((len(x) for x in nbrs), default=0)
+    wobj = cfg.obstacle_weight if cfg.obstacle_weight is not None else max(1, degree) * cfg.weight
+    stiffness = degree * cfg.weight + 2 * wobj  # robots, plus about two obstacles or walls
+    substeps = min(50, max(1, math.ceil(cfg.dt * math.sqrt(stiffness / cfg.mass) / 0.5)))
     h = cfg.dt / substeps
     for _ in range(substeps):
         p, th, v, om = _integrate(p, th, v, om, cfg, h, obstacles, walls, nbrs)

@@ -144,12 +144,14 @@ def segment_hits(a: ArrayLike, b: ArrayLike, obstacles: ArrayLike | None, margin
 
 
 def auxiliary_poi(p: ArrayLike, target: ArrayLike, obstacles: ArrayLike | None,
-                  margin: float = 0.3) -> NDArray[np.float64] | None:
+                  margin: float = 0.3, buffer: float = 0.15) -> NDArray[np.float64] | None:
     """Return an auxiliary PoI beside the first obstacle blocking p -> target, or None if clear.
 
-    The point lies on the perpendicular to p -> target through the obstacle's centre, on the
-    side away from the centre, pushed out until both legs (p -> aux, aux -> target) are clear
-    of that obstacle (or 8 widenings were tried).
+    The path is blocked when it passes within radius + `margin` of an obstacle. The point lies
+    on the perpendicular to p -> target through the obstacle's centre, on the side away from
+    the centre, pushed out until both legs (p -> aux, aux -> target) clear that obstacle by
+    `margin` + `buffer` (or 8 widenings were tried): a robot that stops within `buffer` of the
+    point finds its way to the target clear, instead of a new auxiliary PoI a few cm away.
     """
     obs = _circles(obstacles)
     pa, pt = np.asarray(p, dtype=float), np.asarray(target, dtype=float)
@@ -169,11 +171,12 @@ def auxiliary_poi(p: ArrayLike, target: ArrayLike, obstacles: ArrayLike | None,
         side = -1.0
     direction = -normal if side > 0 else normal
     one = obs[first:first + 1]
-    reach = r + margin
+    clear = margin + buffer
+    reach = r + clear
     aux: NDArray[np.float64] = centre + direction * reach * 1.05
     for _ in range(8):
         aux = centre + direction * reach * 1.05
-        if not segment_hits(pa, aux, one, margin).any() and not segment_hits(aux, pt, one, margin).any():
+        if not segment_hits(pa, aux, one, clear).any() and not segment_hits(aux, pt, one, clear).any():
             break
         reach *= 1.25
     return aux

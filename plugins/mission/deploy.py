@@ -8,14 +8,14 @@ from its poses and reports it in its result values (`energy_j`, `distance_m`, `m
 `elapsed_s`).
 
 - widep: lockstep rounds of `period` s on the wall clock (shared by the team): at the start
-  of a round every robot takes one WiDep step (a BotMotion goto) short enough to end within
-  half a round, so all decisions of a round see the same, settled layout, as in the
-  synchronous algorithm whose bound keeps the team connected. A robot late or slow on a busy
-  machine may still be seen mid-move, at most one step off, so links are kept one step (at
-  least `widep_slack`) shorter than R and a witness must be two steps closer (robust RNG).
-  A robot whose position is older than `position_timeout` stops everyone who knows it
-  (holding) until it is heard again. Succeeds when the PoI is covered (a known robot within
-  `tolerance`).
+  of a round every robot takes one WiDep step (a BotMotion goto) short enough to end well
+  before the next round, decided only once every robot it knows has been seen at rest, so
+  all decisions of a round see the same settled layout, as in the synchronous algorithm whose
+  bound keeps the team connected (links are kept `widep_slack` shorter than R for odometry
+  error). A robot whose position is older than `position_timeout`, or that is not seen at
+  rest, holds everyone who knows it for that round. Succeeds when the PoI is covered (a known
+  robot within `tolerance`); fails, saying what held it, after `widep_stall_rounds` rounds in
+  which the team came no closer to the PoI.
 - spread: every `dt` a BotMotion velocity from equation (15)/(16) with this robot and its
   known neighbours; succeeds after `duration` (runs until cancelled without one).
 - relay: every `relay_period` a relay decision from the link qualities to `source` and
@@ -123,7 +123,17 @@ class Runner:
 
 
 class WidepRunner(Runner):
-    """PoI coverage: WiDep steps toward the PoI under the RNG connectivity bound, in lockstep rounds."""
+    """PoI coverage: WiDep steps toward the PoI under the RNG connectivity bound, in lockstep rounds.
+
+    A round's decision is taken on a settled snapshot: every robot the team view knows must have
+    been seen standing still (for `widep_settle` s, in a reading taken after its previous step
+    could have ended), so all decisions of a round see the layout the synchronous algorithm
+    assumes and its bound (R - d+(u)) / 2 applies as it is. A robot not yet seen settled at the
+    start of a round is waited for during the first quarter of the round, then the round is sat
+    out. A step shorter than `widep_min_step` is not driven (a goto that short would "arrive"
+    without moving); a robot whose team has not come closer to the PoI for `widep_stall_rounds`
+    rounds fails its task, saying what held it.
+    """
 
     kind = "widep"
 
@@ -131,11 +141,18 @@ class WidepRunner(Runner):
         super().__init__(task, ops, settings, now)
         self.p = task.params_as(WidepParams)
         self.start_distance: float | None = None  # to the PoI when the first step was decided (m)
+        self.decided = -1                          # the last round a decision was taken in
+        self.best = math.inf                       # closest any known robot came to the PoI (m)
+        self.own_best = math.inf                   # closest this robot came to it (m)
+        self.idle_rounds = 0                        # rounds since the team last came closer
+        self.why = ""                               # what held the last decision
 
     def tick(self, now: float) -> float:
         p = self.p
         period = p.period
-        next_round = (math.floor(now / period) + 1) * period - now + 1e-3
+        k = math.floor(now / period)
+        round_start = k * period
+        next_round = round_start + period - now + 1e-3
         # every robot ever heard counts: one that fell out of view must not free this robot
         names, pos = self.ops.team.array(now, everyone=True)
         if not names or names[0] != self.ops.agent_name:
@@ -148,35 +165,66 @@ class WidepRunner(Runner):
             self.extra.update(covered_by=within[0])
             self.finish(TaskState.SUCCEEDED, f"PoI ({p.x:g}, {p.y:g}) covered by {within[0]}")
             return period
+        if k <= self.decided:
+            return next_round
         state = self.motion_state()
         if state is not None and not state.done:
             return next_round  # still finishing the last step: sit this round out
         stale = self.ops.team.stale(names, now)
-        if stale:
-            self.ops.report(self.uid, TaskState.RUNNING, f"holding: no fresh position of {', '.join(stale)}")
-            return next_round
+        moving = [] if stale else self._unsettled(names, round_start, period)
+        if moving and now < round_start + 0.25 * period:
+            return 0.2  # wait a little for the others to come to rest
+        self.decided = k
         if self.start_distance is None:
             self.start_distance = round(float(dists[0]), 3)
             self.extra["start_distance"] = self.start_distance
-        start = self.start_distance
-        cap = min(self.s.widep_step_cap, 0.5 * self.s.speed * period)  # done within half a round
-        # a neighbour seen mid-move is at most one step off: keep links a step shorter than R and
-        # only trust witnesses two steps closer (robust RNG)
+        if self._stalled(float(dists[0]), float(dists.min()), period):
+            return period
+        progress = max(0.0, 1.0 - float(dists[0]) / self.start_distance) if self.start_distance > 0 else 0.0
+        if stale or moving:
+            self.why = (f"no fresh position of {', '.join(stale)}" if stale
+                        else f"{', '.join(moving)} not seen at rest")
+            self.ops.report(self.uid, TaskState.RUNNING, f"holding: {self.why}", progress=progress)
+            return next_round
+        cap = min(self.s.widep_step_cap, 0.4 * self.s.speed * period)  # at rest before the next round
         step = widep_step(pos, 0, poi, p.range, tolerance=p.tolerance, obstacles=self._obstacles(),
                           margin=self.s.obstacle_margin, separation=self.s.separation, step_cap=cap,
-                          witness_margin=2 * cap, slack=max(self.s.widep_slack, cap))
-        self.extra.update(neighbours=len(names) - 1, bound_m=round(step.limit, 3),
-                          distance_m_to_poi=round(float(dists[0]), 3), auxiliary=step.auxiliary)
-        progress = max(0.0, 1.0 - float(dists[0]) / start) if start > 0 else 0.0
-        if step.length < 0.02:
-            self.ops.report(self.uid, TaskState.RUNNING, "holding: the connectivity bound allows no step",
-                            progress=progress, values=self.values())
+                          slack=self.s.widep_slack)
+        self.extra.update(neighbours=len(names) - 1, bound_m=round(step.limit, 3), step_m=round(step.length, 3),
+                          distance_m_to_poi=round(float(dists[0]), 3), auxiliary=step.auxiliary,
+                          rounds_without_progress=self.idle_rounds)
+        if step.length < self.s.widep_min_step:
+            self.why = f"the connectivity bound allows {step.length:.2f} m (bound {step.limit:.2f} m)"
+            self.ops.report(self.uid, TaskState.RUNNING, f"holding: {self.why}", progress=progress,
+                            values=self.values())
             return next_round
+        self.why = ""
         self.move("goto", GotoParams(x=round(float(step.target[0]), 3), y=round(float(step.target[1]), 3),
                                      speed=self.s.speed, tolerance=0.05))
         msg = "heading for an auxiliary PoI" if step.auxiliary else "stepping toward the PoI"
         self.ops.report(self.uid, TaskState.RUNNING, msg, progress=progress, values=self.values())
         return next_round
+
+    def _unsettled(self, names: list[str], round_start: float, period: float) -> list[str]:
+        """The other robots not seen at rest since the previous round's steps could have ended."""
+        fresh_after = round_start - 0.5 * period
+        return [n for n in names[1:] if not self.ops.team.settled(n, fresh_after, self.s.widep_settle)]
+
+    def _stalled(self, mine: float, best: float, period: float) -> bool:
+        """Count rounds in which neither the team nor this robot came 5 cm closer to the PoI; fail after too many."""
+        if best < self.best - 0.05 or mine < self.own_best - 0.05:
+            self.best = min(self.best, best)
+            self.own_best = min(self.own_best, mine)
+            self.idle_rounds = 0
+            return False
+        self.idle_rounds += 1
+        if self.idle_rounds < self.s.widep_stall_rounds:
+            return False
+        self.extra.update(stalled=True, rounds_without_progress=self.idle_rounds)
+        self.finish(TaskState.FAILED, f"no progress toward the PoI for {self.idle_rounds} rounds of "
+                    f"{period:g} s: the closest robot is {best:.2f} m from it"
+                    + (f"; {self.why}" if self.why else ""))
+        return True
 
     def _obstacles(self) -> NDArray[np.float64] | None:
         return np.array(self.s.obstacles, dtype=float) if self.s.obstacles else None
@@ -193,7 +241,7 @@ class SpreadRunner(Runner):
         self.cfg = SpreadConfig(distance=p.distance, gain=p.gain, dt=p.dt, range=p.range,
                                 neighbourhood=p.neighbourhood, model=p.model, vmax=settings.speed,
                                 wmax=math.radians(90), obstacle_distance=settings.obstacle_distance,
-                                wall_distance=settings.wall_distance)
+                                wall_distance=settings.wall_distance, obstacle_weight=settings.obstacle_weight)
         self.speed = 0.0
         self.omega = 0.0
 
@@ -204,7 +252,7 @@ class SpreadRunner(Runner):
             self.finish(TaskState.SUCCEEDED, f"spread for {p.duration:g} s")
             return period
         mine = self.ops.team.where.get(self.ops.agent_name)
-        names, pos = self.ops.team.array(now)
+        names, pos = self.ops.team.array(now, robots_only=True)
         if mine is None or not names or names[0] != self.ops.agent_name:
             self.ops.report(self.uid, TaskState.RUNNING, "waiting for this robot's pose")
             return period
@@ -282,6 +330,7 @@ class PatrolRunner(Runner):
         p = self.p = task.params_as(PatrolParams)
         block = (p.xmin, p.ymin, p.xmax, p.ymax)
         self.events: list[JsonValue] = []  # "kind robot" of every takeover event, oldest first
+        self.event_at: list[JsonValue] = []  # when each happened (epoch s)
         self.table = patrol_core.TakeoverTable(ops.agent_name, block, silence=p.silence,
                                                base=settings.backoff_base or 2.0 * p.heartbeat + 0.5)
         self.path: list[tuple[float, float]] = []
@@ -304,14 +353,16 @@ class PatrolRunner(Runner):
     def heard(self, territory: Territory, now: float) -> None:
         events = self.table.heard(territory.robot, territory.block, now, tuple(territory.holds),
                                   territory.claims)
-        self._events(events)
+        self._events(events, now)
 
-    def _events(self, events: list[patrol_core.Event]) -> None:
+    def _events(self, events: list[patrol_core.Event], now: float) -> None:
         if not events:
             return
         self.extra["events"] = self.events
+        self.extra["event_at"] = self.event_at
         for ev in events:
             self.events.append(f"{ev.kind} {ev.about}")
+            self.event_at.append(round(now, 3))
         self._replan()
         last = events[-1]
         text = {"silent": "{} fell silent", "claim": "took over the block of {}", "yield": "yielded {}'s block",
@@ -321,7 +372,7 @@ class PatrolRunner(Runner):
 
     def tick(self, now: float) -> float:
         p = self.p
-        self._events(self.table.tick(now))
+        self._events(self.table.tick(now), now)
         if now >= self.next_beat:
             self.beat += 1
             hb = self.table.heartbeat()

@@ -34,6 +34,7 @@ from erni.blackboard import (
     TaskState,
     TransactionError,
 )
+from erni.blackboard.schemas import Peer
 from erni.blackboard.tasks import CancelParams, GotoParams, SayParams, StopParams
 from erni.plugins.mission.deploy import RUNNERS, Runner
 from erni.plugins.mission.netaware import NetGuard
@@ -70,11 +71,19 @@ class MissionSettings(BaseModel):
     obstacle_margin: float = Field(0.4, ge=0, description="clearance kept from known obstacles (m)")
     obstacle_distance: float = Field(2.0, gt=0, description="spread: desired distance to obstacles (m)")
     wall_distance: float = Field(2.5, gt=0, description="spread: desired distance to walls (m)")
+    obstacle_weight: float | None = Field(None, gt=0, description="spread: weight of an obstacle or wall "
+                                          "(none: as many robots as are in the neighbourhood, so a crowd "
+                                          "never pins a robot against it; 1: paper 001's simulation)")
     audio: bool = Field(True, description="play audio cues (BotMotion say)")
     speed: float = Field(0.3, gt=0, le=2.0, description="cruise speed of deployment moves (m/s)")
-    separation: float = Field(0.5, ge=0, description="widep: never step closer than this to a robot (m)")
-    widep_step_cap: float = Field(1.0, gt=0, description="widep: longest step (m); also at most half a round at `speed`")
+    separation: float = Field(1.0, ge=0, description="widep: never step closer than this to a robot (m)")
+    widep_step_cap: float = Field(1.0, gt=0, description="widep: longest step (m); also at most 0.4 round at `speed`")
     widep_slack: float = Field(0.2, ge=0, description="widep: keep links this much shorter than R (m)")
+    widep_settle: float = Field(0.4, ge=0, description="widep: a robot counts as at rest after this long "
+                                "without moving (s)")
+    widep_min_step: float = Field(0.1, gt=0, description="widep: shorter steps are not driven (m)")
+    widep_stall_rounds: int = Field(15, ge=1, description="widep: fail after this many rounds without "
+                                    "the team coming closer to the PoI")
     position_timeout: float = Field(5.0, gt=0, description="forget other robots' positions older than this (s)")
     halt_timeout: float = Field(5.0, gt=0, description="give up waiting for the robot to halt (s)")
     control_period: float = Field(0.2, gt=0, description="spread: shortest period between commands (s)")
@@ -98,6 +107,7 @@ class MissionControl(Plugin[MissionSettings]):
         self.poses = self.subscribe(Pose)
         self.infos = self.subscribe(NetInfo)
         self.territories = self.subscribe(Territory)
+        self.peers = self.subscribe(Peer)  # roles: spreading counts robots only, never a control node
         self.team = TeamView(me, s.position_timeout)
         self.guard = NetGuard(me, min_quality=s.min_link_quality, articulation=s.articulation,
                               resume_after=s.resume_after)
@@ -207,6 +217,9 @@ class MissionControl(Plugin[MissionSettings]):
     def execute(self) -> None:
         now = time.time()
         me = self.agent_name
+        for peer in self.peers.added + self.peers.changed:
+            if peer.role:
+                self.team.role(peer.name, peer.role)
         for pose in self.poses.added + self.poses.changed:
             self.team.pose(pose)
             if pose.robot == me:

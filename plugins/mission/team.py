@@ -3,7 +3,9 @@
 `TeamView` keeps the newest known position of every robot, from `Pose` objects on the
 blackboard (this robot's own, and peers' poses shared by the transport) and from the
 positions MobiNet reports for a NetWatch `node_position` task; a position older than
-`timeout` seconds is forgotten. `Territory` is the patrol heartbeat a robot publishes (uid
+`timeout` seconds is forgotten. It also keeps, per robot, since when its position has stayed
+within `still_tolerance` m (`settled`): a deployment step decided on settled positions only
+is decided on the snapshot the synchronous algorithms assume. `Territory` is the patrol heartbeat a robot publishes (uid
 `territory:<robot>`), shared with the other robots by the transport (`share` setting).
 """
 
@@ -42,10 +44,13 @@ else:
 class TeamView:
     """Newest known (x, y, heading rad) of each robot, with the time it was learned."""
 
-    def __init__(self, me: str, timeout: float = 5.0) -> None:
+    def __init__(self, me: str, timeout: float = 5.0, still_tolerance: float = 0.03) -> None:
         self.me = me
         self.timeout = timeout
+        self.still_tolerance = still_tolerance
         self.where: dict[str, tuple[float, float, float, float]] = {}  # name -> (x, y, theta, stamp)
+        self.anchor: dict[str, tuple[float, float, float]] = {}  # name -> (x, y, stamp): where it stopped, since
+        self.roles: dict[str, str] = {}  # agent name -> transport role ("robot", "control", ...), when known
 
     def pose(self, pose: Pose) -> None:
         """Take in a Pose (newest stamp wins)."""
@@ -64,6 +69,17 @@ class TeamView:
         old = self.where.get(name)
         if old is None or stamp >= old[3]:
             self.where[name] = (x, y, theta, stamp)
+            still = self.anchor.get(name)
+            if still is None or math.hypot(x - still[0], y - still[1]) > self.still_tolerance:
+                self.anchor[name] = (x, y, stamp)
+
+    def settled(self, name: str, fresh_after: float, still_for: float) -> bool:
+        """True when `name`'s newest position was learned after `fresh_after` and had not moved
+        (beyond `still_tolerance`) for at least `still_for` s before that (times in s, epoch)."""
+        w, still = self.where.get(name), self.anchor.get(name)
+        if w is None or still is None:
+            return False
+        return w[3] >= fresh_after and w[3] - still[2] >= still_for
 
     def fresh(self, now: float | None = None) -> dict[str, tuple[float, float, float]]:
         """Positions learned within `timeout` seconds (this robot's own is always kept)."""
@@ -76,12 +92,22 @@ class TeamView:
         w = self.where.get(self.me)
         return None if w is None else w[:3]
 
-    def array(self, now: float | None = None, *, everyone: bool = False) -> tuple[list[str], NDArray[np.float64]]:
-        """Names and an (N, 2) array of fresh positions (or all known with `everyone`), this robot first."""
+    def role(self, name: str, role: str) -> None:
+        """Remember that agent `name` has transport role `role` (from its Peer object)."""
+        self.roles[name] = role
+
+    def array(self, now: float | None = None, *, everyone: bool = False,
+              robots_only: bool = False) -> tuple[list[str], NDArray[np.float64]]:
+        """Names and an (N, 2) array of fresh positions (or all known with `everyone`), this robot first.
+
+        `robots_only` leaves out the nodes known not to be robots (a control node, by its role).
+        """
         if everyone:
             known = {n: w[:3] for n, w in self.where.items()}
         else:
             known = self.fresh(now)
+        if robots_only:
+            known = {n: w for n, w in known.items() if self.roles.get(n, "robot") == "robot" or n == self.me}
         names = [self.me] + sorted(n for n in known if n != self.me) if self.me in known else sorted(known)
         return names, np.array([known[n][:2] for n in names], dtype=float).reshape(-1, 2)
 

@@ -1,9 +1,10 @@
 """The papers' experiments: each runs a scenario headless and returns its figure and metrics.
 
 `EXPERIMENTS` maps an experiment name to its runner; `run(name, ...)` returns a `Result`
-with scalar metrics, per-robot totals, time series, and the paper's numbers beside ours
-where the paper gives them. `Result.plot(path)` draws the paper's figure (matplotlib, Agg)
-and `Result.write_csv(path)` writes every number in tidy form
+with scalar metrics, per-robot totals, time series, and a table of the paper's numbers
+beside ours, each row saying how ours was obtained and whether it is a measurement or an
+input of the simulation. `Result.plot(path)` draws the paper's figure with that table under
+it (matplotlib, Agg) and `Result.write_csv(path)` writes every number in tidy form
 (`section, t, robot, quantity, value, unit`).
 """
 
@@ -22,42 +23,87 @@ if TYPE_CHECKING:
     from erni.sim.scenario import Scenario
 
 Progress = Callable[[str, float, float], None]
+MAX_AGENTS = 24  # agents mode refuses larger teams (each robot is a process of its own)
+
+
+AGENT_ROBOTS = 12  # the largest team this 2-core machine runs as one agent process per robot
 
 
 @dataclass(frozen=True)
 class Experiment:
-    """One experiment: its scenario (`examples/scenario-NAME.toml`), paper, mode and runner."""
+    """One experiment: its scenario (`examples/scenario-NAME.toml`), paper, modes and runner.
+
+    `modes` lists what it can run on: "agents" (real agent processes: the control node tasks
+    them through the transport, robots through ARCOS, the network through MobiNet) and/or
+    "kinematic" (the strategies' pure functions stepped in one process, for teams too large
+    for one process per robot). The default is "agents" whenever the experiment offers it and
+    the team has at most `AGENT_ROBOTS` robots.
+    """
 
     name: str
     scenario: str
     paper: str
     title: str
-    mode: str  # "agents": real agent processes; "kinematic": strategies run in-process
+    modes: tuple[str, ...]
     module: str
-    modes: tuple[str, ...] = ()  # the modes it can run in (default: just `mode`)
+    seeds: bool = False  # repeats itself over several seeds (`seeds` option)
+
+    def default_mode(self, scenario: Scenario | None = None) -> str:
+        """"agents" where offered and the team is small enough, else the other mode."""
+        small = scenario is None or scenario.count <= AGENT_ROBOTS
+        if "agents" in self.modes and (small or len(self.modes) == 1):
+            return "agents"
+        return next(m for m in self.modes if m != "agents")
 
     def runner(self) -> Callable[..., Result]:
-        """The module's `run(scenario, progress, **options) -> Result`."""
+        """The module's `run(scenario, progress, *, experiment, mode, **options) -> Result`."""
         runner: Callable[..., Result] = importlib.import_module(f"erni.sim.experiments.{self.module}").run
         return runner
 
 
 EXPERIMENTS: dict[str, Experiment] = {e.name: e for e in [
     Experiment("energy", "energy", "000", "5 m run: speed and power; standby and moving power",
-               "agents", "energy"),
+               ("agents",), "energy"),
     Experiment("poi", "poi", "000", "PoI coverage by three robots around an obstacle (WiDep)",
-               "kinematic", "poi", ("kinematic", "agents")),
+               ("agents", "kinematic"), "poi", seeds=True),
     Experiment("relay1", "relay1", "000", "one robot relaying between a source and a destination",
-               "kinematic", "relay"),
+               ("agents", "kinematic"), "relay"),
     Experiment("relay2", "relay2", "000", "two robots relaying between a source and a destination",
-               "kinematic", "relay"),
-    Experiment("spread-open", "spread-open", "001", "120 robots spreading in an open field",
-               "kinematic", "spread"),
+               ("agents", "kinematic"), "relay"),
+    Experiment("spread-open", "spread-open", "001", "robots spreading in an open field until they settle",
+               ("agents", "kinematic"), "spread"),
     Experiment("spread-corridor", "spread-corridor", "001",
-               "120 robots spreading in a corridor (walls at y = +-15 m)", "kinematic", "spread"),
+               "robots spreading in a corridor (walls at y = +-15 m) until they settle", ("agents", "kinematic"),
+               "spread"),
+    Experiment("spread-paths", "spread-paths", "001", "paths of 12 robots, holonomic and nonholonomic (Figs 6-7)",
+               ("agents", "kinematic"), "spread"),
     Experiment("territory", "territory", "002", "six territories; one robot fails and is taken over",
-               "kinematic", "territory"),
+               ("agents", "kinematic"), "territory"),
+    Experiment("roundtrip", "roundtrip", "002", "status data from one robot to 1, 3 and 5 consumers: round trip "
+               "(Table II)", ("agents",), "roundtrip"),
+    Experiment("response", "response", "003", "motor command to odometry: raw, poll, notify (Table I)",
+               ("agents",), "response"),
+    Experiment("memory", "memory", "004", "resident memory of a robot agent and a robot's processes (Table 1)",
+               ("agents",), "memory"),
+    Experiment("netaware", "netaware", "004", "network-aware team against a network-blind one, same missions",
+               ("agents",), "netaware", seeds=True),
 ]}
+
+
+@dataclass(frozen=True)
+class Compare:
+    """One row of an experiment's table: what the paper states beside what we measured, and how.
+
+    `kind` is "measured" (a result of this run), "input" (a setting of the simulation or of the
+    strategy: shown for reference, never a finding) or "none" (the paper states no number).
+    """
+
+    quantity: str
+    paper: float | str
+    ours: float | str
+    unit: str = ""
+    how: str = ""
+    kind: str = "measured"
 
 
 @dataclass
@@ -68,42 +114,65 @@ class Result:
     title: str
     mode: str
     metrics: dict[str, tuple[float | str, str]] = field(default_factory=dict)  # name -> (value or robot, unit)
-    robots: dict[str, dict[str, float]] = field(default_factory=dict)  # robot -> quantity -> value
+    robots: dict[str, dict[str, float | str]] = field(default_factory=dict)  # robot -> quantity -> value
     series: dict[str, tuple[list[float], list[float], str]] = field(default_factory=dict)  # t, v, unit
-    paper: list[tuple[str, float, float, str]] = field(default_factory=list)  # quantity, ours, theirs, unit
+    rows: list[Compare] = field(default_factory=list)  # the paper beside ours
     notes: list[str] = field(default_factory=list)
+    mode_note: str = ""  # how the robots ran (shown in the figure)
     draw: Callable[[Any], None] | None = None  # draws the figure on a matplotlib Figure
 
+    def compare(self, quantity: str, paper: float | str, ours: float | str, unit: str = "", how: str = "",
+                kind: str = "measured") -> None:
+        """Add a row to the paper-vs-ours table."""
+        self.rows.append(Compare(quantity, paper, ours, unit, how, kind))
+
     def report(self) -> str:
-        """The metrics as text, with the paper's numbers beside ours."""
+        """The metrics as text, then the paper's numbers beside ours with how ours were obtained."""
         lines = [f"{self.name}: {self.title} ({self.mode} mode)"]
+        if self.mode_note:
+            lines.append(f"  {self.mode_note}")
         for key, (value, unit) in self.metrics.items():
-            lines.append(f"  {key:<48} {_fmt(value):>12} {unit}")
+            lines.append(f"  {key:<52} {_fmt(value):>12} {unit}")
         if len(self.robots) > 12:
             lines.append(f"  per-robot values of {len(self.robots)} robots: see the CSV (--csv)")
         elif self.robots:
-            quantities = list(next(iter(self.robots.values())))
-            lines.append("  " + f"{'robot':<10}" + "".join(f"{q:>14}" for q in quantities))
+            quantities = list(dict.fromkeys(q for values in self.robots.values() for q in values))
+            width = max(12, *(len(q) + 2 for q in quantities))
+            lines.append("  " + f"{'robot':<10}" + "".join(f"{q:>{width}}" for q in quantities))
             for robot, values in self.robots.items():
-                lines.append("  " + f"{robot:<10}" + "".join(f"{_fmt(values[q]):>14}" for q in quantities))
-        if self.paper:
-            lines.append(f"  {'quantity':<48} {'ours':>12} {'paper':>12}")
-            for quantity, ours, theirs, unit in self.paper:
-                lines.append(f"  {quantity:<48} {_fmt(ours):>12} {_fmt(theirs):>12} {unit}")
+                cells = [values.get(q, "") for q in quantities]
+                lines.append("  " + f"{robot:<10}" + "".join(f"  {v}" if isinstance(v, str) else f"{_fmt(v):>{width}}"
+                                                           for v in cells))
+        if self.rows:
+            lines.append(f"  {'quantity':<46} {'paper':>20} {'ours':>20}  unit   how ours was obtained")
+            for r in self.rows:
+                tag = " (input)" if r.kind == "input" else ""
+                lines.append(f"  {r.quantity + tag:<46} {_fmt(r.paper):>20} {_fmt(r.ours):>20}  {r.unit:<6} {r.how}")
         lines += [f"  note: {n}" for n in self.notes]
         return "\n".join(lines)
 
     def plot(self, path: str | Path) -> None:
-        """Draw the figure into `path` (PNG, SVG or PDF by suffix)."""
+        """Draw the figure, with the paper-vs-ours table under it, into `path` (PNG, SVG or PDF)."""
         import matplotlib
 
         matplotlib.use("Agg")
         from matplotlib.figure import Figure
 
-        fig = Figure(figsize=(12, 7.5), dpi=110, layout="constrained")
+        from erni.sim.experiments.plots import draw_table
+
         if self.draw is None:
             raise ScenarioError(f"{self.name}: this experiment draws no figure")
-        self.draw(fig)
+        table = 0.6 + 0.26 * (len(self.rows) + 1) if self.rows else 0.0
+        fig = Figure(figsize=(13, 7.5 + table), dpi=110, layout="constrained")
+        note = f"{self.mode} mode: {self.mode_note}" if self.mode_note else f"{self.mode} mode"
+        if self.rows:
+            subs: Any = fig.subfigures(2, 1, height_ratios=[7.5, table])
+            top, bottom = subs[0], subs[1]
+            self.draw(top)
+            draw_table(bottom, self.rows, note)
+        else:
+            self.draw(fig)
+            fig.text(0.002, 0.002, note, fontsize=8, color="#444444", ha="left", va="bottom")
         fig.savefig(path)
 
     def write_csv(self, path: str | Path) -> None:
@@ -120,9 +189,9 @@ class Result:
                 robot, _, quantity = key.rpartition("/")
                 for t, v in zip(ts, vs):
                     w.writerow(["series", round(t, 3), robot, quantity, v, unit])
-            for quantity, ours, theirs, unit in self.paper:
-                w.writerow(["ours", "", "", quantity, ours, unit])
-                w.writerow(["paper", "", "", quantity, theirs, unit])
+            for r in self.rows:
+                w.writerow(["paper", "", "", r.quantity, r.paper, r.unit])
+                w.writerow(["input" if r.kind == "input" else "ours", "", "", r.quantity, r.ours, r.unit])
 
 
 def _fmt(v: float | str) -> str:
@@ -132,9 +201,17 @@ def _fmt(v: float | str) -> str:
 
 
 def run(name: str, scenario: Scenario, progress: Progress | None = None, **options: Any) -> Result:
-    """Run experiment `name` on `scenario`; `progress(label, done, total)` hears how far it got."""
+    """Run experiment `name` on `scenario`; `progress(label, done, total)` hears how far it got.
+
+    `mode` (an option) picks the mode; without it the experiment's default for this team.
+    """
     exp = EXPERIMENTS[name]
-    mode = options.get("mode")
-    if mode is not None and mode not in (exp.modes or (exp.mode,)):
-        raise ScenarioError(f"{name} runs in {' or '.join(exp.modes or (exp.mode,))} mode, not {mode!r}")
-    return exp.runner()(scenario, progress or (lambda *a: None), experiment=exp, **options)
+    mode = options.pop("mode", None) or exp.default_mode(scenario)
+    if mode not in exp.modes:
+        raise ScenarioError(f"{name} runs in {' or '.join(exp.modes)} mode, not {mode!r}")
+    if "seeds" in options and not exp.seeds:
+        raise ScenarioError(f"{name} runs one seed at a time; it has no seeds option")
+    if mode == "agents" and scenario.count > MAX_AGENTS:
+        raise ScenarioError(f"{name}: {scenario.count} robots is too many for agents mode on this machine "
+                            f"(at most {MAX_AGENTS}); use --mode kinematic")
+    return exp.runner()(scenario, progress or (lambda *a: None), experiment=exp, mode=mode, **options)

@@ -62,3 +62,28 @@ def range_circle(ax: Any, x: float, y: float, r: float, **kw: Any) -> None:
     """Draw a dashed circle of radius r (a communication or sensing range)."""
     a = np.linspace(0, 2 * math.pi, 120)
     ax.plot(x + r * np.cos(a), y + r * np.sin(a), ls="--", lw=0.8, **kw)
+
+
+def draw_table(fig: Any, rows: list[Any], caption: str = "") -> None:
+    """Draw the paper-vs-ours table (a list of `Compare`) across `fig`; inputs in grey italics."""
+    from erni.sim.experiments import _fmt
+
+    ax = fig.add_subplot(1, 1, 1)
+    ax.axis("off")
+    if caption:
+        ax.set_title(caption, loc="left", fontsize=8.5, color="#333333")
+    cells = [[r.quantity + (" (input)" if r.kind == "input" else ""), _fmt(r.paper), _fmt(r.ours), r.unit, r.how]
+             for r in rows]
+    table = ax.table(cellText=cells, colLabels=["quantity", "paper", "ours", "unit", "how ours was obtained"],
+                     colLoc="left", cellLoc="left", loc="upper center",
+                     colWidths=[0.29, 0.17, 0.13, 0.05, 0.36])
+    table.auto_set_font_size(False)
+    table.set_fontsize(7.5)
+    for (row, _col), cell in table.get_celld().items():
+        cell.set_edgecolor("#cccccc")
+        cell.set_height(1.0 / (len(rows) + 1))
+        if row == 0:
+            cell.set_text_props(weight="bold")
+            cell.set_facecolor("#eeeeee")
+        elif rows[row - 1].kind == "input":
+            cell.set_text_props(color="#777777", style="italic")

@@ -1,16 +1,26 @@
 """Paper 000, section 5.1: three robots cover a point of interest past an obstacle (WiDep, Figure 5).
 
+Agents mode (default): one agent process per robot; the control node sends each a
+`Deploy widep` task through the transport; each robot's mission plugin takes WiDep steps from
+the positions its agent learns through MobiNet (SNMP) and drives them as BotMotion gotos over
+ARCOS. The simulator only watches: coverage and connectivity are judged on its truth (a robot
+within `tolerance` of the PoI; the radio model's components at 10 Hz, with the base station),
+energy is what each agent metered from its own odometry (paper 000's model), and the tasks'
+results say how each robot ended (covered, or failed saying what held it).
+
 Kinematic mode: every `period` seconds all robots take one WiDep decision from the same
-snapshot (`widep.widep_round`: step toward the PoI, or an auxiliary PoI beside the obstacle,
-at most (R - d+(u)) / 2 so RNG neighbours stay connected), then drive there as unicycles.
-The base station (the control node) is part of the network and does not move. Metrics:
-time to cover the PoI, connectivity to the base over time, distance travelled and energy
-per robot (paper 000's model) by the robot's final position (Figure 11).
+snapshot (`widep.widep_round`), then drive there as unicycles: the synchronous algorithm.
+
+`--seeds N` repeats the run N times (seeds K, K+1, ...): each seed changes the start poses
+(within `jitter` m and `jitter_heading` degrees of the scenario's) and the simulated robots'
+noise, and the result counts the runs that covered the PoI without ever losing the base.
 """
 
 from __future__ import annotations
 
 import math
+import random
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -19,73 +29,121 @@ from numpy.typing import NDArray
 from erni.sim import kinematic
 from erni.sim.experiments import Experiment, Progress, Result
 from erni.sim.experiments.plots import color, draw_world, map_axes, range_circle, time_axes
+from erni.sim.experiments.stats import fmt_ci, mean_ci, wilson
 from erni.sim.scenario import Scenario, ScenarioError
 from erni.strategies import energy as paper_energy
 from erni.strategies import widep
 
 
-def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode: str | None = None,
+@dataclass
+class Run:
+    """One PoI run: the truth over time and how each robot's task ended."""
+
+    seed: int
+    ts: NDArray[np.float64]            # (T,) s
+    ps: NDArray[np.float64]            # (T, N, 2) m, the simulator's truth
+    reach: NDArray[np.float64]         # (T,) share of robots connected to the base
+    covered_at: float                  # s (NaN: not covered)
+    outcomes: dict[str, str]           # robot -> final task message ("" in kinematic mode)
+    energy: dict[str, float]           # robot -> J
+    rounds: int | None = None
+
+    @property
+    def connected(self) -> bool:
+        """True when every robot was connected to the base in every sample."""
+        return bool(len(self.reach)) and float(self.reach.min()) >= 1.0
+
+
+def jittered(scenario: Scenario, seed: int) -> Scenario:
+    """The scenario with start poses moved by the seed (within strategy.jitter m and jitter_heading deg)."""
+    s = scenario.strategy
+    dx, dh = float(s.get("jitter", 0.0)), float(s.get("jitter_heading", 0.0))
+    if dx <= 0 and dh <= 0:
+        return scenario.model_copy(update={"seed": seed})
+    rng = random.Random(seed)
+    starts = [st.model_copy(update={"x": round(st.x + rng.uniform(-dx, dx), 3),
+                                    "y": round(st.y + rng.uniform(-dx, dx), 3),
+                                    "heading": round(st.heading + rng.uniform(-dh, dh), 1)})
+              for st in scenario.starts()]
+    return scenario.model_copy(update={"seed": seed, "robot": starts})
+
+
+def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode: str, seeds: int = 1,
         **_: Any) -> Result:
-    """Cover the PoI (kinematic WiDep rounds, or real agents given `Deploy widep`); return figure and metrics."""
+    """Cover the PoI (real agents given `Deploy widep`, or kinematic WiDep rounds); return figure and metrics."""
     if not scenario.poi:
         raise ScenarioError(f"{scenario.name}: the PoI experiment needs a [[poi]] in the scenario")
+    if seeds < 1:
+        raise ScenarioError(f"--seeds: expected at least 1, got {seeds}")
+    runs = []
+    for k in range(seeds):
+        sc = jittered(scenario, scenario.seed + k)
+        label = f"seed {sc.seed} ({k + 1}/{seeds})" if seeds > 1 else ""
+        one = _agents(sc, progress, label) if mode == "agents" else _kinematic(sc, progress, label)
+        runs.append(one)
+        if seeds > 1:
+            progress(f"seeds: {sum(r.connected and math.isfinite(r.covered_at) for r in runs)} of {k + 1} "
+                     "covered and connected", k + 1, seeds)
+    return _result(scenario, experiment, mode, runs)
+
+
+def _params(scenario: Scenario) -> dict[str, Any]:
     s = scenario.strategy
-    poi = np.array([scenario.poi[0].x, scenario.poi[0].y])
-    R = float(s.get("range", scenario.radio.comm_range))
-    tolerance = float(s.get("tolerance", 0.5))
+    poi = scenario.poi[0]
+    return {"x": poi.x, "y": poi.y, "range": float(s.get("range", scenario.radio.comm_range)),
+            "tolerance": float(s.get("tolerance", 0.5)), "period": float(s.get("period", 4.0))}
+
+
+def _agents(scenario: Scenario, progress: Progress, label: str) -> Run:
+    """Real agents: Deploy widep through the control node; the simulator records the truth."""
+    from erni.sim.experiments.agents import TeamRun
+
+    p = _params(scenario)
     duration = scenario.duration or 300.0
     names = scenario.robot_names()
-    base = np.array([[scenario.control.x, scenario.control.y]])
-    obstacles = np.array([[c.center[0], c.center[1], c.radius] for c in scenario.world.circle]).reshape(-1, 3)
-    n = len(names)
-    battery: list[float] = []  # agents mode: energy each simulated robot's battery gave (J)
-    if (mode or experiment.mode) == "agents":
-        ts, ps, covered_at, rounds = _agents(scenario, progress, poi, tolerance, duration, battery)
-    else:
-        ts, ps, covered_at, rounds = _kinematic(scenario, progress, poi, R, tolerance, duration, base, obstacles)
-    decisions: list[tuple[float, NDArray[np.float64]]] = []
-    res = Result(experiment.name, experiment.title, mode or experiment.mode)
-    connected_share = []
-    for k in range(len(ts)):
-        everyone = np.vstack([ps[k], base])
-        connected_share.append(len(kinematic.reach_of(everyone, R, n)) / n)
-    res.series["team/connected_to_base"] = (list(ts), connected_share, "share")
-    res.series["team/distance_to_poi"] = (list(ts), list(np.min(np.hypot(*(ps - poi).transpose(2, 0, 1)), axis=1)), "m")
-    res.metrics["PoI covered at"] = (covered_at if covered_at is not None else math.nan, "s")
-    if rounds is not None:
-        res.metrics["WiDep rounds"] = (float(rounds), "rounds")
-    res.metrics["connected to the base the whole run"] = (float(min(connected_share) == 1.0), "yes=1")
-    res.metrics["lowest share connected to the base"] = (min(connected_share), "share")
-    res.metrics["closest approach to the obstacle surface"] = (_clearance(ps, obstacles), "m")
-    energies = []
-    for i, name in enumerate(names):
-        e, dist = paper_energy.track_energy(ts, ps[:, i, 0], ps[:, i, 1])
-        final_from_base = float(np.hypot(*(ps[-1, i] - base[0])))
-        energies.append(e)
-        res.robots[name] = {"distance_m": round(dist, 2), "energy_j": round(e, 1),
-                            "from_base_m": round(final_from_base, 2)}
-        if battery:
-            res.robots[name]["battery_j"] = round(battery[i], 1)
-    res.metrics["energy, whole team"] = (float(sum(energies)), "J")
-    res.notes.append("paper 000 gives no numbers for this run (its Figure 5 shows the trajectories); "
-                     f"R = {R:g} m and the PoI ({poi[0]:g}, {poi[1]:g}) are the paper's")
-    if covered_at is None:
-        res.notes.append(f"the PoI was not covered within {duration:g} s")
-    res.draw = lambda fig: _draw(fig, scenario, names, ts, ps, base[0], poi, R, res, decisions, covered_at)
-    if (mode or experiment.mode) == "agents":
-        res.notes.append("agents mode: each robot's mission plugin ran Deploy widep on what its agent knows")
-    return res
+    tag = f"{label}: " if label else ""
+    mission = {"separation": float(scenario.strategy.get("separation", 1.0))}
+    if "speed" in scenario.strategy:
+        mission["speed"] = float(scenario.strategy["speed"])
+    with TeamRun(scenario, lambda what, d, t: progress(tag + what, d, t), mission=mission).start() as team:
+        uids = {name: team.send(name, "Deploy", "widep", **p) for name in names}
+        poi = np.array([p["x"], p["y"]])
+        covered: list[float] = []
+
+        def finished() -> bool:
+            pos = np.array([[r.x, r.y] for r in team.team.robots]) if team.team else np.zeros((0, 2))
+            if not covered and widep.covered(pos, poi, p["tolerance"]):
+                covered.append(team.now)
+            # the agents end their tasks themselves: covered (succeeded) or stuck (failed, saying why)
+            return team.done(list(uids.values())) or bool(covered and team.now > covered[0] + 8.0)
+
+        team.wait("robots deploying", duration, finished)
+        team.pump(1.0)
+        samples = team.samples()
+        outcomes, energy = {}, {}
+        for name, uid in uids.items():
+            r = team.results.get(uid)
+            outcomes[name] = "no result" if r is None else f"{r.state.value}: {r.message}"
+            e = r.values.get("energy_j") if r is not None else None
+            energy[name] = float(e) if isinstance(e, (int, float)) else math.nan
+    ts = np.array([x.t for x in samples]) - samples[0].t
+    ps = np.array([np.stack([x.x, x.y], axis=1) for x in samples])
+    reach = np.array([x.control_reach / len(names) for x in samples])
+    return Run(scenario.seed, ts, ps, reach, covered[0] if covered else math.nan, outcomes, energy)
 
 
-def _kinematic(scenario: Scenario, progress: Progress, poi: NDArray[np.float64], R: float, tolerance: float,
-               duration: float, base: NDArray[np.float64], obstacles: NDArray[np.float64]
-               ) -> tuple[NDArray[np.float64], NDArray[np.float64], float | None, int]:
+def _kinematic(scenario: Scenario, progress: Progress, label: str) -> Run:
     """WiDep rounds from one snapshot each `period` s, robots driven as unicycles in between."""
     s = scenario.strategy
-    period = float(s.get("period", 4.0))
+    p = _params(scenario)
+    period, R, tolerance = p["period"], p["range"], p["tolerance"]
     speed = float(s.get("speed", 0.3))
     dt = float(s.get("dt", 0.1))
     separation = float(s.get("separation", 0.8))
+    duration = scenario.duration or 300.0
+    poi = np.array([p["x"], p["y"]])
+    base = np.array([[scenario.control.x, scenario.control.y]])
+    obstacles = np.array([[c.center[0], c.center[1], c.radius] for c in scenario.world.circle]).reshape(-1, 3)
     starts = scenario.starts()
     pos = np.array([[st.x, st.y] for st in starts])
     th = np.radians([st.heading for st in starts])
@@ -94,14 +152,14 @@ def _kinematic(scenario: Scenario, progress: Progress, poi: NDArray[np.float64],
     track = kinematic.Track()
     track.add(0.0, pos, th, np.zeros(n))
     t = 0.0
-    covered_at: float | None = None
+    covered_at = math.nan
     rounds = 0
+    tag = f"{label}: " if label else ""
     while t < duration:
         if widep.covered(pos, poi, tolerance):
             covered_at = t
             break
-        everyone = np.vstack([pos, base])
-        targets, _ = widep.widep_round(everyone, poi, R, tolerance=tolerance, obstacles=obstacles,
+        targets, _ = widep.widep_round(np.vstack([pos, base]), poi, R, tolerance=tolerance, obstacles=obstacles,
                                        separation=separation, movable=movable)
         rounds += 1
         round_end = t + period
@@ -109,49 +167,101 @@ def _kinematic(scenario: Scenario, progress: Progress, poi: NDArray[np.float64],
             pos, th, sp = kinematic.drive(pos, th, targets[:n], dt, speed)
             t += dt
             track.add(t, pos, th, sp)
-        progress("WiDep rounds", round(t, 1), duration)
+            if math.isnan(covered_at) and widep.covered(pos, poi, tolerance):
+                covered_at = t
+        progress(f"{tag}WiDep rounds", round(t, 1), duration)
+        if not math.isnan(covered_at):
+            break
     for _ in range(int(5.0 / dt)):  # the team holds its place a little after covering the PoI
         t += dt
         track.add(t, pos, th, np.zeros(n))
-    progress("WiDep rounds", duration, duration)
     ts, ps, _, _ = track.arrays()
-    return ts, ps, covered_at, rounds
+    reach = np.array([len(kinematic.reach_of(np.vstack([ps[k], base]), R, n)) / n for k in range(len(ts))])
+    names = scenario.robot_names()
+    energy = {name: paper_energy.track_energy(ts, ps[:, i, 0], ps[:, i, 1])[0] for i, name in enumerate(names)}
+    return Run(scenario.seed, ts, ps, reach, covered_at, {}, energy, rounds)
 
 
-def _agents(scenario: Scenario, progress: Progress, poi: NDArray[np.float64], tolerance: float, duration: float,
-            battery: list[float]) -> tuple[NDArray[np.float64], NDArray[np.float64], float | None, None]:
-    """Real agents: the scenario's tasks (Deploy widep) through the control node; the simulator records."""
-    from erni.sim.team import Team, plugin_available
+def _result(scenario: Scenario, experiment: Experiment, mode: str, runs: list[Run]) -> Result:
+    p = _params(scenario)
+    names = scenario.robot_names()
+    base = np.array([scenario.control.x, scenario.control.y])
+    poi = np.array([p["x"], p["y"]])
+    obstacles = np.array([[c.center[0], c.center[1], c.radius] for c in scenario.world.circle]).reshape(-1, 3)
+    res = Result(experiment.name, experiment.title, mode)
+    res.mode_note = ("each robot is an agent process; the control node sent it Deploy widep; positions of the "
+                     "others from MobiNet (SNMP); gotos over ARCOS; judged on the simulator's truth"
+                     if mode == "agents" else
+                     "WiDep rounds stepped in one process from one shared snapshot (the synchronous algorithm)")
+    ok = [r for r in runs if r.connected and math.isfinite(r.covered_at)]
+    last = runs[-1]
+    if len(runs) > 1:
+        share, lo, hi = wilson(len(ok), len(runs))
+        res.metrics["runs that covered the PoI, always connected to the base"] = (
+            f"{len(ok)} of {len(runs)}", f"(95 % CI of the share {lo:.2f}-{hi:.2f})")
+        res.metrics["runs that covered the PoI"] = (float(sum(math.isfinite(r.covered_at) for r in runs)), "runs")
+        res.metrics["runs always connected to the base"] = (float(sum(r.connected for r in runs)), "runs")
+        m, lo, hi = mean_ci([r.covered_at for r in runs])
+        res.metrics["time to cover the PoI, mean [95 % CI]"] = (fmt_ci(m, lo, hi, 1), "s")
+        for r in runs:
+            res.robots[f"seed {r.seed}"] = {
+                "covered_s": round(r.covered_at, 1), "min_reach": round(float(r.reach.min()), 2),
+                "closest_m": round(float(np.min(np.hypot(*(r.ps - poi).transpose(2, 0, 1)))), 2),
+                **({"ended": "; ".join(sorted(set(o.split(":")[0] for o in r.outcomes.values())))}
+                   if r.outcomes else {})}
+            res.series[f"seed{r.seed}/connected_to_base"] = (list(r.ts), list(r.reach), "share")
+        covered_txt = f"{len(ok)} of {len(runs)} runs"
+    else:
+        r = last
+        res.metrics["PoI covered at"] = (r.covered_at, "s")
+        if r.rounds is not None:
+            res.metrics["WiDep rounds"] = (float(r.rounds), "rounds")
+        res.metrics["connected to the base the whole run"] = (float(r.connected), "yes=1")
+        res.metrics["lowest share connected to the base"] = (float(r.reach.min()), "share")
+        res.metrics["closest approach to the obstacle surface"] = (_clearance(r.ps, obstacles), "m")
+        for i, name in enumerate(names):
+            res.robots[name] = {"distance_m": round(paper_energy.track_energy(r.ts, r.ps[:, i, 0], r.ps[:, i, 1])[1], 2),
+                                "energy_j": round(r.energy[name], 1),
+                                "from_base_m": round(float(np.hypot(*(r.ps[-1, i] - base))), 2)}
+            if r.outcomes:
+                res.robots[name]["task"] = r.outcomes[name][:60]
+        covered_txt = f"at {r.covered_at:.0f} s" if math.isfinite(r.covered_at) else "no"
+    for r in runs:
+        res.series[f"seed{r.seed}/distance_to_poi"] = (
+            list(r.ts), list(np.min(np.hypot(*(r.ps - poi).transpose(2, 0, 1)), axis=1)), "m")
+    energy_note = ("each agent's own meter: its odometry poses through paper 000's model"
+                   if mode == "agents" else "paper 000's model on each simulated track")
+    res.compare("robots / communication range R", "3 / 4.5 m", f"{len(names)} / {p['range']:g} m", "",
+                "the paper's setting", "input")
+    res.compare("PoI", "(0, 11)", f"({p['x']:g}, {p['y']:g})", "m", "the paper's setting", "input")
+    res.compare("PoI covered", "yes (Figure 5)", covered_txt, "",
+                f"a robot within {p['tolerance']:g} m of the PoI in the simulator's truth")
+    res.compare("connectivity kept", "yes (WiDep's bound)",
+                f"{sum(r.connected for r in runs)} of {len(runs)} runs" if len(runs) > 1
+                else ("yes" if last.connected else f"no (lowest {last.reach.min():.0%})"), "",
+                "every robot reaches the base over the radio model, every 0.1 s")
+    res.compare("time to cover", "not stated", fmt_ci(*mean_ci([r.covered_at for r in runs]), 1)
+                if len(runs) > 1 else round(last.covered_at, 1), "s", "from the Deploy tasks being sent" if mode == "agents" else "from the first round")
+    if len(runs) == 1 and len(names) > 1:
+        order = [float(np.hypot(*(last.ps[-1, i] - base))) for i in range(len(names))]
+        rho = _spearman(order, [last.energy[n] for n in names])
+        res.compare("energy grows with distance from the base", "yes (Figure 11)", f"rank corr. {rho:.2f}", "",
+                    energy_note)
+    res.notes.append("paper 000 gives no time or energy numbers for this run; its Figure 5 shows the "
+                     "trajectories and Figure 11 the energy by position")
+    if len(runs) == 1 and not math.isfinite(last.covered_at):
+        res.notes.append(f"the PoI was not covered within {scenario.duration or 300.0:g} s")
+    res.draw = lambda fig: _draw(fig, scenario, names, runs, base, poi, p["range"], res, mode)
+    return res
 
-    if not plugin_available("erni.plugins.mission", "MissionControl"):
-        raise ScenarioError("agents mode needs the mission plugin (erni.plugins.mission.MissionControl)")
-    if not scenario.task:
-        raise ScenarioError(f"{scenario.name}: agents mode sends the scenario's [[task]]s; it has none")
-    team = Team(scenario, headless=True, control_port=0, record=True, ui=False, mission=True)
-    covered_at: float | None = None
-    try:
-        team.start(lambda label, done, total: progress(label, done, total), timeout=90)
-        t0 = team.elapsed()
-        for spec in scenario.task:
-            for name in (team.names if spec.to == "all" else [spec.to]):
-                team.send_task(name, spec.verb, spec.preposition, **spec.params)
-        import time
 
-        while team.elapsed() - t0 < duration:
-            time.sleep(0.5)
-            progress("robots deploying", round(team.elapsed() - t0), round(duration))
-            pos = np.array([[r.x, r.y] for r in team.robots])
-            if covered_at is None and widep.covered(pos, poi, tolerance):
-                covered_at = team.elapsed() - t0
-            if covered_at is not None and team.elapsed() - t0 > covered_at + 5.0:
-                break
-    finally:
-        team.stop()
-    samples = [x for x in team.samples if x.t >= t0]
-    ts = np.array([x.t - t0 for x in samples])
-    ps = np.array([np.stack([x.x, x.y], axis=1) for x in samples])
-    battery.extend(b - a for a, b in zip(samples[0].energy, samples[-1].energy))
-    return ts, ps, covered_at, None
+def _spearman(a: list[float], b: list[float]) -> float:
+    if any(not math.isfinite(x) for x in a + b):
+        return math.nan
+    ra, rb = np.argsort(np.argsort(a)), np.argsort(np.argsort(b))
+    if np.std(ra) == 0 or np.std(rb) == 0:
+        return math.nan
+    return float(np.corrcoef(ra, rb)[0, 1])
 
 
 def _clearance(ps: NDArray[np.float64], obstacles: NDArray[np.float64]) -> float:
@@ -163,60 +273,70 @@ def _clearance(ps: NDArray[np.float64], obstacles: NDArray[np.float64]) -> float
     return best
 
 
-def _draw(fig: Any, scenario: Scenario, names: list[str], ts: NDArray[np.float64], ps: NDArray[np.float64],
-          base: NDArray[np.float64], poi: NDArray[np.float64], R: float, res: Result,
-          decisions: list[tuple[float, NDArray[np.float64]]], covered_at: float | None) -> None:
+def _draw(fig: Any, scenario: Scenario, names: list[str], runs: list[Run], base: NDArray[np.float64],
+          poi: NDArray[np.float64], R: float, res: Result, mode: str) -> None:
     gs = fig.add_gridspec(2, 2, width_ratios=[1.0, 1.1])
     ax = fig.add_subplot(gs[:, 0])
     draw_world(ax, scenario.world)
-    for i, name in enumerate(names):
-        ax.plot(ps[:, i, 0], ps[:, i, 1], color=color(i), lw=1.8, label=f"{name} trajectory")
-        ax.plot(*ps[0, i], "o", color=color(i), mfc="white", ms=7)
-        ax.plot(*ps[-1, i], "o", color=color(i), ms=8)
-        range_circle(ax, ps[-1, i, 0], ps[-1, i, 1], R, color=color(i), alpha=0.5)
-    final = np.vstack([ps[-1], base])
-    adj = widep.comm_adjacency(final, R)
-    for a in range(len(final)):
-        for b in range(a + 1, len(final)):
-            if adj[a, b]:
-                ax.plot(*zip(final[a], final[b]), color="#555555", lw=0.8, ls="-", alpha=0.6, zorder=1)
+    many = len(runs) > 1
+    last = runs[-1]
+    for r in runs:
+        for i, name in enumerate(names):
+            ax.plot(r.ps[:, i, 0], r.ps[:, i, 1], color=color(i), lw=0.9 if many else 1.8,
+                    alpha=0.55 if many else 1.0, label=f"{name} trajectory" if r is last else None)
+            ax.plot(*r.ps[0, i], "o", color=color(i), mfc="white", ms=5 if many else 7)
+            ax.plot(*r.ps[-1, i], "o", color=color(i), ms=5 if many else 8)
+    if not many:
+        for i in range(len(names)):
+            range_circle(ax, last.ps[-1, i, 0], last.ps[-1, i, 1], R, color=color(i), alpha=0.5)
+        final = np.vstack([last.ps[-1], base])
+        adj = widep.comm_adjacency(final, R)
+        for a in range(len(final)):
+            for b in range(a + 1, len(final)):
+                if adj[a, b]:
+                    ax.plot(*zip(final[a], final[b]), color="#555555", lw=0.8, alpha=0.6, zorder=1)
+        ax.plot([], [], ls="--", color="grey", label=f"range R = {R:g} m")
+        ax.plot([], [], color="#555555", lw=0.8, label="radio link at the end")
     ax.plot(*base, "s", color="black", ms=10, label="base station (control node)")
     ax.plot(*poi, "*", color="#e6a100", ms=18, mec="black", label=f"PoI ({poi[0]:g}, {poi[1]:g})")
     ax.plot([], [], "o", color="grey", mfc="white", label="start")
     ax.plot([], [], "o", color="grey", label="end")
-    ax.plot([], [], ls="--", color="grey", label=f"range R = {R:g} m")
-    ax.plot([], [], color="#555555", lw=0.8, label="radio link at the end")
     bounds = scenario.world.bounds
     if bounds is not None:
         ax.set_xlim(bounds[0] - 0.5, bounds[2] + 0.5)
         ax.set_ylim(bounds[1] - 0.5, bounds[3] + 0.5)
-    map_axes(ax, "Trajectories (WiDep, one obstacle)")
+    map_axes(ax, f"Trajectories of {len(runs)} runs (seeds {runs[0].seed}-{last.seed})" if many
+             else "Trajectories (WiDep, one obstacle)")
     ax.legend(loc="upper left", fontsize=7.5, framealpha=0.92)
     ax = fig.add_subplot(gs[0, 1])
-    t, d, _ = res.series["team/distance_to_poi"]
-    ax.plot(t, d, color=color(0), label="closest robot to the PoI")
-    t, share, _ = res.series["team/connected_to_base"]
-    ax2 = ax.twinx()
-    ax2.plot(t, np.array(share) * 100, color=color(2), ls="--", label="robots connected to the base")
-    ax2.set_ylabel("robots connected to the base (%)")
-    ax2.set_ylim(0, 110)
-    if covered_at is not None:
-        ax.axvline(covered_at, color="#e6a100", lw=1, label=f"PoI covered at {covered_at:.0f} s")
-    time_axes(ax, "Coverage and connectivity over time", "distance to the PoI (m)")
-    lines = ax.get_legend_handles_labels()
-    more = ax2.get_legend_handles_labels()
-    ax.legend(lines[0] + more[0], lines[1] + more[1], loc="center right", fontsize=8)
+    for k, r in enumerate(runs):
+        t, d, _ = res.series[f"seed{r.seed}/distance_to_poi"]
+        ax.plot(t, d, color=color(k) if many else color(0), lw=1.0 if many else 1.5,
+                label=f"seed {r.seed}" if many else "closest robot to the PoI")
+        if math.isfinite(r.covered_at) and not many:
+            ax.axvline(r.covered_at, color="#e6a100", lw=1, label=f"PoI covered at {r.covered_at:.0f} s")
+    ax.axhline(_params(scenario)["tolerance"], color="#e6a100", ls=":", lw=1, label="covered within")
+    time_axes(ax, "Closest robot to the PoI over time", "distance to the PoI (m)")
+    ax.legend(loc="upper right", fontsize=7, ncol=2 if many else 1)
     ax = fig.add_subplot(gs[1, 1])
-    order = sorted(range(len(names)), key=lambda i: res.robots[names[i]]["from_base_m"])
-    xs = np.arange(len(order))
-    vals = [res.robots[names[i]]["energy_j"] for i in order]
-    ax.bar(xs, vals, color=[color(i) for i in order])
-    for x, v in zip(xs, vals):
-        ax.text(x, v, f"{v:.0f} J", ha="center", va="bottom", fontsize=9)
-    ax.set_xticks(xs, [f"{names[i]}\n{res.robots[names[i]]['from_base_m']:.1f} m" for i in order])
-    ax.set_xlabel("robot, and its final distance from the base station")
-    ax.set_ylabel("energy consumed (J)")
-    ax.set_title("Energy by robot position (paper 000's model)")
-    ax.grid(True, axis="y", color="#e0e0e0", lw=0.6)
-    ax.set_ylim(0, max(vals) * 1.18)
-    fig.suptitle(scenario.title, fontsize=13)
+    if many:
+        for k, r in enumerate(runs):
+            ax.plot(r.ts, r.reach * 100, color=color(k), lw=1.0)
+        time_axes(ax, "Robots connected to the base, every run", "robots connected to the base (%)")
+        ax.set_ylim(0, 110)
+    else:
+        order = sorted(range(len(names)), key=lambda i: float(res.robots[names[i]]["from_base_m"]))
+        xs = np.arange(len(order))
+        vals = [float(res.robots[names[i]]["energy_j"]) for i in order]
+        ax.bar(xs, vals, color=[color(i) for i in order])
+        for x, v in zip(xs, vals):
+            ax.text(x, v, f"{v:.0f} J", ha="center", va="bottom", fontsize=9)
+        ax.set_xticks(xs, [f"{names[i]}\n{res.robots[names[i]]['from_base_m']} m" for i in order])
+        ax.set_xlabel("robot, and its final distance from the base station")
+        ax.set_ylabel("energy (J)")
+        ax.set_title("Energy by robot position: " + ("each agent's meter on its own odometry (paper 000's model)"
+                                                     if mode == "agents" else "paper 000's model on each track"),
+                     fontsize=10)
+        ax.grid(True, axis="y", color="#e0e0e0", lw=0.6)
+        ax.set_ylim(0, max(vals) * 1.18 if vals and max(vals) > 0 else 1)
+    fig.suptitle(f"{scenario.title} ({mode} mode)", fontsize=13)

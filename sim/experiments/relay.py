@@ -1,16 +1,28 @@
 """Paper 000, section 5.2: one or two robots relay a flow between a source and a destination (Figures 7, 8).
 
-Kinematic mode: the source S and the destination D stand still; the relays form a chain
-S - r1 - ... - D. Every `period` seconds (16 s in the paper) each relay measures the
-delivery ratio of its two links by sending `probes` hello packets over the scenario's radio
-model (a seeded binomial draw, so the measurement is noisy as a real one is), then takes
-one `relay.relay_step` toward its worse link and drives there. Metrics: decisions until
-every relay stays within `settle` m of its equal-spacing slot, final error, oscillation
-after settling, and the link qualities.
+The source S and the destination D stand still; the relays form a chain S - r1 - ... - D and
+each moves along S-D toward its worse link, one decision every `period` seconds (16 s in the
+paper), until its two links balance.
+
+Agents mode (default): S, D and every relay are agent processes (S and D robots that are
+never tasked). The control node sends each relay `Deploy relay` with its two chain
+neighbours; the relay's mission plugin reads its link qualities from MobiNet (the delivery
+ratios the network subsystem reports over SNMP: the simulated radio's, loss-free to
+`lossless_range`, none beyond `comm_range`) and the others' positions from MobiNet, and
+drives BotMotion gotos over ARCOS. Positions are judged on the simulator's truth at every
+decision time; the run stops `after` decisions once every relay stayed at its slot.
+
+Kinematic mode: each relay measures its two links with `probes` hello packets over the
+radio model (a seeded binomial draw, noisy as a real measurement is), then takes one
+`relay.relay_step` and drives there as a unicycle.
+
+Metrics: decisions until every relay stays within `settle` m of its equal-spacing slot,
+final error, spread of the position after settling, and the link qualities.
 """
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -24,29 +36,150 @@ from erni.sim.scenario import Scenario, ScenarioError
 from erni.strategies import relay
 
 
-def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, **_: Any) -> Result:
+def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode: str, **_: Any) -> Result:
     """Run the relays' decisions for the scenario's duration; return figure and metrics."""
     s = scenario.strategy
     if len(scenario.poi) < 2:
         raise ScenarioError(f"{scenario.name}: the relay experiment needs two [[poi]]: the source and the destination")
     src = np.array([scenario.poi[0].x, scenario.poi[0].y])
     dst = np.array([scenario.poi[1].x, scenario.poi[1].y])
+    period = float(s.get("period", 16.0))
+    settle = float(s.get("settle", 0.5))
+    names = scenario.robot_names()
+    n = len(names)
+    slots = relay.chain_slots(src, dst, n)
+    length = float(np.hypot(*(dst - src)))
+    unit = (dst - src) / length
+    slot_along = (slots - src) @ unit
+    if mode == "agents":
+        a, qualities, outcomes = _agents(scenario, progress, src, dst, slot_along, settle)
+    else:
+        a, qualities = _kinematic(scenario, progress, src, dst)
+        outcomes = {}
+    err = np.abs(a - slot_along)
+    inside = (err <= settle).all(axis=1)
+    settled = next((k for k in range(len(inside)) if inside[k:].all()), None)
+    res = Result(experiment.name, experiment.title, mode)
+    res.mode_note = ("S, D and each relay are agent processes; the control node sent each relay Deploy relay; "
+                     "link qualities and positions from MobiNet (SNMP); gotos over ARCOS; positions judged on the "
+                     "simulator's truth" if mode == "agents" else
+                     f"relays stepped in one process; links measured with {int(s.get('probes', 50))} hello "
+                     "packets per decision over the radio model")
+    res.metrics["source-destination distance"] = (length, "m")
+    res.metrics["decisions until every relay stays at its slot"] = (
+        float(settled) if settled is not None else float("nan"), f"decisions of {period:g} s")
+    res.metrics["final distance from the equal-spacing slot, worst"] = (float(err[-1].max()), "m")
+    spread = float(a[settled:].std(axis=0).max()) if settled is not None and settled < len(a) - 1 else math.nan
+    res.metrics["position spread after settling (std), worst relay"] = (spread, "m")
+    last = np.array(qualities[-1]) if qualities else np.full((n, 2), np.nan)
+    res.metrics["weakest link quality at the end"] = (float(np.nanmin(last)) if np.isfinite(last).any()
+                                                     else math.nan, "delivery ratio")
+    for i, name in enumerate(names):
+        res.robots[name] = {"slot_m": round(float(slot_along[i]), 2), "final_m": round(float(a[-1, i]), 2),
+                            "q_prev": round(float(last[i, 0]), 2), "q_next": round(float(last[i, 1]), 2)}
+        if outcomes:
+            res.robots[name]["task"] = outcomes[name][:50]
+        res.series[f"{name}/position_along"] = (list(np.arange(len(a)) * period), list(a[:, i]), "m")
+    start_gap = float(np.max(np.abs(a[0] - slot_along)))
+    step = float(s.get("step", 1.0))
+    res.compare("relays / S-D distance / decision period", "1-2 / <= 30 m / 16 s",
+                f"{n} / {length:g} m / {period:g} s", "", "the scenario's setting", "input")
+    res.compare("start: farthest relay from its slot; longest move", "not stated",
+                f"{start_gap:.1f} m; {step:g} m", "m", "the scenario's setting: together they bound the "
+                f"decisions to settle from below ({math.ceil(start_gap / step - 1e-9)})", "input")
+    if n == 1:
+        res.compare("decisions until the relay reaches the middle", "about 10 (Figure 7)",
+                    float(settled) if settled is not None else "never", "decisions",
+                    f"first decision after which it stays within {settle:g} m of the midpoint")
+        res.compare("after that", "slight oscillation around the middle",
+                    f"std {spread:.2f} m" if math.isfinite(spread) else "-", "", "spread of its position "
+                    "over the remaining decisions")
+    else:
+        res.compare("relays settle at about equal spacing", "yes (Figure 8)",
+                    f"after {settled} decisions" if settled is not None else "never", "",
+                    f"every relay within {settle:g} m of its equal-spacing slot from then on")
+        res.compare("final positions along S-D", ", ".join(f"{x:.1f}" for x in slot_along) + " (equal spacing)",
+                    ", ".join(f"{x:.1f}" for x in a[-1]), "m", "simulator's truth at the last decision")
+    res.notes.append("link quality model (input): delivery ratio 1 up to "
+                     f"{scenario.radio.lossless_range:g} m, falling linearly to 0 at R = {scenario.radio.comm_range:g} m")
+    res.draw = lambda fig: _draw(fig, scenario, names, a, slot_along, length, qualities, period, mode)
+    return res
+
+
+def _agents(scenario: Scenario, progress: Progress, src: NDArray[np.float64], dst: NDArray[np.float64],
+            slot_along: NDArray[np.float64], settle: float
+            ) -> tuple[NDArray[np.float64], list[list[tuple[float, float]]], dict[str, str]]:
+    """S and D as untasked robot agents, the relays given Deploy relay; positions at each decision."""
+    from erni.sim.experiments.agents import TeamRun
+    from erni.sim.world import RobotStart
+
+    s = scenario.strategy
+    period = float(s.get("period", 16.0))
+    after = int(s.get("after", 5))
+    duration = scenario.duration or 480.0
+    relays = scenario.starts()
+    names = [r.name for r in relays]
+    ends = [RobotStart(name=scenario.poi[0].name, x=float(src[0]), y=float(src[1]), heading=0.0),
+            RobotStart(name=scenario.poi[1].name, x=float(dst[0]), y=float(dst[1]), heading=180.0)]
+    team_scenario = scenario.model_copy(update={"robot": relays + ends, "robots": scenario.robots.model_copy(
+        update={"count": len(relays) + 2})})
+    chain = [ends[0].name] + names + [ends[1].name]
+    length = float(np.hypot(*(dst - src)))
+    unit = (dst - src) / length
+    mission = {"relay_period": period, "relay_step": float(s.get("step", 1.0)),
+               "speed": float(s.get("speed", 0.2)), "network_aware": False}
+    along: list[list[float]] = []
+    qualities: list[list[tuple[float, float]]] = []
+    with TeamRun(team_scenario, progress, mission=mission).start() as team:
+        assert team.team is not None
+        idx = [team.team.names.index(nm) for nm in names]
+
+        def where() -> list[float]:
+            assert team.team is not None
+            return [float((np.array([team.team.robots[i].x, team.team.robots[i].y]) - src) @ unit) for i in idx]
+
+        along.append(where())
+        uids = {nm: team.send(nm, "Deploy", "relay", source=chain[k], destination=chain[k + 2],
+                              tolerance=float(s.get("tolerance", 0.05))) for k, nm in enumerate(names)}
+        decisions = int(duration // period)
+        for k in range(decisions):
+            team.wait(f"relay decisions ({k + 1}/{decisions})", period)
+            along.append(where())
+            qualities.append([_q(team.results.get(uids[nm])) for nm in names])
+            ok: list[bool] = np.all(np.abs(np.array(along) - slot_along) <= settle, axis=1).tolist()
+            first = next((j for j in range(len(ok)) if all(ok[j:])), None)
+            if first is not None and len(along) - 1 - first >= after:
+                break
+        outcomes = {nm: (f"{r.state.value}: {r.message}" if (r := team.results.get(uids[nm])) else "no result")
+                    for nm in names}
+    return np.array(along), qualities, outcomes
+
+
+def _q(result: Any) -> tuple[float, float]:
+    if result is None:
+        return math.nan, math.nan
+    v = result.values
+    qs, qd = v.get("q_source"), v.get("q_destination")
+    return (float(qs) if qs is not None else 0.0, float(qd) if qd is not None else 0.0)
+
+
+def _kinematic(scenario: Scenario, progress: Progress, src: NDArray[np.float64], dst: NDArray[np.float64]
+               ) -> tuple[NDArray[np.float64], list[list[tuple[float, float]]]]:
+    s = scenario.strategy
     radio = RadioModel(scenario.radio.comm_range, scenario.radio.lossless_range, scenario.radio.min_quality)
     period = float(s.get("period", 16.0))
     speed = float(s.get("speed", 0.2))
     probes = int(s.get("probes", 50))
     tolerance = float(s.get("tolerance", 0.05))
     gain = float(s.get("gain", 4.0))
-    settle = float(s.get("settle", 0.5))
+    step = float(s.get("step", 1.0))
     dt = float(s.get("dt", 0.2))
     duration = scenario.duration or 480.0
     rng = np.random.default_rng(scenario.seed)
     starts = scenario.starts()
-    names = [st.name for st in starts]
     n = len(starts)
     pos = np.array([[st.x, st.y] for st in starts])
     th = np.radians([st.heading for st in starts])
-    slots = relay.chain_slots(src, dst, n)
     length = float(np.hypot(*(dst - src)))
     unit = (dst - src) / length
     decisions = int(duration // period)
@@ -63,7 +196,8 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, **_: 
             prev, nxt = chain[i], chain[i + 2]
             q_prev = _probe(radio, float(np.hypot(*(chain[i + 1] - prev))), probes, rng)
             q_next = _probe(radio, float(np.hypot(*(chain[i + 1] - nxt))), probes, rng)
-            move = relay.relay_step(pos[i], prev, nxt, q_prev, q_next, tolerance=tolerance, gain=gain)
+            move = relay.relay_step(pos[i], prev, nxt, q_prev, q_next, tolerance=tolerance, gain=gain,
+                                    max_step=step)
             targets[i] = move.target
             measured.append((q_prev, q_next))
         qualities.append(measured)
@@ -74,31 +208,7 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, **_: 
             track.add(t, pos, th, sp)
         along.append(list((pos - src) @ unit))
         progress("relay decisions", k + 1, decisions)
-    a = np.array(along)  # (decisions + 1, n): position along S -> D (m)
-    slot_along = (slots - src) @ unit
-    err = np.abs(a - slot_along)
-    inside = (err <= settle).all(axis=1)
-    settled = next((k for k in range(len(inside)) if inside[k:].all()), None)
-    res = Result(experiment.name, experiment.title, "kinematic")
-    res.metrics["source-destination distance"] = (length, "m")
-    res.metrics["decisions until every relay stays at its slot"] = (
-        float(settled) if settled is not None else float("nan"), f"decisions of {period:g} s")
-    res.metrics["final distance from the equal-spacing slot, worst"] = (float(err[-1].max()), "m")
-    if settled is not None and settled < len(a) - 1:
-        res.metrics["oscillation after settling (std)"] = (float(a[settled:].std(axis=0).max()), "m")
-    last = np.array(qualities[-1]) if qualities else np.zeros((n, 2))
-    res.metrics["weakest link quality at the end"] = (float(last.min()), "delivery ratio")
-    for i, name in enumerate(names):
-        res.robots[name] = {"slot_m": round(float(slot_along[i]), 2), "final_m": round(float(a[-1, i]), 2),
-                            "q_prev": round(float(last[i, 0]), 2), "q_next": round(float(last[i, 1]), 2)}
-        res.series[f"{name}/position_along"] = (list(np.arange(len(a)) * period), list(a[:, i]), "m")
-    if n == 1:
-        res.paper.append(("decisions until the relay reaches the middle (approx.)",
-                          float(settled) if settled is not None else float("nan"), 10.0, "decisions"))
-    res.notes.append(f"link quality measured with {probes} hello packets per decision over the radio model "
-                     f"(loss-free to {radio.lossless_range:g} m, none beyond R = {radio.comm_range:g} m)")
-    res.draw = lambda fig: _draw(fig, scenario, names, a, slot_along, length, qualities, period)
-    return res
+    return np.array(along), qualities
 
 
 def _probe(radio: RadioModel, distance: float, probes: int, rng: np.random.Generator) -> float:
@@ -107,7 +217,7 @@ def _probe(radio: RadioModel, distance: float, probes: int, rng: np.random.Gener
 
 
 def _draw(fig: Any, scenario: Scenario, names: list[str], a: NDArray[np.float64], slots: NDArray[np.float64],
-          length: float, qualities: list[list[tuple[float, float]]], period: float) -> None:
+          length: float, qualities: list[list[tuple[float, float]]], period: float, mode: str) -> None:
     gs = fig.add_gridspec(2, 1, height_ratios=[1.6, 1])
     ax = fig.add_subplot(gs[0])
     steps = np.arange(len(a))
@@ -123,15 +233,16 @@ def _draw(fig: Any, scenario: Scenario, names: list[str], a: NDArray[np.float64]
     ax.grid(True, color="#e0e0e0", lw=0.6)
     ax.legend(loc="center left", bbox_to_anchor=(1.01, 0.5), fontsize=9)
     ax = fig.add_subplot(gs[1], sharex=ax)
-    q = np.array(qualities)  # (decisions, n, 2)
-    ks = np.arange(len(q))
+    q = np.array(qualities).reshape(-1, len(names), 2)  # (decisions, n, 2)
+    ks = np.arange(1, len(q) + 1)
     for i, name in enumerate(names):
         ax.plot(ks, q[:, i, 0], color=color(i), lw=1.4, label=f"{name}: link toward S")
         ax.plot(ks, q[:, i, 1], color=color(i), lw=1.4, ls="--", label=f"{name}: link toward D")
     ax.set_xlabel(f"movement decision (one every {period:g} s)")
     ax.set_ylabel("measured delivery ratio")
     ax.set_ylim(0, 1.05)
-    ax.set_title("Link quality each relay measured")
+    ax.set_title("Link quality each relay measured" + (" (reported by MobiNet)" if mode == "agents" else
+                                                       " (hello packets over the radio model)"))
     ax.grid(True, color="#e0e0e0", lw=0.6)
     ax.legend(loc="center left", bbox_to_anchor=(1.01, 0.5), fontsize=9)
-    fig.suptitle(scenario.title, fontsize=13)
+    fig.suptitle(f"{scenario.title} ({mode} mode)", fontsize=13)

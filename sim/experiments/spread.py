@@ -1,16 +1,30 @@
-"""Paper 001: potential-field self-deployment of 120 robots, open field and corridor, at t = 30 s.
+"""Paper 001: potential-field self-deployment, open field and corridor, run until the team settles.
 
-Kinematic mode: the mission's `potential.spread_step` (equations 15 and 16) moves every
-robot each dt = 0.2 s, for each variant the paper shows (holonomic or nonholonomic robots,
-physical or Delaunay neighbourhood). Metrics per variant: mean nearest-neighbour distance,
-spread (bounding box), area covered by sensing discs, share of robots in the largest radio
-component over time, convergence time (all speeds below a threshold) and energy per robot
-from paper 000's model applied to each track.
+Kinematic mode (the default for the paper's 120 robots): the mission's `potential.spread_step`
+(equations 15 and 16) moves every robot each dt = 0.2 s, for each variant the paper shows
+(holonomic or nonholonomic robots, physical or Delaunay neighbourhood), until every robot has
+been slower than `still_speed` for `hold` seconds (converged) or `duration` runs out. Walls are
+solid (a move through one is refused) and repel as paper 001's boundary term does: one object
+at the wall's nearest point with desired distance c, weighted (w_ij) by `obstacle_weight`
+(default: as many robots as are in the neighbourhood, so no crowd pins a robot to a wall).
+
+Agents mode (the default for teams of at most 12, such as `spread-paths`): `agent_robots`
+robot agent processes, started on a small grid, each given `Deploy spread` by the control node;
+each robot's mission plugin turns equation (15)/(16) into BotMotion velocity commands from
+the positions its agent learns through MobiNet; the simulator records the truth.
+
+Metrics per variant: time to converge, final mean and smallest nearest-neighbour distance
+against the desired d (an input), the same at t = 30 s (the paper's figures), robots ending
+within `pinned` m of a wall, share of robots in the largest radio component, energy per robot
+(paper 000's model on each track). `spread-paths` draws each robot's path with arrows for
+its heading (paper 001, Figs 6 and 7).
 """
 
 from __future__ import annotations
 
 import math
+import random
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -26,13 +40,27 @@ from erni.strategies.potential import SpreadConfig, mean_nn_distance, spread_ste
 VARIANTS = ["holonomic/physical", "holonomic/delaunay", "nonholonomic/physical", "nonholonomic/delaunay"]
 
 
+@dataclass
+class Run:
+    """One variant's run: the track (every `sample` s) and when it converged."""
+
+    variant: str
+    t: NDArray[np.float64]      # (T,) s
+    pos: NDArray[np.float64]    # (T, N, 2) m
+    th: NDArray[np.float64]     # (T, N) rad
+    speed: NDArray[np.float64]  # (T, N) m/s
+    converged: float            # s (NaN: not within the run)
+
+
 def _config(scenario: Scenario, variant: str) -> SpreadConfig:
     s = scenario.strategy
     model, _, neighbourhood = variant.partition("/")
+    weight = s.get("obstacle_weight", "neighbourhood")
     return SpreadConfig(distance=float(s.get("distance", 5.0)), gain=float(s.get("gain", 2.0)),
                         dt=float(s.get("dt", 0.2)), range=float(s.get("range", 6.0)),
                         obstacle_distance=float(s.get("obstacle_distance", 2.0)),
                         wall_distance=float(s.get("wall_distance", 2.5)),
+                        obstacle_weight=None if weight == "neighbourhood" else float(weight),
                         neighbourhood=neighbourhood, model=model)
 
 
@@ -43,100 +71,291 @@ def _obstacles(scenario: Scenario) -> tuple[NDArray[np.float64], NDArray[np.floa
     return circles, walls
 
 
-def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, variants: list[str] | None = None,
-        **_: Any) -> Result:
-    """Run every variant for the scenario's duration (default 30 s); return figure and metrics."""
+def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode: str,
+        variants: list[str] | None = None, **_: Any) -> Result:
+    """Run every variant until it converges; return figure and metrics."""
     variants = variants or list(scenario.strategy.get("variants", VARIANTS))
     for v in variants:
         if v not in VARIANTS:
             raise ScenarioError(f"strategy.variants: unknown variant {v!r}; expected some of {', '.join(VARIANTS)}")
-    duration = scenario.duration or 30.0
-    starts = scenario.starts()
-    pos0 = np.array([[s.x, s.y] for s in starts])
-    th0 = np.radians([s.heading for s in starts])
+    if mode == "agents":
+        scenario = _agent_team(scenario)
+    runs = []
+    for k, v in enumerate(variants):
+        label = f"{v} ({k + 1}/{len(variants)})"
+        runs.append(_agents(scenario, progress, v, label) if mode == "agents" else
+                    _kinematic(scenario, progress, v, label))
+    return _result(scenario, experiment, mode, runs)
+
+
+def _agent_team(scenario: Scenario) -> Scenario:
+    """The team agents mode runs: `agent_robots` robots on a jittered grid `agent_spacing` m apart."""
+    s = scenario.strategy
+    n = min(scenario.count, int(s.get("agent_robots", 12)))
+    spacing = float(s.get("agent_spacing", 1.2))
+    rng = random.Random(scenario.seed)
+    cols = max(1, math.ceil(math.sqrt(n)))
+    rows = math.ceil(n / cols)
+    robots = []
+    for i in range(n):
+        x = (i % cols - (cols - 1) / 2) * spacing + rng.uniform(-0.15, 0.15)
+        y = (i // cols - (rows - 1) / 2) * spacing + rng.uniform(-0.15, 0.15)
+        robots.append({"name": f"robot{i + 1}", "x": round(x, 3), "y": round(y, 3),
+                       "heading": round(rng.uniform(-180.0, 180.0), 1)})
+    data = scenario.model_dump()
+    data["robot"] = robots
+    data["robots"]["count"] = n
+    return type(scenario).model_validate(data)
+
+
+def _still(t: NDArray[np.float64], speed: NDArray[np.float64], threshold: float, hold: float) -> float:
+    """Start of the first stretch of `hold` s in which every robot stayed slower than `threshold`."""
+    fast: list[bool] = np.any(np.abs(speed) >= threshold, axis=1).tolist()
+    start: float | None = None
+    for k in range(len(t)):
+        if fast[k]:
+            start = None
+        elif start is None:
+            start = float(t[k])
+        if start is not None and t[k] - start >= hold:
+            return start
+    return math.nan
+
+
+def _kinematic(scenario: Scenario, progress: Progress, variant: str, label: str) -> Run:
+    s = scenario.strategy
+    cfg = _config(scenario, variant)
+    duration = scenario.duration or 600.0
+    threshold = float(s.get("still_speed", 0.05))
+    hold = float(s.get("hold", 10.0))
+    sample = float(s.get("sample", 1.0))
     circles, walls = _obstacles(scenario)
-    sensing = float(scenario.strategy.get("sensing", 2.5))
+    starts = scenario.starts()
+    pos = np.array([[st.x, st.y] for st in starts])
+    th = np.radians([st.heading for st in starts])
+    vel, om = np.zeros_like(pos), np.zeros(len(pos))
+    track = kinematic.Track()
+    track.add(0.0, pos, th, np.zeros(len(pos)))
+    every = max(1, int(round(sample / cfg.dt)))
+    steps = int(round(duration / cfg.dt))
+    still_since: float | None = None
+    converged = math.nan
+    for k in range(steps):
+        new, th, vel, om = spread_step(pos, th, vel, om, cfg, circles, walls)
+        stop = kinematic.blocked_by_walls(pos, new, walls)  # walls are solid: a robot stops at them
+        pos = np.where(stop[:, None], pos, new)
+        vel[stop] = 0.0
+        t = (k + 1) * cfg.dt
+        sp = np.hypot(vel[:, 0], vel[:, 1])
+        if (k + 1) % every == 0:
+            track.add(t, pos, th, sp)
+            progress(label, round(t), round(duration))
+        if float(sp.max()) < threshold:
+            still_since = t if still_since is None else still_since
+            if t - still_since >= hold:
+                converged = still_since
+                if (k + 1) % every:
+                    track.add(t, pos, th, sp)
+                break
+        else:
+            still_since = None
+    ts, ps, ths, sps = track.arrays()
+    return Run(variant, ts, ps, ths, sps, converged)
+
+
+def _agents(scenario: Scenario, progress: Progress, variant: str, label: str) -> Run:
+    """Agent processes given Deploy spread; positions from the simulator at 10 Hz."""
+    from erni.sim.experiments.agents import TeamRun
+
+    s = scenario.strategy
+    model, _, neighbourhood = variant.partition("/")
+    duration = float(s.get("agent_duration", 150.0))
+    threshold = float(s.get("still_speed", 0.05))
+    hold = float(s.get("hold", 10.0))
+    weight = s.get("obstacle_weight", "neighbourhood")
+    mission = {"speed": float(s.get("speed", 0.4)), "network_aware": False,
+               "wall_distance": float(s.get("wall_distance", 2.5)),
+               "obstacle_distance": float(s.get("obstacle_distance", 2.0)),
+               **({} if weight == "neighbourhood" else {"obstacle_weight": float(weight)})}
+    params = {"distance": float(s.get("distance", 5.0)), "gain": float(s.get("gain", 2.0)),
+              "dt": float(s.get("dt", 0.2)), "range": float(s.get("range", 6.0)),
+              "neighbourhood": neighbourhood, "model": model}
+    names = scenario.robot_names()
+    with TeamRun(scenario, lambda what, d, t: progress(f"{label}: {what}", d, t), mission=mission).start() as team:
+        for name in names:
+            team.send(name, "Deploy", "spread", **params)
+
+        def settled() -> bool:
+            got = team.samples()
+            if not got or got[-1].t - got[0].t < hold + 5.0:
+                return False
+            recent = [x for x in got if x.t >= got[-1].t - hold]
+            return all(max(abs(v) for v in x.v) < threshold for x in recent)
+
+        team.wait("spreading", duration, settled)
+        samples = team.samples()
+    t = np.array([x.t for x in samples]) - samples[0].t
+    every = max(1, int(round(0.5 / max(1e-3, float(np.median(np.diff(t))) if len(t) > 1 else 0.1))))
+    pick = list(range(0, len(samples), every))
+    ts = t[pick]
+    ps = np.array([np.stack([samples[k].x, samples[k].y], axis=1) for k in pick])
+    ths = np.array([samples[k].th for k in pick])
+    sps = np.abs(np.array([samples[k].v for k in pick]))
+    return Run(variant, ts, ps, ths, sps, _still(ts, sps, threshold, hold))
+
+
+def _pinned(pos: NDArray[np.float64], walls: NDArray[np.float64], within: float) -> int:
+    if len(walls) == 0:
+        return 0
+    a, b = walls[:, :2], walls[:, 2:]
+    ab = b - a
+    count = 0
+    for p in pos:
+        s = np.clip(np.einsum("ij,ij->i", p - a, ab) / np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-12), 0, 1)
+        near = a + s[:, None] * ab
+        count += int(np.min(np.hypot(*(near - p).T)) <= within)
+    return count
+
+
+def _result(scenario: Scenario, experiment: Experiment, mode: str, runs: list[Run]) -> Result:
+    s = scenario.strategy
+    d = float(s.get("distance", 5.0))
     R = scenario.radio.comm_range
-    threshold = float(scenario.strategy.get("still_speed", 0.05))
-    res = Result(experiment.name, experiment.title, "kinematic")
-    tracks: dict[str, kinematic.Track] = {}
-    converged: dict[str, bool] = {}  # variant -> every robot came to rest
-    total = 0
-    cfgs = {v: _config(scenario, v) for v in variants}
-    steps = {v: int(round(duration / cfgs[v].dt)) for v in variants}
-    all_steps = sum(steps.values())
-    for v in variants:
-        cfg = cfgs[v]
-        pos, th = pos0.copy(), th0.copy()
-        vel, om = np.zeros_like(pos), np.zeros(len(pos))
-        track = kinematic.Track()
-        track.add(0.0, pos, th, np.zeros(len(pos)))
-        for k in range(steps[v]):
-            new, th, vel, om = spread_step(pos, th, vel, om, cfg, circles, walls)
-            stop = kinematic.blocked_by_walls(pos, new, walls)  # walls are solid: a robot stops at them
-            pos = np.where(stop[:, None], pos, new)
-            vel[stop] = 0.0
-            track.add((k + 1) * cfg.dt, pos, th, np.hypot(vel[:, 0], vel[:, 1]))
-            total += 1
-            if total % 5 == 0 or total == all_steps:
-                progress(v, total, all_steps)
-        tracks[v] = track
-        t, p, _th, sp = track.arrays()
-        share = [kinematic.largest_share(p[i], R) for i in range(0, len(t), 5)]
-        res.series[f"{v}/largest_component"] = (list(t[::5]), share, "share")
-        res.series[f"{v}/mean_nn_distance"] = (list(t[::5]), [mean_nn_distance(p[i]) for i in range(0, len(t), 5)], "m")
-        final = p[-1]
-        energies = [energy_model.track_energy(t, p[:, i, 0], p[:, i, 1])[0] for i in range(p.shape[1])]
-        conv = kinematic.convergence_time(t, sp, threshold)
-        converged[v] = conv is not None
-        res.metrics[f"{v}: mean NN distance at t={duration:g}"] = (mean_nn_distance(final), "m")
-        res.metrics[f"{v}: spread x * y"] = (float(np.ptp(final[:, 0])) * float(np.ptp(final[:, 1])), "m^2")
-        res.metrics[f"{v}: area covered (r={sensing:g} m)"] = (kinematic.coverage(final, sensing), "m^2")
-        res.metrics[f"{v}: largest component (R={R:g} m)"] = (share[-1], "share")
-        res.metrics[f"{v}: convergence (v<{threshold:g} m/s)"] = (conv if conv is not None else math.nan, "s")
+    pinned_within = float(s.get("pinned", 0.5))
+    threshold = float(s.get("still_speed", 0.05))
+    hold = float(s.get("hold", 10.0))
+    _, walls = _obstacles(scenario)
+    n = runs[0].pos.shape[1]
+    res = Result(experiment.name, experiment.title, mode)
+    weight = s.get("obstacle_weight", "neighbourhood")
+    res.mode_note = (f"{n} robot agent processes per variant, each given Deploy spread by the control node; "
+                     "velocity commands over ARCOS from positions learned through MobiNet"
+                     if mode == "agents" else
+                     f"{n} robots stepped in one process by the mission's spread_step (equations 15/16)"
+                     + (", too many for one agent process per robot on this machine" if n > 12 else ""))
+    finals = {}
+    for r in runs:
+        v = r.variant
+        final = r.pos[-1]
+        k30 = int(np.argmin(np.abs(r.t - 30.0)))
+        nn = _nn(final)
+        finals[v] = nn
+        energies = [energy_model.track_energy(r.t, r.pos[:, i, 0], r.pos[:, i, 1])[0] for i in range(n)]
+        res.metrics[f"{v}: converged at (all slower than {threshold:g} m/s for {hold:g} s)"] = (r.converged, "s")
+        res.metrics[f"{v}: mean NN distance at the end (d = {d:g})"] = (float(nn.mean()), "m")
+        res.metrics[f"{v}: smallest NN distance at the end"] = (float(nn.min()), "m")
+        res.metrics[f"{v}: mean NN distance at t = 30 s"] = (mean_nn_distance(r.pos[k30]), "m")
+        res.metrics[f"{v}: largest radio component at the end (R = {R:g} m)"] = (
+            kinematic.largest_share(final, R), "share")
+        if len(walls):
+            res.metrics[f"{v}: robots within {pinned_within:g} m of a wall at the end"] = (
+                float(_pinned(final, walls, pinned_within)), "robots")
+        res.metrics[f"{v}: run length"] = (float(r.t[-1]), "s")
         res.metrics[f"{v}: energy per robot, mean"] = (float(np.mean(energies)), "J")
-        res.metrics[f"{v}: energy per robot, max"] = (float(np.max(energies)), "J")
+        stride = max(1, len(r.t) // 300)
+        res.series[f"{v}/mean_nn_distance"] = (list(r.t[::stride]), [mean_nn_distance(p) for p in r.pos[::stride]],
+                                               "m")
+        res.series[f"{v}/largest_component"] = (list(r.t[::stride]),
+                                                [kinematic.largest_share(p, R) for p in r.pos[::stride]], "share")
+        res.series[f"{v}/max_speed"] = (list(r.t[::stride]), list(r.speed[::stride].max(axis=1)), "m/s")
         for i, e in enumerate(energies):
-            res.robots.setdefault(starts[i].name, {})[f"{v} energy_j"] = round(e, 2)
-    res.paper.append(("desired distance d", cfgs[variants[0]].distance, 5.0, "m"))
-    if not all(converged.values()):
-        res.notes.append(f"convergence NaN: some robot still moved faster than {threshold:g} m/s at the end")
-    res.notes.append(f"kinematic mode: {len(pos0)} robots stepped in-process by the mission's spread_step "
-                     f"(neighbourhood range {cfgs[variants[0]].range:g} m)")
-    res.draw = lambda fig: _draw(fig, scenario, tracks, res, duration, pos0)
+            res.robots.setdefault(f"robot{i + 1}", {})[f"{v} energy_j"] = round(e, 2)
+    res.compare("robots / desired distance d / damping k / dt",
+                "120 (12 for paths) / 5 m / 2 / 0.2 s",
+                f"{n} / {d:g} m / {s.get('gain', 2.0):g} / {s.get('dt', 0.2):g} s", "", "the paper's setting", "input")
+    res.compare("physical neighbourhood range", "not stated", f"{s.get('range', 6.0):g}", "m",
+                "the scenario's setting (about 1.2 d)", "input")
+    if len(walls):
+        res.compare("wall: desired distance c, weight w", "c not stated, w = 1",
+                    f"{s.get('wall_distance', 2.5):g} m, "
+                    + ("neighbourhood size" if weight == "neighbourhood" else f"{float(weight):g}"), "",
+                    "the scenario's setting", "input")
+    for r in runs:
+        v = r.variant
+        res.compare(f"{v}: converged", "\"converges, as we observe\"",
+                    f"at {r.converged:.0f} s" if math.isfinite(r.converged) else f"not by {r.t[-1]:.0f} s", "",
+                    f"every robot slower than {threshold:g} m/s for {hold:g} s")
+        res.compare(f"{v}: mean nearest-neighbour distance", "d = 5 m is the goal",
+                    round(float(finals[v].mean()), 2), "m", "at the end, simulator's truth")
+        if len(walls):
+            res.compare(f"{v}: robots pinned to a wall", "none (Figs 8-9)",
+                        f"{_pinned(r.pos[-1], walls, pinned_within)}", "robots",
+                        f"within {pinned_within:g} m of a wall at the end")
+    res.notes.append("paper 001 shows the teams at t = 30 s (Figs 2-5, 8-9) and the paths of 12 robots (Figs 6-7); "
+                     "it gives no convergence times or distances")
+    paths = experiment.name == "spread-paths"
+    res.draw = lambda fig: (_draw_paths(fig, scenario, runs, res, mode) if paths else
+                            _draw(fig, scenario, runs, res, mode))
     return res
 
 
-def _draw(fig: Any, scenario: Scenario, tracks: dict[str, kinematic.Track], res: Result, duration: float,
-          pos0: NDArray[np.float64]) -> None:
-    gs = fig.add_gridspec(2, 3, width_ratios=[1, 1, 0.9])
-    extent = max(float(np.abs(tr.pos[-1]).max()) for tr in tracks.values()) + 3
-    for k, (v, track) in enumerate(tracks.items()):
+def _nn(pos: NDArray[np.float64]) -> NDArray[np.float64]:
+    d = kinematic.distances(pos)
+    np.fill_diagonal(d, math.inf)
+    return np.asarray(d.min(axis=1), dtype=float)
+
+
+def _draw(fig: Any, scenario: Scenario, runs: list[Run], res: Result, mode: str) -> None:
+    gs = fig.add_gridspec(2, 3, width_ratios=[1, 1, 0.95])
+    extent = max(float(np.abs(r.pos[-1]).max()) for r in runs) + 4
+    for k, r in enumerate(runs[:4]):
         ax = fig.add_subplot(gs[k // 2, k % 2])
         draw_world(ax, scenario.world)
-        final = track.pos[-1]
-        ax.scatter(pos0[:, 0], pos0[:, 1], s=6, color="#bbbbbb", label="start (t = 0)", zorder=3)
-        ax.scatter(final[:, 0], final[:, 1], s=14, color=color(k), label=f"t = {duration:g} s", zorder=4)
-        headings(ax, final, track.th[-1], 1.8, color=color(k), zorder=4)
+        final = r.pos[-1]
+        k30 = int(np.argmin(np.abs(r.t - 30.0)))
+        ax.scatter(r.pos[0, :, 0], r.pos[0, :, 1], s=6, color="#bbbbbb", label="start", zorder=3)
+        ax.scatter(r.pos[k30, :, 0], r.pos[k30, :, 1], s=8, facecolor="none", edgecolor=color(k), lw=0.6,
+                   label=f"t = {r.t[k30]:.0f} s", zorder=3)
+        end = f"converged, t = {r.converged:.0f} s" if math.isfinite(r.converged) else f"t = {r.t[-1]:.0f} s"
+        ax.scatter(final[:, 0], final[:, 1], s=14, color=color(k), label=end, zorder=4)
+        headings(ax, final, r.th[-1], 1.8, color=color(k), zorder=4)
+        ax.set_xlim(-extent, extent)
+        ax.set_ylim(-extent * 0.75, extent * 0.75)
+        map_axes(ax, f"{r.variant.replace('/', ', ')} neighbourhood")
+        ax.legend(loc="upper right", fontsize=7, framealpha=0.9)
+    ax = fig.add_subplot(gs[0, 2])
+    for k, r in enumerate(runs):
+        t, vals, _ = res.series[f"{r.variant}/mean_nn_distance"]
+        ax.plot(t, vals, color=color(k), label=r.variant.replace("/", ", "))
+    d = float(scenario.strategy.get("distance", 5.0))
+    ax.axhline(d, color="#555555", ls=":", lw=1, label=f"desired d = {d:g} m (input)")
+    ax.axvline(30, color="#aaaaaa", ls="--", lw=0.8)
+    time_axes(ax, "Mean distance to the nearest robot", "distance (m)")
+    ax.set_ylim(0, d * 1.2)
+    ax.legend(fontsize=7, loc="lower right")
+    ax = fig.add_subplot(gs[1, 2])
+    for k, r in enumerate(runs):
+        t, vals, _ = res.series[f"{r.variant}/max_speed"]
+        ax.semilogy(t, np.maximum(vals, 1e-4), color=color(k), label=r.variant.replace("/", ", "))
+    threshold = float(scenario.strategy.get("still_speed", 0.05))
+    ax.axhline(threshold, color="#555555", ls=":", lw=1, label=f"still below {threshold:g} m/s")
+    time_axes(ax, "Fastest robot (convergence)", "speed (m/s)")
+    ax.legend(fontsize=7, loc="upper right")
+    fig.suptitle(f"{scenario.title} ({mode} mode, {runs[0].pos.shape[1]} robots)", fontsize=13)
+
+
+def _draw_paths(fig: Any, scenario: Scenario, runs: list[Run], res: Result, mode: str) -> None:
+    """Paper 001, Figs 6-7: every robot's path, arrows showing its heading along the way."""
+    cols = len(runs)
+    gs = fig.add_gridspec(1, cols)
+    extent = max(float(np.abs(r.pos).max()) for r in runs) + 1.5
+    for k, r in enumerate(runs):
+        ax = fig.add_subplot(gs[0, k])
+        draw_world(ax, scenario.world)
+        n = r.pos.shape[1]
+        for i in range(n):
+            ax.plot(r.pos[:, i, 0], r.pos[:, i, 1], color=color(i), lw=1.1, alpha=0.9)
+            # an arrow every 0.8 m along the path, and at its end
+            along = np.r_[0.0, np.cumsum(np.hypot(*np.diff(r.pos[:, i], axis=0).T))]
+            marks = np.arange(0.0, along[-1], 0.8)
+            idx = np.unique(np.r_[np.searchsorted(along, marks), len(r.t) - 1])
+            ax.quiver(r.pos[idx, i, 0], r.pos[idx, i, 1], np.cos(r.th[idx, i]), np.sin(r.th[idx, i]),
+                      color=color(i), angles="xy", scale_units="xy", scale=1.6, width=0.004, headwidth=4,
+                      headlength=4.5, alpha=0.85)
+            ax.plot(*r.pos[0, i], "o", color=color(i), mfc="white", ms=5)
         ax.set_xlim(-extent, extent)
         ax.set_ylim(-extent, extent)
-        map_axes(ax, f"{v.replace('/', ', ')} neighbourhood")
-        ax.legend(loc="upper right", fontsize=8, framealpha=0.9)
-    ax = fig.add_subplot(gs[0, 2])
-    for k, v in enumerate(tracks):
-        t, vals, _ = res.series[f"{v}/mean_nn_distance"]
-        ax.plot(t, vals, color=color(k), label=v.replace("/", ", "))
-    d = scenario.strategy.get("distance", 5.0)
-    ax.axhline(d, color="#555555", ls=":", lw=1, label=f"desired d = {d:g} m")
-    time_axes(ax, "Mean distance to the nearest robot", "distance (m)")
-    ax.set_ylim(0, d * 1.15)
-    ax.legend(fontsize=8, loc="lower right")
-    ax = fig.add_subplot(gs[1, 2])
-    for k, v in enumerate(tracks):
-        t, vals, _ = res.series[f"{v}/largest_component"]
-        ax.plot(t, np.array(vals) * 100, color=color(k), label=v.replace("/", ", "))
-    time_axes(ax, f"Connectivity (radio range R = {scenario.radio.comm_range:g} m)",
-              "robots in the largest component (%)")
-    ax.set_ylim(0, 105)
-    ax.legend(fontsize=8, loc="lower left")
-    fig.suptitle(f"{scenario.title}: the team at t = {duration:g} s (start: grey square)", fontsize=13)
+        end = f"converged at {r.converged:.0f} s" if math.isfinite(r.converged) else f"{r.t[-1]:.0f} s"
+        fig_no = "Fig. 6" if r.variant.startswith("holonomic") else "Fig. 7"
+        map_axes(ax, f"{r.variant.replace('/', ', ')} ({fig_no}): {end}")
+    fig.suptitle(f"{scenario.title} ({mode} mode): paths, arrows = heading (circles: start)", fontsize=13)

@@ -1,12 +1,21 @@
 """Paper 002, section II.C: six robots patrol six territories; one fails and a neighbour takes over.
 
-Kinematic mode: each robot drives its block's sweep path (`patrol.sweep_path`) and sends a
-heartbeat every `heartbeat` seconds to every robot the radio connects it to (directly or
-over several hops). Each robot keeps a `patrol.TakeoverTable`: when a neighbour falls silent
-its neighbours back off by rank, the first claims the block and patrols it after its own,
-the others yield on hearing the claim. The scenario's `[[failure]]` says who fails when.
+Each robot sweeps its block (`patrol.sweep_path`) and beacons a heartbeat every `heartbeat`
+seconds; each keeps a `patrol.TakeoverTable`: when a neighbour falls silent for `silence`
+seconds its neighbours back off by rank, the first claims the block and patrols it after its
+own, the others yield on hearing the claim. The scenario's `[[failure]]` says who fails when.
+
+Agents mode (default): six robot agent processes; the control node sends each `Deploy
+patrol` with its block; heartbeats are `Territory` objects the transport carries between the
+robots (UDP status, filtered by the simulated radio); at the failure time the failed robot's
+agent process is killed (its robot stops on the ARCOS watchdog). Each robot's decisions
+(silent, claim, yield) and their times come back in its task's result.
+
+Kinematic mode: the same `TakeoverTable`s stepped in one process, heartbeats delivered to
+every robot the radio connects (directly or over several hops).
+
 Metrics: detection and takeover delays, claims made (exactly one is right), who took over,
-the share of the territory visited within a sliding window over time, energy per robot.
+the share of the territory visited within a sliding window over time.
 """
 
 from __future__ import annotations
@@ -25,7 +34,7 @@ from erni.strategies import energy as paper_energy
 from erni.strategies import patrol
 
 
-def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, **_: Any) -> Result:
+def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode: str, **_: Any) -> Result:
     """Patrol, fail, detect, take over; return figure and metrics."""
     s = scenario.strategy
     xmin, ymin, xmax, ymax = (float(v) for v in s.get("territory", (0.0, 0.0, 30.0, 20.0)))
@@ -40,14 +49,154 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, **_: 
     heartbeat = float(s.get("heartbeat", 1.0))
     silence = float(s.get("silence", 5.0))
     base = float(s.get("base", 1.5))
-    speed = float(s.get("speed", 0.4))
-    spacing = float(s.get("spacing", 2.0))
     window = float(s.get("window", 60.0))
     cell = float(s.get("cell", 1.0))
-    dt = float(s.get("dt", 0.2))
     duration = scenario.duration or 180.0
-    R = scenario.radio.comm_range
     fail_at = {f.robot: f.at for f in scenario.failure}
+    if mode == "agents":
+        ts, ps, events, holds = _agents(scenario, progress, blocks, fail_at, duration)
+    else:
+        ts, ps, events, holds = _kinematic(scenario, progress, blocks, fail_at, duration)
+    xs = np.arange(territory[0] + cell / 2, territory[2], cell)
+    ys = np.arange(territory[1] + cell / 2, territory[3], cell)
+    last_visit = np.full((len(ys), len(xs)), -math.inf)
+    coverage_t: list[float] = []
+    coverage_v: list[float] = []
+    alive_until = {i: fail_at.get(name, math.inf) for i, name in enumerate(names)}
+    for k, t in enumerate(ts):
+        for i in range(n):
+            if t > alive_until[i]:
+                continue
+            cx = int((ps[k, i, 0] - territory[0]) / cell)
+            cy = int((ps[k, i, 1] - territory[1]) / cell)
+            for yy in range(max(0, cy - 1), min(len(ys), cy + 2)):
+                for xx in range(max(0, cx - 1), min(len(xs), cx + 2)):
+                    last_visit[yy, xx] = t
+        if k % 5 == 0:
+            coverage_t.append(float(t))
+            coverage_v.append(float((last_visit >= t - window).mean()))
+    res = Result(experiment.name, experiment.title, mode)
+    res.mode_note = ("six robot agent processes given Deploy patrol by the control node; heartbeats are Territory "
+                     "objects carried by the transport between robots; the failed robot's agent process is killed"
+                     if mode == "agents" else "takeover tables stepped in one process; heartbeats delivered "
+                     "to every robot the radio model connects")
+    res.series["team/territory_visited_in_window"] = (coverage_t, coverage_v, "share")
+    failed = [name for name in names if name in fail_at]
+    for name in failed:
+        t_fail = fail_at[name]
+        silent = [e for e in events if e[2] == "silent" and e[3] == name]
+        claims = [e for e in events if e[2] == "claim" and e[3] == name]
+        yields = [e for e in events if e[2] == "yield" and e[3] == name]
+        res.metrics[f"{name}: fails at"] = (t_fail, "s")
+        res.metrics[f"{name}: first detection after the failure"] = (
+            (min(e[0] for e in silent) - t_fail) if silent else math.nan, "s")
+        res.metrics[f"{name}: takeover after the failure"] = ((claims[0][0] - t_fail) if claims else math.nan, "s")
+        res.metrics[f"{name}: claims made (1 is right)"] = (float(len(claims)), "claims")
+        res.metrics[f"{name}: neighbours that yielded"] = (float(len(yields)), "robots")
+        res.metrics[f"{name}: block taken over by"] = (claims[0][1] if claims else "nobody", "")
+    before = [v for t, v in zip(coverage_t, coverage_v) if t <= min(fail_at.values(), default=duration)]
+    res.metrics["territory visited within the window, before failure"] = (max(before) if before else math.nan, "share")
+    res.metrics["territory visited within the window, at the end"] = (coverage_v[-1], "share")
+    res.metrics["territory visited within the window, lowest after failure"] = (
+        min((v for t, v in zip(coverage_t, coverage_v) if t > min(fail_at.values(), default=duration)),
+            default=math.nan), "share")
+    for i, name in enumerate(names):
+        dist = paper_energy.track_energy(ts, ps[:, i, 0], ps[:, i, 1])[1]
+        res.robots[name] = {"block": i + 1, "distance_m": round(dist, 1), "holds": holds.get(name, 0)}
+    claims_all = [e for e in events if e[2] == "claim"]
+    detect = [res.metrics[f"{name}: first detection after the failure"][0] for name in failed]
+    takeover = [res.metrics[f"{name}: takeover after the failure"][0] for name in failed]
+    res.compare("heartbeat period / silence before failed", "not stated", f"{heartbeat:g} / {silence:g} s", "s",
+                "the scenario's setting", "input")
+    res.compare("back-off of the k-th ranked neighbour", "not stated", f"{base:g} x (1 + k) s", "s",
+                "the scenario's setting", "input")
+    res.compare("failure detected by the neighbours", "yes", ", ".join(f"after {d:.1f} s" for d in detect
+                                                                        if isinstance(d, float)) or "no", "",
+                "first `silent` decision of any robot after the failed one stopped; bounded by the silence "
+                "setting (an input), not a finding")
+    res.compare("neighbours claiming the block", "exactly one", f"{len(claims_all)}", "claims",
+                "claims made by all robots over the run" + (" (reported in their task results)"
+                                                           if mode == "agents" else ""))
+    res.compare("taken over by a neighbour of the failed block", "yes",
+                ", ".join(str(res.metrics[f"{name}: block taken over by"][0]) for name in failed) or "-", "",
+                "the robot whose claim stood, and the time from the failure: "
+                + ", ".join(f"{t:.1f} s" for t in takeover if isinstance(t, float)))
+    res.notes.append(f"window for 'visited': the last {window:g} s")
+    res.notes.append("paper 002's Table II round trips are measured by `erni experiment roundtrip`")
+    res.draw = lambda fig: _draw(fig, scenario, names, blocks, ps, ts, events, res, fail_at, duration, window, mode)
+    return res
+
+
+Event = tuple[float, str, str, str]  # t, robot, kind, about
+
+
+def _agents(scenario: Scenario, progress: Progress, blocks: list[patrol.Block], fail_at: dict[str, float],
+            duration: float) -> tuple[NDArray[np.float64], NDArray[np.float64], list[Event], dict[str, int]]:
+    """Six agents given Deploy patrol; the failed one's process is killed; decisions from their results."""
+    import time
+
+    from erni.sim.experiments.agents import TeamRun
+
+    s = scenario.strategy
+    names = scenario.robot_names()
+    mission = {"speed": float(s.get("speed", 0.4)), "patrol_spacing": float(s.get("spacing", 2.0)),
+               "backoff_base": float(s.get("base", 1.5)), "network_aware": False}
+    heartbeat, silence = float(s.get("heartbeat", 1.0)), float(s.get("silence", 5.0))
+    with TeamRun(scenario, progress, mission=mission).start() as team:
+        assert team.team is not None
+        epoch0 = time.time() - team.now  # team clock 0 as wall-clock time
+        uids = {}
+        for name, b in zip(names, blocks):
+            uids[name] = team.send(name, "Deploy", "patrol", xmin=b[0], ymin=b[1], xmax=b[2], ymax=b[3],
+                                   heartbeat=heartbeat, silence=silence)
+        pending = sorted(fail_at.items(), key=lambda kv: kv[1])
+        failed_at: dict[str, float] = {}
+        while team.now < duration:
+            team.pump(0.5)
+            progress("patrolling", round(team.now), round(duration))
+            while pending and team.now >= pending[0][1]:
+                name, _ = pending.pop(0)
+                failed_at[name] = team.now
+                team.team.fail(name)
+        team.pump(1.0)
+        samples = team.samples()
+        events: list[Event] = []
+        holds: dict[str, int] = {}
+        for name, uid in uids.items():
+            r = team.results.get(uid)
+            if r is None:
+                continue
+            kinds = r.values.get("events") or []
+            times = r.values.get("event_at") or []
+            assert isinstance(kinds, list) and isinstance(times, list)
+            for ev, at in zip(kinds, times):
+                kind, _, about = str(ev).partition(" ")
+                events.append((float(at) - epoch0 if isinstance(at, (int, float)) else math.nan, name, kind, about))
+            held = r.values.get("holds")
+            holds[name] = len(held) if isinstance(held, list) else 0
+        for name, at in failed_at.items():
+            fail_at[name] = at  # the moment the process was killed
+            events.append((at, name, "fails", name))
+    events.sort()
+    ts = np.array([x.t for x in samples]) - samples[0].t + (samples[0].t - team.t0)
+    ps = np.array([np.stack([x.x, x.y], axis=1) for x in samples])
+    return ts, ps, events, holds
+
+
+def _kinematic(scenario: Scenario, progress: Progress, blocks: list[patrol.Block], fail_at: dict[str, float],
+               duration: float) -> tuple[NDArray[np.float64], NDArray[np.float64], list[Event], dict[str, int]]:
+    """The takeover tables stepped in one process; heartbeats to every robot the radio connects."""
+    s = scenario.strategy
+    starts = scenario.starts()
+    names = [st.name for st in starts]
+    n = len(names)
+    heartbeat = float(s.get("heartbeat", 1.0))
+    silence = float(s.get("silence", 5.0))
+    base = float(s.get("base", 1.5))
+    speed = float(s.get("speed", 0.4))
+    spacing = float(s.get("spacing", 2.0))
+    dt = float(s.get("dt", 0.2))
+    R = scenario.radio.comm_range
     pos = np.array([[st.x, st.y] for st in starts])
     th = np.radians([st.heading for st in starts])
     tables = [patrol.TakeoverTable(names[i], blocks[i], silence=silence, base=base) for i in range(n)]
@@ -55,12 +204,6 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, **_: 
     waypoint = [0] * n
     alive = np.ones(n, dtype=bool)
     events: list[tuple[float, str, str, str]] = []  # t, robot, kind, about
-    holdings: list[tuple[float, str, tuple[str, ...]]] = []
-    xs = np.arange(territory[0] + cell / 2, territory[2], cell)
-    ys = np.arange(territory[1] + cell / 2, territory[3], cell)
-    last_visit = np.full((len(ys), len(xs)), -math.inf)
-    coverage_t: list[float] = []
-    coverage_v: list[float] = []
     track = kinematic.Track()
     track.add(0.0, pos, th, np.zeros(n))
     next_beat = 0.0
@@ -94,50 +237,11 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, **_: 
         for i in range(n):
             if alive[i] and math.hypot(*(pos[i] - targets[i])) < 0.15:
                 waypoint[i] = (waypoint[i] + 1) % len(routes[i])
-            if alive[i]:
-                cx = int((pos[i, 0] - territory[0]) / cell)
-                cy = int((pos[i, 1] - territory[1]) / cell)
-                for yy in range(max(0, cy - 1), min(len(ys), cy + 2)):
-                    for xx in range(max(0, cx - 1), min(len(xs), cx + 2)):
-                        last_visit[yy, xx] = t
         track.add(t, pos, th, sp)
         if k % 5 == 0:
-            coverage_t.append(t)
-            coverage_v.append(float((last_visit >= t - window).mean()))
-            holdings.append((t, "", tuple(",".join(sorted(tb.holds)) for tb in tables)))
             progress("patrolling", round(t), round(duration))
     ts, ps, _th, _speed = track.arrays()
-    res = Result(experiment.name, experiment.title, "kinematic")
-    res.series["team/territory_visited_in_window"] = (coverage_t, coverage_v, "share")
-    failed = [name for name in names if name in fail_at]
-    for name in failed:
-        t_fail = fail_at[name]
-        silent = [e for e in events if e[2] == "silent" and e[3] == name]
-        claims = [e for e in events if e[2] == "claim" and e[3] == name]
-        yields = [e for e in events if e[2] == "yield" and e[3] == name]
-        res.metrics[f"{name}: fails at"] = (t_fail, "s")
-        res.metrics[f"{name}: first detection after the failure"] = (
-            (min(e[0] for e in silent) - t_fail) if silent else math.nan, "s")
-        res.metrics[f"{name}: takeover after the failure"] = ((claims[0][0] - t_fail) if claims else math.nan, "s")
-        res.metrics[f"{name}: claims made (1 is right)"] = (float(len(claims)), "claims")
-        res.metrics[f"{name}: neighbours that yielded"] = (float(len(yields)), "robots")
-        res.metrics[f"{name}: block taken over by"] = (claims[0][1] if claims else "nobody", "")
-    before = [v for t, v in zip(coverage_t, coverage_v) if t <= min(fail_at.values(), default=duration)]
-    res.metrics["territory visited within the window, before failure"] = (max(before) if before else math.nan, "share")
-    res.metrics["territory visited within the window, at the end"] = (coverage_v[-1], "share")
-    res.metrics["territory visited within the window, lowest after failure"] = (
-        min((v for t, v in zip(coverage_t, coverage_v) if t > min(fail_at.values(), default=duration)),
-            default=math.nan), "share")
-    for i, name in enumerate(names):
-        e, dist = paper_energy.track_energy(ts, ps[:, i, 0], ps[:, i, 1])
-        res.robots[name] = {"block": i + 1, "distance_m": round(dist, 1), "energy_j": round(e, 1),
-                            "holds": len(tables[i].holds)}
-    res.notes.append(f"window for 'visited': the last {window:g} s; heartbeats every {heartbeat:g} s; "
-                     f"back-off base {base:g} s by rank (nearest touching block first)")
-    res.notes.append("paper 002 gives no takeover times; its Table II round trips (about 90 ms) are not "
-                     "modelled here")
-    res.draw = lambda fig: _draw(fig, scenario, names, blocks, ps, ts, events, res, fail_at, duration, window)
-    return res
+    return ts, ps, events, {names[i]: len(tables[i].holds) for i in range(n)}
 
 
 def _reroute(routes: list[list[NDArray[np.float64]]], waypoint: list[int], i: int, table: patrol.TakeoverTable,
@@ -153,7 +257,7 @@ def _reroute(routes: list[list[NDArray[np.float64]]], waypoint: list[int], i: in
 
 def _draw(fig: Any, scenario: Scenario, names: list[str], blocks: list[patrol.Block], ps: NDArray[np.float64],
           ts: NDArray[np.float64], events: list[tuple[float, str, str, str]], res: Result, fail_at: dict[str, float],
-          duration: float, window: float) -> None:
+          duration: float, window: float, mode: str) -> None:
     from matplotlib.patches import Rectangle
 
     gs = fig.add_gridspec(2, 2, width_ratios=[1.25, 1])
@@ -198,4 +302,4 @@ def _draw(fig: Any, scenario: Scenario, names: list[str], blocks: list[patrol.Bl
     time_axes(ax, f"Territory visited in the last {window:g} s", "share of the territory (%)")
     ax.set_ylim(0, 105)
     ax.legend(loc="lower right", fontsize=8)
-    fig.suptitle(scenario.title, fontsize=13)
+    fig.suptitle(f"{scenario.title} ({mode} mode)", fontsize=13)

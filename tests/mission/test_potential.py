@@ -130,20 +130,25 @@ def forces_robot_by_robot(p: NDArray[np.float64], th: NDArray[np.float64], cfg: 
     for i in range(n):
         pts = [p[nbrs[i]]]
         want = [np.full(len(nbrs[i]), cfg.distance)]
+        wobj = cfg.obstacle_weight if cfg.obstacle_weight is not None else float(max(1, len(nbrs[i]))) * w
+        weights = [np.full(len(nbrs[i]), w)]
         if len(obs):
             q = nearest_on_circles(p[i], obs)
             near = np.hypot(*(q - p[i]).T) <= cfg.range
             pts.append(q[near])
             want.append(np.full(int(near.sum()), cfg.obstacle_distance))
+            weights.append(np.full(int(near.sum()), wobj))
         if len(wal):
             q = nearest_on_segments(p[i], wal)
             near = np.hypot(*(q - p[i]).T) <= cfg.range
             pts.append(q[near])
             want.append(np.full(int(near.sum()), cfg.wall_distance))
+            weights.append(np.full(int(near.sum()), wobj))
         others = np.concatenate(pts)
         if len(others) == 0:
             continue
         dij = np.concatenate(want)
+        wij = np.concatenate(weights)
         rel = others - p[i]
         dist = np.hypot(rel[:, 0], rel[:, 1])
         ok = dist > EPS
@@ -152,15 +157,15 @@ def forces_robot_by_robot(p: NDArray[np.float64], th: NDArray[np.float64], cfg: 
         if not ok.all():  # coincident: push apart in a direction fixed by the robot's index
             ang = 2.0 * math.pi * ((i * 0.618034) % 1.0)
             unit[~ok] = (math.cos(ang), math.sin(ang))
-        force[i] = (w * (dist - dij)[:, None] * unit).sum(axis=0)
+        force[i] = ((wij * (dist - dij))[:, None] * unit).sum(axis=0)
         # heading term: turn toward the neighbourhood's weighted centre s = mean(w (p_j - p_i))
-        s = w * rel.mean(axis=0)
+        s = (wij[:, None] * rel).mean(axis=0)
         s2 = float(s @ s)
         if s2 > 1e-6:
             s2 = max(s2, (0.1 * cfg.distance) ** 2)  # regularised: |s| floored at d / 10
             err = float(wrap(math.atan2(s[1], s[0]) - th[i]))
             torque[i] = cfg.chi * err
-            force[i] += cfg.chi * err * w * np.array([-s[1], s[0]]) / s2
+            force[i] += cfg.chi * err * float(wij.mean()) * np.array([-s[1], s[0]]) / s2
     return force, torque
 
 
@@ -177,7 +182,8 @@ def test_forces_equal_the_robot_by_robot_sums(points: list[tuple[float, float]],
     th = np.array([data.draw(st.floats(-math.pi, math.pi)) for _ in points])
     obs = np.array([[data.draw(coord), data.draw(coord), data.draw(st.floats(0.1, 3.0))] for _ in range(n_obs)])
     wal = np.array([[data.draw(coord) for _ in range(4)] for _ in range(n_walls)])
-    cfg = SpreadConfig(neighbourhood=hood, range=data.draw(st.floats(1.0, 30.0)), chi=data.draw(st.floats(0.0, 2.0)))
+    cfg = SpreadConfig(neighbourhood=hood, range=data.draw(st.floats(1.0, 30.0)), chi=data.draw(st.floats(0.0, 2.0)),
+                       obstacle_weight=data.draw(st.one_of(st.none(), st.floats(0.1, 5.0))))
     obs, wal = obs.reshape(-1, 3), wal.reshape(-1, 4)
     f, tq = forces(p, th, cfg, obs, wal)
     rf, rtq = forces_robot_by_robot(p, th, cfg, obs, wal)
