@@ -316,7 +316,8 @@ class RelayRunner(Runner):
             self.move("goto", GotoParams(x=round(float(move.target[0]), 3), y=round(float(move.target[1]), 3),
                                          speed=self.s.speed, tolerance=0.05))
         msg = "balanced" if move.balanced else f"moving toward {p.source if move.along < 0 else p.destination}"
-        self.ops.report(self.uid, TaskState.RUNNING, msg, values=self.values())
+        # one report per decision (every relay_period s): the requester sees each measurement
+        self.ops.report(self.uid, TaskState.RUNNING, msg, values=self.values(), force=True)
         return period
 
 

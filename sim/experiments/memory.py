@@ -67,6 +67,7 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode:
     settle = float(s.get("settle", 20.0))
     window = float(s.get("window", 10.0))
     peaks: dict[str, tuple[float, float]] = {}  # process -> (max VmRSS kB, max Pss kB)
+    samples: dict[str, tuple[list[float], list[float]]] = {}  # process -> (t, VmRSS MB)
     with TeamRun(scenario, progress, mission={"network_aware": True}) as team:
         team.start()
         assert team.team is not None
@@ -80,6 +81,9 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode:
                 rss, pss = status_kb(pid), pss_kb(pid)
                 old = peaks.get(name, (0.0, 0.0))
                 peaks[name] = (max(old[0], rss), max(old[1], pss))
+                ts, vs = samples.setdefault(name, ([], []))
+                ts.append(round(team.now, 2))
+                vs.append(rss / 1024.0)
             team.wait("sampling VmRSS", 1.0)
         sim_rss = status_kb(os.getpid())
     floor = _floor()
@@ -93,6 +97,7 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode:
     robot_pss = max(peaks[n][1] for n in robots) / mb
     for name, (rss, pss) in peaks.items():
         res.robots[name] = {"VmRSS_MB": round(rss / mb, 1), "Pss_MB": round(pss / mb, 1)}
+        res.series[f"{name}/vmrss"] = (*samples[name], "MB")
     res.metrics["robot agent (transport, motion, MobiNet, mission): VmRSS, largest"] = (robot_rss, "MB")
     res.metrics["robot agent: Pss, largest"] = (robot_pss, "MB")
     res.metrics["control node agent: VmRSS"] = (peaks["control"][0] / mb, "MB")

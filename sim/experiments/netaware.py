@@ -15,9 +15,10 @@ robot whose best link falls below `min_link_quality` or that becomes an articula
 stops and resumes when connectivity returns); blind means `network_aware = false`.
 
 Measured on every run: connectivity kept, the share of the simulator's 10 Hz samples in which
-the whole team and the control node are one radio component; tasks completed (a goto arrived,
-a walk ran its time, the PoI covered), from the tasks' results; time to complete, from the
-tasks being sent to their success. Each is averaged over the seeds with a 95 % Student-t
+the whole team and the control node are one radio component; tasks completed: a goto's robot
+at its target and the PoI covered (both judged on the simulator's truth, since a robot cut off
+from the control node cannot report it), a walk that ran its time (from its task's result);
+time to complete, from the tasks being sent; and how many successes the control node heard of. Each is averaged over the seeds with a 95 % Student-t
 interval (completion also as a Wilson interval over all tasks).
 """
 
@@ -51,6 +52,7 @@ class Outcome:
     completed: int
     times: list[float]     # s from sending to success, completed tasks only
     length: float          # s the run lasted
+    reported: int = 0      # successes the control node heard of
 
 
 def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode: str, seeds: int | None = None,
@@ -106,9 +108,11 @@ def _one(scenario: Scenario, mission: str, arm: str, progress: Progress) -> Outc
     speed = float(s.get("speed", 0.4))
     with TeamRun(scenario, progress, mission=settings).start() as team:
         uids: list[str] = []
+        targets = _targets(scenario, len(names))
+        arrived: dict[int, float] = {}  # robot index -> when the simulator saw it at its goto target
         if mission == "goto":
             limit = float(s.get("goto_time", 75.0))
-            for name, (x, y) in zip(names, _targets(scenario, len(names))):
+            for name, (x, y) in zip(names, targets):
                 uids.append(team.send(name, "RemoteBotMotion", "goto", x=x, y=y, speed=speed, tolerance=0.3))
         elif mission == "randomwalk":
             walk = float(s.get("walk", 45.0))
@@ -133,24 +137,35 @@ def _one(scenario: Scenario, mission: str, arm: str, progress: Progress) -> Outc
         covered: list[float] = []
 
         def finished() -> bool:
+            assert team.team is not None
             if mission == "widep":
-                assert team.team is not None
                 if not covered and any(math.hypot(r.x - poi[0], r.y - poi[1]) <= 0.5 for r in team.team.robots):
                     covered.append(team.now)
                 return bool(covered)
+            if mission == "goto":
+                for i, (r, (x, y)) in enumerate(zip(team.team.robots, targets)):
+                    if i not in arrived and math.hypot(r.x - x, r.y - y) <= 0.4:
+                        arrived[i] = team.now
+                return len(arrived) == len(names) or team.done(uids)
             return team.done(uids)
 
         team.wait(f"{mission} ({arm})", limit, finished)
         samples = team.samples()
         length = team.now
+        team.pump(2.0)  # the last results on their way
+        reported = sum(1 for u in uids if math.isfinite(team.succeeded_at(u)))
         if mission == "widep":
             done, times = (1, [covered[0]]) if covered else (0, [])
             tasks = 1
+            reported = int(any(math.isfinite(team.succeeded_at(u)) for u in uids))
+        elif mission == "goto":  # arrival judged on the simulator's truth: a cut-off robot cannot report it
+            times = sorted(arrived.values())
+            done, tasks = len(times), len(uids)
         else:
             times = [t for u in uids if math.isfinite(t := team.succeeded_at(u))]
             done, tasks = len(times), len(uids)
     connected = float(np.mean([x.components == 1 for x in samples])) if samples else math.nan
-    return Outcome(mission, arm, scenario.seed, connected, tasks, done, times, length)
+    return Outcome(mission, arm, scenario.seed, connected, tasks, done, times, length, reported)
 
 
 def _result(scenario: Scenario, experiment: Experiment, mode: str, outcomes: list[Outcome], missions: list[str],
@@ -174,6 +189,8 @@ def _result(scenario: Scenario, experiment: Experiment, mode: str, outcomes: lis
                 f"{sum(o.completed for o in runs)}/{sum(o.tasks for o in runs)} = {fmt_ci(*pooled)}", "Wilson 95 %")
             res.metrics[f"{mission}, {arm}: time to complete"] = (fmt_ci(*tcomp, 1),
                                                                  f"s, mean [95 % CI] over {len(per_run_time)} runs")
+            res.metrics[f"{mission}, {arm}: successes the control node heard of"] = (
+                f"{sum(o.reported for o in runs)}/{sum(o.tasks for o in runs)}", "tasks")
             for o in runs:
                 res.robots[f"{mission}/{arm}/s{o.seed}"] = {
                     "connected": round(o.connected, 3), "completed": f"{o.completed}/{o.tasks}",
@@ -191,6 +208,11 @@ def _result(scenario: Scenario, experiment: Experiment, mode: str, outcomes: lis
         res.compare(f"{mission}: tasks completed, aware / blind", "open question",
                     f"{a['pooled'][0]:.2f} / {b['pooled'][0]:.2f}", "share",
                     f"aware {fmt_ci(*a['pooled'])}, blind {fmt_ci(*b['pooled'])} (Wilson)")
+        heard = {arm: (sum(o.reported for o in outcomes if o.mission == mission and o.arm == arm),
+                       sum(o.tasks for o in outcomes if o.mission == mission and o.arm == arm)) for arm in ARMS}
+        res.compare(f"{mission}: successes the control node heard of, aware / blind", "open question",
+                    f"{heard['aware'][0]}/{heard['aware'][1]} / {heard['blind'][0]}/{heard['blind'][1]}", "tasks",
+                    "task results that reached the control node")
         res.compare(f"{mission}: time to complete, aware / blind", "open question",
                     f"{a['time'][0]:.0f} / {b['time'][0]:.0f}", "s",
                     f"aware {fmt_ci(*a['time'], 1)}, blind {fmt_ci(*b['time'], 1)}")

@@ -236,8 +236,9 @@ def _draw(fig: Any, scenario: Scenario, names: list[str], a: NDArray[np.float64]
     q = np.array(qualities).reshape(-1, len(names), 2)  # (decisions, n, 2)
     ks = np.arange(1, len(q) + 1)
     for i, name in enumerate(names):
-        ax.plot(ks, q[:, i, 0], color=color(i), lw=1.4, label=f"{name}: link toward S")
-        ax.plot(ks, q[:, i, 1], color=color(i), lw=1.4, ls="--", label=f"{name}: link toward D")
+        before, after = (["S"] + names)[i], (names + ["D"])[i + 1]
+        ax.plot(ks, q[:, i, 0], color=color(i), lw=1.4, label=f"{name}: link to {before}")
+        ax.plot(ks, q[:, i, 1], color=color(i), lw=1.4, ls="--", label=f"{name}: link to {after}")
     ax.set_xlabel(f"movement decision (one every {period:g} s)")
     ax.set_ylabel("measured delivery ratio")
     ax.set_ylim(0, 1.05)
