@@ -23,7 +23,6 @@ if TYPE_CHECKING:
     from erni.sim.scenario import Scenario
 
 Progress = Callable[[str, float, float], None]
-MAX_AGENTS = 24  # agents mode refuses larger teams (each robot is a process of its own)
 
 
 AGENT_ROBOTS = 12  # the largest team this 2-core machine runs as one agent process per robot
@@ -211,7 +210,4 @@ def run(name: str, scenario: Scenario, progress: Progress | None = None, **optio
         raise ScenarioError(f"{name} runs in {' or '.join(exp.modes)} mode, not {mode!r}")
     if "seeds" in options and not exp.seeds:
         raise ScenarioError(f"{name} runs one seed at a time; it has no seeds option")
-    if mode == "agents" and scenario.count > MAX_AGENTS:
-        raise ScenarioError(f"{name}: {scenario.count} robots is too many for agents mode on this machine "
-                            f"(at most {MAX_AGENTS}); use --mode kinematic")
     return exp.runner()(scenario, progress or (lambda *a: None), experiment=exp, mode=mode, **options)
