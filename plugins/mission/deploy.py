@@ -287,9 +287,13 @@ class RelayRunner(Runner):
 
     kind = "relay"
 
+    STALL = 5  # decisions unbalanced without moving 0.1 m before the result says the relay is stuck
+
     def __init__(self, task: Task, ops: Ops, settings: MissionSettings, now: float) -> None:
         super().__init__(task, ops, settings, now)
         self.p = task.params_as(RelayParams)
+        self.anchor: NDArray[np.float64] | None = None  # where it was when it last moved or balanced
+        self.idle = 0  # unbalanced decisions since then
 
     def tick(self, now: float) -> float:
         p = self.p
@@ -316,6 +320,14 @@ class RelayRunner(Runner):
             self.move("goto", GotoParams(x=round(float(move.target[0]), 3), y=round(float(move.target[1]), 3),
                                          speed=self.s.speed, tolerance=0.05))
         msg = "balanced" if move.balanced else f"moving toward {p.source if move.along < 0 else p.destination}"
+        if move.balanced or self.anchor is None or float(np.hypot(*(me - self.anchor))) >= 0.1:
+            self.anchor, self.idle = me, 0
+        else:
+            self.idle += 1
+        self.extra["stalled"] = self.idle >= self.STALL
+        if self.idle >= self.STALL:
+            msg = (f"stalled: links unbalanced (imbalance {move.imbalance:+.2f}) and no move for {self.idle} "
+                   "decisions")
         # one report per decision (every relay_period s): the requester sees each measurement
         self.ops.report(self.uid, TaskState.RUNNING, msg, values=self.values(), force=True)
         return period

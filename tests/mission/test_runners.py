@@ -1,4 +1,5 @@
-"""The WiDep runner decides on settled positions, never drives a step too short to move, and says when it is stuck.
+"""Deploy runners: WiDep decides on settled positions, never drives a step too short to move, and says when it
+is stuck; a relay that cannot move says so too.
 
 The runner is driven here through its small `Ops` interface (what MissionControl gives it), so
 every decision can be checked round by round with a clock the test controls.
@@ -13,7 +14,7 @@ import numpy as np
 import pytest
 
 from erni.blackboard import Params, Pose, Task, TaskState
-from erni.plugins.mission.deploy import WidepRunner
+from erni.plugins.mission.deploy import RelayRunner, WidepRunner
 from erni.plugins.mission.plugin import MissionSettings
 from erni.plugins.mission.team import TeamView, Territory
 from erni.strategies.potential import SpreadConfig, forces
@@ -45,8 +46,10 @@ class FakeOps:
     def report(self, uid: str, state: TaskState, message: str = "", **_: Any) -> None:
         self.reports.append((state, message))
 
+    qualities: dict[str, float] | None = None
+
     def link_qualities(self) -> dict[str, float] | None:
-        return None
+        return self.qualities
 
     def publish_territory(self, territory: Territory) -> None:
         pass
@@ -149,3 +152,19 @@ def test_a_crowd_pins_a_robot_to_a_wall_only_when_the_wall_weighs_as_one_robot(w
     cfg = SpreadConfig(distance=5.0, range=6.0, wall_distance=2.5, obstacle_weight=weight, chi=0.0)
     f, _ = forces(pos, np.zeros(len(pos)), cfg, walls=np.array([[-50.0, 0.0, 50.0, 0.0]]))
     assert (f[0, 1] < 0) == pinned  # toward the wall: pinned; away from it: held off
+
+
+def test_a_relay_that_cannot_move_says_it_is_stalled():
+    ops = FakeOps()
+    ops.qualities = {"src": 1.0, "dst": 0.2}  # the destination link is worse: it should move toward it
+    task = Task(verb="Deploy", preposition="relay", params={"source": "src", "destination": "dst"},
+                source="control", destination="robot1")
+    r = RelayRunner(task, ops, MissionSettings(), 0.0)
+    for k in range(7):  # its gotos "succeed" but the robot is never seen anywhere else (blocked)
+        t = 2.0 * (k + 1)
+        ops.at(t - 0.1, {"robot1": (2.0, 0.0), "src": (0.0, 0.0), "dst": (10.0, 0.0)})
+        r.tick(t)
+    assert ops.issued and ops.issued[0][0] == "goto"
+    messages = [m for _, m in ops.reports]
+    assert messages[0] == "moving toward dst" and messages[-1].startswith("stalled: links unbalanced")
+    assert r.values()["stalled"] is True
