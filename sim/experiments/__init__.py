@@ -157,11 +157,11 @@ class Result:
         matplotlib.use("Agg")
         from matplotlib.figure import Figure
 
-        from erni.sim.experiments.plots import draw_table
+        from erni.sim.experiments.plots import draw_table, table_lines
 
         if self.draw is None:
             raise ScenarioError(f"{self.name}: this experiment draws no figure")
-        table = 0.6 + 0.26 * (len(self.rows) + 1) if self.rows else 0.0
+        table = 0.6 + 0.2 * table_lines(self.rows) if self.rows else 0.0
         fig = Figure(figsize=(13, 7.5 + table), dpi=110, layout="constrained")
         note = f"{self.mode} mode: {self.mode_note}" if self.mode_note else f"{self.mode} mode"
         if self.rows:

@@ -66,24 +66,45 @@ def range_circle(ax: Any, x: float, y: float, r: float, **kw: Any) -> None:
 
 def draw_table(fig: Any, rows: list[Any], caption: str = "") -> None:
     """Draw the paper-vs-ours table (a list of `Compare`) across `fig`; inputs in grey italics."""
+    import textwrap
+
     from erni.sim.experiments import _fmt
 
     ax = fig.add_subplot(1, 1, 1)
     ax.axis("off")
     if caption:
         ax.set_title(caption, loc="left", fontsize=8.5, color="#333333")
-    cells = [[r.quantity + (" (input)" if r.kind == "input" else ""), _fmt(r.paper), _fmt(r.ours), r.unit, r.how]
-             for r in rows]
+    widths = [0.27, 0.16, 0.13, 0.05, 0.39]
+    chars = [52, 30, 24, 8, 80]  # wrap each column at about this many characters (font 7.5)
+    cells = []
+    for r in rows:
+        texts = [r.quantity + (" (input)" if r.kind == "input" else ""), _fmt(r.paper), _fmt(r.ours), r.unit, r.how]
+        cells.append(["\n".join(textwrap.wrap(str(t), c)) or "" for t, c in zip(texts, chars)])
+    lines = [1] + [max(c.count("\n") + 1 for c in row) for row in cells]
     table = ax.table(cellText=cells, colLabels=["quantity", "paper", "ours", "unit", "how ours was obtained"],
-                     colLoc="left", cellLoc="left", loc="upper center",
-                     colWidths=[0.29, 0.17, 0.13, 0.05, 0.36])
+                     colLoc="left", cellLoc="left", loc="upper center", colWidths=widths)
     table.auto_set_font_size(False)
     table.set_fontsize(7.5)
+    unit = 1.0 / sum(lines)
     for (row, _col), cell in table.get_celld().items():
         cell.set_edgecolor("#cccccc")
-        cell.set_height(1.0 / (len(rows) + 1))
+        cell.set_height(unit * lines[row])
         if row == 0:
             cell.set_text_props(weight="bold")
             cell.set_facecolor("#eeeeee")
         elif rows[row - 1].kind == "input":
             cell.set_text_props(color="#777777", style="italic")
+
+
+def table_lines(rows: list[Any]) -> int:
+    """How many text lines the table of `rows` takes (its header included), as `draw_table` wraps them."""
+    import textwrap
+
+    from erni.sim.experiments import _fmt
+
+    chars = [52, 30, 24, 8, 80]
+    total = 1
+    for r in rows:
+        texts = [r.quantity + (" (input)" if r.kind == "input" else ""), _fmt(r.paper), _fmt(r.ours), r.unit, r.how]
+        total += max(max(1, len(textwrap.wrap(str(t), c))) for t, c in zip(texts, chars))
+    return total

@@ -93,7 +93,9 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode:
                     f"first decision after which it stays within {settle:g} m of the midpoint")
         res.compare("after that", "slight oscillation around the middle",
                     f"std {spread:.2f} m" if math.isfinite(spread) else "-", "", "spread of its position "
-                    "over the remaining decisions")
+                    "over the remaining decisions" + ("; MobiNet reports the simulated radio's delivery ratio, "
+                                                      "a noiseless function of distance" if mode == "agents"
+                                                      else "; each link probed with noisy hello counts"))
     else:
         res.compare("relays settle at about equal spacing", "yes (Figure 8)",
                     f"after {settled} decisions" if settled is not None else "never", "",
