@@ -12,6 +12,14 @@ radio) with the plugins it would run on a robot
 the SNMP address differ. The control node runs the same agent with the transport in role
 `control` (and the UI plugin when installed). A team authority made for the run (in
 `RUN/keys`) gives every agent, and the command-line client, its own identity.
+
+With `netns=True` (`erni sim --netns`, the real-mesh tier) every agent runs as plain
+`erni agent` in a network namespace of its own on a shared mesh segment (`erni.sim.netns`):
+the radio model's links become packet-filter rules between the namespaces, babeld routes
+between nodes that cannot hear each other, agents find each other by broadcast beacons on the
+segment and through MobiNet's routes, and MobiNet reads babeld (`mobinet="babel"`, the
+default there) or the simulated SNMP nodes. The simulator serves the robots and SNMP nodes on
+the service address of the management links, and the GUI through a forwarder on this host.
 """
 
 from __future__ import annotations
@@ -37,6 +45,7 @@ from typing import Any
 
 from erni.blackboard.errors import ErniError, UsageError
 from erni.sim.manet import ManetNetwork, RadioModel
+from erni.sim.netns import HELLO_INTERVAL, Mesh, TcpForwarder
 from erni.sim.radio import FD_ENV
 from erni.sim.robot import SimRobot, SimRobotConfig
 from erni.sim.robot_host import RobotHost
@@ -200,7 +209,8 @@ class Team:
                  control_port: int = 47100, log_level: str = "WARNING", physics_hz: float | None = None,
                  feed_hz: float = 10.0, record: bool = False, mission: bool | None = None,
                  ui: bool | None = None, transport: dict[str, Any] | None = None, gui_port: int = 8080,
-                 gui_listen: str | None = None, mission_settings: dict[str, Any] | None = None,
+                 gui_listen: str | None = None, netns: bool = False, mobinet: str | None = None,
+                 hello_interval: float = HELLO_INTERVAL, mission_settings: dict[str, Any] | None = None,
                  robot_settings: dict[str, Any] | None = None) -> None:
         if scenario.count > MAX_AGENT_ROBOTS:
             raise TeamError(f"--robots: at most {MAX_AGENT_ROBOTS} robot agents (one loopback "
@@ -226,6 +236,17 @@ class Team:
         self.control_port = control_port if control_port and port_free(CONTROL_HOST, control_port) \
             else free_port(CONTROL_HOST, socket.SOCK_STREAM)
         self.names = scenario.robot_names()
+        self.mobinet = mobinet or ("babel" if netns else "snmp")
+        if self.mobinet not in ("snmp", "babel"):
+            raise TeamError(f"mobinet: expected 'snmp' or 'babel', got {self.mobinet!r}")
+        if self.mobinet == "babel" and not netns:
+            raise TeamError("mobinet 'babel' reads babeld, which runs only in the real-mesh tier: add --netns")
+        # the real-mesh tier: namespaces, segment, babeld, radio rules (made in start())
+        self.mesh: Mesh | None = Mesh(self.names + [CONTROL], self.run_dir, control=CONTROL,
+                                      hello_interval=hello_interval) if netns else None
+        self._forwarder: TcpForwarder | None = None
+        if netns:
+            self.control_port = control_port or 47100  # the control node's namespace has every port free
         starts = [s.model_dump() for s in scenario.starts()]  # the scenario's start poses win
         self.world = World.model_validate({**scenario.world.model_dump(), "robot": starts})
         world = self.world
@@ -255,7 +276,15 @@ class Team:
     @property
     def control_address(self) -> tuple[str, int]:
         """The control node's transport address (for `erni task --via HOST:PORT`)."""
+        if self.mesh is not None:
+            return self.mesh.node(CONTROL).address, self.control_port
         return CONTROL_HOST, self.control_port
+
+    def address_of(self, name: str) -> str:
+        """The address agent `name` listens on (its loopback address, or its mesh address)."""
+        if self.mesh is not None:
+            return self.mesh.node(name).address
+        return CONTROL_HOST if name == CONTROL else robot_address(self.names.index(name))
 
     @property
     def robots(self) -> list[SimRobot]:
@@ -282,6 +311,9 @@ class Team:
         authority.issue(CONTROL, "control")
         authority.issue(CLI, "cli")
         n = len(self.names)
+        if self.mesh is not None:
+            say("network namespaces", 0, n)
+            self._make_mesh()
         say("world and robots", 0, n)
         model = self.scenario.robots.model
         for i, name in enumerate(self.names):
@@ -297,10 +329,12 @@ class Team:
         self.snmp.start()
         # each robot's node gets its own write community: a robot can SET only its own position
         self.write_communities.update({name: secrets.token_hex(8) for name in self.names})
-        snmp_ports = {name: self.snmp.serve(name, robot_address(i), 0,
+        snmp_ports = {name: self.snmp.serve(name, self._snmp_host(i), 0,
                                             write_community=self.write_communities[name])[1]
                       for i, name in enumerate(self.names)}
         self._update_network(force=True)
+        if self.mesh is not None:
+            self.mesh.start_babel()
         self._feed = threading.Thread(target=self._feed_loop, name="sim-feed", daemon=True)
         self._feed.start()
         say("agent configs", 0, n)
@@ -321,7 +355,24 @@ class Team:
         """Transport settings naming agent `name`'s identity and the team's revocation list."""
         return {"identity": str(self.keys_dir / f"{name}.pem"), "revocations": str(self.keys_dir / REVOKED)}
 
+    def _make_mesh(self) -> None:
+        """Build the namespaces; serve robots and SNMP nodes where the namespaces reach them."""
+        assert self.mesh is not None
+        self.mesh.create()
+        r = self.scenario.radio
+        # the radio model's node addresses are the mesh addresses (robots 1..n, then the control node)
+        self.network = ManetNetwork(RadioModel(r.comm_range, r.lossless_range, r.min_quality),
+                                    subnet=self.mesh.subnet)
+        self.snmp = ManetSnmpAgent(self.network)
+        self.host.host = self.mesh.service_address
+
+    def _snmp_host(self, index: int) -> str:
+        return self.mesh.service_address if self.mesh is not None else robot_address(index)
+
     def _write_configs(self, snmp_ports: dict[str, int]) -> None:
+        if self.mesh is not None:
+            self._write_mesh_configs(snmp_ports)
+            return
         common = dict(discovery_port=self.discovery_port, beacon_to=["127.255.255.255"], **self.transport)
         for i, name in enumerate(self.names):
             addr = robot_address(i)
@@ -367,6 +418,68 @@ class Team:
         self._add_agent(CONTROL, (CONTROL_HOST, self.control_port), plugins,
                         f"control node of scenario {self.scenario.name}", workers=2)
 
+    def _write_mesh_configs(self, snmp_ports: dict[str, int]) -> None:
+        """Agent configs of the real-mesh tier: mesh addresses, segment broadcast, babel or SNMP MobiNet."""
+        mesh = self.mesh
+        assert mesh is not None
+        common = dict(discovery_port=self.discovery_port, beacon_to=[mesh.broadcast], **self.transport)
+
+        def mobinet(name: str) -> dict[str, Any]:
+            # every node watches its routes: the transport beacons each routed node it has not met
+            if self.mobinet == "babel":
+                return dict(source="babel", babel=f"[::1]:{mesh.babel_port}", watch=["path_cost"], timeout=1.0)
+            return dict(host=mesh.service_address, port=snmp_ports[name], timeout=1.0, retries=1,
+                        write_community=self.write_communities[name], watch=["path_cost"])
+
+        # babeld carries no positions: robots share their poses over the mesh (WiDep, relay need them)
+        shared = {"Pose": ["control", "robot"]} if self.mobinet == "babel" else {}
+        if self.mission:
+            shared["Territory"] = ["control", "robot"]
+        for i, name in enumerate(self.names):
+            addr = mesh.node(name).address
+            plugins: list[tuple[str, dict[str, Any]]] = [
+                ("transport", dict(listen=f"{addr}:0", role="robot", **self.identity(name),
+                                   capabilities=["motion", "mobinet"] + (["mission"] if self.mission else []),
+                                   **({"share_with": shared} if shared else {}), **common)),
+                ("motion", dict(url=self.host.url(i), model=self.scenario.robots.model)),
+                ("mobinet", mobinet(name)),
+            ]
+            if self.mission:
+                plugins.append(("mission", self._mission_settings()))
+            self._add_agent(name, (addr, 0), plugins,
+                            f"robot {name} of scenario {self.scenario.name}, namespace {mesh.node(name).netns}")
+        control = mesh.node(CONTROL)
+        plugins = [("transport", dict(listen=f"{control.address}:{self.control_port}", role="control",
+                                      **self.identity(CONTROL), **common))]
+        if self.mobinet == "babel":  # the control node is a mesh node too: its routes name far robots
+            plugins.append(("mobinet", dict(source="babel", babel=f"[::1]:{mesh.babel_port}",
+                                            watch=["path_cost"], timeout=1.0)))
+        if self.ui:
+            from erni.transport import parse_address
+
+            gui_host, gui_port = ("127.0.0.1", self.gui_port) if not self.gui_listen else parse_address(self.gui_listen)
+            bind = "0.0.0.0" if gui_host in ("", "0.0.0.0") else gui_host
+            if not gui_port or not port_free(bind, gui_port):
+                gui_port = free_port(bind, socket.SOCK_STREAM)
+            plan = self.run_dir / "world.toml"
+            world = self.world.model_dump(mode="json", exclude={"robot", "name"}, exclude_none=True)
+            plan.write_text("".join(f"{k} = {toml_value(v)}\n" for k, v in world.items() if v), encoding="utf-8")
+            shown = bind
+            allowed = []
+            if bind in ("0.0.0.0", "::"):
+                from erni.plugins.ui.server import public_address
+
+                shown = public_address()
+                allowed.append(shown)
+            # the GUI listens in the control node's namespace; this host's address forwards to it
+            plugins.append(("ui", {"listen": f"{control.mgmt}:{gui_port}", "floorplan": str(plan),
+                                   "token": self.gui_token, "allowed_hosts": allowed}))
+            self._forwarder = TcpForwarder((bind, gui_port), (control.mgmt, gui_port))
+            shown = f"[{shown}]" if ":" in shown else shown
+            self.url = f"http://{shown}:{gui_port}/?token={self.gui_token}"
+        self._add_agent(CONTROL, (control.address, self.control_port), plugins,
+                        f"control node of scenario {self.scenario.name}, namespace {control.netns}", workers=2)
+
     def _mission_settings(self) -> dict[str, Any]:
         """What the mission plugin knows of the world: obstacles (circles) and walls."""
         world = self.scenario.world
@@ -390,6 +503,14 @@ class Team:
         self.agents[name] = AgentProcess(name, config, self.run_dir / "logs" / f"{name}.log", address)
 
     def _spawn(self, agent: AgentProcess, env: dict[str, str]) -> None:
+        if self.mesh is not None:  # the real mesh: plain `erni agent` in the node's namespace, no radio pipe
+            with open(agent.log, "ab") as out:
+                agent.proc = subprocess.Popen(
+                    self.mesh.exec_argv(agent.name, [sys.executable, "-m", "erni", "agent", str(agent.config),
+                                                     "--log-level", self.log_level]),
+                    stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT, env=env,
+                    start_new_session=True, preexec_fn=_die_with_parent)
+            return
         read, write = os.pipe()  # the agent's radio: reachability lines from us
         os.set_blocking(write, False)  # the feed loop never waits on an agent
         with self._radio_lock:  # the feed thread pushes too: the agent's first line is the latest
@@ -514,6 +635,8 @@ class Team:
             self.status.reach = reach
         self.status.components = len(truth.components)
         self.status.control_reach = control_reach
+        if self.mesh is not None:  # the radio as packet-filter rules (rewritten only when they change)
+            self.mesh.apply(truth.links)
         if self.record:
             self.samples.append(Sample(
                 self.elapsed(), [r.x for r in robots], [r.y for r in robots], [r.th for r in robots],
@@ -578,6 +701,11 @@ class Team:
             self._client = None
         self.snmp.close()
         self.host.stop()
+        if self._forwarder is not None:
+            self._forwarder.close()
+            self._forwarder = None
+        if self.mesh is not None:
+            self.mesh.destroy()
 
     def __enter__(self) -> Team:
         return self

@@ -20,6 +20,7 @@ to `execute()` with `later()`, so nothing here does I/O inside a transaction.
 
 from __future__ import annotations
 
+import ipaddress
 import time
 from pathlib import Path
 from typing import Any, ClassVar
@@ -251,6 +252,9 @@ class TransportPlugin(Plugin[TransportSettings]):
             for n in info.neighbors:
                 if n.address:
                     self.learned.add(n.address)
+            for route in info.routes:  # several hops away: a routing daemon's destination not yet named
+                if _is_ip(route.destination):
+                    self.learned.add(route.destination)
         self._share_status()
         self._retry_pending(now)
         self._forward_to_watchers(now)
@@ -571,3 +575,11 @@ class TransportPlugin(Plugin[TransportSettings]):
         event = WatchEvent(agent=self.agent_name, op=op, type=type(obj).__name__,
                            data=obj.model_dump(mode="json"))
         self.endpoint.send(watcher[1], "watch.event", event, reliable=False, to=watcher[0])
+
+
+def _is_ip(text: str) -> bool:
+    try:
+        ipaddress.ip_address(text)
+    except ValueError:
+        return False
+    return True

@@ -33,6 +33,17 @@ def register(sub: Any) -> None:
     p.add_argument("--log-level", choices=["DEBUG", "INFO", "WARNING", "ERROR"], default="WARNING",
                    help="log level of the agents (their logs are in RUN_DIR/logs)")
     p.add_argument("--timeout", type=float, default=180.0, help="give up starting after S seconds")
+    p.add_argument("--netns", action="store_true",
+                   help="the real-mesh tier (root): every agent in a network namespace of its own on one "
+                   "mesh segment, the radio as nftables rules between them, babeld routing in each, "
+                   "broadcast discovery; Ctrl-C removes it all (see docs/sim.md)")
+    p.add_argument("--mobinet", choices=["babel", "snmp"],
+                   help="what MobiNet reads: babeld's local interface (babel, the default with --netns) "
+                   "or the simulated SNMP nodes (snmp, the default without)")
+    p.add_argument("--hello-interval", type=float, default=None, metavar="S",
+                   help="babeld's Hello interval with --netns (default 0.5 s)")
+    p.add_argument("--netns-clean", action="store_true",
+                   help="remove what killed --netns runs left behind (namespaces, links) and exit")
     p.set_defaults(func=run)
 
 
@@ -54,19 +65,31 @@ def load(args: argparse.Namespace) -> Any:
 
 def run(args: argparse.Namespace) -> int:
     """Start the team, print how to reach it, run the scenario's tasks, stop cleanly on Ctrl-C."""
+    from erni.sim.netns import HELLO_INTERVAL, NetnsError, check_available, clean_stale
     from erni.sim.progress import Progress
     from erni.sim.scenario import ScenarioError
     from erni.sim.team import Team, TeamError
 
     try:
+        if args.netns_clean or args.netns:
+            check_available()  # not root, no namespaces, no babeld: say why and how to run without
+        if args.netns_clean:
+            removed = clean_stale()
+            print(f"erni sim: removed {len(removed)} dead run(s) of --netns" +
+                  (f" ({', '.join(removed)})" if removed else ""))
+            return 0
+        if args.hello_interval is not None and not args.netns:
+            raise TeamError("--hello-interval is babeld's, which runs only with --netns")
         scenario = load(args)
         if args.gui_listen:
             from erni.transport import parse_address
 
             parse_address(args.gui_listen)
         team = Team(scenario, run_dir=args.run_dir, headless=args.headless,
-                    control_port=args.control_port, log_level=args.log_level, gui_listen=args.gui_listen)
-    except (ScenarioError, TeamError, ValueError) as err:
+                    control_port=args.control_port, log_level=args.log_level, gui_listen=args.gui_listen,
+                    netns=args.netns, mobinet=args.mobinet,
+                    hello_interval=args.hello_interval if args.hello_interval is not None else HELLO_INTERVAL)
+    except (ScenarioError, TeamError, NetnsError, ValueError) as err:
         print(f"erni sim: {err}", file=sys.stderr)
         return 2
 
@@ -85,7 +108,7 @@ def run(args: argparse.Namespace) -> int:
         progress.done()
         _print_team(team, time.monotonic() - t0)
         _run_scenario(team, scenario)
-    except TeamError as err:
+    except (TeamError, NetnsError) as err:
         progress.done()
         print(f"erni sim: {err}", file=sys.stderr)
         code = 1
@@ -107,9 +130,14 @@ def _print_team(team: Any, seconds: float) -> None:
           f"run directory {team.run_dir}")
     for i, name in enumerate(team.names):
         r = team.robots[i]
+        where = f" netns {team.mesh.node(name).netns}" if team.mesh is not None else ""
         print(f"  {name:<10} agent {team.agents[name].address[0]:<12} pid {team.agents[name].pid or '-':<8} "
-              f"robot {team.host.url(i):<26} at ({r.x:6.2f}, {r.y:6.2f})")
-    print(f"  control    agent {host}:{port}  pid {team.agents['control'].pid or '-'}")
+              f"robot {team.host.url(i):<26} at ({r.x:6.2f}, {r.y:6.2f}){where}")
+    print(f"  control    agent {host}:{port}  pid {team.agents['control'].pid or '-'}" +
+          (f" netns {team.mesh.node('control').netns}" if team.mesh is not None else ""))
+    if team.mesh is not None:
+        print(f"  mesh       segment {team.mesh.subnet} (namespace {team.mesh.hub}), babeld in every node, "
+              f"MobiNet reads {team.mobinet}; routes: ip -n {team.mesh.node(team.names[-1]).netns} route")
     print(f"  GUI        {team.url}" if team.url else "  GUI        none (headless, or the UI plugin is not installed)")
     print(f"to task the team from another terminal:\n"
           f"  export ERNI_IDENTITY={team.cli_identity}\n"

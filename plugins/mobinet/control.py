@@ -15,11 +15,12 @@ from __future__ import annotations
 
 import math
 import time
-from typing import Any
+from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from erni.blackboard import NetInfo, Plugin, Pose, Position, Task, TaskState
+from erni.blackboard.schemas import Peer
 from erni.blackboard.tasks import (
     LinkQualityParams,
     NeighborListParams,
@@ -28,6 +29,7 @@ from erni.blackboard.tasks import (
     TopologyParams,
     WatchParams,
 )
+from erni.plugins.mobinet.babel import BabelSource
 from erni.plugins.mobinet.resource import (
     NEIGHBORS,
     POSITIONS,
@@ -55,6 +57,12 @@ class MobiNetSettings(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
+    source: Literal["snmp", "babel"] = Field("snmp", description="what the network is read from: an SNMP "
+                                             "agent (host, port, communities) or babeld's local interface (babel)")
+    babel: str = Field("[::1]:33123", description="babeld's local interface, HOST:PORT (`babeld -g PORT`)")
+    watch: list[str] = Field(default_factory=list, description="NetWatch prepositions watched from the start, "
+                             "without a task (e.g. [\"path_cost\"]: the transport then learns every routed node)")
+    watch_rate_hz: float = Field(1.0, gt=0, le=100, description="rate of the watches in `watch` (Hz)")
     host: str = Field("127.0.0.1", description="SNMP agent of this robot's network subsystem")
     port: int = Field(1161, ge=1, le=65535, description="its UDP port")
     community: str = Field("public", description="SNMPv2c read community")
@@ -69,6 +77,35 @@ class MobiNetSettings(BaseModel):
     write_pose: bool = Field(True, description="write every Pose to the network subsystem")
     log_interval: float = Field(10.0, gt=0, description="at most one warning per kind per interval (s)")
 
+    @field_validator("babel")
+    @classmethod
+    def _babel_address(cls, value: str) -> str:
+        babel_address(value)
+        return value
+
+    @field_validator("watch")
+    @classmethod
+    def _watches(cls, value: list[str]) -> list[str]:
+        unknown = [w for w in value if w not in PARTS_OF]
+        if unknown:
+            raise ValueError(f"unknown NetWatch preposition(s) {', '.join(map(repr, unknown))}; expected "
+                             f"some of {', '.join(PARTS_OF)}")
+        return value
+
+
+def babel_address(text: str) -> tuple[str, int]:
+    """`[::1]:33123`, `::1` style or `HOST:PORT` -> (host, port); ValueError naming the problem."""
+    host, sep, port = text.strip().rpartition(":")
+    if not sep or not host or (":" in host and not (host.startswith("[") and host.endswith("]"))):
+        raise ValueError(f"babel: {text!r}: expected HOST:PORT, e.g. [::1]:33123")
+    try:
+        number = int(port)
+    except ValueError:
+        raise ValueError(f"babel: {text!r}: port {port!r} is not a number") from None
+    if not 1 <= number <= 65535:
+        raise ValueError(f"babel: {text!r}: port {number} is outside 1..65535")
+    return host.strip("[]"), number
+
 
 class MobiNetControl(Plugin[MobiNetSettings]):
     """NetWatch performer: monitors the network subsystem over SNMP and reports on the blackboard."""
@@ -76,6 +113,9 @@ class MobiNetControl(Plugin[MobiNetSettings]):
     def make_source(self) -> NetworkSource:
         """The source the resource reads through (override to plug in another subsystem)."""
         s = self.settings
+        if s.source == "babel":
+            host, port = babel_address(s.babel)
+            return BabelSource(host, port, node=self.agent_name, timeout=s.timeout, names=lambda: self._names)
         return SnmpSource(s.host, s.port, community=s.community, timeout=s.timeout, retries=s.retries,
                           max_repetitions=s.max_repetitions, cache_seconds=s.cache_seconds,
                           write_community=s.write_community)
@@ -86,15 +126,31 @@ class MobiNetControl(Plugin[MobiNetSettings]):
         self.tasks = self.subscribe(
             Task, where=lambda t: t.verb == "NetWatch" and t.destination in (None, "", me))
         self.poses = self.subscribe(Pose, where=lambda p: p.robot == robot)
+        # a routing daemon knows addresses; the team directory (the transport's Peers) names them
+        self.peers = self.subscribe(Peer)
+        self._names: dict[str, str] = {}
+        self._standing: dict[str, Task] = {}   # watch key -> the in-memory task of a `watch` entry
         self._watching: dict[str, tuple[str, WatchParams]] = {}   # task uid -> (preposition, params)
         self._infos: dict[str, NetInfo] = {}               # task uid -> last published NetInfo
         self._polls: dict[str, int] = {}
         self.resource = MobiNetResource(self.make_source, self._delivered, self.log,
                                         self.settings.log_interval, name=f"mobinet-{me}")
         self.resource.start()
-        self._write_pose = self.settings.write_pose and self.settings.write_community is not None
-        if self.settings.write_pose and not self._write_pose:
+        snmp = self.settings.source == "snmp"
+        self._write_pose = snmp and self.settings.write_pose and self.settings.write_community is not None
+        if snmp and self.settings.write_pose and not self._write_pose:
             self.log.warning("poses are not written to the network subsystem: no write_community")
+        for preposition in self.settings.watch:
+            task = Task(verb="NetWatch", preposition=preposition, source=me,
+                        params={"rate_hz": self.settings.watch_rate_hz})
+            key = f"watch:{me}:{preposition}"
+            self._standing[key] = task
+            self._infos[key] = NetInfo(uid=f"netinfo:{me}:{preposition}", node=me, kind=preposition,
+                                       degraded=True, message="waiting for the first reading")
+            self._watching[key] = (preposition, task.params_as(WatchParams))
+            self._polls[key] = 0
+            self.add(self._infos[key])
+            self.resource.watch(key, PARTS_OF[preposition], self.settings.watch_rate_hz)
 
     def teardown(self) -> None:
         self.resource.close()
@@ -107,6 +163,13 @@ class MobiNetControl(Plugin[MobiNetSettings]):
     # -- inside transactions ----------------------------------------------------------------
 
     def execute(self) -> None:
+        if self.peers.added or self.peers.changed or self.peers.removed:
+            names = {}
+            for peer in self.peers:
+                host = peer.address.rpartition(":")[0].strip("[]")
+                if host:
+                    names[host] = peer.name
+            self._names = names   # replaced whole: the resource's thread reads it without a lock
         for task in self.tasks.added:
             self._start(task)
         for task in self.tasks.changed:
@@ -158,6 +221,9 @@ class MobiNetControl(Plugin[MobiNetSettings]):
             self.remove(info)
 
     def _apply(self, uid: str, view: NetView | None, error: str) -> None:
+        if uid in self._standing:
+            self._apply_standing(uid, view, error)
+            return
         task = self.tasks.get(uid)
         info = self._infos.get(uid)
         if task is None or info is None or uid not in self._watching:
@@ -176,6 +242,16 @@ class MobiNetControl(Plugin[MobiNetSettings]):
         if old is None or old.values != values or old.message != message or old.state != TaskState.RUNNING:
             self.change(task.with_result(TaskState.RUNNING, message=message, values=values,
                                          confidence=0.0 if new_info.degraded else 1.0))
+
+    def _apply_standing(self, key: str, view: NetView | None, error: str) -> None:
+        info = self._infos[key]
+        self._polls[key] += 1
+        if view is None:
+            new_info = info.evolve(degraded=True, message=error, stamp=time.time())
+        else:
+            new_info = self._answer(self._standing[key], info, view)[0]
+        self.change(new_info)
+        self._infos[key] = new_info
 
     def _answer(self, task: Task, info: NetInfo, view: NetView) -> tuple[NetInfo, dict[str, Any], str]:
         provenance = {"node": view.sources.get("node", "")}
