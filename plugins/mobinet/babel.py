@@ -22,9 +22,11 @@ the parts from it:
   neighbour N advertises to a destination D, an edge N-D when N's advertised metric
   (refmetric) shows that N reaches D without passing through this node: N's path through us
   would cost at least cost(N) + our best metric to D not via N, and the edge is kept only when
-  refmetric < `avoid_margin` times that. Such an edge may stand for several radio hops; the
-  graph is exact about whether *this* node is an articulation point (the network-aware stop's
-  question), not about other nodes.
+  refmetric < `avoid_margin` times that. Such an edge may stand for several radio hops, so the
+  graph answers whether *this* node is an articulation point (the network-aware stop's
+  question), not whether others are. It errs on the side of caution: when the best routes
+  between two neighbours both run through this node, a worse link around it that no route
+  uses shows nowhere in the daemon's state, and the node is reported as a cut vertex.
 - **positions**: Babel has none; listed in `missing`.
 
 Addresses are named through `names` (address -> agent name, e.g. MobiNet's view of the team
