@@ -109,12 +109,11 @@ def unavailable_reason() -> str | None:
     if os.geteuid() != 0:
         return ("network namespaces, veth links and packet filters need root: run it with sudo "
                 f"(CI runs as root), or {INSTALL_HINT}")
-    missing = [tool for tool, package in (("ip", "iproute2"), ("nft", "nftables"), ("babeld", "babeld"))
-               if shutil.which(tool) is None]
+    packages = {"ip": "iproute2", "sysctl": "procps", "nft": "nftables", "babeld": "babeld"}
+    missing = [tool for tool in packages if shutil.which(tool) is None]
     if missing:
-        packages = {"ip": "iproute2", "nft": "nftables", "babeld": "babeld"}
-        return (f"{', '.join(missing)} not found: install them (`apt-get install "
-                f"{' '.join(packages[t] for t in missing)}`), or {INSTALL_HINT}")
+        return (f"{', '.join(missing)} not found: install {'it' if len(missing) == 1 else 'them'} "
+                f"(`apt-get install {' '.join(packages[t] for t in missing)}`), or {INSTALL_HINT}")
     probe = f"{PREFIX}probe-{os.getpid()}"
     try:
         _ip("netns", "add", probe)
