@@ -635,10 +635,12 @@ class TcpForwarder:
                     if key.fileobj is self._listener:
                         try:
                             conn, _ = self._listener.accept()
-                            far = socket.create_connection(self.target, timeout=3)
                         except OSError:
-                            with contextlib.suppress(NameError):
-                                conn.close()
+                            continue
+                        try:
+                            far = socket.create_connection(self.target, timeout=3)
+                        except OSError:  # the GUI is not up (yet): the browser sees a closed connection
+                            conn.close()
                             continue
                         for s in (conn, far):
                             s.setblocking(True)

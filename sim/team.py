@@ -428,8 +428,9 @@ class Team:
             # every node watches its routes: the transport beacons each routed node it has not met
             if self.mobinet == "babel":
                 return dict(source="babel", babel=f"[::1]:{mesh.babel_port}", watch=["path_cost"], timeout=1.0)
+            # SNMP routes name their nodes; neighbour lists carry addresses, shared with the control node
             return dict(host=mesh.service_address, port=snmp_ports[name], timeout=1.0, retries=1,
-                        write_community=self.write_communities[name], watch=["path_cost"])
+                        write_community=self.write_communities[name], watch=["neighbor_list"])
 
         # babeld carries no positions: robots share their poses over the mesh (WiDep, relay need them)
         shared = {"Pose": ["control", "robot"]} if self.mobinet == "babel" else {}
@@ -452,8 +453,10 @@ class Team:
         plugins = [("transport", dict(listen=f"{control.address}:{self.control_port}", role="control",
                                       **self.identity(CONTROL), **common))]
         if self.mobinet == "babel":  # the control node is a mesh node too: its routes name far robots
+            c = self.scenario.control  # and the base station's position, which babeld cannot carry
+            plugins[0][1]["share_with"] = {"Pose": ["control", "robot"]}
             plugins.append(("mobinet", dict(source="babel", babel=f"[::1]:{mesh.babel_port}",
-                                            watch=["path_cost"], timeout=1.0)))
+                                            watch=["path_cost"], timeout=1.0, position=[c.x, c.y])))
         if self.ui:
             from erni.transport import parse_address
 

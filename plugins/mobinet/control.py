@@ -63,6 +63,10 @@ class MobiNetSettings(BaseModel):
     watch: list[str] = Field(default_factory=list, description="NetWatch prepositions watched from the start, "
                              "without a task (e.g. [\"path_cost\"]: the transport then learns every routed node)")
     watch_rate_hz: float = Field(1.0, gt=0, le=100, description="rate of the watches in `watch` (Hz)")
+    position: tuple[float, float] | None = Field(None, description="where this node stands if it never moves "
+                                                 "and nothing else publishes its Pose (a base station): "
+                                                 "published as its Pose every second, which the transport "
+                                                 "shares, for networks that carry no positions (babeld)")
     host: str = Field("127.0.0.1", description="SNMP agent of this robot's network subsystem")
     port: int = Field(1161, ge=1, le=65535, description="its UDP port")
     community: str = Field("public", description="SNMPv2c read community")
@@ -151,6 +155,12 @@ class MobiNetControl(Plugin[MobiNetSettings]):
             self._polls[key] = 0
             self.add(self._infos[key])
             self.resource.watch(key, PARTS_OF[preposition], self.settings.watch_rate_hz)
+        self._fixed: Pose | None = None
+        if self.settings.position is not None:
+            x, y = self.settings.position
+            self._fixed = Pose(robot=me, x=x, y=y, motors_enabled=False)
+            self.add(self._fixed)
+            self.wake_every(1.0)
 
     def teardown(self) -> None:
         self.resource.close()
@@ -170,6 +180,9 @@ class MobiNetControl(Plugin[MobiNetSettings]):
                 if host:
                     names[host] = peer.name
             self._names = names   # replaced whole: the resource's thread reads it without a lock
+        if self._fixed is not None and time.time() - self._fixed.stamp >= 0.9:  # a fresh stamp: not stale
+            self._fixed = self._fixed.evolve(stamp=time.time())
+            self.change(self._fixed)
         for task in self.tasks.added:
             self._start(task)
         for task in self.tasks.changed:

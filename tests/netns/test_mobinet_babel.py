@@ -105,6 +105,20 @@ def test_a_standing_watch_publishes_routes_without_a_task_and_no_pose_is_written
     assert plugin.resource.stats["writes"] == 0
 
 
+def test_a_fixed_position_is_published_as_this_nodes_pose_with_a_fresh_stamp(babeld):
+    agent = Agent("base", workers=2)
+    agent.add_plugin("erni.plugins.mobinet:MobiNetControl", name="mobinet",
+                     settings={"source": "babel", "babel": babeld, "position": [-13.75, 0.0]})
+    agent.start()
+    try:
+        pose = wait_until(lambda: next(iter(agent.query(Pose)), None))
+        assert (pose.robot, pose.x, pose.y) == ("base", -13.75, 0.0)
+        later = wait_until(lambda: (p := agent.query(Pose)[0]).stamp > pose.stamp + 0.5 and p, timeout=5)
+        assert (later.x, later.y) == (-13.75, 0.0)
+    finally:
+        agent.stop()
+
+
 @pytest.mark.parametrize("settings, expected", [
     ({"source": "babel", "babel": "::1"}, "expected HOST:PORT"),
     ({"source": "babel", "babel": "[::1]:99999"}, "outside 1..65535"),

@@ -171,3 +171,43 @@ def test_the_network_blind_relay_drives_off_and_partitions_the_team(tmp_path):
         wait_until(lambda: not any(r.startswith(robot2) for r in team.mesh.kernel_routes(CONTROL)), timeout=30)
     finally:
         team.stop()
+
+
+def test_the_relay_strategy_balances_its_links_on_babelds_qualities(tmp_path):
+    """Deploy relay between the control node and robot2, 10 m apart (out of range): robot1 moves out
+    from beside the control node until babeld rates both of its links alike."""
+    base = load_scenario(find_scenario("mesh-line")).with_robots(2)
+    first, second = base.starts()
+    scenario = base.model_copy(update={"robot": [first.model_copy(update={"x": -12.75}),
+                                                 second.model_copy(update={"x": -3.75})]})
+    team = Team(scenario, run_dir=tmp_path, headless=True, transport=FAST, netns=True, mission=True)
+    try:
+        team.start(timeout=90)
+        results = Results(team)
+        task = team.send_task("robot1", "Deploy", "relay", source=CONTROL, destination="robot2")
+        balanced = results.until(task.uid, lambda r: r.values.get("balanced"), timeout=60)
+        robot = team.robot("robot1")
+        assert balanced.values["q_source"] > 0.9 and balanced.values["q_destination"] > 0.9
+        assert -11.0 < robot.x < -7.0  # moved out toward robot2, both links loss-free (< 6 m) there
+    finally:
+        team.stop()
+
+
+@pytest.mark.ondemand
+def test_widep_covers_the_poi_and_keeps_the_base_connected_on_the_mesh(tmp_path):
+    """Paper 000's PoI coverage with real agents on the mesh: the base station's position reaches the
+    robots as the control node's Pose (babeld carries none), so WiDep keeps them connected to it."""
+    team = Team(load_scenario(find_scenario("poi")), run_dir=tmp_path, headless=True, netns=True, mission=True)
+    try:
+        team.start(timeout=90)
+        for name in team.names:
+            team.send_task(name, "Deploy", "widep", x=0.0, y=11.0, range=4.5)
+        reach = []
+        deadline = time.monotonic() + 150
+        while time.monotonic() < deadline and min(math.dist((r.x, r.y), (0.0, 11.0)) for r in team.robots) > 4.5:
+            reach.append(team.status.control_reach)
+            time.sleep(0.5)
+        assert min(math.dist((r.x, r.y), (0.0, 11.0)) for r in team.robots) <= 4.5
+        assert min(reach) == 3  # never cut off from the base
+    finally:
+        team.stop()
