@@ -20,6 +20,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from erni.blackboard import NetInfo, Plugin, Pose, Position, Task, TaskState
+from erni.blackboard.errors import ConfigError
 from erni.blackboard.schemas import Peer
 from erni.blackboard.tasks import (
     LinkQualityParams,
@@ -98,16 +99,16 @@ class MobiNetSettings(BaseModel):
 
 
 def babel_address(text: str) -> tuple[str, int]:
-    """`[::1]:33123`, `::1` style or `HOST:PORT` -> (host, port); ValueError naming the problem."""
+    """`[::1]:33123`, `::1` style or `HOST:PORT` -> (host, port); ConfigError naming the problem."""
     host, sep, port = text.strip().rpartition(":")
     if not sep or not host or (":" in host and not (host.startswith("[") and host.endswith("]"))):
-        raise ValueError(f"babel: {text!r}: expected HOST:PORT, e.g. [::1]:33123")
+        raise ConfigError(f"babel: {text!r}: expected HOST:PORT, e.g. [::1]:33123")
     try:
         number = int(port)
     except ValueError:
-        raise ValueError(f"babel: {text!r}: port {port!r} is not a number") from None
+        raise ConfigError(f"babel: {text!r}: port {port!r} is not a number") from None
     if not 1 <= number <= 65535:
-        raise ValueError(f"babel: {text!r}: port {number} is outside 1..65535")
+        raise ConfigError(f"babel: {text!r}: port {number} is outside 1..65535")
     return host.strip("[]"), number
 
 
