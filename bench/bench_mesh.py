@@ -1,6 +1,6 @@
 """The real-mesh tier beside the loopback tier, in the same run: round trips by hops, link loss -> stop, discovery.
 
-Both tiers run the same team (`erni sim`'s `Team`, scenario `mesh-line`: the control node and
+Both tiers run the same team at the same time (`erni sim`'s `Team`, scenario `mesh-line`: the control node and
 robot1..robot3 on a line 5.5 m apart with R = 10 m, so robot k is k radio hops from the control
 node; robot4 and robot5 parked out of everyone's range), with the mission plugin network-aware
 (policy hold). The loopback tier: agents on 127.0.1.N behind the simulated radio filter, MobiNet
@@ -9,8 +9,9 @@ rules, babeld routing, MobiNet reading babeld.
 
 1. Task round trip by hops: a `BotMotion clear` (the robot's motion plugin answers it at once)
    sent by a client to the control node, forwarded to robot k, its final result back to the
-   client. Floor: a raw UDP echo between the control node's and robot k's addresses (their
-   namespaces in the mesh tier), through the same network, in the same run.
+   client; samples alternate between the tiers so that both see the same load. Floor: a raw
+   UDP echo between the control node's and robot k's addresses (their namespaces in the mesh
+   tier), through the same network, in the same run.
 2. Link loss -> network-aware stop: robot3 drives a remote goto; the simulator's hand moves it
    11 m sideways, out of every node's range (its links are gone at that instant); the time
    until the robot stands still (|v| < 0.01 m/s and |w| < 0.02 rad/s for 1 s) because its
@@ -19,7 +20,7 @@ rules, babeld routing, MobiNet reading babeld.
    (beside the control node), then 4 hops (after robot3) away; the time until the control
    node's directory lists it as up.
 
-    sudo python bench/bench_mesh.py [--samples 30] [--losses 3]
+    sudo python bench/bench_mesh.py [--samples 30] [--losses 5]
 """
 
 from __future__ import annotations
@@ -87,25 +88,16 @@ def scenario() -> Any:
 class Bench:
     """One tier's team and what was measured on it."""
 
-    def __init__(self, netns: bool, samples: int, losses: int) -> None:
+    def __init__(self, netns: bool) -> None:
         self.tier = "netns" if netns else "loopback"
-        self.samples, self.losses = samples, losses
         self.team = Team(scenario(), headless=True, netns=netns, mission=True, transport=FAST)
-        self.out: dict[str, Any] = {}
+        self.out: dict[str, Any] = {"rtt": {1: [], 2: [], 3: []}, "loss_to_stop": []}
 
-    def run(self) -> dict[str, Any]:
+    def start(self) -> None:
         t0 = time.monotonic()
         self.team.start(timeout=120)
         self.out["up"] = time.monotonic() - t0
-        try:
-            wait_until(lambda: self.up() >= {"robot1", "robot2", "robot3"}, timeout=60)
-            self.round_trips()
-            self.echo_floor()
-            self.link_losses()
-            self.discovery()
-        finally:
-            self.team.stop()
-        return self.out
+        wait_until(lambda: self.up() >= {"robot1", "robot2", "robot3"}, timeout=60)
 
     def up(self) -> set[str]:
         return {n for n, p in self.team.peers(1.0).items() if p.up}
@@ -120,18 +112,13 @@ class Bench:
                 return msg.body.result
         raise RuntimeError(f"{self.tier}: task {uid} had no final result within {timeout} s")
 
-    def round_trips(self) -> None:
+    def round_trip(self, hops: int) -> None:
         client = self.team.client()
-        times: dict[int, list[float]] = {1: [], 2: [], 3: []}
-        for _ in range(self.samples):
-            for hops in (1, 2, 3):
-                task = Task(verb="BotMotion", preposition="clear", destination=f"robot{hops}",
-                            source=client.endpoint.name)
-                t = time.perf_counter()
-                client.send(self.team.control_address, "task.add", task)
-                self.final(task.uid)
-                times[hops].append(time.perf_counter() - t)
-        self.out["rtt"] = times
+        task = Task(verb="BotMotion", preposition="clear", destination=f"robot{hops}", source=client.endpoint.name)
+        t = time.perf_counter()
+        client.send(self.team.control_address, "task.add", task)
+        self.final(task.uid)
+        self.out["rtt"][hops].append(time.perf_counter() - t)
 
     def echo_floor(self) -> None:
         team, floors = self.team, {}
@@ -153,26 +140,23 @@ class Bench:
                 server.wait()
         self.out["echo"] = floors
 
-    def link_losses(self) -> None:
+    def link_loss(self) -> None:
         team = self.team
         robot = team.robot("robot3")
-        home = (robot.x, robot.y)
-        times: list[float] = []
-        for _ in range(self.losses):
-            team.teleport("robot3", *home)
-            wait_until(lambda: "robot3" in self.up(), timeout=60)
-            time.sleep(3.0)  # links and MobiNet's readings settle at home
-            goal = (home[0] - 2.75, home[1])  # toward robot2: every link stays loss-free on the way
-            task = team.send_task("robot3", "RemoteBotMotion", "goto", x=goal[0], y=goal[1], speed=0.3)
-            wait_until(lambda: abs(robot.v) > 0.25, timeout=20)
-            time.sleep(1.0)
-            t_loss = time.monotonic()
-            team.teleport("robot3", robot.x, robot.y + 11.0)  # out of everyone's range at once (and the parked robots')
-            times.append(self._stopped_after(robot, t_loss) - t_loss)
-            team.teleport("robot3", *home)
-            cancel = team.send_task("robot3", "RemoteBotMotion", "cancel", task=task.uid)
-            self.final(cancel.uid, 60)
-        self.out["loss_to_stop"] = times
+        home = self.out.setdefault("home", (robot.x, robot.y))
+        team.teleport("robot3", *home)
+        wait_until(lambda: "robot3" in self.up(), timeout=60)
+        time.sleep(3.0)  # links and MobiNet's readings settle at home
+        goal = (home[0] - 2.75, home[1])  # toward robot2: every link stays loss-free on the way
+        task = team.send_task("robot3", "RemoteBotMotion", "goto", x=goal[0], y=goal[1], speed=0.3)
+        wait_until(lambda: abs(robot.v) > 0.25, timeout=20)
+        time.sleep(1.0)
+        t_loss = time.monotonic()
+        team.teleport("robot3", robot.x, robot.y + 11.0)  # out of everyone's range at once (and the parked robots')
+        self.out["loss_to_stop"].append(self._stopped_after(robot, t_loss) - t_loss)
+        team.teleport("robot3", *home)
+        cancel = team.send_task("robot3", "RemoteBotMotion", "cancel", task=task.uid)
+        self.final(cancel.uid, 60)
 
     @staticmethod
     def _stopped_after(robot: Any, since: float, hold: float = 1.0, timeout: float = 60.0) -> float:
@@ -212,23 +196,41 @@ def load_average() -> float:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--samples", type=int, default=30, help="round trips per hop count and tier")
-    parser.add_argument("--losses", type=int, default=3, help="link losses per tier")
+    parser.add_argument("--losses", type=int, default=5, help="link losses per tier")
     args = parser.parse_args()
     reason = unavailable_reason()
     if reason:
         print(f"bench_mesh: the real-mesh tier cannot run here: {reason}", file=sys.stderr)
         return 2
     loads = [load_average()]
-    results = {}
-    for netns in (False, True):
-        bench = Bench(netns, args.samples, args.losses)
-        print(f"{bench.tier}: running...", file=sys.stderr, flush=True)
-        results[bench.tier] = bench.run()
+    benches = [Bench(False), Bench(True)]
+    try:
+        for bench in benches:  # one after the other: each start-up time on a machine without the other team
+            print(f"{bench.tier}: starting...", file=sys.stderr, flush=True)
+            bench.start()
+        print("round trips...", file=sys.stderr, flush=True)
+        for _ in range(args.samples):
+            for hops in (1, 2, 3):
+                for bench in benches:
+                    bench.round_trip(hops)
         loads.append(load_average())
-    loop, mesh = results["loopback"], results["netns"]
+        for bench in benches:
+            bench.echo_floor()
+        print("link losses...", file=sys.stderr, flush=True)
+        for _ in range(args.losses):
+            for bench in benches:
+                bench.link_loss()
+        print("discovery...", file=sys.stderr, flush=True)
+        for bench in benches:
+            bench.discovery()
+        loads.append(load_average())
+    finally:
+        for bench in benches:
+            bench.team.stop()
+    loop, mesh = benches[0].out, benches[1].out
     ms = 1000.0
-    print(f"\nload average {min(loads):.1f}-{max(loads):.1f}; {args.samples} round trips per hop count, "
-          f"{args.losses} link losses, per tier\n")
+    print(f"\nload average {min(loads):.1f}-{max(loads):.1f}; both teams running; {args.samples} round trips "
+          f"per hop count, {args.losses} link losses, per tier\n")
     print(f"team up: loopback {loop['up']:.1f} s, netns {mesh['up']:.1f} s\n")
     print("| hops | loopback p50 | p90 | netns p50 | p90 | ratio netns/loopback p50 | UDP echo loopback | UDP echo netns |")
     print("|---|---|---|---|---|---|---|---|")
