@@ -59,7 +59,7 @@ def test_a_user_tasks_the_far_robot_from_another_terminal_opens_the_gui_and_ctrl
         assert url.startswith("http://127.0.0.1:")  # where the loopback tier has it: forwarded into the namespace
         with urllib.request.urlopen(url, timeout=10) as page:
             assert page.status == 200 and b"<html" in page.read().lower()
-        env = {**os.environ, "ERNI_TEAM_KEY": (tmp_path / "run" / "team.key").read_text().strip()}
+        env = {**os.environ, "ERNI_IDENTITY": re.search(r"export ERNI_IDENTITY=(\S+)", text).group(1)}
         done = subprocess.run([sys.executable, "-m", "erni", "task", "--via", via, "robot3", "BotMotion", "turn",
                                "angle=30", "--wait"], capture_output=True, text=True, env=env, timeout=60)
         assert done.returncode == 0, done.stdout + done.stderr
