@@ -1,0 +1,158 @@
+"""Robot agent cost: CPU (% of one core) and RSS of one real robot agent, idle and busy.
+
+The agent is the one `erni sim` runs for a robot (`python -m erni.sim.radio CONFIG`: transport
+with identities, motion on a simulated ARCOS robot over TCP, mobinet reading its simulated
+network node over SNMP, mission), beside a control node that receives its Pose. CPU comes from
+/proc/PID/stat over a window; RSS from /proc/PID/statm.
+
+  idle  the robot stands, no task: SIPs arrive every 0.1 s and the agent publishes its Pose
+  busy  BotMotion randomwalk (the Pose changes every 0.1 s and is shared with the control
+        node) and a NetWatch network_topology task at 1 Hz
+
+Floors measured in the same run:
+  RSS   a fresh interpreter that imported pydantic, pyserial and pysnmp's asyncio API and waits
+  CPU   a bare Python process that reads a simulated robot's pose at 10 Hz with ArcosDriver
+        (`erni robot-sim` in another process over TCP)
+
+    python bench/bench_agent.py [--window 60] [--modes idle,busy]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from erni.sim.scenario import Scenario  # noqa: E402
+from erni.sim.team import Team  # noqa: E402
+
+TICK = os.sysconf("SC_CLK_TCK")
+PAGE = os.sysconf("SC_PAGE_SIZE")
+FLOOR_IMPORTS = "import pydantic, serial, pysnmp.hlapi.v3arch.asyncio"
+
+POSE_READER = """
+import sys, time
+from erni.plugins.motion.driver import ArcosDriver
+d = ArcosDriver(sys.argv[1], name="floor")
+d.open()
+print("ok", flush=True)
+last = None
+reads = 0
+while True:
+    time.sleep(0.1)
+    s = d.state
+    if s is not None and s is not last:
+        last = s
+        reads += 1
+"""
+
+
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU time of a process (s)."""
+    with open(f"/proc/{pid}/stat") as f:
+        fields = f.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / TICK
+
+
+def rss_mb(pid: int) -> float:
+    """Resident set size of a process (MB)."""
+    with open(f"/proc/{pid}/statm") as f:
+        return int(f.read().split()[1]) * PAGE / 1e6
+
+
+def wakeups(pid: int) -> int:
+    """Context switches of all threads of a process so far."""
+    total = 0
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        try:
+            with open(f"/proc/{pid}/task/{tid}/status") as f:
+                total += sum(int(line.split()[1]) for line in f if "ctxt_switches" in line)
+        except FileNotFoundError:
+            pass
+    return total
+
+
+def import_floor() -> subprocess.Popen[str]:
+    """A fresh interpreter that imported the floor's modules and waits on stdin."""
+    p = subprocess.Popen([sys.executable, "-c", f"{FLOOR_IMPORTS}\nimport sys; print('ok', flush=True); "
+                          "sys.stdin.read()"], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, cwd=ROOT)
+    assert p.stdout is not None
+    p.stdout.readline()
+    return p
+
+
+def pose_floor() -> tuple[subprocess.Popen[str], subprocess.Popen[str]]:
+    """`erni robot-sim` and a bare 10 Hz ArcosDriver pose reader on it."""
+    sim = subprocess.Popen([sys.executable, "-m", "erni", "robot-sim", "--port", "0", "--log-level", "WARNING"],
+                           stdout=subprocess.PIPE, text=True, cwd=ROOT)
+    assert sim.stdout is not None
+    url = sim.stdout.readline().split()[1]
+    reader = subprocess.Popen([sys.executable, "-c", POSE_READER, url], stdout=subprocess.PIPE, text=True, cwd=ROOT)
+    assert reader.stdout is not None
+    reader.stdout.readline()
+    return sim, reader
+
+
+def measure(pids: dict[str, int], window: float) -> dict[str, tuple[float, float, float]]:
+    """CPU % of one core, wake-ups/s and RSS (MB) of each process over `window` s."""
+    c0 = {k: cpu_seconds(p) for k, p in pids.items()}
+    w0 = {k: wakeups(p) for k, p in pids.items()}
+    t0 = time.monotonic()
+    time.sleep(window)
+    dt = time.monotonic() - t0
+    return {k: ((cpu_seconds(p) - c0[k]) / dt * 100, (wakeups(p) - w0[k]) / dt, rss_mb(p)) for k, p in pids.items()}
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--window", type=float, default=60.0, help="measuring window per mode (s)")
+    ap.add_argument("--modes", default="idle,busy")
+    ap.add_argument("--settle", type=float, default=5.0, help="wait after start / after tasking (s)")
+    args = ap.parse_args()
+    modes = [m for m in args.modes.split(",") if m]
+
+    floor = import_floor()
+    sim, reader = pose_floor()
+    scenario = Scenario(name="bench-agent", robots={"count": 1})
+    team = Team(scenario, headless=True, control_port=0, ui=False)
+    try:
+        team.start(timeout=60)
+        robot = team.names[0]
+        pids = {"robot agent": team.agents[robot].proc.pid, "control node": team.agents["control"].proc.pid,
+                "pose floor": reader.pid, "import floor": floor.pid}
+        time.sleep(args.settle)
+        print(f"load average at start: {os.getloadavg()[0]:.2f}; window {args.window:.0f} s per mode")
+        for mode in modes:
+            if mode == "busy":
+                team.send_task(robot, "BotMotion", "randomwalk", speed=0.3, seed=1)
+                team.send_task(robot, "NetWatch", "network_topology", rate_hz=1.0)
+                time.sleep(args.settle)
+            load = os.getloadavg()[0]
+            m = measure(pids, args.window)
+            cpu_floor = m["pose floor"][0]
+            rss_floor = m["import floor"][2]
+            print(f"\n{mode} (load average {load:.2f} -> {os.getloadavg()[0]:.2f})")
+            print(f"| process | CPU % of a core | wake-ups/s | RSS MB | CPU / pose floor | RSS / import floor |")
+            print("|---|---|---|---|---|---|")
+            for name, (cpu, wk, rss) in m.items():
+                print(f"| {name} | {cpu:.2f} | {wk:.0f} | {rss:.1f} | {cpu / max(cpu_floor, 1e-9):.1f} | "
+                      f"{rss / rss_floor:.2f} |")
+    finally:
+        team.stop()
+        for p in (reader, sim):
+            p.terminate()
+            p.wait(10)
+        assert floor.stdin is not None
+        floor.stdin.close()
+        floor.wait(10)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
