@@ -3,8 +3,9 @@
 For each NetWatch task (addressed to this agent or to nobody) the plugin publishes one
 `NetInfo` (uid `netinfo:<task uid>`, changed in place at the task's `rate_hz`) and keeps
 the task's result RUNNING with a summary in `values`. Removing the task stops the watch
-and removes its NetInfo. Every `Pose` of this robot is written to the network subsystem
-(paper 004, Figure 6 step 6) when a write community is configured. All SNMP I/O happens on
+and removes its NetInfo. This robot's `Pose` is written to the network subsystem
+(paper 004, Figure 6 step 6) when a write community is configured: when it moved more than
+`write_deadband` or turned a degree, at most once per `write_interval` (the newest is written). All SNMP I/O happens on
 MobiNetResource's thread; results come back through `later()`, so `execute()` only decides
 and publishes. Each NetInfo's `provenance` names the source and table of every field it
 fills; when the source does not provide what a watch needs (an agent without NHDP-MIB asked
@@ -79,7 +80,11 @@ class MobiNetSettings(BaseModel):
     cache_seconds: float = Field(5.0, ge=0, description="reuse a walk while the agent's change "
                                  "counter stands still, at most this long (0: always walk)")
     robot: str | None = Field(None, description="whose Pose to write (default: this agent)")
-    write_pose: bool = Field(True, description="write every Pose to the network subsystem")
+    write_pose: bool = Field(True, description="write this robot's Pose to the network subsystem")
+    write_deadband: float = Field(0.02, ge=0, description="write a Pose only when the robot moved this far "
+                                  "(m) or turned 1 degree since the last one written (0: every Pose)")
+    write_interval: float = Field(0.5, ge=0, le=60, description="at most one position write per interval (s); "
+                                  "the newest Pose is written when it ends (0: no limit)")
     log_interval: float = Field(10.0, gt=0, description="at most one warning per kind per interval (s)")
 
     @field_validator("babel")
@@ -139,7 +144,9 @@ class MobiNetControl(Plugin[MobiNetSettings]):
         self._infos: dict[str, NetInfo] = {}               # task uid -> last published NetInfo
         self._polls: dict[str, int] = {}
         self.resource = MobiNetResource(self.make_source, self._delivered, self.log,
-                                        self.settings.log_interval, name=f"mobinet-{me}")
+                                        self.settings.log_interval, name=f"mobinet-{me}",
+                                        write_interval=self.settings.write_interval)
+        self._written: Position | None = None   # the last position handed to the resource
         self.resource.start()
         snmp = self.settings.source == "snmp"
         self._write_pose = snmp and self.settings.write_pose and self.settings.write_community is not None
@@ -202,8 +209,18 @@ class MobiNetControl(Plugin[MobiNetSettings]):
                 if latest is None or pose.stamp >= latest.stamp:
                     latest = pose
             if latest is not None:
-                self.resource.write_position(
-                    Position(x=latest.x, y=latest.y, heading=math.degrees(latest.theta)))
+                position = Position(x=latest.x, y=latest.y, heading=math.degrees(latest.theta))
+                if self._moved(position):
+                    self._written = position
+                    self.resource.write_position(position)
+
+    def _moved(self, position: Position) -> bool:
+        """True when `position` is worth writing: the first, or beyond the dead-band of the last one."""
+        last, band = self._written, self.settings.write_deadband
+        if last is None or band == 0:
+            return True
+        turned = abs((position.heading - last.heading + 180.0) % 360.0 - 180.0)
+        return math.hypot(position.x - last.x, position.y - last.y) >= band or turned >= 1.0
 
     def _start(self, task: Task) -> None:
         if task.done or task.preposition not in PARTS_OF:

@@ -116,8 +116,9 @@ class MobiNetResource:
 
     def __init__(self, make_source: Callable[[], NetworkSource], deliver: Delivery,
                  log: logging.Logger, log_interval: float = 10.0, name: str = "mobinet",
-                 retry_delay: float = 1.0) -> None:
+                 retry_delay: float = 1.0, write_interval: float = 0.0) -> None:
         self.retry_delay = retry_delay
+        self.write_interval = write_interval
         self._make_source = make_source
         self._deliver = deliver
         self.log = log
@@ -248,10 +249,10 @@ class MobiNetResource:
             # a watch due within a fifth of its period joins this read
             due = [w for w in self._watches.values() if w.due - now <= 0.2 * w.period]
             if not due:
-                nxt = min((w.due for w in self._watches.values()), default=now + 1.0)
+                nxt = min((w.due for w in self._watches.values()), default=None)
                 self._kick.clear()
-                try:
-                    await asyncio.wait_for(self._kick.wait(), max(0.0, nxt - now))
+                try:  # no watch: sleep until one is added (or the resource closes)
+                    await asyncio.wait_for(self._kick.wait(), None if nxt is None else max(0.0, nxt - now))
                 except TimeoutError:
                     pass
                 continue
@@ -289,8 +290,12 @@ class MobiNetResource:
             if pose is None or self._stopping:
                 continue
             self.stats["writes"] += 1
+            started = time.monotonic()
             try:
                 await self.source.write_position(pose)
+                rest = started + self.write_interval - time.monotonic()
+                if rest > 0 and not self._stopping:  # a newer pose meanwhile waits for the interval's end
+                    await asyncio.sleep(rest)
             except Exception as err:
                 self.stats["write_errors"] += 1
                 self.limited.warning("write", f"writing the position failed: {err}")

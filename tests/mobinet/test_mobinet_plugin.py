@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import math
+import time
 
 import pytest
 
@@ -266,3 +267,28 @@ def test_without_a_write_community_no_pose_is_written(served, net, make_agent, c
     assert plugin.resource.stats["writes"] == 0
     assert net.view("robot2").position_updates == 0
     assert any("no write_community" in r.getMessage() for r in caplog.records)
+
+
+def test_a_standing_robot_is_written_once_and_a_moving_one_at_most_once_per_interval(served, net, make_agent):
+    agent, plugin = make_agent("robot2", served["robot2"], write_interval=0.3)
+    with agent.transaction() as tx:
+        tx.add(Pose(robot="robot2", x=10.0, y=1.0))
+    wait_until(lambda: net.view("robot5").positions["robot2"].x == 10.0)
+    pose = agent.query(Pose, where=lambda p: p.robot == "robot2")[0]
+    for i in range(5):   # standing: new SIPs, the same place within the dead-band (2 cm, 1 degree)
+        pose = pose.evolve(x=10.0 + 0.003 * i, theta=math.radians(0.1 * i), stamp=pose.stamp + 0.1)
+        with agent.transaction() as tx:
+            tx.change(pose)
+        time.sleep(0.02)
+    time.sleep(0.5)
+    assert net.view("robot2").position_updates == 1
+    t0 = time.monotonic()
+    for i in range(1, 11):   # moving 10 cm every 20 ms: written at the start and then once per interval
+        pose = pose.evolve(x=10.0 + 0.1 * i, stamp=pose.stamp + 0.1)
+        with agent.transaction() as tx:
+            tx.change(pose)
+        time.sleep(0.02)
+    wait_until(lambda: net.view("robot1").positions["robot2"].x == pytest.approx(11.0))  # the newest, in the end
+    elapsed = time.monotonic() - t0
+    assert 2 <= net.view("robot2").position_updates <= 2 + math.ceil(elapsed / 0.3)
+    assert plugin.resource.stats["write_errors"] == 0
