@@ -132,17 +132,25 @@ class Scheduler:
             for sub in subs:
                 sub._close()
 
-    def check_slow(self) -> None:
-        """Report each plugin run that exceeded the slow limit (once per run)."""
+    def check_slow(self) -> float:
+        """Report each plugin run that exceeded the slow limit (once per run); return when to look again.
+
+        A run that starts after this check is over the limit no earlier than one limit from now, so
+        with nothing running the next look is one limit away, else at the earliest running one's limit.
+        """
         now = time.monotonic()
+        nxt = now + self.slow_seconds
         for plugin in list(self.agent.plugins):
-            if not plugin._running:
+            if not plugin._running or plugin._slow_reported:
                 continue
             elapsed = now - plugin._run_started
-            if elapsed > self.slow_seconds and not plugin._slow_reported:
+            if elapsed > self.slow_seconds:
                 plugin._slow_reported = True
                 plugin.log.warning("plugin %s of agent %s has been running for %.1f s (limit %.1f s)",
                                    plugin.name, self.agent.name, elapsed, self.slow_seconds)
+            else:
+                nxt = min(nxt, plugin._run_started + self.slow_seconds + 0.001)
+        return nxt
 
 
 class Timer:
@@ -199,7 +207,7 @@ class Timers:
         return True
 
     def _loop(self) -> None:
-        watch = max(0.01, min(0.25, self.agent.scheduler.slow_seconds / 4))
+        look = 0.0   # when the slow-plugin watch must look next
         while True:
             due: list[Timer] = []
             with self._cond:
@@ -214,14 +222,15 @@ class Timers:
                     if timer.period:
                         timer.when = max(timer.when + timer.period, now)
                         heapq.heappush(self._heap, (timer.when, next(self._seq), timer))
-                wait = watch
+                wait = look - now
                 if self._heap:
                     wait = min(wait, self._heap[0][0] - now)
                 if not due:
                     self._cond.wait(max(0.0, wait))
             for timer in due:
                 timer.plugin.wake()
-            self.agent.scheduler.check_slow()
+            if time.monotonic() >= look:
+                look = self.agent.scheduler.check_slow()
 
 
 class Agent:

@@ -65,8 +65,7 @@ def run(args: argparse.Namespace, prepare: Callable[[Agent], None] | None = None
             print(f"{args.config}: cannot start agent {config.agent.name}: {str(err).splitlines()[0]}",
                   file=sys.stderr)
             return 2
-        while not stop.wait(0.5):
-            pass
+        stop.wait()   # the signal handler sets it (a blocked wait in the main thread runs handlers)
     finally:
         agent.stop()
         for s, handler in previous.items():

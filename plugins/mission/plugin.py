@@ -36,13 +36,13 @@ from erni.blackboard import (
 )
 from erni.blackboard.schemas import Peer
 from erni.blackboard.tasks import CancelParams, GotoParams, SayParams, StopParams
-from erni.plugins.mission.deploy import RUNNERS, Runner
 from erni.plugins.mission.netaware import NetGuard
 from erni.plugins.mission.remote import RemoteJob, Significance, plan, resumable
 from erni.plugins.mission.team import TeamView, Territory
 
 if TYPE_CHECKING:
     from erni.blackboard.agent import Timer
+    from erni.plugins.mission.deploy import Runner
 
 CUE_TASK = [(4, 72), (4, 79)]          # remote task received: short rising fifth
 CUE_LOST = [(10, 67), (10, 60)]        # connectivity at risk: falling
@@ -281,6 +281,8 @@ class MissionControl(Plugin[MissionSettings]):
         if task.verb == "Deploy":
             if task.preposition in ("widep", "spread", "relay"):
                 self.watch("node_position")
+            from erni.plugins.mission.deploy import RUNNERS  # numpy and the strategies: at the first deployment
+
             runner = RUNNERS[task.preposition](task, self, self.settings, now)
             for pose in self.poses:
                 if pose.robot == self.agent_name:

@@ -19,11 +19,8 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
-import numpy as np
-
 from erni.blackboard import AllocationResult, Params, Pose, Task, TaskState
 from erni.blackboard.tasks import CancelParams, ForwardParams, GotoParams, TurnParams
-from erni.strategies.widep import auxiliary_poi
 
 
 @dataclass(frozen=True)
@@ -56,6 +53,10 @@ def plan(task: Task, pose: Pose | None, *, mode: str = "goto", obstacles: Sequen
     goal = (p.x, p.y)
     if pose is None:
         return [StepSpec("goto", p)]
+    import numpy as np  # imported at the first planned goto, not at agent start
+
+    from erni.strategies.widep import auxiliary_poi
+
     here = np.array([pose.x, pose.y])
     points: list[tuple[float, float]] = []
     if obstacles:

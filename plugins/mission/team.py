@@ -13,12 +13,15 @@ from __future__ import annotations
 
 import math
 import time
+from typing import TYPE_CHECKING
 
-import numpy as np
-from numpy.typing import NDArray
 from pydantic import Field
 
 from erni.blackboard import BBObject, NetInfo, Pose
+
+if TYPE_CHECKING:
+    import numpy as np
+    from numpy.typing import NDArray
 
 
 class Territory(BBObject):
@@ -108,6 +111,8 @@ class TeamView:
             known = self.fresh(now)
         if robots_only:
             known = {n: w for n, w in known.items() if self.roles.get(n, "robot") == "robot" or n == self.me}
+        import numpy as np  # a deployment strategy asks: numpy is imported then, not at agent start
+
         names = [self.me] + sorted(n for n in known if n != self.me) if self.me in known else sorted(known)
         return names, np.array([known[n][:2] for n in names], dtype=float).reshape(-1, 2)
 

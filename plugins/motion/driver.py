@@ -187,6 +187,7 @@ class ArcosDriver:
         self.line_baud: int | None = None  # the serial rate in use on a serial line
         self.stats = DriverStats()
         self.sip_interval = 0.1  # seconds between SIPs, averaged
+        self.read_timeout = max(0.005, min(0.1, pulse_interval / 4, link_timeout / 4))
         self._reader = arcos.PacketReader()
         self.stats.reader = self._reader.stats
         self._port: serial.SerialBase | None = None
@@ -409,7 +410,8 @@ class ArcosDriver:
     def _connect(self) -> bool:
         register_url_handlers()
         try:
-            port = serial.serial_for_url(self.url, baudrate=self.baudrate, timeout=0.02,
+            # the reader wakes on data; the timeout only paces the link and pulse checks between SIPs
+            port = serial.serial_for_url(self.url, baudrate=self.baudrate, timeout=self.read_timeout,
                                          write_timeout=1.0)
         except (serial.SerialException, OSError, ValueError) as err:
             self.last_error = f"cannot open {self.url}: {err}"
