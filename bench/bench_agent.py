@@ -9,6 +9,11 @@ network node over SNMP, mission), beside a control node that receives its Pose. 
   busy  BotMotion randomwalk (the Pose changes every 0.1 s and is shared with the control
         node) and a NetWatch network_topology task at 1 Hz
 
+Whole-robot memory, beside paper 004 Table 1 (VmRSS on the robot's iPAQ: JVM + CougaarME 7.5 MB,
+Player 1 MB, NetMgmt 1.7 MB, UCD SNMP agent 1.5 MB): the robot agent (it is the driver too: the
+ARCOS driver runs inside the motion plugin), net-snmp's snmpd as the SNMP agent a real robot
+runs (Debian's, when installed), and a bare interpreter; RSS, PSS and private memory.
+
 Floors measured in the same run:
   RSS   a fresh interpreter that imported pydantic, pyserial and pysnmp's asyncio API and waits
   CPU   a bare Python process that reads a simulated robot's pose at 10 Hz with ArcosDriver
@@ -21,8 +26,10 @@ from __future__ import annotations
 
 import argparse
 import os
+import shutil
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -78,6 +85,33 @@ def wakeups(pid: int) -> int:
     return total
 
 
+def memory(pid: int) -> tuple[float, float, float]:
+    """RSS, PSS and private (unshared) memory of a process (MB), from smaps_rollup."""
+    fields: dict[str, int] = {}
+    with open(f"/proc/{pid}/smaps_rollup") as f:
+        for line in f:
+            parts = line.split()
+            if len(parts) == 3 and parts[2] == "kB":
+                fields[parts[0].rstrip(":")] = int(parts[1])
+    private = fields.get("Private_Clean", 0) + fields.get("Private_Dirty", 0)
+    return fields.get("Rss", 0) / 1024, fields.get("Pss", 0) / 1024, private / 1024
+
+
+def start_snmpd(workdir: str) -> subprocess.Popen[str] | None:
+    """Debian's net-snmp snmpd on a loopback port (read-only community), or None when not installed."""
+    snmpd = shutil.which("snmpd") or ("/usr/sbin/snmpd" if os.path.exists("/usr/sbin/snmpd") else None)
+    if snmpd is None:
+        return None
+    conf = Path(workdir) / "snmpd.conf"
+    conf.write_text("rocommunity public 127.0.0.1\n")
+    import socket
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    return subprocess.Popen([snmpd, "-f", "-Lo", "-C", "-c", str(conf), "-r", f"udp:127.0.0.1:{port}"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, text=True)
+
+
 def import_floor() -> subprocess.Popen[str]:
     """A fresh interpreter that imported the floor's modules and waits on stdin."""
     p = subprocess.Popen([sys.executable, "-c", f"{FLOOR_IMPORTS}\nimport sys; print('ok', flush=True); "
@@ -118,6 +152,12 @@ def main() -> int:
     modes = [m for m in args.modes.split(",") if m]
 
     floor = import_floor()
+    bare = subprocess.Popen([sys.executable, "-c", "import sys; print('ok', flush=True); sys.stdin.read()"],
+                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    assert bare.stdout is not None
+    bare.stdout.readline()
+    workdir = tempfile.mkdtemp(prefix="bench-agent-")
+    snmpd = start_snmpd(workdir)
     sim, reader = pose_floor()
     scenario = Scenario(name="bench-agent", robots={"count": 1})
     team = Team(scenario, headless=True, control_port=0, ui=False)
@@ -138,19 +178,35 @@ def main() -> int:
             cpu_floor = m["pose floor"][0]
             rss_floor = m["import floor"][2]
             print(f"\n{mode} (load average {load:.2f} -> {os.getloadavg()[0]:.2f})")
-            print(f"| process | CPU % of a core | wake-ups/s | RSS MB | CPU / pose floor | RSS / import floor |")
+            print("| process | CPU % of a core | wake-ups/s | RSS MB | CPU / pose floor | RSS / import floor |")
             print("|---|---|---|---|---|---|")
             for name, (cpu, wk, rss) in m.items():
                 print(f"| {name} | {cpu:.2f} | {wk:.0f} | {rss:.1f} | {cpu / max(cpu_floor, 1e-9):.1f} | "
                       f"{rss / rss_floor:.2f} |")
+        print("\nwhole robot (memory at the end of the run), beside paper 004 Table 1")
+        print("| process | RSS MB | PSS MB | private MB | paper 004 (VmRSS) |")
+        print("|---|---|---|---|---|")
+        rows = [("robot agent (agent + ARCOS driver + SNMP client)", pids["robot agent"],
+                 "7.5 MB JVM + CougaarME, 1 MB Player, 1.7 MB NetMgmt")]
+        if snmpd is not None and snmpd.poll() is None:
+            rows.append(("net-snmp snmpd (Debian)", snmpd.pid, "1.5 MB UCD SNMP agent"))
+        rows += [("bare python3 interpreter", bare.pid, ""), ("import floor (pydantic, pyserial, pysnmp)", floor.pid, "")]
+        for label, pid, paper in rows:
+            rss, pss, private = memory(pid)
+            print(f"| {label} | {rss:.1f} | {pss:.1f} | {private:.1f} | {paper} |")
     finally:
         team.stop()
         for p in (reader, sim):
             p.terminate()
             p.wait(10)
-        assert floor.stdin is not None
-        floor.stdin.close()
-        floor.wait(10)
+        if snmpd is not None:
+            snmpd.terminate()
+            snmpd.wait(10)
+        for p in (floor, bare):
+            assert p.stdin is not None
+            p.stdin.close()
+            p.wait(10)
+        shutil.rmtree(workdir, ignore_errors=True)
     return 0
 
 

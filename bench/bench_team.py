@@ -1,0 +1,130 @@
+"""Team scale: does `erni sim --headless --robots N` hold real time on this machine?
+
+For each N a whole simulated team is started as `erni sim` starts it (one agent process per
+robot with transport, motion, mobinet and mission; the control node; the world, the simulated
+robots and the SNMP network nodes in this process). Every robot random-walks (or stands, with
+`--idle`); a watcher on the control node records every Pose the control node holds for
+`--window` seconds. Real time holds when the interval between consecutive Poses of a robot at
+the control node has p99 within 2x the 0.1 s pose period and every robot is heard by the
+control node. The floor of the interval is the period itself (0.1 s), an input of the
+simulation, not a finding. CPU (% of one core) and RSS per agent come from /proc.
+
+    python bench/bench_team.py [--robots 10,20,50] [--window 20] [--idle]
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import statistics
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from erni.sim.scenario import Scenario  # noqa: E402
+from erni.sim.team import Team  # noqa: E402
+from erni.transport.bridge import WatchEvent, WatchRequest  # noqa: E402
+
+TICK = os.sysconf("SC_CLK_TCK")
+PAGE = os.sysconf("SC_PAGE_SIZE")
+PERIOD = 0.1
+
+
+def pct(values: list[float], q: float) -> float:
+    s = sorted(values)
+    return s[min(len(s) - 1, max(0, math.ceil(q * len(s)) - 1))] if s else float("nan")
+
+
+def cpu_seconds(pid: int) -> float:
+    with open(f"/proc/{pid}/stat") as f:
+        fields = f.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / TICK
+
+
+def rss_mb(pid: int) -> float:
+    with open(f"/proc/{pid}/statm") as f:
+        return int(f.read().split()[1]) * PAGE / 1e6
+
+
+def run(n: int, window: float, idle: bool) -> dict[str, float]:
+    cols = max(1, math.ceil(math.sqrt(n)))
+    side = cols * 3.0
+    scenario = Scenario(name=f"team{n}", robots={"count": n, "layout": "grid", "spacing": 3.0,
+                                                 "origin": [0.0, 0.0], "heading": "random"},
+                        radio={"comm_range": 1000.0, "lossless_range": 1000.0},
+                        world={"name": "hall", "bounds": [-side / 2 - 3, -3.0, side / 2 + 3, side + 3]})
+    team = Team(scenario, headless=True, control_port=0, ui=False)
+    t0 = time.monotonic()
+    try:
+        team.start(timeout=60 + 3 * n)
+        startup = time.monotonic() - t0
+        if not idle:
+            for name in team.names:
+                team.send_task(name, "BotMotion", "randomwalk", speed=0.3, seed=1)
+        time.sleep(3.0)
+        client = team.client()
+        pids = {name: a.proc.pid for name, a in team.agents.items() if a.proc}
+        cpu0 = {name: cpu_seconds(pid) for name, pid in pids.items()}
+        sim0 = cpu_seconds(os.getpid())
+        load0 = os.getloadavg()[0]
+        stamps: dict[str, list[float]] = {name: [] for name in team.names}
+        start = time.monotonic()
+        next_lease = 0.0
+        while time.monotonic() - start < window:
+            if time.monotonic() >= next_lease:
+                client.send(team.control_address, "watch.request", WatchRequest(lease=5.0), reliable=False)
+                next_lease = time.monotonic() + 2.0
+            msg = client.receive(0.05)
+            if msg is None or msg.kind != "watch.event" or not isinstance(msg.body, WatchEvent):
+                continue
+            ev = msg.body
+            robot = ev.data.get("robot")
+            if ev.type == "Pose" and ev.agent == "control" and robot in stamps:
+                stamps[robot].append(float(ev.data["stamp"]))
+        elapsed = time.monotonic() - start
+        cpu = {name: (cpu_seconds(pid) - cpu0[name]) / elapsed * 100 for name, pid in pids.items()}
+        sim_cpu = (cpu_seconds(os.getpid()) - sim0) / elapsed * 100
+        rss = {name: rss_mb(pid) for name, pid in pids.items()}
+        heard = sum(1 for p in team.peers().values() if p.name in stamps)
+        load1 = os.getloadavg()[0]
+    finally:
+        team.stop()
+    intervals: list[float] = []
+    for seq in stamps.values():
+        seq = sorted(set(seq))
+        intervals += [b - a for a, b in zip(seq, seq[1:])]
+    poses = sum(len(set(s)) for s in stamps.values())
+    robots = list(team.names)
+    return {"robots": n, "startup": startup, "p50": pct(intervals, 0.5) * 1000, "p99": pct(intervals, 0.99) * 1000,
+            "share": poses / (n * elapsed / PERIOD), "heard_peers": heard,
+            "heard_poses": sum(1 for s in stamps.values() if s),
+            "cpu": statistics.median(cpu[r] for r in robots), "control_cpu": cpu["control"], "sim_cpu": sim_cpu,
+            "rss": statistics.median(rss[r] for r in robots), "load": (load0 + load1) / 2}
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--robots", default="10,20,50")
+    ap.add_argument("--window", type=float, default=20.0)
+    ap.add_argument("--idle", action="store_true", help="robots stand (default: they random-walk)")
+    args = ap.parse_args()
+    print(f"robots {'stand' if args.idle else 'random-walk'}; Pose period {PERIOD * 1000:.0f} ms (input); "
+          f"real time = interval p99 <= {2 * PERIOD * 1000:.0f} ms and every robot heard")
+    print("| robots | start-up s | interval p50 / p99 ms at control | p99 / period | Poses at control / expected "
+          "| heard (directory / Poses) | CPU / robot % | control % | sim % | RSS / robot MB | load | real time |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for n in [int(x) for x in args.robots.split(",") if x]:
+        r = run(n, args.window, args.idle)
+        ok = r["p99"] <= 2 * PERIOD * 1000 and r["heard_peers"] == n and r["heard_poses"] == n
+        print(f"| {n} | {r['startup']:.1f} | {r['p50']:.0f} / {r['p99']:.0f} | {r['p99'] / (PERIOD * 1000):.1f} | "
+              f"{r['share']:.2f} | {r['heard_peers']} / {r['heard_poses']} of {n} | {r['cpu']:.1f} | "
+              f"{r['control_cpu']:.1f} | {r['sim_cpu']:.1f} | {r['rss']:.0f} | {r['load']:.1f} | "
+              f"{'yes' if ok else 'no'} |", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
