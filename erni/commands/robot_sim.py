@@ -89,8 +89,7 @@ def run(args: argparse.Namespace) -> int:
         for i, robot in enumerate(host.robots):
             print(f"{robot.config.name}: {host.url(i)}  ({robot.config.subclass}, world {world.name!r}, "
                   f"start {robot.x:.2f} {robot.y:.2f})", flush=True)
-        while not stop.wait(0.5):
-            pass
+        stop.wait()   # the signal handler sets it
     finally:
         host.stop()
         for s, handler in previous.items():
