@@ -231,3 +231,32 @@ def test_hello_counters_give_the_link_quality_between_readings():
     assert qualities[0] == pytest.approx(0.8, abs=0.05)
     assert qualities[-1] == pytest.approx(0.5, abs=0.1)   # the window follows the change
     assert view.neighbors[0].metric == round(1024 / 0.25)
+
+
+def test_a_steady_refresh_asks_only_the_node_name_and_its_change_counters(served, net):
+    async def go():
+        src = SnmpSource(*served["robot3"], cache_seconds=60.0)
+        asked: list[list[tuple[int, ...]]] = []
+        get = src.get
+
+        async def recording(oids, optional=frozenset()):
+            oids = list(oids)
+            asked.append(oids)
+            return await get(oids, optional)
+        src.get = recording
+        try:
+            first = await src.read(PARTS)
+            asked.clear()
+            again = await src.read(PARTS)
+            steady = list(asked)
+            asked.clear()
+            net.move("robot5", 150.0, 40.0)
+            moved = await src.read(PARTS)
+            return first, again, steady, moved, list(asked)
+        finally:
+            await src.aclose()
+    first, again, steady, moved, after = run(go())
+    assert [len(oids) for oids in steady] == [3]
+    assert again.neighbors == first.neighbors and again.links == first.links
+    assert len(after) == 2 and len(after[1]) > 3     # the short check, then the full identity GET
+    assert "robot5" in {n.name for n in moved.neighbors}
