@@ -56,9 +56,10 @@ def test_deployment_imports_numpy_when_first_needed():
 
 
 def switches(tid: int) -> int:
-    """Context switches of one thread of this process so far (each wake-up is at least one)."""
+    """Voluntary context switches of one thread of this process so far: one per wake-up (going back
+    to sleep); preemptions by a loaded machine are not counted."""
     with open(f"/proc/self/task/{tid}/status") as f:
-        return sum(int(line.split()[1]) for line in f if "ctxt_switches" in line)
+        return sum(int(line.split()[1]) for line in f if line.startswith("voluntary_ctxt_switches"))
 
 
 class Quiet(Plugin):
@@ -85,7 +86,7 @@ def test_an_idle_agents_timer_and_worker_threads_sleep():
         agent.stop()
     # the slow-plugin watch looks once per limit (1 s) while nothing runs: 2 or 3 wake-ups in 2 s
     # (it used to look every 0.25 s: 8); workers wait on their queue
-    assert sum(woke.values()) <= 6, woke
+    assert sum(woke.values()) <= 5, woke
 
 
 def test_a_slow_plugin_is_still_reported_at_its_limit(caplog):
@@ -128,10 +129,10 @@ def test_erni_agent_stops_at_once_on_sigterm(tmp_path):
         assert p.poll() is None
         main_tid = p.pid
         with open(f"/proc/{p.pid}/task/{main_tid}/status") as f:
-            a = sum(int(line.split()[1]) for line in f if "ctxt_switches" in line)
+            a = sum(int(line.split()[1]) for line in f if line.startswith("voluntary_ctxt_switches"))
         time.sleep(1.5)
         with open(f"/proc/{p.pid}/task/{main_tid}/status") as f:
-            b = sum(int(line.split()[1]) for line in f if "ctxt_switches" in line)
+            b = sum(int(line.split()[1]) for line in f if line.startswith("voluntary_ctxt_switches"))
         os.kill(p.pid, 15)
         assert p.wait(10) == 0
     finally:
