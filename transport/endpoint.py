@@ -31,13 +31,13 @@ import threading
 import time
 from collections import OrderedDict, deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 from pydantic import BaseModel
+from pydantic_core import to_json
 
-from erni.blackboard import new_uid
 from erni.blackboard.errors import ConfigError, NetworkError
 from erni.transport.identity import Identity, IdentityError, read_crl, write_public
 from erni.transport.limits import HostBuckets, Limits, TokenBucket
@@ -57,6 +57,7 @@ from erni.transport.wire import (
     BEACON,
     DATA,
     DEFAULT_MAX_FRAME,
+    HEADER,
     HELLO,
     HINT,
     KIND,
@@ -65,14 +66,14 @@ from erni.transport.wire import (
     REPLY,
     SESSION_END,
     UDP_MAX_FRAME,
-    Envelope,
     FrameError,
     Message,
     SeenIds,
     StreamDecoder,
     body_of,
     check_frame,
-    encode_plain,
+    encode_body,
+    envelope_bytes,
     parse_envelope,
 )
 
@@ -108,10 +109,14 @@ class _Outgoing:
     id: str
     kind: str
     type: str | None
-    body: Any
+    body: Any  # as given to send(): what on_undeliverable hands back
+    data: bytes  # the body's JSON, serialised when queued
+    seq: int  # numbered when queued: a receiver orders a sender's messages as they were sent
     deadline: float
     to: str = ""
     attempts: int = 0
+    written: socket.socket | None = None  # the connection the caller's thread wrote it on (`_write_now`)
+    rest: bytes = b""  # what the socket did not take then
 
 
 @dataclass
@@ -216,6 +221,7 @@ class Endpoint:
         self.limits = limits or Limits()
         self.inst = os.urandom(16).hex()
         self._seq = itertools.count(1)
+        self._id_prefix = os.urandom(6).hex() + "."  # message ids: unique per instance, cheap (no uuid)
         self.log = logging.getLogger(f"erni.{name}.transport")
         self._drops = _RateLimitedLog(self.log)
         self.counters: dict[str, int] = {}
@@ -450,10 +456,14 @@ class Endpoint:
 
     def _enqueue(self, addr: Address, kind: str, body: Any, lane: str, msg_id: str | None,
                  ttl: float | None, to: str | None) -> str:
-        msg_id = msg_id or new_uid()
-        type_name = type(body).__name__ if isinstance(body, BaseModel) else None
-        payload = body.model_dump(mode="json") if isinstance(body, BaseModel) else body
-        out = _Outgoing(msg_id, kind, type_name, payload, time.monotonic() + (ttl or self.ttl), to or "")
+        seq = next(self._seq)
+        msg_id = msg_id or f"{self._id_prefix}{seq:x}"
+        type_name, data = encode_body(body)
+        out = _Outgoing(msg_id, kind, type_name, body, data, seq, time.monotonic() + (ttl or self.ttl), to or "")
+        if lane == "fast" and self._send_now(addr, out):
+            return msg_id
+        if lane == "reliable" and self._write_now(addr, out):
+            return msg_id
         undeliverable = False
         with self._cond:
             if self._stopping:
@@ -481,6 +491,80 @@ class Endpoint:
             self.on_undeliverable(addr, msg_id, kind, body)
         return msg_id
 
+    def _send_now(self, addr: Address, out: _Outgoing) -> bool:
+        """Send a fast message from the caller's thread when that cannot wait: True when it is done.
+
+        Only in a confirmed session (no handshake to drive), with nothing queued before it for
+        that destination, and only what the socket takes at once: the UDP socket never blocks
+        (a full send buffer raises at once), and then the message is queued for the sender pool.
+        """
+        if not self._threads or self._stopping:
+            return False
+        session: Session | None = None
+        if self.auth is not None:
+            session = self.session_with(addr)
+            if session is None or (out.to and out.to != session.peer):
+                return False  # a handshake first, or a wrong peer to report: the pool does both
+        dest = self._dests.get(addr)
+        if dest is not None and (dest.fast or dest.announce):
+            return False  # keep the order of what is queued already
+        try:
+            self._sendto(self._frame(out, session, min(self.max_frame, UDP_MAX_FRAME)), addr)
+        except (BlockingIOError, InterruptedError):
+            self.count("sent.deferred")
+            return False  # the socket's buffer is full: the pool sends it when it drains
+        except FrameError as err:
+            self.count("dropped.too_big")
+            self._drops.warning("too_big", f"not sent to {addr}: {err}")
+        except OSError as err:
+            self.count("dropped.fast_error")
+            self._drops.warning("udp", f"UDP send to {addr[0]}:{addr[1]} failed: {err}")
+        else:
+            self.count("sent.fast")
+        return True
+
+    def _write_now(self, addr: Address, out: _Outgoing) -> bool:
+        """Write a reliable message on its destination's open connection from the caller's thread.
+
+        Only when that destination is idle (nothing queued, no sender serving it, no backoff) in a
+        confirmed session; the write never blocks (what the socket does not take at once is left
+        to the sender), and a sender thread then waits for the acknowledgement, retries and
+        reports as for any reliable message. True when the message is queued that way.
+        """
+        if not self._threads or self._stopping:
+            return False
+        session: Session | None = None
+        if self.auth is not None:
+            session = self.session_with(addr)
+            if session is None or (out.to and out.to != session.peer):
+                return False
+        now = time.monotonic()
+        with self._cond:
+            dest = self._dests.get(addr)
+            if (dest is None or dest.busy or dest.ready or dest.has_work() or dest.sock is None
+                    or now < dest.next_try or now - dest.sock_used > self.limits.idle_timeout / 2):
+                return False
+            dest.busy = True  # no sender touches this connection while the caller writes on it
+            sock = dest.sock
+        written, frame = 0, b""
+        try:
+            frame = self._frame(out, session, self.max_frame)
+            written = os.write(sock.fileno(), frame)  # the socket is non-blocking (it has a timeout)
+        except (BlockingIOError, InterruptedError):
+            self.count("sent.deferred")
+        except (OSError, FrameError):
+            frame = b""  # a broken connection or a frame too big: the sender finds out and reports
+        with self._cond:
+            if frame:
+                out.written, out.rest = sock, frame[written:]
+                dest.sock_used = now
+                if out.rest:
+                    self.count("sent.partial")
+            dest.reliable.append(out)
+            dest.busy = dest.again = False
+            self._make_ready(dest)
+        return True
+
     def _make_ready(self, dest: _Dest) -> None:
         # under self._cond: serve this destination now (a delayed wake-up of it becomes stale)
         if dest.busy:
@@ -500,17 +584,16 @@ class Endpoint:
         self._cond.notify()
 
     def _envelope(self, out: _Outgoing, to: str) -> bytes:
-        env = Envelope.model_construct(v=2, sender=self.name, role=self.role, to=to, inst=self.inst,
-                                       reply=self.address, seq=next(self._seq), id=out.id, kind=out.kind,
-                                       type=out.type, body=out.body)  # our own fields: no need to validate
-        return env.model_dump_json().encode()
+        return envelope_bytes(self.name, self.role, to, self.inst, self.address, out.seq, out.id, out.kind,
+                              out.type, out.data)  # our own fields: no need to validate
 
     def _frame(self, out: _Outgoing, session: Session | None, max_frame: int) -> bytes:
         if session is None:
-            env = Envelope.model_construct(v=2, sender=self.name, role=self.role, to=out.to, inst=self.inst,
-                                           reply=self.address, seq=next(self._seq), id=out.id, kind=out.kind,
-                                           type=out.type, body=out.body)
-            return encode_plain(env, max_frame)
+            payload = self._envelope(out, out.to)
+            length = 1 + len(payload)
+            if HEADER.size + length > max_frame:
+                raise FrameError("size", f"frame of {HEADER.size + length} bytes exceeds the limit of {max_frame}")
+            return KIND.pack(length, PLAIN) + payload
         return session.seal(self._envelope(out, session.peer), max_frame)
 
     def _sendto(self, frame: bytes, addr: Address) -> None:
@@ -684,12 +767,9 @@ class Endpoint:
         return min(init.next_try, init.started + self.handshake_timeout + 0.001)
 
     def _announce(self, dest: _Dest, out: _Outgoing) -> None:
-        env = Envelope.model_construct(v=2, sender=self.name, role=self.role, to="", inst=self.inst,
-                                       reply=self.address, seq=next(self._seq), id=out.id, kind=out.kind,
-                                       type=out.type, body=out.body)
         try:
-            frame = encode_plain(env, UDP_MAX_FRAME) if self.auth is None else \
-                self.auth.sign(BEACON, env.model_dump_json().encode())
+            frame = self._frame(replace(out, to=""), None, UDP_MAX_FRAME) if self.auth is None else \
+                self.auth.sign(BEACON, self._envelope(out, ""))
             self._sendto(frame, dest.addr)
             self.count("sent.announce")
         except (OSError, FrameError) as err:
@@ -697,8 +777,12 @@ class Endpoint:
             self._drops.warning("udp", f"beacon to {dest.addr[0]}:{dest.addr[1]} failed: {err}")
 
     def _deliver(self, dest: _Dest, out: _Outgoing, session: Session | None) -> bool:
+        written, out.written = out.written, None
         try:
-            frame = self._frame(out, session, self.max_frame)
+            if written is not None and written is dest.sock:
+                frame = out.rest  # written by the caller's thread (`_write_now`): the rest, then the ack
+            else:
+                frame = self._frame(out, session, self.max_frame)
         except FrameError as err:
             with self._cond:
                 dest.reliable.popleft()
@@ -716,7 +800,8 @@ class Endpoint:
                 dest.decoder = StreamDecoder(self.max_frame)
             dest.sock_used = now
             dest.sock.settimeout(self.ack_timeout)
-            dest.sock.sendall(frame)
+            if frame:
+                dest.sock.sendall(frame)
             deadline = time.monotonic() + self.ack_timeout
             while time.monotonic() < deadline:
                 data = dest.sock.recv(65536)
@@ -1090,7 +1175,8 @@ class Endpoint:
             conn.authed = True
             if msg.kind == "ack":
                 continue
-            ack = _Outgoing(new_uid(), "ack", None, msg.id, 0.0, msg.sender)
+            seq = next(self._seq)
+            ack = _Outgoing(f"{self._id_prefix}{seq:x}", "ack", None, msg.id, to_json(msg.id), seq, 0.0, msg.sender)
             try:
                 conn.sock.sendall(self._frame(ack, session, self.max_frame))
             except (OSError, FrameError):

@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic_core import to_json
 
 from erni.blackboard import AllocationResult, NetInfo, Pose, Task
 from erni.blackboard.errors import ErniError, UsageError, shown
@@ -105,6 +106,21 @@ class Message:
 def envelope_json(env: Envelope) -> bytes:
     """Serialise an envelope (our own fields: no validation)."""
     return env.model_dump_json().encode()
+
+
+def encode_body(body: Any) -> tuple[str | None, bytes]:
+    """A body's type tag (None for plain JSON values) and its JSON, serialised once when it is queued."""
+    if isinstance(body, BaseModel):
+        return type(body).__name__, body.__pydantic_serializer__.to_json(body)
+    return None, to_json(body)
+
+
+def envelope_bytes(sender: str, role: str, to: str, inst: str, reply: tuple[str, int], seq: int, msg_id: str,
+                   kind: str, type_name: str | None, body: bytes) -> bytes:
+    """The JSON of an envelope around a body already serialised (`encode_body`): what `envelope_json` gives."""
+    head = to_json({"v": VERSION, "sender": sender, "role": role, "to": to, "inst": inst, "reply": reply,
+                    "seq": seq, "id": msg_id, "kind": kind, "type": type_name})
+    return head[:-1] + b',"body":' + body + b"}"
 
 
 def parse_envelope(payload: bytes) -> Envelope:

@@ -1,0 +1,138 @@
+"""The frame path: what the caller's thread sends itself, and what it leaves to the sender pool.
+
+A status goes out from the caller's thread when a session is up and nothing is queued before
+it; a reliable message is written there when its connection is idle. Neither may ever block
+the caller: a full socket leaves the message to the pool, which delivers it in order.
+"""
+
+from __future__ import annotations
+
+import socket
+import threading
+from typing import Any
+
+from erni.blackboard import Pose
+from erni.blackboard.testing import wait_until
+from erni.transport import Endpoint
+from erni.transport.identity import load_identity
+from erni.transport.limits import Limits
+from tests.transport.helpers import identity
+
+
+def endpoint(name: str, **kw: Any) -> tuple[Endpoint, list]:
+    ep = Endpoint(name, identity=load_identity(identity(name)), ack_timeout=2.0, connect_timeout=0.5, **kw)
+    got: list = []
+    ep.on_message = got.append
+    ep.start()
+    return ep, got
+
+
+def returns(call: Any) -> bool:
+    """Run `call` in a thread; True when it returned (while the test still holds the peer stuck)."""
+    done = threading.Event()
+
+    def run() -> None:
+        call()
+        done.set()
+
+    threading.Thread(target=run, daemon=True).start()
+    return done.wait(10)
+
+
+class FullSocket:
+    """The endpoint's UDP socket with its send buffer full while `full` is set: sendto raises
+    EAGAIN at once, as a non-blocking socket does (loopback drops instead, so it is simulated)."""
+
+    def __init__(self, sock: socket.socket):
+        self.sock, self.full, self.refused = sock, threading.Event(), 0
+
+    def sendto(self, data: bytes, addr: Any) -> int:
+        if self.full.is_set():
+            self.refused += 1
+            raise BlockingIOError(11, "Resource temporarily unavailable")
+        return self.sock.sendto(data, addr)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.sock, name)
+
+
+def test_a_status_goes_out_from_the_callers_thread_once_a_session_is_up():
+    a, _ = endpoint("fp-a")
+    b, got = endpoint("fp-b")
+    try:
+        a.send(b.address, "status", Pose(robot="r0"), reliable=False, to="fp-b")  # starts the session
+        wait_until(lambda: len(got) == 1)
+        sender = threading.current_thread().name
+        seen: list[str] = []
+        real = a._sendto
+        a._sendto = lambda frame, addr: (seen.append(threading.current_thread().name), real(frame, addr))[1]
+        for i in range(1, 6):
+            a.send(b.address, "status", Pose(robot=f"r{i}"), reliable=False, to="fp-b")
+        wait_until(lambda: len(got) == 6)
+        assert seen == [sender] * 5  # sent by the caller, no sender thread involved
+        assert [m.body.robot for m in got] == [f"r{i}" for i in range(6)]
+        assert [m.seq for m in got] == sorted(m.seq for m in got)
+    finally:
+        a.stop()
+        b.stop()
+
+
+def test_a_status_never_blocks_on_a_full_socket_and_the_pool_sends_it_later():
+    a, _ = endpoint("fp-c")
+    b, got = endpoint("fp-d")
+    try:
+        a.send(b.address, "status", Pose(robot="r0"), reliable=False, to="fp-d")
+        wait_until(lambda: len(got) == 1)
+        full = FullSocket(a._udp)
+        a._udp = full  # type: ignore[assignment]  # the same socket, its send buffer full at will
+        full.full.set()
+        assert returns(lambda: [a.send(b.address, "status", Pose(robot=f"r{i}"), reliable=False, to="fp-d")
+                                for i in range(1, 4)])
+        wait_until(lambda: a.counters.get("sent.deferred", 0) >= 1)
+        assert full.refused >= 1 and len(got) == 1  # nothing lost, nothing sent while full
+        full.full.clear()  # the buffer drains: the sender pool sends what waited, in order
+        wait_until(lambda: len(got) == 4)
+        assert [m.body.robot for m in got] == ["r0", "r1", "r2", "r3"]
+    finally:
+        a.stop()
+        b.stop()
+
+
+def test_reliable_sends_never_block_on_a_peer_that_stops_reading_and_arrive_in_order():
+    """The first is written by the caller's thread, but only in part (the peer's buffers are full of
+    it); the pool finishes that frame and sends the rest in order once the peer reads again."""
+    huge = 48 * 1024 * 1024  # a frame far larger than any socket buffer takes at once
+    a, _ = endpoint("fp-e", max_frame=huge)
+    b, got = endpoint("fp-f", max_frame=huge, limits=Limits(buffer_budget=huge))
+    stuck = threading.Event()
+    release = threading.Event()
+    received: list[str] = []
+
+    def on_message(msg: Any) -> None:
+        received.append(msg.kind)
+        if msg.kind == "stop-reading":
+            stuck.set()
+            release.wait(30)  # b's receive thread stops here: its sockets fill up
+
+    b.on_message = on_message
+    delivered: list[str] = []
+    a.on_delivered = lambda addr, mid: delivered.append(mid)
+    try:
+        a.send(b.address, "hello", Pose(robot="r0"), reliable=True, to="fp-f", msg_id="m0")
+        wait_until(lambda: delivered == ["m0"])  # session and connection up, destination idle
+        a.send(b.address, "stop-reading", None, reliable=True, to="fp-f", msg_id="m1")
+        assert stuck.wait(5)
+        wait_until(lambda: delivered == ["m0", "m1"])  # acknowledged before the handler stopped
+        ids = [f"m{i}" for i in range(2, 8)]
+        bodies = [{"blob": "x" * (16 * 1024 * 1024)}] + [{"n": i} for i in range(5)]
+        assert returns(lambda: [a.send(b.address, "bulk", body, reliable=True, to="fp-f", msg_id=mid)
+                                for mid, body in zip(ids, bodies, strict=True)])
+        assert a.counters.get("sent.partial") == 1 and delivered == ["m0", "m1"]
+        release.set()
+        wait_until(lambda: len(delivered) == 8, timeout=20)
+        assert delivered == ["m0", "m1", *ids] and received == ["hello", "stop-reading"] + ["bulk"] * 6
+        assert len(got) == 0 and a.counters.get("retries", 0) == 0  # the frame was finished, not sent again
+    finally:
+        release.set()
+        a.stop()
+        b.stop()
