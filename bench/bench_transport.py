@@ -10,6 +10,11 @@ endpoints (per-agent identities from a team authority made for the run), then op
 replay-checked and validated; the floors do none of that. The session's handshake (once per
 pair: X25519 and two Ed25519 signatures) is timed on its own: the first message to a new peer.
 
+Zenoh's Python binding (`eclipse-zenoh`, `pip install -e .[bench]`) runs in the same rounds with
+the same payload: two sessions in peer mode over TCP on loopback, `put` -> subscriber callback
+(one-way), `get` -> queryable reply (a request/response, beside ERNI's task -> acknowledgement)
+and a `put` burst. Without it installed those rows are left out.
+
     python bench/bench_transport.py [--rounds 5] [--pings 500] [--burst 5000]
 """
 
@@ -118,6 +123,90 @@ def erni_round(pings: int, burst: int) -> tuple[list[float], list[float], float,
         b.stop()
 
 
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def zenoh_round(pings: int, burst: int) -> tuple[list[float], list[float], float] | None:
+    """Zenoh put -> subscriber one-way, get -> queryable round trip, put burst (None: not installed)."""
+    try:
+        import zenoh  # type: ignore[import-not-found]  # a benchmark-only extra
+    except ImportError:
+        return None
+
+    def config(listen: int, connect: int | None) -> zenoh.Config:
+        conf = zenoh.Config()
+        conf.insert_json5("mode", '"peer"')
+        conf.insert_json5("scouting/multicast/enabled", "false")
+        conf.insert_json5("listen/endpoints", f'["tcp/127.0.0.1:{listen}"]')
+        if connect is not None:
+            conf.insert_json5("connect/endpoints", f'["tcp/127.0.0.1:{connect}"]')
+        return conf
+
+    payload = Pose(robot="r1", x=1.0, y=2.0, theta=0.5, v=0.3, battery=12.5).model_dump_json().encode()
+    port = _free_port()
+    s1 = zenoh.open(config(port, None))
+    s2 = zenoh.open(config(_free_port(), port))
+    got = threading.Event()
+    arrived = [0.0]
+    count = [0]
+    last = [0.0]
+    target = [0]
+
+    def on_sample(sample: object) -> None:
+        now = time.perf_counter()
+        arrived[0] = now
+        count[0] += 1
+        last[0] = now
+        if count[0] >= target[0]:
+            got.set()
+
+    sub = s2.declare_subscriber("erni/bench/status", on_sample)
+    queryable = s2.declare_queryable("erni/bench/task", lambda query: query.reply(query.key_expr, b"ack"))
+    pub = s1.declare_publisher("erni/bench/status")
+    try:
+        deadline = time.monotonic() + 5  # until the two sessions have met and declared
+        while time.monotonic() < deadline:
+            got.clear()
+            target[0] = count[0] + 1
+            pub.put(payload)
+            if got.wait(0.1):
+                break
+        one_way = []
+        for _ in range(pings):
+            got.clear()
+            target[0] = count[0] + 1
+            t0 = time.perf_counter()
+            pub.put(payload)
+            if got.wait(1):
+                one_way.append(arrived[0] - t0)
+        rtt = []
+        for _ in range(pings):
+            t0 = time.perf_counter()
+            replies = [r for r in s1.get("erni/bench/task", payload=payload) if r.ok is not None]
+            if replies:
+                rtt.append(time.perf_counter() - t0)
+        count[0] = 0
+        target[0] = burst
+        got.clear()
+        t0 = time.perf_counter()
+        for i in range(burst):
+            pub.put(payload)
+            if i % 500 == 499:
+                time.sleep(0.001)
+        _settle(count)
+        rate = count[0] / (last[0] - t0)
+        return one_way, rtt, rate
+    finally:
+        sub.undeclare()
+        queryable.undeclare()
+        pub.undeclare()
+        s1.close()
+        s2.close()
+
+
 def floor_round(pings: int, burst: int) -> tuple[list[float], list[float], float]:
     payload = Pose(robot="r1", x=1.0, y=2.0, theta=0.5, v=0.3, battery=12.5).model_dump_json().encode()
     rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -199,23 +288,33 @@ def main() -> int:
     parser.add_argument("--pings", type=int, default=500)
     parser.add_argument("--burst", type=int, default=5000)
     args = parser.parse_args()
-    rows, firsts = [], []
-    for _ in range(args.rounds):
+    rows, zrows, firsts = [], [], []
+    for _ in range(args.rounds):  # the three systems take turns in every round
         eu, et, er, first = erni_round(args.pings, args.burst)
         firsts.append(first)
         fu, ft, fr = floor_round(args.pings, args.burst)
         rows.append((pct(eu, .5), pct(fu, .5), pct(eu, .99), pct(fu, .99), pct(et, .5), pct(ft, .5),
                      pct(et, .99), pct(ft, .99), er, fr))
+        z = zenoh_round(args.pings, args.burst)
+        if z is not None:
+            zu, zt, zr = z
+            zrows.append((pct(zu, .5), pct(zu, .99), pct(zt, .5), pct(zt, .99), zr))
     m = [statistics.median(col) for col in zip(*rows)]
+    zm = [statistics.median(col) for col in zip(*zrows)] if zrows else None
     print(f"transport benchmark on loopback: {args.rounds} rounds x {args.pings} pings, burst "
-          f"{args.burst}; medians of rounds; floor = raw Python sockets, same run")
-    print(f"{'measure':<28} {'ERNI':>10} {'floor':>10} {'ratio':>7}")
-    for label, ours, floor, unit in (
-        ("UDP status one-way p50", m[0], m[1], "us"), ("UDP status one-way p99", m[2], m[3], "us"),
-        ("TCP task send->ack p50", m[4], m[5], "us"), ("TCP task send->ack p99", m[6], m[7], "us"),
+          f"{args.burst}; medians of rounds; floor = raw Python sockets, same run; Zenoh = eclipse-zenoh "
+          f"peer mode over TCP, same run ({'not installed' if zm is None else 'put/subscribe, get/queryable'})")
+    print(f"{'measure':<28} {'ERNI':>10} {'floor':>10} {'ratio':>7} {'Zenoh':>10} {'Zenoh/ERNI':>11}")
+    for label, ours, floor, zi in (
+        ("UDP status one-way p50", m[0], m[1], 0), ("UDP status one-way p99", m[2], m[3], 1),
+        ("TCP task send->ack p50", m[4], m[5], 2), ("TCP task send->ack p99", m[6], m[7], 3),
     ):
-        print(f"{label:<28} {ours * 1e6:>8.0f}{unit} {floor * 1e6:>8.0f}{unit} {ours / floor:>7.2f}")
-    print(f"{'status throughput':<28} {m[8]:>7.0f}/s {m[9]:>7.0f}/s {m[8] / m[9]:>7.2f}")
+        zen = f"{zm[zi] * 1e6:>8.0f}us {zm[zi] / ours:>11.2f}" if zm is not None else ""
+        print(f"{label:<28} {ours * 1e6:>8.0f}us {floor * 1e6:>8.0f}us {ours / floor:>7.2f} {zen}")
+    zen = f"{zm[4]:>8.0f}/s {m[8] / zm[4]:>11.2f}" if zm is not None else ""
+    print(f"{'status throughput':<28} {m[8]:>8.0f}/s {m[9]:>8.0f}/s {m[8] / m[9]:>7.2f} {zen}")
+    print("(Zenoh rows: put -> subscriber one-way; get -> queryable reply for send->ack; Zenoh/ERNI > 1: "
+          "ERNI ahead; for throughput ERNI/Zenoh)")
     print(f"{'handshake + first status':<28} {statistics.median(firsts) * 1e6:>8.0f}us   (once per pair of "
           "endpoints; no floor)")
     return 0
