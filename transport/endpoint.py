@@ -8,7 +8,11 @@ each acknowledged by message id, retried with exponential backoff until their ti
 runs out, and sent in order per destination (one sender thread serves a destination at a
 time). Fast messages travel as UDP datagrams from a bounded queue that drops the oldest.
 Beacons for unknown receivers are signed instead (`announce`). Nothing here ever runs inside a
-blackboard transaction: callers enqueue and return at once.
+blackboard transaction, and no caller ever waits on a socket: when a session is up and nothing
+is queued for the destination, the caller's thread seals a status and hands it to the
+non-blocking UDP socket itself, and writes a reliable message on an idle connection without
+waiting (a sender thread then waits for its acknowledgement); whatever the socket does not take
+at once is queued for the sender pool, which keeps the order.
 
 Before a frame is authenticated nothing is spent without a bound (`limits.py`): connections
 per host and in total, bytes of incomplete frames, idle and partial-frame timeouts, handshakes
