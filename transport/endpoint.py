@@ -665,6 +665,14 @@ class Endpoint:
             try:
                 self._sendto(self._frame(out, session, min(self.max_frame, UDP_MAX_FRAME)), dest.addr)
                 self.count("sent.fast")
+            except (BlockingIOError, InterruptedError):  # the socket's buffer is full: keep it, try again soon
+                with self._cond:
+                    if len(dest.fast) < self.queue_limit:
+                        dest.fast.appendleft(out)
+                    else:
+                        self.count("dropped.fast_oldest")
+                self.count("sent.deferred")
+                return time.monotonic() + 0.005
             except FrameError as err:
                 self.count("dropped.too_big")
                 self._drops.warning("too_big", f"not sent to {dest.addr}: {err}")

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
-from pydantic_core import to_json
+from pydantic_core import PydanticSerializationError, to_json
 
 from erni.blackboard import AllocationResult, NetInfo, Pose, Task
 from erni.blackboard.errors import ErniError, UsageError, shown
@@ -109,10 +109,16 @@ def envelope_json(env: Envelope) -> bytes:
 
 
 def encode_body(body: Any) -> tuple[str | None, bytes]:
-    """A body's type tag (None for plain JSON values) and its JSON, serialised once when it is queued."""
-    if isinstance(body, BaseModel):
-        return type(body).__name__, body.__pydantic_serializer__.to_json(body)
-    return None, to_json(body)
+    """A body's type tag (None for plain JSON values) and its JSON, serialised once when it is queued.
+
+    Raise UsageError for a body that has no JSON form (the caller learns it at once).
+    """
+    try:
+        if isinstance(body, BaseModel):
+            return type(body).__name__, body.__pydantic_serializer__.to_json(body)
+        return None, to_json(body)
+    except PydanticSerializationError as err:
+        raise UsageError(f"cannot send a {type(body).__name__}: {str(err).splitlines()[0][:200]}") from None
 
 
 def envelope_bytes(sender: str, role: str, to: str, inst: str, reply: tuple[str, int], seq: int, msg_id: str,
