@@ -945,7 +945,7 @@ class Endpoint:
         with self._sess_lock:
             known = self._answers.get(digest)
         if known is not None:  # a retransmission: the same answer again, no new keys
-            self._sendto(known[0], src)
+            self._answer(known[0], src)
             return
         now = time.monotonic()
         if not self._hs_hosts.take(src[0], now) or not self._hs_total.take(now):
@@ -965,7 +965,17 @@ class Endpoint:
             self._answers[digest] = (frame, session, now)
             self._by_sid[session.sid] = session
         self.count("handshakes.answered")
-        self._sendto(frame, src)
+        self._answer(frame, src)
+
+    def _answer(self, frame: bytes, src: Address) -> None:
+        """Answer a handshake from the receive thread: a send error (no route to the sender yet, as
+        on a mesh whose routes are still forming) is counted and reported, never raised, so the
+        receive thread goes on; the sender retransmits its handshake."""
+        try:
+            self._sendto(frame, src)
+        except OSError as err:
+            self.count("dropped.answer")
+            self._drops.warning("udp", f"handshake answer to {src[0]}:{src[1]} failed: {err}")
 
     def _on_reply(self, raw: bytes) -> None:
         assert self.auth is not None

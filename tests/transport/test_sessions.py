@@ -115,3 +115,29 @@ def test_a_message_for_one_agent_is_never_delivered_to_another_at_its_address():
     finally:
         a.stop()
         b.stop()
+
+
+def test_a_handshake_answer_that_cannot_be_sent_leaves_the_receiver_listening():
+    """On a mesh whose routes are still forming, answering a handshake can fail with 'No route to
+    host': the receive thread reports it and goes on, and the sender's retransmission gets through."""
+    a, _ = endpoint("alpha")
+    b, got = endpoint("beta")
+    real = b._sendto
+    failures = []
+
+    def no_route_once(frame: bytes, addr) -> None:
+        if not failures:
+            failures.append(addr)
+            raise OSError(113, "No route to host")
+        real(frame, addr)
+
+    b._sendto = no_route_once  # type: ignore[method-assign]
+    try:
+        a.send(b.address, "one", Pose(robot="x"), reliable=True, to="beta")
+        wait_until(lambda: got, timeout=5)
+        assert failures and b.counters.get("dropped.answer") == 1
+        a.send(b.address, "two", Pose(robot="x"), reliable=False, to="beta")  # the receive thread still runs
+        wait_until(lambda: len(got) == 2, timeout=5)
+    finally:
+        a.stop()
+        b.stop()
