@@ -173,9 +173,13 @@ def test_the_network_blind_relay_drives_off_and_partitions_the_team(tmp_path):
         team.stop()
 
 
+@pytest.mark.ondemand
 def test_the_relay_strategy_balances_its_links_on_babelds_qualities(tmp_path):
     """Deploy relay between the control node and robot2, 10 m apart (out of range): robot1 moves out
-    from beside the control node until babeld rates both of its links alike."""
+    from beside the control node until babeld rates both of its links alike. On demand: the team
+    must first come up across robot1's 9 m link, deep in the lossy band (about 3 frames in 4
+    dropped), so whether robot2 is reached within the start-up time is a matter of luck on a
+    loaded machine."""
     base = load_scenario(find_scenario("mesh-line")).with_robots(2)
     first, second = base.starts()
     scenario = base.model_copy(update={"robot": [first.model_copy(update={"x": -12.75}),
