@@ -36,11 +36,11 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from procstat import cpu_seconds, rss_mb  # noqa: E402  # bench/procstat.py
+
 from erni.sim.scenario import Scenario  # noqa: E402
 from erni.sim.team import Team  # noqa: E402
 
-TICK = os.sysconf("SC_CLK_TCK")
-PAGE = os.sysconf("SC_PAGE_SIZE")
 FLOOR_IMPORTS = "import pydantic, serial, pysnmp.hlapi.v3arch.asyncio"
 
 POSE_READER = """
@@ -58,19 +58,6 @@ while True:
         last = s
         reads += 1
 """
-
-
-def cpu_seconds(pid: int) -> float:
-    """User + system CPU time of a process (s)."""
-    with open(f"/proc/{pid}/stat") as f:
-        fields = f.read().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / TICK
-
-
-def rss_mb(pid: int) -> float:
-    """Resident set size of a process (MB)."""
-    with open(f"/proc/{pid}/statm") as f:
-        return int(f.read().split()[1]) * PAGE / 1e6
 
 
 def wakeups(pid: int) -> int:

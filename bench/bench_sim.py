@@ -35,32 +35,18 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np  # noqa: E402
+from procstat import cpu_seconds, rss_mb  # noqa: E402  # bench/procstat.py
 
 from erni.sim.scenario import Scenario  # noqa: E402
 from erni.sim.team import Team  # noqa: E402
 from erni.transport.bridge import WatchEvent, WatchRequest  # noqa: E402
 
-TICK = os.sysconf("SC_CLK_TCK")
-PAGE = os.sysconf("SC_PAGE_SIZE")
 AGENT_IMPORTS = "import erni.blackboard, erni.transport.bridge, erni.plugins.motion, erni.plugins.mobinet, erni.plugins.mission"
 
 
 def pct(values: list[float], q: float) -> float:
     s = sorted(values)
     return s[min(len(s) - 1, int(q * len(s)))] if s else float("nan")
-
-
-def cpu_seconds(pid: int) -> float:
-    """User + system CPU time of a process (s)."""
-    with open(f"/proc/{pid}/stat") as f:
-        fields = f.read().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / TICK
-
-
-def rss_mb(pid: int) -> float:
-    """Resident set size of a process (MB)."""
-    with open(f"/proc/{pid}/statm") as f:
-        return int(f.read().split()[1]) * PAGE / 1e6
 
 
 def import_floor(code: str) -> float:
