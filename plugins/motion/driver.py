@@ -12,9 +12,13 @@ drops. Commands may be sent from any thread.
 
 from __future__ import annotations
 
+import fcntl
 import logging
 import math
 import pkgutil
+import socket
+import sys
+import termios
 import threading
 import time
 from collections.abc import Callable, Mapping
@@ -55,6 +59,24 @@ def known_url_schemes() -> list[str]:
     builtin = [m.name.removeprefix("protocol_") for m in pkgutil.iter_modules(serial.urlhandler.__path__)
                if m.name.startswith("protocol_")]
     return sorted(set(builtin) | set(register_url_handlers()))
+
+
+def waiting(port: Any) -> int:
+    """Bytes the port can give without blocking.
+
+    pyserial's `in_waiting` counts them on a serial line, but its socket:// handler (MobileSim,
+    AMRISim, `erni robot-sim`) only says 0 or 1, so a reader trusting it takes a SIP a byte at a
+    time (about 60 reads per SIP); for a socket the kernel's count (FIONREAD) is asked instead.
+    """
+    n = int(port.in_waiting)
+    sock = getattr(port, "_socket", None)  # pyserial's socket handler keeps its socket here
+    if n and isinstance(sock, socket.socket):
+        try:
+            raw = fcntl.ioctl(sock.fileno(), termios.FIONREAD, bytes(4))
+            n = max(n, int.from_bytes(raw, sys.byteorder, signed=True))
+        except OSError:
+            pass
+    return n
 
 
 def _sync_reply(sync: int) -> Callable[[bytes], bool]:
@@ -109,6 +131,7 @@ class DriverStats:
     """Counters of one driver: traffic, damage seen on the line, links made and lost."""
 
     sips: int = 0
+    reads: int = 0
     bad_sips: int = 0
     other_packets: int = 0
     bad_packets: int = 0
@@ -538,7 +561,7 @@ class ArcosDriver:
                other: Callable[[bytes], None] | None = None) -> bytes | None:
         deadline = self.clock() + timeout
         while self.clock() < deadline and not self._stop.is_set():
-            for body in self._reader.feed(port.read(port.in_waiting or 1)):
+            for body in self._reader.feed(port.read(waiting(port) or 1)):
                 if match(body):
                     return body
                 if other is not None:
@@ -549,7 +572,8 @@ class ArcosDriver:
         port = self._port
         assert port is not None
         try:
-            data = port.read(port.in_waiting or 1)
+            data = port.read(waiting(port) or 1)
+            self.stats.reads += 1
         except (serial.SerialException, OSError) as err:
             self._lose(str(err) if "failed" in str(err) else f"read failed: {err}")
             return

@@ -39,6 +39,8 @@ class MotionSettings(BaseModel):
                                   "default: the SIP's age + one SIP period + one stack cycle")
     rate_hz: float = Field(20.0, gt=0, le=200, description="behaviour stack rate (Hz)")
     pose_rate_hz: float = Field(10.0, gt=0, le=100, description="Pose publishing rate (Hz)")
+    pose_keepalive: float = Field(1.0, gt=0, le=60, description="a Pose that only a newer stamp would change "
+                                  "(a standing robot) is published this often (s)")
     avoid_distance: float = Field(0.4, ge=0, le=5, description="built-in obstacle avoidance (m); 0 = off")
     blocked_timeout: float = Field(10.0, gt=0, description="fail a task held by avoidance this long (s)")
     stall_timeout: float = Field(1.0, gt=0, description="fail a task whose wheels stall this long (s)")
@@ -106,6 +108,7 @@ class RobotMotionControl(Plugin[MotionSettings]):
         self.pose: Pose | None = None
         self.resource = RobotMotionResource(
             driver, self._publish, name=me, rate_hz=s.rate_hz, pose_rate_hz=s.pose_rate_hz,
+            pose_keepalive=s.pose_keepalive,
             avoid_distance=s.avoid_distance, blocked_timeout=s.blocked_timeout,
             stall_timeout=s.stall_timeout, link_grace=s.link_grace, default_timeout=s.default_timeout,
             teleport=s.teleport, latency=s.latency)

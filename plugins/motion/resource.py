@@ -2,9 +2,11 @@
 
 The stack thread (`motion-stack-<robot>`) services the behaviour stack at `rate_hz`: it turns
 BotMotion tasks into behaviours, lets the winning behaviour drive the robot through the
-driver, and records each task's outcome. The poll thread (`motion-poll-<robot>`) hands the
-latest robot state and the outcome changes to `publish` at `pose_rate_hz` (at once for final
-outcomes). Neither thread touches the blackboard itself: `publish` does, in its own short
+driver, and records each task's outcome; with nothing to steer (no task, the robot halted and
+standing) it cycles every `idle_period` until a task wakes it. The poll thread
+(`motion-poll-<robot>`) hands the latest robot state and the outcome changes to `publish` at
+`pose_rate_hz` (at once for final outcomes): a state that differs from the last one handed over
+only in its stamp (a standing robot) is handed over again after `pose_keepalive` only. Neither thread touches the blackboard itself: `publish` does, in its own short
 transactions, so serial I/O never happens inside one.
 """
 
@@ -54,6 +56,13 @@ class TaskUpdate:
 Publish = Callable[[list[TaskUpdate], RobotState | None], None]
 
 
+def same_reading(a: RobotState, b: RobotState) -> bool:
+    """True when two states differ at most in their stamps: nothing a Pose shows has changed."""
+    return (a.x == b.x and a.y == b.y and a.theta == b.theta and a.v == b.v and a.w == b.w
+            and a.battery == b.battery and a.stall_left == b.stall_left and a.stall_right == b.stall_right
+            and a.bumpers == b.bumpers and a.motors_enabled == b.motors_enabled and a.sonar == b.sonar)
+
+
 class RobotMotionResource:
     """Executes BotMotion tasks on one robot; thread-safe `submit`/`cancel`, `close()` joins."""
 
@@ -61,13 +70,16 @@ class RobotMotionResource:
                  rate_hz: float = 20.0, pose_rate_hz: float = 10.0, avoid_distance: float = 0.4,
                  blocked_timeout: float = 10.0, stall_timeout: float = 1.0, link_grace: float = 2.0,
                  default_timeout: float | None = None, teleport: str = "auto", resend: float = 0.5,
-                 latency: float | None = None, clock: Callable[[], float] = time.monotonic) -> None:
+                 latency: float | None = None, pose_keepalive: float = 1.0, idle_period: float = 1.0,
+                 clock: Callable[[], float] = time.monotonic) -> None:
         if rate_hz <= 0 or pose_rate_hz <= 0:
             raise UsageError(f"rate_hz and pose_rate_hz must be > 0, got {rate_hz} and {pose_rate_hz}")
         if teleport not in ("auto", "sim", "odometry"):
             raise UsageError(f"teleport: expected 'auto', 'sim' or 'odometry', got {teleport!r}")
         if latency is not None and not 0 <= latency <= 2:
             raise UsageError(f"latency: expected seconds in 0..2, got {latency}")
+        if pose_keepalive <= 0 or idle_period <= 0:
+            raise UsageError(f"pose_keepalive and idle_period must be > 0 s, got {pose_keepalive} and {idle_period}")
         self.driver = driver
         self.publish = publish
         self.name = name
@@ -79,6 +91,8 @@ class RobotMotionResource:
         self.teleport = teleport
         self.resend = resend
         self.latency = latency
+        self.pose_keepalive = pose_keepalive
+        self.idle_period = idle_period
         self.clock = clock
         self.stack = BehaviourStack(blocked_timeout=blocked_timeout, stall_timeout=stall_timeout)
         self._inbox: deque[tuple[str, Any]] = deque()
@@ -138,6 +152,8 @@ class RobotMotionResource:
         next_tick = self.clock()
         while not self._stop.is_set():
             delay = next_tick - self.clock()
+            if self.idle():  # nothing to steer: sleep until a task comes (or a slow check is due)
+                delay = max(delay, next_tick + self.idle_period - self.period - self.clock())
             if delay > 0:
                 self._wake.wait(delay)
                 self._wake.clear()
@@ -153,6 +169,17 @@ class RobotMotionResource:
                 next_tick = max(next_tick + self.period, now + self.period / 2)
         if self.driver.connected:
             self.driver.stop()
+
+    def idle(self) -> bool:
+        """Nothing to steer: no task's behaviour, nothing queued, stopped by us and standing still.
+
+        Then the stack thread cycles every `idle_period` instead of every `period` (a cycle
+        would only repeat the halt); a submitted or cancelled task wakes it at once.
+        """
+        state = self.driver.state
+        return (not self._inbox and self._last_sent == (0.0, 0.0) and self.driver.connected and state is not None
+                and abs(state.v) < 1e-3 and abs(state.w) < 1e-3
+                and all(b.task_uid is None for b in self.stack.items))
 
     def _drain_inbox(self, now: float) -> None:
         while self._inbox:
@@ -313,16 +340,24 @@ class RobotMotionResource:
 
     def _poll_loop(self) -> None:
         last: RobotState | None = None
+        shown: RobotState | None = None  # the state last handed to `publish`
+        shown_at = -math.inf
         while not self._stop.is_set():
             self._poll_wake.wait(self.pose_period)
             self._poll_wake.clear()
             updates = self.take_updates()  # first: the state read next is at least as new as theirs
             state = self.driver.state  # a new SIP, or the last one re-based (teleport, re-localisation)
             fresh = state if state is not None and state is not last else None
-            if fresh is None and not updates:
-                continue
             if fresh is not None:
                 last = fresh
+                now = self.clock()
+                if (not updates and shown is not None and now - shown_at < self.pose_keepalive
+                        and same_reading(fresh, shown)):
+                    fresh = None  # only the stamp changed (a standing robot): the keep-alive will tell
+                else:
+                    shown, shown_at = fresh, now
+            if fresh is None and not updates:
+                continue
             try:
                 self.publish(updates, fresh)
             except Exception:

@@ -388,3 +388,14 @@ def test_relocalise_rebases_odometry_for_robots_that_cannot_be_teleported(robot_
     assert math.degrees(s.theta) == pytest.approx(90, abs=1.5)
     if true0 is not None:
         assert sim_hosts[0].robots[0].x == pytest.approx(true0 + 0.3, abs=0.01)  # the robot never jumped
+
+
+def test_the_reader_takes_a_sip_in_a_few_reads_over_a_socket(robot_url, drivers):
+    """pyserial's socket:// says only 0 or 1 byte is waiting; reading what the kernel holds takes a
+    SIP (tens of bytes) in one or two reads instead of one read per byte."""
+    d = drivers(robot_url).open()
+    wait_until(lambda: d.stats.sips > 5, timeout=5)
+    reads, sips = d.stats.reads, d.stats.sips
+    wait_until(lambda: d.stats.sips > sips + 40, timeout=10)
+    per_sip = (d.stats.reads - reads) / (d.stats.sips - sips)
+    assert per_sip < 4, f"{per_sip:.1f} reads per SIP"

@@ -9,6 +9,7 @@ internals are skipped, saying so. Give the robot a metre of free space all aroun
 from __future__ import annotations
 
 import math
+import time
 import os
 
 import pytest
@@ -352,3 +353,29 @@ def test_after_a_restart_absolute_tasks_resume_and_relative_ones_fail_explicitly
         assert finish(again, goto, timeout=20).state == TaskState.SUCCEEDED
     finally:
         again.stop()
+
+
+def test_a_standing_robot_publishes_its_pose_at_the_keepalive_and_a_moving_one_at_every_sip(start_agent,
+                                                                                           robot_url):
+    agent, plugin = start_agent(robot_url, pose_keepalive=1.0)
+    wait_until(lambda: halted(agent), timeout=5)
+    time.sleep(1.0)  # every sonar has fired once: a standing robot's SIPs now repeat the same reading
+
+    def stamps(seconds: float) -> tuple[int, int]:
+        seen, sips = set(), plugin.resource.driver.stats.sips
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < seconds:
+            seen.add(pose(agent).stamp)
+            time.sleep(0.005)
+        return len(seen), plugin.resource.driver.stats.sips - sips
+
+    standing, sips = stamps(2.0)
+    assert sips >= 10 and standing <= 4, f"{standing} Poses for {sips} SIPs of a standing robot"
+    stack_cycles = plugin.resource.cycles
+    time.sleep(1.0)
+    assert plugin.resource.cycles - stack_cycles <= 3  # idle: the stack waits for a task
+    task = post(agent, "velocity", v=0.2, w=0.0)
+    moving, sips = stamps(1.0)
+    assert moving >= min(sips, 25) * 0.6, f"{moving} Poses for {sips} SIPs of a moving robot"
+    with agent.transaction() as tx:
+        tx.remove(task.uid)
