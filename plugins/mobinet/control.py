@@ -65,6 +65,8 @@ class MobiNetSettings(BaseModel):
     watch: list[str] = Field(default_factory=list, description="NetWatch prepositions watched from the start, "
                              "without a task (e.g. [\"path_cost\"]: the transport then learns every routed node)")
     watch_rate_hz: float = Field(1.0, gt=0, le=100, description="rate of the watches in `watch` (Hz)")
+    netinfo_keepalive: float = Field(1.0, ge=0, le=60, description="a reading that changes nothing but the "
+                                     "NetInfo's stamp is published this often (s); 0 = every reading")
     position: tuple[float, float] | None = Field(None, description="where this node stands if it never moves "
                                                  "and nothing else publishes its Pose (a base station): "
                                                  "published as its Pose every second, which the transport "
@@ -266,6 +268,8 @@ class MobiNetControl(Plugin[MobiNetSettings]):
             message = f"degraded: {error}"
         else:
             new_info, values, message = self._answer(task, info, view)
+        if self._same(info, new_info):
+            return
         self.change(new_info)
         self._infos[uid] = new_info
         values["netinfo"] = new_info.uid
@@ -281,8 +285,15 @@ class MobiNetControl(Plugin[MobiNetSettings]):
             new_info = info.evolve(degraded=True, message=error, stamp=time.time())
         else:
             new_info = self._answer(self._standing[key], info, view)[0]
+        if self._same(info, new_info):
+            return
         self.change(new_info)
         self._infos[key] = new_info
+
+    def _same(self, old: NetInfo, new: NetInfo) -> bool:
+        """A reading that changes only the stamp, within the keep-alive: not worth a transaction."""
+        return (new.stamp - old.stamp < self.settings.netinfo_keepalive
+                and old.model_copy(update={"stamp": new.stamp}) == new)
 
     def _answer(self, task: Task, info: NetInfo, view: NetView) -> tuple[NetInfo, dict[str, Any], str]:
         provenance = {"node": view.sources.get("node", "")}

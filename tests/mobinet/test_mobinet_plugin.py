@@ -292,3 +292,23 @@ def test_a_standing_robot_is_written_once_and_a_moving_one_at_most_once_per_inte
     elapsed = time.monotonic() - t0
     assert 2 <= net.view("robot2").position_updates <= 2 + math.ceil(elapsed / 0.3)
     assert plugin.resource.stats["write_errors"] == 0
+
+
+def test_a_steady_network_is_republished_only_at_the_keepalive(served, net, make_agent):
+    """Readings that change nothing but the stamp cost no transaction; a change is published at once."""
+    agent, plugin = make_agent("robot3", served["robot3"], netinfo_keepalive=1.0)
+    topo = watch(agent, "network_topology", rate_hz=20.0)
+    fresh(agent, topo)
+    stamps, polls = set(), plugin._polls[topo.uid]
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < 2.0:
+        stamps.add(info_of(agent, topo).stamp)
+        time.sleep(0.01)
+    readings = plugin._polls[topo.uid] - polls
+    assert readings >= 15, f"only {readings} readings in 2 s at 20 Hz"
+    assert len(stamps) <= 4, f"{len(stamps)} NetInfo versions in 2 s of a steady network ({readings} readings)"
+    before = set(info_of(agent, topo).articulation_points)
+    net.move("robot5", 150.0, 40.0)  # robot5 comes next to robot3 and robot4: robot4 is no cut vertex now
+    t1 = time.monotonic()
+    fresh(agent, topo, lambda i: set(i.articulation_points) != before, timeout=2.0)
+    assert time.monotonic() - t1 < 0.9  # well inside the keep-alive: published when it changed
