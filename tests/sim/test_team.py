@@ -73,12 +73,15 @@ def test_a_robot_out_of_radio_range_is_lost_and_receives_no_traffic(tmp_path):
         assert team.peers()["robot1"].up and team.peers()["robot2"].up
         robot = team.robot("robot3")
         before = (robot.x, robot.y)
-        task = send(team, "robot3", "BotMotion", "forward", distance=1.0, speed=0.5)
+        # an absolute goal: the task may reach the robot just before the SIP that shows the jump
+        # back, and a relative move would then measure the teleport as distance driven
+        task = send(team, "robot3", "BotMotion", "goto", x=2.0, y=3.0, speed=0.5, tolerance=0.1)
         time.sleep(2.0)  # the task would have driven the robot within this time if delivered
         assert math.hypot(robot.x - before[0], robot.y - before[1]) < 0.01
         team.teleport("robot3", 2.0, 2.0)  # back in range: the queued task gets through
         result = final_result(team, task.uid, timeout=20)
         assert result.state is TaskState.SUCCEEDED, result.message
+        assert math.hypot(robot.x - 2.0, robot.y - 3.0) < 0.2
         assert team.peers()["robot3"].up
     finally:
         team.stop()
