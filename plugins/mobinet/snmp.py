@@ -251,6 +251,7 @@ class SnmpSource:
         self.max_repetitions = max_repetitions
         self._engine: SnmpEngine | None = None
         self._target: UdpTransportTarget | None = None
+        self._tuned = False
         self._rows: dict[tuple[OID, ...], int] = {}  # rows seen by the last walk of a column set
         self.cache_seconds = cache_seconds
         self._cache: dict[str, tuple[Any, float, Any]] = {}  # job -> (key, when, walked columns)
@@ -272,6 +273,21 @@ class SnmpSource:
             except Exception as err:
                 raise SourceError(f"SNMP agent {self.where}: cannot resolve: {err}") from None
         return self._engine, self._target
+
+    def _coarse_timer(self, engine: SnmpEngine) -> None:
+        """Tick pysnmp's request timer at half our timeout (at most 4 times a second, not 10).
+
+        pysnmp expires requests on a timer that wakes its loop every 0.1 s while the transport
+        is open, which is a standing cost of a robot agent that reads its network twice a
+        second; a timeout is then noticed within half of it instead of a tenth.
+        """
+        if self._tuned:
+            return
+        self._tuned = True
+        try:
+            engine.transport_dispatcher.set_timer_resolution(min(0.25, max(0.1, self.timeout / 2)))
+        except Exception:  # an older or newer pysnmp without it: its default stands
+            pass
 
     def _auth(self, write: bool = False) -> CommunityData:
         community = self.write_community if write and self.write_community else self.community
@@ -299,6 +315,7 @@ class SnmpSource:
                             *(ObjectType(ObjectIdentity(dotted(o))) for o in oids),
                             lookupMib=False)
         self._check("GET", *res)
+        self._coarse_timer(engine)
         out = {}
         for oid, val in res[3]:
             key = tuple(oid)
@@ -523,6 +540,7 @@ class SnmpSource:
         if self._engine is not None:
             self._engine.close_dispatcher()
             self._engine = None
+            self._tuned = False
 
     # -- decoding -------------------------------------------------------------------------
 

@@ -260,3 +260,28 @@ def test_a_steady_refresh_asks_only_the_node_name_and_its_change_counters(served
     assert again.neighbors == first.neighbors and again.links == first.links
     assert len(after) == 2 and len(after[1]) > 3     # the short check, then the full identity GET
     assert "robot5" in {n.name for n in moved.neighbors}
+
+
+def test_an_open_source_ticks_pysnmps_request_timer_at_half_its_timeout_and_still_times_out(served, bad_agent):
+    """pysnmp wakes its loop every 0.1 s while a transport is open to expire requests; a robot that
+    reads its network twice a second only needs its timeout noticed within half of it."""
+    async def tick_and_timeout() -> tuple[float, float]:
+        src = SnmpSource(*served["robot1"], timeout=0.5)
+        try:
+            await src.read(frozenset(PARTS))
+            assert src._engine is not None
+            resolution = src._engine.transport_dispatcher.get_timer_resolution()
+        finally:
+            await src.aclose()
+        silent = SnmpSource(*bad_agent("silent").address, timeout=0.5)
+        t0 = time.monotonic()
+        try:
+            with pytest.raises(SourceError, match="timeout"):
+                await silent.read(frozenset(PARTS))
+        finally:
+            await silent.aclose()
+        return resolution, time.monotonic() - t0
+
+    resolution, took = run(tick_and_timeout())
+    assert resolution == pytest.approx(0.25)
+    assert 0.45 <= took < 1.5
