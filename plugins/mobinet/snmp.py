@@ -1,4 +1,4 @@
-"""`SnmpSource`: the network subsystem read and written over SNMPv2c (pysnmp 7 asyncio API).
+"""`SnmpSource`: the network subsystem read and written over SNMPv2c (asyncio UDP, `ber` messages).
 
 The source reads the standard MIB modules by their standard layout and works with any
 agent: one GET asks for the node's identity (SNMPv2-MIB sysName, ERNI-MOBINET-MIB's
@@ -32,26 +32,15 @@ from __future__ import annotations
 import asyncio
 import ipaddress
 import math
+import os
 import time
 from collections.abc import Iterable
 from typing import Any
 
-from pyasn1.type import univ
-from pysnmp.hlapi.v3arch.asyncio import (
-    CommunityData,
-    ContextData,
-    ObjectIdentity,
-    ObjectType,
-    SnmpEngine,
-    UdpTransportTarget,
-    bulk_cmd,
-    get_cmd,
-    set_cmd,
-)
-from pysnmp.proto import rfc1902, rfc1905
-
 from erni import netgraph
 from erni.blackboard import Link, Neighbor, Position, Route
+from erni.plugins.mobinet import ber
+from erni.plugins.mobinet.ber import Value
 from erni.plugins.mobinet.resource import (
     NEIGHBORS,
     POSITIONS,
@@ -61,7 +50,7 @@ from erni.plugins.mobinet.resource import (
     SourceError,
 )
 
-# --- the OIDs read and written (numeric: pysnmp ships none of these MIBs) -------------
+# --- the OIDs read and written (numeric: no MIB module is loaded at run time) -------------
 # ERNI units: positions in mm, headings in centidegrees, link quality in thousandths;
 # OLSRv2 link metrics are ETX scaled by METRIC_UNIT (a loss-free link costs 1024).
 
@@ -160,26 +149,22 @@ def dotted(oid: OID) -> str:
 
 # --- typed decoding -------------------------------------------------------------------
 
-_INT = univ.Integer.tagSet
-_STR = univ.OctetString.tagSet
 _TYPES = {
-    "Integer32": (_INT,),
-    "OCTET STRING": (_STR,),
-    "IpAddress": (rfc1902.IpAddress.tagSet,),
-    "Unsigned32/Gauge32": (rfc1902.Unsigned32.tagSet, rfc1902.Gauge32.tagSet),
-    "Counter32": (rfc1902.Counter32.tagSet,),
-    "TimeTicks": (rfc1902.TimeTicks.tagSet,),
+    "Integer32": (ber.INTEGER,),
+    "OCTET STRING": (ber.OCTET_STRING,),
+    "IpAddress": (ber.IP_ADDRESS,),
+    "Unsigned32/Gauge32": (ber.GAUGE32,),   # one tag: Unsigned32 and Gauge32 share [APPLICATION 2]
+    "Counter32": (ber.COUNTER32,),
+    "TimeTicks": (ber.TIME_TICKS,),
 }
-_EXCEPTIONS = (rfc1905.NoSuchObject.tagSet, rfc1905.NoSuchInstance.tagSet,
-               rfc1905.EndOfMibView.tagSet)
+_NULL = Value(ber.NULL, None)
 
 
-def _typed(oid: OID, value: Any, expected: str) -> Any:
-    if value.tagSet not in _TYPES[expected]:
-        shown = value.prettyPrint() if hasattr(value, "prettyPrint") else repr(value)
+def _typed(oid: OID, value: Value, expected: str) -> Any:
+    if value.tag not in _TYPES[expected]:
         raise SourceError(f"{label(oid)} ({dotted(oid)}): expected {expected}, got "
-                          f"{type(value).__name__} {shown[:40]!r}")
-    return value
+                          f"{value.type_name} {value.shown()[:40]!r}")
+    return value.value
 
 
 def _int(oid: OID, value: Any, expected: str = "Integer32") -> int:
@@ -234,7 +219,37 @@ def _quality_of_metric(metric: int) -> float:
     return min(1.0, math.sqrt(METRIC_UNIT / metric)) if metric > 0 else 1.0
 
 
-Columns = dict[OID, dict[OID, Any]]
+Columns = dict[OID, dict[OID, Value]]
+
+
+class _Link(asyncio.DatagramProtocol):
+    """The UDP socket to one agent: answers are matched to waiting requests by request-id."""
+
+    def __init__(self) -> None:
+        self.transport: asyncio.DatagramTransport | None = None
+        self.waiting: dict[int, asyncio.Future[ber.Response]] = {}
+        self.malformed = 0   # answers that were not a well-formed SNMPv2c Response (ignored)
+        self.last_error = ""
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        self.transport = transport  # type: ignore[assignment]
+
+    def datagram_received(self, data: bytes, addr: Any) -> None:
+        try:
+            answer = ber.decode_response(data)
+        except ber.BerError as err:
+            self.malformed += 1
+            self.last_error = str(err)
+            return
+        waiting = self.waiting.get(answer.request_id)
+        if answer.version == 1 and waiting is not None and not waiting.done():
+            waiting.set_result(answer)
+
+    def error_received(self, exc: Exception) -> None:
+        self.last_error = str(exc)  # e.g. ICMP port unreachable: the request times out, as unanswered
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self.transport = None
 
 
 class SnmpSource:
@@ -249,9 +264,8 @@ class SnmpSource:
         self.write_community = write_community
         self.timeout, self.retries = timeout, retries
         self.max_repetitions = max_repetitions
-        self._engine: SnmpEngine | None = None
-        self._target: UdpTransportTarget | None = None
-        self._tuned = False
+        self._link: _Link | None = None
+        self._request_id = int.from_bytes(os.urandom(3), "big")
         self._rows: dict[tuple[OID, ...], int] = {}  # rows seen by the last walk of a column set
         self.cache_seconds = cache_seconds
         self._cache: dict[str, tuple[Any, float, Any]] = {}  # job -> (key, when, walked columns)
@@ -263,67 +277,69 @@ class SnmpSource:
         """`host:port` of the agent."""
         return f"{self.host}:{self.port}"
 
-    async def _session(self) -> tuple[SnmpEngine, UdpTransportTarget]:
-        if self._engine is None:
-            self._engine = SnmpEngine()  # created inside the running loop, as pysnmp requires
-        if self._target is None:
+    async def _open(self) -> _Link:
+        link = self._link
+        if link is None or link.transport is None or link.transport.is_closing():
+            loop = asyncio.get_running_loop()
             try:
-                self._target = await UdpTransportTarget.create(
-                    (self.host, self.port), timeout=self.timeout, retries=self.retries)
-            except Exception as err:
-                raise SourceError(f"SNMP agent {self.where}: cannot resolve: {err}") from None
-        return self._engine, self._target
+                _, link = await loop.create_datagram_endpoint(_Link, remote_addr=(self.host, self.port))
+            except OSError as err:
+                raise SourceError(f"SNMP agent {self.where}: cannot resolve or reach: {err}") from None
+            self._link = link
+        return link
 
-    def _coarse_timer(self, engine: SnmpEngine) -> None:
-        """Tick pysnmp's request timer at half our timeout (at most 4 times a second, not 10).
-
-        pysnmp expires requests on a timer that wakes its loop every 0.1 s while the transport
-        is open, which is a standing cost of a robot agent that reads its network twice a
-        second; a timeout is then noticed within half of it instead of a tenth.
-        """
-        if self._tuned:
-            return
-        self._tuned = True
-        try:
-            engine.transport_dispatcher.set_timer_resolution(min(0.25, max(0.1, self.timeout / 2)))
-        except Exception:  # an older or newer pysnmp without it: its default stands
-            pass
-
-    def _auth(self, write: bool = False) -> CommunityData:
+    async def _request(self, what: str, pdu: int, varbinds: list[tuple[OID, Value]], *, write: bool = False,
+                       max_repetitions: int = 0) -> list[tuple[OID, Value]]:
+        """Send one request (again after each timeout, `retries` times) and return the answer's varbinds."""
+        link = await self._open()
         community = self.write_community if write and self.write_community else self.community
-        return CommunityData(community, mpModel=1)
-
-    def _check(self, what: str, err_ind: Any, err_stat: Any, err_idx: Any, binds: Any) -> None:
-        if err_ind:
-            raise SourceError(f"SNMP {what} to {self.where}: {err_ind} (timeout {self.timeout:g} s, "
-                              f"{self.retries} retr{'y' if self.retries == 1 else 'ies'})")
-        if int(err_stat):
+        self._request_id = self._request_id % 0x7FFFFFFF + 1
+        rid = self._request_id
+        message = ber.encode_request(pdu, community.encode(), rid, varbinds, 0, max_repetitions)
+        answer: asyncio.Future[ber.Response] = asyncio.get_running_loop().create_future()
+        link.waiting[rid] = answer
+        self.requests += 1
+        try:
+            for _ in range(self.retries + 1):
+                if link.transport is None:
+                    break
+                link.transport.sendto(message)
+                try:
+                    got = await asyncio.wait_for(asyncio.shield(answer), self.timeout)
+                    break
+                except TimeoutError:
+                    continue
+            else:
+                got = None
+        finally:
+            link.waiting.pop(rid, None)
+        if got is None:
+            why = f"; {link.malformed} malformed answer(s), the last: {link.last_error}" if link.malformed else ""
+            raise SourceError(f"SNMP {what} to {self.where}: no SNMP response received before timeout "
+                              f"(timeout {self.timeout:g} s, {self.retries} retr{'y' if self.retries == 1 else 'ies'})"
+                              f"{why}")
+        if got.error_status:
+            status = (ber.ERROR_STATUS[got.error_status] if got.error_status < len(ber.ERROR_STATUS)
+                      else f"error-status {got.error_status}")
             where = ""
-            i = int(err_idx)
-            if 0 < i <= len(binds):
-                where = f" at {label(tuple(binds[i - 1][0]))}"
-            raise SourceError(f"SNMP {what} to {self.where}: agent answered "
-                              f"{err_stat.prettyPrint()}{where}")
+            i = got.error_index
+            if 0 < i <= len(got.varbinds):
+                where = f" at {label(got.varbinds[i - 1][0])}"
+            raise SourceError(f"SNMP {what} to {self.where}: agent answered {status}{where}")
+        return got.varbinds
 
     async def get(self, oids: Iterable[OID],
-                  optional: frozenset[OID] = frozenset()) -> dict[OID, Any]:
+                  optional: frozenset[OID] = frozenset()) -> dict[OID, Value]:
         """GET scalars; a missing one raises SourceError unless it is `optional` (then absent)."""
-        engine, target = await self._session()
         oids = list(oids)
-        self.requests += 1
-        res = await get_cmd(engine, self._auth(), target, ContextData(),
-                            *(ObjectType(ObjectIdentity(dotted(o))) for o in oids),
-                            lookupMib=False)
-        self._check("GET", *res)
-        self._coarse_timer(engine)
+        binds = await self._request("GET", ber.GET, [(o, _NULL) for o in oids])
         out = {}
-        for oid, val in res[3]:
-            key = tuple(oid)
-            if val.tagSet in _EXCEPTIONS:
+        for key, val in binds:
+            if val.tag in ber.EXCEPTIONS:
                 if key in optional:
                     continue
                 raise SourceError(f"SNMP GET to {self.where}: {label(key)} not served "
-                                  f"({type(val).__name__})")
+                                  f"({val.type_name})")
             out[key] = val
         missing = [o for o in oids if o not in out and o not in optional]
         if missing:  # an answer about other objects than asked: a broken or hostile agent
@@ -333,7 +349,6 @@ class SnmpSource:
 
     async def walk(self, columns: list[OID]) -> Columns:
         """Walk table columns together: {column: {index: value}}."""
-        engine, target = await self._session()
         result: Columns = {c: {} for c in columns}
         cursors: dict[OID, OID] = {c: c for c in columns}
         key_set = tuple(columns)
@@ -343,12 +358,8 @@ class SnmpSource:
             pending = list(cursors)
             if not pending:
                 break
-            self.requests += 1
-            res = await bulk_cmd(engine, self._auth(), target, ContextData(), 0, reps,
-                                 *(ObjectType(ObjectIdentity(dotted(cursors[c]))) for c in pending),
-                                 lookupMib=False)
-            self._check("GETBULK", *res)
-            binds = res[3]
+            binds = await self._request("GETBULK", ber.GET_BULK, [(cursors[c], _NULL) for c in pending],
+                                        max_repetitions=reps)
             if not binds:
                 break
             for n, (oid, val) in enumerate(binds):
@@ -356,7 +367,7 @@ class SnmpSource:
                 if col not in cursors:
                     continue
                 key = tuple(oid)
-                if val.tagSet in _EXCEPTIONS or key[: len(col)] != col:
+                if val.tag in ber.EXCEPTIONS or key[: len(col)] != col:
                     del cursors[col]
                     continue
                 if key <= cursors[col]:
@@ -522,25 +533,19 @@ class SnmpSource:
         if not self.write_community:
             raise SourceError(f"SNMP SET to {self.where}: no write community configured "
                               "(MobiNet setting write_community)")
-        engine, target = await self._session()
         heading = ((position.heading + 180.0) % 360.0) - 180.0
         values = [(ERNI_POS_X, round(position.x * 1000)), (ERNI_POS_Y, round(position.y * 1000)),
                   (ERNI_POS_HEADING, round(heading * 100))]
         for oid, v in values:
             if not -(2**31) <= v < 2**31:
                 raise SourceError(f"{label(oid)}: {v} does not fit an Integer32 (position too far)")
-        self.requests += 1
-        res = await set_cmd(engine, self._auth(write=True), target, ContextData(),
-                            *(ObjectType(ObjectIdentity(dotted(o)), rfc1902.Integer32(v))
-                              for o, v in values), lookupMib=False)
-        self._check("SET", *res)
+        await self._request("SET", ber.SET, [(o, Value(ber.INTEGER, v)) for o, v in values], write=True)
 
     async def aclose(self) -> None:
-        """Close the engine's transport."""
-        if self._engine is not None:
-            self._engine.close_dispatcher()
-            self._engine = None
-            self._tuned = False
+        """Close the socket; requests still waiting time out."""
+        link, self._link = self._link, None
+        if link is not None and link.transport is not None:
+            link.transport.close()
 
     # -- decoding -------------------------------------------------------------------------
 

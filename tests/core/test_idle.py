@@ -25,13 +25,14 @@ config = read_config(path)
 agent = build_agent(config, path)
 agent.start()
 time.sleep(0.5)
-heavy = sorted(m for m in ("numpy", "aiohttp", "scipy", "erni.sim", "erni.strategies.potential") if m in sys.modules)
+heavy = sorted(m for m in ("numpy", "aiohttp", "scipy", "pysnmp", "pyasn1", "erni.sim", "erni.strategies.potential")
+               if m in sys.modules)
 agent.stop()
 print("loaded:", " ".join(heavy))
 """
 
 
-def test_a_robot_agent_starts_without_numpy_aiohttp_or_the_simulator(tmp_path):
+def test_a_robot_agent_starts_without_numpy_aiohttp_pysnmp_or_the_simulator(tmp_path):
     config = (ROOT / "examples/robot-mission.toml").read_text()
     config = config.replace('url = "simrobot://"', 'url = "socket://127.0.0.1:9"')   # nobody listens there
     assert 'socket://127.0.0.1:9' in config

@@ -1,0 +1,114 @@
+"""MobiNet's SNMPv2c messages against pysnmp's and pyasn1's reading and writing of the same PDUs.
+
+Requests built by `ber` are decoded by pysnmp's v2c message specification; Responses built by
+pysnmp are decoded by `ber`; damaged messages only ever raise BerError.
+"""
+
+from __future__ import annotations
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from pyasn1.codec.ber import decoder, encoder
+from pysnmp.proto import api, rfc1902, rfc1905
+from pysnmp.proto.api import v2c
+
+from erni.plugins.mobinet import ber
+from erni.plugins.mobinet.ber import BerError, Value
+from tests.reliability.test_fuzz import EXAMPLES
+
+oids = st.tuples(st.sampled_from([0, 1, 2]), st.integers(0, 39)).flatmap(
+    lambda head: st.lists(st.integers(0, 2**32 - 1), min_size=0, max_size=12).map(lambda rest: head + tuple(rest)))
+
+values = st.one_of(
+    st.integers(-(2**31), 2**31 - 1).map(lambda v: (Value(ber.INTEGER, v), rfc1902.Integer32(v))),
+    st.binary(max_size=300).map(lambda v: (Value(ber.OCTET_STRING, v), rfc1902.OctetString(v))),
+    st.integers(0, 2**32 - 1).map(lambda v: (Value(ber.COUNTER32, v), rfc1902.Counter32(v))),
+    st.integers(0, 2**32 - 1).map(lambda v: (Value(ber.GAUGE32, v), rfc1902.Gauge32(v))),
+    st.integers(0, 2**32 - 1).map(lambda v: (Value(ber.TIME_TICKS, v), rfc1902.TimeTicks(v))),
+    st.integers(0, 2**64 - 1).map(lambda v: (Value(ber.COUNTER64, v), rfc1902.Counter64(v))),
+    st.binary(min_size=4, max_size=4).map(lambda v: (Value(ber.IP_ADDRESS, v), rfc1902.IpAddress(v))),
+    oids.map(lambda v: (Value(ber.OBJECT_IDENTIFIER, v), rfc1902.ObjectName(v))),
+    st.just((Value(ber.NO_SUCH_OBJECT, None), rfc1905.noSuchObject)),
+    st.just((Value(ber.NO_SUCH_INSTANCE, None), rfc1905.noSuchInstance)),
+    st.just((Value(ber.END_OF_MIB_VIEW, None), rfc1905.endOfMibView)),
+)
+
+
+def pysnmp_response(request_id: int, status: int, index: int, binds: list, community: bytes = b"public") -> bytes:
+    pdu = v2c.ResponsePDU()
+    v2c.apiPDU.set_defaults(pdu)
+    v2c.apiPDU.set_request_id(pdu, request_id)
+    v2c.apiPDU.set_error_status(pdu, status)
+    v2c.apiPDU.set_error_index(pdu, index)
+    v2c.apiPDU.set_varbinds(pdu, binds)
+    msg = v2c.Message()
+    v2c.apiMessage.set_defaults(msg)
+    v2c.apiMessage.set_community(msg, community)
+    v2c.apiMessage.set_pdu(msg, pdu)
+    return encoder.encode(msg)
+
+
+@settings(max_examples=EXAMPLES, deadline=None)
+@given(st.sampled_from([ber.GET, ber.GET_BULK, ber.SET]), st.integers(1, 2**31 - 1),
+       st.lists(st.tuples(oids, values), max_size=10), st.integers(0, 500), st.binary(min_size=1, max_size=32))
+def test_pysnmp_reads_our_requests(pdu, request_id, binds, reps, community):
+    varbinds = [(oid, v[0] if pdu == ber.SET else Value(ber.NULL, None)) for oid, v in binds
+                if pdu != ber.SET or v[0].tag not in ber.EXCEPTIONS]
+    wire = ber.encode_request(pdu, community, request_id, varbinds, 0, reps)
+    msg, rest = decoder.decode(wire, asn1Spec=v2c.Message())
+    assert rest == b""
+    assert int(msg["version"]) == api.SNMP_VERSION_2C
+    assert bytes(msg["community"]) == community
+    got = v2c.apiMessage.get_pdu(msg)
+    kind = {ber.GET: v2c.GetRequestPDU, ber.GET_BULK: v2c.GetBulkRequestPDU, ber.SET: v2c.SetRequestPDU}[pdu]
+    assert got.tagSet == kind.tagSet
+    if pdu == ber.GET_BULK:
+        assert int(v2c.apiBulkPDU.get_request_id(got)) == request_id
+        assert int(v2c.apiBulkPDU.get_max_repetitions(got)) == reps
+        theirs = v2c.apiBulkPDU.get_varbinds(got)
+    else:
+        assert int(v2c.apiPDU.get_request_id(got)) == request_id
+        theirs = v2c.apiPDU.get_varbinds(got)
+    assert [tuple(o) for o, _ in theirs] == [o for o, _ in varbinds]
+    for (_, ours), (_, their) in zip(varbinds, theirs):
+        if ours.tag == ber.NULL:
+            assert their.tagSet == rfc1902.Null.tagSet
+        elif isinstance(ours.value, (int, tuple)):
+            assert (int(their) if isinstance(ours.value, int) else tuple(their)) == ours.value
+
+
+@settings(max_examples=EXAMPLES, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.integers(0, 18), st.integers(0, 10), st.lists(st.tuples(oids, values), max_size=12))
+def test_we_read_pysnmps_responses(request_id, status, index, binds):
+    wire = pysnmp_response(request_id, status, index, [(o, v[1]) for o, v in binds])
+    got = ber.decode_response(wire)
+    assert (got.version, got.community, got.request_id, got.error_status, got.error_index) == \
+        (1, b"public", request_id, status, index)
+    assert got.varbinds == [(o, v[0]) for o, v in binds]
+
+
+@settings(max_examples=EXAMPLES, deadline=None)
+@given(st.lists(st.tuples(oids, values), min_size=1, max_size=6), st.data())
+def test_damaged_responses_raise_only_ber_errors(binds, data):
+    wire = bytearray(pysnmp_response(7, 0, 0, [(o, v[1]) for o, v in binds]))
+    how = data.draw(st.sampled_from(["truncate", "flip", "append"]))
+    if how == "truncate":
+        wire = wire[:data.draw(st.integers(0, len(wire) - 1))]
+    elif how == "flip":
+        at = data.draw(st.integers(0, len(wire) - 1))
+        wire[at] ^= data.draw(st.integers(1, 255))
+    else:
+        wire += data.draw(st.binary(min_size=1, max_size=8))
+    try:
+        ber.decode_response(bytes(wire))
+    except BerError:
+        pass
+
+
+def test_a_request_is_not_a_response_and_says_so():
+    wire = ber.encode_request(ber.GET, b"public", 5, [((1, 3, 6, 1, 2, 1, 1, 5, 0), Value(ber.NULL, None))])
+    with pytest.raises(BerError, match="not a Response PDU: tag 0xa0"):
+        ber.decode_response(wire)
+    with pytest.raises(BerError, match="cannot encode OID 1.40"):
+        ber.encode_request(ber.GET, b"public", 5, [((1, 40), Value(ber.NULL, None))])
