@@ -98,6 +98,7 @@ class RobotMotionResource:
         self._inbox: deque[tuple[str, Any]] = deque()
         self._wake = threading.Event()
         self._poll_wake = threading.Event()
+        self._shown: RobotState | None = None  # the state last handed to `publish` (read by the reader thread)
         self._stop = threading.Event()
         self._lock = threading.Lock()
         self._updates: dict[str, TaskUpdate] = {}
@@ -119,6 +120,14 @@ class RobotMotionResource:
 
     def start(self) -> RobotMotionResource:
         """Open the driver (without waiting for the robot) and start both threads."""
+        chained = self.driver.on_sip
+        if chained is None:
+            self.driver.on_sip = self._sip
+        else:
+            def both(state: RobotState) -> None:
+                self._sip(state)
+                chained(state)
+            self.driver.on_sip = both
         self.driver.open(wait=False)
         for target, kind in ((self._control_loop, "stack"), (self._poll_loop, "poll")):
             t = threading.Thread(target=target, name=f"motion-{kind}-{self.name}", daemon=True)
@@ -326,8 +335,11 @@ class RobotMotionResource:
     def _emit(self, update: TaskUpdate) -> None:
         with self._lock:
             self._updates[update.uid] = update
-        if update.state.done:
-            self._poll_wake.set()
+        self._poll_wake.set()
+
+    def _final_pending(self) -> bool:
+        with self._lock:
+            return any(u.state.done for u in self._updates.values())
 
     def take_updates(self) -> list[TaskUpdate]:
         """Return and forget the outcome changes not yet published."""
@@ -338,12 +350,23 @@ class RobotMotionResource:
 
     # --- the poll thread ----------------------------------------------------------------
 
+    def _sip(self, state: RobotState) -> None:
+        """Reader thread, per SIP: wake the poll thread when the reading differs from the last Pose."""
+        shown = self._shown
+        if shown is None or not same_reading(state, shown):
+            self._poll_wake.set()
+
     def _poll_loop(self) -> None:
         last: RobotState | None = None
-        shown: RobotState | None = None  # the state last handed to `publish`
-        shown_at = -math.inf
+        shown_at = published_at = -math.inf
         while not self._stop.is_set():
-            self._poll_wake.wait(self.pose_period)
+            # woken by a changed reading or a task outcome; a standing robot's Pose waits for the keep-alive
+            self._poll_wake.wait(max(self.pose_period, shown_at + self.pose_keepalive - self.clock()))
+            if self._stop.is_set():
+                break
+            rest = published_at + self.pose_period - self.clock()
+            if rest > 0 and not self._final_pending():
+                self._stop.wait(rest)  # at most pose_rate_hz publications a second; a final outcome goes at once
             self._poll_wake.clear()
             updates = self.take_updates()  # first: the state read next is at least as new as theirs
             state = self.driver.state  # a new SIP, or the last one re-based (teleport, re-localisation)
@@ -351,13 +374,15 @@ class RobotMotionResource:
             if fresh is not None:
                 last = fresh
                 now = self.clock()
+                shown = self._shown
                 if (not updates and shown is not None and now - shown_at < self.pose_keepalive
                         and same_reading(fresh, shown)):
                     fresh = None  # only the stamp changed (a standing robot): the keep-alive will tell
                 else:
-                    shown, shown_at = fresh, now
+                    self._shown, shown_at = fresh, now
             if fresh is None and not updates:
                 continue
+            published_at = self.clock()
             try:
                 self.publish(updates, fresh)
             except Exception:
