@@ -41,6 +41,8 @@ class MotionSettings(BaseModel):
     pose_rate_hz: float = Field(10.0, gt=0, le=100, description="Pose publishing rate (Hz)")
     pose_keepalive: float = Field(1.0, gt=0, le=60, description="a Pose that only a newer stamp would change "
                                   "(a standing robot) is published this often (s)")
+    progress_interval: float = Field(0.5, ge=0, le=60, description="a running task's result is republished for "
+                                     "progress alone at most this often (s); a new state goes at once")
     avoid_distance: float = Field(0.4, ge=0, le=5, description="built-in obstacle avoidance (m); 0 = off")
     blocked_timeout: float = Field(10.0, gt=0, description="fail a task held by avoidance this long (s)")
     stall_timeout: float = Field(1.0, gt=0, description="fail a task whose wheels stall this long (s)")
@@ -108,7 +110,7 @@ class RobotMotionControl(Plugin[MotionSettings]):
         self.pose: Pose | None = None
         self.resource = RobotMotionResource(
             driver, self._publish, name=me, rate_hz=s.rate_hz, pose_rate_hz=s.pose_rate_hz,
-            pose_keepalive=s.pose_keepalive,
+            pose_keepalive=s.pose_keepalive, progress_interval=s.progress_interval,
             avoid_distance=s.avoid_distance, blocked_timeout=s.blocked_timeout,
             stall_timeout=s.stall_timeout, link_grace=s.link_grace, default_timeout=s.default_timeout,
             teleport=s.teleport, latency=s.latency)

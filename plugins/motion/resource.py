@@ -71,15 +71,16 @@ class RobotMotionResource:
                  blocked_timeout: float = 10.0, stall_timeout: float = 1.0, link_grace: float = 2.0,
                  default_timeout: float | None = None, teleport: str = "auto", resend: float = 0.5,
                  latency: float | None = None, pose_keepalive: float = 1.0, idle_period: float = 1.0,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 progress_interval: float = 0.5, clock: Callable[[], float] = time.monotonic) -> None:
         if rate_hz <= 0 or pose_rate_hz <= 0:
             raise UsageError(f"rate_hz and pose_rate_hz must be > 0, got {rate_hz} and {pose_rate_hz}")
         if teleport not in ("auto", "sim", "odometry"):
             raise UsageError(f"teleport: expected 'auto', 'sim' or 'odometry', got {teleport!r}")
         if latency is not None and not 0 <= latency <= 2:
             raise UsageError(f"latency: expected seconds in 0..2, got {latency}")
-        if pose_keepalive <= 0 or idle_period <= 0:
-            raise UsageError(f"pose_keepalive and idle_period must be > 0 s, got {pose_keepalive} and {idle_period}")
+        if pose_keepalive <= 0 or idle_period <= 0 or progress_interval < 0:
+            raise UsageError(f"pose_keepalive and idle_period must be > 0 s and progress_interval >= 0 s, got "
+                             f"{pose_keepalive}, {idle_period} and {progress_interval}")
         self.driver = driver
         self.publish = publish
         self.name = name
@@ -92,6 +93,8 @@ class RobotMotionResource:
         self.resend = resend
         self.latency = latency
         self.pose_keepalive = pose_keepalive
+        self.progress_interval = progress_interval
+        self._told: dict[str, tuple[TaskState, float]] = {}  # task uid -> state and time last published
         self.idle_period = idle_period
         self.clock = clock
         self.stack = BehaviourStack(blocked_timeout=blocked_timeout, stall_timeout=stall_timeout)
@@ -348,6 +351,26 @@ class RobotMotionResource:
             self._updates.clear()
         return updates
 
+    def _due(self, updates: list[TaskUpdate], now: float) -> tuple[list[TaskUpdate], bool]:
+        """The updates to publish now: a new state at once, progress alone at most every
+        `progress_interval` (the rest is kept, newest first); and whether any was kept."""
+        due, kept = [], False
+        for u in updates:
+            told = self._told.get(u.uid)
+            if u.state.done or told is None or told[0] != u.state or now - told[1] >= self.progress_interval:
+                due.append(u)
+                if u.state.done:
+                    self._told.pop(u.uid, None)
+                else:
+                    self._told[u.uid] = (u.state, now)
+            else:
+                kept = True
+                with self._lock:
+                    self._updates.setdefault(u.uid, u)  # a newer one meanwhile wins
+        if len(self._told) > 256:  # tasks removed while running leave no final outcome: forget them
+            self._told = {k: v for k, v in self._told.items() if now - v[1] < 60.0}
+        return due, kept
+
     # --- the poll thread ----------------------------------------------------------------
 
     def _sip(self, state: RobotState) -> None:
@@ -359,16 +382,19 @@ class RobotMotionResource:
     def _poll_loop(self) -> None:
         last: RobotState | None = None
         shown_at = published_at = -math.inf
+        kept = False
         while not self._stop.is_set():
             # woken by a changed reading or a task outcome; a standing robot's Pose waits for the keep-alive
-            self._poll_wake.wait(max(self.pose_period, shown_at + self.pose_keepalive - self.clock()))
+            limit = self.pose_period if kept else max(self.pose_period, shown_at + self.pose_keepalive - self.clock())
+            self._poll_wake.wait(limit)
             if self._stop.is_set():
                 break
             rest = published_at + self.pose_period - self.clock()
             if rest > 0 and not self._final_pending():
                 self._stop.wait(rest)  # at most pose_rate_hz publications a second; a final outcome goes at once
             self._poll_wake.clear()
-            updates = self.take_updates()  # first: the state read next is at least as new as theirs
+            # first: the state read next is at least as new as theirs
+            updates, kept = self._due(self.take_updates(), self.clock())
             state = self.driver.state  # a new SIP, or the last one re-based (teleport, re-localisation)
             fresh = state if state is not None and state is not last else None
             if fresh is not None:

@@ -379,3 +379,16 @@ def test_a_standing_robot_publishes_its_pose_at_the_keepalive_and_a_moving_one_a
     assert moving >= min(sips, 25) * 0.6, f"{moving} Poses for {sips} SIPs of a moving robot"
     with agent.transaction() as tx:
         tx.remove(task.uid)
+
+
+def test_a_running_tasks_progress_is_published_at_most_every_progress_interval(start_agent, robot_url):
+    agent, _ = start_agent(robot_url, progress_interval=0.5)
+    task = post(agent, "randomwalk", speed=0.1, duration=2.0, seed=3)
+    seen, t0 = set(), time.monotonic()
+    while not (t := current(agent, task)).done and time.monotonic() - t0 < 10:
+        if t.result is not None:
+            seen.add((t.result.state, t.result.progress, t.result.stamp))
+        time.sleep(0.005)
+    assert current(agent, task).result.state is TaskState.SUCCEEDED
+    running = [s for s in seen if s[0] is TaskState.RUNNING]
+    assert 2 <= len(running) <= 7, f"{len(running)} running results in a 2 s task"  # 25/s without the limit
