@@ -95,6 +95,7 @@ class RobotMotionResource:
         self.pose_keepalive = pose_keepalive
         self.progress_interval = progress_interval
         self._told: dict[str, tuple[TaskState, float]] = {}  # task uid -> state and time last published
+        self._emitted: dict[str, TaskState] = {}  # task uid -> its last state handed over (stack thread)
         self.idle_period = idle_period
         self.clock = clock
         self.stack = BehaviourStack(blocked_timeout=blocked_timeout, stall_timeout=stall_timeout)
@@ -198,6 +199,7 @@ class RobotMotionResource:
             op, item = self._inbox.popleft()
             if op == "cancel":
                 b = self.stack.find(item)
+                self._emitted.pop(item, None)
                 if b is not None:
                     self.stack.remove(b)
                     self._published.pop(id(b), None)
@@ -338,6 +340,12 @@ class RobotMotionResource:
     def _emit(self, update: TaskUpdate) -> None:
         with self._lock:
             self._updates[update.uid] = update
+        if update.state.done:
+            self._emitted.pop(update.uid, None)
+        elif self._emitted.get(update.uid) == update.state:
+            return  # progress alone: the poll thread takes it on its next round
+        else:
+            self._emitted[update.uid] = update.state
         self._poll_wake.set()
 
     def _final_pending(self) -> bool:
