@@ -2,15 +2,18 @@
 
 Requests are decoded with pysnmp (they are small); responses can be large (a 120-node
 topology walk), so the agent encodes them itself from pre-encoded OID/value TLVs:
-a response is then a concatenation of bytes. Tags follow RFC 1157 / RFC 3416.
+a response is then a concatenation of bytes. Tags follow RFC 1157 / RFC 3416; the BER
+primitives are MobiNet's (`erni.plugins.mobinet.ber`), which reads these responses.
 """
 
 from __future__ import annotations
 
-import functools
 import ipaddress
 
 from erni.blackboard.errors import UsageError
+from erni.plugins.mobinet.ber import BerError, int_content, length, oid_content, tlv
+
+__all__ = ["length", "oid", "response", "signed", "tlv", "unsigned", "value", "varbind"]
 
 TAG_INTEGER, TAG_OCTETS, TAG_NULL, TAG_OID, TAG_SEQUENCE = 0x02, 0x04, 0x05, 0x06, 0x30
 TAG_IPADDRESS, TAG_COUNTER32, TAG_GAUGE32, TAG_TIMETICKS = 0x40, 0x41, 0x42, 0x43
@@ -23,51 +26,24 @@ END_OF_MIB_VIEW = bytes((TAG_END_OF_MIB_VIEW, 0))
 NULL = bytes((TAG_NULL, 0))
 
 
-def length(n: int) -> bytes:
-    """BER definite length."""
-    if n < 0x80:
-        return bytes((n,))
-    body = n.to_bytes((n.bit_length() + 7) // 8, "big")
-    return bytes((0x80 | len(body),)) + body
-
-
-def tlv(tag: int, body: bytes) -> bytes:
-    """One tag-length-value."""
-    return bytes((tag,)) + length(len(body)) + body
-
-
 def signed(tag: int, value: int) -> bytes:
     """A two's-complement INTEGER-like TLV (Integer32)."""
-    size = max(1, (value + (value < 0)).bit_length() // 8 + 1)
-    return tlv(tag, value.to_bytes(size, "big", signed=True))
+    return tlv(tag, int_content(value))
 
 
 def unsigned(tag: int, value: int) -> bytes:
     """An unsigned application TLV (Counter32, Gauge32, TimeTicks): leading 0 when needed."""
     if value < 0:
         raise UsageError(f"unsigned SNMP value must be >= 0, got {value}")
-    size = value.bit_length() // 8 + 1
-    return tlv(tag, value.to_bytes(size, "big"))
-
-
-@functools.lru_cache(maxsize=65536)
-def _base128(n: int) -> bytes:
-    chunk = [n & 0x7F]
-    n >>= 7
-    while n:
-        chunk.append(0x80 | (n & 0x7F))
-        n >>= 7
-    return bytes(reversed(chunk))
+    return tlv(tag, int_content(value))
 
 
 def oid(arcs: tuple[int, ...]) -> bytes:
     """An OBJECT IDENTIFIER TLV (zeroDotZero, 0.0, included)."""
-    if len(arcs) < 2 or arcs[0] not in (0, 1, 2) or (arcs[0] < 2 and not 0 <= arcs[1] < 40) \
-            or min(arcs) < 0:
-        raise UsageError(f"invalid OID {arcs!r}")
-    if max(arcs) < 128:  # the common case: one byte per arc
-        return tlv(TAG_OID, bytes((arcs[0] * 40 + arcs[1],)) + bytes(arcs[2:]))
-    return tlv(TAG_OID, _base128(arcs[0] * 40 + arcs[1]) + b"".join(map(_base128, arcs[2:])))
+    try:
+        return tlv(TAG_OID, oid_content(arcs))
+    except BerError:
+        raise UsageError(f"invalid OID {arcs!r}") from None
 
 
 def value(kind: str, v: object) -> bytes:

@@ -14,7 +14,10 @@ the tests.
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
+
+from erni.blackboard.errors import NetworkError
 
 OID = tuple[int, ...]
 
@@ -39,8 +42,8 @@ ERROR_STATUS = ("noError", "tooBig", "noSuchName", "badValue", "readOnly", "genE
 _UNSIGNED = frozenset({COUNTER32, GAUGE32, TIME_TICKS, COUNTER64})
 
 
-class BerError(ValueError):
-    """A message that is not well-formed BER or not an SNMPv2c Response."""
+class BerError(NetworkError, ValueError):
+    """A message that is not well-formed BER or not an SNMPv2c Response, or a value BER cannot carry."""
 
 
 class Value(NamedTuple):
@@ -74,33 +77,42 @@ class Response(NamedTuple):
 
 # --- encoding -----------------------------------------------------------------------------
 
-def _length(n: int) -> bytes:
+def length(n: int) -> bytes:
+    """A BER definite length."""
     if n < 0x80:
         return bytes((n,))
     body = n.to_bytes((n.bit_length() + 7) // 8, "big")
     return bytes((0x80 | len(body),)) + body
 
 
-def _tlv(tag: int, content: bytes) -> bytes:
-    return bytes((tag,)) + _length(len(content)) + content
+def tlv(tag: int, content: bytes) -> bytes:
+    """One tag-length-value."""
+    return bytes((tag,)) + length(len(content)) + content
 
 
-def _int_content(n: int) -> bytes:
-    return n.to_bytes(max(1, (n.bit_length() + 8) // 8), "big", signed=True)
+def int_content(n: int) -> bytes:
+    """The shortest two's-complement content of an INTEGER (unsigned types get a leading 0 when needed)."""
+    return n.to_bytes((n if n >= 0 else ~n).bit_length() // 8 + 1, "big", signed=True)
 
 
-def _oid_content(oid: OID) -> bytes:
-    if len(oid) < 2 or oid[0] > 2 or (oid[0] < 2 and oid[1] > 39) or any(a < 0 for a in oid):
+@functools.lru_cache(maxsize=65536)
+def _base128(n: int) -> bytes:
+    chunk = [n & 0x7F]
+    n >>= 7
+    while n:
+        chunk.append(0x80 | (n & 0x7F))
+        n >>= 7
+    return bytes(reversed(chunk))
+
+
+def oid_content(oid: OID) -> bytes:
+    """The content of an OBJECT IDENTIFIER (zeroDotZero, 0.0, included)."""
+    if len(oid) < 2 or oid[0] > 2 or (oid[0] < 2 and oid[1] > 39) or min(oid) < 0:
         raise BerError(f"cannot encode OID {'.'.join(map(str, oid))}: not a valid object identifier")
-    out = bytearray()
-    for arc in (40 * oid[0] + oid[1], *oid[2:]):
-        chunk = [arc & 0x7F]
-        arc >>= 7
-        while arc:
-            chunk.append(0x80 | (arc & 0x7F))
-            arc >>= 7
-        out.extend(reversed(chunk))
-    return bytes(out)
+    first = oid[0] * 40 + oid[1]
+    if first < 128 and max(oid) < 128:  # the common case: one byte per arc
+        return bytes((first,)) + bytes(oid[2:])
+    return _base128(first) + b"".join(map(_base128, oid[2:]))
 
 
 def encode_value(value: Value) -> bytes:
@@ -110,13 +122,13 @@ def encode_value(value: Value) -> bytes:
         return b"\x05\x00"
     if tag == INTEGER or tag in _UNSIGNED:
         assert isinstance(v, int)
-        return _tlv(tag, _int_content(v))
+        return tlv(tag, int_content(v))
     if tag in (OCTET_STRING, IP_ADDRESS, OPAQUE):
         assert isinstance(v, bytes)
-        return _tlv(tag, v)
+        return tlv(tag, v)
     if tag == OBJECT_IDENTIFIER:
         assert isinstance(v, tuple)
-        return _tlv(tag, _oid_content(v))
+        return tlv(tag, oid_content(v))
     raise BerError(f"cannot encode a value of type {TYPE_NAMES.get(tag, hex(tag))}")
 
 
@@ -125,12 +137,12 @@ def encode_request(pdu: int, community: bytes, request_id: int, varbinds: list[t
     """An SNMPv2c message carrying a GetRequest, GetBulkRequest or SetRequest PDU."""
     if pdu not in (GET, GET_NEXT, SET, GET_BULK):
         raise BerError(f"not a request PDU: 0x{pdu:02x}")
-    binds = b"".join(_tlv(SEQUENCE, _tlv(OBJECT_IDENTIFIER, _oid_content(oid)) + encode_value(v))
+    binds = b"".join(tlv(SEQUENCE, tlv(OBJECT_IDENTIFIER, oid_content(oid)) + encode_value(v))
                      for oid, v in varbinds)
     second, third = (non_repeaters, max_repetitions) if pdu == GET_BULK else (0, 0)
-    body = (_tlv(INTEGER, _int_content(request_id)) + _tlv(INTEGER, _int_content(second))
-            + _tlv(INTEGER, _int_content(third)) + _tlv(SEQUENCE, binds))
-    return _tlv(SEQUENCE, _tlv(INTEGER, b"\x01") + _tlv(OCTET_STRING, community) + _tlv(pdu, body))
+    body = (tlv(INTEGER, int_content(request_id)) + tlv(INTEGER, int_content(second))
+            + tlv(INTEGER, int_content(third)) + tlv(SEQUENCE, binds))
+    return tlv(SEQUENCE, tlv(INTEGER, b"\x01") + tlv(OCTET_STRING, community) + tlv(pdu, body))
 
 
 # --- decoding -----------------------------------------------------------------------------

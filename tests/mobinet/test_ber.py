@@ -10,6 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from pyasn1.codec.ber import decoder, encoder
+from pyasn1.type import univ
 from pysnmp.proto import api, rfc1902, rfc1905
 from pysnmp.proto.api import v2c
 
@@ -112,3 +113,11 @@ def test_a_request_is_not_a_response_and_says_so():
         ber.decode_response(wire)
     with pytest.raises(BerError, match="cannot encode OID 1.40"):
         ber.encode_request(ber.GET, b"public", 5, [((1, 40), Value(ber.NULL, None))])
+
+
+@settings(max_examples=EXAMPLES, deadline=None)
+@given(st.integers(-(2**63), 2**63 - 1), oids)
+def test_integers_and_oids_are_encoded_byte_for_byte_as_pyasn1_does(n, oid):
+    assert ber.tlv(ber.INTEGER, ber.int_content(n)) == encoder.encode(rfc1902.Integer(n) if -(2**31) <= n < 2**31
+                                                                     else univ.Integer(n))
+    assert ber.tlv(ber.OBJECT_IDENTIFIER, ber.oid_content(oid)) == encoder.encode(univ.ObjectIdentifier(oid))

@@ -9,8 +9,8 @@ internals are skipped, saying so. Give the robot a metre of free space all aroun
 from __future__ import annotations
 
 import math
-import time
 import os
+import time
 
 import pytest
 
