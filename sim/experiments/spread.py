@@ -185,12 +185,11 @@ def _agents(scenario: Scenario, progress: Progress, variant: str, label: str) ->
         for name in names:
             team.send(name, "Deploy", "spread", **params)
 
-        def settled() -> bool:
+        def settled() -> bool:  # judged as the figure judges it: on every sample
             got = team.samples()
             if not got or got[-1].t - got[0].t < hold + 5.0:
                 return False
-            recent = [x for x in got if x.t >= got[-1].t - hold]
-            return all(max(abs(v) for v in x.v) < threshold for x in recent)
+            return math.isfinite(_still(np.array([x.t for x in got]), np.array([x.v for x in got]), threshold, hold))
 
         team.wait("spreading", duration, settled)
         samples = team.samples()
@@ -201,7 +200,8 @@ def _agents(scenario: Scenario, progress: Progress, variant: str, label: str) ->
     ps = np.array([np.stack([samples[k].x, samples[k].y], axis=1) for k in pick])
     ths = np.array([samples[k].th for k in pick])
     sps = np.abs(np.array([samples[k].v for k in pick]))
-    return Run(variant, ts, ps, ths, sps, _still(ts, sps, threshold, hold))
+    converged = _still(t, np.array([x.v for x in samples]), threshold, hold)  # every sample, as `settled`
+    return Run(variant, ts, ps, ths, sps, converged)
 
 
 def _pinned(pos: NDArray[np.float64], walls: NDArray[np.float64], within: float) -> int:
