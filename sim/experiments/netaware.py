@@ -152,7 +152,8 @@ def _one(scenario: Scenario, mission: str, arm: str, progress: Progress) -> Outc
         team.wait(f"{mission} ({arm})", limit, finished)
         samples = team.samples()
         length = team.now
-        team.pump(2.0)  # the last results on their way
+        # the last results on their way (a WiDep robot learns of the coverage at its next round)
+        team.pump(2.0 + (float(s.get("period", 4.0)) if mission == "widep" else 0.0))
         reported = sum(1 for u in uids if math.isfinite(team.succeeded_at(u)))
         if mission == "widep":
             done, times = (1, [covered[0]]) if covered else (0, [])
