@@ -117,7 +117,18 @@ def test_a_request_is_not_a_response_and_says_so():
 
 @settings(max_examples=EXAMPLES, deadline=None)
 @given(st.integers(-(2**63), 2**63 - 1), oids)
-def test_integers_and_oids_are_encoded_byte_for_byte_as_pyasn1_does(n, oid):
-    assert ber.tlv(ber.INTEGER, ber.int_content(n)) == encoder.encode(rfc1902.Integer(n) if -(2**31) <= n < 2**31
-                                                                     else univ.Integer(n))
+def test_integers_are_minimal_and_read_by_pyasn1_and_oids_are_encoded_as_pyasn1_does(n, oid):
+    ours = ber.tlv(ber.INTEGER, ber.int_content(n))
+    value, rest = decoder.decode(ours, asn1Spec=univ.Integer())
+    assert rest == b"" and int(value) == n
+    content = ours[2:]
+    if len(content) > 1:  # X.690 8.3.2: the first nine bits are neither all ones nor all zeros
+        assert not (content[0] == 0xFF and content[1] & 0x80) and not (content[0] == 0 and not content[1] & 0x80)
+    if n != -(2 ** (8 * len(content) - 1)):  # pyasn1 spends an octet more on -128, -32768 ... only
+        assert ours == encoder.encode(univ.Integer(n))
     assert ber.tlv(ber.OBJECT_IDENTIFIER, ber.oid_content(oid)) == encoder.encode(univ.ObjectIdentifier(oid))
+
+
+def test_the_most_negative_values_take_the_fewest_octets():
+    assert ber.int_content(-128) == b"\x80" and ber.int_content(-129) == b"\xff\x7f"
+    assert ber.int_content(-(2**31)) == b"\x80\x00\x00\x00"

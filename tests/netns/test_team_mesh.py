@@ -100,7 +100,9 @@ def test_mobinet_reports_babelds_routes_and_the_relay_knows_it_holds_the_line(te
     got = results.until(routes.uid, lambda r: r.values.get("routes") and len(r.values["routes"]) == 3, 20)
     assert {d: v["next_hop"] for d, v in got.values["routes"].items()} == kernel == {
         "robot1": "robot1", "robot2": "robot1", "robot3": "robot1"}
-    assert got.values["routes"]["robot3"]["cost"] == pytest.approx(3.0, abs=0.5)  # three loss-free hops
+    # three hops of babeld cost 1 each when no hello went missing; a hello babeld counts as late on a
+    # loaded machine raises one hop's cost, never to a fourth hop's
+    assert 3.0 <= got.values["routes"]["robot3"]["cost"] < 4.0
     assert results.until(relay.uid, lambda r: "articulation_point" in r.values, 20).values["articulation_point"]
     assert not results.until(end.uid, lambda r: "articulation_point" in r.values, 20).values["articulation_point"]
 

@@ -209,6 +209,10 @@ def test_dead_peer_does_not_stall_other_plugins(team):
                 tx.add(task_to("ghost", distance=float(i + 1)))
         hole.settimeout(5)
         conn, _ = hole.accept()  # the stalled agent's sender is now waiting on the dead peer
+        # sample once the transport has handed every task to its sender: what is measured is a
+        # sender waiting on a dead peer, not the burst of queuing 50 tasks
+        wait_until(lambda: all(t.result is not None and t.result.state is TaskState.PENDING
+                               for t in stalled.query(Task)), timeout=5)
         samples: dict[str, list[float]] = {"normal": [], "stalled": []}
         for i in range(400):
             for agent in (normal, stalled) if i % 2 else (stalled, normal):
@@ -216,7 +220,11 @@ def test_dead_peer_does_not_stall_other_plugins(team):
         ratio = statistics.median(samples["stalled"]) / statistics.median(samples["normal"])
         print(f"transaction latency median: normal {statistics.median(samples['normal']) * 1e6:.0f} us, "
               f"dead peer {statistics.median(samples['stalled']) * 1e6:.0f} us, ratio {ratio:.2f}")
-        assert ratio <= 1.2
+        # a stall would be the 2 s acknowledgement timeout; on a loaded machine the two medians of a
+        # few tens of microseconds differ by scheduling alone, hence the absolute allowance
+        stalled_median, normal_median = statistics.median(samples["stalled"]), statistics.median(samples["normal"])
+        assert stalled_median <= 1.2 * normal_median + 100e-6, f"ratio {ratio:.2f}"
+        assert max(samples["stalled"]) < 0.5  # no transaction waited for the dead peer
         conn.close()
     finally:
         ghost.close()
