@@ -495,6 +495,19 @@ class Endpoint:
             self.on_undeliverable(addr, msg_id, kind, body)
         return msg_id
 
+    def _caller_session(self, addr: Address, out: _Outgoing) -> tuple[bool, Session | None]:
+        """Whether the caller's thread may send `out` to `addr` itself, and the session to seal it in.
+
+        Not while starting or stopping, and only in a confirmed session with the intended peer: a
+        handshake to drive, or a wrong peer to report, is the sender pool's work.
+        """
+        if not self._threads or self._stopping:
+            return False, None
+        if self.auth is None:
+            return True, None
+        session = self.session_with(addr)
+        return session is not None and not (out.to and out.to != session.peer), session
+
     def _send_now(self, addr: Address, out: _Outgoing) -> bool:
         """Send a fast message from the caller's thread when that cannot wait: True when it is done.
 
@@ -502,13 +515,9 @@ class Endpoint:
         that destination, and only what the socket takes at once: the UDP socket never blocks
         (a full send buffer raises at once), and then the message is queued for the sender pool.
         """
-        if not self._threads or self._stopping:
+        usable, session = self._caller_session(addr, out)
+        if not usable:
             return False
-        session: Session | None = None
-        if self.auth is not None:
-            session = self.session_with(addr)
-            if session is None or (out.to and out.to != session.peer):
-                return False  # a handshake first, or a wrong peer to report: the pool does both
         dest = self._dests.get(addr)
         if dest is not None and (dest.fast or dest.announce):
             return False  # keep the order of what is queued already
@@ -535,13 +544,9 @@ class Endpoint:
         to the sender), and a sender thread then waits for the acknowledgement, retries and
         reports as for any reliable message. True when the message is queued that way.
         """
-        if not self._threads or self._stopping:
+        usable, session = self._caller_session(addr, out)
+        if not usable:
             return False
-        session: Session | None = None
-        if self.auth is not None:
-            session = self.session_with(addr)
-            if session is None or (out.to and out.to != session.peer):
-                return False
         now = time.monotonic()
         with self._cond:
             dest = self._dests.get(addr)
