@@ -134,6 +134,13 @@ def _text(line: str, values: dict[str, str], key: str) -> str:
     return values[key]
 
 
+def _flag(line: str, values: dict[str, str], key: str, yes: str, no: str) -> bool:
+    word = _text(line, values, key)
+    if word not in (yes, no):
+        raise SourceError(f"babeld: {key} {word[:10]!r} in {line[:80]!r}: expected {yes} or {no}")
+    return word == yes
+
+
 def _address(line: str, text: str, what: str) -> str:
     try:
         return str(ipaddress.ip_address(text))
@@ -164,11 +171,8 @@ def parse_dump(lines: list[str]) -> BabelDump:
         kind, ident = words[1], words[2]
         if kind == "interface":
             values = _fields(line, words, 3)
-            up = _text(line, values, "up")
-            if up not in ("true", "false"):
-                raise SourceError(f"babeld: up {up[:10]!r} in {line[:80]!r}: expected true or false")
             dump.interfaces.append(BabelInterface(
-                ident, up == "true",
+                ident, _flag(line, values, "up", "true", "false"),
                 _address(line, values["ipv6"], "ipv6") if "ipv6" in values else "",
                 _address(line, values["ipv4"], "ipv4") if "ipv4" in values else ""))
         elif kind == "neighbour":
@@ -183,12 +187,9 @@ def parse_dump(lines: list[str]) -> BabelDump:
                                  _number(line, values, "metric")))
         elif kind == "route":
             values = _fields(line, words, 3)
-            installed = _text(line, values, "installed")
-            if installed not in ("yes", "no"):
-                raise SourceError(f"babeld: installed {installed[:10]!r} in {line[:80]!r}: expected yes or no")
             dump.routes.append(BabelRoute(
                 ident, _prefix(line, _text(line, values, "prefix"), "prefix"),
-                _prefix(line, values.get("from", "0.0.0.0/0"), "from"), installed == "yes",
+                _prefix(line, values.get("from", "0.0.0.0/0"), "from"), _flag(line, values, "installed", "yes", "no"),
                 _text(line, values, "id"), _number(line, values, "metric"), _number(line, values, "refmetric"),
                 _address(line, _text(line, values, "via"), "via"), _text(line, values, "if")))
     return dump
