@@ -68,15 +68,13 @@ def waiting(port: Any) -> int:
     AMRISim, `erni robot-sim`) only says 0 or 1, so a reader trusting it takes a SIP a byte at a
     time (about 60 reads per SIP); for a socket the kernel's count (FIONREAD) is asked instead.
     """
-    n = int(port.in_waiting)
     sock = getattr(port, "_socket", None)  # pyserial's socket handler keeps its socket here
-    if n and isinstance(sock, socket.socket):
+    if isinstance(sock, socket.socket):
         try:
-            raw = fcntl.ioctl(sock.fileno(), termios.FIONREAD, bytes(4))
-            n = max(n, int.from_bytes(raw, sys.byteorder, signed=True))
+            return int.from_bytes(fcntl.ioctl(sock.fileno(), termios.FIONREAD, bytes(4)), sys.byteorder, signed=True)
         except OSError:
             pass
-    return n
+    return int(port.in_waiting)
 
 
 def _sync_reply(sync: int) -> Callable[[bytes], bool]:
