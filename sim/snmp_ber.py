@@ -11,19 +11,15 @@ from __future__ import annotations
 import ipaddress
 
 from erni.blackboard.errors import UsageError
+from erni.plugins.mobinet import ber
 from erni.plugins.mobinet.ber import BerError, int_content, length, oid_content, tlv
 
 __all__ = ["length", "oid", "response", "signed", "tlv", "unsigned", "value", "varbind"]
 
-TAG_INTEGER, TAG_OCTETS, TAG_NULL, TAG_OID, TAG_SEQUENCE = 0x02, 0x04, 0x05, 0x06, 0x30
-TAG_IPADDRESS, TAG_COUNTER32, TAG_GAUGE32, TAG_TIMETICKS = 0x40, 0x41, 0x42, 0x43
-TAG_NO_SUCH_OBJECT, TAG_NO_SUCH_INSTANCE, TAG_END_OF_MIB_VIEW = 0x80, 0x81, 0x82
-TAG_GET_RESPONSE = 0xA2
-
-NO_SUCH_OBJECT = bytes((TAG_NO_SUCH_OBJECT, 0))
-NO_SUCH_INSTANCE = bytes((TAG_NO_SUCH_INSTANCE, 0))
-END_OF_MIB_VIEW = bytes((TAG_END_OF_MIB_VIEW, 0))
-NULL = bytes((TAG_NULL, 0))
+NO_SUCH_OBJECT = bytes((ber.NO_SUCH_OBJECT, 0))
+NO_SUCH_INSTANCE = bytes((ber.NO_SUCH_INSTANCE, 0))
+END_OF_MIB_VIEW = bytes((ber.END_OF_MIB_VIEW, 0))
+NULL = bytes((ber.NULL, 0))
 
 
 def signed(tag: int, value: int) -> bytes:
@@ -41,7 +37,7 @@ def unsigned(tag: int, value: int) -> bytes:
 def oid(arcs: tuple[int, ...]) -> bytes:
     """An OBJECT IDENTIFIER TLV (zeroDotZero, 0.0, included)."""
     try:
-        return tlv(TAG_OID, oid_content(arcs))
+        return tlv(ber.OBJECT_IDENTIFIER, oid_content(arcs))
     except BerError:
         raise UsageError(f"invalid OID {arcs!r}") from None
 
@@ -49,17 +45,17 @@ def oid(arcs: tuple[int, ...]) -> bytes:
 def value(kind: str, v: object) -> bytes:
     """A typed value TLV: kinds int, str, ip, gauge, uns, counter, ticks, oid."""
     if kind == "int":
-        return signed(TAG_INTEGER, int(v))  # type: ignore[call-overload]
+        return signed(ber.INTEGER, int(v))  # type: ignore[call-overload]
     if kind == "str":
-        return tlv(TAG_OCTETS, v.encode() if isinstance(v, str) else bytes(v))  # type: ignore[call-overload]  # bytes-like by contract
+        return tlv(ber.OCTET_STRING, v.encode() if isinstance(v, str) else bytes(v))  # type: ignore[call-overload]  # bytes-like by contract
     if kind == "ip":
-        return tlv(TAG_IPADDRESS, ipaddress.IPv4Address(str(v)).packed)
+        return tlv(ber.IP_ADDRESS, ipaddress.IPv4Address(str(v)).packed)
     if kind in ("gauge", "uns"):
-        return unsigned(TAG_GAUGE32, int(v))  # type: ignore[call-overload]
+        return unsigned(ber.GAUGE32, int(v))  # type: ignore[call-overload]
     if kind == "counter":
-        return unsigned(TAG_COUNTER32, int(v))  # type: ignore[call-overload]
+        return unsigned(ber.COUNTER32, int(v))  # type: ignore[call-overload]
     if kind == "ticks":
-        return unsigned(TAG_TIMETICKS, int(v))  # type: ignore[call-overload]
+        return unsigned(ber.TIME_TICKS, int(v))  # type: ignore[call-overload]
     if kind == "oid":
         return oid(tuple(v))  # type: ignore[arg-type]  # a tuple of arcs by contract
     raise UsageError(f"unknown SNMP value kind {kind!r}")
@@ -68,12 +64,12 @@ def value(kind: str, v: object) -> bytes:
 def response(version: int, community: bytes, request_id: int, error_status: int,
              error_index: int, varbinds: list[bytes]) -> bytes:
     """A whole GetResponse message from encoded varbinds (each `SEQUENCE {oid, value}`)."""
-    pdu = (signed(TAG_INTEGER, request_id) + signed(TAG_INTEGER, error_status)
-           + signed(TAG_INTEGER, error_index) + tlv(TAG_SEQUENCE, b"".join(varbinds)))
-    return tlv(TAG_SEQUENCE, signed(TAG_INTEGER, version) + tlv(TAG_OCTETS, community)
-               + tlv(TAG_GET_RESPONSE, pdu))
+    pdu = (signed(ber.INTEGER, request_id) + signed(ber.INTEGER, error_status)
+           + signed(ber.INTEGER, error_index) + tlv(ber.SEQUENCE, b"".join(varbinds)))
+    return tlv(ber.SEQUENCE, signed(ber.INTEGER, version) + tlv(ber.OCTET_STRING, community)
+               + tlv(ber.RESPONSE, pdu))
 
 
 def varbind(encoded_oid: bytes, encoded_value: bytes) -> bytes:
     """One VarBind from an encoded OID and value."""
-    return tlv(TAG_SEQUENCE, encoded_oid + encoded_value)
+    return tlv(ber.SEQUENCE, encoded_oid + encoded_value)
