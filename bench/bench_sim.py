@@ -35,10 +35,9 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np  # noqa: E402
+from hall import start_hall_team  # noqa: E402  # bench/hall.py
 from procstat import cpu_seconds, rss_mb  # noqa: E402  # bench/procstat.py
 
-from erni.sim.scenario import Scenario  # noqa: E402
-from erni.sim.team import Team  # noqa: E402
 from erni.transport.bridge import WatchEvent, WatchRequest  # noqa: E402
 
 AGENT_IMPORTS = "import erni.blackboard, erni.transport.bridge, erni.plugins.motion, erni.plugins.mobinet, erni.plugins.mission"
@@ -64,20 +63,8 @@ def import_floor(code: str) -> float:
 
 def agents_run(n: int, window: float) -> dict[str, float]:
     """Start an n-robot team, random-walk every robot, watch poses for `window` s; return numbers."""
-    cols = max(1, int(np.ceil(np.sqrt(n))))
-    side = cols * 3.0
-    scenario = Scenario(name=f"bench{n}", robots={"count": n, "layout": "grid", "spacing": 3.0,
-                                                  "origin": [0.0, 0.0], "heading": "random"},
-                        radio={"comm_range": 1000.0, "lossless_range": 1000.0},
-                        world={"name": "hall", "bounds": [-side / 2 - 3, -3.0, side / 2 + 3, side + 3]})
-    team = Team(scenario, headless=True, control_port=0, ui=False)  # robots run what a robot runs
-    t0 = time.monotonic()
+    team, startup = start_hall_team(f"bench{n}", n, walk=True, settle=2.0)
     try:
-        team.start(timeout=60 + 3 * n)
-        startup = time.monotonic() - t0
-        for name in team.names:
-            team.send_task(name, "BotMotion", "randomwalk", speed=0.3, seed=1)
-        time.sleep(2.0)
         client = team.client()
         pids = {name: a.proc.pid for name, a in team.agents.items() if a.proc}
         cpu0 = {name: cpu_seconds(pid) for name, pid in pids.items()}
