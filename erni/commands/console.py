@@ -65,6 +65,7 @@ class Console:
         self.failed = 0
         self.refused = 0
         self._lock = threading.Lock()
+        self._out_lock = threading.Lock()
         self._stop = threading.Event()
         self._posed = threading.Event()  # the first Pose arrived through the watch
         self._waited = False
@@ -158,7 +159,10 @@ class Console:
         time.sleep(0.2)
 
     def print(self, text: str) -> None:
-        print(text, file=self.out, flush=True)
+        """Write whole lines: the receive thread's event lines and the replies never share a line."""
+        with self._out_lock:
+            self.out.write(text + "\n")
+            self.out.flush()
 
     def emit(self, text: str, data: dict[str, Any]) -> None:
         """Print a line of text, or with --json the same as one JSON object."""
@@ -268,7 +272,7 @@ def run(args: argparse.Namespace) -> int:
                     print(HELP)
                     continue
                 if not interactive and not args.json:
-                    print(f"> {line}", flush=True)
+                    console.print(f"> {line}")
                 console.say(line)
             if not interactive:
                 console.wait(args.timeout)
