@@ -207,7 +207,8 @@ class WidepRunner(Runner):
 
     def _unsettled(self, names: list[str], round_start: float, period: float) -> list[str]:
         """The other robots not seen at rest since the previous round's steps could have ended."""
-        fresh_after = round_start - 0.5 * period
+        # a standing robot republishes its unchanged Pose only every pose_keepalive (plus delivery)
+        fresh_after = round_start - max(0.5 * period, self.s.pose_keepalive + 0.5)
         return [n for n in names[1:] if not self.ops.team.settled(n, fresh_after, self.s.widep_settle)]
 
     def _stalled(self, mine: float, best: float, period: float) -> bool:
