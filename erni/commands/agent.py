@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import signal
 import sys
 import threading
@@ -29,6 +30,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--log-level", choices=["DEBUG", "INFO", "WARNING", "ERROR"],
                    help="override the config's [agent] log_level")
     p.add_argument("--check", action="store_true", help="validate the config and exit")
+    p.add_argument("--stop-grace", type=float, default=5.0, metavar="SECONDS",
+                   help="after SIGINT or SIGTERM, exit at once if a clean stop has not finished "
+                        "within this many seconds (default 5), naming the threads still busy")
     p.add_argument("--reset-journal", action="store_true",
                    help="if the journal cannot be read, move it aside (NAME.bad-N) and start empty")
 
@@ -53,14 +57,25 @@ def run(args: argparse.Namespace, prepare: Callable[[Agent], None] | None = None
         return 0
     setup_logging(args.log_level or config.agent.log_level)
     stop = threading.Event()
+    running = threading.Event()
 
     def on_signal(signum: int, frame: Any) -> None:
+        if stop.is_set():
+            return
         stop.set()
+        watchdog = threading.Timer(args.stop_grace, _exit_hard, (config.agent.name, args.stop_grace))
+        watchdog.daemon = True
+        watchdog.start()
+        if not running.is_set():
+            raise _StopDuringStart   # a start still setting up (or waiting on a peer) is abandoned
 
     previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
         try:
             agent.start()
+            running.set()
+        except _StopDuringStart:
+            return 0
         except (ErniError, OSError) as err:
             print(f"{args.config}: cannot start agent {config.agent.name}: {str(err).splitlines()[0]}",
                   file=sys.stderr)
@@ -71,3 +86,16 @@ def run(args: argparse.Namespace, prepare: Callable[[Agent], None] | None = None
         for s, handler in previous.items():
             signal.signal(s, handler)
     return 0
+
+
+class _StopDuringStart(BaseException):
+    """Raised by the signal handler to abandon an agent's start."""
+
+
+def _exit_hard(name: str, grace: float) -> None:
+    """The stop watchdog: a stop that outlives its grace ends the process, naming what was busy."""
+    busy = sorted(t.name for t in threading.enumerate() if t is not threading.current_thread()
+                  and t is not threading.main_thread())
+    print(f"agent {name}: did not stop within {grace:g} s of the signal; exiting now "
+          f"(threads still running: {', '.join(busy) or 'main only'})", file=sys.stderr, flush=True)
+    os._exit(3)

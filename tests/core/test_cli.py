@@ -63,3 +63,59 @@ def test_agent_runs_until_sigterm_and_stops_cleanly():
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+
+
+HANGING = '''
+import threading
+from erni import Plugin
+
+class HangsInSetup(Plugin):
+    def setup(self):
+        print("setting up", flush=True)
+        threading.Event().wait()      # waits for a peer that never answers
+
+class HangsInTeardown(Plugin):
+    def setup(self):
+        print("set up", flush=True)
+    def teardown(self):
+        threading.Event().wait()
+'''
+
+
+def _hanging_agent(tmp_path: Path, cls: str, *extra: str) -> subprocess.Popen[str]:
+    (tmp_path / "hanging.py").write_text(HANGING)
+    path = tmp_path / "a.toml"
+    path.write_text(f'[agent]\nname = "stuck"\nworkers = 1\n\n[[plugin]]\nclass = "hanging:{cls}"\n')
+    return subprocess.Popen([sys.executable, "-m", "erni", "agent", str(path), *extra], cwd=ROOT,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env={**os.environ, "PYTHONPATH": str(tmp_path), "PYTHONUNBUFFERED": "1"})
+
+
+def test_a_signal_during_a_start_that_never_ends_stops_the_agent(tmp_path):
+    """A launcher that dies while an agent is still starting (its SIGTERM through PDEATHSIG)
+    must not leave the agent running: the start is abandoned and the agent stopped."""
+    proc = _hanging_agent(tmp_path, "HangsInSetup")
+    try:
+        assert proc.stdout.readline().strip() == "setting up"
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=20) == 0
+        assert "Traceback" not in proc.stderr.read()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+def test_a_stop_that_never_ends_is_cut_after_the_grace(tmp_path):
+    proc = _hanging_agent(tmp_path, "HangsInTeardown", "--stop-grace", "1")
+    try:
+        assert proc.stdout.readline().strip() == "set up"
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=20) == 3
+        err = proc.stderr.read()
+        assert "agent stuck: did not stop within 1 s of the signal; exiting now" in err, err
+        assert "Traceback" not in err
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
