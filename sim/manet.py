@@ -182,6 +182,7 @@ class ManetNetwork:
         self._known: dict[str, dict[str, KnownPosition]] = {}
         self._updates: dict[str, int] = {}
         self._version = 0
+        self._rows_version = 0
         self._topo_version = 0
         self._truth: GroundTruth | None = None
         self._views: dict[str, NodeView] = {}
@@ -250,6 +251,20 @@ class ManetNetwork:
     def version(self) -> int:
         """Counter bumped whenever anything a node serves changes (links, routes, reports)."""
         return self._version
+
+    @property
+    def rows_version(self) -> int:
+        """Counter bumped when the set of rows some node serves changes: links, routes, nodes, or an
+        origin a node had no position of. A position report alone changes values, not rows."""
+        return self._rows_version
+
+    def known_position(self, name: str, origin: str) -> KnownPosition | None:
+        """The newest position of `origin` that node `name` has learned (None: none yet)."""
+        return self._known[name].get(origin)
+
+    def position_updates(self, name: str) -> int:
+        """How many positions node `name` has reported about itself."""
+        return self._updates[name]
 
     def names(self) -> list[str]:
         """Node names in index order."""
@@ -355,6 +370,7 @@ class ManetNetwork:
             return  # e.g. moves within the loss-free range: links, metrics and routes stand
         self._count_changes(old, new, now)
         self._version += 1
+        self._rows_version += 1
         self._topo_version += 1
         self._views.clear()
         self._topologies.clear()
@@ -407,7 +423,10 @@ class ManetNetwork:
     def _report(self, name: str, pos: KnownPosition) -> None:
         comp = next(c for c in self.truth().components if name in c)
         for member in comp:
-            self._known[member][name] = pos
+            known = self._known[member]
+            if name not in known:
+                self._rows_version += 1   # a new origin: its member serves rows it did not serve before
+            known[name] = pos
         self._version += 1
         self._views.clear()
 

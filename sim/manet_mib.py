@@ -457,28 +457,27 @@ def _counter(name: str, ctx: NodeContext) -> int:
 
 
 def _erni(out: _Rows, view: NodeView, net: ManetNetwork) -> None:
+    """ERNI-MANET-MIB rows. Positions, their ages, the update count and the state version are read
+    live from the network, so a position report changes what is served without rebuilding rows."""
     me = view.node
-    own = view.positions.get(me.name)
     out.scalar(ERNI_NODE_NAME, me.name)
     out.scalar(ERNI_NODE_INDEX, me.index)
     out.scalar(ERNI_NODE_ADDRESS, me.address)
-    out.scalar(ERNI_POS_X, _mm(own.x) if own else 0)
-    out.scalar(ERNI_POS_Y, _mm(own.y) if own else 0)
-    out.scalar(ERNI_POS_HEADING, _cdeg(own.heading) if own else 0)
-    out.scalar(ERNI_POS_UPDATES, view.position_updates % 2**32)
+    out.scalar(ERNI_POS_X, functools.partial(_position, net, me.name, me.name, "x"))
+    out.scalar(ERNI_POS_Y, functools.partial(_position, net, me.name, me.name, "y"))
+    out.scalar(ERNI_POS_HEADING, functools.partial(_position, net, me.name, me.name, "heading"))
+    out.scalar(ERNI_POS_UPDATES, lambda ctx: net.position_updates(me.name) % 2**32)
     out.scalar(ERNI_COMM_RANGE, _mm(net.radio.comm_range))
     out.scalar(ERNI_TOPOLOGY_VERSION, view.topology_version % 2**32)
-    out.scalar(ERNI_STATE_VERSION, view.version % 2**32)
+    out.scalar(ERNI_STATE_VERSION, lambda ctx: net.version % 2**32)
     for node in view.known_nodes:
         idx = (node.index,)
         out.add(ERNI_NODES_NAME, idx, node.name)
         out.add(ERNI_NODES_ADDRESS, idx, node.address)
-        pos = view.positions.get(node.name)
-        if pos is not None:
-            out.add(ERNI_POSITION_X, idx, _mm(pos.x))
-            out.add(ERNI_POSITION_Y, idx, _mm(pos.y))
-            out.add(ERNI_POSITION_HEADING, idx, _cdeg(pos.heading))
-            out.add(ERNI_POSITION_AGE, idx, functools.partial(_age, pos.reported))
+        if node.name in view.positions:   # the rows stand once known: positions are never forgotten
+            for column, field in ((ERNI_POSITION_X, "x"), (ERNI_POSITION_Y, "y"),
+                                  (ERNI_POSITION_HEADING, "heading"), (ERNI_POSITION_AGE, "age")):
+                out.add(column, idx, functools.partial(_position, net, me.name, node.name, field))
     for nb in view.neighbors:
         idx = (nb.index,)
         out.add(ERNI_LINK_ADDRESS, idx, nb.address)
@@ -486,8 +485,18 @@ def _erni(out: _Rows, view: NodeView, net: ManetNetwork) -> None:
         out.add(ERNI_LINK_SYMMETRIC, idx, TRUE if nb.symmetric else FALSE)
 
 
-def _age(reported: float, ctx: NodeContext) -> int:
-    return min(UINT32_MAX, int(max(0.0, ctx.now() - reported) * 100))
+def _position(net: ManetNetwork, name: str, origin: str, field: str, ctx: NodeContext) -> int:
+    """One field of the newest position of `origin` known to `name`, as served (0: none known)."""
+    pos = net.known_position(name, origin)
+    if pos is None:
+        return 0
+    if field == "x":
+        return _mm(pos.x)
+    if field == "y":
+        return _mm(pos.y)
+    if field == "heading":
+        return _cdeg(pos.heading)
+    return min(UINT32_MAX, int(max(0.0, ctx.now() - pos.reported) * 100))
 
 
 def _hello_expiry(since: float | None, hold: float, ctx: NodeContext) -> int:

@@ -287,9 +287,9 @@ class ManetSnmpAgent:
         return node
 
     def table(self, name: str) -> _Table:
-        """The node's current OID table (rebuilt after a network change)."""
+        """The node's current OID table (rebuilt when its rows change; a position report changes values only)."""
         node = self.node(name)
-        version = self.network.version
+        version = self.network.rows_version
         table = node.table
         if table is None or table.version != version:
             view = self.network.view(name)
@@ -308,7 +308,7 @@ class ManetSnmpAgent:
                 segments.append((own, at, len(own.keys)))
             else:
                 segments.append((own, 0, len(own.keys)))
-            table = _Table(view.version, segments)
+            table = _Table(version, segments)
             node.table = table
         return table
 
@@ -471,8 +471,7 @@ class ManetSnmpAgent:
                 return status, i + 1, None
             writes[WRITABLE[key[:-1]]] = int(value)
         if writes:
-            view = self.network.view(node.name)
-            own = view.positions.get(node.name)
+            own = self.network.known_position(node.name, node.name)
             current = (own.x, own.y, own.heading) if own else (0.0, 0.0, 0.0)
             x, y, heading = parse_position_write(current, writes)
             self.network.set_position(node.name, x, y, heading)

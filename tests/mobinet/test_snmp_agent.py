@@ -428,3 +428,44 @@ def test_walking_the_whole_tree_is_strictly_increasing(served, net):
     rows = parse(res.stdout)
     assert len(rows) > 200
     assert any(k.startswith("1.3.6.1.2.1.219.1.2.8.1.6.") for k in rows)
+
+
+def test_a_position_report_changes_what_is_served_without_rebuilding_any_table(snmp_agent, net):
+    """Robots report their positions twice a second each: a report changes values, never rows, so
+    no node's table is rebuilt for it (a team of 20 spent most of the host's CPU rebuilding)."""
+    served = snmp_agent.addresses()
+    names = net.names()
+    tables = {n: snmp_agent.table(n) for n in names}
+    updates = int(parse(snmp("snmpget", served["robot2"], f"{ERNI}.1.7.0").stdout)[f"{ERNI}.1.7.0"][1])
+    res = snmp("snmpset", served["robot2"], f"{ERNI}.1.4.0", "i", "61500", f"{ERNI}.1.5.0", "i", "-2500",
+               f"{ERNI}.1.6.0", "i", "9000", community=WRITE)
+    assert res.returncode == 0, res.stderr
+    net.set_position("robot3", 1.25, 2.5, -45.0)
+    assert all(snmp_agent.table(n) is tables[n] for n in names)
+    own = parse(snmp("snmpget", served["robot2"], f"{ERNI}.1.4.0", f"{ERNI}.1.5.0", f"{ERNI}.1.6.0",
+                     f"{ERNI}.1.7.0").stdout)
+    assert [own[f"{ERNI}.1.{k}.0"][1] for k in (4, 5, 6)] == ["61500", "-2500", "9000"]
+    assert int(own[f"{ERNI}.1.7.0"][1]) == updates + 1
+    for name in names:   # every node serves what it knows now, as a table built afresh would
+        rows = parse(snmp("snmpwalk", served[name], f"{ERNI}.2.2").stdout)
+        known = net.view(name).positions
+        for origin, pos in known.items():
+            index = net.info(origin).index
+            assert rows[f"{ERNI}.2.2.1.1.{index}"][1] == str(round(pos.x * 1000))
+            assert rows[f"{ERNI}.2.2.1.2.{index}"][1] == str(round(pos.y * 1000))
+            assert rows[f"{ERNI}.2.2.1.3.{index}"][1] == str(round(pos.heading * 100))
+        assert len([k for k in rows if k.startswith(f"{ERNI}.2.2.1.1.")]) == len(known)
+
+
+def test_a_node_learning_a_new_origin_serves_its_rows():
+    from erni.sim.manet import ManetNetwork, RadioModel
+    net = ManetNetwork(RadioModel(100.0, 50.0, 0.1))
+    net.add_node("robot1", 0.0, 0.0)
+    net.add_node("robot2", 300.0, 0.0)        # out of range: robot1 has no position of robot2
+    agent = ManetSnmpAgent(net)
+    before = agent.table("robot1")
+    x_of_robot2 = agent_mib.ERNI_POSITION_X + (net.info("robot2").index,)
+    assert before.get(x_of_robot2, agent.node("robot1")) is None
+    net.move("robot2", 30.0, 0.0)              # in range: the position spreads to robot1
+    after = agent.table("robot1")
+    assert after is not before and after.get(x_of_robot2, agent.node("robot1")) is not None
