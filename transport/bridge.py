@@ -195,6 +195,7 @@ class TransportPlugin(Plugin[TransportSettings]):
             self.directory[name] = Peer(uid=f"peer:{name}", name=name, address=f"{host}:{port}")
             self.add(self.directory[name])
         self.endpoint.on_message = lambda msg: self.later(lambda: self._handle(msg))
+        self.endpoint.hint_wanted = self._hint_wanted
         self.endpoint.on_undeliverable = lambda addr, mid, kind, body: self.later(
             lambda: self._undeliverable(addr, kind, body))
         self.endpoint.start()
@@ -440,6 +441,12 @@ class TransportPlugin(Plugin[TransportSettings]):
         if final:
             self.final_seen.add(update.uid)
         self.change(task.evolve(result=update.result), reports=[f"result from {msg.sender}"])
+
+    def _hint_wanted(self, name: str) -> bool:
+        """Whether a broadcast beacon from `name` could change anything: not while its peer is up
+        (`_hinted` acts on unknown and down peers only). Runs on the endpoint's receive thread."""
+        peer = self.directory.get(name)
+        return peer is None or not peer.up
 
     def _hinted(self, msg: Message) -> None:
         """A signed beacon: learn where an unknown (or silent) agent may be; a session will tell."""

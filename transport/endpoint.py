@@ -255,6 +255,8 @@ class Endpoint:
         self.on_message: Callable[[Message], None] = lambda msg: None
         self.on_undeliverable: Callable[[Address, str, str, Any], None] = lambda addr, id, kind, body: None
         self.on_delivered: Callable[[Address, str], None] = lambda addr, id: None
+        # would a broadcast beacon from this sender tell the owner anything? (None: always check it)
+        self.hint_wanted: Callable[[str], bool] | None = None
         self.address: Address = listen
 
     # -- counters -------------------------------------------------------------------------
@@ -1017,14 +1019,17 @@ class Endpoint:
 
     def _on_beacon(self, raw: bytes) -> Message | None:
         assert self.auth is not None
-        if not self._beacon_bucket.take():
-            raise FrameError("rate", "too many beacons to check")
         signed = cut_signed(raw, self.max_frame)
         env = parse_envelope(signed.body)
         if env.sender == self.name and env.inst == self.inst:
             return None  # our own beacon, heard back
         if env.kind != "beacon":
             raise FrameError("parse", f"a signed broadcast frame of kind {env.kind[:64]!r}: beacons only")
+        if self.hint_wanted is not None and not self.hint_wanted(env.sender):
+            self.count("received.beacons.known")  # a peer in session already: its hint is not worth a signature check
+            return None
+        if not self._beacon_bucket.take():
+            raise FrameError("rate", "too many beacons to check")
         self.auth.verify(signed, env.sender, env.role)
         self._filter(env.sender, env.role)
         body = body_of(env.type, env.body)
