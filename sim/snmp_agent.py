@@ -25,14 +25,9 @@ import threading
 from collections import Counter
 from typing import Any
 
-from pyasn1.codec.ber import decoder, encoder
-from pyasn1.error import PyAsn1Error
-from pyasn1.type import univ
-from pysnmp.proto import api
-from pysnmp.proto.api import v1 as pv1
-from pysnmp.proto.api import v2c
-
 from erni.blackboard.errors import NetworkError, UsageError
+from erni.plugins.mobinet import ber as wire
+from erni.plugins.mobinet.ber import INTEGER, BerError, Message, Value
 from erni.sim import snmp_ber as ber
 from erni.sim.manet import ManetNetwork, NodeView
 from erni.sim.manet_mib import (
@@ -58,6 +53,9 @@ WRONG_TYPE, WRONG_VALUE, NO_CREATION, NOT_WRITABLE = 7, 10, 11, 17
 V1_OF = {NO_ACCESS: NO_SUCH_NAME, WRONG_TYPE: BAD_VALUE, WRONG_VALUE: BAD_VALUE,
          NO_CREATION: NO_SUCH_NAME, NOT_WRITABLE: NO_SUCH_NAME}   # RFC 3584 section 4.4
 V1, V2C = 0, 1
+V1_PDUS = frozenset({wire.GET, wire.GET_NEXT, wire.RESPONSE, wire.SET, wire.TRAP_V1})   # RFC 1157
+V2C_PDUS = wire.PDUS                                                                 # RFC 3416
+KINDS = {wire.GET: "get", wire.GET_NEXT: "getnext", wire.SET: "set", wire.GET_BULK: "getbulk"}
 
 Answer = tuple[int, int, list[bytes] | None]
 """What a PDU handler returns: error status, error index, the encoded varbinds (None: echo the request)."""
@@ -332,28 +330,23 @@ class ManetSnmpAgent:
         node = self.node(name)
         self._count(node, "snmpInPkts")
         try:
-            version = int(api.decodeMessageVersion(data))
-        except (PyAsn1Error, ValueError, TypeError, KeyError, IndexError, AttributeError):
+            version = wire.message_version(data)
+        except BerError:
             self._count(node, "snmpInASNParseErrs")
             return None
         if version not in (V1, V2C):
             self._count(node, "snmpInBadVersions")
             return None
-        p_mod = pv1 if version == V1 else v2c
         try:
-            msg, rest = decoder.decode(data, asn1Spec=p_mod.Message())
-            if rest:  # trailing bytes after the message
-                self._count(node, "snmpInASNParseErrs")
-                return None
-            community = bytes(p_mod.apiMessage.get_community(msg))
-            req = p_mod.apiMessage.get_pdu(msg)
-            kind = _pdu_kind(p_mod, req)
-            if kind != "other":
-                request_id = int(p_mod.apiPDU.get_request_id(req))
-                binds = [(tuple(o), v) for o, v in p_mod.apiPDU.get_varbinds(req)]
-        except (PyAsn1Error, ValueError, TypeError, KeyError, IndexError, AttributeError):
+            msg = wire.decode_message(data)
+        except BerError:
             self._count(node, "snmpInASNParseErrs")
             return None
+        if msg.pdu not in (V1_PDUS if version == V1 else V2C_PDUS):   # not in the version's PDU CHOICE
+            self._count(node, "snmpInASNParseErrs")
+            return None
+        community, request_id = msg.community, msg.request_id
+        kind = KINDS.get(msg.pdu, "other")
         if community == node.write and node.write is not None:
             may_write = True
         elif community == node.read:
@@ -367,16 +360,16 @@ class ManetSnmpAgent:
             return None
         self._count(node, kind)
         try:
-            status, index, out = self._dispatch(node, version, kind, req, binds, may_write)
+            status, index, out = self._dispatch(node, version, kind, msg, may_write)
         except Exception:  # a bug must not kill the endpoint; the client sees genErr
             log.exception("node %s: failed to answer a request", name)
             status, index, out = GEN_ERR, 1, None
         if status and version == V1:
             status = V1_OF.get(status, status)
-        reply = self._response(version, community, request_id, status, index, out, binds)
+        reply = self._response(version, community, request_id, status, index, out, msg)
         if len(reply) > MAX_RESPONSE_BYTES:  # RFC 3416 4.2.1: the alternate tooBig response
             reply = self._response(version, community, request_id, TOO_BIG, 0,
-                                   None if version == V1 else [], binds)
+                                   None if version == V1 else [], msg)
             if len(reply) > MAX_RESPONSE_BYTES:
                 self._count(node, "snmpSilentDrops")
                 return None
@@ -385,13 +378,13 @@ class ManetSnmpAgent:
 
     @staticmethod
     def _response(version: int, community: bytes, request_id: int, status: int, index: int,
-                  out: list[bytes] | None, binds: list[tuple[OID, Any]]) -> bytes:
+                  out: list[bytes] | None, msg: Message) -> bytes:
         if out is None:  # errors echo the request's varbinds
-            out = [ber.varbind(ber.oid(o), encoder.encode(v)) for o, v in binds]
+            out = [ber.varbind(ber.oid(o), raw) for (o, _), raw in zip(msg.varbinds, msg.values)]
         return ber.response(version, community, request_id, status, index, out)
 
-    def _dispatch(self, node: _Node, version: int, kind: str, req: Any, binds: list[tuple[OID, Any]],
-                  may_write: bool) -> Answer:
+    def _dispatch(self, node: _Node, version: int, kind: str, msg: Message, may_write: bool) -> Answer:
+        binds = msg.varbinds
         if kind == "set":
             if not may_write:
                 self._count(node, "snmpInBadCommunityUses")
@@ -402,12 +395,10 @@ class ManetSnmpAgent:
             return self._get(table, node, version, binds)
         if kind == "getnext":
             return self._next(table, node, version, binds)
-        non_rep = int(v2c.apiBulkPDU.get_non_repeaters(req))
-        max_rep = int(v2c.apiBulkPDU.get_max_repetitions(req))
-        return self._bulk(table, node, binds, non_rep, max_rep)
+        return self._bulk(table, node, binds, msg.error_status, msg.error_index)  # non-repeaters, max-repetitions
 
     @staticmethod
-    def _get(table: _Table, node: _Node, version: int, binds: list[tuple[OID, Any]]) -> Answer:
+    def _get(table: _Table, node: _Node, version: int, binds: list[tuple[OID, Value]]) -> Answer:
         out: list[bytes] = []
         for i, (key, _) in enumerate(binds):
             bound = table.get(key, node)
@@ -422,7 +413,7 @@ class ManetSnmpAgent:
         return 0, 0, out
 
     @staticmethod
-    def _next(table: _Table, node: _Node, version: int, binds: list[tuple[OID, Any]]) -> Answer:
+    def _next(table: _Table, node: _Node, version: int, binds: list[tuple[OID, Value]]) -> Answer:
         out: list[bytes] = []
         for i, (key, _) in enumerate(binds):
             found = table.next(key, node)
@@ -435,7 +426,7 @@ class ManetSnmpAgent:
         return 0, 0, out
 
     @staticmethod
-    def _bulk(table: _Table, node: _Node, binds: list[tuple[OID, Any]], non_rep: int, max_rep: int) -> Answer:
+    def _bulk(table: _Table, node: _Node, binds: list[tuple[OID, Value]], non_rep: int, max_rep: int) -> Answer:
         """RFC 3416 4.2.3: N non-repeaters, then up to M rows of the R repeaters; past the end a
         repeater names the last OID it reached (or its request OID) with endOfMibView."""
         non_rep = max(0, min(non_rep, len(binds)))
@@ -461,7 +452,7 @@ class ManetSnmpAgent:
                 break
         return 0, 0, out
 
-    def _set(self, node: _Node, binds: list[tuple[OID, Any]]) -> Answer:
+    def _set(self, node: _Node, binds: list[tuple[OID, Value]]) -> Answer:
         """RFC 3416 4.2.5: check every varbind first, then apply them all (or none)."""
         writes: dict[str, int] = {}
         for i, (key, value) in enumerate(binds):
@@ -469,7 +460,8 @@ class ManetSnmpAgent:
             if status:
                 self._count(node, "set_refused")
                 return status, i + 1, None
-            writes[WRITABLE[key[:-1]]] = int(value)
+            assert isinstance(value.value, int)   # checked above
+            writes[WRITABLE[key[:-1]]] = value.value
         if writes:
             own = self.network.known_position(node.name, node.name)
             current = (own.x, own.y, own.heading) if own else (0.0, 0.0, 0.0)
@@ -478,17 +470,17 @@ class ManetSnmpAgent:
         return 0, 0, None
 
     @staticmethod
-    def _check_write(key: OID, value: Any) -> int:
+    def _check_write(key: OID, value: Value) -> int:
         """0 if `value` may be written to `key`, else the error status (RFC 3416 order)."""
         obj = object_of(key)
         if obj is None or obj.oid not in WRITABLE:
             return NOT_WRITABLE
         if key != obj.oid + (0,):
             return NO_CREATION
-        if value.tagSet != univ.Integer.tagSet:
+        if value.tag != INTEGER or not isinstance(value.value, int):
             return WRONG_TYPE
         low, high = obj.range or (-(2**31), 2**31 - 1)
-        if not low <= int(value) <= high:
+        if not low <= value.value <= high:
             return WRONG_VALUE
         return 0
 
@@ -499,13 +491,3 @@ def _check_communities(read: str, write: str | None) -> None:
     if write is not None and (not write or write == read):
         raise UsageError(f"SNMP write community must be non-empty and differ from the read community "
                          f"{read!r}, got {write!r}")
-
-
-def _pdu_kind(p_mod: Any, pdu: Any) -> str:
-    for kind, spec in (("get", p_mod.GetRequestPDU()), ("getnext", p_mod.GetNextRequestPDU()),
-                       ("set", p_mod.SetRequestPDU())):
-        if pdu.isSameTypeWith(spec):
-            return kind
-    if p_mod is v2c and pdu.isSameTypeWith(v2c.GetBulkRequestPDU()):
-        return "getbulk"
-    return "other"

@@ -1,8 +1,8 @@
 """Fast BER encoding of SNMP v1/v2c responses for the simulated agent.
 
-Requests are decoded with pysnmp (they are small); responses can be large (a 120-node
-topology walk), so the agent encodes them itself from pre-encoded OID/value TLVs:
-a response is then a concatenation of bytes. Tags follow RFC 1157 / RFC 3416; the BER
+Requests are read with MobiNet's `decode_message`; responses can be large (a 120-node
+topology walk), so the agent encodes them from pre-encoded OID/value TLVs: a response is
+then a concatenation of bytes. Tags follow RFC 1157 / RFC 3416; the BER
 primitives are MobiNet's (`erni.plugins.mobinet.ber`), which reads these responses.
 """
 

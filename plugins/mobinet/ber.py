@@ -7,9 +7,9 @@ request, half of a moving robot agent's CPU. Here a request is a few bytes built
 an answer is read into plain Python values (int, bytes, OID tuples) in one pass, with every
 length and tag checked: anything malformed raises `BerError` naming what was wrong.
 
-Only what an SNMPv2c manager needs: GetRequest, GetBulkRequest and SetRequest out, Response in.
-The agents (the simulator's, and any other one) are still checked against pysnmp and net-snmp in
-the tests.
+What an SNMPv2c manager needs: GetRequest, GetBulkRequest and SetRequest out, Response in; and
+`decode_message`, any v1/v2c message, with which the simulator's agent reads its requests. Both
+sides are checked against pysnmp and net-snmp in the tests.
 """
 
 from __future__ import annotations
@@ -26,6 +26,8 @@ INTEGER, OCTET_STRING, NULL, OBJECT_IDENTIFIER, SEQUENCE = 0x02, 0x04, 0x05, 0x0
 IP_ADDRESS, COUNTER32, GAUGE32, TIME_TICKS, OPAQUE, COUNTER64 = 0x40, 0x41, 0x42, 0x43, 0x44, 0x46
 NO_SUCH_OBJECT, NO_SUCH_INSTANCE, END_OF_MIB_VIEW = 0x80, 0x81, 0x82
 GET, GET_NEXT, RESPONSE, SET, GET_BULK = 0xA0, 0xA1, 0xA2, 0xA3, 0xA5
+TRAP_V1, INFORM, TRAP_V2, REPORT = 0xA4, 0xA6, 0xA7, 0xA8
+PDUS = frozenset({GET, GET_NEXT, RESPONSE, SET, GET_BULK, INFORM, TRAP_V2, REPORT})  # the request/response layout
 
 EXCEPTIONS = frozenset({NO_SUCH_OBJECT, NO_SUCH_INSTANCE, END_OF_MIB_VIEW})
 
@@ -73,6 +75,20 @@ class Response(NamedTuple):
     error_status: int
     error_index: int
     varbinds: list[tuple[OID, Value]]
+
+
+class Message(NamedTuple):
+    """A decoded message of any PDU (for a GetBulkRequest the two middle fields are non-repeaters and
+    max-repetitions); `values` holds each varbind's value as it came, to echo it unchanged."""
+
+    version: int
+    community: bytes
+    pdu: int
+    request_id: int
+    error_status: int
+    error_index: int
+    varbinds: list[tuple[OID, Value]]
+    values: list[bytes]
 
 
 # --- encoding -----------------------------------------------------------------------------
@@ -219,8 +235,16 @@ def _value(data: bytes, at: int, end: int) -> tuple[Value, int]:
     return Value(tag, v), stop
 
 
-def decode_response(data: bytes) -> Response:
-    """Read an SNMPv2c (or v1) Response message; raise BerError if it is anything else or malformed."""
+def message_version(data: bytes) -> int:
+    """The version field of an SNMP message (0: v1, 1: v2c, 3: v3); BerError if there is none."""
+    start, end = _expect(data, 0, len(data), SEQUENCE, "message")
+    s, e = _expect(data, start, end, INTEGER, "version")
+    return _integer(data, s, e)
+
+
+def decode_message(data: bytes) -> Message:
+    """Read a whole SNMP v1/v2c message: any PDU of the request/response layout (RFC 3416 section 3),
+    or a v1 Trap, whose fields are only framed (its varbinds are left empty); BerError otherwise."""
     start, end = _expect(data, 0, len(data), SEQUENCE, "message")
     if end != len(data):
         raise BerError(f"{len(data) - end} byte(s) after the message")
@@ -229,14 +253,23 @@ def decode_response(data: bytes) -> Response:
     s, e2 = _expect(data, e, end, OCTET_STRING, "community")
     community = bytes(data[s:e2])
     tag, at, pdu_end = _header(data, e2, end)
-    if tag != RESPONSE:
-        raise BerError(f"not a Response PDU: tag 0x{tag:02x}")
+    if pdu_end != end:
+        raise BerError(f"{end - pdu_end} byte(s) after the PDU")
+    if tag == TRAP_V1:
+        while at < pdu_end:
+            at = _header(data, at, pdu_end)[2]
+        return Message(version, community, tag, 0, 0, 0, [], [])
+    if tag not in PDUS:
+        raise BerError(f"unknown PDU tag 0x{tag:02x}")
     fields = []
     for what in ("request-id", "error-status", "error-index"):
         s, at = _expect(data, at, pdu_end, INTEGER, what)
         fields.append(_integer(data, s, at))
     at, binds_end = _expect(data, at, pdu_end, SEQUENCE, "varbind list")
+    if binds_end != pdu_end:
+        raise BerError(f"{pdu_end - binds_end} byte(s) after the varbind list")
     varbinds: list[tuple[OID, Value]] = []
+    values: list[bytes] = []
     while at < binds_end:
         s, stop = _expect(data, at, binds_end, SEQUENCE, "varbind")
         o1, o2 = _expect(data, s, stop, OBJECT_IDENTIFIER, "varbind name")
@@ -244,5 +277,14 @@ def decode_response(data: bytes) -> Response:
         if after != stop:
             raise BerError(f"varbind at byte {at} has {stop - after} byte(s) after its value")
         varbinds.append((_oid(data, o1, o2), value))
+        values.append(bytes(data[o2:stop]))
         at = stop
-    return Response(version, community, fields[0], fields[1], fields[2], varbinds)
+    return Message(version, community, tag, fields[0], fields[1], fields[2], varbinds, values)
+
+
+def decode_response(data: bytes) -> Response:
+    """Read an SNMPv2c (or v1) Response message; raise BerError if it is anything else or malformed."""
+    m = decode_message(data)
+    if m.pdu != RESPONSE:
+        raise BerError(f"not a Response PDU: tag 0x{m.pdu:02x}")
+    return Response(m.version, m.community, m.request_id, m.error_status, m.error_index, m.varbinds)

@@ -132,3 +132,53 @@ def test_integers_are_minimal_and_read_by_pyasn1_and_oids_are_encoded_as_pyasn1_
 def test_the_most_negative_values_take_the_fewest_octets():
     assert ber.int_content(-128) == b"\x80" and ber.int_content(-129) == b"\xff\x7f"
     assert ber.int_content(-(2**31)) == b"\x80\x00\x00\x00"
+
+
+PYSNMP_PDUS = {ber.GET: v2c.GetRequestPDU, ber.GET_NEXT: v2c.GetNextRequestPDU, ber.SET: v2c.SetRequestPDU,
+               ber.GET_BULK: v2c.GetBulkRequestPDU, ber.INFORM: v2c.InformRequestPDU,
+               ber.TRAP_V2: v2c.SNMPv2TrapPDU, ber.REPORT: v2c.ReportPDU, ber.RESPONSE: v2c.ResponsePDU}
+
+
+@settings(max_examples=EXAMPLES, deadline=None)
+@given(st.sampled_from(sorted(PYSNMP_PDUS)), st.integers(-(2**31), 2**31 - 1), st.integers(0, 2**31 - 1),
+       st.integers(0, 2**31 - 1), st.lists(st.tuples(oids, values), max_size=10), st.binary(max_size=32))
+def test_the_simulated_agent_reads_pysnmps_messages_of_every_pdu(pdu, request_id, second, third, binds, community):
+    """What the simulator's agent reads its requests with (`decode_message`), against pysnmp building
+    every v2c PDU; each value comes back as it was sent, to be echoed in an error response."""
+    p = PYSNMP_PDUS[pdu]()
+    api_pdu = v2c.apiBulkPDU if pdu == ber.GET_BULK else v2c.apiPDU
+    api_pdu.set_defaults(p)
+    api_pdu.set_request_id(p, request_id)
+    if pdu == ber.GET_BULK:
+        v2c.apiBulkPDU.set_non_repeaters(p, second)
+        v2c.apiBulkPDU.set_max_repetitions(p, third)
+    else:
+        v2c.apiPDU.set_error_status(p, second)
+        v2c.apiPDU.set_error_index(p, third)
+    api_pdu.set_varbinds(p, [(o, v[1]) for o, v in binds])
+    msg = v2c.Message()
+    v2c.apiMessage.set_defaults(msg)
+    v2c.apiMessage.set_community(msg, community)
+    v2c.apiMessage.set_pdu(msg, p)
+    got = ber.decode_message(encoder.encode(msg))
+    assert (got.version, got.community, got.pdu, got.request_id, got.error_status, got.error_index) == \
+        (1, community, pdu, request_id, second, third)
+    assert got.varbinds == [(o, v[0]) for o, v in binds]
+    assert got.values == [encoder.encode(v[1]) for _, v in binds]
+    assert ber.message_version(encoder.encode(msg)) == 1
+
+
+def test_a_v1_trap_is_framed_and_anything_else_is_refused():
+    from pysnmp.proto.api import v1
+    trap = v1.TrapPDU()
+    v1.apiTrapPDU.set_defaults(trap)
+    msg = v1.Message()
+    v1.apiMessage.set_defaults(msg)
+    v1.apiMessage.set_community(msg, "public")
+    v1.apiMessage.set_pdu(msg, trap)
+    got = ber.decode_message(encoder.encode(msg))
+    assert (got.version, got.community, got.pdu, got.varbinds) == (0, b"public", ber.TRAP_V1, [])
+    with pytest.raises(BerError, match="unknown PDU tag 0xa9"):
+        ber.decode_message(b"\x30\x0b\x02\x01\x01\x04\x01p\xa9\x03\x02\x01\x00")
+    with pytest.raises(BerError, match="1 byte\\(s\\) after the PDU"):
+        ber.decode_message(b"\x30\x0b\x02\x01\x01\x04\x01p\xa0\x02\x02\x00\x00")
