@@ -162,6 +162,34 @@ def test_unchanged_network_is_read_with_one_get_and_changes_are_walked(served, n
     assert set(articulation_points(moved.links)) == {"robot2", "robot3"}
 
 
+def test_a_position_report_rereads_positions_without_decoding_the_topology_again(served, net, monkeypatch):
+    """Robots report positions twice a second: each report changes the state version, so the
+    positions are walked again, but the topology (N^2 links in a team of N) is the same walk with the
+    same names and is not decoded again; a topology change is."""
+    decoded = []
+    original = SnmpSource._decode_topology
+    monkeypatch.setattr(SnmpSource, "_decode_topology",
+                        lambda self, view, cols: (decoded.append(1), original(self, view, cols))[1])
+
+    async def go():
+        src = SnmpSource(*served["robot3"], cache_seconds=60.0)
+        try:
+            first = await src.read(PARTS)
+            net.set_position("robot5", 241.5, 2.0, 90.0)
+            reported = await src.read(PARTS)
+            net.move("robot5", 150.0, 40.0)
+            moved = await src.read(PARTS)
+            return first, reported, moved
+        finally:
+            await src.aclose()
+    first, reported, moved = run(go())
+    assert reported.positions["robot5"] == Position(x=241.5, y=2.0, heading=90.0)
+    assert reported.links == first.links and reported.routes == first.routes
+    symmetric = {frozenset((a, b)) for a, nbs in net.truth().symmetric.items() for b in nbs}
+    assert {frozenset((l.a, l.b)) for l in moved.links} == symmetric != {frozenset((l.a, l.b)) for l in first.links}
+    assert len(decoded) == 2                 # the first read and the move, not the report
+
+
 def test_cache_can_be_turned_off(served):
     async def go():
         src = SnmpSource(*served["robot3"], cache_seconds=0.0)
