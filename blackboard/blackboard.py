@@ -9,7 +9,7 @@ next run, so a plugin's view is frozen while it executes.
 from __future__ import annotations
 
 import threading
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from typing import TYPE_CHECKING, Any, Generic, Protocol, TypeVar, overload
 
 from erni.blackboard.errors import TransactionError, UsageError
@@ -43,10 +43,13 @@ class Query(Protocol):
 class Subscription(Generic[T]):
     """The objects matching a predicate, with the deltas since the owner's last run."""
 
-    def __init__(self, owner: Plugin[Any] | None, kind: type[T] | None, where: Callable[[T], bool] | None):
+    def __init__(self, owner: Plugin[Any] | None, kind: type[T] | None, where: Callable[[T], bool] | None,
+                 ignore: frozenset[str] = frozenset()):
         self._owner = owner
         self._kind = kind
         self._where = where
+        self._ignore = ignore              # fields whose changes alone do not concern the owner
+        self._delivered: dict[str, BBObject] = {}  # with `ignore`: the last version put in the inbox
         self._committed: set[str] = set()  # membership as of the latest commit (under bb lock)
         self._inbox: list[tuple[str, BBObject, tuple[Any, ...]]] = []  # under bb lock
         self._members: dict[str, T] = {}  # the owner's view
@@ -98,12 +101,20 @@ class Subscription(Generic[T]):
             self._committed.add(uid)
             self._inbox.append((ADD, obj, ()))
         elif now and was:
+            if self._ignore:
+                last = self._delivered.get(uid)
+                if last is not None and _same_except(last, obj, self._ignore):
+                    return False   # only ignored fields moved: the owner keeps the version it has
             self._inbox.append((CHANGE, obj, reports))
         elif was and not now:
             self._committed.discard(uid)
+            self._delivered.pop(uid, None)
             self._inbox.append((REMOVE, obj, ()))
+            return True
         else:
             return False
+        if self._ignore:
+            self._delivered[uid] = obj
         return True
 
     def _safe_match(self, obj: BBObject) -> bool:
@@ -278,9 +289,10 @@ class Blackboard:
         return Transaction(self, label)
 
     def subscribe(self, owner: Plugin[Any] | None, kind: type[Any] | Predicate | None = None,
-                  where: Callable[[Any], bool] | None = None) -> Subscription[Any]:
-        """Create a subscription; the objects already here arrive as its first `added`."""
-        sub: Subscription[Any] = _make_subscription(owner, kind, where)
+                  where: Callable[[Any], bool] | None = None, ignore: Iterable[str] = ()) -> Subscription[Any]:
+        """Create a subscription; the objects already here arrive as its first `added`. A change
+        that moves only `ignore`d fields of a member is not delivered (nor wakes the owner)."""
+        sub: Subscription[Any] = _make_subscription(owner, kind, where, ignore)
         with self._lock:
             if sub._kind is not None:
                 self._by_type.setdefault(sub._kind, []).append(sub)
@@ -357,10 +369,24 @@ class Blackboard:
         return inboxes
 
 
+def _same_except(a: BBObject, b: BBObject, ignore: frozenset[str]) -> bool:
+    """True when two versions of an object differ at most in the `ignore`d fields."""
+    return type(a) is type(b) and all(getattr(a, f) == getattr(b, f) for f in type(a).model_fields
+                                      if f not in ignore)
+
+
 def _make_subscription(owner: Plugin[Any] | None, kind: type[Any] | Predicate | None,
-                       where: Callable[[Any], bool] | None) -> Subscription[Any]:
+                       where: Callable[[Any], bool] | None, ignore: Iterable[str] = ()) -> Subscription[Any]:
+    fields = frozenset(ignore)
+    if fields:
+        if not (isinstance(kind, type) and issubclass(kind, BBObject)):
+            raise UsageError("subscribe(..., ignore=...) needs an object type whose fields it names")
+        unknown = sorted(fields - set(kind.model_fields))
+        if unknown:
+            raise UsageError(f"subscribe({kind.__name__}, ignore=...): no field {', '.join(map(repr, unknown))}; "
+                             f"fields: {', '.join(kind.model_fields)}")
     if kind is None or isinstance(kind, type):
-        return Subscription(owner, kind, where)
+        return Subscription(owner, kind, where, fields)
     if callable(kind):
         if where is not None:
             raise UsageError("subscribe(predicate) takes no `where`; combine the two predicates")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import logging
 import threading
 from collections import deque
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from typing import TYPE_CHECKING, Any, ClassVar, Generic, get_args, get_origin, overload
 
@@ -93,17 +93,21 @@ class Plugin(Generic[SettingsT]):
     # -- subscriptions ----------------------------------------------------------------------
 
     @overload
-    def subscribe(self, kind: type[T], where: Callable[[T], bool] | None = None) -> Subscription[T]: ...
+    def subscribe(self, kind: type[T], where: Callable[[T], bool] | None = None, *,
+                  ignore: Iterable[str] = ()) -> Subscription[T]: ...
 
     @overload
     def subscribe(self, kind: Predicate) -> Subscription[BBObject]: ...
 
     def subscribe(self, kind: type[Any] | Predicate,
-                  where: Callable[[Any], bool] | None = None) -> Subscription[Any]:
-        """Subscribe to a type (members typed as it) and/or a predicate; only allowed in `setup()`."""
+                  where: Callable[[Any], bool] | None = None, *, ignore: Iterable[str] = ()) -> Subscription[Any]:
+        """Subscribe to a type (members typed as it) and/or a predicate; only allowed in `setup()`.
+
+        `ignore` names fields of the type whose changes alone do not concern this plugin: such a
+        change is not delivered and does not wake it (its view keeps the version it has)."""
         if not self._in_setup:
             raise TransactionError(f"{self.name}: subscribe() is only allowed in setup()")
-        sub = self._board.subscribe(self, kind, where)
+        sub = self._board.subscribe(self, kind, where, ignore)
         self._subs.append(sub)
         return sub
 

@@ -110,7 +110,8 @@ class MissionControl(Plugin[MissionSettings]):
         self.poses = self.subscribe(Pose)
         self.infos = self.subscribe(NetInfo)
         self.territories = self.subscribe(Territory)
-        self.peers = self.subscribe(Peer)  # roles: spreading counts robots only, never a control node
+        # roles: spreading counts robots only, never a control node; a peer merely heard again is no news
+        self.peers = self.subscribe(Peer, ignore=("last_heard",))
         self.team = TeamView(me, s.position_timeout)
         self.guard = NetGuard(me, min_quality=s.min_link_quality, articulation=s.articulation,
                               resume_after=s.resume_after)

@@ -139,7 +139,7 @@ class MobiNetControl(Plugin[MobiNetSettings]):
             Task, where=lambda t: t.verb == "NetWatch" and t.destination in (None, "", me))
         self.poses = self.subscribe(Pose, where=lambda p: p.robot == robot)
         # a routing daemon knows addresses; the team directory (the transport's Peers) names them
-        self.peers = self.subscribe(Peer)
+        self.peers = self.subscribe(Peer, ignore=("last_heard",))   # addresses; a peer heard again is no news
         self._names: dict[str, str] = {}
         self._standing: dict[str, Task] = {}   # watch key -> the in-memory task of a `watch` entry
         self._watching: dict[str, tuple[str, WatchParams]] = {}   # task uid -> (preposition, params)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import threading
+import time
 
 import pytest
 
@@ -212,3 +213,56 @@ def test_change_or_removal_of_an_object_removed_meanwhile_is_moot_not_fatal():
     performer.commit()  # ... moot at commit: dropped, and the rest of the run still lands
     assert [o.value for o in agent.query(Item)] == [2]
     assert agent.blackboard.moot == 2
+
+
+class _IgnoresTags(Recorder):
+    def setup(self) -> None:
+        self.sub = self.subscribe(Item, ignore=("tag",))
+        self.views = []
+        self.lock = threading.Lock()
+        self.runs = 0
+
+    def execute(self) -> None:
+        self.runs += 1
+        super().execute()
+
+
+def test_a_change_of_ignored_fields_alone_neither_wakes_nor_is_delivered(agent):
+    """A transport refreshes each peer's last_heard every second: plugins that only want a
+    peer's address or role subscribe with ignore=("last_heard",) and are not run for it."""
+    rec = agent.add_plugin(_IgnoresTags)
+    agent.start()
+    item = Item(value=1, tag="a")
+    with agent.transaction() as tx:
+        tx.add(item)
+    wait_until(lambda: any(v["added"] for v in rec.views))
+    time.sleep(0.2)
+    runs = rec.runs
+    for tag in "bcd":
+        with agent.transaction() as tx:
+            tx.change(agent.blackboard.get(item.uid).evolve(tag=tag))
+    time.sleep(0.3)
+    assert rec.runs == runs                                    # not woken
+    with agent.transaction() as tx:   # a change the plugin cares about comes through
+        tx.add(Item(value=9))
+    wait_until(lambda: any(o.value == 9 for v in rec.views for o in v["added"]))
+    assert all(not v["changed"] for v in rec.views)            # the tag changes were never delivered
+    assert rec.views[-1]["members"][item.uid].tag == "a"       # it keeps the version it was given
+    with agent.transaction() as tx:
+        tx.change(agent.blackboard.get(item.uid).evolve(value=2, tag="e"))
+    wait_until(lambda: rec.views[-1]["changed"])
+    assert [(o.value, o.tag) for o in rec.views[-1]["changed"]] == [(2, "e")]   # the newest version
+    with agent.transaction() as tx:
+        tx.change(agent.blackboard.get(item.uid).evolve(tag="f"))
+    with agent.transaction() as tx:
+        tx.remove(item.uid)
+    wait_until(lambda: rec.views[-1]["removed"])
+    assert [o.uid for o in rec.views[-1]["removed"]] == [item.uid] and not rec.views[-1]["changed"]
+
+
+def test_ignore_names_fields_of_the_type(agent):
+    from erni.blackboard.errors import UsageError
+    with pytest.raises(UsageError, match="subscribe\\(Item, ignore=...\\): no field 'colour'; fields: uid, value, tag"):
+        agent.blackboard.subscribe(None, Item, ignore=("colour",))
+    with pytest.raises(UsageError, match="needs an object type"):
+        agent.blackboard.subscribe(None, lambda o: True, ignore=("tag",))
