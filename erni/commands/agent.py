@@ -67,14 +67,14 @@ def run(args: argparse.Namespace, prepare: Callable[[Agent], None] | None = None
         watchdog.daemon = True
         watchdog.start()
         if not running.is_set():
-            raise _StopDuringStart   # a start still setting up (or waiting on a peer) is abandoned
+            raise KeyboardInterrupt   # a start still setting up (or waiting on a peer) is abandoned
 
     previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
         try:
             agent.start()
             running.set()
-        except _StopDuringStart:
+        except KeyboardInterrupt:   # from on_signal: the stop came during the start
             return 0
         except (ErniError, OSError) as err:
             print(f"{args.config}: cannot start agent {config.agent.name}: {str(err).splitlines()[0]}",
@@ -86,10 +86,6 @@ def run(args: argparse.Namespace, prepare: Callable[[Agent], None] | None = None
         for s, handler in previous.items():
             signal.signal(s, handler)
     return 0
-
-
-class _StopDuringStart(BaseException):
-    """Raised by the signal handler to abandon an agent's start."""
 
 
 def _exit_hard(name: str, grace: float) -> None:
