@@ -261,6 +261,7 @@ class MobiNetControl(Plugin[MobiNetSettings]):
         info = self._infos.get(uid)
         if task is None or info is None or uid not in self._watching:
             return  # cancelled while the reading was on its way
+        info = self._restored(uid, info)
         self._polls[uid] += 1
         if view is None:
             new_info = info.evolve(degraded=True, message=error, stamp=time.time())
@@ -278,8 +279,16 @@ class MobiNetControl(Plugin[MobiNetSettings]):
             self.change(task.with_result(TaskState.RUNNING, message=message, values=values,
                                          confidence=0.0 if new_info.degraded else 1.0))
 
+    def _restored(self, key: str, info: NetInfo) -> NetInfo:
+        """The watch's NetInfo, published afresh if another plugin removed it (seen after a restart)."""
+        if self.get(info.uid) is None:
+            info = info.evolve(degraded=True, message="waiting for the next reading")
+            self.add(info)
+            self._infos[key] = info
+        return info
+
     def _apply_standing(self, key: str, view: NetView | None, error: str) -> None:
-        info = self._infos[key]
+        info = self._restored(key, self._infos[key])
         self._polls[key] += 1
         if view is None:
             new_info = info.evolve(degraded=True, message=error, stamp=time.time())

@@ -312,3 +312,17 @@ def test_a_steady_network_is_republished_only_at_the_keepalive(served, net, make
     t1 = time.monotonic()
     fresh(agent, topo, lambda i: set(i.articulation_points) != before, timeout=2.0)
     assert time.monotonic() - t1 < 0.9  # well inside the keep-alive: published when it changed
+
+
+def test_a_netinfo_removed_by_another_plugin_is_made_afresh_without_error(served, net, make_agent, caplog):
+    """Seen once after a robot's kill -9 and restart: a reading arrived for a watch whose NetInfo
+    another plugin had removed, and the change raised inside the hand-off. It is published anew."""
+    agent, plugin = make_agent("robot2", served["robot2"])
+    task = watch(agent, "neighbor_list", rate_hz=50)
+    first = fresh(agent, task, lambda i: i.neighbors)
+    with agent.transaction() as tx:
+        tx.remove(first)
+    again = wait_until(lambda: info_of(agent, task), timeout=5)
+    assert again.uid == first.uid
+    fresh(agent, task, lambda i: i.neighbors)
+    assert not [r for r in caplog.records if r.levelname == "ERROR"]
