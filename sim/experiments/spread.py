@@ -35,7 +35,7 @@ from erni.sim.experiments import Experiment, Progress, Result
 from erni.sim.experiments.plots import color, draw_world, headings, map_axes, time_axes
 from erni.sim.scenario import Scenario, ScenarioError
 from erni.strategies import energy as energy_model
-from erni.strategies.potential import SpreadConfig, mean_nn_distance, spread_step
+from erni.strategies.potential import SpreadConfig, forces, mean_nn_distance, neighbourhoods, spread_step
 
 VARIANTS = ["holonomic/physical", "holonomic/delaunay", "nonholonomic/physical", "nonholonomic/delaunay"]
 
@@ -50,14 +50,19 @@ class Run:
     th: NDArray[np.float64]     # (T, N) rad
     speed: NDArray[np.float64]  # (T, N) m/s
     converged: float            # s (NaN: not within the run)
+    churn: float = math.nan     # neighbourhood links made or broken per s over the last `hold` s
+    force: float = math.nan     # largest unbalanced force on a robot at the end (N, m = 1 kg)
+    across: float = math.nan    # ... its part across the robot's heading (nonholonomic: held by the wheels)
 
 
 def _config(scenario: Scenario, variant: str) -> SpreadConfig:
     s = scenario.strategy
     model, _, neighbourhood = variant.partition("/")
     weight = s.get("obstacle_weight", "neighbourhood")
+    sensing = s.get("sensing")
     return SpreadConfig(distance=float(s.get("distance", 5.0)), gain=float(s.get("gain", 2.0)),
                         dt=float(s.get("dt", 0.2)), range=float(s.get("range", 6.0)),
+                        sensing=None if sensing is None else float(sensing),
                         obstacle_distance=float(s.get("obstacle_distance", 2.0)),
                         wall_distance=float(s.get("wall_distance", 2.5)),
                         obstacle_weight=None if weight == "neighbourhood" else float(weight),
@@ -85,7 +90,15 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode:
         label = f"{v} ({k + 1}/{len(variants)})"
         runs.append(_agents(scenario, progress, v, label) if mode == "agents" else
                     _kinematic(scenario, progress, v, label))
-    return _result(scenario, experiment, mode, runs)
+    sweep: list[tuple[float, Run]] = []
+    if mode == "kinematic":
+        ranges = [float(r) for r in scenario.strategy.get("range_sweep", [])]
+        for k, (r, v) in enumerate((r, v) for r in ranges for v in ("holonomic/physical", "nonholonomic/physical")):
+            data = scenario.model_dump()
+            data["strategy"] = {**scenario.strategy, "range": r}
+            sweep.append((r, _kinematic(type(scenario).model_validate(data), progress, v,
+                                        f"{v}, range {r:g} m ({k + 1}/{2 * len(ranges)})")))
+    return _result(scenario, experiment, mode, runs, sweep)
 
 
 def _agent_team(scenario: Scenario) -> Scenario:
@@ -140,6 +153,7 @@ def _kinematic(scenario: Scenario, progress: Progress, variant: str, label: str)
     steps = int(round(duration / cfg.dt))
     still_since: float | None = None
     converged = math.nan
+    links: list[tuple[float, set[tuple[int, int]]]] = []  # (t, neighbourhood links) every sample
     for k in range(steps):
         new, th, vel, om = spread_step(pos, th, vel, om, cfg, circles, walls)
         stop = kinematic.blocked_by_walls(pos, new, walls)  # walls are solid: a robot stops at them
@@ -149,6 +163,7 @@ def _kinematic(scenario: Scenario, progress: Progress, variant: str, label: str)
         sp = np.hypot(vel[:, 0], vel[:, 1])
         if (k + 1) % every == 0:
             track.add(t, pos, th, sp)
+            links.append((t, _links(pos, cfg)))
             progress(label, round(t), round(duration))
         if float(sp.max()) < threshold:
             still_since = t if still_since is None else still_since
@@ -160,7 +175,18 @@ def _kinematic(scenario: Scenario, progress: Progress, variant: str, label: str)
         else:
             still_since = None
     ts, ps, ths, sps = track.arrays()
-    return Run(variant, ts, ps, ths, sps, converged)
+    window = [(t, e) for t, e in links if t >= links[-1][0] - hold - 1e-9] if links else []
+    churn = (sum(len(a ^ b) for (_, a), (_, b) in zip(window, window[1:])) / (window[-1][0] - window[0][0])
+             if len(window) > 1 else math.nan)
+    f, _ = forces(pos, th, cfg, circles, walls)
+    across = np.abs(f[:, 0] * np.sin(th) - f[:, 1] * np.cos(th))
+    return Run(variant, ts, ps, ths, sps, converged, churn, float(np.hypot(f[:, 0], f[:, 1]).max()),
+               float(across.max()))
+
+
+def _links(pos: NDArray[np.float64], cfg: SpreadConfig) -> set[tuple[int, int]]:
+    """Every pair of robots that are neighbours (i < j)."""
+    return {(i, int(j)) for i, js in enumerate(neighbourhoods(pos, cfg.neighbourhood, cfg.range)) for j in js if i < j}
 
 
 def _agents(scenario: Scenario, progress: Progress, variant: str, label: str) -> Run:
@@ -176,6 +202,7 @@ def _agents(scenario: Scenario, progress: Progress, variant: str, label: str) ->
     mission = {"speed": float(s.get("speed", 0.4)), "network_aware": False,
                "wall_distance": float(s.get("wall_distance", 2.5)),
                "obstacle_distance": float(s.get("obstacle_distance", 2.0)),
+               **({} if s.get("sensing") is None else {"sensing_range": float(s["sensing"])}),
                **({} if weight == "neighbourhood" else {"obstacle_weight": float(weight)})}
     params = {"distance": float(s.get("distance", 5.0)), "gain": float(s.get("gain", 2.0)),
               "dt": float(s.get("dt", 0.2)), "range": float(s.get("range", 6.0)),
@@ -217,7 +244,8 @@ def _pinned(pos: NDArray[np.float64], walls: NDArray[np.float64], within: float)
     return count
 
 
-def _result(scenario: Scenario, experiment: Experiment, mode: str, runs: list[Run]) -> Result:
+def _result(scenario: Scenario, experiment: Experiment, mode: str, runs: list[Run],
+            sweep: list[tuple[float, Run]] | None = None) -> Result:
     s = scenario.strategy
     d = float(s.get("distance", 5.0))
     R = scenario.radio.comm_range
@@ -251,6 +279,11 @@ def _result(scenario: Scenario, experiment: Experiment, mode: str, runs: list[Ru
             res.metrics[f"{v}: robots within {pinned_within:g} m of a wall at the end"] = (
                 float(_pinned(final, walls, pinned_within)), "robots")
         res.metrics[f"{v}: run length"] = (float(r.t[-1]), "s")
+        if math.isfinite(r.churn):
+            res.metrics[f"{v}: neighbourhood links made or broken per s in the last {hold:g} s"] = (r.churn, "1/s")
+            res.metrics[f"{v}: largest move of a robot in the last {hold:g} s"] = (_moved(r, hold), "m")
+            res.metrics[f"{v}: largest unbalanced force at the end"] = (r.force, "N")
+            res.metrics[f"{v}: ... of it across the heading"] = (r.across, "N")
         res.metrics[f"{v}: energy per robot, mean"] = (float(np.mean(energies)), "J")
         stride = max(1, len(r.t) // 300)
         res.series[f"{v}/mean_nn_distance"] = (list(r.t[::stride]), [mean_nn_distance(p) for p in r.pos[::stride]],
@@ -263,8 +296,12 @@ def _result(scenario: Scenario, experiment: Experiment, mode: str, runs: list[Ru
     res.compare("robots / desired distance d / damping k / dt",
                 "120 (12 for paths) / 5 m / 2 / 0.2 s",
                 f"{n} / {d:g} m / {s.get('gain', 2.0):g} / {s.get('dt', 0.2):g} s", "", "the paper's setting", "input")
-    res.compare("physical neighbourhood range", "not stated", f"{s.get('range', 6.0):g}", "m",
-                "the scenario's setting (about 1.2 d)", "input")
+    res.compare("physical neighbourhood range R", "not stated (sensing or radio range, d <= r_c)",
+                f"{s.get('range', 6.0):g}", "m", "the scenario's setting (about 1.2 d)", "input")
+    if len(walls):
+        res.compare("wall sensed within (sensing range)", "\"only when it is inside the sensing range\"",
+                    f"{s['sensing']:g}" if s.get("sensing") is not None else f"{s.get('range', 6.0):g} (R)", "m",
+                    "the scenario's setting", "input")
     if len(walls):
         res.compare("wall: desired distance c, weight w", "c not stated, w = 1",
                     f"{s.get('wall_distance', 2.5):g} m, "
@@ -281,12 +318,30 @@ def _result(scenario: Scenario, experiment: Experiment, mode: str, runs: list[Ru
             res.compare(f"{v}: robots pinned to a wall", "none (Figs 8-9)",
                         f"{_pinned(r.pos[-1], walls, pinned_within)}", "robots",
                         f"within {pinned_within:g} m of a wall at the end")
+    sweep = sweep or []
+    for r_range, r in sweep:
+        nn = _nn(r.pos[-1])
+        res.metrics[f"{r.variant}, R = {r_range:g} m: mean NN distance at the end"] = (float(nn.mean()), "m")
+        res.metrics[f"{r.variant}, R = {r_range:g} m: converged at"] = (r.converged, "s")
+    if sweep:
+        text = "; ".join(
+            f"R/d {r_range / d:.2g}: " + " / ".join(f"{float(_nn(r.pos[-1]).mean()):.2f}"
+                                                   for q, r in sweep if q == r_range)
+            for r_range in dict.fromkeys(q for q, _ in sweep))
+        res.compare("mean NN distance against R (holonomic / nonholonomic, physical)", "not stated", text, "m",
+                    "each run to convergence; every robot within R pulls or pushes toward d")
     res.notes.append("paper 001 shows the teams at t = 30 s (Figs 2-5, 8-9) and the paths of 12 robots (Figs 6-7); "
                      "it gives no convergence times or distances")
     paths = experiment.name == "spread-paths"
     res.draw = lambda fig: (_draw_paths(fig, scenario, runs, res, mode) if paths else
-                            _draw(fig, scenario, runs, res, mode))
+                            _draw(fig, scenario, runs, res, mode, sweep))
     return res
+
+
+def _moved(r: Run, hold: float) -> float:
+    """Largest distance a robot moved over the last `hold` s of the run."""
+    k = int(np.searchsorted(r.t, r.t[-1] - hold))
+    return float(np.hypot(*(r.pos[-1] - r.pos[k]).T).max())
 
 
 def _nn(pos: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -295,8 +350,9 @@ def _nn(pos: NDArray[np.float64]) -> NDArray[np.float64]:
     return np.asarray(d.min(axis=1), dtype=float)
 
 
-def _draw(fig: Any, scenario: Scenario, runs: list[Run], res: Result, mode: str) -> None:
-    gs = fig.add_gridspec(2, 3, width_ratios=[1, 1, 0.95])
+def _draw(fig: Any, scenario: Scenario, runs: list[Run], res: Result, mode: str,
+          sweep: list[tuple[float, Run]]) -> None:
+    gs = fig.add_gridspec(2, 4 if sweep else 3, width_ratios=[1, 1, 0.95] + ([0.8] if sweep else []))
     extent = max(float(np.abs(r.pos[-1]).max()) for r in runs) + 4
     for k, r in enumerate(runs[:4]):
         ax = fig.add_subplot(gs[k // 2, k % 2])
@@ -331,7 +387,31 @@ def _draw(fig: Any, scenario: Scenario, runs: list[Run], res: Result, mode: str)
     ax.axhline(threshold, color="#555555", ls=":", lw=1, label=f"still below {threshold:g} m/s")
     time_axes(ax, "Fastest robot (convergence)", "speed (m/s)")
     ax.legend(fontsize=7, loc="upper right")
+    if sweep:
+        _draw_sweep(fig.add_subplot(gs[0, 3]), fig.add_subplot(gs[1, 3]), sweep, d)
     fig.suptitle(f"{scenario.title} ({mode} mode, {runs[0].pos.shape[1]} robots)", fontsize=13)
+
+
+def _draw_sweep(top: Any, bottom: Any, sweep: list[tuple[float, Run]], d: float) -> None:
+    """Mean nearest-neighbour distance and time to converge against the neighbourhood range R."""
+    for k, v in enumerate(("holonomic/physical", "nonholonomic/physical")):
+        got = [(q, r) for q, r in sweep if r.variant == v]
+        x = [q / d for q, _ in got]
+        top.plot(x, [float(_nn(r.pos[-1]).mean()) for _, r in got], "o-", color=color(2 * k),
+                 label=v.replace("/", ", "))
+        bottom.plot(x, [r.converged if math.isfinite(r.converged) else np.nan for _, r in got], "o-",
+                    color=color(2 * k), label=v.replace("/", ", "))
+    top.axhline(d, color="#555555", ls=":", lw=1, label=f"d = {d:g} m (input)")
+    top.set_title("Settled spacing against range R", fontsize=10)
+    top.set_xlabel("R / d (R an input)")
+    top.set_ylabel("mean NN distance (m)")
+    top.set_ylim(0, d * 1.2)
+    top.legend(fontsize=7, loc="lower left")
+    top.grid(alpha=0.3)
+    bottom.set_title("Time to converge against R", fontsize=10)
+    bottom.set_xlabel("R / d (R an input)")
+    bottom.set_ylabel("converged at (s)")
+    bottom.grid(alpha=0.3)
 
 
 def _draw_paths(fig: Any, scenario: Scenario, runs: list[Run], res: Result, mode: str) -> None:
