@@ -5,8 +5,33 @@ Kinematic mode (the default for the paper's 120 robots): the mission's `potentia
 (holonomic or nonholonomic robots, physical or Delaunay neighbourhood), until every robot has
 been slower than `still_speed` for `hold` seconds (converged) or `duration` runs out. Walls are
 solid (a move through one is refused) and repel as paper 001's boundary term does: one object
-at the wall's nearest point with desired distance c, weighted (w_ij) by `obstacle_weight`
-(default: as many robots as are in the neighbourhood, so no crowd pins a robot to a wall).
+at the wall's nearest point with desired distance c, felt within the sensing range `sensing`
+(paper 001, 3.3), weighted (w_ij) by `obstacle_weight` (a number, or "neighbourhood": as many
+robots as are in the neighbourhood). With `range_sweep`, the physical variants run again at
+each of those neighbourhood ranges R, for the settled spacing against R / d.
+
+Why a run does or does not converge (measured on the 120-robot scenarios; the residual of
+every run is in its metrics: neighbourhood links made or broken per second, the largest move
+and the largest unbalanced force at the end). No zero-energy mode creeps: the centroid moves
+less than 2 m in 600 s and a converged team's fastest robot slows exponentially (1e-9 m/s
+by 600 s). What keeps a team moving is the discontinuity of the neighbourhood itself: an
+edge of the Delaunay triangulation switches a spring on or off at its current length L
+(energy w (L - d)^2 / 2), and in the corridor the near-straight rows along the walls flip
+24-37 edges a second, 30 % of them longer than 7.5 m (up to 34 m, the long boundary links the
+paper itself notes): between 300 and 400 s the flips put in 14 500 J, the heading term's
+force 2 100 J, the damping took out 18 000 J. dt = 0.05 s or chi = 0 change nothing, so this
+is the Delaunay field's nature, not the integration. A physical neighbourhood switches a
+neighbour on at R with a force w (R - d): a robot held at that edge jumps by it each control
+period. Walls sensed at the 6 m neighbourhood range (ours until the sensing range was used)
+pulled every robot within 6 m toward them: half of the corridor team stood in rows within
+3.6 m of a wall, and in the crowd there a nonholonomic robot on a neighbour's range edge
+kept jumping at 0.1-0.24 m/s in place, so that run never settled. Why teams settle short of d:
+every robot within R pulls or pushes toward d, so with R > d the neighbours between d and R
+pull the team in; the mean nearest-neighbour distance against R / d (open field, holonomic /
+nonholonomic): 1.0: 5.12 / 5.08 m, 1.1: 4.80 / 4.41, 1.2: 4.35 / 3.02, 1.3: 2.18 / 1.92,
+1.5: 0.76 / 0.64 (from R = 1.5 d the start bunch never leaves everyone's range). A settled
+nonholonomic robot may still feel a force, across its heading: equation (16) turns it only
+toward its neighbourhood's centre, and its wheels take the rest (3.3 N in the open field).
 
 Agents mode (the default for teams of at most 12, such as `spread-paths`): `agent_robots`
 robot agent processes, started on a small grid, each given `Deploy spread` by the control node;
@@ -309,8 +334,11 @@ def _result(scenario: Scenario, experiment: Experiment, mode: str, runs: list[Ru
                     "the scenario's setting", "input")
     for r in runs:
         v = r.variant
+        still = (f"not by {r.t[-1]:.0f} s" + (f" ({r.churn:.3g} links made or broken per s, a robot moved "
+                                             f"{_moved(r, hold):.2g} m in the last {hold:g} s)"
+                                             if math.isfinite(r.churn) else ""))
         res.compare(f"{v}: converged", "\"converges, as we observe\"",
-                    f"at {r.converged:.0f} s" if math.isfinite(r.converged) else f"not by {r.t[-1]:.0f} s", "",
+                    f"at {r.converged:.0f} s" if math.isfinite(r.converged) else still, "",
                     f"every robot slower than {threshold:g} m/s for {hold:g} s")
         res.compare(f"{v}: mean nearest-neighbour distance", "d = 5 m is the goal",
                     round(float(finals[v].mean()), 2), "m", "at the end, simulator's truth")
