@@ -32,6 +32,7 @@ robots the velocity along the heading times h); `omega` (N,) rad/s; `obstacles` 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -274,13 +275,18 @@ def robot_command(pos: ArrayLike, theta: float, speed: float, omega: float, i: i
     On a real robot the lower-level controller owns acceleration, so the command is the terminal
     velocity of m a = F - k v (v = F / k): along the heading for the nonholonomic model
     (v = F.h / k, w = torque / k_theta); for the holonomic model the wheeled robot steers toward
-    F / k (driving backwards rather than turning around). `speed` and `omega` (the robot's
-    measured velocities) are accepted for interface stability and ignored. Limits: cfg.vmax, cfg.wmax.
+    F / k (driving backwards rather than turning around). The holonomic model's theta is free of
+    the wheels: equation (15) settles it at the neighbourhood's centre, where the heading term's
+    force is zero, so F leaves that term out; the wheeled robot's own heading (pointing where it
+    drives) would otherwise keep the term's sideways force alive and the robot never still.
+    `speed` and `omega` (the robot's measured velocities) are accepted for interface stability
+    and ignored. Limits: cfg.vmax, cfg.wmax.
     """
     p = np.asarray(pos, dtype=float)
     th = np.zeros(len(p))
     th[i] = theta
-    f, tq = forces(p, th, cfg, obstacles, walls)
+    f, tq = forces(p, th, dataclasses.replace(cfg, chi=0.0) if cfg.model == "holonomic" else cfg,
+                   obstacles, walls)
     h = np.array([math.cos(theta), math.sin(theta)])
     if cfg.model == "holonomic":
         u = f[i] / cfg.gain

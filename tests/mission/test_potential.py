@@ -139,6 +139,18 @@ def test_robot_command_drives_toward_a_far_neighbour():
     assert v < 0  # facing away: backing up is allowed by (16)
 
 
+def test_a_holonomic_robot_at_its_distance_stands_still_whatever_its_heading():
+    # the pair is at d: no spring force; the wheeled robot faces across the pair, which the
+    # heading term of (15) would turn toward, not drive sideways
+    cfg = SpreadConfig(distance=5.0, model="holonomic", vmax=0.5)
+    pos = np.array([[0.0, 0.0], [5.0, 0.0]])
+    assert robot_command(pos, math.pi / 2, 0.0, 0.0, 0, cfg) == (0.0, 0.0)
+    v, _ = robot_command(np.array([[0.0, 0.0], [3.0, 0.0]]), math.pi / 2, 0.0, 0.0, 0, cfg)
+    assert v == pytest.approx(0.0, abs=1e-9)  # pushed along x, facing y: it turns first (cos 90 deg = 0)
+    v, _ = robot_command(np.array([[0.0, 0.0], [3.0, 0.0]]), 0.0, 0.0, 0.0, 0, cfg)
+    assert v == pytest.approx(-0.5)  # facing the push's opposite: backs away, at most vmax
+
+
 def test_bad_config_is_named():
     with pytest.raises(ValueError, match="neighbourhood"):
         SpreadConfig(neighbourhood="voronoi")
