@@ -36,7 +36,10 @@ toward its neighbourhood's centre, and its wheels take the rest (3.3 N in the op
 Agents mode (the default for teams of at most 12, such as `spread-paths`): `agent_robots`
 robot agent processes, started on a small grid, each given `Deploy spread` by the control node;
 each robot's mission plugin turns equation (15)/(16) into BotMotion velocity commands from
-the positions its agent learns through MobiNet; the simulator records the truth.
+the positions its agent learns through MobiNet; the simulator records the truth. The command
+is the velocity the equation settles to, F / k, so a Delaunay flip changes it at once: the
+nonholonomic Delaunay team keeps driving at the speed limit (stepped in numpy with the same
+command, with or without the heading term alike).
 
 Metrics per variant: time to converge, final mean and smallest nearest-neighbour distance
 against the desired d (an input), the same at t = 30 s (the paper's figures), robots ending
