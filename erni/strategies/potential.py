@@ -12,12 +12,16 @@ Integration is semi-implicit Euler with period dt.
 
 Neighbourhoods: "physical" (robots within `range`) or "delaunay" (one-hop neighbours of the
 Delaunay triangulation of all robots, scipy.spatial.Delaunay). Obstacles and walls count only
-within `range`, each as one object at its nearest point with desired distance b or c and
-weight `obstacle_weight` (the paper's w_ij; "a larger w_ij means a bigger influence"): with
-w = 1 for a wall, a crowd of neighbours pressing a robot toward it outweighs the wall's
-push (at most w c) and pins the robot there; `obstacle_weight = None` weighs an obstacle
-or wall as much as all the robots in the neighbourhood together, so the wall always holds
-its robots near the desired distance c.
+within the sensing range `sensing` (paper 001, section 3.3: "an obstacle or the boundary is
+considered belonging to the neighborhood of Ri only when it is inside the sensing range";
+None: `range`), each as one object at its nearest point with desired distance b or c and
+weight `obstacle_weight` (the paper's w_ij; "a larger w_ij means a bigger influence"). With
+`sensing` = c the wall term only pushes and is continuous where it starts; sensed from
+further out, the spring pulls a robot toward the wall from the edge of the range, with a
+jump of w (sensing - c) in force. With w = 1 for a wall, a crowd of neighbours pressing a
+robot toward it outweighs the wall's push (at most w c) and pins the robot there;
+`obstacle_weight = None` weighs an obstacle or wall as much as all the robots in the
+neighbourhood together, a weight that jumps whenever a neighbour comes or goes.
 
 Inputs (pure, numpy): `pos` (N, 2) m; `theta` (N,) rad; `vel` (N, 2) m/s (for nonholonomic
 robots the velocity along the heading times h); `omega` (N,) rad/s; `obstacles` (M, 3) circles
@@ -28,6 +32,7 @@ robots the velocity along the heading times h); `omega` (N,) rad/s; `obstacles` 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -48,7 +53,8 @@ class SpreadConfig:
     wall_distance: float = 2.5     # desired robot-wall distance c (m)
     gain: float = 2.0              # viscous damping k (kx = ky = ktheta)
     dt: float = 0.2                # integration period (s)
-    range: float = 15.0            # sensing/communication range (m)
+    range: float = 15.0            # physical neighbourhood: robots within this range (m)
+    sensing: float | None = None   # obstacles and walls count within this range (m); None: `range`
     neighbourhood: str = "physical"  # "physical" or "delaunay"
     model: str = "holonomic"       # "holonomic" or "nonholonomic"
     chi: float = 1.0               # weight of the heading term
@@ -63,6 +69,8 @@ class SpreadConfig:
         for name in ("distance", "gain", "dt", "range", "mass", "inertia"):
             if not getattr(self, name) > 0:
                 raise UsageError(f"{name}: expected a positive number, got {getattr(self, name)!r}")
+        if self.sensing is not None and not self.sensing > 0:
+            raise UsageError(f"sensing: expected a positive number or None, got {self.sensing!r}")
         if self.neighbourhood not in ("physical", "delaunay"):
             raise UsageError(f"neighbourhood: expected 'physical' or 'delaunay', got {self.neighbourhood!r}")
         if self.model not in ("holonomic", "nonholonomic"):
@@ -139,6 +147,7 @@ def forces(pos: ArrayLike, theta: ArrayLike, cfg: SpreadConfig, obstacles: Array
     # Every (robot, point it feels, distance it wants, weight) in flat arrays: neighbours, then the
     # nearest point of each obstacle and wall within range; sums per robot by bincount.
     w = cfg.weight
+    sensing = cfg.range if cfg.sensing is None else cfg.sensing
     degree = np.array([len(x) for x in nbrs], dtype=int)
     wobj = (np.full(n, float(cfg.obstacle_weight)) if cfg.obstacle_weight is not None
             else np.maximum(1, degree).astype(float) * w)  # w_ij of an obstacle or wall, per robot
@@ -150,7 +159,7 @@ def forces(pos: ArrayLike, theta: ArrayLike, cfg: SpreadConfig, obstacles: Array
                            (_nearest_on_segments(p, wal), cfg.wall_distance) if len(wal) else (None, 0.0)):
         if q is None:
             continue
-        near = np.hypot(q[..., 0] - p[:, None, 0], q[..., 1] - p[:, None, 1]) <= cfg.range
+        near = np.hypot(q[..., 0] - p[:, None, 0], q[..., 1] - p[:, None, 1]) <= sensing
         i, k = np.nonzero(near)
         owner.append(i)
         pts.append(q[i, k])
@@ -266,13 +275,18 @@ def robot_command(pos: ArrayLike, theta: float, speed: float, omega: float, i: i
     On a real robot the lower-level controller owns acceleration, so the command is the terminal
     velocity of m a = F - k v (v = F / k): along the heading for the nonholonomic model
     (v = F.h / k, w = torque / k_theta); for the holonomic model the wheeled robot steers toward
-    F / k (driving backwards rather than turning around). `speed` and `omega` (the robot's
-    measured velocities) are accepted for interface stability and ignored. Limits: cfg.vmax, cfg.wmax.
+    F / k (driving backwards rather than turning around). The holonomic model's theta is free of
+    the wheels: equation (15) settles it at the neighbourhood's centre, where the heading term's
+    force is zero, so F leaves that term out; the wheeled robot's own heading (pointing where it
+    drives) would otherwise keep the term's sideways force alive and the robot never still.
+    `speed` and `omega` (the robot's measured velocities) are accepted for interface stability
+    and ignored. Limits: cfg.vmax, cfg.wmax.
     """
     p = np.asarray(pos, dtype=float)
     th = np.zeros(len(p))
     th[i] = theta
-    f, tq = forces(p, th, cfg, obstacles, walls)
+    f, tq = forces(p, th, dataclasses.replace(cfg, chi=0.0) if cfg.model == "holonomic" else cfg,
+                   obstacles, walls)
     h = np.array([math.cos(theta), math.sin(theta)])
     if cfg.model == "holonomic":
         u = f[i] / cfg.gain

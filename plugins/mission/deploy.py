@@ -242,7 +242,8 @@ class SpreadRunner(Runner):
         self.cfg = SpreadConfig(distance=p.distance, gain=p.gain, dt=p.dt, range=p.range,
                                 neighbourhood=p.neighbourhood, model=p.model, vmax=settings.speed,
                                 wmax=math.radians(90), obstacle_distance=settings.obstacle_distance,
-                                wall_distance=settings.wall_distance, obstacle_weight=settings.obstacle_weight)
+                                wall_distance=settings.wall_distance, obstacle_weight=settings.obstacle_weight,
+                                sensing=settings.sensing_range)
         self.speed = 0.0
         self.omega = 0.0
 

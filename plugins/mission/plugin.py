@@ -71,6 +71,8 @@ class MissionSettings(BaseModel):
     obstacle_margin: float = Field(0.4, ge=0, description="clearance kept from known obstacles (m)")
     obstacle_distance: float = Field(2.0, gt=0, description="spread: desired distance to obstacles (m)")
     wall_distance: float = Field(2.5, gt=0, description="spread: desired distance to walls (m)")
+    sensing_range: float | None = Field(None, gt=0, description="spread: obstacles and walls count within this "
+                                        "range (m), paper 001's sensing range; none: the neighbourhood range")
     obstacle_weight: float | None = Field(None, gt=0, description="spread: weight of an obstacle or wall "
                                           "(none: as many robots as are in the neighbourhood, so a crowd "
                                           "never pins a robot against it; 1: paper 001's simulation)")

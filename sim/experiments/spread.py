@@ -5,13 +5,41 @@ Kinematic mode (the default for the paper's 120 robots): the mission's `potentia
 (holonomic or nonholonomic robots, physical or Delaunay neighbourhood), until every robot has
 been slower than `still_speed` for `hold` seconds (converged) or `duration` runs out. Walls are
 solid (a move through one is refused) and repel as paper 001's boundary term does: one object
-at the wall's nearest point with desired distance c, weighted (w_ij) by `obstacle_weight`
-(default: as many robots as are in the neighbourhood, so no crowd pins a robot to a wall).
+at the wall's nearest point with desired distance c, felt within the sensing range `sensing`
+(paper 001, 3.3), weighted (w_ij) by `obstacle_weight` (a number, or "neighbourhood": as many
+robots as are in the neighbourhood). With `range_sweep`, the physical variants run again at
+each of those neighbourhood ranges R, for the settled spacing against R / d.
+
+Why a run does or does not converge (measured on the 120-robot scenarios; the residual of
+every run is in its metrics: neighbourhood links made or broken per second, the largest move
+and the largest unbalanced force at the end). No zero-energy mode creeps: the centroid moves
+less than 2 m in 600 s and a converged team's fastest robot slows exponentially (1e-9 m/s
+by 600 s). What keeps a team moving is the discontinuity of the neighbourhood itself: an
+edge of the Delaunay triangulation switches a spring on or off at its current length L
+(energy w (L - d)^2 / 2), and in the corridor the near-straight rows along the walls flip
+24-37 edges a second, 30 % of them longer than 7.5 m (up to 34 m, the long boundary links the
+paper itself notes): between 300 and 400 s the flips put in 14 500 J, the heading term's
+force 2 100 J, the damping took out 18 000 J. dt = 0.05 s or chi = 0 change nothing, so this
+is the Delaunay field's nature, not the integration. A physical neighbourhood switches a
+neighbour on at R with a force w (R - d): a robot held at that edge jumps by it each control
+period. Walls sensed at the 6 m neighbourhood range (ours until the sensing range was used)
+pulled every robot within 6 m toward them: half of the corridor team stood in rows within
+3.6 m of a wall, and in the crowd there a nonholonomic robot on a neighbour's range edge
+kept jumping at 0.1-0.24 m/s in place, so that run never settled. Why teams settle short of d:
+every robot within R pulls or pushes toward d, so with R > d the neighbours between d and R
+pull the team in; the mean nearest-neighbour distance against R / d (open field, holonomic /
+nonholonomic): 1.0: 5.12 / 5.08 m, 1.1: 4.80 / 4.41, 1.2: 4.35 / 3.02, 1.3: 2.18 / 1.92,
+1.5: 0.76 / 0.64 (from R = 1.5 d the start bunch never leaves everyone's range). A settled
+nonholonomic robot may still feel a force, across its heading: equation (16) turns it only
+toward its neighbourhood's centre, and its wheels take the rest (3.3 N in the open field).
 
 Agents mode (the default for teams of at most 12, such as `spread-paths`): `agent_robots`
 robot agent processes, started on a small grid, each given `Deploy spread` by the control node;
 each robot's mission plugin turns equation (15)/(16) into BotMotion velocity commands from
-the positions its agent learns through MobiNet; the simulator records the truth.
+the positions its agent learns through MobiNet; the simulator records the truth. The command
+is the velocity the equation settles to, F / k, so a Delaunay flip changes it at once: the
+nonholonomic Delaunay team keeps driving at the speed limit (stepped in numpy with the same
+command, with or without the heading term alike).
 
 Metrics per variant: time to converge, final mean and smallest nearest-neighbour distance
 against the desired d (an input), the same at t = 30 s (the paper's figures), robots ending
@@ -35,7 +63,7 @@ from erni.sim.experiments import Experiment, Progress, Result
 from erni.sim.experiments.plots import color, draw_world, headings, map_axes, time_axes
 from erni.sim.scenario import Scenario, ScenarioError
 from erni.strategies import energy as energy_model
-from erni.strategies.potential import SpreadConfig, mean_nn_distance, spread_step
+from erni.strategies.potential import SpreadConfig, forces, mean_nn_distance, neighbourhoods, spread_step
 
 VARIANTS = ["holonomic/physical", "holonomic/delaunay", "nonholonomic/physical", "nonholonomic/delaunay"]
 
@@ -50,14 +78,19 @@ class Run:
     th: NDArray[np.float64]     # (T, N) rad
     speed: NDArray[np.float64]  # (T, N) m/s
     converged: float            # s (NaN: not within the run)
+    churn: float = math.nan     # neighbourhood links made or broken per s over the last `hold` s
+    force: float = math.nan     # largest unbalanced force on a robot at the end (N, m = 1 kg)
+    across: float = math.nan    # ... its part across the robot's heading (nonholonomic: held by the wheels)
 
 
 def _config(scenario: Scenario, variant: str) -> SpreadConfig:
     s = scenario.strategy
     model, _, neighbourhood = variant.partition("/")
     weight = s.get("obstacle_weight", "neighbourhood")
+    sensing = s.get("sensing")
     return SpreadConfig(distance=float(s.get("distance", 5.0)), gain=float(s.get("gain", 2.0)),
                         dt=float(s.get("dt", 0.2)), range=float(s.get("range", 6.0)),
+                        sensing=None if sensing is None else float(sensing),
                         obstacle_distance=float(s.get("obstacle_distance", 2.0)),
                         wall_distance=float(s.get("wall_distance", 2.5)),
                         obstacle_weight=None if weight == "neighbourhood" else float(weight),
@@ -85,7 +118,15 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode:
         label = f"{v} ({k + 1}/{len(variants)})"
         runs.append(_agents(scenario, progress, v, label) if mode == "agents" else
                     _kinematic(scenario, progress, v, label))
-    return _result(scenario, experiment, mode, runs)
+    sweep: list[tuple[float, Run]] = []
+    if mode == "kinematic":
+        ranges = [float(r) for r in scenario.strategy.get("range_sweep", [])]
+        for k, (r, v) in enumerate((r, v) for r in ranges for v in ("holonomic/physical", "nonholonomic/physical")):
+            data = scenario.model_dump()
+            data["strategy"] = {**scenario.strategy, "range": r}
+            sweep.append((r, _kinematic(type(scenario).model_validate(data), progress, v,
+                                        f"{v}, range {r:g} m ({k + 1}/{2 * len(ranges)})")))
+    return _result(scenario, experiment, mode, runs, sweep)
 
 
 def _agent_team(scenario: Scenario) -> Scenario:
@@ -140,6 +181,7 @@ def _kinematic(scenario: Scenario, progress: Progress, variant: str, label: str)
     steps = int(round(duration / cfg.dt))
     still_since: float | None = None
     converged = math.nan
+    links: list[tuple[float, set[tuple[int, int]]]] = []  # (t, neighbourhood links) every sample
     for k in range(steps):
         new, th, vel, om = spread_step(pos, th, vel, om, cfg, circles, walls)
         stop = kinematic.blocked_by_walls(pos, new, walls)  # walls are solid: a robot stops at them
@@ -149,6 +191,7 @@ def _kinematic(scenario: Scenario, progress: Progress, variant: str, label: str)
         sp = np.hypot(vel[:, 0], vel[:, 1])
         if (k + 1) % every == 0:
             track.add(t, pos, th, sp)
+            links.append((t, _links(pos, cfg)))
             progress(label, round(t), round(duration))
         if float(sp.max()) < threshold:
             still_since = t if still_since is None else still_since
@@ -160,7 +203,18 @@ def _kinematic(scenario: Scenario, progress: Progress, variant: str, label: str)
         else:
             still_since = None
     ts, ps, ths, sps = track.arrays()
-    return Run(variant, ts, ps, ths, sps, converged)
+    window = [(t, e) for t, e in links if t >= links[-1][0] - hold - 1e-9] if links else []
+    churn = (sum(len(a ^ b) for (_, a), (_, b) in zip(window, window[1:])) / (window[-1][0] - window[0][0])
+             if len(window) > 1 else math.nan)
+    f, _ = forces(pos, th, cfg, circles, walls)
+    across = np.abs(f[:, 0] * np.sin(th) - f[:, 1] * np.cos(th))
+    return Run(variant, ts, ps, ths, sps, converged, churn, float(np.hypot(f[:, 0], f[:, 1]).max()),
+               float(across.max()))
+
+
+def _links(pos: NDArray[np.float64], cfg: SpreadConfig) -> set[tuple[int, int]]:
+    """Every pair of robots that are neighbours (i < j)."""
+    return {(i, int(j)) for i, js in enumerate(neighbourhoods(pos, cfg.neighbourhood, cfg.range)) for j in js if i < j}
 
 
 def _agents(scenario: Scenario, progress: Progress, variant: str, label: str) -> Run:
@@ -176,6 +230,7 @@ def _agents(scenario: Scenario, progress: Progress, variant: str, label: str) ->
     mission = {"speed": float(s.get("speed", 0.4)), "network_aware": False,
                "wall_distance": float(s.get("wall_distance", 2.5)),
                "obstacle_distance": float(s.get("obstacle_distance", 2.0)),
+               **({} if s.get("sensing") is None else {"sensing_range": float(s["sensing"])}),
                **({} if weight == "neighbourhood" else {"obstacle_weight": float(weight)})}
     params = {"distance": float(s.get("distance", 5.0)), "gain": float(s.get("gain", 2.0)),
               "dt": float(s.get("dt", 0.2)), "range": float(s.get("range", 6.0)),
@@ -217,7 +272,8 @@ def _pinned(pos: NDArray[np.float64], walls: NDArray[np.float64], within: float)
     return count
 
 
-def _result(scenario: Scenario, experiment: Experiment, mode: str, runs: list[Run]) -> Result:
+def _result(scenario: Scenario, experiment: Experiment, mode: str, runs: list[Run],
+            sweep: list[tuple[float, Run]] | None = None) -> Result:
     s = scenario.strategy
     d = float(s.get("distance", 5.0))
     R = scenario.radio.comm_range
@@ -251,6 +307,11 @@ def _result(scenario: Scenario, experiment: Experiment, mode: str, runs: list[Ru
             res.metrics[f"{v}: robots within {pinned_within:g} m of a wall at the end"] = (
                 float(_pinned(final, walls, pinned_within)), "robots")
         res.metrics[f"{v}: run length"] = (float(r.t[-1]), "s")
+        if math.isfinite(r.churn):
+            res.metrics[f"{v}: neighbourhood links made or broken per s in the last {hold:g} s"] = (r.churn, "1/s")
+            res.metrics[f"{v}: largest move of a robot in the last {hold:g} s"] = (_moved(r, hold), "m")
+            res.metrics[f"{v}: largest unbalanced force at the end"] = (r.force, "N")
+            res.metrics[f"{v}: ... of it across the heading"] = (r.across, "N")
         res.metrics[f"{v}: energy per robot, mean"] = (float(np.mean(energies)), "J")
         stride = max(1, len(r.t) // 300)
         res.series[f"{v}/mean_nn_distance"] = (list(r.t[::stride]), [mean_nn_distance(p) for p in r.pos[::stride]],
@@ -263,8 +324,12 @@ def _result(scenario: Scenario, experiment: Experiment, mode: str, runs: list[Ru
     res.compare("robots / desired distance d / damping k / dt",
                 "120 (12 for paths) / 5 m / 2 / 0.2 s",
                 f"{n} / {d:g} m / {s.get('gain', 2.0):g} / {s.get('dt', 0.2):g} s", "", "the paper's setting", "input")
-    res.compare("physical neighbourhood range", "not stated", f"{s.get('range', 6.0):g}", "m",
-                "the scenario's setting (about 1.2 d)", "input")
+    res.compare("physical neighbourhood range R", "not stated (sensing or radio range, d <= r_c)",
+                f"{s.get('range', 6.0):g}", "m", "the scenario's setting (about 1.2 d)", "input")
+    if len(walls):
+        res.compare("wall sensed within (sensing range)", "\"only when it is inside the sensing range\"",
+                    f"{s['sensing']:g}" if s.get("sensing") is not None else f"{s.get('range', 6.0):g} (R)", "m",
+                    "the scenario's setting", "input")
     if len(walls):
         res.compare("wall: desired distance c, weight w", "c not stated, w = 1",
                     f"{s.get('wall_distance', 2.5):g} m, "
@@ -272,8 +337,11 @@ def _result(scenario: Scenario, experiment: Experiment, mode: str, runs: list[Ru
                     "the scenario's setting", "input")
     for r in runs:
         v = r.variant
+        still = (f"not by {r.t[-1]:.0f} s" + (f" ({r.churn:.3g} links made or broken per s, a robot moved "
+                                             f"{_moved(r, hold):.2g} m in the last {hold:g} s)"
+                                             if math.isfinite(r.churn) else ""))
         res.compare(f"{v}: converged", "\"converges, as we observe\"",
-                    f"at {r.converged:.0f} s" if math.isfinite(r.converged) else f"not by {r.t[-1]:.0f} s", "",
+                    f"at {r.converged:.0f} s" if math.isfinite(r.converged) else still, "",
                     f"every robot slower than {threshold:g} m/s for {hold:g} s")
         res.compare(f"{v}: mean nearest-neighbour distance", "d = 5 m is the goal",
                     round(float(finals[v].mean()), 2), "m", "at the end, simulator's truth")
@@ -281,12 +349,30 @@ def _result(scenario: Scenario, experiment: Experiment, mode: str, runs: list[Ru
             res.compare(f"{v}: robots pinned to a wall", "none (Figs 8-9)",
                         f"{_pinned(r.pos[-1], walls, pinned_within)}", "robots",
                         f"within {pinned_within:g} m of a wall at the end")
+    sweep = sweep or []
+    for r_range, r in sweep:
+        nn = _nn(r.pos[-1])
+        res.metrics[f"{r.variant}, R = {r_range:g} m: mean NN distance at the end"] = (float(nn.mean()), "m")
+        res.metrics[f"{r.variant}, R = {r_range:g} m: converged at"] = (r.converged, "s")
+    if sweep:
+        text = "; ".join(
+            f"R/d {r_range / d:.2g}: " + " / ".join(f"{float(_nn(r.pos[-1]).mean()):.2f}"
+                                                   for q, r in sweep if q == r_range)
+            for r_range in dict.fromkeys(q for q, _ in sweep))
+        res.compare("mean NN distance against R (holonomic / nonholonomic, physical)", "not stated", text, "m",
+                    "each run to convergence; every robot within R pulls or pushes toward d")
     res.notes.append("paper 001 shows the teams at t = 30 s (Figs 2-5, 8-9) and the paths of 12 robots (Figs 6-7); "
                      "it gives no convergence times or distances")
     paths = experiment.name == "spread-paths"
     res.draw = lambda fig: (_draw_paths(fig, scenario, runs, res, mode) if paths else
-                            _draw(fig, scenario, runs, res, mode))
+                            _draw(fig, scenario, runs, res, mode, sweep))
     return res
+
+
+def _moved(r: Run, hold: float) -> float:
+    """Largest distance a robot moved over the last `hold` s of the run."""
+    k = int(np.searchsorted(r.t, r.t[-1] - hold))
+    return float(np.hypot(*(r.pos[-1] - r.pos[k]).T).max())
 
 
 def _nn(pos: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -295,8 +381,9 @@ def _nn(pos: NDArray[np.float64]) -> NDArray[np.float64]:
     return np.asarray(d.min(axis=1), dtype=float)
 
 
-def _draw(fig: Any, scenario: Scenario, runs: list[Run], res: Result, mode: str) -> None:
-    gs = fig.add_gridspec(2, 3, width_ratios=[1, 1, 0.95])
+def _draw(fig: Any, scenario: Scenario, runs: list[Run], res: Result, mode: str,
+          sweep: list[tuple[float, Run]]) -> None:
+    gs = fig.add_gridspec(2, 4 if sweep else 3, width_ratios=[1, 1, 0.95] + ([0.8] if sweep else []))
     extent = max(float(np.abs(r.pos[-1]).max()) for r in runs) + 4
     for k, r in enumerate(runs[:4]):
         ax = fig.add_subplot(gs[k // 2, k % 2])
@@ -331,7 +418,31 @@ def _draw(fig: Any, scenario: Scenario, runs: list[Run], res: Result, mode: str)
     ax.axhline(threshold, color="#555555", ls=":", lw=1, label=f"still below {threshold:g} m/s")
     time_axes(ax, "Fastest robot (convergence)", "speed (m/s)")
     ax.legend(fontsize=7, loc="upper right")
+    if sweep:
+        _draw_sweep(fig.add_subplot(gs[0, 3]), fig.add_subplot(gs[1, 3]), sweep, d)
     fig.suptitle(f"{scenario.title} ({mode} mode, {runs[0].pos.shape[1]} robots)", fontsize=13)
+
+
+def _draw_sweep(top: Any, bottom: Any, sweep: list[tuple[float, Run]], d: float) -> None:
+    """Mean nearest-neighbour distance and time to converge against the neighbourhood range R."""
+    for k, v in enumerate(("holonomic/physical", "nonholonomic/physical")):
+        got = [(q, r) for q, r in sweep if r.variant == v]
+        x = [q / d for q, _ in got]
+        top.plot(x, [float(_nn(r.pos[-1]).mean()) for _, r in got], "o-", color=color(2 * k),
+                 label=v.replace("/", ", "))
+        bottom.plot(x, [r.converged if math.isfinite(r.converged) else np.nan for _, r in got], "o-",
+                    color=color(2 * k), label=v.replace("/", ", "))
+    top.axhline(d, color="#555555", ls=":", lw=1, label=f"d = {d:g} m (input)")
+    top.set_title("Settled spacing against range R", fontsize=10)
+    top.set_xlabel("R / d (R an input)")
+    top.set_ylabel("mean NN distance (m)")
+    top.set_ylim(0, d * 1.2)
+    top.legend(fontsize=7, loc="lower left")
+    top.grid(alpha=0.3)
+    bottom.set_title("Time to converge against R", fontsize=10)
+    bottom.set_xlabel("R / d (R an input)")
+    bottom.set_ylabel("converged at (s)")
+    bottom.grid(alpha=0.3)
 
 
 def _draw_paths(fig: Any, scenario: Scenario, runs: list[Run], res: Result, mode: str) -> None:

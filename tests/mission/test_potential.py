@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -53,6 +54,33 @@ def test_walls_and_obstacles_keep_their_own_distances():
     assert f[0] == pytest.approx([0.0, -1.0])  # 1 m from the wall, 2 m wanted: pushed down by 1
     f, _ = forces(np.array([[0.0, 0.0]]), np.zeros(1), cfg, obstacles=[[3.0, 0.0, 1.0]])
     assert f[0] == pytest.approx([0.5, 0.0])   # nearest point 2 m away, 1.5 wanted: pulled by 0.5
+
+
+def test_walls_count_only_within_the_sensing_range():
+    # paper 001, 3.3: the boundary belongs to the neighbourhood only inside the sensing range
+    cfg = SpreadConfig(distance=5.0, wall_distance=2.5, range=6.0, sensing=2.5, chi=0.0, obstacle_weight=2.0)
+    wall = [[-50, 15, 50, 15]]
+    f, _ = forces(np.array([[0.0, 11.0]]), np.zeros(1), cfg, walls=wall)
+    assert f[0] == pytest.approx([0.0, 0.0])    # 4 m away: beyond sensing, not pulled toward the wall
+    f, _ = forces(np.array([[0.0, 13.0]]), np.zeros(1), cfg, walls=wall)
+    assert f[0] == pytest.approx([0.0, -1.0])   # 2 m away, 2.5 wanted, w = 2: pushed off by 1
+    f, _ = forces(np.array([[0.0, 11.0]]), np.zeros(1), dataclasses.replace(cfg, sensing=None), walls=wall)
+    assert f[0] == pytest.approx([0.0, 3.0])    # sensed at the neighbourhood range: pulled by w (4 - 2.5)
+    with pytest.raises(ValueError, match="sensing"):
+        SpreadConfig(sensing=0.0)
+
+
+@pytest.mark.parametrize("rng_m,low,high", [(5.0, 1.0, 1.1), (10.0, 0.0, 0.5)])
+def test_the_settled_spacing_depends_on_the_neighbourhood_range(rng_m, low, high):
+    # every robot within R pulls toward d: with R = d no pair pulls and nobody ends closer than d;
+    # with R = 2 d the start bunch never leaves everyone's range and stays bunched
+    rng = np.random.default_rng(5)
+    pos = rng.uniform(-1, 1, (12, 2))
+    cfg = SpreadConfig(distance=5.0, range=rng_m, neighbourhood="physical", model="holonomic")
+    final, _ = simulate(pos, rng.uniform(-math.pi, math.pi, 12), cfg, 150.0)
+    d = np.hypot(*(final[:, None, :] - final[None, :, :]).transpose(2, 0, 1))
+    np.fill_diagonal(d, np.inf)
+    assert low * 5.0 - 0.02 <= d.min(axis=1).min() and d.min(axis=1).mean() <= high * 5.0
 
 
 def test_delaunay_neighbourhood_is_symmetric_and_local():
@@ -111,6 +139,18 @@ def test_robot_command_drives_toward_a_far_neighbour():
     assert v < 0  # facing away: backing up is allowed by (16)
 
 
+def test_a_holonomic_robot_at_its_distance_stands_still_whatever_its_heading():
+    # the pair is at d: no spring force; the wheeled robot faces across the pair, which the
+    # heading term of (15) would turn toward, not drive sideways
+    cfg = SpreadConfig(distance=5.0, model="holonomic", vmax=0.5)
+    pos = np.array([[0.0, 0.0], [5.0, 0.0]])
+    assert robot_command(pos, math.pi / 2, 0.0, 0.0, 0, cfg) == (0.0, 0.0)
+    v, _ = robot_command(np.array([[0.0, 0.0], [3.0, 0.0]]), math.pi / 2, 0.0, 0.0, 0, cfg)
+    assert v == pytest.approx(0.0, abs=1e-9)  # pushed along x, facing y: it turns first (cos 90 deg = 0)
+    v, _ = robot_command(np.array([[0.0, 0.0], [3.0, 0.0]]), 0.0, 0.0, 0.0, 0, cfg)
+    assert v == pytest.approx(-0.5)  # facing the push's opposite: backs away, at most vmax
+
+
 def test_bad_config_is_named():
     with pytest.raises(ValueError, match="neighbourhood"):
         SpreadConfig(neighbourhood="voronoi")
@@ -131,16 +171,17 @@ def forces_robot_by_robot(p: NDArray[np.float64], th: NDArray[np.float64], cfg: 
         pts = [p[nbrs[i]]]
         want = [np.full(len(nbrs[i]), cfg.distance)]
         wobj = cfg.obstacle_weight if cfg.obstacle_weight is not None else float(max(1, len(nbrs[i]))) * w
+        sensing = cfg.range if cfg.sensing is None else cfg.sensing
         weights = [np.full(len(nbrs[i]), w)]
         if len(obs):
             q = nearest_on_circles(p[i], obs)
-            near = np.hypot(*(q - p[i]).T) <= cfg.range
+            near = np.hypot(*(q - p[i]).T) <= sensing
             pts.append(q[near])
             want.append(np.full(int(near.sum()), cfg.obstacle_distance))
             weights.append(np.full(int(near.sum()), wobj))
         if len(wal):
             q = nearest_on_segments(p[i], wal)
-            near = np.hypot(*(q - p[i]).T) <= cfg.range
+            near = np.hypot(*(q - p[i]).T) <= sensing
             pts.append(q[near])
             want.append(np.full(int(near.sum()), cfg.wall_distance))
             weights.append(np.full(int(near.sum()), wobj))
@@ -183,6 +224,7 @@ def test_forces_equal_the_robot_by_robot_sums(points: list[tuple[float, float]],
     obs = np.array([[data.draw(coord), data.draw(coord), data.draw(st.floats(0.1, 3.0))] for _ in range(n_obs)])
     wal = np.array([[data.draw(coord) for _ in range(4)] for _ in range(n_walls)])
     cfg = SpreadConfig(neighbourhood=hood, range=data.draw(st.floats(1.0, 30.0)), chi=data.draw(st.floats(0.0, 2.0)),
+                       sensing=data.draw(st.one_of(st.none(), st.floats(0.5, 30.0))),
                        obstacle_weight=data.draw(st.one_of(st.none(), st.floats(0.1, 5.0))))
     obs, wal = obs.reshape(-1, 3), wal.reshape(-1, 4)
     f, tq = forces(p, th, cfg, obs, wal)

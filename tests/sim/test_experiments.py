@@ -91,8 +91,14 @@ def test_spread_in_a_corridor_settles_apart_and_no_robot_ends_pinned_to_a_wall(t
         assert nn[0] < 0.6 and nn[-1] > 2.0
         assert result.metrics[f"{v}: robots within 0.5 m of a wall at the end"][0] == 0
         assert result.metrics[f"{v}: largest radio component at the end (R = 7.5 m)"][0] == 1.0
+        assert result.metrics[f"{v}: converged at (all slower than 0.05 m/s for 3 s)"][0] < 60.0
+        assert result.metrics[f"{v}: neighbourhood links made or broken per s in the last 3 s"][0] == 0.0
+    # a settled nonholonomic robot may still feel a force, but only across its heading (the wheels hold it)
+    force = result.metrics["nonholonomic/physical: largest unbalanced force at the end"][0]
+    assert force > 0.5 and force - result.metrics["nonholonomic/physical: ... of it across the heading"][0] < 0.05
     rows = {r.quantity: r for r in result.rows}
     assert rows["robots / desired distance d / damping k / dt"].kind == "input"  # d is an input, never "ours"
+    assert rows["wall sensed within (sensing range)"].kind == "input" and rows["wall sensed within (sensing range)"].ours == "2.5"
     assert "(input)" in result.report()
     check_outputs(result, tmp_path)
 
