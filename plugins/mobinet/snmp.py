@@ -438,28 +438,27 @@ class SnmpSource:
         if NEIGHBORS in parts and NEIGHBORS in jobs:
             self._decode_neighbors(view, got[NEIGHBORS])
         if TOPOLOGY in parts and TOPOLOGY in jobs:
-            view.links = self._reuse(TOPOLOGY, got[TOPOLOGY], view, lambda: self._decode_topology(view, got[TOPOLOGY]),
-                                     lambda: view.links)
+            self._reuse(TOPOLOGY, got[TOPOLOGY], view, "links", self._decode_topology)
         if ROUTES in parts and ROUTES in jobs:
-            decode = self._decode_routes if "OLSRv2-MIB" in served else self._decode_cidr_routes
-            view.routes = self._reuse(ROUTES, got[ROUTES], view, lambda: decode(view, got[ROUTES]), lambda: view.routes)
+            self._reuse(ROUTES, got[ROUTES], view, "routes",
+                        self._decode_routes if "OLSRv2-MIB" in served else self._decode_cidr_routes)
         if POSITIONS in parts and POSITIONS in jobs:
             self._decode_positions(view, got[POSITIONS], by_index)
         self._cache["view"] = (whole, oldest, view)
         return view
 
-    def _reuse(self, job: str, cols: Columns, view: NetView, decode: Callable[[], None],
-               rows: Callable[[], list[Any]]) -> list[Any]:
-        """The rows `decode()` puts in the view, or those of the last decoding when it read the same walk
-        (the cached columns themselves) with the same names: a team of N robots reporting positions
-        changes the state version on every read, and its topology of N^2 links need not be decoded
-        again for that."""
+    def _reuse(self, job: str, cols: Columns, view: NetView, field: str,
+               decode: Callable[[NetView, Columns], None]) -> None:
+        """Fill `view.<field>` by `decode(view, cols)`, or with the rows of the last decoding when it read
+        the same walk (the cached columns themselves) with the same names: a team of N robots reporting
+        positions changes the state version on every read, and its topology of N^2 links need not be
+        decoded again for that."""
         last = self._decoded.get(job)
         if last is not None and last[0] is cols and last[1] == view.node and last[2] == view.names:
-            return list(last[3])
-        decode()
-        self._decoded[job] = (cols, view.node, dict(view.names), list(rows()))
-        return rows()
+            setattr(view, field, list(last[3]))
+            return
+        decode(view, cols)
+        self._decoded[job] = (cols, view.node, dict(view.names), list(getattr(view, field)))
 
     @staticmethod
     def _copy(view: NetView) -> NetView:
