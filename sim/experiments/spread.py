@@ -330,7 +330,6 @@ def _result(scenario: Scenario, experiment: Experiment, mode: str, runs: list[Ru
         res.compare("wall sensed within (sensing range)", "\"only when it is inside the sensing range\"",
                     f"{s['sensing']:g}" if s.get("sensing") is not None else f"{s.get('range', 6.0):g} (R)", "m",
                     "the scenario's setting", "input")
-    if len(walls):
         res.compare("wall: desired distance c, weight w", "c not stated, w = 1",
                     f"{s.get('wall_distance', 2.5):g} m, "
                     + ("neighbourhood size" if weight == "neighbourhood" else f"{float(weight):g}"), "",
