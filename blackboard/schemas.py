@@ -46,6 +46,8 @@ class Beacon(_Message):
     role: str = ""
     capabilities: list[str] = Field(default_factory=list)
     degraded: str = Field("", description="why this agent refuses new tasks ('' when it takes them)")
+    interval: float = Field(0.0, ge=0.0, le=3600.0, description="the longest the sender waits before its "
+                            "next beacon to this receiver (s); 0: not said (the receiver's own timings)")
 
 
 class ResultUpdate(_Message):

@@ -8,9 +8,15 @@
   result changes travel back to the peer it came from (UDP; a final state once, over TCP).
   An agent that cannot keep tasks (its journal cannot write) refuses new ones with the reason.
 - Signed beacons go to the configured broadcast/unicast addresses and to addresses learned
-  from MobiNet's `NetInfo`: they only tell that an agent may be there. Known peers get beacons
-  inside their session; only session traffic (fresh by construction) marks a peer up, and a
-  peer silent for `peer_timeout` is down.
+  from MobiNet's `NetInfo`: they only tell that an agent may be there. While every known peer
+  is up and nothing new is learned, these announcements back off (doubling up to
+  `announce_backoff` beacon periods); a newcomer still announces every period and is answered
+  at once. Known peers get beacons inside their session, but only the quiet ones (nothing else
+  sent to them for a beacon period: any session frame tells they are alive), and at most
+  `beacon_fanout` of them a period: with more, each gets one less often and the beacon says
+  how often, so its receiver waits as many periods longer. Only session traffic (fresh by
+  construction) marks a peer up, and a peer silent for `peer_timeout` (scaled by its announced
+  interval) is down.
 - Clients (`erni watch`) may lease a stream of blackboard changes; `erni task --wait` asks
   for a task's state (`task.query`).
 
@@ -21,6 +27,8 @@ to `execute()` with `later()`, so nothing here does I/O inside a transaction.
 from __future__ import annotations
 
 import ipaddress
+import math
+import random
 import time
 from pathlib import Path
 from typing import Any, ClassVar
@@ -71,6 +79,11 @@ class TransportSettings(BaseModel):
     beacon_to: list[str] = Field(default_factory=lambda: ["127.255.255.255"],
                                  description="broadcast or unicast hosts that get beacons")
     beacon_period: float = Field(1.0, ge=0.05, le=60.0)
+    beacon_fanout: int = Field(16, ge=1, le=100_000, description="in-session beacons a beacon_period at most: "
+                               "with more quiet peers each gets one less often (liveness grows slower "
+                               "instead of the traffic growing with the team)")
+    announce_backoff: int = Field(8, ge=1, le=1000, description="while every known peer is up, broadcast "
+                                  "beacons back off to at most this many beacon periods apart")
     peer_timeout: float = Field(4.0, gt=0, le=3600.0)
     link_deadline: float = Field(30.0, gt=0, le=86400.0, description="a task whose performer is not heard "
                                  "this long fails with 'link lost' (s)")
@@ -189,6 +202,11 @@ class TransportPlugin(Plugin[TransportSettings]):
         self.learned: set[str] = set()
         self.addresses: dict[str, Address] = {}  # reply address of every sender, clients included
         self._next_beacon = 0.0
+        self._announce_every = s.beacon_period  # backs off while the directory stands
+        self._announce_seen: tuple[int, int] = (-1, -1)  # peers and learned addresses at the last announcement
+        self.sent_peer_at: dict[str, float] = {}  # peer -> when a session frame other than a beacon went (monotonic)
+        self.beacon_due: dict[str, float] = {}  # quiet peer -> when its next in-session beacon is due (monotonic)
+        self.peer_limit: dict[str, float] = {}  # peer -> silence that marks it down, from its announced interval
         for spec in s.peers:
             name, _, addr = spec.partition("@")
             host, port = parse_address(addr)
@@ -249,6 +267,7 @@ class TransportPlugin(Plugin[TransportSettings]):
             self.final_sent.discard(task.uid)
             self.final_seen.discard(task.uid)
             self.last_result.pop(task.uid, None)
+        known = len(self.learned)
         for info in self.netinfo.added + self.netinfo.changed:
             for n in info.neighbors:
                 if n.address:
@@ -256,6 +275,8 @@ class TransportPlugin(Plugin[TransportSettings]):
             for route in info.routes:  # several hops away: a routing daemon's destination not yet named
                 if _is_ip(route.destination):
                     self.learned.add(route.destination)
+        if len(self.learned) != known:  # somewhere new to announce to: at once
+            self._next_beacon = 0.0
         self._share_status()
         self._retry_pending(now)
         self._forward_to_watchers(now)
@@ -277,6 +298,7 @@ class TransportPlugin(Plugin[TransportSettings]):
         if addr is None:
             return False
         self.endpoint.send(addr, kind, body, reliable=reliable, to=name)
+        self.sent_peer_at[name] = time.monotonic()
         return True
 
     def _send_task(self, task: Task) -> None:
@@ -480,6 +502,8 @@ class TransportPlugin(Plugin[TransportSettings]):
         fields: dict[str, Any] = {"address": address, "epoch": epoch, "last_heard": now, "up": True}
         if isinstance(beacon, Beacon):
             fields.update(role=beacon.role, capabilities=beacon.capabilities, degraded=beacon.degraded)
+            s = self.settings
+            self.peer_limit[name] = s.peer_timeout * max(1.0, beacon.interval / s.beacon_period)
         if old is None:
             peer = Peer(uid=f"peer:{name}", name=name, **fields)
             self.directory[name] = peer
@@ -504,16 +528,20 @@ class TransportPlugin(Plugin[TransportSettings]):
 
     # -- periodic -------------------------------------------------------------------------
 
-    def _beacon(self) -> Beacon:
+    def _beacon(self, interval: float = 0.0) -> Beacon:
         s = self.settings
-        return Beacon(role=s.role, capabilities=s.capabilities, degraded=self._degraded())
+        return Beacon(role=s.role, capabilities=s.capabilities, degraded=self._degraded(), interval=interval)
 
     def _beacon_and_liveness(self, now: float) -> None:
         s = self.settings
         mono = time.monotonic()
         if mono >= self._next_beacon:
-            self._next_beacon = mono + s.beacon_period * 0.9
-            beacon = self._beacon()
+            seen = (len(self.directory), len(self.learned))
+            standing = seen == self._announce_seen and all(p.up for p in self.directory.values())
+            self._announce_seen = seen
+            self._announce_every = (min(self._announce_every * 2, s.beacon_period * s.announce_backoff)
+                                    if standing else s.beacon_period)
+            self._next_beacon = mono + self._announce_every * 0.9
             announced: set[Address] = set()
             if s.discovery_port:
                 announced |= {(host, s.discovery_port) for host in s.beacon_to}
@@ -522,18 +550,43 @@ class TransportPlugin(Plugin[TransportSettings]):
                         announced.add(parse_address(learned, s.discovery_port))
                     except ConfigError:
                         continue
-            for addr in announced:
-                self.endpoint.announce(addr, "beacon", beacon)
-            for name, peer in self.directory.items():
-                if peer.address:
-                    self.endpoint.send(parse_address(peer.address), "beacon", beacon, reliable=False, to=name)
+            if announced:
+                beacon = self._beacon()
+                for addr in announced:
+                    self.endpoint.announce(addr, "beacon", beacon)
+        self._beacon_quiet_peers(mono)
         for name, peer in list(self.directory.items()):
             silent = mono - self.heard_at.get(name, 0.0)
-            if peer.up and silent > s.peer_timeout:
+            if peer.up and silent > self.peer_limit.get(name, s.peer_timeout):
                 peer = peer.evolve(up=False)
                 self.directory[name] = peer
                 self.log.warning("peer %s is down: not heard for %.1f s", name, silent)
                 self.change(peer, reports=["down"])
+                self._next_beacon = min(self._next_beacon, mono + s.beacon_period)  # announce often again
+
+    def _beacon_quiet_peers(self, mono: float) -> None:
+        """In-session beacons to the peers sent nothing else for a period, at most `beacon_fanout` a
+        period: with more, each is beaconed less often, a newly quiet one at once, the others spread."""
+        s = self.settings
+        quiet = [(name, peer) for name, peer in self.directory.items()
+                 if peer.address and mono - self.sent_peer_at.get(name, -math.inf) >= s.beacon_period]
+        interval = s.beacon_period * max(1.0, len(quiet) / s.beacon_fanout)
+        beacon: Beacon | None = None
+        for name, peer in quiet:
+            due = self.beacon_due.get(name)
+            if due is not None and due > mono + interval:  # the interval shrank: no longer than the new one
+                due = self.beacon_due[name] = mono + random.uniform(0.0, interval)
+            if due is not None and mono < due:
+                continue
+            beacon = beacon or self._beacon(interval)
+            self.endpoint.send(parse_address(peer.address), "beacon", beacon, reliable=False, to=name)
+            # the next a little early (runs come every period); after a newly quiet peer's first
+            # beacon (at once: its last frame is a period old), at a random phase, so that many
+            # peers' beacons spread over the interval instead of leaving together
+            early = 0.9 if due is not None or interval == s.beacon_period else random.uniform(0.3, 0.9)
+            self.beacon_due[name] = mono + early * interval
+        for name in [n for n in self.beacon_due if mono - self.sent_peer_at.get(n, -math.inf) < s.beacon_period]:
+            del self.beacon_due[name]  # talking again: its frames tell it we are alive
 
     def _share_status(self) -> None:
         """Send this agent's own shared objects (poses, network info) to the status peers."""
@@ -545,12 +598,14 @@ class TransportPlugin(Plugin[TransportSettings]):
         peers = [p for p in self.directory.values() if p.up and p.address]
         messages: list[tuple[str, BBObject, BaseModel]] = [("status", obj, obj) for obj in objs]
         messages += [("status.remove", obj, Cancel(uid=obj.uid)) for obj in gone]
+        mono = time.monotonic()
         for kind, obj, body in messages:
             roles = s.share_with.get(type(obj).__name__, s.share_with_roles)
             for peer in peers:
                 if peer.role in roles:  # removals reliably: a stale object would stay forever
                     self.endpoint.send(parse_address(peer.address), kind, body, reliable=kind != "status",
                                        to=peer.name)
+                    self.sent_peer_at[peer.name] = mono
 
     def _apply_status(self, msg: Message, obj: BBObject) -> None:
         stamp = (msg.epoch, msg.seq)

@@ -127,3 +127,110 @@ def test_an_inbound_filter_fed_through_a_pipe_drops_traffic_between_unconnected_
         os.close(pipe_a)
         os.close(pipe_b)
 
+
+
+def _spy_beacons(agent: Agent) -> list[tuple[float, str]]:
+    """Record (time, receiver) of every in-session beacon `agent` sends from now on (sent for real)."""
+    import time
+
+    endpoint = agent.plugin("transport").endpoint
+    sent: list[tuple[float, str]] = []
+    send = endpoint.send
+
+    def spy(addr, kind, body=None, **kw):  # type: ignore[no-untyped-def]
+        if kind == "beacon":
+            sent.append((time.monotonic(), kw.get("to") or ""))
+        return send(addr, kind, body, **kw)
+
+    endpoint.send = spy
+    return sent
+
+
+def test_quiet_peers_share_a_beacon_budget_and_their_receivers_wait_as_much_longer():
+    """With more quiet peers than `beacon_fanout`, each is beaconed less often (the traffic no
+    longer grows with the team) and says so in the beacon; its receivers scale their silence
+    limit by the same factor, so nobody is marked down for it, and a dead agent still is."""
+    import time
+
+    port = free_port()
+    a = make_agent("a", port, beacon_fanout=1)  # 4 quiet peers: one beacon to each every 0.4 s
+    others = [make_agent(n, port) for n in "bcde"]
+    try:
+        wait_until(lambda: sum(p.up for p in peers(a).values()) == 4)
+        for o in others:
+            wait_until(lambda o=o: peers(o).get("a") and peers(o)["a"].up)
+        sent = _spy_beacons(a)
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 2.0:  # nobody calls a down meanwhile (limit 0.6 s x 4 = 2.4 s)
+            assert all(peers(o)["a"].up for o in others)
+            time.sleep(0.05)
+        # at most about fanout / period = 10 a second, where a beacon to each peer each period was 44
+        assert len(sent) <= 2.0 * 10 / 0.8 + 4, len(sent)
+        assert {to for _, to in sent} == set("bcde")  # every peer still gets its beacons
+        assert all(o.plugin("transport").peer_limit["a"] == 0.6 * 4 for o in others)
+        assert all(o.plugin("transport").peer_limit.get("b", 0.6) == 0.6 for o in others[1:])  # fanout 16: unscaled
+        a.stop()
+        t_stop = time.monotonic()
+        wait_until(lambda: not peers(others[0])["a"].up, timeout=5)
+        assert time.monotonic() - t_stop > 0.6  # its scaled limit, not the plain 0.6 s
+    finally:
+        for agent in [a, *others]:
+            agent.stop()
+
+
+def test_a_peer_that_gets_statuses_gets_no_beacons():
+    """Any session frame tells a peer that the sender is alive: a robot sharing its Pose with the
+    control node sends it no beacons meanwhile, and beacons again once it falls quiet."""
+    import time
+
+    from erni.blackboard import Pose
+
+    port = free_port()
+    robot, control = make_agent("r", port), make_agent("c", port, role="control")
+    try:
+        wait_until(lambda: peers(robot).get("c") and peers(robot)["c"].up)
+        sent = _spy_beacons(robot)
+        t0 = time.monotonic()
+        pose = Pose(robot="r")
+        with robot.transaction() as tx:
+            tx.add(pose)
+        while time.monotonic() - t0 < 1.5:
+            pose = pose.evolve(x=pose.x + 0.1)
+            with robot.transaction() as tx:
+                tx.change(pose)
+            time.sleep(0.03)
+        talking = [t for t, to in sent if to == "c" and t > t0 + 0.2]  # (one may have been due at the start)
+        assert talking == []
+        assert peers(control)["r"].up
+        quiet = time.monotonic()
+        wait_until(lambda: any(t > quiet for t, to in sent if to == "c"), timeout=1.0)
+    finally:
+        robot.stop()
+        control.stop()
+
+
+def test_broadcast_beacons_back_off_while_the_directory_stands_and_not_when_a_peer_is_down():
+    import time
+
+    port = free_port()
+    a, b = make_agent("a", port), make_agent("b", port)
+    try:
+        wait_until(lambda: peers(a).get("b") and peers(a)["b"].up)
+        counters = a.plugin("transport").endpoint.counters
+        time.sleep(1.0)  # the back-off reaches 8 periods (0.8 s)
+        before = counters.get("sent.announce", 0)
+        time.sleep(2.4)
+        standing = counters.get("sent.announce", 0) - before
+        assert 1 <= standing <= 5, standing  # 24 at one a period
+        c = make_agent("c", port)  # a newcomer announces every period and is answered at once
+        try:
+            wait_until(lambda: peers(a).get("c") and peers(a)["c"].up, timeout=1.0)
+        finally:
+            c.stop()
+        wait_until(lambda: not peers(a)["c"].up, timeout=3)
+        before = counters.get("sent.announce", 0)
+        time.sleep(1.0)
+        assert counters.get("sent.announce", 0) - before >= 7  # a peer down: every period again
+    finally:
+        a.stop()
+        b.stop()
