@@ -202,6 +202,7 @@ class TransportPlugin(Plugin[TransportSettings]):
         self.learned: set[str] = set()
         self.addresses: dict[str, Address] = {}  # reply address of every sender, clients included
         self._next_beacon = 0.0
+        self._next_liveness = 0.0  # beacons and silences are looked at a few times a period
         self._announce_every = s.beacon_period  # backs off while the directory stands
         self._announce_seen: tuple[int, int] = (-1, -1)  # peers and learned addresses at the last announcement
         self.sent_peer_at: dict[str, float] = {}  # peer -> when a session frame other than a beacon went (monotonic)
@@ -280,7 +281,10 @@ class TransportPlugin(Plugin[TransportSettings]):
         self._share_status()
         self._retry_pending(now)
         self._forward_to_watchers(now)
-        self._beacon_and_liveness(now)
+        mono = time.monotonic()
+        if mono >= self._next_liveness:  # O(peers): not on every run of a busy agent
+            self._next_liveness = mono + self.settings.beacon_period / 4
+            self._beacon_and_liveness(now)
         self._check_links()
 
     # -- outgoing -------------------------------------------------------------------------
