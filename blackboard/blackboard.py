@@ -57,6 +57,9 @@ class Subscription(Generic[T]):
         self.changed: list[T] = []
         self.removed: list[T] = []
         self._reports: dict[str, list[Any]] = {}
+        self.wakes = True
+        """False: changes are collected for the owner's next run but do not cause one (a view
+        needed only now and then, e.g. while somebody watches)."""
 
     # -- the owner's view -----------------------------------------------------------------
 
@@ -351,7 +354,7 @@ class Blackboard:
                 else:
                     self._objects[obj.uid] = obj
                 for sub in self._subscriptions_for(obj):
-                    if sub._offer(kind, obj, reports) and sub._owner is not None:
+                    if sub._offer(kind, obj, reports) and sub._owner is not None and sub.wakes:
                         owners[id(sub._owner)] = sub._owner
             self.commits += 1
             if ops:

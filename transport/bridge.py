@@ -180,13 +180,16 @@ class TransportPlugin(Plugin[TransportSettings]):
         elif s.identity is None:
             self.log.info("transport of %s authenticates with a shared team key: any holder of the key "
                           "can speak as any agent (give identities on a real team: erni keys)", self.agent_name)
+        self.status_in: dict[str, tuple[int, int]] = {}  # uid of a status received -> (epoch, seq)
         self.tasks = self.subscribe(Task)
         self.receipts = self.subscribe(Received)
         self.watched = self.subscribe(lambda o: isinstance(o, WATCHED))
+        self.watched.wakes = False  # only while a client watches: else every Pose or Peer change ran us again
         self.netinfo = self.subscribe(NetInfo)
         shared = set(s.share) | set(s.share_with)
-        self.shared = self.subscribe(lambda o: type(o).__name__ in shared)
-        self.status_in: dict[str, tuple[int, int]] = {}  # uid of a status received -> (epoch, seq)
+        # our own shared objects: a status received from a peer (status_in) is committed by us and
+        # must not run us again (a control node receives ten Poses a second from every robot)
+        self.shared = self.subscribe(lambda o: type(o).__name__ in shared and o.uid not in self.status_in)
         self.directory: dict[str, Peer] = {}
         self.heard_at: dict[str, float] = {}  # peer -> when a session frame of it last arrived (monotonic)
         self.sent_to: dict[str, str] = {}  # task uid -> peer it was sent to
@@ -421,6 +424,7 @@ class TransportPlugin(Plugin[TransportSettings]):
             key = (msg.sender, msg.reply)
             new = key not in self.watchers
             self.watchers[key] = time.monotonic() + body.lease
+            self.watched.wakes = True
             if new:  # start the stream with the current state
                 for obj in self.query(lambda o: isinstance(o, WATCHED)):
                     self._watch_event(key, "add", obj)
@@ -594,8 +598,8 @@ class TransportPlugin(Plugin[TransportSettings]):
 
     def _share_status(self) -> None:
         """Send this agent's own shared objects (poses, network info) to the status peers."""
-        objs = [o for o in self.shared.added + self.shared.changed if o.uid not in self.status_in]
-        gone = [o for o in self.shared.removed if o.uid not in self.status_in]
+        objs = self.shared.added + self.shared.changed
+        gone = self.shared.removed
         if not objs and not gone:
             return
         s = self.settings
@@ -630,6 +634,7 @@ class TransportPlugin(Plugin[TransportSettings]):
             if until < mono:
                 del self.watchers[key]
         if not self.watchers:
+            self.watched.wakes = False
             return
         for op, objs in (("add", self.watched.added), ("change", self.watched.changed),
                          ("remove", self.watched.removed)):

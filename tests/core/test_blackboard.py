@@ -266,3 +266,38 @@ def test_ignore_names_fields_of_the_type(agent):
         agent.blackboard.subscribe(None, Item, ignore=("colour",))
     with pytest.raises(UsageError, match="needs an object type"):
         agent.blackboard.subscribe(None, lambda o: True, ignore=("tag",))
+
+
+class _Quiet(Recorder):
+    def setup(self) -> None:
+        self.quiet = self.subscribe(Item)
+        self.quiet.wakes = False
+        self.views = []
+        self.lock = threading.Lock()
+        self.runs = 0
+        self.seen: list[list[int]] = []
+
+    def execute(self) -> None:
+        self.runs += 1
+        self.seen.append(sorted(o.value for o in self.quiet.added))
+
+
+def test_a_subscription_that_does_not_wake_is_delivered_at_the_next_run(agent):
+    """`sub.wakes = False`: its changes wait for a run the plugin has for another reason."""
+    rec = agent.add_plugin(_Quiet)
+    agent.start()
+    wait_until(lambda: rec.runs >= 0 and rec._setup_ran)
+    time.sleep(0.1)
+    runs = rec.runs
+    for v in (1, 2, 3):
+        with agent.transaction() as tx:
+            tx.add(Item(value=v))
+    time.sleep(0.3)
+    assert rec.runs == runs                      # not woken by them
+    rec.wake()
+    wait_until(lambda: rec.runs > runs)
+    assert rec.seen[-1] == [1, 2, 3]             # but all there, in one delta, at the next run
+    rec.quiet.wakes = True
+    with agent.transaction() as tx:
+        tx.add(Item(value=4))
+    wait_until(lambda: rec.seen[-1] == [4])      # waking again

@@ -234,3 +234,35 @@ def test_broadcast_beacons_back_off_while_the_directory_stands_and_not_when_a_pe
     finally:
         a.stop()
         b.stop()
+
+
+def test_statuses_received_and_peers_heard_do_not_run_the_transport_twice():
+    """The transport commits each status it receives and each peer it hears; those commits are
+    its own and must not run it once more (a control node gets ten Poses a second per robot)."""
+    import time
+
+    from erni.blackboard import Pose
+
+    port = free_port()
+    slow = {"beacon_period": 1.0, "peer_timeout": 4.0}  # few timer runs in the window
+    robot, control = make_agent("r", port, **slow), make_agent("c", port, role="control", **slow)
+    try:
+        wait_until(lambda: peers(robot).get("c") and peers(robot)["c"].up, timeout=5)
+        bridge = control.plugin("transport")
+        pose = Pose(robot="r")
+        with robot.transaction() as tx:
+            tx.add(pose)
+        wait_until(lambda: control.blackboard.get(pose.uid) is not None)
+        runs, received = bridge.runs, bridge.endpoint.counters.get("received", 0)
+        for _ in range(40):
+            pose = pose.evolve(x=pose.x + 0.1)
+            with robot.transaction() as tx:
+                tx.change(pose)
+            time.sleep(0.03)
+        wait_until(lambda: control.blackboard.get(pose.uid).x == pose.x)
+        got = bridge.endpoint.counters.get("received", 0) - received
+        assert got >= 30
+        assert bridge.runs - runs <= got + 4, (bridge.runs - runs, got)  # one run per frame, not two
+    finally:
+        robot.stop()
+        control.stop()
