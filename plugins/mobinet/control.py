@@ -149,6 +149,8 @@ class MobiNetControl(Plugin[MobiNetSettings]):
                                         self.settings.log_interval, name=f"mobinet-{me}",
                                         write_interval=self.settings.write_interval)
         self._written: Position | None = None   # the last position handed to the resource
+        self._unwritten: Pose | None = None     # the newest Pose seen while holding
+        self._hold_until = 0.0                  # monotonic: no Pose runs us before (write_interval)
         self.resource.start()
         snmp = self.settings.source == "snmp"
         self._write_pose = snmp and self.settings.write_pose and self.settings.write_community is not None
@@ -206,15 +208,33 @@ class MobiNetControl(Plugin[MobiNetSettings]):
         for task in self.tasks.removed:
             self._stop(task.uid)
         if self._write_pose:
-            latest = None
-            for pose in list(self.poses.added) + list(self.poses.changed):
-                if latest is None or pose.stamp >= latest.stamp:
-                    latest = pose
-            if latest is not None:
-                position = Position(x=latest.x, y=latest.y, heading=math.degrees(latest.theta))
-                if self._moved(position):
-                    self._written = position
-                    self.resource.write_position(position)
+            self._write_latest()
+
+    def _write_latest(self) -> None:
+        """Hand the newest Pose to the resource if it moved; then, for `write_interval`, Poses
+        (ten a second) collect without running this plugin, and the newest is written at its end."""
+        latest = self._unwritten
+        for pose in list(self.poses.added) + list(self.poses.changed):
+            if latest is None or pose.stamp >= latest.stamp:
+                latest = pose
+        self._unwritten = latest
+        now = time.monotonic()
+        if now < self._hold_until:
+            return
+        self.poses.wakes = True
+        self._unwritten = None
+        if latest is None:
+            return
+        position = Position(x=latest.x, y=latest.y, heading=math.degrees(latest.theta))
+        if not self._moved(position):
+            return
+        self._written = position
+        self.resource.write_position(position)
+        interval = self.settings.write_interval
+        if interval > 0:
+            self._hold_until = now + interval
+            self.poses.wakes = False
+            self.wake_in(interval)
 
     def _moved(self, position: Position) -> bool:
         """True when `position` is worth writing: the first, or beyond the dead-band of the last one."""

@@ -283,14 +283,17 @@ def test_a_standing_robot_is_written_once_and_a_moving_one_at_most_once_per_inte
     time.sleep(0.5)
     assert net.view("robot2").position_updates == 1
     t0 = time.monotonic()
-    for i in range(1, 11):   # moving 10 cm every 20 ms: written at the start and then once per interval
+    runs = plugin.runs
+    for i in range(1, 31):   # moving 10 cm every 20 ms: written at the start and then once per interval
         pose = pose.evolve(x=10.0 + 0.1 * i, stamp=pose.stamp + 0.1)
         with agent.transaction() as tx:
             tx.change(pose)
         time.sleep(0.02)
-    wait_until(lambda: net.view("robot1").positions["robot2"].x == pytest.approx(11.0))  # the newest, in the end
+    wait_until(lambda: net.view("robot1").positions["robot2"].x == pytest.approx(13.0))  # the newest, in the end
     elapsed = time.monotonic() - t0
     assert 2 <= net.view("robot2").position_updates <= 2 + math.ceil(elapsed / 0.3)
+    # meanwhile the Poses collected without running the plugin for each (30 of them)
+    assert plugin.runs - runs <= 3 + 2 * math.ceil(elapsed / 0.3), (plugin.runs - runs, elapsed)
     assert plugin.resource.stats["write_errors"] == 0
 
 
