@@ -184,8 +184,8 @@ class SpreadParams(Params):
     dt: float = Field(0.2, gt=0, description="control period (s)")
     range: float = Field(6.0, gt=0, description="neighbourhood range (m); about 1.2 d spreads, "
                          "much more pulls the team together")
-    neighbourhood: str = Field("physical", pattern="^(physical|delaunay)$",
-                               description="physical (within range) or delaunay neighbours")
+    neighbourhood: str = Field("physical", pattern="^(physical|delaunay|gabriel)$",
+                               description="physical (within range), delaunay or gabriel neighbours")
     model: str = Field("nonholonomic", pattern="^(holonomic|nonholonomic)$", description="robot model")
     duration: float | None = Field(None, gt=0, description="stop after this long (s)")
 

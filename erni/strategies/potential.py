@@ -10,8 +10,11 @@ neighbourhood's weighted centre s_i = (1/n) sum_j w (p_j - p_i). With Rayleigh d
                      m v' = (-dU/dp) . h - k v,  I theta'' = -dU/dtheta - k theta'
 Integration is semi-implicit Euler with period dt.
 
-Neighbourhoods: "physical" (robots within `range`) or "delaunay" (one-hop neighbours of the
-Delaunay triangulation of all robots, scipy.spatial.Delaunay). Obstacles and walls count only
+Neighbourhoods: "physical" (robots within `range`), "delaunay" (one-hop neighbours of the
+Delaunay triangulation of all robots, scipy.spatial.Delaunay) or "gabriel" (one-hop neighbours of
+the Gabriel graph, the other topological graph paper 001 names in 3.2: the Delaunay edges whose
+closed diametral disc holds no other robot, so a boundary robot has no long edges across the hull
+that a Delaunay neighbourhood gives it). Obstacles and walls count only
 within the sensing range `sensing` (paper 001, section 3.3: "an obstacle or the boundary is
 considered belonging to the neighborhood of Ri only when it is inside the sensing range";
 None: `range`), each as one object at its nearest point with desired distance b or c and
@@ -42,6 +45,7 @@ from numpy.typing import ArrayLike, NDArray
 from erni.blackboard.errors import UsageError
 
 EPS = 1e-9
+NEIGHBOURHOODS = ("physical", "delaunay", "gabriel")
 
 
 @dataclass(frozen=True)
@@ -55,7 +59,7 @@ class SpreadConfig:
     dt: float = 0.2                # integration period (s)
     range: float = 15.0            # physical neighbourhood: robots within this range (m)
     sensing: float | None = None   # obstacles and walls count within this range (m); None: `range`
-    neighbourhood: str = "physical"  # "physical" or "delaunay"
+    neighbourhood: str = "physical"  # "physical", "delaunay" or "gabriel"
     model: str = "holonomic"       # "holonomic" or "nonholonomic"
     chi: float = 1.0               # weight of the heading term
     weight: float = 1.0            # w_ij of a robot
@@ -71,8 +75,8 @@ class SpreadConfig:
                 raise UsageError(f"{name}: expected a positive number, got {getattr(self, name)!r}")
         if self.sensing is not None and not self.sensing > 0:
             raise UsageError(f"sensing: expected a positive number or None, got {self.sensing!r}")
-        if self.neighbourhood not in ("physical", "delaunay"):
-            raise UsageError(f"neighbourhood: expected 'physical' or 'delaunay', got {self.neighbourhood!r}")
+        if self.neighbourhood not in NEIGHBOURHOODS:
+            raise UsageError(f"neighbourhood: expected one of {', '.join(NEIGHBOURHOODS)}, got {self.neighbourhood!r}")
         if self.model not in ("holonomic", "nonholonomic"):
             raise UsageError(f"model: expected 'holonomic' or 'nonholonomic', got {self.model!r}")
 
@@ -83,7 +87,7 @@ def wrap(a: NDArray[np.float64] | float) -> NDArray[np.float64] | np.float64:
 
 
 def neighbourhoods(pos: ArrayLike, mode: str = "physical", rng: float = 15.0) -> list[NDArray[np.intp]]:
-    """Return, for each robot, the indices of its neighbours (physical: within `rng`; or Delaunay)."""
+    """Return, for each robot, the indices of its neighbours (physical: within `rng`; Delaunay; Gabriel)."""
     p = np.asarray(pos, dtype=float)
     n = len(p)
     if mode == "physical":
@@ -93,8 +97,8 @@ def neighbourhoods(pos: ArrayLike, mode: str = "physical", rng: float = 15.0) ->
             return []
         near = cKDTree(p).query_ball_point(p, rng, return_sorted=True)
         return [np.array([j for j in near[i] if j != i], dtype=np.intp) for i in range(n)]
-    if mode != "delaunay":
-        raise UsageError(f"mode: expected 'physical' or 'delaunay', got {mode!r}")
+    if mode not in NEIGHBOURHOODS:
+        raise UsageError(f"mode: expected one of {', '.join(NEIGHBOURHOODS)}, got {mode!r}")
     if n < 2:
         return [np.zeros(0, dtype=int) for _ in range(n)]
     try:
@@ -111,7 +115,29 @@ def neighbourhoods(pos: ArrayLike, mode: str = "physical", rng: float = 15.0) ->
             j = tri.coplanar[tri.coplanar[:, 0] == i, 2] if len(tri.coplanar) else np.zeros(0, dtype=int)
             out[i] = np.array(sorted(set(out[int(j[0])]) | {int(j[0])} - {i}), dtype=int) if len(j) else \
                 np.delete(np.arange(n), i)
-    return out
+    return gabriel(p, out) if mode == "gabriel" else out
+
+
+def gabriel(p: NDArray[np.float64], delaunay: list[NDArray[np.intp]]) -> list[NDArray[np.intp]]:
+    """Keep the Delaunay edges (i, j) with no other point in the closed disc on the diameter
+    p_i p_j (such an edge is in every Delaunay triangulation, so only those are tried; a point on
+    the circle excludes the edge, so four robots on a circle get no diagonal)."""
+    from scipy.spatial import cKDTree
+
+    n = len(p)
+    edges = np.array([(i, int(j)) for i in range(n) for j in delaunay[i] if i < j], dtype=np.intp).reshape(-1, 2)
+    if len(edges) == 0:
+        return delaunay
+    mid = (p[edges[:, 0]] + p[edges[:, 1]]) / 2
+    radius = np.hypot(*(p[edges[:, 0]] - p[edges[:, 1]]).T) / 2
+    tree = cKDTree(p)
+    inside = tree.query_ball_point(mid, radius * (1 + 1e-9) + 1e-12)  # on the circle too (the ends are)
+    keep = [k for k, (i, j) in enumerate(edges) if not (set(inside[k]) - {int(i), int(j)})]
+    out: list[set[int]] = [set() for _ in range(n)]
+    for i, j in edges[keep]:
+        out[int(i)].add(int(j))
+        out[int(j)].add(int(i))
+    return [np.array(sorted(s), dtype=np.intp) for s in out]
 
 
 def nearest_on_segments(p: NDArray[np.float64], walls: NDArray[np.float64]) -> NDArray[np.float64]:

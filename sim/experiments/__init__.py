@@ -119,6 +119,7 @@ class Result:
     notes: list[str] = field(default_factory=list)
     mode_note: str = ""  # how the robots ran (shown in the figure)
     draw: Callable[[Any], None] | None = None  # draws the figure on a matplotlib Figure
+    figure_height: float = 7.5  # inches the drawing takes (the table comes under it)
 
     def compare(self, quantity: str, paper: float | str, ours: float | str, unit: str = "", how: str = "",
                 kind: str = "measured") -> None:
@@ -162,10 +163,10 @@ class Result:
         if self.draw is None:
             raise ScenarioError(f"{self.name}: this experiment draws no figure")
         table = 0.6 + 0.2 * table_lines(self.rows) if self.rows else 0.0
-        fig = Figure(figsize=(13, 7.5 + table), dpi=110, layout="constrained")
+        fig = Figure(figsize=(13, self.figure_height + table), dpi=110, layout="constrained")
         note = f"{self.mode} mode: {self.mode_note}" if self.mode_note else f"{self.mode} mode"
         if self.rows:
-            subs: Any = fig.subfigures(2, 1, height_ratios=[7.5, table])
+            subs: Any = fig.subfigures(2, 1, height_ratios=[self.figure_height, table])
             top, bottom = subs[0], subs[1]
             self.draw(top)
             draw_table(bottom, self.rows, note)

@@ -2,7 +2,8 @@
 
 Kinematic mode (the default for the paper's 120 robots): the mission's `potential.spread_step`
 (equations 15 and 16) moves every robot each dt = 0.2 s, for each variant the paper shows
-(holonomic or nonholonomic robots, physical or Delaunay neighbourhood), until every robot has
+(holonomic or nonholonomic robots, physical or Delaunay neighbourhood; and the Gabriel graph,
+the other topological neighbourhood paper 001 names in 3.2), until every robot has
 been slower than `still_speed` for `hold` seconds (converged) or `duration` runs out. Walls are
 solid (a move through one is refused) and repel as paper 001's boundary term does: one object
 at the wall's nearest point with desired distance c, felt within the sensing range `sensing`
@@ -20,7 +21,11 @@ edge of the Delaunay triangulation switches a spring on or off at its current le
 24-37 edges a second, 30 % of them longer than 7.5 m (up to 34 m, the long boundary links the
 paper itself notes): between 300 and 400 s the flips put in 14 500 J, the heading term's
 force 2 100 J, the damping took out 18 000 J. dt = 0.05 s or chi = 0 change nothing, so this
-is the Delaunay field's nature, not the integration. A physical neighbourhood switches a
+is the Delaunay field's nature, not the integration. The Gabriel graph keeps only the Delaunay
+edges whose closed diametral disc holds no other robot, which drops the long boundary links:
+in the open field both Gabriel variants converge (holonomic at 69 s, nonholonomic at 279 s,
+where the nonholonomic Delaunay team did not by 600 s), in the corridor the holonomic one does
+(124 s) and the nonholonomic one is left with 0.2 link changes a second (Delaunay: 22). A physical neighbourhood switches a
 neighbour on at R with a force w (R - d): a robot held at that edge jumps by it each control
 period. Walls sensed at the 6 m neighbourhood range (ours until the sensing range was used)
 pulled every robot within 6 m toward them: half of the corridor team stood in rows within
@@ -66,6 +71,7 @@ from erni.strategies import energy as energy_model
 from erni.strategies.potential import SpreadConfig, forces, mean_nn_distance, neighbourhoods, spread_step
 
 VARIANTS = ["holonomic/physical", "holonomic/delaunay", "nonholonomic/physical", "nonholonomic/delaunay"]
+EXTRA_VARIANTS = ["holonomic/gabriel", "nonholonomic/gabriel"]  # paper 001's other topological graph (3.2)
 
 
 @dataclass
@@ -109,8 +115,9 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode:
     """Run every variant until it converges; return figure and metrics."""
     variants = variants or list(scenario.strategy.get("variants", VARIANTS))
     for v in variants:
-        if v not in VARIANTS:
-            raise ScenarioError(f"strategy.variants: unknown variant {v!r}; expected some of {', '.join(VARIANTS)}")
+        if v not in VARIANTS + EXTRA_VARIANTS:
+            raise ScenarioError(f"strategy.variants: unknown variant {v!r}; expected some of "
+                                f"{', '.join(VARIANTS + EXTRA_VARIANTS)}")
     if mode == "agents":
         scenario = _agent_team(scenario)
     runs = []
@@ -365,6 +372,8 @@ def _result(scenario: Scenario, experiment: Experiment, mode: str, runs: list[Ru
     paths = experiment.name == "spread-paths"
     res.draw = lambda fig: (_draw_paths(fig, scenario, runs, res, mode) if paths else
                             _draw(fig, scenario, runs, res, mode, sweep))
+    if not paths and len(runs) > 4:  # a third row of maps (the Gabriel variants)
+        res.figure_height = 7.5 * math.ceil(len(runs) / 2) / 2
     return res
 
 
@@ -382,9 +391,11 @@ def _nn(pos: NDArray[np.float64]) -> NDArray[np.float64]:
 
 def _draw(fig: Any, scenario: Scenario, runs: list[Run], res: Result, mode: str,
           sweep: list[tuple[float, Run]]) -> None:
-    gs = fig.add_gridspec(2, 4 if sweep else 3, width_ratios=[1, 1, 0.95] + ([0.8] if sweep else []))
+    rows = max(2, math.ceil(len(runs) / 2))
+    half = rows // 2  # the curves on the right: the upper and the lower rows
+    gs = fig.add_gridspec(rows, 4 if sweep else 3, width_ratios=[1, 1, 0.95] + ([0.8] if sweep else []))
     extent = max(float(np.abs(r.pos[-1]).max()) for r in runs) + 4
-    for k, r in enumerate(runs[:4]):
+    for k, r in enumerate(runs):
         ax = fig.add_subplot(gs[k // 2, k % 2])
         draw_world(ax, scenario.world)
         final = r.pos[-1]
@@ -399,7 +410,7 @@ def _draw(fig: Any, scenario: Scenario, runs: list[Run], res: Result, mode: str,
         ax.set_ylim(-extent * 0.75, extent * 0.75)
         map_axes(ax, f"{r.variant.replace('/', ', ')} neighbourhood")
         ax.legend(loc="upper right", fontsize=7, framealpha=0.9)
-    ax = fig.add_subplot(gs[0, 2])
+    ax = fig.add_subplot(gs[:half, 2])
     for k, r in enumerate(runs):
         t, vals, _ = res.series[f"{r.variant}/mean_nn_distance"]
         ax.plot(t, vals, color=color(k), label=r.variant.replace("/", ", "))
@@ -409,7 +420,7 @@ def _draw(fig: Any, scenario: Scenario, runs: list[Run], res: Result, mode: str,
     time_axes(ax, "Mean distance to the nearest robot", "distance (m)")
     ax.set_ylim(0, d * 1.2)
     ax.legend(fontsize=7, loc="lower right")
-    ax = fig.add_subplot(gs[1, 2])
+    ax = fig.add_subplot(gs[half:, 2])
     for k, r in enumerate(runs):
         t, vals, _ = res.series[f"{r.variant}/max_speed"]
         ax.semilogy(t, np.maximum(vals, 1e-4), color=color(k), label=r.variant.replace("/", ", "))
@@ -418,7 +429,7 @@ def _draw(fig: Any, scenario: Scenario, runs: list[Run], res: Result, mode: str,
     time_axes(ax, "Fastest robot (convergence)", "speed (m/s)")
     ax.legend(fontsize=7, loc="upper right")
     if sweep:
-        _draw_sweep(fig.add_subplot(gs[0, 3]), fig.add_subplot(gs[1, 3]), sweep, d)
+        _draw_sweep(fig.add_subplot(gs[:half, 3]), fig.add_subplot(gs[half:, 3]), sweep, d)
     fig.suptitle(f"{scenario.title} ({mode} mode, {runs[0].pos.shape[1]} robots)", fontsize=13)
 
 

@@ -98,6 +98,37 @@ def test_delaunay_neighbourhood_is_symmetric_and_local():
         [[1, 2], [0, 2], [0, 1]]
 
 
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(st.integers(-40, 40), st.integers(-40, 40)), min_size=2, max_size=25, unique=True))
+def test_gabriel_neighbourhood_is_the_brute_force_gabriel_graph(points):
+    """An edge (i, j) iff no other robot lies in the closed disc on the diameter p_i p_j (brute
+    force over all pairs here; the strategy only tries the Delaunay edges)."""
+    pos = np.array(points, dtype=float) * 0.5   # on a grid: collinear and cocircular cases come up
+    nb = neighbourhoods(pos, "gabriel")
+    n = len(pos)
+    for i in range(n):
+        for j in range(i + 1, n):
+            mid, r2 = (pos[i] + pos[j]) / 2, np.sum((pos[i] - pos[j]) ** 2) / 4
+            empty = all(np.sum((pos[k] - mid) ** 2) > r2 + 1e-9 for k in range(n) if k not in (i, j))
+            assert (j in nb[i]) == empty, (i, j, empty)
+            assert (i in nb[j]) == (j in nb[i])
+
+
+def test_gabriel_drops_the_long_hull_edges_a_delaunay_neighbourhood_has():
+    # a flat triangle: Delaunay links the two ends across the hull, Gabriel does not
+    pos = np.array([[0.0, 0.0], [10.0, 0.0], [5.0, 1.0]])
+    assert [list(x) for x in neighbourhoods(pos, "delaunay")] == [[1, 2], [0, 2], [0, 1]]
+    assert [list(x) for x in neighbourhoods(pos, "gabriel")] == [[2], [2], [0, 1]]
+    # four robots on a circle: no diagonal (each has the other two on its circle), a centre robot
+    # on every side's circle leaves it linked to the corners only
+    square = np.array([[0.0, 0.0], [2.0, 0.0], [2.0, 2.0], [0.0, 2.0]])
+    assert [list(x) for x in neighbourhoods(square, "gabriel")] == [[1, 3], [0, 2], [1, 3], [0, 2]]
+    centred = np.vstack([square, [[1.0, 1.0]]])
+    assert [list(x) for x in neighbourhoods(centred, "gabriel")] == [[4], [4], [4], [4], [0, 1, 2, 3]]
+    with pytest.raises(Exception, match="neighbourhood: expected one of physical, delaunay, gabriel"):
+        SpreadConfig(neighbourhood="voronoi")
+
+
 def test_nonholonomic_velocity_stays_along_the_heading():
     rng = np.random.default_rng(3)
     pos = rng.uniform(-1, 1, (8, 2))
