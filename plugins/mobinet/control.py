@@ -151,6 +151,7 @@ class MobiNetControl(Plugin[MobiNetSettings]):
         self._written: Position | None = None   # the last position handed to the resource
         self._unwritten: Pose | None = None     # the newest Pose seen while holding
         self._hold_until = 0.0                  # monotonic: no Pose runs us before (write_interval)
+        self._cuts: tuple[tuple[tuple[str, str], ...] | None, list[str]] = (None, [])  # links -> articulation points
         self.resource.start()
         snmp = self.settings.source == "snmp"
         self._write_pose = snmp and self.settings.write_pose and self.settings.write_community is not None
@@ -348,7 +349,7 @@ class MobiNetControl(Plugin[MobiNetSettings]):
             case PathCostParams() as params:
                 message = self._path_cost(view, params, fields, values) or message
             case TopologyParams():
-                cuts = articulation_points(view.links)
+                cuts = self._articulation_points(view.links)
                 nodes = {n for link in view.links for n in (link.a, link.b)} | {view.node}
                 fields["links"] = view.links
                 fields["articulation_points"] = cuts
@@ -359,6 +360,14 @@ class MobiNetControl(Plugin[MobiNetSettings]):
                 values["positions"] = {n: {"x": p.x, "y": p.y, "heading": p.heading}
                                        for n, p in sorted(view.positions.items())}
         return info.evolve(**fields), values, message
+
+    def _articulation_points(self, links: list[Any]) -> list[str]:
+        """The cut vertices, found again only when the links changed (a team reporting positions
+        reads the same N^2 links every second)."""
+        key = tuple((link.a, link.b) for link in links)
+        if key != self._cuts[0]:
+            self._cuts = (key, articulation_points(links))
+        return list(self._cuts[1])
 
     @staticmethod
     def _link_quality(view: NetView, params: LinkQualityParams, fields: dict[str, Any],

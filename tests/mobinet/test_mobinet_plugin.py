@@ -146,6 +146,23 @@ def test_moving_nodes_changes_what_the_plugin_publishes(served, net, make_agent)
     assert res.result.values["articulation_points"] == []
 
 
+def test_articulation_points_are_found_again_only_when_the_links_change(served, net, make_agent, monkeypatch):
+    import erni.plugins.mobinet.control as control
+
+    calls = []
+    real = control.articulation_points
+    monkeypatch.setattr(control, "articulation_points", lambda links: calls.append(len(links)) or real(links))
+    agent, plugin = make_agent("robot3", served["robot3"])
+    topo = watch(agent, "network_topology", rate_hz=20.0)
+    fresh(agent, topo, lambda i: set(i.articulation_points) == {"robot2", "robot3", "robot4"})
+    polls = plugin._polls[topo.uid]
+    wait_until(lambda: plugin._polls[topo.uid] >= polls + 10)   # ten readings of the same links
+    assert len(calls) == 1
+    net.move("robot5", 150.0, 40.0)
+    fresh(agent, topo, lambda i: set(i.articulation_points) == {"robot2", "robot3"})
+    assert len(calls) == 2
+
+
 def test_filters_and_missing_targets(served, net, make_agent):
     agent, _ = make_agent("robot1", served["robot1"])
     to3 = watch(agent, "path_cost", destination="10.0.0.3")
