@@ -37,7 +37,8 @@ class MotionSettings(BaseModel):
     config_timeout: float = Field(1.0, ge=0, description="wait this long for the CONFIG reply at connect (s)")
     latency: float | None = Field(None, ge=0, le=2, description="command latency to plan stops with (s); "
                                   "default: the SIP's age + one SIP period + one stack cycle")
-    rate_hz: float = Field(20.0, gt=0, le=200, description="behaviour stack rate (Hz)")
+    rate_hz: float = Field(20.0, gt=0, le=200, description="behaviour stack cycles a second at most (it "
+                           "cycles on each SIP while it steers)")
     pose_rate_hz: float = Field(10.0, gt=0, le=100, description="Pose publishing rate (Hz)")
     pose_keepalive: float = Field(1.0, gt=0, le=60, description="a Pose that only a newer stamp would change "
                                   "(a standing robot) is published this often (s)")

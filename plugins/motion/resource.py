@@ -1,9 +1,12 @@
 """RobotMotionResource: the behaviour-stack thread and the poll thread around one robot driver.
 
-The stack thread (`motion-stack-<robot>`) services the behaviour stack at `rate_hz`: it turns
-BotMotion tasks into behaviours, lets the winning behaviour drive the robot through the
-driver, and records each task's outcome; with nothing to steer (no task, the robot halted and
-standing) it cycles every `idle_period` until a task wakes it. The poll thread
+The stack thread (`motion-stack-<robot>`) services the behaviour stack: it turns BotMotion
+tasks into behaviours, lets the winning behaviour drive the robot through the driver, and
+records each task's outcome. While it steers it cycles on each new SIP, as ARIA's robot
+cycle does (at most `rate_hz` cycles a second, and after one and a half SIP intervals without a
+SIP it cycles anyway, so a lost link and the behaviours' timeouts are noticed); a task or a
+cancellation is taken at once. With nothing to steer (no task, the robot halted and standing)
+it cycles every `idle_period` until a task wakes it. The poll thread
 (`motion-poll-<robot>`) hands the latest robot state and the outcome changes to `publish` at
 `pose_rate_hz` (at once for final outcomes): a state that differs from the last one handed over
 only in its stamp (a standing robot) is handed over again after `pose_keepalive` only. Neither thread touches the blackboard itself: `publish` does, in its own short
@@ -102,6 +105,8 @@ class RobotMotionResource:
         self._inbox: deque[tuple[str, Any]] = deque()
         self._wake = threading.Event()
         self._poll_wake = threading.Event()
+        self._steering = False  # the stack thread waits for SIPs (read by the reader thread)
+        self._new_sip = False   # a SIP came since the last cycle
         self._shown: RobotState | None = None  # the state last handed to `publish` (read by the reader thread)
         self._stop = threading.Event()
         self._lock = threading.Lock()
@@ -162,26 +167,40 @@ class RobotMotionResource:
     # --- the stack thread ---------------------------------------------------------------
 
     def _control_loop(self) -> None:
-        next_tick = self.clock()
+        last = -math.inf  # when the last cycle ran
         while not self._stop.is_set():
-            delay = next_tick - self.clock()
             if self.idle():  # nothing to steer: sleep until a task comes (or a slow check is due)
-                delay = max(delay, next_tick + self.idle_period - self.period - self.clock())
-            if delay > 0:
-                self._wake.wait(delay)
-                self._wake.clear()
+                self._steering = False
+                delay = last + self.idle_period - self.clock()
+                if delay > 0 and not self._inbox:
+                    self._wake.wait(delay)
+                    self._wake.clear()
+            else:
+                self._steering = True
+                self._await_sip(last)
             if self._stop.is_set():
                 break
-            now = self.clock()
+            now = last = self.clock()
+            self._new_sip = False  # the state read by this cycle is at least as new as the SIP that woke it
             try:
                 self._drain_inbox(now)
                 self._cycle(now)
             except Exception:
                 log.exception("%s: behaviour stack cycle failed", self.name)
-            if now >= next_tick:
-                next_tick = max(next_tick + self.period, now + self.period / 2)
         if self.driver.connected:
             self.driver.stop()
+
+    def _await_sip(self, last: float) -> None:
+        """While steering: until a new SIP at least `period` after the last cycle, a task or a
+        cancellation (at once), or one and a half SIP intervals without a SIP."""
+        fallback = last + max(self.period, 1.5 * self.driver.sip_interval)
+        earliest = last + self.period
+        while not self._stop.is_set() and not self._inbox:
+            now = self.clock()
+            if now >= fallback or (self._new_sip and now >= earliest):
+                return
+            self._wake.wait((earliest if self._new_sip else fallback) - now)
+            self._wake.clear()
 
     def idle(self) -> bool:
         """Nothing to steer: no task's behaviour, nothing queued, stopped by us and standing still.
@@ -305,10 +324,11 @@ class RobotMotionResource:
     def lead(self, state: RobotState, now: float) -> float:
         """How far ahead of `state` a command sent now acts (s): the SIP's age, a SIP period (the
         robot measured the SIP's pose up to a period before sending it and acts on a command at its
-        next cycle), and one control period before the next correction."""
+        next cycle), and the time to the next correction (the next SIP, or `period` if longer)."""
         if self.latency is not None:
             return self.latency
-        return max(0.0, now - state.stamp) + self.driver.sip_interval + self.period
+        interval = self.driver.sip_interval
+        return max(0.0, now - state.stamp) + interval + max(self.period, interval)
 
     def _drive(self, cmd: Command, now: float) -> None:
         wanted = (round(cmd.v, 3), float(round(cmd.w)))
@@ -382,7 +402,11 @@ class RobotMotionResource:
     # --- the poll thread ----------------------------------------------------------------
 
     def _sip(self, state: RobotState) -> None:
-        """Reader thread, per SIP: wake the poll thread when the reading differs from the last Pose."""
+        """Reader thread, per SIP: wake the stack thread while it steers, and the poll thread when
+        the reading differs from the last Pose."""
+        if self._steering:
+            self._new_sip = True
+            self._wake.set()
         shown = self._shown
         if shown is None or not same_reading(state, shown):
             self._poll_wake.set()

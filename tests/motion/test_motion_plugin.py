@@ -151,6 +151,20 @@ def test_stop_takes_over_within_one_stack_cycle(start_agent, robot_url):
     assert resource.cycles - before <= 1
 
 
+def test_while_steering_the_stack_cycles_once_per_sip_not_at_its_rate(start_agent, robot_url):
+    """As ARIA's robot cycle: a cycle on each new SIP (fresh data, no cycles on stale ones); the
+    agent here allows 200 cycles a second, the test robot sends 50 SIPs."""
+    agent, plugin = start_agent(robot_url, rate_hz=200)
+    post(agent, "velocity", v=0.2)
+    wait_until(lambda: pose(agent).v > 0.15, timeout=3)
+    resource, driver = plugin.resource, plugin.resource.driver
+    cycles, sips = resource.cycles, driver.stats.sips
+    time.sleep(1.5)
+    cycles, sips = resource.cycles - cycles, driver.stats.sips - sips
+    assert sips >= 10
+    assert sips - 2 <= cycles <= sips + 2, f"{cycles} cycles for {sips} SIPs"
+
+
 def test_velocity_duration_and_randomwalk_finish(start_agent, robot_url):
     agent, _ = start_agent(robot_url)
     done = finish(agent, post(agent, "velocity", v=0.0, w=45, duration=0.4))
