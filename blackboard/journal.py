@@ -24,7 +24,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from erni.blackboard.blackboard import REMOVE, Op
+from erni.blackboard.blackboard import CHANGE, REMOVE, Op
 from erni.blackboard.errors import ConfigError
 from erni.blackboard.objects import BBObject
 
@@ -77,17 +77,25 @@ def move_aside(path: str | Path) -> Path:
     return target
 
 
+def _urgent(ops: list[Op]) -> bool:
+    """Whether a commit's durable operations must reach the disk at once: anything but changes of
+    objects still running (a new task, a final state, a removal)."""
+    return any(kind != CHANGE or getattr(obj, "done", True) for kind, obj, _ in ops)
+
+
 class Journal:
     """Journal durable objects of one blackboard to a SQLite file."""
 
-    def __init__(self, path: str | Path, agent: str = "agent"):
+    def __init__(self, path: str | Path, agent: str = "agent", linger: float = 0.2):
         self.path = Path(path)
+        self.linger = linger  # a batch of progress changes only waits this long for more (s)
         self.log = logging.getLogger(f"erni.{agent}.journal")
         self._queue: queue.SimpleQueue[list[Op] | None] = queue.SimpleQueue()
         self._thread: threading.Thread | None = None
         self._flushed = threading.Condition()
         self._enqueued = 0
         self._written = 0
+        self._flushing = 0  # callers waiting in flush(): no lingering
         self._pending: dict[str, tuple[str, str] | None] = {}  # rows not written yet, retried
         self.failed = ""  # why the last write failed ('' when writes succeed)
         self.batches = 0
@@ -168,12 +176,17 @@ class Journal:
         """Wait until everything queued so far was tried; return True if it is on disk."""
         target = self._enqueued
         deadline = time.monotonic() + timeout
-        with self._flushed:
-            while self._written < target:
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    return False
-                self._flushed.wait(left)
+        self._flushing += 1
+        try:
+            self._queue.put([])  # ends a lingering batch
+            with self._flushed:
+                while self._written < target:
+                    left = deadline - time.monotonic()
+                    if left <= 0:
+                        return False
+                    self._flushed.wait(left)
+        finally:
+            self._flushing -= 1
         return not self.failed
 
     def stop(self, timeout: float = 1.0) -> None:
@@ -194,9 +207,17 @@ class Journal:
             except queue.Empty:
                 self._write([])
                 continue
-            while True:  # take whatever else is waiting: one SQLite transaction for all of it
+            # take whatever else is waiting: one SQLite transaction (one fsync) for all of it; a batch
+            # of changes that are not news (a running task's progress: a control node gets two a
+            # second from every robot) waits up to `linger` for more; a new, final or removed
+            # object, a flush or the stop is written at once
+            until = time.monotonic() + self.linger
+            while True:
+                urgent = any(item is None or _urgent(item) for item in batch) or self._flushing
                 try:
-                    batch.append(self._queue.get_nowait())
+                    left = until - time.monotonic()
+                    batch.append(self._queue.get(timeout=left) if not urgent and left > 0
+                                 else self._queue.get_nowait())
                 except queue.Empty:
                     break
             stop = None in batch
