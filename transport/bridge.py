@@ -545,7 +545,9 @@ class TransportPlugin(Plugin[TransportSettings]):
         mono = time.monotonic()
         if mono >= self._next_beacon:
             seen = (len(self.directory), len(self.learned))
-            standing = seen == self._announce_seen and all(p.up for p in self.directory.values())
+            # a lone agent keeps announcing every period (it is heard by nobody yet, and costs nobody much)
+            standing = (seen == self._announce_seen and bool(self.directory)
+                        and all(p.up for p in self.directory.values()))
             self._announce_seen = seen
             self._announce_every = (min(self._announce_every * 2, s.beacon_period * s.announce_backoff)
                                     if standing else s.beacon_period)
