@@ -211,6 +211,7 @@ class TransportPlugin(Plugin[TransportSettings]):
         self.sent_peer_at: dict[str, float] = {}  # peer -> when a session frame other than a beacon went (monotonic)
         self.beacon_due: dict[str, float] = {}  # quiet peer -> when its next in-session beacon is due (monotonic)
         self.peer_limit: dict[str, float] = {}  # peer -> silence that marks it down, from its announced interval
+        self._beacon_said: Beacon | None = None  # what the last in-session beacons said (but the interval)
         for spec in s.peers:
             name, _, addr = spec.partition("@")
             host, port = parse_address(addr)
@@ -576,14 +577,21 @@ class TransportPlugin(Plugin[TransportSettings]):
 
     def _beacon_quiet_peers(self, mono: float) -> None:
         """In-session beacons to the peers sent nothing else for a period, at most `beacon_fanout` a
-        period: with more, each is beaconed less often, a newly quiet one at once, the others spread."""
+        period: with more, each is beaconed less often, a newly quiet one at once, the others spread.
+        What a beacon says (role, capabilities, degraded) going stale is news for every peer: when it
+        changes, every peer gets a beacon at once, talking or not."""
         s = self.settings
+        said = self._beacon()
+        news = said != self._beacon_said
+        self._beacon_said = said
         quiet = [(name, peer) for name, peer in self.directory.items()
                  if peer.address and mono - self.sent_peer_at.get(name, -math.inf) >= s.beacon_period]
         interval = s.beacon_period * max(1.0, len(quiet) / s.beacon_fanout)
+        if news:
+            quiet = [(name, peer) for name, peer in self.directory.items() if peer.address]
         beacon: Beacon | None = None
         for name, peer in quiet:
-            due = self.beacon_due.get(name)
+            due = None if news else self.beacon_due.get(name)
             if due is not None and due > mono + interval:  # the interval shrank: no longer than the new one
                 due = self.beacon_due[name] = mono + random.uniform(0.0, interval)
             if due is not None and mono < due:

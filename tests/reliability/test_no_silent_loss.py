@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from erni.blackboard import Agent, Task, TaskState
+from erni.blackboard import Agent, Pose, Task, TaskState
 from erni.blackboard.testing import wait_until
 from tests.transport.helpers import auth_settings, free_port, make_agent
 
@@ -71,11 +71,30 @@ def final(agent: Agent, task: Task, timeout: float = 5.0) -> Task:
     return wait_until(lambda: (t := agent.blackboard.get(task.uid)) is not None and t.done and t, timeout=timeout)
 
 
-def test_a_full_disk_makes_the_agent_refuse_tasks_and_say_so_then_recover(small_disk):
+@pytest.mark.parametrize("talking", [False, True], ids=["quiet", "sharing its Pose"])
+def test_a_full_disk_makes_the_agent_refuse_tasks_and_say_so_then_recover(small_disk, talking):
+    """The control node learns that robot1 refuses tasks from robot1's beacons, also while robot1
+    shares its Pose with it (a peer that gets statuses gets no beacons, unless what they say changed)."""
+    import threading
+
     port = free_port()
     journal = small_disk / "robot1.sqlite"
     control = make_agent("control", port, echo=False, role="control")
     robot = robot_with_journal("robot1", port, journal)
+    stop = threading.Event()
+
+    def walk() -> None:
+        pose = Pose(robot="robot1")
+        with robot.transaction() as tx:
+            tx.add(pose)
+        while not stop.wait(0.01):
+            pose = pose.evolve(x=pose.x + 0.01)
+            with robot.transaction() as tx:
+                tx.change(pose)
+
+    walker = threading.Thread(target=walk, daemon=True)
+    if talking:
+        walker.start()
     try:
         wait_until(lambda: (p := control.blackboard.get("peer:robot1")) is not None and p.up)
         before = send(control, "robot1", 1.0)
@@ -95,7 +114,12 @@ def test_a_full_disk_makes_the_agent_refuse_tasks_and_say_so_then_recover(small_
         assert robot.journal.flush()
         rows = journal_rows(journal)
         assert before.uid in rows and after.uid in rows and not any(t.uid in rows for t in refused)
+        if talking:
+            assert control.blackboard.get("pose:robot1").x >= 0.03  # it was talking all along
     finally:
+        stop.set()
+        if talking:
+            walker.join(2)
         control.stop()
         robot.stop()
 
