@@ -338,7 +338,8 @@ def test_say_plays_tones_on_the_robot(start_agent, make_host):
     task = Task(verb="BotMotion", preposition="say", params={"tones": [(10, 60), (20, 72)]}, source="test")
     with agent.transaction() as tx:
         tx.add(task)
-    assert finish(agent, task).state == TaskState.SUCCEEDED
+    done = finish(agent, task)
+    assert done.state == TaskState.SUCCEEDED, (done.result.message, plugin.resource.driver.stats)
     robot = host.robots[0]
     wait_until(lambda: robot.said)
     assert robot.said[-1] == bytes([10, 60, 20, 72])
