@@ -73,6 +73,12 @@ class RadioModel:
             return 0.0
         return (self.comm_range - distance) / (self.comm_range - self.lossless_range)
 
+    def range_for(self, quality: float) -> float:
+        """The longest link (m) whose delivery ratio is still at least `quality` (in (0, 1])."""
+        if not 0 < quality <= 1:
+            raise UsageError(f"radio: a link quality must be in (0, 1], got {quality}")
+        return self.comm_range - quality * (self.comm_range - self.lossless_range)
+
 
 def link_metric(quality: float) -> int:
     """OLSRv2 link metric (ETX * METRIC_UNIT, capped at MAX_METRIC) of a symmetric link."""

@@ -7,7 +7,8 @@ mission plugin's network awareness on and off, over several seeds:
   from the control node in directions spread around it, which pulls the team apart;
 - randomwalk: every robot gets a remote random walk of `walk` seconds (seeded);
 - widep: the team must cover a PoI `poi_distance` m from the control node, more than one
-  radio range away. Aware: `Deploy widep` (steps bounded by the RNG connectivity rule).
+  radio range away. Aware: `Deploy widep` (steps bounded by the RNG connectivity rule, with R
+  the longest link of quality `min_link_quality`, as the aware policy judges links).
   Blind: every robot a remote goto straight to the PoI.
 
 Network-aware means the mission's `network_aware` setting with its default policy (`hold`: a
@@ -97,6 +98,20 @@ def _targets(scenario: Scenario, n: int) -> list[tuple[float, float]]:
     return out
 
 
+def widep_range(scenario: Scenario) -> float:
+    """WiDep's R for the aware team: the longest link of quality `min_link_quality` (m).
+
+    The radio's `comm_range` is where delivery falls to 0: a link kept just short of it loses
+    almost every packet (and is not even used for routing below the radio's `min_quality`), so a
+    team spread to it is one component on paper and cut off in fact.
+    """
+    from erni.sim.manet import RadioModel
+
+    r = scenario.radio
+    q = float(scenario.strategy.get("min_link_quality", 0.3))
+    return round(RadioModel(r.comm_range, r.lossless_range, r.min_quality).range_for(max(q, r.min_quality)), 3)
+
+
 def _one(scenario: Scenario, mission: str, arm: str, progress: Progress) -> Outcome:
     from erni.sim.experiments.agents import TeamRun
 
@@ -129,7 +144,7 @@ def _one(scenario: Scenario, mission: str, arm: str, progress: Progress) -> Outc
             for name in names:
                 if aware:
                     uids.append(team.send(name, "Deploy", "widep", x=poi[0], y=poi[1],
-                                          range=scenario.radio.comm_range, tolerance=0.5,
+                                          range=widep_range(scenario), tolerance=0.5,
                                           period=float(s.get("period", 4.0))))
                 else:
                     uids.append(team.send(name, "RemoteBotMotion", "goto", x=poi[0], y=poi[1], speed=speed,
@@ -199,6 +214,9 @@ def _result(scenario: Scenario, experiment: Experiment, mode: str, outcomes: lis
     res.compare("robots / radio range R / lossless", "not stated (paper 004 asks the question)",
                 f"{n} / {scenario.radio.comm_range:g} m / {scenario.radio.lossless_range:g} m", "",
                 "the scenario's setting", "input")
+    if "widep" in missions:
+        res.compare("widep: WiDep's R (aware)", "R = communication range", f"{widep_range(scenario):g}", "m",
+                    "the longest link of quality min_link_quality on the radio model", "input")
     res.compare("seeds per mission and arm", "-", n_seeds, "", "start layout fixed; the seed draws targets, walks, "
                 "the PoI's direction and the simulated robots' noise", "input")
     for mission in missions:

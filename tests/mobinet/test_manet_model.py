@@ -23,6 +23,19 @@ def test_radio_quality_is_lossless_then_falls_to_zero_at_range():
     assert qs == sorted(qs, reverse=True)
 
 
+@given(st.floats(0.01, 1.0))
+def test_range_for_a_quality_is_the_longest_link_that_still_has_it(q):
+    radio = RadioModel(8.0, 4.0)
+    r = radio.range_for(q)
+    assert radio.quality(r) == pytest.approx(q)
+    assert radio.quality(r + 0.01) < q
+
+
+def test_range_for_rejects_a_quality_outside_0_1():
+    with pytest.raises(ValueError, match=r"link quality must be in \(0, 1\], got 0"):
+        RadioModel(8.0, 4.0).range_for(0.0)
+
+
 def test_radio_and_node_input_errors_are_clear():
     with pytest.raises(ValueError, match="lossless_range must be in"):
         RadioModel(10.0, 20.0)

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from erni.sim import experiments, kinematic
+from erni.sim.experiments import netaware
 from erni.sim.scenario import find_scenario, load_scenario
 from erni.strategies import energy as paper
 
@@ -240,6 +241,18 @@ def test_patrol_on_agents_detects_the_failure_and_one_neighbour_takes_over(tmp_p
     assert result.metrics["robot2: claims made (1 is right)"][0] == 1, result.report()
     assert result.metrics["robot2: block taken over by"][0] in ("robot1", "robot3", "robot5")
     check_outputs(result, tmp_path)
+
+
+@pytest.mark.slow
+def test_network_aware_widep_keeps_the_team_in_reach_of_the_control_node_and_it_hears_the_success():
+    # the aware team steps with R = the longest link of quality 0.3 (6.8 m here, not the 8 m where
+    # delivery is 0): it stays one component with the control node, so the success reaches it
+    sc = scenario("netaware", missions=["widep"], poi_distance=10.0)
+    assert netaware.widep_range(sc) == pytest.approx(6.8)
+    out = netaware._one(sc, "widep", "aware", lambda *a: None)
+    assert out.completed == 1, out
+    assert out.connected > 0.99, out
+    assert out.reported == 1, out
 
 
 @pytest.mark.ondemand
