@@ -212,14 +212,16 @@ class Journal:
             # second from every robot) waits up to `linger` for more; a new, final or removed
             # object, a flush or the stop is written at once
             until = time.monotonic() + self.linger
+            urgent = batch[0] is None or _urgent(batch[0])
             while True:
-                urgent = any(item is None or _urgent(item) for item in batch) or self._flushing
                 try:
                     left = until - time.monotonic()
-                    batch.append(self._queue.get(timeout=left) if not urgent and left > 0
-                                 else self._queue.get_nowait())
+                    item = (self._queue.get(timeout=left) if not (urgent or self._flushing) and left > 0
+                            else self._queue.get_nowait())
                 except queue.Empty:
                     break
+                batch.append(item)
+                urgent = urgent or item is None or _urgent(item)
             stop = None in batch
             ops = [op for item in batch if item for op in item]
             if ops:
