@@ -115,6 +115,7 @@ class RobotMotionResource:
         self._last_sent: tuple[float, float] | None = None
         self._last_sent_at = 0.0
         self._link_down_since: float | None = None
+        self._says: dict[str, tuple[bytes, float]] = {}  # task uid -> tones not yet sent, and until when to try
         self._threads: list[threading.Thread] = []
         self.cycles = 0
         self.winner: Behaviour | None = None
@@ -209,7 +210,7 @@ class RobotMotionResource:
         would only repeat the halt); a submitted or cancelled task wakes it at once.
         """
         state = self.driver.state
-        return (not self._inbox and self._last_sent == (0.0, 0.0) and self.driver.connected and state is not None
+        return (not self._inbox and not self._says and self._last_sent == (0.0, 0.0) and self.driver.connected and state is not None
                 and abs(state.v) < 1e-3 and abs(state.w) < 1e-3
                 and all(b.task_uid is None for b in self.stack.items))
 
@@ -219,6 +220,7 @@ class RobotMotionResource:
             if op == "cancel":
                 b = self.stack.find(item)
                 self._emitted.pop(item, None)
+                self._says.pop(item, None)
                 if b is not None:
                     self.stack.remove(b)
                     self._published.pop(id(b), None)
@@ -243,11 +245,8 @@ class RobotMotionResource:
         if prep == "say":
             tones = bytes(b for d, n in task.params.tones  # type: ignore[attr-defined]
                           for b in (max(1, min(255, d)), max(1, min(127, n))))
-            if self.driver.say(tones):
-                self._emit(TaskUpdate(task.uid, TaskState.SUCCEEDED, 1.0, {"tones": len(tones) // 2},
-                                      "tones played"))
-            else:
-                self._emit(TaskUpdate(task.uid, TaskState.FAILED, 0.0, {}, "link lost: SAY not sent"))
+            self._says[task.uid] = (tones, now + self.link_grace)
+            self._play_says(now)
             return
         if prep == "avoid_obstacles":
             assert isinstance(p, AvoidParams)
@@ -266,6 +265,18 @@ class RobotMotionResource:
                                   f"RobotMotionControl cannot perform BotMotion {prep!r}"))
             return
         self.stack.push(behaviour)
+
+    def _play_says(self, now: float) -> None:
+        """Send the SAYs waiting for the link; one that could not be sent for `link_grace` s fails."""
+        for uid, (tones, until) in list(self._says.items()):
+            if self.driver.connected and self.driver.say(tones):
+                del self._says[uid]
+                self._emit(TaskUpdate(uid, TaskState.SUCCEEDED, 1.0, {"tones": len(tones) // 2}, "tones played"))
+            elif now >= until:
+                del self._says[uid]
+                why = self.driver.last_error or "no answer from the robot"
+                self._emit(TaskUpdate(uid, TaskState.FAILED, 0.0, {},
+                                      f"link lost: SAY not sent within {self.link_grace:g} s ({why})"))
 
     def _behaviour(self, task: Task) -> Behaviour | None:
         p, uid, prep = task.params, task.uid, task.preposition
@@ -289,6 +300,8 @@ class RobotMotionResource:
             self.stack.push(self._default_avoid())
 
     def _cycle(self, now: float) -> None:
+        if self._says:
+            self._play_says(now)
         state = self.driver.state
         if not self.driver.connected or state is None:
             self._link_down(now)

@@ -18,6 +18,7 @@ from erni.blackboard import Agent, Pose, Task, TaskState
 from erni.blackboard.errors import ErniError
 from erni.blackboard.testing import wait_until
 from erni.plugins.motion import RobotMotionControl
+from erni.plugins.motion.resource import RobotMotionResource, TaskUpdate
 from erni.sim.world import World
 from tests.motion.conftest import FAST_MODEL, REAL_URL, sim_only_because
 
@@ -407,3 +408,58 @@ def test_a_running_tasks_progress_is_published_at_most_every_progress_interval(s
     assert current(agent, task).result.state is TaskState.SUCCEEDED
     running = [s for s in seen if s[0] is TaskState.RUNNING]
     assert 2 <= len(running) <= 7, f"{len(running)} running results in a 2 s task"  # 25/s without the limit
+
+
+class _LinkDownDriver:
+    """Stands in for the ARCOS driver with its link down (the say path's isolation from a real link)."""
+
+    on_sip = None
+    state = None
+    sip_interval = 0.05
+    is_simulator = True
+    last_error = "no SYNC answer"
+
+    def __init__(self) -> None:
+        self.connected = False
+        self.said: list[bytes] = []
+
+    def open(self, wait: bool = True) -> None: ...
+    def close(self) -> None: ...
+    def stop(self) -> bool:
+        return self.connected
+
+    def say(self, tones: bytes) -> bool:
+        if self.connected:
+            self.said.append(tones)
+        return self.connected
+
+
+def _say_through(driver: _LinkDownDriver, link_grace: float, up_after: float | None) -> TaskUpdate:
+    outcomes: list[TaskUpdate] = []
+    res = RobotMotionResource(driver, lambda updates, state: outcomes.extend(updates), link_grace=link_grace,  # type: ignore[arg-type]
+                              avoid_distance=0).start()
+    try:
+        res.submit(Task(verb="BotMotion", preposition="say", params={"tones": [(10, 60)]}, source="test"))
+        if up_after is not None:
+            time.sleep(up_after)
+            driver.connected = True
+        wait_until(lambda: any(u.state.done for u in outcomes), timeout=link_grace + 3)
+        return next(u for u in outcomes if u.state.done)
+    finally:
+        res.close()
+
+
+def test_a_say_sent_while_the_link_is_down_plays_when_it_comes_back_within_the_grace():
+    driver = _LinkDownDriver()
+    done = _say_through(driver, link_grace=2.0, up_after=0.4)
+    assert done.state == TaskState.SUCCEEDED, done.message
+    assert driver.said == [bytes([10, 60])]
+
+
+def test_a_say_fails_naming_the_link_when_it_stays_down_past_the_grace():
+    driver = _LinkDownDriver()
+    t0 = time.monotonic()
+    done = _say_through(driver, link_grace=0.5, up_after=None)
+    assert done.state == TaskState.FAILED
+    assert done.message == "link lost: SAY not sent within 0.5 s (no SYNC answer)"
+    assert time.monotonic() - t0 >= 0.5 and driver.said == []
