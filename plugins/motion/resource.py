@@ -426,7 +426,8 @@ class RobotMotionResource:
 
     def _poll_loop(self) -> None:
         last: RobotState | None = None
-        shown_at = published_at = -math.inf
+        shown_at = slot = -math.inf  # slot: when the next publication is due
+        early = 0.25 * self.pose_period  # how early it may go: a SIP a little ahead of its period is not held back
         kept = False
         while not self._stop.is_set():
             # woken by a changed reading or a task outcome; a standing robot's Pose waits for the keep-alive
@@ -434,7 +435,7 @@ class RobotMotionResource:
             self._poll_wake.wait(limit)
             if self._stop.is_set():
                 break
-            rest = published_at + self.pose_period - self.clock()
+            rest = slot - early - self.clock()
             if rest > 0 and not self._final_pending():
                 self._stop.wait(rest)  # at most pose_rate_hz publications a second; a final outcome goes at once
             self._poll_wake.clear()
@@ -453,7 +454,8 @@ class RobotMotionResource:
                     self._shown, shown_at = fresh, now
             if fresh is None and not updates:
                 continue
-            published_at = self.clock()
+            # slots a period apart on average (none closer than half a period), whatever the SIP rate
+            slot = max(slot + self.pose_period, self.clock() + self.pose_period - early)
             try:
                 self.publish(updates, fresh)
             except Exception:

@@ -12,6 +12,7 @@ import math
 import os
 import time
 
+import numpy as np
 import pytest
 
 from erni.blackboard import Agent, Pose, Task, TaskState
@@ -411,7 +412,7 @@ def test_a_running_tasks_progress_is_published_at_most_every_progress_interval(s
 
 
 class _LinkDownDriver:
-    """Stands in for the ARCOS driver with its link down (the say path's isolation from a real link)."""
+    """Stands in for the ARCOS driver, its link down until told (isolates the say and Pose paths from a real link)."""
 
     on_sip = None
     state = None
@@ -420,8 +421,20 @@ class _LinkDownDriver:
     last_error = "no SYNC answer"
 
     def __init__(self) -> None:
+        from erni.plugins.motion.robots import resolve_model
+
         self.connected = False
         self.said: list[bytes] = []
+        self.model = resolve_model("pioneer3")
+        self.commands: list[tuple[str, float]] = []
+
+    def vel(self, v: float) -> bool:
+        self.commands.append(("vel", v))
+        return self.connected
+
+    def rvel(self, w: float) -> bool:
+        self.commands.append(("rvel", w))
+        return self.connected
 
     def open(self, wait: bool = True) -> None: ...
     def close(self) -> None: ...
@@ -463,3 +476,43 @@ def test_a_say_fails_naming_the_link_when_it_stays_down_past_the_grace():
     assert done.state == TaskState.FAILED
     assert done.message == "link lost: SAY not sent within 0.5 s (no SYNC answer)"
     assert time.monotonic() - t0 >= 0.5 and driver.said == []
+
+
+def _pose_times(sip_gaps: list[float], pose_rate_hz: float) -> tuple[list[float], list[float]]:
+    """When SIPs arrived after `sip_gaps` (s), each one moved on, and when the resource published a Pose."""
+    from erni.plugins.motion.driver import RobotState
+
+    driver = _LinkDownDriver()
+    driver.connected = True
+    published: list[float] = []
+    sips: list[float] = []
+    res = RobotMotionResource(driver, lambda updates, state: state and published.append(time.monotonic()),  # type: ignore[arg-type]
+                              avoid_distance=0, pose_rate_hz=pose_rate_hz).start()
+    try:
+        for k, gap in enumerate(sip_gaps):
+            time.sleep(gap)
+            driver.state = RobotState(x=0.01 * k, y=0.0, theta=0.0, v=0.1, w=0.0, left=0.1, right=0.1, battery=12.5,
+                                      stall_left=False, stall_right=False, bumpers=0, motors_enabled=True,
+                                      moving=True, sonar={}, stamp=time.monotonic(), seq=k)
+            sips.append(time.monotonic())
+            res._sip(driver.state)
+        time.sleep(0.3)
+    finally:
+        res.close()
+    return sips, published
+
+
+def test_every_sip_at_the_pose_rate_is_published_though_the_sips_jitter():
+    # SIPs at the pose rate, each 0-15 ms late or early: none is held back for the next one
+    gaps = [0.1 + (0.015 if k % 2 else -0.015) for k in range(20)]
+    sips, published = _pose_times(gaps, pose_rate_hz=10)
+    assert len(published) == 20, len(published)
+    lags = np.array(published) - np.array(sips)
+    assert np.median(lags) < 0.005 and (lags > 0.012).sum() <= 2, lags
+
+
+def test_faster_sips_are_published_at_the_pose_rate_on_average_and_never_closer_than_half_a_period():
+    _, published = _pose_times([0.02] * 75, pose_rate_hz=10)  # 50 Hz SIPs for 1.5 s
+    spacing = np.diff(published)
+    assert 13 <= len(published) <= 17, len(published)
+    assert spacing.min() >= 0.045, spacing.min()
