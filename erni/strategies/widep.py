@@ -214,10 +214,13 @@ def _separation_limit(p: NDArray[np.float64], u: NDArray[np.float64], others: ND
 
 def widep_step(positions: ArrayLike, i: int, poi: ArrayLike, R: float, *, tolerance: float = 0.5,
                obstacles: ArrayLike | None = None, margin: float = 0.3, separation: float = 0.0,
-               step_cap: float | None = None, witness_margin: float = 0.0, slack: float = 0.0) -> Step:
+               step_cap: float | None = None, witness_margin: float = 0.0, slack: float = 0.0,
+               separate: ArrayLike | None = None) -> Step:
     """Return robot i's next WiDep move toward `poi` under the RNG connectivity bound.
 
     `witness_margin` and `slack` (m) make the bound robust to stale positions (see `farthest_rng`).
+    `separate` (boolean mask, default all): the nodes a step keeps `separation` from; a node left
+    out (one that never moves, passed among the `obstacles` instead) is gone round, not waited for.
     """
     pos = _points(positions)
     if not 0 <= i < len(pos):
@@ -238,7 +241,11 @@ def widep_step(positions: ArrayLike, i: int, poi: ArrayLike, R: float, *, tolera
     if step_cap is not None:
         length = min(length, step_cap)
     if separation > 0 and length > 0:
-        others = np.delete(pos, i, axis=0)
+        keep = np.ones(len(pos), dtype=bool) if separate is None else np.array(separate, dtype=bool).reshape(-1)
+        if keep.shape != (len(pos),):
+            raise UsageError(f"separate: expected {len(pos)} booleans, one per position, got {keep.shape[0]}")
+        keep[i] = False
+        others = pos[keep]
         wanted = length
         length = _separation_limit(p, u, others, separation, wanted)
         if length < 0.25 * wanted:  # a robot in the way: sidestep (the bound holds in any direction)

@@ -187,9 +187,10 @@ class WidepRunner(Runner):
             self.ops.report(self.uid, TaskState.RUNNING, f"holding: {self.why}", progress=progress)
             return next_round
         cap = min(self.s.widep_step_cap, 0.4 * self.s.speed * period)  # at rest before the next round
-        step = widep_step(pos, 0, poi, p.range, tolerance=p.tolerance, obstacles=self._obstacles(),
+        robots = [self.ops.team.roles.get(n, "robot") == "robot" for n in names]
+        step = widep_step(pos, 0, poi, p.range, tolerance=p.tolerance, obstacles=self._obstacles(names, pos, robots),
                           margin=self.s.obstacle_margin, separation=self.s.separation, step_cap=cap,
-                          slack=self.s.widep_slack)
+                          slack=self.s.widep_slack, separate=robots)
         self.extra.update(neighbours=len(names) - 1, bound_m=round(step.limit, 3), step_m=round(step.length, 3),
                           distance_m_to_poi=round(float(dists[0]), 3), auxiliary=step.auxiliary,
                           rounds_without_progress=self.idle_rounds)
@@ -211,6 +212,15 @@ class WidepRunner(Runner):
         fresh_after = round_start - max(0.5 * period, self.s.pose_keepalive + 0.5)
         return [n for n in names[1:] if not self.ops.team.settled(n, fresh_after, self.s.widep_settle)]
 
+    def _obstacles(self, names: list[str], pos: NDArray[np.float64], robots: list[bool]) -> NDArray[np.float64] | None:
+        """The known obstacles, and every node known not to be a robot (a control node never moves:
+        a robot behind it goes round by an auxiliary PoI, `separation` from its centre, instead of
+        waiting for it to move)."""
+        circles = list(self.s.obstacles)
+        radius = max(0.0, self.s.separation - self.s.obstacle_margin)
+        circles += [(float(x), float(y), radius) for (x, y), robot in zip(pos, robots) if not robot]
+        return np.array(circles, dtype=float) if circles else None
+
     def _stalled(self, mine: float, best: float, period: float) -> bool:
         """Count rounds in which neither the team nor this robot came 5 cm closer to the PoI; fail after too many."""
         if best < self.best - 0.05 or mine < self.own_best - 0.05:
@@ -226,9 +236,6 @@ class WidepRunner(Runner):
                     f"{period:g} s: the closest robot is {best:.2f} m from it"
                     + (f"; {self.why}" if self.why else ""))
         return True
-
-    def _obstacles(self) -> NDArray[np.float64] | None:
-        return np.array(self.s.obstacles, dtype=float) if self.s.obstacles else None
 
 
 class SpreadRunner(Runner):

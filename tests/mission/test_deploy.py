@@ -9,7 +9,7 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 
-from erni.blackboard import Agent, Pose, Task, TaskState
+from erni.blackboard import Agent, Peer, Pose, Task, TaskState
 from erni.blackboard.testing import wait_until
 from erni.plugins.mission.team import Territory
 from erni.sim.manet import ManetNetwork, RadioModel
@@ -110,6 +110,26 @@ def test_widep_covers_the_poi_and_never_breaks_connectivity(manets, robots):
     for r in results.values():
         v = r.result.values
         assert v["energy_j"] > 0 and v["distance_m"] > 0 and "covered_by" in v
+
+
+def test_widep_robots_behind_the_control_node_go_round_it(manets, robots):
+    # robot1 starts right behind the control node on the way to the PoI: the separation rule
+    # alone never lets it pass (the node never moves), so it goes round by an auxiliary PoI
+    R = 4.5
+    starts = {"robot1": (0.0, 1.15)}
+    m, agents = team_on_manet(robots, manets, R, 3.0, {"control": (0.0, 0.0)}, starts,
+                              {"speed": 1.0, "separation": 1.0, "net_rate_hz": 10.0, "position_timeout": 5.0})
+    for a in agents.values():  # what the transport tells each robot of the control node
+        with a.transaction() as tx:
+            tx.add(Peer(uid="peer:control", name="control", role="control", up=True))
+    poi = (0.0, -3.5)
+    task = send(agents["robot1"], "widep", verb="Deploy", x=poi[0], y=poi[1], range=R, tolerance=0.5, period=0.6)
+    result = done(agents["robot1"], task, 120.0)
+    assert result.state == TaskState.SUCCEEDED, result.result
+    with m.lock:
+        samples = list(m.samples)
+    for layout in samples:  # never through the node, never out of its range
+        assert 0.5 < math.dist(layout["robot1"], (0.0, 0.0)) < R, layout
 
 
 def test_spreading_robots_approach_the_desired_distance(manets, robots):
