@@ -90,8 +90,6 @@ class MissionSettings(BaseModel):
     widep_stall_rounds: int = Field(15, ge=1, description="widep: fail after this many rounds without "
                                     "the team coming closer to the PoI")
     position_timeout: float = Field(5.0, gt=0, description="forget other robots' positions older than this (s)")
-    pose_interval: float = Field(0.25, ge=0, le=5, description="without a deployment running, take Poses at most "
-                                 "this often (s; they collect meanwhile, the newest counts); 0: every Pose")
     halt_timeout: float = Field(5.0, gt=0, description="give up waiting for the robot to halt (s)")
     control_period: float = Field(0.2, gt=0, description="spread: shortest period between commands (s)")
     relay_period: float = Field(2.0, gt=0, description="relay: seconds between decisions")
@@ -136,7 +134,6 @@ class MissionControl(Plugin[MissionSettings]):
         self.due: dict[str, float] = {}
         self._timer: Timer | None = None
         self._timer_at = 0.0
-        self._poses_held_until = 0.0  # monotonic: Poses collect without running the mission until then
         for old in self.query(Task, where=lambda t: t.source == me and t.verb in ("BotMotion", "NetWatch")
                               and t.destination in (None, "", me)):
             self.remove(old)  # a restart: never repeat stale motion; watches are made afresh
@@ -234,7 +231,6 @@ class MissionControl(Plugin[MissionSettings]):
             if pose.robot == me:
                 for r in self.runners.values():
                     r.pose(pose)
-        self._hold_poses()
         self._read_network()
         for task in self.remote.removed:
             self._dropped(task)
@@ -254,20 +250,6 @@ class MissionControl(Plugin[MissionSettings]):
         self._tick_runners(now)
         self._guard(now)
         self._housekeeping(now)
-
-    def _hold_poses(self) -> None:
-        """Without a deployment (whose runners meter and steer on every Pose), a run that took a Pose
-        lets the next ones collect for `pose_interval` (ten a second would run the mission ten
-        times a second to move a trail and a team view that need far less)."""
-        took = bool(self.poses.added or self.poses.changed)
-        now = time.monotonic()
-        interval = self.settings.pose_interval
-        if took and interval > 0 and not self.runners and now >= self._poses_held_until:
-            self._poses_held_until = now + interval
-            self.poses.wakes = False
-            self.wake_in(interval)  # the timer's run (at or after the hold's end) takes what collected
-        elif now >= self._poses_held_until or self.runners:
-            self.poses.wakes = True
 
     # -- network readings ----------------------------------------------------------------
 
