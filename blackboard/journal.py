@@ -83,6 +83,12 @@ def _urgent(ops: list[Op]) -> bool:
     return any(kind != CHANGE or getattr(obj, "done", True) for kind, obj, _ in ops)
 
 
+def _urgent_item(item: list[Op] | None) -> bool:
+    """Whether a queued item ends the batch's lingering: the stop (None), a flush marker ([]) or
+    an urgent commit."""
+    return item is None or not item or _urgent(item)
+
+
 class Journal:
     """Journal durable objects of one blackboard to a SQLite file."""
 
@@ -95,7 +101,6 @@ class Journal:
         self._flushed = threading.Condition()
         self._enqueued = 0
         self._written = 0
-        self._flushing = 0  # callers waiting in flush(): no lingering
         self._pending: dict[str, tuple[str, str] | None] = {}  # rows not written yet, retried
         self.failed = ""  # why the last write failed ('' when writes succeed)
         self.batches = 0
@@ -176,17 +181,13 @@ class Journal:
         """Wait until everything queued so far was tried; return True if it is on disk."""
         target = self._enqueued
         deadline = time.monotonic() + timeout
-        self._flushing += 1
-        try:
-            self._queue.put([])  # ends a lingering batch
-            with self._flushed:
-                while self._written < target:
-                    left = deadline - time.monotonic()
-                    if left <= 0:
-                        return False
-                    self._flushed.wait(left)
-        finally:
-            self._flushing -= 1
+        self._queue.put([])  # the flush marker: ends a lingering batch, and the batch it is in does not linger
+        with self._flushed:
+            while self._written < target:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return False
+                self._flushed.wait(left)
         return not self.failed
 
     def stop(self, timeout: float = 1.0) -> None:
@@ -212,16 +213,16 @@ class Journal:
             # second from every robot) waits up to `linger` for more; a new, final or removed
             # object, a flush or the stop is written at once
             until = time.monotonic() + self.linger
-            urgent = batch[0] is None or _urgent(batch[0])
+            urgent = _urgent_item(batch[0])
             while True:
                 try:
                     left = until - time.monotonic()
-                    item = (self._queue.get(timeout=left) if not (urgent or self._flushing) and left > 0
+                    item = (self._queue.get(timeout=left) if not urgent and left > 0
                             else self._queue.get_nowait())
                 except queue.Empty:
                     break
                 batch.append(item)
-                urgent = urgent or item is None or _urgent(item)
+                urgent = urgent or _urgent_item(item)
             stop = None in batch
             ops = [op for item in batch if item for op in item]
             if ops:
