@@ -187,7 +187,7 @@ class WidepRunner(Runner):
             self.ops.report(self.uid, TaskState.RUNNING, f"holding: {self.why}", progress=progress)
             return next_round
         cap = min(self.s.widep_step_cap, 0.4 * self.s.speed * period)  # at rest before the next round
-        robots = [self.ops.team.roles.get(n, "robot") == "robot" for n in names]
+        robots = [self.ops.team.is_robot(n) for n in names]
         step = widep_step(pos, 0, poi, p.range, tolerance=p.tolerance, obstacles=self._obstacles(names, pos, robots),
                           margin=self.s.obstacle_margin, separation=self.s.separation, step_cap=cap,
                           slack=self.s.widep_slack, separate=robots)

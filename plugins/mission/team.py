@@ -99,6 +99,10 @@ class TeamView:
         """Remember that agent `name` has transport role `role` (from its Peer object)."""
         self.roles[name] = role
 
+    def is_robot(self, name: str) -> bool:
+        """Whether `name` is a robot: its role says so, or is not known yet."""
+        return self.roles.get(name, "robot") == "robot"
+
     def array(self, now: float | None = None, *, everyone: bool = False,
               robots_only: bool = False) -> tuple[list[str], NDArray[np.float64]]:
         """Names and an (N, 2) array of fresh positions (or all known with `everyone`), this robot first.
@@ -110,7 +114,7 @@ class TeamView:
         else:
             known = self.fresh(now)
         if robots_only:
-            known = {n: w for n, w in known.items() if self.roles.get(n, "robot") == "robot" or n == self.me}
+            known = {n: w for n, w in known.items() if self.is_robot(n) or n == self.me}
         import numpy as np  # a deployment strategy asks: numpy is imported then, not at agent start
 
         names = [self.me] + sorted(n for n in known if n != self.me) if self.me in known else sorted(known)

@@ -141,10 +141,11 @@ def _one(scenario: Scenario, mission: str, arm: str, progress: Progress) -> Outc
             a = random.Random(scenario.seed).uniform(0, 2 * math.pi)
             d = float(s.get("poi_distance", 14.0))
             poi = (round(c.x + d * math.cos(a), 2), round(c.y + d * math.sin(a), 2))
+            reach = widep_range(scenario)
             for name in names:
                 if aware:
                     uids.append(team.send(name, "Deploy", "widep", x=poi[0], y=poi[1],
-                                          range=widep_range(scenario), tolerance=0.5,
+                                          range=reach, tolerance=0.5,
                                           period=float(s.get("period", 4.0))))
                 else:
                     uids.append(team.send(name, "RemoteBotMotion", "goto", x=poi[0], y=poi[1], speed=speed,

@@ -426,14 +426,11 @@ class _LinkDownDriver:
         self.connected = False
         self.said: list[bytes] = []
         self.model = resolve_model("pioneer3")
-        self.commands: list[tuple[str, float]] = []
 
     def vel(self, v: float) -> bool:
-        self.commands.append(("vel", v))
         return self.connected
 
     def rvel(self, w: float) -> bool:
-        self.commands.append(("rvel", w))
         return self.connected
 
     def open(self, wait: bool = True) -> None: ...
