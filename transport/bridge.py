@@ -169,6 +169,7 @@ class TransportPlugin(Plugin[TransportSettings]):
         if self.endpoint_factory is not None:
             self.endpoint: Endpoint = self.endpoint_factory(self.agent_name)
             self.endpoint.inbound_filter = self.inbound_filter
+            self.endpoint.role = s.role  # its frames carry the agent's role, as a real session's do
         else:
             try:
                 self.endpoint = s.make_endpoint(self.agent_name, self.inbound_filter)
@@ -392,7 +393,7 @@ class TransportPlugin(Plugin[TransportSettings]):
             return
         self.addresses[msg.sender] = msg.reply
         if msg.role != CLIENT_ROLE:  # a command-line client is not a peer
-            self._heard(msg.sender, msg.reply, msg.epoch, msg.body if msg.kind == "beacon" else None)
+            self._heard(msg.sender, msg.reply, msg.epoch, msg.body if msg.kind == "beacon" else None, msg.role)
         kind, body = msg.kind, msg.body
         if kind == "task.add" and isinstance(body, Task):
             self._task_added(msg, body)
@@ -501,7 +502,7 @@ class TransportPlugin(Plugin[TransportSettings]):
             return
         self.endpoint.send(msg.reply, "beacon", self._beacon(), reliable=False, to=name)  # starts a session
 
-    def _heard(self, name: str, reply: tuple[str, int], epoch: int, beacon: Any) -> None:
+    def _heard(self, name: str, reply: tuple[str, int], epoch: int, beacon: Any, role: str = "") -> None:
         if not name or name == self.agent_name:
             return
         now = time.time()
@@ -509,6 +510,10 @@ class TransportPlugin(Plugin[TransportSettings]):
         old = self.directory.get(name)
         address = f"{reply[0]}:{reply[1]}"
         fields: dict[str, Any] = {"address": address, "epoch": epoch, "last_heard": now, "up": True}
+        if role and (old is None or not old.role):
+            # a configured peer's role, from its session, before any beacon: two peers that talk
+            # send each other no beacons, and its shared status must not wait for one
+            fields["role"] = role
         if isinstance(beacon, Beacon):
             fields.update(role=beacon.role, capabilities=beacon.capabilities, degraded=beacon.degraded)
             s = self.settings

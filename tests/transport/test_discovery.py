@@ -269,3 +269,37 @@ def test_statuses_received_and_peers_heard_do_not_run_the_transport_twice():
     finally:
         robot.stop()
         control.stop()
+
+
+def test_a_configured_peer_that_only_talks_is_known_by_its_role_and_gets_shared_status():
+    """b is configured with a's address; a learns b (and its role) from b's first beacon, then
+    talks to b without beacons. b must take a's role from a's session frames: its status shared
+    with robots would otherwise wait for a beacon that never comes while a talks."""
+    import time
+
+    from erni.blackboard import Pose
+
+    shared = {"share": ["Pose"], "share_with_roles": ["robot"], "beacon_period": 5.0, "peer_timeout": 20.0}
+    a = make_agent("a", 0, **shared)
+    addr = "{}:{}".format(*a.plugin("transport").address)
+    b = make_agent("b", 0, peers=[f"a@{addr}"], **shared)
+    try:
+        wait_until(lambda: peers(a).get("b") and peers(a)["b"].up)
+        poses = {name: Pose(robot=name) for name in ("a", "b")}
+        for agent in (a, b):
+            with agent.transaction() as tx:
+                tx.add(poses[agent.name])
+
+        def b_pose_at_a():
+            for agent in (a, b):  # both keep moving: every change is shared again
+                poses[agent.name] = poses[agent.name].evolve(x=poses[agent.name].x + 0.1)
+                with agent.transaction() as tx:
+                    tx.change(poses[agent.name])
+            time.sleep(0.05)
+            return a.blackboard.get(poses["b"].uid)
+
+        wait_until(b_pose_at_a, timeout=3.0, message="b never shared its Pose with a (a's role unknown to b)")
+        assert peers(b)["a"].role == "robot"
+    finally:
+        a.stop()
+        b.stop()
