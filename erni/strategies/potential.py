@@ -105,8 +105,9 @@ def neighbourhoods(pos: ArrayLike, mode: str = "physical", rng: float = 15.0) ->
         from scipy.spatial import Delaunay, QhullError
 
         tri = Delaunay(p)
-    except (QhullError, ValueError):  # fewer than 3 points or all collinear: everyone is a neighbour
-        return [np.delete(np.arange(n), i) for i in range(n)]
+    except (QhullError, ValueError):  # fewer than 3 points or all on one line: the chain along it
+        out = _chain(p)
+        return gabriel(p, out) if mode == "gabriel" else out
     indptr, indices = tri.vertex_neighbor_vertices
     out = [np.sort(indices[indptr[i]:indptr[i + 1]]) for i in range(n)]
     # points Qhull dropped as coincident get the neighbours of the point they coincide with
@@ -116,6 +117,17 @@ def neighbourhoods(pos: ArrayLike, mode: str = "physical", rng: float = 15.0) ->
             out[i] = np.array(sorted(set(out[int(j[0])]) | {int(j[0])} - {i}), dtype=int) if len(j) else \
                 np.delete(np.arange(n), i)
     return gabriel(p, out) if mode == "gabriel" else out
+
+
+def _chain(p: NDArray[np.float64]) -> list[NDArray[np.intp]]:
+    """The Delaunay graph of points on one line: each point and the next along it."""
+    far = p[int(np.argmax(np.hypot(*(p - p[0]).T)))] - p[0]
+    order = np.argsort((p - p[0]) @ far, kind="stable")
+    out: list[list[int]] = [[] for _ in range(len(p))]
+    for a, b in zip(order[:-1], order[1:]):
+        out[int(a)].append(int(b))
+        out[int(b)].append(int(a))
+    return [np.array(sorted(s), dtype=np.intp) for s in out]
 
 
 def gabriel(p: NDArray[np.float64], delaunay: list[NDArray[np.intp]]) -> list[NDArray[np.intp]]:

@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 from numpy.typing import NDArray
 
@@ -93,13 +93,15 @@ def test_delaunay_neighbourhood_is_symmetric_and_local():
             assert i in nb[j]
     phys = neighbourhoods(pos, "physical", 6.0)
     assert all(np.all(np.hypot(*(pos[js] - pos[i]).T) <= 6.0) for i, js in enumerate(phys))
-    # degenerate layouts (collinear, two robots) fall back to "everyone"
-    assert [list(x) for x in neighbourhoods(np.array([[0, 0], [1, 0], [2, 0]]), "delaunay")] == \
-        [[1, 2], [0, 2], [0, 1]]
+    # robots on one line (no triangulation): each and the next along it, in any order given
+    assert [list(x) for x in neighbourhoods(np.array([[0, 0], [2, 0], [1, 0]]), "delaunay")] == \
+        [[2], [2], [0, 1]]
+    assert [list(x) for x in neighbourhoods(np.array([[0, 0], [3, 4]]), "gabriel")] == [[1], [0]]
 
 
 @settings(max_examples=60, deadline=None)
 @given(st.lists(st.tuples(st.integers(-40, 40), st.integers(-40, 40)), min_size=2, max_size=25, unique=True))
+@example([(0, 0), (1, 0), (-1, 0)])  # on one line: no triangulation to start from
 def test_gabriel_neighbourhood_is_the_brute_force_gabriel_graph(points):
     """An edge (i, j) iff no other robot lies in the closed disc on the diameter p_i p_j (brute
     force over all pairs here; the strategy only tries the Delaunay edges)."""
