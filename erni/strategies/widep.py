@@ -215,18 +215,27 @@ def _separation_limit(p: NDArray[np.float64], u: NDArray[np.float64], others: ND
 def widep_step(positions: ArrayLike, i: int, poi: ArrayLike, R: float, *, tolerance: float = 0.5,
                obstacles: ArrayLike | None = None, margin: float = 0.3, separation: float = 0.0,
                step_cap: float | None = None, witness_margin: float = 0.0, slack: float = 0.0,
-               separate: ArrayLike | None = None) -> Step:
+               fixed: ArrayLike | None = None) -> Step:
     """Return robot i's next WiDep move toward `poi` under the RNG connectivity bound.
 
     `witness_margin` and `slack` (m) make the bound robust to stale positions (see `farthest_rng`).
-    `separate` (boolean mask, default all): the nodes a step keeps `separation` from; a node left
-    out (one that never moves, passed among the `obstacles` instead) is gone round, not waited for.
+    `fixed` (boolean mask, default none): the nodes that never move (a control node, a base
+    station). They count for connectivity, but a step goes round each as an obstacle of radius
+    `separation` - `margin` (by an auxiliary PoI) instead of keeping `separation` from it and
+    waiting for it to move, which it never does.
     """
     pos = _points(positions)
     if not 0 <= i < len(pos):
         raise UsageError(f"i: expected a robot index in 0..{len(pos) - 1}, got {i}")
     if not R > 0:
         raise UsageError(f"R: expected a positive communication range (m), got {R!r}")
+    still = np.zeros(len(pos), dtype=bool) if fixed is None else np.array(fixed, dtype=bool).reshape(-1)
+    if still.shape != (len(pos),):
+        raise UsageError(f"fixed: expected {len(pos)} booleans, one per position, got {still.shape[0]}")
+    still[i] = False
+    if still.any() and separation > 0:
+        around = np.column_stack([pos[still], np.full(int(still.sum()), max(0.0, separation - margin))])
+        obstacles = np.vstack([_circles(obstacles), around])
     p = pos[i]
     goal = np.asarray(poi, dtype=float).reshape(2)
     limit = max_step(pos, i, R, witness_margin, slack)
@@ -241,11 +250,7 @@ def widep_step(positions: ArrayLike, i: int, poi: ArrayLike, R: float, *, tolera
     if step_cap is not None:
         length = min(length, step_cap)
     if separation > 0 and length > 0:
-        keep = np.ones(len(pos), dtype=bool) if separate is None else np.array(separate, dtype=bool).reshape(-1)
-        if keep.shape != (len(pos),):
-            raise UsageError(f"separate: expected {len(pos)} booleans, one per position, got {keep.shape[0]}")
-        keep[i] = False
-        others = pos[keep]
+        others = pos[~still & (np.arange(len(pos)) != i)]
         wanted = length
         length = _separation_limit(p, u, others, separation, wanted)
         if length < 0.25 * wanted:  # a robot in the way: sidestep (the bound holds in any direction)
@@ -274,8 +279,9 @@ def widep_round(positions: ArrayLike, poi: ArrayLike, R: float, *, tolerance: fl
                 ) -> tuple[NDArray[np.float64], bool]:
     """Move every movable robot one WiDep step from the same snapshot; return (positions, covered).
 
-    Once the PoI is covered nobody moves. `movable` is a boolean mask (default: all robots;
-    a fixed base station is not movable but still counts for connectivity).
+    Once the PoI is covered nobody moves. `movable` is a boolean mask (default: all robots);
+    a node not movable (a base station) counts for connectivity and is gone round (`widep_step`'s
+    `fixed`).
     """
     pos = _points(positions)
     if covered(pos, poi, tolerance):
@@ -284,5 +290,5 @@ def widep_round(positions: ArrayLike, poi: ArrayLike, R: float, *, tolerance: fl
     new = pos.copy()
     for i in np.flatnonzero(mask):
         new[i] = widep_step(pos, int(i), poi, R, tolerance=tolerance, obstacles=obstacles,
-                            margin=margin, separation=separation, step_cap=step_cap).target
+                            margin=margin, separation=separation, step_cap=step_cap, fixed=~mask).target
     return new, covered(new, poi, tolerance)

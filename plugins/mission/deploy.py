@@ -188,9 +188,9 @@ class WidepRunner(Runner):
             return next_round
         cap = min(self.s.widep_step_cap, 0.4 * self.s.speed * period)  # at rest before the next round
         robots = [self.ops.team.is_robot(n) for n in names]
-        step = widep_step(pos, 0, poi, p.range, tolerance=p.tolerance, obstacles=self._obstacles(names, pos, robots),
+        step = widep_step(pos, 0, poi, p.range, tolerance=p.tolerance, obstacles=self._obstacles(),
                           margin=self.s.obstacle_margin, separation=self.s.separation, step_cap=cap,
-                          slack=self.s.widep_slack, separate=robots)
+                          slack=self.s.widep_slack, fixed=[not r for r in robots])
         self.extra.update(neighbours=len(names) - 1, bound_m=round(step.limit, 3), step_m=round(step.length, 3),
                           distance_m_to_poi=round(float(dists[0]), 3), auxiliary=step.auxiliary,
                           rounds_without_progress=self.idle_rounds)
@@ -212,14 +212,9 @@ class WidepRunner(Runner):
         fresh_after = round_start - max(0.5 * period, self.s.pose_keepalive + 0.5)
         return [n for n in names[1:] if not self.ops.team.settled(n, fresh_after, self.s.widep_settle)]
 
-    def _obstacles(self, names: list[str], pos: NDArray[np.float64], robots: list[bool]) -> NDArray[np.float64] | None:
-        """The known obstacles, and every node known not to be a robot (a control node never moves:
-        a robot behind it goes round by an auxiliary PoI, `separation` from its centre, instead of
-        waiting for it to move)."""
-        circles = list(self.s.obstacles)
-        radius = max(0.0, self.s.separation - self.s.obstacle_margin)
-        circles += [(float(x), float(y), radius) for (x, y), robot in zip(pos, robots) if not robot]
-        return np.array(circles, dtype=float) if circles else None
+    def _obstacles(self) -> NDArray[np.float64] | None:
+        """The known obstacles (nodes known not to be robots go to `widep_step` as `fixed`)."""
+        return np.array(self.s.obstacles, dtype=float).reshape(-1, 3) if self.s.obstacles else None
 
     def _stalled(self, mine: float, best: float, period: float) -> bool:
         """Count rounds in which neither the team nor this robot came 5 cm closer to the PoI; fail after too many."""

@@ -122,14 +122,16 @@ def test_bad_input_is_named():
         widep_step(np.zeros((2, 2)), 5, (1, 1), 4.5)
 
 
-def test_a_node_left_out_of_separate_is_gone_round_as_an_obstacle_not_waited_for():
+def test_a_fixed_node_is_gone_round_as_an_obstacle_not_waited_for():
     pos = np.array([[0.0, 1.15], [0.0, 0.0]])  # a robot right behind a node that never moves
     poi = (0.0, -3.5)
     blocked = widep_step(pos, 0, poi, 4.5, separation=1.0, step_cap=0.6)
     assert blocked.length < 0.2 and np.hypot(*blocked.target) >= 0.999  # only creeps up to the separation
-    round_it = widep_step(pos, 0, poi, 4.5, separation=1.0, step_cap=0.6, obstacles=[(0.0, 0.0, 0.6)],
-                          margin=0.4, separate=[True, False])
+    round_it = widep_step(pos, 0, poi, 4.5, separation=1.0, step_cap=0.6, margin=0.4, fixed=[False, True])
     assert round_it.auxiliary and round_it.length > 0.4
     assert np.hypot(*round_it.target) > 0.9  # beside the node, not through it
-    with pytest.raises(ValueError, match="separate: expected 2 booleans"):
-        widep_step(pos, 0, poi, 4.5, separation=1.0, separate=[True])
+    # widep_round's base station (not movable) is gone round the same way
+    moved, _ = widep_round(pos, poi, 4.5, separation=1.0, step_cap=0.6, margin=0.4, movable=[True, False])
+    assert np.allclose(moved[0], round_it.target) and np.allclose(moved[1], pos[1])
+    with pytest.raises(ValueError, match="fixed: expected 2 booleans"):
+        widep_step(pos, 0, poi, 4.5, separation=1.0, fixed=[True])
