@@ -9,8 +9,12 @@ cancellation is taken at once. With nothing to steer (no task, the robot halted 
 it cycles every `idle_period` until a task wakes it. The poll thread
 (`motion-poll-<robot>`) hands the latest robot state and the outcome changes to `publish` at
 `pose_rate_hz` (at once for final outcomes): a state that differs from the last one handed over
-only in its stamp (a standing robot) is handed over again after `pose_keepalive` only. Neither thread touches the blackboard itself: `publish` does, in its own short
-transactions, so serial I/O never happens inside one.
+only in its stamp (a standing robot) is handed over again after `pose_keepalive` only. While
+the stack thread steers, it hands over the state of the SIP it just cycled on itself, when that
+Pose is due, so a SIP wakes two threads (reader and stack), not three; the poll thread then
+only sees to what comes between SIPs (outcomes, keep-alives, a SIP ahead of its slot). Neither
+thread touches the blackboard itself: `publish` does, in its own short transactions, so serial
+I/O never happens inside one.
 """
 
 from __future__ import annotations
@@ -108,6 +112,12 @@ class RobotMotionResource:
         self._steering = False  # the stack thread waits for SIPs (read by the reader thread)
         self._new_sip = False   # a SIP came since the last cycle
         self._shown: RobotState | None = None  # the state last handed to `publish` (read by the reader thread)
+        # one publication at a time (poll or stack thread): what was handed over, when, and the next slot
+        self._pub_lock = threading.Lock()
+        self._last_state: RobotState | None = None
+        self._shown_at = -math.inf
+        self._due_at = -math.inf  # when the next Pose may be handed over (`_next_due`)
+        self._kept = False  # progress held back by progress_interval: the poll thread comes back for it
         self._stop = threading.Event()
         self._lock = threading.Lock()
         self._updates: dict[str, TaskUpdate] = {}
@@ -188,6 +198,11 @@ class RobotMotionResource:
                 self._cycle(now)
             except Exception:
                 log.exception("%s: behaviour stack cycle failed", self.name)
+            if self._steering:
+                try:
+                    self._publish_sip()
+                except Exception:  # the stack thread outlives any publication
+                    log.exception("%s: publishing the pose after a cycle failed", self.name)
         if self.driver.connected:
             self.driver.stop()
 
@@ -415,51 +430,79 @@ class RobotMotionResource:
     # --- the poll thread ----------------------------------------------------------------
 
     def _sip(self, state: RobotState) -> None:
-        """Reader thread, per SIP: wake the stack thread while it steers, and the poll thread when
-        the reading differs from the last Pose."""
+        """Reader thread, per SIP: wake the stack thread while it steers (it publishes the Pose
+        after its cycle), else the poll thread when the reading differs from the last Pose."""
         if self._steering:
             self._new_sip = True
             self._wake.set()
+            return
         shown = self._shown
         if shown is None or not same_reading(state, shown):
             self._poll_wake.set()
 
+    def _publish_sip(self) -> None:
+        """Stack thread, after a cycle while steering: hand over the state it cycled on when its
+        Pose is due. A SIP well ahead of that is skipped (a later SIP is due when it comes); one
+        just ahead, or one that finds the poll thread publishing, is left to the poll thread.
+        Never waits: a stop must not queue behind a publication."""
+        ahead = self._due_at - self.clock()
+        if ahead > 0.25 * self.driver.sip_interval:
+            return
+        if ahead > 0 or not self._pub_lock.acquire(blocking=False):
+            self._poll_wake.set()
+            return
+        try:
+            self._publish_round()
+        finally:
+            self._pub_lock.release()
+
+    def _publish_round(self) -> None:
+        """Hand the due outcome changes and a fresh state to `publish` (the caller holds `_pub_lock`)."""
+        # first: the state read next is at least as new as theirs
+        updates, self._kept = self._due(self.take_updates(), self.clock())
+        state = self.driver.state  # a new SIP, or the last one re-based (teleport, re-localisation)
+        fresh = state if state is not None and state is not self._last_state else None
+        if fresh is not None:
+            self._last_state = fresh
+            now = self.clock()
+            shown = self._shown
+            if (not updates and shown is not None and now - self._shown_at < self.pose_keepalive
+                    and same_reading(fresh, shown)):
+                fresh = None  # only the stamp changed (a standing robot): the keep-alive will tell
+            else:
+                self._shown, self._shown_at = fresh, now
+        if fresh is None and not updates:
+            return
+        if fresh is not None:
+            self._due_at = self._next_due(fresh)
+        try:
+            self.publish(updates, fresh)
+        except Exception:
+            log.exception("%s: publishing pose and task results failed", self.name)
+
+    def _next_due(self, state: RobotState) -> float:
+        """When the Pose after `state` may go: every k-th SIP, k SIP intervals (at least one) as
+        near the pose period as there are, half an interval early so a jittered SIP is not held
+        back; counted from the SIP's own time, so that a Pose handed over between SIPs (with an
+        outcome) sets no phase of its own, and never within half a period of this one."""
+        interval = max(1e-3, self.driver.sip_interval)
+        every = max(1, round(self.pose_period / interval)) * interval
+        return max(state.stamp + every - 0.5 * interval, self.clock() + 0.5 * self.pose_period)
+
     def _poll_loop(self) -> None:
-        last: RobotState | None = None
-        shown_at = slot = -math.inf  # slot: when the next publication is due
-        early = 0.25 * self.pose_period  # how early it may go: a SIP a little ahead of its period is not held back
-        kept = False
         while not self._stop.is_set():
             # woken by a changed reading or a task outcome; a standing robot's Pose waits for the keep-alive
-            limit = self.pose_period if kept else max(self.pose_period, shown_at + self.pose_keepalive - self.clock())
+            limit = (self.pose_period if self._kept
+                     else max(self.pose_period, self._shown_at + self.pose_keepalive - self.clock()))
             self._poll_wake.wait(limit)
             if self._stop.is_set():
                 break
-            rest = slot - early - self.clock()
+            rest = self._due_at - self.clock()
             if rest > 0 and not self._final_pending():
                 self._stop.wait(rest)  # at most pose_rate_hz publications a second; a final outcome goes at once
             self._poll_wake.clear()
-            # first: the state read next is at least as new as theirs
-            updates, kept = self._due(self.take_updates(), self.clock())
-            state = self.driver.state  # a new SIP, or the last one re-based (teleport, re-localisation)
-            fresh = state if state is not None and state is not last else None
-            if fresh is not None:
-                last = fresh
-                now = self.clock()
-                shown = self._shown
-                if (not updates and shown is not None and now - shown_at < self.pose_keepalive
-                        and same_reading(fresh, shown)):
-                    fresh = None  # only the stamp changed (a standing robot): the keep-alive will tell
-                else:
-                    self._shown, shown_at = fresh, now
-            if fresh is None and not updates:
-                continue
-            # slots a period apart on average (none closer than half a period), whatever the SIP rate
-            slot = max(slot + self.pose_period, self.clock() + self.pose_period - early)
-            try:
-                self.publish(updates, fresh)
-            except Exception:
-                log.exception("%s: publishing pose and task results failed", self.name)
+            with self._pub_lock:
+                self._publish_round()
         updates = self.take_updates()
         if updates:
             try:
