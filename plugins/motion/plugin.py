@@ -135,7 +135,8 @@ class RobotMotionControl(Plugin[MotionSettings]):
         self.resource.close()
 
     def _publish(self, updates: list[TaskUpdate], state: RobotState | None) -> None:
-        """Publish outcome changes and the pose, each in a short transaction (poll thread)."""
+        """Publish outcome changes and the pose, each in a short transaction (the resource's poll or
+        stack thread, one at a time)."""
         for u in updates:
             try:
                 with self.transaction():
