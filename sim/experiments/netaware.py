@@ -195,8 +195,8 @@ def _result(scenario: Scenario, experiment: Experiment, mode: str, outcomes: lis
     for mission in missions:
         for arm in ARMS:
             runs = [o for o in outcomes if o.mission == mission and o.arm == arm]
-            conn = mean_ci([o.connected for o in runs])
-            share = mean_ci([o.completed / o.tasks for o in runs])
+            conn = mean_ci([o.connected for o in runs], bounds=(0.0, 1.0))
+            share = mean_ci([o.completed / o.tasks for o in runs], bounds=(0.0, 1.0))
             pooled = wilson(sum(o.completed for o in runs), sum(o.tasks for o in runs))
             per_run_time = [float(np.mean(o.times)) for o in runs if o.times]
             tcomp = mean_ci(per_run_time)

@@ -6,8 +6,10 @@ import math
 from collections.abc import Sequence
 
 
-def mean_ci(values: Sequence[float], level: float = 0.95) -> tuple[float, float, float]:
-    """Return (mean, low, high) of the finite `values`: a Student-t interval (NaNs when empty)."""
+def mean_ci(values: Sequence[float], level: float = 0.95,
+            bounds: tuple[float, float] | None = None) -> tuple[float, float, float]:
+    """Return (mean, low, high) of the finite `values`: a Student-t interval (NaNs when empty),
+    cut to `bounds` when the quantity has them (a share of time lies in 0..1)."""
     from scipy import stats
 
     xs = [float(v) for v in values if math.isfinite(v)]
@@ -18,7 +20,10 @@ def mean_ci(values: Sequence[float], level: float = 0.95) -> tuple[float, float,
         return m, math.nan, math.nan
     sd = math.sqrt(sum((x - m) ** 2 for x in xs) / (len(xs) - 1))
     half = float(stats.t.ppf(0.5 + level / 2, len(xs) - 1)) * sd / math.sqrt(len(xs))
-    return m, m - half, m + half
+    lo, hi = m - half, m + half
+    if bounds is not None:
+        lo, hi = max(bounds[0], lo), min(bounds[1], hi)
+    return m, lo, hi
 
 
 def wilson(successes: int, n: int, level: float = 0.95) -> tuple[float, float, float]:

@@ -262,3 +262,13 @@ def test_network_aware_team_keeps_connectivity_better_than_a_blind_one(tmp_path)
     aware, blind = (float(x) for x in str(rows["goto: connectivity kept, aware / blind"].ours).split(" / "))
     assert aware > blind, result.report()
     check_outputs(result, tmp_path)
+
+
+def test_a_share_of_times_interval_stays_within_0_and_1():
+    from erni.sim.experiments.stats import mean_ci
+
+    shares = [1.0] * 9 + [0.55]  # one run of ten lost its connectivity half the time
+    m, lo, hi = mean_ci(shares)
+    assert hi > 1.0  # the Student-t interval alone runs past 1
+    m2, lo2, hi2 = mean_ci(shares, bounds=(0.0, 1.0))
+    assert (m2, lo2, hi2) == (m, lo, 1.0) and 0.8 < lo2 < m2
