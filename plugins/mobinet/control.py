@@ -21,7 +21,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from erni.blackboard import NetInfo, Plugin, Pose, Position, Task, TaskState
-from erni.blackboard.errors import ConfigError
+from erni.blackboard.errors import ConfigError, TransactionError
 from erni.blackboard.schemas import Peer
 from erni.blackboard.tasks import (
     LinkQualityParams,
@@ -250,25 +250,28 @@ class MobiNetControl(Plugin[MobiNetSettings]):
             return
         params = task.params_as(WatchParams)
         rate = params.rate_hz
-        self._watching[task.uid] = (task.preposition, params)
-        self._polls[task.uid] = 0
         # no reading yet is no data: degraded until the first answer, so that nobody mistakes
         # the empty lists for "no neighbours"
         info = NetInfo(uid=f"netinfo:{task.uid}", node=self.agent_name, kind=task.preposition,
                        task=task.uid, degraded=True, message="waiting for the first reading")
+        try:  # first: a task its requester removed meanwhile is not started, and nothing is staged
+            self.change(task.with_result(TaskState.RUNNING, message=f"monitoring at {rate:g} Hz",
+                                         values={"netinfo": info.uid}))
+        except TransactionError:
+            self._stop(task.uid)
+            return
+        self._watching[task.uid] = (task.preposition, params)
+        self._polls[task.uid] = 0
         if task.uid in self._infos:
             self.change(info)
         else:
             self.add(info)
         self._infos[task.uid] = info
-        self.change(task.with_result(TaskState.RUNNING, message=f"monitoring at {rate:g} Hz",
-                                     values={"netinfo": info.uid}))
         self.resource.watch(task.uid, PARTS_OF[task.preposition], rate)
 
     def _stop(self, uid: str) -> None:
-        if self._watching.pop(uid, None) is None:
-            return
-        self.resource.unwatch(uid)
+        if self._watching.pop(uid, None) is not None:
+            self.resource.unwatch(uid)
         self._polls.pop(uid, None)
         info = self._infos.pop(uid, None)
         if info is not None:

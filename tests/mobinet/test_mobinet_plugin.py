@@ -127,6 +127,37 @@ def test_cancelling_a_task_stops_its_monitoring(served, net, make_agent):
     assert info_of(agent, other) is not None
 
 
+def test_a_task_removed_while_the_plugin_starts_it_leaves_nothing_behind(served, net, make_agent, caplog):
+    """The requester removes a NetWatch task while MobiNet's run is starting it (its own thread,
+    between the run's view and its changes): no traceback, no NetInfo left, the plugin still works."""
+    import threading
+
+    agent, plugin = make_agent("robot2", served["robot2"])
+    start = plugin._start
+    removed: list[str] = []
+
+    def start_after_removal(task):
+        if not removed:
+            def remove():
+                with agent.transaction() as tx:
+                    tx.remove(task)
+            t = threading.Thread(target=remove)
+            t.start()
+            t.join()
+            removed.append(task.uid)
+        start(task)
+
+    plugin._start = start_after_removal
+    task = watch(agent, "neighbor_list", rate_hz=50)
+    wait_until(lambda: removed and not plugin._running and not agent.query(Task, where=lambda t: t.uid == task.uid))
+    plugin._start = start
+    again = watch(agent, "neighbor_list", rate_hz=50)
+    fresh(agent, again, lambda i: i.neighbors)
+    wait_until(lambda: plugin.resource.watching() == [again.uid])
+    assert info_of(agent, task) is None
+    assert not [r for r in caplog.records if r.levelno >= logging.ERROR], caplog.text
+
+
 def test_moving_nodes_changes_what_the_plugin_publishes(served, net, make_agent):
     agent, _ = make_agent("robot3", served["robot3"])
     nbrs = watch(agent, "neighbor_list")
