@@ -187,10 +187,9 @@ class WidepRunner(Runner):
             self.ops.report(self.uid, TaskState.RUNNING, f"holding: {self.why}", progress=progress)
             return next_round
         cap = min(self.s.widep_step_cap, 0.4 * self.s.speed * period)  # at rest before the next round
-        robots = [self.ops.team.is_robot(n) for n in names]
         step = widep_step(pos, 0, poi, p.range, tolerance=p.tolerance, obstacles=self._obstacles(),
                           margin=self.s.obstacle_margin, separation=self.s.separation, step_cap=cap,
-                          slack=self.s.widep_slack, fixed=[not r for r in robots])
+                          slack=self.s.widep_slack, fixed=[not self.ops.team.is_robot(n) for n in names])
         self.extra.update(neighbours=len(names) - 1, bound_m=round(step.limit, 3), step_m=round(step.length, 3),
                           distance_m_to_poi=round(float(dists[0]), 3), auxiliary=step.auxiliary,
                           rounds_without_progress=self.idle_rounds)
