@@ -12,7 +12,7 @@ it cycles every `idle_period` until a task wakes it. The poll thread
 only in its stamp (a standing robot) is handed over again after `pose_keepalive` only. While
 the stack thread steers, it hands over the state of the SIP it just cycled on itself, when that
 Pose is due, so a SIP wakes two threads (reader and stack), not three; the poll thread then
-only sees to what comes between SIPs (outcomes, keep-alives, a SIP ahead of its slot). Neither
+only sees to what comes between SIPs (outcomes, keep-alives, a SIP just ahead of its time). Neither
 thread touches the blackboard itself: `publish` does, in its own short transactions, so serial
 I/O never happens inside one.
 """
@@ -112,7 +112,7 @@ class RobotMotionResource:
         self._steering = False  # the stack thread waits for SIPs (read by the reader thread)
         self._new_sip = False   # a SIP came since the last cycle
         self._shown: RobotState | None = None  # the state last handed to `publish` (read by the reader thread)
-        # one publication at a time (poll or stack thread): what was handed over, when, and the next slot
+        # one publication at a time (poll or stack thread): what was handed over, when, and when the next Pose is due
         self._pub_lock = threading.Lock()
         self._last_state: RobotState | None = None
         self._shown_at = -math.inf
