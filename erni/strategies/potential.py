@@ -152,23 +152,36 @@ def gabriel(p: NDArray[np.float64], delaunay: list[NDArray[np.intp]]) -> list[ND
     return [np.array(sorted(s), dtype=np.intp) for s in out]
 
 
-def nearest_on_segments(p: NDArray[np.float64], walls: NDArray[np.float64]) -> NDArray[np.float64]:
+def nearest_on_segments(p: ArrayLike, walls: NDArray[np.float64]) -> NDArray[np.float64]:
     """Return the nearest point (K, 2) on each wall segment (x1, y1, x2, y2) to point p."""
-    a, b = walls[:, :2], walls[:, 2:]
-    ab = b - a
-    length2 = np.einsum("ij,ij->i", ab, ab)
-    s = np.where(length2 > EPS, np.einsum("ij,ij->i", p - a, ab) / np.where(length2 > EPS, length2, 1.0), 0.0)
-    return a + np.clip(s, 0.0, 1.0)[:, None] * ab
+    out: NDArray[np.float64] = _nearest_on_segments(np.asarray(p, dtype=float).reshape(1, 2), walls)[0]
+    return out
 
 
-def nearest_on_circles(p: NDArray[np.float64], obstacles: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Return the nearest point (M, 2) on each circle (x, y, r) to point p (the centre if p is inside)."""
-    c, r = obstacles[:, :2], obstacles[:, 2]
-    off = p - c
-    dist = np.hypot(off[:, 0], off[:, 1])
-    unit: NDArray[np.float64] = np.where(
-        dist[:, None] > EPS, off / np.where(dist > EPS, dist, 1.0)[:, None], 0.0)
-    return c + unit * np.minimum(r, dist)[:, None]
+def nearest_on_circles(p: ArrayLike, obstacles: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Return the nearest point (M, 2) on each circle (x, y, r) to point p (p itself if it is inside)."""
+    out: NDArray[np.float64] = _nearest_on_circles(np.asarray(p, dtype=float).reshape(1, 2), obstacles)[0]
+    return out
+
+
+def _nearest_on_circles(p: NDArray[np.float64], obstacles: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The nearest point on each circle to each point p (N, 2): (N, M, 2); p itself if it is inside."""
+    c, r = obstacles[None, :, :2], obstacles[None, :, 2]
+    off = p[:, None, :] - c
+    dist = np.hypot(off[..., 0], off[..., 1])
+    unit = np.where(dist[..., None] > EPS, off / np.where(dist > EPS, dist, 1.0)[..., None], 0.0)
+    out: NDArray[np.float64] = c + unit * np.minimum(r, dist)[..., None]
+    return out
+
+
+def _nearest_on_segments(p: NDArray[np.float64], walls: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The nearest point on each segment to each point p (N, 2): (N, K, 2)."""
+    a, ab = walls[None, :, :2], walls[None, :, 2:] - walls[None, :, :2]
+    length2 = np.einsum("ijk,ijk->ij", ab, ab)
+    along = np.einsum("ijk,ijk->ij", p[:, None, :] - a, ab)
+    t = np.where(length2 > EPS, along / np.where(length2 > EPS, length2, 1.0), 0.0)
+    out: NDArray[np.float64] = a + np.clip(t, 0.0, 1.0)[..., None] * ab
+    return out
 
 
 def forces(pos: ArrayLike, theta: ArrayLike, cfg: SpreadConfig, obstacles: ArrayLike | None = None,
@@ -232,26 +245,6 @@ def forces(pos: ArrayLike, theta: ArrayLike, cfg: SpreadConfig, obstacles: Array
     torque: NDArray[np.float64] = cfg.chi * err
     force += (cfg.chi * err * wmean / s2)[:, None] * np.column_stack([-s[:, 1], s[:, 0]])
     return force, torque
-
-
-def _nearest_on_circles(p: NDArray[np.float64], obstacles: NDArray[np.float64]) -> NDArray[np.float64]:
-    """`nearest_on_circles` for every point at once: (N, M, 2)."""
-    c, r = obstacles[None, :, :2], obstacles[None, :, 2]
-    off = p[:, None, :] - c
-    dist = np.hypot(off[..., 0], off[..., 1])
-    unit = np.where(dist[..., None] > EPS, off / np.where(dist > EPS, dist, 1.0)[..., None], 0.0)
-    out: NDArray[np.float64] = c + unit * np.minimum(r, dist)[..., None]
-    return out
-
-
-def _nearest_on_segments(p: NDArray[np.float64], walls: NDArray[np.float64]) -> NDArray[np.float64]:
-    """`nearest_on_segments` for every point at once: (N, K, 2)."""
-    a, ab = walls[None, :, :2], walls[None, :, 2:] - walls[None, :, :2]
-    length2 = np.einsum("ijk,ijk->ij", ab, ab)
-    along = np.einsum("ijk,ijk->ij", p[:, None, :] - a, ab)
-    t = np.where(length2 > EPS, along / np.where(length2 > EPS, length2, 1.0), 0.0)
-    out: NDArray[np.float64] = a + np.clip(t, 0.0, 1.0)[..., None] * ab
-    return out
 
 
 def _clip_norm(v: NDArray[np.float64], vmax: float | None) -> NDArray[np.float64]:

@@ -56,6 +56,17 @@ def test_walls_and_obstacles_keep_their_own_distances():
     assert f[0] == pytest.approx([0.5, 0.0])   # nearest point 2 m away, 1.5 wanted: pulled by 0.5
 
 
+def test_nearest_points_on_walls_and_circles():
+    walls = np.array([[-10.0, 15.0, 10.0, 15.0], [3.0, 0.0, 3.0, 4.0], [1.0, 1.0, 1.0, 1.0]])  # the last: a point
+    assert nearest_on_segments([2.0, 2.0], walls) == pytest.approx(np.array([[2.0, 15.0], [3.0, 2.0], [1.0, 1.0]]))
+    assert nearest_on_segments([20.0, 0.0], walls) == pytest.approx(np.array([[10.0, 15.0], [3.0, 0.0], [1.0, 1.0]]))
+    circles = np.array([[3.0, 4.0, 1.0], [0.0, 0.0, 2.0]])
+    assert nearest_on_circles([0.0, 0.0], circles) == pytest.approx(np.array([[2.4, 3.2], [0.0, 0.0]]))  # inside: p itself
+    assert nearest_on_circles([0.5, 0.0], circles)[1] == pytest.approx([0.5, 0.0])
+    assert nearest_on_segments([0.0, 0.0], np.zeros((0, 4))).shape == (0, 2)
+    assert nearest_on_circles([0.0, 0.0], np.zeros((0, 3))).shape == (0, 2)
+
+
 def test_walls_count_only_within_the_sensing_range():
     # paper 001, 3.3: the boundary belongs to the neighbourhood only inside the sensing range
     cfg = SpreadConfig(distance=5.0, wall_distance=2.5, range=6.0, sensing=2.5, chi=0.0, obstacle_weight=2.0)
