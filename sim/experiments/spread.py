@@ -25,7 +25,22 @@ is the Delaunay field's nature, not the integration. The Gabriel graph keeps onl
 edges whose closed diametral disc holds no other robot, which drops the long boundary links:
 in the open field both Gabriel variants converge (holonomic at 69 s, nonholonomic at 279 s,
 where the nonholonomic Delaunay team did not by 600 s), in the corridor the holonomic one does
-(124 s) and the nonholonomic one is left with 0.2 link changes a second (Delaunay: 22). A physical neighbourhood switches a
+(124 s) and the nonholonomic one does not. Nonholonomic Gabriel teams do not stay still, for a
+reason of the model, not of the heading term or the walls: with the neighbourhoods frozen at
+300 s both nonholonomic corridor teams settle (Gabriel by 348 s, Delaunay by 342 s), and
+dt = 0.1 or 0.05 s leaves the Gabriel team moving (0.63 and 0.48 m in the last 10 s).
+Equation (16) lets a robot rest under a force across its wheels (the corridor team at 600 s:
+25 robots held by more than 1 N, up to 4.0 N, and 144 of its 310 links shorter than 0.8 d;
+the holonomic team: no force left, 19 of 319 links), and a link shorter than d whose diametral
+circle passes through a third robot switches itself off (its push lengthens it and the circle
+grows over that robot) and, without its push, back on: over the last 300 s 2.2 link changes a
+second on 164 links, 75 % of them shorter than d, the third robot at 90 degrees (median). The
+wall plays no part in that (20 % of the changes have a robot within its 2.5 m sensing range,
+where 21 % of the robots are; 12 crossings of that range in 300 s; for Delaunay 51 % against
+12 %). Over seeds 1-5 one nonholonomic Gabriel corridor team settles (seed 4, 542 s), none in
+the open field for good (seed 1's, still at 279 s, moves again from 467 s); some only jitter in
+place (seed 3, corridor: two links switching every one or two control periods keep two robots
+at 0.1 m/s, 4 mm net in 10 s). A physical neighbourhood switches a
 neighbour on at R with a force w (R - d): a robot held at that edge jumps by it each control
 period. Walls sensed at the 6 m neighbourhood range (ours until the sensing range was used)
 pulled every robot within 6 m toward them: half of the corridor team stood in rows within
