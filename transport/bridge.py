@@ -16,7 +16,8 @@
   `beacon_fanout` of them a period: with more, each gets one less often and the beacon says
   how often, so its receiver waits as many periods longer. Only session traffic (fresh by
   construction) marks a peer up, and a peer silent for `peer_timeout` (scaled by its announced
-  interval) is down.
+  interval) is down. A beacon that says nothing new (its peer up, at the same address and epoch)
+  costs no run: the receive thread marks the peer heard, the liveness pass updates `last_heard`.
 - Clients (`erni watch`) may lease a stream of blackboard changes; `erni task --wait` asks
   for a task's state (`task.query`).
 
@@ -218,7 +219,7 @@ class TransportPlugin(Plugin[TransportSettings]):
             host, port = parse_address(addr)
             self.directory[name] = Peer(uid=f"peer:{name}", name=name, address=f"{host}:{port}")
             self.add(self.directory[name])
-        self.endpoint.on_message = lambda msg: self.later(lambda: self._handle(msg))
+        self.endpoint.on_message = self._received
         self.endpoint.hint_wanted = self._hint_wanted
         self.endpoint.on_undeliverable = lambda addr, mid, kind, body: self.later(
             lambda: self._undeliverable(addr, kind, body))
@@ -474,6 +475,28 @@ class TransportPlugin(Plugin[TransportSettings]):
             self.final_seen.add(update.uid)
         self.change(task.evolve(result=update.result), reports=[f"result from {msg.sender}"])
 
+    def _received(self, msg: Message) -> None:
+        """Hand a message to a run, unless it is an in-session beacon that tells nothing new: then it
+        only marks its peer heard (the liveness pass puts that on the board). Runs on the endpoint's
+        receive thread; in a team of N each agent hears up to `beacon_fanout` of these a period."""
+        if self._beacon_repeats(msg):
+            self.heard_at[msg.sender] = time.monotonic()
+            return
+        self.later(lambda: self._handle(msg))
+
+    def _beacon_repeats(self, msg: Message) -> bool:
+        """Whether `msg` is an in-session beacon from a peer that is up, at the address, epoch and with
+        the announced interval it had, saying what it said last: nothing for `_heard` to change."""
+        body = msg.body
+        if msg.hint or msg.kind != "beacon" or not isinstance(body, Beacon) or msg.role == CLIENT_ROLE:
+            return False
+        peer = self.directory.get(msg.sender)
+        s = self.settings
+        return (peer is not None and peer.up and peer.epoch == msg.epoch
+                and self.addresses.get(msg.sender) == msg.reply and peer.address == f"{msg.reply[0]}:{msg.reply[1]}"
+                and (peer.role, peer.capabilities, peer.degraded) == (body.role, body.capabilities, body.degraded)
+                and self.peer_limit.get(msg.sender) == s.peer_timeout * max(1.0, body.interval / s.beacon_period))
+
     def _hint_wanted(self, name: str) -> bool:
         """Whether a broadcast beacon from `name` could change anything: not while its peer is up
         (`_hinted` acts on unknown and down peers only). Runs on the endpoint's receive thread."""
@@ -571,9 +594,15 @@ class TransportPlugin(Plugin[TransportSettings]):
                 for addr in announced:
                     self.endpoint.announce(addr, "beacon", beacon)
         self._beacon_quiet_peers(mono)
+        wall = time.time()
         for name, peer in list(self.directory.items()):
             silent = mono - self.heard_at.get(name, 0.0)
-            if peer.up and silent > self.peer_limit.get(name, s.peer_timeout):
+            if peer.up and silent <= self.peer_limit.get(name, s.peer_timeout):
+                if wall - silent - peer.last_heard > s.peer_timeout / 4:  # heard by beacons that said nothing new
+                    self.directory[name] = peer = peer.evolve(last_heard=wall - silent)
+                    self.change(peer, reports=["heard"])
+                continue
+            if peer.up:
                 peer = peer.evolve(up=False)
                 self.directory[name] = peer
                 self.log.warning("peer %s is down: not heard for %.1f s", name, silent)

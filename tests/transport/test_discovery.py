@@ -303,3 +303,47 @@ def test_a_configured_peer_that_only_talks_is_known_by_its_role_and_gets_shared_
     finally:
         a.stop()
         b.stop()
+
+
+def test_a_beacon_that_says_nothing_new_costs_no_run_and_still_keeps_its_peer_up():
+    """Each agent of a team of N hears up to `beacon_fanout` in-session beacons a period. One from
+    a peer that is up, saying what it said last, only marks the peer heard on the receive thread
+    (no plugin run); the liveness pass keeps the Peer's `last_heard` on the board fresh, and a
+    beacon that says something new (b degraded) still reaches the board."""
+    import time
+
+    port = free_port()
+    a, b = make_agent("a", port), make_agent("b", port)
+    try:
+        wait_until(lambda: peers(a).get("b") and peers(a)["b"].up and peers(a)["b"].last_heard)
+        bridge = a.plugin("transport")
+        handled: list[str] = []
+        received: list[str] = []
+        handle, receive = bridge._handle, bridge._received
+
+        def spy_handle(msg):
+            if msg.kind == "beacon" and not msg.hint:
+                handled.append(msg.sender)
+            return handle(msg)
+
+        def spy_received(msg):
+            if msg.kind == "beacon" and not msg.hint:
+                received.append(msg.sender)
+            return receive(msg)
+
+        bridge._handle = spy_handle
+        bridge.endpoint.on_message = spy_received
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 1.5:  # 2.5 peer timeouts of b saying nothing new
+            seen = peers(a)["b"]
+            assert seen.up
+            assert time.time() - seen.last_heard < 0.6  # refreshed every 0.6 / 4 s: never a timeout old
+            time.sleep(0.05)
+        assert received.count("b") >= 8  # b (quiet toward a) beacons it every 0.1 s
+        assert handled == []
+        b.plugin("transport")._degraded = lambda: "journal full"  # what b's beacon says changes
+        wait_until(lambda: peers(a)["b"].degraded == "journal full", timeout=3)
+        assert "b" in handled
+    finally:
+        a.stop()
+        b.stop()
