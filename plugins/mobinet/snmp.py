@@ -22,6 +22,8 @@ filled part came from. Each table is walked with GETBULK over its columns at onc
 parts of one read run concurrently. When the agent serves the ERNI change counters
 (erniTopologyVersion, erniStateVersion), a part whose counter has not moved is answered from
 the last walk (for at most `cache_seconds`), so a steady network costs one GET per read.
+Positions follow the state version; the other parts, and the names of the nodes, the topology
+version, so robots that move without changing a link cost a topology reader one GET.
 Every value is type-checked: a missing answer, an error status, a wrong type or a malformed
 value raises `SourceError` naming the OID and what was expected. Positions are written with
 SET and the write community; the read community never writes.
@@ -394,7 +396,7 @@ class SnmpSource:
             if len(current) == len(check):
                 stands = (_text(ERNI_NODE_NAME, current[ERNI_NODE_NAME]),
                           *(_int(oid, current[oid], "Counter32") for oid in versions))
-                if stands == entry[0][1:4]:
+                if self._same(stands, entry[0][1:4], parts):
                     return self._copy(entry[2])
         scalars = [SYS_NAME, ERNI_NODE_NAME, ERNI_NODE_ADDRESS, OLSRV2_ORIG_ADDR_TYPE, OLSRV2_ORIG_ADDR,
                    *PROBES.values(), *versions]
@@ -407,15 +409,16 @@ class SnmpSource:
         now = time.monotonic()
         whole = ("view", view.node, topo_v, state_v, parts)
         entry = self._cache.get("view")
-        if (None not in whole and entry is not None and entry[0] == whole
-                and now - entry[1] < self.cache_seconds):
+        if (None not in whole and entry is not None and entry[0][4] == parts
+                and self._same(whole[1:4], entry[0][1:4], parts) and now - entry[1] < self.cache_seconds):
             return self._copy(entry[2])  # nothing changed: the last decoded view stands
         jobs = self._jobs(parts, served, view)
         got: dict[str, Columns] = {}
         walks: dict[str, Any] = {}
         oldest = now  # the view is as old as the oldest walk it is made of
+        moves = self._moves(parts)
         for job, cols in jobs.items():
-            version = state_v if job in ("nodes", POSITIONS) else topo_v
+            version = state_v if job == POSITIONS or (job == "nodes" and moves) else topo_v
             entry = self._cache.get(job)
             key = (view.node, version, tuple(cols))
             if (version is not None and entry is not None and entry[0] == key
@@ -432,7 +435,7 @@ class SnmpSource:
                 raise SourceError(f"SNMP agent {self.where}: {type(value).__name__}: {value}") from value
         for job, walked in zip(walks, done):
             got[job] = walked  # type: ignore[assignment]  # exceptions were raised above
-            version = state_v if job in ("nodes", POSITIONS) else topo_v
+            version = state_v if job == POSITIONS or (job == "nodes" and moves) else topo_v
             self._cache[job] = ((view.node, version, tuple(jobs[job])), now, walked)
         by_index = self._decode_nodes(view, got.get("nodes", {}))
         if NEIGHBORS in parts and NEIGHBORS in jobs:
@@ -446,6 +449,18 @@ class SnmpSource:
             self._decode_positions(view, got[POSITIONS], by_index)
         self._cache["view"] = (whole, oldest, view)
         return view
+
+    @staticmethod
+    def _moves(parts: frozenset[str]) -> bool:
+        """Whether a read of `parts` follows erniStateVersion (positions), not only erniTopologyVersion."""
+        return POSITIONS in parts
+
+    @classmethod
+    def _same(cls, now: tuple[Any, ...], then: tuple[Any, ...], parts: frozenset[str]) -> bool:
+        """Whether (node name, topology version, state version) `now` leaves a view of `parts` read at
+        `then` standing: positions follow the state version, which moves with every robot that moves;
+        the other parts (and the names of the nodes that links and routes name) the topology version."""
+        return now[:2] == then[:2] and (not cls._moves(parts) or now[2] == then[2])
 
     def _reuse(self, job: str, cols: Columns, view: NetView, field: str,
                decode: Callable[[NetView, Columns], None]) -> None:

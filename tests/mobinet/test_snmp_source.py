@@ -190,6 +190,37 @@ def test_a_position_report_rereads_positions_without_decoding_the_topology_again
     assert len(decoded) == 2                 # the first read and the move, not the report
 
 
+def test_a_position_report_costs_a_read_without_positions_only_the_change_counters(served, net):
+    """A network-aware robot watches topology and link quality twice a second while every robot of
+    its team reports its position: each report moves the state version, not the topology version,
+    so those reads stay one GET (the nodes' names follow the topology version); a read with
+    positions walks them again, and a topology change is walked by both."""
+    async def go():
+        plain = SnmpSource(*served["robot3"], cache_seconds=60.0)
+        placed = SnmpSource(*served["robot3"], cache_seconds=60.0)
+        try:
+            parts = frozenset({"topology", "neighbors"})
+            first = await plain.read(parts)
+            await placed.read(PARTS)
+            net.set_position("robot5", 241.5, 2.0, 90.0)
+            r0, p0 = plain.requests, placed.requests
+            reported = await plain.read(parts)
+            with_positions = await placed.read(PARTS)
+            costs = (plain.requests - r0, placed.requests - p0)
+            net.move("robot5", 150.0, 40.0)
+            r1 = plain.requests
+            moved = await plain.read(parts)
+            return first, reported, with_positions, costs, plain.requests - r1, moved
+        finally:
+            await plain.aclose()
+            await placed.aclose()
+    first, reported, with_positions, (plain, placed), after_move, moved = run(go())
+    assert plain == 1 and placed > 1
+    assert reported.links == first.links and reported.neighbors == first.neighbors
+    assert with_positions.positions["robot5"] == Position(x=241.5, y=2.0, heading=90.0)
+    assert after_move > 1 and moved.links != first.links
+
+
 def test_cache_can_be_turned_off(served):
     async def go():
         src = SnmpSource(*served["robot3"], cache_seconds=0.0)
