@@ -31,6 +31,7 @@ import math
 import os
 import random
 import secrets
+import shutil
 import signal
 import socket
 import subprocess
@@ -211,13 +212,17 @@ class Team:
                  ui: bool | None = None, transport: dict[str, Any] | None = None, gui_port: int = 8080,
                  gui_listen: str | None = None, netns: bool = False, mobinet: str | None = None,
                  hello_interval: float = HELLO_INTERVAL, mission_settings: dict[str, Any] | None = None,
-                 robot_settings: dict[str, Any] | None = None) -> None:
+                 robot_settings: dict[str, Any] | None = None, keep_run_dir: bool = False) -> None:
         if scenario.count > MAX_AGENT_ROBOTS:
             raise TeamError(f"--robots: at most {MAX_AGENT_ROBOTS} robot agents (one loopback "
                             f"address each), got {scenario.count}; use the kinematic mode of "
                             "`erni experiment` for larger teams")
         self.scenario = scenario
         self.run_dir = Path(run_dir) if run_dir else Path(tempfile.mkdtemp(prefix="erni-sim-"))
+        # a temporary run directory goes at stop, unless asked to stay or the start failed (its
+        # error names the logs in it); a directory the caller named is never removed
+        self._scratch = not run_dir and not keep_run_dir
+        self._started_well = False
         self.headless = headless
         self.log_level = log_level
         self.feed_period = 1.0 / feed_hz
@@ -345,6 +350,7 @@ class Team:
             self._spawn(self.agents[name], env)
             say("agents launched", k + 1, len(order))
         self._wait_up(say, timeout)
+        self._started_well = True
         return self
 
     def agent_env(self) -> dict[str, str]:
@@ -673,8 +679,9 @@ class Team:
 
     # --- stop ---------------------------------------------------------------------------
 
-    def stop(self, timeout: float = 8.0) -> None:
-        """Stop every agent (SIGTERM, then SIGKILL), the feed, the SNMP agent and the robots."""
+    def stop(self, timeout: float = 8.0, keep_run_dir: bool = False) -> None:
+        """Stop every agent (SIGTERM, then SIGKILL), the feed, the SNMP agent and the robots; remove
+        the temporary run directory unless `keep_run_dir` (or the team was made to keep it)."""
         if self._stopped:
             return
         self._stopped = True
@@ -709,12 +716,14 @@ class Team:
             self._forwarder = None
         if self.mesh is not None:
             self.mesh.destroy()
+        if self._scratch and self._started_well and not keep_run_dir:
+            shutil.rmtree(self.run_dir, ignore_errors=True)
 
     def __enter__(self) -> Team:
         return self
 
-    def __exit__(self, *exc: object) -> None:
-        self.stop()
+    def __exit__(self, kind: type[BaseException] | None, *exc: object) -> None:
+        self.stop(keep_run_dir=kind is not None)
 
 
 def _tail(path: Path, lines: int = 8) -> str:

@@ -88,7 +88,8 @@ def run(args: argparse.Namespace) -> int:
         team = Team(scenario, run_dir=args.run_dir, headless=args.headless,
                     control_port=args.control_port, log_level=args.log_level, gui_listen=args.gui_listen,
                     netns=args.netns, mobinet=args.mobinet,
-                    hello_interval=args.hello_interval if args.hello_interval is not None else HELLO_INTERVAL)
+                    hello_interval=args.hello_interval if args.hello_interval is not None else HELLO_INTERVAL,
+                    keep_run_dir=True)  # it prints where the configs and logs are
     except (ScenarioError, TeamError, NetnsError, ValueError) as err:
         print(f"erni sim: {err}", file=sys.stderr)
         return 2

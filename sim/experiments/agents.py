@@ -163,13 +163,13 @@ class TeamRun:
         assert self.team is not None
         return [s for s in self.team.samples if s.t >= self.t0]
 
-    def stop(self) -> None:
-        """Stop every process of the team."""
+    def stop(self, keep_logs: bool = False) -> None:
+        """Stop every process of the team (its run directory stays when `keep_logs`)."""
         if self.team is not None:
-            self.team.stop()
+            self.team.stop(keep_run_dir=keep_logs)
 
     def __enter__(self) -> TeamRun:
         return self
 
-    def __exit__(self, *exc: object) -> None:
-        self.stop()
+    def __exit__(self, kind: type[BaseException] | None, *exc: object) -> None:
+        self.stop(keep_logs=kind is not None)  # a failed run keeps the logs its error points to

@@ -160,7 +160,7 @@ def _snmpd(progress: Progress) -> float | None:
         if get:  # a real query, so the agent has done its work once
             subprocess.run([get, "-v2c", "-c", "public", f"127.0.0.1:{port}", "1.3.6.1.2.1.1.1.0"],
                            capture_output=True, timeout=10)
-        return status_kb(p.pid)
+        rss = status_kb(p.pid)
     finally:
         p.send_signal(signal.SIGTERM)
         try:
@@ -168,6 +168,8 @@ def _snmpd(progress: Progress) -> float | None:
         except subprocess.TimeoutExpired:
             p.kill()
         progress("snmpd", 1, 1)
+    shutil.rmtree(run_dir, ignore_errors=True)  # kept when snmpd failed: its error names the log
+    return rss
 
 
 def _draw(fig: Any, peaks: dict[str, tuple[float, float]], floor: float, snmpd: float | None) -> None:

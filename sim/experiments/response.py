@@ -22,6 +22,7 @@ from __future__ import annotations
 import os
 import random
 import secrets
+import shutil
 import socket
 import subprocess
 import sys
@@ -173,6 +174,7 @@ def _measure(iterations: int, runs: int, period: float, rest: float, seed: int, 
             remote.kill()
         sim.terminate()
         sim.wait(10)
+    shutil.rmtree(run_dir, ignore_errors=True)  # kept when the run raised: its error names the log
     return out
 
 

@@ -20,6 +20,7 @@ import json
 import os
 import random
 import secrets
+import shutil
 import signal
 import subprocess
 import sys
@@ -290,6 +291,7 @@ def _measure(scenario: Scenario, consumers: int, count: int, progress: Progress)
     if not out.exists():
         raise ScenarioError(f"the robot agent wrote no measurements; logs in {run_dir}")
     data = json.loads(out.read_text(encoding="utf-8"))
+    shutil.rmtree(run_dir, ignore_errors=True)  # kept when the run failed: its error names the logs
     return Measured(consumers, {k: [float(x) for x in v] for k, v in data["rtt_ms"].items()},
                     {k: int(v) for k, v in data["lost"].items()})
 

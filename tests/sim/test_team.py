@@ -105,3 +105,33 @@ def test_relayed_robot_stays_reachable_over_several_hops(tmp_path):
         wait_until(lambda: not team.peers()["robot3"].up, timeout=10)
     finally:
         team.stop()
+
+
+def test_a_temporary_run_directory_goes_with_the_team_unless_the_run_failed():
+    """Experiments start a team per run (60 for `netaware --seeds 10`): a run directory the team
+    made itself is removed when it stops; one whose run raised stays (the error names its logs),
+    and so does one the caller named or asked to keep (`erni sim` prints where it is)."""
+    import shutil
+
+    def team(**kw) -> Team:
+        return Team(Scenario(robots={"count": 1}), headless=True, control_port=0, transport=FAST,
+                    mission=False, ui=False, **kw)
+
+    with team() as ok:
+        ok.start(timeout=60)
+        assert (ok.run_dir / "logs" / "robot1.log").exists()
+    assert not ok.run_dir.exists()
+    failed = team()
+    try:
+        with pytest.raises(RuntimeError, match="the experiment failed"):
+            with failed:
+                failed.start(timeout=60)
+                raise RuntimeError("the experiment failed")
+        assert (failed.run_dir / "logs" / "robot1.log").exists()
+        kept = team(keep_run_dir=True)
+        with kept:
+            kept.start(timeout=60)
+        assert (kept.run_dir / "logs" / "robot1.log").exists()
+        shutil.rmtree(kept.run_dir)
+    finally:
+        shutil.rmtree(failed.run_dir, ignore_errors=True)
