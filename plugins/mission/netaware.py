@@ -1,9 +1,13 @@
 """Network-aware behaviour (paper 004, 4.2.3): is this robot's connectivity at risk, and since when.
 
-The guard reads the NetInfo of two NetWatch tasks of the mission: `network_topology` (is this
-robot an articulation point: would the network split without it?) and `link_quality` (the
-delivery ratio of its best one-hop link). Connectivity is at risk when the robot is a cut
-vertex (if `articulation` is on) or its best link is below `min_quality`. A risk is declared
+The guard reads the NetInfo of two NetWatch tasks of the mission: `network_topology` (its links,
+with their quality where the routing metric tells it) and `link_quality` (the delivery ratio of
+this robot's one-hop links). A link below `min_quality` is about to go, so the topology is judged
+without such links: connectivity is at risk when the robot is a cut vertex of what is left (if
+`articulation` is on: would the network split without it?), when a weak link of its own is all
+that joins its part of the network to another (robots walking off together each keep a weak link
+to the control node, and none of them is a cut vertex until the last link is gone), or when its
+best link is below `min_quality`. A risk is declared
 at once; it is cleared only after `resume_after` seconds without risk (hysteresis, so a robot
 on the edge does not stutter). Degraded readings (the network subsystem did not answer)
 change nothing. The guard also keeps a trail of positions where connectivity was good; the
@@ -14,7 +18,11 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass
+
+from erni import netgraph
+from erni.blackboard.tasks import Link
 
 
 @dataclass
@@ -22,6 +30,7 @@ class GuardState:
     """The latest readings and the decision derived from them."""
 
     articulation: bool | None = None
+    bridge: str = ""        # the weak link of this robot that alone joins its part to another
     best: float | None = None
     at_risk: bool = False
     reason: str = ""
@@ -41,9 +50,19 @@ class NetGuard:
         self.last_good: tuple[float, float] | None = None
         self.trail: deque[tuple[float, float]] = deque(maxlen=200)  # good positions, 0.2 m apart
 
-    def topology(self, articulation_points: list[str], links: int) -> None:
-        """Take in a topology reading: the network's cut vertices (with `links` links known)."""
-        self.state.articulation = self.me in articulation_points if links else False
+    def topology(self, links: Sequence[Link]) -> None:
+        """Take in a topology reading: its links. Links whose quality is known (any above 0) and
+        below `min_quality` are left out of the graph the risk is judged on."""
+        s = self.state
+        known = any(link.quality > 0 for link in links)
+        good = [link for link in links if not known or link.quality >= self.min_quality]
+        adj = netgraph.from_edges(((link.a, link.b) for link in good),
+                                  nodes=[self.me, *(n for link in links for n in (link.a, link.b))])
+        s.articulation = self.me in netgraph.articulation_points(adj) if links else False
+        mine = next(c for c in netgraph.connected_components(adj) if self.me in c)
+        weak = sorted((link.quality, link.b if link.a == self.me else link.a) for link in links
+                      if self.me in (link.a, link.b) and (link.b if link.a == self.me else link.a) not in mine)
+        s.bridge = f"{weak[-1][1]} ({weak[-1][0]:.2f})" if weak else ""
 
     def quality(self, qualities: list[float]) -> None:
         """Take in a link-quality reading: the delivery ratios of this robot's one-hop links."""
@@ -54,6 +73,8 @@ class NetGuard:
         s = self.state
         if self.use_articulation and s.articulation:
             return f"{self.me} is an articulation point of the network"
+        if self.use_articulation and s.bridge:
+            return f"{self.me}'s weak link to {s.bridge} alone joins it to the rest of the network"
         if s.best is not None and s.best < self.min_quality:
             return f"best link quality {s.best:.2f} is below {self.min_quality:.2f}"
         return ""

@@ -261,7 +261,7 @@ class MissionControl(Plugin[MissionSettings]):
             if info.task not in mine or info.degraded:
                 continue
             if info.kind == "network_topology":
-                self.guard.topology(info.articulation_points, len(info.links))
+                self.guard.topology(info.links)
             elif info.kind == "link_quality":
                 self.qualities = {n.name: n.quality for n in info.neighbors}
                 self.guard.quality([n.quality for n in info.neighbors])
