@@ -57,7 +57,7 @@ class MissionSettings(BaseModel):
     network_aware: bool = Field(True, description="watch topology and link quality; guard remote motion")
     policy: Literal["hold", "stop", "retreat"] = Field("hold", description="what connectivity at risk does")
     min_link_quality: float = Field(0.3, ge=0, le=1, description="best link below this = at risk")
-    articulation: bool = Field(True, description="being an articulation point = at risk")
+    articulation: bool = Field(True, description="being a cut vertex of the links at least min_link_quality, or joined to the rest by a weaker link alone = at risk")
     resume_after: float = Field(1.0, ge=0, description="connectivity good this long clears the risk (s)")
     retreat_distance: float = Field(1.0, gt=0, description="retreat: go back this far along the good trail (m)")
     net_rate_hz: float = Field(2.0, gt=0, le=100, description="rate of the mission's NetWatch tasks (Hz)")
