@@ -20,6 +20,7 @@ import math
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 from erni import netgraph
 from erni.blackboard.tasks import Link
@@ -47,6 +48,7 @@ class NetGuard:
         self.use_articulation = articulation
         self.resume_after = resume_after
         self.state = GuardState()
+        self._judged: tuple[Any, bool, set[str]] = (None, False, set())  # (good links, cut vertex, my part)
         self.last_good: tuple[float, float] | None = None
         self.trail: deque[tuple[float, float]] = deque(maxlen=200)  # good positions, 0.2 m apart
 
@@ -56,10 +58,13 @@ class NetGuard:
         s = self.state
         known = any(link.quality > 0 for link in links)
         good = [link for link in links if not known or link.quality >= self.min_quality]
-        adj = netgraph.from_edges(((link.a, link.b) for link in good),
-                                  nodes=[self.me, *(n for link in links for n in (link.a, link.b))])
-        s.articulation = self.me in netgraph.articulation_points(adj) if links else False
-        mine = next(c for c in netgraph.connected_components(adj) if self.me in c)
+        key = (tuple((link.a, link.b) for link in good), len(links))
+        if key != self._judged[0]:  # the graph work only when which links are good changed
+            adj = netgraph.from_edges(((link.a, link.b) for link in good),
+                                      nodes=[self.me, *(n for link in links for n in (link.a, link.b))])
+            mine = next(c for c in netgraph.connected_components(adj) if self.me in c)
+            self._judged = (key, self.me in netgraph.articulation_points(adj) if links else False, mine)
+        _, s.articulation, mine = self._judged
         weak = sorted((link.quality, link.b if link.a == self.me else link.a) for link in links
                       if self.me in (link.a, link.b) and (link.b if link.a == self.me else link.a) not in mine)
         s.bridge = f"{weak[-1][1]} ({weak[-1][0]:.2f})" if weak else ""
