@@ -219,8 +219,8 @@ class Team:
                             "`erni experiment` for larger teams")
         self.scenario = scenario
         self.run_dir = Path(run_dir) if run_dir else Path(tempfile.mkdtemp(prefix="erni-sim-"))
-        # a temporary run directory goes at stop, unless asked to stay or the start failed (its
-        # error names the logs in it); a directory the caller named is never removed
+        # a temporary run directory goes at stop (started or not), unless asked to stay or the start
+        # failed (its error names the logs in it); a directory the caller named is never removed
         self._scratch = not run_dir and not keep_run_dir
         self._started_well = False
         self.headless = headless
@@ -716,8 +716,8 @@ class Team:
             self._forwarder = None
         if self.mesh is not None:
             self.mesh.destroy()
-        if self._scratch and self._started_well and not keep_run_dir:
-            shutil.rmtree(self.run_dir, ignore_errors=True)
+        if self._scratch and (self._started_well or not self._started) and not keep_run_dir:
+            shutil.rmtree(self.run_dir, ignore_errors=True)  # a start that failed keeps its logs
 
     def __enter__(self) -> Team:
         return self

@@ -121,6 +121,10 @@ def test_a_temporary_run_directory_goes_with_the_team_unless_the_run_failed():
         ok.start(timeout=60)
         assert (ok.run_dir / "logs" / "robot1.log").exists()
     assert not ok.run_dir.exists()
+    never = team()
+    assert never.run_dir.exists()
+    never.stop()  # a team stopped before its start leaves nothing either
+    assert not never.run_dir.exists()
     failed = team()
     try:
         with pytest.raises(RuntimeError, match="the experiment failed"):
