@@ -491,11 +491,16 @@ class TransportPlugin(Plugin[TransportSettings]):
         if msg.hint or msg.kind != "beacon" or not isinstance(body, Beacon) or msg.role == CLIENT_ROLE:
             return False
         peer = self.directory.get(msg.sender)
-        s = self.settings
         return (peer is not None and peer.up and peer.epoch == msg.epoch
-                and self.addresses.get(msg.sender) == msg.reply and peer.address == f"{msg.reply[0]}:{msg.reply[1]}"
+                and peer.address == f"{msg.reply[0]}:{msg.reply[1]}"  # `addresses` is set with it
                 and (peer.role, peer.capabilities, peer.degraded) == (body.role, body.capabilities, body.degraded)
-                and self.peer_limit.get(msg.sender) == s.peer_timeout * max(1.0, body.interval / s.beacon_period))
+                and self.peer_limit.get(msg.sender) == self._silence_limit(body))
+
+    def _silence_limit(self, beacon: Beacon) -> float:
+        """How long a peer may be silent before it is down: `peer_timeout`, scaled by the interval
+        its beacon announced (a peer with many quiet peers beacons each of them less often)."""
+        s = self.settings
+        return s.peer_timeout * max(1.0, beacon.interval / s.beacon_period)
 
     def _hint_wanted(self, name: str) -> bool:
         """Whether a broadcast beacon from `name` could change anything: not while its peer is up
@@ -539,8 +544,7 @@ class TransportPlugin(Plugin[TransportSettings]):
             fields["role"] = role
         if isinstance(beacon, Beacon):
             fields.update(role=beacon.role, capabilities=beacon.capabilities, degraded=beacon.degraded)
-            s = self.settings
-            self.peer_limit[name] = s.peer_timeout * max(1.0, beacon.interval / s.beacon_period)
+            self.peer_limit[name] = self._silence_limit(beacon)
         if old is None:
             peer = Peer(uid=f"peer:{name}", name=name, **fields)
             self.directory[name] = peer
