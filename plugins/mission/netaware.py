@@ -63,11 +63,12 @@ class NetGuard:
             adj = netgraph.from_edges(((link.a, link.b) for link in good),
                                       nodes=[self.me, *(n for link in links for n in (link.a, link.b))])
             mine = next(c for c in netgraph.connected_components(adj) if self.me in c)
-            self._judged = (key, self.me in netgraph.articulation_points(adj) if links else False, mine)
+            self._judged = (key, self.me in netgraph.articulation_points(adj), mine)
         _, s.articulation, mine = self._judged
-        weak = sorted((link.quality, link.b if link.a == self.me else link.a) for link in links
-                      if self.me in (link.a, link.b) and (link.b if link.a == self.me else link.a) not in mine)
-        s.bridge = f"{weak[-1][1]} ({weak[-1][0]:.2f})" if weak else ""
+        across = [(link.quality, link.b if link.a == self.me else link.a) for link in links
+                  if self.me in (link.a, link.b)]  # this robot's links: (quality, the other end)
+        quality, other = max(((q, n) for q, n in across if n not in mine), default=(0.0, ""))
+        s.bridge = f"{other} ({quality:.2f})" if other else ""
 
     def quality(self, qualities: list[float]) -> None:
         """Take in a link-quality reading: the delivery ratios of this robot's one-hop links."""
