@@ -417,11 +417,11 @@ class SnmpSource:
         walks: dict[str, Any] = {}
         oldest = now  # the view is as old as the oldest walk it is made of
         moves = self._moves(parts)
+        version_of = {job: state_v if job == POSITIONS or (job == "nodes" and moves) else topo_v for job in jobs}
         for job, cols in jobs.items():
-            version = state_v if job == POSITIONS or (job == "nodes" and moves) else topo_v
             entry = self._cache.get(job)
-            key = (view.node, version, tuple(cols))
-            if (version is not None and entry is not None and entry[0] == key
+            key = (view.node, version_of[job], tuple(cols))
+            if (version_of[job] is not None and entry is not None and entry[0] == key
                     and now - entry[1] < self.cache_seconds):
                 got[job] = entry[2]
                 oldest = min(oldest, entry[1])
@@ -435,8 +435,7 @@ class SnmpSource:
                 raise SourceError(f"SNMP agent {self.where}: {type(value).__name__}: {value}") from value
         for job, walked in zip(walks, done):
             got[job] = walked  # type: ignore[assignment]  # exceptions were raised above
-            version = state_v if job == POSITIONS or (job == "nodes" and moves) else topo_v
-            self._cache[job] = ((view.node, version, tuple(jobs[job])), now, walked)
+            self._cache[job] = ((view.node, version_of[job], tuple(jobs[job])), now, walked)
         by_index = self._decode_nodes(view, got.get("nodes", {}))
         if NEIGHBORS in parts and NEIGHBORS in jobs:
             self._decode_neighbors(view, got[NEIGHBORS])
