@@ -39,6 +39,7 @@ import sys
 import tempfile
 import threading
 import time
+import urllib.parse
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -583,13 +584,26 @@ class Team:
             up = {name for name, p in self.peers(1.0).items() if p.up} if connected == n else set()
             heard = len(up & expected)
             say("robots connected", connected, n) if connected < n else say("robots heard by control", heard, len(expected))
-            if connected == n and expected <= up:
+            # the control node is heard before its GUI plugin may listen: the URL printed must open
+            if connected == n and expected <= up and self._gui_answers():
                 return
             if time.monotonic() > deadline:
+                late = "" if connected < n or not expected <= up else f"; its GUI at {self.url} does not answer"
                 raise TeamError(f"the team did not come up within {timeout:.0f} s: {connected}/{n} robots "
-                                f"connected, control hears {heard}/{len(expected)} reachable robots; "
+                                f"connected, control hears {heard}/{len(expected)} reachable robots{late}; "
                                 f"logs in {self.run_dir / 'logs'}")
             time.sleep(0.3)
+
+    def _gui_answers(self) -> bool:
+        """Whether the GUI (if the team has one) accepts a connection at its URL's address."""
+        if self.url is None:
+            return True
+        where = urllib.parse.urlsplit(self.url)
+        try:
+            with socket.create_connection((where.hostname or "127.0.0.1", where.port or 80), timeout=0.5):
+                return True
+        except OSError:
+            return False
 
     # --- running ------------------------------------------------------------------------
 
