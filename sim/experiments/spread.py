@@ -40,7 +40,8 @@ where 21 % of the robots are; 12 crossings of that range in 300 s; for Delaunay 
 12 %). Over seeds 1-5 one nonholonomic Gabriel corridor team settles (seed 4, 542 s), none in
 the open field for good (seed 1's, still at 279 s, moves again from 467 s); some only jitter in
 place (seed 3, corridor: two links switching every one or two control periods keep two robots
-at 0.1 m/s, 4 mm net in 10 s). A physical neighbourhood switches a
+at 0.1 m/s, 4 mm net in 10 s; reported as settled in place, every robot within 0.1 m, from 458 s).
+A physical neighbourhood switches a
 neighbour on at R with a force w (R - d): a robot held at that edge jumps by it each control
 period. Walls sensed at the 6 m neighbourhood range (ours until the sensing range was used)
 pulled every robot within 6 m toward them: half of the corridor team stood in rows within
@@ -61,7 +62,9 @@ is the velocity the equation settles to, F / k, so a Delaunay flip changes it at
 nonholonomic Delaunay team keeps driving at the speed limit (stepped in numpy with the same
 command, with or without the heading term alike).
 
-Metrics per variant: time to converge, final mean and smallest nearest-neighbour distance
+Metrics per variant: time to converge; for a team that does not, when it settled in place
+(every robot within `still_radius` m of where it was for `hold` s: a team kept above the still
+speed only by links switching on and off each control period); final mean and smallest nearest-neighbour distance
 against the desired d (an input), the same at t = 30 s (the paper's figures), robots ending
 within `pinned` m of a wall, share of robots in the largest radio component, energy per robot
 (paper 000's model on each track). `spread-paths` draws each robot's path with arrows for
@@ -281,6 +284,22 @@ def _agents(scenario: Scenario, progress: Progress, variant: str, label: str) ->
     return Run(variant, ts, ps, ths, sps, converged)
 
 
+def _in_place(t: NDArray[np.float64], pos: NDArray[np.float64], radius: float, hold: float) -> float:
+    """Start of the first stretch of `hold` s in which no robot left a circle of `radius` round where it was.
+
+    A team can be slower than the still speed on average and yet not under it at every sample: a
+    link switching on and off each control period keeps its two robots moving at 0.1 m/s in place.
+    This judges the track, not the speeds, so such a team counts as settled in place.
+    """
+    for k in range(len(t)):
+        end = int(np.searchsorted(t, t[k] + hold - 1e-9))
+        if end >= len(t):
+            break
+        if float(np.hypot(*(pos[k:end + 1] - pos[k]).transpose(2, 0, 1)).max()) < radius:
+            return float(t[k])
+    return math.nan
+
+
 def _pinned(pos: NDArray[np.float64], walls: NDArray[np.float64], within: float) -> int:
     if len(walls) == 0:
         return 0
@@ -302,6 +321,7 @@ def _result(scenario: Scenario, experiment: Experiment, mode: str, runs: list[Ru
     pinned_within = float(s.get("pinned", 0.5))
     threshold = float(s.get("still_speed", 0.05))
     hold = float(s.get("hold", 10.0))
+    radius = float(s.get("still_radius", 0.1))
     _, walls = _obstacles(scenario)
     n = runs[0].pos.shape[1]
     res = Result(experiment.name, experiment.title, mode)
@@ -320,6 +340,9 @@ def _result(scenario: Scenario, experiment: Experiment, mode: str, runs: list[Ru
         finals[v] = nn
         energies = [energy_model.track_energy(r.t, r.pos[:, i, 0], r.pos[:, i, 1])[0] for i in range(n)]
         res.metrics[f"{v}: converged at (all slower than {threshold:g} m/s for {hold:g} s)"] = (r.converged, "s")
+        if not math.isfinite(r.converged):  # a converged run stops: its track may end before such a stretch
+            res.metrics[f"{v}: settled in place at (every robot within {radius:g} m for {hold:g} s)"] = (
+                _in_place(r.t, r.pos, radius, hold), "s")
         res.metrics[f"{v}: mean NN distance at the end (d = {d:g})"] = (float(nn.mean()), "m")
         res.metrics[f"{v}: smallest NN distance at the end"] = (float(nn.min()), "m")
         res.metrics[f"{v}: mean NN distance at t = 30 s"] = (mean_nn_distance(r.pos[k30]), "m")
@@ -361,6 +384,9 @@ def _result(scenario: Scenario, experiment: Experiment, mode: str, runs: list[Ru
         still = (f"not by {r.t[-1]:.0f} s" + (f" ({r.churn:.3g} links made or broken per s, a robot moved "
                                              f"{_moved(r, hold):.2g} m in the last {hold:g} s)"
                                              if math.isfinite(r.churn) else ""))
+        in_place = _in_place(r.t, r.pos, radius, hold)
+        if not math.isfinite(r.converged) and math.isfinite(in_place):
+            still += f"; in place (every robot within {radius:g} m) from {in_place:.0f} s"
         res.compare(f"{v}: converged", "\"converges, as we observe\"",
                     f"at {r.converged:.0f} s" if math.isfinite(r.converged) else still, "",
                     f"every robot slower than {threshold:g} m/s for {hold:g} s")

@@ -104,6 +104,21 @@ def test_spread_in_a_corridor_settles_apart_and_no_robot_ends_pinned_to_a_wall(t
     check_outputs(result, tmp_path)
 
 
+def test_a_team_jittering_in_place_settles_in_place_but_not_by_speed():
+    from erni.sim.experiments.spread import _in_place, _still
+
+    t = np.arange(0.0, 40.0, 0.5)
+    pos = np.zeros((len(t), 3, 2))
+    pos[:, 0, 0] = np.minimum(t, 12.0) * 0.3           # robot 1 drives 3.6 m, then stops at t = 12 s
+    pos[:, 1, 1] = 0.02 * (np.arange(len(t)) % 2)      # robot 2 jumps 2 cm back and forth every sample
+    step = np.diff(pos, axis=0, prepend=pos[:1])
+    speed = np.hypot(step[:, :, 0], step[:, :, 1]) / 0.5
+    assert math.isnan(_still(t, speed, 0.03, 10.0))    # 0.04 m/s of jitter: never "slower than 0.03"
+    assert _in_place(t, pos, 0.1, 10.0) == 12.0        # ... yet every robot stays put from 12 s
+    assert math.isnan(_in_place(t, pos, 0.01, 10.0))   # the jitter is wider than 1 cm
+    assert math.isnan(_in_place(t[:30], pos[:30], 0.1, 10.0))  # no 10 s after the stop: not settled
+
+
 def test_the_paper_table_keeps_inputs_apart_from_results(tmp_path):
     res = experiments.Result("x", "t", "kinematic", mode_note="how it ran")
     res.compare("d", 5.0, 5.0, "m", "the paper's setting", "input")
