@@ -63,6 +63,14 @@ class Cancel(_Message):
     uid: str
 
 
+class Fresh(_Message):
+    """A shared object still holds as sent whole when its stamp was `base`; only its stamp is now `stamp`."""
+
+    uid: str
+    base: float
+    stamp: float
+
+
 class PeerList(_Message):
     """The directory of an agent, sent to a client."""
 

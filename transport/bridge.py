@@ -38,7 +38,7 @@ from pydantic import BaseModel, ConfigDict, Field, SecretStr, model_validator
 
 from erni.blackboard import AllocationResult, BBObject, NetInfo, Plugin, Pose, Task, TaskState
 from erni.blackboard.errors import ConfigError
-from erni.blackboard.schemas import Beacon, Cancel, Peer, PeerList, ResultUpdate, WatchEvent, WatchRequest
+from erni.blackboard.schemas import Beacon, Cancel, Fresh, Peer, PeerList, ResultUpdate, WatchEvent, WatchRequest
 from erni.transport.endpoint import CLIENT_ROLE, Address, Endpoint, InboundFilter, parse_address, team_key
 from erni.transport.identity import Identity, IdentityError, load_identity
 from erni.transport.limits import Limits
@@ -55,7 +55,7 @@ class Received(BBObject):
     address: str = Field("", description="the sender's reply address, HOST:PORT")
 
 
-for _cls in (Peer, Received, Beacon, ResultUpdate, Cancel, PeerList, WatchRequest, WatchEvent):
+for _cls in (Peer, Received, Beacon, ResultUpdate, Cancel, Fresh, PeerList, WatchRequest, WatchEvent):
     register_type(_cls)
 
 WATCHED = (Task, Pose, NetInfo, Peer)
@@ -102,6 +102,9 @@ class TransportSettings(BaseModel):
                                  "authenticated frame) must arrive within this time (s)")
     share: list[str] = Field(default_factory=lambda: ["Pose", "NetInfo"],
                              description="object types sent as status to the peers below")
+    status_refresh: float = Field(30.0, gt=0, le=3600.0, description="a shared object whose only change is "
+                                  "its `stamp` goes to peers that hold it as a freshness note (its uid and "
+                                  "stamp); the whole object goes again at least this often (s)")
     share_with_roles: list[str] = Field(default_factory=lambda: ["control"],
                                         description="peers of these roles receive shared status")
     share_with: dict[str, list[str]] = Field(default_factory=dict,
@@ -183,6 +186,9 @@ class TransportPlugin(Plugin[TransportSettings]):
             self.log.info("transport of %s authenticates with a shared team key: any holder of the key "
                           "can speak as any agent (give identities on a real team: erni keys)", self.agent_name)
         self.status_in: dict[str, tuple[int, int]] = {}  # uid of a status received -> (epoch, seq)
+        self.status_base: dict[str, float] = {}  # uid of a status received -> stamp of the whole version held
+        self.whole_sent: dict[str, _Sent] = {}  # uid of a shared object of ours -> its last whole version sent
+        self._resend_asked: dict[str, float] = {}  # uid of a status received -> when we last asked for it whole
         self.tasks = self.subscribe(Task)
         self.receipts = self.subscribe(Received)
         self.watched = self.subscribe(lambda o: isinstance(o, WATCHED))
@@ -417,7 +423,15 @@ class TransportPlugin(Plugin[TransportSettings]):
                 self.endpoint.send(msg.reply, "task.unknown", body, reliable=False, to=msg.sender)
         elif kind == "status" and isinstance(body, BBObject):
             self._apply_status(msg, body)
+        elif kind == "status.fresh" and isinstance(body, Fresh):
+            self._apply_fresh(msg, body)
+        elif kind == "status.resend" and isinstance(body, Cancel):
+            sent = self.whole_sent.get(body.uid)
+            if sent is not None:  # its next change goes whole again
+                sent.holders = {h for h in sent.holders if h[0] != msg.sender}
         elif kind == "status.remove" and isinstance(body, Cancel):
+            self.status_base.pop(body.uid, None)
+            self._resend_asked.pop(body.uid, None)
             if self.status_in.pop(body.uid, None) is not None and self.get(body.uid) is not None:
                 self.remove(body.uid)
         elif kind == "peers.request":
@@ -645,23 +659,42 @@ class TransportPlugin(Plugin[TransportSettings]):
             del self.beacon_due[name]  # talking again: its frames tell it we are alive
 
     def _share_status(self) -> None:
-        """Send this agent's own shared objects (poses, network info) to the status peers."""
+        """Send this agent's own shared objects (poses, network info) to the status peers.
+
+        A change of nothing but an object's `stamp` (a keep-alive: a standing robot's Pose, a
+        network reading that did not change) goes as a `Fresh` note to peers that were sent the
+        whole object, unless `status_refresh` has passed since: a control node hears of every
+        robot's network topology each second, and the whole of it only when it changed."""
         objs = self.shared.added + self.shared.changed
         gone = self.shared.removed
         if not objs and not gone:
             return
         s = self.settings
         peers = [p for p in self.directory.values() if p.up and p.address]
-        messages: list[tuple[str, BBObject, BaseModel]] = [("status", obj, obj) for obj in objs]
-        messages += [("status.remove", obj, Cancel(uid=obj.uid)) for obj in gone]
         mono = time.monotonic()
-        for kind, obj, body in messages:
-            roles = s.share_with.get(type(obj).__name__, s.share_with_roles)
-            for peer in peers:
-                if peer.role in roles:  # removals reliably: a stale object would stay forever
-                    self.endpoint.send(parse_address(peer.address), kind, body, reliable=kind != "status",
-                                       to=peer.name)
-                    self.sent_peer_at[peer.name] = mono
+        for obj in objs:
+            targets = [p for p in peers if p.role in s.share_with.get(type(obj).__name__, s.share_with_roles)]
+            if not targets:
+                continue
+            sent = self.whole_sent.get(obj.uid)
+            holders = {(p.name, p.epoch) for p in targets}
+            if sent is not None and holders <= sent.holders and mono - sent.at < s.status_refresh \
+                    and _only_stamp_changed(sent.obj, obj):
+                self._send_status(targets, "status.fresh", Fresh(uid=obj.uid, base=sent.obj.stamp,  # type: ignore[attr-defined]
+                                                                 stamp=obj.stamp), False, mono)  # type: ignore[attr-defined]
+                continue
+            self._send_status(targets, "status", obj, False, mono)
+            if isinstance(getattr(obj, "stamp", None), float):
+                self.whole_sent[obj.uid] = _Sent(obj, mono, holders)
+        for obj in gone:  # removals reliably: a stale object would stay forever
+            self.whole_sent.pop(obj.uid, None)
+            self._send_status([p for p in peers if p.role in s.share_with.get(type(obj).__name__, s.share_with_roles)],
+                              "status.remove", Cancel(uid=obj.uid), True, mono)
+
+    def _send_status(self, peers: list[Peer], kind: str, body: BaseModel, reliable: bool, mono: float) -> None:
+        for peer in peers:
+            self.endpoint.send(parse_address(peer.address), kind, body, reliable=reliable, to=peer.name)
+            self.sent_peer_at[peer.name] = mono
 
     def _apply_status(self, msg: Message, obj: BBObject) -> None:
         stamp = (msg.epoch, msg.seq)
@@ -671,10 +704,29 @@ class TransportPlugin(Plugin[TransportSettings]):
         if first and self._board.get(obj.uid) is not None:
             return  # never overwrite an object of our own with a peer's
         self.status_in[obj.uid] = stamp
+        base = getattr(obj, "stamp", None)
+        if isinstance(base, float):
+            self.status_base[obj.uid] = base
         if first:
             self.add(obj)
         else:
             self.change(obj, reports=[f"status from {msg.sender}"])
+
+    def _apply_fresh(self, msg: Message, note: Fresh) -> None:
+        """A peer's shared object is unchanged but for its stamp: if we hold the version it was
+        sent whole as, take the new stamp; else (that version was lost) ask for it whole."""
+        stamp = (msg.epoch, msg.seq)
+        if stamp <= self.status_in.get(note.uid, (0, 0)):
+            return
+        held = self._board.get(note.uid) if note.uid in self.status_in else None
+        if held is None or self.status_base.get(note.uid) != note.base:
+            now = time.monotonic()
+            if now - self._resend_asked.get(note.uid, -math.inf) >= 1.0:
+                self._resend_asked[note.uid] = now
+                self.endpoint.send(msg.reply, "status.resend", Cancel(uid=note.uid), reliable=False, to=msg.sender)
+            return
+        self.status_in[note.uid] = stamp
+        self.change(held.model_copy(update={"stamp": note.stamp}), reports=[f"status from {msg.sender}"])
 
     def _forward_to_watchers(self, now: float) -> None:
         mono = time.monotonic()
@@ -702,3 +754,17 @@ def _is_ip(text: str) -> bool:
     except ValueError:
         return False
     return True
+
+
+class _Sent:
+    """The last whole version of a shared object sent, when, and to which peers (name, epoch)."""
+
+    __slots__ = ("obj", "at", "holders")
+
+    def __init__(self, obj: BBObject, at: float, holders: set[tuple[str, int]]):
+        self.obj, self.at, self.holders = obj, at, holders
+
+
+def _only_stamp_changed(old: BBObject, new: BBObject) -> bool:
+    """Whether `new` is `old` but for its `stamp`."""
+    return new.model_copy(update={"stamp": old.stamp}) == old  # type: ignore[attr-defined]

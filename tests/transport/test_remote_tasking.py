@@ -442,3 +442,63 @@ def test_share_with_sends_a_type_to_more_roles_than_the_rest(team):
     wait_until(lambda: control.blackboard.contains("pose:robotA"))
     time.sleep(0.2)
     assert not b.blackboard.contains("pose:robotA"), "poses go to the control node only"
+
+
+def record_sends(agent: Agent, lose: list[str]) -> list[str]:
+    """Kinds of the messages an agent's transport sends from now on; a kind put in `lose` is lost once."""
+    endpoint = agent.plugin("transport").endpoint
+    kinds: list[str] = []
+    real = endpoint.send
+
+    def send(addr, kind, body, **kw):
+        kinds.append(kind)
+        if kind in lose:
+            lose.remove(kind)
+            return None
+        return real(addr, kind, body, **kw)
+
+    endpoint.send = send
+    return kinds
+
+
+def test_a_keepalive_of_a_shared_object_travels_as_its_stamp_and_a_lost_whole_one_is_asked_for(team):
+    from erni.blackboard import Pose
+
+    control = team("control", echo=False, role="control")
+    robot = team("robot1", echo=False, status_refresh=2.0)
+    wait_until(lambda: any(p.up and p.role == "control" for p in robot.query(Peer)))
+    lose: list[str] = []
+    sent, answered = record_sends(robot, lose), record_sends(control, [])
+
+    def publish(**fields):
+        with robot.transaction() as tx:
+            old = robot.blackboard.get("pose:robot1")
+            tx.change(old.evolve(**fields)) if old else tx.add(Pose(robot="robot1", **fields))
+
+    def at_control():
+        return control.blackboard.get("pose:robot1")
+
+    publish(x=1.0, stamp=100.0)
+    wait_until(lambda: at_control() is not None and at_control().stamp == 100.0)
+    publish(stamp=101.0)  # a keep-alive: only the stamp
+    wait_until(lambda: at_control().stamp == 101.0)
+    assert sent.count("status") == 1 and sent.count("status.fresh") == 1 and at_control().x == 1.0
+    publish(x=2.0, stamp=102.0)  # a real change goes whole
+    wait_until(lambda: at_control().x == 2.0)
+    assert sent.count("status") == 2
+
+    lose.append("status")
+    publish(x=3.0, stamp=103.0)  # lost on the way
+    wait_until(lambda: sent.count("status") == 3)
+    publish(stamp=104.0)  # a freshness note for a version the control node never got
+    wait_until(lambda: "status.resend" in answered)
+    time.sleep(0.2)
+    assert (at_control().x, at_control().stamp) == (2.0, 102.0), "a stamp is never put on a version not held"
+    publish(stamp=105.0)  # asked for: whole again
+    wait_until(lambda: at_control().stamp == 105.0)
+    assert at_control().x == 3.0 and sent.count("status") == 4
+
+    time.sleep(2.1)  # status_refresh: the whole object again, even if only its stamp changed
+    publish(stamp=106.0)
+    wait_until(lambda: at_control().stamp == 106.0)
+    assert sent.count("status") == 5
