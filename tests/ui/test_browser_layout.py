@@ -165,8 +165,11 @@ def test_a_page_of_another_origin_cannot_reach_the_gui_in_a_real_browser(control
 
     def serve() -> None:
         async def main() -> None:
+            async def page(_: web.Request) -> web.Response:
+                return web.Response(text=attack, content_type="text/html")
+
             app = web.Application()
-            app.router.add_get("/", lambda r: web.Response(text=attack, content_type="text/html"))
+            app.router.add_get("/", page)
             runner = web.AppRunner(app)
             await runner.setup()
             await web.TCPSite(runner, "127.0.0.1", evil_port).start()
