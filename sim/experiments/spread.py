@@ -332,6 +332,7 @@ def _result(scenario: Scenario, experiment: Experiment, mode: str, runs: list[Ru
                      f"{n} robots stepped in one process by the mission's spread_step (equations 15/16)"
                      + (", too many for one agent process per robot on this machine" if n > 12 else ""))
     finals = {}
+    in_place: dict[str, float] = {}  # variant -> when a run that did not converge settled in place
     for r in runs:
         v = r.variant
         final = r.pos[-1]
@@ -341,8 +342,9 @@ def _result(scenario: Scenario, experiment: Experiment, mode: str, runs: list[Ru
         energies = [energy_model.track_energy(r.t, r.pos[:, i, 0], r.pos[:, i, 1])[0] for i in range(n)]
         res.metrics[f"{v}: converged at (all slower than {threshold:g} m/s for {hold:g} s)"] = (r.converged, "s")
         if not math.isfinite(r.converged):  # a converged run stops: its track may end before such a stretch
+            in_place[v] = _in_place(r.t, r.pos, radius, hold)
             res.metrics[f"{v}: settled in place at (every robot within {radius:g} m for {hold:g} s)"] = (
-                _in_place(r.t, r.pos, radius, hold), "s")
+                in_place[v], "s")
         res.metrics[f"{v}: mean NN distance at the end (d = {d:g})"] = (float(nn.mean()), "m")
         res.metrics[f"{v}: smallest NN distance at the end"] = (float(nn.min()), "m")
         res.metrics[f"{v}: mean NN distance at t = 30 s"] = (mean_nn_distance(r.pos[k30]), "m")
@@ -384,9 +386,8 @@ def _result(scenario: Scenario, experiment: Experiment, mode: str, runs: list[Ru
         still = (f"not by {r.t[-1]:.0f} s" + (f" ({r.churn:.3g} links made or broken per s, a robot moved "
                                              f"{_moved(r, hold):.2g} m in the last {hold:g} s)"
                                              if math.isfinite(r.churn) else ""))
-        in_place = _in_place(r.t, r.pos, radius, hold)
-        if not math.isfinite(r.converged) and math.isfinite(in_place):
-            still += f"; in place (every robot within {radius:g} m) from {in_place:.0f} s"
+        if math.isfinite(in_place.get(v, math.nan)):
+            still += f"; in place (every robot within {radius:g} m) from {in_place[v]:.0f} s"
         res.compare(f"{v}: converged", "\"converges, as we observe\"",
                     f"at {r.converged:.0f} s" if math.isfinite(r.converged) else still, "",
                     f"every robot slower than {threshold:g} m/s for {hold:g} s")
