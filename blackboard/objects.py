@@ -32,3 +32,10 @@ class BBObject(BaseModel):
         data = self.model_dump()
         data.update(changes)
         return type(self).model_validate(data)
+
+
+def only_stamp_differs(old: BaseModel, new: BaseModel) -> bool:
+    """Whether `new` is `old` but for its `stamp` field (compared field by field: stops at the first
+    difference, and rows shared by both are not compared again)."""
+    a, b = old.__dict__, new.__dict__
+    return type(old) is type(new) and a.keys() == b.keys() and all(a[k] == b[k] for k in a if k != "stamp")

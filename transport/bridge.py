@@ -38,6 +38,7 @@ from pydantic import BaseModel, ConfigDict, Field, SecretStr, model_validator
 
 from erni.blackboard import AllocationResult, BBObject, NetInfo, Plugin, Pose, Task, TaskState
 from erni.blackboard.errors import ConfigError
+from erni.blackboard.objects import only_stamp_differs
 from erni.blackboard.schemas import Beacon, Cancel, Fresh, Peer, PeerList, ResultUpdate, WatchEvent, WatchRequest
 from erni.transport.endpoint import CLIENT_ROLE, Address, Endpoint, InboundFilter, parse_address, team_key
 from erni.transport.identity import Identity, IdentityError, load_identity
@@ -679,7 +680,7 @@ class TransportPlugin(Plugin[TransportSettings]):
             sent = self.whole_sent.get(obj.uid)
             holders = {(p.name, p.epoch) for p in targets}
             if sent is not None and holders <= sent.holders and mono - sent.at < s.status_refresh \
-                    and _only_stamp_changed(sent.obj, obj):
+                    and only_stamp_differs(sent.obj, obj):
                 self._send_status(targets, "status.fresh", Fresh(uid=obj.uid, base=sent.obj.stamp,  # type: ignore[attr-defined]
                                                                  stamp=obj.stamp), False, mono)  # type: ignore[attr-defined]
                 continue
@@ -763,9 +764,3 @@ class _Sent:
 
     def __init__(self, obj: BBObject, at: float, holders: set[tuple[str, int]]):
         self.obj, self.at, self.holders = obj, at, holders
-
-
-def _only_stamp_changed(old: BBObject, new: BBObject) -> bool:
-    """Whether `new` is `old` but for its `stamp` (field by field: a moving robot's Pose differs at once)."""
-    a, b = old.__dict__, new.__dict__
-    return type(old) is type(new) and a.keys() == b.keys() and all(a[k] == b[k] for k in a if k != "stamp")

@@ -22,6 +22,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from erni.blackboard import NetInfo, Plugin, Pose, Position, Task, TaskState
 from erni.blackboard.errors import ConfigError, TransactionError
+from erni.blackboard.objects import only_stamp_differs
 from erni.blackboard.schemas import Peer
 from erni.blackboard.tasks import (
     LinkQualityParams,
@@ -325,9 +326,7 @@ class MobiNetControl(Plugin[MobiNetSettings]):
 
     def _same(self, old: NetInfo, new: NetInfo) -> bool:
         """A reading that changes only the stamp, within the keep-alive: not worth a transaction."""
-        a, b = old.__dict__, new.__dict__  # field by field: a reading read from the cache shares its rows
-        return (new.stamp - old.stamp < self.settings.netinfo_keepalive
-                and all(a[k] == b[k] for k in a if k != "stamp"))
+        return new.stamp - old.stamp < self.settings.netinfo_keepalive and only_stamp_differs(old, new)
 
     def _answer(self, task: Task, info: NetInfo, view: NetView) -> tuple[NetInfo, dict[str, Any], str]:
         provenance = {"node": view.sources.get("node", "")}
