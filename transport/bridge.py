@@ -8,7 +8,7 @@
   result changes travel back to the peer it came from (UDP; a final state once, over TCP).
   An agent that cannot keep tasks (its journal cannot write) refuses new ones with the reason.
 - Signed beacons go to the configured broadcast/unicast addresses and to addresses learned
-  from MobiNet's `NetInfo`: they only tell that an agent may be there. While every known peer
+  from MobiNet's `NetInfo` where no peer is up: they only tell that an agent may be there. While every known peer
   is up and nothing new is learned, these announcements back off (doubling up to
   `announce_backoff` beacon periods); a newcomer still announces every period and is answered
   at once. Known peers get beacons inside their session, but only the quiet ones (nothing else
@@ -603,7 +603,14 @@ class TransportPlugin(Plugin[TransportSettings]):
             announced: set[Address] = set()
             if s.discovery_port:
                 announced |= {(host, s.discovery_port) for host in s.beacon_to}
+                # a learned address whose agent is already up with us needs no announcement: its
+                # session carries beacons (and on one host, as under `erni sim`, a unicast to the
+                # shared beacon port lands on whichever agent bound it last, not on that agent)
+                up = {p.address for p in self.directory.values() if p.up}
+                up_hosts = {a.rpartition(":")[0] for a in up}
                 for learned in self.learned:  # HOST (beacon port) or HOST:PORT (data port)
+                    if learned in up or learned in up_hosts:
+                        continue
                     try:
                         announced.add(parse_address(learned, s.discovery_port))
                     except ConfigError:

@@ -81,6 +81,42 @@ def test_addresses_learned_from_the_network_topology():
         b.stop()
 
 
+def test_a_learned_address_is_announced_to_only_until_its_agent_is_up():
+    """Announcements are for agents not known yet. Once the agent at a learned address is up, its
+    session carries the beacons; a learned address with nobody up there is still tried."""
+    import time
+
+    port = free_port()
+    a = make_agent("a", port, beacon_to=[], announce_backoff=1)  # announce every period
+    b = make_agent("b", port, beacon_to=[], announce_backoff=1)
+    try:
+        a_addr = "{}:{}".format(*a.plugin("transport").address)
+        nobody = f"127.0.0.1:{free_port()}"
+        endpoint = b.plugin("transport").endpoint
+        announced: list[tuple[str, int]] = []
+        announce = endpoint.announce
+
+        def spy(addr, kind, body=None):  # type: ignore[no-untyped-def]
+            announced.append(addr)
+            return announce(addr, kind, body)
+
+        endpoint.announce = spy  # type: ignore[method-assign]
+        with b.transaction() as tx:
+            tx.add(NetInfo(node="b", kind="neighbor_list", neighbors=[{"name": "a", "address": a_addr},
+                                                                       {"name": "c", "address": nobody}]))
+        wait_until(lambda: peers(b).get("a") and peers(b)["a"].up)
+        time.sleep(0.3)  # an announcement in flight when a came up may still go
+        announced.clear()
+        time.sleep(1.0)  # ten beacon periods
+        assert announced, "the address with nobody up there is still announced to"
+        targets = {"{}:{}".format(*addr) for addr in announced}
+        assert targets == {nobody}, targets
+        assert peers(b)["a"].up
+    finally:
+        a.stop()
+        b.stop()
+
+
 def test_an_inbound_filter_fed_through_a_pipe_drops_traffic_between_unconnected_agents():
     import json
     import os
