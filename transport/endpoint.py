@@ -299,6 +299,20 @@ class Endpoint:
             t.start()
             self._threads.append(t)
 
+    def receive_buffer(self, size: int) -> int:
+        """Ask the kernel for a UDP receive buffer of `size` bytes (beyond `net.core.rmem_max` where
+        the process may, else up to it) for a receiver that may fall behind a burst, such as a
+        watcher sharing its process with other work; return the size granted (the kernel counts
+        its own overhead, so this is about twice what it keeps for data)."""
+        udp: socket.socket | None = getattr(self, "_udp", None)
+        if udp is None:
+            raise NetworkError("receive_buffer: the endpoint is not started")
+        try:
+            udp.setsockopt(socket.SOL_SOCKET, getattr(socket, "SO_RCVBUFFORCE", 33), size)
+        except OSError:  # not allowed (no CAP_NET_ADMIN): the kernel caps this one at rmem_max
+            udp.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, size)
+        return int(udp.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF))
+
     def _bind_pair(self) -> tuple[socket.socket, socket.socket]:
         """TCP and UDP sockets on one port; with port 0, retry until both get the same free number."""
         host, port = self._listen

@@ -151,3 +151,23 @@ def test_reliable_sends_never_block_on_a_peer_that_stops_reading_and_arrive_in_o
         release.set()
         a.stop()
         b.stop()
+
+
+def test_a_receiver_may_ask_for_a_larger_udp_receive_buffer_and_is_told_what_it_got():
+    """A watcher that shares its process with busy work (the team benchmark's, beside the
+    simulator) asks for room for a burst; the size the kernel granted is returned."""
+    from pathlib import Path
+
+    ep, _ = endpoint("a")
+    try:
+        default = ep._udp.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
+        want = 4 * default
+        got = ep.receive_buffer(want)
+        assert got == ep._udp.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
+        rmem_max = int(Path("/proc/sys/net/core/rmem_max").read_text())
+        assert got >= min(want, rmem_max), (got, want, rmem_max)  # the kernel doubles what it grants
+        assert got > default or rmem_max * 2 <= default
+    finally:
+        ep.stop()
+    with pytest.raises(Exception, match="not started"):
+        Endpoint("b", identity=load_identity(identity("b"))).receive_buffer(1 << 20)
