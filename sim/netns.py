@@ -32,13 +32,18 @@ its links, addresses, routes and rules (the root ends of the management links di
 peers). `Mesh.destroy()` stops the daemons and deletes the namespaces. A launcher killed with
 SIGKILL leaves them behind: its state file (`/run/erni-netns/T.json`: owner pid and start
 time) is written before anything is created, so the next `Mesh.create()` (or
-`clean_stale()`) recognises the namespaces of dead owners by name and deletes them.
+`clean_stale()`) recognises the namespaces of dead owners by name and deletes them. What ran in
+them does not outlive the launcher: every process it starts in a namespace (`Mesh.popen`: babeld,
+the agents) gets SIGKILL from the kernel when the launcher dies (`die_with_parent`); the clean
+stop (SIGTERM, once) is `Mesh.destroy()`'s and the team's, when the launcher stops normally.
 """
 
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import fcntl
+import functools
 import ipaddress
 import json
 import logging
@@ -52,7 +57,7 @@ import socket
 import subprocess
 import threading
 import time
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -407,6 +412,14 @@ class Mesh:
             "",
         ])
 
+    def popen(self, name: str, argv: list[str], log: Path, *,
+              env: Mapping[str, str] | None = None) -> subprocess.Popen[bytes]:
+        """Start `argv` in node `name`'s namespace, output appended to `log`, killed when this process dies."""
+        with open(log, "ab") as out:
+            return subprocess.Popen(self.exec_argv(name, argv), stdin=subprocess.DEVNULL, stdout=out,
+                                    stderr=subprocess.STDOUT, env=env, start_new_session=True,
+                                    preexec_fn=die_with_parent())
+
     def start_babel(self) -> None:
         """Start babeld in every namespace (foreground children that die with this process)."""
         (self.run_dir / "babel").mkdir(parents=True, exist_ok=True)
@@ -415,12 +428,9 @@ class Mesh:
             base = self.run_dir / "babel" / node.name
             config = base.with_suffix(".conf")
             config.write_text(self.babeld_config(node))
-            with open(self.run_dir / "logs" / f"babeld-{node.name}.log", "ab") as out:
-                node.babeld = subprocess.Popen(
-                    self.exec_argv(node.name, ["babeld", "-c", str(config), "-I", str(base.with_suffix(".pid")),
-                                               "-S", str(base.with_suffix(".state"))]),
-                    stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT,
-                    start_new_session=True, preexec_fn=die_with_parent)
+            node.babeld = self.popen(node.name, ["babeld", "-c", str(config), "-I", str(base.with_suffix(".pid")),
+                                                 "-S", str(base.with_suffix(".state"))],
+                                     self.run_dir / "logs" / f"babeld-{node.name}.log")
 
     def daemons_alive(self) -> list[str]:
         """Names of the nodes whose babeld runs."""
@@ -570,14 +580,48 @@ class Mesh:
         return found
 
 
-def die_with_parent() -> None:
-    """Runs in a child between fork and exec: it gets SIGTERM when the launcher dies."""
-    import ctypes
+PR_SET_PDEATHSIG = 1
+DEATH_SIGNAL = signal.SIGKILL
+"""What the kernel sends a process the launcher started when the launcher dies.
 
+Not SIGTERM: the kernel sends the death signal each time the thread that is the child's parent
+exits, and a dying launcher hands its children from one of its threads to the next, so under
+load a child gets it several times within milliseconds. `erni agent`'s SIGTERM handler, run
+again while its first run held the lock of its stop event (Event.set), waited for that lock
+forever: the agent outlived its launcher. SIGKILL needs no handler and cannot be caught before
+exec either. Agents and babeld get their clean stop (one SIGTERM) when the launcher stops
+normally (Team.stop, Mesh.destroy); a launcher killed outright leaves nothing to stop cleanly for.
+"""
+
+
+@functools.cache
+def _prctl() -> Callable[..., int] | None:
     try:
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
-    except OSError:
-        pass
+        return ctypes.CDLL("libc.so.6", use_errno=True).prctl
+    except (OSError, AttributeError):
+        return None
+
+
+def die_with_parent(signum: int = DEATH_SIGNAL) -> Callable[[], None]:
+    """A `preexec_fn` (make one per Popen, in the process that starts the child): the child gets
+    `signum` when its parent dies, and does not start at all if its parent is already gone.
+
+    PR_SET_PDEATHSIG only covers a parent that dies after the call: a launcher killed between
+    fork and the child's prctl never signals it (the child's new parent, init, does not die), so
+    the child compares its parent with the launcher's pid once the signal is armed, and exits
+    before exec when they differ.
+    """
+    parent = os.getpid()
+    prctl = _prctl()  # looked up here: between fork and exec the child only calls it
+
+    def arm() -> None:  # in the child, between fork and exec
+        if prctl is not None:
+            prctl(PR_SET_PDEATHSIG, int(signum))
+        if os.getppid() != parent:
+            os.write(2, b"erni: the launcher died before this process started; not starting it\n")
+            os._exit(1)
+
+    return arm
 
 
 class TcpForwarder:

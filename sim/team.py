@@ -514,12 +514,8 @@ class Team:
 
     def _spawn(self, agent: AgentProcess, env: dict[str, str]) -> None:
         if self.mesh is not None:  # the real mesh: plain `erni agent` in the node's namespace, no radio pipe
-            with open(agent.log, "ab") as out:
-                agent.proc = subprocess.Popen(
-                    self.mesh.exec_argv(agent.name, [sys.executable, "-m", "erni", "agent", str(agent.config),
-                                                     "--log-level", self.log_level]),
-                    stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT, env=env,
-                    start_new_session=True, preexec_fn=_die_with_parent)
+            agent.proc = self.mesh.popen(agent.name, [sys.executable, "-m", "erni", "agent", str(agent.config),
+                                                      "--log-level", self.log_level], agent.log, env=env)
             return
         read, write = os.pipe()  # the agent's radio: reachability lines from us
         os.set_blocking(write, False)  # the feed loop never waits on an agent
