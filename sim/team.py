@@ -24,7 +24,6 @@ the service address of the management links, and the GUI through a forwarder on 
 
 from __future__ import annotations
 
-import ctypes
 import json
 import logging
 import math
@@ -47,7 +46,7 @@ from typing import Any
 
 from erni.blackboard.errors import ErniError, UsageError
 from erni.sim.manet import ManetNetwork, RadioModel
-from erni.sim.netns import HELLO_INTERVAL, Mesh, TcpForwarder
+from erni.sim.netns import HELLO_INTERVAL, Mesh, TcpForwarder, die_with_parent
 from erni.sim.radio import FD_ENV
 from erni.sim.robot import SimRobot, SimRobotConfig
 from erni.sim.robot_host import RobotHost
@@ -147,13 +146,6 @@ def agent_toml(name: str, plugins: list[tuple[str, dict[str, Any]]], *, journal:
         lines += ["", "[[plugin]]", f"class = {toml_value(cls)}", "[plugin.settings]"]
         lines += [f"{k} = {toml_value(v)}" for k, v in settings.items()]
     return "\n".join(lines).lstrip() + "\n"
-
-
-def _die_with_parent() -> None:  # runs in the child between fork and exec
-    try:
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
-    except OSError:
-        pass
 
 
 @dataclass
@@ -528,7 +520,9 @@ class Team:
                     [sys.executable, "-m", "erni.sim.radio", str(agent.config), "--log-level", self.log_level],
                     stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT,
                     env={**env, FD_ENV: str(read)}, pass_fds=(read,),
-                    start_new_session=True, preexec_fn=_die_with_parent)
+                    start_new_session=True,
+                    # SIGTERM: a loopback agent still stops cleanly (its journal closed) when the launcher dies
+                    preexec_fn=die_with_parent(signal.SIGTERM))
         finally:
             os.close(read)
 

@@ -59,9 +59,15 @@ def run(args: argparse.Namespace, prepare: Callable[[Agent], None] | None = None
     stop = threading.Event()
     running = threading.Event()
 
+    fired: list[int] = []
+
     def on_signal(signum: int, frame: Any) -> None:
-        if stop.is_set():
+        # A second signal may come while this handler is inside stop.set(), holding the event's
+        # lock (a killed launcher's death signal comes once per thread of it that exits): the
+        # plain flag, set before the lock is taken, keeps that nested call off the lock.
+        if fired:
             return
+        fired.append(signum)
         stop.set()
         watchdog = threading.Timer(args.stop_grace, _exit_hard, (config.agent.name, args.stop_grace))
         watchdog.daemon = True

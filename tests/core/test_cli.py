@@ -65,6 +65,40 @@ def test_agent_runs_until_sigterm_and_stops_cleanly():
             proc.wait()
 
 
+SECOND_SIGNAL = '''
+import os, signal, sys, threading
+from erni.cli import main
+original = threading.Event.set
+armed: list = []
+
+def set_with_a_second_signal_inside(self):
+    if not (armed and threading.current_thread() is threading.main_thread()):
+        return original(self)
+    armed.clear()
+    # the second SIGTERM of a burst, arriving while the first handler holds the event's lock
+    with self._cond:
+        os.kill(os.getpid(), signal.SIGTERM)
+        for _ in range(1000):
+            pass   # bytecodes: the interpreter runs the pending handler here
+        self._flag = True
+        self._cond.notify_all()
+
+threading.Event.set = set_with_a_second_signal_inside
+threading.Timer(1.5, lambda: (armed.append(1), os.kill(os.getpid(), signal.SIGTERM))).start()
+sys.exit(main(["agent", "examples/robot.toml", "--log-level", "WARNING"]))
+'''
+
+
+def test_a_second_signal_inside_the_first_ones_handler_does_not_hang_the_agent():
+    """A killed launcher's death signal can come again while the agent's handler is stopping it
+    (once for each of the launcher's threads that exits). The nested handler must not wait for
+    the lock the first one holds: the agent stops and exits 0."""
+    out = subprocess.run([sys.executable, "-c", SECOND_SIGNAL], cwd=ROOT, capture_output=True, text=True,
+                         timeout=20)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert "Traceback" not in out.stderr
+
+
 HANGING = '''
 import threading
 from erni import Plugin
