@@ -21,6 +21,7 @@ import hashlib
 import os
 import re
 import threading
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -43,6 +44,11 @@ _END = datetime.datetime(9999, 12, 31, 23, 59, 59, tzinfo=datetime.UTC)
 # what cryptography's lazy X.509 parser may raise on bad DER (found by fuzzing: KeyError, InvalidVersion)
 _MALFORMED = (ValueError, TypeError, KeyError, IndexError, OverflowError, x509.InvalidVersion,
               x509.DuplicateExtension, x509.UnsupportedGeneralNameType)
+
+# A certificate whose serial number is not positive (RFC 5280 forbids it) is refused as
+# malformed, as cryptography will itself refuse it: its warning is raised as an error, once for
+# the process (a filter set per call would not be thread-safe).
+warnings.filterwarnings("error", message="Parsed a serial number which wasn't positive", category=UserWarning)
 
 
 class IdentityError(ConfigError):
@@ -111,6 +117,8 @@ class Trust:
             raise
         except _MALFORMED:  # cryptography parses lazily: a bad field surfaces here, even as KeyError
             raise IdentityError("certificate is malformed") from None
+        except UserWarning:  # the serial number above
+            raise IdentityError("certificate is malformed: its serial number is not positive (RFC 5280)") from None
 
     def _read(self, der: bytes) -> Certified:
         try:
@@ -139,7 +147,7 @@ class Trust:
                 return False
             number = _crl_number(crl)
             revoked = frozenset(r.serial_number for r in crl)
-        except _MALFORMED:  # cryptography parses lazily: a bad field surfaces here, even as KeyError
+        except (*_MALFORMED, UserWarning):  # cryptography parses lazily: a bad field surfaces here, even as KeyError
             return False
         if self.crl_der and number <= self.crl_number:
             return False

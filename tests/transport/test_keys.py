@@ -109,3 +109,28 @@ def test_a_handshake_signature_verifies_with_openssl(keys, tmp_path):
                   "-sigfile", str(tmp_path / "sig"))
     assert bad.returncode != 0
     assert os.path.getsize(tmp_path / "sig") == 64
+
+
+def test_a_certificate_with_a_serial_number_that_is_not_positive_is_refused_as_malformed():
+    """RFC 5280: a serial number is positive. A certificate from the wire with a negative one is
+    refused with a one-line reason (cryptography only warns about it today)."""
+    import warnings
+
+    from erni.transport.identity import IdentityError, load_identity
+    from tests.transport.helpers import identity
+
+    ident = load_identity(identity("serial-test"))
+    der = bytearray(ident.cert_der)
+    def header(i: int) -> int:  # DER: tag, then a short or long form length
+        return 2 if der[i + 1] < 0x80 else 2 + (der[i + 1] & 0x7F)
+
+    # Certificate SEQUENCE, tbsCertificate SEQUENCE, [0] version (5 bytes), then the serial
+    tbs = header(0)
+    at = tbs + header(tbs) + 5
+    assert der[at] == 0x02, "the serial INTEGER follows the version"
+    der[at + 2] |= 0x80  # its first content byte: the number turns negative
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # nothing may merely warn
+        with pytest.raises(IdentityError, match="serial number is not positive"):
+            ident.trust.check(bytes(der))
+        assert ident.trust.check(ident.cert_der).name == "serial-test"
