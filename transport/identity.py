@@ -126,6 +126,8 @@ class Trust:
             cert.verify_directly_issued_by(self.authority)
         except (ValueError, TypeError, InvalidSignature):
             raise IdentityError("certificate not signed by this team's authority") from None
+        if cert.serial_number <= 0:  # where another warning filter came first
+            raise IdentityError("certificate is malformed: its serial number is not positive (RFC 5280)")
         key = cert.public_key()
         if not isinstance(key, Ed25519PublicKey):
             raise IdentityError("certificate does not hold an Ed25519 key")
