@@ -49,6 +49,7 @@ _MALFORMED = (ValueError, TypeError, KeyError, IndexError, OverflowError, x509.I
 # malformed, as cryptography will itself refuse it: its warning is raised as an error, once for
 # the process (a filter set per call would not be thread-safe).
 warnings.filterwarnings("error", message="Parsed a serial number which wasn't positive", category=UserWarning)
+_BAD_SERIAL = "certificate is malformed: its serial number is not positive (RFC 5280)"
 
 
 class IdentityError(ConfigError):
@@ -118,7 +119,7 @@ class Trust:
         except _MALFORMED:  # cryptography parses lazily: a bad field surfaces here, even as KeyError
             raise IdentityError("certificate is malformed") from None
         except UserWarning:  # the serial number above
-            raise IdentityError("certificate is malformed: its serial number is not positive (RFC 5280)") from None
+            raise IdentityError(_BAD_SERIAL) from None
 
     def _read(self, der: bytes) -> Certified:
         try:
@@ -127,7 +128,7 @@ class Trust:
         except (ValueError, TypeError, InvalidSignature):
             raise IdentityError("certificate not signed by this team's authority") from None
         if cert.serial_number <= 0:  # where another warning filter came first
-            raise IdentityError("certificate is malformed: its serial number is not positive (RFC 5280)")
+            raise IdentityError(_BAD_SERIAL)
         key = cert.public_key()
         if not isinstance(key, Ed25519PublicKey):
             raise IdentityError("certificate does not hold an Ed25519 key")
