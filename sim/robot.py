@@ -426,6 +426,7 @@ class ArcosFirmware:
         self._buf = bytearray()
         self._out = bytearray()
         self._next_sip = 0.0
+        self._sip_anchor = True
         self._rng = random.Random(robot.config.seed)
         self._garbage_left = robot.config.garbage_first
         self.counts = {"packets": 0, "bad": 0, "sips": 0, "unknown": 0}
@@ -621,6 +622,7 @@ class ArcosFirmware:
         elif cmd == 1 and self.state == "ready":
             self.state = "open"
             self._next_sip = self.now
+            self._sip_anchor = True
             self._next_fire = self.now
             self.robot.touch(self.now)
             log.debug("%s: OPEN: streaming SIPs every %.0f ms", self.label, c.sip_period * 1000)
@@ -668,17 +670,27 @@ class ArcosFirmware:
         soc = round(self.robot.state_of_charge * 100)
         return bytes([0xFA, 1, 5, 0, 0, 0, soc, soc])
 
-    def tick(self, now: float, fire: bool = True) -> None:
-        """Fire the sonar due (unless the host fired it already) and emit a SIP if one is due."""
+    def tick(self, now: float, fire: bool = True, slack: float = 0.0) -> None:
+        """Fire the sonar due (unless the host fired it already) and emit a SIP if one is due.
+
+        A host that ticks on a grid of physics steps passes half its step as `slack`: a SIP goes
+        at the tick nearest its time, on a schedule anchored to the tick that sent the first one,
+        so a tick late by less than half a step does not move a SIP to another tick and the stream
+        keeps its period, as a real robot's does; with no slack a SIP goes at the first tick at or
+        after its time."""
         self.now = now
         if self.state != "open":
             return
         if fire:
             self._fire(now)
-        if now < self._next_sip:
+        if now < self._next_sip - slack:
             return
         period = self.robot.config.sip_period
-        self._next_sip = max(self._next_sip + period, now - period)
+        if self._sip_anchor and slack > 0:  # the first SIP after OPEN: the schedule starts at this tick
+            self._next_sip = now + period
+        else:  # the next time on the schedule after this tick's reach: SIPs a stall missed are skipped
+            self._next_sip += (math.floor((now + slack - self._next_sip) / period) + 1) * period
+        self._sip_anchor = False
         self._send(self.sip())
         self.counts["sips"] += 1
         if self.simstat:

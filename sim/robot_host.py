@@ -181,7 +181,9 @@ class RobotHost:
             if now >= self._next:
                 self.advance(now - self._last, now)
                 self._last = now
-                self._next = max(self._next + self.period, now + self.period / 4)
+                # the next step on the grid, skipping those a stall missed: the grid keeps its
+                # phase, so every robot's SIPs stay on the ticks they started on
+                self._next += (math.floor((now - self._next) / self.period) + 1) * self.period
             self._flush()
 
     def advance(self, dt: float, now: float | None = None) -> None:
@@ -193,11 +195,11 @@ class RobotHost:
             self._swarm.step(self.robots, dt, now)
             self._swarm.fire([ep.firmware for ep in self.endpoints], now)
             for ep in self.endpoints:
-                ep.firmware.tick(now, fire=False)
+                ep.firmware.tick(now, fire=False, slack=self.period / 2)
             return
         for ep in self.endpoints:
             ep.robot.step(dt, now)
-            ep.firmware.tick(now)
+            ep.firmware.tick(now, slack=self.period / 2)
 
     def _accept(self, ep: _Endpoint) -> None:
         assert ep.listener is not None
