@@ -670,14 +670,14 @@ class ArcosFirmware:
         soc = round(self.robot.state_of_charge * 100)
         return bytes([0xFA, 1, 5, 0, 0, 0, soc, soc])
 
-    def tick(self, now: float, fire: bool = True, slack: float = 0.0) -> None:
+    def tick(self, now: float, fire: bool = True, slack: float = 0.0, grid: float | None = None) -> None:
         """Fire the sonar due (unless the host fired it already) and emit a SIP if one is due.
 
-        A host that ticks on a grid of physics steps passes half its step as `slack`: a SIP goes
-        at the tick nearest its time, on a schedule anchored to the tick that sent the first one,
-        so a tick late by less than half a step does not move a SIP to another tick and the stream
-        keeps its period, as a real robot's does; with no slack a SIP goes at the first tick at or
-        after its time."""
+        A host that ticks on a grid of physics steps passes half its step as `slack` and the
+        tick's time on its grid as `grid`: a SIP goes at the tick nearest its time, on a schedule
+        that starts at the grid time of the tick that sent the first one, so a tick late by less
+        than half a step does not move a SIP to another tick and the stream keeps its period, as a
+        real robot's does; with no slack a SIP goes at the first tick at or after its time."""
         self.now = now
         if self.state != "open":
             return
@@ -687,7 +687,7 @@ class ArcosFirmware:
             return
         period = self.robot.config.sip_period
         if self._sip_anchor and slack > 0:  # the first SIP after OPEN: the schedule starts at this tick
-            self._next_sip = now + period
+            self._next_sip = (now if grid is None else grid) + period
         else:  # the next time on the schedule after this tick's reach: SIPs a stall missed are skipped
             self._next_sip += (math.floor((now + slack - self._next_sip) / period) + 1) * period
         self._sip_anchor = False

@@ -179,15 +179,16 @@ class RobotHost:
                     self._read_pty(ep)
             now = self.clock()
             if now >= self._next:
-                self.advance(now - self._last, now)
+                self.advance(now - self._last, now, grid=self._next)
                 self._last = now
                 # the next step on the grid, skipping those a stall missed: the grid keeps its
                 # phase, so every robot's SIPs stay on the ticks they started on
                 self._next += (math.floor((now - self._next) / self.period) + 1) * self.period
             self._flush()
 
-    def advance(self, dt: float, now: float | None = None) -> None:
-        """Step every robot's physics by dt, fire the sonar due and let each firmware emit its due SIPs."""
+    def advance(self, dt: float, now: float | None = None, grid: float | None = None) -> None:
+        """Step every robot's physics by dt, fire the sonar due and let each firmware emit its due SIPs
+        (`grid`: this step's time on the host's grid, `now` or earlier when the step comes late)."""
         now = self.clock() if now is None else now
         if self.vectorised:
             if self._swarm is None or self._swarm.world is not self.world:
@@ -195,11 +196,11 @@ class RobotHost:
             self._swarm.step(self.robots, dt, now)
             self._swarm.fire([ep.firmware for ep in self.endpoints], now)
             for ep in self.endpoints:
-                ep.firmware.tick(now, fire=False, slack=self.period / 2)
+                ep.firmware.tick(now, fire=False, slack=self.period / 2, grid=grid)
             return
         for ep in self.endpoints:
             ep.robot.step(dt, now)
-            ep.firmware.tick(now, slack=self.period / 2)
+            ep.firmware.tick(now, slack=self.period / 2, grid=grid)
 
     def _accept(self, ep: _Endpoint) -> None:
         assert ep.listener is not None

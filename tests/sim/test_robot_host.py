@@ -12,10 +12,12 @@ from erni.sim.world import World
 OPEN = b"".join(_packet(bytes([c])) for c in (0, 1, 2, 1))  # SYNC0, SYNC1, SYNC2, OPEN
 
 
-def sip_times(physics_hz: float, phase: float, late: list[float], stall: tuple[int, float] = (0, 0.0)) -> list[float]:
+def sip_times(physics_hz: float, phase: float, late: list[float], stall: tuple[int, float] = (0, 0.0),
+              first_late: float = 0.0) -> list[float]:
     """Drive a host through its own loop on a fake clock: the robot opens at `phase` into the
     grid, tick k comes `late[k]` of a step after its grid time (`stall` = (k, steps): tick k comes
-    that many steps late); return when each SIP went."""
+    that many steps late; the first tick after the robot opens comes `first_late` late); return
+    when each SIP went."""
     now = [0.0]
     host = RobotHost(World(), physics_hz=physics_hz, clock=lambda: now[0])
     step = host.period
@@ -29,7 +31,7 @@ def sip_times(physics_hz: float, phase: float, late: list[float], stall: tuple[i
             grid = host._next  # the host's next step on its grid
             if grid > 4.0:
                 break
-            now[0] = grid + ((stall[1] if k == stall[0] else 0.0) + late[k % len(late)]) * step
+            now[0] = grid + ((stall[1] if k == stall[0] else 0.0) + (first_late if k == 1 else late[k % len(late)])) * step
             host.run_once(0.0)
             if fw.counts["sips"] > len(times):
                 times.append(now[0])
@@ -40,12 +42,13 @@ def sip_times(physics_hz: float, phase: float, late: list[float], stall: tuple[i
 
 @settings(max_examples=60, deadline=None)
 @given(st.sampled_from([20.0, 50.0, 100.0]), st.floats(0.0, 0.999),
-       st.lists(st.floats(0.0, 0.45), min_size=1, max_size=30))
+       st.lists(st.floats(0.0, 0.45), min_size=1, max_size=30), st.floats(0.0, 0.95))
 def test_sips_keep_their_period_whatever_the_phase_and_the_ticks_lateness(physics_hz: float, phase: float,
-                                                                         late: list[float]) -> None:
+                                                                         late: list[float], first_late: float) -> None:
     """A robot that opens anywhere between two physics steps, on a host whose ticks come up to
-    0.45 of a step late: every SIP interval is the 100 ms period within that lateness."""
-    times = sip_times(physics_hz, phase, late)
+    0.45 of a step late (the first one after it opens up to 0.95): every SIP interval is the
+    100 ms period within that lateness."""
+    times = sip_times(physics_hz, phase, late, first_late=first_late)[1:]
     step = 1.0 / physics_hz
     intervals = [b - a for a, b in zip(times, times[1:])]
     assert len(times) >= 38
