@@ -248,7 +248,7 @@ class Team:
         starts = [s.model_dump() for s in scenario.starts()]  # the scenario's start poses win
         self.world = World.model_validate({**scenario.world.model_dump(), "robot": starts})
         world = self.world
-        # physics costs grow with the square of the team (every robot senses every other): big teams step slower
+        # big teams step slower: the host's cost grows with the team, and SIPs keep their period at either rate
         self.host = RobotHost(world, physics_hz=physics_hz or (50.0 if scenario.count <= 10 else 20.0))
         r = scenario.radio
         self.network = ManetNetwork(RadioModel(r.comm_range, r.lossless_range, r.min_quality),
