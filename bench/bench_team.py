@@ -3,8 +3,8 @@
 For each N a whole simulated team is started as `erni sim` starts it (one agent process per
 robot with transport, motion, mobinet and mission; the control node; the world, the simulated
 robots and the SNMP network nodes in this process). Every robot random-walks (or stands, with
-`--idle`); a watcher on the control node records every Pose the control node holds for
-`--window` seconds. Real time holds when the interval between consecutive Poses of a robot at
+`--idle`); `erni watch --json` on the control node, in a process of its own as a user runs it,
+records every Pose the control node holds for `--window` seconds. Real time holds when the interval between consecutive Poses of a robot at
 the control node has p99 within 2x the 0.1 s pose period and every robot is heard by the
 control node. The floor of the interval is the period itself (0.1 s), an input of the
 simulation, not a finding. CPU (% of one core) and RSS per agent come from /proc.
@@ -15,10 +15,13 @@ simulation, not a finding. CPU (% of one core) and RSS per agent come from /proc
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import os
 import statistics
+import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -26,8 +29,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from hall import start_hall_team  # noqa: E402  # bench/hall.py
 from procstat import cpu_seconds, rss_mb  # noqa: E402  # bench/procstat.py
-
-from erni.transport.bridge import WatchEvent, WatchRequest  # noqa: E402
 
 PERIOD = 0.1
 
@@ -39,37 +40,50 @@ def pct(values: list[float], q: float) -> float:
 
 def run(n: int, window: float, idle: bool) -> dict[str, float]:
     team, startup = start_hall_team(f"team{n}", n, walk=not idle, settle=3.0)
-    try:
-        client = team.client()
-        # the watcher shares this process with the simulator: room for 8 MB of watch events, so a
-        # Pose the control node held is not lost in this socket while the physics step runs
-        client.endpoint.receive_buffer(8 << 20)
-        pids = {name: a.proc.pid for name, a in team.agents.items() if a.proc}
-        cpu0 = {name: cpu_seconds(pid) for name, pid in pids.items()}
-        sim0 = cpu_seconds(os.getpid())
-        load0 = os.getloadavg()[0]
-        stamps: dict[str, list[float]] = {name: [] for name in team.names}
-        start = time.monotonic()
-        next_lease = 0.0
-        while time.monotonic() - start < window:
-            if time.monotonic() >= next_lease:
-                client.send(team.control_address, "watch.request", WatchRequest(lease=5.0), reliable=False)
-                next_lease = time.monotonic() + 2.0
-            msg = client.receive(0.05)
-            if msg is None or msg.kind != "watch.event" or not isinstance(msg.body, WatchEvent):
-                continue
-            ev = msg.body
-            robot = ev.data.get("robot")
-            if ev.type == "Pose" and ev.agent == "control" and robot in stamps:
-                stamps[robot].append(float(ev.data["stamp"]))
-        elapsed = time.monotonic() - start
-        cpu = {name: (cpu_seconds(pid) - cpu0[name]) / elapsed * 100 for name, pid in pids.items()}
-        sim_cpu = (cpu_seconds(os.getpid()) - sim0) / elapsed * 100
-        rss = {name: rss_mb(pid) for name, pid in pids.items()}
-        heard = sum(1 for p in team.peers().values() if p.name in stamps)
-        load1 = os.getloadavg()[0]
-    finally:
-        team.stop()
+    watcher = None
+    with tempfile.TemporaryFile("w+b") as out:
+        try:
+            # the watcher is a process of its own, as a user's `erni watch` is: in the simulator's
+            # process it took the interpreter from the robots' physics and SIPs
+            host, port = team.control_address
+            watcher = subprocess.Popen([sys.executable, "-m", "erni", "watch", "--via", f"{host}:{port}",
+                                        "--identity", str(team.cli_identity), "--json"],
+                                       stdout=out, stderr=subprocess.DEVNULL)
+            deadline = time.monotonic() + 60
+            while os.fstat(out.fileno()).st_size == 0:
+                if watcher.poll() is not None or time.monotonic() > deadline:
+                    raise SystemExit(f"bench_team: `erni watch` on the control node {host}:{port} printed no "
+                                     f"event (exit {watcher.poll()}); expected a stream of Poses")
+                time.sleep(0.1)
+            pids = {name: a.proc.pid for name, a in team.agents.items() if a.proc}
+            cpu0 = {name: cpu_seconds(pid) for name, pid in pids.items()}
+            sim0 = cpu_seconds(os.getpid())
+            watch0 = cpu_seconds(watcher.pid)
+            load0 = os.getloadavg()[0]
+            first = os.fstat(out.fileno()).st_size
+            start = time.monotonic()
+            time.sleep(window)
+            last = os.fstat(out.fileno()).st_size
+            elapsed = time.monotonic() - start
+            cpu = {name: (cpu_seconds(pid) - cpu0[name]) / elapsed * 100 for name, pid in pids.items()}
+            sim_cpu = (cpu_seconds(os.getpid()) - sim0) / elapsed * 100
+            watch_cpu = (cpu_seconds(watcher.pid) - watch0) / elapsed * 100
+            rss = {name: rss_mb(pid) for name, pid in pids.items()}
+            heard = sum(1 for p in team.peers().values() if p.name in team.names)
+            load1 = os.getloadavg()[0]
+        finally:
+            if watcher is not None:
+                watcher.kill()
+                watcher.wait()
+            team.stop()
+        out.seek(0)
+        printed = out.read(last)
+    stamps: dict[str, list[float]] = {name: [] for name in team.names}
+    for line in printed[first:].split(b"\n")[1:-1]:  # whole lines only, within the window
+        ev = json.loads(line)
+        robot = ev["data"].get("robot")
+        if ev["type"] == "Pose" and ev["agent"] == "control" and robot in stamps:
+            stamps[robot].append(float(ev["data"]["stamp"]))
     intervals: list[float] = []
     for seq in stamps.values():
         seq = sorted(set(seq))
@@ -79,7 +93,7 @@ def run(n: int, window: float, idle: bool) -> dict[str, float]:
     return {"robots": n, "startup": startup, "p50": pct(intervals, 0.5) * 1000, "p99": pct(intervals, 0.99) * 1000,
             "share": poses / (n * elapsed / PERIOD), "heard_peers": heard,
             "heard_poses": sum(1 for s in stamps.values() if s),
-            "cpu": statistics.median(cpu[r] for r in robots), "control_cpu": cpu["control"], "sim_cpu": sim_cpu,
+            "cpu": statistics.median(cpu[r] for r in robots), "control_cpu": cpu["control"], "sim_cpu": sim_cpu, "watch_cpu": watch_cpu,
             "rss": statistics.median(rss[r] for r in robots), "load": (load0 + load1) / 2}
 
 
@@ -92,14 +106,14 @@ def main() -> int:
     print(f"robots {'stand' if args.idle else 'random-walk'}; Pose period {PERIOD * 1000:.0f} ms (input); "
           f"real time = interval p99 <= {2 * PERIOD * 1000:.0f} ms and every robot heard")
     print("| robots | start-up s | interval p50 / p99 ms at control | p99 / period | Poses at control / expected "
-          "| heard (directory / Poses) | CPU / robot % | control % | sim % | RSS / robot MB | load | real time |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+          "| heard (directory / Poses) | CPU / robot % | control % | sim % | watcher % | RSS / robot MB | load | real time |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for n in [int(x) for x in args.robots.split(",") if x]:
         r = run(n, args.window, args.idle)
         ok = r["p99"] <= 2 * PERIOD * 1000 and r["heard_peers"] == n and r["heard_poses"] == n
         print(f"| {n} | {r['startup']:.1f} | {r['p50']:.0f} / {r['p99']:.0f} | {r['p99'] / (PERIOD * 1000):.1f} | "
               f"{r['share']:.2f} | {r['heard_peers']} / {r['heard_poses']} of {n} | {r['cpu']:.1f} | "
-              f"{r['control_cpu']:.1f} | {r['sim_cpu']:.1f} | {r['rss']:.0f} | {r['load']:.1f} | "
+              f"{r['control_cpu']:.1f} | {r['sim_cpu']:.1f} | {r['watch_cpu']:.1f} | {r['rss']:.0f} | {r['load']:.1f} | "
               f"{'yes' if ok else 'no'} |", flush=True)
     return 0
 
