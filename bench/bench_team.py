@@ -4,9 +4,9 @@ For each N a whole simulated team is started as `erni sim` starts it (one agent 
 robot with transport, motion, mobinet and mission; the control node; the world, the simulated
 robots and the SNMP network nodes in this process). Every robot random-walks (or stands, with
 `--idle`); `erni watch --json` on the control node, in a process of its own as a user runs it,
-records every Pose the control node holds for `--window` seconds. Real time holds when the interval between consecutive Poses of a robot at
-the control node has p99 within 2x the 0.1 s pose period and every robot is heard by the
-control node. The floor of the interval is the period itself (0.1 s), an input of the
+records every Pose the control node holds for `--window` seconds. Real time holds when the
+interval between consecutive Poses of a robot at the control node has p99 within 2x the 0.1 s
+pose period and every robot is heard by the control node. The floor of the interval is the period itself (0.1 s), an input of the
 simulation, not a finding. CPU (% of one core) and RSS per agent come from /proc.
 
     python bench/bench_team.py [--robots 10,20,50] [--window 20] [--idle]

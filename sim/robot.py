@@ -375,6 +375,12 @@ class SimRobot:
 # --- the robot end of the protocol ---------------------------------------------------------
 
 
+def next_on_grid(tick: float, now: float, period: float) -> float:
+    """The first time after `now` on the grid of `period` through `tick`: a schedule that skips
+    the ticks a stall missed and keeps its phase."""
+    return tick + (math.floor((now - tick) / period) + 1) * period
+
+
 def _checksum(body: bytes) -> int:
     s = 0
     for i in range(0, len(body) - 1, 2):
@@ -689,7 +695,7 @@ class ArcosFirmware:
         if self._sip_anchor and slack > 0:  # the first SIP after OPEN: the schedule starts at this tick
             self._next_sip = (now if grid is None else grid) + period
         else:  # the next time on the schedule after this tick's reach: SIPs a stall missed are skipped
-            self._next_sip += (math.floor((now + slack - self._next_sip) / period) + 1) * period
+            self._next_sip = next_on_grid(self._next_sip, now + slack, period)
         self._sip_anchor = False
         self._send(self.sip())
         self.counts["sips"] += 1

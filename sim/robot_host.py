@@ -21,7 +21,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from erni.blackboard.errors import NetworkError, UsageError
-from erni.sim.robot import ArcosFirmware, SimRobot, SimRobotConfig
+from erni.sim.robot import ArcosFirmware, SimRobot, SimRobotConfig, next_on_grid
 from erni.sim.swarm import Swarm
 from erni.sim.world import World
 
@@ -183,7 +183,7 @@ class RobotHost:
                 self._last = now
                 # the next step on the grid, skipping those a stall missed: the grid keeps its
                 # phase, so every robot's SIPs stay on the ticks they started on
-                self._next += (math.floor((now - self._next) / self.period) + 1) * self.period
+                self._next = next_on_grid(self._next, now, self.period)
             self._flush()
 
     def advance(self, dt: float, now: float | None = None, grid: float | None = None) -> None:
