@@ -44,6 +44,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from erni.blackboard import heap
 from erni.blackboard.errors import ErniError, UsageError
 from erni.sim.manet import ManetNetwork, RadioModel
 from erni.sim.netns import HELLO_INTERVAL, Mesh, TcpForwarder, die_with_parent
@@ -266,6 +267,7 @@ class Team:
         self._t0 = time.monotonic()
         self._started = False
         self._stopped = False
+        self._frozen = False
         self._client: Any = None
         self.results: dict[str, Any] = {}  # uid -> final result, of tasks sent with send_task
 
@@ -344,6 +346,8 @@ class Team:
             say("agents launched", k + 1, len(order))
         self._wait_up(say, timeout)
         self._started_well = True
+        heap.freeze()  # the world, the robots and the network live until stop(): full collections skip them
+        self._frozen = True
         return self
 
     def agent_env(self) -> dict[str, str]:
@@ -715,6 +719,9 @@ class Team:
             self._client = None
         self.snmp.close()
         self.host.stop()
+        if self._frozen:  # a process that runs team after team gets each one's memory back
+            heap.thaw()
+            self._frozen = False
         if self._forwarder is not None:
             self._forwarder.close()
             self._forwarder = None

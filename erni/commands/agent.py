@@ -10,6 +10,7 @@ import threading
 from collections.abc import Callable
 from typing import Any
 
+from erni.blackboard import heap
 from erni.blackboard.agent import Agent
 from erni.blackboard.config import build_agent, read_config
 from erni.blackboard.errors import ConfigError, ErniError
@@ -79,6 +80,7 @@ def run(args: argparse.Namespace, prepare: Callable[[Agent], None] | None = None
     try:
         try:
             agent.start()
+            heap.freeze()   # what start-up made lives as long as the process: no full collection rescans it
             running.set()
         except KeyboardInterrupt:   # from on_signal: the stop came during the start
             return 0

@@ -89,6 +89,29 @@ sys.exit(main(["agent", "examples/robot.toml", "--log-level", "WARNING"]))
 '''
 
 
+FROZEN_HEAP = """
+import gc, os, signal, sys, threading
+from erni.cli import main
+
+def report():
+    print(gc.get_freeze_count(), len(gc.get_objects()), flush=True)
+    os.kill(os.getpid(), signal.SIGTERM)
+
+threading.Timer(2.0, report).start()
+sys.exit(main(["agent", "examples/robot.toml", "--log-level", "ERROR"]))
+"""
+
+
+def test_a_started_agent_keeps_its_start_up_heap_out_of_full_collections():
+    """Every agent of a team starts at once; were their start-up heaps scanned, their full
+    collections would come at once too, and the machine would stall for every robot."""
+    out = subprocess.run([sys.executable, "-c", FROZEN_HEAP], cwd=ROOT, capture_output=True, text=True,
+                         timeout=60)
+    assert out.returncode == 0, out.stderr
+    frozen, scanned = map(int, out.stdout.split())
+    assert frozen > 10_000 and scanned < frozen / 10, (frozen, scanned)
+
+
 def test_a_second_signal_inside_the_first_ones_handler_does_not_hang_the_agent():
     """A killed launcher's death signal can come again while the agent's handler is stopping it
     (once for each of the launcher's threads that exits). The nested handler must not wait for

@@ -107,6 +107,23 @@ def test_relayed_robot_stays_reachable_over_several_hops(tmp_path):
         team.stop()
 
 
+def test_the_simulators_heap_is_frozen_while_the_team_runs_and_thawed_at_stop(tmp_path):
+    """Full collections in the simulator's process skip what the team made at start (the world,
+    the robots, the network); a stopped team gives it back, as experiments run team after team."""
+    import gc
+
+    team = Team(Scenario(robots={"count": 1}), run_dir=tmp_path / "run", headless=True, control_port=0,
+                transport=FAST, mission=False, ui=False)
+    assert gc.get_freeze_count() == 0
+    try:
+        team.start(timeout=60)
+        assert gc.get_freeze_count() > 10_000
+        assert not any(o is team for o in gc.get_objects())  # frozen: no collection scans the team
+    finally:
+        team.stop()
+    assert gc.get_freeze_count() == 0
+
+
 def test_a_temporary_run_directory_goes_with_the_team_unless_the_run_failed():
     """Experiments start a team per run (60 for `netaware --seeds 10`): a run directory the team
     made itself is removed when it stops; one whose run raised stays (the error names its logs),
