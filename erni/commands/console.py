@@ -22,7 +22,7 @@ from typing import Any, TextIO
 
 from erni.blackboard import Task
 from erni.blackboard.schemas import Cancel, PeerList, ResultUpdate, WatchEvent, WatchRequest
-from erni.commands._client import add_client_options, dumps, make_client, stamp
+from erni.commands._client import add_client_options, dumps, make_client, make_room_for_a_stream, stamp
 
 WATCH_LEASE = 10.0
 
@@ -169,6 +169,7 @@ class Console:
         self.print(dumps(data) if self.json else text)
 
     def _receive(self) -> None:
+        make_room_for_a_stream(self.client)
         renew = 0.0
         while not self._stop.is_set():
             if time.monotonic() >= renew:  # poses and tasks for status questions

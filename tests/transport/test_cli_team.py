@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 
 from erni.blackboard.testing import wait_until
+from erni.commands._client import WATCH_BUFFER
 from tests.transport.helpers import KEY, agent_config, free_port, identity
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -94,6 +95,17 @@ def test_peers_table(team):
     assert "robot1" in out.stdout and " up " in out.stdout
 
 
+def udp_receive_buffer(pid: int) -> int:
+    """The receive buffer of process `pid`'s one UDP socket, as the kernel reports it (`ss`)."""
+    import re
+
+    out = subprocess.run(["ss", "-uamp"], capture_output=True, text=True, check=True).stdout
+    lines = out.splitlines()
+    mine = [lines[i + 1] for i, ln in enumerate(lines[:-1]) if f"pid={pid}," in ln]
+    assert len(mine) == 1, out
+    return int(re.search(r"rb(\d+)", mine[0]).group(1))
+
+
 def test_watch_streams_task_results(team):
     watch = subprocess.Popen([sys.executable, "-m", "erni", "watch", "--via", team["via"], "--json",
                               "--seconds", "8"], cwd=ROOT, env=team["env"], stdout=subprocess.PIPE,
@@ -101,6 +113,9 @@ def test_watch_streams_task_results(team):
     try:
         first = json.loads(watch.stdout.readline())  # the current state arrives first
         assert first["agent"] == "control"
+        # room for seconds of a team's stream: a watcher held back half a second loses nothing
+        rmem_max = int(Path("/proc/sys/net/core/rmem_max").read_text())
+        assert udp_receive_buffer(watch.pid) >= min(WATCH_BUFFER, rmem_max)
         out = cli(team["env"], "task", "--via", team["via"], "robot1", "BotMotion", "stop", "--wait")
         assert out.returncode == 0
         events = []
