@@ -61,6 +61,7 @@ log = logging.getLogger("erni.sim.team")
 CONTROL = "control"
 CONTROL_HOST = "127.0.1.250"
 CLI = "cli"  # the identity of command-line clients of the run (RUN/keys/cli.pem)
+LAUNCH_WAIT = 15.0  # the longest a launch waits for room (a robot that never connects must not stall the start)
 
 
 class TeamError(ErniError):
@@ -206,7 +207,8 @@ class Team:
                  ui: bool | None = None, transport: dict[str, Any] | None = None, gui_port: int = 8080,
                  gui_listen: str | None = None, netns: bool = False, mobinet: str | None = None,
                  hello_interval: float = HELLO_INTERVAL, mission_settings: dict[str, Any] | None = None,
-                 robot_settings: dict[str, Any] | None = None, keep_run_dir: bool = False) -> None:
+                 robot_settings: dict[str, Any] | None = None, keep_run_dir: bool = False,
+                 launch_batch: int | None = None) -> None:
         if scenario.count > MAX_AGENT_ROBOTS:
             raise TeamError(f"--robots: at most {MAX_AGENT_ROBOTS} robot agents (one loopback "
                             f"address each), got {scenario.count}; use the kinematic mode of "
@@ -219,6 +221,10 @@ class Team:
         self._started_well = False
         self.headless = headless
         self.log_level = log_level
+        # agents starting at once: a few per core keep the cores busy without starving the simulator
+        self.launch_batch = launch_batch if launch_batch is not None else 4 * (os.cpu_count() or 1)
+        if self.launch_batch < 1:
+            raise TeamError(f"launch_batch: expected at least 1 agent starting at a time, got {launch_batch}")
         self.feed_period = 1.0 / feed_hz
         self.record = record
         self.transport = {"peer_timeout": 3.0, **(transport or {})}
@@ -340,15 +346,32 @@ class Team:
         say("agent configs", 0, n)
         self._write_configs(snmp_ports)
         env = self.agent_env()
+        # the world, the robots and the network live until stop(): full collections skip them. Done
+        # before the agents start, so that this collection stalls nobody's SIPs
+        heap.freeze()
+        self._frozen = True
         order = [CONTROL] + self.names
         for k, name in enumerate(order):
+            self._make_room(order[:k])
             self._spawn(self.agents[name], env)
             say("agents launched", k + 1, len(order))
         self._wait_up(say, timeout)
         self._started_well = True
-        heap.freeze()  # the world, the robots and the network live until stop(): full collections skip them
-        self._frozen = True
         return self
+
+    def _make_room(self, launched: list[str]) -> None:
+        """Wait (at most LAUNCH_WAIT s) until fewer than `launch_batch` of the launched robots' agents
+        are still starting, i.e. their simulated robot has no client yet. An agent's start (its
+        imports above all) takes about a second of CPU: 40 at once hold a 2-core machine for 20 s,
+        the simulator's SIPs stall beyond the drivers' link timeout, and the robots already up
+        lose their link and fail their first tasks."""
+        deadline = time.monotonic() + LAUNCH_WAIT
+        while time.monotonic() < deadline:
+            starting = sum(1 for name in launched if name in self.names and self.agents[name].alive
+                           and self.host.endpoints[self.names.index(name)].conn is None)
+            if starting < self.launch_batch:
+                return
+            time.sleep(0.05)
 
     def agent_env(self) -> dict[str, str]:
         """The environment agent processes of this team run in."""

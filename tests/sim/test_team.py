@@ -10,7 +10,7 @@ import pytest
 from erni.blackboard import Task, TaskState
 from erni.blackboard.testing import wait_until
 from erni.sim.scenario import Scenario
-from erni.sim.team import CONTROL, Team
+from erni.sim.team import CONTROL, Team, TeamError
 from erni.transport.bridge import ResultUpdate
 
 FAST = {"beacon_period": 0.3, "peer_timeout": 1.5, "task_ttl": 10.0}
@@ -122,6 +122,29 @@ def test_the_simulators_heap_is_frozen_while_the_team_runs_and_thawed_at_stop(tm
     finally:
         team.stop()
     assert gc.get_freeze_count() == 0
+
+
+def test_agents_start_a_batch_at_a_time_so_the_simulator_keeps_its_robots_linked(tmp_path):
+    """A launch waits while `launch_batch` robots' agents are still starting (their robot has no
+    client yet): forty agents starting at once starve the simulator of the CPU its SIPs need."""
+    team = Team(Scenario(robots={"count": 3, "spacing": 1.5}), run_dir=tmp_path / "run", headless=True,
+                control_port=0, transport=FAST, mission=False, ui=False, launch_batch=1)
+    starting_at_launch: list[int] = []
+    spawn = team._spawn
+
+    def spawn_and_count(agent, env):
+        starting_at_launch.append(sum(1 for i, name in enumerate(team.names)
+                                      if team.agents[name].proc is not None and team.host.endpoints[i].conn is None))
+        spawn(agent, env)
+
+    team._spawn = spawn_and_count
+    try:
+        team.start(timeout=60)
+    finally:
+        team.stop()
+    assert starting_at_launch == [0, 0, 0, 0]  # control, then each robot once the one before it connected
+    with pytest.raises(TeamError, match="launch_batch: expected at least 1"):
+        Team(Scenario(robots={"count": 1}), headless=True, control_port=0, launch_batch=0)
 
 
 def test_a_temporary_run_directory_goes_with_the_team_unless_the_run_failed():
