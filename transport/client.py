@@ -27,6 +27,9 @@ from erni.transport.wire import Message
 IDENTITY_ENV = "ERNI_IDENTITY"
 
 
+INBOX_LIMIT = 10_000  # messages a client holds for its reader (about 25 s of a 40-robot watch)
+
+
 class ClientError(ErniError):
     """The team could not be reached or answered unexpectedly."""
 
@@ -49,7 +52,10 @@ class Client:
         self.via = via
         self.discovery_port = discovery_port
         self.discover_seconds = discover_seconds
-        self.inbox: queue.Queue[Message] = queue.Queue()
+        # bounded: a program that sent tasks and stopped reading (a benchmark, a script) would
+        # otherwise keep every result update its tasks bring, forever; the oldest go first
+        self.inbox: queue.Queue[Message] = queue.Queue(INBOX_LIMIT)
+        self.overflowed = 0  # messages dropped from a full inbox
         self.failed: queue.Queue[str] = queue.Queue()
         self.delivered: set[str] = set()
         self.finals: set[str] = set()
@@ -71,7 +77,16 @@ class Client:
                 self.duplicates += 1
                 return
             self.finals.add(msg.body.uid)
-        self.inbox.put(msg)
+        while True:  # only this thread puts: after one get a put fits, unless a reader raced it
+            try:
+                self.inbox.put_nowait(msg)
+                return
+            except queue.Full:
+                try:
+                    self.inbox.get_nowait()
+                    self.overflowed += 1
+                except queue.Empty:
+                    pass
 
     def __enter__(self) -> Client:
         self.endpoint.start()

@@ -171,3 +171,26 @@ def test_a_receiver_may_ask_for_a_larger_udp_receive_buffer_and_is_told_what_it_
         ep.stop()
     with pytest.raises(Exception, match="not started"):
         Endpoint("b", identity=load_identity(identity("b"))).receive_buffer(1 << 20)
+
+
+def test_a_client_that_stops_reading_keeps_its_newest_messages_up_to_its_limit(monkeypatch):
+    """A script that sent tasks and stopped reading must not hold every update of them forever:
+    the inbox keeps the newest INBOX_LIMIT, counting what it dropped."""
+    import erni.transport.client as client_module
+    from erni.blackboard.schemas import WatchEvent
+    from tests.transport.helpers import make_client
+
+    monkeypatch.setattr(client_module, "INBOX_LIMIT", 5)
+    client = make_client(("127.0.0.1", 9))
+    sender, _ = endpoint("a")
+    try:
+        for i in range(12):
+            sender.send(client.endpoint.address, "watch.event",
+                        WatchEvent(agent="a", op="change", type="Pose", data={"n": i}), reliable=True)
+        wait_until(lambda: client.inbox.qsize() + client.overflowed == 12, timeout=10)
+        held = [client.receive(0.1) for _ in range(client.inbox.qsize())]
+        assert client.overflowed == 7
+        assert [m.body.data["n"] for m in held] == [7, 8, 9, 10, 11]
+    finally:
+        sender.stop()
+        client.endpoint.stop()
