@@ -1,8 +1,9 @@
 """Team scale: does `erni sim --headless --robots N` hold real time on this machine?
 
 For each N a whole simulated team is started as `erni sim` starts it (one agent process per
-robot with transport, motion, mobinet and mission; the control node; the world, the simulated
-robots and the SNMP network nodes in this process). Every robot random-walks (or stands, with
+robot with transport, motion, mobinet and mission; the control node; the world and the SNMP
+network nodes in this process, the simulated robots in its robot host's). "sim %" is the two
+together. Every robot random-walks (or stands, with
 `--idle`); `erni watch --json` on the control node, in a process of its own as a user runs it,
 records every Pose the control node holds for `--window` seconds. Every walk is running when the
 window opens (`bench/hall.py`); a walk that ends within it (its robot's link lost) is counted, as
@@ -59,7 +60,8 @@ def run(n: int, window: float, idle: bool) -> dict[str, float]:
                 time.sleep(0.1)
             pids = {name: a.proc.pid for name, a in team.agents.items() if a.proc}
             cpu0 = {name: cpu_seconds(pid) for name, pid in pids.items()}
-            sim0 = cpu_seconds(os.getpid())
+            sims = [os.getpid()] + ([team.host.pid] if team.host.pid else [])  # the simulator and its robot host
+            sim0 = sum(cpu_seconds(pid) for pid in sims)
             watch0 = cpu_seconds(watcher.pid)
             load0 = os.getloadavg()[0]
             first = os.fstat(out.fileno()).st_size
@@ -68,7 +70,7 @@ def run(n: int, window: float, idle: bool) -> dict[str, float]:
             last = os.fstat(out.fileno()).st_size
             elapsed = time.monotonic() - start
             cpu = {name: (cpu_seconds(pid) - cpu0[name]) / elapsed * 100 for name, pid in pids.items()}
-            sim_cpu = (cpu_seconds(os.getpid()) - sim0) / elapsed * 100
+            sim_cpu = (sum(cpu_seconds(pid) for pid in sims) - sim0) / elapsed * 100
             watch_cpu = (cpu_seconds(watcher.pid) - watch0) / elapsed * 100
             rss = {name: rss_mb(pid) for name, pid in pids.items()}
             heard = sum(1 for p in team.peers().values() if p.name in team.names)

@@ -68,6 +68,7 @@ class RobotHost:
         self._last = clock()
         self._next = self._last + self.period
         self._closed = False
+        self.on_step: Callable[[], None] | None = None  # called after each physics step, the lock held
 
     @property
     def robots(self) -> list[SimRobot]:
@@ -181,6 +182,8 @@ class RobotHost:
             if now >= self._next:
                 self.advance(now - self._last, now, grid=self._next)
                 self._last = now
+                if self.on_step is not None:
+                    self.on_step()
                 # the next step on the grid, skipping those a stall missed: the grid keeps its
                 # phase, so every robot's SIPs stay on the ticks they started on
                 self._next = next_on_grid(self._next, now, self.period)

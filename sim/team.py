@@ -1,7 +1,8 @@
 """Team: a whole simulated team on one machine, with real agent processes on loopback addresses.
 
-The sim process hosts the world: one `RobotHost` serving a simulated ARCOS robot per robot
-(TCP, `socket://127.0.0.1:PORT`), one `ManetNetwork` whose robot nodes are served over SNMP
+The sim process hosts the world: a robot host in a process of its own (`erni.sim.host_process`,
+whose `RobotHost` serves a simulated ARCOS robot per robot over TCP, `socket://127.0.0.1:PORT`,
+and shares their poses), one `ManetNetwork` whose robot nodes are served over SNMP
 (robot N on `127.0.1.N`), and a feed thread that moves the network's nodes with the robots
 and tells every agent's transport which agents its simulated radio can hear whenever the radio's
 connectivity changes (through a pipe each agent inherits: see `erni.sim.radio`).
@@ -46,11 +47,11 @@ from typing import Any
 
 from erni.blackboard import heap
 from erni.blackboard.errors import ErniError, UsageError
+from erni.sim.host_process import COMMANDED_V, ENERGY, TH, HostProcess, RobotView, V, X, Y
 from erni.sim.manet import ManetNetwork, RadioModel
 from erni.sim.netns import HELLO_INTERVAL, Mesh, TcpForwarder, die_with_parent
 from erni.sim.radio import FD_ENV
-from erni.sim.robot import SimRobot, SimRobotConfig
-from erni.sim.robot_host import RobotHost
+from erni.sim.robot import SimRobotConfig
 from erni.sim.scenario import MAX_AGENT_ROBOTS, Scenario
 from erni.sim.snmp_agent import ManetSnmpAgent
 from erni.sim.world import World
@@ -256,7 +257,9 @@ class Team:
         self.world = World.model_validate({**scenario.world.model_dump(), "robot": starts})
         world = self.world
         # big teams step slower: the host's cost grows with the team, and SIPs keep their period at either rate
-        self.host = RobotHost(world, physics_hz=physics_hz or (50.0 if scenario.count <= 10 else 20.0))
+        # the robots' firmware runs in a process of its own (`erni.sim.host_process`): here it would
+        # share one interpreter with the SNMP nodes, the radio feed and the team's client
+        self.host = HostProcess(world, physics_hz=physics_hz or (50.0 if scenario.count <= 10 else 20.0))
         r = scenario.radio
         self.network = ManetNetwork(RadioModel(r.comm_range, r.lossless_range, r.min_quality),
                                     subnet="127.0.1.0/24")
@@ -293,11 +296,11 @@ class Team:
         return CONTROL_HOST if name == CONTROL else robot_address(self.names.index(name))
 
     @property
-    def robots(self) -> list[SimRobot]:
-        """The simulated robots, in agent order."""
+    def robots(self) -> list[RobotView]:
+        """The simulated robots, in agent order (their state after the simulator's last step)."""
         return self.host.robots
 
-    def robot(self, name: str) -> SimRobot:
+    def robot(self, name: str) -> RobotView:
         """The simulated robot of agent `name`."""
         return self.host.robots[self.names.index(name)]
 
@@ -325,8 +328,8 @@ class Team:
         for i, name in enumerate(self.names):
             cfg = SimRobotConfig.amigobot(name=name, seed=self.scenario.seed + i, **self.robot_extra) \
                 if model == "amigobot" else SimRobotConfig(name=name, seed=self.scenario.seed + i, **self.robot_extra)
-            self.host.add_robot(cfg, port=0)
-        self.host.start()
+            self.host.add_robot(cfg)
+        self.host.start(self.run_dir / "robots.state", self.run_dir / "logs" / "robots.log")
         say("radio network", 0, n)
         for start, robot in zip(self.scenario.starts(), self.host.robots):
             self.network.add_node(start.name, robot.x, robot.y, start.heading)
@@ -368,7 +371,7 @@ class Team:
         deadline = time.monotonic() + LAUNCH_WAIT
         while time.monotonic() < deadline:
             starting = sum(1 for name in launched if name in self.names and self.agents[name].alive
-                           and self.host.endpoints[self.names.index(name)].conn is None)
+                           and not self.host.connected(self.names.index(name)))
             if starting < self.launch_batch:
                 return
             time.sleep(0.05)
@@ -596,7 +599,7 @@ class Team:
                     tail = _tail(agent.log)
                     raise TeamError(f"agent {agent.name} exited with code {agent.proc.returncode if agent.proc else '?'}"
                                     f" during start-up; its log ({agent.log}) ends:\n{tail}")
-            connected = sum(1 for ep in self.host.endpoints if ep.conn is not None)
+            connected = sum(1 for i in range(n) if self.host.connected(i))
             expected = set(self.status.reach.get(CONTROL, []))
             up = {name for name, p in self.peers(1.0).items() if p.up} if connected == n else set()
             heard = len(up & expected)
@@ -639,9 +642,12 @@ class Team:
 
     def teleport(self, name: str, x: float, y: float, heading: float = 0.0) -> None:
         """Move robot `name` in the world (the simulator's hand, not a task)."""
-        robot = self.robot(name)
-        with self.host._lock:
-            robot.set_pose(x, y, math.radians(heading))
+        self.host.teleport(self.names.index(name), x, y, math.radians(heading))
+
+    def cut_serial(self, name: str) -> None:
+        """Pull the cable between robot `name` and its agent: the simulated robot drops its client
+        (the driver reconnects, as to a robot whose cable is plugged back)."""
+        self.host.cut(self.names.index(name))
 
     def _feed_loop(self) -> None:
         while not self._stop.wait(self.feed_period):
@@ -651,12 +657,13 @@ class Team:
                 log.exception("sim feed loop error")
 
     def _update_network(self, force: bool = False) -> None:
-        robots = self.host.robots
+        state = self.host.snapshot()  # every robot after one whole physics step
         moved = {}
-        for name, r in zip(self.names, robots):
+        for name, row in zip(self.names, state):
+            x, y = float(row[X]), float(row[Y])
             old = self._fed.get(name)
-            if force or old is None or math.hypot(r.x - old[0], r.y - old[1]) > 0.02:
-                moved[name] = (r.x, r.y)
+            if force or old is None or math.hypot(x - old[0], y - old[1]) > 0.02:
+                moved[name] = (x, y)
         if moved:
             self.network.move_many(moved)
             self._fed.update(moved)
@@ -679,9 +686,9 @@ class Team:
             self.mesh.apply(truth.links)
         if self.record:
             self.samples.append(Sample(
-                self.elapsed(), [r.x for r in robots], [r.y for r in robots], [r.th for r in robots],
-                [r.v for r in robots], [r.target_v if r.trans_mode == "vel" else r.v for r in robots],
-                [r.energy for r in robots], len(truth.components), control_reach))
+                self.elapsed(), state[:, X].tolist(), state[:, Y].tolist(), state[:, TH].tolist(),
+                state[:, V].tolist(), state[:, COMMANDED_V].tolist(), state[:, ENERGY].tolist(),
+                len(truth.components), control_reach))
 
     def send_task(self, robot: str, verb: str, preposition: str, **params: Any) -> Any:
         """Send a task to agent `robot` through the control node; return the Task sent."""

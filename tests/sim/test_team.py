@@ -134,7 +134,7 @@ def test_agents_start_a_batch_at_a_time_so_the_simulator_keeps_its_robots_linked
 
     def spawn_and_count(agent, env):
         starting_at_launch.append(sum(1 for i, name in enumerate(team.names)
-                                      if team.agents[name].proc is not None and team.host.endpoints[i].conn is None))
+                                      if team.agents[name].proc is not None and not team.host.connected(i)))
         spawn(agent, env)
 
     team._spawn = spawn_and_count
