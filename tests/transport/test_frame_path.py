@@ -194,3 +194,27 @@ def test_a_client_that_stops_reading_keeps_its_newest_messages_up_to_its_limit(m
     finally:
         sender.stop()
         client.endpoint.stop()
+
+
+def test_the_control_node_asks_for_room_for_every_robots_poses_and_a_robot_keeps_the_default():
+    from pathlib import Path
+
+    from erni.transport.bridge import CONTROL_RECEIVE_BUFFER
+    from tests.transport.helpers import free_port, make_agent
+
+    def rcvbuf(agent) -> int:
+        return agent.plugin("transport").endpoint._udp.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
+
+    rmem_max = int(Path("/proc/sys/net/core/rmem_max").read_text())
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        default = s.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
+    disc = free_port()
+    agents = [make_agent("control", disc, echo=False, role="control"), make_agent("robot1", disc, echo=False),
+              make_agent("quiet", disc, echo=False, role="control", receive_buffer=0)]
+    try:
+        control, robot, quiet = map(rcvbuf, agents)
+        assert control >= min(CONTROL_RECEIVE_BUFFER, rmem_max) > default or rmem_max <= default
+        assert robot == default and quiet == default
+    finally:
+        for agent in agents:
+            agent.stop()
