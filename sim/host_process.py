@@ -180,7 +180,6 @@ class HostProcess:
         """Every robot's `FIELDS` after one whole physics step (a copy)."""
         if self._rows is None or self._seq is None:
             raise UsageError("the robot host is not running")
-        rows = self._rows.copy()
         for _ in range(1000):
             before = self._seq[0]
             rows = self._rows.copy()
@@ -192,9 +191,9 @@ class HostProcess:
         """The pyserial URL a driver opens to reach robot `index`."""
         return self.urls[index]
 
-    def connected(self, index: int) -> bool:
-        """Whether a client holds robot `index`'s link (as of the last physics step)."""
-        return bool(self.snapshot()[index, CONNECTED])
+    def connected(self) -> list[bool]:
+        """Per robot, whether a client holds its link (as of the last physics step)."""
+        return [bool(c) for c in self.snapshot()[:, CONNECTED]]
 
     def teleport(self, index: int, x: float, y: float, th: float) -> None:
         """Put robot `index` at (x, y) facing th (rad): the simulator's hand."""

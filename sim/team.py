@@ -370,8 +370,9 @@ class Team:
         lose their link and fail their first tasks."""
         deadline = time.monotonic() + LAUNCH_WAIT
         while time.monotonic() < deadline:
+            linked = self.host.connected()
             starting = sum(1 for name in launched if name in self.names and self.agents[name].alive
-                           and not self.host.connected(self.names.index(name)))
+                           and not linked[self.names.index(name)])
             if starting < self.launch_batch:
                 return
             time.sleep(0.05)
@@ -599,7 +600,7 @@ class Team:
                     tail = _tail(agent.log)
                     raise TeamError(f"agent {agent.name} exited with code {agent.proc.returncode if agent.proc else '?'}"
                                     f" during start-up; its log ({agent.log}) ends:\n{tail}")
-            connected = sum(1 for i in range(n) if self.host.connected(i))
+            connected = sum(self.host.connected())
             expected = set(self.status.reach.get(CONTROL, []))
             up = {name for name, p in self.peers(1.0).items() if p.up} if connected == n else set()
             heard = len(up & expected)

@@ -40,7 +40,15 @@ from erni.blackboard import AllocationResult, BBObject, NetInfo, Plugin, Pose, T
 from erni.blackboard.errors import ConfigError
 from erni.blackboard.objects import only_stamp_differs
 from erni.blackboard.schemas import Beacon, Cancel, Fresh, Peer, PeerList, ResultUpdate, WatchEvent, WatchRequest
-from erni.transport.endpoint import CLIENT_ROLE, Address, Endpoint, InboundFilter, parse_address, team_key
+from erni.transport.endpoint import (
+    CLIENT_ROLE,
+    STREAM_BUFFER,
+    Address,
+    Endpoint,
+    InboundFilter,
+    parse_address,
+    team_key,
+)
 from erni.transport.identity import Identity, IdentityError, load_identity
 from erni.transport.limits import Limits
 from erni.transport.wire import Message, register_type
@@ -60,12 +68,6 @@ for _cls in (Peer, Received, Beacon, ResultUpdate, Cancel, Fresh, PeerList, Watc
     register_type(_cls)
 
 WATCHED = (Task, Pose, NetInfo, Peer)
-
-
-# The control node hears every robot's Pose, 10 a second each: 500 datagrams a second from 50
-# robots, more than the kernel's default buffer (about 200 kB, 1-2 kB a datagram with its
-# overhead) holds through a stall of half a second; the 50-robot hall lost 32 in 20 s there.
-CONTROL_RECEIVE_BUFFER = 8 << 20
 
 
 class TransportSettings(BaseModel):
@@ -241,7 +243,7 @@ class TransportPlugin(Plugin[TransportSettings]):
             lambda: self._undeliverable(addr, kind, body))
         self.endpoint.start()
         self.address = self.endpoint.address
-        room = s.receive_buffer if s.receive_buffer is not None else (CONTROL_RECEIVE_BUFFER if s.role == "control" else 0)
+        room = s.receive_buffer if s.receive_buffer is not None else (STREAM_BUFFER if s.role == "control" else 0)
         if room:  # a burst of Poses that arrives while the agent is held back waits here, not lost
             got = self.endpoint.receive_buffer(room)
             if got < room:

@@ -11,7 +11,7 @@ from collections.abc import Iterator
 from typing import Any
 
 from erni.blackboard.errors import ErniError, UsageError
-from erni.transport.endpoint import Address, parse_address
+from erni.transport.endpoint import STREAM_BUFFER, Address, parse_address
 
 
 def add_client_options(p: argparse.ArgumentParser) -> None:
@@ -63,17 +63,11 @@ def open_client(args: argparse.Namespace, command: str) -> Any:
         return None
 
 
-# A watch streams a datagram per Pose of every robot: 400 a second from a 40-robot team. The
-# kernel's default receive buffer (about 200 kB, with its overhead of 1-2 kB per datagram) holds
-# a few hundred of them, so a watcher that the machine's load holds back for half a second loses
-# events (341 in 20 s in the 40-robot hall). A watcher asks for room for seconds of stream.
-WATCH_BUFFER = 8 << 20
-
-
 def make_room_for_a_stream(client: Any) -> int:
-    """Ask the kernel for a receive buffer that holds seconds of a team's watch stream; return the
-    size granted (beyond `net.core.rmem_max` only for a process allowed to: root, CAP_NET_ADMIN)."""
-    return int(client.endpoint.receive_buffer(WATCH_BUFFER))
+    """Ask the kernel for a receive buffer that holds seconds of a team's watch stream
+    (`STREAM_BUFFER`); return the size granted (beyond `net.core.rmem_max` only for a process
+    allowed to: root, CAP_NET_ADMIN)."""
+    return int(client.endpoint.receive_buffer(STREAM_BUFFER))
 
 
 def watch_events(client: Any, addr: Address, end: float | None, lease: float = 10.0) -> Iterator[Any]:

@@ -38,8 +38,8 @@ def test_a_driver_drives_a_robot_of_the_child_and_the_parent_sees_it_move_telepo
         assert (r.name, r.start) == ("r1", pytest.approx((2.0, 1.0, math.pi / 2)))
         assert (r.x, r.y) == pytest.approx((2.0, 1.0))
         driver.open(timeout=10)
-        wait_until(lambda: host.connected(1), timeout=5)
-        assert not host.connected(0)
+        wait_until(lambda: host.connected()[1], timeout=5)
+        assert not host.connected()[0]
         driver.vel(0.3)
         wait_until(lambda: r.y > 1.3, timeout=10)  # heading north
         assert r.v > 0 and r.commanded_v == pytest.approx(0.3) and r.energy > 0
@@ -50,7 +50,7 @@ def test_a_driver_drives_a_robot_of_the_child_and_the_parent_sees_it_move_telepo
         connects = driver.stats.connects
         host.cut(1)
         wait_until(lambda: driver.stats.link_losses >= 1, timeout=10)
-        wait_until(lambda: driver.stats.connects > connects and host.connected(1), timeout=15)
+        wait_until(lambda: driver.stats.connects > connects and host.connected()[1], timeout=15)
     finally:
         driver.close()
         host.stop()

@@ -133,8 +133,9 @@ def test_agents_start_a_batch_at_a_time_so_the_simulator_keeps_its_robots_linked
     spawn = team._spawn
 
     def spawn_and_count(agent, env):
+        linked = team.host.connected()
         starting_at_launch.append(sum(1 for i, name in enumerate(team.names)
-                                      if team.agents[name].proc is not None and not team.host.connected(i)))
+                                      if team.agents[name].proc is not None and not linked[i]))
         spawn(agent, env)
 
     team._spawn = spawn_and_count

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from erni.blackboard.testing import wait_until
-from erni.commands._client import WATCH_BUFFER
+from erni.transport.endpoint import STREAM_BUFFER
 from tests.transport.helpers import KEY, agent_config, free_port, identity
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -115,7 +115,7 @@ def test_watch_streams_task_results(team):
         assert first["agent"] == "control"
         # room for seconds of a team's stream: a watcher held back half a second loses nothing
         rmem_max = int(Path("/proc/sys/net/core/rmem_max").read_text())
-        assert udp_receive_buffer(watch.pid) >= min(WATCH_BUFFER, rmem_max)
+        assert udp_receive_buffer(watch.pid) >= min(STREAM_BUFFER, rmem_max)
         out = cli(team["env"], "task", "--via", team["via"], "robot1", "BotMotion", "stop", "--wait")
         assert out.returncode == 0
         events = []

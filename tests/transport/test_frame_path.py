@@ -199,7 +199,7 @@ def test_a_client_that_stops_reading_keeps_its_newest_messages_up_to_its_limit(m
 def test_the_control_node_asks_for_room_for_every_robots_poses_and_a_robot_keeps_the_default():
     from pathlib import Path
 
-    from erni.transport.bridge import CONTROL_RECEIVE_BUFFER
+    from erni.transport.endpoint import STREAM_BUFFER
     from tests.transport.helpers import free_port, make_agent
 
     def rcvbuf(agent) -> int:
@@ -213,7 +213,7 @@ def test_the_control_node_asks_for_room_for_every_robots_poses_and_a_robot_keeps
               make_agent("quiet", disc, echo=False, role="control", receive_buffer=0)]
     try:
         control, robot, quiet = map(rcvbuf, agents)
-        assert control >= min(CONTROL_RECEIVE_BUFFER, rmem_max) > default or rmem_max <= default
+        assert control >= min(STREAM_BUFFER, rmem_max) > default or rmem_max <= default
         assert robot == default and quiet == default
     finally:
         for agent in agents:
