@@ -293,6 +293,9 @@ class MissionControl(Plugin[MissionSettings]):
             for pose in self.poses:
                 if pose.robot == self.agent_name:
                     runner.pose(pose)
+            for terr in self.territories:  # heartbeats that came before this runner: each is news to it
+                if terr.robot != self.agent_name:
+                    runner.heard(terr, now)
             self.runners[task.uid] = runner
             self.report(task.uid, TaskState.RUNNING, f"{task.preposition} started")
             self.last_values[task.uid] = now

@@ -233,3 +233,19 @@ def _settled(survivors, tasks, quiet):
     if not claims or time.time() - max(claims) < quiet:
         return None
     return [r.extra.get("events") for r in runners]
+
+
+def test_a_patrol_started_late_knows_the_heartbeats_already_heard(robots):
+    """A neighbour's heartbeat that came before the patrol began is still a neighbour to watch."""
+    agent = robots("robot1", 1.0, 1.0, mission={"speed": 1.0})
+    with agent.transaction() as tx:  # robot2 beat once, then fell silent before robot1 was tasked
+        tx.add(Territory(uid="territory:robot2", robot="robot2", task="t2", block=(2.0, 0.0, 4.0, 2.0), beat=1))
+    wait_until(lambda: plugin(agent).territories.get("territory:robot2") is not None, timeout=5,
+               message="the mission plugin never ran on robot2's heartbeat")
+    task = send(agent, "patrol", verb="Deploy", xmin=0.0, ymin=0.0, xmax=2.0, ymax=2.0, heartbeat=0.2, silence=0.5)
+    wait_until(lambda: task.uid in plugin(agent).runners, timeout=5, message="the patrol never started")
+    runner = plugin(agent).runners[task.uid]
+    wait_until(lambda: "claim robot2" in runner.extra.get("events", []), timeout=10,
+               message="robot1 never noticed robot2's silence")
+    assert runner.events.index("silent robot2") < runner.events.index("claim robot2")
+    assert "robot2" in runner.table.holds
