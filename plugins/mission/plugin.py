@@ -250,6 +250,10 @@ class MissionControl(Plugin[MissionSettings]):
         self._tick_runners(now)
         self._guard(now)
         self._housekeeping(now)
+        # Poses (10 a second from the robot alone) run the mission only while a deployment or a
+        # remote job acts on them; otherwise the newest is read at the next run (once a second at
+        # least, and on every network reading), which is all the good-position trail needs
+        self.poses.wakes = bool(self.runners or self.jobs)
 
     # -- network readings ----------------------------------------------------------------
 

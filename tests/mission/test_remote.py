@@ -5,12 +5,13 @@ from __future__ import annotations
 import itertools
 import math
 import threading
+import time
 
 from erni.blackboard import Agent, Pose, Task, TaskState
 from erni.blackboard.testing import wait_until
 from erni.plugins.mission.plugin import CUE_TASK
 from erni.sim.world import World
-from tests.mission.conftest import FAST, MOTION, current, pose_of, send, subs_of
+from tests.mission.conftest import FAST, MOTION, current, plugin, pose_of, send, subs_of
 
 
 class Recorder:
@@ -208,3 +209,34 @@ def test_after_a_restart_a_remote_goto_resumes_from_where_the_robot_stands(hosts
         assert any(m.startswith("resumed after a restart of robot1") for m in messages), messages
     finally:
         second.stop()
+
+
+def test_an_idle_mission_is_not_run_by_every_pose_but_reads_the_newest(robots):
+    """Without a job or a deployment, the robot's 10 Hz Poses do not each run the mission; the
+    newest is still what it knows at its next run. With a job, every Pose runs it again."""
+    agent = robots("robot1", with_motion=False)
+    mission = plugin(agent)
+
+    def walk(n: int, y: float) -> None:
+        for k in range(n):
+            with agent.transaction() as tx:
+                pose = Pose(uid="pose:robot1", robot="robot1", x=0.1 * k, y=y)
+                if agent.query(Pose):
+                    tx.change(pose)
+                else:
+                    tx.add(pose)
+            time.sleep(0.02)
+
+    walk(1, 0.0)
+    wait_until(lambda: mission.team.mine() is not None, timeout=5, message="the mission never read the Pose")
+    before = mission.runs
+    walk(25, 1.0)  # half a second of a walking robot's Poses
+    idle_runs = mission.runs - before
+    assert idle_runs <= 3, f"{idle_runs} runs of an idle mission for 25 Poses"
+    wait_until(lambda: (m := mission.team.mine()) is not None and abs(m[0] - 2.4) < 1e-9 and m[1] == 1.0, timeout=3,
+               message="the idle mission never read the newest Pose")
+    task = send(agent, "goto", x=5.0, y=5.0, speed=1.0)  # a job: no motion plugin, so it stays pending
+    wait_until(lambda: task.uid in mission.jobs, timeout=5, message="the job was not taken")
+    before = mission.runs
+    walk(25, 2.0)
+    assert mission.runs - before >= 10, f"{mission.runs - before} runs for 25 Poses while a job is on"
