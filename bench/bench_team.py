@@ -3,7 +3,8 @@
 For each N a whole simulated team is started as `erni sim` starts it (one agent process per
 robot with transport, motion, mobinet and mission; the control node; the world and the SNMP
 network nodes in this process, the simulated robots in its robot host's). "sim %" is the two
-together. Every robot random-walks (or stands, with
+together. "SIPs skipped" is the share of the simulated robots' SIP slots that their host came
+too late for (the machine too busy: each is a Pose its robot cannot publish). Every robot random-walks (or stands, with
 `--idle`); `erni watch --json` on the control node, in a process of its own as a user runs it,
 records every Pose the control node holds for `--window` seconds. Every walk is running when the
 window opens (`bench/hall.py`); a walk that ends within it (its robot's link lost) is counted, as
@@ -64,11 +65,13 @@ def run(n: int, window: float, idle: bool) -> dict[str, float]:
             sim0 = sum(cpu_seconds(pid) for pid in sims)
             watch0 = cpu_seconds(watcher.pid)
             load0 = os.getloadavg()[0]
+            team.sips_since()
             first = os.fstat(out.fileno()).st_size
             start = time.monotonic()
             time.sleep(window)
             last = os.fstat(out.fileno()).st_size
             elapsed = time.monotonic() - start
+            sips, skipped = team.sips_since()
             cpu = {name: (cpu_seconds(pid) - cpu0[name]) / elapsed * 100 for name, pid in pids.items()}
             sim_cpu = (sum(cpu_seconds(pid) for pid in sims) - sim0) / elapsed * 100
             watch_cpu = (cpu_seconds(watcher.pid) - watch0) / elapsed * 100
@@ -102,7 +105,8 @@ def run(n: int, window: float, idle: bool) -> dict[str, float]:
             "share": poses / (n * elapsed / PERIOD), "heard_peers": heard,
             "heard_poses": sum(1 for s in stamps.values() if s), "stopped": len(stopped),
             "cpu": statistics.median(cpu[r] for r in robots), "control_cpu": cpu["control"], "sim_cpu": sim_cpu, "watch_cpu": watch_cpu,
-            "rss": statistics.median(rss[r] for r in robots), "load": (load0 + load1) / 2}
+            "rss": statistics.median(rss[r] for r in robots), "load": (load0 + load1) / 2,
+            "skipped": skipped / max(1, sips + skipped)}
 
 
 def main() -> int:
@@ -114,13 +118,13 @@ def main() -> int:
     print(f"robots {'stand' if args.idle else 'random-walk'}; Pose period {PERIOD * 1000:.0f} ms (input); "
           f"real time = interval p99 <= {2 * PERIOD * 1000:.0f} ms and every robot heard")
     print("| robots | start-up s | interval p50 / p99 ms at control | p99 / period | Poses at control / expected "
-          "| heard (directory / Poses) | walks ended | CPU / robot % | control % | sim % | watcher % | RSS / robot MB | load | real time |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+          "| heard (directory / Poses) | walks ended | SIPs skipped | CPU / robot % | control % | sim % | watcher % | RSS / robot MB | load | real time |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for n in [int(x) for x in args.robots.split(",") if x]:
         r = run(n, args.window, args.idle)
         ok = r["p99"] <= 2 * PERIOD * 1000 and r["heard_peers"] == n and r["heard_poses"] == n and not r["stopped"]
         print(f"| {n} | {r['startup']:.1f} | {r['p50']:.0f} / {r['p99']:.0f} | {r['p99'] / (PERIOD * 1000):.1f} | "
-              f"{r['share']:.2f} | {r['heard_peers']} / {r['heard_poses']} of {n} | {r['stopped']} | {r['cpu']:.1f} | "
+              f"{r['share']:.2f} | {r['heard_peers']} / {r['heard_poses']} of {n} | {r['stopped']} | {r['skipped']:.1%} | {r['cpu']:.1f} | "
               f"{r['control_cpu']:.1f} | {r['sim_cpu']:.1f} | {r['watch_cpu']:.1f} | {r['rss']:.0f} | {r['load']:.1f} | "
               f"{'yes' if ok else 'no'} |", flush=True)
     return 0

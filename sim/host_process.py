@@ -6,9 +6,9 @@ interpreter with the SNMP nodes, the radio feed and the team's client: its physi
 so its SIPs, came late whenever one of those held the interpreter. Here it runs as
 `python -m erni.sim.host_process STATE`, and the simulator's process sees the robots through:
 
-* STATE, a file both map: a sequence number, then per robot `FIELDS` (float64), rewritten after
-  every physics step. The sequence number is odd while a step writes, so a reader retries
-  rather than take half a step (a seqlock);
+* STATE, a file both map: a sequence number, the host's `TIMING` counters, then per robot
+  `FIELDS` (float64), rewritten after every physics step. The sequence number is odd while a
+  step writes, so a reader retries rather than take half a step (a seqlock);
 * the child's stdin: first the spec (one JSON line: world, robot configs, physics rate, address),
   then one command a line (`["teleport", i, x, y, th]`, `["cut", i]`); its end stops the child;
 * the child's stdout: one JSON line once every robot listens (`{"urls": [...], "starts": [...]}`,
@@ -26,6 +26,7 @@ import signal
 import subprocess
 import sys
 import threading
+from collections.abc import Callable
 from pathlib import Path
 from typing import IO, Any
 
@@ -39,6 +40,10 @@ log = logging.getLogger("erni.sim.robot")
 
 FIELDS = ("x", "y", "th", "v", "commanded_v", "energy", "connected")
 X, Y, TH, V, COMMANDED_V, ENERGY, CONNECTED = range(len(FIELDS))
+TIMING = ("steps", "sips", "skipped")
+"""The host's counters since it started: physics steps, SIPs sent, and SIP slots skipped because
+a step came too late for them (a machine too busy for the team: each is a Pose its robot lacks)."""
+HEADER = 1 + len(TIMING)  # the sequence number, then TIMING
 START_TIMEOUT = 60.0  # s for the child to listen for every robot
 
 
@@ -126,7 +131,7 @@ class HostProcess:
 
         n = len(self.configs)
         self._state = Path(state)
-        self._state.write_bytes(bytes(8 * (1 + n * len(FIELDS))))
+        self._state.write_bytes(bytes(8 * (HEADER + n * len(FIELDS))))
         with open(log_path, "ab") as err:
             self._proc = subprocess.Popen([sys.executable, "-m", "erni.sim.host_process", str(self._state)],
                                           stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=err,
@@ -138,7 +143,7 @@ class HostProcess:
         with open(self._state, "r+b") as f:
             self._map = mmap.mmap(f.fileno(), 0)
         table = np.frombuffer(self._map, dtype=np.float64)
-        self._seq, self._rows = table[:1], table[1:].reshape(n, len(FIELDS))
+        self._seq, self._rows = table[:HEADER], table[HEADER:].reshape(n, len(FIELDS))
         self.urls = list(answer["urls"])
         self.robots = [RobotView(self, i, c, tuple(answer["starts"][i])) for i, c in enumerate(self.configs)]
         return self
@@ -178,14 +183,26 @@ class HostProcess:
 
     def snapshot(self) -> np.ndarray:
         """Every robot's `FIELDS` after one whole physics step (a copy)."""
+        return self._read(lambda: self._rows)
+
+    def timing(self) -> dict[str, int]:
+        """The host's `TIMING` counters as of its last physics step."""
+        head = self._read(lambda: self._seq)
+        return {name: int(head[1 + k]) for k, name in enumerate(TIMING)}
+
+    def _read(self, part: Callable[[], np.ndarray | None]) -> np.ndarray:
         if self._rows is None or self._seq is None:
             raise UsageError("the robot host is not running")
+        copy = np.empty(0)
         for _ in range(1000):
             before = self._seq[0]
-            rows = self._rows.copy()
+            table = part()
+            if table is None:
+                raise UsageError("the robot host is not running")
+            copy = table.copy()
             if before == self._seq[0] and not int(before) % 2:
                 break
-        return rows
+        return copy
 
     def url(self, index: int) -> str:
         """The pyserial URL a driver opens to reach robot `index`."""
@@ -240,14 +257,21 @@ def _serve(state: str, spec: dict[str, Any], commands: IO[str], out: IO[str]) ->
     with open(state, "r+b") as f:
         shared = mmap.mmap(f.fileno(), 0)
     table = np.frombuffer(shared, dtype=np.float64)
-    seq, rows = table[:1], table[1:].reshape(n, len(FIELDS))
+    seq, rows = table[:HEADER], table[HEADER:].reshape(n, len(FIELDS))
+    steps = 0
 
     def publish() -> None:  # after each physics step, in the host's thread (its lock held)
+        nonlocal steps
         seq[0] += 1
+        sips = skipped = 0
         for i, ep in enumerate(host.endpoints):
             r = ep.robot
             rows[i] = (r.x, r.y, r.th, r.v, r.target_v if r.trans_mode == "vel" else r.v, r.energy,
                        ep.conn is not None)
+            sips += ep.firmware.counts["sips"]
+            skipped += ep.firmware.counts["skipped"]
+        seq[1:] = (steps, sips, skipped)
+        steps += 1
         seq[0] += 1
 
     with host._lock:

@@ -435,7 +435,7 @@ class ArcosFirmware:
         self._sip_anchor = True
         self._rng = random.Random(robot.config.seed)
         self._garbage_left = robot.config.garbage_first
-        self.counts = {"packets": 0, "bad": 0, "sips": 0, "unknown": 0}
+        self.counts = {"packets": 0, "bad": 0, "sips": 0, "skipped": 0, "unknown": 0}  # skipped: SIP slots a late tick missed
         self.now = 0.0
         self.host_baud = 0  # HOSTBAUD code last asked for (0 = 9600)
         self.simstat = False  # SIM_STAT 2: a SIMSTAT after every SIP
@@ -695,7 +695,9 @@ class ArcosFirmware:
         if self._sip_anchor and slack > 0:  # the first SIP after OPEN: the schedule starts at this tick
             self._next_sip = (now if grid is None else grid) + period
         else:  # the next time on the schedule after this tick's reach: SIPs a stall missed are skipped
-            self._next_sip = next_on_grid(self._next_sip, now + slack, period)
+            due = self._next_sip
+            self._next_sip = next_on_grid(due, now + slack, period)
+            self.counts["skipped"] += max(0, round((self._next_sip - due) / period) - 1)
         self._sip_anchor = False
         self._send(self.sip())
         self.counts["sips"] += 1

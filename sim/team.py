@@ -272,6 +272,7 @@ class Team:
         self.url: str | None = None
         self._stop = threading.Event()
         self._feed: threading.Thread | None = None
+        self._sips_seen = {"sips": 0, "skipped": 0}  # the robot host's counters at the last `sips_since()`
         self._fed: dict[str, tuple[float, float]] = {}
         self._t0 = time.monotonic()
         self._started = False
@@ -577,6 +578,14 @@ class Team:
             self._client = Client(self.control_address, identity=self.cli_identity)
             self._client.endpoint.start()
         return self._client
+
+    def sips_since(self) -> tuple[int, int]:
+        """SIPs the simulated robots sent, and SIP slots they skipped because the robot host came too
+        late for them, since the last call (or the start). A skipped SIP is a Pose its robot lacks:
+        the machine is too busy for the team to run in real time."""
+        now = self.host.timing()
+        last, self._sips_seen = self._sips_seen, now
+        return now["sips"] - last["sips"], now["skipped"] - last["skipped"]
 
     def peers(self, timeout: float = 2.0) -> dict[str, Any]:
         """The control node's directory: agent name -> Peer ({} when it does not answer)."""

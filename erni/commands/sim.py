@@ -200,4 +200,15 @@ def status_line(team: Any) -> str:
         return line + "; the control node does not answer"
     return line + f"; control hears {len(heard)}/{len(names)}" + (
         f" (not {', '.join(n for n in names if n not in heard)})" if len(heard) < len(names) else "") + (
-        f"; {team.status.components} radio component(s)")
+        f"; {team.status.components} radio component(s)") + sips_note(*team.sips_since())
+
+
+def sips_note(sent: int, skipped: int) -> str:
+    """The simulated robots' SIPs since the last status line: on time, or how many were skipped."""
+    slots = sent + skipped
+    if not slots:
+        return ""
+    if skipped <= 0.01 * slots:
+        return f"; SIPs on time {sent / slots:.1%}"
+    return (f"; SIPs on time {sent / slots:.1%} ({skipped} of {slots} skipped: this machine is too busy "
+            f"for the team to run in real time; try fewer robots)")

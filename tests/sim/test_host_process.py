@@ -47,6 +47,12 @@ def test_a_driver_drives_a_robot_of_the_child_and_the_parent_sees_it_move_telepo
         driver.vel(0.0)
         host.teleport(1, 5.0, -2.0, 0.0)
         wait_until(lambda: abs(r.x - 5.0) < 0.05 and abs(r.y + 2.0) < 0.05, timeout=5)
+        before = host.timing()  # the host's counters: its steps and the SIPs its robots sent
+        wait_until(lambda: host.timing()["sips"] >= before["sips"] + 5, timeout=5,
+                   message="the host's SIP count does not grow while a driver is connected")
+        after = host.timing()
+        assert after["steps"] > before["steps"] and after["skipped"] >= 0
+        assert driver.stats.sips >= after["sips"] - 10  # what it counts sent is what the driver got
         connects = driver.stats.connects
         host.cut(1)
         wait_until(lambda: driver.stats.link_losses >= 1, timeout=10)

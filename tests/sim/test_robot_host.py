@@ -13,11 +13,11 @@ OPEN = b"".join(_packet(bytes([c])) for c in (0, 1, 2, 1))  # SYNC0, SYNC1, SYNC
 
 
 def sip_times(physics_hz: float, phase: float, late: list[float], stall: tuple[int, float] = (0, 0.0),
-              first_late: float = 0.0) -> list[float]:
+              first_late: float = 0.0, counts: dict[str, int] | None = None) -> list[float]:
     """Drive a host through its own loop on a fake clock: the robot opens at `phase` into the
     grid, tick k comes `late[k]` of a step after its grid time (`stall` = (k, steps): tick k comes
     that many steps late; the first tick after the robot opens comes `first_late` late); return
-    when each SIP went."""
+    when each SIP went (and the firmware's counters in `counts`)."""
     now = [0.0]
     host = RobotHost(World(), physics_hz=physics_hz, clock=lambda: now[0])
     step = host.period
@@ -35,6 +35,8 @@ def sip_times(physics_hz: float, phase: float, late: list[float], stall: tuple[i
             host.run_once(0.0)
             if fw.counts["sips"] > len(times):
                 times.append(now[0])
+        if counts is not None:
+            counts.update(fw.counts)
         return times
     finally:
         host.stop()
@@ -67,3 +69,20 @@ def test_a_stalled_tick_does_not_shift_the_stream_off_its_grid(phase: float, lat
     off_grid = [t for t in times if abs((t - times[0]) / 0.1 - round((t - times[0]) / 0.1)) * 0.1 > 0.3 * 0.05 + 1e-9]
     assert len(off_grid) <= 1, off_grid  # only the stalled tick's SIP
     assert len(times) >= 36  # a stall skips at most the SIPs it held back
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.floats(0.0, 0.999), st.lists(st.floats(0.0, 0.45), min_size=1, max_size=10),
+       st.one_of(st.just(0.0), st.floats(1.05, 7.95)))
+def test_the_host_counts_the_sips_a_stall_skipped(phase: float, late: list[float], stall: float) -> None:
+    """Every slot of the SIP schedule is either sent or counted as skipped, so `erni sim` can say
+    when the machine is too busy for its team; ticks late by less than half a step skip none."""
+    counts: dict[str, int] = {}
+    times = sip_times(20.0, phase, late, stall=(40, stall), counts=counts)
+    slots = round((times[-1] - times[0]) / 0.1) + 1  # the last SIP is on the schedule's grid
+    assert counts["sips"] == len(times)
+    assert counts["skipped"] == slots - len(times), (counts, slots)
+    if stall == 0.0:
+        assert counts["skipped"] == 0
+    if stall >= 4.0:  # 200 ms late or more: at least one 100 ms slot went by unsent
+        assert counts["skipped"] >= 1

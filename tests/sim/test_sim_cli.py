@@ -138,3 +138,13 @@ def test_scenario_tasks_and_failures_happen_on_time(sim, tmp_path):
     assert float(failed.split("t=")[1].split()[0]) >= 1.0
     assert float(done.split("t=")[1].split()[0]) < 4.5
     assert processes_mentioning(str(tmp_path / "run")) == []
+
+
+def test_the_status_line_says_when_the_simulated_robots_skip_sips():
+    from erni.commands.sim import sips_note
+
+    assert sips_note(0, 0) == ""
+    assert sips_note(1000, 0) == "; SIPs on time 100.0%"
+    assert sips_note(995, 5) == "; SIPs on time 99.5%"  # within 1 %: no alarm
+    busy = sips_note(900, 100)
+    assert busy.startswith("; SIPs on time 90.0% (100 of 1000 skipped: this machine is too busy")

@@ -55,6 +55,12 @@ def test_remote_goto_from_the_control_node_reaches_its_goal(tmp_path, verb, miss
         assert math.hypot(robot.x - goal[0], robot.y - goal[1]) < 0.2
         others = [team.robot("robot1"), team.robot("robot3")]
         assert all(math.hypot(r.x - r.start[0], r.y - r.start[1]) < 0.05 for r in others)
+        team.sips_since()
+        start = time.monotonic()
+        time.sleep(1.0)
+        sent, skipped = team.sips_since()  # three robots at 10 Hz, counted by the robot host
+        slots = 3 * (time.monotonic() - start) / 0.1
+        assert abs(sent + skipped - slots) <= 9 and skipped <= sent, (sent, skipped, slots)
     finally:
         team.stop()
     assert not any(a.alive for a in team.agents.values())
