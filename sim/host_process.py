@@ -26,7 +26,6 @@ import signal
 import subprocess
 import sys
 import threading
-from collections.abc import Callable
 from pathlib import Path
 from typing import IO, Any
 
@@ -115,8 +114,7 @@ class HostProcess:
         self._proc: subprocess.Popen[bytes] | None = None
         self._state: Path | None = None
         self._map: mmap.mmap | None = None
-        self._seq: np.ndarray | None = None
-        self._rows: np.ndarray | None = None
+        self._table: np.ndarray | None = None  # the shared file as float64: HEADER, then FIELDS per robot
         self._send_lock = threading.Lock()
 
     def add_robot(self, config: SimRobotConfig) -> None:
@@ -142,8 +140,7 @@ class HostProcess:
         answer = self._answer(log_path)
         with open(self._state, "r+b") as f:
             self._map = mmap.mmap(f.fileno(), 0)
-        table = np.frombuffer(self._map, dtype=np.float64)
-        self._seq, self._rows = table[:HEADER], table[HEADER:].reshape(n, len(FIELDS))
+        self._table = np.frombuffer(self._map, dtype=np.float64)
         self.urls = list(answer["urls"])
         self.robots = [RobotView(self, i, c, tuple(answer["starts"][i])) for i, c in enumerate(self.configs)]
         return self
@@ -183,24 +180,22 @@ class HostProcess:
 
     def snapshot(self) -> np.ndarray:
         """Every robot's `FIELDS` after one whole physics step (a copy)."""
-        return self._read(lambda: self._rows)
+        return self._read()[HEADER:].reshape(-1, len(FIELDS))
 
     def timing(self) -> dict[str, int]:
         """The host's `TIMING` counters as of its last physics step."""
-        head = self._read(lambda: self._seq)
+        head = self._read()
         return {name: int(head[1 + k]) for k, name in enumerate(TIMING)}
 
-    def _read(self, part: Callable[[], np.ndarray | None]) -> np.ndarray:
-        if self._rows is None or self._seq is None:
+    def _read(self) -> np.ndarray:
+        """The whole shared table as one physics step left it (a copy; the seqlock's read side)."""
+        table = self._table
+        if table is None:
             raise UsageError("the robot host is not running")
-        copy = np.empty(0)
         for _ in range(1000):
-            before = self._seq[0]
-            table = part()
-            if table is None:
-                raise UsageError("the robot host is not running")
+            before = table[0]
             copy = table.copy()
-            if before == self._seq[0] and not int(before) % 2:
+            if before == table[0] and not int(before) % 2:
                 break
         return copy
 
@@ -235,7 +230,7 @@ class HostProcess:
             except subprocess.TimeoutExpired:
                 proc.kill()
                 proc.wait(5)
-        self._seq = self._rows = None
+        self._table = None
         if self._map is not None:
             self._map.close()
             self._map = None
