@@ -32,7 +32,7 @@ import math
 import random
 import time
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any, ClassVar, NamedTuple
 
 from pydantic import BaseModel, ConfigDict, Field, SecretStr, model_validator
 
@@ -210,7 +210,8 @@ class TransportPlugin(Plugin[TransportSettings]):
         # our own shared objects: a status received from a peer (status_in) is committed by us and
         # must not run us again (a control node receives ten Poses a second from every robot)
         self.shared = self.subscribe(lambda o: type(o).__name__ in shared and o.uid not in self.status_in)
-        self.directory: dict[str, Peer] = {}
+        self.directory = _Directory()
+        self._targets: dict[str, tuple[int, list[_Target], frozenset[tuple[str, int]]]] = {}  # `_status_targets`
         self.heard_at: dict[str, float] = {}  # peer -> when a session frame of it last arrived (monotonic)
         self.sent_to: dict[str, str] = {}  # task uid -> peer it was sent to
         self.sent_at: dict[str, float] = {}  # task uid -> when it was sent (monotonic)
@@ -226,6 +227,7 @@ class TransportPlugin(Plugin[TransportSettings]):
         self.addresses: dict[str, Address] = {}  # reply address of every sender, clients included
         self._next_beacon = 0.0
         self._next_liveness = 0.0  # beacons and silences are looked at a few times a period
+        self._next_link_check = 0.0  # performers' silences are looked at a few times a period
         self._announce_every = s.beacon_period  # backs off while the directory stands
         self._announce_seen: tuple[int, int] = (-1, -1)  # peers and learned addresses at the last announcement
         self.sent_peer_at: dict[str, float] = {}  # peer -> when a session frame other than a beacon went (monotonic)
@@ -315,7 +317,9 @@ class TransportPlugin(Plugin[TransportSettings]):
         if mono >= self._next_liveness:  # O(peers): not on every run of a busy agent
             self._next_liveness = mono + self.settings.beacon_period / 4
             self._beacon_and_liveness(now)
-        self._check_links()
+        if mono >= self._next_link_check:  # O(tasks sent): a control node runs for every Pose it receives
+            self._next_link_check = mono + min(self.settings.beacon_period, self.settings.link_deadline) / 4
+            self._check_links()
 
     # -- outgoing -------------------------------------------------------------------------
 
@@ -569,6 +573,9 @@ class TransportPlugin(Plugin[TransportSettings]):
         self.heard_at[name] = time.monotonic()
         old = self.directory.get(name)
         address = f"{reply[0]}:{reply[1]}"
+        if (beacon is None and old is not None and old.up and old.epoch == epoch and old.address == address
+                and (old.role or not role) and now - old.last_heard <= self.settings.peer_timeout / 4):
+            return  # a peer up, heard again: the common case (a control node hears ten Poses a second from each)
         fields: dict[str, Any] = {"address": address, "epoch": epoch, "last_heard": now, "up": True}
         if role and (old is None or not old.role):
             # a configured peer's role, from its session, before any beacon: two peers that talk
@@ -695,14 +702,12 @@ class TransportPlugin(Plugin[TransportSettings]):
         if not objs and not gone:
             return
         s = self.settings
-        peers = [p for p in self.directory.values() if p.up and p.address]
         mono = time.monotonic()
         for obj in objs:
-            targets = [p for p in peers if p.role in s.share_with.get(type(obj).__name__, s.share_with_roles)]
+            targets, holders = self._status_targets(type(obj).__name__)
             if not targets:
                 continue
             sent = self.whole_sent.get(obj.uid)
-            holders = {(p.name, p.epoch) for p in targets}
             if sent is not None and holders <= sent.holders and mono - sent.at < s.status_refresh \
                     and only_stamp_differs(sent.obj, obj):
                 self._send_status(targets, "status.fresh", Fresh(uid=obj.uid, base=sent.obj.stamp,  # type: ignore[attr-defined]
@@ -710,16 +715,36 @@ class TransportPlugin(Plugin[TransportSettings]):
                 continue
             self._send_status(targets, "status", obj, False, mono)
             if isinstance(getattr(obj, "stamp", None), float):
-                self.whole_sent[obj.uid] = _Sent(obj, mono, holders)
+                self.whole_sent[obj.uid] = _Sent(obj, mono, set(holders))
         for obj in gone:  # removals reliably: a stale object would stay forever
             self.whole_sent.pop(obj.uid, None)
-            self._send_status([p for p in peers if p.role in s.share_with.get(type(obj).__name__, s.share_with_roles)],
-                              "status.remove", Cancel(uid=obj.uid), True, mono)
+            self._send_status(self._status_targets(type(obj).__name__)[0], "status.remove", Cancel(uid=obj.uid),
+                              True, mono)
 
-    def _send_status(self, peers: list[Peer], kind: str, body: BaseModel, reliable: bool, mono: float) -> None:
-        for peer in peers:
-            self.endpoint.send(parse_address(peer.address), kind, body, reliable=reliable, to=peer.name)
-            self.sent_peer_at[peer.name] = mono
+    def _status_targets(self, type_name: str) -> tuple[list[_Target], frozenset[tuple[str, int]]]:
+        """The peers (name, address, epoch) that an object of `type_name` is shared with, and the set
+        of their (name, epoch): worked out again only when the directory changed who is up where
+        (a robot shares ten Poses a second; its peers' liveness alone changes nothing here)."""
+        cached = self._targets.get(type_name)
+        if cached is not None and cached[0] == self.directory.gen:
+            return cached[1], cached[2]
+        s = self.settings
+        roles = s.share_with.get(type_name, s.share_with_roles)
+        targets = []
+        for p in self.directory.values():
+            if p.up and p.address and p.role in roles:
+                try:
+                    targets.append(_Target(p.name, parse_address(p.address), p.epoch))
+                except ConfigError:
+                    continue
+        holders = frozenset((t.name, t.epoch) for t in targets)
+        self._targets[type_name] = (self.directory.gen, targets, holders)
+        return targets, holders
+
+    def _send_status(self, targets: list[_Target], kind: str, body: BaseModel, reliable: bool, mono: float) -> None:
+        for t in targets:
+            self.endpoint.send(t.address, kind, body, reliable=reliable, to=t.name)
+            self.sent_peer_at[t.name] = mono
 
     def _apply_status(self, msg: Message, obj: BBObject) -> None:
         stamp = (msg.epoch, msg.seq)
@@ -779,6 +804,35 @@ def _is_ip(text: str) -> bool:
     except ValueError:
         return False
     return True
+
+
+class _Directory(dict[str, Peer]):
+    """The peers by name. `gen` moves when a peer comes or goes, or changes what decides which of
+    our statuses it is sent and where: up, address, role or epoch (not its `last_heard`)."""
+
+    gen = 0
+
+    def __setitem__(self, name: str, peer: Peer) -> None:
+        old = self.get(name)
+        if old is None or (old.up, old.address, old.role, old.epoch) != (peer.up, peer.address, peer.role, peer.epoch):
+            self.gen += 1
+        super().__setitem__(name, peer)
+
+    def __delitem__(self, name: str) -> None:
+        self.gen += 1
+        super().__delitem__(name)
+
+    def pop(self, name: str, *default: Any) -> Any:
+        self.gen += 1
+        return super().pop(name, *default)
+
+
+class _Target(NamedTuple):
+    """A peer a status goes to: its name, its address parsed, and its epoch (the `holders` key)."""
+
+    name: str
+    address: Address
+    epoch: int
 
 
 class _Sent:

@@ -502,3 +502,102 @@ def test_a_keepalive_of_a_shared_object_travels_as_its_stamp_and_a_lost_whole_on
     publish(stamp=106.0)
     wait_until(lambda: at_control().stamp == 106.0)
     assert sent.count("status") == 5
+
+
+def test_statuses_follow_the_directory_a_late_control_node_gets_them_and_a_dead_one_not(team):
+    """The peers a status goes to are worked out again when the directory changes who is up where:
+    a control node that comes up after the robot started sharing gets its next Pose, and one that
+    died gets none after it is marked down."""
+    from erni.blackboard import Pose
+
+    robot = team("robot1", echo=False)
+    first = team("control", echo=False, role="control")
+    wait_until(lambda: any(p.name == "control" and p.up for p in robot.query(Peer)))
+    with robot.transaction() as tx:
+        tx.add(Pose(robot="robot1", x=1.0))
+    wait_until(lambda: first.blackboard.get("pose:robot1") is not None)
+    late = team("control2", echo=False, role="control")
+    wait_until(lambda: any(p.name == "control2" and p.up for p in robot.query(Peer)))
+    with robot.transaction() as tx:
+        tx.change(robot.blackboard.get("pose:robot1").evolve(x=2.0))
+    wait_until(lambda: (p := late.blackboard.get("pose:robot1")) is not None and p.x == 2.0)
+    assert first.blackboard.get("pose:robot1").x == 2.0
+    late.stop()
+    wait_until(lambda: any(p.name == "control2" and not p.up for p in robot.query(Peer)), timeout=5)
+    sent: list[str | None] = []
+    bridge = robot.plugin("transport")
+    real = bridge.endpoint.send
+
+    def to(addr, kind, body, **kw):
+        sent.append(kw.get("to"))
+        return real(addr, kind, body, **kw)
+
+    bridge.endpoint.send = to
+    with robot.transaction() as tx:
+        tx.change(robot.blackboard.get("pose:robot1").evolve(x=3.0))
+    wait_until(lambda: first.blackboard.get("pose:robot1").x == 3.0)
+    assert "control2" not in sent and "control" in sent
+
+
+def test_the_directorys_generation_moves_with_who_is_up_where_not_with_heartbeats():
+    from erni.transport.bridge import _Directory
+
+    d = _Directory()
+    d["a"] = Peer(uid="peer:a", name="a", address="127.0.0.1:1", up=True, role="control", epoch=1)
+    gen = d.gen
+    d["a"] = d["a"].evolve(last_heard=5.0)  # heard again: nothing a status's targets depend on
+    assert d.gen == gen
+    for change in ({"up": False}, {"address": "127.0.0.1:2"}, {"role": "robot"}, {"epoch": 2}):
+        d["a"] = d["a"].evolve(**change)
+        assert d.gen > gen, change
+        gen = d.gen
+    d["b"] = Peer(uid="peer:b", name="b")
+    assert d.gen > gen
+    gen = d.gen
+    del d["b"]
+    assert d.gen > gen
+
+
+def test_a_busy_requester_looks_at_its_performers_silence_a_few_times_a_period_and_still_fails_in_time(team):
+    """A control node runs for every status it receives; whether a performer went silent is looked at
+    a few times a beacon period, not on each of those runs, and a silent performer's task still fails."""
+    from erni.blackboard import Pose
+
+    control = team("control", echo=False, role="control", link_deadline=0.8)
+    robot = team("robot1", echo=True, **{})
+    robot.plugin("motion").settings.delay = 60.0  # the task runs until the robot dies
+    wait_until(lambda: any(p.name == "robot1" and p.up for p in control.query(Peer)))
+    bridge = control.plugin("transport")
+    checks, runs = [0], [0]
+    real_check, real_execute = bridge._check_links, bridge.execute
+
+    def check() -> None:
+        checks[0] += 1
+        real_check()
+
+    def execute() -> None:
+        runs[0] += 1
+        real_execute()
+
+    bridge._check_links, bridge.execute = check, execute
+    task = task_to("robot1")
+    with control.transaction() as tx:
+        tx.add(task)
+    wait_until(lambda: robot.blackboard.contains(task.uid))
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < 1.0:  # a stream of Poses: a run of the control node's transport each
+        with robot.transaction() as tx:
+            pose = robot.blackboard.get("pose:robot1")
+            if pose is None:
+                tx.add(Pose(robot="robot1"))
+            else:
+                tx.change(pose.evolve(x=pose.x + 1))
+        time.sleep(0.004)
+    elapsed = time.monotonic() - t0
+    assert runs[0] >= 100, runs[0]
+    assert checks[0] <= elapsed / (0.1 / 4) + 3, (checks[0], runs[0])  # beacon_period 0.1 s in these tests
+    robot.stop()
+    died = time.monotonic()
+    final = wait_until(lambda: (t := control.blackboard.get(task.uid)).done and t, timeout=5)
+    assert final.state is TaskState.FAILED and "link lost: robot1 not heard for" in final.result.message
+    assert time.monotonic() - died < 0.8 + 1.0
