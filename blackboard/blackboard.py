@@ -128,6 +128,8 @@ class Subscription(Generic[T]):
 
     def _open(self, inbox: list[tuple[str, BBObject, tuple[Any, ...]]]) -> None:
         """Fold the events committed since the last run into the view and its net deltas."""
+        if not inbox:  # nothing since the last run, whose `_close` left no deltas: a plugin with several
+            return     # subscriptions is run for one of them (a control node's transport, for each status)
         added: dict[str, T] = {}
         changed: dict[str, T] = {}
         removed: dict[str, T] = {}
@@ -365,10 +367,12 @@ class Blackboard:
 
     def _drain(self, subs: list[Subscription[Any]]) -> list[list[tuple[str, BBObject, tuple[Any, ...]]]]:
         """Take each subscription's inbox atomically (the start of its owner's run)."""
+        empty: list[tuple[str, BBObject, tuple[Any, ...]]] = []  # shared by the empty ones: never kept by a subscription
         with self._lock:
-            inboxes = [s._inbox for s in subs]
+            inboxes = [s._inbox or empty for s in subs]
             for s in subs:
-                s._inbox = []
+                if s._inbox:
+                    s._inbox = []
         return inboxes
 
 

@@ -28,8 +28,12 @@ class BBObject(BaseModel):
     uid: str = Field(default_factory=new_uid)
 
     def evolve(self, **changes: Any) -> Self:
-        """Return a validated copy of this object with `changes` applied (same uid)."""
-        data = self.model_dump()
+        """Return a validated copy of this object with `changes` applied (same uid).
+
+        The changes are validated, and the object's own validators run again; the fields it keeps
+        are taken as they are (frozen models and values validated when this object was made), not
+        dumped and validated anew: a control node evolves a task for every result a robot sends."""
+        data = dict(self.__dict__)
         data.update(changes)
         return type(self).model_validate(data)
 

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import base64
 import errno
+import functools
 import hashlib
 import heapq
 import itertools
@@ -99,6 +100,7 @@ datagrams a second from 40-50 robots overflow the kernel's default of about 200 
 40-robot hall a watcher lost 341 datagrams in 20 s, and at 50 robots the control node 32."""
 
 
+@functools.lru_cache(maxsize=4096)  # a peer's address is parsed for every message sent to it
 def parse_address(text: str, default_port: int = 0) -> Address:
     """Parse `host:port` (or `host`, with a default port); raise ConfigError naming the problem."""
     host, sep, port = text.strip().rpartition(":")

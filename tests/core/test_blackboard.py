@@ -301,3 +301,25 @@ def test_a_subscription_that_does_not_wake_is_delivered_at_the_next_run(agent):
     with agent.transaction() as tx:
         tx.add(Item(value=4))
     wait_until(lambda: rec.seen[-1] == [4])      # waking again
+
+
+def test_evolve_validates_the_changes_and_keeps_the_rest_as_it_was():
+    """evolve() checks what changes and runs the object's validators again, but takes the fields
+    it keeps as they are (frozen, validated when the object was made), without a dump and reload."""
+    from pydantic import ValidationError
+
+    from erni.blackboard import Pose, TaskState
+
+    task = Task(verb="BotMotion", preposition="goto", params={"x": 1, "y": "2"}, source="control")
+    done = task.with_result(TaskState.SUCCEEDED, message="there")
+    assert done.params is task.params and done.uid == task.uid and done.state is TaskState.SUCCEEDED
+    with pytest.raises(ValidationError, match="goto: x"):
+        task.evolve(params={"x": "east", "y": 0})
+    with pytest.raises(ValidationError, match="verb"):
+        task.evolve(verb="NoSuchVerb")
+    pose = Pose(robot="r1", sonar=[1.0, 2.0])
+    moved = pose.evolve(x=3.0)
+    assert moved.uid == "pose:r1" and moved.x == 3.0 and moved.sonar == [1.0, 2.0]
+    assert moved.sonar is not pose.sonar  # a list is copied by validation: no version shares a mutable value
+    with pytest.raises(ValidationError):
+        pose.evolve(x="far")
