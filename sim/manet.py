@@ -27,6 +27,7 @@ would converge to, computed directly from node positions:
 
 from __future__ import annotations
 
+import dataclasses
 import ipaddress
 import math
 import threading
@@ -34,6 +35,8 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
+
+import numpy as np
 
 from erni import netgraph
 from erni.blackboard.errors import NotFoundError, UsageError
@@ -72,6 +75,18 @@ class RadioModel:
         if distance >= self.comm_range:
             return 0.0
         return (self.comm_range - distance) / (self.comm_range - self.lossless_range)
+
+    def link_qualities(self, distances: np.ndarray) -> np.ndarray:
+        """The delivery ratio of a link for each of `distances` (m), 0 at `comm_range` and beyond:
+        what `quality` gives every pair the network links (vectorised: compared at each move)."""
+        q = np.zeros_like(distances)
+        inside = distances < self.comm_range
+        lossless = distances <= self.lossless_range
+        q[inside & lossless] = 1.0
+        band = inside & ~lossless  # here lossless_range < d < comm_range, so no division by zero
+        if band.any():
+            q[band] = (self.comm_range - distances[band]) / (self.comm_range - self.lossless_range)
+        return q
 
     def range_for(self, quality: float) -> float:
         """The longest link (m) whose delivery ratio is still at least `quality` (in (0, 1])."""
@@ -191,6 +206,7 @@ class ManetNetwork:
         self._rows_version = 0
         self._topo_version = 0
         self._truth: GroundTruth | None = None
+        self._qualities: np.ndarray | None = None  # every pair's link quality when the truth was last made
         self._views: dict[str, NodeView] = {}
         self._topologies: dict[str, tuple[tuple[str, str, int], ...]] = {}
         self._records: dict[frozenset[str], _LinkRecord] = {}
@@ -367,8 +383,21 @@ class ManetNetwork:
             raise NotFoundError(f"unknown node {name!r}; known: {', '.join(self._nodes) or 'none'}") from None
 
     def _changed(self, nodes_changed: bool = False) -> None:
-        """Recompute the truth after moves; bump versions only if what nodes serve changed."""
-        old, new = self._truth, self._compute_truth()
+        """Recompute the truth after moves; bump versions only if what nodes serve changed.
+
+        Moves that leave every pair's link quality as it was (robots inside each other's loss-free
+        range, or out of range) keep the truth's links, routes, components and cut vertices and
+        take the new positions only: the qualities of all pairs are compared vectorised, where
+        working out the truth again costs a Python step per pair (a 50-robot team fed 10 times a
+        second: 12 000 a second)."""
+        old = self._truth
+        qualities = self._pair_qualities()
+        unchanged = self._qualities is not None and np.array_equal(qualities, self._qualities)
+        self._qualities = qualities
+        if not nodes_changed and old is not None and unchanged:
+            self._truth = dataclasses.replace(old, positions=dict(self._pos))
+            return  # no link changed quality: nothing to fold, no version to bump
+        new = self._compute_truth()
         self._truth = new
         now = self.clock()
         self._fold_links(new, now)
@@ -446,6 +475,12 @@ class ManetNetwork:
                         newest[origin] = pos
             for member in comp:
                 self._known[member].update(newest)
+
+    def _pair_qualities(self) -> np.ndarray:
+        """The link quality of every pair of nodes, in the order they were added (N x N)."""
+        xy = np.array([self._pos[n] for n in self._nodes], dtype=float).reshape(-1, 2)
+        distances = np.hypot(xy[:, 0, None] - xy[None, :, 0], xy[:, 1, None] - xy[None, :, 1])
+        return self.radio.link_qualities(distances)
 
     def _compute_truth(self) -> GroundTruth:
         names = list(self._nodes)

@@ -235,3 +235,37 @@ def test_neighbour_set_changes_ansn_and_recalculations_are_counted():
     assert (alone.neighbor_changes, alone.ansn) == (far.neighbor_changes + 1, far.ansn + 1)
     assert alone.route_recalcs == far.route_recalcs + 1
     assert net.view("robot1").ansn == {"robot1": alone.ansn}
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(st.integers(0, 4), st.floats(-120, 120), st.floats(-120, 120)), min_size=1, max_size=25),
+       st.sampled_from([(100.0, 50.0), (100.0, 100.0), (100.0, 0.0)]))
+def test_the_truth_kept_across_moves_is_the_truth_worked_out_afresh(moves, ranges):
+    """A move that changes no pair's link quality keeps the links, routes, components and cut
+    vertices and takes the new positions; whatever the moves, that is what a fresh computation
+    gives, and every HELLO count matches a network that only ever computed afresh."""
+    clock = Clock()
+    nets = [ManetNetwork(RadioModel(*ranges), clock=clock) for _ in range(2)]
+    for net in nets:
+        for i, (x, y) in enumerate([(0, 0), (40, 0), (80, 0), (0, 60), (200, 0)]):
+            net.add_node(f"n{i}", x, y)
+    kept, fresh = nets
+    for node, x, y in moves:
+        clock.t += 0.75
+        kept.move(f"n{node}", x, y)
+        fresh._qualities = None  # the reference works the truth out again at every move
+        fresh.move(f"n{node}", x, y)
+        want, got = fresh.truth(), kept.truth()
+        assert want is not got
+        assert got.positions == want.positions
+        assert got.links == want.links and got.symmetric == want.symmetric
+        assert sorted(map(sorted, got.components)) == sorted(map(sorted, want.components))
+        assert got.articulation_points == want.articulation_points
+        assert kept.version == fresh.version  # what the nodes serve moved (or not) alike
+    clock.t += 3.0
+    for a in range(5):
+        for b in range(5):
+            if a != b:  # seconds heard are exact; delivered ones are summed in other steps (rounding)
+                (got_delivered, got_heard), (want_delivered, want_heard) = (
+                    kept.hello_counts(f"n{a}", f"n{b}"), fresh.hello_counts(f"n{a}", f"n{b}"))
+                assert got_heard == want_heard and abs(got_delivered - want_delivered) <= 1
