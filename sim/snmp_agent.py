@@ -109,12 +109,31 @@ class _Table:
 
     def next(self, oid: OID, ctx: _Node) -> tuple[OID, bytes] | None:
         """The first OID after `oid` and its encoded varbind, or None at the end of the MIB view."""
+        at = self.locate(oid)
+        return None if at is None else self.entry(at, ctx)
+
+    def locate(self, oid: OID) -> tuple[int, int] | None:
+        """Where the first OID after `oid` is served (segment, row), or None at the end of the view."""
         j = max(0, bisect.bisect_right(self.starts, oid) - 1)
-        for rows, lo, hi in self.segments[j:]:
+        for k in range(j, len(self.segments)):
+            rows, lo, hi = self.segments[k]
             i = bisect.bisect_right(rows.keys, oid, lo, hi)
             if i < hi:
-                return rows.keys[i], rows.bind(i, ctx)
+                return k, i
         return None
+
+    def after(self, at: tuple[int, int]) -> tuple[int, int] | None:
+        """The place of the OID that follows the one at `at` (the segments are sorted and do not
+        overlap): a GETBULK's repeaters walk on from where they are without searching again."""
+        k, i = at
+        if i + 1 < self.segments[k][2]:
+            return k, i + 1
+        return (k + 1, self.segments[k + 1][1]) if k + 1 < len(self.segments) else None
+
+    def entry(self, at: tuple[int, int], ctx: _Node) -> tuple[OID, bytes]:
+        """The OID at a place and its encoded varbind."""
+        rows, i = self.segments[at[0]][0], at[1]
+        return rows.keys[i], rows.bind(i, ctx)
 
 
 class _Node:
@@ -433,17 +452,19 @@ class ManetSnmpAgent:
         out = list(ManetSnmpAgent._next(table, node, V2C, binds[:non_rep])[2] or [])
         size = sum(map(len, out))
         cursors: list[OID] = [key for key, _ in binds[non_rep:]]
+        places: list[tuple[int, int] | None] = [None] * len(cursors)  # where each repeater stands in the table
         ended = [False] * len(cursors)
-        for _ in range(max(0, max_rep) if cursors else 0):
+        for rep in range(max(0, max_rep) if cursors else 0):
             row: list[bytes] = []
             for j, cur in enumerate(cursors):
-                found = None if ended[j] else table.next(cur, node)
-                if found is None:
+                at = None if ended[j] else table.locate(cur) if rep == 0 else table.after(places[j])  # type: ignore[arg-type]
+                if at is None:
                     ended[j] = True
                     row.append(ber.varbind(ber.oid(cur), ber.END_OF_MIB_VIEW))
                 else:
-                    cursors[j] = found[0]
-                    row.append(found[1])
+                    places[j] = at
+                    cursors[j], bound = table.entry(at, node)
+                    row.append(bound)
             size += sum(map(len, row))
             if len(out) + len(row) > MAX_VARBINDS or size > MAX_RESPONSE_BYTES - 200:
                 break

@@ -230,6 +230,36 @@ def test_a_served_column_without_rows_gives_no_such_instance(net):
     assert rows["1.3.6.1.2.1.4.24.6.0"] == ("Gauge32", "0")
 
 
+def test_snmpbulkwalk_serves_the_same_rows_as_snmpwalk(served):
+    """A GETBULK's repeaters walk on from where they stand (no search per row): net-snmp's bulk
+    walk, with repetitions that end inside and across the node's row sets, reads what GETNEXT reads."""
+    plain = snmp("snmpwalk", served["robot3"], "1.3")
+    assert plain.returncode == 0, plain.stderr
+    names = list(parse(plain.stdout))
+    for reps in ("-Cr7", "-Cr50"):
+        bulk = snmp("snmpbulkwalk", served["robot3"], reps, "1.3")
+        assert bulk.returncode == 0, bulk.stderr
+        assert "not increasing" not in bulk.stderr
+        assert list(parse(bulk.stdout)) == names and len(names) > 200  # values: some are clocks and counters
+
+
+def test_a_table_walked_place_by_place_is_every_served_oid_in_order():
+    net = line_network()
+    table = ManetSnmpAgent(net).table("robot3")
+
+    def key_at(at: tuple[int, int]) -> tuple[int, ...]:
+        return table.segments[at[0]][0].keys[at[1]]
+
+    at, walked = table.locate((0,)), []
+    while at is not None:
+        walked.append(key_at(at))
+        at = table.after(at)
+    assert walked == table.keys and len(walked) > 200
+    for k, following in zip(walked, walked[1:]):  # a search from any served OID agrees
+        assert key_at(table.locate(k)) == following
+    assert table.locate(walked[-1]) is None
+
+
 def test_getbulk_past_the_end_names_the_last_name_reached(served):
     last = UNKNOWN_PDU_HANDLERS          # the last object this agent serves
     before = "1.3.6.1.6.3.11.2.1.2.0"
