@@ -227,6 +227,8 @@ class Team:
         if self.launch_batch < 1:
             raise TeamError(f"launch_batch: expected at least 1 agent starting at a time, got {launch_batch}")
         self.feed_period = 1.0 / feed_hz
+        self._reach_of: object = None  # the truth's components that `_reach` was worked out from
+        self._reach: dict[str, list[str]] = {}  # agent -> the agents its radio reaches
         self.record = record
         self.transport = {"peer_timeout": 3.0, **(transport or {})}
         self.gui_port = gui_port
@@ -678,10 +680,10 @@ class Team:
             self.network.move_many(moved)
             self._fed.update(moved)
         truth = self.network.truth()
-        reach: dict[str, list[str]] = {}
-        for comp in truth.components:
-            for name in comp:
-                reach[name] = sorted(comp - {name})
+        if truth.components is not self._reach_of:  # moves that changed no link keep the components
+            self._reach_of, self._reach = truth.components, {
+                name: sorted(comp - {name}) for comp in truth.components for name in comp}
+        reach = self._reach
         control_reach = len(reach.get(CONTROL, []))
         with self._radio_lock:
             if force or reach != self.status.reach:
