@@ -269,3 +269,24 @@ def test_the_truth_kept_across_moves_is_the_truth_worked_out_afresh(moves, range
                 (got_delivered, got_heard), (want_delivered, want_heard) = (
                     kept.hello_counts(f"n{a}", f"n{b}"), fresh.hello_counts(f"n{a}", f"n{b}"))
                 assert got_heard == want_heard and abs(got_delivered - want_delivered) <= 1
+
+
+def _graphs(nodes: int = 5) -> st.SearchStrategy[dict[str, dict[str, int]]]:
+    """Symmetric graphs over n0..n4 with link metrics from a small set (so that changes are likely)."""
+    pairs = [(f"n{a}", f"n{b}") for a in range(nodes) for b in range(a + 1, nodes)]
+    return st.lists(st.sampled_from([None, 256, 512]), min_size=len(pairs), max_size=len(pairs)).map(
+        lambda ms: {n: {m: k for (a, b), k in zip(pairs, ms) if k is not None for n2, m in ((a, b), (b, a))
+                        if n2 == n} for n in (f"n{i}" for i in range(nodes))})
+
+
+@given(_graphs(), _graphs(), st.integers(0, 4))
+def test_two_hop_change_is_a_change_of_the_neighbour_node_metric_set(old, new, me):
+    """The MPR recalculation counter's test, against its definition: the set of (neighbour, node,
+    metric) two hops out, for the neighbours the node has before and after."""
+    from erni.sim.manet import two_hop_changed
+
+    name = f"n{me}"
+    neighbors = new[name].keys()
+    two_old = {(n, m, k) for n in neighbors for m, k in old.get(n, {}).items() if m != name}
+    two_new = {(n, m, k) for n in neighbors for m, k in new[n].items() if m != name}
+    assert two_hop_changed(name, neighbors, old, new) == (two_old != two_new)
