@@ -15,11 +15,17 @@ Robot host (`RobotHost`, every simulated robot of `erni sim` in one thread): for
 core that 100 ms of simulated time costs (physics steps, sonar, SIPs), against the 100 ms
 real-time budget and against the robot-by-robot path (`vectorised=False`) in the same run.
 
+The radio feed (`Team`'s feed: every robot's true position to the simulated MANET, 10 times a
+second): the milliseconds of one core a feed of N nodes costs, each node moved up to 5 cm, against
+the 100 ms between feeds. "loss-free": every pair inside the loss-free range (the benchmark hall,
+no link changes); "lossy band": every pair between the loss-free range and the range (every
+link's quality changes at every feed).
+
 Kinematic mode (`erni experiment spread-*`): 120 and 1000 robots stepped in-process by the
 mission's `spread_step`; the real-time factor is simulated seconds per wall-clock second.
 
     python bench/bench_sim.py [--robots 5,10,20] [--window 10] [--host-robots 10,120,1000]
-                              [--physics-hz 20] [--kinematic-robots 120,1000]
+                              [--physics-hz 20] [--feed-nodes 50,120] [--kinematic-robots 120,1000]
 """
 
 from __future__ import annotations
@@ -189,6 +195,29 @@ def host_tick(n: int, vectorised: bool, ticks: int, physics_hz: float) -> dict[s
     return out
 
 
+def feed_cost(n: int, lossy: bool, feeds: int) -> float:
+    """CPU ms of one radio feed of `n` nodes on a grid 3 m apart, each moved up to 5 cm."""
+    import random
+
+    from erni.sim.manet import ManetNetwork, RadioModel
+
+    side = max(1, int(np.ceil(np.sqrt(n))))
+    span = 3.0 * side * 1.5  # the longest distance between two nodes, with room for the moves
+    radio = RadioModel(span * 2, span * 1.9) if not lossy else RadioModel(span * 10, 0.0)
+    net = ManetNetwork(radio, gps=True)
+    pos = {f"r{i}": (3.0 * (i % side), 3.0 * (i // side)) for i in range(n)}
+    for name, (x, y) in pos.items():
+        net.add_node(name, x, y)
+    rng = random.Random(1)
+    c0 = time.process_time()
+    for _ in range(feeds):
+        moved = {k: (x + rng.uniform(-0.05, 0.05), y + rng.uniform(-0.05, 0.05)) for k, (x, y) in pos.items()}
+        pos.update(moved)
+        net.move_many(moved)
+        net.truth()
+    return (time.process_time() - c0) / feeds * 1000.0
+
+
 def kinematic_run(n: int, seconds: float, start: str = "packed") -> list[tuple[str, float, float]]:
     """Time the spread of n robots for `seconds` simulated; return (variant, wall s, real-time factor).
 
@@ -222,6 +251,8 @@ def main() -> int:
     ap.add_argument("--host-robots", default="10,120,1000", help="robots in one robot host (comma-separated)")
     ap.add_argument("--host-ticks", type=int, default=20, help="simulated 100 ms rounds timed per size")
     ap.add_argument("--physics-hz", type=float, default=20.0, help="physics rate (erni sim: 20 Hz above 10 robots)")
+    ap.add_argument("--feed-nodes", default="50,120", help="nodes of the radio feed (comma-separated)")
+    ap.add_argument("--feeds", type=int, default=100, help="radio feeds timed per size")
     ap.add_argument("--kinematic-robots", default="120,1000", help="team sizes for the kinematic mode")
     ap.add_argument("--kinematic-seconds", type=float, default=30.0)
     args = ap.parse_args()
@@ -251,6 +282,13 @@ def main() -> int:
             cells = (n, name, r["physics"], r["sonar"], r["sips"], r["total"], r["total"] / 100.0,
                      scalar["total"] / r["total"])
             print(" ".join(f"{v:>10.3g}" if isinstance(v, float) else f"{v:>10}" for v in cells), flush=True)
+    print("\nthe radio feed: ms of one core per feed (10 feeds a second: budget 100 ms)")
+    print(" ".join(f"{h:>12}" for h in ("nodes", "radio", "ms / feed", "x budget")), flush=True)
+    for n in [int(x) for x in args.feed_nodes.split(",") if x]:
+        for name, lossy in (("loss-free", False), ("lossy band", True)):
+            ms = feed_cost(n, lossy, max(5, min(args.feeds, 20000 // n)))
+            print(" ".join(f"{v:>12.3g}" if isinstance(v, float) else f"{v:>12}" for v in (n, name, ms, ms / 100.0)),
+                  flush=True)
     for n in [int(x) for x in args.kinematic_robots.split(",") if x]:
         for start in ("packed", "spread"):
             seconds = args.kinematic_seconds if n <= 200 or start == "spread" else min(args.kinematic_seconds, 2.0)
