@@ -435,9 +435,7 @@ class ManetNetwork:
         component_of = {n: i for i, comp in enumerate(new.components) for n in comp}
         topo_changed = set()
         for i, comp in enumerate(new.components):
-            edges_new = {(a, b, m) for a in comp for b, m in new.symmetric[a].items()}
-            edges_old = {(a, b, m) for a in comp for b, m in sym_old.get(a, {}).items()}
-            if edges_new != edges_old:
+            if edges_changed(comp, sym_old, new.symmetric):
                 topo_changed.add(i)
         for name in new.symmetric:
             c = self._counters[name]
@@ -516,6 +514,12 @@ def _heard(links: dict[frozenset[str], float]) -> dict[str, dict[str, float]]:
         out.setdefault(a, {})[b] = q
         out.setdefault(b, {})[a] = q
     return out
+
+
+def edges_changed(nodes: Iterable[str], old: dict[str, dict[str, int]], new: dict[str, dict[str, int]]) -> bool:
+    """Whether the (node, neighbour, metric) edges leaving `nodes` changed (a component's topology:
+    its nodes recompute their routes). Compared node by node, without building the edge sets."""
+    return any(new.get(a, {}) != old.get(a, {}) for a in nodes)
 
 
 def two_hop_changed(name: str, neighbors: Iterable[str], old: dict[str, dict[str, int]],

@@ -290,3 +290,15 @@ def test_two_hop_change_is_a_change_of_the_neighbour_node_metric_set(old, new, m
     two_old = {(n, m, k) for n in neighbors for m, k in old.get(n, {}).items() if m != name}
     two_new = {(n, m, k) for n in neighbors for m, k in new[n].items() if m != name}
     assert two_hop_changed(name, neighbors, old, new) == (two_old != two_new)
+
+
+@given(_graphs(), _graphs(), st.sets(st.integers(0, 4)))
+def test_a_components_edges_changed_is_a_change_of_its_edge_set(old, new, members):
+    """The route recalculation counter's test, against its definition: the set of (node,
+    neighbour, metric) edges leaving the component's nodes."""
+    from erni.sim.manet import edges_changed
+
+    comp = {f"n{i}" for i in members}
+    edges_old = {(a, b, m) for a in comp for b, m in old.get(a, {}).items()}
+    edges_new = {(a, b, m) for a in comp for b, m in new.get(a, {}).items()}
+    assert edges_changed(comp, old, new) == (edges_old != edges_new)
