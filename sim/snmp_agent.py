@@ -452,19 +452,20 @@ class ManetSnmpAgent:
         out = list(ManetSnmpAgent._next(table, node, V2C, binds[:non_rep])[2] or [])
         size = sum(map(len, out))
         cursors: list[OID] = [key for key, _ in binds[non_rep:]]
-        places: list[tuple[int, int] | None] = [None] * len(cursors)  # where each repeater stands in the table
+        rounds = max(0, max_rep) if cursors else 0
+        # where each repeater's next row is: searched once, then stepped to (None: past the end)
+        places = [table.locate(cur) for cur in cursors] if rounds else []
         ended = [False] * len(cursors)
-        for rep in range(max(0, max_rep) if cursors else 0):
+        for _ in range(rounds):
             row: list[bytes] = []
-            for j, cur in enumerate(cursors):
-                at = None if ended[j] else table.locate(cur) if rep == 0 else table.after(places[j])  # type: ignore[arg-type]
+            for j, at in enumerate(places):
                 if at is None:
                     ended[j] = True
-                    row.append(ber.varbind(ber.oid(cur), ber.END_OF_MIB_VIEW))
+                    row.append(ber.varbind(ber.oid(cursors[j]), ber.END_OF_MIB_VIEW))
                 else:
-                    places[j] = at
                     cursors[j], bound = table.entry(at, node)
                     row.append(bound)
+                    places[j] = table.after(at)
             size += sum(map(len, row))
             if len(out) + len(row) > MAX_VARBINDS or size > MAX_RESPONSE_BYTES - 200:
                 break
