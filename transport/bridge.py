@@ -450,7 +450,7 @@ class TransportPlugin(Plugin[TransportSettings]):
         elif kind == "status.resend" and isinstance(body, Cancel):
             sent = self.whole_sent.get(body.uid)
             if sent is not None:  # its next change goes whole again
-                sent.holders = {h for h in sent.holders if h[0] != msg.sender}
+                sent.holders = frozenset(h for h in sent.holders if h[0] != msg.sender)
         elif kind == "status.remove" and isinstance(body, Cancel):
             self.status_base.pop(body.uid, None)
             self._resend_asked.pop(body.uid, None)
@@ -715,7 +715,7 @@ class TransportPlugin(Plugin[TransportSettings]):
                 continue
             self._send_status(targets, "status", obj, False, mono)
             if isinstance(getattr(obj, "stamp", None), float):
-                self.whole_sent[obj.uid] = _Sent(obj, mono, set(holders))
+                self.whole_sent[obj.uid] = _Sent(obj, mono, holders)
         for obj in gone:  # removals reliably: a stale object would stay forever
             self.whole_sent.pop(obj.uid, None)
             self._send_status(self._status_targets(type(obj).__name__)[0], "status.remove", Cancel(uid=obj.uid),
@@ -807,8 +807,9 @@ def _is_ip(text: str) -> bool:
 
 
 class _Directory(dict[str, Peer]):
-    """The peers by name. `gen` moves when a peer comes or goes, or changes what decides which of
-    our statuses it is sent and where: up, address, role or epoch (not its `last_heard`)."""
+    """The peers by name. `gen` moves when a peer is added or deleted, or stored with a change of
+    what decides which of our statuses it is sent and where: up, address, role or epoch (not its
+    `last_heard`). Peers are only stored (`d[name] = peer`) and deleted (`del d[name]`)."""
 
     gen = 0
 
@@ -821,10 +822,6 @@ class _Directory(dict[str, Peer]):
     def __delitem__(self, name: str) -> None:
         self.gen += 1
         super().__delitem__(name)
-
-    def pop(self, name: str, *default: Any) -> Any:
-        self.gen += 1
-        return super().pop(name, *default)
 
 
 class _Target(NamedTuple):
@@ -840,5 +837,5 @@ class _Sent:
 
     __slots__ = ("obj", "at", "holders")
 
-    def __init__(self, obj: BBObject, at: float, holders: set[tuple[str, int]]):
+    def __init__(self, obj: BBObject, at: float, holders: frozenset[tuple[str, int]]):
         self.obj, self.at, self.holders = obj, at, holders
