@@ -179,6 +179,13 @@ class Transaction:
         self._staged: dict[str, BBObject | None] = {}  # uid -> latest staged version (None = removed)
         self.closed = False
 
+    def current(self, uid: str) -> BBObject | None:
+        """The object with this uid as this transaction would leave it: what it staged, else the
+        committed one (None when absent or staged for removal)."""
+        if uid in self._staged:
+            return self._staged[uid]
+        return self._board.get(uid)
+
     def _exists(self, uid: str) -> bool:
         if uid in self._staged:
             return self._staged[uid] is not None

@@ -115,6 +115,17 @@ class Plugin(Generic[SettingsT]):
         """Return the committed object with this uid, or None."""
         return self._board.get(uid)
 
+    def current(self, uid: str) -> BBObject | None:
+        """The object with this uid as this plugin's open transaction would leave it (what it staged
+        earlier in the run, else the committed one); the committed one outside a transaction.
+
+        Build a change on this, not on a subscription's member, when the run may already have
+        changed the object: a change built on an older version undoes the newer one."""
+        tx: Transaction | None = getattr(self._local, "tx", None)
+        if tx is None or tx.closed:
+            return self._board.get(uid)
+        return tx.current(uid)
+
     @property
     def query(self) -> Query:
         """`query(Type, where=...)`: a snapshot of the committed objects matching a type and/or predicate."""

@@ -347,8 +347,15 @@ class TransportPlugin(Plugin[TransportSettings]):
         if not self._send_to_peer(dest, "task.add", task, reliable=True):
             self.pending[task.uid] = (dest, time.monotonic() + self.settings.task_ttl)
             self.log.info("task %s waits for agent %s to be discovered", task.uid, dest)
-        elif not task.result:
-            self.change(task.with_result(TaskState.PENDING, message=f"sent to {dest}"))
+            return
+        now = self._task_now(task.uid)  # this run may have applied its performer's result already
+        if now is not None and not now.result:
+            self.change(now.with_result(TaskState.PENDING, message=f"sent to {dest}"))
+
+    def _task_now(self, uid: str) -> Task | None:
+        """The task as this run leaves it so far: a change is built on it, never on an older version."""
+        task = self.current(uid)
+        return task if isinstance(task, Task) else None
 
     def _reconcile(self, task: Task) -> None:
         """After a restart: re-send unfinished tasks we pass on; report on tasks we were given."""
@@ -365,8 +372,8 @@ class TransportPlugin(Plugin[TransportSettings]):
     def _retry_pending(self, now: float) -> None:
         mono = time.monotonic()
         for uid, (dest, deadline) in list(self.pending.items()):
-            task = self.tasks.get(uid)
-            if task is None:
+            task = self._task_now(uid)
+            if task is None or task.done:
                 del self.pending[uid]
             elif self._address_of(dest) is not None:
                 del self.pending[uid]
@@ -386,7 +393,7 @@ class TransportPlugin(Plugin[TransportSettings]):
             since = max(self.heard_at.get(dest, 0.0), self.sent_at.get(uid, 0.0))
             if mono - since <= deadline:
                 continue
-            task = self.tasks.get(uid)
+            task = self._task_now(uid)
             if task is None or task.done:
                 continue
             self.lost.add(uid)
@@ -407,7 +414,7 @@ class TransportPlugin(Plugin[TransportSettings]):
 
     def _undeliverable(self, addr: Address, kind: str, body: Any) -> None:
         if kind == "task.add" and isinstance(body, Task):
-            task = self.tasks.get(body.uid)
+            task = self._task_now(body.uid)
             if task is not None and not task.done:
                 self.change(task.with_result(
                     TaskState.FAILED, message=f"link lost: could not deliver to {task.destination} "
@@ -469,7 +476,7 @@ class TransportPlugin(Plugin[TransportSettings]):
                     self._watch_event(key, "add", obj)
 
     def _task_added(self, msg: Message, body: Task) -> None:
-        known = self._board.get(body.uid)
+        known = self.current(body.uid)
         if known is not None:  # the requester restarted and re-sent it: tell it where we are
             if self.received_from.get(body.uid, msg.sender) == msg.sender and isinstance(known, Task):
                 self.received_from[body.uid] = msg.sender
@@ -492,7 +499,7 @@ class TransportPlugin(Plugin[TransportSettings]):
                           address=f"{msg.reply[0]}:{msg.reply[1]}"))
 
     def _apply_result(self, msg: Message, update: ResultUpdate) -> None:
-        task = self._board.get(update.uid)
+        task = self.current(update.uid)
         if task is None:  # a result for a task we no longer have: stale, rescind it there
             self.endpoint.send(msg.reply, "task.rescind", Cancel(uid=update.uid), reliable=True, to=msg.sender)
             return

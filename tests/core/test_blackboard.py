@@ -51,6 +51,25 @@ def test_publishing_outside_a_transaction_is_an_error(agent):
     assert len(agent.query(Item)) == 1
 
 
+def test_current_reads_what_the_open_transaction_staged_and_the_committed_object_outside(agent):
+    plugin = agent.add_plugin(Recorder)
+    agent.start()
+    item, other = Item(value=1), Item(value=5)
+    with agent.transaction() as tx:
+        tx.add(item)
+        tx.add(other)
+    with plugin.transaction():
+        assert plugin.current(item.uid) == item
+        newer = plugin.change(item.model_copy(update={"value": 2}))
+        plugin.remove(other)
+        assert plugin.current(item.uid) is newer  # a change built now starts from the staged version
+        assert plugin.get(item.uid) == item  # the committed one is unchanged until the commit
+        assert plugin.current(other.uid) is None  # staged for removal
+        assert plugin.current("nothing") is None
+    assert plugin.current(item.uid) is newer and plugin.get(item.uid) is newer
+    assert plugin.current(other.uid) is None
+
+
 def test_add_change_remove_are_checked(agent):
     agent.start()
     item = Item()

@@ -369,6 +369,29 @@ def test_restarted_requester_gets_its_tasks_reconciled(team, tmp_path):
         again.stop()
 
 
+def test_a_final_result_that_brings_its_performers_first_word_is_kept(team):
+    """A restarted requester waits for its performer to be discovered; the performer's first word is
+    the task's final result. In that one run the result is applied and the waiting task is looked
+    at again: that must not put the task back to pending (the final state, seen once, was lost)."""
+    control = team("control", echo=False, discovery_port=0)
+    robot = team("robot1", echo=False, discovery_port=0)  # neither hears the other's beacons
+    bridge = control.plugin("transport")
+    task = task_to("robot1")
+    with control.transaction() as tx:
+        tx.add(task)
+    wait_until(lambda: task.uid in bridge.pending)
+    from erni.transport.bridge import ResultUpdate
+    from erni.transport.wire import Message
+
+    final = ResultUpdate(uid=task.uid, result={"state": "succeeded", "progress": 1.0, "message": "arrived"})
+    address = robot.plugin("transport").address
+    bridge.later(lambda: bridge._handle(Message("robot1", "robot", address, 1, 7, "m7", "task.result", final)))
+    wait_until(lambda: task.uid not in bridge.pending)  # that run found the performer
+    time.sleep(0.3)
+    result = control.blackboard.get(task.uid).result
+    assert result.state is TaskState.SUCCEEDED and result.message == "arrived", result
+
+
 def test_stale_task_of_a_forgetful_requester_is_rescinded(team):
     control, robot = team("control", echo=False), team("robot1", echo=False)
     wait_until(lambda: any(p.up for p in control.query(Peer)))
