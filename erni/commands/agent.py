@@ -57,6 +57,7 @@ def run(args: argparse.Namespace, prepare: Callable[[Agent], None] | None = None
               f"{len(agent.plugins)} plugin(s): {', '.join(p.name for p in agent.plugins)})")
         return 0
     setup_logging(args.log_level or config.agent.log_level)
+    heap.cap_arenas()   # before the agent's threads start: one malloc arena for all of them
     stop = threading.Event()
     running = threading.Event()
 

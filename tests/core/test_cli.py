@@ -9,7 +9,9 @@ import sys
 import time
 from pathlib import Path
 
+from erni.blackboard import heap
 from erni.blackboard.tasks import PREPOSITIONS
+from erni.blackboard.testing import wait_until
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -110,6 +112,44 @@ def test_a_started_agent_keeps_its_start_up_heap_out_of_full_collections():
     assert out.returncode == 0, out.stderr
     frozen, scanned = map(int, out.stdout.split())
     assert frozen > 10_000 and scanned < frozen / 10, (frozen, scanned)
+
+
+BUSY_THREADS = """
+import sys, threading
+from erni.blackboard import heap
+if sys.argv[1] == "capped":
+    assert heap.cap_arenas()
+start, keep = threading.Barrier(6), []
+def allocate():
+    start.wait()  # all at once: each finds the arenas' locks taken
+    keep.append([bytes(3000) for _ in range(2000)])
+threads = [threading.Thread(target=allocate) for _ in range(6)]
+[t.start() for t in threads]
+[t.join() for t in threads]
+print(heap.thread_arenas())
+"""
+
+
+def test_an_agents_threads_share_one_malloc_arena():
+    """Each thread that allocates while another holds malloc's lock gets an arena of its own, and
+    an agent's twenty threads then keep pages in several (1.1-1.5 MB of a robot agent's RSS)."""
+    env = {k: v for k, v in os.environ.items() if k != "MALLOC_ARENA_MAX"}
+    run = lambda *argv: subprocess.run([sys.executable, "-c", *argv], cwd=ROOT, capture_output=True,  # noqa: E731
+                                       text=True, timeout=60, env=env)
+    free, capped = run(BUSY_THREADS, "free"), run(BUSY_THREADS, "capped")
+    assert free.returncode == 0 and capped.returncode == 0, free.stderr + capped.stderr
+    assert int(free.stdout) >= 1 and int(capped.stdout) == 0, (free.stdout, capped.stdout)  # the count sees arenas
+    agent = subprocess.Popen([sys.executable, "-m", "erni", "agent", "examples/robot.toml", "--log-level", "ERROR"],
+                             cwd=ROOT, env=env, stderr=subprocess.PIPE, text=True)
+    try:
+        threads = lambda: int(Path(f"/proc/{agent.pid}/status").read_text().split("Threads:")[1].split()[0])  # noqa: E731
+        wait_until(lambda: agent.poll() is not None or threads() >= 10, timeout=30)
+        assert agent.poll() is None, agent.communicate()[1]
+        time.sleep(1.0)  # the started agent's threads at work
+        assert heap.thread_arenas(agent.pid) == 0
+    finally:
+        agent.terminate()
+        agent.wait(10)
 
 
 def test_a_second_signal_inside_the_first_ones_handler_does_not_hang_the_agent():
