@@ -92,3 +92,46 @@ def test_net_deltas_reconstruct_membership(actions, threshold):
     for uid, reps in staged_reports.items():
         pending_reports.setdefault(uid, []).extend(reps)
     take_view()
+
+
+@settings(max_examples=200, deadline=None)
+@given(actions=actions)
+def test_current_is_the_board_the_transaction_would_leave(actions):
+    """Whatever a transaction staged (adds, changes, removals, also of committed objects), `current`
+    answers as the blackboard will after the commit, and `get` as it is before it."""
+    board = Blackboard("prop")
+    committed: dict[str, Item] = {}
+    staged: dict[str, Item | None] = {}
+    tx = board.transaction()
+    uids: list[str] = []
+    for action in actions:
+        if action[0] == "commit":
+            tx.commit()
+            for uid, obj in staged.items():
+                if obj is None:
+                    committed.pop(uid, None)
+                else:
+                    committed[uid] = obj
+            staged, tx = {}, board.transaction()
+        elif action[0] == "view":
+            continue
+        else:
+            verb, index, value = action
+            live = {**committed, **staged}
+            present = [u for u in uids if live.get(u) is not None]
+            if verb == "add" or not present:
+                obj = Item(value=value)
+                tx.add(obj)
+                uids.append(obj.uid)
+                staged[obj.uid] = obj
+            elif verb == "change":
+                uid = present[index % len(present)]
+                staged[uid] = tx.change(Item(uid=uid, value=value))
+            else:
+                uid = present[index % len(present)]
+                tx.remove(uid)
+                staged[uid] = None
+        for uid in uids + ["absent"]:
+            expected = staged[uid] if uid in staged else committed.get(uid)
+            assert tx.current(uid) == expected
+            assert board.get(uid) == committed.get(uid)
