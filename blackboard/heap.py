@@ -14,7 +14,7 @@ process tears down and builds again (a test run, a series of simulated teams).
 
 `cap_arenas()` keeps the threads of an agent on one malloc arena. glibc gives each thread that
 allocates while another holds the arena's lock an arena of its own, and an agent's twenty threads
-then keep pages in several: 1.1-1.5 MB of a robot agent's RSS (BENCHMARKS, "Memory above the import
+then keep pages in several: 0.6-1.5 MB of a robot agent's RSS (BENCHMARKS, "Memory above the import
 floor"). Its threads take turns on the interpreter lock anyway, so they rarely wait on malloc's.
 """
 

@@ -121,10 +121,8 @@ class Plugin(Generic[SettingsT]):
 
         Build a change on this, not on a subscription's member, when the run may already have
         changed the object: a change built on an older version undoes the newer one."""
-        tx: Transaction | None = getattr(self._local, "tx", None)
-        if tx is None or tx.closed:
-            return self._board.get(uid)
-        return tx.current(uid)
+        tx = self._open_tx()
+        return self._board.get(uid) if tx is None else tx.current(uid)
 
     @property
     def query(self) -> Query:
@@ -138,9 +136,14 @@ class Plugin(Generic[SettingsT]):
 
     # -- publishing -----------------------------------------------------------------------
 
-    def _tx(self, verb: str) -> Transaction:
+    def _open_tx(self) -> Transaction | None:
+        """The transaction open on the calling thread, or None."""
         tx: Transaction | None = getattr(self._local, "tx", None)
-        if tx is None or tx.closed:
+        return None if tx is None or tx.closed else tx
+
+    def _tx(self, verb: str) -> Transaction:
+        tx = self._open_tx()
+        if tx is None:
             raise TransactionError(
                 f"{self.agent_name}/{self.name}: {verb}() outside a transaction; publish in "
                 "setup()/execute() or inside `with self.transaction():`"
@@ -162,8 +165,9 @@ class Plugin(Generic[SettingsT]):
     @contextmanager
     def transaction(self) -> Iterator[Transaction]:
         """Open a transaction on the calling thread; commit on success, publish nothing on error."""
-        if getattr(self._local, "tx", None) is not None and not self._local.tx.closed:
-            yield self._local.tx  # already inside one on this thread: join it
+        joined = self._open_tx()
+        if joined is not None:
+            yield joined  # already inside one on this thread: join it
             return
         tx = self._board.transaction(f"{self.agent_name}/{self.name}")
         self._local.tx = tx

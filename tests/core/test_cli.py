@@ -132,7 +132,7 @@ print(heap.thread_arenas())
 
 def test_an_agents_threads_share_one_malloc_arena():
     """Each thread that allocates while another holds malloc's lock gets an arena of its own, and
-    an agent's twenty threads then keep pages in several (1.1-1.5 MB of a robot agent's RSS)."""
+    an agent's twenty threads then keep pages in several (0.6-1.5 MB of a robot agent's RSS)."""
     env = {k: v for k, v in os.environ.items() if k != "MALLOC_ARENA_MAX"}
     run = lambda *argv: subprocess.run([sys.executable, "-c", *argv], cwd=ROOT, capture_output=True,  # noqa: E731
                                        text=True, timeout=60, env=env)
