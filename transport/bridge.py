@@ -348,9 +348,9 @@ class TransportPlugin(Plugin[TransportSettings]):
             self.pending[task.uid] = (dest, time.monotonic() + self.settings.task_ttl)
             self.log.info("task %s waits for agent %s to be discovered", task.uid, dest)
             return
-        now = self._task_now(task.uid)  # this run may have applied its performer's result already
-        if now is not None and not now.result:
-            self.change(now.with_result(TaskState.PENDING, message=f"sent to {dest}"))
+        latest = self._task_now(task.uid)  # this run may have applied its performer's result already
+        if latest is not None and not latest.result:
+            self.change(latest.with_result(TaskState.PENDING, message=f"sent to {dest}"))
 
     def _task_now(self, uid: str) -> Task | None:
         """The task as this run leaves it so far: a change is built on it, never on an older version."""
