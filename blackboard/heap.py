@@ -55,13 +55,27 @@ def cap_arenas(count: int = 1) -> bool:
 
 
 def thread_arenas(pid: int | str = "self") -> int:
-    """How many malloc arenas threads of a process made besides the main one (glibc maps each on a
-    64 MB boundary)."""
+    """How many malloc arenas threads of a process made besides the main one.
+
+    glibc reserves each one's heap as 64 MB on a 64 MB boundary: the part in use readable and
+    writable, the rest inaccessible until it grows. Other anonymous mappings can start on such a
+    boundary too (the kernel aligns large ones for huge pages), so the whole reservation is matched.
+    """
     size = 64 << 20
-    count = 0
+    spans: list[tuple[int, int, str, bool]] = []  # start, end, permissions, anonymous
     with open(f"/proc/{pid}/maps") as f:
         for line in f:
             parts = line.split()
-            if len(parts) == 5 and int(parts[0].split("-")[0], 16) % size == 0:  # anonymous, aligned
+            lo, hi = (int(x, 16) for x in parts[0].split("-"))
+            spans.append((lo, hi, parts[1], len(parts) == 5))
+    count = 0
+    for k, (lo, hi, perms, anonymous) in enumerate(spans):
+        if not anonymous or lo % size or not perms.startswith("rw"):
+            continue
+        if hi - lo == size:  # grown to the whole reservation
+            count += 1
+        elif k + 1 < len(spans):
+            nlo, nhi, nperms, nanonymous = spans[k + 1]
+            if nanonymous and nlo == hi and nperms.startswith("---") and nhi == lo + size:
                 count += 1
     return count
