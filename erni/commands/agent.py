@@ -82,6 +82,7 @@ def run(args: argparse.Namespace, prepare: Callable[[Agent], None] | None = None
         try:
             agent.start()
             heap.freeze()   # what start-up made lives as long as the process: no full collection rescans it
+            heap.trim()     # and what it made and dropped goes back to the system
             running.set()
         except KeyboardInterrupt:   # from on_signal: the stop came during the start
             return 0

@@ -93,10 +93,15 @@ sys.exit(main(["agent", "examples/robot.toml", "--log-level", "WARNING"]))
 
 FROZEN_HEAP = """
 import gc, os, signal, sys, threading
+from erni.blackboard import heap
 from erni.cli import main
 
+trimmed = []
+trim = heap.trim
+heap.trim = lambda: trimmed.append(trim()) or trimmed[-1]
+
 def report():
-    print(gc.get_freeze_count(), len(gc.get_objects()), flush=True)
+    print(gc.get_freeze_count(), len(gc.get_objects()), len(trimmed), flush=True)
     os.kill(os.getpid(), signal.SIGTERM)
 
 threading.Timer(2.0, report).start()
@@ -106,12 +111,44 @@ sys.exit(main(["agent", "examples/robot.toml", "--log-level", "ERROR"]))
 
 def test_a_started_agent_keeps_its_start_up_heap_out_of_full_collections():
     """Every agent of a team starts at once; were their start-up heaps scanned, their full
-    collections would come at once too, and the machine would stall for every robot."""
+    collections would come at once too, and the machine would stall for every robot. What start-up
+    dropped goes back to the system, once."""
     out = subprocess.run([sys.executable, "-c", FROZEN_HEAP], cwd=ROOT, capture_output=True, text=True,
                          timeout=60)
     assert out.returncode == 0, out.stderr
-    frozen, scanned = map(int, out.stdout.split())
+    frozen, scanned, trims = map(int, out.stdout.split())
     assert frozen > 10_000 and scanned < frozen / 10, (frozen, scanned)
+    assert trims == 1
+
+
+FREED_HEAP = """
+import sys
+from erni.blackboard import heap
+def rss():
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * 4096 >> 20
+freed = [bytes(3000) for _ in range(20_000)]   # 60 MB from malloc's heap, not from mmap: 3 kB each
+pin = bytes(3000)   # above them: the heap's top cannot shrink when they go
+before = rss()
+del freed
+after_free = rss()
+if sys.argv[1] == "trim":
+    assert heap.trim()
+print(before, after_free, rss())
+"""
+
+
+def test_trim_gives_pages_freed_inside_mallocs_heap_back_to_the_system():
+    """Freed blocks below a live one stay in the process (malloc trims only the heap's top) until
+    `trim()`: without it their pages count in the RSS for as long as the agent runs."""
+    run = lambda how: subprocess.run([sys.executable, "-c", FREED_HEAP, how], cwd=ROOT,  # noqa: E731
+                                     capture_output=True, text=True, timeout=60)
+    kept, trimmed = run("keep"), run("trim")
+    assert kept.returncode == 0 and trimmed.returncode == 0, kept.stderr + trimmed.stderr
+    before, after_free, end = map(int, kept.stdout.split())
+    assert end > before - 10, kept.stdout            # freed, and still held
+    before, after_free, end = map(int, trimmed.stdout.split())
+    assert end < before - 40, trimmed.stdout         # freed, and given back
 
 
 BUSY_THREADS = """
