@@ -102,6 +102,12 @@ def link_metric(quality: float) -> int:
     return min(MAX_METRIC, round(METRIC_UNIT / (quality * quality)))
 
 
+def link_metrics(qualities: np.ndarray) -> np.ndarray:
+    """`link_metric` of each of `qualities` (all > 0), worked out together: the same integers
+    (numpy rounds halves to even, as `round` does)."""
+    return np.minimum(MAX_METRIC, np.rint(METRIC_UNIT / (qualities * qualities))).astype(np.int64)
+
+
 @dataclass(frozen=True)
 class KnownPosition:
     """A node position as the network knows it (m, deg) and when it was reported."""
@@ -397,7 +403,7 @@ class ManetNetwork:
         if not nodes_changed and old is not None and unchanged:
             self._truth = dataclasses.replace(old, positions=dict(self._pos))
             return  # no link changed quality: nothing to fold, no version to bump
-        new = self._compute_truth()
+        new = self._compute_truth(qualities)
         self._truth = new
         now = self.clock()
         self._fold_links(new, now)
@@ -479,26 +485,24 @@ class ManetNetwork:
         distances = np.hypot(xy[:, 0, None] - xy[None, :, 0], xy[:, 1, None] - xy[None, :, 1])
         return self.radio.link_qualities(distances)
 
-    def _compute_truth(self) -> GroundTruth:
+    def _compute_truth(self, qualities: np.ndarray | None = None) -> GroundTruth:
+        """The truth of the network now, from every pair's link quality (`_pair_qualities`, which a
+        move has just worked out: given, it is not worked out again). Only the linked pairs take a
+        Python step; their metrics are worked out together."""
         names = list(self._nodes)
+        q = self._pair_qualities() if qualities is None else qualities
+        rows, cols = np.nonzero(np.triu(q, 1) > 0)   # in the order of the pairs: row by row
+        linked = q[rows, cols]
+        metrics = link_metrics(linked)
         links: dict[frozenset[str], float] = {}
         sym: dict[str, dict[str, int]] = {n: {} for n in names}
-        rng, min_q = self.radio.comm_range, self.radio.min_quality
-        for i, a in enumerate(names):
-            ax, ay = self._pos[a]
-            for b in names[i + 1:]:
-                bx, by = self._pos[b]
-                d = math.hypot(ax - bx, ay - by)
-                if d >= rng:
-                    continue
-                q = self.radio.quality(d)
-                if q <= 0:
-                    continue
-                links[frozenset((a, b))] = q
-                if q >= min_q:
-                    m = link_metric(q)
-                    sym[a][b] = m
-                    sym[b][a] = m
+        min_q = self.radio.min_quality
+        for i, j, quality, m in zip(rows.tolist(), cols.tolist(), linked.tolist(), metrics.tolist()):
+            a, b = names[i], names[j]
+            links[frozenset((a, b))] = quality
+            if quality >= min_q:
+                sym[a][b] = m
+                sym[b][a] = m
         return GroundTruth(
             positions=dict(self._pos), links=links, symmetric=sym,
             components=netgraph.connected_components(sym),

@@ -5,11 +5,12 @@ from __future__ import annotations
 import math
 
 import networkx as nx
+import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from erni.sim.manet import METRIC_UNIT, ManetNetwork, RadioModel, link_metric
+from erni.sim.manet import MAX_METRIC, METRIC_UNIT, ManetNetwork, RadioModel, link_metric, link_metrics
 from erni.sim.manet_scenario import ScenarioError, load_scenario
 from tests.mobinet.conftest import line_network
 
@@ -132,6 +133,39 @@ def test_truth_matches_networkx_on_random_layouts(points):
     assert set(routes) == set(costs) - {"n0"}
     for dest, r in routes.items():
         assert r.cost == pytest.approx(costs[dest])
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.floats(1e-4, 1.0) | st.sampled_from([1.0, 0.5, 0.25, 0.1, 2 ** -0.5, 1e-4]), min_size=1, max_size=30))
+def test_link_metrics_together_are_link_metric_one_by_one(qualities):
+    assert link_metrics(np.array(qualities)).tolist() == [link_metric(q) for q in qualities]
+    assert link_metrics(np.array([1e-4])).tolist() == [MAX_METRIC]  # capped
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.tuples(st.floats(0, 300), st.floats(0, 300)), min_size=2, max_size=14),
+       st.sampled_from([(100.0, 40.0, 0.1), (100.0, 0.0, 0.3), (50.0, 50.0, 1.0)]))
+def test_the_truths_links_are_the_radios_quality_pair_by_pair(points, radio):
+    """Every pair closer than the radio's range is a link with the quality its distance gives, in
+    the order of the pairs; those of at least min_quality carry their metric both ways."""
+    net = ManetNetwork(RadioModel(*radio))
+    for i, (x, y) in enumerate(points):
+        net.add_node(f"n{i}", x, y)
+    want = {}
+    for i, (ax, ay) in enumerate(points):
+        for j in range(i + 1, len(points)):
+            q = net.radio.quality(math.dist((ax, ay), points[j]))
+            if q > 0:
+                want[frozenset((f"n{i}", f"n{j}"))] = q
+    truth = net.truth()
+    assert list(truth.links) == list(want)
+    for key, q in want.items():
+        assert truth.links[key] == pytest.approx(q, rel=1e-12, abs=1e-12)
+        a, b = sorted(key)
+        if q >= radio[2] + 1e-9:
+            assert truth.symmetric[a][b] == truth.symmetric[b][a] == link_metric(truth.links[key])
+        elif q < radio[2] - 1e-9:
+            assert b not in truth.symmetric[a] and a not in truth.symmetric[b]
 
 
 def test_scenario_files(tmp_path):
