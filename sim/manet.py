@@ -105,7 +105,8 @@ def link_metric(quality: float) -> int:
 def link_metrics(qualities: np.ndarray) -> np.ndarray:
     """`link_metric` of each of `qualities` (all > 0), worked out together: the same integers
     (numpy rounds halves to even, as `round` does)."""
-    return np.minimum(MAX_METRIC, np.rint(METRIC_UNIT / (qualities * qualities))).astype(np.int64)
+    metrics: np.ndarray = np.minimum(MAX_METRIC, np.rint(METRIC_UNIT / (qualities * qualities))).astype(np.int64)
+    return metrics
 
 
 @dataclass(frozen=True)
