@@ -48,6 +48,8 @@ class Beacon(_Message):
     degraded: str = Field("", description="why this agent refuses new tasks ('' when it takes them)")
     interval: float = Field(0.0, ge=0.0, le=3600.0, description="the longest the sender waits before its "
                             "next beacon to this receiver (s); 0: not said (the receiver's own timings)")
+    seq: int = Field(0, ge=0, description="the number of this in-session beacon among those the sender "
+                     "sent this receiver (from 1); 0: not counted (a broadcast, a session's first)")
 
 
 class ResultUpdate(_Message):

@@ -16,7 +16,7 @@
   `beacon_fanout` of them a period: with more, each gets one less often and the beacon says
   how often, so its receiver waits as many periods longer. Only session traffic (fresh by
   construction) marks a peer up, and a peer silent for `peer_timeout` (scaled by its announced
-  interval) is down. A beacon that says nothing new (its peer up, at the same address and epoch)
+  interval, and stretched by the share of its numbered beacons that arrive: `liveness`) is down. A beacon that says nothing new (its peer up, at the same address and epoch)
   costs no run: the receive thread marks the peer heard, the liveness pass updates `last_heard`.
 - Clients (`erni watch`) may lease a stream of blackboard changes; `erni task --wait` asks
   for a task's state (`task.query`).
@@ -51,6 +51,7 @@ from erni.transport.endpoint import (
 )
 from erni.transport.identity import Identity, IdentityError, load_identity
 from erni.transport.limits import Limits
+from erni.transport.liveness import BeaconCount, silence_stretch
 from erni.transport.wire import Message, register_type
 
 
@@ -233,6 +234,8 @@ class TransportPlugin(Plugin[TransportSettings]):
         self.sent_peer_at: dict[str, float] = {}  # peer -> when a session frame other than a beacon went (monotonic)
         self.beacon_due: dict[str, float] = {}  # quiet peer -> when its next in-session beacon is due (monotonic)
         self.peer_limit: dict[str, float] = {}  # peer -> silence that marks it down, from its announced interval
+        self.beacon_counts: dict[str, BeaconCount] = {}  # peer -> how many of its numbered beacons arrive
+        self.beacons_sent: dict[str, int] = {}  # peer -> in-session beacons sent it (their numbers)
         self._beacon_said: Beacon | None = None  # what the last in-session beacons said (but the interval)
         for spec in s.peers:
             name, _, addr = spec.partition("@")
@@ -524,6 +527,7 @@ class TransportPlugin(Plugin[TransportSettings]):
         receive thread; in a team of N each agent hears up to `beacon_fanout` of these a period."""
         if self._beacon_repeats(msg):
             self.heard_at[msg.sender] = time.monotonic()
+            self._count_beacon(msg.sender, msg.body)
             return
         self.later(lambda: self._handle(msg))
 
@@ -544,6 +548,24 @@ class TransportPlugin(Plugin[TransportSettings]):
         its beacon announced (a peer with many quiet peers beacons each of them less often)."""
         s = self.settings
         return s.peer_timeout * max(1.0, beacon.interval / s.beacon_period)
+
+    def _count_beacon(self, name: str, beacon: Beacon) -> None:
+        """Count a numbered beacon of `name` (runs on the receive thread or in a run)."""
+        if beacon.seq:
+            count = self.beacon_counts.get(name)
+            if count is None:
+                count = self.beacon_counts.setdefault(name, BeaconCount())
+            count.heard(beacon.seq)
+
+    def _down_after(self, name: str) -> float:
+        """The silence that marks peer `name` down: its limit on a link that loses nothing
+        (`_silence_limit`), stretched by the share of its beacons that arrive (`liveness`)."""
+        s = self.settings
+        limit = self.peer_limit.get(name, s.peer_timeout)
+        count = self.beacon_counts.get(name)
+        if count is None:
+            return limit
+        return limit * silence_stretch(count.delivery(), s.peer_timeout / s.beacon_period)
 
     def _hint_wanted(self, name: str) -> bool:
         """Whether a broadcast beacon from `name` could change anything: not while its peer is up
@@ -589,6 +611,7 @@ class TransportPlugin(Plugin[TransportSettings]):
             # send each other no beacons, and its shared status must not wait for one
             fields["role"] = role
         if isinstance(beacon, Beacon):
+            self._count_beacon(name, beacon)
             fields.update(role=beacon.role, capabilities=beacon.capabilities, degraded=beacon.degraded)
             self.peer_limit[name] = self._silence_limit(beacon)
         if old is None:
@@ -654,7 +677,8 @@ class TransportPlugin(Plugin[TransportSettings]):
         wall = time.time()
         for name, peer in list(self.directory.items()):
             silent = mono - self.heard_at.get(name, 0.0)
-            if peer.up and silent <= self.peer_limit.get(name, s.peer_timeout):
+            limit = self._down_after(name)
+            if peer.up and silent <= limit:
                 if wall - silent - peer.last_heard > s.peer_timeout / 4:  # heard by beacons that said nothing new
                     self.directory[name] = peer = peer.evolve(last_heard=wall - silent)
                     self.change(peer, reports=["heard"])
@@ -662,7 +686,9 @@ class TransportPlugin(Plugin[TransportSettings]):
             if peer.up:
                 peer = peer.evolve(up=False)
                 self.directory[name] = peer
-                self.log.warning("peer %s is down: not heard for %.1f s", name, silent)
+                count = self.beacon_counts.get(name)
+                self.log.warning("peer %s is down: not heard for %.1f s (limit %.1f s; %.0f %% of its beacons arrived)",
+                                 name, silent, limit, 100.0 * (count.share() if count else 1.0))
                 self.change(peer, reports=["down"])
                 self._next_beacon = min(self._next_beacon, mono + s.beacon_period)  # announce often again
 
@@ -688,7 +714,9 @@ class TransportPlugin(Plugin[TransportSettings]):
             if due is not None and mono < due:
                 continue
             beacon = beacon or self._beacon(interval)
-            self.endpoint.send(parse_address(peer.address), "beacon", beacon, reliable=False, to=name)
+            seq = self.beacons_sent[name] = self.beacons_sent.get(name, 0) + 1  # the receiver counts what arrives
+            self.endpoint.send(parse_address(peer.address), "beacon", beacon.model_copy(update={"seq": seq}),
+                               reliable=False, to=name)
             # the next a little early (runs come every period); after a newly quiet peer's first
             # beacon (at once: its last frame is a period old), at a random phase, so that many
             # peers' beacons spread over the interval instead of leaving together

@@ -1,0 +1,132 @@
+"""A live peer on a lossy link stays up; a dead one still goes down: numbered beacons, counted."""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+
+from hypothesis import given
+from hypothesis import strategies as st
+
+from erni.blackboard import Agent, Peer
+from erni.blackboard.testing import wait_until
+from erni.transport import MockNetwork, TransportPlugin
+from erni.transport.liveness import FALSE_DOWN, MAX_STRETCH, MIN_SENT, BeaconCount, silence_stretch
+
+
+def test_a_count_of_every_third_beacon_says_a_third_arrive():
+    count = BeaconCount()
+    assert count.delivery() == 1.0  # nothing counted: the limit is not stretched
+    for seq in range(1, 200, 3):
+        count.heard(seq)
+    assert math.isclose(count.share(), 1 / 3, rel_tol=1e-9)
+    assert 0.25 < count.delivery() < 1 / 3  # a standard error lower
+
+
+def test_duplicates_and_late_beacons_change_nothing_and_a_restart_counts_afresh():
+    count = BeaconCount()
+    for seq in range(1, 60, 2):  # half arrive
+        count.heard(seq)
+    half = count.share()
+    assert math.isclose(half, 0.5, rel_tol=1e-9)
+    count.heard(59)  # again
+    count.heard(54)  # late: counted in the gap before 55
+    count.heard(0)   # not numbered
+    assert count.share() == half
+    count.heard(1)   # the peer restarted and numbers from 1
+    assert count.delivery() == 1.0
+    for seq in range(2, 40):
+        count.heard(seq)
+    assert count.delivery() == 1.0
+
+
+@given(st.lists(st.booleans(), min_size=1, max_size=300))
+def test_the_count_is_a_share_of_the_numbered_beacons(arrived):
+    count = BeaconCount()
+    numbers = [seq for seq, ok in enumerate(arrived, 1) if ok]
+    for seq in numbers:
+        count.heard(seq)
+    share = count.share()
+    assert 0.0 < share <= 1.0 or not numbers
+    assert 0.0 <= count.delivery() <= share
+    if len(numbers) == len(arrived) or count.sent < MIN_SENT:
+        assert share == count.delivery() == 1.0
+
+
+@given(st.floats(0.0, 1.0), st.floats(1.0, 50.0))
+def test_a_stretched_limit_loses_all_its_beacons_at_most_rarely(delivery, beacons):
+    stretch = silence_stretch(delivery, beacons)
+    assert 1.0 <= stretch <= MAX_STRETCH
+    if stretch < MAX_STRETCH and delivery < 1.0:
+        assert (1.0 - delivery) ** (beacons * stretch) <= FALSE_DOWN * (1 + 1e-9)
+    if (1.0 - delivery) ** beacons <= FALSE_DOWN:
+        assert stretch == 1.0  # a link that loses little keeps peer_timeout
+
+
+def test_a_dead_peers_limit_is_at_most_ten_times_the_lossless_one():
+    assert silence_stretch(0.0, 4) == silence_stretch(0.01, 4) == MAX_STRETCH
+    assert silence_stretch(0.9, 4) == 1.0
+
+
+def test_a_live_peer_on_a_link_losing_most_frames_stays_up_and_a_dead_one_goes_down(caplog):
+    """Two agents that send each other nothing but beacons, on a link that loses 60 % of them: four
+    beacon periods of silence come about once in eight periods, so with `peer_timeout` alone they
+    took each other for down 6-7 times in six seconds. Counting the beacons that arrive, each
+    waits out the silence a live peer can have; when one agent stops, the other still finds it
+    down within ten times `peer_timeout`."""
+    net = MockNetwork(seed=11, loss=0.6)
+
+    class Mocked(TransportPlugin):
+        endpoint_factory = staticmethod(net.endpoint)
+
+    timings = {"insecure": True, "discovery_port": 0, "beacon_period": 0.1, "peer_timeout": 0.4}
+    agents = []
+    for k, name in enumerate(["a", "b"]):
+        agent = Agent(name, workers=2)
+        agent.add_plugin(Mocked, settings={**timings, "peers": ["a@mock:1"] if k else []}, name="transport")
+        agents.append(agent.start())
+    a, b = agents
+    try:
+        up = lambda agent, name: any(p.name == name and p.up for p in agent.query(Peer))  # noqa: E731
+        wait_until(lambda: up(a, "b") and up(b, "a"), timeout=10)
+        time.sleep(2.0)  # the first beacons counted
+        with caplog.at_level(logging.WARNING):
+            caplog.clear()
+            time.sleep(6.0)
+            downs = [r.getMessage() for r in caplog.records if " is down" in r.getMessage()]
+        assert len(downs) <= 2, downs
+        stopped = time.monotonic()
+        b.stop()
+        wait_until(lambda: not up(a, "b"), timeout=MAX_STRETCH * timings["peer_timeout"] + 2.0)
+        assert time.monotonic() - stopped <= MAX_STRETCH * timings["peer_timeout"] + 2.0
+        assert net.counters["lost"] > 0
+    finally:
+        for agent in agents:
+            agent.stop()
+
+
+def test_beacons_to_a_quiet_peer_are_numbered_one_by_one():
+    net = MockNetwork(seed=1)
+
+    class Mocked(TransportPlugin):
+        endpoint_factory = staticmethod(net.endpoint)
+
+    timings = {"insecure": True, "discovery_port": 0, "beacon_period": 0.1, "peer_timeout": 0.4}
+    a = Agent("a", workers=2)
+    a.add_plugin(Mocked, settings=timings, name="transport")
+    a.start()
+    b = Agent("b", workers=2)
+    b.add_plugin(Mocked, settings={**timings, "peers": ["a@mock:1"]}, name="transport")
+    b.start()
+    try:
+        wait_until(lambda: any(p.name == "b" and p.up for p in a.query(Peer)), timeout=10)
+        time.sleep(0.8)
+        transport = next(p for p in b.plugins if isinstance(p, TransportPlugin))
+        sent = transport.beacons_sent.get("a", 0)
+        assert sent >= 4
+        count = next(p for p in a.plugins if isinstance(p, TransportPlugin)).beacon_counts["b"]
+        assert count.last >= sent - 2 and count.delivery() == 1.0  # nothing lost: every number came
+    finally:
+        for agent in (a, b):
+            agent.stop()
