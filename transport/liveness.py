@@ -49,7 +49,7 @@ class BeaconCount:
         gap = seq - self.last
         if self.last and gap <= 0:
             if gap >= -REORDERED:
-                return  # a duplicate, or one that came late: counted in the gap before it
+                return  # a duplicate, or one that came late: its number stays counted as lost (errs long)
             self.got = self.sent = 0.0  # the peer restarted and numbers from 1 again
         elif self.last:
             self.got = self.got * KEEP + 1.0

@@ -31,7 +31,7 @@ def test_duplicates_and_late_beacons_change_nothing_and_a_restart_counts_afresh(
     half = count.share()
     assert math.isclose(half, 0.5, rel_tol=1e-9)
     count.heard(59)  # again
-    count.heard(54)  # late: counted in the gap before 55
+    count.heard(54)  # late: its number stays counted as lost
     count.heard(0)   # not numbered
     assert count.share() == half
     count.heard(1)   # the peer restarted and numbers from 1
