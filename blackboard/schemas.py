@@ -78,6 +78,10 @@ class PeerList(_Message):
 
     agent: str
     peers: list[Peer]
+    down_after: dict[str, float] = Field(default_factory=dict, description="peer -> the silence (s) that "
+                                         "marks it down now: peer_timeout, scaled and stretched for a lossy link")
+    beacons: dict[str, float] = Field(default_factory=dict, description="peer -> the share of its recent "
+                                      "numbered beacons that arrived (only peers whose beacons were counted)")
 
 
 class WatchRequest(_Message):

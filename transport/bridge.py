@@ -467,7 +467,9 @@ class TransportPlugin(Plugin[TransportSettings]):
             if self.status_in.pop(body.uid, None) is not None and self.get(body.uid) is not None:
                 self.remove(body.uid)
         elif kind == "peers.request":
-            peers = PeerList(agent=self.agent_name, peers=list(self.directory.values()))
+            counted = {name: count.share() for name, count in self.beacon_counts.items() if count.sent}
+            peers = PeerList(agent=self.agent_name, peers=list(self.directory.values()), beacons=counted,
+                             down_after={name: self._down_after(name) for name in self.directory})
             self.endpoint.send(msg.reply, "peers.reply", peers, reliable=True, to=msg.sender)
         elif kind == "watch.request" and isinstance(body, WatchRequest):
             key = (msg.sender, msg.reply)

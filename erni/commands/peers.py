@@ -42,14 +42,19 @@ def run(args: argparse.Namespace) -> int:
             return 1
     now = time.time()
     peers = sorted(msg.body.peers, key=lambda p: p.name)
+    beacons, down_after = msg.body.beacons, msg.body.down_after
     if args.json:
         for p in peers:
-            print(dumps({"via": msg.body.agent, **p.model_dump(mode="json")}))
+            print(dumps({"via": msg.body.agent, **p.model_dump(mode="json"), "beacons": beacons.get(p.name),
+                         "down_after": down_after.get(p.name)}))
         return 0
     print(f"agents known to {msg.body.agent} ({addr[0]}:{addr[1]}):")
-    print(f"{'name':<16} {'state':<5} {'address':<22} {'role':<10} {'heard':>8}  capabilities")
+    print(f"{'name':<16} {'state':<5} {'address':<22} {'role':<10} {'heard':>8} {'down after':>10} {'beacons':>8}"
+          "  capabilities")
     for p in peers:
         heard = f"{now - p.last_heard:.1f}s" if p.last_heard else "never"
-        print(f"{p.name:<16} {'up' if p.up else 'down':<5} {p.address:<22} {p.role:<10} {heard:>8}  "
-              f"{','.join(p.capabilities)}" + (f"  DEGRADED: {p.degraded}" if p.degraded else ""))
+        limit = f"{down_after[p.name]:.1f}s" if p.name in down_after else "-"
+        share = f"{100 * beacons[p.name]:.0f}%" if p.name in beacons else "-"
+        print(f"{p.name:<16} {'up' if p.up else 'down':<5} {p.address:<22} {p.role:<10} {heard:>8} {limit:>10} "
+              f"{share:>8}  {','.join(p.capabilities)}" + (f"  DEGRADED: {p.degraded}" if p.degraded else ""))
     return 0

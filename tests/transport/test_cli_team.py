@@ -93,6 +93,12 @@ def test_peers_table(team):
     out = cli(team["env"], "peers", "--via", team["via"])
     assert out.returncode == 0
     assert "robot1" in out.stdout and " up " in out.stdout
+    assert "down after" in out.stdout.splitlines()[1] and "beacons" in out.stdout.splitlines()[1]
+    row = next(line for line in out.stdout.splitlines() if line.startswith("robot1"))
+    assert " 4.0s " in row  # peer_timeout: loopback loses no beacon, so the limit is not stretched
+    rows = [json.loads(line) for line in cli(team["env"], "peers", "--via", team["via"], "--json").stdout.splitlines()]
+    robot1 = next(r for r in rows if r["name"] == "robot1")
+    assert robot1["down_after"] == 4.0 and robot1["beacons"] in (None, 1.0)
 
 
 def udp_receive_buffer(pid: int) -> int:

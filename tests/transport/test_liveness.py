@@ -96,6 +96,9 @@ def test_a_live_peer_on_a_link_losing_most_frames_stays_up_and_a_dead_one_goes_d
             time.sleep(6.0)
             downs = [r.getMessage() for r in caplog.records if " is down" in r.getMessage()]
         assert len(downs) <= 2, downs
+        transport = next(p for p in a.plugins if isinstance(p, TransportPlugin))
+        assert transport._down_after("b") > 2 * timings["peer_timeout"]  # stretched: most beacons go lost
+        assert 0.15 < transport.beacon_counts["b"].share() < 0.65  # 40 % arrive
         stopped = time.monotonic()
         b.stop()
         wait_until(lambda: not up(a, "b"), timeout=MAX_STRETCH * timings["peer_timeout"] + 2.0)
