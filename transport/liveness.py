@@ -21,11 +21,17 @@ FALSE_DOWN = 1e-3
 MAX_STRETCH = 10.0
 """The longest a silence limit grows, in multiples of the limit on a link that loses nothing."""
 
-KEEP = 0.98
-"""The weight the counts so far keep at each beacon that arrives (about the last 50 count)."""
+KEEP = 0.9
+"""The weight the counts so far keep at each beacon that arrives (about the last 10 count). A
+longer memory is steadier but slow when a link starts losing: simulated, a link that drops from
+no loss to 70 % is taken for down 0.6 times on average in the next 100 beacons with 0.9, and 1.2
+times with 0.98; on a steady link of 20-80 % delivery both are taken for down 1-2.5 times in
+10 000 beacons."""
 
-MIN_SENT = 8.0
-"""Beacons a peer must have sent (by their numbers) before its count is trusted."""
+MIN_SENT = 3.0
+"""Beacons a peer must have sent (by their numbers) before its count is used. A short count is
+used with its wide standard error (`delivery()`), so a link that has lost some of only a few
+beacons is already given a long limit."""
 
 REORDERED = 8
 """A beacon this many numbers below the last counted is late (reordered); further below, the

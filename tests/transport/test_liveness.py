@@ -21,7 +21,7 @@ def test_a_count_of_every_third_beacon_says_a_third_arrive():
     for seq in range(1, 200, 3):
         count.heard(seq)
     assert math.isclose(count.share(), 1 / 3, rel_tol=1e-9)
-    assert 0.25 < count.delivery() < 1 / 3  # a standard error lower
+    assert 0.2 < count.delivery() < 1 / 3  # a standard error lower
 
 
 def test_duplicates_and_late_beacons_change_nothing_and_a_restart_counts_afresh():
@@ -98,7 +98,7 @@ def test_a_live_peer_on_a_link_losing_most_frames_stays_up_and_a_dead_one_goes_d
         assert len(downs) <= 2, downs
         transport = next(p for p in a.plugins if isinstance(p, TransportPlugin))
         assert transport._down_after("b") > 2 * timings["peer_timeout"]  # stretched: most beacons go lost
-        assert 0.15 < transport.beacon_counts["b"].share() < 0.65  # 40 % arrive
+        assert 0.1 < transport.beacon_counts["b"].share() < 0.75  # 40 % arrive (the last ten or so)
         stopped = time.monotonic()
         b.stop()
         wait_until(lambda: not up(a, "b"), timeout=MAX_STRETCH * timings["peer_timeout"] + 2.0)
