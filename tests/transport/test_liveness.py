@@ -54,6 +54,17 @@ def test_the_count_is_a_share_of_the_numbered_beacons(arrived):
         assert share == count.delivery() == 1.0
 
 
+@given(st.lists(st.integers(-5, 400), max_size=300))
+def test_any_numbers_in_any_order_give_a_share_of_at_most_one(numbers):
+    """Duplicated, late, restarted or unnumbered beacons (a lossy, reordering mesh; a peer that
+    restarts): the count never claims more arrived than were sent."""
+    count = BeaconCount()
+    for seq in numbers:
+        count.heard(seq)
+        assert 0.0 <= count.got <= count.sent + 1e-9
+        assert 0.0 <= count.delivery() <= count.share() <= 1.0
+
+
 @given(st.floats(0.0, 1.0), st.floats(1.0, 50.0))
 def test_a_stretched_limit_loses_all_its_beacons_at_most_rarely(delivery, beacons):
     stretch = silence_stretch(delivery, beacons)
