@@ -16,8 +16,9 @@
   `beacon_fanout` of them a period: with more, each gets one less often and the beacon says
   how often, so its receiver waits as many periods longer. Only session traffic (fresh by
   construction) marks a peer up, and a peer silent for `peer_timeout` (scaled by its announced
-  interval, and stretched by the share of its numbered beacons that arrive: `liveness`) is down. A beacon that says nothing new (its peer up, at the same address and epoch)
-  costs no run: the receive thread marks the peer heard, the liveness pass updates `last_heard`.
+  interval, and stretched by the share of its numbered beacons that arrive: `liveness`) is down.
+  A beacon that says nothing new (its peer up, at the same address and epoch) costs no run: the
+  receive thread marks the peer heard, the liveness pass updates `last_heard`.
 - Clients (`erni watch`) may lease a stream of blackboard changes; `erni task --wait` asks
   for a task's state (`task.query`).
 
@@ -689,8 +690,8 @@ class TransportPlugin(Plugin[TransportSettings]):
                 peer = peer.evolve(up=False)
                 self.directory[name] = peer
                 count = self.beacon_counts.get(name)
-                self.log.warning("peer %s is down: not heard for %.1f s (limit %.1f s; %.0f %% of its beacons arrived)",
-                                 name, silent, limit, 100.0 * (count.share() if count else 1.0))
+                counted = f"; {100.0 * count.share():.0f} % of its beacons arrived" if count and count.sent else ""
+                self.log.warning("peer %s is down: not heard for %.1f s (limit %.1f s%s)", name, silent, limit, counted)
                 self.change(peer, reports=["down"])
                 self._next_beacon = min(self._next_beacon, mono + s.beacon_period)  # announce often again
 
