@@ -28,6 +28,7 @@ import hashlib
 import heapq
 import itertools
 import logging
+import math
 import os
 import random
 import selectors
@@ -59,6 +60,7 @@ from erni.transport.session import (
     respond,
 )
 from erni.transport.wire import (
+    BATCH_BYTES,
     BEACON,
     DATA,
     DEFAULT_MAX_FRAME,
@@ -75,17 +77,32 @@ from erni.transport.wire import (
     Message,
     SeenIds,
     StreamDecoder,
+    batch_payload,
     body_of,
     check_frame,
     encode_body,
     envelope_bytes,
+    parse_batch,
     parse_envelope,
+    parse_envelope_value,
+    parse_envelopes,
 )
 
 Address = tuple[str, int]
 
 CLIENT_ROLE = "cli"
 """The role of a command-line client's endpoint (`erni task`, `erni watch` ...): never a peer."""
+
+COALESCE = 20e-6
+"""A status sent to a destination less than this (s) after the caller's previous send to it
+returned is part of a burst (the caller waited for nothing in between): it is gathered with the
+burst's next ones, and the caller seals and sends each `BATCH_BYTES` of them as one datagram. A
+robot's statuses, a request waiting for its reply and a ping-pong are far slower than this: they
+go out one to a datagram, at once."""
+
+FLUSH_AFTER = 200e-6
+"""How long (s) the last, partly filled datagram of a burst waits for more before the sender
+pool sends it."""
 
 InboundFilter = Callable[[str, str], bool]
 """`(sender, role) -> bool`: whether a verified frame may be delivered (False: dropped and counted)."""
@@ -150,9 +167,20 @@ class _Dest:
     handshake: Initiation | None = None
     hs_backoff: float = 0.0
     hs_not_before: float = 0.0
+    batch: _Batch | None = None  # statuses of a burst the caller gathers into one datagram
 
     def has_work(self) -> bool:
-        return bool(self.fast or self.reliable or self.announce)
+        return bool(self.fast or self.reliable or self.announce or self.batch)
+
+
+@dataclass
+class _Batch:
+    """Statuses of a burst gathered for one datagram: their envelopes, sealed together."""
+
+    session: Session
+    outs: list[_Outgoing] = field(default_factory=list)
+    envelopes: list[bytes] = field(default_factory=list)
+    size: int = 0
 
 
 @dataclass
@@ -255,6 +283,7 @@ class Endpoint:
         self._hint_hosts = HostBuckets(2.0)
         # sender pool
         self._dests: dict[Address, _Dest] = {}
+        self._fast_at: dict[Address, float] = {}  # destination -> when the caller's last status to it was handled
         self._cond = threading.Condition()
         self._ready: deque[_Dest] = deque()
         self._delayed: list[tuple[float, int, int, _Dest]] = []
@@ -489,8 +518,11 @@ class Endpoint:
         msg_id = msg_id or f"{self._id_prefix}{seq:x}"
         type_name, data = encode_body(body)
         out = _Outgoing(msg_id, kind, type_name, body, data, seq, time.monotonic() + (ttl or self.ttl), to or "")
-        if lane == "fast" and self._send_now(addr, out):
-            return msg_id
+        if lane == "fast":
+            sent = self._send_now(addr, out)
+            self._fast_at[addr] = time.monotonic()  # a burst is told by the time until the next
+            if sent:
+                return msg_id
         if lane == "reliable" and self._write_now(addr, out):
             return msg_id
         undeliverable = False
@@ -539,6 +571,7 @@ class Endpoint:
         Only in a confirmed session (no handshake to drive), with nothing queued before it for
         that destination, and only what the socket takes at once: the UDP socket never blocks
         (a full send buffer raises at once), and then the message is queued for the sender pool.
+        A status of a burst (`COALESCE`) is gathered into the destination's batch instead.
         """
         usable, session = self._caller_session(addr, out)
         if not usable:
@@ -546,6 +579,9 @@ class Endpoint:
         dest = self._dests.get(addr)
         if dest is not None and (dest.fast or dest.announce):
             return False  # keep the order of what is queued already
+        if session is not None and (dest is not None and dest.batch is not None
+                                    or time.monotonic() - self._fast_at.get(addr, -math.inf) < COALESCE):
+            return self._gather(addr, out, session)  # a burst: several statuses to a datagram
         try:
             self._sendto(self._frame(out, session, min(self.max_frame, UDP_MAX_FRAME)), addr)
         except (BlockingIOError, InterruptedError):
@@ -559,6 +595,60 @@ class Endpoint:
             self._drops.warning("udp", f"UDP send to {addr[0]}:{addr[1]} failed: {err}")
         else:
             self.count("sent.fast")
+        return True
+
+    def _gather(self, addr: Address, out: _Outgoing, session: Session) -> bool:
+        """Add a status of a burst to its destination's open batch; send the batch from the
+        caller's thread once the next would not fit, and leave what is left at the burst's end
+        to the sender pool (`FLUSH_AFTER`)."""
+        envelope = self._envelope(out, session.peer)
+        full: _Batch | None = None
+        with self._cond:
+            if self._stopping:
+                return True
+            dest = self._dests.get(addr)
+            if dest is None:
+                dest = self._dests[addr] = _Dest(addr)
+            if dest.fast or dest.announce:
+                return False  # queued meanwhile: it goes after them, in order
+            batch = dest.batch
+            if batch is not None and (batch.session is not session or batch.size + len(envelope) + 1 > BATCH_BYTES):
+                full, batch = batch, None
+            if batch is None:
+                batch = dest.batch = _Batch(session)
+                self._schedule(dest, time.monotonic() + FLUSH_AFTER)
+            batch.outs.append(out)
+            batch.envelopes.append(envelope)
+            batch.size += len(envelope) + 1
+        if full is not None and not self._send_datagram(addr, full.session, full.outs, full.envelopes):
+            self._requeue(dest, full.outs)
+            with self._cond:
+                self._make_ready(dest)
+        return True
+
+    def _send_datagram(self, addr: Address, session: Session | None, outs: list[_Outgoing],
+                       envelopes: list[bytes]) -> bool:
+        """Send fast messages as one datagram: sealed together in a session, else one plain frame
+        (`outs` holds one). False when the socket's buffer is full (nothing was sent)."""
+        max_frame = min(self.max_frame, UDP_MAX_FRAME)
+        try:
+            if session is None:
+                frame = self._frame(outs[0], None, max_frame)
+            else:
+                frame = session.seal(batch_payload(envelopes), max_frame)
+            self._sendto(frame, addr)
+        except (BlockingIOError, InterruptedError):
+            return False
+        except FrameError as err:
+            self.count("dropped.too_big")
+            self._drops.warning("too_big", f"not sent to {addr}: {err}")
+        except OSError as err:
+            self.count("dropped.fast_error")
+            self._drops.warning("udp", f"UDP send to {addr[0]}:{addr[1]} failed: {err}")
+        else:
+            self.count("sent.fast", len(outs))
+            if len(outs) > 1:
+                self.count("sent.batched", len(outs))
         return True
 
     def _write_now(self, addr: Address, out: _Outgoing) -> bool:
@@ -671,6 +761,11 @@ class Endpoint:
 
     def _service(self, dest: _Dest) -> float | None:
         """Send what can go now; return when to come back (None: when there is new work)."""
+        with self._cond:
+            batch, dest.batch = dest.batch, None
+        if batch is not None and not self._send_datagram(dest.addr, batch.session, batch.outs, batch.envelopes):
+            self._requeue(dest, batch.outs)
+            return time.monotonic() + 0.005
         while True:  # signed announcements first: they need no session
             with self._cond:
                 out = dest.announce.popleft() if dest.announce else None
@@ -684,31 +779,12 @@ class Endpoint:
                 return self._handshake_step(dest)
         while True:  # fast messages: they are cheap and never wait
             with self._cond:
-                out = dest.fast.popleft() if dest.fast else None
-            if out is None:
+                outs = [dest.fast.popleft() for _ in range(min(len(dest.fast), 64))]
+            if not outs:
                 break
-            if session is not None and out.to and out.to != session.peer:
-                self.count("dropped.wrong_peer")
-                self._drops.warning("wrong_peer", f"not sent: {dest.addr[0]}:{dest.addr[1]} is "
-                                    f"{session.peer}, not {out.to}")
-                continue
-            try:
-                self._sendto(self._frame(out, session, min(self.max_frame, UDP_MAX_FRAME)), dest.addr)
-                self.count("sent.fast")
-            except (BlockingIOError, InterruptedError):  # the socket's buffer is full: keep it, try again soon
-                with self._cond:
-                    if len(dest.fast) < self.queue_limit:
-                        dest.fast.appendleft(out)
-                    else:
-                        self.count("dropped.fast_oldest")
-                self.count("sent.deferred")
-                return time.monotonic() + 0.005
-            except FrameError as err:
-                self.count("dropped.too_big")
-                self._drops.warning("too_big", f"not sent to {dest.addr}: {err}")
-            except OSError as err:
-                self.count("dropped.fast_error")
-                self._drops.warning("udp", f"UDP send to {dest.addr[0]}:{dest.addr[1]} failed: {err}")
+            retry = self._send_fast(dest, session, outs)
+            if retry is not None:
+                return retry
         for _ in range(32):  # then a batch of reliable ones, in order
             now = time.monotonic()
             if now < dest.next_try:
@@ -747,6 +823,41 @@ class Endpoint:
                     return None  # the peer does not know the session: a new handshake, at once
                 return dest.next_try
         return None
+
+    def _send_fast(self, dest: _Dest, session: Session | None, outs: list[_Outgoing]) -> float | None:
+        """Send queued fast messages, in a session as many to a datagram as fit in `BATCH_BYTES`;
+        return when to try again if the socket's buffer is full (what is left goes back in front)."""
+        group: list[_Outgoing] = []
+        envelopes: list[bytes] = []
+        size = 0
+        for k, out in enumerate(outs):
+            if session is not None and out.to and out.to != session.peer:
+                self.count("dropped.wrong_peer")
+                self._drops.warning("wrong_peer", f"not sent: {dest.addr[0]}:{dest.addr[1]} is "
+                                    f"{session.peer}, not {out.to}")
+                continue
+            envelope = self._envelope(out, session.peer) if session is not None else b""
+            if group and (session is None or size + len(envelope) + 1 > BATCH_BYTES):
+                if not self._send_datagram(dest.addr, session, group, envelopes):
+                    self._requeue(dest, group + outs[k:])
+                    return time.monotonic() + 0.005
+                group, envelopes, size = [], [], 0
+            group.append(out)
+            envelopes.append(envelope)
+            size += len(envelope) + 1
+        if group and not self._send_datagram(dest.addr, session, group, envelopes):
+            self._requeue(dest, group)
+            return time.monotonic() + 0.005
+        return None
+
+    def _requeue(self, dest: _Dest, outs: list[_Outgoing]) -> None:
+        """Put fast messages the socket did not take back in front of the queue, in their order."""
+        with self._cond:
+            room = max(0, self.queue_limit - len(dest.fast))
+            dest.fast.extendleft(reversed(outs[:room]))
+            if len(outs) > room:
+                self.count("dropped.fast_oldest", len(outs) - room)
+        self.count("sent.deferred")
 
     def _expired(self, dest: _Dest, out: _Outgoing, now: float) -> bool:
         if now <= out.deadline:
@@ -852,7 +963,7 @@ class Endpoint:
                 assert dest.decoder is not None
                 for raw in dest.decoder.feed(data):
                     got = self._accept(raw, "tcp", dest.addr)
-                    if got is not None and got[0].kind == "ack" and got[0].body == out.id:
+                    if got is not None and any(m.kind == "ack" and m.body == out.id for m in got[0]):
                         return True
                 if session is not None and session.stale:
                     return False  # the peer does not know this session any more
@@ -867,17 +978,18 @@ class Endpoint:
         self.count(f"dropped.{err.reason}")
         self._drops.warning(err.reason, f"dropped a {channel} frame: {err}")
 
-    def _accept(self, raw: bytes, channel: str, src: Address) -> tuple[Message, Session | None] | None:
-        """Check a frame; count and log what fails; return the message (and its session) or None."""
+    def _accept(self, raw: bytes, channel: str, src: Address) -> tuple[list[Message], Session | None] | None:
+        """Check a frame; count and log what fails; return its messages (several in a batch of
+        statuses) and their session, or None."""
         try:
             kind = check_frame(raw, self.max_frame)
             if self.auth is None:
                 if kind != PLAIN:
                     raise FrameError("auth", f"a {KINDS[kind]} frame at an agent running insecure")
                 msg = self._plain(raw)
-                return (msg, None) if msg is not None else None
+                return ([msg], None) if msg is not None else None
             if kind == DATA:
-                return self._data(raw, src)
+                return self._data(raw, channel, src)
             if kind == HINT:  # on UDP, or on the TCP stream a sender is waiting for its ack on
                 self._on_hint(raw, src)
                 return None
@@ -889,7 +1001,7 @@ class Endpoint:
                 self._on_reply(raw)
             elif kind == BEACON:
                 msg = self._on_beacon(raw)
-                return (msg, None) if msg is not None else None
+                return ([msg], None) if msg is not None else None
             else:
                 raise FrameError("auth", "an unauthenticated frame (is the sender running insecure?)")
         except FrameError as err:
@@ -912,29 +1024,51 @@ class Endpoint:
         if self.inbound_filter is not None and not self.inbound_filter(sender, role):
             raise FrameError("unreachable", f"{sender} cannot reach {self.name} now")
 
-    def _data(self, raw: bytes, src: Address) -> tuple[Message, Session | None] | None:
+    def _data(self, raw: bytes, channel: str, src: Address) -> tuple[list[Message], Session | None]:
+        """Open a data frame of a session: one envelope, or a JSON list of them (a batch of
+        statuses). A batch's envelope or body that does not validate is dropped alone; an envelope
+        that names another sender or receiver drops the whole frame."""
         sid = raw[KIND.size:KIND.size + 8]
         session = self._by_sid.get(sid)
         if session is None:
             self._hint(sid, src)
             raise FrameError("session", f"unknown session {sid.hex()} (its sender or this agent restarted)")
-        env = parse_envelope(session.open(raw))
-        if env.sender != session.peer or env.role != session.role or env.inst != session.inst:
-            raise FrameError("auth", f"envelope names {env.sender[:64]} but the session is with {session.peer}")
-        if env.to != self.name:
-            raise FrameError("receiver", f"frame for {env.to} arrived at {self.name}")
+        plain = session.open(raw)
+        batch = plain[:1] == b"["
+        envs = parse_envelopes(plain) if batch else [parse_envelope(plain)]
+        if envs is None:  # some envelope of the batch does not validate: keep the others
+            envs = []
+            for value in parse_batch(plain):
+                try:
+                    envs.append(parse_envelope_value(value))
+                except FrameError as err:
+                    self._dropped(channel, err)
+        for env in envs:
+            if env.sender != session.peer or env.role != session.role or env.inst != session.inst:
+                raise FrameError("auth", f"envelope names {env.sender[:64]} but the session is with {session.peer}")
+            if env.to != self.name:
+                raise FrameError("receiver", f"frame for {env.to} arrived at {self.name}")
         if not session.confirmed:
             self._confirm(session)
         self._filter(session.peer, session.role)
-        if env.kind == "crl" and isinstance(env.body, str):
+        msgs = []
+        for env in envs:
             try:
-                self._adopt_crl(base64.b64decode(env.body, validate=True), session.peer)
-            except ValueError:
-                raise FrameError("parse", "revocation list is not base64") from None
-        body = body_of(env.type, env.body)
-        self.count("received")
-        return Message(session.peer, session.role, session.addr, session.epoch, env.seq, env.id, env.kind,
-                       body), session
+                if env.kind == "crl" and isinstance(env.body, str):
+                    try:
+                        self._adopt_crl(base64.b64decode(env.body, validate=True), session.peer)
+                    except ValueError:
+                        raise FrameError("parse", "revocation list is not base64") from None
+                body = body_of(env.type, env.body)
+            except FrameError as err:
+                if not batch:
+                    raise
+                self._dropped(channel, err)
+                continue
+            msgs.append(Message(session.peer, session.role, session.addr, session.epoch, env.seq, env.id,
+                                env.kind, body))
+        self.count("received", len(msgs))
+        return msgs, session
 
     def _hint(self, sid: bytes, src: Address, conn: socket.socket | None = None) -> None:
         """Tell a sender we do not know its session (at most twice a second per host)."""
@@ -1200,8 +1334,9 @@ class Endpoint:
             except OSError:
                 return
             got = self._accept(data, "udp", src)
-            if got is not None and got[0].kind not in INTERNAL:
-                self._dispatch(got[0])
+            for msg in got[0] if got is not None else ():
+                if msg.kind not in INTERNAL:
+                    self._dispatch(msg)
 
     def _read_stream(self, conn: _Conn, conns: dict[socket.socket, _Conn]) -> bool:
         try:
@@ -1226,22 +1361,24 @@ class Endpoint:
             got = self._accept(raw, "tcp", conn.peer)
             if got is None:
                 continue
-            msg, session = got
+            msgs, session = got
             conn.authed = True
-            if msg.kind == "ack":
-                continue
-            seq = next(self._seq)
-            ack = _Outgoing(f"{self._id_prefix}{seq:x}", "ack", None, msg.id, to_json(msg.id), seq, 0.0, msg.sender)
-            try:
-                conn.sock.sendall(self._frame(ack, session, self.max_frame))
-            except (OSError, FrameError):
-                return False
-            if msg.kind in INTERNAL:
-                continue
-            if self._seen.first_time(msg.sender, msg.id):
-                self._dispatch(msg)
-            else:
-                self.count("duplicates")
+            for msg in msgs:
+                if msg.kind == "ack":
+                    continue
+                seq = next(self._seq)
+                ack = _Outgoing(f"{self._id_prefix}{seq:x}", "ack", None, msg.id, to_json(msg.id), seq, 0.0,
+                                msg.sender)
+                try:
+                    conn.sock.sendall(self._frame(ack, session, self.max_frame))
+                except (OSError, FrameError):
+                    return False
+                if msg.kind in INTERNAL:
+                    continue
+                if self._seen.first_time(msg.sender, msg.id):
+                    self._dispatch(msg)
+                else:
+                    self.count("duplicates")
         if conn.decoder.buffered:
             if conn.partial_since is None:
                 conn.partial_since = now

@@ -23,8 +23,8 @@ from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
-from pydantic_core import PydanticSerializationError, to_json
+from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
+from pydantic_core import PydanticSerializationError, from_json, to_json
 
 from erni.blackboard import AllocationResult, NetInfo, Pose, Task
 from erni.blackboard.errors import ErniError, UsageError, shown
@@ -134,11 +134,59 @@ def parse_envelope(payload: bytes) -> Envelope:
     try:
         return Envelope.model_validate_json(payload)
     except ValidationError as err:
-        first = err.errors()[0]
-        if first["type"] in ("json_invalid", "json_type", "model_type"):
-            raise FrameError("parse", f"envelope is not a JSON object ({first['msg']})") from None
-        where = ".".join(str(p) for p in first["loc"])
-        raise FrameError("parse", f"envelope field {where}: {first['msg']}") from None
+        raise _envelope_error(err) from None
+
+
+def _envelope_error(err: ValidationError) -> FrameError:
+    first = err.errors()[0]
+    if first["type"] in ("json_invalid", "json_type", "model_type"):
+        return FrameError("parse", f"envelope is not a JSON object ({first['msg']})")
+    where = ".".join(str(p) for p in first["loc"])
+    return FrameError("parse", f"envelope field {where}: {first['msg']}")
+
+
+BATCH_BYTES = 1400
+"""The most envelope bytes one sealed datagram carries when statuses are batched: with the frame's
+header and tag it stays under what one 1500-byte Ethernet or Wi-Fi frame holds after the IP and
+UDP headers (1452 bytes over IPv6), so a batch is not fragmented on such a link."""
+
+
+def batch_payload(envelopes: list[bytes]) -> bytes:
+    """One envelope as it is, several as a JSON list: what a batched data frame seals."""
+    return envelopes[0] if len(envelopes) == 1 else b"[" + b",".join(envelopes) + b"]"
+
+
+_ENVELOPES: TypeAdapter[list[Envelope]] = TypeAdapter(list[Envelope])
+
+
+def parse_envelopes(payload: bytes) -> list[Envelope] | None:
+    """A batched data frame's envelopes, validated in one step; None when any of them (or the
+    list) does not validate: then `parse_batch` and `parse_envelope_value` find which."""
+    try:
+        envelopes = _ENVELOPES.validate_json(payload)
+    except ValidationError:
+        return None
+    return envelopes or None
+
+
+def parse_batch(payload: bytes) -> list[Any]:
+    """Split a batched data frame's payload into its envelopes' JSON values (each still to be
+    parsed with `parse_envelope_value`); raise FrameError('parse') when it is not a JSON list."""
+    try:
+        items = from_json(payload)
+    except ValueError as err:
+        raise FrameError("parse", f"batch is not JSON ({str(err)[:120]})") from None
+    if not isinstance(items, list) or not items:
+        raise FrameError("parse", "batch is not a non-empty JSON list of envelopes")
+    return items
+
+
+def parse_envelope_value(value: Any) -> Envelope:
+    """Validate one envelope of a batch (already parsed from JSON); FrameError('parse') names the problem."""
+    try:
+        return Envelope.model_validate(value)
+    except ValidationError as err:
+        raise _envelope_error(err) from None
 
 
 def encode_plain(env: Envelope, max_frame: int = DEFAULT_MAX_FRAME) -> bytes:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import socket
 import threading
+import time
 from typing import Any
 
 import pytest
@@ -19,6 +20,7 @@ from erni.blackboard.testing import wait_until
 from erni.transport import Endpoint
 from erni.transport.identity import load_identity
 from erni.transport.limits import Limits
+from erni.transport.wire import BATCH_BYTES, envelope_bytes
 from tests.transport.helpers import identity
 
 
@@ -70,11 +72,69 @@ def test_a_status_goes_out_from_the_callers_thread_once_a_session_is_up():
         real = a._sendto
         a._sendto = lambda frame, addr: (seen.append(threading.current_thread().name), real(frame, addr))[1]
         for i in range(1, 6):
+            time.sleep(0.001)  # statuses apart, as a robot's are: not a burst
             a.send(b.address, "status", Pose(robot=f"r{i}"), reliable=False, to="fp-b")
         wait_until(lambda: len(got) == 6)
         assert seen == [sender] * 5  # sent by the caller, no sender thread involved
         assert [m.body.robot for m in got] == [f"r{i}" for i in range(6)]
         assert [m.seq for m in got] == sorted(m.seq for m in got)
+    finally:
+        a.stop()
+        b.stop()
+
+
+def test_a_burst_of_statuses_goes_several_to_a_datagram_and_arrives_whole_and_in_order():
+    """After the first status of a burst (the caller's thread sends it), the rest are queued and
+    the sender pool seals as many as fit in BATCH_BYTES into each datagram."""
+    a, _ = endpoint("fp-burst-a")
+    b, got = endpoint("fp-burst-b")
+    b.receive_buffer(1 << 20)  # a burst on loopback: room for all of it (UDP drops what overflows)
+    try:
+        a.send(b.address, "status", Pose(robot="r0"), reliable=False, to="fp-burst-b")  # starts the session
+        wait_until(lambda: len(got) == 1)
+        datagrams: list[int] = []
+        real = a._sendto
+        a._sendto = lambda frame, addr: (datagrams.append(len(frame)), real(frame, addr))[1]
+        for i in range(1, 201):
+            a.send(b.address, "status", Pose(robot=f"r{i}", x=float(i)), reliable=False, to="fp-burst-b")
+        wait_until(lambda: len(got) == 201, message=f"{len(got)} of 201 arrived; sent {a.counters}")
+        assert sorted(m.body.robot for m in got) == sorted(f"r{i}" for i in range(201))
+        # three Poses fill a datagram: about 67 without a pause; the test allows for pauses of the
+        # sending thread (a partly filled datagram then goes after FLUSH_AFTER)
+        assert len(datagrams) <= 150 and max(datagrams) <= BATCH_BYTES + 64, datagrams  # header and tag
+        assert a.counters["sent.batched"] >= 100 and a.counters["sent.fast"] == 201
+        assert b.counters["received"] == 201
+    finally:
+        a.stop()
+        b.stop()
+
+
+def sealed_batch(a: Endpoint, b: Endpoint, envelopes: list[bytes]) -> bytes:
+    """A data frame of a's session with b carrying `envelopes` as one batch."""
+    session = a.session_with(b.address)
+    assert session is not None
+    return session.seal(b"[" + b",".join(envelopes) + b"]", 65536)
+
+
+def test_a_batchs_bad_envelope_is_dropped_alone_and_one_naming_another_sender_drops_the_frame():
+    a, _ = endpoint("fp-bad-a")
+    b, got = endpoint("fp-bad-b")
+    try:
+        a.send(b.address, "status", Pose(robot="r0"), reliable=False, to="fp-bad-b")
+        wait_until(lambda: len(got) == 1)
+        good = envelope_bytes("fp-bad-a", "robot", "fp-bad-b", a.inst, a.address, 50, "g1", "status", "Pose",
+                              Pose(robot="ok").__pydantic_serializer__.to_json(Pose(robot="ok")))
+        bad_body = envelope_bytes("fp-bad-a", "robot", "fp-bad-b", a.inst, a.address, 51, "g2", "status", "Pose",
+                                  b'{"robot": 7}')
+        msgs, _ = b._accept(sealed_batch(a, b, [good, bad_body, b'{"v": 2}', good]), "udp", a.address)
+        assert [m.id for m in msgs] == ["g1", "g1"]  # the good ones, the bad ones counted and named
+        assert b.counters["dropped.parse"] == 2
+        forged = envelope_bytes("someone-else", "robot", "fp-bad-b", a.inst, a.address, 52, "f1", "status", "Pose",
+                                Pose(robot="x").__pydantic_serializer__.to_json(Pose(robot="x")))
+        assert b._accept(sealed_batch(a, b, [good, forged]), "udp", a.address) is None
+        assert b.counters["dropped.auth"] == 1
+        assert b._accept(sealed_batch(a, b, []), "udp", a.address) is None  # [] is no batch
+        assert b.counters["dropped.parse"] == 3
     finally:
         a.stop()
         b.stop()

@@ -28,13 +28,17 @@ from erni.transport.wire import (
     ReplayWindow,
     SeenIds,
     StreamDecoder,
+    batch_payload,
     body_of,
     check_frame,
     decode_plain,
     encode_plain,
+    envelope_json,
     json_depth,
     loads,
+    parse_batch,
     parse_envelope,
+    parse_envelope_value,
 )
 from tests.transport.helpers import identity
 
@@ -256,3 +260,25 @@ def test_frames_name_their_receiver_inside_the_encryption():
     env = env.model_copy(update={"to": "beta"})
     opened = parse_envelope(at_b.open(at_a.seal(env.model_dump_json().encode(), 65536)))
     assert opened.to == "beta"  # (the endpoint refuses a `to` that is not its own name: test_security.py)
+
+
+@given(st.lists(st.text(min_size=1, max_size=12), min_size=1, max_size=6))
+def test_a_batch_of_envelopes_parses_back_to_each_of_them(robots):
+    envs = [envelope(seq=i + 1, body=Pose(robot=r)) for i, r in enumerate(robots)]
+    payload = batch_payload([envelope_json(e) for e in envs])
+    if len(envs) == 1:
+        assert parse_envelope(payload) == envs[0]  # one envelope goes as it is
+    else:
+        assert [parse_envelope_value(v) for v in parse_batch(payload)] == envs
+
+
+@pytest.mark.parametrize("payload, why", [(b"[", "batch is not JSON"), (b"[]", "non-empty JSON list"),
+                                          (b'{"v": 2}', "non-empty JSON list"), (b"[1, 2]", None)])
+def test_a_bad_batch_is_refused_with_what_is_wrong(payload, why):
+    if why is None:  # a list of non-envelopes: each is refused on its own
+        for value in parse_batch(payload):
+            with pytest.raises(FrameError, match="envelope is not a JSON object"):
+                parse_envelope_value(value)
+    else:
+        with pytest.raises(FrameError, match=why):
+            parse_batch(payload)
