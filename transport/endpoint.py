@@ -582,19 +582,9 @@ class Endpoint:
         if session is not None and (dest is not None and dest.batch is not None
                                     or time.monotonic() - self._fast_at.get(addr, -math.inf) < COALESCE):
             return self._gather(addr, out, session)  # a burst: several statuses to a datagram
-        try:
-            self._sendto(self._frame(out, session, min(self.max_frame, UDP_MAX_FRAME)), addr)
-        except (BlockingIOError, InterruptedError):
+        if not self._send_datagram(addr, session, [out], [self._envelope(out, session.peer)] if session else []):
             self.count("sent.deferred")
             return False  # the socket's buffer is full: the pool sends it when it drains
-        except FrameError as err:
-            self.count("dropped.too_big")
-            self._drops.warning("too_big", f"not sent to {addr}: {err}")
-        except OSError as err:
-            self.count("dropped.fast_error")
-            self._drops.warning("udp", f"UDP send to {addr[0]}:{addr[1]} failed: {err}")
-        else:
-            self.count("sent.fast")
         return True
 
     def _gather(self, addr: Address, out: _Outgoing, session: Session) -> bool:
