@@ -679,21 +679,22 @@ class TransportPlugin(Plugin[TransportSettings]):
         self._beacon_quiet_peers(mono)
         wall = time.time()
         for name, peer in list(self.directory.items()):
+            if not peer.up:
+                continue  # a session frame will bring it up: nothing to look at
             silent = mono - self.heard_at.get(name, 0.0)
             limit = self._down_after(name)
-            if peer.up and silent <= limit:
+            if silent <= limit:
                 if wall - silent - peer.last_heard > s.peer_timeout / 4:  # heard by beacons that said nothing new
                     self.directory[name] = peer = peer.evolve(last_heard=wall - silent)
                     self.change(peer, reports=["heard"])
                 continue
-            if peer.up:
-                peer = peer.evolve(up=False)
-                self.directory[name] = peer
-                count = self.beacon_counts.get(name)
-                counted = f"; {100.0 * count.share():.0f} % of its beacons arrived" if count and count.sent else ""
-                self.log.warning("peer %s is down: not heard for %.1f s (limit %.1f s%s)", name, silent, limit, counted)
-                self.change(peer, reports=["down"])
-                self._next_beacon = min(self._next_beacon, mono + s.beacon_period)  # announce often again
+            peer = peer.evolve(up=False)
+            self.directory[name] = peer
+            count = self.beacon_counts.get(name)
+            counted = f"; {100.0 * count.share():.0f} % of its beacons arrived" if count and count.sent else ""
+            self.log.warning("peer %s is down: not heard for %.1f s (limit %.1f s%s)", name, silent, limit, counted)
+            self.change(peer, reports=["down"])
+            self._next_beacon = min(self._next_beacon, mono + s.beacon_period)  # announce often again
 
     def _beacon_quiet_peers(self, mono: float) -> None:
         """In-session beacons to the peers sent nothing else for a period, at most `beacon_fanout` a
