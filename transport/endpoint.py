@@ -175,12 +175,22 @@ class _Dest:
 
 @dataclass
 class _Batch:
-    """Statuses of a burst gathered for one datagram: their envelopes, sealed together."""
+    """Fast messages gathered for one datagram: in a session, their envelopes sealed together
+    (up to `BATCH_BYTES`); without one (insecure), a single plain frame."""
 
-    session: Session
+    session: Session | None
     outs: list[_Outgoing] = field(default_factory=list)
     envelopes: list[bytes] = field(default_factory=list)
     size: int = 0
+
+    def fits(self, envelope: bytes) -> bool:
+        """Whether a message with this envelope may join the datagram."""
+        return not self.outs or self.session is not None and self.size + len(envelope) + 1 <= BATCH_BYTES
+
+    def add(self, out: _Outgoing, envelope: bytes) -> None:
+        self.outs.append(out)
+        self.envelopes.append(envelope)
+        self.size += len(envelope) + 1
 
 
 @dataclass
@@ -529,9 +539,7 @@ class Endpoint:
         with self._cond:
             if self._stopping:
                 return msg_id
-            dest = self._dests.get(addr)
-            if dest is None:
-                dest = self._dests[addr] = _Dest(addr)
+            dest = self._dest_for(addr)
             if lane == "reliable":
                 if len(dest.reliable) >= self.queue_limit:
                     self.count("dropped.queue_full")
@@ -582,7 +590,9 @@ class Endpoint:
         if session is not None and (dest is not None and dest.batch is not None
                                     or time.monotonic() - self._fast_at.get(addr, -math.inf) < COALESCE):
             return self._gather(addr, out, session)  # a burst: several statuses to a datagram
-        if not self._send_datagram(addr, session, [out], [self._envelope(out, session.peer)] if session else []):
+        single = _Batch(session)
+        single.add(out, self._envelope(out, session.peer) if session is not None else b"")
+        if not self._send_datagram(addr, single):
             self.count("sent.deferred")
             return False  # the socket's buffer is full: the pool sends it when it drains
         return True
@@ -596,36 +606,39 @@ class Endpoint:
         with self._cond:
             if self._stopping:
                 return True
-            dest = self._dests.get(addr)
-            if dest is None:
-                dest = self._dests[addr] = _Dest(addr)
+            dest = self._dest_for(addr)
             if dest.fast or dest.announce:
                 return False  # queued meanwhile: it goes after them, in order
             batch = dest.batch
-            if batch is not None and (batch.session is not session or batch.size + len(envelope) + 1 > BATCH_BYTES):
+            if batch is not None and (batch.session is not session or not batch.fits(envelope)):
                 full, batch = batch, None
             if batch is None:
                 batch = dest.batch = _Batch(session)
                 self._schedule(dest, time.monotonic() + FLUSH_AFTER)
-            batch.outs.append(out)
-            batch.envelopes.append(envelope)
-            batch.size += len(envelope) + 1
-        if full is not None and not self._send_datagram(addr, full.session, full.outs, full.envelopes):
+            batch.add(out, envelope)
+        if full is not None and not self._send_datagram(addr, full):
             self._requeue(dest, full.outs)
             with self._cond:
                 self._make_ready(dest)
         return True
 
-    def _send_datagram(self, addr: Address, session: Session | None, outs: list[_Outgoing],
-                       envelopes: list[bytes]) -> bool:
-        """Send fast messages as one datagram: sealed together in a session, else one plain frame
-        (`outs` holds one). False when the socket's buffer is full (nothing was sent)."""
+    def _dest_for(self, addr: Address) -> _Dest:
+        """The sender pool's state for `addr`, made on first use (under self._cond)."""
+        dest = self._dests.get(addr)
+        if dest is None:
+            dest = self._dests[addr] = _Dest(addr)
+        return dest
+
+    def _send_datagram(self, addr: Address, batch: _Batch) -> bool:
+        """Send a batch of fast messages as one datagram. False when the socket's buffer is full
+        (nothing was sent)."""
         max_frame = min(self.max_frame, UDP_MAX_FRAME)
+        outs = batch.outs
         try:
-            if session is None:
+            if batch.session is None:
                 frame = self._frame(outs[0], None, max_frame)
             else:
-                frame = session.seal(batch_payload(envelopes), max_frame)
+                frame = batch.session.seal(batch_payload(batch.envelopes), max_frame)
             self._sendto(frame, addr)
         except (BlockingIOError, InterruptedError):
             return False
@@ -753,7 +766,7 @@ class Endpoint:
         """Send what can go now; return when to come back (None: when there is new work)."""
         with self._cond:
             batch, dest.batch = dest.batch, None
-        if batch is not None and not self._send_datagram(dest.addr, batch.session, batch.outs, batch.envelopes):
+        if batch is not None and not self._send_datagram(dest.addr, batch):
             self._requeue(dest, batch.outs)
             return time.monotonic() + 0.005
         while True:  # signed announcements first: they need no session
@@ -817,9 +830,7 @@ class Endpoint:
     def _send_fast(self, dest: _Dest, session: Session | None, outs: list[_Outgoing]) -> float | None:
         """Send queued fast messages, in a session as many to a datagram as fit in `BATCH_BYTES`;
         return when to try again if the socket's buffer is full (what is left goes back in front)."""
-        group: list[_Outgoing] = []
-        envelopes: list[bytes] = []
-        size = 0
+        batch = _Batch(session)
         for k, out in enumerate(outs):
             if session is not None and out.to and out.to != session.peer:
                 self.count("dropped.wrong_peer")
@@ -827,16 +838,14 @@ class Endpoint:
                                     f"{session.peer}, not {out.to}")
                 continue
             envelope = self._envelope(out, session.peer) if session is not None else b""
-            if group and (session is None or size + len(envelope) + 1 > BATCH_BYTES):
-                if not self._send_datagram(dest.addr, session, group, envelopes):
-                    self._requeue(dest, group + outs[k:])
+            if not batch.fits(envelope):
+                if not self._send_datagram(dest.addr, batch):
+                    self._requeue(dest, batch.outs + outs[k:])
                     return time.monotonic() + 0.005
-                group, envelopes, size = [], [], 0
-            group.append(out)
-            envelopes.append(envelope)
-            size += len(envelope) + 1
-        if group and not self._send_datagram(dest.addr, session, group, envelopes):
-            self._requeue(dest, group)
+                batch = _Batch(session)
+            batch.add(out, envelope)
+        if batch.outs and not self._send_datagram(dest.addr, batch):
+            self._requeue(dest, batch.outs)
             return time.monotonic() + 0.005
         return None
 
