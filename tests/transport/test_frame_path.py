@@ -10,6 +10,8 @@ from __future__ import annotations
 import socket
 import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import Any
 
 import pytest
@@ -20,7 +22,7 @@ from erni.blackboard.testing import wait_until
 from erni.transport import Endpoint
 from erni.transport.identity import load_identity
 from erni.transport.limits import Limits
-from erni.transport.wire import BATCH_BYTES, envelope_bytes
+from erni.transport.wire import BATCH_BYTES, encode_body, envelope_bytes
 from tests.transport.helpers import identity
 
 
@@ -30,6 +32,20 @@ def endpoint(name: str, **kw: Any) -> tuple[Endpoint, list]:
     ep.on_message = got.append
     ep.start()
     return ep, got
+
+
+@contextmanager
+def session_up(a_name: str, b_name: str) -> Iterator[tuple[Endpoint, Endpoint, list]]:
+    """Two endpoints whose session is up (a's first status, r0, has reached b); stopped after."""
+    a, _ = endpoint(a_name)
+    b, got = endpoint(b_name)
+    try:
+        a.send(b.address, "status", Pose(robot="r0"), reliable=False, to=b_name)  # starts the session
+        wait_until(lambda: len(got) == 1)
+        yield a, b, got
+    finally:
+        a.stop()
+        b.stop()
 
 
 def returns(call: Any) -> bool:
@@ -62,11 +78,7 @@ class FullSocket:
 
 
 def test_a_status_goes_out_from_the_callers_thread_once_a_session_is_up():
-    a, _ = endpoint("fp-a")
-    b, got = endpoint("fp-b")
-    try:
-        a.send(b.address, "status", Pose(robot="r0"), reliable=False, to="fp-b")  # starts the session
-        wait_until(lambda: len(got) == 1)
+    with session_up("fp-a", "fp-b") as (a, b, got):
         sender = threading.current_thread().name
         seen: list[str] = []
         real = a._sendto
@@ -78,20 +90,14 @@ def test_a_status_goes_out_from_the_callers_thread_once_a_session_is_up():
         assert seen == [sender] * 5  # sent by the caller, no sender thread involved
         assert [m.body.robot for m in got] == [f"r{i}" for i in range(6)]
         assert [m.seq for m in got] == sorted(m.seq for m in got)
-    finally:
-        a.stop()
-        b.stop()
 
 
-def test_a_burst_of_statuses_goes_several_to_a_datagram_and_arrives_whole_and_in_order():
-    """After the first status of a burst (the caller's thread sends it), the rest are queued and
-    the sender pool seals as many as fit in BATCH_BYTES into each datagram."""
-    a, _ = endpoint("fp-burst-a")
-    b, got = endpoint("fp-burst-b")
-    b.receive_buffer(1 << 20)  # a burst on loopback: room for all of it (UDP drops what overflows)
-    try:
-        a.send(b.address, "status", Pose(robot="r0"), reliable=False, to="fp-burst-b")  # starts the session
-        wait_until(lambda: len(got) == 1)
+def test_a_burst_of_statuses_goes_several_to_a_datagram_and_arrives_whole():
+    """After the first status of a burst (the caller's thread sends it), the caller gathers the
+    rest and seals as many as fit in BATCH_BYTES into each datagram; the sender pool sends the
+    last, partly filled one."""
+    with session_up("fp-burst-a", "fp-burst-b") as (a, b, got):
+        b.receive_buffer(1 << 20)  # a burst on loopback: room for all of it (UDP drops what overflows)
         datagrams: list[int] = []
         real = a._sendto
         a._sendto = lambda frame, addr: (datagrams.append(len(frame)), real(frame, addr))[1]
@@ -104,9 +110,6 @@ def test_a_burst_of_statuses_goes_several_to_a_datagram_and_arrives_whole_and_in
         assert len(datagrams) <= 150 and max(datagrams) <= BATCH_BYTES + 64, datagrams  # header and tag
         assert a.counters["sent.batched"] >= 100 and a.counters["sent.fast"] == 201
         assert b.counters["received"] == 201
-    finally:
-        a.stop()
-        b.stop()
 
 
 def sealed_batch(a: Endpoint, b: Endpoint, envelopes: list[bytes]) -> bytes:
@@ -117,27 +120,20 @@ def sealed_batch(a: Endpoint, b: Endpoint, envelopes: list[bytes]) -> bytes:
 
 
 def test_a_batchs_bad_envelope_is_dropped_alone_and_one_naming_another_sender_drops_the_frame():
-    a, _ = endpoint("fp-bad-a")
-    b, got = endpoint("fp-bad-b")
-    try:
-        a.send(b.address, "status", Pose(robot="r0"), reliable=False, to="fp-bad-b")
-        wait_until(lambda: len(got) == 1)
+    with session_up("fp-bad-a", "fp-bad-b") as (a, b, got):
         good = envelope_bytes("fp-bad-a", "robot", "fp-bad-b", a.inst, a.address, 50, "g1", "status", "Pose",
-                              Pose(robot="ok").__pydantic_serializer__.to_json(Pose(robot="ok")))
+                              encode_body(Pose(robot="ok"))[1])
         bad_body = envelope_bytes("fp-bad-a", "robot", "fp-bad-b", a.inst, a.address, 51, "g2", "status", "Pose",
                                   b'{"robot": 7}')
         msgs, _ = b._accept(sealed_batch(a, b, [good, bad_body, b'{"v": 2}', good]), "udp", a.address)
         assert [m.id for m in msgs] == ["g1", "g1"]  # the good ones, the bad ones counted and named
         assert b.counters["dropped.parse"] == 2
         forged = envelope_bytes("someone-else", "robot", "fp-bad-b", a.inst, a.address, 52, "f1", "status", "Pose",
-                                Pose(robot="x").__pydantic_serializer__.to_json(Pose(robot="x")))
+                                encode_body(Pose(robot="x"))[1])
         assert b._accept(sealed_batch(a, b, [good, forged]), "udp", a.address) is None
         assert b.counters["dropped.auth"] == 1
         assert b._accept(sealed_batch(a, b, []), "udp", a.address) is None  # [] is no batch
         assert b.counters["dropped.parse"] == 3
-    finally:
-        a.stop()
-        b.stop()
 
 
 def test_a_body_without_a_json_form_is_refused_to_the_caller_at_once():
@@ -153,11 +149,7 @@ def test_a_body_without_a_json_form_is_refused_to_the_caller_at_once():
 
 
 def test_a_status_never_blocks_on_a_full_socket_and_the_pool_sends_it_later():
-    a, _ = endpoint("fp-c")
-    b, got = endpoint("fp-d")
-    try:
-        a.send(b.address, "status", Pose(robot="r0"), reliable=False, to="fp-d")
-        wait_until(lambda: len(got) == 1)
+    with session_up("fp-c", "fp-d") as (a, b, got):
         full = FullSocket(a._udp)
         a._udp = full  # type: ignore[assignment]  # the same socket, its send buffer full at will
         full.full.set()
@@ -168,9 +160,6 @@ def test_a_status_never_blocks_on_a_full_socket_and_the_pool_sends_it_later():
         full.full.clear()  # the buffer drains: the sender pool sends what waited, in order
         wait_until(lambda: len(got) == 4)
         assert [m.body.robot for m in got] == ["r0", "r1", "r2", "r3"]
-    finally:
-        a.stop()
-        b.stop()
 
 
 def test_reliable_sends_never_block_on_a_peer_that_stops_reading_and_arrive_in_order():
