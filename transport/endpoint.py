@@ -86,6 +86,7 @@ from erni.transport.wire import (
     parse_envelope,
     parse_envelope_value,
     parse_envelopes,
+    parse_typed,
 )
 
 Address = tuple[str, int]
@@ -1034,7 +1035,8 @@ class Endpoint:
             raise FrameError("session", f"unknown session {sid.hex()} (its sender or this agent restarted)")
         plain = session.open(raw)
         batch = plain[:1] == b"["
-        envs = parse_envelopes(plain) if batch else [parse_envelope(plain)]
+        typed = parse_typed(plain)  # envelopes and bodies in one step, or None: the two steps below
+        envs = typed or (parse_envelopes(plain) if batch else [parse_envelope(plain)])
         if envs is None:  # some envelope of the batch does not validate: keep the others
             envs = []
             for value in parse_batch(plain):
@@ -1058,7 +1060,7 @@ class Endpoint:
                         self._adopt_crl(base64.b64decode(env.body, validate=True), session.peer)
                     except ValueError:
                         raise FrameError("parse", "revocation list is not base64") from None
-                body = body_of(env.type, env.body)
+                body = env.body if typed else body_of(env.type, env.body)
             except FrameError as err:
                 if not batch:
                     raise
