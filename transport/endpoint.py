@@ -708,8 +708,10 @@ class Endpoint:
         if dest.busy or dest.ready:
             return
         dest.gen += 1
+        earliest = not self._delayed or when < self._delayed[0][0]
         heapq.heappush(self._delayed, (when, next(self._tick), dest.gen, dest))
-        self._cond.notify()
+        if earliest:  # else a sender already waits until an earlier time, and then looks again
+            self._cond.notify()
 
     def _envelope(self, out: _Outgoing, to: str) -> bytes:
         return envelope_bytes(self.name, self.role, to, self.inst, self.address, out.seq, out.id, out.kind,
@@ -744,6 +746,8 @@ class Endpoint:
                         dest = self._ready.popleft()
                         dest.ready = False
                         dest.busy = True
+                        if self._delayed:  # this thread may have been the one waiting for the earliest
+                            self._cond.notify()
                         break
                     self._cond.wait(self._delayed[0][0] - now if self._delayed else None)
                 if self._stopping or dest is None:

@@ -20,6 +20,7 @@ from erni.blackboard import Pose
 from erni.blackboard.errors import UsageError
 from erni.blackboard.testing import wait_until
 from erni.transport import Endpoint
+from erni.transport import endpoint as endpoint_module
 from erni.transport.identity import load_identity
 from erni.transport.limits import Limits
 from erni.transport.wire import BATCH_BYTES, encode_body, envelope_bytes
@@ -267,3 +268,28 @@ def test_the_control_node_asks_for_room_for_every_robots_poses_and_a_robot_keeps
     finally:
         for agent in agents:
             agent.stop()
+
+
+def test_a_burst_wakes_the_sender_pool_for_its_last_datagram_not_for_every_one(monkeypatch):
+    """Each datagram of a burst that the caller opens asks for a flush after FLUSH_AFTER; a sender
+    thread is woken for that only when no earlier flush is already waited for. A sender thread
+    woken for each datagram takes the interpreter lock from the caller every time (a burst then
+    cost the caller about twice its own work). FLUSH_AFTER is made longer than the burst here, so
+    that a pause of the test's thread on a loaded machine cannot let a flush come due mid-burst."""
+    monkeypatch.setattr(endpoint_module, "FLUSH_AFTER", 0.5)
+    with session_up("fp-wake-a", "fp-wake-b") as (a, b, got):
+        b.receive_buffer(1 << 20)
+        notified = [0]
+        notify = a._cond.notify
+
+        def counting(n: int = 1) -> None:
+            notified[0] += 1
+            notify(n)
+
+        a._cond.notify = counting  # type: ignore[method-assign]
+        for i in range(1, 301):
+            a.send(b.address, "status", Pose(robot=f"r{i}", x=float(i)), reliable=False, to="fp-wake-b")
+        wait_until(lambda: len(got) == 301, message=f"{len(got)} of 301 arrived; sent {a.counters}")
+        batches = a.counters["sent.batched"] // 3
+        assert batches >= 50  # the burst went out several to a datagram
+        assert notified[0] <= batches // 4, f"{notified[0]} wake-ups of the sender pool for {batches} datagrams"
