@@ -82,10 +82,11 @@ from erni.transport.wire import (
     check_frame,
     encode_body,
     envelope_bytes,
+    head_bytes,
+    item_bytes,
     parse_batch,
     parse_envelope,
-    parse_envelope_value,
-    parse_envelopes,
+    parse_item,
     parse_typed,
 )
 
@@ -176,22 +177,23 @@ class _Dest:
 
 @dataclass
 class _Batch:
-    """Fast messages gathered for one datagram: in a session, their envelopes sealed together
-    (up to `BATCH_BYTES`); without one (insecure), a single plain frame."""
+    """Fast messages gathered for one datagram: in a session, their items sealed together under
+    one head (up to `BATCH_BYTES`); without one (insecure), a single plain frame."""
 
     session: Session | None
+    head: bytes = b""  # the envelope head the datagram's messages share
     outs: list[_Outgoing] = field(default_factory=list)
-    envelopes: list[bytes] = field(default_factory=list)
+    items: list[bytes] = field(default_factory=list)
     size: int = 0
 
-    def fits(self, envelope: bytes) -> bool:
-        """Whether a message with this envelope may join the datagram."""
-        return not self.outs or self.session is not None and self.size + len(envelope) + 1 <= BATCH_BYTES
+    def fits(self, item: bytes) -> bool:
+        """Whether a message with this item may join the datagram (`[head,[item,...]]`)."""
+        return not self.outs or self.session is not None and len(self.head) + 4 + self.size + len(item) + 1 <= BATCH_BYTES
 
-    def add(self, out: _Outgoing, envelope: bytes) -> None:
+    def add(self, out: _Outgoing, item: bytes) -> None:
         self.outs.append(out)
-        self.envelopes.append(envelope)
-        self.size += len(envelope) + 1
+        self.items.append(item)
+        self.size += len(item) + 1
 
 
 @dataclass
@@ -295,6 +297,7 @@ class Endpoint:
         # sender pool
         self._dests: dict[Address, _Dest] = {}
         self._fast_at: dict[Address, float] = {}  # destination -> when the caller's last status to it was handled
+        self._heads: dict[str, bytes] = {}  # peer -> the envelope head of a batch to it (`_batch`)
         self._cond = threading.Condition()
         self._ready: deque[_Dest] = deque()
         self._delayed: list[tuple[float, int, int, _Dest]] = []
@@ -591,8 +594,8 @@ class Endpoint:
         if session is not None and (dest is not None and dest.batch is not None
                                     or time.monotonic() - self._fast_at.get(addr, -math.inf) < COALESCE):
             return self._gather(addr, out, session)  # a burst: several statuses to a datagram
-        single = _Batch(session)
-        single.add(out, self._envelope(out, session.peer) if session is not None else b"")
+        single = self._batch(session)
+        single.add(out, self._item(out) if session is not None else b"")
         if not self._send_datagram(addr, single):
             self.count("sent.deferred")
             return False  # the socket's buffer is full: the pool sends it when it drains
@@ -602,7 +605,7 @@ class Endpoint:
         """Add a status of a burst to its destination's open batch; send the batch from the
         caller's thread once the next would not fit, and leave what is left at the burst's end
         to the sender pool (`FLUSH_AFTER`)."""
-        envelope = self._envelope(out, session.peer)
+        item = self._item(out)
         full: _Batch | None = None
         with self._cond:
             if self._stopping:
@@ -611,12 +614,12 @@ class Endpoint:
             if dest.fast or dest.announce:
                 return False  # queued meanwhile: it goes after them, in order
             batch = dest.batch
-            if batch is not None and (batch.session is not session or not batch.fits(envelope)):
+            if batch is not None and (batch.session is not session or not batch.fits(item)):
                 full, batch = batch, None
             if batch is None:
-                batch = dest.batch = _Batch(session)
+                batch = dest.batch = self._batch(session)
                 self._schedule(dest, time.monotonic() + FLUSH_AFTER)
-            batch.add(out, envelope)
+            batch.add(out, item)
         if full is not None and not self._send_datagram(addr, full):
             self._requeue(dest, full.outs)
             with self._cond:
@@ -639,7 +642,7 @@ class Endpoint:
             if batch.session is None:
                 frame = self._frame(outs[0], None, max_frame)
             else:
-                frame = batch.session.seal(batch_payload(batch.envelopes), max_frame)
+                frame = batch.session.seal(batch_payload(batch.head, batch.items), max_frame)
             self._sendto(frame, addr)
         except (BlockingIOError, InterruptedError):
             return False
@@ -712,6 +715,20 @@ class Endpoint:
         heapq.heappush(self._delayed, (when, next(self._tick), dest.gen, dest))
         if earliest:  # else a sender already waits until an earlier time, and then looks again
             self._cond.notify()
+
+    def _batch(self, session: Session | None) -> _Batch:
+        """An empty datagram for messages to `session`'s peer, with the head they will share."""
+        if session is None:
+            return _Batch(None)
+        head = self._heads.get(session.peer)
+        if head is None:
+            if len(self._heads) >= 4096:
+                self._heads.clear()
+            head = self._heads[session.peer] = head_bytes(self.name, self.role, session.peer, self.inst, self.address)
+        return _Batch(session, head)
+
+    def _item(self, out: _Outgoing) -> bytes:
+        return item_bytes(out.seq, out.id, out.kind, out.type, out.data)
 
     def _envelope(self, out: _Outgoing, to: str) -> bytes:
         return envelope_bytes(self.name, self.role, to, self.inst, self.address, out.seq, out.id, out.kind,
@@ -835,20 +852,20 @@ class Endpoint:
     def _send_fast(self, dest: _Dest, session: Session | None, outs: list[_Outgoing]) -> float | None:
         """Send queued fast messages, in a session as many to a datagram as fit in `BATCH_BYTES`;
         return when to try again if the socket's buffer is full (what is left goes back in front)."""
-        batch = _Batch(session)
+        batch = self._batch(session)
         for k, out in enumerate(outs):
             if session is not None and out.to and out.to != session.peer:
                 self.count("dropped.wrong_peer")
                 self._drops.warning("wrong_peer", f"not sent: {dest.addr[0]}:{dest.addr[1]} is "
                                     f"{session.peer}, not {out.to}")
                 continue
-            envelope = self._envelope(out, session.peer) if session is not None else b""
-            if not batch.fits(envelope):
+            item = self._item(out) if session is not None else b""
+            if not batch.fits(item):
                 if not self._send_datagram(dest.addr, batch):
                     self._requeue(dest, batch.outs + outs[k:])
                     return time.monotonic() + 0.005
-                batch = _Batch(session)
-            batch.add(out, envelope)
+                batch = self._batch(session)
+            batch.add(out, item)
         if batch.outs and not self._send_datagram(dest.addr, batch):
             self._requeue(dest, batch.outs)
             return time.monotonic() + 0.005
@@ -1029,9 +1046,10 @@ class Endpoint:
             raise FrameError("unreachable", f"{sender} cannot reach {self.name} now")
 
     def _data(self, raw: bytes, channel: str, src: Address) -> tuple[list[Message], Session | None]:
-        """Open a data frame of a session: one envelope, or a JSON list of them (a batch of
-        statuses). A batch's envelope or body that does not validate is dropped alone; an envelope
-        that names another sender or receiver drops the whole frame."""
+        """Open a data frame of a session: one envelope, or a batch of statuses (`[head, [message,
+        ...]]`). A batch's message or body that does not validate is dropped alone; a head or an
+        envelope that does not validate, or that names another sender or receiver, drops the
+        whole frame."""
         sid = raw[KIND.size:KIND.size + 8]
         session = self._by_sid.get(sid)
         if session is None:
@@ -1039,39 +1057,43 @@ class Endpoint:
             raise FrameError("session", f"unknown session {sid.hex()} (its sender or this agent restarted)")
         plain = session.open(raw)
         batch = plain[:1] == b"["
-        typed = parse_typed(plain)  # envelopes and bodies in one step, or None: the two steps below
-        envs = typed or (parse_envelopes(plain) if batch else [parse_envelope(plain)])
-        if envs is None:  # some envelope of the batch does not validate: keep the others
-            envs = []
-            for value in parse_batch(plain):
+        typed = parse_typed(plain)  # head, messages and bodies in one step, or None: the two steps below
+        if typed is not None:
+            head, items = typed
+        elif batch:  # a message of the batch that does not validate is dropped alone
+            head, values = parse_batch(plain)
+            items = []
+            for value in values:
                 try:
-                    envs.append(parse_envelope_value(value))
+                    items.append(parse_item(value))
                 except FrameError as err:
                     self._dropped(channel, err)
-        for env in envs:
-            if env.sender != session.peer or env.role != session.role or env.inst != session.inst:
-                raise FrameError("auth", f"envelope names {env.sender[:64]} but the session is with {session.peer}")
-            if env.to != self.name:
-                raise FrameError("receiver", f"frame for {env.to} arrived at {self.name}")
+        else:
+            head = parse_envelope(plain)
+            items = [head]
+        if head.sender != session.peer or head.role != session.role or head.inst != session.inst:
+            raise FrameError("auth", f"envelope names {head.sender[:64]} but the session is with {session.peer}")
+        if head.to != self.name:
+            raise FrameError("receiver", f"frame for {head.to} arrived at {self.name}")
         if not session.confirmed:
             self._confirm(session)
         self._filter(session.peer, session.role)
         msgs = []
-        for env in envs:
+        for item in items:
             try:
-                if env.kind == "crl" and isinstance(env.body, str):
+                if item.kind == "crl" and isinstance(item.body, str):
                     try:
-                        self._adopt_crl(base64.b64decode(env.body, validate=True), session.peer)
+                        self._adopt_crl(base64.b64decode(item.body, validate=True), session.peer)
                     except ValueError:
                         raise FrameError("parse", "revocation list is not base64") from None
-                body = env.body if typed else body_of(env.type, env.body)
+                body = item.body if typed else body_of(item.type, item.body)
             except FrameError as err:
                 if not batch:
                     raise
                 self._dropped(channel, err)
                 continue
-            msgs.append(Message(session.peer, session.role, session.addr, session.epoch, env.seq, env.id,
-                                env.kind, body))
+            msgs.append(Message(session.peer, session.role, session.addr, session.epoch, item.seq, item.id,
+                                item.kind, body))
         self.count("received", len(msgs))
         return msgs, session
 

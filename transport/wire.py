@@ -1,7 +1,8 @@
 """Frames on the wire: a length prefix, a kind byte, and a kind-specific body.
 
     frame    = LEN (4 bytes, big-endian, counts what follows) | KIND (1 byte) | body
-    'D' data = SESSION (8) | COUNTER (8) | ChaCha20-Poly1305(envelope JSON), the header as AAD
+    'D' data = SESSION (8) | COUNTER (8) | ChaCha20-Poly1305(payload JSON), the header as AAD;
+               the payload is one envelope, or a batch of statuses `[head, [message, ...]]`
     'H' hello, 'R' reply, 'B' beacon = BODYLEN (2) | JSON | CERTLEN (2) | certificate DER | proof
     'K' hint = SESSION (8): "I do not know this session" (unauthenticated: it only starts a handshake)
     'P' plain = envelope JSON (insecure mode only: no authentication, no encryption)
@@ -9,7 +10,9 @@
 The same bytes travel as one UDP datagram or on a TCP stream. The envelope names the sender,
 its role, the receiver, the sender's instance (random per start, never a clock), its reply
 address, a per-instance sequence number, a message id, a kind and a body of a registered
-pydantic type, so any typed value travels (no "longs only"). Sessions and handshakes are in
+pydantic type, so any typed value travels (no "longs only"). An envelope is a head (`v`, sender,
+role, receiver, instance, reply address) and one message (`seq`, `id`, `kind`, `type`, `body`) in one
+object; a batch states its head once for all its messages. Sessions and handshakes are in
 `session.py`.
 """
 
@@ -66,8 +69,9 @@ for _cls in (Task, Pose, NetInfo, AllocationResult):
     register_type(_cls)
 
 
-class Envelope(BaseModel):
-    """The JSON part of a frame (inside the encryption of a data frame)."""
+class EnvelopeHead(BaseModel):
+    """Who sent a frame, to whom, and where to answer: once for each message, or once for all the
+    messages of a batch of statuses."""
 
     model_config = ConfigDict(extra="forbid")
 
@@ -77,11 +81,23 @@ class Envelope(BaseModel):
     to: str = Field("", max_length=64, description="the receiver's name ('' only where it is not known yet)")
     inst: str = Field("", max_length=32, description="the sender's instance: random per start")
     reply: tuple[str, int] = ("", 0)
+
+
+class EnvelopeItem(BaseModel):
+    """One message of a frame: its number in the sender's instance, id, kind and body."""
+
+    model_config = ConfigDict(extra="forbid")
+
     seq: int = Field(0, ge=0)
     id: str = Field(max_length=64)
     kind: str = Field(max_length=64)
     type: str | None = Field(None, max_length=64)
     body: Any = None
+
+
+class Envelope(EnvelopeItem, EnvelopeHead):
+    """The JSON part of a frame that carries one message (inside the encryption of a data frame):
+    the head's fields and the item's in one object."""
 
 
 @dataclass
@@ -123,12 +139,26 @@ def encode_body(body: Any) -> tuple[str | None, bytes]:
         raise UsageError(f"cannot send a {type(body).__name__}: {str(err).splitlines()[0][:200]}") from None
 
 
+def head_bytes(sender: str, role: str, to: str, inst: str, reply: tuple[str, int]) -> bytes:
+    """The JSON of an envelope's head (our own fields: no validation)."""
+    return to_json({"v": VERSION, "sender": sender, "role": role, "to": to, "inst": inst, "reply": reply})
+
+
+def item_bytes(seq: int, msg_id: str, kind: str, type_name: str | None, body: bytes) -> bytes:
+    """The JSON of one message around its body, already serialised (`encode_body`)."""
+    head = to_json({"seq": seq, "id": msg_id, "kind": kind, "type": type_name})
+    return head[:-1] + b',"body":' + body + b"}"
+
+
 def envelope_bytes(sender: str, role: str, to: str, inst: str, reply: tuple[str, int], seq: int, msg_id: str,
                    kind: str, type_name: str | None, body: bytes) -> bytes:
     """The JSON of an envelope around a body already serialised (`encode_body`): what `envelope_json` gives."""
-    head = to_json({"v": VERSION, "sender": sender, "role": role, "to": to, "inst": inst, "reply": reply,
-                    "seq": seq, "id": msg_id, "kind": kind, "type": type_name})
-    return head[:-1] + b',"body":' + body + b"}"
+    return join_envelope(head_bytes(sender, role, to, inst, reply), item_bytes(seq, msg_id, kind, type_name, body))
+
+
+def join_envelope(head: bytes, item: bytes) -> bytes:
+    """One envelope of a head and an item (two JSON objects made one)."""
+    return head[:-1] + b"," + item[1:]
 
 
 def parse_envelope(payload: bytes) -> Envelope:
@@ -139,12 +169,12 @@ def parse_envelope(payload: bytes) -> Envelope:
         raise _envelope_error(err) from None
 
 
-def _envelope_error(err: ValidationError) -> FrameError:
+def _envelope_error(err: ValidationError, what: str = "envelope") -> FrameError:
     first = err.errors()[0]
     if first["type"] in ("json_invalid", "json_type", "model_type"):
-        return FrameError("parse", f"envelope is not a JSON object ({first['msg']})")
+        return FrameError("parse", f"{what} is not a JSON object ({first['msg']})")
     where = ".".join(str(p) for p in first["loc"])
-    return FrameError("parse", f"envelope field {where}: {first['msg']}")
+    return FrameError("parse", f"{what} field {where}: {first['msg']}")
 
 
 BATCH_BYTES = 1400
@@ -153,70 +183,69 @@ header and tag it stays under what one 1500-byte Ethernet or Wi-Fi frame holds a
 UDP headers (1452 bytes over IPv6), so a batch is not fragmented on such a link."""
 
 
-def batch_payload(envelopes: list[bytes]) -> bytes:
-    """One envelope as it is, several as a JSON list: what a batched data frame seals."""
-    return envelopes[0] if len(envelopes) == 1 else b"[" + b",".join(envelopes) + b"]"
+def batch_payload(head: bytes, items: list[bytes]) -> bytes:
+    """What a data frame seals: one message as one envelope; several (a batch of statuses) as
+    `[head, [item, item, ...]]`, the head stated once for all of them."""
+    if len(items) == 1:
+        return join_envelope(head, items[0])
+    return b"[" + head + b",[" + b",".join(items) + b"]]"
 
 
-_ENVELOPES: TypeAdapter[list[Envelope]] = TypeAdapter(list[Envelope])
-
-
-def parse_envelopes(payload: bytes) -> list[Envelope] | None:
-    """A batched data frame's envelopes, validated in one step; None when any of them (or the
-    list) does not validate: then `parse_batch` and `parse_envelope_value` find which."""
+def parse_batch(payload: bytes) -> tuple[EnvelopeHead, list[Any]]:
+    """A batched data frame's head, validated, and its items' JSON values (each still to be parsed
+    with `parse_item`); raise FrameError('parse') naming what is wrong when the frame is not
+    `[head, [item, ...]]` or its head does not validate (no item of it can then be trusted)."""
     try:
-        envelopes = _ENVELOPES.validate_json(payload)
-    except ValidationError:
-        return None
-    return envelopes or None
-
-
-def parse_batch(payload: bytes) -> list[Any]:
-    """Split a batched data frame's payload into its envelopes' JSON values (each still to be
-    parsed with `parse_envelope_value`); raise FrameError('parse') when it is not a JSON list."""
-    try:
-        items = from_json(payload)
+        value = from_json(payload)
     except ValueError as err:
         raise FrameError("parse", f"batch is not JSON ({str(err)[:120]})") from None
-    if not isinstance(items, list) or not items:
-        raise FrameError("parse", "batch is not a non-empty JSON list of envelopes")
-    return items
-
-
-def parse_envelope_value(value: Any) -> Envelope:
-    """Validate one envelope of a batch (already parsed from JSON); FrameError('parse') names the problem."""
+    if not (isinstance(value, list) and len(value) == 2 and isinstance(value[1], list) and value[1]):
+        raise FrameError("parse", "batch is not [head, [message, ...]] with at least one message")
     try:
-        return Envelope.model_validate(value)
+        return EnvelopeHead.model_validate(value[0]), value[1]
     except ValidationError as err:
-        raise _envelope_error(err) from None
+        raise _envelope_error(err, "head") from None
+
+
+def parse_item(value: Any) -> EnvelopeItem:
+    """Validate one message of a batch (already parsed from JSON); FrameError('parse') names the problem."""
+    try:
+        return EnvelopeItem.model_validate(value)
+    except ValidationError as err:
+        raise _envelope_error(err, "message") from None
 
 
 def _typed_adapters() -> dict[str, TypeAdapter[Any]]:
-    """One envelope model per registered type, its `body` field that type, chosen by the `type`
-    tag: validating a frame through them checks the envelope and builds its typed body in one
-    call from the JSON bytes, without the dict a two-step parse makes and validates again."""
+    """One envelope model and one batch item model per registered type, its `body` field that type,
+    chosen by the `type` tag: validating a frame through them checks the envelope and builds its
+    typed body in one call from the JSON bytes, without the dict a two-step parse makes and
+    validates again."""
     if not _typed:
-        models = tuple(create_model(f"{name}Envelope", __base__=Envelope, type=(Literal[name], ...), body=(cls, ...))
-                       for name, cls in TYPES.items())
-        one: Any = Annotated[Union[models], Field(discriminator="type")]  # noqa: UP007  # a tuple of models
-        _typed["one"], _typed["list"] = TypeAdapter(one), TypeAdapter(list[one])
+        def typed(base: type[BaseModel]) -> Any:
+            models = tuple(create_model(f"{name}{base.__name__}", __base__=base, type=(Literal[name], ...),
+                                        body=(cls, ...)) for name, cls in TYPES.items())
+            return Annotated[Union[models], Field(discriminator="type")]  # noqa: UP007  # a tuple of models
+
+        _typed["one"] = TypeAdapter(typed(Envelope))
+        _typed["batch"] = TypeAdapter(tuple[EnvelopeHead, list[typed(EnvelopeItem)]])  # type: ignore[misc]
     return _typed
 
 
-def parse_typed(payload: bytes) -> list[Envelope] | None:
-    """A data frame's envelopes (one, or a batch as a JSON list) with their bodies validated into
-    their registered types in the same step, or None when the frame is anything else: an untyped
-    body, an unknown type, any field that does not validate. Then the two-step parse
-    (`parse_envelope` or `parse_envelopes`, and `body_of`) takes it and names what is wrong; on the
-    frames it accepts, this gives what that parse would give."""
+def parse_typed(payload: bytes) -> tuple[EnvelopeHead, list[EnvelopeItem]] | None:
+    """A data frame's head and messages (one envelope, or a batch) with their bodies validated
+    into their registered types in the same step, or None when the frame is anything else: an
+    untyped body, an unknown type, any field that does not validate. Then the two-step parse
+    (`parse_envelope`, or `parse_batch` and `parse_item`, then `body_of`) takes it and names what is
+    wrong; on the frames it accepts, this gives what that parse would give."""
     if b'"type":null' in payload:
         return None  # an untyped body (or one that looks so): the two-step parse, without a try first
     adapters = _typed_adapters()
     try:
         if payload[:1] == b"[":
-            envelopes = adapters["list"].validate_json(payload)
-            return envelopes or None
-        return [adapters["one"].validate_json(payload)]
+            head, items = adapters["batch"].validate_json(payload)
+            return (head, items) if items else None
+        envelope = adapters["one"].validate_json(payload)
+        return envelope, [envelope]
     except Exception:  # noqa: BLE001  # any refusal, a validator's own errors too: the two-step parse decides
         return None
 

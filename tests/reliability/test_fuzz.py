@@ -26,7 +26,15 @@ from erni.blackboard import ConfigError, Task, TaskError
 from erni.blackboard.config import build_agent, parse_config
 from erni.plugins.motion.arcos import PacketReader, ProtocolError, is_sip, parse_sip, parse_sync2
 from erni.replay import read_log
-from erni.transport.wire import Envelope, FrameError, StreamDecoder, encode_plain
+from erni.transport.wire import (
+    Envelope,
+    EnvelopeHead,
+    EnvelopeItem,
+    FrameError,
+    StreamDecoder,
+    batch_payload,
+    encode_plain,
+)
 
 EXAMPLES = int(os.environ.get("ERNI_FUZZ_EXAMPLES", "300"))
 FUZZ = settings(max_examples=EXAMPLES, deadline=None,
@@ -68,7 +76,7 @@ def receiver():
 
 
 def _frames(tx, session) -> list[bytes]:
-    """One valid frame of every kind a receiver takes (and a batch of two envelopes)."""
+    """One valid frame of every kind a receiver takes (and a batch of two messages under one head)."""
     from erni.transport.session import initiate
     from erni.transport.wire import BEACON
 
@@ -77,7 +85,9 @@ def _frames(tx, session) -> list[bytes]:
                    kind="task.add", type="Task", body=task.model_dump(mode="json"))
     beacon = env.model_copy(update={"kind": "beacon", "type": "Beacon", "body": {"role": "robot"}, "to": ""})
     status = env.model_copy(update={"kind": "status", "id": "2", "seq": 2})
-    batch = b"[" + env.model_dump_json().encode() + b"," + status.model_dump_json().encode() + b"]"
+    head = env.model_dump_json(include=set(EnvelopeHead.model_fields)).encode()
+    items = [m.model_dump_json(include=set(EnvelopeItem.model_fields)).encode() for m in (env, status)]
+    batch = batch_payload(head, items)
     return [session.seal(env.model_dump_json().encode(), 65536),
             initiate(tx.auth, tx.inst, tx.address, ("127.0.0.1", 9), "fuzz-rx").frame,
             tx.auth.sign(BEACON, beacon.model_dump_json().encode()),

@@ -23,7 +23,7 @@ from erni.transport import Endpoint
 from erni.transport import endpoint as endpoint_module
 from erni.transport.identity import load_identity
 from erni.transport.limits import Limits
-from erni.transport.wire import BATCH_BYTES, encode_body, envelope_bytes
+from erni.transport.wire import BATCH_BYTES, encode_body, head_bytes, item_bytes
 from tests.transport.helpers import identity
 
 
@@ -106,35 +106,38 @@ def test_a_burst_of_statuses_goes_several_to_a_datagram_and_arrives_whole():
             a.send(b.address, "status", Pose(robot=f"r{i}", x=float(i)), reliable=False, to="fp-burst-b")
         wait_until(lambda: len(got) == 201, message=f"{len(got)} of 201 arrived; sent {a.counters}")
         assert sorted(m.body.robot for m in got) == sorted(f"r{i}" for i in range(201))
-        # three Poses fill a datagram: about 67 without a pause; the test allows for pauses of the
-        # sending thread (a partly filled datagram then goes after FLUSH_AFTER)
+        # four of these Poses fill a datagram under one head: about 50 without a pause; the test
+        # allows for pauses of the sending thread (a partly filled datagram then goes after FLUSH_AFTER)
         assert len(datagrams) <= 150 and max(datagrams) <= BATCH_BYTES + 64, datagrams  # header and tag
         assert a.counters["sent.batched"] >= 100 and a.counters["sent.fast"] == 201
         assert b.counters["received"] == 201
 
 
-def sealed_batch(a: Endpoint, b: Endpoint, envelopes: list[bytes]) -> bytes:
-    """A data frame of a's session with b carrying `envelopes` as one batch."""
+def sealed_batch(a: Endpoint, b: Endpoint, items: list[bytes], head: bytes | None = None) -> bytes:
+    """A data frame of a's session with b carrying `items` as one batch under `head` (a's own)."""
     session = a.session_with(b.address)
     assert session is not None
-    return session.seal(b"[" + b",".join(envelopes) + b"]", 65536)
+    head = head or head_bytes(a.name, "robot", b.name, a.inst, a.address)
+    return session.seal(b"[" + head + b",[" + b",".join(items) + b"]]", 65536)
 
 
-def test_a_batchs_bad_envelope_is_dropped_alone_and_one_naming_another_sender_drops_the_frame():
+def test_a_batchs_bad_message_is_dropped_alone_and_a_head_naming_another_sender_drops_the_frame():
     with session_up("fp-bad-a", "fp-bad-b") as (a, b, got):
-        good = envelope_bytes("fp-bad-a", "robot", "fp-bad-b", a.inst, a.address, 50, "g1", "status", "Pose",
-                              encode_body(Pose(robot="ok"))[1])
-        bad_body = envelope_bytes("fp-bad-a", "robot", "fp-bad-b", a.inst, a.address, 51, "g2", "status", "Pose",
-                                  b'{"robot": 7}')
+        good = item_bytes(50, "g1", "status", "Pose", encode_body(Pose(robot="ok"))[1])
+        bad_body = item_bytes(51, "g2", "status", "Pose", b'{"robot": 7}')
         msgs, _ = b._accept(sealed_batch(a, b, [good, bad_body, b'{"v": 2}', good]), "udp", a.address)
         assert [m.id for m in msgs] == ["g1", "g1"]  # the good ones, the bad ones counted and named
+        assert [m.sender for m in msgs] == ["fp-bad-a"] * 2 and msgs[0].body.robot == "ok"
         assert b.counters["dropped.parse"] == 2
-        forged = envelope_bytes("someone-else", "robot", "fp-bad-b", a.inst, a.address, 52, "f1", "status", "Pose",
-                                encode_body(Pose(robot="x"))[1])
-        assert b._accept(sealed_batch(a, b, [good, forged]), "udp", a.address) is None
+        forged = head_bytes("someone-else", "robot", "fp-bad-b", a.inst, a.address)
+        assert b._accept(sealed_batch(a, b, [good], head=forged), "udp", a.address) is None
         assert b.counters["dropped.auth"] == 1
-        assert b._accept(sealed_batch(a, b, []), "udp", a.address) is None  # [] is no batch
-        assert b.counters["dropped.parse"] == 3
+        elsewhere = head_bytes("fp-bad-a", "robot", "someone-else", a.inst, a.address)
+        assert b._accept(sealed_batch(a, b, [good], head=elsewhere), "udp", a.address) is None
+        assert b.counters["dropped.receiver"] == 1
+        assert b._accept(sealed_batch(a, b, []), "udp", a.address) is None  # no message: no batch
+        assert b._accept(sealed_batch(a, b, [good], head=b'{"v": 2}'), "udp", a.address) is None  # a bad head
+        assert b.counters["dropped.parse"] == 4
 
 
 def test_a_body_without_a_json_form_is_refused_to_the_caller_at_once():

@@ -27,6 +27,7 @@ from erni.transport.wire import (
     HELLO,
     SESSION_END,
     Envelope,
+    EnvelopeHead,
     FrameError,
     ReplayWindow,
     SeenIds,
@@ -35,14 +36,16 @@ from erni.transport.wire import (
     body_of,
     check_frame,
     decode_plain,
+    encode_body,
     encode_plain,
-    envelope_json,
+    envelope_bytes,
+    head_bytes,
+    item_bytes,
     json_depth,
     loads,
     parse_batch,
     parse_envelope,
-    parse_envelope_value,
-    parse_envelopes,
+    parse_item,
     parse_typed,
     register_type,
 )
@@ -269,22 +272,35 @@ def test_frames_name_their_receiver_inside_the_encryption():
 
 
 @given(st.lists(st.text(min_size=1, max_size=12), min_size=1, max_size=6))
-def test_a_batch_of_envelopes_parses_back_to_each_of_them(robots):
-    envs = [envelope(seq=i + 1, body=Pose(robot=r)) for i, r in enumerate(robots)]
-    payload = batch_payload([envelope_json(e) for e in envs])
-    if len(envs) == 1:
-        assert parse_envelope(payload) == envs[0]  # one envelope goes as it is
-    else:
-        assert [parse_envelope_value(v) for v in parse_batch(payload)] == envs
+def test_a_batch_states_its_head_once_and_parses_back_to_each_message(robots):
+    head = head_bytes("r1", "robot", "control", "a" * 32, ("127.0.0.1", 5000))
+    bodies = [Pose(robot=r) for r in robots]
+    items = [item_bytes(i + 1, f"m{i + 1}", "status", "Pose", encode_body(b)[1]) for i, b in enumerate(bodies)]
+    payload = batch_payload(head, items)
+    if len(items) == 1:  # one message goes as one envelope
+        assert payload == envelope_bytes("r1", "robot", "control", "a" * 32, ("127.0.0.1", 5000), 1, "m1",
+                                         "status", "Pose", encode_body(bodies[0])[1])
+        env = parse_envelope(payload)
+        assert (env.sender, env.to, env.seq, body_of(env.type, env.body)) == ("r1", "control", 1, bodies[0])
+        return
+    assert payload.count(b'"sender"') == 1  # the head once, not once a message
+    parsed, values = parse_batch(payload)
+    assert (parsed.sender, parsed.role, parsed.to, parsed.reply) == ("r1", "robot", "control", ("127.0.0.1", 5000))
+    messages = [parse_item(v) for v in values]
+    assert [(m.seq, m.id, body_of(m.type, m.body)) for m in messages] == \
+        [(i + 1, f"m{i + 1}", b) for i, b in enumerate(bodies)]
 
 
-@pytest.mark.parametrize("payload, why", [(b"[", "batch is not JSON"), (b"[]", "non-empty JSON list"),
-                                          (b'{"v": 2}', "non-empty JSON list"), (b"[1, 2]", None)])
+@pytest.mark.parametrize("payload, why", [
+    (b"[", "batch is not JSON"), (b"[]", r"not \[head, \[message"), (b'[{"sender": "a"}, []]', "at least one"),
+    (b'[{"sender": "a"}, [1], 3]', r"not \[head"), (b'[{"v": 2}, [1]]', "head field sender: Field required"),
+    (b'[{"sender": "a", "seq": 1}, [1]]', "head field seq: Extra inputs"), (b'[{"sender": "a"}, [1, {}]]', None)])
 def test_a_bad_batch_is_refused_with_what_is_wrong(payload, why):
-    if why is None:  # a list of non-envelopes: each is refused on its own
-        for value in parse_batch(payload):
-            with pytest.raises(FrameError, match="envelope is not a JSON object"):
-                parse_envelope_value(value)
+    if why is None:  # messages that do not validate: each is refused on its own
+        _, values = parse_batch(payload)
+        for value, problem in zip(values, ("message is not a JSON object", "message field id: Field required")):
+            with pytest.raises(FrameError, match=problem):
+                parse_item(value)
     else:
         with pytest.raises(FrameError, match=why):
             parse_batch(payload)
@@ -306,39 +322,51 @@ _bodies = st.one_of(
 
 
 @st.composite
-def _envelope_json(draw: st.DrawFn) -> bytes:
+def _item_json(draw: st.DrawFn) -> bytes:
     body = draw(_bodies)
     data = body.model_dump(mode="json")
-    if draw(st.booleans()):  # one field replaced: maybe still valid (an int for a float), maybe not
+    if draw(st.integers(0, 3)) == 0:  # one field replaced: maybe still valid (an int for a float), maybe not
         data[draw(st.sampled_from(sorted(data)))] = draw(_json_values)
-    head = {"v": 2, "sender": "r1", "role": "robot", "to": "control", "inst": "a" * 8, "reply": ["127.0.0.1", 5000],
-            "seq": draw(st.integers(0, 10**9)), "id": "m1", "kind": "status",
-            "type": draw(st.sampled_from([type(body).__name__, type(body).__name__, "Rocket"]))}
-    return to_json({**head, "body": data})
+    item = {"seq": draw(st.integers(0, 10**9)), "id": "m1", "kind": "status",
+            "type": draw(st.sampled_from([type(body).__name__] * 5 + ["Rocket"]))}
+    return to_json({**item, "body": data})
 
 
-def _two_step(payload: bytes) -> list[tuple[dict, object]] | None:
+_heads = st.sampled_from([to_json({"v": 2, "sender": "r1", "role": "robot", "to": "control", "inst": "a" * 8,
+                                    "reply": ["127.0.0.1", 5000]})] * 3
+                          + [b'{"v":2,"sender":""}', b'{"sender":"r1","seq":3}', b'{"sender":"r1","reply":[1]}'])
+
+
+def _two_step(payload: bytes) -> tuple[dict, list[tuple[dict, object]]] | None:
     """What the two-step parse gives for a whole frame, or None when it refuses any part of it."""
+    fields = set(EnvelopeHead.model_fields)
     try:
-        envs = parse_envelopes(payload) if payload[:1] == b"[" else [parse_envelope(payload)]
-        if envs is None:
-            return None
-        return [(env.model_dump(exclude={"body"}), body_of(env.type, env.body)) for env in envs]
+        if payload[:1] == b"[":
+            head, values = parse_batch(payload)
+            items = [parse_item(v) for v in values]
+        else:
+            head = parse_envelope(payload)
+            items = [head]
+        return head.model_dump(include=fields), [(m.model_dump(exclude=fields | {"body"}), body_of(m.type, m.body))
+                                                 for m in items]
     except FrameError:
         return None
 
 
 @settings(max_examples=300, deadline=None)
-@given(st.lists(_envelope_json(), min_size=1, max_size=4), st.booleans())
-def test_the_one_step_parse_gives_what_the_two_steps_give_and_takes_every_frame_they_take(envelopes, batch):
-    payload = batch_payload(envelopes) if batch or len(envelopes) > 1 else envelopes[0]
+@given(_heads, st.lists(_item_json(), min_size=1, max_size=4))
+def test_the_one_step_parse_gives_what_the_two_steps_give_and_takes_every_frame_they_take(head, items):
+    payload = batch_payload(head, items)
     expected = _two_step(payload)
     typed = parse_typed(payload)
     if expected is None:
         assert typed is None  # a refused part is left to the two steps, which name it
         return
     assert typed is not None, "a frame the two steps take must not fall back to them"
-    assert [(env.model_dump(exclude={"body"}), env.body) for env in typed] == expected
+    fields = set(EnvelopeHead.model_fields)
+    got_head, got_items = typed
+    assert (got_head.model_dump(include=fields), [(m.model_dump(exclude=fields | {"body"}), m.body)
+                                                  for m in got_items]) == expected
 
 
 def test_the_one_step_parse_leaves_untyped_bodies_to_the_two_steps_and_learns_new_types(monkeypatch):
@@ -354,5 +382,5 @@ def test_the_one_step_parse_leaves_untyped_bodies_to_the_two_steps_and_learns_ne
                         "body": {"what": "door"}})
     assert parse_typed(sighting) is None  # not registered yet: unknown to both parses
     register_type(Sighting)
-    (env,) = parse_typed(sighting) or [None]
-    assert env is not None and env.body == Sighting(what="door")
+    typed = parse_typed(sighting)
+    assert typed is not None and typed[1][0].body == Sighting(what="door")
