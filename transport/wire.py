@@ -222,12 +222,15 @@ def _typed_adapters() -> dict[str, TypeAdapter[Any]]:
     validates again."""
     if not _typed:
         def typed(base: type[BaseModel]) -> Any:
-            models = tuple(create_model(f"{name}{base.__name__}", __base__=base, type=(Literal[name], ...),
-                                        body=(cls, ...)) for name, cls in TYPES.items())
-            return Annotated[Union[models], Field(discriminator="type")]  # noqa: UP007  # a tuple of models
+            models = []
+            for name, cls in TYPES.items():
+                tag: Any = Literal[name]  # a tag known only here: a type form to pydantic, a value to mypy
+                models.append(create_model(f"{name}{base.__name__}", __base__=base, type=(tag, ...), body=(cls, ...)))
+            return Annotated[Union[tuple(models)], Field(discriminator="type")]  # noqa: UP007  # a tuple of models
 
-        _typed["one"] = TypeAdapter(typed(Envelope))
-        _typed["batch"] = TypeAdapter(tuple[EnvelopeHead, list[typed(EnvelopeItem)]])  # type: ignore[misc]
+        one, item = typed(Envelope), typed(EnvelopeItem)
+        batch: Any = tuple[EnvelopeHead, list[item]]  # type: ignore[valid-type]  # a union built above
+        _typed["one"], _typed["batch"] = TypeAdapter(one), TypeAdapter(batch)
     return _typed
 
 
