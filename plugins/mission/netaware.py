@@ -49,12 +49,17 @@ class NetGuard:
         self.resume_after = resume_after
         self.state = GuardState()
         self._judged: tuple[Any, bool, set[str]] = (None, False, set())  # (good links, cut vertex, my part)
+        self._rows: list[Link] | None = None  # the links of the last reading
         self.last_good: tuple[float, float] | None = None
         self.trail: deque[tuple[float, float]] = deque(maxlen=200)  # good positions, 0.2 m apart
 
     def topology(self, links: Sequence[Link]) -> None:
         """Take in a topology reading: its links. Links whose quality is known (any above 0) and
         below `min_quality` are left out of the graph the risk is judged on."""
+        rows = list(links)
+        if rows == self._rows:
+            return  # the very rows of the last reading (a walk not redone; compared by identity): judged
+        self._rows = rows
         s = self.state
         known = any(link.quality > 0 for link in links)
         good = [link for link in links if not known or link.quality >= self.min_quality]

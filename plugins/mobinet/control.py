@@ -153,6 +153,7 @@ class MobiNetControl(Plugin[MobiNetSettings]):
         self._unwritten: Pose | None = None     # the newest Pose seen while holding
         self._hold_until = 0.0                  # monotonic: no Pose runs us before (write_interval)
         self._cuts: tuple[tuple[tuple[str, str], ...] | None, list[str]] = (None, [])  # links -> articulation points
+        self._cut_rows: list[Any] | None = None  # the links `_cuts` was last looked up for
         self.resource.start()
         snmp = self.settings.source == "snmp"
         self._write_pose = snmp and self.settings.write_pose and self.settings.write_community is not None
@@ -368,10 +369,13 @@ class MobiNetControl(Plugin[MobiNetSettings]):
 
     def _articulation_points(self, links: list[Any]) -> list[str]:
         """The cut vertices, found again only when the links changed (a team reporting positions
-        reads the same N^2 links every second)."""
-        key = tuple((link.a, link.b) for link in links)
-        if key != self._cuts[0]:
-            self._cuts = (key, articulation_points(links))
+        reads the same N^2 links every second). A reading whose walk was not redone holds the very
+        rows of the last one, which the list comparison tells by identity, without a key of N^2 pairs."""
+        if links != self._cut_rows:
+            key = tuple((link.a, link.b) for link in links)
+            if key != self._cuts[0]:
+                self._cuts = (key, articulation_points(links))
+            self._cut_rows = list(links)
         return list(self._cuts[1])
 
     @staticmethod

@@ -129,6 +129,26 @@ def test_guard_hysteresis_and_degraded_readings():
     assert g.retreat_point((5.0, 0.0), 9.0) == (3.0, 0.0)
 
 
+def test_the_same_reading_again_is_not_judged_again_and_a_changed_quality_is(monkeypatch):
+    import erni.plugins.mission.netaware as netaware
+
+    graphs = []
+    real = netaware.netgraph.from_edges
+    monkeypatch.setattr(netaware.netgraph, "from_edges", lambda *a, **k: graphs.append(1) or real(*a, **k))
+    rows = [Link(a="a", b="b", quality=0.9), Link(a="a", b="c", quality=0.9), Link(a="b", b="c", quality=0.9)]
+    g = NetGuard("a", min_quality=0.3)
+    g.topology(rows)
+    assert (g.risk(), len(graphs)) == ("", 1)
+    for _ in range(5):  # a reading whose walk was not redone: a new list of the very same rows
+        g.topology(list(rows))
+    assert len(graphs) == 1
+    g.topology([rows[0].model_copy(update={"quality": 0.5}), rows[1], rows[2]])  # a quality moved
+    assert len(graphs) == 1 and g.risk() == ""  # which links are good did not change: no graph work
+    lone = [rows[0], rows[1].model_copy(update={"quality": 0.1}), Link(a="b", b="c", quality=0.1)]
+    g.topology(lone)
+    assert len(graphs) == 2 and g.risk() == "a's weak link to c (0.10) alone joins it to the rest of the network"
+
+
 def _guards(links: list[Link], *names: str) -> dict[str, str]:
     """Each named robot's risk for one topology reading ("" when none)."""
     out = {}
