@@ -229,6 +229,7 @@ class TransportPlugin(Plugin[TransportSettings]):
         self.addresses: dict[str, Address] = {}  # reply address of every sender, clients included
         self._next_beacon = 0.0
         self._next_liveness = 0.0  # beacons and silences are looked at a few times a period
+        self._next_silences = 0.0  # when the peers' silences are looked at next (monotonic)
         self._next_link_check = 0.0  # performers' silences are looked at a few times a period
         self._announce_every = s.beacon_period  # backs off while the directory stands
         self._announce_seen: tuple[int, int] = (-1, -1)  # peers and learned addresses at the last announcement
@@ -677,6 +678,13 @@ class TransportPlugin(Plugin[TransportSettings]):
                 for addr in announced:
                     self.endpoint.announce(addr, "beacon", beacon)
         self._beacon_quiet_peers(mono)
+        if mono < self._next_silences:
+            return
+        # O(peers), so every quarter peer timeout, earlier only when a peer's silence may reach its
+        # limit then: hearing a peer moves that moment later, a peer that comes up has a limit of at
+        # least one peer timeout, and a limit that shrinks (a shorter announced interval, fewer
+        # beacons lost) is looked at within the quarter
+        self._next_silences = mono + s.peer_timeout / 4
         wall = time.time()
         for name, peer in list(self.directory.items()):
             if not peer.up:
@@ -684,6 +692,7 @@ class TransportPlugin(Plugin[TransportSettings]):
             silent = mono - self.heard_at.get(name, 0.0)
             limit = self._down_after(name)
             if silent <= limit:
+                self._next_silences = min(self._next_silences, mono - silent + limit)
                 if wall - silent - peer.last_heard > s.peer_timeout / 4:  # heard by beacons that said nothing new
                     self.directory[name] = peer = peer.evolve(last_heard=wall - silent)
                     self.change(peer, reports=["heard"])

@@ -383,3 +383,29 @@ def test_a_beacon_that_says_nothing_new_costs_no_run_and_still_keeps_its_peer_up
     finally:
         a.stop()
         b.stop()
+
+
+def test_silences_are_looked_at_every_quarter_timeout_and_a_silent_peer_still_goes_down_at_its_limit():
+    """The pass over every peer's silence is O(peers): in a team of fifty on one host it ran four
+    times a beacon period in every agent. It runs every quarter peer timeout now, and earlier only
+    when a peer's silence may reach its limit: a peer that stops is still marked down at once."""
+    import time
+
+    port = free_port()
+    a, b = make_agent("a", port, peer_timeout=2.0), make_agent("b", port, peer_timeout=2.0)
+    try:
+        wait_until(lambda: peers(a).get("b") and peers(a)["b"].up)
+        bridge = a.plugin("transport")
+        looked: list[float] = []
+        down_after = bridge._down_after
+        bridge._down_after = lambda name: looked.append(time.monotonic()) or down_after(name)
+        time.sleep(2.0)  # twenty beacon periods, four quarter timeouts
+        assert 2 <= len(looked) <= 6, looked  # about once every 0.5 s (four times a period: 80)
+        b.stop()
+        stopped = time.monotonic()
+        wait_until(lambda: not peers(a)["b"].up, timeout=5)
+        late = time.monotonic() - stopped
+        assert late < 2.0 + 0.5 + 0.3, late  # its limit, one beacon period late at most, and a run
+    finally:
+        a.stop()
+        b.stop()
