@@ -84,6 +84,7 @@ from erni.transport.wire import (
     envelope_bytes,
     head_bytes,
     item_bytes,
+    join_envelope,
     parse_batch,
     parse_envelope,
     parse_item,
@@ -297,7 +298,7 @@ class Endpoint:
         # sender pool
         self._dests: dict[Address, _Dest] = {}
         self._fast_at: dict[Address, float] = {}  # destination -> when the caller's last status to it was handled
-        self._heads: dict[str, bytes] = {}  # peer -> the envelope head of a batch to it (`_batch`)
+        self._heads: dict[str, bytes] = {}  # peer -> the envelope head of messages to it (`_head`)
         self._cond = threading.Condition()
         self._ready: deque[_Dest] = deque()
         self._delayed: list[tuple[float, int, int, _Dest]] = []
@@ -716,16 +717,20 @@ class Endpoint:
         if earliest:  # else a sender already waits until an earlier time, and then looks again
             self._cond.notify()
 
+    def _head(self, peer: str) -> bytes:
+        """The envelope head of every message to `peer` (our own fields, made once per peer)."""
+        head = self._heads.get(peer)
+        if head is None:
+            if len(self._heads) >= 4096:
+                self._heads.clear()
+            head = self._heads[peer] = head_bytes(self.name, self.role, peer, self.inst, self.address)
+        return head
+
     def _batch(self, session: Session | None) -> _Batch:
         """An empty datagram for messages to `session`'s peer, with the head they will share."""
         if session is None:
             return _Batch(None)
-        head = self._heads.get(session.peer)
-        if head is None:
-            if len(self._heads) >= 4096:
-                self._heads.clear()
-            head = self._heads[session.peer] = head_bytes(self.name, self.role, session.peer, self.inst, self.address)
-        return _Batch(session, head)
+        return _Batch(session, self._head(session.peer))
 
     def _item(self, out: _Outgoing) -> bytes:
         return item_bytes(out.seq, out.id, out.kind, out.type, out.data)
@@ -741,7 +746,7 @@ class Endpoint:
             if HEADER.size + length > max_frame:
                 raise FrameError("size", f"frame of {HEADER.size + length} bytes exceeds the limit of {max_frame}")
             return KIND.pack(length, PLAIN) + payload
-        return session.seal(self._envelope(out, session.peer), max_frame)
+        return session.seal(join_envelope(self._head(session.peer), self._item(out)), max_frame)
 
     def _sendto(self, frame: bytes, addr: Address) -> None:
         if self.udp_loss and self._rng.random() < self.udp_loss:
