@@ -271,6 +271,7 @@ class SnmpSource:
         self._rows: dict[tuple[OID, ...], int] = {}  # rows seen by the last walk of a column set
         self.cache_seconds = cache_seconds
         self._cache: dict[str, tuple[Any, float, Any]] = {}  # job -> (key, when, walked columns)
+        self._uptime: int | None = None  # the agent's sysUpTime in its last answer (a restart resets it)
         self._hellos: dict[str, tuple[int, int]] = {}        # neighbour address -> HELLO baseline
         self._decoded: dict[str, tuple[Any, str, dict[str, str], list[Any]]] = {}  # job -> (columns, node, names, rows)
         self.requests = 0
@@ -390,22 +391,24 @@ class SnmpSource:
         entry = self._cache.get("view")
         if entry is not None and None not in entry[0] and entry[0][4] == parts \
                 and time.monotonic() - entry[1] < self.cache_seconds:
-            # steady state: the node's name and its change counters alone say whether the last view stands
+            # steady state: the node's name and its change counters alone say whether the last view
+            # stands, unless the agent restarted (sysUpTime went back: its counters began anew)
             check = [ERNI_NODE_NAME, *versions]
-            current = await self.get(check, frozenset(check))
-            if len(current) == len(check):
+            current = await self.get([*check, SYS_UP_TIME], frozenset([*check, SYS_UP_TIME]))
+            if all(oid in current for oid in check):
                 stands = (_text(ERNI_NODE_NAME, current[ERNI_NODE_NAME]),
                           *(_int(oid, current[oid], "Counter32") for oid in versions))
-                if self._same(stands, entry[0][1:4], parts):
+                if self._same(stands, entry[0][1:4], parts) and not self._restarted(current):
                     return self._copy(entry[2])
         scalars = [SYS_NAME, ERNI_NODE_NAME, ERNI_NODE_ADDRESS, OLSRV2_ORIG_ADDR_TYPE, OLSRV2_ORIG_ADDR,
                    *PROBES.values(), *versions]
-        ident = await self.get(dict.fromkeys(scalars), frozenset(scalars))
+        ident = await self.get(dict.fromkeys([*scalars, SYS_UP_TIME]), frozenset([*scalars, SYS_UP_TIME]))
         served = {module for module, oid in PROBES.items()
                   if oid in ident and (self.modules is None or module in self.modules)}
         view = self._identity(ident, served)
         topo_v, state_v = (_int(oid, ident[oid], "Counter32") if oid in ident and "ERNI-MOBINET-MIB" in served
                            else None for oid in versions)
+        self._restarted(ident)  # after the identity, whose errors come first
         now = time.monotonic()
         whole = ("view", view.node, topo_v, state_v, parts)
         entry = self._cache.get("view")
@@ -448,6 +451,20 @@ class SnmpSource:
             self._decode_positions(view, got[POSITIONS], by_index)
         self._cache["view"] = (whole, oldest, view)
         return view
+
+    def _restarted(self, values: dict[OID, Value]) -> bool:
+        """Whether the agent restarted since the last answer (its sysUpTime went back); then every
+        cached walk and view is dropped, for its change counters count from zero again."""
+        value = values.get(SYS_UP_TIME)
+        if value is None:
+            return False  # not served: the change counters and the cache's age alone decide
+        up = _int(SYS_UP_TIME, value, "TimeTicks")
+        restarted = self._uptime is not None and up < self._uptime
+        self._uptime = up
+        if restarted:
+            self._cache.clear()
+            self._decoded.clear()
+        return restarted
 
     @staticmethod
     def _moves(parts: frozenset[str]) -> bool:

@@ -293,7 +293,7 @@ def test_hello_counters_give_the_link_quality_between_readings():
     assert view.neighbors[0].metric == round(1024 / 0.25)
 
 
-def test_a_steady_refresh_asks_only_the_node_name_and_its_change_counters(served, net):
+def test_a_steady_refresh_asks_only_the_node_name_its_change_counters_and_its_uptime(served, net):
     async def go():
         src = SnmpSource(*served["robot3"], cache_seconds=60.0)
         asked: list[list[tuple[int, ...]]] = []
@@ -316,10 +316,39 @@ def test_a_steady_refresh_asks_only_the_node_name_and_its_change_counters(served
         finally:
             await src.aclose()
     first, again, steady, moved, after = run(go())
-    assert [len(oids) for oids in steady] == [3]
+    assert [len(oids) for oids in steady] == [4]
     assert again.neighbors == first.neighbors and again.links == first.links
     assert len(after) == 2 and len(after[1]) > 3     # the short check, then the full identity GET
     assert "robot5" in {n.name for n in moved.neighbors}
+
+
+def test_an_agent_that_restarted_is_walked_again_though_its_change_counters_read_the_same(snmp_agent, net):
+    """The change counters count from zero when an agent restarts, so a counter that reads what it
+    read before proves nothing across a restart: sysUpTime going back tells one, and every walk
+    cached before it is dropped. Without a restart, equal counters keep the cached walk (that is
+    what they are for), however long the cache may keep it."""
+    address = snmp_agent.addresses()["robot3"]
+    node = snmp_agent.node("robot3")
+    node.started = net.clock() - 100.0  # up for 100 s
+
+    async def go():
+        src = SnmpSource(*address, cache_seconds=3600.0)
+        try:
+            first = await src.read(PARTS)
+            version = net._topo_version
+            net.move("robot5", 150.0, 40.0)   # robot5 becomes robot3's neighbour ...
+            net._topo_version = version         # ... and the counter reads as before
+            kept = await src.read(PARTS)
+            node.started = net.clock()        # robot3's agent restarts: uptime from 0, nothing encoded yet
+            snmp_agent._blocks.clear()
+            fresh = await src.read(PARTS)
+            return first, kept, fresh
+        finally:
+            await src.aclose()
+    first, kept, fresh = run(go())
+    assert "robot5" not in {n.name for n in first.neighbors}
+    assert kept.neighbors == first.neighbors and kept.links == first.links
+    assert "robot5" in {n.name for n in fresh.neighbors}
 
 
 def test_a_timeout_is_noticed_on_time_and_every_request_is_answered_in_one_round_trip(served, bad_agent):
