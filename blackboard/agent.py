@@ -72,29 +72,37 @@ class Scheduler:
 
     def _work(self) -> None:
         while True:
-            plugin = self._queue.get()
+            plugin: Plugin[Any] | None = self._queue.get()
             if plugin is None:
                 return
-            if not self._accepting:  # stopping: queued runs are dropped
-                with plugin._sched_lock:
-                    plugin._scheduled = False
-                continue
+            while plugin is not None:
+                plugin = self._run_once(plugin)
+
+    def _run_once(self, plugin: Plugin[Any]) -> Plugin[Any] | None:
+        """Run `plugin` once; return it when it was signalled meanwhile (this worker runs it again
+        at once: putting it back in the queue would wake another worker for it, and this one would
+        wait for work), else None."""
+        if not self._accepting:  # stopping: queued runs are dropped
             with plugin._sched_lock:
                 plugin._scheduled = False
-                plugin._running = True
+            return None
+        with plugin._sched_lock:
+            plugin._scheduled = False
+            plugin._running = True
+            plugin._dirty = False
+            plugin._run_started = time.monotonic()
+            plugin._slow_reported = False
+        again = False
+        try:
+            self._run(plugin)
+        finally:
+            with plugin._sched_lock:
+                plugin._running = False
+                again = plugin._dirty and self._accepting and not plugin._disabled
                 plugin._dirty = False
-                plugin._run_started = time.monotonic()
-                plugin._slow_reported = False
-            try:
-                self._run(plugin)
-            finally:
-                with plugin._sched_lock:
-                    plugin._running = False
-                    again = plugin._dirty and self._accepting and not plugin._disabled
-                    plugin._dirty = False
-                    if again:
-                        plugin._scheduled = True
-                        self._queue.put(plugin)
+                if again:
+                    plugin._scheduled = True  # taken by this worker: a signal meanwhile adds nothing
+        return plugin if again else None
 
     def _run(self, plugin: Plugin[Any]) -> None:
         board = self.agent.blackboard

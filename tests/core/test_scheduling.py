@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import queue
 import threading
 import time
 
@@ -41,6 +42,40 @@ def test_plugin_never_runs_concurrently_and_signals_coalesce():
         time.sleep(sleeper.delay * 3)
         assert sleeper.count == 2, "... cause exactly one more run"
         assert sleeper.max_active == 1
+    finally:
+        agent.stop()
+
+
+def test_a_plugin_signalled_during_its_run_runs_again_on_the_same_worker():
+    """A run that publishes what its own plugin subscribes to (a transport applying the statuses it
+    receives while a client watches them) signals that plugin again. The worker that ran it runs
+    it once more at once: through the queue another worker would wake for it, and the interpreter
+    lock would pass between them, for every received frame."""
+    agent = Agent("again", workers=4)
+    sleeper = agent.add_plugin(Sleeper)
+    sleeper.delay = 0
+    threads: list[str] = []
+
+    def execute() -> None:
+        threads.append(threading.current_thread().name)
+        if len(threads) < 20:
+            sleeper.wake()  # signalled during its own run
+    sleeper.execute = execute  # type: ignore[method-assign]
+    queued = []
+
+    class Counting(queue.SimpleQueue):  # type: ignore[type-arg]
+        def put(self, item, block=True, timeout=None):  # type: ignore[no-untyped-def]
+            queued.append(item)
+            super().put(item, block, timeout)
+    agent.scheduler._queue = Counting()
+    agent.start()
+    try:
+        sleeper.wake()
+        wait_until(lambda: len(threads) == 20)
+        time.sleep(0.05)
+        assert len(threads) == 20 and len(set(threads)) == 1, threads
+        assert sleeper.runs == 20
+        assert queued == [sleeper]  # the first signal only: no worker was woken for the other 19
     finally:
         agent.stop()
 
