@@ -92,7 +92,6 @@ class Scheduler:
             plugin._dirty = False
             plugin._run_started = time.monotonic()
             plugin._slow_reported = False
-        again = False
         try:
             self._run(plugin)
         finally:
