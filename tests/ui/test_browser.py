@@ -1,7 +1,7 @@
 """End to end in headless Chromium against a running team: a control agent (transport + UI) and
 three robot agents driving simulated robots. The page must show the robots moving, task them
-with the mouse and by typing, teleport by dragging, and show lost robots and a lost control
-node. Screenshots go to artifacts/ui/."""
+with the mouse and by typing, teleport by holding and dragging, and show lost robots and a lost
+control node. Screenshots go to artifacts/ui/."""
 
 from __future__ import annotations
 
@@ -154,20 +154,46 @@ def test_click_a_robot_then_the_map_sends_a_goto_it_executes(team, page):
     assert math.hypot(end.x - gx, end.y - gy) < 0.25
 
 
-def test_dragging_a_robot_teleports_it(team, page):
+def hold_and_drag(pg: Any, start: tuple[float, float], end: tuple[float, float]) -> None:
+    """Press on `start`, hold past the page's long press, drag to `end` and release."""
+    pg.mouse.move(*start)
+    pg.mouse.down()
+    pg.wait_for_timeout(700)
+    pg.mouse.move((start[0] + end[0]) / 2, (start[1] + end[1]) / 2, steps=4)
+    pg.mouse.move(*end, steps=4)
+    pg.mouse.up()
+
+
+def test_holding_then_dragging_a_robot_teleports_it(team, page):
     p = own_pose(team, "robot3")
-    tx, ty = p.x + 1.5, p.y - 1.0
-    page.mouse.move(*screen(page, p.x, p.y))
+    page.mouse.move(*screen(page, p.x, p.y))  # a quick drag pans the map: the robot stays
     page.mouse.down()
-    page.mouse.move(*screen(page, (p.x + tx) / 2, (p.y + ty) / 2), steps=4)
-    page.mouse.move(*screen(page, tx, ty), steps=4)
+    page.mouse.move(*screen(page, p.x + 1.0, p.y - 1.0), steps=6)
     page.mouse.up()
+    page.wait_for_timeout(300)
+    assert page.locator("#confirm").is_hidden()
+    assert not [t for t in team.robots[2].query(Task) if t.preposition == "teleport"]
+    assert math.hypot(own_pose(team, "robot3").x - p.x, own_pose(team, "robot3").y - p.y) < 0.05
+    tx, ty = p.x + 1.5, p.y - 1.0
+    hold_and_drag(page, screen(page, p.x, p.y), screen(page, tx, ty))
+    page.wait_for_selector("#confirm", state="visible", timeout=5000)  # not yet known to be a simulator: asked
+    assert "robot3" in page.inner_text("#confirm-text")
+    shot(page, "03a-teleport-asked")
+    page.wait_for_timeout(400)
+    page.click("#confirm-ok")
     wait_until(lambda: math.hypot(own_pose(team, "robot3").x - tx, own_pose(team, "robot3").y - ty) < 0.1,
                timeout=20, message="robot3 was not teleported where it was dropped")
     page.wait_for_function("([x, y]) => { const g = document.querySelector('g.robot[data-name=robot3]');"
                            " return Math.hypot(+g.dataset.x - x, +g.dataset.y - y) < 0.1; }", arg=[tx, ty])
     turned = math.remainder(own_pose(team, "robot3").theta - p.theta, 2 * math.pi)  # +pi and -pi are one heading
     assert turned == pytest.approx(0, abs=0.05)  # heading kept
+    # the simulator moved it (moved=True in the result): the page now teleports it without asking
+    page.wait_for_function("() => erni.ui.real.get('robot3') === false", timeout=20000)
+    ux, uy = tx - 0.5, ty + 0.5
+    hold_and_drag(page, screen(page, tx, ty), screen(page, ux, uy))
+    wait_until(lambda: math.hypot(own_pose(team, "robot3").x - ux, own_pose(team, "robot3").y - uy) < 0.1,
+               timeout=20, message="robot3 was not teleported the second time")
+    assert page.locator("#confirm").is_hidden()
     shot(page, "03-teleported")
 
 

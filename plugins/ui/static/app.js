@@ -6,6 +6,13 @@ const $ = (id) => document.getElementById(id);
 const ROBOT_RADIUS = 0.25;          // m, drawn size of a robot (at least MIN_PX)
 const MIN_PX = 13;
 const TRAIL = 120;                  // positions kept per robot
+// Gestures, in CSS px and ms. A press that drifts no further than its slop is a tap (or, held, a
+// long press); a robot is teleported only when held LONG_PRESS ms and then dragged DROP_MIN px.
+const SLOP = { touch: 12, pen: 8, mouse: 5 };
+const LONG_PRESS = 500;
+const DROP_MIN = 24;
+const HINT = "Tap or click a robot, then the map to send it there · hold a robot, then drag to teleport it · " +
+  "pinch or wheel to zoom · drag to pan · shift-drag to select · hold or right-click a robot for its menu";
 
 const ui = {
   ws: null, client: null, state: null, connected: false, everConnected: false,
@@ -13,7 +20,12 @@ const ui = {
   selection: new Set(),
   view: { scale: 60, ox: 0, oy: 0, fitted: false },
   armed: null,                       // {action: "goto"|"teleport", robots: [...]}
-  drag: null,                        // pointer gesture in progress
+  drag: null,                        // one-pointer gesture in progress
+  pointers: new Map(),               // pointerId -> [x, y] of every pointer down on the map
+  pinch: null,                       // two-finger zoom in progress
+  real: new Map(),                   // robot -> true: teleport re-bases its odometry; false: a simulator moves it
+  ask: null,                         // the question shown, {yes, ghost}
+  menuAt: 0,                         // when the menu opened (a long press's release does not close it)
   trails: new Map(), showTrails: true,
   mic: null,
   renders: 0, drawn: {},             // states rendered; JSON of each part as last drawn
@@ -111,6 +123,7 @@ function render() {
     if (t.length > TRAIL) t.shift();
     ui.trails.set(r.name, t);
   }
+  learnRobotKinds(s.tasks);
   const fitting = !ui.view.fitted && s.robots.some((r) => r.pose);
   if (fitting) fit();
   if (changed("metrics", s.metrics)) renderMetrics(s);
@@ -122,6 +135,16 @@ function render() {
   $("listening").textContent = s.speech && s.speech.available ? (s.listening ? "voice: listening" : "voice: standing by — say “attention”") : "voice: no recogniser";
   $("mic").disabled = !(s.speech && s.speech.available);
   $("mic").title = s.speech && s.speech.available ? "stream the microphone to the control node's recogniser" : (s.speech ? s.speech.error : "");
+}
+
+// A teleport's result says how it was done: `moved` true on a simulator (the robot was moved),
+// false on a real robot (only its odometry was re-based). Remembered beyond the task list.
+function learnRobotKinds(tasks) {
+  for (const t of [...tasks].reverse()) {   // oldest first: the newest answer wins
+    if (t.preposition === "teleport" && t.state === "succeeded" && typeof t.values.moved === "boolean") {
+      ui.real.set(t.robot, !t.values.moved);
+    }
+  }
 }
 
 function renderMetrics(s) {
@@ -233,7 +256,8 @@ function renderMap() {
   for (const r of s.robots) {
     if (!r.pose) continue;
     let [sx, sy] = toScreen(r.pose.x, r.pose.y);
-    const g = el("g", { class: `robot ${r.state}${ui.selection.has(r.name) ? " selected" : ""}`, "data-name": r.name,
+    const lifted = ui.drag && ui.drag.kind === "robot" && ui.drag.lifted && ui.drag.name === r.name;
+    const g = el("g", { class: `robot ${r.state}${ui.selection.has(r.name) ? " selected" : ""}${lifted ? " lifted" : ""}`, "data-name": r.name,
       "data-state": r.state, "data-x": r.pose.x, "data-y": r.pose.y, transform: `translate(${sx},${sy})` }, rg);
     el("circle", { r: rad + 5, class: "ring" }, g);
     el("circle", { r: rad, class: "body" }, g);
@@ -247,8 +271,12 @@ function renderMap() {
     el("title", {}, g).textContent = `${r.name} (${r.state})\nx ${fmt(r.pose.x, 2)} m, y ${fmt(r.pose.y, 2)} m, heading ${fmt(r.pose.theta * 180 / Math.PI, 0)}°\n` +
       `v ${fmt(r.pose.v, 2)} m/s, battery ${fmt(r.pose.battery, 1)} V${r.task ? "\n" + r.task : ""}`;
   }
-  if (ui.drag && ui.drag.kind === "robot" && ui.drag.moved) {
+  if (ui.drag && ui.drag.kind === "robot" && ui.drag.lifted && ui.drag.moved) {
     el("circle", { cx: ui.drag.at[0], cy: ui.drag.at[1], r: rad, class: "ghost" }, rg);
+  }
+  if (ui.ask && ui.ask.ghost) {
+    const [gx, gy] = toScreen(ui.ask.ghost[0], ui.ask.ghost[1]);
+    el("circle", { cx: gx, cy: gy, r: rad, class: "ghost" }, rg);
   }
 }
 
@@ -272,9 +300,10 @@ function renderRobotTable(s) {
   $("no-robots").classList.toggle("hidden", s.robots.length > 0);
   keyed(document.querySelector("#robot-table tbody"), s.robots, (r) => r.name, (r) => {
     const tr = h("tr", { "data-name": r.name });
-    const cb = h("input", { type: "checkbox", class: "sel", "data-name": r.name });
+    const cb = h("input", { type: "checkbox", class: "sel", "data-name": r.name, "aria-label": `select ${r.name}` });
     cb.addEventListener("change", () => { cb.checked ? ui.selection.add(r.name) : ui.selection.delete(r.name); selectionChanged(); });
-    const td0 = h("td"); td0.appendChild(cb); tr.appendChild(td0);
+    const hit = h("label", { class: "hit" }); hit.appendChild(cb);
+    const td0 = h("td", { class: "pick" }); td0.appendChild(hit); tr.appendChild(td0);
     tr.appendChild(h("td", { class: "num" }));
     const name = h("td", { class: "name" });
     name.appendChild(h("span", { class: "state-dot" }));
@@ -415,8 +444,8 @@ const STRATEGY_HELP = {
   relay: "relay: click the source robot, then the destination robot",
 };
 const ARMED_HINT = {
-  goto: "Go to: click the map to send {r} there",
-  teleport: "Teleport: click the map to put {r} there",
+  goto: "Go to: tap or click the map to send {r} there",
+  teleport: "Teleport: tap or click the map to put {r} there",
   widep: "WiDep: click the point of interest {r} should cover",
   patrol: "Patrol: drag the territory block for {r}",
   relay: "Relay: click the source robot, then the destination robot, for {r}",
@@ -446,7 +475,8 @@ function disarm() {
   for (const b of document.querySelectorAll("button.armed")) b.classList.remove("armed");
   const hint = $("hint");
   hint.classList.remove("armed");
-  hint.textContent = "Click a robot, then the map to send it there · drag a robot to teleport it · shift-drag to select · wheel to zoom · drag to pan · right-click a robot for its menu";
+  hint.classList.remove("lifted");
+  hint.textContent = HINT;
 }
 function robotAt(target) {
   const g = target.closest ? target.closest("g.robot") : null;
@@ -455,27 +485,84 @@ function robotAt(target) {
 function robotByName(name) { return ui.state ? ui.state.robots.find((r) => r.name === name) : null; }
 
 // ---- pointer gestures on the map -------------------------------------------------------------
+// One pointer: tap, pan, shift-drag a rectangle, or hold a robot and drag it (teleport). Two
+// fingers: pinch zoom about the point between them (and pan with it). Mouse, pen and touch alike.
 function onPointerDown(ev) {
   if (ev.button !== 0) return;
   closeMenu();
   const at = svgPoint(ev), name = robotAt(ev.target);
   $("map").setPointerCapture(ev.pointerId);
+  ui.pointers.set(ev.pointerId, at);
+  if (ui.pointers.size === 2) { startPinch(); return; }
+  if (ui.pointers.size > 2 || ui.pinch || ui.ask) return;
   if (ui.armed && ui.armed.action === "relay") {
     if (name) pickRelayEnd(name);
     return;
   }
-  if (ui.armed && ui.armed.action === "patrol") ui.drag = { kind: "rect", start: at, at, moved: false, patrol: true };
-  else if (name) ui.drag = { kind: "robot", name, start: at, at, moved: false };
-  else if (ev.shiftKey) ui.drag = { kind: "rect", start: at, at, moved: false };
-  else ui.drag = { kind: "pan", start: at, at, moved: false, ox: ui.view.ox, oy: ui.view.oy };
+  const base = { id: ev.pointerId, start: at, at, moved: false, slop: SLOP[ev.pointerType] || SLOP.mouse };
+  if (ui.armed && ui.armed.action === "patrol") ui.drag = { ...base, kind: "rect", patrol: true };
+  else if (name) ui.drag = { ...base, kind: "robot", name, lifted: false, timer: setTimeout(lift, LONG_PRESS) };
+  else if (ev.shiftKey) ui.drag = { ...base, kind: "rect" };
+  else ui.drag = { ...base, kind: "pan", ox: ui.view.ox, oy: ui.view.oy };
+}
+// Held still long enough on a robot: it is lifted, and a drag now teleports it.
+function lift() {
+  const d = ui.drag;
+  if (!d || d.kind !== "robot" || d.moved) return;
+  d.lifted = true;
+  const hint = $("hint");
+  hint.classList.add("lifted");
+  hint.textContent = `Teleport ${d.name}: drag it where it is · release here for its menu`;
+  if (navigator.vibrate) navigator.vibrate(20);
+  if (ui.state) renderMap();
+}
+function endLift() {
+  const hint = $("hint");
+  if (!hint.classList.contains("lifted")) return;
+  hint.classList.remove("lifted");
+  if (!ui.armed) hint.textContent = HINT;
+}
+function dropGesture() {
+  const d = ui.drag;
+  ui.drag = null;
+  if (d && d.timer) clearTimeout(d.timer);
+  $("rubber").classList.add("hidden");
+  $("map").classList.remove("panning");
+  endLift();
+  return d;
+}
+function twoFingers() {
+  const [a, b] = [...ui.pointers.values()];
+  return { d: Math.max(1, Math.hypot(a[0] - b[0], a[1] - b[1])), mid: [(a[0] + b[0]) / 2, (a[1] + b[1]) / 2] };
+}
+function startPinch() {
+  dropGesture();
+  const f = twoFingers();
+  ui.pinch = { d0: f.d, scale0: ui.view.scale, anchor: toWorld(f.mid[0], f.mid[1]) };
+  if (ui.state) renderMap();
+}
+function movePinch() {
+  const p = ui.pinch, f = twoFingers();
+  ui.view.scale = Math.max(4, Math.min(600, p.scale0 * f.d / p.d0));
+  ui.view.ox = f.mid[0] - p.anchor[0] * ui.view.scale;   // the world point first between the fingers stays there
+  ui.view.oy = f.mid[1] + p.anchor[1] * ui.view.scale;
+  if (ui.state) renderMap();
 }
 function onPointerMove(ev) {
   const at = svgPoint(ev), [wx, wy] = toWorld(at[0], at[1]);
   $("cursor").textContent = `x ${wx.toFixed(2)} m   y ${wy.toFixed(2)} m`;
+  if (ui.pointers.has(ev.pointerId)) ui.pointers.set(ev.pointerId, at);
+  if (ui.pinch) { if (ui.pointers.size >= 2) movePinch(); return; }
   const d = ui.drag;
-  if (!d) return;
+  if (!d || d.id !== ev.pointerId) return;
   d.at = at;
-  if (Math.hypot(at[0] - d.start[0], at[1] - d.start[1]) > 5) d.moved = true;
+  if (!d.moved && Math.hypot(at[0] - d.start[0], at[1] - d.start[1]) > d.slop) {
+    d.moved = true;
+    if (d.kind === "robot" && !d.lifted) {   // moved before the long press: the map pans, the robot stays
+      clearTimeout(d.timer);
+      Object.assign(d, { kind: "pan", ox: ui.view.ox, oy: ui.view.oy });
+    }
+  }
   if (!d.moved) return;
   if (d.kind === "pan") {
     ui.view.ox = d.ox + at[0] - d.start[0]; ui.view.oy = d.oy + at[1] - d.start[1];
@@ -488,21 +575,28 @@ function onPointerMove(ev) {
     r.setAttribute("width", Math.abs(at[0] - d.start[0])); r.setAttribute("height", Math.abs(at[1] - d.start[1]));
   } else if (d.kind === "robot") renderMap();
 }
+function onPointerCancel(ev) {
+  ui.pointers.delete(ev.pointerId);
+  if (ui.pointers.size < 2) ui.pinch = null;
+  if (ui.drag && ui.drag.id === ev.pointerId) { dropGesture(); if (ui.state) renderMap(); }
+}
 function onPointerUp(ev) {
-  const d = ui.drag;
-  ui.drag = null;
-  $("map").classList.remove("panning");
-  if (!d) return;
+  ui.pointers.delete(ev.pointerId);
+  if (ui.pinch) { if (ui.pointers.size < 2) ui.pinch = null; return; }   // the other finger does nothing more
+  if (!ui.drag || ui.drag.id !== ev.pointerId) return;
+  const d = dropGesture();
   const at = svgPoint(ev), [wx, wy] = toWorld(at[0], at[1]);
   if (d.kind === "pan" && d.moved) {  // the release point, even when the last moves were coalesced
     ui.view.ox = d.ox + at[0] - d.start[0]; ui.view.oy = d.oy + at[1] - d.start[1];
     renderMap();
   }
   if (d.kind === "robot") {
-    if (d.moved) {
+    if (d.lifted && Math.hypot(at[0] - d.start[0], at[1] - d.start[1]) >= DROP_MIN) {
       const r = robotByName(d.name);
       const heading = r && r.pose ? r.pose.theta * 180 / Math.PI : 0;
-      command("teleport", { x: round(wx), y: round(wy), heading: round(heading) }, [d.name]);
+      teleport([d.name], { x: round(wx), y: round(wy), heading: round(heading) });
+    } else if (d.lifted) {
+      openMenu(d.name, ev.clientX, ev.clientY);
     } else {
       if (ev.ctrlKey || ev.metaKey || ev.shiftKey) ui.selection.has(d.name) ? ui.selection.delete(d.name) : ui.selection.add(d.name);
       else ui.selection = new Set([d.name]);
@@ -511,14 +605,12 @@ function onPointerUp(ev) {
     }
     renderMap();
   } else if (d.kind === "rect" && d.patrol) {
-    $("rubber").classList.add("hidden");
     if (!d.moved) return;
     const a = ui.armed, [ax, ay] = toWorld(d.start[0], d.start[1]);
     disarm();
     command("patrol", { xmin: round(Math.min(ax, wx)), ymin: round(Math.min(ay, wy)), xmax: round(Math.max(ax, wx)),
       ymax: round(Math.max(ay, wy)) }, a.robots);
   } else if (d.kind === "rect") {
-    $("rubber").classList.add("hidden");
     const [x0, x1] = [Math.min(d.start[0], at[0]), Math.max(d.start[0], at[0])];
     const [y0, y1] = [Math.min(d.start[1], at[1]), Math.max(d.start[1], at[1])];
     if (!(ev.ctrlKey || ev.metaKey)) ui.selection.clear();
@@ -533,8 +625,46 @@ function onPointerUp(ev) {
     disarm();
     if (a.action === "goto") command("goto", { x: round(wx), y: round(wy), speed: num("p-speed") }, a.robots);
     else if (a.action === "widep") command("widep", { x: round(wx), y: round(wy) }, a.robots);
-    else command("teleport", { x: round(wx), y: round(wy) }, a.robots);
+    else teleport(a.robots, { x: round(wx), y: round(wy) });
   }
+}
+
+// ---- teleport: asked first unless every robot is known to be simulated --------------------------
+function teleport(robots, params) {
+  const fp = ui.state && ui.state.floorplan;
+  if (fp && fp.bounds) {
+    const [x0, y0, x1, y1] = fp.bounds;
+    if (params.x < x0 || params.x > x1 || params.y < y0 || params.y > y1) {
+      logLocal("error", `teleport of ${robots.join(", ")} refused: (${params.x}, ${params.y}) m is outside the floor plan ` +
+        `(x ${x0}…${x1}, y ${y0}…${y1}); drop it inside`);
+      return;
+    }
+  }
+  const real = robots.filter((r) => ui.real.get(r) === true), unknown = robots.filter((r) => !ui.real.has(r));
+  if (!real.length && !unknown.length) { command("teleport", params, robots); return; }
+  const where = `(${params.x}, ${params.y}) m`;
+  const text = real.length
+    ? `${real.join(", ")} ${real.length > 1 ? "are real robots" : "is a real robot"}: a teleport does not move it, it re-bases ` +
+      `its odometry so that its pose reads ${where}. Do this only when it really stands there.`
+    : `Teleport ${unknown.join(", ")} to ${where}? A simulator moves the robot there; a real robot stays where it is and ` +
+      `its odometry is re-based to read that pose. This page has not yet seen how ${unknown.join(", ")} teleports.`;
+  ask(real.length ? "Re-base odometry?" : "Teleport?", text, [params.x, params.y], () => command("teleport", params, robots));
+}
+function ask(title, text, ghost, yes) {
+  ui.ask = { yes, ghost, at: performance.now() };
+  $("confirm-title").textContent = title;
+  $("confirm-text").textContent = text;
+  $("confirm").classList.remove("hidden");
+  $("confirm-cancel").focus();
+  if (ui.state) renderMap();
+}
+function answer(ok) {
+  const a = ui.ask;
+  if (a && ok && fresh(a.at)) return;   // a stray press as it opens does not say yes
+  ui.ask = null;
+  $("confirm").classList.add("hidden");
+  if (ui.state) renderMap();
+  if (a && ok) a.yes();
 }
 function pickRelayEnd(name) {
   const a = ui.armed;
@@ -556,15 +686,22 @@ function openMenu(name, x, y) {
   for (const [label, act] of items) {
     const b = h("button", { "data-act": act }, label);
     b.addEventListener("click", () => { closeMenu(); doAction(act, [name]); });
+    if (act === "teleport") b.title = "then tap or click the map; a real robot's odometry is re-based, after a question";
     m.appendChild(b);
   }
   const only = h("button", {}, "Select only this robot");
   only.addEventListener("click", () => { closeMenu(); setSelection([name]); selectionChanged(); });
   m.appendChild(only);
-  m.style.left = Math.min(x, innerWidth - 190) + "px";
-  m.style.top = Math.min(y, innerHeight - 330) + "px";
+  // shown, then placed: the whole menu on screen, above a phone's Stop bar (which stays on top of it)
+  const stop = $("cmd-stop"), bottom = getComputedStyle(stop).position === "fixed" ? stop.getBoundingClientRect().top : innerHeight;
+  m.style.maxHeight = Math.max(120, bottom - 8) + "px";
   m.classList.remove("hidden");
+  m.style.left = Math.max(0, Math.min(x, innerWidth - m.offsetWidth - 4)) + "px";
+  m.style.top = Math.max(4, Math.min(y, bottom - m.offsetHeight - 4)) + "px";
+  ui.menuAt = performance.now();
 }
+// True for a moment after something opened: a press that opened it does not also choose in it.
+function fresh(since) { return performance.now() - since < 300; }
 function closeMenu() { $("menu").classList.add("hidden"); }
 
 // ---- speech: typed, microphone, replies -----------------------------------------------------
@@ -619,16 +756,28 @@ function wire() {
   svg.addEventListener("pointerdown", onPointerDown);
   svg.addEventListener("pointermove", onPointerMove);
   svg.addEventListener("pointerup", onPointerUp);
+  svg.addEventListener("pointercancel", onPointerCancel);
+  // A finger's gesture on the map is done by its pointer events: no click follows it, which would
+  // land on whatever the gesture opened under the finger (the menu, the teleport question).
+  // (touchstart: a touchend goes to the element first touched, which a redraw may have replaced).
+  svg.addEventListener("touchstart", (ev) => { if (ev.cancelable) ev.preventDefault(); }, { passive: false });
   svg.addEventListener("wheel", (ev) => { ev.preventDefault(); const [sx, sy] = svgPoint(ev); zoomAt(sx, sy, ev.deltaY < 0 ? 1.15 : 1 / 1.15); }, { passive: false });
   svg.addEventListener("contextmenu", (ev) => {
     ev.preventDefault();
+    if (ui.pointers.size) return;   // a finger held down: the long press gesture handles it
     const name = robotAt(ev.target);
     if (name) openMenu(name, ev.clientX, ev.clientY); else closeMenu();
   });
   document.addEventListener("keydown", (ev) => {
-    if (ev.key === "Escape") { disarm(); closeMenu(); }
+    if (ev.key === "Escape") { if (ui.ask) answer(false); disarm(); closeMenu(); }
   });
-  document.addEventListener("click", (ev) => { if (!$("menu").contains(ev.target)) closeMenu(); });
+  document.addEventListener("click", (ev) => {
+    if (!$("menu").contains(ev.target) && !fresh(ui.menuAt)) closeMenu();
+  });
+  $("confirm-ok").onclick = () => answer(true);
+  $("confirm-cancel").onclick = () => answer(false);
+  $("confirm").addEventListener("click", (ev) => { if (ev.target === $("confirm")) answer(false); });
+  $("hint").textContent = HINT;
   $("zoom-in").onclick = () => zoomAt(svg.clientWidth / 2, svg.clientHeight / 2, 1.3);
   $("zoom-out").onclick = () => zoomAt(svg.clientWidth / 2, svg.clientHeight / 2, 1 / 1.3);
   $("zoom-fit").onclick = () => { fit(); if (ui.state) renderMap(); };
