@@ -3,7 +3,10 @@
 Each line is one utterance (`robot 3 go to 4 5`, `everyone stop`, `turn left 90 degrees`,
 `robot 2 status`); the console answers like the speech front end ("Roger: robot 3, go to x 4,
 y 5", "I don't know robot 9") and prints a line when each task it sent starts and when it ends,
-also when it was stopped or superseded. Status questions are answered from the agent's
+also when it was stopped or superseded (obstacle avoidance is not superseded: it stays on until
+turned off, and the console does not wait for it to end). "cancel that" withdraws the tasks of the
+last command carried out; "set speed 0.2", "faster" and "slower" set the cruise speed of later
+moves. Status questions are answered from the agent's
 directory (link) and the poses and tasks it streams to the console (pose, battery, task).
 Lines from a pipe are read to the end, then the console waits for the tasks it sent to finish
 (`--timeout`).
@@ -61,6 +64,7 @@ class Console:
         self.doing: dict[str, tuple[float, str]] = {}  # robot -> (created, its running task in words)
         self.open: dict[str, Task] = {}  # uid -> task sent and not finished
         self.last: dict[str, str] = {}   # robot -> uid of its last motion task
+        self.standing: set[str] = set()  # obstacle avoidance tasks: on until turned off
         self.running: set[str] = set()   # tasks whose start was printed
         self.failed = 0
         self.refused = 0
@@ -111,20 +115,27 @@ class Console:
 
     def say(self, line: str) -> None:
         """Answer one typed line and send its tasks."""
-        reply = self.dialogue.hear(line, self.robots())
+        with self._lock:
+            running = list(self.open.values())
+        reply = self.dialogue.hear(line, self.robots(), running)
         if reply.say is None:
             self.emit("(standing by: say 'attention')", {"heard": line, "ignored": True})
             return
         if not reply.accepted:
             self.refused += 1
+        for uid in reply.withdraw:
+            self._withdraw(uid, "cancelled by the operator" if reply.action == "cancel" else "re-sent at a new speed")
         # a RemoteBotMotion cancel (a stop) ends the robot's tasks there, and they report it
         remote_cancel = any(t.verb == "RemoteBotMotion" and t.preposition == "cancel" for t in reply.tasks)
         for task in reply.tasks:
-            if reply.action not in ("teleport", "avoid_obstacles") and not remote_cancel:
+            if reply.action not in ("teleport", "avoid_obstacles", "speed") and not remote_cancel:
                 self._supersede(task.destination, reply.action)
             with self._lock:
                 self.open[task.uid] = task
-                self.last[task.destination or ""] = task.uid
+                if task.preposition == "avoid_obstacles" and getattr(task.params, "enabled", True):
+                    self.standing.add(task.uid)  # stays on until turned off: never superseded, not waited for
+                else:
+                    self.last[task.destination or ""] = task.uid
             self.client.send(self.addr, "task.add", task)
         self.emit(reply.say, {"heard": line, "say": reply.say, "accepted": reply.accepted,
                               "targets": reply.targets, "tasks": [t.uid for t in reply.tasks]})
@@ -133,25 +144,32 @@ class Console:
         """Withdraw the robot's previous unfinished task from this console, and say it ended."""
         with self._lock:
             uid = self.last.pop(robot or "", None)
-            still = self.open.pop(uid, None) if uid else None
-        if uid and still:
+        if uid:
+            self._withdraw(uid, f"superseded by {action}")
+
+    def _withdraw(self, uid: str, why: str) -> None:
+        """Cancel an unfinished task this console sent, and say it ended."""
+        with self._lock:
+            still = self.open.pop(uid, None)
+            self.standing.discard(uid)
+        if still:
             self.client.send(self.addr, "task.cancel", Cancel(uid=uid))
-            why = f"superseded by {action}"
             self.emit(f"{stamp()} {still.destination}: {still.preposition} cancelled \u2014 {why}",
                       {"uid": uid, "agent": still.destination, "preposition": still.preposition,
                        "state": "cancelled", "message": why})
 
     def wait(self, timeout: float) -> None:
-        """Wait until every task sent has finished, or `timeout` seconds."""
+        """Wait until every task sent has finished, or `timeout` seconds (obstacle avoidance stays on)."""
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             with self._lock:
-                if not self.open:
+                if not set(self.open) - self.standing:
                     return
             time.sleep(0.05)
         with self._lock:
-            left = list(self.open.values())
-            self.open.clear()
+            left = [t for uid, t in self.open.items() if uid not in self.standing]
+            for t in left:
+                del self.open[t.uid]
         for task in left:
             self.print(f"{task.destination}: {task.preposition} not finished within {timeout:g} s; cancelling")
             self.client.send(self.addr, "task.cancel", Cancel(uid=task.uid))

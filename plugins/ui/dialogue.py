@@ -8,6 +8,11 @@ the answer to a question, read from the team's state (`RobotView`: pose, task, b
 A stop ("stop", "everyone halt", "freeze") is never gated: it acts and is answered while
 standing by too, and goes to lost robots as well. Other commands to a lost robot are refused
 (named) or leave it out with a warning (everyone, last targets).
+"Cancel that" withdraws the tasks of the last command carried out; "set speed 0.2", "faster" and
+"slower" set each robot's cruise speed for later moves (and a running go-to or random walk);
+"go to robot 2" drives to that robot, stopping short. A dialogue made with `read_back` (the
+spoken one) restates a risky command (a move beyond `read_back` metres or out of the map, a
+command to several robots) and carries it out only on "yes"; an unsure hearing is asked again.
 `Naming` maps robot numbers to agent names (`robot3`) and back; `tasks_for` maps an action
 of the grammar onto the task language in either tier (RemoteBotMotion through each robot's
 MissionControl, or BotMotion straight to its motion plugin).
@@ -17,6 +22,7 @@ from __future__ import annotations
 
 import math
 import re
+import time
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -39,6 +45,17 @@ from erni.plugins.ui.grammar import (
 LISTENING = "Listening"
 STANDING_BY = "Standing by"
 ROGER = "Roger"
+CONFIRM_PROMPT = "say yes to confirm"
+SAY_AGAIN = "Say again?"
+EXAMPLE = "say a command like robot 1 go forward 2 metres"
+
+DEFAULT_SPEED = 0.3  # m/s: the task language's cruise speed of goto, forward, backward and random walk
+SPEEDS = (0.05, 2.0)  # m/s: the cruise speeds "faster" and "slower" stay within
+SPEED_STEP = 1.5  # "faster" multiplies the cruise speed by this, "slower" divides by it
+CRUISING = ("goto", "forward", "backward", "randomwalk")  # moves with a cruise speed
+RETUNED = ("goto", "randomwalk")  # running moves a new cruise speed re-sends
+SHORT = 1.0  # m: "go to robot 2" stops this far from robot 2 (centre to centre)
+APART = 0.8  # m: goals of several robots going to one robot are at least this far apart
 
 
 class Naming:
@@ -144,6 +161,10 @@ def restate(action: str, params: Mapping[str, Any], ends: Mapping[str, str] | No
             f", facing {_num(p['heading'])} degrees" if "heading" in p else "")
     if action == "velocity":
         return f"drive at {_num(p['v'])} metres per second"
+    if action == "goto_robot":
+        return f"go to robot {p['robot']}"
+    if action == "speed":
+        return p["change"] if "change" in p else f"cruise speed {_num(p['speed'])} metres per second"
     if action == "avoid_obstacles":
         return ("avoid obstacles" + (f" at {_metres(p['distance'])}" if "distance" in p else "")
                 if p.get("enabled", True) else "stop avoiding obstacles")
@@ -171,6 +192,31 @@ class Reply:
     accepted: bool = False
     action: str = ""
     stop: bool = False  # a stop: sent whatever the listening state
+    withdraw: list[str] = field(default_factory=list)  # uids of tasks to cancel ("cancel that", a new speed)
+    asked: bool = False  # a read-back or "say again?": nothing sent, an answer awaited
+
+
+@dataclass
+class Sent:
+    """A command carried out: who and what in words ("robot 1, go forward 2 metres"), and its tasks."""
+
+    what: str
+    tasks: list[Task]
+
+
+@dataclass
+class Memory:
+    """What one operator's front ends share: the last command carried out and each robot's cruise speed."""
+
+    last: Sent | None = None
+    speeds: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass
+class _Pending:
+    reply: Reply
+    what: str
+    until: float
 
 
 Team = Mapping[str, RobotView] | Iterable[str]
@@ -180,13 +226,21 @@ class Dialogue:
     """Listening state and sticky targets of one operator; `hear()` answers each utterance."""
 
     def __init__(self, naming: Naming | None = None, *, verb: str = "RemoteBotMotion", source: str = "control",
-                 listening: bool = True, control: str = "control") -> None:
+                 listening: bool = True, control: str = "control", memory: Memory | None = None,
+                 read_back: float | None = None, area: tuple[float, float, float, float] | None = None,
+                 read_back_timeout: float = 20.0, echo: bool = False) -> None:
         self.naming = naming or Naming()
         self.verb = verb
         self.source = source
         self.control = control  # agent name of the control node: "relay between robot 1 and control"
         self.listening = listening
         self.targets: list[str] = []
+        self.memory = memory or Memory()
+        self.read_back = read_back  # metres: a longer move is read back first; None: nothing is read back
+        self.area = area  # xmin, ymin, xmax, ymax: a goal outside is read back first
+        self.read_back_timeout = read_back_timeout
+        self.echo = echo  # a refusal names what was heard (speech: the operator cannot see it)
+        self.pending: _Pending | None = None
 
     def select(self, robots: Iterable[str]) -> None:
         """Make these robots the current targets (the GUI's selection)."""
@@ -200,50 +254,276 @@ class Dialogue:
             return {name: team[name] for name in self._order(team)}
         return {name: RobotView(name) for name in self._order(team)}
 
-    def hear(self, text: str, team: Team) -> Reply:
-        """Answer one utterance given the robots the team has now (agent names, or their views)."""
+    def hear(self, text: str, team: Team, running: Iterable[Task] | None = None, *, unsure: bool = False) -> Reply:
+        """Answer one utterance given the robots the team has now (agent names, or their views).
+
+        `running` are the unfinished tasks this operator's front ends sent (None: all it sent
+        are taken as running); `unsure` marks a hearing the recogniser doubts: it is asked again
+        ("Say again?"), except a stop, which acts however it was heard.
+        """
         views = self._views(team)
+        live = None if running is None else {t.uid for t in running}
         reply = Reply(text)
+        pending, self.pending = self.pending, None
         try:
             cmd = parse(text)
         except Refusal as why:
             rescued = _stop_in(text)
             if rescued is None:
                 if self.listening:
-                    reply.say = str(why)
+                    reply.say = self._unsure(text, pending) if unsure else self._refused(text, str(why), pending)
                 return reply
             cmd = rescued
+        if cmd.is_stop:
+            return self._stop(cmd, views, reply)  # never waits, never asked again; drops a read-back
+        if unsure:
+            if self.listening or cmd.kind == "attention":
+                reply.say, reply.asked = self._unsure(text, pending), True
+            return reply
         if cmd.kind == "attention":
             self.listening = True
             reply.say, reply.accepted = LISTENING, True
             return reply
-        if cmd.is_stop:
-            return self._stop(cmd, views, reply)
         if not self.listening:
             return reply  # ignored until the next "attention"
+        if cmd.kind == "confirm":
+            if pending is None:
+                reply.say = self._refused(text, "Nothing to confirm; yes answers a read-back", None)
+                return reply
+            if time.monotonic() > pending.until:
+                reply.say = self._refused(text, f"Too late: {pending.what} was not sent; say it again", None)
+                return reply
+            pending.reply.heard = text
+            self._carried_out(pending.reply)
+            return pending.reply
+        dropped = f"Not sent: {pending.what}" if pending is not None else ""
+        if dropped and (cmd.kind == "deny" or (cmd.action == "cancel" and "last" in cmd.params
+                                               and not cmd.names_targets)):
+            reply.say, reply.accepted = dropped, True
+            return reply
+        answered = self._understood(cmd, views, live, reply)
+        if dropped and answered.say is not None:
+            answered.say = f"{dropped}. {answered.say}"
+        return answered
+
+    def _understood(self, cmd: Command, views: Mapping[str, RobotView], live: set[str] | None, reply: Reply) -> Reply:
+        """Answer a command heard while listening and with no read-back waiting."""
         if cmd.kind == "sleep":
             self.listening = False
             reply.say, reply.accepted = STANDING_BY, True
             return reply
         try:
+            if cmd.kind == "deny":
+                raise Refusal("Nothing to say no to; " + EXAMPLE)
             if cmd.kind == "select":
                 return self._select(cmd, views, reply)
             if cmd.kind == "query":
                 return self._query(cmd, views, reply)
+            if cmd.action == "cancel" and cmd.params.get("last") and not cmd.names_targets:
+                return self._cancel_last(live, reply)
             targets, note = self._targets(cmd, views)
+            if cmd.action == "speed":
+                return self._speed(cmd, targets, views, live, note, reply)
+            params = {k: v for k, v in cmd.params.items() if k != "last"}
             ends = self._relay_ends(cmd, views, targets) if cmd.action == "relay" else None
-            params = {**cmd.params, **ends} if ends else cmd.params
-            reply.tasks = tasks_for(cmd.action, params, targets, verb=self.verb, source=self.source)
+            params = {**params, **ends} if ends else params
+            if cmd.action == "goto_robot":
+                goals, what = self._to_robot(cmd.params["robot"], targets, views)
+                targets = list(goals)
+                reply.tasks = [t for r, goal in goals.items() for t in self._tasks("goto", goal, [r])]
+            else:
+                reply.tasks = self._tasks(cmd.action, params, targets)
+                spoken_ends = {k: self._spoken(v) for k, v in ends.items()} if ends else None
+                what = restate(cmd.action, cmd.params, spoken_ends)
         except Refusal as why:
-            reply.say = str(why)
+            reply.say = self._refused(reply.heard, str(why), None)
             return reply
         self.targets = targets
-        reply.targets, reply.action = list(targets), cmd.action
-        spoken_ends = {k: self._spoken(v) for k, v in ends.items()} if ends else None
-        reply.say = f"{ROGER}: {self.who(targets, cmd.everyone, views)}, {restate(cmd.action, cmd.params, spoken_ends)}"
-        reply.say += f" ({note})" if note else ""
+        reply.targets, reply.action = list(targets), "goto" if cmd.action == "goto_robot" else cmd.action
+        what += self._at_speed(reply.action, targets)
+        who = self.who(targets, cmd.everyone, views)
         reply.accepted = True
+        risk = self._risk(reply, views)
+        if risk:
+            reply.say = f"{ROGER}: {who}, {what}" + (f" ({note})" if note else "")
+            self.pending = _Pending(reply, f"{who}, {what}", time.monotonic() + self.read_back_timeout)
+            return Reply(reply.heard, say=f"{who[0].upper()}{who[1:]}, {what} \u2014 {CONFIRM_PROMPT}",
+                         targets=list(targets), accepted=True, asked=True)
+        reply.say = f"{ROGER}: {who}, {what}" + (f" ({note})" if note else "")
+        self._carried_out(reply)
         return reply
+
+    # -- what was heard, what is expected ----------------------------------------------------
+
+    def _refused(self, heard: str, why: str, pending: _Pending | None) -> str:
+        """The one line a refusal is answered with: with `echo`, what was heard and what is expected."""
+        if not self.echo:
+            return why
+        low = why.lower()
+        if not any(w in low for w in ("say", "ask", "name ", "like", "at most", "i know", "more than")):
+            why = f"{why}; {EXAMPLE}"
+        dropped = f" ({pending.what} not sent)" if pending is not None else ""
+        return f"I heard \u201c{_plain(heard)}\u201d: {why}{dropped}"
+
+    def _unsure(self, heard: str, pending: _Pending | None) -> str:
+        words = _plain(heard)
+        what = f"I heard \u201c{words}\u201d, but I am not sure" if words else "I did not catch that"
+        dropped = f"; {pending.what} not sent" if pending is not None else ""
+        return f"{SAY_AGAIN} {what}{dropped}"
+
+    # -- the last command, cruise speeds, going to a robot, read-back -------------------------
+
+    def _carried_out(self, reply: Reply) -> None:
+        """Remember a command whose tasks go out now, for "cancel that"."""
+        if reply.tasks and reply.action not in ("stop", "cancel", "clear"):
+            what = reply.say.split(": ", 1)[1] if reply.say and reply.say.startswith(ROGER) else reply.action
+            self.memory.last = Sent(what, list(reply.tasks))
+
+    def _cancel_last(self, live: set[str] | None, reply: Reply) -> Reply:
+        last = self.memory.last
+        if last is None:
+            raise Refusal("Nothing to cancel: no command carried out yet; to halt a robot say robot 1 stop")
+        uids = [t.uid for t in last.tasks if live is None or t.uid in live]
+        if not uids:
+            raise Refusal(f"Nothing to cancel: {last.what} has ended")
+        self.memory.last = None
+        reply.withdraw = uids
+        reply.targets = list(dict.fromkeys(t.destination for t in last.tasks if t.uid in uids and t.destination))
+        self.targets = list(reply.targets)
+        reply.action, reply.accepted = "cancel", True
+        reply.say = f"{ROGER}: cancelled {last.what}"
+        return reply
+
+    def _tasks(self, action: str, params: Mapping[str, Any], robots: list[str]) -> list[Task]:
+        """`tasks_for`, each robot's move at its cruise speed."""
+        if action not in CRUISING or "speed" in params:
+            return tasks_for(action, params, robots, verb=self.verb, source=self.source)
+        out: list[Task] = []
+        for r in robots:
+            speed = self.memory.speeds.get(r)
+            out += tasks_for(action, {**params, **({"speed": speed} if speed else {})}, [r], verb=self.verb,
+                             source=self.source)
+        return out
+
+    def _at_speed(self, action: str, robots: list[str]) -> str:
+        speeds = {self.memory.speeds.get(r) for r in robots}
+        if action not in CRUISING or speeds == {None}:
+            return ""
+        if len(speeds) == 1:
+            return f" at {_num(next(iter(speeds)) or DEFAULT_SPEED)} metres per second"
+        return " at their cruise speeds"
+
+    def _speed(self, cmd: Command, targets: list[str], views: Mapping[str, RobotView], live: set[str] | None,
+               note: str, reply: Reply) -> Reply:
+        """Set the targets' cruise speed; re-send a running go-to or random walk at it."""
+        change = cmd.params.get("change")
+        new: dict[str, float] = {}
+        for r in targets:
+            now = self.memory.speeds.get(r, DEFAULT_SPEED)
+            v = cmd.params["speed"] if change is None else now * SPEED_STEP if change == "faster" else now / SPEED_STEP
+            new[r] = round(min(max(v, SPEEDS[0]), SPEEDS[1]), 2)
+        if change and all(new[r] == self.memory.speeds.get(r, DEFAULT_SPEED) for r in targets):
+            edge = "fastest" if change == "faster" else "slowest"
+            raise Refusal(f"Already at the {edge} cruise speed, {_num(new[targets[0]])} metres per second; "
+                          f"say set speed to a number between {_num(SPEEDS[0])} and {_num(SPEEDS[1])}")
+        self.memory.speeds.update(new)
+        newest: dict[str, Task] = {}
+        last = self.memory.last
+        for t in sorted(last.tasks if last else [], key=lambda t: t.created):
+            if t.destination in new and (live is None or t.uid in live):
+                newest[t.destination] = t
+        resent, kept = [], []
+        for r, old in newest.items():
+            if old.preposition in RETUNED:
+                params = {**old.params.model_dump(exclude_defaults=True), "speed": new[r]}
+                task = Task(verb=old.verb, preposition=old.preposition, params=params, source=self.source,
+                            destination=r)
+                reply.tasks.append(task)
+                reply.withdraw.append(old.uid)
+                resent.append((old, task))
+            elif old.preposition in CRUISING:
+                kept.append(old)
+        if last is not None and resent:
+            swap = {old.uid: task for old, task in resent}
+            last.tasks = [swap.get(t.uid, t) for t in last.tasks]
+        self.targets = targets
+        reply.targets, reply.action, reply.accepted = list(targets), "speed", True
+        values = sorted(set(new.values()))
+        said = (f"{_num(values[0])} metres per second" if len(values) == 1
+                else ", ".join(f"{self._spoken(r)} {_num(v)}" for r, v in new.items()) + " metres per second")
+        notes = [note] if note else []
+        if resent:
+            notes.append(f"the running {self._moves(o for o, _ in resent)} too")
+        if kept:
+            notes.append(f"the running {self._moves(kept)} keeps its speed; the next move is at the new one")
+        reply.say = (f"{ROGER}: {self.who(targets, cmd.everyone, views)}, "
+                     f"{'' if change is None else change + ', '}cruise speed {said}"
+                     + (f" ({'; '.join(notes)})" if notes else ""))
+        return reply
+
+    def _moves(self, tasks: Iterable[Task]) -> str:
+        return ", ".join(f"{restate(t.preposition, t.params.model_dump())} of {self._spoken(t.destination or '')}"
+                         for t in tasks)
+
+    def _to_robot(self, number: int, movers: list[str], views: Mapping[str, RobotView]
+                  ) -> tuple[dict[str, dict[str, float]], str]:
+        """Goals short of robot `number` for each mover (apart from each other), and the words for them."""
+        name = self.naming.name(number)
+        if name not in views:
+            have = [self.naming.number(n) for n in views]
+            known = f"; I know robots {spoken_list(have)}" if views and all(h is not None for h in have) else ""
+            raise Refusal(f"I don't know robot {number}{known}")
+        target = views[name]
+        movers = [m for m in movers if m != name]
+        if not movers:
+            raise Refusal(f"Robot {number} is already there; name another robot to go to it")
+        if not target.up or target.x is None or target.y is None:
+            raise Refusal(f"I don't know where robot {number} is now; say go to and a point, like go to 3 4")
+        tx, ty = target.x, target.y
+        unknown = [m for m in movers if views[m].x is None or views[m].y is None]
+        if unknown:
+            raise Refusal(f"I don't know where {self.who(unknown, False, views)} "
+                          f"{'is' if len(unknown) == 1 else 'are'}; say go to and a point, like go to 3 4")
+        goals: dict[str, dict[str, float]] = {}
+        order = sorted(movers, key=lambda m: math.hypot((views[m].x or 0.0) - tx, (views[m].y or 0.0) - ty))
+        for m in order:
+            mx, my = views[m].x or 0.0, views[m].y or 0.0
+            away = math.atan2(my - ty, mx - tx)
+            radius = min(SHORT, math.hypot(mx - tx, my - ty)) if not goals else SHORT
+            while True:
+                gx, gy = tx + radius * math.cos(away), ty + radius * math.sin(away)
+                if all(math.hypot(gx - g["x"], gy - g["y"]) >= APART for g in goals.values()):
+                    break
+                radius += APART
+            goals[m] = {"x": round(gx, 2), "y": round(gy, 2)}
+        what = f"go to robot {number}"
+        if len(goals) == 1:
+            g = next(iter(goals.values()))
+            what += f" (x {_num(g['x'])}, y {_num(g['y'])})"
+        return {m: goals[m] for m in movers}, what
+
+    def _risk(self, reply: Reply, views: Mapping[str, RobotView]) -> str:
+        """Why a command is read back before it is carried out; '' when it is not."""
+        if self.read_back is None or not reply.tasks:
+            return ""
+        if len(set(reply.targets)) > 1:
+            return "several robots"
+        for t in reply.tasks:
+            p = t.params.model_dump()
+            if t.preposition in ("forward", "backward") and p["distance"] > self.read_back:
+                return "far"
+            if t.preposition == "velocity" and p["v"] != 0:
+                return "unbounded"
+            if "x" in p and "y" in p and t.preposition in ("goto", "teleport", "widep"):
+                if self.area is not None:
+                    xmin, ymin, xmax, ymax = self.area
+                    if not (xmin <= p["x"] <= xmax and ymin <= p["y"] <= ymax):
+                        return "off the map"
+                v = views.get(t.destination or "")
+                if v is not None and v.x is not None and v.y is not None and \
+                        math.hypot(p["x"] - v.x, p["y"] - v.y) > self.read_back:
+                    return "far"
+        return ""
 
     # -- who -------------------------------------------------------------------------------
 
@@ -398,6 +678,11 @@ class Dialogue:
         if question == "link":
             return f"{who} {link}"
         return f"{who}: {where}; {doing}; {battery}; {link}"
+
+
+def _plain(text: str) -> str:
+    """An utterance as words, for saying back what was heard."""
+    return " ".join(w for w in tokens(text) if w != "[unk]")
 
 
 def _stop_in(text: str) -> Command | None:

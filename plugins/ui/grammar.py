@@ -40,7 +40,7 @@ UNITS = {"metre": 1.0, "metres": 1.0, "meter": 1.0, "meters": 1.0, "m": 1.0,
          "foot": 0.3048, "feet": 0.3048, "ft": 0.3048, "inch": 0.0254, "inches": 0.0254}
 DEGREES = {"degree", "degrees", "deg"}
 EVERYONE = {"everyone", "everybody", "all", "team"}
-MOVE = {"go", "move", "drive", "head"}
+MOVE = {"go", "move", "drive", "head", "come"}
 STOP_WORDS = ("stop", "halt", "freeze")
 
 # Dropped wherever they stand: politeness, hesitation, address.
@@ -50,6 +50,9 @@ FILLER_PHRASES = ("thank you", "could you", "can you", "would you", "will you")
 
 ATTENTION = ("attention", "wake up", "listen", "listen up")
 SLEEP = ("go to sleep", "sleep", "stand by")
+# The answers to a read-back ("Robot 1, go forward 52 metres: say yes to confirm").
+CONFIRM = ("yes", "confirm", "yes confirm", "affirmative")
+DENY = ("no", "negative")
 _SPOKEN_STRATEGIES = {"spread", "widep", "relay", "patrol"}
 
 # Questions answered from the team's state: kind -> phrases said after an optional subject.
@@ -77,7 +80,8 @@ class Refusal(ErniError):
 class Command:
     """One understood utterance: a control word, a selection, a question, or an action.
 
-    `kind` is "attention", "sleep", "select" (robots named without a verb), "query" (`action`
+    `kind` is "attention", "sleep", "confirm" and "deny" (the answers to a read-back), "select"
+    (robots named without a verb), "query" (`action`
     is the question: status, where, doing, battery, link, count) or "action". `robots` holds the
     robot numbers named, `everyone` is True for "everyone"/"all robots", and neither means "the
     last targets".
@@ -268,6 +272,10 @@ def parse(text: str) -> Command:
         return Command("attention")
     if r.take_rest(SLEEP):
         return Command("sleep")
+    if r.take_rest(CONFIRM):
+        return Command("confirm")
+    if r.take_rest(DENY):
+        return Command("deny")
     if r.take_rest(COUNT_QUESTIONS):
         return Command("query", "count")
     asked = _question_about(r)
@@ -372,10 +380,10 @@ def _verb_object(r: _Reader) -> tuple[str, dict[str, Any]]:
         while r.take(*STOP_WORDS, "everything", "moving", "all"):
             pass
         return "stop", {}
-    if r.take("cancel", "abort"):
-        r.take("that", "it", "everything")
-        r.take_seq("all tasks") or r.take("tasks", "task")
-        return "cancel", {}
+    if r.take("cancel", "abort", "undo"):
+        that = r.take("that", "it", "this")
+        every = r.take("everything") or r.take_seq("all tasks") or r.take("tasks", "task", "all")
+        return "cancel", {} if every and not that else {"last": True}  # "cancel that": the last command
     if r.take("clear"):
         r.take("all", "everything")
         r.take("tasks", "behaviours", "behaviors", "stack")
@@ -393,8 +401,16 @@ def _verb_object(r: _Reader) -> tuple[str, dict[str, Any]]:
         if r.take("at", "within", "by"):
             params["distance"] = _distance(r)["distance"]
         return "avoid_obstacles", params
-    if r.take_seq("set velocity") or r.take_seq("set speed") or r.take("velocity", "speed") \
-            or r.take_seq("drive at") or r.take_seq("move at") or r.take_seq("go at"):
+    mark = r.i
+    r.take(*MOVE)
+    if r.take("faster", "quicker") or r.take_seq("speed up"):
+        return "speed", {"change": "faster"}
+    if r.take("slower") or r.take_seq("slow down"):
+        return "speed", {"change": "slower"}
+    r.i = mark
+    if r.take_seq("set velocity") or r.take_seq("set speed") or r.take("velocity", "speed"):
+        return "speed", _cruise(r)  # the cruise speed of later moves
+    if r.take_seq("drive at") or r.take_seq("move at") or r.take_seq("go at"):
         return "velocity", _velocity(r)
     if r.take("spread"):
         r.take("out")
@@ -418,6 +434,11 @@ def _verb_object(r: _Reader) -> tuple[str, dict[str, Any]]:
         return "goto", _point(r)
     moved = r.take(*MOVE)
     if moved and r.take("to"):
+        if r.take("robot"):  # "go to robot 2", "come to robot 1": that robot's pose, stopping short
+            n = r.robot_number()
+            if n is None:
+                raise Refusal("Which robot? Say go to robot 2")
+            return "goto_robot", {"robot": n}
         return "goto", _point(r)
     if r.take("forward", "forwards", "ahead", "straight"):
         r.take("ahead")
@@ -455,6 +476,14 @@ def _velocity(r: _Reader) -> dict[str, Any]:
     if abs(v) > 2.0:
         raise Refusal(f"{v:g} metres per second is too fast; at most 2")
     return {"v": v}
+
+
+def _cruise(r: _Reader) -> dict[str, Any]:
+    """`set speed|velocity [to] <number> [...]`: the cruise speed of later moves, in 0..2 m/s."""
+    v = _velocity(r)["v"]
+    if v <= 0:
+        raise Refusal(f"A speed of {v:g} is not a cruise speed; say set speed to 0.3, or stop")
+    return {"speed": v}
 
 
 def _relay(r: _Reader) -> dict[str, Any]:
@@ -534,7 +563,8 @@ PHRASES = """spread out cover deploy to relay between for control node base stat
     number and a an half hundred point stop halt freeze everything moving cancel abort that it tasks task clear
     behaviours stack random walk wander explore around teleport jump to turn rotate left right by goto forward
     forwards ahead straight back backward backwards reverse up x y comma facing heading origin avoid obstacles
-    avoiding on off at within do not start set velocity speed per second of every you""".split()
+    avoiding on off at within do not start set velocity speed per second of every you faster quicker slower slow
+    down undo this""".split()
 
 
 def vocabulary() -> list[str]:
@@ -542,7 +572,7 @@ def vocabulary() -> list[str]:
     words: set[str] = set()
     for group in (ONES, TEENS, TENS, NEGATIVE, UNITS, DEGREES, EVERYONE, FILLER, MOVE):
         words.update(group)
-    for phrase in ATTENTION + SLEEP + FILLER_PHRASES + COUNT_QUESTIONS:
+    for phrase in ATTENTION + SLEEP + CONFIRM + DENY + FILLER_PHRASES + COUNT_QUESTIONS:
         words.update(phrase.split())
     for phrases in QUESTIONS.values():
         for phrase in phrases:

@@ -22,7 +22,7 @@ from pydantic import BaseModel, ConfigDict, Field, SecretStr, field_validator
 from erni import netgraph
 from erni.blackboard import NetInfo, Plugin, Pose, Task
 from erni.blackboard.schemas import Peer, load_floorplan
-from erni.plugins.ui.dialogue import ROGER, Dialogue, Naming, Reply, RobotView, restate, tasks_for
+from erni.plugins.ui.dialogue import ROGER, Dialogue, Memory, Naming, Reply, RobotView, Sent, restate, tasks_for
 from erni.plugins.ui.grammar import STANDARD_ACTIONS, Refusal, strategies
 from erni.plugins.ui.protocol import CancelTaskMsg, CommandMsg, MicMsg, SayMsg, SelectMsg
 from erni.plugins.ui.server import WebServer
@@ -48,7 +48,10 @@ class UISettings(BaseModel):
     robot_names: str = Field("robot{n}", description="agent name of robot n")
     low_battery: float = Field(11.5, ge=0, description="battery voltage below which a robot shows as low (V)")
     rate_hz: float = Field(10.0, gt=0, le=50, description="GUI updates per second")
-    supersede: bool = Field(True, description="a new motion command cancels the robot's previous one")
+    supersede: bool = Field(True, description="a new motion command cancels the robot's previous one "
+                            "(obstacle avoidance stays on until turned off)")
+    read_back: float = Field(5.0, ge=0, description="a spoken move longer than this (m), out of the floor plan or "
+                             "to several robots is read back and carried out on 'yes'; 0 = never")
     history: int = Field(60, ge=1, le=10000, description="finished tasks kept in the task list")
     speak: bool = Field(True, description="spoken feedback through espeak-ng on the control node")
     voice: str = Field("en-us", description="espeak-ng voice")
@@ -106,8 +109,11 @@ class UIPlugin(Plugin[UISettings]):
         s = self.settings
         me = self.agent_name
         self.naming = Naming(s.robot_names)
-        self.typed = Dialogue(self.naming, verb=s.verb, source=me, listening=True, control=me)
-        self.spoken = Dialogue(self.naming, verb=s.verb, source=me, listening=False, control=me)
+        memory = Memory()  # "cancel that" and cruise speeds: the same whether typed, spoken or clicked
+        area = load_floorplan(s.floorplan).bounds if s.floorplan else None
+        self.typed = Dialogue(self.naming, verb=s.verb, source=me, listening=True, control=me, memory=memory)
+        self.spoken = Dialogue(self.naming, verb=s.verb, source=me, listening=False, control=me, memory=memory,
+                               read_back=s.read_back or None, area=area, echo=True)
         self.poses = self.subscribe(Pose)
         self.netinfo = self.subscribe(NetInfo)
         self.peers = self.subscribe(Peer)
@@ -404,8 +410,16 @@ class UIPlugin(Plugin[UISettings]):
         if self.listener is not None:
             self.listener.end_utterance("wav")
 
-    def _recognised(self, source: str, text: str) -> None:
-        self.later(lambda: self._answer(self.spoken.hear(text, self.views()), "voice", source))
+    def _recognised(self, source: str, text: Any, unsure: bool = False, **evidence: Any) -> None:
+        """A recognised utterance (a text, or an object with `text` and `unsure`); `unsure` asks again."""
+        words = str(getattr(text, "text", text))
+        doubt = bool(unsure or getattr(text, "unsure", False) or evidence.get("unsure", False))
+        self.later(lambda: self._answer(self.spoken.hear(words, self.views(), self._unfinished(), unsure=doubt),
+                                        "voice", source))
+
+    def _unfinished(self) -> list[Task]:
+        """The unfinished tasks this node sent."""
+        return [t for t in self.tasks if t.source == self.agent_name and not t.done]
 
     def _page_message(self, client: str, msg: Any) -> None:
         if isinstance(msg, CommandMsg):
@@ -413,7 +427,7 @@ class UIPlugin(Plugin[UISettings]):
         elif isinstance(msg, SayMsg):
             if msg.selection:
                 self.typed.select(msg.selection)
-            self._answer(self.typed.hear(msg.text, self.views()), "typed", client)
+            self._answer(self.typed.hear(msg.text, self.views(), self._unfinished()), "typed", client)
         elif isinstance(msg, SelectMsg):
             self.typed.select(msg.robots)
             self.spoken.select(msg.robots)
@@ -447,6 +461,8 @@ class UIPlugin(Plugin[UISettings]):
         except KeyError:
             what = short(tasks[0])
         lost = [r for r in robots if r in views and not views[r].up]
+        if msg.action not in ("stop", "cancel", "clear"):
+            self.typed.memory.last = Sent(f"{self.typed.who(robots, False, views)}, {what}", tasks)
         say = f"{ROGER}: {self.typed.who(robots, False, views)}, {what}" + (
             f" ({', '.join(lost)} {'is' if len(lost) == 1 else 'are'} lost)" if lost else "")
         self.server.emit({"type": "reply", "text": say, "heard": "", "channel": "page", "client": client,
@@ -457,6 +473,11 @@ class UIPlugin(Plugin[UISettings]):
         if reply.say is None:
             self._log("dim", f"({channel}, standing by) \u201c{reply.heard}\u201d ignored")
             return
+        for uid in reply.withdraw:
+            task = self.tasks.get(uid)
+            if task is not None and not task.done:
+                self._retire(task, "cancelled by the operator" if reply.action == "cancel"
+                             else f"re-sent at a new speed ({channel})")
         if reply.tasks:
             self._send(reply.action, reply.tasks)
         if reply.targets:
@@ -475,13 +496,15 @@ class UIPlugin(Plugin[UISettings]):
         """Publish tasks; a motion command first cancels the robot's previous unfinished task.
 
         A RemoteBotMotion `cancel` is left to do that on the robot (MissionControl cancels the
-        robot's remote tasks and reports them), so the UI does not withdraw them as well.
+        robot's remote tasks and reports them), so the UI does not withdraw them as well. Obstacle
+        avoidance is not a motion: it stays on until a command turns it off.
         """
         remote_cancel = any(t.verb == "RemoteBotMotion" and t.preposition == "cancel" for t in tasks)
-        if self.settings.supersede and action not in ("teleport", "avoid_obstacles") and not remote_cancel:
+        if self.settings.supersede and action not in ("teleport", "avoid_obstacles", "speed") and not remote_cancel:
             targets = {t.destination for t in tasks}
             for old in list(self.tasks):
-                if old.source == self.agent_name and old.destination in targets and not old.done:
+                if old.source == self.agent_name and old.destination in targets and not old.done \
+                        and old.preposition != "avoid_obstacles":
                     self._retire(old, f"superseded by {action}")
         for task in tasks:
             self.add(task)
