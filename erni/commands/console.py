@@ -215,6 +215,8 @@ class Console:
                 if event.op == "remove" or state in ("succeeded", "failed", "cancelled"):
                     if self.doing.get(robot, (0.0, ""))[0] <= created:
                         self.doing.pop(robot, None)
+                elif d.get("preposition") == "avoid_obstacles":
+                    pass  # on until turned off: not what the robot is doing
                 elif created >= self.doing.get(robot, (0.0, ""))[0]:
                     self.doing[robot] = (created, f"busy: {d.get('preposition', '?')} ({state})")
 

@@ -258,12 +258,13 @@ class UIPlugin(Plugin[UISettings]):
         return sorted(names, key=lambda n: (self.naming.number(n) is None, self.naming.number(n) or 0, n))
 
     def _known(self) -> tuple[dict[str, Pose], dict[str, Peer], list[str], dict[str, Task]]:
-        """Poses and peers by robot, the robots' names, and each robot's newest running task."""
+        """Poses and peers by robot, the robots' names, and each robot's newest running task (obstacle
+        avoidance stays on until turned off: it is not a task in hand)."""
         poses = {p.robot: p for p in self.poses}
         peers = {p.name: p for p in self.peers}
         running: dict[str, Task] = {}
         for t in sorted(self.tasks, key=lambda t: t.created):
-            if not t.done and t.destination:
+            if not t.done and t.destination and t.preposition != "avoid_obstacles":
                 running[t.destination] = t
         return poses, peers, self.robots(), running
 
