@@ -57,3 +57,23 @@ def test_stop_cancels_the_remote_task_and_halts_the_robot(team):
     walk = wait_until(lambda: [t for t in team.control.query(Task) if t.preposition == "randomwalk" and t.done],
                       timeout=20, message="the random walk was not reported finished")[0]
     assert walk.state.value in ("cancelled", "failed")
+
+
+def test_cancel_that_and_cruise_speed_in_the_two_tier_design(team):
+    p0 = team.pose("robot1")
+    assert p0 is not None
+    for text, said in [("robot 1 avoid obstacles", "Roger: robot 1, avoid obstacles"),
+                       ("robot 1 set speed 0.2", "Roger: robot 1, cruise speed 0.2 metres per second"),
+                       ("robot 1 go forward 3 metres", "Roger: robot 1, go forward 3 metres at 0.2 metres per second")]:
+        assert say(team, text)["text"] == said
+    remote = wait_until(lambda: [t for t in team.control.query(Task) if t.verb == "RemoteBotMotion"
+                                 and t.preposition == "forward"], timeout=20)[0]
+    assert remote.params.speed == 0.2
+    wait_until(lambda: (p := team.pose("robot1")) is not None and p.v > 0.1, timeout=20)
+    assert say(team, "robot 2 where are you")["text"].startswith("Robot 2 is at")
+    assert say(team, "cancel that")["text"] == "Roger: cancelled robot 1, go forward 3 metres at 0.2 metres per second"
+    wait_until(lambda: abs(team.pose("robot1").v) < 0.01, timeout=20, message="robot1 did not halt")
+    p1 = team.pose("robot1")
+    assert p1 is not None and math.hypot(p1.x - p0.x, p1.y - p0.y) < 1.5
+    avoid = [t for t in team.robots[0].query(Task) if t.preposition == "avoid_obstacles"]
+    assert [t.done for t in avoid] == [False]  # still on
