@@ -24,6 +24,7 @@ const ui = {
   pointers: new Map(),               // pointerId -> [x, y] of every pointer down on the map
   pinch: null,                       // two-finger zoom in progress
   real: new Map(),                   // robot -> true: teleport re-bases its odometry; false: a simulator moves it
+  staleTeleports: new Set(),         // teleports of a robot since lost (it may come back as another machine)
   ask: null,                         // the question shown, {yes, ghost}
   menuAt: 0,                         // when the menu opened (a long press's release does not close it)
   trails: new Map(), showTrails: true,
@@ -123,7 +124,7 @@ function render() {
     if (t.length > TRAIL) t.shift();
     ui.trails.set(r.name, t);
   }
-  learnRobotKinds(s.tasks);
+  learnRobotKinds(s);
   const fitting = !ui.view.fitted && s.robots.some((r) => r.pose);
   if (fitting) fit();
   if (changed("metrics", s.metrics)) renderMetrics(s);
@@ -138,9 +139,16 @@ function render() {
 }
 
 // A teleport's result says how it was done: `moved` true on a simulator (the robot was moved),
-// false on a real robot (only its odometry was re-based). Remembered beyond the task list.
-function learnRobotKinds(tasks) {
-  for (const t of [...tasks].reverse()) {   // oldest first: the newest answer wins
+// false on a real robot (only its odometry was re-based). Remembered beyond the task list, and
+// forgotten when the robot is lost: what answers to its name next may be another machine.
+function learnRobotKinds(s) {
+  for (const r of s.robots) {
+    if (r.state !== "lost" || !ui.real.has(r.name)) continue;
+    ui.real.delete(r.name);
+    for (const t of s.tasks) if (t.robot === r.name && t.preposition === "teleport") ui.staleTeleports.add(t.uid);
+  }
+  for (const t of [...s.tasks].reverse()) {   // oldest first: the newest answer wins
+    if (ui.staleTeleports.has(t.uid)) continue;
     if (t.preposition === "teleport" && t.state === "succeeded" && typeof t.values.moved === "boolean") {
       ui.real.set(t.robot, !t.values.moved);
     }
