@@ -504,8 +504,8 @@ class Dialogue:
 
     def _risk(self, reply: Reply, views: Mapping[str, RobotView]) -> str:
         """Why a command is read back before it is carried out; '' when it is not."""
-        if self.read_back is None or not reply.tasks:
-            return ""
+        if self.read_back is None or not reply.tasks or reply.action in ("cancel", "clear"):
+            return ""  # what ends tasks never waits
         if len(set(reply.targets)) > 1:
             return "several robots"
         for t in reply.tasks:

@@ -47,6 +47,14 @@ def test_a_read_back_expires():
     assert d.hear("robot 1 go forward 5 metres", TEAM).say == "Roger: robot 1, go forward 5 metres"  # at the bound
 
 
+def test_what_ends_tasks_is_not_read_back_even_for_several_robots():
+    d = Dialogue(Naming(), verb="BotMotion", read_back=5.0)
+    assert d.hear("everyone turn left", TEAM).say.endswith("say yes to confirm")
+    for text in ("everyone cancel everything", "robots 1 and 2 clear", "everybody halt"):
+        reply = d.hear(text, TEAM)
+        assert "Roger: " in reply.say and len(reply.tasks) >= 2, reply.say
+
+
 def test_faster_and_slower_stay_within_the_cruise_speeds():
     d = Dialogue(Naming(), verb="BotMotion")
     assert d.hear("robot 1 set speed 2", TEAM).say == "Roger: robot 1, cruise speed 2 metres per second"
