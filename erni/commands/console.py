@@ -30,7 +30,8 @@ from erni.commands._client import add_client_options, dumps, make_client, make_r
 WATCH_LEASE = 10.0
 
 HELP = """examples:  robot 1 go to 2 3 | robots 1 and 2 turn right 90 degrees | go forward 2 feet
-           everyone stop | cancel | random walk | robot 2 status | where are you | how many robots
+           everyone stop | cancel that | random walk | robot 2 status | where are you | how many robots
+           set speed 0.2 | faster | slower | robot 1 go to robot 2 | avoid obstacles | stop avoiding obstacles
            attention | go to sleep | quit"""
 
 
