@@ -488,7 +488,7 @@ class UIPlugin(Plugin[UISettings]):
         if self.speaker is not None:
             self.speaker.say(reply.say)
         self.server.emit({"type": "reply", "text": reply.say, "heard": reply.heard, "channel": channel,
-                          "client": client, "accepted": reply.accepted})
+                          "client": client, "accepted": reply.accepted, "asked": reply.asked})
         detail = f" ({', '.join(reply.targets)})" if reply.targets else ""
         self._log("info" if reply.accepted else "warn",
                   f"{channel}: \u201c{reply.heard}\u201d \u2192 {reply.say}{detail}")

@@ -5,8 +5,10 @@ once. On a running team: the control node's UI plugin and simulated robots."""
 
 from __future__ import annotations
 
+import asyncio
 import re
 import shutil
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -18,6 +20,7 @@ from erni.blackboard.testing import wait_until
 from erni.plugins.ui.voice import Speaker
 from tests.ui.team import Team, start_team
 from tests.ui.test_operator_meaning import halted, tasks_on, typed
+from tests.ui.test_server import of, talk
 
 pytestmark = pytest.mark.skipif(shutil.which("espeak-ng") is None, reason="espeak-ng is not installed")
 
@@ -130,3 +133,16 @@ def test_every_refused_utterance_gets_one_spoken_and_printed_line_saying_what_wa
 def test_the_voice_wrote_what_it_said(team):
     assert team.ui.speaker is not None and team.ui.speaker.failures == 0
     assert Path(team.ui.speaker.args[-1]).stat().st_size > 1000
+
+
+def test_the_page_is_told_a_read_back_awaits_an_answer(team):
+    heard(team, "attention")
+    url = f"ws://127.0.0.1:{team.ui.server.port}/ws?token={team.ui.server.token}"
+    speak = threading.Timer(0.5, lambda: team.ui._recognised("mic", "robot two go forward six metres"))
+    speak.start()
+    msgs = asyncio.run(talk(url, [{"type": "ping"}], lambda m: of(m, "reply")))
+    speak.join()
+    reply = of(msgs, "reply")[0]
+    assert (reply["text"], reply["channel"], reply["asked"]) == (
+        "Robot 2, go forward 6 metres \u2014 say yes to confirm", "voice", True)
+    assert heard(team, "no") == "Not sent: robot 2, go forward 6 metres"
