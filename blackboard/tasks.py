@@ -77,8 +77,14 @@ class NoParams(Params):
     """No parameters."""
 
 
-class StopParams(NoParams):
-    """BotMotion stop: halt and hold."""
+class StopParams(Params):
+    """BotMotion stop: end every motion on the robot and halt; or, with `hold`, pause what runs."""
+
+    hold: bool = Field(False, description="false: end every motion on the robot (cancelled, naming who stopped "
+                       "it) and halt; true: hold the robot while this task stands, the motions underneath "
+                       "resume when it is removed (the network guard's pause)")
+    by: str | None = Field(None, max_length=64, description="who asked for the stop, named in the results of "
+                           "the motions it ends; the stop task's source if omitted")
 
 
 class ClearParams(NoParams):
@@ -291,7 +297,7 @@ for _name, _model, _doc in _NETWATCH:
 _BOTMOTION: list[tuple[str, type[Params], str]] = [
     ("randomwalk", RandomWalkParams, "wander, turning away from obstacles"),
     ("goto", GotoParams, "drive to (x, y)"),
-    ("stop", StopParams, "halt: a stop behaviour on top of the stack"),
+    ("stop", StopParams, "halt: end every motion of the robot, whoever started it; with hold=true pause them"),
     ("turn", TurnParams, "turn in place by an angle"),
     ("teleport", TeleportParams, "set the pose (simulator moves, robot re-localises)"),
     ("clear", ClearParams, "empty the behaviour stack, cancelling its tasks"),

@@ -4,8 +4,11 @@
   planned into BotMotion sub-tasks (`parent` = the remote task, `source` = this agent,
   no destination), performed one after the other; the sub-tasks' results are aggregated into
   the remote task's result, which changes only on significant news (see `remote.py`).
-  Removing a remote task, or a RemoteBotMotion `cancel`, withdraws its sub-tasks and halts
-  the robot with a BotMotion `stop` that is removed once the robot reports it halted.
+  Removing a remote task, or a RemoteBotMotion `cancel` naming one task, withdraws its
+  sub-tasks and halts the robot with a BotMotion `stop` hold that is removed once the robot
+  reports it halted. A `cancel` of everything is a stop: every job and deployment ends
+  `cancelled` and a BotMotion `stop` ends every motion on the robot, whoever started it; a
+  BotMotion `stop` from anyone else ends this mission's jobs and deployments the same way.
 - Deploy tasks addressed to this agent run a strategy runner (`deploy.py`).
 - Network awareness: NetWatch `network_topology` and `link_quality` tasks feed a `NetGuard`;
   when connectivity is at risk while a remote motion task runs, the configured policy
@@ -13,7 +16,7 @@
   `retreat` resume when connectivity returns.
 - Audio cues: a remote task received and every connectivity change play a BotMotion `say`.
 One driving job at a time: a new remote motion or Deploy task supersedes the previous one.
-Local BotMotion tasks of other plugins are never touched (mixed initiative).
+Local BotMotion tasks of other plugins are never touched (mixed initiative), except by a stop.
 """
 
 from __future__ import annotations
@@ -109,6 +112,8 @@ class MissionControl(Plugin[MissionSettings]):
                                      and t.destination == me)
         self.mine = self.subscribe(Task, where=lambda t: t.source == me and t.verb in ("BotMotion", "NetWatch")
                                    and t.destination in (None, "", me))
+        self.stops = self.subscribe(Task, where=lambda t: t.verb == "BotMotion" and t.preposition == "stop"
+                                    and t.source != me and t.destination in (None, "", me))
         self.poses = self.subscribe(Pose)
         self.infos = self.subscribe(NetInfo)
         self.territories = self.subscribe(Territory)
@@ -232,6 +237,9 @@ class MissionControl(Plugin[MissionSettings]):
                 for r in self.runners.values():
                     r.pose(pose)
         self._read_network()
+        for stop in self.stops.added:
+            if not stop.done and not stop.params_as(StopParams).hold:
+                self._stopped(stop)
         for task in self.remote.removed:
             self._dropped(task)
         for task in self.remote.added:
@@ -366,7 +374,7 @@ class MissionControl(Plugin[MissionSettings]):
         if had:
             if not any(j.moving for j in self.jobs.values()):
                 self._release_guard()
-            self._halt(None)
+            self._halt(None, hold=True)
 
     def _cancel_task(self, task: Task, now: float) -> None:
         target = task.params_as(CancelParams).task
@@ -376,17 +384,31 @@ class MissionControl(Plugin[MissionSettings]):
                         f"{self.agent_name}", force=True)
             return
         victims = [target] if target is not None else active
+        who = f"{task.source} (task {task.uid})" if task.source else f"task {task.uid}"
         for uid in victims:
-            self._end_job(uid, TaskState.CANCELLED, f"cancelled by task {task.uid}")
-            self._end_runner(uid, TaskState.CANCELLED, f"cancelled by task {task.uid}")
+            self._end_job(uid, TaskState.CANCELLED, f"cancelled by {who}")
+            self._end_runner(uid, TaskState.CANCELLED, f"cancelled by {who}")
         self._release_guard()
         self.report(task.uid, TaskState.RUNNING, f"stopping; cancelled {len(victims)} task(s)",
                     values={"cancelled": [*victims]})
-        self._halt(task.uid)
+        # a cancel of everything is a stop: it ends every motion on the robot, whoever started it;
+        # a cancel of one task halts the robot only until it stands (what else runs goes on)
+        self._halt(task.uid, hold=target is not None, by=task.source or None)
 
-    def _halt(self, cancel: str | None) -> None:
-        uid = self.issue(cancel, "stop", StopParams())
+    def _halt(self, cancel: str | None, *, hold: bool, by: str | None = None) -> None:
+        uid = self.issue(cancel, "stop", StopParams(hold=hold, by=by))
         self.halts[uid] = (cancel, time.time() + self.settings.halt_timeout)
+
+    def _stopped(self, stop: Task) -> None:
+        """Somebody else stopped this robot (a BotMotion stop): end every job and deployment, so
+        nothing of this mission drives it again until a new motion command arrives."""
+        params = stop.params_as(StopParams)
+        who = f"{params.by or stop.source or 'a stop'} (task {stop.uid})"
+        for uid in list(self.jobs):
+            self._end_job(uid, TaskState.CANCELLED, f"stopped by {who}")
+        for uid in list(self.runners):
+            self._end_runner(uid, TaskState.CANCELLED, f"stopped by {who}")
+        self._release_guard()
 
     def _sub_result(self, sub: Task, now: float) -> None:
         uid = sub.uid
@@ -409,7 +431,7 @@ class MissionControl(Plugin[MissionSettings]):
             self.retreat = None
             self.withdraw(uid)
             if self.guard.state.at_risk and self.guard_stop is None:
-                self.guard_stop = self.issue(None, "stop", StopParams())
+                self.guard_stop = self.issue(None, "stop", StopParams(hold=True))
             return
         parent = self.parent_of.get(uid)
         job = self.jobs.get(parent) if parent else None
@@ -486,7 +508,7 @@ class MissionControl(Plugin[MissionSettings]):
         if policy == "stop":
             for job in jobs:
                 self._end_job(job.uid, TaskState.FAILED, f"stopped: {reason}")
-            self._halt(None)
+            self._halt(None, hold=False, by="the network guard")
             return
         mine = self.team.mine()
         target = None if mine is None else self.guard.retreat_point(mine[:2], self.settings.retreat_distance)
@@ -498,7 +520,7 @@ class MissionControl(Plugin[MissionSettings]):
             why = f"retreating to ({target[0]:.2f}, {target[1]:.2f}): {reason}"
         else:
             if self.guard_stop is None:
-                self.guard_stop = self.issue(None, "stop", StopParams())
+                self.guard_stop = self.issue(None, "stop", StopParams(hold=True))
             why = f"holding: {reason}"
         for job in jobs:
             job.held = reason

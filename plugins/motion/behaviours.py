@@ -230,15 +230,29 @@ class Behaviour:
 
 
 class Stop(Behaviour):
-    """Halt and hold the robot while on the stack (the task stays running until removed)."""
+    """Halt the robot.
+
+    A hold (`hold=True`, the network guard's pause) keeps the robot halted while on the stack and
+    stays running until its task is removed; the motions underneath resume then. A stop (the
+    operator's) succeeds once the robot stands: the resource has ended every motion before
+    pushing it, so nothing is left to resume.
+    """
 
     priority = 2
     kind = "stop"
 
+    def __init__(self, task_uid: str | None = None, *, hold: bool = True, ended: int = 0) -> None:
+        super().__init__(task_uid)
+        self.hold = hold
+        self.ended = ended
+
     def propose(self, ctx: Context) -> Command | None:
         s = ctx.state
         if abs(s.v) < 0.01 and abs(s.w) < 0.02 and not self.values.get("halted"):
-            self.report(1.0, "halted; holding until the task is removed", halted=True)
+            if self.hold:
+                self.report(1.0, "halted; holding until the task is removed", halted=True)
+            else:
+                self.succeed(f"halted; {self.ended} motion(s) ended", halted=True, ended=self.ended)
         return STOP
 
 

@@ -30,7 +30,7 @@ from typing import Any
 
 from erni.blackboard import Task, TaskState
 from erni.blackboard.errors import UsageError
-from erni.blackboard.tasks import AvoidParams
+from erni.blackboard.tasks import AvoidParams, StopParams
 from erni.plugins.motion.behaviours import (
     AvoidObstacles,
     Behaviour,
@@ -257,6 +257,11 @@ class RobotMotionResource:
             self._emit(TaskUpdate(task.uid, TaskState.SUCCEEDED, 1.0, {"cleared": len(gone)},
                                   f"behaviour stack cleared ({len(gone)} removed)"))
             return
+        if prep == "stop":
+            assert isinstance(p, StopParams)
+            ended = 0 if p.hold else self._end_motions(task.uid, p.by or task.source)
+            self.stack.push(Stop(task.uid, hold=p.hold, ended=ended))
+            return
         if prep == "say":
             tones = bytes(b for d, n in task.params.tones  # type: ignore[attr-defined]
                           for b in (max(1, min(255, d)), max(1, min(127, n))))
@@ -281,6 +286,16 @@ class RobotMotionResource:
             return
         self.stack.push(behaviour)
 
+    def _end_motions(self, stop: str, by: str | None) -> int:
+        """An operator's stop: cancel every motion on the stack, whoever started it (obstacle avoidance
+        and holds stay); return how many ended."""
+        who = f"{by} (task {stop})" if by else f"task {stop}"
+        gone = self.stack.clear(keep=lambda b: isinstance(b, (AvoidObstacles, Stop)))
+        for b in gone:
+            b.cancel(f"stopped by {who}")
+            self._record(b)
+        return sum(1 for b in gone if b.task_uid is not None)
+
     def _play_says(self, now: float) -> None:
         """Send the SAYs waiting for the link; one that could not be sent for `link_grace` s fails."""
         for uid, (tones, until) in list(self._says.items()):
@@ -303,7 +318,6 @@ class RobotMotionResource:
             "backward": lambda: Straight(p, -1, uid, self.default_timeout),  # type: ignore[arg-type]
             "velocity": lambda: Velocity(p, uid),  # type: ignore[arg-type]
             "randomwalk": lambda: RandomWalk(p, uid, turn_distance=max(0.6, 2 * self.avoid_distance)),  # type: ignore[arg-type]
-            "stop": lambda: Stop(uid),
             "teleport": lambda: Teleport(p, uid),  # type: ignore[arg-type]
             "avoid_obstacles": lambda: AvoidObstacles(p, uid, blocked),  # type: ignore[arg-type]
         }

@@ -125,20 +125,48 @@ def test_forward_then_backward_end_within_2_cm_once_stopped(start_agent, robot_u
     assert math.hypot(pose(agent).x - p0.x, pose(agent).y - p0.y) <= 0.03
 
 
-def test_velocity_holds_then_stop_halts_and_removing_the_stop_resumes(start_agent, robot_url):
+def test_velocity_holds_then_a_hold_halts_and_removing_the_hold_resumes(start_agent, robot_url):
     agent, plugin = start_agent(robot_url)
     vel = post(agent, "velocity", v=0.3, w=0)
     wait_until(lambda: pose(agent).v > 0.25, timeout=3)
-    stop = post(agent, "stop")
+    stop = post(agent, "stop", hold=True)
     held = wait_until(lambda: (t := current(agent, stop)).result and t.result.values.get("halted") and t, timeout=3)
     assert held.state == TaskState.RUNNING and halted(agent)
-    assert current(agent, vel).state == TaskState.RUNNING  # waiting under the stop
+    assert current(agent, vel).state == TaskState.RUNNING  # waiting under the hold
     with agent.transaction() as tx:
         tx.remove(stop.uid)
     wait_until(lambda: pose(agent).v > 0.25, timeout=3)
     with agent.transaction() as tx:
         tx.remove(vel.uid)  # cancelling the task stops the robot
     wait_until(lambda: halted(agent), timeout=3)
+
+
+@pytest.mark.parametrize("motion", [dict(preposition="velocity", v=0.3, w=10.0),
+                                    dict(preposition="turn", angle=360.0, rate=60.0),
+                                    dict(preposition="backward", distance=2.0, speed=0.3),
+                                    dict(preposition="goto", x=3.0, y=0.0, speed=0.3),
+                                    dict(preposition="randomwalk", speed=0.3, seed=3)])
+def test_a_stop_ends_every_motion_cancelled_naming_who_and_the_robot_stays_halted(start_agent, robot_url, motion):
+    agent, plugin = start_agent(robot_url)
+    params = dict(motion)
+    moving = post(agent, params.pop("preposition"), **params)
+    under = post(agent, "velocity", v=0.1) if moving.preposition != "velocity" else None  # one more, underneath
+    wait_until(lambda: abs(pose(agent).v) > 0.05 or abs(pose(agent).w) > 0.1, timeout=3)
+    stop = post(agent, "stop", by="operator")
+    done = finish(agent, stop, timeout=3)
+    assert done.state == TaskState.SUCCEEDED and done.result.values["halted"]
+    for task in [moving] + ([under] if under else []):
+        ended = finish(agent, task, timeout=1)
+        assert ended.state == TaskState.CANCELLED, ended.result
+        assert ended.result.message == f"stopped by operator (task {stop.uid})"
+    assert halted(agent)
+    assert not [b for b in plugin.resource.stack.items if b.task_uid is not None]  # nothing left to resume
+    time.sleep(1.0)  # and it stays halted: nothing resumes after the stop is done
+    assert halted(agent)
+    again = post(agent, "velocity", v=0.2)  # a new motion command runs at once
+    wait_until(lambda: pose(agent).v > 0.15, timeout=3)
+    with agent.transaction() as tx:
+        tx.remove(again.uid)
 
 
 def test_stop_takes_over_within_one_stack_cycle(start_agent, robot_url):
