@@ -40,6 +40,7 @@ UNITS = {"metre": 1.0, "metres": 1.0, "meter": 1.0, "meters": 1.0, "m": 1.0,
          "foot": 0.3048, "feet": 0.3048, "ft": 0.3048, "inch": 0.0254, "inches": 0.0254}
 DEGREES = {"degree", "degrees", "deg"}
 EVERYONE = {"everyone", "everybody", "all", "team"}
+EVERYONE_PHRASES = ("every robot", "all of you", "you all")
 MOVE = {"go", "move", "drive", "head", "come"}
 STOP_WORDS = ("stop", "halt", "freeze")
 
@@ -262,13 +263,16 @@ class _Reader:
         return int(value)
 
 
-def parse(text: str) -> Command:
-    """Parse one utterance into a Command, or raise Refusal with the reason to say back."""
+def parse(text: str, wake: tuple[str, ...] = ATTENTION) -> Command:
+    """Parse one utterance into a Command, or raise Refusal with the reason to say back.
+
+    `wake`: the phrases that wake a standing-by dialogue (kind "attention"); default `ATTENTION`.
+    """
     words = without_fillers(tokens(text))
     if not words:
         raise Refusal("I didn't hear a command")
     r = _Reader(words)
-    if r.take_rest(ATTENTION):
+    if r.take_rest(tuple(wake)):
         return Command("attention")
     if r.take_rest(SLEEP):
         return Command("sleep")
@@ -329,7 +333,7 @@ def _question_about(r: _Reader) -> Command | None:
 
 
 def _subject(r: _Reader) -> tuple[tuple[int, ...], bool]:
-    if r.take_seq("every robot") or r.take_seq("all of you") or r.take_seq("you all"):
+    if any(r.take_seq(phrase) for phrase in EVERYONE_PHRASES):
         return (), True
     if r.take(*EVERYONE):
         r.take("robots")
@@ -352,6 +356,33 @@ def _subject(r: _Reader) -> tuple[tuple[int, ...], bool]:
         numbers.append(more)
     return tuple(dict.fromkeys(numbers)), False
 
+
+# The spoken forms of each action, in JSGF over the rules <number>, <distance>, <point>, <n> and
+# <unit> of erni.plugins.ui.jsgf. The speech recogniser decodes these forms and nothing else, so a
+# form added here is heard as well as typed; tests/ui/test_spoken_grammar.py parses sentences drawn from
+# every form and checks they mean the action named.
+_STOP = " | ".join(STOP_WORDS)
+SPOKEN_ACTIONS: dict[str, tuple[str, ...]] = {
+    "stop": (f"({_STOP}) [everything | moving]",),
+    "cancel": ("(cancel | abort) [that | it | everything | all tasks]", "undo [that | it]"),
+    "clear": ("clear [all | everything] [tasks]",),
+    "randomwalk": ("[do a | start a] random walk", "(wander | explore) [around]"),
+    "avoid_obstacles": ("avoid obstacles [on | off]", "stop avoiding obstacles", "do not avoid obstacles"),
+    "speed": ("[go | move | drive] (faster | slower | quicker)", "speed up", "slow down",
+              "set (speed | velocity) [to] <number> [<unit> per second]"),
+    "velocity": ("(drive | move | go) at <number> [<unit> per second]",),
+    "spread": ("spread [out] [<distance>]",),
+    "widep": ("cover <point>", "deploy to <point>"),
+    "relay": ("relay between [robot] <n> and ([robot] <n> | control [node] | base [station])",),
+    "patrol": ("patrol [from] <point> to <point>",),
+    "teleport": ("(teleport | jump) [to] <point> [facing <number> [degrees]]",),
+    "turn": ("(turn | rotate) around", "(turn | rotate) (left | right) [[by] <number> [degrees]]",
+             "(turn | rotate) <number> [degrees] [left | right]"),
+    "goto": ("(go | move | drive | head | come) to <point>",),
+    "goto_robot": ("(go | move | drive | head | come) to robot <n>",),
+    "forward": ("[go | move | drive | head] (forward | forwards | ahead | straight) <distance>",),
+    "backward": ("[go | move | drive | head] (back | backward | backwards | reverse) [up] <distance>",),
+}
 
 # Words that begin a command, for "did you mean ...?"
 VERB_WORDS = ("stop", "halt", "freeze", "cancel", "abort", "clear", "random", "wander", "explore", "spread",

@@ -1,0 +1,131 @@
+"""The speech test set: the paper's operator utterances and the stop phrasings, spoken by several
+espeak-ng voices at several speeds, clean and in white noise, and how each hearing is judged.
+
+The audio is made at test time (espeak-ng, then the control node's own audio path to 16 kHz
+mono PCM); nothing is recorded in the repository. A hearing is judged by meaning against the
+same text typed: `exact` when the recogniser's text parses to the same command, `asked` when the
+recogniser flagged it unsure (the operator hears "Say again?"), `refused` when the parser refuses
+what was heard, `wrong` when a different command would be carried out.
+"""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from erni.plugins.ui.grammar import Command, Refusal, parse
+from erni.plugins.ui.speech import FRAME_SAMPLES, RATE, read_wav
+
+ESPEAK = shutil.which("espeak-ng")
+PAPER = Path(__file__).with_name("paper_utterances.txt")
+VOICES = ("en-us", "en-gb", "en-us+f3")  # American, British, a female variant
+SPEEDS = (130, 160, 190)  # words a minute
+NOISES: tuple[float | None, ...] = (None, 15.0, 5.0)  # white noise at this SNR (dB); None: a quiet room
+STOPS = ("stop", "everybody stop", "all stop", "halt", "freeze")
+ROOM = 50.0  # rms of a quiet room's noise floor (about -56 dBFS): synthetic speech has none
+
+
+@dataclass(frozen=True)
+class Condition:
+    voice: str
+    speed: int
+    snr: float | None
+
+    @property
+    def noise(self) -> str:
+        return "clean" if self.snr is None else f"{self.snr:g} dB"
+
+    def __str__(self) -> str:
+        return f"{self.voice} {self.speed} wpm {self.noise}"
+
+
+def conditions(voices: tuple[str, ...] = VOICES, speeds: tuple[int, ...] = SPEEDS,
+               noises: tuple[float | None, ...] = NOISES) -> list[Condition]:
+    return [Condition(v, s, n) for v in voices for s in speeds for n in noises]
+
+
+def utterances() -> list[str]:
+    """The paper's operator lines (tests/ui/paper_utterances.txt) and every stop phrasing, once each."""
+    lines = [line.strip() for line in PAPER.read_text(encoding="utf-8").splitlines()
+             if line.strip() and not line.startswith("#")]
+    return list(dict.fromkeys(lines + list(STOPS)))
+
+
+def meaning(text: str) -> Command | None:
+    """What a text asks for, None when the parser refuses it."""
+    try:
+        return parse(text)
+    except Refusal:
+        return None
+
+
+def synthesise(text: str, voice: str, speed: int) -> np.ndarray:
+    """espeak-ng saying `text`, read through the control node's audio path: 16 kHz mono int16 samples."""
+    if ESPEAK is None:
+        raise RuntimeError("espeak-ng is not installed (apt install espeak-ng)")
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "say.wav"
+        subprocess.run([ESPEAK, "-v", voice, "-s", str(speed), "-w", str(out), text], check=True, timeout=30,
+                       capture_output=True)
+        return np.frombuffer(read_wav(out), dtype="<i2").astype(np.float64)
+
+
+def as_heard(speech: np.ndarray, snr: float | None, rng: np.random.Generator) -> bytes:
+    """Speech with half a second of room before and a second after, in a quiet room or in white noise
+    at `snr` dB (the speech's power over its loud 10 ms windows against the noise's)."""
+    pcm = np.concatenate([np.zeros(RATE // 2), speech, np.zeros(RATE)])
+    windows = speech[: len(speech) // 160 * 160].reshape(-1, 160)
+    power = np.mean(windows ** 2, axis=1)
+    loud = power[power > 0.1 * power.max()] if power.size else np.array([0.0])
+    sigma = ROOM if snr is None else float(np.sqrt(loud.mean() / 10 ** (snr / 10)))
+    pcm = pcm + rng.normal(0.0, sigma, len(pcm))
+    return np.clip(np.round(pcm), -32768, 32767).astype("<i2").tobytes()
+
+
+def in_frames(pcm: bytes) -> list[bytes]:
+    """100 ms frames, as the page's microphone sends them."""
+    return [pcm[i:i + FRAME_SAMPLES * 2] for i in range(0, len(pcm), FRAME_SAMPLES * 2)]
+
+
+def judge(said: str, heard: str, unsure: bool) -> str:
+    """`exact`, `asked`, `refused` or `wrong`: what the operator gets for saying `said` when the
+    recogniser hears `heard` (unsure or not)."""
+    if unsure:
+        return "asked"
+    got = meaning(heard) if heard else None
+    if got is None:
+        return "refused"
+    return "exact" if got == meaning(said) else "wrong"
+
+
+_ONES = "zero one two three four five six seven eight nine".split()
+_TEENS = "ten eleven twelve thirteen fourteen fifteen sixteen seventeen eighteen nineteen".split()
+_TENS = "_ _ twenty thirty forty fifty sixty seventy eighty ninety".split()
+
+
+def _int_words(n: int) -> list[str]:
+    if n >= 100:
+        rest = _int_words(n % 100) if n % 100 else []
+        return [_ONES[n // 100], "hundred", *rest]
+    if n >= 20:
+        return [_TENS[n // 10]] + ([_ONES[n % 10]] if n % 10 else [])
+    return [(_ONES + _TEENS)[n]] if n < 10 else [_TEENS[n - 10]]
+
+
+def in_words(text: str) -> str:
+    """The text with its numbers in words, as it is spoken ("robot 1 set velocity to 0.3" ->
+    "robot one set velocity to zero point three")."""
+    out: list[str] = []
+    for word in text.split():
+        whole, _, frac = word.partition(".")
+        if whole.lstrip("-").isdigit():
+            out += (["minus"] if whole.startswith("-") else []) + _int_words(int(whole.lstrip("-")))
+            out += ["point", *(_ONES[int(d)] for d in frac)] if frac else []
+        else:
+            out.append(word)
+    return " ".join(out)
