@@ -34,10 +34,11 @@ def processes_mentioning(text: str) -> list[int]:
 class SimProcess:
     """`erni sim` in its own session; always killed with everything it started, even on failure."""
 
-    def __init__(self, run_dir: Path, *args: str) -> None:
+    def __init__(self, run_dir: Path, *args: str, headless: bool = True) -> None:
         self.run_dir = run_dir
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "erni", "sim", "--headless", "--run-dir", str(run_dir), *args],
+            [sys.executable, "-m", "erni", "sim", *(["--headless"] if headless else []), "--run-dir", str(run_dir),
+             *args],
             cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True,
             env={**os.environ, "PYTHONUNBUFFERED": "1"})
         self.lines: list[str] = []
