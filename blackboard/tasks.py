@@ -80,11 +80,10 @@ class NoParams(Params):
 class StopParams(Params):
     """BotMotion stop: end every motion on the robot and halt; or, with `hold`, pause what runs."""
 
-    hold: bool = Field(False, description="false: end every motion on the robot (cancelled, naming who stopped "
-                       "it) and halt; true: hold the robot while this task stands, the motions underneath "
-                       "resume when it is removed (the network guard's pause)")
-    by: str | None = Field(None, max_length=64, description="who asked for the stop, named in the results of "
-                           "the motions it ends; the stop task's source if omitted")
+    hold: bool = Field(False, description="true: pause the motions while this task stands (the network "
+                       "guard's hold); false: end them all")
+    by: str | None = Field(None, max_length=64, description="who asked, named in the ended tasks' results; "
+                           "the task's source if omitted")
 
 
 class ClearParams(NoParams):
@@ -297,7 +296,7 @@ for _name, _model, _doc in _NETWATCH:
 _BOTMOTION: list[tuple[str, type[Params], str]] = [
     ("randomwalk", RandomWalkParams, "wander, turning away from obstacles"),
     ("goto", GotoParams, "drive to (x, y)"),
-    ("stop", StopParams, "halt: end every motion of the robot, whoever started it; with hold=true pause them"),
+    ("stop", StopParams, "halt: end every motion of the robot, whoever started it, and stay halted"),
     ("turn", TurnParams, "turn in place by an angle"),
     ("teleport", TeleportParams, "set the pose (simulator moves, robot re-localises)"),
     ("clear", ClearParams, "empty the behaviour stack, cancelling its tasks"),
@@ -313,7 +312,7 @@ for _name, _model, _doc in _BOTMOTION:
 _REMOTEBOTMOTION: list[tuple[str, type[Params], str]] = [
     ("randomwalk", RandomWalkParams, "the robot wanders"),
     ("goto", GotoParams, "the robot drives to (x, y), expanded into local sub-tasks"),
-    ("cancel", CancelParams, "cancel the robot's remote tasks and stop it"),
+    ("cancel", CancelParams, "cancel one remote task; all if omitted, which is a stop: every motion of the robot ends"),
     ("teleport", TeleportParams, "set the robot's pose"),
     ("forward", ForwardParams, "the robot drives ahead a distance"),
 ]
