@@ -111,14 +111,15 @@ def tasks_for(action: str, params: Mapping[str, Any], robots: Iterable[str], *, 
     Deployment strategies are `Deploy` tasks in either tier. With `verb = "RemoteBotMotion"`,
     prepositions the team verb lacks go as BotMotion straight to the robot (turn, backward,
     velocity, avoid_obstacles, clear), and `stop` becomes RemoteBotMotion `cancel` (cancel the
-    robot's remote tasks and stop it). With `verb = "BotMotion"`, `stop` and `cancel` become
-    `clear` (empty the behaviour stack, which halts the robot).
+    robot's remote tasks and stop it). With `verb = "BotMotion"`, `stop` is BotMotion `stop` (every
+    motion of the robot ends; obstacle avoidance stays) and `cancel` becomes `clear` (empty the
+    behaviour stack).
     """
     prep, args = action, dict(params)
     if (STRATEGY_VERB, prep) in PREPOSITIONS:
         verb = STRATEGY_VERB  # deployment strategies have a verb of their own, run by MissionControl
     elif verb == "BotMotion":
-        if prep in ("stop", "cancel"):
+        if prep == "cancel":
             prep = "clear"
     elif (verb, prep) not in PREPOSITIONS:
         if prep == "stop":

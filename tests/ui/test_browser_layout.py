@@ -121,7 +121,7 @@ def test_the_stop_button_with_nothing_selected_stops_everyone_on_a_phone(control
         page.tap("#cmd-stop")
         page.wait_for_selector("#last-reply.ok .said", timeout=10000)
         assert page.inner_text("#last-reply .said") == "Roger: robots 1, 2, 3 and 4, stop"
-        stops = wait_until(lambda: [t for t in agent.query(Task) if t.preposition == "clear"], timeout=5)
+        stops = wait_until(lambda: [t for t in agent.query(Task) if t.preposition == "stop"], timeout=5)
         assert sorted(t.destination for t in stops) == list(ROBOTS)
     finally:
         page.context.close()

@@ -314,7 +314,7 @@ def test_stop_acts_in_every_state_by_voice_typing_and_the_button(control):
     agent, ui = control(robots=("robot1", "robot2", "robot3"))
     assert ui.spoken.listening is False  # voice starts standing by
     ui._recognised("wav", "everyone stop")  # heard while standing by: still acts, and is answered
-    stops = wait_until(lambda: len(t := [t for t in agent.query(Task) if t.preposition == "clear"]) == 3 and t,
+    stops = wait_until(lambda: len(t := [t for t in agent.query(Task) if t.preposition == "stop"]) == 3 and t,
                        timeout=5)
     assert sorted(t.destination for t in stops) == ["robot1", "robot2", "robot3"]
     wait_until(lambda: any("voice: \u201ceveryone stop\u201d \u2192 Roger: everyone, stop" in line["text"]
