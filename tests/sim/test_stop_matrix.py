@@ -100,6 +100,11 @@ class Team:
     watched: Watched
     watcher: subprocess.Popen[str]
 
+    def close(self) -> None:
+        self.watcher.kill()
+        self.watcher.wait(10)
+        self.sim.cleanup()
+
     def cli(self, *args: str, timeout: float = 30) -> subprocess.CompletedProcess[str]:
         return subprocess.run([sys.executable, "-m", "erni", *args[:1], "--via", self.via, *args[1:]], cwd=ROOT,
                               env=self.env, capture_output=True, text=True, timeout=timeout)
@@ -115,39 +120,48 @@ def wait_for(check: Callable[[], Any], timeout: float, what: str) -> Any:
     raise AssertionError(f"{what} within {timeout} s")
 
 
+def open_team(sim: SimProcess, run: Path) -> Team:
+    """Wait for a starting `erni sim` with its GUI, and watch its control node."""
+    sim.wait_for("Ctrl-C stops the team", timeout=120)
+    via = sim.wait_for("erni peers --via", timeout=1).split("--via")[1].strip()
+    url = sim.wait_for("GUI ", timeout=1).split()[-1]
+    assert url.startswith("http://"), url
+    base, token = url.split("/?token=")
+    env = {**os.environ, "ERNI_IDENTITY": str(run / "keys" / "cli.pem"), "PYTHONUNBUFFERED": "1"}
+    watched = Watched()
+    watcher = subprocess.Popen([sys.executable, "-m", "erni", "watch", "--via", via, "--json"], cwd=ROOT, env=env,
+                               stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+
+    def read() -> None:
+        assert watcher.stdout is not None
+        for line in watcher.stdout:
+            watched.feed(line)
+
+    threading.Thread(target=read, name="stop-matrix-watch", daemon=True).start()
+    team = Team(sim, via, base.replace("http://", "ws://") + f"/ws?token={token}", base, env, watched, watcher)
+    try:
+        wait_for(lambda: all(watched.pose(r) for r in ROBOTS), 30, "the watch did not show every robot's Pose")
+    except BaseException:
+        team.close()
+        raise
+    return team
+
+
 @pytest.fixture(scope="module")
 def team(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Team]:
     run = tmp_path_factory.mktemp("stop") / "run"
     sim = SimProcess(run, "--robots", "4", "--control-port", "0", "--gui-listen", "127.0.0.1:0", headless=False)
-    watcher: subprocess.Popen[str] | None = None
     try:
-        sim.wait_for("Ctrl-C stops the team", timeout=120)
-        via = sim.wait_for("erni peers --via", timeout=1).split("--via")[1].strip()
-        url = sim.wait_for("GUI ", timeout=1).split()[-1]
-        assert url.startswith("http://"), url
-        base, token = url.split("/?token=")
-        env = {**os.environ, "ERNI_IDENTITY": str(run / "keys" / "cli.pem"), "PYTHONUNBUFFERED": "1"}
-        watched = Watched()
-        watcher = subprocess.Popen([sys.executable, "-m", "erni", "watch", "--via", via, "--json"], cwd=ROOT,
-                                   env=env, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
-
-        def read() -> None:
-            assert watcher is not None and watcher.stdout is not None
-            for line in watcher.stdout:
-                watched.feed(line)
-
-        threading.Thread(target=read, name="stop-matrix-watch", daemon=True).start()
-        wait_for(lambda: all(watched.pose(r) for r in ROBOTS), 30, "the watch did not show every robot's Pose")
-        yield Team(sim, via, base.replace("http://", "ws://") + f"/ws?token={token}", base, env, watched, watcher)
-    finally:
-        if watcher is not None:
-            watcher.kill()
-            watcher.wait(10)
+        team = open_team(sim, run)
+    except BaseException:
         sim.cleanup()
+        raise
+    yield team
+    team.close()
     if STOP_LATENCY:
-        print("\nstop latency, command sent -> every robot standing (s):")
+        print("\nstop latency, command complete -> every moving robot standing (s):")
         for name, lat in STOP_LATENCY.items():
-            print(f"  {name:<16} median {sorted(lat)[len(lat) // 2]:.2f}  max {max(lat):.2f}  ({len(lat)} robots)")
+            print(f"  {name:<20} median {sorted(lat)[len(lat) // 2]:.2f}  max {max(lat):.2f}  ({len(lat)} robots)")
 
 
 async def _page(team: Team, sends: list[Any], *, pace: float = 0.0, marks: dict[str, float] | None = None,
