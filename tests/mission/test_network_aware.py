@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from collections.abc import Iterator
 
 import pytest
@@ -179,3 +180,28 @@ def test_robots_walking_off_together_are_each_at_risk_on_their_weak_link_before_
     plain = [Link(a=link.a, b=link.b) for link in drift]
     assert _guards(plain, "r1", "r2", "r3") == {"r1": "", "r2": "", "r3": ""}
     assert _guards([], "r1") == {"r1": ""}
+
+
+def test_a_stop_while_held_by_the_guard_ends_the_task_and_it_does_not_resume_when_connectivity_returns(robots, manet):
+    """A robot standing by under the guard's hold: an operator's stop ends its held task (cancelled,
+    naming who), the hold goes, and connectivity coming back does not set it moving again."""
+    net, addresses = manet
+    agent = robots("robot1", extra=[mobinet(addresses)],
+                   mission={"network_aware": True, "policy": "hold", "min_link_quality": 0.05,
+                            "resume_after": 0.3, "net_rate_hz": 10.0})
+    task = send(agent, "goto", x=3.0, y=0.0, speed=1.2)
+    wait_until(lambda: "articulation point" in message(agent, task), timeout=10,
+               message="the guard never held the robot")
+    stop = Task(verb="BotMotion", preposition="stop", source="control", destination="robot1")
+    with agent.transaction() as tx:
+        tx.add(stop)
+    ended = wait_until(lambda: (t := current(agent, task.uid)).done and t, timeout=5,
+                       message="the held task did not end on the stop")
+    assert ended.state == TaskState.CANCELLED and ended.result.message == f"stopped by control (task {stop.uid})"
+    wait_until(lambda: not guard_stops(agent), timeout=5, message="the guard's hold stayed after the stop")
+    assert wait_until(lambda: (t := current(agent, stop.uid)).done and t, timeout=5).state == TaskState.SUCCEEDED
+    held_at = pose_of(agent).x
+    net.move("robot2", -30.0, 10.0)  # connectivity returns
+    wait_until(lambda: not plugin(agent).guard.state.at_risk, timeout=10)
+    time.sleep(1.0)
+    assert abs(pose_of(agent).x - held_at) < 0.02 and abs(pose_of(agent).v) < 0.01  # nothing resumed
