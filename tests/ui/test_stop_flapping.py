@@ -9,7 +9,6 @@ range does.
 
 from __future__ import annotations
 
-import asyncio
 import threading
 import time
 from collections.abc import Iterator
@@ -20,7 +19,7 @@ from erni.blackboard import Task
 from erni.blackboard.testing import wait_until
 from erni.transport.bridge import TransportPlugin
 from tests.ui.team import Team, start_team
-from tests.ui.test_server import of, talk
+from tests.ui.test_two_tier import say
 
 MISSION = {"network_aware": False, "audio": False}
 
@@ -30,12 +29,6 @@ def team() -> Iterator[Team]:
     team = start_team(3, mission=MISSION)
     yield team
     team.stop()
-
-
-def say(team: Team, text: str) -> str:
-    url = f"ws://127.0.0.1:{team.ui.server.port}/ws?token={team.ui.server.token}"
-    msgs = asyncio.run(talk(url, [{"type": "say", "text": text, "selection": []}], lambda m: of(m, "reply")))
-    return str(of(msgs, "reply")[0]["text"])
 
 
 class Flapper:
@@ -88,15 +81,15 @@ def halted(team: Team, robot: str) -> bool:
 
 def test_everybody_stop_over_a_flapping_link_halts_every_robot_and_cancels_every_motion(team):
     since = time.time()
-    assert say(team, "robot 1 turn left 360 degrees").startswith("Roger")  # BotMotion straight to the robot
-    assert say(team, "robot 2 go back 2 meters").startswith("Roger")      # BotMotion
-    assert say(team, "robot 3 go forward 3 meters").startswith("Roger")   # RemoteBotMotion, MissionControl's job
+    assert say(team, "robot 1 turn left 360 degrees")["text"].startswith("Roger")  # BotMotion straight to the robot
+    assert say(team, "robot 2 go back 2 meters")["text"].startswith("Roger")      # BotMotion
+    assert say(team, "robot 3 go forward 3 meters")["text"].startswith("Roger")   # RemoteBotMotion, MissionControl's job
     robots = ["robot1", "robot2", "robot3"]
     wait_until(lambda: all(moving(team, r) for r in robots), timeout=10, message="the robots did not all start")
     with Flapper(team, set(robots)) as flapper:
         wait_until(lambda: flapper.cut, timeout=2)
         sent = time.monotonic()  # the stop is said while the link is down
-        assert say(team, "everybody stop") == "Roger: everyone, stop"
+        assert say(team, "everybody stop")["text"] == "Roger: everyone, stop"
         # each robot halts while the link still flaps: the stop's frames are retried until acknowledged
         # (well before any of their motions would have ended on its own: the turn takes 8 s)
         wait_until(lambda: all(halted(team, r) for r in robots), timeout=4,
