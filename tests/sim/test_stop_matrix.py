@@ -4,8 +4,8 @@ A team of four runs as a user starts it (`erni sim`, the default RemoteBotMotion
 front end — the spoken "everybody stop" streamed as audio through the page's microphone path,
 the page's typed line and its Stop button, `erni console`, `erni task ... RemoteBotMotion cancel`
 and `erni task ... BotMotion stop` — the robots are first set moving the way an operator does
-(typed commands that the dialogue sends as BotMotion straight to the robot, and RemoteBotMotion
-tasks that MissionControl expands), one robot left idle, then stopped. Each case checks what the
+(typed commands that the dialogue sends as BotMotion straight to the robot, RemoteBotMotion
+tasks that MissionControl expands, a Deploy spread it runs), one robot left idle, then stopped. Each case checks what the
 operator sees from the control node: every robot stands within a second or two, stays standing,
 and every motion task ends `cancelled` naming who stopped it, never `succeeded`.
 """
@@ -279,14 +279,15 @@ FRONT_ENDS: dict[str, Callable[[Team, Path], float]] = {
     "voice": by_voice, "page button": by_page_button, "page typing": by_page_typing, "console": by_console,
     "task cancel": by_task_cancel, "task BotMotion stop": by_task_stop}
 
-# Two sets of motions, as an operator starts them: typed lines go through the dialogue (turn,
-# backward and velocity go as BotMotion straight to the robot, forward and goto as
-# RemoteBotMotion), the rest by `erni task`. Robot 4 stays idle in the first set.
+# Two sets of motions, as an operator starts them: typed lines go through the dialogue (turn and
+# backward go as BotMotion straight to the robot, forward as RemoteBotMotion), the rest by `erni
+# task` (a held velocity, a deployment that MissionControl runs, a remote random walk and goto).
+# Robot 4 stays idle in the first set.
 TYPED_A = ["robot 1 turn left 360 degrees", "robot 2 go back 2 meters"]
 TASKS_A = [("robot3", "BotMotion", "velocity", "v=0.2", "w=20")]
-TYPED_B = ["robot 1 go forward 3 meters", "robot 2 turn right 360 degrees"]
-TASKS_B = [("robot3", "RemoteBotMotion", "randomwalk", "speed=0.3"), ("robot4", "RemoteBotMotion", "goto",
-                                                                       "x=0", "y=6")]
+TYPED_B = ["robot 1 go forward 3 meters"]
+TASKS_B = [("robot2", "Deploy", "spread", "distance=6"), ("robot3", "RemoteBotMotion", "randomwalk", "speed=0.3"),
+           ("robot4", "RemoteBotMotion", "goto", "x=0", "y=6")]
 
 
 HOME = {"robot1": (-4.0, 3.0), "robot2": (-1.5, 3.0), "robot3": (1.5, 3.0), "robot4": (4.0, 3.0)}
