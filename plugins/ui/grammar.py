@@ -376,7 +376,7 @@ SPOKEN_ACTIONS: dict[str, tuple[str, ...]] = {
     "relay": ("relay between [robot] <n> and ([robot] <n> | control [node] | base [station])",),
     "patrol": ("patrol [from] <point> to <point>",),
     "teleport": ("(teleport | jump) [to] <point> [facing <number> [degrees]]",),
-    "turn": ("(turn | rotate) around", "(turn | rotate) (left | right) [[by] <number> [degrees]]",
+    "turn": ("(turn | rotate) around", "(turn | rotate) (left | right) [<number> [degrees]]",
              "(turn | rotate) <number> [degrees] [left | right]"),
     "goto": ("(go | move | drive | head | come) to <point>",),
     "goto_robot": ("(go | move | drive | head | come) to robot <n>",),

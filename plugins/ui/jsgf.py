@@ -36,11 +36,13 @@ def jsgf(robots: int = 20, wake: Iterable[str] | None = None) -> str:
     """Return the JSGF grammar of the commands as spoken (public rule <utterance>).
 
     Numbers in every spoken form the parser takes ("two point five", "minus three", "one hundred
-    and twenty", "half a", "one and a half"), robot numbers up to `robots`, any number of robots
-    in a list ("robots one two and three"), every word for everyone ("everybody", "team", "all
-    robots"), the wake words (`wake`, default `grammar.ATTENTION`), and a filler ("please", "uh",
-    "hey") before the command, after its subject and "please"/"thank you" at its end. Written forms
-    (digits, "m/s") are left to the parser; everything this grammar produces, the parser understands.
+    and twenty", "half a", "one and a half"), robot numbers up to `robots`, any number of robots in
+    a list ("robots one two and three": "and" before the last), every word for everyone
+    ("everybody", "team", "all robots"), the wake words (`wake`, default `grammar.ATTENTION`), and
+    a filler ("please", "uh", "hey") before the command, after its subject, and "please"/"thank
+    you" at its end. Every optional word is a chance for noise to be heard as a word, so typed
+    variants are left to the parser: written forms (digits, "m/s"), "robot 1 and 2", "turn left by
+    90", the rarer fillers. Everything this grammar produces, the parser understands.
     """
     wake = tuple(wake) if wake is not None else g.ATTENTION
     units = sorted(u for u in g.UNITS if _spoken(u) and ("metre" not in u))  # one spelling per sound
@@ -49,7 +51,8 @@ def jsgf(robots: int = 20, wake: Iterable[str] | None = None) -> str:
     questions = [p for phrases in g.QUESTIONS.values() for p in phrases]
     actions = [form for forms in g.SPOKEN_ACTIONS.values() for form in forms]
     actions += [f"({s})" for s in g._plain_strategies()]
-    fillers = sorted(w for w in g.FILLER if _spoken(w) and w not in ("the", "now", "just"))
+    fillers = sorted(w for w in g.FILLER if w in ("please", "hey", "uh", "um", "okay"))  # the common ones:
+    # each optional word is a chance for noise to be heard as a word
     rules = {
         "digit": _alts(digits),
         "any_digit": _alts(w for w in g.ONES),
@@ -64,7 +67,7 @@ def jsgf(robots: int = 20, wake: Iterable[str] | None = None) -> str:
         "distance": "<number> [<unit>]",
         "n": _alts(robot_numbers),
         "everyone": _phrases([*sorted(g.EVERYONE - {"all"}), "all [robots]", *g.EVERYONE_PHRASES]),
-        "robots": "(robot | robots) <n> ([and] <n>)*",
+        "robots": "robot <n> | robots <n> <n>* and <n>",  # "and" before the last: "one eight" never slips in
         "subject": "<everyone> | <robots>",
         "point": "[x] <distance> [and | comma] [y] <distance> | [the] origin",
         "action": " | ".join(f"({a})" for a in actions),
