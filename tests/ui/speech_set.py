@@ -13,8 +13,10 @@ from __future__ import annotations
 import shutil
 import subprocess
 import tempfile
+import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -78,7 +80,7 @@ def synthesise(text: str, voice: str, speed: int) -> np.ndarray:
 def as_heard(speech: np.ndarray, snr: float | None, rng: np.random.Generator) -> bytes:
     """Speech with half a second of room before and a second after, in a quiet room or in white noise
     at `snr` dB (the speech's power over its loud 10 ms windows against the noise's)."""
-    pcm = np.concatenate([np.zeros(RATE // 2), speech, np.zeros(RATE)])
+    pcm = np.concatenate([np.zeros(int(LEAD * RATE)), speech, np.zeros(RATE)])
     windows = speech[: len(speech) // 160 * 160].reshape(-1, 160)
     power = np.mean(windows ** 2, axis=1)
     loud = power[power > 0.1 * power.max()] if power.size else np.array([0.0])
@@ -92,15 +94,87 @@ def in_frames(pcm: bytes) -> list[bytes]:
     return [pcm[i:i + FRAME_SAMPLES * 2] for i in range(0, len(pcm), FRAME_SAMPLES * 2)]
 
 
+TEAM = [f"robot{n}" for n in range(1, 21)]  # every robot number the spoken grammar has
+
+
+def _outcome(reply: Any) -> Any:
+    """What an answer does: the tasks it sends, or (sending none) what it says."""
+    return (reply.say if not reply.tasks else None,
+            [(t.verb, t.preposition, t.destination, t.params.model_dump()) for t in reply.tasks])
+
+
 def judge(said: str, heard: str, unsure: bool) -> str:
     """`exact`, `asked`, `refused` or `wrong`: what the operator gets for saying `said` when the
-    recogniser hears `heard` (unsure or not)."""
-    if unsure:
-        return "asked"
-    got = meaning(heard) if heard else None
+    recogniser hears `heard` (unsure or not), answered by the control node's spoken dialogue (a
+    stop acts however it was heard; an unsure hearing is asked again; a command to several robots or
+    a long move is read back and waits for "yes") against the same text typed, which runs at once.
+    `exact`: the same tasks or answer (or the right command read back); `asked`: nothing sent, the
+    operator asked again or read a command back; `refused`: nothing sent, the line refused; `wrong`:
+    tasks sent that differ from what was said."""
+    from erni.plugins.ui.dialogue import Dialogue, Naming
+
+    typed = Dialogue(Naming(), verb="RemoteBotMotion")
+    spoken = Dialogue(Naming(), verb="RemoteBotMotion", read_back=5.0)
+    for d in (typed, spoken):
+        d.select(["robot1"])
+    want = typed.hear(said, TEAM)
+    got = spoken.hear(heard, TEAM, unsure=unsure) if heard else None
     if got is None:
         return "refused"
-    return "exact" if got == meaning(said) else "wrong"
+    if _outcome(got) == _outcome(want):
+        return "exact"
+    if got.tasks:
+        return "wrong"
+    if getattr(got, "asked", False):
+        pending = getattr(spoken, "pending", None)
+        if pending is not None and _outcome(pending.reply) == _outcome(want):
+            return "exact"  # the right command, read back: it runs on "yes"
+        return "asked"
+    return "asked" if unsure else "refused"
+
+
+@dataclass
+class Hearing:
+    """What the recogniser made of one clip: its hearings in order, and when the last one came."""
+
+    texts: list[str]
+    evidence: list[dict[str, Any]]  # the recogniser's evidence of each hearing, when it keeps it
+    unsure: bool
+    why: str
+    latency: float  # seconds from the end of the speech to the last hearing (audio waited for + compute)
+    seconds: float  # compute time of the whole clip
+
+    @property
+    def text(self) -> str:
+        return " ".join(self.texts)
+
+
+def hear(stream: Any, pcm: bytes, speech_end: float) -> Hearing:
+    """Stream one clip through a recogniser stream in 100 ms frames, as fast as it decodes."""
+    texts: list[str] = []
+    evidence: list[dict[str, Any]] = []
+    unsure, why, latency = False, "", 0.0
+    started = time.perf_counter()
+    chunks = in_frames(pcm)
+    for i, frame in enumerate([*chunks, None]):
+        t0 = time.perf_counter()
+        heard = stream.feed(frame) if frame is not None else stream.flush()
+        if heard:
+            texts.append(str(heard))
+            evidence.append(dict(getattr(stream, "evidence", {}), unsure=bool(getattr(heard, "unsure", False))))
+            unsure = unsure or bool(getattr(heard, "unsure", False))
+            why = why or str(getattr(heard, "why", ""))
+            at = len(pcm) / 2 / RATE if frame is None else (i + 1) * FRAME_SAMPLES / RATE
+            latency = max(0.0, at - speech_end) + (time.perf_counter() - t0)
+    return Hearing(texts, evidence, unsure, why, latency, time.perf_counter() - started)
+
+
+LEAD = 0.5  # seconds of room before the speech in `as_heard`
+
+
+def speech_end(speech: np.ndarray) -> float:
+    """Where the speech of `as_heard(speech, ...)` ends, in seconds from the clip's start."""
+    return LEAD + len(speech) / RATE
 
 
 _ONES = "zero one two three four five six seven eight nine".split()
