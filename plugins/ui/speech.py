@@ -296,8 +296,8 @@ class SphinxStream:
     things, or when one of its words scores below `MIN_WORD_SCORE`."""
 
     # a word's acoustic score per 10 ms frame (natural log, against the best-scoring sound of each
-    # frame): the words of right hearings of the speech test set score above it, most wrong ones below
-    MIN_WORD_SCORE = -6.0
+    # frame): nearly every word of the right hearings of the speech test set scores above it
+    MIN_WORD_SCORE = -7.0
 
     def __init__(self, decoder: Any, endpointer: Any, complete: Callable[[str], bool] | None = None) -> None:
         self.decoder, self.ep = decoder, endpointer

@@ -19,7 +19,7 @@ from erni.blackboard.testing import wait_until
 from erni.plugins.ui import Dialogue, Naming
 from erni.plugins.ui.dialogue import Reply
 from erni.plugins.ui.jsgf import jsgf, words
-from erni.plugins.ui.speech import FRAME_SAMPLES, RATE, SpeechError, SphinxRecognizer, read_wav
+from erni.plugins.ui.speech import FRAME_SAMPLES, RATE, Heard, SpeechError, SphinxRecognizer, read_wav
 
 pytest.importorskip("pocketsphinx", reason="pocketsphinx is not installed (pip install 'erni[speech]')")
 ESPEAK = shutil.which("espeak-ng")
@@ -48,9 +48,10 @@ def as_heard(path: Path, rng: np.random.Generator) -> bytes:
 
 
 def recognise(stream: Any, pcm: bytes) -> str:
+    """The hearings of one clip, joined; a `Heard` whose `unsure` is set when any of them is unsure."""
     texts = [t for i in range(0, len(pcm), FRAME_SAMPLES * 2) if (t := stream.feed(pcm[i:i + FRAME_SAMPLES * 2]))]
     texts += [t for t in [stream.flush()] if t]
-    return " ".join(texts)
+    return Heard(" ".join(texts), any(t.unsure for t in texts), "; ".join(t.why for t in texts if t.why))
 
 
 def outcome(reply: Reply) -> Any:
@@ -69,26 +70,35 @@ def test_the_grammar_of_the_recogniser_is_understood_by_the_parser():
 
 
 def test_spoken_commands_are_recognised_into_the_right_tasks(tmp_path):
+    """The tasks of each spoken command are those of the same command typed; a hearing the recogniser
+    doubts is asked again and sends nothing, and no command is carried out as a different one."""
     stream = SphinxRecognizer(jsgf()).stream()  # one decoder, as for one microphone
     rng = np.random.default_rng(19)
-    right, wrong = [], []
+    right, asked, wrong = [], [], []
     for i, command in enumerate(COMMANDS):
         heard = recognise(stream, as_heard(speak(tmp_path, command, f"c{i}.wav"), rng))
         said, typed = Dialogue(Naming(), verb="RemoteBotMotion"), Dialogue(Naming(), verb="RemoteBotMotion")
         said.select(["robot1"])
         typed.select(["robot1"])
-        if outcome(said.hear(heard, KNOWN)) == outcome(typed.hear(command, KNOWN)):
+        answer = said.hear(heard, KNOWN, unsure=heard.unsure)
+        if outcome(answer) == outcome(typed.hear(command, KNOWN)):
             right.append(command)
+        elif not answer.tasks:
+            asked.append((command, heard, answer.say))
         else:
             wrong.append((command, heard))
     rate = len(right) / len(COMMANDS)
     ARTIFACTS.mkdir(parents=True, exist_ok=True)
     (ARTIFACTS / "recognition.json").write_text(json.dumps(
         {"recogniser": "pocketsphinx en-us, ERNI grammar as JSGF", "voice": f"espeak-ng -v {VOICE} -s {SPEED}",
-         "utterances": len(COMMANDS), "right": len(right), "rate": round(rate, 3),
+         "utterances": len(COMMANDS), "right": len(right), "rate": round(rate, 3), "carried_out_wrong": len(wrong),
+         "asked_or_refused": [{"said": c, "heard": h, "answer": a} for c, h, a in asked],
          "misheard": [{"said": c, "heard": h} for c, h in wrong]}, indent=1) + "\n")
-    print(f"recognised {len(right)}/{len(COMMANDS)} = {rate:.0%}; misheard: {wrong}")
-    assert rate >= 0.8, f"recognised {len(right)}/{len(COMMANDS)}; misheard: {wrong}"
+    print(f"recognised {len(right)}/{len(COMMANDS)} = {rate:.0%}; asked: {asked}; carried out wrong: {wrong}")
+    # the target is none; today two hearings with a word added at a number or at the end ("go to ten
+    # twenty eight", "avoid obstacles off") pass every check of the recogniser's doubt
+    assert len(wrong) <= 2, f"carried out as a different command: {wrong}"
+    assert rate >= 0.8, f"recognised {len(right)}/{len(COMMANDS)}; asked or refused: {asked}"
 
 
 def test_a_model_lacking_words_of_the_grammar_is_refused_naming_them(tmp_path):
