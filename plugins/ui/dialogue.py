@@ -31,6 +31,7 @@ from erni.blackboard import Task
 from erni.blackboard.errors import ConfigError, TaskError
 from erni.blackboard.tasks import PREPOSITIONS
 from erni.plugins.ui.grammar import (
+    ATTENTION,
     STOP_WORDS,
     STRATEGY_VERB,
     Command,
@@ -229,8 +230,9 @@ class Dialogue:
     def __init__(self, naming: Naming | None = None, *, verb: str = "RemoteBotMotion", source: str = "control",
                  listening: bool = True, control: str = "control", memory: Memory | None = None,
                  read_back: float | None = None, area: tuple[float, float, float, float] | None = None,
-                 read_back_timeout: float = 20.0, echo: bool = False) -> None:
+                 read_back_timeout: float = 20.0, echo: bool = False, wake: tuple[str, ...] = ATTENTION) -> None:
         self.naming = naming or Naming()
+        self.wake = wake  # the phrases that wake a standing-by dialogue
         self.verb = verb
         self.source = source
         self.control = control  # agent name of the control node: "relay between robot 1 and control"
@@ -267,7 +269,7 @@ class Dialogue:
         reply = Reply(text)
         pending, self.pending = self.pending, None
         try:
-            cmd = parse(text)
+            cmd = parse(text, self.wake)
         except Refusal as why:
             rescued = _stop_in(text)
             if rescued is None:

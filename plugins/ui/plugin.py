@@ -15,7 +15,7 @@ import secrets
 import threading
 import time
 from collections import deque
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, SecretStr, field_validator
 
@@ -23,7 +23,7 @@ from erni import netgraph
 from erni.blackboard import NetInfo, Plugin, Pose, Task
 from erni.blackboard.schemas import Peer, load_floorplan
 from erni.plugins.ui.dialogue import ROGER, Dialogue, Memory, Naming, Reply, RobotView, Sent, restate, tasks_for
-from erni.plugins.ui.grammar import STANDARD_ACTIONS, Refusal, strategies
+from erni.plugins.ui.grammar import ATTENTION, STANDARD_ACTIONS, Refusal, strategies
 from erni.plugins.ui.protocol import CancelTaskMsg, CommandMsg, MicMsg, SayMsg, SelectMsg
 from erni.plugins.ui.server import WebServer
 from erni.plugins.ui.speech import Listener, Microphone, SpeechError, choose_recognizer, wav_frames
@@ -55,6 +55,9 @@ class UISettings(BaseModel):
     history: int = Field(60, ge=1, le=10000, description="finished tasks kept in the task list")
     speak: bool = Field(True, description="spoken feedback through espeak-ng on the control node")
     voice: str = Field("en-us", description="espeak-ng voice")
+    wake: list[Annotated[str, Field(pattern=r"^[a-z]+( [a-z]+){0,3}$")]] = Field(
+        default_factory=lambda: list(ATTENTION), min_length=1, max_length=8,
+        description="phrases that wake the speech front end after 'go to sleep' (lower-case words)")
     recogniser: Literal["auto", "vosk", "pocketsphinx"] = Field(
         "auto", description="speech recogniser: auto = vosk when a vosk model is given, else pocketsphinx")
     vosk_model: str | None = Field(None, description="vosk model directory (default: VOSK_MODEL_PATH)")
@@ -113,7 +116,7 @@ class UIPlugin(Plugin[UISettings]):
         area = load_floorplan(s.floorplan).bounds if s.floorplan else None
         self.typed = Dialogue(self.naming, verb=s.verb, source=me, listening=True, control=me, memory=memory)
         self.spoken = Dialogue(self.naming, verb=s.verb, source=me, listening=False, control=me, memory=memory,
-                               read_back=s.read_back or None, area=area, echo=True)
+                               read_back=s.read_back or None, area=area, echo=True, wake=tuple(s.wake))
         self.poses = self.subscribe(Pose)
         self.netinfo = self.subscribe(NetInfo)
         self.peers = self.subscribe(Peer)
@@ -156,7 +159,7 @@ class UIPlugin(Plugin[UISettings]):
 
     def _start_speech(self, s: UISettings) -> None:
         try:
-            load = choose_recognizer(s.recogniser, s.vosk_model)
+            load = choose_recognizer(s.recogniser, s.vosk_model, wake=tuple(s.wake))
         except SpeechError as err:
             self.speech_error = str(err)
             self.log.warning("speech recognition off: %s", err)

@@ -83,3 +83,20 @@ def test_cancel_that_names_what_it_cancels_and_then_there_is_nothing_left():
     ended = d.hear("cancel that", TEAM, running=[])  # the front end has seen the turn end
     assert (ended.say, ended.withdraw) == ("Nothing to cancel: robot 1, turn left 90 degrees has ended", [])
     assert turn.tasks and d.hear("robot 2 cancel everything", TEAM).tasks[0].preposition == "clear"
+
+
+def test_the_wake_words_are_configurable_and_reach_the_recogniser_s_grammar():
+    from pydantic import ValidationError
+
+    from erni.plugins.ui.jsgf import jsgf
+    from erni.plugins.ui.plugin import UISettings
+
+    d = Dialogue(Naming(), verb="BotMotion", listening=False, wake=("hello team",))
+    assert not d.hear("attention", TEAM).say and not d.listening  # not a wake word here: ignored
+    assert d.hear("hello team", TEAM).say == "Listening" and d.listening
+    assert d.hear("robot 1 stop", TEAM).tasks  # and it is heard from then on
+    settings = UISettings(wake=["hello team", "listen"])
+    assert "hello team" in jsgf(wake=tuple(settings.wake))
+    with pytest.raises(ValidationError, match="wake"):
+        UISettings(wake=["Hey!"])
+    assert UISettings().wake == ["attention", "wake up", "listen", "listen up"]
