@@ -14,7 +14,13 @@ import random
 import re
 from collections.abc import Iterable
 
+from erni.blackboard.errors import ErniError
 from erni.plugins.ui import grammar as g
+
+
+class GrammarError(ErniError, ValueError):
+    """A JSGF text `Rules` cannot read; the message says where."""
+
 
 HEADER = "#JSGF V1.0;\ngrammar erni;\n"
 
@@ -112,14 +118,14 @@ class Rules:
                 if m.group(1):
                     self.public = m.group(2)
         if not self.public:
-            raise ValueError("the grammar has no public rule")
+            raise GrammarError("the grammar has no public rule")
         self._regex = re.compile(self._pattern(("ref", self.public)) + r"\Z")
 
     def _parse(self, body: str) -> Node:
         tokens = [t for t in _LEX.findall(body) if t]
         node, end = self._alt(tokens, 0)
         if end != len(tokens):
-            raise ValueError(f"unexpected {tokens[end]!r} in {body!r}")
+            raise GrammarError(f"unexpected {tokens[end]!r} in {body!r}")
         return node
 
     def _alt(self, t: list[str], i: int) -> tuple[Node, int]:
@@ -138,7 +144,7 @@ class Rules:
                 close = ")" if t[i] == "(" else "]"
                 inner, i = self._alt(t, i + 1)
                 if i >= len(t) or t[i] != close:
-                    raise ValueError(f"expected {close!r}")
+                    raise GrammarError(f"expected {close!r}")
                 node: Node = inner if close == ")" else ("opt", inner)
             elif t[i].startswith("<"):
                 node = ("ref", t[i][1:-1])
@@ -157,7 +163,7 @@ class Rules:
             return re.escape(str(value)) + " "
         if kind == "ref":
             if value not in self.rules:
-                raise ValueError(f"undefined rule <{value}>")
+                raise GrammarError(f"undefined rule <{value}>")
             return self._pattern(self.rules[str(value)])
         if kind == "seq":
             return "".join(self._pattern(n) for n in value)  # type: ignore[attr-defined]
