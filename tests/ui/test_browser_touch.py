@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -16,7 +15,11 @@ import pytest
 
 from erni.blackboard import AllocationResult, Task, TaskState
 from erni.blackboard.testing import wait_until
-from tests.ui.test_browser import ARGS, ARTIFACTS, CHROMIUM
+from tests.ui.test_browser import (
+    ARTIFACTS,
+    CHROMIUM,
+    browser,  # noqa: F401  (the fixture)
+)
 from tests.ui.test_server import control  # noqa: F401  (the fixture)
 
 pytestmark = pytest.mark.skipif(not os.path.exists(CHROMIUM), reason=f"no Chromium at {CHROMIUM} (apt install chromium)")
@@ -31,16 +34,6 @@ READ = 400   # ms an operator takes to read a question or a menu before choosing
 RECORD = """window.sent = []; const send = WebSocket.prototype.send;
 WebSocket.prototype.send = function (data) { if (typeof data === 'string') window.sent.push(JSON.parse(data));
   return send.call(this, data); };"""
-
-
-@pytest.fixture(scope="module")
-def browser() -> Iterator[Any]:
-    from playwright.sync_api import sync_playwright
-
-    with sync_playwright() as p:
-        b = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
-        yield b
-        b.close()
 
 
 class Touch:
@@ -92,7 +85,7 @@ STOP_ON_TOP = """() => { const s = document.getElementById('cmd-stop'), r = s.ge
   return document.elementFromPoint(r.left + r.width / 2, r.top + r.height / 2) === s; }"""
 
 
-def open_page(browser: Any, url: str, width: int, height: int) -> Any:
+def open_page(browser: Any, url: str, width: int, height: int) -> Any:  # noqa: F811
     context = browser.new_context(viewport={"width": width, "height": height}, has_touch=True,
                                   is_mobile=width < 1000, device_scale_factor=1)
     page = context.new_page()
