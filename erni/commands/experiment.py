@@ -31,6 +31,8 @@ def register(sub: Any) -> None:
                    "stepped in one process (large teams)")
     p.add_argument("--seeds", type=int, help="repeat over this many seeds (from --seed) and summarise "
                    "(poi, netaware)")
+    p.add_argument("--netns", action="store_true", help="run the teams on the real-mesh tier, as `erni sim --netns` "
+                   "(namespaces, babeld; needs root) (netaware)")
     p.add_argument("--list", action="store_true", help="list the experiments and exit")
     p.set_defaults(func=run)
 
@@ -39,6 +41,7 @@ def run(args: argparse.Namespace) -> int:
     """Run the experiment; exit 0, 1 when it failed, 2 on bad input."""
     from erni.sim.experiments import EXPERIMENTS
     from erni.sim.experiments import run as run_experiment
+    from erni.sim.netns import NetnsError
     from erni.sim.progress import Progress
     from erni.sim.scenario import ScenarioError, find_scenario, load_scenario
 
@@ -82,19 +85,29 @@ def run(args: argparse.Namespace) -> int:
         if args.seeds is not None and not exp.seeds:
             raise ScenarioError(f"--seeds: {exp.name} runs one seed at a time (use --seed K); "
                                 f"--seeds works with {', '.join(e.name for e in EXPERIMENTS.values() if e.seeds)}")
+        if args.netns and not exp.netns:
+            raise ScenarioError(f"--netns: {exp.name} runs on the loopback tier only; --netns works with "
+                                f"{', '.join(e.name for e in EXPERIMENTS.values() if e.netns)}")
+        if args.netns:
+            from erni.sim.netns import check_available
+
+            check_available()  # not root, no namespaces, no babeld: say why, before any team starts
         mode = args.mode or exp.default_mode(scenario)
         if mode not in exp.modes:
             raise ScenarioError(f"{exp.name} runs in {' or '.join(exp.modes)} mode, not {mode!r}")
-    except ScenarioError as err:
+    except (ScenarioError, NetnsError) as err:
         print(f"erni experiment: {err}", file=sys.stderr)
         return 2
     print(f"erni experiment {exp.name}: paper {exp.paper}, {exp.title} ({mode} mode, "
-          f"{scenario.count} robot(s){f', {args.seeds} seeds' if args.seeds else ''})", flush=True)
+          f"{scenario.count} robot(s){f', {args.seeds} seeds' if args.seeds else ''}"
+          f"{', real-mesh tier' if args.netns else ''})", flush=True)
     progress = Progress()
     t0 = time.monotonic()
     options: dict[str, Any] = {"mode": mode}
     if args.seeds is not None:
         options["seeds"] = args.seeds
+    if args.netns:
+        options["netns"] = True
     try:
         result = run_experiment(exp.name, scenario, progress, **options)
     except (ValueError, RuntimeError, OSError) as err:

@@ -46,6 +46,7 @@ class Experiment:
     modes: tuple[str, ...]
     module: str
     seeds: bool = False  # repeats itself over several seeds (`seeds` option)
+    netns: bool = False  # runs its teams on the real-mesh tier too (`netns` option)
 
     def default_mode(self, scenario: Scenario | None = None) -> str:
         """"agents" where offered and the team is small enough, else the other mode."""
@@ -84,8 +85,8 @@ EXPERIMENTS: dict[str, Experiment] = {e.name: e for e in [
                ("agents",), "response"),
     Experiment("memory", "memory", "004", "resident memory of a robot agent and a robot's processes (Table 1)",
                ("agents",), "memory"),
-    Experiment("netaware", "netaware", "004", "network-aware team against a network-blind one, same missions",
-               ("agents",), "netaware", seeds=True),
+    Experiment("netaware", "netaware", "004", "the mission's network guard on against off: the same team, "
+               "tasks and seeds", ("agents",), "netaware", seeds=True, netns=True),
 ]}
 
 
@@ -211,4 +212,8 @@ def run(name: str, scenario: Scenario, progress: Progress | None = None, **optio
         raise ScenarioError(f"{name} runs in {' or '.join(exp.modes)} mode, not {mode!r}")
     if "seeds" in options and not exp.seeds:
         raise ScenarioError(f"{name} runs one seed at a time; it has no seeds option")
+    if options.get("netns") and not exp.netns:
+        raise ScenarioError(f"{name} runs on the loopback tier only; it has no netns option")
+    if not options.get("netns"):
+        options.pop("netns", None)  # the loopback tier is every experiment's default
     return exp.runner()(scenario, progress or (lambda *a: None), experiment=exp, mode=mode, **options)

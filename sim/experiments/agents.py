@@ -59,6 +59,7 @@ class TeamRun:
     transport: dict[str, Any] = field(default_factory=dict)
     use_mission: bool = True
     feed_hz: float = 10.0
+    netns: bool = False    # the real-mesh tier (`erni sim --netns`): namespaces, babeld, MobiNet reading babeld
     team: Team | None = None
     t0: float = 0.0
     results: dict[str, AllocationResult] = field(default_factory=dict)
@@ -74,7 +75,8 @@ class TeamRun:
             raise ScenarioError("agents mode needs the mission plugin (erni.plugins.mission.MissionControl)")
         self.team = Team(self.scenario, headless=True, control_port=0, record=True, ui=False,
                          mission=self.use_mission, mission_settings={"audio": False, **self.mission},
-                         robot_settings=self.robot, transport=self.transport or None, feed_hz=self.feed_hz)
+                         robot_settings=self.robot, transport=self.transport or None, feed_hz=self.feed_hz,
+                         netns=self.netns)
         self.team.start(lambda label, done, total: self.progress(f"start: {label}", done, total), timeout=timeout)
         self.t0 = self.team.elapsed()
         return self
