@@ -1,25 +1,36 @@
 """Paper 004's open question: does a network-aware team keep its connectivity and still do its task?
 
-The same missions run on the same team (agent processes, tasked by the control node) with the
-mission plugin's network awareness on and off, over several seeds:
+An A/B test of the mission plugin's network guard: both arms of a comparison start the same team
+(agent processes, tasked by the control node), send it the same tasks with the same algorithm, and
+differ in one mission setting alone, `network_aware` (true: the guard, with its default policy
+`hold`, stops a robot whose remote motion puts the team's connectivity at risk and lets it go on
+when connectivity returns; false: no guard). Over several seeds:
 
 - goto: every robot gets a remote goto to a point drawn by the seed, `goto_near`-`goto_far` m
   from the control node in directions spread around it, which pulls the team apart;
-- randomwalk: every robot gets a remote random walk of `walk` seconds (seeded);
-- widep: the team must cover a PoI `poi_distance` m from the control node, more than one
-  radio range away. Aware: `Deploy widep` (steps bounded by the RNG connectivity rule, with R
-  the longest link of quality `min_link_quality`, as the aware policy judges links).
-  Blind: every robot a remote goto straight to the PoI.
+- randomwalk: every robot gets a remote random walk of `walk` seconds (seeded).
 
-Network-aware means the mission's `network_aware` setting with its default policy (`hold`: a
-robot whose best link falls below `min_link_quality` or that becomes an articulation point
-stops and resumes when connectivity returns); blind means `network_aware = false`.
+WiDep is not split this way: the guard acts on remote motion jobs only (`RemoteBotMotion`), never
+on a deployment's own moves (the mission plugin's `_guard` and `_apply_policy`), so WiDep with the
+guard and WiDep without it would be one run twice. WiDep keeps the team connected by its own rule
+(steps bounded by the RNG connectivity rule). What the experiment offers instead, when the
+scenario's missions list it, is a comparison of two algorithms, labelled as such, with the guard
+off in both arms:
+
+- widep-vs-goto: the team must cover a PoI `poi_distance` m from the control node, more than
+  one radio range away; one arm deploys WiDep (`Deploy widep` with R the longest link of quality
+  `min_link_quality`), the other sends every robot a remote goto straight to the PoI.
+
+`netns=True` (`erni experiment netaware --netns`) runs every team on the real-mesh tier: one
+network namespace per agent, the radio model's links as packet-filter rules, babeld routing and
+MobiNet reading babeld (`erni sim --netns`); the default is the loopback tier.
 
 Measured on every run: connectivity kept, the share of the simulator's 10 Hz samples in which
-the whole team and the control node are one radio component; tasks completed: a goto's robot
-at its target and the PoI covered (both judged on the simulator's truth, since a robot cut off
-from the control node cannot report it), a walk that ran its time (from its task's result);
-time to complete, from the tasks being sent; and how many successes the control node heard of. Each is averaged over the seeds with a 95 % Student-t
+the whole team and the control node are one radio component (the radio model's truth, on both
+tiers); tasks completed: a goto's robot at its target and the PoI covered (both judged on the
+simulator's truth, since a robot cut off from the control node cannot report it), a walk that ran
+its time (from its task's result); time to complete, from the tasks being sent; and how many
+successes the control node heard of. Each is averaged over the seeds with a 95 % Student-t
 interval (completion also as a Wilson interval over all tasks).
 """
 
@@ -27,7 +38,7 @@ from __future__ import annotations
 
 import math
 import random
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -37,13 +48,43 @@ from erni.sim.experiments.plots import color
 from erni.sim.experiments.stats import fmt_ci, mean_ci, wilson
 from erni.sim.scenario import Scenario, ScenarioError
 
-MISSIONS = ("goto", "randomwalk", "widep")
-ARMS = ("aware", "blind")
+
+@dataclass(frozen=True)
+class Arm:
+    """One arm of a comparison: its label, the algorithm its robots are tasked with, the guard setting."""
+
+    label: str
+    algorithm: str        # "goto", "randomwalk", "widep" or "poi-goto" (a remote goto to the PoI)
+    network_aware: bool
+
+
+@dataclass(frozen=True)
+class Comparison:
+    """Two arms run on the same seeds; `differs` says what differs between them, and only that."""
+
+    name: str
+    kind: str             # "guard": the same tasks, network_aware on / off; "algorithm": two algorithms
+    arms: tuple[Arm, Arm]
+    differs: str
+
+
+GUARD_ON, GUARD_OFF = "guard on", "guard off"
+COMPARISONS: dict[str, Comparison] = {c.name: c for c in [
+    Comparison("goto", "guard", (Arm(GUARD_ON, "goto", True), Arm(GUARD_OFF, "goto", False)),
+               "the mission's network_aware setting alone (the same remote gotos)"),
+    Comparison("randomwalk", "guard", (Arm(GUARD_ON, "randomwalk", True), Arm(GUARD_OFF, "randomwalk", False)),
+               "the mission's network_aware setting alone (the same seeded remote random walks)"),
+    Comparison("widep-vs-goto", "algorithm", (Arm("WiDep", "widep", False), Arm("straight goto", "poi-goto", False)),
+               "the algorithm alone (Deploy widep against a remote goto to the PoI), the guard off in both"),
+]}
+MISSIONS = tuple(COMPARISONS)
+NO_WIDEP_SPLIT = ("WiDep is not split by the guard: the guard holds remote motion jobs only, never a "
+                  "deployment's moves, so WiDep with and without it would be the same run")
 
 
 @dataclass
 class Outcome:
-    """One mission on one seed with one arm."""
+    """One comparison's arm on one seed."""
 
     mission: str
     arm: str
@@ -54,34 +95,39 @@ class Outcome:
     times: list[float]     # s from sending to success, completed tasks only
     length: float          # s the run lasted
     reported: int = 0      # successes the control node heard of
+    settings: dict[str, Any] = field(default_factory=dict)  # the mission settings every robot ran with
+    sent: list[tuple[str, str, str, dict[str, Any]]] = field(default_factory=list)  # robot, verb, prep, params
 
 
 def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode: str, seeds: int | None = None,
-        **_: Any) -> Result:
-    """Run every mission with awareness on and off over the seeds; return figure and table."""
+        netns: bool = False, **_: Any) -> Result:
+    """Run both arms of every comparison over the seeds; return figure and table."""
     s = scenario.strategy
     n_seeds = seeds or int(s.get("seeds", 10))
-    missions = [str(m) for m in s.get("missions", list(MISSIONS))]
+    missions = [str(m) for m in s.get("missions", ["goto", "randomwalk"])]
     for m in missions:
-        if m not in MISSIONS:
+        if m == "widep":
+            raise ScenarioError(f"strategy.missions: 'widep' cannot be an arm pair of the guard ({NO_WIDEP_SPLIT}); "
+                                "'widep-vs-goto' compares WiDep with a straight goto as two algorithms")
+        if m not in COMPARISONS:
             raise ScenarioError(f"strategy.missions: unknown mission {m!r}; expected some of {', '.join(MISSIONS)}")
     outcomes: list[Outcome] = []
-    total = n_seeds * len(missions) * len(ARMS)
+    total = n_seeds * len(missions) * 2
     k = 0
     for i in range(n_seeds):
         seed = scenario.seed + i
         for mission in missions:
-            for arm in ARMS:
+            for arm in COMPARISONS[mission].arms:
                 k += 1
-                tag = f"[{k}/{total}] seed {seed} {mission} {arm}"
+                tag = f"[{k}/{total}] seed {seed} {mission} {arm.label}"
 
                 def told(what: str, done: float, total_: float, tag: str = tag) -> None:
                     progress(f"{tag}: {what}", done, total_)
 
-                outcomes.append(_one(scenario.model_copy(update={"seed": seed}), mission, arm, told))
-                o = outcomes[-1]
+                o = _one(scenario.model_copy(update={"seed": seed}), mission, arm, told, netns=netns)
+                outcomes.append(o)
                 progress(f"{tag}: connected {o.connected:.0%}, {o.completed}/{o.tasks} done", k, total)
-    return _result(scenario, experiment, mode, outcomes, missions, n_seeds)
+    return _result(scenario, experiment, mode, outcomes, missions, n_seeds, netns)
 
 
 def _targets(scenario: Scenario, n: int) -> list[tuple[float, float]]:
@@ -98,8 +144,15 @@ def _targets(scenario: Scenario, n: int) -> list[tuple[float, float]]:
     return out
 
 
+def _poi(scenario: Scenario) -> tuple[float, float]:
+    c = scenario.control
+    a = random.Random(scenario.seed).uniform(0, 2 * math.pi)
+    d = float(scenario.strategy.get("poi_distance", 14.0))
+    return round(c.x + d * math.cos(a), 2), round(c.y + d * math.sin(a), 2)
+
+
 def widep_range(scenario: Scenario) -> float:
-    """WiDep's R for the aware team: the longest link of quality `min_link_quality` (m).
+    """WiDep's R: the longest link of quality `min_link_quality` (m).
 
     The radio's `comm_range` is where delivery falls to 0: a link kept just short of it loses
     almost every packet (and is not even used for routing below the radio's `min_quality`), so a
@@ -112,49 +165,64 @@ def widep_range(scenario: Scenario) -> float:
     return round(RadioModel(r.comm_range, r.lossless_range, r.min_quality).range_for(max(q, r.min_quality)), 3)
 
 
-def _one(scenario: Scenario, mission: str, arm: str, progress: Progress) -> Outcome:
+def arm_settings(scenario: Scenario, arm: Arm) -> dict[str, Any]:
+    """The mission settings every robot of `arm` runs with (arms of a guard comparison differ in
+    `network_aware` alone)."""
+    s = scenario.strategy
+    return {"network_aware": arm.network_aware, "speed": float(s.get("speed", 0.4)), "separation": 1.0,
+            "min_link_quality": float(s.get("min_link_quality", 0.3))}
+
+
+def arm_tasks(scenario: Scenario, arm: Arm) -> list[tuple[str, str, str, dict[str, Any]]]:
+    """The tasks the control node sends, as (robot, verb, preposition, params), for `arm` on the
+    scenario's seed: the same for both arms of a guard comparison."""
+    s = scenario.strategy
+    names = scenario.robot_names()
+    speed = float(s.get("speed", 0.4))
+    if arm.algorithm == "goto":
+        return [(name, "RemoteBotMotion", "goto", {"x": x, "y": y, "speed": speed, "tolerance": 0.3})
+                for name, (x, y) in zip(names, _targets(scenario, len(names)))]
+    if arm.algorithm == "randomwalk":
+        walk = float(s.get("walk", 45.0))
+        return [(name, "RemoteBotMotion", "randomwalk", {"speed": speed, "duration": walk,
+                                                         "seed": scenario.seed * 100 + i})
+                for i, name in enumerate(names)]
+    poi = _poi(scenario)
+    if arm.algorithm == "widep":
+        return [(name, "Deploy", "widep", {"x": poi[0], "y": poi[1], "range": widep_range(scenario),
+                                           "tolerance": 0.5, "period": float(s.get("period", 4.0))})
+                for name in names]
+    return [(name, "RemoteBotMotion", "goto", {"x": poi[0], "y": poi[1], "speed": speed, "tolerance": 0.5})
+            for name in names]
+
+
+def _limit(scenario: Scenario, mission: str) -> float:
+    s = scenario.strategy
+    if mission == "goto":
+        return float(s.get("goto_time", 75.0))
+    if mission == "randomwalk":
+        return float(s.get("walk", 45.0)) + 15.0
+    return float(s.get("widep_time", 150.0))
+
+
+def _one(scenario: Scenario, mission: str, arm: Arm, progress: Progress, *, netns: bool = False) -> Outcome:
     from erni.sim.experiments.agents import TeamRun
 
     s = scenario.strategy
     names = scenario.robot_names()
-    aware = arm == "aware"
-    settings = {"network_aware": aware, "speed": float(s.get("speed", 0.4)), "separation": 1.0,
-                "min_link_quality": float(s.get("min_link_quality", 0.3))}
-    speed = float(s.get("speed", 0.4))
-    with TeamRun(scenario, progress, mission=settings).start() as team:
-        uids: list[str] = []
-        targets = _targets(scenario, len(names))
+    settings = arm_settings(scenario, arm)
+    sent = arm_tasks(scenario, arm)
+    limit = _limit(scenario, mission)
+    targets = _targets(scenario, len(names))
+    poi = _poi(scenario)
+    with TeamRun(scenario, progress, mission=settings, netns=netns).start() as team:
+        uids = [team.send(robot, verb, prep, **params) for robot, verb, prep, params in sent]
         arrived: dict[int, float] = {}  # robot index -> when the simulator saw it at its goto target
-        if mission == "goto":
-            limit = float(s.get("goto_time", 75.0))
-            for name, (x, y) in zip(names, targets):
-                uids.append(team.send(name, "RemoteBotMotion", "goto", x=x, y=y, speed=speed, tolerance=0.3))
-        elif mission == "randomwalk":
-            walk = float(s.get("walk", 45.0))
-            limit = walk + 15.0
-            for i, name in enumerate(names):
-                uids.append(team.send(name, "RemoteBotMotion", "randomwalk", speed=speed, duration=walk,
-                                      seed=scenario.seed * 100 + i))
-        else:
-            limit = float(s.get("widep_time", 150.0))
-            c = scenario.control
-            a = random.Random(scenario.seed).uniform(0, 2 * math.pi)
-            d = float(s.get("poi_distance", 14.0))
-            poi = (round(c.x + d * math.cos(a), 2), round(c.y + d * math.sin(a), 2))
-            reach = widep_range(scenario)
-            for name in names:
-                if aware:
-                    uids.append(team.send(name, "Deploy", "widep", x=poi[0], y=poi[1],
-                                          range=reach, tolerance=0.5,
-                                          period=float(s.get("period", 4.0))))
-                else:
-                    uids.append(team.send(name, "RemoteBotMotion", "goto", x=poi[0], y=poi[1], speed=speed,
-                                          tolerance=0.5))
         covered: list[float] = []
 
         def finished() -> bool:
             assert team.team is not None
-            if mission == "widep":
+            if mission == "widep-vs-goto":
                 if not covered and any(math.hypot(r.x - poi[0], r.y - poi[1]) <= 0.5 for r in team.team.robots):
                     covered.append(team.now)
                 return bool(covered)
@@ -165,13 +233,13 @@ def _one(scenario: Scenario, mission: str, arm: str, progress: Progress) -> Outc
                 return len(arrived) == len(names) or team.done(uids)
             return team.done(uids)
 
-        team.wait(f"{mission} ({arm})", limit, finished)
+        team.wait(f"{mission} ({arm.label})", limit, finished)
         samples = team.samples()
         length = team.now
         # the last results on their way (a WiDep robot learns of the coverage at its next round)
-        team.pump(2.0 + (float(s.get("period", 4.0)) if mission == "widep" else 0.0))
+        team.pump(2.0 + (float(s.get("period", 4.0)) if arm.algorithm == "widep" else 0.0))
         reported = sum(1 for u in uids if math.isfinite(team.succeeded_at(u)))
-        if mission == "widep":
+        if mission == "widep-vs-goto":
             done, times = (1, [covered[0]]) if covered else (0, [])
             tasks = 1
             reported = int(any(math.isfinite(team.succeeded_at(u)) for u in uids))
@@ -182,92 +250,121 @@ def _one(scenario: Scenario, mission: str, arm: str, progress: Progress) -> Outc
             times = [t for u in uids if math.isfinite(t := team.succeeded_at(u))]
             done, tasks = len(times), len(uids)
     connected = float(np.mean([x.components == 1 for x in samples])) if samples else math.nan
-    return Outcome(mission, arm, scenario.seed, connected, tasks, done, times, length, reported)
+    return Outcome(mission, arm.label, scenario.seed, connected, tasks, done, times, length, reported,
+                   settings, sent)
+
+
+def tier_name(netns: bool) -> str:
+    """How the teams' network ran, for titles and notes."""
+    return ("real-mesh tier: network namespaces, the radio as packet-filter rules, babeld, MobiNet reading babeld"
+            if netns else "loopback tier: the simulated radio, MobiNet over SNMP")
 
 
 def _result(scenario: Scenario, experiment: Experiment, mode: str, outcomes: list[Outcome], missions: list[str],
-            n_seeds: int) -> Result:
+            n_seeds: int, netns: bool = False) -> Result:
     res = Result(experiment.name, experiment.title, mode)
     n = scenario.count
     res.mode_note = (f"{n} robot agent processes and a control node per run, a new team for every mission, arm and "
-                     "seed; connectivity judged on the simulator's radio model every 0.1 s")
+                     f"seed; {tier_name(netns)}; connectivity judged on the simulator's radio model every 0.1 s")
     summary: dict[tuple[str, str], dict[str, tuple[float, float, float]]] = {}
     for mission in missions:
-        for arm in ARMS:
-            runs = [o for o in outcomes if o.mission == mission and o.arm == arm]
+        for arm in COMPARISONS[mission].arms:
+            runs = [o for o in outcomes if o.mission == mission and o.arm == arm.label]
             conn = mean_ci([o.connected for o in runs], bounds=(0.0, 1.0))
             share = mean_ci([o.completed / o.tasks for o in runs], bounds=(0.0, 1.0))
             pooled = wilson(sum(o.completed for o in runs), sum(o.tasks for o in runs))
             per_run_time = [float(np.mean(o.times)) for o in runs if o.times]
-            tcomp = mean_ci(per_run_time)
-            summary[(mission, arm)] = {"connected": conn, "completed": share, "pooled": pooled, "time": tcomp}
-            res.metrics[f"{mission}, {arm}: connectivity kept (share of time)"] = (fmt_ci(*conn), "mean [95 % CI]")
-            res.metrics[f"{mission}, {arm}: tasks completed"] = (
+            tcomp = mean_ci(per_run_time, bounds=(0.0, math.inf))
+            summary[(mission, arm.label)] = {"connected": conn, "completed": share, "pooled": pooled, "time": tcomp}
+            key = f"{mission}, {arm.label}"
+            res.metrics[f"{key}: connectivity kept (share of time)"] = (fmt_ci(*conn), "mean [95 % CI]")
+            res.metrics[f"{key}: tasks completed"] = (
                 f"{sum(o.completed for o in runs)}/{sum(o.tasks for o in runs)} = {fmt_ci(*pooled)}", "Wilson 95 %")
-            res.metrics[f"{mission}, {arm}: time to complete"] = (fmt_ci(*tcomp, 1),
-                                                                 f"s, mean [95 % CI] over {len(per_run_time)} runs")
-            res.metrics[f"{mission}, {arm}: successes the control node heard of"] = (
+            res.metrics[f"{key}: tasks completed per run"] = (fmt_ci(*share), "share, mean [95 % CI]")
+            res.metrics[f"{key}: time to complete"] = (fmt_ci(*tcomp, 1),
+                                                       f"s, mean [95 % CI] over {len(per_run_time)} runs")
+            res.metrics[f"{key}: successes the control node heard of"] = (
                 f"{sum(o.reported for o in runs)}/{sum(o.tasks for o in runs)}", "tasks")
             for o in runs:
-                res.robots[f"{mission}/{arm}/s{o.seed}"] = {
+                res.robots[f"{mission}/{arm.label}/s{o.seed}"] = {
                     "connected": round(o.connected, 3), "completed": f"{o.completed}/{o.tasks}",
                     "time_s": round(float(np.mean(o.times)), 1) if o.times else "-"}
     res.compare("robots / radio range R / lossless", "not stated (paper 004 asks the question)",
                 f"{n} / {scenario.radio.comm_range:g} m / {scenario.radio.lossless_range:g} m", "",
                 "the scenario's setting", "input")
-    if "widep" in missions:
-        res.compare("widep: WiDep's R (aware)", "R = communication range", f"{widep_range(scenario):g}", "m",
+    res.compare("network", "-", "netns + babeld" if netns else "loopback", "", tier_name(netns), "input")
+    if "widep-vs-goto" in missions:
+        res.compare("widep-vs-goto: WiDep's R", "R = communication range", f"{widep_range(scenario):g}", "m",
                     "the longest link of quality min_link_quality on the radio model", "input")
     res.compare("seeds per mission and arm", "-", n_seeds, "", "start layout fixed; the seed draws targets, walks, "
                 "the PoI's direction and the simulated robots' noise", "input")
     for mission in missions:
-        a, b = summary[(mission, "aware")], summary[(mission, "blind")]
-        res.compare(f"{mission}: connectivity kept, aware / blind", "open question",
+        c = COMPARISONS[mission]
+        (la, lb) = (arm.label for arm in c.arms)
+        a, b = summary[(mission, la)], summary[(mission, lb)]
+        pair = f"{la} / {lb}"
+        res.compare(f"{mission}: what differs between the arms", "-", c.kind, "", c.differs, "input")
+        res.compare(f"{mission}: connectivity kept, {pair}", "open question",
                     f"{a['connected'][0]:.2f} / {b['connected'][0]:.2f}", "share",
-                    f"aware {fmt_ci(*a['connected'])}, blind {fmt_ci(*b['connected'])}")
-        res.compare(f"{mission}: tasks completed, aware / blind", "open question",
+                    f"{la} {fmt_ci(*a['connected'])}, {lb} {fmt_ci(*b['connected'])}")
+        res.compare(f"{mission}: tasks completed, {pair}", "open question",
                     f"{a['pooled'][0]:.2f} / {b['pooled'][0]:.2f}", "share",
-                    f"aware {fmt_ci(*a['pooled'])}, blind {fmt_ci(*b['pooled'])} (Wilson)")
-        heard = {arm: (sum(o.reported for o in outcomes if o.mission == mission and o.arm == arm),
-                       sum(o.tasks for o in outcomes if o.mission == mission and o.arm == arm)) for arm in ARMS}
-        res.compare(f"{mission}: successes the control node heard of, aware / blind", "open question",
-                    f"{heard['aware'][0]}/{heard['aware'][1]} / {heard['blind'][0]}/{heard['blind'][1]}", "tasks",
+                    f"{la} {fmt_ci(*a['pooled'])}, {lb} {fmt_ci(*b['pooled'])} (Wilson)")
+        heard = {arm.label: (sum(o.reported for o in outcomes if o.mission == mission and o.arm == arm.label),
+                             sum(o.tasks for o in outcomes if o.mission == mission and o.arm == arm.label))
+                 for arm in c.arms}
+        res.compare(f"{mission}: successes the control node heard of, {pair}", "open question",
+                    f"{heard[la][0]}/{heard[la][1]} / {heard[lb][0]}/{heard[lb][1]}", "tasks",
                     "task results that reached the control node")
-        res.compare(f"{mission}: time to complete, aware / blind", "open question",
+        res.compare(f"{mission}: time to complete, {pair}", "open question",
                     f"{a['time'][0]:.0f} / {b['time'][0]:.0f}", "s",
-                    f"aware {fmt_ci(*a['time'], 1)}, blind {fmt_ci(*b['time'], 1)}")
-    res.draw = lambda fig: _draw(fig, summary, missions, outcomes)
+                    f"{la} {fmt_ci(*a['time'], 1)}, {lb} {fmt_ci(*b['time'], 1)}")
+    res.notes.append("guard on / guard off: the same team, tasks and seeds; only the mission's network_aware "
+                     "setting differs (true: the guard with its policy hold; false: no guard)")
+    res.notes.append(NO_WIDEP_SPLIT + "; widep-vs-goto, when run, compares two algorithms with the guard off in both")
+    res.draw = lambda fig: _draw(fig, summary, missions, outcomes, netns)
     return res
 
 
 def _draw(fig: Any, summary: dict[tuple[str, str], dict[str, tuple[float, float, float]]], missions: list[str],
-          outcomes: list[Outcome]) -> None:
+          outcomes: list[Outcome], netns: bool = False) -> None:
     gs = fig.add_gridspec(1, 3)
     panels = [("connected", "connectivity kept (share of time)", 1.05), ("pooled", "tasks completed (share)", 1.05),
               ("time", "time to complete (s)", None)]
+    # every arm label keeps one colour across panels: the guard arms 0 and 1, the algorithm arms 2 and 3
+    labels = list(dict.fromkeys(arm.label for m in missions for arm in COMPARISONS[m].arms))
+    legend = {GUARD_ON: "guard on (network_aware = true)", GUARD_OFF: "guard off (network_aware = false)",
+              "WiDep": "WiDep (guard off)", "straight goto": "straight goto to the PoI (guard off)"}
     for col, (key, title, top) in enumerate(panels):
         ax = fig.add_subplot(gs[0, col])
-        for j, arm in enumerate(ARMS):
-            xs = np.arange(len(missions)) + (j - 0.5) * 0.36
-            m = [summary[(mi, arm)][key][0] for mi in missions]
-            lo = [summary[(mi, arm)][key][1] for mi in missions]
-            hi = [summary[(mi, arm)][key][2] for mi in missions]
-            err = [[max(0.0, a - b) if math.isfinite(b) else 0.0 for a, b in zip(m, lo)],
-                   [max(0.0, c - a) if math.isfinite(c) else 0.0 for a, c in zip(m, hi)]]
-            ax.bar(xs, [v if math.isfinite(v) else 0.0 for v in m], width=0.34, color=color(0 if arm == "aware" else 1),
-                   alpha=0.75, label=f"network-{arm}", yerr=err, capsize=4)
-            if key != "pooled":
-                per = "connected" if key == "connected" else None
-                for i, mi in enumerate(missions):
-                    runs = [o for o in outcomes if o.mission == mi and o.arm == arm]
-                    vals = [o.connected for o in runs] if per else [float(np.mean(o.times)) for o in runs if o.times]
-                    ax.scatter(np.full(len(vals), xs[i]) + np.linspace(-0.1, 0.1, len(vals)), vals, s=8,
+        drawn: set[str] = set()
+        for i, mi in enumerate(missions):
+            for j, arm in enumerate(COMPARISONS[mi].arms):
+                x = i + (j - 0.5) * 0.36
+                m, lo, hi = summary[(mi, arm.label)][key]
+                err = [[max(0.0, m - lo) if math.isfinite(lo) else 0.0], [max(0.0, hi - m) if math.isfinite(hi) else 0.0]]
+                ax.bar([x], [m if math.isfinite(m) else 0.0], width=0.34, color=color(labels.index(arm.label)),
+                       alpha=0.75, yerr=err, capsize=4,
+                       label=None if arm.label in drawn else legend.get(arm.label, arm.label))
+                drawn.add(arm.label)
+                if key != "pooled":
+                    runs = [o for o in outcomes if o.mission == mi and o.arm == arm.label]
+                    vals = [o.connected for o in runs] if key == "connected" else \
+                        [float(np.mean(o.times)) for o in runs if o.times]
+                    ax.scatter(np.full(len(vals), x) + np.linspace(-0.1, 0.1, len(vals)), vals, s=8,
                                color="black", alpha=0.6, zorder=3)
-        ax.set_xticks(range(len(missions)), missions)
+        ax.set_xticks(range(len(missions)), [m if COMPARISONS[m].kind == "guard" else f"{m}\n(two algorithms)"
+                                             for m in missions])
         ax.set_title(title, fontsize=11)
         if top:
             ax.set_ylim(0, top)
         ax.grid(True, axis="y", color="#e0e0e0", lw=0.6)
         ax.legend(fontsize=8, loc="lower right" if key != "time" else "upper left")
-    fig.suptitle("Paper 004's open question: network-aware against network-blind, same missions "
-                 "(bars: mean, whiskers: 95 % CI, dots: runs)", fontsize=12)
+    tier = "the real-mesh tier (netns, babeld)" if netns else "the loopback tier"
+    widep = ("; widep-vs-goto compares two algorithms, the guard off in both" if "widep-vs-goto" in missions
+             else "")
+    fig.suptitle(f"Paper 004's open question on {tier}: the mission's network guard on against off\n"
+                 "guard on / guard off: the same team, tasks and seeds; only network_aware differs "
+                 "(bars: mean, whiskers: 95 % CI, dots: runs)\n"
+                 "WiDep is no arm pair of the guard (the guard holds remote motion jobs only, never a deployment's "
+                 f"moves){widep}", fontsize=10.5)
