@@ -29,6 +29,12 @@ the parts from it:
   uses shows nowhere in the daemon's state, and the node is reported as a cut vertex.
 - **positions**: Babel has none; listed in `missing`.
 
+Rows babeld cannot have computed are dropped and recorded in `NetView.dropped` (`sanity`): a
+neighbour with a finite link cost but an rxcost or txcost of 0 (its quality would read as a lost
+link's), and an installed route whose metric is 0 or below the refmetric it was advertised with
+(babeld's metric is refmetric + link cost). Qualities are computed within 0..1 and hops are
+derived, so neither can be out of range here.
+
 Addresses are named through `names` (address -> agent name, e.g. MobiNet's view of the team
 directory); a neighbour's IPv4 address is the host prefix it originates (the route through it
 with refmetric 0). Malformed lines raise `SourceError` naming the line; unknown line kinds
@@ -52,6 +58,7 @@ from erni.plugins.mobinet.resource import (
     NetView,
     SourceError,
 )
+from erni.plugins.mobinet.sanity import Absurd
 
 INFINITY = 0xFFFF          # Babel's infinite metric
 UNIT = 256                 # the cost of a loss-free hop on a link-quality interface
@@ -206,6 +213,22 @@ def _quality_of_metric(metric: int) -> float:
     return min(1.0, math.sqrt(UNIT / metric)) if 0 < metric < INFINITY else (1.0 if metric == 0 else 0.0)
 
 
+def implausible_neighbour(n: BabelNeighbour) -> str | None:
+    """Why babeld cannot have computed this neighbour line, or None."""
+    if n.cost < INFINITY and (n.rxcost == 0 or n.txcost == 0):
+        return (f"neighbour {n.address} on {n.interface}: finite cost {n.cost} with rxcost {n.rxcost} "
+                f"txcost {n.txcost} (a cost of 0 is no link)")
+    return None
+
+
+def implausible_route(r: BabelRoute) -> str | None:
+    """Why babeld cannot have computed this installed route line, or None."""
+    if r.installed and r.metric < INFINITY and (r.metric == 0 or r.metric < r.refmetric):
+        return (f"route {r.prefix} via {r.via}: metric {r.metric} with refmetric {r.refmetric} "
+                "(a route costs its refmetric plus a link cost of at least 1)")
+    return None
+
+
 def _host(prefix: str) -> str | None:
     net = ipaddress.ip_network(prefix)
     return str(net.network_address) if net.prefixlen == net.max_prefixlen else None
@@ -240,10 +263,16 @@ def build_view(dump: BabelDump, parts: frozenset[str], *, node: str, where: str,
 
     view = NetView(node=node, address=address)
     view.names = {a: n for a, n in names.items()}
+    bad_neighbours = {n.address for n in dump.neighbours if implausible_neighbour(n)}
+    bad_routes = {r.id for r in dump.routes if implausible_route(r)}
     view.sources["node"] = f"{where} ({dump.version or 'babeld'}, my-id {dump.my_id or '?'})"
     named = "; names: the team directory (agents' beacons)"
     if NEIGHBORS in parts:
         for n in dump.neighbours:
+            why = implausible_neighbour(n)
+            if why:
+                view.dropped.append(Absurd(where, NEIGHBORS, "neighbour", why))
+                continue
             finite = n.cost < INFINITY
             ip = neighbour_ip.get(n.address, "")
             view.neighbors.append(Neighbor(name=neighbour_name(n.address), address=ip or n.address,
@@ -255,12 +284,23 @@ def build_view(dump: BabelDump, parts: frozenset[str], *, node: str, where: str,
         for r in dump.routes:
             if not r.installed or r.metric >= INFINITY:
                 continue
+            why = implausible_route(r)
+            if why:
+                view.dropped.append(Absurd(where, ROUTES, "route", why))
+                continue
             hop = neighbour_ip.get(r.via, r.via)
             view.routes.append(Route(destination=destination(r.prefix), next_hop=neighbour_name(r.via),
                                      hops=1 if _host(r.prefix) == hop else 0, cost=r.metric / UNIT))
         view.sources[ROUTES] = f"{where} route table (installed routes; cost = metric/256; hops unknown past 1){named}"
     if TOPOLOGY in parts:
-        view.links = _topology(dump, node, neighbour_ip, by_via, mine, neighbour_name, destination, avoid_margin)
+        sane = BabelDump(dump.version, dump.host, dump.my_id, dump.interfaces,
+                         [n for n in dump.neighbours if n.address not in bad_neighbours], dump.xroutes,
+                         [r for r in dump.routes if r.id not in bad_routes])
+        by_via = {n.address: n for n in sane.neighbours}
+        view.links = _topology(sane, node, neighbour_ip, by_via, mine, neighbour_name, destination, avoid_margin)
+        view.dropped.extend(Absurd(where, TOPOLOGY, kind, why) for kind, why in
+                            [*(("neighbour", implausible_neighbour(n)) for n in dump.neighbours),
+                             *(("route", implausible_route(r)) for r in dump.routes)] if why)
         view.sources[TOPOLOGY] = (f"{where} neighbour table (this node's links) and route table (an edge "
                                   f"N-D where neighbour N's refmetric to D shows a path avoiding this node){named}")
     if POSITIONS in parts:

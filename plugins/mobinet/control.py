@@ -9,18 +9,23 @@ and removes its NetInfo. This robot's `Pose` is written to the network subsystem
 MobiNetResource's thread; results come back through `later()`, so `execute()` only decides
 and publishes. Each NetInfo's `provenance` names the source and table of every field it
 fills; when the source does not provide what a watch needs (an agent without NHDP-MIB asked
-for neighbours), the NetInfo is degraded and its message says what is missing.
+for neighbours), the NetInfo is degraded and its message says what is missing. A reading whose
+source dropped implausible rows of the watched part (`sanity`) is degraded too, with its good
+rows; a reading of another part is not. `path_cost` answers a destination no route names
+exactly from the route of the longest prefix that covers it.
 """
 
 from __future__ import annotations
 
+import ipaddress
 import math
 import time
+from collections.abc import Mapping
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from erni.blackboard import NetInfo, Plugin, Pose, Position, Task, TaskState
+from erni.blackboard import NetInfo, Plugin, Pose, Position, Route, Task, TaskState
 from erni.blackboard.errors import ConfigError, TransactionError
 from erni.blackboard.objects import only_stamp_differs
 from erni.blackboard.schemas import Peer
@@ -42,6 +47,7 @@ from erni.plugins.mobinet.resource import (
     NetView,
     NetworkSource,
 )
+from erni.plugins.mobinet.sanity import MAX_HOPS, WORLD_BOUND, Limits
 from erni.plugins.mobinet.snmp import SnmpSource, articulation_points
 
 PARTS_OF = {
@@ -90,6 +96,11 @@ class MobiNetSettings(BaseModel):
     write_interval: float = Field(0.5, ge=0, le=60, description="at most one position write per interval (s); "
                                   "the newest Pose is written when it ends (0: no limit)")
     log_interval: float = Field(10.0, gt=0, description="at most one warning per kind per interval (s)")
+    world_bound: float = Field(WORLD_BOUND, gt=0, description="no node is farther than this from the origin "
+                               "on either axis (m): a position reported beyond it is dropped as implausible "
+                               "(default 10 km)")
+    max_hops: int = Field(MAX_HOPS, ge=1, le=255, description="no route is longer (hops): a route reported "
+                          "with more hops, or with 0 hops to another node, is dropped as implausible")
 
     @field_validator("babel")
     @classmethod
@@ -132,7 +143,8 @@ class MobiNetControl(Plugin[MobiNetSettings]):
             return BabelSource(host, port, node=self.agent_name, timeout=s.timeout, names=lambda: self._names)
         return SnmpSource(s.host, s.port, community=s.community, timeout=s.timeout, retries=s.retries,
                           max_repetitions=s.max_repetitions, cache_seconds=s.cache_seconds,
-                          write_community=s.write_community)
+                          write_community=s.write_community,
+                          limits=Limits(world_bound=s.world_bound, max_hops=s.max_hops))
 
     def setup(self) -> None:
         me = self.agent_name
@@ -339,6 +351,10 @@ class MobiNetControl(Plugin[MobiNetSettings]):
         if TOPOLOGY in PARTS_OF[task.preposition] and TOPOLOGY not in view.missing:
             provenance["articulation_points"] = "computed from links"
         lacking = [view.missing[p] for p in sorted(PARTS_OF[task.preposition]) if p in view.missing]
+        dropped = [row for row in view.dropped if row.part in PARTS_OF[task.preposition]]
+        if dropped:   # the good rows stand; a reader that trusts only whole readings skips this one
+            more = f" and {len(dropped) - 1} more" if len(dropped) > 1 else ""
+            lacking.append(f"{dropped[0]}{more}")
         fields: dict[str, Any] = {"degraded": bool(lacking), "message": "; ".join(lacking),
                                   "stamp": time.time(), "node": view.node or self.agent_name,
                                   "provenance": provenance}
@@ -398,11 +414,39 @@ class MobiNetControl(Plugin[MobiNetSettings]):
         message = ""
         routes = list(view.routes)
         if params.destination is not None:
-            routes = [r for r in routes if params.destination in (r.destination,
-                      next((a for a, n in view.names.items() if n == r.destination), ""))]
+            routes = routes_to(routes, params.destination, view.names)
             if not routes:
                 message = f"no route to {params.destination}"
         fields["routes"] = routes
         values["routes"] = {r.destination: {"next_hop": r.next_hop, "hops": r.hops,
                                             "cost": round(r.cost, 4)} for r in routes}
         return message
+
+
+def routes_to(routes: list[Route], destination: str, names: Mapping[str, str]) -> list[Route]:
+    """The routes to `destination` (a name or an address): those naming it, else those of the
+    longest prefix covering its address(es), as the kernel would forward a packet to it."""
+    exact = [r for r in routes if destination in (r.destination,
+             next((a for a, n in names.items() if n == r.destination), ""))]
+    if exact:
+        return exact
+    addresses = []
+    for text in [destination, *(a for a, n in names.items() if n == destination)]:
+        try:
+            addresses.append(ipaddress.ip_address(text))
+        except ValueError:
+            continue
+    best: list[Route] = []
+    longest = -1
+    for route in routes:
+        if "/" not in route.destination:
+            continue   # a host route: it names its destination, matched above
+        try:
+            net = ipaddress.ip_network(route.destination, strict=False)
+        except ValueError:
+            continue
+        if net.prefixlen >= longest and any(a.version == net.version and a in net for a in addresses):
+            if net.prefixlen > longest:
+                best, longest = [], net.prefixlen
+            best.append(route)
+    return best

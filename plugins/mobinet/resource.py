@@ -21,6 +21,7 @@ from typing import Any, Protocol, runtime_checkable
 
 from erni.blackboard import Link, Neighbor, Position, Route
 from erni.blackboard.errors import ErniError
+from erni.plugins.mobinet.sanity import Absurd
 
 # what a read may ask for
 NEIGHBORS = "neighbors"
@@ -40,7 +41,8 @@ class NetView:
 
     `sources` maps "node" and each filled part (a PARTS name) to where it came from, e.g.
     "snmp 127.0.0.1:1162 NHDP-MIB nhdpDiscIfSetTable"; `missing` maps each requested part
-    the subsystem does not provide to the reason, e.g. "NHDP-MIB not served by ...".
+    the subsystem does not provide to the reason, e.g. "NHDP-MIB not served by ...";
+    `dropped` lists the rows left out as implausible or mistyped (their part is degraded).
     """
 
     node: str
@@ -52,6 +54,7 @@ class NetView:
     positions: dict[str, Position] = field(default_factory=dict)
     sources: dict[str, str] = field(default_factory=dict)
     missing: dict[str, str] = field(default_factory=dict)
+    dropped: list[Absurd] = field(default_factory=list)
 
 
 @runtime_checkable
@@ -84,15 +87,17 @@ Delivery = Callable[[str, "NetView | None", str], None]   # (watch key, view or 
 class RateLimitedLog:
     """Log a warning per key at most once per `interval` seconds, counting what was held back."""
 
-    def __init__(self, log: logging.Logger, interval: float) -> None:
+    def __init__(self, log: logging.Logger, interval: float,
+                 clock: Callable[[], float] = time.monotonic) -> None:
         self.log = log
         self.interval = interval
+        self.clock = clock
         self._last: dict[str, float] = {}
         self._held: dict[str, int] = {}
 
     def warning(self, key: str, message: str) -> bool:
         """Emit `message` unless the same key was logged within the interval; True if logged."""
-        now = time.monotonic()
+        now = self.clock()
         if now - self._last.get(key, -1e18) < self.interval:
             self._held[key] = self._held.get(key, 0) + 1
             return False
@@ -116,13 +121,17 @@ class MobiNetResource:
 
     def __init__(self, make_source: Callable[[], NetworkSource], deliver: Delivery,
                  log: logging.Logger, log_interval: float = 10.0, name: str = "mobinet",
-                 retry_delay: float = 1.0, write_interval: float = 0.0) -> None:
+                 retry_delay: float = 1.0, write_interval: float = 0.0, absurd_interval: float = 60.0,
+                 clock: Callable[[], float] = time.monotonic) -> None:
         self.retry_delay = retry_delay
         self.write_interval = write_interval
         self._make_source = make_source
         self._deliver = deliver
         self.log = log
         self.limited = RateLimitedLog(log, log_interval)
+        # an implausible row is read again at every poll while the agent keeps saying it: one
+        # warning a minute per agent and column, whatever the rate of the watches
+        self.absurd = RateLimitedLog(log, absurd_interval, clock)
         self.name = name
         self._watches: dict[str, _Watch] = {}
         self._pose: Position | None = None
@@ -133,7 +142,7 @@ class MobiNetResource:
         self._stopping = False
         self._tasks: list[asyncio.Future[Any]] = []
         self.source: NetworkSource | None = None
-        self.stats = {"reads": 0, "read_errors": 0, "writes": 0, "write_errors": 0}
+        self.stats = {"reads": 0, "read_errors": 0, "writes": 0, "write_errors": 0, "dropped": 0}
 
     # -- called from any thread (never blocks on SNMP) ------------------------------------
 
@@ -272,7 +281,11 @@ class MobiNetResource:
         assert self.source is not None
         self.stats["reads"] += 1
         try:
-            return await self.source.read(parts), ""
+            view = await self.source.read(parts)
+            for row in view.dropped:
+                self.stats["dropped"] += 1
+                self.absurd.warning(f"{row.agent} {row.column}", str(row))
+            return view, ""
         except SourceError as err:
             message = str(err)
         except Exception as err:  # a source bug degrades the result, it never stops polling

@@ -24,9 +24,13 @@ parts of one read run concurrently. When the agent serves the ERNI change counte
 the last walk (for at most `cache_seconds`), so a steady network costs one GET per read.
 Positions follow the state version; the other parts, and the names of the nodes, the topology
 version, so robots that move without changing a link cost a topology reader one GET.
-Every value is type-checked: a missing answer, an error status, a wrong type or a malformed
-value raises `SourceError` naming the OID and what was expected. Positions are written with
-SET and the write community; the read community never writes.
+Every value is type-checked and every table row checked against physical limits (`sanity`):
+a position beyond the world bound, a heading outside one turn, a link quality outside 0..1, a
+route of 0 hops or more than `max_hops`, a metric outside its MIB range, a wrong type or a
+malformed value drops that row alone, recorded in `NetView.dropped` with the OID and the value;
+the other rows stand. A missing answer, an error status, or a wrong type in the node's identity
+raises `SourceError` naming the OID and what was expected. Positions are written with SET and
+the write community; the read community never writes.
 """
 
 from __future__ import annotations
@@ -51,6 +55,7 @@ from erni.plugins.mobinet.resource import (
     NetView,
     SourceError,
 )
+from erni.plugins.mobinet.sanity import Absurd, Limits
 
 # --- the OIDs read and written (numeric: no MIB module is loaded at run time) -------------
 # ERNI units: positions in mm, headings in centidegrees, link quality in thousandths;
@@ -59,6 +64,7 @@ from erni.plugins.mobinet.resource import (
 OID = tuple[int, ...]
 
 METRIC_UNIT = 1024
+MAXIMUM_METRIC = 16776960   # RFC 7181: the largest link metric (LinkMetricValue's upper bound, RFC 7184)
 HELLO_WINDOW = 4    # HELLOs expected between two readings before their ratio is a link quality
 
 SYS_NAME = (1, 3, 6, 1, 2, 1, 1, 5, 0)                         # SNMPv2-MIB (RFC 3418)
@@ -147,6 +153,21 @@ def label(oid: OID) -> str:
 def dotted(oid: OID) -> str:
     """The OID as `1.3.6...`."""
     return ".".join(map(str, oid))
+
+
+def column(oid: OID) -> str:
+    """The name of the known column or scalar `oid` is an instance of, else the dotted OID."""
+    for n in range(len(oid), 0, -1):
+        name = NAMES.get(oid[:n])
+        if name:
+            return name
+    return dotted(oid)
+
+
+def _implausible(oid: OID, value: object, why: str | None) -> None:
+    """Raise SourceError naming `oid` and its value when `why` says the value is not plausible."""
+    if why is not None:
+        raise SourceError(f"{label(oid)} ({dotted(oid)}) = {value}: {why}")
 
 
 # --- typed decoding -------------------------------------------------------------------
@@ -259,8 +280,10 @@ class SnmpSource:
 
     def __init__(self, host: str, port: int, community: str = "public", timeout: float = 0.5,
                  retries: int = 0, max_repetitions: int = 100, cache_seconds: float = 5.0,
-                 write_community: str | None = None, modules: frozenset[str] | None = None) -> None:
+                 write_community: str | None = None, modules: frozenset[str] | None = None,
+                 limits: Limits | None = None) -> None:
         self.host, self.port = host, port
+        self.limits = limits or Limits()
         self.modules = modules   # the PROBES modules to use; None: every one the agent serves
         self.community = community
         self.write_community = write_community
@@ -273,7 +296,8 @@ class SnmpSource:
         self._cache: dict[str, tuple[Any, float, Any]] = {}  # job -> (key, when, walked columns)
         self._uptime: int | None = None  # the agent's sysUpTime in its last answer (a restart resets it)
         self._hellos: dict[str, tuple[int, int]] = {}        # neighbour address -> HELLO baseline
-        self._decoded: dict[str, tuple[Any, str, dict[str, str], list[Any]]] = {}  # job -> (columns, node, names, rows)
+        # job -> (columns, node, names, rows, rows dropped)
+        self._decoded: dict[str, tuple[Any, str, dict[str, str], list[Any], list[Absurd]]] = {}
         self.requests = 0
 
     @property
@@ -487,15 +511,18 @@ class SnmpSource:
         last = self._decoded.get(job)
         if last is not None and last[0] is cols and last[1] == view.node and last[2] == view.names:
             setattr(view, field, list(last[3]))
+            view.dropped.extend(last[4])
             return
         decode(view, cols)
-        self._decoded[job] = (cols, view.node, dict(view.names), list(getattr(view, field)))
+        self._decoded[job] = (cols, view.node, dict(view.names), list(getattr(view, field)),
+                              [row for row in view.dropped if row.part == job])
 
     @staticmethod
     def _copy(view: NetView) -> NetView:
         return NetView(node=view.node, address=view.address, names=dict(view.names),
                        neighbors=list(view.neighbors), links=list(view.links), routes=list(view.routes),
-                       positions=dict(view.positions), sources=dict(view.sources), missing=dict(view.missing))
+                       positions=dict(view.positions), sources=dict(view.sources), missing=dict(view.missing),
+                       dropped=list(view.dropped))
 
     def _identity(self, ident: dict[OID, Any], served: set[str]) -> NetView:
         """The node's name and address: ERNI's when served, else sysName and the OLSRv2 originator."""
@@ -595,12 +622,23 @@ class SnmpSource:
     def _name(self, view: NetView, address: str) -> str:
         return view.names.get(address, address)
 
+    def _drop(self, view: NetView, part: str, oid: OID, err: SourceError) -> None:
+        """Leave one row out of `part`: it was mistyped, malformed or implausible (`err` says how)."""
+        view.dropped.append(Absurd(f"snmp {self.where}", part, column(oid), str(err)))
+
     def _decode_nodes(self, view: NetView, cols: Columns) -> dict[OID, str]:
         by_index: dict[OID, str] = {}
         for idx, val in cols.get(ERNI_NODES_NAME, {}).items():
-            by_index[idx] = _text(ERNI_NODES_NAME + idx, val)
+            try:
+                by_index[idx] = _text(ERNI_NODES_NAME + idx, val)
+            except SourceError as err:   # the node is named by its address
+                self._drop(view, "names", ERNI_NODES_NAME + idx, err)
         for idx, val in cols.get(ERNI_NODES_ADDRESS, {}).items():
-            addr = _ip(ERNI_NODES_ADDRESS + idx, val)
+            try:
+                addr = _ip(ERNI_NODES_ADDRESS + idx, val)
+            except SourceError as err:
+                self._drop(view, "names", ERNI_NODES_ADDRESS + idx, err)
+                continue
             if idx in by_index:
                 view.names[addr] = by_index[idx]
         if view.address:
@@ -609,43 +647,76 @@ class SnmpSource:
 
     def _decode_positions(self, view: NetView, cols: Columns, by_index: dict[OID, str]) -> None:
         xs, ys, hs = cols[ERNI_POSITION_X], cols[ERNI_POSITION_Y], cols[ERNI_POSITION_HEADING]
+        limits = self.limits
         for idx in sorted(xs):
             if idx not in ys:
                 continue
             name = by_index.get(idx, ".".join(map(str, idx)))
-            x = _int(ERNI_POSITION_X + idx, xs[idx]) / 1000.0
-            y = _int(ERNI_POSITION_Y + idx, ys[idx]) / 1000.0
-            h = _int(ERNI_POSITION_HEADING + idx, hs[idx]) / 100.0 if idx in hs else 0.0
+            oid = ERNI_POSITION_X + idx
+            try:
+                x = _int(oid, xs[idx]) / 1000.0
+                _implausible(oid, f"{x} m", limits.coordinate(x))
+                oid = ERNI_POSITION_Y + idx
+                y = _int(oid, ys[idx]) / 1000.0
+                _implausible(oid, f"{y} m", limits.coordinate(y))
+                h = 0.0
+                if idx in hs:
+                    oid = ERNI_POSITION_HEADING + idx
+                    h = _int(oid, hs[idx]) / 100.0
+                    _implausible(oid, f"{h} deg", limits.heading(h))
+            except SourceError as err:
+                self._drop(view, POSITIONS, oid, err)
+                continue
             view.positions[name] = Position(x=x, y=y, heading=h)
 
     def _decode_neighbors(self, view: NetView, cols: Columns) -> None:
         routers: dict[int, list[tuple[int, str]]] = {}   # router index -> [(if index, address)]
         for idx, val in sorted(cols[NHDP_DISC_ROUTER_INDEX].items()):
-            router = _int(NHDP_DISC_ROUTER_INDEX + idx, val, "Unsigned32/Gauge32")
-            if idx not in cols[NHDP_DISC_IF_ADDR]:
+            oid = NHDP_DISC_ROUTER_INDEX + idx
+            try:
+                router = _int(oid, val, "Unsigned32/Gauge32")
+                if idx not in cols[NHDP_DISC_IF_ADDR]:
+                    continue
+                oid = NHDP_DISC_IF_ADDR_TYPE + idx
+                kind = (_int(oid, cols[NHDP_DISC_IF_ADDR_TYPE][idx])
+                        if idx in cols[NHDP_DISC_IF_ADDR_TYPE] else None)
+                oid = NHDP_DISC_IF_ADDR + idx
+                addr = _inet(oid, cols[NHDP_DISC_IF_ADDR][idx], kind)
+                oid = NHDP_DISC_IF_INDEX + idx
+                if_index = (_int(oid, cols[NHDP_DISC_IF_INDEX][idx], "Unsigned32/Gauge32")
+                            if idx in cols[NHDP_DISC_IF_INDEX] else 0)
+            except SourceError as err:
+                self._drop(view, NEIGHBORS, oid, err)
                 continue
-            kind = (_int(NHDP_DISC_IF_ADDR_TYPE + idx, cols[NHDP_DISC_IF_ADDR_TYPE][idx])
-                    if idx in cols[NHDP_DISC_IF_ADDR_TYPE] else None)
-            addr = _inet(NHDP_DISC_IF_ADDR + idx, cols[NHDP_DISC_IF_ADDR][idx], kind)
-            if_index = (_int(NHDP_DISC_IF_INDEX + idx, cols[NHDP_DISC_IF_INDEX][idx], "Unsigned32/Gauge32")
-                        if idx in cols[NHDP_DISC_IF_INDEX] else 0)
             routers.setdefault(router, []).append((if_index, addr))
         sym, metric = cols[NHDP_NIB_SYMMETRIC], cols.get(OLSRV2_NIB_IN_METRIC, {})
         quality = cols.get(ERNI_LINK_QUALITY, {})
         for router, ifaces in sorted(routers.items()):
             r = (router,)
             addr = ifaces[0][1]
-            truth = _int(NHDP_NIB_SYMMETRIC + r, sym[r]) if r in sym else 2
-            if truth not in (1, 2):
-                raise SourceError(f"{label(NHDP_NIB_SYMMETRIC + r)}: expected TruthValue 1 or 2, got {truth}")
-            if r in quality:
-                q = _int(ERNI_LINK_QUALITY + r, quality[r], "Unsigned32/Gauge32") / 1000.0
-                if not 0.0 <= q <= 1.0:
-                    raise SourceError(f"{label(ERNI_LINK_QUALITY + r)}: expected 0..1000, got {round(q * 1000)}")
-            else:
-                q = self._hello_quality(addr, cols, [i for i, _ in ifaces])
-            m = (_int(OLSRV2_NIB_IN_METRIC + r, metric[r], "Unsigned32/Gauge32")
-                 if r in metric and truth == 1 else None)
+            oid = NHDP_NIB_SYMMETRIC + r
+            try:
+                truth = _int(oid, sym[r]) if r in sym else 2
+                if truth not in (1, 2):
+                    _implausible(oid, truth, "expected TruthValue true(1) or false(2)")
+                if r in quality:
+                    oid = ERNI_LINK_QUALITY + r
+                    thousandths = _int(oid, quality[r], "Unsigned32/Gauge32")
+                    q = thousandths / 1000.0
+                    why = self.limits.quality(q)
+                    _implausible(oid, thousandths, why and f"{why} (0..1000 thousandths)")
+                else:
+                    oid = NHDP_PERF_RECVD
+                    q = self._hello_quality(addr, cols, [i for i, _ in ifaces])
+                m = None
+                if r in metric and truth == 1:
+                    oid = OLSRV2_NIB_IN_METRIC + r
+                    m = _int(oid, metric[r], "Unsigned32/Gauge32")
+                    _implausible(oid, m, None if m <= MAXIMUM_METRIC else
+                                 f"a link metric above MAXIMUM_METRIC {MAXIMUM_METRIC}")
+            except SourceError as err:
+                self._drop(view, NEIGHBORS, oid, err)
+                continue
             view.neighbors.append(Neighbor(name=self._name(view, addr), address=addr, quality=q,
                                            symmetric=truth == 1, metric=m))
 
@@ -655,8 +726,11 @@ class SnmpSource:
         for i in if_indexes:
             k = (i,)
             if k in cols[NHDP_PERF_RECVD] and k in cols[NHDP_PERF_EXPECTED]:
-                recvd += _int(NHDP_PERF_RECVD + k, cols[NHDP_PERF_RECVD][k], "Counter32")
-                expected += _int(NHDP_PERF_EXPECTED + k, cols[NHDP_PERF_EXPECTED][k], "Counter32")
+                got = _int(NHDP_PERF_RECVD + k, cols[NHDP_PERF_RECVD][k], "Counter32")
+                due = _int(NHDP_PERF_EXPECTED + k, cols[NHDP_PERF_EXPECTED][k], "Counter32")
+                _implausible(NHDP_PERF_RECVD + k, got, None if got <= due else
+                             f"more HELLOs received than the {due} expected (nhdpDiscIfExpectedPackets)")
+                recvd, expected = recvd + got, expected + due
         base = self._hellos.get(address)
         if base is None or expected < base[1]:          # first reading, or a counter discontinuity
             self._hellos[address] = (recvd, expected)
@@ -670,6 +744,12 @@ class SnmpSource:
             self._hellos[address] = (recvd, expected)
         return max(0.0, min(1.0, d_recvd / d_expected))
 
+    @staticmethod
+    def _metric(oid: OID, value: Value) -> int:
+        m = _int(oid, value, "Unsigned32/Gauge32")
+        _implausible(oid, m, None if m <= MAXIMUM_METRIC else f"a link metric above MAXIMUM_METRIC {MAXIMUM_METRIC}")
+        return m
+
     def _decode_topology(self, view: NetView, cols: Columns) -> None:
         seen: dict[frozenset[str], Link] = {}
 
@@ -680,17 +760,30 @@ class SnmpSource:
 
         for idx, val in sorted(cols[OLSRV2_TOPO_METRIC].items()):
             oid = OLSRV2_TOPO_METRIC + idx
-            src, at = _inet_index(oid, idx, 0)
-            dst, end = _inet_index(oid, idx, at)
-            if end != len(idx) or not src or not dst:
-                raise SourceError(f"{label(oid)}: expected an index of two InetAddressType, InetAddress pairs")
-            add(self._name(view, src), self._name(view, dst), _int(oid, val, "Unsigned32/Gauge32"))
+            try:
+                src, at = _inet_index(oid, idx, 0)
+                dst, end = _inet_index(oid, idx, at)
+                if end != len(idx) or not src or not dst:
+                    raise SourceError(f"{label(oid)}: expected an index of two InetAddressType, InetAddress pairs")
+                m = self._metric(oid, val)
+            except SourceError as err:
+                self._drop(view, TOPOLOGY, oid, err)
+                continue
+            add(self._name(view, src), self._name(view, dst), m)
         me = view.node
         addresses, outs = cols[OLSRV2_NIB_ADDR], cols[OLSRV2_NIB_OUT_METRIC]
         for idx, val in sorted(outs.items()):   # this node's own links: its symmetric neighbours
-            m = _int(OLSRV2_NIB_OUT_METRIC + idx, val, "Unsigned32/Gauge32")
-            if idx in addresses and m < 16776960:     # MAXIMUM_METRIC: no symmetric link
-                add(me, self._name(view, _inet(OLSRV2_NIB_ADDR + idx, addresses[idx])), m)
+            oid = OLSRV2_NIB_OUT_METRIC + idx
+            try:
+                m = self._metric(oid, val)
+                if idx not in addresses or m >= MAXIMUM_METRIC:   # no symmetric link
+                    continue
+                oid = OLSRV2_NIB_ADDR + idx
+                other = _inet(oid, addresses[idx])
+            except SourceError as err:
+                self._drop(view, TOPOLOGY, oid, err)
+                continue
+            add(me, self._name(view, other), m)
         view.links = list(seen.values())
 
     def _decode_routes(self, view: NetView, cols: Columns) -> None:
@@ -698,15 +791,34 @@ class SnmpSource:
         kinds = cols[OLSRV2_ROUTE_NEXT_TYPE]
         for idx, val in sorted(hops.items()):
             oid = OLSRV2_ROUTE_NEXT + idx
-            dest, at = _inet_index(oid, idx, 0)
-            if at + 1 != len(idx) or not dest:
-                raise SourceError(f"{label(oid)}: expected an index InetAddressType.InetAddress.prefixLen")
-            kind = _int(OLSRV2_ROUTE_NEXT_TYPE + idx, kinds[idx]) if idx in kinds else None
-            hop = _inet(oid, val, kind)
-            dist = _int(OLSRV2_ROUTE_DIST + idx, dists[idx], "Unsigned32/Gauge32") if idx in dists else 0
-            cost = (_int(OLSRV2_ROUTE_METRIC + idx, metrics[idx], "Unsigned32/Gauge32")
-                    if idx in metrics else 0)
-            view.routes.append(Route(destination=self._destination(view, dest, idx[at]),
+            try:
+                dest, at = _inet_index(oid, idx, 0)
+                if at + 1 != len(idx) or not dest:
+                    raise SourceError(f"{label(oid)}: expected an index InetAddressType.InetAddress.prefixLen")
+                prefix = idx[at]
+                if prefix > ipaddress.ip_address(dest).max_prefixlen:
+                    raise SourceError(f"{label(oid)}: prefix length {prefix} is too long for {dest}")
+                oid = OLSRV2_ROUTE_NEXT_TYPE + idx
+                kind = _int(oid, kinds[idx]) if idx in kinds else None
+                oid = OLSRV2_ROUTE_NEXT + idx
+                hop = _inet(oid, val, kind)
+                dist = 0
+                if idx in dists:   # every row of the routing set leads to another router: 1.. hops
+                    oid = OLSRV2_ROUTE_DIST + idx
+                    dist = _int(oid, dists[idx], "Unsigned32/Gauge32")
+                    _implausible(oid, dist, self.limits.hops(dist))
+                cost = 0
+                if idx in metrics:   # the sum of `dist` link metrics, each 1..MAXIMUM_METRIC
+                    oid = OLSRV2_ROUTE_METRIC + idx
+                    cost = _int(oid, metrics[idx], "Unsigned32/Gauge32")
+                    low, high = max(dist, 1), max(dist, 1) * MAXIMUM_METRIC
+                    _implausible(oid, cost, None if low <= cost <= high else
+                                 f"a path metric outside {low}..{high} (its {max(dist, 1)} link metric(s) "
+                                 f"of 1..{MAXIMUM_METRIC} each)")
+            except SourceError as err:
+                self._drop(view, ROUTES, oid, err)
+                continue
+            view.routes.append(Route(destination=self._destination(view, dest, prefix),
                                      next_hop=self._name(view, hop), hops=dist, cost=cost / METRIC_UNIT))
 
     def _destination(self, view: NetView, address: str, prefix: int) -> str:
@@ -717,22 +829,34 @@ class SnmpSource:
         types, metrics, status = cols[INET_CIDR_TYPE], cols[INET_CIDR_METRIC1], cols[INET_CIDR_STATUS]
         for idx, val in sorted(types.items()):
             oid = INET_CIDR_TYPE + idx
-            dest, at = _inet_index(oid, idx, 0)
-            if len(idx) < at + 2 or len(idx) < at + 2 + idx[at + 1]:
-                raise SourceError(f"{label(oid)}: index too short for a prefix length and a policy")
-            prefix, policy_len = idx[at], idx[at + 1]
-            next_hop, end = _inet_index(oid, idx, at + 2 + policy_len)
-            if end != len(idx) or not dest:
-                raise SourceError(f"{label(oid)}: malformed inetCidrRouteTable index")
-            kind = _int(oid, val)
-            if kind not in (1, 3, 4) or (idx in status and _int(INET_CIDR_STATUS + idx, status[idx]) != 1):
+            try:
+                dest, at = _inet_index(oid, idx, 0)
+                if len(idx) < at + 2 or len(idx) < at + 2 + idx[at + 1]:
+                    raise SourceError(f"{label(oid)}: index too short for a prefix length and a policy")
+                prefix, policy_len = idx[at], idx[at + 1]
+                next_hop, end = _inet_index(oid, idx, at + 2 + policy_len)
+                if end != len(idx) or not dest:
+                    raise SourceError(f"{label(oid)}: malformed inetCidrRouteTable index")
+                if prefix > ipaddress.ip_address(dest).max_prefixlen:
+                    raise SourceError(f"{label(oid)}: prefix length {prefix} is too long for {dest}")
+                kind = _int(oid, val)
+                if idx in status:
+                    oid = INET_CIDR_STATUS + idx
+                    active = _int(oid, status[idx]) == 1
+                else:
+                    active = True
+                oid = INET_CIDR_METRIC1 + idx
+                cost = _int(oid, metrics[idx]) if idx in metrics else 0
+            except SourceError as err:
+                self._drop(view, ROUTES, oid, err)
+                continue
+            if kind not in (1, 3, 4) or not active:
                 continue  # reject, blackhole, or a row that is not active: not a path
             destination = self._destination(view, dest, prefix)
             if kind == 3:  # local: the next hop is the destination (a host) or the link itself
                 hop = destination if "/" not in destination else ""
             else:
                 hop = self._name(view, next_hop) if next_hop else ""
-            cost = _int(INET_CIDR_METRIC1 + idx, metrics[idx]) if idx in metrics else 0
             view.routes.append(Route(destination=destination, next_hop=hop, hops=1 if kind == 3 else 0,
                                      cost=float(cost)))
 

@@ -106,6 +106,7 @@ def test_the_client_reads_routes_from_debian_snmpd_and_names_what_is_missing(snm
     ipv4 = {(r.destination, r.next_hop, r.cost) for r in view.routes if ":" not in r.destination}
     assert ipv4 == kernel_routes()
     assert ipv4, "the host has no IPv4 route at all"
+    assert view.dropped == []   # a real agent's real table: nothing implausible
     for r in view.routes:   # every destination is an address or a prefix, IPv4 or IPv6
         assert ipaddress.ip_network(r.destination)
 
@@ -184,3 +185,49 @@ def test_neither_agent_answers_a_response_pdu(snmpd, ours):
             with pytest.raises(TimeoutError):
                 s.recvfrom(65535)
             assert time.monotonic() - t0 >= 0.4
+
+
+def kernel_choice(address: str, routes: set[tuple[str, str, float]]) -> set[tuple[str, str, float]]:
+    """The kernel's routes of the longest prefix covering `address` (host routes are /32)."""
+    target = int(ipaddress.IPv4Address(address))
+
+    def covers(dest: str) -> int:   # the prefix length if `dest` covers the address, else -1
+        net, _, length = dest.partition("/")
+        bits = int(length or 32)
+        mask = (0xFFFFFFFF << (32 - bits)) & 0xFFFFFFFF
+        return bits if int(ipaddress.IPv4Address(net)) & mask == target & mask else -1
+    longest = max(covers(r[0]) for r in routes)
+    return {r for r in routes if covers(r[0]) == longest} if longest >= 0 else set()
+
+
+def test_path_cost_to_an_address_inside_a_kernel_network_route_answers_its_longest_prefix(snmpd):
+    """The kernel forwards to an address by the longest prefix that covers it; `path_cost` to an address
+    no route names answers that route, read from the kernel's table through snmpd."""
+    kernel = kernel_routes()
+    networks = [ipaddress.IPv4Network(d) for d, _, _ in kernel if "/" in d]
+    assert networks, "the host has no IPv4 network route"
+    probes = sorted({"198.51.100.7" if n.prefixlen == 0 else str(n.network_address + 1)
+                     for n in networks if n.prefixlen < 31})
+    agent = Agent("host", workers=2)
+    agent.add_plugin("erni.plugins.mobinet:MobiNetControl", name="mobinet",
+                     settings={"host": "127.0.0.1", "port": snmpd, "timeout": 2.0, "retries": 1})
+    agent.start()
+    try:
+        tasks = {probe: Task(verb="NetWatch", preposition="path_cost", source="test",
+                             params={"rate_hz": 5, "destination": probe}) for probe in probes}
+        with agent.transaction() as tx:
+            for task in tasks.values():
+                tx.add(task)
+
+        def info(probe: str) -> NetInfo | None:
+            found = [i for i in agent.query(NetInfo) if i.task == tasks[probe].uid and i.provenance]
+            return found[0] if found else None
+
+        answers = {probe: wait_until(lambda p=probe: info(p), timeout=15) for probe in probes}
+    finally:
+        agent.stop()
+    for probe, answer in answers.items():
+        expected = kernel_choice(probe, kernel)
+        assert expected and all("/" in d for d, _, _ in expected), (probe, expected)
+        assert not answer.degraded, (probe, answer.message)
+        assert {(r.destination, r.next_hop, r.cost) for r in answer.routes} == expected, probe
