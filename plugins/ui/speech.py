@@ -12,11 +12,12 @@ pronouncing dictionary shipped in its PyPI package, decoding ERNI's grammar as J
 one line naming them: it would otherwise "work" and never hear those words.
 
 A recogniser restricted to a grammar always answers with a sentence of it, so each hearing carries
-the recogniser's own doubt (`Heard.unsure`): PocketSphinx decodes every utterance twice (as it
-streamed in, and again once its whole audio is known) and a hearing is unsure when the search ended
-inside a sentence of the grammar, when the two decodes mean different things, or when a word of it
-matches the audio poorly (its acoustic score per frame, against the best-scoring sounds of each
-frame, is below `SphinxStream.MIN_WORD_SCORE`); vosk's hearing is
+the recogniser's own doubt (`Heard.unsure`): PocketSphinx decodes every utterance twice once it
+has ended (whole, then in a live stream's pieces with its front end settled on the utterance) and a
+hearing is unsure when the search ended inside a sentence of the grammar, when the two decodes mean
+different things, or when a word of it matches the audio poorly (its acoustic score per frame,
+against the best-scoring sounds of each frame, is below `SphinxStream.MIN_WORD_SCORE`). A lone wake
+word, which the big grammar fits poorly, is spotted by a keyphrase search of its own; vosk's hearing is
 unsure when it has an out-of-grammar word ([unk]) or a word of low confidence. An unsure hearing is
 asked again ("Say again?"), never snapped to the nearest command.
 """
@@ -30,9 +31,10 @@ import os
 import queue
 import shutil
 import subprocess
+import tempfile
 import threading
 import wave
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from math import gcd
 from pathlib import Path
 from typing import Any
@@ -253,9 +255,19 @@ def sphinx_model() -> tuple[Path, Path]:
 
 
 class SphinxRecognizer:
-    """CMU PocketSphinx decoding ERNI's grammar (JSGF); `stream()` gives one decoder per audio source."""
+    """CMU PocketSphinx decoding ERNI's grammar (JSGF); `stream()` gives one decoder per audio source.
 
-    def __init__(self, grammar: str, *, model: Path | None = None, dictionary: Path | None = None) -> None:
+    `wake`: the wake phrases (default `grammar.ATTENTION`), also spotted on their own by a keyphrase
+    search, so a lone wake word is heard even where the command grammar fits it poorly.
+    """
+
+    # the keyphrase search's threshold: a lone wake word of the speech test set's voices is spotted,
+    # and no spotted phrase covers a command (they fall inside longer utterances, or on a stop)
+    WAKE_THRESHOLD = 1e-30
+
+    def __init__(self, grammar: str, *, wake: Iterable[str] | None = None, model: Path | None = None,
+                 dictionary: Path | None = None) -> None:
+        from erni.plugins.ui.grammar import ATTENTION
         from erni.plugins.ui.jsgf import Rules, words
 
         default_model, default_dict = sphinx_model()
@@ -273,6 +285,7 @@ class SphinxRecognizer:
             raise lacking(self.dictionary, missing, len(needed))
         self.grammar = grammar
         self.rules = Rules(grammar)
+        self.wake = tuple(p for p in (ATTENTION if wake is None else wake) if set(p.split()) <= known)
 
     def stream(self) -> SphinxStream:
         """Return a fresh decoder for one source (a page, the local microphone, a file)."""
@@ -281,30 +294,46 @@ class SphinxRecognizer:
         try:
             decoder = Decoder(hmm=str(self.model), dict=str(self.dictionary), lm=None, samprate=RATE,
                               loglevel="FATAL")
-            decoder.add_jsgf_string("erni", self.grammar)
-            decoder.activate_search("erni")
+            if self.wake:
+                with tempfile.TemporaryDirectory() as tmp:  # a keyphrase list is read from a file
+                    phrases = Path(tmp) / "wake.kws"
+                    phrases.write_text("".join(f"{p} /{self.WAKE_THRESHOLD:g}/\n" for p in self.wake))
+                    decoder.add_kws(SphinxStream.WAKE, str(phrases))
+            decoder.add_jsgf_string(SphinxStream.COMMANDS, self.grammar)
+            decoder.activate_search(SphinxStream.COMMANDS)
         except (RuntimeError, ValueError) as err:
             raise SpeechError(f"cannot start PocketSphinx with {self.model}: {err}") from None
-        return SphinxStream(decoder, Endpointer(sample_rate=RATE), complete=self.rules.accepts)
+        return SphinxStream(decoder, Endpointer(sample_rate=RATE), complete=self.rules.accepts,
+                            wake=bool(self.wake))
 
 
 class SphinxStream:
     """One source's utterances through PocketSphinx: a voice activity detector cuts the audio into
-    utterances, each decoded against the grammar as it streams in; when it ends (or at `flush()`)
-    its whole audio is decoded once more. The hearing is unsure when the search ended inside a
-    sentence (PocketSphinx then gives its best partial path), when the two decodes mean different
-    things, or when one of its words scores below `MIN_WORD_SCORE`."""
+    utterances, and when one ends (or at `flush()`) its audio is decoded against the grammar twice:
+    whole, then in the 30 ms pieces a live stream comes in, the front end now settled on this
+    utterance's voice and room. The hearing is unsure when the search ended inside a sentence
+    (PocketSphinx then gives its best partial path), when the two decodes mean different things, or
+    when one of its words scores below `MIN_WORD_SCORE`.
 
+    A stop heard by the first decode is answered at once: it acts however sure it is. A wake phrase
+    said on its own is spotted by a keyphrase search over the same audio: spotted with at most
+    `LONE_WAKE` seconds of the utterance outside it, it is the hearing (a wake phrase moves nothing).
+    """
+
+    COMMANDS, WAKE = "erni", "wake"
     # a word's acoustic score per 10 ms frame (natural log, against the best-scoring sound of each
     # frame): nearly every word of the right hearings of the speech test set scores above it
     MIN_WORD_SCORE = -7.0
+    LONE_WAKE = 0.35  # seconds of an utterance outside a spotted wake phrase, at most, for it to stand alone
 
-    def __init__(self, decoder: Any, endpointer: Any, complete: Callable[[str], bool] | None = None) -> None:
+    def __init__(self, decoder: Any, endpointer: Any, complete: Callable[[str], bool] | None = None,
+                 wake: bool = False) -> None:
         self.decoder, self.ep = decoder, endpointer
         self.complete = complete  # is a text a whole sentence of the grammar?
-        self.evidence: dict[str, Any] = {}  # of the last hearing: both decodes and each word's score
+        self.wake = wake  # the decoder has the keyphrase search of the wake phrases
+        self.evidence: dict[str, Any] = {}  # of the last hearing: both decodes, each word's score, the wake spotted
         self.buffer = bytearray()
-        self.audio = bytearray()  # the current utterance's speech, for the second decode
+        self.audio = bytearray()  # the current utterance's speech
         self.in_utterance = False
 
     def feed(self, pcm: bytes) -> Heard | None:
@@ -318,10 +347,7 @@ class SphinxStream:
             speech = self.ep.process(frame)
             if speech is None:
                 continue
-            if not self.in_utterance:
-                self.decoder.start_utt()
-                self.in_utterance = True
-            self.decoder.process_raw(speech, False, False)
+            self.in_utterance = True
             self.audio += speech
             if not self.ep.in_speech:
                 heard = self._end() or heard
@@ -330,13 +356,22 @@ class SphinxStream:
     def flush(self) -> Heard | None:
         """End the current utterance (the source stopped); return its hearing, if any."""
         if self.buffer and self.in_utterance:
-            self.decoder.process_raw(bytes(self.buffer), False, False)
             self.audio += self.buffer
         self.buffer.clear()
         return self._end() if self.in_utterance else None
 
+    def _decode(self, audio: bytes, whole: bool) -> None:
+        self.decoder.start_utt()
+        if whole:
+            self.decoder.process_raw(audio, False, True)
+        else:
+            step = self.ep.frame_bytes
+            for i in range(0, len(audio), step):
+                self.decoder.process_raw(audio[i:i + step], False, False)
+        self.decoder.end_utt()
+
     def _decoded(self) -> tuple[str, list[tuple[str, float]]]:
-        """The hypothesis of the utterance just ended, and each word's acoustic score per frame."""
+        """The hypothesis of the utterance just decoded, and each word's acoustic score per frame."""
         hyp = self.decoder.hyp()
         text = hyp.hypstr.strip() if hyp is not None else ""
         scores = []
@@ -347,26 +382,60 @@ class SphinxStream:
             scores.append((seg.word.split("(")[0], (math.log(seg.ascore) if seg.ascore > 0 else -1e4) / frames))
         return text, scores
 
+    def _spotted(self, audio: bytes) -> str:
+        """The wake phrase said on its own in this audio, or ""."""
+        if not self.wake:
+            return ""
+        self.decoder.activate_search(self.WAKE)
+        try:
+            self._decode(audio, whole=True)
+            hits = [(seg.end_frame - seg.start_frame + 1, seg.word.strip()) for seg in self.decoder.seg() or []]
+        finally:
+            self.decoder.activate_search(self.COMMANDS)
+        outside = len(audio) / 2 / RATE - max(hits, default=(0, ""))[0] / 100
+        return max(hits)[1] if hits and outside <= self.LONE_WAKE else ""
+
     def _end(self) -> Heard | None:
-        self.decoder.end_utt()
         self.in_utterance = False
-        text, scores = self._decoded()
         audio, self.audio = bytes(self.audio), bytearray()
+        if not audio:
+            return None
+        self._decode(audio, whole=True)
+        text, scores = self._decoded()
+        self.evidence = {"text": text, "scores": scores}
+        partial = self.complete is not None and bool(text) and not self.complete(text)
+        poor = [f"{w!r} ({score:.1f})" for w, score in scores if score < self.MIN_WORD_SCORE]
+        if is_stop(text):  # a stop acts however sure it is: its hearing waits for no second decode
+            return self._judged(text, partial, text, poor)
+        self._decode(audio, whole=False)  # the second decode: the front end settled on this utterance
+        again, _ = self._decoded()
+        wake = self._spotted(audio)
+        self.evidence.update(again=again, wake=wake)
+        if wake:
+            return Heard(wake) if wake == text else Heard(wake, False, f"a lone wake phrase (the grammar: {text!r})")
+        return self._judged(text, partial, again, poor)
+
+    @staticmethod
+    def _judged(text: str, partial: bool, again: str, poor: list[str]) -> Heard | None:
         if not text:
             return None
-        self.decoder.start_utt()  # the second decode: the whole utterance, the front end settled on it
-        self.decoder.process_raw(audio, False, True)
-        self.decoder.end_utt()
-        again, _ = self._decoded()
-        self.evidence = {"text": text, "again": again, "scores": scores}
-        if self.complete is not None and not self.complete(text):  # the search ended inside a sentence
+        if partial:  # the search ended inside a sentence
             return Heard(text, True, "only part of a command was heard")
         if not same_meaning(text, again):
             return Heard(text, True, f"the two decodes differ: {text!r} and {again!r}")
-        poor = [f"{w!r} ({score:.1f})" for w, score in scores if score < self.MIN_WORD_SCORE]
         if poor:
             return Heard(text, True, f"{', '.join(poor)} matches the audio poorly")
         return Heard(text)
+
+
+def is_stop(text: str) -> bool:
+    """True when a hearing asks for a stop (the dialogue carries it out however sure it is)."""
+    from erni.plugins.ui.grammar import Refusal, parse
+
+    try:
+        return bool(text) and parse(text).is_stop
+    except Refusal:
+        return False
 
 
 def same_meaning(a: str, b: str) -> bool:
@@ -397,7 +466,7 @@ def choose_recognizer(kind: str, vosk_model: str | None, wake: tuple[str, ...] |
         return _Loader("vosk", lambda: Recognizer(path, vocabulary() + extra))
     sphinx_model()  # installed?
     grammar = jsgf(wake=wake)
-    return _Loader("pocketsphinx", lambda: SphinxRecognizer(grammar))
+    return _Loader("pocketsphinx", lambda: SphinxRecognizer(grammar, wake=wake))
 
 
 class _Loader:
