@@ -7,19 +7,41 @@ without such links: connectivity is at risk when the robot is a cut vertex of wh
 `articulation` is on: would the network split without it?), when a weak link of its own is all
 that joins its part of the network to another (robots walking off together each keep a weak link
 to the control node, and none of them is a cut vertex until the last link is gone), or when its
-best link is below `min_quality`. A risk is declared
-at once; it is cleared only after `resume_after` seconds without risk (hysteresis, so a robot
-on the edge does not stutter). Degraded readings (the network subsystem did not answer)
-change nothing. The guard also keeps a trail of positions where connectivity was good; the
-`retreat` policy goes back along it (`retreat_point`).
+best link is below `min_quality`.
+
+Readings come late: a routing daemon's link quality is an average over its last Hellos (babeld:
+about twelve), MobiNet polls it, and a robot driving at 1 m/s covers metres in that time and
+more while it brakes. So the guard also predicts. For each *critical* link (one whose loss would
+cut this robot off from its neighbour, the link that holds it to the team: a bridge of the graph
+of every known link), while the robot moves away from that neighbour, it projects the link's
+quality over the horizon H = `latency` + braking time (speed / `braking`) + 0.2 s, two ways, and
+takes the lower:
+
+- the trend: the least-squares slope of the link's readings over the last `trend_window`
+  seconds, applied from the newest reading over H;
+- the motion: once the link shows loss (a reading below 0.98), the speed away from the neighbour
+  times H, over `fade_distance`, the distance in which a link's quality falls from 1 to 0 (the
+  guard's model of the radio; short is cautious).
+
+A projection below `min_quality` is a risk ("the link to N is predicted to fall below ..."),
+so the robot stands while the link still carries packets. A risk is declared at once; it
+clears only after every reading has stayed free of risk, with every critical link at least
+`resume_quality`, for `resume_after` seconds (hysteresis: a momentary better reading clears
+nothing). Clearing is not resuming: the mission resumes a held motion only when it does not take
+the robot further from the neighbour of a critical link that shows loss (`away`); a motion that
+improves connectivity is always allowed. Degraded readings (the network subsystem did not
+answer) change nothing. The guard also keeps a trail of positions where connectivity was good;
+the `retreat` policy goes back along it (`retreat_point`).
+
+Pure decision code: every time is passed in (`now`, seconds on any one clock).
 """
 
 from __future__ import annotations
 
 import math
 from collections import deque
-from collections.abc import Sequence
-from dataclasses import dataclass
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
 from typing import Any
 
 from erni import netgraph
@@ -36,18 +58,40 @@ class GuardState:
     at_risk: bool = False
     reason: str = ""
     ok_since: float | None = None
+    critical: dict[str, float] = field(default_factory=dict)  # neighbour of a critical link -> its quality
+    closing: dict[str, float] = field(default_factory=dict)   # neighbour -> speed away from it (m/s; < 0: nearer)
+
+
+@dataclass
+class Reading:
+    """One link-quality reading of one link."""
+
+    t: float
+    quality: float
 
 
 class NetGuard:
     """Turns topology and link-quality readings into `at risk` / `clear` transitions."""
 
     def __init__(self, me: str, *, min_quality: float = 0.3, articulation: bool = True,
-                 resume_after: float = 1.0) -> None:
+                 resume_after: float = 3.0, resume_quality: float | None = None, latency: float = 2.5,
+                 braking: float = 0.5, fade_distance: float = 4.0, trend_window: float = 4.0,
+                 predict: bool = True) -> None:
         self.me = me
         self.min_quality = min_quality
         self.use_articulation = articulation
         self.resume_after = resume_after
+        self.resume_quality = min(1.0, min_quality + 0.2) if resume_quality is None else resume_quality
+        self.latency = latency
+        self.braking = braking
+        self.fade_distance = fade_distance
+        self.trend_window = trend_window
+        self.predict = predict
         self.state = GuardState()
+        self.readings: dict[str, deque[Reading]] = {}   # neighbour -> its link's recent readings
+        self.moves: deque[tuple[float, float, float]] = deque(maxlen=50)  # (t, x, y) of this robot
+        self.where: dict[str, tuple[float, float]] = {}  # neighbours' latest known positions
+        self.prediction = ""
         self._judged: tuple[Any, bool, set[str]] = (None, False, set())  # (good links, cut vertex, my part)
         self._rows: list[Link] | None = None  # the links of the last reading
         self.last_good: tuple[float, float] | None = None
@@ -74,10 +118,102 @@ class NetGuard:
                   if self.me in (link.a, link.b)]  # this robot's links: (quality, the other end)
         quality, other = max(((q, n) for q, n in across if n not in mine), default=(0.0, ""))
         s.bridge = f"{other} ({quality:.2f})" if other else ""
+        edges = tuple((link.a, link.b) for link in links)
+        if edges != self._edges:  # which links exist changed: find the critical ones again
+            self._edges, self._critical = edges, _bridges(self.me, edges)
 
-    def quality(self, qualities: list[float]) -> None:
-        """Take in a link-quality reading: the delivery ratios of this robot's one-hop links."""
-        self.state.best = max(qualities, default=0.0)
+    _critical: set[str] | None = None  # neighbours over critical links (None: no topology read yet)
+    _edges: tuple[tuple[str, str], ...] | None = None
+
+    def quality(self, qualities: Mapping[str, float] | Sequence[float], now: float | None = None) -> None:
+        """Take in a link-quality reading: the delivery ratios of this robot's one-hop links, by
+        neighbour (a bare list judges the best link only: nothing to predict per link)."""
+        values = list(qualities.values()) if isinstance(qualities, Mapping) else list(qualities)
+        self.state.best = max(values, default=0.0)
+        if now is None or not isinstance(qualities, Mapping):
+            return
+        for name in [n for n in self.readings if n not in qualities]:
+            del self.readings[name]
+        for name, q in qualities.items():
+            rows = self.readings.setdefault(name, deque(maxlen=64))
+            rows.append(Reading(now, q))
+            while rows and now - rows[0].t > max(self.trend_window, 1.0) * 2:
+                rows.popleft()
+
+    def positions(self, where: Mapping[str, tuple[float, float]]) -> None:
+        """Take in the neighbours' latest known positions (x, y) in m."""
+        self.where = {n: (p[0], p[1]) for n, p in where.items() if n != self.me}
+
+    def critical(self) -> list[str]:
+        """The neighbours over this robot's critical links: the links whose loss would cut it off
+        from that neighbour (with no topology read yet: its only neighbour, if it has one)."""
+        if self._critical is not None:
+            return sorted(n for n in self._critical if n in self.readings) or sorted(self._critical)
+        return list(self.readings) if len(self.readings) == 1 else []
+
+    def away_speed(self, name: str) -> float | None:
+        """How fast this robot moves away from neighbour `name` (m/s, negative: nearer), over the
+        last half second of its positions; None when unknown."""
+        there = self.where.get(name)
+        if there is None or len(self.moves) < 2:
+            return None
+        t1, x1, y1 = self.moves[-1]
+        old = next((m for m in reversed(self.moves) if t1 - m[0] >= 0.5), self.moves[0])
+        if t1 - old[0] < 0.2:
+            return None
+        return (math.dist((x1, y1), there) - math.dist(old[1:], there)) / (t1 - old[0])
+
+    def projected(self, name: str, now: float) -> tuple[float, str] | None:
+        """The quality the link to `name` is projected to reach before the robot can stand, and
+        how it was projected; None when it is not moving away or nothing was read."""
+        rows = self.readings.get(name)
+        if not rows:
+            return None
+        away = self.away_speed(name)
+        speed = self._speed() if away is None else away
+        if speed is None or speed <= 0.02:
+            return None
+        horizon = self.latency + speed / self.braking + 0.2
+        last = rows[-1].quality
+        best = (last, "")
+        recent = [r for r in rows if now - r.t <= self.trend_window]
+        if len(recent) >= 3 and recent[-1].t - recent[0].t >= 0.5:
+            slope = _slope([(r.t, r.quality) for r in recent])
+            if slope < 0:
+                fit = sum(r.quality for r in recent) / len(recent) + slope * (recent[-1].t - _mean_t(recent))
+                q = fit + slope * (now - recent[-1].t + horizon)
+                if q < best[0]:
+                    best = (q, f"falling {-slope:.2f}/s")
+        if last < 0.98:
+            q = last - speed * horizon / self.fade_distance
+            if q < best[0]:
+                best = (q, f"moving away at {speed:.2f} m/s")
+        return best
+
+    def _speed(self) -> float | None:
+        if len(self.moves) < 2:
+            return None
+        t1, x1, y1 = self.moves[-1]
+        old = next((m for m in reversed(self.moves) if t1 - m[0] >= 0.5), self.moves[0])
+        return None if t1 - old[0] < 0.2 else math.dist((x1, y1), old[1:]) / (t1 - old[0])
+
+    def away(self, here: tuple[float, float], target: tuple[float, float]) -> str:
+        """The neighbour of a critical link that shows loss which going from `here` towards
+        `target` would take this robot further from ("" when none: the motion may go on)."""
+        for name in self.critical():
+            rows, there = self.readings.get(name), self.where.get(name)
+            if not rows or rows[-1].quality >= 0.98:
+                continue
+            if there is None:
+                return name  # where it is is not known: no motion can be shown to keep the link
+            step = math.dist(here, target)
+            if step < 1e-6:
+                continue
+            ahead = (here[0] + (target[0] - here[0]) * min(1.0, 0.3 / step),
+                     here[1] + (target[1] - here[1]) * min(1.0, 0.3 / step))
+            if math.dist(ahead, there) > math.dist(here, there) + 0.02:
+                return name
+        return ""
 
     def risk(self) -> str:
         """Why connectivity is at risk now ("" when it is not, or nothing was read yet)."""
@@ -88,12 +224,26 @@ class NetGuard:
             return f"{self.me}'s weak link to {s.bridge} alone joins it to the rest of the network"
         if s.best is not None and s.best < self.min_quality:
             return f"best link quality {s.best:.2f} is below {self.min_quality:.2f}"
-        return ""
+        return self.prediction
 
     def update(self, now: float, position: tuple[float, float] | None) -> str | None:
         """Re-evaluate; return "risk" or "clear" on a transition, else None."""
-        reason = self.risk()
         s = self.state
+        if position is not None and (not self.moves or self.moves[-1][0] < now):
+            self.moves.append((now, position[0], position[1]))
+        self.prediction = ""
+        s.critical = {n: self.readings[n][-1].quality for n in self.critical() if self.readings.get(n)}
+        s.closing = {n: v for n in s.critical if (v := self.away_speed(n)) is not None}
+        if self.predict:
+            for name in s.critical:
+                got = self.projected(name, now)
+                if got is not None and got[0] < self.min_quality:
+                    q = self.readings[name][-1].quality
+                    self.prediction = (f"the link to {name} ({q:.2f}) is predicted to fall below "
+                                       f"{self.min_quality:.2f} before {self.me} can stand ({got[1]})")
+                    break
+        reason = self.risk()
+        weak = any(q < self.resume_quality for q in s.critical.values())
         if reason:
             s.ok_since = None
             s.reason = reason
@@ -106,6 +256,9 @@ class NetGuard:
             if not self.trail or math.dist(self.trail[-1], position) >= 0.2:
                 self.trail.append(position)
         if not s.at_risk:
+            return None
+        if weak:  # hysteresis: every critical link back above the higher threshold first
+            s.ok_since = None
             return None
         if s.ok_since is None:
             s.ok_since = now
@@ -129,3 +282,37 @@ class NetGuard:
             if math.dist(point, here) >= distance:
                 return point
         return self.trail[0] if self.trail else None
+
+
+def _bridges(me: str, edges: Sequence[tuple[str, str]]) -> set[str]:
+    """The neighbours of `me` over links whose loss would separate `me` from that neighbour."""
+    adj: dict[str, set[str]] = {}
+    for a, b in edges:
+        if a != b:
+            adj.setdefault(a, set()).add(b)
+            adj.setdefault(b, set()).add(a)
+    out = set()
+    for n in adj.get(me, ()):
+        seen, todo = {me}, [me]  # who `me` reaches without its link to n
+        while todo:
+            x = todo.pop()
+            for m in adj[x]:
+                if (x == me and m == n) or m in seen:
+                    continue
+                seen.add(m)
+                todo.append(m)
+        if n not in seen:
+            out.add(n)
+    return out
+
+
+def _mean_t(rows: Sequence[Reading]) -> float:
+    return sum(r.t for r in rows) / len(rows)
+
+
+def _slope(points: Sequence[tuple[float, float]]) -> float:
+    """Least-squares slope of y on x."""
+    mx = sum(x for x, _ in points) / len(points)
+    my = sum(y for _, y in points) / len(points)
+    sxx = sum((x - mx) ** 2 for x, _ in points)
+    return 0.0 if sxx <= 0 else sum((x - mx) * (y - my) for x, y in points) / sxx

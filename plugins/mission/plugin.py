@@ -21,6 +21,7 @@ Local BotMotion tasks of other plugins are never touched (mixed initiative), exc
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Mapping
 from typing import TYPE_CHECKING, Literal
@@ -61,7 +62,16 @@ class MissionSettings(BaseModel):
     policy: Literal["hold", "stop", "retreat"] = Field("hold", description="what connectivity at risk does")
     min_link_quality: float = Field(0.3, ge=0, le=1, description="best link below this = at risk")
     articulation: bool = Field(True, description="being a cut vertex of the links at least min_link_quality, or joined to the rest by a weaker link alone = at risk")
-    resume_after: float = Field(1.0, ge=0, description="connectivity good this long clears the risk (s)")
+    resume_after: float = Field(3.0, ge=0, description="connectivity good this long clears the risk (s)")
+    resume_quality: float | None = Field(None, ge=0, le=1, description="a risk clears only with every critical "
+                                         "link at least this good (default min_link_quality + 0.2)")
+    predict: bool = Field(True, description="stop before a critical link is predicted to fall below "
+                          "min_link_quality (trend of its readings, speed away from its neighbour)")
+    reading_latency: float = Field(2.5, ge=0, le=120, description="how late link-quality readings are (s): "
+                                   "the routing daemon's averaging (about 5 Hello intervals) plus MobiNet's poll")
+    braking: float = Field(0.5, gt=0, description="deceleration the guard counts on when it stops the robot (m/s^2)")
+    fade_distance: float = Field(4.0, gt=0, description="the guard's model of the radio: a link's quality falls "
+                                 "from 1 to 0 over this distance (m); shorter is more cautious")
     retreat_distance: float = Field(1.0, gt=0, description="retreat: go back this far along the good trail (m)")
     net_rate_hz: float = Field(2.0, gt=0, le=100, description="rate of the mission's NetWatch tasks (Hz)")
     progress_step: float = Field(0.25, gt=0, le=1, description="report progress in steps of this size")
@@ -121,7 +131,9 @@ class MissionControl(Plugin[MissionSettings]):
         self.peers = self.subscribe(Peer, ignore=("last_heard",))
         self.team = TeamView(me, s.position_timeout)
         self.guard = NetGuard(me, min_quality=s.min_link_quality, articulation=s.articulation,
-                              resume_after=s.resume_after)
+                              resume_after=s.resume_after, resume_quality=s.resume_quality,
+                              latency=s.reading_latency, braking=s.braking, fade_distance=s.fade_distance,
+                              predict=s.predict)
         self.jobs: dict[str, RemoteJob] = {}
         self.runners: dict[str, Runner] = {}
         self.results: dict[str, AllocationResult] = {}    # remote/deploy uid -> last result published
@@ -145,6 +157,7 @@ class MissionControl(Plugin[MissionSettings]):
         if s.network_aware:
             self.watch("network_topology")
             self.watch("link_quality")
+            self.watch("node_position")  # where the neighbours are: is a motion taking it away from one?
         self.wake_every(1.0)
 
     # -- the Ops interface of the runners ------------------------------------------------
@@ -276,7 +289,7 @@ class MissionControl(Plugin[MissionSettings]):
                 self.guard.topology(info.links)
             elif info.kind == "link_quality":
                 self.qualities = {n.name: n.quality for n in info.neighbors}
-                self.guard.quality([n.quality for n in info.neighbors])
+                self.guard.quality(self.qualities, time.time())
 
     # -- remote tasks --------------------------------------------------------------------
 
@@ -325,7 +338,7 @@ class MissionControl(Plugin[MissionSettings]):
         self._start_step(job)
         begun = f"resumed after a restart of {self.agent_name}" if job.resumed else "started"
         self.report(uid, TaskState.RUNNING, f"{begun}: {len(job.steps)} step(s)", progress=0.0)
-        if job.moving and self.guard.state.at_risk:
+        if job.moving and self.guard.state.at_risk and not self._improves(job):
             self._apply_policy([job], self.guard.state.reason)
 
     def _start_step(self, job: RemoteJob) -> None:
@@ -481,25 +494,73 @@ class MissionControl(Plugin[MissionSettings]):
         if not self.settings.network_aware:
             return
         mine = self.team.mine()
+        self.guard.positions({n: (p[0], p[1]) for n, p in self.team.fresh(now).items()})
         change = self.guard.update(now, None if mine is None else mine[:2])
         moving = [j for j in self.jobs.values() if j.moving]
         if change == "risk":
             self.log.info("connectivity at risk: %s", self.guard.state.reason)
             self._say(CUE_LOST)
-            self._apply_policy(moving, self.guard.state.reason)
+            self._apply_policy([j for j in moving if not self._improves(j)], self.guard.state.reason)
         elif change == "clear":
             self.log.info("connectivity restored")
             self._say(CUE_BACK)
-            self._release_guard()
-            for job in moving:
-                if job.held:
-                    job.held = ""
-                    self.report(job.uid, TaskState.RUNNING, "resumed: connectivity restored")
+        if not self.guard.state.at_risk and any(j.held for j in moving):
+            self._resume(moving)
         wait = self.guard.pending_clear_in(now)
         if wait is not None:
             self.due["guard"] = now + wait + 0.01
         else:
             self.due.pop("guard", None)
+
+    def _resume(self, moving: list[RemoteJob]) -> None:
+        """Connectivity is no longer at risk: resume the held jobs, except those whose motion would
+        take the robot further from the neighbour of a critical link that shows loss."""
+        free = []
+        for job in moving:
+            if not job.held:
+                continue
+            away = self._heads_away(job)
+            if away:
+                why = f"{self.agent_name} stays: moving on would take it further from {away}, its only link to the team"
+                if job.held != why:
+                    job.held = why
+                    self.report(job.uid, TaskState.RUNNING, f"holding: {why}")
+                continue
+            free.append(job)
+        if len(free) == sum(1 for j in moving if j.held):
+            self._release_guard()
+        for job in free:
+            job.held = ""
+            self.report(job.uid, TaskState.RUNNING, "resumed: connectivity restored")
+
+    def _heads_away(self, job: RemoteJob) -> str:
+        """The neighbour of a lossy critical link that the job's motion takes the robot away from."""
+        mine = self.team.mine()
+        if mine is None or not job.steps:
+            return ""
+        step = job.steps[min(job.index, len(job.steps) - 1)]
+        p = step.params
+        here = (mine[0], mine[1])
+        if isinstance(p, GotoParams):
+            target = (p.x, p.y)
+        elif step.preposition == "forward":
+            sign = 1.0 if getattr(p, "distance", 1.0) >= 0 else -1.0
+            target = (here[0] + sign * math.cos(mine[2]), here[1] + sign * math.sin(mine[2]))
+        else:
+            return ""  # a random walk picks its own ways: the prediction holds it again if one leads away
+        return self.guard.away(here, target)
+
+    def _improves(self, job: RemoteJob) -> bool:
+        """A motion towards the neighbour of every critical link: it improves connectivity."""
+        if not job.steps or not self.guard.state.critical or not self.guard.where:
+            return False
+        mine = self.team.mine()
+        if mine is None or not isinstance(job.steps[job.index].params, GotoParams):
+            return False
+        p = job.steps[job.index].params
+        assert isinstance(p, GotoParams)
+        return all(n in self.guard.where and math.dist((p.x, p.y), self.guard.where[n]) + 0.3
+                   < math.dist(mine[:2], self.guard.where[n]) for n in self.guard.state.critical)
 
     def _apply_policy(self, jobs: list[RemoteJob], reason: str) -> None:
         if not jobs:

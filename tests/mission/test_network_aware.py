@@ -49,7 +49,7 @@ def test_hold_when_a_cut_vertex_and_resume_when_no_longer(robots, manet):
                    mission={"network_aware": True, "policy": "hold", "min_link_quality": 0.05,
                             "resume_after": 0.3, "net_rate_hz": 10.0})
     watches = agent.query(Task, where=lambda t: t.verb == "NetWatch" and t.source == "robot1")
-    assert sorted(t.preposition for t in watches) == ["link_quality", "network_topology"]
+    assert sorted(t.preposition for t in watches) == ["link_quality", "network_topology", "node_position"]
     task = send(agent, "goto", x=3.0, y=0.0, speed=1.2)
     wait_until(lambda: "articulation point" in message(agent, task), timeout=10,
                message="the guard never held the robot")
