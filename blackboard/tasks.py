@@ -513,6 +513,8 @@ class Neighbor(BaseModel):
     quality: float = Field(0.0, ge=0.0, le=1.0, description="link delivery ratio")
     symmetric: bool = True
     metric: int | None = None
+    recent: float | None = Field(None, ge=0.0, le=1.0, description="delivery over the last few Hellos only "
+                                 "(the newest evidence, noisier than quality); None when the source has none")
 
 
 class Link(BaseModel):

@@ -28,7 +28,7 @@ so the robot stands while the link still carries packets. A risk is declared at 
 clears only after every reading has stayed free of risk, with every critical link at least
 `resume_quality`, for `resume_after` seconds (hysteresis: a momentary better reading clears
 nothing). Clearing is not resuming: the mission resumes a held motion only when it does not take
-the robot further from the neighbour of a critical link that shows loss (`away`); a motion that
+the robot further from the neighbour of a critical link that showed loss lately (`away`); a motion that
 improves connectivity is always allowed. Degraded readings (the network subsystem did not
 answer) change nothing. The guard also keeps a trail of positions where connectivity was good;
 the `retreat` policy goes back along it (`retreat_point`).
@@ -91,6 +91,8 @@ class NetGuard:
         self.readings: dict[str, deque[Reading]] = {}   # neighbour -> its link's recent readings
         self.moves: deque[tuple[float, float, float]] = deque(maxlen=50)  # (t, x, y) of this robot
         self.where: dict[str, tuple[float, float]] = {}  # neighbours' latest known positions
+        self.lossy: dict[str, float] = {}  # neighbour -> when its link last read below 0.98
+        self.loss_memory = 30.0            # s: a link that showed loss this recently has no room to stretch
         self.prediction = ""
         self._judged: tuple[Any, bool, set[str]] = (None, False, set())  # (good links, cut vertex, my part)
         self._rows: list[Link] | None = None  # the links of the last reading
@@ -137,6 +139,8 @@ class NetGuard:
         for name, q in qualities.items():
             rows = self.readings.setdefault(name, deque(maxlen=64))
             rows.append(Reading(now, q))
+            if q < 0.98:
+                self.lossy[name] = now
             while rows and now - rows[0].t > max(self.trend_window, 1.0) * 2:
                 rows.popleft()
 
@@ -198,12 +202,12 @@ class NetGuard:
         return None if t1 - old[0] < 0.2 else math.dist((x1, y1), old[1:]) / (t1 - old[0])
 
     def away(self, here: tuple[float, float], target: tuple[float, float]) -> str:
-        """The neighbour of a critical link that shows loss which going from `here` towards
+        """The neighbour of a critical link that showed loss lately which going from `here` towards
         `target` would take this robot further from ("" when none: the motion may go on)."""
         for name in self.critical():
             rows, there = self.readings.get(name), self.where.get(name)
-            if not rows or rows[-1].quality >= 0.98:
-                continue
+            if not rows or rows[-1].t - self.lossy.get(name, -math.inf) > self.loss_memory:
+                continue  # no loss for `loss_memory` s: the link has room to stretch
             if there is None:
                 return name  # where it is is not known: no motion can be shown to keep the link
             step = math.dist(here, target)
@@ -211,7 +215,8 @@ class NetGuard:
                 continue
             ahead = (here[0] + (target[0] - here[0]) * min(1.0, 0.3 / step),
                      here[1] + (target[1] - here[1]) * min(1.0, 0.3 / step))
-            if math.dist(ahead, there) > math.dist(here, there) + 0.02:
+            now_d = math.dist(here, there)
+            if math.dist(ahead, there) > now_d + 0.02 or math.dist(target, there) > now_d + 0.1:
                 return name
         return ""
 

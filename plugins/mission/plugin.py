@@ -289,7 +289,10 @@ class MissionControl(Plugin[MissionSettings]):
                 self.guard.topology(info.links)
             elif info.kind == "link_quality":
                 self.qualities = {n.name: n.quality for n in info.neighbors}
-                self.guard.quality(self.qualities, time.time())
+                # the guard takes the newest evidence too: a routing daemon's quality averages
+                # over many Hellos, the last few show a link going bad sooner
+                self.guard.quality({n.name: n.quality if n.recent is None else min(n.quality, n.recent)
+                                    for n in info.neighbors}, time.time())
 
     # -- remote tasks --------------------------------------------------------------------
 

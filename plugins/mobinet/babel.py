@@ -213,6 +213,16 @@ def _quality_of_metric(metric: int) -> float:
     return min(1.0, math.sqrt(UNIT / metric)) if 0 < metric < INFINITY else (1.0 if metric == 0 else 0.0)
 
 
+RECENT_HELLOS = 6
+
+
+def recent_delivery(reach: int) -> float:
+    """The share of this neighbour's last `RECENT_HELLOS` Hellos that arrived: the newest bits of
+    babeld's 16-bit reach (the most significant bit is the newest Hello). babeld's costs average
+    over more Hellos and weigh them, so a link going bad shows here a few Hellos sooner."""
+    return bin((reach & 0xFFFF) >> (16 - RECENT_HELLOS)).count("1") / RECENT_HELLOS
+
+
 def implausible_neighbour(n: BabelNeighbour) -> str | None:
     """Why babeld cannot have computed this neighbour line, or None."""
     if n.cost < INFINITY and (n.rxcost == 0 or n.txcost == 0):
@@ -277,9 +287,10 @@ def build_view(dump: BabelDump, parts: frozenset[str], *, node: str, where: str,
             ip = neighbour_ip.get(n.address, "")
             view.neighbors.append(Neighbor(name=neighbour_name(n.address), address=ip or n.address,
                                            quality=quality(n.rxcost, n.txcost) if finite else 0.0,
-                                           symmetric=finite, metric=n.cost if finite else None))
-        view.sources[NEIGHBORS] = (f"{where} neighbour table (quality 256/sqrt(rxcost*txcost), "
-                                   f"metric: babeld's cost){named}")
+                                           symmetric=finite, metric=n.cost if finite else None,
+                                           recent=recent_delivery(n.reach)))
+        view.sources[NEIGHBORS] = (f"{where} neighbour table (quality 256/sqrt(rxcost*txcost), recent: the "
+                                   f"last {RECENT_HELLOS} Hellos of reach, metric: babeld's cost){named}")
     if ROUTES in parts:
         for r in dump.routes:
             if not r.installed or r.metric >= INFINITY:

@@ -72,6 +72,8 @@ def test_neighbours_are_named_by_the_prefix_they_originate_and_the_quality_follo
     assert lossy.quality == pytest.approx(256 / math.sqrt(383 * 376))
     # the radio dropped 30 % each way: a delivery ratio of 0.7, which babeld's Hellos estimate
     assert abs(lossy.quality - 0.7) < 0.1
+    # the newest Hellos alone (reach d57f: 1101 01.. of the last six, newest first) and a clean link's
+    assert lossy.recent == pytest.approx(4 / 6) and by_name["a"].recent == 1.0
     assert "neighbour table" in view.sources[NEIGHBORS] and WHERE in view.sources[NEIGHBORS]
 
 

@@ -1,0 +1,27 @@
+"""A creep round as the tests run it, and what every trial must show."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+from erni.sim import creep
+from erni.sim.team import Team
+
+
+def settled(team: Team) -> bool:
+    peers = team.peers(1.0)
+    return all(peers[name].up for name in team.names if name in peers) and set(team.names) <= set(peers)
+
+
+def one_round(team: Team, speeds: Sequence[float], number: int = 1, rest: float = 3.0) -> list[creep.Trial]:
+    creep.reset(team, lambda: settled(team), rest=rest)
+    return creep.run_round(team, number, speeds, observe=8.0)
+
+
+def assert_held(trials: list[creep.Trial]) -> None:
+    """No partition; every end robot stood inside the range and did not creep on."""
+    rows = [t.row() for t in trials]
+    assert not any(t.partitioned for t in trials), rows
+    for t in trials:
+        assert t.closest > 0.0 and t.stop_after_crossing is not None, t.row()
+        assert t.crept_on < 0.3, t.row()
