@@ -79,7 +79,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--blind", action="store_true", help="the mission's network awareness off")
     ap.add_argument("--speeds", type=float, nargs="+", default=list(creep.SPEEDS), help="m/s, one per spoke")
     ap.add_argument("--json", type=Path, help="write every trial (with its track) here")
+    ap.add_argument("--plot", type=Path, help="draw the trials of the --json files given with --from as a PNG")
+    ap.add_argument("--from", dest="sources", type=Path, nargs="+", default=[],
+                    help="with --plot: JSON files of earlier runs (one per tier and loss)")
     args = ap.parse_args(argv)
+    if args.plot:
+        if not args.sources:
+            ap.error("--plot: name the runs to draw with --from FILE.json ...")
+        plot(args.sources, args.plot)
+        print(f"wrote {args.plot}")
+        return 0
     if not 0.0 <= args.loss < 1.0:
         ap.error(f"--loss: expected a share in 0..1, got {args.loss}")
     trials: list[creep.Trial] = []
@@ -122,6 +131,60 @@ def main(argv: list[str] | None = None) -> int:
         args.json.write_text(json.dumps({"tier": tier, "loss": args.loss, "blind": args.blind,
                                          "trials": [t.row() | {"track": t.track} for t in trials]}, indent=1))
     return 1 if any(t.partitioned for t in trials) and not args.blind else 0
+
+
+def plot(sources: list[Path], out: Path) -> None:
+    """Per run: each end robot's distance from its relay over time (the radio's 0.3 and its range
+    drawn in); then the closest approach to the range limit and the time from crossing to standing,
+    per speed and run."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    runs = [json.loads(p.read_text()) for p in sources]
+    speeds = sorted({t["speed"] for r in runs for t in r["trials"]})
+    colours = {v: c for v, c in zip(speeds, ("#1b9e77", "#d95f02", "#7570b3", "#e7298a", "#66a61e"))}
+    fig, axes = plt.subplots(2, max(2, len(runs)), figsize=(4.2 * max(2, len(runs)), 7.5), squeeze=False)
+    names = []
+    for col, run in enumerate(runs):
+        ax = axes[0][col]
+        name = f"{run['tier'].split()[0]}, loss {run['loss']:.0%}" + (", guard off" if run.get("blind") else "")
+        names.append(name)
+        for t in run["trials"]:
+            ts, ds = zip(*t["track"]) if t["track"] else ((), ())
+            ax.plot(ts, ds, color=colours[t["speed"]], lw=0.8, alpha=0.7)
+        ax.axhline(8.8, color="grey", ls="--", lw=0.8)
+        ax.axhline(10.0, color="black", lw=1.0)
+        ax.text(0.5, 8.85, "radio delivers 0.3 (input)", fontsize=7, color="grey")
+        ax.text(0.5, 10.05, "range limit (input)", fontsize=7)
+        ax.set_title(name, fontsize=10)
+        ax.set_xlabel("s since the goto was sent")
+        ax.set_ylim(5.5, 11.0)
+        if col == 0:
+            ax.set_ylabel("distance from its relay (m)")
+    for v in speeds:
+        axes[0][0].plot([], [], color=colours[v], label=f"{v:g} m/s")
+    axes[0][0].legend(fontsize=7, loc="lower right")
+    for k, (key, label) in enumerate((("closest_m", "closest approach to the range limit (m)"),
+                                      ("stop_after_crossing_s", "stood after crossing 0.3 (s; < 0: before)"))):
+        ax = axes[1][k]
+        for col, run in enumerate(runs):
+            for i, v in enumerate(speeds):
+                ys = [t[key] for t in run["trials"] if t["speed"] == v and t[key] is not None]
+                x = i + (col - (len(runs) - 1) / 2) * 0.8 / max(1, len(runs))
+                ax.scatter([x] * len(ys), ys, s=10, color=f"C{col}", label=names[col] if i == 0 else None)
+        ax.axhline(0.0, color="black", lw=0.8)
+        ax.set_xticks(range(len(speeds)), [f"{v:g} m/s" for v in speeds])
+        ax.set_ylabel(label, fontsize=9)
+        ax.grid(True, axis="y", color="#e0e0e0", lw=0.6)
+        ax.legend(fontsize=7)
+    for ax in axes[1][2:]:
+        ax.axis("off")
+    fig.suptitle("Creeping out of radio range: end robots driving away from their only neighbour, guard on",
+                 fontsize=11)
+    fig.tight_layout()
+    fig.savefig(out, dpi=110)
 
 
 def _s(x: float | None) -> str:
