@@ -3,6 +3,8 @@
 Text frames are JSON objects with a `type`; binary frames are microphone audio (16 kHz mono
 int16 little-endian) while the page's microphone is on. `parse_message` returns the typed
 message or raises `BadMessage` with one line naming what was wrong and what was expected.
+Text no page sends (nested deeper than `MAX_DEPTH`, longer than `MAX_TEXT`) raises
+`HostileMessage` before it is parsed: the server answers it and closes the connection.
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
 
 from erni.blackboard.errors import ErniError, describe_validation
+from erni.transport.wire import json_depth
 
 AgentName = Annotated[str, Field(pattern=r"^[A-Za-z0-9_.-]{1,64}$")]
 Number = Annotated[float, Field(allow_inf_nan=False)]
@@ -72,17 +75,33 @@ PageMessage = Annotated[CommandMsg | SayMsg | SelectMsg | CancelTaskMsg | MicMsg
                         Field(discriminator="type")]
 _ADAPTER: TypeAdapter[Any] = TypeAdapter(PageMessage)
 TYPES = ("command", "say", "select", "cancel_task", "mic", "ping")
+MAX_DEPTH = 8  # the page's deepest message is 3 levels (an object, its params, a value)
+MAX_TEXT = 32 * 1024  # a selection of 256 robot names is about 17 KiB
 
 
 class BadMessage(ErniError, ValueError):
     """A page message that is not valid JSON or not one of the known messages."""
 
 
+class HostileMessage(BadMessage):
+    """Text no page sends (too deep or too long): answered, then the connection is closed."""
+
+
 def parse_message(text: str | bytes) -> Any:
     """Return the typed page message in a JSON text, or raise BadMessage naming the problem."""
+    if len(text) > MAX_TEXT:
+        raise HostileMessage(f"message of {len(text)} characters; expected at most {MAX_TEXT}")
+    try:
+        if isinstance(text, bytes):
+            text = text.decode("utf-8")
+    except UnicodeDecodeError as err:
+        raise BadMessage(f"message is not JSON ({err}); expected an object with a 'type'") from None
+    if text.count("[") + text.count("{") > MAX_DEPTH and (depth := json_depth(text)) > MAX_DEPTH:
+        # json.loads recurses once a level: deep enough, a RecursionError instead of an answer
+        raise HostileMessage(f"message nested {depth} levels deep; expected at most {MAX_DEPTH}")
     try:
         data = json.loads(text)
-    except (ValueError, UnicodeDecodeError) as err:
+    except ValueError as err:
         raise BadMessage(f"message is not JSON ({err}); expected an object with a 'type'") from None
     if not isinstance(data, dict) or data.get("type") not in TYPES:
         got = data.get("type") if isinstance(data, dict) else type(data).__name__

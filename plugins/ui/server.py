@@ -30,7 +30,7 @@ from typing import Any
 from aiohttp import WSMsgType, web
 
 from erni.blackboard.errors import NetworkError
-from erni.plugins.ui.protocol import BadMessage, PingMsg, parse_message
+from erni.plugins.ui.protocol import BadMessage, HostileMessage, PingMsg, parse_message
 
 STATIC = Path(__file__).with_name("static")
 MAX_AUDIO_FRAME = 64 * 1024
@@ -325,6 +325,10 @@ class WebServer:
     async def _text(self, client: str, ws: web.WebSocketResponse, text: str) -> None:
         try:
             msg = parse_message(text)
+        except HostileMessage as err:  # no page sends it: answer once and hang up
+            await self._reject(ws, f"{err}; closing the connection")
+            await ws.close(code=1009, message=b"message too deep or too long")
+            return
         except BadMessage as err:
             await self._reject(ws, str(err))
             return

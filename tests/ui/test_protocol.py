@@ -2,13 +2,18 @@
 
 from __future__ import annotations
 
+import asyncio
 import json
+import logging
+from typing import Any
 
+import aiohttp
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from erni.plugins.ui.protocol import BadMessage, CommandMsg, MicMsg, SayMsg, parse_message
+from erni.plugins.ui.protocol import BadMessage, CommandMsg, HostileMessage, MicMsg, SayMsg, parse_message
+from erni.plugins.ui.server import WebServer
 
 
 def test_valid_messages_parse_to_their_types():
@@ -55,3 +60,41 @@ def test_any_json_is_a_message_or_a_one_line_refusal(data):
         assert "\n" not in str(err)
     else:
         assert msg.type in ("command", "say", "select", "cancel_task", "mic", "ping")
+
+
+@pytest.mark.parametrize("text,message", [
+    ("[" * 100_000 + "]" * 100_000, "message of 200000 characters; expected at most 32768"),
+    ('{"type":"ping","x":' + "[" * 1000 + "]" * 1000 + "}", "message nested 1001 levels deep; expected at most 8"),
+    ('{"type":"say","text":"' + "[" * 1000 + '"}', "say: text: String should have at most 300 characters"),
+], ids=["long", "deep", "brackets-in-a-string"])
+def test_deep_or_long_text_is_refused_before_it_is_parsed(text, message):
+    with pytest.raises(BadMessage) as err:
+        parse_message(text)
+    assert str(err.value).startswith(message)
+    assert isinstance(err.value, HostileMessage) == ("expected at most 8" in message or "32768" in message)
+
+
+def test_a_deeply_nested_message_gets_one_line_and_the_connection_closed(caplog):
+    """Nesting that would make json.loads raise RecursionError: one answer, a close, no traceback."""
+    got: list[Any] = []
+    server = WebServer("127.0.0.1", 0, token="t0k", on_message=lambda c, m: got.append(m),
+                       on_audio=lambda c, b: None, on_close=lambda c: None).start()
+
+    async def talk() -> tuple[list[Any], Any]:
+        answers: list[Any] = []
+        url = f"http://127.0.0.1:{server.port}/ws?token=t0k"
+        async with aiohttp.ClientSession() as s, s.ws_connect(url) as ws:
+            await ws.send_str('{"type":"select","robots":' + "[" * 10_000 + "]" * 10_000 + "}")
+            while (msg := await ws.receive(timeout=5)).type == aiohttp.WSMsgType.TEXT:
+                answers.append(json.loads(msg.data))
+            return answers, ws.close_code
+
+    try:
+        with caplog.at_level(logging.DEBUG):
+            answers, code = asyncio.run(talk())
+    finally:
+        server.stop()
+    errors = [a["message"] for a in answers if a["type"] == "error"]
+    assert errors == ["message nested 10001 levels deep; expected at most 8; closing the connection"]
+    assert code == 1009 and not got and server.bad_messages == 1
+    assert not any(r.exc_info for r in caplog.records), [r.getMessage() for r in caplog.records]
