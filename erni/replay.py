@@ -24,6 +24,7 @@ from erni.blackboard.errors import ErniError, shown
 from erni.transport.wire import TYPES, loads
 
 FORMAT = 1
+MAX_SECONDS = 30 * 24 * 3600.0  # a recording longer than 30 days is a damaged or forged line, not a run
 
 
 class LogError(ErniError):
@@ -68,8 +69,12 @@ def read_log(path: str | Path) -> tuple[dict[str, Any], list[Event], list[str]]:
             if missing:
                 raise LogError(f"missing {', '.join(missing)}")
             t = raw["t"]
-            if isinstance(t, bool) or not isinstance(t, (int, float)) or not math.isfinite(t) or t < 0:
+            if isinstance(t, bool) or not isinstance(t, (int, float)) or (
+                    isinstance(t, float) and not math.isfinite(t)) or t < 0:
                 raise LogError(f"t: expected a finite number of seconds >= 0, got {shown(t)}")
+            if t > MAX_SECONDS:  # replaying would wait that long for it
+                raise LogError(f"t: expected seconds since the recording started, at most {MAX_SECONDS:.0f} "
+                               f"(30 days), got {shown(t)}")
             cls = TYPES.get(raw["type"]) if isinstance(raw["type"], str) else None
             if cls is None or not issubclass(cls, BBObject):
                 raise LogError(f"unknown object type {shown(raw['type'])}")
