@@ -23,7 +23,7 @@ import time
 from collections.abc import Mapping
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from erni.blackboard import NetInfo, Plugin, Pose, Position, Route, Task, TaskState
 from erni.blackboard.errors import ConfigError, TransactionError
@@ -49,6 +49,7 @@ from erni.plugins.mobinet.resource import (
 )
 from erni.plugins.mobinet.sanity import MAX_HOPS, WORLD_BOUND, Limits
 from erni.plugins.mobinet.snmp import SnmpSource, articulation_points
+from erni.plugins.mobinet.usm import UsmUser, read_key
 
 PARTS_OF = {
     "node_position": frozenset({POSITIONS}),
@@ -83,6 +84,23 @@ class MobiNetSettings(BaseModel):
     community: str = Field("public", description="SNMPv2c read community")
     write_community: str | None = Field(None, min_length=1, description="SNMPv2c write community "
                                         "(SETs the pose); none: the pose is not written")
+    v3_user: str | None = Field(None, min_length=1, max_length=32, description="SNMPv3 USM user: every "
+                                "request is sent authPriv as this user, who also writes the pose (community "
+                                "and write_community are then not used)")
+    auth_protocol: Literal["SHA-224", "SHA-256", "SHA-384", "SHA-512"] = Field(
+        "SHA-256", description="the v3 user's authentication protocol (HMAC-SHA-2, RFC 7860)")
+    auth_key: str | None = Field(None, description="the v3 user's authentication passphrase; prefer "
+                                 "auth_key_file or auth_key_env, which keep it out of the config")
+    auth_key_file: str | None = Field(None, description="file whose first line is the authentication "
+                                      "passphrase (mode 600)")
+    auth_key_env: str | None = Field(None, description="environment variable holding the authentication "
+                                     "passphrase")
+    priv_protocol: Literal["AES"] = Field("AES", description="the v3 user's privacy protocol: AES-128 (RFC 3826)")
+    priv_key: str | None = Field(None, description="the v3 user's privacy passphrase; prefer priv_key_file "
+                                 "or priv_key_env")
+    priv_key_file: str | None = Field(None, description="file whose first line is the privacy passphrase "
+                                      "(mode 600)")
+    priv_key_env: str | None = Field(None, description="environment variable holding the privacy passphrase")
     timeout: float = Field(0.5, gt=0, le=30, description="per-request timeout (s)")
     retries: int = Field(0, ge=0, le=5, description="retries after a timeout")
     max_repetitions: int = Field(100, ge=1, le=500, description="GETBULK rows per request")
@@ -108,6 +126,28 @@ class MobiNetSettings(BaseModel):
         babel_address(value)
         return value
 
+    @model_validator(mode="after")
+    def _v3(self) -> MobiNetSettings:
+        keys = ("auth_key", "auth_key_file", "auth_key_env", "priv_key", "priv_key_file", "priv_key_env")
+        if self.v3_user is None:
+            given = [k for k in keys if getattr(self, k) is not None]
+            if given:
+                raise ValueError(f"{given[0]} is given but v3_user is not: keys belong to an SNMPv3 user")
+            return self
+        if self.write_community is not None:
+            raise ValueError("write_community is SNMPv2c's: with v3_user the v3 user writes the pose; "
+                             "remove write_community")
+        self.usm_user()   # the keys are there and readable now, not at the first request
+        return self
+
+    def usm_user(self) -> UsmUser | None:
+        """The configured SNMPv3 user with its keys read (ConfigError naming the setting), or None."""
+        if self.v3_user is None:
+            return None
+        return UsmUser(self.v3_user, read_key("auth_key", self.auth_key, self.auth_key_file, self.auth_key_env),
+                       read_key("priv_key", self.priv_key, self.priv_key_file, self.priv_key_env),
+                       self.auth_protocol, self.priv_protocol)
+
     @field_validator("watch")
     @classmethod
     def _watches(cls, value: list[str]) -> list[str]:
@@ -116,6 +156,16 @@ class MobiNetSettings(BaseModel):
             raise ValueError(f"unknown NetWatch preposition(s) {', '.join(map(repr, unknown))}; expected "
                              f"some of {', '.join(PARTS_OF)}")
         return value
+
+
+def loopback(host: str) -> bool:
+    """Whether `host` is a loopback address or `localhost` (a name is not resolved: any other is not)."""
+    if host.strip("[]").lower() in ("localhost", "localhost.localdomain"):
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False
 
 
 def babel_address(text: str) -> tuple[str, int]:
@@ -143,7 +193,7 @@ class MobiNetControl(Plugin[MobiNetSettings]):
             return BabelSource(host, port, node=self.agent_name, timeout=s.timeout, names=lambda: self._names)
         return SnmpSource(s.host, s.port, community=s.community, timeout=s.timeout, retries=s.retries,
                           max_repetitions=s.max_repetitions, cache_seconds=s.cache_seconds,
-                          write_community=s.write_community,
+                          write_community=s.write_community, usm=self._usm,
                           limits=Limits(world_bound=s.world_bound, max_hops=s.max_hops))
 
     def setup(self) -> None:
@@ -167,11 +217,17 @@ class MobiNetControl(Plugin[MobiNetSettings]):
         self._hold_until = 0.0                  # monotonic: no Pose runs us before (write_interval)
         self._cuts: tuple[tuple[tuple[str, str], ...] | None, list[str]] = (None, [])  # links -> articulation points
         self._cut_rows: list[Any] | None = None  # the links `_cuts` was last looked up for
-        self.resource.start()
         snmp = self.settings.source == "snmp"
-        self._write_pose = snmp and self.settings.write_pose and self.settings.write_community is not None
+        self._usm = self.settings.usm_user() if snmp else None
+        self.resource.start()
+        writer = self.settings.write_community is not None or self._usm is not None
+        self._write_pose = snmp and self.settings.write_pose and writer
         if snmp and self.settings.write_pose and not self._write_pose:
-            self.log.warning("poses are not written to the network subsystem: no write_community")
+            self.log.warning("poses are not written to the network subsystem: no write_community or v3_user")
+        if self._write_pose and self._usm is None and not loopback(self.settings.host):
+            self.log.warning("the SNMPv2c write community travels in clear to %s:%d, which is not a loopback "
+                             "address: anyone on the path can read it and then rewrite this robot's position; "
+                             "use an SNMPv3 user (v3_user) there", self.settings.host, self.settings.port)
         for preposition in self.settings.watch:
             task = Task(verb="NetWatch", preposition=preposition, source=me,
                         params={"rate_hz": self.settings.watch_rate_hz})

@@ -1,4 +1,5 @@
-"""`SnmpSource`: the network subsystem read and written over SNMPv2c (asyncio UDP, `ber` messages).
+"""`SnmpSource`: the network subsystem read and written over SNMPv2c (asyncio UDP, `ber` messages)
+or SNMPv3 with USM authPriv (`usm`, through pysnmp).
 
 The source reads the standard MIB modules by their standard layout and works with any
 agent: one GET asks for the node's identity (SNMPv2-MIB sysName, ERNI-MOBINET-MIB's
@@ -30,7 +31,8 @@ route of 0 hops or more than `max_hops`, a metric outside its MIB range, a wrong
 malformed value drops that row alone, recorded in `NetView.dropped` with the OID and the value;
 the other rows stand. A missing answer, an error status, or a wrong type in the node's identity
 raises `SourceError` naming the OID and what was expected. Positions are written with SET and
-the write community; the read community never writes.
+the write community; the read community never writes. With a v3 user every request goes through
+`usm.V3Session` (authenticated and encrypted; the user writes too) and its answer is decoded the same way.
 """
 
 from __future__ import annotations
@@ -56,6 +58,7 @@ from erni.plugins.mobinet.resource import (
     SourceError,
 )
 from erni.plugins.mobinet.sanity import Absurd, Limits
+from erni.plugins.mobinet.usm import UsmUser, V3Session
 
 # --- the OIDs read and written (numeric: no MIB module is loaded at run time) -------------
 # ERNI units: positions in mm, headings in centidegrees, link quality in thousandths;
@@ -276,12 +279,13 @@ class _Link(asyncio.DatagramProtocol):
 
 
 class SnmpSource:
-    """A `NetworkSource` speaking SNMPv2c to one node's network subsystem (any standard agent)."""
+    """A `NetworkSource` speaking SNMPv2c, or SNMPv3 as `usm`, to one node's network subsystem (any
+    standard agent)."""
 
     def __init__(self, host: str, port: int, community: str = "public", timeout: float = 0.5,
                  retries: int = 0, max_repetitions: int = 100, cache_seconds: float = 5.0,
                  write_community: str | None = None, modules: frozenset[str] | None = None,
-                 limits: Limits | None = None) -> None:
+                 limits: Limits | None = None, usm: UsmUser | None = None) -> None:
         self.host, self.port = host, port
         self.limits = limits or Limits()
         self.modules = modules   # the PROBES modules to use; None: every one the agent serves
@@ -290,6 +294,7 @@ class SnmpSource:
         self.timeout, self.retries = timeout, retries
         self.max_repetitions = max_repetitions
         self._link: _Link | None = None
+        self._v3 = V3Session(host, port, usm, timeout, retries) if usm is not None else None
         self._request_id = int.from_bytes(os.urandom(3), "big")
         self._rows: dict[tuple[OID, ...], int] = {}  # rows seen by the last walk of a column set
         self.cache_seconds = cache_seconds
@@ -319,6 +324,9 @@ class SnmpSource:
     async def _request(self, what: str, pdu: int, varbinds: list[tuple[OID, Value]], *, write: bool = False,
                        max_repetitions: int = 0) -> list[tuple[OID, Value]]:
         """Send one request (again after each timeout, `retries` times) and return the answer's varbinds."""
+        if self._v3 is not None:
+            self.requests += 1
+            return self._checked(what, await self._v3.request(what, pdu, varbinds, max_repetitions))
         link = await self._open()
         community = self.write_community if write and self.write_community else self.community
         self._request_id = self._request_id % 0x7FFFFFFF + 1
@@ -346,6 +354,10 @@ class SnmpSource:
             raise SourceError(f"SNMP {what} to {self.where}: no SNMP response received before timeout "
                               f"(timeout {self.timeout:g} s, {self.retries} retr{'y' if self.retries == 1 else 'ies'})"
                               f"{why}")
+        return self._checked(what, got)
+
+    def _checked(self, what: str, got: ber.Response) -> list[tuple[OID, Value]]:
+        """The answer's varbinds; SourceError naming the error status and the varbind it points at."""
         if got.error_status:
             status = (ber.ERROR_STATUS[got.error_status] if got.error_status < len(ber.ERROR_STATUS)
                       else f"error-status {got.error_status}")
@@ -353,7 +365,8 @@ class SnmpSource:
             i = got.error_index
             if 0 < i <= len(got.varbinds):
                 where = f" at {label(got.varbinds[i - 1][0])}"
-            raise SourceError(f"SNMP {what} to {self.where}: agent answered {status}{where}")
+            v3 = "v3" if self._v3 is not None else ""
+            raise SourceError(f"SNMP{v3} {what} to {self.where}: agent answered {status}{where}")
         return got.varbinds
 
     async def get(self, oids: Iterable[OID],
@@ -600,7 +613,7 @@ class SnmpSource:
 
     async def write_position(self, position: Position) -> None:
         """SET the node's position scalars (mm, mm, centidegrees) in one request (write community)."""
-        if not self.write_community:
+        if not self.write_community and self._v3 is None:
             raise SourceError(f"SNMP SET to {self.where}: no write community configured "
                               "(MobiNet setting write_community)")
         heading = ((position.heading + 180.0) % 360.0) - 180.0
@@ -613,6 +626,8 @@ class SnmpSource:
 
     async def aclose(self) -> None:
         """Close the socket; requests still waiting time out."""
+        if self._v3 is not None:
+            await self._v3.aclose()
         link, self._link = self._link, None
         if link is not None and link.transport is not None:
             link.transport.close()
