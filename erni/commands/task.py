@@ -10,17 +10,19 @@ from typing import Any
 from erni.blackboard import Task, TaskError
 from erni.blackboard.errors import UsageError, shown
 from erni.blackboard.schemas import Cancel, ResultUpdate
-from erni.commands._client import add_client_options, check_seconds, dumps, open_client, stamp
+from erni.commands._client import add_client_options, check_seconds, directory, dumps, open_client, stamp
 from erni.transport.wire import loads
 
 QUERY_PERIOD = 2.0  # with --wait, ask the agent for the task's state this often
+ANSWER_WAIT = 5.0  # without --wait, how long to wait for the agent to take the task or refuse it
 
 
 def register(sub: Any) -> None:
     """Add the `task` sub-command."""
     p = sub.add_parser("task", help="send a task to an agent and print its result",
                        description="Send a task to AGENT (through --via or a discovered agent). "
-                       "Exit 0 on success, 1 on failure, 2 on bad arguments.")
+                       "Without --wait, wait only for AGENT to take the task or refuse it. "
+                       "Exit 0 on success (taken, without --wait), 1 on failure or refusal, 2 on bad arguments.")
     p.add_argument("agent", help="the agent that performs the task")
     p.add_argument("verb", help="NetWatch, BotMotion, RemoteBotMotion, ...")
     p.add_argument("preposition", help="the sub-task, e.g. goto")
@@ -79,6 +81,8 @@ def run(args: argparse.Namespace) -> int:
         task = task.evolve(source=client.endpoint.name)
         try:
             addr = client.find(args.agent)
+            if args.via and not args.wait:  # --wait shows the relay's own verdict when its task_ttl ends
+                _check_known(args.agent, client, addr)
             msg_id = client.send(addr, "task.add", task)
             deadline = time.monotonic() + 6.0
             while msg_id not in client.delivered:
@@ -90,9 +94,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"erni task: {err}", file=sys.stderr)
             return 1
         if not args.wait:
-            print(dumps({"uid": task.uid, "agent": args.agent, "state": "sent"}) if args.json
-                  else f"{task.uid} sent to {args.agent}: {task.describe()}")
-            return 0
+            return _answer(args, client, addr, task)
         try:
             return _follow(args, client, addr, task)
         except KeyboardInterrupt:
@@ -100,6 +102,49 @@ def run(args: argparse.Namespace) -> int:
             time.sleep(0.2)
             print(f"erni task: cancelled {task.uid}", file=sys.stderr)
             return 130
+
+
+def _check_known(agent: str, client: Any, addr: tuple[str, int]) -> None:
+    """Raise ClientError when the agent reached through has never heard of `agent` (a typo, not a late robot)."""
+    from erni.transport.client import ClientError
+
+    peers = directory(client, addr)
+    if peers is None or agent == peers.agent or any(p.name == agent for p in peers.peers):
+        return  # no answer: the task itself says what becomes of it
+    known = ", ".join(sorted(p.name for p in peers.peers)[:20]) or "no other agent"
+    raise ClientError(f"no agent {agent} in the team: {peers.agent} knows {known} (`erni peers` lists them)")
+
+
+def _answer(args: argparse.Namespace, client: Any, addr: tuple[str, int], task: Task) -> int:
+    """Without --wait: wait for the agent to take the task (running, or done) or refuse it; 1 on refusal."""
+    start = time.monotonic()
+    next_query = start + 1.0
+    state = "sent"
+    while (left := start + ANSWER_WAIT - time.monotonic()) > 0:
+        if time.monotonic() >= next_query:  # an update may be lost: the agent answers with the task's state
+            client.send(addr, "task.query", Cancel(uid=task.uid), reliable=False)
+            next_query += 1.0
+        msg = client.receive(min(left, 0.2))
+        if msg is None or msg.kind != "task.result" or not isinstance(msg.body, ResultUpdate) \
+                or msg.body.uid != task.uid:
+            continue
+        result = msg.body.result
+        state = result.state.value
+        if result.state.done and state != "succeeded":
+            if args.json:
+                print(_line(args, task, result))
+            reason = " ".join(result.message.split()) or "no reason given"
+            print(f"erni task: {args.agent}: task {task.uid} {state}: {reason}", file=sys.stderr)
+            return 1
+        if state != "pending":  # running or succeeded: the performer has it (pending may be a relay's note)
+            break
+    if args.json:
+        print(dumps({"uid": task.uid, "agent": args.agent, "state": state}))
+    else:
+        note = f" (still {state} after {ANSWER_WAIT:g} s; `erni task --wait` follows a task)" \
+            if state in ("sent", "pending") else f" ({state})"
+        print(f"{task.uid} sent to {args.agent}: {task.describe()}{note}")
+    return 0
 
 
 def _follow(args: argparse.Namespace, client: Any, addr: tuple[str, int], task: Task) -> int:

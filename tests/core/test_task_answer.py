@@ -1,0 +1,85 @@
+"""`erni task` without --wait waits for the agent's answer: exit 0 once it took the task, 1 on a refusal."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from pydantic import BaseModel
+
+from erni.blackboard import Plugin, Task, TaskState
+from erni.blackboard.testing import wait_until
+from tests.transport.helpers import free_port, identity, make_agent
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+class DockedSettings(BaseModel):
+    """No settings."""
+
+
+class Docked(Plugin[DockedSettings]):
+    """A robot on its dock: refuses to turn, starts anything else."""
+
+    def setup(self) -> None:
+        self.tasks = self.subscribe(Task, where=lambda t: t.verb == "BotMotion" and t.destination == self.agent_name)
+
+    def execute(self) -> None:
+        for task in self.tasks.added:
+            if task.preposition == "turn":
+                self.change(task.with_result(TaskState.FAILED, message="refused: cannot turn\non the dock"))
+            else:
+                self.change(task.with_result(TaskState.RUNNING, message="started"))
+
+
+@pytest.fixture(scope="module")
+def via() -> Iterator[str]:
+    disc, port = free_port(), free_port()
+    control = make_agent("control", disc, echo=False, role="control", listen=f"127.0.0.1:{port}")
+    robot = make_agent("robot1", disc, echo=False, start=False)
+    robot.add_plugin(Docked, name="motion")
+    robot.start()
+    try:
+        wait_until(lambda: any(p.name == "robot1" and p.up for p in control.blackboard.query(
+            lambda o: type(o).__name__ == "Peer")), timeout=10)
+        yield f"127.0.0.1:{port}"
+    finally:
+        robot.stop()
+        control.stop()
+
+
+def task(via: str, *args: str) -> tuple[subprocess.CompletedProcess[str], float]:
+    env = {**os.environ, "ERNI_IDENTITY": identity("cli", "cli")}
+    start = time.monotonic()
+    out = subprocess.run([sys.executable, "-m", "erni", "task", "--via", via, *args], capture_output=True,
+                         text=True, timeout=30, cwd=ROOT, env=env)
+    return out, time.monotonic() - start
+
+
+def test_a_task_the_robot_refuses_exits_1_with_the_reason_on_one_line(via: Any) -> None:
+    out, seconds = task(via, "robot1", "BotMotion", "turn", "angle=90")
+    assert out.returncode == 1 and out.stdout == ""
+    lines = out.stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("erni task: robot1: task ")
+    assert lines[0].endswith(" failed: refused: cannot turn on the dock")
+    assert seconds < 4.5  # the answer, not the end of the wait
+
+
+def test_a_task_the_robot_takes_exits_0_once_it_runs(via: Any) -> None:
+    out, seconds = task(via, "robot1", "BotMotion", "forward", "distance=1")
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.rstrip().endswith("sent to robot1: BotMotion forward distance=1.0 speed=0.3 -> robot1 (running)")
+    assert seconds < 4.5
+
+
+def test_an_agent_the_team_never_heard_of_fails_at_once(via: Any) -> None:
+    out, seconds = task(via, "robot9", "BotMotion", "stop")
+    assert out.returncode == 1
+    assert out.stderr == "erni task: no agent robot9 in the team: control knows robot1 (`erni peers` lists them)\n"
+    assert seconds < 4.5
