@@ -9,6 +9,11 @@ a SET with the read community is refused (noAccess; v1 noSuchName) and counted i
 snmpInBadCommunityUses; a SET of the position scalars with the write community reports the
 node's position to the network.
 
+A node given v3 users (`v3_users`) speaks SNMPv3 only, USM authPriv (sim/snmp_v3.py, through
+pysnmp): its users read and write, a request without privacy is refused
+(usmStatsUnsupportedSecLevels), and v1/v2c requests are dropped (snmpInBadCommunityNames: it accepts no
+community). Its requests are answered by the same code as v2c requests.
+
 Dropped and counted, never answered: undecodable datagrams (snmpInASNParseErrs), other SNMP
 versions (snmpInBadVersions), unknown communities (snmpInBadCommunityNames), and every
 response-class or notification PDU — GetResponse, Trap, Report, InformRequest — for which a
@@ -23,11 +28,13 @@ import bisect
 import logging
 import threading
 from collections import Counter
-from typing import Any
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any
 
 from erni.blackboard.errors import NetworkError, UsageError
 from erni.plugins.mobinet import ber as wire
 from erni.plugins.mobinet.ber import INTEGER, BerError, Message, Value
+from erni.plugins.mobinet.usm import UsmUser
 from erni.sim import snmp_ber as ber
 from erni.sim.manet import ManetNetwork, NodeView
 from erni.sim.manet_mib import (
@@ -43,16 +50,19 @@ from erni.sim.manet_mib import (
     topology_rows,
 )
 
+if TYPE_CHECKING:
+    from erni.sim.snmp_v3 import V3Entity
+
 log = logging.getLogger("erni.sim.snmp")
 
 MAX_VARBINDS = 500           # per GETBULK response
 MAX_RESPONSE_BYTES = 60000   # the local constraint on a response message (under the UDP limit)
 # SNMP error-status codes (RFC 3416)
 TOO_BIG, NO_SUCH_NAME, BAD_VALUE, GEN_ERR, NO_ACCESS = 1, 2, 3, 5, 6
-WRONG_TYPE, WRONG_VALUE, NO_CREATION, NOT_WRITABLE = 7, 10, 11, 17
+WRONG_TYPE, WRONG_VALUE, NO_CREATION, AUTHORIZATION_ERROR, NOT_WRITABLE = 7, 10, 11, 16, 17
 V1_OF = {NO_ACCESS: NO_SUCH_NAME, WRONG_TYPE: BAD_VALUE, WRONG_VALUE: BAD_VALUE,
          NO_CREATION: NO_SUCH_NAME, NOT_WRITABLE: NO_SUCH_NAME}   # RFC 3584 section 4.4
-V1, V2C = 0, 1
+V1, V2C, V3 = 0, 1, 3
 V1_PDUS = frozenset({wire.GET, wire.GET_NEXT, wire.RESPONSE, wire.SET, wire.TRAP_V1})   # RFC 1157
 V2C_PDUS = wire.PDUS                                                                 # RFC 3416
 KINDS = {wire.GET: "get", wire.GET_NEXT: "getnext", wire.SET: "set", wire.GET_BULK: "getbulk"}
@@ -148,6 +158,8 @@ class _Node:
         self.stats: Counter[str] = Counter()
         self.table: _Table | None = None
         self.transport: asyncio.DatagramTransport | None = None
+        self.v3: V3Entity | None = None   # SNMPv3 only (USM users), else v1/v2c only
+        self.usm: dict[str, int] = {}    # the v3 engine's usmStats* last seen
 
     # NodeContext (sim/manet_mib.py)
     def now(self) -> float:
@@ -173,24 +185,26 @@ class _NodeEndpoint(asyncio.DatagramProtocol):
         self.transport = transport
 
     def datagram_received(self, data: bytes, addr: Any) -> None:
-        reply = self.agent.handle(self.name, data)
+        reply = self.agent.handle(self.name, data, addr)
         if reply is not None and self.transport is not None:
             self.transport.sendto(reply, addr)
 
 
 class ManetSnmpAgent:
-    """Serve the nodes of a `ManetNetwork` over SNMP v1/v2c, one UDP endpoint per node.
+    """Serve the nodes of a `ManetNetwork` over SNMP v1/v2c, or v3 only, one UDP endpoint per node.
 
     `read_community` reads; `write_community` (None: the agent accepts no SET) reads and
-    writes. `serve()` may give a node communities of its own.
+    writes; `v3_users` (USM, authPriv) replace both: a node with users speaks only SNMPv3.
+    `serve()` may give a node communities or users of its own.
     """
 
     def __init__(self, network: ManetNetwork, read_community: str = "public",
-                 write_community: str | None = None) -> None:
+                 write_community: str | None = None, v3_users: Sequence[UsmUser] = ()) -> None:
         _check_communities(read_community, write_community)
         self.network = network
         self.read_community = read_community
         self.write_community = write_community
+        self.v3_users = tuple(v3_users)
         self.stats: Counter[str] = Counter()   # every node's counters added up
         self._nodes: dict[str, _Node] = {}
         self._blocks: dict[int, tuple[Any, _Encoded, int]] = {}
@@ -221,15 +235,18 @@ class ManetSnmpAgent:
         return self
 
     def serve(self, name: str, host: str = "127.0.0.1", port: int = 0, read_community: str | None = None,
-              write_community: str | None = None) -> tuple[str, int]:
+              write_community: str | None = None, v3_users: Sequence[UsmUser] | None = None) -> tuple[str, int]:
         """Open node `name`'s UDP endpoint (port 0: any free port); return (host, port).
 
-        The node's communities default to the agent's.
+        The node's communities and v3 users default to the agent's; with users it speaks only SNMPv3.
         """
         self.network.info(name)  # raises NotFoundError for an unknown node
         read = read_community if read_community is not None else self.read_community
         write = write_community if write_community is not None else self.write_community
+        users = tuple(v3_users) if v3_users is not None else self.v3_users
         _check_communities(read, write)
+        if len({u.name for u in users}) != len(users):
+            raise UsageError(f"node {name!r}: SNMPv3 user names must differ, got {[u.name for u in users]}")
         if self._loop is None:
             self.start()
         assert self._loop is not None
@@ -240,6 +257,18 @@ class ManetSnmpAgent:
             transport, _ = await self._loop.create_datagram_endpoint(  # type: ignore[union-attr]
                 lambda: _NodeEndpoint(self, name), local_addr=(host, port))
             node.transport = transport
+            if node.v3 is not None:
+                node.v3.close()
+                node.v3 = None
+            if users:   # pysnmp only for a node that speaks v3; its engine belongs to this loop
+                from erni.sim.snmp_v3 import V3Entity
+
+                def send(data: bytes, addr: Any) -> None:
+                    if node.transport is not None:
+                        node.transport.sendto(data, addr)
+
+                node.v3 = V3Entity(users, lambda pdu, priv: self._answer_v3(node, pdu, priv), send,
+                                   asyncio.get_running_loop())
             bound = transport.get_extra_info("sockname")
             return bound[0], bound[1]
 
@@ -264,7 +293,7 @@ class ManetSnmpAgent:
         return dict(self._endpoints)
 
     def node_stats(self, name: str) -> Counter[str]:
-        """The SNMP counters of one node (snmpInPkts, snmpUnknownPDUHandlers, ...)."""
+        """The SNMP counters of one node (snmpInPkts, snmpUnknownPDUHandlers, usmStatsWrongDigests, ...)."""
         return self.node(name).stats
 
     def close(self) -> None:
@@ -275,6 +304,9 @@ class ManetSnmpAgent:
 
         def shutdown() -> None:
             for node in self._nodes.values():
+                if node.v3 is not None:
+                    node.v3.close()
+                    node.v3 = None
                 if node.transport is not None:
                     node.transport.close()
                     node.transport = None
@@ -344,14 +376,24 @@ class ManetSnmpAgent:
         node.stats[key] += 1
         self.stats[key] += 1
 
-    def handle(self, name: str, data: bytes) -> bytes | None:
-        """Answer one datagram addressed to node `name`; None drops it (counted)."""
+    def handle(self, name: str, data: bytes, addr: Any = None) -> bytes | None:
+        """Answer one datagram addressed to node `name` from `addr`; None drops it (counted), or
+        leaves an SNMPv3 message to the node's v3 engine, which sends its answer itself."""
         node = self.node(name)
         self._count(node, "snmpInPkts")
         try:
             version = wire.message_version(data)
         except BerError:
             self._count(node, "snmpInASNParseErrs")
+            return None
+        if node.v3 is not None:
+            if version == V3:
+                node.v3.receive(data, addr)
+                self._count_usm(node)
+            elif version in (V1, V2C):   # a v3-only node accepts no community
+                self._count(node, "snmpInBadCommunityNames")
+            else:
+                self._count(node, "snmpInBadVersions")
             return None
         if version not in (V1, V2C):
             self._count(node, "snmpInBadVersions")
@@ -394,6 +436,39 @@ class ManetSnmpAgent:
                 return None
         self._count(node, "answered")
         return reply
+
+    def _answer_v3(self, node: _Node, pdu: bytes, auth_priv: bool) -> bytes:
+        """The Response PDU to a request PDU that came authenticated (and, if `auth_priv`, encrypted)."""
+        # the PDU in a v2c envelope: the v2c reader and handlers answer it
+        msg = wire.decode_message(ber.tlv(wire.SEQUENCE, b"\x02\x01\x01\x04\x00" + pdu))
+        kind = KINDS.get(msg.pdu, "other")
+        if not auth_priv:
+            self._count(node, "snmpv3NoPriv")
+            status, index, out = AUTHORIZATION_ERROR, 0, None
+        else:
+            self._count(node, kind)
+            try:
+                status, index, out = self._dispatch(node, V2C, kind, msg, True)
+            except Exception:  # a bug must not kill the endpoint; the client sees genErr
+                log.exception("node %s: failed to answer a request", node.name)
+                status, index, out = GEN_ERR, 1, None
+        if out is None:
+            out = [ber.varbind(ber.oid(o), raw) for (o, _), raw in zip(msg.varbinds, msg.values)]
+        reply = ber.response_pdu(msg.request_id, status, index, out)
+        if len(reply) > MAX_RESPONSE_BYTES:
+            reply = ber.response_pdu(msg.request_id, TOO_BIG, 0, [])
+        self._count(node, "answered")
+        return reply
+
+    def _count_usm(self, node: _Node) -> None:
+        """Add what the node's v3 engine refused since the last message to the node's and agent's counters."""
+        assert node.v3 is not None
+        for key, total in node.v3.usm_stats().items():
+            new = total - node.usm.get(key, 0)
+            if new:
+                node.stats[key] += new
+                self.stats[key] += new
+            node.usm[key] = total
 
     @staticmethod
     def _response(version: int, community: bytes, request_id: int, status: int, index: int,

@@ -1,4 +1,4 @@
-"""Fast BER encoding of SNMP v1/v2c responses for the simulated agent.
+"""Fast BER encoding of SNMP v1/v2c responses (and of the PDUs SNMPv3 carries) for the simulated agent.
 
 Requests are read with MobiNet's `decode_message`; responses can be large (a 120-node
 topology walk), so the agent encodes them from pre-encoded OID/value TLVs: a response is
@@ -14,7 +14,7 @@ from erni.blackboard.errors import UsageError
 from erni.plugins.mobinet import ber
 from erni.plugins.mobinet.ber import BerError, int_content, length, oid_content, tlv
 
-__all__ = ["length", "oid", "response", "signed", "tlv", "unsigned", "value", "varbind"]
+__all__ = ["length", "oid", "response", "response_pdu", "signed", "tlv", "unsigned", "value", "varbind"]
 
 NO_SUCH_OBJECT = bytes((ber.NO_SUCH_OBJECT, 0))
 NO_SUCH_INSTANCE = bytes((ber.NO_SUCH_INSTANCE, 0))
@@ -64,10 +64,14 @@ def value(kind: str, v: object) -> bytes:
 def response(version: int, community: bytes, request_id: int, error_status: int,
              error_index: int, varbinds: list[bytes]) -> bytes:
     """A whole GetResponse message from encoded varbinds (each `SEQUENCE {oid, value}`)."""
-    pdu = (signed(ber.INTEGER, request_id) + signed(ber.INTEGER, error_status)
-           + signed(ber.INTEGER, error_index) + tlv(ber.SEQUENCE, b"".join(varbinds)))
     return tlv(ber.SEQUENCE, signed(ber.INTEGER, version) + tlv(ber.OCTET_STRING, community)
-               + tlv(ber.RESPONSE, pdu))
+               + response_pdu(request_id, error_status, error_index, varbinds))
+
+
+def response_pdu(request_id: int, error_status: int, error_index: int, varbinds: list[bytes]) -> bytes:
+    """The Response PDU alone (SNMPv3 carries it in a scoped PDU)."""
+    return tlv(ber.RESPONSE, signed(ber.INTEGER, request_id) + signed(ber.INTEGER, error_status)
+               + signed(ber.INTEGER, error_index) + tlv(ber.SEQUENCE, b"".join(varbinds)))
 
 
 def varbind(encoded_oid: bytes, encoded_value: bytes) -> bytes:

@@ -5,22 +5,39 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+from erni.blackboard.errors import ConfigError
+
+if TYPE_CHECKING:
+    from erni.plugins.mobinet.usm import UsmUser
+
+AUTH_ENV, PRIV_ENV = "ERNI_SNMP_AUTH_KEY", "ERNI_SNMP_PRIV_KEY"
 
 
 def register(sub: Any) -> None:
     """Add the `net-sim` sub-command."""
     p = sub.add_parser(
         "net-sim", help="simulate a MANET and serve each node's NHDP/OLSRv2/ERNI MIBs over SNMP",
-        description="Serve a simulated MANET: each node answers SNMP v1/v2c on its own UDP port "
-                    "(SNMPv2-MIB, NHDP-MIB, OLSRv2-MIB, IP-FORWARD-MIB, ERNI-MOBINET-MIB) until "
-                    "Ctrl-C; scenario moves are applied at their times.")
+        description="Serve a simulated MANET: each node answers SNMP v1/v2c (or, with --v3-user, SNMPv3 "
+                    "only) on its own UDP port (SNMPv2-MIB, NHDP-MIB, OLSRv2-MIB, IP-FORWARD-MIB, "
+                    "ERNI-MOBINET-MIB) until Ctrl-C; scenario moves are applied at their times.")
     p.add_argument("scenario", help="scenario TOML (nodes, comm_range, lossless_range, moves)")
     p.add_argument("--host", help="address to serve on (default: the scenario's host)")
     p.add_argument("--base-port", type=int, help="port of the first node, 0 = any free port "
                    "(default: the scenario's base_port)")
     p.add_argument("--duration", type=float, default=None,
                    help="stop after this many seconds (default: serve until Ctrl-C)")
+    v3 = p.add_argument_group("SNMPv3", "with --v3-user every node speaks only SNMPv3, USM authPriv: the user "
+                              "reads and writes, v1/v2c requests and communities are refused")
+    v3.add_argument("--v3-user", metavar="NAME", help="the USM user every node requires")
+    v3.add_argument("--v3-auth", metavar="PROTOCOL", default="SHA-256",
+                    help="authentication protocol: SHA-224, SHA-256 (default), SHA-384 or SHA-512")
+    v3.add_argument("--v3-priv", metavar="PROTOCOL", default="AES", help="privacy protocol: AES (AES-128)")
+    v3.add_argument("--v3-auth-key-file", metavar="FILE", help="file (mode 600) whose first line is the "
+                    f"authentication passphrase (default: environment variable {AUTH_ENV})")
+    v3.add_argument("--v3-priv-key-file", metavar="FILE", help="file (mode 600) whose first line is the "
+                    f"privacy passphrase (default: environment variable {PRIV_ENV})")
     p.set_defaults(func=run)
 
 
@@ -31,6 +48,21 @@ def _topology_line(net: Any) -> str:
             f"articulation points: {cuts}")
 
 
+def v3_users(args: argparse.Namespace) -> list[UsmUser]:
+    """The --v3-user with its keys (from the key files, else the environment); ConfigError naming the source."""
+    from erni.plugins.mobinet.usm import UsmUser, read_key
+
+    if args.v3_user is None:
+        if args.v3_auth_key_file or args.v3_priv_key_file:
+            raise ConfigError("--v3-auth-key-file and --v3-priv-key-file need --v3-user")
+        return []
+    auth = read_key("SNMPv3 auth key", file=args.v3_auth_key_file,
+                    env=None if args.v3_auth_key_file else AUTH_ENV)
+    priv = read_key("SNMPv3 priv key", file=args.v3_priv_key_file,
+                    env=None if args.v3_priv_key_file else PRIV_ENV)
+    return [UsmUser(args.v3_user, auth, priv, args.v3_auth, args.v3_priv)]
+
+
 def run(args: argparse.Namespace) -> int:
     """Load the scenario, serve every node, apply moves; exit code 0, or 2 on bad input."""
     from erni.sim.manet_scenario import load_scenario
@@ -38,16 +70,17 @@ def run(args: argparse.Namespace) -> int:
     from erni.sim.snmp_agent import ManetSnmpAgent
 
     try:
+        users = v3_users(args)
         scenario = load_scenario(args.scenario)
         if args.base_port is not None:
             scenario = scenario.model_copy(update={"base_port": args.base_port})
             scenario = type(scenario).model_validate(scenario.model_dump())
-    except (ScenarioError, ValueError) as err:
+    except (ScenarioError, ValueError) as err:   # ConfigError is a ValueError
         print(f"erni net-sim: {err}", file=sys.stderr)
         return 2
     host = args.host or scenario.host
     net = scenario.build()
-    agent = ManetSnmpAgent(net, read_community=scenario.read_community).start()
+    agent = ManetSnmpAgent(net, read_community=scenario.read_community, v3_users=users).start()
     try:
         writes = scenario.write_communities()
         try:
@@ -58,9 +91,11 @@ def run(args: argparse.Namespace) -> int:
             return 2
         addresses = agent.addresses()
         writable = sum(1 for w in writes.values() if w is not None)
+        access = (f"SNMPv3 only: user {users[0].name!r}, authPriv {users[0].auth_protocol}/{users[0].priv_protocol}"
+                  if users else f"read community {scenario.read_community!r}, "
+                  f"{writable} node(s) writable with their write community")
         print(f"net-sim: {len(addresses)} node(s), R = {scenario.comm_range} m, "
-              f"loss-free to {scenario.lossless_range} m, read community {scenario.read_community!r}, "
-              f"{writable} node(s) writable with their write community")
+              f"loss-free to {scenario.lossless_range} m, {access}")
         for name, (h, port) in addresses.items():
             print(f"  {name:<12} {net.info(name).address:<12} snmp udp:{h}:{port}")
         print(f"  {_topology_line(net)}")
@@ -89,5 +124,7 @@ def run(args: argparse.Namespace) -> int:
         st = agent.stats
         print(f"net-sim: stopped ({st['answered']} request(s) answered; dropped: "
               f"{st['snmpInASNParseErrs']} undecodable, {st['snmpInBadCommunityNames']} unknown community, "
-              f"{st['snmpUnknownPDUHandlers']} response/notification PDU(s))", flush=True)
+              f"{st['snmpUnknownPDUHandlers']} response/notification PDU(s)"
+              + (f", {sum(v for k, v in st.items() if k.startswith('usmStats') and k != 'usmStatsUnknownEngineIDs')} "
+                 "refused by USM" if users else "") + ")", flush=True)
     return 0

@@ -79,7 +79,7 @@ def read_key(what: str, value: str | None = None, file: str | None = None, env: 
     if env is not None:
         key = os.environ.get(env)
         if not key:
-            raise ConfigError(f"{what}_env: environment variable {env} is not set or empty")
+            raise ConfigError(f"{what}: environment variable {env} is not set or empty")
         return key
     assert file is not None
     path = Path(file).expanduser()
@@ -87,12 +87,12 @@ def read_key(what: str, value: str | None = None, file: str | None = None, env: 
         mode = path.stat().st_mode
         lines = path.read_text(encoding="utf-8").splitlines()
     except OSError as err:
-        raise ConfigError(f"{what}_file: {file}: {err.strerror}") from None
+        raise ConfigError(f"{what}: {file}: {err.strerror}") from None
     if mode & (stat.S_IRWXG | stat.S_IRWXO):
-        raise ConfigError(f"{what}_file: {file}: readable by others (mode {stat.S_IMODE(mode):o}); "
+        raise ConfigError(f"{what}: {file}: readable by others (mode {stat.S_IMODE(mode):o}); "
                           f"expected 600 (chmod 600 {file})")
     if not lines or not lines[0]:
-        raise ConfigError(f"{what}_file: {file}: the first line is empty; expected the key")
+        raise ConfigError(f"{what}: {file}: the first line is empty; expected the key")
     return lines[0]
 
 
