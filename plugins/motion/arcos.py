@@ -78,7 +78,21 @@ BAUD_CODES = {9600: 0, 19200: 1, 38400: 2, 57600: 3, 115200: 4}
 
 
 class ProtocolError(ErniError, ValueError):
-    """A packet or argument does not fit the ARCOS wire format."""
+    """A packet or argument does not fit the ARCOS wire format; `kind` names the damage for counting."""
+
+    kind = "bad_packet"
+
+
+class TruncatedSip(ProtocolError):
+    """A SIP shorter than its fixed fields."""
+
+    kind = "truncated_sip"
+
+
+class BadSonarCount(ProtocolError):
+    """A SIP that announces more sonar readings than it carries (a count of 255 in a short SIP)."""
+
+    kind = "bad_sonar_count"
 
 
 def checksum(body: bytes) -> int:
@@ -313,13 +327,13 @@ def parse_sip(body: bytes) -> RawSip:
         raise ProtocolError(f"packet ID 0x{body[0]:02X} is not a SIP; expected 0x32 or 0x33")
     need = 1 + _SIP_HEAD.size + 1
     if len(body) < need:
-        raise ProtocolError(f"SIP of {len(body)} bytes truncated; expected at least {need}")
+        raise TruncatedSip(f"SIP of {len(body)} bytes truncated; expected at least {need}")
     fields = _SIP_HEAD.unpack_from(body, 1)
     i = 1 + _SIP_HEAD.size
     count = body[i]
     i += 1
     if len(body) < i + 3 * count:
-        raise ProtocolError(f"SIP announces {count} sonar readings but only {(len(body) - i) // 3} fit")
+        raise BadSonarCount(f"SIP announces {count} sonar readings but only {(len(body) - i) // 3} fit")
     sonar = {}
     for _ in range(count):
         num, rng = struct.unpack_from("<BH", body, i)

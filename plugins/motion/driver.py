@@ -7,7 +7,9 @@ whose reply gives firmware, serial number, top speeds and current accelerations;
 38400 on a serial line when the firmware allows it; ENABLE; SETV/SETRV/SETA/SETRA so the robot
 brakes as the planner assumes), turns bytes into packets and SIPs into `RobotState` (SI units,
 15-bit positions unwrapped), sends PULSE when the link is idle, and reconnects when the link
-drops. Commands may be sent from any thread.
+drops. Damaged data from the robot (garbage, bad checksums, truncated SIPs, impossible sonar
+counts) is counted per kind in `damage`, logged at most once per 10 s per kind, and carried in
+each `RobotState`. Commands may be sent from any thread.
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ import serial
 from erni.blackboard.errors import NetworkError
 from erni.plugins.motion import arcos
 from erni.plugins.motion.arcos import Cmd
+from erni.plugins.motion.damage import LineDamage
 from erni.plugins.motion.robots import DEFAULT_LIMITS, ModelSpec, RobotModel, model_spec
 
 log = logging.getLogger("erni.motion.driver")
@@ -117,6 +120,7 @@ class RobotState:
     seq: int
     sim_pose: tuple[float, float, float] | None = None  # a simulator's true pose (m, m, rad), from SIMSTAT
     sim_stamp: float = -math.inf  # when that SIMSTAT arrived
+    damage: Mapping[str, int] = field(default_factory=dict)  # damaged data from the robot so far, per kind
 
     @property
     def stalled(self) -> bool:
@@ -211,6 +215,7 @@ class ArcosDriver:
         self.read_timeout = max(0.005, min(0.1, pulse_interval / 4, link_timeout / 4))
         self._reader = arcos.PacketReader()
         self.stats.reader = self._reader.stats
+        self.damage = LineDamage(f"{name} ({url})", log, clock=clock)
         self._port: serial.SerialBase | None = None
         self._write_lock = threading.Lock()
         self._cond = threading.Condition()
@@ -576,8 +581,15 @@ class ArcosDriver:
             self._lose(str(err) if "failed" in str(err) else f"read failed: {err}")
             return
         if data:
+            rs = self._reader.stats
+            before = (rs.bytes_skipped, rs.bad_checksum, rs.bad_count)
             for body in self._reader.feed(data):
                 self._packet(body)
+            if (rs.bytes_skipped, rs.bad_checksum, rs.bad_count) != before:
+                self.damage.note("garbage_bytes", rs.bytes_skipped - before[0])
+                self.damage.note("bad_checksum", rs.bad_checksum - before[1])
+                self.damage.note("bad_length", rs.bad_count - before[2])
+        self.damage.flush()
         now = self.clock()
         if self._broken:
             self._lose(self.last_error or "write failed")
@@ -636,7 +648,7 @@ class ArcosDriver:
                 self.stats.bad_sips += 1
             else:
                 self.stats.bad_packets += 1
-                log.debug("%s: %s", self.url, err)
+            self.damage.note(err.kind, 1, f"packet 0x{kind:02X}: {err}")
             return
         now = self.clock()
         if self.stats.sips:
@@ -676,7 +688,8 @@ class ArcosDriver:
                 battery=(sip.battery_x10 / 10.0 if sip.battery_x10 else sip.battery / 10.0),
                 stall_left=sip.stall_left, stall_right=sip.stall_right, bumpers=sip.bumpers,
                 motors_enabled=sip.motors_enabled, moving=moving, sonar=dict(self._sonar),
-                stamp=self._last_sip, seq=seq, sim_pose=self._sim_pose, sim_stamp=self._sim_stamp)
+                stamp=self._last_sip, seq=seq, sim_pose=self._sim_pose, sim_stamp=self._sim_stamp,
+                damage=self.damage.totals)
             self.stats.sips += 1
             self._cond.notify_all()
             return self._state

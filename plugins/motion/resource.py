@@ -25,7 +25,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 from erni.blackboard import Task, TaskState
@@ -400,6 +400,9 @@ class RobotMotionResource:
         self._emit(TaskUpdate(b.task_uid, b.state, b.progress, dict(b.values), b.message))
 
     def _emit(self, update: TaskUpdate) -> None:
+        state = self.driver.state
+        if state is not None and state.damage:  # the task's requester sees that the robot's data arrives damaged
+            update = replace(update, values={**update.values, "line_damage": dict(state.damage)})
         with self._lock:
             self._updates[update.uid] = update
         if update.state.done:
