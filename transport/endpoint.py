@@ -1284,8 +1284,13 @@ class Endpoint:
                     return False
                 return True
             host = peer[0]
-            if len(conns) >= cap:  # full: the oldest connection that never authenticated makes room
-                stranger = min((c for c in conns.values() if not c.authed), key=lambda c: c.opened, default=None)
+            # full, in total or for this host: the oldest connection (of this host, when its cap is
+            # what is full) that never authenticated makes room, so idle strangers never lock out
+            # an agent or a client that authenticates at once
+            full_host = per_host.get(host, 0) >= self.limits.max_connections_per_host
+            if len(conns) >= cap or full_host:
+                stranger = min((c for c in conns.values() if not c.authed and (not full_host or c.peer[0] == host)),
+                               key=lambda c: c.opened, default=None)
                 if stranger is not None:
                     self._drop_conn(sel, conns, per_host, stranger)
                     self.count("closed.evicted")
