@@ -23,7 +23,7 @@ import time
 from collections.abc import Mapping
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, SecretStr, field_validator, model_validator
 
 from erni.blackboard import NetInfo, Plugin, Pose, Position, Route, Task, TaskState
 from erni.blackboard.errors import ConfigError, TransactionError
@@ -89,15 +89,15 @@ class MobiNetSettings(BaseModel):
                                 "and write_community are then not used)")
     auth_protocol: Literal["SHA-224", "SHA-256", "SHA-384", "SHA-512"] = Field(
         "SHA-256", description="the v3 user's authentication protocol (HMAC-SHA-2, RFC 7860)")
-    auth_key: str | None = Field(None, description="the v3 user's authentication passphrase; prefer "
-                                 "auth_key_file or auth_key_env, which keep it out of the config")
+    auth_key: SecretStr | None = Field(None, description="the v3 user's authentication passphrase; prefer "
+                                       "auth_key_file or auth_key_env, which keep it out of the config")
     auth_key_file: str | None = Field(None, description="file whose first line is the authentication "
                                       "passphrase (mode 600)")
     auth_key_env: str | None = Field(None, description="environment variable holding the authentication "
                                      "passphrase")
     priv_protocol: Literal["AES"] = Field("AES", description="the v3 user's privacy protocol: AES-128 (RFC 3826)")
-    priv_key: str | None = Field(None, description="the v3 user's privacy passphrase; prefer priv_key_file "
-                                 "or priv_key_env")
+    priv_key: SecretStr | None = Field(None, description="the v3 user's privacy passphrase; prefer "
+                                       "priv_key_file or priv_key_env")
     priv_key_file: str | None = Field(None, description="file whose first line is the privacy passphrase "
                                       "(mode 600)")
     priv_key_env: str | None = Field(None, description="environment variable holding the privacy passphrase")
@@ -137,15 +137,22 @@ class MobiNetSettings(BaseModel):
         if self.write_community is not None:
             raise ValueError("write_community is SNMPv2c's: with v3_user the v3 user writes the pose; "
                              "remove write_community")
-        self.usm_user()   # the keys are there and readable now, not at the first request
+        try:   # the keys are there and readable now, not at the first request
+            self.usm_user()
+        except ConfigError as err:   # a plain ValueError: the message gets the agent and plugin as prefix
+            raise ValueError(str(err)) from None
         return self
 
     def usm_user(self) -> UsmUser | None:
         """The configured SNMPv3 user with its keys read (ConfigError naming the setting), or None."""
         if self.v3_user is None:
             return None
-        return UsmUser(self.v3_user, read_key("auth_key", self.auth_key, self.auth_key_file, self.auth_key_env),
-                       read_key("priv_key", self.priv_key, self.priv_key_file, self.priv_key_env),
+        def secret(value: SecretStr | None) -> str | None:
+            return value.get_secret_value() if value is not None else None
+
+        return UsmUser(self.v3_user,
+                       read_key("auth_key", secret(self.auth_key), self.auth_key_file, self.auth_key_env),
+                       read_key("priv_key", secret(self.priv_key), self.priv_key_file, self.priv_key_env),
                        self.auth_protocol, self.priv_protocol)
 
     @field_validator("watch")

@@ -13,6 +13,7 @@ and returns the answer in `ber`'s plain values, so `SnmpSource` decodes v2c and 
 
 from __future__ import annotations
 
+import asyncio
 import os
 import stat
 from dataclasses import dataclass, field
@@ -137,6 +138,12 @@ def _pysnmp_value(value: Value) -> Any:
     raise ber.BerError(f"MobiNet sends no {value.type_name} over SNMPv3")
 
 
+def _line(err: BaseException) -> str:
+    """The first line of an exception's text."""
+    text = str(err).strip()
+    return text.splitlines()[0] if text else type(err).__name__
+
+
 class V3Session:
     """Requests to one agent as one USM user, authPriv; pysnmp's engine lives on the calling loop."""
 
@@ -146,6 +153,7 @@ class V3Session:
         self._engine: Any = None
         self._target: Any = None
         self._auth: Any = None
+        self._opening = asyncio.Lock()   # a pose write and a read may both be the first request
 
     @property
     def where(self) -> str:
@@ -155,12 +163,14 @@ class V3Session:
     async def _open(self) -> None:
         from pysnmp.hlapi.v3arch import asyncio as hl
 
-        if self._engine is None:
+        async with self._opening:
+            if self._engine is not None:
+                return
             kind = hl.Udp6TransportTarget if ":" in self.host else hl.UdpTransportTarget
             try:
                 self._target = await kind.create((self.host, self.port), timeout=self.timeout, retries=self.retries)
             except Exception as err:   # pysnmp wraps resolver errors in its own exception
-                raise SourceError(f"SNMPv3 agent {self.where}: cannot resolve: {err}") from None
+                raise SourceError(f"SNMPv3 agent {self.where}: cannot resolve: {_line(err)}") from None
             self._auth = self.user.hlapi_user()
             self._engine = hl.SnmpEngine()
 
@@ -181,7 +191,10 @@ class V3Session:
             call = hl.set_cmd(*head, *binds, lookupMib=False)
         else:
             raise ber.BerError(f"not a request MobiNet sends: 0x{pdu:02x}")
-        indication, status, index, answer = await call
+        try:
+            indication, status, index, answer = await call
+        except Exception as err:   # e.g. a socket error while sending: one line, as every SourceError
+            raise SourceError(f"SNMPv3 {what} to {self.where}: {type(err).__name__}: {_line(err)}") from None
         if indication:
             raise SourceError(f"SNMPv3 {what} to {self.where} as {self.user.name!r}: {self.explain(indication)}")
         try:
