@@ -53,6 +53,7 @@ from erni.transport.endpoint import (
 from erni.transport.identity import Identity, IdentityError, load_identity
 from erni.transport.limits import Limits
 from erni.transport.liveness import BeaconCount, silence_stretch
+from erni.transport.policy import OPERATORS, Refusal, check_relay, check_status, check_task, check_watch
 from erni.transport.wire import Message, register_type
 
 
@@ -64,9 +65,22 @@ class Received(BBObject):
     task: str
     sender: str
     address: str = Field("", description="the sender's reply address, HOST:PORT")
+    role: str = Field("", description="the role of the task's originator (the relay's statement for a "
+                      "relayed task)")
 
 
-for _cls in (Peer, Received, Beacon, ResultUpdate, Cancel, Fresh, PeerList, WatchRequest, WatchEvent):
+class Relayed(BaseModel):
+    """A task forwarded by a relay (`task.relay`): the relay states the role of its originator
+    (`task.source`), and the receiver checks that the relay may relay for that role and that the
+    originator may give the task."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    task: Task
+    role: str = Field(max_length=32)
+
+
+for _cls in (Peer, Received, Relayed, Beacon, ResultUpdate, Cancel, Fresh, PeerList, WatchRequest, WatchEvent):
     register_type(_cls)
 
 WATCHED = (Task, Pose, NetInfo, Peer)
@@ -85,7 +99,8 @@ class TransportSettings(BaseModel):
     key: SecretStr | None = Field(None, description="shared team key instead of identities (prefer key_env)")
     key_env: str = Field("ERNI_TEAM_KEY", description="environment variable holding the team key")
     insecure: bool = Field(False, description="run without authentication or encryption (warned about)")
-    role: str = "robot"
+    role: str = Field("robot", description="this agent's role (what it may do: policy.py); with an identity, "
+                      "its certificate's role unless set")
     capabilities: list[str] = Field(default_factory=list)
     discovery_port: int = Field(47000, ge=0, le=65535, description="shared beacon port; 0 disables")
     beacon_to: list[str] = Field(default_factory=lambda: ["127.255.255.255"],
@@ -143,7 +158,9 @@ class TransportSettings(BaseModel):
         if self.identity is not None:
             if self.insecure:
                 raise ValueError("identity and insecure = true: choose one")
-            self.load_identity()
+            ident = self.load_identity()
+            if ident is not None and "role" not in self.model_fields_set:
+                self.role = ident.role  # the certificate says what this agent is
         elif not self.insecure and not self.team_key():
             raise ValueError(f"no identity: set identity = \"KEYS/NAME.pem\" (made by `erni keys issue`), "
                              f"a team key (key, or the {self.key_env} environment variable), or insecure = true")
@@ -199,7 +216,10 @@ class TransportPlugin(Plugin[TransportSettings]):
         elif s.identity is None:
             self.log.info("transport of %s authenticates with a shared team key: any holder of the key "
                           "can speak as any agent (give identities on a real team: erni keys)", self.agent_name)
-        self.status_in: dict[str, tuple[int, int]] = {}  # uid of a status received -> (epoch, seq)
+        self.status_in: dict[str, tuple[int, int]] = {}  # uid of a status received -> (epoch, seq) of its owner
+        self.status_owner: dict[str, str] = {}  # uid of a status received -> the one sender that holds it
+        self._refused_at: dict[tuple[str, str, str], float] = {}  # (sender, kind, rule) -> last logged (monotonic)
+        self._refused_more: dict[tuple[str, str, str], int] = {}  # ... refusals since, not logged
         self.status_base: dict[str, float] = {}  # uid of a status received -> stamp of the whole version held
         self.whole_sent: dict[str, _Sent] = {}  # uid of a shared object of ours -> its last whole version sent
         self._resend_asked: dict[str, float] = {}  # uid of a status received -> when we last asked for it whole
@@ -219,6 +239,7 @@ class TransportPlugin(Plugin[TransportSettings]):
         self.sent_at: dict[str, float] = {}  # task uid -> when it was sent (monotonic)
         self.lost: set[str] = set()  # tasks failed because their performer was not heard in time
         self.received_from: dict[str, str] = {}  # task uid -> peer it came from
+        self.origin_role: dict[str, str] = {}  # task uid -> role of its originator (relayed: as its relay stated)
         self.reply_to: dict[str, Address] = {}  # task uid -> address of the agent or client it came from
         self.final_sent: set[str] = set()  # tasks whose final state went back to their requester
         self.last_result: dict[str, tuple[int, int]] = {}  # task uid -> (epoch, seq) applied
@@ -275,6 +296,8 @@ class TransportPlugin(Plugin[TransportSettings]):
         now = time.time()
         for receipt in self.receipts.added:  # after a restart: who gave us which task, and where
             self.received_from.setdefault(receipt.task, receipt.sender)
+            if receipt.role:
+                self.origin_role.setdefault(receipt.task, receipt.role)
             if receipt.address:
                 try:
                     addr = parse_address(receipt.address)
@@ -302,6 +325,7 @@ class TransportPlugin(Plugin[TransportSettings]):
             if self.received_from.pop(task.uid, None) and self.get(f"received:{task.uid}") is not None:
                 self.remove(f"received:{task.uid}")
             self.reply_to.pop(task.uid, None)
+            self.origin_role.pop(task.uid, None)
             self.final_sent.discard(task.uid)
             self.final_seen.discard(task.uid)
             self.last_result.pop(task.uid, None)
@@ -349,7 +373,13 @@ class TransportPlugin(Plugin[TransportSettings]):
         assert dest is not None
         self.sent_to[task.uid] = dest
         self.sent_at[task.uid] = time.monotonic()
-        if not self._send_to_peer(dest, "task.add", task, reliable=True):
+        origin = self.received_from.get(task.uid)
+        if origin:  # relayed: the receiver checks that we may relay for its originator
+            sent = self._send_to_peer(dest, "task.relay", Relayed(task=task, role=self.origin_role.get(task.uid, "")),
+                                      reliable=True)
+        else:
+            sent = self._send_to_peer(dest, "task.add", task, reliable=True)
+        if not sent:
             self.pending[task.uid] = (dest, time.monotonic() + self.settings.task_ttl)
             self.log.info("task %s waits for agent %s to be discovered", task.uid, dest)
             return
@@ -418,6 +448,8 @@ class TransportPlugin(Plugin[TransportSettings]):
             self._send_to_peer(origin, "task.result", update, reliable=True, uid=task.uid)
 
     def _undeliverable(self, addr: Address, kind: str, body: Any) -> None:
+        if kind == "task.relay" and isinstance(body, Relayed):
+            kind, body = "task.add", body.task
         if kind == "task.add" and isinstance(body, Task):
             task = self._task_now(body.uid)
             if task is not None and not task.done:
@@ -435,9 +467,16 @@ class TransportPlugin(Plugin[TransportSettings]):
         self.addresses[msg.sender] = msg.reply
         if msg.role != CLIENT_ROLE:  # a command-line client is not a peer
             self._heard(msg.sender, msg.reply, msg.epoch, msg.body if msg.kind == "beacon" else None, msg.role)
+        try:
+            self._authorized(msg)
+        except Refusal as refusal:
+            self._refused(msg, refusal)
+            return
         kind, body = msg.kind, msg.body
         if kind == "task.add" and isinstance(body, Task):
-            self._task_added(msg, body)
+            self._task_added(msg, body, msg.sender, msg.role)
+        elif kind == "task.relay" and isinstance(body, Relayed):
+            self._task_added(msg, body.task, body.task.source, body.role)
         elif kind == "task.rescind" and isinstance(body, Cancel):
             if self.received_from.get(body.uid) == msg.sender and self._board.contains(body.uid):
                 self.log.info("task %s was rescinded by %s (it no longer has it)", body.uid, msg.sender)
@@ -466,6 +505,7 @@ class TransportPlugin(Plugin[TransportSettings]):
         elif kind == "status.remove" and isinstance(body, Cancel):
             self.status_base.pop(body.uid, None)
             self._resend_asked.pop(body.uid, None)
+            self.status_owner.pop(body.uid, None)
             if self.status_in.pop(body.uid, None) is not None and self.get(body.uid) is not None:
                 self.remove(body.uid)
         elif kind == "peers.request":
@@ -482,7 +522,87 @@ class TransportPlugin(Plugin[TransportSettings]):
                 for obj in self.query(lambda o: isinstance(o, WATCHED)):
                     self._watch_event(key, "add", obj)
 
-    def _task_added(self, msg: Message, body: Task) -> None:
+    # -- authorization (policy.py) ---------------------------------------------------------
+
+    def _authorized(self, msg: Message) -> None:
+        """Raise Refusal unless the policy lets `msg`'s sender send it (every kind, default deny)."""
+        kind, body, sender, role = msg.kind, msg.body, msg.sender, msg.role
+        me = self.endpoint.role
+        if kind in ("task.add", "task.relay"):
+            task, origin_role = (body, role) if isinstance(body, Task) else (body.task, body.role) \
+                if isinstance(body, Relayed) else (None, "")
+            if task is None:
+                raise Refusal("kind", f"a {kind} without a task")
+            if kind == "task.relay":
+                if not task.source or task.source == sender:
+                    raise Refusal("relay", "a relayed task must name its originator as its source")
+                check_relay(role, origin_role)
+            dest = task.destination
+            if dest in (None, "", self.agent_name):
+                check_task(origin_role, me, task.verb, task.preposition)
+            else:  # we are asked to relay it on: may we, for its originator, and may it task that agent?
+                check_relay(me, origin_role)
+                peer = self.directory.get(dest)
+                check_task(origin_role, peer.role if peer is not None else "", task.verb, task.preposition)
+        elif kind in ("task.cancel", "task.rescind"):
+            uid = getattr(body, "uid", "")
+            requester = self.received_from.get(uid)
+            if requester is not None and requester != sender:
+                raise Refusal("requester", f"task {uid[:64]} was given by {requester}, not {sender}")
+        elif kind == "task.result":
+            uid = getattr(body, "uid", "")
+            performer = self.sent_to.get(uid)
+            if performer is not None and performer != sender:
+                raise Refusal("performer", f"task {uid[:64]} is performed by {performer}, not {sender}")
+        elif kind == "task.query":
+            uid = getattr(body, "uid", "")
+            if role not in OPERATORS and sender not in (self.received_from.get(uid), self.sent_to.get(uid)):
+                raise Refusal("query", f"role {role or '(none)'} may query only its own tasks")
+        elif kind == "status":
+            if not isinstance(body, BBObject):
+                raise Refusal("status", "a status that is no blackboard object")
+            check_status(sender, role, body)
+            self._check_holder(sender, body.uid)
+        elif kind in ("status.fresh", "status.remove"):
+            self._check_holder(sender, getattr(body, "uid", ""))
+        elif kind in ("watch.request", "peers.request"):
+            check_watch(role)
+        elif kind not in ("beacon", "status.resend"):
+            raise Refusal("kind", f"no rule lets anyone send {kind[:64]!r}")
+
+    def _check_holder(self, sender: str, uid: str) -> None:
+        """A status uid is held by one sender (until it removes it): no other may change or remove it."""
+        holder = self.status_owner.get(uid)
+        if holder is not None and holder != sender:
+            raise Refusal("status", f"{uid[:64]} is held by {holder}, not {sender}")
+
+    def _refused(self, msg: Message, refusal: Refusal) -> None:
+        """Count a refusal; log it once per sender, kind and rule every 10 s; tell a task's sender."""
+        self.endpoint.count(f"refused.{refusal.rule}")
+        key = (msg.sender, msg.kind, refusal.rule)
+        mono = time.monotonic()
+        if mono - self._refused_at.get(key, -math.inf) >= 10.0:
+            more = self._refused_more.pop(key, 0)
+            self._refused_at[key] = mono
+            if len(self._refused_at) > 4096:  # bounded: forget the oldest
+                del self._refused_at[next(iter(self._refused_at))]
+            self.log.warning("refused %s from %s (role %s): rule %s: %s%s", msg.kind, msg.sender[:64],
+                             msg.role[:32] or "(none)", refusal.rule, refusal,
+                             f" (+{more} more since)" if more else "")
+        elif len(self._refused_more) < 4096 or key in self._refused_more:
+            self._refused_more[key] = self._refused_more.get(key, 0) + 1
+        task = msg.body.task if isinstance(msg.body, Relayed) else msg.body
+        if msg.kind in ("task.add", "task.relay") and isinstance(task, Task):  # its requester must not wait
+            result = AllocationResult(state=TaskState.FAILED,
+                                      message=f"refused by {self.agent_name}: not authorized: {refusal}")
+            self.endpoint.send(msg.reply, "task.result", ResultUpdate(uid=task.uid, result=result),
+                               reliable=True, to=msg.sender)
+
+    def _task_added(self, msg: Message, body: Task, origin: str, role: str) -> None:
+        """A task from `msg.sender`, given by `origin` of `role` (the sender itself, or the originator
+        a relay named)."""
+        if body.source != origin:
+            body = body.evolve(source=origin)  # the source is who asked, as authenticated or relayed
         known = self.current(body.uid)
         if known is not None:  # the requester restarted and re-sent it: tell it where we are
             if self.received_from.get(body.uid, msg.sender) == msg.sender and isinstance(known, Task):
@@ -501,9 +621,10 @@ class TransportPlugin(Plugin[TransportSettings]):
             return
         self.received_from[body.uid] = msg.sender
         self.reply_to[body.uid] = msg.reply
+        self.origin_role[body.uid] = role
         self.add(body)
         self.add(Received(uid=f"received:{body.uid}", task=body.uid, sender=msg.sender,
-                          address=f"{msg.reply[0]}:{msg.reply[1]}"))
+                          address=f"{msg.reply[0]}:{msg.reply[1]}", role=role))
 
     def _apply_result(self, msg: Message, update: ResultUpdate) -> None:
         task = self.current(update.uid)
@@ -802,6 +923,7 @@ class TransportPlugin(Plugin[TransportSettings]):
         if first and self._board.get(obj.uid) is not None:
             return  # never overwrite an object of our own with a peer's
         self.status_in[obj.uid] = stamp
+        self.status_owner[obj.uid] = msg.sender
         base = getattr(obj, "stamp", None)
         if isinstance(base, float):
             self.status_base[obj.uid] = base

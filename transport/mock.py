@@ -155,6 +155,10 @@ class MockEndpoint:
         self.running = True
         self.net._attach()
 
+    def receive_buffer(self, size: int) -> int:
+        """An in-memory network has no socket buffer to grow: every size is granted."""
+        return size
+
     def stop(self, timeout: float = 1.0) -> None:
         """Leave the network."""
         if self.running:

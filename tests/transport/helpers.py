@@ -30,10 +30,12 @@ def authority() -> Authority:
         return _KEYS["authority"]
 
 
-def identity(name: str, role: str = "robot") -> str:
-    """Path of the identity bundle of `name` in `role` (issued once per session)."""
+def identity(name: str, role: str = "") -> str:
+    """Path of the identity bundle of `name` in `role` (issued once per session; by default role
+    control for a control node, robot otherwise)."""
     if Authority is None:
         return ""
+    role = role or ("control" if name.startswith("control") else "robot")
     auth = authority()
     with _LOCK:
         key = f"{name}/{role}"
@@ -42,7 +44,7 @@ def identity(name: str, role: str = "robot") -> str:
         return str(_KEYS[key])
 
 
-def auth_settings(name: str, role: str = "robot") -> dict[str, Any]:
+def auth_settings(name: str, role: str = "") -> dict[str, Any]:
     """Transport settings that authenticate agent `name`: its identity (the team key where the
     transport has no identities)."""
     return {"identity": identity(name, role)} if Authority is not None else {"key": KEY}
@@ -75,7 +77,8 @@ def make_agent(name: str, discovery_port: int, *, echo: bool = True, start: bool
                **settings: Any) -> Agent:
     """An agent with the transport (fast timings, its own identity) and, optionally, the echo performer."""
     agent = Agent(name, workers=2)
-    role = settings.get("role", "robot")
+    # a control node operates the team, as under `erni sim`: its role lets it task the robots
+    role = settings.setdefault("role", "control" if name.startswith("control") else "robot")
     base: dict[str, Any] = {"discovery_port": discovery_port, "beacon_period": 0.1,
                             "peer_timeout": 0.6, "ack_timeout": 0.3, "connect_timeout": 0.3,
                             "task_ttl": 5.0}
@@ -203,9 +206,12 @@ delay = {delay}
 
 
 def agent_config(path: Path, name: str, *, listen: str = "127.0.0.1:0", discovery_port: int = 0,
-                 role: str = "robot", echo: float | None = 0.2, agent: str = "", **settings: Any) -> Path:
-    """Write an `erni agent` config: the transport with this agent's identity, optionally the echo plugin."""
+                 role: str = "", echo: float | None = 0.2, agent: str = "", **settings: Any) -> Path:
+    """Write an `erni agent` config: the transport with this agent's identity, optionally the echo plugin
+    (role control for a control node, robot otherwise, unless given)."""
     from erni.sim.team import toml_value
+
+    role = role or ("control" if name.startswith("control") else "robot")
 
     values = {"listen": listen, "discovery_port": discovery_port, "role": role, "beacon_period": 0.2,
               **auth_settings(name, role), **settings}

@@ -137,7 +137,7 @@ def test_an_inbound_filter_fed_through_a_pipe_drops_traffic_between_unconnected_
     tell(pipe_b, ["a"])
     wait_until(lambda: radio_a.updates and radio_b.updates)
     port = free_port()
-    a = make_agent("a", port, peer_timeout=0.5, start=False)
+    a = make_agent("a", port, peer_timeout=0.5, start=False, role="control")  # it tasks b
     b = make_agent("b", port, peer_timeout=0.5, start=False)
     install(a, radio_a)
     install(b, radio_b)

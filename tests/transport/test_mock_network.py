@@ -112,8 +112,8 @@ def test_transport_plugin_runs_unchanged_on_the_mock_network():
     agents = []
     for name in ("control", "robot1"):
         agent = Agent(name)
-        agent.add_plugin(Mocked, settings={"insecure": True, "discovery_port": 0, "beacon_period": 0.05},
-                         name="transport")
+        agent.add_plugin(Mocked, settings={"insecure": True, "discovery_port": 0, "beacon_period": 0.05,
+                                           "role": "control" if name == "control" else "robot"}, name="transport")
         agents.append(agent)
     control, robot = agents
     robot.add_plugin("echo", settings={"verbs": ["BotMotion"]}, name="motion")
