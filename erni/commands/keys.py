@@ -8,6 +8,18 @@ from typing import Any
 
 from erni.transport.identity import AUTHORITY_CERT, REVOKED, Authority, IdentityError, load_identity
 
+ROLES = """\
+  robot    performs tasks; tasks another robot only for a mission (Deploy relay, spread,
+           widep, patrol); publishes only its own Pose, NetInfo, Peer state and Territory,
+           and results only of tasks it performs; may not watch the team
+  control  the control node: tasks any agent, relays the tasks of cli and control clients
+           (their originator kept), cancels what it gave, watches the team, publishes its
+           own Pose and NetInfo
+  cli      a command-line client (erni task, watch, peers): tasks any agent, directly or
+           through the control node, cancels what it gave, watches the team; never a peer
+A task is cancelled only by the agent it came from (an operator cancels through the agent
+it tasked)."""
+
 
 def register(sub: Any) -> None:
     """Add the `keys` sub-command and its actions."""
@@ -20,10 +32,15 @@ def register(sub: Any) -> None:
     a = actions.add_parser("init", help="create a team authority in DIR")
     a.add_argument("dir")
     a.add_argument("--team", default="ERNI team", help="the team's name in certificates")
-    a = actions.add_parser("issue", help="issue an identity for agent NAME (DIR/NAME.pem)")
+    a = actions.add_parser("issue", help="issue an identity for agent NAME (DIR/NAME.pem)",
+                           formatter_class=argparse.RawDescriptionHelpFormatter,
+                           description="What each role may do (transport/policy.py; the receiving agent "
+                           "refuses everything else):\n" + ROLES)
     a.add_argument("dir")
     a.add_argument("name")
-    a.add_argument("--role", default="robot", help="robot, control, cli ... (default robot)")
+    a.add_argument("--role", default="robot", help="the agent's role, which says what it may do (see above): "
+                   "robot, control or cli; another word is a role with no rights but its own status "
+                   "(default robot)")
     a.add_argument("--out", help="where to write the bundle (default DIR/NAME.pem)")
     a = actions.add_parser("revoke", help="revoke every identity issued to NAME (or one serial, in hex)")
     a.add_argument("dir")
