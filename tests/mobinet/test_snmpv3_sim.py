@@ -7,6 +7,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import os
+import random
 import re
 import shutil
 import signal
@@ -16,7 +17,8 @@ from collections.abc import Iterator
 
 import pytest
 
-from erni.blackboard import Agent, Pose, Position
+from erni.blackboard import Agent, NetInfo, Pose, Position, Task
+from erni.blackboard.testing import wait_until
 from erni.plugins.mobinet.resource import PARTS, SourceError
 from erni.plugins.mobinet.snmp import SnmpSource
 from erni.plugins.mobinet.usm import UsmUser
@@ -203,3 +205,57 @@ def test_a_write_community_to_a_non_loopback_address_is_warned_about_once(caplog
     if warned:
         assert found[0].startswith(f"the SNMPv2c write community travels in clear to {host}:9")
         assert "w-robot2" not in found[0]
+
+
+def test_mobinet_writes_its_robots_pose_to_a_v3_node_and_watches_it():
+    net = line_network()
+    agent = ManetSnmpAgent(net, v3_users=[USER]).start()
+    port = agent.serve("robot2")[1]
+    robot = Agent("robot2", workers=2)
+    robot.add_plugin("erni.plugins.mobinet:MobiNetControl", name="mobinet",
+                     settings={"port": port, "timeout": 1.0, "v3_user": USER.name, "auth_key": USER.auth_key,
+                               "priv_key": USER.priv_key, "write_interval": 0.0})
+    try:
+        robot.start()
+        task = Task(verb="NetWatch", preposition="node_position", params={"rate_hz": 10}, source="test")
+        with robot.transaction() as tx:
+            tx.add(Pose(robot="robot2", x=7.25, y=-1.5))
+            tx.add(task)
+        info = wait_until(lambda: next((i for i in robot.query(NetInfo) if i.task == task.uid and not i.degraded
+                                        and i.positions.get("robot2", Position(x=0, y=0)).x == 7.25), None),
+                          timeout=15)
+    finally:
+        robot.stop()
+        agent.close()
+    assert (info.positions["robot2"].x, info.positions["robot2"].y) == (7.25, -1.5)
+    assert info.provenance["positions"] == f"snmp 127.0.0.1:{port} ERNI-MOBINET-MIB erniPositionTable"
+    assert net.known_position("robot2", "robot2").x == 7.25
+
+
+def test_malformed_snmpv3_datagrams_are_dropped_and_the_node_keeps_answering(v3_node):
+    agent, port = v3_node
+    good = None
+
+    class Catch(asyncio.DatagramProtocol):
+        def datagram_received(self, data: bytes, addr: object) -> None:
+            nonlocal good
+            good = data
+
+    async def go() -> None:
+        loop = asyncio.get_running_loop()
+        transport, _ = await loop.create_datagram_endpoint(Catch, remote_addr=("127.0.0.1", port))
+        src = SnmpSource("127.0.0.1", port, timeout=1.0, usm=USER)
+        try:
+            await src.get([(1, 3, 6, 1, 4, 1, 32473, 1, 1, 1, 0)])
+            header = b"\x30\x82\x00\x40\x02\x01\x03"   # a SEQUENCE claiming 64 bytes, version 3
+            rng = random.Random(38)
+            for n in range(300):
+                body = bytes(rng.randrange(256) for _ in range(rng.randrange(0, 80)))
+                transport.sendto(header + body if n % 2 else b"\x30" + bytes([len(body) + 3]) + b"\x02\x01\x03" + body)
+            await asyncio.sleep(0.2)
+            assert (await src.get([(1, 3, 6, 1, 4, 1, 32473, 1, 1, 1, 0)]))
+        finally:
+            transport.close()
+            await src.aclose()
+    asyncio.run(go())
+    assert good is None or len(good) < 200   # nothing it sent back was more than a Report
