@@ -69,6 +69,29 @@ class TeamError(ErniError):
     """The team could not be started (a port is busy, an agent died, it did not come up)."""
 
 
+RUN_SUBDIRS = ("agents", "logs", "journal", "keys")
+"""What a run directory holds; a directory with one of them is a run directory (made private when reused)."""
+
+
+def private_dir(path: Path) -> Path:
+    """Make `path` (and missing parents) a directory only this user may enter: 0700, whatever the umask."""
+    path.mkdir(parents=True, exist_ok=True)
+    os.chmod(path, 0o700)
+    return path
+
+
+def private_file(path: Path) -> Path:
+    """Create `path` empty unless it exists, readable and writable by this user only (0600)."""
+    os.close(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o600))
+    os.chmod(path, 0o600)
+    return path
+
+
+def gui_address(url: str) -> str:
+    """A GUI URL without its token, for messages that may end up in a log."""
+    return url.split("?", 1)[0]
+
+
 def robot_address(index: int) -> str:
     """Loopback address of robot `index` (0-based): 127.0.1.1, 127.0.1.2, ..."""
     return f"127.0.1.{index + 1}"
@@ -313,9 +336,7 @@ class Team:
         """Start world, radio, agents and control node; return when the control node hears the team."""
         say = progress or (lambda what, done, total: None)
         self._started = True
-        self.run_dir.mkdir(parents=True, exist_ok=True)
-        for sub in ("agents", "logs", "journal"):
-            (self.run_dir / sub).mkdir(exist_ok=True)
+        self._make_private_run_dir()
         authority = Authority(self.keys_dir) if (self.keys_dir / "authority.key").exists() else \
             Authority.create(self.keys_dir, team=f"erni sim {self.scenario.name}")  # a reused run dir keeps its team
         for name in self.names:
@@ -332,7 +353,7 @@ class Team:
             cfg = SimRobotConfig.amigobot(name=name, seed=self.scenario.seed + i, **self.robot_extra) \
                 if model == "amigobot" else SimRobotConfig(name=name, seed=self.scenario.seed + i, **self.robot_extra)
             self.host.add_robot(cfg)
-        self.host.start(self.run_dir / "robots.state", self.run_dir / "logs" / "robots.log")
+        self.host.start(private_file(self.run_dir / "robots.state"), private_file(self.run_dir / "logs" / "robots.log"))
         say("radio network", 0, n)
         for start, robot in zip(self.scenario.starts(), self.host.robots):
             self.network.add_node(start.name, robot.x, robot.y, start.heading)
@@ -438,8 +459,8 @@ class Team:
                 gui_port = free_port(bind, socket.SOCK_STREAM)
             plan = self.run_dir / "world.toml"  # the GUI draws the scenario's walls and obstacles
             world = self.world.model_dump(mode="json", exclude={"robot", "name"}, exclude_none=True)
-            plan.write_text("".join(f"{k} = {toml_value(v)}\n" for k, v in world.items() if v),
-                            encoding="utf-8")
+            private_file(plan).write_text("".join(f"{k} = {toml_value(v)}\n" for k, v in world.items() if v),
+                                          encoding="utf-8")
             plugins.append(("ui", {"listen": f"{bind}:{gui_port}", "floorplan": str(plan), "token": self.gui_token}))
             shown = bind
             if bind in ("0.0.0.0", "::"):
@@ -499,7 +520,8 @@ class Team:
                 gui_port = free_port(bind, socket.SOCK_STREAM)
             plan = self.run_dir / "world.toml"
             world = self.world.model_dump(mode="json", exclude={"robot", "name"}, exclude_none=True)
-            plan.write_text("".join(f"{k} = {toml_value(v)}\n" for k, v in world.items() if v), encoding="utf-8")
+            private_file(plan).write_text("".join(f"{k} = {toml_value(v)}\n" for k, v in world.items() if v),
+                                          encoding="utf-8")
             shown = bind
             allowed = []
             if bind in ("0.0.0.0", "::"):
@@ -533,10 +555,10 @@ class Team:
                    comment: str, workers: int = 4) -> None:
         config = self.run_dir / "agents" / f"{name}.toml"
         journal = str(self.run_dir / "journal" / f"{name}.sqlite")
-        config.write_text(agent_toml(name, plugins, journal=journal, workers=workers, comment=comment),
-                          encoding="utf-8")
-        os.chmod(config, 0o600)  # it holds the node's SNMP write community
-        self.agents[name] = AgentProcess(name, config, self.run_dir / "logs" / f"{name}.log", address)
+        # it holds the node's SNMP write community, the GUI's token
+        private_file(config).write_text(agent_toml(name, plugins, journal=journal, workers=workers, comment=comment),
+                                        encoding="utf-8")
+        self.agents[name] = AgentProcess(name, config, private_file(self.run_dir / "logs" / f"{name}.log"), address)
 
     def _spawn(self, agent: AgentProcess, env: dict[str, str]) -> None:
         if self.mesh is not None:  # the real mesh: plain `erni agent` in the node's namespace, no radio pipe
@@ -554,7 +576,7 @@ class Team:
                     [sys.executable, "-m", "erni.sim.radio", str(agent.config), "--log-level", self.log_level],
                     stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT,
                     env={**env, FD_ENV: str(read)}, pass_fds=(read,),
-                    start_new_session=True,
+                    start_new_session=True, umask=0o077,  # its journal: this user's only
                     # SIGTERM: a loopback agent still stops cleanly (its journal closed) when the launcher dies
                     preexec_fn=die_with_parent(signal.SIGTERM))
         finally:
@@ -602,6 +624,20 @@ class Team:
                 return {p.name: p for p in msg.body.peers}
         return {}
 
+    def _make_private_run_dir(self) -> None:
+        """The run directory and its folders 0700, what an earlier run left in them 0600: configs,
+        logs, journals and keys are this user's only. A directory named that is no run directory
+        (no agents/, logs/, ...) keeps its mode; the folders made in it are private."""
+        run = self.run_dir
+        if not run.exists() or any((run / sub).is_dir() for sub in RUN_SUBDIRS):
+            private_dir(run)
+        for sub in RUN_SUBDIRS:
+            folder = private_dir(run / sub)
+            for path in folder.rglob("*"):
+                if path.is_symlink() or path.stat().st_uid != os.getuid():
+                    continue
+                os.chmod(path, 0o700 if path.is_dir() else path.stat().st_mode & 0o600)
+
     def _wait_up(self, say: Callable[[str, int, int], None], timeout: float) -> None:
         deadline = time.monotonic() + timeout
         n = len(self.names)
@@ -620,7 +656,8 @@ class Team:
             if connected == n and expected <= up and self._gui_answers():
                 return
             if time.monotonic() > deadline:
-                late = "" if connected < n or not expected <= up else f"; its GUI at {self.url} does not answer"
+                late = "" if connected < n or not expected <= up else \
+                    f"; its GUI at {gui_address(self.url or '')} does not answer"
                 raise TeamError(f"the team did not come up within {timeout:.0f} s: {connected}/{n} robots "
                                 f"connected, control hears {heard}/{len(expected)} reachable robots{late}; "
                                 f"logs in {self.run_dir / 'logs'}")

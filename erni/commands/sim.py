@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import signal
 import sys
 import time
@@ -28,8 +29,8 @@ def register(sub: Any) -> None:
     p.add_argument("--seed", type=int, help="random seed (start layout, robots)")
     p.add_argument("--control-port", type=int, default=47100,
                    help="control node's port on 127.0.1.250 (default 47100; any free one if taken)")
-    p.add_argument("--run-dir", help="directory for agent configs, logs and journals "
-                   "(default: a new temporary directory)")
+    p.add_argument("--run-dir", help="directory for agent configs, logs and journals, this user's only "
+                   "(0700, its files 0600; default: a new temporary directory)")
     p.add_argument("--log-level", choices=["DEBUG", "INFO", "WARNING", "ERROR"], default="WARNING",
                    help="log level of the agents (their logs are in RUN_DIR/logs)")
     p.add_argument("--timeout", type=float, default=180.0, help="give up starting after S seconds")
@@ -70,6 +71,7 @@ def run(args: argparse.Namespace) -> int:
     from erni.sim.scenario import ScenarioError
     from erni.sim.team import Team, TeamError
 
+    os.umask(0o077)  # everything the run makes (configs, logs, journals, keys) is this user's only
     try:
         if args.netns_clean or args.netns:
             check_available()  # not root, no namespaces, no babeld: say why and how to run without

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import ipaddress
 import secrets
+import sys
 import threading
 import time
 from collections import deque
@@ -22,6 +23,7 @@ from pydantic import BaseModel, ConfigDict, Field, SecretStr, field_validator
 from erni import netgraph
 from erni.blackboard import NetInfo, Plugin, Pose, Task
 from erni.blackboard.schemas import Peer, load_floorplan
+from erni.logs import mask_secrets
 from erni.plugins.ui.dialogue import ROGER, Dialogue, Memory, Naming, Reply, RobotView, Sent, restate, tasks_for
 from erni.plugins.ui.grammar import ATTENTION, STANDARD_ACTIONS, Refusal, strategies
 from erni.plugins.ui.protocol import CancelTaskMsg, CommandMsg, MicMsg, SayMsg, SelectMsg
@@ -31,6 +33,15 @@ from erni.plugins.ui.voice import Speaker
 from erni.transport import parse_address
 
 _LOOPBACK_NAMES = {"localhost", "ip6-localhost"}
+
+
+def announce(url: str) -> None:
+    """Print the GUI's URL; its token only to a terminal (output that goes to a file is a log)."""
+    if sys.stdout.isatty():
+        print(f"ERNI GUI: {url}", flush=True)
+    else:
+        print(f"ERNI GUI: {mask_secrets(url)} (the token is shown on a terminal only; or set the UI's token)",
+              flush=True)
 
 
 class UISettings(BaseModel):
@@ -142,7 +153,7 @@ class UIPlugin(Plugin[UISettings]):
         self._start_speech(s)
         self.server = WebServer(host, port, token=token, on_message=self._from_page, on_audio=self._audio,
                                 on_close=self._page_closed, rate_hz=s.rate_hz,
-                                announce=lambda url: print(f"ERNI GUI: {url}", flush=True),
+                                announce=announce,
                                 allowed_hosts=tuple(s.allowed_hosts))
         self.server.publish(self.picture())
         try:
