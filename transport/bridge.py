@@ -482,7 +482,10 @@ class TransportPlugin(Plugin[TransportSettings]):
                 self.log.info("task %s was rescinded by %s (it no longer has it)", body.uid, msg.sender)
                 self.remove(body.uid)
         elif kind == "task.cancel" and isinstance(body, Cancel):
-            if self.received_from.get(body.uid) == msg.sender and self._board.contains(body.uid):
+            requester = self.received_from.get(body.uid)
+            if requester is not None and requester != msg.sender:  # an operator's (`_authorized`)
+                self._cancelled_by_operator(msg, body.uid, requester)
+            elif requester == msg.sender and self._board.contains(body.uid):
                 self.remove(body.uid)
         elif kind == "task.result" and isinstance(body, ResultUpdate):
             self._apply_result(msg, body)
@@ -547,7 +550,7 @@ class TransportPlugin(Plugin[TransportSettings]):
         elif kind in ("task.cancel", "task.rescind"):
             uid = getattr(body, "uid", "")
             requester = self.received_from.get(uid)
-            if requester is not None and requester != sender:
+            if requester is not None and requester != sender and (kind == "task.rescind" or role not in OPERATORS):
                 raise Refusal("requester", f"task {uid[:64]} was given by {requester}, not {sender}")
         elif kind == "task.result":
             uid = getattr(body, "uid", "")
@@ -569,6 +572,20 @@ class TransportPlugin(Plugin[TransportSettings]):
             check_watch(role)
         elif kind not in ("beacon", "status.resend"):
             raise Refusal("kind", f"no rule lets anyone send {kind[:64]!r}")
+
+    def _cancelled_by_operator(self, msg: Message, uid: str, requester: str) -> None:
+        """An operating role cancels a task another agent gave: its requester gets the final state
+        (`cancelled by NAME`), then the task leaves, as at its requester's own cancel."""
+        task = self._task_now(uid)
+        if task is None:
+            return
+        self.log.info("task %s of %s cancelled by %s (role %s)", uid, requester, msg.sender, msg.role)
+        if not task.done and uid not in self.final_sent:
+            self.final_sent.add(uid)
+            update = ResultUpdate(uid=uid, result=AllocationResult(
+                state=TaskState.CANCELLED, message=f"cancelled by {msg.sender} ({msg.role})"))
+            self._send_to_peer(requester, "task.result", update, reliable=True, uid=uid)
+        self.remove(uid)
 
     def _check_holder(self, sender: str, uid: str) -> None:
         """A status uid is held by one sender (until it removes it): no other may change or remove it."""

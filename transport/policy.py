@@ -10,7 +10,8 @@ issue --role` writes (in team-key and insecure mode from what the sender states)
 |---|---|---|
 | `task.add` | `control` and `cli` to any agent; `robot` to `robot` only the mission's tasks (`Deploy` relay, spread, widep, patrol); nobody else | `task` |
 | `task.relay` | a role that relays for the originator's role (`control` for `cli` and `control`); the originator must be allowed the task itself | `relay` |
-| `task.cancel`, `task.rescind` | the agent the task came from (its requester) | `requester` |
+| `task.cancel` | the agent the task came from (its requester), and `control` and `cli`, which operate the team (the requester then gets `cancelled by NAME`) | `requester` |
+| `task.rescind` | the agent the task came from | `requester` |
 | `task.result` | the agent the task was sent to (its performer) | `performer` |
 | `task.query` | `control` and `cli`; else the task's requester or performer | `query` |
 | `status`, `status.fresh`, `status.remove` | an agent about its own objects only: a type of `STATUS`, from a role it names, the object naming its sender (and, where the type has one, under its uid); a uid is held by one sender until it removes it | `status` |
@@ -31,7 +32,7 @@ from typing import Any
 from erni.blackboard.errors import ErniError
 
 OPERATORS = frozenset({"control", "cli"})
-"""Roles that operate the team: they task any agent, cancel through the agent they tasked, watch."""
+"""Roles that operate the team: they task any agent, cancel any agent's task, watch."""
 
 ANY = "*"
 """In a rule: any verb, any preposition, or any role but `cli`."""

@@ -206,3 +206,21 @@ def test_a_robot_cannot_watch_the_team(team, holder):
         wait_until(lambda: (m := client.receive(0.1)) is not None and m.kind == "watch.event")
     finally:
         client.endpoint.stop()
+
+
+def test_an_operator_cancels_a_task_it_did_not_give_and_its_requester_is_told(team):
+    control, robot1 = team("control", echo=False), team("robot1", echo=False)
+    wait_until(lambda: up(control, "robot1"))
+    task = goto("robot1")
+    with control.transaction() as tx:
+        tx.add(task)
+    wait_until(lambda: robot1.blackboard.contains(task.uid))
+    client = make_client(addr_of(robot1))  # the operator's client, straight at the robot
+    try:
+        client.send(addr_of(robot1), "task.cancel", Cancel(uid=task.uid))
+        wait_until(lambda: not robot1.blackboard.contains(task.uid))
+        wait_until(lambda: control.blackboard.get(task.uid).done)
+        result = control.blackboard.get(task.uid).result
+        assert result.state is TaskState.CANCELLED and result.message == "cancelled by cli (cli)"
+    finally:
+        client.endpoint.stop()
