@@ -13,12 +13,12 @@ ROLES = """\
            widep, patrol); publishes only its own Pose, NetInfo, Peer state and Territory,
            and results only of tasks it performs; may not watch the team
   control  the control node: tasks any agent, relays the tasks of cli and control clients
-           (their originator kept), cancels what it gave, watches the team, publishes its
-           own Pose and NetInfo
+           (their originator kept), cancels any task, watches the team, publishes its own
+           Pose and NetInfo
   cli      a command-line client (erni task, watch, peers): tasks any agent, directly or
-           through the control node, cancels what it gave, watches the team; never a peer
-A task is cancelled only by the agent it came from (an operator cancels through the agent
-it tasked)."""
+           through the control node, cancels any task, watches the team; never a peer
+A task is cancelled by the agent it came from or by control and cli (the one that gave it
+is told who cancelled it)."""
 
 
 def register(sub: Any) -> None:
