@@ -63,19 +63,6 @@ def open_client(args: argparse.Namespace, command: str) -> Any:
         return None
 
 
-def directory(client: Any, addr: Address, timeout: float = 3.0) -> Any:
-    """The PeerList of the agent at `addr` (its name and the agents it knows), or None if it does not answer."""
-    from erni.blackboard.schemas import PeerList
-
-    client.send(addr, "peers.request", None)
-    deadline = time.monotonic() + timeout
-    while (left := deadline - time.monotonic()) > 0:
-        msg = client.receive(min(left, 0.2))
-        if msg is not None and msg.kind == "peers.reply" and isinstance(msg.body, PeerList):
-            return msg.body
-    return None
-
-
 def make_room_for_a_stream(client: Any) -> int:
     """Ask the kernel for a receive buffer that holds seconds of a team's watch stream
     (`STREAM_BUFFER`); return the size granted (beyond `net.core.rmem_max` only for a process

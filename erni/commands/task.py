@@ -9,8 +9,8 @@ from typing import Any
 
 from erni.blackboard import Task, TaskError
 from erni.blackboard.errors import UsageError, shown
-from erni.blackboard.schemas import Cancel, ResultUpdate
-from erni.commands._client import add_client_options, check_seconds, directory, dumps, open_client, stamp
+from erni.blackboard.schemas import Cancel, PeerList, ResultUpdate
+from erni.commands._client import add_client_options, check_seconds, dumps, open_client, stamp
 from erni.transport.wire import loads
 
 QUERY_PERIOD = 2.0  # with --wait, ask the agent for the task's state this often
@@ -81,8 +81,6 @@ def run(args: argparse.Namespace) -> int:
         task = task.evolve(source=client.endpoint.name)
         try:
             addr = client.find(args.agent)
-            if args.via and not args.wait:  # --wait shows the relay's own verdict when its task_ttl ends
-                _check_known(args.agent, client, addr)
             msg_id = client.send(addr, "task.add", task)
             deadline = time.monotonic() + 6.0
             while msg_id not in client.delivered:
@@ -104,27 +102,29 @@ def run(args: argparse.Namespace) -> int:
             return 130
 
 
-def _check_known(agent: str, client: Any, addr: tuple[str, int]) -> None:
-    """Raise ClientError when the agent reached through has never heard of `agent` (a typo, not a late robot)."""
-    from erni.transport.client import ClientError
-
-    peers = directory(client, addr)
-    if peers is None or agent == peers.agent or any(p.name == agent for p in peers.peers):
-        return  # no answer: the task itself says what becomes of it
-    known = ", ".join(sorted(p.name for p in peers.peers)[:20]) or "no other agent"
-    raise ClientError(f"no agent {agent} in the team: {peers.agent} knows {known} (`erni peers` lists them)")
-
-
 def _answer(args: argparse.Namespace, client: Any, addr: tuple[str, int], task: Task) -> int:
-    """Without --wait: wait for the agent to take the task (running, or done) or refuse it; 1 on refusal."""
+    """Without --wait: wait for the agent to take the task (running, or done) or refuse it; 1 on refusal.
+
+    Through another agent (--via), its directory is asked for too: a name it has never heard of
+    is a typo, not a robot still starting, and its task is cancelled at once instead of waiting
+    there for the agent to be discovered. (The task goes first: a stop is never held up.)
+    """
     start = time.monotonic()
     next_query = start + 1.0
     state = "sent"
+    if args.via:
+        client.send(addr, "peers.request", None)
     while (left := start + ANSWER_WAIT - time.monotonic()) > 0:
         if time.monotonic() >= next_query:  # an update may be lost: the agent answers with the task's state
             client.send(addr, "task.query", Cancel(uid=task.uid), reliable=False)
             next_query += 1.0
         msg = client.receive(min(left, 0.2))
+        if msg is not None and msg.kind == "peers.reply" and isinstance(msg.body, PeerList):
+            unknown = _unknown(args.agent, msg.body)
+            if unknown:
+                _cancel(client, addr, task)
+                print(f"erni task: {unknown}", file=sys.stderr)
+                return 1
         if msg is None or msg.kind != "task.result" or not isinstance(msg.body, ResultUpdate) \
                 or msg.body.uid != task.uid:
             continue
@@ -145,6 +145,22 @@ def _answer(args: argparse.Namespace, client: Any, addr: tuple[str, int], task: 
             if state in ("sent", "pending") else f" ({state})"
         print(f"{task.uid} sent to {args.agent}: {task.describe()}{note}")
     return 0
+
+
+def _unknown(agent: str, peers: PeerList) -> str:
+    """Why `agent` is no agent of the team the agent `peers` came from ('' if it is one)."""
+    if agent == peers.agent or any(p.name == agent for p in peers.peers):
+        return ""
+    known = ", ".join(sorted(p.name for p in peers.peers)[:20]) or "no other agent"
+    return f"no agent {agent} in the team: {peers.agent} knows {known} (`erni peers` lists them)"
+
+
+def _cancel(client: Any, addr: tuple[str, int], task: Task, wait: float = 2.0) -> None:
+    """Cancel `task` at the agent reached through; return once it acknowledged (or after `wait` s)."""
+    msg_id = client.send(addr, "task.cancel", Cancel(uid=task.uid))
+    deadline = time.monotonic() + wait
+    while msg_id not in client.delivered and time.monotonic() < deadline:
+        time.sleep(0.01)
 
 
 def _follow(args: argparse.Namespace, client: Any, addr: tuple[str, int], task: Task) -> int:
