@@ -110,7 +110,7 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"round {k + 1}/{args.rounds}: " + "; ".join(
                     f"{t.speed:g} m/s {'PARTITION' if t.partitioned else 'held'} closest {t.closest:.2f} m, "
                     f"stood {_s(t.stop_after_crossing)} after crossing, crept on {t.crept_on:.2f} m, "
-                    f"resumed {t.resumed}x"
+                    f"resumed {t.resumed}x, top speed {t.top_speed:.2f} m/s"
                     for t in got), flush=True)
         finally:
             team.stop()
@@ -119,14 +119,14 @@ def main(argv: list[str] | None = None) -> int:
     print(f"\ncreep, tier {tier}, loss {args.loss:.0%}, guard {'off' if args.blind else 'on'}, "
           f"{args.rounds} round(s), {took:.0f} s, load average {min(loads):.1f}-{max(loads):.1f}")
     print(f"{'speed':>6} {'partitions':>11} {'closest to limit (m)':>30} {'stood after crossing (s)':>32} "
-          f"{'crept on (m)':>13}")
+          f"{'crept on (m)':>13} {'top speed':>10}")
     for v in args.speeds:
         ts = [t for t in trials if t.speed == v]
         part = sum(t.partitioned for t in ts)
         closest = [t.closest for t in ts]
         after = [t.stop_after_crossing for t in ts if t.stop_after_crossing is not None]
         print(f"{v:6g} {part:>5}/{len(ts):<5} {_range(closest):>30} {_range(after):>32} "
-              f"{max((t.crept_on for t in ts), default=0):13.2f}")
+              f"{max((t.crept_on for t in ts), default=0):13.2f} {max((t.top_speed for t in ts), default=0):10.2f}")
     if args.json:
         args.json.write_text(json.dumps({"tier": tier, "loss": args.loss, "blind": args.blind,
                                          "trials": [t.row() | {"track": t.track} for t in trials]}, indent=1))

@@ -18,7 +18,9 @@ Per trial (one end robot in one round):
   delivery ratio falls to the guard's `min_link_quality` to the moment it stood (s; negative
   when it stood before crossing; None when it never stood);
 - `crept_on`: how far it moved away from the relay after it first stood (m), which is what a
-  release on a flicker costs.
+  release on a flicker costs;
+- `top_speed`: the fastest it drove (m/s): the mission drives a robot away from its only link
+  no faster than the guard's `safe_speed` (0.61 m/s at the defaults), whatever speed was asked.
 
 The radio's range and its quality-against-distance line are inputs (the scenario's), not
 findings; the guard never sees them, only what MobiNet reads (SNMP on the loopback tier,
@@ -66,13 +68,15 @@ class Trial:
     crept_on: float
     held: str = ""                # the last message of its task that said why it held
     resumed: int = 0              # how often its task said it resumed
+    top_speed: float = 0.0        # the fastest it drove (m/s): the guard slows a robot leaving its only link
     track: list[tuple[float, float]] = field(default_factory=list)  # (t, distance from the relay)
 
     def row(self) -> dict[str, Any]:
         return {"round": self.round, "robot": self.robot, "speed": self.speed, "partitioned": self.partitioned,
                 "closest_m": round(self.closest, 3),
                 "stop_after_crossing_s": None if self.stop_after_crossing is None else round(self.stop_after_crossing, 2),
-                "crept_on_m": round(self.crept_on, 3), "held": self.held, "resumed": self.resumed}
+                "crept_on_m": round(self.crept_on, 3), "held": self.held, "resumed": self.resumed,
+                "top_speed": round(self.top_speed, 3)}
 
 
 def spokes(team: Team) -> list[Spoke]:
@@ -155,7 +159,7 @@ def run_round(team: Team, number: int, speeds: Sequence[float], *, min_quality: 
         said = messages(uids[i]) if messages is not None else []
         held = next((m for m in reversed(said) if m.startswith("holding")), "")
         trials.append(Trial(number, s.end, s.speed, gone[i], comm - far, after, max(0.0, far - at_stand), held,
-                            sum(m.startswith("resumed") for m in said),
+                            sum(m.startswith("resumed") for m in said), max(v for _, _, v in tracks[i]),
                             [(round(t, 2), round(d, 3)) for t, d, _ in tracks[i][::4]]))
     for uid, s in zip(uids, sp):
         team.send_task(s.end, "RemoteBotMotion", "cancel", task=uid)

@@ -27,7 +27,10 @@ A projection below `min_quality` is a risk ("the link to N is predicted to fall 
 so the robot stands while the link still carries packets. A risk is declared at once; it
 clears only after every reading has stayed free of risk, with every critical link at least
 `resume_quality`, for `resume_after` seconds (hysteresis: a momentary better reading clears
-nothing). Clearing is not resuming: the mission resumes a held motion only when it does not take
+nothing). A remote goto or forward that takes the robot away from the neighbour of a critical link
+is driven no faster than `safe_speed()`: fast enough to stand within half of `fade_distance`
+after the first sign of loss, however late the readings bring it (loss-free readings tell
+nothing of where the lossy band begins). Clearing is not resuming: the mission resumes a held motion only when it does not take
 the robot further from the neighbour of a critical link that showed loss lately (`away`); a motion that
 improves connectivity is always allowed. Degraded readings (the network subsystem did not
 answer) change nothing. The guard also keeps a trail of positions where connectivity was good;
@@ -201,6 +204,22 @@ class NetGuard:
         old = next((m for m in reversed(self.moves) if t1 - m[0] >= 0.5), self.moves[0])
         return None if t1 - old[0] < 0.2 else math.dist((x1, y1), old[1:]) / (t1 - old[0])
 
+    def safe_speed(self) -> float:
+        """The fastest this robot may drive away from the neighbour of a critical link: the speed v
+        at which it stands within half of `fade_distance` after the first sign of loss, however
+        late that sign comes, v (latency + 0.2) + v^2 / (2 braking) = fade_distance / 2 (m/s)."""
+        a, b, c = 1.0 / (2.0 * self.braking), self.latency + 0.2, -self.fade_distance / 2.0
+        return (-b + math.sqrt(b * b - 4.0 * a * c)) / (2.0 * a)
+
+    def leaving(self, here: tuple[float, float], target: tuple[float, float]) -> str:
+        """The neighbour of a critical link, lossy or not, that going from `here` towards `target`
+        takes this robot further from ("" when none, or when no neighbour's position is known)."""
+        for name in self.critical():
+            there = self.where.get(name)
+            if there is not None and _further(here, target, there):
+                return name
+        return ""
+
     def away(self, here: tuple[float, float], target: tuple[float, float]) -> str:
         """The neighbour of a critical link that showed loss lately which going from `here` towards
         `target` would take this robot further from ("" when none: the motion may go on)."""
@@ -210,13 +229,7 @@ class NetGuard:
                 continue  # no loss for `loss_memory` s: the link has room to stretch
             if there is None:
                 return name  # where it is is not known: no motion can be shown to keep the link
-            step = math.dist(here, target)
-            if step < 1e-6:
-                continue
-            ahead = (here[0] + (target[0] - here[0]) * min(1.0, 0.3 / step),
-                     here[1] + (target[1] - here[1]) * min(1.0, 0.3 / step))
-            now_d = math.dist(here, there)
-            if math.dist(ahead, there) > now_d + 0.02 or math.dist(target, there) > now_d + 0.1:
+            if _further(here, target, there):
                 return name
         return ""
 
@@ -287,6 +300,18 @@ class NetGuard:
             if math.dist(point, here) >= distance:
                 return point
         return self.trail[0] if self.trail else None
+
+
+def _further(here: tuple[float, float], target: tuple[float, float], there: tuple[float, float]) -> bool:
+    """Whether going from `here` towards `target` takes a robot further from `there`: its first
+    0.3 m, or its end."""
+    step = math.dist(here, target)
+    if step < 1e-6:
+        return False
+    k = min(1.0, 0.3 / step)
+    ahead = (here[0] + (target[0] - here[0]) * k, here[1] + (target[1] - here[1]) * k)
+    now = math.dist(here, there)
+    return math.dist(ahead, there) > now + 0.02 or math.dist(target, there) > now + 0.1
 
 
 def _bridges(me: str, edges: Sequence[tuple[str, str]]) -> set[str]:

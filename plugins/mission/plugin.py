@@ -39,7 +39,7 @@ from erni.blackboard import (
     TransactionError,
 )
 from erni.blackboard.schemas import Peer
-from erni.blackboard.tasks import CancelParams, GotoParams, SayParams, StopParams
+from erni.blackboard.tasks import CancelParams, ForwardParams, GotoParams, SayParams, StopParams
 from erni.plugins.mission.netaware import NetGuard
 from erni.plugins.mission.remote import RemoteJob, Significance, plan, resumable
 from erni.plugins.mission.team import TeamView, Territory
@@ -338,16 +338,29 @@ class MissionControl(Plugin[MissionSettings]):
         mine = next((p for p in self.poses if p.robot == self.agent_name), None)
         job.steps = plan(task, mine, mode=self.settings.goto_mode, obstacles=self.settings.obstacles,
                          margin=self.settings.obstacle_margin)
-        self._start_step(job)
+        slowed = self._start_step(job)
         begun = f"resumed after a restart of {self.agent_name}" if job.resumed else "started"
-        self.report(uid, TaskState.RUNNING, f"{begun}: {len(job.steps)} step(s)", progress=0.0)
+        self.report(uid, TaskState.RUNNING, f"{begun}: {len(job.steps)} step(s){slowed and '; ' + slowed}",
+                    progress=0.0)
         if job.moving and self.guard.state.at_risk and not self._improves(job):
             self._apply_policy([job], self.guard.state.reason)
 
-    def _start_step(self, job: RemoteJob) -> None:
+    def _start_step(self, job: RemoteJob) -> str:
+        """Issue the job's current step; return why it was slowed ("" when it was not)."""
         step = job.steps[job.index]
-        job.sub = self.issue(job.uid, step.preposition, step.params)
+        params, slowed = step.params, ""
+        s = self.settings
+        if s.network_aware and s.predict and isinstance(params, (GotoParams, ForwardParams)):
+            ends = self._ends(job)
+            leaving = "" if ends is None else self.guard.leaving(*ends)
+            cap = round(self.guard.safe_speed(), 2)
+            if leaving and params.speed > cap:
+                slowed = (f"slowed from {params.speed:g} to {cap:g} m/s: moving away from {leaving}, "
+                          "its only link to the team")
+                params = params.model_copy(update={"speed": cap})
+        job.sub = self.issue(job.uid, step.preposition, params)
         job.subs.append(job.sub)
+        return slowed
 
     def _supersede(self, newcomer: str) -> None:
         for uid in list(self.jobs):
@@ -536,22 +549,26 @@ class MissionControl(Plugin[MissionSettings]):
             job.held = ""
             self.report(job.uid, TaskState.RUNNING, "resumed: connectivity restored")
 
-    def _heads_away(self, job: RemoteJob) -> str:
-        """The neighbour of a lossy critical link that the job's motion takes the robot away from."""
+    def _ends(self, job: RemoteJob) -> tuple[tuple[float, float], tuple[float, float]] | None:
+        """Where the robot is and where the job's current step drives it (None: not known, or a
+        random walk, which picks its own ways)."""
         mine = self.team.mine()
         if mine is None or not job.steps:
-            return ""
+            return None
         step = job.steps[min(job.index, len(job.steps) - 1)]
         p = step.params
         here = (mine[0], mine[1])
         if isinstance(p, GotoParams):
-            target = (p.x, p.y)
-        elif step.preposition == "forward":
-            sign = 1.0 if getattr(p, "distance", 1.0) >= 0 else -1.0
-            target = (here[0] + sign * math.cos(mine[2]), here[1] + sign * math.sin(mine[2]))
-        else:
-            return ""  # a random walk picks its own ways: the prediction holds it again if one leads away
-        return self.guard.away(here, target)
+            return here, (p.x, p.y)
+        if isinstance(p, ForwardParams):
+            return here, (here[0] + math.cos(mine[2]), here[1] + math.sin(mine[2]))
+        return None
+
+    def _heads_away(self, job: RemoteJob) -> str:
+        """The neighbour of a lossy critical link that the job's motion takes the robot away from
+        (a random walk: none; if one of its ways leads off, the prediction holds it again)."""
+        ends = self._ends(job)
+        return "" if ends is None else self.guard.away(*ends)
 
     def _improves(self, job: RemoteJob) -> bool:
         """A motion towards the neighbour of every critical link: it improves connectivity."""

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import pytest
 
+from erni.plugins.mission.netaware import NetGuard
 from erni.sim import creep
 from erni.sim.scenario import find_scenario, load_scenario
 from erni.sim.team import Team
@@ -30,9 +31,16 @@ def start(tmp_path, **transport) -> Team:
 def test_every_creeping_robot_stands_inside_its_relays_range(tmp_path):
     team = start(tmp_path)
     try:
-        assert_held(one_round(team, creep.SPEEDS))
+        trials = one_round(team, creep.SPEEDS)
     finally:
         team.stop()
+    assert_held(trials)
+    # asked for 1.0 m/s away from its only link, the robot drove at the guard's safe speed
+    safe = NetGuard("robot", latency=2.5, braking=0.5, fade_distance=4.0).safe_speed()
+    fast = next(t for t in trials if t.speed == 1.0)
+    assert fast.top_speed < safe + 0.05, fast.row()
+    slow = next(t for t in trials if t.speed == 0.3)
+    assert slow.top_speed > 0.25, slow.row()
 
 
 def test_with_thirty_percent_of_every_agents_datagrams_lost_the_guard_still_holds(tmp_path):
