@@ -131,7 +131,7 @@ def test_silenced_snmp_agent_degrades_network_results_then_recovers(tmp_path):
     team = make_team(tmp_path)
     silenced: set[str] = set()
     handle = team.snmp.handle
-    team.snmp.handle = lambda name, data: None if name in silenced else handle(name, data)
+    team.snmp.handle = lambda name, data, *addr: None if name in silenced else handle(name, data, *addr)
     try:
         watch = team.send_task("robot1", "NetWatch", "neighbor_list", rate_hz=5)
         client = team.client()
