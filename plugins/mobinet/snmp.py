@@ -359,7 +359,7 @@ class SnmpSource:
     def _checked(self, what: str, got: ber.Response) -> list[tuple[OID, Value]]:
         """The answer's varbinds; SourceError naming the error status and the varbind it points at."""
         if got.error_status:
-            status = (ber.ERROR_STATUS[got.error_status] if got.error_status < len(ber.ERROR_STATUS)
+            status = (ber.ERROR_STATUS[got.error_status] if 0 <= got.error_status < len(ber.ERROR_STATUS)
                       else f"error-status {got.error_status}")
             where = ""
             i = got.error_index

@@ -373,3 +373,13 @@ def test_a_timeout_is_noticed_on_time_and_every_request_is_answered_in_one_round
     asked, took = run(go())
     assert asked == 1
     assert 0.95 <= took < 1.5  # two tries of 0.5 s
+
+
+@pytest.mark.parametrize("status", [-1, -200, 19, 2**31 - 1])
+def test_an_error_status_outside_the_standard_list_is_named_by_its_number_not_a_crash(status):
+    from erni.plugins.mobinet import ber
+
+    src = SnmpSource("127.0.0.1", 9, timeout=0.1, retries=0)
+    answer = ber.Response(1, b"public", 7, status, 1, [((1, 3, 6, 1), None)])
+    with pytest.raises(SourceError, match=f"agent answered error-status {status} at "):
+        src._checked("GET", answer)
