@@ -4,7 +4,8 @@ Every surface takes hypothesis-generated input and must either accept it or refu
 surface's own error type; nothing else may escape, nothing may hang, nothing reaches the
 blackboard unvalidated. `ERNI_FUZZ_EXAMPLES` sets the budget (CI: the default; on demand:
 `ERNI_FUZZ_EXAMPLES=20000 pytest tests/reliability/test_fuzz.py`); the number of inputs each
-surface was given is written to `artifacts/fuzz-counts.json`.
+surface was given is written to `artifacts/fuzz-counts.json`. The 100,000-inputs-per-surface run is
+`python -m tests.reliability.fuzz_run` (`fuzz_run.py`; its surfaces run in CI in `test_fuzz_scale.py`).
 """
 
 from __future__ import annotations
@@ -47,7 +48,12 @@ def report():
     yield
     out = Path(__file__).resolve().parents[2] / "artifacts"
     out.mkdir(exist_ok=True)
-    (out / "fuzz-counts.json").write_text(json.dumps({"examples_per_test": EXAMPLES, **COUNTS}, indent=2))
+    path = out / "fuzz-counts.json"
+    try:  # the at-scale run's counts (key "scale") stay
+        scale = {k: v for k, v in json.loads(path.read_text()).items() if k == "scale"}
+    except (OSError, ValueError, AttributeError):
+        scale = {}
+    path.write_text(json.dumps({"examples_per_test": EXAMPLES, **COUNTS, **scale}, indent=2) + "\n")
 
 
 @pytest.fixture(scope="module")
