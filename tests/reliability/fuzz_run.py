@@ -469,6 +469,76 @@ def _snmp_requests() -> list[bytes]:
     return out + [bytes(v1)]
 
 
+EDGE_INTS = [0, 1, -1, 127, 128, 255, 256, 2**31 - 1, 2**31, -(2**31), -(2**31) - 1, 2**32 - 1, 2**32, 2**63,
+             2**64 - 1, 2**64, -(2**63), 10**30]
+
+
+def _ber_oid(oid: tuple[int, ...]) -> bytes:
+    from erni.plugins.mobinet import ber
+
+    if len(oid) < 2:
+        return b"".join(ber._base128(max(0, a)) for a in oid)
+    return b"".join(ber._base128(max(0, a)) for a in (oid[0] * 40 + oid[1], *oid[2:]))
+
+
+def snmp_oid(rng: random.Random, known: list[tuple[int, ...]]) -> tuple[int, ...]:
+    """A served OID, or one cut, extended or with an arc changed (to an edge value)."""
+    oid = list(rng.choice(known))
+    op = rng.randrange(5)
+    if op == 1:
+        oid = oid[:rng.randint(0, len(oid))]
+    elif op == 2:
+        oid += [rng.choice([0, 1, 255, rng.randrange(2**32), 2**64]) for _ in range(rng.randint(1, 4))]
+    elif op == 3 and oid:
+        oid[rng.randrange(len(oid))] = rng.choice([0, 1, 39, 40, 127, 128, 2**31, 2**32, 2**70])
+    elif op == 4:
+        oid = [rng.randrange(3), rng.randrange(40)] + [rng.randrange(300) for _ in range(rng.randint(0, 30))]
+    return tuple(oid)
+
+
+def snmp_value(rng: random.Random) -> bytes:
+    """One varbind value of any tag, with edge contents (a wrong type, a wrong length, an empty one)."""
+    from erni.plugins.mobinet import ber
+
+    tag = rng.choice([ber.INTEGER, ber.OCTET_STRING, ber.NULL, ber.OBJECT_IDENTIFIER, ber.IP_ADDRESS, ber.COUNTER32,
+                      ber.GAUGE32, ber.TIME_TICKS, ber.OPAQUE, ber.COUNTER64, ber.NO_SUCH_OBJECT,
+                      ber.NO_SUCH_INSTANCE, ber.END_OF_MIB_VIEW, ber.SEQUENCE, rng.randrange(256)])
+    r = rng.random()
+    if r < 0.4:
+        n = rng.choice(EDGE_INTS) if rng.random() < 0.7 else rng.randint(-(2**40), 2**40)
+        content = n.to_bytes((n.bit_length() + 8) // 8 or 1, "big", signed=True)
+    elif r < 0.6:
+        content = rng.randbytes(rng.choice([0, 1, 3, 4, 5, 6, 16, rng.randint(0, 300)]))
+    elif r < 0.7:
+        content = _ber_oid(tuple(rng.randrange(2**rng.choice([2, 7, 32, 70])) for _ in range(rng.randint(0, 12))))
+    else:
+        content = b""
+    return ber.tlv(tag, content)
+
+
+def snmp_message(rng: random.Random, pdu: int, community: bytes, rid: int, a: int, b: int,
+                 binds: list[tuple[tuple[int, ...], bytes]], version: int = 1) -> bytes:
+    """A v1/v2c message from its parts, as an agent or a client encodes it (any value of every part)."""
+    from erni.plugins.mobinet import ber
+
+    def integer(n: int) -> bytes:
+        return ber.tlv(ber.INTEGER, n.to_bytes((n.bit_length() + 8) // 8 or 1, "big", signed=True))
+
+    body = b"".join(ber.tlv(ber.SEQUENCE, ber.tlv(ber.OBJECT_IDENTIFIER, _ber_oid(oid)) + value)
+                    for oid, value in binds)
+    pdu_body = integer(rid) + integer(a) + integer(b) + ber.tlv(ber.SEQUENCE, body)
+    return ber.tlv(ber.SEQUENCE, integer(version) + ber.tlv(ber.OCTET_STRING, community) + ber.tlv(pdu, pdu_body))
+
+
+def flipped(rng: random.Random, data: bytes) -> bytes:
+    """Bytes changed in place (every length still holds)."""
+    b = bytearray(data)
+    for _ in range(rng.randint(1, 4)):
+        if b:
+            b[rng.randrange(len(b))] = rng.choice(INTERESTING) if rng.random() < 0.5 else rng.randrange(256)
+    return bytes(b)
+
+
 class _Traceback(logging.Handler):
     """Collects records that carry a traceback: a product handler that swallowed an exception."""
 
@@ -489,17 +559,32 @@ TRACEBACKS = _Traceback()
          "mutated v1/v2c Get, GetNext, GetBulk and Set requests (read and write community) and noise through "
          "`ManetSnmpAgent.handle`, the node's datagram handler; a logged traceback (genErr) counts as a crash")
 def snmp_requests(_: argparse.Namespace) -> tuple[Gen, Check]:
+    from erni.plugins.mobinet import ber
     from erni.sim.snmp_agent import ManetSnmpAgent
 
     agent = ManetSnmpAgent(_snmp_network(), write_community="fuzz-writer")
     seeds = _snmp_requests()
+    known = list(agent.table("n1").keys) + [(1, 3, 6, 1, 4, 1)]
+    pdus = [ber.GET, ber.GET_NEXT, ber.GET_BULK, ber.SET, ber.RESPONSE, ber.TRAP_V1, ber.INFORM, ber.TRAP_V2,
+            ber.REPORT, 0x30, 0x04]
+
+    def gen(rng: random.Random) -> bytes:
+        r = rng.random()
+        if r < 0.3:
+            return damaged(rng, seeds, 0.2, 300)
+        binds = [(snmp_oid(rng, known), snmp_value(rng) if rng.random() < 0.5 else b"\x05\x00")
+                 for _ in range(rng.choice([0, 1, 1, 2, 3, 8, 60]))]
+        message = snmp_message(rng, rng.choice(pdus), rng.choice([b"public", b"fuzz-writer", b"", b"publi"]),
+                               rng.choice(EDGE_INTS), rng.choice(EDGE_INTS + [0] * 8), rng.choice(EDGE_INTS + [10] * 8),
+                               binds, rng.choice([1] * 8 + [0] * 4 + [3, 2, -1]))
+        return flipped(rng, message) if r < 0.45 else message
 
     def check(data: bytes) -> None:
         reply = agent.handle("n1", data, ("127.0.0.1", 9))
         if reply is not None and not isinstance(reply, bytes):
             raise AssertionError(f"handle answered {type(reply).__name__}")
 
-    return (lambda rng: damaged(rng, seeds, 0.1, 300)), check
+    return gen, check
 
 
 @surface("SNMP responses (MobiNet's client)",
@@ -527,7 +612,13 @@ def snmp_responses(_: argparse.Namespace) -> tuple[Gen, Check]:
             answer = agent.handle("n1", ber.encode_request(pdu, self.community.encode(), rid, varbinds, 0,
                                                            max_repetitions), ("127.0.0.1", 9))
             if answer is not None and rng.random() < share:
-                answer = mutate(rng, answer) if rng.random() < 0.9 else rng.randbytes(rng.randint(0, 200))
+                r = rng.random()
+                if r < 0.4:
+                    answer = mutate(rng, answer)
+                elif r < 0.5:
+                    answer = rng.randbytes(rng.randint(0, 200))
+                else:   # a well-formed answer with other varbinds, values, status or request-id
+                    answer = forged(rng, answer, rid)
             try:   # what `_Link.datagram_received` does with a datagram
                 got = ber.decode_response(answer or b"")
             except ber.BerError as err:
@@ -535,6 +626,35 @@ def snmp_responses(_: argparse.Namespace) -> tuple[Gen, Check]:
             if got.request_id != rid or got.version != 1:
                 raise SourceError(f"SNMP {what} to {self.where}: timeout")
             return self._checked(what, got)
+
+    def forged(rng: random.Random, answer: bytes, rid: int) -> bytes:
+        try:
+            got = ber.decode_response(answer)
+        except ber.BerError:
+            return flipped(rng, answer)
+        binds = [(oid, ber.encode_value(v) if v.tag not in ber.EXCEPTIONS else ber.tlv(v.tag, b""))
+                 for oid, v in got.varbinds]
+        for _ in range(rng.randint(1, 4)):
+            op = rng.randrange(6)
+            i = rng.randrange(len(binds)) if binds else 0
+            if op == 0 and binds:
+                binds[i] = (binds[i][0], snmp_value(rng))
+            elif op == 1 and binds:
+                binds[i] = (snmp_oid(rng, [b[0] for b in binds]), binds[i][1])
+            elif op == 2 and binds:
+                del binds[i]
+            elif op == 3 and binds:
+                binds.insert(i, binds[rng.randrange(len(binds))])
+            elif op == 4:
+                rng.shuffle(binds)
+            else:
+                binds.append((snmp_oid(rng, [b[0] for b in binds] or [(1, 3)]), snmp_value(rng)))
+        status = rng.choice([0] * 6 + EDGE_INTS[:6] + [rng.randrange(-5, 25)])
+        index = rng.choice([0, 0, 1, len(binds), len(binds) + 1, -1, 2**31])
+        message = snmp_message(rng, ber.RESPONSE if rng.random() < 0.95 else rng.choice([ber.GET, ber.REPORT]),
+                               b"public", rid if rng.random() < 0.95 else rng.choice(EDGE_INTS), status, index,
+                               binds, 1 if rng.random() < 0.95 else rng.choice([0, 3]))
+        return flipped(rng, message) if rng.random() < 0.1 else message
 
     src = InProcess("127.0.0.1", 161, timeout=0.2, retries=0, cache_seconds=0.0)
 
