@@ -714,21 +714,27 @@ TOML_VALUES: list[Callable[[random.Random], str]] = [
 ]
 AGENT_KEYS = ["name", "workers", "slow_plugin_seconds", "log_level", "journal", "colour", "other"]
 PLUGIN_KEYS = ["class", "name", "enabled", "settings"]
-PLUGIN_CLASSES = ["erni.plugins.motion:MotionPlugin", "erni.plugins.mobinet:MobiNetPlugin",
-                  "erni.plugins.ui:UiPlugin", "erni.transport:TransportPlugin", "nope:Nope", "os:system", ""]
+PLUGIN_CLASSES = ["echo", "transport", "motion", "mobinet", "mission", "ui", "erni.replay:ReplayPlugin",
+                  "erni.plugins.echo:EchoPlugin", "nope:Nope", "os:system", "", "erni.blackboard:Plugin"]
+SETTING_KEYS = ["port", "url", "robot", "identity", "insecure", "key", "listen", "peers", "host", "community",
+                "write_community", "period", "timeout", "speed", "max_speed", "name", "token", "path", "source",
+                "strategy", "agents", "log", "rate", "poll", "safe_speed", "bind", "retries"]
 
 
 @surface("config files",
-         "agent TOML: known and unknown keys, values of every TOML type, plugin tables naming real and unknown "
-         "classes with random settings, trailing garbage, byte-damaged text; through `parse_config` and "
+         "agent TOML: known and unknown keys, values of every TOML type, plugin tables naming every shipped "
+         "plugin (and unknown classes) with known and unknown settings of any value, trailing garbage, byte-damaged text; through `parse_config` and "
          "`build_agent` (resolution and settings validation, nothing started); the error type is `ConfigError`")
 def configs(_: argparse.Namespace) -> tuple[Gen, Check]:
     from erni.blackboard import ConfigError
     from erni.blackboard.config import build_agent, parse_config
 
     def gen(rng: random.Random) -> str:
-        lines = ["[agent]"] + [f"{k} = {rng.choice(TOML_VALUES)(rng)}"
-                               for k in rng.sample(AGENT_KEYS, rng.randint(0, 5))]
+        if rng.random() < 0.7:   # a good [agent] table: the plugins' settings are reached
+            lines = ["[agent]", 'name = "fuzz"']
+        else:
+            lines = ["[agent]"] + [f"{k} = {rng.choice(TOML_VALUES)(rng)}"
+                                   for k in rng.sample(AGENT_KEYS, rng.randint(0, 5))]
         for _ in range(rng.randint(0, 3)):
             lines.append("[[plugin]]")
             if rng.random() < 0.7:
@@ -736,8 +742,8 @@ def configs(_: argparse.Namespace) -> tuple[Gen, Check]:
             lines += [f"{k} = {rng.choice(TOML_VALUES)(rng)}" for k in rng.sample(PLUGIN_KEYS[1:3], rng.randint(0, 2))]
             if rng.random() < 0.5:
                 lines.append("[plugin.settings]")
-                lines += [f"{text(rng, 6).replace(chr(10), '') or 'k'!r} = {rng.choice(TOML_VALUES)(rng)}"
-                          for _ in range(rng.randint(0, 3))]
+                lines += [f"{rng.choice(SETTING_KEYS) if rng.random() < 0.8 else json.dumps(text(rng, 6))} = "
+                          f"{rng.choice(TOML_VALUES)(rng)}" for _ in range(rng.randint(0, 4))]
         out = "\n".join(lines)
         if rng.random() < 0.2:
             out += "\n" + text(rng, 30)
@@ -965,7 +971,8 @@ def commit() -> str:
         return "unknown"
 
 
-def write_counts(results: list[Result], examples: int, seed: int) -> Path:
+def write_counts(results: list[Result], examples: int, seed: int, measured: str) -> Path:
+    """Merge the results into artifacts/fuzz-counts.json under "scale"; `measured`: the commit run."""
     out = ROOT / "artifacts" / "fuzz-counts.json"
     out.parent.mkdir(exist_ok=True)
     try:
@@ -977,7 +984,7 @@ def write_counts(results: list[Result], examples: int, seed: int) -> Path:
     scale.update({"command": "python -m tests.reliability.fuzz_run", "examples_per_surface": examples, "seed": seed})
     for r in results:
         scale["surfaces"][r.name] = {"inputs": r.inputs, "crashes": r.crashes, "seconds": round(r.seconds, 1),
-                                     "commit": commit(), "first_crashes": r.examples}
+                                     "commit": measured, "first_crashes": r.examples}
     data["scale"] = scale
     out.write_text(json.dumps(data, indent=2) + "\n")
     return out
@@ -1002,6 +1009,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{name}: {what}")
         return 0
     quiet_logging()
+    measured = commit()   # the code loaded now is the code measured, whatever changes on disk meanwhile
     results = []
     try:
         for name in args.surface or list(SURFACES):
@@ -1010,7 +1018,7 @@ def main(argv: list[str] | None = None) -> int:
             results.append(r)
             print(f"{name}: {r.inputs} inputs, {r.crashes} crashes, {r.seconds:.0f} s", flush=True)
             if not args.no_write and args.only is None:
-                write_counts([r], args.examples, args.seed)
+                write_counts([r], args.examples, args.seed, measured)
     finally:
         if _team is not None:
             _team.close()
