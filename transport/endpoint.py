@@ -279,6 +279,7 @@ class Endpoint:
         self._id_prefix = os.urandom(6).hex() + "."  # message ids: unique per instance, cheap (no uuid)
         self.log = logging.getLogger(f"erni.{name}.transport")
         self._drops = _RateLimitedLog(self.log)
+        self._last_fault = -1e9  # when a fault of the frame path was last logged (monotonic)
         self.counters: dict[str, int] = {}
         self._counter_lock = threading.Lock()
         self._seen = SeenIds()
@@ -1006,7 +1007,21 @@ class Endpoint:
 
     def _accept(self, raw: bytes, channel: str, src: Address) -> tuple[list[Message], Session | None] | None:
         """Check a frame; count and log what fails; return its messages (several in a batch of
-        statuses) and their session, or None."""
+        statuses) and their session, or None. A fault of the frame path itself (any exception
+        other than a FrameError) drops the frame and is logged with its traceback, rate-limited:
+        one frame must never end the receive thread."""
+        try:
+            return self._accept_frame(raw, channel, src)
+        except Exception:
+            self.count("dropped.fault")
+            now = time.monotonic()
+            if now - self._last_fault >= 5.0:
+                self._last_fault = now
+                self.log.exception("dropped a %s frame of %d bytes from %s: the frame path failed on it",
+                                   channel, len(raw), src[0] if src else "?")
+            return None
+
+    def _accept_frame(self, raw: bytes, channel: str, src: Address) -> tuple[list[Message], Session | None] | None:
         try:
             kind = check_frame(raw, self.max_frame)
             if self.auth is None:

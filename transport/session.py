@@ -231,7 +231,10 @@ class Session:
         return head + self._send.encrypt(_nonce(counter), payload, head)
 
     def open(self, frame: bytes) -> bytes:
-        """Authenticate and decrypt a data frame of this session; raise FrameError('auth'|'replay')."""
+        """Authenticate and decrypt a data frame of this session; raise FrameError('short'|'auth'|'replay')."""
+        if len(frame) < DATA_HEADER.size + TAG_SIZE:
+            raise FrameError("short", f"data frame of {len(frame)} bytes is shorter than a header and its tag "
+                             f"({DATA_HEADER.size + TAG_SIZE} bytes; from {self.peer})")
         counter = DATA_HEADER.unpack_from(frame)[3]
         self._window.fresh(counter)  # a cheap early refusal; checked again under the lock below
         try:

@@ -323,3 +323,53 @@ def test_key_never_appears_in_logs_or_reprs():
 
     s = TransportSettings(key="s3cret-team-key")
     assert "s3cret" not in repr(s) and "s3cret" not in str(s.model_dump())
+
+
+def test_a_short_data_frame_naming_a_live_session_is_dropped_and_the_agent_hears_on(robot):
+    """A sealed frame's session id travels in clear: an eavesdropper without any key sent a 'D'
+    frame of 13-20 bytes naming it, and the header's unpacking killed the receive thread."""
+    addr = addr_of(robot)
+    client = make_client(addr)
+    try:
+        client.send(addr, "watch.request", None)
+        wait_until(lambda: client.endpoint.session_with(addr) is not None)
+        sid = client.endpoint.session_with(addr).sid
+        udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        for cut in range(0, 13):  # every length from the bare kind and session id to one byte short of a header
+            udp.sendto(struct.pack(">I", 9 + cut) + b"D" + sid + b"\x00" * cut, addr)
+        udp.close()
+        wait_until(lambda: counters(robot).get("dropped.short", 0) >= 13)
+        before = len(robot.query(Task))
+        client.send(addr, "task.add", task())  # over the same session: the receive thread lives
+        wait_until(lambda: len(robot.query(Task)) > before)
+    finally:
+        client.endpoint.stop()
+
+
+def test_a_fault_of_the_frame_path_drops_that_frame_only(robot, monkeypatch, caplog):
+    """Any exception of the frame path but a FrameError (a bug, as the short frame above was) is
+    counted and logged once with its traceback; the receive thread goes on."""
+    import erni.transport.endpoint as endpoint
+
+    real = endpoint.check_frame
+
+    def faulty(raw, max_frame):
+        if raw.endswith(b"POISON"):
+            raise RuntimeError("a bug in the frame path")
+        return real(raw, max_frame)
+
+    monkeypatch.setattr(endpoint, "check_frame", faulty)
+    addr = addr_of(robot)
+    udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    for _ in range(3):
+        udp.sendto(struct.pack(">I", 7) + b"xPOISON", addr)
+    udp.close()
+    wait_until(lambda: counters(robot).get("dropped.fault", 0) >= 3)
+    assert sum("the frame path failed on it" in r.getMessage() for r in caplog.records) == 1
+    before = len(robot.query(Task))
+    client = make_client(addr)
+    try:
+        client.send(addr, "task.add", task())
+        wait_until(lambda: len(robot.query(Task)) > before)
+    finally:
+        client.endpoint.stop()
