@@ -24,14 +24,18 @@ takes the lower:
   guard's model of the radio; short is cautious).
 
 A projection below `min_quality` is a risk ("the link to N is predicted to fall below ..."),
-so the robot stands while the link still carries packets. A risk is declared at once; it
-clears only after every reading has stayed free of risk, with every critical link at least
-`resume_quality`, for `resume_after` seconds (hysteresis: a momentary better reading clears
+so the robot stands while the link still carries packets. With no critical link (several links
+hold the robot), the risk is every link's projection (or reading, for a neighbour it does not
+move away from) below `min_quality`: the best link going too. A risk is declared at once; it
+clears only after every reading has stayed free of risk, with every critical link (with none:
+the best link) at least `resume_quality`, for `resume_after` seconds (hysteresis: a momentary better reading clears
 nothing). A remote goto or forward that takes the robot away from the neighbour of a critical link
 is driven no faster than `safe_speed()`: fast enough to stand within half of `fade_distance`
 after the first sign of loss, however late the readings bring it (loss-free readings tell
 nothing of where the lossy band begins). Clearing is not resuming: the mission resumes a held motion only when it does not take
-the robot further from the neighbour of a critical link that showed loss lately (`away`); a motion that
+the robot further from the neighbour of a critical link that showed loss lately (`away`;
+with no critical link, the hysteresis on the best link bounds how far a motion can go on); a
+motion that
 improves connectivity is always allowed. Degraded readings (the network subsystem did not
 answer) change nothing. The guard also keeps a trail of positions where connectivity was good;
 the `retreat` policy goes back along it (`retreat_point`).
@@ -197,6 +201,14 @@ class NetGuard:
                 best = (q, f"moving away at {speed:.2f} m/s")
         return best
 
+    def _best(self) -> dict[str, float]:
+        """The neighbour over the best link and its quality ({} when nothing was read)."""
+        rows = {n: r[-1].quality for n, r in self.readings.items() if r}
+        if not rows:
+            return {}
+        best = max(rows, key=lambda n: rows[n])
+        return {best: rows[best]}
+
     def _speed(self) -> float | None:
         if len(self.moves) < 2:
             return None
@@ -251,6 +263,7 @@ class NetGuard:
             self.moves.append((now, position[0], position[1]))
         self.prediction = ""
         s.critical = {n: self.readings[n][-1].quality for n in self.critical() if self.readings.get(n)}
+        anchors = dict(s.critical) or self._best()
         s.closing = {n: v for n in s.critical if (v := self.away_speed(n)) is not None}
         if self.predict:
             for name in s.critical:
@@ -260,8 +273,16 @@ class NetGuard:
                     self.prediction = (f"the link to {name} ({q:.2f}) is predicted to fall below "
                                        f"{self.min_quality:.2f} before {self.me} can stand ({got[1]})")
                     break
+            if not self.prediction and self.readings:  # no bridge: is the best link going too?
+                future = {n: (rows[-1].quality if (got := self.projected(n, now)) is None else got[0])
+                          for n, rows in self.readings.items() if rows}
+                best = max(self.readings, key=lambda n: self.readings[n][-1].quality)
+                if future and max(future.values()) < self.min_quality <= self.readings[best][-1].quality:
+                    self.prediction = (f"every link of {self.me} is predicted to fall below {self.min_quality:.2f} "
+                                       f"before it can stand (the best now: {best}, "
+                                       f"{self.readings[best][-1].quality:.2f})")
         reason = self.risk()
-        weak = any(q < self.resume_quality for q in s.critical.values())
+        weak = any(q < self.resume_quality for q in anchors.values())
         if reason:
             s.ok_since = None
             s.reason = reason

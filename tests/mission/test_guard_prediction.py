@@ -150,3 +150,33 @@ def test_the_speed_away_from_an_only_link_leaves_room_to_stand_on_the_first_sign
     assert g.leaving((6.0, 0.0), (20.0, 0.0)) == "relay"  # loss-free, and still its only link
     assert g.leaving((6.0, 0.0), (1.0, 0.0)) == ""
     assert g.away((6.0, 0.0), (20.0, 0.0)) == ""          # no loss seen: a held motion may resume
+
+
+def test_with_no_bridge_the_best_link_is_projected_and_anchors_the_resume():
+    """Robots walking off in all directions from a cluster: every link of this one is shared with
+    others (no bridge), and it moves away from them all. Before: only a reading below the
+    threshold held it, seconds late on babeld."""
+    mesh = [Link(a="me", b="r1"), Link(a="me", b="r2"), Link(a="r1", b="r2"), Link(a="r1", b="control"),
+            Link(a="r2", b="control")]
+    g = NetGuard("me", min_quality=0.3)
+    g.topology(mesh)
+    assert g.critical() == []
+    g.positions({"r1": (0.0, 0.0), "r2": (0.0, 1.0)})
+    change = None
+    for k in range(8):  # driving off at 1 m/s, both links showing loss
+        t = 0.5 * k
+        g.quality({"r1": 0.8 - 0.05 * k, "r2": 0.75 - 0.05 * k}, t)
+        change = g.update(t, (6.0 + 0.5 * k, 0.0)) or change
+        if change == "risk":
+            break
+    assert change == "risk" and g.state.reason.startswith("every link of me is predicted to fall below 0.30")
+    assert g.readings["r1"][-1].quality > 0.3  # it stood while its best link still carried
+    here = (6.0 + 0.5 * k, 0.0)
+    for j in range(1, 10):  # standing, the best link reads 0.45: below the resume quality 0.5
+        g.quality({"r1": 0.45, "r2": 0.4}, t + 0.5 * j)
+        assert g.update(t + 0.5 * j, here) is None
+    changes = []
+    for j in range(10, 18):
+        g.quality({"r1": 0.55, "r2": 0.4}, t + 0.5 * j)
+        changes.append(g.update(t + 0.5 * j, here))
+    assert changes == [None] * 6 + ["clear", None]  # after 3 s at 0.55 on the best link

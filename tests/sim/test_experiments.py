@@ -259,12 +259,14 @@ def test_patrol_on_agents_detects_the_failure_and_one_neighbour_takes_over(tmp_p
 
 
 @pytest.mark.slow
-def test_network_aware_widep_keeps_the_team_in_reach_of_the_control_node_and_it_hears_the_success():
-    # the aware team steps with R = the longest link of quality 0.3 (6.8 m here, not the 8 m where
-    # delivery is 0): it stays one component with the control node, so the success reaches it
-    sc = scenario("netaware", missions=["widep"], poi_distance=10.0)
+def test_widep_keeps_the_team_in_reach_of_the_control_node_and_it_hears_the_success():
+    # WiDep steps with R = the longest link of quality 0.3 (6.8 m here, not the 8 m where
+    # delivery is 0): the team stays one component with the control node, so the success reaches it
+    sc = scenario("netaware", missions=["widep-vs-goto"], poi_distance=10.0)
     assert netaware.widep_range(sc) == pytest.approx(6.8)
-    out = netaware._one(sc, "widep", "aware", lambda *a: None)
+    widep = netaware.COMPARISONS["widep-vs-goto"].arms[0]
+    assert widep.mission == "widep"
+    out = netaware._one(sc, "widep-vs-goto", widep, lambda *a: None)
     assert out.completed == 1, out
     assert out.connected > 0.99, out
     assert out.reported == 1, out
@@ -274,7 +276,7 @@ def test_network_aware_widep_keeps_the_team_in_reach_of_the_control_node_and_it_
 def test_network_aware_team_keeps_connectivity_better_than_a_blind_one(tmp_path):
     result = experiments.run("netaware", scenario("netaware"), seeds=10)
     rows = {r.quantity: r for r in result.rows}
-    aware, blind = (float(x) for x in str(rows["goto: connectivity kept, aware / blind"].ours).split(" / "))
+    aware, blind = (float(x) for x in str(rows["goto: connectivity kept, guard on / guard off"].ours).split(" / "))
     assert aware > blind, result.report()
     check_outputs(result, tmp_path)
 
