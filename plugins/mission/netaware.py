@@ -99,7 +99,7 @@ class NetGuard:
         self.moves: deque[tuple[float, float, float]] = deque(maxlen=50)  # (t, x, y) of this robot
         self.where: dict[str, tuple[float, float]] = {}  # neighbours' latest known positions
         self.lossy: dict[str, float] = {}  # neighbour -> when its link last read below 0.98
-        self.loss_memory = 30.0            # s: a link that showed loss this recently has no room to stretch
+        self.loss_memory = 10.0            # s: a link that showed loss this recently has no room to stretch
         self.prediction = ""
         self._judged: tuple[Any, bool, set[str]] = (None, False, set())  # (good links, cut vertex, my part)
         self._rows: list[Link] | None = None  # the links of the last reading
