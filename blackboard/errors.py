@@ -71,7 +71,8 @@ def validation_problems(err: ValidationError, prefix: str = "", skip: int = 0) -
             if isinstance(part, int) and where:
                 where += f"[{part}]"
             else:
-                where += f".{part}" if where else str(part)
+                text = str(part) if str(part).isprintable() else repr(part)  # a key with a newline: one line
+                where += f".{text}" if where else text
         if kind == "missing":
             msg = f"missing {field!r}" if field else "missing"
         elif kind == "extra_forbidden":

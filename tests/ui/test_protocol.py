@@ -98,3 +98,13 @@ def test_a_deeply_nested_message_gets_one_line_and_the_connection_closed(caplog)
     assert errors == ["message nested 10001 levels deep; expected at most 8; closing the connection"]
     assert code == 1009 and not got and server.bad_messages == 1
     assert not any(r.exc_info for r in caplog.records), [r.getMessage() for r in caplog.records]
+
+
+@pytest.mark.parametrize("key", ["\n", "a\rb", "\x00", "\u2028"])
+def test_a_refusal_naming_an_unprintable_key_is_one_line(key):
+    import json
+
+    text = json.dumps({"type": "command", "robots": ["robot1"], "action": "goto", "params": {key: 1}})
+    with pytest.raises(BadMessage) as err:
+        parse_message(text)
+    assert len(str(err.value).splitlines()) == 1 and str(err.value).startswith("command: params."), str(err.value)
