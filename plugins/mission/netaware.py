@@ -33,9 +33,9 @@ nothing). A remote goto or forward that takes the robot away from the neighbour 
 is driven no faster than `safe_speed()`: fast enough to stand within half of `fade_distance`
 after the first sign of loss, however late the readings bring it (loss-free readings tell
 nothing of where the lossy band begins). Clearing is not resuming: the mission resumes a held motion only when it does not take
-the robot further from the neighbour of a critical link that showed loss lately (`away`;
-with no critical link, the hysteresis on the best link bounds how far a motion can go on); a
-motion that
+the robot further from a neighbour that showed loss lately over a critical link, or over the
+link whose quality last held it (`away`; a hold for being an articulation point alone names no
+link); a motion that
 improves connectivity is always allowed. Degraded readings (the network subsystem did not
 answer) change nothing. The guard also keeps a trail of positions where connectivity was good;
 the `retreat` policy goes back along it (`retreat_point`).
@@ -99,6 +99,7 @@ class NetGuard:
         self.moves: deque[tuple[float, float, float]] = deque(maxlen=50)  # (t, x, y) of this robot
         self.where: dict[str, tuple[float, float]] = {}  # neighbours' latest known positions
         self.lossy: dict[str, float] = {}  # neighbour -> when its link last read below 0.98
+        self.cause = ""                    # the neighbour over the link whose quality last held the robot
         self.loss_memory = 10.0            # s: a link that showed loss this recently has no room to stretch
         self.prediction = ""
         self._judged: tuple[Any, bool, set[str]] = (None, False, set())  # (good links, cut vertex, my part)
@@ -201,6 +202,17 @@ class NetGuard:
                 best = (q, f"moving away at {speed:.2f} m/s")
         return best
 
+    def _cause(self, reason: str) -> str:
+        """The neighbour over the link a link-quality risk is about ("" when none is known)."""
+        s = self.state
+        if s.bridge and "weak link to" in reason:
+            return s.bridge.split(" (")[0]
+        for name in self.readings:
+            if f"the link to {name} (" in reason:
+                return name
+        best = self._best()
+        return next(iter(best), "")
+
     def _best(self) -> dict[str, float]:
         """The neighbour over the best link and its quality ({} when nothing was read)."""
         rows = {n: r[-1].quality for n, r in self.readings.items() if r}
@@ -235,7 +247,8 @@ class NetGuard:
     def away(self, here: tuple[float, float], target: tuple[float, float]) -> str:
         """The neighbour of a critical link that showed loss lately which going from `here` towards
         `target` would take this robot further from ("" when none: the motion may go on)."""
-        for name in self.critical():
+        names = self.critical() + ([self.cause] if self.cause and self.cause not in self.critical() else [])
+        for name in names:
             rows, there = self.readings.get(name), self.where.get(name)
             if not rows or rows[-1].t - self.lossy.get(name, -math.inf) > self.loss_memory:
                 continue  # no loss for `loss_memory` s: the link has room to stretch
@@ -282,6 +295,8 @@ class NetGuard:
                                        f"before it can stand (the best now: {best}, "
                                        f"{self.readings[best][-1].quality:.2f})")
         reason = self.risk()
+        if reason and not reason.endswith("is an articulation point of the network"):
+            self.cause = self._cause(reason)  # the link whose state held the robot: no resuming away from it
         weak = any(q < self.resume_quality for q in anchors.values())
         if reason:
             s.ok_since = None

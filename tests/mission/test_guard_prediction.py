@@ -180,3 +180,5 @@ def test_with_no_bridge_the_best_link_is_projected_and_anchors_the_resume():
         g.quality({"r1": 0.55, "r2": 0.4}, t + 0.5 * j)
         changes.append(g.update(t + 0.5 * j, here))
     assert changes == [None] * 6 + ["clear", None]  # after 3 s at 0.55 on the best link
+    # cleared is not resumed: not away from r1, whose link held it and showed loss lately
+    assert g.cause == "r1" and g.away(here, (20.0, 0.0)) == "r1" and g.away(here, (0.0, 0.0)) == ""
