@@ -265,7 +265,7 @@ def test_widep_keeps_the_team_in_reach_of_the_control_node_and_it_hears_the_succ
     sc = scenario("netaware", missions=["widep-vs-goto"], poi_distance=10.0)
     assert netaware.widep_range(sc) == pytest.approx(6.8)
     widep = netaware.COMPARISONS["widep-vs-goto"].arms[0]
-    assert widep.mission == "widep"
+    assert widep.algorithm == "widep" and not widep.network_aware
     out = netaware._one(sc, "widep-vs-goto", widep, lambda *a: None)
     assert out.completed == 1, out
     assert out.connected > 0.99, out
