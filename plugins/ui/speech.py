@@ -325,7 +325,7 @@ class SphinxStream:
     # frame): nearly every word of the right hearings of the speech test set scores above it
     MIN_WORD_SCORE = -7.0
     LONE_WAKE = 0.35  # seconds of an utterance outside a spotted wake phrase, at most, for it to stand alone
-    LONGEST_WAKE = 2.5  # seconds: a longer utterance is no lone wake phrase and is not searched for one
+    LONGEST_WAKE = 6.0  # seconds: a longer utterance is no lone wake phrase and is not searched for one
 
     def __init__(self, decoder: Any, endpointer: Any, complete: Callable[[str], bool] | None = None,
                  wake: bool = False) -> None:
