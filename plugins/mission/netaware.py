@@ -166,14 +166,11 @@ class NetGuard:
     def away_speed(self, name: str) -> float | None:
         """How fast this robot moves away from neighbour `name` (m/s, negative: nearer), over the
         last half second of its positions; None when unknown."""
-        there = self.where.get(name)
-        if there is None or len(self.moves) < 2:
+        there, span = self.where.get(name), self._span()
+        if there is None or span is None:
             return None
-        t1, x1, y1 = self.moves[-1]
-        old = next((m for m in reversed(self.moves) if t1 - m[0] >= 0.5), self.moves[0])
-        if t1 - old[0] < 0.2:
-            return None
-        return (math.dist((x1, y1), there) - math.dist(old[1:], there)) / (t1 - old[0])
+        (t0, x0, y0), (t1, x1, y1) = span
+        return (math.dist((x1, y1), there) - math.dist((x0, y0), there)) / (t1 - t0)
 
     def projected(self, name: str, now: float) -> tuple[float, str] | None:
         """The quality the link to `name` is projected to reach before the robot can stand, and
@@ -221,12 +218,20 @@ class NetGuard:
         best = max(rows, key=lambda n: rows[n])
         return {best: rows[best]}
 
-    def _speed(self) -> float | None:
+    def _span(self) -> tuple[tuple[float, float, float], tuple[float, float, float]] | None:
+        """This robot's (t, x, y) about half a second ago and now; None with less than 0.2 s of positions."""
         if len(self.moves) < 2:
             return None
-        t1, x1, y1 = self.moves[-1]
-        old = next((m for m in reversed(self.moves) if t1 - m[0] >= 0.5), self.moves[0])
-        return None if t1 - old[0] < 0.2 else math.dist((x1, y1), old[1:]) / (t1 - old[0])
+        now = self.moves[-1]
+        old = next((m for m in reversed(self.moves) if now[0] - m[0] >= 0.5), self.moves[0])
+        return None if now[0] - old[0] < 0.2 else (old, now)
+
+    def _speed(self) -> float | None:
+        span = self._span()
+        if span is None:
+            return None
+        (t0, x0, y0), (t1, x1, y1) = span
+        return math.dist((x1, y1), (x0, y0)) / (t1 - t0)
 
     def safe_speed(self) -> float:
         """The fastest this robot may drive away from the neighbour of a critical link: the speed v
