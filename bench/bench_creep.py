@@ -66,11 +66,6 @@ def messages_of(team: Team) -> Callable[[str], list[str]]:
     return messages
 
 
-def settled(team: Team) -> bool:
-    peers = team.peers(1.0)
-    return all(p.up for name, p in peers.items() if name in team.names) and len(peers) >= len(team.names)
-
-
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--rounds", type=int, default=3, help="trials per speed (default 3)")
@@ -103,7 +98,7 @@ def main(argv: list[str] | None = None) -> int:
                 assert team.mesh is not None
                 team.mesh.set_extra_loss(args.loss)
             for k in range(args.rounds):
-                creep.reset(team, lambda: settled(team), rest=8.0 if args.netns else 3.0)
+                creep.reset(team, lambda: creep.peers_up(team), rest=8.0 if args.netns else 3.0)
                 got = creep.run_round(team, k + 1, args.speeds, messages=messages)
                 trials += got
                 loads.append(os.getloadavg()[0])

@@ -176,6 +176,12 @@ def _at(track: list[tuple[float, float, float]], t: float | None) -> float:
     return d
 
 
+def peers_up(team: Team) -> bool:
+    """Whether the control node lists every robot of the team as up."""
+    peers = team.peers(1.0)
+    return set(team.names) <= set(peers) and all(peers[name].up for name in team.names)
+
+
 def reset(team: Team, settle: Callable[[], bool], *, rest: float = 3.0, timeout: float = 60.0) -> None:
     """Put every end robot back at its start, let the network readings recover for `rest` s (a
     routing daemon remembers the lost Hellos of the last round), and wait until `settle()` says

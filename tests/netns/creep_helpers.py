@@ -8,13 +8,8 @@ from erni.sim import creep
 from erni.sim.team import Team
 
 
-def settled(team: Team) -> bool:
-    peers = team.peers(1.0)
-    return all(peers[name].up for name in team.names if name in peers) and set(team.names) <= set(peers)
-
-
 def one_round(team: Team, speeds: Sequence[float], number: int = 1, rest: float = 3.0) -> list[creep.Trial]:
-    creep.reset(team, lambda: settled(team), rest=rest)
+    creep.reset(team, lambda: creep.peers_up(team), rest=rest)
     return creep.run_round(team, number, speeds, observe=8.0)
 
 
