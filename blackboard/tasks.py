@@ -9,6 +9,7 @@ pydantic model. Invalid tasks are refused with a `TaskError` whose message names
 from __future__ import annotations
 
 import enum
+import json
 import math
 import time
 import types
@@ -570,6 +571,13 @@ class NetInfo(BBObject):
                     "'missing: <why>' when the source does not provide it")
 
 
+def _shown_default(value: Any) -> str:
+    """A default as a user writes it on the command line: JSON for lists and tables, else its str."""
+    if isinstance(value, list | tuple | dict):
+        return json.dumps(value)
+    return str(value)
+
+
 def language_table() -> str:
     """Return the task language as a Markdown table (README and `erni tasks`)."""
     rows = ["| verb | preposition | parameters (units) | what it does |", "|---|---|---|---|"]
@@ -577,7 +585,7 @@ def language_table() -> str:
         params = []
         for fname, f in prep.params.model_fields.items():
             req = "" if not f.is_required() else " (required)"
-            default = "" if f.is_required() else f" = {f.default}"
+            default = "" if f.is_required() else f" = {_shown_default(f.get_default(call_default_factory=True))}"
             params.append(f"`{fname}`{default}{req}: {f.description or ''}".rstrip(": "))
         rows.append(f"| {verb} | `{name}` | {'; '.join(params) or '—'} | {prep.doc} |")
     return "\n".join(rows)

@@ -156,3 +156,11 @@ def test_results_refuse_non_finite_numbers():
 
     with pytest.raises(ValidationError, match="finite number"):
         task.with_result("running", progress=float("nan"))
+
+
+def test_the_language_table_shows_every_default_as_a_value():
+    """A default made by a factory is shown as the value it makes, written as on the command line."""
+    table = language_table()
+    assert "PydanticUndefined" not in table
+    (say,) = [row for row in table.splitlines() if "| `say` |" in row]
+    assert "`tones` = [[10, 72]]:" in say
