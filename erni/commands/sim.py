@@ -4,10 +4,18 @@ from __future__ import annotations
 
 import argparse
 import os
+import shutil
 import signal
 import sys
+import tempfile
 import time
+from pathlib import Path
 from typing import Any
+
+KEEP_RUNS = 3  # run directories of finished `erni sim` runs kept in the temporary directory (newest first)
+RUN_PREFIX = "erni-sim-"  # what `erni sim` names its run directory in the temporary directory
+OWNER_FILE = "erni-sim.pid"  # in a run directory: the PID of the `erni sim` that made it
+UNMARKED_AGE = 86400.0  # a run directory without an owner file (an older ERNI's) is finished after a day
 
 
 def register(sub: Any) -> None:
@@ -30,7 +38,8 @@ def register(sub: Any) -> None:
     p.add_argument("--control-port", type=int, default=47100,
                    help="control node's port on 127.0.1.250 (default 47100; any free one if taken)")
     p.add_argument("--run-dir", help="directory for agent configs, logs and journals, this user's only "
-                   "(0700, its files 0600; default: a new temporary directory)")
+                   f"(0700, its files 0600; default: a new temporary directory {RUN_PREFIX}*, of which the "
+                   f"newest {KEEP_RUNS} of finished runs are kept: older ones are removed when a run starts)")
     p.add_argument("--log-level", choices=["DEBUG", "INFO", "WARNING", "ERROR"], default="WARNING",
                    help="log level of the agents (their logs are in RUN_DIR/logs)")
     p.add_argument("--timeout", type=float, default=180.0, help="give up starting after S seconds")
@@ -87,11 +96,15 @@ def run(args: argparse.Namespace) -> int:
             from erni.transport import parse_address
 
             parse_address(args.gui_listen)
+        if not args.run_dir:
+            prune_run_dirs(Path(tempfile.gettempdir()))
         team = Team(scenario, run_dir=args.run_dir, headless=args.headless,
                     control_port=args.control_port, log_level=args.log_level, gui_listen=args.gui_listen,
                     netns=args.netns, mobinet=args.mobinet,
                     hello_interval=args.hello_interval if args.hello_interval is not None else HELLO_INTERVAL,
                     keep_run_dir=True)  # it prints where the configs and logs are
+        if not args.run_dir:
+            (team.run_dir / OWNER_FILE).write_text(f"{os.getpid()}\n", encoding="utf-8")
     except (ScenarioError, TeamError, NetnsError, ValueError) as err:
         print(f"erni sim: {err}", file=sys.stderr)
         return 2
@@ -125,6 +138,53 @@ def run(args: argparse.Namespace) -> int:
         signal.signal(signal.SIGTERM, previous)
         print(f"erni sim: stopped; configs and logs in {team.run_dir}", flush=True)
     return code
+
+
+def prune_run_dirs(tmp: Path, keep: int = KEEP_RUNS, now: float | None = None) -> list[Path]:
+    """Remove the run directories of finished `erni sim` runs in `tmp` but the newest `keep`; return those removed.
+
+    A run directory is `tmp/erni-sim-*`, owned by this user, holding the run's folders (agents/, logs/).
+    It is finished when the `erni sim` named in its owner file no longer runs, or, without an owner
+    file (an ERNI before the rule), when nothing in it changed for a day. A run still going is never
+    touched, nor anything else in `tmp`.
+    """
+    from erni.sim.team import RUN_SUBDIRS
+
+    now = time.time() if now is None else now
+    finished: list[tuple[float, Path]] = []
+    for path in tmp.glob(f"{RUN_PREFIX}*"):
+        try:
+            st = path.lstat()
+            if path.is_symlink() or not path.is_dir() or st.st_uid != os.getuid() \
+                    or not any((path / sub).is_dir() for sub in RUN_SUBDIRS):
+                continue
+            owner = path / OWNER_FILE
+            if owner.is_file():
+                if _running(owner.read_text(encoding="utf-8").strip()):
+                    continue
+            elif now - st.st_mtime < UNMARKED_AGE:
+                continue
+            finished.append((st.st_mtime, path))
+        except OSError:
+            continue
+    finished.sort(reverse=True)
+    removed = [path for _, path in finished[keep:]]
+    for path in removed:
+        shutil.rmtree(path, ignore_errors=True)
+    return removed
+
+
+def _running(pid: str) -> bool:
+    """Whether the process with this PID runs (an unreadable PID counts as running: nothing is removed)."""
+    try:
+        os.kill(int(pid), 0)
+    except ValueError:
+        return True
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
 
 
 def _print_team(team: Any, seconds: float) -> None:
