@@ -15,10 +15,7 @@ from erni.sim.scenario import find_scenario, load_scenario
 from erni.sim.team import Team
 from tests.netns.creep_helpers import assert_held, one_round
 
-# on demand (`pytest -m ondemand tests/netns/test_creep.py`, as root): it failed once in a full
-# suite run on the loaded 2-core machine, cause not yet found; the ten rounds per speed of
-# bench/bench_creep.py --netns are the measurement (BENCHMARKS.md)
-pytestmark = [pytest.mark.netns, pytest.mark.slow, pytest.mark.ondemand]
+pytestmark = [pytest.mark.netns, pytest.mark.slow]
 
 
 def test_creeping_robots_stand_inside_range_on_babelds_readings_clean_and_at_thirty_percent_loss(tmp_path):
