@@ -15,7 +15,8 @@
   sent to them for a beacon period: any session frame tells they are alive), and at most
   `beacon_fanout` of them a period: with more, each gets one less often and the beacon says
   how often, so its receiver waits as many periods longer. Only session traffic (fresh by
-  construction) marks a peer up, and a peer silent for `peer_timeout` (scaled by its announced
+  construction) marks a peer up (a peer not up shows when its signed beacon was last heard; an
+  agent running insecure has no sessions, so there any beacon marks its sender up), and a peer silent for `peer_timeout` (scaled by its announced
   interval, and stretched by the share of its numbered beacons that arrive: `liveness`) is down.
   A beacon that says nothing new (its peer up, at the same address and epoch) costs no run: the
   receive thread marks the peer heard, the liveness pass updates `last_heard`.
@@ -723,17 +724,21 @@ class TransportPlugin(Plugin[TransportSettings]):
         old = self.directory.get(name)
         address = f"{msg.reply[0]}:{msg.reply[1]}"
         beacon = msg.body if isinstance(msg.body, Beacon) else Beacon(role=msg.role)
+        now = time.time()  # a peer not up shows when its beacon was last heard (up needs a session)
         if old is None:
             peer = Peer(uid=f"peer:{name}", name=name, address=address, role=beacon.role,
-                        capabilities=beacon.capabilities)
+                        capabilities=beacon.capabilities, last_heard=now)
             self.directory[name] = peer
             self.add(peer)
             self.log.info("agent %s announces itself at %s", name, address)
         elif not old.up and old.address != address:  # a replayed beacon never moves a peer that is up
-            peer = old.evolve(address=address)
+            peer = old.evolve(address=address, last_heard=now)
             self.directory[name] = peer
             self.change(peer, reports=["moved"])
         else:
+            if not old.up and now - old.last_heard > self.settings.peer_timeout / 4:
+                self.directory[name] = old = old.evolve(last_heard=now)
+                self.change(old, reports=["heard"])
             return
         self.endpoint.send(msg.reply, "beacon", self._beacon(), reliable=False, to=name)  # starts a session
 

@@ -1058,8 +1058,9 @@ class Endpoint:
         self._filter(env.sender, env.role)
         body = body_of(env.type, env.body)
         self.count("received")
+        # no hint: without authentication a beacon is as good a sign of life as any other frame
         return Message(env.sender, env.role, (env.reply[0], env.reply[1]), self._epoch(env.sender, env.inst),
-                       env.seq, env.id, env.kind, body, hint=env.kind == "beacon")
+                       env.seq, env.id, env.kind, body)
 
     def _filter(self, sender: str, role: str) -> None:
         if self.inbound_filter is not None and not self.inbound_filter(sender, role):

@@ -409,3 +409,58 @@ def test_silences_are_looked_at_every_quarter_timeout_and_a_silent_peer_still_go
     finally:
         a.stop()
         b.stop()
+
+
+def test_agents_running_insecure_are_up_by_their_beacons_alone():
+    """The README's two-terminal example: two agents running insecure exchange nothing but beacons.
+    Without sessions no frame is more authentic than a beacon, so each sees the other up, heard
+    within a beacon period, and keeps it up while it beacons."""
+    import time
+
+    port = free_port()
+    a, b = make_agent("a", port, echo=False, insecure=True), make_agent("b", port, echo=False, insecure=True)
+    try:
+        wait_until(lambda: peers(a).get("b") and peers(a)["b"].up and peers(b).get("a") and peers(b)["a"].up,
+                   timeout=3)
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 1.5:  # 2.5 peer timeouts
+            seen = peers(a)["b"]
+            assert seen.up and time.time() - seen.last_heard < 0.6
+            time.sleep(0.05)
+    finally:
+        a.stop()
+        b.stop()
+
+
+def test_a_peer_heard_only_by_its_signed_beacons_shows_when_it_was_heard():
+    """A signed broadcast beacon is only a hint (it can be replayed): it never marks a peer up.
+    But a peer not up shows when its beacon was last heard, not `never`."""
+    import socket
+    import time
+
+    port = free_port()
+    a, b = make_agent("a", port, echo=False), make_agent("b", port, echo=False)
+    try:
+        wait_until(lambda: peers(a).get("b") and peers(a)["b"].up)
+        beacon = b""
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sniff:
+            sniff.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            sniff.bind(("", port))
+            sniff.settimeout(0.5)
+            while not beacon:
+                data, _ = sniff.recvfrom(65536)
+                if data[4:5] == b"B" and b'"b"' in data:
+                    beacon = data
+        b.stop()
+        wait_until(lambda: not peers(a)["b"].up, timeout=3)
+        down_at = peers(a)["b"].last_heard
+        address = a.plugin("transport").address
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as udp:
+            udp.sendto(beacon, address)
+            wait_until(lambda: peers(a)["b"].last_heard > down_at + 0.1, timeout=2)
+        seen = peers(a)["b"]
+        assert not seen.up, "a beacon is a hint, never a sign of life"
+        assert time.time() - seen.last_heard < 1.0
+    finally:
+        a.stop()
+        b.stop()
