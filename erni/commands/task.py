@@ -15,6 +15,10 @@ from erni.transport.wire import loads
 
 QUERY_PERIOD = 2.0  # with --wait, ask the agent for the task's state this often
 ANSWER_WAIT = 5.0  # without --wait, how long to wait for the agent to take the task or refuse it
+# through another agent (--via), a name missing from its directory fails at once; only while that
+# directory is still empty (the agent reached through just started and heard nobody yet) it is asked
+# again for this long, so `erni agent ... &` followed at once by `erni task` works
+DISCOVERY_WAIT = 4.0
 
 
 def register(sub: Any) -> None:
@@ -112,19 +116,18 @@ def _answer(args: argparse.Namespace, client: Any, addr: tuple[str, int], task: 
     start = time.monotonic()
     next_query = start + 1.0
     state = "sent"
-    if args.via:
-        client.send(addr, "peers.request", None)
+    known = _NameCheck(args, client, addr)
     while (left := start + ANSWER_WAIT - time.monotonic()) > 0:
+        known.ask()
         if time.monotonic() >= next_query:  # an update may be lost: the agent answers with the task's state
             client.send(addr, "task.query", Cancel(uid=task.uid), reliable=False)
             next_query += 1.0
         msg = client.receive(min(left, 0.2))
-        if msg is not None and msg.kind == "peers.reply" and isinstance(msg.body, PeerList):
-            unknown = _unknown(args.agent, msg.body)
-            if unknown:
-                _cancel(client, addr, task)
-                print(f"erni task: {unknown}", file=sys.stderr)
-                return 1
+        unknown = known.answered(msg)
+        if unknown:
+            _cancel(client, addr, task)
+            print(f"erni task: {unknown}", file=sys.stderr)
+            return 1
         if msg is None or msg.kind != "task.result" or not isinstance(msg.body, ResultUpdate) \
                 or msg.body.uid != task.uid:
             continue
@@ -145,6 +148,38 @@ def _answer(args: argparse.Namespace, client: Any, addr: tuple[str, int], task: 
             if state in ("sent", "pending") else f" ({state})"
         print(f"{task.uid} sent to {args.agent}: {task.describe()}{note}")
     return 0
+
+
+class _NameCheck:
+    """Through another agent (--via): whether AGENT is in its directory. Asked at once (after the
+    task went: a stop is never held up); a name missing from a directory that lists other agents is
+    a typo, not a robot still starting. An empty directory is asked again for `DISCOVERY_WAIT` s."""
+
+    def __init__(self, args: argparse.Namespace, client: Any, addr: tuple[str, int]):
+        self.agent, self.client, self.addr = args.agent, client, addr
+        self.pending = bool(args.via)
+        self.start = time.monotonic()
+        self.next_ask = self.start
+
+    def ask(self) -> None:
+        """Ask for the directory when an answer is due and none settled the question."""
+        if self.pending and time.monotonic() >= self.next_ask:
+            self.client.send(self.addr, "peers.request", None)
+            self.next_ask = time.monotonic() + 0.5
+
+    def answered(self, msg: Any) -> str:
+        """The one-line reason AGENT is no agent of the team, if `msg` is the directory that says so ('' otherwise)."""
+        if not self.pending or msg is None or msg.kind != "peers.reply" or not isinstance(msg.body, PeerList):
+            return ""
+        unknown = _unknown(self.agent, msg.body)
+        waited = time.monotonic() - self.start
+        if unknown and not msg.body.peers and waited < DISCOVERY_WAIT:
+            return ""  # nobody heard yet: ask again
+        self.pending = False
+        if unknown and not msg.body.peers:
+            return (f"no agent {self.agent} in the team: {msg.body.agent} has heard of no other agent within "
+                    f"{waited:.0f} s (is {self.agent} running, with the same discovery port?)")
+        return unknown
 
 
 def _unknown(agent: str, peers: PeerList) -> str:
@@ -170,7 +205,9 @@ def _follow(args: argparse.Namespace, client: Any, addr: tuple[str, int], task: 
     heard = start  # anything from the agent we reach the team through
     next_query = start + QUERY_PERIOD
     shown_last: dict[str, Any] | None = None
+    known = _NameCheck(args, client, addr)
     while True:
+        known.ask()
         now = time.monotonic()
         if end and now > end:
             print(f"erni task: no final result within {args.timeout:g} s; cancelling", file=sys.stderr)
@@ -187,6 +224,11 @@ def _follow(args: argparse.Namespace, client: Any, addr: tuple[str, int], task: 
         msg = client.receive(0.2)
         if msg is None:
             continue
+        unknown = known.answered(msg)
+        if unknown:
+            _cancel(client, addr, task)
+            print(f"erni task: {unknown}", file=sys.stderr)
+            return 1
         if msg.reply == addr or msg.kind in ("task.result", "task.unknown"):
             heard = time.monotonic()
         if msg.kind == "task.unknown" and isinstance(msg.body, Cancel) and msg.body.uid == task.uid:

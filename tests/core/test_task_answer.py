@@ -83,3 +83,51 @@ def test_an_agent_the_team_never_heard_of_fails_at_once(via: Any) -> None:
     assert out.returncode == 1
     assert out.stderr == "erni task: no agent robot9 in the team: control knows robot1 (`erni peers` lists them)\n"
     assert seconds < 4.5
+
+
+def test_an_agent_the_team_never_heard_of_fails_at_once_with_wait_too(via: Any) -> None:
+    out, seconds = task(via, "robot9", "BotMotion", "goto", "x=1", "y=2", "--wait")
+    assert out.returncode == 1 and out.stdout == ""
+    assert out.stderr == "erni task: no agent robot9 in the team: control knows robot1 (`erni peers` lists them)\n"
+    assert seconds < 4.5  # not the control node's task_ttl (30 s) nor the link deadline
+
+
+@pytest.mark.parametrize("wait", [False, True])
+def test_through_an_agent_that_heard_of_nobody_yet_the_name_is_given_a_discovery_wait(wait: bool) -> None:
+    """A control node just started knows nobody: the name is asked for again for DISCOVERY_WAIT s,
+    and then fails with the reason (a robot that shows up in time is tasked)."""
+    from erni.commands.task import DISCOVERY_WAIT
+
+    disc, port = free_port(), free_port()
+    control = make_agent("control", disc, echo=False, role="control", listen=f"127.0.0.1:{port}")
+    try:
+        out, seconds = task(f"127.0.0.1:{port}", "robot9", "BotMotion", "stop", *(["--wait"] if wait else []))
+    finally:
+        control.stop()
+    assert out.returncode == 1
+    assert out.stderr == (f"erni task: no agent robot9 in the team: control has heard of no other agent within "
+                          f"{DISCOVERY_WAIT:.0f} s (is robot9 running, with the same discovery port?)\n")
+    assert DISCOVERY_WAIT - 0.5 < seconds < DISCOVERY_WAIT + 3
+
+
+def test_a_robot_that_starts_with_the_command_is_tasked() -> None:
+    """`erni agent control.toml & erni agent robot.toml & erni task ...` at once: the robot is found
+    while the control node's directory is still empty."""
+    disc, port = free_port(), free_port()
+    control = make_agent("control", disc, echo=False, role="control", listen=f"127.0.0.1:{port}")
+    env = {**os.environ, "ERNI_IDENTITY": identity("cli", "cli")}
+    proc = subprocess.Popen([sys.executable, "-m", "erni", "task", "--via", f"127.0.0.1:{port}", "robot1",
+                             "BotMotion", "forward", "distance=1", "--wait"], cwd=ROOT, env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    robot = None
+    try:
+        time.sleep(0.5)
+        robot = make_agent("robot1", disc)
+        out, err = proc.communicate(timeout=30)
+    finally:
+        proc.kill()
+        if robot is not None:
+            robot.stop()
+        control.stop()
+    assert proc.returncode == 0, err
+    assert "succeeded" in out
