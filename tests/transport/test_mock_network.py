@@ -6,9 +6,10 @@ import threading
 
 import pytest
 
-from erni.blackboard import Agent, Task, TaskState
+from erni.blackboard import Task, TaskState
 from erni.blackboard.testing import wait_until
-from erni.transport import MockNetwork, TransportPlugin
+from erni.testing import MockTeam, post_task, wait_for_task
+from erni.transport import MockEndpoint, MockNetwork
 from erni.transport.wire import Message
 
 
@@ -104,33 +105,14 @@ def test_probabilities_are_checked():
 
 
 def test_transport_plugin_runs_unchanged_on_the_mock_network():
-    net = MockNetwork(seed=5, loss=0.2, jitter=0.005)
-
-    class Mocked(TransportPlugin):
-        endpoint_factory = staticmethod(net.endpoint)
-
-    agents = []
-    for name in ("control", "robot1"):
-        agent = Agent(name)
-        agent.add_plugin(Mocked, settings={"insecure": True, "discovery_port": 0, "beacon_period": 0.05,
-                                           "role": "control" if name == "control" else "robot"}, name="transport")
-        agents.append(agent)
-    control, robot = agents
-    robot.add_plugin("echo", settings={"verbs": ["BotMotion"]}, name="motion")
-    # a static peer entry pointing at the robot's mock address
-    robot.start()
-    addr = robot.plugin("transport").address
-    control.plugin("transport").settings = control.plugin("transport").settings.model_copy(
-        update={"peers": [f"robot1@{addr[0]}:{addr[1]}"]})
-    control.start()
-    try:
-        tasks = [Task(verb="BotMotion", preposition="forward", params={"distance": i + 1}, source="control",
-                      destination="robot1") for i in range(10)]
-        with control.transaction() as tx:
-            for t in tasks:
-                tx.add(t)
-        wait_until(lambda: all(control.blackboard.get(t.uid).state is TaskState.SUCCEEDED for t in tasks))
+    """`erni.testing.MockTeam` puts each agent's TransportPlugin on one MockNetwork."""
+    with MockTeam(seed=5, loss=0.2, jitter=0.005) as team:
+        control = team.add("control", role="control")
+        robot = team.add("robot1")
+        robot.add_plugin("echo", settings={"verbs": ["BotMotion"]}, name="motion")
+        team.start()
+        assert isinstance(robot.plugin("transport").endpoint, MockEndpoint)
+        tasks = [post_task(control, "BotMotion", "forward", destination="robot1", distance=i + 1) for i in range(10)]
+        for task in tasks:
+            assert wait_for_task(control, task).state is TaskState.SUCCEEDED
         assert len(robot.query(Task)) == 10
-    finally:
-        control.stop()
-        robot.stop()
