@@ -45,6 +45,7 @@ from pydantic import BaseModel
 from pydantic_core import to_json
 
 from erni.blackboard.errors import ConfigError, NetworkError
+from erni.transport.codec import DecodedHead, decode_data
 from erni.transport.identity import Identity, IdentityError, read_crl, write_public
 from erni.transport.limits import HostBuckets, Limits, TokenBucket
 from erni.transport.session import (
@@ -73,6 +74,7 @@ from erni.transport.wire import (
     REPLY,
     SESSION_END,
     UDP_MAX_FRAME,
+    EnvelopeHead,
     FrameError,
     Message,
     SeenIds,
@@ -1078,20 +1080,26 @@ class Endpoint:
             raise FrameError("session", f"unknown session {sid.hex()} (its sender or this agent restarted)")
         plain = session.open(raw)
         batch = plain[:1] == b"["
-        typed = parse_typed(plain)  # head, messages and bodies in one step, or None: the two steps below
-        if typed is not None:
-            head, items = typed
+        fast = decode_data(plain)  # msgspec: head, messages and typed bodies from the bytes, or None
+        typed = None if fast is not None else parse_typed(plain)  # pydantic in one step, or None: two steps
+        head: DecodedHead | EnvelopeHead
+        pairs: list[tuple[Any, Any]]  # each message (its seq, id, kind, type) and its body
+        if fast is not None:
+            head, pairs = fast
+        elif typed is not None:
+            head, pairs = typed[0], [(item, item.body) for item in typed[1]]
         elif batch:  # a message of the batch that does not validate is dropped alone
             head, values = parse_batch(plain)
-            items = []
+            pairs = []
             for value in values:
                 try:
-                    items.append(parse_item(value))
+                    parsed = parse_item(value)
+                    pairs.append((parsed, parsed.body))
                 except FrameError as err:
                     self._dropped(channel, err)
         else:
-            head = parse_envelope(plain)
-            items = [head]
+            envelope = parse_envelope(plain)
+            head, pairs = envelope, [(envelope, envelope.body)]
         if head.sender != session.peer or head.role != session.role or head.inst != session.inst:
             raise FrameError("auth", f"envelope names {head.sender[:64]} but the session is with {session.peer}")
         if head.to != self.name:
@@ -1100,14 +1108,16 @@ class Endpoint:
             self._confirm(session)
         self._filter(session.peer, session.role)
         msgs = []
-        for item in items:
+        checked = fast is not None or typed is not None
+        for item, body in pairs:
             try:
-                if item.kind == "crl" and isinstance(item.body, str):
+                if item.kind == "crl" and isinstance(body, str):
                     try:
-                        self._adopt_crl(base64.b64decode(item.body, validate=True), session.peer)
+                        self._adopt_crl(base64.b64decode(body, validate=True), session.peer)
                     except ValueError:
                         raise FrameError("parse", "revocation list is not base64") from None
-                body = item.body if typed else body_of(item.type, item.body)
+                if not checked:
+                    body = body_of(item.type, body)
             except FrameError as err:
                 if not batch:
                     raise

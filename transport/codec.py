@@ -1,0 +1,149 @@
+"""Typed decoding of a data frame's JSON straight from bytes, with msgspec: the receive path's codec.
+
+A frame that opens in its session is one envelope or a batch `[head, [item, ...]]` (`wire.py`).
+`decode_data` checks its head and items against msgspec structs that state the same limits as
+`wire.EnvelopeHead` and `wire.EnvelopeItem`, and builds each body into its registered pydantic
+type: a `Pose` (every robot's status, the hot path) from a msgspec struct of the same fields,
+set into the model without validating it twice; any other registered type by that type's own
+pydantic validator, from the body's bytes.
+
+It takes only the frames it can type exactly as pydantic would. Anything it refuses (an untyped
+body, an unknown type, a field outside its limits, and also a form pydantic's lax mode would
+coerce, such as a number in a string or NaN) returns None, and the pydantic parse
+(`wire.parse_typed`, then the two steps) decides and names what is wrong. So what it accepts is
+a subset of what pydantic accepts, with the same values: tests/transport/test_codec.py holds the
+two to that on generated input, and pydantic stays the plugins' and the blackboard's API.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Annotated, Any
+
+import msgspec
+from msgspec import UNSET, Meta, Raw, Struct, UnsetType
+
+from erni.blackboard import Pose
+from erni.transport.wire import TYPES, VERSION
+
+Name = Annotated[str, Meta(min_length=1, max_length=64)]
+Str64 = Annotated[str, Meta(max_length=64)]
+Str32 = Annotated[str, Meta(max_length=32)]
+
+
+class Head(Struct, kw_only=True, forbid_unknown_fields=True):
+    """`wire.EnvelopeHead`: who sent a frame, to whom, from which instance, where to answer."""
+
+    v: int = VERSION
+    sender: Name
+    role: Str32 = ""
+    to: Str64 = ""
+    inst: Str32 = ""
+    reply: tuple[str, int] = ("", 0)
+
+
+class Item(Struct, kw_only=True, forbid_unknown_fields=True):
+    """`wire.EnvelopeItem` with its body still JSON (typed after, by its tag)."""
+
+    seq: Annotated[int, Meta(ge=0)] = 0
+    id: Str64
+    kind: Str64
+    type: Str64 | None = None
+    body: Raw
+
+
+class Envelope(Struct, kw_only=True, forbid_unknown_fields=True):
+    """`wire.Envelope`: a head and one item in one object."""
+
+    v: int = VERSION
+    sender: Name
+    role: Str32 = ""
+    to: Str64 = ""
+    inst: Str32 = ""
+    reply: tuple[str, int] = ("", 0)
+    seq: Annotated[int, Meta(ge=0)] = 0
+    id: Str64
+    kind: Str64
+    type: Str64 | None = None
+    body: Raw
+
+
+class PoseBody(Struct, kw_only=True, forbid_unknown_fields=True):
+    """`blackboard.Pose`'s fields, in its order, with its types; a field left out is UNSET, so
+    the model gets pydantic's default for it and the same set of fields given."""
+
+    uid: str | UnsetType = UNSET
+    robot: str
+    x: float | UnsetType = UNSET
+    y: float | UnsetType = UNSET
+    theta: float | UnsetType = UNSET
+    v: float | UnsetType = UNSET
+    w: float | UnsetType = UNSET
+    battery: float | None | UnsetType = UNSET
+    stall_left: bool | UnsetType = UNSET
+    stall_right: bool | UnsetType = UNSET
+    bumpers: int | UnsetType = UNSET
+    motors_enabled: bool | UnsetType = UNSET
+    sonar: list[float] | UnsetType = UNSET
+    stamp: float | UnsetType = UNSET
+
+
+DecodedHead = Head | Envelope
+"""A frame's head as `decode_data` gives it: a batch's head, or the one envelope of a frame."""
+
+_frame = msgspec.json.Decoder(Envelope | tuple[Head, list[Item]])
+_pose = msgspec.json.Decoder(PoseBody)
+_set_attr = object.__setattr__
+
+
+def _pose_of(raw: Raw) -> Pose:
+    """A Pose from its JSON: what `Pose.model_validate_json` gives (msgspec.ValidationError or
+    DecodeError where this codec refuses)."""
+    values = msgspec.structs.asdict(_pose.decode(raw))
+    given = set(values)
+    if UNSET in values.values():  # fields left out: pydantic's defaults, and not among those given
+        for name, value in list(values.items()):
+            if value is UNSET:
+                if name == "uid":  # Pose's own validator names it after the robot (and counts it as given)
+                    values[name] = f"pose:{values['robot']}"
+                    continue
+                given.discard(name)
+                values[name] = time.time() if name == "stamp" else \
+                    Pose.model_fields[name].get_default(call_default_factory=True)
+    pose = Pose.__new__(Pose)
+    _set_attr(pose, "__dict__", values)
+    _set_attr(pose, "__pydantic_fields_set__", given)
+    _set_attr(pose, "__pydantic_extra__", None)
+    _set_attr(pose, "__pydantic_private__", None)
+    return pose
+
+
+def body_of(type_name: str, raw: Raw) -> Any:
+    """A body typed by its tag: a Pose by the struct above, any other registered type by its own
+    pydantic validator (it raises what that refuses). KeyError for an unknown tag."""
+    cls = TYPES[type_name]
+    if cls is Pose:
+        return _pose_of(raw)
+    return cls.__pydantic_validator__.validate_json(bytes(raw))
+
+
+def decode_data(payload: bytes) -> tuple[DecodedHead, list[tuple[Item | Envelope, Any]]] | None:
+    """A data frame's head and its items with their typed bodies, or None when this codec does not
+    take the frame (the pydantic parse then decides)."""
+    try:
+        value = _frame.decode(payload)
+        if isinstance(value, Envelope):
+            if value.type is None:
+                return None  # an untyped body: the pydantic parse reads it as plain JSON
+            return value, [(value, body_of(value.type, value.body))]
+        head, items = value
+        if not items:
+            return None
+        typed: list[tuple[Item | Envelope, Any]] = []
+        for item in items:
+            if item.type is None:
+                return None
+            typed.append((item, body_of(item.type, item.body)))
+        return head, typed
+    except Exception:  # noqa: BLE001  # any refusal (msgspec's, a validator's, an unknown tag): pydantic decides
+        return None
