@@ -139,7 +139,7 @@ def parse_address(text: str, default_port: int = 0) -> Address:
     return host, number
 
 
-@dataclass
+@dataclass(slots=True)
 class _Outgoing:
     id: str
     kind: str
@@ -264,6 +264,7 @@ class Endpoint:
         self.senders = senders
         self.queue_limit = queue_limit
         self.max_frame = max_frame
+        self._udp_frame = min(max_frame, UDP_MAX_FRAME)
         self.ack_timeout = ack_timeout
         self.connect_timeout = connect_timeout
         self.handshake_timeout = handshake_timeout or max(1.0, connect_timeout)
@@ -330,7 +331,7 @@ class Endpoint:
         self._tcp, self._udp = self._bind_pair()
         self._tcp.listen(128)
         self._tcp.setblocking(False)
-        self._udp.setblocking(False)
+        self._udp.setblocking(True)  # read by a thread blocked in recvfrom; every send on it is MSG_DONTWAIT
         self.address = self._tcp.getsockname()[:2]
         self._disc: socket.socket | None = None
         if self.discovery_port:
@@ -348,8 +349,10 @@ class Endpoint:
         self._wake_r, self._wake_w = socket.socketpair()
         self._wake_r.setblocking(False)
         rx = threading.Thread(target=self._receive_loop, name=f"erni-{self.name}-net-rx", daemon=True)
+        udp = threading.Thread(target=self._udp_loop, name=f"erni-{self.name}-net-udp", daemon=True)
         rx.start()
-        self._threads = [rx]
+        udp.start()
+        self._threads = [rx, udp]
         for i in range(self.senders):
             t = threading.Thread(target=self._send_loop, name=f"erni-{self.name}-net-tx-{i}", daemon=True)
             t.start()
@@ -407,6 +410,7 @@ class Endpoint:
             self._wake_w.send(b"x")
         except OSError:
             pass
+        self._wake_udp()
         deadline = time.monotonic() + timeout
         for t in self._threads:
             t.join(max(0.0, deadline - time.monotonic()))
@@ -416,6 +420,20 @@ class Endpoint:
             dest.sock = None
         for s in (self._udp, self._tcp, self._disc, self._wake_r, self._wake_w):
             _close(s)
+
+    def _wake_udp(self) -> None:
+        """Wake the thread blocked in the UDP socket's recvfrom, so that it sees `_stopping`: shut
+        the socket for reading (Linux wakes its readers even for an unconnected datagram socket) and,
+        in case that does not, send it an empty datagram."""
+        try:
+            self._udp.shutdown(socket.SHUT_RD)
+        except OSError:
+            pass
+        host, port = self._udp.getsockname()[:2]
+        try:
+            self._udp.sendto(b"", socket.MSG_DONTWAIT, ("127.0.0.1" if host in ("0.0.0.0", "") else host, port))
+        except OSError:
+            pass
 
     # -- sessions -------------------------------------------------------------------------
 
@@ -578,8 +596,10 @@ class Endpoint:
             return False, None
         if self.auth is None:
             return True, None
-        session = self.session_with(addr)
-        return session is not None and not (out.to and out.to != session.peer), session
+        session = self._by_addr.get(addr)  # as `session_with`, without its lock: each read is atomic, and a
+        if session is None or session.stale or session.sid not in self._by_sid:  # session dropped meanwhile
+            return False, None  # is one the peer hints about, as if the message had left a moment earlier
+        return not (out.to and out.to != session.peer), session
 
     def _send_now(self, addr: Address, out: _Outgoing) -> bool:
         """Send a fast message from the caller's thread when that cannot wait: True when it is done.
@@ -598,11 +618,31 @@ class Endpoint:
         if session is not None and (dest is not None and dest.batch is not None
                                     or time.monotonic() - self._fast_at.get(addr, -math.inf) < COALESCE):
             return self._gather(addr, out, session)  # a burst: several statuses to a datagram
-        single = self._batch(session)
-        single.add(out, self._item(out) if session is not None else b"")
-        if not self._send_datagram(addr, single):
+        if session is None:
+            single = self._batch(None)
+            single.add(out, b"")
+            sent = self._send_datagram(addr, single)
+        else:  # the common case, a status on its own: sealed and sent with nothing built around it
+            sent = self._send_one(addr, out, session)
+        if not sent:
             self.count("sent.deferred")
             return False  # the socket's buffer is full: the pool sends it when it drains
+        return True
+
+    def _send_one(self, addr: Address, out: _Outgoing, session: Session) -> bool:
+        """`_send_datagram` of one message in a session. False when the socket's buffer is full."""
+        try:
+            self._sendto(session.seal(join_envelope(self._head(session.peer), self._item(out)), self._udp_frame), addr)
+        except (BlockingIOError, InterruptedError):
+            return False
+        except FrameError as err:
+            self.count("dropped.too_big")
+            self._drops.warning("too_big", f"not sent to {addr}: {err}")
+        except OSError as err:
+            self.count("dropped.fast_error")
+            self._drops.warning("udp", f"UDP send to {addr[0]}:{addr[1]} failed: {err}")
+        else:
+            self.count("sent.fast")
         return True
 
     def _gather(self, addr: Address, out: _Outgoing, session: Session) -> bool:
@@ -640,7 +680,7 @@ class Endpoint:
     def _send_datagram(self, addr: Address, batch: _Batch) -> bool:
         """Send a batch of fast messages as one datagram. False when the socket's buffer is full
         (nothing was sent)."""
-        max_frame = min(self.max_frame, UDP_MAX_FRAME)
+        max_frame = self._udp_frame
         outs = batch.outs
         try:
             if batch.session is None:
@@ -755,7 +795,7 @@ class Endpoint:
         if self.udp_loss and self._rng.random() < self.udp_loss:
             self.count("dropped.injected")
             return
-        self._udp.sendto(frame, addr)
+        self._udp.sendto(frame, socket.MSG_DONTWAIT, addr)
 
     def _send_loop(self) -> None:
         while True:
@@ -1137,7 +1177,7 @@ class Endpoint:
             if conn is not None:
                 conn.send(frame)
             else:
-                self._udp.sendto(frame, src)
+                self._udp.sendto(frame, socket.MSG_DONTWAIT, src)
             self.count("hints.sent")
         except OSError:
             pass
@@ -1254,7 +1294,6 @@ class Endpoint:
 
     def _receive_loop(self) -> None:
         sel = selectors.DefaultSelector()
-        sel.register(self._udp, selectors.EVENT_READ, "udp")
         sel.register(self._tcp, selectors.EVENT_READ, "listen")
         sel.register(self._wake_r, selectors.EVENT_READ, "wake")
         if self._disc is not None:
@@ -1387,6 +1426,25 @@ class Endpoint:
         self._forget(lambda s: now - max(s.last_rx, s.last_tx) < limits.session_idle)
         self._reload_crl()
         return late
+
+    def _udp_loop(self) -> None:
+        """The datagrams of the endpoint's port (statuses, handshakes, hints), one at a time from a
+        blocking recvfrom: one system call a datagram and no wake-up of a selector first."""
+        udp = self._udp
+        while not self._stopping:
+            try:
+                data, src = udp.recvfrom(65536)
+            except OSError as err:
+                if self._stopping or err.errno in (errno.EBADF, errno.EINVAL, errno.ENOTSOCK):
+                    return
+                continue  # an error queued on the socket (an ICMP report ...): no datagram, nothing to do
+            if not data:
+                continue  # an empty datagram (or the wake-up of `stop`): no frame
+            got = self._accept(data, "udp", src)
+            if got is not None:
+                for msg in got[0]:
+                    if msg.kind not in INTERNAL:
+                        self._dispatch(msg)
 
     def _read_datagrams(self, sock: socket.socket) -> None:
         for _ in range(256):

@@ -195,8 +195,10 @@ def parse_hello(body: bytes) -> Hello:
         raise FrameError("parse", f"handshake field {where}: {first['msg']}") from None
 
 
-def _nonce(counter: int) -> bytes:
-    return b"\0\0\0\0" + counter.to_bytes(8, "big")
+_NONCE = struct.Struct(">4xQ")  # a frame's counter as its 12-byte nonce
+_nonce = _NONCE.pack
+_COUNTER = struct.Struct(">Q")
+_COUNTER_AT = DATA_HEADER.size - _COUNTER.size  # where a data frame's counter is
 
 
 class Session:
@@ -235,7 +237,7 @@ class Session:
         if len(frame) < DATA_HEADER.size + TAG_SIZE:
             raise FrameError("short", f"data frame of {len(frame)} bytes is shorter than a header and its tag "
                              f"({DATA_HEADER.size + TAG_SIZE} bytes; from {self.peer})")
-        counter = DATA_HEADER.unpack_from(frame)[3]
+        (counter,) = _COUNTER.unpack_from(frame, _COUNTER_AT)
         self._window.fresh(counter)  # a cheap early refusal; checked again under the lock below
         try:
             plain = self._recv.decrypt(_nonce(counter), frame[DATA_HEADER.size:], frame[:DATA_HEADER.size])

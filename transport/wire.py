@@ -341,6 +341,7 @@ class ReplayWindow:
 
     def __init__(self, size: int = 4096):
         self.size = size
+        self._mask = (1 << size) - 1
         self._top = 0
         self._bitmap = 0  # bit i: counter top - i was received
 
@@ -358,7 +359,7 @@ class ReplayWindow:
         """Record `counter` as received (after `fresh` and authentication)."""
         if counter > self._top:
             shift = counter - self._top
-            self._bitmap = ((self._bitmap << shift) | 1) & ((1 << self.size) - 1) if shift < self.size else 1
+            self._bitmap = ((self._bitmap << shift) | 1) & self._mask if shift < self.size else 1
             self._top = counter
         else:
             self._bitmap |= 1 << (self._top - counter)

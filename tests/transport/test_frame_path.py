@@ -68,11 +68,11 @@ class FullSocket:
     def __init__(self, sock: socket.socket):
         self.sock, self.full, self.refused = sock, threading.Event(), 0
 
-    def sendto(self, data: bytes, addr: Any) -> int:
+    def sendto(self, data: bytes, *flags_addr: Any) -> int:  # (data, addr) or (data, flags, addr), as a socket's
         if self.full.is_set():
             self.refused += 1
             raise BlockingIOError(11, "Resource temporarily unavailable")
-        return self.sock.sendto(data, addr)
+        return self.sock.sendto(data, *flags_addr)
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self.sock, name)
