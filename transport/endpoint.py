@@ -1,22 +1,29 @@
-"""An agent's network endpoint: one receive thread, a pool of sender threads, TCP and UDP, sessions.
+"""An agent's network endpoint: the sending side, the frame path, and the parts it is made of.
 
-Every message to a peer travels in a session with that peer's current instance (`session.py`):
-the first message to an address starts a handshake, which the sender pool drives without
-blocking (the handshake frames are retransmitted on a timer; the answer wakes the
-destination up again). Reliable messages travel over TCP, one connection per destination,
-each acknowledged by message id, retried with exponential backoff until their time to live
-runs out, and sent in order per destination (one sender thread serves a destination at a
-time). Fast messages travel as UDP datagrams from a bounded queue that drops the oldest.
-Beacons for unknown receivers are signed instead (`announce`). Nothing here ever runs inside a
-blackboard transaction, and no caller ever waits on a socket: when a session is up and nothing
-is queued for the destination, the caller's thread seals a status and hands it to the
-non-blocking UDP socket itself, and writes a reliable message on an idle connection without
-waiting (a sender thread then waits for its acknowledgement); whatever the socket does not take
-at once is queued for the sender pool, which keeps the order.
+An endpoint is these parts, each a module a reader can take alone:
 
-Before a frame is authenticated nothing is spent without a bound (`limits.py`): connections
-per host and in total, bytes of incomplete frames, idle and partial-frame timeouts, handshakes
-and beacon signatures per second.
+- `receiver.py`: the sockets and the receive loop (a thread blocked in the UDP socket's recvfrom,
+  a selector thread for TCP connections, the discovery port and the sweeps) and every bound on
+  what comes in before it is authenticated;
+- `sessions.py`: the session table, handshakes, hints and revocation (`session.py`: one
+  session's cryptography); the endpoint is its `SessionHost`, the seam another wire would fill;
+- `codec.py` and `wire.py`: frames, envelopes and typed bodies;
+- here: the frame path (one handler per kind of frame), the sender pool, fast messages and their
+  batching, reliable delivery, and signed announcements (beacons).
+
+Every message to a peer travels in a session with that peer's current instance: the first
+message to an address starts a handshake, which the sender pool drives without blocking (the
+handshake frames are retransmitted on a timer; the answer wakes the destination up again).
+Reliable messages travel over TCP, one connection per destination, each acknowledged by message
+id, retried with exponential backoff until their time to live runs out, and sent in order per
+destination (one sender thread serves a destination at a time). Fast messages travel as UDP
+datagrams from a bounded queue that drops the oldest. Beacons for unknown receivers are signed
+instead (`announce`). Nothing here ever runs inside a blackboard transaction, and no caller ever
+waits on a socket: when a session is up and nothing is queued for the destination, the caller's
+thread seals a status and hands it to the UDP socket itself (MSG_DONTWAIT), and writes a reliable
+message on an idle connection without waiting (a sender thread then waits for its
+acknowledgement); whatever the socket does not take at once is queued for the sender pool,
+which keeps the order.
 """
 
 from __future__ import annotations
@@ -24,18 +31,16 @@ from __future__ import annotations
 import base64
 import errno
 import functools
-import hashlib
 import heapq
 import itertools
 import logging
 import math
 import os
 import random
-import selectors
 import socket
 import threading
 import time
-from collections import OrderedDict, deque
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -46,20 +51,11 @@ from pydantic_core import to_json
 
 from erni.blackboard.errors import ConfigError, NetworkError
 from erni.transport.codec import DecodedHead, decode_data
-from erni.transport.identity import Identity, IdentityError, read_crl, write_public
-from erni.transport.limits import HostBuckets, Limits, TokenBucket
-from erni.transport.session import (
-    Auth,
-    IdentityAuth,
-    Initiation,
-    Session,
-    TeamKeyAuth,
-    complete,
-    cut_signed,
-    initiate,
-    parse_hello,
-    respond,
-)
+from erni.transport.identity import Identity
+from erni.transport.limits import Limits, TokenBucket
+from erni.transport.receiver import Receiver, close
+from erni.transport.session import Auth, IdentityAuth, Initiation, Session, TeamKeyAuth, cut_signed
+from erni.transport.sessions import Sessions
 from erni.transport.wire import (
     BATCH_BYTES,
     BEACON,
@@ -72,7 +68,6 @@ from erni.transport.wire import (
     KINDS,
     PLAIN,
     REPLY,
-    SESSION_END,
     UDP_MAX_FRAME,
     EnvelopeHead,
     FrameError,
@@ -94,6 +89,8 @@ from erni.transport.wire import (
 )
 
 Address = tuple[str, int]
+Accepted = tuple[list[Message], Session | None] | None
+"""What a frame brings: its messages (several in a batch of statuses) and their session, or nothing."""
 
 CLIENT_ROLE = "cli"
 """The role of a command-line client's endpoint (`erni task`, `erni watch` ...): never a peer."""
@@ -199,17 +196,6 @@ class _Batch:
         self.size += len(item) + 1
 
 
-@dataclass
-class _Conn:
-    sock: socket.socket
-    peer: Address
-    decoder: StreamDecoder
-    opened: float
-    last_frame: float
-    partial_since: float | None = None
-    authed: bool = False
-
-
 class _RateLimitedLog:
     """Log each reason at most once per `period` seconds, with the count since last time."""
 
@@ -258,7 +244,6 @@ class Endpoint:
         self.name = name
         self.identity = identity
         self.revocations = Path(revocations) if revocations else None
-        self._crl_mtime = 0.0
         self._listen = listen
         self.insecure = self.auth is None
         self.senders = senders
@@ -286,19 +271,11 @@ class Endpoint:
         self.counters: dict[str, int] = {}
         self._counter_lock = threading.Lock()
         self._seen = SeenIds()
-        # sessions (guarded by _sess_lock)
-        self._sess_lock = threading.RLock()
-        self._by_sid: OrderedDict[bytes, Session] = OrderedDict()
-        self._by_addr: dict[Address, Session] = {}
-        self._answers: dict[str, tuple[bytes, Session, float]] = {}  # digest of an 'H' -> our 'R'
-        self._initiations: dict[str, tuple[Initiation, _Dest]] = {}
-        self._completed: OrderedDict[str, None] = OrderedDict()
-        self._instances: OrderedDict[tuple[str, str], int] = OrderedDict()
-        self._last_epoch: dict[str, int] = {}
-        self._hs_hosts = HostBuckets(self.limits.handshakes_per_host)
-        self._hs_total = TokenBucket(self.limits.handshakes_total)
+        self.address: Address = listen
+        self.sessions = Sessions(self, self.auth, name, self.inst, self.limits, max_frame, self.handshake_timeout,
+                                 identity, self.revocations, self.log)
         self._beacon_bucket = TokenBucket(self.limits.beacons_total)
-        self._hint_hosts = HostBuckets(2.0)
+        self._frame_handlers = self._handlers()
         # sender pool
         self._dests: dict[Address, _Dest] = {}
         self._fast_at: dict[Address, float] = {}  # destination -> when the caller's last status to it was handled
@@ -314,7 +291,6 @@ class Endpoint:
         self.on_delivered: Callable[[Address, str], None] = lambda addr, id: None
         # would a broadcast beacon from this sender tell the owner anything? (None: always check it)
         self.hint_wanted: Callable[[str], bool] | None = None
-        self.address: Address = listen
 
     # -- counters -------------------------------------------------------------------------
 
@@ -348,8 +324,9 @@ class Endpoint:
             self._disc.setblocking(False)
         self._wake_r, self._wake_w = socket.socketpair()
         self._wake_r.setblocking(False)
-        rx = threading.Thread(target=self._receive_loop, name=f"erni-{self.name}-net-rx", daemon=True)
-        udp = threading.Thread(target=self._udp_loop, name=f"erni-{self.name}-net-udp", daemon=True)
+        receiver = Receiver(self, self._tcp, self._udp, self._disc, self._wake_r)
+        rx = threading.Thread(target=receiver.run_streams, name=f"erni-{self.name}-net-rx", daemon=True)
+        udp = threading.Thread(target=receiver.run_datagrams, name=f"erni-{self.name}-net-udp", daemon=True)
         rx.start()
         udp.start()
         self._threads = [rx, udp]
@@ -416,10 +393,10 @@ class Endpoint:
             t.join(max(0.0, deadline - time.monotonic()))
         self._threads = []
         for dest in self._dests.values():
-            _close(dest.sock)
+            close(dest.sock)
             dest.sock = None
         for s in (self._udp, self._tcp, self._disc, self._wake_r, self._wake_w):
-            _close(s)
+            close(s)
 
     def _wake_udp(self) -> None:
         """Wake the thread blocked in the UDP socket's recvfrom, so that it sees `_stopping`: shut
@@ -435,43 +412,22 @@ class Endpoint:
         except OSError:
             pass
 
-    # -- sessions -------------------------------------------------------------------------
+    # -- sessions (sessions.py), and what they need of this endpoint (`SessionHost`) -----------
 
     def session_with(self, addr: Address) -> Session | None:
         """The confirmed session used to send to `addr` now (None: the next send starts one)."""
-        with self._sess_lock:
-            session = self._by_addr.get(addr)
-            if session is None or session.stale or session.sid not in self._by_sid:
-                return None
-            return session
+        return self.sessions.current(addr)
 
-    def _epoch(self, name: str, inst: str) -> int:
-        """This receiver's count of `name`'s instances: 1, 2 ... in the order they were confirmed."""
-        key = (name, inst)
-        epoch = self._instances.get(key)
-        if epoch is None:
-            epoch = self._instances[key] = self._last_epoch.get(name, 0) + 1
-            self._last_epoch[name] = epoch
-            if len(self._instances) > 8192:
-                self._instances.popitem(last=False)
-        return epoch
+    def warn(self, reason: str, text: str) -> None:
+        self._drops.warning(reason, text)
 
-    def _confirm(self, session: Session) -> None:
-        """A session is trusted: send on it from now on; forget older instances of that peer there."""
-        with self._sess_lock:
-            session.confirmed = True
-            session.epoch = self._epoch(session.peer, session.inst)
-            self._by_sid[session.sid] = session
-            for sid, other in list(self._by_sid.items()):
-                if other is not session and other.addr == session.addr and other.inst != session.inst:
-                    del self._by_sid[sid]
-            self._by_addr[session.addr] = session
-            if len(self._by_sid) > self.limits.max_sessions:  # the least recently used go first
-                idle = sorted(self._by_sid.values(), key=lambda s: max(s.last_rx, s.last_tx))
-                for old in idle[:len(self._by_sid) - self.limits.max_sessions]:
-                    del self._by_sid[old.sid]
-        if self.identity is not None and session.crl < self.identity.trust.crl_number:
-            self._push_crl(session)
+    def send_datagram(self, frame: bytes, addr: Address) -> None:
+        self._sendto(frame, addr)
+
+    def admit(self, sender: str, role: str) -> None:
+        self._filter(sender, role)
+
+    def session_up(self, session: Session) -> None:
         with self._cond:
             dest = self._dests.get(session.addr)
             if dest is not None:
@@ -479,63 +435,20 @@ class Endpoint:
                 if dest.has_work():
                     self._make_ready(dest)
 
-    def _forget(self, keep: Callable[[Session], bool]) -> int:
-        with self._sess_lock:
-            gone = [sid for sid, s in self._by_sid.items() if not keep(s)]
-            for sid in gone:
-                session = self._by_sid.pop(sid)
-                if self._by_addr.get(session.addr) is session:
-                    del self._by_addr[session.addr]
-        return len(gone)
+    def session_lost(self, addr: Address) -> None:
+        with self._cond:
+            dest = self._dests.get(addr)
+            if dest is not None and dest.has_work():
+                self._make_ready(dest)
 
-    # -- revocation -----------------------------------------------------------------------
+    def handshake_done(self, init: Initiation) -> None:
+        with self._cond:
+            dest = self._dests.get(init.addr)
+            if dest is not None and dest.handshake is init:
+                dest.handshake = None
 
-    def _push_crl(self, session: Session) -> None:
-        assert self.identity is not None
-        der = self.identity.trust.crl_der
-        if der:
-            self.send(session.addr, "crl", base64.b64encode(der).decode(), reliable=True, to=session.peer)
-
-    def _adopt_crl(self, der: bytes, source: str) -> None:
-        """Take a newer revocation list: drop revoked peers, keep it, pass it on."""
-        if self.identity is None or not self.identity.trust.adopt(der):
-            return
-        trust = self.identity.trust
-        self.log.warning("revocation list %d from %s: %d certificate(s) revoked", trust.crl_number, source,
-                         len(trust.revoked))
-        if self.revocations is not None and source != str(self.revocations):
-            try:  # kept before it is acted on: a restart never forgets a revocation it applied
-                write_public(self.revocations, der)
-                self._crl_mtime = self.revocations.stat().st_mtime
-            except OSError as err:
-                self.log.warning("cannot keep the revocation list in %s: %s", self.revocations, err)
-        dropped = self._forget(lambda s: s.serial is None or s.serial not in trust.revoked)
-        if dropped:
-            self.count("sessions.revoked", dropped)
-        with self._sess_lock:
-            behind = [s for s in self._by_sid.values() if s.confirmed and s.crl < trust.crl_number]
-        for session in behind:
-            session.crl = trust.crl_number
-            self._push_crl(session)
-
-    def _reload_crl(self) -> None:
-        if self.revocations is None or self.identity is None:
-            return
-        try:
-            mtime = self.revocations.stat().st_mtime
-        except OSError:
-            return
-        if mtime == self._crl_mtime:
-            return
-        self._crl_mtime = mtime
-        try:
-            from cryptography.hazmat.primitives.serialization import Encoding
-
-            der = read_crl(self.revocations).public_bytes(Encoding.DER)
-        except IdentityError as err:
-            self.log.warning("%s", err)
-            return
-        self._adopt_crl(der, str(self.revocations))
+    def send_crl(self, session: Session, der: bytes) -> None:
+        self.send(session.addr, "crl", base64.b64encode(der).decode(), reliable=True, to=session.peer)
 
     # -- sending --------------------------------------------------------------------------
 
@@ -596,9 +509,9 @@ class Endpoint:
             return False, None
         if self.auth is None:
             return True, None
-        session = self._by_addr.get(addr)  # as `session_with`, without its lock: each read is atomic, and a
-        if session is None or session.stale or session.sid not in self._by_sid:  # session dropped meanwhile
-            return False, None  # is one the peer hints about, as if the message had left a moment earlier
+        session = self.sessions.usable(addr)
+        if session is None:
+            return False, None
         return not (out.to and out.to != session.peer), session
 
     def _send_now(self, addr: Address, out: _Outgoing) -> bool:
@@ -887,7 +800,7 @@ class Endpoint:
                 self.count("sent.reliable")
                 self.on_delivered(dest.addr, out.id)
             else:
-                _close(dest.sock)
+                close(dest.sock)
                 dest.sock = None
                 dest.backoff = min(self.retry_max, max(self.retry_base, dest.backoff * 2))
                 dest.next_try = time.monotonic() + dest.backoff
@@ -958,13 +871,9 @@ class Endpoint:
             with self._cond:
                 first = dest.reliable[0] if dest.reliable else dest.fast[0] if dest.fast else None
             expect = first.to if first is not None else ""
-            init = initiate(self.auth, self.inst, self.address, dest.addr, expect)
-            dest.handshake = init
-            with self._sess_lock:
-                self._initiations[init.digest] = (init, dest)
+            init = dest.handshake = self.sessions.initiate(dest.addr, expect)
         elif now - init.started > self.handshake_timeout:
-            with self._sess_lock:
-                self._initiations.pop(init.digest, None)
+            self.sessions.abandon(init)
             dest.handshake = None
             dest.hs_backoff = min(5.0, max(0.5, dest.hs_backoff * 2))
             dest.hs_not_before = now + dest.hs_backoff
@@ -1014,7 +923,7 @@ class Endpoint:
         try:
             now = time.monotonic()
             if dest.sock is not None and now - dest.sock_used > self.limits.idle_timeout / 2:
-                _close(dest.sock)  # the receiver closes idle connections: never send into one
+                close(dest.sock)  # the receiver closes idle connections: never send into one
                 dest.sock = None
             if dest.sock is None:
                 dest.sock = socket.create_connection(dest.addr, timeout=self.connect_timeout)
@@ -1031,7 +940,7 @@ class Endpoint:
                     return False
                 assert dest.decoder is not None
                 for raw in dest.decoder.feed(data):
-                    got = self._accept(raw, "tcp", dest.addr)
+                    got = self.accept_frame(raw, "tcp", dest.addr)
                     if got is not None and any(m.kind == "ack" and m.body == out.id for m in got[0]):
                         return True
                 if session is not None and session.stale:
@@ -1047,7 +956,7 @@ class Endpoint:
         self.count(f"dropped.{err.reason}")
         self._drops.warning(err.reason, f"dropped a {channel} frame: {err}")
 
-    def _accept(self, raw: bytes, channel: str, src: Address) -> tuple[list[Message], Session | None] | None:
+    def accept_frame(self, raw: bytes, channel: str, src: Address) -> Accepted:
         """Check a frame; count and log what fails; return its messages (several in a batch of
         statuses) and their session, or None. A fault of the frame path itself (any exception
         other than a FrameError) drops the frame and is logged with its traceback, rate-limited:
@@ -1063,35 +972,40 @@ class Endpoint:
                                    channel, len(raw), src[0] if src else "?")
             return None
 
-    def _accept_frame(self, raw: bytes, channel: str, src: Address) -> tuple[list[Message], Session | None] | None:
+    def _accept_frame(self, raw: bytes, channel: str, src: Address) -> Accepted:
         try:
             kind = check_frame(raw, self.max_frame)
             if self.auth is None:
                 if kind != PLAIN:
                     raise FrameError("auth", f"a {KINDS[kind]} frame at an agent running insecure")
-                msg = self._plain(raw)
-                return ([msg], None) if msg is not None else None
-            if kind == DATA:
-                return self._data(raw, channel, src)
-            if kind == HINT:  # on UDP, or on the TCP stream a sender is waiting for its ack on
-                self._on_hint(raw, src)
-                return None
-            if channel == "tcp":
+                return self._plain(raw, channel, src)
+            if channel == "tcp" and kind not in (DATA, HINT):  # a hint: on the stream a sender awaits its ack on
                 raise FrameError("parse", f"a {KINDS[kind]} frame on a TCP stream")
-            if kind == HELLO:
-                self._on_hello(raw, src)
-            elif kind == REPLY:
-                self._on_reply(raw)
-            elif kind == BEACON:
-                msg = self._on_beacon(raw)
-                return ([msg], None) if msg is not None else None
-            else:
-                raise FrameError("auth", "an unauthenticated frame (is the sender running insecure?)")
+            return self._frame_handlers[kind](raw, channel, src)
         except FrameError as err:
             self._dropped(channel, err)
         return None
 
-    def _plain(self, raw: bytes) -> Message | None:
+    def _handlers(self) -> dict[int, Callable[[bytes, str, Address], Accepted]]:
+        """The handler of each kind of frame, in a session (`wire.py` lists the kinds)."""
+        def hint(raw: bytes, channel: str, src: Address) -> Accepted:
+            self.sessions.on_hint(raw, src)
+            return None
+
+        def hello(raw: bytes, channel: str, src: Address) -> Accepted:
+            self.sessions.on_hello(raw, src)
+            return None
+
+        def reply(raw: bytes, channel: str, src: Address) -> Accepted:
+            self.sessions.on_reply(raw)
+            return None
+
+        def plain(raw: bytes, channel: str, src: Address) -> Accepted:
+            raise FrameError("auth", "an unauthenticated frame (is the sender running insecure?)")
+
+        return {DATA: self._data, HINT: hint, HELLO: hello, REPLY: reply, BEACON: self._on_beacon, PLAIN: plain}
+
+    def _plain(self, raw: bytes, channel: str, src: Address) -> Accepted:
         env = parse_envelope(raw[KIND.size:])
         if env.sender == self.name and env.inst == self.inst:
             return None  # our own beacon, heard back
@@ -1101,8 +1015,8 @@ class Endpoint:
         body = body_of(env.type, env.body)
         self.count("received")
         # no hint: without authentication a beacon is as good a sign of life as any other frame
-        return Message(env.sender, env.role, (env.reply[0], env.reply[1]), self._epoch(env.sender, env.inst),
-                       env.seq, env.id, env.kind, body)
+        return [Message(env.sender, env.role, (env.reply[0], env.reply[1]), self.sessions.epoch(env.sender, env.inst),
+                        env.seq, env.id, env.kind, body)], None
 
     def _filter(self, sender: str, role: str) -> None:
         if self.inbound_filter is not None and not self.inbound_filter(sender, role):
@@ -1114,9 +1028,9 @@ class Endpoint:
         envelope that does not validate, or that names another sender or receiver, drops the
         whole frame."""
         sid = raw[KIND.size:KIND.size + 8]
-        session = self._by_sid.get(sid)
+        session = self.sessions.by_sid.get(sid)
         if session is None:
-            self._hint(sid, src)
+            self.sessions.hint(sid, src)
             raise FrameError("session", f"unknown session {sid.hex()} (its sender or this agent restarted)")
         plain = session.open(raw)
         batch = plain[:1] == b"["
@@ -1145,7 +1059,7 @@ class Endpoint:
         if head.to != self.name:
             raise FrameError("receiver", f"frame for {head.to} arrived at {self.name}")
         if not session.confirmed:
-            self._confirm(session)
+            self.sessions.confirm(session)
         self._filter(session.peer, session.role)
         msgs = []
         checked = fast is not None or typed is not None
@@ -1153,7 +1067,7 @@ class Endpoint:
             try:
                 if item.kind == "crl" and isinstance(body, str):
                     try:
-                        self._adopt_crl(base64.b64decode(body, validate=True), session.peer)
+                        self.sessions.adopt_crl(base64.b64decode(body, validate=True), session.peer)
                     except ValueError:
                         raise FrameError("parse", "revocation list is not base64") from None
                 if not checked:
@@ -1168,111 +1082,7 @@ class Endpoint:
         self.count("received", len(msgs))
         return msgs, session
 
-    def _hint(self, sid: bytes, src: Address, conn: socket.socket | None = None) -> None:
-        """Tell a sender we do not know its session (at most twice a second per host)."""
-        if not self._hint_hosts.take(src[0]):
-            return
-        frame = KIND.pack(1 + 8, HINT) + sid
-        try:
-            if conn is not None:
-                conn.send(frame)
-            else:
-                self._udp.sendto(frame, socket.MSG_DONTWAIT, src)
-            self.count("hints.sent")
-        except OSError:
-            pass
-
-    def _on_hint(self, raw: bytes, src: Address) -> None:
-        if len(raw) != KIND.size + 8:
-            raise FrameError("size", "a hint frame is 13 bytes")
-        with self._sess_lock:
-            session = self._by_sid.get(raw[KIND.size:])
-            if session is None or session.addr[0] != src[0]:
-                return
-            now = time.monotonic()
-            if now - session.stale < 1.0:
-                return  # at most one new handshake a second for hints, which anyone can forge
-            session.stale = now
-            if self._by_addr.get(session.addr) is session:
-                del self._by_addr[session.addr]
-        self.count("hints.received")
-        with self._cond:
-            dest = self._dests.get(session.addr)
-            if dest is not None and dest.has_work():
-                self._make_ready(dest)
-
-    def _on_hello(self, raw: bytes, src: Address) -> None:
-        assert self.auth is not None
-        digest = hashlib.sha256(raw).hexdigest()
-        with self._sess_lock:
-            known = self._answers.get(digest)
-        if known is not None:  # a retransmission: the same answer again, no new keys
-            self._answer(known[0], src)
-            return
-        now = time.monotonic()
-        if not self._hs_hosts.take(src[0], now) or not self._hs_total.take(now):
-            raise FrameError("rate", f"too many handshakes from {src[0]}")
-        if len(self._answers) >= 4 * self.limits.max_connections:
-            raise FrameError("rate", "too many handshakes waiting for their first frame")
-        signed = cut_signed(raw, self.max_frame)
-        hello = parse_hello(signed.body)
-        if hello.sender == self.name and hello.inst == self.inst:
-            return
-        if hello.to and hello.to != self.name:
-            raise FrameError("receiver", f"handshake for {hello.to} arrived at {self.name}")
-        serial = self.auth.verify(signed, hello.sender, hello.role)
-        self._filter(hello.sender, hello.role)
-        frame, session = respond(self.auth, hello, raw, serial, self.inst, self.address)
-        with self._sess_lock:
-            self._answers[digest] = (frame, session, now)
-            self._by_sid[session.sid] = session
-        self.count("handshakes.answered")
-        self._answer(frame, src)
-
-    def _answer(self, frame: bytes, src: Address) -> None:
-        """Answer a handshake from the receive thread: a send error (no route to the sender yet, as
-        on a mesh whose routes are still forming) is counted and reported, never raised, so the
-        receive thread goes on; the sender retransmits its handshake."""
-        try:
-            self._sendto(frame, src)
-        except OSError as err:
-            self.count("dropped.answer")
-            self._drops.warning("udp", f"handshake answer to {src[0]}:{src[1]} failed: {err}")
-
-    def _on_reply(self, raw: bytes) -> None:
-        assert self.auth is not None
-        signed = cut_signed(raw, self.max_frame)
-        answer = parse_hello(signed.body)
-        with self._sess_lock:
-            found = self._initiations.get(answer.answers)
-            if found is None and answer.answers in self._completed:
-                return  # a second answer to a retransmitted handshake: the first one made the session
-        if found is None:
-            raise FrameError("session", "an answer to no handshake of ours")
-        init, dest = found
-        if answer.to != self.name:
-            raise FrameError("receiver", f"handshake answer for {answer.to} arrived at {self.name}")
-        serial = self.auth.verify(signed, answer.sender, answer.role)
-        if init.expect and answer.sender != init.expect:
-            raise FrameError("wrong_peer", f"{init.addr[0]}:{init.addr[1]} answered as {answer.sender}, "
-                             f"expected {init.expect}")
-        self._filter(answer.sender, answer.role)
-        session = complete(self.auth, init, answer, raw, serial)
-        with self._sess_lock:
-            if self._initiations.pop(answer.answers, None) is None:
-                return  # answered twice: the first answer made the session
-            self._completed[answer.answers] = None
-            if len(self._completed) > 256:
-                self._completed.popitem(last=False)
-            if init.addr != session.addr:
-                self._by_addr[init.addr] = session
-        with self._cond:
-            if dest.handshake is init:
-                dest.handshake = None
-        self.count("handshakes.completed")
-        self._confirm(session)
-
-    def _on_beacon(self, raw: bytes) -> Message | None:
+    def _on_beacon(self, raw: bytes, channel: str, src: Address) -> Accepted:
         assert self.auth is not None
         signed = cut_signed(raw, self.max_frame)
         env = parse_envelope(signed.body)
@@ -1289,265 +1099,37 @@ class Endpoint:
         self._filter(env.sender, env.role)
         body = body_of(env.type, env.body)
         self.count("received.beacons")
-        return Message(env.sender, env.role, (env.reply[0], env.reply[1]), 0, env.seq, env.id, env.kind,
-                       body, hint=True)
+        return [Message(env.sender, env.role, (env.reply[0], env.reply[1]), 0, env.seq, env.id, env.kind,
+                        body, hint=True)], None
 
-    def _receive_loop(self) -> None:
-        sel = selectors.DefaultSelector()
-        sel.register(self._tcp, selectors.EVENT_READ, "listen")
-        sel.register(self._wake_r, selectors.EVENT_READ, "wake")
-        if self._disc is not None:
-            sel.register(self._disc, selectors.EVENT_READ, "udp")
-        conns: dict[socket.socket, _Conn] = {}
-        per_host: dict[str, int] = {}
-        cap = self.limits.connection_cap()
-        listening = True
-        paused_until = 0.0
-        next_sweep = 0.0
-        try:
-            while not self._stopping:
-                now = time.monotonic()
-                if now >= next_sweep:
-                    next_sweep = now + 0.25
-                    for conn in self._sweep(conns, now):
-                        self._drop_conn(sel, conns, per_host, conn)
-                    if not listening and now >= paused_until:
-                        sel.register(self._tcp, selectors.EVENT_READ, "listen")
-                        listening = True
-                for key, _ in sel.select(timeout=0.25):
-                    sock, what = key.fileobj, key.data
-                    if what == "wake":
-                        return
-                    if what == "listen":
-                        if not self._accept_all(sel, conns, per_host, cap):
-                            sel.unregister(self._tcp)  # out of file descriptors: pause, do not spin
-                            listening, paused_until = False, time.monotonic() + 0.5
-                    elif what == "udp":
-                        self._read_datagrams(sock)  # type: ignore[arg-type]  # a registered socket
-                    else:
-                        conn = conns.get(sock)  # type: ignore[call-overload]  # a registered socket
-                        if conn is not None and not self._read_stream(conn, conns):
-                            self._drop_conn(sel, conns, per_host, conn)
-        finally:
-            for conn in conns.values():
-                _close(conn.sock)
-            sel.close()
+    # -- what the receive loop needs of this endpoint (`ReceiverHost`) ----------------------
 
-    def _accept_all(self, sel: selectors.BaseSelector, conns: dict[socket.socket, _Conn],
-                    per_host: dict[str, int], cap: int) -> bool:
-        """Accept waiting connections within the caps; False when out of file descriptors."""
-        for _ in range(64):
-            try:
-                sock, peer = self._tcp.accept()
-            except (BlockingIOError, InterruptedError):
-                return True
-            except OSError as err:
-                if err.errno in (errno.EMFILE, errno.ENFILE, errno.ENOBUFS, errno.ENOMEM):
-                    self.count("refused.no_files")
-                    self._drops.warning("accept", f"cannot accept a connection: {err.strerror} "
-                                        f"({len(conns)} open); pausing for 0.5 s")
-                    return False
-                return True
-            host = peer[0]
-            # full, in total or for this host: the oldest connection (of this host, when its cap is
-            # what is full) that never authenticated makes room, so idle strangers never lock out
-            # an agent or a client that authenticates at once
-            full_host = per_host.get(host, 0) >= self.limits.max_connections_per_host
-            if len(conns) >= cap or full_host:
-                stranger = min((c for c in conns.values() if not c.authed and (not full_host or c.peer[0] == host)),
-                               key=lambda c: c.opened, default=None)
-                if stranger is not None:
-                    self._drop_conn(sel, conns, per_host, stranger)
-                    self.count("closed.evicted")
-            if len(conns) >= cap or per_host.get(host, 0) >= self.limits.max_connections_per_host:
-                _close(sock)
-                self.count("refused.connections")
-                self._drops.warning("conn_cap", f"refused a connection from {host}: {len(conns)} open "
-                                    f"(cap {cap}), {per_host.get(host, 0)} from that host "
-                                    f"(cap {self.limits.max_connections_per_host})")
-                continue
-            sock.setblocking(False)
-            now = time.monotonic()
-            conns[sock] = _Conn(sock, (host, peer[1]), StreamDecoder(self.max_frame), now, now)
-            per_host[host] = per_host.get(host, 0) + 1
-            sel.register(sock, selectors.EVENT_READ, "conn")
-        return True
+    @property
+    def stopping(self) -> bool:
+        return self._stopping
 
-    def _drop_conn(self, sel: selectors.BaseSelector, conns: dict[socket.socket, _Conn],
-                   per_host: dict[str, int], conn: _Conn) -> None:
-        if conns.pop(conn.sock, None) is None:
+    def deliver(self, msg: Message) -> None:
+        if msg.kind not in INTERNAL:
+            self._dispatch(msg)
+
+    def deliver_once(self, msg: Message) -> None:
+        if msg.kind in INTERNAL:
             return
-        try:
-            sel.unregister(conn.sock)
-        except (KeyError, ValueError):
-            pass
-        _close(conn.sock)
-        left = per_host.get(conn.peer[0], 1) - 1
-        if left > 0:
-            per_host[conn.peer[0]] = left
+        if self._seen.first_time(msg.sender, msg.id):
+            self._dispatch(msg)
         else:
-            per_host.pop(conn.peer[0], None)
+            self.count("duplicates")
 
-    def _sweep(self, conns: dict[socket.socket, _Conn], now: float) -> list[_Conn]:
-        """Connections past a timeout or over the byte budget; expired handshakes and sessions."""
-        limits = self.limits
-        late: list[_Conn] = []
-        buffered = 0
-        for conn in conns.values():
-            reason = ""
-            if conn.partial_since is not None and now - conn.partial_since > limits.frame_timeout:
-                reason = f"a frame incomplete for {limits.frame_timeout:g} s"
-            elif not conn.authed and now - conn.opened > limits.frame_timeout:
-                reason = f"no authenticated frame within {limits.frame_timeout:g} s"
-            elif now - conn.last_frame > limits.idle_timeout:
-                reason = f"idle for {limits.idle_timeout:g} s"
-            if reason:
-                late.append(conn)
-                self.count("closed.timeout")
-                self._drops.warning("timeout", f"closed a connection from {conn.peer[0]}: {reason}")
-            else:
-                buffered += conn.decoder.buffered
-        while buffered > limits.buffer_budget:
-            biggest = max((c for c in conns.values() if c not in late), key=lambda c: c.decoder.buffered)
-            late.append(biggest)
-            buffered -= biggest.decoder.buffered
-            self.count("closed.budget")
-            self._drops.warning("budget", f"closed a connection from {biggest.peer[0]}: incomplete frames "
-                                f"hold more than {limits.buffer_budget} bytes")
-        with self._sess_lock:
-            for digest, (_, session, made) in list(self._answers.items()):
-                if session.confirmed or now - made > 5 * self.handshake_timeout:
-                    del self._answers[digest]
-                    if not session.confirmed:
-                        self._by_sid.pop(session.sid, None)
-            for digest, (init, _) in list(self._initiations.items()):
-                if now - init.started > 3 * self.handshake_timeout:
-                    del self._initiations[digest]
-        self._forget(lambda s: now - max(s.last_rx, s.last_tx) < limits.session_idle)
-        self._reload_crl()
-        return late
-
-    def _udp_loop(self) -> None:
-        """The datagrams of the endpoint's port (statuses, handshakes, hints), one at a time from a
-        blocking recvfrom: one system call a datagram and no wake-up of a selector first."""
-        udp = self._udp
-        while not self._stopping:
-            try:
-                data, src = udp.recvfrom(65536)
-            except OSError as err:
-                if self._stopping or err.errno in (errno.EBADF, errno.EINVAL, errno.ENOTSOCK):
-                    return
-                continue  # an error queued on the socket (an ICMP report ...): no datagram, nothing to do
-            if not data:
-                continue  # an empty datagram (or the wake-up of `stop`): no frame
-            got = self._accept(data, "udp", src)
-            if got is not None:
-                for msg in got[0]:
-                    if msg.kind not in INTERNAL:
-                        self._dispatch(msg)
-
-    def _read_datagrams(self, sock: socket.socket) -> None:
-        for _ in range(256):
-            try:
-                data, src = sock.recvfrom(65536)
-            except (BlockingIOError, InterruptedError):
-                return
-            except OSError:
-                return
-            got = self._accept(data, "udp", src)
-            for msg in got[0] if got is not None else ():
-                if msg.kind not in INTERNAL:
-                    self._dispatch(msg)
-
-    def _read_stream(self, conn: _Conn, conns: dict[socket.socket, _Conn]) -> bool:
-        try:
-            data = conn.sock.recv(65536)
-        except (BlockingIOError, InterruptedError):
-            return True
-        except OSError:
-            return False
-        if not data:
-            return False
-        try:
-            frames = conn.decoder.feed(data)
-        except FrameError as err:
-            self.count(f"dropped.{err.reason}")
-            self._drops.warning(err.reason, f"closed a TCP stream from {conn.peer[0]}: {err}")
-            return False
-        now = time.monotonic()
-        for raw in frames:
-            conn.last_frame = now
-            if not self._head_ok(raw, conn):
-                return False
-            got = self._accept(raw, "tcp", conn.peer)
-            if got is None:
-                continue
-            msgs, session = got
-            conn.authed = True
-            for msg in msgs:
-                if msg.kind == "ack":
-                    continue
-                seq = next(self._seq)
-                ack = _Outgoing(f"{self._id_prefix}{seq:x}", "ack", None, msg.id, to_json(msg.id), seq, 0.0,
-                                msg.sender)
-                try:
-                    conn.sock.sendall(self._frame(ack, session, self.max_frame))
-                except (OSError, FrameError):
-                    return False
-                if msg.kind in INTERNAL:
-                    continue
-                if self._seen.first_time(msg.sender, msg.id):
-                    self._dispatch(msg)
-                else:
-                    self.count("duplicates")
-        if conn.decoder.buffered:
-            if conn.partial_since is None:
-                conn.partial_since = now
-            head = conn.decoder.head(SESSION_END)
-            if head is not None and not self._head_ok(head, conn):
-                return False  # a frame of no session of ours: not worth waiting for
-        else:
-            conn.partial_since = None
-        return True
-
-    def _head_ok(self, head: bytes, conn: _Conn) -> bool:
-        """Whether the start of a TCP frame belongs to one of our sessions (or insecure plain frames)."""
-        kind = head[HEADER_KIND]
-        if self.auth is None:
-            if kind != PLAIN:
-                self.count("dropped.auth")
-                return False
-            return True
-        if kind != DATA:
-            self.count("dropped.parse")
-            self._drops.warning("parse", f"closed a TCP stream from {conn.peer[0]}: a "
-                                f"{KINDS.get(kind, hex(kind))} frame where data frames belong")
-            return False
-        sid = head[KIND.size:KIND.size + 8]
-        if sid not in self._by_sid:
-            self._hint(sid, conn.peer, conn.sock)
-            self.count("dropped.session")
-            self._drops.warning("session", f"closed a TCP stream from {conn.peer[0]}: unknown session "
-                                f"{sid.hex()} (its sender or this agent restarted)")
-            return False
-        return True
+    def ack_frame(self, msg: Message, session: Session | None) -> bytes:
+        seq = next(self._seq)
+        ack = _Outgoing(f"{self._id_prefix}{seq:x}", "ack", None, msg.id, to_json(msg.id), seq, 0.0, msg.sender)
+        return self._frame(ack, session, self.max_frame)
 
     def _dispatch(self, msg: Message) -> None:
         try:
             self.on_message(msg)
         except Exception:
             self.log.exception("handling %s from %s failed", msg.kind, msg.sender)
-
-
-HEADER_KIND = 4  # offset of the kind byte in a frame
-
-
-def _close(sock: socket.socket | None) -> None:
-    if sock is not None:
-        try:
-            sock.close()
-        except OSError:
-            pass
 
 
 def team_key(config_key: str | None, env_var: str = "ERNI_TEAM_KEY") -> bytes | None:

@@ -13,7 +13,7 @@ surface, a reproducer for the first crashes of each, and writes the counts to
 with a few hundred inputs through the same code.
 
 Surfaces behind sockets are driven in process, through the function the socket's reader calls:
-`Endpoint._accept` (UDP datagram or TCP frame), `ManetSnmpAgent.handle` (the node's datagram
+`Endpoint.accept_frame` (UDP datagram or TCP frame), `ManetSnmpAgent.handle` (the node's datagram
 handler), and `SnmpSource` with its UDP exchange replaced by a call to the simulated node and the
 answer decoded by the client's own `ber.decode_response`.
 """
@@ -33,7 +33,6 @@ import sys
 import tempfile
 import time
 import traceback
-import types
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -190,7 +189,7 @@ class Team:
         self.session = self.tx.session_with(self.rx.address)
 
     def accept(self, frame: bytes) -> None:
-        got = self.rx._accept(frame, "udp", ("127.0.0.1", 9))   # None or verified messages; raises nothing
+        got = self.rx.accept_frame(frame, "udp", ("127.0.0.1", 9))   # None or verified messages; raises nothing
         if got is not None and not all(m.sender == "fuzz-tx" for m in got[0]):
             raise AssertionError(f"a message from {[m.sender for m in got[0]]} through fuzz-tx's session")
 
@@ -242,7 +241,7 @@ def framed(rng: random.Random, frame: bytes, others: list[bytes]) -> bytes:
 
 @surface("frames before authentication",
          "random bytes and mutated valid frames of every kind (sealed data, sealed batch, signed handshake, "
-         "signed beacon, plain) through `Endpoint._accept` and the TCP stream cutter")
+         "signed beacon, plain) through `Endpoint.accept_frame` and the TCP stream cutter")
 def frames_before(_: argparse.Namespace) -> tuple[Gen, Check]:
     from erni.transport.session import initiate
     from erni.transport.wire import (
@@ -289,7 +288,7 @@ ENVELOPE_KEYS = ["v", "sender", "role", "to", "inst", "reply", "seq", "id", "kin
 
 @surface("frames after authentication",
          "what a key holder can send in its own session, sealed correctly: mutated valid envelopes and batches "
-         "(any field any JSON value), any JSON, any bytes; through `Endpoint._accept` (AEAD, replay window, "
+         "(any field any JSON value), any JSON, any bytes; through `Endpoint.accept_frame` (AEAD, replay window, "
          "envelope, batch and body validation)")
 def frames_after(_: argparse.Namespace) -> tuple[Gen, Check]:
     from erni.transport.wire import TYPES, EnvelopeHead
@@ -332,7 +331,7 @@ HELLO_KEYS = ["sender", "role", "to", "inst", "reply", "eph", "nonce", "crl", "a
 
 @surface("handshakes",
          "mutated signed hellos to the responder; mutated answers to a handshake of the receiver's own; hellos "
-         "and answers with any field any JSON value, correctly signed by a key holder; through `Endpoint._accept`")
+         "and answers with any field any JSON value, correctly signed by a key holder; through `Endpoint.accept_frame`")
 def handshakes(_: argparse.Namespace) -> tuple[Gen, Check]:
     from erni.transport.session import REPLY, cut_signed, initiate, parse_hello, respond
     from erni.transport.wire import HELLO
@@ -345,8 +344,8 @@ def handshakes(_: argparse.Namespace) -> tuple[Gen, Check]:
         init = initiate(rx.auth, rx.inst, rx.address, tx.address, "fuzz-tx")
         hello = parse_hello(cut_signed(init.frame, 65536).body)
         reply, _ = respond(tx.auth, hello, init.frame, None, tx.inst, tx.address)
-        with rx._sess_lock:
-            rx._initiations[init.digest] = (init, types.SimpleNamespace(handshake=init))
+        with rx.sessions.lock:
+            rx.sessions.initiations[init.digest] = init
         state.update(init=init, reply=reply, reply_json=json.loads(cut_signed(reply, 65536).body))
 
     fresh()
@@ -354,7 +353,7 @@ def handshakes(_: argparse.Namespace) -> tuple[Gen, Check]:
     hello_json = json.loads(cut_signed(hello_frame, 65536).body)
 
     def gen(rng: random.Random) -> bytes:
-        if state["init"].digest not in rx._initiations:
+        if state["init"].digest not in rx.sessions.initiations:
             fresh()   # the last answer completed (or the endpoint expired) the pending handshake
         r = rng.random()
         if r < 0.3:

@@ -115,7 +115,7 @@ def test_transport_frames(receiver, data, which, flips, cut):
     if cut and cut < len(frame):
         frame = frame[:cut]
     for candidate in (data, bytes(frame)):
-        got = rx._accept(candidate, "udp", ("127.0.0.1", 9))  # never raises: None or a verified message
+        got = rx.accept_frame(candidate, "udp", ("127.0.0.1", 9))  # never raises: None or a verified message
         assert got is None or all(m.sender == "fuzz-tx" for m in got[0])
         try:
             StreamDecoder(4096).feed(candidate)
@@ -137,7 +137,7 @@ def test_authenticated_garbage(receiver, envelope, raw):
     COUNTS["authenticated frames"] += 1
     rx, tx, session = receiver
     for payload in (json.dumps(envelope).encode(), raw):
-        got = rx._accept(session.seal(payload, 65536), "udp", ("127.0.0.1", 9))
+        got = rx.accept_frame(session.seal(payload, 65536), "udp", ("127.0.0.1", 9))
         assert got is None or all(m.sender == "fuzz-tx" for m in got[0])
 
 

@@ -125,18 +125,18 @@ def test_a_batchs_bad_message_is_dropped_alone_and_a_head_naming_another_sender_
     with session_up("fp-bad-a", "fp-bad-b") as (a, b, got):
         good = item_bytes(50, "g1", "status", "Pose", encode_body(Pose(robot="ok"))[1])
         bad_body = item_bytes(51, "g2", "status", "Pose", b'{"robot": 7}')
-        msgs, _ = b._accept(sealed_batch(a, b, [good, bad_body, b'{"v": 2}', good]), "udp", a.address)
+        msgs, _ = b.accept_frame(sealed_batch(a, b, [good, bad_body, b'{"v": 2}', good]), "udp", a.address)
         assert [m.id for m in msgs] == ["g1", "g1"]  # the good ones, the bad ones counted and named
         assert [m.sender for m in msgs] == ["fp-bad-a"] * 2 and msgs[0].body.robot == "ok"
         assert b.counters["dropped.parse"] == 2
         forged = head_bytes("someone-else", "robot", "fp-bad-b", a.inst, a.address)
-        assert b._accept(sealed_batch(a, b, [good], head=forged), "udp", a.address) is None
+        assert b.accept_frame(sealed_batch(a, b, [good], head=forged), "udp", a.address) is None
         assert b.counters["dropped.auth"] == 1
         elsewhere = head_bytes("fp-bad-a", "robot", "someone-else", a.inst, a.address)
-        assert b._accept(sealed_batch(a, b, [good], head=elsewhere), "udp", a.address) is None
+        assert b.accept_frame(sealed_batch(a, b, [good], head=elsewhere), "udp", a.address) is None
         assert b.counters["dropped.receiver"] == 1
-        assert b._accept(sealed_batch(a, b, []), "udp", a.address) is None  # no message: no batch
-        assert b._accept(sealed_batch(a, b, [good], head=b'{"v": 2}'), "udp", a.address) is None  # a bad head
+        assert b.accept_frame(sealed_batch(a, b, []), "udp", a.address) is None  # no message: no batch
+        assert b.accept_frame(sealed_batch(a, b, [good], head=b'{"v": 2}'), "udp", a.address) is None  # a bad head
         assert b.counters["dropped.parse"] == 4
 
 

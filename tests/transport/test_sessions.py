@@ -55,7 +55,7 @@ def test_a_restarted_sender_is_a_new_instance_and_its_old_sessions_go():
         a.send(b.address, "two", None, reliable=True)
         wait_until(lambda: len(got) == 2)
         assert (first.epoch, got[-1].epoch) == (1, 2), "the receiver counts the sender's instances"
-        assert sum(1 for s in b._by_sid.values() if s.peer == "alpha") == 1, "the old instance's session is gone"
+        assert sum(1 for s in b.sessions.by_sid.values() if s.peer == "alpha") == 1, "the old instance's session is gone"
     finally:
         a.stop()
         b.stop()
