@@ -7,9 +7,12 @@ An endpoint is these parts, each a module a reader can take alone:
   what comes in before it is authenticated;
 - `sessions.py`: the session table, handshakes, hints and revocation (`session.py`: one
   session's cryptography); the endpoint is its `SessionHost`, the seam another wire would fill;
+- `outbox.py`: the sender pool, a record per destination (`Dest`) and the threads that serve them;
+- `batching.py`: fast messages (statuses) from the caller's thread, gathered per datagram in a burst;
+- `reliable.py`: reliable delivery over TCP, acknowledged, retried, in order;
 - `codec.py` and `wire.py`: frames, envelopes and typed bodies;
-- here: the frame path (one handler per kind of frame), the sender pool, fast messages and their
-  batching, reliable delivery, and signed announcements (beacons).
+- here: construction and life cycle, `send` and `announce`, the frame path (one handler per kind of
+  frame: data, hint, handshake, answer, beacon) and what the parts above need of each other.
 
 Every message to a peer travels in a session with that peer's current instance: the first
 message to an address starts a handshake, which the sender pool drives without blocking (the
@@ -31,10 +34,8 @@ from __future__ import annotations
 import base64
 import errno
 import functools
-import heapq
 import itertools
 import logging
-import math
 import os
 import random
 import socket
@@ -42,7 +43,6 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -50,14 +50,16 @@ from pydantic import BaseModel
 from pydantic_core import to_json
 
 from erni.blackboard.errors import ConfigError, NetworkError
+from erni.transport.batching import FastMessages
 from erni.transport.codec import DecodedHead, decode_data
 from erni.transport.identity import Identity
 from erni.transport.limits import Limits, TokenBucket
+from erni.transport.outbox import Dest, Outgoing, SenderPool
 from erni.transport.receiver import Receiver, close
+from erni.transport.reliable import ReliableDelivery
 from erni.transport.session import Auth, IdentityAuth, Initiation, Session, TeamKeyAuth, cut_signed
 from erni.transport.sessions import Sessions
 from erni.transport.wire import (
-    BATCH_BYTES,
     BEACON,
     DATA,
     DEFAULT_MAX_FRAME,
@@ -73,14 +75,10 @@ from erni.transport.wire import (
     FrameError,
     Message,
     SeenIds,
-    StreamDecoder,
-    batch_payload,
     body_of,
     check_frame,
     encode_body,
     envelope_bytes,
-    head_bytes,
-    item_bytes,
     join_envelope,
     parse_batch,
     parse_envelope,
@@ -94,17 +92,6 @@ Accepted = tuple[list[Message], Session | None] | None
 
 CLIENT_ROLE = "cli"
 """The role of a command-line client's endpoint (`erni task`, `erni watch` ...): never a peer."""
-
-COALESCE = 20e-6
-"""A status sent to a destination less than this (s) after the caller's previous send to it
-returned is part of a burst (the caller waited for nothing in between): it is gathered with the
-burst's next ones, and the caller seals and sends each `BATCH_BYTES` of them as one datagram. A
-robot's statuses, a request waiting for its reply and a ping-pong are far slower than this: they
-go out one to a datagram, at once."""
-
-FLUSH_AFTER = 200e-6
-"""How long (s) the last, partly filled datagram of a burst waits for more before the sender
-pool sends it."""
 
 InboundFilter = Callable[[str, str], bool]
 """`(sender, role) -> bool`: whether a verified frame may be delivered (False: dropped and counted)."""
@@ -136,66 +123,6 @@ def parse_address(text: str, default_port: int = 0) -> Address:
     return host, number
 
 
-@dataclass(slots=True)
-class _Outgoing:
-    id: str
-    kind: str
-    type: str | None
-    body: Any  # as given to send(): what on_undeliverable hands back
-    data: bytes  # the body's JSON, serialised when queued
-    seq: int  # numbered when queued: a receiver orders a sender's messages as they were sent
-    deadline: float
-    to: str = ""
-    attempts: int = 0
-    written: socket.socket | None = None  # the connection the caller's thread wrote it on (`_write_now`)
-    rest: bytes = b""  # what the socket did not take then
-
-
-@dataclass
-class _Dest:
-    addr: Address
-    reliable: deque[_Outgoing] = field(default_factory=deque)
-    fast: deque[_Outgoing] = field(default_factory=deque)
-    announce: deque[_Outgoing] = field(default_factory=deque)
-    sock: socket.socket | None = None
-    sock_used: float = 0.0
-    decoder: StreamDecoder | None = None
-    busy: bool = False
-    ready: bool = False
-    again: bool = False
-    gen: int = 0
-    next_try: float = 0.0
-    backoff: float = 0.0
-    handshake: Initiation | None = None
-    hs_backoff: float = 0.0
-    hs_not_before: float = 0.0
-    batch: _Batch | None = None  # statuses of a burst the caller gathers into one datagram
-
-    def has_work(self) -> bool:
-        return bool(self.fast or self.reliable or self.announce or self.batch)
-
-
-@dataclass
-class _Batch:
-    """Fast messages gathered for one datagram: in a session, their items sealed together under
-    one head (up to `BATCH_BYTES`); without one (insecure), a single plain frame."""
-
-    session: Session | None
-    head: bytes = b""  # the envelope head the datagram's messages share
-    outs: list[_Outgoing] = field(default_factory=list)
-    items: list[bytes] = field(default_factory=list)
-    size: int = 0
-
-    def fits(self, item: bytes) -> bool:
-        """Whether a message with this item may join the datagram (`[head,[item,...]]`)."""
-        return not self.outs or self.session is not None and len(self.head) + 4 + self.size + len(item) + 1 <= BATCH_BYTES
-
-    def add(self, out: _Outgoing, item: bytes) -> None:
-        self.outs.append(out)
-        self.items.append(item)
-        self.size += len(item) + 1
-
-
 class _RateLimitedLog:
     """Log each reason at most once per `period` seconds, with the count since last time."""
 
@@ -214,7 +141,7 @@ class _RateLimitedLog:
             self._suppressed[reason] = self._suppressed.get(reason, 0) + 1
 
 
-class Endpoint:
+class Endpoint(FastMessages, ReliableDelivery, SenderPool):
     """Sockets and threads of one agent; deliver verified messages to `on_message`.
 
     Give an `identity` (per-agent certificate), or a shared team `key`, or `insecure=True`.
@@ -277,12 +204,12 @@ class Endpoint:
         self._beacon_bucket = TokenBucket(self.limits.beacons_total)
         self._frame_handlers = self._handlers()
         # sender pool
-        self._dests: dict[Address, _Dest] = {}
+        self._dests: dict[Address, Dest] = {}
         self._fast_at: dict[Address, float] = {}  # destination -> when the caller's last status to it was handled
         self._heads: dict[str, bytes] = {}  # peer -> the envelope head of messages to it (`_head`)
         self._cond = threading.Condition()
-        self._ready: deque[_Dest] = deque()
-        self._delayed: list[tuple[float, int, int, _Dest]] = []
+        self._ready: deque[Dest] = deque()
+        self._delayed: list[tuple[float, int, int, Dest]] = []
         self._tick = itertools.count()
         self._threads: list[threading.Thread] = []
         self._stopping = False
@@ -466,7 +393,7 @@ class Endpoint:
         seq = next(self._seq)
         msg_id = msg_id or f"{self._id_prefix}{seq:x}"
         type_name, data = encode_body(body)
-        out = _Outgoing(msg_id, kind, type_name, body, data, seq, time.monotonic() + (ttl or self.ttl), to or "")
+        out = Outgoing(msg_id, kind, type_name, body, data, seq, time.monotonic() + (ttl or self.ttl), to or "")
         if lane == "fast":
             sent = self._send_now(addr, out)
             self._fast_at[addr] = time.monotonic()  # a burst is told by the time until the next
@@ -499,7 +426,7 @@ class Endpoint:
             self.on_undeliverable(addr, msg_id, kind, body)
         return msg_id
 
-    def _caller_session(self, addr: Address, out: _Outgoing) -> tuple[bool, Session | None]:
+    def _caller_session(self, addr: Address, out: Outgoing) -> tuple[bool, Session | None]:
         """Whether the caller's thread may send `out` to `addr` itself, and the session to seal it in.
 
         Not while starting or stopping, and only in a confirmed session with the intended peer: a
@@ -514,188 +441,11 @@ class Endpoint:
             return False, None
         return not (out.to and out.to != session.peer), session
 
-    def _send_now(self, addr: Address, out: _Outgoing) -> bool:
-        """Send a fast message from the caller's thread when that cannot wait: True when it is done.
-
-        Only in a confirmed session (no handshake to drive), with nothing queued before it for
-        that destination, and only what the socket takes at once: the UDP socket never blocks
-        (a full send buffer raises at once), and then the message is queued for the sender pool.
-        A status of a burst (`COALESCE`) is gathered into the destination's batch instead.
-        """
-        usable, session = self._caller_session(addr, out)
-        if not usable:
-            return False
-        dest = self._dests.get(addr)
-        if dest is not None and (dest.fast or dest.announce):
-            return False  # keep the order of what is queued already
-        if session is not None and (dest is not None and dest.batch is not None
-                                    or time.monotonic() - self._fast_at.get(addr, -math.inf) < COALESCE):
-            return self._gather(addr, out, session)  # a burst: several statuses to a datagram
-        if session is None:
-            single = self._batch(None)
-            single.add(out, b"")
-            sent = self._send_datagram(addr, single)
-        else:  # the common case, a status on its own: sealed and sent with nothing built around it
-            sent = self._send_one(addr, out, session)
-        if not sent:
-            self.count("sent.deferred")
-            return False  # the socket's buffer is full: the pool sends it when it drains
-        return True
-
-    def _send_one(self, addr: Address, out: _Outgoing, session: Session) -> bool:
-        """`_send_datagram` of one message in a session. False when the socket's buffer is full."""
-        try:
-            self._sendto(session.seal(join_envelope(self._head(session.peer), self._item(out)), self._udp_frame), addr)
-        except (BlockingIOError, InterruptedError):
-            return False
-        except FrameError as err:
-            self.count("dropped.too_big")
-            self._drops.warning("too_big", f"not sent to {addr}: {err}")
-        except OSError as err:
-            self.count("dropped.fast_error")
-            self._drops.warning("udp", f"UDP send to {addr[0]}:{addr[1]} failed: {err}")
-        else:
-            self.count("sent.fast")
-        return True
-
-    def _gather(self, addr: Address, out: _Outgoing, session: Session) -> bool:
-        """Add a status of a burst to its destination's open batch; send the batch from the
-        caller's thread once the next would not fit, and leave what is left at the burst's end
-        to the sender pool (`FLUSH_AFTER`)."""
-        item = self._item(out)
-        full: _Batch | None = None
-        with self._cond:
-            if self._stopping:
-                return True
-            dest = self._dest_for(addr)
-            if dest.fast or dest.announce:
-                return False  # queued meanwhile: it goes after them, in order
-            batch = dest.batch
-            if batch is not None and (batch.session is not session or not batch.fits(item)):
-                full, batch = batch, None
-            if batch is None:
-                batch = dest.batch = self._batch(session)
-                self._schedule(dest, time.monotonic() + FLUSH_AFTER)
-            batch.add(out, item)
-        if full is not None and not self._send_datagram(addr, full):
-            self._requeue(dest, full.outs)
-            with self._cond:
-                self._make_ready(dest)
-        return True
-
-    def _dest_for(self, addr: Address) -> _Dest:
-        """The sender pool's state for `addr`, made on first use (under self._cond)."""
-        dest = self._dests.get(addr)
-        if dest is None:
-            dest = self._dests[addr] = _Dest(addr)
-        return dest
-
-    def _send_datagram(self, addr: Address, batch: _Batch) -> bool:
-        """Send a batch of fast messages as one datagram. False when the socket's buffer is full
-        (nothing was sent)."""
-        max_frame = self._udp_frame
-        outs = batch.outs
-        try:
-            if batch.session is None:
-                frame = self._frame(outs[0], None, max_frame)
-            else:
-                frame = batch.session.seal(batch_payload(batch.head, batch.items), max_frame)
-            self._sendto(frame, addr)
-        except (BlockingIOError, InterruptedError):
-            return False
-        except FrameError as err:
-            self.count("dropped.too_big")
-            self._drops.warning("too_big", f"not sent to {addr}: {err}")
-        except OSError as err:
-            self.count("dropped.fast_error")
-            self._drops.warning("udp", f"UDP send to {addr[0]}:{addr[1]} failed: {err}")
-        else:
-            self.count("sent.fast", len(outs))
-            if len(outs) > 1:
-                self.count("sent.batched", len(outs))
-        return True
-
-    def _write_now(self, addr: Address, out: _Outgoing) -> bool:
-        """Write a reliable message on its destination's open connection from the caller's thread.
-
-        Only when that destination is idle (nothing queued, no sender serving it, no backoff) in a
-        confirmed session; the write never blocks (what the socket does not take at once is left
-        to the sender), and a sender thread then waits for the acknowledgement, retries and
-        reports as for any reliable message. True when the message is queued that way.
-        """
-        usable, session = self._caller_session(addr, out)
-        if not usable:
-            return False
-        now = time.monotonic()
-        with self._cond:
-            dest = self._dests.get(addr)
-            if (dest is None or dest.busy or dest.ready or dest.has_work() or dest.sock is None
-                    or now < dest.next_try or now - dest.sock_used > self.limits.idle_timeout / 2):
-                return False
-            dest.busy = True  # no sender touches this connection while the caller writes on it
-            sock = dest.sock
-        written, frame = 0, b""
-        try:
-            frame = self._frame(out, session, self.max_frame)
-            written = os.write(sock.fileno(), frame)  # the socket is non-blocking (it has a timeout)
-        except (BlockingIOError, InterruptedError):
-            self.count("sent.deferred")
-        except (OSError, FrameError):
-            frame = b""  # a broken connection or a frame too big: the sender finds out and reports
-        with self._cond:
-            if frame:
-                out.written, out.rest = sock, frame[written:]
-                dest.sock_used = now
-                if out.rest:
-                    self.count("sent.partial")
-            dest.reliable.append(out)
-            dest.busy = dest.again = False
-            self._make_ready(dest)
-        return True
-
-    def _make_ready(self, dest: _Dest) -> None:
-        # under self._cond: serve this destination now (a delayed wake-up of it becomes stale)
-        if dest.busy:
-            dest.again = True
-        elif not dest.ready:
-            dest.gen += 1
-            dest.ready = True
-            self._ready.append(dest)
-            self._cond.notify()
-
-    def _schedule(self, dest: _Dest, when: float) -> None:
-        # under self._cond: serve this destination at `when`
-        if dest.busy or dest.ready:
-            return
-        dest.gen += 1
-        earliest = not self._delayed or when < self._delayed[0][0]
-        heapq.heappush(self._delayed, (when, next(self._tick), dest.gen, dest))
-        if earliest:  # else a sender already waits until an earlier time, and then looks again
-            self._cond.notify()
-
-    def _head(self, peer: str) -> bytes:
-        """The envelope head of every message to `peer` (our own fields, made once per peer)."""
-        head = self._heads.get(peer)
-        if head is None:
-            if len(self._heads) >= 4096:
-                self._heads.clear()
-            head = self._heads[peer] = head_bytes(self.name, self.role, peer, self.inst, self.address)
-        return head
-
-    def _batch(self, session: Session | None) -> _Batch:
-        """An empty datagram for messages to `session`'s peer, with the head they will share."""
-        if session is None:
-            return _Batch(None)
-        return _Batch(session, self._head(session.peer))
-
-    def _item(self, out: _Outgoing) -> bytes:
-        return item_bytes(out.seq, out.id, out.kind, out.type, out.data)
-
-    def _envelope(self, out: _Outgoing, to: str) -> bytes:
+    def _envelope(self, out: Outgoing, to: str) -> bytes:
         return envelope_bytes(self.name, self.role, to, self.inst, self.address, out.seq, out.id, out.kind,
                               out.type, out.data)  # our own fields: no need to validate
 
-    def _frame(self, out: _Outgoing, session: Session | None, max_frame: int) -> bytes:
+    def _frame(self, out: Outgoing, session: Session | None, max_frame: int) -> bytes:
         if session is None:
             payload = self._envelope(out, out.to)
             length = 1 + len(payload)
@@ -709,246 +459,6 @@ class Endpoint:
             self.count("dropped.injected")
             return
         self._udp.sendto(frame, socket.MSG_DONTWAIT, addr)
-
-    def _send_loop(self) -> None:
-        while True:
-            with self._cond:
-                dest: _Dest | None = None
-                while not self._stopping:
-                    now = time.monotonic()
-                    while self._delayed and self._delayed[0][0] <= now:
-                        _, _, gen, d = heapq.heappop(self._delayed)
-                        if gen == d.gen:
-                            self._make_ready(d)
-                    if self._ready:
-                        dest = self._ready.popleft()
-                        dest.ready = False
-                        dest.busy = True
-                        if self._delayed:  # this thread may have been the one waiting for the earliest
-                            self._cond.notify()
-                        break
-                    self._cond.wait(self._delayed[0][0] - now if self._delayed else None)
-                if self._stopping or dest is None:
-                    return
-            when: float | None = None
-            try:
-                when = self._service(dest)
-            except Exception:  # never lose a sender thread
-                self.log.exception("sender failed on %s:%s", *dest.addr)
-                when = time.monotonic() + self.retry_max
-            with self._cond:
-                dest.busy = False
-                again, dest.again = dest.again, False
-                if dest.has_work():
-                    if again or when is None or when <= time.monotonic():
-                        self._make_ready(dest)
-                    else:
-                        self._schedule(dest, when)
-
-    def _service(self, dest: _Dest) -> float | None:
-        """Send what can go now; return when to come back (None: when there is new work)."""
-        with self._cond:
-            batch, dest.batch = dest.batch, None
-        if batch is not None and not self._send_datagram(dest.addr, batch):
-            self._requeue(dest, batch.outs)
-            return time.monotonic() + 0.005
-        while True:  # signed announcements first: they need no session
-            with self._cond:
-                out = dest.announce.popleft() if dest.announce else None
-            if out is None:
-                break
-            self._announce(dest, out)
-        session: Session | None = None
-        if self.auth is not None:
-            session = self.session_with(dest.addr)
-            if session is None:
-                return self._handshake_step(dest)
-        while True:  # fast messages: they are cheap and never wait
-            with self._cond:
-                outs = [dest.fast.popleft() for _ in range(min(len(dest.fast), 64))]
-            if not outs:
-                break
-            retry = self._send_fast(dest, session, outs)
-            if retry is not None:
-                return retry
-        for _ in range(32):  # then a batch of reliable ones, in order
-            now = time.monotonic()
-            if now < dest.next_try:
-                return dest.next_try
-            if self._stopping or dest.fast:
-                return None  # status queued meanwhile goes first (and in the order it was queued)
-            with self._cond:
-                out = dest.reliable[0] if dest.reliable else None
-            if out is None:
-                return None
-            if self._expired(dest, out, now):
-                continue
-            if session is not None and out.to and out.to != session.peer:
-                with self._cond:
-                    dest.reliable.popleft()
-                self.count("dropped.wrong_peer")
-                self._drops.warning("wrong_peer", f"{out.kind} {out.id} not delivered: {dest.addr[0]}:"
-                                    f"{dest.addr[1]} is {session.peer}, not {out.to}")
-                self.on_undeliverable(dest.addr, out.id, out.kind, out.body)
-                continue
-            out.attempts += 1
-            if self._deliver(dest, out, session):
-                with self._cond:
-                    if dest.reliable and dest.reliable[0] is out:
-                        dest.reliable.popleft()
-                dest.backoff = 0.0
-                self.count("sent.reliable")
-                self.on_delivered(dest.addr, out.id)
-            else:
-                close(dest.sock)
-                dest.sock = None
-                dest.backoff = min(self.retry_max, max(self.retry_base, dest.backoff * 2))
-                dest.next_try = time.monotonic() + dest.backoff
-                self.count("retries")
-                if session is not None and self.session_with(dest.addr) is None:
-                    return None  # the peer does not know the session: a new handshake, at once
-                return dest.next_try
-        return None
-
-    def _send_fast(self, dest: _Dest, session: Session | None, outs: list[_Outgoing]) -> float | None:
-        """Send queued fast messages, in a session as many to a datagram as fit in `BATCH_BYTES`;
-        return when to try again if the socket's buffer is full (what is left goes back in front)."""
-        batch = self._batch(session)
-        for k, out in enumerate(outs):
-            if session is not None and out.to and out.to != session.peer:
-                self.count("dropped.wrong_peer")
-                self._drops.warning("wrong_peer", f"not sent: {dest.addr[0]}:{dest.addr[1]} is "
-                                    f"{session.peer}, not {out.to}")
-                continue
-            item = self._item(out) if session is not None else b""
-            if not batch.fits(item):
-                if not self._send_datagram(dest.addr, batch):
-                    self._requeue(dest, batch.outs + outs[k:])
-                    return time.monotonic() + 0.005
-                batch = self._batch(session)
-            batch.add(out, item)
-        if batch.outs and not self._send_datagram(dest.addr, batch):
-            self._requeue(dest, batch.outs)
-            return time.monotonic() + 0.005
-        return None
-
-    def _requeue(self, dest: _Dest, outs: list[_Outgoing]) -> None:
-        """Put fast messages the socket did not take back in front of the queue, in their order."""
-        with self._cond:
-            room = max(0, self.queue_limit - len(dest.fast))
-            dest.fast.extendleft(reversed(outs[:room]))
-            if len(outs) > room:
-                self.count("dropped.fast_oldest", len(outs) - room)
-        self.count("sent.deferred")
-
-    def _expired(self, dest: _Dest, out: _Outgoing, now: float) -> bool:
-        if now <= out.deadline:
-            return False
-        with self._cond:
-            if dest.reliable and dest.reliable[0] is out:
-                dest.reliable.popleft()
-        self.count("dropped.expired")
-        self._drops.warning("expired", f"gave up on {out.kind} {out.id} to "
-                            f"{dest.addr[0]}:{dest.addr[1]} after {out.attempts} attempt(s)")
-        self.on_undeliverable(dest.addr, out.id, out.kind, out.body)
-        return True
-
-    def _handshake_step(self, dest: _Dest) -> float | None:
-        """Start, retransmit or give up a handshake with `dest`; return when to look again."""
-        assert self.auth is not None
-        now = time.monotonic()
-        while True:
-            with self._cond:
-                out = dest.reliable[0] if dest.reliable else None
-            if out is None or not self._expired(dest, out, now):
-                break
-        if not dest.has_work():
-            return None
-        init = dest.handshake
-        if init is None:
-            if now < dest.hs_not_before:
-                return dest.hs_not_before
-            with self._cond:
-                first = dest.reliable[0] if dest.reliable else dest.fast[0] if dest.fast else None
-            expect = first.to if first is not None else ""
-            init = dest.handshake = self.sessions.initiate(dest.addr, expect)
-        elif now - init.started > self.handshake_timeout:
-            self.sessions.abandon(init)
-            dest.handshake = None
-            dest.hs_backoff = min(5.0, max(0.5, dest.hs_backoff * 2))
-            dest.hs_not_before = now + dest.hs_backoff
-            with self._cond:
-                dropped = len(dest.fast)
-                dest.fast.clear()
-            self.count("handshakes.failed")
-            if dropped:
-                self.count("dropped.no_session", dropped)
-            self._drops.warning("handshake", f"no answer to a handshake with {dest.addr[0]}:{dest.addr[1]}"
-                                f"{' (' + init.expect + ')' if init.expect else ''} within "
-                                f"{self.handshake_timeout:g} s; {dropped} status message(s) dropped")
-            return dest.hs_not_before if dest.reliable else None
-        if now >= init.next_try:
-            try:
-                self._sendto(init.frame, dest.addr)
-                self.count("handshakes.sent")
-            except OSError as err:
-                self._drops.warning("udp", f"handshake to {dest.addr[0]}:{dest.addr[1]} failed: {err}")
-            init.attempts += 1
-            init.next_try = now + 0.1 * 2 ** min(init.attempts, 3)
-        return min(init.next_try, init.started + self.handshake_timeout + 0.001)
-
-    def _announce(self, dest: _Dest, out: _Outgoing) -> None:
-        try:
-            frame = self._frame(replace(out, to=""), None, UDP_MAX_FRAME) if self.auth is None else \
-                self.auth.sign(BEACON, self._envelope(out, ""))
-            self._sendto(frame, dest.addr)
-            self.count("sent.announce")
-        except (OSError, FrameError) as err:
-            self.count("dropped.fast_error")
-            self._drops.warning("udp", f"beacon to {dest.addr[0]}:{dest.addr[1]} failed: {err}")
-
-    def _deliver(self, dest: _Dest, out: _Outgoing, session: Session | None) -> bool:
-        written, out.written = out.written, None
-        try:
-            if written is not None and written is dest.sock:
-                frame = out.rest  # written by the caller's thread (`_write_now`): the rest, then the ack
-            else:
-                frame = self._frame(out, session, self.max_frame)
-        except FrameError as err:
-            with self._cond:
-                dest.reliable.popleft()
-            self.count("dropped.too_big")
-            self._drops.warning("too_big", f"not sent: {err}")
-            return True
-        try:
-            now = time.monotonic()
-            if dest.sock is not None and now - dest.sock_used > self.limits.idle_timeout / 2:
-                close(dest.sock)  # the receiver closes idle connections: never send into one
-                dest.sock = None
-            if dest.sock is None:
-                dest.sock = socket.create_connection(dest.addr, timeout=self.connect_timeout)
-                dest.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-                dest.decoder = StreamDecoder(self.max_frame)
-            dest.sock_used = now
-            dest.sock.settimeout(self.ack_timeout)
-            if frame:
-                dest.sock.sendall(frame)
-            deadline = time.monotonic() + self.ack_timeout
-            while time.monotonic() < deadline:
-                data = dest.sock.recv(65536)
-                if not data:
-                    return False
-                assert dest.decoder is not None
-                for raw in dest.decoder.feed(data):
-                    got = self.accept_frame(raw, "tcp", dest.addr)
-                    if got is not None and any(m.kind == "ack" and m.body == out.id for m in got[0]):
-                        return True
-                if session is not None and session.stale:
-                    return False  # the peer does not know this session any more
-            return False
-        except (OSError, FrameError) as err:
-            self._drops.warning("link", f"link to {dest.addr[0]}:{dest.addr[1]} failed: {err}")
-            return False
 
     # -- receiving ------------------------------------------------------------------------
 
@@ -1122,7 +632,7 @@ class Endpoint:
 
     def ack_frame(self, msg: Message, session: Session | None) -> bytes:
         seq = next(self._seq)
-        ack = _Outgoing(f"{self._id_prefix}{seq:x}", "ack", None, msg.id, to_json(msg.id), seq, 0.0, msg.sender)
+        ack = Outgoing(f"{self._id_prefix}{seq:x}", "ack", None, msg.id, to_json(msg.id), seq, 0.0, msg.sender)
         return self._frame(ack, session, self.max_frame)
 
     def _dispatch(self, msg: Message) -> None:

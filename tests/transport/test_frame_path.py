@@ -19,8 +19,7 @@ import pytest
 from erni.blackboard import Pose
 from erni.blackboard.errors import UsageError
 from erni.blackboard.testing import wait_until
-from erni.transport import Endpoint
-from erni.transport import endpoint as endpoint_module
+from erni.transport import Endpoint, batching
 from erni.transport.identity import load_identity
 from erni.transport.limits import Limits
 from erni.transport.wire import BATCH_BYTES, encode_body, head_bytes, item_bytes
@@ -279,7 +278,7 @@ def test_a_burst_wakes_the_sender_pool_for_its_last_datagram_not_for_every_one(m
     woken for each datagram takes the interpreter lock from the caller every time (a burst then
     cost the caller about twice its own work). FLUSH_AFTER is made longer than the burst here, so
     that a pause of the test's thread on a loaded machine cannot let a flush come due mid-burst."""
-    monkeypatch.setattr(endpoint_module, "FLUSH_AFTER", 0.5)
+    monkeypatch.setattr(batching, "FLUSH_AFTER", 0.5)
     with session_up("fp-wake-a", "fp-wake-b") as (a, b, got):
         b.receive_buffer(1 << 20)
         notified = [0]

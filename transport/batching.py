@@ -1,0 +1,206 @@
+"""Fast messages (statuses): sent from the caller's thread when nothing waits before them, and
+gathered into one datagram when they come in a burst.
+
+A status on its own, in a confirmed session, with nothing queued for its destination, is sealed
+and handed to the UDP socket by the caller (`_send_one`): the socket never blocks, and what it does
+not take goes to the sender pool. A status that follows the caller's previous one to the same
+destination within `COALESCE` joins that destination's batch (`_gather`): the caller seals and sends
+each `BATCH_BYTES` of them as one datagram `[head, [item, ...]]`, the head stated once, and the
+sender pool sends the last partly filled one after `FLUSH_AFTER`. The pool sends queued statuses
+the same way (`_send_fast`); what the socket refuses goes back in front of the queue, which is
+bounded and drops the oldest.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from typing import TYPE_CHECKING
+
+from erni.transport.outbox import Batch, Dest, Outgoing
+from erni.transport.wire import FrameError, batch_payload, head_bytes, item_bytes, join_envelope
+
+if TYPE_CHECKING:
+    from erni.transport.session import Session
+
+Address = tuple[str, int]
+
+COALESCE = 20e-6
+"""A status sent to a destination less than this (s) after the caller's previous send to it
+returned is part of a burst (the caller waited for nothing in between): it is gathered with the
+burst's next ones, and the caller seals and sends each `BATCH_BYTES` of them as one datagram. A
+robot's statuses, a request waiting for its reply and a ping-pong are far slower than this: they
+go out one to a datagram, at once."""
+
+FLUSH_AFTER = 200e-6
+"""How long (s) the last, partly filled datagram of a burst waits for more before the sender
+pool sends it."""
+
+
+class FastMessages:
+    """Statuses and their batching (a mixin of `Endpoint`; what it uses of the rest is declared below)."""
+
+    if TYPE_CHECKING:
+        _cond: threading.Condition
+        _dests: dict[Address, Dest]
+        _fast_at: dict[Address, float]
+        _heads: dict[str, bytes]
+        _stopping: bool
+        _udp_frame: int
+        address: Address
+        inst: str
+        name: str
+        queue_limit: int
+        role: str
+        def _caller_session(self, addr: Address, out: Outgoing) -> tuple[bool, Session | None]: ...
+        def _dest_for(self, addr: Address) -> Dest: ...
+        def _frame(self, out: Outgoing, session: Session | None, max_frame: int) -> bytes: ...
+        def _make_ready(self, dest: Dest) -> None: ...
+        def _schedule(self, dest: Dest, when: float) -> None: ...
+        def _sendto(self, frame: bytes, addr: Address) -> None: ...
+        def count(self, name: str, n: int = 1) -> None: ...
+        def warn(self, reason: str, text: str) -> None: ...
+
+    def _send_now(self, addr: Address, out: Outgoing) -> bool:
+        """Send a fast message from the caller's thread when that cannot wait: True when it is done.
+
+        Only in a confirmed session (no handshake to drive), with nothing queued before it for
+        that destination, and only what the socket takes at once: the UDP socket never blocks
+        (a full send buffer raises at once), and then the message is queued for the sender pool.
+        A status of a burst (`COALESCE`) is gathered into the destination's batch instead.
+        """
+        usable, session = self._caller_session(addr, out)
+        if not usable:
+            return False
+        dest = self._dests.get(addr)
+        if dest is not None and (dest.fast or dest.announce):
+            return False  # keep the order of what is queued already
+        if session is not None and (dest is not None and dest.batch is not None
+                                    or time.monotonic() - self._fast_at.get(addr, -math.inf) < COALESCE):
+            return self._gather(addr, out, session)  # a burst: several statuses to a datagram
+        if session is None:
+            single = self._batch(None)
+            single.add(out, b"")
+            sent = self._send_datagram(addr, single)
+        else:  # the common case, a status on its own: sealed and sent with nothing built around it
+            sent = self._send_one(addr, out, session)
+        if not sent:
+            self.count("sent.deferred")
+            return False  # the socket's buffer is full: the pool sends it when it drains
+        return True
+
+    def _send_one(self, addr: Address, out: Outgoing, session: Session) -> bool:
+        """`_send_datagram` of one message in a session. False when the socket's buffer is full."""
+        try:
+            self._sendto(session.seal(join_envelope(self._head(session.peer), self._item(out)), self._udp_frame), addr)
+        except (BlockingIOError, InterruptedError):
+            return False
+        except FrameError as err:
+            self.count("dropped.too_big")
+            self.warn("too_big", f"not sent to {addr}: {err}")
+        except OSError as err:
+            self.count("dropped.fast_error")
+            self.warn("udp", f"UDP send to {addr[0]}:{addr[1]} failed: {err}")
+        else:
+            self.count("sent.fast")
+        return True
+
+    def _gather(self, addr: Address, out: Outgoing, session: Session) -> bool:
+        """Add a status of a burst to its destination's open batch; send the batch from the
+        caller's thread once the next would not fit, and leave what is left at the burst's end
+        to the sender pool (`FLUSH_AFTER`)."""
+        item = self._item(out)
+        full: Batch | None = None
+        with self._cond:
+            if self._stopping:
+                return True
+            dest = self._dest_for(addr)
+            if dest.fast or dest.announce:
+                return False  # queued meanwhile: it goes after them, in order
+            batch = dest.batch
+            if batch is not None and (batch.session is not session or not batch.fits(item)):
+                full, batch = batch, None
+            if batch is None:
+                batch = dest.batch = self._batch(session)
+                self._schedule(dest, time.monotonic() + FLUSH_AFTER)
+            batch.add(out, item)
+        if full is not None and not self._send_datagram(addr, full):
+            self._requeue(dest, full.outs)
+            with self._cond:
+                self._make_ready(dest)
+        return True
+
+    def _send_datagram(self, addr: Address, batch: Batch) -> bool:
+        """Send a batch of fast messages as one datagram. False when the socket's buffer is full
+        (nothing was sent)."""
+        max_frame = self._udp_frame
+        outs = batch.outs
+        try:
+            if batch.session is None:
+                frame = self._frame(outs[0], None, max_frame)
+            else:
+                frame = batch.session.seal(batch_payload(batch.head, batch.items), max_frame)
+            self._sendto(frame, addr)
+        except (BlockingIOError, InterruptedError):
+            return False
+        except FrameError as err:
+            self.count("dropped.too_big")
+            self.warn("too_big", f"not sent to {addr}: {err}")
+        except OSError as err:
+            self.count("dropped.fast_error")
+            self.warn("udp", f"UDP send to {addr[0]}:{addr[1]} failed: {err}")
+        else:
+            self.count("sent.fast", len(outs))
+            if len(outs) > 1:
+                self.count("sent.batched", len(outs))
+        return True
+
+    def _send_fast(self, dest: Dest, session: Session | None, outs: list[Outgoing]) -> float | None:
+        """Send queued fast messages, in a session as many to a datagram as fit in `BATCH_BYTES`;
+        return when to try again if the socket's buffer is full (what is left goes back in front)."""
+        batch = self._batch(session)
+        for k, out in enumerate(outs):
+            if session is not None and out.to and out.to != session.peer:
+                self.count("dropped.wrong_peer")
+                self.warn("wrong_peer", f"not sent: {dest.addr[0]}:{dest.addr[1]} is "
+                                    f"{session.peer}, not {out.to}")
+                continue
+            item = self._item(out) if session is not None else b""
+            if not batch.fits(item):
+                if not self._send_datagram(dest.addr, batch):
+                    self._requeue(dest, batch.outs + outs[k:])
+                    return time.monotonic() + 0.005
+                batch = self._batch(session)
+            batch.add(out, item)
+        if batch.outs and not self._send_datagram(dest.addr, batch):
+            self._requeue(dest, batch.outs)
+            return time.monotonic() + 0.005
+        return None
+
+    def _requeue(self, dest: Dest, outs: list[Outgoing]) -> None:
+        """Put fast messages the socket did not take back in front of the queue, in their order."""
+        with self._cond:
+            room = max(0, self.queue_limit - len(dest.fast))
+            dest.fast.extendleft(reversed(outs[:room]))
+            if len(outs) > room:
+                self.count("dropped.fast_oldest", len(outs) - room)
+        self.count("sent.deferred")
+
+    def _head(self, peer: str) -> bytes:
+        """The envelope head of every message to `peer` (our own fields, made once per peer)."""
+        head = self._heads.get(peer)
+        if head is None:
+            if len(self._heads) >= 4096:
+                self._heads.clear()
+            head = self._heads[peer] = head_bytes(self.name, self.role, peer, self.inst, self.address)
+        return head
+
+    def _batch(self, session: Session | None) -> Batch:
+        """An empty datagram for messages to `session`'s peer, with the head they will share."""
+        if session is None:
+            return Batch(None)
+        return Batch(session, self._head(session.peer))
+
+    def _item(self, out: Outgoing) -> bytes:
+        return item_bytes(out.seq, out.id, out.kind, out.type, out.data)

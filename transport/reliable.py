@@ -1,0 +1,188 @@
+"""Reliable delivery: each message over the destination's TCP connection, acknowledged by id,
+retried with exponential backoff until its time to live runs out, in order per destination.
+
+The caller's thread writes a message itself when its destination is idle (`_write_now`: never
+waiting; what the socket does not take is finished by a sender thread). A sender thread then
+waits for the acknowledgement on that connection (`_deliver`), and reports each message as
+delivered (`on_delivered`) or, past its deadline or to the wrong peer, undeliverable
+(`on_undeliverable`). A connection idle for half the receiver's idle timeout is never reused.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import threading
+import time
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
+
+from erni.transport.outbox import Dest, Outgoing
+from erni.transport.receiver import close
+from erni.transport.wire import FrameError, StreamDecoder
+
+if TYPE_CHECKING:
+    from erni.transport.limits import Limits
+    from erni.transport.session import Session
+    from erni.transport.wire import Message
+
+Address = tuple[str, int]
+
+
+class ReliableDelivery:
+    """Reliable messages (a mixin of `Endpoint`; what it uses of the rest is declared below)."""
+
+    if TYPE_CHECKING:
+        _cond: threading.Condition
+        _dests: dict[Address, Dest]
+        _stopping: bool
+        ack_timeout: float
+        connect_timeout: float
+        limits: Limits
+        max_frame: int
+        on_delivered: Callable[[Address, str], None]
+        on_undeliverable: Callable[[Address, str, str, Any], None]
+        retry_base: float
+        retry_max: float
+        def _caller_session(self, addr: Address, out: Outgoing) -> tuple[bool, Session | None]: ...
+        def _frame(self, out: Outgoing, session: Session | None, max_frame: int) -> bytes: ...
+        def _make_ready(self, dest: Dest) -> None: ...
+        def accept_frame(self, raw: bytes, channel: str, src: Address) -> tuple[list[Message], Session | None] | None: ...
+        def count(self, name: str, n: int = 1) -> None: ...
+        def session_with(self, addr: Address) -> Session | None: ...
+        def warn(self, reason: str, text: str) -> None: ...
+
+    def _write_now(self, addr: Address, out: Outgoing) -> bool:
+        """Write a reliable message on its destination's open connection from the caller's thread.
+
+        Only when that destination is idle (nothing queued, no sender serving it, no backoff) in a
+        confirmed session; the write never blocks (what the socket does not take at once is left
+        to the sender), and a sender thread then waits for the acknowledgement, retries and
+        reports as for any reliable message. True when the message is queued that way.
+        """
+        usable, session = self._caller_session(addr, out)
+        if not usable:
+            return False
+        now = time.monotonic()
+        with self._cond:
+            dest = self._dests.get(addr)
+            if (dest is None or dest.busy or dest.ready or dest.has_work() or dest.sock is None
+                    or now < dest.next_try or now - dest.sock_used > self.limits.idle_timeout / 2):
+                return False
+            dest.busy = True  # no sender touches this connection while the caller writes on it
+            sock = dest.sock
+        written, frame = 0, b""
+        try:
+            frame = self._frame(out, session, self.max_frame)
+            written = os.write(sock.fileno(), frame)  # the socket is non-blocking (it has a timeout)
+        except (BlockingIOError, InterruptedError):
+            self.count("sent.deferred")
+        except (OSError, FrameError):
+            frame = b""  # a broken connection or a frame too big: the sender finds out and reports
+        with self._cond:
+            if frame:
+                out.written, out.rest = sock, frame[written:]
+                dest.sock_used = now
+                if out.rest:
+                    self.count("sent.partial")
+            dest.reliable.append(out)
+            dest.busy = dest.again = False
+            self._make_ready(dest)
+        return True
+
+    def _send_reliable(self, dest: Dest, session: Session | None) -> float | None:
+        """Send a batch of `dest`'s reliable messages, in order, each waiting for its acknowledgement;
+        return when to come back (None: when there is new work)."""
+        for _ in range(32):  # then a batch of reliable ones, in order
+            now = time.monotonic()
+            if now < dest.next_try:
+                return dest.next_try
+            if self._stopping or dest.fast:
+                return None  # status queued meanwhile goes first (and in the order it was queued)
+            with self._cond:
+                out = dest.reliable[0] if dest.reliable else None
+            if out is None:
+                return None
+            if self._expired(dest, out, now):
+                continue
+            if session is not None and out.to and out.to != session.peer:
+                with self._cond:
+                    dest.reliable.popleft()
+                self.count("dropped.wrong_peer")
+                self.warn("wrong_peer", f"{out.kind} {out.id} not delivered: {dest.addr[0]}:"
+                                    f"{dest.addr[1]} is {session.peer}, not {out.to}")
+                self.on_undeliverable(dest.addr, out.id, out.kind, out.body)
+                continue
+            out.attempts += 1
+            if self._deliver(dest, out, session):
+                with self._cond:
+                    if dest.reliable and dest.reliable[0] is out:
+                        dest.reliable.popleft()
+                dest.backoff = 0.0
+                self.count("sent.reliable")
+                self.on_delivered(dest.addr, out.id)
+            else:
+                close(dest.sock)
+                dest.sock = None
+                dest.backoff = min(self.retry_max, max(self.retry_base, dest.backoff * 2))
+                dest.next_try = time.monotonic() + dest.backoff
+                self.count("retries")
+                if session is not None and self.session_with(dest.addr) is None:
+                    return None  # the peer does not know the session: a new handshake, at once
+                return dest.next_try
+        return None
+
+    def _deliver(self, dest: Dest, out: Outgoing, session: Session | None) -> bool:
+        written, out.written = out.written, None
+        try:
+            if written is not None and written is dest.sock:
+                frame = out.rest  # written by the caller's thread (`_write_now`): the rest, then the ack
+            else:
+                frame = self._frame(out, session, self.max_frame)
+        except FrameError as err:
+            with self._cond:
+                dest.reliable.popleft()
+            self.count("dropped.too_big")
+            self.warn("too_big", f"not sent: {err}")
+            return True
+        try:
+            now = time.monotonic()
+            if dest.sock is not None and now - dest.sock_used > self.limits.idle_timeout / 2:
+                close(dest.sock)  # the receiver closes idle connections: never send into one
+                dest.sock = None
+            if dest.sock is None:
+                dest.sock = socket.create_connection(dest.addr, timeout=self.connect_timeout)
+                dest.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+                dest.decoder = StreamDecoder(self.max_frame)
+            dest.sock_used = now
+            dest.sock.settimeout(self.ack_timeout)
+            if frame:
+                dest.sock.sendall(frame)
+            deadline = time.monotonic() + self.ack_timeout
+            while time.monotonic() < deadline:
+                data = dest.sock.recv(65536)
+                if not data:
+                    return False
+                assert dest.decoder is not None
+                for raw in dest.decoder.feed(data):
+                    got = self.accept_frame(raw, "tcp", dest.addr)
+                    if got is not None and any(m.kind == "ack" and m.body == out.id for m in got[0]):
+                        return True
+                if session is not None and session.stale:
+                    return False  # the peer does not know this session any more
+            return False
+        except (OSError, FrameError) as err:
+            self.warn("link", f"link to {dest.addr[0]}:{dest.addr[1]} failed: {err}")
+            return False
+
+    def _expired(self, dest: Dest, out: Outgoing, now: float) -> bool:
+        if now <= out.deadline:
+            return False
+        with self._cond:
+            if dest.reliable and dest.reliable[0] is out:
+                dest.reliable.popleft()
+        self.count("dropped.expired")
+        self.warn("expired", f"gave up on {out.kind} {out.id} to "
+                            f"{dest.addr[0]}:{dest.addr[1]} after {out.attempts} attempt(s)")
+        self.on_undeliverable(dest.addr, out.id, out.kind, out.body)
+        return True
