@@ -33,6 +33,7 @@ import ipaddress
 import math
 import random
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, ClassVar, NamedTuple
 
@@ -266,6 +267,7 @@ class TransportPlugin(Plugin[TransportSettings]):
             host, port = parse_address(addr)
             self.directory[name] = Peer(uid=f"peer:{name}", name=name, address=f"{host}:{port}")
             self.add(self.directory[name])
+        self._kinds = self._kind_table()
         self.endpoint.on_message = self._received
         self.endpoint.hint_wanted = self._hint_wanted
         self.endpoint.on_undeliverable = lambda addr, mid, kind, body: self.later(
@@ -473,58 +475,76 @@ class TransportPlugin(Plugin[TransportSettings]):
         except Refusal as refusal:
             self._refused(msg, refusal)
             return
-        kind, body = msg.kind, msg.body
-        if kind == "task.add" and isinstance(body, Task):
-            self._task_added(msg, body, msg.sender, msg.role)
-        elif kind == "task.relay" and isinstance(body, Relayed):
-            self._task_added(msg, body.task, body.task.source, body.role)
-        elif kind == "task.rescind" and isinstance(body, Cancel):
-            if self.received_from.get(body.uid) == msg.sender and self._board.contains(body.uid):
-                self.log.info("task %s was rescinded by %s (it no longer has it)", body.uid, msg.sender)
-                self.remove(body.uid)
-        elif kind == "task.cancel" and isinstance(body, Cancel):
-            requester = self.received_from.get(body.uid)
-            if requester is not None and requester != msg.sender:  # an operator's (`_authorized`)
-                self._cancelled_by_operator(msg, body.uid, requester)
-            elif requester == msg.sender and self._board.contains(body.uid):
-                self.remove(body.uid)
-        elif kind == "task.result" and isinstance(body, ResultUpdate):
-            self._apply_result(msg, body)
-        elif kind == "task.query" and isinstance(body, Cancel):
-            known = self._board.get(body.uid)
-            if isinstance(known, Task):
-                self.endpoint.send(msg.reply, "task.result", ResultUpdate(uid=known.uid, result=known.result
-                                                                          or AllocationResult()),
-                                   reliable=False, to=msg.sender)
-            else:
-                self.endpoint.send(msg.reply, "task.unknown", body, reliable=False, to=msg.sender)
-        elif kind == "status" and isinstance(body, BBObject):
-            self._apply_status(msg, body)
-        elif kind == "status.fresh" and isinstance(body, Fresh):
-            self._apply_fresh(msg, body)
-        elif kind == "status.resend" and isinstance(body, Cancel):
-            sent = self.whole_sent.get(body.uid)
-            if sent is not None:  # its next change goes whole again
-                sent.holders = frozenset(h for h in sent.holders if h[0] != msg.sender)
-        elif kind == "status.remove" and isinstance(body, Cancel):
-            self.status_base.pop(body.uid, None)
-            self._resend_asked.pop(body.uid, None)
-            self.status_owner.pop(body.uid, None)
-            if self.status_in.pop(body.uid, None) is not None and self.get(body.uid) is not None:
-                self.remove(body.uid)
-        elif kind == "peers.request":
-            counted = {name: count.share() for name, count in self.beacon_counts.items() if count.sent}
-            peers = PeerList(agent=self.agent_name, peers=list(self.directory.values()), beacons=counted,
-                             down_after={name: self._down_after(name) for name in self.directory})
-            self.endpoint.send(msg.reply, "peers.reply", peers, reliable=True, to=msg.sender)
-        elif kind == "watch.request" and isinstance(body, WatchRequest):
-            key = (msg.sender, msg.reply)
-            new = key not in self.watchers
-            self.watchers[key] = time.monotonic() + body.lease
-            self.watched.wakes = True
-            if new:  # start the stream with the current state
-                for obj in self.query(lambda o: isinstance(o, WATCHED)):
-                    self._watch_event(key, "add", obj)
+        handler = self._kinds.get(msg.kind)
+        if handler is not None and isinstance(msg.body, handler[0]):
+            handler[1](msg, msg.body)
+
+    def _kind_table(self) -> dict[str, tuple[type | tuple[type, ...], Callable[[Message, Any], None]]]:
+        """The handler of each kind of message, with the type its body must have (anything else is
+        not acted on: `_authorized` has already let the sender send that kind)."""
+        return {
+            "task.add": (Task, lambda msg, task: self._task_added(msg, task, msg.sender, msg.role)),
+            "task.relay": (Relayed, lambda msg, relayed: self._task_added(msg, relayed.task, relayed.task.source,
+                                                                          relayed.role)),
+            "task.rescind": (Cancel, self._on_rescind),
+            "task.cancel": (Cancel, self._on_cancel),
+            "task.result": (ResultUpdate, self._apply_result),
+            "task.query": (Cancel, self._on_query),
+            "status": (BBObject, self._apply_status),
+            "status.fresh": (Fresh, self._apply_fresh),
+            "status.resend": (Cancel, self._on_resend),
+            "status.remove": (Cancel, self._on_status_removed),
+            "peers.request": (object, self._on_peers_request),
+            "watch.request": (WatchRequest, self._on_watch_request),
+        }
+
+    def _on_rescind(self, msg: Message, body: Cancel) -> None:
+        if self.received_from.get(body.uid) == msg.sender and self._board.contains(body.uid):
+            self.log.info("task %s was rescinded by %s (it no longer has it)", body.uid, msg.sender)
+            self.remove(body.uid)
+
+    def _on_cancel(self, msg: Message, body: Cancel) -> None:
+        requester = self.received_from.get(body.uid)
+        if requester is not None and requester != msg.sender:  # an operator's (`_authorized`)
+            self._cancelled_by_operator(msg, body.uid, requester)
+        elif requester == msg.sender and self._board.contains(body.uid):
+            self.remove(body.uid)
+
+    def _on_query(self, msg: Message, body: Cancel) -> None:
+        known = self._board.get(body.uid)
+        if isinstance(known, Task):
+            self.endpoint.send(msg.reply, "task.result", ResultUpdate(uid=known.uid, result=known.result
+                                                                      or AllocationResult()),
+                               reliable=False, to=msg.sender)
+        else:
+            self.endpoint.send(msg.reply, "task.unknown", body, reliable=False, to=msg.sender)
+
+    def _on_resend(self, msg: Message, body: Cancel) -> None:
+        sent = self.whole_sent.get(body.uid)
+        if sent is not None:  # its next change goes whole again
+            sent.holders = frozenset(h for h in sent.holders if h[0] != msg.sender)
+
+    def _on_status_removed(self, msg: Message, body: Cancel) -> None:
+        self.status_base.pop(body.uid, None)
+        self._resend_asked.pop(body.uid, None)
+        self.status_owner.pop(body.uid, None)
+        if self.status_in.pop(body.uid, None) is not None and self.get(body.uid) is not None:
+            self.remove(body.uid)
+
+    def _on_peers_request(self, msg: Message, body: object) -> None:
+        counted = {name: count.share() for name, count in self.beacon_counts.items() if count.sent}
+        peers = PeerList(agent=self.agent_name, peers=list(self.directory.values()), beacons=counted,
+                         down_after={name: self._down_after(name) for name in self.directory})
+        self.endpoint.send(msg.reply, "peers.reply", peers, reliable=True, to=msg.sender)
+
+    def _on_watch_request(self, msg: Message, body: WatchRequest) -> None:
+        key = (msg.sender, msg.reply)
+        new = key not in self.watchers
+        self.watchers[key] = time.monotonic() + body.lease
+        self.watched.wakes = True
+        if new:  # start the stream with the current state
+            for obj in self.query(lambda o: isinstance(o, WATCHED)):
+                self._watch_event(key, "add", obj)
 
     # -- authorization (policy.py) ---------------------------------------------------------
 
