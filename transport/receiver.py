@@ -216,7 +216,9 @@ class Receiver:
             except OSError as err:
                 if self.host.stopping or err.errno in (errno.EBADF, errno.EINVAL, errno.ENOTSOCK):
                     return
-                continue  # an error queued on the socket (an ICMP report ...): no datagram, nothing to do
+                self.host.count("udp.errors")  # an unconnected socket reports no ICMP errors: unexpected,
+                time.sleep(0.001)  # and one that repeats (out of memory ...) must not spin this thread
+                continue
             if not data:
                 continue  # an empty datagram (or the wake-up of `stop`): no frame
             got = self.host.accept_frame(data, "udp", src)

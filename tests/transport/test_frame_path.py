@@ -295,3 +295,26 @@ def test_a_burst_wakes_the_sender_pool_for_its_last_datagram_not_for_every_one(m
         batches = a.counters["sent.batched"] // 3
         assert batches >= 50  # the burst went out several to a datagram
         assert notified[0] <= batches // 4, f"{notified[0]} wake-ups of the sender pool for {batches} datagrams"
+
+
+@pytest.mark.parametrize("host", ["127.0.0.1", "0.0.0.0"])
+def test_stop_ends_the_thread_blocked_in_recvfrom_at_once(host: str) -> None:
+    """The UDP socket is read by a thread blocked in recvfrom; stop() wakes it (the socket shut for
+    reading, an empty datagram to itself) instead of leaving it to the join's timeout."""
+    ep = Endpoint("fp-stop", insecure=True, listen=(host, 0))
+    ep.start()
+    threads = list(ep._threads)
+    assert any(t.name.endswith("-net-udp") for t in threads)
+    started = time.monotonic()
+    ep.stop(timeout=5.0)
+    assert time.monotonic() - started < 1.0
+    assert not any(t.is_alive() for t in threads)
+
+
+def test_an_empty_datagram_is_no_frame_and_the_next_status_arrives() -> None:
+    with session_up("fp-empty-a", "fp-empty-b") as (a, b, got):
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as raw:
+            raw.sendto(b"", b.address)
+        a.send(b.address, "status", Pose(robot="r9"), reliable=False, to="fp-empty-b")
+        wait_until(lambda: any(m.body.robot == "r9" for m in got))
+        assert not any(k.startswith("dropped") for k in b.counters)
