@@ -10,8 +10,9 @@ An endpoint is these parts, each a module a reader can take alone:
 - `outbox.py`: the sender pool, a record per destination (`Dest`) and the threads that serve them;
 - `batching.py`: fast messages (statuses) from the caller's thread, gathered per datagram in a burst;
 - `reliable.py`: reliable delivery over TCP, acknowledged, retried, in order;
+- `discovery.py`: signed beacons to and from agents not in session yet;
 - `codec.py` and `wire.py`: frames, envelopes and typed bodies;
-- here: construction and life cycle, `send` and `announce`, the frame path (one handler per kind of
+- here: construction and life cycle, `send`, the frame path (one handler per kind of
   frame: data, hint, handshake, answer, beacon) and what the parts above need of each other.
 
 Every message to a peer travels in a session with that peer's current instance: the first
@@ -52,12 +53,13 @@ from pydantic_core import to_json
 from erni.blackboard.errors import ConfigError, NetworkError
 from erni.transport.batching import FastMessages
 from erni.transport.codec import DecodedHead, decode_data
+from erni.transport.discovery import Beacons
 from erni.transport.identity import Identity
 from erni.transport.limits import Limits, TokenBucket
 from erni.transport.outbox import Dest, Outgoing, SenderPool
 from erni.transport.receiver import Receiver, close
 from erni.transport.reliable import ReliableDelivery
-from erni.transport.session import Auth, IdentityAuth, Initiation, Session, TeamKeyAuth, cut_signed
+from erni.transport.session import Auth, IdentityAuth, Initiation, Session, TeamKeyAuth
 from erni.transport.sessions import Sessions
 from erni.transport.wire import (
     BEACON,
@@ -141,7 +143,7 @@ class _RateLimitedLog:
             self._suppressed[reason] = self._suppressed.get(reason, 0) + 1
 
 
-class Endpoint(FastMessages, ReliableDelivery, SenderPool):
+class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
     """Sockets and threads of one agent; deliver verified messages to `on_message`.
 
     Give an `identity` (per-agent certificate), or a shared team `key`, or `insecure=True`.
@@ -384,10 +386,6 @@ class Endpoint(FastMessages, ReliableDelivery, SenderPool):
         """Queue a message for `addr` (the agent `to`, when known); return its id. Never blocks."""
         return self._enqueue(addr, kind, body, "reliable" if reliable else "fast", msg_id, ttl, to)
 
-    def announce(self, addr: Address, kind: str, body: BaseModel | Any = None) -> str:
-        """Queue a signed, sessionless datagram for receivers not known yet (beacons)."""
-        return self._enqueue(addr, kind, body, "announce", None, None, None)
-
     def _enqueue(self, addr: Address, kind: str, body: Any, lane: str, msg_id: str | None,
                  ttl: float | None, to: str | None) -> str:
         seq = next(self._seq)
@@ -591,26 +589,6 @@ class Endpoint(FastMessages, ReliableDelivery, SenderPool):
                                 item.kind, body))
         self.count("received", len(msgs))
         return msgs, session
-
-    def _on_beacon(self, raw: bytes, channel: str, src: Address) -> Accepted:
-        assert self.auth is not None
-        signed = cut_signed(raw, self.max_frame)
-        env = parse_envelope(signed.body)
-        if env.sender == self.name and env.inst == self.inst:
-            return None  # our own beacon, heard back
-        if env.kind != "beacon":
-            raise FrameError("parse", f"a signed broadcast frame of kind {env.kind[:64]!r}: beacons only")
-        if self.hint_wanted is not None and not self.hint_wanted(env.sender):
-            self.count("received.beacons.known")  # a peer in session already: its hint is not worth a signature check
-            return None
-        if not self._beacon_bucket.take():
-            raise FrameError("rate", "too many beacons to check")
-        self.auth.verify(signed, env.sender, env.role)
-        self._filter(env.sender, env.role)
-        body = body_of(env.type, env.body)
-        self.count("received.beacons")
-        return [Message(env.sender, env.role, (env.reply[0], env.reply[1]), 0, env.seq, env.id, env.kind,
-                        body, hint=True)], None
 
     # -- what the receive loop needs of this endpoint (`ReceiverHost`) ----------------------
 

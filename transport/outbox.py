@@ -19,11 +19,11 @@ import threading
 import time
 from collections import deque
 from collections.abc import Iterator
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 from erni.transport.session import Initiation
-from erni.transport.wire import BATCH_BYTES, BEACON, UDP_MAX_FRAME, FrameError, StreamDecoder
+from erni.transport.wire import BATCH_BYTES, StreamDecoder
 
 if TYPE_CHECKING:
     from erni.transport.session import Auth, Session
@@ -116,6 +116,7 @@ class SenderPool:
         def _envelope(self, out: Outgoing, to: str) -> bytes: ...
         def _expired(self, dest: Dest, out: Outgoing, now: float) -> bool: ...
         def _frame(self, out: Outgoing, session: Session | None, max_frame: int) -> bytes: ...
+        def _announce(self, dest: Dest, out: Outgoing) -> None: ...
         def _requeue(self, dest: Dest, outs: list[Outgoing]) -> None: ...
         def _send_datagram(self, addr: Address, batch: Batch) -> bool: ...
         def _send_fast(self, dest: Dest, session: Session | None, outs: list[Outgoing]) -> float | None: ...
@@ -258,13 +259,3 @@ class SenderPool:
             init.attempts += 1
             init.next_try = now + 0.1 * 2 ** min(init.attempts, 3)
         return min(init.next_try, init.started + self.handshake_timeout + 0.001)
-
-    def _announce(self, dest: Dest, out: Outgoing) -> None:
-        try:
-            frame = self._frame(replace(out, to=""), None, UDP_MAX_FRAME) if self.auth is None else \
-                self.auth.sign(BEACON, self._envelope(out, ""))
-            self._sendto(frame, dest.addr)
-            self.count("sent.announce")
-        except (OSError, FrameError) as err:
-            self.count("dropped.fast_error")
-            self.warn("udp", f"beacon to {dest.addr[0]}:{dest.addr[1]} failed: {err}")
