@@ -238,13 +238,15 @@ class Session:
             raise FrameError("short", f"data frame of {len(frame)} bytes is shorter than a header and its tag "
                              f"({DATA_HEADER.size + TAG_SIZE} bytes; from {self.peer})")
         (counter,) = _COUNTER.unpack_from(frame, _COUNTER_AT)
-        self._window.fresh(counter)  # a cheap early refusal; checked again under the lock below
+        window = self._window
+        if counter <= window.top:
+            window.fresh(counter)  # a cheap early refusal of a replay; checked again under the lock below
         try:
             plain = self._recv.decrypt(_nonce(counter), frame[DATA_HEADER.size:], frame[:DATA_HEADER.size])
         except InvalidTag:
             raise FrameError("auth", f"data frame does not authenticate in its session (from {self.peer})") from None
         with self._lock:
-            self._window.check(counter)  # again: another thread may have taken it meanwhile
+            window.check(counter)  # again: another thread may have taken it meanwhile
         self.last_rx = time.monotonic()
         return plain
 

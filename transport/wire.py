@@ -18,6 +18,7 @@ object; a batch states its head once for all its messages. Sessions and handshak
 
 from __future__ import annotations
 
+import functools
 import json
 import re
 import struct
@@ -146,8 +147,13 @@ def head_bytes(sender: str, role: str, to: str, inst: str, reply: tuple[str, int
 
 def item_bytes(seq: int, msg_id: str, kind: str, type_name: str | None, body: bytes) -> bytes:
     """The JSON of one message around its body, already serialised (`encode_body`)."""
-    head = to_json({"seq": seq, "id": msg_id, "kind": kind, "type": type_name})
-    return head[:-1] + b',"body":' + body + b"}"
+    return b'{"seq":%d,"id":%b,%b,"body":%b}' % (seq, to_json(msg_id), _kind_and_type(kind, type_name), body)
+
+
+@functools.lru_cache(maxsize=1024)
+def _kind_and_type(kind: str, type_name: str | None) -> bytes:
+    """`"kind":...,"type":...` of a message: the same for every status of a type, made once."""
+    return to_json({"kind": kind, "type": type_name})[1:-1]
 
 
 def envelope_bytes(sender: str, role: str, to: str, inst: str, reply: tuple[str, int], seq: int, msg_id: str,
@@ -342,14 +348,14 @@ class ReplayWindow:
     def __init__(self, size: int = 4096):
         self.size = size
         self._mask = (1 << size) - 1
-        self._top = 0
+        self.top = 0  # the highest counter received (0: none yet): anything above it is fresh
         self._bitmap = 0  # bit i: counter top - i was received
 
     def fresh(self, counter: int) -> None:
         """Raise FrameError('replay', ...) if `counter` was received already or is too old to tell."""
-        if counter > self._top:
+        if counter > self.top:
             return
-        offset = self._top - counter
+        offset = self.top - counter
         if offset >= self.size:
             raise FrameError("replay", f"counter {counter} is older than the window")
         if self._bitmap >> offset & 1:
@@ -357,12 +363,12 @@ class ReplayWindow:
 
     def mark(self, counter: int) -> None:
         """Record `counter` as received (after `fresh` and authentication)."""
-        if counter > self._top:
-            shift = counter - self._top
+        if counter > self.top:
+            shift = counter - self.top
             self._bitmap = ((self._bitmap << shift) | 1) & self._mask if shift < self.size else 1
-            self._top = counter
+            self.top = counter
         else:
-            self._bitmap |= 1 << (self._top - counter)
+            self._bitmap |= 1 << (self.top - counter)
 
     def check(self, counter: int) -> None:
         """`fresh` then `mark`."""

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import struct
 
 import pytest
@@ -384,3 +385,12 @@ def test_the_one_step_parse_leaves_untyped_bodies_to_the_two_steps_and_learns_ne
     register_type(Sighting)
     typed = parse_typed(sighting)
     assert typed is not None and typed[1][0].body == Sighting(what="door")
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.integers(0, 2**63), st.text(max_size=64), st.text(max_size=64), st.none() | st.text(max_size=64))
+def test_a_message_built_around_its_body_is_the_json_of_its_fields(seq, msg_id, kind, type_name):
+    body = Pose(robot="r1", x=1.5)
+    got = item_bytes(seq, msg_id, kind, type_name, encode_body(body)[1])
+    assert json.loads(got) == {"seq": seq, "id": msg_id, "kind": kind, "type": type_name,
+                               "body": json.loads(body.model_dump_json())}
