@@ -23,7 +23,6 @@ import os
 import random
 import secrets
 import shutil
-import socket
 import subprocess
 import sys
 import tempfile
@@ -101,7 +100,7 @@ def _measure(iterations: int, runs: int, period: float, rest: float, seed: int, 
     assert sim.stdout is not None
     urls = [sim.stdout.readline().split()[1] for _ in range(3)]
     key = secrets.token_hex(16)
-    port = free_port("127.0.0.1", socket.SOCK_STREAM)
+    port = free_port("127.0.0.1")
     config = run_dir / "robot.toml"
     config.write_text(agent_toml("robot", [
         ("transport", {"listen": f"127.0.0.1:{port}", "discovery_port": 0, "role": "robot"}),
@@ -135,6 +134,10 @@ def _measure(iterations: int, runs: int, period: float, rest: float, seed: int, 
         lease = 0.0
         deadline = time.monotonic() + 20
         while time.monotonic() < deadline:  # the remote agent is up when its watch streams a Pose
+            if remote.poll() is not None:  # it exited: say why, from its own log, at once
+                said = (run_dir / "robot.log").read_text(encoding="utf-8", errors="replace").strip().splitlines()
+                raise ScenarioError(f"the robot agent process exited with status {remote.returncode}: "
+                                    f"{said[-1] if said else '(nothing logged)'}; log in {run_dir}")
             client.send(("127.0.0.1", port), "watch.request", WatchRequest(lease=15.0), reliable=False)
             time.sleep(0.5)
             with lock:
