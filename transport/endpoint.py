@@ -27,6 +27,7 @@ import functools
 import hashlib
 import heapq
 import itertools
+import json
 import logging
 import math
 import os
@@ -49,6 +50,7 @@ from erni.transport.identity import Identity, IdentityError, read_crl, write_pub
 from erni.transport.limits import HostBuckets, Limits, TokenBucket
 from erni.transport.session import (
     Auth,
+    CertificateRefused,
     IdentityAuth,
     Initiation,
     Session,
@@ -70,6 +72,7 @@ from erni.transport.wire import (
     KIND,
     KINDS,
     PLAIN,
+    REFUSAL,
     REPLY,
     SESSION_END,
     UDP_MAX_FRAME,
@@ -296,6 +299,9 @@ class Endpoint:
         self._hs_total = TokenBucket(self.limits.handshakes_total)
         self._beacon_bucket = TokenBucket(self.limits.beacons_total)
         self._hint_hosts = HostBuckets(2.0)
+        self._refusal_hosts = HostBuckets(2.0)
+        self.refusals: dict[Address, str] = {}  # address -> why the agent there refused our certificate
+        self._clients: OrderedDict[Address, None] = OrderedDict()  # reply addresses of command-line clients heard
         # sender pool
         self._dests: dict[Address, _Dest] = {}
         self._fast_at: dict[Address, float] = {}  # destination -> when the caller's last status to it was handled
@@ -309,6 +315,8 @@ class Endpoint:
         self.on_message: Callable[[Message], None] = lambda msg: None
         self.on_undeliverable: Callable[[Address, str, str, Any], None] = lambda addr, id, kind, body: None
         self.on_delivered: Callable[[Address, str], None] = lambda addr, id: None
+        # the agent at an address refused our certificate (another authority's, revoked): the reason
+        self.on_refused: Callable[[Address, str], None] = lambda addr, reason: None
         # would a broadcast beacon from this sender tell the owner anything? (None: always check it)
         self.hint_wanted: Callable[[str], bool] | None = None
         self.address: Address = listen
@@ -996,8 +1004,25 @@ class Endpoint:
                     return False  # the peer does not know this session any more
             return False
         except (OSError, FrameError) as err:
+            if dest.addr in self._clients and isinstance(err, ConnectionRefusedError):
+                self._client_gone(dest)
+                return False
+            if dest.addr in self._clients and isinstance(err, ConnectionResetError | BrokenPipeError):
+                return False  # a client exiting closes its streams: the next try finds out (quietly)
             self._drops.warning("link", f"link to {dest.addr[0]}:{dest.addr[1]} failed: {err}")
             return False
+
+    def _client_gone(self, dest: _Dest) -> None:
+        """A command-line client's port refuses connections: it exited (as `erni task` does once its
+        task runs). What was queued for it is dropped at once, quietly: no retries, no warnings."""
+        with self._cond:
+            reliable, fast = list(dest.reliable), len(dest.fast)
+            dest.reliable.clear()
+            dest.fast.clear()
+        self.count("dropped.client_gone", len(reliable) + fast)
+        self.log.debug("client at %s:%d has gone: %d message(s) for it dropped", *dest.addr, len(reliable) + fast)
+        for out in reliable:
+            self.on_undeliverable(dest.addr, out.id, out.kind, out.body)
 
     # -- receiving ------------------------------------------------------------------------
 
@@ -1037,7 +1062,13 @@ class Endpoint:
             if channel == "tcp":
                 raise FrameError("parse", f"a {KINDS[kind]} frame on a TCP stream")
             if kind == HELLO:
-                self._on_hello(raw, src)
+                try:
+                    self._on_hello(raw, src)
+                except CertificateRefused as err:
+                    self._refuse(raw, src, err)
+                    raise
+            elif kind == REFUSAL:
+                self._on_refusal(raw, src)
             elif kind == REPLY:
                 self._on_reply(raw)
             elif kind == BEACON:
@@ -1131,6 +1162,42 @@ class Endpoint:
             self.count("hints.sent")
         except OSError:
             pass
+
+    def _refuse(self, hello: bytes, src: Address, err: FrameError) -> None:
+        """Tell the sender of a handshake why its certificate is not trusted here (at most twice a
+        second per host). Unsigned, but it names the handshake's digest: only who saw the handshake
+        can forge it, and the sender takes it only as the reason its handshake goes unanswered."""
+        trusted = getattr(self.auth, "trusted", None)
+        if not callable(trusted) or not self._refusal_hosts.take(src[0]):
+            return
+        note = {"answers": hashlib.sha256(hello).hexdigest(), "agent": self.name,
+                "reason": f"{str(err).partition(': ')[2]}; {self.name} trusts {trusted()}"[:400]}
+        body = json.dumps(note).encode()
+        try:
+            self._udp.sendto(KIND.pack(1 + len(body), REFUSAL) + body, src)
+            self.count("refusals.sent")
+        except OSError:
+            pass
+
+    def _on_refusal(self, raw: bytes, src: Address) -> None:
+        """A refusal of our handshake: record its reason for the address (and tell `on_refused`)."""
+        if len(raw) > KIND.size + 1024:
+            raise FrameError("size", f"a refusal of {len(raw)} bytes (at most {KIND.size + 1024})")
+        try:
+            note = json.loads(raw[KIND.size:])
+            answers, agent, reason = str(note["answers"]), str(note["agent"]), str(note["reason"])
+        except (ValueError, TypeError, KeyError):
+            raise FrameError("parse", "a refusal that is not the expected JSON object") from None
+        with self._sess_lock:
+            found = self._initiations.get(answers)
+        if found is None or found[0].addr != src:
+            raise FrameError("session", "a refusal of no handshake of ours")
+        why = f"{agent[:64]} at {src[0]}:{src[1]} refused this agent's certificate: {' '.join(reason[:400].split())}"
+        self.count("refusals.received")
+        if self.refusals.get(src) != why:
+            self.refusals[src] = why
+            self.log.warning("%s", why)
+        self.on_refused(src, why)
 
     def _on_hint(self, raw: bytes, src: Address) -> None:
         if len(raw) != KIND.size + 8:
@@ -1465,6 +1532,10 @@ class Endpoint:
         return True
 
     def _dispatch(self, msg: Message) -> None:
+        if msg.role == CLIENT_ROLE and msg.reply not in self._clients:
+            self._clients[msg.reply] = None
+            if len(self._clients) > 1024:
+                self._clients.popitem(last=False)
         try:
             self.on_message(msg)
         except Exception:
