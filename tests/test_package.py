@@ -177,17 +177,12 @@ def test_the_documented_smallest_plugin_is_strictly_typed(tmp_path: Path) -> Non
 
 
 def test_the_documented_smallest_plugin_runs() -> None:
-    from erni import Agent, Task, TaskState
-    from erni.blackboard.testing import wait_until
+    from erni import TaskState
+    from erni.testing import agent_with, run_task
 
     namespace: dict[str, object] = {}
     exec(compile(_smallest_plugin(), "docs/plugins.md", "exec"), namespace)
-    agent = Agent("robot1", workers=1)
-    agent.add_plugin(namespace["Greeter"], settings={"greeting": "hi"})  # type: ignore[call-overload]
-    goto = Task(verb="BotMotion", preposition="goto", params={"x": 1, "y": 2})
-    with agent:
-        with agent.transaction() as tx:
-            tx.add(goto)
-        done = wait_until(lambda: [t for t in agent.query(Task) if t.done])
-    assert done[0].state is TaskState.SUCCEEDED and done[0].result is not None
-    assert done[0].result.message == "hi: going to (1.0, 2.0)"
+    with agent_with(namespace["Greeter"], settings={"greeting": "hi"}, workers=1) as agent:  # type: ignore[arg-type]
+        done = run_task(agent, "BotMotion", "goto", x=1, y=2)
+    assert done.state is TaskState.SUCCEEDED and done.result is not None
+    assert done.result.message == "hi: going to (1.0, 2.0)"
