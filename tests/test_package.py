@@ -43,6 +43,14 @@ def test_the_wheel_installs_one_import_name(wheel: Path) -> None:
             assert line.split("=", 1)[1].strip().startswith("erni."), line
 
 
+def test_the_wheel_brings_the_speech_recogniser(wheel: Path) -> None:
+    """`pip install .` installs PocketSphinx (and its English model) with ERNI, not only with an extra."""
+    with zipfile.ZipFile(wheel) as z:
+        meta = z.read(next(n for n in z.namelist() if n.endswith(".dist-info/METADATA"))).decode()
+    requires = [line.split(":", 1)[1].strip() for line in meta.splitlines() if line.startswith("Requires-Dist:")]
+    assert any(r.startswith("pocketsphinx") and "extra ==" not in r for r in requires), requires
+
+
 def test_an_installed_copy_finds_its_example_scenarios_from_anywhere(wheel: Path, tmp_path: Path) -> None:
     target = tmp_path / "site"
     subprocess.run([sys.executable, "-m", "pip", "install", "--no-deps", "-q", "--target", str(target),
