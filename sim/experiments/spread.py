@@ -107,9 +107,22 @@ class Run:
     across: float = math.nan    # ... its part across the robot's heading (nonholonomic: held by the wheels)
 
 
+def robot_limits(scenario: Scenario) -> tuple[float, float]:
+    """The top speed (m/s) and turn rate (rad/s) of the scenario's robot model, as the simulator builds it.
+
+    Agents mode drives `SimRobot`s of this model (`Team` builds them the same way), which never
+    exceed these; the kinematic mode holds every robot to them too.
+    """
+    from erni.sim.robot import SimRobotConfig
+
+    cfg = SimRobotConfig.amigobot() if scenario.robots.model == "amigobot" else SimRobotConfig()
+    return cfg.max_v, math.radians(cfg.max_rv)
+
+
 def _config(scenario: Scenario, variant: str) -> SpreadConfig:
     s = scenario.strategy
     model, _, neighbourhood = variant.partition("/")
+    vmax, wmax = robot_limits(scenario)
     weight = s.get("obstacle_weight", "neighbourhood")
     sensing = s.get("sensing")
     return SpreadConfig(distance=float(s.get("distance", 5.0)), gain=float(s.get("gain", 2.0)),
@@ -118,7 +131,7 @@ def _config(scenario: Scenario, variant: str) -> SpreadConfig:
                         obstacle_distance=float(s.get("obstacle_distance", 2.0)),
                         wall_distance=float(s.get("wall_distance", 2.5)),
                         obstacle_weight=None if weight == "neighbourhood" else float(weight),
-                        neighbourhood=neighbourhood, model=model)
+                        neighbourhood=neighbourhood, model=model, vmax=vmax, wmax=wmax)
 
 
 def _obstacles(scenario: Scenario) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
