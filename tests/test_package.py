@@ -153,7 +153,9 @@ def test_no_builtin_exception_is_raised_outside_pydantic_validators() -> None:
 
     builtin = {n for n in dir(builtins) if isinstance(getattr(builtins, n), type)
                and issubclass(getattr(builtins, n), BaseException)}
-    allowed = {"NotImplementedError", "SystemExit", "KeyboardInterrupt", "AssertionError"}
+    # ImportError: erni/__init__.py's own, when a checkout lacks the folders it is made of (it cannot
+    # raise ERNI's errors: they live in those folders)
+    allowed = {"NotImplementedError", "SystemExit", "KeyboardInterrupt", "AssertionError", "ImportError"}
     offenders = []
     for path in _package_files():
         tree = ast.parse(path.read_text(encoding="utf-8"))
