@@ -295,7 +295,7 @@ def _draw(fig: Any, data: dict[str, list[list[float]]], labels: dict[str, str], 
     ax.set_xticks([i * 3 + 0.5 for i in range(len(paths))], [labels[p].replace(" (", "\n(") for p in paths],
                   fontsize=8)
     ax.set_ylabel("command to first odometry showing motion (ms)")
-    ax.set_title("Ours: each path, two runs (box: quartiles)")
+    ax.set_title("Ours: each path, two runs\n(box: quartiles)", fontsize=10)
     ax.grid(True, axis="y", color="#e0e0e0", lw=0.6)
     ax = fig.add_subplot(gs[0, 1])
     for i, path in enumerate(paths):
@@ -309,7 +309,7 @@ def _draw(fig: Any, data: dict[str, list[list[float]]], labels: dict[str, str], 
                         else None)
     ax.set_xticks(range(len(paths)), [p for p in paths])
     ax.set_ylabel("ms")
-    ax.set_title(f"Means beside paper 003's Table I (odometry every {period * 1000:g} ms in both)")
+    ax.set_title(f"Means beside paper 003's Table I\n(odometry every {period * 1000:g} ms in both)", fontsize=10)
     ax.grid(True, axis="y", color="#e0e0e0", lw=0.6)
     ax.legend(fontsize=8)
-    fig.suptitle("Paper 003, Table I: basic response test, motor command to odometry (agents mode)", fontsize=13)
+    fig.suptitle("Paper 003, Table I: basic response test, motor command to odometry (agents mode)", fontsize=12)
