@@ -67,6 +67,16 @@ class Answers:
         return a.text, a.unsure
 
 
+def save(args: argparse.Namespace, rows: list[dict[str, Any]], clips: list[dict[str, Any]]) -> None:
+    """The rows and every clip (what was said and heard, the answers to read-backs, the evidence) as JSON."""
+    out = Path(args.json)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps({"recogniser": "pocketsphinx en-us, ERNI grammar as JSGF, two decodes + word scores, "
+                                             "noise-floor endpointer, stop keyphrases",
+                               "seed": args.seed, "every": args.every, "part": args.part, "rows": rows,
+                               "clips": clips}, indent=1) + "\n")
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--voices", default=",".join(S.VOICES))
@@ -91,7 +101,7 @@ def main() -> int:
     rng = np.random.default_rng(args.seed)
     rows: list[dict[str, Any]] = []
     wrong: list[dict[str, Any]] = []
-    clips: list[dict[str, object]] = []
+    clips: list[dict[str, Any]] = []
     latency: dict[str, list[float]] = {}
     stops: dict[str, Counter[str]] = {}
     audio_s = compute_s = 0.0
@@ -127,6 +137,8 @@ def main() -> int:
         rows.append(row)
         print(f"{c.voice:10} {c.speed:>4} {c.noise:>6} {n:>4} " + " ".join(f"{row[o]:>10}" for o in COLUMNS),
               flush=True)
+        if args.json:  # after each condition: a run stopped early keeps what it measured
+            save(args, rows, clips)
     total = {o: sum(r[o] for r in rows) for o in COLUMNS}
     n = sum(r["n"] for r in rows)
     print(f"{'all':10} {'':>4} {'':>6} {n:>4} " + " ".join(f"{total[o]:>10}" for o in COLUMNS))
@@ -150,14 +162,7 @@ def main() -> int:
         print(f"  {w['outcome'].upper()} [{w['condition']}] said {w['said']!r} heard {w['heard']!r}"
               f"{' (unsure: ' + w['why'] + ')' if w['unsure'] else ''}{'; ' + said_back if said_back else ''}")
     if args.json:
-        out = Path(args.json)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(json.dumps({"recogniser": "pocketsphinx en-us, ERNI grammar as JSGF, two decodes + word scores, "
-                                                 "noise-floor endpointer, stop keyphrases",
-                                   "seed": args.seed, "part": args.part, "rows": rows, "total": total,
-                                   "stops": {k: dict(v) for k, v in stops.items()},
-                                   "stop_latency_s": latency, "wrong": wrong,
-                                   "real_time_factor": compute_s / audio_s, "clips": clips}, indent=1) + "\n")
+        save(args, rows, clips)
     return 0
 
 
