@@ -19,6 +19,7 @@ waited for plus the decodes), and every wrong hearing and false stop; written to
     python bench/bench_speech.py [--voices en-us,en-gb,en-us+f3] [--speeds 130,160,190]
                                  [--noises clean,15,5] [--seed 36] [--every 1] [--part 1/1]
                                  [--json artifacts/ui/speech_set.json]
+    python bench/bench_speech.py --report RUN.json [RUN.json ...]   # the Markdown tables of saved runs
 """
 
 from __future__ import annotations
@@ -77,7 +78,51 @@ def save(args: argparse.Namespace, rows: list[dict[str, Any]], clips: list[dict[
                                "clips": clips}, indent=1) + "\n")
 
 
+def report(paths: list[str]) -> str:
+    """The Markdown tables of runs saved with --json (one run, or its parts run side by side)."""
+    rows: list[dict[str, Any]] = []
+    clips: list[dict[str, Any]] = []
+    for path in paths:
+        try:
+            run = json.loads(Path(path).read_text())
+            rows += run["rows"]
+            clips += run["clips"]
+        except (OSError, ValueError, KeyError) as err:
+            raise SystemExit(f"{path}: not a speech bench run saved with --json ({err})") from None
+    order = {(v, s, n): i for i, (v, s, n) in enumerate((c.voice, c.speed, c.noise) for c in S.conditions())}
+    rows.sort(key=lambda r: order.get((r["voice"], r["wpm"], r["noise"]), len(order)))
+    out = ["| voice | wpm | noise | clips | exact | of which after a read-back | asked | refused | wrong | false stop |",
+           "|---|---|---|---|---|---|---|---|---|---|"]
+    out += [f"| {r['voice']} | {r['wpm']} | {r['noise']} | {r['n']} | "
+            + " | ".join(str(r[o]) for o in COLUMNS) + " |" for r in rows]
+    out += ["", "| noise | conditions | clips | exact | after a read-back | asked | refused | wrong | false stop "
+                "| stop phrasings heard as a stop | end of speech → stop heard: median, max, under 1 s |",
+            "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for noise in [*dict.fromkeys(r["noise"] for r in rows), "all"]:
+        part = [r for r in rows if noise in ("all", r["noise"])]
+        said = [c for c in clips if noise in ("all", c["condition"].split(" wpm ")[1]) and c["said"] in S.STOPS]
+        heard = [c["latency"] for c in said if c["outcome"] == "exact"]
+        m = sum(r["n"] for r in part)
+        exact = sum(r["exact"] for r in part)
+        lat = (f"{statistics.median(heard):.2f} s, {max(heard):.2f} s, {sum(x < 1.0 for x in heard)}/{len(heard)}"
+               if heard else "-")
+        out.append(f"| {noise} | {len(part)} | {m} | {exact} ({exact / max(m, 1):.1%}) | "
+                   + " | ".join(str(sum(r[o] for r in part)) for o in COLUMNS[1:])
+                   + f" | {len(heard)}/{len(said)} ({len(heard) / max(len(said), 1):.0%}) | {lat} |")
+    bad = [c for c in clips if c["outcome"] in ("wrong", "false stop")]
+    out += ["", *(f"- {c['outcome']} [{c['condition']}]: said “{c['said']}”, heard “{c['heard']}”"
+                  + (f" (unsure: {c['why']})" if c["unsure"] else "")
+                  + "".join(f"; answered “{a['said']}”, heard “{a['heard']}”" for a in c["answers"]) for c in bad)]
+    return "\n".join(out)
+
+
 def main() -> int:
+    if sys.argv[1:2] == ["--report"]:
+        if len(sys.argv) < 3:
+            print("usage: bench_speech.py --report RUN.json [RUN.json ...]", file=sys.stderr)
+            return 2
+        print(report(sys.argv[2:]))
+        return 0
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--voices", default=",".join(S.VOICES))
     ap.add_argument("--speeds", default=",".join(map(str, S.SPEEDS)))

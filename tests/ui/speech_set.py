@@ -208,8 +208,10 @@ LEAD = 0.5  # seconds of room before the speech in `as_heard`
 
 
 def speech_end(speech: np.ndarray) -> float:
-    """Where the speech of `as_heard(speech, ...)` ends, in seconds from the clip's start."""
-    return LEAD + len(speech) / RATE
+    """Where the voice of `as_heard(speech, ...)` ends, in seconds from the clip's start (espeak-ng
+    ends its audio with about 0.35 s of silence, which is not speech)."""
+    loud = np.flatnonzero(np.abs(speech) > 0.01 * max(float(np.abs(speech).max(initial=0.0)), 1.0))
+    return LEAD + (int(loud[-1]) + 1 if loud.size else len(speech)) / RATE
 
 
 _ONES = "zero one two three four five six seven eight nine".split()
