@@ -226,8 +226,19 @@ def team_neighbourhoods(pos: ArrayLike, cfg: SpreadConfig, memory: SpreadMemory 
         memory.triangles = kept_delaunay(p, tri, cfg.flip_margin)
         if memory.triangles is not None:
             nbrs = triangle_neighbours(memory.triangles, len(p))
-            if cfg.reach is not None:
-                nbrs = [js[np.hypot(*(p[js] - p[i]).T) <= cfg.reach] if len(js) else js for i, js in enumerate(nbrs)]
+            # every Delaunay triangulation links each robot to its nearest robot; the kept one links
+            # it too once closer than d / 2, or two robots whose edge it lacks could close unfelt
+            from scipy.spatial import cKDTree
+
+            gap, near = cKDTree(p).query(p, k=2)
+            for i, j in enumerate(near[:, 1].tolist()):
+                if gap[i, 1] < cfg.distance / 2 and j not in nbrs[i]:
+                    nbrs[i] = np.sort(np.append(nbrs[i], j))
+                    nbrs[j] = np.sort(np.append(nbrs[j], i))
+            if cfg.reach is not None:  # with a margin: a link in effect goes only past 1.1 reach
+                held = memory.effective
+                nbrs = [js[[np.hypot(*(p[j] - p[i])) <= cfg.reach * (1.1 if (min(i, j), max(i, j)) in held else 1.0)
+                            for j in js.tolist()]] if len(js) else js for i, js in enumerate(nbrs)]
     if nbrs is None:
         nbrs = neighbourhoods(p, cfg.neighbourhood, cfg.range, cfg.reach)
     if memory is not None and cfg.stick > 0:

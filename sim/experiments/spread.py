@@ -491,7 +491,7 @@ def _result(scenario: Scenario, experiment: Experiment, mode: str, runs: list[Ru
         res.metrics[f"{r.variant}, R = {r_range:g} m: converged at"] = (r.converged, "s")
     if sweep:
         text = "; ".join(
-            f"R/d {r_range / d:.2g}: " + " / ".join(f"{float(_nn(r.pos[-1]).mean()):.2f}"
+            f"{r_range / d:.2g} d: " + " / ".join(f"{float(_nn(r.pos[-1]).mean()):.2f}"
                                                    for q, r in sweep if q == r_range)
             for r_range in dict.fromkeys(q for q, _ in sweep))
         res.compare("mean NN distance against R (holonomic / nonholonomic, physical)", "not stated", text, "m",
@@ -502,16 +502,23 @@ def _result(scenario: Scenario, experiment: Experiment, mode: str, runs: list[Ru
                 res.metrics[f"{r.variant}, R = {q:g} m: mean NN distance at t = 30 s"] = (
                     mean_nn_distance(r.pos[k30]), "m")
         side = [(q, r) for q, r in sweep if any(math.isclose(q, f * d) for f in (1.0, 1.2))]
+
+        def at30(r: Run) -> float:
+            return mean_nn_distance(r.pos[int(np.argmin(np.abs(r.t - 30.0)))])
+
+        def both(q: float) -> str:
+            got = [r for q2, r in side if q2 == q]
+            when = " / ".join(f"{r.converged:.0f}" if math.isfinite(r.converged) else "-" for r in got)
+            return (f"R = {q / d:.2g} d: {when} s, NN " + " / ".join(f"{float(_nn(r.pos[-1]).mean()):.2f}" for r in got)
+                    + " m (" + " / ".join(f"{at30(r):.2f}" for r in got) + " at 30 s)")
+
         if side:
-            res.compare("physical, R = d against R = 1.2 d (holonomic; nonholonomic)", "R not stated", "; ".join(
-                f"R = {q / d:.2g} d: " + ", ".join(
-                    f"{'at ' + format(r.converged, '.0f') + ' s' if math.isfinite(r.converged) else 'not settled'}"
-                    f" NN {float(_nn(r.pos[-1]).mean()):.2f} m ({mean_nn_distance(r.pos[int(np.argmin(np.abs(r.t - 30)))]):.2f} at 30 s)"
-                    for q2, r in side if q2 == q) for q in dict.fromkeys(q for q, _ in side)), "",
-                "converged at; mean NN distance at the end and at t = 30 s")
+            res.compare("physical, R = d and 1.2 d (holonomic / nonholonomic): converged at; NN at the end (at 30 s)",
+                        "R not stated", "; ".join(both(q) for q in dict.fromkeys(q for q, _ in side)), "",
+                        "-: not settled by the end of the run")
     if over_seeds:
         _seed_rows(res, over_seeds, threshold, hold, d)
-    res.notes.append("paper 001 shows the teams at t = 30 s (Figs 2-5, 8-9) and the paths of 12 robots (Figs 6-7); "
+    res.notes.append("paper 001 shows the teams at t = 30 s (Figs 2-5, 8-11) and the paths of 12 robots (Figs 6-7); "
                      "it gives no convergence times or distances")
     paths = experiment.name == "spread-paths"
     res.draw = lambda fig: (_draw_paths(fig, scenario, runs, res, mode) if paths else
