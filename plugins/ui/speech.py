@@ -366,6 +366,9 @@ class SphinxRecognizer:
     WAKE_THRESHOLD = 1e-30
     STOP_THRESHOLD = 1e-20  # the keyphrase threshold of a one-word stop phrase ("halt")
     STOPS_THRESHOLD = 1e-30  # of a longer one ("everybody stop"), less easily taken for something else
+    # the search's beams, narrower than PocketSphinx's (1e-48, 7e-29): in noise a decode takes half the
+    # time (a grammar decode of 3 s in white noise at 5 dB took 7-20 s with the default beams)
+    BEAM, WBEAM = 1e-35, 1e-25
 
     def __init__(self, grammar: str, *, wake: Iterable[str] | None = None, model: Path | None = None,
                  dictionary: Path | None = None) -> None:
@@ -397,7 +400,7 @@ class SphinxRecognizer:
 
         try:
             decoder = Decoder(hmm=str(self.model), dict=str(self.dictionary), lm=None, samprate=RATE,
-                              loglevel="FATAL")
+                              loglevel="FATAL", beam=self.BEAM, wbeam=self.WBEAM)
             lists = {SphinxStream.STOPS: [(p, self.STOP_THRESHOLD if " " not in p else self.STOPS_THRESHOLD)
                                           for p in STOP_PHRASES]}
             if self.wake:
@@ -442,9 +445,9 @@ class SphinxStream:
     in the 30 ms pieces a live stream comes in, the front end now settled on this utterance's voice
     and room. The hearing is unsure when the search ended inside a sentence (PocketSphinx then gives
     its best partial path), when the two decodes mean different things, when one of its words
-    scores below `MIN_WORD_SCORE`, or, for a command that moves robots or picks them, when the
-    speech stood less than `MIN_SNR` dB above the background (the operator is then asked "Did you
-    say ...?" before anything moves).
+    scores below `MIN_WORD_SCORE`, or, for a command that moves robots or picks them, when it has a
+    hesitation ("uh": audio that fit no command word) or the speech stood less than `MIN_SNR` dB above
+    the background (the operator is then asked "Did you say ...?" before anything moves).
 
     A short utterance is first searched for the stop phrasings (a keyphrase search): a stop phrase
     spotted covering all but `LONE_STOP` seconds of its speech, unless a decode against the stop
@@ -452,9 +455,10 @@ class SphinxStream:
     those lines instead, is the hearing at once: the phrase itself when that decode heard it too,
     else "everybody stop" (which stop was said is unsure, so it goes to everyone: a false stop is
     safe, a missed one is not). A stop heard by the grammar's first decode is answered at once too:
-    it acts however sure it is. A wake phrase said on its own is spotted by a keyphrase search over
-    the same audio: spotted with at most `LONE_WAKE` seconds of the utterance's speech outside it,
-    it is the hearing (a wake phrase moves nothing).
+    it acts however sure it is, and so does a stop phrase spotted anywhere in a short utterance the
+    grammar hears only in part, poorly or not at all. A wake phrase said on its own is spotted by a
+    keyphrase search over the same audio: spotted with at most `LONE_WAKE` seconds of the utterance's
+    speech outside it, it is the hearing (a wake phrase moves nothing).
     """
 
     COMMANDS, WAKE, STOPS, SHORT = "erni", "wake", "stops", "short"
@@ -478,6 +482,7 @@ class SphinxStream:
         self.audio = bytearray()  # the current utterance's speech
         self.in_utterance = False
         self.settled = False  # the front end has heard an utterance (its cepstral mean is this voice's)
+        self.near = ""  # of the last keyphrase search: the best phrase spotted, alone in the utterance or not
 
     def feed(self, pcm: bytes) -> Heard | None:
         """Accept audio; return the hearing of an utterance that just ended, if any."""
@@ -540,6 +545,7 @@ class SphinxStream:
     def _spotted(self, audio: bytes, search: str, lone: float, longest: float) -> str:
         """The phrase of keyphrase search `search` said on its own in this audio, or ""."""
         first, last = self._span(audio)
+        self.near = ""
         if last - first > longest:
             return ""
         self.decoder.activate_search(search)
@@ -552,6 +558,7 @@ class SphinxStream:
                 hits.append((covered - (end - start - covered), covered, seg.word.strip()))  # less beyond the speech
         finally:
             self.decoder.activate_search(self.COMMANDS)
+        self.near = max(hits)[2] if hits else ""  # the best phrase spotted, alone or not
         alone = [phrase for _, covered, phrase in sorted(hits, reverse=True) if last - first - covered <= lone]
         if len(set(alone)) > 1:  # two phrases fit ("listen", "listen up"): the one a decode against them all hears
             short = self._short(audio)
@@ -577,6 +584,7 @@ class SphinxStream:
             self._decode(audio, whole=False)
             self.settled = True
         stop = self._spotted(audio, self.STOPS, self.LONE_STOP, self.LONGEST_STOP)
+        near = self.near
         self.evidence = {"stop": stop, "snr": snr}
         if stop:  # a lone stop phrase, if a decode against it and what it could be taken for agrees
             short = self._short(audio)
@@ -592,6 +600,9 @@ class SphinxStream:
         poor = [f"{w!r} ({score:.1f})" for w, score in scores if score < self.MIN_WORD_SCORE]
         if is_stop(text):  # a stop acts however sure it is: its hearing waits for no second decode
             return self._judged(text, partial, text, poor, None)
+        if near and (partial or poor or not text) and self._short(audio) not in self.others:
+            # a stop phrase spotted in a short utterance the grammar heard only doubtfully: a stop to everyone
+            return Heard("everybody stop", False, f"a stop phrase spotted ({near!r}) where the grammar doubts {text!r}")
         self._decode(audio, whole=False)  # the second decode: the front end settled on this utterance
         again, _ = self._decoded()
         wake = self._spotted(audio, self.WAKE, self.LONE_WAKE, self.LONGEST_WAKE) if self.wake else ""
@@ -610,9 +621,17 @@ class SphinxStream:
             return Heard(text, True, f"the two decodes differ: {text!r} and {again!r}")
         if poor:
             return Heard(text, True, f"{', '.join(poor)} matches the audio poorly")
+        hesitant = [w for w in text.split() if w in HESITATIONS]
+        if hesitant and moves(text):  # the grammar took part of the audio for a hesitation
+            return Heard(text, True, f"{hesitant[0]!r} was heard: part of it fit no command word")
         if snr is not None and snr < cls.MIN_SNR and moves(text):
             return Heard(text, True, f"the speech is only {snr:.0f} dB above the background")
         return Heard(text)
+
+
+# Hesitations the grammar lets stand anywhere: the recogniser fits them to audio that fits no word of a
+# command, so a command heard with one is doubted.
+HESITATIONS = frozenset({"uh", "um", "umm", "uhm", "er", "erm", "ah"})
 
 
 def moves(text: str) -> bool:
