@@ -5,15 +5,21 @@ phrasings) is spoken by espeak-ng in each voice at each speed, clean and in whit
 through the control node's audio path, and streamed in 100 ms frames through the recogniser it
 uses (PocketSphinx with ERNI's grammar, `SphinxRecognizer.stream()`: the same code as a page's
 microphone, decoded as fast as it goes rather than in real time). Each hearing is judged against
-the same text typed: exact, asked ("Say again?": the recogniser was unsure), refused (the parser
-refused what was heard), wrong (a different command would be carried out).
+the same text typed, through the spoken dialogue (tests/ui/speech_set.py `judge`): exact (what the
+typed line does; `confirmed` counts those carried out after a read-back answered "yes", the answer
+spoken in the same voice and noise and heard by the same recogniser), asked (nothing sent: asked
+again, or the answer to a read-back was not heard as said), refused (the parser refused what was
+heard), wrong (a different command carried out), false stop (a stop carried out where something
+else was said). Each condition starts with 2 s of its room (noise) before the first clip.
 
-Printed: one row per condition (voice x speed x noise), the totals, the stop phrasings, the
-recogniser's latency after the end of a stop, and every wrong hearing; written to --json.
+Printed: one row per condition (voice x speed x noise), the totals per noise level, the stop
+phrasings heard as a stop and the time from the end of their speech to their hearing (the audio
+waited for plus the decodes), and every wrong hearing and false stop; written to --json.
 
     python bench/bench_speech.py [--voices en-us,en-gb,en-us+f3] [--speeds 130,160,190]
                                  [--noises clean,15,5] [--seed 36] [--every 1] [--part 1/1]
                                  [--json artifacts/ui/speech_set.json]
+    python bench/bench_speech.py --report RUN.json [RUN.json ...]   # the Markdown tables of saved runs
 """
 
 from __future__ import annotations
@@ -25,16 +31,18 @@ import sys
 import time
 from collections import Counter
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from erni.plugins.ui.jsgf import jsgf  # noqa: E402
-from erni.plugins.ui.speech import SphinxRecognizer  # noqa: E402
+from erni.plugins.ui.speech import RATE, SphinxRecognizer  # noqa: E402
 from tests.ui import speech_set as S  # noqa: E402
 
-OUTCOMES = ("exact", "asked", "refused", "wrong")
+COLUMNS = ("exact", "confirmed", "asked", "refused", "wrong", "false stop")  # exact counts the confirmed too
+PRIME = 2.0  # seconds of each condition's room before its first clip: the background is there before anyone speaks
 
 
 def noises(text: str) -> tuple[float | None, ...]:
@@ -44,7 +52,77 @@ def noises(text: str) -> tuple[float | None, ...]:
     return tuple(out)
 
 
+class Answers:
+    """The operator's answers to read-backs in one condition: spoken, mixed with its noise, heard."""
+
+    def __init__(self, stream: Any, condition: S.Condition, rng: np.random.Generator) -> None:
+        self.stream, self.c, self.rng = stream, condition, rng
+        self.heard: list[dict[str, Any]] = []
+        self.seconds = 0.0
+
+    def __call__(self, word: str) -> tuple[str, bool]:
+        said = S.synthesise(word, self.c.voice, self.c.speed)
+        a = S.hear(self.stream, S.as_heard(said, self.c.snr, self.rng), S.speech_end(said))
+        self.heard.append({"said": word, "heard": a.text, "unsure": a.unsure, "why": a.why})
+        self.seconds += a.seconds
+        return a.text, a.unsure
+
+
+def save(args: argparse.Namespace, rows: list[dict[str, Any]], clips: list[dict[str, Any]]) -> None:
+    """The rows and every clip (what was said and heard, the answers to read-backs, the evidence) as JSON."""
+    out = Path(args.json)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps({"recogniser": "pocketsphinx en-us, ERNI grammar as JSGF, two decodes + word scores, "
+                                             "noise-floor endpointer, stop keyphrases",
+                               "seed": args.seed, "every": args.every, "part": args.part, "rows": rows,
+                               "clips": clips}, indent=1) + "\n")
+
+
+def report(paths: list[str]) -> str:
+    """The Markdown tables of runs saved with --json (one run, or its parts run side by side)."""
+    rows: list[dict[str, Any]] = []
+    clips: list[dict[str, Any]] = []
+    for path in paths:
+        try:
+            run = json.loads(Path(path).read_text())
+            rows += run["rows"]
+            clips += run["clips"]
+        except (OSError, ValueError, KeyError) as err:
+            raise SystemExit(f"{path}: not a speech bench run saved with --json ({err})") from None
+    order = {(v, s, n): i for i, (v, s, n) in enumerate((c.voice, c.speed, c.noise) for c in S.conditions())}
+    rows.sort(key=lambda r: order.get((r["voice"], r["wpm"], r["noise"]), len(order)))
+    out = ["| voice | wpm | noise | clips | exact | of which after a read-back | asked | refused | wrong | false stop |",
+           "|---|---|---|---|---|---|---|---|---|---|"]
+    out += [f"| {r['voice']} | {r['wpm']} | {r['noise']} | {r['n']} | "
+            + " | ".join(str(r[o]) for o in COLUMNS) + " |" for r in rows]
+    out += ["", "| noise | conditions | clips | exact | after a read-back | asked | refused | wrong | false stop "
+                "| stop phrasings heard as a stop | end of speech → stop heard: median, max, under 1 s |",
+            "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for noise in [*dict.fromkeys(r["noise"] for r in rows), "all"]:
+        part = [r for r in rows if noise in ("all", r["noise"])]
+        said = [c for c in clips if noise in ("all", c["condition"].split(" wpm ")[1]) and c["said"] in S.STOPS]
+        heard = [c["latency"] for c in said if c["outcome"] == "exact"]
+        m = sum(r["n"] for r in part)
+        exact = sum(r["exact"] for r in part)
+        lat = (f"{statistics.median(heard):.2f} s, {max(heard):.2f} s, {sum(x < 1.0 for x in heard)}/{len(heard)}"
+               if heard else "-")
+        out.append(f"| {noise} | {len(part)} | {m} | {exact} ({exact / max(m, 1):.1%}) | "
+                   + " | ".join(str(sum(r[o] for r in part)) for o in COLUMNS[1:])
+                   + f" | {len(heard)}/{len(said)} ({len(heard) / max(len(said), 1):.0%}) | {lat} |")
+    bad = [c for c in clips if c["outcome"] in ("wrong", "false stop")]
+    out += ["", *(f"- {c['outcome']} [{c['condition']}]: said “{c['said']}”, heard “{c['heard']}”"
+                  + (f" (unsure: {c['why']})" if c["unsure"] else "")
+                  + "".join(f"; answered “{a['said']}”, heard “{a['heard']}”" for a in c["answers"]) for c in bad)]
+    return "\n".join(out)
+
+
 def main() -> int:
+    if sys.argv[1:2] == ["--report"]:
+        if len(sys.argv) < 3:
+            print("usage: bench_speech.py --report RUN.json [RUN.json ...]", file=sys.stderr)
+            return 2
+        print(report(sys.argv[2:]))
+        return 0
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--voices", default=",".join(S.VOICES))
     ap.add_argument("--speeds", default=",".join(map(str, S.SPEEDS)))
@@ -66,58 +144,70 @@ def main() -> int:
     texts = [t for t in texts if t in S.STOPS] + [t for t in texts if t not in S.STOPS][::args.every]
     stream = SphinxRecognizer(jsgf()).stream()  # one decoder, as for one microphone
     rng = np.random.default_rng(args.seed)
-    rows, wrong, stop_latency, audio_s, compute_s = [], [], [], 0.0, 0.0
-    clips: list[dict[str, object]] = []
-    stops = Counter[str]()
+    rows: list[dict[str, Any]] = []
+    wrong: list[dict[str, Any]] = []
+    clips: list[dict[str, Any]] = []
+    latency: dict[str, list[float]] = {}
+    stops: dict[str, Counter[str]] = {}
+    audio_s = compute_s = 0.0
     started = time.time()
-    print(f"{'voice':10} {'wpm':>4} {'noise':>6} {'n':>4} " + " ".join(f"{o:>8}" for o in OUTCOMES), flush=True)
+    head = f"{'voice':10} {'wpm':>4} {'noise':>6} {'n':>4} " + " ".join(f"{o:>10}" for o in COLUMNS)
+    print(head, flush=True)
     for c in conditions:
         count = Counter[str]()
+        S.hear(stream, S.room(S.synthesise(texts[0], c.voice, c.speed), c.snr, rng, PRIME), 0.0)
         for text in texts:
             speech = S.synthesise(text, c.voice, c.speed)
             pcm = S.as_heard(speech, c.snr, rng)
             h = S.hear(stream, pcm, S.speech_end(speech))
-            outcome = S.judge(text, h.text, h.unsure)
-            clips.append({"condition": str(c), "said": text, "outcome": outcome, "evidence": h.evidence})
+            answer = Answers(stream, c, rng)
+            outcome = S.judge(text, h.text, h.unsure, answer)
+            answers = answer.heard
+            clips.append({"condition": str(c), "said": text, "heard": h.text, "unsure": h.unsure, "why": h.why,
+                          "outcome": outcome, "answers": answers, "latency": h.latency, "evidence": h.evidence})
             count[outcome] += 1
-            audio_s += len(pcm) / 2 / S.RATE
-            compute_s += h.seconds
+            audio_s += len(pcm) / 2 / RATE
+            compute_s += h.seconds + answer.seconds
             if text in S.STOPS:
-                stops[outcome] += 1
+                stops.setdefault(c.noise, Counter())[outcome] += 1
                 if outcome == "exact":
-                    stop_latency.append(h.latency)
-            if outcome == "wrong":
-                wrong.append({"condition": str(c), "said": text, "heard": h.text, "unsure": h.unsure})
+                    latency.setdefault(c.noise, []).append(h.latency)
+            if outcome in ("wrong", "false stop"):
+                wrong.append({"condition": str(c), "said": text, "heard": h.text, "unsure": h.unsure,
+                              "why": h.why, "answers": answers, "outcome": outcome})
         n = sum(count.values())
-        rows.append({"voice": c.voice, "wpm": c.speed, "noise": c.noise, "n": n, **{o: count[o] for o in OUTCOMES}})
-        print(f"{c.voice:10} {c.speed:>4} {c.noise:>6} {n:>4} " + " ".join(f"{count[o]:>8}" for o in OUTCOMES),
+        row: dict[str, Any] = {"voice": c.voice, "wpm": c.speed, "noise": c.noise, "n": n,
+                               **{o: count[o] for o in COLUMNS}}
+        row["exact"] += row["confirmed"]
+        rows.append(row)
+        print(f"{c.voice:10} {c.speed:>4} {c.noise:>6} {n:>4} " + " ".join(f"{row[o]:>10}" for o in COLUMNS),
               flush=True)
-    total = {o: sum(r[o] for r in rows) for o in OUTCOMES}
-    n = sum(total.values())
-    print(f"{'all':10} {'':>4} {'':>6} {n:>4} " + " ".join(f"{total[o]:>8}" for o in OUTCOMES))
-    print(f"exact {total['exact'] / n:.1%}, asked {total['asked'] / n:.1%}, refused {total['refused'] / n:.1%}, "
-          f"wrong {total['wrong']} ({total['wrong'] / n:.1%})")
-    for noise in sorted({r["noise"] for r in rows}):
+        if args.json:  # after each condition: a run stopped early keeps what it measured
+            save(args, rows, clips)
+    total = {o: sum(r[o] for r in rows) for o in COLUMNS}
+    n = sum(r["n"] for r in rows)
+    print(f"{'all':10} {'':>4} {'':>6} {n:>4} " + " ".join(f"{total[o]:>10}" for o in COLUMNS))
+    print(f"exact {total['exact'] / n:.1%} (after a read-back and a yes: {total['confirmed']}), "
+          f"asked {total['asked'] / n:.1%}, refused {total['refused'] / n:.1%}, wrong {total['wrong']}, "
+          f"false stops {total['false stop']}")
+    for noise in dict.fromkeys(r["noise"] for r in rows):
         part = [r for r in rows if r["noise"] == noise]
         m = sum(r["n"] for r in part)
-        print(f"  {noise:>6}: exact {sum(r['exact'] for r in part) / m:.1%}, wrong {sum(r['wrong'] for r in part)}/{m}")
-    ns = sum(stops.values())
-    print(f"stop phrasings ({', '.join(S.STOPS)}): {stops['exact']}/{ns} = {stops['exact'] / max(ns, 1):.1%} "
-          f"exact, {stops['wrong']} wrong, {stops['asked'] + stops['refused']} not heard as a stop")
-    if stop_latency:
-        print(f"recogniser latency after a stop is said (trailing silence + decodes): median "
-              f"{statistics.median(stop_latency):.2f} s, max {max(stop_latency):.2f} s")
+        got = stops.get(noise, Counter())
+        lat = latency.get(noise, [])
+        print(f"  {noise:>6}: {m} clips, exact {sum(r['exact'] for r in part) / m:.1%} ("
+              + ", ".join(f"{o} {sum(r[o] for r in part)}" for o in COLUMNS) + f"); stop phrasings "
+              f"{got['exact']}/{sum(got.values())} heard as a stop"
+              + (f", from the end of speech to the stop's hearing median {statistics.median(lat):.2f} s, "
+                 f"max {max(lat):.2f} s, {sum(x < 1.0 for x in lat)}/{len(lat)} under 1 s" if lat else ""))
     print(f"{audio_s:.0f} s of audio decoded in {compute_s:.0f} s ({compute_s / audio_s:.2f} x real time); "
           f"wall {time.time() - started:.0f} s")
     for w in wrong:
-        print(f"  WRONG [{w['condition']}] said {w['said']!r} heard {w['heard']!r}{' (unsure)' if w['unsure'] else ''}")
+        said_back = "; ".join(f"answered {a['said']!r}, heard {a['heard']!r}" for a in w["answers"])
+        print(f"  {w['outcome'].upper()} [{w['condition']}] said {w['said']!r} heard {w['heard']!r}"
+              f"{' (unsure: ' + w['why'] + ')' if w['unsure'] else ''}{'; ' + said_back if said_back else ''}")
     if args.json:
-        out = Path(args.json)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(json.dumps({"recogniser": "pocketsphinx en-us, ERNI grammar as JSGF, two decodes + word scores",
-                                   "seed": args.seed, "rows": rows, "total": total, "stops": dict(stops),
-                                   "stop_latency_s": stop_latency, "wrong": wrong,
-                                   "real_time_factor": compute_s / audio_s, "clips": clips}, indent=1) + "\n")
+        save(args, rows, clips)
     return 0
 
 

@@ -10,9 +10,28 @@ strategies), `erni.netgraph` (graph helpers), `erni.sim` (the simulator, never i
 agent's runtime), and the `erni` command line.
 """
 
-from erni.blackboard.agent import Agent
-from erni.blackboard.blackboard import Predicate, Subscription, Transaction
-from erni.blackboard.errors import (
+from pathlib import Path as _Path
+
+
+def _find_the_source_folders() -> None:
+    """In a checkout without symbolic links (a zip, Windows, `core.symlinks=false`) `erni/blackboard`
+    is a small text file naming `../blackboard`: look for the design card's folders beside `erni/`
+    then, as the links would. An installed copy holds the folders themselves and never gets here."""
+    here = _Path(__file__).resolve().parent
+    if (here / "blackboard").is_dir():
+        return
+    root = here.parent
+    if not (root / "blackboard" / "__init__.py").is_file():
+        raise ImportError(f"erni: {here / 'blackboard'} is not a folder and no blackboard/ package lies beside "
+                          f"{here}; reinstall ERNI (pip install erni) or check out the whole repository")
+    __path__.append(str(root))
+
+
+_find_the_source_folders()
+
+from erni.blackboard.agent import Agent  # noqa: E402
+from erni.blackboard.blackboard import Predicate, Subscription, Transaction  # noqa: E402
+from erni.blackboard.errors import (  # noqa: E402
     ConfigError,
     ErniError,
     NetworkError,
@@ -23,10 +42,10 @@ from erni.blackboard.errors import (
     UsageError,
     describe_validation,
 )
-from erni.blackboard.objects import BBObject, new_uid
-from erni.blackboard.plugin import NoSettings, Plugin
-from erni.blackboard.schemas import FloorPlan, Peer
-from erni.blackboard.tasks import (
+from erni.blackboard.objects import BBObject, new_uid  # noqa: E402
+from erni.blackboard.plugin import NoSettings, Plugin  # noqa: E402
+from erni.blackboard.schemas import FloorPlan, Peer  # noqa: E402
+from erni.blackboard.tasks import (  # noqa: E402
     AllocationResult,
     AvoidParams,
     BackwardParams,

@@ -289,7 +289,11 @@ def examples_dir() -> Path | None:
     """The example scenarios, worlds and configs shipped inside the package (`erni/examples`),
     found through importlib.resources wherever the package is installed."""
     found = importlib.resources.files("erni").joinpath("examples")
-    return found if isinstance(found, Path) and found.is_dir() else None
+    if isinstance(found, Path) and found.is_dir():
+        return found
+    import erni  # a checkout without symbolic links: the examples/ folder beside erni/
+
+    return next((Path(p) / "examples" for p in erni.__path__ if (Path(p) / "examples").is_dir()), None)
 
 
 def find_scenario(name: str) -> Path:

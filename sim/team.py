@@ -107,16 +107,11 @@ def plugin_available(module: str, cls: str) -> bool:
         return False
 
 
-def free_port(host: str = "127.0.0.1", kind: int = socket.SOCK_DGRAM) -> int:
-    """Return a port the OS says is free on `host` now."""
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind((host, 0))
-        return int(s.getsockname()[1])
-
-
-def beacon_port() -> int:
-    """A free UDP port below the kernel's ephemeral range, so that no socket bound to port 0 (by
-    this run or any other program) can take it before every agent has bound it for beacons."""
+def free_port(host: str = "127.0.0.1") -> int:
+    """A port free on `host` for both TCP and UDP now (an agent binds one number for both: its
+    transport's UDP datagrams and TCP links, a GUI beside its beacons), chosen below the kernel's
+    ephemeral range, so that no socket bound to port 0 (by this run or any other program) takes it
+    before the agent binds it."""
     try:
         low = int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
     except (OSError, ValueError, IndexError):
@@ -124,13 +119,21 @@ def beacon_port() -> int:
     rng = random.Random()
     for _ in range(200):
         port = rng.randrange(10_000, max(10_001, low))
-        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-            try:
-                s.bind(("", port))
-            except OSError:
-                continue
-            return port
-    return free_port()  # pragma: no cover - a machine with every low port taken
+        try:
+            for kind in (socket.SOCK_STREAM, socket.SOCK_DGRAM):
+                with socket.socket(socket.AF_INET, kind) as s:
+                    s.bind((host, port))
+        except OSError:
+            continue
+        return port
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:  # pragma: no cover - every low port taken
+        s.bind((host, 0))
+        return int(s.getsockname()[1])
+
+
+def beacon_port() -> int:
+    """A free port for every agent's beacons (bound on all addresses)."""
+    return free_port("")
 
 
 def port_free(host: str, port: int) -> bool:
@@ -265,7 +268,7 @@ class Team:
         self.cli_identity = self.keys_dir / f"{CLI}.pem"
         self.discovery_port = beacon_port()
         self.control_port = control_port if control_port and port_free(CONTROL_HOST, control_port) \
-            else free_port(CONTROL_HOST, socket.SOCK_STREAM)
+            else free_port(CONTROL_HOST)
         self.names = scenario.robot_names()
         self.mobinet = mobinet or ("babel" if netns else "snmp")
         if self.mobinet not in ("snmp", "babel"):
@@ -456,7 +459,7 @@ class Team:
                 gui_host, gui_port = parse_address(self.gui_listen)
             bind = "0.0.0.0" if gui_host in ("", "0.0.0.0") else gui_host
             if not gui_port or not port_free(bind, gui_port):
-                gui_port = free_port(bind, socket.SOCK_STREAM)
+                gui_port = free_port(bind)
             plan = self.run_dir / "world.toml"  # the GUI draws the scenario's walls and obstacles
             world = self.world.model_dump(mode="json", exclude={"robot", "name"}, exclude_none=True)
             private_file(plan).write_text("".join(f"{k} = {toml_value(v)}\n" for k, v in world.items() if v),
@@ -517,7 +520,7 @@ class Team:
             gui_host, gui_port = ("127.0.0.1", self.gui_port) if not self.gui_listen else parse_address(self.gui_listen)
             bind = "0.0.0.0" if gui_host in ("", "0.0.0.0") else gui_host
             if not gui_port or not port_free(bind, gui_port):
-                gui_port = free_port(bind, socket.SOCK_STREAM)
+                gui_port = free_port(bind)
             plan = self.run_dir / "world.toml"
             world = self.world.model_dump(mode="json", exclude={"robot", "name"}, exclude_none=True)
             private_file(plan).write_text("".join(f"{k} = {toml_value(v)}\n" for k, v in world.items() if v),

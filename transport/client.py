@@ -69,7 +69,21 @@ class Client:
         self.endpoint.on_message = self._received
         self.endpoint.on_undeliverable = lambda addr, mid, kind, body: self.failed.put(mid)
         self.endpoint.on_delivered = lambda addr, mid: self.delivered.add(mid)
+        self.refused = ""  # why an agent refused this client's certificate (another authority's, revoked)
+        self.endpoint.on_refused = self._refused
         self.beacons: dict[str, tuple[Address, Beacon]] = {}
+
+    def _refused(self, addr: Address, reason: str) -> None:
+        self.refused = reason
+
+    def check_refused(self) -> None:
+        """Raise ClientError at once if the agent refused this client's certificate, naming why."""
+        if self.refused:
+            hint = ""
+            if "authority" in self.refused:
+                hint = (f" (an identity of another team or an earlier run? {IDENTITY_ENV} or --identity must "
+                        "name one issued by this team's authority, e.g. RUN/keys/cli.pem of this `erni sim`)")
+            raise ClientError(f"{self.refused}{hint}")
 
     def _received(self, msg: Message) -> None:
         if msg.kind == "task.result" and isinstance(msg.body, ResultUpdate) and msg.body.result.state.done:
@@ -127,7 +141,9 @@ class Client:
             return None
 
     def check_failed(self, msg_id: str) -> None:
-        """Raise ClientError if the message with this id could not be delivered."""
+        """Raise ClientError if the message with this id could not be delivered, or at once if the
+        agent refused this client's certificate."""
+        self.check_refused()
         while True:
             try:
                 failed = self.failed.get_nowait()

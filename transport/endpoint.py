@@ -42,7 +42,7 @@ import random
 import socket
 import threading
 import time
-from collections import deque
+from collections import OrderedDict, deque
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -59,7 +59,7 @@ from erni.transport.limits import Limits, TokenBucket
 from erni.transport.outbox import Dest, Outgoing, SenderPool
 from erni.transport.receiver import Receiver, close
 from erni.transport.reliable import ReliableDelivery
-from erni.transport.session import Auth, IdentityAuth, Initiation, Session, TeamKeyAuth
+from erni.transport.session import Auth, CertificateRefused, IdentityAuth, Initiation, Session, TeamKeyAuth
 from erni.transport.sessions import Sessions
 from erni.transport.wire import (
     BEACON,
@@ -71,6 +71,7 @@ from erni.transport.wire import (
     KIND,
     KINDS,
     PLAIN,
+    REFUSAL,
     REPLY,
     UDP_MAX_FRAME,
     EnvelopeHead,
@@ -205,6 +206,7 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
                                  identity, self.revocations, self.log)
         self._beacon_bucket = TokenBucket(self.limits.beacons_total)
         self._frame_handlers = self._handlers()
+        self._clients: OrderedDict[Address, None] = OrderedDict()  # reply addresses of command-line clients heard
         # sender pool
         self._dests: dict[Address, Dest] = {}
         self._fast_at: dict[Address, float] = {}  # destination -> when the caller's last status to it was handled
@@ -218,6 +220,8 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
         self.on_message: Callable[[Message], None] = lambda msg: None
         self.on_undeliverable: Callable[[Address, str, str, Any], None] = lambda addr, id, kind, body: None
         self.on_delivered: Callable[[Address, str], None] = lambda addr, id: None
+        # the agent at an address refused our certificate (another authority's, revoked): the reason
+        self.on_refused: Callable[[Address, str], None] = lambda addr, reason: None
         # would a broadcast beacon from this sender tell the owner anything? (None: always check it)
         self.hint_wanted: Callable[[str], bool] | None = None
 
@@ -494,6 +498,11 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
             self._dropped(channel, err)
         return None
 
+    @property
+    def refusals(self) -> dict[Address, str]:
+        """Address -> why the agent there refused our certificate (another authority's, revoked)."""
+        return self.sessions.refusals
+
     def _handlers(self) -> dict[int, Callable[[bytes, str, Address], Accepted]]:
         """The handler of each kind of frame, in a session (`wire.py` lists the kinds)."""
         def hint(raw: bytes, channel: str, src: Address) -> Accepted:
@@ -501,7 +510,15 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
             return None
 
         def hello(raw: bytes, channel: str, src: Address) -> Accepted:
-            self.sessions.on_hello(raw, src)
+            try:
+                self.sessions.on_hello(raw, src)
+            except CertificateRefused as err:
+                self.sessions.refuse(raw, src, err)
+                raise
+            return None
+
+        def refusal(raw: bytes, channel: str, src: Address) -> Accepted:
+            self.on_refused(src, self.sessions.on_refusal(raw, src))
             return None
 
         def reply(raw: bytes, channel: str, src: Address) -> Accepted:
@@ -511,7 +528,8 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
         def plain(raw: bytes, channel: str, src: Address) -> Accepted:
             raise FrameError("auth", "an unauthenticated frame (is the sender running insecure?)")
 
-        return {DATA: self._data, HINT: hint, HELLO: hello, REPLY: reply, BEACON: self._on_beacon, PLAIN: plain}
+        return {DATA: self._data, HINT: hint, HELLO: hello, REFUSAL: refusal, REPLY: reply, BEACON: self._on_beacon,
+                PLAIN: plain}
 
     def _plain(self, raw: bytes, channel: str, src: Address) -> Accepted:
         env = parse_envelope(raw[KIND.size:])
@@ -614,6 +632,10 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
         return self._frame(ack, session, self.max_frame)
 
     def _dispatch(self, msg: Message) -> None:
+        if msg.role == CLIENT_ROLE and msg.reply not in self._clients:
+            self._clients[msg.reply] = None
+            if len(self._clients) > 1024:
+                self._clients.popitem(last=False)
         try:
             self.on_message(msg)
         except Exception:

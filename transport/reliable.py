@@ -10,10 +10,12 @@ delivered (`on_delivered`) or, past its deadline or to the wrong peer, undeliver
 
 from __future__ import annotations
 
+import logging
 import os
 import socket
 import threading
 import time
+from collections import OrderedDict
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
@@ -33,8 +35,10 @@ class ReliableDelivery:
     """Reliable messages (a mixin of `Endpoint`; what it uses of the rest is declared below)."""
 
     if TYPE_CHECKING:
+        _clients: OrderedDict[Address, None]
         _cond: threading.Condition
         _dests: dict[Address, Dest]
+        log: logging.Logger
         _stopping: bool
         ack_timeout: float
         connect_timeout: float
@@ -172,8 +176,25 @@ class ReliableDelivery:
                     return False  # the peer does not know this session any more
             return False
         except (OSError, FrameError) as err:
+            if dest.addr in self._clients and isinstance(err, ConnectionRefusedError):
+                self._client_gone(dest)
+                return False
+            if dest.addr in self._clients and isinstance(err, ConnectionResetError | BrokenPipeError):
+                return False  # a client exiting closes its streams: the next try finds out (quietly)
             self.warn("link", f"link to {dest.addr[0]}:{dest.addr[1]} failed: {err}")
             return False
+
+    def _client_gone(self, dest: Dest) -> None:
+        """A command-line client's port refuses connections: it exited (as `erni task` does once its
+        task runs). What was queued for it is dropped at once, quietly: no retries, no warnings."""
+        with self._cond:
+            reliable, fast = list(dest.reliable), len(dest.fast)
+            dest.reliable.clear()
+            dest.fast.clear()
+        self.count("dropped.client_gone", len(reliable) + fast)
+        self.log.debug("client at %s:%d has gone: %d message(s) for it dropped", *dest.addr, len(reliable) + fast)
+        for out in reliable:
+            self.on_undeliverable(dest.addr, out.id, out.kind, out.body)
 
     def _expired(self, dest: Dest, out: Outgoing, now: float) -> bool:
         if now <= out.deadline:

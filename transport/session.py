@@ -40,6 +40,7 @@ from cryptography.hazmat.primitives import hashes
 from cryptography.hazmat.primitives.asymmetric.x25519 import X25519PrivateKey, X25519PublicKey
 from cryptography.hazmat.primitives.ciphers.aead import ChaCha20Poly1305
 from cryptography.hazmat.primitives.kdf.hkdf import HKDF
+from cryptography.x509.oid import NameOID
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from erni.transport.identity import Identity, IdentityError
@@ -128,6 +129,10 @@ class Auth(Protocol):
     def verify(self, signed: Signed, sender: str, role: str) -> int | None: ...
 
 
+class CertificateRefused(FrameError):
+    """A signed frame whose certificate this endpoint does not trust: its sender may be told why."""
+
+
 class IdentityAuth:
     """Proof by certificate: each agent signs with its own key; the team authority vouches for it."""
 
@@ -145,12 +150,20 @@ class IdentityAuth:
         head = KIND.pack(length, kind) + U16.pack(len(body)) + body + U16.pack(len(cert)) + cert
         return head + self.identity.sign(DOMAIN + head)
 
+    def trusted(self) -> str:
+        """The authority this endpoint trusts, as a refusal names it."""
+        trust = self.identity.trust
+        names = trust.authority.subject.get_attributes_for_oid(NameOID.COMMON_NAME)
+        name = str(names[0].value) if names else "?"
+        return f"the authority {name!r} (fingerprint {trust.fingerprint})"
+
     def verify(self, signed: Signed, sender: str, role: str) -> int | None:
-        """Return the certificate's serial; raise FrameError('auth'|'revoked')."""
+        """Return the certificate's serial; raise FrameError('auth'|'revoked'), or CertificateRefused
+        when the certificate itself is not trusted (another authority's, revoked, malformed)."""
         try:
             who = self.identity.trust.check(signed.cert)
         except IdentityError as err:
-            raise FrameError("revoked" if "revoked" in str(err) else "auth", str(err)) from None
+            raise CertificateRefused("revoked" if "revoked" in str(err) else "auth", str(err)) from None
         if who.name != sender or who.role != role:
             raise FrameError("auth", f"certificate of {who.name} ({who.role}) but the frame claims "
                              f"{sender[:64]} ({role[:32]})")

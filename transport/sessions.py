@@ -14,6 +14,7 @@ handshakes per host and in total, answers waiting for their first frame, hints p
 from __future__ import annotations
 
 import hashlib
+import json
 import logging
 import threading
 import time
@@ -25,7 +26,7 @@ from typing import Protocol
 from erni.transport.identity import Identity, IdentityError, read_crl, write_public
 from erni.transport.limits import HostBuckets, Limits, TokenBucket
 from erni.transport.session import Auth, Initiation, Session, complete, cut_signed, initiate, parse_hello, respond
-from erni.transport.wire import HINT, KIND, FrameError
+from erni.transport.wire import HINT, KIND, REFUSAL, FrameError
 
 Address = tuple[str, int]
 
@@ -79,6 +80,8 @@ class Sessions:
         self._hs_hosts = HostBuckets(limits.handshakes_per_host)
         self._hs_total = TokenBucket(limits.handshakes_total)
         self._hint_hosts = HostBuckets(2.0)
+        self._refusal_hosts = HostBuckets(2.0)
+        self.refusals: dict[Address, str] = {}  # address -> why the agent there refused our certificate
         self._crl_mtime = 0.0
 
     # -- the table ------------------------------------------------------------------------
@@ -193,6 +196,43 @@ class Sessions:
             self.by_sid[session.sid] = session
         self.host.count("handshakes.answered")
         self._answer(frame, src)
+
+    def refuse(self, hello: bytes, src: Address, err: FrameError) -> None:
+        """Tell the sender of a handshake why its certificate is not trusted here (at most twice a
+        second per host). Unsigned, but it names the handshake's digest: only who saw the handshake
+        can forge it, and the sender takes it only as the reason its handshake goes unanswered."""
+        trusted = getattr(self.auth, "trusted", None)
+        if not callable(trusted) or not self._refusal_hosts.take(src[0]):
+            return
+        note = {"answers": hashlib.sha256(hello).hexdigest(), "agent": self.name,
+                "reason": f"{str(err).partition(': ')[2]}; {self.name} trusts {trusted()}"[:400]}
+        body = json.dumps(note).encode()
+        try:
+            self.host.send_datagram(KIND.pack(1 + len(body), REFUSAL) + body, src)
+            self.host.count("refusals.sent")
+        except OSError:
+            pass
+
+    def on_refusal(self, raw: bytes, src: Address) -> str:
+        """A refusal of our handshake: record its reason for the address (logged once) and return
+        it; raise FrameError for a refusal of no handshake of ours."""
+        if len(raw) > KIND.size + 1024:
+            raise FrameError("size", f"a refusal of {len(raw)} bytes (at most {KIND.size + 1024})")
+        try:
+            note = json.loads(raw[KIND.size:])
+            answers, agent, reason = str(note["answers"]), str(note["agent"]), str(note["reason"])
+        except (ValueError, TypeError, KeyError):
+            raise FrameError("parse", "a refusal that is not the expected JSON object") from None
+        with self.lock:
+            found = self.initiations.get(answers)
+        if found is None or found.addr != src:
+            raise FrameError("session", "a refusal of no handshake of ours")
+        why = f"{agent[:64]} at {src[0]}:{src[1]} refused this agent's certificate: {' '.join(reason[:400].split())}"
+        self.host.count("refusals.received")
+        if self.refusals.get(src) != why:
+            self.refusals[src] = why
+            self.log.warning("%s", why)
+        return why
 
     def _answer(self, frame: bytes, src: Address) -> None:
         """Answer a handshake from the receive thread: a send error (no route to the sender yet, as

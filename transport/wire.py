@@ -38,7 +38,9 @@ KIND = struct.Struct(">IB")  # length, kind
 DATA_HEADER = struct.Struct(">IB8sQ")  # length, kind, session, counter
 SESSION_END = 13  # a data frame's session id ends here: enough to refuse a stream early
 DATA, HELLO, REPLY, BEACON, HINT, PLAIN = b"D"[0], b"H"[0], b"R"[0], b"B"[0], b"K"[0], b"P"[0]
-KINDS = {DATA: "data", HELLO: "hello", REPLY: "reply", BEACON: "beacon", HINT: "hint", PLAIN: "plain"}
+REFUSAL = b"X"[0]  # an unsigned answer to a handshake whose certificate this agent does not trust
+KINDS = {DATA: "data", HELLO: "hello", REPLY: "reply", BEACON: "beacon", HINT: "hint", PLAIN: "plain",
+         REFUSAL: "refusal"}
 TAG_SIZE = 16
 MIN_FRAME = HEADER.size + 1 + 8  # a hint: the shortest frame of any kind
 DEFAULT_MAX_FRAME = 256 * 1024

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
 import time
 from typing import TYPE_CHECKING, Any
@@ -80,6 +81,12 @@ def run(args: argparse.Namespace) -> int:
         return 2
     host = args.host or scenario.host
     net = scenario.build()
+    # Ctrl-C or a TERM sets a flag the serving loop reads between its short sleeps, rather than
+    # raising KeyboardInterrupt wherever the main thread happens to be (inside a move, holding the
+    # simulated network's lock that the SNMP threads and the close then wait for)
+    stopping: list[int] = []
+    previous = {sig: signal.signal(sig, lambda signum, frame: stopping.append(signum))
+                for sig in (signal.SIGINT, signal.SIGTERM)}
     agent = ManetSnmpAgent(net, read_community=scenario.read_community, v3_users=users).start()
     try:
         writes = scenario.write_communities()
@@ -102,7 +109,7 @@ def run(args: argparse.Namespace) -> int:
         print("serving; Ctrl-C to stop", flush=True)
         start = time.monotonic()
         moves = sorted(scenario.moves, key=lambda m: m.at)
-        while True:
+        while not stopping:
             now = time.monotonic() - start
             if args.duration is not None and now >= args.duration:
                 break
@@ -111,16 +118,16 @@ def run(args: argparse.Namespace) -> int:
                 net.move(m.node, m.x, m.y)
                 print(f"t={m.at:6.1f} s  {m.node} -> ({m.x:g}, {m.y:g}); {_topology_line(net)}",
                       flush=True)
-            waits = [0.5]
+            waits = [0.2]
             if moves:
                 waits.append(moves[0].at - now)
             if args.duration is not None:
                 waits.append(args.duration - now)
             time.sleep(max(0.01, min(waits)))
-    except KeyboardInterrupt:
-        pass
     finally:
         agent.close()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
         st = agent.stats
         print(f"net-sim: stopped ({st['answered']} request(s) answered; dropped: "
               f"{st['snmpInASNParseErrs']} undecodable, {st['snmpInBadCommunityNames']} unknown community, "

@@ -32,6 +32,7 @@ def run(args: argparse.Namespace) -> int:
             client.send(addr, "peers.request", None)
             deadline = time.monotonic() + 5.0
             while time.monotonic() < deadline:
+                client.check_refused()
                 msg = client.receive(0.2)
                 if msg is not None and msg.kind == "peers.reply" and isinstance(msg.body, PeerList):
                     break

@@ -123,6 +123,8 @@ def run(args: argparse.Namespace) -> int:
         team.start(progress, timeout=args.timeout)
         progress.done()
         _print_team(team, time.monotonic() - t0)
+        for note in speech_notes(team.url is None):
+            print(f"erni sim: {note}", flush=True)
         _run_scenario(team, scenario)
     except (TeamError, NetnsError) as err:
         progress.done()
@@ -185,6 +187,20 @@ def _running(pid: str) -> bool:
     except PermissionError:
         return True
     return True
+
+
+def speech_notes(headless: bool) -> list[str]:
+    """What the GUI's speech front end lacks on this machine, each with the command that adds it."""
+    import importlib.util
+
+    if headless:
+        return []
+    notes = []
+    if importlib.util.find_spec("pocketsphinx") is None:
+        notes.append("voice commands off: no speech recogniser (pip install pocketsphinx)")
+    if shutil.which("espeak-ng") is None:
+        notes.append("spoken feedback off: espeak-ng is not installed (sudo apt install espeak-ng)")
+    return notes
 
 
 def _print_team(team: Any, seconds: float) -> None:

@@ -62,11 +62,15 @@ def run(args: argparse.Namespace) -> int:
         try:
             for ev in watch_events(client, addr, end, LEASE):
                 if ev is None:
+                    client.check_refused()
                     continue
                 print(dumps(ev.model_dump(mode="json")) if args.json else describe(ev), flush=True)
                 seen += 1
                 if args.count and seen >= args.count:
                     break
+        except ClientError as err:
+            print(f"erni watch: {err}", file=sys.stderr)
+            return 1
         except KeyboardInterrupt:
             pass
     return 0

@@ -46,6 +46,204 @@ from erni.blackboard.errors import UsageError
 
 EPS = 1e-9
 NEIGHBOURHOODS = ("physical", "delaunay", "gabriel")
+ENGAGE = ("instant", "rest")
+Links = dict[tuple[int, int], float]  # engage = "rest": (i, j), i < j -> the spring's rest length (m)
+
+
+@dataclass
+class SpreadMemory:
+    """What a team's deployment carries from one step to the next when cfg.engage = "rest" or
+    cfg.stick > 0 (the paper's law needs none): each spring's rest length, each link's hysteresis
+    state and the time (s)."""
+
+    links: Links = dataclasses.field(default_factory=dict)
+    seen: dict[tuple[int, int], list[float]] = dataclasses.field(default_factory=dict)
+    t: float = 0.0
+    triangles: NDArray[np.intp] | None = None  # cfg.flip_margin > 0: the triangulation kept (T, 3), counter-clockwise
+    effective: dict[tuple[int, int], float] = dataclasses.field(default_factory=dict)  # links in effect: rest length
+    retriangulated: int = 0    # cfg.flip_margin > 0: how often the kept triangulation started afresh
+    switched_on: float = 0.0   # J: the energy springs held at the instant a change switched them on, summed
+    switched_off: float = 0.0  # J: ... and at the instant one switched them off
+
+    def account(self, pos: NDArray[np.float64], nbrs: list[NDArray[np.intp]], rest: NDArray[np.float64] | None,
+                cfg: SpreadConfig) -> None:
+        """Count the springs this step switches on and off against the last (none at the start)."""
+        flat = [(i, int(j)) for i, js in enumerate(nbrs) for j in js]
+        rests = [cfg.distance] * len(flat) if rest is None else rest.tolist()
+        now = {(i, j): r for (i, j), r in zip(flat, rests) if i < j}
+
+        def energy(key: tuple[int, int], r: float) -> float:
+            return cfg.weight * (float(np.hypot(*(pos[key[1]] - pos[key[0]]))) - r) ** 2 / 2
+
+        if self.t > 0:
+            self.switched_on += sum(energy(k, r) for k, r in now.items() if k not in self.effective)
+            self.switched_off += sum(energy(k, r) for k, r in self.effective.items() if k not in now)
+        self.effective = now
+
+
+def _ccw(p: NDArray[np.float64], tri: NDArray[np.intp]) -> NDArray[np.float64]:
+    """Twice the signed area of each triangle (positive: counter-clockwise)."""
+    a, b, c = p[tri[:, 0]], p[tri[:, 1]], p[tri[:, 2]]
+    out: NDArray[np.float64] = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])
+    return out
+
+
+def kept_delaunay(pos: ArrayLike, triangles: NDArray[np.intp] | None, margin: float
+                  ) -> NDArray[np.intp] | None:
+    """A Delaunay triangulation kept from step to step, with hysteresis: an edge flips only once
+    the two angles opposite it sum to more than 180 + `margin` degrees (the Delaunay test is
+    180), so after a flip the robots must move the angles by 2 `margin` before it flips back.
+    Start (`triangles` None), or when a robot crossed an edge of its triangles: triangulated
+    afresh. Returns the triangles (T, 3), counter-clockwise, or None where Qhull cannot
+    triangulate (fewer than 3 robots, all on one line, coincident robots)."""
+    from scipy.spatial import Delaunay, QhullError
+
+    p = np.asarray(pos, dtype=float)
+    n = len(p)
+    if triangles is not None and len(triangles) and (_ccw(p, triangles) <= 1e-12).any():
+        triangles = _repair(p, triangles)
+    if triangles is not None and len(np.unique(triangles)) < n:  # a robot left without a triangle
+        triangles = None
+    if triangles is None or len(triangles) == 0:
+        if n < 3:
+            return None
+        try:
+            tri = Delaunay(p)
+        except (QhullError, ValueError):
+            return None
+        if len(np.unique(tri.simplices)) < n:  # a robot Qhull dropped (coincident)
+            return None
+        t = np.array(tri.simplices, dtype=np.intp)
+        flip = _ccw(p, t) < 0
+        t[flip] = t[flip][:, [0, 2, 1]]
+        return t
+    t = triangles.copy()
+    limit = math.pi + math.radians(margin)
+    for _ in range(50):
+        edges: dict[tuple[int, int], list[tuple[int, int]]] = {}
+        for k, (a, b, c) in enumerate(t.tolist()):
+            for u, v, w in ((a, b, c), (b, c, a), (c, a, b)):
+                edges.setdefault((u, v) if u < v else (v, u), []).append((k, w))
+        touched: set[int] = set()
+        flipped = False
+        for (u, v), both in edges.items():
+            if len(both) != 2:
+                continue
+            (k1, w1), (k2, w2) = both
+            if k1 in touched or k2 in touched:
+                continue
+            angles = 0.0
+            for w in (w1, w2):
+                e1, e2 = p[u] - p[w], p[v] - p[w]
+                angles += math.atan2(abs(e1[0] * e2[1] - e1[1] * e2[0]), e1[0] * e2[0] + e1[1] * e2[1])
+            if angles <= limit:
+                continue
+            new = np.array([[u, w2, w1], [v, w1, w2]], dtype=np.intp)
+            area = _ccw(p, new)
+            if area[0] * area[1] <= 1e-24:  # u and v on one side of w1-w2 (or on it): the quad is not convex
+                continue
+            new[area < 0] = new[area < 0][:, [0, 2, 1]]
+            if (_ccw(p, new) <= 1e-12).any():
+                continue
+            t[k1], t[k2] = new[0], new[1]
+            touched |= {k1, k2}
+            flipped = True
+        if not flipped:
+            break
+    return t
+
+
+def _repair(p: NDArray[np.float64], t: NDArray[np.intp]) -> NDArray[np.intp] | None:
+    """Mend a kept triangulation in which robots crossed edges: an inverted triangle's edge is
+    flipped with the triangle across it where both new triangles come out counter-clockwise; an
+    inverted triangle on the team's edge (an edge no other triangle shares) is dropped, as its
+    robot has left the hull. None where that does not mend it (triangulate afresh)."""
+    t = t.copy()
+    for _ in range(20):
+        bad = np.flatnonzero(_ccw(p, t) <= 1e-12)
+        if len(bad) == 0:
+            return t
+        owner: dict[tuple[int, int], list[tuple[int, int]]] = {}
+        for k, (a, b, c) in enumerate(t.tolist()):
+            for u, v, w in ((a, b, c), (b, c, a), (c, a, b)):
+                owner.setdefault((u, v) if u < v else (v, u), []).append((k, w))
+        drop: set[int] = set()
+        touched: set[int] = set()
+        for k in bad.tolist():
+            if k in touched:
+                continue
+            a, b, c = t[k].tolist()
+            mended = False
+            for u, v, w in ((a, b, c), (b, c, a), (c, a, b)):
+                both = owner[(u, v) if u < v else (v, u)]
+                if len(both) == 1:
+                    continue
+                (k2, w2) = next(x for x in both if x[0] != k)
+                if k2 in touched:
+                    continue
+                new = np.array([[u, w2, w], [v, w, w2]], dtype=np.intp)
+                area = _ccw(p, new)
+                new[area < 0] = new[area < 0][:, [0, 2, 1]]
+                if area[0] * area[1] > 1e-24 and (_ccw(p, new) > 1e-12).all():
+                    t[k], t[k2] = new[0], new[1]
+                    touched |= {k, k2}
+                    mended = True
+                    break
+            if not mended and any(len(owner[(u, v) if u < v else (v, u)]) == 1 for u, v in ((a, b), (b, c), (c, a))):
+                drop.add(k)
+                touched.add(k)
+        if not touched:
+            return None
+        if drop:
+            t = np.delete(t, sorted(drop), axis=0)
+    return None
+
+
+def triangle_neighbours(triangles: NDArray[np.intp], n: int) -> list[NDArray[np.intp]]:
+    """Each robot's neighbours along the edges of `triangles`."""
+    out: list[set[int]] = [set() for _ in range(n)]
+    for a, b, c in triangles.tolist():
+        out[a] |= {b, c}
+        out[b] |= {a, c}
+        out[c] |= {a, b}
+    return [np.array(sorted(x), dtype=np.intp) for x in out]
+
+
+def team_neighbourhoods(pos: ArrayLike, cfg: SpreadConfig, memory: SpreadMemory | None = None
+                        ) -> list[NDArray[np.intp]]:
+    """Each robot's neighbours under `cfg`: the neighbourhood itself (a Delaunay triangulation kept
+    with cfg.flip_margin when `memory` is given), links longer than cfg.reach dropped, and the
+    hysteresis of cfg.stick (with `memory`)."""
+    p = np.asarray(pos, dtype=float)
+    nbrs: list[NDArray[np.intp]] | None = None
+    if memory is not None and cfg.neighbourhood == "delaunay" and cfg.flip_margin > 0:
+        tri = memory.triangles
+        if tri is not None and (_ccw(p, tri) <= 1e-12).any():  # a robot crossed an edge: mend, else afresh
+            tri = _repair(p, tri)
+            if tri is None or len(np.unique(tri)) < len(p):
+                memory.retriangulated += 1
+                tri = None
+        memory.triangles = kept_delaunay(p, tri, cfg.flip_margin)
+        if memory.triangles is not None:
+            nbrs = triangle_neighbours(memory.triangles, len(p))
+            # every Delaunay triangulation links each robot to its nearest robot; the kept one links
+            # it too once closer than d / 2, or two robots whose edge it lacks could close unfelt
+            from scipy.spatial import cKDTree
+
+            gap, near = cKDTree(p).query(p, k=2)
+            for i, j in enumerate(near[:, 1].tolist()):
+                if gap[i, 1] < cfg.distance / 2 and j not in nbrs[i]:
+                    nbrs[i] = np.sort(np.append(nbrs[i], j))
+                    nbrs[j] = np.sort(np.append(nbrs[j], i))
+            if cfg.reach is not None:  # with a margin: a link in effect goes only past 1.1 reach
+                held = memory.effective
+                nbrs = [js[[np.hypot(*(p[j] - p[i])) <= cfg.reach * (1.1 if (min(i, j), max(i, j)) in held else 1.0)
+                            for j in js.tolist()]] if len(js) else js for i, js in enumerate(nbrs)]
+    if nbrs is None:
+        nbrs = neighbourhoods(p, cfg.neighbourhood, cfg.range, cfg.reach)
+    if memory is not None and cfg.stick > 0:
+        nbrs = hysteresis(nbrs, memory.seen, memory.t, cfg.stick)
+    return nbrs
 
 
 @dataclass(frozen=True)
@@ -68,6 +266,12 @@ class SpreadConfig:
     inertia: float = 1.0
     vmax: float | None = None      # speed limit (m/s), None = unlimited
     wmax: float | None = None      # turn-rate limit (rad/s), None = unlimited
+    engage: str = "instant"        # a new neighbour's spring: "instant" (at d, the paper's) or "rest" (at its length)
+    relax: float = 5.0             # engage = "rest": time constant (s) of a spring's rest length going to d
+    stick: float = 0.0             # hysteresis (s): a neighbour joins or leaves once the change has held this long
+    reach: float | None = None     # topological neighbourhoods: links longer than this (m) dropped; None: none
+    flip_margin: float = 0.0       # Delaunay kept from step to step: an edge flips once its opposite angles
+                                   # sum to more than 180 degrees plus this (deg); 0: triangulated afresh each step
 
     def __post_init__(self) -> None:
         for name in ("distance", "gain", "dt", "range", "mass", "inertia"):
@@ -79,6 +283,16 @@ class SpreadConfig:
             raise UsageError(f"neighbourhood: expected one of {', '.join(NEIGHBOURHOODS)}, got {self.neighbourhood!r}")
         if self.model not in ("holonomic", "nonholonomic"):
             raise UsageError(f"model: expected 'holonomic' or 'nonholonomic', got {self.model!r}")
+        if self.engage not in ENGAGE:
+            raise UsageError(f"engage: expected one of {', '.join(ENGAGE)}, got {self.engage!r}")
+        if not self.relax > 0:
+            raise UsageError(f"relax: expected a positive number, got {self.relax!r}")
+        if self.reach is not None and not self.reach > 0:
+            raise UsageError(f"reach: expected a positive number or None, got {self.reach!r}")
+        if not 0 <= self.flip_margin < 90:
+            raise UsageError(f"flip_margin: expected degrees in [0, 90), got {self.flip_margin!r}")
+        if not self.stick >= 0:
+            raise UsageError(f"stick: expected a number of seconds >= 0, got {self.stick!r}")
 
 
 def wrap(a: NDArray[np.float64] | float) -> NDArray[np.float64] | np.float64:
@@ -86,9 +300,17 @@ def wrap(a: NDArray[np.float64] | float) -> NDArray[np.float64] | np.float64:
     return (np.asarray(a) + math.pi) % (2 * math.pi) - math.pi
 
 
-def neighbourhoods(pos: ArrayLike, mode: str = "physical", rng: float = 15.0) -> list[NDArray[np.intp]]:
-    """Return, for each robot, the indices of its neighbours (physical: within `rng`; Delaunay; Gabriel)."""
+def neighbourhoods(pos: ArrayLike, mode: str = "physical", rng: float = 15.0,
+                   reach: float | None = None) -> list[NDArray[np.intp]]:
+    """Return, for each robot, the indices of its neighbours (physical: within `rng`; Delaunay; Gabriel).
+
+    `reach`: a topological neighbour further than this (m) is dropped (the long links a Delaunay
+    triangulation gives robots on the team's edge, which no radio of range `reach` carries).
+    """
     p = np.asarray(pos, dtype=float)
+    if reach is not None and mode != "physical":
+        full = neighbourhoods(p, mode, rng)
+        return [js[np.hypot(*(p[js] - p[i]).T) <= reach] if len(js) else js for i, js in enumerate(full)]
     n = len(p)
     if mode == "physical":
         from scipy.spatial import cKDTree
@@ -185,16 +407,20 @@ def _nearest_on_segments(p: NDArray[np.float64], walls: NDArray[np.float64]) -> 
 
 
 def forces(pos: ArrayLike, theta: ArrayLike, cfg: SpreadConfig, obstacles: ArrayLike | None = None,
-           walls: ArrayLike | None = None, nbrs: list[NDArray[np.intp]] | None = None
-           ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Return (-dU/dp (N, 2), -dU/dtheta (N,)): the potential's force and torque on each robot."""
+           walls: ArrayLike | None = None, nbrs: list[NDArray[np.intp]] | None = None,
+           rest: NDArray[np.float64] | None = None) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Return (-dU/dp (N, 2), -dU/dtheta (N,)): the potential's force and torque on each robot.
+
+    `rest`: each neighbour's desired distance, in the order of `nbrs` flattened (robot by robot);
+    None: cfg.distance for every one.
+    """
     p = np.asarray(pos, dtype=float)
     th = np.asarray(theta, dtype=float)
     n = len(p)
     obs = np.zeros((0, 3)) if obstacles is None or np.size(obstacles) == 0 else np.asarray(obstacles, float).reshape(-1, 3)
     wal = np.zeros((0, 4)) if walls is None or np.size(walls) == 0 else np.asarray(walls, float).reshape(-1, 4)
     if nbrs is None:
-        nbrs = neighbourhoods(p, cfg.neighbourhood, cfg.range)
+        nbrs = neighbourhoods(p, cfg.neighbourhood, cfg.range, cfg.reach)
     # Every (robot, point it feels, distance it wants, weight) in flat arrays: neighbours, then the
     # nearest point of each obstacle and wall within range; sums per robot by bincount.
     w = cfg.weight
@@ -204,7 +430,7 @@ def forces(pos: ArrayLike, theta: ArrayLike, cfg: SpreadConfig, obstacles: Array
             else np.maximum(1, degree).astype(float) * w)  # w_ij of an obstacle or wall, per robot
     owner = [np.repeat(np.arange(n), degree)]
     pts = [p[np.concatenate(nbrs)] if n and len(owner[0]) else np.zeros((0, 2))]
-    want = [np.full(len(owner[0]), cfg.distance)]
+    want = [np.full(len(owner[0]), cfg.distance) if rest is None else np.asarray(rest, dtype=float)]
     weights = [np.full(len(owner[0]), w)]
     for q, dist_wanted in ((_nearest_on_circles(p, obs), cfg.obstacle_distance) if len(obs) else (None, 0.0),
                            (_nearest_on_segments(p, wal), cfg.wall_distance) if len(wal) else (None, 0.0)):
@@ -255,17 +481,96 @@ def _clip_norm(v: NDArray[np.float64], vmax: float | None) -> NDArray[np.float64
     return v * scale[:, None]
 
 
+def engage_links(pos: NDArray[np.float64], nbrs: list[NDArray[np.intp]], links: Links, cfg: SpreadConfig,
+                 start: bool = False) -> NDArray[np.float64]:
+    """Springs that engage at rest (engage = "rest"): a link new in `nbrs` gets its current length
+    as rest length, a link gone from `nbrs` is dropped (in `links`, in place); return each
+    neighbour's rest length in the order of `nbrs` flattened, for `forces`.
+
+    A spring switched on at its current length holds no energy and pushes nothing, so a change of
+    neighbourhood (a Delaunay flip, a robot crossing a range) puts no energy in at once;
+    `relax_links` then moves the rest length to d, smoothly. At the `start` every spring is at
+    d, as the paper's.
+    """
+    now: set[tuple[int, int]] = set()
+    out = np.empty(sum(len(x) for x in nbrs))
+    k = 0
+    for i, js in enumerate(nbrs):
+        for j in js.tolist():
+            key = (i, j) if i < j else (j, i)
+            now.add(key)
+            if key not in links:
+                links[key] = cfg.distance if start else float(np.hypot(*(pos[j] - pos[i])))
+            out[k] = links[key]
+            k += 1
+    for key in links.keys() - now:
+        del links[key]
+    return out
+
+
+def hysteresis(nbrs: list[NDArray[np.intp]], seen: dict[tuple[int, int], list[float]], t: float,
+               hold: float) -> list[NDArray[np.intp]]:
+    """Neighbourhoods that change only after a change has held for `hold` s: a link joins once it
+    has been in `nbrs` for `hold` s without a break, and leaves once it has been out of it for
+    `hold` s; a link that flips back and forth faster than that keeps its state.
+
+    `seen` (kept by the caller, empty at the start): (i, j), i < j -> [since, in effect], where
+    `since` is when the link last changed between in `nbrs` and out of it (1.0 / 0.0 in effect).
+    """
+    now = {(i, j) if i < j else (j, i) for i, js in enumerate(nbrs) for j in js.tolist()}
+    for key in now - seen.keys():
+        seen[key] = [t, 1.0 if t == 0 else 0.0]  # the first neighbourhoods are in effect at once
+    out: list[set[int]] = [set() for _ in nbrs]
+    for key in list(seen):
+        state = seen[key]
+        present = key in now
+        if present == bool(state[1]):
+            state[0] = t  # nothing to change: the clock of a change restarts
+        elif t - state[0] >= hold:
+            state[1] = 1.0 if present else 0.0
+            state[0] = t
+        if state[1]:
+            out[key[0]].add(key[1])
+            out[key[1]].add(key[0])
+        elif not present:
+            del seen[key]
+    return [np.array(sorted(x), dtype=np.intp) for x in out]
+
+
+def relax_links(links: Links, cfg: SpreadConfig, dt: float) -> None:
+    """Move every rest length toward d with time constant cfg.relax, for dt seconds (in place)."""
+    f = math.exp(-dt / cfg.relax)
+    for key, r in links.items():
+        links[key] = cfg.distance + (r - cfg.distance) * f
+
+
 def spread_step(pos: ArrayLike, theta: ArrayLike, vel: ArrayLike, omega: ArrayLike, cfg: SpreadConfig,
-                obstacles: ArrayLike | None = None, walls: ArrayLike | None = None
+                obstacles: ArrayLike | None = None, walls: ArrayLike | None = None,
+                memory: SpreadMemory | None = None, nbrs: list[NDArray[np.intp]] | None = None
                 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-    """Advance every robot one period `cfg.dt` by equation (15) or (16); return (pos, theta, vel, omega)."""
+    """Advance every robot one period `cfg.dt` by equation (15) or (16); return (pos, theta, vel, omega).
+
+    With cfg.engage = "rest" or cfg.stick > 0, `memory` (kept by the caller from step to step,
+    new at the start) holds each spring's rest length (`engage_links`) and each link's hysteresis
+    (`hysteresis`). `nbrs`: the neighbourhoods to use (default: from `pos` by cfg.neighbourhood
+    and cfg.range, through the hysteresis when cfg.stick > 0).
+    """
     p = np.asarray(pos, dtype=float)
     th = np.asarray(theta, dtype=float)
     v = np.asarray(vel, dtype=float).reshape(-1, 2)
     om = np.asarray(omega, dtype=float)
     if not (len(p) == len(th) == len(v) == len(om)):
         raise UsageError("spread_step: pos, theta, vel and omega must describe the same robots")
-    nbrs = neighbourhoods(p, cfg.neighbourhood, cfg.range)
+    if (cfg.engage == "rest" or cfg.stick > 0 or cfg.flip_margin > 0) and memory is None:
+        raise UsageError("spread_step: engage = 'rest', stick > 0 and flip_margin > 0 need `memory`, kept "
+                         "between steps")
+    if nbrs is None:
+        nbrs = team_neighbourhoods(p, cfg, memory)
+    rest = None
+    if memory is not None:
+        if cfg.engage == "rest":
+            rest = engage_links(p, nbrs, memory.links, cfg, memory.t == 0)
+        memory.account(p, nbrs, rest, cfg)
     # substeps keep the stiffest neighbourhood's spring stable: h * sqrt(n w / m) <= 0.5
     degree = max((len(x) for x in nbrs), default=0)
     wobj = cfg.obstacle_weight if cfg.obstacle_weight is not None else max(1, degree) * cfg.weight
@@ -273,15 +578,20 @@ def spread_step(pos: ArrayLike, theta: ArrayLike, vel: ArrayLike, omega: ArrayLi
     substeps = min(50, max(1, math.ceil(cfg.dt * math.sqrt(stiffness / cfg.mass) / 0.5)))
     h = cfg.dt / substeps
     for _ in range(substeps):
-        p, th, v, om = _integrate(p, th, v, om, cfg, h, obstacles, walls, nbrs)
+        p, th, v, om = _integrate(p, th, v, om, cfg, h, obstacles, walls, nbrs, rest)
+    if memory is not None:
+        if rest is not None:
+            relax_links(memory.links, cfg, cfg.dt)
+            memory.effective = {key: memory.links[key] for key in memory.effective}
+        memory.t += cfg.dt
     return p, th, v, om
 
 
 def _integrate(p: NDArray[np.float64], th: NDArray[np.float64], v: NDArray[np.float64], om: NDArray[np.float64],
                cfg: SpreadConfig, dt: float, obstacles: ArrayLike | None, walls: ArrayLike | None,
-               nbrs: list[NDArray[np.intp]]
+               nbrs: list[NDArray[np.intp]], rest: NDArray[np.float64] | None = None
                ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-    f, tq = forces(p, th, cfg, obstacles, walls, nbrs)
+    f, tq = forces(p, th, cfg, obstacles, walls, nbrs, rest)
     k = cfg.gain
     om = om + dt * (tq - k * om) / cfg.inertia
     if cfg.wmax is not None:
@@ -358,6 +668,7 @@ def simulate(pos: ArrayLike, theta: ArrayLike, cfg: SpreadConfig, seconds: float
     th = np.asarray(theta, dtype=float).copy()
     v = np.zeros_like(p)
     om = np.zeros(len(p))
+    memory = SpreadMemory()
     for _ in range(round(seconds / cfg.dt)):
-        p, th, v, om = spread_step(p, th, v, om, cfg, obstacles, walls)
+        p, th, v, om = spread_step(p, th, v, om, cfg, obstacles, walls, memory)
     return p, th

@@ -12,7 +12,9 @@ standing by too, and goes to lost robots as well. Other commands to a lost robot
 "slower" set each robot's cruise speed for later moves (and a running go-to or random walk);
 "go to robot 2" drives to that robot, stopping short. A dialogue made with `read_back` (the
 spoken one) restates a risky command (a move beyond `read_back` metres or out of the map, a
-command to several robots) and carries it out only on "yes"; an unsure hearing is asked again.
+command to several robots) and carries it out only on "yes"; an unsure hearing of a command that
+would move robots is read back too ("Did you say: robot 1, go forward 2 metres? Say yes or no"),
+any other unsure hearing is asked again ("Say again?"); a stop never waits.
 `Naming` maps robot numbers to agent names (`robot3`) and back; `tasks_for` maps an action
 of the grammar onto the task language in either tier (RemoteBotMotion through each robot's
 MissionControl, or BotMotion straight to its motion plugin).
@@ -48,6 +50,8 @@ STANDING_BY = "Standing by"
 ROGER = "Roger"
 CONFIRM_PROMPT = "say yes to confirm"
 SAY_AGAIN = "Say again?"
+DID_YOU_SAY = "Did you say:"  # a doubted hearing read back: "Did you say: robot 1, go forward 2 metres? ..."
+YES_OR_NO = "Say yes or no"
 EXAMPLE = "say a command like robot 1 go forward 2 metres"
 
 DEFAULT_SPEED = 0.3  # m/s: the task language's cruise speed of goto, forward, backward and random walk
@@ -261,8 +265,9 @@ class Dialogue:
         """Answer one utterance given the robots the team has now (agent names, or their views).
 
         `running` are the unfinished tasks this operator's front ends sent (None: all it sent
-        are taken as running); `unsure` marks a hearing the recogniser doubts: it is asked again
-        ("Say again?"), except a stop, which acts however it was heard.
+        are taken as running); `unsure` marks a hearing the recogniser doubts: a command that would
+        send tasks is read back when the dialogue reads back (`read_back`) and runs only on "yes";
+        anything else is asked again ("Say again?"); a stop acts however it was heard.
         """
         views = self._views(team)
         live = None if running is None else {t.uid for t in running}
@@ -280,8 +285,16 @@ class Dialogue:
         if cmd.is_stop:
             return self._stop(cmd, views, reply)  # never waits, never asked again; drops a read-back
         if unsure:
-            if self.listening or cmd.kind == "attention":
-                reply.say, reply.asked = self._unsure(text, pending), True
+            if not (self.listening or cmd.kind == "attention"):
+                return reply
+            if self.read_back is not None and cmd.kind == "action" and cmd.action != "speed" and not (
+                    cmd.action == "cancel" and cmd.params.get("last") and not cmd.names_targets):
+                asked = self._understood(cmd, views, live, Reply(text), doubt=True)
+                if asked.asked:  # a doubted command is read back: it runs only on "yes"
+                    if pending is not None and asked.say is not None:
+                        asked.say = f"Not sent: {pending.what}. {asked.say}"
+                    return asked
+            reply.say, reply.asked = self._unsure(text, pending), True
             return reply
         if cmd.kind == "attention":
             self.listening = True
@@ -297,6 +310,7 @@ class Dialogue:
                 reply.say = self._refused(text, f"Too late: {pending.what} was not sent; say it again", None)
                 return reply
             pending.reply.heard = text
+            self.targets = list(pending.reply.targets) or self.targets
             self._carried_out(pending.reply)
             return pending.reply
         dropped = f"Not sent: {pending.what}" if pending is not None else ""
@@ -309,8 +323,10 @@ class Dialogue:
             answered.say = f"{dropped}. {answered.say}"
         return answered
 
-    def _understood(self, cmd: Command, views: Mapping[str, RobotView], live: set[str] | None, reply: Reply) -> Reply:
-        """Answer a command heard while listening and with no read-back waiting."""
+    def _understood(self, cmd: Command, views: Mapping[str, RobotView], live: set[str] | None, reply: Reply,
+                    doubt: bool = False) -> Reply:
+        """Answer a command heard while listening and with no read-back waiting; with `doubt` (the
+        recogniser is unsure of it) a command that would send tasks is read back instead."""
         if cmd.kind == "sleep":
             self.listening = False
             reply.say, reply.accepted = STANDING_BY, True
@@ -341,17 +357,19 @@ class Dialogue:
         except Refusal as why:
             reply.say = self._refused(reply.heard, str(why), None)
             return reply
-        self.targets = targets
+        if not doubt:  # a doubted hearing picks no robots until it is confirmed
+            self.targets = targets
         reply.targets, reply.action = list(targets), "goto" if cmd.action == "goto_robot" else cmd.action
         what += self._at_speed(reply.action, targets)
         who = self.who(targets, cmd.everyone, views)
         reply.accepted = True
-        risk = self._risk(reply, views)
+        risk = "doubt" if doubt and reply.tasks else self._risk(reply, views)
         if risk:
             reply.say = f"{ROGER}: {who}, {what}" + (f" ({note})" if note else "")
             self.pending = _Pending(reply, f"{who}, {what}", time.monotonic() + self.read_back_timeout)
-            return Reply(reply.heard, say=f"{who[0].upper()}{who[1:]}, {what} \u2014 {CONFIRM_PROMPT}",
-                         targets=list(targets), accepted=True, asked=True)
+            ask = (f"{DID_YOU_SAY} {who}, {what}? {YES_OR_NO}" if risk == "doubt"
+                   else f"{who[0].upper()}{who[1:]}, {what} \u2014 {CONFIRM_PROMPT}")
+            return Reply(reply.heard, say=ask, targets=list(targets), accepted=True, asked=True)
         reply.say = f"{ROGER}: {who}, {what}" + (f" ({note})" if note else "")
         self._carried_out(reply)
         return reply

@@ -244,6 +244,106 @@ class Stream:
         return Heard(" ".join(said))
 
 
+class NoiseFloorEndpointer:
+    """Cuts a stream of 16 kHz int16 audio into utterances against the background's own level.
+
+    The background (noise floor) is tracked in 30 ms frames: it follows a quieter frame at once and
+    rises slowly (`RISE` dB a second) outside speech. An utterance starts when `ONSET` frames in a
+    row are `START_DB` above the floor (with `PREROLL` seconds before them) and ends after `HANGOVER`
+    seconds with no frame `SPEECH_DB` above it, or after `LONGEST` seconds. Steady sound that never
+    falls back (noise that came on or grew) is no speech: after `STEADY` seconds within `STEADY_DB`
+    the floor moves up to it, and the utterance ends there (or is dropped, `cancelled`, when nothing
+    in it stood above the new floor). So an utterance ends in steady noise as in a quiet room.
+
+    `process(frame)` takes `frame_bytes` of audio and returns the audio to add to the utterance
+    (the pre-roll with its first frame), or None outside one; `in_speech` turns False on the frame
+    that ends it. `snr` is the last utterance's speech against the floor (dB), `span` its first and
+    last speech frame (seconds into its audio).
+    """
+
+    FRAME = 0.03  # seconds
+    START_DB, SPEECH_DB = 3.0, 2.0  # above the floor: an utterance starts; a frame is speech
+    ONSET, PREROLL, HANGOVER, LONGEST = 3, 0.3, 0.4, 8.0  # frames; seconds
+    RISE = 1.0  # dB a second: how fast the floor follows louder background outside speech
+    STEADY, STEADY_DB = 1.0, 3.0  # seconds within this range of levels: background, not speech
+    QUIETEST = 30.0  # dB (rms 32, about -60 dBFS): the floor never goes below (digital silence)
+
+    def __init__(self, sample_rate: int = RATE) -> None:
+        self.samples = int(round(self.FRAME * sample_rate))
+        self.frame_bytes = 2 * self.samples
+        self.floor: float | None = None
+        self.in_speech = False
+        self.cancelled = False  # the utterance that just ended was steady background: drop its audio
+        self.snr = 0.0
+        self.span = (0.0, 0.0)
+        self._before: list[tuple[bytes, float]] = []  # pre-roll frames and their levels
+        self._levels: list[float] = []  # the current utterance's frame levels
+        self._onset = 0
+
+    @staticmethod
+    def level(frame: bytes) -> float:
+        """A frame's power in dB (int16 units, 0 dB = rms 1)."""
+        x = np.frombuffer(frame, dtype="<i2").astype(np.float64)
+        return 10.0 * math.log10(float(np.mean(x * x)) + 1.0) if x.size else 0.0
+
+    def process(self, frame: bytes) -> bytes | None:
+        db = self.level(frame)
+        floor = max(self.QUIETEST, db if self.floor is None else self.floor)
+        self.cancelled = False
+        if not self.in_speech:
+            self._before = [*self._before, (frame, db)][-(int(self.PREROLL / self.FRAME) + self.ONSET):]
+            if db > floor + self.START_DB:
+                self._onset += 1
+                if self._onset >= self.ONSET:
+                    self.in_speech, self._onset = True, 0
+                    self._levels = [lv for _, lv in self._before]
+                    audio = b"".join(f for f, _ in self._before)
+                    self._before = []
+                    self.floor = floor
+                    return audio
+            else:
+                self._onset = 0
+            self.floor = max(self.QUIETEST, db if db < floor else min(db, floor + self.RISE * self.FRAME))
+            return None
+        self._levels.append(db)
+        if db < floor:
+            self.floor = floor = max(self.QUIETEST, db)
+        levels = self._levels
+        steady = int(self.STEADY / self.FRAME)
+        if len(levels) >= steady and max(levels[-steady:]) - min(levels[-steady:]) < self.STEADY_DB:
+            new = sum(levels[-steady:]) / steady
+            spoke = any(lv > new + self.START_DB for lv in levels[:-steady])
+            self.floor = new
+            self._finish(levels[:-steady], floor)
+            self.cancelled = not spoke
+            return frame
+        speech = [i for i, lv in enumerate(levels) if lv > floor + self.SPEECH_DB]
+        last = speech[-1] if speech else 0
+        if (len(levels) - 1 - last) * self.FRAME >= self.HANGOVER or len(levels) * self.FRAME >= self.LONGEST:
+            self._finish(levels, floor)
+        return frame
+
+    def end(self) -> None:
+        """End the current utterance now (the source stopped)."""
+        if self.in_speech:
+            self._finish(self._levels, self.floor or self.QUIETEST)
+        self._onset = 0
+        self._before = []
+
+    def _finish(self, levels: list[float], floor: float) -> None:
+        """The utterance ends: its SNR and speech span."""
+        self.in_speech = False
+        speech = [(i, lv) for i, lv in enumerate(levels) if lv > floor + self.SPEECH_DB]
+        if not speech:
+            self.snr, self.span = 0.0, (0.0, 0.0)
+            return
+        noise = 10 ** (floor / 10)
+        power = [10 ** (lv / 10) - noise for _, lv in speech]
+        loud = [p for p in power if p > 0.1 * max(power)]  # within 10 dB of the loudest, as SNRs are quoted
+        self.snr = 10 * math.log10(max(sum(loud) / len(loud), 1e-9) / noise)
+        self.span = (speech[0][0] * self.FRAME, (speech[-1][0] + 1) * self.FRAME)
+
+
 def sphinx_model() -> tuple[Path, Path]:
     """The US English acoustic model and pronouncing dictionary of the pocketsphinx package."""
     try:
@@ -264,6 +364,11 @@ class SphinxRecognizer:
     # the keyphrase search's threshold: a lone wake word of the speech test set's voices is spotted,
     # and no spotted phrase covers a command (they fall inside longer utterances, or on a stop)
     WAKE_THRESHOLD = 1e-30
+    STOP_THRESHOLD = 1e-20  # the keyphrase threshold of a one-word stop phrase ("halt")
+    STOPS_THRESHOLD = 1e-30  # of a longer one ("everybody stop"), less easily taken for something else
+    # the search's beams, narrower than PocketSphinx's (1e-48, 7e-29): in noise a decode takes half the
+    # time (a grammar decode of 3 s in white noise at 5 dB took 7-20 s with the default beams)
+    BEAM, WBEAM = 1e-35, 1e-25
 
     def __init__(self, grammar: str, *, wake: Iterable[str] | None = None, model: Path | None = None,
                  dictionary: Path | None = None) -> None:
@@ -286,56 +391,98 @@ class SphinxRecognizer:
         self.grammar = grammar
         self.rules = Rules(grammar)
         self.wake = tuple(p for p in (ATTENTION if wake is None else wake) if set(p.split()) <= known)
+        self.others = tuple(p for p in (*NOT_STOPS, *self.wake) if set(p.split()) <= known)
+        self.short = short_grammar(self.others)
 
     def stream(self) -> SphinxStream:
         """Return a fresh decoder for one source (a page, the local microphone, a file)."""
-        from pocketsphinx import Decoder, Endpointer
+        from pocketsphinx import Decoder
 
         try:
             decoder = Decoder(hmm=str(self.model), dict=str(self.dictionary), lm=None, samprate=RATE,
-                              loglevel="FATAL")
+                              loglevel="FATAL", beam=self.BEAM, wbeam=self.WBEAM)
+            lists = {SphinxStream.STOPS: [(p, self.STOP_THRESHOLD if " " not in p else self.STOPS_THRESHOLD)
+                                          for p in STOP_PHRASES]}
             if self.wake:
-                with tempfile.TemporaryDirectory() as tmp:  # a keyphrase list is read from a file
-                    phrases = Path(tmp) / "wake.kws"
-                    phrases.write_text("".join(f"{p} /{self.WAKE_THRESHOLD:g}/\n" for p in self.wake))
-                    decoder.add_kws(SphinxStream.WAKE, str(phrases))
+                lists[SphinxStream.WAKE] = [(p, self.WAKE_THRESHOLD) for p in self.wake]
+            with tempfile.TemporaryDirectory() as tmp:  # a keyphrase list is read from a file
+                for name, phrases in lists.items():
+                    listed = Path(tmp) / f"{name}.kws"
+                    listed.write_text("".join(f"{p} /{threshold:g}/\n" for p, threshold in phrases))
+                    decoder.add_kws(name, str(listed))
+            decoder.add_jsgf_string(SphinxStream.SHORT, self.short)
             decoder.add_jsgf_string(SphinxStream.COMMANDS, self.grammar)
             decoder.activate_search(SphinxStream.COMMANDS)
         except (RuntimeError, ValueError) as err:
             raise SpeechError(f"cannot start PocketSphinx with {self.model}: {err}") from None
-        return SphinxStream(decoder, Endpointer(sample_rate=RATE), complete=self.rules.accepts,
-                            wake=bool(self.wake))
+        return SphinxStream(decoder, NoiseFloorEndpointer(RATE), complete=self.rules.accepts,
+                            wake=bool(self.wake), others=self.others)
+
+
+# The stop phrasings a keyphrase search listens for in every short utterance, whatever the grammar
+# made of it: a stop the grammar mishears ("halt" as "forward half") is still a stop.
+STOP_PHRASES = ("stop", "halt", "freeze", "all stop", "everybody stop", "everyone stop")
+
+
+# Short things said that a stop phrase could be taken for: a stop spotted by the keyphrase search
+# stands unless a decode against the stop phrases and these together hears one of these.
+NOT_STOPS = ("yes", "no", "confirm", "negative", "affirmative", "faster", "slower", "cancel", "cancel that", "undo",
+             "clear", "status", "report", "random walk", "spread out", "go to sleep", "go home", "where are you",
+             "how many robots", "everybody", "all robots", "robot one", "robot two", "robot three", "turn left",
+             "turn right", "turn around", "go forward", "go back")
+
+
+def short_grammar(others: Iterable[str]) -> str:
+    """The JSGF of the stop phrases and the short lines they could be taken for (`NOT_STOPS`, the wake phrases)."""
+    phrases = dict.fromkeys([*STOP_PHRASES, *others])
+    return "#JSGF V1.0;\ngrammar short;\npublic <short> = " + " | ".join(phrases) + " ;\n"
 
 
 class SphinxStream:
-    """One source's utterances through PocketSphinx: a voice activity detector cuts the audio into
-    utterances, and when one ends (or at `flush()`) its audio is decoded against the grammar twice:
-    whole, then in the 30 ms pieces a live stream comes in, the front end now settled on this
-    utterance's voice and room. The hearing is unsure when the search ended inside a sentence
-    (PocketSphinx then gives its best partial path), when the two decodes mean different things, or
-    when one of its words scores below `MIN_WORD_SCORE`.
+    """One source's utterances through PocketSphinx: an endpointer that tracks the background's
+    level (`NoiseFloorEndpointer`) cuts the audio into utterances, in steady noise as in a quiet room,
+    and when one ends (or at `flush()`) its audio is decoded against the grammar twice: whole, then
+    in the 30 ms pieces a live stream comes in, the front end now settled on this utterance's voice
+    and room. The hearing is unsure when the search ended inside a sentence (PocketSphinx then gives
+    its best partial path), when the two decodes mean different things, when one of its words
+    scores below `MIN_WORD_SCORE`, or, for a command that moves robots or picks them, when it has a
+    hesitation ("uh": audio that fit no command word) or the speech stood less than `MIN_SNR` dB above
+    the background (the operator is then asked "Did you say ...?" before anything moves).
 
-    A stop heard by the first decode is answered at once: it acts however sure it is. A wake phrase
-    said on its own is spotted by a keyphrase search over the same audio: spotted with at most
-    `LONE_WAKE` seconds of the utterance outside it, it is the hearing (a wake phrase moves nothing).
+    A short utterance is first searched for the stop phrasings (a keyphrase search): a stop phrase
+    spotted covering all but `LONE_STOP` seconds of its speech, unless a decode against the stop
+    phrases and the short lines they could be taken for (`NOT_STOPS`, the wake phrases) hears one of
+    those lines instead, is the hearing at once: the phrase itself when that decode heard it too,
+    else "everybody stop" (which stop was said is unsure, so it goes to everyone: a false stop is
+    safe, a missed one is not). A stop heard by the grammar's first decode is answered at once too:
+    it acts however sure it is, and so does a stop phrase spotted anywhere in a short utterance the
+    grammar hears only in part, poorly or not at all. A wake phrase said on its own is spotted by a
+    keyphrase search over the same audio: spotted with at most `LONE_WAKE` seconds of the utterance's
+    speech outside it, it is the hearing (a wake phrase moves nothing).
     """
 
-    COMMANDS, WAKE = "erni", "wake"
+    COMMANDS, WAKE, STOPS, SHORT = "erni", "wake", "stops", "short"
     # a word's acoustic score per 10 ms frame (natural log, against the best-scoring sound of each
     # frame): nearly every word of the right hearings of the speech test set scores above it
     MIN_WORD_SCORE = -7.0
-    LONE_WAKE = 0.35  # seconds of an utterance outside a spotted wake phrase, at most, for it to stand alone
+    MIN_SNR = 20.0  # dB: speech less far above the background is doubted (a command is read back)
+    LONE_WAKE = 0.35  # seconds of an utterance's speech outside a spotted wake phrase, at most, for it to stand alone
     LONGEST_WAKE = 6.0  # seconds: a longer utterance is no lone wake phrase and is not searched for one
+    LONE_STOP = 0.35  # seconds of an utterance's speech outside a spotted stop phrase, at most
+    LONGEST_STOP = 2.5  # seconds of speech: a longer utterance is not searched for a lone stop phrase
 
     def __init__(self, decoder: Any, endpointer: Any, complete: Callable[[str], bool] | None = None,
-                 wake: bool = False) -> None:
+                 wake: bool = False, others: Iterable[str] = ()) -> None:
         self.decoder, self.ep = decoder, endpointer
+        self.others = frozenset(others)  # the short lines of the SHORT search that overrule a spotted stop
         self.complete = complete  # is a text a whole sentence of the grammar?
         self.wake = wake  # the decoder has the keyphrase search of the wake phrases
-        self.evidence: dict[str, Any] = {}  # of the last hearing: both decodes, each word's score, the wake spotted
+        self.evidence: dict[str, Any] = {}  # of the last hearing: decodes, word scores, SNR, phrases spotted
         self.buffer = bytearray()
         self.audio = bytearray()  # the current utterance's speech
         self.in_utterance = False
+        self.settled = False  # the front end has heard an utterance (its cepstral mean is this voice's)
+        self.near = ""  # of the last keyphrase search: the best phrase spotted, alone in the utterance or not
 
     def feed(self, pcm: bytes) -> Heard | None:
         """Accept audio; return the hearing of an utterance that just ended, if any."""
@@ -351,6 +498,9 @@ class SphinxStream:
             self.in_utterance = True
             self.audio += speech
             if not self.ep.in_speech:
+                if getattr(self.ep, "cancelled", False):  # steady background, no speech: nothing to decode
+                    self.in_utterance, self.audio = False, bytearray()
+                    continue
                 heard = self._end() or heard
         return heard
 
@@ -359,6 +509,8 @@ class SphinxStream:
         if self.buffer and self.in_utterance:
             self.audio += self.buffer
         self.buffer.clear()
+        if hasattr(self.ep, "end"):
+            self.ep.end()
         return self._end() if self.in_utterance else None
 
     def _decode(self, audio: bytes, whole: bool) -> None:
@@ -383,41 +535,84 @@ class SphinxStream:
             scores.append((seg.word.split("(")[0], (math.log(seg.ascore) if seg.ascore > 0 else -1e4) / frames))
         return text, scores
 
-    def _spotted(self, audio: bytes) -> str:
-        """The wake phrase said on its own in this audio, or ""."""
-        if not self.wake or len(audio) / 2 / RATE > self.LONGEST_WAKE:
+    def _span(self, audio: bytes) -> tuple[float, float]:
+        """Where the speech of the utterance is (seconds into its audio), as the endpointer found it."""
+        span = getattr(self.ep, "span", None)
+        if isinstance(span, tuple) and span[1] > span[0]:
+            return span
+        return 0.0, len(audio) / 2 / RATE
+
+    def _spotted(self, audio: bytes, search: str, lone: float, longest: float) -> str:
+        """The phrase of keyphrase search `search` said on its own in this audio, or ""."""
+        first, last = self._span(audio)
+        self.near = ""
+        if last - first > longest:
             return ""
-        self.decoder.activate_search(self.WAKE)
+        self.decoder.activate_search(search)
         try:
             self._decode(audio, whole=True)
-            hits = [(seg.end_frame - seg.start_frame + 1, seg.word.strip()) for seg in self.decoder.seg() or []]
+            hits = []
+            for seg in self.decoder.seg() or []:
+                start, end = seg.start_frame / 100, (seg.end_frame + 1) / 100
+                covered = max(0.0, min(end, last) - max(start, first))
+                hits.append((covered - (end - start - covered), covered, seg.word.strip()))  # less beyond the speech
         finally:
             self.decoder.activate_search(self.COMMANDS)
-        outside = len(audio) / 2 / RATE - max(hits, default=(0, ""))[0] / 100
-        return max(hits)[1] if hits and outside <= self.LONE_WAKE else ""
+        self.near = max(hits)[2] if hits else ""  # the best phrase spotted, alone or not
+        alone = [phrase for _, covered, phrase in sorted(hits, reverse=True) if last - first - covered <= lone]
+        if len(set(alone)) > 1:  # two phrases fit ("listen", "listen up"): the one a decode against them all hears
+            short = self._short(audio)
+            alone = [p for p in alone if p == short] or alone
+        return alone[0] if alone else ""
+
+    def _short(self, audio: bytes) -> str:
+        """The utterance decoded against the stop phrases and the short lines they could be taken for."""
+        self.decoder.activate_search(self.SHORT)
+        try:
+            self._decode(audio, whole=True)
+            return self._decoded()[0]
+        finally:
+            self.decoder.activate_search(self.COMMANDS)
 
     def _end(self) -> Heard | None:
         self.in_utterance = False
         audio, self.audio = bytes(self.audio), bytearray()
         if not audio:
             return None
+        snr = getattr(self.ep, "snr", None)
+        if not self.settled:  # a fresh front end: let it settle on this voice and room first
+            self._decode(audio, whole=False)
+            self.settled = True
+        stop = self._spotted(audio, self.STOPS, self.LONE_STOP, self.LONGEST_STOP)
+        near = self.near
+        self.evidence = {"stop": stop, "snr": snr}
+        if stop:  # a lone stop phrase, if a decode against it and what it could be taken for agrees
+            short = self._short(audio)
+            self.evidence.update(short=short)
+            if short == stop:  # both heard the same stop phrase: it is the hearing, at once
+                return Heard(stop, False, f"a stop phrase spotted ({stop!r})")
+            if short not in self.others:  # a stop, but which is unsure: a stop to everyone, at once
+                return Heard("everybody stop", False, f"a stop phrase spotted ({stop!r}, then {short!r})")
         self._decode(audio, whole=True)
         text, scores = self._decoded()
-        self.evidence = {"text": text, "scores": scores}
+        self.evidence.update(text=text, scores=scores)
         partial = self.complete is not None and bool(text) and not self.complete(text)
         poor = [f"{w!r} ({score:.1f})" for w, score in scores if score < self.MIN_WORD_SCORE]
         if is_stop(text):  # a stop acts however sure it is: its hearing waits for no second decode
-            return self._judged(text, partial, text, poor)
+            return self._judged(text, partial, text, poor, None)
+        if near and (partial or poor or not text) and self._short(audio) not in self.others:
+            # a stop phrase spotted in a short utterance the grammar heard only doubtfully: a stop to everyone
+            return Heard("everybody stop", False, f"a stop phrase spotted ({near!r}) where the grammar doubts {text!r}")
         self._decode(audio, whole=False)  # the second decode: the front end settled on this utterance
         again, _ = self._decoded()
-        wake = self._spotted(audio)
+        wake = self._spotted(audio, self.WAKE, self.LONE_WAKE, self.LONGEST_WAKE) if self.wake else ""
         self.evidence.update(again=again, wake=wake)
         if wake:
             return Heard(wake) if wake == text else Heard(wake, False, f"a lone wake phrase (the grammar: {text!r})")
-        return self._judged(text, partial, again, poor)
+        return self._judged(text, partial, again, poor, snr)
 
-    @staticmethod
-    def _judged(text: str, partial: bool, again: str, poor: list[str]) -> Heard | None:
+    @classmethod
+    def _judged(cls, text: str, partial: bool, again: str, poor: list[str], snr: float | None) -> Heard | None:
         if not text:
             return None
         if partial:  # the search ended inside a sentence
@@ -426,7 +621,28 @@ class SphinxStream:
             return Heard(text, True, f"the two decodes differ: {text!r} and {again!r}")
         if poor:
             return Heard(text, True, f"{', '.join(poor)} matches the audio poorly")
+        hesitant = [w for w in text.split() if w in HESITATIONS]
+        if hesitant and moves(text):  # the grammar took part of the audio for a hesitation
+            return Heard(text, True, f"{hesitant[0]!r} was heard: part of it fit no command word")
+        if snr is not None and snr < cls.MIN_SNR and moves(text):
+            return Heard(text, True, f"the speech is only {snr:.0f} dB above the background")
         return Heard(text)
+
+
+# Hesitations the grammar lets stand anywhere: the recogniser fits them to audio that fits no word of a
+# command, so a command heard with one is doubted.
+HESITATIONS = frozenset({"uh", "um", "umm", "uhm", "er", "erm", "ah"})
+
+
+def moves(text: str) -> bool:
+    """True when a hearing would send tasks or pick robots (not a stop, a question, a yes or no, a wake word)."""
+    from erni.plugins.ui.grammar import Refusal, parse
+
+    try:
+        cmd = parse(text)
+    except Refusal:
+        return False
+    return cmd.kind == "select" or (cmd.kind == "action" and not cmd.is_stop)
 
 
 def is_stop(text: str) -> bool:

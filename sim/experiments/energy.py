@@ -141,42 +141,65 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode:
                 f"whole experiment; the battery reads in steps of {0.1 * per_volt:.0f} J")
     res.notes.append("what this validates: the stack drives at the asked speeds and distances, and the "
                      "agent's two energy readings agree; it cannot validate P0 and Pmov, which are inputs")
-    res.draw = lambda fig: _draw(fig, t, v, speed, distance, sweep_rows, batt, t_run)
+    whole_t = np.array([p.t for p in poses]) - t_run
+    whole_v = np.array([p.v for p in poses])
+    asked = [(0.0, speed, float(moving[-1]) if len(moving) else float(t[-1]))]
+    asked += [(a - t_run, level, b - t_run) for level, a, b in levels]
+    res.draw = lambda fig: _draw(fig, t, v, speed, distance, sweep_rows, batt, t_run, whole_t, whole_v, asked)
     return res
 
 
 def _draw(fig: Any, t: NDArray[np.float64], v: NDArray[np.float64], speed: float, distance: float,
-          sweep: list[tuple[float, float, float, int]], batt: list[tuple[float, float]], t_run: float) -> None:
-    gs = fig.add_gridspec(2, 2, width_ratios=[1.3, 1])
-    ax = fig.add_subplot(gs[0, 0])
+          sweep: list[tuple[float, float, float, int]], batt: list[tuple[float, float]], t_run: float,
+          whole_t: NDArray[np.float64] | None = None, whole_v: NDArray[np.float64] | None = None,
+          asked: list[tuple[float, float, float]] | None = None) -> None:
+    """Left: the whole experiment on one time axis (0 = the 5 m task sent; standby before it, the
+    sweep after): speed, the model's power on it, the battery readings. Right: the 5 m run close
+    up (the lag of paper 000's Fig. 9), and the sweep's asked against measured speed."""
+    wt = t if whole_t is None else whole_t
+    wv = v if whole_v is None else whole_v
+    gs = fig.add_gridspec(3, 2, width_ratios=[1.35, 1])
+    top = fig.add_subplot(gs[0, 0])
+    for k, (a, level, b) in enumerate(asked or []):
+        top.plot([a, a, b, b], [0, level, level, 0], color=color(1), ls="--", lw=1.2,
+                 label="desired speed (the tasks')" if k == 0 else None)
+    top.plot(wt, wv, color=color(0), lw=1.2, label="actual speed (the agent's odometry)")
+    time_axes(top, "Speed: standby, the 5 m run, the sweep", "speed (m/s)")
+    top.legend(loc="upper left", fontsize=8)
+    mid = fig.add_subplot(gs[1, 0], sharex=top)
+    mid.plot(wt, paper.power(wv), color=color(2), lw=1.2, label="paper 000's model on the odometry speed")
+    mid.axhline(paper.P0, color="#777777", ls=":", lw=1, label=f"P0 = {paper.P0} W (input)")
+    time_axes(mid, "Power (the model on the measured speed)", "power (W)")
+    mid.set_ylim(0, float(paper.power(np.array([max(float(wv.max()), speed)]))[0]) * 1.25)
+    mid.legend(loc="upper left", fontsize=8)
+    low = fig.add_subplot(gs[2, 0], sharex=top)
+    low.step([b[0] - t_run for b in batt], [b[1] for b in batt], where="post", color=color(3), lw=1.5)
+    time_axes(low, "Battery voltage the agent read (0.1 V steps)", "battery (V)")
+    low.set_xlabel("time from the 5 m task (s)")
+    for ax in (top, mid):
+        ax.set_xlabel("")
+        ax.tick_params(labelbottom=False)
+    ax = fig.add_subplot(gs[0:2, 1])
     moving = t[np.abs(v) > 1e-3]
     end = float(moving[-1]) if len(moving) else float(t[-1])
     ax.step([0, 0, end, end, t[-1]], [0, speed, speed, 0, 0], where="post", color=color(1), ls="--", lw=1.5,
             label="desired speed (the task's)")
-    ax.plot(t, v, color=color(0), lw=2, label="actual speed (the agent's odometry)")
-    time_axes(ax, f"Speed during the {distance:g} m movement", "speed (m/s)")
+    ax.plot(t, v, color=color(0), lw=2, label="actual speed (odometry)")
+    time_axes(ax, f"The {distance:g} m run close up", "speed (m/s)")
+    ax.set_xlabel("time from the 5 m task (s)")
     ax.set_ylim(-0.05, max(speed * 1.3, float(v.max()) * 1.15 if len(v) else 1))
-    ax.legend(loc="upper right", fontsize=9)
-    ax = fig.add_subplot(gs[1, 0], sharex=ax)
-    ax.plot(t, paper.power(v), color=color(2), lw=1.5, label="paper 000's model on the odometry speed")
-    ax.axhline(paper.P0, color="#777777", ls=":", lw=1, label=f"P0 = {paper.P0} W (input)")
-    time_axes(ax, f"Power during the {distance:g} m movement (model on measured speed)", "power (W)")
-    ax.set_ylim(0, (paper.PMOV_SLOPE * speed + paper.PMOV_BASE) * 1.35)
-    ax.legend(loc="lower center", fontsize=9)
-    ax = fig.add_subplot(gs[0, 1])
-    asked = np.array([row[0] for row in sweep])
+    ax.legend(loc="lower center", fontsize=8)
+    ax = fig.add_subplot(gs[2, 1])
+    asked_v = np.array([row[0] for row in sweep])
     got = np.array([row[1] for row in sweep])
-    ax.plot([0, asked.max() * 1.05], [0, asked.max() * 1.05], color="#999999", ls=":", lw=1, label="asked = got")
-    ax.plot(asked, got, "o-", color=color(0), label="mean odometry speed while moving")
+    ax.plot([0, asked_v.max() * 1.05], [0, asked_v.max() * 1.05], color="#999999", ls=":", lw=1, label="asked = got")
+    ax.plot(asked_v, got, "o-", color=color(0), label="mean speed while moving")
     ax.set_xlabel("asked speed (m/s)")
-    ax.set_ylabel("measured speed (m/s)")
-    ax.set_title("Speed sweep: asked against measured", fontsize=11)
+    ax.set_ylabel("measured (m/s)")
+    ax.set_title("Speed sweep: asked against measured")
     ax.grid(True, color="#e0e0e0", lw=0.6)
-    ax.legend(fontsize=8)
-    ax = fig.add_subplot(gs[1, 1])
-    bt = [b[0] - t_run for b in batt]
-    bv = [b[1] for b in batt]
-    ax.step(bt, bv, where="post", color=color(3), lw=1.5)
-    time_axes(ax, "Battery voltage the agent read (0.1 V steps)", "battery (V)")
+    ax.legend(fontsize=8, loc="upper left")
+    for a in fig.axes:
+        a.title.set_size(10)
     fig.suptitle("Paper 000, energy: speed and power of a robot agent driving its simulated robot (agents mode)",
-                 fontsize=13)
+                 fontsize=12)

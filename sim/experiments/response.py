@@ -23,7 +23,6 @@ import os
 import random
 import secrets
 import shutil
-import socket
 import subprocess
 import sys
 import tempfile
@@ -101,7 +100,7 @@ def _measure(iterations: int, runs: int, period: float, rest: float, seed: int, 
     assert sim.stdout is not None
     urls = [sim.stdout.readline().split()[1] for _ in range(3)]
     key = secrets.token_hex(16)
-    port = free_port("127.0.0.1", socket.SOCK_STREAM)
+    port = free_port("127.0.0.1")
     config = run_dir / "robot.toml"
     config.write_text(agent_toml("robot", [
         ("transport", {"listen": f"127.0.0.1:{port}", "discovery_port": 0, "role": "robot"}),
@@ -135,6 +134,10 @@ def _measure(iterations: int, runs: int, period: float, rest: float, seed: int, 
         lease = 0.0
         deadline = time.monotonic() + 20
         while time.monotonic() < deadline:  # the remote agent is up when its watch streams a Pose
+            if remote.poll() is not None:  # it exited: say why, from its own log, at once
+                said = (run_dir / "robot.log").read_text(encoding="utf-8", errors="replace").strip().splitlines()
+                raise ScenarioError(f"the robot agent process exited with status {remote.returncode}: "
+                                    f"{said[-1] if said else '(nothing logged)'}; log in {run_dir}")
             client.send(("127.0.0.1", port), "watch.request", WatchRequest(lease=15.0), reliable=False)
             time.sleep(0.5)
             with lock:
@@ -292,7 +295,7 @@ def _draw(fig: Any, data: dict[str, list[list[float]]], labels: dict[str, str], 
     ax.set_xticks([i * 3 + 0.5 for i in range(len(paths))], [labels[p].replace(" (", "\n(") for p in paths],
                   fontsize=8)
     ax.set_ylabel("command to first odometry showing motion (ms)")
-    ax.set_title("Ours: each path, two runs (box: quartiles)")
+    ax.set_title("Ours: each path, two runs\n(box: quartiles)", fontsize=10)
     ax.grid(True, axis="y", color="#e0e0e0", lw=0.6)
     ax = fig.add_subplot(gs[0, 1])
     for i, path in enumerate(paths):
@@ -306,7 +309,7 @@ def _draw(fig: Any, data: dict[str, list[list[float]]], labels: dict[str, str], 
                         else None)
     ax.set_xticks(range(len(paths)), [p for p in paths])
     ax.set_ylabel("ms")
-    ax.set_title(f"Means beside paper 003's Table I (odometry every {period * 1000:g} ms in both)")
+    ax.set_title(f"Means beside paper 003's Table I\n(odometry every {period * 1000:g} ms in both)", fontsize=10)
     ax.grid(True, axis="y", color="#e0e0e0", lw=0.6)
     ax.legend(fontsize=8)
-    fig.suptitle("Paper 003, Table I: basic response test, motor command to odometry (agents mode)", fontsize=13)
+    fig.suptitle("Paper 003, Table I: basic response test, motor command to odometry (agents mode)", fontsize=12)

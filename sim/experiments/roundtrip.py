@@ -358,7 +358,7 @@ def _draw(fig: Any, measured: list[Measured], kinds: list[str]) -> None:
     ax.set_xticks(positions, labels, fontsize=8)
     ax.set_xlabel("consumers, and kind of data")
     ax.set_ylabel("round trip (ms)")
-    ax.set_title("Our round trips (box: quartiles, whiskers: 1.5 IQR)")
+    ax.set_title("Our round trips\n(box: quartiles, whiskers: 1.5 IQR)", fontsize=10)
     ax.grid(True, axis="y", color="#e0e0e0", lw=0.6)
     ax = fig.add_subplot(gs[0, 1])
     ns = [m.consumers for m in measured]
@@ -369,9 +369,12 @@ def _draw(fig: Any, measured: list[Measured], kinds: list[str]) -> None:
     ax.plot(pn, [PAPER_IMAGE[n][1] for n in pn], "^--", color="#888888", label="paper: image (MIRaM)")
     ax.plot([5], [PAPER_OTHER[5][0]], "D", color="#444444", mfc="white", label="paper: other sensory data")
     ax.set_yscale("log")
+    counts = sorted(set(ns) | set(pn) | {5})
+    ax.set_xticks(counts, [str(n) for n in counts])  # consumers come whole: a tick at each count drawn
+    ax.set_xlim(min(counts) - 0.5, max(counts) + 0.5)
     ax.set_xlabel("consumers at once")
     ax.set_ylabel("mean round trip (ms, log scale)")
-    ax.set_title("Mean round trip: ours (loopback) and paper 002 (WLAN)")
+    ax.set_title("Mean round trip: ours (loopback)\nand paper 002 (WLAN)", fontsize=10)
     ax.grid(True, which="both", color="#e0e0e0", lw=0.6)
     ax.legend(fontsize=8)
     fig.suptitle("Paper 002, Table II: sensor data from one robot to several consumers, round trip", fontsize=13)

@@ -86,7 +86,15 @@ from erni.sim.experiments import Experiment, Progress, Result
 from erni.sim.experiments.plots import color, draw_world, headings, map_axes, time_axes
 from erni.sim.scenario import Scenario, ScenarioError
 from erni.strategies import energy as energy_model
-from erni.strategies.potential import SpreadConfig, forces, mean_nn_distance, neighbourhoods, spread_step
+from erni.strategies.potential import (
+    SpreadConfig,
+    SpreadMemory,
+    forces,
+    mean_nn_distance,
+    neighbourhoods,
+    spread_step,
+    team_neighbourhoods,
+)
 
 VARIANTS = ["holonomic/physical", "holonomic/delaunay", "nonholonomic/physical", "nonholonomic/delaunay"]
 EXTRA_VARIANTS = ["holonomic/gabriel", "nonholonomic/gabriel"]  # paper 001's other topological graph (3.2)
@@ -105,11 +113,51 @@ class Run:
     churn: float = math.nan     # neighbourhood links made or broken per s over the last `hold` s
     force: float = math.nan     # largest unbalanced force on a robot at the end (N, m = 1 kg)
     across: float = math.nan    # ... its part across the robot's heading (nonholonomic: held by the wheels)
+    # energy balance, cumulative at each sample of `t` (J, m = 1 kg): the springs' energy at the
+    # instant a neighbourhood change switched them on, and off; what the damping took out
+    switched_on: NDArray[np.float64] | None = None
+    switched_off: NDArray[np.float64] | None = None
+    damped: NDArray[np.float64] | None = None
+
+
+def robot_limits(scenario: Scenario) -> tuple[float, float]:
+    """The top speed (m/s) and turn rate (rad/s) of the scenario's robot model, as the simulator builds it.
+
+    Agents mode drives `SimRobot`s of this model (`Team` builds them the same way), which never
+    exceed these; the kinematic mode holds every robot to them too.
+    """
+    from erni.sim.robot import SimRobotConfig
+
+    cfg = SimRobotConfig.amigobot() if scenario.robots.model == "amigobot" else SimRobotConfig()
+    return cfg.max_v, math.radians(cfg.max_rv)
+
+
+SETTLE = "+settle"  # a variant's suffix: the paper's law with the settling changes of `strategy.settle`
+
+
+def _settle(scenario: Scenario) -> dict[str, Any]:
+    """The settling changes (`strategy.settle`): springs that engage at their length, a Delaunay
+    triangulation kept with a flip margin (hysteresis on flips), no topological link longer than the
+    radio range, optionally a hysteresis in time on every neighbour change."""
+    got = dict(scenario.strategy.get("settle", {}))
+    unknown = set(got) - {"engage", "relax", "stick", "reach", "flip_margin"}
+    if unknown:
+        raise ScenarioError(f"strategy.settle: unknown keys {', '.join(sorted(unknown))}; "
+                            "expected engage, relax, stick, reach, flip_margin")
+    out = {"engage": "rest", "relax": 5.0, "flip_margin": 10.0, "stick": 0.0, "reach": scenario.radio.comm_range,
+           **got}
+    if not out["reach"]:  # 0: no reach limit
+        out["reach"] = None
+    return out
 
 
 def _config(scenario: Scenario, variant: str) -> SpreadConfig:
-    s = scenario.strategy
+    s = dict(scenario.strategy)
+    if variant.endswith(SETTLE):
+        variant = variant[:-len(SETTLE)]
+        s.update(_settle(scenario))
     model, _, neighbourhood = variant.partition("/")
+    vmax, wmax = robot_limits(scenario)
     weight = s.get("obstacle_weight", "neighbourhood")
     sensing = s.get("sensing")
     return SpreadConfig(distance=float(s.get("distance", 5.0)), gain=float(s.get("gain", 2.0)),
@@ -118,7 +166,11 @@ def _config(scenario: Scenario, variant: str) -> SpreadConfig:
                         obstacle_distance=float(s.get("obstacle_distance", 2.0)),
                         wall_distance=float(s.get("wall_distance", 2.5)),
                         obstacle_weight=None if weight == "neighbourhood" else float(weight),
-                        neighbourhood=neighbourhood, model=model)
+                        neighbourhood=neighbourhood, model=model, vmax=vmax, wmax=wmax,
+                        engage=str(s.get("engage", "instant")), relax=float(s.get("relax", 5.0)),
+                        stick=float(s.get("stick", 0.0)),
+                        reach=None if s.get("reach") is None else float(s["reach"]),
+                        flip_margin=float(s.get("flip_margin", 0.0)))
 
 
 def _obstacles(scenario: Scenario) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -133,16 +185,27 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode:
     """Run every variant until it converges; return figure and metrics."""
     variants = variants or list(scenario.strategy.get("variants", VARIANTS))
     for v in variants:
-        if v not in VARIANTS + EXTRA_VARIANTS:
+        if v.removesuffix(SETTLE) not in VARIANTS + EXTRA_VARIANTS:
             raise ScenarioError(f"strategy.variants: unknown variant {v!r}; expected some of "
-                                f"{', '.join(VARIANTS + EXTRA_VARIANTS)}")
-    if mode == "agents":
-        scenario = _agent_team(scenario)
-    runs = []
-    for k, v in enumerate(variants):
-        label = f"{v} ({k + 1}/{len(variants)})"
-        runs.append(_agents(scenario, progress, v, label) if mode == "agents" else
-                    _kinematic(scenario, progress, v, label))
+                                f"{', '.join(VARIANTS + EXTRA_VARIANTS)}, each also with {SETTLE} (kinematic mode)")
+    if mode == "agents":  # the settling changes live in the kinematic stepping only
+        variants = [v for v in variants if not v.endswith(SETTLE)]
+    seeds = int(scenario.strategy.get("seeds", 1))
+    if seeds < 1:
+        raise ScenarioError(f"strategy.seeds: expected at least 1, got {seeds}")
+    base = scenario
+    over_seeds: list[list[Run]] = []
+    for n in range(seeds):
+        scenario = base.model_copy(update={"seed": base.seed + n})
+        if mode == "agents":
+            scenario = _agent_team(scenario)
+        runs = []
+        for k, v in enumerate(variants):
+            label = f"{v} ({k + 1}/{len(variants)})" + (f", seed {scenario.seed} ({n + 1}/{seeds})" if seeds > 1 else "")
+            runs.append(_agents(scenario, progress, v, label) if mode == "agents" else
+                        _kinematic(scenario, progress, v, label))
+        over_seeds.append(runs)
+    scenario, runs = (_agent_team(base) if mode == "agents" else base), over_seeds[0]
     sweep: list[tuple[float, Run]] = []
     if mode == "kinematic":
         ranges = [float(r) for r in scenario.strategy.get("range_sweep", [])]
@@ -151,7 +214,7 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode:
             data["strategy"] = {**scenario.strategy, "range": r}
             sweep.append((r, _kinematic(type(scenario).model_validate(data), progress, v,
                                         f"{v}, range {r:g} m ({k + 1}/{2 * len(ranges)})")))
-    return _result(scenario, experiment, mode, runs, sweep)
+    return _result(scenario, experiment, mode, runs, sweep, over_seeds if seeds > 1 else None)
 
 
 def _agent_team(scenario: Scenario) -> Scenario:
@@ -207,16 +270,31 @@ def _kinematic(scenario: Scenario, progress: Progress, variant: str, label: str)
     still_since: float | None = None
     converged = math.nan
     links: list[tuple[float, set[tuple[int, int]]]] = []  # (t, neighbourhood links) every sample
+    memory = SpreadMemory()  # rest lengths and hysteresis, when the variant has them
+    freeze = float(s.get("freeze_links_at", math.inf))  # a probe: from then on the neighbourhoods stay as they are
+    frozen: list[NDArray[np.intp]] | None = None
+    on = off = damped = 0.0
+    energy = [(0.0, 0.0, 0.0)]
     for k in range(steps):
-        new, th, vel, om = spread_step(pos, th, vel, om, cfg, circles, walls)
+        if frozen is None:
+            nb = team_neighbourhoods(pos, cfg, memory)
+            if k * cfg.dt >= freeze:
+                frozen = nb
+        else:
+            nb = frozen
+        new, th, vel, om = spread_step(pos, th, vel, om, cfg, circles, walls, memory, nb)
+        now = set(memory.effective)  # the links in effect this step (leaving ones too)
+        on, off = memory.switched_on, memory.switched_off  # a spring holds w (L - rest)^2 / 2 when switched
         stop = kinematic.blocked_by_walls(pos, new, walls)  # walls are solid: a robot stops at them
         pos = np.where(stop[:, None], pos, new)
         vel[stop] = 0.0
         t = (k + 1) * cfg.dt
         sp = np.hypot(vel[:, 0], vel[:, 1])
+        damped += cfg.gain * float((sp * sp).sum() + (om * om).sum()) * cfg.dt  # Rayleigh: 2F = k v^2 (+ k w^2)
         if (k + 1) % every == 0:
             track.add(t, pos, th, sp)
-            links.append((t, _links(pos, cfg)))
+            energy.append((on, off, damped))
+            links.append((t, now))
             progress(label, round(t), round(duration))
         if float(sp.max()) < threshold:
             still_since = t if still_since is None else still_since
@@ -224,6 +302,7 @@ def _kinematic(scenario: Scenario, progress: Progress, variant: str, label: str)
                 converged = still_since
                 if (k + 1) % every:
                     track.add(t, pos, th, sp)
+                    energy.append((on, off, damped))
                 break
         else:
             still_since = None
@@ -233,13 +312,14 @@ def _kinematic(scenario: Scenario, progress: Progress, variant: str, label: str)
              if len(window) > 1 else math.nan)
     f, _ = forces(pos, th, cfg, circles, walls)
     across = np.abs(f[:, 0] * np.sin(th) - f[:, 1] * np.cos(th))
+    e = np.array(energy)
     return Run(variant, ts, ps, ths, sps, converged, churn, float(np.hypot(f[:, 0], f[:, 1]).max()),
-               float(across.max()))
+               float(across.max()), e[:, 0], e[:, 1], e[:, 2])
 
 
 def _links(pos: NDArray[np.float64], cfg: SpreadConfig) -> set[tuple[int, int]]:
     """Every pair of robots that are neighbours (i < j)."""
-    return {(i, int(j)) for i, js in enumerate(neighbourhoods(pos, cfg.neighbourhood, cfg.range)) for j in js if i < j}
+    return {(i, int(j)) for i, js in enumerate(neighbourhoods(pos, cfg.neighbourhood, cfg.range, cfg.reach)) for j in js if i < j}
 
 
 def _agents(scenario: Scenario, progress: Progress, variant: str, label: str) -> Run:
@@ -314,7 +394,7 @@ def _pinned(pos: NDArray[np.float64], walls: NDArray[np.float64], within: float)
 
 
 def _result(scenario: Scenario, experiment: Experiment, mode: str, runs: list[Run],
-            sweep: list[tuple[float, Run]] | None = None) -> Result:
+            sweep: list[tuple[float, Run]] | None = None, over_seeds: list[list[Run]] | None = None) -> Result:
     s = scenario.strategy
     d = float(s.get("distance", 5.0))
     R = scenario.radio.comm_range
@@ -359,6 +439,13 @@ def _result(scenario: Scenario, experiment: Experiment, mode: str, runs: list[Ru
             res.metrics[f"{v}: largest move of a robot in the last {hold:g} s"] = (_moved(r, hold), "m")
             res.metrics[f"{v}: largest unbalanced force at the end"] = (r.force, "N")
             res.metrics[f"{v}: ... of it across the heading"] = (r.across, "N")
+        if r.switched_on is not None and r.switched_off is not None and r.damped is not None:
+            k = int(np.searchsorted(r.t, r.t[-1] - 100.0))  # the last 100 s (or the whole run)
+            last = f"{min(100.0, float(r.t[-1])):g} s"
+            res.metrics[f"{v}: spring energy switched on by neighbourhood changes, last {last}"] = (
+                float(r.switched_on[-1] - r.switched_on[k]), "J")
+            res.metrics[f"{v}: ... switched off"] = (float(r.switched_off[-1] - r.switched_off[k]), "J")
+            res.metrics[f"{v}: ... taken out by the damping"] = (float(r.damped[-1] - r.damped[k]), "J")
         res.metrics[f"{v}: energy per robot, mean"] = (float(np.mean(energies)), "J")
         stride = max(1, len(r.t) // 300)
         res.series[f"{v}/mean_nn_distance"] = (list(r.t[::stride]), [mean_nn_distance(p) for p in r.pos[::stride]],
@@ -381,22 +468,22 @@ def _result(scenario: Scenario, experiment: Experiment, mode: str, runs: list[Ru
                     f"{s.get('wall_distance', 2.5):g} m, "
                     + ("neighbourhood size" if weight == "neighbourhood" else f"{float(weight):g}"), "",
                     "the scenario's setting", "input")
+    corridor = len(walls) > 0
     for r in runs:
         v = r.variant
-        still = (f"not by {r.t[-1]:.0f} s" + (f" ({r.churn:.3g} links made or broken per s, a robot moved "
-                                             f"{_moved(r, hold):.2g} m in the last {hold:g} s)"
-                                             if math.isfinite(r.churn) else ""))
-        if math.isfinite(in_place.get(v, math.nan)):
-            still += f"; in place (every robot within {radius:g} m) from {in_place[v]:.0f} s"
-        res.compare(f"{v}: converged", "\"converges, as we observe\"",
-                    f"at {r.converged:.0f} s" if math.isfinite(r.converged) else still, "",
-                    f"every robot slower than {threshold:g} m/s for {hold:g} s")
-        res.compare(f"{v}: mean nearest-neighbour distance", "d = 5 m is the goal",
-                    round(float(finals[v].mean()), 2), "m", "at the end, simulator's truth")
-        if len(walls):
-            res.compare(f"{v}: robots pinned to a wall", "none (Figs 8-9)",
-                        f"{_pinned(r.pos[-1], walls, pinned_within)}", "robots",
-                        f"within {pinned_within:g} m of a wall at the end")
+        k30 = int(np.argmin(np.abs(r.t - 30.0)))
+        still = (f"not by {r.t[-1]:.0f} s" + (f" ({r.churn:.2g} link changes/s)" if math.isfinite(r.churn) else "")
+                 + (f", in place from {in_place[v]:.0f} s" if math.isfinite(in_place.get(v, math.nan)) else ""))
+        ours = ((f"{r.converged:.0f} s" if math.isfinite(r.converged) else still)
+                + f"; {float(finals[v].mean()):.2f} ({float(finals[v].min()):.2f}) m; {mean_nn_distance(r.pos[k30]):.2f} m")
+        paper = PAPER_FIGURES.get(v)
+        fig_no = (f"; Fig. {6 if v.startswith('holonomic') else 7}, paths" if experiment.name == "spread-paths" else
+                  f"; Fig. {paper[1 if corridor else 0]} at 30 s" if paper else "")
+        res.compare(f"{_name(v)}" + (f", seed {scenario.seed} (drawn)" if over_seeds else "")
+                    + ": converged at; NN at the end (smallest); NN at 30 s", "converges" + fig_no, ours, "",
+                    f"all < {threshold:g} m/s for {hold:g} s"
+                    + (f"; in place: all within {radius:g} m for {hold:g} s" if v in in_place else "")
+                    + (f"; pinned to a wall: {_pinned(r.pos[-1], walls, pinned_within)}" if corridor else ""))
     sweep = sweep or []
     for r_range, r in sweep:
         nn = _nn(r.pos[-1])
@@ -404,19 +491,75 @@ def _result(scenario: Scenario, experiment: Experiment, mode: str, runs: list[Ru
         res.metrics[f"{r.variant}, R = {r_range:g} m: converged at"] = (r.converged, "s")
     if sweep:
         text = "; ".join(
-            f"R/d {r_range / d:.2g}: " + " / ".join(f"{float(_nn(r.pos[-1]).mean()):.2f}"
+            f"{r_range / d:.2g} d: " + " / ".join(f"{float(_nn(r.pos[-1]).mean()):.2f}"
                                                    for q, r in sweep if q == r_range)
             for r_range in dict.fromkeys(q for q, _ in sweep))
         res.compare("mean NN distance against R (holonomic / nonholonomic, physical)", "not stated", text, "m",
                     "each run to convergence; every robot within R pulls or pushes toward d")
-    res.notes.append("paper 001 shows the teams at t = 30 s (Figs 2-5, 8-9) and the paths of 12 robots (Figs 6-7); "
+        for q, r in sweep:
+            if any(math.isclose(q, f * d) for f in (1.0, 1.2)):
+                k30 = int(np.argmin(np.abs(r.t - 30.0)))
+                res.metrics[f"{r.variant}, R = {q:g} m: mean NN distance at t = 30 s"] = (
+                    mean_nn_distance(r.pos[k30]), "m")
+        side = [(q, r) for q, r in sweep if any(math.isclose(q, f * d) for f in (1.0, 1.2))]
+
+        def at30(r: Run) -> float:
+            return mean_nn_distance(r.pos[int(np.argmin(np.abs(r.t - 30.0)))])
+
+        def both(q: float) -> str:
+            got = [r for q2, r in side if q2 == q]
+            when = " / ".join(f"{r.converged:.0f}" if math.isfinite(r.converged) else "-" for r in got)
+            return (f"R = {q / d:.2g} d: {when} s, NN " + " / ".join(f"{float(_nn(r.pos[-1]).mean()):.2f}" for r in got)
+                    + " m (" + " / ".join(f"{at30(r):.2f}" for r in got) + " at 30 s)")
+
+        if side:
+            res.compare("physical, R = d and 1.2 d (holonomic / nonholonomic): converged at; NN at the end (at 30 s)",
+                        "R not stated", "; ".join(both(q) for q in dict.fromkeys(q for q, _ in side)), "",
+                        "-: not settled by the end of the run")
+    if over_seeds:
+        _seed_rows(res, over_seeds, threshold, hold, d)
+    res.notes.append("paper 001 shows the teams at t = 30 s (Figs 2-5, 8-11) and the paths of 12 robots (Figs 6-7); "
                      "it gives no convergence times or distances")
     paths = experiment.name == "spread-paths"
     res.draw = lambda fig: (_draw_paths(fig, scenario, runs, res, mode) if paths else
                             _draw(fig, scenario, runs, res, mode, sweep))
-    if not paths and len(runs) > 4:  # a third row of maps (the Gabriel variants)
-        res.figure_height = 7.5 * math.ceil(len(runs) / 2) / 2
+    if not paths:  # a row of four maps per four variants, and the curves under them
+        res.figure_height = 2.6 * math.ceil(len(runs) / 4) + 3.6
+    else:  # square maps side by side
+        res.figure_height = 5.0
     return res
+
+
+def _seed_rows(res: Result, over_seeds: list[list[Run]], threshold: float, hold: float, d: float) -> None:
+    """Per variant over the seeds: how many converged, when (mean [95 % CI] of those that did), the
+    mean and smallest nearest-neighbour distance at the end, the fastest robot (m/s)."""
+    from erni.sim.experiments.stats import fmt_ci, mean_ci, wilson
+
+    n = len(over_seeds)
+    for k, v in enumerate(r.variant for r in over_seeds[0]):
+        got = [runs[k] for runs in over_seeds]
+        times = [r.converged for r in got]
+        done = sum(math.isfinite(x) for x in times)
+        mean_nn = [float(_nn(r.pos[-1]).mean()) for r in got]
+        least = [float(_nn(r.pos[-1]).min()) for r in got]
+        fastest = max(float(r.speed.max()) for r in got)
+        share, lo, hi = wilson(done, n)
+        conv = mean_ci(times)
+        res.metrics[f"{v}: seeds converged"] = (float(done), f"of {n}")
+        res.metrics[f"{v}: converged at, mean over the seeds that did"] = (conv[0], "s")
+        res.metrics[f"{v}: converged at, 95 % CI"] = (f"[{conv[1]:.1f}, {conv[2]:.1f}]", "s")
+        for name, vals in (("mean NN distance at the end", mean_nn), ("smallest NN distance at the end", least)):
+            m = mean_ci(vals)
+            res.metrics[f"{v}: {name}, mean over {n} seeds"] = (m[0], "m")
+            res.metrics[f"{v}: {name}, 95 % CI"] = (f"[{m[1]:.2f}, {m[2]:.2f}]", "m")
+        res.metrics[f"{v}: fastest robot in any seed"] = (fastest, "m/s")
+        res.series[f"{v}/converged_at_by_seed"] = (list(map(float, range(1, n + 1))), times, "s")
+        res.compare(f"{_name(v)} over {n} seeds: converged; at; NN at the end (smallest); fastest robot",
+                    "one run, no times", f"{done}/{n}; {fmt_ci(*conv, digits=1)} s; {fmt_ci(*mean_ci(mean_nn))} "
+                    f"({fmt_ci(*mean_ci(least))}) m; {fastest:.2f} m/s", "",
+                    f"mean [95 % CI] over the seeds (Student t); converged {done}/{n}: Wilson "
+                    f"[{lo:.2f}, {hi:.2f}]; converged: all < {threshold:g} m/s for {hold:g} s")
+        del share
 
 
 def _moved(r: Run, hold: float) -> float:
@@ -431,48 +574,76 @@ def _nn(pos: NDArray[np.float64]) -> NDArray[np.float64]:
     return np.asarray(d.min(axis=1), dtype=float)
 
 
+PAPER_FIGURES = {"holonomic/physical": (2, 8), "holonomic/delaunay": (3, 9), "nonholonomic/physical": (4, 10),
+                 "nonholonomic/delaunay": (5, 11)}  # paper 001's figure of each variant at t = 30 s (open, corridor)
+
+
+def _name(variant: str) -> str:
+    base, settle = variant.removesuffix(SETTLE), variant.endswith(SETTLE)
+    model, _, nb = base.partition("/")
+    return f"{model}, {'Delaunay' if nb == 'delaunay' else nb}" + (" + settling" if settle else "")
+
+
 def _draw(fig: Any, scenario: Scenario, runs: list[Run], res: Result, mode: str,
           sweep: list[tuple[float, Run]]) -> None:
-    rows = max(2, math.ceil(len(runs) / 2))
-    half = rows // 2  # the curves on the right: the upper and the lower rows
-    gs = fig.add_gridspec(rows, 4 if sweep else 3, width_ratios=[1, 1, 0.95] + ([0.8] if sweep else []))
-    extent = max(float(np.abs(r.pos[-1]).max()) for r in runs) + 4
+    """The team of every variant at t = 30 s (the paper's figures), four maps a row; under them the
+    spacing and the fastest robot over time, and the settled spacing against the range R."""
+    cols = 4
+    rows = math.ceil(len(runs) / cols)
+    _, walls = _obstacles(scenario)
+    corridor = len(walls) > 0
+    gs = fig.add_gridspec(rows + 1, cols, height_ratios=[1.0] * rows + [1.25])
+    at30 = [r.pos[int(np.argmin(np.abs(r.t - 30.0)))] for r in runs]
+    xmax = max(float(np.abs(p[:, 0]).max()) for p in at30) + 2.5
+    ymax = 16.5 if corridor else max(float(np.abs(p[:, 1]).max()) for p in at30) + 2.5
+    xmax = max(xmax, ymax) if not corridor else xmax
     for k, r in enumerate(runs):
-        ax = fig.add_subplot(gs[k // 2, k % 2])
+        ax = fig.add_subplot(gs[k // cols, k % cols])
         draw_world(ax, scenario.world)
-        final = r.pos[-1]
         k30 = int(np.argmin(np.abs(r.t - 30.0)))
-        ax.scatter(r.pos[0, :, 0], r.pos[0, :, 1], s=6, color="#bbbbbb", label="start", zorder=3)
-        ax.scatter(r.pos[k30, :, 0], r.pos[k30, :, 1], s=8, facecolor="none", edgecolor=color(k), lw=0.6,
-                   label=f"t = {r.t[k30]:.0f} s", zorder=3)
-        end = f"converged, t = {r.converged:.0f} s" if math.isfinite(r.converged) else f"t = {r.t[-1]:.0f} s"
-        ax.scatter(final[:, 0], final[:, 1], s=14, color=color(k), label=end, zorder=4)
-        headings(ax, final, r.th[-1], 1.8, color=color(k), zorder=4)
-        ax.set_xlim(-extent, extent)
-        ax.set_ylim(-extent * 0.75, extent * 0.75)
-        map_axes(ax, f"{r.variant.replace('/', ', ')} neighbourhood")
-        ax.legend(loc="upper right", fontsize=7, framealpha=0.9)
-    ax = fig.add_subplot(gs[:half, 2])
+        ax.scatter(at30[k][:, 0], at30[k][:, 1], s=7, color=color(k), zorder=4, lw=0)
+        headings(ax, at30[k], r.th[k30], 1.6, color=color(k), zorder=4)
+        ax.set_xlim(-xmax, xmax)
+        ax.set_ylim(-ymax, ymax)
+        paper = PAPER_FIGURES.get(r.variant)
+        end = f"converged at {r.converged:.0f} s" if math.isfinite(r.converged) else f"not settled by {r.t[-1]:.0f} s"
+        map_axes(ax, "")
+        ax.set_title(f"{_name(r.variant)}" + (f" (Fig. {paper[1 if corridor else 0]})" if paper else "")
+                     + f"\nt = {r.t[k30]:.0f} s; {end}", fontsize=8.5)
+        ax.tick_params(labelsize=7)
+        ax.xaxis.label.set_size(8)
+        ax.yaxis.label.set_size(8)
+        if k % cols:
+            ax.set_ylabel("")
+    bottom = ([fig.add_subplot(gs[rows, c]) for c in range(cols)] if sweep else
+              [fig.add_subplot(gs[rows, :2]), fig.add_subplot(gs[rows, 2:])])
+    d = float(scenario.strategy.get("distance", 5.0))
+    ax = bottom[0]
     for k, r in enumerate(runs):
         t, vals, _ = res.series[f"{r.variant}/mean_nn_distance"]
-        ax.plot(t, vals, color=color(k), label=r.variant.replace("/", ", "))
-    d = float(scenario.strategy.get("distance", 5.0))
-    ax.axhline(d, color="#555555", ls=":", lw=1, label=f"desired d = {d:g} m (input)")
+        ax.plot(t, vals, color=color(k), lw=1.1, ls="--" if r.variant.endswith(SETTLE) else "-",
+                label=_name(r.variant))
+    ax.axhline(d, color="#555555", ls=":", lw=1)
     ax.axvline(30, color="#aaaaaa", ls="--", lw=0.8)
     time_axes(ax, "Mean distance to the nearest robot", "distance (m)")
     ax.set_ylim(0, d * 1.2)
-    ax.legend(fontsize=7, loc="lower right")
-    ax = fig.add_subplot(gs[half:, 2])
+    ax = bottom[1]
     for k, r in enumerate(runs):
         t, vals, _ = res.series[f"{r.variant}/max_speed"]
-        ax.semilogy(t, np.maximum(vals, 1e-4), color=color(k), label=r.variant.replace("/", ", "))
+        ax.semilogy(t, np.maximum(vals, 1e-4), color=color(k), lw=1.1, ls="--" if r.variant.endswith(SETTLE) else "-")
     threshold = float(scenario.strategy.get("still_speed", 0.05))
-    ax.axhline(threshold, color="#555555", ls=":", lw=1, label=f"still below {threshold:g} m/s")
-    time_axes(ax, "Fastest robot (convergence)", "speed (m/s)")
-    ax.legend(fontsize=7, loc="upper right")
+    ax.axhline(threshold, color="#555555", ls=":", lw=1)
+    time_axes(ax, f"Fastest robot (still: < {threshold:g} m/s)", "speed (m/s)")
+    ax.set_ylim(1e-4, 3)
+    for ax in bottom[:2]:
+        ax.title.set_size(9)
     if sweep:
-        _draw_sweep(fig.add_subplot(gs[:half, 3]), fig.add_subplot(gs[half:, 3]), sweep, d)
-    fig.suptitle(f"{scenario.title} ({mode} mode, {runs[0].pos.shape[1]} robots)", fontsize=13)
+        _draw_sweep(bottom[2], bottom[3], sweep, d)
+    handles, labels = bottom[0].get_legend_handles_labels()
+    handles.append(bottom[0].lines[len(runs)])
+    labels.append(f"d = {d:g} m (input)")
+    fig.legend(handles, labels, loc="outside lower center", ncol=min(5, len(labels)), fontsize=8, frameon=False)
+    fig.suptitle(f"{scenario.title} ({mode} mode, {runs[0].pos.shape[1]} robots)", fontsize=11)
 
 
 def _draw_sweep(top: Any, bottom: Any, sweep: list[tuple[float, Run]], d: float) -> None:
@@ -480,27 +651,27 @@ def _draw_sweep(top: Any, bottom: Any, sweep: list[tuple[float, Run]], d: float)
     for k, v in enumerate(("holonomic/physical", "nonholonomic/physical")):
         got = [(q, r) for q, r in sweep if r.variant == v]
         x = [q / d for q, _ in got]
-        top.plot(x, [float(_nn(r.pos[-1]).mean()) for _, r in got], "o-", color=color(2 * k),
-                 label=v.replace("/", ", "))
+        top.plot(x, [float(_nn(r.pos[-1]).mean()) for _, r in got], "o-", color=color(2 * k), ms=4)
         bottom.plot(x, [r.converged if math.isfinite(r.converged) else np.nan for _, r in got], "o-",
-                    color=color(2 * k), label=v.replace("/", ", "))
-    top.axhline(d, color="#555555", ls=":", lw=1, label=f"d = {d:g} m (input)")
-    top.set_title("Settled spacing against range R", fontsize=10)
+                    color=color(2 * k), ms=4)
+    top.axhline(d, color="#555555", ls=":", lw=1)
+    top.set_title("Settled spacing against R (physical)", fontsize=9)
     top.set_xlabel("R / d (R an input)")
     top.set_ylabel("mean NN distance (m)")
     top.set_ylim(0, d * 1.2)
-    top.legend(fontsize=7, loc="lower left")
     top.grid(alpha=0.3)
-    bottom.set_title("Time to converge against R", fontsize=10)
+    bottom.set_title("Time to converge against R (physical)", fontsize=9)
     bottom.set_xlabel("R / d (R an input)")
     bottom.set_ylabel("converged at (s)")
+    bottom.set_ylim(bottom=0)
     bottom.grid(alpha=0.3)
 
 
 def _draw_paths(fig: Any, scenario: Scenario, runs: list[Run], res: Result, mode: str) -> None:
     """Paper 001, Figs 6-7: every robot's path, arrows showing its heading along the way."""
-    cols = len(runs)
-    gs = fig.add_gridspec(1, cols)
+    by_seed = [res.series.get(f"{r.variant}/converged_at_by_seed") for r in runs]
+    cols = len(runs) + (1 if all(by_seed) else 0)
+    gs = fig.add_gridspec(1, cols, width_ratios=[1.0] * len(runs) + [0.7] * (cols - len(runs)))
     extent = max(float(np.abs(r.pos).max()) for r in runs) + 1.5
     for k, r in enumerate(runs):
         ax = fig.add_subplot(gs[0, k])
@@ -521,4 +692,26 @@ def _draw_paths(fig: Any, scenario: Scenario, runs: list[Run], res: Result, mode
         end = f"converged at {r.converged:.0f} s" if math.isfinite(r.converged) else f"{r.t[-1]:.0f} s"
         fig_no = "Fig. 6" if r.variant.startswith("holonomic") else "Fig. 7"
         map_axes(ax, f"{r.variant.replace('/', ', ')} ({fig_no}): {end}")
+        ax.title.set_size(10)
+    if cols > len(runs):
+        from erni.sim.experiments.stats import mean_ci
+
+        ax = fig.add_subplot(gs[0, len(runs)])
+        for k, got in enumerate(by_seed):
+            assert got is not None
+            times = np.array(got[1], dtype=float)
+            ok = np.isfinite(times)
+            rng = np.random.default_rng(k)
+            ax.plot(k + rng.uniform(-0.12, 0.12, ok.sum()), times[ok], "o", color=color(k), ms=4, alpha=0.7)
+            m, lo, hi = mean_ci(times.tolist())
+            if math.isfinite(lo):
+                ax.errorbar([k + 0.3], [m], yerr=[[m - lo], [hi - m]], fmt="s", color="black", ms=4, capsize=3)
+            ax.text(k, 0.02, f"{int(ok.sum())}/{len(times)} converged", transform=ax.get_xaxis_transform(),
+                    ha="center", fontsize=8)
+        ax.set_xticks(range(len(runs)), [r.variant.split("/")[0] for r in runs])
+        ax.set_xlim(-0.6, len(runs) - 0.4)
+        ax.set_ylim(bottom=0)
+        ax.set_ylabel("converged at (s)")
+        ax.set_title(f"Over {len(by_seed[0][1]) if by_seed[0] else 0} seeds: mean, 95 % CI", fontsize=10)
+        ax.grid(axis="y", color="#e0e0e0", lw=0.6)
     fig.suptitle(f"{scenario.title} ({mode} mode): paths, arrows = heading (circles: start)", fontsize=13)

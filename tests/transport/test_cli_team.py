@@ -71,8 +71,32 @@ def test_task_found_by_beacons_with_json_output(team):
 
 def test_failed_task_exits_1(team):
     out = cli(team["env"], "task", "--via", team["via"], "ghost", "BotMotion", "stop", "--wait")
-    assert out.returncode == 1
-    assert "failed" in out.stdout and "unknown agent ghost" in out.stdout
+    assert out.returncode == 1 and out.stdout == ""
+    assert out.stderr == "erni task: no agent ghost in the team: control knows robot1 (`erni peers` lists them)\n"
+
+
+@pytest.mark.parametrize("command", [["peers"], ["task", "robot1", "BotMotion", "stop", "--wait"], ["watch"]])
+def test_an_identity_of_another_authority_is_named_as_such_at_once(team, tmp_path, command):
+    """An earlier run's keys: the control node answers the client's handshake with why it does not
+    trust its certificate, and the client says so on one line instead of "no acknowledgement"."""
+    import time
+
+    from erni.transport.identity import Authority
+
+    earlier = Authority.create(tmp_path / "earlier", team="an earlier run")
+    cli_pem = earlier.issue("cli", "cli", tmp_path / "cli.pem")
+    env = {**team["env"], "ERNI_IDENTITY": str(cli_pem)}
+    start = time.monotonic()
+    out = cli(env, command[0], "--via", team["via"], *command[1:])
+    seconds = time.monotonic() - start
+    assert out.returncode == 1, out
+    (line,) = out.stderr.splitlines()
+    assert line.startswith(f"erni {command[0]}: control at {team['via']} refused this agent's certificate: "
+                           "certificate not signed by this team's authority; control trusts the authority "
+                           "'erni tests authority' (fingerprint "), line
+    assert line.endswith("(an identity of another team or an earlier run? ERNI_IDENTITY or --identity must name "
+                         "one issued by this team's authority, e.g. RUN/keys/cli.pem of this `erni sim`)"), line
+    assert seconds < 3.0
 
 
 def test_bad_arguments_exit_2(team):
@@ -225,3 +249,34 @@ def test_wait_ends_with_link_lost_when_the_agent_it_goes_through_dies(mortal_tea
     out, err = waiting.communicate(timeout=15)
     assert waiting.returncode == 1
     assert f"erni task: link lost: no answer from {via}" in err
+
+
+def test_no_warnings_when_a_command_line_client_leaves(caplog):
+    """`erni task` without --wait exits once its task runs; the rest of the task's results find its
+    port closed. They are dropped quietly, not retried with a burst of `Connection refused`."""
+    import logging
+    import time
+
+    from tests.transport.helpers import make_agent
+
+    disc, port = free_port(), free_port()
+    control = make_agent("control", disc, echo=False, listen=f"127.0.0.1:{port}")
+    robot = make_agent("robot1", disc, start=False)
+    robot.add_plugin("echo", settings={"verbs": ["NetWatch"], "delay": 0.5}, name="slow")
+    robot.start()
+    env = {**os.environ, "ERNI_IDENTITY": identity("cli", "cli")}
+    try:
+        wait_until(lambda: any(p.name == "robot1" and p.up for p in control.blackboard.query(
+            lambda o: type(o).__name__ == "Peer")), timeout=10)
+        with caplog.at_level(logging.DEBUG, logger="erni"):
+            for _ in range(3):
+                out = cli(env, "task", "--via", f"127.0.0.1:{port}", "robot1", "NetWatch", "neighbor_list")
+                assert out.returncode == 0, out.stderr
+            time.sleep(2.0)  # the tasks end 0.5 s after they ran; retries would go on for seconds
+        endpoint = control.plugin("transport").endpoint
+        assert endpoint.counters.get("dropped.client_gone", 0) >= 3
+    finally:
+        robot.stop()
+        control.stop()
+    warnings = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING and r.name.startswith("erni.control")]
+    assert warnings == []

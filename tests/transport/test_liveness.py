@@ -11,6 +11,7 @@ from hypothesis import strategies as st
 
 from erni.blackboard import Agent, Peer
 from erni.blackboard.testing import wait_until
+from erni.testing import MockTeam
 from erni.transport import MockNetwork, TransportPlugin
 from erni.transport.liveness import FALSE_DOWN, MAX_STRETCH, MIN_SENT, BeaconCount, silence_stretch
 
@@ -121,26 +122,16 @@ def test_a_live_peer_on_a_link_losing_most_frames_stays_up_and_a_dead_one_goes_d
 
 
 def test_beacons_to_a_quiet_peer_are_numbered_one_by_one():
-    net = MockNetwork(seed=1)
-
-    class Mocked(TransportPlugin):
-        endpoint_factory = staticmethod(net.endpoint)
-
-    timings = {"insecure": True, "discovery_port": 0, "beacon_period": 0.1, "peer_timeout": 0.4}
-    a = Agent("a", workers=2)
-    a.add_plugin(Mocked, settings=timings, name="transport")
-    a.start()
-    b = Agent("b", workers=2)
-    b.add_plugin(Mocked, settings={**timings, "peers": ["a@mock:1"]}, name="transport")
-    b.start()
-    try:
-        wait_until(lambda: any(p.name == "b" and p.up for p in a.query(Peer)), timeout=10)
+    with MockTeam(seed=1) as team:
+        for name in ("a", "b"):
+            team.add(name, beacon_period=0.1, peer_timeout=0.4)
+        team.start(timeout=10)
         time.sleep(0.8)
-        transport = next(p for p in b.plugins if isinstance(p, TransportPlugin))
+        transport = team["b"].plugin("transport")
+        assert isinstance(transport, TransportPlugin)
         sent = transport.beacons_sent.get("a", 0)
         assert sent >= 4
-        count = next(p for p in a.plugins if isinstance(p, TransportPlugin)).beacon_counts["b"]
+        receiver = team["a"].plugin("transport")
+        assert isinstance(receiver, TransportPlugin)
+        count = receiver.beacon_counts["b"]
         assert count.last >= sent - 2 and count.delivery() == 1.0  # nothing lost: every number came
-    finally:
-        for agent in (a, b):
-            agent.stop()

@@ -3,9 +3,11 @@ espeak-ng voices at several speeds, clean and in white noise, and how each heari
 
 The audio is made at test time (espeak-ng, then the control node's own audio path to 16 kHz
 mono PCM); nothing is recorded in the repository. A hearing is judged by meaning against the
-same text typed: `exact` when the recogniser's text parses to the same command, `asked` when the
-recogniser flagged it unsure (the operator hears "Say again?"), `refused` when the parser refuses
-what was heard, `wrong` when a different command would be carried out.
+same text typed, through the spoken dialogue (`judge`): `exact` when it does what the typed line
+does, `confirmed` when it does so after a read-back answered "yes" (that answer spoken and heard
+too), `asked` when nothing is sent and the operator is asked again, `refused` when the parser
+refuses what was heard, `wrong` when a different command is carried out, `false stop` when a stop
+is carried out where something else was said.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ import shutil
 import subprocess
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -81,11 +84,21 @@ def as_heard(speech: np.ndarray, snr: float | None, rng: np.random.Generator) ->
     """Speech with half a second of room before and a second after, in a quiet room or in white noise
     at `snr` dB (the speech's power over its loud 10 ms windows against the noise's)."""
     pcm = np.concatenate([np.zeros(int(LEAD * RATE)), speech, np.zeros(RATE)])
+    pcm = pcm + rng.normal(0.0, noise_level(speech, snr), len(pcm))
+    return np.clip(np.round(pcm), -32768, 32767).astype("<i2").tobytes()
+
+
+def noise_level(speech: np.ndarray, snr: float | None) -> float:
+    """The rms of the noise that puts `speech` at `snr` dB (a quiet room's for None)."""
     windows = speech[: len(speech) // 160 * 160].reshape(-1, 160)
     power = np.mean(windows ** 2, axis=1)
     loud = power[power > 0.1 * power.max()] if power.size else np.array([0.0])
-    sigma = ROOM if snr is None else float(np.sqrt(loud.mean() / 10 ** (snr / 10)))
-    pcm = pcm + rng.normal(0.0, sigma, len(pcm))
+    return ROOM if snr is None else float(np.sqrt(loud.mean() / 10 ** (snr / 10)))
+
+
+def room(speech: np.ndarray, snr: float | None, rng: np.random.Generator, seconds: float) -> bytes:
+    """`seconds` of the room `as_heard(speech, snr)` puts the speech in, with nobody speaking."""
+    pcm = rng.normal(0.0, noise_level(speech, snr), int(seconds * RATE))
     return np.clip(np.round(pcm), -32768, 32767).astype("<i2").tobytes()
 
 
@@ -103,14 +116,27 @@ def _outcome(reply: Any) -> Any:
             [(t.verb, t.preposition, t.destination, t.params.model_dump()) for t in reply.tasks])
 
 
-def judge(said: str, heard: str, unsure: bool) -> str:
-    """`exact`, `asked`, `refused` or `wrong`: what the operator gets for saying `said` when the
-    recogniser hears `heard` (unsure or not), answered by the control node's spoken dialogue (a
-    stop acts however it was heard; an unsure hearing is asked again; a command to several robots or
-    a long move is read back and waits for "yes") against the same text typed, which runs at once.
-    `exact`: the same tasks or answer (or the right command read back); `asked`: nothing sent, the
-    operator asked again or read a command back; `refused`: nothing sent, the line refused; `wrong`:
-    tasks sent that differ from what was said."""
+OUTCOMES = ("exact", "confirmed", "asked", "refused", "wrong", "false stop")
+
+
+def _targets(reply: Any) -> set[str]:
+    return {t.destination for t in reply.tasks}
+
+
+def judge(said: str, heard: str, unsure: bool, answer: Callable[[str], tuple[str, bool]] | None = None) -> str:
+    """What the operator gets for saying `said` when the recogniser hears `heard` (unsure or not),
+    answered by the control node's spoken dialogue (a stop acts however it was heard; an unsure
+    hearing of a motion command, a command to several robots and a long move are read back and wait
+    for "yes"; any other unsure hearing is asked again) against the same text typed, which runs at once.
+
+    A read-back is answered as the operator would: "yes" when it restates what was said, "no"
+    otherwise, that answer heard through `answer(word) -> (heard, unsure)` (default: heard right).
+
+    `exact`: the same tasks or answer as typed (a stop said, answered by a stop to at least the robots
+    meant, is exact too); `confirmed`: exact after a read-back and a "yes" heard; `asked`: nothing sent,
+    the operator asked again (or the answer to a read-back was not heard as it was said); `refused`:
+    nothing sent, the line refused; `wrong`: tasks sent that differ from what was said; `false stop`:
+    a stop carried out where something else was said (safe, but not what was said)."""
     from erni.plugins.ui.dialogue import Dialogue, Naming
 
     typed = Dialogue(Naming(), verb="RemoteBotMotion")
@@ -118,19 +144,28 @@ def judge(said: str, heard: str, unsure: bool) -> str:
     for d in (typed, spoken):
         d.select(["robot1"])
     want = typed.hear(said, TEAM)
+
+    def carried_out(got: Any, confirmed: bool) -> str:
+        if _outcome(got) == _outcome(want):
+            return "confirmed" if confirmed else "exact"
+        if got.stop and want.stop and _targets(got) >= _targets(want):
+            return "exact"
+        return "false stop" if got.stop else "wrong"
+
     got = spoken.hear(heard, TEAM, unsure=unsure) if heard else None
     if got is None:
         return "refused"
+    if got.tasks:
+        return carried_out(got, False)
     if _outcome(got) == _outcome(want):
         return "exact"
-    if got.tasks:
-        return "wrong"
-    if getattr(got, "asked", False):
-        pending = getattr(spoken, "pending", None)
-        if pending is not None and _outcome(pending.reply) == _outcome(want):
-            return "exact"  # the right command, read back: it runs on "yes"
-        return "asked"
-    return "asked" if unsure else "refused"
+    pending = getattr(spoken, "pending", None)
+    if got.asked and pending is not None:
+        word = "yes" if _outcome(pending.reply) == _outcome(want) else "no"
+        reply, doubt = answer(word) if answer is not None else (word, False)
+        final = spoken.hear(reply, TEAM, unsure=doubt) if reply else None
+        return carried_out(final, True) if final is not None and final.tasks else "asked"
+    return "asked" if unsure or got.asked else "refused"
 
 
 @dataclass
@@ -173,8 +208,10 @@ LEAD = 0.5  # seconds of room before the speech in `as_heard`
 
 
 def speech_end(speech: np.ndarray) -> float:
-    """Where the speech of `as_heard(speech, ...)` ends, in seconds from the clip's start."""
-    return LEAD + len(speech) / RATE
+    """Where the voice of `as_heard(speech, ...)` ends, in seconds from the clip's start (espeak-ng
+    ends its audio with about 0.35 s of silence, which is not speech)."""
+    loud = np.flatnonzero(np.abs(speech) > 0.01 * max(float(np.abs(speech).max(initial=0.0)), 1.0))
+    return LEAD + (int(loud[-1]) + 1 if loud.size else len(speech)) / RATE
 
 
 _ONES = "zero one two three four five six seven eight nine".split()

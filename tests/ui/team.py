@@ -3,7 +3,6 @@ simulated robots, each agent with its own transport on loopback."""
 
 from __future__ import annotations
 
-import socket
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -13,6 +12,7 @@ from erni.blackboard.testing import wait_until
 from erni.plugins.ui import UIPlugin
 from erni.sim.robot import SimRobotConfig
 from erni.sim.robot_host import RobotHost
+from erni.sim.team import free_port
 from erni.sim.world import World
 
 KEY = "ui-test-team-key"
@@ -21,12 +21,6 @@ MOTION = dict(model={"base": "pioneer3", "decel": 2.5, "rot_decel": 500.0, "max_
               rate_hz=20, pose_rate_hz=10, avoid_distance=0.3, sync_timeout=0.5, link_timeout=2.0,
               link_grace=3.0, blocked_timeout=5.0, stall_timeout=1.0)  # loose: shared machines stall
 ARENA = Path(__file__).with_name("arena.toml")
-
-
-def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def transport_settings(discovery: int, role: str) -> dict[str, Any]:

@@ -1,4 +1,5 @@
-"""A risky spoken command is read back and runs only on "yes"; an unsure hearing is asked again;
+"""A risky spoken command, or one the recogniser is unsure of, is read back and runs only on "yes";
+any other unsure hearing is asked again;
 every refused or unsure utterance gets one line, spoken (espeak-ng, written to a WAV) and
 printed in the page's log, saying what was heard and what is expected. Typed commands run at
 once. On a running team: the control node's UI plugin and simulated robots."""
@@ -96,11 +97,15 @@ def test_typed_commands_run_at_once(team):
     assert {t.destination for t in turns} == {"robot1", "robot2"}
 
 
-def test_an_unsure_hearing_is_asked_again_and_nothing_moves(team):
+def test_an_unsure_hearing_is_read_back_or_asked_again_and_nothing_moves(team):
     heard(team, "attention")
     before = len(team.control.query(Task))
     say = heard(team, "robot one go forward two metres", unsure=True)
-    assert say == "Say again? I heard \u201crobot one go forward two metres\u201d, but I am not sure"
+    assert say == "Did you say: robot 1, go forward 2 metres? Say yes or no"
+    spoken(team, say)
+    assert heard(team, "no") == "Not sent: robot 1, go forward 2 metres"
+    say = heard(team, "robot one go to the kitchen", unsure=True)
+    assert say == "Say again? I heard \u201crobot one go to the kitchen\u201d, but I am not sure"
     spoken(team, say)
     say = heard(team, "robot one go forward fifty two metres")
     assert heard(team, "yes", unsure=True) == (

@@ -44,7 +44,14 @@ def run(stream, cases: list[tuple[str, S.Condition]], seed: int) -> tuple[Counte
     for text, c in cases:
         speech = S.synthesise(text, c.voice, c.speed)
         h = S.hear(stream, S.as_heard(speech, c.snr, rng), S.speech_end(speech))
-        outcome = S.judge(text, h.text, h.unsure)
+
+        def answer(word: str, c: S.Condition = c) -> tuple[str, bool]:  # the operator's yes or no, heard too
+            said = S.synthesise(word, c.voice, c.speed)
+            a = S.hear(stream, S.as_heard(said, c.snr, rng), S.speech_end(said))
+            return a.text, a.unsure
+
+        outcome = S.judge(text, h.text, h.unsure, answer)
+        outcome = "exact" if outcome == "confirmed" else outcome  # exact after a read-back and a yes
         outcomes[outcome] += 1
         if text in S.STOPS:
             stops[outcome] += 1
@@ -54,11 +61,10 @@ def run(stream, cases: list[tuple[str, S.Condition]], seed: int) -> tuple[Counte
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="a robot number can be heard into a list ('robots two eight and three stop') "
-                   "with no doubt from the recogniser; the target is 0 wrong")
 def test_a_part_of_the_speech_set_in_a_quiet_room_nothing_carried_out_wrong(stream):
-    """Every stop phrasing and a dozen commands in each voice (one speed per voice), in a quiet room.
-    In white noise PocketSphinx still carries out some misheard commands (bench/bench_speech.py)."""
+    """Every stop phrasing and a dozen commands in each voice (one speed per voice), in a quiet room:
+    nothing carried out that was not said (a doubted command is read back, and the read-back answered
+    by voice too). The noise conditions are measured by bench/bench_speech.py."""
     cases = [(text, S.Condition(voice, speed, None)) for voice, speed in SUBSET_VOICES.items()
              for text in [*S.STOPS, *SUBSET_COMMANDS]]
     outcomes, wrong, stops = run(stream, cases, seed=7)
