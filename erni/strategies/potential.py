@@ -227,12 +227,15 @@ def team_neighbourhoods(pos: ArrayLike, cfg: SpreadConfig, memory: SpreadMemory 
         if memory.triangles is not None:
             nbrs = triangle_neighbours(memory.triangles, len(p))
             # every Delaunay triangulation links each robot to its nearest robot; the kept one links
-            # it too once closer than d / 2, or two robots whose edge it lacks could close unfelt
+            # it too once closer than d / 2, or two robots whose edge it lacks could close unfelt;
+            # and a link in effect shorter than d stays until it reaches d, where its push ends
             from scipy.spatial import cKDTree
 
             gap, near = cKDTree(p).query(p, k=2)
-            for i, j in enumerate(near[:, 1].tolist()):
-                if gap[i, 1] < cfg.distance / 2 and j not in nbrs[i]:
+            extra = {(min(i, j), max(i, j)) for i, j in enumerate(near[:, 1].tolist()) if gap[i, 1] < cfg.distance / 2}
+            extra |= {key for key in memory.effective if np.hypot(*(p[key[1]] - p[key[0]])) < cfg.distance}
+            for i, j in extra:
+                if j not in nbrs[i]:
                     nbrs[i] = np.sort(np.append(nbrs[i], j))
                     nbrs[j] = np.sort(np.append(nbrs[j], i))
             if cfg.reach is not None:  # with a margin: a link in effect goes only past 1.1 reach
