@@ -12,9 +12,9 @@ standing by too, and goes to lost robots as well. Other commands to a lost robot
 "slower" set each robot's cruise speed for later moves (and a running go-to or random walk);
 "go to robot 2" drives to that robot, stopping short. A dialogue made with `read_back` (the
 spoken one) restates a risky command (a move beyond `read_back` metres or out of the map, a
-command to several robots) and carries it out only on "yes"; an unsure hearing of a command that
-would move robots is read back too ("Did you say: robot 1, go forward 2 metres? Say yes or no"),
-any other unsure hearing is asked again ("Say again?"); a stop never waits.
+teleport, a command to several robots) and carries it out only on "yes"; an unsure hearing of a
+command that would move robots is read back too ("Did you say: robot 1, go forward 2 metres? Say
+yes or no"), any other unsure hearing is asked again ("Say again?"); a stop never waits.
 `Naming` maps robot numbers to agent names (`robot3`) and back; `tasks_for` maps an action
 of the grammar onto the task language in either tier (RemoteBotMotion through each robot's
 MissionControl, or BotMotion straight to its motion plugin).
@@ -535,6 +535,8 @@ class Dialogue:
                 return "far"
             if t.preposition == "velocity" and p["v"] != 0:
                 return "unbounded"
+            if t.preposition == "teleport":  # on a real robot a teleport re-bases its odometry
+                return "teleport"
             if "x" in p and "y" in p and t.preposition in ("goto", "teleport", "widep"):
                 if self.area is not None:
                     xmin, ymin, xmax, ymax = self.area

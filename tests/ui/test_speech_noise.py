@@ -134,6 +134,15 @@ def test_a_doubted_motion_command_is_read_back_and_runs_only_on_yes():
                         "Say yes or no"
 
 
+def test_a_spoken_teleport_is_read_back_however_sure_the_hearing():
+    """A teleport re-bases a real robot's odometry: spoken, it runs only on "yes"; typed, at once."""
+    d = spoken()
+    asked = d.hear("robot one teleport to three four", TEAM)
+    assert (asked.say, asked.tasks) == ("Robot 1, teleport to x 3, y 4 \u2014 say yes to confirm", [])
+    assert [t.preposition for t in d.hear("yes", TEAM).tasks] == ["teleport"]
+    assert Dialogue(Naming()).hear("robot one teleport to three four", TEAM).tasks
+
+
 def test_a_doubted_stop_acts_at_once_and_other_doubted_lines_are_asked_again():
     d = spoken()
     d.hear("robot two go forward two meters", TEAM, unsure=True)
