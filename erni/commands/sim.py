@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import faulthandler
 import os
 import shutil
 import signal
@@ -109,10 +110,19 @@ def run(args: argparse.Namespace) -> int:
         print(f"erni sim: {err}", file=sys.stderr)
         return 2
 
-    def on_term(signum: int, frame: Any) -> None:
-        raise KeyboardInterrupt
+    # Ctrl-C or a TERM: while the team starts, abandon the start (KeyboardInterrupt); once it runs,
+    # only note it, and the scenario loop returns within 0.2 s. An interrupt raised wherever the main
+    # thread happens to be (inside the control node client's request, holding its lock) could leave
+    # the team's stop waiting on that lock for good.
+    stopping: list[int] = []
+    running: list[bool] = []
 
-    previous = signal.signal(signal.SIGTERM, on_term)
+    def on_signal(signum: int, frame: Any) -> None:
+        stopping.append(signum)
+        if not running:
+            raise KeyboardInterrupt
+
+    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     progress = Progress()
     code = 0
     try:
@@ -125,7 +135,8 @@ def run(args: argparse.Namespace) -> int:
         _print_team(team, time.monotonic() - t0)
         for note in speech_notes(team.url is None):
             print(f"erni sim: {note}", flush=True)
-        _run_scenario(team, scenario)
+        running.append(True)
+        _run_scenario(team, scenario, stopping)
     except (TeamError, NetnsError) as err:
         progress.done()
         print(f"erni sim: {err}", file=sys.stderr)
@@ -135,9 +146,13 @@ def run(args: argparse.Namespace) -> int:
     finally:
         signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C must not cut the clean stop short
         print("erni sim: stopping the team...", flush=True)
+        # a stop that hangs says where: every thread's stack on stderr after 30 s (the stop waits at
+        # most 8 s for the agents, then kills them)
+        faulthandler.dump_traceback_later(30, exit=False)
         team.stop()
-        signal.signal(signal.SIGINT, signal.default_int_handler)
-        signal.signal(signal.SIGTERM, previous)
+        faulthandler.cancel_dump_traceback_later()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
         print(f"erni sim: stopped; configs and logs in {team.run_dir}", flush=True)
     return code
 
@@ -226,7 +241,9 @@ def _print_team(team: Any, seconds: float) -> None:
     print("Ctrl-C stops the team", flush=True)
 
 
-def _run_scenario(team: Any, scenario: Any) -> None:
+def _run_scenario(team: Any, scenario: Any, stopping: list[int]) -> None:
+    """Send the scenario's tasks and failures on time and print what comes back, until its duration
+    or until `stopping` holds a signal."""
     from erni.blackboard import Task
     from erni.blackboard.schemas import ResultUpdate
 
@@ -236,7 +253,7 @@ def _run_scenario(team: Any, scenario: Any) -> None:
     failures = sorted(scenario.failure, key=lambda f: f.at)
     sent: dict[str, str] = {}
     next_status = start + 10.0
-    while True:
+    while not stopping:
         now = time.monotonic() - start
         if scenario.duration is not None and now >= scenario.duration:
             print(f"t={now:6.1f} s  duration reached", flush=True)
