@@ -118,7 +118,7 @@ def check_outputs(result: experiments.Result, missions: list[str], tmp_path: Pat
     assert any("guard holds remote motion jobs only" in n for n in result.notes)
 
 
-QUICK = {"goto_time": 25.0, "walk": 4.0, "goto_near": 3.0, "goto_far": 4.0}
+QUICK = {"goto_time": 12.0, "walk": 4.0, "goto_near": 3.0, "goto_far": 4.0}
 
 
 @pytest.mark.slow
