@@ -94,16 +94,22 @@ class FastMessages:
         """`_send_datagram` of one message in a session. False when the socket's buffer is full."""
         try:
             self._sendto(session.seal(join_envelope(self._head(session.peer), self._item(out)), self._udp_frame), addr)
-        except (BlockingIOError, InterruptedError):
+        except (OSError, FrameError) as err:
+            return self._unsent(addr, err)
+        self.count("sent.fast")
+        return True
+
+    def _unsent(self, addr: Address, err: OSError | FrameError) -> bool:
+        """Count and report a datagram of fast messages that did not leave; False when only the
+        socket's buffer was full (the sender pool sends it when it drains), True when it is dropped."""
+        if isinstance(err, BlockingIOError | InterruptedError):
             return False
-        except FrameError as err:
+        if isinstance(err, FrameError):
             self.count("dropped.too_big")
             self.warn("too_big", f"not sent to {addr}: {err}")
-        except OSError as err:
+        else:
             self.count("dropped.fast_error")
             self.warn("udp", f"UDP send to {addr[0]}:{addr[1]} failed: {err}")
-        else:
-            self.count("sent.fast")
         return True
 
     def _gather(self, addr: Address, out: Outgoing, session: Session) -> bool:
@@ -142,18 +148,11 @@ class FastMessages:
             else:
                 frame = batch.session.seal(batch_payload(batch.head, batch.items), max_frame)
             self._sendto(frame, addr)
-        except (BlockingIOError, InterruptedError):
-            return False
-        except FrameError as err:
-            self.count("dropped.too_big")
-            self.warn("too_big", f"not sent to {addr}: {err}")
-        except OSError as err:
-            self.count("dropped.fast_error")
-            self.warn("udp", f"UDP send to {addr[0]}:{addr[1]} failed: {err}")
-        else:
-            self.count("sent.fast", len(outs))
-            if len(outs) > 1:
-                self.count("sent.batched", len(outs))
+        except (OSError, FrameError) as err:
+            return self._unsent(addr, err)
+        self.count("sent.fast", len(outs))
+        if len(outs) > 1:
+            self.count("sent.batched", len(outs))
         return True
 
     def _send_fast(self, dest: Dest, session: Session | None, outs: list[Outgoing]) -> float | None:

@@ -52,15 +52,9 @@ class Item(Struct, kw_only=True, forbid_unknown_fields=True):
     body: Raw
 
 
-class Envelope(Struct, kw_only=True, forbid_unknown_fields=True):
+class Envelope(Head, kw_only=True, forbid_unknown_fields=True):
     """`wire.Envelope`: a head and one item in one object."""
 
-    v: int = VERSION
-    sender: Name
-    role: Str32 = ""
-    to: Str64 = ""
-    inst: Str32 = ""
-    reply: tuple[str, int] = ("", 0)
     seq: Annotated[int, Meta(ge=0)] = 0
     id: Str64
     kind: Str64
