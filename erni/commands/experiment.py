@@ -30,7 +30,7 @@ def register(sub: Any) -> None:
                    "the control node (the default wherever the team is small enough); kinematic: the strategies "
                    "stepped in one process (large teams)")
     p.add_argument("--seeds", type=int, help="repeat over this many seeds (from --seed) and summarise "
-                   "(poi, netaware)")
+                   "(poi, spread-open, spread-corridor, spread-paths, netaware)")
     p.add_argument("--netns", action="store_true", help="run the teams on the real-mesh tier, as `erni sim --netns` "
                    "(namespaces, babeld; needs root) (netaware)")
     p.add_argument("--list", action="store_true", help="list the experiments and exit")

@@ -181,8 +181,9 @@ def _obstacles(scenario: Scenario) -> tuple[NDArray[np.float64], NDArray[np.floa
 
 
 def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode: str,
-        variants: list[str] | None = None, **_: Any) -> Result:
-    """Run every variant until it converges; return figure and metrics."""
+        variants: list[str] | None = None, seeds: int | None = None, **_: Any) -> Result:
+    """Run every variant until it converges; return figure and metrics. `seeds` (else the
+    scenario's `strategy.seeds`, else 1) repeats each variant from `scenario.seed` on."""
     variants = variants or list(scenario.strategy.get("variants", VARIANTS))
     for v in variants:
         if v.removesuffix(SETTLE) not in VARIANTS + EXTRA_VARIANTS:
@@ -190,9 +191,10 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode:
                                 f"{', '.join(VARIANTS + EXTRA_VARIANTS)}, each also with {SETTLE} (kinematic mode)")
     if mode == "agents":  # the settling changes live in the kinematic stepping only
         variants = [v for v in variants if not v.endswith(SETTLE)]
-    seeds = int(scenario.strategy.get("seeds", 1))
+    if seeds is None:
+        seeds = int(scenario.strategy.get("seeds", 1))
     if seeds < 1:
-        raise ScenarioError(f"strategy.seeds: expected at least 1, got {seeds}")
+        raise ScenarioError(f"seeds: expected at least 1, got {seeds}")
     base = scenario
     over_seeds: list[list[Run]] = []
     for n in range(seeds):

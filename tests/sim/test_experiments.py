@@ -289,3 +289,13 @@ def test_a_share_of_times_interval_stays_within_0_and_1():
     assert hi > 1.0  # the Student-t interval alone runs past 1
     m2, lo2, hi2 = mean_ci(shares, bounds=(0.0, 1.0))
     assert (m2, lo2, hi2) == (m, lo, 1.0) and 0.8 < lo2 < m2
+
+
+def test_spread_repeats_over_the_seeds_given_on_the_command_line(tmp_path):
+    out = subprocess.run([sys.executable, "-m", "erni", "experiment", "spread-open", "--mode", "kinematic",
+                          "--seeds", "2", "--duration", "3", "--robots", "5", "--no-plot"],
+                         cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert "5 robot(s), 2 seeds" in out.stdout
+    assert "seed 2 (2/2)" in out.stdout + out.stderr
+    assert "over 2 seeds: converged" in out.stdout
