@@ -18,8 +18,12 @@ hearing is unsure when the search ended inside a sentence of the grammar, when t
 different things, or when a word of it matches the audio poorly (its acoustic score per frame,
 against the best-scoring sounds of each frame, is below `SphinxStream.MIN_WORD_SCORE`). A lone wake
 word, which the big grammar fits poorly, is spotted by a keyphrase search of its own; vosk's hearing is
-unsure when it has an out-of-grammar word ([unk]) or a word of low confidence. An unsure hearing is
-asked again ("Say again?"), never snapped to the nearest command.
+unsure when it has an out-of-grammar word ([unk]) or a word of low confidence. PocketSphinx's
+utterances are cut by `NoiseFloorEndpointer`, which ends them in steady noise too and measures
+their SNR: a command that would move robots, heard less than `SphinxStream.MIN_SNR` dB above the
+background, is unsure. Lone stop phrases are spotted by a keyphrase search before the grammar is
+decoded. An unsure hearing is never carried out as heard: the spoken dialogue reads a command
+back ("Did you say ...? Say yes or no") and asks anything else again ("Say again?").
 """
 
 from __future__ import annotations
