@@ -43,6 +43,9 @@ def test_every_creeping_robot_stands_inside_its_relays_range(tmp_path):
     assert slow.top_speed > 0.25, slow.row()
 
 
+# on demand (`pytest -m ondemand`): the same 30 % loss runs in CI on the real mesh, where babeld's
+# Hellos suffer it too (tests/netns/test_creep.py), and ten rounds of it are in BENCHMARKS.md
+@pytest.mark.ondemand
 def test_with_thirty_percent_of_every_agents_datagrams_lost_the_guard_still_holds(tmp_path):
     team = start(tmp_path, udp_loss=0.3)
     try:
