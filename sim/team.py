@@ -119,13 +119,8 @@ def free_port(host: str = "127.0.0.1") -> int:
     rng = random.Random()
     for _ in range(200):
         port = rng.randrange(10_000, max(10_001, low))
-        try:
-            for kind in (socket.SOCK_STREAM, socket.SOCK_DGRAM):
-                with socket.socket(socket.AF_INET, kind) as s:
-                    s.bind((host, port))
-        except OSError:
-            continue
-        return port
+        if port_free(host, port):
+            return port
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:  # pragma: no cover - every low port taken
         s.bind((host, 0))
         return int(s.getsockname()[1])

@@ -26,7 +26,6 @@ import json
 import os
 import re
 import signal
-import socket
 import subprocess
 import sys
 import tomllib
@@ -34,6 +33,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
+
+from erni.sim.team import port_free
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = ["README.md", *sorted(str(p.relative_to(ROOT)) for p in (ROOT / "docs").glob("*.md"))]
@@ -127,21 +128,9 @@ def _env(cwd: Path) -> dict[str, str]:
     return env
 
 
-def _port_free(port: int, host: str = "127.0.0.1") -> bool:
-    for kind in (socket.SOCK_STREAM, socket.SOCK_DGRAM):
-        with socket.socket(socket.AF_INET, kind) as s:
-            if kind == socket.SOCK_STREAM:  # as the agent binds: a closed connection's TIME-WAIT is no user
-                s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-            try:
-                s.bind((host, port))
-            except OSError:
-                return False
-    return True
-
-
 def _run_sh(block: Block, cwd: Path, timeout: float = 90.0) -> subprocess.CompletedProcess[str]:
     for port in sorted({int(p) for p in re.findall(r"127\.0\.0\.1:(\d{4,5})", block.text)}):
-        if not _port_free(port) and "&" in block.text:
+        if not port_free("127.0.0.1", port) and "&" in block.text:
             pytest.skip(f"{block.id}: 127.0.0.1:{port} is in use on this machine; the block starts an agent there")
     # background jobs the block leaves (the agents of a two-terminal example) stop with it
     script = "set -e\ntrap 'kill $(jobs -p) 2>/dev/null || true; wait' EXIT\n" + block.text
