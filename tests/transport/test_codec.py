@@ -21,13 +21,9 @@ from erni.blackboard import NetInfo, Pose, Task
 from erni.transport import codec
 from erni.transport.wire import (
     EnvelopeHead,
-    FrameError,
     batch_payload,
-    body_of,
-    parse_batch,
-    parse_envelope,
-    parse_item,
 )
+from tests.transport.test_wire import _two_step  # the pydantic parse of a whole frame
 
 _POSE_FIELDS = list(Pose.model_fields)
 
@@ -160,27 +156,11 @@ def _items(draw: st.DrawFn) -> bytes:
     return to_json({**item, "body": data})
 
 
-def _pydantic_frame(payload: bytes) -> tuple[dict, list[tuple[dict, object]]] | None:
-    """What the pydantic parse gives for a whole frame, or None when it refuses any part of it."""
-    fields = set(EnvelopeHead.model_fields)
-    try:
-        if payload[:1] == b"[":
-            head, values = parse_batch(payload)
-            items = [parse_item(v) for v in values]
-        else:
-            head = parse_envelope(payload)
-            items = [head]
-        return head.model_dump(include=fields), [(m.model_dump(include={"seq", "id", "kind", "type"}),
-                                                  body_of(m.type, m.body)) for m in items]
-    except FrameError:
-        return None
-
-
 @settings(max_examples=500, deadline=None)
 @given(_heads(), st.lists(_items(), min_size=1, max_size=4))
 def test_a_frame_the_codec_takes_is_the_frame_pydantic_gives(head, items):
     payload = batch_payload(head, items)
-    want, got = _pydantic_frame(payload), codec.decode_data(payload)
+    want, got = _two_step(payload), codec.decode_data(payload)
     if want is None:
         assert got is None, f"the codec took a frame pydantic refuses: {payload!r}"
         return
