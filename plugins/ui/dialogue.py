@@ -12,7 +12,9 @@ standing by too, and goes to lost robots as well. Other commands to a lost robot
 "slower" set each robot's cruise speed for later moves (and a running go-to or random walk);
 "go to robot 2" drives to that robot, stopping short. A dialogue made with `read_back` (the
 spoken one) restates a risky command (a move beyond `read_back` metres or out of the map, a
-teleport, a command to several robots) and carries it out only on "yes"; an unsure hearing of a
+teleport, a command to several robots) and carries it out only on "yes"; with `read_back_numbers`
+so is a spoken motion command that carries a number ("turn 180 degrees": as on an air-traffic radio,
+numbers are read back, since a recogniser mishears them without doubting); an unsure hearing of a
 command that would move robots is read back too ("Did you say: robot 1, go forward 2 metres? Say
 yes or no"), any other unsure hearing is asked again ("Say again?"); a stop never waits.
 `Naming` maps robot numbers to agent names (`robot3`) and back; `tasks_for` maps an action
@@ -33,9 +35,13 @@ from erni.blackboard import Task
 from erni.blackboard.errors import ConfigError, TaskError
 from erni.blackboard.tasks import PREPOSITIONS
 from erni.plugins.ui.grammar import (
+    _NUMBER,
     ATTENTION,
+    ONES,
     STOP_WORDS,
     STRATEGY_VERB,
+    TEENS,
+    TENS,
     Command,
     Refusal,
     _Reader,
@@ -234,7 +240,8 @@ class Dialogue:
     def __init__(self, naming: Naming | None = None, *, verb: str = "RemoteBotMotion", source: str = "control",
                  listening: bool = True, control: str = "control", memory: Memory | None = None,
                  read_back: float | None = None, area: tuple[float, float, float, float] | None = None,
-                 read_back_timeout: float = 20.0, echo: bool = False, wake: tuple[str, ...] = ATTENTION) -> None:
+                 read_back_timeout: float = 20.0, read_back_numbers: bool = False, echo: bool = False,
+                 wake: tuple[str, ...] = ATTENTION) -> None:
         self.naming = naming or Naming()
         self.wake = wake  # the phrases that wake a standing-by dialogue
         self.verb = verb
@@ -246,6 +253,7 @@ class Dialogue:
         self.read_back = read_back  # metres: a longer move is read back first; None: nothing is read back
         self.area = area  # xmin, ymin, xmax, ymax: a goal outside is read back first
         self.read_back_timeout = read_back_timeout
+        self.read_back_numbers = read_back_numbers  # a motion command heard with a number is read back too
         self.echo = echo  # a refusal names what was heard (speech: the operator cannot see it)
         self.pending: _Pending | None = None
 
@@ -367,7 +375,7 @@ class Dialogue:
         if risk:
             reply.say = f"{ROGER}: {who}, {what}" + (f" ({note})" if note else "")
             self.pending = _Pending(reply, f"{who}, {what}", time.monotonic() + self.read_back_timeout)
-            ask = (f"{DID_YOU_SAY} {who}, {what}? {YES_OR_NO}" if risk == "doubt"
+            ask = (f"{DID_YOU_SAY} {who}, {what}? {YES_OR_NO}" if risk in ("doubt", "number")
                    else f"{who[0].upper()}{who[1:]}, {what} \u2014 {CONFIRM_PROMPT}")
             return Reply(reply.heard, say=ask, targets=list(targets), accepted=True, asked=True)
         reply.say = f"{ROGER}: {who}, {what}" + (f" ({note})" if note else "")
@@ -546,6 +554,8 @@ class Dialogue:
                 if v is not None and v.x is not None and v.y is not None and \
                         math.hypot(p["x"] - v.x, p["y"] - v.y) > self.read_back:
                     return "far"
+        if self.read_back_numbers and quantities(reply.heard):
+            return "number"
         return ""
 
     # -- who -------------------------------------------------------------------------------
@@ -701,6 +711,22 @@ class Dialogue:
         if question == "link":
             return f"{who} {link}"
         return f"{who}: {where}; {doing}; {battery}; {link}"
+
+
+_NUMBER_WORDS = {*ONES, *TEENS, *TENS, "hundred", "thousand", "point"}
+_ROBOT_LIST = {"robot", "robots", "and"}  # "robots one two and three", "relay between robot 1 and ..."
+
+
+def quantities(text: str) -> bool:
+    """Whether an utterance says a quantity (a distance, an angle, a coordinate): a number that does
+    not name a robot ("robot 2 turn 180 degrees" does, "robots one and two stop" does not)."""
+    naming = False  # inside a list of robot numbers
+    for w in tokens(text):
+        number = w in _NUMBER_WORDS or _NUMBER.fullmatch(w) is not None
+        if number and not naming:
+            return True
+        naming = w in ("robot", "robots") or (naming and (number or w in _ROBOT_LIST))
+    return False
 
 
 def _plain(text: str) -> str:

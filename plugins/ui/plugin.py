@@ -63,6 +63,9 @@ class UISettings(BaseModel):
                             "(obstacle avoidance stays on until turned off)")
     read_back: float = Field(5.0, ge=0, description="a spoken move longer than this (m), out of the floor plan or "
                              "to several robots is read back and carried out on 'yes'; 0 = never")
+    read_back_numbers: bool = Field(True, description="a spoken motion command with a distance, angle or "
+                                    "coordinate is read back and carried out on 'yes' (a recogniser mishears "
+                                    "numbers without doubting them)")
     history: int = Field(60, ge=1, le=10000, description="finished tasks kept in the task list")
     speak: bool = Field(True, description="spoken feedback through espeak-ng on the control node")
     voice: str = Field("en-us", description="espeak-ng voice")
@@ -127,7 +130,8 @@ class UIPlugin(Plugin[UISettings]):
         area = load_floorplan(s.floorplan).bounds if s.floorplan else None
         self.typed = Dialogue(self.naming, verb=s.verb, source=me, listening=True, control=me, memory=memory)
         self.spoken = Dialogue(self.naming, verb=s.verb, source=me, listening=False, control=me, memory=memory,
-                               read_back=s.read_back or None, area=area, echo=True, wake=tuple(s.wake))
+                               read_back=s.read_back or None, read_back_numbers=s.read_back_numbers, area=area,
+                               echo=True, wake=tuple(s.wake))
         self.poses = self.subscribe(Pose)
         self.netinfo = self.subscribe(NetInfo)
         self.peers = self.subscribe(Peer)

@@ -140,7 +140,7 @@ def judge(said: str, heard: str, unsure: bool, answer: Callable[[str], tuple[str
     from erni.plugins.ui.dialogue import Dialogue, Naming
 
     typed = Dialogue(Naming(), verb="RemoteBotMotion")
-    spoken = Dialogue(Naming(), verb="RemoteBotMotion", read_back=5.0)
+    spoken = Dialogue(Naming(), verb="RemoteBotMotion", read_back=5.0, read_back_numbers=True)  # the UI's defaults
     for d in (typed, spoken):
         d.select(["robot1"])
     want = typed.hear(said, TEAM)

@@ -9,7 +9,7 @@ import math
 
 import pytest
 
-from erni.plugins.ui.dialogue import APART, SHORT, Dialogue, Naming, RobotView
+from erni.plugins.ui.dialogue import APART, SHORT, Dialogue, Naming, RobotView, quantities
 
 TEAM = {f"robot{i}": RobotView(f"robot{i}", x=float(x), y=float(y), theta=0.0)
         for i, (x, y) in enumerate([(0, 0), (3, 0), (3, 0.2), (3, -0.2), (-2, 1)], start=1)}
@@ -53,6 +53,29 @@ def test_what_ends_tasks_is_not_read_back_even_for_several_robots():
     for text in ("everyone cancel everything", "robots 1 and 2 clear", "everybody halt"):
         reply = d.hear(text, TEAM)
         assert "Roger: " in reply.say and len(reply.tasks) >= 2, reply.say
+
+
+@pytest.mark.parametrize("text,says", [
+    ("robot 2 turn 180 degrees", True), ("robot two turn one hundred eighty degrees", True),
+    ("robot one go forward point five metres", True), ("robot 1 go to x 3 y 4", True),
+    ("robot 1 patrol from 1 2 to 3 4", True), ("robots one two and three go forward 2 metres", True),
+    ("robot 1 turn left", False), ("robots one two and three stop", False), ("robot 2 go to robot 1", False),
+    ("robot 3 relay between robot 1 and control node", False), ("everybody spread out", False),
+])
+def test_a_quantity_is_a_number_that_names_no_robot(text, says):
+    assert quantities(text) is says
+
+
+def test_a_spoken_number_is_read_back_and_a_typed_one_runs_at_once():
+    spoken = Dialogue(Naming(), verb="BotMotion", read_back=5.0, read_back_numbers=True)
+    typed = Dialogue(Naming(), verb="BotMotion")
+    team = ["robot1", "robot2"]
+    asked = spoken.hear("robot 2 turn 190 degrees", team)
+    assert (asked.say, asked.tasks) == ("Did you say: robot 2, turn left 190 degrees? Say yes or no", [])
+    assert [t.params.angle for t in spoken.hear("yes", team).tasks] == [190.0]
+    assert spoken.hear("robot 2 turn right", team).tasks  # nothing to mishear: at once
+    assert spoken.hear("robot 2 stop", team).tasks  # a stop never waits
+    assert [t.params.angle for t in typed.hear("robot 2 turn 190 degrees", team).tasks] == [190.0]
 
 
 def test_faster_and_slower_stay_within_the_cruise_speeds():

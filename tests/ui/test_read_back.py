@@ -87,13 +87,31 @@ def test_a_command_to_several_robots_or_off_the_map_is_read_back_and_a_stop_neve
     # the arena's floor plan ends at x = 6
     assert heard(team, "robot two go to nine one").endswith("go to x 9, y 1 \u2014 say yes to confirm")
     assert heard(team, "cancel") == "Not sent: robot 2, go to x 9, y 1"
-    assert heard(team, "robot two go to one one") == "Roger: robot 2, go to x 1, y 1"  # short and on the map
+    # short and on the map: read back only for its numbers, as every spoken distance, angle or coordinate
+    assert heard(team, "robot two go to one one") == "Did you say: robot 2, go to x 1, y 1? Say yes or no"
+    assert heard(team, "yes") == "Roger: robot 2, go to x 1, y 1"
     wait_until(lambda: [t for t in tasks_on(team, "robot2", "goto") if t.done], timeout=20)
+
+
+def test_a_spoken_number_is_read_back_and_a_command_without_one_runs_at_once(team):
+    heard(team, "attention")
+    assert heard(team, "robot two turn one hundred seventy degrees") == (
+        "Did you say: robot 2, turn left 170 degrees? Say yes or no")
+    assert heard(team, "no") == "Not sent: robot 2, turn left 170 degrees"
+    assert not [t for t in sent(team, "turn") if t.destination == "robot2" and t.params.angle == 170]
+    assert heard(team, "robot two turn left") == "Roger: robot 2, turn left 90 degrees"  # no number heard
+    wait_until(lambda: [t for t in tasks_on(team, "robot2", "turn") if t.done], timeout=20)
+    team.ui.spoken.read_back_numbers = False  # `read_back_numbers = false` in the UI's settings
+    try:
+        assert heard(team, "robot two turn right fifteen degrees") == "Roger: robot 2, turn right 15 degrees"
+    finally:
+        team.ui.spoken.read_back_numbers = True
 
 
 def test_typed_commands_run_at_once(team):
     assert typed(team, "everyone turn left 10 degrees") == ["Roger: everyone, turn left 10 degrees"]
-    turns = wait_until(lambda: len(t := [t for t in sent(team, "turn") if t.done]) == 2 and t, timeout=15)
+    turns = wait_until(lambda: len(t := [t for t in sent(team, "turn") if t.done and t.params.angle == 10]) == 2 and t,
+                       timeout=15)
     assert {t.destination for t in turns} == {"robot1", "robot2"}
 
 
