@@ -1,0 +1,44 @@
+"""The relay experiments (paper 000, 5.2): one settle rule, a consistent lower bound, a complete CSV."""
+
+from __future__ import annotations
+
+import csv
+
+from erni.sim import experiments
+from erni.sim.experiments import relay
+from erni.sim.scenario import find_scenario, load_scenario
+
+
+def test_relay1_and_relay2_judge_settling_by_one_rule():
+    for name in ("relay1", "relay2"):
+        sc = load_scenario(find_scenario(name))
+        assert "settle" not in sc.strategy, f"{name} sets its own settle distance"
+        result = experiments.run(name, sc, mode="kinematic")
+        row = next(r for r in result.rows if r.quantity.startswith(("decisions until", "relays settle")))
+        assert f"within {relay.SETTLE:g} m" in row.how
+
+
+def test_the_stated_lower_bound_never_exceeds_the_decisions_measured():
+    for name in ("relay1", "relay2"):
+        result = experiments.run(name, load_scenario(find_scenario(name)), mode="kinematic")
+        row = next(r for r in result.rows if r.quantity.startswith("start: farthest relay"))
+        bound = int(row.how.rsplit("(", 1)[1].rstrip(")"))
+        settled = result.metrics["decisions until every relay stays at its slot"][0]
+        assert bound <= settled, (name, bound, settled)
+    assert relay.fewest_decisions(3.0, 1.5, 1.0) == 2  # relay1: 3 m off, 1 m moves
+    assert relay.fewest_decisions(6.0, 1.5, 1.0) == 5  # relay2
+    assert relay.fewest_decisions(1.0, 1.5, 1.0) == 0
+
+
+def test_the_csv_holds_the_link_qualities_the_figure_draws(tmp_path):
+    result = experiments.run("relay2", load_scenario(find_scenario("relay2")), mode="kinematic")
+    path = tmp_path / "relay2.csv"
+    result.write_csv(path)
+    rows = [r for r in csv.DictReader(path.open()) if r["section"] == "series"]
+    quantities = {(r["robot"], r["quantity"]) for r in rows}
+    assert quantities >= {("robot1", "link_quality_to_S"), ("robot1", "link_quality_to_robot2"),
+                          ("robot2", "link_quality_to_robot1"), ("robot2", "link_quality_to_D")}
+    decisions = len(result.series["robot1/position_along"][0]) - 1
+    for robot, quantity in quantities - {("robot1", "position_along"), ("robot2", "position_along")}:
+        values = [float(r["value"]) for r in rows if (r["robot"], r["quantity"]) == (robot, quantity)]
+        assert len(values) == decisions and all(0.0 <= v <= 1.0 for v in values)
