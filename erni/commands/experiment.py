@@ -33,6 +33,8 @@ def register(sub: Any) -> None:
                    "(poi, spread-open, spread-corridor, spread-paths, netaware)")
     p.add_argument("--netns", action="store_true", help="run the teams on the real-mesh tier, as `erni sim --netns` "
                    "(namespaces, babeld; needs root) (netaware)")
+    p.add_argument("--paper-durations", action="store_true", help="hold every phase as long as the paper does "
+                   "(energy: standby 600 s, each sweep speed 120 s; about 30 minutes)")
     p.add_argument("--list", action="store_true", help="list the experiments and exit")
     p.set_defaults(func=run)
 
@@ -88,6 +90,9 @@ def run(args: argparse.Namespace) -> int:
         if args.netns and not exp.netns:
             raise ScenarioError(f"--netns: {exp.name} runs on the loopback tier only; --netns works with "
                                 f"{', '.join(e.name for e in EXPERIMENTS.values() if e.netns)}")
+        if args.paper_durations and not exp.paper_durations:
+            raise ScenarioError(f"--paper-durations: {exp.name} has no long form; --paper-durations works with "
+                                f"{', '.join(e.name for e in EXPERIMENTS.values() if e.paper_durations)}")
         if args.netns:
             from erni.sim.netns import check_available
 
@@ -108,6 +113,8 @@ def run(args: argparse.Namespace) -> int:
         options["seeds"] = args.seeds
     if args.netns:
         options["netns"] = True
+    if args.paper_durations:
+        options["paper_durations"] = True
     try:
         result = run_experiment(exp.name, scenario, progress, **options)
     except (ValueError, RuntimeError, OSError) as err:

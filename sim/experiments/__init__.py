@@ -47,6 +47,7 @@ class Experiment:
     module: str
     seeds: bool = False  # repeats itself over several seeds (`seeds` option)
     netns: bool = False  # runs its teams on the real-mesh tier too (`netns` option)
+    paper_durations: bool = False  # can run at the paper's (long) durations (`paper_durations` option)
 
     def default_mode(self, scenario: Scenario | None = None) -> str:
         """"agents" where offered and the team is small enough, else the other mode."""
@@ -63,7 +64,7 @@ class Experiment:
 
 EXPERIMENTS: dict[str, Experiment] = {e.name: e for e in [
     Experiment("energy", "energy", "000", "5 m run: speed and power; standby and moving power",
-               ("agents",), "energy"),
+               ("agents",), "energy", paper_durations=True),
     Experiment("poi", "poi", "000", "PoI coverage by three robots around an obstacle (WiDep)",
                ("agents", "kinematic"), "poi", seeds=True),
     Experiment("relay1", "relay1", "000", "one robot relaying between a source and a destination",
@@ -214,6 +215,10 @@ def run(name: str, scenario: Scenario, progress: Progress | None = None, **optio
         raise ScenarioError(f"{name} runs one seed at a time; it has no seeds option")
     if options.get("netns") and not exp.netns:
         raise ScenarioError(f"{name} runs on the loopback tier only; it has no netns option")
+    if options.get("paper_durations") and not exp.paper_durations:
+        raise ScenarioError(f"{name} has no paper_durations option: it runs at the paper's durations already")
+    if not options.get("paper_durations"):
+        options.pop("paper_durations", None)
     if not options.get("netns"):
         options.pop("netns", None)  # the loopback tier is every experiment's default
     return exp.runner()(scenario, progress or (lambda *a: None), experiment=exp, mode=mode, **options)

@@ -18,6 +18,11 @@ the power constants themselves. The simulated robot's battery is drained by pape
 model, so P0 and Pmov are inputs of this simulation and any fit of them returns them; they are
 shown as inputs. The simulated pack is small (`battery_wh`, an input) so its 0.1 V readings
 resolve the run at all: a real 100 Wh pack moves 0.1 V per 18 kJ.
+
+Durations: the scenario's are short (standby 10 s, each sweep speed held 3 s: about a minute
+in all). `paper_durations` (`erni experiment energy --paper-durations`, on demand: about 30
+minutes) holds them as paper 000 does, standby 600 s and each sweep speed 120 s, on a pack of
+`PAPER_BATTERY_WH` (the scenario's 0.5 Wh would run empty: the run then takes about 28 kJ).
 """
 
 from __future__ import annotations
@@ -44,19 +49,32 @@ def _odometry_energy(poses: list[PoseSample]) -> float:
     return float((paper.power(v[:-1]) * np.diff(st)).sum())
 
 
+PAPER_STANDBY = 600.0  # s standing still (paper 000, 5.3)
+PAPER_HOLD = 120.0  # s each sweep speed is held (paper 000, 5.3)
+PAPER_BATTERY_WH = 10.0  # the simulated pack at the paper's durations: 15 readings of 0.1 V over the run
+
+
+def plan(strategy: dict[str, Any], paper_durations: bool = False) -> dict[str, Any]:
+    """Standby, run, sweep and pack of the experiment: the scenario's, or the paper's durations."""
+    p: dict[str, Any] = {"standby": float(strategy.get("standby", 10.0)), "distance": float(strategy.get("distance", 5.0)),
+         "speed": float(strategy.get("speed", 0.5)),
+         "sweep": [float(v) for v in strategy.get("sweep", [0.1, 0.3, 0.5, 0.7, 0.9])],
+         "hold": float(strategy.get("hold", 3.0)), "battery_wh": float(strategy.get("battery_wh", 0.5))}
+    if paper_durations:
+        p.update(standby=PAPER_STANDBY, hold=PAPER_HOLD, battery_wh=max(p["battery_wh"], PAPER_BATTERY_WH))
+    return p
+
+
 def _window(poses: list[PoseSample], t0: float, t1: float) -> list[PoseSample]:
     return [p for p in poses if t0 <= p.t <= t1]
 
 
-def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode: str, **_: Any) -> Result:
+def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode: str,
+        paper_durations: bool = False, **_: Any) -> Result:
     """Run standby, the 5 m run and the speed sweep on a real agent; return figure and metrics."""
-    s = scenario.strategy
-    standby = float(s.get("standby", 10.0))
-    distance = float(s.get("distance", 5.0))
-    speed = float(s.get("speed", 0.5))
-    sweep = [float(v) for v in s.get("sweep", [0.1, 0.3, 0.5, 0.7, 0.9])]
-    hold = float(s.get("hold", 3.0))
-    battery_wh = float(s.get("battery_wh", 0.5))
+    p = plan(scenario.strategy, paper_durations)
+    standby, distance, speed, hold, battery_wh = p["standby"], p["distance"], p["speed"], p["hold"], p["battery_wh"]
+    sweep: list[float] = p["sweep"]
     robot = scenario.robot_names()[0]
     team = TeamRun(scenario.with_robots(1), progress, use_mission=False, feed_hz=20.0,
                    robot={"battery_wh": battery_wh})
@@ -127,6 +145,9 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode:
     res.compare("moving power Pmov", f"{paper.PMOV_SLOPE} v + {paper.PMOV_BASE}",
                 f"{paper.PMOV_SLOPE} v + {paper.PMOV_BASE}", "W", "the same model drains the simulated battery",
                 "input")
+    res.compare("standby; each sweep speed held", "600 s; 120 s", f"{standby:g} s; {hold:g} s", "",
+                "the paper's durations (--paper-durations)" if paper_durations else
+                "the scenario's, short (--paper-durations: the paper's)", "input")
     res.compare("battery pack / reading resolution", "Wifibot pack, power from the motor driver",
                 f"{battery_wh:g} Wh / 0.1 V", "", "chosen so 0.1 V steps resolve the run", "input")
     res.compare(f"{distance:g} m run at {speed:g} m/s: distance", f"{distance:g}", round(travelled, 3), "m",
