@@ -35,7 +35,7 @@ import random
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, ClassVar, NamedTuple
+from typing import Any, ClassVar, Literal, NamedTuple
 
 from pydantic import BaseModel, ConfigDict, Field, SecretStr, model_validator
 
@@ -57,6 +57,7 @@ from erni.transport.limits import Limits
 from erni.transport.liveness import BeaconCount, silence_stretch
 from erni.transport.policy import OPERATORS, Refusal, check_relay, check_status, check_task, check_watch
 from erni.transport.wire import Message, register_type
+from erni.transport.zenoh_keys import ZenohSettings
 
 
 class Received(BBObject):
@@ -93,6 +94,11 @@ class TransportSettings(BaseModel):
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
+    wire: Literal["udp", "zenoh"] = Field("udp", description="udp: ERNI's own wire (UDP statuses, TCP tasks, "
+                                          "broadcast beacons); zenoh: the same frames over Zenoh (`zenoh` below, "
+                                          "docs/zenoh.md), for a team across sites and routers")
+    zenoh: ZenohSettings = Field(default_factory=ZenohSettings, description="with wire = \"zenoh\": the team's "
+                                 "key chunk, peer or client mode, the routers to connect to")
     listen: str = Field("127.0.0.1:0", description="HOST:PORT for TCP and UDP (0 = any free port)")
     identity: str | None = Field(None, description="this agent's identity bundle from `erni keys issue` "
                                  "(PEM: key, certificate, authority certificate)")
@@ -149,6 +155,16 @@ class TransportSettings(BaseModel):
     @model_validator(mode="after")
     def _check(self) -> TransportSettings:
         parse_address(self.listen)
+        if self.wire == "zenoh":
+            if "discovery_port" in self.model_fields_set and self.discovery_port:
+                raise ValueError(f"discovery_port = {self.discovery_port} with wire = \"zenoh\": peers are found by "
+                                 "Zenoh liveliness, not broadcast beacons (leave it unset or 0)")
+            if "listen" in self.model_fields_set:
+                raise ValueError(f"listen = {self.listen!r} is for wire = \"udp\": with wire = \"zenoh\" set "
+                                 "zenoh.listen = [\"tcp/HOST:PORT\"] (peer mode) or zenoh.connect")
+            self.discovery_port = 0
+        elif "zenoh" in self.model_fields_set:
+            raise ValueError("zenoh settings given but wire = \"udp\": set wire = \"zenoh\" to use them")
         for peer in self.peers:
             name, sep, addr = peer.partition("@")
             if not sep or not name:
@@ -183,13 +199,20 @@ class TransportSettings(BaseModel):
         identity = self.load_identity()
         limits = Limits(max_connections=self.max_connections, max_connections_per_host=self.max_connections_per_host,
                         idle_timeout=self.idle_timeout, frame_timeout=self.frame_timeout)
-        return Endpoint(name, listen=parse_address(self.listen), identity=identity,
-                        key=None if identity else self.team_key(), insecure=self.insecure,
-                        senders=self.senders, queue_limit=self.queue_limit, max_frame=self.max_frame,
-                        ack_timeout=self.ack_timeout, connect_timeout=self.connect_timeout,
-                        ttl=self.task_ttl, discovery_port=self.discovery_port or None,
-                        udp_loss=self.udp_loss, role=self.role, inbound_filter=inbound_filter, limits=limits,
-                        revocations=Path(self.revocations) if self.revocations else None)
+        common: dict[str, Any] = dict(
+            identity=identity, key=None if identity else self.team_key(), insecure=self.insecure,
+            senders=self.senders, queue_limit=self.queue_limit, max_frame=self.max_frame,
+            ack_timeout=self.ack_timeout, connect_timeout=self.connect_timeout, ttl=self.task_ttl,
+            udp_loss=self.udp_loss, role=self.role, inbound_filter=inbound_filter, limits=limits,
+            revocations=Path(self.revocations) if self.revocations else None)
+        if self.wire == "zenoh":
+            try:
+                from erni.transport.zenoh_wire import ZenohEndpoint
+            except ImportError:
+                raise ConfigError("wire = \"zenoh\" needs the eclipse-zenoh package, which is not installed: "
+                                  "pip install 'erni[zenoh]'") from None
+            return ZenohEndpoint(name, zenoh_settings=self.zenoh, **common)
+        return Endpoint(name, listen=parse_address(self.listen), discovery_port=self.discovery_port or None, **common)
 
 
 class TransportPlugin(Plugin[TransportSettings]):
@@ -270,6 +293,7 @@ class TransportPlugin(Plugin[TransportSettings]):
         self._kinds = self._kind_table()
         self.endpoint.on_message = self._received
         self.endpoint.hint_wanted = self._hint_wanted
+        self.endpoint.on_gone = lambda name: self.later(lambda: self._gone(name))
         self.endpoint.on_undeliverable = lambda addr, mid, kind, body: self.later(
             lambda: self._undeliverable(addr, kind, body))
         self.endpoint.start()
@@ -280,8 +304,12 @@ class TransportPlugin(Plugin[TransportSettings]):
             if got < room:
                 self.log.info("UDP receive buffer: %d bytes granted of %d asked (net.core.rmem_max caps it "
                               "without root)", got, room)
-        self.log.info("agent %s listening on %s:%d (TCP+UDP), beacons on port %s", self.agent_name,
-                      *self.address, s.discovery_port or "off")
+        if s.wire == "zenoh":
+            self.log.info("agent %s on Zenoh (%s, team %s%s)", self.agent_name, s.zenoh.mode, s.zenoh.team,
+                          f", connect {' '.join(s.zenoh.connect)}" if s.zenoh.connect else "")
+        else:
+            self.log.info("agent %s listening on %s:%d (TCP+UDP), beacons on port %s", self.agent_name,
+                          *self.address, s.discovery_port or "off")
         self.wake_every(s.beacon_period)
         self.wake()
 
@@ -761,6 +789,16 @@ class TransportPlugin(Plugin[TransportSettings]):
                 self.change(old, reports=["heard"])
             return
         self.endpoint.send(msg.reply, "beacon", self._beacon(), reliable=False, to=name)  # starts a session
+
+    def _gone(self, name: str) -> None:
+        """The wire tells that agent `name` has left (its Zenoh liveliness token went): down at once,
+        not after its silence limit. A session frame from it brings it up again."""
+        peer = self.directory.get(name)
+        if peer is None or not peer.up:
+            return
+        self.directory[name] = peer = peer.evolve(up=False)
+        self.log.warning("peer %s is down: it left (%s liveliness)", name, self.endpoint.wire)
+        self.change(peer, reports=["down"])
 
     def _heard(self, name: str, reply: tuple[str, int], epoch: int, beacon: Any, role: str = "") -> None:
         if not name or name == self.agent_name:

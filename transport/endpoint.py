@@ -224,6 +224,9 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
         self.on_refused: Callable[[Address, str], None] = lambda addr, reason: None
         # would a broadcast beacon from this sender tell the owner anything? (None: always check it)
         self.hint_wanted: Callable[[str], bool] | None = None
+        # the agent of this name has left (a wire that tells, as Zenoh's liveliness does; UDP never calls it)
+        self.on_gone: Callable[[str], None] = lambda name: None
+        self.wire = "udp"  # the wire the frames travel on, as `erni peers` shows it
 
     # -- counters -------------------------------------------------------------------------
 

@@ -1,0 +1,312 @@
+"""ERNI's frames over Zenoh: the same sessions, acknowledgements and checks, another wire under them.
+
+`ZenohEndpoint` is an `Endpoint` whose sockets are a Zenoh session (`wire = "zenoh"` in the
+transport's settings). Nothing above the frame changes: every frame is sealed in an ERNI session
+(AEAD, replay window) before it leaves, so a Zenoh router forwards ciphertext it can neither read,
+forge nor replay; every frame that arrives goes through the endpoint's one frame path
+(`accept_frame`), and every message through the transport plugin's authorization. What this
+module replaces is only how bytes move (key expressions in `zenoh_keys.py`):
+
+- a datagram (`_sendto`: a status, a handshake, its answer, a hint) is a put to the receiver's
+  `d` key, best effort and dropped rather than queued when the link is congested (statuses: the
+  newest wins, and the receiver orders them by number anyway);
+- a reliable message (`_deliver`) is a query to the receiver's `r` key: its reply carries the
+  acknowledgement sealed in the session (or a hint that the session is unknown), as ERNI's TCP
+  stream does; the sender pool retries, de-duplication and order per destination are the
+  endpoint's, unchanged;
+- discovery is Zenoh's liveliness: each agent holds a token `erni/<team>/<name>/alive/<role>/<inst>`;
+  a token that appears is a hint of presence (as a broadcast beacon is: the session decides), one
+  that goes marks its agent gone (`on_gone`) at once instead of after its silence limit.
+
+Zenoh calls back on its own threads: those play the part of the receive threads (a frame is
+checked and handed on there, never processed under a blackboard transaction).
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from typing import Any
+
+import zenoh
+
+from erni.blackboard.errors import NetworkError
+from erni.blackboard.schemas import Beacon
+from erni.transport.endpoint import CLIENT_ROLE, Endpoint
+from erni.transport.outbox import Dest, Outgoing
+from erni.transport.receiver import HEADER_KIND
+from erni.transport.session import Session
+from erni.transport.wire import DATA, KIND, FrameError, Message
+from erni.transport.zenoh_keys import ALIVE, DATAGRAM, RELIABLE, Keys, ZenohSettings, address_of, name_at
+
+Address = tuple[str, int]
+
+PUBLISHERS = 4096
+"""Publishers kept declared (one per receiver); past this many they are all declared again on use."""
+
+
+def open_session(settings: ZenohSettings, *, listen: list[str] | None = None, mode: str | None = None) -> zenoh.Session:
+    """Open a Zenoh session as `settings` say (a router with `mode="router"` and `listen`); raise
+    NetworkError naming the endpoints when Zenoh refuses."""
+    conf = zenoh.Config()
+    values = settings.config()
+    if mode is not None:
+        values["mode"] = mode
+        values["scouting/multicast/enabled"] = mode != "client" and settings.scouting
+    if listen:
+        values["listen/endpoints"] = list(listen)
+    try:
+        for key, value in values.items():
+            conf.insert_json5(key, json.dumps(value))
+        return zenoh.open(conf)
+    except zenoh.ZError as err:
+        where = ", ".join(values.get("listen/endpoints", []) + values.get("connect/endpoints", [])) or "defaults"
+        raise NetworkError(f"cannot open a Zenoh session ({values['mode']}, {where}): "
+                           f"{str(err).splitlines()[0] if str(err) else err!r}") from None
+
+
+def open_router(listen: list[str], *, connect: list[str] | None = None, scouting: bool = False) -> zenoh.Session:
+    """Run a Zenoh router in this process, listening on `listen` (and linked to the routers in
+    `connect`), until the returned session is closed. It forwards the team's frames unread."""
+    settings = ZenohSettings(connect=list(connect or []), scouting=scouting)
+    return open_session(settings, listen=listen, mode="router")
+
+
+class ZenohEndpoint(Endpoint):
+    """An endpoint whose frames travel over Zenoh (`zenoh_keys.py` names where)."""
+
+    def __init__(self, name: str, *, zenoh_settings: ZenohSettings, **kw: Any):
+        kw["listen"] = address_of(name)
+        kw["discovery_port"] = None  # liveliness tokens instead of broadcast beacons
+        super().__init__(name, **kw)
+        self.zenoh_settings = zenoh_settings
+        self.keys = Keys(zenoh_settings.team)
+        self._zs: zenoh.Session | None = None
+        self._publishers: dict[str, zenoh.Publisher] = {}
+        self._pub_lock = threading.Lock()
+        self._alive: dict[str, set[str]] = {}  # agent -> its instances holding a token now
+        self._alive_lock = threading.Lock()
+        self._halt = threading.Event()
+        self._declared: list[Any] = []  # subscribers, queryable, token: undeclared at stop
+        self.wire = "zenoh"
+
+    # -- life cycle -----------------------------------------------------------------------
+
+    def start(self) -> None:
+        """Open the Zenoh session, declare what this agent receives and its liveliness token, and
+        start the sender pool (NetworkError if Zenoh refuses)."""
+        self._stopping = False
+        self._halt.clear()
+        zs = self._zs = open_session(self.zenoh_settings)
+        try:
+            self._declared = [
+                zs.declare_subscriber(self.keys.listen(self.name, DATAGRAM), self._on_datagram),
+                zs.declare_queryable(self.keys.listen(self.name, RELIABLE), self._on_query),
+            ]
+            if self.role != CLIENT_ROLE:  # a command-line client is no peer: it shows no token
+                self._declared.append(zs.liveliness().declare_token(self.keys.token(self.name, self.role, self.inst)))
+            self._declared.append(zs.liveliness().declare_subscriber(self.keys.tokens(), self._on_token, history=True))
+        except zenoh.ZError as err:
+            zs.close()  # type: ignore[no-untyped-call]  # untyped in Zenoh's stubs
+            self._zs = None
+            raise NetworkError(f"cannot declare {self.keys.root}/{self.name}/... on Zenoh: {err}") from None
+        sweeper = threading.Thread(target=self._sweep_loop, name=f"erni-{self.name}-zenoh-sweep", daemon=True)
+        sweeper.start()
+        self._threads = [sweeper]
+        for i in range(self.senders):
+            t = threading.Thread(target=self._send_loop, name=f"erni-{self.name}-net-tx-{i}", daemon=True)
+            t.start()
+            self._threads.append(t)
+
+    def stop(self, timeout: float = 1.0) -> None:
+        """Stop the sender pool, undeclare the token (peers see this agent go) and close the session."""
+        if not self._threads:
+            return
+        with self._cond:
+            self._stopping = True
+            self._cond.notify_all()
+        self._halt.set()
+        deadline = time.monotonic() + timeout
+        for t in self._threads:
+            t.join(max(0.0, deadline - time.monotonic()))
+        self._threads = []
+        zs, self._zs = self._zs, None
+        for entity in reversed(self._declared):
+            try:
+                entity.undeclare()
+            except zenoh.ZError:
+                pass
+        self._declared = []
+        with self._pub_lock:
+            self._publishers.clear()
+        if zs is not None:
+            zs.close()  # type: ignore[no-untyped-call]  # untyped in Zenoh's stubs
+
+    def receive_buffer(self, size: int) -> int:
+        """Nothing to ask for: Zenoh queues what arrives in its own buffers. Returns `size`."""
+        return size
+
+    def _sweep_loop(self) -> None:
+        """Forget expired handshakes and idle sessions, as the UDP wire's stream thread does."""
+        while not self._halt.wait(0.25):
+            try:
+                self.sessions.sweep(time.monotonic())
+            except Exception:  # never lose the sweeper
+                self.log.exception("session sweep failed")
+
+    @property
+    def session(self) -> zenoh.Session:
+        """The open Zenoh session (NetworkError when the endpoint is not started)."""
+        if self._zs is None:
+            raise NetworkError("the Zenoh endpoint is not started")
+        return self._zs
+
+    # -- sending --------------------------------------------------------------------------
+
+    def _sendto(self, frame: bytes, addr: Address) -> None:
+        """Put one frame to the agent at `addr`, best effort (OSError when it cannot go)."""
+        if self.udp_loss and self._rng.random() < self.udp_loss:
+            self.count("dropped.injected")
+            return
+        name = name_at(addr)
+        if name is None:
+            raise OSError(f"{addr[0]}:{addr[1]} is no address on the Zenoh wire (expected zenoh/NAME:0)")
+        try:
+            self._publisher(name).put(frame)
+        except (zenoh.ZError, NetworkError) as err:
+            raise OSError(f"Zenoh put to {name} failed: {err}") from None
+
+    def _publisher(self, name: str) -> zenoh.Publisher:
+        pub = self._publishers.get(name)
+        if pub is not None:
+            return pub
+        with self._pub_lock:
+            pub = self._publishers.get(name)
+            if pub is None:
+                if len(self._publishers) >= PUBLISHERS:
+                    for old in self._publishers.values():
+                        old.undeclare()  # type: ignore[no-untyped-call]  # untyped in Zenoh's stubs
+                    self._publishers.clear()
+                pub = self.session.declare_publisher(self.keys.inbox(name, DATAGRAM, self.name),
+                                                     congestion_control=zenoh.CongestionControl.DROP)
+                self._publishers[name] = pub
+        return pub
+
+    def _write_now(self, addr: Address, out: Outgoing) -> bool:
+        """Reliable messages always go through the sender pool here: it waits for the reply."""
+        return False
+
+    def _deliver(self, dest: Dest, out: Outgoing, session: Session | None) -> bool:
+        """Query the receiver with the sealed frame; True when a reply acknowledges `out`."""
+        try:
+            frame = self._frame(out, session, self.max_frame)
+        except FrameError as err:
+            with self._cond:
+                dest.reliable.popleft()
+            self.count("dropped.too_big")
+            self.warn("too_big", f"not sent: {err}")
+            return True
+        name = name_at(dest.addr)
+        if name is None:
+            self.warn("link", f"{dest.addr[0]}:{dest.addr[1]} is no address on the Zenoh wire")
+            return False
+        try:
+            replies = self.session.get(self.keys.inbox(name, RELIABLE, self.name), payload=frame,
+                                       timeout=self.ack_timeout, target=zenoh.QueryTarget.ALL,
+                                       consolidation=zenoh.ConsolidationMode.NONE,
+                                       congestion_control=zenoh.CongestionControl.BLOCK)
+            for reply in replies:
+                sample = reply.ok
+                if sample is None:
+                    continue
+                got = self.accept_frame(sample.payload.to_bytes(), "tcp", dest.addr)
+                if got is not None and any(m.kind == "ack" and m.body == out.id for m in got[0]):
+                    return True
+        except (zenoh.ZError, NetworkError) as err:
+            self.warn("link", f"query to {name} failed: {err}")
+            return False
+        self.count("zenoh.unanswered")
+        return False
+
+    # -- receiving (on Zenoh's threads) ---------------------------------------------------
+
+    def _on_datagram(self, sample: zenoh.Sample) -> None:
+        sender = self.keys.sender_of(str(sample.key_expr))
+        if sender is None or self._stopping:
+            self.count("dropped.key")
+            return
+        got = self.accept_frame(sample.payload.to_bytes(), "udp", address_of(sender))
+        if got is not None:
+            for msg in got[0]:
+                self.deliver(msg)
+
+    def _on_query(self, query: zenoh.Query) -> None:
+        """A reliable frame: acknowledge each message in the reply, then hand it on once."""
+        sender = self.keys.sender_of(str(query.key_expr))
+        payload = query.payload
+        if sender is None or payload is None or self._stopping:
+            self.count("dropped.key")
+            return
+        raw, src = payload.to_bytes(), address_of(sender)
+        key = query.key_expr
+
+        def reply(frame: bytes) -> None:
+            query.reply(key, frame)
+
+        if self.auth is not None and len(raw) >= KIND.size + 8 and raw[HEADER_KIND] == DATA:
+            sid = raw[KIND.size:KIND.size + 8]
+            if sid not in self.sessions.by_sid:  # tell the sender at once, in the reply it waits for
+                self.sessions.hint(sid, src, reply)
+                self.count("dropped.session")
+                return
+        got = self.accept_frame(raw, "tcp", src)
+        if got is None:
+            return
+        msgs, session = got
+        for msg in msgs:
+            if msg.kind == "ack":
+                continue
+            try:
+                reply(self.ack_frame(msg, session))
+            except (zenoh.ZError, FrameError) as err:
+                self.warn("link", f"acknowledgement to {sender} failed: {err}")
+                return
+            self.deliver_once(msg)
+
+    def _on_token(self, sample: zenoh.Sample) -> None:
+        """A liveliness token appeared (a hint: an agent may be up there) or went (it is gone)."""
+        parsed = self.keys.parse_token(str(sample.key_expr))
+        if parsed is None:
+            return
+        name, role, inst = parsed
+        if name == self.name and inst == self.inst:
+            return
+        if sample.kind == zenoh.SampleKind.PUT:
+            with self._alive_lock:
+                self._alive.setdefault(name, set()).add(inst)
+                if len(self._alive) > 65536:  # bounded: tokens are anyone's to declare
+                    self._alive.pop(next(iter(self._alive)))
+            self.count("zenoh.tokens")
+            self._dispatch(Message(name, role, address_of(name), 0, 0, "", "beacon", Beacon(role=role), hint=True))
+            return
+        with self._alive_lock:
+            insts = self._alive.get(name, set())
+            insts.discard(inst)
+            gone = not insts
+            if gone:
+                self._alive.pop(name, None)
+        if gone:
+            self.count("zenoh.gone")
+            try:
+                self.on_gone(name)
+            except Exception:
+                self.log.exception("handling the end of %s's liveliness failed", name)
+
+    def alive(self) -> dict[str, set[str]]:
+        """The agents whose liveliness tokens are held now, with their instances."""
+        with self._alive_lock:
+            return {name: set(insts) for name, insts in self._alive.items()}
+
+
+__all__ = ["ALIVE", "ZenohEndpoint", "open_router", "open_session"]
