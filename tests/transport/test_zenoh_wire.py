@@ -15,6 +15,7 @@ from erni.blackboard import Agent, Pose, Task, TaskState  # noqa: E402
 from erni.blackboard.testing import wait_until  # noqa: E402
 from erni.sim.team import free_port  # noqa: E402
 from erni.transport import Peer  # noqa: E402
+from erni.transport.wire import DATA_HEADER  # noqa: E402
 from erni.transport.zenoh_wire import open_router  # noqa: E402
 from tests.transport.helpers import make_agent  # noqa: E402
 
@@ -66,3 +67,125 @@ def test_a_task_goes_through_the_router_is_acknowledged_and_done_and_poses_come_
     assert (pose.x, pose.y) == (1.5, -2.0)
     counters = control.plugin("transport").endpoint.counters
     assert counters.get("sent.reliable", 0) >= 1 and counters.get("dropped.auth", 0) == 0
+
+
+class Eavesdropper:
+    """A raw Zenoh client of the same router, as a compromised router would be: it records the
+    frames put to one agent and the reliable frames queried of it (answering none), and sends
+    whatever it likes under any key."""
+
+    def __init__(self, router: str, agent: str):
+        from erni.transport.zenoh_keys import ZenohSettings
+        from erni.transport.zenoh_wire import open_session
+
+        self.session = open_session(ZenohSettings(mode="client", connect=[router]))
+        self.datagrams: list[tuple[str, bytes]] = []
+        self.queries: list[tuple[str, bytes]] = []
+        root = f"erni/{TEAM}/{agent}"
+        self._sub = self.session.declare_subscriber(f"{root}/d/*", lambda s: self.datagrams.append(
+            (str(s.key_expr), s.payload.to_bytes())))
+        self._queryable = self.session.declare_queryable(f"{root}/r/*", lambda q: self.queries.append(
+            (str(q.key_expr), q.payload.to_bytes() if q.payload is not None else b"")))
+
+    def close(self) -> None:
+        self._sub.undeclare()
+        self._queryable.undeclare()
+        self.session.close()
+
+
+def test_a_frame_replayed_or_tampered_with_at_the_router_is_refused(team, router):
+    control, robot = team("control", echo=False), team("robot1")
+    spy = Eavesdropper(router, "robot1")
+    try:
+        wait_until(lambda: up(control, "robot1") and up(robot, "control"))
+        task = Task(verb="BotMotion", preposition="forward", params={"distance": 1.0}, source="control",
+                    destination="robot1")
+        with control.transaction() as tx:
+            tx.add(task)
+        wait_until(lambda: (t := control.blackboard.get(task.uid)) is not None and t.done)
+        wait_until(lambda: spy.queries and spy.datagrams)
+        assert all(b"forward" not in raw and b"control" not in raw for _, raw in spy.queries + spy.datagrams), \
+            "the router saw a frame in clear"
+        counters = robot.plugin("transport").endpoint.counters
+        before = dict(counters)
+        key, frame = spy.queries[0]
+        replies = list(spy.session.get(key, payload=frame, timeout=1.0))  # the task, replayed
+        key, datagram = spy.datagrams[-1]
+        spy.session.put(key, datagram)  # a status or beacon, replayed
+        tampered = bytearray(datagram)  # a counter never used, so that the replay window lets it by
+        DATA_HEADER.pack_into(tampered, 0, *DATA_HEADER.unpack_from(datagram)[:3], 1 << 40)
+        spy.session.put(key, bytes(tampered))
+        wait_until(lambda: counters.get("dropped.replay", 0) >= before.get("dropped.replay", 0) + 2
+                   and counters.get("dropped.auth", 0) > before.get("dropped.auth", 0))
+        assert not [r for r in replies if r.ok is not None], "a replayed task was acknowledged"
+        assert counters.get("duplicates", 0) == before.get("duplicates", 0)
+    finally:
+        spy.close()
+
+
+def test_an_agent_that_leaves_is_down_at_once_by_its_liveliness_token(team):
+    slow = {"peer_timeout": 60.0, "beacon_period": 1.0, "link_deadline": 120.0}
+    control, robot1, robot2 = team("control", echo=False, **slow), team("robot1", **slow), team("robot2", **slow)
+    wait_until(lambda: up(robot1, "control"))
+    wait_until(lambda: up(control, "robot1") and up(control, "robot2"))
+    robot2.stop()
+    wait_until(lambda: not up(control, "robot2"), timeout=3.0)  # its silence limit is 60 s
+    assert up(control, "robot1")
+    assert control.plugin("transport").endpoint.counters.get("zenoh.gone", 0) >= 1
+
+
+def test_a_robot_may_not_task_another_robot_as_the_control_node(team, router):
+    from erni.transport.identity import load_identity
+    from erni.transport.zenoh_keys import ZenohSettings, address_of
+    from erni.transport.zenoh_wire import ZenohEndpoint
+    from tests.transport.helpers import identity
+
+    robot1 = team("robot1")
+    mallory = ZenohEndpoint("robot2", zenoh_settings=ZenohSettings(team=TEAM, mode="client", connect=[router]),
+                            identity=load_identity(identity("robot2", "robot")), ttl=3.0, ack_timeout=0.3,
+                            connect_timeout=0.3)
+    delivered: list[str] = []
+    mallory.on_delivered = lambda addr, mid: delivered.append(mid)
+    mallory.start()
+    try:
+        forged = Task(verb="BotMotion", preposition="goto", params={"x": -2.5, "y": -2.5}, source="control",
+                      destination="robot1")
+        sent = mallory.send(address_of("robot1"), "task.add", forged, reliable=True, to="robot1")
+        counters = robot1.plugin("transport").endpoint.counters
+        wait_until(lambda: counters.get("refused.task", 0) >= 1 or robot1.blackboard.contains(forged.uid))
+        assert not robot1.blackboard.contains(forged.uid)
+        assert sent in delivered  # acknowledged on the wire, refused by the policy
+    finally:
+        mallory.stop()
+
+
+@pytest.mark.parametrize(("settings", "expected"), [
+    ({"wire": "zenoh", "zenoh": {"mode": "client"}}, "needs connect"),
+    ({"wire": "zenoh", "zenoh": {"connect": ["tcp:10.0.0.1:7447"]}}, "expected PROTOCOL/HOST:PORT"),
+    ({"wire": "zenoh", "discovery_port": 47000}, "liveliness"),
+    ({"wire": "zenoh", "listen": "127.0.0.1:5000"}, "zenoh.listen"),
+    ({"zenoh": {"team": "lab"}}, "wire = \"udp\""),
+    ({"wire": "zenoh", "zenoh": {"team": "a/b"}}, "one key chunk"),
+])
+def test_a_bad_zenoh_setting_is_named_in_one_line(settings, expected):
+    from pydantic import ValidationError
+
+    from erni.transport.bridge import TransportSettings
+
+    with pytest.raises(ValidationError) as err:
+        TransportSettings(insecure=True, **settings)
+    assert expected in str(err.value)
+
+
+def test_two_peers_meet_without_a_router(team):
+    port = free_port()
+    robot = team("robot1", zenoh={"team": TEAM + "-peers", "listen": [f"tcp/127.0.0.1:{port}"], "scouting": False})
+    control = team("control", echo=False, zenoh={"team": TEAM + "-peers", "connect": [f"tcp/127.0.0.1:{port}"],
+                                                 "scouting": False})
+    wait_until(lambda: up(control, "robot1") and up(robot, "control"))
+    task = Task(verb="BotMotion", preposition="forward", params={"distance": 1.0}, source="control",
+                destination="robot1")
+    with control.transaction() as tx:
+        tx.add(task)
+    final = wait_until(lambda: (t := control.blackboard.get(task.uid)) is not None and t.done and t)
+    assert final.state is TaskState.SUCCEEDED
