@@ -4,7 +4,9 @@ The client is an endpoint of its own in role `cli` (agents never list it as a pe
 who it is with an identity of role `cli` (`--identity FILE` or `ERNI_IDENTITY`, made by
 `erni keys issue DIR NAME --role cli`), or with the shared team key (`ERNI_TEAM_KEY`, named
 `cli-<pid>` then). It reaches the team through one agent: the one given with `--via HOST:PORT`,
-or, without it, one found by listening for beacons on the discovery port.
+or, without it, one found by listening for beacons on the discovery port. On a team that runs
+over Zenoh (`--zenoh ENDPOINT`) it is a Zenoh client of that router or peer, `--via` names the
+agent, and agents are found by their liveliness tokens instead of beacons.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from erni.blackboard.schemas import Beacon, ResultUpdate
 from erni.transport.endpoint import CLIENT_ROLE, Address, Endpoint, team_key
 from erni.transport.identity import load_identity
 from erni.transport.wire import Message
+from erni.transport.zenoh_keys import ZenohSettings
 
 IDENTITY_ENV = "ERNI_IDENTITY"
 
@@ -41,7 +44,8 @@ class Client:
     """
 
     def __init__(self, via: Address | None, *, discovery_port: int = 47000, identity: str | Path | None = None,
-                 key_env: str = "ERNI_TEAM_KEY", insecure: bool = False, discover_seconds: float = 3.0):
+                 key_env: str = "ERNI_TEAM_KEY", insecure: bool = False, discover_seconds: float = 3.0,
+                 zenoh: ZenohSettings | None = None):
         path = identity or os.environ.get(IDENTITY_ENV) or None
         ident = load_identity(path) if path and not insecure else None
         key = None if ident is not None or insecure else team_key(None, key_env)
@@ -60,10 +64,19 @@ class Client:
         self.delivered: set[str] = set()
         self.finals: set[str] = set()
         self.duplicates = 0
-        local = _local_ip_towards(via[0]) if via else "127.0.0.1"
         name = ident.name if ident is not None else f"cli-{os.getpid()}"
-        self.endpoint = Endpoint(name, listen=(local, 0), identity=ident, key=key, insecure=insecure,
-                                 senders=1, discovery_port=None if via else discovery_port, role=CLIENT_ROLE)
+        self.zenoh = zenoh
+        if zenoh is not None:
+            try:
+                from erni.transport.zenoh_wire import ZenohEndpoint
+            except ImportError:
+                raise ClientError("--zenoh needs the eclipse-zenoh package: pip install 'erni[zenoh]'") from None
+            self.endpoint: Endpoint = ZenohEndpoint(name, zenoh_settings=zenoh, identity=ident, key=key,
+                                                    insecure=insecure, senders=1, role=CLIENT_ROLE)
+        else:
+            local = _local_ip_towards(via[0]) if via else "127.0.0.1"
+            self.endpoint = Endpoint(name, listen=(local, 0), identity=ident, key=key, insecure=insecure,
+                                     senders=1, discovery_port=None if via else discovery_port, role=CLIENT_ROLE)
         self.endpoint.log.propagate = False  # a client prints its own errors
         self.endpoint.log.addHandler(logging.NullHandler())
         self.endpoint.on_message = self._received
@@ -126,6 +139,9 @@ class Client:
             if agent in self.beacons:
                 return self.beacons[agent][0]
         heard = ", ".join(sorted(self.beacons)) or "no agent"
+        if self.zenoh is not None:
+            raise ClientError(f"no liveliness token of {agent or 'any agent'} of team {self.zenoh.team} through "
+                              f"{' '.join(self.zenoh.connect)} within {self.discover_seconds:.0f} s (heard: {heard})")
         raise ClientError(f"no beacon from {agent or 'any agent'} on port {self.discovery_port} within "
                           f"{self.discover_seconds:.0f} s (heard: {heard}); give --via HOST:PORT")
 

@@ -15,9 +15,12 @@ from erni.transport.endpoint import STREAM_BUFFER, Address, parse_address
 
 
 def add_client_options(p: argparse.ArgumentParser) -> None:
-    """Add --via, --discovery-port, --identity, --key-env, --insecure and --json."""
-    p.add_argument("--via", metavar="HOST:PORT", help="an agent's transport address "
-                   "(default: find one by its beacons)")
+    """Add --via, --discovery-port, --zenoh, --team, --identity, --key-env, --insecure and --json."""
+    p.add_argument("--via", metavar="HOST:PORT", help="an agent's transport address, or with --zenoh its name "
+                   "(default: find one by its beacons or liveliness token)")
+    p.add_argument("--zenoh", metavar="ENDPOINT", action="append", help="reach a team that runs over Zenoh "
+                   "through this router or peer, e.g. tcp/192.0.2.1:7447 (repeatable)")
+    p.add_argument("--team", default="team", help="with --zenoh: the team's key chunk (default: team)")
     p.add_argument("--discovery-port", type=int, default=47000, help="beacon port (default 47000)")
     p.add_argument("--identity", metavar="FILE", help="this client's identity bundle, role cli "
                    "(default: $ERNI_IDENTITY)")
@@ -40,6 +43,12 @@ def via_address(args: argparse.Namespace) -> Address | None:
     """Return the --via address, or None (raises ValueError naming the problem)."""
     if not args.via:
         return None
+    if getattr(args, "zenoh", None):
+        from erni.transport.zenoh_keys import NAME, address_of
+
+        if not NAME.match(args.via):
+            raise UsageError(f"--via {args.via!r}: with --zenoh, expected an agent's name")
+        return address_of(args.via)
     host, port = parse_address(args.via)
     if port == 0:
         raise UsageError(f"--via {args.via!r}: expected HOST:PORT")
@@ -50,8 +59,17 @@ def make_client(args: argparse.Namespace) -> Any:
     """Build a Client from the shared options."""
     from erni.transport.client import Client
 
+    zenoh = None
+    if getattr(args, "zenoh", None):
+        from erni.transport.zenoh_keys import ZenohSettings
+
+        try:
+            zenoh = ZenohSettings(team=args.team, mode="client", connect=args.zenoh)
+        except ValueError as err:  # pydantic's: the first problem, on one line
+            errors = getattr(err, "errors", None)
+            raise UsageError(f"--zenoh/--team: {errors()[0]['msg'] if errors else err}") from None
     return Client(via_address(args), discovery_port=args.discovery_port, identity=args.identity,
-                  key_env=args.key_env, insecure=args.insecure)
+                  key_env=args.key_env, insecure=args.insecure, zenoh=zenoh)
 
 
 def open_client(args: argparse.Namespace, command: str) -> Any:

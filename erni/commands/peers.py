@@ -9,6 +9,7 @@ from typing import Any
 
 from erni.blackboard.schemas import PeerList
 from erni.commands._client import add_client_options, dumps, open_client
+from erni.transport.zenoh_keys import wire_of
 
 
 def register(sub: Any) -> None:
@@ -46,16 +47,17 @@ def run(args: argparse.Namespace) -> int:
     beacons, down_after = msg.body.beacons, msg.body.down_after
     if args.json:
         for p in peers:
-            print(dumps({"via": msg.body.agent, **p.model_dump(mode="json"), "beacons": beacons.get(p.name),
-                         "down_after": down_after.get(p.name)}))
+            print(dumps({"via": msg.body.agent, **p.model_dump(mode="json"), "wire": wire_of(p.address),
+                         "beacons": beacons.get(p.name), "down_after": down_after.get(p.name)}))
         return 0
     print(f"agents known to {msg.body.agent} ({addr[0]}:{addr[1]}):")
-    print(f"{'name':<16} {'state':<5} {'address':<22} {'role':<10} {'heard':>8} {'down after':>10} {'beacons':>8}"
-          "  capabilities")
+    print(f"{'name':<16} {'state':<5} {'wire':<5} {'address':<22} {'role':<10} {'heard':>8} {'down after':>10} "
+          f"{'beacons':>8}  capabilities")
     for p in peers:
         heard = f"{now - p.last_heard:.1f}s" if p.last_heard else "never"
         limit = f"{down_after[p.name]:.1f}s" if p.name in down_after else "-"
         share = f"{100 * beacons[p.name]:.0f}%" if p.name in beacons else "-"
-        print(f"{p.name:<16} {'up' if p.up else 'down':<5} {p.address:<22} {p.role:<10} {heard:>8} {limit:>10} "
+        print(f"{p.name:<16} {'up' if p.up else 'down':<5} {wire_of(p.address) or '-':<5} {p.address:<22} "
+              f"{p.role:<10} {heard:>8} {limit:>10} "
               f"{share:>8}  {','.join(p.capabilities)}" + (f"  DEGRADED: {p.degraded}" if p.degraded else ""))
     return 0

@@ -189,3 +189,20 @@ def test_two_peers_meet_without_a_router(team):
         tx.add(task)
     final = wait_until(lambda: (t := control.blackboard.get(task.uid)) is not None and t.done and t)
     assert final.state is TaskState.SUCCEEDED
+
+
+def test_erni_peers_reaches_the_team_through_the_router_and_shows_the_wire(team, router, capsys):
+    from erni.cli import main
+    from tests.transport.helpers import identity
+
+    control, _ = team("control", echo=False), team("robot1")
+    wait_until(lambda: up(control, "robot1"))
+    args = ["peers", "--zenoh", router, "--team", TEAM, "--identity", identity("cli", "cli")]
+    assert main([*args, "--via", "control"]) == 0
+    out = capsys.readouterr().out
+    line = next(line for line in out.splitlines() if line.startswith("robot1"))
+    assert line.split()[1:4] == ["up", "zenoh", "zenoh/robot1:0"], out
+    assert main(args) == 0  # without --via: an agent found by its liveliness token
+    assert "zenoh/" in capsys.readouterr().out
+    assert main(["peers", "--zenoh", "tcp:127.0.0.1", "--team", TEAM]) == 2
+    assert "expected PROTOCOL/HOST:PORT" in capsys.readouterr().err
