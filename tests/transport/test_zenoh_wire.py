@@ -206,3 +206,27 @@ def test_erni_peers_reaches_the_team_through_the_router_and_shows_the_wire(team,
     assert "zenoh/" in capsys.readouterr().out
     assert main(["peers", "--zenoh", "tcp:127.0.0.1", "--team", TEAM]) == 2
     assert "expected PROTOCOL/HOST:PORT" in capsys.readouterr().err
+
+
+def test_erni_router_carries_a_team_and_refuses_a_bad_endpoint_in_one_line(team, capsys):
+    import io
+    import threading
+
+    from erni.cli import main
+    from erni.commands.router import serve
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    stop, out = threading.Event(), io.StringIO()
+    router = threading.Thread(target=serve, args=([endpoint], [], False, stop, out))
+    router.start()
+    try:
+        wait_until(lambda: "listening on" in out.getvalue())
+        site = {"team": TEAM + "-cmd", "mode": "client", "connect": [endpoint]}
+        control, robot = team("control", echo=False, zenoh=site), team("robot1", zenoh=site)
+        wait_until(lambda: up(control, "robot1") and up(robot, "control"))
+    finally:
+        stop.set()
+        router.join(5)
+    assert main(["router", "--listen", "tcp/127.0.0.1"]) == 2
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1 and "expected PROTOCOL/HOST:PORT" in err

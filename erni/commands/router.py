@@ -1,0 +1,75 @@
+"""`erni router`: a Zenoh router in this process, between the sites of a team on `wire = "zenoh"`."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import threading
+import time
+from typing import Any, TextIO
+
+from erni.blackboard.errors import ErniError
+
+DEFAULT_LISTEN = "tcp/0.0.0.0:7447"
+
+
+def register(sub: Any) -> None:
+    """Add the `router` sub-command."""
+    p = sub.add_parser("router", help="run a Zenoh router for a team on wire = \"zenoh\"",
+                       description="Run a Zenoh router in this process until Ctrl-C. Agents in client mode "
+                       "connect to it (zenoh.connect); it forwards their frames, which ERNI's sessions keep "
+                       "encrypted end to end, so it reads none of them. See docs/zenoh.md.")
+    p.add_argument("--listen", metavar="ENDPOINT", action="append",
+                   help=f"where agents and other routers connect, PROTOCOL/HOST:PORT (repeatable; default "
+                   f"{DEFAULT_LISTEN})")
+    p.add_argument("--connect", metavar="ENDPOINT", action="append", default=[],
+                   help="another router to link with, e.g. the other site's (repeatable)")
+    p.add_argument("--scouting", action="store_true", help="answer multicast scouting on this LAN, so that "
+                   "peers there find this router without being told")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Serve until interrupted; exit 2 on a bad endpoint, 1 when Zenoh cannot listen."""
+    from erni.transport.zenoh_keys import check_endpoint
+
+    listen = args.listen or [DEFAULT_LISTEN]
+    try:
+        for endpoint in listen + args.connect:
+            check_endpoint(endpoint)
+    except ValueError as err:
+        print(f"erni router: {err}", file=sys.stderr)
+        return 2
+    try:
+        serve(listen, args.connect, args.scouting, threading.Event())
+    except ErniError as err:
+        print(f"erni router: {err}", file=sys.stderr)
+        return 1
+    except ImportError:
+        print("erni router: needs the eclipse-zenoh package: pip install 'erni[zenoh]'", file=sys.stderr)
+        return 1
+    return 0
+
+
+def serve(listen: list[str], connect: list[str], scouting: bool, stop: threading.Event,
+          out: TextIO | None = None) -> None:
+    """Run the router until `stop` is set (or Ctrl-C), telling `out` (stdout) when routers link or part."""
+    from erni.transport.zenoh_wire import open_router
+
+    out = out or sys.stdout
+    session = open_router(listen, connect=connect, scouting=scouting)
+    try:
+        print(f"erni router {session.zid()}: listening on {' '.join(listen)}"
+              + (f", linked to {' '.join(connect)}" if connect else ""), file=out, flush=True)
+        routers: set[str] = set()
+        while not stop.wait(1.0):
+            now = {str(z) for z in session.info.routers_zid()}
+            for zid in sorted(now - routers):
+                print(f"{time.strftime('%H:%M:%S')} router {zid} linked", file=out, flush=True)
+            for zid in sorted(routers - now):
+                print(f"{time.strftime('%H:%M:%S')} router {zid} parted", file=out, flush=True)
+            routers = now
+    except KeyboardInterrupt:
+        pass
+    finally:
+        session.close()  # type: ignore[no-untyped-call]  # untyped in Zenoh's stubs
