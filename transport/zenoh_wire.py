@@ -42,6 +42,9 @@ from erni.transport.zenoh_keys import ALIVE, DATAGRAM, RELIABLE, Keys, ZenohSett
 
 Address = tuple[str, int]
 
+RECONNECT = 1.0
+"""Seconds between attempts to open the session of an agent whose routers were not reachable at start."""
+
 PUBLISHERS = 4096
 """Publishers kept declared (one per receiver); past this many they are all declared again on use."""
 
@@ -88,6 +91,7 @@ class ZenohEndpoint(Endpoint):
         self._alive: dict[str, set[str]] = {}  # agent -> its instances holding a token now
         self._alive_lock = threading.Lock()
         self._halt = threading.Event()
+        self._next_open = 0.0  # when to try again to open a session that could not be opened (monotonic)
         self._declared: list[Any] = []  # subscribers, queryable, token: undeclared at stop
         self.wire = "zenoh"
 
@@ -95,22 +99,18 @@ class ZenohEndpoint(Endpoint):
 
     def start(self) -> None:
         """Open the Zenoh session, declare what this agent receives and its liveliness token, and
-        start the sender pool (NetworkError if Zenoh refuses)."""
+        start the sender pool (NetworkError if Zenoh refuses). An agent in client mode whose routers
+        are not reachable yet starts all the same and tries again every `RECONNECT` seconds (a
+        command-line client fails at once); once connected, Zenoh itself reconnects after a loss."""
         self._stopping = False
         self._halt.clear()
-        zs = self._zs = open_session(self.zenoh_settings)
         try:
-            self._declared = [
-                zs.declare_subscriber(self.keys.listen(self.name, DATAGRAM), self._on_datagram),
-                zs.declare_queryable(self.keys.listen(self.name, RELIABLE), self._on_query),
-            ]
-            if self.role != CLIENT_ROLE:  # a command-line client is no peer: it shows no token
-                self._declared.append(zs.liveliness().declare_token(self.keys.token(self.name, self.role, self.inst)))
-            self._declared.append(zs.liveliness().declare_subscriber(self.keys.tokens(), self._on_token, history=True))
-        except zenoh.ZError as err:
-            zs.close()  # type: ignore[no-untyped-call]  # untyped in Zenoh's stubs
-            self._zs = None
-            raise NetworkError(f"cannot declare {self.keys.root}/{self.name}/... on Zenoh: {err}") from None
+            self._attach(open_session(self.zenoh_settings))
+        except NetworkError as err:
+            if self.zenoh_settings.mode != "client" or self.role == CLIENT_ROLE:
+                raise
+            self.log.warning("%s; trying again every %g s", err, RECONNECT)
+            self._next_open = time.monotonic() + RECONNECT
         sweeper = threading.Thread(target=self._sweep_loop, name=f"erni-{self.name}-zenoh-sweep", daemon=True)
         sweeper.start()
         self._threads = [sweeper]
@@ -118,6 +118,22 @@ class ZenohEndpoint(Endpoint):
             t = threading.Thread(target=self._send_loop, name=f"erni-{self.name}-net-tx-{i}", daemon=True)
             t.start()
             self._threads.append(t)
+
+    def _attach(self, zs: zenoh.Session) -> None:
+        """Declare this agent's subscriber, queryable, token and token subscriber on a new session."""
+        try:
+            declared: list[Any] = [
+                zs.declare_subscriber(self.keys.listen(self.name, DATAGRAM), self._on_datagram),
+                zs.declare_queryable(self.keys.listen(self.name, RELIABLE), self._on_query),
+            ]
+            if self.role != CLIENT_ROLE:  # a command-line client is no peer: it shows no token
+                declared.append(zs.liveliness().declare_token(self.keys.token(self.name, self.role, self.inst)))
+            declared.append(zs.liveliness().declare_subscriber(self.keys.tokens(), self._on_token, history=True))
+        except zenoh.ZError as err:
+            zs.close()  # type: ignore[no-untyped-call]  # untyped in Zenoh's stubs
+            raise NetworkError(f"cannot declare {self.keys.root}/{self.name}/... on Zenoh: {err}") from None
+        self._declared = declared
+        self._zs = zs
 
     def stop(self, timeout: float = 1.0) -> None:
         """Stop the sender pool, undeclare the token (peers see this agent go) and close the session."""
@@ -148,10 +164,18 @@ class ZenohEndpoint(Endpoint):
         return size
 
     def _sweep_loop(self) -> None:
-        """Forget expired handshakes and idle sessions, as the UDP wire's stream thread does."""
+        """Forget expired handshakes and idle sessions, as the UDP wire's stream thread does; and
+        open the session of a client whose routers were not reachable at start."""
         while not self._halt.wait(0.25):
+            now = time.monotonic()
             try:
-                self.sessions.sweep(time.monotonic())
+                if self._zs is None and now >= self._next_open:
+                    self._next_open = now + RECONNECT
+                    self._attach(open_session(self.zenoh_settings))
+                    self.log.info("connected to Zenoh through %s", " ".join(self.zenoh_settings.connect))
+                self.sessions.sweep(now)
+            except NetworkError:
+                self.count("zenoh.unreachable")
             except Exception:  # never lose the sweeper
                 self.log.exception("session sweep failed")
 

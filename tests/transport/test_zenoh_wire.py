@@ -230,3 +230,14 @@ def test_erni_router_carries_a_team_and_refuses_a_bad_endpoint_in_one_line(team,
     assert main(["router", "--listen", "tcp/127.0.0.1"]) == 2
     err = capsys.readouterr().err
     assert len(err.splitlines()) == 1 and "expected PROTOCOL/HOST:PORT" in err
+
+
+def test_agents_started_before_their_router_meet_once_it_runs(team):
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    site = {"team": TEAM + "-late", "mode": "client", "connect": [endpoint]}
+    control, robot = team("control", echo=False, zenoh=site), team("robot1", zenoh=site)
+    session = open_router([endpoint])
+    try:
+        wait_until(lambda: up(control, "robot1") and up(robot, "control"))
+    finally:
+        session.close()
