@@ -15,7 +15,7 @@ from erni.blackboard import Agent, Pose, Task, TaskState  # noqa: E402
 from erni.blackboard.testing import wait_until  # noqa: E402
 from erni.sim.team import free_port  # noqa: E402
 from erni.transport import Peer  # noqa: E402
-from erni.transport.wire import DATA_HEADER  # noqa: E402
+from erni.transport.wire import DATA, DATA_HEADER  # noqa: E402
 from erni.transport.zenoh_wire import open_router  # noqa: E402
 from tests.transport.helpers import make_agent  # noqa: E402
 
@@ -104,13 +104,14 @@ def test_a_frame_replayed_or_tampered_with_at_the_router_is_refused(team, router
             tx.add(task)
         wait_until(lambda: (t := control.blackboard.get(task.uid)) is not None and t.done)
         wait_until(lambda: spy.queries and spy.datagrams)
-        assert all(b"forward" not in raw and b"control" not in raw for _, raw in spy.queries + spy.datagrams), \
-            "the router saw a frame in clear"
+        sealed = [raw for _, raw in spy.queries + spy.datagrams if raw[4] == DATA]  # handshakes are signed, not sealed
+        assert sealed and all(b"forward" not in raw and b"control" not in raw for raw in sealed), \
+            "the router saw a message in clear"
         counters = robot.plugin("transport").endpoint.counters
         before = dict(counters)
-        key, frame = spy.queries[0]
+        key, frame = [(k, raw) for k, raw in spy.queries if raw[4] == DATA][0]
         replies = list(spy.session.get(key, payload=frame, timeout=1.0))  # the task, replayed
-        key, datagram = spy.datagrams[-1]
+        key, datagram = [(k, raw) for k, raw in spy.datagrams if raw[4] == DATA][-1]
         spy.session.put(key, datagram)  # a status or beacon, replayed
         tampered = bytearray(datagram)  # a counter never used, so that the replay window lets it by
         DATA_HEADER.pack_into(tampered, 0, *DATA_HEADER.unpack_from(datagram)[:3], 1 << 40)
@@ -239,5 +240,26 @@ def test_agents_started_before_their_router_meet_once_it_runs(team):
     session = open_router([endpoint])
     try:
         wait_until(lambda: up(control, "robot1") and up(robot, "control"))
+    finally:
+        session.close()
+
+
+def test_a_task_given_while_the_router_restarts_ends_exactly_once(team):
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    site = {"team": TEAM + "-restart", "mode": "client", "connect": [endpoint]}
+    session = open_router([endpoint])
+    try:
+        control, robot = team("control", echo=False, zenoh=site), team("robot1", zenoh=site)
+        wait_until(lambda: up(control, "robot1") and up(robot, "control"))
+        session.close()
+        task = Task(verb="BotMotion", preposition="forward", params={"distance": 1.0}, source="control",
+                    destination="robot1")
+        with control.transaction() as tx:
+            tx.add(task)
+        session = open_router([endpoint])
+        final = wait_until(lambda: (t := control.blackboard.get(task.uid)) is not None and t.done and t, timeout=8.0)
+        assert final.state is TaskState.SUCCEEDED
+        assert robot.plugin("transport").endpoint.counters.get("received", 0) >= 1
+        assert len([t for t in robot.query(Task) if t.uid == task.uid]) == 1
     finally:
         session.close()
