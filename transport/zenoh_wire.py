@@ -240,7 +240,9 @@ class ZenohEndpoint(Endpoint):
                                        timeout=self.ack_timeout, target=zenoh.QueryTarget.ALL,
                                        consolidation=zenoh.ConsolidationMode.NONE,
                                        congestion_control=zenoh.CongestionControl.BLOCK)
+            answered = False
             for reply in replies:
+                answered = True
                 sample = reply.ok
                 if sample is None:
                     continue
@@ -251,6 +253,8 @@ class ZenohEndpoint(Endpoint):
             self.warn("link", f"query to {name} failed: {err}")
             return False
         self.count("zenoh.unanswered")
+        if not answered and dest.addr in self._clients:
+            self._client_gone(dest)  # nothing answers for a command-line client: it exited
         return False
 
     # -- receiving (on Zenoh's threads) ---------------------------------------------------

@@ -263,3 +263,20 @@ def test_a_task_given_while_the_router_restarts_ends_exactly_once(team):
         assert len([t for t in robot.query(Task) if t.uid == task.uid]) == 1
     finally:
         session.close()
+
+
+def test_what_waits_for_a_command_line_client_that_exited_is_dropped_at_once(team, router):
+    from erni.transport.client import Client
+    from erni.transport.zenoh_keys import ZenohSettings, address_of
+    from tests.transport.helpers import identity
+
+    control = team("control", echo=False)
+    client = Client(address_of("control"), identity=identity("cli", "cli"),
+                    zenoh=ZenohSettings(team=TEAM, mode="client", connect=[router]))
+    with client:
+        client.send(address_of("control"), "peers.request", None)
+        wait_until(lambda: (msg := client.receive(0.05)) is not None and msg.kind == "peers.reply", timeout=3.0)
+    endpoint = control.plugin("transport").endpoint
+    endpoint.send(address_of("cli"), "task.unknown", None, reliable=True, to="cli")
+    wait_until(lambda: endpoint.counters.get("dropped.client_gone", 0) >= 1, timeout=1.0)
+    assert endpoint.counters.get("retries", 0) <= 1
