@@ -163,6 +163,10 @@ class TransportSettings(BaseModel):
                 raise ValueError(f"listen = {self.listen!r} is for wire = \"udp\": with wire = \"zenoh\" set "
                                  "zenoh.listen = [\"tcp/HOST:PORT\"] (peer mode) or zenoh.connect")
             self.discovery_port = 0
+            tls = [e for e in self.zenoh.connect + self.zenoh.listen if e.startswith("tls/")]
+            if tls and self.identity is None:
+                raise ValueError(f"zenoh endpoint {tls[0]!r}: a tls/ link needs identity = \"KEYS/NAME.pem\" (from "
+                                 "`erni keys issue`): its certificate authenticates the link")
         elif "zenoh" in self.model_fields_set:
             raise ValueError("zenoh settings given but wire = \"udp\": set wire = \"zenoh\" to use them")
         for peer in self.peers:

@@ -24,16 +24,20 @@ checked and handed on there, never processed under a blackboard transaction).
 
 from __future__ import annotations
 
+import base64
 import json
 import threading
 import time
 from typing import Any
 
 import zenoh
+from cryptography import x509
+from cryptography.hazmat.primitives import serialization
 
-from erni.blackboard.errors import NetworkError
+from erni.blackboard.errors import ConfigError, NetworkError
 from erni.blackboard.schemas import Beacon
 from erni.transport.endpoint import CLIENT_ROLE, Endpoint
+from erni.transport.identity import Identity
 from erni.transport.outbox import Dest, Outgoing
 from erni.transport.receiver import HEADER_KIND
 from erni.transport.session import Session
@@ -49,9 +53,26 @@ PUBLISHERS = 4096
 """Publishers kept declared (one per receiver); past this many they are all declared again on use."""
 
 
-def open_session(settings: ZenohSettings, *, listen: list[str] | None = None, mode: str | None = None) -> zenoh.Session:
-    """Open a Zenoh session as `settings` say (a router with `mode="router"` and `listen`); raise
-    NetworkError naming the endpoints when Zenoh refuses."""
+def tls_config(identity: Identity) -> dict[str, Any]:
+    """Zenoh's TLS settings from an ERNI identity: its key and certificate on both sides of a link,
+    the team authority as the only root, and the peer's certificate required (mutual TLS). Names
+    are not checked against hosts: ERNI's certificates name agents, and who may connect is whoever
+    holds a certificate of this team's authority."""
+    pem = serialization.Encoding.PEM
+    key = base64.b64encode(identity.key.private_bytes(pem, serialization.PrivateFormat.PKCS8,
+                                                      serialization.NoEncryption())).decode()
+    cert = base64.b64encode(x509.load_der_x509_certificate(identity.cert_der).public_bytes(pem)).decode()
+    root = base64.b64encode(identity.trust.authority.public_bytes(pem)).decode()
+    return {"root_ca_certificate_base64": root, "enable_mtls": True, "verify_name_on_connect": False,
+            "listen_private_key_base64": key, "listen_certificate_base64": cert,
+            "connect_private_key_base64": key, "connect_certificate_base64": cert}
+
+
+def open_session(settings: ZenohSettings, *, listen: list[str] | None = None, mode: str | None = None,
+                 identity: Identity | None = None) -> zenoh.Session:
+    """Open a Zenoh session as `settings` say (a router with `mode="router"` and `listen`), its
+    `tls/` links authenticated with `identity`; raise NetworkError naming the endpoints when Zenoh
+    refuses, ConfigError for a `tls/` endpoint without an identity."""
     conf = zenoh.Config()
     values = settings.config()
     if mode is not None:
@@ -59,6 +80,12 @@ def open_session(settings: ZenohSettings, *, listen: list[str] | None = None, mo
         values["scouting/multicast/enabled"] = mode != "client" and settings.scouting
     if listen:
         values["listen/endpoints"] = list(listen)
+    endpoints = values.get("listen/endpoints", []) + values.get("connect/endpoints", [])
+    if any(e.startswith("tls/") for e in endpoints):
+        if identity is None:
+            raise ConfigError(f"zenoh endpoint {next(e for e in endpoints if e.startswith('tls/'))!r}: a tls/ link "
+                              "needs an identity from `erni keys issue` (its certificate authenticates the link)")
+        values["transport/link/tls"] = tls_config(identity)
     try:
         for key, value in values.items():
             conf.insert_json5(key, json.dumps(value))
@@ -69,11 +96,13 @@ def open_session(settings: ZenohSettings, *, listen: list[str] | None = None, mo
                            f"{str(err).splitlines()[0] if str(err) else err!r}") from None
 
 
-def open_router(listen: list[str], *, connect: list[str] | None = None, scouting: bool = False) -> zenoh.Session:
+def open_router(listen: list[str], *, connect: list[str] | None = None, scouting: bool = False,
+                identity: Identity | None = None) -> zenoh.Session:
     """Run a Zenoh router in this process, listening on `listen` (and linked to the routers in
-    `connect`), until the returned session is closed. It forwards the team's frames unread."""
+    `connect`; `tls/` links authenticated with `identity`), until the returned session is closed.
+    It forwards the team's frames unread."""
     settings = ZenohSettings(connect=list(connect or []), scouting=scouting)
-    return open_session(settings, listen=listen, mode="router")
+    return open_session(settings, listen=listen, mode="router", identity=identity)
 
 
 class ZenohEndpoint(Endpoint):
@@ -105,7 +134,7 @@ class ZenohEndpoint(Endpoint):
         self._stopping = False
         self._halt.clear()
         try:
-            self._attach(open_session(self.zenoh_settings))
+            self._attach(open_session(self.zenoh_settings, identity=self.identity))
         except NetworkError as err:
             if self.zenoh_settings.mode != "client" or self.role == CLIENT_ROLE:
                 raise
@@ -171,7 +200,7 @@ class ZenohEndpoint(Endpoint):
             try:
                 if self._zs is None and now >= self._next_open:
                     self._next_open = now + RECONNECT
-                    self._attach(open_session(self.zenoh_settings))
+                    self._attach(open_session(self.zenoh_settings, identity=self.identity))
                     self.log.info("connected to Zenoh through %s", " ".join(self.zenoh_settings.connect))
                 self.sessions.sweep(now)
             except NetworkError:

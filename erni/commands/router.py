@@ -6,9 +6,12 @@ import argparse
 import sys
 import threading
 import time
-from typing import Any, TextIO
+from typing import TYPE_CHECKING, Any, TextIO
 
 from erni.blackboard.errors import ErniError
+
+if TYPE_CHECKING:
+    from erni.transport.identity import Identity
 
 DEFAULT_LISTEN = "tcp/0.0.0.0:7447"
 
@@ -26,6 +29,9 @@ def register(sub: Any) -> None:
                    help="another router to link with, e.g. the other site's (repeatable)")
     p.add_argument("--scouting", action="store_true", help="answer multicast scouting on this LAN, so that "
                    "peers there find this router without being told")
+    p.add_argument("--identity", metavar="FILE", help="the router's identity bundle (`erni keys issue DIR NAME "
+                   "--role router`): needed for tls/ endpoints, whose links then admit only holders of a "
+                   "certificate of the same team authority (mutual TLS)")
     p.set_defaults(func=run)
 
 
@@ -41,7 +47,10 @@ def run(args: argparse.Namespace) -> int:
         print(f"erni router: {err}", file=sys.stderr)
         return 2
     try:
-        serve(listen, args.connect, args.scouting, threading.Event())
+        from erni.transport.identity import load_identity
+
+        identity = load_identity(args.identity) if args.identity else None
+        serve(listen, args.connect, args.scouting, threading.Event(), identity=identity)
     except ErniError as err:
         print(f"erni router: {err}", file=sys.stderr)
         return 1
@@ -52,12 +61,12 @@ def run(args: argparse.Namespace) -> int:
 
 
 def serve(listen: list[str], connect: list[str], scouting: bool, stop: threading.Event,
-          out: TextIO | None = None) -> None:
+          out: TextIO | None = None, identity: Identity | None = None) -> None:
     """Run the router until `stop` is set (or Ctrl-C), telling `out` (stdout) when routers link or part."""
     from erni.transport.zenoh_wire import open_router
 
     out = out or sys.stdout
-    session = open_router(listen, connect=connect, scouting=scouting)
+    session = open_router(listen, connect=connect, scouting=scouting, identity=identity)
     try:
         print(f"erni router {session.zid()}: listening on {' '.join(listen)}"
               + (f", linked to {' '.join(connect)}" if connect else ""), file=out, flush=True)

@@ -167,6 +167,7 @@ def test_a_robot_may_not_task_another_robot_as_the_control_node(team, router):
     ({"wire": "zenoh", "listen": "127.0.0.1:5000"}, "zenoh.listen"),
     ({"zenoh": {"team": "lab"}}, "wire = \"udp\""),
     ({"wire": "zenoh", "zenoh": {"team": "a/b"}}, "one key chunk"),
+    ({"wire": "zenoh", "zenoh": {"mode": "client", "connect": ["tls/192.0.2.1:7447"]}}, "needs identity"),
 ])
 def test_a_bad_zenoh_setting_is_named_in_one_line(settings, expected):
     from pydantic import ValidationError
@@ -280,3 +281,23 @@ def test_what_waits_for_a_command_line_client_that_exited_is_dropped_at_once(tea
     endpoint.send(address_of("cli"), "task.unknown", None, reliable=True, to="cli")
     wait_until(lambda: endpoint.counters.get("dropped.client_gone", 0) >= 1, timeout=1.0)
     assert endpoint.counters.get("retries", 0) <= 1
+
+
+def test_over_tls_the_router_admits_the_teams_certificates_only(team, tmp_path):
+    from erni.blackboard.errors import NetworkError
+    from erni.transport.identity import Authority, load_identity
+    from erni.transport.zenoh_keys import ZenohSettings
+    from erni.transport.zenoh_wire import open_session
+    from tests.transport.helpers import identity
+
+    endpoint = f"tls/127.0.0.1:{free_port()}"
+    session = open_router([endpoint], identity=load_identity(identity("zrouter", "router")))
+    try:
+        site = {"team": TEAM + "-tls", "mode": "client", "connect": [endpoint]}
+        control, robot = team("control", echo=False, zenoh=site), team("robot1", zenoh=site)
+        wait_until(lambda: up(control, "robot1") and up(robot, "control"))
+        stranger = load_identity(Authority.create(tmp_path / "other", team="other").issue("robot1", "robot"))
+        with pytest.raises(NetworkError):
+            open_session(ZenohSettings(mode="client", connect=[endpoint]), identity=stranger).close()
+    finally:
+        session.close()
