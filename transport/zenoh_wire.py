@@ -69,7 +69,7 @@ def tls_config(identity: Identity) -> dict[str, Any]:
 
 
 def open_session(settings: ZenohSettings, *, listen: list[str] | None = None, mode: str | None = None,
-                 identity: Identity | None = None) -> zenoh.Session:
+                 identity: Identity | None = None, access: dict[str, Any] | None = None) -> zenoh.Session:
     """Open a Zenoh session as `settings` say (a router with `mode="router"` and `listen`), its
     `tls/` links authenticated with `identity`; raise NetworkError naming the endpoints when Zenoh
     refuses, ConfigError for a `tls/` endpoint without an identity."""
@@ -86,6 +86,8 @@ def open_session(settings: ZenohSettings, *, listen: list[str] | None = None, mo
             raise ConfigError(f"zenoh endpoint {next(e for e in endpoints if e.startswith('tls/'))!r}: a tls/ link "
                               "needs an identity from `erni keys issue` (its certificate authenticates the link)")
         values["transport/link/tls"] = tls_config(identity)
+    if access is not None:
+        values["access_control"] = access
     try:
         for key, value in values.items():
             conf.insert_json5(key, json.dumps(value))
@@ -97,12 +99,13 @@ def open_session(settings: ZenohSettings, *, listen: list[str] | None = None, mo
 
 
 def open_router(listen: list[str], *, connect: list[str] | None = None, scouting: bool = False,
-                identity: Identity | None = None) -> zenoh.Session:
+                identity: Identity | None = None, access: dict[str, Any] | None = None) -> zenoh.Session:
     """Run a Zenoh router in this process, listening on `listen` (and linked to the routers in
-    `connect`; `tls/` links authenticated with `identity`), until the returned session is closed.
-    It forwards the team's frames unread."""
+    `connect`; `tls/` links authenticated with `identity`; `access`: its access control, from
+    `zenoh_acl.access_control`), until the returned session is closed. It forwards the team's
+    frames unread."""
     settings = ZenohSettings(connect=list(connect or []), scouting=scouting)
-    return open_session(settings, listen=listen, mode="router", identity=identity)
+    return open_session(settings, listen=listen, mode="router", identity=identity, access=access)
 
 
 class ZenohEndpoint(Endpoint):

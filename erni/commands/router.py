@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import threading
 import time
@@ -32,6 +33,13 @@ def register(sub: Any) -> None:
     p.add_argument("--identity", metavar="FILE", help="the router's identity bundle (`erni keys issue DIR NAME "
                    "--role router`): needed for tls/ endpoints, whose links then admit only holders of a "
                    "certificate of the same team authority (mutual TLS)")
+    p.add_argument("--acl", metavar="KEYS_DIR", help="access control from the team authority in KEYS_DIR (erni "
+                   "keys init): each agent's certificate may put, query and hold a token only as itself, and "
+                   "receives only what is addressed to it; certificates of role router may carry anything "
+                   "(needs --identity, --team and tls/ endpoints)")
+    p.add_argument("--team", help="the team's key chunk, as the agents' zenoh.team (with --acl)")
+    p.add_argument("--print-acl", action="store_true", help="print the access control as Zenoh configuration "
+                   "JSON (its access_control section, for zenohd) and exit")
     p.set_defaults(func=run)
 
 
@@ -46,11 +54,24 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as err:
         print(f"erni router: {err}", file=sys.stderr)
         return 2
+    problem = _acl_problem(args, listen + args.connect)
+    if problem:
+        print(f"erni router: {problem}", file=sys.stderr)
+        return 2
     try:
+        access = None
+        if args.acl:
+            from erni.transport.zenoh_acl import access_control, team_names
+
+            agents, routers = team_names(args.acl)
+            access = access_control(args.team, agents, routers)
+            if args.print_acl:
+                print(json.dumps({"access_control": access}, indent=2))
+                return 0
         from erni.transport.identity import load_identity
 
         identity = load_identity(args.identity) if args.identity else None
-        serve(listen, args.connect, args.scouting, threading.Event(), identity=identity)
+        serve(listen, args.connect, args.scouting, threading.Event(), identity=identity, access=access)
     except ErniError as err:
         print(f"erni router: {err}", file=sys.stderr)
         return 1
@@ -60,16 +81,36 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _acl_problem(args: argparse.Namespace, endpoints: list[str]) -> str:
+    """What is wrong with the access-control options, in one line ('' when nothing)."""
+    from erni.transport.zenoh_keys import NAME
+
+    if args.print_acl and not args.acl:
+        return "--print-acl needs --acl KEYS_DIR"
+    if not args.acl:
+        return ""
+    if not args.team or not NAME.match(args.team):
+        return f"--acl needs --team TEAM, the agents' zenoh.team (letters, digits, '_', '.', '-'), got {args.team!r}"
+    if args.print_acl:
+        return ""
+    if not args.identity or any(not e.startswith("tls/") for e in endpoints):
+        return ("--acl needs --identity FILE and tls/ endpoints only: the router tells agents apart by the "
+                "certificates of their TLS links")
+    return ""
+
+
 def serve(listen: list[str], connect: list[str], scouting: bool, stop: threading.Event,
-          out: TextIO | None = None, identity: Identity | None = None) -> None:
+          out: TextIO | None = None, identity: Identity | None = None, access: dict[str, Any] | None = None) -> None:
     """Run the router until `stop` is set (or Ctrl-C), telling `out` (stdout) when routers link or part."""
     from erni.transport.zenoh_wire import open_router
 
     out = out or sys.stdout
-    session = open_router(listen, connect=connect, scouting=scouting, identity=identity)
+    session = open_router(listen, connect=connect, scouting=scouting, identity=identity, access=access)
     try:
         print(f"erni router {session.zid()}: listening on {' '.join(listen)}"
-              + (f", linked to {' '.join(connect)}" if connect else ""), file=out, flush=True)
+              + (f", linked to {' '.join(connect)}" if connect else "")
+              + (f"; access control for {len(access['subjects'])} certificate name(s)" if access else ""),
+              file=out, flush=True)
         routers: set[str] = set()
         while not stop.wait(1.0):
             now = {str(z) for z in session.info.routers_zid()}

@@ -4,6 +4,7 @@ authorization as on ERNI's own wire."""
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable, Iterator
 from typing import Any
 
@@ -301,3 +302,70 @@ def test_over_tls_the_router_admits_the_teams_certificates_only(team, tmp_path):
             open_session(ZenohSettings(mode="client", connect=[endpoint]), identity=stranger).close()
     finally:
         session.close()
+
+
+def test_the_routers_access_control_lets_an_agent_speak_only_as_itself(team):
+    from erni.transport.identity import load_identity
+    from erni.transport.zenoh_acl import access_control
+    from erni.transport.zenoh_keys import ZenohSettings
+    from erni.transport.zenoh_wire import open_session
+    from tests.transport.helpers import identity
+
+    endpoint, tls_team = f"tls/127.0.0.1:{free_port()}", TEAM + "-acl"
+    session = open_router([endpoint], identity=load_identity(identity("zrouter", "router")),
+                          access=access_control(tls_team, ["control", "robot1", "robot2"]))
+    mallory = None
+    try:
+        site = {"team": tls_team, "mode": "client", "connect": [endpoint]}
+        control, robot = team("control", echo=False, zenoh=site), team("robot1", zenoh=site)
+        wait_until(lambda: up(control, "robot1") and up(robot, "control"))
+        task = Task(verb="BotMotion", preposition="forward", params={"distance": 1.0}, source="control",
+                    destination="robot1")
+        with control.transaction() as tx:
+            tx.add(task)
+        wait_until(lambda: (t := control.blackboard.get(task.uid)) is not None and t.done)
+        mallory = open_session(ZenohSettings(mode="client", connect=[endpoint]),
+                               identity=load_identity(identity("robot2", "robot")))
+        overheard: list[bytes] = []
+        spy = mallory.declare_subscriber(f"erni/{tls_team}/control/**", lambda s: overheard.append(b""))
+        with robot.transaction() as tx:  # robot1's Pose goes to control, and only there
+            tx.add(Pose(uid="pose:robot1", robot="robot1", x=3.0, y=1.0, theta=0.0))
+        wait_until(lambda: control.blackboard.get("pose:robot1"))
+        spy.undeclare()
+        assert not overheard
+        counters = robot.plugin("transport").endpoint.counters
+
+        def dropped() -> int:
+            return sum(n for k, n in counters.items() if k.startswith("dropped."))
+
+        before = dropped()
+        junk = b"\x00\x00\x00\x05Dnot a frame"
+        mallory.put(f"erni/{tls_team}/robot1/d/control", junk)  # as control: the router refuses it
+        mallory.put(f"erni/{tls_team}/robot1/d/robot2", junk)  # as itself: it arrives, and ERNI drops it
+        wait_until(lambda: dropped() > before)
+        time.sleep(0.2)
+        assert dropped() == before + 1
+    finally:
+        if mallory is not None:
+            mallory.close()
+        session.close()
+
+
+def test_erni_router_prints_the_access_control_of_the_teams_certificates(tmp_path, capsys):
+    import json
+
+    from erni.cli import main
+    from erni.transport.identity import Authority
+
+    keys = Authority.create(tmp_path / "keys", team="lab")
+    for name, role in (("control", "control"), ("robot1", "robot"), ("robot2", "robot"), ("site-b", "router")):
+        keys.issue(name, role)
+    keys.revoke("robot2")
+    assert main(["router", "--acl", str(tmp_path / "keys"), "--team", "lab", "--print-acl"]) == 0
+    acl = json.loads(capsys.readouterr().out)["access_control"]
+    names = {s["id"]: s["cert_common_names"] for s in acl["subjects"]}
+    assert names == {"control": ["control"], "robot1": ["robot1"], "routers": ["site-b"]}
+    assert acl["default_permission"] == "deny"
+    assert main(["router", "--acl", str(tmp_path / "keys"), "--team", "lab"]) == 2
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1 and "--identity" in err
