@@ -369,3 +369,14 @@ def test_erni_router_prints_the_access_control_of_the_teams_certificates(tmp_pat
     assert main(["router", "--acl", str(tmp_path / "keys"), "--team", "lab"]) == 2
     err = capsys.readouterr().err
     assert len(err.splitlines()) == 1 and "--identity" in err
+
+
+def test_insecure_agents_task_each_other_over_zenoh_too(team):
+    control, robot = team("control", echo=False, insecure=True), team("robot1", insecure=True)
+    wait_until(lambda: up(control, "robot1") and up(robot, "control"))
+    task = Task(verb="BotMotion", preposition="forward", params={"distance": 1.0}, source="control",
+                destination="robot1")
+    with control.transaction() as tx:
+        tx.add(task)
+    final = wait_until(lambda: (t := control.blackboard.get(task.uid)) is not None and t.done and t)
+    assert final.state is TaskState.SUCCEEDED
