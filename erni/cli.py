@@ -13,6 +13,7 @@ import sys
 
 import erni
 import erni.commands
+from erni.blackboard.errors import ErniError
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -42,3 +43,6 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.func(args) or 0)
     except KeyboardInterrupt:
         return 130
+    except ErniError as err:  # what a command did not catch itself (a network that cannot be opened ...)
+        print(f"erni {args.command}: {str(err).splitlines()[0] if str(err) else type(err).__name__}", file=sys.stderr)
+        return 1

@@ -94,8 +94,13 @@ def open_session(settings: ZenohSettings, *, listen: list[str] | None = None, mo
         return zenoh.open(conf)
     except zenoh.ZError as err:
         where = ", ".join(values.get("listen/endpoints", []) + values.get("connect/endpoints", [])) or "defaults"
-        raise NetworkError(f"cannot open a Zenoh session ({values['mode']}, {where}): "
-                           f"{str(err).splitlines()[0] if str(err) else err!r}") from None
+        raise NetworkError(f"cannot open a Zenoh session ({values['mode']}, {where}): {_reason(err)}") from None
+
+
+def _reason(err: Exception) -> str:
+    """Zenoh's error message on one line, without the source location it appends."""
+    text = (str(err).splitlines() or [repr(err)])[0].strip("'\" ")
+    return text.split(" at /", 1)[0].rstrip(". ") or repr(err)
 
 
 def open_router(listen: list[str], *, connect: list[str] | None = None, scouting: bool = False,

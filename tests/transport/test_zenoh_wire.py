@@ -209,6 +209,9 @@ def test_erni_peers_reaches_the_team_through_the_router_and_shows_the_wire(team,
     assert "zenoh/" in capsys.readouterr().out
     assert main(["peers", "--zenoh", "tcp:127.0.0.1", "--team", TEAM]) == 2
     assert "expected PROTOCOL/HOST:PORT" in capsys.readouterr().err
+    assert main(["peers", "--zenoh", f"tcp/127.0.0.1:{free_port()}", "--team", TEAM, "--insecure"]) == 1
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1 and "cannot open a Zenoh session" in err, err
 
 
 def test_erni_router_carries_a_team_and_refuses_a_bad_endpoint_in_one_line(team, capsys):
