@@ -174,8 +174,8 @@ def test_a_frame_the_codec_takes_is_the_frame_pydantic_gives(head, items):
         assert type(body) is type(want_body)
         if isinstance(body, Pose):
             _same_pose(body, want_body)
-        else:
-            assert body == want_body
+        else:  # compared as JSON: a NaN the frame carries (a Task's `created`) is equal to itself there
+            assert body.model_dump_json() == want_body.model_dump_json()
 
 
 @settings(max_examples=100, deadline=None)
