@@ -49,6 +49,10 @@ Address = tuple[str, int]
 RECONNECT = 1.0
 """Seconds between attempts to open the session of an agent whose routers were not reachable at start."""
 
+DATAGRAM_QUEUE = 8192
+"""Datagrams waiting for the receive thread; when more arrive the oldest go first (newest wins),
+as statuses are meant to (a UDP socket's buffer drops the newest instead)."""
+
 PUBLISHERS = 4096
 """Publishers kept declared (one per receiver); past this many they are all declared again on use."""
 
@@ -128,6 +132,7 @@ class ZenohEndpoint(Endpoint):
         self._alive: dict[str, set[str]] = {}  # agent -> its instances holding a token now
         self._alive_lock = threading.Lock()
         self._halt = threading.Event()
+        self._rx: threading.Thread | None = None  # the datagram thread (`_receive_loop`)
         self._next_open = 0.0  # when to try again to open a session that could not be opened (monotonic)
         self._declared: list[Any] = []  # subscribers, queryable, token: undeclared at stop
         self.wire = "zenoh"
@@ -159,10 +164,9 @@ class ZenohEndpoint(Endpoint):
     def _attach(self, zs: zenoh.Session) -> None:
         """Declare this agent's subscriber, queryable, token and token subscriber on a new session."""
         try:
-            declared: list[Any] = [
-                zs.declare_subscriber(self.keys.listen(self.name, DATAGRAM), self._on_datagram),
-                zs.declare_queryable(self.keys.listen(self.name, RELIABLE), self._on_query),
-            ]
+            datagrams = zs.declare_subscriber(self.keys.listen(self.name, DATAGRAM),
+                                              zenoh.handlers.RingChannel(DATAGRAM_QUEUE))
+            declared: list[Any] = [datagrams, zs.declare_queryable(self.keys.listen(self.name, RELIABLE), self._on_query)]
             if self.role != CLIENT_ROLE:  # a command-line client is no peer: it shows no token
                 declared.append(zs.liveliness().declare_token(self.keys.token(self.name, self.role, self.inst)))
             declared.append(zs.liveliness().declare_subscriber(self.keys.tokens(), self._on_token, history=True))
@@ -171,6 +175,9 @@ class ZenohEndpoint(Endpoint):
             raise NetworkError(f"cannot declare {self.keys.root}/{self.name}/... on Zenoh: {err}") from None
         self._declared = declared
         self._zs = zs
+        self._rx = threading.Thread(target=self._receive_loop, args=(datagrams.handler,),
+                                    name=f"erni-{self.name}-zenoh-rx", daemon=True)
+        self._rx.start()
 
     def stop(self, timeout: float = 1.0) -> None:
         """Stop the sender pool, undeclare the token (peers see this agent go) and close the session."""
@@ -181,16 +188,18 @@ class ZenohEndpoint(Endpoint):
             self._cond.notify_all()
         self._halt.set()
         deadline = time.monotonic() + timeout
-        for t in self._threads:
+        for t in self._threads[:1]:  # the sweeper: it may be attaching a session
             t.join(max(0.0, deadline - time.monotonic()))
-        self._threads = []
-        zs, self._zs = self._zs, None
-        for entity in reversed(self._declared):
+        for entity in reversed(self._declared):  # the token first; the subscriber's end ends the receive thread
             try:
                 entity.undeclare()
             except zenoh.ZError:
                 pass
         self._declared = []
+        for t in self._threads[1:] + ([self._rx] if self._rx is not None else []):
+            t.join(max(0.0, deadline - time.monotonic()))
+        self._threads, self._rx = [], None
+        zs, self._zs = self._zs, None
         with self._pub_lock:
             self._publishers.clear()
         if zs is not None:
@@ -296,15 +305,31 @@ class ZenohEndpoint(Endpoint):
 
     # -- receiving (on Zenoh's threads) ---------------------------------------------------
 
-    def _on_datagram(self, sample: zenoh.Sample) -> None:
-        sender = self.keys.sender_of(str(sample.key_expr))
-        if sender is None or self._stopping:
-            self.count("dropped.key")
-            return
-        got = self.accept_frame(sample.payload.to_bytes(), "udp", address_of(sender))
-        if got is not None:
-            for msg in got[0]:
-                self.deliver(msg)
+    def _receive_loop(self, samples: zenoh.Handler[zenoh.Sample]) -> None:
+        """The datagram thread: one blocking receive a frame, as the UDP wire's; ends when the
+        subscriber is undeclared (its channel closes)."""
+        sources: dict[str, Address | None] = {}  # key -> the address it names (a team has few senders)
+        while True:
+            try:
+                sample = samples.recv()
+            except zenoh.ZError:
+                return
+            key = str(sample.key_expr)
+            if key in sources:
+                src = sources[key]
+            else:
+                sender = self.keys.sender_of(key)
+                src = None if sender is None else address_of(sender)
+                if len(sources) >= 4096:
+                    sources.clear()
+                sources[key] = src
+            if src is None or self._stopping:
+                self.count("dropped.key")
+                continue
+            got = self.accept_frame(sample.payload.to_bytes(), "udp", src)
+            if got is not None:
+                for msg in got[0]:
+                    self.deliver(msg)
 
     def _on_query(self, query: zenoh.Query) -> None:
         """A reliable frame: acknowledge each message in the reply, then hand it on once."""
