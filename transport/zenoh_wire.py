@@ -18,8 +18,10 @@ module replaces is only how bytes move (key expressions in `zenoh_keys.py`):
   a token that appears is a hint of presence (as a broadcast beacon is: the session decides), one
   that goes marks its agent gone (`on_gone`) at once instead of after its silence limit.
 
-Zenoh calls back on its own threads: those play the part of the receive threads (a frame is
-checked and handed on there, never processed under a blackboard transaction).
+Datagrams wait in a bounded ring channel (the oldest dropped when it is full) for one receive
+thread blocked on it, as the UDP wire's thread is on its socket; queries and liveliness changes
+are handled on Zenoh's own threads, where the reply has to be made. Either way a frame is checked
+and handed on there, never processed under a blackboard transaction.
 """
 
 from __future__ import annotations
