@@ -380,6 +380,11 @@ class ZenohEndpoint(Endpoint):
                 if len(self._alive) > 65536:  # bounded: tokens are anyone's to declare
                     self._alive.pop(next(iter(self._alive)))
             self.count("zenoh.tokens")
+            if self.hint_wanted is not None and not self.hint_wanted(name):
+                return  # a peer in session already: its token tells nothing new
+            if not self._beacon_bucket.take():  # unsigned: anyone the router admits may declare one
+                self.count("dropped.rate")
+                return
             self._dispatch(Message(name, role, address_of(name), 0, 0, "", "beacon", Beacon(role=role), hint=True))
             return
         with self._alive_lock:
