@@ -383,3 +383,36 @@ def test_insecure_agents_task_each_other_over_zenoh_too(team):
         tx.add(task)
     final = wait_until(lambda: (t := control.blackboard.get(task.uid)) is not None and t.done and t)
     assert final.state is TaskState.SUCCEEDED
+
+
+def test_two_sites_linked_by_their_routers_over_tls_with_access_control(team):
+    """The control node at site A tasks and cancels a robot at site B and sees its Pose; each knows
+    only its own site's router, and the routers admit the team's certificates only."""
+    from erni.transport.identity import load_identity
+    from erni.transport.zenoh_acl import access_control
+    from tests.transport.helpers import identity
+
+    tls_team = TEAM + "-sites"
+    site_a, site_b = f"tls/127.0.0.1:{free_port()}", f"tls/127.0.0.1:{free_port()}"
+    access = access_control(tls_team, ["control", "robot1"], routers=["site-a", "site-b"])
+    router_a = open_router([site_a], identity=load_identity(identity("site-a", "router")), access=access)
+    router_b = open_router([site_b], connect=[site_a], identity=load_identity(identity("site-b", "router")),
+                           access=access)
+    try:
+        control = team("control", echo=False, zenoh={"team": tls_team, "mode": "client", "connect": [site_a]})
+        robot = team("robot1", zenoh={"team": tls_team, "mode": "client", "connect": [site_b]})
+        wait_until(lambda: up(control, "robot1") and up(robot, "control"))
+        task = Task(verb="BotMotion", preposition="forward", params={"distance": 1.0}, source="control",
+                    destination="robot1")
+        with control.transaction() as tx:
+            tx.add(task)
+        wait_until(lambda: (t := control.blackboard.get(task.uid)) is not None and t.done)
+        with robot.transaction() as tx:
+            tx.add(Pose(uid="pose:robot1", robot="robot1", x=-4.0, y=2.5, theta=1.0))
+        assert wait_until(lambda: control.blackboard.get("pose:robot1")).x == -4.0
+        with control.transaction() as tx:
+            tx.remove(task.uid)
+        wait_until(lambda: not robot.blackboard.contains(task.uid))
+    finally:
+        router_b.close()
+        router_a.close()
