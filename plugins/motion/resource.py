@@ -179,6 +179,7 @@ class RobotMotionResource:
 
     def _control_loop(self) -> None:
         last = -math.inf  # when the last cycle ran
+        last_sip = -math.inf  # when the last cycle on a new SIP ran (the rate limit counts from it)
         while not self._stop.is_set():
             if self.idle():  # nothing to steer: sleep until a task comes (or a slow check is due)
                 self._steering = False
@@ -186,12 +187,16 @@ class RobotMotionResource:
                 if delay > 0 and not self._inbox:
                     self._wake.wait(delay)
                     self._wake.clear()
+                if self._inbox:
+                    last_sip = -math.inf  # a task to a standing robot: its steering starts its own pace
             else:
                 self._steering = True
-                self._await_sip(last)
+                self._await_sip(last, last_sip)
             if self._stop.is_set():
                 break
             now = last = self.clock()
+            if self._new_sip:
+                last_sip = now
             self._new_sip = False  # the state read by this cycle is at least as new as the SIP that woke it
             try:
                 self._drain_inbox(now)
@@ -206,11 +211,15 @@ class RobotMotionResource:
         if self.driver.connected:
             self.driver.stop()
 
-    def _await_sip(self, last: float) -> None:
-        """While steering: until a new SIP at least `period` after the last cycle, a task or a
-        cancellation (at once), or one and a half SIP intervals without a SIP."""
+    def _await_sip(self, last: float, last_sip: float = -math.inf) -> None:
+        """While steering: until a new SIP at least `period` after the last cycle on a SIP, a task
+        or a cancellation (at once), or one and a half SIP intervals without a SIP after the last
+        cycle. The rate counts SIP cycles only, and a task to a standing robot starts it afresh:
+        neither the cycle that took the task nor the last cycle of the steering before holds back
+        the SIP that shows the task's effect (at 100 Hz they held the first Pose showing motion
+        back by half a period on average)."""
         fallback = last + max(self.period, 1.5 * self.driver.sip_interval)
-        earliest = last + self.period
+        earliest = last_sip + self.period
         while not self._stop.is_set() and not self._inbox:
             now = self.clock()
             if now >= fallback or (self._new_sip and now >= earliest):
