@@ -80,8 +80,8 @@ EXPERIMENTS: dict[str, Experiment] = {e.name: e for e in [
                ("agents", "kinematic"), "spread", seeds=True),
     Experiment("territory", "territory", "002", "six territories; one robot fails and is taken over",
                ("agents", "kinematic"), "territory"),
-    Experiment("roundtrip", "roundtrip", "002", "status data from one robot to 1, 3 and 5 consumers: round trip "
-               "(Table II)", ("agents",), "roundtrip"),
+    Experiment("roundtrip", "roundtrip", "002", "sensor data and images from one robot to 1-5 consumers: round "
+               "trip (Table II)", ("agents",), "roundtrip"),
     Experiment("response", "response", "003", "motor command to odometry: raw, poll, notify (Table I)",
                ("agents",), "response"),
     Experiment("memory", "memory", "004", "resident memory of a robot agent and a robot's processes (Table 1)",
