@@ -9,7 +9,8 @@ Every agent of a team receives under its own key expression, `erni/<team>/<name>
   in-session beacons), best effort, newest wins, as ERNI's UDP;
 - `erni/<team>/<receiver>/r/<sender>`: reliable messages as queries (tasks, results, cancels); the
   reply is the acknowledgement (or a hint that the session is unknown), as ERNI's TCP stream;
-- `erni/<team>/<name>/alive/<role>/<instance>`: the agent's liveliness token (who is up).
+- `erni/<team>/<name>/alive/<role>/<instance>/<router>`: the agent's liveliness token (who is
+  up, and the Zenoh id of the router it is connected through, `-` for none).
 
 The sender's name in a key is only where to answer: every frame is still authenticated by its
 session, so a key that lies gains nothing but a wasted answer. An agent's address on this wire
@@ -127,23 +128,23 @@ class Keys:
         """What `receiver` subscribes to (lane `d`) or answers (lane `r`)."""
         return f"{self.root}/{receiver}/{lane}/*"
 
-    def token(self, name: str, role: str, inst: str) -> str:
-        """The liveliness token of one instance of agent `name`."""
-        return f"{self.root}/{name}/{ALIVE}/{role or '-'}/{inst}"
+    def token(self, name: str, role: str, inst: str, router: str = "") -> str:
+        """The liveliness token of one instance of agent `name`, connected through `router` ('': none)."""
+        return f"{self.root}/{name}/{ALIVE}/{role if NAME.match(role) else '-'}/{inst}/{router or '-'}"
 
     def tokens(self) -> str:
         """Every liveliness token of the team."""
-        return f"{self.root}/*/{ALIVE}/*/*"
+        return f"{self.root}/*/{ALIVE}/*/*/*"
 
     def sender_of(self, key: str) -> str | None:
         """The sender a frame's key names (its last chunk), or None when it names no agent."""
         sender = key.rpartition("/")[2]
         return sender if NAME.match(sender) else None
 
-    def parse_token(self, key: str) -> tuple[str, str, str] | None:
-        """(name, role, instance) of a liveliness token's key, or None for another key."""
+    def parse_token(self, key: str) -> tuple[str, str, str, str] | None:
+        """(name, role, instance, router) of a liveliness token's key, or None for another key."""
         parts = key.split("/")
-        if len(parts) != 6 or "/".join(parts[:2]) != self.root or parts[3] != ALIVE or not NAME.match(parts[2]):
+        if len(parts) != 7 or "/".join(parts[:2]) != self.root or parts[3] != ALIVE or not NAME.match(parts[2]):
             return None
         role = "" if parts[4] == "-" else parts[4]
-        return parts[2], role, parts[5]
+        return parts[2], role, parts[5], "" if parts[6] == "-" else parts[6]

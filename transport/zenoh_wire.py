@@ -14,9 +14,10 @@ module replaces is only how bytes move (key expressions in `zenoh_keys.py`):
   acknowledgement sealed in the session (or a hint that the session is unknown), as ERNI's TCP
   stream does; the sender pool retries, de-duplication and order per destination are the
   endpoint's, unchanged;
-- discovery is Zenoh's liveliness: each agent holds a token `erni/<team>/<name>/alive/<role>/<inst>`;
+- discovery is Zenoh's liveliness: each agent holds a token `erni/<team>/<name>/alive/<role>/<inst>/<router>`;
   a token that appears is a hint of presence (as a broadcast beacon is: the session decides), one
-  that goes marks its agent gone (`on_gone`) at once instead of after its silence limit.
+  that goes marks its agent gone (`on_gone`) at once instead of after its silence limit; the
+  router in it (declared again when the agent's router changes) says where the agent is reached.
 
 Datagrams wait in a bounded ring channel (the oldest dropped when it is full) for one receive
 thread blocked on it, as the UDP wire's thread is on its socket; queries and liveliness changes
@@ -131,7 +132,11 @@ class ZenohEndpoint(Endpoint):
         self._zs: zenoh.Session | None = None
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._pub_lock = threading.Lock()
-        self._alive: dict[str, set[str]] = {}  # agent -> its instances holding a token now
+        self._alive: dict[str, set[tuple[str, str]]] = {}  # agent -> (instance, router) of its tokens held now
+        self._routes: dict[str, str] = {}  # agent -> the router its newest token names ('' direct)
+        self._token: zenoh.LivelinessToken | None = None
+        self._token_router = ""
+        self._next_route_check = 0.0
         self._alive_lock = threading.Lock()
         self._halt = threading.Event()
         self._rx: threading.Thread | None = None  # the datagram thread (`_receive_loop`)
@@ -170,7 +175,9 @@ class ZenohEndpoint(Endpoint):
                                               zenoh.handlers.RingChannel(DATAGRAM_QUEUE))
             declared: list[Any] = [datagrams, zs.declare_queryable(self.keys.listen(self.name, RELIABLE), self._on_query)]
             if self.role != CLIENT_ROLE:  # a command-line client is no peer: it shows no token
-                declared.append(zs.liveliness().declare_token(self.keys.token(self.name, self.role, self.inst)))
+                self._token_router = _router_of(zs)
+                self._token = zs.liveliness().declare_token(self.keys.token(self.name, self.role, self.inst,
+                                                                            self._token_router))
             declared.append(zs.liveliness().declare_subscriber(self.keys.tokens(), self._on_token, history=True))
         except zenoh.ZError as err:
             zs.close()  # type: ignore[no-untyped-call]  # untyped in Zenoh's stubs
@@ -192,7 +199,9 @@ class ZenohEndpoint(Endpoint):
         deadline = time.monotonic() + timeout
         for t in self._threads[:1]:  # the sweeper: it may be attaching a session
             t.join(max(0.0, deadline - time.monotonic()))
-        for entity in reversed(self._declared):  # the token first; the subscriber's end ends the receive thread
+        token, self._token = self._token, None
+        for entity in ([token] if token is not None else []) + list(reversed(self._declared)):
+            # the token first (peers see this agent go); the subscriber's end ends the receive thread
             try:
                 entity.undeclare()
             except zenoh.ZError:
@@ -221,11 +230,27 @@ class ZenohEndpoint(Endpoint):
                     self._next_open = now + RECONNECT
                     self._attach(open_session(self.zenoh_settings, identity=self.identity))
                     self.log.info("connected to Zenoh through %s", " ".join(self.zenoh_settings.connect))
+                if now >= self._next_route_check:
+                    self._next_route_check = now + 1.0
+                    self._follow_router()
                 self.sessions.sweep(now)
             except NetworkError:
                 self.count("zenoh.unreachable")
             except Exception:  # never lose the sweeper
                 self.log.exception("session sweep failed")
+
+    def _follow_router(self) -> None:
+        """Declare the token again when the router this agent is connected through changed (a
+        reconnection to another router of the site): the new one first, so it is never gone."""
+        zs, old = self._zs, self._token
+        if zs is None or old is None:
+            return
+        router = _router_of(zs)
+        if router == self._token_router:
+            return
+        self._token = zs.liveliness().declare_token(self.keys.token(self.name, self.role, self.inst, router))
+        self._token_router = router
+        old.undeclare()  # type: ignore[no-untyped-call]  # untyped in Zenoh's stubs
 
     @property
     def session(self) -> zenoh.Session:
@@ -371,14 +396,17 @@ class ZenohEndpoint(Endpoint):
         parsed = self.keys.parse_token(str(sample.key_expr))
         if parsed is None:
             return
-        name, role, inst = parsed
+        name, role, inst, router = parsed
         if name == self.name and inst == self.inst:
             return
         if sample.kind == zenoh.SampleKind.PUT:
             with self._alive_lock:
-                self._alive.setdefault(name, set()).add(inst)
+                self._alive.setdefault(name, set()).add((inst, router))
+                self._routes[name] = router
                 if len(self._alive) > 65536:  # bounded: tokens are anyone's to declare
-                    self._alive.pop(next(iter(self._alive)))
+                    oldest = next(iter(self._alive))
+                    del self._alive[oldest]
+                    self._routes.pop(oldest, None)
             self.count("zenoh.tokens")
             if self.hint_wanted is not None and not self.hint_wanted(name):
                 return  # a peer in session already: its token tells nothing new
@@ -388,11 +416,12 @@ class ZenohEndpoint(Endpoint):
             self._dispatch(Message(name, role, address_of(name), 0, 0, "", "beacon", Beacon(role=role), hint=True))
             return
         with self._alive_lock:
-            insts = self._alive.get(name, set())
-            insts.discard(inst)
-            gone = not insts
+            held = self._alive.get(name, set())
+            held.discard((inst, router))
+            gone = not held
             if gone:
                 self._alive.pop(name, None)
+                self._routes.pop(name, None)
         if gone:
             self.count("zenoh.gone")
             try:
@@ -403,7 +432,19 @@ class ZenohEndpoint(Endpoint):
     def alive(self) -> dict[str, set[str]]:
         """The agents whose liveliness tokens are held now, with their instances."""
         with self._alive_lock:
-            return {name: set(insts) for name, insts in self._alive.items()}
+            return {name: {inst for inst, _ in held} for name, held in self._alive.items()}
+
+    def route_of(self, name: str) -> str | None:
+        """The Zenoh id of the router agent `name` is connected through ('' directly, as a peer),
+        by its newest token; None when no token of it is held."""
+        with self._alive_lock:
+            return self._routes.get(name)
+
+
+def _router_of(zs: zenoh.Session) -> str:
+    """The Zenoh id of the router a session is connected through ('' for none)."""
+    routers = zs.info.routers_zid()
+    return str(routers[0]) if routers else ""
 
 
 __all__ = ["ALIVE", "ZenohEndpoint", "open_router", "open_session"]

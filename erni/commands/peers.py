@@ -42,22 +42,28 @@ def run(args: argparse.Namespace) -> int:
         except ClientError as err:
             print(f"erni peers: {err}", file=sys.stderr)
             return 1
+        # on Zenoh: the router each agent is connected through, as its liveliness token says
+        route_of = getattr(client.endpoint, "route_of", None)
+        routes = {p.name: route_of(p.name) for p in msg.body.peers} if route_of is not None else {}
     now = time.time()
     peers = sorted(msg.body.peers, key=lambda p: p.name)
     beacons, down_after = msg.body.beacons, msg.body.down_after
     if args.json:
         for p in peers:
             print(dumps({"via": msg.body.agent, **p.model_dump(mode="json"), "wire": wire_of(p.address),
+                         **({"router": routes.get(p.name)} if routes else {}),
                          "beacons": beacons.get(p.name), "down_after": down_after.get(p.name)}))
         return 0
     print(f"agents known to {msg.body.agent} ({addr[0]}:{addr[1]}):")
-    print(f"{'name':<16} {'state':<5} {'wire':<5} {'address':<22} {'role':<10} {'heard':>8} {'down after':>10} "
-          f"{'beacons':>8}  capabilities")
+    print(f"{'name':<16} {'state':<5} {'wire':<5} {'address':<22}" + (f" {'router':<12}" if routes else "")
+          + f" {'role':<10} {'heard':>8} {'down after':>10} {'beacons':>8}  capabilities")
     for p in peers:
+        route = routes.get(p.name)
+        router = f" {'-' if route is None else route[:12] or 'direct':<12}" if routes else ""
         heard = f"{now - p.last_heard:.1f}s" if p.last_heard else "never"
         limit = f"{down_after[p.name]:.1f}s" if p.name in down_after else "-"
         share = f"{100 * beacons[p.name]:.0f}%" if p.name in beacons else "-"
-        print(f"{p.name:<16} {'up' if p.up else 'down':<5} {wire_of(p.address) or '-':<5} {p.address:<22} "
+        print(f"{p.name:<16} {'up' if p.up else 'down':<5} {wire_of(p.address) or '-':<5} {p.address:<22}{router} "
               f"{p.role:<10} {heard:>8} {limit:>10} "
               f"{share:>8}  {','.join(p.capabilities)}" + (f"  DEGRADED: {p.degraded}" if p.degraded else ""))
     return 0

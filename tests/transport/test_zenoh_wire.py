@@ -98,7 +98,7 @@ def test_a_frame_replayed_or_tampered_with_at_the_router_is_refused(team, router
     control, robot = team("control", echo=False), team("robot1")
     spy = Eavesdropper(router, "robot1")
     try:
-        wait_until(lambda: up(control, "robot1") and up(robot, "control"))
+        wait_until(lambda: up(control, "robot1") and up(robot, "control") and spy.datagrams)  # the spy is in place
         task = Task(verb="BotMotion", preposition="forward", params={"distance": 1.0}, source="control",
                     destination="robot1")
         with control.transaction() as tx:
@@ -111,7 +111,8 @@ def test_a_frame_replayed_or_tampered_with_at_the_router_is_refused(team, router
         counters = robot.plugin("transport").endpoint.counters
         before = dict(counters)
         key, frame = [(k, raw) for k, raw in spy.queries if raw[4] == DATA][0]
-        replies = list(spy.session.get(key, payload=frame, timeout=1.0))  # the task, replayed
+        replies = list(spy.session.get(key, payload=frame, timeout=1.0,  # the task, replayed, to robot1 too
+                                       target=zenoh.QueryTarget.ALL))
         key, datagram = [(k, raw) for k, raw in spy.datagrams if raw[4] == DATA][-1]
         spy.session.put(key, datagram)  # a status or beacon, replayed
         tampered = bytearray(datagram)  # a counter never used, so that the replay window lets it by
@@ -204,7 +205,8 @@ def test_erni_peers_reaches_the_team_through_the_router_and_shows_the_wire(team,
     assert main([*args, "--via", "control"]) == 0
     out = capsys.readouterr().out
     line = next(line for line in out.splitlines() if line.startswith("robot1"))
-    assert line.split()[1:4] == ["up", "zenoh", "zenoh/robot1:0"], out
+    router_id = str(control.plugin("transport").endpoint.session.info.routers_zid()[0])
+    assert line.split()[1:5] == ["up", "zenoh", "zenoh/robot1:0", router_id[:12]], out
     assert main(args) == 0  # without --via: an agent found by its liveliness token
     assert "zenoh/" in capsys.readouterr().out
     assert main(["peers", "--zenoh", "tcp:127.0.0.1", "--team", TEAM]) == 2
@@ -413,6 +415,8 @@ def test_two_sites_linked_by_their_routers_over_tls_with_access_control(team):
         with control.transaction() as tx:
             tx.remove(task.uid)
         wait_until(lambda: not robot.blackboard.contains(task.uid))
+        assert control.plugin("transport").endpoint.route_of("robot1") == str(router_b.zid())
+        assert robot.plugin("transport").endpoint.route_of("control") == str(router_a.zid())
     finally:
         router_b.close()
         router_a.close()
