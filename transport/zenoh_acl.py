@@ -19,20 +19,21 @@ from __future__ import annotations
 
 from typing import Any
 
+from erni.blackboard.errors import ConfigError
 from erni.transport.zenoh_keys import ALIVE, DATAGRAM, NAME, RELIABLE, Keys
 
 
 def access_control(team: str, names: list[str], routers: list[str] | None = None) -> dict[str, Any]:
     """The `access_control` section of a router's Zenoh configuration for agents `names` of `team`,
     and other routers (`routers`: their certificates' names) that may carry anything of the team
-    (ValueError for a name that is no agent's)."""
+    (ConfigError for a name that is no agent's)."""
     root = Keys(team).root
     rules: list[dict[str, Any]] = []
     subjects: list[dict[str, Any]] = []
     policies: list[dict[str, Any]] = []
     for name in sorted(set(names)):
         if not NAME.match(name):
-            raise ValueError(f"agent name {name[:80]!r}: expected letters, digits, '_', '.', '-'")
+            raise ConfigError(f"agent name {name[:80]!r}: expected letters, digits, '_', '.', '-'")
         mine = f"{root}/{name}"
         own_rules = [
             ("sends", "ingress", ["put"], [f"{root}/*/{DATAGRAM}/{name}"]),
@@ -59,7 +60,7 @@ def access_control(team: str, names: list[str], routers: list[str] | None = None
     if routers:
         for name in routers:
             if not NAME.match(name):
-                raise ValueError(f"router name {name[:80]!r}: expected letters, digits, '_', '.', '-'")
+                raise ConfigError(f"router name {name[:80]!r}: expected letters, digits, '_', '.', '-'")
         rules.append({"id": "routers carry the team", "permission": "allow", "flows": ["ingress", "egress"],
                       "messages": ["put", "delete", "query", "reply", "declare_subscriber", "declare_queryable",
                                    "liveliness_token", "declare_liveliness_subscriber", "liveliness_query"],

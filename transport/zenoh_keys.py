@@ -24,6 +24,8 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from erni.blackboard.errors import ConfigError
+
 Address = tuple[str, int]
 
 ADDRESS_PREFIX = "zenoh/"
@@ -87,10 +89,11 @@ class ZenohSettings(BaseModel):
 
 
 def check_endpoint(value: str) -> str:
-    """Return `value` if it is a locator this wire accepts; raise ValueError naming the expected form."""
+    """Return `value` if it is a locator this wire accepts; raise ConfigError (a ValueError) naming the
+    expected form."""
     match = ENDPOINT.match(value.strip())
     if match is None or not 0 < int(match.group(3)) <= 65535:
-        raise ValueError(f"zenoh endpoint {value[:80]!r}: expected PROTOCOL/HOST:PORT with PROTOCOL one of "
+        raise ConfigError(f"zenoh endpoint {value[:80]!r}: expected PROTOCOL/HOST:PORT with PROTOCOL one of "
                          "tcp, udp, tls, quic, ws and PORT in 1..65535, e.g. tcp/192.0.2.1:7447")
     return value
 

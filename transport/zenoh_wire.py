@@ -262,17 +262,17 @@ class ZenohEndpoint(Endpoint):
     # -- sending --------------------------------------------------------------------------
 
     def _sendto(self, frame: bytes, addr: Address) -> None:
-        """Put one frame to the agent at `addr`, best effort (OSError when it cannot go)."""
+        """Put one frame to the agent at `addr`, best effort (NetworkError, an OSError, when it cannot go)."""
         if self.udp_loss and self._rng.random() < self.udp_loss:
             self.count("dropped.injected")
             return
         name = name_at(addr)
         if name is None:
-            raise OSError(f"{addr[0]}:{addr[1]} is no address on the Zenoh wire (expected zenoh/NAME:0)")
+            raise NetworkError(f"{addr[0]}:{addr[1]} is no address on the Zenoh wire (expected zenoh/NAME:0)")
         try:
             self._publisher(name).put(frame)
         except (zenoh.ZError, NetworkError) as err:
-            raise OSError(f"Zenoh put to {name} failed: {err}") from None
+            raise NetworkError(f"Zenoh put to {name} failed: {err}") from None
 
     def _publisher(self, name: str) -> zenoh.Publisher:
         pub = self._publishers.get(name)
