@@ -350,7 +350,9 @@ class ZenohEndpoint(Endpoint):
                 if len(sources) >= 4096:
                     sources.clear()
                 sources[key] = src
-            if src is None or self._stopping:
+            if self._stopping:
+                continue
+            if src is None:
                 self.count("dropped.key")
                 continue
             got = self.accept_frame(sample.payload.to_bytes(), "udp", src)
@@ -362,7 +364,9 @@ class ZenohEndpoint(Endpoint):
         """A reliable frame: acknowledge each message in the reply, then hand it on once."""
         sender = self.keys.sender_of(str(query.key_expr))
         payload = query.payload
-        if sender is None or payload is None or self._stopping:
+        if self._stopping:
+            return
+        if sender is None or payload is None:
             self.count("dropped.key")
             return
         raw, src = payload.to_bytes(), address_of(sender)
