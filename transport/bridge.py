@@ -22,6 +22,9 @@
   receive thread marks the peer heard, the liveness pass updates `last_heard`.
 - Clients (`erni watch`) may lease a stream of blackboard changes; `erni task --wait` asks
   for a task's state (`task.query`).
+- With `wire = "zenoh"` the same messages travel over Zenoh (`zenoh_wire.py`): no broadcast
+  beacons; an agent's liveliness token stands for them, and a peer whose token goes is down at
+  once (`_gone`).
 
 All network traffic is handed to the endpoint's sender pool; received messages are handed
 to `execute()` with `later()`, so nothing here does I/O inside a transaction.

@@ -226,7 +226,7 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
         self.hint_wanted: Callable[[str], bool] | None = None
         # the agent of this name has left (a wire that tells, as Zenoh's liveliness does; UDP never calls it)
         self.on_gone: Callable[[str], None] = lambda name: None
-        self.wire = "udp"  # the wire the frames travel on, as `erni peers` shows it
+        self.wire = "udp"  # the wire the frames travel on ('zenoh' for zenoh_wire.ZenohEndpoint)
 
     # -- counters -------------------------------------------------------------------------
 
