@@ -19,6 +19,7 @@ waited for plus the decodes), and every wrong hearing and false stop; written to
     python bench/bench_speech.py [--voices en-us,en-gb,en-us+f3] [--speeds 130,160,190]
                                  [--noises clean,15,5] [--seed 36] [--every 1] [--part 1/1]
                                  [--json artifacts/ui/speech_set.json]
+    python bench/bench_speech.py --recogniser vosk --vosk-model DIR ...  # an English vosk model instead
     python bench/bench_speech.py --report RUN.json [RUN.json ...]   # the Markdown tables of saved runs
 """
 
@@ -26,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import statistics
 import sys
 import time
@@ -37,8 +39,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from erni.plugins.ui.jsgf import jsgf  # noqa: E402
-from erni.plugins.ui.speech import RATE, SphinxRecognizer  # noqa: E402
+from erni.plugins.ui.speech import RATE, SpeechError, choose_recognizer  # noqa: E402
 from tests.ui import speech_set as S  # noqa: E402
 
 COLUMNS = ("exact", "confirmed", "asked", "refused", "wrong", "false stop")  # exact counts the confirmed too
@@ -72,8 +73,10 @@ def save(args: argparse.Namespace, rows: list[dict[str, Any]], clips: list[dict[
     """The rows and every clip (what was said and heard, the answers to read-backs, the evidence) as JSON."""
     out = Path(args.json)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({"recogniser": "pocketsphinx en-us, ERNI grammar as JSGF, two decodes + word scores, "
-                                             "noise-floor endpointer, stop keyphrases",
+    which = (f"vosk {args.vosk_model or os.environ.get('VOSK_MODEL_PATH', '')}, ERNI grammar, word confidences"
+             if args.backend == "vosk" else "pocketsphinx en-us, ERNI grammar as JSGF, two decodes + word scores, "
+             "noise-floor endpointer, stop keyphrases")
+    out.write_text(json.dumps({"recogniser": which,
                                "seed": args.seed, "every": args.every, "part": args.part, "rows": rows,
                                "clips": clips}, indent=1) + "\n")
 
@@ -128,6 +131,9 @@ def main() -> int:
     ap.add_argument("--speeds", default=",".join(map(str, S.SPEEDS)))
     ap.add_argument("--noises", default="clean,15,5", help="clean and/or SNRs in dB")
     ap.add_argument("--seed", type=int, default=36, help="seed of the noise")
+    ap.add_argument("--recogniser", choices=("auto", "vosk", "pocketsphinx"), default="pocketsphinx",
+                    help="as the UI's setting: vosk needs --vosk-model or VOSK_MODEL_PATH")
+    ap.add_argument("--vosk-model", default=None, help="a vosk model directory (an English one)")
     ap.add_argument("--json", default="artifacts/ui/speech_set.json")
     ap.add_argument("--every", type=int, default=1, help="the stop phrasings and every K-th other line of the set")
     ap.add_argument("--part", default="1/1", help="run the I-th of N shares of the conditions (I/N), "
@@ -142,7 +148,14 @@ def main() -> int:
     conditions = conditions[i - 1::n_parts]
     texts = S.utterances()
     texts = [t for t in texts if t in S.STOPS] + [t for t in texts if t not in S.STOPS][::args.every]
-    stream = SphinxRecognizer(jsgf()).stream()  # one decoder, as for one microphone
+    try:  # the control node's own choice and loading of its recogniser
+        loader = choose_recognizer(args.recogniser, args.vosk_model)
+        args.backend = getattr(loader, "backend", args.recogniser)
+        recogniser = loader()
+    except SpeechError as err:
+        print(f"bench_speech: {err}", file=sys.stderr)
+        return 2
+    stream = recogniser.stream()  # one decoder, as for one microphone
     rng = np.random.default_rng(args.seed)
     rows: list[dict[str, Any]] = []
     wrong: list[dict[str, Any]] = []

@@ -84,3 +84,20 @@ def test_the_whole_speech_set_meets_its_targets(stream):
     assert not wrong, wrong
     assert stops["exact"] >= 0.98 * sum(stops.values()), dict(stops)
     assert outcomes["exact"] >= 0.9 * n, dict(outcomes)
+
+
+def test_the_bench_measures_a_vosk_model_when_given_one_and_names_a_missing_one(tmp_path):
+    """`bench_speech.py --recogniser vosk` loads the control node's vosk path (an English model where
+    one is at hand); a model directory that is not one is one line and exit 2, nothing measured."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    out = subprocess.run([sys.executable, str(root / "bench" / "bench_speech.py"), "--recogniser", "vosk",
+                          "--vosk-model", str(tmp_path / "none"), "--json", str(tmp_path / "run.json")],
+                         capture_output=True, text=True, timeout=60)
+    assert out.returncode == 2, out
+    assert out.stderr.strip().splitlines() == [out.stderr.strip()]
+    assert f"no vosk model at {tmp_path / 'none'}" in out.stderr
+    assert not (tmp_path / "run.json").exists()
