@@ -420,3 +420,18 @@ def test_two_sites_linked_by_their_routers_over_tls_with_access_control(team):
     finally:
         router_b.close()
         router_a.close()
+
+
+def test_without_the_zenoh_package_the_agent_says_what_to_install_in_one_line():
+    import subprocess
+    import sys
+
+    code = ("import sys\nsys.modules['zenoh'] = None  # as if eclipse-zenoh were not installed\n"
+            "from erni.blackboard.errors import ConfigError\n"
+            "from erni.transport.bridge import TransportSettings\n"
+            "try:\n    TransportSettings(wire='zenoh', insecure=True).make_endpoint('robot1')\n"
+            "except ConfigError as err:\n    print(err)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip().splitlines() == [
+        "wire = \"zenoh\" needs the eclipse-zenoh package, which is not installed: pip install 'erni[zenoh]'"]
