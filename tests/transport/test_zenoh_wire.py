@@ -195,7 +195,7 @@ def test_two_peers_meet_without_a_router(team):
     assert final.state is TaskState.SUCCEEDED
 
 
-def test_erni_peers_reaches_the_team_through_the_router_and_shows_the_wire(team, router, capsys):
+def test_erni_peers_and_task_reach_the_team_through_the_router_and_peers_shows_the_wire(team, router, capsys):
     from erni.cli import main
     from tests.transport.helpers import identity
 
@@ -209,6 +209,9 @@ def test_erni_peers_reaches_the_team_through_the_router_and_shows_the_wire(team,
     assert line.split()[1:5] == ["up", "zenoh", "zenoh/robot1:0", router_id[:12]], out
     assert main(args) == 0  # without --via: an agent found by its liveliness token
     assert "zenoh/" in capsys.readouterr().out
+    tasking = ["task", "--zenoh", router, "--team", TEAM, "--identity", identity("cli", "cli"), "--via", "control"]
+    assert main([*tasking, "robot1", "BotMotion", "stop", "--wait"]) == 0, capsys.readouterr().err
+    assert "succeeded" in capsys.readouterr().out
     assert main(["peers", "--zenoh", "tcp:127.0.0.1", "--team", TEAM]) == 2
     assert "expected PROTOCOL/HOST:PORT" in capsys.readouterr().err
     assert main(["peers", "--zenoh", f"tcp/127.0.0.1:{free_port()}", "--team", TEAM, "--insecure"]) == 1
