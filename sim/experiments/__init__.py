@@ -71,6 +71,8 @@ EXPERIMENTS: dict[str, Experiment] = {e.name: e for e in [
                ("agents", "kinematic"), "relay"),
     Experiment("relay2", "relay2", "000", "two robots relaying between a source and a destination",
                ("agents", "kinematic"), "relay"),
+    Experiment("relay-video", "relay-video", "000", "video through one relay: loss and delay against its position "
+               "(Figure 6; loopback tier)", ("transport",), "relayvideo"),
     Experiment("spread-open", "spread-open", "001", "robots spreading in an open field until they settle",
                ("agents", "kinematic"), "spread", seeds=True),
     Experiment("spread-corridor", "spread-corridor", "001",
