@@ -13,6 +13,15 @@ settings.register_profile("erni", deadline=None, suppress_health_check=[HealthCh
 settings.load_profile("erni")
 
 
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Under pytest-xdist (`-n 2 --dist loadgroup`): a file's tests run on one worker, so its module
+    fixtures (a team, a browser) start once, and every real-mesh test on the same one, since
+    network namespaces and nftables are the machine's, not the worker's."""
+    for item in items:
+        group = "netns" if item.get_closest_marker("netns") else item.nodeid.split("::")[0]
+        item.add_marker(pytest.mark.xdist_group(group))
+
+
 def _extra_threads(before: set[threading.Thread]) -> list[threading.Thread]:
     return [t for t in threading.enumerate() if t not in before and t.is_alive()]
 
