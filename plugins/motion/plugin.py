@@ -135,8 +135,18 @@ class RobotMotionControl(Plugin[MotionSettings]):
         self.resource.close()
 
     def _publish(self, updates: list[TaskUpdate], state: RobotState | None) -> None:
-        """Publish outcome changes and the pose, each in a short transaction (the resource's poll or
-        stack thread, one at a time)."""
+        """Publish the pose, then the outcome changes, each in a short transaction (the resource's
+        poll or stack thread, one at a time). The pose goes first: whoever sees an outcome ("stop
+        succeeded: halted") finds the pose of the state it was decided on, or a newer one, already
+        on the blackboard, never the one before it."""
+        if state is not None:
+            pose = pose_of(self.agent_name, state)
+            with self.transaction():
+                if self.pose is None and not self.query(Pose, where=lambda p: p.uid == pose.uid):
+                    self.add(pose)
+                else:
+                    self.change(pose)
+            self.pose = pose
         for u in updates:
             try:
                 with self.transaction():
@@ -148,14 +158,6 @@ class RobotMotionControl(Plugin[MotionSettings]):
                     self.change(current.evolve(result=result), reports=[u.state.value])
             except TransactionError:
                 pass  # the task was removed (cancelled) meanwhile: nothing to report to
-        if state is not None:
-            pose = pose_of(self.agent_name, state)
-            with self.transaction():
-                if self.pose is None and not self.query(Pose, where=lambda p: p.uid == pose.uid):
-                    self.add(pose)
-                else:
-                    self.change(pose)
-            self.pose = pose
 
     def _current(self, uid: str) -> Task | None:
         found = self.get(uid)

@@ -169,6 +169,32 @@ def test_a_stop_ends_every_motion_cancelled_naming_who_and_the_robot_stays_halte
         tx.remove(again.uid)
 
 
+def test_whoever_sees_a_stop_succeed_finds_the_robot_standing_on_the_blackboard(start_agent, robot_url):
+    """In commit order: when the stop's success is committed, the last Pose committed before it
+    already shows the robot standing (the pose of the state the outcome was decided on goes first),
+    so a GUI or a mission that reads "halted" never reads a moving robot beside it."""
+    agent, _ = start_agent(robot_url)
+    commits: list[tuple[str, object]] = []  # ("pose", Pose) and ("task", Task), as committed
+
+    def record(ops: list) -> None:
+        for _, obj, _ in ops:
+            if isinstance(obj, Pose):
+                commits.append(("pose", obj))
+            elif isinstance(obj, Task) and obj.done:
+                commits.append(("task", obj))
+
+    agent.blackboard.add_listener(record)
+    for motion in (dict(preposition="velocity", v=0.3, w=10.0), dict(preposition="goto", x=3.0, y=0.0, speed=0.3)):
+        params = dict(motion)
+        post(agent, params.pop("preposition"), **params)
+        wait_until(lambda: abs(pose(agent).v) > 0.05 or abs(pose(agent).w) > 0.1, timeout=3)
+        stop = post(agent, "stop", by="operator")
+        assert finish(agent, stop, timeout=3).state == TaskState.SUCCEEDED
+        at = next(i for i, (kind, obj) in enumerate(commits) if kind == "task" and obj.uid == stop.uid)
+        before = [obj for kind, obj in commits[:at] if kind == "pose"][-1]
+        assert abs(before.v) < 0.005 and abs(before.w) < 0.01, (before.v, before.w)
+
+
 def test_stop_takes_over_within_one_stack_cycle(start_agent, robot_url):
     agent, plugin = start_agent(robot_url)
     post(agent, "velocity", v=0.3)
