@@ -22,7 +22,11 @@ resolve the run at all: a real 100 Wh pack moves 0.1 V per 18 kJ.
 Durations: the scenario's are short (standby 10 s, each sweep speed held 3 s: about a minute
 in all). `paper_durations` (`erni experiment energy --paper-durations`, on demand: about 30
 minutes) holds them as paper 000 does, standby 600 s and each sweep speed 120 s, on a pack of
-`PAPER_BATTERY_WH` (the scenario's 0.5 Wh would run empty: the run then takes about 28 kJ).
+`PAPER_BATTERY_WH` (the scenario's 0.5 Wh would run empty: the run then takes about 28 kJ). Held
+that long in a straight line the sweep would drive 540 m, far out of the control node's radio
+range (30 m), so at the paper's durations the robot holds each speed on a circle of
+`PAPER_RADIUS` m (turning at v / r); the paper's model, and the simulated battery, count the
+speed only.
 """
 
 from __future__ import annotations
@@ -52,6 +56,7 @@ def _odometry_energy(poses: list[PoseSample]) -> float:
 PAPER_STANDBY = 600.0  # s standing still (paper 000, 5.3)
 PAPER_HOLD = 120.0  # s each sweep speed is held (paper 000, 5.3)
 PAPER_BATTERY_WH = 10.0  # the simulated pack at the paper's durations: 15 readings of 0.1 V over the run
+PAPER_RADIUS = 4.0  # m: the circle each speed is held on at the paper's durations (in radio range)
 
 
 def plan(strategy: dict[str, Any], paper_durations: bool = False) -> dict[str, Any]:
@@ -59,9 +64,11 @@ def plan(strategy: dict[str, Any], paper_durations: bool = False) -> dict[str, A
     p: dict[str, Any] = {"standby": float(strategy.get("standby", 10.0)), "distance": float(strategy.get("distance", 5.0)),
          "speed": float(strategy.get("speed", 0.5)),
          "sweep": [float(v) for v in strategy.get("sweep", [0.1, 0.3, 0.5, 0.7, 0.9])],
-         "hold": float(strategy.get("hold", 3.0)), "battery_wh": float(strategy.get("battery_wh", 0.5))}
+         "hold": float(strategy.get("hold", 3.0)), "battery_wh": float(strategy.get("battery_wh", 0.5)),
+         "radius": None}
     if paper_durations:
-        p.update(standby=PAPER_STANDBY, hold=PAPER_HOLD, battery_wh=max(p["battery_wh"], PAPER_BATTERY_WH))
+        p.update(standby=PAPER_STANDBY, hold=PAPER_HOLD, battery_wh=max(p["battery_wh"], PAPER_BATTERY_WH),
+                 radius=PAPER_RADIUS)
     return p
 
 
@@ -75,6 +82,7 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode:
     p = plan(scenario.strategy, paper_durations)
     standby, distance, speed, hold, battery_wh = p["standby"], p["distance"], p["speed"], p["hold"], p["battery_wh"]
     sweep: list[float] = p["sweep"]
+    radius: float | None = p["radius"]
     robot = scenario.robot_names()[0]
     team = TeamRun(scenario.with_robots(1), progress, use_mission=False, feed_hz=20.0,
                    robot={"battery_wh": battery_wh})
@@ -96,7 +104,8 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode:
         t_run_end = team.now
         for level in sweep:
             t0 = team.now
-            held = team.send(robot, "BotMotion", "velocity", v=level, w=0.0, duration=hold)
+            turn = math.degrees(level / radius) if radius else 0.0  # deg/s: on a circle at the paper's durations
+            held = team.send(robot, "BotMotion", "velocity", v=level, w=turn, duration=hold)
             team.wait(f"holding {level:g} m/s", hold * 4 + 5, lambda: team.final(held) is not None)  # noqa: B023
             levels.append((level, t0, team.now))
         team.wait("at rest", 1.0)
@@ -146,7 +155,8 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode:
                 f"{paper.PMOV_SLOPE} v + {paper.PMOV_BASE}", "W", "the same model drains the simulated battery",
                 "input")
     res.compare("standby; each sweep speed held", "600 s; 120 s", f"{standby:g} s; {hold:g} s", "",
-                "the paper's durations (--paper-durations)" if paper_durations else
+                f"the paper's durations (--paper-durations), each speed on a circle of {radius:g} m"
+                if paper_durations and radius else
                 "the scenario's, short (--paper-durations: the paper's)", "input")
     res.compare("battery pack / reading resolution", "Wifibot pack, power from the motor driver",
                 f"{battery_wh:g} Wh / 0.1 V", "", "chosen so 0.1 V steps resolve the run", "input")

@@ -30,6 +30,9 @@ def test_paper_durations_hold_standby_600_s_and_each_speed_120_s_on_a_pack_that_
     need = paper.P0 * p["standby"] + float(paper.power(np.array(p["sweep"])).sum()) * p["hold"]
     need += float(paper.power(np.array([p["speed"]]))[0]) * p["distance"] / p["speed"]
     assert need < 0.8 * p["battery_wh"] * 3600.0  # the 0.5 Wh pack would run empty (1.8 kJ)
+    # held that long in a line the sweep would leave the radio range (30 m): it drives circles
+    assert p["radius"] and 2 * p["radius"] < load_scenario(find_scenario("energy")).radio.comm_range
+    assert energy.plan(scenario().strategy)["radius"] is None  # the short run drives straight, as before
 
 
 def parse(*argv: str) -> argparse.Namespace:
