@@ -89,7 +89,16 @@ class EnergyMeter:
                 return
         self._last = (t, x, y)
 
-    def values(self) -> dict[str, float]:
-        """The totals as result values: energy_j, distance_m, moving_s, elapsed_s (rounded)."""
-        return {"energy_j": round(self.energy_j, 2), "distance_m": round(self.distance_m, 3),
-                "moving_s": round(self.moving_s, 2), "elapsed_s": round(self.elapsed_s, 2)}
+    def values(self, until: float | None = None) -> dict[str, float]:
+        """The totals as result values: energy_j, distance_m, moving_s, elapsed_s (rounded).
+
+        With `until` (a time on the poses' clock), the robot is taken to have stood where its last
+        pose put it from that pose to `until`, at standby power: a standing robot's poses come
+        only as keep-alives, and the time since the last one was spent all the same."""
+        energy, elapsed = self.energy_j, self.elapsed_s
+        if until is not None and self._last is not None and until > self._last[0]:
+            rest = until - self._last[0]
+            energy += P0 * rest
+            elapsed += rest
+        return {"energy_j": round(energy, 2), "distance_m": round(self.distance_m, 3),
+                "moving_s": round(self.moving_s, 2), "elapsed_s": round(elapsed, 2)}

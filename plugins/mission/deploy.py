@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import time
 from collections.abc import Mapping
 from typing import TYPE_CHECKING, ClassVar, Protocol
 
@@ -88,8 +89,9 @@ class Runner:
         self.meter.update(pose.stamp, pose.x, pose.y)
 
     def values(self) -> dict[str, JsonValue]:
-        """Result values: the strategy's own plus the energy meter's."""
-        return {**self.extra, **self.meter.values()}
+        """Result values: the strategy's own plus the energy meter's, counted up to now (Pose
+        stamps are wall-clock times)."""
+        return {**self.extra, **self.meter.values(until=time.time())}
 
     def motion_state(self) -> TaskState | None:
         """State of the current motion sub-task (None when there is none or it is gone)."""

@@ -179,5 +179,10 @@ def test_track_energy_and_meter_agree():
         meter.update(float(ti), float(xi), 0.0)
     assert meter.energy_j == pytest.approx(e) and meter.distance_m == pytest.approx(5.0)
     assert meter.values()["moving_s"] == pytest.approx(10.0)
+    # a standing robot's poses are keep-alives: the 4 s since the last one were spent at standby power
+    later = meter.values(until=24.0)
+    assert later["energy_j"] == pytest.approx(round(e + 4 * P0, 2)) and later["elapsed_s"] == pytest.approx(24.0)
+    assert later["distance_m"] == pytest.approx(5.0) and later["moving_s"] == pytest.approx(10.0)
+    assert meter.values(until=24.0) == later and meter.values(until=19.0)["energy_j"] == round(e, 2)  # reading adds nothing
     with pytest.raises(ValueError, match="times must not decrease"):
         track_energy([0, 2, 1], [0, 0, 0], [0, 0, 0])
