@@ -136,18 +136,25 @@ class ReliableDelivery:
                 return dest.next_try
         return None
 
-    def _deliver(self, dest: Dest, out: Outgoing, session: Session | None) -> bool:
-        written, out.written = out.written, None
+    def _frame_or_drop(self, dest: Dest, out: Outgoing, session: Session | None) -> bytes | None:
+        """The sealed frame of `dest`'s first reliable message `out`; None when it is too big to
+        send ever (taken off the queue, counted and warned of)."""
         try:
-            if written is not None and written is dest.sock:
-                frame = out.rest  # written by the caller's thread (`_write_now`): the rest, then the ack
-            else:
-                frame = self._frame(out, session, self.max_frame)
+            return self._frame(out, session, self.max_frame)
         except FrameError as err:
             with self._cond:
                 dest.reliable.popleft()
             self.count("dropped.too_big")
             self.warn("too_big", f"not sent: {err}")
+            return None
+
+    def _deliver(self, dest: Dest, out: Outgoing, session: Session | None) -> bool:
+        written, out.written = out.written, None
+        if written is not None and written is dest.sock:
+            frame: bytes | None = out.rest  # written by the caller's thread (`_write_now`): the rest, then the ack
+        else:
+            frame = self._frame_or_drop(dest, out, session)
+        if frame is None:
             return True
         try:
             now = time.monotonic()

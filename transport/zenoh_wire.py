@@ -296,13 +296,8 @@ class ZenohEndpoint(Endpoint):
 
     def _deliver(self, dest: Dest, out: Outgoing, session: Session | None) -> bool:
         """Query the receiver with the sealed frame; True when a reply acknowledges `out`."""
-        try:
-            frame = self._frame(out, session, self.max_frame)
-        except FrameError as err:
-            with self._cond:
-                dest.reliable.popleft()
-            self.count("dropped.too_big")
-            self.warn("too_big", f"not sent: {err}")
+        frame = self._frame_or_drop(dest, out, session)
+        if frame is None:
             return True
         name = name_at(dest.addr)
         if name is None:
