@@ -10,6 +10,7 @@ import logging
 import queue
 import threading
 import time
+from collections.abc import Callable
 from importlib.metadata import entry_points
 from pathlib import Path
 from typing import Any, TypeVar, overload
@@ -90,7 +91,7 @@ class Scheduler:
             plugin._scheduled = False
             plugin._running = True
             plugin._dirty = False
-            plugin._run_started = time.monotonic()
+            plugin._run_started = self.agent.clock()
             plugin._slow_reported = False
         try:
             self._run(plugin)
@@ -145,7 +146,7 @@ class Scheduler:
         A run that starts after this check is over the limit no earlier than one limit from now, so
         with nothing running the next look is one limit away, else at the earliest running one's limit.
         """
-        now = time.monotonic()
+        now = self.agent.clock()
         nxt = now + self.slow_seconds
         for plugin in list(self.agent.plugins):
             if not plugin._running or plugin._slow_reported:
@@ -194,11 +195,16 @@ class Timers:
 
     def schedule(self, plugin: Plugin[Any], delay: float, period: float | None) -> Timer:
         """Wake `plugin` after `delay` seconds, then every `period` seconds if given."""
-        timer = Timer(plugin, time.monotonic() + max(0.0, delay), period)
+        timer = Timer(plugin, self.agent.clock() + max(0.0, delay), period)
         with self._cond:
             heapq.heappush(self._heap, (timer.when, next(self._seq), timer))
             self._cond.notify()
         return timer
+
+    def poke(self) -> None:
+        """Look at the clock again now (a test's clock moved: see `erni.testing.ManualClock`)."""
+        with self._cond:
+            self._cond.notify()
 
     def stop(self, deadline: float) -> bool:
         """Stop the thread; return True when it was joined in time."""
@@ -220,7 +226,7 @@ class Timers:
             with self._cond:
                 if self._stopping:
                     return
-                now = time.monotonic()
+                now = self.agent.clock()
                 while self._heap and self._heap[0][0] <= now:
                     _, _, timer = heapq.heappop(self._heap)
                     if timer.cancelled:
@@ -236,7 +242,7 @@ class Timers:
                     self._cond.wait(max(0.0, wait))
             for timer in due:
                 timer.plugin.wake()
-            if time.monotonic() >= look:
+            if self.agent.clock() >= look:
                 look = self.agent.scheduler.check_slow()
 
 
@@ -244,13 +250,20 @@ class Agent:
     """One agent: a named blackboard with its plugins, run by a worker pool."""
 
     def __init__(self, name: str, *, workers: int = 4, slow_plugin_seconds: float = 1.0,
-                 journal: str | Path | None = None, retention: float | None = 600.0, reset_journal: bool = False):
+                 journal: str | Path | None = None, retention: float | None = 600.0, reset_journal: bool = False,
+                 clock: Callable[[], float] = time.monotonic):
         if workers < 1:
             raise UsageError(f"workers: expected at least 1, got {workers}")
         self.name = name
+        self.clock = clock
+        """Seconds on a monotonic clock: when plugins' wake-ups are due, how long a run has taken, when
+        a final task is old enough to go. A test may give its own (`erni.testing.ManualClock`)."""
         self.blackboard = Blackboard(name)
         self.scheduler = Scheduler(self, workers, slow_plugin_seconds)
         self.timers = Timers(self)
+        watch = getattr(clock, "on_advance", None)
+        if callable(watch):  # a test's clock says when it moves: timers and slow-run watch look again
+            watch(self.timers.poke)
         self.blackboard.signal = self.scheduler.signal
         self.plugins: list[Plugin[Any]] = []
         self.log = logging.getLogger(f"erni.{name}")
@@ -321,7 +334,7 @@ class Agent:
         """Run setup() as the plugin's first run: signals meanwhile cause one run after it."""
         with plugin._sched_lock:
             plugin._running = True
-            plugin._run_started = time.monotonic()  # a setup is a run: timed like one
+            plugin._run_started = self.clock()  # a setup is a run: timed like one
             plugin._slow_reported = False
         plugin._in_setup = True
         plugin._setup_ran = True

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import logging
 import threading
-import time
 from typing import TYPE_CHECKING
 
 from erni.blackboard.blackboard import REMOVE, Op
@@ -29,7 +28,7 @@ class Retention:
         self.agent = agent
         self.seconds = seconds
         self.log = logging.getLogger(f"erni.{agent.name}.retention")
-        self._done: dict[str, float] = {}  # uid -> when it was seen final (monotonic)
+        self._done: dict[str, float] = {}  # uid -> when it was seen final (the agent's clock)
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -37,7 +36,7 @@ class Retention:
 
     def listener(self, ops: list[Op]) -> None:
         """Blackboard commit listener: note when tasks become final (no I/O, no transaction)."""
-        now = time.monotonic()
+        now = self.agent.clock()
         with self._lock:
             for kind, obj, _ in ops:
                 if not isinstance(obj, Task):
@@ -70,7 +69,7 @@ class Retention:
 
     def sweep(self, now: float | None = None) -> int:
         """Remove the tasks final for longer than the retention; return how many."""
-        now = time.monotonic() if now is None else now
+        now = self.agent.clock() if now is None else now
         with self._lock:
             due = [uid for uid, since in self._done.items() if now - since >= self.seconds]
         if not due:

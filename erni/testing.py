@@ -18,6 +18,9 @@ with the real transport plugin on it::
         team.start()
         done = run_task(team["control"], "BotMotion", "stop", destination="robot1")
 
+Time the test owns: `ManualClock`, given as `agent_with(..., clock=clock)`, times the agent's
+wake-ups, slow-run watch and task retention; `clock.advance(5.0)` runs what falls due at once.
+
 A robot for motion plugins and missions: `fake_robot()` gives the settings of the motion plugin
 on ERNI's simulated ARCOS robot, in the agent's own process (`agent.add_plugin("motion",
 settings=fake_robot())`).
@@ -27,7 +30,7 @@ Nothing here is used by an agent at run time.
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from typing import Any
 
 from erni.blackboard.agent import Agent
@@ -47,10 +50,12 @@ FAST_ROBOT = {"base": "pioneer3", "decel": 2.5, "rot_decel": 500.0, "max_rv": 30
 
 
 def agent_with(plugin: type[Plugin[Any]] | str | None = None, settings: dict[str, Any] | None = None, *,
-               name: str = "robot1", plugin_name: str | None = None, workers: int = 2) -> Agent:
+               name: str = "robot1", plugin_name: str | None = None, workers: int = 2,
+               clock: Callable[[], float] | None = None) -> Agent:
     """An agent named `name` holding `plugin` (a class, `module:Class` or an entry point name) with
-    `settings`, not started: add more plugins if needed, then `with agent:` starts and stops it."""
-    agent = Agent(name, workers=workers)
+    `settings`, not started: add more plugins if needed, then `with agent:` starts and stops it.
+    `clock`: the agent's clock (a `ManualClock` to time its wake-ups from the test)."""
+    agent = Agent(name, workers=workers) if clock is None else Agent(name, workers=workers, clock=clock)
     if plugin is not None:
         agent.add_plugin(plugin, settings=settings, name=plugin_name)
     return agent
@@ -182,3 +187,36 @@ class MockTeam:
 
     def __exit__(self, *exc: Any) -> None:
         self.stop()
+
+
+class ManualClock:
+    """A clock that moves only when the test says: give it to `Agent(clock=...)`, then `advance()`.
+
+    Plugin wake-ups (`wake_in`, `wake_every`), the slow-run watch and task retention are timed by
+    the agent's clock; an agent made with this one runs them when the test advances it, without
+    waiting for them. (Thread joins at stop, transports and robots keep real time.)
+
+        clock = ManualClock()
+        with agent_with(Ticker, clock=clock) as agent:
+            clock.advance(5.0)      # Ticker's wake_every(5.0) is due: it runs now
+    """
+
+    def __init__(self, start: float = 1000.0) -> None:
+        self.now = start
+        self._watchers: list[Any] = []
+
+    def __call__(self) -> float:
+        return self.now
+
+    def on_advance(self, fn: Any) -> None:
+        """Call `fn()` after every `advance` (the agent's timers look at the clock again)."""
+        self._watchers.append(fn)
+
+    def advance(self, seconds: float) -> float:
+        """Move the clock forward by `seconds` (not back) and return the new time."""
+        if not seconds >= 0:
+            raise UsageError(f"ManualClock.advance: expected seconds >= 0, got {seconds}")
+        self.now += seconds
+        for fn in list(self._watchers):
+            fn()
+        return self.now

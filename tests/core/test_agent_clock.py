@@ -1,0 +1,101 @@
+"""The agent's clock is injectable: wake-ups, the slow-run watch and task retention follow a test's
+ManualClock, so a test of a plugin's timing advances time instead of sleeping through it."""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+
+import pytest
+
+from erni.blackboard import Plugin, Task, TaskState
+from erni.blackboard.errors import UsageError
+from erni.blackboard.tasks import AllocationResult
+from erni.testing import ManualClock, agent_with, post_task
+
+
+class Ticker(Plugin):
+    """Wakes every 5 s of the agent's clock and counts it."""
+
+    def setup(self) -> None:
+        self.ticks = 0
+        self.ticked = threading.Event()
+        self.wake_every(5.0)
+
+    def execute(self) -> None:
+        self.ticks += 1
+        self.ticked.set()
+
+
+def ticks_after(plugin: Ticker, clock: ManualClock, seconds: float) -> int:
+    plugin.ticked.clear()
+    clock.advance(seconds)
+    plugin.ticked.wait(0.5)  # a due wake-up runs at once; one not due must not run in this half second
+    return plugin.ticks
+
+
+def test_wake_ups_follow_the_injected_clock_not_the_wall_clock():
+    clock = ManualClock()
+    agent = agent_with(Ticker, clock=clock)
+    with agent:
+        ticker = agent.plugins[0]
+        assert isinstance(ticker, Ticker)
+        base = ticker.ticks  # setup's own run
+        assert ticks_after(ticker, clock, 4.9) == base  # 4.9 s on the agent's clock: not due
+        assert ticks_after(ticker, clock, 0.2) == base + 1  # 5.1 s: due, run without waiting 5 s
+        assert ticks_after(ticker, clock, 5.0) == base + 2
+        time.sleep(0.3)
+        assert ticker.ticks == base + 2  # real time passing moves nothing
+
+
+class Stuck(Plugin):
+    """Its run waits for the test: a plugin that takes long."""
+
+    def setup(self) -> None:
+        self.release = threading.Event()
+        self.running = threading.Event()
+        self.sub = self.subscribe(Task)
+
+    def execute(self) -> None:
+        if self.sub.added:
+            self.running.set()
+            self.release.wait(5)
+
+
+def test_a_slow_run_is_reported_by_the_agent_s_clock(caplog):
+    clock = ManualClock()
+    agent = agent_with(Stuck, clock=clock, plugin_name="stuck")
+    with agent, caplog.at_level(logging.WARNING):
+        stuck = agent.plugins[0]
+        assert isinstance(stuck, Stuck)
+        post_task(agent, "BotMotion", "stop")
+        assert stuck.running.wait(2)
+        time.sleep(0.3)
+        assert "has been running" not in caplog.text  # real time alone does not make it slow
+        clock.advance(1.5)  # past the 1 s limit on the agent's clock
+        deadline = time.monotonic() + 2
+        while "has been running" not in caplog.text and time.monotonic() < deadline:
+            time.sleep(0.02)
+        stuck.release.set()
+    assert "plugin stuck of agent robot1 has been running for 1.5 s" in caplog.text
+
+
+def test_final_tasks_are_removed_after_the_retention_on_the_agent_s_clock():
+    clock = ManualClock()
+    agent = agent_with(clock=clock)
+    agent.retention.seconds = 60.0
+    with agent:
+        task = post_task(agent, "BotMotion", "stop")
+        with agent.transaction() as tx:
+            tx.change(task.evolve(result=AllocationResult(state=TaskState.SUCCEEDED)))
+        assert agent.retention.sweep() == 0
+        clock.advance(59.0)
+        assert agent.retention.sweep() == 0 and agent.blackboard.get(task.uid) is not None
+        clock.advance(2.0)
+        assert agent.retention.sweep() == 1 and agent.blackboard.get(task.uid) is None
+
+
+def test_a_manual_clock_does_not_go_back():
+    with pytest.raises(UsageError, match="expected seconds >= 0, got -1"):
+        ManualClock().advance(-1)
