@@ -8,6 +8,7 @@ import ipaddress
 import logging
 import socket
 import threading
+import time
 from collections.abc import Iterator
 from typing import Any
 
@@ -300,24 +301,33 @@ def test_only_the_kind_of_reading_with_absurd_rows_is_degraded_and_keeps_its_goo
 
 
 def test_the_warning_comes_again_after_a_minute_counting_what_it_held_back(hostile, caplog):
+    from erni.testing import ManualClock
+
     caplog.set_level(logging.WARNING)
-    now = [1000.0]
+    clock = ManualClock()  # times the watch and the warnings' minute
     log = logging.getLogger("test.absurd")
     delivered: list[Any] = []
     resource = MobiNetResource(lambda: SnmpSource(*hostile.address, timeout=1.0),
-                               lambda key, view, error: delivered.append(view), log, clock=lambda: now[0])
+                               lambda key, view, error: delivered.append(view), log, clock=clock)
+
+    def reads(n: int) -> None:  # n more reads of the 50 Hz watch, a period of the clock each
+        target = len(delivered) + n
+        deadline = time.monotonic() + 10
+        while len(delivered) < target and time.monotonic() < deadline:
+            clock.advance(0.02)
+            time.sleep(0.01)
+        assert len(delivered) >= target, f"{len(delivered)} reads of {target}"
+
     resource.start()
     try:
         resource.watch("w", frozenset({POSITIONS}), 50.0)
-        wait_until(lambda: len(delivered) >= 5, timeout=10)
+        reads(5)
         first = [r.getMessage() for r in caplog.records if "erniPositionX" in r.getMessage()]
-        now[0] += 59.0
-        held = len(delivered)
-        wait_until(lambda: len(delivered) >= held + 3, timeout=10)
+        clock.advance(58.0)
+        reads(3)
         within = [r.getMessage() for r in caplog.records if "erniPositionX" in r.getMessage()]
-        now[0] += 1.5
-        held = len(delivered)
-        wait_until(lambda: len(delivered) >= held + 2, timeout=10)
+        clock.advance(2.0)
+        reads(2)
         after = [r.getMessage() for r in caplog.records if "erniPositionX" in r.getMessage()]
     finally:
         resource.close()

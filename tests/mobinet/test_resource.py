@@ -137,3 +137,26 @@ def test_only_the_latest_pose_is_written_and_failed_writes_are_retried():
         wait_until(lambda: src.writes[-1].x == 42.0)
     finally:
         res.close()
+
+
+def test_watches_fall_due_on_the_injected_clock():
+    """A watch of 1 Hz is read when the resource's clock has moved a second, not when a second of
+    wall time has passed (erni.testing.ManualClock, as for an agent)."""
+    from erni.testing import ManualClock
+
+    clock = ManualClock()
+    src, rec = ScriptedSource(), Recorder()
+    res = MobiNetResource(lambda: src, rec, logging.getLogger("test"), clock=clock).start()
+    try:
+        res.watch("w", frozenset({"links"}), 1.0)
+        wait_until(lambda: len(src.reads) == 1, timeout=2)  # a new watch is read at once
+        time.sleep(1.3)
+        assert len(src.reads) == 1  # a second of wall time: the clock has not moved
+        clock.advance(0.5)
+        time.sleep(0.2)
+        assert len(src.reads) == 1  # half a period: not due
+        clock.advance(0.6)
+        wait_until(lambda: len(src.reads) == 2, timeout=2)
+        assert rec.keys() == ["w", "w"]
+    finally:
+        res.close()
