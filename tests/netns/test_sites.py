@@ -242,8 +242,8 @@ def sites(tmp_path_factory):
 
 
 def test_site_a_reaches_site_b_only_through_the_routers(sites):
-    """No IP route joins the sites: the control node sees robot1 once router-b runs and links to
-    router-a, reached through router-b, and loses it when router-b goes."""
+    """No IP route joins the sites (robot1 lists router-a too, and cannot reach it): the control
+    node sees robot1 only once router-b runs and links to router-a, reached through router-b."""
     a, b = sites.addr["router-a"], sites.addr["router-b"]
     assert sites.reaches("control", a[0]) == "connected"  # the probe works: its own site's router
     for src, address in (("control", b[0]), ("control", b[1]), ("robot1", a[0]), ("robot1", a[1])):
