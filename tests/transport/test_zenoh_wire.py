@@ -15,6 +15,7 @@ zenoh = pytest.importorskip("zenoh")
 from erni.blackboard import Agent, Pose, Task, TaskState  # noqa: E402
 from erni.blackboard.testing import wait_until  # noqa: E402
 from erni.sim.team import free_port  # noqa: E402
+from erni.testing import post_task, run_task, wait_for_task  # noqa: E402
 from erni.transport import Peer  # noqa: E402
 from erni.transport.wire import DATA, DATA_HEADER  # noqa: E402
 from erni.transport.zenoh_wire import open_router  # noqa: E402
@@ -56,11 +57,7 @@ def test_a_task_goes_through_the_router_is_acknowledged_and_done_and_poses_come_
     wait_until(lambda: up(control, "robot1") and up(robot, "control"))
     peer = next(p for p in control.query(Peer) if p.name == "robot1")
     assert peer.address == "zenoh/robot1:0"
-    task = Task(verb="BotMotion", preposition="forward", params={"distance": 1.0}, source="control",
-                destination="robot1")
-    with control.transaction() as tx:
-        tx.add(task)
-    final = wait_until(lambda: (t := control.blackboard.get(task.uid)) is not None and t.done and t)
+    final = run_task(control, "BotMotion", "forward", destination="robot1", distance=1.0)
     assert final.state is TaskState.SUCCEEDED
     with robot.transaction() as tx:
         tx.add(Pose(uid="pose:robot1", robot="robot1", x=1.5, y=-2.0, theta=0.25))
@@ -99,11 +96,7 @@ def test_a_frame_replayed_or_tampered_with_at_the_router_is_refused(team, router
     spy = Eavesdropper(router, "robot1")
     try:
         wait_until(lambda: up(control, "robot1") and up(robot, "control") and spy.datagrams)  # the spy is in place
-        task = Task(verb="BotMotion", preposition="forward", params={"distance": 1.0}, source="control",
-                    destination="robot1")
-        with control.transaction() as tx:
-            tx.add(task)
-        wait_until(lambda: (t := control.blackboard.get(task.uid)) is not None and t.done)
+        run_task(control, "BotMotion", "forward", destination="robot1", distance=1.0)
         wait_until(lambda: spy.queries and spy.datagrams)
         sealed = [raw for _, raw in spy.queries + spy.datagrams if raw[4] == DATA]  # handshakes are signed, not sealed
         assert sealed and all(b"forward" not in raw and b"control" not in raw for raw in sealed), \
@@ -187,11 +180,7 @@ def test_two_peers_meet_without_a_router(team):
     control = team("control", echo=False, zenoh={"team": TEAM + "-peers", "connect": [f"tcp/127.0.0.1:{port}"],
                                                  "scouting": False})
     wait_until(lambda: up(control, "robot1") and up(robot, "control"))
-    task = Task(verb="BotMotion", preposition="forward", params={"distance": 1.0}, source="control",
-                destination="robot1")
-    with control.transaction() as tx:
-        tx.add(task)
-    final = wait_until(lambda: (t := control.blackboard.get(task.uid)) is not None and t.done and t)
+    final = run_task(control, "BotMotion", "forward", destination="robot1", distance=1.0)
     assert final.state is TaskState.SUCCEEDED
 
 
@@ -262,12 +251,9 @@ def test_a_task_given_while_the_router_restarts_ends_exactly_once(team):
         control, robot = team("control", echo=False, zenoh=site), team("robot1", zenoh=site)
         wait_until(lambda: up(control, "robot1") and up(robot, "control"))
         session.close()
-        task = Task(verb="BotMotion", preposition="forward", params={"distance": 1.0}, source="control",
-                    destination="robot1")
-        with control.transaction() as tx:
-            tx.add(task)
+        task = post_task(control, "BotMotion", "forward", destination="robot1", distance=1.0)
         session = open_router([endpoint])
-        final = wait_until(lambda: (t := control.blackboard.get(task.uid)) is not None and t.done and t, timeout=8.0)
+        final = wait_for_task(control, task, timeout=8.0)
         assert final.state is TaskState.SUCCEEDED
         assert robot.plugin("transport").endpoint.counters.get("received", 0) >= 1
         assert len([t for t in robot.query(Task) if t.uid == task.uid]) == 1
@@ -327,11 +313,7 @@ def test_the_routers_access_control_lets_an_agent_speak_only_as_itself(team):
         site = {"team": tls_team, "mode": "client", "connect": [endpoint]}
         control, robot = team("control", echo=False, zenoh=site), team("robot1", zenoh=site)
         wait_until(lambda: up(control, "robot1") and up(robot, "control"))
-        task = Task(verb="BotMotion", preposition="forward", params={"distance": 1.0}, source="control",
-                    destination="robot1")
-        with control.transaction() as tx:
-            tx.add(task)
-        wait_until(lambda: (t := control.blackboard.get(task.uid)) is not None and t.done)
+        run_task(control, "BotMotion", "forward", destination="robot1", distance=1.0)
         mallory = open_session(ZenohSettings(mode="client", connect=[endpoint]),
                                identity=load_identity(identity("robot2", "robot")))
         overheard: list[bytes] = []
@@ -382,11 +364,7 @@ def test_erni_router_prints_the_access_control_of_the_teams_certificates(tmp_pat
 def test_insecure_agents_task_each_other_over_zenoh_too(team):
     control, robot = team("control", echo=False, insecure=True), team("robot1", insecure=True)
     wait_until(lambda: up(control, "robot1") and up(robot, "control"))
-    task = Task(verb="BotMotion", preposition="forward", params={"distance": 1.0}, source="control",
-                destination="robot1")
-    with control.transaction() as tx:
-        tx.add(task)
-    final = wait_until(lambda: (t := control.blackboard.get(task.uid)) is not None and t.done and t)
+    final = run_task(control, "BotMotion", "forward", destination="robot1", distance=1.0)
     assert final.state is TaskState.SUCCEEDED
 
 
@@ -407,11 +385,7 @@ def test_two_sites_linked_by_their_routers_over_tls_with_access_control(team):
         control = team("control", echo=False, zenoh={"team": tls_team, "mode": "client", "connect": [site_a]})
         robot = team("robot1", zenoh={"team": tls_team, "mode": "client", "connect": [site_b]})
         wait_until(lambda: up(control, "robot1") and up(robot, "control"))
-        task = Task(verb="BotMotion", preposition="forward", params={"distance": 1.0}, source="control",
-                    destination="robot1")
-        with control.transaction() as tx:
-            tx.add(task)
-        wait_until(lambda: (t := control.blackboard.get(task.uid)) is not None and t.done)
+        task = run_task(control, "BotMotion", "forward", destination="robot1", distance=1.0)
         with robot.transaction() as tx:
             tx.add(Pose(uid="pose:robot1", robot="robot1", x=-4.0, y=2.5, theta=1.0))
         assert wait_until(lambda: control.blackboard.get("pose:robot1")).x == -4.0
