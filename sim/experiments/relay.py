@@ -52,13 +52,18 @@ def fewest_decisions(gap: float, settle: float, step: float) -> int:
     return max(0, math.ceil((gap - settle) / step - 1e-9))
 
 
+def ends(scenario: Scenario, experiment: str) -> tuple[np.ndarray, np.ndarray]:
+    """The source and the destination of a relay experiment: the scenario's first two [[poi]]."""
+    if len(scenario.poi) < 2:
+        raise ScenarioError(f"{scenario.name}: the {experiment} experiment needs two [[poi]]: the source and the "
+                            "destination")
+    return (np.array([scenario.poi[0].x, scenario.poi[0].y]), np.array([scenario.poi[1].x, scenario.poi[1].y]))
+
+
 def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode: str, **_: Any) -> Result:
     """Run the relays' decisions for the scenario's duration; return figure and metrics."""
     s = scenario.strategy
-    if len(scenario.poi) < 2:
-        raise ScenarioError(f"{scenario.name}: the relay experiment needs two [[poi]]: the source and the destination")
-    src = np.array([scenario.poi[0].x, scenario.poi[0].y])
-    dst = np.array([scenario.poi[1].x, scenario.poi[1].y])
+    src, dst = ends(scenario, "relay")
     period = float(s.get("period", 16.0))
     settle = float(s.get("settle", SETTLE))
     names = scenario.robot_names()

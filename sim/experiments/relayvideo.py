@@ -27,6 +27,7 @@ import numpy as np
 
 from erni.sim.experiments import Experiment, Progress, Result
 from erni.sim.experiments.plots import color
+from erni.sim.experiments.relay import ends
 from erni.sim.experiments.roundtrip import camera_frames, compress
 from erni.sim.manet import RadioModel
 from erni.sim.scenario import Scenario, ScenarioError
@@ -37,10 +38,7 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode:
     from erni.transport import Endpoint
 
     s = scenario.strategy
-    if len(scenario.poi) < 2:
-        raise ScenarioError(f"{scenario.name}: needs two [[poi]]: the source and the destination")
-    src = np.array([scenario.poi[0].x, scenario.poi[0].y])
-    dst = np.array([scenario.poi[1].x, scenario.poi[1].y])
+    src, dst = ends(scenario, "relay-video")
     length = float(np.hypot(*(dst - src)))
     radio = RadioModel(scenario.radio.comm_range, scenario.radio.lossless_range, scenario.radio.min_quality)
     positions = [float(x) for x in s.get("positions", list(np.arange(1.0, length, 1.0)))]
