@@ -358,7 +358,7 @@ def test_an_unknown_url_scheme_is_refused_in_the_config_naming_the_known_ones():
 
 
 def test_the_model_follows_the_robot_unless_configured(start_agent, robot_url):
-    agent, plugin = start_agent(robot_url, model="auto")
+    agent, plugin = start_agent(robot_url, model="auto", config_timeout=5.0)  # a CONFIG reply late under load
     driver = plugin.resource.driver
     assert driver.model.subclass == driver.info.subclass or driver.model.name == "p3dx-sh"
     assert driver.robot_config is not None and driver.robot_config.firmware  # CONFIG was asked and read
