@@ -1,6 +1,7 @@
 """Recorded team logs: the file format, reading it back, and a plugin that replays it.
 
-A log is JSON lines. The first line is a header `{"erni_record": 1, "via": ..., "started": t}`;
+A log is JSON lines, or a rosbag2 MCAP bag written by `erni record --format mcap` (read by
+`erni.plugins.ros2.bags`, which needs `rosbags`). The first line is a header `{"erni_record": 1, "via": ..., "started": t}`;
 every other line is one blackboard change seen by the recorded agent:
 `{"t": seconds since start, "agent": ..., "op": "add"|"change"|"remove", "type": "Pose", "data": {...}}`.
 Replaying publishes the same objects, in order and with the same spacing divided by the speed,
@@ -24,6 +25,7 @@ from erni.blackboard.errors import ErniError, shown
 from erni.transport.wire import TYPES, loads
 
 FORMAT = 1
+MCAP_MAGIC = b"\x89MCAP0\r\n"
 MAX_SECONDS = 30 * 24 * 3600.0  # a recording longer than 30 days is a damaged or forged line, not a run
 
 
@@ -41,9 +43,28 @@ class Event:
     obj: BBObject
 
 
+def is_bag(path: Path) -> bool:
+    """Whether `path` names a bag rather than a JSON-lines log: a `.mcap` name, a file that starts
+    with MCAP's magic bytes, or a (rosbag2) directory."""
+    if path.suffix.lower() == ".mcap" or path.is_dir():
+        return True
+    try:
+        with path.open("rb") as f:
+            return f.read(len(MCAP_MAGIC)) == MCAP_MAGIC
+    except OSError:
+        return False
+
+
 def read_log(path: str | Path) -> tuple[dict[str, Any], list[Event], list[str]]:
-    """Return the header, the events, and one problem line per line that could not be read."""
+    """Return the header, the events, and one problem line per line (or bag message) that could not
+    be read."""
     path = Path(path)
+    if is_bag(path):
+        try:
+            from erni.plugins.ros2.bags import read_bag
+        except ImportError as err:
+            raise LogError(f"{path}: reading MCAP bags needs rosbags (pip install 'erni[ros2]'): {err}") from None
+        return read_bag(path)
     try:
         lines = path.read_text(encoding="utf-8").splitlines()
     except (OSError, UnicodeDecodeError) as err:
@@ -115,7 +136,7 @@ class Recorder:
 class ReplaySettings(BaseModel):
     """The `[plugin.settings]` of the replay plugin."""
 
-    log: str = Field(description="log file written by `erni record`")
+    log: str = Field(description="log file or MCAP bag written by `erni record`")
     speed: float = Field(1.0, gt=0, le=1000, description="1 = recorded pace, 0.5 = slow motion")
     loop: bool = False
 

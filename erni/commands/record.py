@@ -1,10 +1,12 @@
-"""`erni record [--via HOST:PORT] OUT`: record what one agent of a running team sees."""
+"""`erni record [--via HOST:PORT] [--format jsonl|mcap] OUT`: record what one agent of a running team
+sees, as ERNI's JSON lines or a rosbag2 MCAP bag; `erni record --convert LOG OUT.mcap` converts a log."""
 
 from __future__ import annotations
 
 import argparse
 import sys
 import time
+from pathlib import Path
 from typing import Any
 
 from erni.commands._client import add_client_options, check_seconds, open_client, watch_events
@@ -17,8 +19,17 @@ def register(sub: Any) -> None:
     """Add the `record` sub-command."""
     p = sub.add_parser("record", help="record a team's tasks, results, poses and peer events",
                        description="Record every blackboard change one agent (usually the control "
-                       "node) sees, as JSON lines, until Ctrl-C. Replay it with `erni replay`.")
-    p.add_argument("out", help="log file to write (JSON lines)")
+                       "node) sees, as JSON lines or a rosbag2 MCAP bag (ROS 2 Jazzy types: Odometry on "
+                       "/<robot>/odom, diagnostics on /erni/tasks, /erni/network, /erni/robots, /erni/peers), "
+                       "until Ctrl-C. Replay either with `erni replay`. With --convert LOG, write the ERNI "
+                       "log LOG as the MCAP bag OUT instead, without reaching any agent.")
+    p.add_argument("out", help="file to write: JSON lines, or an MCAP bag when it ends in .mcap or with "
+                   "--format mcap")
+    p.add_argument("--format", choices=("jsonl", "mcap"), default=None,
+                   help="jsonl (ERNI's log) or mcap (a rosbag2 bag ros2 bag, Foxglove and PlotJuggler open; "
+                   "needs rosbags); default: mcap when OUT ends in .mcap, else jsonl")
+    p.add_argument("--convert", metavar="LOG", help="convert this JSON-lines log (from `erni record`) into "
+                   "the MCAP bag OUT and exit")
     p.add_argument("--seconds", type=float, default=0, help="stop after S seconds (0 = at Ctrl-C)")
     add_client_options(p)
     p.set_defaults(func=run)
@@ -28,9 +39,14 @@ def run(args: argparse.Namespace) -> int:
     """Lease a watch and write every event to the log, with a progress line on stderr."""
     from erni.transport.client import ClientError
 
+    fmt = args.format or ("mcap" if args.out.lower().endswith(".mcap") else "jsonl")
+    if args.convert:
+        return _convert(args.convert, args.out, fmt)
     problem = check_seconds(args.seconds, "--seconds", zero=True)
     if problem:
         print(f"erni record: {problem}", file=sys.stderr)
+        return 2
+    if fmt == "mcap" and _bags() is None:
         return 2
     client = open_client(args, "record")
     if client is None:
@@ -39,7 +55,9 @@ def run(args: argparse.Namespace) -> int:
     with client:
         try:
             addr = client.find(None)
-            recorder = Recorder(args.out, f"{addr[0]}:{addr[1]}")
+            via = f"{addr[0]}:{addr[1]}"
+            bags = _bags() if fmt == "mcap" else None
+            recorder: Recorder | Any = bags.BagRecorder(args.out, via) if bags else Recorder(args.out, via)
         except (ClientError, LogError) as err:
             print(f"erni record: {err}", file=sys.stderr)
             return 1 if isinstance(err, ClientError) else 2
@@ -55,6 +73,51 @@ def run(args: argparse.Namespace) -> int:
         except KeyboardInterrupt:
             pass
         finally:
-            recorder.close()
+            problem = _close(recorder)
+    if problem:
+        print(f"\nerni record: {problem}", file=sys.stderr)
+        return 2
     print(f"\nrecorded {recorder.count} events into {args.out}", file=sys.stderr)
+    return 0
+
+
+def _close(recorder: Any) -> str:
+    """Close the log or bag; return what went wrong ('' when nothing did)."""
+    try:
+        recorder.close()
+    except LogError as err:
+        return str(err)
+    return ""
+
+
+def _bags() -> Any:
+    """The bag module, or None after saying on stderr that rosbags is missing."""
+    try:
+        from erni.plugins.ros2 import bags
+    except ImportError as err:
+        print(f"erni record: MCAP bags need rosbags (pip install 'erni[ros2]'): {err}", file=sys.stderr)
+        return None
+    return bags
+
+
+def _convert(log: str, out: str, fmt: str) -> int:
+    """Write the JSON-lines log `log` as the MCAP bag `out`."""
+    if fmt != "mcap":
+        print("erni record: --convert writes an MCAP bag: OUT must end in .mcap, or give --format mcap",
+              file=sys.stderr)
+        return 2
+    if Path(log).resolve() == Path(out).resolve():
+        print(f"erni record: --convert: {out} is the log itself", file=sys.stderr)
+        return 2
+    bags = _bags()
+    if bags is None:
+        return 2
+    try:
+        count, problems = bags.convert(log, out)
+    except LogError as err:
+        print(f"erni record: {err}", file=sys.stderr)
+        return 2
+    for line in problems:
+        print(f"erni record: skipping {line}", file=sys.stderr)
+    print(f"converted {count} events from {log} into {out}", file=sys.stderr)
     return 0

@@ -1,4 +1,4 @@
-"""`erni replay LOG [--speed X]`: play a recorded log into a control node, as if live."""
+"""`erni replay LOG [--speed X]`: play a recorded log or MCAP bag into a control node, as if live."""
 
 from __future__ import annotations
 
@@ -19,11 +19,12 @@ from erni.replay import LogError, ReplayPlugin, read_log
 
 def register(sub: Any) -> None:
     """Add the `replay` sub-command."""
-    p = sub.add_parser("replay", help="replay a recorded log into a control node",
+    p = sub.add_parser("replay", help="replay a recorded log or MCAP bag into a control node",
                        description="Start a control node that publishes a recorded log on its "
                        "blackboard at the recorded pace; `erni watch --via` it or open its GUI. "
                        "Type p + Enter to pause or resume, a number + Enter to set the speed.")
-    p.add_argument("log", help="log file written by `erni record`")
+    p.add_argument("log", help="log file or MCAP bag written by `erni record` (a bag from other tools "
+                   "replays its nav_msgs/msg/Odometry on /<robot>/odom as poses)")
     p.add_argument("--speed", type=float, default=1.0, help="1 = recorded pace, 0.25 = slow motion")
     p.add_argument("--listen", default="127.0.0.1:47100", help="transport address of the replay node")
     p.add_argument("--name", default="control", help="agent name of the replay node")

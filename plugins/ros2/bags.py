@@ -1,0 +1,323 @@
+"""rosbag2 MCAP bags of a team's run, written and read with `rosbags` (no ROS 2 install needed).
+
+A bag holds what `erni record` sees, as ROS 2 Jazzy messages a lab's tools open (`ros2 bag`,
+Foxglove, PlotJuggler):
+
+| topic | type | what |
+|---|---|---|
+| `/<robot>/odom` | `nav_msgs/msg/Odometry` | each robot's Pose: position, heading as a yaw quaternion, v and w, in frame `map` |
+| `/erni/robots` | `diagnostic_msgs/msg/DiagnosticArray` | each robot's health: battery, stalls, bumpers, motors, sonar |
+| `/erni/tasks` | `diagnostic_msgs/msg/DiagnosticArray` | tasks and their results: state as the level, progress, values |
+| `/erni/network` | `diagnostic_msgs/msg/DiagnosticArray` | network info: a status per node and per neighbour (quality), links, routes, articulation points |
+| `/erni/network/markers` | `visualization_msgs/msg/MarkerArray` | the network drawn in 3D: nodes, names, links coloured by quality |
+| `/tf` | `tf2_msgs/msg/TFMessage` | `map` -> `<robot>/base_link` for each Pose |
+| `/erni/peers` | `diagnostic_msgs/msg/DiagnosticArray` | agents joining, lost and back |
+| `/erni/record` | `diagnostic_msgs/msg/DiagnosticArray` | the recording's header: who was recorded, when it started |
+
+Tasks, network and peers are diagnostics rather than JSON in `std_msgs/msg/String`: Foxglove's
+Diagnostics panels and rqt_runtime_monitor list them by robot with the level as a colour, and
+PlotJuggler plots their numeric values (a task's progress, a link's quality) as series; a String
+shows only as text. Each status also carries the ERNI object itself as JSON under the key `erni`,
+so `erni replay` plays a bag back as exactly as its own JSON-lines logs.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+from pydantic import ValidationError
+
+from erni.blackboard import BBObject, NetInfo, Pose, Task
+from erni.blackboard.schemas import Peer
+from erni.plugins.ros2 import messages as ros
+from erni.replay import FORMAT, MCAP_MAGIC, Event, LogError, read_log
+from erni.transport.wire import TYPES
+
+FRAME = "map"
+ODOMETRY = ros.ODOMETRY
+DIAGNOSTICS = ros.DIAGNOSTIC_ARRAY
+HEADER_TOPIC = "/erni/record"
+TOPICS = {"Pose": "/erni/robots", "Task": "/erni/tasks", "NetInfo": "/erni/network", "Peer": "/erni/peers"}
+MARKERS_TOPIC = "/erni/network/markers"
+OTHER_TOPIC = "/erni/events"
+OK, WARN, ERROR, STALE = 0, 1, 2, 3
+_STATUS = "diagnostic_msgs/msg/DiagnosticStatus"
+_KV = "diagnostic_msgs/msg/KeyValue"
+
+
+def pose_from_odometry(robot: str, msg: Any) -> Pose:
+    """The Pose an Odometry message says (what a bag without ERNI's diagnostics gives)."""
+    stamp = msg.header.stamp.sec + msg.header.stamp.nanosec / 1e9
+    return Pose(robot=robot, x=float(msg.pose.pose.position.x), y=float(msg.pose.pose.position.y),
+                theta=ros.yaw(msg.pose.pose.orientation), v=float(msg.twist.twist.linear.x),
+                w=float(msg.twist.twist.angular.z), stamp=stamp)
+
+
+def _text(value: Any) -> str:
+    if isinstance(value, float):
+        return f"{value:.6g}"
+    if isinstance(value, str):
+        return value
+    return json.dumps(value, separators=(",", ":"))
+
+
+def _readable(op: str, obj: BBObject | None) -> tuple[int, str, str, str, dict[str, Any]]:
+    """Level, name, hardware id, message and values a diagnostics viewer shows for one object."""
+    match obj:
+        case Pose():
+            trouble = [w for w, on in (("left wheel stalled", obj.stall_left), ("right wheel stalled",
+                       obj.stall_right), ("motors off", not obj.motors_enabled), ("bumper", obj.bumpers)) if on]
+            battery = "" if obj.battery is None else f", battery {obj.battery:.1f} V"
+            return (ERROR if trouble else OK, f"erni/robot/{obj.robot}", obj.robot,
+                    "; ".join(trouble) or f"x {obj.x:.2f} y {obj.y:.2f} heading "
+                    f"{math.degrees(obj.theta):.0f} deg{battery}",
+                    {"x": obj.x, "y": obj.y, "heading_deg": math.degrees(obj.theta), "v": obj.v, "w": obj.w,
+                     "battery": obj.battery, "stall_left": obj.stall_left, "stall_right": obj.stall_right,
+                     "bumpers": obj.bumpers, "motors_enabled": obj.motors_enabled, "sonar": obj.sonar})
+        case Task():
+            result = obj.result
+            state = obj.state.value
+            level = {"failed": ERROR, "cancelled": WARN}.get(state, OK)
+            values: dict[str, Any] = {"uid": obj.uid, "state": state, "verb": obj.verb,
+                                      "preposition": obj.preposition, "source": obj.source,
+                                      "params": obj.params.model_dump(mode="json", exclude_none=True)}
+            if result is not None:
+                values |= {"progress": result.progress, "confidence": result.confidence}
+                values |= {f"value.{k}": v for k, v in result.values.items()}
+            message = state + (f": {result.message}" if result and result.message else "")
+            return level, f"erni/task/{obj.uid} {obj.describe()}", obj.destination or "", message, values
+        case NetInfo():
+            values = {f"link {link.a}-{link.b}": link.quality for link in obj.links}
+            values |= {f"neighbor {n.name}": n.quality for n in obj.neighbors}
+            values |= {f"route {r.destination}": f"via {r.next_hop}, {r.hops} hops, cost {r.cost:g}"
+                       for r in obj.routes}
+            values["articulation_points"] = " ".join(obj.articulation_points)
+            message = obj.message or (f"{len(obj.links)} links, {len(obj.neighbors)} neighbours, "
+                                      f"articulation points: {', '.join(obj.articulation_points) or 'none'}")
+            return WARN if obj.degraded else OK, f"erni/network/{obj.node}/{obj.kind}", obj.node, message, values
+        case Peer():
+            state = "up" if obj.up else "down"
+            message = state + (f" (degraded: {obj.degraded})" if obj.degraded else "")
+            return (OK if obj.up else STALE, f"erni/peer/{obj.name}", obj.name, message,
+                    {"address": obj.address, "role": obj.role, "epoch": obj.epoch, "last_heard": obj.last_heard})
+    return OK, f"erni/{type(obj).__name__}", "", op, {}
+
+
+def diagnostics(agent: str, op: str, type_name: str, data: dict[str, Any], when: float) -> Any:
+    """One ERNI event as a DiagnosticArray, the event itself under the key `erni` of its first status.
+
+    A NetInfo is the network's diagnostics as the live ros2 plugin publishes them (one status for the
+    node, one per neighbour: `messages.diagnostics`), its links and routes added to the node's status."""
+    cls = TYPES.get(type_name)
+    try:
+        obj = cls.model_validate(data) if cls is not None and issubclass(cls, BBObject) else None
+    except ValidationError:
+        obj = None
+    level, name, hardware, message, values = _readable(op, obj)
+    if op == "remove":
+        level, message = STALE, "removed"
+    pairs = [ros.make(_KV, key=k, value=_text(v)) for k, v in values.items() if v is not None]
+    pairs.append(ros.make(_KV, key="erni", value=json.dumps(
+        {"agent": agent, "op": op, "type": type_name, "data": data}, separators=(",", ":"))))
+    stamp = getattr(obj, "stamp", None) or when
+    if isinstance(obj, Task):  # when the performer said it (or the task was made)
+        stamp = obj.result.stamp if obj.result else obj.created
+    if isinstance(obj, NetInfo) and op != "remove":
+        array = ros.diagnostics(obj, ros.stamp_ns_of(stamp))
+        own = array.status[0]
+        have = {kv.key for kv in own.values}
+        own.values = own.values + [kv for kv in pairs if kv.key not in have]
+        return array
+    status = ros.make(_STATUS, level=level, name=name, message=message, hardware_id=hardware, values=pairs)
+    return ros.make(DIAGNOSTICS, header=ros.header(ros.stamp_ns_of(stamp), ""), status=[status])
+
+
+class BagRecorder:
+    """Write events into a rosbag2 MCAP file as they arrive (the interface of erni.replay.Recorder).
+
+    The bag is written in a directory beside `path` and its one MCAP file moved to `path` on close:
+    the file holds rosbag2's metadata itself, so `ros2 bag info`, Foxglove and `rosbags` open it alone.
+    """
+
+    def __init__(self, path: str | Path, via: str, started: float | None = None):
+        from rosbags.rosbag2 import StoragePlugin, Writer, WriterError
+
+        self.path = Path(path)
+        self.count = 0
+        self.started = time.time() if started is None else started
+        self._clock = time.monotonic()
+        self._poses: dict[str, Pose] = {}
+        try:
+            self._tmp = Path(tempfile.mkdtemp(prefix=f".{self.path.name}.", dir=self.path.parent))
+        except OSError as err:
+            raise LogError(f"{self.path}: cannot write: {err.strerror or err}") from None
+        self._writer = Writer(self._tmp / "bag", version=9, storage_plugin=StoragePlugin.MCAP)
+        try:
+            self._writer.open()
+        except (WriterError, OSError) as err:
+            shutil.rmtree(self._tmp, ignore_errors=True)
+            raise LogError(f"{self.path}: cannot write: {err}") from None
+        self._connections: dict[str, Any] = {}
+        header = {"erni_record": FORMAT, "via": via, "started": self.started}
+        status = ros.make(_STATUS, level=OK, name="erni/record", message=via,
+                          values=[ros.make(_KV, key="erni", value=json.dumps(header))])
+        stamp_ns = ros.stamp_ns_of(self.started)
+        self._put(HEADER_TOPIC, ros.make(DIAGNOSTICS, header=ros.header(stamp_ns, ""), status=[status]), stamp_ns)
+
+    def _put(self, topic: str, msg: Any, stamp_ns: int) -> None:
+        conn = self._connections.get(topic)
+        if conn is None:
+            conn = self._connections[topic] = self._writer.add_connection(topic, msg.__msgtype__,
+                                                                          typestore=ros.TYPESTORE)
+        self._writer.write(conn, stamp_ns, ros.serialize(msg))
+
+    def write(self, agent: str, op: str, type_name: str, data: dict[str, Any], t: float | None = None) -> None:
+        """Record one change at `t` seconds since the recording started (now when None)."""
+        if t is None:
+            t = time.monotonic() - self._clock
+        when = ros.stamp_ns_of(self.started + t)
+        obj: BBObject | None = None
+        cls = TYPES.get(type_name)
+        if op != "remove" and cls in (Pose, NetInfo):
+            try:
+                obj = cls.model_validate(data)
+            except ValidationError:
+                obj = None
+        if isinstance(obj, Pose):
+            self._poses[obj.robot] = obj
+            stamp = ros.stamp_ns_of(obj.stamp)
+            self._put(f"/{obj.robot}/odom", ros.odometry(obj, stamp, FRAME), when)
+            self._put("/tf", ros.tf_message([obj], stamp, FRAME), when)
+        self._put(TOPICS.get(type_name, OTHER_TOPIC), diagnostics(agent, op, type_name, data, when / 1e9), when)
+        if isinstance(obj, NetInfo):
+            places = {name: (p.x, p.y) for name, p in self._poses.items()}
+            places |= {name: (p.x, p.y) for name, p in obj.positions.items()}
+            self._put(MARKERS_TOPIC, ros.network_markers(obj.links, places, ros.stamp_ns_of(obj.stamp), FRAME,
+                                                         obj.articulation_points), when)
+        self.count += 1
+
+    def close(self) -> None:
+        """Finish the bag and move its MCAP file to the path asked for."""
+        try:
+            self._writer.close()
+            os.replace(self._tmp / "bag" / "bag.mcap", self.path)
+        except OSError as err:
+            raise LogError(f"{self.path}: cannot write: {err.strerror or err}") from None
+        finally:
+            shutil.rmtree(self._tmp, ignore_errors=True)
+
+
+def convert(log: str | Path, out: str | Path) -> tuple[int, list[str]]:
+    """Write an ERNI JSON-lines log as an MCAP bag; return the number of events and the lines skipped."""
+    header, events, problems = read_log(log)
+    started = header.get("started")
+    if isinstance(started, bool) or not isinstance(started, (int, float)) or not math.isfinite(started):
+        started = None
+    recorder = BagRecorder(out, str(header.get("via", "")), started)
+    try:
+        for event in events:
+            recorder.write(event.agent, event.op, type(event.obj).__name__,
+                           event.obj.model_dump(mode="json"), event.t)
+    finally:
+        recorder.close()
+    return recorder.count, problems
+
+
+def read_bag(path: str | Path) -> tuple[dict[str, Any], list[Event], list[str]]:
+    """Return a bag's header, its ERNI events and one problem line per message that could not be read.
+
+    Poses come from `/erni/robots` when the bag has it (every field), else from the Odometry on
+    `/<robot>/odom` (position, heading, velocities and stamp), so bags from other tools replay too.
+    """
+    from rosbags.rosbag2 import Reader
+
+    path = Path(path)
+    if not path.exists():
+        raise LogError(f"{path}: no such file")
+    if path.is_dir() and not (path / "metadata.yaml").exists():
+        raise LogError(f"{path}: a directory without metadata.yaml; expected an MCAP file or a rosbag2 directory")
+    link_dir: str | None = None
+    if path.is_file():
+        try:
+            with path.open("rb") as f:
+                magic = f.read(len(MCAP_MAGIC))
+        except OSError as err:
+            raise LogError(f"{path}: cannot read: {err.strerror or err}") from None
+        if magic != MCAP_MAGIC:
+            raise LogError(f"{path}: not an MCAP file (it does not start with MCAP's magic bytes)")
+        if path.suffix != ".mcap":  # rosbags picks its reader by the name
+            link_dir = tempfile.mkdtemp(prefix="erni-bag-")
+            os.symlink(path.resolve(), Path(link_dir) / "bag.mcap")
+    try:
+        with Reader(Path(link_dir) / "bag.mcap" if link_dir else path) as reader:
+            return _events(path, reader)
+    except LogError:
+        raise
+    except Exception as err:  # rosbags raises its own errors, struct and index errors on damaged files
+        raise LogError(f"{path}: cannot read the bag: {str(err).splitlines()[0] if str(err) else type(err).__name__}"
+                       ) from None
+    finally:
+        if link_dir:
+            shutil.rmtree(link_dir, ignore_errors=True)
+
+
+def _events(path: Path, reader: Any) -> tuple[dict[str, Any], list[Event], list[str]]:
+    topics = {c.topic: c.msgtype for c in reader.connections}
+    odom = [c for c in reader.connections if c.msgtype == ODOMETRY and c.topic.endswith("/odom")
+            and c.topic.count("/") == 2 and TOPICS["Pose"] not in topics]
+    diag = [c for c in reader.connections if c.msgtype == DIAGNOSTICS and c.topic.startswith("/erni/")]
+    if not odom and not diag:
+        found = ", ".join(f"{t} ({m})" for t, m in sorted(topics.items())) or "no topics"
+        raise LogError(f"{path}: no ERNI topics (expected /erni/tasks, /erni/robots, ... or "
+                       f"{ODOMETRY} on /<robot>/odom); it has {found}")
+    header: dict[str, Any] = {}
+    raw: list[tuple[int, str, str, BBObject]] = []
+    problems: list[str] = []
+    for conn, stamp, data in reader.messages(connections=odom + diag):
+        where = f"{path}: {conn.topic} at {stamp / 1e9:.3f}"
+        try:
+            msg = ros.deserialize(data, conn.msgtype)
+            if conn.msgtype == ODOMETRY:
+                robot = conn.topic.split("/")[1]
+                raw.append((stamp, robot, "change", pose_from_odometry(robot, msg)))
+                continue
+            for status in msg.status:
+                event = next((json.loads(kv.value) for kv in status.values if kv.key == "erni"), None)
+                if event is None:
+                    continue
+                if conn.topic == HEADER_TOPIC:
+                    header = event if isinstance(event, dict) else {}
+                    continue
+                raw.append(_event(stamp, event))
+        except (LogError, ValueError, KeyError, TypeError, AttributeError, RecursionError) as err:
+            problems.append(f"{where}: {str(err).splitlines()[0][:200] if str(err) else type(err).__name__}")
+    start = reader.start_time if not raw else min(s for s, *_ in raw)
+    started = header.get("started")
+    if isinstance(started, (int, float)) and not isinstance(started, bool) and math.isfinite(started):
+        start = min(start, int(started * 1e9))
+    else:
+        header["started"] = start / 1e9
+    header.setdefault("erni_record", FORMAT)
+    header.setdefault("via", str(path))
+    events = [Event(max(0.0, (s - start) / 1e9), agent, op, obj) for s, agent, op, obj in raw]
+    events.sort(key=lambda e: e.t)
+    return header, events, problems
+
+
+def _event(stamp: int, event: Any) -> tuple[int, str, str, BBObject]:
+    if not isinstance(event, dict):
+        raise LogError(f"expected a JSON object under 'erni', got {type(event).__name__}")
+    kind = event.get("type")
+    cls = TYPES.get(kind) if isinstance(kind, str) else None
+    if cls is None or not issubclass(cls, BBObject):
+        raise LogError(f"unknown object type {str(kind)[:60]!r}")
+    if event.get("op") not in ("add", "change", "remove"):
+        raise LogError(f"unknown op {str(event.get('op'))[:60]!r}")
+    return stamp, str(event.get("agent", ""))[:64], str(event["op"]), cls.model_validate(event.get("data"))
