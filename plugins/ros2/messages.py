@@ -20,6 +20,7 @@ import numpy as np
 from rosbags.interfaces import Nodetype
 from rosbags.typesys import Stores, get_typestore
 
+from erni.blackboard.errors import TaskError, UsageError
 from erni.blackboard.tasks import Link, NetInfo, Pose, Task
 
 #: the Jazzy type store every conversion uses (message classes, CDR, type hashes)
@@ -63,13 +64,14 @@ def _default(node: tuple[Any, Any]) -> Any:
 
 def make(typename: str, **fields: Any) -> Message:
     """A message of `typename` ('nav_msgs/msg/Odometry') with `fields` set and every other field at
-    its ROS default (zero, empty, nested defaults). KeyError for a type Jazzy does not have."""
+    its ROS default (zero, empty, nested defaults). KeyError for a type Jazzy does not have, UsageError
+    for a field the type does not have."""
     cls = TYPESTORE.types[typename]
     _, defs = TYPESTORE.fielddefs[typename]
     values = {name: fields[name] if name in fields else _default(node) for name, node in defs}
     unknown = set(fields) - set(values)
     if unknown:
-        raise TypeError(f"{typename} has no field {', '.join(sorted(unknown))}")
+        raise UsageError(f"{typename} has no field {', '.join(sorted(unknown))}")
     return cls(**values)
 
 
@@ -261,16 +263,16 @@ def diagnostics(info: NetInfo, stamp_ns: int) -> Message:
 def velocity_params(twist: Message) -> dict[str, float]:
     """BotMotion velocity parameters of a geometry_msgs/Twist: v (m/s) from linear.x, w (deg/s) from
     angular.z (rad/s), each clipped to the task language's range (|v| <= 2 m/s, |w| <= 360 deg/s);
-    ValueError if not finite."""
+    TaskError (a ValueError) if not finite."""
     v, w = float(twist.linear.x), math.degrees(float(twist.angular.z))
     if not (math.isfinite(v) and math.isfinite(w)):
-        raise ValueError(f"cmd_vel: velocity ({v}, {w}) is not finite")
+        raise TaskError(f"cmd_vel: velocity ({v}, {w}) is not finite")
     return {"v": min(max(v, -2.0), 2.0), "w": min(max(w, -360.0), 360.0)}
 
 
 def goto_params(pose_stamped: Message) -> dict[str, float]:
-    """BotMotion goto parameters (x, y in m) of a geometry_msgs/PoseStamped; ValueError if not finite."""
+    """BotMotion goto parameters (x, y in m) of a geometry_msgs/PoseStamped; TaskError (a ValueError) if not finite."""
     x, y = float(pose_stamped.pose.position.x), float(pose_stamped.pose.position.y)
     if not (math.isfinite(x) and math.isfinite(y)):
-        raise ValueError(f"goal_pose: position ({x}, {y}) is not finite")
+        raise TaskError(f"goal_pose: position ({x}, {y}) is not finite")
     return {"x": x, "y": y}

@@ -1,0 +1,373 @@
+"""The `ros2` plugin: the team as ROS 2 topics over rmw_zenoh, and ROS 2 commands as ERNI tasks.
+
+Publishes each robot's Pose as nav_msgs/Odometry on `/<robot>/odom` and as a transform on `/tf`, task
+results as std_msgs/String (JSON) on `/erni/task_status`, the network as a MarkerArray on
+`/erni/network`; listens to geometry_msgs/Twist on `/<robot>/cmd_vel` (a BotMotion velocity task, so the
+behaviour stack, stop, obstacle avoidance and the receiving agent's role policy decide, as for any
+task) and geometry_msgs/PoseStamped on `/<robot>/goal_pose` (a BotMotion goto). See docs/ros2.md.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import queue
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import zenoh
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+from erni.blackboard.errors import NetworkError
+from erni.blackboard.plugin import Plugin
+from erni.blackboard.tasks import NetInfo, Pose, Task
+from erni.plugins.ros2 import messages
+from erni.plugins.ros2.rmw import DEFAULT_QOS, QoS, RmwNode
+from erni.transport.zenoh_keys import check_endpoint
+
+NAME_CHARS = "abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_"
+
+
+class ROS2Settings(BaseModel):
+    """`[plugin.settings]` of the ros2 plugin."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    domain_id: int = Field(0, ge=0, le=232, description="ROS_DOMAIN_ID of the ROS 2 side (0-232)")
+    session: Literal["auto", "own"] = Field("auto", description="auto: the transport's Zenoh session when it runs "
+                                            "wire = \"zenoh\", else one of its own; own: always its own")
+    mode: Literal["peer", "client"] = Field("peer", description="its own session's Zenoh mode")
+    connect: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:7447"],
+                               description="its own session: routers to connect to (rmw_zenoh's zenohd)")
+    listen: list[str] = Field(default_factory=list, description="its own session (peer mode): endpoints to listen on")
+    robots: list[str] | None = Field(None, description="whose topics; default: every robot whose Pose the agent has "
+                                     "on a control node, the agent itself elsewhere")
+    node_name: str | None = Field(None, description="the ROS 2 node's name (default erni_<agent>)")
+    frame: str = Field("map", min_length=1, description="the world frame of odometry, /tf and markers")
+    odom_rate_hz: float = Field(10.0, gt=0, le=100, description="at most this many Odometry messages a second per robot")
+    tf: bool = Field(True, description="publish each robot's transform on /tf")
+    status: bool = Field(True, description="publish task results on /erni/task_status")
+    network: bool = Field(True, description="publish the network as a MarkerArray on /erni/network")
+    cmd_vel: bool = Field(True, description="take geometry_msgs/Twist on /<robot>/cmd_vel")
+    goal_pose: bool = Field(True, description="take geometry_msgs/PoseStamped on /<robot>/goal_pose")
+    cmd_vel_timeout: float = Field(0.5, gt=0, le=10, description="no cmd_vel for this long (s) ends the motion")
+    cmd_vel_rate_hz: float = Field(5.0, gt=0, le=50, description="at most this many new velocity tasks a second "
+                                   "per robot (a changed command waits for the next slot)")
+    goal_speed: float = Field(0.3, gt=0, le=2.0, description="cruise speed of a goal_pose's goto (m/s)")
+    goal_tolerance: float = Field(0.1, gt=0, description="arrival radius of a goal_pose's goto (m)")
+
+    @field_validator("connect", "listen")
+    @classmethod
+    def _endpoints(cls, values: list[str]) -> list[str]:
+        for value in values:
+            check_endpoint(value)
+        return values
+
+    @field_validator("robots")
+    @classmethod
+    def _robots(cls, values: list[str] | None) -> list[str] | None:
+        for value in values or []:
+            if not value or any(c not in NAME_CHARS for c in value) or value[0].isdigit():
+                raise ValueError(f"robot {value[:80]!r}: a ROS 2 name is letters, digits and '_', not starting "
+                                 "with a digit")
+        return values
+
+    @field_validator("node_name")
+    @classmethod
+    def _node_name(cls, value: str | None) -> str | None:
+        if value is not None and (not value or any(c not in NAME_CHARS for c in value) or value[0].isdigit()):
+            raise ValueError(f"node_name {value[:80]!r}: letters, digits and '_', not starting with a digit")
+        return value
+
+    @model_validator(mode="after")
+    def _check(self) -> ROS2Settings:
+        if self.mode == "client" and not self.connect:
+            raise ValueError("mode = \"client\" needs connect = [\"tcp/ROUTER:7447\"]")
+        return self
+
+
+def ros_name(name: str) -> str:
+    """An ERNI agent name as a ROS 2 name chunk: other characters than letters, digits and '_' become '_'."""
+    out = "".join(c if c in NAME_CHARS else "_" for c in name)
+    return out if out and not out[0].isdigit() else f"r{out}"
+
+
+@dataclass
+class _Drive:
+    """What the plugin knows of one robot's cmd_vel stream."""
+
+    params: dict[str, float] | None = None  # the newest command
+    heard: float = -math.inf  # when it came
+    previous: float = -math.inf  # when the one before it came
+    task: Task | None = None  # the velocity task that carries the stream, while it runs
+    started: float = -math.inf  # when that task was posted
+    latched: bool = False  # ended by someone else: take no command until the stream pauses
+    goal: Task | None = None
+    goals: list[dict[str, float]] = field(default_factory=list)
+
+
+class ROS2Plugin(Plugin[ROS2Settings]):
+    """The team in ROS 2 (rmw_zenoh, Jazzy): odometry, /tf, task status and network out; cmd_vel, goal_pose in."""
+
+    def setup(self) -> None:
+        s = self.settings
+        self.poses = self.subscribe(Pose)
+        self.tasks = self.subscribe(Task, where=lambda t: t.verb == "BotMotion")
+        self.nets = self.subscribe(NetInfo)
+        self.node: RmwNode | None = None
+        self._own: zenoh.Session | None = None
+        self._outbox: queue.Queue[tuple[str, str, bytes, int] | None] = queue.Queue(maxsize=1000)
+        self._drives: dict[str, _Drive] = {}
+        self._lock = threading.Lock()
+        self._last_odom: dict[str, float] = {}
+        self._pending_odom: dict[str, Pose] = {}
+        self._robots_fixed = s.robots
+        self._declared: set[str] = set()
+        self._closing = threading.Event()
+        self._sender = threading.Thread(target=self._send_loop, name=f"erni-{self.agent_name}-ros2", daemon=True)
+        self._sender.start()
+        self.wake_every(min(0.1, s.cmd_vel_timeout / 2))
+
+    # --- the Zenoh side (sender thread) -----------------------------------------------------
+
+    def _session(self) -> zenoh.Session | None:
+        """The transport's Zenoh session (auto, wire = zenoh, once started) or a session of the plugin's own."""
+        s = self.settings
+        if s.session == "auto":
+            from erni.transport.bridge import TransportPlugin
+            from erni.transport.zenoh_wire import ZenohEndpoint
+            for plugin in self._require_agent().plugins:
+                if isinstance(plugin, TransportPlugin) and plugin.settings.wire == "zenoh":
+                    endpoint = getattr(plugin, "endpoint", None)
+                    if isinstance(endpoint, ZenohEndpoint):
+                        try:
+                            return endpoint.session
+                        except NetworkError:
+                            return None  # not started yet: asked again
+                    return None
+        conf = zenoh.Config()
+        values: dict[str, Any] = {"mode": s.mode, "connect/endpoints": s.connect,
+                                  "scouting/multicast/enabled": False}
+        if s.listen:
+            values["listen/endpoints"] = s.listen
+        for key, value in values.items():
+            conf.insert_json5(key, json.dumps(value))
+        try:
+            self._own = zenoh.open(conf)
+        except zenoh.ZError as err:
+            raise NetworkError(f"ros2: cannot open a Zenoh session ({s.mode}, {', '.join(s.connect)}): "
+                               f"{str(err).splitlines()[0] if str(err) else err!r}") from None
+        return self._own
+
+    def _send_loop(self) -> None:
+        while not self._closing.is_set():
+            if self.node is None:
+                try:
+                    session = self._session()
+                except NetworkError as err:
+                    self.log.error("%s", err)
+                    return
+                if session is None:
+                    self._closing.wait(0.2)
+                    continue
+                self.node = RmwNode(session, self.settings.node_name or f"erni_{ros_name(self.agent_name)}",
+                                    domain_id=self.settings.domain_id)
+                self.log.info("ROS 2 node %s on Zenoh session %s (domain %d)", self.node.name, self.node.zid,
+                              self.settings.domain_id)
+                for typename, topic, wanted in ((messages.TF_MESSAGE, "/tf", self.settings.tf),
+                                                (messages.STRING, "/erni/task_status", self.settings.status),
+                                                (messages.MARKER_ARRAY, "/erni/network", self.settings.network)):
+                    if wanted:  # declared at once: ROS 2 tools list them before the first message
+                        self.node.publisher(topic, typename, self._qos(typename))
+                self.wake()  # declare the robots known so far
+            try:
+                item = self._outbox.get(timeout=0.2)
+            except queue.Empty:
+                continue
+            if item is None:
+                break
+            kind, topic, payload, stamp_ns = item
+            try:
+                if kind == "declare":
+                    self._declare(topic)
+                else:
+                    self.node.publisher(topic, kind, self._qos(kind)).put(payload, stamp_ns)
+            except zenoh.ZError as err:
+                self.log.warning("ros2: %s on %s not sent: %s", kind, topic, err)
+
+    @staticmethod
+    def _qos(typename: str) -> QoS:
+        return QoS(depth=100) if typename == messages.TF_MESSAGE else DEFAULT_QOS
+
+    def _declare(self, robot: str) -> None:
+        """A robot's topics: its odom publisher and its cmd_vel and goal_pose subscriptions."""
+        assert self.node is not None
+        base = f"/{ros_name(robot)}"
+        self.node.publisher(f"{base}/odom", messages.ODOMETRY)
+        if self.settings.cmd_vel:
+            self.node.subscribe(f"{base}/cmd_vel", messages.TWIST, lambda data: self._on_cmd_vel(robot, data))
+        if self.settings.goal_pose:
+            self.node.subscribe(f"{base}/goal_pose", messages.POSE_STAMPED, lambda data: self._on_goal(robot, data))
+
+    def _send(self, typename: str, topic: str, msg: Any, stamp_ns: int) -> None:
+        try:
+            self._outbox.put_nowait((typename, topic, messages.serialize(msg), stamp_ns))
+        except queue.Full:
+            self.log.warning("ros2: outbox full, %s on %s dropped", typename, topic)
+
+    # --- commands from ROS 2 (Zenoh's threads) ------------------------------------------------
+
+    def _on_cmd_vel(self, robot: str, data: bytes) -> None:
+        try:
+            params = messages.velocity_params(messages.deserialize(data, messages.TWIST))
+        except (ValueError, KeyError, IndexError) as err:
+            self.log.warning("ros2: cmd_vel for %s refused: %s", robot, err)
+            return
+        now = time.monotonic()
+        with self._lock:
+            d = self._drives.setdefault(robot, _Drive())
+            d.previous, d.heard, d.params = d.heard, now, params
+            if d.latched and now - d.previous >= self.settings.cmd_vel_timeout:
+                d.latched = False  # the stream paused after the stop: a new command is a new intent
+        self.wake()
+
+    def _on_goal(self, robot: str, data: bytes) -> None:
+        try:
+            params = messages.goto_params(messages.deserialize(data, messages.POSE_STAMPED))
+        except (ValueError, KeyError, IndexError) as err:
+            self.log.warning("ros2: goal_pose for %s refused: %s", robot, err)
+            return
+        with self._lock:
+            self._drives.setdefault(robot, _Drive()).goals.append(params)
+        self.wake()
+
+    # --- the blackboard side ------------------------------------------------------------------
+
+    def _robots(self) -> set[str]:
+        if self._robots_fixed is not None:
+            return set(self._robots_fixed)
+        from erni.transport.bridge import TransportPlugin
+        for plugin in self._require_agent().plugins:
+            if isinstance(plugin, TransportPlugin) and plugin.settings.role != "control":
+                return {self.agent_name}
+        return {p.robot for p in self.poses}
+
+    def execute(self) -> None:
+        robots = self._robots()
+        for robot in sorted(robots - self._declared):
+            if self.node is not None:
+                self._declared.add(robot)
+                self._outbox.put(("declare", robot, b"", 0))
+        self._publish_poses(robots)
+        if self.settings.status:
+            for task in [*self.tasks.added, *self.tasks.changed]:
+                if task.result is not None:
+                    self._send(messages.STRING, "/erni/task_status", messages.task_status(task),
+                               messages.stamp_ns_of(task.result.stamp))
+        if self.settings.network and (self.nets.added or self.nets.changed):
+            self._publish_network()
+        self._drive(robots)
+
+    def _publish_poses(self, robots: set[str]) -> None:
+        """Odometry (and /tf) of the robots' new poses, at most odom_rate_hz per robot; a pose held back by
+        the rate goes out when its robot's slot comes (the newest one: a robot's last state is never lost)."""
+        for pose in [*self.poses.added, *self.poses.changed]:
+            if pose.robot in robots:
+                self._pending_odom[pose.robot] = pose
+        if self.node is None or not self._pending_odom:
+            return
+        now = time.monotonic()
+        period = 1.0 / self.settings.odom_rate_hz
+        due = []
+        for robot, pose in list(self._pending_odom.items()):
+            wait = self._last_odom.get(robot, -math.inf) + period - now
+            if wait <= 0:
+                due.append(pose)
+                del self._pending_odom[robot]
+                self._last_odom[robot] = now
+            else:
+                self.wake_in(wait)
+        if not due:
+            return
+        frame = self.settings.frame
+        for pose in due:
+            stamp_ns = messages.stamp_ns_of(pose.stamp)
+            self._send(messages.ODOMETRY, f"/{ros_name(pose.robot)}/odom", messages.odometry(pose, stamp_ns, frame),
+                       stamp_ns)
+        if self.settings.tf:
+            stamp_ns = max(messages.stamp_ns_of(p.stamp) for p in due)
+            self._send(messages.TF_MESSAGE, "/tf", messages.tf_message(due, stamp_ns, frame), stamp_ns)
+
+    def _publish_network(self) -> None:
+        infos = sorted(self.nets, key=lambda n: n.stamp)
+        links = {(min(l.a, l.b), max(l.a, l.b)): l for n in infos for l in n.links}
+        positions: dict[str, tuple[float, float]] = {}
+        for n in infos:
+            positions.update({name: (p.x, p.y) for name, p in n.positions.items()})
+        positions.update({p.robot: (p.x, p.y) for p in self.poses})
+        cut = {a for n in infos for a in n.articulation_points}
+        stamp_ns = time.time_ns()
+        self._send(messages.MARKER_ARRAY, "/erni/network",
+                   messages.network_markers(list(links.values()), positions, stamp_ns, self.settings.frame, cut),
+                   stamp_ns)
+
+    def _task(self, robot: str, preposition: str, params: dict[str, float]) -> Task:
+        return Task(verb="BotMotion", preposition=preposition, params=params, source=self.agent_name,
+                    destination=None if robot == self.agent_name else robot)
+
+    def _drive(self, robots: set[str]) -> None:
+        """cmd_vel and goal_pose as tasks: one velocity task per robot carries its cmd_vel stream, replaced
+        when the command changes (at most cmd_vel_rate_hz a second), removed (the robot stops) when the
+        stream stops for cmd_vel_timeout. A task ended by anyone else (an ERNI stop, a failure) latches
+        the stream: commands are ignored until it pauses for cmd_vel_timeout."""
+        s = self.settings
+        now = time.monotonic()
+        with self._lock:
+            drives = {r: d for r, d in self._drives.items() if r in robots}
+            pending: dict[str, list[dict[str, float]]] = {}
+            for robot, d in drives.items():
+                pending[robot], d.goals = d.goals, []
+            for robot, d in drives.items():
+                if d.task is not None:
+                    current = self.get(d.task.uid)
+                    if not isinstance(current, Task) or current.done:
+                        d.task = None
+                        d.latched = True  # ended by a stop, a failure or a canceller: not restarted behind its back
+                if d.latched and now - d.heard >= s.cmd_vel_timeout:
+                    d.latched = False
+                    d.params = None
+                if d.task is not None and now - d.heard >= s.cmd_vel_timeout:
+                    self.remove(d.task)  # the stream stopped: so does the robot
+                    d.task, d.params = None, None
+                elif d.params is not None and not d.latched and now - d.heard < s.cmd_vel_timeout:
+                    same = d.task is not None and d.task.params.model_dump(include={"v", "w"}) == d.params
+                    if not same and now - d.started >= 1.0 / s.cmd_vel_rate_hz:
+                        if d.task is not None:
+                            self.remove(d.task)
+                        d.task = self._task(robot, "velocity", d.params)
+                        d.started = now
+                        self.add(d.task)
+                for goal in pending[robot]:
+                    if d.goal is not None:
+                        current = self.get(d.goal.uid)
+                        if isinstance(current, Task) and not current.done:
+                            self.remove(current)  # a new goal replaces the one being driven to
+                    d.goal = self._task(robot, "goto", {**goal, "speed": s.goal_speed, "tolerance": s.goal_tolerance})
+                    self.add(d.goal)
+
+    def teardown(self) -> None:
+        self._closing.set()
+        try:
+            self._outbox.put_nowait(None)
+        except queue.Full:
+            pass
+        self._sender.join(timeout=5)
+        if self.node is not None:
+            self.node.close()
+        if self._own is not None:
+            self._own.close()  # type: ignore[no-untyped-call]  # untyped in Zenoh's stubs
+
+
+__all__ = ["ROS2Plugin", "ROS2Settings"]

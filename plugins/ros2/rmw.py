@@ -1,0 +1,189 @@
+"""rmw_zenoh's wire (ROS 2 Jazzy) on a Zenoh session: key expressions, liveliness tokens, attachments, QoS.
+
+What a ROS 2 node on `RMW_IMPLEMENTATION=rmw_zenoh_cpp` expects, without ROS 2:
+
+- a topic's data travels on `<domain>/<topic without its leading />/<DDS type name>/<RIHS01 type hash>`,
+  e.g. `0/robot1/odom/nav_msgs::msg::dds_::Odometry_/RIHS01_3cc9...`, its payload CDR (little-endian,
+  with the 4-byte encapsulation header);
+- each sample carries an attachment: the sequence number (int64), the source time in ns (int64) and the
+  publisher's 16-byte GID, in Zenoh's serialisation (little-endian integers, the GID a sequence whose
+  length, 16, is one LEB128 byte);
+- discovery is by liveliness tokens under `@ros2_lv/<domain>/<session zid>/<node id>/...`: one per node
+  (`NN`) and one per publisher (`MP`) or subscription (`MS`), the names mangled ('/' written '%'),
+  with the QoS in rmw_zenoh's compact form.
+"""
+
+from __future__ import annotations
+
+import itertools
+import os
+import struct
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import zenoh
+
+from erni.blackboard.errors import UsageError
+from erni.plugins.ros2.messages import dds_type_name, type_hash
+
+ADMIN_SPACE = "@ros2_lv"
+GID_SIZE = 16
+
+
+@dataclass(frozen=True)
+class QoS:
+    """The QoS rmw_zenoh writes in a liveliness token (what ROS 2 tools match publishers and subscriptions on).
+
+    `encode()` gives rmw_zenoh's form `RELIABILITY:DURABILITY:HISTORY,DEPTH:DEADLINE:LIFESPAN:LIVELINESS`,
+    a field equal to ROS 2's default (reliable, volatile, keep last, infinite durations, automatic) left
+    empty: the default profile of depth 10 is `::,10:,:,:,,`."""
+
+    reliable: bool = True
+    transient_local: bool = False
+    depth: int = 10
+
+    def encode(self) -> str:
+        reliability = "" if self.reliable else "2"
+        durability = "1" if self.transient_local else ""
+        return f"{reliability}:{durability}:,{self.depth}:,:,:,,"
+
+
+DEFAULT_QOS = QoS()
+SENSOR_QOS = QoS(reliable=False, depth=5)  # rclcpp's SensorDataQoS
+
+
+def mangle(name: str) -> str:
+    """A name inside a token: '/' written '%' ('/robot1/odom' -> '%robot1%odom'; '' and '/' -> '%')."""
+    return "%" if name in ("", "/") else name.replace("/", "%")
+
+
+def topic_key(domain_id: int, topic: str, typename: str) -> str:
+    """The key expression of a topic's data: '0/robot1/odom/nav_msgs::msg::dds_::Odometry_/RIHS01_...'."""
+    return f"{domain_id}/{topic.strip('/')}/{dds_type_name(typename)}/{type_hash(typename)}"
+
+
+def node_token(domain_id: int, zid: str, node_id: int, namespace: str, node: str) -> str:
+    """The liveliness token of a node: '@ros2_lv/0/<zid>/<node id>/<node id>/NN/%/<ns>/<name>'."""
+    return f"{ADMIN_SPACE}/{domain_id}/{zid}/{node_id}/{node_id}/NN/%/{mangle(namespace)}/{mangle(node)}"
+
+
+def endpoint_token(domain_id: int, zid: str, node_id: int, entity_id: int, kind: str, namespace: str, node: str,
+                   topic: str, typename: str, qos: QoS) -> str:
+    """The liveliness token of a publisher (`kind` 'MP') or subscription ('MS')."""
+    return (f"{ADMIN_SPACE}/{domain_id}/{zid}/{node_id}/{entity_id}/{kind}/%/{mangle(namespace)}/{mangle(node)}/"
+            f"{mangle(topic)}/{dds_type_name(typename)}/{type_hash(typename)}/{qos.encode()}")
+
+
+def attachment(sequence: int, stamp_ns: int, gid: bytes) -> bytes:
+    """A sample's attachment as rmw_zenoh writes and reads it."""
+    if len(gid) != GID_SIZE:
+        raise UsageError(f"a GID is {GID_SIZE} bytes, got {len(gid)}")
+    return struct.pack("<qqB", sequence, stamp_ns, GID_SIZE) + gid
+
+
+def parse_attachment(data: bytes) -> tuple[int, int, bytes]:
+    """(sequence number, source time ns, GID) of an attachment; ValueError if it is not one."""
+    if len(data) != 17 + GID_SIZE or data[16] != GID_SIZE:
+        raise UsageError(f"not an rmw_zenoh attachment ({len(data)} bytes)")
+    sequence, stamp_ns = struct.unpack_from("<qq", data)
+    return sequence, stamp_ns, data[17:]
+
+
+class Publisher:
+    """One topic published by an `RmwNode` (serialised messages in, samples with attachments out)."""
+
+    def __init__(self, node: RmwNode, topic: str, typename: str, qos: QoS, entity_id: int) -> None:
+        self.topic, self.typename, self.qos = topic, typename, qos
+        self.gid = os.urandom(GID_SIZE)
+        self.key = topic_key(node.domain_id, topic, typename)
+        self.token = endpoint_token(node.domain_id, node.zid, node.node_id, entity_id, "MP", node.namespace,
+                                    node.name, topic, typename, qos)
+        self._sequence = itertools.count(1)
+        self._lock = threading.Lock()
+        reliability = zenoh.Reliability.RELIABLE if qos.reliable else zenoh.Reliability.BEST_EFFORT
+        self._pub = node.session.declare_publisher(self.key, encoding=zenoh.Encoding("application/cdr"),
+                                                   congestion_control=zenoh.CongestionControl.DROP,
+                                                   reliability=reliability)
+        self._token = node.session.liveliness().declare_token(self.token)
+
+    def put(self, payload: bytes, stamp_ns: int | None = None) -> None:
+        """Send one CDR payload (as `messages.serialize` makes it)."""
+        with self._lock:
+            sequence = next(self._sequence)
+        self._pub.put(payload, attachment=attachment(sequence, stamp_ns or time.time_ns(), self.gid))
+
+    def close(self) -> None:
+        self._token.undeclare()  # type: ignore[no-untyped-call]  # untyped in Zenoh's stubs
+        self._pub.undeclare()  # type: ignore[no-untyped-call]
+
+
+class Subscription:
+    """One topic an `RmwNode` listens to: `callback(payload)` with each sample's CDR bytes, on Zenoh's thread."""
+
+    def __init__(self, node: RmwNode, topic: str, typename: str, qos: QoS, entity_id: int,
+                 callback: Callable[[bytes], None]) -> None:
+        self.topic, self.typename, self.qos = topic, typename, qos
+        self.key = topic_key(node.domain_id, topic, typename)
+        self.token = endpoint_token(node.domain_id, node.zid, node.node_id, entity_id, "MS", node.namespace,
+                                    node.name, topic, typename, qos)
+        self._sub = node.session.declare_subscriber(self.key, lambda sample: callback(sample.payload.to_bytes()))
+        self._token = node.session.liveliness().declare_token(self.token)
+
+    def close(self) -> None:
+        self._token.undeclare()  # type: ignore[no-untyped-call]
+        self._sub.undeclare()  # type: ignore[no-untyped-call]
+
+
+class RmwNode:
+    """A ROS 2 node as rmw_zenoh shows it (its token, its publishers' and subscriptions' tokens) on a
+    Zenoh session that may be shared with others (each `RmwNode` takes its own node id)."""
+
+    _node_ids = itertools.count(1000)  # ids unique in this process (a shared session may hold several nodes)
+
+    def __init__(self, session: zenoh.Session, name: str, *, namespace: str = "/", domain_id: int = 0) -> None:
+        self.session, self.name, self.namespace, self.domain_id = session, name, namespace, domain_id
+        self.zid = str(session.info.zid())
+        self.node_id = next(self._node_ids)
+        self._entity_ids = itertools.count(self.node_id * 1000 + 1)
+        self.token = node_token(domain_id, self.zid, self.node_id, namespace, name)
+        self._token = session.liveliness().declare_token(self.token)
+        self.publishers: dict[str, Publisher] = {}
+        self.subscriptions: dict[str, Subscription] = {}
+        self._lock = threading.Lock()
+
+    def publisher(self, topic: str, typename: str, qos: QoS = DEFAULT_QOS) -> Publisher:
+        """The node's publisher of `topic` (declared on first use)."""
+        with self._lock:
+            pub = self.publishers.get(topic)
+            if pub is None:
+                pub = self.publishers[topic] = Publisher(self, topic, typename, qos, next(self._entity_ids))
+            return pub
+
+    def subscribe(self, topic: str, typename: str, callback: Callable[[bytes], None],
+                  qos: QoS = DEFAULT_QOS) -> Subscription:
+        """Listen to `topic` (once per topic)."""
+        with self._lock:
+            sub = self.subscriptions.get(topic)
+            if sub is None:
+                sub = self.subscriptions[topic] = Subscription(self, topic, typename, qos, next(self._entity_ids),
+                                                               callback)
+            return sub
+
+    def close(self) -> None:
+        """Undeclare every publisher, subscription and the node's token (the session stays open)."""
+        with self._lock:
+            entities: list[Any] = [*self.publishers.values(), *self.subscriptions.values()]
+            self.publishers.clear()
+            self.subscriptions.clear()
+        for entity in entities:
+            try:
+                entity.close()
+            except zenoh.ZError:
+                pass  # the session closed first: its declarations went with it
+        try:
+            self._token.undeclare()  # type: ignore[no-untyped-call]
+        except zenoh.ZError:
+            pass
