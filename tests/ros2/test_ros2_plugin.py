@@ -1,0 +1,281 @@
+"""The ros2 plugin against ROBOTIS' zenoh-ros2-sdk (an independent rmw_zenoh client, no ROS 2 install):
+its discovery lists ERNI's topics with their types, its subscriber decodes ERNI's Odometry, its
+publishers drive an ERNI robot through cmd_vel (an ERNI stop still halts it) and goal_pose; and what
+was learnt of rmw_zenoh's wire, pinned as bytes."""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import pytest
+
+zenoh = pytest.importorskip("zenoh")
+pytest.importorskip("zenoh_ros2_sdk")
+
+from pydantic import ValidationError  # noqa: E402
+from zenoh_ros2_sdk import ROS2Publisher, ROS2Subscriber, get_topic_info, get_topic_names_and_types  # noqa: E402
+from zenoh_ros2_sdk.attachment import Attachment  # noqa: E402
+from zenoh_ros2_sdk.entity import EndpointEntity, EntityKind, NodeEntity  # noqa: E402
+from zenoh_ros2_sdk.keyexpr import endpoint_liveliness_keyexpr, topic_keyexpr  # noqa: E402
+from zenoh_ros2_sdk.qos import QosProfile  # noqa: E402
+
+from erni.blackboard import Agent, Pose, Task, TaskState  # noqa: E402
+from erni.blackboard.testing import wait_until  # noqa: E402
+from erni.plugins.ros2 import ROS2Settings, messages, rmw  # noqa: E402
+from erni.testing import find_task, post_task, run_task, wait_for_task  # noqa: E402
+
+ODOM_HASH = "RIHS01_3cc97dc7fb7502f8714462c526d369e35b603cfc34d946e3f2eda2766dfec6e0"
+TWIST_HASH = "RIHS01_9c45bf16fe0983d80e3cfe750d6835843d265a9a6c46bd2e609fcddde6fb8d2a"
+ZID = "98517b73ab05dcb895c1c42cdfe891cd"
+
+
+# --- what was learnt, pinned ------------------------------------------------------------------
+
+
+def test_key_expressions_tokens_and_hashes_are_rmw_zenohs() -> None:
+    assert messages.type_hash(messages.ODOMETRY) == ODOM_HASH
+    assert messages.type_hash(messages.TWIST) == TWIST_HASH
+    assert messages.dds_type_name(messages.ODOMETRY) == "nav_msgs::msg::dds_::Odometry_"
+    key = rmw.topic_key(0, "/robot1/odom", messages.ODOMETRY)
+    assert key == f"0/robot1/odom/nav_msgs::msg::dds_::Odometry_/{ODOM_HASH}"
+    assert rmw.node_token(0, ZID, 7, "/", "erni_control") == f"@ros2_lv/0/{ZID}/7/7/NN/%/%/erni_control"
+    token = rmw.endpoint_token(3, ZID, 7, 9, "MS", "/", "erni_control", "/robot1/cmd_vel", messages.TWIST,
+                               rmw.DEFAULT_QOS)
+    assert token == (f"@ros2_lv/3/{ZID}/7/9/MS/%/%/erni_control/%robot1%cmd_vel/"
+                     f"geometry_msgs::msg::dds_::Twist_/{TWIST_HASH}/::,10:,:,:,,")
+    assert rmw.QoS(reliable=False, depth=5).encode() == "2::,5:,:,:,,"
+    assert rmw.QoS(transient_local=True, depth=1).encode() == ":1:,1:,:,:,,"
+    # the independent client builds the same strings
+    assert topic_keyexpr(0, "/robot1/odom", "nav_msgs::msg::dds_::Odometry_", ODOM_HASH) == key
+    node = NodeEntity(domain_id=3, session_id=ZID, node_id=7, node_name="erni_control", namespace="/")
+    ep = EndpointEntity(node=node, entity_id=9, kind=EntityKind.SUBSCRIPTION, name="/robot1/cmd_vel",
+                        dds_type_name="geometry_msgs::msg::dds_::Twist_", type_hash=TWIST_HASH,
+                        qos=QosProfile().encode())
+    assert endpoint_liveliness_keyexpr(ep) == token
+
+
+def test_the_sdk_computes_the_same_type_hashes_from_the_definitions(ros: dict[str, Any]) -> None:
+    """The SDK hashes the .msg text itself (its own RIHS01 code); rosbags hashes its built-in store."""
+    for typename in (messages.ODOMETRY, messages.TWIST, messages.POSE_STAMPED, messages.TF_MESSAGE):
+        pub = ROS2Publisher(f"/hash_check/{typename.split('/')[-1].lower()}", typename,
+                            router_port=ros["router_port"])
+        try:
+            assert pub.type_hash == messages.type_hash(typename), typename
+        finally:
+            pub.close()
+
+
+def test_attachment_bytes() -> None:
+    gid = bytes(range(16))
+    data = rmw.attachment(5, 1_700_000_000_123_456_789, gid)
+    assert data.hex() == "0500000000000000" "15cd853dfe9c9717" "10" "000102030405060708090a0b0c0d0e0f"
+    assert rmw.parse_attachment(data) == (5, 1_700_000_000_123_456_789, gid)
+    assert Attachment.from_bytes(data) == Attachment(5, 1_700_000_000_123_456_789, gid)
+    # zenoh's own serialiser writes the same: two int64, then the GID as a length-prefixed sequence
+    from zenoh.ext import Int64, z_serialize
+    assert z_serialize((Int64(5), Int64(1_700_000_000_123_456_789), gid)).to_bytes() == data
+
+
+ODOM_CDR = (
+    "00010000" "4cb2ab65" "15cd5b07" "04000000" "6d617000" "11000000" "726f626f74312f626173655f6c696e6b00000000"
+    "000000000000f83f" "000000000000e0bf" "0000000000000000"
+    "0000000000000000" "0000000000000000" "5941a5178d11e23f" "155b483c2669ea3f"
+    + "0000000000000000" * 36
+    + "333333333333d33f" "0000000000000000" "0000000000000000"
+    + "0000000000000000" "0000000000000000" "9a9999999999b93f"
+    + "0000000000000000" * 36
+)
+
+
+def test_odometry_cdr_bytes() -> None:
+    pose = Pose(robot="robot1", x=1.5, y=-0.5, theta=1.2, v=0.3, w=0.1, stamp=1705751116.123456789)
+    msg = messages.odometry(pose, 1_705_751_116_123_456_789)
+    data = messages.serialize(msg)
+    assert data.hex() == ODOM_CDR
+    back = messages.deserialize(data, messages.ODOMETRY)
+    assert back.header.frame_id == "map" and back.child_frame_id == "robot1/base_link"
+    assert math.isclose(messages.yaw(back.pose.pose.orientation), 1.2)
+
+
+def test_settings_refuse_bad_values_in_one_line() -> None:
+    for bad, words in (({"domain_id": 300}, "domain_id"), ({"connect": ["localhost"]}, "PROTOCOL/HOST:PORT"),
+                       ({"robots": ["robot-1"]}, "letters, digits and '_'"),
+                       ({"mode": "client", "connect": []}, "needs connect"), ({"tf": "maybe"}, "tf")):
+        with pytest.raises(ValidationError) as err:
+            ROS2Settings(**bad)
+        assert words in str(err.value), (bad, str(err.value))
+
+
+# --- against the independent client --------------------------------------------------------------
+
+
+def test_the_sdks_topic_list_shows_erni_topics_with_their_types(robot: Callable[..., Agent],
+                                                                 ros: dict[str, Any]) -> None:
+    robot()
+    want = {"/robot1/odom": ["nav_msgs/msg/Odometry"], "/robot1/cmd_vel": ["geometry_msgs/msg/Twist"],
+            "/robot1/goal_pose": ["geometry_msgs/msg/PoseStamped"], "/tf": ["tf2_msgs/msg/TFMessage"],
+            "/erni/task_status": ["std_msgs/msg/String"], "/erni/network": ["visualization_msgs/msg/MarkerArray"]}
+
+    def listed() -> dict[str, list[str]] | None:
+        topics = dict(get_topic_names_and_types(router_port=ros["router_port"]))
+        return topics if all(topics.get(k) == v for k, v in want.items()) else None
+
+    topics = wait_until(listed, timeout=5, message="ERNI's topics not listed")
+    assert topics is not None
+    info = get_topic_info("/robot1/odom", router_port=ros["router_port"], verbose=True)
+    assert info.publisher_count == 1 and info.publishers[0].node_name == "erni_robot1"
+    assert info.publishers[0].type_hash == ODOM_HASH and info.publishers[0].qos == "::,10:,:,:,,"
+    info = get_topic_info("/robot1/cmd_vel", router_port=ros["router_port"], verbose=True)
+    assert info.subscriber_count == 1 and info.subscribers[0].topic_type == "geometry_msgs/msg/Twist"
+
+
+def test_the_sdks_subscriber_decodes_erni_odometry(robot: Callable[..., Agent], ros: dict[str, Any]) -> None:
+    agent = robot()
+    got: list[Any] = []
+    raw: list[tuple[bytes, bytes | None]] = []
+    sub = ROS2Subscriber("/robot1/odom", messages.ODOMETRY, got.append, router_port=ros["router_port"])
+    key = rmw.topic_key(0, "/robot1/odom", messages.ODOMETRY)
+    tap = ros["session"].session.declare_subscriber(key, lambda s: raw.append(
+        (s.payload.to_bytes(), s.attachment.to_bytes() if s.attachment is not None else None)))
+    try:
+        done = run_task(agent, "BotMotion", "goto", x=0.6, y=0.4, timeout=20)
+        assert done.state is TaskState.SUCCEEDED, done.result
+
+        def matching() -> tuple[Any, Pose] | None:  # the Odometry of the Pose on the blackboard now
+            pose = agent.query(Pose)[0]
+            stamp = messages.stamp_ns_of(pose.stamp)
+            msg = next((m for m in reversed(got) if m.header.stamp.sec * 10**9 + m.header.stamp.nanosec == stamp),
+                       None)
+            return (msg, pose) if msg is not None else None
+
+        found = wait_until(matching, timeout=5, message="no Odometry with the Pose's stamp")
+        assert found is not None
+        msg, pose = found
+    finally:
+        sub.close()
+        tap.undeclare()
+    assert msg.header.frame_id == "map" and msg.child_frame_id == "robot1/base_link"
+    assert msg.pose.pose.position.x == pytest.approx(pose.x) and msg.pose.pose.position.y == pytest.approx(pose.y)
+    assert messages.yaw(msg.pose.pose.orientation) == pytest.approx(pose.theta)
+    assert msg.twist.twist.linear.x == pytest.approx(pose.v) and msg.twist.twist.angular.z == pytest.approx(pose.w)
+    assert math.hypot(pose.x - 0.6, pose.y - 0.4) <= 0.1
+    # attachments: increasing sequence numbers, one 16-byte GID, the header's stamp as source time
+    assert raw and all(a is not None for _, a in raw)
+    parsed = [rmw.parse_attachment(a) for _, a in raw if a is not None]
+    assert [p[0] for p in parsed] == sorted(p[0] for p in parsed) and len({p[2] for p in parsed}) == 1
+    last = messages.deserialize(raw[-1][0], messages.ODOMETRY)
+    assert parsed[-1][1] == last.header.stamp.sec * 10**9 + last.header.stamp.nanosec
+
+
+class Teleop:
+    """A ROS 2 teleop (the SDK's publisher) sending one Twist every 0.1 s from its own thread."""
+
+    def __init__(self, port: int, topic: str = "/robot1/cmd_vel") -> None:
+        self.pub = ROS2Publisher(topic, messages.TWIST, router_port=port)
+        self.v, self.w = 0.0, 0.0
+        self.running = threading.Event()
+        self.closing = threading.Event()
+        self.thread = threading.Thread(target=self._loop, name="test-teleop")
+        self.thread.start()
+
+    def _loop(self) -> None:
+        while not self.closing.is_set():
+            if self.running.is_set():
+                self.pub.publish(linear=messages.make("geometry_msgs/msg/Vector3", x=self.v),
+                                 angular=messages.make("geometry_msgs/msg/Vector3", z=self.w))
+            self.closing.wait(0.1)
+
+    def close(self) -> None:
+        self.closing.set()
+        self.thread.join()
+        self.pub.close()
+
+
+@pytest.fixture
+def teleop(ros: dict[str, Any]) -> Iterator[Teleop]:
+    t = Teleop(ros["router_port"])
+    yield t
+    t.close()
+
+
+def _velocity_tasks(agent: Agent) -> list[Task]:
+    return [t for t in agent.query(Task) if t.preposition == "velocity"]
+
+
+def test_cmd_vel_moves_the_robot_and_an_erni_stop_halts_it(robot: Callable[..., Agent], teleop: Teleop) -> None:
+    agent = robot()
+    teleop.v, teleop.w = 0.3, 0.0
+    teleop.running.set()
+    wait_until(lambda: agent.query(Pose)[0].v > 0.25, timeout=5, message="cmd_vel did not move the robot")
+    x0 = agent.query(Pose)[0].x
+    wait_until(lambda: agent.query(Pose)[0].x > x0 + 0.1, timeout=5, message="the robot did not drive on")
+    (task,) = [t for t in _velocity_tasks(agent) if not t.done]  # one task carries the stream
+    assert task.source == "robot1" and task.params.model_dump(include={"v", "w"}) == {"v": 0.3, "w": 0.0}
+    # an ERNI stop ends the motion although the teleop keeps publishing
+    stop = run_task(agent, "BotMotion", "stop", timeout=5)
+    assert stop.state is TaskState.SUCCEEDED, stop.result
+    ended = wait_for_task(agent, task.uid, timeout=5)
+    assert ended.state is TaskState.CANCELLED and "stopped by" in (ended.result.message if ended.result else "")
+    time.sleep(1.0)  # ten more commands came
+    pose = agent.query(Pose)[0]
+    assert abs(pose.v) < 0.01, pose
+    assert not [t for t in _velocity_tasks(agent) if not t.done]
+    # once the operator lets go (a pause longer than cmd_vel_timeout), a new command drives again
+    teleop.running.clear()
+    time.sleep(0.8)
+    teleop.running.set()
+    wait_until(lambda: agent.query(Pose)[0].v > 0.25, timeout=5, message="cmd_vel after the pause did not drive")
+    # and when the stream stops, so does the robot (the velocity task is removed)
+    teleop.running.clear()
+    wait_until(lambda: abs(agent.query(Pose)[0].v) < 0.01, timeout=5, message="the robot kept going")
+    wait_until(lambda: not [t for t in _velocity_tasks(agent) if not t.done], timeout=2)
+
+
+def test_a_zero_twist_is_a_velocity_not_a_stop_bypass(robot: Callable[..., Agent], teleop: Teleop) -> None:
+    """A zero cmd_vel holds the robot still through the behaviour stack; it does not end an ERNI stop
+    that holds (`hold=true`), and a held robot does not move for a non-zero one either."""
+    agent = robot()
+    hold = post_task(agent, "BotMotion", "stop", hold=True)
+    wait_for_task(agent, hold, state=TaskState.RUNNING, timeout=5)
+    teleop.v = 0.3
+    teleop.running.set()
+    wait_until(lambda: _velocity_tasks(agent), timeout=5, message="no velocity task from cmd_vel")
+    time.sleep(1.0)
+    assert abs(agent.query(Pose)[0].v) < 0.01  # the hold has priority over the command
+    teleop.v = 0.0
+    time.sleep(0.5)
+    (task,) = [t for t in _velocity_tasks(agent) if not t.done]
+    assert task.params.model_dump(include={"v", "w"}) == {"v": 0.0, "w": 0.0}
+    still = find_task(agent, hold.uid)  # still holding
+    assert still is not None and still.state is TaskState.RUNNING
+
+
+def test_goal_pose_is_a_goto_that_reaches_the_point(robot: Callable[..., Agent], ros: dict[str, Any]) -> None:
+    agent = robot()
+    pub = ROS2Publisher("/robot1/goal_pose", messages.POSE_STAMPED, router_port=ros["router_port"])
+    statuses: list[str] = []
+    sub = ROS2Subscriber("/erni/task_status", messages.STRING, lambda m: statuses.append(m.data),
+                         router_port=ros["router_port"])
+    try:
+        time.sleep(0.5)  # the publisher's declaration reaches ERNI's subscription through the router
+        goal = messages.make(messages.POSE_STAMPED, header=messages.header(time.time_ns(), "map"),
+                             pose=messages.make("geometry_msgs/msg/Pose",
+                                                position=messages.make("geometry_msgs/msg/Point", x=1.0, y=-0.5),
+                                                orientation=messages.quaternion(0.0)))
+        pub.publish(header=goal.header, pose=goal.pose)
+        gotos = wait_until(lambda: [t for t in agent.query(Task) if t.preposition == "goto"], timeout=5,
+                           message="goal_pose made no goto")
+        done = wait_for_task(agent, gotos[0].uid, timeout=20)
+        assert done.state is TaskState.SUCCEEDED, done.result
+        pose = agent.query(Pose)[0]
+        assert math.hypot(pose.x - 1.0, pose.y + 0.5) <= 0.1
+        import json
+        wait_until(lambda: any(json.loads(s)["uid"] == done.uid and json.loads(s)["state"] == "succeeded"
+                               for s in statuses), timeout=5, message="no succeeded status on /erni/task_status")
+    finally:
+        pub.close()
+        sub.close()
