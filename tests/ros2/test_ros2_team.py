@@ -1,0 +1,73 @@
+"""The ros2 plugin on a control node whose transport runs `wire = "zenoh"`: it rides on the transport's
+Zenoh session, publishes the odometry of a robot it hears of through ERNI, and a cmd_vel for that
+robot reaches it as a task through ERNI's transport (its sessions and the robot's role policy)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import pytest
+
+pytest.importorskip("zenoh")
+pytest.importorskip("zenoh_ros2_sdk")
+
+from zenoh_ros2_sdk import ROS2Subscriber, get_topic_names_and_types  # noqa: E402
+
+from erni.blackboard import Agent, Pose, Task  # noqa: E402
+from erni.blackboard.testing import wait_until  # noqa: E402
+from erni.plugins.ros2 import ROS2Plugin, messages  # noqa: E402
+from erni.testing import fake_robot  # noqa: E402
+from erni.transport import Peer  # noqa: E402
+from tests.ros2.test_ros2_plugin import Teleop  # noqa: E402
+from tests.transport.helpers import make_agent  # noqa: E402
+
+TEAM = "rostest"
+
+
+@pytest.fixture
+def team(router: tuple[str, int]) -> Iterator[Callable[..., Agent]]:
+    agents: list[Agent] = []
+
+    def spawn(name: str, plugins: Callable[[Agent], None]) -> Agent:
+        agent = make_agent(name, 0, echo=False, start=False, wire="zenoh",
+                           zenoh={"team": TEAM, "mode": "client", "connect": [router[0]]})
+        plugins(agent)
+        agents.append(agent)
+        return agent.start()
+
+    yield spawn
+    for agent in agents:
+        agent.stop()
+
+
+def test_a_control_node_shows_the_team_and_drives_a_robot_through_erni(team: Callable[..., Agent],
+                                                                        ros: dict[str, Any]) -> None:
+    control = team("control", lambda a: a.add_plugin(ROS2Plugin, name="ros2"))  # session "auto", no own settings
+    robot = team("robot1", lambda a: a.add_plugin("motion", settings=fake_robot("robot1"), name="motion"))
+    wait_until(lambda: any(p.name == "robot1" and p.up for p in control.query(Peer)), timeout=10)
+    wait_until(lambda: control.blackboard.get("pose:robot1"), timeout=10, message="no Pose of robot1 at control")
+    # the node's tokens are on the transport's session (its Zenoh id), not on a session of its own
+    zid = str(control.plugin("transport").endpoint.session.info.zid())  # type: ignore[attr-defined]
+    plugin = control.plugin("ros2")
+    assert isinstance(plugin, ROS2Plugin)
+    wait_until(lambda: plugin.node is not None, timeout=5)
+    assert plugin.node is not None and plugin.node.zid == zid
+    wait_until(lambda: dict(get_topic_names_and_types(router_port=ros["router_port"])).get("/robot1/cmd_vel"),
+               timeout=5, message="robot1's topics not listed")
+    got: list[Any] = []
+    sub = ROS2Subscriber("/robot1/odom", messages.ODOMETRY, got.append, router_port=ros["router_port"])
+    teleop = Teleop(ros["router_port"])
+    try:
+        teleop.v = 0.25
+        teleop.running.set()
+        wait_until(lambda: robot.query(Pose)[0].x > 0.2, timeout=10, message="cmd_vel did not reach robot1")
+        tasks = [t for t in robot.query(Task) if t.preposition == "velocity"]
+        assert tasks and tasks[0].source == "control" and tasks[0].destination == "robot1"
+        wait_until(lambda: got and got[-1].pose.pose.position.x > 0.2, timeout=5,
+                   message="robot1's odometry not published by the control node")
+        teleop.running.clear()
+        wait_until(lambda: abs(robot.query(Pose)[0].v) < 0.01, timeout=5, message="robot1 kept going")
+    finally:
+        teleop.close()
+        sub.close()
