@@ -156,7 +156,8 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
                  retry_base: float = 0.05, retry_max: float = 2.0, ttl: float = 30.0,
                  discovery_port: int | None = None, udp_loss: float = 0.0, seed: int | None = None,
                  role: str = "", inbound_filter: InboundFilter | None = None, limits: Limits | None = None,
-                 revocations: str | Path | None = None, handshake_timeout: float | None = None):
+                 revocations: str | Path | None = None, handshake_timeout: float | None = None,
+                 clock: Callable[[], float] = time.monotonic):
         self.auth: Auth | None
         if identity is not None:
             if identity.name != name:
@@ -172,6 +173,10 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
         else:
             raise ConfigError("no identity and no team key: give one, or run with insecure = true")
         self.name = name
+        # what expires is timed by this clock: a message's deadline, a handshake, an idle session or
+        # connection; the threads' own pace (retries, batches, waits) keeps real time. A test gives its
+        # own (erni.testing.ManualClock, usually the agent's) to move time without waiting for it
+        self.clock = clock
         self.identity = identity
         self.revocations = Path(revocations) if revocations else None
         self._listen = listen
@@ -227,6 +232,13 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
         # the agent of this name has left (a wire that tells, as Zenoh's liveliness does; UDP never calls it)
         self.on_gone: Callable[[str], None] = lambda name: None
         self.wire = "udp"  # the wire the frames travel on ('zenoh' for zenoh_wire.ZenohEndpoint)
+        watch = getattr(clock, "on_advance", None)
+        if callable(watch):  # a test's clock moved: the senders look again at what has expired
+            watch(self._clock_moved)
+
+    def _clock_moved(self) -> None:
+        with self._cond:
+            self._cond.notify_all()
 
     # -- counters -------------------------------------------------------------------------
 
@@ -398,7 +410,7 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
         seq = next(self._seq)
         msg_id = msg_id or f"{self._id_prefix}{seq:x}"
         type_name, data = encode_body(body)
-        out = Outgoing(msg_id, kind, type_name, body, data, seq, time.monotonic() + (ttl or self.ttl), to or "")
+        out = Outgoing(msg_id, kind, type_name, body, data, seq, self.clock() + (ttl or self.ttl), to or "")
         if lane == "fast":
             sent = self._send_now(addr, out)
             self._fast_at[addr] = time.monotonic()  # a burst is told by the time until the next

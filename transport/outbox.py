@@ -18,7 +18,7 @@ import socket
 import threading
 import time
 from collections import deque
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -102,6 +102,7 @@ class SenderPool:
     declared below)."""
 
     if TYPE_CHECKING:
+        clock: Callable[[], float]
         _cond: threading.Condition
         _delayed: list[tuple[float, int, int, Dest]]
         _dests: dict[Address, Dest]
@@ -219,7 +220,9 @@ class SenderPool:
     def _handshake_step(self, dest: Dest) -> float | None:
         """Start, retransmit or give up a handshake with `dest`; return when to look again."""
         assert self.auth is not None
-        now = time.monotonic()
+        # what expires (a message's deadline, the handshake's timeout) is timed by the endpoint's clock;
+        # when to send again, by real time (the same clock unless a test gave its own)
+        now, real = self.clock(), time.monotonic()
         while True:
             with self._cond:
                 out = dest.reliable[0] if dest.reliable else None
@@ -229,7 +232,7 @@ class SenderPool:
             return None
         init = dest.handshake
         if init is None:
-            if now < dest.hs_not_before:
+            if real < dest.hs_not_before:
                 return dest.hs_not_before
             with self._cond:
                 first = dest.reliable[0] if dest.reliable else dest.fast[0] if dest.fast else None
@@ -239,7 +242,7 @@ class SenderPool:
             self.sessions.abandon(init)
             dest.handshake = None
             dest.hs_backoff = min(5.0, max(0.5, dest.hs_backoff * 2))
-            dest.hs_not_before = now + dest.hs_backoff
+            dest.hs_not_before = real + dest.hs_backoff
             with self._cond:
                 dropped = len(dest.fast)
                 dest.fast.clear()
@@ -250,12 +253,12 @@ class SenderPool:
                                 f"{' (' + init.expect + ')' if init.expect else ''} within "
                                 f"{self.handshake_timeout:g} s; {dropped} status message(s) dropped")
             return dest.hs_not_before if dest.reliable else None
-        if now >= init.next_try:
+        if real >= init.next_try:
             try:
                 self._sendto(init.frame, dest.addr)
                 self.count("handshakes.sent")
             except OSError as err:
                 self.warn("udp", f"handshake to {dest.addr[0]}:{dest.addr[1]} failed: {err}")
             init.attempts += 1
-            init.next_try = now + 0.1 * 2 ** min(init.attempts, 3)
-        return min(init.next_try, init.started + self.handshake_timeout + 0.001)
+            init.next_try = real + 0.1 * 2 ** min(init.attempts, 3)
+        return min(init.next_try, real + init.started + self.handshake_timeout - now + 0.001)

@@ -39,6 +39,9 @@ class ReceiverHost(Protocol):
     auth: Auth | None
     sessions: Sessions
 
+    def clock(self) -> float:
+        """Seconds on the endpoint's monotonic clock: connection timeouts and the sweeps use it."""
+
     @property
     def stopping(self) -> bool: ...
 
@@ -95,12 +98,12 @@ class Receiver:
         next_sweep = 0.0
         try:
             while not self.host.stopping:
-                now = time.monotonic()
-                if now >= next_sweep:
-                    next_sweep = now + 0.25
-                    for conn in self._sweep(conns, now):
+                real = time.monotonic()  # the loop's own pace is real time; what times out, the endpoint's clock
+                if real >= next_sweep:
+                    next_sweep = real + 0.25
+                    for conn in self._sweep(conns, self.host.clock()):
                         self._drop_conn(sel, conns, per_host, conn)
-                    if not listening and now >= paused_until:
+                    if not listening and real >= paused_until:
                         sel.register(self.tcp, selectors.EVENT_READ, "listen")
                         listening = True
                 for key, _ in sel.select(timeout=0.25):
@@ -156,7 +159,7 @@ class Receiver:
                                f"(cap {self.host.limits.max_connections_per_host})")
                 continue
             sock.setblocking(False)
-            now = time.monotonic()
+            now = self.host.clock()
             conns[sock] = Conn(sock, (host, peer[1]), StreamDecoder(self.host.max_frame), now, now)
             per_host[host] = per_host.get(host, 0) + 1
             sel.register(sock, selectors.EVENT_READ, "conn")
@@ -253,7 +256,7 @@ class Receiver:
             self.host.count(f"dropped.{err.reason}")
             self.host.warn(err.reason, f"closed a TCP stream from {conn.peer[0]}: {err}")
             return False
-        now = time.monotonic()
+        now = self.host.clock()
         for raw in frames:
             conn.last_frame = now
             if not self._head_ok(raw, conn):

@@ -35,6 +35,7 @@ class ReliableDelivery:
     """Reliable messages (a mixin of `Endpoint`; what it uses of the rest is declared below)."""
 
     if TYPE_CHECKING:
+        clock: Callable[[], float]
         _clients: OrderedDict[Address, None]
         _cond: threading.Condition
         _dests: dict[Address, Dest]
@@ -107,7 +108,7 @@ class ReliableDelivery:
                 out = dest.reliable[0] if dest.reliable else None
             if out is None:
                 return None
-            if self._expired(dest, out, now):
+            if self._expired(dest, out, self.clock()):  # a deadline is on the endpoint's clock
                 continue
             if session is not None and out.to and out.to != session.peer:
                 with self._cond:

@@ -32,6 +32,7 @@ import os
 import struct
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -218,8 +219,9 @@ class Session:
     """Keys, counters and the replay window of one session with one peer instance."""
 
     def __init__(self, sid: bytes, send_key: bytes, recv_key: bytes, hello: Hello, serial: int | None,
-                 initiator: bool):
+                 initiator: bool, clock: Callable[[], float] = time.monotonic):
         self.sid = sid
+        self._clock = clock  # the endpoint's: when the session was last used, for the idle sweep
         self._send = ChaCha20Poly1305(send_key)
         self._recv = ChaCha20Poly1305(recv_key)
         self._counter = itertools.count(1)
@@ -232,7 +234,7 @@ class Session:
         self.initiator = initiator
         self.confirmed = initiator
         self.epoch = 0  # the receiver's count of this peer's instances, set when confirmed
-        self.created = self.last_rx = self.last_tx = time.monotonic()
+        self.created = self.last_rx = self.last_tx = clock()
         self.stale = 0.0  # when the peer said it does not know this session (0: never)
 
     def seal(self, payload: bytes, max_frame: int) -> bytes:
@@ -242,7 +244,7 @@ class Session:
             raise FrameError("size", f"frame of {length + HEADER.size} bytes exceeds the limit of {max_frame}")
         counter = next(self._counter)
         head = DATA_HEADER.pack(length, DATA, self.sid, counter)
-        self.last_tx = time.monotonic()
+        self.last_tx = self._clock()
         return head + self._send.encrypt(_nonce(counter), payload, head)
 
     def open(self, frame: bytes) -> bytes:
@@ -260,7 +262,7 @@ class Session:
             raise FrameError("auth", f"data frame does not authenticate in its session (from {self.peer})") from None
         with self._lock:
             window.check(counter)  # again: another thread may have taken it meanwhile
-        self.last_rx = time.monotonic()
+        self.last_rx = self._clock()
         return plain
 
 
@@ -292,18 +294,19 @@ class Initiation:
     next_try: float = 0.0
 
 
-def initiate(auth: Auth, inst: str, reply: Address, addr: Address, expect: str) -> Initiation:
+def initiate(auth: Auth, inst: str, reply: Address, addr: Address, expect: str,
+             clock: Callable[[], float] = time.monotonic) -> Initiation:
     """Build an 'H' frame to `addr` (expecting agent `expect`, '' when unknown)."""
     private = X25519PrivateKey.generate()
     nonce = os.urandom(16)
     hello = Hello(sender=auth.name, role=auth.role, to=expect, inst=inst, reply=reply,
                   eph=private.public_key().public_bytes_raw().hex(), nonce=nonce.hex(), crl=auth.crl_number)
     frame = auth.sign(HELLO, hello.model_dump_json().encode())
-    return Initiation(addr, expect, frame, hashlib.sha256(frame).hexdigest(), private, nonce)
+    return Initiation(addr, expect, frame, hashlib.sha256(frame).hexdigest(), private, nonce, clock())
 
 
 def respond(auth: Auth, hello: Hello, hello_frame: bytes, serial: int | None, inst: str,
-            reply: Address) -> tuple[bytes, Session]:
+            reply: Address, clock: Callable[[], float] = time.monotonic) -> tuple[bytes, Session]:
     """Answer a verified 'H': return the 'R' frame and the (not yet confirmed) session."""
     private = X25519PrivateKey.generate()
     shared = _exchange(private, hello.eph)
@@ -314,12 +317,13 @@ def respond(auth: Auth, hello: Hello, hello_frame: bytes, serial: int | None, in
     frame = auth.sign(REPLY, answer.model_dump_json().encode())
     transcript = hashlib.sha256(hello_frame + frame).digest()
     to_r, to_i, sid = _derive(shared, auth.secret, bytes.fromhex(hello.nonce), nonce, transcript)
-    return frame, Session(sid, to_i, to_r, hello, serial, initiator=False)
+    return frame, Session(sid, to_i, to_r, hello, serial, initiator=False, clock=clock)
 
 
-def complete(auth: Auth, init: Initiation, answer: Hello, answer_frame: bytes, serial: int | None) -> Session:
+def complete(auth: Auth, init: Initiation, answer: Hello, answer_frame: bytes, serial: int | None,
+             clock: Callable[[], float] = time.monotonic) -> Session:
     """Finish a handshake with a verified 'R': return the confirmed session."""
     shared = _exchange(init.private, answer.eph)
     transcript = hashlib.sha256(init.frame + answer_frame).digest()
     to_r, to_i, sid = _derive(shared, auth.secret, init.nonce, bytes.fromhex(answer.nonce), transcript)
-    return Session(sid, to_r, to_i, answer, serial, initiator=True)
+    return Session(sid, to_r, to_i, answer, serial, initiator=True, clock=clock)

@@ -36,6 +36,9 @@ class SessionHost(Protocol):
 
     address: Address  # this endpoint's reply address, as its handshakes state it
 
+    def clock(self) -> float:
+        """Seconds on the endpoint's monotonic clock (a test's own, or time.monotonic)."""
+
     def count(self, name: str, n: int = 1) -> None: ...
 
     def warn(self, reason: str, text: str) -> None:
@@ -158,7 +161,7 @@ class Sessions:
     def initiate(self, addr: Address, expect: str) -> Initiation:
         """Start a handshake with `addr` (expecting agent `expect`, '' when unknown): its 'H' frame."""
         assert self.auth is not None
-        init = initiate(self.auth, self.inst, self.host.address, addr, expect)
+        init = initiate(self.auth, self.inst, self.host.address, addr, expect, self.host.clock)
         with self.lock:
             self.initiations[init.digest] = init
         return init
@@ -177,7 +180,7 @@ class Sessions:
         if known is not None:  # a retransmission: the same answer again, no new keys
             self._answer(known[0], src)
             return
-        now = time.monotonic()
+        now = time.monotonic()  # rate limits keep real time: they hold a flood off, not a protocol step
         if not self._hs_hosts.take(src[0], now) or not self._hs_total.take(now):
             raise FrameError("rate", f"too many handshakes from {src[0]}")
         if len(self.answers) >= 4 * self.limits.max_connections:
@@ -190,9 +193,9 @@ class Sessions:
             raise FrameError("receiver", f"handshake for {hello.to} arrived at {self.name}")
         serial = self.auth.verify(signed, hello.sender, hello.role)
         self.host.admit(hello.sender, hello.role)
-        frame, session = respond(self.auth, hello, raw, serial, self.inst, self.host.address)
+        frame, session = respond(self.auth, hello, raw, serial, self.inst, self.host.address, self.host.clock)
         with self.lock:
-            self.answers[digest] = (frame, session, now)
+            self.answers[digest] = (frame, session, self.host.clock())
             self.by_sid[session.sid] = session
         self.host.count("handshakes.answered")
         self._answer(frame, src)
@@ -262,7 +265,7 @@ class Sessions:
             raise FrameError("wrong_peer", f"{init.addr[0]}:{init.addr[1]} answered as {answer.sender}, "
                              f"expected {init.expect}")
         self.host.admit(answer.sender, answer.role)
-        session = complete(self.auth, init, answer, raw, serial)
+        session = complete(self.auth, init, answer, raw, serial, self.host.clock)
         with self.lock:
             if self.initiations.pop(answer.answers, None) is None:
                 return  # answered twice: the first answer made the session

@@ -233,7 +233,7 @@ class ZenohEndpoint(Endpoint):
                 if now >= self._next_route_check:
                     self._next_route_check = now + 1.0
                     self._follow_router()
-                self.sessions.sweep(now)
+                self.sessions.sweep(self.clock())
             except NetworkError:
                 self.count("zenoh.unreachable")
             except Exception:  # never lose the sweeper
