@@ -31,6 +31,7 @@ from erni.plugins.ros2.messages import dds_type_name, type_hash
 
 ADMIN_SPACE = "@ros2_lv"
 GID_SIZE = 16
+RMW_ZENOH_DEFAULT_DEPTH = 42  # the depth rmw_zenoh gives a keep-last QoS of depth 0, left out of tokens
 
 
 @dataclass(frozen=True)
@@ -38,8 +39,8 @@ class QoS:
     """The QoS rmw_zenoh writes in a liveliness token (what ROS 2 tools match publishers and subscriptions on).
 
     `encode()` gives rmw_zenoh's form `RELIABILITY:DURABILITY:HISTORY,DEPTH:DEADLINE:LIFESPAN:LIVELINESS`,
-    a field equal to ROS 2's default (reliable, volatile, keep last, infinite durations, automatic) left
-    empty: the default profile of depth 10 is `::,10:,:,:,,`."""
+    each component equal to rmw_zenoh's default (reliable, volatile, keep last, depth 42, infinite
+    durations, automatic liveliness) left empty: rclcpp's default profile (depth 10) is `::,10:,:,:,,`."""
 
     reliable: bool = True
     transient_local: bool = False
@@ -48,7 +49,8 @@ class QoS:
     def encode(self) -> str:
         reliability = "" if self.reliable else "2"
         durability = "1" if self.transient_local else ""
-        return f"{reliability}:{durability}:,{self.depth}:,:,:,,"
+        depth = "" if self.depth == RMW_ZENOH_DEFAULT_DEPTH else str(self.depth)
+        return f"{reliability}:{durability}:,{depth}:,:,:,,"
 
 
 DEFAULT_QOS = QoS()

@@ -49,6 +49,7 @@ def test_key_expressions_tokens_and_hashes_are_rmw_zenohs() -> None:
                      f"geometry_msgs::msg::dds_::Twist_/{TWIST_HASH}/::,10:,:,:,,")
     assert rmw.QoS(reliable=False, depth=5).encode() == "2::,5:,:,:,,"
     assert rmw.QoS(transient_local=True, depth=1).encode() == ":1:,1:,:,:,,"
+    assert rmw.QoS(depth=42).encode() == "::,:,:,:,,"  # rmw_zenoh's default depth is left out
     # the independent client builds the same strings
     assert topic_keyexpr(0, "/robot1/odom", "nav_msgs::msg::dds_::Odometry_", ODOM_HASH) == key
     node = NodeEntity(domain_id=3, session_id=ZID, node_id=7, node_name="erni_control", namespace="/")
