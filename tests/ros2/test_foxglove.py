@@ -1,0 +1,315 @@
+"""The control node serves Foxglove's WebSocket protocol: a client written here (the `websockets`
+library) reads serverInfo and the advertised channels, subscribes, and decodes the binary
+messageData frames (opcode 1) with a protobuf reader of its own, driven by the FileDescriptorSet each
+channel advertises (no foxglove code decodes anything here).
+
+foxglove-sdk 0.30 names the protocol `foxglove.sdk.v1` (and `foxglove.sdk.v1.1`, where schemas are
+advertised apart from channels); it refuses a client that offers only the older name
+`foxglove.websocket.v1`. The messages of `foxglove.sdk.v1` are those of foxglove.websocket.v1."""
+
+from __future__ import annotations
+
+import base64
+import json
+import math
+import struct
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import Any
+
+import pytest
+
+pytest.importorskip("foxglove")
+websockets_sync = pytest.importorskip("websockets.sync.client")
+
+from erni.blackboard import Agent, NetInfo, Pose  # noqa: E402
+from erni.blackboard.schemas import Peer  # noqa: E402
+from erni.blackboard.tasks import Link  # noqa: E402
+from erni.blackboard.testing import wait_until  # noqa: E402
+
+PLUGIN = "erni.plugins.ros2.foxglove:FoxglovePlugin"
+
+# --- a small protobuf reader ------------------------------------------------------------------
+
+
+def _varint(buf: bytes, i: int) -> tuple[int, int]:
+    value = shift = 0
+    while True:
+        byte = buf[i]
+        i += 1
+        value |= (byte & 0x7F) << shift
+        shift += 7
+        if byte < 0x80:
+            return value, i
+
+
+def _fields(buf: bytes) -> list[tuple[int, int, Any]]:
+    out, i = [], 0
+    while i < len(buf):
+        key, i = _varint(buf, i)
+        number, wire = key >> 3, key & 7
+        if wire == 0:
+            value, i = _varint(buf, i)
+        elif wire == 1:
+            value, i = buf[i:i + 8], i + 8
+        elif wire == 2:
+            size, i = _varint(buf, i)
+            value, i = buf[i:i + size], i + size
+        elif wire == 5:
+            value, i = buf[i:i + 4], i + 4
+        else:
+            raise ValueError(f"wire type {wire}")
+        out.append((number, wire, value))
+    return out
+
+
+class Protobuf:
+    """Messages of a FileDescriptorSet: full name -> field number -> (name, type, type name, repeated)."""
+
+    def __init__(self, descriptor_set: bytes):
+        self.messages: dict[str, dict[int, tuple[str, int, str, bool]]] = {}
+        for number, _, file in _fields(descriptor_set):
+            assert number == 1
+            package = next((v.decode() for n, _, v in _fields(file) if n == 2), "")
+            for n, _, message in _fields(file):
+                if n == 4:
+                    self._message(f".{package}" if package else "", message)
+
+    def _message(self, scope: str, message: bytes) -> None:
+        parts = _fields(message)
+        name = f"{scope}.{next(v.decode() for n, _, v in parts if n == 1)}"
+        fields = self.messages.setdefault(name, {})
+        for n, _, value in parts:
+            if n == 2:
+                f = {k: v for k, _, v in _fields(value)}
+                fields[f[3]] = (f[1].decode(), f[5], f.get(6, b"").decode(), f.get(4) == 3)
+            elif n == 3:
+                self._message(name, value)
+
+    def decode(self, data: bytes, type_name: str) -> dict[str, Any]:
+        spec, out = self.messages[type_name], {}
+        for number, wire, raw in _fields(data):
+            if number not in spec:
+                continue
+            name, kind, sub, repeated = spec[number]
+            if kind == 11:
+                values: list[Any] = [self.decode(raw, sub)]
+            elif kind == 9:
+                values = [raw.decode()]
+            elif kind == 12:
+                values = [raw]
+            elif kind in (1, 2):  # double, float; packed when repeated
+                fmt = "<d" if kind == 1 else "<f"
+                values = [v for (v,) in struct.iter_unpack(fmt, raw)]
+            elif kind in (3, 4, 5, 8, 13, 14):
+                if wire == 2:
+                    values, i = [], 0
+                    while i < len(raw):
+                        v, i = _varint(raw, i)
+                        values.append(v)
+                else:
+                    values = [raw]
+                if kind in (3, 5):
+                    values = [v - (1 << 64) if v >= 1 << 63 else v for v in values]
+            else:
+                raise ValueError(f"{name}: protobuf type {kind} not read here")
+            if repeated:
+                out.setdefault(name, []).extend(values)
+            else:
+                out[name] = values[0]
+        return out
+
+
+# --- a Foxglove WebSocket client --------------------------------------------------------------
+
+
+class Client:
+    def __init__(self, ws: Any):
+        assert ws.subprotocol == "foxglove.sdk.v1"
+        self.ws = ws
+        self.server_info: dict[str, Any] = {}
+        self.channels: dict[int, dict[str, Any]] = {}
+        self.schemas: dict[int, Protobuf] = {}
+        self.subscribed: dict[int, int] = {}  # subscription id -> channel id
+        self.latest: dict[str, tuple[int, dict[str, Any]]] = {}  # topic -> (log time, message)
+        self.received: dict[str, int] = {}
+
+    def pump(self, seconds: float) -> None:
+        """Read frames for `seconds`: subscribe to every channel advertised, decode every message."""
+        end = time.monotonic() + seconds
+        while (left := end - time.monotonic()) > 0:
+            try:
+                frame = self.ws.recv(timeout=left)
+            except TimeoutError:
+                return
+            if isinstance(frame, str):
+                self._control(json.loads(frame))
+            else:
+                assert frame[0] == 1, f"opcode {frame[0]}"  # messageData
+                sub, log_time = struct.unpack_from("<IQ", frame, 1)
+                channel = self.channels[self.subscribed[sub]]
+                message = self.schemas[channel["id"]].decode(frame[13:], "." + channel["schemaName"])
+                self.latest[channel["topic"]] = (log_time, message)
+                self.received[channel["topic"]] = self.received.get(channel["topic"], 0) + 1
+
+    def _control(self, msg: dict[str, Any]) -> None:
+        if msg["op"] == "serverInfo":
+            self.server_info = msg
+        elif msg["op"] == "advertise":
+            new = []
+            for channel in msg["channels"]:
+                assert channel["encoding"] == "protobuf" and channel["schemaEncoding"] == "protobuf"
+                self.channels[channel["id"]] = channel
+                self.schemas[channel["id"]] = Protobuf(base64.b64decode(channel["schema"]))
+                new.append(channel["id"])
+            subs = [{"id": 100 + cid, "channelId": cid} for cid in new]
+            self.subscribed.update({s["id"]: s["channelId"] for s in subs})
+            self.ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
+
+    def topics(self) -> dict[str, str]:
+        return {c["topic"]: c["schemaName"] for c in self.channels.values()}
+
+
+@contextmanager
+def foxglove_client(port: int) -> Iterator[Client]:
+    """A client offering both names of the protocol, as Foxglove's app does."""
+    with websockets_sync.connect(f"ws://127.0.0.1:{port}", proxy=None, open_timeout=10,
+                                 subprotocols=["foxglove.sdk.v1", "foxglove.websocket.v1"]) as ws:
+        yield Client(ws)
+
+
+def colour(c: dict[str, Any]) -> tuple[float, ...]:
+    return tuple(round(c.get(k, 0.0), 3) for k in ("r", "g", "b", "a"))
+
+
+def xy(p: dict[str, Any]) -> tuple[float, float]:
+    return round(p.get("x", 0.0), 6), round(p.get("y", 0.0), 6)
+
+
+def heading(q: dict[str, Any]) -> float:
+    return 2 * math.atan2(q.get("z", 0.0), q.get("w", 0.0))
+
+
+@pytest.fixture
+def control():
+    agent = Agent("control", workers=2)
+    plugin = agent.add_plugin(PLUGIN, settings={"listen": "127.0.0.1:0", "rate_hz": 20, "trail_step": 0.05},
+                              name="foxglove")
+    agent.start()
+    try:
+        yield agent, plugin
+    finally:
+        agent.stop()
+
+
+def test_foxglove_client_sees_robots_headings_trails_and_links(control):
+    agent, plugin = control
+    r1 = Pose(robot="robot1", x=1.0, y=2.0, theta=math.pi / 2, battery=12.6)
+    r2 = Pose(robot="robot2", x=4.0, y=2.0, theta=0.0, battery=10.9)  # low: drawn pink
+    with agent.transaction() as tx:
+        tx.add(r1)
+        tx.add(r2)
+        tx.add(Peer(name="robot1", up=True, role="robot"))
+        tx.add(peer2 := Peer(name="robot2", up=True, role="robot"))
+        tx.add(NetInfo(node="robot1", kind="network_topology", links=[Link(a="robot1", b="robot2", quality=0.75)]))
+    with foxglove_client(plugin.port) as client:  # type: ignore[attr-defined]
+        client.pump(1.0)
+        assert client.server_info["name"] == "ERNI control"
+        assert {"/tf": "foxglove.FrameTransforms", "/erni/robots": "foxglove.SceneUpdate",
+                "/erni/trails": "foxglove.SceneUpdate", "/erni/links": "foxglove.SceneUpdate",
+                "/robot1/pose": "foxglove.PoseInFrame", "/robot2/pose": "foxglove.PoseInFrame"}.items() \
+            <= client.topics().items()
+        for x in (1.2, 1.4, 1.6):  # robot1 drives along +x: its trail grows
+            with agent.transaction() as tx:
+                tx.change(r1.evolve(x=x))
+            time.sleep(0.15)
+        with agent.transaction() as tx:
+            tx.change(r1.evolve(x=1.6, y=2.0, theta=math.radians(30)))
+
+        def seen_last_pose() -> bool:
+            client.pump(0.2)
+            pose = client.latest.get("/robot1/pose", (0, {}))[1].get("pose", {})
+            return xy(pose.get("position", {})) == (1.6, 2.0) and \
+                heading(pose.get("orientation", {})) == pytest.approx(math.radians(30))
+
+        wait_until(seen_last_pose, timeout=10)
+        client.pump(0.3)
+        _, pose = client.latest["/robot1/pose"]
+        assert pose["frame_id"] == "map" and abs(pose["timestamp"]["seconds"] - time.time()) < 10
+
+        _, tf = client.latest["/tf"]
+        frames = {t["child_frame_id"]: t for t in tf["transforms"]}
+        assert set(frames) == {"robot1/base_link", "robot2/base_link"}
+        assert frames["robot1/base_link"]["parent_frame_id"] == "map"
+        assert xy(frames["robot1/base_link"]["translation"]) == (1.6, 2.0)
+        assert heading(frames["robot1/base_link"]["rotation"]) == pytest.approx(math.radians(30))
+        assert xy(frames["robot2/base_link"]["translation"]) == (4.0, 2.0)
+
+        _, scene = client.latest["/erni/robots"]
+        robots = {e["id"]: e for e in scene["entities"]}
+        assert set(robots) == {"robot1", "robot2"} and robots["robot1"]["frame_id"] == "map"
+        arrow = robots["robot1"]["arrows"][0]
+        assert xy(arrow["pose"]["position"]) == (1.6, 2.0)
+        assert heading(arrow["pose"]["orientation"]) == pytest.approx(math.radians(30))
+        assert colour(robots["robot1"]["cylinders"][0]["color"]) == (0.2, 0.75, 0.3, 1.0)
+        assert colour(robots["robot2"]["cylinders"][0]["color"]) == (1.0, 0.45, 0.7, 1.0)
+        assert robots["robot2"]["texts"][0]["text"] == "robot2 (battery 10.9 V)"
+
+        _, trails = client.latest["/erni/trails"]
+        line = {e["id"]: e for e in trails["entities"]}["robot1"]["lines"][0]
+        assert [xy(p) for p in line["points"]] == [(1.0, 2.0), (1.2, 2.0), (1.4, 2.0), (1.6, 2.0)]
+
+        _, links = client.latest["/erni/links"]
+        link = links["entities"][0]["lines"][0]
+        assert link.get("type") == 2  # LINE_LIST
+        assert [xy(p) for p in link["points"]] == [(1.6, 2.0), (4.0, 2.0)]
+        assert [colour(c) for c in link["colors"]] == [(0.5, 1.0, 0.0, 1.0)] * 2  # quality 0.75
+
+        # robot2's link is lost: it and its link turn grey; then it leaves and is deleted
+        with agent.transaction() as tx:
+            tx.change(peer2.evolve(up=False))
+
+        def grey() -> bool:
+            client.pump(0.2)
+            entities = {e["id"]: e for e in client.latest["/erni/robots"][1].get("entities", [])}
+            return entities["robot2"]["texts"][0]["text"] == "robot2 (LINK LOST)"
+
+        wait_until(grey, timeout=10)
+        client.pump(0.3)
+        robots = {e["id"]: e for e in client.latest["/erni/robots"][1]["entities"]}
+        assert colour(robots["robot2"]["cylinders"][0]["color"]) == (0.55, 0.55, 0.55, 0.6)
+        link = client.latest["/erni/links"][1]["entities"][0]["lines"][0]
+        assert [colour(c) for c in link["colors"]] == [(0.55, 0.55, 0.55, 0.6)] * 2
+
+        with agent.transaction() as tx:
+            tx.remove(r2.uid)
+
+        def deleted() -> bool:
+            client.pump(0.2)
+            update = client.latest["/erni/robots"][1]
+            return [d.get("id") for d in update.get("deletions", [])] == ["robot2"]
+
+        wait_until(deleted, timeout=10)
+        assert [e["id"] for e in client.latest["/erni/robots"][1]["entities"]] == ["robot1"]
+        assert "entities" not in client.latest["/erni/links"][1], "no link without both ends placed"
+
+
+def test_updates_are_rate_limited(control):
+    agent, plugin = control
+    pose = Pose(robot="robot1")
+    with agent.transaction() as tx:
+        tx.add(pose)
+    with foxglove_client(plugin.port) as client:  # type: ignore[attr-defined]
+        client.pump(0.5)
+        before = client.received.get("/erni/robots", 0)
+        start = time.monotonic()
+        for i in range(100):  # 100 changes in about a second, 20 updates a second at most
+            with agent.transaction() as tx:
+                tx.change(pose.evolve(x=i * 0.01))
+            time.sleep(0.01)
+        client.pump(0.5)
+        took = time.monotonic() - start
+        sent = client.received["/erni/robots"] - before
+        assert 2 <= sent <= 20 * took + 2, (sent, took)
+        assert xy(client.latest["/erni/robots"][1]["entities"][0]["arrows"][0]["pose"]["position"]) == (0.99, 0.0)
