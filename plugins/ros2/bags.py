@@ -1,24 +1,27 @@
 """rosbag2 MCAP bags of a team's run, written and read with `rosbags` (no ROS 2 install needed).
 
 A bag holds what `erni record` sees, as ROS 2 Jazzy messages a lab's tools open (`ros2 bag`,
-Foxglove, PlotJuggler):
+Foxglove, PlotJuggler), on the topics and types the live ros2 plugin uses where it has them:
 
 | topic | type | what |
 |---|---|---|
-| `/<robot>/odom` | `nav_msgs/msg/Odometry` | each robot's Pose: position, heading as a yaw quaternion, v and w, in frame `map` |
-| `/erni/robots` | `diagnostic_msgs/msg/DiagnosticArray` | each robot's health: battery, stalls, bumpers, motors, sonar |
-| `/erni/tasks` | `diagnostic_msgs/msg/DiagnosticArray` | tasks and their results: state as the level, progress, values |
-| `/erni/network` | `diagnostic_msgs/msg/DiagnosticArray` | network info: a status per node and per neighbour (quality), links, routes, articulation points |
-| `/erni/network/markers` | `visualization_msgs/msg/MarkerArray` | the network drawn in 3D: nodes, names, links coloured by quality |
+| `/<robot>/odom` | `nav_msgs/msg/Odometry` | each robot's Pose: position, heading, v and w, in frame `map` (`messages.odometry`) |
 | `/tf` | `tf2_msgs/msg/TFMessage` | `map` -> `<robot>/base_link` for each Pose |
-| `/erni/peers` | `diagnostic_msgs/msg/DiagnosticArray` | agents joining, lost and back |
+| `/diagnostics` | `diagnostic_msgs/msg/DiagnosticArray` | tasks and results, robots' health, network info, peers: one status each (below) |
+| `/erni/network` | `visualization_msgs/msg/MarkerArray` | the network drawn in 3D: nodes, names, links coloured by quality (`messages.network_markers`) |
 | `/erni/record` | `diagnostic_msgs/msg/DiagnosticArray` | the recording's header: who was recorded, when it started |
 
-Tasks, network and peers are diagnostics rather than JSON in `std_msgs/msg/String`: Foxglove's
-Diagnostics panels and rqt_runtime_monitor list them by robot with the level as a colour, and
-PlotJuggler plots their numeric values (a task's progress, a link's quality) as series; a String
-shows only as text. Each status also carries the ERNI object itself as JSON under the key `erni`,
-so `erni replay` plays a bag back as exactly as its own JSON-lines logs.
+Tasks, network and peers are diagnostics rather than JSON in a `std_msgs/msg/String`: `/diagnostics`
+is where rqt_robot_monitor and Foxglove's Diagnostics panels look by default; they list each status
+by robot (`hardware_id`) with its level as a colour (a failed task or a stalled wheel red, a
+cancelled task or a degraded network source yellow, a removed object or a lost peer stale), and
+PlotJuggler plots the numeric values (a task's progress, a link's quality, a battery) as series;
+a String shows only as text. Each status also carries the ERNI object itself as JSON under the key
+`erni`, so `erni replay` plays a bag back as exactly as its own JSON-lines logs.
+
+A bag without ERNI's statuses replays too: the poses of its `nav_msgs/msg/Odometry` on
+`/<robot>/odom` and the tasks of its `/erni/task_status` (the live plugin's topics, as `ros2 bag
+record` saves them).
 """
 
 from __future__ import annotations
@@ -35,7 +38,9 @@ from typing import Any
 from pydantic import ValidationError
 
 from erni.blackboard import BBObject, NetInfo, Pose, Task
+from erni.blackboard.errors import ErniError
 from erni.blackboard.schemas import Peer
+from erni.blackboard.tasks import AllocationResult
 from erni.plugins.ros2 import messages as ros
 from erni.replay import FORMAT, MCAP_MAGIC, Event, LogError, read_log
 from erni.transport.wire import TYPES
@@ -44,9 +49,9 @@ FRAME = "map"
 ODOMETRY = ros.ODOMETRY
 DIAGNOSTICS = ros.DIAGNOSTIC_ARRAY
 HEADER_TOPIC = "/erni/record"
-TOPICS = {"Pose": "/erni/robots", "Task": "/erni/tasks", "NetInfo": "/erni/network", "Peer": "/erni/peers"}
-MARKERS_TOPIC = "/erni/network/markers"
-OTHER_TOPIC = "/erni/events"
+DIAGNOSTICS_TOPIC = "/diagnostics"
+MARKERS_TOPIC = "/erni/network"
+TASK_STATUS_TOPIC = "/erni/task_status"
 OK, WARN, ERROR, STALE = 0, 1, 2, 3
 _STATUS = "diagnostic_msgs/msg/DiagnosticStatus"
 _KV = "diagnostic_msgs/msg/KeyValue"
@@ -195,7 +200,7 @@ class BagRecorder:
             stamp = ros.stamp_ns_of(obj.stamp)
             self._put(f"/{obj.robot}/odom", ros.odometry(obj, stamp, FRAME), when)
             self._put("/tf", ros.tf_message([obj], stamp, FRAME), when)
-        self._put(TOPICS.get(type_name, OTHER_TOPIC), diagnostics(agent, op, type_name, data, when / 1e9), when)
+        self._put(DIAGNOSTICS_TOPIC, diagnostics(agent, op, type_name, data, when / 1e9), when)
         if isinstance(obj, NetInfo):
             places = {name: (p.x, p.y) for name, p in self._poses.items()}
             places |= {name: (p.x, p.y) for name, p in obj.positions.items()}
@@ -270,17 +275,24 @@ def read_bag(path: str | Path) -> tuple[dict[str, Any], list[Event], list[str]]:
 
 def _events(path: Path, reader: Any) -> tuple[dict[str, Any], list[Event], list[str]]:
     topics = {c.topic: c.msgtype for c in reader.connections}
+    erni_bag = HEADER_TOPIC in topics  # its poses are in its statuses, with every field
     odom = [c for c in reader.connections if c.msgtype == ODOMETRY and c.topic.endswith("/odom")
-            and c.topic.count("/") == 2 and TOPICS["Pose"] not in topics]
-    diag = [c for c in reader.connections if c.msgtype == DIAGNOSTICS and c.topic.startswith("/erni/")]
-    if not odom and not diag:
+            and c.topic.count("/") == 2 and not erni_bag]
+    diag = [c for c in reader.connections if c.msgtype == DIAGNOSTICS]
+    status = [c for c in reader.connections if c.topic == TASK_STATUS_TOPIC and c.msgtype == ros.STRING
+              and not erni_bag]
+
+    def nothing() -> LogError:
         found = ", ".join(f"{t} ({m})" for t, m in sorted(topics.items())) or "no topics"
-        raise LogError(f"{path}: no ERNI topics (expected /erni/tasks, /erni/robots, ... or "
-                       f"{ODOMETRY} on /<robot>/odom); it has {found}")
+        return LogError(f"{path}: no ERNI topics (expected ERNI's statuses on {DIAGNOSTICS_TOPIC}, {ODOMETRY} on "
+                        f"/<robot>/odom or {TASK_STATUS_TOPIC}); it has {found}")
+
+    if not (odom or diag or status):
+        raise nothing()
     header: dict[str, Any] = {}
     raw: list[tuple[int, str, str, BBObject]] = []
     problems: list[str] = []
-    for conn, stamp, data in reader.messages(connections=odom + diag):
+    for conn, stamp, data in reader.messages(connections=odom + diag + status):
         where = f"{path}: {conn.topic} at {stamp / 1e9:.3f}"
         try:
             msg = ros.deserialize(data, conn.msgtype)
@@ -288,16 +300,21 @@ def _events(path: Path, reader: Any) -> tuple[dict[str, Any], list[Event], list[
                 robot = conn.topic.split("/")[1]
                 raw.append((stamp, robot, "change", pose_from_odometry(robot, msg)))
                 continue
-            for status in msg.status:
-                event = next((json.loads(kv.value) for kv in status.values if kv.key == "erni"), None)
+            if conn.topic == TASK_STATUS_TOPIC:
+                raw.append((stamp, "", "change", task_from_status(msg.data)))
+                continue
+            for one in msg.status:
+                event = next((json.loads(kv.value) for kv in one.values if kv.key == "erni"), None)
                 if event is None:
                     continue
                 if conn.topic == HEADER_TOPIC:
                     header = event if isinstance(event, dict) else {}
                     continue
                 raw.append(_event(stamp, event))
-        except (LogError, ValueError, KeyError, TypeError, AttributeError, RecursionError) as err:
+        except (ErniError, ValueError, KeyError, TypeError, AttributeError, RecursionError) as err:
             problems.append(f"{where}: {str(err).splitlines()[0][:200] if str(err) else type(err).__name__}")
+    if not raw and not header and not problems:
+        raise nothing()
     start = reader.start_time if not raw else min(s for s, *_ in raw)
     started = header.get("started")
     if isinstance(started, (int, float)) and not isinstance(started, bool) and math.isfinite(started):
@@ -309,6 +326,19 @@ def _events(path: Path, reader: Any) -> tuple[dict[str, Any], list[Event], list[
     events = [Event(max(0.0, (s - start) / 1e9), agent, op, obj) for s, agent, op, obj in raw]
     events.sort(key=lambda e: e.t)
     return header, events, problems
+
+
+def task_from_status(text: str) -> Task:
+    """The Task a `/erni/task_status` String of the live plugin describes (`messages.task_status`)."""
+    body = json.loads(text)
+    if not isinstance(body, dict):
+        raise LogError(f"expected a JSON object, got {type(body).__name__}")
+    result = AllocationResult(state=body.get("state", "pending"), progress=body.get("progress", 0.0),
+                              message=body.get("message", ""), values=body.get("values") or {},
+                              stamp=body.get("stamp", 0.0))
+    return Task(uid=body["uid"], verb=body["verb"], preposition=body["preposition"], params=body.get("params") or {},
+                source=body.get("source") or "", destination=body.get("destination"), result=result,
+                created=result.stamp)  # the status does not say when the task was made
 
 
 def _event(stamp: int, event: Any) -> tuple[int, str, str, BBObject]:

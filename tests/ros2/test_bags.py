@@ -88,11 +88,8 @@ def test_bag_has_ros2_types_and_values_that_rosbags_reads(tmp_path: Path) -> Non
     topics, msgs = bag_messages(bag)
     assert topics == {"/erni/record": "diagnostic_msgs/msg/DiagnosticArray",
                       "/robot1/odom": "nav_msgs/msg/Odometry", "/tf": "tf2_msgs/msg/TFMessage",
-                      "/erni/robots": "diagnostic_msgs/msg/DiagnosticArray",
-                      "/erni/tasks": "diagnostic_msgs/msg/DiagnosticArray",
-                      "/erni/network": "diagnostic_msgs/msg/DiagnosticArray",
-                      "/erni/network/markers": "visualization_msgs/msg/MarkerArray",
-                      "/erni/peers": "diagnostic_msgs/msg/DiagnosticArray"}
+                      "/diagnostics": "diagnostic_msgs/msg/DiagnosticArray",
+                      "/erni/network": "visualization_msgs/msg/MarkerArray"}
     # the type hash rosbag2 (Jazzy) checks, in the rosbag2 metadata record the MCAP file carries
     found = re.search(rb"name: /robot1/odom\n.*?type_description_hash:\s+(RIHS01_\w+)", bag.read_bytes(), re.S)
     assert found and found.group(1).decode() == JAZZY.hash_rihs01("nav_msgs/msg/Odometry")
@@ -115,11 +112,12 @@ def test_bag_has_ros2_types_and_values_that_rosbags_reads(tmp_path: Path) -> Non
     assert tf.header.frame_id == "map" and tf.child_frame_id == "robot1/base_link"
     assert (tf.transform.translation.x, tf.transform.translation.y) == (1.25, -2.5)
 
-    robots = [m.status[0] for topic, _, m in msgs if topic == "/erni/robots"]
+    diagnostics = [(t, m) for topic, t, m in msgs if topic == "/diagnostics"]
+    robots = [m.status[0] for _, m in diagnostics if m.status[0].name == "erni/robot/robot1"]
     assert robots[0].level == 2 and "left wheel stalled" in robots[0].message  # a stalled wheel is an error
     assert robots[0].hardware_id == "robot1" and erni_values(robots[0])["battery"] == "11.2"
 
-    tasks = [(t, m) for topic, t, m in msgs if topic == "/erni/tasks"]
+    tasks = [(t, m) for t, m in diagnostics if m.status[0].name.startswith(f"erni/task/{TASK.uid} ")]
     assert [t for t, _ in tasks] == [t0 + 500_000_000, t0 + 1_000_000_000, t0 + 3_000_000_000]
     pending, failed, removed = (m.status[0] for _, m in tasks)
     assert pending.level == 0 and pending.message == "pending" and pending.hardware_id == "robot1"
@@ -132,15 +130,15 @@ def test_bag_has_ros2_types_and_values_that_rosbags_reads(tmp_path: Path) -> Non
     stamp = tasks[1][1].header.stamp
     assert stamp.sec + stamp.nanosec / 1e9 == pytest.approx(DONE.result.stamp, abs=1e-6)  # type: ignore[union-attr]
 
-    net = next(m for topic, _, m in msgs if topic == "/erni/network")
+    net = next(m for _, m in diagnostics if m.status[0].name == "erni/robot1/network")
     own, neighbour = net.status
     assert own.hardware_id == "robot1" and erni_values(own)["link robot1-control"] == "0.75"
     assert erni_values(own)["articulation_points"] == "robot1"
     assert neighbour.name == "erni/robot1/neighbor/control" and erni_values(neighbour)["quality"] == "0.750"
-    markers = next(m for topic, _, m in msgs if topic == "/erni/network/markers").markers
+    markers = next(m for topic, _, m in msgs if topic == "/erni/network").markers
     links = [mk for mk in markers if mk.ns == "erni_links"][0]
     assert [(p.x, p.y) for p in links.points] == [], "control's position is not known: no line is drawn"
-    peer = next(m for topic, _, m in msgs if topic == "/erni/peers").status[0]
+    peer = next(m for _, m in diagnostics if m.status[0].name == "erni/peer/robot2").status[0]
     assert peer.level == 3 and peer.message == "down" and peer.hardware_id == "robot2"
 
     # ERNI's reader gives back the very objects, ops and times
@@ -207,10 +205,11 @@ def test_record_a_live_team_as_mcap_then_replay_it(tmp_path: Path) -> None:
     assert f"into {bag}" in err
 
     topics, msgs = bag_messages(bag)
-    assert topics["/robot1/odom"] == "nav_msgs/msg/Odometry" and topics["/erni/tasks"].endswith("DiagnosticArray")
+    assert topics["/robot1/odom"] == "nav_msgs/msg/Odometry" and topics["/diagnostics"].endswith("DiagnosticArray")
     xs = [m.pose.pose.position.x for topic, _, m in msgs if topic == "/robot1/odom"]
     assert xs[-1] == 2.0 and xs == sorted(xs)
-    finals = {erni_values(m.status[0])["uid"]: m.status[0].message for topic, _, m in msgs if topic == "/erni/tasks"}
+    finals = {erni_values(m.status[0])["uid"]: m.status[0].message for topic, _, m in msgs
+              if topic == "/diagnostics" and m.status[0].name.startswith("erni/task/")}
     assert finals[tasks[0].uid].startswith("succeeded") and finals[tasks[1].uid].startswith("succeeded")
 
     replay_port = free_port()
@@ -232,23 +231,30 @@ def test_record_a_live_team_as_mcap_then_replay_it(tmp_path: Path) -> None:
     assert poses and poses[-1] == 2.0 and poses == sorted(poses)
 
 
-def test_a_bag_of_other_tools_replays_its_odometry(tmp_path: Path) -> None:
-    """A bag with only nav_msgs/Odometry (as a ROS 2 robot records it) gives poses from /<robot>/odom."""
+def test_a_bag_of_the_live_topics_replays_odometry_and_task_status(tmp_path: Path) -> None:
+    """A bag of the live ros2 plugin's topics, as `ros2 bag record` saves them (Odometry on
+    /<robot>/odom, JSON Strings on /erni/task_status), replays its poses and tasks."""
     from erni.plugins.ros2 import messages
 
     path = tmp_path / "tb3"
     writer = Writer(path, version=9, storage_plugin=StoragePlugin.MCAP)
     writer.open()
-    conn = writer.add_connection("/tb3/odom", "nav_msgs/msg/Odometry", typestore=JAZZY)
+    odom = writer.add_connection("/tb3/odom", "nav_msgs/msg/Odometry", typestore=JAZZY)
+    status = writer.add_connection("/erni/task_status", "std_msgs/msg/String", typestore=JAZZY)
+    task = Task(verb="BotMotion", preposition="forward", params={"distance": 0.2}, source="control",
+                destination="tb3")
     for i in range(3):
         pose = Pose(robot="tb3", x=0.1 * i, theta=0.3 * i, v=0.1, stamp=1_700_000_000 + i)
-        writer.write(conn, (1_700_000_000 + i) * 10**9, messages.serialize(messages.odometry(pose, pose.stamp * 10**9)))
+        writer.write(odom, (1_700_000_000 + i) * 10**9, messages.serialize(messages.odometry(pose, pose.stamp * 10**9)))
+    done = task.with_result("succeeded", progress=1.0, message="arrived", values={"moved": 0.2})
+    writer.write(status, 1_700_000_002_500_000_000, messages.serialize(messages.task_status(done)))
     writer.close()
     for where in (path, path / "tb3.mcap"):  # the rosbag2 directory and its MCAP file alone
         header, events, problems = read_log(where)
-        assert problems == [] and [e.t for e in events] == [0.0, 1.0, 2.0]
-        assert [(e.obj.robot, e.obj.x, round(e.obj.theta, 9)) for e in events] == [  # type: ignore[attr-defined]
+        assert problems == [] and [e.t for e in events] == [0.0, 1.0, 2.0, 2.5]
+        assert [(e.obj.robot, e.obj.x, round(e.obj.theta, 9)) for e in events[:3]] == [  # type: ignore[attr-defined]
             ("tb3", 0.0, 0.0), ("tb3", 0.1, 0.3), ("tb3", 0.2, 0.6)]
+        assert events[3].obj == done.evolve(created=done.result.stamp)  # type: ignore[union-attr]
         assert header["started"] == 1_700_000_000.0
 
 
@@ -265,6 +271,19 @@ def test_bad_bags_are_one_line_errors(tmp_path: Path) -> None:
     writer.close()
     with pytest.raises(LogError, match=r"no ERNI topics .* it has /chatter \(std_msgs/msg/String\)"):
         read_log(chatter / "chatter.mcap")
+    robot_diagnostics = tmp_path / "diag"  # a ROS 2 robot's own /diagnostics, no ERNI status among them
+    writer = Writer(robot_diagnostics, version=9, storage_plugin=StoragePlugin.MCAP)
+    writer.open()
+    conn = writer.add_connection("/diagnostics", "diagnostic_msgs/msg/DiagnosticArray", typestore=JAZZY)
+    array = JAZZY.types["diagnostic_msgs/msg/DiagnosticArray"](
+        header=JAZZY.types["std_msgs/msg/Header"](stamp=JAZZY.types["builtin_interfaces/msg/Time"](sec=1, nanosec=0),
+                                                 frame_id=""),
+        status=[JAZZY.types["diagnostic_msgs/msg/DiagnosticStatus"](level=0, name="motors", message="ok",
+                                                                   hardware_id="tb3", values=[])])
+    writer.write(conn, 1, bytes(JAZZY.serialize_cdr(array, "diagnostic_msgs/msg/DiagnosticArray")))
+    writer.close()
+    with pytest.raises(LogError, match=r"no ERNI topics .* it has /diagnostics"):
+        read_log(robot_diagnostics)
     cut = tmp_path / "cut.mcap"
     write_sample(tmp_path / "whole.mcap")
     cut.write_bytes((tmp_path / "whole.mcap").read_bytes()[:300])
