@@ -55,13 +55,13 @@ def register_url_handlers() -> list[str]:
 
 
 def known_url_schemes() -> list[str]:
-    """The URL schemes a driver can open: pyserial's own (socket://, rfc2217://, loop:// ...) and
-    those registered through the `erni.serial_handlers` entry points."""
+    """The URL schemes a driver can open: pyserial's own (socket://, rfc2217://, loop:// ...), those
+    registered through the `erni.serial_handlers` entry points, and ros2:// (a ROS 2 base, ros2_base.py)."""
     import serial.urlhandler
 
     builtin = [m.name.removeprefix("protocol_") for m in pkgutil.iter_modules(serial.urlhandler.__path__)
                if m.name.startswith("protocol_")]
-    return sorted(set(builtin) | set(register_url_handlers()))
+    return sorted(set(builtin) | set(register_url_handlers()) | {"ros2"})
 
 
 def waiting(port: Any) -> int:

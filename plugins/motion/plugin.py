@@ -18,6 +18,7 @@ from erni.blackboard import AllocationResult, ConfigError, Plugin, Pose, Task, T
 from erni.plugins.motion.driver import ArcosDriver, RobotState, known_url_schemes
 from erni.plugins.motion.resource import RobotMotionResource, TaskUpdate
 from erni.plugins.motion.robots import ModelSpec, model_spec
+from erni.plugins.motion.ros2_base import Ros2BaseDriver, is_ros2_url, parse_url
 
 _URL = re.compile(r"^([a-zA-Z][a-zA-Z0-9+.-]*://.*|/dev/\S+|COM\d+|/\S+)$")
 
@@ -68,6 +69,8 @@ class MotionSettings(BaseModel):
         if scheme is not None and scheme not in (known := known_url_schemes()):
             raise ValueError(f"unknown URL scheme {scheme + '://'!r} in {url!r}; expected one of "
                              f"{', '.join(s + '://' for s in known)}")
+        if is_ros2_url(url):
+            parse_url(url)  # a ROS 2 base: its namespace and link parameters (ConfigError, a ValueError)
         return url
 
     @field_validator("model")
@@ -104,10 +107,13 @@ class RobotMotionControl(Plugin[MotionSettings]):
         s = self.settings
         me = self.agent_name
         self.tasks = self.subscribe(Task, where=lambda t: t.verb == "BotMotion" and t.destination in (None, "", me))
-        driver = ArcosDriver(s.url, s.model_spec(), name=me, baudrate=s.baudrate, sync_timeout=s.sync_timeout,
-                             sync_attempts=s.sync_attempts, pulse_interval=s.pulse_interval,
-                             link_timeout=s.link_timeout, config_timeout=s.config_timeout,
-                             switch_baud=s.switch_baud)
+        if is_ros2_url(s.url):  # a ROS 2 base (cmd_vel, odom, scan) behind the same driver interface
+            driver: ArcosDriver = Ros2BaseDriver(s.url, s.model_spec(), name=me, link_timeout=s.link_timeout)
+        else:
+            driver = ArcosDriver(s.url, s.model_spec(), name=me, baudrate=s.baudrate, sync_timeout=s.sync_timeout,
+                                 sync_attempts=s.sync_attempts, pulse_interval=s.pulse_interval,
+                                 link_timeout=s.link_timeout, config_timeout=s.config_timeout,
+                                 switch_baud=s.switch_baud)
         self.pose: Pose | None = None
         self.resource = RobotMotionResource(
             driver, self._publish, name=me, rate_hz=s.rate_hz, pose_rate_hz=s.pose_rate_hz,

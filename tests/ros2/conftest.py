@@ -25,7 +25,8 @@ from erni.testing import fake_robot  # noqa: E402
 
 SEPARATOR = "=" * 80 + "\nMSG: "
 TYPES = ("nav_msgs/msg/Odometry", "geometry_msgs/msg/Twist", "geometry_msgs/msg/PoseStamped",
-         "tf2_msgs/msg/TFMessage", "std_msgs/msg/String", "visualization_msgs/msg/MarkerArray")
+         "tf2_msgs/msg/TFMessage", "std_msgs/msg/String", "visualization_msgs/msg/MarkerArray",
+         "sensor_msgs/msg/LaserScan")
 
 
 def write_definitions(root: Path, typenames: tuple[str, ...] = TYPES) -> Path:

@@ -1,0 +1,189 @@
+"""The motion plugin driving a ROS 2 base (`url = "ros2://tb3?..."`): a simulated differential-drive base
+written here with zenoh-ros2-sdk (its own node: Twist on /tb3/cmd_vel in; Odometry on /tb3/odom and a
+LaserScan on /tb3/scan out) takes the behaviour stack's commands; goto, forward and turn end within
+their tolerances, a stop halts it, a wall in the scan stops it short, a silent base fails the task."""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import numpy as np
+import pytest
+
+pytest.importorskip("zenoh")
+pytest.importorskip("zenoh_ros2_sdk")
+
+from pydantic import ValidationError  # noqa: E402
+from zenoh_ros2_sdk import ROS2Publisher, ROS2Subscriber  # noqa: E402
+
+from erni.blackboard import Agent, Pose, TaskState  # noqa: E402
+from erni.blackboard.testing import wait_until  # noqa: E402
+from erni.plugins.motion import RobotMotionControl  # noqa: E402
+from erni.plugins.motion.plugin import MotionSettings  # noqa: E402
+from erni.plugins.motion.ros2_base import parse_url, scan_sectors  # noqa: E402
+from erni.plugins.ros2 import messages  # noqa: E402
+from erni.testing import post_task, run_task, wait_for_task  # noqa: E402
+
+VEC = "geometry_msgs/msg/Vector3"
+
+
+class DiffDriveBase:
+    """A differential-drive base as a ROS 2 driver node shows it: it follows the newest cmd_vel within
+    its acceleration limits, stops when cmd_vel goes quiet for 0.5 s (as TurtleBot's firmware does),
+    integrates its pose at 50 Hz, publishes Odometry at 20 Hz and a 360-beam LaserScan of a wall
+    at x = `wall` (if any) at 10 Hz."""
+
+    def __init__(self, port: int, ns: str = "/tb3", wall: float | None = None) -> None:
+        self.x = self.y = self.th = 0.0
+        self.v = self.w = 0.0
+        self.cmd = (0.0, 0.0)
+        self.cmd_at = -math.inf
+        self.wall = wall
+        self.commands = 0
+        self.silent = threading.Event()
+        self.lock = threading.Lock()
+        self.odom = ROS2Publisher(f"{ns}/odom", messages.ODOMETRY, router_port=port, node_name="tb3_base")
+        self.scan = ROS2Publisher(f"{ns}/scan", messages.LASER_SCAN, router_port=port, node_name="tb3_laser")
+        self.sub = ROS2Subscriber(f"{ns}/cmd_vel", messages.TWIST, self._on_cmd, router_port=port,
+                                  node_name="tb3_base_cmd")
+        self.closing = threading.Event()
+        self.thread = threading.Thread(target=self._loop, name="test-diffdrive")
+        self.thread.start()
+
+    def _on_cmd(self, msg: Any) -> None:
+        with self.lock:
+            self.cmd = (float(msg.linear.x), float(msg.angular.z))
+            self.cmd_at = time.monotonic()
+            self.commands += 1
+
+    def _loop(self) -> None:
+        dt, tick = 0.02, 0
+        while not self.closing.wait(dt):
+            with self.lock:
+                v, w = self.cmd if time.monotonic() - self.cmd_at < 0.5 else (0.0, 0.0)
+                self.v += max(-1.5 * dt, min(1.5 * dt, v - self.v))
+                self.w += max(-6.0 * dt, min(6.0 * dt, w - self.w))
+                self.th = math.atan2(math.sin(self.th + self.w * dt), math.cos(self.th + self.w * dt))
+                self.x += self.v * math.cos(self.th) * dt
+                self.y += self.v * math.sin(self.th) * dt
+                x, y, th, lv, aw = self.x, self.y, self.th, self.v, self.w
+            tick += 1
+            if self.silent.is_set():
+                continue
+            stamp = messages.header(time.time_ns(), "odom")
+            if tick % 2 == 0:
+                self.odom.publish(
+                    header=stamp, child_frame_id="base_footprint",
+                    pose=messages.make("geometry_msgs/msg/PoseWithCovariance", pose=messages.make(
+                        "geometry_msgs/msg/Pose", position=messages.make("geometry_msgs/msg/Point", x=x, y=y),
+                        orientation=messages.quaternion(th))),
+                    twist=messages.make("geometry_msgs/msg/TwistWithCovariance", twist=messages.make(
+                        messages.TWIST, linear=messages.make(VEC, x=lv), angular=messages.make(VEC, z=aw))))
+            if tick % 5 == 0 and self.wall is not None:
+                angles = -math.pi + np.arange(360) * (2 * math.pi / 360)
+                with np.errstate(divide="ignore"):
+                    cos = np.cos(th + angles)
+                    ranges = np.where(cos > 1e-6, (self.wall - x) / np.where(cos > 1e-6, cos, 1.0), np.inf)
+                self.scan.publish(header=messages.header(time.time_ns(), "base_scan"), angle_min=-math.pi,
+                                  angle_max=math.pi - 2 * math.pi / 360, angle_increment=2 * math.pi / 360,
+                                  time_increment=0.0, scan_time=0.1, range_min=0.12, range_max=3.5,
+                                  ranges=ranges.astype(np.float32), intensities=np.zeros(0, dtype=np.float32))
+
+    def close(self) -> None:
+        self.closing.set()
+        self.thread.join()
+        for entity in (self.sub, self.odom, self.scan):
+            entity.close()
+
+
+@pytest.fixture
+def base_and_agent(ros: dict[str, Any]) -> Iterator[Callable[..., tuple[DiffDriveBase, Agent]]]:
+    made: list[tuple[DiffDriveBase, Agent]] = []
+
+    def start(wall: float | None = None, **settings: Any) -> tuple[DiffDriveBase, Agent]:
+        base = DiffDriveBase(ros["router_port"], wall=wall)
+        agent = Agent("tb3", workers=2)
+        url = f"ros2://tb3?connect=tcp/127.0.0.1:{ros['router_port']}&mode=client"
+        agent.add_plugin(RobotMotionControl, settings={"url": url, "rate_hz": 20, "link_timeout": 1.0,
+                                                       "link_grace": 1.0, "blocked_timeout": 2.0, **settings},
+                         name="motion")
+        made.append((base, agent))
+        agent.start()
+        wait_until(lambda: agent.query(Pose), timeout=10, message="no Pose from the ROS 2 base's odometry")
+        return base, agent
+
+    yield start
+    for base, agent in made:
+        agent.stop()
+        base.close()
+
+
+def test_urls_are_checked_in_one_line() -> None:
+    assert parse_url("ros2://tb3?connect=tcp/10.0.0.2:7447&mode=client&domain=7") == {
+        "namespace": "/tb3", "connect": ["tcp/10.0.0.2:7447"], "mode": "client", "domain": 7, "scan": "scan"}
+    assert parse_url("ros2://")["namespace"] == "" and parse_url("ros2://a/b?scan=")["scan"] == ""
+    for bad, words in (("ros2://tb-3", "not a ROS 2 name"), ("ros2://tb3?domain=300", "0-232"),
+                       ("ros2://tb3?speed=1", "unknown parameter"), ("ros2://tb3?connect=10.0.0.2", "PROTOCOL/HOST")):
+        with pytest.raises(ValidationError) as err:
+            MotionSettings(url=bad)
+        assert words in str(err.value), (bad, str(err.value))
+
+
+def test_scan_sectors() -> None:
+    ranges = [1.0, 0.5, float("inf"), 9.0]  # ahead, 90 deg left, behind (nothing), 90 deg right (beyond range_max)
+    got = scan_sectors(0.0, math.pi / 2, ranges, 0.1, 3.5)
+    assert got == {0: 1.0, 4: 0.5, 8: 5.0, 12: 5.0}
+
+
+def test_goto_forward_and_turn_on_a_ros2_base(base_and_agent: Callable[..., tuple[DiffDriveBase, Agent]]) -> None:
+    base, agent = base_and_agent()
+    done = run_task(agent, "BotMotion", "goto", x=1.0, y=0.5, timeout=30)
+    assert done.state is TaskState.SUCCEEDED, done.result
+    assert math.hypot(base.x - 1.0, base.y - 0.5) <= 0.1 + 0.05  # the goto's tolerance, and the stop's coast
+    assert base.commands > 10
+    done = run_task(agent, "BotMotion", "turn", angle=90, timeout=20)
+    assert done.state is TaskState.SUCCEEDED, done.result
+    heading = math.degrees(agent.query(Pose)[0].theta)
+    th0 = heading
+    done = run_task(agent, "BotMotion", "forward", distance=0.5, timeout=20)
+    assert done.state is TaskState.SUCCEEDED, done.result
+    pose = agent.query(Pose)[0]
+    assert abs(math.degrees(pose.theta) - th0) < 5
+    assert math.hypot(base.v, base.w) < 0.05  # it stands at the end
+
+
+def test_a_stop_halts_the_base_and_a_silent_base_fails_the_task(
+        base_and_agent: Callable[..., tuple[DiffDriveBase, Agent]]) -> None:
+    base, agent = base_and_agent()
+    moving = post_task(agent, "BotMotion", "velocity", v=0.3)
+    wait_until(lambda: base.v > 0.25, timeout=5, message="the base did not take the velocity")
+    stop = run_task(agent, "BotMotion", "stop", timeout=5)
+    assert stop.state is TaskState.SUCCEEDED, stop.result
+    assert wait_for_task(agent, moving, timeout=5).state is TaskState.CANCELLED
+    assert abs(base.v) < 0.01 and abs(agent.query(Pose)[0].v) < 0.01
+    # the base's odometry stops coming: the link is lost and the task fails
+    long = post_task(agent, "BotMotion", "velocity", v=0.2)
+    wait_until(lambda: base.v > 0.15, timeout=5)
+    base.silent.set()
+    failed = wait_for_task(agent, long, timeout=10)
+    assert failed.state is TaskState.FAILED and "link lost" in (failed.result.message if failed.result else "")
+    time.sleep(0.7)
+    assert abs(base.v) < 0.01  # no command for 0.5 s: the base stopped itself
+
+
+def test_a_wall_in_the_scan_stops_the_base_short(base_and_agent: Callable[..., tuple[DiffDriveBase, Agent]]) -> None:
+    base, agent = base_and_agent(wall=1.5, avoid_distance=0.4)
+    task = post_task(agent, "BotMotion", "velocity", v=0.3)
+    wait_until(lambda: base.v > 0.25, timeout=5)
+    wait_until(lambda: base.x > 0.5 and abs(base.v) < 0.01, timeout=15, message="the base did not stop at the wall")
+    time.sleep(0.5)
+    assert 0.5 < base.x < 1.5 - 0.3, base.x  # stopped short of the wall
+    pose = agent.query(Pose)[0]
+    assert pose.sonar and min(pose.sonar) < 1.0  # the scan reached the avoidance as sonar echoes
+    blocked = wait_for_task(agent, task, timeout=10)  # held by the avoidance for blocked_timeout: it gives up
+    assert blocked.state is TaskState.FAILED and "blocked by an obstacle" in (blocked.result.message
+                                                                             if blocked.result else ""), blocked
