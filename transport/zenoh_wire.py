@@ -111,13 +111,24 @@ def _reason(err: Exception) -> str:
 
 
 def open_router(listen: list[str], *, connect: list[str] | None = None, scouting: bool = False,
-                identity: Identity | None = None, access: dict[str, Any] | None = None) -> zenoh.Session:
+                identity: Identity | None = None, access: dict[str, Any] | None = None,
+                team: str | None = None, name: str | None = None) -> zenoh.Session:
     """Run a Zenoh router in this process, listening on `listen` (and linked to the routers in
     `connect`; `tls/` links authenticated with `identity`; `access`: its access control, from
     `zenoh_acl.access_control`), until the returned session is closed. It forwards the team's
-    frames unread."""
+    frames unread. With `team` it holds a token of role `router` in its `name` (the identity's by
+    default), so the team's agents name the router each peer is reached through."""
     settings = ZenohSettings(connect=list(connect or []), scouting=scouting)
-    return open_session(settings, listen=listen, mode="router", identity=identity, access=access)
+    session = open_session(settings, listen=listen, mode="router", identity=identity, access=access)
+    name = name or (identity.name if identity is not None else None)
+    if team and name:
+        token = Keys(team).token(name, ROUTER_ROLE, str(session.zid()))
+        _router_tokens[id(session)] = session.liveliness().declare_token(token)  # held while the session is
+    return session
+
+
+ROUTER_ROLE = "router"
+_router_tokens: dict[int, Any] = {}  # a router's name token lives as long as the process's router
 
 
 class ZenohEndpoint(Endpoint):
@@ -134,6 +145,7 @@ class ZenohEndpoint(Endpoint):
         self._pub_lock = threading.Lock()
         self._alive: dict[str, set[tuple[str, str]]] = {}  # agent -> (instance, router) of its tokens held now
         self._routes: dict[str, str] = {}  # agent -> the router its newest token names ('' direct)
+        self._router_names: dict[str, str] = {}  # a router's Zenoh id -> its name, from its token
         self._token: zenoh.LivelinessToken | None = None
         self._token_router = ""
         self._next_route_check = 0.0
@@ -398,6 +410,13 @@ class ZenohEndpoint(Endpoint):
         name, role, inst, router = parsed
         if name == self.name and inst == self.inst:
             return
+        if role == ROUTER_ROLE:  # a router's name (its instance is its Zenoh id): no agent to reach
+            with self._alive_lock:
+                if sample.kind == zenoh.SampleKind.PUT and len(self._router_names) < 4096:
+                    self._router_names[inst] = name
+                elif sample.kind != zenoh.SampleKind.PUT:
+                    self._router_names.pop(inst, None)
+            return
         if sample.kind == zenoh.SampleKind.PUT:
             with self._alive_lock:
                 self._alive.setdefault(name, set()).add((inst, router))
@@ -434,10 +453,12 @@ class ZenohEndpoint(Endpoint):
             return {name: {inst for inst, _ in held} for name, held in self._alive.items()}
 
     def route_of(self, name: str) -> str | None:
-        """The Zenoh id of the router agent `name` is connected through ('' directly, as a peer),
-        by its newest token; None when no token of it is held."""
+        """The router agent `name` is connected through, by its newest token: the router's name when
+        the router holds a name token (`erni router --team`), else its Zenoh id; '' directly (as a
+        peer); None when no token of it is held."""
         with self._alive_lock:
-            return self._routes.get(name)
+            zid = self._routes.get(name)
+            return self._router_names.get(zid, zid) if zid else zid
 
 
 def _router_of(zs: zenoh.Session) -> str:

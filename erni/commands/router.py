@@ -37,7 +37,10 @@ def register(sub: Any) -> None:
                    "keys init): each agent's certificate may put, query and hold a token only as itself, and "
                    "receives only what is addressed to it; certificates of role router may carry anything "
                    "(needs --identity, --team and tls/ endpoints)")
-    p.add_argument("--team", help="the team's key chunk, as the agents' zenoh.team (with --acl)")
+    p.add_argument("--team", help="the team's key chunk, as the agents' zenoh.team: needed by --acl; with it "
+                   "the router also holds a token in its name, so `erni peers` names the router each peer "
+                   "is reached through")
+    p.add_argument("--name", help="the router's name in the team's tokens (default: its identity's name)")
     p.add_argument("--print-acl", action="store_true", help="print the access control as Zenoh configuration "
                    "JSON (its access_control section, for zenohd) and exit")
     p.set_defaults(func=run)
@@ -71,7 +74,8 @@ def run(args: argparse.Namespace) -> int:
         from erni.transport.identity import load_identity
 
         identity = load_identity(args.identity) if args.identity else None
-        serve(listen, args.connect, args.scouting, threading.Event(), identity=identity, access=access)
+        serve(listen, args.connect, args.scouting, threading.Event(), identity=identity, access=access,
+              team=args.team, name=args.name)
     except ErniError as err:
         print(f"erni router: {err}", file=sys.stderr)
         return 1
@@ -85,6 +89,9 @@ def _acl_problem(args: argparse.Namespace, endpoints: list[str]) -> str:
     """What is wrong with the access-control options, in one line ('' when nothing)."""
     from erni.transport.zenoh_keys import NAME
 
+    for option, value in (("--team", args.team), ("--name", args.name)):
+        if value is not None and not NAME.match(value):
+            return f"{option}: expected letters, digits, '_', '.', '-', got {value!r}"
     if args.print_acl and not args.acl:
         return "--print-acl needs --acl KEYS_DIR"
     if not args.acl:
@@ -100,12 +107,14 @@ def _acl_problem(args: argparse.Namespace, endpoints: list[str]) -> str:
 
 
 def serve(listen: list[str], connect: list[str], scouting: bool, stop: threading.Event,
-          out: TextIO | None = None, identity: Identity | None = None, access: dict[str, Any] | None = None) -> None:
+          out: TextIO | None = None, identity: Identity | None = None, access: dict[str, Any] | None = None,
+          team: str | None = None, name: str | None = None) -> None:
     """Run the router until `stop` is set (or Ctrl-C), telling `out` (stdout) when routers link or part."""
     from erni.transport.zenoh_wire import open_router
 
     out = out or sys.stdout
-    session = open_router(listen, connect=connect, scouting=scouting, identity=identity, access=access)
+    session = open_router(listen, connect=connect, scouting=scouting, identity=identity, access=access,
+                          team=team, name=name)
     try:
         print(f"erni router {session.zid()}: listening on {' '.join(listen)}"
               + (f", linked to {' '.join(connect)}" if connect else "")

@@ -52,6 +52,10 @@ def up(agent: Agent, name: str) -> bool:
     return any(p.name == name and p.up for p in agent.query(Peer))
 
 
+def peers_of(agent: Agent) -> set[str]:
+    return {p.name for p in agent.query(Peer)}
+
+
 def test_a_task_goes_through_the_router_is_acknowledged_and_done_and_poses_come_back(team):
     control, robot = team("control", echo=False), team("robot1")
     wait_until(lambda: up(control, "robot1") and up(robot, "control"))
@@ -231,6 +235,9 @@ def test_erni_router_carries_a_team_and_refuses_a_bad_endpoint_in_one_line(team,
     assert main(["router", "--listen", "tcp/127.0.0.1"]) == 2
     err = capsys.readouterr().err
     assert len(err.splitlines()) == 1 and "expected PROTOCOL/HOST:PORT" in err
+    assert main(["router", "--team", TEAM, "--name", "site a"]) == 2
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1 and "--name: expected letters" in err and "'site a'" in err
 
 
 def test_agents_started_before_their_router_meet_once_it_runs(team):
@@ -379,7 +386,8 @@ def test_two_sites_linked_by_their_routers_over_tls_with_access_control(team):
     tls_team = TEAM + "-sites"
     site_a, site_b = f"tls/127.0.0.1:{free_port()}", f"tls/127.0.0.1:{free_port()}"
     access = access_control(tls_team, ["control", "robot1"], routers=["site-a", "site-b"])
-    router_a = open_router([site_a], identity=load_identity(identity("site-a", "router")), access=access)
+    router_a = open_router([site_a], identity=load_identity(identity("site-a", "router")), access=access,
+                           team=tls_team)  # holds a token in its name; router_b holds none
     router_b = open_router([site_b], connect=[site_a], identity=load_identity(identity("site-b", "router")),
                            access=access)
     try:
@@ -394,7 +402,8 @@ def test_two_sites_linked_by_their_routers_over_tls_with_access_control(team):
             tx.remove(task.uid)
         wait_until(lambda: not robot.blackboard.contains(task.uid))
         assert control.plugin("transport").endpoint.route_of("robot1") == str(router_b.zid())
-        assert robot.plugin("transport").endpoint.route_of("control") == str(router_a.zid())
+        assert wait_until(lambda: robot.plugin("transport").endpoint.route_of("control") == "site-a")
+        assert "site-a" not in peers_of(control) and "site-a" not in peers_of(robot)  # a router is no peer
     finally:
         router_b.close()
         router_a.close()
