@@ -16,6 +16,8 @@ from erni.blackboard.errors import ErniError
 from erni.logs import setup_logging
 from erni.replay import LogError, ReplayPlugin, read_log
 
+FOXGLOVE = "erni.plugins.ros2.foxglove:FoxglovePlugin"
+
 
 def register(sub: Any) -> None:
     """Add the `replay` sub-command."""
@@ -30,6 +32,8 @@ def register(sub: Any) -> None:
     p.add_argument("--name", default="control", help="agent name of the replay node")
     p.add_argument("--loop", action="store_true", help="start again at the end")
     p.add_argument("--no-gui", action="store_true", help="do not start the web GUI")
+    p.add_argument("--foxglove", metavar="HOST:PORT", help="also serve the replay to Foxglove over its WebSocket "
+                   "protocol (robots, headings, trails, links; needs foxglove-sdk), e.g. 127.0.0.1:8765")
     p.add_argument("--identity", metavar="FILE", help="identity bundle of the replay node (role control); "
                    "without it the team key in ERNI_TEAM_KEY")
     p.add_argument("--insecure", action="store_true", help="accept unauthenticated clients")
@@ -82,6 +86,12 @@ def run(args: argparse.Namespace) -> int:
                                                 "forward_tasks": False, **auth}, name="transport")
         plugin = agent.add_plugin(ReplayPlugin, settings={"log": args.log, "speed": args.speed,
                                                           "loop": args.loop}, name="replay")
+        fox = None
+        if args.foxglove:
+            if importlib.util.find_spec("foxglove") is None:
+                print("erni replay: --foxglove needs foxglove-sdk (pip install 'erni[ros2]')", file=sys.stderr)
+                return 2
+            fox = agent.add_plugin(FOXGLOVE, settings={"listen": args.foxglove}, name="foxglove")
         if not args.no_gui and importlib.util.find_spec("erni.plugins.ui") is not None:
             try:
                 agent.add_plugin("ui", name="ui")
@@ -97,11 +107,17 @@ def run(args: argparse.Namespace) -> int:
         print(f"replaying {len(events)} events ({duration:.1f} s at x{args.speed:g}) as agent "
               f"{args.name} on {args.listen}; `erni watch --via {args.listen}` to see them",
               file=sys.stderr)
+        if args.foxglove:
+            port = getattr(fox, "port", None)
+            if port is None:  # its setup failed and disabled it: the agent logged why
+                print("erni replay: the Foxglove server did not start", file=sys.stderr)
+            else:
+                print(f"Foxglove: ws://{args.foxglove.rsplit(':', 1)[0]}:{port}", file=sys.stderr)
         if sys.stdin.isatty():
             threading.Thread(target=_commands, args=(plugin, stop), name="replay-keys", daemon=True).start()
-        while not stop.is_set() and not plugin.finished.is_set():
+        while not stop.is_set() and not (plugin.finished.is_set() and not args.loop):  # --loop: until Ctrl-C
             time.sleep(0.2)
-        if plugin.finished.is_set():
+        if plugin.finished.is_set() and not args.loop:
             print(f"replay finished ({plugin.position} events)", file=sys.stderr)
             time.sleep(0.5)  # let watchers receive the last events
     except KeyboardInterrupt:

@@ -12,10 +12,14 @@ from __future__ import annotations
 import base64
 import json
 import math
+import signal
 import struct
+import subprocess
+import sys
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -313,3 +317,48 @@ def test_updates_are_rate_limited(control):
         sent = client.received["/erni/robots"] - before
         assert 2 <= sent <= 20 * took + 2, (sent, took)
         assert xy(client.latest["/erni/robots"][1]["entities"][0]["arrows"][0]["pose"]["position"]) == (0.99, 0.0)
+
+
+def test_replay_serves_a_log_to_foxglove(tmp_path: Path) -> None:
+    """`erni replay LOG --foxglove HOST:PORT`: a recorded run, seen live in Foxglove."""
+    from tests.transport.helpers import free_port
+
+    log = tmp_path / "run.jsonl"
+    poses = [Pose(robot="robot1", x=0.5 * i, y=1.0, theta=0.25 * i) for i in range(4)]
+    lines = [{"erni_record": 1, "via": "x", "started": 1_700_000_000.0}]
+    lines += [{"t": 0.4 * i, "agent": "control", "op": "add" if i == 0 else "change", "type": "Pose",
+               "data": p.model_dump(mode="json")} for i, p in enumerate(poses)]
+    # the last pose stands 0.4 s too, before --loop clears the board and starts again
+    lines.append({"t": 1.6, "agent": "control", "op": "add", "type": "Peer",
+                  "data": Peer(name="robot1", up=True).model_dump(mode="json")})
+    log.write_text("\n".join(json.dumps(line) for line in lines) + "\n")
+    root = Path(__file__).resolve().parents[2]
+    proc = subprocess.Popen([sys.executable, "-m", "erni", "replay", str(log), "--no-gui", "--insecure", "--loop",
+                             "--listen", f"127.0.0.1:{free_port()}", "--foxglove", "127.0.0.1:0"],
+                            cwd=root, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert proc.stderr is not None
+        port = None
+        for line in proc.stderr:  # "Foxglove: ws://127.0.0.1:PORT"
+            if line.startswith("Foxglove: ws://127.0.0.1:"):
+                port = int(line.rsplit(":", 1)[1])
+                break
+        assert port, "no Foxglove line"
+        with foxglove_client(port) as client:
+            seen: set[tuple[float, float]] = set()
+
+            def all_poses() -> bool:
+                client.pump(0.2)
+                if "/robot1/pose" in client.latest:
+                    seen.add(xy(client.latest["/robot1/pose"][1]["pose"]["position"]))
+                return {(0.5 * i, 1.0) for i in range(4)} <= seen
+
+            wait_until(all_poses, timeout=20)
+            assert client.topics()["/erni/robots"] == "foxglove.SceneUpdate"
+    finally:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.communicate(timeout=20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.communicate()
