@@ -34,6 +34,7 @@ log = logging.getLogger(__name__)
 SCHEME = "ros2"
 SECTORS = 16  # virtual sonars made of a LaserScan, one per 22.5 degrees
 MAX_RANGE = 5.0  # m: a sector with nothing nearer reads this (as a Pioneer's sonar reads its maximum)
+KEEPALIVE = 0.2  # s: a moving command is sent again this often (a ROS 2 base stops when cmd_vel goes quiet)
 
 
 def is_ros2_url(url: str) -> bool:
@@ -108,6 +109,7 @@ class Ros2BaseDriver(ArcosDriver):
         self._v = 0.0
         self._w = 0.0  # deg/s, as RVEL takes it
         self._odom_at = -math.inf
+        self._sent_at = -math.inf
         self._seq = 0
         self._lock = threading.Lock()
 
@@ -160,8 +162,13 @@ class Ros2BaseDriver(ArcosDriver):
 
     @property
     def connected(self) -> bool:
-        """True while Odometry keeps coming (one within link_timeout)."""
-        return self._session is not None and time.monotonic() - self._odom_at <= self.link_timeout
+        """True while Odometry keeps coming (one within link_timeout); else `last_error` says since when."""
+        if self._session is None:
+            return False
+        if time.monotonic() - self._odom_at <= self.link_timeout:
+            return True
+        self.last_error = f"no Odometry on {self._topic('odom')} within {self.link_timeout:g} s"
+        return False
 
     @property
     def is_simulator(self) -> bool:
@@ -201,6 +208,9 @@ class Ros2BaseDriver(ArcosDriver):
             self._cond.notify_all()
         if self.on_sip is not None:
             self.on_sip(state)
+        with self._lock:  # between the stack's commands, the one standing is repeated for the base's watchdog
+            if (self._v or self._w) and time.monotonic() - self._sent_at >= KEEPALIVE:
+                self._send()
 
     def _on_scan(self, data: bytes) -> None:
         from erni.plugins.ros2 import messages
@@ -234,6 +244,7 @@ class Ros2BaseDriver(ArcosDriver):
         twist = messages.make(messages.TWIST, linear=messages.make(vec, x=self._v),
                               angular=messages.make(vec, z=math.radians(self._w)))
         self._cmd.put(messages.serialize(twist))
+        self._sent_at = time.monotonic()
         self.stats.commands += 1
         return True
 
