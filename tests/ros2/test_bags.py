@@ -85,6 +85,7 @@ def test_bag_has_ros2_types_and_values_that_rosbags_reads(tmp_path: Path) -> Non
     events = write_sample(bag)
     assert bag.is_file() and bag.read_bytes()[:8] == b"\x89MCAP0\r\n"
     assert [p.name for p in tmp_path.iterdir()] == ["run.mcap"], "the writer's directory is gone"
+    assert b"\x04\x00\x00\x00zstd" in bag.read_bytes(), "its chunks are zstd-compressed"
     topics, msgs = bag_messages(bag)
     assert topics == {"/erni/record": "diagnostic_msgs/msg/DiagnosticArray",
                       "/robot1/odom": "nav_msgs/msg/Odometry", "/tf": "tf2_msgs/msg/TFMessage",
