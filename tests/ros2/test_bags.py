@@ -20,6 +20,7 @@ import pytest
 
 pytest.importorskip("rosbags")
 
+from rosbags.highlevel import AnyReader  # noqa: E402
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer  # noqa: E402
 from rosbags.typesys import Stores, get_typestore  # noqa: E402
 
@@ -94,6 +95,13 @@ def test_bag_has_ros2_types_and_values_that_rosbags_reads(tmp_path: Path) -> Non
     # the type hash rosbag2 (Jazzy) checks, in the rosbag2 metadata record the MCAP file carries
     found = re.search(rb"name: /robot1/odom\n.*?type_description_hash:\s+(RIHS01_\w+)", bag.read_bytes(), re.S)
     assert found and found.group(1).decode() == JAZZY.hash_rihs01("nav_msgs/msg/Odometry")
+
+    # the file describes itself: the definitions it carries (ros2msg) decode it to the same values,
+    # as Foxglove and PlotJuggler decode a bag without ROS 2 installed
+    with AnyReader([bag]) as any_reader:
+        own = [(c.topic, t, any_reader.deserialize(d, c.msgtype)) for c, t, d in any_reader.messages()]
+    assert type(own[1][2]).__module__ == "rosbags.usertypes"
+    assert [(topic, t, repr(m)) for topic, t, m in own] == [(topic, t, repr(m)) for topic, t, m in msgs]
 
     odoms = [(t, m) for topic, t, m in msgs if topic == "/robot1/odom"]
     assert len(odoms) == 2
