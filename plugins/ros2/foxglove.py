@@ -13,7 +13,8 @@ panel draws by itself (protobuf, as foxglove-sdk encodes them):
 | `/<robot>/pose` | `foxglove.PoseInFrame` | each robot's pose (x, y, heading) in `map`, for plots and the 3D panel's pose display |
 
 Poses, links and peers are read from the blackboard, as the web GUI reads them; updates go out
-at most `rate_hz` times a second, and only when something changed.
+at most `rate_hz` times a second when something changed, and again every `refresh` seconds (1) so
+that a client that just subscribed sees a team standing still.
 """
 
 from __future__ import annotations
@@ -44,6 +45,8 @@ class FoxgloveSettings(BaseModel):
     low_battery: float = Field(11.5, description="volts below which a robot is drawn pink")
     netinfo_max_age: float = Field(10.0, ge=0, description="network info older than this (s) is drawn grey; "
                                    "0 = never")
+    refresh: float = Field(1.0, gt=0, le=3600, description="the team is sent again after this long (s) without "
+                           "a change, so a client that just subscribed sees a team standing still")
 
 
 def _quaternion(theta: float) -> Any:
@@ -98,6 +101,8 @@ class FoxglovePlugin(Plugin[FoxgloveSettings]):
                                             context=self.context)
         self.port = self.server.port
         self.log.info("Foxglove WebSocket: ws://%s:%d", host, self.port)
+        # no server callbacks into Python: a new subscriber gets the team at the next refresh
+        self.wake_every(s.refresh)
 
     def teardown(self) -> None:
         self.server.stop()
@@ -110,10 +115,10 @@ class FoxglovePlugin(Plugin[FoxgloveSettings]):
             self._extend_trail(pose)
         for pose in self.poses.removed:
             self.trails.pop(pose.robot, None)
-        self._pending = self._pending or changed
+        now = time.monotonic()
+        self._pending = self._pending or changed or now - self._last >= self.settings.refresh
         if not self._pending:
             return
-        now = time.monotonic()
         wait = self._last + 1.0 / self.settings.rate_hz - now
         if wait > 0:
             self.wake_in(wait)

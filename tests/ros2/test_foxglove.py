@@ -299,6 +299,19 @@ def test_foxglove_client_sees_robots_headings_trails_and_links(control):
         assert "entities" not in client.latest["/erni/links"][1], "no link without both ends placed"
 
 
+def test_a_client_gets_a_team_standing_still(control):
+    """Nothing changes after the client connects: it still gets the robots as they stand."""
+    agent, plugin = control
+    with agent.transaction() as tx:
+        tx.add(Pose(robot="robot1", x=-1.0, y=0.5, theta=math.pi))
+    time.sleep(0.5)  # published to no one
+    with foxglove_client(plugin.port) as client:  # type: ignore[attr-defined]
+        wait_until(lambda: client.pump(0.2) or "/erni/robots" in client.latest and "/tf" in client.latest, timeout=10)
+        arrow = client.latest["/erni/robots"][1]["entities"][0]["arrows"][0]
+        assert xy(arrow["pose"]["position"]) == (-1.0, 0.5)
+        assert abs(heading(arrow["pose"]["orientation"])) == pytest.approx(math.pi)
+
+
 def test_updates_are_rate_limited(control):
     agent, plugin = control
     pose = Pose(robot="robot1")
