@@ -115,16 +115,23 @@ def _readable(op: str, obj: BBObject | None) -> tuple[int, str, str, str, dict[s
     return OK, f"erni/{type(obj).__name__}", "", op, {}
 
 
-def diagnostics(agent: str, op: str, type_name: str, data: dict[str, Any], when: float) -> Any:
-    """One ERNI event as a DiagnosticArray, the event itself under the key `erni` of its first status.
+def _validated(type_name: str, data: dict[str, Any]) -> BBObject | None:
+    cls = TYPES.get(type_name)
+    try:
+        return cls.model_validate(data) if cls is not None and issubclass(cls, BBObject) else None
+    except ValidationError:
+        return None
+
+
+def diagnostics(agent: str, op: str, type_name: str, data: dict[str, Any], when: float,
+                obj: BBObject | None = None) -> Any:
+    """One ERNI event as a DiagnosticArray, the event itself under the key `erni` of its first status
+    (`obj`: `data` already validated, if it was).
 
     A NetInfo is the network's diagnostics as the live ros2 plugin publishes them (one status for the
     node, one per neighbour: `messages.diagnostics`), its links and routes added to the node's status."""
-    cls = TYPES.get(type_name)
-    try:
-        obj = cls.model_validate(data) if cls is not None and issubclass(cls, BBObject) else None
-    except ValidationError:
-        obj = None
+    if obj is None:
+        obj = _validated(type_name, data)
     level, name, hardware, message, values = _readable(op, obj)
     if op == "remove":
         level, message = STALE, "removed"
@@ -189,25 +196,26 @@ class BagRecorder:
         """Record one change at `t` seconds since the recording started (now when None)."""
         if t is None:
             t = time.monotonic() - self._clock
+        self.write_object(agent, op, type_name, data, _validated(type_name, data), t)
+
+    def write_object(self, agent: str, op: str, type_name: str, data: dict[str, Any], obj: BBObject | None,
+                     t: float) -> None:
+        """Record one change whose `data` is `obj` (None: not a valid object of `type_name`)."""
         when = ros.stamp_ns_of(self.started + t)
-        obj: BBObject | None = None
-        cls = TYPES.get(type_name)
-        if op != "remove" and cls in (Pose, NetInfo):
-            try:
-                obj = cls.model_validate(data)
-            except ValidationError:
-                obj = None
-        if isinstance(obj, Pose):
-            self._poses[obj.robot] = obj
-            stamp = ros.stamp_ns_of(obj.stamp)
-            self._put(f"/{obj.robot}/odom", ros.odometry(obj, stamp, FRAME), when)
-            self._put("/tf", ros.tf_message([obj], stamp, FRAME), when)
-        self._put(DIAGNOSTICS_TOPIC, diagnostics(agent, op, type_name, data, when / 1e9), when)
-        if isinstance(obj, NetInfo):
+        drawn = obj if op != "remove" else None  # a removed Pose or NetInfo draws nothing
+        if isinstance(obj, Pose) and drawn is None:
+            self._poses.pop(obj.robot, None)
+        if isinstance(drawn, Pose):
+            self._poses[drawn.robot] = drawn
+            stamp = ros.stamp_ns_of(drawn.stamp)
+            self._put(f"/{drawn.robot}/odom", ros.odometry(drawn, stamp, FRAME), when)
+            self._put("/tf", ros.tf_message([drawn], stamp, FRAME), when)
+        self._put(DIAGNOSTICS_TOPIC, diagnostics(agent, op, type_name, data, when / 1e9, obj), when)
+        if isinstance(drawn, NetInfo):
             places = {name: (p.x, p.y) for name, p in self._poses.items()}
-            places |= {name: (p.x, p.y) for name, p in obj.positions.items()}
-            self._put(MARKERS_TOPIC, ros.network_markers(obj.links, places, ros.stamp_ns_of(obj.stamp), FRAME,
-                                                         obj.articulation_points), when)
+            places |= {name: (p.x, p.y) for name, p in drawn.positions.items()}
+            self._put(MARKERS_TOPIC, ros.network_markers(drawn.links, places, ros.stamp_ns_of(drawn.stamp), FRAME,
+                                                         drawn.articulation_points), when)
         self.count += 1
 
     def close(self) -> None:
@@ -230,8 +238,8 @@ def convert(log: str | Path, out: str | Path) -> tuple[int, list[str]]:
     recorder = BagRecorder(out, str(header.get("via", "")), started)
     try:
         for event in events:
-            recorder.write(event.agent, event.op, type(event.obj).__name__,
-                           event.obj.model_dump(mode="json"), event.t)
+            recorder.write_object(event.agent, event.op, type(event.obj).__name__,
+                                  event.obj.model_dump(mode="json"), event.obj, event.t)
     finally:
         recorder.close()
     return recorder.count, problems
