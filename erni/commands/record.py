@@ -20,13 +20,14 @@ def register(sub: Any) -> None:
     p = sub.add_parser("record", help="record a team's tasks, results, poses and peer events",
                        description="Record every blackboard change one agent (usually the control "
                        "node) sees, as JSON lines or a rosbag2 MCAP bag (ROS 2 Jazzy types: Odometry on "
-                       "/<robot>/odom, diagnostics on /erni/tasks, /erni/network, /erni/robots, /erni/peers), "
+                       "/<robot>/odom and /tf; tasks, results, robots' health, network and peers as "
+                       "diagnostic_msgs/DiagnosticArray on /diagnostics; network markers on /erni/network), "
                        "until Ctrl-C. Replay either with `erni replay`. With --convert LOG, write the ERNI "
                        "log LOG as the MCAP bag OUT instead, without reaching any agent.")
     p.add_argument("out", help="file to write: JSON lines, or an MCAP bag when it ends in .mcap or with "
                    "--format mcap")
     p.add_argument("--format", choices=("jsonl", "mcap"), default=None,
-                   help="jsonl (ERNI's log) or mcap (a rosbag2 bag ros2 bag, Foxglove and PlotJuggler open; "
+                   help="jsonl (ERNI's log) or mcap (a rosbag2 bag that ros2 bag, Foxglove and PlotJuggler open; "
                    "needs rosbags); default: mcap when OUT ends in .mcap, else jsonl")
     p.add_argument("--convert", metavar="LOG", help="convert this JSON-lines log (from `erni record`) into "
                    "the MCAP bag OUT and exit")
