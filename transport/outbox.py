@@ -86,10 +86,11 @@ class Batch:
     outs: list[Outgoing] = field(default_factory=list)
     items: list[bytes] = field(default_factory=list)
     size: int = 0
+    limit: int = BATCH_BYTES  # a wire without an MTU to keep under (Zenoh) gathers more
 
     def fits(self, item: bytes) -> bool:
         """Whether a message with this item may join the datagram (`[head,[item,...]]`)."""
-        return not self.outs or self.session is not None and len(self.head) + 4 + self.size + len(item) + 1 <= BATCH_BYTES
+        return not self.outs or self.session is not None and len(self.head) + 4 + self.size + len(item) + 1 <= self.limit
 
     def add(self, out: Outgoing, item: bytes) -> None:
         self.outs.append(out)

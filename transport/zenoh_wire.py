@@ -41,7 +41,7 @@ from erni.blackboard.errors import ConfigError, NetworkError
 from erni.blackboard.schemas import Beacon
 from erni.transport.endpoint import CLIENT_ROLE, Endpoint
 from erni.transport.identity import Identity
-from erni.transport.outbox import Dest, Outgoing
+from erni.transport.outbox import Batch, Dest, Outgoing
 from erni.transport.receiver import HEADER_KIND
 from erni.transport.session import Session
 from erni.transport.wire import DATA, KIND, FrameError, Message
@@ -53,6 +53,7 @@ RECONNECT = 1.0
 """Seconds between attempts to open the session of an agent whose routers were not reachable at start."""
 
 DATAGRAM_QUEUE = 8192
+BATCH_BYTES = 16_000  # statuses gathered in one frame in a burst (ERNI's UDP wire: 1400, one datagram)
 """Datagrams waiting for the receive thread; when more arrive the oldest go first (newest wins),
 as statuses are meant to (a UDP socket's buffer drops the newest instead)."""
 
@@ -272,6 +273,13 @@ class ZenohEndpoint(Endpoint):
         return self._zs
 
     # -- sending --------------------------------------------------------------------------
+
+    def _batch(self, session: Session | None) -> Batch:
+        """A burst's statuses gathered for one put: up to `BATCH_BYTES` on Zenoh, which keeps no
+        datagram under a link's MTU (its links are streams, and it fragments what is larger)."""
+        batch = super()._batch(session)
+        batch.limit = BATCH_BYTES
+        return batch
 
     def _sendto(self, frame: bytes, addr: Address) -> None:
         """Put one frame to the agent at `addr`, best effort (NetworkError, an OSError, when it cannot go)."""

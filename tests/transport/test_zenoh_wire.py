@@ -422,3 +422,43 @@ def test_without_the_zenoh_package_the_agent_says_what_to_install_in_one_line():
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip().splitlines() == [
         "wire = \"zenoh\" needs the eclipse-zenoh package, which is not installed: pip install 'erni[zenoh]'"]
+
+
+def test_a_burst_of_statuses_goes_in_frames_larger_than_a_udp_datagram(router):
+    """Zenoh's links are streams: a burst gathers up to 16 kB of statuses a frame (ERNI's UDP wire
+    keeps a datagram under 1400 bytes), so fewer frames are sealed, put and opened."""
+    from erni.transport.identity import load_identity
+    from erni.transport.wire import BATCH_BYTES
+    from erni.transport.zenoh_keys import ZenohSettings, address_of
+    from erni.transport.zenoh_wire import ZenohEndpoint
+    from tests.transport.helpers import identity
+
+    def endpoint(name: str, role: str) -> ZenohEndpoint:
+        return ZenohEndpoint(name, zenoh_settings=ZenohSettings(team=TEAM + "-burst", mode="client", connect=[router]),
+                             identity=load_identity(identity(name, role)))
+
+    sender, receiver = endpoint("robot1", "robot"), endpoint("control", "control")
+    got: list[Any] = []
+    receiver.on_message = lambda msg: got.append(msg) if msg.kind == "status" else None  # not the token's hint
+    sizes: list[int] = []
+    put = sender._sendto
+    sender._sendto = lambda frame, addr: (sizes.append(len(frame)), put(frame, addr))[1]  # type: ignore[method-assign]
+    receiver.start()
+    sender.start()
+    try:
+        to = address_of("control")
+        sender.send(to, "status", Pose(robot="robot1"), reliable=True, to="control")  # the session first
+        wait_until(lambda: len(got) == 1)
+        sizes.clear()
+        for i in range(400):
+            sender.send(to, "status", Pose(uid=f"pose:{i}", robot="robot1", x=float(i)), reliable=False, to="control")
+        try:
+            wait_until(lambda: len(got) == 401, timeout=10)
+        except AssertionError:
+            raise AssertionError(f"{len(got) - 1} of 400 arrived; sender {sender.counters}, "
+                                 f"receiver {receiver.counters}") from None
+        assert [m.body.x for m in got[1:]] == [float(i) for i in range(400)]  # every one, in order
+        assert max(sizes) > 4 * BATCH_BYTES and len(sizes) < 400 / 8, sizes
+    finally:
+        sender.stop()
+        receiver.stop()
