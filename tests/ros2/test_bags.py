@@ -17,21 +17,18 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from rosbags.highlevel import AnyReader
+from rosbags.rosbag2 import Reader, StoragePlugin, Writer
+from rosbags.typesys import Stores, get_typestore
 
-pytest.importorskip("rosbags")
-
-from rosbags.highlevel import AnyReader  # noqa: E402
-from rosbags.rosbag2 import Reader, StoragePlugin, Writer  # noqa: E402
-from rosbags.typesys import Stores, get_typestore  # noqa: E402
-
-from erni.blackboard import NetInfo, Pose, Task  # noqa: E402
-from erni.blackboard.schemas import Peer  # noqa: E402
-from erni.blackboard.tasks import Link, Neighbor  # noqa: E402
-from erni.blackboard.testing import wait_until  # noqa: E402
-from erni.plugins.ros2.bags import BagRecorder, read_bag  # noqa: E402
-from erni.replay import FORMAT, LogError, read_log  # noqa: E402
-from erni.transport import Peer as TransportPeer  # noqa: E402
-from tests.transport.helpers import free_port, identity, make_agent  # noqa: E402
+from erni.blackboard import NetInfo, Pose, Task
+from erni.blackboard.schemas import Peer
+from erni.blackboard.tasks import Link, Neighbor
+from erni.blackboard.testing import wait_until
+from erni.plugins.ros2.bags import BagRecorder, read_bag
+from erni.replay import FORMAT, LogError, read_log
+from erni.transport import Peer as TransportPeer
+from tests.transport.helpers import free_port, identity, make_agent
 
 ROOT = Path(__file__).resolve().parents[2]
 ENV = {**os.environ, "ERNI_IDENTITY": identity("cli", "cli"), "PYTHONUNBUFFERED": "1"}

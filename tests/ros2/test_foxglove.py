@@ -23,14 +23,12 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+import websockets.sync.client as websockets_sync
 
-pytest.importorskip("foxglove")
-websockets_sync = pytest.importorskip("websockets.sync.client")
-
-from erni.blackboard import Agent, NetInfo, Pose  # noqa: E402
-from erni.blackboard.schemas import Peer  # noqa: E402
-from erni.blackboard.tasks import Link  # noqa: E402
-from erni.blackboard.testing import wait_until  # noqa: E402
+from erni.blackboard import Agent, NetInfo, Pose
+from erni.blackboard.schemas import Peer
+from erni.blackboard.tasks import Link
+from erni.blackboard.testing import wait_until
 
 PLUGIN = "erni.plugins.ros2.foxglove:FoxglovePlugin"
 
