@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from playwright.sync_api import TimeoutError as PlaywrightTimeout
 
 from erni.blackboard import Agent, Link, Neighbor, NetInfo, Pose, Task
 from erni.blackboard.testing import wait_until
@@ -198,8 +199,14 @@ def test_holding_then_dragging_a_robot_teleports_it(team, page):
 
 
 def test_rectangle_selection_and_command_buttons(team, page):
+    for name in ("robot1", "robot2", "robot3"):
+        settle(team, name)
     a, b = own_pose(team, "robot1"), own_pose(team, "robot2")
     c = own_pose(team, "robot3")
+    for name, p in (("robot1", a), ("robot2", b), ("robot3", c)):  # the page draws them there (it may lag under load)
+        page.wait_for_function("([n, x, y]) => { const g = document.querySelector(`g.robot[data-name=${n}]`);"
+                               " return g && Math.hypot(+g.dataset.x - x, +g.dataset.y - y) < 0.1; }",
+                               arg=[name, p.x, p.y], timeout=20000)
     x0, x1 = min(a.x, b.x) - 0.4, max(a.x, b.x) + 0.4
     y0, y1 = min(a.y, b.y) - 0.4, max(a.y, b.y) + 0.4
     assert not (x0 < c.x < x1 and y0 < c.y < y1), "robot3 must lie outside the rectangle"
@@ -209,6 +216,11 @@ def test_rectangle_selection_and_command_buttons(team, page):
     page.mouse.move(*screen(page, x1, y0), steps=5)
     page.mouse.up()
     page.keyboard.up("Shift")
+    try:  # the table follows the selection on the page's next update
+        page.wait_for_function("() => ['robot1', 'robot2'].every(n => "
+                               "document.querySelector(`#robot-table input[data-name=\"${n}\"]`).checked)", timeout=10000)
+    except PlaywrightTimeout:
+        pass  # the assertion below shows what was selected
     checked = [page.locator(f'#robot-table input[data-name="{n}"]').is_checked() for n in ("robot1", "robot2", "robot3")]
     assert checked == [True, True, False]
     page.fill("#p-angle", "45")
