@@ -13,7 +13,8 @@ control node reaches robot1 only through the two Zenoh routers, each agent a cli
 site's router, router-b linked to router-a. Every link is mutual TLS with the team's certificates
 and both routers run the access control made from them (`erni router --acl`). robot1 drives the
 simulated robot of the motion plugin (simrobot://), so its Pose is the robot's odometry and a
-task moves it.
+task moves it; its MobiNet reads the network of site B from `erni net-sim` in its own namespace
+(robot1 and a relay 40 m away, over SNMP on 127.0.0.1), so its NetInfo is what that network says.
 """
 
 from __future__ import annotations
@@ -46,6 +47,18 @@ LAN_A, LAN_B, LINK = 0, 64, 128  # offsets of the three /26 subnets in the run's
 ADDRESSES = {"router-a": [LAN_A, LINK], "router-b": [LAN_B, LINK], "control": [LAN_A], "robot1": [LAN_B]}
 HEARS = [("control", "router-a"), ("router-a", "router-b"), ("router-b", "robot1")]
 TRANSPORT = {"beacon_period": 0.3, "peer_timeout": 1.5, "task_ttl": 60.0, "link_deadline": 30.0}
+SNMP_PORT = 16100  # robot1's network subsystem, in robot1's namespace (its own loopback)
+SITE_B_NETWORK = f"""# site B's mesh as robot1's network subsystem reports it (erni net-sim)
+comm_range = 100.0
+lossless_range = 50.0
+host = "127.0.0.1"
+base_port = {SNMP_PORT}
+read_community = "public"
+nodes = [
+  {{ name = "robot1", x = 0.0, y = 0.0 }},
+  {{ name = "relay-b", x = 40.0, y = 0.0 }},
+]
+"""
 
 
 class Sites:
@@ -107,8 +120,14 @@ class Sites:
 
     # -- processes -----------------------------------------------------------------------
 
-    def start(self, name: str, argv: list[str]) -> None:
-        self.procs[name] = self.mesh.popen(name, argv, self.log(name))
+    def start(self, name: str, argv: list[str], node: str | None = None) -> None:
+        self.procs[name] = self.mesh.popen(node or name, argv, self.log(name))
+
+    def start_network_b(self) -> None:
+        """Site B's network subsystem: `erni net-sim` in robot1's namespace, read by its MobiNet."""
+        scenario = self.run_dir / "site-b-network.toml"
+        scenario.write_text(SITE_B_NETWORK)
+        self.start("net-b", [sys.executable, "-m", "erni", "net-sim", str(scenario)], node="robot1")
 
     def log(self, name: str) -> Path:
         return self.run_dir / "logs" / f"{name}.log"
@@ -230,8 +249,11 @@ def sites(tmp_path_factory):
         sites.create()
         sites.start_router("router-a")
         sites.start_agent("control", [sites.transport("control", "control", ["router-a"])], "router-a")
+        sites.start_network_b()
         sites.start_agent("robot1", [sites.transport("robot1", "robot", ["router-b", "router-a"]),
-                                     ("motion", {"url": "simrobot://", "pose_keepalive": 0.5})],
+                                     ("motion", {"url": "simrobot://", "pose_keepalive": 0.5}),
+                                     ("mobinet", {"host": "127.0.0.1", "port": SNMP_PORT, "timeout": 0.5,
+                                                  "retries": 0, "watch": ["neighbor_list"]})],
                            "router-b")
         sites.router_id("router-a")
         sites.start_watch()
@@ -254,10 +276,10 @@ def test_site_a_reaches_site_b_only_through_the_routers(sites):
     time.sleep(1.0)
     assert "robot1" not in sites.peers() or not sites.peers()["robot1"]["up"]  # site B is cut off
     sites.start_router("router-b")
-    zid = sites.router_id("router-b")
+    sites.router_id("router-b")
     robot1 = wait_until(lambda: (p := sites.peers().get("robot1")) is not None and p["up"] and p, timeout=30,
                         message=f"robot1 not up at site A:\n{sites.tail('robot1')}\n{sites.tail('router-b')}")
-    assert robot1["wire"] == "zenoh" and robot1["router"] == zid
+    assert robot1["wire"] == "zenoh" and robot1["router"] == "router-b"  # by the name router-b's token holds
     wait_until(lambda: robot1_up(sites), timeout=10)  # the watch at site A saw it appear
 
 
@@ -295,6 +317,22 @@ def test_control_at_site_a_tasks_and_cancels_robot1_at_site_b_and_sees_its_pose(
     time.sleep(1.5)
     assert dist(sites.pose(), stopped) < 0.02
     assert 0.05 < dist(stopped, moved) < 5.0
+
+
+def test_control_at_site_a_sees_robot1s_network_info_from_site_b(sites):
+    """robot1's NetInfo (what its MobiNet reads from site B's network) is shared with the control
+    role across the two routers, as its Pose is."""
+    ensure_linked(sites)
+
+    def neighbours() -> list[dict[str, Any]] | None:
+        infos = [e["data"] for e in list(sites.events) if e["type"] == "NetInfo" and e["data"]["node"] == "robot1"
+                 and e["data"]["kind"] == "neighbor_list" and not e["data"]["degraded"]]
+        return infos[-1]["neighbors"] if infos and infos[-1]["neighbors"] else None
+
+    seen = wait_until(neighbours, timeout=30, message=f"no NetInfo of robot1 at site A: {sites.tail('robot1')}")
+    assert [n["name"] for n in seen] == ["relay-b"]
+    assert 0.0 < seen[0]["quality"] <= 1.0  # 40 m of a 50 m lossless range: a full link
+    assert seen[0]["quality"] == pytest.approx(1.0)
 
 
 def test_a_task_across_the_sites_ends_once_when_site_bs_router_restarts_mid_task(sites):
@@ -339,13 +377,12 @@ def test_robot1_driven_to_site_a_reconnects_through_router_a_and_keeps_its_sessi
     it as the same instance (its epoch), tasks it through router-a and sees its Pose."""
     ensure_linked(sites)
     before = sites.peers()["robot1"]
-    assert before["router"] == sites.router_id("router-b")
+    assert before["router"] == "router-b"
     sites.move_robot1("a")
     try:
         assert sites.reaches("robot1", sites.addr["router-b"][0]).startswith("OSError 101")  # site B is gone
-        zid = sites.router_id("router-a")
         robot1 = wait_until(lambda: (p := sites.peers().get("robot1")) is not None and p["up"]
-                            and p["router"] == zid and p, timeout=30,
+                            and p["router"] == "router-a" and p, timeout=30,
                             message=f"robot1 not up through router-a:\n{sites.tail('robot1')}")
         assert robot1["epoch"] == before["epoch"] and robot1["address"] == before["address"]
         start = sites.pose()
