@@ -5,11 +5,12 @@ Any base that takes geometry_msgs/Twist on `<namespace>/cmd_vel` and publishes n
 driven by the same behaviour stack as an ARCOS robot: `Ros2BaseDriver` has `ArcosDriver`'s interface,
 each Odometry taking the place of a SIP and each VEL/RVEL pair becoming one Twist. A
 sensor_msgs/LaserScan on `<namespace>/scan` becomes a ring of virtual sonars (the nearest echo in
-each of 16 sectors around the base), so obstacle avoidance works as with a Pioneer's sonar.
+each of 16 sectors around the base), so obstacle avoidance works as with a Pioneer's sonar; a
+sensor_msgs/BatteryState on `<namespace>/battery_state` gives the battery voltage.
 
 The URL's query sets the link: `ros2://tb3?connect=tcp/192.0.2.20:7447&mode=client&domain=0&scan=scan`
 (`connect` may repeat; default `tcp/127.0.0.1:7447`, peer mode, domain 0 or `ROS_DOMAIN_ID`,
-`scan=` (empty) for no laser).
+`scan=` (empty) for no laser, `battery=` for no battery topic).
 """
 
 from __future__ import annotations
@@ -34,6 +35,8 @@ log = logging.getLogger(__name__)
 SCHEME = "ros2"
 SECTORS = 16  # virtual sonars made of a LaserScan, one per 22.5 degrees
 MAX_RANGE = 5.0  # m: a sector with nothing nearer reads this (as a Pioneer's sonar reads its maximum)
+BATTERY_STATE = "sensor_msgs/msg/BatteryState"
+BATTERY_WAIT = 1.0  # s: how long the first Odometry waits for a BatteryState before the state goes without
 KEEPALIVE = 0.2  # s: a moving command is sent again this often (a ROS 2 base stops when cmd_vel goes quiet)
 
 
@@ -43,7 +46,7 @@ def is_ros2_url(url: str) -> bool:
 
 
 def parse_url(url: str) -> dict[str, Any]:
-    """The parts of a `ros2://` URL: namespace ('' or '/tb3'), connect, mode, domain, scan topic.
+    """The parts of a `ros2://` URL: namespace ('' or '/tb3'), connect, mode, domain, scan and battery topics.
     ConfigError naming the URL when a part is wrong."""
     from erni.transport.zenoh_keys import check_endpoint
 
@@ -55,9 +58,10 @@ def parse_url(url: str) -> dict[str, Any]:
         if not n.replace("_", "a").isalnum() or n[0].isdigit():
             raise ConfigError(f"{url!r}: namespace part {n!r} is not a ROS 2 name (letters, digits, '_')")
     query = parse_qs(parts.query, keep_blank_values=True)
-    unknown = sorted(set(query) - {"connect", "mode", "domain", "scan"})
+    unknown = sorted(set(query) - {"connect", "mode", "domain", "scan", "battery"})
     if unknown:
-        raise ConfigError(f"{url!r}: unknown parameter {unknown[0]!r}; expected connect, mode, domain, scan")
+        raise ConfigError(f"{url!r}: unknown parameter {unknown[0]!r}; expected connect, mode, domain, scan, "
+                          "battery")
     connect = [e for v in query.get("connect", []) for e in v.split(",") if e] or ["tcp/127.0.0.1:7447"]
     for endpoint in connect:
         check_endpoint(endpoint)
@@ -68,8 +72,9 @@ def parse_url(url: str) -> dict[str, Any]:
     if not domain_text.isdigit() or int(domain_text) > 232:
         raise ConfigError(f"{url!r}: domain {domain_text!r}; expected 0-232")
     scan = query.get("scan", ["scan"])[-1].strip("/")
+    battery = query.get("battery", ["battery_state"])[-1].strip("/")
     return {"namespace": "/" + "/".join(names) if names else "", "connect": connect, "mode": mode,
-            "domain": int(domain_text), "scan": scan}
+            "domain": int(domain_text), "scan": scan, "battery": battery}
 
 
 def sonar_ring() -> tuple[tuple[float, float, float], ...]:
@@ -109,6 +114,8 @@ class Ros2BaseDriver(ArcosDriver):
         self._v = 0.0
         self._w = 0.0  # deg/s, as RVEL takes it
         self._odom_at = -math.inf
+        self._first_odom = -math.inf
+        self._battery: float | None = None
         self._sent_at = -math.inf
         self._seq = 0
         self._lock = threading.Lock()
@@ -142,6 +149,9 @@ class Ros2BaseDriver(ArcosDriver):
             self._node.subscribe(self._topic("odom"), messages.ODOMETRY, self._on_odom)
             if self.link["scan"]:
                 self._node.subscribe(self._topic(self.link["scan"]), messages.LASER_SCAN, self._on_scan,
+                                     qos=SENSOR_QOS)
+            if self.link["battery"]:
+                self._node.subscribe(self._topic(self.link["battery"]), BATTERY_STATE, self._on_battery,
                                      qos=SENSOR_QOS)
         if wait:
             limit = timeout if timeout is not None else 3.0 + self.link_timeout
@@ -190,6 +200,10 @@ class Ros2BaseDriver(ArcosDriver):
         ox, oy, oth = float(p.position.x), float(p.position.y), messages.yaw(p.orientation)
         v, w = float(t.linear.x), float(t.angular.z)
         half = self.model.track / 2
+        if self._first_odom == -math.inf:
+            self._first_odom = now
+        if self.link["battery"] and self._battery is None and now - self._first_odom < BATTERY_WAIT:
+            return  # the first state waits a moment for the battery, so that no Pose says 0 V
         with self._cond:
             if self._odom_at > -math.inf:
                 self.sip_interval = 0.9 * self.sip_interval + 0.1 * min(1.0, max(1e-3, now - self._odom_at))
@@ -200,7 +214,7 @@ class Ros2BaseDriver(ArcosDriver):
             self._seq += 1
             self._state = RobotState(
                 x=fx + c * ox - s * oy, y=fy + s * ox + c * oy, theta=_wrap(oth + fth), v=v, w=w,
-                left=v - w * half, right=v + w * half, battery=0.0, stall_left=False, stall_right=False,
+                left=v - w * half, right=v + w * half, battery=self._battery or 0.0, stall_left=False, stall_right=False,
                 bumpers=0, motors_enabled=True, moving=abs(v) > 1e-3 or abs(w) > 1e-3, sonar=dict(self._sonar),
                 stamp=now, seq=self._seq)
             self.stats.sips += 1
@@ -211,6 +225,17 @@ class Ros2BaseDriver(ArcosDriver):
         with self._lock:  # between the stack's commands, the one standing is repeated for the base's watchdog
             if (self._v or self._w) and time.monotonic() - self._sent_at >= KEEPALIVE:
                 self._send()
+
+    def _on_battery(self, data: bytes) -> None:
+        from erni.plugins.ros2 import messages
+
+        try:
+            voltage = float(messages.deserialize(data, BATTERY_STATE).voltage)
+        except Exception as err:  # as for odometry
+            self.last_error = f"bad BatteryState: {err}"
+            return
+        if math.isfinite(voltage):
+            self._battery = round(voltage, 2)
 
     def _on_scan(self, data: bytes) -> None:
         from erni.plugins.ros2 import messages

@@ -26,7 +26,7 @@ from erni.testing import fake_robot  # noqa: E402
 SEPARATOR = "=" * 80 + "\nMSG: "
 TYPES = ("nav_msgs/msg/Odometry", "geometry_msgs/msg/Twist", "geometry_msgs/msg/PoseStamped",
          "tf2_msgs/msg/TFMessage", "std_msgs/msg/String", "visualization_msgs/msg/MarkerArray",
-         "sensor_msgs/msg/LaserScan")
+         "sensor_msgs/msg/LaserScan", "sensor_msgs/msg/BatteryState")
 
 
 def write_definitions(root: Path, typenames: tuple[str, ...] = TYPES) -> Path:

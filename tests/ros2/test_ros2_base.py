@@ -6,98 +6,24 @@ their tolerances, a stop halts it, a wall in the scan stops it short, a silent b
 from __future__ import annotations
 
 import math
-import threading
 import time
 from collections.abc import Callable, Iterator
 from typing import Any
 
-import numpy as np
 import pytest
 
 pytest.importorskip("zenoh")
 pytest.importorskip("zenoh_ros2_sdk")
 
 from pydantic import ValidationError  # noqa: E402
-from zenoh_ros2_sdk import ROS2Publisher, ROS2Subscriber  # noqa: E402
 
 from erni.blackboard import Agent, Pose, TaskState  # noqa: E402
 from erni.blackboard.testing import wait_until  # noqa: E402
 from erni.plugins.motion import RobotMotionControl  # noqa: E402
 from erni.plugins.motion.plugin import MotionSettings  # noqa: E402
 from erni.plugins.motion.ros2_base import parse_url, scan_sectors  # noqa: E402
-from erni.plugins.ros2 import messages  # noqa: E402
 from erni.testing import post_task, run_task, wait_for_task  # noqa: E402
-
-VEC = "geometry_msgs/msg/Vector3"
-
-
-class DiffDriveBase:
-    """A differential-drive base as a ROS 2 driver node shows it: it follows the newest cmd_vel within
-    its acceleration limits, stops when cmd_vel goes quiet for 0.5 s (as TurtleBot's firmware does),
-    integrates its pose at 50 Hz, publishes Odometry at 20 Hz and a 360-beam LaserScan of a wall
-    at x = `wall` (if any) at 10 Hz."""
-
-    def __init__(self, port: int, ns: str = "/tb3", wall: float | None = None) -> None:
-        self.x = self.y = self.th = 0.0
-        self.v = self.w = 0.0
-        self.cmd = (0.0, 0.0)
-        self.cmd_at = -math.inf
-        self.wall = wall
-        self.commands = 0
-        self.silent = threading.Event()
-        self.lock = threading.Lock()
-        self.odom = ROS2Publisher(f"{ns}/odom", messages.ODOMETRY, router_port=port, node_name="tb3_base")
-        self.scan = ROS2Publisher(f"{ns}/scan", messages.LASER_SCAN, router_port=port, node_name="tb3_laser")
-        self.sub = ROS2Subscriber(f"{ns}/cmd_vel", messages.TWIST, self._on_cmd, router_port=port,
-                                  node_name="tb3_base_cmd")
-        self.closing = threading.Event()
-        self.thread = threading.Thread(target=self._loop, name="test-diffdrive")
-        self.thread.start()
-
-    def _on_cmd(self, msg: Any) -> None:
-        with self.lock:
-            self.cmd = (float(msg.linear.x), float(msg.angular.z))
-            self.cmd_at = time.monotonic()
-            self.commands += 1
-
-    def _loop(self) -> None:
-        dt, tick = 0.02, 0
-        while not self.closing.wait(dt):
-            with self.lock:
-                v, w = self.cmd if time.monotonic() - self.cmd_at < 0.5 else (0.0, 0.0)
-                self.v += max(-1.5 * dt, min(1.5 * dt, v - self.v))
-                self.w += max(-6.0 * dt, min(6.0 * dt, w - self.w))
-                self.th = math.atan2(math.sin(self.th + self.w * dt), math.cos(self.th + self.w * dt))
-                self.x += self.v * math.cos(self.th) * dt
-                self.y += self.v * math.sin(self.th) * dt
-                x, y, th, lv, aw = self.x, self.y, self.th, self.v, self.w
-            tick += 1
-            if self.silent.is_set():
-                continue
-            stamp = messages.header(time.time_ns(), "odom")
-            if tick % 2 == 0:
-                self.odom.publish(
-                    header=stamp, child_frame_id="base_footprint",
-                    pose=messages.make("geometry_msgs/msg/PoseWithCovariance", pose=messages.make(
-                        "geometry_msgs/msg/Pose", position=messages.make("geometry_msgs/msg/Point", x=x, y=y),
-                        orientation=messages.quaternion(th))),
-                    twist=messages.make("geometry_msgs/msg/TwistWithCovariance", twist=messages.make(
-                        messages.TWIST, linear=messages.make(VEC, x=lv), angular=messages.make(VEC, z=aw))))
-            if tick % 5 == 0 and self.wall is not None:
-                angles = -math.pi + np.arange(360) * (2 * math.pi / 360)
-                with np.errstate(divide="ignore"):
-                    cos = np.cos(th + angles)
-                    ranges = np.where(cos > 1e-6, (self.wall - x) / np.where(cos > 1e-6, cos, 1.0), np.inf)
-                self.scan.publish(header=messages.header(time.time_ns(), "base_scan"), angle_min=-math.pi,
-                                  angle_max=math.pi - 2 * math.pi / 360, angle_increment=2 * math.pi / 360,
-                                  time_increment=0.0, scan_time=0.1, range_min=0.12, range_max=3.5,
-                                  ranges=ranges.astype(np.float32), intensities=np.zeros(0, dtype=np.float32))
-
-    def close(self) -> None:
-        self.closing.set()
-        self.thread.join()
-        for entity in (self.sub, self.odom, self.scan):
-            entity.close()
+from tests.ros2.diffdrive import DiffDriveBase  # noqa: E402
 
 
 @pytest.fixture
@@ -124,7 +50,8 @@ def base_and_agent(ros: dict[str, Any]) -> Iterator[Callable[..., tuple[DiffDriv
 
 def test_urls_are_checked_in_one_line() -> None:
     assert parse_url("ros2://tb3?connect=tcp/10.0.0.2:7447&mode=client&domain=7") == {
-        "namespace": "/tb3", "connect": ["tcp/10.0.0.2:7447"], "mode": "client", "domain": 7, "scan": "scan"}
+        "namespace": "/tb3", "connect": ["tcp/10.0.0.2:7447"], "mode": "client", "domain": 7, "scan": "scan",
+        "battery": "battery_state"}
     assert parse_url("ros2://")["namespace"] == "" and parse_url("ros2://a/b?scan=")["scan"] == ""
     for bad, words in (("ros2://tb-3", "not a ROS 2 name"), ("ros2://tb3?domain=300", "0-232"),
                        ("ros2://tb3?speed=1", "unknown parameter"), ("ros2://tb3?connect=10.0.0.2", "PROTOCOL/HOST")):
@@ -141,6 +68,7 @@ def test_scan_sectors() -> None:
 
 def test_goto_forward_and_turn_on_a_ros2_base(base_and_agent: Callable[..., tuple[DiffDriveBase, Agent]]) -> None:
     base, agent = base_and_agent()
+    assert agent.query(Pose)[0].battery == 12.3  # the BatteryState's voltage, in the first Pose already
     done = run_task(agent, "BotMotion", "goto", x=1.0, y=0.5, timeout=30)
     assert done.state is TaskState.SUCCEEDED, done.result
     assert math.hypot(base.x - 1.0, base.y - 0.5) <= 0.1 + 0.05  # the goto's tolerance, and the stop's coast
