@@ -2,7 +2,7 @@
 
 Publishes each robot's Pose as nav_msgs/Odometry on `/<robot>/odom` and as a transform on `/tf`, task
 results as std_msgs/String (JSON) on `/erni/task_status`, the network as a MarkerArray on
-`/erni/network`; listens to geometry_msgs/Twist on `/<robot>/cmd_vel` (a BotMotion velocity task, so the
+`/erni/network` and a DiagnosticArray on `/diagnostics`; listens to geometry_msgs/Twist on `/<robot>/cmd_vel` (a BotMotion velocity task, so the
 behaviour stack, stop, obstacle avoidance and the receiving agent's role policy decide, as for any
 task) and geometry_msgs/PoseStamped on `/<robot>/goal_pose` (a BotMotion goto). See docs/ros2.md.
 """
@@ -49,7 +49,8 @@ class ROS2Settings(BaseModel):
     odom_rate_hz: float = Field(10.0, gt=0, le=100, description="at most this many Odometry messages a second per robot")
     tf: bool = Field(True, description="publish each robot's transform on /tf")
     status: bool = Field(True, description="publish task results on /erni/task_status")
-    network: bool = Field(True, description="publish the network as a MarkerArray on /erni/network")
+    network: bool = Field(True, description="publish the network as a MarkerArray on /erni/network and "
+                          "its links as a DiagnosticArray on /diagnostics")
     cmd_vel: bool = Field(True, description="take geometry_msgs/Twist on /<robot>/cmd_vel")
     goal_pose: bool = Field(True, description="take geometry_msgs/PoseStamped on /<robot>/goal_pose")
     cmd_vel_timeout: float = Field(0.5, gt=0, le=10, description="no cmd_vel for this long (s) ends the motion")
@@ -178,7 +179,8 @@ class ROS2Plugin(Plugin[ROS2Settings]):
                               self.settings.domain_id)
                 for typename, topic, wanted in ((messages.TF_MESSAGE, "/tf", self.settings.tf),
                                                 (messages.STRING, "/erni/task_status", self.settings.status),
-                                                (messages.MARKER_ARRAY, "/erni/network", self.settings.network)):
+                                                (messages.MARKER_ARRAY, "/erni/network", self.settings.network),
+                                                (messages.DIAGNOSTIC_ARRAY, "/diagnostics", self.settings.network)):
                     if wanted:  # declared at once: ROS 2 tools list them before the first message
                         self.node.publisher(topic, typename, self._qos(typename))
                 self.wake()  # declare the robots known so far
@@ -268,6 +270,9 @@ class ROS2Plugin(Plugin[ROS2Settings]):
                                messages.stamp_ns_of(task.result.stamp))
         if self.settings.network and (self.nets.added or self.nets.changed):
             self._publish_network()
+            for info in [*self.nets.added, *self.nets.changed]:
+                stamp_ns = messages.stamp_ns_of(info.stamp)
+                self._send(messages.DIAGNOSTIC_ARRAY, "/diagnostics", messages.diagnostics(info, stamp_ns), stamp_ns)
         self._drive(robots)
 
     def _publish_poses(self, robots: set[str]) -> None:

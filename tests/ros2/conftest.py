@@ -25,6 +25,7 @@ from erni.testing import fake_robot  # noqa: E402
 
 SEPARATOR = "=" * 80 + "\nMSG: "
 TYPES = ("nav_msgs/msg/Odometry", "geometry_msgs/msg/Twist", "geometry_msgs/msg/PoseStamped",
+         "diagnostic_msgs/msg/DiagnosticArray",
          "tf2_msgs/msg/TFMessage", "std_msgs/msg/String", "visualization_msgs/msg/MarkerArray",
          "sensor_msgs/msg/LaserScan", "sensor_msgs/msg/BatteryState")
 

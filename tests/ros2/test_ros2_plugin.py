@@ -119,7 +119,8 @@ def test_the_sdks_topic_list_shows_erni_topics_with_their_types(robot: Callable[
     robot()
     want = {"/robot1/odom": ["nav_msgs/msg/Odometry"], "/robot1/cmd_vel": ["geometry_msgs/msg/Twist"],
             "/robot1/goal_pose": ["geometry_msgs/msg/PoseStamped"], "/tf": ["tf2_msgs/msg/TFMessage"],
-            "/erni/task_status": ["std_msgs/msg/String"], "/erni/network": ["visualization_msgs/msg/MarkerArray"]}
+            "/erni/task_status": ["std_msgs/msg/String"], "/erni/network": ["visualization_msgs/msg/MarkerArray"],
+            "/diagnostics": ["diagnostic_msgs/msg/DiagnosticArray"]}
 
     def listed() -> dict[str, list[str]] | None:
         topics = dict(get_topic_names_and_types(router_port=ros["router_port"]))
@@ -280,3 +281,48 @@ def test_goal_pose_is_a_goto_that_reaches_the_point(robot: Callable[..., Agent],
     finally:
         pub.close()
         sub.close()
+
+
+def test_the_network_as_markers_and_diagnostics_and_the_robot_on_tf(robot: Callable[..., Agent],
+                                                                    ros: dict[str, Any]) -> None:
+    from erni.blackboard.tasks import Link, Neighbor, NetInfo, Position
+
+    agent = robot()
+    markers: list[Any] = []
+    diags: list[Any] = []
+    tfs: list[Any] = []
+    subs = [ROS2Subscriber("/erni/network", messages.MARKER_ARRAY, markers.append, router_port=ros["router_port"]),
+            ROS2Subscriber("/diagnostics", messages.DIAGNOSTIC_ARRAY, diags.append, router_port=ros["router_port"]),
+            ROS2Subscriber("/tf", messages.TF_MESSAGE, tfs.append, router_port=ros["router_port"])]
+    try:
+        time.sleep(0.5)  # the subscriptions reach the router
+        with agent.transaction() as tx:
+            tx.add(NetInfo(node="robot1", kind="network_topology", links=[Link(a="robot1", b="robot2", quality=0.8)],
+                           neighbors=[Neighbor(name="robot2", quality=0.3)], positions={"robot2": Position(x=2, y=1)},
+                           articulation_points=["robot1"]))
+        wait_until(lambda: markers and diags, timeout=5, message="no MarkerArray or DiagnosticArray")
+        run_task(agent, "BotMotion", "goto", x=0.3, y=0.0, timeout=20)
+        wait_until(lambda: tfs, timeout=5, message="no /tf")
+    finally:
+        for sub in subs:
+            sub.close()
+    by_ns = {}
+    for m in markers[-1].markers:
+        by_ns.setdefault(m.ns, []).append(m)
+    assert [m.action for m in by_ns["erni"]] == [3]  # DELETEALL first: nodes and links gone since disappear
+    names = {m.text: m for m in by_ns["erni_names"]}
+    assert set(names) == {"robot1", "robot2"}
+    nodes = {(round(m.pose.position.x, 3), round(m.pose.position.y, 3)): m for m in by_ns["erni_nodes"]}
+    assert nodes[(2.0, 1.0)].color.b > 0.5 and nodes[(2.0, 1.0)].type == 2  # a blue sphere
+    (line,) = by_ns["erni_links"]
+    assert line.type == 5 and len(line.points) == 2 and line.points[1].x == 2.0 and line.points[1].y == 1.0
+    assert line.colors[0].g == pytest.approx(0.8) and line.colors[0].r == pytest.approx(0.2)
+    cut = [m for m in by_ns["erni_nodes"] if m.color.r > 0.5]
+    assert len(cut) == 1  # robot1, the articulation point, is red
+    status = {s.name: s for s in diags[-1].status}
+    assert set(status) == {"erni/robot1/network", "erni/robot1/neighbor/robot2"}
+    assert status["erni/robot1/neighbor/robot2"].level == 1  # WARN: quality 0.3
+    assert {kv.key: kv.value for kv in status["erni/robot1/network"].values}["articulation_points"] == "robot1"
+    (tf,) = tfs[-1].transforms
+    assert tf.header.frame_id == "map" and tf.child_frame_id == "robot1/base_link"
+    assert tf.transform.translation.x == pytest.approx(agent.query(Pose)[0].x, abs=0.05)
