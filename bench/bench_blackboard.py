@@ -4,7 +4,7 @@ Each figure stands beside a floor measured in the same run: a raw thread handoff
 `queue.Queue` (one consumer thread per subscriber) doing the same work. Ratios are ours
 divided by the floor (latency: lower is better; throughput: higher is better).
 
-    python bench/bench_blackboard.py [--rounds 7] [--pings 400] [--burst 3000]
+    python bench/bench_blackboard.py [--rounds 7] [--pings 400] [--burst 3000] [--plugins 1,4,16]
 """
 
 from __future__ import annotations
@@ -144,6 +144,7 @@ def main() -> int:
     parser.add_argument("--pings", type=int, default=400, help="single publications per round")
     parser.add_argument("--burst", type=int, default=3000, help="publications in the throughput run")
     parser.add_argument("--workers", type=int, default=4, help="agent worker threads")
+    parser.add_argument("--plugins", default="1,4,16", help="comma-separated numbers of subscribing plugins")
     args = parser.parse_args()
 
     print(f"blackboard benchmark: {args.rounds} rounds x {args.pings} pings, burst {args.burst}, "
@@ -152,7 +153,7 @@ def main() -> int:
               f"{'ratio':>6} | {'objects/s':>10} {'floor':>10} {'ratio':>6}")
     print(header)
     print("-" * len(header))
-    for n in (1, 4, 16):
+    for n in (int(x) for x in args.plugins.split(",")):
         rows = []
         for _ in range(args.rounds):
             lat, thr = bench_blackboard(n, args.pings, args.burst, args.workers)

@@ -87,11 +87,12 @@ class Scheduler:
             with plugin._sched_lock:
                 plugin._scheduled = False
             return None
+        started = self.agent.clock()
         with plugin._sched_lock:
             plugin._scheduled = False
             plugin._running = True
             plugin._dirty = False
-            plugin._run_started = self.agent.clock()
+            plugin._run_started = started
             plugin._slow_reported = False
         try:
             self._run(plugin)
@@ -105,15 +106,19 @@ class Scheduler:
         return plugin if again else None
 
     def _run(self, plugin: Plugin[Any]) -> None:
+        """One run: the view moves to the latest commit, then execute() inside a transaction."""
         board = self.agent.blackboard
         subs = plugin._subs
+        deltas = False
         for sub, inbox in zip(subs, board._drain(subs)):
-            sub._open(inbox)
+            if sub._open(inbox):
+                deltas = True
         woken, plugin._woken = plugin._woken, False
         laters = []
-        while plugin._later:
-            laters.append(plugin._later.popleft())
-        if not (woken or laters or any(s.has_changes for s in subs)):
+        pending = plugin._later
+        while pending:
+            laters.append(pending.popleft())
+        if not (deltas or woken or laters):
             return
         plugin.runs += 1
         tx = Transaction(board, plugin.name)
@@ -138,7 +143,7 @@ class Scheduler:
         finally:
             plugin._local.tx = None
             for sub in subs:
-                sub._close()
+                sub.added, sub.changed, sub.removed, sub._reports = [], [], [], {}  # the deltas were this run's
 
     def check_slow(self) -> float:
         """Report each plugin run that exceeded the slow limit (once per run); return when to look again.
@@ -280,7 +285,9 @@ class Agent:
             from erni.blackboard.retention import Retention
 
             self.retention = Retention(self, retention)
-            self.blackboard.add_listener(self.retention.listener)
+            from erni.blackboard.tasks import Task
+
+            self.blackboard.add_listener(self.retention.listener, Task)
             self.components.append(self.retention)
 
     @classmethod
@@ -451,7 +458,7 @@ class Agent:
 
     def transaction(self, label: str = "outside") -> Transaction:
         """Open a transaction for code outside any plugin (`with`: commit on success)."""
-        return self.blackboard.transaction(label)
+        return Transaction(self.blackboard, label)
 
     @property
     def query(self) -> Query:

@@ -49,6 +49,8 @@ class Subscription(Generic[T]):
         self._kind = kind
         self._where = where
         self._ignore = ignore              # fields whose changes alone do not concern the owner
+        self._routed_test: Callable[[BBObject], bool] | None = (  # what a routed object must still pass
+            self._safe_match if kind is None or where is not None else None)  # routing checked the type
         self._delivered: dict[str, BBObject] = {}  # with `ignore`: the last version put in the inbox
         self._committed: set[str] = set()  # membership as of the latest commit (under bb lock)
         self._inbox: list[tuple[str, BBObject, tuple[Any, ...]]] = []  # under bb lock
@@ -96,10 +98,13 @@ class Subscription(Generic[T]):
         return self._where is None or bool(self._where(obj))  # type: ignore[arg-type]  # of type T once _kind passed
 
     def _offer(self, kind: str, obj: BBObject, reports: tuple[Any, ...]) -> bool:
-        """Record a committed event; return True when it concerns this subscription."""
+        """Record a committed event for an object the blackboard routed here by its type (a type
+        subscription is offered only objects of its type); return True when it concerns this
+        subscription."""
         uid = obj.uid
         was = uid in self._committed
-        now = kind != REMOVE and self._safe_match(obj)
+        test = self._routed_test
+        now = kind != REMOVE and (test is None or test(obj))
         if now and not was:
             self._committed.add(uid)
             self._inbox.append((ADD, obj, ()))
@@ -126,10 +131,25 @@ class Subscription(Generic[T]):
         except Exception:  # a predicate that raises simply does not match
             return False
 
-    def _open(self, inbox: list[tuple[str, BBObject, tuple[Any, ...]]]) -> None:
-        """Fold the events committed since the last run into the view and its net deltas."""
+    def _open(self, inbox: list[tuple[str, BBObject, tuple[Any, ...]]]) -> bool:
+        """Fold the events committed since the last run into the view and its net deltas; return
+        True when the view carries a delta."""
         if not inbox:  # nothing since the last run, whose `_close` left no deltas: a plugin with several
-            return     # subscriptions is run for one of them (a control node's transport, for each status)
+            return False  # subscriptions is run for one of them (a control node's transport, for each status)
+        if len(inbox) == 1:  # one event (a plugin keeping up): it is the net delta
+            kind, event, reps = inbox[0]
+            one: T = event  # type: ignore[assignment]  # of type T: the blackboard routed it here by type
+            uid = one.uid
+            if kind == ADD:
+                self._members[uid] = one
+                self.added, self.changed, self.removed, self._reports = [one], [], [], {}
+            elif kind == CHANGE:
+                self._members[uid] = one
+                self.added, self.changed, self.removed, self._reports = [], [one], [], {uid: list(reps)}
+            else:
+                self._members.pop(uid, None)
+                self.added, self.changed, self.removed, self._reports = [], [], [one], {}
+            return True
         added: dict[str, T] = {}
         changed: dict[str, T] = {}
         removed: dict[str, T] = {}
@@ -163,6 +183,7 @@ class Subscription(Generic[T]):
         self.changed = list(changed.values())
         self.removed = list(removed.values())
         self._reports = reports
+        return bool(added or changed or removed)
 
     def _close(self) -> None:
         self.added, self.changed, self.removed = [], [], []
@@ -171,6 +192,8 @@ class Subscription(Generic[T]):
 
 class Transaction:
     """Publications staged by one thread; applied atomically by `commit()`."""
+
+    __slots__ = ("_board", "label", "ops", "_staged", "closed")
 
     def __init__(self, board: Blackboard, label: str = ""):
         self._board = board
@@ -197,13 +220,16 @@ class Transaction:
 
     def add(self, obj: T) -> T:
         """Stage a new object; its uid must not be on the blackboard yet."""
-        self._check_open()
+        if self.closed:
+            self._check_open()
         if not isinstance(obj, BBObject):
             raise TransactionError(f"add: expected a BBObject, got {type(obj).__name__}")
-        if self._exists(obj.uid):
-            raise TransactionError(f"add: {type(obj).__name__} {obj.uid} is already on the blackboard")
+        uid = obj.uid
+        staged = self._staged
+        if staged[uid] is not None if uid in staged else uid in self._board._objects:
+            raise TransactionError(f"add: {type(obj).__name__} {uid} is already on the blackboard")
         self.ops.append((ADD, obj, ()))
-        self._staged[obj.uid] = obj
+        staged[uid] = obj
         return obj
 
     def change(self, obj: T, reports: Any = ()) -> T:
@@ -241,7 +267,8 @@ class Transaction:
 
     def commit(self) -> None:
         """Apply every staged publication at once, in order, and wake the subscribers."""
-        self._check_open()
+        if self.closed:
+            self._check_open()
         self.closed = True
         if self.ops:
             self._board._commit(self.ops)
@@ -255,10 +282,14 @@ class Transaction:
         return self
 
     def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> None:
-        if exc_type is None:
-            self.commit()
-        else:
+        if exc_type is not None:
             self.abort()
+            return
+        if self.closed:
+            self._check_open()
+        self.closed = True
+        if self.ops:
+            self._board._commit(self.ops)
 
 
 class Blackboard:
@@ -270,7 +301,7 @@ class Blackboard:
         self._objects: dict[str, BBObject] = {}
         self._by_type: dict[type, list[Subscription[Any]]] = {}
         self._general: list[Subscription[Any]] = []
-        self._listeners: list[Callable[[list[Op]], None]] = []
+        self._listeners: list[tuple[Callable[[list[Op]], None], type[BBObject] | None]] = []
         self._route: dict[type, list[Subscription[Any]]] = {}  # type -> subscriptions, cached
         self.signal: Callable[[Plugin[Any]], None] = lambda plugin: None
         self.query: Query = self._query
@@ -312,7 +343,8 @@ class Blackboard:
                 self._general.append(sub)
             self._route = {}
             for obj in self._objects.values():
-                sub._offer(ADD, obj, ())
+                if sub._safe_match(obj):  # not routed: the type is checked here
+                    sub._offer(ADD, obj, ())
             pending = bool(sub._inbox)
         if pending and owner is not None:
             self.signal(owner)
@@ -326,9 +358,11 @@ class Blackboard:
                 subs.remove(sub)
             self._route = {}
 
-    def add_listener(self, fn: Callable[[list[Op]], None]) -> None:
-        """Call `fn(ops)` after every commit, in commit order (journals, recorders, transport)."""
-        self._listeners.append(fn)
+    def add_listener(self, fn: Callable[[list[Op]], None], kind: type[BBObject] | None = None) -> None:
+        """Call `fn(ops)` after every commit, in commit order (journals, recorders, transport); with
+        `kind`, only after the commits that publish an object of that type (`ops` are still all of
+        the commit's)."""
+        self._listeners.append((fn, kind))
 
     def _subscriptions_for(self, obj: BBObject) -> list[Subscription[Any]]:
         """Return the subscriptions that may match this object's type (cached; under lock)."""
@@ -341,40 +375,71 @@ class Blackboard:
 
     def _commit(self, ops: list[Op]) -> None:
         owners: dict[int, Plugin[Any]] = {}
+        objects = self._objects
         with self._lock:
+            route = self._route  # replaced (under this lock) when a subscription comes or goes
             # validate everything first so a conflicting commit publishes nothing; a change or
             # removal of an object another transaction removed meanwhile is moot and dropped
-            state: dict[str, bool] = {}
-            kept: list[Op] = []
-            for op in ops:
-                kind, obj, _ = op
-                present = state.get(obj.uid, obj.uid in self._objects)
+            if len(ops) == 1:  # one publication (most commits): nothing staged before it to consult
+                kind, obj, _ = ops[0]
+                present = obj.uid in objects
                 if kind == ADD and present:
                     raise TransactionError(f"commit: {obj.uid} was added by another transaction")
                 if kind != ADD and not present:
                     self.moot += 1
-                    continue
-                state[obj.uid] = kind != REMOVE
-                kept.append(op)
-            ops = kept
+                    ops = []
+            else:
+                state: dict[str, bool] = {}
+                kept: list[Op] = []
+                for op in ops:
+                    kind, obj, _ = op
+                    present = state.get(obj.uid, obj.uid in objects)
+                    if kind == ADD and present:
+                        raise TransactionError(f"commit: {obj.uid} was added by another transaction")
+                    if kind != ADD and not present:
+                        self.moot += 1
+                        continue
+                    state[obj.uid] = kind != REMOVE
+                    kept.append(op)
+                ops = kept
             for kind, obj, reports in ops:
                 if kind == REMOVE:
-                    self._objects.pop(obj.uid, None)
+                    objects.pop(obj.uid, None)
                 else:
-                    self._objects[obj.uid] = obj
-                for sub in self._subscriptions_for(obj):
-                    if sub._offer(kind, obj, reports) and sub._owner is not None and sub.wakes:
-                        owners[id(sub._owner)] = sub._owner
+                    objects[obj.uid] = obj
+                subs = route.get(type(obj))
+                if subs is None:
+                    subs = self._subscriptions_for(obj)
+                for sub in subs:
+                    if sub._offer(kind, obj, reports) and sub.wakes:
+                        owner = sub._owner
+                        if owner is not None:
+                            owners[id(owner)] = owner
             self.commits += 1
             if ops:
-                for listener in self._listeners:
+                for listener, concerns in self._listeners:
+                    if concerns is not None:
+                        for op in ops:
+                            if isinstance(op[1], concerns):
+                                break
+                        else:
+                            continue
                     listener(ops)
-        for owner in owners.values():
-            self.signal(owner)
+        if owners:
+            signal = self.signal
+            for owner in owners.values():
+                signal(owner)
 
     def _drain(self, subs: list[Subscription[Any]]) -> list[list[tuple[str, BBObject, tuple[Any, ...]]]]:
         """Take each subscription's inbox atomically (the start of its owner's run)."""
         empty: list[tuple[str, BBObject, tuple[Any, ...]]] = []  # shared by the empty ones: never kept by a subscription
+        if len(subs) == 1:
+            (sub,) = subs
+            with self._lock:
+                inbox = sub._inbox
+                if inbox:
+                    sub._inbox = []
+            return [inbox or empty]
         with self._lock:
             inboxes = [s._inbox or empty for s in subs]
             for s in subs:

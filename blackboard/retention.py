@@ -36,6 +36,11 @@ class Retention:
 
     def listener(self, ops: list[Op]) -> None:
         """Blackboard commit listener: note when tasks become final (no I/O, no transaction)."""
+        for _, obj, _ in ops:
+            if isinstance(obj, Task):
+                break
+        else:  # no task in this commit (most of them: readings, statuses)
+            return
         now = self.agent.clock()
         with self._lock:
             for kind, obj, _ in ops:
