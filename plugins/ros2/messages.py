@@ -197,6 +197,31 @@ def sonar_scan(pose: Pose, angles_deg: Sequence[float], stamp_ns: int, max_range
                 range_max=max_range, ranges=values)
 
 
+def sonar_echo_scan(pose: Pose, transducers: Sequence[tuple[float, float, float] | None], stamp_ns: int,
+                    max_range: float = 5.0, beams: int = 360) -> Message:
+    """sensor_msgs/LaserScan of a robot's sonar echoes in its `<robot>/base_link` frame, for transducers
+    anywhere on the body: `beams` beams round the centre (from -180 deg), each echo (range i of
+    `pose.sonar` from transducer i at (x, y, bearing deg)) in the beam of its direction from the
+    centre, at its distance from the centre. A beam with no transducer is NaN (no measurement); a
+    range at or beyond `max_range` is +inf (nothing seen), as REP 117 has it."""
+    step = 2 * math.pi / beams
+    values = np.full(beams, np.nan, dtype=np.float32)
+    for reading, where in zip(pose.sonar, transducers):
+        if where is None:
+            continue
+        sx, sy, deg = where
+        a = math.radians(deg)
+        echo = min(reading, max_range)
+        px, py = sx + echo * math.cos(a), sy + echo * math.sin(a)
+        beam = round((math.atan2(py, px) + math.pi) / step) % beams
+        value = math.inf if reading >= max_range else math.hypot(px, py)
+        if not (value >= values[beam]):  # the nearest echo of a beam (NaN: none yet)
+            values[beam] = value
+    return make(LASER_SCAN, header=header(stamp_ns, base_frame(pose.robot)), angle_min=-math.pi,
+                angle_max=-math.pi + step * (beams - 1), angle_increment=step, range_min=0.0,
+                range_max=max_range + 0.5, ranges=values)
+
+
 def _color(r: float, g: float, b: float, a: float = 1.0) -> Message:
     return make("std_msgs/msg/ColorRGBA", r=r, g=g, b=b, a=a)
 

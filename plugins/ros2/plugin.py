@@ -1,6 +1,7 @@
 """The `ros2` plugin: the team as ROS 2 topics over rmw_zenoh, and ROS 2 commands as ERNI tasks.
 
-Publishes each robot's Pose as nav_msgs/Odometry on `/<robot>/odom` and as a transform on `/tf`, task
+Publishes each robot's Pose as nav_msgs/Odometry on `/<robot>/odom`, as a transform on `/tf` and its
+sonar echoes as a sensor_msgs/LaserScan on `/<robot>/sonar`, task
 results as std_msgs/String (JSON) on `/erni/task_status`, the network as a MarkerArray on
 `/erni/network` and a DiagnosticArray on `/diagnostics`; listens to geometry_msgs/Twist on `/<robot>/cmd_vel` (a BotMotion velocity task, so the
 behaviour stack, stop, obstacle avoidance and the receiving agent's role policy decide, as for any
@@ -48,6 +49,7 @@ class ROS2Settings(BaseModel):
     frame: str = Field("map", min_length=1, description="the world frame of odometry, /tf and markers")
     odom_rate_hz: float = Field(10.0, gt=0, le=100, description="at most this many Odometry messages a second per robot")
     tf: bool = Field(True, description="publish each robot's transform on /tf")
+    sonar: bool = Field(True, description="publish each robot's sonar echoes as a LaserScan on /<robot>/sonar")
     status: bool = Field(True, description="publish task results on /erni/task_status")
     network: bool = Field(True, description="publish the network as a MarkerArray on /erni/network and "
                           "its links as a DiagnosticArray on /diagnostics")
@@ -208,6 +210,8 @@ class ROS2Plugin(Plugin[ROS2Settings]):
         assert self.node is not None
         base = f"/{ros_name(robot)}"
         self.node.publisher(f"{base}/odom", messages.ODOMETRY)
+        if self.settings.sonar:
+            self.node.publisher(f"{base}/sonar", messages.LASER_SCAN)
         if self.settings.cmd_vel:
             self.node.subscribe(f"{base}/cmd_vel", messages.TWIST, lambda data: self._on_cmd_vel(robot, data))
         if self.settings.goal_pose:
@@ -301,9 +305,27 @@ class ROS2Plugin(Plugin[ROS2Settings]):
             stamp_ns = messages.stamp_ns_of(pose.stamp)
             self._send(messages.ODOMETRY, f"/{ros_name(pose.robot)}/odom", messages.odometry(pose, stamp_ns, frame),
                        stamp_ns)
+        if self.settings.sonar:
+            for pose in due:
+                if pose.sonar:
+                    stamp_ns = messages.stamp_ns_of(pose.stamp)
+                    self._send(messages.LASER_SCAN, f"/{ros_name(pose.robot)}/sonar",
+                               messages.sonar_echo_scan(pose, self._transducers(pose.robot), stamp_ns), stamp_ns)
         if self.settings.tf:
             stamp_ns = max(messages.stamp_ns_of(p.stamp) for p in due)
             self._send(messages.TF_MESSAGE, "/tf", messages.tf_message(due, stamp_ns, frame), stamp_ns)
+
+    def _transducers(self, robot: str) -> tuple[tuple[float, float, float] | None, ...]:
+        """Where a robot's sonars sit: its motion plugin's model when it runs in this agent, else a Pioneer 3-DX's."""
+        from erni.plugins.motion import RobotMotionControl
+        from erni.plugins.motion.robots import MODELS
+
+        if robot == self.agent_name:
+            for plugin in self._require_agent().plugins:
+                resource = getattr(plugin, "resource", None) if isinstance(plugin, RobotMotionControl) else None
+                if resource is not None and resource.driver.model.sonar:
+                    return tuple(resource.driver.model.sonar)
+        return tuple(MODELS["p3dx-sh"].sonar)
 
     def _publish_network(self) -> None:
         infos = sorted(self.nets, key=lambda n: n.stamp)

@@ -119,6 +119,7 @@ def test_the_sdks_topic_list_shows_erni_topics_with_their_types(robot: Callable[
     robot()
     want = {"/robot1/odom": ["nav_msgs/msg/Odometry"], "/robot1/cmd_vel": ["geometry_msgs/msg/Twist"],
             "/robot1/goal_pose": ["geometry_msgs/msg/PoseStamped"], "/tf": ["tf2_msgs/msg/TFMessage"],
+            "/robot1/sonar": ["sensor_msgs/msg/LaserScan"],
             "/erni/task_status": ["std_msgs/msg/String"], "/erni/network": ["visualization_msgs/msg/MarkerArray"],
             "/diagnostics": ["diagnostic_msgs/msg/DiagnosticArray"]}
 
@@ -326,3 +327,34 @@ def test_the_network_as_markers_and_diagnostics_and_the_robot_on_tf(robot: Calla
     (tf,) = tfs[-1].transforms
     assert tf.header.frame_id == "map" and tf.child_frame_id == "robot1/base_link"
     assert tf.transform.translation.x == pytest.approx(agent.query(Pose)[0].x, abs=0.05)
+
+
+def test_sonar_echoes_as_a_laser_scan() -> None:
+    ring = ((0.2, 0.0, 0.0), (0.0, 0.1, 90.0), None, (-0.2, 0.0, 180.0))
+    pose = Pose(robot="robot1", sonar=[1.0, 5.0, 0.3, 0.5])
+    scan = messages.sonar_echo_scan(pose, ring, 5)
+    assert scan.header.frame_id == "robot1/base_link" and len(scan.ranges) == 360
+    assert scan.angle_min == pytest.approx(-math.pi) and scan.angle_increment == pytest.approx(math.pi / 180)
+    assert scan.ranges[180] == pytest.approx(1.2)  # ahead: 0.2 m out and 1.0 m on, from the centre
+    assert math.isinf(scan.ranges[270])  # left: nothing within 5 m
+    assert scan.ranges[0] == pytest.approx(0.7)  # behind (-180 deg): 0.2 + 0.5
+    assert sum(not math.isnan(r) for r in scan.ranges) == 3  # no beam for the missing transducer
+
+
+def test_the_sdks_subscriber_decodes_the_sonar_of_the_simulated_robot(robot: Callable[..., Agent],
+                                                                      ros: dict[str, Any]) -> None:
+    robot()
+    got: list[Any] = []
+    sub = ROS2Subscriber("/robot1/sonar", messages.LASER_SCAN, got.append, router_port=ros["router_port"])
+    def complete() -> list[float] | None:  # the simulated firmware reports its ring a few sonars per SIP at first
+        ranges = [float(r) for r in got[-1].ranges] if got else []
+        return ranges if sum(not math.isnan(r) for r in ranges) >= 16 else None
+
+    try:
+        ranges = wait_until(complete, timeout=5, message="no LaserScan with the whole ring on /robot1/sonar")
+    finally:
+        sub.close()
+    # an empty world: each of the Pioneer's 16 sonars sees nothing (+inf) in a beam of its own (the two
+    # pointing left, 0.23 m apart, 5 m out differ by 2.5 deg); the other beams have no sonar (NaN)
+    assert sum(math.isinf(r) for r in ranges) == 16 and sum(math.isnan(r) for r in ranges) == 360 - 16
+    assert math.isinf(ranges[269]) and math.isinf(ranges[91])  # left and right (89.2 deg from the centre)
