@@ -1,6 +1,7 @@
-"""The ros2 plugin on a control node whose transport runs `wire = "zenoh"`: it rides on the transport's
-Zenoh session, publishes the odometry of a robot it hears of through ERNI, and a cmd_vel for that
-robot reaches it as a task through ERNI's transport (its sessions and the robot's role policy)."""
+"""The ros2 plugin on agents whose transport runs `wire = "zenoh"`: it rides on the transport's Zenoh
+session; on a control node it publishes the odometry of a robot it hears of through ERNI, and a
+cmd_vel for that robot reaches it as a task through ERNI's transport; on a robot told to serve
+another robot, the other robot's role policy refuses the motion task."""
 
 from __future__ import annotations
 
@@ -71,3 +72,30 @@ def test_a_control_node_shows_the_team_and_drives_a_robot_through_erni(team: Cal
     finally:
         teleop.close()
         sub.close()
+
+
+def test_the_role_policy_decides_a_robot_agent_may_not_drive_another_robot(team: Callable[..., Agent],
+                                                                            ros: dict[str, Any]) -> None:
+    """robot2's plugin is told to serve robot1 too: its cmd_vel becomes a task from robot2 to robot1,
+    which robot1's transport refuses (a robot tasks a robot only for a mission), so robot1 stays put."""
+    robot1 = team("robot1", lambda a: a.add_plugin("motion", settings=fake_robot("robot1"), name="motion"))
+    robot2 = team("robot2", lambda a: a.add_plugin(ROS2Plugin, settings={"robots": ["robot1"]}, name="ros2"))
+    wait_until(lambda: any(p.name == "robot1" and p.up for p in robot2.query(Peer)), timeout=10)
+    wait_until(lambda: robot1.query(Pose), timeout=5, message="robot1 has no Pose")
+    wait_until(lambda: dict(get_topic_names_and_types(router_port=ros["router_port"])).get("/robot1/cmd_vel"),
+               timeout=5, message="robot1's cmd_vel not listed")
+    teleop = Teleop(ros["router_port"])
+    try:
+        teleop.v = 0.25
+        teleop.running.set()
+        sent = wait_until(lambda: [t for t in robot2.query(Task) if t.preposition == "velocity"], timeout=5,
+                          message="robot2 posted no velocity task for robot1")
+        assert sent[0].destination == "robot1"
+        refused = wait_until(lambda: [t for t in robot2.query(Task) if t.preposition == "velocity" and t.done],
+                             timeout=10, message="the task to robot1 was not answered")
+        assert refused[0].result is not None and refused[0].result.message.startswith(
+            "refused by robot1: not authorized: role robot may give a robot only Deploy"), refused[0].result
+        assert not [t for t in robot1.query(Task) if t.preposition == "velocity"]
+        assert abs(robot1.query(Pose)[0].x) < 0.01 and abs(robot1.query(Pose)[0].v) < 0.01
+    finally:
+        teleop.close()
