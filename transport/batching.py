@@ -9,20 +9,27 @@ each `BATCH_BYTES` of them as one datagram `[head, [item, ...]]`, the head state
 sender pool sends the last partly filled one after `FLUSH_AFTER`. The pool sends queued statuses
 the same way (`_send_fast`); what the socket refuses goes back in front of the queue, which is
 bounded and drops the oldest.
+
+A status for several peers (`send_fanout`) is encoded once, as one message (one id, one number):
+the caller seals it in each peer's session, then hands the datagrams to the socket back to back;
+a peer it cannot go to at once gets it through `send`.
 """
 
 from __future__ import annotations
 
+import itertools
 import math
 import threading
 import time
-from typing import TYPE_CHECKING
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any
 
 from erni.transport.outbox import Batch, Dest, Outgoing
-from erni.transport.wire import FrameError, batch_payload, head_bytes, item_bytes, join_envelope
+from erni.transport.wire import FrameError, batch_payload, encode_body, head_bytes, item_bytes, join_envelope
 
 if TYPE_CHECKING:
-    from erni.transport.session import Session
+    from erni.transport.session import Auth, Session
+    from erni.transport.sessions import Sessions
 
 Address = tuple[str, int]
 
@@ -43,16 +50,23 @@ class FastMessages:
 
     if TYPE_CHECKING:
         _cond: threading.Condition
+        auth: Auth | None
         _dests: dict[Address, Dest]
         _fast_at: dict[Address, float]
         _heads: dict[str, bytes]
+        _id_prefix: str
+        _seq: itertools.count[int]
         _stopping: bool
+        _threads: list[threading.Thread]
         _udp_frame: int
         address: Address
         inst: str
         name: str
         queue_limit: int
         role: str
+        sessions: Sessions
+        def send(self, addr: Address, kind: str, body: Any = None, *, reliable: bool, msg_id: str | None = None,
+                 ttl: float | None = None, to: str | None = None) -> str: ...
         def _caller_session(self, addr: Address, out: Outgoing) -> tuple[bool, Session | None]: ...
         def _dest_for(self, addr: Address) -> Dest: ...
         def _frame(self, out: Outgoing, session: Session | None, max_frame: int) -> bytes: ...
@@ -89,6 +103,58 @@ class FastMessages:
             self.count("sent.deferred")
             return False  # the socket's buffer is full: the pool sends it when it drains
         return True
+
+    def send_fanout(self, targets: Sequence[tuple[Address, str]], kind: str, body: Any) -> str:
+        """Send one fast message (a status) to each `(address, agent)` of `targets`; return its id.
+
+        The body is encoded once and the message is one message, with one id and one number, for
+        every peer (each receives it once). To each peer in a confirmed session with nothing queued
+        before it, the caller seals it in that session; once all are sealed, the datagrams go to
+        the socket back to back (no Python between two `sendto`, so the peers it wakes all have
+        theirs when the caller leaves the CPU). Any other peer (no session yet, messages queued
+        for it, a burst being gathered, a full socket buffer) gets it through `send`, as before.
+        """
+        seq = next(self._seq)
+        msg_id = f"{self._id_prefix}{seq:x}"
+        later: list[tuple[Address, str]] = []
+        frames: list[tuple[bytes, Address, str]] = []
+        if not self._threads or self._stopping:
+            later = list(targets)
+        else:
+            type_name, data = encode_body(body)
+            item = item_bytes(seq, msg_id, kind, type_name, data)
+            recent = time.monotonic() - COALESCE
+            dests = self._dests
+            fast_at = self._fast_at
+            for addr, to in targets:
+                session = self.sessions.usable(addr) if self.auth is not None else None
+                dest = dests.get(addr)
+                if session is None or session.peer != to or fast_at.get(addr, -math.inf) > recent \
+                        or dest is not None and (dest.fast or dest.announce or dest.batch is not None):
+                    later.append((addr, to))  # the general path: a handshake, an order to keep, a burst
+                    continue
+                try:
+                    frames.append((session.seal(join_envelope(self._head(to), item), self._udp_frame), addr, to))
+                except FrameError as err:
+                    self._unsent(addr, err)
+        sent = 0
+        sendto = self._sendto
+        for frame, addr, to in frames:
+            try:
+                sendto(frame, addr)
+                sent += 1
+            except OSError as err:
+                if not self._unsent(addr, err):  # the socket's buffer is full: the pool sends it
+                    later.append((addr, to))
+        if frames:
+            now = time.monotonic()
+            for _, addr, _ in frames:
+                self._fast_at[addr] = now  # a burst is told by the time until the next
+        if sent:
+            self.count("sent.fast", sent)
+        for addr, to in later:
+            self.send(addr, kind, body, reliable=False, msg_id=msg_id, to=to)
+        return msg_id
 
     def _send_one(self, addr: Address, out: Outgoing, session: Session) -> bool:
         """`_send_datagram` of one message in a session. False when the socket's buffer is full."""

@@ -998,8 +998,15 @@ class TransportPlugin(Plugin[TransportSettings]):
         return targets, holders
 
     def _send_status(self, targets: list[_Target], kind: str, body: BaseModel, reliable: bool, mono: float) -> None:
+        """Send a status to its peers: a fast one as one burst (encoded once, sealed per peer, the
+        datagrams handed to the socket back to back), a reliable one to each peer's queue."""
+        fanout = getattr(self.endpoint, "send_fanout", None)  # a test's in-memory endpoint has none
+        if reliable or len(targets) < 2 or fanout is None:
+            for t in targets:
+                self.endpoint.send(t.address, kind, body, reliable=reliable, to=t.name)
+        else:
+            fanout([(t.address, t.name) for t in targets], kind, body)
         for t in targets:
-            self.endpoint.send(t.address, kind, body, reliable=reliable, to=t.name)
             self.sent_peer_at[t.name] = mono
 
     def _apply_status(self, msg: Message, obj: BBObject) -> None:
