@@ -37,6 +37,7 @@ SECTORS = 16  # virtual sonars made of a LaserScan, one per 22.5 degrees
 MAX_RANGE = 5.0  # m: a sector with nothing nearer reads this (as a Pioneer's sonar reads its maximum)
 BATTERY_STATE = "sensor_msgs/msg/BatteryState"
 BATTERY_WAIT = 1.0  # s: how long the first Odometry waits for a BatteryState before the state goes without
+RECONNECT = 2.0  # s between attempts to open a session whose router is not reachable
 KEEPALIVE = 0.2  # s: a moving command is sent again this often (a ROS 2 base stops when cmd_vel goes quiet)
 
 
@@ -109,6 +110,8 @@ class Ros2BaseDriver(ArcosDriver):
             self.model = self.model.model_copy(update={"sonar": sonar_ring()})
         self.sip_interval = 0.05
         self._session: Any = None
+        self._opened = False  # open() was called (and close() not since)
+        self._next_open = -math.inf
         self._node: Any = None
         self._cmd: Any = None
         self._v = 0.0
@@ -133,16 +136,21 @@ class Ros2BaseDriver(ArcosDriver):
         from erni.plugins.ros2 import messages
         from erni.plugins.ros2.rmw import SENSOR_QOS, RmwNode
 
+        self._opened = True
         if self._session is None:
             conf = zenoh.Config()
             for key, value in (("mode", self.link["mode"]), ("connect/endpoints", self.link["connect"]),
                                ("scouting/multicast/enabled", False)):
                 conf.insert_json5(key, json.dumps(value))
+            self._next_open = time.monotonic() + RECONNECT
             try:
                 self._session = zenoh.open(conf)
-            except zenoh.ZError as err:
-                self.last_error = str(err).splitlines()[0] if str(err) else repr(err)
-                raise LinkError(f"{self.url}: cannot open a Zenoh session: {self.last_error}") from None
+            except zenoh.ZError as err:  # a client whose router is not up yet: `connected` tries again
+                self.last_error = "cannot open a Zenoh session: " + (str(err).splitlines()[0].split(" at /")[0]
+                                                                     if str(err) else repr(err))
+                if wait:
+                    raise LinkError(f"{self.url}: {self.last_error}") from None
+                return self
             node_name = "erni_" + "".join(c if c.isalnum() or c == "_" else "_" for c in self.name) + "_base"
             self._node = RmwNode(self._session, node_name, domain_id=self.link["domain"])
             self._cmd = self._node.publisher(self._topic("cmd_vel"), messages.TWIST)
@@ -163,6 +171,7 @@ class Ros2BaseDriver(ArcosDriver):
 
     def close(self) -> None:
         """Stop the base (a zero Twist), leave the graph, close the session."""
+        self._opened = False
         if self._session is None:
             return
         self.stop()
@@ -172,8 +181,11 @@ class Ros2BaseDriver(ArcosDriver):
 
     @property
     def connected(self) -> bool:
-        """True while Odometry keeps coming (one within link_timeout); else `last_error` says since when."""
+        """True while Odometry keeps coming (one within link_timeout); else `last_error` says why. Without a
+        session (the router was not reachable) it tries to open one every RECONNECT seconds."""
         if self._session is None:
+            if self._opened and time.monotonic() >= self._next_open:
+                self.open(wait=False)
             return False
         if time.monotonic() - self._odom_at <= self.link_timeout:
             return True

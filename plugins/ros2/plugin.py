@@ -29,6 +29,7 @@ from erni.plugins.ros2.rmw import DEFAULT_QOS, QoS, RmwNode
 from erni.transport.zenoh_keys import check_endpoint
 
 NAME_CHARS = "abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_"
+RECONNECT = 2.0  # s between attempts to open a session of its own whose router is not reachable
 
 
 class ROS2Settings(BaseModel):
@@ -165,13 +166,17 @@ class ROS2Plugin(Plugin[ROS2Settings]):
         return self._own
 
     def _send_loop(self) -> None:
+        warned = False
         while not self._closing.is_set():
             if self.node is None:
                 try:
                     session = self._session()
-                except NetworkError as err:
-                    self.log.error("%s", err)
-                    return
+                except NetworkError as err:  # a client whose router is not up yet: tried again
+                    if not warned:
+                        self.log.warning("%s; trying again every %g s", err, RECONNECT)
+                        warned = True
+                    self._closing.wait(RECONNECT)
+                    continue
                 if session is None:
                     self._closing.wait(0.2)
                     continue

@@ -122,3 +122,42 @@ def test_a_wall_in_the_scan_stops_the_base_short(base_and_agent: Callable[..., t
     blocked = wait_for_task(agent, task, timeout=10)  # held by the avoidance for blocked_timeout: it gives up
     assert blocked.state is TaskState.FAILED and "blocked by an obstacle" in (blocked.result.message
                                                                              if blocked.result else ""), blocked
+
+
+def test_a_base_whose_router_comes_later_is_driven_once_it_does(definitions: Any) -> None:
+    """The agent starts while nothing listens on the router's port (the driver says why it has no link);
+    once the router and the base come up, the driver opens its session by itself and the base is driven."""
+    from zenoh_ros2_sdk import message_registry
+    from zenoh_ros2_sdk.session import ZenohSession
+
+    from erni.sim.team import free_port
+    from erni.transport.zenoh_wire import open_router
+
+    port = free_port()
+    agent = Agent("tb3", workers=2)
+    url = f"ros2://tb3?connect=tcp/127.0.0.1:{port}&mode=client"
+    plugin = agent.add_plugin(RobotMotionControl, settings={"url": url, "rate_hz": 20}, name="motion")
+    router = base = None
+    agent.start()
+    try:
+        time.sleep(0.5)
+        assert not agent.query(Pose)
+        assert plugin.resource.driver.last_error.startswith("cannot open a Zenoh session: Unable to connect")
+        router = open_router([f"tcp/127.0.0.1:{port}"])
+        message_registry._registry = None
+        message_registry.get_registry(str(definitions))
+        ZenohSession._instance = None
+        base = DiffDriveBase(port)
+        wait_until(lambda: agent.query(Pose), timeout=10, message="no Pose once the router came")
+        done = run_task(agent, "BotMotion", "forward", distance=0.3, timeout=20)
+        assert done.state is TaskState.SUCCEEDED, done.result
+        assert base.x == pytest.approx(0.3, abs=0.05)
+    finally:
+        agent.stop()
+        if base is not None:
+            base.close()
+        if ZenohSession._instance is not None:
+            ZenohSession._instance.close()
+        message_registry._registry = None
+        if router is not None:
+            router.close()

@@ -358,3 +358,38 @@ def test_the_sdks_subscriber_decodes_the_sonar_of_the_simulated_robot(robot: Cal
     # pointing left, 0.23 m apart, 5 m out differ by 2.5 deg); the other beams have no sonar (NaN)
     assert sum(math.isinf(r) for r in ranges) == 16 and sum(math.isnan(r) for r in ranges) == 360 - 16
     assert math.isinf(ranges[269]) and math.isinf(ranges[91])  # left and right (89.2 deg from the centre)
+
+
+def test_a_client_whose_router_comes_later_declares_its_topics_once_it_does() -> None:
+    from erni.plugins.ros2 import ROS2Plugin
+    from erni.sim.team import free_port
+    from erni.testing import agent_with
+    from erni.transport.zenoh_wire import open_router
+
+    port = free_port()
+    with agent_with(ROS2Plugin, settings={"mode": "client", "connect": [f"tcp/127.0.0.1:{port}"],
+                                          "robots": ["robot1"]}) as agent:
+        plugin = agent.plugin("ROS2Plugin")
+        assert isinstance(plugin, ROS2Plugin)
+        time.sleep(0.5)
+        assert plugin.node is None  # no router: no session yet, the agent runs all the same
+        late = open_router([f"tcp/127.0.0.1:{port}"])
+        session = None
+        try:
+            wait_until(lambda: plugin.node is not None, timeout=5, message="no session once the router came")
+            session = zenoh.open(zenoh.Config.from_json5(
+                f'{{mode: "client", connect: {{endpoints: ["tcp/127.0.0.1:{port}"]}}}}'))
+
+            def tokens() -> list[str]:
+                assert session is not None
+                return [str(r.ok.key_expr) for r in session.liveliness().get("@ros2_lv/0/**", timeout=1.0)
+                        if r.ok is not None]
+
+            found = wait_until(lambda: [t for t in tokens() if "/MS/" in t and "%robot1%cmd_vel" in t],
+                               timeout=5, message="robot1's cmd_vel subscription not declared")
+            assert plugin.node is not None and found[0].startswith(f"@ros2_lv/0/{plugin.node.zid}/")
+        finally:
+            if session is not None:
+                session.close()
+            agent.stop()
+            late.close()
