@@ -44,8 +44,9 @@ class ROS2Settings(BaseModel):
     connect: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:7447"],
                                description="its own session: routers to connect to (rmw_zenoh's zenohd)")
     listen: list[str] = Field(default_factory=list, description="its own session (peer mode): endpoints to listen on")
-    robots: list[str] | None = Field(None, description="whose topics; default: every robot whose Pose the agent has "
-                                     "on a control node, the agent itself elsewhere")
+    robots: list[str] | None = Field(None, description="whose topics (agent names; in topics, characters other than "
+                                     "letters, digits and '_' become '_'); default: every robot whose Pose the "
+                                     "agent has on a control node, the agent itself elsewhere")
     node_name: str | None = Field(None, description="the ROS 2 node's name (default erni_<agent>)")
     frame: str = Field("map", min_length=1, description="the world frame of odometry, /tf and markers")
     odom_rate_hz: float = Field(10.0, gt=0, le=100, description="at most this many Odometry messages a second per robot")
@@ -73,9 +74,8 @@ class ROS2Settings(BaseModel):
     @classmethod
     def _robots(cls, values: list[str] | None) -> list[str] | None:
         for value in values or []:
-            if not value or any(c not in NAME_CHARS for c in value) or value[0].isdigit():
-                raise ValueError(f"robot {value[:80]!r}: a ROS 2 name is letters, digits and '_', not starting "
-                                 "with a digit")
+            if not value.strip():
+                raise ValueError("robots: an empty name; expected agent names (robot1)")
         return values
 
     @field_validator("node_name")

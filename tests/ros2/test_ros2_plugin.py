@@ -26,6 +26,7 @@ from zenoh_ros2_sdk.qos import QosProfile  # noqa: E402
 from erni.blackboard import Agent, Pose, Task, TaskState  # noqa: E402
 from erni.blackboard.testing import wait_until  # noqa: E402
 from erni.plugins.ros2 import ROS2Settings, messages, rmw  # noqa: E402
+from erni.plugins.ros2 import plugin as plugin_module  # noqa: E402
 from erni.testing import find_task, post_task, run_task, wait_for_task  # noqa: E402
 
 ODOM_HASH = "RIHS01_3cc97dc7fb7502f8714462c526d369e35b603cfc34d946e3f2eda2766dfec6e0"
@@ -103,8 +104,9 @@ def test_odometry_cdr_bytes() -> None:
 
 
 def test_settings_refuse_bad_values_in_one_line() -> None:
+    assert plugin_module.ros_name("robot-1") == "robot_1" and plugin_module.ros_name("2nd") == "r2nd"
     for bad, words in (({"domain_id": 300}, "domain_id"), ({"connect": ["localhost"]}, "PROTOCOL/HOST:PORT"),
-                       ({"robots": ["robot-1"]}, "letters, digits and '_'"),
+                       ({"robots": [" "]}, "an empty name"), ({"node_name": "erni-1"}, "letters, digits and '_'"),
                        ({"mode": "client", "connect": []}, "needs connect"), ({"tf": "maybe"}, "tf")):
         with pytest.raises(ValidationError) as err:
             ROS2Settings(**bad)
