@@ -301,3 +301,13 @@ def goto_params(pose_stamped: Message) -> dict[str, float]:
     if not (math.isfinite(x) and math.isfinite(y)):
         raise TaskError(f"goal_pose: position ({x}, {y}) is not finite")
     return {"x": x, "y": y}
+
+
+def goal_heading(pose_stamped: Message) -> float | None:
+    """The heading (rad) a geometry_msgs/PoseStamped asks for, or None when its orientation is no rotation at
+    all (a zero quaternion: unset) or not finite."""
+    q = pose_stamped.pose.orientation
+    parts = [float(q.x), float(q.y), float(q.z), float(q.w)]
+    if not all(math.isfinite(v) for v in parts) or sum(v * v for v in parts) < 1e-12:
+        return None
+    return yaw(q)

@@ -5,7 +5,8 @@ sonar echoes as a sensor_msgs/LaserScan on `/<robot>/sonar`, task
 results as std_msgs/String (JSON) on `/erni/task_status`, the network as a MarkerArray on
 `/erni/network` and a DiagnosticArray on `/diagnostics`; listens to geometry_msgs/Twist on `/<robot>/cmd_vel` (a BotMotion velocity task, so the
 behaviour stack, stop, obstacle avoidance and the receiving agent's role policy decide, as for any
-task) and geometry_msgs/PoseStamped on `/<robot>/goal_pose` (a BotMotion goto). See docs/ros2.md.
+task) and geometry_msgs/PoseStamped on `/<robot>/goal_pose` (a BotMotion goto, then a turn to the pose's
+heading). See docs/ros2.md.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from erni.blackboard.errors import NetworkError
 from erni.blackboard.plugin import Plugin
-from erni.blackboard.tasks import NetInfo, Pose, Task
+from erni.blackboard.tasks import NetInfo, Pose, Task, TaskState
 from erni.plugins.ros2 import messages
 from erni.plugins.ros2.rmw import DEFAULT_QOS, QoS, RmwNode
 from erni.transport.zenoh_keys import check_endpoint
@@ -62,6 +63,9 @@ class ROS2Settings(BaseModel):
                                    "per robot (a changed command waits for the next slot)")
     goal_speed: float = Field(0.3, gt=0, le=2.0, description="cruise speed of a goal_pose's goto (m/s)")
     goal_tolerance: float = Field(0.1, gt=0, description="arrival radius of a goal_pose's goto (m)")
+    goal_heading: bool = Field(True, description="after a goal_pose's goto, turn to the pose's heading")
+    heading_tolerance: float = Field(2.0, gt=0, le=45, description="a goal's heading needs no turn within this "
+                                     "(deg); the turn's accepted error")
 
     @field_validator("connect", "listen")
     @classmethod
@@ -108,8 +112,10 @@ class _Drive:
     task: Task | None = None  # the velocity task that carries the stream, while it runs
     started: float = -math.inf  # when that task was posted
     latched: bool = False  # ended by someone else: take no command until the stream pauses
-    goal: Task | None = None
-    goals: list[dict[str, float]] = field(default_factory=list)
+    goal: Task | None = None  # the goto of the newest goal_pose
+    heading: float | None = None  # the heading (rad) to turn to once that goto succeeds
+    turn: Task | None = None  # that turn
+    goals: list[tuple[dict[str, float], float | None]] = field(default_factory=list)
 
 
 class ROS2Plugin(Plugin[ROS2Settings]):
@@ -246,12 +252,14 @@ class ROS2Plugin(Plugin[ROS2Settings]):
 
     def _on_goal(self, robot: str, data: bytes) -> None:
         try:
-            params = messages.goto_params(messages.deserialize(data, messages.POSE_STAMPED))
+            msg = messages.deserialize(data, messages.POSE_STAMPED)
+            params = messages.goto_params(msg)
         except (ValueError, KeyError, IndexError) as err:
             self.log.warning("ros2: goal_pose for %s refused: %s", robot, err)
             return
+        heading = messages.goal_heading(msg) if self.settings.goal_heading else None
         with self._lock:
-            self._drives.setdefault(robot, _Drive()).goals.append(params)
+            self._drives.setdefault(robot, _Drive()).goals.append((params, heading))
         self.wake()
 
     # --- the blackboard side ------------------------------------------------------------------
@@ -358,7 +366,7 @@ class ROS2Plugin(Plugin[ROS2Settings]):
         now = time.monotonic()
         with self._lock:
             drives = {r: d for r, d in self._drives.items() if r in robots}
-            pending: dict[str, list[dict[str, float]]] = {}
+            pending: dict[str, list[tuple[dict[str, float], float | None]]] = {}
             for robot, d in drives.items():
                 pending[robot], d.goals = d.goals, []
             for robot, d in drives.items():
@@ -381,13 +389,31 @@ class ROS2Plugin(Plugin[ROS2Settings]):
                         d.task = self._task(robot, "velocity", d.params)
                         d.started = now
                         self.add(d.task)
-                for goal in pending[robot]:
-                    if d.goal is not None:
-                        current = self.get(d.goal.uid)
+                for goal, heading in pending[robot]:
+                    for earlier in (d.goal, d.turn):
+                        current = self.get(earlier.uid) if earlier is not None else None
                         if isinstance(current, Task) and not current.done:
                             self.remove(current)  # a new goal replaces the one being driven to
                     d.goal = self._task(robot, "goto", {**goal, "speed": s.goal_speed, "tolerance": s.goal_tolerance})
+                    d.heading, d.turn = heading, None
                     self.add(d.goal)
+                self._turn_after_goal(robot, d)
+
+    def _turn_after_goal(self, robot: str, d: _Drive) -> None:
+        """Once a goal's goto succeeded, a turn to the goal's heading (relative to where the robot heads now)."""
+        if d.goal is None or d.heading is None:
+            return
+        current = self.get(d.goal.uid)
+        if not isinstance(current, Task) or not current.done:
+            return  # not committed yet (posted in this run), running, or removed (then a new goal resets it)
+        heading, d.heading = d.heading, None
+        pose = self.get(f"pose:{robot}")
+        if current.state is not TaskState.SUCCEEDED or not isinstance(pose, Pose):
+            return  # the goto failed or was cancelled: no turn
+        angle = math.degrees(math.atan2(math.sin(heading - pose.theta), math.cos(heading - pose.theta)))
+        if abs(angle) > self.settings.heading_tolerance:
+            d.turn = self._task(robot, "turn", {"angle": angle, "tolerance": self.settings.heading_tolerance})
+            self.add(d.turn)
 
     def teardown(self) -> None:
         self._closing.set()

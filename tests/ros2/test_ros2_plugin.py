@@ -259,7 +259,7 @@ def test_a_zero_twist_is_a_velocity_not_a_stop_bypass(robot: Callable[..., Agent
     assert still is not None and still.state is TaskState.RUNNING
 
 
-def test_goal_pose_is_a_goto_that_reaches_the_point(robot: Callable[..., Agent], ros: dict[str, Any]) -> None:
+def test_goal_pose_is_a_goto_that_reaches_the_point_then_a_turn_to_its_heading(robot: Callable[..., Agent], ros: dict[str, Any]) -> None:
     agent = robot()
     pub = ROS2Publisher("/robot1/goal_pose", messages.POSE_STAMPED, router_port=ros["router_port"])
     statuses: list[str] = []
@@ -270,7 +270,7 @@ def test_goal_pose_is_a_goto_that_reaches_the_point(robot: Callable[..., Agent],
         goal = messages.make(messages.POSE_STAMPED, header=messages.header(time.time_ns(), "map"),
                              pose=messages.make("geometry_msgs/msg/Pose",
                                                 position=messages.make("geometry_msgs/msg/Point", x=1.0, y=-0.5),
-                                                orientation=messages.quaternion(0.0)))
+                                                orientation=messages.quaternion(math.pi / 2)))
         pub.publish(header=goal.header, pose=goal.pose)
         gotos = wait_until(lambda: [t for t in agent.query(Task) if t.preposition == "goto"], timeout=5,
                            message="goal_pose made no goto")
@@ -278,6 +278,14 @@ def test_goal_pose_is_a_goto_that_reaches_the_point(robot: Callable[..., Agent],
         assert done.state is TaskState.SUCCEEDED, done.result
         pose = agent.query(Pose)[0]
         assert math.hypot(pose.x - 1.0, pose.y + 0.5) <= 0.1
+        # then a turn to the goal's heading (90 deg), relative to where the goto left the robot heading
+        turns = wait_until(lambda: [t for t in agent.query(Task) if t.preposition == "turn"], timeout=5,
+                           message="no turn to the goal's heading")
+        assert turns[0].params.angle == pytest.approx(math.degrees(math.pi / 2 - pose.theta), abs=0.5)
+        turned = wait_for_task(agent, turns[0].uid, timeout=20)
+        assert turned.state is TaskState.SUCCEEDED, turned.result
+        assert math.degrees(agent.query(Pose)[0].theta) == pytest.approx(90, abs=3)
+        assert math.hypot(agent.query(Pose)[0].x - 1.0, agent.query(Pose)[0].y + 0.5) <= 0.1
         import json
         wait_until(lambda: any(json.loads(s)["uid"] == done.uid and json.loads(s)["state"] == "succeeded"
                                for s in statuses), timeout=5, message="no succeeded status on /erni/task_status")
@@ -395,3 +403,10 @@ def test_a_client_whose_router_comes_later_declares_its_topics_once_it_does() ->
                 session.close()
             agent.stop()
             late.close()
+
+
+def test_goal_heading_of_a_pose_stamped() -> None:
+    goal = messages.make(messages.POSE_STAMPED)  # a zero quaternion: no heading asked
+    assert messages.goal_heading(goal) is None
+    goal.pose.orientation = messages.quaternion(-2.0)
+    assert messages.goal_heading(goal) == pytest.approx(-2.0)
