@@ -112,8 +112,10 @@ def stamp(stamp_ns: int) -> Message:
 
 
 def stamp_ns_of(seconds: float) -> int:
-    """An ERNI time (float seconds) in nanoseconds."""
-    return int(round(seconds * 1e9))
+    """An ERNI time (float seconds) in nanoseconds, to the nanosecond of the float: the whole seconds
+    and the fraction apart (`seconds * 1e9` of a time today is a float 256 ns apart)."""
+    whole = math.floor(seconds)
+    return whole * 1_000_000_000 + round((seconds - whole) * 1e9)
 
 
 def header(stamp_ns: int, frame: str) -> Message:
