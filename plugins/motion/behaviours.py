@@ -43,6 +43,12 @@ class Command:
 
 STOP = Command()
 
+STILL_V = 0.01
+"""A robot reporting less than this translation (m/s) and less than STILL_W rotation stands: a Stop
+succeeds on such a reading, and a Pose that first shows it is published at once."""
+STILL_W = 0.02
+"""The rotation (rad/s) below which a robot stands (with STILL_V)."""
+
 
 @dataclass
 class Context:
@@ -248,7 +254,7 @@ class Stop(Behaviour):
 
     def propose(self, ctx: Context) -> Command | None:
         s = ctx.state
-        if abs(s.v) < 0.01 and abs(s.w) < 0.02 and not self.values.get("halted"):
+        if abs(s.v) < STILL_V and abs(s.w) < STILL_W and not self.values.get("halted"):
             if self.hold:
                 self.report(1.0, "halted; holding until the task is removed", halted=True)
             else:

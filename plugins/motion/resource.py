@@ -12,7 +12,9 @@ it cycles every `idle_period` until a task wakes it. The poll thread
 only in its stamp (a standing robot) is handed over again after `pose_keepalive` only. While
 the stack thread steers, it hands over the state of the SIP it just cycled on itself, when that
 Pose is due, so a SIP wakes two threads (reader and stack), not three; the poll thread then
-only sees to what comes between SIPs (outcomes, keep-alives, a SIP just ahead of its time). Neither
+only sees to what comes between SIPs (outcomes, keep-alives, a SIP just ahead of its time). A reading
+that starts or stops motion (`starts_or_stops`) is handed over at once by whichever thread sees it,
+not at the next Pose due, as a final outcome is. Neither
 thread touches the blackboard itself: `publish` does, in its own short transactions, so serial
 I/O never happens inside one.
 """
@@ -32,6 +34,8 @@ from erni.blackboard import Task, TaskState
 from erni.blackboard.errors import UsageError
 from erni.blackboard.tasks import AvoidParams, StopParams
 from erni.plugins.motion.behaviours import (
+    STILL_V,
+    STILL_W,
     AvoidObstacles,
     Behaviour,
     BehaviourStack,
@@ -68,6 +72,29 @@ def same_reading(a: RobotState, b: RobotState) -> bool:
     return (a.x == b.x and a.y == b.y and a.theta == b.theta and a.v == b.v and a.w == b.w
             and a.battery == b.battery and a.stall_left == b.stall_left and a.stall_right == b.stall_right
             and a.bumpers == b.bumpers and a.motors_enabled == b.motors_enabled and a.sonar == b.sonar)
+
+
+AT_REST = 1e-3
+"""Translation (m/s) and rotation (rad/s) below which a robot reports no motion at all."""
+
+
+def at_rest(s: RobotState) -> bool:
+    """The robot reports no motion at all."""
+    return abs(s.v) < AT_REST and abs(s.w) < AT_REST
+
+
+def standing(s: RobotState) -> bool:
+    """The robot stands as a Stop judges it (below STILL_V and STILL_W)."""
+    return abs(s.v) < STILL_V and abs(s.w) < STILL_W
+
+
+def starts_or_stops(shown: RobotState | None, state: RobotState | None) -> bool:
+    """`state` starts motion (the Pose shown reports none, `state` some) or stops it (the Pose shown
+    moves, `state` stands as a Stop judges it). Between the two levels neither: a robot shown standing
+    at 5 mm/s starts nothing at 3 mm/s, nor stops again at 0."""
+    if shown is None or state is None:
+        return False
+    return (at_rest(shown) and not at_rest(state)) or (not standing(shown) and standing(state))
 
 
 class RobotMotionResource:
@@ -235,7 +262,7 @@ class RobotMotionResource:
         """
         state = self.driver.state
         return (not self._inbox and not self._says and self._last_sent == (0.0, 0.0) and self.driver.connected and state is not None
-                and abs(state.v) < 1e-3 and abs(state.w) < 1e-3
+                and at_rest(state)
                 and all(b.task_uid is None for b in self.stack.items))
 
     def _drain_inbox(self, now: float) -> None:
@@ -468,10 +495,12 @@ class RobotMotionResource:
 
     def _publish_sip(self) -> None:
         """Stack thread, after a cycle while steering: hand over the state it cycled on when its
-        Pose is due. A SIP well ahead of that is skipped (a later SIP is due when it comes); one
-        just ahead, or one that finds the poll thread publishing, is left to the poll thread.
-        Never waits: a stop must not queue behind a publication."""
-        ahead = self._due_at - self.clock()
+        Pose is due, or at once when it starts or stops motion. A SIP well ahead of its due time is
+        skipped (a later SIP is due when it comes); one just ahead, or one that finds the poll
+        thread publishing, is left to the poll thread. Never waits: a stop must not queue behind a
+        publication."""
+        event = starts_or_stops(self._shown, self.driver.state)
+        ahead = 0.0 if event else self._due_at - self.clock()
         if ahead > 0.25 * self.driver.sip_interval:
             return
         if ahead > 0 or not self._pub_lock.acquire(blocking=False):
@@ -521,12 +550,17 @@ class RobotMotionResource:
             limit = (self.pose_period if self._kept
                      else max(self.pose_period, self._shown_at + self.pose_keepalive - self.clock()))
             self._poll_wake.wait(limit)
+            # at most pose_rate_hz publications a second; a final outcome, or a reading that starts or
+            # stops motion, goes at once (also when it comes during the wait)
+            self._poll_wake.clear()
+            while not self._stop.is_set():
+                rest = self._due_at - self.clock()
+                if rest <= 0 or self._final_pending() or starts_or_stops(self._shown, self.driver.state):
+                    break
+                self._poll_wake.wait(rest)
+                self._poll_wake.clear()
             if self._stop.is_set():
                 break
-            rest = self._due_at - self.clock()
-            if rest > 0 and not self._final_pending():
-                self._stop.wait(rest)  # at most pose_rate_hz publications a second; a final outcome goes at once
-            self._poll_wake.clear()
             with self._pub_lock:
                 self._publish_round()
         updates = self.take_updates()

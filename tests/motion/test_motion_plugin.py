@@ -19,6 +19,7 @@ from erni.blackboard import Agent, Pose, Task, TaskState
 from erni.blackboard.errors import ErniError
 from erni.blackboard.testing import wait_until
 from erni.plugins.motion import RobotMotionControl
+from erni.plugins.motion.behaviours import STILL_V, STILL_W
 from erni.plugins.motion.resource import RobotMotionResource, TaskUpdate
 from erni.sim.world import World
 from tests.motion.conftest import FAST_MODEL, REAL_URL, sim_only_because
@@ -68,8 +69,9 @@ def finish(agent: Agent, task: Task, timeout: float = 10.0) -> Task:
 
 
 def halted(agent: Agent) -> bool:
+    """The robot's Pose stands as the Stop behaviour judges it (one threshold for both)."""
     p = pose(agent)
-    return abs(p.v) < 0.005 and abs(p.w) < 0.01
+    return abs(p.v) < STILL_V and abs(p.w) < STILL_W
 
 
 def test_pose_is_published_with_battery_sonar_and_motors(start_agent, robot_url):
@@ -192,7 +194,7 @@ def test_whoever_sees_a_stop_succeed_finds_the_robot_standing_on_the_blackboard(
         assert finish(agent, stop, timeout=3).state == TaskState.SUCCEEDED
         at = next(i for i, (kind, obj) in enumerate(commits) if kind == "task" and obj.uid == stop.uid)
         before = [obj for kind, obj in commits[:at] if kind == "pose"][-1]
-        assert abs(before.v) < 0.005 and abs(before.w) < 0.01, (before.v, before.w)
+        assert abs(before.v) < STILL_V and abs(before.w) < STILL_W, (before.v, before.w)
 
 
 def test_stop_takes_over_within_one_stack_cycle(start_agent, robot_url):

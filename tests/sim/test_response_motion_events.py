@@ -76,3 +76,38 @@ def test_the_stack_cycles_on_the_sip_after_a_task_though_its_rate_would_wait():
         assert res.cycles == cycles + 1
     finally:
         res.close()
+
+
+class Counted(RobotMotionResource):
+    """Counts the stack thread's rounds (a cycle while steering and its Pose, if any, handed over)."""
+
+    rounds = 0
+
+    def _publish_sip(self) -> None:
+        super()._publish_sip()
+        self.rounds += 1
+
+
+def test_a_reading_that_starts_or_stops_motion_is_published_at_once_the_others_at_the_pose_rate():
+    """Poses are due 100 s apart and the clock moves 20 ms a SIP: only a reading that changes what
+    the blackboard says about motion may go before its time. From rest to 5 cm/s starts motion,
+    20 cm/s only speeds up, 8 mm/s stands as a Stop judges it, and 0 after that stops nothing new."""
+    driver = Driver()
+    shown: list[float] = []
+    now = [0.0]
+    res = Counted(driver, lambda updates, state: state and shown.append(state.v),  # type: ignore[arg-type]
+                  rate_hz=100, pose_rate_hz=0.01, avoid_distance=0, clock=lambda: now[0]).start()
+    try:
+        assert wait(lambda: shown == [0.0]), shown  # the first reading, before any Pose was due
+        res.submit(Task(verb="BotMotion", preposition="velocity", params={"v": 0.2}, source="test"))
+        assert driver.asked.wait(5.0), "the task's cycle sent no velocity"
+        assert wait(lambda: res._steering)
+        for seq, v in enumerate([0.05, 0.2, 0.008, 0.0], start=1):
+            rounds = res.rounds
+            driver.state = sip(seq, v)
+            now[0] += 0.02
+            res._sip(driver.state)
+            assert wait(lambda r=rounds: res.rounds > r), f"no stack cycle on the SIP at {v} m/s"
+    finally:
+        res.close()
+    assert shown == [0.0, 0.05, 0.008]
