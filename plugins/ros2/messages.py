@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Iterable, Mapping, Sequence
+from decimal import Decimal
 from typing import Any
 
 import numpy as np
@@ -112,10 +113,10 @@ def stamp(stamp_ns: int) -> Message:
 
 
 def stamp_ns_of(seconds: float) -> int:
-    """An ERNI time (float seconds) in nanoseconds, to the nanosecond of the float: the whole seconds
-    and the fraction apart (`seconds * 1e9` of a time today is a float 256 ns apart)."""
-    whole = math.floor(seconds)
-    return whole * 1_000_000_000 + round((seconds - whole) * 1e9)
+    """An ERNI time (float seconds) in nanoseconds: the shortest decimal that is this float, so a
+    time written 1750000001.1 is ...1_100_000_000 ns, and any other within the float's own
+    resolution (`seconds * 1e9` of a time today is a float 256 ns apart)."""
+    return int((Decimal(repr(seconds)) * 1_000_000_000).to_integral_value())
 
 
 def header(stamp_ns: int, frame: str) -> Message:
