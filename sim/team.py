@@ -241,6 +241,8 @@ class Team:
         # failed (its error names the logs in it); a directory the caller named is never removed
         self._scratch = not run_dir and not keep_run_dir
         self._started_well = False
+        self._port_retries = 0  # the control node started again on free ports (`_port_taken_meanwhile`)
+        self._control_common: dict[str, Any] = {}
         self.headless = headless
         self.log_level = log_level
         # agents starting at once: a few per core keep the cores busy without starving the simulator
@@ -444,8 +446,13 @@ class Team:
             if self.mission:
                 plugins.append(("mission", self._mission_settings()))
             self._add_agent(name, (addr, port), plugins, f"robot {name} of scenario {self.scenario.name}")
+        self._control_common = common
+        self._write_control_config()
+
+    def _write_control_config(self) -> None:
+        """The loopback control node's config: its transport on `control_port`, its GUI."""
         plugins = [("transport", dict(listen=f"{CONTROL_HOST}:{self.control_port}", role="control",
-                                      **self.identity(CONTROL), **common))]
+                                      **self.identity(CONTROL), **self._control_common))]
         if self.ui:
             gui_host, gui_port = "127.0.0.1", self.gui_port
             if self.gui_listen:
@@ -641,6 +648,8 @@ class Team:
         n = len(self.names)
         while True:
             for agent in self.agents.values():
+                if not agent.alive and self._port_taken_meanwhile(agent):
+                    continue  # started again on other ports
                 if not agent.alive:
                     tail = _tail(agent.log)
                     raise TeamError(f"agent {agent.name} exited with code {agent.proc.returncode if agent.proc else '?'}"
@@ -660,6 +669,27 @@ class Team:
                                 f"connected, control hears {heard}/{len(expected)} reachable robots{late}; "
                                 f"logs in {self.run_dir / 'logs'}")
             time.sleep(0.3)
+
+    def _port_taken_meanwhile(self, agent: AgentProcess) -> bool:
+        """The loopback control node found its port (or its GUI's) taken after it was checked free
+        (another program, or a team started at the same time, bound it first): start it again on
+        free ports, at most three times. True when it was started again."""
+        if agent.name != CONTROL or self.mesh is not None or self._port_retries >= 3 \
+                or "Address already in use" not in _tail(agent.log):
+            return False
+        self._port_retries += 1
+        old = self.control_port
+        self.control_port = free_port(CONTROL_HOST)
+        if not self.gui_listen:
+            self.gui_port = free_port("127.0.0.1")
+        if agent.radio is not None:
+            os.close(agent.radio)
+            agent.radio = None
+        agent.log.replace(agent.log.with_suffix(f".log.{self._port_retries}"))  # kept; the next run's log is new
+        self._write_control_config()
+        self._spawn(self.agents[CONTROL], self.agent_env())
+        log.warning("control node's port %d was taken meanwhile: started again on %d", old, self.control_port)
+        return True
 
     def _gui_answers(self) -> bool:
         """Whether the GUI (if the team has one) accepts a connection at its URL's address."""

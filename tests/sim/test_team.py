@@ -186,3 +186,28 @@ def test_a_temporary_run_directory_goes_with_the_team_unless_the_run_failed():
         shutil.rmtree(kept.run_dir)
     finally:
         shutil.rmtree(failed.run_dir, ignore_errors=True)
+
+
+def test_a_control_port_taken_after_it_was_checked_gets_the_control_node_another(tmp_path):
+    """Another program (or a team started at the same moment) binds the control node's port between
+    the check and the control node's start: the team starts it again on a free port."""
+    import socket
+
+    from erni.sim.team import CONTROL_HOST, free_port
+
+    port = free_port(CONTROL_HOST)
+    team = Team(Scenario(robots={"count": 1}), run_dir=tmp_path / "run", headless=True, control_port=port,
+                transport=FAST, mission=False, ui=False)
+    assert team.control_port == port  # free when checked
+    thief = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    thief.bind((CONTROL_HOST, port))
+    thief.listen()
+    try:
+        team.start(timeout=60)
+        assert team.control_port != port and team.control_address == (CONTROL_HOST, team.control_port)
+        assert wait_until(lambda: (p := team.peers(1.0).get("robot1")) is not None and p.up)
+        first = (tmp_path / "run" / "logs" / f"{CONTROL}.log.1").read_text()
+        assert f"cannot listen on {CONTROL_HOST}:{port} (TCP): Address already in use" in first
+    finally:
+        team.stop()
+        thief.close()

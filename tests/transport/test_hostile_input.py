@@ -279,10 +279,17 @@ def test_port_zero_gives_tcp_and_udp_one_checked_number(monkeypatch):
     """The first free TCP port is taken for UDP: the endpoint draws another, never two numbers."""
     from erni.transport import endpoint as module
 
-    taken = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    taken.bind(("127.0.0.1", 0))
-    port = taken.getsockname()[1]
     real = socket.socket
+    for _ in range(50):  # a number UDP holds (ours) and TCP does not (no other program's connection)
+        taken = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        taken.bind(("127.0.0.1", 0))
+        port = taken.getsockname()[1]
+        try:
+            with real(socket.AF_INET, socket.SOCK_STREAM) as probe:
+                probe.bind(("127.0.0.1", port))
+            break
+        except OSError:
+            taken.close()
     first = [True]
 
     class Steered(real):  # the kernel's first TCP pick happens to be a number UDP holds
