@@ -72,7 +72,7 @@ EXPERIMENTS: dict[str, Experiment] = {e.name: e for e in [
     Experiment("relay2", "relay2", "000", "two robots relaying between a source and a destination",
                ("agents", "kinematic"), "relay"),
     Experiment("relay-video", "relay-video", "000", "video through one relay: loss and delay against its position "
-               "(Figure 6; loopback tier)", ("transport",), "relayvideo"),
+               "(Figure 6)", ("transport",), "relayvideo", netns=True),
     Experiment("spread-open", "spread-open", "001", "robots spreading in an open field until they settle",
                ("agents", "kinematic"), "spread", seeds=True),
     Experiment("spread-corridor", "spread-corridor", "001",

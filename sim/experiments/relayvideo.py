@@ -10,17 +10,33 @@ the simulated radio gives its length (1 - delivery ratio: the same model that re
 relay2 measure link quality with), through the endpoint's own loss injection. So the loss is
 the radio model's, realised packet by packet: an input of the simulation, not a finding; the
 delay is measured (S's send to D's receipt, one clock), but on loopback it holds no radio,
-no MAC retransmissions and no queueing on air, so it cannot show what a WLAN adds. The real
-mesh tier (namespaces, babeld) would measure both; this experiment does not run there yet.
+no MAC retransmissions and no queueing on air, so it cannot show what a WLAN adds.
+
+Real-mesh tier (`--netns`): S, R and D are three network namespaces on one bridge segment
+(`erni.sim.netns.Mesh`), babeld runs in each, and the radio model's loss is the kernel's: nftables
+rules on the bridge drop each frame of a link with 1 - its delivery ratio (rounded to 5 %), babeld's
+Hellos and updates as much as the video. S and D cannot hear each other (16 m > 12 m), so the
+stream goes S -> D as plain UDP datagrams (frame, part, send time and the JPEG bytes; no ERNI
+envelope) and R forwards them in its kernel, along the route babeld installed. The loss of a
+datagram is then the kernel's drop on each hop plus whatever routing adds (no route while babeld
+has lost the relay: sends refused at S), and the delay is the kernel's forwarding through R's
+namespace (veth, bridge, IP forwarding; still no radio airtime or MAC retransmission).
 """
 
 from __future__ import annotations
 
 import base64
+import ctypes
 import math
+import os
 import secrets
+import shutil
+import socket
+import struct
+import tempfile
 import threading
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -32,8 +48,13 @@ from erni.sim.experiments.roundtrip import camera_frames, compress
 from erni.sim.manet import RadioModel
 from erni.sim.scenario import Scenario, ScenarioError
 
+HEADER = struct.Struct("!IIId")  # frame, part, parts of the frame, send time (perf_counter, s)
+PORT = 47100                    # the destination's port on the mesh (netns tier)
+CLONE_NEWNET = 0x40000000
 
-def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode: str, **_: Any) -> Result:
+
+def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode: str, netns: bool = False,
+        **_: Any) -> Result:
     """Stream through the relay at each position; return figure and table."""
     from erni.transport import Endpoint
 
@@ -50,6 +71,13 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode:
     if not positions or min(positions) <= 0 or max(positions) >= length:
         raise ScenarioError(f"strategy.positions: expected distances from the source inside (0, {length:g}) m")
     jpegs = [compress(f, quality) for f in camera_frames(width, height, seed=scenario.seed)]
+    if netns:
+        settle = float(s.get("netns_settle", 2.0))
+        route_wait = float(s.get("netns_route_wait", 10.0))
+        pinned = bool(s.get("netns_static_arp", True))
+        on_mesh = _stream_netns(positions, length, radio, jpegs, fps, seconds, packet, settle, route_wait, pinned,
+                                progress)
+        return _result(scenario, experiment, mode, *on_mesh, length, fps, packet, len(jpegs[0]), tier="netns")
     key = secrets.token_bytes(32)
     s_end = Endpoint("source", key=key, role="robot", seed=scenario.seed)
     r_end = Endpoint("relay", key=key, role="robot", seed=scenario.seed + 1)
@@ -112,6 +140,183 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode:
     return _result(scenario, experiment, mode, rows, delays, length, fps, packet, len(jpegs[0]))
 
 
+def _setns(name: str) -> None:
+    """Move the calling thread into network namespace `name` (`ip netns` names it /run/netns/NAME)."""
+    libc = ctypes.CDLL("libc.so.6", use_errno=True)
+    fd = os.open(f"/run/netns/{name}", os.O_RDONLY)
+    try:
+        if libc.setns(fd, CLONE_NEWNET) != 0:
+            from erni.sim.netns import NetnsError
+
+            raise NetnsError(f"setns into network namespace {name}: {os.strerror(ctypes.get_errno())}")
+    finally:
+        os.close(fd)
+
+
+def _udp_in(netns_name: str, bind: tuple[str, int]) -> socket.socket:
+    """A UDP socket of namespace `netns_name` bound to `bind` (made by a thread that enters it and ends;
+    the socket stays in that namespace whichever thread uses it)."""
+    made: list[socket.socket | BaseException] = []
+
+    def make() -> None:
+        try:
+            _setns(netns_name)
+            sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            sock.bind(bind)
+            made.append(sock)
+        except BaseException as err:  # handed to the caller
+            made.append(err)
+
+    t = threading.Thread(target=make, name=f"netns-{netns_name}")
+    t.start()
+    t.join()
+    if isinstance(made[0], BaseException):
+        raise made[0]
+    return made[0]
+
+
+def _pin_neighbours(mesh: Any) -> None:
+    """Static ARP entries on every node's mesh link for every other node."""
+    import json
+    import subprocess
+
+    def ip(*args: str) -> str:
+        return subprocess.run(["ip", *args], check=True, capture_output=True, text=True, timeout=10).stdout
+
+    nodes = list(mesh.nodes.values())
+    macs = {n.name: json.loads(ip("-n", n.netns, "-j", "link", "show", "mesh0"))[0]["address"] for n in nodes}
+    for a in nodes:
+        for b in nodes:
+            if a is not b:
+                ip("-n", a.netns, "neigh", "replace", b.address, "lladdr", macs[b.name], "dev", "mesh0",
+                   "nud", "permanent")
+
+
+def _via(mesh: Any, a: str, b: str) -> bool:
+    """Node a's kernel routes b's mesh address through the relay (babeld's route)."""
+    prefix = f"{mesh.node(b).address} via {mesh.node('relay').address}"
+    return any(line.startswith(prefix) for line in mesh.kernel_routes(a))
+
+
+def _stream_netns(positions: list[float], length: float, radio: RadioModel, jpegs: list[bytes], fps: float,
+                  seconds: float, packet: int, settle: float, route_wait: float, pinned: bool,
+                  progress: Progress) -> tuple[list[dict[str, float]], dict[float, list[float]]]:
+    """The stream on the real-mesh tier: S -> D as UDP, forwarded by R's kernel on babeld's route; each
+    hop's loss the kernel's radio rules'. At each position the stream starts `settle` s after the links
+    change, or once babeld routes S -> D through R if that takes longer (at most `route_wait` s more).
+    Rows as the loopback tier's, with the kernel's counts and the routing beside. `pinned`: each node
+    knows the others' link addresses (static ARP entries), as a WLAN's MAC retries would let ARP
+    succeed; without them ARP itself crosses the lossy link, frame by frame with no retry below it."""
+    from erni.sim.netns import Mesh, NetnsError
+
+    run_dir = Path(tempfile.mkdtemp(prefix="erni-relay-video-"))
+    mesh = Mesh(["source", "relay", "destination"], run_dir)
+    try:
+        mesh.create()
+    except NetnsError as err:
+        shutil.rmtree(run_dir, ignore_errors=True)
+        raise ScenarioError(f"relay-video --netns: {err}") from None
+    sr, rd = frozenset(("source", "relay")), frozenset(("relay", "destination"))
+    stop = threading.Event()
+    lock = threading.Lock()
+    arrived: dict[tuple[int, int], float] = {}
+    rows: list[dict[str, float]] = []
+    delays: dict[float, list[float]] = {}
+    socks: list[socket.socket] = []
+    try:
+        mesh.apply({sr: 1.0, rd: 1.0})  # S and D out of each other's range: no link between them
+        if pinned:
+            _pin_neighbours(mesh)
+        mesh.start_babel()
+        end = time.monotonic() + 30.0
+        while not (_via(mesh, "source", "destination") and _via(mesh, "destination", "source")):
+            if time.monotonic() > end:
+                raise ScenarioError("relay-video --netns: babeld did not route S -> D through the relay within 30 s")
+            time.sleep(0.2)
+        dst = (mesh.node("destination").address, PORT)
+        rx = _udp_in(mesh.node("destination").netns, ("0.0.0.0", PORT))
+        tx = _udp_in(mesh.node("source").netns, ("0.0.0.0", 0))
+        socks += [rx, tx]
+        rx.settimeout(0.2)
+
+        def receive() -> None:
+            while not stop.is_set():
+                try:
+                    data = rx.recv(65536)
+                except TimeoutError:
+                    continue
+                except OSError:
+                    return
+                now = time.perf_counter()
+                if len(data) >= HEADER.size:
+                    frame, part, _, _ = HEADER.unpack_from(data)
+                    with lock:
+                        arrived[(frame, part)] = now
+
+        receiver = threading.Thread(target=receive, name="relay-video-destination", daemon=True)
+        receiver.start()
+        frame_no = 0
+        for k, x in enumerate(positions):
+            q1, q2 = radio.quality(x), radio.quality(length - x)
+            links = {sr: q1, rd: q2}
+            mesh.apply(links)  # the radio rules of this position (their counters start at 0)
+            changed = time.monotonic()
+            time.sleep(settle)  # babeld sees the new links (Hellos every 0.5 s)
+            while not (routed_before := _via(mesh, "source", "destination")) and \
+                    time.monotonic() - changed < settle + route_wait:
+                time.sleep(0.2)
+            route_after = time.monotonic() - changed if routed_before else math.nan
+            sent: dict[tuple[int, int], float] = {}
+            refused = 0
+            first = frame_no
+            t_next = time.perf_counter()
+            for f in range(max(1, int(round(fps * seconds)))):
+                data = jpegs[f % len(jpegs)]
+                parts = [data[i:i + packet] for i in range(0, len(data), packet)]
+                for p, part in enumerate(parts):
+                    t0 = time.perf_counter()
+                    sent[(frame_no, p)] = t0
+                    try:
+                        tx.sendto(HEADER.pack(frame_no, p, len(parts), t0) + part, dst)
+                    except OSError:  # no route: babeld has lost the relay
+                        refused += 1
+                frame_no += 1
+                t_next += 1.0 / fps
+                time.sleep(max(0.0, t_next - time.perf_counter()))
+            time.sleep(0.3)  # the last datagrams through
+            routed_after = _via(mesh, "source", "destination")
+            counts = mesh.counters()
+            with lock:
+                got = {key_: at for key_, at in arrived.items() if first <= key_[0] < frame_no}
+            d = [1000.0 * (got[key_] - t0) for key_, t0 in sent.items() if key_ in got]
+            whole = sum(1 for fr in range(first, frame_no) if all((fr, p) in got for p in range(_parts(sent, fr))))
+            applied = [1.0 - mesh.loss(links, "source", "relay"), 1.0 - mesh.loss(links, "relay", "destination")]
+
+            delays[x] = d
+            rows.append({"x": x, "q1": q1, "q2": q2, "packets": float(len(sent)),
+                         "packet_loss": 1 - len(d) / len(sent), "frame_loss": 1 - whole / (frame_no - first),
+                         "model_loss": 1 - applied[0] * applied[1], "refused": refused / len(sent),
+                         "kernel_loss_sr": _kernel_loss(counts, "source", "relay"),
+                         "kernel_loss_rd": _kernel_loss(counts, "relay", "destination"),
+                         "routed": float(routed_before and routed_after), "route_after": route_after,
+                         "delay_median": float(np.median(d)) if d else math.nan,
+                         "delay_p95": float(np.percentile(d, 95)) if d else math.nan})
+            progress("relay positions (netns)", k + 1, len(positions))
+    finally:
+        stop.set()
+        for sock in socks:
+            sock.close()
+        mesh.destroy()
+        shutil.rmtree(run_dir, ignore_errors=True)
+    return rows, delays
+
+
+def _kernel_loss(counts: dict[tuple[str, str], tuple[int, int]], a: str, b: str) -> float:
+    """The share of a -> b frames the kernel's radio rules dropped (1: no rule passes any, out of range)."""
+    dropped, passed = counts.get((a, b), (0, 0))
+    return dropped / (dropped + passed) if dropped + passed else 1.0
+
+
 def _parts(sent: dict[tuple[int, int], float], frame: int) -> int:
     return sum(1 for (f, _) in sent if f == frame)
 
@@ -132,7 +337,10 @@ def _warm_up(s_end: Any, r_end: Any, d_end: Any, arrived: dict[tuple[int, int], 
 
 
 def _result(scenario: Scenario, experiment: Experiment, mode: str, rows: list[dict[str, float]],
-            delays: dict[float, list[float]], length: float, fps: float, packet: int, frame_bytes: int) -> Result:
+            delays: dict[float, list[float]], length: float, fps: float, packet: int, frame_bytes: int,
+            tier: str = "loopback") -> Result:
+    if tier == "netns":
+        return _result_netns(scenario, experiment, mode, rows, delays, length, fps, packet, frame_bytes)
     res = Result(experiment.name, experiment.title, mode)
     res.mode_note = ("loopback tier, a first cut: three transport endpoints in one process; each hop drops "
                      "datagrams with the simulated radio's loss (an input); the delay holds no radio")
@@ -161,7 +369,52 @@ def _result(scenario: Scenario, experiment: Experiment, mode: str, rows: list[di
     return res
 
 
-def _draw(fig: Any, rows: list[dict[str, float]], delays: dict[float, list[float]], length: float) -> None:
+def _result_netns(scenario: Scenario, experiment: Experiment, mode: str, rows: list[dict[str, float]],
+                  delays: dict[float, list[float]], length: float, fps: float, packet: int,
+                  frame_bytes: int) -> Result:
+    res = Result(experiment.name, f"{experiment.title}, real-mesh tier", mode)
+    res.mode_note = ("real-mesh tier: S, R, D in network namespaces on one bridge, babeld routing S -> D through "
+                     "R's kernel; each link's frames dropped by nftables with the radio model's loss (an input); "
+                     "the delay is the kernel's forwarding, no radio airtime")
+    xs = [r["x"] for r in rows]
+    for q in ("packet_loss", "frame_loss", "model_loss", "refused", "kernel_loss_sr", "kernel_loss_rd", "routed",
+              "route_after", "delay_median", "delay_p95"):
+        unit = "ms" if q.startswith("delay") else "s" if q == "route_after" else "share"
+        res.series[f"relay/{q}"] = (xs, [r[q] for r in rows], unit)
+    best = min(rows, key=lambda r: r["packet_loss"])
+    res.metrics["source-destination distance"] = (length, "m")
+    res.metrics["relay position with the least packet loss"] = (best["x"], "m from the source")
+    res.metrics["least packet loss"] = (best["packet_loss"], "share")
+    res.metrics["positions where babeld's route through the relay held from the stream's start to its end"] = (
+        ", ".join(f"{r['x']:g}" for r in rows if r["routed"]) or "none", "m from the source")
+    res.compare("stream", "video, S -> relay -> D (WLAN)", f"{fps:g} JPEG frames/s of {frame_bytes / 1000:.1f} kB, "
+                f"UDP datagrams of <= {packet} B of frame", "", "synthetic camera frames, plain UDP (no ERNI "
+                "envelope); R forwards in its kernel on babeld's route", "input")
+    res.compare("loss of a hop", "measured on the WLAN", "1 - delivery ratio of the radio model, per frame, "
+                "in the kernel (nftables on the bridge, rounded to 5 %)", "",
+                f"lossless to {scenario.radio.lossless_range:g} m, none beyond {scenario.radio.comm_range:g} m; "
+                "babeld's own packets lose as much", "input")
+    res.compare("lowest loss where", "the middle (section 5.2, Fig. 7: 'exactly the middle region')",
+                f"{best['x']:g} m of {length:g} m", "m", "datagrams S -> D that arrived, per position: the "
+                "kernel's drop on both hops and routing (no route: sends refused)")
+    excess = [r["packet_loss"] - r["model_loss"] for r in rows if r["model_loss"] < 1.0]
+    res.compare("loss beyond the two hops' drop", "-", f"{min(excess):+.2f} to {max(excess):+.2f}" if excess
+                else "-", "share", "measured loss - (1 - product of the applied delivery ratios), at the "
+                "positions where both hops exist: what routing adds")
+    med = [r["delay_median"] for r in rows if math.isfinite(r["delay_median"])]
+    res.compare("delay against the relay's position", "not stated as numbers",
+                f"median {min(med):.2f}-{max(med):.2f} ms" if med else "-", "ms",
+                "S's send to D's receipt, per datagram (one clock): veth, bridge and R's IP forwarding; no radio "
+                "airtime or MAC retransmission, so flat")
+    res.notes.append("real-mesh tier: the loss is applied by the kernel per frame with the radio model's "
+                     "probability (an input) and routed by babeld (a finding where it withdraws the route); the "
+                     "delay has no radio in it")
+    res.draw = lambda fig: _draw(fig, rows, delays, length, tier="netns")
+    return res
+
+
+def _draw(fig: Any, rows: list[dict[str, float]], delays: dict[float, list[float]], length: float,
+          tier: str = "loopback") -> None:
     gs = fig.add_gridspec(1, 2)
     xs = [r["x"] for r in rows]
     ax = fig.add_subplot(gs[0, 0])
@@ -169,6 +422,9 @@ def _draw(fig: Any, rows: list[dict[str, float]], delays: dict[float, list[float
     ax.plot(xs, [100 * r["packet_loss"] for r in rows], "o-", color=color(0), label="datagrams lost (measured)")
     ax.plot(xs, [100 * r["frame_loss"] for r in rows], "s-", color=color(1), label="frames with a datagram lost")
     ax.plot(xs, [100 * r["model_loss"] for r in rows], ":", color="#444444", label="radio model: 1 - q1 q2 (input)")
+    if tier == "netns":
+        ax.plot(xs, [100 * r["refused"] for r in rows], "x--", color=color(2),
+                label="sends refused: no route (babeld)")
     ax.set_xlim(0, length)
     ax.set_ylim(-2, 102)
     ax.set_xlabel("relay's distance from the source (m)")
@@ -184,8 +440,11 @@ def _draw(fig: Any, rows: list[dict[str, float]], delays: dict[float, list[float
     ax.set_xticks(range(0, int(length) + 1, 2))
     ax.set_xlabel("relay's distance from the source (m)")
     ax.set_ylabel("delay S -> D (ms)")
-    ax.set_title("Delay of the datagrams that arrived (loopback: no radio)\n(box: quartiles; none arrive "
+    where = "kernel forwarding through R, no radio airtime" if tier == "netns" else "loopback: no radio"
+    ax.set_title(f"Delay of the datagrams that arrived ({where})\n(box: quartiles; none arrive "
                  "where a hop is out of range)", fontsize=10)
     ax.grid(True, axis="y", color="#e0e0e0", lw=0.6)
-    fig.suptitle("Paper 000, Figure 6: video through one relay, loss and delay against its position "
-                 "(loopback tier, first cut)", fontsize=12)
+    what = ("real-mesh tier: namespaces, babeld, the kernel's drop" if tier == "netns"
+            else "loopback tier, first cut")
+    fig.suptitle(f"Paper 000, Figure 6: video through one relay, loss and delay against its position ({what})",
+                 fontsize=12)

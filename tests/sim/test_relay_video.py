@@ -1,11 +1,14 @@
-"""Paper 000, Figure 6 (first cut, loopback tier): a video-like stream through one relay, its loss
-and delay against the relay's position; the loss is the radio model's, and says so."""
+"""Paper 000, Figure 6: a video-like stream through one relay, its loss and delay against the relay's
+position; on the loopback tier the loss is the radio model's, and says so; on the real-mesh tier
+(namespaces, babeld) the kernel drops the frames and forwards through the relay."""
 
 from __future__ import annotations
 
 import csv
 
-from erni.sim import experiments
+import pytest
+
+from erni.sim import experiments, netns
 from erni.sim.scenario import find_scenario, load_scenario
 
 
@@ -25,3 +28,28 @@ def test_the_stream_loses_least_with_the_relay_between_and_labels_the_loss_an_in
     result.write_csv(tmp_path / "numbers.csv")
     quantities = {r["quantity"] for r in csv.DictReader((tmp_path / "numbers.csv").open()) if r["section"] == "series"}
     assert {"packet_loss", "frame_loss", "model_loss", "delay_median"} <= quantities
+
+
+@pytest.mark.netns
+@pytest.mark.skipif(bool(netns.unavailable_reason()), reason="real-mesh tier unavailable")
+def test_on_the_real_mesh_the_loss_grows_as_the_relay_leaves_the_middle(tmp_path):
+    sc = load_scenario(find_scenario("relay-video"))
+    sc = sc.model_copy(update={"strategy": {**sc.strategy, "positions": [8.0, 11.0, 13.0], "seconds": 2.0,
+                                            "netns_settle": 1.0, "netns_route_wait": 3.0}})
+    result = experiments.run("relay-video", sc, netns=True)
+    assert "babeld" in result.mode_note
+    _, lost, _ = result.series["relay/packet_loss"]
+    _, model, _ = result.series["relay/model_loss"]
+    assert model == pytest.approx([0.8, 0.92, 1.0], abs=0.01)  # applied: 45 % x 45 %, 10 % x 80 %, out of range
+    assert lost[0] < 1.0  # in the middle datagrams arrive through the relay, on babeld's route
+    assert lost[0] < lost[1] and lost[2] == 1.0  # more lost off the middle; 13 m from S: no link at all
+    _, kernel, _ = result.series["relay/kernel_loss_sr"]
+    assert 0.3 < kernel[0] < 0.8  # the kernel dropped S -> R frames in the middle (55 % applied)
+    _, delay, _ = result.series["relay/delay_median"]
+    assert delay[0] > 0
+    rows = {r.quantity: r for r in result.rows}
+    assert rows["loss of a hop"].kind == "input" and rows["lowest loss where"].kind == "measured"
+    result.plot(tmp_path / "fig.png")
+    result.write_csv(tmp_path / "numbers.csv")
+    quantities = {r["quantity"] for r in csv.DictReader((tmp_path / "numbers.csv").open()) if r["section"] == "series"}
+    assert {"packet_loss", "model_loss", "refused", "kernel_loss_sr", "routed", "delay_median"} <= quantities
