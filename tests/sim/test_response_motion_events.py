@@ -1,5 +1,6 @@
 """Paper 003, Table I: the behaviour stack cycles on the SIP that shows a commanded motion at
-once. The clock here stands still, so a SIP held back by the stack's rate would be held for good."""
+once, and the Pose of a reading that starts or stops motion is handed over at once. The clocks here
+stand still or move by hand, so a SIP or a Pose held back by a rate would be held for good."""
 
 from __future__ import annotations
 
