@@ -201,8 +201,10 @@ class TransportSettings(BaseModel):
             return None
         return load_identity(self.identity, self.revocations)
 
-    def make_endpoint(self, name: str, inbound_filter: InboundFilter | None = None) -> Endpoint:
-        """Build the endpoint these settings describe (ConfigError if the identity does not fit)."""
+    def make_endpoint(self, name: str, inbound_filter: InboundFilter | None = None,
+                      clock: Callable[[], float] = time.monotonic) -> Endpoint:
+        """Build the endpoint these settings describe (ConfigError if the identity does not fit);
+        `clock` times what expires in it (the agent's)."""
         identity = self.load_identity()
         limits = Limits(max_connections=self.max_connections, max_connections_per_host=self.max_connections_per_host,
                         idle_timeout=self.idle_timeout, frame_timeout=self.frame_timeout)
@@ -211,7 +213,7 @@ class TransportSettings(BaseModel):
             senders=self.senders, queue_limit=self.queue_limit, max_frame=self.max_frame,
             ack_timeout=self.ack_timeout, connect_timeout=self.connect_timeout, ttl=self.task_ttl,
             udp_loss=self.udp_loss, role=self.role, inbound_filter=inbound_filter, limits=limits,
-            revocations=Path(self.revocations) if self.revocations else None)
+            revocations=Path(self.revocations) if self.revocations else None, clock=clock)
         if self.wire == "zenoh":
             try:
                 from erni.transport.zenoh_wire import ZenohEndpoint
@@ -233,13 +235,16 @@ class TransportPlugin(Plugin[TransportSettings]):
 
     def setup(self) -> None:
         s = self.settings
+        # peers' silence, task deadlines, watch leases and status refreshes are timed by the agent's
+        # clock, as is what expires in the endpoint (a test's ManualClock moves them all)
+        self._now = self._require_agent().clock
         if self.endpoint_factory is not None:
             self.endpoint: Endpoint = self.endpoint_factory(self.agent_name)
             self.endpoint.inbound_filter = self.inbound_filter
             self.endpoint.role = s.role  # its frames carry the agent's role, as a real session's do
         else:
             try:
-                self.endpoint = s.make_endpoint(self.agent_name, self.inbound_filter)
+                self.endpoint = s.make_endpoint(self.agent_name, self.inbound_filter, self._now)
             except IdentityError as err:
                 raise ConfigError(str(err)) from None
         if s.insecure:
@@ -380,7 +385,7 @@ class TransportPlugin(Plugin[TransportSettings]):
         self._share_status()
         self._retry_pending(now)
         self._forward_to_watchers(now)
-        mono = time.monotonic()
+        mono = self._now()
         if mono >= self._next_liveness:  # O(peers): not on every run of a busy agent
             self._next_liveness = mono + self.settings.beacon_period / 4
             self._beacon_and_liveness(now)
@@ -403,14 +408,14 @@ class TransportPlugin(Plugin[TransportSettings]):
         if addr is None:
             return False
         self.endpoint.send(addr, kind, body, reliable=reliable, to=name)
-        self.sent_peer_at[name] = time.monotonic()
+        self.sent_peer_at[name] = self._now()
         return True
 
     def _send_task(self, task: Task) -> None:
         dest = task.destination
         assert dest is not None
         self.sent_to[task.uid] = dest
-        self.sent_at[task.uid] = time.monotonic()
+        self.sent_at[task.uid] = self._now()
         origin = self.received_from.get(task.uid)
         if origin:  # relayed: the receiver checks that we may relay for its originator
             sent = self._send_to_peer(dest, "task.relay", Relayed(task=task, role=self.origin_role.get(task.uid, "")),
@@ -418,7 +423,7 @@ class TransportPlugin(Plugin[TransportSettings]):
         else:
             sent = self._send_to_peer(dest, "task.add", task, reliable=True)
         if not sent:
-            self.pending[task.uid] = (dest, time.monotonic() + self.settings.task_ttl)
+            self.pending[task.uid] = (dest, self._now() + self.settings.task_ttl)
             self.log.info("task %s waits for agent %s to be discovered", task.uid, dest)
             return
         latest = self._task_now(task.uid)  # this run may have applied its performer's result already
@@ -443,7 +448,7 @@ class TransportPlugin(Plugin[TransportSettings]):
             self._send_result(origin, task)
 
     def _retry_pending(self, now: float) -> None:
-        mono = time.monotonic()
+        mono = self._now()
         for uid, (dest, deadline) in list(self.pending.items()):
             task = self._task_now(uid)
             if task is None or task.done:
@@ -459,7 +464,7 @@ class TransportPlugin(Plugin[TransportSettings]):
     def _check_links(self) -> None:
         """Fail tasks whose performer has not been heard for `link_deadline` seconds."""
         deadline = self.settings.link_deadline
-        mono = time.monotonic()
+        mono = self._now()
         for uid, dest in list(self.sent_to.items()):
             if uid in self.lost or uid in self.pending:
                 continue
@@ -575,7 +580,7 @@ class TransportPlugin(Plugin[TransportSettings]):
     def _on_watch_request(self, msg: Message, body: WatchRequest) -> None:
         key = (msg.sender, msg.reply)
         new = key not in self.watchers
-        self.watchers[key] = time.monotonic() + body.lease
+        self.watchers[key] = self._now() + body.lease
         self.watched.wakes = True
         if new:  # start the stream with the current state
             for obj in self.query(lambda o: isinstance(o, WATCHED)):
@@ -653,7 +658,7 @@ class TransportPlugin(Plugin[TransportSettings]):
         """Count a refusal; log it once per sender, kind and rule every 10 s; tell a task's sender."""
         self.endpoint.count(f"refused.{refusal.rule}")
         key = (msg.sender, msg.kind, refusal.rule)
-        mono = time.monotonic()
+        mono = self._now()
         if mono - self._refused_at.get(key, -math.inf) >= 10.0:
             more = self._refused_more.pop(key, 0)
             self._refused_at[key] = mono
@@ -724,7 +729,7 @@ class TransportPlugin(Plugin[TransportSettings]):
         only marks its peer heard (the liveness pass puts that on the board). Runs on the endpoint's
         receive thread; in a team of N each agent hears up to `beacon_fanout` of these a period."""
         if self._beacon_repeats(msg):
-            self.heard_at[msg.sender] = time.monotonic()
+            self.heard_at[msg.sender] = self._now()
             self._count_beacon(msg.sender, msg.body)
             return
         self.later(lambda: self._handle(msg))
@@ -811,7 +816,7 @@ class TransportPlugin(Plugin[TransportSettings]):
         if not name or name == self.agent_name:
             return
         now = time.time()
-        self.heard_at[name] = time.monotonic()
+        self.heard_at[name] = self._now()
         old = self.directory.get(name)
         address = f"{reply[0]}:{reply[1]}"
         if (beacon is None and old is not None and old.up and old.epoch == epoch and old.address == address
@@ -856,7 +861,7 @@ class TransportPlugin(Plugin[TransportSettings]):
 
     def _beacon_and_liveness(self, now: float) -> None:
         s = self.settings
-        mono = time.monotonic()
+        mono = self._now()
         if mono >= self._next_beacon:
             seen = (len(self.directory), len(self.learned))
             # a lone agent keeps announcing every period (it is heard by nobody yet, and costs nobody much)
@@ -958,7 +963,7 @@ class TransportPlugin(Plugin[TransportSettings]):
         if not objs and not gone:
             return
         s = self.settings
-        mono = time.monotonic()
+        mono = self._now()
         for obj in objs:
             targets, holders = self._status_targets(type(obj).__name__)
             if not targets:
@@ -1034,7 +1039,7 @@ class TransportPlugin(Plugin[TransportSettings]):
             return
         held = self._board.get(note.uid) if note.uid in self.status_in else None
         if held is None or self.status_base.get(note.uid) != note.base:
-            now = time.monotonic()
+            now = self._now()
             if now - self._resend_asked.get(note.uid, -math.inf) >= 1.0:
                 self._resend_asked[note.uid] = now
                 self.endpoint.send(msg.reply, "status.resend", Cancel(uid=note.uid), reliable=False, to=msg.sender)
@@ -1043,7 +1048,7 @@ class TransportPlugin(Plugin[TransportSettings]):
         self.change(held.model_copy(update={"stamp": note.stamp}), reports=[f"status from {msg.sender}"])
 
     def _forward_to_watchers(self, now: float) -> None:
-        mono = time.monotonic()
+        mono = self._now()
         for key, until in list(self.watchers.items()):
             if until < mono:
                 del self.watchers[key]

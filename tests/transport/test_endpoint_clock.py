@@ -78,3 +78,33 @@ def test_an_idle_session_is_forgotten_when_the_clock_passes_the_idle_limit():
     finally:
         a.stop()
         b.stop()
+
+
+def test_a_task_for_an_agent_never_discovered_fails_when_the_agents_clock_passes_its_ttl():
+    """The transport plugin times its own waits by the agent's clock: a 600 s task_ttl passes
+    when the test moves the clock, not before."""
+    from erni.blackboard import Agent, Task, TaskState
+    from tests.transport.helpers import auth_settings, free_port
+
+    clock = ManualClock()
+    control = Agent("control", workers=2, clock=clock)
+    control.add_plugin("transport", name="transport",
+                       settings={**auth_settings("control", "control"), "discovery_port": free_port(),
+                                 "beacon_period": 0.5, "peer_timeout": 2.0, "task_ttl": 600.0})
+    control.start()
+    try:
+        task = Task(verb="BotMotion", preposition="forward", params={"distance": 1.0}, source="control",
+                    destination="robot9")
+        with control.transaction() as tx:
+            tx.add(task)
+        wait_until(lambda: task.uid in control.plugin("transport").pending)
+        counters = control.plugin("transport").endpoint.counters
+        beacons = counters.get("sent.announce", 0)
+        clock.advance(599.0)
+        wait_until(lambda: counters.get("sent.announce", 0) > beacons)  # the plugin ran on the moved clock
+        assert not control.blackboard.get(task.uid).done, "599 s of the agent's clock: still waiting"
+        clock.advance(2.0)
+        failed = wait_until(lambda: (t := control.blackboard.get(task.uid)).done and t)
+        assert failed.result.state == TaskState.FAILED and "never discovered" in failed.result.message
+    finally:
+        control.stop()
