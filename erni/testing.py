@@ -192,9 +192,10 @@ class MockTeam:
 class ManualClock:
     """A clock that moves only when the test says: give it to `Agent(clock=...)`, then `advance()`.
 
-    Plugin wake-ups (`wake_in`, `wake_every`), the slow-run watch and task retention are timed by
-    the agent's clock; an agent made with this one runs them when the test advances it, without
-    waiting for them. (Thread joins at stop, transports and robots keep real time.)
+    Plugin wake-ups (`wake_in`, `wake_every`), the slow-run watch, task retention and the
+    transport's waits (a peer's silence, a task's deadline, a handshake, an idle session) are timed
+    by the agent's clock; an agent made with this one runs them when the test advances it, without
+    waiting for them. (Thread joins at stop, socket waits, retries' pace and robots keep real time.)
 
         clock = ManualClock()
         with agent_with(Ticker, clock=clock) as agent:
