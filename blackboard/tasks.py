@@ -13,6 +13,7 @@ import json
 import math
 import time
 import types
+from collections.abc import Callable, Container, Iterable
 from dataclasses import dataclass
 from typing import Any, ClassVar, Self, TypeVar, Union, get_args, get_origin
 
@@ -569,6 +570,29 @@ class NetInfo(BBObject):
         description="field name -> where its data came from (source and table, e.g. "
                     "'snmp 127.0.0.1:1162 OLSRv2-MIB olsrv2TibRoutingSetTable'), or "
                     "'missing: <why>' when the source does not provide it")
+
+
+def best_links(infos: Iterable[NetInfo], placed: Container[str], lost: Callable[[str], bool],
+               max_age: float, now: float) -> dict[tuple[str, str], tuple[float, bool]]:
+    """The links between `placed` nodes that NetInfo reports (its links and its node's neighbours),
+    the best of each pair: `{(a, b): (quality, stale)}` with a < b; a link is stale when its NetInfo
+    is older than `max_age` s (0: never) or an end is `lost`. A fresh link beats a stale one, then
+    the better quality wins. Degraded NetInfo is left out."""
+    best: dict[tuple[str, str], tuple[float, bool]] = {}
+    for info in infos:
+        if info.degraded:
+            continue
+        old = bool(max_age) and now - info.stamp > max_age
+        pairs = [(link.a, link.b, link.quality) for link in info.links]
+        pairs += [(info.node, n.name, n.quality) for n in info.neighbors]
+        for a, b, q in pairs:
+            if a == b or a not in placed or b not in placed:
+                continue
+            key = (min(a, b), max(a, b))
+            stale = old or lost(a) or lost(b)
+            if key not in best or (best[key][1], -best[key][0]) > (stale, -q):
+                best[key] = (q, stale)
+    return best
 
 
 def _shown_default(value: Any) -> str:

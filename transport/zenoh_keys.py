@@ -65,9 +65,7 @@ class ZenohSettings(BaseModel):
     @field_validator("connect", "listen")
     @classmethod
     def _endpoints(cls, values: list[str]) -> list[str]:
-        for value in values:
-            check_endpoint(value)
-        return values
+        return check_endpoints(values)
 
     @model_validator(mode="after")
     def _check(self) -> ZenohSettings:
@@ -96,6 +94,13 @@ def check_endpoint(value: str) -> str:
         raise ConfigError(f"zenoh endpoint {value[:80]!r}: expected PROTOCOL/HOST:PORT with PROTOCOL one of "
                          "tcp, udp, tls, quic, ws and PORT in 1..65535, e.g. tcp/192.0.2.1:7447")
     return value
+
+
+def check_endpoints(values: list[str]) -> list[str]:
+    """`check_endpoint` of each (a settings validator of `connect` and `listen` lists)."""
+    for value in values:
+        check_endpoint(value)
+    return values
 
 
 def address_of(name: str) -> Address:

@@ -28,6 +28,7 @@ from pydantic import BaseModel, Field
 
 from erni.blackboard import NetInfo, Plugin, Pose
 from erni.blackboard.schemas import Peer
+from erni.blackboard.tasks import best_links
 from erni.transport import parse_address
 
 GREEN, PINK, GREY = (0.2, 0.75, 0.3, 1.0), (1.0, 0.45, 0.7, 1.0), (0.55, 0.55, 0.55, 0.6)
@@ -215,19 +216,6 @@ class FoxglovePlugin(Plugin[FoxgloveSettings]):
     def link_list(self, poses: dict[str, Pose], peers: dict[str, Peer],
                   now: float) -> list[tuple[str, str, float, bool]]:
         """Links between placed robots from their NetInfo (a, b, quality, stale), the best of each pair."""
-        best: dict[tuple[str, str], tuple[float, bool]] = {}
-        max_age = self.settings.netinfo_max_age
-        for info in self.netinfo:
-            if info.degraded:
-                continue
-            old = bool(max_age) and now - info.stamp > max_age
-            pairs = [(link.a, link.b, link.quality) for link in info.links]
-            pairs += [(info.node, n.name, n.quality) for n in info.neighbors]
-            for a, b, q in pairs:
-                if a == b or a not in poses or b not in poses:
-                    continue
-                key = (min(a, b), max(a, b))
-                stale = old or any(end in peers and not peers[end].up for end in key)
-                if key not in best or (best[key][1], -best[key][0]) > (stale, -q):
-                    best[key] = (q, stale)
+        best = best_links(self.netinfo, poses, lambda end: end in peers and not peers[end].up,
+                          self.settings.netinfo_max_age, now)
         return [(a, b, q, stale) for (a, b), (q, stale) in sorted(best.items())]

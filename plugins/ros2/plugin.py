@@ -27,7 +27,7 @@ from erni.blackboard.plugin import Plugin
 from erni.blackboard.tasks import NetInfo, Pose, Task, TaskState
 from erni.plugins.ros2 import messages
 from erni.plugins.ros2.rmw import DEFAULT_QOS, QoS, RmwNode
-from erni.transport.zenoh_keys import check_endpoint
+from erni.transport.zenoh_keys import check_endpoints
 
 NAME_CHARS = "abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_"
 RECONNECT = 2.0  # s between attempts to open a session of its own whose router is not reachable
@@ -70,9 +70,7 @@ class ROS2Settings(BaseModel):
     @field_validator("connect", "listen")
     @classmethod
     def _endpoints(cls, values: list[str]) -> list[str]:
-        for value in values:
-            check_endpoint(value)
-        return values
+        return check_endpoints(values)
 
     @field_validator("robots")
     @classmethod

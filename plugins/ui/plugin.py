@@ -23,6 +23,7 @@ from pydantic import BaseModel, ConfigDict, Field, SecretStr, field_validator
 from erni import netgraph
 from erni.blackboard import NetInfo, Plugin, Pose, Task
 from erni.blackboard.schemas import Peer, load_floorplan
+from erni.blackboard.tasks import best_links
 from erni.logs import mask_secrets
 from erni.plugins.ui.dialogue import ROGER, Dialogue, Memory, Naming, Reply, RobotView, Sent, restate, tasks_for
 from erni.plugins.ui.grammar import ATTENTION, STANDARD_ACTIONS, Refusal, strategies
@@ -363,21 +364,7 @@ class UIPlugin(Plugin[UISettings]):
 
     def _links(self, names: set[str], up: set[str]) -> list[dict[str, Any]]:
         """Links between robots from their NetInfo, best quality first; `stale` when old or an end is lost."""
-        best: dict[tuple[str, str], tuple[float, bool]] = {}
-        max_age, now = self.settings.netinfo_max_age, time.time()
-        for info in self.netinfo:
-            if info.degraded:
-                continue
-            old = bool(max_age) and now - info.stamp > max_age
-            pairs = [(link.a, link.b, link.quality) for link in info.links]
-            pairs += [(info.node, n.name, n.quality) for n in info.neighbors]
-            for a, b, q in pairs:
-                if a == b or a not in names or b not in names:
-                    continue
-                key = (min(a, b), max(a, b))
-                stale = old or a not in up or b not in up
-                if key not in best or (best[key][1], -best[key][0]) > (stale, -q):
-                    best[key] = (q, stale)
+        best = best_links(self.netinfo, names, lambda end: end not in up, self.settings.netinfo_max_age, time.time())
         return [{"a": a, "b": b, "quality": round(q, 3), "stale": stale}
                 for (a, b), (q, stale) in sorted(best.items())]
 
