@@ -19,7 +19,8 @@ from typing import Any
 
 import numpy as np
 from rosbags.interfaces import Nodetype
-from rosbags.typesys import Stores, get_typestore
+from rosbags.serde import SerdeError
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from erni.blackboard.errors import TaskError, UsageError
 from erni.blackboard.tasks import Link, NetInfo, Pose, Task
@@ -38,6 +39,28 @@ DIAGNOSTIC_ARRAY = "diagnostic_msgs/msg/DiagnosticArray"
 LASER_SCAN = "sensor_msgs/msg/LaserScan"
 TWIST = "geometry_msgs/msg/Twist"
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
+GOAL_STATUS_ARRAY = "action_msgs/msg/GoalStatusArray"
+TRIGGER = "std_srvs/srv/Trigger"
+CANCEL_GOAL = "action_msgs/srv/CancelGoal"
+NAVIGATE_TO_POSE = "nav2_msgs/action/NavigateToPose"
+SEND_GOAL = f"{NAVIGATE_TO_POSE}_SendGoal"
+GET_RESULT = f"{NAVIGATE_TO_POSE}_GetResult"
+FEEDBACK_MESSAGE = f"{NAVIGATE_TO_POSE}_FeedbackMessage"
+
+# rosbags' Jazzy store has messages only: the services and the action ERNI serves are defined here from
+# their interface files (std_srvs/srv/Trigger.srv, action_msgs/srv/CancelGoal.srv, and Nav2 Jazzy's
+# nav2_msgs/action/NavigateToPose.action), constants left out (they are not on the wire nor in the hash)
+SERVICES = {
+    TRIGGER: ("", "bool success\nstring message\n"),
+    CANCEL_GOAL: ("action_msgs/GoalInfo goal_info\n", "int8 return_code\naction_msgs/GoalInfo[] goals_canceling\n"),
+}
+ACTIONS = {
+    NAVIGATE_TO_POSE: ("geometry_msgs/PoseStamped pose\nstring behavior_tree\n",
+                       "uint16 error_code\nstring error_msg\n",
+                       "geometry_msgs/PoseStamped current_pose\nbuiltin_interfaces/Duration navigation_time\n"
+                       "builtin_interfaces/Duration estimated_time_remaining\nint16 number_of_recoveries\n"
+                       "float32 distance_remaining\n"),
+}
 
 _NUMPY = {"bool": np.bool_, "byte": np.uint8, "char": np.uint8, "int8": np.int8, "uint8": np.uint8,
           "int16": np.int16, "uint16": np.uint16, "int32": np.int32, "uint32": np.uint32, "int64": np.int64,
@@ -63,6 +86,70 @@ def _default(node: tuple[Any, Any]) -> Any:
     return []
 
 
+def _interface_types(typename: str, text: str) -> dict[str, Any]:
+    """Field definitions of a service's or an action's part from its text, named as ROS 2 names it
+    ('std_srvs/srv/Trigger_Request': rosbags would file it under 'std_srvs/srv/msg/...')."""
+    def fix(name: str) -> str:
+        return name.replace("/srv/msg/", "/srv/").replace("/action/msg/", "/action/")
+
+    def fix_node(node: Any) -> Any:
+        kind, detail = node
+        if kind == Nodetype.NAME:
+            return kind, fix(detail)
+        if kind in (Nodetype.ARRAY, Nodetype.SEQUENCE):
+            return kind, (fix_node(detail[0]), detail[1])
+        return node
+
+    return {fix(name): (consts, [(field, fix_node(node)) for field, node in fields])
+            for name, (consts, fields) in get_types_from_msg(text, typename).items()}
+
+
+def _service_types(service: str, request: str, response: str) -> dict[str, Any]:
+    """A service's request, response and event types, and the service itself as the type whose RIHS01
+    hash rmw_zenoh writes (REP 2011: request_message, response_message, event_message)."""
+    types = {**_interface_types(f"{service}_Request", request), **_interface_types(f"{service}_Response", response)}
+    types.update(_interface_types(f"{service}_Event", f"service_msgs/ServiceEventInfo info\n"
+                                  f"{service}_Request[<=1] request\n{service}_Response[<=1] response\n"))
+    types.update(_interface_types(service, f"{service}_Request request_message\n{service}_Response response_message\n"
+                                  f"{service}_Event event_message\n"))
+    return types
+
+
+def _register_interfaces() -> None:
+    types: dict[str, Any] = {}
+    for service, (request, response) in SERVICES.items():
+        types.update(_service_types(service, request, response))
+    for action, (goal, result, feedback) in ACTIONS.items():
+        types.update(_interface_types(f"{action}_Goal", goal))
+        types.update(_interface_types(f"{action}_Result", result))
+        types.update(_interface_types(f"{action}_Feedback", feedback))
+        types.update(_service_types(f"{action}_SendGoal", f"unique_identifier_msgs/UUID goal_id\n{action}_Goal goal\n",
+                                    "bool accepted\nbuiltin_interfaces/Time stamp\n"))
+        types.update(_service_types(f"{action}_GetResult", "unique_identifier_msgs/UUID goal_id\n",
+                                    f"int8 status\n{action}_Result result\n"))
+        types.update(_interface_types(f"{action}_FeedbackMessage",
+                                      f"unique_identifier_msgs/UUID goal_id\n{action}_Feedback feedback\n"))
+    for store in (TYPESTORE, _HASHING):
+        store.register({k: v for k, v in types.items() if k not in store.types})
+
+
+def _char_as_uint8(node: Any) -> Any:
+    kind, detail = node
+    if kind == Nodetype.BASE and detail[0] == "char":
+        return kind, ("uint8", detail[1])
+    if kind in (Nodetype.ARRAY, Nodetype.SEQUENCE):
+        return kind, (_char_as_uint8(detail[0]), detail[1])
+    return node
+
+
+#: the store type hashes are computed from: rosidl reads a .msg's `char` as `uint8` before hashing
+#: (service_msgs/ServiceEventInfo's `char[16] client_gid`, in every service's hash)
+_HASHING = get_typestore(Stores.ROS2_JAZZY)
+for _name, (_consts, _fields) in list(_HASHING.fielddefs.items()):
+    _HASHING.fielddefs[_name] = (_consts, [(field, _char_as_uint8(node)) for field, node in _fields])
+_register_interfaces()
+
+
 def make(typename: str, **fields: Any) -> Message:
     """A message of `typename` ('nav_msgs/msg/Odometry') with `fields` set and every other field at
     its ROS default (zero, empty, nested defaults). KeyError for a type Jazzy does not have, UsageError
@@ -82,13 +169,17 @@ def serialize(msg: Message) -> bytes:
 
 
 def deserialize(data: bytes, typename: str) -> Message:
-    """The message of `typename` in CDR `data` (as `serialize` writes it)."""
-    return TYPESTORE.deserialize_cdr(data, typename)
+    """The message of `typename` in CDR `data` (as `serialize` writes it); UsageError (a ValueError) for
+    bytes that are not one."""
+    try:
+        return TYPESTORE.deserialize_cdr(data, typename)
+    except SerdeError as err:
+        raise UsageError(f"not a {typename}: {str(err).split(': ')[-1]}") from None
 
 
 def type_hash(typename: str) -> str:
     """The type's RIHS01 hash as rmw_zenoh writes it in key expressions ('RIHS01_<64 hex>')."""
-    return TYPESTORE.hash_rihs01(typename)
+    return _HASHING.hash_rihs01(typename)
 
 
 def dds_type_name(typename: str) -> str:
@@ -137,6 +228,22 @@ def quaternion(theta: float) -> Message:
 def yaw(q: Message) -> float:
     """The heading about +z (rad) of a geometry_msgs/Quaternion."""
     return math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
+
+
+def duration(seconds: float) -> Message:
+    """builtin_interfaces/Duration of a time span (s)."""
+    sec, nanosec = divmod(round(seconds * 1e9), 1_000_000_000)
+    return make("builtin_interfaces/msg/Duration", sec=sec, nanosec=nanosec)
+
+
+def uuid(data: bytes) -> Message:
+    """unique_identifier_msgs/UUID of 16 bytes (an action goal's id)."""
+    return make("unique_identifier_msgs/msg/UUID", uuid=np.frombuffer(bytes(data), dtype=np.uint8).copy())
+
+
+def ros_pose(x: float, y: float, theta: float) -> Message:
+    """geometry_msgs/Pose at (x, y) heading theta (rad)."""
+    return _ros_pose(x, y, theta)
 
 
 def _ros_pose(x: float, y: float, theta: float) -> Message:

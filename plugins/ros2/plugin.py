@@ -1,5 +1,7 @@
 """The `ros2` plugin: the team as ROS 2 topics over rmw_zenoh, and ROS 2 commands as ERNI tasks.
 
+Serves std_srvs/Trigger on `/<robot>/stop` and `/erni/stop` (a BotMotion stop, answered once the robot
+halted) and Nav2's NavigateToPose action on `/<robot>/navigate_to_pose` (a goto, then a turn).
 Publishes each robot's Pose as nav_msgs/Odometry on `/<robot>/odom`, as a transform on `/tf` and its
 sonar echoes as a sensor_msgs/LaserScan on `/<robot>/sonar`, task
 results as std_msgs/String (JSON) on `/erni/task_status`, the network as a MarkerArray on
@@ -22,11 +24,11 @@ from typing import Any, Literal
 import zenoh
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from erni.blackboard.errors import NetworkError
+from erni.blackboard.errors import NetworkError, UsageError
 from erni.blackboard.plugin import Plugin
 from erni.blackboard.tasks import NetInfo, Pose, Task, TaskState
 from erni.plugins.ros2 import messages
-from erni.plugins.ros2.rmw import DEFAULT_QOS, QoS, RmwNode
+from erni.plugins.ros2.rmw import DEFAULT_QOS, QoS, Request, RmwNode
 from erni.transport.zenoh_keys import check_endpoints
 
 NAME_CHARS = "abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_"
@@ -66,6 +68,11 @@ class ROS2Settings(BaseModel):
     goal_heading: bool = Field(True, description="after a goal_pose's goto, turn to the pose's heading")
     heading_tolerance: float = Field(2.0, gt=0, le=45, description="a goal's heading needs no turn within this "
                                      "(deg); the turn's accepted error")
+    stop_service: bool = Field(True, description="serve std_srvs/Trigger on /<robot>/stop and /erni/stop")
+    stop_timeout: float = Field(5.0, gt=0, le=60, description="a stop's answer is a failure when the robot has not "
+                                "halted within this (s)")
+    navigate_to_pose: bool = Field(True, description="serve Nav2's nav2_msgs/action/NavigateToPose on "
+                                   "/<robot>/navigate_to_pose")
 
     @field_validator("connect", "listen")
     @classmethod
@@ -113,7 +120,48 @@ class _Drive:
     goal: Task | None = None  # the goto of the newest goal_pose
     heading: float | None = None  # the heading (rad) to turn to once that goto succeeds
     turn: Task | None = None  # that turn
-    goals: list[tuple[dict[str, float], float | None]] = field(default_factory=list)
+    goals: list[tuple[dict[str, float], float | None, bytes | None]] = field(default_factory=list)
+    action: bytes | None = None  # the NavigateToPose goal that goal is, if it is one
+
+
+# action_msgs/msg/GoalStatus
+ACCEPTED, EXECUTING, CANCELING, SUCCEEDED, CANCELED, ABORTED = 1, 2, 3, 4, 5, 6
+UNKNOWN_ERROR = 9000  # nav2_msgs/action/NavigateToPose_Result.UNKNOWN
+KEEP_ENDED_GOALS = 100  # ended goals whose results are kept for get_result
+
+
+@dataclass
+class _Goal:
+    """A NavigateToPose goal: the goto (then the turn) that carries it, its status, who waits for its result."""
+
+    goal_id: bytes
+    robot: str
+    stamp_ns: int
+    x: float
+    y: float
+    started: float
+    run: int  # the plugin's run that posted it (its tasks are on the blackboard from the next one)
+    status: int = ACCEPTED
+    goto: str | None = None
+    turn: str | None = None  # None: not decided yet; "": no turn
+    cancel: bool = False
+    error: str = ""
+    waiters: list[Request] = field(default_factory=list)
+    feedback_at: float = -math.inf
+
+    @property
+    def ended(self) -> bool:
+        return self.status in (SUCCEEDED, CANCELED, ABORTED)
+
+
+@dataclass
+class _Stop:
+    """A call of a stop service: the stop task posted for each robot, answered once all halted (or not)."""
+
+    request: Request
+    uids: dict[str, str]
+    deadline: float
+    run: int
 
 
 class ROS2Plugin(Plugin[ROS2Settings]):
@@ -128,6 +176,10 @@ class ROS2Plugin(Plugin[ROS2Settings]):
         self._own: zenoh.Session | None = None
         self._outbox: queue.Queue[tuple[str, str, bytes, int] | None] = queue.Queue(maxsize=1000)
         self._drives: dict[str, _Drive] = {}
+        self._calls: list[tuple[str, str | None, Request]] = []  # service calls from Zenoh's threads
+        self._stops: list[_Stop] = []
+        self._goals: dict[bytes, _Goal] = {}
+        self._run = 0
         self._lock = threading.Lock()
         self._last_odom: dict[str, float] = {}
         self._pending_odom: dict[str, Pose] = {}
@@ -194,6 +246,8 @@ class ROS2Plugin(Plugin[ROS2Settings]):
                                                 (messages.DIAGNOSTIC_ARRAY, "/diagnostics", self.settings.network)):
                     if wanted:  # declared at once: ROS 2 tools list them before the first message
                         self.node.publisher(topic, typename, self._qos(typename))
+                if self.settings.stop_service:
+                    self.node.service("/erni/stop", messages.TRIGGER, lambda r: self._on_call("stop", None, r))
                 self.wake()  # declare the robots known so far
             try:
                 item = self._outbox.get(timeout=0.2)
@@ -225,6 +279,16 @@ class ROS2Plugin(Plugin[ROS2Settings]):
             self.node.subscribe(f"{base}/cmd_vel", messages.TWIST, lambda data: self._on_cmd_vel(robot, data))
         if self.settings.goal_pose:
             self.node.subscribe(f"{base}/goal_pose", messages.POSE_STAMPED, lambda data: self._on_goal(robot, data))
+        if self.settings.stop_service:
+            self.node.service(f"{base}/stop", messages.TRIGGER, lambda r: self._on_call("stop", robot, r))
+        if self.settings.navigate_to_pose:
+            action = f"{base}/navigate_to_pose/_action"
+            for name, srvtype in (("send_goal", messages.SEND_GOAL), ("get_result", messages.GET_RESULT),
+                                  ("cancel_goal", messages.CANCEL_GOAL)):
+                self.node.service(f"{action}/{name}", srvtype,
+                                  lambda r, name=name: self._on_call(name, robot, r))  # type: ignore[misc]
+            self.node.publisher(f"{action}/feedback", messages.FEEDBACK_MESSAGE)
+            self.node.publisher(f"{action}/status", messages.GOAL_STATUS_ARRAY)
 
     def _send(self, typename: str, topic: str, msg: Any, stamp_ns: int) -> None:
         try:
@@ -257,7 +321,13 @@ class ROS2Plugin(Plugin[ROS2Settings]):
             return
         heading = messages.goal_heading(msg) if self.settings.goal_heading else None
         with self._lock:
-            self._drives.setdefault(robot, _Drive()).goals.append((params, heading))
+            self._drives.setdefault(robot, _Drive()).goals.append((params, heading, None))
+        self.wake()
+
+    def _on_call(self, kind: str, robot: str | None, request: Request) -> None:
+        """A service call (stop, or one of NavigateToPose's): answered by the plugin's thread."""
+        with self._lock:
+            self._calls.append((kind, robot, request))
         self.wake()
 
     # --- the blackboard side ------------------------------------------------------------------
@@ -272,7 +342,23 @@ class ROS2Plugin(Plugin[ROS2Settings]):
         return {p.robot for p in self.poses}
 
     def execute(self) -> None:
+        self._run += 1
         robots = self._robots()
+        with self._lock:
+            calls, self._calls = self._calls, []
+        for kind, robot, request in calls:
+            try:
+                if kind == "stop":
+                    self._call_stop(robot, request, robots)
+                elif kind == "send_goal":
+                    self._call_send_goal(str(robot), request)
+                elif kind == "get_result":
+                    self._call_get_result(request)
+                else:
+                    self._call_cancel_goal(str(robot), request)
+            except (ValueError, KeyError, IndexError, AssertionError) as err:  # a request that does not decode
+                self.log.warning("ros2: %s for %s refused: %s", kind, robot or "every robot", err)
+                request.fail(f"{kind}: the request does not decode: {err}")
         for robot in sorted(robots - self._declared):
             if self.node is not None:
                 self._declared.add(robot)
@@ -289,6 +375,8 @@ class ROS2Plugin(Plugin[ROS2Settings]):
                 stamp_ns = messages.stamp_ns_of(info.stamp)
                 self._send(messages.DIAGNOSTIC_ARRAY, "/diagnostics", messages.diagnostics(info, stamp_ns), stamp_ns)
         self._drive(robots)
+        self._answer_stops()
+        self._update_goals()
 
     def _publish_poses(self, robots: set[str]) -> None:
         """Odometry (and /tf) of the robots' new poses, at most odom_rate_hz per robot; a pose held back by
@@ -364,7 +452,7 @@ class ROS2Plugin(Plugin[ROS2Settings]):
         now = time.monotonic()
         with self._lock:
             drives = {r: d for r, d in self._drives.items() if r in robots}
-            pending: dict[str, list[tuple[dict[str, float], float | None]]] = {}
+            pending: dict[str, list[tuple[dict[str, float], float | None, bytes | None]]] = {}
             for robot, d in drives.items():
                 pending[robot], d.goals = d.goals, []
             for robot, d in drives.items():
@@ -387,14 +475,22 @@ class ROS2Plugin(Plugin[ROS2Settings]):
                         d.task = self._task(robot, "velocity", d.params)
                         d.started = now
                         self.add(d.task)
-                for goal, heading in pending[robot]:
+                for goal, heading, goal_id in pending[robot]:
+                    action = self._goals.get(goal_id) if goal_id is not None else None
+                    if action is not None and action.cancel:  # cancelled in the run that accepted it
+                        self._end_goal(action, CANCELED, "canceled before it started")
+                        continue
                     for earlier in (d.goal, d.turn):
                         current = self.get(earlier.uid) if earlier is not None else None
                         if isinstance(current, Task) and not current.done:
                             self.remove(current)  # a new goal replaces the one being driven to
                     d.goal = self._task(robot, "goto", {**goal, "speed": s.goal_speed, "tolerance": s.goal_tolerance})
-                    d.heading, d.turn = heading, None
+                    d.heading, d.turn, d.action = heading, None, goal_id
                     self.add(d.goal)
+                    if action is not None:
+                        action.goto, action.run = d.goal.uid, self._run
+                        if heading is None:
+                            action.turn = ""
                 self._turn_after_goal(robot, d)
 
     def _turn_after_goal(self, robot: str, d: _Drive) -> None:
@@ -406,12 +502,193 @@ class ROS2Plugin(Plugin[ROS2Settings]):
             return  # not committed yet (posted in this run), running, or removed (then a new goal resets it)
         heading, d.heading = d.heading, None
         pose = self.get(f"pose:{robot}")
+        action = self._goals.get(d.action) if d.action is not None else None
+        if action is not None:
+            action.turn = ""
         if current.state is not TaskState.SUCCEEDED or not isinstance(pose, Pose):
             return  # the goto failed or was cancelled: no turn
         angle = math.degrees(math.atan2(math.sin(heading - pose.theta), math.cos(heading - pose.theta)))
         if abs(angle) > self.settings.heading_tolerance:
             d.turn = self._task(robot, "turn", {"angle": angle, "tolerance": self.settings.heading_tolerance})
             self.add(d.turn)
+            if action is not None:
+                action.turn, action.run = d.turn.uid, self._run
+
+    # --- services: stop, and NavigateToPose ------------------------------------------------------
+
+    def _call_stop(self, robot: str | None, request: Request, robots: set[str]) -> None:
+        """A BotMotion stop for the robot (or every robot served): it ends every motion, whatever posted it."""
+        targets = [robot] if robot is not None else sorted(robots)
+        if not targets:
+            request.reply(messages.serialize(messages.make(f"{messages.TRIGGER}_Response", success=False,
+                                                           message="no robots to stop")))
+            return
+        uids = {}
+        for name in targets:
+            task = self._task(name, "stop", {})
+            self.add(task)
+            uids[name] = task.uid
+        self.log.info("ros2: stop called for %s", ", ".join(targets))
+        self._stops.append(_Stop(request, uids, time.monotonic() + self.settings.stop_timeout, self._run))
+
+    def _answer_stops(self) -> None:
+        """A stop's answer: success once every robot's stop task succeeded (the robot halted); a failure as soon
+        as one failed or was refused, or when one has not halted within stop_timeout."""
+        now = time.monotonic()
+        waiting = []
+        for stop in self._stops:
+            failed: list[str] = []
+            halted = []
+            for robot, uid in stop.uids.items():
+                task = self.get(uid)
+                if not isinstance(task, Task):
+                    if stop.run != self._run:
+                        failed.append(f"{robot}: the stop task is gone")
+                elif task.state is TaskState.SUCCEEDED:
+                    halted.append(robot)
+                elif task.done:
+                    failed.append(f"{robot}: stop {task.state.value}"
+                                  + (f": {task.result.message}" if task.result and task.result.message else ""))
+            if not failed and len(halted) < len(stop.uids) and now >= stop.deadline:
+                failed = [f"{r}: not halted within {self.settings.stop_timeout:g} s" for r in stop.uids
+                          if r not in halted]
+            if failed or len(halted) == len(stop.uids):
+                message = "; ".join(failed) if failed else f"halted: {', '.join(halted)}"
+                stop.request.reply(messages.serialize(messages.make(f"{messages.TRIGGER}_Response",
+                                                                    success=not failed, message=message)))
+            else:
+                waiting.append(stop)
+                self.wake_in(0.05)
+        self._stops = waiting
+
+    def _call_send_goal(self, robot: str, request: Request) -> None:
+        msg = messages.deserialize(request.payload, f"{messages.SEND_GOAL}_Request")
+        goal_id = bytes(msg.goal_id.uuid)
+        now_ns = time.time_ns()
+        try:
+            if goal_id in self._goals:
+                raise UsageError("a goal with this id exists")
+            params = messages.goto_params(msg.goal.pose)
+        except ValueError as err:
+            self.log.warning("ros2: navigate_to_pose goal for %s rejected: %s", robot, err)
+            request.reply(messages.serialize(messages.make(f"{messages.SEND_GOAL}_Response", accepted=False,
+                                                           stamp=messages.stamp(now_ns))))
+            return
+        heading = messages.goal_heading(msg.goal.pose) if self.settings.goal_heading else None
+        self._goals[goal_id] = _Goal(goal_id, robot, now_ns, params["x"], params["y"], time.monotonic(), self._run)
+        with self._lock:
+            self._drives.setdefault(robot, _Drive()).goals.append((params, heading, goal_id))
+        request.reply(messages.serialize(messages.make(f"{messages.SEND_GOAL}_Response", accepted=True,
+                                                       stamp=messages.stamp(now_ns))))
+        self._publish_goal_status(robot)
+
+    def _call_get_result(self, request: Request) -> None:
+        msg = messages.deserialize(request.payload, f"{messages.GET_RESULT}_Request")
+        goal = self._goals.get(bytes(msg.goal_id.uuid))
+        if goal is None:  # rcl_action answers an unknown goal at once, with status UNKNOWN
+            request.reply(self._result(None))
+        elif goal.ended:
+            request.reply(self._result(goal))
+        else:
+            goal.waiters.append(request)
+
+    @staticmethod
+    def _result(goal: _Goal | None) -> bytes:
+        code = 0 if goal is None or goal.status == SUCCEEDED else UNKNOWN_ERROR
+        result = messages.make(f"{messages.NAVIGATE_TO_POSE}_Result", error_code=code,
+                               error_msg=goal.error if goal is not None else "")
+        return messages.serialize(messages.make(f"{messages.GET_RESULT}_Response",
+                                                status=goal.status if goal is not None else 0, result=result))
+
+    def _call_cancel_goal(self, robot: str, request: Request) -> None:
+        """rcl_action's rules: a zero goal id and a zero stamp cancel every goal, a zero id and a stamp every goal
+        accepted at or before it, an id that goal (and those at or before a stamp given with it)."""
+        msg = messages.deserialize(request.payload, f"{messages.CANCEL_GOAL}_Request")
+        goal_id = bytes(msg.goal_info.goal_id.uuid)
+        stamp_ns = msg.goal_info.stamp.sec * 1_000_000_000 + msg.goal_info.stamp.nanosec
+        mine = [g for g in self._goals.values() if g.robot == robot]
+        chosen = [g for g in mine if g.goal_id == goal_id or (not any(goal_id) and not stamp_ns)
+                  or (stamp_ns and g.stamp_ns <= stamp_ns)]
+        canceling = [g for g in chosen if not g.ended]
+        for goal in canceling:
+            goal.cancel, goal.status = True, CANCELING
+            for uid in (goal.goto, goal.turn):
+                task = self.get(uid) if uid else None
+                if isinstance(task, Task) and not task.done:
+                    self.remove(task)
+        code = 0 if canceling else (3 if chosen else (2 if any(goal_id) else 0))  # NONE, GOAL_TERMINATED, UNKNOWN_GOAL_ID
+        infos = [messages.make("action_msgs/msg/GoalInfo", goal_id=messages.uuid(g.goal_id),
+                               stamp=messages.stamp(g.stamp_ns)) for g in canceling]
+        request.reply(messages.serialize(messages.make(f"{messages.CANCEL_GOAL}_Response", return_code=code,
+                                                       goals_canceling=infos)))
+        if canceling:
+            self._publish_goal_status(robot)
+
+    def _update_goals(self) -> None:
+        """Each goal's status from its goto and turn; feedback while it runs; the result to those waiting."""
+        now = time.monotonic()
+        changed: set[str] = set()
+        for goal in self._goals.values():
+            if goal.ended or goal.goto is None or goal.run == self._run:
+                continue
+            before = goal.status
+            goto = self.get(goal.goto)
+            turn = self.get(goal.turn) if goal.turn else None
+            if isinstance(goto, Task) and goto.state is TaskState.SUCCEEDED and goal.turn:
+                current: Any = turn
+            else:
+                current = goto
+            if not isinstance(current, Task):
+                self._end_goal(goal, CANCELED if goal.cancel else ABORTED, "the task was removed")
+            elif current.state is TaskState.SUCCEEDED and (current is turn or goal.turn == ""):
+                self._end_goal(goal, SUCCEEDED, "")
+            elif current.done:
+                message = current.result.message if current.result else ""
+                self._end_goal(goal, CANCELED if goal.cancel else ABORTED, f"{current.preposition} "
+                               f"{current.state.value}" + (f": {message}" if message else ""))
+            elif not goal.cancel and current.state is TaskState.RUNNING:
+                goal.status = EXECUTING
+            if goal.status != before:
+                changed.add(goal.robot)
+            if goal.status == EXECUTING and now - goal.feedback_at >= 1.0 / self.settings.odom_rate_hz:
+                goal.feedback_at = now
+                self._publish_feedback(goal, now)
+            if not goal.ended:
+                self.wake_in(0.1)
+        for robot in changed:
+            self._publish_goal_status(robot)
+        ended = [g.goal_id for g in self._goals.values() if g.ended]
+        for goal_id in ended[:max(0, len(ended) - KEEP_ENDED_GOALS)]:
+            del self._goals[goal_id]
+
+    def _end_goal(self, goal: _Goal, status: int, error: str) -> None:
+        goal.status, goal.error = status, error
+        waiters, goal.waiters = goal.waiters, []
+        for request in waiters:
+            request.reply(self._result(goal))
+
+    def _publish_feedback(self, goal: _Goal, now: float) -> None:
+        pose = self.get(f"pose:{goal.robot}")
+        if not isinstance(pose, Pose):
+            return
+        stamp_ns = messages.stamp_ns_of(pose.stamp)
+        current = messages.make(messages.POSE_STAMPED, header=messages.header(stamp_ns, self.settings.frame),
+                                pose=messages.ros_pose(pose.x, pose.y, pose.theta))
+        feedback = messages.make(f"{messages.NAVIGATE_TO_POSE}_Feedback", current_pose=current,
+                                 navigation_time=messages.duration(now - goal.started),
+                                 distance_remaining=math.hypot(goal.x - pose.x, goal.y - pose.y))
+        self._send(messages.FEEDBACK_MESSAGE, f"/{ros_name(goal.robot)}/navigate_to_pose/_action/feedback",
+                   messages.make(messages.FEEDBACK_MESSAGE, goal_id=messages.uuid(goal.goal_id), feedback=feedback),
+                   stamp_ns)
+
+    def _publish_goal_status(self, robot: str) -> None:
+        stamp_ns = time.time_ns()
+        statuses = [messages.make("action_msgs/msg/GoalStatus", status=g.status,
+                                  goal_info=messages.make("action_msgs/msg/GoalInfo", goal_id=messages.uuid(g.goal_id),
+                                                          stamp=messages.stamp(g.stamp_ns)))
+                    for g in self._goals.values() if g.robot == robot]
+        self._send(messages.GOAL_STATUS_ARRAY, f"/{ros_name(robot)}/navigate_to_pose/_action/status",
+                   messages.make(messages.GOAL_STATUS_ARRAY, status_list=statuses), stamp_ns)
 
     def teardown(self) -> None:
         self._closing.set()

@@ -9,8 +9,12 @@ What a ROS 2 node on `RMW_IMPLEMENTATION=rmw_zenoh_cpp` expects, without ROS 2:
   publisher's 16-byte GID, in Zenoh's serialisation (little-endian integers, the GID a sequence whose
   length, 16, is one LEB128 byte);
 - discovery is by liveliness tokens under `@ros2_lv/<domain>/<session zid>/<node id>/...`: one per node
-  (`NN`) and one per publisher (`MP`) or subscription (`MS`), the names mangled ('/' written '%'),
-  with the QoS in rmw_zenoh's compact form.
+  (`NN`) and one per publisher (`MP`), subscription (`MS`) or service server (`SS`), the names mangled
+  ('/' written '%'), with the QoS in rmw_zenoh's compact form;
+- a service is a queryable (complete) on the key expression a topic of the service's type would have;
+  a request is a query whose payload is the request's CDR and whose attachment is a topic sample's
+  (the client's sequence number, its time, its GID); the reply carries the response's CDR and an
+  attachment with the request's sequence number and GID and the reply's time.
 """
 
 from __future__ import annotations
@@ -139,6 +143,77 @@ class Subscription:
         self._sub.undeclare()  # type: ignore[no-untyped-call]
 
 
+class Request:
+    """A service request taken by a `Service`: its CDR payload, the client's sequence number and GID, and
+    `reply(payload)`, which may be called later from any thread (once; later calls do nothing)."""
+
+    def __init__(self, service: Service, query: zenoh.Query, payload: bytes, sequence: int, gid: bytes) -> None:
+        self.service, self.payload, self.sequence, self.gid = service, payload, sequence, gid
+        self._query: zenoh.Query | None = query
+        self._lock = threading.Lock()
+
+    def reply(self, payload: bytes) -> bool:
+        """Send the response (CDR) with rmw_zenoh's attachment: the request's sequence number and the
+        client's GID, the time of the reply. False if already answered or the session is gone."""
+        with self._lock:
+            query, self._query = self._query, None
+        if query is None:
+            return False
+        try:
+            query.reply(self.service.key, payload, encoding=zenoh.Encoding("application/cdr"),
+                        attachment=attachment(self.sequence, time.time_ns(), self.gid))
+        except zenoh.ZError:
+            return False
+        finally:
+            query.drop()  # type: ignore[no-untyped-call]  # the reply is final: the client's get ends here
+        return True
+
+    def fail(self, message: str) -> bool:
+        """Answer with a Zenoh error reply instead (a request that cannot be served); False if already answered."""
+        with self._lock:
+            query, self._query = self._query, None
+        if query is None:
+            return False
+        try:
+            query.reply_err(message.encode())
+        except zenoh.ZError:
+            return False
+        finally:
+            query.drop()  # type: ignore[no-untyped-call]
+        return True
+
+
+class Service:
+    """A service server of an `RmwNode`: a queryable on the service's key expression (as a topic's,
+    with the service's type: 'std_srvs::srv::dds_::Trigger_' and its RIHS01 hash), its `SS` token;
+    `handler(request)` runs on Zenoh's thread and answers with `request.reply(...)`, now or later."""
+
+    def __init__(self, node: RmwNode, name: str, srvtype: str, qos: QoS, entity_id: int,
+                 handler: Callable[[Request], None]) -> None:
+        self.name, self.srvtype, self.qos = name, srvtype, qos
+        self.key = topic_key(node.domain_id, name, srvtype)
+        self.token = endpoint_token(node.domain_id, node.zid, node.node_id, entity_id, "SS", node.namespace,
+                                    node.name, name, srvtype, qos)
+        self._handler = handler
+        self._queryable = node.session.declare_queryable(self.key, self._on_query, complete=True)
+        self._token = node.session.liveliness().declare_token(self.token)
+
+    def _on_query(self, query: zenoh.Query) -> None:
+        payload = query.payload.to_bytes() if query.payload is not None else b""
+        try:
+            if query.attachment is None:
+                raise UsageError("no attachment")
+            sequence, _, gid = parse_attachment(query.attachment.to_bytes())
+        except UsageError as err:
+            query.reply_err(f"{self.name}: request refused: {err}".encode())
+            return
+        self._handler(Request(self, query, payload, sequence, gid))
+
+    def close(self) -> None:
+        self._token.undeclare()  # type: ignore[no-untyped-call]
+        self._queryable.undeclare()  # type: ignore[no-untyped-call]
+
+
 class RmwNode:
     """A ROS 2 node as rmw_zenoh shows it (its token, its publishers' and subscriptions' tokens) on a
     Zenoh session that may be shared with others (each `RmwNode` takes its own node id)."""
@@ -154,6 +229,7 @@ class RmwNode:
         self._token = session.liveliness().declare_token(self.token)
         self.publishers: dict[str, Publisher] = {}
         self.subscriptions: dict[str, Subscription] = {}
+        self.services: dict[str, Service] = {}
         self._lock = threading.Lock()
 
     def publisher(self, topic: str, typename: str, qos: QoS = DEFAULT_QOS) -> Publisher:
@@ -174,12 +250,23 @@ class RmwNode:
                                                                callback)
             return sub
 
+    def service(self, name: str, srvtype: str, handler: Callable[[Request], None],
+                qos: QoS = DEFAULT_QOS) -> Service:
+        """Serve `name` (once per name): rclcpp's services default QoS is the topics' (reliable, keep last 10)."""
+        with self._lock:
+            srv = self.services.get(name)
+            if srv is None:
+                srv = self.services[name] = Service(self, name, srvtype, qos, next(self._entity_ids), handler)
+            return srv
+
     def close(self) -> None:
         """Undeclare every publisher, subscription and the node's token (the session stays open)."""
         with self._lock:
-            entities: list[Any] = [*self.publishers.values(), *self.subscriptions.values()]
+            entities: list[Any] = [*self.publishers.values(), *self.subscriptions.values(),
+                                   *self.services.values()]
             self.publishers.clear()
             self.subscriptions.clear()
+            self.services.clear()
         for entity in entities:
             try:
                 entity.close()
