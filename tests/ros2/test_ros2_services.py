@@ -78,9 +78,25 @@ def test_service_key_expression_token_and_hash_are_rmw_zenohs() -> None:
 
 
 def test_the_sdk_hashes_a_service_as_erni_does() -> None:
-    """The SDK's own RIHS01 code over the .srv text (ServiceEventInfo's client_gid as uint8[16])."""
+    """The SDK's own RIHS01 code over the .srv text (ServiceEventInfo's client_gid as uint8[16]), also for a
+    service with nested types (CancelGoal). The SDK files an action's service parts under `srv/`, where
+    rosidl keeps them in `action/`, so its hashes of `NavigateToPose_SendGoal` and `_GetResult` differ:
+    those are pinned as the plugin computes them."""
     assert compute_service_type_hash("std_srvs/srv/SetBool", "bool data", "bool success\nstring message") == \
         _hash_of("std_srvs/srv/SetBool", "bool data\n", "bool success\nstring message\n")
+    deps = {"action_msgs/msg/GoalInfo": "unique_identifier_msgs/UUID goal_id\nbuiltin_interfaces/Time stamp",
+            "unique_identifier_msgs/msg/UUID": "uint8[16] uuid", "builtin_interfaces/msg/Time": "int32 sec\nuint32 nanosec"}
+    assert compute_service_type_hash(messages.CANCEL_GOAL, "action_msgs/GoalInfo goal_info",
+                                     "int8 return_code\naction_msgs/GoalInfo[] goals_canceling",
+                                     dependencies=deps) == messages.type_hash(messages.CANCEL_GOAL)
+    assert messages.type_hash(messages.CANCEL_GOAL) == \
+        "RIHS01_573d8b0a534451d7bc2ac8c5ffde8ac14b8593b7001175d0cd6516dcbeb8689a"
+    assert messages.type_hash(messages.SEND_GOAL) == \
+        "RIHS01_a4fcb3bee1bf32e21a0e541a943b221aa0826996e2c98f079b47022b256f48b5"
+    assert messages.type_hash(messages.GET_RESULT) == \
+        "RIHS01_c407920357d566771e8882b4ef4d1f1a84ee922d609920ccd57faa6d6e391dc5"
+    assert messages.type_hash(messages.FEEDBACK_MESSAGE) == \
+        "RIHS01_9d1f6fa2eb975ce733b419ac2e97b134d8ff92b6478b6559feed9a50bdfd82b3"
 
 
 def _hash_of(service: str, request: str, response: str) -> str:
