@@ -29,8 +29,9 @@ from zenoh_ros2_sdk.utils import compute_service_type_hash  # noqa: E402
 from erni.blackboard import Agent, Pose, Task, TaskState  # noqa: E402
 from erni.blackboard.testing import wait_until  # noqa: E402
 from erni.plugins.ros2 import messages, rmw  # noqa: E402
-from erni.testing import wait_for_task  # noqa: E402
+from erni.testing import fake_robot, wait_for_task  # noqa: E402
 from tests.ros2.conftest import write_definitions  # noqa: E402
+from tests.ros2.test_ros2_team import team  # noqa: E402, F401  # the fixture: agents on the Zenoh wire
 
 TRIGGER_HASH = "RIHS01_eeff2cd6fa5ad9d27cdf4dec64818317839b62f212a91e6b5304b634b2062c5f"
 ZID = "98517b73ab05dcb895c1c42cdfe891cd"
@@ -180,12 +181,14 @@ def test_the_sdks_client_stops_a_robot_driven_by_cmd_vel(robot: Callable[..., Ag
         assert response is not None, "no answer from /robot1/stop"
         assert response.success is True, response.message
         assert response.message == "halted: robot1"
-        # answered once the robot stands, although the teleop still publishes
-        assert abs(agent.query(Pose)[0].v) < 0.02
+        # answered once the robot stands (its stop succeeded: "halted"), although the teleop still publishes;
+        # the Pose on the blackboard follows within a SIP or two
+        (stop,) = [t for t in agent.query(Task) if t.preposition == "stop"]
+        assert stop.state is TaskState.SUCCEEDED and stop.result is not None and stop.result.values["halted"]
+        wait_until(lambda: abs(agent.query(Pose)[0].v) < 0.02, timeout=1, message="the Pose does not stand")
         ended = wait_for_task(agent, velocity.uid, timeout=5)
         assert ended.state is TaskState.CANCELLED
-        (stop,) = [t for t in agent.query(Task) if t.preposition == "stop"]
-        assert stop.state is TaskState.SUCCEEDED and stop.source == "robot1"
+        assert stop.source == "robot1"
         time.sleep(1.0)  # ten more commands came: the stream is latched until the teleop pauses
         assert abs(agent.query(Pose)[0].v) < 0.02
     finally:
@@ -205,8 +208,9 @@ def test_erni_stop_halts_a_goto_from_goal_pose(robot: Callable[..., Agent], ros:
         wait_until(lambda: agent.query(Pose)[0].v > 0.2, timeout=10, message="the goto did not move the robot")
         response = client.call()
         assert response is not None and response.success is True, response
+        wait_until(lambda: abs(agent.query(Pose)[0].v) < 0.02, timeout=1, message="the Pose does not stand")
         x = agent.query(Pose)[0].x
-        assert abs(agent.query(Pose)[0].v) < 0.02 and x < 2.5
+        assert x < 2.5
         assert wait_for_task(agent, gotos[0].uid, timeout=5).state is TaskState.CANCELLED
         time.sleep(0.5)
         assert agent.query(Pose)[0].x == pytest.approx(x, abs=0.02)  # no turn, no resumed goto
@@ -398,3 +402,35 @@ def test_a_request_that_does_not_decode_gets_an_error_reply(robot: Callable[...,
     errors = ask(payload=b"\x00\x01\x00\x00\x01", attachment=rmw.attachment(1, time.time_ns(), bytes(16)))
     assert len(errors) == 1 and errors[0].startswith("send_goal: the request does not decode"), errors
     assert not [t for t in agent.query(Task) if t.preposition == "goto"]
+
+
+def test_a_control_nodes_erni_stop_halts_a_robot_through_the_transport(team: Callable[..., Agent],  # noqa: F811
+                                                                       ros: dict[str, Any]) -> None:
+    """On a control node (transport on `wire = "zenoh"`), `/erni/stop` posts the stop for each robot it
+    serves; the stop reaches robot1 through ERNI's transport, and the answer waits until robot1 halted."""
+    from erni.plugins.ros2 import ROS2Plugin
+    from erni.transport import Peer
+    from tests.ros2.test_ros2_plugin import Teleop as Stick
+
+    control = team("control", lambda a: a.add_plugin(ROS2Plugin, name="ros2"))
+    robot1 = team("robot1", lambda a: a.add_plugin("motion", settings=fake_robot("robot1"), name="motion"))
+    wait_until(lambda: any(p.name == "robot1" and p.up for p in control.query(Peer)), timeout=10)
+    wait_until(lambda: control.blackboard.get("pose:robot1"), timeout=10, message="no Pose of robot1 at control")
+    wait_served(ros["router_port"], "/robot1/stop")
+    stick = Stick(ros["router_port"])
+    client = _stop_client(ros, "/erni/stop")
+    try:
+        stick.v = 0.3
+        stick.running.set()
+        wait_until(lambda: robot1.query(Pose)[0].v > 0.25, timeout=10, message="cmd_vel did not reach robot1")
+        response = client.call()
+        assert response is not None and response.success is True, response
+        assert response.message == "halted: robot1"
+        wait_until(lambda: abs(robot1.query(Pose)[0].v) < 0.02, timeout=1, message="robot1's Pose does not stand")
+        (stop,) = [t for t in robot1.query(Task) if t.preposition == "stop"]
+        assert stop.source == "control" and stop.state is TaskState.SUCCEEDED
+        time.sleep(1.0)  # the stick still pushes: the stream is latched at the control node
+        assert abs(robot1.query(Pose)[0].v) < 0.02
+    finally:
+        stick.close()
+        client.close()
