@@ -13,6 +13,7 @@ settings.register_profile("erni", deadline=None, suppress_health_check=[HealthCh
 settings.load_profile("erni")
 
 
+@pytest.hookimpl(tryfirst=True)  # before xdist's own hook, which reads the groups into the node ids
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """Under pytest-xdist (`-n 2 --dist loadgroup`): a file's tests run on one worker, so its module
     fixtures (a team, a browser) start once, and every real-mesh test on the same one, since
