@@ -127,17 +127,18 @@ class Journal:
                                f"{RECOVERY}") from None
 
     def problem(self) -> str:
-        """Why this journal cannot keep new objects now ('' when it can): a failed write, a full disk."""
-        if self.failed:
-            return f"journal write failed: {self.failed}"
+        """Why this journal cannot keep new objects now ('' when it can): a full disk, a failed write
+        (both when both: a write fails on a full disk before the disk's check sees it)."""
+        failed = f"journal write failed: {self.failed}" if self.failed else ""
         try:
             stat = os.statvfs(self.path.parent)
         except OSError as err:
-            return f"journal file system unreadable: {err.strerror or err}"
+            return failed or f"journal file system unreadable: {err.strerror or err}"
         free = stat.f_bavail * stat.f_frsize
         if free < RESERVE:
-            return f"disk full: {free // 1024} KiB free for the journal {self.path.name} (needs {RESERVE // 1024} KiB)"
-        return ""
+            full = f"disk full: {free // 1024} KiB free for the journal {self.path.name} (needs {RESERVE // 1024} KiB)"
+            return f"{full}; {failed}" if failed else full
+        return failed
 
     # -- reading back ---------------------------------------------------------------------
 
