@@ -28,6 +28,7 @@ import re
 import signal
 import subprocess
 import sys
+import time
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
@@ -130,6 +131,10 @@ def _env(cwd: Path) -> dict[str, str]:
 
 def _run_sh(block: Block, cwd: Path, timeout: float = 90.0) -> subprocess.CompletedProcess[str]:
     for port in sorted({int(p) for p in re.findall(r"127\.0\.0\.1:(\d{4,5})", block.text)}):
+        # a port of the kernel's ephemeral range (47100 is) may be held a moment by any socket bound to 0
+        deadline = time.monotonic() + 20
+        while "&" in block.text and not port_free("127.0.0.1", port) and time.monotonic() < deadline:
+            time.sleep(0.2)
         if not port_free("127.0.0.1", port) and "&" in block.text:
             pytest.skip(f"{block.id}: 127.0.0.1:{port} is in use on this machine; the block starts an agent there")
     # background jobs the block leaves (the agents of a two-terminal example) stop with it
