@@ -6,7 +6,6 @@ import json
 import os
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
@@ -15,7 +14,7 @@ from erni.blackboard import Pose, Task, TaskState
 from erni.blackboard.testing import wait_until
 from erni.replay import LogError, read_log
 from erni.transport import Peer
-from tests.transport.helpers import free_port, identity, make_agent
+from tests.transport.helpers import free_port, identity, make_agent, two_tasks_recorded
 
 ROOT = Path(__file__).resolve().parents[2]
 ENV = {**os.environ, "ERNI_IDENTITY": identity("cli", "cli"), "PYTHONUNBUFFERED": "1"}
@@ -35,21 +34,7 @@ def test_record_then_replay_looks_live(tmp_path):
     try:
         wait_until(lambda: any(p.up and p.role == "control" for p in robot.query(Peer)))
         rec = erni("record", "--via", f"127.0.0.1:{port}", "--seconds", "3", str(log))
-        time.sleep(0.8)  # the recorder has leased its watch
-        pose = Pose(robot="robot1", x=0.0)
-        with robot.transaction() as tx:
-            tx.add(pose)
-        tasks = [Task(verb="BotMotion", preposition="forward", params={"distance": d}, source="control",
-                      destination="robot1") for d in (1.0, 2.0)]
-        for i, task in enumerate(tasks):
-            with control.transaction() as tx:
-                tx.add(task)
-            with robot.transaction() as tx:
-                tx.change(pose.evolve(x=float(i + 1)))
-            time.sleep(0.3)
-        wait_until(lambda: all(control.blackboard.get(t.uid).done for t in tasks))
-        out, err = rec.communicate(timeout=20)
-        assert rec.returncode == 0, err
+        tasks, out, err = two_tasks_recorded(control, robot, rec, warmup=0.8, timeout=20)  # warm-up: the watch leased
     finally:
         control.stop()
         robot.stop()

@@ -28,7 +28,7 @@ from erni.blackboard.testing import wait_until
 from erni.plugins.ros2.bags import BagRecorder, read_bag
 from erni.replay import FORMAT, LogError, read_log
 from erni.transport import Peer as TransportPeer
-from tests.transport.helpers import free_port, identity, make_agent
+from tests.transport.helpers import free_port, identity, make_agent, two_tasks_recorded
 
 ROOT = Path(__file__).resolve().parents[2]
 ENV = {**os.environ, "ERNI_IDENTITY": identity("cli", "cli"), "PYTHONUNBUFFERED": "1"}
@@ -190,21 +190,8 @@ def test_record_a_live_team_as_mcap_then_replay_it(tmp_path: Path) -> None:
     try:
         wait_until(lambda: any(p.up and p.role == "control" for p in robot.query(TransportPeer)))
         rec = erni("record", "--via", f"127.0.0.1:{port}", "--seconds", "4", "--format", "mcap", str(bag))
-        time.sleep(1.5)  # the recorder has loaded the types and leased its watch
-        pose = Pose(robot="robot1", x=0.0, theta=0.5)
-        with robot.transaction() as tx:
-            tx.add(pose)
-        tasks = [Task(verb="BotMotion", preposition="forward", params={"distance": d}, source="control",
-                      destination="robot1") for d in (1.0, 2.0)]
-        for i, task in enumerate(tasks):
-            with control.transaction() as tx:
-                tx.add(task)
-            with robot.transaction() as tx:
-                tx.change(pose.evolve(x=float(i + 1)))
-            time.sleep(0.3)
-        wait_until(lambda: all(control.blackboard.get(t.uid).done for t in tasks))
-        _, err = rec.communicate(timeout=30)
-        assert rec.returncode == 0, err
+        # warm-up: the recorder has loaded the types and leased its watch
+        tasks, _, err = two_tasks_recorded(control, robot, rec, warmup=1.5, theta=0.5)
     finally:
         control.stop()
         robot.stop()

@@ -4,12 +4,15 @@ session, an identity per agent name (issued on first use)."""
 from __future__ import annotations
 
 import socket
+import subprocess
 import tempfile
 import threading
+import time
 from pathlib import Path
 from typing import Any
 
-from erni.blackboard import Agent
+from erni.blackboard import Agent, Pose, Task
+from erni.blackboard.testing import wait_until
 
 try:
     from erni.transport.identity import Authority
@@ -220,3 +223,27 @@ def agent_config(path: Path, name: str, *, listen: str = "127.0.0.1:0", discover
     text = "\n".join(lines) + "\n" + (ECHO.format(delay=echo) if echo is not None else "")
     path.write_text(text, encoding="utf-8")
     return path
+
+
+def two_tasks_recorded(control: Agent, robot: Agent, recorder: subprocess.Popen[str], *, warmup: float,
+                       theta: float = 0.0, timeout: float = 30.0) -> tuple[list[Task], str, str]:
+    """While `recorder` (an `erni record ...` of the control node) runs: wait `warmup` s for it to
+    lease its watch, then robot1 publishes its Pose and the control node sends it two forward tasks,
+    the Pose stepping to x = 1 and 2 as they go; wait until both end and the recorder exits.
+    Returns the tasks and the recorder's stdout and stderr."""
+    time.sleep(warmup)
+    pose = Pose(robot="robot1", x=0.0, theta=theta)
+    with robot.transaction() as tx:
+        tx.add(pose)
+    tasks = [Task(verb="BotMotion", preposition="forward", params={"distance": d}, source="control",
+                  destination="robot1") for d in (1.0, 2.0)]
+    for i, task in enumerate(tasks):
+        with control.transaction() as tx:
+            tx.add(task)
+        with robot.transaction() as tx:
+            tx.change(pose.evolve(x=float(i + 1)))
+        time.sleep(0.3)
+    wait_until(lambda: all(control.blackboard.get(t.uid).done for t in tasks))
+    out, err = recorder.communicate(timeout=timeout)
+    assert recorder.returncode == 0, err
+    return tasks, out, err
