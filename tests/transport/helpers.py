@@ -247,3 +247,20 @@ def two_tasks_recorded(control: Agent, robot: Agent, recorder: subprocess.Popen[
     out, err = recorder.communicate(timeout=timeout)
     assert recorder.returncode == 0, err
     return tasks, out, err
+
+
+class FullSocket:
+    """The endpoint's UDP socket with its send buffer full while `full` is set: sendto raises
+    EAGAIN at once, as a non-blocking socket does (loopback drops instead, so it is simulated)."""
+
+    def __init__(self, sock: socket.socket):
+        self.sock, self.full, self.refused = sock, threading.Event(), 0
+
+    def sendto(self, data: bytes, *flags_addr: Any) -> int:  # (data, addr) or (data, flags, addr), as a socket's
+        if self.full.is_set():
+            self.refused += 1
+            raise BlockingIOError(11, "Resource temporarily unavailable")
+        return self.sock.sendto(data, *flags_addr)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.sock, name)

@@ -3,15 +3,13 @@ peer; every peer gets it once, and a peer it cannot go to at once gets it as `se
 
 from __future__ import annotations
 
-import socket
-import threading
 from typing import Any
 
 from erni.blackboard import Pose
 from erni.blackboard.testing import wait_until
 from erni.transport import Endpoint
 from erni.transport.identity import load_identity
-from tests.transport.helpers import identity
+from tests.transport.helpers import FullSocket, identity
 
 
 def endpoint(name: str) -> tuple[Endpoint, list[Any]]:
@@ -20,22 +18,6 @@ def endpoint(name: str) -> tuple[Endpoint, list[Any]]:
     ep.on_message = got.append
     ep.start()
     return ep, got
-
-
-class FullSocket:
-    """The endpoint's UDP socket with its send buffer full while `full` is set (EAGAIN at once)."""
-
-    def __init__(self, sock: socket.socket):
-        self.sock, self.full, self.refused = sock, threading.Event(), 0
-
-    def sendto(self, data: bytes, *flags_addr: Any) -> int:
-        if self.full.is_set():
-            self.refused += 1
-            raise BlockingIOError(11, "Resource temporarily unavailable")
-        return self.sock.sendto(data, *flags_addr)
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self.sock, name)
 
 
 def test_every_peer_gets_the_status_once_as_one_message():

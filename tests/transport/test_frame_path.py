@@ -23,7 +23,7 @@ from erni.transport import Endpoint, batching
 from erni.transport.identity import load_identity
 from erni.transport.limits import Limits
 from erni.transport.wire import BATCH_BYTES, encode_body, head_bytes, item_bytes
-from tests.transport.helpers import identity
+from tests.transport.helpers import FullSocket, identity
 
 
 def endpoint(name: str, **kw: Any) -> tuple[Endpoint, list]:
@@ -58,23 +58,6 @@ def returns(call: Any) -> bool:
 
     threading.Thread(target=run, daemon=True).start()
     return done.wait(10)
-
-
-class FullSocket:
-    """The endpoint's UDP socket with its send buffer full while `full` is set: sendto raises
-    EAGAIN at once, as a non-blocking socket does (loopback drops instead, so it is simulated)."""
-
-    def __init__(self, sock: socket.socket):
-        self.sock, self.full, self.refused = sock, threading.Event(), 0
-
-    def sendto(self, data: bytes, *flags_addr: Any) -> int:  # (data, addr) or (data, flags, addr), as a socket's
-        if self.full.is_set():
-            self.refused += 1
-            raise BlockingIOError(11, "Resource temporarily unavailable")
-        return self.sock.sendto(data, *flags_addr)
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self.sock, name)
 
 
 def test_a_status_goes_out_from_the_callers_thread_once_a_session_is_up():
