@@ -142,7 +142,7 @@ class ZenohEndpoint(Endpoint):
         self.zenoh_settings = zenoh_settings
         self.keys = Keys(zenoh_settings.team)
         self._zs: zenoh.Session | None = None
-        self._publishers: dict[str, zenoh.Publisher] = {}
+        self._publishers: dict[Address, zenoh.Publisher] = {}  # a receiver's address -> its publisher
         self._pub_lock = threading.Lock()
         self._alive: dict[str, set[tuple[str, str]]] = {}  # agent -> (instance, router) of its tokens held now
         self._routes: dict[str, str] = {}  # agent -> the router its newest token names ('' direct)
@@ -286,28 +286,33 @@ class ZenohEndpoint(Endpoint):
         if self.udp_loss and self._rng.random() < self.udp_loss:
             self.count("dropped.injected")
             return
+        pub = self._publishers.get(addr)  # one dictionary look-up a frame once the publisher is declared
+        if pub is None:
+            pub = self._publisher(addr)
+        try:
+            pub.put(frame)
+        except zenoh.ZError as err:
+            raise NetworkError(f"Zenoh put to {addr[0]} failed: {err}") from None
+
+    def _publisher(self, addr: Address) -> zenoh.Publisher:
+        """The publisher of frames to the agent at `addr`, declared on first use (NetworkError for an
+        address of no agent, or when Zenoh refuses)."""
         name = name_at(addr)
         if name is None:
             raise NetworkError(f"{addr[0]}:{addr[1]} is no address on the Zenoh wire (expected zenoh/NAME:0)")
-        try:
-            self._publisher(name).put(frame)
-        except (zenoh.ZError, NetworkError) as err:
-            raise NetworkError(f"Zenoh put to {name} failed: {err}") from None
-
-    def _publisher(self, name: str) -> zenoh.Publisher:
-        pub = self._publishers.get(name)
-        if pub is not None:
-            return pub
         with self._pub_lock:
-            pub = self._publishers.get(name)
+            pub = self._publishers.get(addr)
             if pub is None:
                 if len(self._publishers) >= PUBLISHERS:
                     for old in self._publishers.values():
                         old.undeclare()  # type: ignore[no-untyped-call]  # untyped in Zenoh's stubs
                     self._publishers.clear()
-                pub = self.session.declare_publisher(self.keys.inbox(name, DATAGRAM, self.name),
-                                                     congestion_control=zenoh.CongestionControl.DROP)
-                self._publishers[name] = pub
+                try:
+                    pub = self.session.declare_publisher(self.keys.inbox(name, DATAGRAM, self.name),
+                                                         congestion_control=zenoh.CongestionControl.DROP)
+                except zenoh.ZError as err:
+                    raise NetworkError(f"Zenoh put to {name} failed: {err}") from None
+                self._publishers[addr] = pub
         return pub
 
     def _write_now(self, addr: Address, out: Outgoing) -> bool:
@@ -348,32 +353,42 @@ class ZenohEndpoint(Endpoint):
     # -- receiving (on Zenoh's threads) ---------------------------------------------------
 
     def _receive_loop(self, samples: zenoh.Handler[zenoh.Sample]) -> None:
-        """The datagram thread: one blocking receive a frame, as the UDP wire's; ends when the
-        subscriber is undeclared (its channel closes)."""
+        """The datagram thread: blocked in the channel's receive while it is empty, as the UDP wire's
+        thread is in its socket's; what queued meanwhile is taken without blocking again (a blocking
+        receive lets go of the interpreter lock even when a sample waits, and then waits to get it
+        back). Ends when the subscriber is undeclared (its channel closes)."""
         sources: dict[str, Address | None] = {}  # key -> the address it names (a team has few senders)
+        recv, try_recv = samples.recv, samples.try_recv
+        accept, deliver = self.accept_frame, self.deliver
         while True:
+            sample: zenoh.Sample | None
             try:
-                sample = samples.recv()
+                sample = recv()
             except zenoh.ZError:
                 return
-            key = str(sample.key_expr)
-            if key in sources:
-                src = sources[key]
-            else:
-                sender = self.keys.sender_of(key)
-                src = None if sender is None else address_of(sender)
-                if len(sources) >= 4096:
-                    sources.clear()
-                sources[key] = src
-            if self._stopping:
-                continue
-            if src is None:
-                self.count("dropped.key")
-                continue
-            got = self.accept_frame(sample.payload.to_bytes(), "udp", src)
-            if got is not None:
-                for msg in got[0]:
-                    self.deliver(msg)
+            while sample is not None:
+                key = str(sample.key_expr)
+                if key in sources:
+                    src = sources[key]
+                else:
+                    sender = self.keys.sender_of(key)
+                    src = None if sender is None else address_of(sender)
+                    if len(sources) >= 4096:
+                        sources.clear()
+                    sources[key] = src
+                if self._stopping:
+                    pass
+                elif src is None:
+                    self.count("dropped.key")
+                else:
+                    got = accept(sample.payload.to_bytes(), "udp", src)
+                    if got is not None:
+                        for msg in got[0]:
+                            deliver(msg)
+                try:
+                    sample = try_recv()
+                except zenoh.ZError:
+                    return
 
     def _on_query(self, query: zenoh.Query) -> None:
         """A reliable frame: acknowledge each message in the reply, then hand it on once."""
