@@ -75,6 +75,7 @@ from __future__ import annotations
 
 import math
 import random
+from collections import deque
 from dataclasses import dataclass
 from typing import Any
 
@@ -100,6 +101,26 @@ VARIANTS = ["holonomic/physical", "holonomic/delaunay", "nonholonomic/physical",
 EXTRA_VARIANTS = ["holonomic/gabriel", "nonholonomic/gabriel"]  # paper 001's other topological graph (3.2)
 
 
+CHANGES_WINDOW = 100.0  # s: the link changes at the end of a run are told apart over this long
+
+
+@dataclass
+class Change:
+    """One link made (`on`) or broken at time `t` between robots i < j, `length` m apart then, and
+    what kind of change it was (the kinds overlap; `_change_kinds`)."""
+
+    t: float
+    on: bool
+    i: int
+    j: int
+    length: float
+    flip: bool      # one of the two diagonals of a quadrilateral of the triangulation swapped in one step
+    edge: bool      # an edge of the team: a side of only one triangle (or of none) of the triangulation
+    reach: bool     # at the radio reach: longer than 0.9 of it (a link in effect leaves past 1.1 of it)
+    wall: bool      # a robot of it within the wall sensing range of a wall
+    short: bool     # shorter than 1.05 d (a link in effect shorter than d stays until its push ends at d)
+
+
 @dataclass
 class Run:
     """One variant's run: the track (every `sample` s) and when it converged."""
@@ -118,6 +139,8 @@ class Run:
     switched_on: NDArray[np.float64] | None = None
     switched_off: NDArray[np.float64] | None = None
     damped: NDArray[np.float64] | None = None
+    # every link made or broken over the last `CHANGES_WINDOW` s of the run (see `_change_kinds`)
+    changes: list[Change] | None = None
 
 
 def robot_limits(scenario: Scenario) -> tuple[float, float]:
@@ -277,6 +300,11 @@ def _kinematic(scenario: Scenario, progress: Progress, variant: str, label: str)
     frozen: list[NDArray[np.intp]] | None = None
     on = off = damped = 0.0
     energy = [(0.0, 0.0, 0.0)]
+    before: set[tuple[int, int]] | None = None  # the links in effect the step before
+    earlier: NDArray[np.intp] | None = None  # ... and the kept triangulation then
+    changes: deque[Change] = deque()  # the last CHANGES_WINDOW s of them
+    reach = cfg.reach if cfg.reach is not None else scenario.radio.comm_range
+    sensing = cfg.sensing if cfg.sensing is not None else cfg.range
     for k in range(steps):
         if frozen is None:
             nb = team_neighbourhoods(pos, cfg, memory)
@@ -286,6 +314,17 @@ def _kinematic(scenario: Scenario, progress: Progress, variant: str, label: str)
             nb = frozen
         new, th, vel, om = spread_step(pos, th, vel, om, cfg, circles, walls, memory, nb)
         now = set(memory.effective)  # the links in effect this step (leaving ones too)
+        if before is not None and now != before:
+            made, tri = _change_kinds(k * cfg.dt, now - before, before - now, pos, memory.triangles,
+                                      cfg.distance, reach, walls, sensing, earlier)
+            changes.extend(made)
+            if memory.triangles is None:  # the Delaunay triangulation changes only with the links
+                earlier = tri
+            while changes and changes[0].t < k * cfg.dt - CHANGES_WINDOW:
+                changes.popleft()
+        before = now
+        if memory.triangles is not None:
+            earlier = memory.triangles
         on, off = memory.switched_on, memory.switched_off  # a spring holds w (L - rest)^2 / 2 when switched
         stop = kinematic.blocked_by_walls(pos, new, walls)  # walls are solid: a robot stops at them
         pos = np.where(stop[:, None], pos, new)
@@ -315,8 +354,59 @@ def _kinematic(scenario: Scenario, progress: Progress, variant: str, label: str)
     f, _ = forces(pos, th, cfg, circles, walls)
     across = np.abs(f[:, 0] * np.sin(th) - f[:, 1] * np.cos(th))
     e = np.array(energy)
+    end = float(ts[-1])
     return Run(variant, ts, ps, ths, sps, converged, churn, float(np.hypot(f[:, 0], f[:, 1]).max()),
-               float(across.max()), e[:, 0], e[:, 1], e[:, 2])
+               float(across.max()), e[:, 0], e[:, 1], e[:, 2], [c for c in changes if c.t >= end - CHANGES_WINDOW])
+
+
+def _change_kinds(t: float, added: set[tuple[int, int]], removed: set[tuple[int, int]], pos: NDArray[np.float64],
+                  triangles: NDArray[np.intp] | None, d: float, reach: float, walls: NDArray[np.float64],
+                  sensing: float, earlier: NDArray[np.intp] | None = None
+                  ) -> tuple[list[Change], NDArray[np.intp] | None]:
+    """Tell apart the links made (`added`) and broken (`removed`) in one step at the positions `pos`
+    the step started from: a flip (a made link whose two opposite robots in the triangulation are the
+    ends of a broken one, and that broken one), an edge of the team (a side of one triangle, or of
+    none: a link the triangulation lacks; a broken link is judged in `earlier`, the triangulation
+    the step before, when given), at the radio reach (longer than 0.9 `reach`), near a wall
+    (a robot of it within `sensing` of one), shorter than d. `triangles`: the kept triangulation,
+    else the Delaunay triangulation of `pos` (the paper's law and the physical neighbourhood).
+    Returns the changes and the triangulation they were judged in."""
+    if triangles is None and len(pos) >= 3:
+        from scipy.spatial import Delaunay, QhullError
+
+        try:
+            triangles = np.asarray(Delaunay(pos).simplices, dtype=np.intp)
+        except (QhullError, ValueError):
+            triangles = None
+    def sides(tri: NDArray[np.intp] | None) -> dict[tuple[int, int], list[int]]:
+        out: dict[tuple[int, int], list[int]] = {}
+        for a, b, c in ([] if tri is None else tri.tolist()):
+            for u, v, w in ((a, b, c), (b, c, a), (c, a, b)):
+                out.setdefault((min(u, v), max(u, v)), []).append(w)
+        return out
+
+    opposite = sides(triangles)
+    was = opposite if earlier is None else sides(earlier)
+    flips: set[tuple[int, int]] = set()
+    for key in added:
+        other = opposite.get(key, [])
+        if len(other) == 2 and (min(other), max(other)) in removed:
+            flips |= {key, (min(other), max(other))}
+    near = np.zeros(len(pos), dtype=bool)
+    if len(walls):
+        a, ab = walls[None, :, :2], walls[None, :, 2:] - walls[None, :, :2]
+        along = np.clip(np.einsum("nkj,nkj->nk", pos[:, None, :] - a, ab)
+                        / np.maximum(np.einsum("nkj,nkj->nk", ab, ab), 1e-12), 0, 1)
+        gap = np.hypot(*(a + along[..., None] * ab - pos[:, None, :]).transpose(2, 0, 1))
+        near = gap.min(axis=1) <= sensing
+    out = []
+    for made, keys in ((True, added), (False, removed)):
+        for i, j in sorted(keys):
+            length = float(np.hypot(*(pos[j] - pos[i])))
+            out.append(Change(round(t, 6), made, i, j, length, (i, j) in flips,
+                              len((opposite if made else was).get((i, j), [])) < 2,
+                              length > 0.9 * reach, bool(near[i] or near[j]), length < 1.05 * d))
+    return out, triangles
 
 
 def _links(pos: NDArray[np.float64], cfg: SpreadConfig) -> set[tuple[int, int]]:
@@ -448,6 +538,8 @@ def _result(scenario: Scenario, experiment: Experiment, mode: str, runs: list[Ru
                 float(r.switched_on[-1] - r.switched_on[k]), "J")
             res.metrics[f"{v}: ... switched off"] = (float(r.switched_off[-1] - r.switched_off[k]), "J")
             res.metrics[f"{v}: ... taken out by the damping"] = (float(r.damped[-1] - r.damped[k]), "J")
+        if r.changes:
+            _change_metrics(res, v, r.changes, float(r.t[-1]))
         res.metrics[f"{v}: energy per robot, mean"] = (float(np.mean(energies)), "J")
         stride = max(1, len(r.t) // 300)
         res.series[f"{v}/mean_nn_distance"] = (list(r.t[::stride]), [mean_nn_distance(p) for p in r.pos[::stride]],
@@ -519,7 +611,7 @@ def _result(scenario: Scenario, experiment: Experiment, mode: str, runs: list[Ru
                         "R not stated", "; ".join(both(q) for q in dict.fromkeys(q for q, _ in side)), "",
                         "-: not settled by the end of the run")
     if over_seeds:
-        _seed_rows(res, over_seeds, threshold, hold, d)
+        _seed_rows(res, over_seeds, threshold, hold, d, scenario.seed)
     res.notes.append("paper 001 shows the teams at t = 30 s (Figs 2-5, 8-11) and the paths of 12 robots (Figs 6-7); "
                      "it gives no convergence times or distances")
     paths = experiment.name == "spread-paths"
@@ -532,7 +624,8 @@ def _result(scenario: Scenario, experiment: Experiment, mode: str, runs: list[Ru
     return res
 
 
-def _seed_rows(res: Result, over_seeds: list[list[Run]], threshold: float, hold: float, d: float) -> None:
+def _seed_rows(res: Result, over_seeds: list[list[Run]], threshold: float, hold: float, d: float,
+               first_seed: int = 1) -> None:
     """Per variant over the seeds: how many converged, when (mean [95 % CI] of those that did), the
     mean and smallest nearest-neighbour distance at the end, the fastest robot (m/s)."""
     from erni.sim.experiments.stats import fmt_ci, mean_ci, wilson
@@ -555,6 +648,15 @@ def _seed_rows(res: Result, over_seeds: list[list[Run]], threshold: float, hold:
             res.metrics[f"{v}: {name}, mean over {n} seeds"] = (m[0], "m")
             res.metrics[f"{v}: {name}, 95 % CI"] = (f"[{m[1]:.2f}, {m[2]:.2f}]", "m")
         res.metrics[f"{v}: fastest robot in any seed"] = (fastest, "m/s")
+        for seed, r in enumerate(got, first_seed):
+            if not math.isfinite(r.converged) and r.changes:
+                c = change_summary(r.changes, float(r.t[-1]))
+                res.metrics[f"{v}, seed {seed} (not converged): link changes in the last {CHANGES_WINDOW:g} s"] = (
+                    f"{c['per_s']:.2f}/s; flips {c['flip']:.0%}, team's edge {c['edge']:.0%}, at the reach "
+                    f"{c['reach']:.0%}, near a wall {c['wall']:.0%}, shorter than 1.05 d {c['short']:.0%}; "
+                    f"{c['length'][0]:.1f}-{c['length'][2]:.1f} m (median {c['length'][1]:.1f}); {c['links']} links, "
+                    f"the most changed {c['top'][1]} times; largest move in the last {hold:g} s "
+                    f"{_moved(r, hold):.2f} m", "")
         res.series[f"{v}/converged_at_by_seed"] = (list(map(float, range(1, n + 1))), times, "s")
         res.compare(f"{_name(v)} over {n} seeds: converged; at; NN at the end (smallest); fastest robot",
                     "one run, no times", f"{done}/{n}; {fmt_ci(*conv, digits=1)} s; {fmt_ci(*mean_ci(mean_nn))} "
@@ -562,6 +664,39 @@ def _seed_rows(res: Result, over_seeds: list[list[Run]], threshold: float, hold:
                     f"mean [95 % CI] over the seeds (Student t); converged {done}/{n}: Wilson "
                     f"[{lo:.2f}, {hi:.2f}]; converged: all < {threshold:g} m/s for {hold:g} s")
         del share
+
+
+def change_summary(changes: list[Change], end: float) -> dict[str, Any]:
+    """What the link changes of a run's last `CHANGES_WINDOW` s were: how many a second, the share
+    of each kind, their lengths, how many links changed and how often the most changed one did (a
+    few links changing many times: a cycle between a few configurations)."""
+    window = min(CHANGES_WINDOW, end)
+    per_link: dict[tuple[int, int], int] = {}
+    for c in changes:
+        per_link[(c.i, c.j)] = per_link.get((c.i, c.j), 0) + 1
+    top = max(per_link.items(), key=lambda x: x[1]) if per_link else ((-1, -1), 0)
+    lengths = np.array([c.length for c in changes]) if changes else np.zeros(0)
+    n = max(1, len(changes))
+    return {"count": len(changes), "per_s": len(changes) / window if window > 0 else math.nan,
+            **{kind: sum(getattr(c, kind) for c in changes) / n for kind in ("flip", "edge", "reach", "wall", "short")},
+            "length": (float(lengths.min()), float(np.median(lengths)), float(lengths.max())) if len(lengths) else
+            (math.nan, math.nan, math.nan),
+            "links": len(per_link), "top": top, "robots": len({x for c in changes for x in (c.i, c.j)})}
+
+
+def _change_metrics(res: Result, v: str, changes: list[Change], end: float) -> None:
+    got = change_summary(changes, end)
+    last = f"last {min(CHANGES_WINDOW, end):g} s"
+    res.metrics[f"{v}: link changes, {last}"] = (float(got["count"]), "changes")
+    for kind, what in (("flip", "flips of a quadrilateral's diagonal"), ("edge", "on the team's edge"),
+                       ("reach", "at the radio reach (> 0.9 of it)"), ("wall", "with a robot near a wall"),
+                       ("short", "shorter than 1.05 d")):
+        res.metrics[f"{v}: ... share {what}"] = (got[kind], "share")
+    lo, med, hi = got["length"]
+    res.metrics[f"{v}: ... their length, min / median / max"] = (f"{lo:.2f} / {med:.2f} / {hi:.2f}", "m")
+    (i, j), top = got["top"]
+    res.metrics[f"{v}: ... links that changed; robots of them"] = (f"{got['links']}; {got['robots']}", "")
+    res.metrics[f"{v}: ... most changes of one link"] = (f"{top} (robot{i + 1}-robot{j + 1})", "changes")
 
 
 def _moved(r: Run, hold: float) -> float:
