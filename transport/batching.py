@@ -2,7 +2,7 @@
 gathered into one datagram when they come in a burst.
 
 A status on its own, in a confirmed session, with nothing queued for its destination, is sealed
-and handed to the UDP socket by the caller (`_send_one`): the socket never blocks, and what it does
+and handed to the UDP socket by the caller (`_send_now`): the socket never blocks, and what it does
 not take goes to the sender pool. A status that follows the caller's previous one to the same
 destination within `COALESCE` joins that destination's batch (`_gather`): the caller seals and sends
 each `BATCH_BYTES` of them as one datagram `[head, [item, ...]]`, the head stated once, and the
@@ -25,7 +25,17 @@ from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
 from erni.transport.outbox import Batch, Dest, Outgoing
-from erni.transport.wire import FrameError, batch_payload, encode_body, head_bytes, item_bytes, join_envelope
+from pydantic_core import to_json
+
+from erni.transport.wire import (
+    FrameError,
+    batch_payload,
+    encode_body,
+    head_bytes,
+    item_bytes,
+    join_envelope,
+    kind_and_type,
+)
 
 if TYPE_CHECKING:
     from erni.transport.session import Auth, Session
@@ -54,6 +64,9 @@ class FastMessages:
         _dests: dict[Address, Dest]
         _fast_at: dict[Address, float]
         _heads: dict[str, bytes]
+        _head_opens: dict[str, bytes]
+        _counter_lock: threading.Lock
+        counters: dict[str, int]
         _id_prefix: str
         _seq: itertools.count[int]
         _stopping: bool
@@ -67,7 +80,6 @@ class FastMessages:
         sessions: Sessions
         def send(self, addr: Address, kind: str, body: Any = None, *, reliable: bool, msg_id: str | None = None,
                  ttl: float | None = None, to: str | None = None) -> str: ...
-        def _caller_session(self, addr: Address, out: Outgoing) -> tuple[bool, Session | None]: ...
         def _dest_for(self, addr: Address) -> Dest: ...
         def _frame(self, out: Outgoing, session: Session | None, max_frame: int) -> bytes: ...
         def _make_ready(self, dest: Dest) -> None: ...
@@ -78,31 +90,49 @@ class FastMessages:
 
     def _send_now(self, addr: Address, out: Outgoing) -> bool:
         """Send a fast message from the caller's thread when that cannot wait: True when it is done.
+        Note when the caller's send to `addr` was handled, sent or not (`_fast_at`).
 
-        Only in a confirmed session (no handshake to drive), with nothing queued before it for
-        that destination, and only what the socket takes at once: the UDP socket never blocks
-        (a full send buffer raises at once), and then the message is queued for the sender pool.
-        A status of a burst (`COALESCE`) is gathered into the destination's batch instead.
+        Only in a confirmed session (no handshake to drive) with the intended peer, with nothing
+        queued before it for that destination, and only what the socket takes at once: the UDP
+        socket never blocks (a full send buffer raises at once), and then the message is queued
+        for the sender pool. A status of a burst (`COALESCE`) is gathered into the destination's
+        batch instead. A status on its own, the common case, is written here in one piece: its
+        message JSON around the body (`_head_open`), sealed, handed to the socket.
         """
-        usable, session = self._caller_session(addr, out)
-        if not usable:
-            return False
-        dest = self._dests.get(addr)
-        if dest is not None and (dest.fast or dest.announce):
-            return False  # keep the order of what is queued already
-        if session is not None and (dest is not None and dest.batch is not None
-                                    or time.monotonic() - self._fast_at.get(addr, -math.inf) < COALESCE):
-            return self._gather(addr, out, session)  # a burst: several statuses to a datagram
-        if session is None:
-            single = self._batch(None)
-            single.add(out, b"")
-            sent = self._send_datagram(addr, single)
-        else:  # the common case, a status on its own: sealed and sent with nothing built around it
-            sent = self._send_one(addr, out, session)
-        if not sent:
-            self.count("sent.deferred")
-            return False  # the socket's buffer is full: the pool sends it when it drains
-        return True
+        sent = False
+        try:
+            if not self._threads or self._stopping:
+                return False
+            dest = self._dests.get(addr)
+            if dest is not None and (dest.fast or dest.announce):
+                return False  # keep the order of what is queued already
+            if self.auth is None:
+                single = self._batch(None)
+                single.add(out, b"")
+                sent = self._send_datagram(addr, single)
+            else:
+                session = self.sessions.usable(addr)
+                if session is None or out.to and out.to != session.peer:
+                    return False  # a handshake to drive, or a wrong peer to report: the sender pool's work
+                if dest is not None and dest.batch is not None \
+                        or time.monotonic() - self._fast_at.get(addr, -math.inf) < COALESCE:
+                    return self._gather(addr, out, session)  # a burst: several statuses to a datagram
+                try:
+                    self._sendto(session.seal(b'%b"seq":%d,"id":%b,%b,"body":%b}' % (
+                        self._head_open(session.peer), out.seq, to_json(out.id), kind_and_type(out.kind, out.type),
+                        out.data), self._udp_frame), addr)
+                except (OSError, FrameError) as err:
+                    sent = self._unsent(addr, err)  # True: dropped (too big, an error); False: the buffer is full
+                else:
+                    sent = True
+                    with self._counter_lock:
+                        counters = self.counters
+                        counters["sent.fast"] = counters.get("sent.fast", 0) + 1
+            if not sent:
+                self.count("sent.deferred")  # the socket's buffer is full: the pool sends it when it drains
+            return sent
+        finally:
+            self._fast_at[addr] = time.monotonic()
 
     def send_fanout(self, targets: Sequence[tuple[Address, str]], kind: str, body: Any) -> str:
         """Send one fast message (a status) to each `(address, agent)` of `targets`; return its id.
@@ -155,15 +185,6 @@ class FastMessages:
         for addr, to in later:
             self.send(addr, kind, body, reliable=False, msg_id=msg_id, to=to)
         return msg_id
-
-    def _send_one(self, addr: Address, out: Outgoing, session: Session) -> bool:
-        """`_send_datagram` of one message in a session. False when the socket's buffer is full."""
-        try:
-            self._sendto(session.seal(join_envelope(self._head(session.peer), self._item(out)), self._udp_frame), addr)
-        except (OSError, FrameError) as err:
-            return self._unsent(addr, err)
-        self.count("sent.fast")
-        return True
 
     def _unsent(self, addr: Address, err: OSError | FrameError) -> bool:
         """Count and report a datagram of fast messages that did not leave; False when only the
@@ -251,6 +272,15 @@ class FastMessages:
             if len(outs) > room:
                 self.count("dropped.fast_oldest", len(outs) - room)
         self.count("sent.deferred")
+
+    def _head_open(self, peer: str) -> bytes:
+        """`_head` without its closing brace, and a comma: the start of one message's envelope."""
+        head = self._head_opens.get(peer)
+        if head is None:
+            if len(self._head_opens) >= 4096:
+                self._head_opens.clear()
+            head = self._head_opens[peer] = self._head(peer)[:-1] + b","
+        return head
 
     def _head(self, peer: str) -> bytes:
         """The envelope head of every message to `peer` (our own fields, made once per peer)."""

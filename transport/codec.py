@@ -22,6 +22,7 @@ from typing import Annotated, Any
 
 import msgspec
 from msgspec import UNSET, Meta, Raw, Struct, UnsetType
+from pydantic import BaseModel
 
 from erni.blackboard import Pose
 from erni.transport.wire import TYPES, VERSION
@@ -82,33 +83,64 @@ class PoseBody(Struct, kw_only=True, forbid_unknown_fields=True):
     stamp: float | UnsetType = UNSET
 
 
+class PoseFull(Struct, kw_only=True, forbid_unknown_fields=True, gc=False):
+    """`PoseBody` with every field given, as every ERNI sender writes a Pose (pydantic dumps all its
+    fields): the common case, typed without looking for fields left out."""
+
+    uid: str
+    robot: str
+    x: float
+    y: float
+    theta: float
+    v: float
+    w: float
+    battery: float | None
+    stall_left: bool
+    stall_right: bool
+    bumpers: int
+    motors_enabled: bool
+    sonar: list[float]
+    stamp: float
+
+
 DecodedHead = Head | Envelope
 """A frame's head as `decode_data` gives it: a batch's head, or the one envelope of a frame."""
 
 _frame = msgspec.json.Decoder(Envelope | tuple[Head, list[Item]])
 _pose = msgspec.json.Decoder(PoseBody)
+_pose_full = msgspec.json.Decoder(PoseFull)
+_asdict = msgspec.structs.asdict
 _set_attr = object.__setattr__
+_new = object.__new__
+_POSE_FIELDS = tuple(Pose.model_fields)
+# a model's own slots, set without BaseModel.__setattr__ (which validates, and refuses on a frozen model)
+_set_fields_set = BaseModel.__dict__["__pydantic_fields_set__"].__set__
+_set_extra = BaseModel.__dict__["__pydantic_extra__"].__set__
+_set_private = BaseModel.__dict__["__pydantic_private__"].__set__
 
 
-def _pose_of(raw: Raw) -> Pose:
+def _pose_of(raw: Raw | bytes) -> Pose:
     """A Pose from its JSON: what `Pose.model_validate_json` gives (msgspec.ValidationError or
     DecodeError where this codec refuses)."""
-    values = msgspec.structs.asdict(_pose.decode(raw))
-    given = set(values)
-    if UNSET in values.values():  # fields left out: pydantic's defaults, and not among those given
+    try:
+        values = _asdict(_pose_full.decode(raw))  # every field given: the Pose of an ERNI sender
+        given = set(_POSE_FIELDS)
+    except msgspec.ValidationError:  # fields left out (or a value the loose decode refuses too)
+        values = _asdict(_pose.decode(raw))
+        given = set(values)
         for name, value in list(values.items()):
-            if value is UNSET:
+            if value is UNSET:  # pydantic's default, and not among the fields given
                 if name == "uid":  # Pose's own validator names it after the robot (and counts it as given)
                     values[name] = f"pose:{values['robot']}"
                     continue
                 given.discard(name)
                 values[name] = time.time() if name == "stamp" else \
                     Pose.model_fields[name].get_default(call_default_factory=True)
-    pose = Pose.__new__(Pose)
+    pose = _new(Pose)
     _set_attr(pose, "__dict__", values)
-    _set_attr(pose, "__pydantic_fields_set__", given)
-    _set_attr(pose, "__pydantic_extra__", None)
-    _set_attr(pose, "__pydantic_private__", None)
+    _set_fields_set(pose, given)
+    _set_extra(pose, None)
+    _set_private(pose, None)
     return pose
 
 

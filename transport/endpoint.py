@@ -216,6 +216,7 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
         self._dests: dict[Address, Dest] = {}
         self._fast_at: dict[Address, float] = {}  # destination -> when the caller's last status to it was handled
         self._heads: dict[str, bytes] = {}  # peer -> the envelope head of messages to it (`_head`)
+        self._head_opens: dict[str, bytes] = {}  # peer -> that head, open for one message's fields (`_head_open`)
         self._cond = threading.Condition()
         self._ready: deque[Dest] = deque()
         self._delayed: list[tuple[float, int, int, Dest]] = []
@@ -411,11 +412,8 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
         msg_id = msg_id or f"{self._id_prefix}{seq:x}"
         type_name, data = encode_body(body)
         out = Outgoing(msg_id, kind, type_name, body, data, seq, self.clock() + (ttl or self.ttl), to or "")
-        if lane == "fast":
-            sent = self._send_now(addr, out)
-            self._fast_at[addr] = time.monotonic()  # a burst is told by the time until the next
-            if sent:
-                return msg_id
+        if lane == "fast" and self._send_now(addr, out):  # it also notes when (`_fast_at`): a burst is told
+            return msg_id  # by the time until the next
         if lane == "reliable" and self._write_now(addr, out):
             return msg_id
         undeliverable = False
@@ -491,13 +489,17 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
         try:
             return self._accept_frame(raw, channel, src)
         except Exception:
-            self.count("dropped.fault")
-            now = time.monotonic()
-            if now - self._last_fault >= 5.0:
-                self._last_fault = now
-                self.log.exception("dropped a %s frame of %d bytes from %s: the frame path failed on it",
-                                   channel, len(raw), src[0] if src else "?")
+            self._fault(channel, raw, src)
             return None
+
+    def _fault(self, channel: str, raw: bytes, src: Address | None) -> None:
+        """Count a frame dropped by a fault of the frame path; log it with its traceback, rate-limited."""
+        self.count("dropped.fault")
+        now = time.monotonic()
+        if now - self._last_fault >= 5.0:
+            self._last_fault = now
+            self.log.exception("dropped a %s frame of %d bytes from %s: the frame path failed on it",
+                               channel, len(raw), src[0] if src else "?")
 
     def _accept_frame(self, raw: bytes, channel: str, src: Address) -> Accepted:
         try:
@@ -565,63 +567,109 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
 
     def _data(self, raw: bytes, channel: str, src: Address) -> tuple[list[Message], Session | None]:
         """Open a data frame of a session: one envelope, or a batch of statuses (`[head, [message,
-        ...]]`). A batch's message or body that does not validate is dropped alone; a head or an
-        envelope that does not validate, or that names another sender or receiver, drops the
-        whole frame."""
+        ...]]`), and decode its messages (`_messages`)."""
         sid = raw[KIND.size:KIND.size + 8]
         session = self.sessions.by_sid.get(sid)
         if session is None:
             self.sessions.hint(sid, src)
             raise FrameError("session", f"unknown session {sid.hex()} (its sender or this agent restarted)")
-        plain = session.open(raw)
-        batch = plain[:1] == b"["
+        return self._messages(session.open(raw), session, channel), session
+
+    def _messages(self, plain: bytes, session: Session, channel: str) -> list[Message]:
+        """The messages of an opened data frame. A batch's message or body that does not validate
+        is dropped alone; a head or an envelope that does not validate, or that names another
+        sender or receiver, drops the whole frame."""
         fast = decode_data(plain)  # msgspec: head, messages and typed bodies from the bytes, or None
-        typed = None if fast is not None else parse_typed(plain)  # pydantic in one step, or None: two steps
         head: DecodedHead | EnvelopeHead
         pairs: list[tuple[Any, Any]]  # each message (its seq, id, kind, type) and its body
         if fast is not None:
             head, pairs = fast
-        elif typed is not None:
-            head, pairs = typed[0], [(item, item.body) for item in typed[1]]
-        elif batch:  # a message of the batch that does not validate is dropped alone
-            head, values = parse_batch(plain)
-            pairs = []
-            for value in values:
-                try:
-                    parsed = parse_item(value)
-                    pairs.append((parsed, parsed.body))
-                except FrameError as err:
-                    self._dropped(channel, err)
+            checked = True
         else:
-            envelope = parse_envelope(plain)
-            head, pairs = envelope, [(envelope, envelope.body)]
+            head, pairs, checked = self._parse_data(plain, channel)
         if head.sender != session.peer or head.role != session.role or head.inst != session.inst:
             raise FrameError("auth", f"envelope names {head.sender[:64]} but the session is with {session.peer}")
         if head.to != self.name:
             raise FrameError("receiver", f"frame for {head.to} arrived at {self.name}")
         if not session.confirmed:
             self.sessions.confirm(session)
-        self._filter(session.peer, session.role)
+        if self.inbound_filter is not None:
+            self._filter(session.peer, session.role)
+        peer, role, addr, epoch = session.peer, session.role, session.addr, session.epoch
         msgs = []
-        checked = fast is not None or typed is not None
         for item, body in pairs:
-            try:
-                if item.kind == "crl" and isinstance(body, str):
-                    try:
-                        self.sessions.adopt_crl(base64.b64decode(body, validate=True), session.peer)
-                    except ValueError:
-                        raise FrameError("parse", "revocation list is not base64") from None
-                if not checked:
-                    body = body_of(item.type, body)
-            except FrameError as err:
-                if not batch:
-                    raise
-                self._dropped(channel, err)
-                continue
-            msgs.append(Message(session.peer, session.role, session.addr, session.epoch, item.seq, item.id,
-                                item.kind, body))
-        self.count("received", len(msgs))
-        return msgs, session
+            kind = item.kind
+            if kind == "crl" or not checked:
+                try:
+                    if kind == "crl" and isinstance(body, str):
+                        try:
+                            self.sessions.adopt_crl(base64.b64decode(body, validate=True), session.peer)
+                        except ValueError:
+                            raise FrameError("parse", "revocation list is not base64") from None
+                    if not checked:
+                        body = body_of(item.type, body)
+                except FrameError as err:
+                    if plain[:1] != b"[":  # one envelope: the frame is dropped
+                        raise
+                    self._dropped(channel, err)
+                    continue
+            msgs.append(Message(peer, role, addr, epoch, item.seq, item.id, kind, body))
+        with self._counter_lock:
+            counters = self.counters
+            counters["received"] = counters.get("received", 0) + len(msgs)
+        return msgs
+
+    def _parse_data(self, plain: bytes, channel: str) -> tuple[EnvelopeHead, list[tuple[Any, Any]], bool]:
+        """The pydantic parse of a data frame the codec did not take: its head, its messages with
+        their bodies, and whether the bodies are typed already (one step) or still to be (two)."""
+        typed = parse_typed(plain)  # pydantic in one step, or None: two steps
+        if typed is not None:
+            return typed[0], [(item, item.body) for item in typed[1]], True
+        if plain[:1] == b"[":  # a message of the batch that does not validate is dropped alone
+            head, values = parse_batch(plain)
+            pairs: list[tuple[Any, Any]] = []
+            for value in values:
+                try:
+                    parsed = parse_item(value)
+                    pairs.append((parsed, parsed.body))
+                except FrameError as err:
+                    self._dropped(channel, err)
+            return head, pairs, False
+        envelope = parse_envelope(plain)
+        return envelope, [(envelope, envelope.body)], False
+
+    def receive_datagram(self, raw: bytes, src: Address) -> None:
+        """The UDP receive thread's whole path for one datagram: a data frame of a confirmed
+        session is opened, decoded and handed to `on_message` here, in one call with the checks
+        of `accept_frame` written out; any other frame goes through `accept_frame`. What fails is
+        counted and logged the same way: a frame that fails a check is dropped, and a fault of
+        the frame path never ends the receive thread."""
+        try:
+            session = self.sessions.by_sid.get(raw[5:13]) if raw[4:5] == b"D" and self.auth is not None else None
+            if session is None or not session.confirmed or len(raw) > self.max_frame \
+                    or HEADER.unpack_from(raw)[0] != len(raw) - 4:
+                got = self.accept_frame(raw, "udp", src)
+                if got is not None:
+                    for msg in got[0]:
+                        if msg.kind not in INTERNAL:
+                            self._dispatch(msg)
+                return
+            msgs = self._messages(session.open(raw), session, "udp")
+        except FrameError as err:
+            self._dropped("udp", err)
+            return
+        except Exception:
+            self._fault("udp", raw, src)
+            return
+        for msg in msgs:
+            if msg.kind not in INTERNAL:
+                if msg.role == CLIENT_ROLE:
+                    self._dispatch(msg)
+                    continue
+                try:
+                    self.on_message(msg)
+                except Exception:
+                    self.log.exception("handling %s from %s failed", msg.kind, msg.sender)
 
     # -- what the receive loop needs of this endpoint (`ReceiverHost`) ----------------------
 

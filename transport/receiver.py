@@ -52,6 +52,9 @@ class ReceiverHost(Protocol):
     def accept_frame(self, raw: bytes, channel: str, src: Address) -> tuple[list[Message], Session | None] | None:
         """The frame path: check, open and decode a frame; None when it carries nothing to deliver."""
 
+    def receive_datagram(self, raw: bytes, src: Address) -> None:
+        """The whole path of one datagram: check, open, decode, and hand on what it carries."""
+
     def deliver(self, msg: Message) -> None:
         """Hand a received message on (the endpoint's own kinds excepted)."""
 
@@ -211,23 +214,20 @@ class Receiver:
 
     def run_datagrams(self) -> None:
         """The datagrams of the endpoint's port (statuses, handshakes, hints), one at a time from a
-        blocking recvfrom: one system call a datagram and no wake-up of a selector first."""
-        udp = self.udp
+        blocking recvfrom: one system call a datagram and no wake-up of a selector first; each
+        goes whole to `receive_datagram`, which hands what it carries to `on_message`."""
+        recvfrom, receive = self.udp.recvfrom, self.host.receive_datagram
         while not self.host.stopping:
             try:
-                data, src = udp.recvfrom(65536)
+                data, src = recvfrom(65536)
             except OSError as err:
                 if self.host.stopping or err.errno in (errno.EBADF, errno.EINVAL, errno.ENOTSOCK):
                     return
                 self.host.count("udp.errors")  # an unconnected socket reports no ICMP errors: unexpected,
                 time.sleep(0.001)  # and one that repeats (out of memory ...) must not spin this thread
                 continue
-            if not data:
-                continue  # an empty datagram (or the wake-up of `stop`): no frame
-            got = self.host.accept_frame(data, "udp", src)
-            if got is not None:
-                for msg in got[0]:
-                    self.host.deliver(msg)
+            if data:  # an empty datagram (or the wake-up of `stop`) is no frame
+                receive(data, src)
 
     def _read_datagrams(self, sock: socket.socket) -> None:
         for _ in range(256):

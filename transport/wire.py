@@ -27,6 +27,7 @@ from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import Annotated, Any, Literal, Union
 
+import msgspec
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError, create_model
 from pydantic_core import PydanticSerializationError, from_json, to_json
 
@@ -132,14 +133,26 @@ def envelope_json(env: Envelope) -> bytes:
 def encode_body(body: Any) -> tuple[str | None, bytes]:
     """A body's type tag (None for plain JSON values) and its JSON, serialised once when it is queued.
 
+    A `Pose` (a frozen model of plain fields, validated when made) is written by msgspec from its
+    fields, 2-3 times faster than pydantic's serialiser; its JSON parses back to the same values
+    (tests/transport/test_oneway_path.py).
+
     Raise UsageError for a body that has no JSON form (the caller learns it at once).
     """
+    if type(body) is Pose:  # every robot's status: its fields are plain JSON values, and msgspec is faster
+        try:
+            return "Pose", _encode(body.__dict__)
+        except (TypeError, ValueError):  # a value set around validation (model_construct ...): pydantic says
+            pass
     try:
         if isinstance(body, BaseModel):
             return type(body).__name__, body.__pydantic_serializer__.to_json(body)
         return None, to_json(body)
     except PydanticSerializationError as err:
         raise UsageError(f"cannot send a {type(body).__name__}: {str(err).splitlines()[0][:200]}") from None
+
+
+_encode = msgspec.json.Encoder().encode
 
 
 def head_bytes(sender: str, role: str, to: str, inst: str, reply: tuple[str, int]) -> bytes:
@@ -149,11 +162,11 @@ def head_bytes(sender: str, role: str, to: str, inst: str, reply: tuple[str, int
 
 def item_bytes(seq: int, msg_id: str, kind: str, type_name: str | None, body: bytes) -> bytes:
     """The JSON of one message around its body, already serialised (`encode_body`)."""
-    return b'{"seq":%d,"id":%b,%b,"body":%b}' % (seq, to_json(msg_id), _kind_and_type(kind, type_name), body)
+    return b'{"seq":%d,"id":%b,%b,"body":%b}' % (seq, to_json(msg_id), kind_and_type(kind, type_name), body)
 
 
 @functools.lru_cache(maxsize=1024)
-def _kind_and_type(kind: str, type_name: str | None) -> bytes:
+def kind_and_type(kind: str, type_name: str | None) -> bytes:
     """`"kind":...,"type":...` of a message: the same for every status of a type, made once."""
     return to_json({"kind": kind, "type": type_name})[1:-1]
 
@@ -373,9 +386,15 @@ class ReplayWindow:
             self._bitmap |= 1 << (self.top - counter)
 
     def check(self, counter: int) -> None:
-        """`fresh` then `mark`."""
+        """`fresh` then `mark`, in one call (once a frame, on the receive path)."""
+        top = self.top
+        if counter > top:  # the common case: the next counter, fresh
+            shift = counter - top
+            self._bitmap = ((self._bitmap << shift) | 1) & self._mask if shift < self.size else 1
+            self.top = counter
+            return
         self.fresh(counter)
-        self.mark(counter)
+        self._bitmap |= 1 << (top - counter)
 
 
 class SeenIds:

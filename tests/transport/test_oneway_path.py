@@ -1,0 +1,157 @@
+"""The one-way status path, written out for speed: what it must still do exactly as the general path.
+
+A status's body is written by msgspec (`wire.encode_body`) and must parse back to the values
+pydantic's JSON gives; the UDP receive thread's `Endpoint.receive_datagram` opens, decodes and
+delivers a data frame of a confirmed session in one call, and must deliver, refuse and count
+every frame as `accept_frame` (the general path every other frame takes) does.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import Any
+
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from erni.blackboard import Pose
+from erni.blackboard.testing import wait_until
+from erni.transport import Endpoint
+from erni.transport.identity import load_identity
+from erni.transport.wire import DATA_HEADER, encode_body, head_bytes, item_bytes, join_envelope
+from tests.transport.helpers import identity
+
+_floats = st.floats(allow_nan=True, allow_infinity=True) | st.floats(-1e308, 1e308) | st.integers(-2**53, 2**53).map(float)
+_poses = st.builds(
+    Pose, robot=st.text(min_size=1, max_size=20), x=_floats, y=_floats, theta=_floats, v=_floats, w=_floats,
+    battery=st.none() | _floats, stall_left=st.booleans(), stall_right=st.booleans(),
+    bumpers=st.integers(-2**63, 2**63), motors_enabled=st.booleans(), sonar=st.lists(_floats, max_size=16),
+    stamp=_floats)
+
+
+def _same(a: Any, b: Any) -> bool:
+    if isinstance(a, float) and isinstance(b, float) and math.isnan(a):
+        return math.isnan(b)
+    if isinstance(a, dict) and isinstance(b, dict):
+        return list(a) == list(b) and all(_same(a[k], b[k]) for k in a)
+    if isinstance(a, list) and isinstance(b, list):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+    return type(a) is type(b) and a == b
+
+
+@settings(max_examples=300, deadline=None)
+@given(_poses)
+def test_a_pose_body_is_the_json_pydantic_writes_value_for_value(pose):
+    type_name, data = encode_body(pose)
+    assert type_name == "Pose"
+    assert _same(json.loads(data), json.loads(pose.model_dump_json())), data
+
+
+def endpoint(name: str) -> tuple[Endpoint, list]:
+    ep = Endpoint(name, identity=load_identity(identity(name)), ack_timeout=2.0, connect_timeout=0.5)
+    got: list = []
+    ep.on_message = got.append
+    ep.start()
+    return ep, got
+
+
+@contextmanager
+def pair(a_name: str, b_name: str) -> Iterator[tuple[Endpoint, Endpoint, list]]:
+    """Two endpoints in a confirmed session (a's first status has reached b); stopped after."""
+    a, _ = endpoint(a_name)
+    b, got = endpoint(b_name)
+    try:
+        a.send(b.address, "status", Pose(robot="r0"), reliable=False, to=b_name)
+        wait_until(lambda: len(got) == 1)
+        got.clear()
+        yield a, b, got
+    finally:
+        a.stop()
+        b.stop()
+
+
+def _frames(a: Endpoint, b: Endpoint) -> list[tuple[str, bytes]]:
+    """Data frames of a's session with b, sealed in order: good, damaged, replayed, misaddressed ..."""
+    session = a.session_with(b.address)
+    assert session is not None
+    head = a._head(session.peer)
+
+    def seal(item: bytes, to_head: bytes = head) -> bytes:
+        return session.seal(join_envelope(to_head, item), 65536)
+
+    def item(i: int, body: bytes = b"", type_name: str | None = "Pose") -> bytes:
+        return item_bytes(1000 + i, f"m{i}", "status", type_name, body or encode_body(Pose(robot=f"r{i}", x=i, stamp=1.0))[1])
+
+    good = seal(item(1))
+    tampered = bytearray(seal(item(2)))
+    tampered[-1] ^= 1
+    elsewhere = head_bytes(a.name, a.role, "someone-else", a.inst, a.address)
+    forged = head_bytes("mallory", a.role, b.name, a.inst, a.address)
+    unknown = bytearray(seal(item(9)))
+    unknown[5:13] = b"\x00" * 8
+    cut = seal(item(10))
+    long = bytearray(seal(item(11)))
+    long[:4] = (len(long) - 3).to_bytes(4, "big")  # declares one byte more than follows
+    return [
+        ("good", good),
+        ("replayed", good),
+        ("tampered", bytes(tampered)),
+        ("untyped", seal(item(3, b'"just text"', None))),
+        ("bad body", seal(item(4, b'{"robot": 7}'))),
+        ("pose with fields left out", seal(item(5, b'{"robot": "r5", "x": 5.0, "stamp": 2.0}'))),
+        ("another receiver", seal(item(6), elsewhere)),
+        ("another sender", seal(item(7), forged)),
+        ("a batch", session.seal(b"[" + head + b",[" + item(8) + b"," + item(12, b'{"robot": 7}') + b"]]", 65536)),
+        ("unknown session", bytes(unknown)),
+        ("cut short", cut[:DATA_HEADER.size + 3]),
+        ("wrong length", bytes(long)),
+        ("a second good one", seal(item(13))),
+    ]
+
+
+def _outcome(ep: Endpoint, got: list, before: dict[str, int]) -> tuple[list[tuple], dict[str, int]]:
+    delivered = [(m.sender, m.role, m.reply, m.epoch, m.seq, m.id, m.kind, m.body) for m in got]
+    counted = {k: v - before.get(k, 0) for k, v in ep.counters.items() if v != before.get(k, 0)}
+    return delivered, counted
+
+
+def test_the_datagram_path_delivers_refuses_and_counts_each_frame_as_the_general_path_does():
+    """Each frame through `receive_datagram` at one receiver and through `accept_frame` (and
+    delivery) at another, in sessions with the same sender: the same messages, field by field,
+    and the same counters moved, frame by frame."""
+    with pair("ow-a", "ow-b") as (a, b, got_b), pair("ow-a2", "ow-c") as (a2, c, got_c):
+        frames_b, frames_c = _frames(a, b), _frames(a2, c)
+        assert [label for label, _ in frames_b] == [label for label, _ in frames_c]
+        for (label, raw_b), (_, raw_c) in zip(frames_b, frames_c):
+            got_b.clear()
+            got_c.clear()
+            before_b, before_c = dict(b.counters), dict(c.counters)
+            b.receive_datagram(raw_b, a.address)
+            accepted = c.accept_frame(raw_c, "udp", a2.address)
+            for msg in accepted[0] if accepted is not None else ():
+                c.deliver(msg)
+            delivered_b, counted_b = _outcome(b, got_b, before_b)
+            delivered_c, counted_c = _outcome(c, got_c, before_c)
+            assert counted_b == counted_c, label
+            assert len(delivered_b) == len(delivered_c), label
+            for mb, mc in zip(delivered_b, delivered_c):
+                assert (mb[0], mb[2], mc[0], mc[2]) == ("ow-a", a.address, "ow-a2", a2.address), label
+                assert mb[1] == mc[1] and mb[3:7] == mc[3:7], label  # role, epoch, seq, id, kind
+                assert type(mb[7]) is type(mc[7]) and mb[7] == mc[7], label
+                assert getattr(mb[7], "model_fields_set", None) == getattr(mc[7], "model_fields_set", None), label
+        assert b.counters.get("dropped.replay") == 1 and b.counters.get("dropped.auth", 0) >= 2
+
+
+def test_a_status_on_its_own_arrives_through_the_datagram_path_with_its_fields():
+    with pair("ow-d", "ow-e") as (a, b, got):
+        pose = Pose(robot="r1", x=1.5, y=-2.0, theta=0.25, battery=12.5, sonar=[0.5, 1.0], bumpers=3)
+        a.send(b.address, "status", pose, reliable=False, msg_id="one", to="ow-e")
+        wait_until(lambda: len(got) == 1)
+        msg = got[0]
+        assert (msg.sender, msg.role, msg.id, msg.kind) == ("ow-d", "robot", "one", "status")
+        want = Pose.model_validate_json(pose.model_dump_json())  # what pydantic makes of the JSON sent
+        assert msg.body == want and msg.body.model_fields_set == want.model_fields_set
+        assert a.counters["sent.fast"] == 2 and b.counters["received"] == 2
