@@ -785,6 +785,14 @@ def _draw(fig: Any, scenario: Scenario, runs: list[Run], res: Result, mode: str,
 
 def _draw_sweep(top: Any, bottom: Any, sweep: list[tuple[float, Run]], d: float) -> None:
     """Mean nearest-neighbour distance and time to converge against the neighbourhood range R."""
+    xs = [q / d for q, _ in sweep]
+    if not any(math.isfinite(r.converged) for _, r in sweep):  # nothing to draw: say so, on the ranges' axis
+        bottom.text(0.5, 0.5, "no run settled\nby the end of its run", transform=bottom.transAxes, ha="center",
+                    va="center", fontsize=9, color="#555555")
+    pad = max(0.05, (max(xs) - min(xs)) * 0.08) if xs else 0.05
+    for ax in (top, bottom):
+        if xs:
+            ax.set_xlim(min(xs) - pad, max(xs) + pad)
     for k, v in enumerate(("holonomic/physical", "nonholonomic/physical")):
         got = [(q, r) for q, r in sweep if r.variant == v]
         x = [q / d for q, _ in got]
