@@ -24,9 +24,9 @@ import time
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
-from erni.transport.outbox import Batch, Dest, Outgoing
 from pydantic_core import to_json
 
+from erni.transport.outbox import Batch, Dest, Outgoing
 from erni.transport.wire import (
     FrameError,
     batch_payload,
@@ -76,17 +76,65 @@ class FastMessages:
         inst: str
         name: str
         queue_limit: int
+        ttl: float
         role: str
         sessions: Sessions
         def send(self, addr: Address, kind: str, body: Any = None, *, reliable: bool, msg_id: str | None = None,
                  ttl: float | None = None, to: str | None = None) -> str: ...
         def _dest_for(self, addr: Address) -> Dest: ...
         def _frame(self, out: Outgoing, session: Session | None, max_frame: int) -> bytes: ...
+        def _queue(self, addr: Address, out: Outgoing, lane: str) -> None: ...
+        def clock(self) -> float: ...
         def _make_ready(self, dest: Dest) -> None: ...
         def _schedule(self, dest: Dest, when: float) -> None: ...
         def _sendto(self, frame: bytes, addr: Address) -> None: ...
         def count(self, name: str, n: int = 1) -> None: ...
         def warn(self, reason: str, text: str) -> None: ...
+
+    def _send_status(self, addr: Address, kind: str, body: Any, msg_id: str | None, ttl: float | None,
+                     to: str | None) -> str:
+        """`send` of a fast message (a status): sealed and handed to the socket from the caller's
+        thread when that cannot wait, else queued for the sender pool; return its id.
+
+        The common case, a status on its own in a confirmed session with the intended peer and
+        nothing queued before it for that destination, is written here in one piece: the body's
+        JSON, the message's around it (`_head_open`), sealed, handed to the UDP socket, which never
+        blocks (MSG_DONTWAIT). Anything else (no session yet, a burst to gather, a queue to keep
+        the order of, a full send buffer) takes the general way, `_send_now` and then the queue.
+        """
+        seq = next(self._seq)
+        msg_id = msg_id or f"{self._id_prefix}{seq:x}"
+        type_name, data = encode_body(body)
+        sessions = self.sessions
+        session = sessions.by_addr.get(addr) if self.auth is not None else None
+        if session is not None and self._threads and not self._stopping and not session.stale \
+                and session.sid in sessions.by_sid and not (to and to != session.peer):
+            dest = self._dests.get(addr)
+            fast_at = self._fast_at
+            if (dest is None or not (dest.fast or dest.announce or dest.batch is not None)) \
+                    and time.monotonic() - fast_at.get(addr, -math.inf) >= COALESCE:  # not a burst
+                head = self._head_opens.get(session.peer) or self._head_open(session.peer)
+                try:
+                    self._sendto(session.seal(b'%b"seq":%d,"id":%b,%b,"body":%b}' % (
+                        head, seq, to_json(msg_id), kind_and_type(kind, type_name), data), self._udp_frame), addr)
+                except (OSError, FrameError) as err:
+                    dropped = self._unsent(addr, err)  # True: too big, or an error; False: the buffer is full
+                    fast_at[addr] = time.monotonic()
+                    if dropped:
+                        return msg_id
+                    self.count("sent.deferred")  # the pool sends it when the buffer drains
+                    self._queue(addr, Outgoing(msg_id, kind, type_name, body, data, seq,
+                                               self.clock() + (ttl or self.ttl), to or ""), "fast")
+                    return msg_id
+                with self._counter_lock:
+                    counters = self.counters
+                    counters["sent.fast"] = counters.get("sent.fast", 0) + 1
+                fast_at[addr] = time.monotonic()  # a burst is told by the time until the next
+                return msg_id
+        out = Outgoing(msg_id, kind, type_name, body, data, seq, self.clock() + (ttl or self.ttl), to or "")
+        if not self._send_now(addr, out):
+            self._queue(addr, out, "fast")
+        return msg_id
 
     def _send_now(self, addr: Address, out: Outgoing) -> bool:
         """Send a fast message from the caller's thread when that cannot wait: True when it is done.
@@ -96,8 +144,7 @@ class FastMessages:
         queued before it for that destination, and only what the socket takes at once: the UDP
         socket never blocks (a full send buffer raises at once), and then the message is queued
         for the sender pool. A status of a burst (`COALESCE`) is gathered into the destination's
-        batch instead. A status on its own, the common case, is written here in one piece: its
-        message JSON around the body (`_head_open`), sealed, handed to the socket.
+        batch instead.
         """
         sent = False
         try:
@@ -117,17 +164,9 @@ class FastMessages:
                 if dest is not None and dest.batch is not None \
                         or time.monotonic() - self._fast_at.get(addr, -math.inf) < COALESCE:
                     return self._gather(addr, out, session)  # a burst: several statuses to a datagram
-                try:
-                    self._sendto(session.seal(b'%b"seq":%d,"id":%b,%b,"body":%b}' % (
-                        self._head_open(session.peer), out.seq, to_json(out.id), kind_and_type(out.kind, out.type),
-                        out.data), self._udp_frame), addr)
-                except (OSError, FrameError) as err:
-                    sent = self._unsent(addr, err)  # True: dropped (too big, an error); False: the buffer is full
-                else:
-                    sent = True
-                    with self._counter_lock:
-                        counters = self.counters
-                        counters["sent.fast"] = counters.get("sent.fast", 0) + 1
+                single = self._batch(session)
+                single.add(out, self._item(out))
+                sent = self._send_datagram(addr, single)
             if not sent:
                 self.count("sent.deferred")  # the socket's buffer is full: the pool sends it when it drains
             return sent

@@ -404,7 +404,9 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
     def send(self, addr: Address, kind: str, body: BaseModel | Any = None, *, reliable: bool,
              msg_id: str | None = None, ttl: float | None = None, to: str | None = None) -> str:
         """Queue a message for `addr` (the agent `to`, when known); return its id. Never blocks."""
-        return self._enqueue(addr, kind, body, "reliable" if reliable else "fast", msg_id, ttl, to)
+        if reliable:
+            return self._enqueue(addr, kind, body, "reliable", msg_id, ttl, to)
+        return self._send_status(addr, kind, body, msg_id, ttl, to)  # batching.py
 
     def _enqueue(self, addr: Address, kind: str, body: Any, lane: str, msg_id: str | None,
                  ttl: float | None, to: str | None) -> str:
@@ -412,14 +414,21 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
         msg_id = msg_id or f"{self._id_prefix}{seq:x}"
         type_name, data = encode_body(body)
         out = Outgoing(msg_id, kind, type_name, body, data, seq, self.clock() + (ttl or self.ttl), to or "")
-        if lane == "fast" and self._send_now(addr, out):  # it also notes when (`_fast_at`): a burst is told
-            return msg_id  # by the time until the next
-        if lane == "reliable" and self._write_now(addr, out):
-            return msg_id
+        if lane == "fast":
+            if not self._send_now(addr, out):  # it also notes when (`_fast_at`): a burst is told by the time
+                self._queue(addr, out, lane)  # until the next
+        elif lane != "reliable" or not self._write_now(addr, out):
+            self._queue(addr, out, lane)
+        return out.id
+
+    def _queue(self, addr: Address, out: Outgoing, lane: str) -> None:
+        """Queue a message for the sender pool (a reliable one is refused when its queue is full; the
+        fast and announcement queues drop their oldest)."""
+        msg_id, kind = out.id, out.kind
         undeliverable = False
         with self._cond:
             if self._stopping:
-                return msg_id
+                return
             dest = self._dest_for(addr)
             if lane == "reliable":
                 if len(dest.reliable) >= self.queue_limit:
@@ -438,8 +447,7 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
             if not undeliverable:
                 self._make_ready(dest)
         if undeliverable:
-            self.on_undeliverable(addr, msg_id, kind, body)
-        return msg_id
+            self.on_undeliverable(addr, msg_id, kind, out.body)
 
     def _caller_session(self, addr: Address, out: Outgoing) -> tuple[bool, Session | None]:
         """Whether the caller's thread may send `out` to `addr` itself, and the session to seal it in.

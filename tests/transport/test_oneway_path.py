@@ -155,3 +155,29 @@ def test_a_status_on_its_own_arrives_through_the_datagram_path_with_its_fields()
         want = Pose.model_validate_json(pose.model_dump_json())  # what pydantic makes of the JSON sent
         assert msg.body == want and msg.body.model_fields_set == want.model_fields_set
         assert a.counters["sent.fast"] == 2 and b.counters["received"] == 2
+
+
+def test_a_status_for_another_agent_than_the_one_in_session_is_not_sealed_by_the_caller():
+    """The caller's one-piece send checks the intended peer: a status meant for an agent that is
+    not the one in session at that address goes to the sender pool, which refuses it."""
+    with pair("ow-f", "ow-g") as (a, b, got):
+        sealed: list[bytes] = []
+        real = a._sendto
+        a._sendto = lambda frame, addr: (sealed.append(frame), real(frame, addr))[1]  # type: ignore[method-assign]
+        a.send(b.address, "status", Pose(robot="r1"), reliable=False, to="someone-else")
+        wait_until(lambda: a.counters.get("dropped.wrong_peer", 0) == 1)
+        a.send(b.address, "status", Pose(robot="r2"), reliable=False, to="ow-g")
+        wait_until(lambda: len(got) == 1)
+        assert [m.body.robot for m in got] == ["r2"] and len(sealed) == 1
+
+
+def test_a_status_too_big_for_a_datagram_is_dropped_at_once_and_not_queued():
+    with pair("ow-h", "ow-i") as (a, b, got):
+        a.send(b.address, "status", Pose(robot="r1", sonar=[0.5] * 20_000), reliable=False, to="ow-i")
+        assert a.counters.get("dropped.too_big") == 1
+        dest = a._dests.get(b.address)
+        assert dest is None or not dest.fast  # nothing queued for the pool
+        assert a.counters.get("sent.deferred", 0) == 0
+        a.send(b.address, "status", Pose(robot="r2"), reliable=False, to="ow-i")
+        wait_until(lambda: len(got) == 1)
+        assert got[0].body.robot == "r2"
