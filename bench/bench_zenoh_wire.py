@@ -17,11 +17,13 @@ shared with the sender through shared memory; a pipe wakes the sender when what 
 has arrived.
 
 Measured per row: status one-way (send -> the receiver's callback, p50 and p99), task -> ack
-(a reliable send -> its acknowledgement; raw: `get` -> reply) and status throughput (a burst,
-messages received per second). Every ERNI frame is sealed in a session with per-agent
-identities. The last lines give ERNI-on-Zenoh's ratios to ERNI's UDP and to raw Zenoh.
+(a reliable send -> its acknowledgement; raw: `get` -> reply) and status throughput (messages
+received per second in a burst; a round's figure is the median of `--bursts` bursts, since on a
+loaded machine one burst's rate varies by a factor of two with what else ran in those 50 ms).
+Every ERNI frame is sealed in a session with per-agent identities. The last lines give
+ERNI-on-Zenoh's ratios to ERNI's UDP and to raw Zenoh.
 
-    python bench/bench_zenoh_wire.py [--pings 300] [--burst 5000] [--rounds 3] [--one-process]
+    python bench/bench_zenoh_wire.py [--pings 300] [--burst 5000] [--bursts 3] [--rounds 3] [--one-process]
 """
 
 from __future__ import annotations
@@ -304,7 +306,7 @@ def main() -> int:
     parser.add_argument("--pings", type=int, default=300)
     parser.add_argument("--burst", type=int, default=5000)
     parser.add_argument("--rounds", type=int, default=3)
-    parser.add_argument("--bursts", type=int, default=1, help="bursts a round (its rate: their median)")
+    parser.add_argument("--bursts", type=int, default=3, help="bursts a round (its rate: their median)")
     parser.add_argument("--one-process", action="store_true",
                         help="receivers in this process too (one interpreter lock for both ends)")
     args = parser.parse_args()
