@@ -101,7 +101,9 @@ def test_a_link_that_comes_and_goes_faster_than_the_hysteresis_keeps_its_state()
 @pytest.mark.ondemand
 def test_the_settling_variant_converges_where_the_paper_law_does_not():
     sc = load_scenario(find_scenario("spread-corridor"))
-    for v in ("holonomic/delaunay+settle", "nonholonomic/delaunay+settle"):
-        run = spread._kinematic(sc, lambda *a: None, v, v)
-        assert math.isfinite(run.converged)
+    assert math.isfinite(spread._kinematic(sc, lambda *a: None, "holonomic/delaunay+settle", "").converged)
+    # seed 1's nonholonomic team is one of the two of seeds 1-10 that settle only after 600 s (at 647 s)
+    late = spread._kinematic(sc.model_copy(update={"duration": 700.0}), lambda *a: None,
+                             "nonholonomic/delaunay+settle", "")
+    assert 600.0 < late.converged < 700.0
     assert not math.isfinite(spread._kinematic(sc, lambda *a: None, "holonomic/delaunay", "").converged)
