@@ -52,7 +52,7 @@ from pydantic_core import to_json
 
 from erni.blackboard.errors import ConfigError, NetworkError
 from erni.transport.batching import FastMessages
-from erni.transport.codec import DecodedHead, decode_data
+from erni.transport.codec import DecodedHead, decode_data, decode_status
 from erni.transport.discovery import Beacons
 from erni.transport.identity import Identity
 from erni.transport.limits import Limits, TokenBucket
@@ -662,7 +662,28 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
                         if msg.kind not in INTERNAL:
                             self._dispatch(msg)
                 return
-            msgs = self._messages(session.open(raw), session, "udp")
+            plain = session.open(raw)
+            status = decode_status(plain)  # the common frame: one Pose, decoded in one pass (or None)
+            if status is not None:
+                env, pose = status
+                if env.sender == session.peer and env.role == session.role and env.inst == session.inst \
+                        and env.to == self.name and env.kind not in INTERNAL:
+                    if self.inbound_filter is not None:
+                        self._filter(session.peer, session.role)
+                    msg = Message(session.peer, session.role, session.addr, session.epoch, env.seq, env.id,
+                                  env.kind, pose)
+                    with self._counter_lock:
+                        counters = self.counters
+                        counters["received"] = counters.get("received", 0) + 1
+                    if msg.role == CLIENT_ROLE:
+                        self._dispatch(msg)
+                        return
+                    try:
+                        self.on_message(msg)
+                    except Exception:
+                        self.log.exception("handling %s from %s failed", msg.kind, msg.sender)
+                    return
+            msgs = self._messages(plain, session, "udp")  # anything else (and what fails a check above)
         except FrameError as err:
             self._dropped("udp", err)
             return

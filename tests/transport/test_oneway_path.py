@@ -19,10 +19,20 @@ from hypothesis import strategies as st
 
 from erni.blackboard import Pose
 from erni.blackboard.testing import wait_until
-from erni.transport import Endpoint
+from erni.transport import Endpoint, codec
 from erni.transport.identity import load_identity
-from erni.transport.wire import DATA_HEADER, encode_body, head_bytes, item_bytes, join_envelope
+from erni.transport.wire import (
+    DATA_HEADER,
+    EnvelopeHead,
+    batch_payload,
+    encode_body,
+    head_bytes,
+    item_bytes,
+    join_envelope,
+)
 from tests.transport.helpers import identity
+from tests.transport.test_codec import _heads, _items, _same_pose
+from tests.transport.test_wire import _two_step
 
 _floats = st.floats(allow_nan=True, allow_infinity=True) | st.floats(-1e308, 1e308) | st.integers(-2**53, 2**53).map(float)
 _poses = st.builds(
@@ -181,3 +191,69 @@ def test_a_status_too_big_for_a_datagram_is_dropped_at_once_and_not_queued():
         a.send(b.address, "status", Pose(robot="r2"), reliable=False, to="ow-i")
         wait_until(lambda: len(got) == 1)
         assert got[0].body.robot == "r2"
+
+
+def test_a_status_the_inbound_filter_refuses_is_dropped_on_the_datagram_path():
+    """Authorization holds on the one-pass path: a frame from a sender the filter refuses is
+    dropped and counted, and nothing reaches on_message; once allowed, the next one arrives."""
+    with pair("ow-j", "ow-k") as (a, b, got):
+        allowed = [False]
+        b.inbound_filter = lambda sender, role: allowed[0]
+        frames = _frames(a, b)
+        good, later = frames[0][1], frames[-1][1]
+        b.receive_datagram(good, a.address)
+        assert got == [] and b.counters.get("dropped.unreachable") == 1
+        allowed[0] = True
+        b.receive_datagram(later, a.address)
+        assert [m.id for m in got] == ["m13"]
+
+
+@settings(max_examples=500, deadline=None)
+@given(_heads(), _items())
+def test_a_status_the_one_pass_decode_takes_is_the_frame_pydantic_gives(head, item):
+    """`codec.decode_status` takes only one envelope of a Pose with every field given; what it
+    takes is what the pydantic parse gives, field by field, and it takes nothing pydantic refuses."""
+    payload = batch_payload(head, [item])
+    want, got = _two_step(payload), codec.decode_status(payload)
+    if want is None:
+        assert got is None, f"took a frame pydantic refuses: {payload!r}"
+        return
+    if got is None:
+        return  # left to the general decode
+    env, pose = got
+    assert {f: getattr(env, f) for f in EnvelopeHead.model_fields} == want[0]
+    ((want_item, want_body),) = want[1]
+    assert {f: getattr(env, f) for f in ("seq", "id", "kind", "type")} == want_item
+    _same_pose(pose, want_body)
+    assert pose.model_fields_set == want_body.model_fields_set
+
+
+def test_every_status_an_endpoint_sends_is_taken_by_the_one_pass_decode():
+    pose = Pose(robot="r1", x=1.5, battery=None, sonar=[0.5, 2.0], bumpers=-3)
+    payload = join_envelope(head_bytes("r1", "robot", "control", "a" * 32, ("127.0.0.1", 5000)),
+                            item_bytes(7, "m1", "status", *encode_body(pose)))
+    got = codec.decode_status(payload)
+    assert got is not None and got[1] == pose and got[0].to == "control"
+
+
+_EDGES: list[Any] = [None, True, 0, -1, 1.5, "", "x" * 32, "x" * 33, "é" * 64, "é" * 65, [], ["h", 1], ["h", "1"], {}]
+
+
+def test_the_one_pass_decode_agrees_with_pydantic_on_every_edge_of_every_envelope_field():
+    """Each envelope field (and an extra one) set to each edge value: taken only where pydantic
+    takes it, with the same value."""
+    pose = json.loads(encode_body(Pose(robot="r1", x=1.5))[1])
+    base = {"v": 2, "sender": "r1", "role": "robot", "to": "control", "inst": "a" * 32,
+            "reply": ["127.0.0.1", 5000], "seq": 7, "id": "m1", "kind": "status", "type": "Pose", "body": pose}
+    taken = 0
+    for field in [*base, "extra"]:
+        for value in _EDGES:
+            payload = json.dumps({**base, field: value}, separators=(",", ":")).encode()  # as ERNI writes
+            want, got = _two_step(payload), codec.decode_status(payload)
+            if want is None or got is None:
+                assert want is not None or got is None, f"{field}={value!r}: taken, but pydantic refuses it"
+                continue
+            taken += 1
+            assert {f: getattr(got[0], f) for f in EnvelopeHead.model_fields} == want[0], (field, value)
+            assert {f: getattr(got[0], f) for f in ("seq", "id", "kind", "type")} == want[1][0][0], (field, value)
+    assert taken >= 10
