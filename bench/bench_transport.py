@@ -21,6 +21,7 @@ and a `put` burst. Without it installed those rows are left out.
 from __future__ import annotations
 
 import argparse
+import os
 import socket
 import statistics
 import sys
@@ -288,6 +289,7 @@ def main() -> int:
     parser.add_argument("--pings", type=int, default=500)
     parser.add_argument("--burst", type=int, default=5000)
     args = parser.parse_args()
+    load_before = os.getloadavg()
     rows, zrows, firsts = [], [], []
     for _ in range(args.rounds):  # the three systems take turns in every round
         eu, et, er, first = erni_round(args.pings, args.burst)
@@ -317,6 +319,8 @@ def main() -> int:
           "ERNI ahead; for throughput ERNI/Zenoh)")
     print(f"{'handshake + first status':<28} {statistics.median(firsts) * 1e6:>8.0f}us   (once per pair of "
           "endpoints; no floor)")
+    print(f"load average (1, 5, 15 min) before {' '.join(f'{x:.2f}' for x in load_before)}, after "
+          f"{' '.join(f'{x:.2f}' for x in os.getloadavg())}: the floors move with it, so compare ratios of one run")
     return 0
 
 
