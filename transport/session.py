@@ -213,6 +213,12 @@ _NONCE = struct.Struct(">4xQ")  # a frame's counter as its 12-byte nonce
 _nonce = _NONCE.pack
 _COUNTER = struct.Struct(">Q")
 _COUNTER_AT = DATA_HEADER.size - _COUNTER.size  # where a data frame's counter is
+_counter_of = _COUNTER.unpack_from
+_HEAD = DATA_HEADER.size  # a data frame's header: the associated data; the ciphertext follows
+_pack_head = DATA_HEADER.pack
+_SHORTEST = _HEAD + TAG_SIZE  # a data frame with nothing sealed in it
+_PREFIX = HEADER.size  # the length prefix, not counted in a frame's declared length
+_GROWTH = _HEAD - _PREFIX + TAG_SIZE  # what sealing adds to a payload's declared length
 
 
 class Session:
@@ -239,25 +245,25 @@ class Session:
 
     def seal(self, payload: bytes, max_frame: int) -> bytes:
         """Encrypt an envelope into a data frame (FrameError('size') when too big)."""
-        length = DATA_HEADER.size - HEADER.size + len(payload) + TAG_SIZE
-        if length + HEADER.size > max_frame:
-            raise FrameError("size", f"frame of {length + HEADER.size} bytes exceeds the limit of {max_frame}")
+        length = _GROWTH + len(payload)
+        if length + _PREFIX > max_frame:
+            raise FrameError("size", f"frame of {length + _PREFIX} bytes exceeds the limit of {max_frame}")
         counter = next(self._counter)
-        head = DATA_HEADER.pack(length, DATA, self.sid, counter)
+        head = _pack_head(length, DATA, self.sid, counter)
         self.last_tx = self._clock()
         return head + self._send.encrypt(_nonce(counter), payload, head)
 
     def open(self, frame: bytes) -> bytes:
         """Authenticate and decrypt a data frame of this session; raise FrameError('short'|'auth'|'replay')."""
-        if len(frame) < DATA_HEADER.size + TAG_SIZE:
+        if len(frame) < _SHORTEST:
             raise FrameError("short", f"data frame of {len(frame)} bytes is shorter than a header and its tag "
-                             f"({DATA_HEADER.size + TAG_SIZE} bytes; from {self.peer})")
-        (counter,) = _COUNTER.unpack_from(frame, _COUNTER_AT)
+                             f"({_SHORTEST} bytes; from {self.peer})")
+        (counter,) = _counter_of(frame, _COUNTER_AT)
         window = self._window
         if counter <= window.top:
             window.fresh(counter)  # a cheap early refusal of a replay; checked again under the lock below
         try:
-            plain = self._recv.decrypt(_nonce(counter), frame[DATA_HEADER.size:], frame[:DATA_HEADER.size])
+            plain = self._recv.decrypt(_nonce(counter), frame[_HEAD:], frame[:_HEAD])
         except InvalidTag:
             raise FrameError("auth", f"data frame does not authenticate in its session (from {self.peer})") from None
         with self._lock:
