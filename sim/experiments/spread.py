@@ -115,7 +115,8 @@ class Change:
     j: int
     length: float
     flip: bool      # one of the two diagonals of a quadrilateral of the triangulation swapped in one step
-    edge: bool      # an edge of the team: a side of only one triangle (or of none) of the triangulation
+    edge: bool      # on the team's edge: a side of only one triangle of the triangulation, or a link it
+                    # lacks between two robots on a side of one triangle (or in none)
     reach: bool     # at the radio reach: longer than 0.9 of it (a link in effect leaves past 1.1 of it)
     wall: bool      # a robot of it within the wall sensing range of a wall
     short: bool     # shorter than 1.05 d (a link in effect shorter than d stays until its push ends at d)
@@ -365,9 +366,10 @@ def _change_kinds(t: float, added: set[tuple[int, int]], removed: set[tuple[int,
                   ) -> tuple[list[Change], NDArray[np.intp] | None]:
     """Tell apart the links made (`added`) and broken (`removed`) in one step at the positions `pos`
     the step started from: a flip (a made link whose two opposite robots in the triangulation are the
-    ends of a broken one, and that broken one), an edge of the team (a side of one triangle, or of
-    none: a link the triangulation lacks; a broken link is judged in `earlier`, the triangulation
-    the step before, when given), at the radio reach (longer than 0.9 `reach`), near a wall
+    ends of a broken one, and that broken one), on the team's edge (a side of one triangle; a link the
+    triangulation lacks, such as a physical neighbour's, when both its robots are on such a side or
+    in no triangle; a broken link is judged in `earlier`, the triangulation the step before, when
+    given), at the radio reach (longer than 0.9 `reach`), near a wall
     (a robot of it within `sensing` of one), shorter than d. `triangles`: the kept triangulation,
     else the Delaunay triangulation of `pos` (the paper's law and the physical neighbourhood).
     Returns the changes and the triangulation they were judged in."""
@@ -385,8 +387,20 @@ def _change_kinds(t: float, added: set[tuple[int, int]], removed: set[tuple[int,
                 out.setdefault((min(u, v), max(u, v)), []).append(w)
         return out
 
+    def rim(tri_sides: dict[tuple[int, int], list[int]], tri: NDArray[np.intp] | None) -> set[int]:
+        """Robots on the team's edge: on a side of one triangle, or in no triangle."""
+        inside = set() if tri is None else set(np.unique(tri).tolist())
+        return {r for key, o in tri_sides.items() if len(o) == 1 for r in key} | (set(range(len(pos))) - inside)
+
+    def on_edge(key: tuple[int, int], tri_sides: dict[tuple[int, int], list[int]], outer: set[int]) -> bool:
+        if key in tri_sides:  # a side of the triangulation: of one triangle only
+            return len(tri_sides[key]) == 1
+        return key[0] in outer and key[1] in outer  # a link it lacks (physical, or dropped): both ends on the rim
+
     opposite = sides(triangles)
     was = opposite if earlier is None else sides(earlier)
+    rim_now = rim(opposite, triangles)
+    rim_was = rim_now if earlier is None else rim(was, earlier)
     flips: set[tuple[int, int]] = set()
     for key in added:
         other = opposite.get(key, [])
@@ -404,7 +418,7 @@ def _change_kinds(t: float, added: set[tuple[int, int]], removed: set[tuple[int,
         for i, j in sorted(keys):
             length = float(np.hypot(*(pos[j] - pos[i])))
             out.append(Change(round(t, 6), made, i, j, length, (i, j) in flips,
-                              len((opposite if made else was).get((i, j), [])) < 2,
+                              on_edge((i, j), opposite, rim_now) if made else on_edge((i, j), was, rim_was),
                               length > 0.9 * reach, bool(near[i] or near[j]), length < 1.05 * d))
     return out, triangles
 
@@ -651,7 +665,8 @@ def _seed_rows(res: Result, over_seeds: list[list[Run]], threshold: float, hold:
         for seed, r in enumerate(got, first_seed):
             if not math.isfinite(r.converged) and r.changes:
                 c = change_summary(r.changes, float(r.t[-1]))
-                res.metrics[f"{v}, seed {seed} (not converged): link changes in the last {CHANGES_WINDOW:g} s"] = (
+                res.metrics[f"{v}, seed {seed} (not converged): link changes in the last "
+                            f"{min(CHANGES_WINDOW, float(r.t[-1])):g} s"] = (
                     f"{c['per_s']:.2f}/s; flips {c['flip']:.0%}, team's edge {c['edge']:.0%}, at the reach "
                     f"{c['reach']:.0%}, near a wall {c['wall']:.0%}, shorter than 1.05 d {c['short']:.0%}; "
                     f"{c['length'][0]:.1f}-{c['length'][2]:.1f} m (median {c['length'][1]:.1f}); {c['links']} links, "

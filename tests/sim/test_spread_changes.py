@@ -38,3 +38,15 @@ def test_a_run_keeps_the_link_changes_of_its_last_window_and_reports_them(monkey
     assert min(c.t for c in run.changes) >= run.t[-1] - 40.0 - 1e-9
     got = spread.change_summary(run.changes, float(run.t[-1]))
     assert got["per_s"] == len(run.changes) / 40.0
+
+
+def test_a_physical_link_inside_the_team_is_not_on_its_edge_and_one_between_rim_robots_is():
+    # corners 0-3 far out, four robots inside: 4-5 (6 m) is no Delaunay edge (6-7 lie between them)
+    pos = np.array([[-20.0, -20.0], [20.0, -20.0], [20.0, 20.0], [-20.0, 20.0],
+                    [-3.0, 0.0], [3.0, 0.0], [0.0, 0.5], [0.0, -0.5]])
+    got, tri = spread._change_kinds(5.0, {(4, 5), (0, 1)}, set(), pos, None, 5.0, 7.5, np.zeros((0, 4)), 2.5)
+    assert tri is not None and not {(4, 5)} <= {tuple(sorted(e)) for t in tri.tolist() for e in
+                                                  ((t[0], t[1]), (t[1], t[2]), (t[0], t[2]))}
+    kinds = {(c.i, c.j): c for c in got}
+    assert not kinds[(4, 5)].edge and not kinds[(4, 5)].flip and not kinds[(4, 5)].wall
+    assert kinds[(0, 1)].edge  # a side of the hull
