@@ -60,6 +60,14 @@ as statuses are meant to (a UDP socket's buffer drops the newest instead)."""
 PUBLISHERS = 4096
 """Publishers kept declared (one per receiver); past this many they are all declared again on use."""
 
+NO_SHARED_MEMORY = "transport/shared_memory/transport_optimization/enabled"
+"""Zenoh's setting that copies a message larger than 3 kB into a shared-memory pool (16 MB a session,
+touched on first use) when its receiver is on the same host; ERNI's sessions turn it off. Its frames
+are at most `BATCH_BYTES`, so the copy it saves is small, while the pool cost every agent of a team
+on one host (`erni sim`) 16 MB, and its first use slowed the first burst of statuses between two
+agents: a put took 7-10 ms of CPU a burst of 5000 statuses (140 frames) the first time, 2-3 ms after
+(1.4-3x less throughput in that burst). Agents on different hosts never use it."""
+
 
 def tls_config(identity: Identity) -> dict[str, Any]:
     """Zenoh's TLS settings from an ERNI identity: its key and certificate on both sides of a link,
@@ -96,6 +104,10 @@ def open_session(settings: ZenohSettings, *, listen: list[str] | None = None, mo
         values["transport/link/tls"] = tls_config(identity)
     if access is not None:
         values["access_control"] = access
+    try:
+        conf.insert_json5(NO_SHARED_MEMORY, "false")
+    except zenoh.ZError:  # a Zenoh without the setting: nothing to turn off
+        pass
     try:
         for key, value in values.items():
             conf.insert_json5(key, json.dumps(value))

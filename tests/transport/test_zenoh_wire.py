@@ -468,3 +468,21 @@ def test_a_burst_of_statuses_goes_in_frames_larger_than_a_udp_datagram(router):
     finally:
         sender.stop()
         receiver.stop()
+
+
+def test_sessions_send_frames_over_their_links_not_through_a_shared_memory_pool(monkeypatch):
+    """Zenoh copies a message over 3 kB into a 16 MB shared-memory pool when its receiver is on the
+    same host; ERNI's sessions (agents' and routers') turn that off: its frames are at most 16 kB,
+    and the pool would cost every agent of a team on one host 16 MB and slow its first burst."""
+    from erni.transport import zenoh_wire
+    from erni.transport.zenoh_keys import ZenohSettings
+
+    opened: list[Any] = []
+    real_open = zenoh.open
+    monkeypatch.setattr(zenoh, "open", lambda conf: (opened.append(conf), real_open(conf))[1])
+    for session in (zenoh_wire.open_session(ZenohSettings(listen=[f"tcp/127.0.0.1:{free_port()}"], scouting=False)),
+                    open_router([f"tcp/127.0.0.1:{free_port()}"])):
+        session.close()
+    assert len(opened) == 2
+    for conf in opened:
+        assert conf.get_json("transport/shared_memory/transport_optimization/enabled") == "false"
