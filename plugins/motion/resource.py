@@ -155,6 +155,7 @@ class RobotMotionResource:
         self._says: dict[str, tuple[bytes, float]] = {}  # task uid -> tones not yet sent, and until when to try
         self._threads: list[threading.Thread] = []
         self.cycles = 0
+        self.stale_cycles = 0  # cycles while steering with no new SIP: a task, or 1.5 SIP intervals without one
         self.winner: Behaviour | None = None
         if avoid_distance > 0:
             self.stack.push(self._default_avoid())
@@ -224,6 +225,8 @@ class RobotMotionResource:
             now = last = self.clock()
             if self._new_sip:
                 last_sip = now
+            elif self._steering:
+                self.stale_cycles += 1
             self._new_sip = False  # the state read by this cycle is at least as new as the SIP that woke it
             try:
                 self._drain_inbox(now)
