@@ -10,6 +10,7 @@ import time
 from pathlib import Path
 
 from erni.blackboard import Agent, Plugin
+from erni.blackboard.testing import wait_until
 from tests.core.helpers import Item
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -123,11 +124,15 @@ def test_a_slow_plugin_is_still_reported_at_its_limit(caplog):
 def test_erni_agent_stops_at_once_on_sigterm(tmp_path):
     path = tmp_path / "a.toml"
     path.write_text('[agent]\nname = "a"\nworkers = 1\n\n[[plugin]]\nclass = "echo"\n')
-    p = subprocess.Popen([sys.executable, "-m", "erni", "agent", str(path)], cwd=ROOT,
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    log = tmp_path / "agent.log"
+    with log.open("w") as out:
+        p = subprocess.Popen([sys.executable, "-m", "erni", "agent", str(path)], cwd=ROOT,
+                             stdout=out, stderr=subprocess.STDOUT, text=True)
     try:
-        time.sleep(2.0)
-        assert p.poll() is None
+        # counted from the agent's own "started" (a loaded machine takes seconds to import it)
+        wait_until(lambda: "agent a started" in log.read_text() or p.poll() is not None, timeout=60)
+        assert p.poll() is None, log.read_text()
+        time.sleep(1.0)  # then it freezes and trims the heap, and waits
         main_tid = p.pid
         with open(f"/proc/{p.pid}/task/{main_tid}/status") as f:
             a = sum(int(line.split()[1]) for line in f if line.startswith("voluntary_ctxt_switches"))
