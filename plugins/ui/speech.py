@@ -725,6 +725,7 @@ class Listener:
         self.queue: queue.Queue[tuple[str, bytes] | None] = queue.Queue(max_queue)
         self.dropped = 0
         self.streams: dict[str, Any] = {}
+        self._stopping = threading.Event()
         self._thread = threading.Thread(target=self._run, name="ui-speech", daemon=True)
 
     def start(self) -> Listener:
@@ -740,9 +741,16 @@ class Listener:
         self.feed(source, self.FLUSH)
 
     def stop(self) -> None:
-        """Stop the thread (joined)."""
+        """Stop the thread (joined). Audio not yet heard is dropped, not recognised: nothing said
+        before a stop is carried out after it, and a long queue does not hold the stop."""
         if not self._thread.is_alive():
             return
+        self._stopping.set()
+        while True:
+            try:
+                self.queue.get_nowait()
+            except queue.Empty:
+                break
         put_dropping_oldest(self.queue, None)
         self._thread.join(timeout=5)
 
@@ -757,7 +765,7 @@ class Listener:
                 while self.queue.get() is not None:  # audio goes nowhere until stop()
                     pass
                 return
-        while (item := self.queue.get()) is not None:
+        while (item := self.queue.get()) is not None and not self._stopping.is_set():
             source, pcm = item
             try:
                 if pcm == self.FLUSH:

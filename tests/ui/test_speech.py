@@ -220,6 +220,32 @@ def test_each_source_has_its_own_stream_so_microphones_never_mix():
     assert heard == [("page2", "everyone stop"), ("page1", "robot one")]
 
 
+def test_a_stop_does_not_wait_for_queued_audio_and_nothing_queued_is_heard_after_it():
+    """A slow recogniser with a full queue (a loaded machine): stop() returns at once and the audio
+    queued before it is dropped, not recognised after the stop."""
+    heard: list[tuple[str, str]] = []
+    begun = threading.Event()
+
+    class Slow(Echo):
+        def feed(self, pcm: bytes) -> str | None:
+            begun.set()
+            time.sleep(0.2)
+            return pcm.decode()
+
+    class SlowRecogniser:
+        def stream(self) -> Slow:
+            return Slow()
+
+    listener = Listener(SlowRecogniser(), lambda source, text: heard.append((source, text))).start()
+    for i in range(100):  # 20 s of recognition queued
+        listener.feed("page1", f"chunk {i}".encode())
+    assert begun.wait(5)
+    t0 = time.monotonic()
+    listener.stop()
+    assert time.monotonic() - t0 < 2.0 and not listener._thread.is_alive()
+    assert len(heard) <= 1, heard   # at most the chunk being recognised when the stop came
+
+
 def test_a_model_that_fails_to_load_is_reported_and_audio_is_dropped(tmp_path):
     errors: list[str] = []
 
