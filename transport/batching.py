@@ -45,10 +45,13 @@ Address = tuple[str, int]
 
 COALESCE = 20e-6
 """A status sent to a destination less than this (s) after the caller's previous send to it
-returned is part of a burst (the caller waited for nothing in between): it is gathered with the
-burst's next ones, and the caller seals and sends each `BATCH_BYTES` of them as one datagram. A
-robot's statuses, a request waiting for its reply and a ping-pong are far slower than this: they
-go out one to a datagram, at once."""
+returned is taken for part of a burst: it is gathered with the burst's next ones, and the caller
+seals and sends each `BATCH_BYTES` of them as one datagram. A robot's statuses and a request
+waiting for a remote reply are far slower than this and go out one to a datagram, at once. A
+caller that waits for each status's delivery in its own process (a ping-pong on loopback) can
+come back within this, often before its own `sendto` has returned; the first batch of one it
+leaves to the sender pool then turns gathering off for that destination for
+`outbox.SOLO_FOR`."""
 
 FLUSH_AFTER = 200e-6
 """How long (s) the last, partly filled datagram of a burst waits for more before the sender
@@ -111,8 +114,10 @@ class FastMessages:
                 and session.sid in sessions.by_sid and not (to and to != session.peer):
             dest = self._dests.get(addr)
             fast_at = self._fast_at
-            if (dest is None or not (dest.fast or dest.announce or dest.batch is not None)) \
-                    and time.monotonic() - fast_at.get(addr, -math.inf) >= COALESCE:  # not a burst
+            now = time.monotonic()
+            quick = now - fast_at.get(addr, -math.inf) < COALESCE  # a burst, unless gathering is off (solo_until)
+            if not quick and dest is None or dest is not None and not (
+                    dest.fast or dest.announce or dest.batch is not None) and (not quick or now < dest.solo_until):
                 head = self._head_opens.get(session.peer) or self._head_open(session.peer)
                 try:
                     self._sendto(session.seal(b'%b"seq":%d,"id":%b,%b,"body":%b}' % (
@@ -161,8 +166,9 @@ class FastMessages:
                 session = self.sessions.usable(addr)
                 if session is None or out.to and out.to != session.peer:
                     return False  # a handshake to drive, or a wrong peer to report: the sender pool's work
-                if dest is not None and dest.batch is not None \
-                        or time.monotonic() - self._fast_at.get(addr, -math.inf) < COALESCE:
+                now = time.monotonic()
+                if dest is not None and (dest.batch is not None or now >= dest.solo_until
+                                         and now - self._fast_at.get(addr, -math.inf) < COALESCE):
                     return self._gather(addr, out, session)  # a burst: several statuses to a datagram
                 single = self._batch(session)
                 single.add(out, self._item(out))
@@ -253,6 +259,7 @@ class FastMessages:
             batch = dest.batch
             if batch is not None and (batch.session is not session or not batch.fits(item)):
                 full, batch = batch, None
+                dest.full_at = time.monotonic()  # a real burst: it filled a datagram
             if batch is None:
                 batch = dest.batch = self._batch(session)
                 self._schedule(dest, time.monotonic() + FLUSH_AFTER)

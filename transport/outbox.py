@@ -31,6 +31,13 @@ if TYPE_CHECKING:
 
 Address = tuple[str, int]
 
+SOLO_FOR = 0.01
+"""How long (s) the caller sends each status to a destination on its own after a batch it gathered
+there went out with one status, when it has filled no datagram there within this time either:
+its statuses follow each other closely but it waits between them (each one's delivery in its own
+process, a reply), so gathering only held each back by `batching.FLUSH_AFTER`. The end of a real
+burst (its last datagram may hold one status) does not count: that caller filled datagrams."""
+
 
 @dataclass(slots=True)
 class Outgoing:
@@ -71,6 +78,8 @@ class Dest:
     hs_backoff: float = 0.0
     hs_not_before: float = 0.0
     batch: Batch | None = None  # statuses of a burst the caller gathers into one datagram
+    solo_until: float = 0.0  # until then (monotonic) the caller sends each status on its own (SOLO_FOR)
+    full_at: float = 0.0  # when the caller last filled a datagram with gathered statuses (monotonic)
 
     def has_work(self) -> bool:
         return bool(self.fast or self.reliable or self.announce or self.batch)
@@ -194,6 +203,10 @@ class SenderPool:
         """Send what can go now; return when to come back (None: when there is new work)."""
         with self._cond:
             batch, dest.batch = dest.batch, None
+            if batch is not None and len(batch.outs) == 1:
+                now = time.monotonic()
+                if now - dest.full_at > SOLO_FOR:  # a "burst" of one, and no datagram filled lately
+                    dest.solo_until = now + SOLO_FOR
         if batch is not None and not self._send_datagram(dest.addr, batch):
             self._requeue(dest, batch.outs)
             return time.monotonic() + 0.005

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import json
 import math
+import threading
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
@@ -19,7 +21,7 @@ from hypothesis import strategies as st
 
 from erni.blackboard import Pose
 from erni.blackboard.testing import wait_until
-from erni.transport import Endpoint, codec
+from erni.transport import Endpoint, batching, codec, outbox
 from erni.transport.identity import load_identity
 from erni.transport.wire import (
     DATA_HEADER,
@@ -257,3 +259,37 @@ def test_the_one_pass_decode_agrees_with_pydantic_on_every_edge_of_every_envelop
             assert {f: getattr(got[0], f) for f in EnvelopeHead.model_fields} == want[0], (field, value)
             assert {f: getattr(got[0], f) for f in ("seq", "id", "kind", "type")} == want[1][0][0], (field, value)
     assert taken >= 10
+
+
+def test_a_caller_that_waits_for_each_status_is_not_taken_for_a_burst(monkeypatch):
+    """A caller whose statuses follow each other within COALESCE but that waits for each one's
+    delivery (a ping-pong in one process) sends its first follow-up into a batch that leaves with
+    one status; from then on the caller's thread sends each status at once, none held back."""
+    monkeypatch.setattr(batching, "COALESCE", 10.0)  # every follow-up counts as quick
+    monkeypatch.setattr(outbox, "SOLO_FOR", 10.0)  # and the test's own waits do not outlast the solo time
+    with pair("ow-l", "ow-m") as (a, b, got):
+        caller = threading.current_thread().name
+        seen: list[str] = []
+        real = a._sendto
+        a._sendto = lambda frame, addr: (seen.append(threading.current_thread().name), real(frame, addr))[1]  # type: ignore[method-assign]
+        for i in range(1, 6):
+            a.send(b.address, "status", Pose(robot=f"r{i}"), reliable=False, to="ow-m")
+            wait_until(lambda n=i: len(got) == n)  # the caller waits for each one's delivery
+        assert seen[0] != caller  # the first follow-up: gathered, and left to the sender pool
+        assert seen[1:] == [caller] * 4, seen
+        assert [m.body.robot for m in got] == [f"r{i}" for i in range(1, 6)]
+
+
+def test_statuses_are_gathered_again_once_the_solo_time_is_over(monkeypatch):
+    monkeypatch.setattr(batching, "COALESCE", 10.0)
+    monkeypatch.setattr(outbox, "SOLO_FOR", 0.05)
+    with pair("ow-n", "ow-o") as (a, b, got):
+        for i in range(1, 3):  # a ping-pong: the second goes out alone from a batch, gathering stops
+            a.send(b.address, "status", Pose(robot=f"p{i}"), reliable=False, to="ow-o")
+            wait_until(lambda n=i: len(got) == n)
+        assert a._dests[b.address].solo_until > 0
+        time.sleep(0.1)
+        for i in range(40):  # a burst after the solo time: several to a datagram again
+            a.send(b.address, "status", Pose(robot=f"b{i}"), reliable=False, to="ow-o")
+        wait_until(lambda: len(got) == 42)
+        assert a.counters.get("sent.batched", 0) >= 20
