@@ -2,11 +2,13 @@
 gathered into one datagram when they come in a burst.
 
 A status on its own, in a confirmed session, with nothing queued for its destination, is sealed
-and handed to the UDP socket by the caller (`_send_now`): the socket never blocks, and what it does
-not take goes to the sender pool. A status that follows the caller's previous one to the same
+and handed to the UDP socket by the caller (`_send_status`): the socket never blocks, and what it
+does not take goes to the sender pool. A status that follows the caller's previous one to the same
 destination within `COALESCE` joins that destination's batch (`_gather`): the caller seals and sends
 each `BATCH_BYTES` of them as one datagram `[head, [item, ...]]`, the head stated once, and the
-sender pool sends the last partly filled one after `FLUSH_AFTER`. The pool sends queued statuses
+sender pool sends the last partly filled one after `FLUSH_AFTER`; a batch the pool sends with one
+status, from a caller that filled none lately, turns gathering off for that destination for
+`outbox.SOLO_FOR` (the caller waits between its statuses: it was no burst). The pool sends queued statuses
 the same way (`_send_fast`); what the socket refuses goes back in front of the queue, which is
 bounded and drops the oldest.
 
