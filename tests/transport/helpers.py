@@ -8,6 +8,8 @@ import subprocess
 import tempfile
 import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -264,3 +266,29 @@ class FullSocket:
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self.sock, name)
+
+
+def endpoint(name: str, **kw: Any) -> tuple[Any, list[Any]]:
+    """A started Endpoint of identity `name` and the list its messages go to."""
+    from erni.transport import Endpoint
+    from erni.transport.identity import load_identity
+
+    ep = Endpoint(name, identity=load_identity(identity(name)), ack_timeout=2.0, connect_timeout=0.5, **kw)
+    got: list[Any] = []
+    ep.on_message = got.append
+    ep.start()
+    return ep, got
+
+
+@contextmanager
+def session_up(a_name: str, b_name: str) -> Iterator[tuple[Any, Any, list[Any]]]:
+    """Two endpoints whose session is up (a's first status, r0, has reached b); stopped after."""
+    a, _ = endpoint(a_name)
+    b, got = endpoint(b_name)
+    try:
+        a.send(b.address, "status", Pose(robot="r0"), reliable=False, to=b_name)  # starts the session
+        wait_until(lambda: len(got) == 1)
+        yield a, b, got
+    finally:
+        a.stop()
+        b.stop()

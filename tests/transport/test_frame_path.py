@@ -10,8 +10,6 @@ from __future__ import annotations
 import socket
 import threading
 import time
-from collections.abc import Iterator
-from contextlib import contextmanager
 from typing import Any
 
 import pytest
@@ -23,29 +21,7 @@ from erni.transport import Endpoint, batching
 from erni.transport.identity import load_identity
 from erni.transport.limits import Limits
 from erni.transport.wire import BATCH_BYTES, encode_body, head_bytes, item_bytes
-from tests.transport.helpers import FullSocket, identity
-
-
-def endpoint(name: str, **kw: Any) -> tuple[Endpoint, list]:
-    ep = Endpoint(name, identity=load_identity(identity(name)), ack_timeout=2.0, connect_timeout=0.5, **kw)
-    got: list = []
-    ep.on_message = got.append
-    ep.start()
-    return ep, got
-
-
-@contextmanager
-def session_up(a_name: str, b_name: str) -> Iterator[tuple[Endpoint, Endpoint, list]]:
-    """Two endpoints whose session is up (a's first status, r0, has reached b); stopped after."""
-    a, _ = endpoint(a_name)
-    b, got = endpoint(b_name)
-    try:
-        a.send(b.address, "status", Pose(robot="r0"), reliable=False, to=b_name)  # starts the session
-        wait_until(lambda: len(got) == 1)
-        yield a, b, got
-    finally:
-        a.stop()
-        b.stop()
+from tests.transport.helpers import FullSocket, endpoint, identity, session_up
 
 
 def returns(call: Any) -> bool:

@@ -22,7 +22,6 @@ from hypothesis import strategies as st
 from erni.blackboard import Pose
 from erni.blackboard.testing import wait_until
 from erni.transport import Endpoint, batching, codec, outbox
-from erni.transport.identity import load_identity
 from erni.transport.wire import (
     DATA_HEADER,
     EnvelopeHead,
@@ -32,7 +31,7 @@ from erni.transport.wire import (
     item_bytes,
     join_envelope,
 )
-from tests.transport.helpers import identity
+from tests.transport.helpers import session_up
 from tests.transport.test_codec import _heads, _items, _same_pose
 from tests.transport.test_wire import _two_step
 
@@ -62,27 +61,12 @@ def test_a_pose_body_is_the_json_pydantic_writes_value_for_value(pose):
     assert _same(json.loads(data), json.loads(pose.model_dump_json())), data
 
 
-def endpoint(name: str) -> tuple[Endpoint, list]:
-    ep = Endpoint(name, identity=load_identity(identity(name)), ack_timeout=2.0, connect_timeout=0.5)
-    got: list = []
-    ep.on_message = got.append
-    ep.start()
-    return ep, got
-
-
 @contextmanager
 def pair(a_name: str, b_name: str) -> Iterator[tuple[Endpoint, Endpoint, list]]:
-    """Two endpoints in a confirmed session (a's first status has reached b); stopped after."""
-    a, _ = endpoint(a_name)
-    b, got = endpoint(b_name)
-    try:
-        a.send(b.address, "status", Pose(robot="r0"), reliable=False, to=b_name)
-        wait_until(lambda: len(got) == 1)
+    """Two endpoints in a confirmed session (a's first status has reached b, and is forgotten)."""
+    with session_up(a_name, b_name) as (a, b, got):
         got.clear()
         yield a, b, got
-    finally:
-        a.stop()
-        b.stop()
 
 
 def _frames(a: Endpoint, b: Endpoint) -> list[tuple[str, bytes]]:
