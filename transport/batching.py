@@ -23,7 +23,7 @@ import itertools
 import math
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any
 
 from pydantic_core import to_json
@@ -67,6 +67,7 @@ class FastMessages:
         _cond: threading.Condition
         auth: Auth | None
         _dests: dict[Address, Dest]
+        clock: Callable[[], float]
         _fast_at: dict[Address, float]
         _heads: dict[str, bytes]
         _head_opens: dict[str, bytes]
@@ -89,7 +90,6 @@ class FastMessages:
         def _dest_for(self, addr: Address) -> Dest: ...
         def _frame(self, out: Outgoing, session: Session | None, max_frame: int) -> bytes: ...
         def _queue(self, addr: Address, out: Outgoing, lane: str) -> None: ...
-        def clock(self) -> float: ...
         def _make_ready(self, dest: Dest) -> None: ...
         def _schedule(self, dest: Dest, when: float) -> None: ...
         def _sendto(self, frame: bytes, addr: Address) -> None: ...
