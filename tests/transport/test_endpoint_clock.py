@@ -70,6 +70,8 @@ def test_an_idle_session_is_forgotten_when_the_clock_passes_the_idle_limit():
     try:
         a.send(b.address, "one", Pose(robot="x"), reliable=True, to="beta")
         wait_until(lambda: got)
+        # and acknowledged: an ack taken after the advance would count as traffic at 601 s
+        wait_until(lambda: a.counters.get("sent.reliable", 0) == 1)
         assert a.session_with(b.address) is not None
         clock.advance(601.0)  # real time would take ten minutes
         wait_until(lambda: a.session_with(b.address) is None and not b.sessions.by_sid, timeout=5)
