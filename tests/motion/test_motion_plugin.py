@@ -588,6 +588,8 @@ def test_a_task_outcome_between_sips_does_not_hold_the_later_sips_back():
 def test_faster_sips_are_published_at_the_pose_rate_on_average_and_never_closer_than_half_a_period():
     sips, published = _pose_times([0.02] * 75, pose_rate_hz=10)  # 50 Hz SIPs for 1.5 s
     spacing = np.diff(published)
-    expected = (sips[-1] - sips[0]) * 10  # the SIPs' own span: sleeps run long on a loaded machine
-    assert expected - 2 <= len(published) <= expected + 2, (len(published), expected)
+    # counted over the SIPs' own span (sleeps run long on a loaded machine), not the rest after them
+    during = [t for t in published if sips[0] <= t <= sips[-1] + 0.01]
+    expected = (sips[-1] - sips[0]) * 10
+    assert expected - 2 <= len(during) <= expected + 2, (len(during), expected, np.round(np.array(published) - sips[0], 3))
     assert spacing.min() >= 0.045, spacing.min()
