@@ -15,7 +15,7 @@ settings.load_profile("erni")
 
 @pytest.hookimpl(tryfirst=True)  # before xdist's own hook, which reads the groups into the node ids
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """Under pytest-xdist (`-n 2 --dist loadgroup`): a file's tests run on one worker, so its module
+    """Under pytest-xdist (`-n 3 --dist loadgroup`): a file's tests run on one worker, so its module
     fixtures (a team, a browser) start once, and every real-mesh test on the same one, since
     network namespaces and nftables are the machine's, not the worker's."""
     for item in items:
