@@ -35,8 +35,10 @@ from __future__ import annotations
 import ipaddress
 import math
 import random
+import threading
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar, Literal, NamedTuple
 
@@ -271,17 +273,11 @@ class TransportPlugin(Plugin[TransportSettings]):
         self.shared = self.subscribe(lambda o: type(o).__name__ in shared and o.uid not in self.status_in)
         self.directory = _Directory()
         self._targets: dict[str, tuple[int, list[_Target], frozenset[tuple[str, int]]]] = {}  # `_status_targets`
-        self.heard_at: dict[str, float] = {}  # peer -> when a session frame of it last arrived (monotonic)
-        self.sent_to: dict[str, str] = {}  # task uid -> peer it was sent to
-        self.sent_at: dict[str, float] = {}  # task uid -> when it was sent (monotonic)
-        self.lost: set[str] = set()  # tasks failed because their performer was not heard in time
-        self.received_from: dict[str, str] = {}  # task uid -> peer it came from
-        self.origin_role: dict[str, str] = {}  # task uid -> role of its originator (relayed: as its relay stated)
-        self.reply_to: dict[str, Address] = {}  # task uid -> address of the agent or client it came from
-        self.final_sent: set[str] = set()  # tasks whose final state went back to their requester
-        self.last_result: dict[str, tuple[int, int]] = {}  # task uid -> (epoch, seq) applied
-        self.final_seen: set[str] = set()  # tasks whose final result from their performer was applied
-        self.pending: dict[str, tuple[str, float]] = {}  # task uid -> (destination, deadline)
+        self.tasks_out: dict[str, _TaskOut] = {}  # task uid -> what we know of a task we sent to its performer
+        self.tasks_in: dict[str, _TaskIn] = {}  # task uid -> what we know of a task given to us (or relayed)
+        self._waiting = 0  # records of tasks_out whose performer is not discovered yet (`_retry_pending`)
+        self.peers: dict[str, _PeerRecord] = {}  # peer -> when we heard it, beaconed it, its limit and counts
+        self._peer_lock = threading.Lock()  # a record made on the receive thread and in a run at once: one
         self.watchers: dict[tuple[str, Address], float] = {}  # (client, its address) -> lease end
         self.learned: set[str] = set()
         self.addresses: dict[str, Address] = {}  # reply address of every sender, clients included
@@ -291,11 +287,6 @@ class TransportPlugin(Plugin[TransportSettings]):
         self._next_link_check = 0.0  # performers' silences are looked at a few times a period
         self._announce_every = s.beacon_period  # backs off while the directory stands
         self._announce_seen: tuple[int, int] = (-1, -1)  # peers and learned addresses at the last announcement
-        self.sent_peer_at: dict[str, float] = {}  # peer -> when a session frame other than a beacon went (monotonic)
-        self.beacon_due: dict[str, float] = {}  # quiet peer -> when its next in-session beacon is due (monotonic)
-        self.peer_limit: dict[str, float] = {}  # peer -> silence that marks it down, from its announced interval
-        self.beacon_counts: dict[str, BeaconCount] = {}  # peer -> how many of its numbered beacons arrive
-        self.beacons_sent: dict[str, int] = {}  # peer -> in-session beacons sent it (their numbers)
         self._beacon_said: Beacon | None = None  # what the last in-session beacons said (but the interval)
         for spec in s.peers:
             name, _, addr = spec.partition("@")
@@ -338,40 +329,38 @@ class TransportPlugin(Plugin[TransportSettings]):
         me = self.agent_name
         now = time.time()
         for receipt in self.receipts.added:  # after a restart: who gave us which task, and where
-            self.received_from.setdefault(receipt.task, receipt.sender)
-            if receipt.role:
-                self.origin_role.setdefault(receipt.task, receipt.role)
+            given = self._task_in(receipt.task)
+            if given.sender is None:
+                given.sender = receipt.sender
+            if receipt.role and given.origin_role is None:
+                given.origin_role = receipt.role
             if receipt.address:
                 try:
                     addr = parse_address(receipt.address)
                 except ConfigError:
                     continue
-                self.reply_to.setdefault(receipt.task, addr)
+                if given.reply_to is None:
+                    given.reply_to = addr
                 self.addresses.setdefault(receipt.sender, addr)
         for task in self.tasks.added:
             if self.rehydrated(task):
                 self._reconcile(task)
             elif (task.destination not in (None, "", me) and self.settings.forward_tasks
-                  and self.received_from.get(task.uid) != task.destination):
+                  and self._requester(task.uid) != task.destination):
                 self._send_task(task)
         for task in self.tasks.added + self.tasks.changed:  # added and changed in one window: added
-            origin = self.received_from.get(task.uid)
+            origin = self._requester(task.uid)
             if origin and task.result is not None:
                 self._send_result(origin, task)
         for task in self.tasks.removed:
-            dest = self.sent_to.pop(task.uid, None)
-            self.pending.pop(task.uid, None)
-            self.sent_at.pop(task.uid, None)
-            self.lost.discard(task.uid)
-            if dest:
-                self._send_to_peer(dest, "task.cancel", Cancel(uid=task.uid), reliable=True)
-            if self.received_from.pop(task.uid, None) and self.get(f"received:{task.uid}") is not None:
+            sent = self.tasks_out.pop(task.uid, None)
+            if sent is not None and sent.pending is not None:
+                self._waiting -= 1
+            if sent is not None and sent.dest:
+                self._send_to_peer(sent.dest, "task.cancel", Cancel(uid=task.uid), reliable=True)
+            received = self.tasks_in.pop(task.uid, None)
+            if received is not None and received.sender and self.get(f"received:{task.uid}") is not None:
                 self.remove(f"received:{task.uid}")
-            self.reply_to.pop(task.uid, None)
-            self.origin_role.pop(task.uid, None)
-            self.final_sent.discard(task.uid)
-            self.final_seen.discard(task.uid)
-            self.last_result.pop(task.uid, None)
         known = len(self.learned)
         for info in self.netinfo.added + self.netinfo.changed:
             for n in info.neighbors:
@@ -393,14 +382,49 @@ class TransportPlugin(Plugin[TransportSettings]):
             self._next_link_check = mono + min(self.settings.beacon_period, self.settings.link_deadline) / 4
             self._check_links()
 
+    # -- what is known of each task and peer -----------------------------------------------
+
+    def _task_in(self, uid: str) -> _TaskIn:
+        """The record of task `uid` given to us, made when first written."""
+        given = self.tasks_in.get(uid)
+        if given is None:
+            given = self.tasks_in[uid] = _TaskIn()
+        return given
+
+    def _requester(self, uid: str) -> str | None:
+        """The peer task `uid` came from (None: not given to us)."""
+        given = self.tasks_in.get(uid)
+        return given.sender if given is not None else None
+
+    def _performer(self, uid: str) -> str | None:
+        """The peer task `uid` was sent to (None: not sent by us)."""
+        sent = self.tasks_out.get(uid)
+        return sent.dest if sent is not None else None
+
+    def _stop_waiting(self, record: _TaskOut) -> None:
+        record.pending = None
+        self._waiting -= 1
+
+    def _peer(self, name: str) -> _PeerRecord:
+        """The record of peer `name`, made when first written (in a run or on the receive thread)."""
+        peer = self.peers.get(name)
+        if peer is None:
+            peer = self.peers.setdefault(name, _PeerRecord())
+        return peer
+
+    def _sent_peer_at(self, name: str) -> float:
+        peer = self.peers.get(name)
+        return peer.sent_peer_at if peer is not None else -math.inf
+
     # -- outgoing -------------------------------------------------------------------------
 
     def _address_of(self, name: str, uid: str | None = None) -> Address | None:
         peer = self.directory.get(name)
         if peer is not None and peer.address:
             return parse_address(peer.address)
-        if uid is not None and uid in self.reply_to:  # a client: the address its task came from
-            return self.reply_to[uid]
+        given = self.tasks_in.get(uid) if uid is not None else None
+        if given is not None and given.reply_to is not None:  # a client: the address its task came from
+            return given.reply_to
         return self.addresses.get(name)
 
     def _send_to_peer(self, name: str, kind: str, body: Any, *, reliable: bool, uid: str | None = None) -> bool:
@@ -408,22 +432,27 @@ class TransportPlugin(Plugin[TransportSettings]):
         if addr is None:
             return False
         self.endpoint.send(addr, kind, body, reliable=reliable, to=name)
-        self.sent_peer_at[name] = self._now()
+        self._peer(name).sent_peer_at = self._now()
         return True
 
     def _send_task(self, task: Task) -> None:
         dest = task.destination
         assert dest is not None
-        self.sent_to[task.uid] = dest
-        self.sent_at[task.uid] = self._now()
-        origin = self.received_from.get(task.uid)
-        if origin:  # relayed: the receiver checks that we may relay for its originator
-            sent = self._send_to_peer(dest, "task.relay", Relayed(task=task, role=self.origin_role.get(task.uid, "")),
+        record = self.tasks_out.get(task.uid)
+        if record is None:
+            record = self.tasks_out[task.uid] = _TaskOut(dest, self._now())
+        else:
+            record.dest, record.sent_at = dest, self._now()
+        given = self.tasks_in.get(task.uid)
+        if given is not None and given.sender:  # relayed: the receiver checks that we may relay for its originator
+            sent = self._send_to_peer(dest, "task.relay", Relayed(task=task, role=given.origin_role or ""),
                                       reliable=True)
         else:
             sent = self._send_to_peer(dest, "task.add", task, reliable=True)
         if not sent:
-            self.pending[task.uid] = (dest, self._now() + self.settings.task_ttl)
+            if record.pending is None:
+                self._waiting += 1
+            record.pending = (dest, self._now() + self.settings.task_ttl)
             self.log.info("task %s waits for agent %s to be discovered", task.uid, dest)
             return
         latest = self._task_now(task.uid)  # this run may have applied its performer's result already
@@ -442,22 +471,27 @@ class TransportPlugin(Plugin[TransportSettings]):
             if not task.done:  # ours or relayed: the receiver de-duplicates by uid
                 self.log.info("re-sending task %s to %s after restart", task.uid, task.destination)
                 self._send_task(task)
-        origin = self.received_from.get(task.uid)
+        origin = self._requester(task.uid)
         if origin and task.result is not None and task.destination in (None, "", me):
-            self.final_sent.discard(task.uid)  # the requester may have missed it while we were away
+            self._task_in(task.uid).final_sent = False  # the requester may have missed it while we were away
             self._send_result(origin, task)
 
     def _retry_pending(self, now: float) -> None:
+        if not self._waiting:  # O(tasks sent) only while some wait
+            return
         mono = self._now()
-        for uid, (dest, deadline) in list(self.pending.items()):
+        for uid, record in list(self.tasks_out.items()):
+            if record.pending is None:
+                continue
+            dest, deadline = record.pending
             task = self._task_now(uid)
             if task is None or task.done:
-                del self.pending[uid]
+                self._stop_waiting(record)
             elif self._address_of(dest) is not None:
-                del self.pending[uid]
+                self._stop_waiting(record)
                 self._send_task(task)
             elif mono > deadline:
-                del self.pending[uid]
+                self._stop_waiting(record)
                 self.change(task.with_result(TaskState.FAILED, message=f"unknown agent {dest}: "
                                              "never discovered"))
 
@@ -465,16 +499,18 @@ class TransportPlugin(Plugin[TransportSettings]):
         """Fail tasks whose performer has not been heard for `link_deadline` seconds."""
         deadline = self.settings.link_deadline
         mono = self._now()
-        for uid, dest in list(self.sent_to.items()):
-            if uid in self.lost or uid in self.pending:
+        for uid, record in list(self.tasks_out.items()):
+            if record.lost or record.pending is not None:
                 continue
-            since = max(self.heard_at.get(dest, 0.0), self.sent_at.get(uid, 0.0))
+            dest = record.dest
+            heard = self.peers.get(dest)
+            since = max(heard.heard_at if heard is not None else 0.0, record.sent_at)
             if mono - since <= deadline:
                 continue
             task = self._task_now(uid)
             if task is None or task.done:
                 continue
-            self.lost.add(uid)
+            record.lost = True
             self.log.warning("task %s: link lost: %s not heard for %.0f s", uid, dest, mono - since)
             self.change(task.with_result(TaskState.FAILED, message=f"link lost: {dest} not heard for "
                                          f"{mono - since:.0f} s (link_deadline {deadline:g} s)"))
@@ -486,8 +522,8 @@ class TransportPlugin(Plugin[TransportSettings]):
         update = ResultUpdate(uid=task.uid, result=task.result)
         if not task.done:
             self._send_to_peer(origin, "task.result", update, reliable=False, uid=task.uid)
-        elif task.uid not in self.final_sent:  # a final state once, and reliably
-            self.final_sent.add(task.uid)
+        elif not (given := self._task_in(task.uid)).final_sent:  # a final state once, and reliably
+            given.final_sent = True
             self._send_to_peer(origin, "task.result", update, reliable=True, uid=task.uid)
 
     def _undeliverable(self, addr: Address, kind: str, body: Any) -> None:
@@ -539,12 +575,12 @@ class TransportPlugin(Plugin[TransportSettings]):
         }
 
     def _on_rescind(self, msg: Message, body: Cancel) -> None:
-        if self.received_from.get(body.uid) == msg.sender and self._board.contains(body.uid):
+        if self._requester(body.uid) == msg.sender and self._board.contains(body.uid):
             self.log.info("task %s was rescinded by %s (it no longer has it)", body.uid, msg.sender)
             self.remove(body.uid)
 
     def _on_cancel(self, msg: Message, body: Cancel) -> None:
-        requester = self.received_from.get(body.uid)
+        requester = self._requester(body.uid)
         if requester is not None and requester != msg.sender:  # an operator's (`_authorized`)
             self._cancelled_by_operator(msg, body.uid, requester)
         elif requester == msg.sender and self._board.contains(body.uid):
@@ -572,7 +608,8 @@ class TransportPlugin(Plugin[TransportSettings]):
             self.remove(body.uid)
 
     def _on_peers_request(self, msg: Message, body: object) -> None:
-        counted = {name: count.share() for name, count in self.beacon_counts.items() if count.sent}
+        counted = {name: peer.beacon_count.share() for name, peer in list(self.peers.items())
+                   if peer.beacon_count is not None and peer.beacon_count.sent}
         peers = PeerList(agent=self.agent_name, peers=list(self.directory.values()), beacons=counted,
                          down_after={name: self._down_after(name) for name in self.directory})
         self.endpoint.send(msg.reply, "peers.reply", peers, reliable=True, to=msg.sender)
@@ -610,17 +647,17 @@ class TransportPlugin(Plugin[TransportSettings]):
                 check_task(origin_role, peer.role if peer is not None else "", task.verb, task.preposition)
         elif kind in ("task.cancel", "task.rescind"):
             uid = getattr(body, "uid", "")
-            requester = self.received_from.get(uid)
+            requester = self._requester(uid)
             if requester is not None and requester != sender and (kind == "task.rescind" or role not in OPERATORS):
                 raise Refusal("requester", f"task {uid[:64]} was given by {requester}, not {sender}")
         elif kind == "task.result":
             uid = getattr(body, "uid", "")
-            performer = self.sent_to.get(uid)
+            performer = self._performer(uid)
             if performer is not None and performer != sender:
                 raise Refusal("performer", f"task {uid[:64]} is performed by {performer}, not {sender}")
         elif kind == "task.query":
             uid = getattr(body, "uid", "")
-            if role not in OPERATORS and sender not in (self.received_from.get(uid), self.sent_to.get(uid)):
+            if role not in OPERATORS and sender not in (self._requester(uid), self._performer(uid)):
                 raise Refusal("query", f"role {role or '(none)'} may query only its own tasks")
         elif kind == "status":
             if not isinstance(body, BBObject):
@@ -641,8 +678,9 @@ class TransportPlugin(Plugin[TransportSettings]):
         if task is None:
             return
         self.log.info("task %s of %s cancelled by %s (role %s)", uid, requester, msg.sender, msg.role)
-        if not task.done and uid not in self.final_sent:
-            self.final_sent.add(uid)
+        given = self.tasks_in.get(uid)
+        if not task.done and not (given is not None and given.final_sent):
+            self._task_in(uid).final_sent = True
             update = ResultUpdate(uid=uid, result=AllocationResult(
                 state=TaskState.CANCELLED, message=f"cancelled by {msg.sender} ({msg.role})"))
             self._send_to_peer(requester, "task.result", update, reliable=True, uid=uid)
@@ -683,11 +721,11 @@ class TransportPlugin(Plugin[TransportSettings]):
             body = body.evolve(source=origin)  # the source is who asked, as authenticated or relayed
         known = self.current(body.uid)
         if known is not None:  # the requester restarted and re-sent it: tell it where we are
-            if self.received_from.get(body.uid, msg.sender) == msg.sender and isinstance(known, Task):
-                self.received_from[body.uid] = msg.sender
-                self.reply_to[body.uid] = msg.reply
+            if self._requester(body.uid) in (None, msg.sender) and isinstance(known, Task):
+                given = self._task_in(body.uid)
+                given.sender, given.reply_to = msg.sender, msg.reply
                 if known.result is not None:
-                    self.final_sent.discard(body.uid)
+                    given.final_sent = False
                     self._send_result(msg.sender, known)
             return
         reason = self._degraded()
@@ -697,9 +735,8 @@ class TransportPlugin(Plugin[TransportSettings]):
             self.endpoint.send(msg.reply, "task.result", ResultUpdate(uid=body.uid, result=refusal),
                                reliable=True, to=msg.sender)
             return
-        self.received_from[body.uid] = msg.sender
-        self.reply_to[body.uid] = msg.reply
-        self.origin_role[body.uid] = role
+        given = self._task_in(body.uid)
+        given.sender, given.reply_to, given.origin_role = msg.sender, msg.reply, role
         self.add(body)
         self.add(Received(uid=f"received:{body.uid}", task=body.uid, sender=msg.sender,
                           address=f"{msg.reply[0]}:{msg.reply[1]}", role=role))
@@ -709,19 +746,21 @@ class TransportPlugin(Plugin[TransportSettings]):
         if task is None:  # a result for a task we no longer have: stale, rescind it there
             self.endpoint.send(msg.reply, "task.rescind", Cancel(uid=update.uid), reliable=True, to=msg.sender)
             return
-        if self.sent_to.get(update.uid) != msg.sender:
+        sent = self.tasks_out.get(update.uid)
+        if sent is None or sent.dest != msg.sender:
             return
-        if not isinstance(task, Task) or task.done or update.uid in self.final_seen:  # a final state is
-            if update.uid in self.lost and not update.result.state.done:  # never overwritten; back too late:
+        if not isinstance(task, Task) or task.done or sent.final_seen:  # a final state is
+            if sent.lost and not update.result.state.done:  # never overwritten; back too late:
                 self.endpoint.send(msg.reply, "task.cancel", Cancel(uid=update.uid), reliable=True, to=msg.sender)
             return  # stop it there
         stamp = (msg.epoch, msg.seq)
         final = update.result.state.done  # the last word, whatever its number: a status sent before it
-        if stamp <= self.last_result.get(update.uid, (0, 0)) and not final:  # may be numbered after it
+        applied = sent.last_result or (0, 0)
+        if stamp <= applied and not final:  # may be numbered after it
             return  # an older update never overwrites a newer one
-        self.last_result[update.uid] = max(stamp, self.last_result.get(update.uid, (0, 0)))
+        sent.last_result = max(stamp, applied)
         if final:
-            self.final_seen.add(update.uid)
+            sent.final_seen = True
         self.change(task.evolve(result=update.result), reports=[f"result from {msg.sender}"])
 
     def _received(self, msg: Message) -> None:
@@ -729,7 +768,7 @@ class TransportPlugin(Plugin[TransportSettings]):
         only marks its peer heard (the liveness pass puts that on the board). Runs on the endpoint's
         receive thread; in a team of N each agent hears up to `beacon_fanout` of these a period."""
         if self._beacon_repeats(msg):
-            self.heard_at[msg.sender] = self._now()
+            self._peer(msg.sender).heard_at = self._now()
             self._count_beacon(msg.sender, msg.body)
             return
         self.later(lambda: self._handle(msg))
@@ -744,7 +783,8 @@ class TransportPlugin(Plugin[TransportSettings]):
         return (peer is not None and peer.up and peer.epoch == msg.epoch
                 and peer.address == f"{msg.reply[0]}:{msg.reply[1]}"  # `addresses` is set with it
                 and (peer.role, peer.capabilities, peer.degraded) == (body.role, body.capabilities, body.degraded)
-                and self.peer_limit.get(msg.sender) == self._silence_limit(body))
+                and (known := self.peers.get(msg.sender)) is not None
+                and known.limit == self._silence_limit(body))
 
     def _silence_limit(self, beacon: Beacon) -> float:
         """How long a peer may be silent before it is down: `peer_timeout`, scaled by the interval
@@ -755,17 +795,22 @@ class TransportPlugin(Plugin[TransportSettings]):
     def _count_beacon(self, name: str, beacon: Beacon) -> None:
         """Count a numbered beacon of `name` (runs on the receive thread or in a run)."""
         if beacon.seq:
-            count = self.beacon_counts.get(name)
+            peer = self._peer(name)
+            count = peer.beacon_count
             if count is None:
-                count = self.beacon_counts.setdefault(name, BeaconCount())
+                with self._peer_lock:
+                    if peer.beacon_count is None:
+                        peer.beacon_count = BeaconCount()
+                    count = peer.beacon_count
             count.heard(beacon.seq)
 
     def _down_after(self, name: str) -> float:
         """The silence that marks peer `name` down: its limit on a link that loses nothing
         (`_silence_limit`), stretched by the share of its beacons that arrive (`liveness`)."""
         s = self.settings
-        limit = self.peer_limit.get(name, s.peer_timeout)
-        count = self.beacon_counts.get(name)
+        peer = self.peers.get(name)
+        limit = peer.limit if peer is not None and peer.limit is not None else s.peer_timeout
+        count = peer.beacon_count if peer is not None else None
         if count is None:
             return limit
         return limit * silence_stretch(count.delivery(), s.peer_timeout / s.beacon_period)
@@ -816,7 +861,7 @@ class TransportPlugin(Plugin[TransportSettings]):
         if not name or name == self.agent_name:
             return
         now = time.time()
-        self.heard_at[name] = self._now()
+        self._peer(name).heard_at = self._now()
         old = self.directory.get(name)
         address = f"{reply[0]}:{reply[1]}"
         if (beacon is None and old is not None and old.up and old.epoch == epoch and old.address == address
@@ -830,7 +875,7 @@ class TransportPlugin(Plugin[TransportSettings]):
         if isinstance(beacon, Beacon):
             self._count_beacon(name, beacon)
             fields.update(role=beacon.role, capabilities=beacon.capabilities, degraded=beacon.degraded)
-            self.peer_limit[name] = self._silence_limit(beacon)
+            self._peer(name).limit = self._silence_limit(beacon)
         if old is None:
             peer = Peer(uid=f"peer:{name}", name=name, **fields)
             self.directory[name] = peer
@@ -902,7 +947,8 @@ class TransportPlugin(Plugin[TransportSettings]):
         for name, peer in list(self.directory.items()):
             if not peer.up:
                 continue  # a session frame will bring it up: nothing to look at
-            silent = mono - self.heard_at.get(name, 0.0)
+            heard = self.peers.get(name)
+            silent = mono - (heard.heard_at if heard is not None else 0.0)
             limit = self._down_after(name)
             if silent <= limit:
                 self._next_silences = min(self._next_silences, mono - silent + limit)
@@ -912,7 +958,7 @@ class TransportPlugin(Plugin[TransportSettings]):
                 continue
             peer = peer.evolve(up=False)
             self.directory[name] = peer
-            count = self.beacon_counts.get(name)
+            count = heard.beacon_count if heard is not None else None
             counted = f"; {100.0 * count.share():.0f} % of its beacons arrived" if count and count.sent else ""
             self.log.warning("peer %s is down: not heard for %.1f s (limit %.1f s%s)", name, silent, limit, counted)
             self.change(peer, reports=["down"])
@@ -928,28 +974,30 @@ class TransportPlugin(Plugin[TransportSettings]):
         news = said != self._beacon_said
         self._beacon_said = said
         quiet = [(name, peer) for name, peer in self.directory.items()
-                 if peer.address and mono - self.sent_peer_at.get(name, -math.inf) >= s.beacon_period]
+                 if peer.address and mono - self._sent_peer_at(name) >= s.beacon_period]
         interval = s.beacon_period * max(1.0, len(quiet) / s.beacon_fanout)
         if news:
             quiet = [(name, peer) for name, peer in self.directory.items() if peer.address]
         beacon: Beacon | None = None
         for name, peer in quiet:
-            due = None if news else self.beacon_due.get(name)
+            due = None if news or (record := self.peers.get(name)) is None else record.beacon_due
             if due is not None and due > mono + interval:  # the interval shrank: no longer than the new one
-                due = self.beacon_due[name] = mono + random.uniform(0.0, interval)
+                due = self._peer(name).beacon_due = mono + random.uniform(0.0, interval)
             if due is not None and mono < due:
                 continue
             beacon = beacon or self._beacon(interval)
-            seq = self.beacons_sent[name] = self.beacons_sent.get(name, 0) + 1  # the receiver counts what arrives
+            record = self._peer(name)
+            seq = record.beacons_sent = record.beacons_sent + 1  # the receiver counts what arrives
             self.endpoint.send(parse_address(peer.address), "beacon", beacon.model_copy(update={"seq": seq}),
                                reliable=False, to=name)
             # the next a little early (runs come every period); after a newly quiet peer's first
             # beacon (at once: its last frame is a period old), at a random phase, so that many
             # peers' beacons spread over the interval instead of leaving together
             early = 0.9 if due is not None or interval == s.beacon_period else random.uniform(0.3, 0.9)
-            self.beacon_due[name] = mono + early * interval
-        for name in [n for n in self.beacon_due if mono - self.sent_peer_at.get(n, -math.inf) < s.beacon_period]:
-            del self.beacon_due[name]  # talking again: its frames tell it we are alive
+            record.beacon_due = mono + early * interval
+        for record in list(self.peers.values()):
+            if record.beacon_due is not None and mono - record.sent_peer_at < s.beacon_period:
+                record.beacon_due = None  # talking again: its frames tell it we are alive
 
     def _share_status(self) -> None:
         """Send this agent's own shared objects (poses, network info) to the status peers.
@@ -1012,7 +1060,7 @@ class TransportPlugin(Plugin[TransportSettings]):
         else:
             fanout([(t.address, t.name) for t in targets], kind, body)
         for t in targets:
-            self.sent_peer_at[t.name] = mono
+            self._peer(t.name).sent_peer_at = mono
 
     def _apply_status(self, msg: Message, obj: BBObject) -> None:
         stamp = (msg.epoch, msg.seq)
@@ -1108,3 +1156,37 @@ class _Sent:
 
     def __init__(self, obj: BBObject, at: float, holders: frozenset[tuple[str, int]]):
         self.obj, self.at, self.holders = obj, at, holders
+
+
+@dataclass(slots=True)
+class _TaskOut:
+    """A task this agent sent to its performer (`_send_task`), until the task leaves the board."""
+
+    dest: str  # the peer it was sent to
+    sent_at: float  # when it was sent (monotonic)
+    pending: tuple[str, float] | None = None  # (destination, deadline) while the destination is not discovered
+    lost: bool = False  # failed because its performer was not heard in time
+    last_result: tuple[int, int] | None = None  # (epoch, seq) of the performer's result applied
+    final_seen: bool = False  # the performer's final result was applied
+
+
+@dataclass(slots=True)
+class _TaskIn:
+    """A task given to this agent (to perform or to relay), until the task leaves the board."""
+
+    sender: str | None = None  # the peer it came from
+    origin_role: str | None = None  # role of its originator (relayed: as its relay stated)
+    reply_to: Address | None = None  # address of the agent or client it came from
+    final_sent: bool = False  # its final state went back to its requester
+
+
+@dataclass(slots=True)
+class _PeerRecord:
+    """What the transport keeps of a peer: when it was heard and sent to, its beacons and limit."""
+
+    heard_at: float = 0.0  # when a session frame of it last arrived (monotonic)
+    sent_peer_at: float = -math.inf  # when a session frame other than a beacon went to it (monotonic)
+    beacon_due: float | None = None  # while quiet: when its next in-session beacon is due (monotonic)
+    limit: float | None = None  # silence that marks it down, from its announced interval
+    beacon_count: BeaconCount | None = None  # how many of its numbered beacons arrive
+    beacons_sent: int = 0  # in-session beacons sent it (their numbers)

@@ -99,7 +99,8 @@ def test_a_task_for_an_agent_never_discovered_fails_when_the_agents_clock_passes
                     destination="robot9")
         with control.transaction() as tx:
             tx.add(task)
-        wait_until(lambda: task.uid in control.plugin("transport").pending)
+        wait_until(lambda: (sent := control.plugin("transport").tasks_out.get(task.uid)) is not None
+                   and sent.pending is not None)
         counters = control.plugin("transport").endpoint.counters
         beacons = counters.get("sent.announce", 0)
         clock.advance(599.0)

@@ -385,14 +385,14 @@ def test_a_final_result_that_brings_its_performers_first_word_is_kept(team):
     task = task_to("robot1")
     with control.transaction() as tx:
         tx.add(task)
-    wait_until(lambda: task.uid in bridge.pending)
+    wait_until(lambda: (sent := bridge.tasks_out.get(task.uid)) is not None and sent.pending is not None)
     from erni.transport.bridge import ResultUpdate
     from erni.transport.wire import Message
 
     final = ResultUpdate(uid=task.uid, result={"state": "succeeded", "progress": 1.0, "message": "arrived"})
     address = robot.plugin("transport").address
     bridge.later(lambda: bridge._handle(Message("robot1", "robot", address, 1, 7, "m7", "task.result", final)))
-    wait_until(lambda: task.uid not in bridge.pending)  # that run found the performer
+    wait_until(lambda: (sent := bridge.tasks_out.get(task.uid)) is None or sent.pending is None)  # performer found
     time.sleep(0.3)
     result = control.blackboard.get(task.uid).result
     assert result.state is TaskState.SUCCEEDED and result.message == "arrived", result
