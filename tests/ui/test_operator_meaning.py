@@ -109,6 +109,9 @@ def test_obstacle_avoidance_from_the_page_stays_on_through_later_moves(team):
     avoid = [t for t in tasks_on(team, "robot2", "avoid_obstacles") if not t.done]
     assert len(avoid) == 1
     assert not any("robot2: avoid_obstacles cancelled" in line for line in log_lines(team)), log_lines(team)
+    # the control node hears the turn's end a moment after robot 2's own board holds it
+    wait_until(lambda: [r for r in team.ui.server.state()["tasks"] if r["preposition"] == "turn"
+                        and r["robot"] == "robot2" and r["state"] == "succeeded"], timeout=10)
     assert typed(team, "what is robot 2 doing") == ["Robot 2 is idle"]  # avoiding obstacles is not a task in hand
     assert typed(team, "robot 2 avoid obstacles off") == ["Roger: robot 2, stop avoiding obstacles"]
     wait_until(lambda: not [t for t in tasks_on(team, "robot2", "avoid_obstacles") if not t.done], timeout=10)
