@@ -94,7 +94,10 @@ def test_widep_covers_the_poi_and_never_breaks_connectivity(manets, robots):
     R = 4.5
     starts = {"robot1": (1.0, 0.5), "robot2": (-1.0, 0.5), "robot3": (0.0, 1.6)}
     m, agents = team_on_manet(robots, manets, R, 3.0, {"base": (0.0, 0.0)}, starts,
-                              {"speed": 1.0, "separation": 0.6, "net_rate_hz": 10.0, "position_timeout": 5.0})
+                              # 40 rounds without progress before giving up (default 15): a starved machine
+                              # (the suite's three workers) can keep a robot from being seen at rest for 9 s
+                              {"speed": 1.0, "separation": 0.6, "net_rate_hz": 10.0, "position_timeout": 5.0,
+                               "widep_stall_rounds": 40})
     poi = (0.0, 6.0)
     tasks = {n: send(a, "widep", verb="Deploy", x=poi[0], y=poi[1], range=R, tolerance=0.5, period=0.6)
              for n, a in agents.items()}
