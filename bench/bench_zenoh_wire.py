@@ -182,15 +182,7 @@ def open_receiver(row: tuple[str, str], keys: str, router: str, port: int, share
                 entity.undeclare()
             sb.close()
         return None, close_raw
-    me = load_identity(Path(keys) / "b.pem")
-    b: Endpoint
-    if kind == "udp":
-        b = Endpoint("b", identity=me, senders=2)
-    elif kind == "zenoh router":
-        b = ZenohEndpoint("b", zenoh_settings=ZenohSettings(team="bench", mode="client", connect=[router]),
-                          identity=me, senders=2)
-    else:
-        b = ZenohEndpoint("b", zenoh_settings=peer_settings(port, listen=True), identity=me, senders=2)
+    b = erni_endpoint("b", kind, keys, router, port, listen=True)
 
     def on_b(msg: Message) -> None:
         if msg.kind == "status":
@@ -250,19 +242,22 @@ class Receiver:
             self.proc.join(5)
 
 
+def erni_endpoint(name: str, kind: str, keys: str, router: str, port: int, *, listen: bool) -> Endpoint:
+    """Endpoint `name` ('a' sends, 'b' receives) of one ERNI row: 'udp', 'zenoh router' or 'zenoh peer'."""
+    me = load_identity(Path(keys) / f"{name}.pem")
+    if kind == "udp":
+        return Endpoint(name, identity=me, senders=2)
+    if kind == "zenoh router":
+        return ZenohEndpoint(name, zenoh_settings=ZenohSettings(team="bench", mode="client", connect=[router]),
+                             identity=me, senders=2)
+    return ZenohEndpoint(name, zenoh_settings=peer_settings(port, listen=listen), identity=me, senders=2)
+
+
 def erni_round(kind: str, rx: Receiver, pings: int, burst: int, bursts: int, router: str) -> Result:
     """ERNI endpoints: 'udp', 'zenoh router' or 'zenoh peer'."""
     port = free_port()
     to = rx.open(("erni", kind), router, port)
-    me = load_identity(Path(rx.keys) / "a.pem")
-    a: Endpoint
-    if kind == "udp":
-        a = Endpoint("a", identity=me, senders=2)
-    elif kind == "zenoh router":
-        a = ZenohEndpoint("a", zenoh_settings=ZenohSettings(team="bench", mode="client", connect=[router]),
-                          identity=me, senders=2)
-    else:
-        a = ZenohEndpoint("a", zenoh_settings=peer_settings(port, listen=False), identity=me, senders=2)
+    a = erni_endpoint("a", kind, rx.keys, router, port, listen=False)
     acked: dict[str, threading.Event] = {}
     a.on_delivered = lambda addr, mid: acked[mid].set() if mid in acked else None
     a.start()
