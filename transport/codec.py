@@ -147,6 +147,11 @@ def _pose_of(raw: Raw | bytes) -> Pose:
                 given.discard(name)
                 values[name] = time.time() if name == "stamp" else \
                     Pose.model_fields[name].get_default(call_default_factory=True)
+    return _pose_from(values, given)
+
+
+def _pose_from(values: dict[str, Any], given: set[str]) -> Pose:
+    """A Pose of values already checked as pydantic checks them, set without validating again."""
     pose = _new(Pose)
     _set_attr(pose, "__dict__", values)
     _set_fields_set(pose, given)
@@ -170,12 +175,7 @@ def decode_status(payload: bytes) -> tuple[PoseEnvelope, Pose] | None:
         return None
     if "Pose" not in TYPES or TYPES["Pose"] is not Pose:
         return None  # the tag taken by another type: its own validator decides
-    pose = _new(Pose)
-    _set_attr(pose, "__dict__", _asdict(env.body))
-    _set_fields_set(pose, set(_POSE_FIELDS))
-    _set_extra(pose, None)
-    _set_private(pose, None)
-    return env, pose
+    return env, _pose_from(_asdict(env.body), set(_POSE_FIELDS))
 
 
 def body_of(type_name: str, raw: Raw) -> Any:

@@ -622,9 +622,7 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
                     self._dropped(channel, err)
                     continue
             msgs.append(Message(peer, role, addr, epoch, item.seq, item.id, kind, body))
-        with self._counter_lock:
-            counters = self.counters
-            counters["received"] = counters.get("received", 0) + len(msgs)
+        self.count("received", len(msgs))
         return msgs
 
     def _parse_data(self, plain: bytes, channel: str) -> tuple[EnvelopeHead, list[tuple[Any, Any]], bool]:
@@ -659,8 +657,7 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
                 got = self.accept_frame(raw, "udp", src)
                 if got is not None:
                     for msg in got[0]:
-                        if msg.kind not in INTERNAL:
-                            self._dispatch(msg)
+                        self.deliver(msg)
                 return
             plain = session.open(raw)
             status = decode_status(plain)  # the common frame: one Pose, decoded in one pass (or None)
@@ -670,18 +667,9 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
                         and env.to == self.name and env.kind not in INTERNAL:
                     if self.inbound_filter is not None:
                         self._filter(session.peer, session.role)
-                    msg = Message(session.peer, session.role, session.addr, session.epoch, env.seq, env.id,
-                                  env.kind, pose)
-                    with self._counter_lock:
-                        counters = self.counters
-                        counters["received"] = counters.get("received", 0) + 1
-                    if msg.role == CLIENT_ROLE:
-                        self._dispatch(msg)
-                        return
-                    try:
-                        self.on_message(msg)
-                    except Exception:
-                        self.log.exception("handling %s from %s failed", msg.kind, msg.sender)
+                    self.count("received")
+                    self._dispatch(Message(session.peer, session.role, session.addr, session.epoch, env.seq,
+                                           env.id, env.kind, pose))
                     return
             msgs = self._messages(plain, session, "udp")  # anything else (and what fails a check above)
         except FrameError as err:
@@ -691,14 +679,7 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
             self._fault("udp", raw, src)
             return
         for msg in msgs:
-            if msg.kind not in INTERNAL:
-                if msg.role == CLIENT_ROLE:
-                    self._dispatch(msg)
-                    continue
-                try:
-                    self.on_message(msg)
-                except Exception:
-                    self.log.exception("handling %s from %s failed", msg.kind, msg.sender)
+            self.deliver(msg)
 
     # -- what the receive loop needs of this endpoint (`ReceiverHost`) ----------------------
 
