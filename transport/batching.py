@@ -71,8 +71,6 @@ class FastMessages:
         _fast_at: dict[Address, float]
         _heads: dict[str, bytes]
         _head_opens: dict[str, bytes]
-        _counter_lock: threading.Lock
-        counters: dict[str, int]
         _id_prefix: str
         _seq: itertools.count[int]
         _stopping: bool
@@ -116,10 +114,7 @@ class FastMessages:
                 and session.sid in sessions.by_sid and not (to and to != session.peer):
             dest = self._dests.get(addr)
             fast_at = self._fast_at
-            now = time.monotonic()
-            quick = now - fast_at.get(addr, -math.inf) < COALESCE  # a burst, unless gathering is off (solo_until)
-            if not quick and dest is None or dest is not None and not (
-                    dest.fast or dest.announce or dest.batch is not None) and (not quick or now < dest.solo_until):
+            if (dest is None or not (dest.fast or dest.announce)) and not self._gathers(addr, dest, time.monotonic()):
                 head = self._head_opens.get(session.peer) or self._head_open(session.peer)
                 try:
                     self._sendto(session.seal(b'%b"seq":%d,"id":%b,%b,"body":%b}' % (
@@ -133,9 +128,7 @@ class FastMessages:
                     self._queue(addr, Outgoing(msg_id, kind, type_name, body, data, seq,
                                                self.clock() + (ttl or self.ttl), to or ""), "fast")
                     return msg_id
-                with self._counter_lock:
-                    counters = self.counters
-                    counters["sent.fast"] = counters.get("sent.fast", 0) + 1
+                self.count("sent.fast")
                 fast_at[addr] = time.monotonic()  # a burst is told by the time until the next
                 return msg_id
         out = Outgoing(msg_id, kind, type_name, body, data, seq, self.clock() + (ttl or self.ttl), to or "")
@@ -168,9 +161,7 @@ class FastMessages:
                 session = self.sessions.usable(addr)
                 if session is None or out.to and out.to != session.peer:
                     return False  # a handshake to drive, or a wrong peer to report: the sender pool's work
-                now = time.monotonic()
-                if dest is not None and (dest.batch is not None or now >= dest.solo_until
-                                         and now - self._fast_at.get(addr, -math.inf) < COALESCE):
+                if self._gathers(addr, dest, time.monotonic()):
                     return self._gather(addr, out, session)  # a burst: several statuses to a datagram
                 single = self._batch(session)
                 single.add(out, self._item(out))
@@ -180,6 +171,14 @@ class FastMessages:
             return sent
         finally:
             self._fast_at[addr] = time.monotonic()
+
+    def _gathers(self, addr: Address, dest: Dest | None, now: float) -> bool:
+        """Whether a status to `addr` now joins a batch: one is being gathered there, or it follows
+        the caller's previous status there within `COALESCE` (a burst) while gathering is on there
+        (not within `SOLO_FOR` of a batch of one)."""
+        if dest is not None and dest.batch is not None:
+            return True
+        return now - self._fast_at.get(addr, -math.inf) < COALESCE and (dest is None or now >= dest.solo_until)
 
     def send_fanout(self, targets: Sequence[tuple[Address, str]], kind: str, body: Any) -> str:
         """Send one fast message (a status) to each `(address, agent)` of `targets`; return its id.

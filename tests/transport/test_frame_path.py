@@ -277,3 +277,19 @@ def test_an_empty_datagram_is_no_frame_and_the_next_status_arrives() -> None:
         a.send(b.address, "status", Pose(robot="r9"), reliable=False, to="fp-empty-b")
         wait_until(lambda: any(m.body.robot == "r9" for m in got))
         assert not any(k.startswith("dropped") for k in b.counters)
+
+
+def test_a_burst_to_a_peer_that_began_the_session_is_gathered():
+    """The session was the peer's doing, so nothing was ever queued here for it (no destination
+    record): a burst to it is still gathered, several statuses to a datagram."""
+    with session_up("fp-began-b", "fp-began-a") as (b, a, got_a):
+        b_addr = b.address
+        a.send(b_addr, "status", Pose(robot="r0"), reliable=False, to="fp-began-b")  # a's way back is in session
+        assert b_addr not in a._dests, "the test needs a destination never queued for"
+        sizes: list[int] = []
+        put = a._sendto
+        a._sendto = lambda frame, addr: (sizes.append(len(frame)), put(frame, addr))[1]  # type: ignore[method-assign]
+        for i in range(200):
+            a.send(b_addr, "status", Pose(uid=f"p{i}", robot="r0", x=float(i)), reliable=False, to="fp-began-b")
+        wait_until(lambda: not a._dests.get(b_addr) or a._dests[b_addr].batch is None)
+        assert len(sizes) < 200 / 2, f"{len(sizes)} datagrams for 200 statuses"
