@@ -101,7 +101,8 @@ def test_a_frame_replayed_or_tampered_with_at_the_router_is_refused(team, router
     try:
         wait_until(lambda: up(control, "robot1") and up(robot, "control") and spy.datagrams)  # the spy is in place
         run_task(control, "BotMotion", "forward", destination="robot1", distance=1.0)
-        wait_until(lambda: spy.queries and spy.datagrams)
+        # a sealed datagram too (a status or an in-session beacon), not only a handshake or a hint
+        wait_until(lambda: spy.queries and any(raw[4] == DATA for _, raw in spy.datagrams))
         sealed = [raw for _, raw in spy.queries + spy.datagrams if raw[4] == DATA]  # handshakes are signed, not sealed
         assert sealed and all(b"forward" not in raw and b"control" not in raw for raw in sealed), \
             "the router saw a message in clear"
