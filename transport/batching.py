@@ -87,6 +87,8 @@ class FastMessages:
                  ttl: float | None = None, to: str | None = None) -> str: ...
         def _dest_for(self, addr: Address) -> Dest: ...
         def _frame(self, out: Outgoing, session: Session | None, max_frame: int) -> bytes: ...
+        def _outgoing(self, msg_id: str, kind: str, type_name: str | None, body: Any, data: bytes, seq: int,
+                      ttl: float | None, to: str | None) -> Outgoing: ...
         def _queue(self, addr: Address, out: Outgoing, lane: str) -> None: ...
         def _make_ready(self, dest: Dest) -> None: ...
         def _schedule(self, dest: Dest, when: float) -> None: ...
@@ -125,13 +127,12 @@ class FastMessages:
                     if dropped:
                         return msg_id
                     self.count("sent.deferred")  # the pool sends it when the buffer drains
-                    self._queue(addr, Outgoing(msg_id, kind, type_name, body, data, seq,
-                                               self.clock() + (ttl or self.ttl), to or ""), "fast")
+                    self._queue(addr, self._outgoing(msg_id, kind, type_name, body, data, seq, ttl, to), "fast")
                     return msg_id
                 self.count("sent.fast")
                 fast_at[addr] = time.monotonic()  # a burst is told by the time until the next
                 return msg_id
-        out = Outgoing(msg_id, kind, type_name, body, data, seq, self.clock() + (ttl or self.ttl), to or "")
+        out = self._outgoing(msg_id, kind, type_name, body, data, seq, ttl, to)
         if not self._send_now(addr, out):
             self._queue(addr, out, "fast")
         return msg_id

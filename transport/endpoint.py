@@ -413,13 +413,18 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
         seq = next(self._seq)
         msg_id = msg_id or f"{self._id_prefix}{seq:x}"
         type_name, data = encode_body(body)
-        out = Outgoing(msg_id, kind, type_name, body, data, seq, self.clock() + (ttl or self.ttl), to or "")
+        out = self._outgoing(msg_id, kind, type_name, body, data, seq, ttl, to)
         if lane == "fast":
             if not self._send_now(addr, out):  # it also notes when (`_fast_at`): a burst is told by the time
                 self._queue(addr, out, lane)  # until the next
         elif lane != "reliable" or not self._write_now(addr, out):
             self._queue(addr, out, lane)
         return out.id
+
+    def _outgoing(self, msg_id: str, kind: str, type_name: str | None, body: Any, data: bytes, seq: int,
+                  ttl: float | None, to: str | None) -> Outgoing:
+        """A message to queue or send: it expires `ttl` (the endpoint's own by default) from now."""
+        return Outgoing(msg_id, kind, type_name, body, data, seq, self.clock() + (ttl or self.ttl), to or "")
 
     def _queue(self, addr: Address, out: Outgoing, lane: str) -> None:
         """Queue a message for the sender pool (a reliable one is refused when its queue is full; the
