@@ -15,7 +15,14 @@ the same payload: two sessions in peer mode over TCP on loopback, `put` -> subsc
 (one-way), `get` -> queryable reply (a request/response, beside ERNI's task -> acknowledgement)
 and a `put` burst. Without it installed those rows are left out.
 
-    python bench/bench_transport.py [--rounds 5] [--pings 500] [--burst 5000]
+    python bench/bench_transport.py [--rounds 5] [--pings 500] [--burst 5000] [--cpu N]
+
+Where the scheduler puts the receiving thread decides a one-way figure more than either
+transport does: on a quiet 2-vCPU virtual machine, a receiver woken on the other, idle vCPU
+costs about 20 us more than one woken on the sender's (the raw socket itself measures 6 or 28
+us from one round to the next). `--cpu N` keeps every thread of the run (ERNI's, the raw
+sockets', Zenoh's) on CPU N, so each one-way figure is a wake-up on the same CPU and the ratios
+compare the transports' own work; without it the kernel places them, as it would two agents.
 """
 
 from __future__ import annotations
@@ -288,7 +295,15 @@ def main() -> int:
     parser.add_argument("--rounds", type=int, default=5)
     parser.add_argument("--pings", type=int, default=500)
     parser.add_argument("--burst", type=int, default=5000)
+    parser.add_argument("--cpu", type=int, default=None,
+                        help="keep every thread of the run on this CPU (default: where the kernel puts them)")
     args = parser.parse_args()
+    if args.cpu is not None:
+        try:
+            os.sched_setaffinity(0, {args.cpu})  # threads started after this inherit it
+        except (OSError, ValueError) as err:
+            parser.error(f"--cpu {args.cpu}: cannot run on that CPU ({err}); expected one of "
+                         f"{sorted(os.sched_getaffinity(0))}")
     load_before = os.getloadavg()
     rows, zrows, firsts = [], [], []
     for _ in range(args.rounds):  # the three systems take turns in every round
@@ -305,7 +320,8 @@ def main() -> int:
     zm = [statistics.median(col) for col in zip(*zrows)] if zrows else None
     print(f"transport benchmark on loopback: {args.rounds} rounds x {args.pings} pings, burst "
           f"{args.burst}; medians of rounds; floor = raw Python sockets, same run; Zenoh = eclipse-zenoh "
-          f"peer mode over TCP, same run ({'not installed' if zm is None else 'put/subscribe, get/queryable'})")
+          f"peer mode over TCP, same run ({'not installed' if zm is None else 'put/subscribe, get/queryable'}); "
+          f"threads on {'CPU ' + str(args.cpu) if args.cpu is not None else 'the CPUs the kernel chose'}")
     print(f"{'measure':<28} {'ERNI':>10} {'floor':>10} {'ratio':>7} {'Zenoh':>10} {'Zenoh/ERNI':>11}")
     for label, ours, floor, zi in (
         ("UDP status one-way p50", m[0], m[1], 0), ("UDP status one-way p99", m[2], m[3], 1),
