@@ -3,7 +3,10 @@
 - `Peer`: an agent as the transport knows it, published on every blackboard (the UI, the
   mission and `erni peers` read it).
 - The messages the transport exchanges with command-line clients and other agents besides
-  tasks: `Beacon`, `ResultUpdate`, `Cancel`, `PeerList`, `WatchRequest`, `WatchEvent`.
+  tasks: `Beacon`, `ResultUpdate`, `PeerList`, `WatchRequest`, `WatchEvent`, and one type for
+  each message that names a task or a shared object by its uid (`Cancel`, `TaskRescind`,
+  `TaskQuery`, `TaskUnknown`, `StatusResend`, `StatusRemoved`): the kind and its body say the
+  same thing, so a body of the wrong type is never acted on.
 - Floor-plan geometry in metres: `Wall`, `Circle`, `Polygon`, `FloorPlan`. The simulator's
   world extends `FloorPlan` with robot start poses; the GUI draws a `FloorPlan`.
 """
@@ -59,10 +62,35 @@ class ResultUpdate(_Message):
     result: AllocationResult
 
 
-class Cancel(_Message):
-    """The requester removed a task (or a shared object was removed)."""
+class _ByUid(_Message):
+    """A message that names a task or a shared object by its uid (one subclass per meaning)."""
 
     uid: str
+
+
+class Cancel(_ByUid):
+    """`task.cancel`: end a task: its requester removed it, or an operator cancels it."""
+
+
+class TaskRescind(_ByUid):
+    """`task.rescind`: the requester no longer holds a task it gave (its performer drops it)."""
+
+
+class TaskQuery(_ByUid):
+    """`task.query`: what is this task's result? Answered by `task.result`, or by `task.unknown`."""
+
+
+class TaskUnknown(_ByUid):
+    """`task.unknown`: the agent asked (`TaskQuery`) holds no task under this uid."""
+
+
+class StatusResend(_ByUid):
+    """`status.resend`: send this shared object whole at its next change (the asker missed the
+    whole version a `Fresh` was based on)."""
+
+
+class StatusRemoved(_ByUid):
+    """`status.remove`: a shared object was removed by the agent that shared it."""
 
 
 class Fresh(_Message):

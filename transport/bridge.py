@@ -47,7 +47,21 @@ from pydantic import BaseModel, ConfigDict, Field, SecretStr, model_validator
 from erni.blackboard import AllocationResult, BBObject, NetInfo, Plugin, Pose, Task, TaskState
 from erni.blackboard.errors import ConfigError
 from erni.blackboard.objects import only_stamp_differs
-from erni.blackboard.schemas import Beacon, Cancel, Fresh, Peer, PeerList, ResultUpdate, WatchEvent, WatchRequest
+from erni.blackboard.schemas import (
+    Beacon,
+    Cancel,
+    Fresh,
+    Peer,
+    PeerList,
+    ResultUpdate,
+    StatusRemoved,
+    StatusResend,
+    TaskQuery,
+    TaskRescind,
+    TaskUnknown,
+    WatchEvent,
+    WatchRequest,
+)
 from erni.transport.endpoint import (
     CLIENT_ROLE,
     STREAM_BUFFER,
@@ -88,7 +102,8 @@ class Relayed(BaseModel):
     role: str = Field(max_length=32)
 
 
-for _cls in (Peer, Received, Relayed, Beacon, ResultUpdate, Cancel, Fresh, PeerList, WatchRequest, WatchEvent):
+for _cls in (Peer, Received, Relayed, Beacon, ResultUpdate, Cancel, TaskRescind, TaskQuery, TaskUnknown, StatusResend,
+             StatusRemoved, Fresh, PeerList, WatchRequest, WatchEvent):
     register_type(_cls)
 
 WATCHED = (Task, Pose, NetInfo, Peer)
@@ -562,19 +577,19 @@ class TransportPlugin(Plugin[TransportSettings]):
             "task.add": (Task, lambda msg, task: self._task_added(msg, task, msg.sender, msg.role)),
             "task.relay": (Relayed, lambda msg, relayed: self._task_added(msg, relayed.task, relayed.task.source,
                                                                           relayed.role)),
-            "task.rescind": (Cancel, self._on_rescind),
+            "task.rescind": (TaskRescind, self._on_rescind),
             "task.cancel": (Cancel, self._on_cancel),
             "task.result": (ResultUpdate, self._apply_result),
-            "task.query": (Cancel, self._on_query),
+            "task.query": (TaskQuery, self._on_query),
             "status": (BBObject, self._apply_status),
             "status.fresh": (Fresh, self._apply_fresh),
-            "status.resend": (Cancel, self._on_resend),
-            "status.remove": (Cancel, self._on_status_removed),
+            "status.resend": (StatusResend, self._on_resend),
+            "status.remove": (StatusRemoved, self._on_status_removed),
             "peers.request": (object, self._on_peers_request),
             "watch.request": (WatchRequest, self._on_watch_request),
         }
 
-    def _on_rescind(self, msg: Message, body: Cancel) -> None:
+    def _on_rescind(self, msg: Message, body: TaskRescind) -> None:
         if self._requester(body.uid) == msg.sender and self._board.contains(body.uid):
             self.log.info("task %s was rescinded by %s (it no longer has it)", body.uid, msg.sender)
             self.remove(body.uid)
@@ -586,21 +601,21 @@ class TransportPlugin(Plugin[TransportSettings]):
         elif requester == msg.sender and self._board.contains(body.uid):
             self.remove(body.uid)
 
-    def _on_query(self, msg: Message, body: Cancel) -> None:
+    def _on_query(self, msg: Message, body: TaskQuery) -> None:
         known = self._board.get(body.uid)
         if isinstance(known, Task):
             self.endpoint.send(msg.reply, "task.result", ResultUpdate(uid=known.uid, result=known.result
                                                                       or AllocationResult()),
                                reliable=False, to=msg.sender)
         else:
-            self.endpoint.send(msg.reply, "task.unknown", body, reliable=False, to=msg.sender)
+            self.endpoint.send(msg.reply, "task.unknown", TaskUnknown(uid=body.uid), reliable=False, to=msg.sender)
 
-    def _on_resend(self, msg: Message, body: Cancel) -> None:
+    def _on_resend(self, msg: Message, body: StatusResend) -> None:
         sent = self.whole_sent.get(body.uid)
         if sent is not None:  # its next change goes whole again
             sent.holders = frozenset(h for h in sent.holders if h[0] != msg.sender)
 
-    def _on_status_removed(self, msg: Message, body: Cancel) -> None:
+    def _on_status_removed(self, msg: Message, body: StatusRemoved) -> None:
         self.status_base.pop(body.uid, None)
         self._resend_asked.pop(body.uid, None)
         self.status_owner.pop(body.uid, None)
@@ -744,7 +759,7 @@ class TransportPlugin(Plugin[TransportSettings]):
     def _apply_result(self, msg: Message, update: ResultUpdate) -> None:
         task = self.current(update.uid)
         if task is None:  # a result for a task we no longer have: stale, rescind it there
-            self.endpoint.send(msg.reply, "task.rescind", Cancel(uid=update.uid), reliable=True, to=msg.sender)
+            self.endpoint.send(msg.reply, "task.rescind", TaskRescind(uid=update.uid), reliable=True, to=msg.sender)
             return
         sent = self.tasks_out.get(update.uid)
         if sent is None or sent.dest != msg.sender:
@@ -1027,7 +1042,7 @@ class TransportPlugin(Plugin[TransportSettings]):
                 self.whole_sent[obj.uid] = _Sent(obj, mono, holders)
         for obj in gone:  # removals reliably: a stale object would stay forever
             self.whole_sent.pop(obj.uid, None)
-            self._send_status(self._status_targets(type(obj).__name__)[0], "status.remove", Cancel(uid=obj.uid),
+            self._send_status(self._status_targets(type(obj).__name__)[0], "status.remove", StatusRemoved(uid=obj.uid),
                               True, mono)
 
     def _status_targets(self, type_name: str) -> tuple[list[_Target], frozenset[tuple[str, int]]]:
@@ -1090,7 +1105,7 @@ class TransportPlugin(Plugin[TransportSettings]):
             now = self._now()
             if now - self._resend_asked.get(note.uid, -math.inf) >= 1.0:
                 self._resend_asked[note.uid] = now
-                self.endpoint.send(msg.reply, "status.resend", Cancel(uid=note.uid), reliable=False, to=msg.sender)
+                self.endpoint.send(msg.reply, "status.resend", StatusResend(uid=note.uid), reliable=False, to=msg.sender)
             return
         self.status_in[note.uid] = stamp
         self.change(held.model_copy(update={"stamp": note.stamp}), reports=[f"status from {msg.sender}"])

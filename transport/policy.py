@@ -6,18 +6,21 @@ its blackboard (`TransportPlugin._handle`); a refusal is a `Refusal` naming the 
 per sender, kind and rule in a while, and counted. Roles come from the certificates `erni keys
 issue --role` writes (in team-key and insecure mode from what the sender states).
 
-| kind | who may send it | rule |
-|---|---|---|
-| `task.add` | `control` and `cli` to any agent; `robot` to `robot` only the mission's tasks (`Deploy` relay, spread, widep, patrol); nobody else | `task` |
-| `task.relay` | a role that relays for the originator's role (`control` for `cli` and `control`); the originator must be allowed the task itself | `relay` |
-| `task.cancel` | the agent the task came from (its requester), and `control` and `cli`, which operate the team (the requester then gets `cancelled by NAME`) | `requester` |
-| `task.rescind` | the agent the task came from | `requester` |
-| `task.result` | the agent the task was sent to (its performer) | `performer` |
-| `task.query` | `control` and `cli`; else the task's requester or performer | `query` |
-| `status`, `status.fresh`, `status.remove` | an agent about its own objects only: a type of `STATUS`, from a role it names, the object naming its sender (and, where the type has one, under its uid); a uid is held by one sender until it removes it | `status` |
-| `watch.request`, `peers.request` | `control` and `cli` (a robot does not watch the team) | `watch` |
-| `beacon`, `status.resend` | any agent of the team | — |
-| anything else | nobody | `kind` |
+| kind | body | who may send it | rule |
+|---|---|---|---|
+| `task.add` | `Task` | `control` and `cli` to any agent; `robot` to `robot` only the mission's tasks (`Deploy` relay, spread, widep, patrol); nobody else | `task` |
+| `task.relay` | `Relayed` | a role that relays for the originator's role (`control` for `cli` and `control`); the originator must be allowed the task itself | `relay` |
+| `task.cancel` | `Cancel` | the agent the task came from (its requester), and `control` and `cli`, which operate the team (the requester then gets `cancelled by NAME`) | `requester` |
+| `task.rescind` | `TaskRescind` | the agent the task came from | `requester` |
+| `task.result` | `ResultUpdate` | the agent the task was sent to (its performer) | `performer` |
+| `task.query` | `TaskQuery` | `control` and `cli`; else the task's requester or performer | `query` |
+| `status`, `status.fresh`, `status.remove` | the object, `Fresh`, `StatusRemoved` | an agent about its own objects only: a type of `STATUS`, from a role it names, the object naming its sender (and, where the type has one, under its uid); a uid is held by one sender until it removes it | `status` |
+| `watch.request`, `peers.request` | `WatchRequest`, any | `control` and `cli` (a robot does not watch the team) | `watch` |
+| `beacon`, `status.resend` | `Beacon`, `StatusResend` | any agent of the team | — |
+| anything else | | nobody | `kind` |
+
+A message whose body is not its kind's type is not acted on (`TransportPlugin._kind_table`); the
+answers an agent sends are `task.result` (`ResultUpdate`) and `task.unknown` (`TaskUnknown`).
 
 Stamps are never compared across senders: a status orders only against its own sender's earlier
 ones (the uid is held by that sender), a result only against its performer's.

@@ -9,7 +9,7 @@ from typing import Any
 
 from erni.blackboard import Task, TaskError
 from erni.blackboard.errors import UsageError, shown
-from erni.blackboard.schemas import Cancel, PeerList, ResultUpdate
+from erni.blackboard.schemas import Cancel, PeerList, ResultUpdate, TaskQuery, TaskUnknown
 from erni.commands._client import add_client_options, check_seconds, dumps, open_client, stamp
 from erni.transport.wire import loads
 
@@ -120,7 +120,7 @@ def _answer(args: argparse.Namespace, client: Any, addr: tuple[str, int], task: 
     while (left := start + ANSWER_WAIT - time.monotonic()) > 0:
         known.ask()
         if time.monotonic() >= next_query:  # an update may be lost: the agent answers with the task's state
-            client.send(addr, "task.query", Cancel(uid=task.uid), reliable=False)
+            client.send(addr, "task.query", TaskQuery(uid=task.uid), reliable=False)
             next_query += 1.0
         msg = client.receive(min(left, 0.2))
         unknown = known.answered(msg)
@@ -219,7 +219,7 @@ def _follow(args: argparse.Namespace, client: Any, addr: tuple[str, int], task: 
                   f"task {task.uid} may still run there", file=sys.stderr)
             return 1
         if now >= next_query:  # the agent answers with the task's state: a heartbeat, and a lost update found
-            client.send(addr, "task.query", Cancel(uid=task.uid), reliable=False)
+            client.send(addr, "task.query", TaskQuery(uid=task.uid), reliable=False)
             next_query = now + QUERY_PERIOD
         msg = client.receive(0.2)
         if msg is None:
@@ -231,7 +231,7 @@ def _follow(args: argparse.Namespace, client: Any, addr: tuple[str, int], task: 
             return 1
         if msg.reply == addr or msg.kind in ("task.result", "task.unknown"):
             heard = time.monotonic()
-        if msg.kind == "task.unknown" and isinstance(msg.body, Cancel) and msg.body.uid == task.uid:
+        if msg.kind == "task.unknown" and isinstance(msg.body, TaskUnknown) and msg.body.uid == task.uid:
             print(f"erni task: {args.agent} no longer knows task {task.uid} (restarted without its journal?)",
                   file=sys.stderr)
             return 1

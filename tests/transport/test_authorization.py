@@ -15,7 +15,7 @@ import time
 import pytest
 
 from erni.blackboard import Pose, Task, TaskState
-from erni.blackboard.schemas import Cancel, Peer, WatchRequest
+from erni.blackboard.schemas import Cancel, Peer, StatusRemoved, TaskQuery, WatchRequest
 from erni.blackboard.testing import wait_until
 from erni.transport.endpoint import Endpoint
 from erni.transport.identity import load_identity
@@ -172,7 +172,7 @@ def test_a_robot_cannot_overwrite_or_delete_another_robots_pose(team, holder):
     for forged in (Pose(robot="robot1", x=99.0, y=-99.0),  # in robot1's name
                    Pose(uid="pose:robot1", robot="robot2", x=99.0, y=-99.0)):  # its own, under robot1's uid
         mallory.send(addr_of(control), "status", forged, reliable=False, to="control")
-    mallory.send(addr_of(control), "status.remove", Cancel(uid="pose:robot1"), reliable=True, to="control")
+    mallory.send(addr_of(control), "status.remove", StatusRemoved(uid="pose:robot1"), reliable=True, to="control")
     wait_until(lambda: counters(control).get("refused.status", 0) >= 3
                or (p := control.blackboard.get("pose:robot1")) is None or p.x != 1.0)
     time.sleep(0.2)
@@ -224,3 +224,15 @@ def test_an_operator_cancels_a_task_it_did_not_give_and_its_requester_is_told(te
         assert result.state is TaskState.CANCELLED and result.message == "cancelled by cli (cli)"
     finally:
         client.endpoint.stop()
+
+
+def test_a_message_naming_a_uid_is_acted_on_only_with_its_own_body_type(team, holder):
+    """A kind and its body say the same thing: a `task.query` whose body is a `Cancel` (the type
+    that six kinds once shared) is not answered; a `TaskQuery` is, by a `TaskUnknown` naming it."""
+    robot1 = team("robot1", echo=False)
+    asker = holder("control", "control")
+    asker.send(addr_of(robot1), "task.query", Cancel(uid="wrong-type"), reliable=True, to="robot1")
+    asker.send(addr_of(robot1), "task.query", TaskQuery(uid="no-such-task"), reliable=True, to="robot1")
+    wait_until(lambda: any(m.kind == "task.unknown" for m in asker.inbox))  # in order: the first was handled
+    answers = [m.body for m in asker.inbox if m.kind == "task.unknown"]
+    assert [(type(body).__name__, body.uid) for body in answers] == [("TaskUnknown", "no-such-task")]
