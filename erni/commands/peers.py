@@ -20,6 +20,10 @@ def register(sub: Any) -> None:
     p.set_defaults(func=run)
 
 
+ROUTES_WAIT = 2.0
+"""On Zenoh, how long `erni peers` waits for the liveliness tokens of the agents that are up (s)."""
+
+
 def run(args: argparse.Namespace) -> int:
     """Print the directory as a table or JSON lines."""
     from erni.transport.client import ClientError
@@ -42,9 +46,16 @@ def run(args: argparse.Namespace) -> int:
         except ClientError as err:
             print(f"erni peers: {err}", file=sys.stderr)
             return 1
-        # on Zenoh: the router each agent is connected through, as its liveliness token says
+        # on Zenoh: the router each agent is connected through, as its liveliness token says; the
+        # tokens reach this client's own session on their own time, so wait a little for those
+        # of the agents that are up (a '-' then means no token, not one still on its way)
         route_of = getattr(client.endpoint, "route_of", None)
-        routes = {p.name: route_of(p.name) for p in msg.body.peers} if route_of is not None else {}
+        routes: dict[str, str | None] = {}
+        if route_of is not None:
+            deadline = time.monotonic() + ROUTES_WAIT
+            while any(route_of(p.name) is None for p in msg.body.peers if p.up) and time.monotonic() < deadline:
+                time.sleep(0.05)
+            routes = {p.name: route_of(p.name) for p in msg.body.peers}
     now = time.time()
     peers = sorted(msg.body.peers, key=lambda p: p.name)
     beacons, down_after = msg.body.beacons, msg.body.down_after

@@ -277,9 +277,12 @@ def test_site_a_reaches_site_b_only_through_the_routers(sites):
     assert "robot1" not in sites.peers() or not sites.peers()["robot1"]["up"]  # site B is cut off
     sites.start_router("router-b")
     sites.router_id("router-b")
-    robot1 = wait_until(lambda: (p := sites.peers().get("robot1")) is not None and p["up"] and p, timeout=30,
-                        message=f"robot1 not up at site A:\n{sites.tail('robot1')}\n{sites.tail('router-b')}")
-    assert robot1["wire"] == "zenoh" and robot1["router"] == "router-b"  # by the name router-b's token holds
+    # up, and reached through router-b by the name router-b's token holds (the token travels on its own)
+    robot1 = wait_until(lambda: (p := sites.peers().get("robot1")) is not None and p["up"]
+                        and p["router"] == "router-b" and p, timeout=30,
+                        message=f"robot1 not up through router-b at site A: {sites.peers().get('robot1')}\n"
+                        f"{sites.tail('robot1')}\n{sites.tail('router-b')}")
+    assert robot1["wire"] == "zenoh"
     wait_until(lambda: robot1_up(sites), timeout=10)  # the watch at site A saw it appear
 
 
