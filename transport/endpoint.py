@@ -381,6 +381,7 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
             dest = self._dests.get(session.addr)
             if dest is not None:
                 dest.hs_backoff = dest.hs_not_before = 0.0
+                dest.hs_failures = 0
                 if dest.has_work():
                     self._make_ready(dest)
 

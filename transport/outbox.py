@@ -22,7 +22,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
-from erni.transport.session import Initiation
+from erni.transport.session import Initiation, patience
 from erni.transport.wire import BATCH_BYTES, StreamDecoder
 
 if TYPE_CHECKING:
@@ -77,6 +77,7 @@ class Dest:
     handshake: Initiation | None = None
     hs_backoff: float = 0.0
     hs_not_before: float = 0.0
+    hs_failures: int = 0  # handshakes with it given up in a row: each waits longer (`patience`)
     batch: Batch | None = None  # statuses of a burst the caller gathers into one datagram
     solo_until: float = 0.0  # until then (monotonic) the caller sends each status on its own (SOLO_FOR)
     full_at: float = 0.0  # when the caller last filled a datagram with gathered statuses (monotonic)
@@ -252,9 +253,11 @@ class SenderPool:
                 first = dest.reliable[0] if dest.reliable else dest.fast[0] if dest.fast else None
             expect = first.to if first is not None else ""
             init = dest.handshake = self.sessions.initiate(dest.addr, expect)
-        elif now - init.started > self.handshake_timeout:
+        elif now - init.started > patience(self.handshake_timeout, dest.hs_failures):
             self.sessions.abandon(init)
             dest.handshake = None
+            waited = patience(self.handshake_timeout, dest.hs_failures)
+            dest.hs_failures += 1
             dest.hs_backoff = min(5.0, max(0.5, dest.hs_backoff * 2))
             dest.hs_not_before = real + dest.hs_backoff
             with self._cond:
@@ -265,7 +268,7 @@ class SenderPool:
                 self.count("dropped.no_session", dropped)
             self.warn("handshake", f"no answer to a handshake with {dest.addr[0]}:{dest.addr[1]}"
                                 f"{' (' + init.expect + ')' if init.expect else ''} within "
-                                f"{self.handshake_timeout:g} s; {dropped} status message(s) dropped")
+                                f"{waited:g} s; {dropped} status message(s) dropped")
             return dest.hs_not_before if dest.reliable else None
         if real >= init.next_try:
             try:
@@ -275,4 +278,5 @@ class SenderPool:
                 self.warn("udp", f"handshake to {dest.addr[0]}:{dest.addr[1]} failed: {err}")
             init.attempts += 1
             init.next_try = real + 0.1 * 2 ** min(init.attempts, 3)
-        return min(init.next_try, real + init.started + self.handshake_timeout - now + 0.001)
+        return min(init.next_try, real + init.started + patience(self.handshake_timeout, dest.hs_failures) - now
+                   + 0.001)

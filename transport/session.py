@@ -285,6 +285,18 @@ def _exchange(private: X25519PrivateKey, public_hex: str) -> bytes:
         raise FrameError("auth", "handshake key is not usable") from None
 
 
+PATIENCE_GROWTH = 8
+"""A handshake with a destination whose last ones went unanswered waits up to this many times the
+endpoint's `handshake_timeout` (doubling with each one given up in a row): on a machine so busy
+that an answer takes longer than the timeout, a fixed timeout gives up every handshake just
+before its answer arrives, and each new one costs both sides its keys and signatures again."""
+
+
+def patience(timeout: float, failures: int) -> float:
+    """How long a handshake waits for its answer after `failures` given up in a row."""
+    return timeout * min(PATIENCE_GROWTH, 1 << failures)
+
+
 @dataclass
 class Initiation:
     """A handshake this endpoint started: what it sent, and what it needs to finish it."""

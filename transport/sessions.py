@@ -25,7 +25,17 @@ from typing import Protocol
 
 from erni.transport.identity import Identity, IdentityError, read_crl, write_public
 from erni.transport.limits import HostBuckets, Limits, TokenBucket
-from erni.transport.session import Auth, Initiation, Session, complete, cut_signed, initiate, parse_hello, respond
+from erni.transport.session import (
+    PATIENCE_GROWTH,
+    Auth,
+    Initiation,
+    Session,
+    complete,
+    cut_signed,
+    initiate,
+    parse_hello,
+    respond,
+)
 from erni.transport.wire import HINT, KIND, REFUSAL, FrameError
 
 Address = tuple[str, int]
@@ -151,7 +161,7 @@ class Sessions:
                     if not session.confirmed:
                         self.by_sid.pop(session.sid, None)
             for digest, init in list(self.initiations.items()):
-                if now - init.started > 3 * self.handshake_timeout:
+                if now - init.started > (PATIENCE_GROWTH + 1) * self.handshake_timeout:  # none waits as long
                     del self.initiations[digest]
         self.forget(lambda s: now - max(s.last_rx, s.last_tx) < self.limits.session_idle)
         self._reload_crl()
