@@ -55,6 +55,18 @@ STEPS = [
     ("agent command and `erni sim`'s radio entry point", "erni.sim.radio"),
 ]
 
+DEPENDENCIES = ("pydantic", "serial", "cryptography", "msgspec", "sqlite3", "pysnmp", "numpy", "scipy", "matplotlib",
+                "networkx", "aiohttp", "websockets", "zenoh", "rosbags", "foxglove", "pocketsphinx", "vosk")
+"""ERNI's dependencies by import name (and the standard library's sqlite3, the journal's)."""
+
+WHAT_LOADS = """
+import importlib, sys
+for mod in sys.argv[2:]:
+    importlib.import_module(mod)
+deps = sys.argv[1].split(",")
+print(len(sys.modules), " ".join(d for d in deps if d in sys.modules), "|", " ".join(d for d in deps if d not in sys.modules))
+"""
+
 STEP_PROBE = """
 import gc, importlib, sys
 def rss():
@@ -157,6 +169,14 @@ def main() -> int:
     rest = total - sum(mb for _, mb in plain.most_common(10))
     print(f"| the other mappings | {rest:.2f} | | |")
     print(f"| **all** | **{total:.1f}** | **{sum(floor_maps.values()):.1f}** | |")
+
+    loads = subprocess.run([sys.executable, "-c", WHAT_LOADS, ",".join(DEPENDENCIES), *[mod for _, mod in STEPS]],
+                           capture_output=True, text=True, cwd=ROOT, check=True).stdout.split("|")
+    count, *loaded = loads[0].split()
+    print(f"\nwhat the agent's imports load, in a fresh interpreter: {count} modules; of ERNI's dependencies "
+          f"{', '.join(loaded)}; imported only by the part that uses them, when it runs (the journal's sqlite3 "
+          f"when it opens; the simulator, GUI, speech, Zenoh wire and ROS 2 bridge otherwise): "
+          f"{', '.join(loads[1].split())}")
 
     print("\nsummary")
     print("| measure | RSS MB | / floor | / floor with pydantic's machinery | / needed floor |")
