@@ -246,6 +246,7 @@ class SenderPool:
         if not dest.has_work():
             return None
         init = dest.handshake
+        wait = patience(self.handshake_timeout, dest.hs_failures)  # for its answer, after those given up
         if init is None:
             if real < dest.hs_not_before:
                 return dest.hs_not_before
@@ -253,10 +254,9 @@ class SenderPool:
                 first = dest.reliable[0] if dest.reliable else dest.fast[0] if dest.fast else None
             expect = first.to if first is not None else ""
             init = dest.handshake = self.sessions.initiate(dest.addr, expect)
-        elif now - init.started > patience(self.handshake_timeout, dest.hs_failures):
+        elif now - init.started > wait:
             self.sessions.abandon(init)
             dest.handshake = None
-            waited = patience(self.handshake_timeout, dest.hs_failures)
             dest.hs_failures += 1
             dest.hs_backoff = min(5.0, max(0.5, dest.hs_backoff * 2))
             dest.hs_not_before = real + dest.hs_backoff
@@ -268,7 +268,7 @@ class SenderPool:
                 self.count("dropped.no_session", dropped)
             self.warn("handshake", f"no answer to a handshake with {dest.addr[0]}:{dest.addr[1]}"
                                 f"{' (' + init.expect + ')' if init.expect else ''} within "
-                                f"{waited:g} s; {dropped} status message(s) dropped")
+                                f"{wait:g} s; {dropped} status message(s) dropped")
             return dest.hs_not_before if dest.reliable else None
         if real >= init.next_try:
             try:
@@ -278,5 +278,4 @@ class SenderPool:
                 self.warn("udp", f"handshake to {dest.addr[0]}:{dest.addr[1]} failed: {err}")
             init.attempts += 1
             init.next_try = real + 0.1 * 2 ** min(init.attempts, 3)
-        return min(init.next_try, real + init.started + patience(self.handshake_timeout, dest.hs_failures) - now
-                   + 0.001)
+        return min(init.next_try, real + init.started + wait - now + 0.001)
