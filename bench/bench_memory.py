@@ -32,13 +32,6 @@ sys.path.insert(0, str(ROOT))
 
 from bench_agent import FLOOR_IMPORTS  # noqa: E402  # bench/bench_agent.py
 
-NEEDED_IMPORTS = ("import pydantic, serial\nfrom cryptography import x509\n"
-                  "from cryptography.hazmat.primitives.asymmetric import ed25519, x25519\n"
-                  "from cryptography.hazmat.primitives.ciphers.aead import ChaCha20Poly1305")
-"""What every robot agent must import, whatever ERNI does: its models' library, its robot's serial
-port, and its identity and sessions' cryptography (pysnmp, in the older floor, is not imported by
-an agent since MobiNet builds its own SNMP PDUs)."""
-
 from erni.sim.scenario import Scenario  # noqa: E402
 from erni.sim.team import Team  # noqa: E402
 
@@ -54,6 +47,13 @@ STEPS = [
     ("mission", "erni.plugins.mission.plugin"),
     ("agent command and `erni sim`'s radio entry point", "erni.sim.radio"),
 ]
+
+NEEDED_IMPORTS = ("import pydantic, serial\nfrom cryptography import x509\n"
+                  "from cryptography.hazmat.primitives.asymmetric import ed25519, x25519\n"
+                  "from cryptography.hazmat.primitives.ciphers.aead import ChaCha20Poly1305")
+"""What every robot agent must import, whatever ERNI does: its models' library, its robot's serial
+port, and its identity and sessions' cryptography (pysnmp, in the older floor, is not imported by
+an agent since MobiNet builds its own SNMP PDUs)."""
 
 DEPENDENCIES = ("pydantic", "serial", "cryptography", "msgspec", "sqlite3", "pysnmp", "numpy", "scipy", "matplotlib",
                 "networkx", "aiohttp", "websockets", "zenoh", "rosbags", "foxglove", "pocketsphinx", "vosk")
