@@ -168,8 +168,9 @@ class RunRecord:
         return self.start is not None and _start_time(self.pid) == self.start
 
 
-def _records() -> dict[str, RunRecord]:
-    out: dict[str, RunRecord] = {}
+def _records() -> dict[str, RunRecord | None]:
+    """Every run's record by tag; None for a record that cannot be read (its run is not known to be dead)."""
+    out: dict[str, RunRecord | None] = {}
     if not STATE_DIR.is_dir():
         return out
     for path in STATE_DIR.glob("*.json"):
@@ -178,7 +179,9 @@ def _records() -> dict[str, RunRecord]:
             out[path.stem] = RunRecord(str(data["tag"]), int(data["slot"]), int(data["pid"]),
                                        data.get("start"), float(data.get("created", 0.0)))
         except (OSError, ValueError, KeyError, TypeError):
-            log.warning("ignoring the unreadable run record %s", path)
+            log.warning("keeping run %s: its record %s cannot be read, so its owner is not known to be dead",
+                        path.stem, path)
+            out[path.stem] = None
     return out
 
 
@@ -215,7 +218,10 @@ def clean_stale() -> list[str]:
 
 def _clean_stale_locked() -> list[str]:
     records = _records()
-    live = {tag for tag, rec in records.items() if rec.alive}
+    # a run is dead only when its record proves it: the owner's pid is gone or started at another time;
+    # a run whose record cannot be read is kept (with a warning), and a namespace with no record at all
+    # is dead, since a run writes its record (under this lock) before it creates anything
+    live = {tag for tag, rec in records.items() if rec is None or rec.alive}
     stale: set[str] = set()
     for name in _namespaces():
         m = NAMESPACE.match(name)
@@ -347,7 +353,7 @@ class Mesh:
         with _registry_lock():
             _clean_stale_locked()
             records = _records()
-            used = {rec.slot for rec in records.values()}
+            used = {rec.slot for rec in records.values() if rec is not None}
             tags = set(records)
             self.slot = next((k for k in range(256) if k not in used and not _slot_taken_by_host(k)), -1)
             if self.slot < 0:

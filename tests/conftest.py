@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import fcntl
+import functools
 import threading
 import time
+from collections.abc import Iterator
 
 import pytest
 from hypothesis import HealthCheck, settings
@@ -12,15 +15,7 @@ from hypothesis import HealthCheck, settings
 settings.register_profile("erni", deadline=None, suppress_health_check=[HealthCheck.too_slow])
 settings.load_profile("erni")
 
-
-@pytest.hookimpl(tryfirst=True)  # before xdist's own hook, which reads the groups into the node ids
-def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """Under pytest-xdist (`-n 3 --dist loadgroup`): a file's tests run on one worker, so its module
-    fixtures (a team, a browser) start once, and every real-mesh test on the same one, since
-    network namespaces and nftables are the machine's, not the worker's."""
-    for item in items:
-        group = "netns" if item.get_closest_marker("netns") else item.nodeid.split("::")[0]
-        item.add_marker(pytest.mark.xdist_group(group))
+pytest_plugins = ["tests.grouping"]  # fails a file whose tests reach a second xdist worker
 
 
 def _extra_threads(before: set[threading.Thread]) -> list[threading.Thread]:
@@ -40,3 +35,72 @@ def no_leaked_threads():
     if leaked:
         names = ", ".join(sorted(t.name for t in leaked))
         pytest.fail(f"test leaked {len(leaked)} thread(s): {names}", pytrace=False)
+
+
+# -- the real-mesh tier: network namespaces, babeld and nftables are the machine's, not a worker's ----
+
+REAL_MESH_LOCK_WAIT = 1800.0  # s: a progress timeout, far beyond the longest real-mesh file
+REAL_MESH_FILES = pytest.StashKey[set[str]]()
+
+
+@functools.cache
+def real_mesh_unavailable() -> str | None:
+    """Why this machine cannot run the real-mesh tier (None: it can), asked once per process."""
+    from erni.sim import netns
+
+    return netns.unavailable_reason()
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    marked = [item for item in items if item.get_closest_marker("netns")]
+    config.stash[REAL_MESH_FILES] = {item.nodeid.split("::")[0] for item in marked}
+    if marked and (reason := real_mesh_unavailable()):
+        for item in marked:
+            item.add_marker(pytest.mark.skip(reason=f"real-mesh tier unavailable: {reason}"))
+
+
+def _erni_namespaces() -> set[str]:
+    from erni.sim import netns
+
+    return {n for n in netns._namespaces() if netns.NAMESPACE.match(n)}
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_real_mesh_at_a_time(request: pytest.FixtureRequest) -> Iterator[None]:
+    """A file with real-mesh tests holds a machine-wide lock while it runs (its module fixtures, a team
+    in namespaces, included), whichever worker or pytest process runs it: no other test sees its
+    namespaces appear, and no other run's clean-up of dead runs can take one of its own."""
+    if request.node.nodeid not in request.config.stash.get(REAL_MESH_FILES, set()) or real_mesh_unavailable():
+        yield
+        return
+    from erni.sim import netns
+
+    netns.STATE_DIR.mkdir(mode=0o755, parents=True, exist_ok=True)
+    with open(netns.STATE_DIR / "tests.lock", "w") as lock:
+        deadline = time.monotonic() + REAL_MESH_LOCK_WAIT
+        while True:
+            try:
+                fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if time.monotonic() > deadline:
+                    pytest.fail(f"another real-mesh test held {lock.name} for {REAL_MESH_LOCK_WAIT:.0f} s",
+                                pytrace=False)
+                time.sleep(0.2)
+        try:
+            yield
+        finally:
+            fcntl.flock(lock, fcntl.LOCK_UN)
+
+
+@pytest.fixture(autouse=True)
+def nothing_left_behind(request: pytest.FixtureRequest) -> Iterator[None]:
+    """Fail a real-mesh test that leaves a namespace of its own behind (its file holds the lock, so
+    every namespace that appeared during the test is the test's)."""
+    if request.node.get_closest_marker("netns") is None or real_mesh_unavailable():
+        yield
+        return
+    before = _erni_namespaces()
+    yield
+    left = _erni_namespaces() - before
+    assert not left, f"the test left namespaces behind: {sorted(left)}"

@@ -8,6 +8,7 @@ import os
 import shutil
 import subprocess
 import sys
+import sysconfig
 import tomllib
 import venv
 import zipfile
@@ -105,9 +106,14 @@ class Greeter(Plugin):
 @pytest.mark.slow
 def test_a_plugin_author_type_checks_against_a_strict_editable_install(linkless: Path, tmp_path: Path) -> None:
     env_dir = tmp_path / "venv"
-    venv.EnvBuilder(system_site_packages=True, with_pip=False).create(env_dir)
+    venv.EnvBuilder(with_pip=False).create(env_dir)
     python = env_dir / "bin" / "python"
-    # the venv sees this interpreter's packages (pydantic, mypy, setuptools) and installs ERNI itself
+    # the venv sees the packages of the environment running the suite (pydantic, mypy, setuptools, as
+    # installed from the lock), not the machine's own Python's, and installs ERNI itself
+    inner = subprocess.run([str(python), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
+                           capture_output=True, text=True, check=True).stdout.strip()
+    outer = {sysconfig.get_paths()["purelib"], sysconfig.get_paths()["platlib"]}
+    (Path(inner) / "outer-environment.pth").write_text("".join(f"{path}\n" for path in sorted(outer)))
     done = _run([sys.executable, "-m", "pip", "--python", str(python), "install", "-q", "--no-deps",
                  "--no-build-isolation", "-e", str(linkless), "--config-settings", "editable_mode=strict"], tmp_path)
     assert done.returncode == 0, done.stderr

@@ -167,3 +167,20 @@ def test_a_live_run_is_never_taken_for_a_dead_one(tmp_path):
     finally:
         first.destroy()
     assert first.leftovers() == [] and second.leftovers() == []
+
+
+def test_a_run_whose_record_cannot_be_read_is_kept_not_guessed_dead(tmp_path, caplog):
+    """Clean-up removes only what it can prove dead: a damaged record names no owner to check, so its
+    namespaces stay (with a warning) until the record is mended or removed by hand."""
+    mesh = Mesh(["r"], tmp_path).create()
+    record = netns.STATE_DIR / f"{mesh.tag}.json"
+    good = record.read_text()
+    try:
+        record.write_text(good[: len(good) // 2])  # a torn write: not JSON
+        assert netns.clean_stale() == []
+        assert f"erni-{mesh.tag}-r" in netns._namespaces()
+        assert f"keeping run {mesh.tag}" in caplog.text
+        record.write_text(good)
+    finally:
+        mesh.destroy()
+    assert mesh.leftovers() == []
