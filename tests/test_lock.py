@@ -159,3 +159,16 @@ def test_read_lock_reads_markers_hashes_and_reasons() -> None:
     assert scipy.marker is None and scipy.via == ["erni (pyproject.toml)"]
     with pytest.raises(AssertionError, match="unexpected line"):
         read_lock("numpy>=2 \\\n    --hash=sha256:aa\n")
+
+
+def test_ci_runs_the_readme_test_command_in_a_new_environment() -> None:
+    """.ci/run runs the README's test command as written (each line, stopping CI when it fails)."""
+    readme = (ROOT / "README.md").read_text()
+    blocks = re.findall(r"```sh\n(.*?)```", readme, re.S)
+    (command,) = [b for b in blocks if "pytest -q" in b and "requirements.lock" in b]
+    ci = [line.strip() for line in (ROOT / ".ci" / "run").read_text().splitlines()]
+    lines = [line.strip() for line in command.strip().splitlines()]
+    assert lines[0].startswith("python3 -m venv "), f"the README's test command should start in a new venv: {lines}"
+    at = [ci.index(f"{line} || exit 1") if f"{line} || exit 1" in ci else -1 for line in lines]
+    assert -1 not in at, f".ci/run does not run the README's test command {lines} (each line followed by `|| exit 1`)"
+    assert at == sorted(at) and at[-1] - at[0] == len(lines) - 1, f".ci/run runs the README's lines apart: {at}"
