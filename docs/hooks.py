@@ -87,8 +87,10 @@ def render_cli() -> str:
         lines.append(f"| [{code(words)}](#{_anchor(words)}) | {cell(helptext)} |")
     for words, parser, helptext in every:
         lines += ["", f"## {words} {{#{_anchor(words)}}}", ""]
-        if parser.description and parser.description.strip() != helptext.strip():
-            lines += [cell(parser.description), ""]
+        if parser.description and issubclass(parser.formatter_class, argparse.RawDescriptionHelpFormatter):
+            lines += ["```text", parser.description.strip("\n"), "```", ""]  # laid out by its author
+        elif parser.description and parser.description.strip() != helptext.strip():
+            lines += [_paragraphs(parser.description), ""]
         elif helptext:
             lines += [cell(helptext), ""]
         usage = parser.format_usage().removeprefix("usage: ").strip()
@@ -98,8 +100,17 @@ def render_cli() -> str:
             lines += ["| option | default | meaning |", "|---|---|---|"]
             lines += [_option_row(parser, a) for a in rows]
         if parser.epilog:
-            lines += ["", cell(parser.epilog)]
+            lines += ["", _paragraphs(parser.epilog)]
     return "\n".join(lines)
+
+
+def _paragraphs(text: str) -> str:
+    """A parser's description as Markdown: its paragraphs kept, a table in it kept as a table."""
+    out = []
+    for para in re.split(r"\n\s*\n", text.strip()):
+        lines = [line.strip() for line in para.splitlines()]
+        out.append("\n".join(lines) if lines and lines[0].startswith("|") else " ".join(lines))
+    return "\n\n".join(out)
 
 
 def _anchor(words: str) -> str:
@@ -109,7 +120,7 @@ def _anchor(words: str) -> str:
 # -- settings models ------------------------------------------------------------------------
 
 UNITS = ("s", "m", "Hz", "m/s", "m/s^2", "deg", "deg/s", "V", "bytes", "hops", "mm", "ms")
-UNIT_WORDS = {"seconds": "s", "volts": "V", "metres": "m", "a second": "Hz"}
+UNIT_WORDS = {"seconds": "s", "volts": "V", "metres": "m", "a second": "Hz", "per second": "Hz"}
 _UNIT = re.compile(r"\((" + "|".join(re.escape(u) for u in UNITS) + r")(?:[;,)]| =| \()")
 
 
@@ -290,7 +301,7 @@ def render_wire() -> str:
 # -- the MIB -----------------------------------------------------------------------------------
 
 MIB = ROOT / "plugins" / "mobinet" / "mibs" / "ERNI-MOBINET-MIB.txt"
-_DEF = re.compile(r"^(\w+)\s+(OBJECT-TYPE|OBJECT IDENTIFIER|OBJECT-IDENTITY|MODULE-IDENTITY|OBJECT-GROUP|"
+_DEF = re.compile(r"^(\w+)[ \t]+(OBJECT-TYPE|OBJECT IDENTIFIER|OBJECT-IDENTITY|MODULE-IDENTITY|OBJECT-GROUP|"
                   r"MODULE-COMPLIANCE)\b(.*?)::=\s*\{\s*([\w-]+)\s+([\d\s]+)\}", re.S | re.M)
 
 
