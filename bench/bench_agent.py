@@ -131,11 +131,15 @@ def measure(pids: dict[str, int], window: float) -> dict[str, tuple[float, float
 
 
 def main() -> int:
+    import results  # bench/results.py, beside this script: the latest results, for the site's benchmarks page
+
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--window", type=float, default=60.0, help="measuring window per mode (s)")
     ap.add_argument("--modes", default="idle,busy")
     ap.add_argument("--settle", type=float, default=5.0, help="wait after start / after tasking (s)")
+    results.add_argument(ap)
     args = ap.parse_args()
+    targets = []
     modes = [m for m in args.modes.split(",") if m]
 
     floor = import_floor()
@@ -170,6 +174,10 @@ def main() -> int:
             for name, (cpu, wk, rss) in m.items():
                 print(f"| {name} | {cpu:.2f} | {wk:.0f} | {rss:.1f} | {cpu / max(cpu_floor, 1e-9):.1f} | "
                       f"{rss / rss_floor:.2f} |")
+            cpu, wk, _ = m["robot agent"]
+            targets.append(results.target(f"{mode} robot agent CPU", "≤ 1 % of a core",
+                                          f"the Pose stream alone, {cpu_floor:.2f} %",
+                                          f"{cpu:.2f} % ({wk:.0f} wake-ups/s)", cpu <= 1.0))
         print("\nwhole robot (memory at the end of the run), beside paper 004 Table 1")
         print("| process | RSS MB | PSS MB | private MB | paper 004 (VmRSS) |")
         print("|---|---|---|---|---|")
@@ -194,6 +202,7 @@ def main() -> int:
             p.stdin.close()
             p.wait(10)
         shutil.rmtree(workdir, ignore_errors=True)
+    results.write("bench_agent", targets, path=args.results, about="CPU of one real robot agent, idle and busy")
     return 0
 
 

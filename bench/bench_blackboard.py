@@ -139,13 +139,17 @@ def bench_floor(n_consumers: int, pings: int, burst: int) -> tuple[list[float], 
 
 
 def main() -> int:
+    import results  # bench/results.py, beside this script: the latest results, for the site's benchmarks page
+
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rounds", type=int, default=7, help="repetitions; medians are reported")
     parser.add_argument("--pings", type=int, default=400, help="single publications per round")
     parser.add_argument("--burst", type=int, default=3000, help="publications in the throughput run")
     parser.add_argument("--workers", type=int, default=4, help="agent worker threads")
     parser.add_argument("--plugins", default="1,4,16", help="comma-separated numbers of subscribing plugins")
+    results.add_argument(parser)
     args = parser.parse_args()
+    targets = []
 
     print(f"blackboard benchmark: {args.rounds} rounds x {args.pings} pings, burst {args.burst}, "
           f"{args.workers} workers; medians of rounds; floor = queue.Queue thread handoff")
@@ -163,6 +167,12 @@ def main() -> int:
         p50, p99, thr, f50, f99, fthr = (statistics.median(col) for col in zip(*rows))
         print(f"{n:>7} | {p50 * 1e6:>8.1f} {f50 * 1e6:>7.1f} {p50 / f50:>6.2f} | {p99 * 1e6:>8.1f} "
               f"{f99 * 1e6:>7.1f} {p99 / f99:>6.2f} | {thr:>10.0f} {fthr:>10.0f} {thr / fthr:>6.2f}")
+        targets.append(results.target(
+            f"{n} plugin(s), publish → execute p50", "≤ 1.2x the hand-off" if n == 1 else "reported",
+            f"queue.Queue hand-off, {f50 * 1e6:.1f} µs", f"{p50 / f50:.2f}x ({p50 * 1e6:.1f} µs)",
+            p50 / f50 <= 1.2 if n == 1 else None))
+    results.write("bench_blackboard", targets, path=args.results,
+                  about="publish → a subscribing plugin's execute(), beside a queue.Queue thread hand-off in the same run")
     return 0
 
 

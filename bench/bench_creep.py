@@ -67,6 +67,8 @@ def messages_of(team: Team) -> Callable[[str], list[str]]:
 
 
 def main(argv: list[str] | None = None) -> int:
+    import results  # bench/results.py, beside this script: the latest results, for the site's benchmarks page
+
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--rounds", type=int, default=3, help="trials per speed (default 3)")
     ap.add_argument("--netns", action="store_true", help="the real-mesh tier (root: namespaces, babeld)")
@@ -77,6 +79,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--plot", type=Path, help="draw the trials of the --json files given with --from as a PNG")
     ap.add_argument("--from", dest="sources", type=Path, nargs="+", default=[],
                     help="with --plot: JSON files of earlier runs (one per tier and loss)")
+    results.add_argument(ap)
     args = ap.parse_args(argv)
     if args.plot:
         if not args.sources:
@@ -125,6 +128,15 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         args.json.write_text(json.dumps({"tier": tier, "loss": args.loss, "blind": args.blind,
                                          "trials": [t.row() | {"track": t.track} for t in trials]}, indent=1))
+    name = f"{tier.split()[0]}, loss {args.loss:.0%}" + (", guard off" if args.blind else "")
+    targets = [results.target(f"partitions, {name}", "none" if not args.blind else "reported",
+                              "the radio's range limit", f"{sum(t.partitioned for t in trials)} in {len(trials)} trials",
+                              not any(t.partitioned for t in trials) if not args.blind else None)]
+    targets += [results.target(f"closest approach to the range limit at {v:g} m/s, {name}", "reported",
+                               "the range limit", _range([t.closest for t in trials if t.speed == v]) + " m", None)
+                for v in args.speeds]
+    results.write("bench_creep", targets, path=args.results, argv=argv,
+                  about="end robots driving away from their only neighbour with the guard on")
     return 1 if any(t.partitioned for t in trials) and not args.blind else 0
 
 

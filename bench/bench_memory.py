@@ -128,8 +128,11 @@ def started_agent(settle: float, env_extra: dict[str, str]) -> collections.Count
 
 
 def main() -> int:
+    import results  # bench/results.py, beside this script: the latest results, for the site's benchmarks page
+
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--settle", type=float, default=15.0, help="seconds a started agent runs before it is measured")
+    results.add_argument(ap)
     args = ap.parse_args()
 
     floor_maps = interpreter(FLOOR_IMPORTS)
@@ -186,6 +189,10 @@ def main() -> int:
         print(f"| {label} | {mb:.1f} | {mb / floor:.2f} | {mb / machinery:.2f} | {mb / needed:.2f} |")
     print(f"| target: 1.3x the floor | {1.3 * floor:.1f} | 1.30 | | |")
     print(f"| target: 1.3x the needed floor | {1.3 * needed:.1f} | | | 1.30 |")
+    results.write("bench_memory", [results.target(
+        "idle robot agent RSS", "≤ 1.3x the needed import floor", f"what an agent must import, {needed:.1f} MB",
+        f"{total / needed:.2f}x ({total:.1f} MB; its imports alone {imports_total / needed:.2f}x)", total / needed <= 1.3)],
+        path=args.results, about="an idle robot agent's RSS beside the import floor it needs")
     return 0
 
 

@@ -194,10 +194,14 @@ def load_average() -> float:
 
 
 def main() -> int:
+    import results  # bench/results.py, beside this script: the latest results, for the site's benchmarks page
+
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--samples", type=int, default=30, help="round trips per hop count and tier")
     parser.add_argument("--losses", type=int, default=5, help="link losses per tier")
+    results.add_argument(parser)
     args = parser.parse_args()
+    targets = []
     reason = unavailable_reason()
     if reason:
         print(f"bench_mesh: the real-mesh tier cannot run here: {reason}", file=sys.stderr)
@@ -240,15 +244,26 @@ def main() -> int:
               f"{statistics.median(me) * ms:.1f} ms | {pct(me, 0.9) * ms:.1f} ms | "
               f"{statistics.median(me) / statistics.median(lo):.2f} | {loop['echo'][hops][0] * ms:.3f} ms | "
               f"{mesh['echo'][hops][0] * ms:.3f} ms |")
+        ratio = statistics.median(me) / statistics.median(lo)
+        targets.append(results.target(f"task round trip, {hops} hop(s), mesh / loopback", "equal within the noise",
+                                      f"raw UDP echo on the mesh, {mesh['echo'][hops][0] * ms:.3f} ms",
+                                      f"{ratio:.2f}x ({statistics.median(me) * ms:.1f} ms)", None))
     print("\n| measure | loopback | netns | ratio |\n|---|---|---|---|")
     lo, me = statistics.median(loop["loss_to_stop"]), statistics.median(mesh["loss_to_stop"])
     print(f"| link loss -> network-aware stop (median of {args.losses}; each: "
           f"{', '.join(f'{t:.2f}' for t in loop['loss_to_stop'])} / {', '.join(f'{t:.2f}' for t in mesh['loss_to_stop'])} s) "
           f"| {lo:.2f} s | {me:.2f} s | {me / lo:.2f} |")
+    targets.append(results.target("link loss → network-aware stop", "reported", f"the loopback tier, {lo:.2f} s",
+                                  f"{me / lo:.1f}x ({me:.2f} s)", None))
     for name, (t_loop, hops) in loop["discovery"].items():
         t_mesh = mesh["discovery"][name][0]
         print(f"| new robot {hops} hop{'s' if hops > 1 else ''} away -> up at the control node (one sample) "
               f"| {t_loop:.2f} s | {t_mesh:.2f} s | {t_mesh / t_loop:.2f} |")
+        targets.append(results.target(f"new robot {hops} hop(s) away → up at the control node", "reported",
+                                      f"the loopback tier, {t_loop:.2f} s", f"{t_mesh / t_loop:.1f}x ({t_mesh:.2f} s)",
+                                      None))
+    results.write("bench_mesh", targets, path=args.results,
+                  about="the real-mesh tier beside the loopback tier in the same run (scenario mesh-line)")
     return 0
 
 

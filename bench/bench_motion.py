@@ -93,11 +93,15 @@ def pct(values: list[float], q: float) -> float:
 
 
 def main() -> int:
+    import results  # bench/results.py, beside this script: the latest results, for the site's benchmarks page
+
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--samples", type=int, default=40)
     parser.add_argument("--periods", default="0.1,0.05,0.02", help="SIP periods to measure (s)")
     parser.add_argument("--rate-hz", type=float, default=20.0, help="behaviour stack rate")
+    results.add_argument(parser)
     args = parser.parse_args()
+    targets = []
     periods = [float(p) for p in args.periods.split(",")]
     print(f"motion benchmark: {args.samples} samples per row, behaviour stack at {args.rate_hz:g} Hz, "
           "robot-sim over TCP in another process")
@@ -130,6 +134,12 @@ def main() -> int:
         f50, f99 = statistics.median(floor), pct(floor, 0.99)
         print(f"{period * 1000:>8.0f}ms | {p50 * 1000:>6.1f}ms {p99 * 1000:>5.1f}ms | {f50 * 1000:>7.1f}ms "
               f"{f99 * 1000:>5.1f}ms | {p50 / f50:>5.2f} | {p50 / period:>12.2f}")
+        targets.append(results.target(
+            f"task → wheels turning, SIP period {period * 1000:.0f} ms", "about the floor",
+            f"a bare ArcosDriver sending VEL, {f50 * 1000:.1f} ms", f"{p50 / f50:.2f}x ({p50 * 1000:.1f} ms)", None))
+    results.write("bench_motion", targets, path=args.results,
+                  about="a BotMotion velocity task to the first SIP showing the wheels turning, through "
+                  "`erni robot-sim` over TCP")
     return 0
 
 

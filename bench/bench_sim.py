@@ -245,6 +245,8 @@ def kinematic_run(n: int, seconds: float, start: str = "packed") -> list[tuple[s
 
 def main() -> int:
     """Run the benchmark and print a table."""
+    import results  # bench/results.py, beside this script: the latest results, for the site's benchmarks page
+
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--robots", default="5,10,20", help="team sizes for the agents mode (comma-separated)")
     ap.add_argument("--window", type=float, default=10.0, help="seconds of watching per team size")
@@ -255,7 +257,9 @@ def main() -> int:
     ap.add_argument("--feeds", type=int, default=100, help="radio feeds timed per size")
     ap.add_argument("--kinematic-robots", default="120,1000", help="team sizes for the kinematic mode")
     ap.add_argument("--kinematic-seconds", type=float, default=30.0)
+    results.add_argument(ap)
     args = ap.parse_args()
+    targets = []
     bare = import_floor("pass")
     floor = import_floor(AGENT_IMPORTS)
     print(f"import floor: bare interpreter {bare:.1f} MB RSS; a robot agent's imports {floor:.1f} MB RSS")
@@ -282,6 +286,9 @@ def main() -> int:
             cells = (n, name, r["physics"], r["sonar"], r["sips"], r["total"], r["total"] / 100.0,
                      scalar["total"] / r["total"])
             print(" ".join(f"{v:>10.3g}" if isinstance(v, float) else f"{v:>10}" for v in cells), flush=True)
+        targets.append(results.target(f"robot host steps {n} robots with sonar at 10 Hz", "one core, within the "
+                                      "100 ms period", "the 100 ms period", f"{batch['total']:.1f} ms per 100 ms "
+                                      f"({batch['total'] / 100:.2f}x)", batch["total"] <= 100.0))
     print("\nthe radio feed: ms of one core per feed (10 feeds a second: budget 100 ms)")
     print(" ".join(f"{h:>12}" for h in ("nodes", "radio", "ms / feed", "x budget")), flush=True)
     for n in [int(x) for x in args.feed_nodes.split(",") if x]:
@@ -295,6 +302,10 @@ def main() -> int:
             print(f"\nkinematic mode: {n} robots, start {start}, {seconds:g} s simulated (dt = 0.2 s)")
             for variant, wall, factor in kinematic_run(n, seconds, start):
                 print(f"  {variant:<24} {wall:6.2f} s wall   {factor:6.2f} x real time", flush=True)
+                targets.append(results.target(f"kinematic mode, {n} robots {start}, {variant}", "faster than real "
+                                              "time", "real time", f"{factor:.2f}x real time", factor >= 1.0))
+    results.write("bench_sim", targets, path=args.results,
+                  about="the simulator's robot host and kinematic mode at scale")
     return 0
 
 

@@ -126,6 +126,8 @@ def main() -> int:
             return 2
         print(report(sys.argv[2:]))
         return 0
+    import results  # bench/results.py, beside this script: the latest results, for the site's benchmarks page
+
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--voices", default=",".join(S.VOICES))
     ap.add_argument("--speeds", default=",".join(map(str, S.SPEEDS)))
@@ -138,6 +140,7 @@ def main() -> int:
     ap.add_argument("--every", type=int, default=1, help="the stop phrasings and every K-th other line of the set")
     ap.add_argument("--part", default="1/1", help="run the I-th of N shares of the conditions (I/N), "
                     "for N processes side by side")
+    results.add_argument(ap)
     args = ap.parse_args()
     if S.ESPEAK is None:
         print("espeak-ng is not installed (apt install espeak-ng)", file=sys.stderr)
@@ -215,6 +218,22 @@ def main() -> int:
                  f"max {max(lat):.2f} s, {sum(x < 1.0 for x in lat)}/{len(lat)} under 1 s" if lat else ""))
     print(f"{audio_s:.0f} s of audio decoded in {compute_s:.0f} s ({compute_s / audio_s:.2f} x real time); "
           f"wall {time.time() - started:.0f} s")
+    targets = [results.target("commands carried out as something else", "none", "the typed line",
+                              f"{total['wrong']} wrong", total["wrong"] == 0)]
+    for noise in dict.fromkeys(r["noise"] for r in rows):
+        part = [r for r in rows if r["noise"] == noise]
+        got, lat = stops.get(noise, Counter()), latency.get(noise, [])
+        targets.append(results.target(f"stop phrasings heard, noise {noise}", "every one" if noise == "clean"
+                                      else "reported", "the typed line", f"{got['exact']}/{sum(got.values())}",
+                                      got["exact"] == sum(got.values()) if noise == "clean" else None))
+        targets.append(results.target(f"understood exactly, noise {noise}", "reported", "the typed line",
+                                      f"{sum(r['exact'] for r in part) / sum(r['n'] for r in part):.0%}", None))
+        if lat:
+            targets.append(results.target(f"stop latency after the voice ends, noise {noise}", "reported",
+                                          "the endpointer's 0.4 s", f"median {statistics.median(lat):.2f} s", None))
+    if args.part == "1/1":  # a share of the conditions is not the benchmark's result
+        results.write("bench_speech", targets, path=args.results,
+                      about="the speech test set through the control node's recogniser, per voice, speed and noise")
     for w in wrong:
         said_back = "; ".join(f"answered {a['said']!r}, heard {a['heard']!r}" for a in w["answers"])
         print(f"  {w['outcome'].upper()} [{w['condition']}] said {w['said']!r} heard {w['heard']!r}"

@@ -69,9 +69,13 @@ def floor(samples: int) -> list[float]:
 
 
 def main() -> int:
+    import results  # bench/results.py, beside this script: the latest results, for the site's benchmarks page
+
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--rounds", type=int, default=3, help="rounds per front end (each stops 3 moving robots)")
+    results.add_argument(ap)
     args = ap.parse_args()
+    targets = []
     base = floor(10)
     with tempfile.TemporaryDirectory(prefix="erni-bench-stop-") as tmp:
         run = Path(tmp) / "run"
@@ -102,6 +106,12 @@ def main() -> int:
         med = statistics.median(xs)
         p90 = xs[min(len(xs) - 1, int(0.9 * len(xs)))]
         print(f"{name:<22} {med:9.2f} {p90:7.2f} {max(xs):7.2f} {len(xs):4d} {med / fl:7.1f}")
+        cli = name.startswith("erni task") or name.startswith("task")
+        targets.append(results.target(
+            name, "reported" if cli else "within a braking time of the floor", f"bare ARCOS stop, {fl:.2f} s",
+            f"{med / fl:.1f}x ({med:.2f} s)", None if cli else med <= fl + 0.5))
+    results.write("bench_stop", targets, path=args.results,
+                  about="each front end's stop → every moving robot of `erni sim` standing, beside a bare ARCOS stop")
     return 0
 
 

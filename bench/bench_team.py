@@ -110,11 +110,15 @@ def run(n: int, window: float, idle: bool) -> dict[str, float]:
 
 
 def main() -> int:
+    import results  # bench/results.py, beside this script: the latest results, for the site's benchmarks page
+
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--robots", default="10,20,50")
     ap.add_argument("--window", type=float, default=20.0)
     ap.add_argument("--idle", action="store_true", help="robots stand (default: they random-walk)")
+    results.add_argument(ap)
     args = ap.parse_args()
+    targets = []
     print(f"robots {'stand' if args.idle else 'random-walk'}; Pose period {PERIOD * 1000:.0f} ms (input); "
           f"real time = interval p99 <= {2 * PERIOD * 1000:.0f} ms and every robot heard")
     print("| robots | start-up s | interval p50 / p99 ms at control | p99 / period | Poses at control / expected "
@@ -127,6 +131,12 @@ def main() -> int:
               f"{r['share']:.2f} | {r['heard_peers']} / {r['heard_poses']} of {n} | {r['stopped']} | {r['skipped']:.1%} | {r['cpu']:.1f} | "
               f"{r['control_cpu']:.1f} | {r['sim_cpu']:.1f} | {r['watch_cpu']:.1f} | {r['rss']:.0f} | {r['load']:.1f} | "
               f"{'yes' if ok else 'no'} |", flush=True)
+        targets.append(results.target(
+            f"{n} robots in real time", "Pose interval p99 ≤ 2x the period, every robot heard",
+            f"the {PERIOD:g} s Pose period", f"p99 {r['p99'] / (PERIOD * 1000):.1f}x ({r['p99']:.0f} ms), "
+            f"{r['share']:.2f} of the Poses, {r['skipped']:.1%} of SIPs skipped", ok))
+    results.write("bench_team", targets, path=args.results,
+                  about="does `erni sim --headless --robots N` hold real time: the Pose interval at the control node")
     return 0
 
 

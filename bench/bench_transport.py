@@ -291,12 +291,15 @@ def floor_round(pings: int, burst: int) -> tuple[list[float], list[float], float
 
 
 def main() -> int:
+    import results  # bench/results.py, beside this script: the latest results, for the site's benchmarks page
+
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rounds", type=int, default=5)
     parser.add_argument("--pings", type=int, default=500)
     parser.add_argument("--burst", type=int, default=5000)
     parser.add_argument("--cpu", type=int, default=None,
                         help="keep every thread of the run on this CPU (default: where the kernel puts them)")
+    results.add_argument(parser)
     args = parser.parse_args()
     if args.cpu is not None:
         try:
@@ -337,6 +340,21 @@ def main() -> int:
           "endpoints; no floor)")
     print(f"load average (1, 5, 15 min) before {' '.join(f'{x:.2f}' for x in load_before)}, after "
           f"{' '.join(f'{x:.2f}' for x in os.getloadavg())}: the floors move with it, so compare ratios of one run")
+    targets = [
+        results.target("UDP status one-way p50", "≤ 2x a raw socket", f"raw UDP ping-pong, {m[1] * 1e6:.0f} µs",
+                       f"{m[0] / m[1]:.2f}x ({m[0] * 1e6:.0f} µs)", m[0] / m[1] <= 2),
+        results.target("UDP status one-way p99", "≤ 3x a raw socket", f"raw UDP ping-pong, {m[3] * 1e6:.0f} µs",
+                       f"{m[2] / m[3]:.2f}x ({m[2] * 1e6:.0f} µs)", m[2] / m[3] <= 3),
+        results.target("status throughput", "≥ 0.8x a raw socket", f"raw UDP burst, {m[9]:.0f}/s",
+                       f"{m[8] / m[9]:.2f}x ({m[8]:.0f} statuses/s)", m[8] / m[9] >= 0.8),
+        results.target("TCP task → acknowledgement p99", "≤ 1 ms on loopback", f"raw TCP, {m[7] * 1e3:.2f} ms",
+                       f"{m[6] * 1e3:.2f} ms", m[6] <= 1e-3),
+    ]
+    if zm is not None:
+        targets.append(results.target("throughput beside Zenoh's Python binding", "≥ 2x ahead",
+                                      f"Zenoh, same run, {zm[4]:.0f}/s", f"{m[8] / zm[4]:.2f}x", m[8] / zm[4] >= 2))
+    results.write("bench_transport", targets, path=args.results,
+                  about="ERNI endpoints beside raw Python sockets and Zenoh's Python binding on loopback")
     return 0
 
 

@@ -128,11 +128,15 @@ def _change_pose(agent: Agent, x: float) -> None:
 
 
 def main() -> int:
+    import results  # bench/results.py, beside this script: the latest results, for the site's benchmarks page
+
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--samples", type=int, default=100)
     ap.add_argument("--rates", default="10,50", help="UI publishing rates (Hz) to measure")
     ap.add_argument("--load", type=int, default=4, help="CPU-spinning processes during the say -> reply run")
+    results.add_argument(ap)
     args = ap.parse_args()
+    targets = []
     floor = asyncio.run(echo_floor(args.samples))
     f50, f99 = pct(floor, 0.5) * 1e3, pct(floor, 0.99) * 1e3
     print(f"floor: WebSocket echo round trip p50 {f50:.3f} ms, p99 {f99:.3f} ms")
@@ -153,6 +157,10 @@ def main() -> int:
         for name, lat in (("Pose change -> page state", pose_lat), ("typed say -> task on the blackboard", say_lat)):
             p50, p99 = pct(lat, 0.5) * 1e3, pct(lat, 0.99) * 1e3
             print(f"| {name} | {rate:g} | {p50:.2f} | {p99:.2f} | {p50 / f50:.1f} |")
+            targets.append(results.target(
+                f"{name.replace('->', '→')}, rate_hz {rate:g}",
+                "about half the page's period" if name.startswith("Pose") else "reported",
+                f"WebSocket echo, {f50:.2f} ms", f"{p50:.2f} ms (p99 {p99:.2f})", None))
     import multiprocessing
     import threading
 
@@ -189,6 +197,11 @@ def main() -> int:
         parse(texts[n % len(texts)])
         n += 1
     print(f"grammar: {n / (time.perf_counter() - t0):.0f} utterances/s parsed")
+    targets.append(results.target(f"typed say → reply on the page, {args.load} CPU spinners", "reported",
+                                  f"WebSocket echo, {f50:.2f} ms", f"{p50:.2f} ms (p99 {p99:.2f})", None))
+    results.write("bench_ui", targets, path=args.results,
+                  about="a WebSocket client plays the page of a control agent with the UI plugin, beside a "
+                  "WebSocket echo")
     return 0
 
 

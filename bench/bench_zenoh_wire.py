@@ -297,6 +297,8 @@ def raw_round(kind: str, rx: Receiver, pings: int, burst: int, bursts: int, rout
 
 
 def main() -> int:
+    import results as latest  # bench/results.py, beside this script: the latest results, for the site's benchmarks page
+
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--pings", type=int, default=300)
     parser.add_argument("--burst", type=int, default=5000)
@@ -304,6 +306,7 @@ def main() -> int:
     parser.add_argument("--bursts", type=int, default=3, help="bursts a round (its rate: their median)")
     parser.add_argument("--one-process", action="store_true",
                         help="receivers in this process too (one interpreter lock for both ends)")
+    latest.add_argument(parser)
     args = parser.parse_args()
     keys = tempfile.TemporaryDirectory(prefix="erni-bench-keys-")
     authority = Authority.create(keys.name, team="bench")
@@ -340,6 +343,16 @@ def main() -> int:
         print(f"erni zenoh {site}: one-way p50 {ours[0] / udp[0]:.2f}x erni udp, {ours[0] / raw[0]:.2f}x raw; "
               f"ack p50 {ours[2] / udp[2]:.2f}x erni udp, {ours[2] / raw[2]:.2f}x raw; "
               f"throughput {ours[4] / udp[4]:.2f}x erni udp, {ours[4] / raw[4]:.2f}x raw")
+    targets = []
+    for site, label in (("router", "through a router"), ("peer", "peer to peer")):
+        ours, udp, raw = summary[f"erni zenoh {site}"], summary["erni udp"], summary[f"raw zenoh {site}"]
+        targets.append(latest.target(f"statuses/s over Zenoh {label}", "≥ 1x ERNI's UDP wire",
+                                     f"ERNI's UDP wire, {udp[4]:.0f}/s", f"{ours[4] / udp[4]:.2f}x ({ours[4]:.0f}/s)",
+                                     ours[4] >= udp[4]))
+        targets.append(latest.target(f"one-way p50 {label}", "reported", f"raw Zenoh {label}, {raw[0]:.0f} µs",
+                                     f"{ours[0] / raw[0]:.2f}x ({ours[0]:.0f} µs)", None))
+    latest.write("bench_zenoh_wire", targets, path=args.results,
+                 about="ERNI's frames over Zenoh beside ERNI's UDP wire and raw Zenoh on loopback")
     return 0
 
 

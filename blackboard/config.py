@@ -20,8 +20,8 @@ class AgentSection(BaseModel):
     name: str = Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,62}$",
                       description="agent name: letters, digits, '_', '.', '-'")
     workers: int = Field(4, ge=1, le=64, description="worker threads that run plugins")
-    slow_plugin_seconds: float = Field(1.0, gt=0, le=3600, description="report plugin runs longer than this")
-    log_level: str = Field("INFO", pattern=r"^(DEBUG|INFO|WARNING|ERROR)$")
+    slow_plugin_seconds: float = Field(1.0, gt=0, le=3600, description="report plugin runs longer than this (s)")
+    log_level: str = Field("INFO", pattern=r"^(DEBUG|INFO|WARNING|ERROR)$", description="least severe log level shown")
     journal: str | None = Field(None, description="SQLite file that keeps tasks across a crash; "
                                 "omit for none")
     retention: float = Field(600.0, gt=0, le=10 * 365 * 86400,

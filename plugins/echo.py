@@ -17,7 +17,7 @@ from erni.blackboard import Plugin, Task, TaskState
 class EchoSettings(BaseModel):
     """The `[plugin.settings]` of the echo plugin."""
 
-    verbs: list[str] = Field(default_factory=lambda: ["BotMotion"])
+    verbs: list[str] = Field(default_factory=lambda: ["BotMotion"], description="verbs of the tasks it answers")
     delay: float = Field(0.0, ge=0, description="seconds before the task succeeds")
 
 

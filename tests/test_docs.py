@@ -1,9 +1,9 @@
-"""The code blocks of README.md and docs/*.md run as written.
+"""The code blocks of README.md and of the site's pages (docs/**/*.md) run as written.
 
 Each fenced block is taken by its language:
 
-- `sh`: run with bash (`set -e`), from the repository for README.md and docs/sim.md and docs/gui.md
-  (their paths are relative to it), from a scratch folder holding the doc's files for the others;
+- `sh`: run with bash (`set -e`), from the repository for the docs of `REPO_CWD` (their paths are
+  relative to it), from a scratch folder holding the doc's files for the others;
   background jobs it leaves are stopped after it;
 - `python`: run with the interpreter, in the same folder;
 - `toml`: parsed; a whole agent config (`[agent]`) is checked with `erni agent CONFIG --check`, a
@@ -38,13 +38,15 @@ import pytest
 from erni.sim.team import port_free
 
 ROOT = Path(__file__).resolve().parents[1]
-DOCS = ["README.md", *sorted(str(p.relative_to(ROOT)) for p in (ROOT / "docs").glob("*.md"))]
-REPO_CWD = {"README.md", "docs/sim.md", "docs/gui.md", "docs/mission.md"}  # their paths start at the repository
+DOCS = ["README.md", *sorted(str(p.relative_to(ROOT)) for p in (ROOT / "docs").rglob("*.md"))]
+REPO_CWD = {"README.md", "docs/explanation/simulator.md", "docs/explanation/control-node.md",
+            "docs/explanation/mission.md", "docs/tutorials/first-team.md",
+            "docs/reference/agent-config.md"}  # their paths start at the repository
 MARK = re.compile(r"^<!-- doc-test: (skip|file):? ?(.*?) -->$")
 FENCE = re.compile(r"^```([\w-]*)\s*$")
 # blocks of docs this test does not mark: (doc, the block's first line) -> why it is not run
 EXTERNAL_SKIPS = {
-    ("docs/mission.md", "erni agent examples/robot-mission.toml            # transport + motion + mobinet + mission"):
+    ("docs/explanation/mission.md", "erni agent examples/robot-mission.toml            # transport + motion + mobinet + mission"):
         "an agent that runs until Ctrl-C, tasked through a control node on 127.0.0.1:47100 "
         "(tests/mission/test_cli.py)",
 }
@@ -87,6 +89,7 @@ def blocks(doc: str) -> list[Block]:
 
 
 ALL = [b for doc in DOCS for b in blocks(doc)]
+GUIDE = "docs/tutorials/first-plugin.md"
 RUN = [b for b in ALL if not b.mark and b.lang in ("sh", "python", "toml", "json")]
 
 
@@ -95,7 +98,7 @@ def test_the_blocks_are_counted() -> None:
     kinds = {"run": len(RUN), "file": sum(b.mark == "file" for b in ALL),
              "skip": sum(b.mark == "skip" for b in ALL),
              "shown": sum(not b.mark and b.lang not in ("sh", "python", "toml", "json") for b in ALL)}
-    assert kinds == {"run": 17, "file": 3, "skip": 16, "shown": 5}, kinds
+    assert kinds == {"run": 17, "file": 4, "skip": 35, "shown": 7}, kinds
     for b in ALL:
         assert b.mark != "skip" or len(b.arg) > 20, f"{b.id}: a skip says why and what tests it instead"
         assert b.lang or b.mark != "file", f"{b.id}: a file of an example names its language"
@@ -187,15 +190,36 @@ def test_the_block_runs_as_written(block: Block, workdirs: dict[str, Path], tmp_
 
 
 def test_the_plugin_guide_tasks_its_plugin_and_its_test_passes(workdirs: dict[str, Path]) -> None:
-    """docs/plugins.md: the agent of the guide's config is tasked by the guide's command, and the
+    """The plugin tutorial: the agent of the guide's config is tasked by the guide's command, and the
     guide's test of the plugin passes (what the blocks above run, with their output read)."""
-    (start, test) = [b for b in RUN if b.doc == "docs/plugins.md" and b.lang == "sh"]
-    out = _run_sh(start, workdirs["docs/plugins.md"])
+    (start, test) = [b for b in RUN if b.doc == GUIDE and b.lang == "sh"]
+    out = _run_sh(start, workdirs[GUIDE])
     assert out.returncode == 0, out.stderr
     assert "greeter.toml: ok (agent robot1, 2 plugin(s): transport, greeter)" in out.stdout
     assert re.search(r"robot1 \w+ succeeded .* hi: going to \(1\.0, 2\.0\)", out.stdout), out.stdout
-    out = _run_sh(test, workdirs["docs/plugins.md"])
+    out = _run_sh(test, workdirs[GUIDE])
     assert out.returncode == 0 and "2 passed" in out.stdout, out.stdout + out.stderr
+
+
+def test_the_plugin_guide_pyproject_makes_an_installable_plugin(workdirs: dict[str, Path], tmp_path: Path) -> None:
+    """The plugin tutorial's pyproject.toml is whole: a wheel built from the guide's folder holds the
+    plugin's module and names it as an entry point of the group the agent reads."""
+    import zipfile
+
+    from erni.blackboard.agent import ENTRY_POINT_GROUP
+
+    folder = workdirs[GUIDE]
+    (folder / "mypackage" / "__init__.py").touch()
+    out = subprocess.run([sys.executable, "-m", "pip", "wheel", "--quiet", "--no-deps", "--no-build-isolation",
+                          "--wheel-dir", str(tmp_path), str(folder)], capture_output=True, text=True, timeout=300,
+                         env=_env(folder))
+    assert out.returncode == 0, out.stdout + out.stderr
+    (wheel,) = tmp_path.glob("mypackage-*.whl")
+    with zipfile.ZipFile(wheel) as zf:
+        names = zf.namelist()
+        entry_points = next(zf.read(n).decode() for n in names if n.endswith(".dist-info/entry_points.txt"))
+    assert "mypackage/greeter.py" in names, names
+    assert f"[{ENTRY_POINT_GROUP}]\ngreeter = mypackage.greeter:Greeter" in entry_points, entry_points
 
 
 def test_the_readme_names_the_commands_erni_sim_prints() -> None:

@@ -170,7 +170,7 @@ def test_no_builtin_exception_is_raised_outside_pydantic_validators() -> None:
 
 
 def _smallest_plugin() -> str:
-    text = (ROOT / "docs" / "plugins.md").read_text(encoding="utf-8")
+    text = (ROOT / "docs" / "tutorials" / "first-plugin.md").read_text(encoding="utf-8")
     section = text.split("## The smallest plugin", 1)[1]
     return section.split("```python\n", 1)[1].split("```", 1)[0]
 
@@ -191,7 +191,7 @@ def test_the_documented_smallest_plugin_runs() -> None:
     from erni.testing import agent_with, run_task
 
     namespace: dict[str, object] = {}
-    exec(compile(_smallest_plugin(), "docs/plugins.md", "exec"), namespace)
+    exec(compile(_smallest_plugin(), "docs/tutorials/first-plugin.md", "exec"), namespace)
     with agent_with(namespace["Greeter"], settings={"greeting": "hi"}, workers=1) as agent:  # type: ignore[arg-type]
         done = run_task(agent, "BotMotion", "goto", x=1, y=2)
     assert done.state is TaskState.SUCCEEDED and done.result is not None

@@ -116,7 +116,7 @@ class TransportSettings(BaseModel):
 
     wire: Literal["udp", "zenoh"] = Field("udp", description="udp: ERNI's own wire (UDP statuses, TCP tasks, "
                                           "broadcast beacons); zenoh: the same frames over Zenoh (`zenoh` below, "
-                                          "docs/zenoh.md), for a team across sites and routers")
+                                          "docs/tutorials/two-sites-zenoh.md), for a team across sites and routers")
     zenoh: ZenohSettings = Field(default_factory=ZenohSettings, description="with wire = \"zenoh\": the team's "
                                  "key chunk, peer or client mode, the routers to connect to")
     listen: str = Field("127.0.0.1:0", description="HOST:PORT for TCP and UDP (0 = any free port)")
@@ -129,29 +129,32 @@ class TransportSettings(BaseModel):
     insecure: bool = Field(False, description="run without authentication or encryption (warned about)")
     role: str = Field("robot", description="this agent's role (what it may do: policy.py); with an identity, "
                       "its certificate's role unless set")
-    capabilities: list[str] = Field(default_factory=list)
+    capabilities: list[str] = Field(default_factory=list, description="announced in beacons and shown by `erni peers`")
     discovery_port: int = Field(47000, ge=0, le=65535, description="shared beacon port; 0 disables")
     beacon_to: list[str] = Field(default_factory=lambda: ["127.255.255.255"],
                                  description="broadcast or unicast hosts that get beacons")
-    beacon_period: float = Field(1.0, ge=0.05, le=60.0)
+    beacon_period: float = Field(1.0, ge=0.05, le=60.0, description="time between beacons (s)")
     beacon_fanout: int = Field(16, ge=1, le=100_000, description="in-session beacons a beacon_period at most: "
                                "with more quiet peers each gets one less often (liveness grows slower "
                                "instead of the traffic growing with the team)")
     announce_backoff: int = Field(8, ge=1, le=1000, description="while every known peer is up, broadcast "
                                   "beacons back off to at most this many beacon periods apart")
-    peer_timeout: float = Field(4.0, gt=0, le=3600.0)
+    peer_timeout: float = Field(4.0, gt=0, le=3600.0, description="silence after which a peer is down (s); stretched on "
+                                "a lossy link, where fewer of its numbered beacons arrive")
     link_deadline: float = Field(30.0, gt=0, le=86400.0, description="a task whose performer is not heard "
                                  "this long fails with 'link lost' (s)")
     peers: list[str] = Field(default_factory=list, description="static peers, NAME@HOST:PORT")
-    senders: int = Field(4, ge=1, le=64)
-    queue_limit: int = Field(1000, ge=1, le=1_000_000)
-    max_frame: int = Field(256 * 1024, ge=1024, le=16 * 1024 * 1024)
+    senders: int = Field(4, ge=1, le=64, description="sender threads")
+    queue_limit: int = Field(1000, ge=1, le=1_000_000, description="messages queued per destination: reliable ones "
+                             "beyond it are refused (the task fails), fast ones drop the oldest")
+    max_frame: int = Field(256 * 1024, ge=1024, le=16 * 1024 * 1024, description="largest frame accepted (bytes)")
     receive_buffer: int | None = Field(None, ge=0, le=256 * 1024 * 1024, description="UDP receive buffer to "
                                        "ask the kernel for (bytes; 0 = the kernel's default); unset: "
                                        "8 MB for role control, which hears every robot's Poses, else 0")
     task_ttl: float = Field(30.0, gt=0, le=86400.0, description="give up delivering a task after this long (s)")
-    ack_timeout: float = Field(1.0, gt=0, le=60.0)
-    connect_timeout: float = Field(1.0, gt=0, le=60.0)
+    ack_timeout: float = Field(1.0, gt=0, le=60.0, description="wait this long for an acknowledgement before a retry (s)")
+    connect_timeout: float = Field(1.0, gt=0, le=60.0, description="a session's handshake waits this long (s); after each "
+                                   "one given up with a peer the next waits twice as long, up to 8x")
     max_connections: int = Field(256, ge=1, le=65536, description="TCP connections accepted at once")
     max_connections_per_host: int = Field(32, ge=1, le=65536, description="... from one address")
     idle_timeout: float = Field(60.0, gt=0, le=86400.0, description="close a connection idle this long (s)")

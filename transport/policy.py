@@ -146,7 +146,7 @@ def check_watch(role: str) -> None:
 
 
 def table() -> str:
-    """The task rules as a Markdown table (RELIABILITY.md, `erni keys issue --help`)."""
+    """The task rules as a Markdown table (the site's role policy page, `erni keys issue --help`)."""
     rows = ["| sender | receiver | tasks |", "|---|---|---|"]
     for (sender, receiver), allowed in TASKS.items():
         what = "any" if (ANY, ANY) in allowed else ", ".join(sorted(f"{v} {p}" for v, p in allowed))

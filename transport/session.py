@@ -176,7 +176,7 @@ class IdentityAuth:
 
 
 class TeamKeyAuth:
-    """Proof by a shared team key: any holder of the key can claim any name (see RELIABILITY.md)."""
+    """Proof by a shared team key: any holder of the key can claim any name (see docs/explanation/reliability.md)."""
 
     def __init__(self, name: str, role: str, key: bytes):
         self.name, self.role = name, role

@@ -22,7 +22,7 @@ def register(sub: Any) -> None:
     p = sub.add_parser("router", help="run a Zenoh router for a team on wire = \"zenoh\"",
                        description="Run a Zenoh router in this process until Ctrl-C. Agents in client mode "
                        "connect to it (zenoh.connect); it forwards their frames, which ERNI's sessions keep "
-                       "encrypted end to end, so it reads none of them. See docs/zenoh.md.")
+                       "encrypted end to end, so it reads none of them. See docs/tutorials/two-sites-zenoh.md.")
     p.add_argument("--listen", metavar="ENDPOINT", action="append",
                    help=f"where agents and other routers connect, PROTOCOL/HOST:PORT (repeatable; default "
                    f"{DEFAULT_LISTEN})")

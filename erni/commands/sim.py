@@ -47,7 +47,7 @@ def register(sub: Any) -> None:
     p.add_argument("--netns", action="store_true",
                    help="the real-mesh tier (root): every agent in a network namespace of its own on one "
                    "mesh segment, the radio as nftables rules between them, babeld routing in each, "
-                   "broadcast discovery; Ctrl-C removes it all (see docs/sim.md)")
+                   "broadcast discovery; Ctrl-C removes it all (see docs/tutorials/real-mesh.md)")
     p.add_argument("--mobinet", choices=["babel", "snmp"],
                    help="what MobiNet reads: babeld's local interface (babel, the default with --netns) "
                    "or the simulated SNMP nodes (snmp, the default without)")

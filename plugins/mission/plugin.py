@@ -97,7 +97,7 @@ class MissionSettings(BaseModel):
     widep_settle: float = Field(0.4, ge=0, description="widep: a robot counts as at rest after this long "
                                 "without moving (s)")
     pose_keepalive: float = Field(1.0, ge=0, le=60, description="how often a standing robot republishes an "
-                                  "unchanged Pose (RobotMotionControl's pose_keepalive): a position this old "
+                                  "unchanged Pose (s; RobotMotionControl's pose_keepalive): a position this old "
                                   "still counts as fresh when judging who is at rest")
     widep_min_step: float = Field(0.1, gt=0, description="widep: shorter steps are not driven (m)")
     widep_stall_rounds: int = Field(15, ge=1, description="widep: fail after this many rounds without "

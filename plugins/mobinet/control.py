@@ -106,7 +106,7 @@ class MobiNetSettings(BaseModel):
     max_repetitions: int = Field(100, ge=1, le=500, description="GETBULK rows per request")
     cache_seconds: float = Field(300.0, ge=0, description="reuse a walk while the agent's change "
                                  "counters stand still and it did not restart (sysUpTime), at most "
-                                 "this long (0: always walk)")
+                                 "this long (s; 0: always walk)")
     robot: str | None = Field(None, description="whose Pose to write (default: this agent)")
     write_pose: bool = Field(True, description="write this robot's Pose to the network subsystem")
     write_deadband: float = Field(0.02, ge=0, description="write a Pose only when the robot moved this far "

@@ -52,7 +52,7 @@ class MotionSettings(BaseModel):
     link_grace: float = Field(2.0, ge=0, description="fail tasks after the link is lost this long (s)")
     default_timeout: float | None = Field(None, gt=0, description="time limit of goto/turn/forward/backward (s)")
     sync_timeout: float = Field(0.5, gt=0, description="wait for each SYNC reply (s)")
-    sync_attempts: int = Field(5, ge=1)
+    sync_attempts: int = Field(5, ge=1, description="SYNC tries at connect before the robot counts as not answering")
     pulse_interval: float = Field(0.5, gt=0, description="PULSE when idle this long (s)")
     teleport: Literal["auto", "sim", "odometry"] = Field(
         "auto", description="sim: SIM_SET_POSE moves the robot; odometry: re-localise; auto: sim when the "

@@ -8,7 +8,7 @@ results as std_msgs/String (JSON) on `/erni/task_status`, the network as a Marke
 `/erni/network` and a DiagnosticArray on `/diagnostics`; listens to geometry_msgs/Twist on `/<robot>/cmd_vel` (a BotMotion velocity task, so the
 behaviour stack, stop, obstacle avoidance and the receiving agent's role policy decide, as for any
 task) and geometry_msgs/PoseStamped on `/<robot>/goal_pose` (a BotMotion goto, then a turn to the pose's
-heading). See docs/ros2.md.
+heading). See docs/tutorials/ros2-foxglove.md.
 """
 
 from __future__ import annotations

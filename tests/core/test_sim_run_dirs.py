@@ -50,8 +50,8 @@ def test_a_run_removes_finished_run_directories_but_the_newest_three(tmp_path: P
 
 def test_the_rule_is_documented_where_users_read_it() -> None:
     root = Path(__file__).resolve().parents[2]
-    readme = " ".join((root / "README.md").read_text(encoding="utf-8").split())
-    assert "the finished runs' directories but the newest three are removed" in readme
+    page = " ".join((root / "docs" / "explanation" / "simulator.md").read_text(encoding="utf-8").split())
+    assert "removes the finished runs' directories but the newest three" in page
     help_text = subprocess.run([sys.executable, "-m", "erni", "sim", "--help"], capture_output=True, text=True,
                                timeout=60).stdout
     assert f"newest {KEEP_RUNS} of finished runs are kept" in " ".join(help_text.split())

@@ -77,7 +77,7 @@ def team_on_manet(robots, manets, R, clean, fixed, starts, mission):
         host, port = addresses[name]
         # generous SNMP timing: a starved 2-core machine must slow the deployment, not stall it
         # 0.6 s WiDep rounds: positions of robots at rest must be confirmed more often than the 1 s
-        # default keep-alive, or a robot stepping every round is never seen at rest (docs/mission.md)
+        # default keep-alive, or a robot stepping every round is never seen at rest (docs/explanation/mission.md)
         mobinet = ("mobinet", {"host": host, "port": port, "timeout": 1.0, "retries": 1, "cache_seconds": 0.0,
                                "netinfo_keepalive": 0.2}, "mobinet")
         agents[name] = robots(name, x, y, heading=90.0, extra=[mobinet], mission=mission)

@@ -11,6 +11,7 @@ MAX-ACCESS and ranges the modules declare.
 from __future__ import annotations
 
 import importlib.resources
+import importlib.util
 import re
 import shutil
 import subprocess
@@ -32,7 +33,7 @@ pytestmark = pytest.mark.skipif(shutil.which("snmptable") is None,
 RFC_MIBS = Path(__file__).parent / "mibs"
 ERNI_MIB = Path(str(importlib.resources.files("erni.plugins.mobinet") / "mibs" / "ERNI-MOBINET-MIB.txt"))
 MIBS = ["-M", f"{RFC_MIBS}:{ERNI_MIB.parent}", "-m", "ALL"]
-README = Path(__file__).resolve().parents[2] / "README.md"
+DOCS = Path(__file__).resolve().parents[2] / "docs"
 ACCESS = {"-R--": "read-only", "-RW-": "read-write", "CR--": "read-create"}
 TYPES = {"Integer32": {"Integer32", "EnumVal", "INTEGER"}, "Unsigned32": {"Unsigned", "Gauge"},
          "Gauge32": {"Gauge", "Unsigned"}, "Counter32": {"Counter"}, "TimeTicks": {"TimeTicks"},
@@ -277,14 +278,23 @@ def test_every_row_is_typed_ranged_and_augments_its_base(points, min_quality):
             == {oid: value for oid, _, value in rows}[mib.INET_CIDR_ROUTE_NUMBER + (0,)]
 
 
-def test_the_readme_oid_table_matches_the_modules(names):
-    text = README.read_text(encoding="utf-8")
-    section = text.split("**OIDs served**", 1)[1].split("\n\n", 2)[1]
+def _hooks():
+    spec = importlib.util.spec_from_file_location("erni_docs_hooks", DOCS / "hooks.py")
+    assert spec is not None and spec.loader is not None
+    hooks = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(hooks)
+    return hooks
+
+
+def test_the_site_oid_table_matches_the_modules(names):
+    """The MIB page's table of served OIDs (generated from the node's registry) names every object
+    where net-snmp's modules put it."""
+    section = _hooks().render("oids")
     listed: dict[str, tuple[int, ...]] = {}
     for line in section.splitlines()[2:]:
         cells = [c.strip() for c in line.strip("|").split("|")]
         base = tuple(int(a) for a in cells[0].strip("`").split("."))
-        for number, name in re.findall(r"(?:^|, )(\d+) ([a-z]\w+)", cells[3]):
+        for number, name in re.findall(r"(?:^|, )(\d+) ([a-z]\w+)", cells[2]):
             listed[name] = base + (int(number),)
     for name, oid in listed.items():
         assert names.get(name) == oid, (name, oid)

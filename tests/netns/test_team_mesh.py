@@ -213,7 +213,7 @@ def test_widep_advances_with_the_base_connected_on_the_mesh(tmp_path):
     while it advances (without it the three robots walked off together and lost the base). The
     radio's lossy band is narrowed (loss-free to 4.4 m of R = 4.5 m) so that the links WiDep keeps
     carry traffic; with the scenario's 3-4.5 m band they lose up to 2/3 of their frames and the
-    base's Pose arrives too rarely to stay fresh (docs/sim.md)."""
+    base's Pose arrives too rarely to stay fresh (docs/tutorials/real-mesh.md)."""
     scenario = load_scenario(find_scenario("poi"))
     scenario = scenario.model_copy(update={"radio": scenario.radio.model_copy(update={"lossless_range": 4.4})})
     team = Team(scenario, run_dir=tmp_path, headless=True, netns=True, mission=True)

@@ -2,7 +2,7 @@
 
 Scenario `creep`: four end robots drive away from their relays at 0.1, 0.3, 0.5 and 1.0 m/s
 through the lossy band; MobiNet reads the simulated radio over SNMP. One round per condition here
-(ten per speed are in BENCHMARKS.md, from `bench/bench_creep.py`); the guard off is the control
+(ten per speed were measured by `bench/bench_creep.py`); the guard off is the control
 that shows the bed can fail.
 """
 
@@ -44,7 +44,7 @@ def test_every_creeping_robot_stands_inside_its_relays_range(tmp_path):
 
 
 # on demand (`pytest -m ondemand`): the same 30 % loss runs in CI on the real mesh, where babeld's
-# Hellos suffer it too (tests/netns/test_creep.py), and ten rounds of it are in BENCHMARKS.md
+# Hellos suffer it too (tests/netns/test_creep.py), and ten rounds of it were measured by bench/bench_creep.py
 @pytest.mark.ondemand
 def test_with_thirty_percent_of_every_agents_datagrams_lost_the_guard_still_holds(tmp_path):
     team = start(tmp_path, udp_loss=0.3)

@@ -1,4 +1,4 @@
-"""The threat model of RELIABILITY.md, attack by attack, on real agents over loopback sockets.
+"""The threat model of docs/explanation/reliability.md, attack by attack, on real agents over loopback sockets.
 
 An outsider on the mesh sees and sends any packet but holds no key; a key holder has one
 agent's identity (or, in team-key mode, the shared key). Each test mounts one attack and

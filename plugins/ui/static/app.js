@@ -233,7 +233,8 @@ function renderMap() {
       stroke: l.stale ? "#59626f" : qualityColour(l.quality), "stroke-width": l.stale ? 1.5 : 1.5 + 3 * l.quality,
       "data-a": l.a, "data-b": l.b, "data-quality": l.quality, "data-stale": l.stale }, lg);
     el("title", {}, line).textContent = `${l.a} – ${l.b}: delivery ratio ${l.quality.toFixed(2)}${l.stale ? " (stale)" : ""}`;
-    if (!l.stale) el("text", { x: (ax + bx) / 2 + 4, y: (ay + by) / 2 - 4, class: "link-label" }, lg).textContent = l.quality.toFixed(2);
+    if (!l.stale) el("text", { x: (ax + bx) / 2, y: (ay + by) / 2, class: "link-label", "data-ends": [ax, ay, bx, by].join(",") },
+      lg).textContent = l.quality.toFixed(2);
   }
   // trails
   const tg = $("trails");
@@ -279,12 +280,62 @@ function renderMap() {
     el("title", {}, g).textContent = `${r.name} (${r.state})\nx ${fmt(r.pose.x, 2)} m, y ${fmt(r.pose.y, 2)} m, heading ${fmt(r.pose.theta * 180 / Math.PI, 0)}°\n` +
       `v ${fmt(r.pose.v, 2)} m/s, battery ${fmt(r.pose.battery, 1)} V${r.task ? "\n" + r.task : ""}`;
   }
+  placeLabels(svg, rad);
   if (ui.drag && ui.drag.kind === "robot" && ui.drag.lifted && ui.drag.moved) {
     el("circle", { cx: ui.drag.at[0], cy: ui.drag.at[1], r: rad, class: "ghost" }, rg);
   }
   if (ui.ask && ui.ask.ghost) {
     const [gx, gy] = toScreen(ui.ask.ghost[0], ui.ask.ghost[1]);
     el("circle", { cx: gx, cy: gy, r: rad, class: "ghost" }, rg);
+  }
+}
+
+// Labels that never cover each other or a robot: robot names (and their state line) first, each at
+// the first free spot around its robot, then link qualities at the first free spot along their
+// link. A link label with no free spot is left out (the link's tooltip keeps its quality).
+function placeLabels(svg, rad) {
+  const frame = svg.getBoundingClientRect(), pad = 1;
+  const taken = [...svg.querySelectorAll("#robots g.robot circle.body")].map((c) => c.getBoundingClientRect());
+  const free = (r) => r.left >= frame.left && r.right <= frame.right && r.top >= frame.top && r.bottom <= frame.bottom &&
+    !taken.some((t) => r.left < t.right + pad && t.left < r.right + pad && r.top < t.bottom + pad && t.top < r.bottom + pad);
+  const put = (text, spots) => {
+    for (const [x, y] of spots) {
+      text.setAttribute("x", x); text.setAttribute("y", y);
+      const r = text.getBoundingClientRect();
+      if (free(r)) { taken.push(r); return true; }
+    }
+    return false;
+  };
+  const around = (w) => {  // spots beside, above and below a robot, in rings, nearest first
+    const right = rad + 6, left = -rad - 6 - w, spots = [];
+    for (let d = 0; d <= 65; d += 13) {
+      spots.push([right, -rad + 2 - d], [right, rad + 10 + d], [left, -rad + 2 - d], [left, rad + 10 + d],
+                 [-w / 2, -rad - 7 - d], [-w / 2, rad + 17 + d]);
+    }
+    return spots;
+  };
+  for (const g of svg.querySelectorAll("#robots g.robot")) {
+    const tag = g.querySelector("text.tag"), state = g.querySelector("text.lost-tag");
+    if (!tag) continue;
+    if (!put(tag, around(tag.getBBox().width))) {
+      tag.setAttribute("x", rad + 6); tag.setAttribute("y", -rad + 2); taken.push(tag.getBoundingClientRect());
+    }
+    if (state) {
+      const x = +tag.getAttribute("x"), y = +tag.getAttribute("y");
+      if (!put(state, [[x, y + 13], [x, y - 13], ...around(state.getBBox().width)])) {
+        state.setAttribute("x", x); state.setAttribute("y", y + 13);  // a robot's state is never hidden
+        taken.push(state.getBoundingClientRect());
+      }
+    }
+  }
+  for (const text of svg.querySelectorAll("#links text.link-label")) {
+    const [ax, ay, bx, by] = text.dataset.ends.split(",").map(Number), len = Math.hypot(bx - ax, by - ay) || 1;
+    const nx = -(by - ay) / len * 9, ny = (bx - ax) / len * 9, spots = [];
+    for (const t of [0.5, 0.4, 0.6, 0.3, 0.7, 0.2, 0.8]) {
+      const px = ax + (bx - ax) * t, py = ay + (by - ay) * t;
+      spots.push([px + nx, py + ny], [px - nx, py - ny]);
+    }
+    if (!put(text, spots)) text.remove();
   }
 }
 
