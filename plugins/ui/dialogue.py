@@ -11,12 +11,16 @@ standing by too, and goes to lost robots as well. Other commands to a lost robot
 "Cancel that" withdraws the tasks of the last command carried out; "set speed 0.2", "faster" and
 "slower" set each robot's cruise speed for later moves (and a running go-to or random walk);
 "go to robot 2" drives to that robot, stopping short. A dialogue made with `read_back` (the
-spoken one) restates a risky command (a move beyond `read_back` metres or out of the map, a
-teleport, a command to several robots) and carries it out only on "yes"; with `read_back_numbers`
-so is a spoken motion command that carries a number ("turn 180 degrees": as on an air-traffic radio,
-numbers are read back, since a recogniser mishears them without doubting); an unsure hearing of a
-command that would move robots is read back too ("Did you say: robot 1, go forward 2 metres? Say
-yes or no"), any other unsure hearing is asked again ("Say again?"); a stop never waits.
+spoken one) restates a risky command and carries it out only on "yes", however sure the hearing: a
+command to several robots, a clear, a teleport, a deployment, a held velocity, a move beyond
+`read_back` metres or off the map; with `read_back_numbers` so is a spoken motion command that
+carries a number ("turn 180 degrees": as on an air-traffic radio, numbers are read back, since a
+recogniser mishears them without doubting); an unsure hearing of a command that would move robots
+is read back too ("Did you say: robot 1, go forward 2 metres? Say yes or no"), any other unsure
+hearing is asked again ("Say again?"); a stop never waits. A dialogue made with `confirm_beyond`
+(the typed one) asks once before a move that leaves the map: its end off the floor plan's bounds
+(`area`), a held velocity, or, where the bounds cannot tell, a move longer than `confirm_beyond`
+metres.
 `Naming` maps robot numbers to agent names (`robot3`) and back; `tasks_for` maps an action
 of the grammar onto the task language in either tier (RemoteBotMotion through each robot's
 MissionControl, or BotMotion straight to its motion plugin).
@@ -27,7 +31,7 @@ from __future__ import annotations
 import math
 import re
 import time
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -55,6 +59,7 @@ LISTENING = "Listening"
 STANDING_BY = "Standing by"
 ROGER = "Roger"
 CONFIRM_PROMPT = "say yes to confirm"
+TYPED_PROMPT = "type yes to confirm"
 SAY_AGAIN = "Say again?"
 DID_YOU_SAY = "Did you say:"  # a doubted hearing read back: "Did you say: robot 1, go forward 2 metres? ..."
 YES_OR_NO = "Say yes or no"
@@ -229,6 +234,7 @@ class _Pending:
     reply: Reply
     what: str
     until: float
+    redo: Callable[[set[str] | None], Reply] | None = None  # on "yes": the reply, made with the tasks running then
 
 
 Team = Mapping[str, RobotView] | Iterable[str]
@@ -241,7 +247,7 @@ class Dialogue:
                  listening: bool = True, control: str = "control", memory: Memory | None = None,
                  read_back: float | None = None, area: tuple[float, float, float, float] | None = None,
                  read_back_timeout: float = 20.0, read_back_numbers: bool = False, echo: bool = False,
-                 wake: tuple[str, ...] = ATTENTION) -> None:
+                 wake: tuple[str, ...] = ATTENTION, confirm_beyond: float | None = None) -> None:
         self.naming = naming or Naming()
         self.wake = wake  # the phrases that wake a standing-by dialogue
         self.verb = verb
@@ -251,7 +257,10 @@ class Dialogue:
         self.targets: list[str] = []
         self.memory = memory or Memory()
         self.read_back = read_back  # metres: a longer move is read back first; None: nothing is read back
-        self.area = area  # xmin, ymin, xmax, ymax: a goal outside is read back first
+        self.area = area  # xmin, ymin, xmax, ymax of the map: a move that ends outside is read back first
+        # metres (math.inf: no bound): with `read_back` None (typed), a move that leaves the map is confirmed
+        # once, and where `area` cannot tell, one longer than this; None: typed moves run at once
+        self.confirm_beyond = confirm_beyond
         self.read_back_timeout = read_back_timeout
         self.read_back_numbers = read_back_numbers  # a motion command heard with a number is read back too
         self.echo = echo  # a refusal names what was heard (speech: the operator cannot see it)
@@ -317,6 +326,14 @@ class Dialogue:
             if time.monotonic() > pending.until:
                 reply.say = self._refused(text, f"Too late: {pending.what} was not sent; say it again", None)
                 return reply
+            if pending.redo is not None:  # made now, with the tasks running now
+                try:
+                    done = pending.redo(live)
+                except Refusal as why:
+                    reply.say = self._refused(text, str(why), None)
+                    return reply
+                done.heard = text
+                return done
             pending.reply.heard = text
             self.targets = list(pending.reply.targets) or self.targets
             self._carried_out(pending.reply)
@@ -350,7 +367,15 @@ class Dialogue:
                 return self._cancel_last(live, reply)
             targets, note = self._targets(cmd, views)
             if cmd.action == "speed":
-                return self._speed(cmd, targets, views, live, note, reply)
+                self._cruise(cmd, targets)  # refused now rather than after a read-back
+                probe = Reply(reply.heard, targets=list(targets), action="speed")
+                if not self._risk(probe, views):
+                    return self._speed(cmd, targets, views, live, note, reply)
+                what = f"{self.who(targets, cmd.everyone, views)}, {restate('speed', cmd.params)}"
+                self.pending = _Pending(probe, what, time.monotonic() + self.read_back_timeout,
+                                        redo=lambda now: self._speed(cmd, targets, views, now, note, Reply(probe.heard)))
+                return Reply(reply.heard, say=f"{what[0].upper()}{what[1:]} \u2014 {CONFIRM_PROMPT}",
+                             targets=list(targets), accepted=True, asked=True)
             params = {k: v for k, v in cmd.params.items() if k != "last"}
             ends = self._relay_ends(cmd, views, targets) if cmd.action == "relay" else None
             params = {**params, **ends} if ends else params
@@ -375,8 +400,12 @@ class Dialogue:
         if risk:
             reply.say = f"{ROGER}: {who}, {what}" + (f" ({note})" if note else "")
             self.pending = _Pending(reply, f"{who}, {what}", time.monotonic() + self.read_back_timeout)
-            ask = (f"{DID_YOU_SAY} {who}, {what}? {YES_OR_NO}" if risk in ("doubt", "number")
-                   else f"{who[0].upper()}{who[1:]}, {what} \u2014 {CONFIRM_PROMPT}")
+            if risk in ("doubt", "number"):
+                ask = f"{DID_YOU_SAY} {who}, {what}? {YES_OR_NO}"
+            elif self.read_back is None:  # typed: asked once, saying why
+                ask = f"{who[0].upper()}{who[1:]}, {what} \u2014 {self._why(risk)}; {TYPED_PROMPT}"
+            else:
+                ask = f"{who[0].upper()}{who[1:]}, {what} \u2014 {CONFIRM_PROMPT}"
             return Reply(reply.heard, say=ask, targets=list(targets), accepted=True, asked=True)
         reply.say = f"{ROGER}: {who}, {what}" + (f" ({note})" if note else "")
         self._carried_out(reply)
@@ -446,15 +475,7 @@ class Dialogue:
                note: str, reply: Reply) -> Reply:
         """Set the targets' cruise speed; re-send a running go-to or random walk at it."""
         change = cmd.params.get("change")
-        new: dict[str, float] = {}
-        for r in targets:
-            now = self.memory.speeds.get(r, DEFAULT_SPEED)
-            v = cmd.params["speed"] if change is None else now * SPEED_STEP if change == "faster" else now / SPEED_STEP
-            new[r] = round(min(max(v, SPEEDS[0]), SPEEDS[1]), 2)
-        if change and all(new[r] == self.memory.speeds.get(r, DEFAULT_SPEED) for r in targets):
-            edge = "fastest" if change == "faster" else "slowest"
-            raise Refusal(f"Already at the {edge} cruise speed, {_num(new[targets[0]])} metres per second; "
-                          f"say set speed to a number between {_num(SPEEDS[0])} and {_num(SPEEDS[1])}")
+        new = self._cruise(cmd, targets)
         self.memory.speeds.update(new)
         newest: dict[str, Task] = {}
         last = self.memory.last
@@ -489,6 +510,20 @@ class Dialogue:
                      f"{'' if change is None else change + ', '}cruise speed {said}"
                      + (f" ({'; '.join(notes)})" if notes else ""))
         return reply
+
+    def _cruise(self, cmd: Command, targets: list[str]) -> dict[str, float]:
+        """Each target's new cruise speed (nothing is set yet); refused when it would not change."""
+        change = cmd.params.get("change")
+        new: dict[str, float] = {}
+        for r in targets:
+            now = self.memory.speeds.get(r, DEFAULT_SPEED)
+            v = cmd.params["speed"] if change is None else now * SPEED_STEP if change == "faster" else now / SPEED_STEP
+            new[r] = round(min(max(v, SPEEDS[0]), SPEEDS[1]), 2)
+        if change and all(new[r] == self.memory.speeds.get(r, DEFAULT_SPEED) for r in targets):
+            edge = "fastest" if change == "faster" else "slowest"
+            raise Refusal(f"Already at the {edge} cruise speed, {_num(new[targets[0]])} metres per second; "
+                          f"say set speed to a number between {_num(SPEEDS[0])} and {_num(SPEEDS[1])}")
+        return new
 
     def _moves(self, tasks: Iterable[Task]) -> str:
         return ", ".join(f"{restate(t.preposition, t.params.model_dump())} of {self._spoken(t.destination or '')}"
@@ -532,31 +567,77 @@ class Dialogue:
         return {m: goals[m] for m in movers}, what
 
     def _risk(self, reply: Reply, views: Mapping[str, RobotView]) -> str:
-        """Why a command is read back before it is carried out; '' when it is not."""
-        if self.read_back is None or not reply.tasks or reply.action in ("cancel", "clear"):
-            return ""  # what ends tasks never waits
+        """Why a command waits for a "yes" before it is carried out; '' when it is carried out at once.
+
+        Spoken (`read_back` set), however sure the hearing: a command to several robots, a clear, a
+        teleport, a deployment, a held velocity, a move that leaves the map or is longer than
+        `read_back` metres, and with `read_back_numbers` one that says a number. Typed (`confirm_beyond`
+        set): only a move that leaves the map (`_beyond`). A stop never waits.
+        """
+        if reply.action == "stop" or not (reply.tasks or reply.action == "speed"):
+            return ""
+        if self.read_back is None:
+            if self.confirm_beyond is None:
+                return ""
+            return next((why for t in reply.tasks if (why := self._beyond(t, views, self.confirm_beyond))), "")
         if len(set(reply.targets)) > 1:
             return "several robots"
+        if not reply.tasks:
+            return ""  # a cruise speed for one robot
         for t in reply.tasks:
-            p = t.params.model_dump()
-            if t.preposition in ("forward", "backward") and p["distance"] > self.read_back:
-                return "far"
-            if t.preposition == "velocity" and p["v"] != 0:
-                return "unbounded"
+            if t.preposition == "clear":  # ends every tasked behaviour: a held stop, the network guard's too
+                return "clear"
             if t.preposition == "teleport":  # on a real robot a teleport re-bases its odometry
                 return "teleport"
-            if "x" in p and "y" in p and t.preposition in ("goto", "teleport", "widep"):
-                if self.area is not None:
-                    xmin, ymin, xmax, ymax = self.area
-                    if not (xmin <= p["x"] <= xmax and ymin <= p["y"] <= ymax):
-                        return "off the map"
-                v = views.get(t.destination or "")
-                if v is not None and v.x is not None and v.y is not None and \
-                        math.hypot(p["x"] - v.x, p["y"] - v.y) > self.read_back:
-                    return "far"
+            if t.verb == STRATEGY_VERB:  # a deployment moves the robot for as long as it runs
+                return "deployment"
+        for t in reply.tasks:
+            why = self._beyond(t, views, self.read_back, always=True)
+            if why:
+                return why
         if self.read_back_numbers and quantities(reply.heard):
             return "number"
         return ""
+
+    def _beyond(self, t: Task, views: Mapping[str, RobotView], limit: float, always: bool = False) -> str:
+        """Whether a task's move leaves the map: "off the map" when it ends outside `area` (a goal, the
+        end of a forward or backward from the robot's pose and heading, a patrol block's corner);
+        "unbounded" for a held velocity; "far" when it is longer than `limit` metres: `always`, or only
+        where `area` cannot tell (no floor plan, or no pose to measure a forward or backward from)."""
+        p = t.params.model_dump()
+        v = views.get(t.destination or "")
+        here = (v.x, v.y) if v is not None and v.x is not None and v.y is not None else None
+        ends: list[tuple[float, float]] = []
+        length: float | None = None
+        if t.preposition in ("forward", "backward"):
+            length = p["distance"]
+            if here is not None and v is not None and v.theta is not None:
+                d = length if t.preposition == "forward" else -length
+                ends.append((here[0] + d * math.cos(v.theta), here[1] + d * math.sin(v.theta)))
+        elif t.preposition == "velocity":
+            return "unbounded" if p["v"] != 0 else ""
+        elif t.preposition in ("goto", "teleport", "widep") and "x" in p and "y" in p:
+            ends.append((p["x"], p["y"]))
+            if here is not None:
+                length = math.hypot(p["x"] - here[0], p["y"] - here[1])
+        elif t.preposition == "patrol":
+            ends += [(p["xmin"], p["ymin"]), (p["xmax"], p["ymax"])]
+        if self.area is not None and ends:
+            xmin, ymin, xmax, ymax = self.area
+            if not all(xmin <= x <= xmax and ymin <= y <= ymax for x, y in ends):
+                return "off the map"
+            if not always:
+                return ""  # on the map: the floor plan decides
+        return "far" if length is not None and length > limit else ""
+
+    def _why(self, risk: str) -> str:
+        """A typed command's confirmation says why it is asked."""
+        if risk == "off the map":
+            xmin, ymin, xmax, ymax = self.area or (0.0, 0.0, 0.0, 0.0)
+            return f"it ends off the map (x {_num(xmin)} to {_num(xmax)}, y {_num(ymin)} to {_num(ymax)})"
+        if risk == "unbounded":
+            return "it drives until stopped"
+        return f"more than {_num(self.confirm_beyond or 0.0)} metres"
 
     # -- who -------------------------------------------------------------------------------
 

@@ -11,6 +11,7 @@ with `verb = "BotMotion"`). Spoken feedback runs on thread `ui-voice`, recogniti
 from __future__ import annotations
 
 import ipaddress
+import math
 import secrets
 import sys
 import threading
@@ -62,11 +63,16 @@ class UISettings(BaseModel):
     rate_hz: float = Field(10.0, gt=0, le=50, description="GUI updates per second")
     supersede: bool = Field(True, description="a new motion command cancels the robot's previous one "
                             "(obstacle avoidance stays on until turned off)")
-    read_back: float = Field(5.0, ge=0, description="a spoken move longer than this (m), out of the floor plan or "
-                             "to several robots is read back and carried out on 'yes'; 0 = never")
+    read_back: float = Field(5.0, ge=0, description="a spoken move longer than this (m) or off the floor plan, "
+                             "a spoken command to several robots, a clear, a teleport or a deployment is read "
+                             "back and carried out on 'yes'; 0 = never")
     read_back_numbers: bool = Field(True, description="a spoken motion command with a distance, angle or "
                                     "coordinate is read back and carried out on 'yes' (a recogniser mishears "
                                     "numbers without doubting them)")
+    confirm_beyond: float = Field(10.0, ge=0, description="a typed move that would leave the floor plan, or "
+                                  "a held velocity, is confirmed once before it is sent; so is one longer than "
+                                  "this (m) where the floor plan cannot tell (none, or the robot's pose unknown); "
+                                  "0 = no bound on distance")
     history: int = Field(60, ge=1, le=10000, description="finished tasks kept in the task list")
     speak: bool = Field(True, description="spoken feedback through espeak-ng on the control node")
     voice: str = Field("en-us", description="espeak-ng voice")
@@ -129,7 +135,8 @@ class UIPlugin(Plugin[UISettings]):
         self.naming = Naming(s.robot_names)
         memory = Memory()  # "cancel that" and cruise speeds: the same whether typed, spoken or clicked
         area = load_floorplan(s.floorplan).bounds if s.floorplan else None
-        self.typed = Dialogue(self.naming, verb=s.verb, source=me, listening=True, control=me, memory=memory)
+        self.typed = Dialogue(self.naming, verb=s.verb, source=me, listening=True, control=me, memory=memory,
+                              area=area, confirm_beyond=s.confirm_beyond or math.inf)
         self.spoken = Dialogue(self.naming, verb=s.verb, source=me, listening=False, control=me, memory=memory,
                                read_back=s.read_back or None, read_back_numbers=s.read_back_numbers, area=area,
                                echo=True, wake=tuple(s.wake))

@@ -184,3 +184,85 @@ def test_spoken_commands_streamed_in_real_time_through_the_page_do_only_what_was
     allowed = {("stop", f"robot{n}", None) for n in (1, 2, 3)} | {("turn", "robot2", 90.0)}
     assert set(tasks) <= allowed, (tasks, log)  # nothing carried out that was not said
     assert {t for t in tasks if t[0] == "stop"} == {("stop", f"robot{n}", None) for n in (1, 2, 3)}, (tasks, log)
+
+
+# The real-time check's finding, through the page: a command to two robots heard confidently
+# ("robots 1 and 2 turn right 90 degrees" was heard as "robots one and two clear please" and sent to
+# both at once). The voice is listening (the operator said "attention" before); a question first (it
+# sends nothing, and the recogniser's front end settles on the voice), then a clear to two robots that
+# PocketSphinx hears right and sure, the operator's "confirm", and a stop (which never waits).
+READ_BACK_SESSION = ["how many robots", "robots two and three clear", "confirm", "everybody stop"]
+
+
+@pytest.mark.skipif(shutil.which("espeak-ng") is None, reason="espeak-ng is not installed")
+def test_a_confident_command_to_two_robots_streamed_through_the_page_waits_for_the_operator_s_yes(tmp_path,
+                                                                                                  monkeypatch):
+    """Chromium plays the session as its microphone, in real time; PocketSphinx hears it on the control
+    node. The clear to robots 2 and 3 is read back and sent only after the operator's "confirm"; the
+    stop that follows acts at once, to every robot."""
+    pytest.importorskip("pocketsphinx")
+    from tests.ui import speech_set as S
+
+    monkeypatch.delenv("VOSK_MODEL_PATH", raising=False)
+    rng = np.random.default_rng(52)
+    parts = [np.zeros(RATE)]
+    for text in READ_BACK_SESSION:
+        parts += [S.synthesise(text, "en-us", 130), np.zeros(int(1.5 * RATE))]
+    pcm = np.frombuffer(S.as_heard(np.concatenate(parts), None, rng), dtype="<i2")
+    wav = write_wav(tmp_path / "read-back.wav", pcm, RATE)
+    seconds = len(pcm) / RATE
+    from erni.blackboard import Task
+
+    agent, ui = start_control({})
+    ui.spoken.listening = True
+    with agent.transaction() as tx:
+        for name in ("robot2", "robot3"):
+            tx.add(Pose(robot=name, x=1.0, y=1.0))
+    published: dict[str, float] = {}  # uid of each clear -> when it was first on the control node's blackboard
+    watching = threading.Event()
+
+    def watch() -> None:
+        while not watching.wait(0.02):
+            for t in agent.query(Task):
+                if t.preposition == "clear":
+                    published.setdefault(t.uid, time.time())
+
+    watcher = threading.Thread(target=watch, daemon=True)
+    watcher.start()
+    try:
+        def body(page: Any) -> None:
+            page.wait_for_selector("#mic:not([disabled])", timeout=20000)
+            page.click("#mic")
+            page.wait_for_selector("#mic.on")
+            time.sleep(seconds - 0.5)  # one pass of the file, in real time (Chromium loops it)
+            page.click("#mic")
+
+        open_with_microphone(wav, ui.url, body)
+        try:  # the recogniser may lag behind real time on a busy machine
+            wait_until(lambda: any("everybody stop" in line["text"] for line in ui.server.state()["log"]), timeout=20)
+        except AssertionError:
+            pass  # the assertions below say what was heard
+        time.sleep(0.5)
+        state = ui.server.state()
+        tasks = state["tasks"]  # sent, running or not (a stop supersedes the clear: its row stays)
+        everything = [line["text"] for line in state["log"]]
+        log = [(line["t"], line["text"]) for line in state["log"] if line["text"].startswith("voice:")]
+    finally:
+        watching.set()
+        watcher.join(5)
+        agent.stop()
+    said = [text for _, text in log]
+    print(everything)
+    asked = [t for t, text in log if text.startswith("voice: \u201crobots two and three clear\u201d \u2192 Robots 2 and 3, "
+                                                     "clear your behaviours \u2014 say yes to confirm")]
+    done = [t for t, text in log if "\u2192 Roger: robots 2 and 3, clear your behaviours" in text]
+    assert asked, said  # read back, however sure the hearing
+    clears = [t for t in tasks if t["preposition"] == "clear"]
+    if done:  # the operator's "confirm" heard as said: carried out then, not before
+        assert sorted(t["robot"] for t in clears) == ["robot2", "robot3"], said
+        assert asked[0] < done[0] and all(asked[0] < published.get(t["uid"], 0.0) for t in clears), "sent before the answer"
+    else:  # misheard, it is asked again and nothing is sent
+        assert not clears, said
+    stops = {t["robot"] for t in tasks if t["preposition"] == "stop"}
+    assert stops == {"robot1", "robot2", "robot3"}, said
+    assert {t["preposition"] for t in tasks} <= {"clear", "stop"}, said  # nothing else carried out

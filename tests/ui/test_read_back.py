@@ -108,6 +108,36 @@ def test_a_spoken_number_is_read_back_and_a_command_without_one_runs_at_once(tea
         team.ui.spoken.read_back_numbers = True
 
 
+def test_a_confident_clear_to_two_robots_is_read_back_and_runs_only_on_yes(team):
+    """The real-time check heard "robots 1 and 2 turn right 90 degrees" as this, sure of it, and sent it."""
+    heard(team, "attention")
+    say = heard(team, "robots one and two clear please")
+    assert say == "Robots 1 and 2, clear your behaviours \u2014 say yes to confirm"
+    spoken(team, say)
+    time.sleep(0.5)
+    assert not sent(team, "clear")
+    assert heard(team, "yes") == "Roger: robots 1 and 2, clear your behaviours"
+    for name in ("robot1", "robot2"):
+        wait_until(lambda name=name: tasks_on(team, name, "clear"), timeout=10, message=f"{name} got no clear")
+    assert heard(team, "robot two teleport to one one") == "Robot 2, teleport to x 1, y 1 \u2014 say yes to confirm"
+    assert heard(team, "everybody stop") == "Roger: everyone, stop"  # at once; the teleport is not sent
+    assert heard(team, "yes").startswith("I heard \u201cyes\u201d: Nothing to confirm")
+    assert not sent(team, "teleport")
+
+
+def test_a_typed_move_off_the_map_is_confirmed_once(team):
+    """Typed on the page, a move that would end off the arena's floor plan waits for one "yes"."""
+    assert typed(team, "robot 1 go forward 100 meters") == [
+        "Robot 1, go forward 100 metres \u2014 it ends off the map (x -4 to 6, y -4 to 4.5); type yes to confirm"]
+    time.sleep(0.5)
+    assert not [t for t in sent(team, "forward") if t.params.distance == 100]
+    assert typed(team, "yes", "yes") == ["Roger: robot 1, go forward 100 metres",
+                                         "Nothing to confirm; yes answers a read-back"]
+    wait_until(lambda: [t for t in tasks_on(team, "robot1", "forward") if t.params.distance == 100], timeout=10)
+    assert typed(team, "robot 1 stop") == ["Roger: robot 1, stop"]
+    halted(team, "robot1")
+
+
 def test_typed_commands_run_at_once(team):
     assert typed(team, "everyone turn left 10 degrees") == ["Roger: everyone, turn left 10 degrees"]
     turns = wait_until(lambda: len(t := [t for t in sent(team, "turn") if t.done and t.params.angle == 10]) == 2 and t,

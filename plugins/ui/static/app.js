@@ -543,6 +543,20 @@ function robotAt(target) {
 }
 function robotByName(name) { return ui.state ? ui.state.robots.find((r) => r.name === name) : null; }
 
+// ---- Stop: nothing of the page stands between the operator and it --------------------------------
+// Stop is drawn above every question, menu and overlay (style.css) and acts on the press itself, not on
+// the click that may follow it: a click needs the release on the same element, and a touch screen makes
+// none while another finger rests on the map. It sends the stop first, then closes whatever is open
+// (the question, unanswered; the menu; an armed Go to… or Teleport to…; a robot held for a teleport),
+// so that nothing that was open acts after it.
+function stopNow() {
+  command("stop", {});
+  if (ui.ask) answer(false);
+  closeMenu();
+  if (ui.armed) disarm();
+  if (ui.drag) { dropGesture(); if (ui.state) renderMap(); }
+}
+
 // ---- pointer gestures on the map -------------------------------------------------------------
 // One pointer: tap, pan, shift-drag a rectangle, or hold a robot and drag it (teleport). Two
 // fingers: pinch zoom about the point between them (and pan with it). Mouse, pen and touch alike.
@@ -757,6 +771,10 @@ function openMenu(name, x, y) {
   m.classList.remove("hidden");
   m.style.left = Math.max(0, Math.min(x, innerWidth - m.offsetWidth - 4)) + "px";
   m.style.top = Math.max(4, Math.min(y, bottom - m.offsetHeight - 4)) + "px";
+  const s = stop.getBoundingClientRect(), r = m.getBoundingClientRect();   // never over Stop: beside it
+  if (r.left < s.right && s.left < r.right && r.top < s.bottom && s.top < r.bottom) {
+    m.style.left = (s.left - r.width - 4 >= 0 ? s.left - r.width - 4 : Math.min(s.right + 4, innerWidth - r.width)) + "px";
+  }
   ui.menuAt = performance.now();
 }
 // True for a moment after something opened: a press that opened it does not also choose in it.
@@ -843,7 +861,11 @@ function wire() {
   $("trails-toggle").onclick = (ev) => { ui.showTrails = !ui.showTrails; ev.target.classList.toggle("on", ui.showTrails); if (ui.state) renderMap(); };
   $("sel-all").onclick = () => { setSelection(ui.state ? ui.state.robots.map((r) => r.name) : []); selectionChanged(); };
   $("sel-none").onclick = () => { setSelection([]); selectionChanged(); };
-  for (const b of document.querySelectorAll(".panel .buttons button[data-act]")) b.addEventListener("click", () => doAction(b.dataset.act));
+  for (const b of document.querySelectorAll(".panel .buttons button[data-act]:not(#cmd-stop)")) b.addEventListener("click", () => doAction(b.dataset.act));
+  const stop = $("cmd-stop");
+  stop.addEventListener("pointerdown", () => stopNow());
+  stop.addEventListener("click", (ev) => { if (ev.detail === 0) stopNow(); });   // Enter or Space on the focused button
+  stop.addEventListener("contextmenu", (ev) => ev.preventDefault());
   $("say-form").addEventListener("submit", (ev) => {
     ev.preventDefault();
     const text = $("say-text").value.trim();
