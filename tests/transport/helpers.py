@@ -78,6 +78,31 @@ def free_port(kind: int = socket.SOCK_DGRAM) -> int:
         return s.getsockname()[1]
 
 
+class HeldClock:
+    """The wall's monotonic clock until `hold()`, then still but for `advance()`: an agent on it runs
+    in real time, then times its waits (a performer's silence, its link deadline) as the test says."""
+
+    def __init__(self) -> None:
+        self.held: float | None = None
+        self._watchers: list[Any] = []
+
+    def __call__(self) -> float:
+        return time.monotonic() if self.held is None else self.held
+
+    def on_advance(self, fn: Any) -> None:
+        self._watchers.append(fn)
+
+    def hold(self) -> float:
+        self.held = time.monotonic()
+        return self.held
+
+    def advance(self, seconds: float) -> None:
+        assert self.held is not None and seconds >= 0
+        self.held += seconds
+        for fn in list(self._watchers):
+            fn()
+
+
 def make_agent(name: str, discovery_port: int, *, echo: bool = True, start: bool = True,
                clock: Callable[[], float] | None = None, **settings: Any) -> Agent:
     """An agent with the transport (fast timings, its own identity) and, optionally, the echo performer.

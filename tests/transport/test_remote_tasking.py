@@ -6,14 +6,13 @@ import socket
 import statistics
 import threading
 import time
-from typing import Any
 
 import pytest
 
 from erni.blackboard import Agent, BBObject, Plugin, Task, TaskState
 from erni.blackboard.testing import wait_until
 from erni.transport import Peer
-from tests.transport.helpers import free_port, identity, make_agent
+from tests.transport.helpers import HeldClock, free_port, identity, make_agent
 
 
 @pytest.fixture
@@ -595,31 +594,6 @@ def test_the_directorys_generation_moves_with_who_is_up_where_not_with_heartbeat
     gen = d.gen
     del d["b"]
     assert d.gen > gen
-
-
-class HeldClock:
-    """The wall's monotonic clock until `hold()`, then still but for `advance()`: an agent on it runs
-    in real time, then times its waits (a performer's silence, its link deadline) as the test says."""
-
-    def __init__(self) -> None:
-        self.held: float | None = None
-        self._watchers: list[Any] = []
-
-    def __call__(self) -> float:
-        return time.monotonic() if self.held is None else self.held
-
-    def on_advance(self, fn: Any) -> None:
-        self._watchers.append(fn)
-
-    def hold(self) -> float:
-        self.held = time.monotonic()
-        return self.held
-
-    def advance(self, seconds: float) -> None:
-        assert self.held is not None and seconds >= 0
-        self.held += seconds
-        for fn in list(self._watchers):
-            fn()
 
 
 def test_a_busy_requester_looks_at_its_performers_silence_a_few_times_a_period_and_still_fails_in_time(team):
