@@ -137,18 +137,19 @@ def test_through_an_agent_that_heard_of_nobody_yet_the_name_is_given_a_discovery
 
 def test_a_robot_that_starts_with_the_command_is_tasked() -> None:
     """`erni agent control.toml & erni agent robot.toml & erni task ...` at once: the robot is found
-    while the control node's directory is still empty."""
+    while the control node's directory is still empty. (The discovery wait is raised to PATIENT s
+    here: the robot's start must fall inside it, which a loaded machine could make 4 s miss.)"""
     disc, port = free_port(), free_port()
     control = make_agent("control", disc, echo=False, role="control", listen=f"127.0.0.1:{port}")
     env = {**os.environ, "ERNI_IDENTITY": identity("cli", "cli")}
-    proc = subprocess.Popen([sys.executable, "-m", "erni", "task", "--via", f"127.0.0.1:{port}", "robot1",
-                             "BotMotion", "forward", "distance=1", "--wait"], cwd=ROOT, env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen([sys.executable, "-c", COMMAND, str(PATIENT), str(PATIENT), "task", "--via",
+                             f"127.0.0.1:{port}", "robot1", "BotMotion", "forward", "distance=1", "--wait"],
+                            cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     robot = None
     try:
         time.sleep(0.5)
         robot = make_agent("robot1", disc)
-        out, err = proc.communicate(timeout=30)
+        out, err = proc.communicate(timeout=PATIENT + 30)
     finally:
         proc.kill()
         if robot is not None:
