@@ -55,11 +55,13 @@ def test_agent_runs_until_sigterm_and_stops_cleanly():
         assert any("erni.robot1: agent robot1 started with 2 plugin(s)" in ln for ln in lines), lines
         assert any("WITHOUT authentication" in ln for ln in lines), "insecure mode is warned about"
         time.sleep(0.2)
-        t0 = time.monotonic()
         proc.send_signal(signal.SIGTERM)
         rest = proc.stderr.read()
-        assert proc.wait(timeout=10) == 0
-        assert time.monotonic() - t0 < 3.0
+        # 0, not the 3 of the stop watchdog, which ends a stop still busy 5 s (--stop-grace) after
+        # the signal: the clean stop finished within its grace (a bound the agent keeps, so none
+        # is timed here)
+        assert proc.wait(timeout=60) == 0, rest
+        assert "did not stop within" not in rest
         assert "agent robot1 stopped" in rest and "Traceback" not in rest
     finally:
         if proc.poll() is None:

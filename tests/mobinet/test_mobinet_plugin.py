@@ -346,23 +346,26 @@ def test_a_standing_robot_is_written_once_and_a_moving_one_at_most_once_per_inte
 
 
 def test_a_steady_network_is_republished_only_at_the_keepalive(served, net, make_agent):
-    """Readings that change nothing but the stamp cost no transaction; a change is published at once."""
-    agent, plugin = make_agent("robot3", served["robot3"], netinfo_keepalive=1.0)
+    """Readings that change nothing but the stamp cost no transaction; a change is published at once.
+    The keep-alive is a minute here (its most), so "at once" and "at the keep-alive" stay far apart
+    however loaded the machine: within it, readings of a steady network are one NetInfo, and a
+    change is published within a 20 s progress bound."""
+    agent, plugin = make_agent("robot3", served["robot3"], netinfo_keepalive=60.0)
     topo = watch(agent, "network_topology", rate_hz=20.0)
-    fresh(agent, topo)
+    fresh(agent, topo, timeout=30)
     stamps, polls = set(), plugin._polls[topo.uid]
     t0 = time.monotonic()
-    while time.monotonic() - t0 < 2.0:
+    while (time.monotonic() - t0 < 2.0 or plugin._polls[topo.uid] - polls < 15) and time.monotonic() - t0 < 30:
         stamps.add(info_of(agent, topo).stamp)
         time.sleep(0.01)
     readings = plugin._polls[topo.uid] - polls
-    assert readings >= 15, f"only {readings} readings in 2 s at 20 Hz"
-    assert len(stamps) <= 4, f"{len(stamps)} NetInfo versions in 2 s of a steady network ({readings} readings)"
+    assert readings >= 15, f"only {readings} readings in 30 s at 20 Hz"
+    assert len(stamps) == 1, f"{len(stamps)} NetInfo versions of a steady network ({readings} readings)"
     before = set(info_of(agent, topo).articulation_points)
     net.move("robot5", 150.0, 40.0)  # robot5 comes next to robot3 and robot4: robot4 is no cut vertex now
     t1 = time.monotonic()
-    fresh(agent, topo, lambda i: set(i.articulation_points) != before, timeout=2.0)
-    assert time.monotonic() - t1 < 0.9  # well inside the keep-alive: published when it changed
+    fresh(agent, topo, lambda i: set(i.articulation_points) != before, timeout=30)
+    assert time.monotonic() - t1 < 20.0  # published when it changed, not at the keep-alive a minute on
 
 
 def test_a_netinfo_removed_by_another_plugin_is_made_afresh_without_error(served, net, make_agent, caplog):

@@ -25,17 +25,20 @@ class ScriptedSource:
         self.failing = False
         self.reads: list[frozenset[str]] = []
         self.writes: list[Position] = []
+        self.done = 0  # reads and writes that came to their end (not abandoned)
         self.closed = False
 
     async def read(self, parts):
         self.reads.append(parts)
         await asyncio.sleep(self.delay)
+        self.done += 1
         if self.failing:
             raise SourceError("scripted failure")
         return NetView(node="me", address="10.0.0.1")
 
     async def write_position(self, position):
         await asyncio.sleep(self.delay)
+        self.done += 1
         if self.failing:
             raise SourceError("scripted write failure")
         self.writes.append(position)
@@ -88,7 +91,9 @@ def test_watches_at_the_same_rate_share_reads_and_unwatch_stops_delivery():
 
 
 def test_calls_never_wait_for_a_slow_source_and_close_abandons_it():
-    src = ScriptedSource(delay=5.0)                      # every read hangs for 5 s
+    """Every read and write hangs for an hour: calls return while one is in flight, and close()
+    abandons it, its thread ended (the bounds are for progress only: waiting would take an hour)."""
+    src = ScriptedSource(delay=3600.0)
     res, rec = make(src)
     try:
         res.watch("a", frozenset({"routes"}), 10.0)
@@ -97,12 +102,15 @@ def test_calls_never_wait_for_a_slow_source_and_close_abandons_it():
         res.watch("b", frozenset({"topology"}), 10.0)
         res.write_position(Position(x=1, y=2))
         res.unwatch("a")
-        assert time.monotonic() - t0 < 1.0           # far below the 5 s a read takes
+        assert time.monotonic() - t0 < 20.0
+        assert src.done == 0                          # returned with the read still hung
     finally:
+        thread = res._thread
         t0 = time.monotonic()
-        res.close()
-        assert time.monotonic() - t0 < 3.0           # did not wait for the hung read
-    assert rec.got == []
+        res.close(timeout=30.0)
+        assert time.monotonic() - t0 < 20.0           # did not wait for the hung read ...
+        assert thread is not None and not thread.is_alive()  # ... and did not leave it running
+    assert rec.got == [] and src.done == 0
 
 
 def test_failures_are_delivered_and_logged_once_per_interval(caplog):
@@ -149,14 +157,14 @@ def test_watches_fall_due_on_the_injected_clock():
     res = MobiNetResource(lambda: src, rec, logging.getLogger("test"), clock=clock).start()
     try:
         res.watch("w", frozenset({"links"}), 1.0)
-        wait_until(lambda: len(src.reads) == 1, timeout=2)  # a new watch is read at once
+        wait_until(lambda: len(src.reads) == 1, timeout=30)  # a new watch is read at once (the clock stands)
         time.sleep(1.3)
         assert len(src.reads) == 1  # a second of wall time: the clock has not moved
         clock.advance(0.5)
         time.sleep(0.2)
         assert len(src.reads) == 1  # half a period: not due
         clock.advance(0.6)
-        wait_until(lambda: len(src.reads) == 2, timeout=2)
+        wait_until(lambda: len(src.reads) == 2, timeout=30)
         assert rec.keys() == ["w", "w"]
     finally:
         res.close()

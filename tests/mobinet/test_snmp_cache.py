@@ -10,7 +10,7 @@ from erni.plugins.mobinet.snmp import SnmpSource
 
 def test_a_cached_part_is_reused_by_a_read_of_other_parts(served):
     async def go():
-        src = SnmpSource(*served["robot3"])
+        src = SnmpSource(*served["robot3"], timeout=10.0)  # the simulated agent answers from this process
         try:
             first = await src.read(frozenset({NEIGHBORS}))
             # same topology version: the neighbour walk comes from the cache, the positions are walked

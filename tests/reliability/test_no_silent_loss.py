@@ -14,7 +14,7 @@ import pytest
 from erni.blackboard import Agent, Pose, Task, TaskState
 from erni.blackboard.testing import wait_until
 from erni.transport.bridge import Received
-from tests.transport.helpers import auth_settings, free_port, make_agent
+from tests.transport.helpers import HeldClock, auth_settings, free_port, make_agent
 
 
 @pytest.fixture
@@ -180,18 +180,46 @@ def test_finished_tasks_leave_both_ends_after_the_retention(tmp_path):
 
 
 def test_a_task_on_a_peer_that_died_fails_with_link_lost_within_its_deadline():
+    """Timed on the control node's clock, held once the robot's last frame is heard: the task
+    fails after its 1 s link deadline, counted from that frame, and at the first look after it."""
     port = free_port()
-    control = make_agent("control", port, echo=False, role="control", link_deadline=1.0)
+    clock = HeldClock()
+    control = make_agent("control", port, echo=False, role="control", link_deadline=1.0, clock=clock)
     robot = make_agent("robot1", port, echo=False)
     try:
         wait_until(lambda: (p := control.blackboard.get("peer:robot1")) is not None and p.up)
         task = send(control, "robot1", 1.0)
         wait_until(lambda: robot.blackboard.contains(task.uid))
+        bridge = control.plugin("transport")
+        looks, runs = [0], [0]
+        check, execute = bridge._check_links, bridge.execute
+
+        def counted_check() -> None:
+            looks[0] += 1
+            check()
+
+        def counted_execute() -> None:
+            execute()
+            runs[0] += 1  # over: what the run changed is committed
+
+        bridge._check_links, bridge.execute = counted_check, counted_execute
+        held = clock.hold()
+        wait_until(lambda: bridge.peers["robot1"].heard_at == held, timeout=30)
         robot.stop()  # it dies for good
-        started = time.monotonic()
-        result = final(control, task, timeout=5).result
-        assert result.state is TaskState.FAILED and result.message.startswith("link lost: robot1 not heard for")
-        assert time.monotonic() - started < 1.0 + 1.5  # the deadline, counted from the last frame heard
+
+        def looked_after(seconds: float) -> None:
+            """Move the control node's clock on by more than a beacon period (0.1 s: a run falls
+            due) and wait for a look at the silence in a run that is over."""
+            n, r = looks[0], runs[0]
+            clock.advance(seconds)
+            wait_until(lambda: looks[0] > n and runs[0] > r, timeout=30)
+
+        looked_after(0.9)  # 0.9 s since the last frame: within the deadline
+        assert not control.blackboard.get(task.uid).done
+        looked_after(0.2)  # 1.1 s: past it
+        result = control.blackboard.get(task.uid).result
+        assert result.state is TaskState.FAILED, result
+        assert result.message == "link lost: robot1 not heard for 1 s (link_deadline 1 s)"
     finally:
         control.stop()
         robot.stop()

@@ -238,7 +238,8 @@ def test_foxglove_client_sees_robots_headings_trails_and_links(control):
         wait_until(seen_last_pose, timeout=10)
         client.pump(0.3)
         _, pose = client.latest["/robot1/pose"]
-        assert pose["frame_id"] == "map" and abs(pose["timestamp"]["seconds"] - time.time()) < 10
+        # stamped with the wall clock's seconds (not 0, ns or another epoch): a sanity bound, not a latency
+        assert pose["frame_id"] == "map" and abs(pose["timestamp"]["seconds"] - time.time()) < 300
 
         _, tf = client.latest["/tf"]
         frames = {t["child_frame_id"]: t for t in tf["transforms"]}

@@ -309,7 +309,7 @@ def test_a_navigate_to_pose_goal_reaches_the_point_and_succeeds(robot: Callable[
     goal_id = os.urandom(16)
     accepted = navigator.goal(goal_id, 1.0, 0.5, math.pi / 2)
     assert accepted is not None and accepted.accepted is True
-    assert abs(accepted.stamp.sec - time.time()) < 5
+    assert abs(accepted.stamp.sec - time.time()) < 300  # the wall clock's seconds (not 0, ns or another epoch)
     result = navigator.result.call(goal_id=navigator.uuid(goal_id))
     assert result is not None, "no result"
     assert result.status == 4 and result.error_code == 0, result  # SUCCEEDED

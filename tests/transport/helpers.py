@@ -8,7 +8,7 @@ import subprocess
 import tempfile
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -78,10 +78,36 @@ def free_port(kind: int = socket.SOCK_DGRAM) -> int:
         return s.getsockname()[1]
 
 
+class HeldClock:
+    """The wall's monotonic clock until `hold()`, then still but for `advance()`: an agent on it runs
+    in real time, then times its waits (a performer's silence, its link deadline) as the test says."""
+
+    def __init__(self) -> None:
+        self.held: float | None = None
+        self._watchers: list[Any] = []
+
+    def __call__(self) -> float:
+        return time.monotonic() if self.held is None else self.held
+
+    def on_advance(self, fn: Any) -> None:
+        self._watchers.append(fn)
+
+    def hold(self) -> float:
+        self.held = time.monotonic()
+        return self.held
+
+    def advance(self, seconds: float) -> None:
+        assert self.held is not None and seconds >= 0
+        self.held += seconds
+        for fn in list(self._watchers):
+            fn()
+
+
 def make_agent(name: str, discovery_port: int, *, echo: bool = True, start: bool = True,
-               **settings: Any) -> Agent:
-    """An agent with the transport (fast timings, its own identity) and, optionally, the echo performer."""
-    agent = Agent(name, workers=2)
+               clock: Callable[[], float] | None = None, **settings: Any) -> Agent:
+    """An agent with the transport (fast timings, its own identity) and, optionally, the echo performer.
+    `clock`: the agent's clock (a test's, to time the transport's waits: see `erni.testing.ManualClock`)."""
+    agent = Agent(name, workers=2) if clock is None else Agent(name, workers=2, clock=clock)
     # a control node operates the team, as under `erni sim`: its role lets it task the robots
     role = settings.setdefault("role", "control" if name.startswith("control") else "robot")
     base: dict[str, Any] = {"discovery_port": discovery_port, "beacon_period": 0.1,

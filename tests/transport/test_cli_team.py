@@ -78,17 +78,17 @@ def test_failed_task_exits_1(team):
 @pytest.mark.parametrize("command", [["peers"], ["task", "robot1", "BotMotion", "stop", "--wait"], ["watch"]])
 def test_an_identity_of_another_authority_is_named_as_such_at_once(team, tmp_path, command):
     """An earlier run's keys: the control node answers the client's handshake with why it does not
-    trust its certificate, and the client says so on one line instead of "no acknowledgement"."""
-    import time
+    trust its certificate, and the client says so on one line instead of "no acknowledgement".
 
+    "At once" is what the line itself shows, not a time: without the refusal the commands end
+    otherwise, `task` with "no acknowledgement" after 6 s, `peers` with "no answer" after 5 s,
+    and `watch` never (held by `cli`'s 30 s timeout)."""
     from erni.transport.identity import Authority
 
     earlier = Authority.create(tmp_path / "earlier", team="an earlier run")
     cli_pem = earlier.issue("cli", "cli", tmp_path / "cli.pem")
     env = {**team["env"], "ERNI_IDENTITY": str(cli_pem)}
-    start = time.monotonic()
     out = cli(env, command[0], "--via", team["via"], *command[1:])
-    seconds = time.monotonic() - start
     assert out.returncode == 1, out
     (line,) = out.stderr.splitlines()
     assert line.startswith(f"erni {command[0]}: control at {team['via']} refused this agent's certificate: "
@@ -96,7 +96,6 @@ def test_an_identity_of_another_authority_is_named_as_such_at_once(team, tmp_pat
                            "'erni tests authority' (fingerprint "), line
     assert line.endswith("(an identity of another team or an earlier run? ERNI_IDENTITY or --identity must name "
                          "one issued by this team's authority, e.g. RUN/keys/cli.pem of this `erni sim`)"), line
-    assert seconds < 3.0
 
 
 def test_bad_arguments_exit_2(team):

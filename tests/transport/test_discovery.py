@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 from erni.blackboard import Agent, NetInfo, Task
 from erni.blackboard.testing import wait_until
 from erni.transport import Peer
@@ -182,7 +184,7 @@ def _spy_beacons(agent: Agent) -> list[tuple[float, str]]:
     return sent
 
 
-def test_quiet_peers_share_a_beacon_budget_and_their_receivers_wait_as_much_longer():
+def test_quiet_peers_share_a_beacon_budget_and_their_receivers_wait_as_much_longer(caplog):
     """With more quiet peers than `beacon_fanout`, each is beaconed less often (the traffic no
     longer grows with the team) and says so in the beacon; its receivers scale their silence
     limit by the same factor, so nobody is marked down for it, and a dead agent still is."""
@@ -200,16 +202,22 @@ def test_quiet_peers_share_a_beacon_budget_and_their_receivers_wait_as_much_long
         while time.monotonic() - t0 < 2.0:  # nobody calls a down meanwhile (limit 0.6 s x 4 = 2.4 s)
             assert all(peers(o)["a"].up for o in others)
             time.sleep(0.05)
+        counted, window = len(sent), time.monotonic() - t0
         # at most about fanout / period = 10 a second, where a beacon to each peer each period was 44
-        assert len(sent) <= 2.0 * 10 / 0.8 + 4, len(sent)
+        # (the window as long as it took: a loaded machine stretches it, and the beacons with it)
+        assert counted <= window * 10 / 0.8 + 4, (counted, window)
         assert {to for _, to in sent} == set("bcde")  # every peer still gets its beacons
         assert all(o.plugin("transport").peers["a"].limit == 0.6 * 4 for o in others)
         assert all(getattr(o.plugin("transport").peers.get("b"), "limit", None) in (None, 0.6)  # fanout 16: unscaled
                    for o in others[1:])
-        a.stop()
-        t_stop = time.monotonic()
-        wait_until(lambda: not peers(others[0])["a"].up, timeout=5)
+        with caplog.at_level("WARNING"):
+            a.stop()
+            t_stop = time.monotonic()
+            wait_until(lambda: not peers(others[0])["a"].up, timeout=30)
         assert time.monotonic() - t_stop > 0.6  # its scaled limit, not the plain 0.6 s
+        # ... as b's transport says: down when a's silence passed 0.6 s x 4
+        downs = [r.getMessage() for r in caplog.records if r.getMessage().startswith("peer a is down: not heard")]
+        assert downs and all("(limit 2.4 s; " in d for d in downs), downs
     finally:
         for agent in [a, *others]:
             agent.stop()
@@ -217,30 +225,35 @@ def test_quiet_peers_share_a_beacon_budget_and_their_receivers_wait_as_much_long
 
 def test_a_peer_that_gets_statuses_gets_no_beacons():
     """Any session frame tells a peer that the sender is alive: a robot sharing its Pose with the
-    control node sends it no beacons meanwhile, and beacons again once it falls quiet."""
+    control node sends it no beacons meanwhile, and beacons again once it falls quiet.
+
+    The beacon period is 1 s here (the test team's is 0.1 s), the Poses go every 30 ms: a pause of
+    the test's thread on a loaded machine, which makes the robot quiet for a while, stays far
+    shorter than a period of quiet that would rightly bring a beacon."""
     import time
 
     from erni.blackboard import Pose
 
     port = free_port()
-    robot, control = make_agent("r", port), make_agent("c", port, role="control")
+    timings = {"beacon_period": 1.0, "peer_timeout": 4.0}
+    robot, control = make_agent("r", port, **timings), make_agent("c", port, role="control", **timings)
     try:
-        wait_until(lambda: peers(robot).get("c") and peers(robot)["c"].up)
+        wait_until(lambda: peers(robot).get("c") and peers(robot)["c"].up, timeout=30)
         sent = _spy_beacons(robot)
         t0 = time.monotonic()
         pose = Pose(robot="r")
         with robot.transaction() as tx:
             tx.add(pose)
-        while time.monotonic() - t0 < 1.5:
+        while time.monotonic() - t0 < 4.0:
             pose = pose.evolve(x=pose.x + 0.1)
             with robot.transaction() as tx:
                 tx.change(pose)
             time.sleep(0.03)
-        talking = [t for t, to in sent if to == "c" and t > t0 + 0.2]  # (one may have been due at the start)
+        talking = [t for t, to in sent if to == "c" and t > t0 + 1.0]  # (one may have been due at the start)
         assert talking == []
         assert peers(control)["r"].up
         quiet = time.monotonic()
-        wait_until(lambda: any(t > quiet for t, to in sent if to == "c"), timeout=1.0)
+        wait_until(lambda: any(t > quiet for t, to in sent if to == "c"), timeout=30)
     finally:
         robot.stop()
         control.stop()
@@ -370,13 +383,14 @@ def test_a_beacon_that_says_nothing_new_costs_no_run_and_still_keeps_its_peer_up
 
         bridge._handle = spy_handle
         bridge.endpoint.on_message = spy_received
-        t0 = time.monotonic()
+        t0, w0 = time.monotonic(), time.time()
         while time.monotonic() - t0 < 1.5:  # 2.5 peer timeouts of b saying nothing new
-            seen = peers(a)["b"]
-            assert seen.up
-            assert time.time() - seen.last_heard < 0.6  # refreshed every 0.6 / 4 s: never a timeout old
+            assert peers(a)["b"].up
             time.sleep(0.05)
-        assert received.count("b") >= 8  # b (quiet toward a) beacons it every 0.1 s
+        wait_until(lambda: received.count("b") >= 8, timeout=30)  # b (quiet toward a) beacons it every 0.1 s
+        # and the Peer on the board moved on with them, though no run handled one: its last_heard is
+        # refreshed by the liveness pass (frozen, it would stay where it was before the window)
+        wait_until(lambda: peers(a)["b"].last_heard > w0 + 1.0, timeout=30)
         assert handled == []
         b.plugin("transport")._degraded = lambda: "journal full"  # what b's beacon says changes
         wait_until(lambda: peers(a)["b"].degraded == "journal full", timeout=3)
@@ -386,7 +400,7 @@ def test_a_beacon_that_says_nothing_new_costs_no_run_and_still_keeps_its_peer_up
         b.stop()
 
 
-def test_silences_are_looked_at_every_quarter_timeout_and_a_silent_peer_still_goes_down_at_its_limit():
+def test_silences_are_looked_at_every_quarter_timeout_and_a_silent_peer_still_goes_down_at_its_limit(caplog):
     """The pass over every peer's silence is O(peers): in a team of fifty on one host it ran four
     times a beacon period in every agent. It runs every quarter peer timeout now, and earlier only
     when a peer's silence may reach its limit: a peer that stops is still marked down at once."""
@@ -400,13 +414,20 @@ def test_silences_are_looked_at_every_quarter_timeout_and_a_silent_peer_still_go
         looked: list[float] = []
         down_after = bridge._down_after
         bridge._down_after = lambda name: looked.append(time.monotonic()) or down_after(name)
+        t0 = time.monotonic()
         time.sleep(2.0)  # twenty beacon periods, four quarter timeouts
-        assert 2 <= len(looked) <= 6, looked  # about once every 0.5 s (four times a period: 80)
-        b.stop()
-        stopped = time.monotonic()
-        wait_until(lambda: not peers(a)["b"].up, timeout=5)
-        late = time.monotonic() - stopped
-        assert late < 2.0 + 0.5 + 0.3, late  # its limit, one beacon period late at most, and a run
+        wait_until(lambda: len(looked) >= 2, timeout=30)
+        n, window = len(looked), time.monotonic() - t0
+        # about once every 0.5 s of the window, however long a loaded machine made it (four times a
+        # beacon period would be 40 a second)
+        assert n <= 2 + 2 * window, (n, window, looked)
+        with caplog.at_level("WARNING"):
+            b.stop()
+            wait_until(lambda: not peers(a)["b"].up, timeout=30)
+        # down for a silence past its own limit, the 2 s peer_timeout (on a link that loses nothing)
+        (down,) = [r.getMessage() for r in caplog.records if r.getMessage().startswith("peer b is down:")]
+        said = re.fullmatch(r"peer b is down: not heard for ([\d.]+) s \(limit 2\.0 s; .*\)", down)
+        assert said and float(said[1]) >= 2.0, down
     finally:
         a.stop()
         b.stop()
@@ -423,11 +444,12 @@ def test_agents_running_insecure_are_up_by_their_beacons_alone():
     try:
         wait_until(lambda: peers(a).get("b") and peers(a)["b"].up and peers(b).get("a") and peers(b)["a"].up,
                    timeout=3)
-        t0 = time.monotonic()
+        t0, w0 = time.monotonic(), time.time()
         while time.monotonic() - t0 < 1.5:  # 2.5 peer timeouts
-            seen = peers(a)["b"]
-            assert seen.up and time.time() - seen.last_heard < 0.6
+            assert peers(a)["b"].up
             time.sleep(0.05)
+        # heard all along: last_heard moved on with b's beacons (the age of a reading would be the load's)
+        wait_until(lambda: peers(a)["b"].last_heard > w0 + 1.0, timeout=30)
     finally:
         a.stop()
         b.stop()
@@ -453,15 +475,17 @@ def test_a_peer_heard_only_by_its_signed_beacons_shows_when_it_was_heard():
                 if data[4:5] == b"B" and b'"b"' in data:
                     beacon = data
         b.stop()
-        wait_until(lambda: not peers(a)["b"].up, timeout=3)
+        wait_until(lambda: not peers(a)["b"].up, timeout=30)
         down_at = peers(a)["b"].last_heard
         address = a.plugin("transport").address
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as udp:
+            time.sleep(0.2)  # the beacon comes a while after the down: its arrival can be told apart
+            sent_at = time.time()
             udp.sendto(beacon, address)
-            wait_until(lambda: peers(a)["b"].last_heard > down_at + 0.1, timeout=2)
+            wait_until(lambda: peers(a)["b"].last_heard > down_at + 0.1, timeout=30)
         seen = peers(a)["b"]
         assert not seen.up, "a beacon is a hint, never a sign of life"
-        assert time.time() - seen.last_heard < 1.0
+        assert seen.last_heard >= sent_at - 0.01  # when this beacon came (not, say, when it was made)
     finally:
         a.stop()
         b.stop()

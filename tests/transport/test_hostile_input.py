@@ -133,12 +133,27 @@ def test_connections_beyond_the_caps_are_refused_and_others_still_served(robot):
             s.close()
 
 
+def test_a_frame_of_no_session_is_closed_at_once_not_at_the_frame_timeout():
+    """The start of a frame names a session the agent does not know: the stream is closed on it,
+    long before the frame timeout (10 minutes here) would close it for being incomplete."""
+    patient = make_agent("robot1", free_port(), max_frame=4096, frame_timeout=600.0)
+    try:
+        unknown = socket.create_connection(addr_of(patient))
+        unknown.sendall(struct.pack(">IB8sQ", 3000, ord("D"), b"12345678", 1) + b"x" * 1000)
+        assert closed_by_peer(unknown, 30.0)
+        wait_until(lambda: counters(patient).get("dropped.session", 0) >= 1, timeout=30)
+        assert counters(patient).get("closed.timeout", 0) == 0
+        unknown.close()
+    finally:
+        patient.stop()
+
+
 def test_idle_and_partial_frame_connections_are_closed(robot):
     addr = addr_of(robot)
     idle = socket.create_connection(addr)
-    unknown = socket.create_connection(addr)  # a frame of no session of ours: closed at once
+    unknown = socket.create_connection(addr)  # a frame of no session of ours: closed (at once: the test above)
     unknown.sendall(struct.pack(">IB8sQ", 3000, ord("D"), b"12345678", 1) + b"x" * 1000)
-    assert closed_by_peer(unknown, 0.3)
+    assert closed_by_peer(unknown, 30.0)
     client = make_client(addr)  # a real session, whose id an eavesdropper could read on the mesh
     tap_sid = None
     try:
@@ -148,9 +163,9 @@ def test_idle_and_partial_frame_connections_are_closed(robot):
         partial = socket.create_connection(addr)
         partial.sendall(struct.pack(">IB8sQ", 3000, ord("D"), tap_sid, 10**9) + b"x" * 1000)
         started = time.monotonic()
-        assert closed_by_peer(partial, 3.0), "a frame left half-sent is not held forever"
-        assert time.monotonic() - started >= 0.3
-        assert closed_by_peer(idle, 3.0), "a connection that never authenticates is closed"
+        assert closed_by_peer(partial, 30.0), "a frame left half-sent is not held forever"
+        assert time.monotonic() - started >= 0.3  # not before its 0.5 s frame timeout
+        assert closed_by_peer(idle, 30.0), "a connection that never authenticates is closed"
         assert counters(robot).get("closed.timeout", 0) >= 2 and counters(robot).get("dropped.session", 0) >= 1
     finally:
         client.endpoint.stop()

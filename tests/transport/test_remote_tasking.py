@@ -12,7 +12,7 @@ import pytest
 from erni.blackboard import Agent, BBObject, Plugin, Task, TaskState
 from erni.blackboard.testing import wait_until
 from erni.transport import Peer
-from tests.transport.helpers import free_port, identity, make_agent
+from tests.transport.helpers import HeldClock, free_port, identity, make_agent
 
 
 @pytest.fixture
@@ -143,12 +143,13 @@ class Sink(Plugin):
             self.got.set()
 
 
-def _latency(agent: Agent, sink: Sink, i: int) -> float:
+def _latency(agent: Agent, sink: Sink, i: int, wait: float = 2.0) -> float:
+    """Seconds from a transaction publishing a Stamp to the Sink's run that got it (`wait` at most)."""
     sink.got.clear()
     t0 = time.perf_counter()
     with agent.transaction() as tx:
         tx.add(Stamp(n=i))
-    sink.got.wait(2)
+    sink.got.wait(wait)
     return time.perf_counter() - t0
 
 
@@ -195,14 +196,22 @@ class Ghost:
         self.hole.close()
 
 
+def counters(agent: Agent) -> dict[str, int]:
+    return agent.plugin("transport").endpoint.counters
+
+
 def test_dead_peer_does_not_stall_other_plugins(team):
-    """Two agents in one run, sampled alternately: one sends to a dead peer, one does not."""
+    """Two agents in one run, sampled alternately: one sends to a dead peer, one does not. The
+    one's sender waits on the dead peer for its acknowledgement timeout, made 60 s: a plugin held
+    up by that wait would be held up for a minute, so every transaction of either agent reaching
+    its Sink within a generous 20 s shows nothing waits for it. How long the transactions take
+    beside each other is a latency figure, measured by bench/bench_dead_peer.py."""
     ghost = Ghost()
     hole = ghost.hole
     try:
         dead_peer = [f"ghost@127.0.0.1:{hole.getsockname()[1]}"]
-        normal = team("normal", echo=False, discovery_port=0, peers=dead_peer, ack_timeout=2.0)
-        stalled = team("stalled", echo=False, discovery_port=0, peers=dead_peer, ack_timeout=2.0)
+        normal = team("normal", echo=False, discovery_port=0, peers=dead_peer, ack_timeout=60.0)
+        stalled = team("stalled", echo=False, discovery_port=0, peers=dead_peer, ack_timeout=60.0)
         sinks = {a.name: a.add_plugin(Sink) for a in (normal, stalled)}
         with stalled.transaction() as tx:
             for i in range(50):
@@ -211,20 +220,20 @@ def test_dead_peer_does_not_stall_other_plugins(team):
         conn, _ = hole.accept()  # the stalled agent's sender is now waiting on the dead peer
         # sample once the transport has handed every task to its sender: what is measured is a
         # sender waiting on a dead peer, not the burst of queuing 50 tasks
-        wait_until(lambda: all(t.result is not None and t.result.state is TaskState.PENDING
-                               for t in stalled.query(Task)), timeout=5)
+        pending = lambda: all(t.result is not None and t.result.state is TaskState.PENDING  # noqa: E731
+                              for t in stalled.query(Task))
+        wait_until(pending, timeout=30)
+        bridge = stalled.plugin("transport")
+        runs = bridge.runs
         samples: dict[str, list[float]] = {"normal": [], "stalled": []}
         for i in range(400):
             for agent in (normal, stalled) if i % 2 else (stalled, normal):
-                samples[agent.name].append(_latency(agent, sinks[agent.name], i))
-        ratio = statistics.median(samples["stalled"]) / statistics.median(samples["normal"])
+                samples[agent.name].append(_latency(agent, sinks[agent.name], i, wait=30.0))
+        wait_until(lambda: bridge.runs >= runs + 3, timeout=20)  # its own transport goes on too (beacons)
         print(f"transaction latency median: normal {statistics.median(samples['normal']) * 1e6:.0f} us, "
-              f"dead peer {statistics.median(samples['stalled']) * 1e6:.0f} us, ratio {ratio:.2f}")
-        # a stall would be the 2 s acknowledgement timeout; on a loaded machine the two medians of a
-        # few tens of microseconds differ by scheduling alone, hence the absolute allowance
-        stalled_median, normal_median = statistics.median(samples["stalled"]), statistics.median(samples["normal"])
-        assert stalled_median <= 1.2 * normal_median + 100e-6, f"ratio {ratio:.2f}"
-        assert max(samples["stalled"]) < 0.5  # no transaction waited for the dead peer
+              f"dead peer {statistics.median(samples['stalled']) * 1e6:.0f} us")
+        assert max(samples["stalled"]) < 20.0 and max(samples["normal"]) < 20.0  # none waited for the dead peer
+        assert pending() and counters(stalled).get("sent.reliable", 0) == 0  # ... which was waited on all along
         conn.close()
     finally:
         ghost.close()
@@ -589,15 +598,17 @@ def test_the_directorys_generation_moves_with_who_is_up_where_not_with_heartbeat
 
 def test_a_busy_requester_looks_at_its_performers_silence_a_few_times_a_period_and_still_fails_in_time(team):
     """A control node runs for every status it receives; whether a performer went silent is looked at
-    a few times a beacon period, not on each of those runs, and a silent performer's task still fails."""
+    a few times a beacon period, not on each of those runs, and a silent performer's task still fails:
+    after its 0.8 s link deadline on the control node's clock, not before, and at the first look after."""
     from erni.blackboard import Pose
 
-    control = team("control", echo=False, role="control", link_deadline=0.8)
+    clock = HeldClock()
+    control = team("control", echo=False, role="control", link_deadline=0.8, clock=clock)
     robot = team("robot1", echo=True, **{})
     robot.plugin("motion").settings.delay = 60.0  # the task runs until the robot dies
     wait_until(lambda: any(p.name == "robot1" and p.up for p in control.query(Peer)))
     bridge = control.plugin("transport")
-    checks, runs = [0], [0]
+    checks, runs, ran = [0], [0], [0]
     real_check, real_execute = bridge._check_links, bridge.execute
 
     def check() -> None:
@@ -607,6 +618,7 @@ def test_a_busy_requester_looks_at_its_performers_silence_a_few_times_a_period_a
     def execute() -> None:
         runs[0] += 1
         real_execute()
+        ran[0] += 1  # this run's changes are committed once it is over
 
     bridge._check_links, bridge.execute = check, execute
     task = task_to("robot1")
@@ -614,7 +626,8 @@ def test_a_busy_requester_looks_at_its_performers_silence_a_few_times_a_period_a
         tx.add(task)
     wait_until(lambda: robot.blackboard.contains(task.uid))
     t0 = time.monotonic()
-    while time.monotonic() - t0 < 1.0:  # a stream of Poses: a run of the control node's transport each
+    # a stream of Poses, a run of the control node's transport each, for a second and 100 runs at least
+    while (time.monotonic() - t0 < 1.0 or runs[0] < 100) and time.monotonic() - t0 < 60:
         with robot.transaction() as tx:
             pose = robot.blackboard.get("pose:robot1")
             if pose is None:
@@ -625,8 +638,22 @@ def test_a_busy_requester_looks_at_its_performers_silence_a_few_times_a_period_a
     elapsed = time.monotonic() - t0
     assert runs[0] >= 100, runs[0]
     assert checks[0] <= elapsed / (0.1 / 4) + 3, (checks[0], runs[0])  # beacon_period 0.1 s in these tests
+    # the control node's clock stands from here: the robot's last frames are heard at that moment
+    held = clock.hold()
+    wait_until(lambda: bridge.peers["robot1"].heard_at == held, timeout=30)
     robot.stop()
-    died = time.monotonic()
-    final = wait_until(lambda: (t := control.blackboard.get(task.uid)).done and t, timeout=5)
-    assert final.state is TaskState.FAILED and "link lost: robot1 not heard for" in final.result.message
-    assert time.monotonic() - died < 0.8 + 1.0
+
+    def looked_after(seconds: float) -> None:
+        """Move the control node's clock on (by more than its 0.1 s beacon period: a run of its
+        transport falls due), and wait for a look at the silence and the end of its run."""
+        c, r = checks[0], ran[0]
+        clock.advance(seconds)
+        wait_until(lambda: checks[0] > c and ran[0] > r, timeout=30)
+
+    looked_after(0.65)
+    looked_after(0.12)  # 0.77 s of silence: within the deadline
+    assert not control.blackboard.get(task.uid).done
+    looked_after(0.12)  # 0.89 s: past it, failed at this look
+    final = control.blackboard.get(task.uid)
+    assert final.state is TaskState.FAILED, final.result
+    assert final.result.message == "link lost: robot1 not heard for 1 s (link_deadline 0.8 s)"

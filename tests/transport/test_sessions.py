@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import threading
-import time
 
 from erni.blackboard import Pose
 from erni.blackboard.testing import wait_until
@@ -21,7 +20,10 @@ def endpoint(name: str, **kw) -> tuple[Endpoint, list]:
 
 
 def test_a_restarted_receiver_gets_a_new_session_at_once():
-    """Its old session is unknown to it: it says so on the stream, and the sender shakes hands again."""
+    """Its old session is unknown to it: it says so on the stream, and the sender shakes hands again.
+    Without the hint the sender would go on with the old session until it gave up on the message
+    (20 attempts), so the message arriving at all, on a new session, is what shows it; the wait
+    for it is a progress bound only."""
     a, _ = endpoint("alpha")
     b, got = endpoint("beta")
     port = b.address
@@ -31,10 +33,8 @@ def test_a_restarted_receiver_gets_a_new_session_at_once():
         old = a.session_with(port)
         b.stop()
         b, got = endpoint("beta", listen=port)  # the same address, a new instance
-        started = time.monotonic()
         a.send(port, "two", Pose(robot="x"), reliable=True, to="beta")
-        wait_until(lambda: got, timeout=3)
-        assert time.monotonic() - started < 1.5
+        wait_until(lambda: got, timeout=30)
         assert a.session_with(port) is not old and a.counters.get("hints.received", 0) >= 1
         assert [m.kind for m in got] == ["two"]
     finally:

@@ -222,7 +222,9 @@ def test_each_source_has_its_own_stream_so_microphones_never_mix():
 
 def test_a_stop_does_not_wait_for_queued_audio_and_nothing_queued_is_heard_after_it():
     """A slow recogniser with a full queue (a loaded machine): stop() returns at once and the audio
-    queued before it is dropped, not recognised after the stop."""
+    queued before it is dropped, not recognised after the stop. "At once" is told by what was
+    heard and by the thread, not by a time: the queue holds 20 s of recognition, and a stop that
+    waited for it would hear it, or leave the thread recognising after its 5 s join."""
     heard: list[tuple[str, str]] = []
     begun = threading.Event()
 
@@ -239,10 +241,9 @@ def test_a_stop_does_not_wait_for_queued_audio_and_nothing_queued_is_heard_after
     listener = Listener(SlowRecogniser(), lambda source, text: heard.append((source, text))).start()
     for i in range(100):  # 20 s of recognition queued
         listener.feed("page1", f"chunk {i}".encode())
-    assert begun.wait(5)
-    t0 = time.monotonic()
+    assert begun.wait(30)
     listener.stop()
-    assert time.monotonic() - t0 < 2.0 and not listener._thread.is_alive()
+    assert not listener._thread.is_alive()
     assert len(heard) <= 1, heard   # at most the chunk being recognised when the stop came
 
 
