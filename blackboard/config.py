@@ -4,15 +4,15 @@ from __future__ import annotations
 
 import tomllib
 from pathlib import Path
-from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import ConfigDict, Field, ValidationError
 
 from erni.blackboard.agent import Agent, resolve_plugin, validate_settings
 from erni.blackboard.errors import ConfigError, PluginError, describe_validation
+from erni.blackboard.objects import FiniteAny, Model
 
 
-class AgentSection(BaseModel):
+class AgentSection(Model):
     """The `[agent]` table."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
@@ -28,7 +28,7 @@ class AgentSection(BaseModel):
                              description="finished tasks are dropped this long after they finished (s)")
 
 
-class PluginSection(BaseModel):
+class PluginSection(Model):
     """One `[[plugin]]` table."""
 
     model_config = ConfigDict(extra="forbid", populate_by_name=True)
@@ -36,10 +36,10 @@ class PluginSection(BaseModel):
     class_: str = Field(alias="class", description="'module:Class' or an entry point name")
     name: str | None = None
     enabled: bool = True
-    settings: dict[str, Any] = Field(default_factory=dict)
+    settings: dict[str, FiniteAny] = Field(default_factory=dict)
 
 
-class AgentConfig(BaseModel):
+class AgentConfig(Model):
     """A whole agent config file."""
 
     model_config = ConfigDict(extra="forbid")

@@ -17,10 +17,10 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import ConfigDict, Field, ValidationError, model_validator
 
 from erni.blackboard.errors import ConfigError, describe_validation
-from erni.blackboard.objects import BBObject
+from erni.blackboard.objects import BBObject, FiniteAny, Model
 from erni.blackboard.tasks import AllocationResult
 
 # --- agents ---------------------------------------------------------------------------------
@@ -39,7 +39,7 @@ class Peer(BBObject):
     degraded: str = Field("", description="why the peer cannot take new tasks ('' when it can)")
 
 
-class _Message(BaseModel):
+class _Message(Model):
     model_config = ConfigDict(extra="forbid")
 
 
@@ -124,7 +124,7 @@ class WatchEvent(_Message):
     agent: str
     op: str
     type: str
-    data: dict[str, Any]
+    data: dict[str, FiniteAny]
 
 
 # --- floor-plan geometry --------------------------------------------------------------------
@@ -132,7 +132,7 @@ class WatchEvent(_Message):
 Point = tuple[float, float]
 
 
-class _Shape(BaseModel):
+class _Shape(Model):
     model_config = ConfigDict(frozen=True, extra="forbid")
 
 

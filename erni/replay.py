@@ -18,10 +18,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from pydantic import BaseModel, Field
+from pydantic import Field
 
 from erni.blackboard import BBObject, Plugin
 from erni.blackboard.errors import ErniError, shown
+from erni.blackboard.objects import Model
 from erni.transport.wire import TYPES, loads
 
 FORMAT = 1
@@ -133,7 +134,7 @@ class Recorder:
         self._f.close()
 
 
-class ReplaySettings(BaseModel):
+class ReplaySettings(Model):
     """The `[plugin.settings]` of the replay plugin."""
 
     log: str = Field(description="log file or MCAP bag written by `erni record`")

@@ -42,8 +42,9 @@ from cryptography.hazmat.primitives.asymmetric.x25519 import X25519PrivateKey, X
 from cryptography.hazmat.primitives.ciphers.aead import ChaCha20Poly1305
 from cryptography.hazmat.primitives.kdf.hkdf import HKDF
 from cryptography.x509.oid import NameOID
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import ConfigDict, Field, ValidationError
 
+from erni.blackboard.objects import Model
 from erni.transport.identity import Identity, IdentityError
 from erni.transport.wire import (
     BEACON,
@@ -67,7 +68,7 @@ _HEX32 = r"^[0-9a-f]{32}$"
 _HEX64 = r"^[0-9a-f]{64}$"
 
 
-class Hello(BaseModel):
+class Hello(Model):
     """The body of a handshake frame ('H' from the initiator, 'R' from the responder)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)

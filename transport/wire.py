@@ -33,6 +33,7 @@ from pydantic_core import PydanticSerializationError, from_json, to_json
 
 from erni.blackboard import AllocationResult, NetInfo, Pose, Task
 from erni.blackboard.errors import ErniError, UsageError, shown
+from erni.blackboard.objects import FiniteAny, Model
 
 HEADER = struct.Struct(">I")
 KIND = struct.Struct(">IB")  # length, kind
@@ -73,7 +74,7 @@ for _cls in (Task, Pose, NetInfo, AllocationResult):
     register_type(_cls)
 
 
-class EnvelopeHead(BaseModel):
+class EnvelopeHead(Model):
     """Who sent a frame, to whom, and where to answer: once for each message, or once for all the
     messages of a batch of statuses."""
 
@@ -87,7 +88,7 @@ class EnvelopeHead(BaseModel):
     reply: tuple[str, int] = ("", 0)
 
 
-class EnvelopeItem(BaseModel):
+class EnvelopeItem(Model):
     """One message of a frame: its number in the sender's instance, id, kind and body."""
 
     model_config = ConfigDict(extra="forbid")
@@ -96,7 +97,7 @@ class EnvelopeItem(BaseModel):
     id: str = Field(max_length=64)
     kind: str = Field(max_length=64)
     type: str | None = Field(None, max_length=64)
-    body: Any = None
+    body: FiniteAny = None
 
 
 class Envelope(EnvelopeItem, EnvelopeHead):

@@ -22,9 +22,10 @@ from __future__ import annotations
 import re
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import ConfigDict, Field, field_validator, model_validator
 
 from erni.blackboard.errors import ConfigError
+from erni.blackboard.objects import Model
 
 Address = tuple[str, int]
 
@@ -40,7 +41,7 @@ ENDPOINT = re.compile(r"^(tcp|udp|tls|quic|ws)/(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.-
 DATAGRAM, RELIABLE, ALIVE = "d", "r", "alive"
 
 
-class ZenohSettings(BaseModel):
+class ZenohSettings(Model):
     """How an agent joins a team over Zenoh (`[plugin.settings.zenoh]` of the transport)."""
 
     model_config = ConfigDict(extra="forbid")

@@ -80,7 +80,7 @@ def _pose_objects(draw: st.DrawFn) -> dict:
     for name in draw(st.lists(st.sampled_from(_POSE_FIELDS), max_size=3)):
         data.pop(name, None)
     for name in draw(st.lists(st.sampled_from(_POSE_FIELDS + ["extra", "Robot"]), max_size=2)):
-        data[name] = draw(_any_json)
+        data[name] = draw(_any_json | st.sampled_from([math.nan, math.inf, -math.inf, [1.0, math.nan]]))
     return data
 
 
@@ -208,3 +208,39 @@ def test_untyped_bodies_and_unknown_types_are_left_to_pydantic():
     assert codec.decode_data(to_json({**_HEAD, **_ITEM, "type": "Rocket", "body": {}})) is None
     assert codec.decode_data(b"[" + to_json(_HEAD) + b",[]]") is None
     assert codec.decode_data(b"not json") is None
+
+
+_FLOAT_FIELDS = ["x", "y", "theta", "v", "w", "battery", "stamp"]
+_NON_FINITE_TOKENS = [b"NaN", b"Infinity", b"-Infinity", b"1e400", b"-1e999"]
+
+
+@st.composite
+def _spoiled_pose(draw: st.DrawFn) -> bytes:
+    """A Pose as a sender writes it, one float (a field, or a sonar range) a JSON token for NaN or an infinity."""
+    pose = draw(_poses)
+    token = draw(st.sampled_from(_NON_FINITE_TOKENS))
+    data = pose.model_dump(mode="json")
+    mark = "@@"
+    if data["sonar"] and draw(st.booleans()):
+        data["sonar"][draw(st.integers(0, len(data["sonar"]) - 1))] = mark
+    else:
+        data[draw(st.sampled_from(_FLOAT_FIELDS))] = mark
+    return to_json(data).replace(b'"@@"', token)
+
+
+@settings(max_examples=300, deadline=None)
+@given(_spoiled_pose(), st.integers(0, 3))
+def test_nan_and_infinities_are_refused_by_the_codec_and_by_pydantic_in_every_frame_form(raw, others):
+    """A Pose body with NaN, Infinity or a number beyond a float's range: pydantic refuses it (the
+    models' `allow_inf_nan=False`), and so does each fast path of the codec (msgspec reads no such
+    token): alone, in a batch beside good statuses, and the one-pass status decode."""
+    assert _pydantic_pose(raw) is None
+    assert _codec_pose(raw) is None
+    good = [to_json({**_ITEM, "type": "Pose"})[:-1] + b',"body":' + to_json(Pose(robot=f"r{i}").model_dump(mode="json"))
+            + b"}" for i in range(others)]
+    bad = to_json({**_ITEM, "type": "Pose"})[:-1] + b',"body":' + raw + b"}"
+    payload = batch_payload(to_json(_HEAD), [*good, bad])
+    assert codec.decode_data(payload) is None  # the codec takes the frame whole or leaves it to pydantic
+    assert codec.decode_status(payload) is None
+    want = _two_step(payload)
+    assert want is None  # the pydantic parse refuses the frame (a batch: it names the bad message)
