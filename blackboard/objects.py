@@ -9,6 +9,8 @@ from typing import Annotated, Any, ClassVar, Self
 
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, JsonValue
 
+from erni.blackboard.errors import UsageError
+
 
 class Model(BaseModel):
     """Base of every pydantic model of ERNI: every number is finite.
@@ -25,14 +27,14 @@ class Model(BaseModel):
 
 def finite_inside(value: Any) -> Any:
     """Return `value` (JSON-like data: tables, lists, numbers, text) if every float in it is finite;
-    raise ValueError naming where the first one that is not sits (`speed: expected a finite number,
-    got nan`). Walks without recursion, so depth costs no stack."""
+    raise UsageError naming the first one that is not and where it sits (`expected a finite number,
+    got nan (at speed[0])`). Walks without recursion, so depth costs no stack."""
     stack: list[tuple[str, Any]] = [("", value)]
     while stack:
         where, item = stack.pop()
         if isinstance(item, float):
             if not math.isfinite(item):
-                raise ValueError(f"{where + ': ' if where else ''}expected a finite number, got {item}")
+                raise UsageError(f"expected a finite number, got {item}" + (f" (at {where})" if where else ""))
         elif isinstance(item, dict):
             stack.extend((f"{where}.{k}" if where else str(k), v) for k, v in item.items())
         elif isinstance(item, (list, tuple)):
