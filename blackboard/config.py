@@ -10,6 +10,7 @@ from pydantic import ConfigDict, Field, ValidationError
 from erni.blackboard.agent import Agent, resolve_plugin, validate_settings
 from erni.blackboard.errors import ConfigError, PluginError, describe_validation
 from erni.blackboard.objects import FiniteAny, Model
+from erni.blackboard.text import Name
 
 
 class AgentSection(Model):
@@ -17,8 +18,8 @@ class AgentSection(Model):
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
-    name: str = Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,62}$",
-                      description="agent name: letters, digits, '_', '.', '-'")
+    name: Name = Field(description="agent name: letters, digits, '_', '.', '-' (at most 63, the first a "
+                       "letter or a digit)")
     workers: int = Field(4, ge=1, le=64, description="worker threads that run plugins")
     slow_plugin_seconds: float = Field(1.0, gt=0, le=3600, description="report plugin runs longer than this")
     log_level: str = Field("INFO", pattern=r"^(DEBUG|INFO|WARNING|ERROR)$")

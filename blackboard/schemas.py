@@ -22,6 +22,7 @@ from pydantic import ConfigDict, Field, ValidationError, model_validator
 from erni.blackboard.errors import ConfigError, describe_validation
 from erni.blackboard.objects import BBObject, FiniteAny, Model
 from erni.blackboard.tasks import AllocationResult
+from erni.blackboard.text import Name
 
 # --- agents ---------------------------------------------------------------------------------
 
@@ -29,7 +30,7 @@ from erni.blackboard.tasks import AllocationResult
 class Peer(BBObject):
     """An agent known to this one: where it is, what it is, whether it is heard."""
 
-    name: str
+    name: Name
     address: str = ""
     role: str = ""
     capabilities: list[str] = Field(default_factory=list)
@@ -104,7 +105,7 @@ class Fresh(_Message):
 class PeerList(_Message):
     """The directory of an agent, sent to a client."""
 
-    agent: str
+    agent: Name
     peers: list[Peer]
     down_after: dict[str, float] = Field(default_factory=dict, description="peer -> the silence (s) that "
                                          "marks it down now: peer_timeout, scaled and stretched for a lossy link")
@@ -121,7 +122,7 @@ class WatchRequest(_Message):
 class WatchEvent(_Message):
     """One blackboard change sent to a watcher."""
 
-    agent: str
+    agent: Name
     op: str
     type: str
     data: dict[str, FiniteAny]

@@ -28,6 +28,7 @@ from pydantic import (
 
 from erni.blackboard.errors import TaskError, describe_validation, shown
 from erni.blackboard.objects import BBObject, FiniteJson, Model
+from erni.blackboard.text import Name, NameOrEmpty
 
 
 def _is_number(annotation: Any) -> bool:
@@ -374,8 +375,8 @@ class Task(BBObject):
     verb: str
     preposition: str
     params: SerializeAsAny[Params] = Field(default_factory=NoParams)
-    source: str = ""
-    destination: str | None = None
+    source: NameOrEmpty = Field("", description="the agent that asked ('' before it is sent)")
+    destination: Name | None = None
     parent: str | None = None
     result: AllocationResult | None = None
     created: float = Field(default_factory=time.time)
@@ -476,7 +477,7 @@ def _label(data: Any) -> str:
 class Pose(BBObject):
     """Where a robot is and how it is doing; one per robot, changed in place (`pose:<robot>`)."""
 
-    robot: str
+    robot: Name
     x: float = 0.0
     y: float = 0.0
     theta: float = Field(0.0, description="heading (rad, counter-clockwise from +x)")
@@ -552,7 +553,7 @@ class Position(Model):
 class NetInfo(BBObject):
     """Network state answering one NetWatch preposition; `degraded` when the source failed."""
 
-    node: str
+    node: Name
     kind: str = Field(description="the NetWatch preposition this answers")
     task: str | None = Field(None, description="uid of the NetWatch task")
     neighbors: list[Neighbor] = Field(default_factory=list)

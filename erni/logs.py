@@ -7,6 +7,8 @@ import re
 import sys
 import time
 
+from erni.blackboard.text import printable
+
 FORMAT = "%(asctime)s %(levelname)-7s %(name)s: %(message)s"
 SECRET = re.compile(r"(?i)(token=|bearer )[^\s&'\"]+")
 
@@ -17,9 +19,15 @@ def mask_secrets(text: str) -> str:
 
 
 class MaskingFormatter(logging.Formatter):
-    """A formatter whose lines (exceptions included) never show a token."""
+    """A formatter whose lines (exceptions included) never show a token, and whose message is one line
+    of printable text: a name or a reason from a peer that holds a terminal escape or a newline is
+    shown escaped (`printable`). A traceback keeps its lines."""
 
     def format(self, record: logging.LogRecord) -> str:
+        message = record.getMessage()
+        shown = printable(message)
+        if shown is not message:
+            record = logging.makeLogRecord({**record.__dict__, "msg": shown, "args": None})
         return mask_secrets(super().format(record))
 
 

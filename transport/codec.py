@@ -27,7 +27,8 @@ from pydantic import BaseModel
 from erni.blackboard import Pose
 from erni.transport.wire import TYPES, VERSION
 
-Name = Annotated[str, Meta(min_length=1, max_length=64)]
+Name = Annotated[str, Meta(pattern=r"\A[A-Za-z0-9][A-Za-z0-9_.-]{0,62}\Z")]  # blackboard/text.py's
+NameOrEmpty = Annotated[str, Meta(pattern=r"\A([A-Za-z0-9][A-Za-z0-9_.-]{0,62})?\Z")]
 Str64 = Annotated[str, Meta(max_length=64)]
 Str32 = Annotated[str, Meta(max_length=32)]
 
@@ -38,7 +39,7 @@ class Head(Struct, kw_only=True, forbid_unknown_fields=True):
     v: int = VERSION
     sender: Name
     role: Str32 = ""
-    to: Str64 = ""
+    to: NameOrEmpty = ""
     inst: Str32 = ""
     reply: tuple[str, int] = ("", 0)
 
@@ -68,7 +69,7 @@ class PoseBody(Struct, kw_only=True, forbid_unknown_fields=True):
     the model gets pydantic's default for it and the same set of fields given."""
 
     uid: str | UnsetType = UNSET
-    robot: str
+    robot: Name
     x: float | UnsetType = UNSET
     y: float | UnsetType = UNSET
     theta: float | UnsetType = UNSET
@@ -88,7 +89,7 @@ class PoseFull(Struct, kw_only=True, forbid_unknown_fields=True, gc=False):
     fields): the common case, typed without looking for fields left out."""
 
     uid: str
-    robot: str
+    robot: Name
     x: float
     y: float
     theta: float

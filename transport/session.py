@@ -45,6 +45,7 @@ from cryptography.x509.oid import NameOID
 from pydantic import ConfigDict, Field, ValidationError
 
 from erni.blackboard.objects import Model
+from erni.blackboard.text import Name, NameOrEmpty
 from erni.transport.identity import Identity, IdentityError
 from erni.transport.wire import (
     BEACON,
@@ -73,9 +74,9 @@ class Hello(Model):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    sender: str = Field(min_length=1, max_length=64)
+    sender: Name
     role: str = Field("", max_length=32)
-    to: str = Field("", max_length=64)
+    to: NameOrEmpty = ""
     inst: str = Field(pattern=_HEX32)
     reply: tuple[str, int]
     eph: str = Field(pattern=_HEX64)

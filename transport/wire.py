@@ -34,6 +34,7 @@ from pydantic_core import PydanticSerializationError, from_json, to_json
 from erni.blackboard import AllocationResult, NetInfo, Pose, Task
 from erni.blackboard.errors import ErniError, UsageError, shown
 from erni.blackboard.objects import FiniteAny, Model
+from erni.blackboard.text import Name, NameOrEmpty
 
 HEADER = struct.Struct(">I")
 KIND = struct.Struct(">IB")  # length, kind
@@ -81,9 +82,9 @@ class EnvelopeHead(Model):
     model_config = ConfigDict(extra="forbid")
 
     v: int = VERSION
-    sender: str = Field(min_length=1, max_length=64)
+    sender: Name
     role: str = Field("", max_length=32, description="the sender's role: robot, control, cli (a client) ...")
-    to: str = Field("", max_length=64, description="the receiver's name ('' only where it is not known yet)")
+    to: NameOrEmpty = Field("", description="the receiver's name ('' only where it is not known yet)")
     inst: str = Field("", max_length=32, description="the sender's instance: random per start")
     reply: tuple[str, int] = ("", 0)
 

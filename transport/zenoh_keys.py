@@ -24,6 +24,7 @@ from typing import Any, Literal
 
 from pydantic import ConfigDict, Field, field_validator, model_validator
 
+from erni.blackboard import text
 from erni.blackboard.errors import ConfigError
 from erni.blackboard.objects import Model
 
@@ -32,8 +33,8 @@ Address = tuple[str, int]
 ADDRESS_PREFIX = "zenoh/"
 """The host part of an agent's address on the Zenoh wire: `zenoh/<name>` (port 0)."""
 
-NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,62}$")
-"""An agent's name (as `blackboard/config.py` allows it) and a team's: each one chunk of a key."""
+NAME = text.NAME
+"""An agent's name (`blackboard/text.py`) and a team's: each one chunk of a key."""
 
 ENDPOINT = re.compile(r"^(tcp|udp|tls|quic|ws)/(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.-]+):([0-9]{1,5})(#.*)?$")
 """A Zenoh locator this wire accepts: `PROTOCOL/HOST:PORT`, e.g. `tcp/192.0.2.1:7447`."""

@@ -42,7 +42,7 @@ delay = "0.25"
     ("[agent\nname='x'", "invalid TOML"),
     ("[agent]\nname = 'r1'\ncolour = 'red'", "agent: unknown key 'colour'"),
     ("[agent]\n", "agent: missing 'name'"),
-    ("[agent]\nname = 'bad name!'", "agent.name: String should match pattern"),
+    ("[agent]\nname = 'bad name!'", "agent.name: expected a name of letters, digits, '_', '.', '-'"),
     ("[agent]\nname = 'r1'\nworkers = 0", "agent.workers: Input should be greater than or equal to 1"),
     ("[agent]\nname='r1'\n[[plugin]]\nclass='nosuch.module:Thing'", "plugin[0].class: cannot import 'nosuch.module:Thing'"),
     ("[agent]\nname='r1'\n[[plugin]]\nclass='nosuchentry'", "plugin[0].class: unknown plugin 'nosuchentry'"),

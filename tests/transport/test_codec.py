@@ -62,13 +62,14 @@ def _same_pose(got: Pose, want: Pose) -> None:
 
 
 _finite = st.floats(allow_nan=False, allow_infinity=False)
+_names = st.from_regex(r"\A[A-Za-z0-9][A-Za-z0-9_.-]{0,10}\Z")  # a robot's name (blackboard/text.py)
 _any_json = st.recursive(
     st.none() | st.booleans() | st.integers() | st.floats(allow_nan=False, allow_infinity=False)
     | st.text(max_size=6) | st.sampled_from(["1.5", "true", "0", "", "yes", "1e3", "nan"]),
     lambda inner: st.lists(inner, max_size=3) | st.dictionaries(st.text(max_size=4), inner, max_size=3),
     max_leaves=6,
 )
-_poses = st.builds(Pose, robot=st.text(max_size=8), x=_finite, y=_finite, theta=_finite, v=_finite,
+_poses = st.builds(Pose, robot=_names, x=_finite, y=_finite, theta=_finite, v=_finite,
                    w=_finite, battery=st.none() | _finite, stall_left=st.booleans(), bumpers=st.integers(-2**70, 2**70),
                    motors_enabled=st.booleans(), sonar=st.lists(_finite, max_size=6))
 
@@ -128,7 +129,7 @@ _bodies = st.one_of(
     st.builds(lambda x, y: Task(verb="BotMotion", preposition="goto", params={"x": x, "y": y}),
               st.floats(-1e6, 1e6), st.floats(-1e6, 1e6)),
     st.builds(lambda node, msg: NetInfo(node=node, kind="neighbor list", message=msg),
-              st.text(min_size=1, max_size=8), st.text(max_size=12)),
+              _names, st.text(max_size=12)),
 )
 _HEAD = {"v": 2, "sender": "r1", "role": "robot", "to": "control", "inst": "a" * 8, "reply": ["127.0.0.1", 5000]}
 _ITEM = {"seq": 7, "id": "m1", "kind": "status"}
