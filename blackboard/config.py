@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-import tomllib
 from pathlib import Path
 
 from pydantic import ConfigDict, Field, ValidationError
 
+from erni.blackboard import tomlfile
 from erni.blackboard.agent import Agent, resolve_plugin, validate_settings
 from erni.blackboard.errors import ConfigError, PluginError, describe_validation
 from erni.blackboard.objects import FiniteAny, Model
@@ -50,11 +50,8 @@ class AgentConfig(Model):
 
 
 def parse_config(text: str, source: str = "<config>") -> AgentConfig:
-    """Parse and validate config text (raises ConfigError)."""
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as err:
-        raise ConfigError(f"{source}: invalid TOML: {err}") from None
+    """Parse and validate config text held to `tomlfile`'s bounds (size, depth, numbers); raises ConfigError."""
+    data = tomlfile.loads(text, source)
     try:
         return AgentConfig.model_validate(data)
     except ValidationError as err:
@@ -64,13 +61,7 @@ def parse_config(text: str, source: str = "<config>") -> AgentConfig:
 def read_config(path: str | Path) -> AgentConfig:
     """Read and validate a config file (raises ConfigError)."""
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as err:
-        raise ConfigError(f"{path}: cannot read: {err.strerror or err}") from None
-    except UnicodeDecodeError:
-        raise ConfigError(f"{path}: not UTF-8 text; expected a TOML file") from None
-    return parse_config(text, str(path))
+    return parse_config(tomlfile.read_text(path, "config"), str(path))
 
 
 def build_agent(config: AgentConfig, source: str = "<config>") -> Agent:

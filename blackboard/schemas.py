@@ -13,12 +13,12 @@
 
 from __future__ import annotations
 
-import tomllib
 from pathlib import Path
 from typing import Any
 
 from pydantic import ConfigDict, Field, ValidationError, model_validator
 
+from erni.blackboard import tomlfile
 from erni.blackboard.errors import ConfigError, describe_validation
 from erni.blackboard.objects import BBObject, FiniteAny, Model
 from erni.blackboard.tasks import AllocationResult
@@ -178,18 +178,7 @@ class FloorPlan(_Shape):
 def read_toml(path: str | Path, what: str, error: type[ConfigError] = ConfigError) -> dict[str, Any]:
     """Return a TOML file's table, or raise `error` naming the file and saying what was expected."""
     path = Path(path)
-    try:
-        return tomllib.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise error(f"{path}: no such {what} file") from None
-    except IsADirectoryError:
-        raise error(f"{path}: is a directory; expected a {what} TOML file") from None
-    except UnicodeDecodeError:
-        raise error(f"{path}: not UTF-8 text; expected a {what} TOML file") from None
-    except OSError as err:
-        raise error(f"{path}: cannot read: {err.strerror or err}") from None
-    except tomllib.TOMLDecodeError as err:
-        raise error(f"{path}: not valid TOML: {err}") from None
+    return tomlfile.loads(tomlfile.read_text(path, what, error), str(path), error)
 
 
 def load_floorplan(path: str | Path) -> FloorPlan:
