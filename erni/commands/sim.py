@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from erni.commands._text import say
+from erni.logs import mask_secrets
 
 KEEP_RUNS = 3  # run directories of finished `erni sim` runs kept in the temporary directory (newest first)
 RUN_PREFIX = "erni-sim-"  # what `erni sim` names its run directory in the temporary directory
@@ -234,7 +235,13 @@ def _print_team(team: Any, seconds: float) -> None:
     if team.mesh is not None:
         say(f"  mesh       segment {team.mesh.subnet} (namespace {team.mesh.hub}), babeld in every node, "
               f"MobiNet reads {team.mobinet}; routes: ip -n {team.mesh.node(team.names[-1]).netns} route")
-    say(f"  GUI        {team.url}" if team.url else "  GUI        none (headless, or the UI plugin is not installed)")
+    if not team.url:
+        say("  GUI        none (headless, or the UI plugin is not installed)")
+    elif sys.stdout.isatty():
+        say(f"  GUI        {team.url}")
+    else:  # output to a file or a pipe is a log: the token stays in the control node's config (0600)
+        say(f"  GUI        {mask_secrets(team.url)} (the token is shown on a terminal only; it is the ui "
+            f"plugin's token in {team.run_dir / 'agents' / 'control.toml'})")
     say("to task the team from another terminal:")
     say(f"  export ERNI_IDENTITY={team.cli_identity}")
     say(f"  erni peers --via {host}:{port}")
