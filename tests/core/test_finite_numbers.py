@@ -230,3 +230,41 @@ def test_pose_from_json_with_nan_and_infinity_is_refused_naming_the_fields():
     with pytest.raises(TaskError):
         Task.parse('{"verb": "BotMotion", "preposition": "goto", "params": {"x": 1, "y": 2}, '
                    '"result": {"values": {"left": NaN}}}')
+
+
+@pytest.mark.parametrize("text, says", [
+    ("[agent]\nname = 'r1'\nretention = nan\n", "agent.retention: Input should be a finite number"),
+    ("[agent]\nname = 'r1'\n[[plugin]]\nclass = 'echo'\n[plugin.settings]\ndelay = inf\n",
+     "plugin[0].settings.delay: expected a finite number, got inf"),
+    ("[agent]\nname = 'r1'\n[[plugin]]\nclass = 'echo'\n[plugin.settings]\nverbs = ['BotMotion']\nx = {y = [1.0, -inf]}\n",
+     "expected a finite number, got -inf (at y[1])"),
+])
+def test_a_config_file_with_nan_or_inf_is_refused_naming_the_field(tmp_path, text, says):
+    """TOML writes `nan` and `inf` as floats: a config that holds one is refused by `erni agent --check`."""
+    import subprocess
+    import sys
+
+    path = tmp_path / "robot.toml"
+    path.write_text(text)
+    out = subprocess.run([sys.executable, "-m", "erni", "agent", str(path), "--check"], capture_output=True,
+                         text=True, timeout=60)
+    assert out.returncode == 2 and says in out.stderr and "Traceback" not in out.stderr, out.stderr
+
+
+def test_a_plugin_from_elsewhere_gets_its_settings_checked_for_finite_numbers_too():
+    """A plugin whose Settings derive from pydantic's BaseModel (not ERNI's Model) still refuses NaN:
+    the agent validates settings through a strict subclass of them."""
+    from erni.blackboard import Agent, ConfigError, Plugin
+
+    class Settings(BaseModel):
+        gain: float = 1.0
+
+    class Outside(Plugin[Settings]):
+        pass
+
+    agent = Agent("outside", workers=1)
+    with pytest.raises(ConfigError, match="settings.gain: Input should be a finite number"):
+        agent.add_plugin(Outside, settings={"gain": math.nan})
+    with pytest.raises(ConfigError, match="unknown key 'gian'"):
+        agent.add_plugin(Outside, settings={"gian": 1.0})
+    assert agent.add_plugin(Outside, settings={"gain": 2.0}).settings.gain == 2.0
