@@ -356,7 +356,9 @@ def test_a_flood_of_bad_page_messages_is_answered_each_but_logged_a_few_times(co
     caplog.set_level(logging.INFO, logger="erni.ui.http")
     agent, ui = control()
     n = 10_000
-    msgs = ws_run(ui, ['{"type":"fly"}'] * n + [{"type": "ping"}], lambda m: len(of(m, "error")) == n and of(m, "pong"))
+    url = f"ws://127.0.0.1:{ui.server.port}/ws?token={token(ui)}"
+    msgs = asyncio.run(talk(url, ['{"type":"fly"}'] * n + [{"type": "ping"}],
+                            lambda m: len(of(m, "error")) == n and of(m, "pong"), timeout=120))
     assert len(of(msgs, "error")) == n and ui.server.bad_messages == n
     lines = [r for r in caplog.records if r.name == "erni.ui.http" and "bad message" in r.getMessage()]
     assert 1 <= len(lines) <= 3, f"{len(lines)} log lines for {n} bad messages"
