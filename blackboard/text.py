@@ -30,9 +30,19 @@ NAME = re.compile(r"\A[A-Za-z0-9][A-Za-z0-9_.-]{0,62}\Z")
 """`NAME_PATTERN` for Python's `re` (`NAME.match(text)`: the whole text, a final newline too)."""
 
 
+_SEEN: dict[str, bool] = {}  # the answers for the few names a team has: every frame and Pose names one
+
+
 def is_name(text: Any) -> bool:
     """Whether `text` is a name: a str of the name character set, whole."""
-    return isinstance(text, str) and NAME.match(text) is not None
+    if not isinstance(text, str):
+        return False
+    known = _SEEN.get(text)
+    if known is None:
+        known = NAME.match(text) is not None
+        if len(_SEEN) < 4096 and len(text) <= 64:  # bounded: hostile strings cannot grow it
+            _SEEN[text] = known
+    return known
 
 
 def check_name(text: str) -> str:
