@@ -522,10 +522,13 @@ def validate_settings(cls: type[Plugin[Any]], settings: dict[str, Any] | BaseMod
 
 @functools.cache
 def _strict(model: type[BaseModel]) -> type[BaseModel]:
-    if model.model_config.get("extra") is not None:
+    """`model`, or a subclass of it that refuses unknown keys and non-finite numbers where `model`
+    itself does not say (a plugin from outside ERNI may not derive its settings from `Model`)."""
+    config = model.model_config
+    if config.get("extra") is not None and config.get("allow_inf_nan") is False:
         return model
-    return type(model.__name__, (model,), {"model_config": {**model.model_config, "extra": "forbid"},
-                                           "__module__": model.__module__})
+    strict = {**config, "extra": config.get("extra") or "forbid", "allow_inf_nan": False}
+    return type(model.__name__, (model,), {"model_config": strict, "__module__": model.__module__})
 
 
 __all__ = ["Agent", "ENTRY_POINT_GROUP", "Scheduler", "Timers", "ValidationError", "resolve_plugin"]

@@ -2,23 +2,24 @@
 
 from __future__ import annotations
 
-import tomllib
 from pathlib import Path
-from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import ConfigDict, Field, ValidationError
 
+from erni.blackboard import tomlfile
 from erni.blackboard.agent import Agent, resolve_plugin, validate_settings
 from erni.blackboard.errors import ConfigError, PluginError, describe_validation
+from erni.blackboard.objects import FiniteAny, Model
+from erni.blackboard.text import Name
 
 
-class AgentSection(BaseModel):
+class AgentSection(Model):
     """The `[agent]` table."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
-    name: str = Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,62}$",
-                      description="agent name: letters, digits, '_', '.', '-'")
+    name: Name = Field(description="agent name: letters, digits, '_', '.', '-' (at most 63, the first a "
+                       "letter or a digit)")
     workers: int = Field(4, ge=1, le=64, description="worker threads that run plugins")
     slow_plugin_seconds: float = Field(1.0, gt=0, le=3600, description="report plugin runs longer than this (s)")
     log_level: str = Field("INFO", pattern=r"^(DEBUG|INFO|WARNING|ERROR)$", description="least severe log level shown")
@@ -28,7 +29,7 @@ class AgentSection(BaseModel):
                              description="finished tasks are dropped this long after they finished (s)")
 
 
-class PluginSection(BaseModel):
+class PluginSection(Model):
     """One `[[plugin]]` table."""
 
     model_config = ConfigDict(extra="forbid", populate_by_name=True)
@@ -36,10 +37,10 @@ class PluginSection(BaseModel):
     class_: str = Field(alias="class", description="'module:Class' or an entry point name")
     name: str | None = None
     enabled: bool = True
-    settings: dict[str, Any] = Field(default_factory=dict)
+    settings: dict[str, FiniteAny] = Field(default_factory=dict)
 
 
-class AgentConfig(BaseModel):
+class AgentConfig(Model):
     """A whole agent config file."""
 
     model_config = ConfigDict(extra="forbid")
@@ -49,11 +50,8 @@ class AgentConfig(BaseModel):
 
 
 def parse_config(text: str, source: str = "<config>") -> AgentConfig:
-    """Parse and validate config text (raises ConfigError)."""
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as err:
-        raise ConfigError(f"{source}: invalid TOML: {err}") from None
+    """Parse and validate config text held to `tomlfile`'s bounds (size, depth, numbers); raises ConfigError."""
+    data = tomlfile.loads(text, source)
     try:
         return AgentConfig.model_validate(data)
     except ValidationError as err:
@@ -63,13 +61,7 @@ def parse_config(text: str, source: str = "<config>") -> AgentConfig:
 def read_config(path: str | Path) -> AgentConfig:
     """Read and validate a config file (raises ConfigError)."""
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as err:
-        raise ConfigError(f"{path}: cannot read: {err.strerror or err}") from None
-    except UnicodeDecodeError:
-        raise ConfigError(f"{path}: not UTF-8 text; expected a TOML file") from None
-    return parse_config(text, str(path))
+    return parse_config(tomlfile.read_text(path, "config"), str(path))
 
 
 def build_agent(config: AgentConfig, source: str = "<config>") -> Agent:

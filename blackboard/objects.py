@@ -1,11 +1,52 @@
-"""Blackboard objects: frozen pydantic models with a stable `uid`."""
+"""Blackboard objects: frozen pydantic models with a stable `uid`; `Model`, the base of every ERNI
+model, whose numbers are finite."""
 
 from __future__ import annotations
 
+import math
 import uuid
-from typing import Any, ClassVar, Self
+from typing import Annotated, Any, ClassVar, Self
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, JsonValue
+
+from erni.blackboard.errors import UsageError
+
+
+class Model(BaseModel):
+    """Base of every pydantic model of ERNI: every number is finite.
+
+    NaN and the infinities are refused in every float field, whether the value comes as a Python
+    float or as JSON text (pydantic's JSON parser reads `NaN` and `Infinity` unless told not to),
+    in a TOML file (`nan`, `inf`) or on the wire. A free-form field (`AllocationResult.values`, a
+    watch event's data, a plugin's settings table) takes `FiniteJson` or `FiniteAny`, which check
+    every number inside. A subclass's own `model_config` adds to this one.
+    """
+
+    model_config = ConfigDict(allow_inf_nan=False)
+
+
+def finite_inside(value: Any) -> Any:
+    """Return `value` (JSON-like data: tables, lists, numbers, text) if every float in it is finite;
+    raise UsageError naming the first one that is not and where it sits (`expected a finite number,
+    got nan (at speed[0])`). Walks without recursion, so depth costs no stack."""
+    stack: list[tuple[str, Any]] = [("", value)]
+    while stack:
+        where, item = stack.pop()
+        if isinstance(item, float):
+            if not math.isfinite(item):
+                raise UsageError(f"expected a finite number, got {item}" + (f" (at {where})" if where else ""))
+        elif isinstance(item, dict):
+            stack.extend((f"{where}.{k}" if where else str(k), v) for k, v in item.items())
+        elif isinstance(item, (list, tuple)):
+            stack.extend((f"{where}[{i}]", v) for i, v in enumerate(item))
+    return value
+
+
+FiniteJson = Annotated[JsonValue, AfterValidator(finite_inside)]
+"""Any JSON value whose numbers are all finite."""
+
+FiniteAny = Annotated[Any, AfterValidator(finite_inside)]
+"""Any value (a TOML table's: dates too) whose floats, however deep in tables and lists, are all finite."""
 
 
 def new_uid() -> str:
@@ -13,7 +54,7 @@ def new_uid() -> str:
     return uuid.uuid4().hex[:16]
 
 
-class BBObject(BaseModel):
+class BBObject(Model):
     """Base of everything published on a blackboard.
 
     Objects are immutable: a change is published as a new version with the same `uid`

@@ -14,13 +14,13 @@ from typing_extensions import TypeVar
 
 from erni.blackboard.blackboard import Blackboard, Predicate, Query, Subscription, T, Transaction
 from erni.blackboard.errors import TransactionError, UsageError
-from erni.blackboard.objects import BBObject
+from erni.blackboard.objects import BBObject, Model
 
 if TYPE_CHECKING:
     from erni.blackboard.agent import Agent, Timer
 
 
-class NoSettings(BaseModel):
+class NoSettings(Model):
     """Settings of a plugin that takes none."""
 
     model_config = ConfigDict(extra="forbid")

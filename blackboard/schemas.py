@@ -13,15 +13,16 @@
 
 from __future__ import annotations
 
-import tomllib
 from pathlib import Path
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import ConfigDict, Field, ValidationError, model_validator
 
+from erni.blackboard import tomlfile
 from erni.blackboard.errors import ConfigError, describe_validation
-from erni.blackboard.objects import BBObject
+from erni.blackboard.objects import BBObject, FiniteAny, Model
 from erni.blackboard.tasks import AllocationResult
+from erni.blackboard.text import Name
 
 # --- agents ---------------------------------------------------------------------------------
 
@@ -29,7 +30,7 @@ from erni.blackboard.tasks import AllocationResult
 class Peer(BBObject):
     """An agent known to this one: where it is, what it is, whether it is heard."""
 
-    name: str
+    name: Name
     address: str = ""
     role: str = ""
     capabilities: list[str] = Field(default_factory=list)
@@ -39,7 +40,7 @@ class Peer(BBObject):
     degraded: str = Field("", description="why the peer cannot take new tasks ('' when it can)")
 
 
-class _Message(BaseModel):
+class _Message(Model):
     model_config = ConfigDict(extra="forbid")
 
 
@@ -104,7 +105,7 @@ class Fresh(_Message):
 class PeerList(_Message):
     """The directory of an agent, sent to a client."""
 
-    agent: str
+    agent: Name
     peers: list[Peer]
     down_after: dict[str, float] = Field(default_factory=dict, description="peer -> the silence (s) that "
                                          "marks it down now: peer_timeout, scaled and stretched for a lossy link")
@@ -121,10 +122,10 @@ class WatchRequest(_Message):
 class WatchEvent(_Message):
     """One blackboard change sent to a watcher."""
 
-    agent: str
+    agent: Name
     op: str
     type: str
-    data: dict[str, Any]
+    data: dict[str, FiniteAny]
 
 
 # --- floor-plan geometry --------------------------------------------------------------------
@@ -132,7 +133,7 @@ class WatchEvent(_Message):
 Point = tuple[float, float]
 
 
-class _Shape(BaseModel):
+class _Shape(Model):
     model_config = ConfigDict(frozen=True, extra="forbid")
 
 
@@ -177,18 +178,7 @@ class FloorPlan(_Shape):
 def read_toml(path: str | Path, what: str, error: type[ConfigError] = ConfigError) -> dict[str, Any]:
     """Return a TOML file's table, or raise `error` naming the file and saying what was expected."""
     path = Path(path)
-    try:
-        return tomllib.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise error(f"{path}: no such {what} file") from None
-    except IsADirectoryError:
-        raise error(f"{path}: is a directory; expected a {what} TOML file") from None
-    except UnicodeDecodeError:
-        raise error(f"{path}: not UTF-8 text; expected a {what} TOML file") from None
-    except OSError as err:
-        raise error(f"{path}: cannot read: {err.strerror or err}") from None
-    except tomllib.TOMLDecodeError as err:
-        raise error(f"{path}: not valid TOML: {err}") from None
+    return tomlfile.loads(tomlfile.read_text(path, what, error), str(path), error)
 
 
 def load_floorplan(path: str | Path) -> FloorPlan:

@@ -18,10 +18,8 @@ from dataclasses import dataclass
 from typing import Any, ClassVar, Self, TypeVar, Union, get_args, get_origin
 
 from pydantic import (
-    BaseModel,
     ConfigDict,
     Field,
-    JsonValue,
     SerializeAsAny,
     ValidationError,
     field_validator,
@@ -29,7 +27,8 @@ from pydantic import (
 )
 
 from erni.blackboard.errors import TaskError, describe_validation, shown
-from erni.blackboard.objects import BBObject
+from erni.blackboard.objects import BBObject, FiniteJson, Model
+from erni.blackboard.text import Name, NameOrEmpty
 
 
 def _is_number(annotation: Any) -> bool:
@@ -42,7 +41,7 @@ def _is_number(annotation: Any) -> bool:
     return False
 
 
-class Params(BaseModel):
+class Params(Model):
     """Base of every preposition's parameters: unknown keys are refused, numbers are strict.
 
     Each preposition of the built-in language has its own class, so a plugin dispatches with
@@ -351,7 +350,7 @@ class TaskState(str, enum.Enum):
         return self in (TaskState.SUCCEEDED, TaskState.FAILED, TaskState.CANCELLED)
 
 
-class AllocationResult(BaseModel):
+class AllocationResult(Model):
     """What the performer of a task reports: state, confidence, progress and typed values."""
 
     model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
@@ -359,7 +358,7 @@ class AllocationResult(BaseModel):
     state: TaskState = TaskState.PENDING
     confidence: float = Field(1.0, ge=0.0, le=1.0)
     progress: float = Field(0.0, ge=0.0, le=1.0)
-    values: dict[str, JsonValue] = Field(default_factory=dict)
+    values: dict[str, FiniteJson] = Field(default_factory=dict)
     message: str = ""
     stamp: float = Field(default_factory=time.time)
 
@@ -376,8 +375,8 @@ class Task(BBObject):
     verb: str
     preposition: str
     params: SerializeAsAny[Params] = Field(default_factory=NoParams)
-    source: str = ""
-    destination: str | None = None
+    source: NameOrEmpty = Field("", description="the agent that asked ('' before it is sent)")
+    destination: Name | None = None
     parent: str | None = None
     result: AllocationResult | None = None
     created: float = Field(default_factory=time.time)
@@ -478,7 +477,7 @@ def _label(data: Any) -> str:
 class Pose(BBObject):
     """Where a robot is and how it is doing; one per robot, changed in place (`pose:<robot>`)."""
 
-    robot: str
+    robot: Name
     x: float = 0.0
     y: float = 0.0
     theta: float = Field(0.0, description="heading (rad, counter-clockwise from +x)")
@@ -505,7 +504,7 @@ class Pose(BBObject):
         return self.stall_left or self.stall_right
 
 
-class Neighbor(BaseModel):
+class Neighbor(Model):
     """A one-hop neighbour as the network subsystem reports it."""
 
     model_config = ConfigDict(frozen=True, extra="forbid")
@@ -519,7 +518,7 @@ class Neighbor(BaseModel):
                                  "(the newest evidence, noisier than quality); None when the source has none")
 
 
-class Link(BaseModel):
+class Link(Model):
     """An edge of the network topology."""
 
     model_config = ConfigDict(frozen=True, extra="forbid")
@@ -530,7 +529,7 @@ class Link(BaseModel):
     metric: int | None = None
 
 
-class Route(BaseModel):
+class Route(Model):
     """A route from this node: next hop, hop count and path cost."""
 
     model_config = ConfigDict(frozen=True, extra="forbid")
@@ -541,7 +540,7 @@ class Route(BaseModel):
     cost: float = 0.0
 
 
-class Position(BaseModel):
+class Position(Model):
     """A node position as the network knows it (m, deg)."""
 
     model_config = ConfigDict(frozen=True, extra="forbid")
@@ -554,7 +553,7 @@ class Position(BaseModel):
 class NetInfo(BBObject):
     """Network state answering one NetWatch preposition; `degraded` when the source failed."""
 
-    node: str
+    node: Name
     kind: str = Field(description="the NetWatch preposition this answers")
     task: str | None = Field(None, description="uid of the NetWatch task")
     neighbors: list[Neighbor] = Field(default_factory=list)

@@ -8,12 +8,14 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import pkgutil
 import sys
 
 import erni
 import erni.commands
 from erni.blackboard.errors import ErniError
+from erni.commands._text import say
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -43,6 +45,10 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.func(args) or 0)
     except KeyboardInterrupt:
         return 130
+    except BrokenPipeError:  # `erni watch | head -1`: the reader is gone; end quietly, as Unix tools do
+        quiet = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(quiet, sys.stdout.fileno())  # what is still buffered goes nowhere, not into a traceback
+        return 141  # 128 + SIGPIPE: what a shell reports for a tool the closed pipe ended
     except ErniError as err:  # what a command did not catch itself (a network that cannot be opened ...)
-        print(f"erni {args.command}: {str(err).splitlines()[0] if str(err) else type(err).__name__}", file=sys.stderr)
+        say(f"erni {args.command}: {str(err).splitlines()[0] if str(err) else type(err).__name__}", file=sys.stderr)
         return 1

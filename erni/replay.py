@@ -6,6 +6,12 @@ every other line is one blackboard change seen by the recorded agent:
 `{"t": seconds since start, "agent": ..., "op": "add"|"change"|"remove", "type": "Pose", "data": {...}}`.
 Replaying publishes the same objects, in order and with the same spacing divided by the speed,
 on a control node's blackboard, so its GUI and `erni watch` see them as they saw the live team.
+
+A line is at most `MAX_LINE` bytes (1 MiB; a recorded change is a few hundred bytes, a team's
+network a few kilobytes): a longer one is skipped without being held, and named, as is a line that
+is not UTF-8, not JSON, not a valid object (a number that is not finite, an agent that is no name)
+or nested deeper than 64 levels. The other lines replay. At most `MAX_PROBLEMS` such lines are
+named one by one; the rest are counted.
 """
 
 from __future__ import annotations
@@ -14,19 +20,26 @@ import json
 import math
 import threading
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from pydantic import BaseModel, Field
+from pydantic import Field, ValidationError
 
 from erni.blackboard import BBObject, Plugin
-from erni.blackboard.errors import ErniError, shown
+from erni.blackboard.errors import ErniError, describe_validation, shown
+from erni.blackboard.objects import Model
+from erni.blackboard.text import NAME_CHARS, is_name
 from erni.transport.wire import TYPES, loads
 
 FORMAT = 1
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 MAX_SECONDS = 30 * 24 * 3600.0  # a recording longer than 30 days is a damaged or forged line, not a run
+MAX_LINE = 1024 * 1024
+"""The longest line of a JSON-lines log read (bytes, without its newline)."""
+MAX_PROBLEMS = 1000
+"""The most skipped lines named one by one; the rest are counted in one more line."""
 
 
 class LogError(ErniError):
@@ -66,23 +79,48 @@ def read_log(path: str | Path) -> tuple[dict[str, Any], list[Event], list[str]]:
             raise LogError(f"{path}: reading MCAP bags needs rosbags (pip install 'erni[ros2]'): {err}") from None
         return read_bag(path)
     try:
-        lines = path.read_text(encoding="utf-8").splitlines()
-    except (OSError, UnicodeDecodeError) as err:
-        raise LogError(f"{path}: cannot read: {err}") from None
-    if not lines:
+        with path.open("rb") as f:
+            return _read_lines(path, _lines(f))
+    except OSError as err:
+        raise LogError(f"{path}: cannot read: {err.strerror or err}") from None
+
+
+def _lines(f: Any) -> Iterator[tuple[int, bytes | None]]:
+    """(number, line) for each line of a file, None for a line longer than MAX_LINE (skipped, never held)."""
+    number = 0
+    while True:
+        line = f.readline(MAX_LINE + 1)
+        if not line:
+            return
+        number += 1
+        if len(line) > MAX_LINE and not (len(line) == MAX_LINE + 1 and line.endswith(b"\n")):
+            while line and not line.endswith(b"\n"):  # the rest of it, a block at a time
+                line = f.readline(MAX_LINE)
+            yield number, None
+        else:
+            yield number, line
+
+
+def _read_lines(path: Path, lines: Iterator[tuple[int, bytes | None]]) -> tuple[dict[str, Any], list[Event], list[str]]:
+    first = next(lines, None)
+    if first is None:
         raise LogError(f"{path}: empty; expected a log written by `erni record`")
     try:
-        header = loads(lines[0])
-    except ValueError:
+        header = loads(first[1].decode("utf-8")) if first[1] is not None else None
+    except (ValueError, UnicodeDecodeError):
         header = None
     if not isinstance(header, dict) or header.get("erni_record") != FORMAT:
         raise LogError(f"{path}:1: not an ERNI record (expected a header line with \"erni_record\": {FORMAT})")
     events: list[Event] = []
     problems: list[str] = []
-    for number, line in enumerate(lines[1:], start=2):
-        if not line.strip():
-            continue
+    skipped = 0
+    for number, data in lines:
         try:
+            if data is None:
+                raise LogError(f"a line longer than {MAX_LINE} bytes; expected a recorded change")
+            line = data.decode("utf-8")
+            if not line.strip():
+                continue
             raw = loads(line)
             if not isinstance(raw, dict):
                 raise LogError(f"expected a JSON object, got {type(raw).__name__}")
@@ -96,16 +134,33 @@ def read_log(path: str | Path) -> tuple[dict[str, Any], list[Event], list[str]]:
             if t > MAX_SECONDS:  # replaying would wait that long for it
                 raise LogError(f"t: expected seconds since the recording started, at most {MAX_SECONDS:.0f} "
                                f"(30 days), got {shown(t)}")
+            if not is_name(raw["agent"]):
+                raise LogError(f"agent {shown(raw['agent'])}: expected a name of {NAME_CHARS}")
             cls = TYPES.get(raw["type"]) if isinstance(raw["type"], str) else None
             if cls is None or not issubclass(cls, BBObject):
                 raise LogError(f"unknown object type {shown(raw['type'])}")
             if raw["op"] not in ("add", "change", "remove"):
                 raise LogError(f"unknown op {shown(raw['op'])}")
-            events.append(Event(float(t), str(raw["agent"])[:64], raw["op"], cls.model_validate(raw["data"])))
-        except (LogError, ValueError, KeyError, TypeError, RecursionError) as err:
-            problems.append(f"{path}:{number}: {str(err).splitlines()[0][:200]}")
+            events.append(Event(float(t), raw["agent"], raw["op"], cls.model_validate(raw["data"])))
+        except (LogError, ValueError, KeyError, TypeError, RecursionError) as err:  # UnicodeDecodeError too
+            if len(problems) < MAX_PROBLEMS:
+                problems.append(f"{path}:{number}: {problem_of(err)}")
+            else:
+                skipped += 1
+    if skipped:
+        problems.append(f"{path}: {skipped} more lines skipped")
     events.sort(key=lambda e: e.t)
     return header, events, problems
+
+
+def problem_of(err: BaseException) -> str:
+    """One line of at most 200 characters for why a recorded change was skipped: a model's validation
+    error as its first field and problem (`data.x: Input should be a finite number (got nan)`)."""
+    if isinstance(err, ValidationError):
+        text = describe_validation(err, prefix="data")
+    else:
+        text = str(err) or type(err).__name__
+    return text.splitlines()[0][:200]
 
 
 class Recorder:
@@ -133,7 +188,7 @@ class Recorder:
         self._f.close()
 
 
-class ReplaySettings(BaseModel):
+class ReplaySettings(Model):
     """The `[plugin.settings]` of the replay plugin."""
 
     log: str = Field(description="log file or MCAP bag written by `erni record`")

@@ -9,12 +9,13 @@ from __future__ import annotations
 
 import time
 
-from pydantic import BaseModel, Field
+from pydantic import Field
 
 from erni.blackboard import Plugin, Task, TaskState
+from erni.blackboard.objects import Model
 
 
-class EchoSettings(BaseModel):
+class EchoSettings(Model):
     """The `[plugin.settings]` of the echo plugin."""
 
     verbs: list[str] = Field(default_factory=lambda: ["BotMotion"], description="verbs of the tasks it answers")

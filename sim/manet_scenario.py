@@ -4,15 +4,16 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import ConfigDict, Field, ValidationError, model_validator
 
 from erni.blackboard.errors import describe_validation
+from erni.blackboard.objects import Model
 from erni.blackboard.schemas import read_toml
 from erni.sim.manet import ManetNetwork, RadioModel
 from erni.sim.scenario import ScenarioError
 
 
-class _Strict(BaseModel):
+class _Strict(Model):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 

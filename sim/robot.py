@@ -29,9 +29,10 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import ConfigDict, Field
 
 from erni.blackboard.errors import ConfigError
+from erni.blackboard.objects import Model
 from erni.plugins.motion.robots import MODELS, Transducer, lookup
 from erni.sim.world import World
 
@@ -57,7 +58,7 @@ PIONEER3_SONAR: tuple[Transducer | None, ...] = _P3DX.sonar
 AMIGOBOT_SONAR: tuple[Transducer | None, ...] = MODELS["amigo"].sonar
 
 
-class SimRobotConfig(BaseModel):
+class SimRobotConfig(Model):
     """Everything that makes one simulated robot: body, limits, sensors, battery, wire factors."""
 
     model_config = ConfigDict(frozen=True, extra="forbid")

@@ -62,9 +62,10 @@ import random
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from erni.blackboard.errors import ConfigError, TaskError, describe_validation
+from erni.blackboard.objects import FiniteAny, Model
 from erni.blackboard.schemas import read_toml
 from erni.blackboard.tasks import Task
 from erni.sim.world import RobotStart, World, WorldError
@@ -77,7 +78,7 @@ class ScenarioError(ConfigError):
     """A scenario that cannot be used; the message names the file, the field and the problem."""
 
 
-class _Strict(BaseModel):
+class _Strict(Model):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 
@@ -131,7 +132,7 @@ class TaskSpec(_Strict):
     to: str = Field("all", description="a robot name, or 'all'")
     verb: str
     preposition: str
-    params: dict[str, Any] = Field(default_factory=dict)
+    params: dict[str, FiniteAny] = Field(default_factory=dict)
 
     @model_validator(mode="after")
     def _valid_task(self) -> TaskSpec:
@@ -165,7 +166,7 @@ class Scenario(_Strict):
     poi: list[PoiSpec] = Field(default_factory=list)
     task: list[TaskSpec] = Field(default_factory=list)
     failure: list[FailureSpec] = Field(default_factory=list)
-    strategy: dict[str, Any] = Field(default_factory=dict, description="experiment parameters")
+    strategy: dict[str, FiniteAny] = Field(default_factory=dict, description="experiment parameters")
 
     @field_validator("robot")
     @classmethod

@@ -33,9 +33,10 @@ from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import ConfigDict, Field, ValidationError
 
 from erni.blackboard.errors import ConfigError, describe_validation
+from erni.blackboard.objects import Model
 from erni.blackboard.schemas import FloorPlan, Point, read_toml
 
 Segment = tuple[Point, Point]
@@ -45,7 +46,7 @@ class WorldError(ConfigError):
     """A world file is missing, unreadable or invalid."""
 
 
-class _Model(BaseModel):
+class _Model(Model):
     model_config = ConfigDict(frozen=True, extra="forbid")
 
 

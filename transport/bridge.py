@@ -46,7 +46,7 @@ from pydantic import BaseModel, ConfigDict, Field, SecretStr, model_validator
 
 from erni.blackboard import AllocationResult, BBObject, NetInfo, Plugin, Pose, Task, TaskState
 from erni.blackboard.errors import ConfigError
-from erni.blackboard.objects import only_stamp_differs
+from erni.blackboard.objects import Model, only_stamp_differs
 from erni.blackboard.schemas import (
     Beacon,
     Cancel,
@@ -91,7 +91,7 @@ class Received(BBObject):
                       "relayed task)")
 
 
-class Relayed(BaseModel):
+class Relayed(Model):
     """A task forwarded by a relay (`task.relay`): the relay states the role of its originator
     (`task.source`), and the receiver checks that the relay may relay for that role and that the
     originator may give the task."""
@@ -109,7 +109,7 @@ for _cls in (Peer, Received, Relayed, Beacon, ResultUpdate, Cancel, TaskRescind,
 WATCHED = (Task, Pose, NetInfo, Peer)
 
 
-class TransportSettings(BaseModel):
+class TransportSettings(Model):
     """The `[plugin.settings]` of the transport plugin."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)

@@ -25,9 +25,11 @@ from msgspec import UNSET, Meta, Raw, Struct, UnsetType
 from pydantic import BaseModel
 
 from erni.blackboard import Pose
+from erni.blackboard.text import is_name
 from erni.transport.wire import TYPES, VERSION
 
-Name = Annotated[str, Meta(min_length=1, max_length=64)]
+Name = Annotated[str, Meta(min_length=1, max_length=63)]  # and `is_name` after the decode (`_named`)
+NameOrEmpty = Annotated[str, Meta(max_length=63)]
 Str64 = Annotated[str, Meta(max_length=64)]
 Str32 = Annotated[str, Meta(max_length=32)]
 
@@ -38,7 +40,7 @@ class Head(Struct, kw_only=True, forbid_unknown_fields=True):
     v: int = VERSION
     sender: Name
     role: Str32 = ""
-    to: Str64 = ""
+    to: NameOrEmpty = ""
     inst: Str32 = ""
     reply: tuple[str, int] = ("", 0)
 
@@ -68,7 +70,7 @@ class PoseBody(Struct, kw_only=True, forbid_unknown_fields=True):
     the model gets pydantic's default for it and the same set of fields given."""
 
     uid: str | UnsetType = UNSET
-    robot: str
+    robot: Name
     x: float | UnsetType = UNSET
     y: float | UnsetType = UNSET
     theta: float | UnsetType = UNSET
@@ -88,7 +90,7 @@ class PoseFull(Struct, kw_only=True, forbid_unknown_fields=True, gc=False):
     fields): the common case, typed without looking for fields left out."""
 
     uid: str
-    robot: str
+    robot: Name
     x: float
     y: float
     theta: float
@@ -147,7 +149,15 @@ def _pose_of(raw: Raw | bytes) -> Pose:
                 given.discard(name)
                 values[name] = time.time() if name == "stamp" else \
                     Pose.model_fields[name].get_default(call_default_factory=True)
+    if not is_name(values["robot"]):
+        raise msgspec.ValidationError("robot: not a name")
     return _pose_from(values, given)
+
+
+def _named(head: Head) -> bool:
+    """Whether a head's sender and receiver keep to the name character set (checked after the decode:
+    a dict lookup for the few names a team has, where a msgspec pattern would run a regex a field)."""
+    return is_name(head.sender) and (head.to == "" or is_name(head.to))
 
 
 def _pose_from(values: dict[str, Any], given: set[str]) -> Pose:
@@ -175,6 +185,8 @@ def decode_status(payload: bytes) -> tuple[PoseEnvelope, Pose] | None:
         return None
     if "Pose" not in TYPES or TYPES["Pose"] is not Pose:
         return None  # the tag taken by another type: its own validator decides
+    if not (_named(env) and is_name(env.body.robot)):
+        return None
     return env, _pose_from(_asdict(env.body), set(_POSE_FIELDS))
 
 
@@ -192,6 +204,8 @@ def decode_data(payload: bytes) -> tuple[DecodedHead, list[tuple[Item | Envelope
     take the frame (the pydantic parse then decides)."""
     try:
         value = _frame.decode(payload)
+        if not _named(value if isinstance(value, Envelope) else value[0]):
+            return None
         if isinstance(value, Envelope):
             if value.type is None:
                 return None  # an untyped body: the pydantic parse reads it as plain JSON

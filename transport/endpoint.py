@@ -51,6 +51,7 @@ from pydantic import BaseModel
 from pydantic_core import to_json
 
 from erni.blackboard.errors import ConfigError, NetworkError
+from erni.logs import RateLimitedLog
 from erni.transport.batching import FastMessages
 from erni.transport.codec import DecodedHead, decode_data, decode_status
 from erni.transport.discovery import Beacons
@@ -126,24 +127,6 @@ def parse_address(text: str, default_port: int = 0) -> Address:
     return host, number
 
 
-class _RateLimitedLog:
-    """Log each reason at most once per `period` seconds, with the count since last time."""
-
-    def __init__(self, log: logging.Logger, period: float = 5.0):
-        self.log, self.period = log, period
-        self._last: dict[str, float] = {}
-        self._suppressed: dict[str, int] = {}
-
-    def warning(self, reason: str, text: str) -> None:
-        now = time.monotonic()
-        if now - self._last.get(reason, -1e9) >= self.period:
-            more = self._suppressed.pop(reason, 0)
-            self._last[reason] = now
-            self.log.warning("%s%s", text, f" (+{more} more since last report)" if more else "")
-        else:
-            self._suppressed[reason] = self._suppressed.get(reason, 0) + 1
-
-
 class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
     """Sockets and threads of one agent; deliver verified messages to `on_message`.
 
@@ -201,7 +184,7 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
         self._seq = itertools.count(1)
         self._id_prefix = os.urandom(6).hex() + "."  # message ids: unique per instance, cheap (no uuid)
         self.log = logging.getLogger(f"erni.{name}.transport")
-        self._drops = _RateLimitedLog(self.log)
+        self._drops = RateLimitedLog(self.log)
         self._last_fault = -1e9  # when a fault of the frame path was last logged (monotonic)
         self.counters: dict[str, int] = {}
         self._counter_lock = threading.Lock()

@@ -32,9 +32,9 @@ from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey,
 from cryptography.x509.oid import NameOID
 
 from erni.blackboard.errors import ConfigError
+from erni.blackboard.text import NAME as NAME_PATTERN
 
-NAME_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,62}$")
-ROLE_PATTERN = re.compile(r"^[a-z][a-z0-9_-]{0,31}$")
+ROLE_PATTERN = re.compile(r"^[a-z][a-z0-9_-]{0,31}\Z")
 AUTHORITY_KEY, AUTHORITY_CERT, REVOKED = "authority.key", "authority.crt", "revoked.crl"
 ISSUED = "issued"  # DIR/issued/NAME-SERIAL.crt: every certificate the authority signed
 _BEGIN = datetime.datetime(1970, 1, 1, tzinfo=datetime.UTC)

@@ -42,8 +42,10 @@ from cryptography.hazmat.primitives.asymmetric.x25519 import X25519PrivateKey, X
 from cryptography.hazmat.primitives.ciphers.aead import ChaCha20Poly1305
 from cryptography.hazmat.primitives.kdf.hkdf import HKDF
 from cryptography.x509.oid import NameOID
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import ConfigDict, Field, ValidationError
 
+from erni.blackboard.objects import Model
+from erni.blackboard.text import Name, NameOrEmpty
 from erni.transport.identity import Identity, IdentityError
 from erni.transport.wire import (
     BEACON,
@@ -67,14 +69,14 @@ _HEX32 = r"^[0-9a-f]{32}$"
 _HEX64 = r"^[0-9a-f]{64}$"
 
 
-class Hello(BaseModel):
+class Hello(Model):
     """The body of a handshake frame ('H' from the initiator, 'R' from the responder)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    sender: str = Field(min_length=1, max_length=64)
+    sender: Name
     role: str = Field("", max_length=32)
-    to: str = Field("", max_length=64)
+    to: NameOrEmpty = ""
     inst: str = Field(pattern=_HEX32)
     reply: tuple[str, int]
     eph: str = Field(pattern=_HEX64)

@@ -33,6 +33,8 @@ from pydantic_core import PydanticSerializationError, from_json, to_json
 
 from erni.blackboard import AllocationResult, NetInfo, Pose, Task
 from erni.blackboard.errors import ErniError, UsageError, shown
+from erni.blackboard.objects import FiniteAny, Model
+from erni.blackboard.text import Name, NameOrEmpty
 
 HEADER = struct.Struct(">I")
 KIND = struct.Struct(">IB")  # length, kind
@@ -73,21 +75,21 @@ for _cls in (Task, Pose, NetInfo, AllocationResult):
     register_type(_cls)
 
 
-class EnvelopeHead(BaseModel):
+class EnvelopeHead(Model):
     """Who sent a frame, to whom, and where to answer: once for each message, or once for all the
     messages of a batch of statuses."""
 
     model_config = ConfigDict(extra="forbid")
 
     v: int = VERSION
-    sender: str = Field(min_length=1, max_length=64)
+    sender: Name
     role: str = Field("", max_length=32, description="the sender's role: robot, control, cli (a client) ...")
-    to: str = Field("", max_length=64, description="the receiver's name ('' only where it is not known yet)")
+    to: NameOrEmpty = Field("", description="the receiver's name ('' only where it is not known yet)")
     inst: str = Field("", max_length=32, description="the sender's instance: random per start")
     reply: tuple[str, int] = ("", 0)
 
 
-class EnvelopeItem(BaseModel):
+class EnvelopeItem(Model):
     """One message of a frame: its number in the sender's instance, id, kind and body."""
 
     model_config = ConfigDict(extra="forbid")
@@ -96,7 +98,7 @@ class EnvelopeItem(BaseModel):
     id: str = Field(max_length=64)
     kind: str = Field(max_length=64)
     type: str | None = Field(None, max_length=64)
-    body: Any = None
+    body: FiniteAny = None
 
 
 class Envelope(EnvelopeItem, EnvelopeHead):

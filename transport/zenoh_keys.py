@@ -22,17 +22,19 @@ from __future__ import annotations
 import re
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import ConfigDict, Field, field_validator, model_validator
 
+from erni.blackboard import text
 from erni.blackboard.errors import ConfigError
+from erni.blackboard.objects import Model
 
 Address = tuple[str, int]
 
 ADDRESS_PREFIX = "zenoh/"
 """The host part of an agent's address on the Zenoh wire: `zenoh/<name>` (port 0)."""
 
-NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,62}$")
-"""An agent's name (as `blackboard/config.py` allows it) and a team's: each one chunk of a key."""
+NAME = text.NAME
+"""An agent's name (`blackboard/text.py`) and a team's: each one chunk of a key."""
 
 ENDPOINT = re.compile(r"^(tcp|udp|tls|quic|ws)/(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.-]+):([0-9]{1,5})(#.*)?$")
 """A Zenoh locator this wire accepts: `PROTOCOL/HOST:PORT`, e.g. `tcp/192.0.2.1:7447`."""
@@ -40,7 +42,7 @@ ENDPOINT = re.compile(r"^(tcp|udp|tls|quic|ws)/(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.-
 DATAGRAM, RELIABLE, ALIVE = "d", "r", "alive"
 
 
-class ZenohSettings(BaseModel):
+class ZenohSettings(Model):
     """How an agent joins a team over Zenoh (`[plugin.settings.zenoh]` of the transport)."""
 
     model_config = ConfigDict(extra="forbid")

@@ -11,6 +11,7 @@ from collections.abc import Iterator
 from typing import Any
 
 from erni.blackboard.errors import ErniError, UsageError
+from erni.commands._text import say
 from erni.transport.endpoint import STREAM_BUFFER, Address, parse_address
 
 
@@ -77,7 +78,7 @@ def open_client(args: argparse.Namespace, command: str) -> Any:
     try:
         return make_client(args)
     except (ErniError, ValueError) as err:
-        print(f"erni {command}: {str(err).splitlines()[0]}", file=sys.stderr)
+        say(f"erni {command}: {str(err).splitlines()[0]}", file=sys.stderr)
         return None
 
 
@@ -115,5 +116,6 @@ def stamp(t: float | None = None) -> str:
 
 
 def dumps(obj: Any) -> str:
-    """Return compact JSON."""
-    return json.dumps(obj, separators=(",", ":"), default=str)
+    """Return compact JSON, all ASCII: a string's control characters are JSON escapes (DEL too, which
+    `json` leaves as it is), so a line of it prints as it reads."""
+    return json.dumps(obj, separators=(",", ":"), default=str).replace("\x7f", "\\u007f")

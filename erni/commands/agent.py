@@ -14,6 +14,7 @@ from erni.blackboard import heap
 from erni.blackboard.agent import Agent
 from erni.blackboard.config import build_agent, read_config
 from erni.blackboard.errors import ConfigError, ErniError
+from erni.commands._text import say, say_lines
 from erni.logs import setup_logging
 
 
@@ -47,13 +48,13 @@ def run(args: argparse.Namespace, prepare: Callable[[Agent], None] | None = None
         config = read_config(args.config)
         agent = build_agent(config, args.config)
     except ConfigError as err:
-        print(err, file=sys.stderr)
+        say_lines(str(err), file=sys.stderr)  # one line per problem of the file
         return 2
     agent.reset_journal = args.reset_journal
     if prepare is not None:
         prepare(agent)
     if args.check:
-        print(f"{args.config}: ok (agent {config.agent.name}, "
+        say(f"{args.config}: ok (agent {config.agent.name}, "
               f"{len(agent.plugins)} plugin(s): {', '.join(p.name for p in agent.plugins)})")
         return 0
     setup_logging(args.log_level or config.agent.log_level)
@@ -87,7 +88,7 @@ def run(args: argparse.Namespace, prepare: Callable[[Agent], None] | None = None
         except KeyboardInterrupt:   # from on_signal: the stop came during the start
             return 0
         except (ErniError, OSError) as err:
-            print(f"{args.config}: cannot start agent {config.agent.name}: {str(err).splitlines()[0]}",
+            say(f"{args.config}: cannot start agent {config.agent.name}: {str(err).splitlines()[0]}",
                   file=sys.stderr)
             return 2
         stop.wait()   # the signal handler sets it (a blocked wait in the main thread runs handlers)
@@ -102,6 +103,6 @@ def _exit_hard(name: str, grace: float) -> None:
     """The stop watchdog: a stop that outlives its grace ends the process, naming what was busy."""
     busy = sorted(t.name for t in threading.enumerate() if t is not threading.current_thread()
                   and t is not threading.main_thread())
-    print(f"agent {name}: did not stop within {grace:g} s of the signal; exiting now "
+    say(f"agent {name}: did not stop within {grace:g} s of the signal; exiting now "
           f"(threads still running: {', '.join(busy) or 'main only'})", file=sys.stderr, flush=True)
     os._exit(3)

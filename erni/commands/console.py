@@ -25,7 +25,9 @@ from typing import Any, TextIO
 
 from erni.blackboard import Task
 from erni.blackboard.schemas import Cancel, PeerList, ResultUpdate, WatchEvent, WatchRequest
+from erni.blackboard.text import printable
 from erni.commands._client import add_client_options, dumps, make_client, make_room_for_a_stream, stamp
+from erni.commands._text import say, say_lines
 
 WATCH_LEASE = 10.0
 
@@ -178,9 +180,10 @@ class Console:
         time.sleep(0.2)
 
     def print(self, text: str) -> None:
-        """Write whole lines: the receive thread's event lines and the replies never share a line."""
+        """Write whole lines: the receive thread's event lines and the replies never share a line (each
+        one line, its control characters escaped, as `say` prints it)."""
         with self._out_lock:
-            self.out.write(text + "\n")
+            self.out.write(printable(text) + "\n")
             self.out.flush()
 
     def emit(self, text: str, data: dict[str, Any]) -> None:
@@ -265,21 +268,22 @@ def run(args: argparse.Namespace) -> int:
         naming = Naming(args.robot_names)
         client = make_client(args)
     except ValueError as err:
-        print(f"erni console: {err}", file=sys.stderr)
+        say(f"erni console: {err}", file=sys.stderr)
         return 2
     interactive = sys.stdin.isatty()
     with client:
         try:
             addr = client.find(None)
         except ClientError as err:
-            print(f"erni console: {err}", file=sys.stderr)
+            say(f"erni console: {err}", file=sys.stderr)
             return 1
         dialogue = Dialogue(naming, verb=args.verb, source=client.endpoint.name, listening=True)
         console = Console(client, addr, dialogue, sys.stdout, json_lines=args.json).start()
         rl = _readline(args.history_file) if interactive else None
         try:
             if interactive:
-                print(f"erni console through {addr[0]}:{addr[1]}; tasks as {args.verb}\n{HELP}")
+                say(f"erni console through {addr[0]}:{addr[1]}; tasks as {args.verb}")
+                say_lines(HELP)
             while True:
                 try:
                     line = input("erni> " if interactive else "")
@@ -291,7 +295,7 @@ def run(args: argparse.Namespace) -> int:
                 if line in ("quit", "exit"):
                     break
                 if line in ("help", "?"):
-                    print(HELP)
+                    say_lines(HELP)
                     continue
                 if not interactive and not args.json:
                     console.print(f"> {line}")
@@ -299,7 +303,7 @@ def run(args: argparse.Namespace) -> int:
             if not interactive:
                 console.wait(args.timeout)
         except KeyboardInterrupt:
-            print()
+            say()
         finally:
             console.stop()
             if rl is not None:

@@ -7,6 +7,8 @@ import sys
 import time
 from typing import Any
 
+from erni.commands._text import say, say_lines
+
 
 def register(sub: Any) -> None:
     """Add the `experiment` sub-command."""
@@ -48,19 +50,19 @@ def run(args: argparse.Namespace) -> int:
     from erni.sim.scenario import ScenarioError, find_scenario, load_scenario
 
     if args.list or not args.name:
-        print(f"{'name':<16} {'paper':<6} {'mode (default first)':<22} what")
+        say(f"{'name':<16} {'paper':<6} {'mode (default first)':<22} what")
         for e in EXPERIMENTS.values():
             try:
                 default = e.default_mode(load_scenario(find_scenario(e.scenario)))
             except ScenarioError:
                 default = e.default_mode()
             modes = [default] + [m for m in e.modes if m != default]
-            print(f"{e.name:<16} {e.paper:<6} {' / '.join(modes):<22} {e.title}")
+            say(f"{e.name:<16} {e.paper:<6} {' / '.join(modes):<22} {e.title}")
         if not args.list:
-            print("erni experiment: name an experiment, e.g. `erni experiment poi --plot poi.png`", file=sys.stderr)
+            say("erni experiment: name an experiment, e.g. `erni experiment poi --plot poi.png`", file=sys.stderr)
         return 0 if args.list else 2
     if args.name not in EXPERIMENTS:
-        print(f"erni experiment: unknown experiment {args.name!r}; expected one of "
+        say(f"erni experiment: unknown experiment {args.name!r}; expected one of "
               f"{', '.join(EXPERIMENTS)}", file=sys.stderr)
         return 2
     exp = EXPERIMENTS[args.name]
@@ -68,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
         args.plot = f"{exp.name}.png"
     for flag, path in (("--plot", args.plot), ("--csv", args.csv)):
         if path is not None and not _writable(path):
-            print(f"erni experiment: {flag} {path}: cannot write there (no such directory?)", file=sys.stderr)
+            say(f"erni experiment: {flag} {path}: cannot write there (no such directory?)", file=sys.stderr)
             return 2
     try:
         scenario = load_scenario(args.scenario or find_scenario(exp.scenario))
@@ -101,9 +103,9 @@ def run(args: argparse.Namespace) -> int:
         if mode not in exp.modes:
             raise ScenarioError(f"{exp.name} runs in {' or '.join(exp.modes)} mode, not {mode!r}")
     except (ScenarioError, NetnsError) as err:
-        print(f"erni experiment: {err}", file=sys.stderr)
+        say(f"erni experiment: {err}", file=sys.stderr)
         return 2
-    print(f"erni experiment {exp.name}: paper {exp.paper}, {exp.title} ({mode} mode, "
+    say(f"erni experiment {exp.name}: paper {exp.paper}, {exp.title} ({mode} mode, "
           f"{scenario.count} robot(s){f', {args.seeds} seeds' if args.seeds else ''}"
           f"{', real-mesh tier' if args.netns else ''})", flush=True)
     progress = Progress()
@@ -119,16 +121,16 @@ def run(args: argparse.Namespace) -> int:
         result = run_experiment(exp.name, scenario, progress, **options)
     except (ValueError, RuntimeError, OSError) as err:
         progress.done()
-        print(f"erni experiment {exp.name}: {err}", file=sys.stderr)
+        say(f"erni experiment {exp.name}: {err}", file=sys.stderr)
         return 1
     progress.done(f"done in {time.monotonic() - t0:.1f} s")
     if args.csv:
         result.write_csv(args.csv)
-        print(f"numbers: {args.csv}")
+        say(f"numbers: {args.csv}")
     if args.plot and not args.no_plot:
         result.plot(args.plot)
-        print(f"figure: {args.plot}")
-    print(result.report(), flush=True)
+        say(f"figure: {args.plot}")
+    say_lines(result.report(), flush=True)
     return 0
 
 

@@ -6,6 +6,7 @@ import argparse
 import sys
 from typing import Any
 
+from erni.commands._text import say
 from erni.transport.identity import AUTHORITY_CERT, REVOKED, Authority, IdentityError, load_identity
 
 ROLES = """\
@@ -58,34 +59,34 @@ def run(args: argparse.Namespace) -> int:
     try:
         if args.action == "init":
             authority = Authority.create(args.dir, args.team)
-            print(f"team authority {args.team!r} in {authority.dir} ({AUTHORITY_CERT}, {REVOKED}); keep "
+            say(f"team authority {args.team!r} in {authority.dir} ({AUTHORITY_CERT}, {REVOKED}); keep "
                   f"{authority.dir / 'authority.key'} off the robots")
         elif args.action == "issue":
             path = Authority(args.dir).issue(args.name, args.role, args.out)
             identity = load_identity(path)
-            print(f"{path}: {identity.name} ({identity.role}), serial {identity.serial:x}; set "
+            say(f"{path}: {identity.name} ({identity.role}), serial {identity.serial:x}; set "
                   f"identity = \"{path}\" in its transport settings")
         elif args.action == "revoke":
             authority = Authority(args.dir)
             serials = authority.revoke(args.name)
             number = authority.crl_number()
             if serials:
-                print(f"revoked {len(serials)} certificate(s) of {args.name}: "
+                say(f"revoked {len(serials)} certificate(s) of {args.name}: "
                       f"{', '.join(f'{s:x}' for s in serials)}; {authority.dir / REVOKED} is now list {number}: "
                       "give it to the control node (the agents pass it on)")
             else:
-                print(f"{args.name}: already revoked (list {number})")
+                say(f"{args.name}: already revoked (list {number})")
         elif args.action == "list":
             authority = Authority(args.dir)
             revoked = {r.serial_number for r in authority.crl()}
             for name, role, serial in authority.issued():
-                print(f"{name:<16} {role:<8} {serial:x}{'  REVOKED' if serial in revoked else ''}")
+                say(f"{name:<16} {role:<8} {serial:x}{'  REVOKED' if serial in revoked else ''}")
         else:
             identity = load_identity(args.file, args.revocations)
-            print(f"{args.file}: {identity.name} ({identity.role}), serial {identity.serial:x}, team authority "
+            say(f"{args.file}: {identity.name} ({identity.role}), serial {identity.serial:x}, team authority "
                   f"{identity.trust.fingerprint}" + (f", revocation list {identity.trust.crl_number}"
                                                       if args.revocations else ""))
     except IdentityError as err:
-        print(f"erni keys: {err}", file=sys.stderr)
+        say(f"erni keys: {err}", file=sys.stderr)
         return 2
     return 0

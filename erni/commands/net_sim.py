@@ -9,6 +9,7 @@ import time
 from typing import TYPE_CHECKING, Any
 
 from erni.blackboard.errors import ConfigError
+from erni.commands._text import say
 
 if TYPE_CHECKING:
     from erni.plugins.mobinet.usm import UsmUser
@@ -77,7 +78,7 @@ def run(args: argparse.Namespace) -> int:
             scenario = scenario.model_copy(update={"base_port": args.base_port})
             scenario = type(scenario).model_validate(scenario.model_dump())
     except (ScenarioError, ValueError) as err:   # ConfigError is a ValueError
-        print(f"erni net-sim: {err}", file=sys.stderr)
+        say(f"erni net-sim: {err}", file=sys.stderr)
         return 2
     host = args.host or scenario.host
     net = scenario.build()
@@ -94,19 +95,19 @@ def run(args: argparse.Namespace) -> int:
             for name, port in scenario.ports().items():
                 agent.serve(name, host, port, write_community=writes[name])
         except OSError as err:
-            print(f"erni net-sim: {err}", file=sys.stderr)
+            say(f"erni net-sim: {err}", file=sys.stderr)
             return 2
         addresses = agent.addresses()
         writable = sum(1 for w in writes.values() if w is not None)
         access = (f"SNMPv3 only: user {users[0].name!r}, authPriv {users[0].auth_protocol}/{users[0].priv_protocol}"
                   if users else f"read community {scenario.read_community!r}, "
                   f"{writable} node(s) writable with their write community")
-        print(f"net-sim: {len(addresses)} node(s), R = {scenario.comm_range} m, "
+        say(f"net-sim: {len(addresses)} node(s), R = {scenario.comm_range} m, "
               f"loss-free to {scenario.lossless_range} m, {access}")
         for name, (h, port) in addresses.items():
-            print(f"  {name:<12} {net.info(name).address:<12} snmp udp:{h}:{port}")
-        print(f"  {_topology_line(net)}")
-        print("serving; Ctrl-C to stop", flush=True)
+            say(f"  {name:<12} {net.info(name).address:<12} snmp udp:{h}:{port}")
+        say(f"  {_topology_line(net)}")
+        say("serving; Ctrl-C to stop", flush=True)
         start = time.monotonic()
         moves = sorted(scenario.moves, key=lambda m: m.at)
         while not stopping:
@@ -116,7 +117,7 @@ def run(args: argparse.Namespace) -> int:
             while moves and moves[0].at <= now:
                 m = moves.pop(0)
                 net.move(m.node, m.x, m.y)
-                print(f"t={m.at:6.1f} s  {m.node} -> ({m.x:g}, {m.y:g}); {_topology_line(net)}",
+                say(f"t={m.at:6.1f} s  {m.node} -> ({m.x:g}, {m.y:g}); {_topology_line(net)}",
                       flush=True)
             waits = [0.2]
             if moves:
@@ -129,7 +130,7 @@ def run(args: argparse.Namespace) -> int:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
         st = agent.stats
-        print(f"net-sim: stopped ({st['answered']} request(s) answered; dropped: "
+        say(f"net-sim: stopped ({st['answered']} request(s) answered; dropped: "
               f"{st['snmpInASNParseErrs']} undecodable, {st['snmpInBadCommunityNames']} unknown community, "
               f"{st['snmpUnknownPDUHandlers']} response/notification PDU(s)"
               + (f", {sum(v for k, v in st.items() if k.startswith('usmStats') and k != 'usmStatsUnknownEngineIDs')} "

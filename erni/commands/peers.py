@@ -9,6 +9,7 @@ from typing import Any
 
 from erni.blackboard.schemas import PeerList
 from erni.commands._client import add_client_options, dumps, open_client
+from erni.commands._text import say
 from erni.transport.zenoh_keys import wire_of
 
 
@@ -44,7 +45,7 @@ def run(args: argparse.Namespace) -> int:
             else:
                 raise ClientError(f"no answer from {addr[0]}:{addr[1]} within 5 s")
         except ClientError as err:
-            print(f"erni peers: {err}", file=sys.stderr)
+            say(f"erni peers: {err}", file=sys.stderr)
             return 1
         # on Zenoh: the router each agent is connected through, as its liveliness token says; the
         # tokens reach this client's own session on their own time, so wait a little for those
@@ -61,12 +62,12 @@ def run(args: argparse.Namespace) -> int:
     beacons, down_after = msg.body.beacons, msg.body.down_after
     if args.json:
         for p in peers:
-            print(dumps({"via": msg.body.agent, **p.model_dump(mode="json"), "wire": wire_of(p.address),
+            say(dumps({"via": msg.body.agent, **p.model_dump(mode="json"), "wire": wire_of(p.address),
                          **({"router": routes.get(p.name)} if routes else {}),
                          "beacons": beacons.get(p.name), "down_after": down_after.get(p.name)}))
         return 0
-    print(f"agents known to {msg.body.agent} ({addr[0]}:{addr[1]}):")
-    print(f"{'name':<16} {'state':<5} {'wire':<5} {'address':<22}" + (f" {'router':<12}" if routes else "")
+    say(f"agents known to {msg.body.agent} ({addr[0]}:{addr[1]}):")
+    say(f"{'name':<16} {'state':<5} {'wire':<5} {'address':<22}" + (f" {'router':<12}" if routes else "")
           + f" {'role':<10} {'heard':>8} {'down after':>10} {'beacons':>8}  capabilities")
     for p in peers:
         route = routes.get(p.name)
@@ -74,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
         heard = f"{now - p.last_heard:.1f}s" if p.last_heard else "never"
         limit = f"{down_after[p.name]:.1f}s" if p.name in down_after else "-"
         share = f"{100 * beacons[p.name]:.0f}%" if p.name in beacons else "-"
-        print(f"{p.name:<16} {'up' if p.up else 'down':<5} {wire_of(p.address) or '-':<5} {p.address:<22}{router} "
+        say(f"{p.name:<16} {'up' if p.up else 'down':<5} {wire_of(p.address) or '-':<5} {p.address:<22}{router} "
               f"{p.role:<10} {heard:>8} {limit:>10} "
               f"{share:>8}  {','.join(p.capabilities)}" + (f"  DEGRADED: {p.degraded}" if p.degraded else ""))
     return 0

@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from erni.commands._client import add_client_options, check_seconds, open_client, watch_events
+from erni.commands._text import say
 from erni.replay import LogError, Recorder
 
 LEASE = 10.0
@@ -45,7 +46,7 @@ def run(args: argparse.Namespace) -> int:
         return _convert(args.convert, args.out, fmt)
     problem = check_seconds(args.seconds, "--seconds", zero=True)
     if problem:
-        print(f"erni record: {problem}", file=sys.stderr)
+        say(f"erni record: {problem}", file=sys.stderr)
         return 2
     if fmt == "mcap" and _bags() is None:
         return 2
@@ -60,25 +61,28 @@ def run(args: argparse.Namespace) -> int:
             bags = _bags() if fmt == "mcap" else None
             recorder: Recorder | Any = bags.BagRecorder(args.out, via) if bags else Recorder(args.out, via)
         except (ClientError, LogError) as err:
-            print(f"erni record: {err}", file=sys.stderr)
+            say(f"erni record: {err}", file=sys.stderr)
             return 1 if isinstance(err, ClientError) else 2
-        print(f"recording {addr[0]}:{addr[1]} into {args.out} (Ctrl-C stops)", file=sys.stderr)
+        say(f"recording {addr[0]}:{addr[1]} into {args.out} (Ctrl-C stops)", file=sys.stderr)
         shown = 0.0
         try:
             for ev in watch_events(client, addr, end, LEASE):
                 if ev is not None:
                     recorder.write(ev.agent, ev.op, ev.type, ev.data)
                 if sys.stderr.isatty() and time.monotonic() >= shown:
-                    print(f"\r{recorder.count} events", end="", file=sys.stderr, flush=True)
+                    print("\r", end="", file=sys.stderr)  # the count overwrites itself
+                    say(f"{recorder.count} events", end="", file=sys.stderr, flush=True)
                     shown = time.monotonic() + 0.5
         except KeyboardInterrupt:
             pass
         finally:
             problem = _close(recorder)
     if problem:
-        print(f"\nerni record: {problem}", file=sys.stderr)
+        print(file=sys.stderr)
+        say(f"erni record: {problem}", file=sys.stderr)
         return 2
-    print(f"\nrecorded {recorder.count} events into {args.out}", file=sys.stderr)
+    print(file=sys.stderr)
+    say(f"recorded {recorder.count} events into {args.out}", file=sys.stderr)
     return 0
 
 
@@ -96,7 +100,7 @@ def _bags() -> Any:
     try:
         from erni.plugins.ros2 import bags
     except ImportError as err:
-        print(f"erni record: MCAP bags need rosbags (pip install 'erni[ros2]'): {err}", file=sys.stderr)
+        say(f"erni record: MCAP bags need rosbags (pip install 'erni[ros2]'): {err}", file=sys.stderr)
         return None
     return bags
 
@@ -104,11 +108,11 @@ def _bags() -> Any:
 def _convert(log: str, out: str, fmt: str) -> int:
     """Write the JSON-lines log `log` as the MCAP bag `out`."""
     if fmt != "mcap":
-        print("erni record: --convert writes an MCAP bag: OUT must end in .mcap, or give --format mcap",
+        say("erni record: --convert writes an MCAP bag: OUT must end in .mcap, or give --format mcap",
               file=sys.stderr)
         return 2
     if Path(log).resolve() == Path(out).resolve():
-        print(f"erni record: --convert: {out} is the log itself", file=sys.stderr)
+        say(f"erni record: --convert: {out} is the log itself", file=sys.stderr)
         return 2
     bags = _bags()
     if bags is None:
@@ -116,9 +120,9 @@ def _convert(log: str, out: str, fmt: str) -> int:
     try:
         count, problems = bags.convert(log, out)
     except LogError as err:
-        print(f"erni record: {err}", file=sys.stderr)
+        say(f"erni record: {err}", file=sys.stderr)
         return 2
     for line in problems:
-        print(f"erni record: skipping {line}", file=sys.stderr)
-    print(f"converted {count} events from {log} into {out}", file=sys.stderr)
+        say(f"erni record: skipping {line}", file=sys.stderr)
+    say(f"converted {count} events from {log} into {out}", file=sys.stderr)
     return 0

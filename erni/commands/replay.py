@@ -13,6 +13,7 @@ from typing import Any
 
 from erni.blackboard import Agent
 from erni.blackboard.errors import ErniError
+from erni.commands._text import say
 from erni.logs import setup_logging
 from erni.replay import LogError, ReplayPlugin, read_log
 
@@ -51,7 +52,7 @@ def _commands(plugin: ReplayPlugin, stop: threading.Event) -> None:
         word = line.strip().lower()
         if word in ("p", "pause", ""):
             plugin.pause(not plugin.paused.is_set())
-            print("paused" if plugin.paused.is_set() else "playing", file=sys.stderr)
+            say("paused" if plugin.paused.is_set() else "playing", file=sys.stderr)
         elif word in ("q", "quit"):
             stop.set()
         else:
@@ -61,9 +62,9 @@ def _commands(plugin: ReplayPlugin, stop: threading.Event) -> None:
                 speed = math.nan
             if math.isfinite(speed) and speed > 0:
                 plugin.speed = max(0.01, min(1000.0, speed))
-                print(f"speed {plugin.speed:g}", file=sys.stderr)
+                say(f"speed {plugin.speed:g}", file=sys.stderr)
             else:
-                print(f"unknown command {word!r}: p (pause/resume), a speed such as 0.5, q", file=sys.stderr)
+                say(f"unknown command {word!r}: p (pause/resume), a speed such as 0.5, q", file=sys.stderr)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -71,13 +72,13 @@ def run(args: argparse.Namespace) -> int:
     try:
         _, events, problems = read_log(args.log)
     except LogError as err:
-        print(f"erni replay: {err}", file=sys.stderr)
+        say(f"erni replay: {err}", file=sys.stderr)
         return 2
     if not math.isfinite(args.speed) or args.speed <= 0:
-        print(f"erni replay: --speed: expected a finite number > 0, got {args.speed}", file=sys.stderr)
+        say(f"erni replay: --speed: expected a finite number > 0, got {args.speed}", file=sys.stderr)
         return 2
     for line in problems:
-        print(f"erni replay: skipping {line}", file=sys.stderr)
+        say(f"erni replay: skipping {line}", file=sys.stderr)
     setup_logging("WARNING")
     agent = Agent(args.name, workers=2)
     try:
@@ -89,36 +90,36 @@ def run(args: argparse.Namespace) -> int:
         fox = None
         if args.foxglove:
             if importlib.util.find_spec("foxglove") is None:
-                print("erni replay: --foxglove needs foxglove-sdk (pip install 'erni[ros2]')", file=sys.stderr)
+                say("erni replay: --foxglove needs foxglove-sdk (pip install 'erni[ros2]')", file=sys.stderr)
                 return 2
             fox = agent.add_plugin(FOXGLOVE, settings={"listen": args.foxglove}, name="foxglove")
         if not args.no_gui and importlib.util.find_spec("erni.plugins.ui") is not None:
             try:
                 agent.add_plugin("ui", name="ui")
             except ErniError as err:
-                print(f"erni replay: no GUI: {err}", file=sys.stderr)
+                say(f"erni replay: no GUI: {err}", file=sys.stderr)
     except (ErniError, ValueError) as err:
-        print(f"erni replay: {str(err).splitlines()[0]}", file=sys.stderr)
+        say(f"erni replay: {str(err).splitlines()[0]}", file=sys.stderr)
         return 2
     stop = threading.Event()
     try:
         agent.start()
         duration = events[-1].t if events else 0.0
-        print(f"replaying {len(events)} events ({duration:.1f} s at x{args.speed:g}) as agent "
+        say(f"replaying {len(events)} events ({duration:.1f} s at x{args.speed:g}) as agent "
               f"{args.name} on {args.listen}; `erni watch --via {args.listen}` to see them",
               file=sys.stderr)
         if args.foxglove:
             port = getattr(fox, "port", None)
             if port is None:  # its setup failed and disabled it: the agent logged why
-                print("erni replay: the Foxglove server did not start", file=sys.stderr)
+                say("erni replay: the Foxglove server did not start", file=sys.stderr)
             else:
-                print(f"Foxglove: ws://{args.foxglove.rsplit(':', 1)[0]}:{port}", file=sys.stderr)
+                say(f"Foxglove: ws://{args.foxglove.rsplit(':', 1)[0]}:{port}", file=sys.stderr)
         if sys.stdin.isatty():
             threading.Thread(target=_commands, args=(plugin, stop), name="replay-keys", daemon=True).start()
         while not stop.is_set() and not (plugin.finished.is_set() and not args.loop):  # --loop: until Ctrl-C
             time.sleep(0.2)
         if plugin.finished.is_set() and not args.loop:
-            print(f"replay finished ({plugin.position} events)", file=sys.stderr)
+            say(f"replay finished ({plugin.position} events)", file=sys.stderr)
             time.sleep(0.5)  # let watchers receive the last events
     except KeyboardInterrupt:
         pass

@@ -8,6 +8,7 @@ import sys
 import threading
 from typing import Any
 
+from erni.commands._text import say
 from erni.logs import setup_logging
 
 
@@ -57,12 +58,12 @@ def run(args: argparse.Namespace) -> int:
         problems.append(f"--model: unknown robot model {args.model!r}; expected one of {', '.join(MODELS)} "
                         "(or pioneer3, amigobot)")
     if problems:
-        print("erni robot-sim: " + "; ".join(problems), file=sys.stderr)
+        say("erni robot-sim: " + "; ".join(problems), file=sys.stderr)
         return 2
     try:
         world = World.load(args.world) if args.world else World()
     except WorldError as err:
-        print(f"erni robot-sim: {err}", file=sys.stderr)
+        say(f"erni robot-sim: {err}", file=sys.stderr)
         return 2
     host = RobotHost(world, physics_hz=args.physics_hz, host=args.host)
     try:
@@ -76,7 +77,7 @@ def run(args: argparse.Namespace) -> int:
             host.add_robot(cfg, port=port, pty=args.pty)
     except OSError as err:
         host.stop()
-        print(f"erni robot-sim: {err}", file=sys.stderr)
+        say(f"erni robot-sim: {err}", file=sys.stderr)
         return 1
     stop = threading.Event()
 
@@ -87,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         host.start()
         for i, robot in enumerate(host.robots):
-            print(f"{robot.config.name}: {host.url(i)}  ({robot.config.subclass}, world {world.name!r}, "
+            say(f"{robot.config.name}: {host.url(i)}  ({robot.config.subclass}, world {world.name!r}, "
                   f"start {robot.x:.2f} {robot.y:.2f})", flush=True)
         stop.wait()   # the signal handler sets it
     finally:

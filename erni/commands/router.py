@@ -10,6 +10,7 @@ import time
 from typing import TYPE_CHECKING, Any, TextIO
 
 from erni.blackboard.errors import ErniError
+from erni.commands._text import say, say_lines
 
 if TYPE_CHECKING:
     from erni.transport.identity import Identity
@@ -55,11 +56,11 @@ def run(args: argparse.Namespace) -> int:
         for endpoint in listen + args.connect:
             check_endpoint(endpoint)
     except ValueError as err:
-        print(f"erni router: {err}", file=sys.stderr)
+        say(f"erni router: {err}", file=sys.stderr)
         return 2
     problem = _acl_problem(args, listen + args.connect)
     if problem:
-        print(f"erni router: {problem}", file=sys.stderr)
+        say(f"erni router: {problem}", file=sys.stderr)
         return 2
     try:
         access = None
@@ -69,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
             agents, routers = team_names(args.acl)
             access = access_control(args.team, agents, routers)
             if args.print_acl:
-                print(json.dumps({"access_control": access}, indent=2))
+                say_lines(json.dumps({"access_control": access}, indent=2))
                 return 0
         from erni.transport.identity import load_identity
 
@@ -77,10 +78,10 @@ def run(args: argparse.Namespace) -> int:
         serve(listen, args.connect, args.scouting, threading.Event(), identity=identity, access=access,
               team=args.team, name=args.name)
     except ErniError as err:
-        print(f"erni router: {err}", file=sys.stderr)
+        say(f"erni router: {err}", file=sys.stderr)
         return 1
     except ImportError:
-        print("erni router: needs the eclipse-zenoh package: pip install 'erni[zenoh]'", file=sys.stderr)
+        say("erni router: needs the eclipse-zenoh package: pip install 'erni[zenoh]'", file=sys.stderr)
         return 1
     return 0
 
@@ -116,7 +117,7 @@ def serve(listen: list[str], connect: list[str], scouting: bool, stop: threading
     session = open_router(listen, connect=connect, scouting=scouting, identity=identity, access=access,
                           team=team, name=name)
     try:
-        print(f"erni router {session.zid()}: listening on {' '.join(listen)}"
+        say(f"erni router {session.zid()}: listening on {' '.join(listen)}"
               + (f", linked to {' '.join(connect)}" if connect else "")
               + (f"; access control for {len(access['subjects'])} certificate name(s)" if access else ""),
               file=out, flush=True)
@@ -124,9 +125,9 @@ def serve(listen: list[str], connect: list[str], scouting: bool, stop: threading
         while not stop.wait(1.0):
             now = {str(z) for z in session.info.routers_zid()}
             for zid in sorted(now - routers):
-                print(f"{time.strftime('%H:%M:%S')} router {zid} linked", file=out, flush=True)
+                say(f"{time.strftime('%H:%M:%S')} router {zid} linked", file=out, flush=True)
             for zid in sorted(routers - now):
-                print(f"{time.strftime('%H:%M:%S')} router {zid} parted", file=out, flush=True)
+                say(f"{time.strftime('%H:%M:%S')} router {zid} parted", file=out, flush=True)
             routers = now
     except KeyboardInterrupt:
         pass

@@ -13,6 +13,9 @@ import time
 from pathlib import Path
 from typing import Any
 
+from erni.commands._text import say
+from erni.logs import mask_secrets
+
 KEEP_RUNS = 3  # run directories of finished `erni sim` runs kept in the temporary directory (newest first)
 RUN_PREFIX = "erni-sim-"  # what `erni sim` names its run directory in the temporary directory
 OWNER_FILE = "erni-sim.pid"  # in a run directory: the PID of the `erni sim` that made it
@@ -87,7 +90,7 @@ def run(args: argparse.Namespace) -> int:
             check_available()  # not root, no namespaces, no babeld: say why and how to run without
         if args.netns_clean:
             removed = clean_stale()
-            print(f"erni sim: removed {len(removed)} dead run(s) of --netns" +
+            say(f"erni sim: removed {len(removed)} dead run(s) of --netns" +
                   (f" ({', '.join(removed)})" if removed else ""))
             return 0
         if args.hello_interval is not None and not args.netns:
@@ -107,7 +110,7 @@ def run(args: argparse.Namespace) -> int:
         if not args.run_dir:
             (team.run_dir / OWNER_FILE).write_text(f"{os.getpid()}\n", encoding="utf-8")
     except (ScenarioError, TeamError, NetnsError, ValueError) as err:
-        print(f"erni sim: {err}", file=sys.stderr)
+        say(f"erni sim: {err}", file=sys.stderr)
         return 2
 
     # Ctrl-C or a TERM: while the team starts, abandon the start (KeyboardInterrupt); once it runs,
@@ -126,26 +129,26 @@ def run(args: argparse.Namespace) -> int:
     progress = Progress()
     code = 0
     try:
-        print(f"erni sim: {scenario.title} ({scenario.name}): {scenario.count} robot(s), "
+        say(f"erni sim: {scenario.title} ({scenario.name}): {scenario.count} robot(s), "
               f"R = {scenario.radio.comm_range:g} m; starting...", flush=True)
-        print(f"erni sim: run directory {team.run_dir} (agent configs, logs, journals, the team's keys)", flush=True)
+        say(f"erni sim: run directory {team.run_dir} (agent configs, logs, journals, the team's keys)", flush=True)
         t0 = time.monotonic()
         team.start(progress, timeout=args.timeout)
         progress.done()
         _print_team(team, time.monotonic() - t0)
         for note in speech_notes(team.url is None):
-            print(f"erni sim: {note}", flush=True)
+            say(f"erni sim: {note}", flush=True)
         running.append(True)
         _run_scenario(team, scenario, stopping)
     except (TeamError, NetnsError) as err:
         progress.done()
-        print(f"erni sim: {err}", file=sys.stderr)
+        say(f"erni sim: {err}", file=sys.stderr)
         code = 1
     except KeyboardInterrupt:
         progress.done()
     finally:
         signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C must not cut the clean stop short
-        print("erni sim: stopping the team...", flush=True)
+        say("erni sim: stopping the team...", flush=True)
         # a stop that hangs says where: every thread's stack on stderr after 30 s (the stop waits at
         # most 8 s for the agents, then kills them)
         faulthandler.dump_traceback_later(30, exit=False)
@@ -153,7 +156,7 @@ def run(args: argparse.Namespace) -> int:
         faulthandler.cancel_dump_traceback_later()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
-        print(f"erni sim: stopped; configs and logs in {team.run_dir}", flush=True)
+        say(f"erni sim: stopped; configs and logs in {team.run_dir}", flush=True)
     return code
 
 
@@ -220,25 +223,31 @@ def speech_notes(headless: bool) -> list[str]:
 
 def _print_team(team: Any, seconds: float) -> None:
     host, port = team.control_address
-    print(f"team up in {seconds:.1f} s: {len(team.names)} robot agent(s) and the control node; "
+    say(f"team up in {seconds:.1f} s: {len(team.names)} robot agent(s) and the control node; "
           f"run directory {team.run_dir}")
     for i, name in enumerate(team.names):
         r = team.robots[i]
         where = f" netns {team.mesh.node(name).netns}" if team.mesh is not None else ""
-        print(f"  {name:<10} agent {team.agents[name].address[0]:<12} pid {team.agents[name].pid or '-':<8} "
+        say(f"  {name:<10} agent {team.agents[name].address[0]:<12} pid {team.agents[name].pid or '-':<8} "
               f"robot {team.host.url(i):<26} at ({r.x:6.2f}, {r.y:6.2f}){where}")
-    print(f"  control    agent {host}:{port}  pid {team.agents['control'].pid or '-'}" +
+    say(f"  control    agent {host}:{port}  pid {team.agents['control'].pid or '-'}" +
           (f" netns {team.mesh.node('control').netns}" if team.mesh is not None else ""))
     if team.mesh is not None:
-        print(f"  mesh       segment {team.mesh.subnet} (namespace {team.mesh.hub}), babeld in every node, "
+        say(f"  mesh       segment {team.mesh.subnet} (namespace {team.mesh.hub}), babeld in every node, "
               f"MobiNet reads {team.mobinet}; routes: ip -n {team.mesh.node(team.names[-1]).netns} route")
-    print(f"  GUI        {team.url}" if team.url else "  GUI        none (headless, or the UI plugin is not installed)")
-    print(f"to task the team from another terminal:\n"
-          f"  export ERNI_IDENTITY={team.cli_identity}\n"
-          f"  erni peers --via {host}:{port}\n"
-          f"  erni task --via {host}:{port} {team.names[0]} BotMotion goto x=1 y=2 --wait\n"
-          f"  erni watch --via {host}:{port}")
-    print("Ctrl-C stops the team", flush=True)
+    if not team.url:
+        say("  GUI        none (headless, or the UI plugin is not installed)")
+    elif sys.stdout.isatty():
+        say(f"  GUI        {team.url}")
+    else:  # output to a file or a pipe is a log: the token stays in the control node's config (0600)
+        say(f"  GUI        {mask_secrets(team.url)} (the token is shown on a terminal only; it is the ui "
+            f"plugin's token in {team.run_dir / 'agents' / 'control.toml'})")
+    say("to task the team from another terminal:")
+    say(f"  export ERNI_IDENTITY={team.cli_identity}")
+    say(f"  erni peers --via {host}:{port}")
+    say(f"  erni task --via {host}:{port} {team.names[0]} BotMotion goto x=1 y=2 --wait")
+    say(f"  erni watch --via {host}:{port}")
+    say("Ctrl-C stops the team", flush=True)
 
 
 def _run_scenario(team: Any, scenario: Any, stopping: list[int]) -> None:
@@ -256,7 +265,7 @@ def _run_scenario(team: Any, scenario: Any, stopping: list[int]) -> None:
     while not stopping:
         now = time.monotonic() - start
         if scenario.duration is not None and now >= scenario.duration:
-            print(f"t={now:6.1f} s  duration reached", flush=True)
+            say(f"t={now:6.1f} s  duration reached", flush=True)
             return
         while pending and pending[0].at <= now:
             spec = pending.pop(0)
@@ -265,20 +274,20 @@ def _run_scenario(team: Any, scenario: Any, stopping: list[int]) -> None:
                             destination=name, source=client.endpoint.name)
                 client.send(team.control_address, "task.add", task)
                 sent[task.uid] = name
-                print(f"t={now:6.1f} s  {name}: {task.describe()}", flush=True)
+                say(f"t={now:6.1f} s  {name}: {task.describe()}", flush=True)
         while failures and failures[0].at <= now:
             f = failures.pop(0)
             team.fail(f.robot)
-            print(f"t={now:6.1f} s  {f.robot} fails (agent killed)", flush=True)
+            say(f"t={now:6.1f} s  {f.robot} fails (agent killed)", flush=True)
         msg = client.receive(0.2)
         if msg is not None and msg.kind == "task.result" and isinstance(msg.body, ResultUpdate):
             res = msg.body.result
             if msg.body.uid in sent and res.state.done:
-                print(f"t={now:6.1f} s  {sent.pop(msg.body.uid)}: {res.state.value} {res.message}".rstrip(),
+                say(f"t={now:6.1f} s  {sent.pop(msg.body.uid)}: {res.state.value} {res.message}".rstrip(),
                       flush=True)
         if time.monotonic() >= next_status:
             next_status += 10.0
-            print(f"t={now:6.1f} s  {status_line(team)}", flush=True)
+            say(f"t={now:6.1f} s  {status_line(team)}", flush=True)
 
 
 def status_line(team: Any) -> str:

@@ -11,6 +11,7 @@ from erni.blackboard import Task, TaskError
 from erni.blackboard.errors import UsageError, shown
 from erni.blackboard.schemas import Cancel, PeerList, ResultUpdate, TaskQuery, TaskUnknown
 from erni.commands._client import add_client_options, check_seconds, dumps, open_client, stamp
+from erni.commands._text import say
 from erni.transport.wire import loads
 
 QUERY_PERIOD = 2.0  # with --wait, ask the agent for the task's state this often
@@ -68,13 +69,13 @@ def run(args: argparse.Namespace) -> int:
     """Send the task; with --wait follow it to its end (or until its link is lost)."""
     problem = check_seconds(args.timeout, "--timeout") or check_seconds(args.link_deadline, "--link-deadline")
     if problem:
-        print(f"erni task: {problem}", file=sys.stderr)
+        say(f"erni task: {problem}", file=sys.stderr)
         return 2
     try:
         task = Task(verb=args.verb, preposition=args.preposition, params=parse_params(args.params),
                     destination=args.agent, source="cli")
     except (TaskError, UsageError) as err:
-        print(f"erni task: {err}", file=sys.stderr)
+        say(f"erni task: {err}", file=sys.stderr)
         return 2
     client = open_client(args, "task")
     if client is None:
@@ -93,7 +94,7 @@ def run(args: argparse.Namespace) -> int:
                     raise ClientError("could not reach the agent: no acknowledgement")
                 time.sleep(0.01)
         except ClientError as err:
-            print(f"erni task: {err}", file=sys.stderr)
+            say(f"erni task: {err}", file=sys.stderr)
             return 1
         if not args.wait:
             return _answer(args, client, addr, task)
@@ -102,7 +103,7 @@ def run(args: argparse.Namespace) -> int:
         except KeyboardInterrupt:
             client.send(addr, "task.cancel", Cancel(uid=task.uid))
             time.sleep(0.2)
-            print(f"erni task: cancelled {task.uid}", file=sys.stderr)
+            say(f"erni task: cancelled {task.uid}", file=sys.stderr)
             return 130
 
 
@@ -126,7 +127,7 @@ def _answer(args: argparse.Namespace, client: Any, addr: tuple[str, int], task: 
         unknown = known.answered(msg)
         if unknown:
             _cancel(client, addr, task)
-            print(f"erni task: {unknown}", file=sys.stderr)
+            say(f"erni task: {unknown}", file=sys.stderr)
             return 1
         if msg is None or msg.kind != "task.result" or not isinstance(msg.body, ResultUpdate) \
                 or msg.body.uid != task.uid:
@@ -135,18 +136,18 @@ def _answer(args: argparse.Namespace, client: Any, addr: tuple[str, int], task: 
         state = result.state.value
         if result.state.done and state != "succeeded":
             if args.json:
-                print(_line(args, task, result))
+                say(_line(args, task, result))
             reason = " ".join(result.message.split()) or "no reason given"
-            print(f"erni task: {args.agent}: task {task.uid} {state}: {reason}", file=sys.stderr)
+            say(f"erni task: {args.agent}: task {task.uid} {state}: {reason}", file=sys.stderr)
             return 1
         if state != "pending":  # running or succeeded: the performer has it (pending may be a relay's note)
             break
     if args.json:
-        print(dumps({"uid": task.uid, "agent": args.agent, "state": state}))
+        say(dumps({"uid": task.uid, "agent": args.agent, "state": state}))
     else:
         note = f" (still {state} after {ANSWER_WAIT:g} s; `erni task --wait` follows a task)" \
             if state in ("sent", "pending") else f" ({state})"
-        print(f"{task.uid} sent to {args.agent}: {task.describe()}{note}")
+        say(f"{task.uid} sent to {args.agent}: {task.describe()}{note}")
     return 0
 
 
@@ -210,12 +211,12 @@ def _follow(args: argparse.Namespace, client: Any, addr: tuple[str, int], task: 
         known.ask()
         now = time.monotonic()
         if end and now > end:
-            print(f"erni task: no final result within {args.timeout:g} s; cancelling", file=sys.stderr)
+            say(f"erni task: no final result within {args.timeout:g} s; cancelling", file=sys.stderr)
             client.send(addr, "task.cancel", Cancel(uid=task.uid))
             time.sleep(0.2)
             return 1
         if now - heard > args.link_deadline:
-            print(f"erni task: link lost: no answer from {addr[0]}:{addr[1]} for {now - heard:.0f} s; "
+            say(f"erni task: link lost: no answer from {addr[0]}:{addr[1]} for {now - heard:.0f} s; "
                   f"task {task.uid} may still run there", file=sys.stderr)
             return 1
         if now >= next_query:  # the agent answers with the task's state: a heartbeat, and a lost update found
@@ -227,12 +228,12 @@ def _follow(args: argparse.Namespace, client: Any, addr: tuple[str, int], task: 
         unknown = known.answered(msg)
         if unknown:
             _cancel(client, addr, task)
-            print(f"erni task: {unknown}", file=sys.stderr)
+            say(f"erni task: {unknown}", file=sys.stderr)
             return 1
         if msg.reply == addr or msg.kind in ("task.result", "task.unknown"):
             heard = time.monotonic()
         if msg.kind == "task.unknown" and isinstance(msg.body, TaskUnknown) and msg.body.uid == task.uid:
-            print(f"erni task: {args.agent} no longer knows task {task.uid} (restarted without its journal?)",
+            say(f"erni task: {args.agent} no longer knows task {task.uid} (restarted without its journal?)",
                   file=sys.stderr)
             return 1
         if msg.kind != "task.result" or not isinstance(msg.body, ResultUpdate) or msg.body.uid != task.uid:
@@ -242,6 +243,6 @@ def _follow(args: argparse.Namespace, client: Any, addr: tuple[str, int], task: 
         if same == shown_last and not result.state.done:
             continue  # an answer to a query that says nothing new
         shown_last = same
-        print(_line(args, task, result), flush=True)
+        say(_line(args, task, result), flush=True)
         if result.state.done:
             return 0 if result.state.value == "succeeded" else 1

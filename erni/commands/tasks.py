@@ -7,6 +7,7 @@ import json
 from typing import Any
 
 from erni.blackboard.tasks import PREPOSITIONS, VERBS, language_table
+from erni.commands._text import say_lines
 
 
 def register(sub: Any) -> None:
@@ -24,7 +25,7 @@ def run(args: argparse.Namespace) -> int:
                       "prepositions": {name: {"doc": p.doc, "params": p.params.model_json_schema()}
                                        for (vb, name), p in PREPOSITIONS.items() if vb == verb}}
                for verb, v in VERBS.items()}
-        print(json.dumps(out, indent=2))
+        say_lines(json.dumps(out, indent=2))
     else:
-        print(language_table())
+        say_lines(language_table())
     return 0

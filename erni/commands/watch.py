@@ -9,6 +9,7 @@ from typing import Any
 
 from erni.blackboard.schemas import WatchEvent
 from erni.commands._client import add_client_options, check_seconds, dumps, open_client, stamp, watch_events
+from erni.commands._text import say
 
 LEASE = 10.0
 
@@ -46,7 +47,7 @@ def run(args: argparse.Namespace) -> int:
 
     problem = check_seconds(args.seconds, "--seconds", zero=True)
     if problem:
-        print(f"erni watch: {problem}", file=sys.stderr)
+        say(f"erni watch: {problem}", file=sys.stderr)
         return 2
     client = open_client(args, "watch")
     if client is None:
@@ -57,19 +58,19 @@ def run(args: argparse.Namespace) -> int:
         try:
             addr = client.find(None)
         except ClientError as err:
-            print(f"erni watch: {err}", file=sys.stderr)
+            say(f"erni watch: {err}", file=sys.stderr)
             return 1
         try:
             for ev in watch_events(client, addr, end, LEASE):
                 if ev is None:
                     client.check_refused()
                     continue
-                print(dumps(ev.model_dump(mode="json")) if args.json else describe(ev), flush=True)
+                say(dumps(ev.model_dump(mode="json")) if args.json else describe(ev), flush=True)
                 seen += 1
                 if args.count and seen >= args.count:
                     break
         except ClientError as err:
-            print(f"erni watch: {err}", file=sys.stderr)
+            say(f"erni watch: {err}", file=sys.stderr)
             return 1
         except KeyboardInterrupt:
             pass

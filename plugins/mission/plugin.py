@@ -26,7 +26,7 @@ import time
 from collections.abc import Mapping
 from typing import TYPE_CHECKING, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, JsonValue
+from pydantic import ConfigDict, Field, JsonValue
 
 from erni.blackboard import (
     AllocationResult,
@@ -38,6 +38,7 @@ from erni.blackboard import (
     TaskState,
     TransactionError,
 )
+from erni.blackboard.objects import Model
 from erni.blackboard.schemas import Peer
 from erni.blackboard.tasks import CancelParams, ForwardParams, GotoParams, SayParams, StopParams
 from erni.plugins.mission.netaware import NetGuard
@@ -53,7 +54,7 @@ CUE_LOST = [(10, 67), (10, 60)]        # connectivity at risk: falling
 CUE_BACK = [(10, 60), (10, 67)]        # connectivity back: rising
 
 
-class MissionSettings(BaseModel):
+class MissionSettings(Model):
     """Settings of MissionControl (the `[plugin.settings]` table)."""
 
     model_config = ConfigDict(extra="forbid")

@@ -23,11 +23,11 @@ import time
 from collections.abc import Mapping
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, SecretStr, field_validator, model_validator
+from pydantic import ConfigDict, Field, SecretStr, field_validator, model_validator
 
 from erni.blackboard import NetInfo, Plugin, Pose, Position, Route, Task, TaskState
 from erni.blackboard.errors import ConfigError, TransactionError
-from erni.blackboard.objects import only_stamp_differs
+from erni.blackboard.objects import Model, only_stamp_differs
 from erni.blackboard.schemas import Peer
 from erni.blackboard.tasks import (
     LinkQualityParams,
@@ -62,7 +62,7 @@ FIELDS_OF = {NEIGHBORS: ("neighbors",), TOPOLOGY: ("links", "articulation_points
              ROUTES: ("routes",), POSITIONS: ("positions",)}   # the NetInfo fields a part fills
 
 
-class MobiNetSettings(BaseModel):
+class MobiNetSettings(Model):
     """The `[plugin.settings]` of MobiNetControl."""
 
     model_config = ConfigDict(extra="forbid")

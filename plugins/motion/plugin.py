@@ -12,9 +12,10 @@ import math
 import re
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import ConfigDict, Field, field_validator
 
 from erni.blackboard import AllocationResult, ConfigError, Plugin, Pose, Task, TaskState, TransactionError
+from erni.blackboard.objects import FiniteAny, Model
 from erni.plugins.motion.driver import ArcosDriver, RobotState, known_url_schemes
 from erni.plugins.motion.resource import RobotMotionResource, TaskUpdate
 from erni.plugins.motion.robots import ModelSpec, model_spec
@@ -23,14 +24,14 @@ from erni.plugins.motion.ros2_base import Ros2BaseDriver, is_ros2_url, parse_url
 _URL = re.compile(r"^([a-zA-Z][a-zA-Z0-9+.-]*://.*|/dev/\S+|COM\d+|/\S+)$")
 
 
-class MotionSettings(BaseModel):
+class MotionSettings(Model):
     """Settings of RobotMotionControl (the `[plugin.settings]` table)."""
 
     model_config = ConfigDict(extra="forbid")
 
     url: str = Field("simrobot://", description="serial device (/dev/ttyUSB0) or pyserial URL: "
                      "socket://host:8101 (MobileSim/AMRISim), simrobot:// (a simulated robot in this process)")
-    model: str | dict[str, Any] = Field(
+    model: str | dict[str, FiniteAny] = Field(
         "auto", description="'auto' (the model the robot names in SYNC2), a model such as 'p3dx-sh', 'amigo', "
         "'pioneer3', 'amigobot', or a table: a base and the values to override")
     baudrate: int = Field(9600, gt=0, description="serial rate to connect at (ARCOS starts at 9600)")

@@ -24,9 +24,10 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import ConfigDict, Field, ValidationError
 
 from erni.blackboard.errors import ConfigError, describe_validation
+from erni.blackboard.objects import Model
 
 Transducer = tuple[float, float, float]
 """A sonar transducer: x (m, ahead), y (m, left) from the robot's centre, bearing (deg, 0 = ahead)."""
@@ -37,7 +38,7 @@ DEFAULT_LIMITS = {"max_v": 0.75, "max_rv": 100.0, "accel": 0.3, "decel": 0.3, "r
 nor the robot's CONFIG reply gives a limit."""
 
 
-class RobotModel(BaseModel):
+class RobotModel(Model):
     """One robot model: wire conversion factors, body, sonar ring and the planner's limits."""
 
     model_config = ConfigDict(frozen=True, extra="forbid")

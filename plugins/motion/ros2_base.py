@@ -211,6 +211,11 @@ class Ros2BaseDriver(ArcosDriver):
         p, t = odom.pose.pose, odom.twist.twist
         ox, oy, oth = float(p.position.x), float(p.position.y), messages.yaw(p.orientation)
         v, w = float(t.linear.x), float(t.angular.z)
+        if not all(math.isfinite(value) for value in (ox, oy, oth, v, w)):  # no pose is made of NaN
+            self.stats.bad_sips += 1
+            self.last_error = (f"bad Odometry: expected finite numbers, got x {ox}, y {oy}, heading {oth}, "
+                               f"v {v}, w {w}")
+            return
         half = self.model.track / 2
         if self._first_odom == -math.inf:
             self._first_odom = now

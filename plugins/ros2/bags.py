@@ -21,7 +21,9 @@ a String shows only as text. Each status also carries the ERNI object itself as 
 
 A bag without ERNI's statuses replays too: the poses of its `nav_msgs/msg/Odometry` on
 `/<robot>/odom` and the tasks of its `/erni/task_status` (the live plugin's topics, as `ros2 bag
-record` saves them).
+record` saves them). A topic whose `<robot>` is no robot's name (`erni.blackboard.text`) is skipped
+and named; an Odometry whose numbers are not finite is a skipped message. Before any of it is read,
+the file is held to `mcap_bounds`' bounds (a chunk's and a message's decompressed size).
 """
 
 from __future__ import annotations
@@ -38,11 +40,13 @@ from typing import Any
 from pydantic import ValidationError
 
 from erni.blackboard import BBObject, NetInfo, Pose, Task
-from erni.blackboard.errors import ErniError
+from erni.blackboard.errors import ErniError, shown
 from erni.blackboard.schemas import Peer
 from erni.blackboard.tasks import AllocationResult
+from erni.blackboard.text import NAME_CHARS, is_name
+from erni.plugins.ros2 import mcap_bounds
 from erni.plugins.ros2 import messages as ros
-from erni.replay import FORMAT, MCAP_MAGIC, Event, LogError, read_log
+from erni.replay import FORMAT, MCAP_MAGIC, Event, LogError, problem_of, read_log
 from erni.transport.wire import TYPES
 
 FRAME = "map"
@@ -245,11 +249,13 @@ def convert(log: str | Path, out: str | Path) -> tuple[int, list[str]]:
     return recorder.count, problems
 
 
-def read_bag(path: str | Path) -> tuple[dict[str, Any], list[Event], list[str]]:
+def read_bag(path: str | Path, max_chunk: int = mcap_bounds.MAX_CHUNK,
+             max_message: int = mcap_bounds.MAX_MESSAGE) -> tuple[dict[str, Any], list[Event], list[str]]:
     """Return a bag's header, its ERNI events and one problem line per message that could not be read.
 
     Poses come from `/erni/robots` when the bag has it (every field), else from the Odometry on
     `/<robot>/odom` (position, heading, velocities and stamp), so bags from other tools replay too.
+    A bag beyond `max_chunk` or `max_message` (`mcap_bounds`) is refused whole (LogError).
     """
     from rosbags.rosbag2 import Reader
 
@@ -271,8 +277,12 @@ def read_bag(path: str | Path) -> tuple[dict[str, Any], list[Event], list[str]]:
             link_dir = tempfile.mkdtemp(prefix="erni-bag-")
             os.symlink(path.resolve(), Path(link_dir) / "bag.mcap")
     try:
+        for one in sorted(path.glob("*.mcap")) if path.is_dir() else [path]:
+            mcap_bounds.check(one, max_chunk, max_message)
         with Reader(Path(link_dir) / "bag.mcap" if link_dir else path) as reader:
             return _events(path, reader)
+    except mcap_bounds.BagBoundError as err:
+        raise LogError(str(err)) from None
     except LogError:
         raise
     except Exception as err:  # rosbags raises its own errors, struct and index errors on damaged files
@@ -288,6 +298,11 @@ def _events(path: Path, reader: Any) -> tuple[dict[str, Any], list[Event], list[
     erni_bag = HEADER_TOPIC in topics  # its poses are in its statuses, with every field
     odom = [c for c in reader.connections if c.msgtype == ODOMETRY and c.topic.endswith("/odom")
             and c.topic.count("/") == 2 and not erni_bag]
+    problems: list[str] = []
+    for conn in [c for c in odom if not is_name(c.topic.split("/")[1])]:  # /r\x1b[2J/odom names no robot
+        odom.remove(conn)
+        problems.append(f"{path}: topic {shown(conn.topic)}: skipped; a robot's topic is /<robot>/odom with the "
+                        f"robot's name of {NAME_CHARS}")
     diag = [c for c in reader.connections if c.msgtype == DIAGNOSTICS]
     status = [c for c in reader.connections if c.topic == TASK_STATUS_TOPIC and c.msgtype == ros.STRING
               and not erni_bag]
@@ -301,7 +316,6 @@ def _events(path: Path, reader: Any) -> tuple[dict[str, Any], list[Event], list[
         raise nothing()
     header: dict[str, Any] = {}
     raw: list[tuple[int, str, str, BBObject]] = []
-    problems: list[str] = []
     for conn, stamp, data in reader.messages(connections=odom + diag + status):
         where = f"{path}: {conn.topic} at {stamp / 1e9:.3f}"
         try:
@@ -322,7 +336,7 @@ def _events(path: Path, reader: Any) -> tuple[dict[str, Any], list[Event], list[
                     continue
                 raw.append(_event(stamp, event))
         except (ErniError, ValueError, KeyError, TypeError, AttributeError, RecursionError) as err:
-            problems.append(f"{where}: {str(err).splitlines()[0][:200] if str(err) else type(err).__name__}")
+            problems.append(f"{where}: {problem_of(err)}")
     if not raw and not header and not problems:
         raise nothing()
     start = reader.start_time if not raw else min(s for s, *_ in raw)
@@ -360,4 +374,7 @@ def _event(stamp: int, event: Any) -> tuple[int, str, str, BBObject]:
         raise LogError(f"unknown object type {str(kind)[:60]!r}")
     if event.get("op") not in ("add", "change", "remove"):
         raise LogError(f"unknown op {str(event.get('op'))[:60]!r}")
-    return stamp, str(event.get("agent", ""))[:64], str(event["op"]), cls.model_validate(event.get("data"))
+    agent = event.get("agent", "")
+    if agent != "" and not is_name(agent):
+        raise LogError(f"agent {shown(agent)}: expected a name of {NAME_CHARS}")
+    return stamp, agent, str(event["op"]), cls.model_validate(event.get("data"))

@@ -24,9 +24,10 @@ import time
 from collections import deque
 from typing import Any
 
-from pydantic import BaseModel, Field
+from pydantic import Field
 
 from erni.blackboard import NetInfo, Plugin, Pose
+from erni.blackboard.objects import Model
 from erni.blackboard.schemas import Peer
 from erni.blackboard.tasks import best_links
 from erni.transport import parse_address
@@ -34,7 +35,7 @@ from erni.transport import parse_address
 GREEN, PINK, GREY = (0.2, 0.75, 0.3, 1.0), (1.0, 0.45, 0.7, 1.0), (0.55, 0.55, 0.55, 0.6)
 
 
-class FoxgloveSettings(BaseModel):
+class FoxgloveSettings(Model):
     """The `[plugin.settings]` of the foxglove plugin."""
 
     listen: str = Field("127.0.0.1:8765", description="HOST:PORT of the Foxglove WebSocket server (port 0: any "

@@ -22,9 +22,10 @@ from dataclasses import dataclass, field
 from typing import Any, Literal
 
 import zenoh
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import ConfigDict, Field, field_validator, model_validator
 
 from erni.blackboard.errors import NetworkError, UsageError
+from erni.blackboard.objects import Model
 from erni.blackboard.plugin import Plugin
 from erni.blackboard.tasks import NetInfo, Pose, Task, TaskState
 from erni.plugins.ros2 import messages
@@ -35,7 +36,7 @@ NAME_CHARS = "abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_"
 RECONNECT = 2.0  # s between attempts to open a session of its own whose router is not reachable
 
 
-class ROS2Settings(BaseModel):
+class ROS2Settings(Model):
     """`[plugin.settings]` of the ros2 plugin."""
 
     model_config = ConfigDict(extra="forbid")

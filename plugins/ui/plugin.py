@@ -19,10 +19,11 @@ import time
 from collections import deque
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, SecretStr, field_validator
+from pydantic import ConfigDict, Field, SecretStr, field_validator
 
 from erni import netgraph
 from erni.blackboard import NetInfo, Plugin, Pose, Task
+from erni.blackboard.objects import Model
 from erni.blackboard.schemas import Peer, load_floorplan
 from erni.blackboard.tasks import best_links
 from erni.logs import mask_secrets
@@ -46,7 +47,7 @@ def announce(url: str) -> None:
               flush=True)
 
 
-class UISettings(BaseModel):
+class UISettings(Model):
     """Settings of the UI plugin (the `[plugin.settings]` table)."""
 
     model_config = ConfigDict(extra="forbid")

@@ -12,16 +12,18 @@ from __future__ import annotations
 import json
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
+from pydantic import ConfigDict, Field, TypeAdapter, ValidationError
 
 from erni.blackboard.errors import ErniError, describe_validation
+from erni.blackboard.objects import Model
+from erni.blackboard.text import Name
 from erni.transport.wire import json_depth
 
-AgentName = Annotated[str, Field(pattern=r"^[A-Za-z0-9_.-]{1,64}$")]
+AgentName = Name
 Number = Annotated[float, Field(allow_inf_nan=False)]
 
 
-class _Msg(BaseModel):
+class _Msg(Model):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 

@@ -10,6 +10,11 @@ control node (a local address, localhost, this host's name, or a name in `allowe
 a page whose own domain was rebound to this address (DNS rebinding) is refused; a request that
 carries an `Origin` must come from this same origin, so a page of another site cannot open the
 WebSocket or read the state; and everything but the page's static assets needs the token.
+
+What the server sends is JSON a browser parses (`page_json`): a number that is not finite (no
+validated model holds one, but the state is plain data) goes as `null`, never as `NaN`, which
+`JSON.parse` refuses and which would blank the page. Bad page messages and refused requests are
+logged at most once every `LOG_PERIOD` seconds each, with the count held back since.
 """
 
 from __future__ import annotations
@@ -19,6 +24,7 @@ import hmac
 import ipaddress
 import json
 import logging
+import math
 import socket
 import threading
 from collections import deque
@@ -30,12 +36,36 @@ from typing import Any
 from aiohttp import WSMsgType, web
 
 from erni.blackboard.errors import NetworkError
+from erni.logs import RateLimitedLog
 from erni.plugins.ui.protocol import BadMessage, HostileMessage, PingMsg, parse_message
 
 STATIC = Path(__file__).with_name("static")
 MAX_AUDIO_FRAME = 64 * 1024
 
 log = logging.getLogger("erni.ui.http")
+LOG_PERIOD = 10.0
+"""Seconds between two log lines of one kind (a bad page message, a refused request, a number sent as null)."""
+
+
+def page_json(data: Any, on_non_finite: Callable[[], None] | None = None) -> str:
+    """JSON text of plain data for the page: a NaN or an infinity anywhere in it becomes null (what
+    `JSON.parse` reads), so the text is always JSON; `on_non_finite` is called when one was there."""
+    try:
+        return json.dumps(data, allow_nan=False)
+    except ValueError:  # a non-finite number somewhere: the slow walk, only then
+        if on_non_finite is not None:
+            on_non_finite()
+        return json.dumps(_finite_or_null(data), allow_nan=False)
+
+
+def _finite_or_null(data: Any) -> Any:
+    if isinstance(data, float):
+        return data if math.isfinite(data) else None
+    if isinstance(data, dict):
+        return {k: _finite_or_null(v) for k, v in data.items()}
+    if isinstance(data, (list, tuple)):
+        return [_finite_or_null(v) for v in data]
+    return data
 
 
 TYPES = {".html": "text/html", ".js": "text/javascript", ".css": "text/css", ".svg": "image/svg+xml"}
@@ -119,6 +149,8 @@ class WebServer:
         self.announce = announce
         self.clients: dict[str, web.WebSocketResponse] = {}
         self.bad_messages = 0
+        self.non_finite = 0  # messages to a page that held a number that is not finite (sent as null)
+        self._rare = RateLimitedLog(log, LOG_PERIOD)
         self._lock = threading.Lock()
         self._state: dict[str, Any] = {}
         self._version = 0
@@ -209,6 +241,14 @@ class WebServer:
 
     # -- the server's thread ----------------------------------------------------------------
 
+    def _json(self, data: Any) -> str:
+        """`page_json`, counting and logging (rarely) a number that had to go as null."""
+        return page_json(data, self._non_finite)
+
+    def _non_finite(self) -> None:
+        self.non_finite += 1
+        self._rare.warning("non-finite", "a message to the page held a number that is not finite: sent as null")
+
     def _run(self) -> None:
         self._loop = asyncio.new_event_loop()
         self._loop.set_default_executor(ThreadPoolExecutor(max_workers=2, thread_name_prefix="ui-http-io"))
@@ -276,7 +316,7 @@ class WebServer:
         why = self.refusal(request)
         if why is not None:
             self.refused += 1
-            log.info("refused %s %s: %s", request.method, request.path, why)
+            self._rare.info("refused", f"refused {request.method} {request.path[:100]!r}: {why}")
             return web.Response(status=403, text=why + "\n")
         response: web.StreamResponse = await handler(request)
         return response
@@ -294,7 +334,7 @@ class WebServer:
     async def _api_state(self, request: web.Request) -> web.StreamResponse:
         with self._lock:
             state = self._state
-        return web.json_response(state)
+        return web.json_response(state, dumps=self._json)
 
     async def _websocket(self, request: web.Request) -> web.StreamResponse:
         ws = web.WebSocketResponse(heartbeat=5.0, max_msg_size=MAX_AUDIO_FRAME)
@@ -305,8 +345,8 @@ class WebServer:
         with self._lock:
             state = self._state
         try:
-            await ws.send_str(json.dumps({"type": "hello", "client": client}))
-            await ws.send_str(json.dumps({"type": "state", **state}))
+            await ws.send_str(self._json({"type": "hello", "client": client}))
+            await ws.send_str(self._json({"type": "state", **state}))
             async for msg in ws:
                 if msg.type == WSMsgType.TEXT:
                     await self._text(client, ws, msg.data)
@@ -342,8 +382,8 @@ class WebServer:
 
     async def _reject(self, ws: web.WebSocketResponse, why: str) -> None:
         self.bad_messages += 1
-        log.info("bad message from a page: %s", why)
-        await ws.send_str(json.dumps({"type": "error", "message": why}))
+        self._rare.info("bad message", f"bad message from a page: {why}")
+        await ws.send_str(self._json({"type": "error", "message": why}))
 
     async def _pump(self) -> None:
         """Send events at once and the state when it changed, at most once a period; idle, send nothing."""
@@ -366,10 +406,10 @@ class WebServer:
                 self._events.clear()
             if version != sent and loop.time() - last >= self.period:
                 sent, last = version, loop.time()
-                text = json.dumps({"type": "state", **state})
+                text = self._json({"type": "state", **state})
                 await asyncio.gather(*(self._send(ws, text) for ws in list(self.clients.values())))
             for client, event in events:
-                text = json.dumps(event)
+                text = self._json(event)
                 targets = [self.clients[client]] if client in self.clients else (
                     [] if client else list(self.clients.values()))
                 await asyncio.gather(*(self._send(ws, text) for ws in targets))

@@ -53,9 +53,10 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import ConfigDict, Field
 
 from erni.blackboard import BBObject, Plugin, Pose
+from erni.blackboard.objects import Model
 from erni.blackboard.schemas import Peer
 from erni.sim.experiments import Experiment, Progress, Result
 from erni.sim.experiments.plots import color
@@ -131,7 +132,7 @@ else:
     register_type(SensorAck)
 
 
-class SourceSettings(BaseModel):
+class SourceSettings(Model):
     """Settings of `SensorSource`."""
 
     model_config = ConfigDict(extra="forbid")

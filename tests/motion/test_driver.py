@@ -376,6 +376,20 @@ def test_valid_frames_with_garbage_contents_never_crash_the_decoder(bodies, junk
     assert d.stats.sips == 0 or d.state is not None
 
 
+@settings(max_examples=200, deadline=None)
+@given(bodies=st.lists(st.binary(min_size=1, max_size=120), min_size=1, max_size=8))
+def test_any_sip_makes_a_state_of_finite_numbers_that_a_pose_takes(bodies):
+    """ARCOS carries integers, and the driver scales them by the model's finite factors: whatever SIP
+    bytes a robot (or line noise) sends, the state holds only finite numbers, so its Pose validates."""
+    from erni.plugins.motion import pose_of
+
+    d = ArcosDriver("loop://", name="fuzz")
+    for body in d._reader.feed(b"".join(arcos.frame(bytes([0x32 + (b[0] & 1)]) + b[1:]) for b in bodies)):
+        d._packet(body)
+        if d.state is not None:
+            pose_of("fuzz", d.state)  # a ValidationError here would be a NaN or an infinity
+
+
 def test_relocalise_rebases_odometry_for_robots_that_cannot_be_teleported(robot_url, sim_hosts, drivers):
     d = drivers(robot_url).open()
     d.wait_for_sip()

@@ -112,3 +112,91 @@ def test_log_times_must_be_finite_and_nesting_is_bounded(tmp_path):
                          capture_output=True, text=True, timeout=30, cwd=ROOT)
     assert out.returncode == 0 and "replay finished (1 events)" in out.stderr
     assert out.stderr.count("skipping") == 6 and "Traceback" not in out.stderr
+
+
+# -- logs handed to the operator that hold hostile values ------------------------------------------
+
+def _line(type_name: str, data: dict, agent: str = "control", t: float = 0.1) -> str:
+    return json.dumps({"t": t, "agent": agent, "op": "change", "type": type_name, "data": data})
+
+
+def test_a_log_line_with_nan_or_infinity_anywhere_is_skipped_and_named_and_the_rest_replays(tmp_path):
+    """json writes NaN and Infinity, and json reads them back: a recorded Pose, NetInfo or result
+    that holds one is one skipped line naming the field, never an object on the blackboard."""
+    from erni.blackboard import NetInfo
+
+    good = Pose(robot="robot1", x=1.0).model_dump(mode="json")
+    net = NetInfo(node="robot1", kind="network_topology").model_dump(mode="json")
+    task = Task(verb="BotMotion", preposition="forward", params={"distance": 1.0}, source="control",
+                destination="robot1").with_result(TaskState.RUNNING, values={"left": 0.5}).model_dump(mode="json")
+    lines = [json.dumps({"erni_record": 1, "via": "x"}), _line("Pose", good),
+             _line("Pose", {**good, "x": float("nan"), "y": float("inf")}),
+             _line("Pose", {**good, "sonar": [0.5, float("-inf")]}),
+             _line("NetInfo", {**net, "links": [{"a": "robot1", "b": "robot2", "quality": float("nan")}]}),
+             _line("Task", {**task, "result": {**task["result"], "values": {"left": float("nan")}}}),
+             _line("Pose", {**good, "x": 2.0}, t=0.2)]
+    log = tmp_path / "nan.jsonl"
+    log.write_text("\n".join(lines) + "\n")
+    _, events, problems = read_log(log)
+    assert [e.obj.x for e in events] == [1.0, 2.0]  # type: ignore[attr-defined]
+    assert [p.split(": ", 1)[1] for p in problems] == [
+        "data.x: Input should be a finite number (got nan); data.y: Input should be a finite number (got inf)",
+        "data.sonar[1]: Input should be a finite number (got -inf)",
+        "data.links[0].quality: Input should be a finite number (got nan)",
+        "data: forward: result.values.left.float: Input should be a finite number (got nan)"]
+    assert [p.split(": ", 1)[0] for p in problems] == [f"{log}:{n}" for n in (3, 4, 5, 6)]
+
+
+def test_long_lines_odd_bytes_and_names_cost_one_line_each_and_lose_nothing_else(tmp_path):
+    from erni.replay import MAX_LINE, MAX_PROBLEMS
+
+    good = Pose(robot="robot1", x=1.0).model_dump(mode="json")
+    log = tmp_path / "odd.jsonl"
+    with log.open("wb") as f:
+        f.write(json.dumps({"erni_record": 1, "via": "x"}).encode() + b"\n")
+        f.write(_line("Pose", good).encode() + b"\n")
+        f.write(b'{"t": 0.1, "pad": "' + b"x" * (MAX_LINE + 10) + b'"}\n')  # longer than a line may be
+        f.write(b"\xff\xfe not UTF-8\n")
+        f.write(_line("Pose", good, agent="ctl\x1b[2J").encode() + b"\n")
+        f.write(_line("Pose", {**good, "robot": "r\x1b]0;x\x07"}).encode() + b"\n")
+        f.write(_line("Pose", {**good, "x": 2.0}, t=0.2).encode() + b"\n")
+        f.write(b"{broken\n" * (MAX_PROBLEMS + 5))
+    _, events, problems = read_log(log)
+    assert [e.obj.x for e in events] == [1.0, 2.0]  # type: ignore[attr-defined]
+    assert f"a line longer than {MAX_LINE} bytes" in problems[0] and problems[0].startswith(f"{log}:3: ")
+    assert "codec can't decode" in problems[1] and problems[1].startswith(f"{log}:4: ")
+    assert "agent 'ctl\\x1b[2J': expected a name" in problems[2]
+    assert "data.robot: expected a name of letters" in problems[3]
+    assert len(problems) == MAX_PROBLEMS + 1 and problems[-1] == f"{log}: 9 more lines skipped"
+    assert all(len(p) < 500 and "\x1b" not in p for p in problems)
+
+
+def test_replaying_a_log_with_a_100_mb_line_holds_no_such_line(tmp_path):
+    """The line is skipped as it is read, a block at a time: the replay's memory stays far below it."""
+    log = tmp_path / "huge.jsonl"
+    with log.open("wb") as f:
+        f.write(json.dumps({"erni_record": 1, "via": "x"}).encode() + b"\n")
+        f.write(b'{"t": 0.1, "pad": "')
+        for _ in range(100):
+            f.write(b"x" * (1 << 20))
+        f.write(b'"}\n')
+        f.write(_line("Pose", Pose(robot="robot1", x=1.0).model_dump(mode="json")).encode() + b"\n")
+    out, grown = replay_memory(log)
+    assert out.returncode == 0 and "replay finished (1 events)" in out.stderr, out.stderr[-2000:]
+    assert sum("skipping" in line for line in out.stderr.splitlines()) == 1
+    assert grown < 40 * 1024, f"the replay grew by {grown} KiB beyond what its imports took, for a 100 MB line"
+
+
+def replay_memory(path: Path) -> tuple[subprocess.CompletedProcess[str], int]:
+    """`erni replay PATH` in a process of its own, and how far its peak memory (KiB) rose above what
+    importing what it runs took (compiling sources without cached bytecode costs memory of its own)."""
+    code = ("import resource, sys\nfrom erni.cli import main\nimport erni.commands.replay, erni.replay\n"
+            "try:\n    import erni.plugins.ros2.bags\nexcept ImportError:\n    pass\n"
+            "before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss\n"
+            f"rc = main(['replay', {str(path)!r}, '--no-gui', '--insecure', '--listen', '127.0.0.1:{free_port()}',"
+            " '--speed', '1000'])\n"
+            "print('grown', resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before, file=sys.stderr)\n"
+            "sys.exit(rc)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600, cwd=ROOT)
+    last = out.stderr.strip().splitlines()[-1] if out.stderr.strip() else ""
+    return out, int(last.split()[1]) if last.startswith("grown ") else -1

@@ -161,3 +161,23 @@ def test_a_base_whose_router_comes_later_is_driven_once_it_does(definitions: Any
         message_registry._registry = None
         if router is not None:
             router.close()
+
+
+def test_odometry_with_nan_or_an_infinity_is_refused_and_the_base_is_read_on() -> None:
+    """An Odometry sample of a base whose driver sends NaN or an infinity (as CDR doubles carry them)
+    makes no robot state: it is counted as a bad sample and named, and the next good one is read."""
+    from erni.plugins.motion.ros2_base import Ros2BaseDriver
+    from erni.plugins.ros2 import messages
+
+    driver = Ros2BaseDriver("ros2://tb3?battery=", name="tb3")  # not opened: fed samples by hand
+
+    def odometry(x: float, y: float, v: float = 0.0) -> bytes:
+        pose = Pose.model_construct(robot="tb3", x=x, y=y, theta=0.0, v=v, w=0.0)  # what a faulty driver sends
+        return messages.serialize(messages.odometry(pose, 0))
+
+    for x, y, v in ((math.nan, 0.0, 0.0), (0.0, math.inf, 0.0), (1.0, 2.0, -math.inf)):
+        driver._on_odom(odometry(x, y, v))
+        assert driver.state is None
+    assert driver.stats.bad_sips == 3 and "expected finite numbers" in driver.last_error
+    driver._on_odom(odometry(1.0, 2.0))
+    assert driver.state is not None and (driver.state.x, driver.state.y) == (1.0, 2.0)

@@ -1,5 +1,6 @@
 """`erni sim --run-dir`: the run directory and its folders are 0700, every file in them 0600, and
-the GUI's token is printed to the terminal only, never written to a log."""
+the GUI's token is printed to a terminal only (as `erni agent` prints it), never to a redirected
+output or a log: these name the control node's config that holds it."""
 
 from __future__ import annotations
 
@@ -26,9 +27,11 @@ def test_a_run_directory_is_private_and_its_logs_hold_no_token(tmp_path):
         sim._reader.join(5)
     finally:
         sim.cleanup()
-    gui = sim.wait_for("GUI ", timeout=1).split()[-1]
-    token = gui.split("?token=")[1]
-    assert len(token) >= 16  # the terminal shows the URL with its token
+    # its output is a pipe, not a terminal: the token is not printed, the line says where it is
+    line = sim.wait_for("  GUI ", timeout=1)
+    token = sim.gui_url().split("?token=")[1]
+    assert len(token) >= 16 and token not in "\n".join(sim.lines)
+    assert "?token=*** (the token is shown on a terminal only" in line
     modes = {str(p.relative_to(run)): stat.S_IMODE(p.lstat().st_mode) for p in [run, *run.rglob("*")]
              if not p.is_symlink()}
     assert len(modes) > 10 and "journal/control.sqlite" in modes and "keys/cli.pem" in modes, modes

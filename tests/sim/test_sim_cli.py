@@ -61,6 +61,19 @@ class SimProcess:
             time.sleep(0.05)
         raise AssertionError(f"no line with {text!r} within {timeout} s; output:\n" + "\n".join(self.lines))
 
+    def gui_url(self, timeout: float = 1.0) -> str:
+        """The GUI's URL with its token. Its output is a pipe, not a terminal: the line shows the URL with
+        `token=***` and names the config that holds the token (the ui plugin's `token`), read here."""
+        import tomllib
+
+        line = self.wait_for("  GUI ", timeout=timeout)
+        masked = line.split("GUI", 1)[1].split()[0]
+        assert masked.endswith("?token=***"), line
+        config = self.run_dir / "agents" / "control.toml"
+        assert str(config) in line, line
+        ui = next(p for p in tomllib.loads(config.read_text())["plugin"] if p["class"] == "ui")
+        return masked.replace("token=***", f"token={ui['settings']['token']}")
+
     def cleanup(self) -> None:
         if self.proc.poll() is None:
             os.killpg(self.proc.pid, signal.SIGKILL)

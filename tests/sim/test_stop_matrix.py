@@ -133,7 +133,7 @@ def open_team(sim: SimProcess, run: Path) -> Team:
     """Wait for a starting `erni sim` with its GUI, and watch its control node."""
     sim.wait_for("Ctrl-C stops the team", timeout=120)
     via = sim.wait_for("erni peers --via", timeout=1).split("--via")[1].strip()
-    url = sim.wait_for("GUI ", timeout=1).split()[-1]
+    url = sim.gui_url()
     assert url.startswith("http://"), url
     base, token = url.split("/?token=")
     env = {**os.environ, "ERNI_IDENTITY": str(run / "keys" / "cli.pem"), "PYTHONUNBUFFERED": "1"}

@@ -62,13 +62,14 @@ def _same_pose(got: Pose, want: Pose) -> None:
 
 
 _finite = st.floats(allow_nan=False, allow_infinity=False)
+_names = st.from_regex(r"\A[A-Za-z0-9][A-Za-z0-9_.-]{0,10}\Z")  # a robot's name (blackboard/text.py)
 _any_json = st.recursive(
     st.none() | st.booleans() | st.integers() | st.floats(allow_nan=False, allow_infinity=False)
     | st.text(max_size=6) | st.sampled_from(["1.5", "true", "0", "", "yes", "1e3", "nan"]),
     lambda inner: st.lists(inner, max_size=3) | st.dictionaries(st.text(max_size=4), inner, max_size=3),
     max_leaves=6,
 )
-_poses = st.builds(Pose, robot=st.text(max_size=8), x=_finite, y=_finite, theta=_finite, v=_finite,
+_poses = st.builds(Pose, robot=_names, x=_finite, y=_finite, theta=_finite, v=_finite,
                    w=_finite, battery=st.none() | _finite, stall_left=st.booleans(), bumpers=st.integers(-2**70, 2**70),
                    motors_enabled=st.booleans(), sonar=st.lists(_finite, max_size=6))
 
@@ -80,7 +81,7 @@ def _pose_objects(draw: st.DrawFn) -> dict:
     for name in draw(st.lists(st.sampled_from(_POSE_FIELDS), max_size=3)):
         data.pop(name, None)
     for name in draw(st.lists(st.sampled_from(_POSE_FIELDS + ["extra", "Robot"]), max_size=2)):
-        data[name] = draw(_any_json)
+        data[name] = draw(_any_json | st.sampled_from([math.nan, math.inf, -math.inf, [1.0, math.nan]]))
     return data
 
 
@@ -128,7 +129,7 @@ _bodies = st.one_of(
     st.builds(lambda x, y: Task(verb="BotMotion", preposition="goto", params={"x": x, "y": y}),
               st.floats(-1e6, 1e6), st.floats(-1e6, 1e6)),
     st.builds(lambda node, msg: NetInfo(node=node, kind="neighbor list", message=msg),
-              st.text(min_size=1, max_size=8), st.text(max_size=12)),
+              _names, st.text(max_size=12)),
 )
 _HEAD = {"v": 2, "sender": "r1", "role": "robot", "to": "control", "inst": "a" * 8, "reply": ["127.0.0.1", 5000]}
 _ITEM = {"seq": 7, "id": "m1", "kind": "status"}
@@ -208,3 +209,39 @@ def test_untyped_bodies_and_unknown_types_are_left_to_pydantic():
     assert codec.decode_data(to_json({**_HEAD, **_ITEM, "type": "Rocket", "body": {}})) is None
     assert codec.decode_data(b"[" + to_json(_HEAD) + b",[]]") is None
     assert codec.decode_data(b"not json") is None
+
+
+_FLOAT_FIELDS = ["x", "y", "theta", "v", "w", "battery", "stamp"]
+_NON_FINITE_TOKENS = [b"NaN", b"Infinity", b"-Infinity", b"1e400", b"-1e999"]
+
+
+@st.composite
+def _spoiled_pose(draw: st.DrawFn) -> bytes:
+    """A Pose as a sender writes it, one float (a field, or a sonar range) a JSON token for NaN or an infinity."""
+    pose = draw(_poses)
+    token = draw(st.sampled_from(_NON_FINITE_TOKENS))
+    data = pose.model_dump(mode="json")
+    mark = "@@"
+    if data["sonar"] and draw(st.booleans()):
+        data["sonar"][draw(st.integers(0, len(data["sonar"]) - 1))] = mark
+    else:
+        data[draw(st.sampled_from(_FLOAT_FIELDS))] = mark
+    return to_json(data).replace(b'"@@"', token)
+
+
+@settings(max_examples=300, deadline=None)
+@given(_spoiled_pose(), st.integers(0, 3))
+def test_nan_and_infinities_are_refused_by_the_codec_and_by_pydantic_in_every_frame_form(raw, others):
+    """A Pose body with NaN, Infinity or a number beyond a float's range: pydantic refuses it (the
+    models' `allow_inf_nan=False`), and so does each fast path of the codec (msgspec reads no such
+    token): alone, in a batch beside good statuses, and the one-pass status decode."""
+    assert _pydantic_pose(raw) is None
+    assert _codec_pose(raw) is None
+    good = [to_json({**_ITEM, "type": "Pose"})[:-1] + b',"body":' + to_json(Pose(robot=f"r{i}").model_dump(mode="json"))
+            + b"}" for i in range(others)]
+    bad = to_json({**_ITEM, "type": "Pose"})[:-1] + b',"body":' + raw + b"}"
+    payload = batch_payload(to_json(_HEAD), [*good, bad])
+    assert codec.decode_data(payload) is None  # the codec takes the frame whole or leaves it to pydantic
+    assert codec.decode_status(payload) is None
+    want = _two_step(payload)
+    assert want is None  # the pydantic parse refuses the frame (a batch: it names the bad message)

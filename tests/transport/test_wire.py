@@ -272,7 +272,7 @@ def test_frames_name_their_receiver_inside_the_encryption():
     assert opened.to == "beta"  # (the endpoint refuses a `to` that is not its own name: test_security.py)
 
 
-@given(st.lists(st.text(min_size=1, max_size=12), min_size=1, max_size=6))
+@given(st.lists(st.from_regex(r"\A[A-Za-z0-9][A-Za-z0-9_.-]{0,11}\Z"), min_size=1, max_size=6))
 def test_a_batch_states_its_head_once_and_parses_back_to_each_message(robots):
     head = head_bytes("r1", "robot", "control", "a" * 32, ("127.0.0.1", 5000))
     bodies = [Pose(robot=r) for r in robots]
@@ -309,16 +309,17 @@ def test_a_bad_batch_is_refused_with_what_is_wrong(payload, why):
 
 # Bodies as a sender would serialise them, some with one field replaced by any JSON value (valid or not).
 _finite = st.floats(-1e6, 1e6, allow_nan=False)
+_names = st.from_regex(r"\A[A-Za-z0-9][A-Za-z0-9_.-]{0,7}\Z")  # a robot's or an agent's name (blackboard/text.py)
 _json_values = st.one_of(st.none(), st.booleans(), st.integers(-10**12, 10**12), _finite, st.text(max_size=8),
                          st.lists(_finite, max_size=3))
 _bodies = st.one_of(
-    st.builds(Pose, robot=st.text(min_size=1, max_size=8), x=_finite, y=_finite, theta=_finite, v=_finite,
+    st.builds(Pose, robot=_names, x=_finite, y=_finite, theta=_finite, v=_finite,
               battery=st.none() | _finite, bumpers=st.integers(0, 255), sonar=st.lists(_finite, max_size=8)),
     st.builds(lambda x, y, speed: Task(verb="BotMotion", preposition="goto",
                                        params={"x": x, "y": y, "speed": speed}), _finite, _finite,
               st.floats(0.01, 2.0)),
     st.builds(lambda node, msg: NetInfo(node=node, kind="neighbor list", message=msg),
-              st.text(min_size=1, max_size=8), st.text(max_size=12)),
+              _names, st.text(max_size=12)),
 )
 
 

@@ -29,7 +29,7 @@ def test_valid_messages_parse_to_their_types():
     ("[1,2]", "unknown message type 'list'; expected one of command, say, select, cancel_task, mic, ping"),
     ('{"type":"launch"}', "unknown message type 'launch'; expected one of command, say, select, cancel_task, mic, ping"),
     ('{"type":"command","robots":["robot1"],"action":"stop","params":{"x":[1]}}', "command: params.x"),
-    ('{"type":"command","robots":["robot 1"],"action":"stop"}', "command: robots[0]: String should match pattern"),
+    ('{"type":"command","robots":["robot 1"],"action":"stop"}', "command: robots[0]: expected a name of letters, digits"),
     ('{"type":"command","robots":["r1"],"action":"goto","params":{"x":NaN,"y":0}}', "command: params.x"),
     ('{"type":"command","robots":["r1"],"action":"stop","extra":1}', "command: unknown key 'extra'"),
     ('{"type":"say","text":""}', "say: text: String should have at least 1 character"),

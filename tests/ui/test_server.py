@@ -346,3 +346,19 @@ def test_a_task_withdrawn_by_its_client_keeps_a_row_and_a_line(control):
     assert row["message"] == "withdrawn by cli-1234"
     assert any(line["text"] == "robot1: randomwalk cancelled \u2014 withdrawn by cli-1234"
                for line in ui.server.state()["log"])
+
+
+def test_a_flood_of_bad_page_messages_is_answered_each_but_logged_a_few_times(control, caplog):
+    """One token holder sends 10,000 bad messages: each gets its error answer, the log gets one line
+    and the count held back (`LOG_PERIOD`), not 10,000 lines."""
+    import logging
+
+    caplog.set_level(logging.INFO, logger="erni.ui.http")
+    agent, ui = control()
+    n = 10_000
+    url = f"ws://127.0.0.1:{ui.server.port}/ws?token={token(ui)}"
+    msgs = asyncio.run(talk(url, ['{"type":"fly"}'] * n + [{"type": "ping"}],
+                            lambda m: len(of(m, "error")) == n and of(m, "pong"), timeout=120))
+    assert len(of(msgs, "error")) == n and ui.server.bad_messages == n
+    lines = [r for r in caplog.records if r.name == "erni.ui.http" and "bad message" in r.getMessage()]
+    assert 1 <= len(lines) <= 3, f"{len(lines)} log lines for {n} bad messages"

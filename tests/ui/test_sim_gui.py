@@ -41,7 +41,7 @@ def test_remote_gui_url_pids_and_an_honest_status_line(tmp_path):
     try:
         p.wait_for("Ctrl-C stops the team", timeout=90)
         assert f"run directory {tmp_path / 'run'}" in p.wait_for("run directory", timeout=1)
-        url = p.wait_for("  GUI ", timeout=1).split("GUI", 1)[1].strip()
+        url = p.gui_url()
         host = url.split("//")[1].split(":")[0]
         assert host == public_address() and "?token=" in url
         if not is_loopback(host):

@@ -71,7 +71,7 @@ function connect() {
   ws.binaryType = "arraybuffer";
   ui.ws = ws;
   ws.onopen = () => { ui.retry = 500; ui.lastMessage = Date.now(); setConn("ok"); };
-  ws.onmessage = (ev) => { ui.lastMessage = Date.now(); onMessage(JSON.parse(ev.data)); };
+  ws.onmessage = (ev) => { ui.lastMessage = Date.now(); onText(ev.data); };
   ws.onclose = () => {
     if (ui.ws !== ws) return;
     ui.ws = null;
@@ -101,12 +101,59 @@ function setConn(s) {
   document.body.dataset.conn = s;
 }
 
+// A message the page cannot read is named in the log and dropped: the last state stays on screen.
+function onText(text) {
+  let m;
+  try { m = JSON.parse(text); } catch (e) {
+    logLocal("error", `unreadable message from the control node, ignored: ${String(e.message).slice(0, 120)}`);
+    return;
+  }
+  if (m && typeof m === "object") onMessage(m);
+}
+
 function onMessage(m) {
   if (m.type === "hello") ui.client = m.client;
-  else if (m.type === "state") { ui.state = m; render(); }
+  else if (m.type === "state") { ui.state = checked(m); render(); }
   else if (m.type === "select") setSelection(m.robots);
   else if (m.type === "reply") onReply(m);
   else if (m.type === "error") { logLocal("error", m.message); showReply("", m.message, false); }
+}
+
+// ---- what a state may hold ------------------------------------------------------------------
+// The page draws only what it can: a robot whose report it cannot read (a position that is not a
+// finite number within WORLD metres, fields missing) is listed as faulty and left off the map, and
+// the other robots are shown as usual. A link whose ends or quality are unreadable is not drawn.
+const WORLD = 1e6;                   // m: a position beyond this is no place on any map
+const STATES = ["ok", "warn", "lost"];
+function finite(v) { return typeof v === "number" && Number.isFinite(v); }
+function checkedRobot(r, i) {
+  if (!r || typeof r !== "object") r = {};
+  const name = typeof r.name === "string" && r.name ? r.name : `unnamed robot ${i + 1}`;
+  const out = { name, number: typeof r.number === "number" || typeof r.number === "string" ? r.number : "?",
+    up: r.up === true, state: STATES.includes(r.state) ? r.state : "fault",
+    reasons: Array.isArray(r.reasons) ? r.reasons.filter((x) => typeof x === "string") : [],
+    pose: null, address: typeof r.address === "string" ? r.address : "", task: typeof r.task === "string" ? r.task : "" };
+  const why = [];
+  if (!STATES.includes(r.state) || !Array.isArray(r.reasons) || typeof r.name !== "string") why.push("incomplete report");
+  const p = r.pose;
+  if (p !== null && p !== undefined) {
+    if (p && typeof p === "object" && ["x", "y", "theta"].every((k) => finite(p[k])) && Math.abs(p.x) <= WORLD &&
+        Math.abs(p.y) <= WORLD) {
+      out.pose = { x: p.x, y: p.y, theta: p.theta, v: finite(p.v) ? p.v : null, w: finite(p.w) ? p.w : null,
+        battery: finite(p.battery) ? p.battery : null };
+    } else why.push("position unreadable");
+  }
+  if (why.length) { out.state = "fault"; out.reasons = [...why, ...out.reasons]; }
+  return out;
+}
+function checked(s) {
+  const list = (v) => (Array.isArray(v) ? v : []);
+  s.robots = list(s.robots).map(checkedRobot);
+  s.links = list(s.links).filter((l) => l && typeof l.a === "string" && typeof l.b === "string" && finite(l.quality));
+  s.tasks = list(s.tasks).filter((t) => t && typeof t.uid === "string");
+  for (const t of s.tasks) { t.params = t.params || {}; t.values = t.values || {}; }
+  s.log = list(s.log);
+  return s;
 }
 
 // ---- rendering ----------------------------------------------------------------------------
@@ -378,7 +425,7 @@ function renderRobotTable(s) {
     tr.querySelector(".num").textContent = r.number;
     tr.querySelector(".name").title = r.reasons.join(", ") || r.address;
     tr.querySelector(".state-dot").className = "state-dot " + r.state;
-    tr.querySelector(".label").textContent = r.name + (r.state === "lost" ? " — link lost" : "");
+    tr.querySelector(".label").textContent = r.name + (r.state === "lost" ? " — link lost" : r.state === "fault" ? ` — ${r.reasons[0]}` : "");
     tr.querySelector(".batt").textContent = r.pose ? fmt(r.pose.battery, 1) : "–";
     tr.querySelector(".vel").textContent = r.pose ? fmt(r.pose.v, 2) : "–";
     const doing = tr.querySelector(".doing");
