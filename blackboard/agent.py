@@ -18,6 +18,7 @@ from typing import Any, TypeVar, overload
 from pydantic import BaseModel, ValidationError
 
 from erni.blackboard.blackboard import Blackboard, Query, Transaction
+from erni.blackboard.clock import SYSTEM, Clock, as_clock
 from erni.blackboard.errors import ConfigError, PluginError, UsageError, describe_validation
 from erni.blackboard.plugin import NoSettings, Plugin
 
@@ -256,17 +257,19 @@ class Agent:
 
     def __init__(self, name: str, *, workers: int = 4, slow_plugin_seconds: float = 1.0,
                  journal: str | Path | None = None, retention: float | None = 600.0, reset_journal: bool = False,
-                 clock: Callable[[], float] = time.monotonic):
+                 clock: Clock | Callable[[], float] = SYSTEM):
         if workers < 1:
             raise UsageError(f"workers: expected at least 1, got {workers}")
         self.name = name
-        self.clock = clock
-        """Seconds on a monotonic clock: when plugins' wake-ups are due, how long a run has taken, when
-        a final task is old enough to go. A test may give its own (`erni.testing.ManualClock`)."""
+        self.clock: Clock = as_clock(clock)
+        """The agent's clock (erni.blackboard.clock): called, monotonic seconds (when plugins' wake-ups are
+        due, how long a run has taken, when a final task is old enough to go); `wall()`, the stamps it
+        makes. A test may give its own (`erni.testing.ManualClock`); a bare callable is its monotonic
+        reading, with the process's wall clock beside it."""
         self.blackboard = Blackboard(name)
         self.scheduler = Scheduler(self, workers, slow_plugin_seconds)
         self.timers = Timers(self)
-        watch = getattr(clock, "on_advance", None)
+        watch = getattr(self.clock, "on_advance", None)
         if callable(watch):  # a test's clock says when it moves: timers and slow-run watch look again
             watch(self.timers.poke)
         self.blackboard.signal = self.scheduler.signal

@@ -13,6 +13,7 @@ from pydantic import BaseModel, ConfigDict
 from typing_extensions import TypeVar
 
 from erni.blackboard.blackboard import Blackboard, Predicate, Query, Subscription, T, Transaction
+from erni.blackboard.clock import SYSTEM, Clock
 from erni.blackboard.errors import TransactionError, UsageError
 from erni.blackboard.objects import BBObject, Model
 
@@ -123,6 +124,13 @@ class Plugin(Generic[SettingsT]):
         changed the object: a change built on an older version undoes the newer one."""
         tx = self._open_tx()
         return self._board.get(uid) if tx is None else tx.current(uid)
+
+    @property
+    def clock(self) -> Clock:
+        """The agent's clock: `self.clock()` monotonic seconds (durations, deadlines), `self.clock.wall()`
+        seconds since the epoch (stamps). A test's agent may run on `erni.testing.ManualClock`; a plugin
+        not yet part of an agent reads the process's clock."""
+        return self._agent.clock if self._agent is not None else SYSTEM
 
     @property
     def query(self) -> Query:
