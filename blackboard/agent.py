@@ -277,6 +277,8 @@ class Agent:
         self.log = logging.getLogger(f"erni.{name}")
         self.started = False
         self.components: list[Any] = []  # non-plugin parts with start()/stop()
+        self._offers: dict[str, Any] = {}  # what plugins offer each other beside the blackboard (`provide`)
+        self._offers_lock = threading.Lock()
         self.journal_path = Path(journal) if journal else None
         self.journal: Any = None
         self.reset_journal = reset_journal  # a journal unreadable at start is moved aside, not fatal
@@ -301,6 +303,19 @@ class Agent:
         return load_agent(path)
 
     # -- plugins --------------------------------------------------------------------------
+
+    def provide(self, name: str, thing: Any) -> None:
+        """Offer `thing` to the agent's plugins under `name`: the agent-level facility for what one
+        plugin gives another that cannot travel on the blackboard (a live session, a hardware
+        description read from a driver). Plugins never reach into each other's attributes; the
+        names offered are listed in the architecture's documentation. A second offer replaces the first."""
+        with self._offers_lock:
+            self._offers[name] = thing
+
+    def provided(self, name: str) -> Any | None:
+        """What a plugin offered under `name` (`provide`), None when nothing was."""
+        with self._offers_lock:
+            return self._offers.get(name)
 
     @overload
     def add_plugin(self, plugin: type[P] | P, settings: dict[str, Any] | BaseModel | None = None,

@@ -132,6 +132,14 @@ class Plugin(Generic[SettingsT]):
         not yet part of an agent reads the process's clock."""
         return self._agent.clock if self._agent is not None else SYSTEM
 
+    def provide(self, name: str, thing: Any) -> None:
+        """Offer `thing` to this agent's other plugins under `name` (see `Agent.provide`)."""
+        self._require_agent().provide(name, thing)
+
+    def provided(self, name: str) -> Any | None:
+        """What another plugin of this agent offered under `name`, None when nothing was (or no agent)."""
+        return self._agent.provided(name) if self._agent is not None else None
+
     @property
     def query(self) -> Query:
         """`query(Type, where=...)`: a snapshot of the committed objects matching a type and/or predicate."""

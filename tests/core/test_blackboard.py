@@ -342,3 +342,27 @@ def test_evolve_validates_the_changes_and_keeps_the_rest_as_it_was():
     assert moved.sonar is not pose.sonar  # a list is copied by validation: no version shares a mutable value
     with pytest.raises(ValidationError):
         pose.evolve(x="far")
+
+
+def test_plugins_offer_each_other_what_cannot_go_on_the_blackboard_by_name():
+    """`provide`/`provided`: the agent-level facility instead of one plugin reading another's attributes."""
+    from erni.blackboard import Agent, Plugin
+
+    class Offering(Plugin):
+        def setup(self) -> None:
+            self.provide("example.session", lambda: "the live session")
+
+    class Asking(Plugin):  # asks when it needs it: plugin order is unspecified, so never in setup()
+        pass
+
+    agent = Agent("a")
+    asking = agent.add_plugin(Asking)
+    agent.add_plugin(Offering)
+    agent.start()
+    try:
+        got = asking.provided("example.session")
+        assert got is not None and got() == "the live session" and asking.provided("example.other") is None
+        assert agent.provided("example.session") is got
+    finally:
+        agent.stop()
+    assert Asking().provided("example.session") is None  # a plugin outside an agent is offered nothing
