@@ -443,6 +443,12 @@ class Agent:
                     if not self.blackboard.contains(obj.uid):
                         tx.add(obj)
             self.rehydrated = {obj.uid for obj in objects}
+            if self.retention is not None:  # a final task leaves `retention` after it ended, not after the restart
+                wall = time.time()
+                for obj in objects:
+                    written = self.journal.written_at.get(obj.uid)
+                    if getattr(obj, "done", False) and written is not None:
+                        self.retention.ended(obj.uid, wall - written)
             self.log.info("agent %s rehydrated %d object(s) from %s", self.name, len(objects),
                           self.journal_path)
         self.blackboard.add_listener(self.journal.listener)

@@ -104,6 +104,7 @@ class Journal:
         self._pending: dict[str, tuple[str, str] | None] = {}  # rows not written yet, retried
         self.failed = ""  # why the last write failed ('' when writes succeed)
         self.batches = 0
+        self.written_at: dict[str, float] = {}  # uid -> when `load` found its row last written (wall clock)
         try:
             if self.path.exists() and self.path.stat().st_size == 0:
                 raise JournalError(f"{self.path}: the journal is an empty file (0 bytes), not a journal: it "
@@ -143,17 +144,19 @@ class Journal:
     # -- reading back ---------------------------------------------------------------------
 
     def load(self) -> tuple[list[BBObject], list[str]]:
-        """Return the journaled objects, and one problem line per row that could not be read."""
+        """Return the journaled objects, and one problem line per row that could not be read; when
+        each row was last written (wall clock) is left in `written_at`."""
         types = durable_types()
         objects: list[BBObject] = []
         problems: list[str] = []
         try:
-            rows = self._db.execute("SELECT uid, type, data FROM objects ORDER BY rowid").fetchall()
+            rows = self._db.execute("SELECT uid, type, data, updated FROM objects ORDER BY rowid").fetchall()
         except sqlite3.Error as err:
             self._db.close()
             raise JournalError(f"{self.path}: the journal is unreadable ({str(err).splitlines()[0]}); "
                                f"{RECOVERY}") from None
-        for uid, type_name, data in rows:
+        for uid, type_name, data, updated in rows:
+            self.written_at[uid] = updated
             cls = types.get(type_name)
             if cls is None:
                 problems.append(f"{self.path}: object {uid}: unknown type {type_name!r} (plugin not loaded?)")

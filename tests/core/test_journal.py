@@ -249,3 +249,41 @@ def test_lingering_progress_is_written_in_one_batch_when_the_linger_ends(tmp_pat
     finally:
         reader.close()
         journal.stop()
+
+
+def test_a_finished_task_from_the_journal_leaves_retention_after_it_ended_not_after_the_restart(tmp_path):
+    """A task that ended 500 s before a restart, with a retention of 600 s, goes 100 s after the
+    restart (the journal's row says when it ended: its last write), not 600 s after."""
+    import sqlite3
+    import time
+
+    from erni.blackboard import Agent, Task, TaskState
+    from erni.blackboard.tasks import AllocationResult
+    from erni.testing import ManualClock
+
+    path = tmp_path / "journal.db"
+    first = Agent("robot1", journal=path, retention=600.0).start()
+    ended = Task(verb="BotMotion", preposition="stop", source="robot1",
+                 result=AllocationResult(state=TaskState.SUCCEEDED))
+    running = Task(verb="BotMotion", preposition="forward", params={"distance": 1.0}, source="robot1")
+    with first.transaction() as tx:
+        tx.add(ended)
+        tx.add(running)
+    assert first.journal.flush()
+    first.stop()
+    db = sqlite3.connect(path)  # as if the agent had ended the task 500 s ago, then stopped
+    db.execute("UPDATE objects SET updated = ? WHERE uid = ?", (time.time() - 500.0, ended.uid))
+    db.commit()
+    db.close()
+
+    clock = ManualClock()
+    second = Agent("robot1", journal=path, retention=600.0, clock=clock).start()
+    try:
+        assert second.blackboard.get(ended.uid) is not None
+        clock.advance(90.0)
+        assert second.retention.sweep() == 0
+        clock.advance(20.0)  # 610 s after it ended
+        assert second.retention.sweep() == 1
+        assert second.blackboard.get(ended.uid) is None and second.blackboard.get(running.uid) is not None
+    finally:
+        second.stop()
