@@ -30,8 +30,9 @@ import re
 import sqlite3
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeAlias
 
 from erni.blackboard.blackboard import CHANGE, REMOVE, Op
 from erni.blackboard.errors import ConfigError
@@ -98,10 +99,15 @@ def _urgent(ops: list[Op]) -> bool:
     return any(kind != CHANGE or getattr(obj, "done", True) for kind, obj, _ in ops)
 
 
-def _urgent_item(item: list[Op] | None) -> bool:
-    """Whether a queued item ends the batch's lingering: the stop (None), a flush marker ([]) or
-    an urgent commit."""
-    return item is None or not item or _urgent(item)
+Item: TypeAlias = "list[Op] | Callable[[], Any] | None"
+"""What the journal thread takes from its queue: a commit's durable operations, a flush marker
+([]), a call to make once everything before it is on disk (`when_durable`), or the stop (None)."""
+
+
+def _urgent_item(item: Item) -> bool:
+    """Whether a queued item ends the batch's lingering: the stop (None), a flush marker ([]), a
+    call waiting for the disk or an urgent commit."""
+    return item is None or not isinstance(item, list) or not item or _urgent(item)
 
 
 class Journal:
@@ -111,7 +117,8 @@ class Journal:
         self.path = Path(path)
         self.linger = linger  # a batch of progress changes only waits this long for more (s)
         self.log = logging.getLogger(f"erni.{agent}.journal")
-        self._queue: queue.SimpleQueue[list[Op] | None] = queue.SimpleQueue()
+        self._queue: queue.SimpleQueue[Item] = queue.SimpleQueue()
+        self._durable_calls: list[Callable[[], Any]] = []  # `when_durable` calls waiting for a write that succeeds
         self._thread: threading.Thread | None = None
         self._flushed = threading.Condition()
         self._enqueued = 0
@@ -245,6 +252,12 @@ class Journal:
             self._enqueued += 1
             self._queue.put(durable)
 
+    def when_durable(self, fn: Callable[[], Any]) -> None:
+        """Call `fn` on the journal thread once every commit queued before this call is on disk (at
+        once after a batch's write: a group commit acknowledges all of its batch; while writes fail,
+        after the first that succeeds). No I/O here."""
+        self._queue.put(fn)
+
     def start(self) -> None:
         """Start the journal thread."""
         self._thread = threading.Thread(target=self._run, name=f"{self.log.name}-writer", daemon=True)
@@ -283,6 +296,7 @@ class Journal:
                 batch = [self._queue.get(timeout=1.0 if self._pending else None)]
             except queue.Empty:
                 self._write([])
+                self._durable([])
                 continue
             # take whatever else is waiting: one SQLite transaction (one fsync) for all of it; a batch
             # of changes that are not news (a running task's progress: a control node gets two a
@@ -300,14 +314,28 @@ class Journal:
                 batch.append(item)
                 urgent = urgent or _urgent_item(item)
             stop = None in batch
-            ops = [op for item in batch if item for op in item]
+            ops = [op for item in batch if isinstance(item, list) for op in item]
             if ops:
                 self._write(ops)
             with self._flushed:
-                self._written += sum(1 for item in batch if item)
+                self._written += sum(1 for item in batch if isinstance(item, list) and item)
                 self._flushed.notify_all()
+            self._durable([item for item in batch if item is not None and not isinstance(item, list)])
             if stop:
                 return
+
+    def _durable(self, calls: list[Callable[[], Any]]) -> None:
+        """Make the calls waiting for the disk, once nothing waits to be written (a failed write's
+        rows are retried first: their calls wait with them)."""
+        self._durable_calls += calls
+        if self.failed or self._pending or not self._durable_calls:
+            return
+        calls, self._durable_calls = self._durable_calls, []
+        for fn in calls:
+            try:
+                fn()
+            except Exception:
+                self.log.exception("a call waiting for the journal's write failed")
 
     def _write(self, ops: list[Op]) -> None:
         now = time.time()

@@ -312,6 +312,9 @@ class TransportPlugin(Plugin[TransportSettings]):
             self.directory[name] = Peer(uid=f"peer:{name}", name=name, address=f"{host}:{port}")
             self.add(self.directory[name])
         self._kinds = self._kind_table()
+        # a task is acknowledged once this agent's journal holds it (it survives a kill -9): the
+        # acknowledgement of a task.add or task.relay waits for the journal's next write (`_keep`)
+        self.endpoint.held_kinds = frozenset({"task.add", "task.relay"})
         self.endpoint.on_message = self._received
         self.endpoint.hint_wanted = self._hint_wanted
         self.endpoint.on_gone = lambda name: self.later(lambda: self._gone(name))
@@ -557,6 +560,22 @@ class TransportPlugin(Plugin[TransportSettings]):
     # -- incoming -------------------------------------------------------------------------
 
     def _handle(self, msg: Message) -> None:
+        try:
+            self._handle_message(msg)
+        finally:
+            ack, msg.ack = msg.ack, None
+            if ack is not None:  # a held acknowledgement nothing durable waits for (refused, or no task)
+                ack()
+
+    def _keep(self, msg: Message) -> None:
+        """Acknowledge `msg` once what this run publishes is durable: after the run's commit, at the
+        journal's next write (group commit: the tasks of one write are acknowledged together)."""
+        ack, msg.ack = msg.ack, None
+        if ack is not None:
+            agent = self._require_agent()
+            self.after_commit(lambda: agent.when_durable(ack))
+
+    def _handle_message(self, msg: Message) -> None:
         if msg.hint:  # a broadcast beacon: signed but replayable, so only a hint of presence
             if msg.kind == "beacon" and msg.role != CLIENT_ROLE:
                 self._hinted(msg)
@@ -739,6 +758,7 @@ class TransportPlugin(Plugin[TransportSettings]):
             body = body.evolve(source=origin)  # the source is who asked, as authenticated or relayed
         known = self.current(body.uid)
         if known is not None:  # the requester restarted and re-sent it: tell it where we are
+            self._keep(msg)  # (its journal write may still be on its way)
             if self._requester(body.uid) in (None, msg.sender) and isinstance(known, Task):
                 given = self._task_in(body.uid)
                 given.sender, given.reply_to = msg.sender, msg.reply
@@ -758,6 +778,7 @@ class TransportPlugin(Plugin[TransportSettings]):
         self.add(body)
         self.add(Received(uid=f"received:{body.uid}", task=body.uid, sender=msg.sender,
                           address=f"{msg.reply[0]}:{msg.reply[1]}", role=role))
+        self._keep(msg)
 
     def _apply_result(self, msg: Message, update: ResultUpdate) -> None:
         task = self.current(update.uid)
