@@ -355,6 +355,15 @@ class Agent:
         """Why this agent cannot keep new work ('' when it can): its journal cannot write."""
         return self.journal.problem() if self.journal is not None else ""
 
+    def when_durable(self, fn: Callable[[], Any]) -> None:
+        """Call `fn` once everything committed so far would survive a kill -9: after the journal's
+        next write (on its thread; with writes failing, after the first that succeeds), at once
+        for an agent without a journal. An acknowledgement of a task waits for this."""
+        if self.journal is not None:
+            self.journal.when_durable(fn)
+        else:
+            fn()
+
     def _setup(self, plugin: Plugin[Any]) -> None:
         """Run setup() as the plugin's first run: signals meanwhile cause one run after it."""
         with plugin._sched_lock:
@@ -461,6 +470,12 @@ class Agent:
                     if not self.blackboard.contains(obj.uid):
                         tx.add(obj)
             self.rehydrated = {obj.uid for obj in objects}
+            if self.retention is not None:  # a final task leaves `retention` after it ended, not after the restart
+                wall = time.time()
+                for obj in objects:
+                    written = self.journal.written_at.get(obj.uid)
+                    if getattr(obj, "done", False) and written is not None:
+                        self.retention.ended(obj.uid, wall - written)
             self.log.info("agent %s rehydrated %d object(s) from %s", self.name, len(objects),
                           self.journal_path)
         self.blackboard.add_listener(self.journal.listener)

@@ -178,6 +178,11 @@ class Plugin(Generic[SettingsT]):
         """Remove an object (for a task: cancel it)."""
         self._tx("remove").remove(obj)
 
+    def after_commit(self, fn: Callable[[], Any]) -> None:
+        """Call `fn` once the open transaction has committed (never when it publishes nothing because
+        it failed); `fn` runs on the committing thread, outside the blackboard."""
+        self._tx("after_commit").after_commit(fn)
+
     @contextmanager
     def transaction(self) -> Iterator[Transaction]:
         """Open a transaction on the calling thread; commit on success, publish nothing on error."""
