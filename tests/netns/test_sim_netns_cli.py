@@ -8,6 +8,7 @@ import signal
 import subprocess
 import sys
 import time
+import tomllib
 import urllib.request
 from pathlib import Path
 
@@ -37,6 +38,16 @@ def launch(tmp_path: Path, *args: str) -> tuple[subprocess.Popen[str], list[str]
     raise AssertionError("erni sim --netns did not come up:\n" + "\n".join(lines))
 
 
+def gui_url(text: str) -> str:
+    """The GUI's URL with its token: into a pipe `erni sim` masks it (`token=***`) and names the control
+    node's config, whose ui plugin holds it."""
+    line = re.search(r"GUI\s+(http://\S+)[^\n]*", text)
+    assert line and line.group(1).endswith("?token=***"), text
+    config = Path(re.search(r"token in (\S+control\.toml)", line.group(0)).group(1))
+    ui = next(p for p in tomllib.loads(config.read_text())["plugin"] if p["class"] == "ui")
+    return line.group(1).replace("token=***", f"token={ui['settings']['token']}")
+
+
 def tag_of(lines: list[str]) -> str:
     m = next(m for line in lines if (m := re.search(r"namespace erni-([0-9a-f]{4})\)", line)))
     return m.group(1)
@@ -54,7 +65,7 @@ def test_a_user_tasks_the_far_robot_from_another_terminal_opens_the_gui_and_ctrl
     try:
         text = "\n".join(lines)
         via = re.search(r"erni task --via (\S+)", text).group(1)
-        url = re.search(r"GUI\s+(http://\S+)", text).group(1)
+        url = gui_url(text)
         pids = [int(p) for p in re.findall(r"pid (\d+)", text)]
         assert url.startswith("http://127.0.0.1:")  # where the loopback tier has it: forwarded into the namespace
         with urllib.request.urlopen(url, timeout=10) as page:
