@@ -131,7 +131,8 @@ def test_a_wobbling_finger_selects_a_robot_and_never_teleports_it(control, brows
             touch.drag((x, y), (x + wobble * 0.6, y - wobble * 0.8), steps=4)
             page.wait_for_timeout(100)
             assert not teleports(page), f"a {wobble} px wobble teleported robot2"
-        assert page.locator('#robot-table input[data-name="robot2"]').is_checked()  # the tap selected it
+        # the tap selected it (the list redraws on the page's next frame: a loaded machine delays it)
+        page.locator('#robot-table input[data-name="robot2"]:checked').wait_for(timeout=15000)
         x, y = centre(page, "robot3")
         touch.drag((x, y), (x + 60, y + 40), steps=8)  # a quick swipe starting on a robot pans the map
         page.wait_for_timeout(200)
