@@ -23,9 +23,7 @@ def tracebacks():
     fuzz_run.team()   # the endpoints of the transport surfaces, started before any test's thread check
     yield
     root.removeHandler(fuzz_run.TRACEBACKS)
-    if fuzz_run._team is not None:
-        fuzz_run._team.close()
-        fuzz_run._team = None
+    fuzz_run.close_all()
 
 
 @pytest.mark.parametrize("name", list(fuzz_run.SURFACES))
