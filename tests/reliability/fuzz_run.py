@@ -1115,10 +1115,9 @@ def close_all() -> None:
         _team = None
 
 
-# DEEP-IMPORT
-
+from tests.reliability import fuzz_deep  # noqa: E402,F401 - the deeper harnesses replace four surfaces and add one
 
 if __name__ == "__main__":
-    from tests.reliability.fuzz_run import main as _main   # the module as the harnesses import it, not __main__
+    from tests.reliability.fuzz_run import main as _main  # the module as the harnesses import it, not __main__
 
     sys.exit(_main())
