@@ -10,12 +10,19 @@ endpoints (per-agent identities from a team authority made for the run), then op
 replay-checked and validated; the floors do none of that. The session's handshake (once per
 pair: X25519 and two Ed25519 signatures) is timed on its own: the first message to a new peer.
 
+- A task to an agent with a journal: `task.add` from a command-line client's endpoint to an agent
+  (the transport plugin, a SQLite journal in a temporary directory) -> acknowledgement, one task at
+  a time (p50, p99), and tasks acknowledged a second with `--senders` clients sending at once. An
+  agent acknowledges a task once its journal holds it (it would survive a kill -9), so these
+  include the blackboard, the plugin's run and the journal's commit (one fsync a batch: the tasks of
+  several senders that arrive together share it); the floor is the endpoint's own send -> ack above.
+
 Zenoh's Python binding (`eclipse-zenoh`, `pip install -e .[bench]`) runs in the same rounds with
 the same payload: two sessions in peer mode over TCP on loopback, `put` -> subscriber callback
 (one-way), `get` -> queryable reply (a request/response, beside ERNI's task -> acknowledgement)
 and a `put` burst. Without it installed those rows are left out.
 
-    python bench/bench_transport.py [--rounds 5] [--pings 500] [--burst 5000] [--cpu N]
+    python bench/bench_transport.py [--rounds 5] [--pings 500] [--burst 5000] [--senders 8] [--cpu N]
 
 Where the scheduler puts the receiving thread decides a one-way figure more than either
 transport does: on a quiet 2-vCPU virtual machine, a receiver woken on the other, idle vCPU
@@ -129,6 +136,66 @@ def erni_round(pings: int, burst: int) -> tuple[list[float], list[float], float,
     finally:
         a.stop()
         b.stop()
+
+
+def agent_round(pings: int, senders: int) -> tuple[list[float], float]:
+    """Tasks from command-line clients' endpoints to an agent with a journal: each task's send -> ack
+    one at a time, and the rate at which `senders` clients sending at once are acknowledged."""
+    from erni.blackboard import Agent, Task
+    from erni.transport.endpoint import CLIENT_ROLE
+
+    with tempfile.TemporaryDirectory(prefix="erni-bench-journal-") as tmp:
+        agent = Agent("control", workers=2, journal=Path(tmp) / "journal.db")
+        ident = _AUTHORITY.issue("control", "control")
+        agent.add_plugin("transport", settings={"identity": str(ident), "discovery_port": 0}, name="transport")
+        agent.start()
+        clients = [Endpoint(f"cli{i}", identity=load_identity(_AUTHORITY.issue(f"cli{i}", CLIENT_ROLE)), senders=1,
+                            role=CLIENT_ROLE) for i in range(senders)]
+        acked: dict[str, float] = {}
+        lock = threading.Condition()
+
+        def on_delivered(addr, mid):
+            with lock:
+                acked[mid] = time.perf_counter()
+                lock.notify_all()
+
+        try:
+            target = agent.plugin("transport").address  # type: ignore[attr-defined]
+            for c in clients:
+                c.on_delivered = on_delivered
+                c.start()
+
+            def task(i: int, who: int) -> Task:
+                return Task(uid=f"bench-{who}-{i}", verb="BotMotion", preposition="stop", source=f"cli{who}",
+                            destination="control")
+
+            def wait(mids: list[str], timeout: float = 10.0) -> None:
+                deadline = time.monotonic() + timeout
+                with lock:
+                    while not all(m in acked for m in mids) and time.monotonic() < deadline:
+                        lock.wait(0.1)
+
+            lat: list[float] = []
+            for i in range(pings + 1):  # the first: the session's handshake, left out
+                t0 = time.perf_counter()
+                mid = clients[0].send(target, "task.add", task(i, 0), reliable=True, msg_id=f"one-{i}")
+                wait([mid])
+                if i and mid in acked:
+                    lat.append(acked[mid] - t0)
+            for j, c in enumerate(clients[1:], 1):  # every client's session up before the clock starts
+                wait([c.send(target, "task.add", task(0, j), reliable=True, msg_id=f"warm-{j}")])
+            each = max(1, pings // senders)
+            t0 = time.perf_counter()
+            mids = [c.send(target, "task.add", task(i, j), reliable=True, msg_id=f"many-{j}-{i}")
+                    for i in range(1, each + 1) for j, c in enumerate(clients)]
+            wait(mids, timeout=60.0)
+            done = [acked[m] for m in mids if m in acked]
+            rate = len(done) / (max(done) - t0) if done else 0.0
+            return lat, rate
+        finally:
+            for c in clients:
+                c.stop()
+            agent.stop()
 
 
 def _free_port() -> int:
@@ -297,6 +364,8 @@ def main() -> int:
     parser.add_argument("--rounds", type=int, default=5)
     parser.add_argument("--pings", type=int, default=500)
     parser.add_argument("--burst", type=int, default=5000)
+    parser.add_argument("--senders", type=int, default=8,
+                        help="clients sending tasks at once to the agent with a journal")
     parser.add_argument("--cpu", type=int, default=None,
                         help="keep every thread of the run on this CPU (default: where the kernel puts them)")
     results.add_argument(parser)
@@ -308,11 +377,13 @@ def main() -> int:
             parser.error(f"--cpu {args.cpu}: cannot run on that CPU ({err}); expected one of "
                          f"{sorted(os.sched_getaffinity(0))}")
     load_before = os.getloadavg()
-    rows, zrows, firsts = [], [], []
+    rows, zrows, firsts, arows = [], [], [], []
     for _ in range(args.rounds):  # the three systems take turns in every round
         eu, et, er, first = erni_round(args.pings, args.burst)
         firsts.append(first)
         fu, ft, fr = floor_round(args.pings, args.burst)
+        al, ar = agent_round(min(args.pings, 200), args.senders)
+        arows.append((pct(al, .5), pct(al, .99), ar))
         rows.append((pct(eu, .5), pct(fu, .5), pct(eu, .99), pct(fu, .99), pct(et, .5), pct(ft, .5),
                      pct(et, .99), pct(ft, .99), er, fr))
         z = zenoh_round(args.pings, args.burst)
@@ -338,6 +409,12 @@ def main() -> int:
           "ERNI ahead; for throughput ERNI/Zenoh)")
     print(f"{'handshake + first status':<28} {statistics.median(firsts) * 1e6:>8.0f}us   (once per pair of "
           "endpoints; no floor)")
+    am = [statistics.median(col) for col in zip(*arows)]
+    print(f"{'task to a journaled agent p50':<28} {am[0] * 1e6:>8.0f}us {m[4] * 1e6:>8.0f}us {am[0] / m[4]:>7.2f}"
+          "   (send -> ack once the journal holds it; floor: ERNI's endpoint send->ack)")
+    print(f"{'task to a journaled agent p99':<28} {am[1] * 1e6:>8.0f}us {m[6] * 1e6:>8.0f}us {am[1] / m[6]:>7.2f}")
+    print(f"{'tasks acknowledged, ' + str(args.senders) + ' senders':<28} {am[2]:>8.0f}/s   (each sender one task "
+          "in flight; a journal batch's tasks share one commit)")
     print(f"load average (1, 5, 15 min) before {' '.join(f'{x:.2f}' for x in load_before)}, after "
           f"{' '.join(f'{x:.2f}' for x in os.getloadavg())}: the floors move with it, so compare ratios of one run")
     targets = [
@@ -349,6 +426,13 @@ def main() -> int:
                        f"{m[8] / m[9]:.2f}x ({m[8]:.0f} statuses/s)", m[8] / m[9] >= 0.8),
         results.target("TCP task → acknowledgement p99", "≤ 1 ms on loopback", f"raw TCP, {m[7] * 1e3:.2f} ms",
                        f"{m[6] * 1e3:.2f} ms", m[6] <= 1e-3),
+    ]
+    targets += [
+        results.target("task to an agent with a journal → acknowledgement p50", "acknowledged once durable",
+                       f"ERNI's endpoint send → ack, {m[4] * 1e3:.2f} ms",
+                       f"{am[0] * 1e3:.2f} ms (p99 {am[1] * 1e3:.2f} ms)", None),
+        results.target(f"tasks acknowledged a second, {args.senders} senders at once", "reported",
+                       "one task in flight per sender", f"{am[2]:.0f}/s", None),
     ]
     if zm is not None:
         targets.append(results.target("throughput beside Zenoh's Python binding", "≥ 2x ahead",

@@ -2,6 +2,7 @@
 
 from erni.blackboard.agent import Agent
 from erni.blackboard.blackboard import Blackboard, Predicate, Subscription, Transaction
+from erni.blackboard.clock import Clock
 from erni.blackboard.errors import (
     ConfigError,
     ErniError,
@@ -32,7 +33,7 @@ from erni.blackboard.tasks import (
 )
 
 __all__ = [
-    "Agent", "AllocationResult", "BBObject", "Blackboard", "ConfigError", "ErniError", "Link", "Neighbor",
+    "Agent", "AllocationResult", "BBObject", "Blackboard", "Clock", "ConfigError", "ErniError", "Link", "Neighbor",
     "NetInfo", "NetworkError", "NoSettings", "NotFoundError", "Params", "Peer", "Plugin", "PluginError", "Pose",
     "Position", "Predicate", "Route", "Subscription", "Task", "TaskError", "TaskState", "Transaction",
     "TransactionError", "UsageError", "language_table", "new_uid", "register_preposition", "register_verb",

@@ -18,6 +18,7 @@ from typing import Any, TypeVar, overload
 from pydantic import BaseModel, ValidationError
 
 from erni.blackboard.blackboard import Blackboard, Query, Transaction
+from erni.blackboard.clock import SYSTEM, Clock, as_clock
 from erni.blackboard.errors import ConfigError, PluginError, UsageError, describe_validation
 from erni.blackboard.plugin import NoSettings, Plugin
 
@@ -256,17 +257,19 @@ class Agent:
 
     def __init__(self, name: str, *, workers: int = 4, slow_plugin_seconds: float = 1.0,
                  journal: str | Path | None = None, retention: float | None = 600.0, reset_journal: bool = False,
-                 clock: Callable[[], float] = time.monotonic):
+                 clock: Clock | Callable[[], float] = SYSTEM):
         if workers < 1:
             raise UsageError(f"workers: expected at least 1, got {workers}")
         self.name = name
-        self.clock = clock
-        """Seconds on a monotonic clock: when plugins' wake-ups are due, how long a run has taken, when
-        a final task is old enough to go. A test may give its own (`erni.testing.ManualClock`)."""
+        self.clock: Clock = as_clock(clock)
+        """The agent's clock (erni.blackboard.clock): called, monotonic seconds (when plugins' wake-ups are
+        due, how long a run has taken, when a final task is old enough to go); `wall()`, the stamps it
+        makes. A test may give its own (`erni.testing.ManualClock`); a bare callable is its monotonic
+        reading, with the process's wall clock beside it."""
         self.blackboard = Blackboard(name)
         self.scheduler = Scheduler(self, workers, slow_plugin_seconds)
         self.timers = Timers(self)
-        watch = getattr(clock, "on_advance", None)
+        watch = getattr(self.clock, "on_advance", None)
         if callable(watch):  # a test's clock says when it moves: timers and slow-run watch look again
             watch(self.timers.poke)
         self.blackboard.signal = self.scheduler.signal
@@ -274,6 +277,8 @@ class Agent:
         self.log = logging.getLogger(f"erni.{name}")
         self.started = False
         self.components: list[Any] = []  # non-plugin parts with start()/stop()
+        self._offers: dict[str, Any] = {}  # what plugins offer each other beside the blackboard (`provide`)
+        self._offers_lock = threading.Lock()
         self.journal_path = Path(journal) if journal else None
         self.journal: Any = None
         self.reset_journal = reset_journal  # a journal unreadable at start is moved aside, not fatal
@@ -298,6 +303,19 @@ class Agent:
         return load_agent(path)
 
     # -- plugins --------------------------------------------------------------------------
+
+    def provide(self, name: str, thing: Any) -> None:
+        """Offer `thing` to the agent's plugins under `name`: the agent-level facility for what one
+        plugin gives another that cannot travel on the blackboard (a live session, a hardware
+        description read from a driver). Plugins never reach into each other's attributes; the
+        names offered are listed in the architecture's documentation. A second offer replaces the first."""
+        with self._offers_lock:
+            self._offers[name] = thing
+
+    def provided(self, name: str) -> Any | None:
+        """What a plugin offered under `name` (`provide`), None when nothing was."""
+        with self._offers_lock:
+            return self._offers.get(name)
 
     @overload
     def add_plugin(self, plugin: type[P] | P, settings: dict[str, Any] | BaseModel | None = None,
@@ -336,6 +354,15 @@ class Agent:
     def degraded(self) -> str:
         """Why this agent cannot keep new work ('' when it can): its journal cannot write."""
         return self.journal.problem() if self.journal is not None else ""
+
+    def when_durable(self, fn: Callable[[], Any]) -> None:
+        """Call `fn` once everything committed so far would survive a kill -9: after the journal's
+        next write (on its thread; with writes failing, after the first that succeeds), at once
+        for an agent without a journal. An acknowledgement of a task waits for this."""
+        if self.journal is not None:
+            self.journal.when_durable(fn)
+        else:
+            fn()
 
     def _setup(self, plugin: Plugin[Any]) -> None:
         """Run setup() as the plugin's first run: signals meanwhile cause one run after it."""
@@ -443,6 +470,12 @@ class Agent:
                     if not self.blackboard.contains(obj.uid):
                         tx.add(obj)
             self.rehydrated = {obj.uid for obj in objects}
+            if self.retention is not None:  # a final task leaves `retention` after it ended, not after the restart
+                wall = time.time()
+                for obj in objects:
+                    written = self.journal.written_at.get(obj.uid)
+                    if getattr(obj, "done", False) and written is not None:
+                        self.retention.ended(obj.uid, wall - written)
             self.log.info("agent %s rehydrated %d object(s) from %s", self.name, len(objects),
                           self.journal_path)
         self.blackboard.add_listener(self.journal.listener)

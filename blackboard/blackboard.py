@@ -8,6 +8,7 @@ next run, so a plugin's view is frozen while it executes.
 
 from __future__ import annotations
 
+import logging
 import threading
 from collections.abc import Callable, Iterable, Iterator
 from typing import TYPE_CHECKING, Any, Generic, Protocol, TypeVar, overload
@@ -193,7 +194,7 @@ class Subscription(Generic[T]):
 class Transaction:
     """Publications staged by one thread; applied atomically by `commit()`."""
 
-    __slots__ = ("_board", "label", "ops", "_staged", "closed")
+    __slots__ = ("_board", "label", "ops", "_staged", "closed", "_after")
 
     def __init__(self, board: Blackboard, label: str = ""):
         self._board = board
@@ -201,6 +202,23 @@ class Transaction:
         self.ops: list[Op] = []
         self._staged: dict[str, BBObject | None] = {}  # uid -> latest staged version (None = removed)
         self.closed = False
+        self._after: list[Callable[[], Any]] | None = None  # `after_commit`, in order
+
+    def after_commit(self, fn: Callable[[], Any]) -> None:
+        """Call `fn` once this transaction has committed (after the commit listeners, such as the
+        journal's queue, have seen it); never when it aborts or what was staged before is rolled back."""
+        self._check_open()
+        if self._after is None:
+            self._after = []
+        self._after.append(fn)
+
+    def _run_after(self) -> None:
+        after, self._after = self._after, None
+        for fn in after or ():
+            try:
+                fn()
+            except Exception:
+                logging.getLogger("erni.blackboard").exception("a hook after the commit of %s failed", self.label)
 
     def current(self, uid: str) -> BBObject | None:
         """The object with this uid as this transaction would leave it: what it staged, else the
@@ -255,15 +273,17 @@ class Transaction:
         self.ops.append((REMOVE, current, ()))
         self._staged[uid] = None
 
-    def savepoint(self) -> tuple[int, dict[str, BBObject | None]]:
+    def savepoint(self) -> tuple[int, dict[str, BBObject | None], int]:
         """Return a mark that `rollback_to` can return to (drops what was staged after it)."""
-        return len(self.ops), dict(self._staged)
+        return len(self.ops), dict(self._staged), len(self._after or ())
 
-    def rollback_to(self, mark: tuple[int, dict[str, BBObject | None]]) -> None:
-        """Drop every publication staged since `mark`."""
-        count, staged = mark
+    def rollback_to(self, mark: tuple[int, dict[str, BBObject | None], int]) -> None:
+        """Drop every publication (and `after_commit` hook) staged since `mark`."""
+        count, staged, hooks = mark
         del self.ops[count:]
         self._staged = dict(staged)
+        if self._after is not None:
+            del self._after[hooks:]
 
     def commit(self) -> None:
         """Apply every staged publication at once, in order, and wake the subscribers."""
@@ -272,11 +292,14 @@ class Transaction:
         self.closed = True
         if self.ops:
             self._board._commit(self.ops)
+        if self._after is not None:
+            self._run_after()
 
     def abort(self) -> None:
         """Drop everything staged."""
         self.closed = True
         self.ops = []
+        self._after = None
 
     def __enter__(self) -> Transaction:
         return self
@@ -290,6 +313,8 @@ class Transaction:
         self.closed = True
         if self.ops:
             self._board._commit(self.ops)
+        if self._after is not None:
+            self._run_after()
 
 
 class Blackboard:

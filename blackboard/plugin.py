@@ -13,6 +13,7 @@ from pydantic import BaseModel, ConfigDict
 from typing_extensions import TypeVar
 
 from erni.blackboard.blackboard import Blackboard, Predicate, Query, Subscription, T, Transaction
+from erni.blackboard.clock import SYSTEM, Clock
 from erni.blackboard.errors import TransactionError, UsageError
 from erni.blackboard.objects import BBObject, Model
 
@@ -125,6 +126,21 @@ class Plugin(Generic[SettingsT]):
         return self._board.get(uid) if tx is None else tx.current(uid)
 
     @property
+    def clock(self) -> Clock:
+        """The agent's clock: `self.clock()` monotonic seconds (durations, deadlines), `self.clock.wall()`
+        seconds since the epoch (stamps). A test's agent may run on `erni.testing.ManualClock`; a plugin
+        not yet part of an agent reads the process's clock."""
+        return self._agent.clock if self._agent is not None else SYSTEM
+
+    def provide(self, name: str, thing: Any) -> None:
+        """Offer `thing` to this agent's other plugins under `name` (see `Agent.provide`)."""
+        self._require_agent().provide(name, thing)
+
+    def provided(self, name: str) -> Any | None:
+        """What another plugin of this agent offered under `name`, None when nothing was (or no agent)."""
+        return self._agent.provided(name) if self._agent is not None else None
+
+    @property
     def query(self) -> Query:
         """`query(Type, where=...)`: a snapshot of the committed objects matching a type and/or predicate."""
         return self._board.query
@@ -161,6 +177,11 @@ class Plugin(Generic[SettingsT]):
     def remove(self, obj: BBObject | str) -> None:
         """Remove an object (for a task: cancel it)."""
         self._tx("remove").remove(obj)
+
+    def after_commit(self, fn: Callable[[], Any]) -> None:
+        """Call `fn` once the open transaction has committed (never when it publishes nothing because
+        it failed); `fn` runs on the committing thread, outside the blackboard."""
+        self._tx("after_commit").after_commit(fn)
 
     @contextmanager
     def transaction(self) -> Iterator[Transaction]:

@@ -1,8 +1,10 @@
 """Retention: finished tasks leave the blackboard (and so the journal and every plugin's memory)
 a configurable time after they finished.
 
-The time counts on this agent's monotonic clock from when it saw the task final (for a task
-rehydrated final, from the start), never from a wall-clock stamp. A finished sub-task stays as
+The time counts on this agent's monotonic clock from when it saw the task final. A task that
+comes back final from the journal after a restart counts from when it ended, as the journal's
+row says (its last write, on the wall clock, the only clock that spans a restart): a restart
+does not keep a finished task longer. A finished sub-task stays as
 long as its parent runs. Removing a finished task is what its requester would do: the
 transport drops its notes of it and tells the other end, which drops its copy too.
 """
@@ -50,6 +52,14 @@ class Retention:
                     self._done.pop(obj.uid, None)
                 else:
                     self._done.setdefault(obj.uid, now)
+
+    def ended(self, uid: str, ago: float) -> None:
+        """Task `uid` (on the board, final) ended `ago` seconds before now: it leaves `seconds` after
+        that, not after it was seen (a task rehydrated final)."""
+        now = self.agent.clock()
+        with self._lock:
+            if uid in self._done:
+                self._done[uid] = now - max(0.0, ago)
 
     def start(self) -> None:
         """Start the sweeping thread."""

@@ -103,10 +103,14 @@ class Fresh(_Message):
 
 
 class PeerList(_Message):
-    """The directory of an agent, sent to a client."""
+    """The directory of an agent, sent to a client: in `parts` messages when one would not fit in a
+    frame, each with some of the peers (`erni.transport.client.PeerListParts` puts them together)."""
 
     agent: Name
     peers: list[Peer]
+    request: str = Field("", max_length=128, description="the id of the `peers.request` this answers")
+    part: int = Field(0, ge=0, lt=10_000, description="which part of the answer this is, from 0")
+    parts: int = Field(1, ge=1, le=10_000, description="how many parts the answer has")
     down_after: dict[str, float] = Field(default_factory=dict, description="peer -> the silence (s) that "
                                          "marks it down now: peer_timeout, scaled and stretched for a lossy link")
     beacons: dict[str, float] = Field(default_factory=dict, description="peer -> the share of its recent "

@@ -33,6 +33,7 @@ from __future__ import annotations
 from collections.abc import Callable, Iterable
 from typing import Any
 
+from erni.blackboard import clock
 from erni.blackboard.agent import Agent
 from erni.blackboard.errors import UsageError
 from erni.blackboard.plugin import Plugin
@@ -202,12 +203,18 @@ class ManualClock:
             clock.advance(5.0)      # Ticker's wake_every(5.0) is due: it runs now
     """
 
-    def __init__(self, start: float = 1000.0) -> None:
+    def __init__(self, start: float = 1000.0, *, wall_start: float | None = None) -> None:
         self.now = start
+        self._wall_offset = (clock.wall() if wall_start is None else wall_start) - start
         self._watchers: list[Any] = []
 
     def __call__(self) -> float:
         return self.now
+
+    def wall(self) -> float:
+        """Seconds since the epoch: `wall_start` (the process's wall time when made, by default), moved
+        as the clock is advanced."""
+        return self.now + self._wall_offset
 
     def on_advance(self, fn: Any) -> None:
         """Call `fn()` after every `advance` (the agent's timers look at the clock again)."""

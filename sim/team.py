@@ -619,14 +619,18 @@ class Team:
     def peers(self, timeout: float = 2.0) -> dict[str, Any]:
         """The control node's directory: agent name -> Peer ({} when it does not answer)."""
         from erni.blackboard.schemas import PeerList
+        from erni.transport.client import PeerListParts
 
         client = self.client()
         client.send(self.control_address, "peers.request", None)
         deadline = time.monotonic() + timeout
+        parts = PeerListParts()  # a large directory comes in parts
         while time.monotonic() < deadline:
             msg = client.receive(0.1)
             if msg is not None and msg.kind == "peers.reply" and isinstance(msg.body, PeerList):
-                return {p.name: p for p in msg.body.peers}
+                directory = parts.add(msg.body)
+                if directory is not None:
+                    return {p.name: p for p in directory.peers}
         return {}
 
     def _make_private_run_dir(self) -> None:

@@ -62,6 +62,7 @@ from erni.blackboard.schemas import (
     WatchEvent,
     WatchRequest,
 )
+from erni.transport.bounds import SenderBounds
 from erni.transport.endpoint import (
     CLIENT_ROLE,
     STREAM_BUFFER,
@@ -74,7 +75,7 @@ from erni.transport.endpoint import (
 from erni.transport.identity import Identity, IdentityError, load_identity
 from erni.transport.limits import Limits
 from erni.transport.liveness import BeaconCount, silence_stretch
-from erni.transport.policy import OPERATORS, Refusal, check_relay, check_status, check_task, check_watch
+from erni.transport.policy import OPERATORS, STATUS, Refusal, check_relay, check_status, check_task, check_watch
 from erni.transport.wire import Message, register_type
 from erni.transport.zenoh_keys import ZenohSettings
 
@@ -170,6 +171,25 @@ class TransportSettings(Model):
     share_with: dict[str, list[str]] = Field(default_factory=dict,
                                              description="per type, the roles that receive it, e.g. "
                                              "{Territory = [\"control\", \"robot\"]}")
+    status_objects: int = Field(256, ge=1, le=1_000_000, description="status objects held per sender and "
+                                "type, of the types whose uid is the sender's to choose (NetInfo: a robot "
+                                "shares one per watched NetWatch preposition and one per NetWatch task it "
+                                "answers); a new one beyond is refused and counted (refused.status_bound)")
+    status_bytes: int = Field(4 * 1024 * 1024, ge=1024, le=1 << 34, description="bytes (their JSON) of the "
+                              "status objects of those types held per sender and type (bytes); one that "
+                              "would go beyond is refused and counted (refused.status_bound)")
+    tasks_per_requester: int = Field(1000, ge=1, le=1_000_000, description="tasks held for one requester (the "
+                                     "peer or client they came from), finished ones included until retention "
+                                     "takes them: at the bound its oldest finished task leaves early, and with "
+                                     "none finished a new one is refused (its requester is told; "
+                                     "refused.task_bound)")
+    hinted_peers: int = Field(512, ge=1, le=1_000_000, description="peers known only from hints (broadcast "
+                              "beacons, Zenoh liveliness tokens) held at most, and as many addresses learned "
+                              "from routing tables (NetInfo); a new one beyond is dropped and counted "
+                              "(dropped.hint_bound)")
+    hinted_per_source: int = Field(128, ge=1, le=1_000_000, description="... of those from one source: the "
+                                   "host a beacon came from, the router a Zenoh token names ('direct' for a "
+                                   "peer), the node whose routing table named an address")
     forward_tasks: bool = Field(True, description="false: never send tasks to other agents "
                                 "(a replaying control node)")
     udp_loss: float = Field(0.0, ge=0.0, le=1.0, description="fault injection: drop this share of "
@@ -280,6 +300,8 @@ class TransportPlugin(Plugin[TransportSettings]):
         self.status_base: dict[str, float] = {}  # uid of a status received -> stamp of the whole version held
         self.whole_sent: dict[str, _Sent] = {}  # uid of a shared object of ours -> its last whole version sent
         self._resend_asked: dict[str, float] = {}  # uid of a status received -> when we last asked for it whole
+        self._count: Callable[[str], None] = getattr(self.endpoint, "count", None) or (lambda name: None)  # (a test's
+        self.bounds = SenderBounds(s, self._count, self.log, self._now)  # in-memory endpoint counts nothing)  # per sender: what it may make us hold
         self.tasks = self.subscribe(Task)
         self.receipts = self.subscribe(Received)
         self.watched = self.subscribe(lambda o: isinstance(o, WATCHED))
@@ -312,6 +334,9 @@ class TransportPlugin(Plugin[TransportSettings]):
             self.directory[name] = Peer(uid=f"peer:{name}", name=name, address=f"{host}:{port}")
             self.add(self.directory[name])
         self._kinds = self._kind_table()
+        # a task is acknowledged once this agent's journal holds it (it survives a kill -9): the
+        # acknowledgement of a task.add or task.relay waits for the journal's next write (`_keep`)
+        self.endpoint.held_kinds = frozenset({"task.add", "task.relay"})
         self.endpoint.on_message = self._received
         self.endpoint.hint_wanted = self._hint_wanted
         self.endpoint.on_gone = lambda name: self.later(lambda: self._gone(name))
@@ -347,6 +372,7 @@ class TransportPlugin(Plugin[TransportSettings]):
         me = self.agent_name
         now = time.time()
         for receipt in self.receipts.added:  # after a restart: who gave us which task, and where
+            self.bounds.task(receipt.sender, receipt.task)
             given = self._task_in(receipt.task)
             if given.sender is None:
                 given.sender = receipt.sender
@@ -371,6 +397,7 @@ class TransportPlugin(Plugin[TransportSettings]):
             if origin and task.result is not None:
                 self._send_result(origin, task)
         for task in self.tasks.removed:
+            self.bounds.task_gone(task.uid)
             sent = self.tasks_out.pop(task.uid, None)
             if sent is not None and sent.pending is not None:
                 self._waiting -= 1
@@ -382,11 +409,11 @@ class TransportPlugin(Plugin[TransportSettings]):
         known = len(self.learned)
         for info in self.netinfo.added + self.netinfo.changed:
             for n in info.neighbors:
-                if n.address:
-                    self.learned.add(n.address)
+                if n.address and n.address not in self.learned:
+                    self._learn(n.address, info.node)
             for route in info.routes:  # several hops away: a routing daemon's destination not yet named
-                if _is_ip(route.destination):
-                    self.learned.add(route.destination)
+                if route.destination not in self.learned and _is_ip(route.destination):
+                    self._learn(route.destination, info.node)
         if len(self.learned) != known:  # somewhere new to announce to: at once
             self._next_beacon = 0.0
         self._share_status()
@@ -399,6 +426,14 @@ class TransportPlugin(Plugin[TransportSettings]):
         if mono >= self._next_link_check:  # O(tasks sent): a control node runs for every Pose it receives
             self._next_link_check = mono + min(self.settings.beacon_period, self.settings.link_deadline) / 4
             self._check_links()
+
+    def _learn(self, address: str, node: str) -> None:
+        """Announce to `address` from now on (named by `node`'s routing table), within the bounds."""
+        why = self.bounds.learned(address, node)
+        if why:
+            self.bounds.refuse("dropped.hint_bound", node, "learned", why)
+        else:
+            self.learned.add(address)
 
     # -- what is known of each task and peer -----------------------------------------------
 
@@ -557,6 +592,22 @@ class TransportPlugin(Plugin[TransportSettings]):
     # -- incoming -------------------------------------------------------------------------
 
     def _handle(self, msg: Message) -> None:
+        try:
+            self._handle_message(msg)
+        finally:
+            ack, msg.ack = msg.ack, None
+            if ack is not None:  # a held acknowledgement nothing durable waits for (refused, or no task)
+                ack()
+
+    def _keep(self, msg: Message) -> None:
+        """Acknowledge `msg` once what this run publishes is durable: after the run's commit, at the
+        journal's next write (group commit: the tasks of one write are acknowledged together)."""
+        ack, msg.ack = msg.ack, None
+        if ack is not None:
+            agent = self._require_agent()
+            self.after_commit(lambda: agent.when_durable(ack))
+
+    def _handle_message(self, msg: Message) -> None:
         if msg.hint:  # a broadcast beacon: signed but replayable, so only a hint of presence
             if msg.kind == "beacon" and msg.role != CLIENT_ROLE:
                 self._hinted(msg)
@@ -619,6 +670,7 @@ class TransportPlugin(Plugin[TransportSettings]):
             sent.holders = frozenset(h for h in sent.holders if h[0] != msg.sender)
 
     def _on_status_removed(self, msg: Message, body: StatusRemoved) -> None:
+        self.bounds.status_gone(body.uid)
         self.status_base.pop(body.uid, None)
         self._resend_asked.pop(body.uid, None)
         self.status_owner.pop(body.uid, None)
@@ -626,11 +678,26 @@ class TransportPlugin(Plugin[TransportSettings]):
             self.remove(body.uid)
 
     def _on_peers_request(self, msg: Message, body: object) -> None:
+        """The directory, in as many `peers.reply` parts as keep each within half a frame (room for
+        the envelope and the seal): a directory of any size reaches the client whole."""
         counted = {name: peer.beacon_count.share() for name, peer in list(self.peers.items())
                    if peer.beacon_count is not None and peer.beacon_count.sent}
-        peers = PeerList(agent=self.agent_name, peers=list(self.directory.values()), beacons=counted,
-                         down_after={name: self._down_after(name) for name in self.directory})
-        self.endpoint.send(msg.reply, "peers.reply", peers, reliable=True, to=msg.sender)
+        budget = max(1024, self.settings.max_frame // 2)
+        parts: list[list[Peer]] = [[]]
+        used = 0
+        for peer in self.directory.values():
+            size = len(peer.model_dump_json()) + 2 * len(peer.name) + 64  # and its rows of beacons, down_after
+            if parts[-1] and used + size > budget:
+                parts.append([])
+                used = 0
+            parts[-1].append(peer)
+            used += size
+        for i, chunk in enumerate(parts):
+            names = [p.name for p in chunk]
+            reply = PeerList(agent=self.agent_name, peers=chunk, request=msg.id[:128], part=i, parts=len(parts),
+                             beacons={n: counted[n] for n in names if n in counted},
+                             down_after={n: self._down_after(n) for n in names})
+            self.endpoint.send(msg.reply, "peers.reply", reply, reliable=True, to=msg.sender)
 
     def _on_watch_request(self, msg: Message, body: WatchRequest) -> None:
         key = (msg.sender, msg.reply)
@@ -739,6 +806,7 @@ class TransportPlugin(Plugin[TransportSettings]):
             body = body.evolve(source=origin)  # the source is who asked, as authenticated or relayed
         known = self.current(body.uid)
         if known is not None:  # the requester restarted and re-sent it: tell it where we are
+            self._keep(msg)  # (its journal write may still be on its way)
             if self._requester(body.uid) in (None, msg.sender) and isinstance(known, Task):
                 given = self._task_in(body.uid)
                 given.sender, given.reply_to = msg.sender, msg.reply
@@ -753,11 +821,35 @@ class TransportPlugin(Plugin[TransportSettings]):
             self.endpoint.send(msg.reply, "task.result", ResultUpdate(uid=body.uid, result=refusal),
                                reliable=True, to=msg.sender)
             return
+        if self.bounds.task_full(msg.sender) and not self._make_room(msg.sender):
+            s = self.settings
+            why = (f"{msg.sender} has {s.tasks_per_requester} unfinished tasks here (tasks_per_requester = "
+                   f"{s.tasks_per_requester})")
+            self.bounds.refuse("refused.task_bound", msg.sender, "tasks", f"task {body.uid[:64]} refused: {why}")
+            refusal = AllocationResult(state=TaskState.FAILED, message=f"refused by {self.agent_name}: {why}")
+            self.endpoint.send(msg.reply, "task.result", ResultUpdate(uid=body.uid, result=refusal),
+                               reliable=True, to=msg.sender)
+            return
         given = self._task_in(body.uid)
         given.sender, given.reply_to, given.origin_role = msg.sender, msg.reply, role
+        self.bounds.task(msg.sender, body.uid)
         self.add(body)
         self.add(Received(uid=f"received:{body.uid}", task=body.uid, sender=msg.sender,
                           address=f"{msg.reply[0]}:{msg.reply[1]}", role=role))
+        self._keep(msg)
+
+    def _make_room(self, requester: str) -> bool:
+        """At `requester`'s bound of tasks: its oldest finished task leaves now instead of after the
+        retention (its performer is told, as at retention); False when none of them is finished."""
+        for uid in self.bounds.tasks_of(requester):
+            task = self._task_now(uid)
+            if task is None or task.done:
+                self.bounds.task_gone(uid)
+                if task is not None:
+                    self.remove(uid)
+                    self._count("evicted.task_bound")
+                return True
+        return False
 
     def _apply_result(self, msg: Message, update: ResultUpdate) -> None:
         task = self.current(update.uid)
@@ -849,6 +941,11 @@ class TransportPlugin(Plugin[TransportSettings]):
         beacon = msg.body if isinstance(msg.body, Beacon) else Beacon(role=msg.role)
         now = time.time()  # a peer not up shows when its beacon was last heard (up needs a session)
         if old is None:
+            source = msg.source or msg.reply[0]
+            why = self.bounds.hint(name, source)
+            if why:
+                self.bounds.refuse("dropped.hint_bound", source, "hint", why)
+                return
             peer = Peer(uid=f"peer:{name}", name=name, address=address, role=beacon.role,
                         capabilities=beacon.capabilities, last_heard=now)
             self.directory[name] = peer
@@ -867,8 +964,17 @@ class TransportPlugin(Plugin[TransportSettings]):
 
     def _gone(self, name: str) -> None:
         """The wire tells that agent `name` has left (its Zenoh liveliness token went): down at once,
-        not after its silence limit. A session frame from it brings it up again."""
+        not after its silence limit. A session frame from it brings it up again. A peer known only
+        from that hint (never heard in a session) is forgotten."""
         peer = self.directory.get(name)
+        if peer is not None and not peer.up and self.bounds.is_hinted(name):
+            self.bounds.hint_gone(name)
+            del self.directory[name]
+            self.peers.pop(name, None)
+            if self.get(peer.uid) is not None:
+                self.remove(peer.uid)
+            self._count("forgot.hinted")
+            return
         if peer is None or not peer.up:
             return
         self.directory[name] = peer = peer.evolve(up=False)
@@ -878,6 +984,8 @@ class TransportPlugin(Plugin[TransportSettings]):
     def _heard(self, name: str, reply: tuple[str, int], epoch: int, beacon: Any, role: str = "") -> None:
         if not name or name == self.agent_name:
             return
+        if self.bounds.is_hinted(name):  # heard in a session: a peer, no longer a hint
+            self.bounds.hint_gone(name)
         now = time.time()
         self._peer(name).heard_at = self._now()
         old = self.directory.get(name)
@@ -1087,6 +1195,10 @@ class TransportPlugin(Plugin[TransportSettings]):
         first = obj.uid not in self.status_in  # (two statuses of a new object may come in one run)
         if first and self._board.get(obj.uid) is not None:
             return  # never overwrite an object of our own with a peer's
+        why = self._hold_status(msg.sender, obj)
+        if why:
+            self.bounds.refuse("refused.status_bound", msg.sender, f"status {type(obj).__name__}", why)
+            return
         self.status_in[obj.uid] = stamp
         self.status_owner[obj.uid] = msg.sender
         base = getattr(obj, "stamp", None)
@@ -1096,6 +1208,16 @@ class TransportPlugin(Plugin[TransportSettings]):
             self.add(obj)
         else:
             self.change(obj, reports=[f"status from {msg.sender}"])
+
+    def _hold_status(self, sender: str, obj: BBObject) -> str:
+        """'' when `sender`'s status `obj` fits its bounds (held from now on), else why not. A type whose
+        uid the policy fixes (one per sender: a Pose, a Peer) is not counted: its one object is at most
+        a frame."""
+        name = type(obj).__name__
+        rule = STATUS.get(name)
+        if rule is not None and rule.uid:
+            return ""
+        return self.bounds.status(sender, name, obj.uid, len(obj.model_dump_json()))
 
     def _apply_fresh(self, msg: Message, note: Fresh) -> None:
         """A peer's shared object is unchanged but for its stamp: if we hold the version it was
@@ -1107,6 +1229,8 @@ class TransportPlugin(Plugin[TransportSettings]):
         if held is None or self.status_base.get(note.uid) != note.base:
             now = self._now()
             if now - self._resend_asked.get(note.uid, -math.inf) >= 1.0:
+                if len(self._resend_asked) >= 4096 and note.uid not in self._resend_asked:
+                    del self._resend_asked[next(iter(self._resend_asked))]  # bounded: the oldest asked goes
                 self._resend_asked[note.uid] = now
                 self.endpoint.send(msg.reply, "status.resend", StatusResend(uid=note.uid), reliable=False, to=msg.sender)
             return

@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from erni.blackboard.errors import ErniError
-from erni.blackboard.schemas import Beacon, ResultUpdate
+from erni.blackboard.schemas import Beacon, PeerList, ResultUpdate
 from erni.transport.endpoint import CLIENT_ROLE, Address, Endpoint, team_key
 from erni.transport.identity import load_identity
 from erni.transport.wire import Message
@@ -35,6 +35,32 @@ INBOX_LIMIT = 10_000  # messages a client holds for its reader (about 25 s of a 
 
 class ClientError(ErniError):
     """The team could not be reached or answered unexpectedly."""
+
+
+class PeerListParts:
+    """Puts a directory sent in parts (`peers.reply`: one part per half frame) back together."""
+
+    KEEP = 16  # answers being put together at once (a client asks again and again: the oldest go)
+
+    def __init__(self) -> None:
+        self._parts: dict[tuple[str, str, int], dict[int, PeerList]] = {}
+
+    def add(self, body: PeerList) -> PeerList | None:
+        """Take one part; return the whole directory once every part of its answer arrived."""
+        if body.parts <= 1:
+            return body
+        key = (body.agent, body.request, body.parts)
+        got = self._parts.pop(key, {})
+        got[body.part] = body
+        if len(got) < body.parts:
+            self._parts[key] = got  # the newest last
+            while len(self._parts) > self.KEEP:
+                del self._parts[next(iter(self._parts))]
+            return None
+        whole = [got[i] for i in range(body.parts)]
+        return PeerList(agent=body.agent, request=body.request, peers=[p for part in whole for p in part.peers],
+                        beacons={k: v for part in whole for k, v in part.beacons.items()},
+                        down_after={k: v for part in whole for k, v in part.down_after.items()})
 
 
 class Client:

@@ -81,4 +81,4 @@ class Beacons:
         body = body_of(env.type, env.body)
         self.count("received.beacons")
         return [Message(env.sender, env.role, (env.reply[0], env.reply[1]), 0, env.seq, env.id, env.kind,
-                        body, hint=True)], None
+                        body, hint=True, source=src[0])], None

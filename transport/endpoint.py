@@ -102,6 +102,20 @@ InboundFilter = Callable[[str, str], bool]
 
 INTERNAL = ("ack", "crl")  # kinds the endpoint handles itself
 
+HELD_LIMIT = 10_000
+"""Reliable messages whose acknowledgement is held back at once (`Endpoint.held_kinds`): past this
+many the oldest is forgotten unacknowledged (its sender retries, and gives up at its deadline)."""
+
+
+class _Held:
+    """A reliable message acknowledged only when its owner says so: the session to seal the
+    acknowledgement in, and where to send it (the channel of the latest copy to arrive)."""
+
+    __slots__ = ("session", "reply")
+
+    def __init__(self, session: Session | None, reply: Callable[[bytes], None]):
+        self.session, self.reply = session, reply
+
 STREAM_BUFFER = 8 << 20
 """A UDP receive buffer (bytes, for `Endpoint.receive_buffer`) that holds seconds of a team's
 Pose stream, for a receiver that hears every robot (the control node, a watcher): 400-500
@@ -216,6 +230,11 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
         # the agent of this name has left (a wire that tells, as Zenoh's liveliness does; UDP never calls it)
         self.on_gone: Callable[[str], None] = lambda name: None
         self.wire = "udp"  # the wire the frames travel on ('zenoh' for zenoh_wire.ZenohEndpoint)
+        # reliable kinds acknowledged only when the owner calls the message's `ack` (a task: once the
+        # agent's journal holds it); any other is acknowledged as it arrives
+        self.held_kinds: frozenset[str] = frozenset()
+        self._held: OrderedDict[tuple[str, str], _Held] = OrderedDict()
+        self._held_lock = threading.Lock()
         watch = getattr(clock, "on_advance", None)
         if callable(watch):  # a test's clock moved: the senders look again at what has expired
             watch(self._clock_moved)
@@ -256,7 +275,8 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
             self._disc.setblocking(False)
         self._wake_r, self._wake_w = socket.socketpair()
         self._wake_r.setblocking(False)
-        receiver = Receiver(self, self._tcp, self._udp, self._disc, self._wake_r)
+        self._wake_w.setblocking(False)  # a held acknowledgement's wake-up never waits (`Receiver.queue_ack`)
+        receiver = Receiver(self, self._tcp, self._udp, self._disc, self._wake_r, self._wake_w)
         rx = threading.Thread(target=receiver.run_streams, name=f"erni-{self.name}-net-rx", daemon=True)
         udp = threading.Thread(target=receiver.run_datagrams, name=f"erni-{self.name}-net-udp", daemon=True)
         rx.start()
@@ -687,6 +707,50 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
             self._dispatch(msg)
         else:
             self.count("duplicates")
+
+    def receive_reliable(self, msg: Message, session: Session | None, reply: Callable[[bytes], None],
+                         reply_later: Callable[[bytes], None]) -> None:
+        """A reliable message arrived on a stream: acknowledge it (`reply`, on the receiving thread)
+        and hand it on once per id. A kind of `held_kinds` is handed on with an `ack` to call when it
+        is durable: the acknowledgement then goes by `reply_later` (from any thread) to the stream
+        of its latest copy; a retry that arrives meanwhile is not handed on again, and one that
+        arrives after it is acknowledged at once."""
+        if msg.kind not in self.held_kinds:
+            reply(self.ack_frame(msg, session))
+            self.deliver_once(msg)
+            return
+        key = (msg.sender, msg.id)
+        with self._held_lock:
+            held = self._held.get(key)
+            if held is not None:  # a retry while the first is not durable yet: acknowledged with it
+                held.reply = reply_later
+                first = False
+            else:
+                first = self._seen.first_time(msg.sender, msg.id)
+                if first:
+                    self._held[key] = _Held(session, reply_later)
+                    if len(self._held) > HELD_LIMIT:
+                        self._held.popitem(last=False)
+                        self.count("dropped.held")
+        if not first:
+            self.count("duplicates")
+            if held is None:  # acknowledged before: its acknowledgement was lost
+                reply(self.ack_frame(msg, session))
+            return
+        msg.ack = functools.partial(self._acknowledge, key, msg)
+        self._dispatch(msg)
+
+    def _acknowledge(self, key: tuple[str, str], msg: Message) -> None:
+        """Send the held acknowledgement of `msg` (once; from any thread)."""
+        with self._held_lock:
+            held = self._held.pop(key, None)
+        if held is None:
+            return
+        try:
+            held.reply(self.ack_frame(msg, held.session))
+        except (OSError, FrameError, NetworkError):
+            pass  # its stream is gone: the sender's retry is acknowledged at once
+        self.count("acks.held")
 
     def ack_frame(self, msg: Message, session: Session | None) -> bytes:
         seq = next(self._seq)

@@ -4,7 +4,9 @@ Two threads read: one blocked in the UDP socket's recvfrom (statuses, handshakes
 call a datagram), and one on a selector for the TCP listener, the accepted connections, the
 discovery port and the periodic sweeps. Each frame goes to the endpoint's frame path
 (`ReceiverHost.accept_frame`); a reliable message on a stream is acknowledged on that stream
-before it is delivered, once per id.
+before it is delivered, once per id, unless its acknowledgement waits until what it asks for is
+durable (`ReceiverHost.receive_reliable`): then the stream thread writes it when it is handed back
+(`queue_ack`), on the stream of the message's latest copy.
 
 Before a frame is authenticated nothing is spent without a bound (`limits.py`): connections per host
 and in total (the oldest stranger makes room), bytes of incomplete frames, idle and partial-frame
@@ -16,7 +18,10 @@ from __future__ import annotations
 import errno
 import selectors
 import socket
+import threading
 import time
+from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Protocol
 
@@ -61,8 +66,9 @@ class ReceiverHost(Protocol):
     def deliver_once(self, msg: Message) -> None:
         """Hand a reliable message on unless it was delivered already (a retry)."""
 
-    def ack_frame(self, msg: Message, session: Session | None) -> bytes:
-        """The acknowledgement of a reliable message, sealed in its session."""
+    def receive_reliable(self, msg: Message, session: Session | None, reply: Callable[[bytes], None],
+                         reply_later: Callable[[bytes], None]) -> None:
+        """Acknowledge a reliable message (now by `reply`, or later by `reply_later`) and hand it on once."""
 
 
 @dataclass
@@ -83,8 +89,50 @@ class Receiver:
     `run_datagrams`); stop by waking the stream thread (`wake`) and shutting the UDP socket."""
 
     def __init__(self, host: ReceiverHost, tcp: socket.socket, udp: socket.socket, disc: socket.socket | None,
-                 wake: socket.socket):
+                 wake: socket.socket, waker: socket.socket | None = None):
         self.host, self.tcp, self.udp, self.disc, self.wake = host, tcp, udp, disc, wake
+        self.waker = waker  # the other end of `wake`
+        self._acks: deque[tuple[Conn, bytes]] = deque()  # held acknowledgements to write (`queue_ack`)
+        self._acks_lock = threading.Lock()
+
+    def queue_ack(self, conn: Conn, frame: bytes) -> None:
+        """Have the stream thread write an acknowledgement on `conn` (from any thread; dropped when
+        the connection has closed meanwhile: the sender's retry is acknowledged then)."""
+        with self._acks_lock:
+            self._acks.append((conn, frame))
+        if self.waker is not None:
+            try:
+                self.waker.send(b"a")
+            except OSError:  # full of wake-ups already, or stopping
+                pass
+
+    def _woken(self, sel: selectors.BaseSelector, conns: dict[socket.socket, Conn], per_host: dict[str, int]) -> bool:
+        """The wake-up socket: False to stop, else write the acknowledgements handed back."""
+        try:
+            self.wake.recv(4096)
+        except OSError:
+            pass
+        if self.host.stopping:
+            return False
+        for conn in self._write_acks(conns):
+            self._drop_conn(sel, conns, per_host, conn)
+        return True
+
+    def _write_acks(self, conns: dict[socket.socket, Conn]) -> list[Conn]:
+        """Write the queued acknowledgements; return the connections that failed."""
+        with self._acks_lock:
+            acks, self._acks = self._acks, deque()
+        failed = []
+        for conn, frame in acks:
+            if conns.get(conn.sock) is not conn:
+                continue
+            try:
+                if conn.sock.send(frame) == len(frame):
+                    continue
+            except OSError:
+                pass
+            failed.append(conn)  # a part of a frame on the stream: only closing it keeps the framing
+        return failed
 
     def run_streams(self) -> None:
         """The stream thread: accept and read TCP connections, read the discovery port, sweep."""
@@ -112,7 +160,9 @@ class Receiver:
                 for key, _ in sel.select(timeout=0.25):
                     sock, what = key.fileobj, key.data
                     if what == "wake":
-                        return
+                        if not self._woken(sel, conns, per_host):
+                            return
+                        continue
                     if what == "listen":
                         if not self._accept_all(sel, conns, per_host, cap):
                             sel.unregister(self.tcp)  # out of file descriptors: pause, do not spin
@@ -270,10 +320,10 @@ class Receiver:
                 if msg.kind == "ack":
                     continue
                 try:
-                    conn.sock.sendall(self.host.ack_frame(msg, session))
+                    self.host.receive_reliable(msg, session, conn.sock.sendall,
+                                               lambda frame, conn=conn: self.queue_ack(conn, frame))  # type: ignore[misc]
                 except (OSError, FrameError):
                     return False
-                self.host.deliver_once(msg)
         if conn.decoder.buffered:
             if conn.partial_since is None:
                 conn.partial_since = now

@@ -24,6 +24,7 @@ import re
 import struct
 import time
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Annotated, Any, Literal, Union
 
@@ -125,6 +126,13 @@ class Message:
     body: Any
     received: float = field(default_factory=time.monotonic)
     hint: bool = False
+    ack: Callable[[], None] | None = None
+    """Set on a reliable message of a kind whose acknowledgement its receiver holds back
+    (`Endpoint.held_kinds`): call it once what the message asks for is durable (or refused), and
+    the acknowledgement goes to its sender then. None: acknowledged already, or nothing to send."""
+    source: str = ""
+    """Where a hint came from, as far as the wire tells: the source host of a broadcast beacon, the
+    router a Zenoh liveliness token names ('' otherwise)."""
 
 
 def envelope_json(env: Envelope) -> bytes:

@@ -12,7 +12,7 @@ module replaces is only how bytes move (key expressions in `zenoh_keys.py`):
   newest wins, and the receiver orders them by number anyway);
 - a reliable message (`_deliver`) is a query to the receiver's `r` key: its reply carries the
   acknowledgement sealed in the session (or a hint that the session is unknown), as ERNI's TCP
-  stream does; the sender pool retries, de-duplication and order per destination are the
+  stream does (a task's when the receiver's journal holds it: the query is kept until then); the sender pool retries, de-duplication and order per destination are the
   endpoint's, unchanged;
 - discovery is Zenoh's liveliness: each agent holds a token `erni/<team>/<name>/alive/<role>/<inst>/<router>`;
   a token that appears is a hint of presence (as a broadcast beacon is: the session decides), one
@@ -427,15 +427,23 @@ class ZenohEndpoint(Endpoint):
         if got is None:
             return
         msgs, session = got
+
+        def reply_later(frame: bytes) -> None:  # a held acknowledgement: the query waits for it (or times out)
+            try:
+                query.reply(key, frame)
+            except zenoh.ZError as err:
+                raise NetworkError(f"acknowledgement to {sender} failed: {err}") from None
+            finally:
+                query.drop()  # type: ignore[no-untyped-call]  # untyped in Zenoh's stubs
+
         for msg in msgs:
             if msg.kind == "ack":
                 continue
             try:
-                reply(self.ack_frame(msg, session))
+                self.receive_reliable(msg, session, reply, reply_later)
             except (zenoh.ZError, FrameError) as err:
                 self.warn("link", f"acknowledgement to {sender} failed: {err}")
                 return
-            self.deliver_once(msg)
 
     def _on_token(self, sample: zenoh.Sample) -> None:
         """A liveliness token appeared (a hint: an agent may be up there) or went (it is gone)."""
@@ -466,7 +474,8 @@ class ZenohEndpoint(Endpoint):
             if not self._beacon_bucket.take():  # unsigned: anyone the router admits may declare one
                 self.count("dropped.rate")
                 return
-            self._dispatch(Message(name, role, address_of(name), 0, 0, "", "beacon", Beacon(role=role), hint=True))
+            self._dispatch(Message(name, role, address_of(name), 0, 0, "", "beacon", Beacon(role=role), hint=True,
+                                   source=f"router {router}" if router else "direct"))
             return
         with self._alive_lock:
             held = self._alive.get(name, set())

@@ -28,6 +28,7 @@ from erni.blackboard.schemas import Cancel, PeerList, ResultUpdate, WatchEvent, 
 from erni.blackboard.text import printable
 from erni.commands._client import add_client_options, dumps, make_client, make_room_for_a_stream, stamp
 from erni.commands._text import say, say_lines
+from erni.transport.client import PeerListParts
 
 WATCH_LEASE = 10.0
 
@@ -62,6 +63,7 @@ class Console:
         self.client, self.addr, self.dialogue, self.out = client, addr, dialogue, out
         self.json = json_lines
         self.peers: queue.Queue[PeerList] = queue.Queue()
+        self.parts = PeerListParts()
         self.known: list[Any] = []  # the robots' Peer entries
         self.poses: dict[str, dict[str, Any]] = {}  # robot -> its last Pose (from the watch stream)
         self.doing: dict[str, tuple[float, str]] = {}  # robot -> (created, its running task in words)
@@ -201,7 +203,9 @@ class Console:
             if msg is None:
                 continue
             if msg.kind == "peers.reply" and isinstance(msg.body, PeerList):
-                self.peers.put(msg.body)
+                directory = self.parts.add(msg.body)  # a large directory comes in parts
+                if directory is not None:
+                    self.peers.put(directory)
             elif msg.kind == "task.result" and isinstance(msg.body, ResultUpdate):
                 self._result(msg.body)
             elif msg.kind == "watch.event" and isinstance(msg.body, WatchEvent):

@@ -27,7 +27,7 @@ ROUTES_WAIT = 2.0
 
 def run(args: argparse.Namespace) -> int:
     """Print the directory as a table or JSON lines."""
-    from erni.transport.client import ClientError
+    from erni.transport.client import ClientError, PeerListParts
 
     client = open_client(args, "peers")
     if client is None:
@@ -37,12 +37,14 @@ def run(args: argparse.Namespace) -> int:
             addr = client.find(None)
             client.send(addr, "peers.request", None)
             deadline = time.monotonic() + 5.0
-            while time.monotonic() < deadline:
+            parts = PeerListParts()  # a large directory comes in parts
+            directory: PeerList | None = None
+            while directory is None and time.monotonic() < deadline:
                 client.check_refused()
                 msg = client.receive(0.2)
                 if msg is not None and msg.kind == "peers.reply" and isinstance(msg.body, PeerList):
-                    break
-            else:
+                    directory = parts.add(msg.body)
+            if directory is None:
                 raise ClientError(f"no answer from {addr[0]}:{addr[1]} within 5 s")
         except ClientError as err:
             say(f"erni peers: {err}", file=sys.stderr)
@@ -54,19 +56,19 @@ def run(args: argparse.Namespace) -> int:
         routes: dict[str, str | None] = {}
         if route_of is not None:
             deadline = time.monotonic() + ROUTES_WAIT
-            while any(route_of(p.name) is None for p in msg.body.peers if p.up) and time.monotonic() < deadline:
+            while any(route_of(p.name) is None for p in directory.peers if p.up) and time.monotonic() < deadline:
                 time.sleep(0.05)
-            routes = {p.name: route_of(p.name) for p in msg.body.peers}
+            routes = {p.name: route_of(p.name) for p in directory.peers}
     now = time.time()
-    peers = sorted(msg.body.peers, key=lambda p: p.name)
-    beacons, down_after = msg.body.beacons, msg.body.down_after
+    peers = sorted(directory.peers, key=lambda p: p.name)
+    beacons, down_after = directory.beacons, directory.down_after
     if args.json:
         for p in peers:
-            say(dumps({"via": msg.body.agent, **p.model_dump(mode="json"), "wire": wire_of(p.address),
+            say(dumps({"via": directory.agent, **p.model_dump(mode="json"), "wire": wire_of(p.address),
                          **({"router": routes.get(p.name)} if routes else {}),
                          "beacons": beacons.get(p.name), "down_after": down_after.get(p.name)}))
         return 0
-    say(f"agents known to {msg.body.agent} ({addr[0]}:{addr[1]}):")
+    say(f"agents known to {directory.agent} ({addr[0]}:{addr[1]}):")
     say(f"{'name':<16} {'state':<5} {'wire':<5} {'address':<22}" + (f" {'router':<12}" if routes else "")
           + f" {'role':<10} {'heard':>8} {'down after':>10} {'beacons':>8}  capabilities")
     for p in peers:

@@ -157,8 +157,11 @@ class _NameCheck:
     a typo, not a robot still starting. An empty directory is asked again for `DISCOVERY_WAIT` s."""
 
     def __init__(self, args: argparse.Namespace, client: Any, addr: tuple[str, int]):
+        from erni.transport.client import PeerListParts
+
         self.agent, self.client, self.addr = args.agent, client, addr
         self.pending = bool(args.via)
+        self.parts = PeerListParts()  # a large directory comes in parts
         self.start = time.monotonic()
         self.next_ask = self.start
 
@@ -172,13 +175,16 @@ class _NameCheck:
         """The one-line reason AGENT is no agent of the team, if `msg` is the directory that says so ('' otherwise)."""
         if not self.pending or msg is None or msg.kind != "peers.reply" or not isinstance(msg.body, PeerList):
             return ""
-        unknown = _unknown(self.agent, msg.body)
+        directory = self.parts.add(msg.body)
+        if directory is None:
+            return ""  # more parts to come
+        unknown = _unknown(self.agent, directory)
         waited = time.monotonic() - self.start
-        if unknown and not msg.body.peers and waited < DISCOVERY_WAIT:
+        if unknown and not directory.peers and waited < DISCOVERY_WAIT:
             return ""  # nobody heard yet: ask again
         self.pending = False
-        if unknown and not msg.body.peers:
-            return (f"no agent {self.agent} in the team: {msg.body.agent} has heard of no other agent within "
+        if unknown and not directory.peers:
+            return (f"no agent {self.agent} in the team: {directory.agent} has heard of no other agent within "
                     f"{waited:.0f} s (is {self.agent} running, with the same discovery port?)")
         return unknown
 

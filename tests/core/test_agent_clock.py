@@ -99,3 +99,31 @@ def test_final_tasks_are_removed_after_the_retention_on_the_agent_s_clock():
 def test_a_manual_clock_does_not_go_back():
     with pytest.raises(UsageError, match="expected seconds >= 0, got -1"):
         ManualClock().advance(-1)
+
+
+def test_a_plugin_reads_the_agents_clock_both_ways():
+    """`self.clock()` is the agent's monotonic reading, `self.clock.wall()` its epoch seconds: a
+    ManualClock moves both together, and a plugin outside an agent reads the process's clock."""
+    from erni.blackboard.clock import SYSTEM
+
+    clock = ManualClock(start=50.0, wall_start=1_800_000_000.0)
+    with agent_with(Ticker, clock=clock) as agent:
+        (ticker,) = agent.plugins
+        assert ticker.clock is clock
+        assert (ticker.clock(), ticker.clock.wall()) == (50.0, 1_800_000_000.0)
+        clock.advance(2.5)
+        assert (ticker.clock(), ticker.clock.wall()) == (52.5, 1_800_000_002.5)
+    assert Ticker().clock is SYSTEM
+
+
+def test_a_bare_callable_is_the_monotonic_reading_with_the_wall_clock_following_it():
+    from erni.blackboard import Agent
+
+    now = [100.0]
+    agent = Agent("a", clock=lambda: now[0])
+    before = time.time()
+    wall = agent.clock.wall()
+    now[0] += 30.0
+    assert agent.clock() == 130.0
+    assert agent.clock.wall() - wall == pytest.approx(30.0)
+    assert before - 1.0 <= wall <= time.time() + 1.0

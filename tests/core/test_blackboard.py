@@ -342,3 +342,80 @@ def test_evolve_validates_the_changes_and_keeps_the_rest_as_it_was():
     assert moved.sonar is not pose.sonar  # a list is copied by validation: no version shares a mutable value
     with pytest.raises(ValidationError):
         pose.evolve(x="far")
+
+
+def test_plugins_offer_each_other_what_cannot_go_on_the_blackboard_by_name():
+    """`provide`/`provided`: the agent-level facility instead of one plugin reading another's attributes."""
+    from erni.blackboard import Agent, Plugin
+
+    class Offering(Plugin):
+        def setup(self) -> None:
+            self.provide("example.session", lambda: "the live session")
+
+    class Asking(Plugin):  # asks when it needs it: plugin order is unspecified, so never in setup()
+        pass
+
+    agent = Agent("a")
+    asking = agent.add_plugin(Asking)
+    agent.add_plugin(Offering)
+    agent.start()
+    try:
+        got = asking.provided("example.session")
+        assert got is not None and got() == "the live session" and asking.provided("example.other") is None
+        assert agent.provided("example.session") is got
+    finally:
+        agent.stop()
+    assert Asking().provided("example.session") is None  # a plugin outside an agent is offered nothing
+
+
+def test_after_commit_hooks_run_once_committed_never_after_an_abort_or_a_rollback(agent):
+    """What waits for a commit (a task's acknowledgement waits for the journal this way) runs after
+    the commit listeners saw it, and never for publications that were dropped."""
+    seen: list[str] = []
+    agent.blackboard.add_listener(lambda ops: seen.append("listener"))
+    with agent.transaction() as tx:
+        tx.add(Item(uid="a", value=1))
+        tx.after_commit(lambda: seen.append("hook"))
+        assert seen == []
+    assert seen == ["listener", "hook"]
+    seen.clear()
+    with pytest.raises(RuntimeError):
+        with agent.transaction() as tx:
+            tx.add(Item(uid="b", value=1))
+            tx.after_commit(lambda: seen.append("aborted"))
+            raise RuntimeError("boom")
+    tx = agent.transaction()
+    tx.add(Item(uid="c", value=1))
+    tx.after_commit(lambda: seen.append("kept"))
+    mark = tx.savepoint()
+    tx.add(Item(uid="d", value=1))
+    tx.after_commit(lambda: seen.append("rolled back"))
+    tx.rollback_to(mark)
+    tx.commit()
+    assert seen == ["listener", "kept"]
+    assert agent.blackboard.get("d") is None
+
+
+def test_when_durable_waits_for_the_journal_write_of_what_was_committed_before(tmp_path):
+    """`Agent.when_durable` calls back once the journal holds every commit made before the call."""
+    import sqlite3
+
+
+    agent = Agent("r1", journal=tmp_path / "j.sqlite").start()
+    try:
+        done = threading.Event()
+        found: list[int] = []
+
+        def check() -> None:
+            db = sqlite3.connect(tmp_path / "j.sqlite")
+            found.append(db.execute("SELECT COUNT(*) FROM objects WHERE uid = 'durable'").fetchone()[0])
+            db.close()
+            done.set()
+
+        with agent.transaction() as tx:
+            tx.add(Task(uid="durable", verb="BotMotion", preposition="stop"))
+            tx.after_commit(lambda: agent.when_durable(check))
+        assert done.wait(10)
+        assert found == [1]
+    finally:
+        agent.stop()

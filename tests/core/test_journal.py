@@ -10,6 +10,8 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
+
 from erni.blackboard import Agent, Pose, Task, TaskState
 from erni.blackboard.journal import Journal
 from erni.blackboard.testing import wait_until
@@ -249,3 +251,122 @@ def test_lingering_progress_is_written_in_one_batch_when_the_linger_ends(tmp_pat
     finally:
         reader.close()
         journal.stop()
+
+
+def test_a_finished_task_from_the_journal_leaves_retention_after_it_ended_not_after_the_restart(tmp_path):
+    """A task that ended 500 s before a restart, with a retention of 600 s, goes 100 s after the
+    restart (the journal's row says when it ended: its last write), not 600 s after."""
+    import sqlite3
+    import time
+
+    from erni.blackboard import Agent, Task, TaskState
+    from erni.blackboard.tasks import AllocationResult
+    from erni.testing import ManualClock
+
+    path = tmp_path / "journal.db"
+    first = Agent("robot1", journal=path, retention=600.0).start()
+    ended = Task(verb="BotMotion", preposition="stop", source="robot1",
+                 result=AllocationResult(state=TaskState.SUCCEEDED))
+    running = Task(verb="BotMotion", preposition="forward", params={"distance": 1.0}, source="robot1")
+    with first.transaction() as tx:
+        tx.add(ended)
+        tx.add(running)
+    assert first.journal.flush()
+    first.stop()
+    db = sqlite3.connect(path)  # as if the agent had ended the task 500 s ago, then stopped
+    db.execute("UPDATE objects SET updated = ? WHERE uid = ?", (time.time() - 500.0, ended.uid))
+    db.commit()
+    db.close()
+
+    clock = ManualClock()
+    second = Agent("robot1", journal=path, retention=600.0, clock=clock).start()
+    try:
+        assert second.blackboard.get(ended.uid) is not None
+        clock.advance(90.0)
+        assert second.retention.sweep() == 0
+        clock.advance(20.0)  # 610 s after it ended
+        assert second.retention.sweep() == 1
+        assert second.blackboard.get(ended.uid) is None and second.blackboard.get(running.uid) is not None
+    finally:
+        second.stop()
+
+
+def _crashed_copy(journal, into):
+    """The journal's files as a kill -9 leaves them (SQLite's -shm index is not copied: gone)."""
+    import shutil
+
+    into.mkdir()
+    for suffix in ("", "-wal", "-seal"):
+        src = journal.path.with_name(journal.path.name + suffix)
+        if src.exists():
+            shutil.copyfile(src, into / (journal.path.name + suffix))
+    return into / journal.path.name
+
+
+def _flip_wal_frame(path, frame):
+    """Flip one byte in the page of committed WAL frame `frame` (its checksum no longer matches)."""
+    wal = path.with_name(path.name + "-wal")
+    data = bytearray(wal.read_bytes())
+    page = int.from_bytes(data[8:12], "big")
+    at = 32 + frame * (24 + page) + 24 + page // 2
+    assert at < len(data), f"the WAL has fewer than {frame + 1} frames"
+    data[at] ^= 0xFF
+    wal.write_bytes(bytes(data))
+
+
+@pytest.mark.parametrize("frame", [1, 40], ids=["early frame", "later frame"])
+def test_a_damaged_write_ahead_log_is_never_silent_loss(tmp_path, frame):
+    """80 tasks, each in its own journal write; a byte flipped in a committed WAL frame with the
+    -shm index gone: SQLite's recovery stops at that frame and the journal looks whole but holds
+    fewer objects. The agent refuses to start on it, with one line naming the file and what is
+    missing; `--reset-journal` moves it aside and starts empty, as for any unreadable journal."""
+    from erni.blackboard import Agent, Task
+    from erni.blackboard.journal import Journal, JournalError
+
+    first = Agent("robot1", journal=tmp_path / "journal.db", retention=None).start()
+    try:
+        for i in range(80):
+            with first.transaction() as tx:
+                tx.add(Task(uid=f"t{i:02d}", verb="BotMotion", preposition="stop", source="robot1"))
+            assert first.journal.flush()
+        copy = _crashed_copy(first.journal, tmp_path / "crashed")
+    finally:
+        first.stop()
+    _flip_wal_frame(copy, frame)
+    with pytest.raises(JournalError) as err:
+        Agent("robot1", journal=copy, retention=None).start()
+    line = str(err.value)
+    assert "\n" not in line and str(copy) in line and "lost committed writes" in line
+    assert "80 object(s)" not in line.split("but")[0] and "it held 80" in line and "--reset-journal" in line
+    reset = Agent("robot1", journal=copy, retention=None, reset_journal=True).start()
+    try:
+        assert not reset.blackboard.query(Task)
+        assert copy.with_name("journal.db.bad-1-seal").exists()
+    finally:
+        reset.stop()
+    assert Journal(copy).load()[0] == []  # the new journal, with a seal of its own, opens clean
+
+
+def test_a_journal_whose_seal_is_a_write_behind_opens(tmp_path):
+    """A crash between a write's commit and its seal leaves the seal one write behind: that is no
+    loss (what the seal says is on disk), and the journal opens."""
+    from erni.blackboard import Agent, Task
+
+    path = tmp_path / "journal.db"
+    agent = Agent("robot1", journal=path, retention=None).start()
+    try:
+        with agent.transaction() as tx:
+            tx.add(Task(uid="t0", verb="BotMotion", preposition="stop", source="robot1"))
+        assert agent.journal.flush()
+        seal = path.with_name("journal.db-seal").read_bytes()
+        with agent.transaction() as tx:
+            tx.add(Task(uid="t1", verb="BotMotion", preposition="stop", source="robot1"))
+        assert agent.journal.flush()
+    finally:
+        agent.stop()
+    path.with_name("journal.db-seal").write_bytes(seal)
+    again = Agent("robot1", journal=path, retention=None).start()
+    try:
+        assert {t.uid for t in again.blackboard.query(Task)} == {"t0", "t1"}
+    finally:
+        again.stop()

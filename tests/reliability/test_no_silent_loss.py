@@ -33,11 +33,10 @@ def small_disk(tmp_path):
 def fill(path: Path) -> Path:
     """Write a file until the disk is full."""
     filler = path / "filler"
-    with filler.open("wb") as f:
+    with filler.open("wb", buffering=0) as f:  # unbuffered: nothing left to fail when it is closed
         try:
             while True:
                 f.write(b"\0" * 65536)
-                f.flush()
         except OSError as err:
             assert err.errno == errno.ENOSPC
     return filler
