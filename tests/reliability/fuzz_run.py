@@ -2,6 +2,7 @@
 
     python -m tests.reliability.fuzz_run                          # 100,000 inputs per surface
     python -m tests.reliability.fuzz_run -n 2000 -s "spoken phrases" -s "replay logs"
+    python -m tests.reliability.fuzz_run -n 2000 --coverage -s "frames after authentication"
 
 Each surface is a generator (seeded `random.Random`: mutated valid inputs, which reach deep, and
 noise) and a check that feeds one input to the same parsing and validation code the product runs
@@ -9,7 +10,10 @@ on it. An input may be accepted or refused with the surface's own error type; an
 escaping, a traceback logged by the product (a handler that swallowed a bug), or an input taking
 longer than `--hang` seconds counts as a crash. The run prints inputs, crashes and time per
 surface, a reproducer for the first crashes of each, and writes the counts to
-`artifacts/fuzz-counts.json` (key "scale"). The CI run of `test_fuzz_scale.py` drives every surface
+`artifacts/fuzz-counts.json` (key "scale"). Five surfaces (`fuzz_deep.py`) follow their input past
+the parser onto a blackboard and into the page state, with invariants as oracles: a broken one is a
+`Violation`, counted apart from crashes. `--coverage` adds, per surface, the statements of the handler
+modules (`HANDLERS`) its inputs ran. The CI run of `test_fuzz_scale.py` drives every surface
 with a few hundred inputs through the same code.
 
 Surfaces behind sockets are driven in process, through the function the socket's reader calls:
