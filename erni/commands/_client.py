@@ -110,9 +110,13 @@ def watch_events(client: Any, addr: Address, end: float | None, lease: float = 1
 
 
 def stamp(t: float | None = None) -> str:
-    """Return HH:MM:SS.mmm for a wall-clock time."""
+    """Return HH:MM:SS.mmm for a wall-clock time; a time no clock shows (a peer's result stamped 1e300,
+    before the epoch by centuries) as its number, `t=1e+300`."""
     t = time.time() if t is None else t
-    return time.strftime("%H:%M:%S", time.localtime(t)) + f".{int(t % 1 * 1000):03d}"
+    try:
+        return time.strftime("%H:%M:%S", time.localtime(t)) + f".{int(t % 1 * 1000):03d}"
+    except (OverflowError, OSError, ValueError):
+        return f"t={t:g}"
 
 
 def dumps(obj: Any) -> str:

@@ -43,7 +43,7 @@ from erni.blackboard import BBObject, NetInfo, Pose, Task
 from erni.blackboard.errors import ErniError, shown
 from erni.blackboard.schemas import Peer
 from erni.blackboard.tasks import AllocationResult
-from erni.blackboard.text import NAME_CHARS, is_name
+from erni.blackboard.text import NAME_CHARS, is_name, printable
 from erni.plugins.ros2 import mcap_bounds
 from erni.plugins.ros2 import messages as ros
 from erni.replay import FORMAT, MCAP_MAGIC, Event, LogError, problem_of, read_log
@@ -308,7 +308,7 @@ def _events(path: Path, reader: Any) -> tuple[dict[str, Any], list[Event], list[
               and not erni_bag]
 
     def nothing() -> LogError:
-        found = ", ".join(f"{t} ({m})" for t, m in sorted(topics.items())) or "no topics"
+        found = ", ".join(f"{printable(t)} ({printable(m)})" for t, m in sorted(topics.items())) or "no topics"
         return LogError(f"{path}: no ERNI topics (expected ERNI's statuses on {DIAGNOSTICS_TOPIC}, {ODOMETRY} on "
                         f"/<robot>/odom or {TASK_STATUS_TOPIC}); it has {found}")
 

@@ -2,6 +2,7 @@
 
     python -m tests.reliability.fuzz_run                          # 100,000 inputs per surface
     python -m tests.reliability.fuzz_run -n 2000 -s "spoken phrases" -s "replay logs"
+    python -m tests.reliability.fuzz_run -n 2000 --coverage -s "frames after authentication"
 
 Each surface is a generator (seeded `random.Random`: mutated valid inputs, which reach deep, and
 noise) and a check that feeds one input to the same parsing and validation code the product runs
@@ -9,7 +10,10 @@ on it. An input may be accepted or refused with the surface's own error type; an
 escaping, a traceback logged by the product (a handler that swallowed a bug), or an input taking
 longer than `--hang` seconds counts as a crash. The run prints inputs, crashes and time per
 surface, a reproducer for the first crashes of each, and writes the counts to
-`artifacts/fuzz-counts.json` (key "scale"). The CI run of `test_fuzz_scale.py` drives every surface
+`artifacts/fuzz-counts.json` (key "scale"). Five surfaces (`fuzz_deep.py`) follow their input past
+the parser onto a blackboard and into the page state, with invariants as oracles: a broken one is a
+`Violation`, counted apart from crashes. `--coverage` adds, per surface, the statements of the handler
+modules (`HANDLERS`) its inputs ran. The CI run of `test_fuzz_scale.py` drives every surface
 with a few hundred inputs through the same code.
 
 Surfaces behind sockets are driven in process, through the function the socket's reader calls:
@@ -46,6 +50,12 @@ Gen = Callable[[random.Random], Any]
 
 class Hang(BaseException):
     """One input took longer than the hang limit."""
+
+
+class Violation(Exception):
+    """An input broke an invariant of the product (a non-finite number on the blackboard or the page, a
+    control character in printed text, a name out of its character set, state per sender growing):
+    counted apart from crashes."""
 
 
 # --- generators ---------------------------------------------------------------------------------
@@ -898,55 +908,123 @@ class Result:
     name: str
     inputs: int = 0
     crashes: int = 0
+    violations: int = 0
     seconds: float = 0.0
     examples: list[str] = field(default_factory=list)
+    covered: dict[str, tuple[int, int]] = field(default_factory=dict)  # module -> (lines run by inputs, statements)
+
+
+HANDLERS: dict[str, str] = {
+    "bridge": "erni/transport/bridge.py", "policy": "erni/transport/policy.py",
+    "driver": "erni/plugins/motion/driver.py", "ui plugin": "erni/plugins/ui/plugin.py",
+    "server": "erni/plugins/ui/server.py", "replay": "erni/replay.py", "bags": "erni/plugins/ros2/bags.py",
+}
+"""The handler modules whose statement coverage `--coverage` reports for every surface: where an input
+goes once its parser has taken it (authorization, the blackboard, the driver, the page, publishing)."""
+
+
+class Coverage:
+    """Statement coverage of the handler modules by the inputs alone (a surface's setup is not counted)."""
+
+    def __init__(self) -> None:
+        import coverage
+
+        self.files = {name: str(ROOT / rel) for name, rel in HANDLERS.items()}
+        self.cov = coverage.Coverage(data_file=None, include=list(self.files.values()), config_file=False)
+
+    def start(self) -> None:
+        self.cov.erase()
+        self.cov.start()
+
+    def stop(self) -> dict[str, tuple[int, int]]:
+        self.cov.stop()
+        out = {}
+        for name, path in self.files.items():
+            _, statements, _, missing, _ = self.cov.analysis2(path)
+            out[name] = (len(statements) - len(missing), len(statements))
+        return out
 
 
 def run_surface(name: str, examples: int, seed: int, hang: float, budget: float | None = None,
-                report: Callable[[str], None] = print, only: int | None = None) -> Result:
-    """Give `examples` inputs to surface `name` (or as many as `budget` seconds allow); count crashes.
-    `only`: generate inputs up to that index and give the surface that one alone (a reproducer)."""
+                report: Callable[[str], None] = print, only: int | None = None,
+                coverage: Coverage | None = None) -> Result:
+    """Give `examples` inputs to surface `name` (or as many as `budget` seconds allow); count crashes and
+    invariant violations (`Violation`). `only`: generate inputs up to that index and give the surface that
+    one alone (a reproducer). `coverage`: measure the handler modules' lines the inputs run."""
     what, setup = SURFACES[name]
     gen, check = setup(argparse.Namespace())
     rng = random.Random(f"{seed}:{name}")
     res = Result(name)
     start = time.monotonic()
-    with time_limit(hang):
-        for i in range(examples):
-            item = gen(rng)
-            if only is not None and i != only:
-                continue
-            before = len(TRACEBACKS.seen)
-            problem = None
-            try:
-                signal.setitimer(signal.ITIMER_REAL, hang)
-                check(item)
-                signal.setitimer(signal.ITIMER_REAL, 0)
-            except Hang as err:
-                problem = f"hang: {err}"
-            except Exception as err:   # noqa: BLE001 - anything escaping is what this counts
-                signal.setitimer(signal.ITIMER_REAL, 0)
+    if coverage is not None:
+        coverage.start()
+    try:
+        with time_limit(hang):
+            for i in range(examples):
+                item = gen(rng)
+                if only is not None and i != only:
+                    continue
+                before = len(TRACEBACKS.seen)
+                problem = None
+                broken = False
+                try:
+                    signal.setitimer(signal.ITIMER_REAL, hang)
+                    check(item)
+                    signal.setitimer(signal.ITIMER_REAL, 0)
+                except Hang as err:
+                    problem = f"hang: {err}"
+                except Violation as err:
+                    signal.setitimer(signal.ITIMER_REAL, 0)
+                    if only is not None:
+                        raise
+                    problem, broken = f"invariant violated: {str(err)[:300]}", True
+                except Exception as err:   # noqa: BLE001 - anything escaping is what this counts
+                    signal.setitimer(signal.ITIMER_REAL, 0)
+                    if only is not None:
+                        raise   # reproducing: the whole traceback
+                    problem = f"{type(err).__name__}: {str(err)[:300]}"
+                if problem is None and len(TRACEBACKS.seen) > before:
+                    problem = f"logged traceback: {TRACEBACKS.seen[-1][:300]}"
+                res.inputs += 1
+                if problem is not None:
+                    if broken:
+                        res.violations += 1
+                    else:
+                        res.crashes += 1
+                    if len(res.examples) < 5:
+                        res.examples.append(f"input {i} (seed {seed}): {problem}\n    input: {item!r:.600}\n"
+                                            f"    again: python -m tests.reliability.fuzz_run -s {name!r} --seed "
+                                            f"{seed} --only {i} -n {i + 1}")
+                        report(f"  {'VIOLATION' if broken else 'CRASH'} in {name}: {res.examples[-1]}")
                 if only is not None:
-                    raise   # reproducing: the whole traceback
-                problem = f"{type(err).__name__}: {str(err)[:300]}"
-            if problem is None and len(TRACEBACKS.seen) > before:
-                problem = f"logged traceback: {TRACEBACKS.seen[-1][:300]}"
-            res.inputs += 1
-            if problem is not None:
-                res.crashes += 1
-                if len(res.examples) < 5:
-                    res.examples.append(f"input {i} (seed {seed}): {problem}\n    input: {item!r:.600}\n"
-                                        f"    again: python -m tests.reliability.fuzz_run -s {name!r} --seed {seed} "
-                                        f"--only {i} -n {i + 1}")
-                    report(f"  CRASH in {name}: {res.examples[-1]}")
-            if only is not None:
-                break
-            if budget is not None and time.monotonic() - start > budget:
-                break
-            if report is print and (i + 1) % 10000 == 0:
-                report(f"  {name}: {i + 1} inputs, {res.crashes} crashes, {time.monotonic() - start:.0f} s")
+                    break
+                if budget is not None and time.monotonic() - start > budget:
+                    break
+                if report is print and (i + 1) % 10000 == 0:
+                    report(f"  {name}: {i + 1} inputs, {res.crashes} crashes, {res.violations} violations, "
+                           f"{time.monotonic() - start:.0f} s")
+    finally:
+        if coverage is not None:
+            res.covered = coverage.stop()
     res.seconds = time.monotonic() - start
     return res
+
+
+def table(results: list[Result]) -> str:
+    """The results as a Markdown table: inputs, crashes, violations, seconds, and with coverage the
+    lines of each handler module the inputs ran (of its statements, in the header)."""
+    covered = any(r.covered for r in results)
+    totals = next((r.covered for r in results if r.covered), {})
+    head = ["surface", "inputs", "crashes", "violations", "seconds"]
+    if covered:
+        head += [f"{m} ({totals[m][1]})" for m in HANDLERS]
+    rows = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for r in results:
+        cells = [r.name, f"{r.inputs:,}", str(r.crashes), str(r.violations), f"{r.seconds:.0f}"]
+        if covered:
+            cells += [str(r.covered[m][0]) if r.covered else "" for m in HANDLERS]
+        rows.append("| " + " | ".join(cells) + " |")
+    return "\n".join(rows)
 
 
 def quiet_logging() -> None:
@@ -982,8 +1060,10 @@ def write_counts(results: list[Result], examples: int, seed: int, measured: str)
     scale.setdefault("surfaces", {})
     scale.update({"command": "python -m tests.reliability.fuzz_run", "examples_per_surface": examples, "seed": seed})
     for r in results:
-        scale["surfaces"][r.name] = {"inputs": r.inputs, "crashes": r.crashes, "seconds": round(r.seconds, 1),
-                                     "commit": measured, "first_crashes": r.examples}
+        scale["surfaces"][r.name] = {"inputs": r.inputs, "crashes": r.crashes, "violations": r.violations,
+                                     "seconds": round(r.seconds, 1), "commit": measured, "first_crashes": r.examples}
+        if r.covered:
+            scale["surfaces"][r.name]["covered"] = {m: list(v) for m, v in r.covered.items()}
     data["scale"] = scale
     out.write_text(json.dumps(data, indent=2) + "\n")
     return out
@@ -1002,6 +1082,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="give the surface only input INDEX of the sequence (reproduce a crash; with -s)")
     p.add_argument("--list", action="store_true", help="list the surfaces and what each is given")
     p.add_argument("--no-write", action="store_true", help="do not update artifacts/fuzz-counts.json")
+    p.add_argument("--coverage", action="store_true", help="measure the statement coverage of the handler "
+                   "modules by each surface's inputs (coverage.py; slower) and print it in the table")
     args = p.parse_args(argv)
     if args.list:
         for name, (what, _) in SURFACES.items():
@@ -1013,19 +1095,33 @@ def main(argv: list[str] | None = None) -> int:
     try:
         for name in args.surface or list(SURFACES):
             print(f"{name}: {args.examples} inputs ...", flush=True)
-            r = run_surface(name, args.examples, args.seed, args.hang, args.budget, only=args.only)
+            r = run_surface(name, args.examples, args.seed, args.hang, args.budget, only=args.only,
+                            coverage=Coverage() if args.coverage else None)
             results.append(r)
-            print(f"{name}: {r.inputs} inputs, {r.crashes} crashes, {r.seconds:.0f} s", flush=True)
+            print(f"{name}: {r.inputs} inputs, {r.crashes} crashes, {r.violations} violations, {r.seconds:.0f} s",
+                  flush=True)
             if not args.no_write and args.only is None:
                 write_counts([r], args.examples, args.seed, measured)
     finally:
-        if _team is not None:
-            _team.close()
-    print(f"\n{'surface':40} {'inputs':>8} {'crashes':>8} {'seconds':>8}")
-    for r in results:
-        print(f"{r.name:40} {r.inputs:>8} {r.crashes:>8} {r.seconds:>8.0f}")
-    return 1 if any(r.crashes for r in results) else 0
+        close_all()
+    print("\n" + table(results))
+    return 1 if any(r.crashes or r.violations for r in results) else 0
 
+
+def close_all() -> None:
+    """Stop what the surfaces started (endpoints, agents)."""
+    global _team
+    deep = sys.modules.get("tests.reliability.fuzz_deep")
+    if deep is not None:
+        deep.close_all()
+    if _team is not None:
+        _team.close()
+        _team = None
+
+
+from tests.reliability import fuzz_deep  # noqa: E402,F401 - the deeper harnesses replace four surfaces and add one
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from tests.reliability.fuzz_run import main as _main  # the module as the harnesses import it, not __main__
+
+    sys.exit(_main())

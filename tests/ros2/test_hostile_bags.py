@@ -176,3 +176,14 @@ def test_an_erni_status_naming_an_agent_with_escapes_is_skipped(tmp_path):
     assert [e.agent for e in events] == ["control"]
     assert len(problems) == 2 and "'ctl\\x1b[2J': expected a name" in problems[0] and "finite" in problems[1], problems
     assert json.dumps(problems)  # plain text
+
+
+def test_a_bag_of_no_erni_topic_is_refused_in_one_line_its_topics_escaped(tmp_path):
+    # found by the MCAP bags fuzzer: the refusal listed the bag's topics raw, so a topic holding a
+    # newline made it two lines
+    bag = real_bag(tmp_path / "b", {"/robot1\n/odom": [odometry("robot1", 1.0)], "/r\x1b[2J/odom": [odometry("r", 1.0)]})
+    with pytest.raises(LogError) as err:
+        read_log(bag)
+    assert "no ERNI topics" in str(err.value)
+    assert "\n" not in str(err.value) and "\x1b" not in str(err.value)
+    assert "/robot1\\n/odom" in str(err.value) and "/r\\x1b[2J/odom" in str(err.value)
