@@ -49,7 +49,7 @@ from typing import Any
 from pydantic import BaseModel
 from pydantic_core import to_json
 
-from erni.blackboard.clock import SYSTEM, Clock
+from erni.blackboard.clock import SYSTEM
 from erni.blackboard.errors import ConfigError, NetworkError
 from erni.logs import RateLimitedLog
 from erni.transport.batching import FastMessages
@@ -154,7 +154,7 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
                  discovery_port: int | None = None, udp_loss: float = 0.0, seed: int | None = None,
                  role: str = "", inbound_filter: InboundFilter | None = None, limits: Limits | None = None,
                  revocations: str | Path | None = None, handshake_timeout: float | None = None,
-                 clock: Clock | Callable[[], float] = SYSTEM, pace: Callable[[], float] = SYSTEM):
+                 clock: Callable[[], float] = SYSTEM, pace: Callable[[], float] = SYSTEM):
         self.auth: Auth | None
         if identity is not None:
             if identity.name != name:
@@ -170,12 +170,10 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
         else:
             raise ConfigError("no identity and no team key: give one, or run with insecure = true")
         self.name = name
-        # what expires is timed by this clock: a message's deadline, a handshake, an idle session or
-        # connection; the threads' own pace (retries, batches, waits) keeps real time. A test gives its
-        # own (erni.testing.ManualClock, usually the agent's) to move time without waiting for it
-        self.clock: Callable[[], float] = clock
-        self.pace: Callable[[], float] = pace
-        """Real time for the threads' own pace (retries, batches, waits, rate limits, joins)."""
+        # what expires is timed by `clock`: a message's deadline, a handshake, an idle session or
+        # connection; the threads' own pace (retries, batches, waits, rate limits) by `pace`, real time.
+        # A test gives its own clock (erni.testing.ManualClock, usually the agent's) to move time at once
+        self.clock, self.pace = clock, pace
         self.identity = identity
         self.revocations = Path(revocations) if revocations else None
         self._listen = listen
