@@ -412,8 +412,8 @@ def test_silences_are_looked_at_every_quarter_timeout_and_a_silent_peer_still_go
         wait_until(lambda: peers(a).get("b") and peers(a)["b"].up)
         bridge = a.plugin("transport")
         looked: list[float] = []
-        down_after = bridge._down_after
-        bridge._down_after = lambda name: looked.append(time.monotonic()) or down_after(name)
+        down_after = bridge.presence.down_after
+        bridge.presence.down_after = lambda name: looked.append(time.monotonic()) or down_after(name)
         t0 = time.monotonic()
         time.sleep(2.0)  # twenty beacon periods, four quarter timeouts
         wait_until(lambda: len(looked) >= 2, timeout=30)

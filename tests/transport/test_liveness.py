@@ -110,7 +110,7 @@ def test_a_live_peer_on_a_link_losing_most_frames_stays_up_and_a_dead_one_goes_d
             downs = [r.getMessage() for r in caplog.records if " is down" in r.getMessage()]
         assert len(downs) <= 2, downs
         transport = next(p for p in a.plugins if isinstance(p, TransportPlugin))
-        assert transport._down_after("b") > 2 * timings["peer_timeout"]  # stretched: most beacons go lost
+        assert transport.presence.down_after("b") > 2 * timings["peer_timeout"]  # stretched: most beacons go lost
         counted = transport.peers["b"].beacon_count
         assert counted is not None and 0.1 < counted.share() < 0.75  # 40 % arrive (the last ten or so)
         with caplog.at_level(logging.WARNING):
