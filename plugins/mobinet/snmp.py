@@ -41,12 +41,12 @@ import asyncio
 import ipaddress
 import math
 import os
-import time
 from collections.abc import Callable, Iterable
 from typing import Any
 
 from erni import netgraph
 from erni.blackboard import Link, Neighbor, Position, Route
+from erni.blackboard.clock import monotonic
 from erni.plugins.mobinet import ber
 from erni.plugins.mobinet.ber import Value
 from erni.plugins.mobinet.resource import (
@@ -285,8 +285,10 @@ class SnmpSource:
     def __init__(self, host: str, port: int, community: str = "public", timeout: float = 0.5,
                  retries: int = 0, max_repetitions: int = 100, cache_seconds: float = 5.0,
                  write_community: str | None = None, modules: frozenset[str] | None = None,
-                 limits: Limits | None = None, usm: UsmUser | None = None) -> None:
+                 limits: Limits | None = None, usm: UsmUser | None = None,
+                 clock: Callable[[], float] = monotonic) -> None:
         self.host, self.port = host, port
+        self.clock = clock  # how old a cached walk is
         self.limits = limits or Limits()
         self.modules = modules   # the PROBES modules to use; None: every one the agent serves
         self.community = community
@@ -427,7 +429,7 @@ class SnmpSource:
         versions = [ERNI_TOPOLOGY_VERSION, ERNI_STATE_VERSION]
         entry = self._cache.get("view")
         if entry is not None and None not in entry[0] and entry[0][4] == parts \
-                and time.monotonic() - entry[1] < self.cache_seconds:
+                and self.clock() - entry[1] < self.cache_seconds:
             # steady state: the node's name and its change counters alone say whether the last view
             # stands, unless the agent restarted (sysUpTime went back: its counters began anew)
             check = [ERNI_NODE_NAME, *versions]
@@ -446,7 +448,7 @@ class SnmpSource:
         topo_v, state_v = (_int(oid, ident[oid], "Counter32") if oid in ident and "ERNI-MOBINET-MIB" in served
                            else None for oid in versions)
         self._restarted(ident)  # after the identity, whose errors come first
-        now = time.monotonic()
+        now = self.clock()
         whole = ("view", view.node, topo_v, state_v, parts)
         entry = self._cache.get("view")
         if (None not in whole and entry is not None and entry[0][4] == parts
