@@ -24,12 +24,12 @@ from typing import Any, Literal
 import zenoh
 from pydantic import ConfigDict, Field, field_validator, model_validator
 
+from erni import ros2_messages as messages
 from erni.blackboard.errors import NetworkError, UsageError
 from erni.blackboard.objects import Model
 from erni.blackboard.plugin import Plugin
 from erni.blackboard.tasks import NetInfo, Pose, Task, TaskState
-from erni.plugins.ros2 import messages
-from erni.plugins.ros2.rmw import DEFAULT_QOS, QoS, Request, RmwNode
+from erni.ros2_rmw import DEFAULT_QOS, QoS, Request, RmwNode
 from erni.transport.zenoh_keys import check_endpoints
 
 NAME_CHARS = "abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_"
