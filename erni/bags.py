@@ -295,61 +295,80 @@ def read_bag(path: str | Path, max_chunk: int = mcap_bounds.MAX_CHUNK,
 
 def _events(path: Path, reader: Any) -> tuple[dict[str, Any], list[Event], list[str]]:
     topics = {c.topic: c.msgtype for c in reader.connections}
-    erni_bag = HEADER_TOPIC in topics  # its poses are in its statuses, with every field
-    odom = [c for c in reader.connections if c.msgtype == ODOMETRY and c.topic.endswith("/odom")
-            and c.topic.count("/") == 2 and not erni_bag]
     problems: list[str] = []
-    for conn in [c for c in odom if not is_name(c.topic.split("/")[1])]:  # /r\x1b[2J/odom names no robot
-        odom.remove(conn)
-        problems.append(f"{path}: topic {shown(conn.topic)}: skipped; a robot's topic is /<robot>/odom with the "
-                        f"robot's name of {NAME_CHARS}")
-    diag = [c for c in reader.connections if c.msgtype == DIAGNOSTICS]
-    status = [c for c in reader.connections if c.topic == TASK_STATUS_TOPIC and c.msgtype == ros.STRING
-              and not erni_bag]
+    connections = _erni_connections(path, reader.connections, HEADER_TOPIC in topics, problems)
 
     def nothing() -> LogError:
         found = ", ".join(f"{printable(t)} ({printable(m)})" for t, m in sorted(topics.items())) or "no topics"
         return LogError(f"{path}: no ERNI topics (expected ERNI's statuses on {DIAGNOSTICS_TOPIC}, {ODOMETRY} on "
                         f"/<robot>/odom or {TASK_STATUS_TOPIC}); it has {found}")
 
-    if not (odom or diag or status):
+    if not connections:
         raise nothing()
     header: dict[str, Any] = {}
     raw: list[tuple[int, str, str, BBObject]] = []
-    for conn, stamp, data in reader.messages(connections=odom + diag + status):
-        where = f"{path}: {conn.topic} at {stamp / 1e9:.3f}"
+    for conn, stamp, data in reader.messages(connections=connections):
         try:
-            msg = ros.deserialize(data, conn.msgtype)
-            if conn.msgtype == ODOMETRY:
-                robot = conn.topic.split("/")[1]
-                raw.append((stamp, robot, "change", pose_from_odometry(robot, msg)))
-                continue
-            if conn.topic == TASK_STATUS_TOPIC:
-                raw.append((stamp, "", "change", task_from_status(msg.data)))
-                continue
-            for one in msg.status:
-                event = next((json.loads(kv.value) for kv in one.values if kv.key == "erni"), None)
-                if event is None:
-                    continue
-                if conn.topic == HEADER_TOPIC:
-                    header = event if isinstance(event, dict) else {}
-                    continue
-                raw.append(_event(stamp, event))
+            _message(conn, stamp, data, raw, header)
         except (ErniError, ValueError, KeyError, TypeError, AttributeError, RecursionError) as err:
-            problems.append(f"{where}: {problem_of(err)}")
+            problems.append(f"{path}: {conn.topic} at {stamp / 1e9:.3f}: {problem_of(err)}")
     if not raw and not header and not problems:
         raise nothing()
-    start = reader.start_time if not raw else min(s for s, *_ in raw)
-    started = header.get("started")
-    if isinstance(started, (int, float)) and not isinstance(started, bool) and math.isfinite(started):
-        start = min(start, int(started * 1e9))
-    else:
-        header["started"] = start / 1e9
+    start = _start(reader.start_time, header, raw)
     header.setdefault("erni_record", FORMAT)
     header.setdefault("via", str(path))
     events = [Event(max(0.0, (s - start) / 1e9), agent, op, obj) for s, agent, op, obj in raw]
     events.sort(key=lambda e: e.t)
     return header, events, problems
+
+
+def _erni_connections(path: Path, connections: list[Any], erni_bag: bool, problems: list[str]) -> list[Any]:
+    """The connections whose messages are ERNI's: its statuses, and (in a bag not written by ERNI, whose
+    poses are in its statuses with every field) the robots' odometry and the live plugin's task status.
+    An odometry topic that names no robot is skipped, and named in `problems`."""
+    odom = [c for c in connections if c.msgtype == ODOMETRY and c.topic.endswith("/odom")
+            and c.topic.count("/") == 2 and not erni_bag]
+    for conn in [c for c in odom if not is_name(c.topic.split("/")[1])]:  # /r\x1b[2J/odom names no robot
+        odom.remove(conn)
+        problems.append(f"{path}: topic {shown(conn.topic)}: skipped; a robot's topic is /<robot>/odom with the "
+                        f"robot's name of {NAME_CHARS}")
+    diag = [c for c in connections if c.msgtype == DIAGNOSTICS]
+    status = [c for c in connections if c.topic == TASK_STATUS_TOPIC and c.msgtype == ros.STRING
+              and not erni_bag]
+    return odom + diag + status
+
+
+def _message(conn: Any, stamp: int, data: bytes, raw: list[tuple[int, str, str, BBObject]],
+             header: dict[str, Any]) -> None:
+    """Decode one message into `raw`'s events, or into `header` when it is the recording's header."""
+    msg = ros.deserialize(data, conn.msgtype)
+    if conn.msgtype == ODOMETRY:
+        robot = conn.topic.split("/")[1]
+        raw.append((stamp, robot, "change", pose_from_odometry(robot, msg)))
+        return
+    if conn.topic == TASK_STATUS_TOPIC:
+        raw.append((stamp, "", "change", task_from_status(msg.data)))
+        return
+    for one in msg.status:
+        event = next((json.loads(kv.value) for kv in one.values if kv.key == "erni"), None)
+        if event is None:
+            continue
+        if conn.topic == HEADER_TOPIC:
+            header.clear()
+            header.update(event if isinstance(event, dict) else {})
+            continue
+        raw.append(_event(stamp, event))
+
+
+def _start(bag_start: int, header: dict[str, Any], raw: list[tuple[int, str, str, BBObject]]) -> int:
+    """When the recording started (ns): the header's statement when it is a finite number and earlier than
+    the first event, else the first event's stamp (the bag's start without events); the header says so."""
+    start = bag_start if not raw else min(s for s, *_ in raw)
+    started = header.get("started")
+    if isinstance(started, (int, float)) and not isinstance(started, bool) and math.isfinite(started):
+        return min(start, int(started * 1e9))
+    header["started"] = start / 1e9
+    return start
 
 
 def task_from_status(text: str) -> Task:
