@@ -241,6 +241,8 @@ class Presence:
         self.plugin.change(peer, reports=["down"])
 
     def heard(self, name: str, reply: tuple[str, int], epoch: int, beacon: Any, role: str = "") -> None:
+        """A session frame from `name` (of `role`, from `reply`, in its instance `epoch`; a beacon's
+        body, or None): it is up there, and its record says when it was heard."""
         if not name or name == self.me:
             return
         if self.bounds.is_hinted(name):  # heard in a session: a peer, no longer a hint
@@ -269,58 +271,76 @@ class Presence:
             return
         changed = any(getattr(old, k) != v for k, v in fields.items() if k != "last_heard")
         if changed or now - old.last_heard > self.settings.peer_timeout / 4:
-            peer = old.evolve(**fields)
-            self.directory[name] = peer
-            report = "up" if not old.up else ("restarted" if old.epoch and old.epoch != epoch else "heard")
-            if report != "heard":
-                self.log.info("peer %s is %s at %s", name, report, address)
-            reports = [report]
-            if peer.degraded != old.degraded:
-                reports.append("degraded" if peer.degraded else "recovered")
-                if peer.degraded:
-                    self.log.warning("peer %s is degraded: %s", name, peer.degraded)
-                else:
-                    self.log.info("peer %s takes tasks again", name)
-            self.plugin.change(peer, reports=reports)
+            self._heard_again(old, fields)
+
+    def _heard_again(self, old: Peer, fields: dict[str, Any]) -> None:
+        """A known peer heard with news (up again, restarted, moved, degraded ...) or not heard of on
+        the board for a quarter peer timeout: its Peer changes, with reports saying what happened."""
+        name, address = old.name, fields["address"]
+        peer = old.evolve(**fields)
+        self.directory[name] = peer
+        report = "up" if not old.up else ("restarted" if old.epoch and old.epoch != fields["epoch"] else "heard")
+        if report != "heard":
+            self.log.info("peer %s is %s at %s", name, report, address)
+        reports = [report]
+        if peer.degraded != old.degraded:
+            reports.append("degraded" if peer.degraded else "recovered")
+            if peer.degraded:
+                self.log.warning("peer %s is degraded: %s", name, peer.degraded)
+            else:
+                self.log.info("peer %s takes tasks again", name)
+        self.plugin.change(peer, reports=reports)
 
     def beacon(self, interval: float = 0.0) -> Beacon:
         s = self.settings
         return Beacon(role=s.role, capabilities=s.capabilities, degraded=self.degraded(), interval=interval)
 
     def beacon_and_liveness(self) -> None:
-        s = self.settings
+        """The periodic pass (a few times a beacon period): announcements when due, in-session beacons
+        to quiet peers, and the peers' silences when one may have reached its limit."""
         mono = self.clock()
         if mono >= self._next_beacon:
-            seen = (len(self.directory), len(self.learned))
-            # a lone agent keeps announcing every period (it is heard by nobody yet, and costs nobody much)
-            standing = (seen == self._announce_seen and bool(self.directory)
-                        and all(p.up for p in self.directory.values()))
-            self._announce_seen = seen
-            self._announce_every = (min(self._announce_every * 2, s.beacon_period * s.announce_backoff)
-                                    if standing else s.beacon_period)
-            self._next_beacon = mono + self._announce_every * 0.9
-            announced: set[Address] = set()
-            if s.discovery_port:
-                announced |= {(host, s.discovery_port) for host in s.beacon_to}
-                # a learned address whose agent is already up with us needs no announcement: its
-                # session carries beacons (and on one host, as under `erni sim`, a unicast to the
-                # shared beacon port lands on whichever agent bound it last, not on that agent)
-                up = {p.address for p in self.directory.values() if p.up}
-                up_hosts = {a.rpartition(":")[0] for a in up}
-                for learned in self.learned:  # HOST (beacon port) or HOST:PORT (data port)
-                    if learned in up or learned in up_hosts:
-                        continue
-                    try:
-                        announced.add(parse_address(learned, s.discovery_port))
-                    except ConfigError:
-                        continue
-            if announced:
-                beacon = self.beacon()
-                for addr in announced:
-                    self.endpoint.announce(addr, "beacon", beacon)
+            self._announce(mono)
         self._beacon_quiet_peers(mono)
-        if mono < self._next_silences:
-            return
+        if mono >= self._next_silences:
+            self._look_at_silences(mono)
+
+    def _announce(self, mono: float) -> None:
+        """Signed beacons to the beacon addresses and the learned ones where no peer is up, backing
+        off while the directory stands."""
+        s = self.settings
+        seen = (len(self.directory), len(self.learned))
+        # a lone agent keeps announcing every period (it is heard by nobody yet, and costs nobody much)
+        standing = (seen == self._announce_seen and bool(self.directory)
+                    and all(p.up for p in self.directory.values()))
+        self._announce_seen = seen
+        self._announce_every = (min(self._announce_every * 2, s.beacon_period * s.announce_backoff)
+                                if standing else s.beacon_period)
+        self._next_beacon = mono + self._announce_every * 0.9
+        announced: set[Address] = set()
+        if s.discovery_port:
+            announced |= {(host, s.discovery_port) for host in s.beacon_to}
+            # a learned address whose agent is already up with us needs no announcement: its
+            # session carries beacons (and on one host, as under `erni sim`, a unicast to the
+            # shared beacon port lands on whichever agent bound it last, not on that agent)
+            up = {p.address for p in self.directory.values() if p.up}
+            up_hosts = {a.rpartition(":")[0] for a in up}
+            for learned in self.learned:  # HOST (beacon port) or HOST:PORT (data port)
+                if learned in up or learned in up_hosts:
+                    continue
+                try:
+                    announced.add(parse_address(learned, s.discovery_port))
+                except ConfigError:
+                    continue
+        if announced:
+            beacon = self.beacon()
+            for addr in announced:
+                self.endpoint.announce(addr, "beacon", beacon)
+
+    def _look_at_silences(self, mono: float) -> None:
+        """Peers up but silent beyond their limit go down; the others' `last_heard` follows the
+        beacons that said nothing new."""
+        s = self.settings
         # O(peers), so every quarter peer timeout, earlier only when a peer's silence may reach its
         # limit then: hearing a peer moves that moment later, a peer that comes up has a limit of at
         # least one peer timeout, and a limit that shrinks (a shorter announced interval, fewer
