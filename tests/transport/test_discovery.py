@@ -264,8 +264,8 @@ def test_broadcast_beacons_back_off_while_the_directory_stands_and_not_when_a_pe
 
     port = free_port()
     a = make_agent("a", port)
-    time.sleep(1.0)  # alone: it keeps announcing every period (nobody has heard it yet)
-    assert a.plugin("transport").endpoint.counters.get("sent.announce", 0) >= 8
+    # alone: it keeps announcing every period (nobody has heard it yet)
+    wait_until(lambda: a.plugin("transport").endpoint.counters.get("sent.announce", 0) >= 8)
     b = make_agent("b", port)
     try:
         wait_until(lambda: peers(a).get("b") and peers(a)["b"].up)
