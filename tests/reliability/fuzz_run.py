@@ -917,7 +917,7 @@ class Result:
 HANDLERS: dict[str, str] = {
     "bridge": "erni/transport/bridge.py", "policy": "erni/transport/policy.py",
     "driver": "erni/plugins/motion/driver.py", "ui plugin": "erni/plugins/ui/plugin.py",
-    "server": "erni/plugins/ui/server.py", "replay": "erni/replay.py", "bags": "erni/plugins/ros2/bags.py",
+    "server": "erni/plugins/ui/server.py", "replay": "erni/replay.py", "bags": "erni/bags.py",
 }
 """The handler modules whose statement coverage `--coverage` reports for every surface: where an input
 goes once its parser has taken it (authorization, the blackboard, the driver, the page, publishing)."""
