@@ -473,7 +473,7 @@ class ZenohEndpoint(Endpoint):
             if not self._beacon_bucket.take():  # unsigned: anyone the router admits may declare one
                 self.count("dropped.rate")
                 return
-            self._dispatch(Message(name, role, address_of(name), 0, 0, "", "beacon", Beacon(role=role), hint=True,
+            self.dispatch(Message(name, role, address_of(name), 0, 0, "", "beacon", Beacon(role=role), hint=True,
                                    source=f"router {router}" if router else "direct"))
             return
         with self._alive_lock:
