@@ -43,9 +43,17 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from erni.blackboard.testing import wait_until
+
 ROOT = Path(__file__).resolve().parents[2]
 Check = Callable[[Any], None]
 Gen = Callable[[random.Random], Any]
+
+
+def confirmed(a: Any, b: Any) -> bool:
+    """Whether endpoint `a` holds a confirmed session to send to `b`."""
+    s = a.session_with(b.address)
+    return s is not None and bool(s.confirmed)
 
 
 class Hang(BaseException):
@@ -190,12 +198,8 @@ class Team:
         self.rx.start()
         self.tx.start()
         self.tx.send(self.rx.address, "hello", None, reliable=True)
-        deadline = time.monotonic() + 10
-        while (s := self.tx.session_with(self.rx.address)) is None or not s.confirmed:
-            if time.monotonic() > deadline:
-                raise RuntimeError("fuzz endpoints did not connect")
-            time.sleep(0.01)
-        time.sleep(0.2)
+        wait_until(lambda: confirmed(self.tx, self.rx) and confirmed(self.rx, self.tx), timeout=10, interval=0.01,
+                   message="fuzz endpoints did not connect")
         self.session = self.tx.session_with(self.rx.address)
 
     def accept(self, frame: bytes) -> None:
