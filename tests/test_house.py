@@ -33,12 +33,11 @@ TARGET_SLEEPS = 52
 
 # The ratchets: today's figures where the target is not met yet.
 CLOCK_READS_ALLOWED = 16
-SLEEPS_ALLOWED = 177
-ABOVE_25_ALLOWED = 30
-ABOVE_20_ALLOWED = 55
+SLEEPS_ALLOWED = 169
+ABOVE_25_ALLOWED = 26
+ABOVE_20_ALLOWED = 52
 # Classes in blackboard/, transport/ and plugins/ still above the target, with their length today.
 LONG_CLASSES_ALLOWED: dict[str, int] = {
-    "transport/bridge.py:TransportPlugin": 995,
     "transport/endpoint.py:Endpoint": 625,
     "plugins/ui/dialogue.py:Dialogue": 552,
     "plugins/mission/plugin.py:MissionControl": 538,
