@@ -36,7 +36,6 @@ import ipaddress
 import math
 import random
 import threading
-import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -45,6 +44,7 @@ from typing import Any, ClassVar, Literal, NamedTuple
 from pydantic import BaseModel, ConfigDict, Field, SecretStr, model_validator
 
 from erni.blackboard import AllocationResult, BBObject, NetInfo, Plugin, Pose, Task, TaskState
+from erni.blackboard.clock import SYSTEM, Clock
 from erni.blackboard.errors import ConfigError
 from erni.blackboard.objects import Model, only_stamp_differs
 from erni.blackboard.schemas import (
@@ -242,7 +242,7 @@ class TransportSettings(Model):
         return load_identity(self.identity, self.revocations)
 
     def make_endpoint(self, name: str, inbound_filter: InboundFilter | None = None,
-                      clock: Callable[[], float] = time.monotonic) -> Endpoint:
+                      clock: Clock | Callable[[], float] = SYSTEM) -> Endpoint:
         """Build the endpoint these settings describe (ConfigError if the identity does not fit);
         `clock` times what expires in it (the agent's)."""
         identity = self.load_identity()
@@ -276,15 +276,14 @@ class TransportPlugin(Plugin[TransportSettings]):
     def setup(self) -> None:
         s = self.settings
         # peers' silence, task deadlines, watch leases and status refreshes are timed by the agent's
-        # clock, as is what expires in the endpoint (a test's ManualClock moves them all)
-        self._now = self._require_agent().clock
+        # clock (`self.clock`), as is what expires in the endpoint (a test's ManualClock moves them all)
         if self.endpoint_factory is not None:
             self.endpoint: Endpoint = self.endpoint_factory(self.agent_name)
             self.endpoint.inbound_filter = self.inbound_filter
             self.endpoint.role = s.role  # its frames carry the agent's role, as a real session's do
         else:
             try:
-                self.endpoint = s.make_endpoint(self.agent_name, self.inbound_filter, self._now)
+                self.endpoint = s.make_endpoint(self.agent_name, self.inbound_filter, self.clock)
             except IdentityError as err:
                 raise ConfigError(str(err)) from None
         if s.insecure:
@@ -301,7 +300,7 @@ class TransportPlugin(Plugin[TransportSettings]):
         self.whole_sent: dict[str, _Sent] = {}  # uid of a shared object of ours -> its last whole version sent
         self._resend_asked: dict[str, float] = {}  # uid of a status received -> when we last asked for it whole
         self._count: Callable[[str], None] = getattr(self.endpoint, "count", None) or (lambda name: None)  # (a test's
-        self.bounds = SenderBounds(s, self._count, self.log, self._now)  # in-memory endpoint counts nothing)  # per sender: what it may make us hold
+        self.bounds = SenderBounds(s, self._count, self.log, self.clock)  # in-memory endpoint counts nothing)  # per sender: what it may make us hold
         self.tasks = self.subscribe(Task)
         self.receipts = self.subscribe(Received)
         self.watched = self.subscribe(lambda o: isinstance(o, WATCHED))
@@ -370,7 +369,6 @@ class TransportPlugin(Plugin[TransportSettings]):
 
     def execute(self) -> None:
         me = self.agent_name
-        now = time.time()
         for receipt in self.receipts.added:  # after a restart: who gave us which task, and where
             self.bounds.task(receipt.sender, receipt.task)
             given = self._task_in(receipt.task)
@@ -417,12 +415,12 @@ class TransportPlugin(Plugin[TransportSettings]):
         if len(self.learned) != known:  # somewhere new to announce to: at once
             self._next_beacon = 0.0
         self._share_status()
-        self._retry_pending(now)
-        self._forward_to_watchers(now)
-        mono = self._now()
+        self._retry_pending()
+        self._forward_to_watchers()
+        mono = self.clock()
         if mono >= self._next_liveness:  # O(peers): not on every run of a busy agent
             self._next_liveness = mono + self.settings.beacon_period / 4
-            self._beacon_and_liveness(now)
+            self._beacon_and_liveness()
         if mono >= self._next_link_check:  # O(tasks sent): a control node runs for every Pose it receives
             self._next_link_check = mono + min(self.settings.beacon_period, self.settings.link_deadline) / 4
             self._check_links()
@@ -485,7 +483,7 @@ class TransportPlugin(Plugin[TransportSettings]):
         if addr is None:
             return False
         self.endpoint.send(addr, kind, body, reliable=reliable, to=name)
-        self._peer(name).sent_peer_at = self._now()
+        self._peer(name).sent_peer_at = self.clock()
         return True
 
     def _send_task(self, task: Task) -> None:
@@ -493,9 +491,9 @@ class TransportPlugin(Plugin[TransportSettings]):
         assert dest is not None
         record = self.tasks_out.get(task.uid)
         if record is None:
-            record = self.tasks_out[task.uid] = _TaskOut(dest, self._now())
+            record = self.tasks_out[task.uid] = _TaskOut(dest, self.clock())
         else:
-            record.dest, record.sent_at = dest, self._now()
+            record.dest, record.sent_at = dest, self.clock()
         given = self.tasks_in.get(task.uid)
         if given is not None and given.sender:  # relayed: the receiver checks that we may relay for its originator
             sent = self._send_to_peer(dest, "task.relay", Relayed(task=task, role=given.origin_role or ""),
@@ -505,7 +503,7 @@ class TransportPlugin(Plugin[TransportSettings]):
         if not sent:
             if record.pending is None:
                 self._waiting += 1
-            record.pending = (dest, self._now() + self.settings.task_ttl)
+            record.pending = (dest, self.clock() + self.settings.task_ttl)
             self.log.info("task %s waits for agent %s to be discovered", task.uid, dest)
             return
         latest = self._task_now(task.uid)  # this run may have applied its performer's result already
@@ -529,10 +527,10 @@ class TransportPlugin(Plugin[TransportSettings]):
             self._task_in(task.uid).final_sent = False  # the requester may have missed it while we were away
             self._send_result(origin, task)
 
-    def _retry_pending(self, now: float) -> None:
+    def _retry_pending(self) -> None:
         if not self._waiting:  # O(tasks sent) only while some wait
             return
-        mono = self._now()
+        mono = self.clock()
         for uid, record in list(self.tasks_out.items()):
             if record.pending is None:
                 continue
@@ -551,7 +549,7 @@ class TransportPlugin(Plugin[TransportSettings]):
     def _check_links(self) -> None:
         """Fail tasks whose performer has not been heard for `link_deadline` seconds."""
         deadline = self.settings.link_deadline
-        mono = self._now()
+        mono = self.clock()
         for uid, record in list(self.tasks_out.items()):
             if record.lost or record.pending is not None:
                 continue
@@ -702,7 +700,7 @@ class TransportPlugin(Plugin[TransportSettings]):
     def _on_watch_request(self, msg: Message, body: WatchRequest) -> None:
         key = (msg.sender, msg.reply)
         new = key not in self.watchers
-        self.watchers[key] = self._now() + body.lease
+        self.watchers[key] = self.clock() + body.lease
         self.watched.wakes = True
         if new:  # start the stream with the current state
             for obj in self.query(lambda o: isinstance(o, WATCHED)):
@@ -781,7 +779,7 @@ class TransportPlugin(Plugin[TransportSettings]):
         """Count a refusal; log it once per sender, kind and rule every 10 s; tell a task's sender."""
         self.endpoint.count(f"refused.{refusal.rule}")
         key = (msg.sender, msg.kind, refusal.rule)
-        mono = self._now()
+        mono = self.clock()
         if mono - self._refused_at.get(key, -math.inf) >= 10.0:
             more = self._refused_more.pop(key, 0)
             self._refused_at[key] = mono
@@ -878,7 +876,7 @@ class TransportPlugin(Plugin[TransportSettings]):
         only marks its peer heard (the liveness pass puts that on the board). Runs on the endpoint's
         receive thread; in a team of N each agent hears up to `beacon_fanout` of these a period."""
         if self._beacon_repeats(msg):
-            self._peer(msg.sender).heard_at = self._now()
+            self._peer(msg.sender).heard_at = self.clock()
             self._count_beacon(msg.sender, msg.body)
             return
         self.later(lambda: self._handle(msg))
@@ -939,7 +937,7 @@ class TransportPlugin(Plugin[TransportSettings]):
         old = self.directory.get(name)
         address = f"{msg.reply[0]}:{msg.reply[1]}"
         beacon = msg.body if isinstance(msg.body, Beacon) else Beacon(role=msg.role)
-        now = time.time()  # a peer not up shows when its beacon was last heard (up needs a session)
+        now = self.clock.wall()  # a peer not up shows when its beacon was last heard (up needs a session)
         if old is None:
             source = msg.source or msg.reply[0]
             why = self.bounds.hint(name, source)
@@ -986,8 +984,8 @@ class TransportPlugin(Plugin[TransportSettings]):
             return
         if self.bounds.is_hinted(name):  # heard in a session: a peer, no longer a hint
             self.bounds.hint_gone(name)
-        now = time.time()
-        self._peer(name).heard_at = self._now()
+        now = self.clock.wall()
+        self._peer(name).heard_at = self.clock()
         old = self.directory.get(name)
         address = f"{reply[0]}:{reply[1]}"
         if (beacon is None and old is not None and old.up and old.epoch == epoch and old.address == address
@@ -1030,9 +1028,9 @@ class TransportPlugin(Plugin[TransportSettings]):
         s = self.settings
         return Beacon(role=s.role, capabilities=s.capabilities, degraded=self._degraded(), interval=interval)
 
-    def _beacon_and_liveness(self, now: float) -> None:
+    def _beacon_and_liveness(self) -> None:
         s = self.settings
-        mono = self._now()
+        mono = self.clock()
         if mono >= self._next_beacon:
             seen = (len(self.directory), len(self.learned))
             # a lone agent keeps announcing every period (it is heard by nobody yet, and costs nobody much)
@@ -1069,7 +1067,7 @@ class TransportPlugin(Plugin[TransportSettings]):
         # least one peer timeout, and a limit that shrinks (a shorter announced interval, fewer
         # beacons lost) is looked at within the quarter
         self._next_silences = mono + s.peer_timeout / 4
-        wall = time.time()
+        wall = self.clock.wall()
         for name, peer in list(self.directory.items()):
             if not peer.up:
                 continue  # a session frame will bring it up: nothing to look at
@@ -1137,7 +1135,7 @@ class TransportPlugin(Plugin[TransportSettings]):
         if not objs and not gone:
             return
         s = self.settings
-        mono = self._now()
+        mono = self.clock()
         for obj in objs:
             targets, holders = self._status_targets(type(obj).__name__)
             if not targets:
@@ -1227,7 +1225,7 @@ class TransportPlugin(Plugin[TransportSettings]):
             return
         held = self._board.get(note.uid) if note.uid in self.status_in else None
         if held is None or self.status_base.get(note.uid) != note.base:
-            now = self._now()
+            now = self.clock()
             if now - self._resend_asked.get(note.uid, -math.inf) >= 1.0:
                 if len(self._resend_asked) >= 4096 and note.uid not in self._resend_asked:
                     del self._resend_asked[next(iter(self._resend_asked))]  # bounded: the oldest asked goes
@@ -1237,8 +1235,8 @@ class TransportPlugin(Plugin[TransportSettings]):
         self.status_in[note.uid] = stamp
         self.change(held.model_copy(update={"stamp": note.stamp}), reports=[f"status from {msg.sender}"])
 
-    def _forward_to_watchers(self, now: float) -> None:
-        mono = self._now()
+    def _forward_to_watchers(self) -> None:
+        mono = self.clock()
         for key, until in list(self.watchers.items()):
             if until < mono:
                 del self.watchers[key]
