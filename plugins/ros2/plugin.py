@@ -196,17 +196,13 @@ class ROS2Plugin(Plugin[ROS2Settings]):
         """The transport's Zenoh session (auto, wire = zenoh, once started) or a session of the plugin's own."""
         s = self.settings
         if s.session == "auto":
-            from erni.transport.bridge import TransportPlugin
-            from erni.transport.zenoh_wire import ZenohEndpoint
-            for plugin in self._require_agent().plugins:
-                if isinstance(plugin, TransportPlugin) and plugin.settings.wire == "zenoh":
-                    endpoint = getattr(plugin, "endpoint", None)
-                    if isinstance(endpoint, ZenohEndpoint):
-                        try:
-                            return endpoint.session
-                        except NetworkError:
-                            return None  # not started yet: asked again
-                    return None
+            offered = self.provided("transport.zenoh_session")  # the transport's, on the Zenoh wire
+            if offered is not None:
+                try:
+                    session: zenoh.Session = offered()
+                    return session
+                except NetworkError:
+                    return None  # not started yet: asked again
         conf = zenoh.Config()
         values: dict[str, Any] = {"mode": s.mode, "connect/endpoints": s.connect,
                                   "scouting/multicast/enabled": False}
@@ -335,10 +331,9 @@ class ROS2Plugin(Plugin[ROS2Settings]):
     def _robots(self) -> set[str]:
         if self._robots_fixed is not None:
             return set(self._robots_fixed)
-        from erni.transport.bridge import TransportPlugin
-        for plugin in self._require_agent().plugins:
-            if isinstance(plugin, TransportPlugin) and plugin.settings.role != "control":
-                return {self.agent_name}
+        role = self.provided("transport.role")
+        if role is not None and role != "control":
+            return {self.agent_name}
         return {p.robot for p in self.poses}
 
     def execute(self) -> None:
@@ -416,14 +411,11 @@ class ROS2Plugin(Plugin[ROS2Settings]):
 
     def _transducers(self, robot: str) -> tuple[tuple[float, float, float] | None, ...]:
         """Where a robot's sonars sit: its motion plugin's model when it runs in this agent, else a Pioneer 3-DX's."""
-        from erni.plugins.motion import RobotMotionControl
         from erni.plugins.motion.robots import MODELS
 
-        if robot == self.agent_name:
-            for plugin in self._require_agent().plugins:
-                resource = getattr(plugin, "resource", None) if isinstance(plugin, RobotMotionControl) else None
-                if resource is not None and resource.driver.model.sonar:
-                    return tuple(resource.driver.model.sonar)
+        sonar = self.provided("motion.sonar") if robot == self.agent_name else None
+        if sonar is not None and (found := sonar()):
+            return tuple(found)
         return tuple(MODELS["p3dx-sh"].sonar)
 
     def _publish_network(self) -> None:
