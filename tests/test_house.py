@@ -32,15 +32,13 @@ TARGET_SHARE_ABOVE_20 = 0.01
 TARGET_SLEEPS = 52
 
 # The ratchets: today's figures where the target is not met yet.
-CLOCK_READS_ALLOWED = 117
-SLEEPS_ALLOWED = 177
-ABOVE_25_ALLOWED = 31
-ABOVE_20_ALLOWED = 56
+CLOCK_READS_ALLOWED = 16
+SLEEPS_ALLOWED = 169
+ABOVE_25_ALLOWED = 26
+ABOVE_20_ALLOWED = 52
 # Classes in blackboard/, transport/ and plugins/ still above the target, with their length today.
 LONG_CLASSES_ALLOWED: dict[str, int] = {
-    "transport/bridge.py:TransportPlugin": 991,
     "transport/endpoint.py:Endpoint": 625,
-    "plugins/mobinet/snmp.py:SnmpSource": 596,
     "plugins/ui/dialogue.py:Dialogue": 552,
     "plugins/mission/plugin.py:MissionControl": 538,
     "plugins/ros2/plugin.py:ROS2Plugin": 537,
@@ -116,7 +114,7 @@ def _long_classes() -> dict[str, int]:
 
 def _complexities() -> list[tuple[int, str]]:
     found = []
-    for path in _files(RUN_DIRS):
+    for path in _files(RUN_DIRS) + sorted((ROOT / "erni").glob("*.py")):
         for block in cc_visit(path.read_text()):
             if isinstance(block, Function):
                 name = f"{block.classname}.{block.name}" if block.classname else block.name

@@ -132,8 +132,8 @@ class Ros2BaseDriver(ArcosDriver):
         subscriptions); with wait=True, block until the first Odometry or raise LinkError."""
         import zenoh
 
-        from erni.plugins.ros2 import messages
-        from erni.plugins.ros2.rmw import SENSOR_QOS, RmwNode
+        from erni import ros2_messages as messages
+        from erni.ros2_rmw import SENSOR_QOS, RmwNode
 
         self._opened = True
         if self._session is None:
@@ -198,7 +198,7 @@ class Ros2BaseDriver(ArcosDriver):
     # --- the base's topics (Zenoh's threads) -----------------------------------------------
 
     def _on_odom(self, data: bytes) -> None:
-        from erni.plugins.ros2 import messages
+        from erni import ros2_messages as messages
 
         try:
             odom = messages.deserialize(data, messages.ODOMETRY)
@@ -243,7 +243,7 @@ class Ros2BaseDriver(ArcosDriver):
                 self._send()
 
     def _on_battery(self, data: bytes) -> None:
-        from erni.plugins.ros2 import messages
+        from erni import ros2_messages as messages
 
         try:
             voltage = float(messages.deserialize(data, BATTERY_STATE).voltage)
@@ -254,7 +254,7 @@ class Ros2BaseDriver(ArcosDriver):
             self._battery = round(voltage, 2)
 
     def _on_scan(self, data: bytes) -> None:
-        from erni.plugins.ros2 import messages
+        from erni import ros2_messages as messages
 
         try:
             scan = messages.deserialize(data, messages.LASER_SCAN)
@@ -276,7 +276,7 @@ class Ros2BaseDriver(ArcosDriver):
         return False
 
     def _send(self) -> bool:
-        from erni.plugins.ros2 import messages
+        from erni import ros2_messages as messages
 
         if self._cmd is None or not self.connected:
             self.stats.dropped_commands += 1
