@@ -206,7 +206,7 @@ class ROS2Plugin(Plugin[ROS2Settings]):
                     self._closing.wait(0.2)
                     continue
                 self.node = RmwNode(session, self.settings.node_name or f"erni_{ros_name(self.agent_name)}",
-                                    domain_id=self.settings.domain_id)
+                                    domain_id=self.settings.domain_id, clock=self.clock)
                 self.log.info("ROS 2 node %s on Zenoh session %s (domain %d)", self.node.name, self.node.zid,
                               self.settings.domain_id)
                 for typename, topic, wanted in ((messages.TF_MESSAGE, "/tf", self.settings.tf),
