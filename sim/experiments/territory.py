@@ -233,10 +233,7 @@ def _kinematic(scenario: Scenario, progress: Progress, blocks: list[patrol.Block
 
     for k in range(steps):
         t = (k + 1) * dt
-        for i, name in enumerate(names):
-            if alive[i] and name in fail_at and t >= fail_at[name]:
-                alive[i] = False
-                events.append((t, name, "fails", name))
+        _fail_due(t, names, alive, fail_at, events)
         if t >= next_beat:
             next_beat += heartbeat
             idx = np.flatnonzero(alive)
@@ -249,14 +246,29 @@ def _kinematic(scenario: Scenario, progress: Progress, blocks: list[patrol.Block
                     reroute(i)
         targets = np.array([routes[i][waypoint[i]] for i in range(n)])
         pos, th, sp = kinematic.drive(pos, th, targets, dt, speed, moving=alive)
-        for i in range(n):
-            if alive[i] and math.hypot(*(pos[i] - targets[i])) < 0.15:
-                waypoint[i] = (waypoint[i] + 1) % len(routes[i])
+        _next_waypoints(pos, targets, alive, waypoint, routes)
         track.add(t, pos, th, sp)
         if k % 5 == 0:
             progress("patrolling", round(t), round(duration))
     ts, ps, _th, _speed = track.arrays()
     return ts, ps, events, {names[i]: len(tables[i].holds) for i in range(n)}
+
+
+def _fail_due(t: float, names: list[str], alive: NDArray[np.bool_], fail_at: dict[str, float],
+              events: list[Event]) -> None:
+    """The robots whose failure time has come stop (logged in `events`)."""
+    for i, name in enumerate(names):
+        if alive[i] and name in fail_at and t >= fail_at[name]:
+            alive[i] = False
+            events.append((t, name, "fails", name))
+
+
+def _next_waypoints(pos: NDArray[np.float64], targets: NDArray[np.float64], alive: NDArray[np.bool_],
+                    waypoint: list[int], routes: list[list[NDArray[np.float64]]]) -> None:
+    """A live robot at its waypoint heads for the next one of its route (round and round)."""
+    for i in range(len(waypoint)):
+        if alive[i] and math.hypot(*(pos[i] - targets[i])) < 0.15:
+            waypoint[i] = (waypoint[i] + 1) % len(routes[i])
 
 
 def _exchange_beats(t: float, members: list[int], tables: list[patrol.TakeoverTable], names: list[str],
