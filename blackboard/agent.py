@@ -9,7 +9,6 @@ import itertools
 import logging
 import queue
 import threading
-import time
 from collections.abc import Callable
 from importlib.metadata import entry_points
 from pathlib import Path
@@ -18,7 +17,7 @@ from typing import Any, TypeVar, overload
 from pydantic import BaseModel, ValidationError
 
 from erni.blackboard.blackboard import Blackboard, Query, Transaction
-from erni.blackboard.clock import SYSTEM, Clock, as_clock
+from erni.blackboard.clock import SYSTEM, Clock, as_clock, monotonic
 from erni.blackboard.errors import ConfigError, PluginError, UsageError, describe_validation
 from erni.blackboard.plugin import NoSettings, Plugin
 
@@ -66,7 +65,7 @@ class Scheduler:
             self._queue.put(None)
         late = []
         for t in self._threads:
-            t.join(max(0.0, deadline - time.monotonic()))
+            t.join(max(0.0, deadline - monotonic()))
             if t.is_alive():
                 late.append(t.name)
         self._threads = []
@@ -219,7 +218,7 @@ class Timers:
             self._heap.clear()
             self._cond.notify()
         if self._thread is not None:
-            self._thread.join(max(0.0, deadline - time.monotonic()))
+            self._thread.join(max(0.0, deadline - monotonic()))
             alive = self._thread.is_alive()
             self._thread = None
             return not alive
@@ -418,7 +417,7 @@ class Agent:
         well-behaved plugins, with every thread of the agent joined."""
         if not self.started:
             return
-        deadline = time.monotonic() + timeout
+        deadline = monotonic() + timeout  # thread joins keep real time, whatever the agent's clock
         self.started = False
         late = self.scheduler.stop(deadline)
         for plugin in self.plugins:
@@ -453,14 +452,14 @@ class Agent:
 
         assert self.journal_path is not None
         try:
-            self.journal = Journal(self.journal_path, self.name)
+            self.journal = Journal(self.journal_path, self.name, clock=self.clock)
             objects, problems = self.journal.load()
         except JournalError as err:
             if not self.reset_journal:
                 raise
             aside = move_aside(self.journal_path)
             self.log.warning("%s; moved to %s, starting with an empty journal", str(err).split(";")[0], aside)
-            self.journal = Journal(self.journal_path, self.name)
+            self.journal = Journal(self.journal_path, self.name, clock=self.clock)
             objects, problems = [], []
         for line in problems:
             self.log.warning("%s", line)
@@ -471,7 +470,7 @@ class Agent:
                         tx.add(obj)
             self.rehydrated = {obj.uid for obj in objects}
             if self.retention is not None:  # a final task leaves `retention` after it ended, not after the restart
-                wall = time.time()
+                wall = self.clock.wall()
                 for obj in objects:
                     written = self.journal.written_at.get(obj.uid)
                     if getattr(obj, "done", False) and written is not None:

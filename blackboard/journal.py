@@ -29,12 +29,12 @@ import queue
 import re
 import sqlite3
 import threading
-import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TypeAlias
 
 from erni.blackboard.blackboard import CHANGE, REMOVE, Op
+from erni.blackboard.clock import SYSTEM, Clock, monotonic
 from erni.blackboard.errors import ConfigError
 from erni.blackboard.objects import BBObject
 
@@ -113,8 +113,9 @@ def _urgent_item(item: Item) -> bool:
 class Journal:
     """Journal durable objects of one blackboard to a SQLite file."""
 
-    def __init__(self, path: str | Path, agent: str = "agent", linger: float = 0.2):
+    def __init__(self, path: str | Path, agent: str = "agent", linger: float = 0.2, *, clock: Clock = SYSTEM):
         self.path = Path(path)
+        self.clock = clock  # the agent's: its wall reading stamps each row's last write (`updated`)
         self.linger = linger  # a batch of progress changes only waits this long for more (s)
         self.log = logging.getLogger(f"erni.{agent}.journal")
         self._queue: queue.SimpleQueue[Item] = queue.SimpleQueue()
@@ -266,11 +267,11 @@ class Journal:
     def flush(self, timeout: float = 5.0) -> bool:
         """Wait until everything queued so far was tried; return True if it is on disk."""
         target = self._enqueued
-        deadline = time.monotonic() + timeout
+        deadline = monotonic() + timeout
         self._queue.put([])  # the flush marker: ends a lingering batch, and the batch it is in does not linger
         with self._flushed:
             while self._written < target:
-                left = deadline - time.monotonic()
+                left = deadline - monotonic()
                 if left <= 0:
                     return False
                 self._flushed.wait(left)
@@ -302,11 +303,11 @@ class Journal:
             # of changes that are not news (a running task's progress: a control node gets two a
             # second from every robot) waits up to `linger` for more; a new, final or removed
             # object, a flush or the stop is written at once
-            until = time.monotonic() + self.linger
+            until = monotonic() + self.linger
             urgent = _urgent_item(batch[0])
             while True:
                 try:
-                    left = until - time.monotonic()
+                    left = until - monotonic()
                     item = (self._queue.get(timeout=left) if not urgent and left > 0
                             else self._queue.get_nowait())
                 except queue.Empty:
@@ -338,7 +339,7 @@ class Journal:
                 self.log.exception("a call waiting for the journal's write failed")
 
     def _write(self, ops: list[Op]) -> None:
-        now = time.time()
+        now = self.clock.wall()
         rows: dict[str, Any] = dict(self._pending)  # rows a failed write left behind come first
         for kind, obj, _ in ops:  # later operations on the same uid win
             rows.pop(obj.uid, None)

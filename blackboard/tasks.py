@@ -11,7 +11,6 @@ from __future__ import annotations
 import enum
 import json
 import math
-import time
 import types
 from collections.abc import Callable, Container, Iterable
 from dataclasses import dataclass
@@ -26,6 +25,7 @@ from pydantic import (
     model_validator,
 )
 
+from erni.blackboard.clock import wall
 from erni.blackboard.errors import TaskError, describe_validation, shown
 from erni.blackboard.objects import BBObject, FiniteJson, Model
 from erni.blackboard.text import Name, NameOrEmpty
@@ -360,7 +360,7 @@ class AllocationResult(Model):
     progress: float = Field(0.0, ge=0.0, le=1.0)
     values: dict[str, FiniteJson] = Field(default_factory=dict)
     message: str = ""
-    stamp: float = Field(default_factory=time.time)
+    stamp: float = Field(default_factory=wall)
 
 
 class Task(BBObject):
@@ -379,7 +379,7 @@ class Task(BBObject):
     destination: Name | None = None
     parent: str | None = None
     result: AllocationResult | None = None
-    created: float = Field(default_factory=time.time)
+    created: float = Field(default_factory=wall)
 
     def __init__(self, **data: Any) -> None:
         try:
@@ -489,7 +489,7 @@ class Pose(BBObject):
     bumpers: int = 0
     motors_enabled: bool = True
     sonar: list[float] = Field(default_factory=list, description="sonar ranges (m)")
-    stamp: float = Field(default_factory=time.time)
+    stamp: float = Field(default_factory=wall)
 
     @model_validator(mode="before")
     @classmethod
@@ -563,7 +563,7 @@ class NetInfo(BBObject):
     articulation_points: list[str] = Field(default_factory=list)
     degraded: bool = False
     message: str = ""
-    stamp: float = Field(default_factory=time.time)
+    stamp: float = Field(default_factory=wall)
     provenance: dict[str, str] = Field(
         default_factory=dict,
         description="field name -> where its data came from (source and table, e.g. "

@@ -5,8 +5,9 @@ from __future__ import annotations
 import logging
 import re
 import sys
-import time
+from collections.abc import Callable
 
+from erni.blackboard.clock import monotonic
 from erni.blackboard.text import printable
 
 FORMAT = "%(asctime)s %(levelname)-7s %(name)s: %(message)s"
@@ -47,8 +48,9 @@ class RateLimitedLog:
     a page that repeats a bad input cannot flood the log. Reasons are a few fixed words (never a
     peer's text), so their table stays small."""
 
-    def __init__(self, log: logging.Logger, period: float = 5.0):
+    def __init__(self, log: logging.Logger, period: float = 5.0, clock: Callable[[], float] = monotonic):
         self.log, self.period = log, period
+        self.clock = clock
         self._last: dict[str, float] = {}
         self._suppressed: dict[str, int] = {}
 
@@ -61,7 +63,7 @@ class RateLimitedLog:
         self._emit(logging.INFO, reason, text)
 
     def _emit(self, level: int, reason: str, text: str) -> None:
-        now = time.monotonic()
+        now = self.clock()
         if now - self._last.get(reason, -1e9) >= self.period:
             more = self._suppressed.pop(reason, 0)
             self._last[reason] = now

@@ -7,8 +7,6 @@ a template for new plugins.
 
 from __future__ import annotations
 
-import time
-
 from pydantic import Field
 
 from erni.blackboard import Plugin, Task, TaskState
@@ -32,7 +30,7 @@ class EchoPlugin(Plugin[EchoSettings]):
         self.due: dict[str, float] = {}
 
     def execute(self) -> None:
-        now = time.monotonic()
+        now = self.clock()
         for task in self.tasks.added:
             if task.done:
                 continue

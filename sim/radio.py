@@ -72,15 +72,15 @@ def install(agent: Agent, radio: RadioFilter) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     """`python -m erni.sim.radio CONFIG [--log-level L]`: `erni agent` behind the simulated radio."""
-    from erni.commands import agent as agent_command
+    from erni import launch
 
     parser = argparse.ArgumentParser(prog="python -m erni.sim.radio",
                                      description="Run an agent of `erni sim` behind the simulated radio.")
-    agent_command.add_arguments(parser)
+    launch.add_arguments(parser)
     args = parser.parse_args(argv)
     fd = os.environ.get(FD_ENV)
     radio = RadioFilter(int(fd) if fd else None)
-    return agent_command.run(args, prepare=lambda agent: install(agent, radio))
+    return launch.run(args, prepare=lambda agent: install(agent, radio))
 
 
 if __name__ == "__main__":

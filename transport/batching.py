@@ -22,7 +22,6 @@ from __future__ import annotations
 import itertools
 import math
 import threading
-import time
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any
 
@@ -68,6 +67,7 @@ class FastMessages:
         auth: Auth | None
         _dests: dict[Address, Dest]
         clock: Callable[[], float]
+        pace: Callable[[], float]
         _fast_at: dict[Address, float]
         _heads: dict[str, bytes]
         _head_opens: dict[str, bytes]
@@ -116,21 +116,21 @@ class FastMessages:
                 and session.sid in sessions.by_sid and not (to and to != session.peer):
             dest = self._dests.get(addr)
             fast_at = self._fast_at
-            if (dest is None or not (dest.fast or dest.announce)) and not self._gathers(addr, dest, time.monotonic()):
+            if (dest is None or not (dest.fast or dest.announce)) and not self._gathers(addr, dest, self.pace()):
                 head = self._head_opens.get(session.peer) or self._head_open(session.peer)
                 try:
                     self._sendto(session.seal(b'%b"seq":%d,"id":%b,%b,"body":%b}' % (
                         head, seq, to_json(msg_id), kind_and_type(kind, type_name), data), self._udp_frame), addr)
                 except (OSError, FrameError) as err:
                     dropped = self._unsent(addr, err)  # True: too big, or an error; False: the buffer is full
-                    fast_at[addr] = time.monotonic()
+                    fast_at[addr] = self.pace()
                     if dropped:
                         return msg_id
                     self.count("sent.deferred")  # the pool sends it when the buffer drains
                     self._queue(addr, self._outgoing(msg_id, kind, type_name, body, data, seq, ttl, to), "fast")
                     return msg_id
                 self.count("sent.fast")
-                fast_at[addr] = time.monotonic()  # a burst is told by the time until the next
+                fast_at[addr] = self.pace()  # a burst is told by the time until the next
                 return msg_id
         out = self._outgoing(msg_id, kind, type_name, body, data, seq, ttl, to)
         if not self._send_now(addr, out):
@@ -162,7 +162,7 @@ class FastMessages:
                 session = self.sessions.usable(addr)
                 if session is None or out.to and out.to != session.peer:
                     return False  # a handshake to drive, or a wrong peer to report: the sender pool's work
-                if self._gathers(addr, dest, time.monotonic()):
+                if self._gathers(addr, dest, self.pace()):
                     return self._gather(addr, out, session)  # a burst: several statuses to a datagram
                 single = self._batch(session)
                 single.add(out, self._item(out))
@@ -171,7 +171,7 @@ class FastMessages:
                 self.count("sent.deferred")  # the socket's buffer is full: the pool sends it when it drains
             return sent
         finally:
-            self._fast_at[addr] = time.monotonic()
+            self._fast_at[addr] = self.pace()
 
     def _gathers(self, addr: Address, dest: Dest | None, now: float) -> bool:
         """Whether a status to `addr` now joins a batch: one is being gathered there, or it follows
@@ -200,7 +200,7 @@ class FastMessages:
         else:
             type_name, data = encode_body(body)
             item = item_bytes(seq, msg_id, kind, type_name, data)
-            recent = time.monotonic() - COALESCE
+            recent = self.pace() - COALESCE
             dests = self._dests
             fast_at = self._fast_at
             for addr, to in targets:
@@ -224,7 +224,7 @@ class FastMessages:
                 if not self._unsent(addr, err):  # the socket's buffer is full: the pool sends it
                     later.append((addr, to))
         if frames:
-            now = time.monotonic()
+            now = self.pace()
             for _, addr, _ in frames:
                 self._fast_at[addr] = now  # a burst is told by the time until the next
         if sent:
@@ -261,10 +261,10 @@ class FastMessages:
             batch = dest.batch
             if batch is not None and (batch.session is not session or not batch.fits(item)):
                 full, batch = batch, None
-                dest.full_at = time.monotonic()  # a real burst: it filled a datagram
+                dest.full_at = self.pace()  # a real burst: it filled a datagram
             if batch is None:
                 batch = dest.batch = self._batch(session)
-                self._schedule(dest, time.monotonic() + FLUSH_AFTER)
+                self._schedule(dest, self.pace() + FLUSH_AFTER)
             batch.add(out, item)
         if full is not None and not self._send_datagram(addr, full):
             self._requeue(dest, full.outs)
@@ -304,12 +304,12 @@ class FastMessages:
             if not batch.fits(item):
                 if not self._send_datagram(dest.addr, batch):
                     self._requeue(dest, batch.outs + outs[k:])
-                    return time.monotonic() + 0.005
+                    return self.pace() + 0.005
                 batch = self._batch(session)
             batch.add(out, item)
         if batch.outs and not self._send_datagram(dest.addr, batch):
             self._requeue(dest, batch.outs)
-            return time.monotonic() + 0.005
+            return self.pace() + 0.005
         return None
 
     def _requeue(self, dest: Dest, outs: list[Outgoing]) -> None:

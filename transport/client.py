@@ -16,10 +16,11 @@ import os
 import queue
 import socket
 import sys
-import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from erni.blackboard.clock import SYSTEM
 from erni.blackboard.errors import ErniError
 from erni.blackboard.schemas import Beacon, PeerList, ResultUpdate
 from erni.transport.endpoint import CLIENT_ROLE, Address, Endpoint, team_key
@@ -71,7 +72,8 @@ class Client:
 
     def __init__(self, via: Address | None, *, discovery_port: int = 47000, identity: str | Path | None = None,
                  key_env: str = "ERNI_TEAM_KEY", insecure: bool = False, discover_seconds: float = 3.0,
-                 zenoh: ZenohSettings | None = None):
+                 zenoh: ZenohSettings | None = None, clock: Callable[[], float] = SYSTEM):
+        self.clock = clock
         path = identity or os.environ.get(IDENTITY_ENV) or None
         ident = load_identity(path) if path and not insecure else None
         key = None if ident is not None or insecure else team_key(None, key_env)
@@ -152,8 +154,8 @@ class Client:
         """Return the address to talk to: `--via`, or the agent heard in beacons (any, if None)."""
         if self.via:
             return self.via
-        deadline = time.monotonic() + self.discover_seconds
-        while time.monotonic() < deadline:
+        deadline = self.clock() + self.discover_seconds
+        while self.clock() < deadline:
             try:
                 msg = self.inbox.get(timeout=0.1)
             except queue.Empty:

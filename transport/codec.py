@@ -17,7 +17,6 @@ two to that on generated input, and pydantic stays the plugins' and the blackboa
 
 from __future__ import annotations
 
-import time
 from typing import Annotated, Any, Literal
 
 import msgspec
@@ -25,6 +24,7 @@ from msgspec import UNSET, Meta, Raw, Struct, UnsetType
 from pydantic import BaseModel
 
 from erni.blackboard import Pose
+from erni.blackboard.clock import wall
 from erni.blackboard.text import is_name
 from erni.transport.wire import TYPES, VERSION
 
@@ -147,7 +147,7 @@ def _pose_of(raw: Raw | bytes) -> Pose:
                     values[name] = f"pose:{values['robot']}"
                     continue
                 given.discard(name)
-                values[name] = time.time() if name == "stamp" else \
+                values[name] = wall() if name == "stamp" else \
                     Pose.model_fields[name].get_default(call_default_factory=True)
     if not is_name(values["robot"]):
         raise msgspec.ValidationError("robot: not a name")

@@ -41,7 +41,6 @@ import os
 import random
 import socket
 import threading
-import time
 from collections import OrderedDict, deque
 from collections.abc import Callable
 from pathlib import Path
@@ -50,6 +49,7 @@ from typing import Any
 from pydantic import BaseModel
 from pydantic_core import to_json
 
+from erni.blackboard.clock import SYSTEM
 from erni.blackboard.errors import ConfigError, NetworkError
 from erni.logs import RateLimitedLog
 from erni.transport.batching import FastMessages
@@ -154,7 +154,7 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
                  discovery_port: int | None = None, udp_loss: float = 0.0, seed: int | None = None,
                  role: str = "", inbound_filter: InboundFilter | None = None, limits: Limits | None = None,
                  revocations: str | Path | None = None, handshake_timeout: float | None = None,
-                 clock: Callable[[], float] = time.monotonic):
+                 clock: Callable[[], float] = SYSTEM, pace: Callable[[], float] = SYSTEM):
         self.auth: Auth | None
         if identity is not None:
             if identity.name != name:
@@ -170,10 +170,10 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
         else:
             raise ConfigError("no identity and no team key: give one, or run with insecure = true")
         self.name = name
-        # what expires is timed by this clock: a message's deadline, a handshake, an idle session or
-        # connection; the threads' own pace (retries, batches, waits) keeps real time. A test gives its
-        # own (erni.testing.ManualClock, usually the agent's) to move time without waiting for it
-        self.clock = clock
+        # what expires is timed by `clock`: a message's deadline, a handshake, an idle session or
+        # connection; the threads' own pace (retries, batches, waits, rate limits) by `pace`, real time.
+        # A test gives its own clock (erni.testing.ManualClock, usually the agent's) to move time at once
+        self.clock, self.pace = clock, pace
         self.identity = identity
         self.revocations = Path(revocations) if revocations else None
         self._listen = listen
@@ -206,7 +206,7 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
         self.address: Address = listen
         self.sessions = Sessions(self, self.auth, name, self.inst, self.limits, max_frame, self.handshake_timeout,
                                  identity, self.revocations, self.log)
-        self._beacon_bucket = TokenBucket(self.limits.beacons_total)
+        self._beacon_bucket = TokenBucket(self.limits.beacons_total, clock=self.pace)
         self._frame_handlers = self._handlers()
         self._clients: OrderedDict[Address, None] = OrderedDict()  # reply addresses of command-line clients heard
         # sender pool
@@ -340,9 +340,9 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
         except OSError:
             pass
         self._wake_udp()
-        deadline = time.monotonic() + timeout
+        deadline = self.pace() + timeout
         for t in self._threads:
-            t.join(max(0.0, deadline - time.monotonic()))
+            t.join(max(0.0, deadline - self.pace()))
         self._threads = []
         for dest in self._dests.values():
             close(dest.sock)
@@ -512,7 +512,7 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
     def _fault(self, channel: str, raw: bytes, src: Address | None) -> None:
         """Count a frame dropped by a fault of the frame path; log it with its traceback, rate-limited."""
         self.count("dropped.fault")
-        now = time.monotonic()
+        now = self.pace()
         if now - self._last_fault >= 5.0:
             self._last_fault = now
             self.log.exception("dropped a %s frame of %d bytes from %s: the frame path failed on it",

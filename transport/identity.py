@@ -31,6 +31,7 @@ from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
 from cryptography.x509.oid import NameOID
 
+from erni.blackboard.clock import wall
 from erni.blackboard.errors import ConfigError
 from erni.blackboard.text import NAME as NAME_PATTERN
 
@@ -353,7 +354,7 @@ class Authority:
 
     def write_crl(self, serials: set[int], number: int) -> Path:
         """Sign and write a revocation list with these serials and this number."""
-        now = datetime.datetime.now(datetime.UTC)
+        now = datetime.datetime.fromtimestamp(wall(), datetime.UTC)
         builder = (x509.CertificateRevocationListBuilder().issuer_name(self.cert.subject)
                    .last_update(now).next_update(_END).add_extension(x509.CRLNumber(number), critical=False))
         for serial in sorted(serials):

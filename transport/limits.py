@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import resource
-import time
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass
+
+from erni.blackboard.clock import SYSTEM
 
 
 @dataclass(frozen=True)
@@ -45,15 +47,16 @@ class Limits:
 class TokenBucket:
     """`rate` events per second with bursts of up to `burst`."""
 
-    def __init__(self, rate: float, burst: float | None = None):
+    def __init__(self, rate: float, burst: float | None = None, clock: Callable[[], float] = SYSTEM):
         self.rate = rate
         self.burst = burst if burst is not None else max(1.0, rate)
+        self._clock = clock  # real time: a bucket holds a flood off
         self._tokens = self.burst
-        self._at = time.monotonic()
+        self._at = clock()
 
     def take(self, now: float | None = None) -> bool:
         """Spend one token; False when none is left."""
-        now = time.monotonic() if now is None else now
+        now = self._clock() if now is None else now
         self._tokens = min(self.burst, self._tokens + (now - self._at) * self.rate)
         self._at = now
         if self._tokens >= 1.0:
@@ -65,15 +68,15 @@ class TokenBucket:
 class HostBuckets:
     """One token bucket per source host, at most `hosts` of them (the least recently used is forgotten)."""
 
-    def __init__(self, rate: float, hosts: int = 4096):
-        self.rate, self.hosts = rate, hosts
+    def __init__(self, rate: float, hosts: int = 4096, clock: Callable[[], float] = SYSTEM):
+        self.rate, self.hosts, self._clock = rate, hosts, clock
         self._buckets: OrderedDict[str, TokenBucket] = OrderedDict()
 
     def take(self, host: str, now: float | None = None) -> bool:
         """Spend one token of `host`'s bucket."""
         bucket = self._buckets.get(host)
         if bucket is None:
-            bucket = self._buckets[host] = TokenBucket(self.rate)
+            bucket = self._buckets[host] = TokenBucket(self.rate, clock=self._clock)
             if len(self._buckets) > self.hosts:
                 self._buckets.popitem(last=False)
         else:

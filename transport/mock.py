@@ -15,13 +15,13 @@ import itertools
 import os
 import random
 import threading
-import time
 from collections.abc import Callable, Iterable
 from typing import Any
 
 from pydantic import BaseModel
 
 from erni.blackboard import new_uid
+from erni.blackboard.clock import SYSTEM
 from erni.blackboard.errors import UsageError
 from erni.transport.endpoint import Address, InboundFilter
 from erni.transport.wire import Envelope, Message, SeenIds, body_of, decode_plain, encode_plain
@@ -31,12 +31,13 @@ class MockNetwork:
     """A deterministic (given `seed`) lossy network between in-memory endpoints."""
 
     def __init__(self, seed: int = 0, *, loss: float = 0.0, delay: float = 0.0, jitter: float = 0.0,
-                 duplicate: float = 0.0, retry: float = 0.02):
+                 duplicate: float = 0.0, retry: float = 0.02, clock: Callable[[], float] = SYSTEM):
         for name, p in (("loss", loss), ("duplicate", duplicate)):
             if not 0.0 <= p <= 1.0:
                 raise UsageError(f"{name}: expected a probability in 0..1, got {p}")
         self.rng = random.Random(seed)
         self.loss, self.delay, self.jitter, self.duplicate, self.retry = loss, delay, jitter, duplicate, retry
+        self.clock = clock  # real time: the network's latencies and retries
         self._endpoints: dict[Address, MockEndpoint] = {}
         self._groups: list[set[str]] | None = None
         self._heap: list[tuple[float, int, Callable[[], None]]] = []
@@ -87,7 +88,7 @@ class MockNetwork:
 
     def _later(self, delay: float, fn: Callable[[], None]) -> None:
         with self._cond:
-            heapq.heappush(self._heap, (time.monotonic() + delay, next(self._seq), fn))
+            heapq.heappush(self._heap, (self.clock() + delay, next(self._seq), fn))
             self._cond.notify()
 
     def _latency(self) -> float:
@@ -99,7 +100,7 @@ class MockNetwork:
                 while True:
                     if self._thread is None:
                         return
-                    now = time.monotonic()
+                    now = self.clock()
                     if self._heap and self._heap[0][0] <= now:
                         _, _, fn = heapq.heappop(self._heap)
                         break
@@ -121,7 +122,7 @@ class MockNetwork:
             latency = self._latency()
         if lost:
             if reliable:
-                if time.monotonic() > deadline:
+                if self.clock() > deadline:
                     src.on_undeliverable(addr, msg_id, kind, body)
                 else:
                     self._later(self.retry, lambda: self._transmit(src, addr, frame, True, deadline,
@@ -179,7 +180,7 @@ class MockEndpoint:
                        body=body.model_dump(mode="json") if isinstance(body, BaseModel) else body)
         frame = encode_plain(env)
         self.counters["sent"] = self.counters.get("sent", 0) + 1
-        self.net._transmit(self, addr, frame, reliable, time.monotonic() + (ttl or 30.0), msg_id, kind, body, hint)
+        self.net._transmit(self, addr, frame, reliable, self.net.clock() + (ttl or 30.0), msg_id, kind, body, hint)
         return msg_id
 
     def _receive(self, frame: bytes, reliable: bool, hint: bool = False) -> None:

@@ -16,7 +16,6 @@ import heapq
 import logging
 import socket
 import threading
-import time
 from collections import deque
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -114,6 +113,7 @@ class SenderPool:
 
     if TYPE_CHECKING:
         clock: Callable[[], float]
+        pace: Callable[[], float]
         _cond: threading.Condition
         _delayed: list[tuple[float, int, int, Dest]]
         _dests: dict[Address, Dest]
@@ -170,7 +170,7 @@ class SenderPool:
             with self._cond:
                 dest: Dest | None = None
                 while not self._stopping:
-                    now = time.monotonic()
+                    now = self.pace()
                     while self._delayed and self._delayed[0][0] <= now:
                         _, _, gen, d = heapq.heappop(self._delayed)
                         if gen == d.gen:
@@ -190,12 +190,12 @@ class SenderPool:
                 when = self._service(dest)
             except Exception:  # never lose a sender thread
                 self.log.exception("sender failed on %s:%s", *dest.addr)
-                when = time.monotonic() + self.retry_max
+                when = self.pace() + self.retry_max
             with self._cond:
                 dest.busy = False
                 again, dest.again = dest.again, False
                 if dest.has_work():
-                    if again or when is None or when <= time.monotonic():
+                    if again or when is None or when <= self.pace():
                         self._make_ready(dest)
                     else:
                         self._schedule(dest, when)
@@ -205,12 +205,12 @@ class SenderPool:
         with self._cond:
             batch, dest.batch = dest.batch, None
             if batch is not None and len(batch.outs) == 1:
-                now = time.monotonic()
+                now = self.pace()
                 if now - dest.full_at > SOLO_FOR:  # a "burst" of one, and no datagram filled lately
                     dest.solo_until = now + SOLO_FOR
         if batch is not None and not self._send_datagram(dest.addr, batch):
             self._requeue(dest, batch.outs)
-            return time.monotonic() + 0.005
+            return self.pace() + 0.005
         while True:  # signed announcements first: they need no session
             with self._cond:
                 out = dest.announce.popleft() if dest.announce else None
@@ -237,7 +237,7 @@ class SenderPool:
         assert self.auth is not None
         # what expires (a message's deadline, the handshake's timeout) is timed by the endpoint's clock;
         # when to send again, by real time (the same clock unless a test gave its own)
-        now, real = self.clock(), time.monotonic()
+        now, real = self.clock(), self.pace()
         while True:
             with self._cond:
                 out = dest.reliable[0] if dest.reliable else None

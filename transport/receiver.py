@@ -47,6 +47,9 @@ class ReceiverHost(Protocol):
     def clock(self) -> float:
         """Seconds on the endpoint's monotonic clock: connection timeouts and the sweeps use it."""
 
+    def pace(self) -> float:
+        """Seconds on the real monotonic clock: the receive loop's own pace."""
+
     @property
     def stopping(self) -> bool: ...
 
@@ -149,7 +152,7 @@ class Receiver:
         next_sweep = 0.0
         try:
             while not self.host.stopping:
-                real = time.monotonic()  # the loop's own pace is real time; what times out, the endpoint's clock
+                real = self.host.pace()  # the loop's own pace is real time; what times out, the endpoint's clock
                 if real >= next_sweep:
                     next_sweep = real + 0.25
                     for conn in self._sweep(conns, self.host.clock()):
@@ -166,7 +169,7 @@ class Receiver:
                     if what == "listen":
                         if not self._accept_all(sel, conns, per_host, cap):
                             sel.unregister(self.tcp)  # out of file descriptors: pause, do not spin
-                            listening, paused_until = False, time.monotonic() + 0.5
+                            listening, paused_until = False, self.host.pace() + 0.5
                     elif what == "udp":
                         self._read_datagrams(sock)  # type: ignore[arg-type]  # a registered socket
                     else:

@@ -14,7 +14,6 @@ import logging
 import os
 import socket
 import threading
-import time
 from collections import OrderedDict
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
@@ -36,6 +35,7 @@ class ReliableDelivery:
 
     if TYPE_CHECKING:
         clock: Callable[[], float]
+        pace: Callable[[], float]
         _clients: OrderedDict[Address, None]
         _cond: threading.Condition
         _dests: dict[Address, Dest]
@@ -68,7 +68,7 @@ class ReliableDelivery:
         usable, session = self._caller_session(addr, out)
         if not usable:
             return False
-        now = time.monotonic()
+        now = self.pace()
         with self._cond:
             dest = self._dests.get(addr)
             if (dest is None or dest.busy or dest.ready or dest.has_work() or dest.sock is None
@@ -99,7 +99,7 @@ class ReliableDelivery:
         """Send a batch of `dest`'s reliable messages, in order, each waiting for its acknowledgement;
         return when to come back (None: when there is new work)."""
         for _ in range(32):  # then a batch of reliable ones, in order
-            now = time.monotonic()
+            now = self.pace()
             if now < dest.next_try:
                 return dest.next_try
             if self._stopping or dest.fast:
@@ -130,7 +130,7 @@ class ReliableDelivery:
                 close(dest.sock)
                 dest.sock = None
                 dest.backoff = min(self.retry_max, max(self.retry_base, dest.backoff * 2))
-                dest.next_try = time.monotonic() + dest.backoff
+                dest.next_try = self.pace() + dest.backoff
                 self.count("retries")
                 if session is not None and self.session_with(dest.addr) is None:
                     return None  # the peer does not know the session: a new handshake, at once
@@ -158,7 +158,7 @@ class ReliableDelivery:
         if frame is None:
             return True
         try:
-            now = time.monotonic()
+            now = self.pace()
             if dest.sock is not None and now - dest.sock_used > self.limits.idle_timeout / 2:
                 close(dest.sock)  # the receiver closes idle connections: never send into one
                 dest.sock = None
@@ -170,8 +170,8 @@ class ReliableDelivery:
             dest.sock.settimeout(self.ack_timeout)
             if frame:
                 dest.sock.sendall(frame)
-            deadline = time.monotonic() + self.ack_timeout
-            while time.monotonic() < deadline:
+            deadline = self.pace() + self.ack_timeout
+            while self.pace() < deadline:
                 data = dest.sock.recv(65536)
                 if not data:
                     return False

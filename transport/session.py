@@ -31,7 +31,6 @@ import itertools
 import os
 import struct
 import threading
-import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol
@@ -44,6 +43,7 @@ from cryptography.hazmat.primitives.kdf.hkdf import HKDF
 from cryptography.x509.oid import NameOID
 from pydantic import ConfigDict, Field, ValidationError
 
+from erni.blackboard.clock import SYSTEM, monotonic
 from erni.blackboard.objects import Model
 from erni.blackboard.text import Name, NameOrEmpty
 from erni.transport.identity import Identity, IdentityError
@@ -227,7 +227,7 @@ class Session:
     """Keys, counters and the replay window of one session with one peer instance."""
 
     def __init__(self, sid: bytes, send_key: bytes, recv_key: bytes, hello: Hello, serial: int | None,
-                 initiator: bool, clock: Callable[[], float] = time.monotonic):
+                 initiator: bool, clock: Callable[[], float] = SYSTEM):
         self.sid = sid
         self._clock = clock  # the endpoint's: when the session was last used, for the idle sweep
         self._send = ChaCha20Poly1305(send_key)
@@ -309,13 +309,13 @@ class Initiation:
     digest: str
     private: X25519PrivateKey
     nonce: bytes
-    started: float = field(default_factory=time.monotonic)
+    started: float = field(default_factory=monotonic)
     attempts: int = 0
     next_try: float = 0.0
 
 
 def initiate(auth: Auth, inst: str, reply: Address, addr: Address, expect: str,
-             clock: Callable[[], float] = time.monotonic) -> Initiation:
+             clock: Callable[[], float] = SYSTEM) -> Initiation:
     """Build an 'H' frame to `addr` (expecting agent `expect`, '' when unknown)."""
     private = X25519PrivateKey.generate()
     nonce = os.urandom(16)
@@ -326,7 +326,7 @@ def initiate(auth: Auth, inst: str, reply: Address, addr: Address, expect: str,
 
 
 def respond(auth: Auth, hello: Hello, hello_frame: bytes, serial: int | None, inst: str,
-            reply: Address, clock: Callable[[], float] = time.monotonic) -> tuple[bytes, Session]:
+            reply: Address, clock: Callable[[], float] = SYSTEM) -> tuple[bytes, Session]:
     """Answer a verified 'H': return the 'R' frame and the (not yet confirmed) session."""
     private = X25519PrivateKey.generate()
     shared = _exchange(private, hello.eph)
@@ -341,7 +341,7 @@ def respond(auth: Auth, hello: Hello, hello_frame: bytes, serial: int | None, in
 
 
 def complete(auth: Auth, init: Initiation, answer: Hello, answer_frame: bytes, serial: int | None,
-             clock: Callable[[], float] = time.monotonic) -> Session:
+             clock: Callable[[], float] = SYSTEM) -> Session:
     """Finish a handshake with a verified 'R': return the confirmed session."""
     shared = _exchange(init.private, answer.eph)
     transcript = hashlib.sha256(init.frame + answer_frame).digest()

@@ -17,7 +17,6 @@ import hashlib
 import json
 import logging
 import threading
-import time
 from collections import OrderedDict
 from collections.abc import Callable
 from pathlib import Path
@@ -47,7 +46,10 @@ class SessionHost(Protocol):
     address: Address  # this endpoint's reply address, as its handshakes state it
 
     def clock(self) -> float:
-        """Seconds on the endpoint's monotonic clock (a test's own, or time.monotonic)."""
+        """Seconds on the endpoint's monotonic clock (a test's own, or the agent's)."""
+
+    def pace(self) -> float:
+        """Seconds on the real monotonic clock: rate limits hold a flood off, not a protocol step."""
 
     def count(self, name: str, n: int = 1) -> None: ...
 
@@ -90,10 +92,10 @@ class Sessions:
         self._completed: OrderedDict[str, None] = OrderedDict()
         self._instances: OrderedDict[tuple[str, str], int] = OrderedDict()
         self._last_epoch: dict[str, int] = {}
-        self._hs_hosts = HostBuckets(limits.handshakes_per_host)
-        self._hs_total = TokenBucket(limits.handshakes_total)
-        self._hint_hosts = HostBuckets(2.0)
-        self._refusal_hosts = HostBuckets(2.0)
+        self._hs_hosts = HostBuckets(limits.handshakes_per_host, clock=host.pace)
+        self._hs_total = TokenBucket(limits.handshakes_total, clock=host.pace)
+        self._hint_hosts = HostBuckets(2.0, clock=host.pace)
+        self._refusal_hosts = HostBuckets(2.0, clock=host.pace)
         self.refusals: dict[Address, str] = {}  # address -> why the agent there refused our certificate
         self._crl_mtime = 0.0
 
@@ -190,7 +192,7 @@ class Sessions:
         if known is not None:  # a retransmission: the same answer again, no new keys
             self._answer(known[0], src)
             return
-        now = time.monotonic()  # rate limits keep real time: they hold a flood off, not a protocol step
+        now = self.host.pace()  # rate limits keep real time: they hold a flood off, not a protocol step
         if not self._hs_hosts.take(src[0], now) or not self._hs_total.take(now):
             raise FrameError("rate", f"too many handshakes from {src[0]}")
         if len(self.answers) >= 4 * self.limits.max_connections:
@@ -313,7 +315,7 @@ class Sessions:
             session = self.by_sid.get(raw[KIND.size:])
             if session is None or session.addr[0] != src[0]:
                 return
-            now = time.monotonic()
+            now = self.host.pace()
             if now - session.stale < 1.0:
                 return  # at most one new handshake a second for hints, which anyone can forge
             session.stale = now

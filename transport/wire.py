@@ -22,7 +22,6 @@ import functools
 import json
 import re
 import struct
-import time
 from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -33,6 +32,7 @@ from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError,
 from pydantic_core import PydanticSerializationError, from_json, to_json
 
 from erni.blackboard import AllocationResult, NetInfo, Pose, Task
+from erni.blackboard.clock import monotonic
 from erni.blackboard.errors import ErniError, UsageError, shown
 from erni.blackboard.objects import FiniteAny, Model
 from erni.blackboard.text import Name, NameOrEmpty
@@ -124,7 +124,7 @@ class Message:
     id: str
     kind: str
     body: Any
-    received: float = field(default_factory=time.monotonic)
+    received: float = field(default_factory=monotonic)
     hint: bool = False
     ack: Callable[[], None] | None = None
     """Set on a reliable message of a kind whose acknowledgement its receiver holds back

@@ -30,7 +30,6 @@ from __future__ import annotations
 import base64
 import json
 import threading
-import time
 from typing import Any
 
 import zenoh
@@ -184,7 +183,7 @@ class ZenohEndpoint(Endpoint):
             if self.zenoh_settings.mode != "client" or self.role == CLIENT_ROLE:
                 raise
             self.log.warning("%s; trying again every %g s", err, RECONNECT)
-            self._next_open = time.monotonic() + RECONNECT
+            self._next_open = self.pace() + RECONNECT
         sweeper = threading.Thread(target=self._sweep_loop, name=f"erni-{self.name}-zenoh-sweep", daemon=True)
         sweeper.start()
         self._threads = [sweeper]
@@ -221,9 +220,9 @@ class ZenohEndpoint(Endpoint):
             self._stopping = True
             self._cond.notify_all()
         self._halt.set()
-        deadline = time.monotonic() + timeout
+        deadline = self.pace() + timeout
         for t in self._threads[:1]:  # the sweeper: it may be attaching a session
-            t.join(max(0.0, deadline - time.monotonic()))
+            t.join(max(0.0, deadline - self.pace()))
         token, self._token = self._token, None
         for entity in ([token] if token is not None else []) + list(reversed(self._declared)):
             # the token first (peers see this agent go); the subscriber's end ends the receive thread
@@ -233,7 +232,7 @@ class ZenohEndpoint(Endpoint):
                 pass
         self._declared = []
         for t in self._threads[1:] + ([self._rx] if self._rx is not None else []):
-            t.join(max(0.0, deadline - time.monotonic()))
+            t.join(max(0.0, deadline - self.pace()))
         self._threads, self._rx = [], None
         zs, self._zs = self._zs, None
         with self._pub_lock:
@@ -249,7 +248,7 @@ class ZenohEndpoint(Endpoint):
         """Forget expired handshakes and idle sessions, as the UDP wire's stream thread does; and
         open the session of a client whose routers were not reachable at start."""
         while not self._halt.wait(0.25):
-            now = time.monotonic()
+            now = self.pace()
             try:
                 if self._zs is None and now >= self._next_open:
                     self._next_open = now + RECONNECT

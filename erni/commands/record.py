@@ -98,7 +98,7 @@ def _close(recorder: Any) -> str:
 def _bags() -> Any:
     """The bag module, or None after saying on stderr that rosbags is missing."""
     try:
-        from erni.plugins.ros2 import bags
+        from erni import bags
     except ImportError as err:
         say(f"erni record: MCAP bags need rosbags (pip install 'erni[ros2]'): {err}", file=sys.stderr)
         return None

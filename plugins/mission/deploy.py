@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import time
 from collections.abc import Mapping
 from typing import TYPE_CHECKING, ClassVar, Protocol
 
@@ -37,6 +36,7 @@ from numpy.typing import NDArray
 from pydantic import JsonValue
 
 from erni.blackboard import Params, Pose, Task, TaskState
+from erni.blackboard.clock import Clock
 from erni.blackboard.tasks import GotoParams, PatrolParams, RelayParams, SpreadParams, VelocityParams, WidepParams
 from erni.plugins.mission.team import TeamView, Territory
 from erni.strategies import patrol as patrol_core
@@ -54,6 +54,9 @@ class Ops(Protocol):
 
     agent_name: str
     team: TeamView
+
+    @property
+    def clock(self) -> Clock: ...
 
     def issue(self, parent: str | None, preposition: str, params: Params) -> str: ...
     def withdraw(self, uid: str | None) -> None: ...
@@ -91,7 +94,7 @@ class Runner:
     def values(self) -> dict[str, JsonValue]:
         """Result values: the strategy's own plus the energy meter's, counted up to now (Pose
         stamps are wall-clock times)."""
-        return {**self.extra, **self.meter.values(until=time.time())}
+        return {**self.extra, **self.meter.values(until=self.ops.clock.wall())}
 
     def motion_state(self) -> TaskState | None:
         """State of the current motion sub-task (None when there is none or it is gone)."""

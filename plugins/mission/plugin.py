@@ -22,7 +22,6 @@ Local BotMotion tasks of other plugins are never touched (mixed initiative), exc
 from __future__ import annotations
 
 import math
-import time
 from collections.abc import Mapping
 from typing import TYPE_CHECKING, Literal
 
@@ -130,7 +129,7 @@ class MissionControl(Plugin[MissionSettings]):
         self.territories = self.subscribe(Territory)
         # roles: spreading counts robots only, never a control node; a peer merely heard again is no news
         self.peers = self.subscribe(Peer, ignore=("last_heard",))
-        self.team = TeamView(me, s.position_timeout)
+        self.team = TeamView(me, s.position_timeout, clock=self.clock)
         self.guard = NetGuard(me, min_quality=s.min_link_quality, articulation=s.articulation,
                               resume_after=s.resume_after, resume_quality=s.resume_quality,
                               latency=s.reading_latency, braking=s.braking, fade_distance=s.fade_distance,
@@ -240,7 +239,7 @@ class MissionControl(Plugin[MissionSettings]):
     # -- each run -----------------------------------------------------------------------
 
     def execute(self) -> None:
-        now = time.time()
+        now = self.clock.wall()  # mission times are wall-clock seconds: Pose and NetInfo stamps
         me = self.agent_name
         for peer in self.peers.added + self.peers.changed:
             if peer.role:
@@ -250,7 +249,7 @@ class MissionControl(Plugin[MissionSettings]):
             if pose.robot == me:
                 for r in self.runners.values():
                     r.pose(pose)
-        self._read_network()
+        self._read_network(now)
         for stop in self.stops.added:
             if not stop.done and not stop.params_as(StopParams).hold:
                 self._stopped(stop)
@@ -279,7 +278,7 @@ class MissionControl(Plugin[MissionSettings]):
 
     # -- network readings ----------------------------------------------------------------
 
-    def _read_network(self) -> None:
+    def _read_network(self, now: float) -> None:
         mine = set(self.watches.values())
         for info in self.infos.added + self.infos.changed:
             if info.kind == "node_position":
@@ -293,7 +292,7 @@ class MissionControl(Plugin[MissionSettings]):
                 # the guard takes the newest evidence too: a routing daemon's quality averages
                 # over many Hellos, the last few show a link going bad sooner
                 self.guard.quality({n.name: n.quality if n.recent is None else min(n.quality, n.recent)
-                                    for n in info.neighbors}, time.time())
+                                    for n in info.neighbors}, now)
 
     # -- remote tasks --------------------------------------------------------------------
 
@@ -427,7 +426,7 @@ class MissionControl(Plugin[MissionSettings]):
 
     def _halt(self, cancel: str | None, *, hold: bool, by: str | None = None) -> None:
         uid = self.issue(cancel, "stop", StopParams(hold=hold, by=by))
-        self.halts[uid] = (cancel, time.time() + self.settings.halt_timeout)
+        self.halts[uid] = (cancel, self.clock.wall() + self.settings.halt_timeout)
 
     def _stopped(self, stop: Task) -> None:
         """Somebody else stopped this robot (a BotMotion stop): end every job and deployment, so
@@ -619,7 +618,7 @@ class MissionControl(Plugin[MissionSettings]):
     def _say(self, tones: list[tuple[int, int]]) -> None:
         if self.settings.audio:
             uid = self.issue(None, "say", SayParams(tones=tones))
-            self.says[uid] = time.time() + 10.0
+            self.says[uid] = self.clock.wall() + 10.0
 
     def _housekeeping(self, now: float) -> None:
         for uid, (cancel, deadline) in list(self.halts.items()):

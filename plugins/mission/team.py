@@ -12,12 +12,12 @@ is decided on the snapshot the synchronous algorithms assume. `Territory` is the
 from __future__ import annotations
 
 import math
-import time
 from typing import TYPE_CHECKING
 
 from pydantic import Field
 
 from erni.blackboard import BBObject, NetInfo, Pose
+from erni.blackboard.clock import SYSTEM, Clock, wall
 
 if TYPE_CHECKING:
     import numpy as np
@@ -33,7 +33,7 @@ class Territory(BBObject):
     holds: list[str] = Field(default_factory=list)
     claims: dict[str, float] = Field(default_factory=dict, description="silent robot -> claim time (s)")
     beat: int = 0
-    stamp: float = Field(default_factory=time.time)
+    stamp: float = Field(default_factory=wall)
 
 
 try:  # the transport carries the heartbeat between robots when it knows the type
@@ -47,8 +47,10 @@ else:
 class TeamView:
     """Newest known (x, y, heading rad) of each robot, with the time it was learned."""
 
-    def __init__(self, me: str, timeout: float = 5.0, still_tolerance: float = 0.03) -> None:
+    def __init__(self, me: str, timeout: float = 5.0, still_tolerance: float = 0.03, *,
+                 clock: Clock = SYSTEM) -> None:
         self.me = me
+        self.clock = clock  # its wall reading is "now" for a caller that gives none (stamps are wall-clock)
         self.timeout = timeout
         self.still_tolerance = still_tolerance
         self.where: dict[str, tuple[float, float, float, float]] = {}  # name -> (x, y, theta, stamp)
@@ -86,7 +88,7 @@ class TeamView:
 
     def fresh(self, now: float | None = None) -> dict[str, tuple[float, float, float]]:
         """Positions learned within `timeout` seconds (this robot's own is always kept)."""
-        now = time.time() if now is None else now
+        now = self.clock.wall() if now is None else now
         return {n: (x, y, th) for n, (x, y, th, s) in self.where.items()
                 if n == self.me or now - s <= self.timeout}
 
@@ -122,5 +124,5 @@ class TeamView:
 
     def stale(self, names: list[str], now: float | None = None) -> list[str]:
         """The robots among `names` (this one excepted) whose position is older than `timeout`."""
-        now = time.time() if now is None else now
+        now = self.clock.wall() if now is None else now
         return [n for n in names if n != self.me and n in self.where and now - self.where[n][3] > self.timeout]

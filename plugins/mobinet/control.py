@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import ipaddress
 import math
-import time
 from collections.abc import Mapping
 from typing import Any, Literal
 
@@ -201,7 +200,7 @@ class MobiNetControl(Plugin[MobiNetSettings]):
         return SnmpSource(s.host, s.port, community=s.community, timeout=s.timeout, retries=s.retries,
                           max_repetitions=s.max_repetitions, cache_seconds=s.cache_seconds,
                           write_community=s.write_community, usm=self._usm,
-                          limits=Limits(world_bound=s.world_bound, max_hops=s.max_hops))
+                          limits=Limits(world_bound=s.world_bound, max_hops=s.max_hops), clock=self.clock)
 
     def setup(self) -> None:
         me = self.agent_name
@@ -218,7 +217,7 @@ class MobiNetControl(Plugin[MobiNetSettings]):
         self._polls: dict[str, int] = {}
         self.resource = MobiNetResource(self.make_source, self._delivered, self.log,
                                         self.settings.log_interval, name=f"mobinet-{me}",
-                                        write_interval=self.settings.write_interval)
+                                        write_interval=self.settings.write_interval, clock=self.clock)
         self._written: Position | None = None   # the last position handed to the resource
         self._unwritten: Pose | None = None     # the newest Pose seen while holding
         self._hold_until = 0.0                  # monotonic: no Pose runs us before (write_interval)
@@ -271,8 +270,8 @@ class MobiNetControl(Plugin[MobiNetSettings]):
                 if host:
                     names[host] = peer.name
             self._names = names   # replaced whole: the resource's thread reads it without a lock
-        if self._fixed is not None and time.time() - self._fixed.stamp >= 0.9:  # a fresh stamp: not stale
-            self._fixed = self._fixed.evolve(stamp=time.time())
+        if self._fixed is not None and self.clock.wall() - self._fixed.stamp >= 0.9:  # a fresh stamp: not stale
+            self._fixed = self._fixed.evolve(stamp=self.clock.wall())
             self.change(self._fixed)
         for task in self.tasks.added:
             self._start(task)
@@ -297,7 +296,7 @@ class MobiNetControl(Plugin[MobiNetSettings]):
             if latest is None or pose.stamp >= latest.stamp:
                 latest = pose
         self._unwritten = latest
-        now = time.monotonic()
+        now = self.clock()
         if now < self._hold_until:
             return
         self.poses.wakes = True
@@ -366,7 +365,7 @@ class MobiNetControl(Plugin[MobiNetSettings]):
         info = self._restored(uid, info)
         self._polls[uid] += 1
         if view is None:
-            new_info = info.evolve(degraded=True, message=error, stamp=time.time())
+            new_info = info.evolve(degraded=True, message=error, stamp=self.clock.wall())
             values = dict(task.result.values) if task.result else {}
             message = f"degraded: {error}"
         else:
@@ -393,7 +392,7 @@ class MobiNetControl(Plugin[MobiNetSettings]):
         info = self._restored(key, self._infos[key])
         self._polls[key] += 1
         if view is None:
-            new_info = info.evolve(degraded=True, message=error, stamp=time.time())
+            new_info = info.evolve(degraded=True, message=error, stamp=self.clock.wall())
         else:
             new_info = self._answer(self._standing[key], info, view)[0]
         if self._same(info, new_info):
@@ -419,7 +418,7 @@ class MobiNetControl(Plugin[MobiNetSettings]):
             more = f" and {len(dropped) - 1} more" if len(dropped) > 1 else ""
             lacking.append(f"{dropped[0]}{more}")
         fields: dict[str, Any] = {"degraded": bool(lacking), "message": "; ".join(lacking),
-                                  "stamp": time.time(), "node": view.node or self.agent_name,
+                                  "stamp": self.clock.wall(), "node": view.node or self.agent_name,
                                   "provenance": provenance}
         values: dict[str, Any] = {}
         message = f"degraded: {fields['message']}" if lacking else ""

@@ -14,12 +14,12 @@ from __future__ import annotations
 import asyncio
 import logging
 import threading
-import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Protocol, runtime_checkable
 
 from erni.blackboard import Link, Neighbor, Position, Route
+from erni.blackboard.clock import monotonic
 from erni.blackboard.errors import ErniError
 from erni.plugins.mobinet.sanity import Absurd
 
@@ -88,7 +88,7 @@ class RateLimitedLog:
     """Log a warning per key at most once per `interval` seconds, counting what was held back."""
 
     def __init__(self, log: logging.Logger, interval: float,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = monotonic) -> None:
         self.log = log
         self.interval = interval
         self.clock = clock
@@ -122,7 +122,7 @@ class MobiNetResource:
     def __init__(self, make_source: Callable[[], NetworkSource], deliver: Delivery,
                  log: logging.Logger, log_interval: float = 10.0, name: str = "mobinet",
                  retry_delay: float = 1.0, write_interval: float = 0.0, absurd_interval: float = 60.0,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = monotonic) -> None:
         self.retry_delay = retry_delay
         self.write_interval = write_interval
         self._make_source = make_source
@@ -307,10 +307,10 @@ class MobiNetResource:
             if pose is None or self._stopping:
                 continue
             self.stats["writes"] += 1
-            started = time.monotonic()
+            started = monotonic()  # the pace of real writes, slept in real time
             try:
                 await self.source.write_position(pose)
-                rest = started + self.write_interval - time.monotonic()
+                rest = started + self.write_interval - monotonic()
                 if rest > 0 and not self._stopping:  # a newer pose meanwhile waits for the interval's end
                     await asyncio.sleep(rest)
             except Exception as err:

@@ -41,12 +41,13 @@ import asyncio
 import ipaddress
 import math
 import os
-import time
 from collections.abc import Callable, Iterable
-from typing import Any
+from dataclasses import dataclass, field
+from typing import Any, NamedTuple
 
 from erni import netgraph
 from erni.blackboard import Link, Neighbor, Position, Route
+from erni.blackboard.clock import monotonic
 from erni.plugins.mobinet import ber
 from erni.plugins.mobinet.ber import Value
 from erni.plugins.mobinet.resource import (
@@ -141,6 +142,9 @@ NAMES: dict[OID, str] = {
 # one scalar per module tells whether the agent implements it
 PROBES: dict[str, OID] = {"NHDP-MIB": NHDP_UP_TIME, "OLSRv2-MIB": OLSRV2_ANSN,
                           "IP-FORWARD-MIB": INET_CIDR_ROUTE_NUMBER, "ERNI-MOBINET-MIB": ERNI_NODE_NAME}
+
+# the change counters: whether the last view stands (topology: links, routes, names; state: positions too)
+VERSIONS = (ERNI_TOPOLOGY_VERSION, ERNI_STATE_VERSION)
 
 
 def label(oid: OID) -> str:
@@ -278,242 +282,101 @@ class _Link(asyncio.DatagramProtocol):
         self.transport = None
 
 
-class SnmpSource:
-    """A `NetworkSource` speaking SNMPv2c, or SNMPv3 as `usm`, to one node's network subsystem (any
-    standard agent)."""
+class ViewStamp(NamedTuple):
+    """What a decoded view stands on: the node's name, its change counters (None: not served) and
+    the parts read."""
 
-    def __init__(self, host: str, port: int, community: str = "public", timeout: float = 0.5,
-                 retries: int = 0, max_repetitions: int = 100, cache_seconds: float = 5.0,
-                 write_community: str | None = None, modules: frozenset[str] | None = None,
-                 limits: Limits | None = None, usm: UsmUser | None = None) -> None:
-        self.host, self.port = host, port
-        self.limits = limits or Limits()
-        self.modules = modules   # the PROBES modules to use; None: every one the agent serves
-        self.community = community
-        self.write_community = write_community
-        self.timeout, self.retries = timeout, retries
-        self.max_repetitions = max_repetitions
-        self._link: _Link | None = None
-        self._v3 = V3Session(host, port, usm, timeout, retries) if usm is not None else None
-        self._request_id = int.from_bytes(os.urandom(3), "big")
-        self._rows: dict[tuple[OID, ...], int] = {}  # rows seen by the last walk of a column set
-        self.cache_seconds = cache_seconds
-        self._cache: dict[str, tuple[Any, float, Any]] = {}  # job -> (key, when, walked columns)
-        self._uptime: int | None = None  # the agent's sysUpTime in its last answer (a restart resets it)
-        self._hellos: dict[str, tuple[int, int]] = {}        # neighbour address -> HELLO baseline
-        # job -> (columns, node, names, rows, rows dropped)
-        self._decoded: dict[str, tuple[Any, str, dict[str, str], list[Any], list[Absurd]]] = {}
-        self.requests = 0
+    node: str
+    topology: int | None
+    state: int | None
+    parts: frozenset[str]
 
     @property
-    def where(self) -> str:
-        """`host:port` of the agent."""
-        return f"{self.host}:{self.port}"
+    def complete(self) -> bool:
+        """Both change counters are served: they can say whether the view stands."""
+        return self.topology is not None and self.state is not None
 
-    async def _open(self) -> _Link:
-        link = self._link
-        if link is None or link.transport is None or link.transport.is_closing():
-            loop = asyncio.get_running_loop()
-            try:
-                _, link = await loop.create_datagram_endpoint(_Link, remote_addr=(self.host, self.port))
-            except OSError as err:
-                raise SourceError(f"SNMP agent {self.where}: cannot resolve or reach: {err}") from None
-            self._link = link
-        return link
+    def stands(self, node: str, topology: int | None, state: int | None) -> bool:
+        """Whether the agent's (node name, topology version, state version) now leave a view read at
+        this stamp standing: positions follow the state version, which moves with every robot that
+        moves; the other parts (and the names of the nodes that links and routes name) the topology
+        version."""
+        return (node, topology) == (self.node, self.topology) and (POSITIONS not in self.parts
+                                                                   or state == self.state)
 
-    async def _request(self, what: str, pdu: int, varbinds: list[tuple[OID, Value]], *, write: bool = False,
-                       max_repetitions: int = 0) -> list[tuple[OID, Value]]:
-        """Send one request (again after each timeout, `retries` times) and return the answer's varbinds."""
-        if self._v3 is not None:
-            self.requests += 1
-            return self._checked(what, await self._v3.request(what, pdu, varbinds, max_repetitions))
-        link = await self._open()
-        community = self.write_community if write and self.write_community else self.community
-        self._request_id = self._request_id % 0x7FFFFFFF + 1
-        rid = self._request_id
-        message = ber.encode_request(pdu, community.encode(), rid, varbinds, 0, max_repetitions)
-        answer: asyncio.Future[ber.Response] = asyncio.get_running_loop().create_future()
-        link.waiting[rid] = answer
-        self.requests += 1
-        try:
-            for _ in range(self.retries + 1):
-                if link.transport is None:
-                    break
-                link.transport.sendto(message)
-                try:
-                    got = await asyncio.wait_for(asyncio.shield(answer), self.timeout)
-                    break
-                except TimeoutError:
-                    continue
-            else:
-                got = None
-        finally:
-            link.waiting.pop(rid, None)
-        if got is None:
-            why = f"; {link.malformed} malformed answer(s), the last: {link.last_error}" if link.malformed else ""
-            raise SourceError(f"SNMP {what} to {self.where}: no SNMP response received before timeout "
-                              f"(timeout {self.timeout:g} s, {self.retries} retr{'y' if self.retries == 1 else 'ies'})"
-                              f"{why}")
-        return self._checked(what, got)
 
-    def _checked(self, what: str, got: ber.Response) -> list[tuple[OID, Value]]:
-        """The answer's varbinds; SourceError naming the error status and the varbind it points at."""
-        if got.error_status:
-            status = (ber.ERROR_STATUS[got.error_status] if 0 <= got.error_status < len(ber.ERROR_STATUS)
-                      else f"error-status {got.error_status}")
-            where = ""
-            i = got.error_index
-            if 0 < i <= len(got.varbinds):
-                where = f" at {label(got.varbinds[i - 1][0])}"
-            v3 = "v3" if self._v3 is not None else ""
-            raise SourceError(f"SNMP{v3} {what} to {self.where}: agent answered {status}{where}")
-        return got.varbinds
+class WalkKey(NamedTuple):
+    """What a cached walk was read for: the node, the change counter its job follows, its columns."""
 
-    async def get(self, oids: Iterable[OID],
-                  optional: frozenset[OID] = frozenset()) -> dict[OID, Value]:
-        """GET scalars; a missing one raises SourceError unless it is `optional` (then absent)."""
-        oids = list(oids)
-        binds = await self._request("GET", ber.GET, [(o, _NULL) for o in oids])
-        out = {}
-        for key, val in binds:
-            if val.tag in ber.EXCEPTIONS:
-                if key in optional:
-                    continue
-                raise SourceError(f"SNMP GET to {self.where}: {label(key)} not served "
-                                  f"({val.type_name})")
-            out[key] = val
-        missing = [o for o in oids if o not in out and o not in optional]
-        if missing:  # an answer about other objects than asked: a broken or hostile agent
-            raise SourceError(f"SNMP GET to {self.where}: the answer lacks {label(missing[0])} "
-                              f"(it named {', '.join(label(k) for k in out) or 'nothing'})")
-        return out
+    node: str
+    version: int | None
+    columns: tuple[OID, ...]
 
-    async def walk(self, columns: list[OID]) -> Columns:
-        """Walk table columns together: {column: {index: value}}."""
-        result: Columns = {c: {} for c in columns}
-        cursors: dict[OID, OID] = {c: c for c in columns}
-        key_set = tuple(columns)
-        # ask for one row more than last time: steady-state walks take one round trip
-        reps = min(self.max_repetitions, self._rows.get(key_set, 8) + 1)
-        for _ in range(1000):  # bounded: a looping agent cannot hold the thread forever
-            pending = list(cursors)
-            if not pending:
-                break
-            binds = await self._request("GETBULK", ber.GET_BULK, [(cursors[c], _NULL) for c in pending],
-                                        max_repetitions=reps)
-            if not binds:
-                break
-            for n, (oid, val) in enumerate(binds):
-                col = pending[n % len(pending)]
-                if col not in cursors:
-                    continue
-                key = tuple(oid)
-                if val.tag in ber.EXCEPTIONS or key[: len(col)] != col:
-                    del cursors[col]
-                    continue
-                if key <= cursors[col]:
-                    raise SourceError(f"SNMP GETBULK to {self.where}: OID not increasing at "
-                                      f"{label(key)}")
-                result[col][key[len(col):]] = val
-                cursors[col] = key
-            reps = self.max_repetitions
-        self._rows[key_set] = max((len(v) for v in result.values()), default=0)
-        return result
 
-    # -- reading --------------------------------------------------------------------------
+@dataclass(frozen=True)
+class CachedWalk:
+    key: WalkKey
+    when: float       # the source's clock when it was walked
+    columns: Columns
 
-    async def read(self, parts: frozenset[str]) -> NetView:
-        """Read the requested parts from whichever served modules provide them."""
-        versions = [ERNI_TOPOLOGY_VERSION, ERNI_STATE_VERSION]
-        entry = self._cache.get("view")
-        if entry is not None and None not in entry[0] and entry[0][4] == parts \
-                and time.monotonic() - entry[1] < self.cache_seconds:
-            # steady state: the node's name and its change counters alone say whether the last view
-            # stands, unless the agent restarted (sysUpTime went back: its counters began anew)
-            check = [ERNI_NODE_NAME, *versions]
-            current = await self.get([*check, SYS_UP_TIME], frozenset([*check, SYS_UP_TIME]))
-            if all(oid in current for oid in check):
-                stands = (_text(ERNI_NODE_NAME, current[ERNI_NODE_NAME]),
-                          *(_int(oid, current[oid], "Counter32") for oid in versions))
-                if self._same(stands, entry[0][1:4], parts) and not self._restarted(current):
-                    return self._copy(entry[2])
-        scalars = [SYS_NAME, ERNI_NODE_NAME, ERNI_NODE_ADDRESS, OLSRV2_ORIG_ADDR_TYPE, OLSRV2_ORIG_ADDR,
-                   *PROBES.values(), *versions]
-        ident = await self.get(dict.fromkeys([*scalars, SYS_UP_TIME]), frozenset([*scalars, SYS_UP_TIME]))
-        served = {module for module, oid in PROBES.items()
-                  if oid in ident and (self.modules is None or module in self.modules)}
-        view = self._identity(ident, served)
-        topo_v, state_v = (_int(oid, ident[oid], "Counter32") if oid in ident and "ERNI-MOBINET-MIB" in served
-                           else None for oid in versions)
-        self._restarted(ident)  # after the identity, whose errors come first
-        now = time.monotonic()
-        whole = ("view", view.node, topo_v, state_v, parts)
-        entry = self._cache.get("view")
-        if (None not in whole and entry is not None and entry[0][4] == parts
-                and self._same(whole[1:4], entry[0][1:4], parts) and now - entry[1] < self.cache_seconds):
-            return self._copy(entry[2])  # nothing changed: the last decoded view stands
-        jobs = self._jobs(parts, served, view)
-        got: dict[str, Columns] = {}
-        walks: dict[str, Any] = {}
-        oldest = now  # the view is as old as the oldest walk it is made of
-        moves = self._moves(parts)
-        version_of = {job: state_v if job == POSITIONS or (job == "nodes" and moves) else topo_v for job in jobs}
-        for job, cols in jobs.items():
-            entry = self._cache.get(job)
-            key = (view.node, version_of[job], tuple(cols))
-            if (version_of[job] is not None and entry is not None and entry[0] == key
-                    and now - entry[1] < self.cache_seconds):
-                got[job] = entry[2]
-                oldest = min(oldest, entry[1])
-            else:
-                walks[job] = self.walk(cols)
-        done = await asyncio.gather(*walks.values(), return_exceptions=True)
-        for value in done:
-            if isinstance(value, BaseException):
-                if isinstance(value, SourceError):
-                    raise value
-                raise SourceError(f"SNMP agent {self.where}: {type(value).__name__}: {value}") from value
-        for job, walked in zip(walks, done):
-            got[job] = walked  # type: ignore[assignment]  # exceptions were raised above
-            self._cache[job] = ((view.node, version_of[job], tuple(jobs[job])), now, walked)
+
+@dataclass(frozen=True)
+class CachedView:
+    stamp: ViewStamp
+    when: float       # when the oldest walk it is made of was read
+    view: NetView
+
+
+@dataclass
+class WalkCache:
+    """One agent's last walk of each job and its last decoded view."""
+
+    walks: dict[str, CachedWalk] = field(default_factory=dict)
+    view: CachedView | None = None
+
+    def clear(self) -> None:
+        self.walks.clear()
+        self.view = None
+
+
+@dataclass(frozen=True)
+class _Decoded:
+    """The rows one decoding of a job's walk gave (reused while the walk and the names stand)."""
+
+    columns: Columns
+    node: str
+    names: dict[str, str]
+    rows: list[Any]
+    dropped: list[Absurd]
+
+
+class SnmpDecoder:
+    """One agent's MIB rows made a NetView: which columns give each part, and the decoding of the
+    walked rows into names, neighbours (HELLO baselines kept between readings), links, routes and
+    positions; a mistyped, malformed or implausible row is dropped and said (`view.dropped`)."""
+
+    def __init__(self, where: str, limits: Limits) -> None:
+        self.where = where
+        self.limits = limits
+        self._hellos: dict[str, tuple[int, int]] = {}        # neighbour address -> HELLO baseline
+        self._decoded: dict[str, _Decoded] = {}              # job -> its last decoding
+
+    def forget(self) -> None:
+        """Drop the decodings kept for reuse (the agent restarted)."""
+        self._decoded.clear()
+
+    def decode(self, view: NetView, parts: frozenset[str], served: set[str], got: dict[str, Columns]) -> None:
+        """Fill `view`'s requested `parts` from the columns walked for each job (`got`)."""
         by_index = self._decode_nodes(view, got.get("nodes", {}))
-        if NEIGHBORS in parts and NEIGHBORS in jobs:
+        if NEIGHBORS in parts and NEIGHBORS in got:
             self._decode_neighbors(view, got[NEIGHBORS])
-        if TOPOLOGY in parts and TOPOLOGY in jobs:
+        if TOPOLOGY in parts and TOPOLOGY in got:
             self._reuse(TOPOLOGY, got[TOPOLOGY], view, "links", self._decode_topology)
-        if ROUTES in parts and ROUTES in jobs:
+        if ROUTES in parts and ROUTES in got:
             self._reuse(ROUTES, got[ROUTES], view, "routes",
                         self._decode_routes if "OLSRv2-MIB" in served else self._decode_cidr_routes)
-        if POSITIONS in parts and POSITIONS in jobs:
+        if POSITIONS in parts and POSITIONS in got:
             self._decode_positions(view, got[POSITIONS], by_index)
-        self._cache["view"] = (whole, oldest, view)
-        return view
-
-    def _restarted(self, values: dict[OID, Value]) -> bool:
-        """Whether the agent restarted since the last answer (its sysUpTime went back); then every
-        cached walk and view is dropped, for its change counters count from zero again."""
-        value = values.get(SYS_UP_TIME)
-        if value is None:
-            return False  # not served: the change counters and the cache's age alone decide
-        up = _int(SYS_UP_TIME, value, "TimeTicks")
-        restarted = self._uptime is not None and up < self._uptime
-        self._uptime = up
-        if restarted:
-            self._cache.clear()
-            self._decoded.clear()
-        return restarted
-
-    @staticmethod
-    def _moves(parts: frozenset[str]) -> bool:
-        """Whether a read of `parts` follows erniStateVersion (positions), not only erniTopologyVersion."""
-        return POSITIONS in parts
-
-    @classmethod
-    def _same(cls, now: tuple[Any, ...], then: tuple[Any, ...], parts: frozenset[str]) -> bool:
-        """Whether (node name, topology version, state version) `now` leaves a view of `parts` read at
-        `then` standing: positions follow the state version, which moves with every robot that moves;
-        the other parts (and the names of the nodes that links and routes name) the topology version."""
-        return now[:2] == then[:2] and (not cls._moves(parts) or now[2] == then[2])
 
     def _reuse(self, job: str, cols: Columns, view: NetView, field: str,
                decode: Callable[[NetView, Columns], None]) -> None:
@@ -522,22 +385,15 @@ class SnmpSource:
         positions changes the state version on every read, and its topology of N^2 links need not be
         decoded again for that."""
         last = self._decoded.get(job)
-        if last is not None and last[0] is cols and last[1] == view.node and last[2] == view.names:
-            setattr(view, field, list(last[3]))
-            view.dropped.extend(last[4])
+        if last is not None and last.columns is cols and last.node == view.node and last.names == view.names:
+            setattr(view, field, list(last.rows))
+            view.dropped.extend(last.dropped)
             return
         decode(view, cols)
-        self._decoded[job] = (cols, view.node, dict(view.names), list(getattr(view, field)),
-                              [row for row in view.dropped if row.part == job])
+        self._decoded[job] = _Decoded(cols, view.node, dict(view.names), list(getattr(view, field)),
+                                      [row for row in view.dropped if row.part == job])
 
-    @staticmethod
-    def _copy(view: NetView) -> NetView:
-        return NetView(node=view.node, address=view.address, names=dict(view.names),
-                       neighbors=list(view.neighbors), links=list(view.links), routes=list(view.routes),
-                       positions=dict(view.positions), sources=dict(view.sources), missing=dict(view.missing),
-                       dropped=list(view.dropped))
-
-    def _identity(self, ident: dict[OID, Any], served: set[str]) -> NetView:
+    def identity(self, ident: dict[OID, Any], served: set[str]) -> NetView:
         """The node's name and address: ERNI's when served, else sysName and the OLSRv2 originator."""
         erni = "ERNI-MOBINET-MIB" in served
         if erni:
@@ -558,7 +414,7 @@ class SnmpSource:
         view.sources["node"] = f"snmp {self.where} {source}"
         return view
 
-    def _jobs(self, parts: frozenset[str], served: set[str], view: NetView) -> dict[str, list[OID]]:
+    def jobs(self, parts: frozenset[str], served: set[str], view: NetView) -> dict[str, list[OID]]:
         """The columns to walk for each part the served modules provide; the rest go to `missing`."""
         jobs: dict[str, list[OID]] = {}
         erni, nhdp, olsrv2 = "ERNI-MOBINET-MIB" in served, "NHDP-MIB" in served, "OLSRv2-MIB" in served
@@ -611,28 +467,6 @@ class SnmpSource:
                 lacks(POSITIONS, "ERNI-MOBINET-MIB")
         return jobs
 
-    async def write_position(self, position: Position) -> None:
-        """SET the node's position scalars (mm, mm, centidegrees) in one request (write community)."""
-        if not self.write_community and self._v3 is None:
-            raise SourceError(f"SNMP SET to {self.where}: no write community configured "
-                              "(MobiNet setting write_community)")
-        heading = ((position.heading + 180.0) % 360.0) - 180.0
-        values = [(ERNI_POS_X, round(position.x * 1000)), (ERNI_POS_Y, round(position.y * 1000)),
-                  (ERNI_POS_HEADING, round(heading * 100))]
-        for oid, v in values:
-            if not -(2**31) <= v < 2**31:
-                raise SourceError(f"{label(oid)}: {v} does not fit an Integer32 (position too far)")
-        await self._request("SET", ber.SET, [(o, Value(ber.INTEGER, v)) for o, v in values], write=True)
-
-    async def aclose(self) -> None:
-        """Close the socket; requests still waiting time out."""
-        if self._v3 is not None:
-            await self._v3.aclose()
-        link, self._link = self._link, None
-        if link is not None and link.transport is not None:
-            link.transport.close()
-
-    # -- decoding -------------------------------------------------------------------------
 
     def _name(self, view: NetView, address: str) -> str:
         return view.names.get(address, address)
@@ -874,6 +708,268 @@ class SnmpSource:
                 hop = self._name(view, next_hop) if next_hop else ""
             view.routes.append(Route(destination=destination, next_hop=hop, hops=1 if kind == 3 else 0,
                                      cost=float(cost)))
+
+
+class SnmpSource:
+    """A `NetworkSource` speaking SNMPv2c, or SNMPv3 as `usm`, to one node's network subsystem (any
+    standard agent)."""
+
+    def __init__(self, host: str, port: int, community: str = "public", timeout: float = 0.5,
+                 retries: int = 0, max_repetitions: int = 100, cache_seconds: float = 5.0,
+                 write_community: str | None = None, modules: frozenset[str] | None = None,
+                 limits: Limits | None = None, usm: UsmUser | None = None,
+                 clock: Callable[[], float] = monotonic) -> None:
+        self.host, self.port = host, port
+        self.clock = clock  # how old a cached walk is
+        self.limits = limits or Limits()
+        self.modules = modules   # the PROBES modules to use; None: every one the agent serves
+        self.community = community
+        self.write_community = write_community
+        self.timeout, self.retries = timeout, retries
+        self.max_repetitions = max_repetitions
+        self._link: _Link | None = None
+        self._v3 = V3Session(host, port, usm, timeout, retries) if usm is not None else None
+        self._request_id = int.from_bytes(os.urandom(3), "big")
+        self._rows: dict[tuple[OID, ...], int] = {}  # rows seen by the last walk of a column set
+        self.cache_seconds = cache_seconds
+        self._cache = WalkCache()
+        self._uptime: int | None = None  # the agent's sysUpTime in its last answer (a restart resets it)
+        self.decoder = SnmpDecoder(self.where, self.limits)
+        self.requests = 0
+
+    @property
+    def where(self) -> str:
+        """`host:port` of the agent."""
+        return f"{self.host}:{self.port}"
+
+    async def _open(self) -> _Link:
+        link = self._link
+        if link is None or link.transport is None or link.transport.is_closing():
+            loop = asyncio.get_running_loop()
+            try:
+                _, link = await loop.create_datagram_endpoint(_Link, remote_addr=(self.host, self.port))
+            except OSError as err:
+                raise SourceError(f"SNMP agent {self.where}: cannot resolve or reach: {err}") from None
+            self._link = link
+        return link
+
+    async def _request(self, what: str, pdu: int, varbinds: list[tuple[OID, Value]], *, write: bool = False,
+                       max_repetitions: int = 0) -> list[tuple[OID, Value]]:
+        """Send one request (again after each timeout, `retries` times) and return the answer's varbinds."""
+        if self._v3 is not None:
+            self.requests += 1
+            return self._checked(what, await self._v3.request(what, pdu, varbinds, max_repetitions))
+        link = await self._open()
+        community = self.write_community if write and self.write_community else self.community
+        self._request_id = self._request_id % 0x7FFFFFFF + 1
+        rid = self._request_id
+        message = ber.encode_request(pdu, community.encode(), rid, varbinds, 0, max_repetitions)
+        answer: asyncio.Future[ber.Response] = asyncio.get_running_loop().create_future()
+        link.waiting[rid] = answer
+        self.requests += 1
+        try:
+            for _ in range(self.retries + 1):
+                if link.transport is None:
+                    break
+                link.transport.sendto(message)
+                try:
+                    got = await asyncio.wait_for(asyncio.shield(answer), self.timeout)
+                    break
+                except TimeoutError:
+                    continue
+            else:
+                got = None
+        finally:
+            link.waiting.pop(rid, None)
+        if got is None:
+            why = f"; {link.malformed} malformed answer(s), the last: {link.last_error}" if link.malformed else ""
+            raise SourceError(f"SNMP {what} to {self.where}: no SNMP response received before timeout "
+                              f"(timeout {self.timeout:g} s, {self.retries} retr{'y' if self.retries == 1 else 'ies'})"
+                              f"{why}")
+        return self._checked(what, got)
+
+    def _checked(self, what: str, got: ber.Response) -> list[tuple[OID, Value]]:
+        """The answer's varbinds; SourceError naming the error status and the varbind it points at."""
+        if got.error_status:
+            status = (ber.ERROR_STATUS[got.error_status] if 0 <= got.error_status < len(ber.ERROR_STATUS)
+                      else f"error-status {got.error_status}")
+            where = ""
+            i = got.error_index
+            if 0 < i <= len(got.varbinds):
+                where = f" at {label(got.varbinds[i - 1][0])}"
+            v3 = "v3" if self._v3 is not None else ""
+            raise SourceError(f"SNMP{v3} {what} to {self.where}: agent answered {status}{where}")
+        return got.varbinds
+
+    async def get(self, oids: Iterable[OID],
+                  optional: frozenset[OID] = frozenset()) -> dict[OID, Value]:
+        """GET scalars; a missing one raises SourceError unless it is `optional` (then absent)."""
+        oids = list(oids)
+        binds = await self._request("GET", ber.GET, [(o, _NULL) for o in oids])
+        out = {}
+        for key, val in binds:
+            if val.tag in ber.EXCEPTIONS:
+                if key in optional:
+                    continue
+                raise SourceError(f"SNMP GET to {self.where}: {label(key)} not served "
+                                  f"({val.type_name})")
+            out[key] = val
+        missing = [o for o in oids if o not in out and o not in optional]
+        if missing:  # an answer about other objects than asked: a broken or hostile agent
+            raise SourceError(f"SNMP GET to {self.where}: the answer lacks {label(missing[0])} "
+                              f"(it named {', '.join(label(k) for k in out) or 'nothing'})")
+        return out
+
+    async def walk(self, columns: list[OID]) -> Columns:
+        """Walk table columns together: {column: {index: value}}."""
+        result: Columns = {c: {} for c in columns}
+        cursors: dict[OID, OID] = {c: c for c in columns}
+        key_set = tuple(columns)
+        # ask for one row more than last time: steady-state walks take one round trip
+        reps = min(self.max_repetitions, self._rows.get(key_set, 8) + 1)
+        for _ in range(1000):  # bounded: a looping agent cannot hold the thread forever
+            pending = list(cursors)
+            if not pending:
+                break
+            binds = await self._request("GETBULK", ber.GET_BULK, [(cursors[c], _NULL) for c in pending],
+                                        max_repetitions=reps)
+            if not binds:
+                break
+            for n, (oid, val) in enumerate(binds):
+                col = pending[n % len(pending)]
+                if col not in cursors:
+                    continue
+                key = tuple(oid)
+                if val.tag in ber.EXCEPTIONS or key[: len(col)] != col:
+                    del cursors[col]
+                    continue
+                if key <= cursors[col]:
+                    raise SourceError(f"SNMP GETBULK to {self.where}: OID not increasing at "
+                                      f"{label(key)}")
+                result[col][key[len(col):]] = val
+                cursors[col] = key
+            reps = self.max_repetitions
+        self._rows[key_set] = max((len(v) for v in result.values()), default=0)
+        return result
+
+    # -- reading --------------------------------------------------------------------------
+
+    async def read(self, parts: frozenset[str]) -> NetView:
+        """Read the requested parts from whichever served modules provide them."""
+        steady = await self._steady(parts)
+        if steady is not None:
+            return steady
+        scalars = [SYS_NAME, ERNI_NODE_NAME, ERNI_NODE_ADDRESS, OLSRV2_ORIG_ADDR_TYPE, OLSRV2_ORIG_ADDR,
+                   *PROBES.values(), *VERSIONS]
+        ident = await self.get(dict.fromkeys([*scalars, SYS_UP_TIME]), frozenset([*scalars, SYS_UP_TIME]))
+        served = {module for module, oid in PROBES.items()
+                  if oid in ident and (self.modules is None or module in self.modules)}
+        view = self.decoder.identity(ident, served)
+        topo_v, state_v = (_int(oid, ident[oid], "Counter32") if oid in ident and "ERNI-MOBINET-MIB" in served
+                           else None for oid in VERSIONS)
+        stamp = ViewStamp(view.node, topo_v, state_v, parts)
+        self._restarted(ident)  # after the identity, whose errors come first
+        now = self.clock()
+        last = self._cache.view
+        if (stamp.complete and last is not None and last.stamp.parts == parts
+                and last.stamp.stands(view.node, topo_v, state_v) and self._fresh(last.when, now)):
+            return self._copy(last.view)  # nothing changed: the last decoded view stands
+        got, oldest = await self._walked(self.decoder.jobs(parts, served, view), stamp, now)
+        self.decoder.decode(view, parts, served, got)
+        self._cache.view = CachedView(stamp, oldest, view)
+        return view
+
+    async def _steady(self, parts: frozenset[str]) -> NetView | None:
+        """The last view, when the node's name and its change counters alone say it stands (the steady
+        state), unless the agent restarted (sysUpTime went back: its counters began anew); else None."""
+        last = self._cache.view
+        if last is None or not last.stamp.complete or last.stamp.parts != parts \
+                or not self._fresh(last.when, self.clock()):
+            return None
+        check = [ERNI_NODE_NAME, *VERSIONS]
+        current = await self.get([*check, SYS_UP_TIME], frozenset([*check, SYS_UP_TIME]))
+        if not all(oid in current for oid in check):
+            return None
+        topo_v, state_v = (_int(oid, current[oid], "Counter32") for oid in VERSIONS)
+        if last.stamp.stands(_text(ERNI_NODE_NAME, current[ERNI_NODE_NAME]), topo_v, state_v) \
+                and not self._restarted(current):
+            return self._copy(last.view)
+        return None
+
+    def _fresh(self, when: float, now: float) -> bool:
+        """Whether something read at `when` may still be used at `now` (younger than `cache_seconds`)."""
+        return now - when < self.cache_seconds
+
+    async def _walked(self, jobs: dict[str, list[OID]], stamp: ViewStamp,
+                      now: float) -> tuple[dict[str, Columns], float]:
+        """The columns of each job: cached while its change counter and columns stand and the walk is
+        fresh, else walked now (all at once); with the time of the oldest walk among them."""
+        got: dict[str, Columns] = {}
+        walks: dict[str, WalkKey] = {}
+        oldest = now  # the view is as old as the oldest walk it is made of
+        for job, cols in jobs.items():
+            follows_state = job == POSITIONS or (job == "nodes" and POSITIONS in stamp.parts)
+            key = WalkKey(stamp.node, stamp.state if follows_state else stamp.topology, tuple(cols))
+            entry = self._cache.walks.get(job)
+            if key.version is not None and entry is not None and entry.key == key and self._fresh(entry.when, now):
+                got[job] = entry.columns
+                oldest = min(oldest, entry.when)
+            else:
+                walks[job] = key
+        done = await asyncio.gather(*(self.walk(jobs[job]) for job in walks), return_exceptions=True)
+        walked: list[Columns] = []
+        for value in done:
+            if isinstance(value, BaseException):
+                if isinstance(value, SourceError):
+                    raise value
+                raise SourceError(f"SNMP agent {self.where}: {type(value).__name__}: {value}") from value
+            walked.append(value)
+        for (job, key), columns in zip(walks.items(), walked):
+            got[job] = columns
+            self._cache.walks[job] = CachedWalk(key, now, columns)
+        return got, oldest
+
+    def _restarted(self, values: dict[OID, Value]) -> bool:
+        """Whether the agent restarted since the last answer (its sysUpTime went back); then every
+        cached walk and view is dropped, for its change counters count from zero again."""
+        value = values.get(SYS_UP_TIME)
+        if value is None:
+            return False  # not served: the change counters and the cache's age alone decide
+        up = _int(SYS_UP_TIME, value, "TimeTicks")
+        restarted = self._uptime is not None and up < self._uptime
+        self._uptime = up
+        if restarted:
+            self._cache.clear()
+            self.decoder.forget()
+        return restarted
+
+    @staticmethod
+    def _copy(view: NetView) -> NetView:
+        return NetView(node=view.node, address=view.address, names=dict(view.names),
+                       neighbors=list(view.neighbors), links=list(view.links), routes=list(view.routes),
+                       positions=dict(view.positions), sources=dict(view.sources), missing=dict(view.missing),
+                       dropped=list(view.dropped))
+
+    async def write_position(self, position: Position) -> None:
+        """SET the node's position scalars (mm, mm, centidegrees) in one request (write community)."""
+        if not self.write_community and self._v3 is None:
+            raise SourceError(f"SNMP SET to {self.where}: no write community configured "
+                              "(MobiNet setting write_community)")
+        heading = ((position.heading + 180.0) % 360.0) - 180.0
+        values = [(ERNI_POS_X, round(position.x * 1000)), (ERNI_POS_Y, round(position.y * 1000)),
+                  (ERNI_POS_HEADING, round(heading * 100))]
+        for oid, v in values:
+            if not -(2**31) <= v < 2**31:
+                raise SourceError(f"{label(oid)}: {v} does not fit an Integer32 (position too far)")
+        await self._request("SET", ber.SET, [(o, Value(ber.INTEGER, v)) for o, v in values], write=True)
+
+    async def aclose(self) -> None:
+        """Close the socket; requests still waiting time out."""
+        if self._v3 is not None:
+            await self._v3.aclose()
+        link, self._link = self._link, None
+        if link is not None and link.transport is not None:
+            link.transport.close()
 
 
 def articulation_points(links: Iterable[Link]) -> list[str]:

@@ -9,9 +9,10 @@ every `period` seconds, with how many came since the line before and in all.
 from __future__ import annotations
 
 import logging
-import time
 from collections.abc import Callable, Mapping
 from types import MappingProxyType
+
+from erni.blackboard.clock import monotonic
 
 KINDS = {
     "garbage_bytes": "bytes of garbage skipped",
@@ -28,7 +29,7 @@ class LineDamage:
     """Counters of damage per kind; `note` counts and logs rate-limited, `flush` logs what waits."""
 
     def __init__(self, label: str, log: logging.Logger, *, period: float = 10.0,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = monotonic) -> None:
         self.label, self.log, self.period, self.clock = label, log, period, clock
         self.totals: Mapping[str, int] = MappingProxyType({})  # replaced on change: readers take it as it is
         self._unlogged: dict[str, int] = {}

@@ -22,7 +22,6 @@ import socket
 import sys
 import termios
 import threading
-import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 from importlib.metadata import entry_points
@@ -30,6 +29,7 @@ from typing import Any
 
 import serial
 
+from erni.blackboard.clock import monotonic
 from erni.blackboard.errors import NetworkError
 from erni.plugins.motion import arcos
 from erni.plugins.motion.arcos import Cmd
@@ -185,7 +185,7 @@ class ArcosDriver:
                  switch_baud: bool = True, send_limits: bool = True,
                  on_sip: Callable[[RobotState], None] | None = None,
                  on_link: Callable[[bool, str], None] | None = None,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = monotonic) -> None:
         if not url or not isinstance(url, str):
             raise LinkError(f"url: expected a serial device or pyserial URL, got {url!r}")
         self.url = url

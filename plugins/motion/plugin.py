@@ -123,6 +123,8 @@ class RobotMotionControl(Plugin[MotionSettings]):
             stall_timeout=s.stall_timeout, link_grace=s.link_grace, default_timeout=s.default_timeout,
             teleport=s.teleport, latency=s.latency)
         self.resource.start()
+        # what the ROS 2 edge publishes of this robot beyond its Pose: the sonar ranges the driver reads
+        self.provide("motion.sonar", lambda: tuple(self.resource.driver.model.sonar))
 
     def execute(self) -> None:
         for task in self.tasks.added:

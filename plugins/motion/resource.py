@@ -24,13 +24,13 @@ from __future__ import annotations
 import logging
 import math
 import threading
-import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any
 
 from erni.blackboard import Task, TaskState
+from erni.blackboard.clock import monotonic
 from erni.blackboard.errors import UsageError
 from erni.blackboard.tasks import AvoidParams, StopParams
 from erni.plugins.motion.behaviours import (
@@ -105,7 +105,7 @@ class RobotMotionResource:
                  blocked_timeout: float = 10.0, stall_timeout: float = 1.0, link_grace: float = 2.0,
                  default_timeout: float | None = None, teleport: str = "auto", resend: float = 0.5,
                  latency: float | None = None, pose_keepalive: float = 1.0, idle_period: float = 1.0,
-                 progress_interval: float = 0.5, clock: Callable[[], float] = time.monotonic) -> None:
+                 progress_interval: float = 0.5, clock: Callable[[], float] = monotonic) -> None:
         if rate_hz <= 0 or pose_rate_hz <= 0:
             raise UsageError(f"rate_hz and pose_rate_hz must be > 0, got {rate_hz} and {pose_rate_hz}")
         if teleport not in ("auto", "sim", "odometry"):

@@ -20,7 +20,6 @@ import logging
 import math
 import os
 import threading
-import time
 from collections.abc import Mapping
 from dataclasses import replace
 from typing import Any
@@ -133,8 +132,8 @@ class Ros2BaseDriver(ArcosDriver):
         subscriptions); with wait=True, block until the first Odometry or raise LinkError."""
         import zenoh
 
-        from erni.plugins.ros2 import messages
-        from erni.plugins.ros2.rmw import SENSOR_QOS, RmwNode
+        from erni import ros2_messages as messages
+        from erni.ros2_rmw import SENSOR_QOS, RmwNode
 
         self._opened = True
         if self._session is None:
@@ -142,7 +141,7 @@ class Ros2BaseDriver(ArcosDriver):
             for key, value in (("mode", self.link["mode"]), ("connect/endpoints", self.link["connect"]),
                                ("scouting/multicast/enabled", False)):
                 conf.insert_json5(key, json.dumps(value))
-            self._next_open = time.monotonic() + RECONNECT
+            self._next_open = self.clock() + RECONNECT
             try:
                 self._session = zenoh.open(conf)
             except zenoh.ZError as err:  # a client whose router is not up yet: `connected` tries again
@@ -184,10 +183,10 @@ class Ros2BaseDriver(ArcosDriver):
         """True while Odometry keeps coming (one within link_timeout); else `last_error` says why. Without a
         session (the router was not reachable) it tries to open one every RECONNECT seconds."""
         if self._session is None:
-            if self._opened and time.monotonic() >= self._next_open:
+            if self._opened and self.clock() >= self._next_open:
                 self.open(wait=False)
             return False
-        if time.monotonic() - self._odom_at <= self.link_timeout:
+        if self.clock() - self._odom_at <= self.link_timeout:
             return True
         self.last_error = f"no Odometry on {self._topic('odom')} within {self.link_timeout:g} s"
         return False
@@ -199,7 +198,7 @@ class Ros2BaseDriver(ArcosDriver):
     # --- the base's topics (Zenoh's threads) -----------------------------------------------
 
     def _on_odom(self, data: bytes) -> None:
-        from erni.plugins.ros2 import messages
+        from erni import ros2_messages as messages
 
         try:
             odom = messages.deserialize(data, messages.ODOMETRY)
@@ -207,7 +206,7 @@ class Ros2BaseDriver(ArcosDriver):
             self.stats.bad_sips += 1
             self.last_error = f"bad Odometry: {err}"
             return
-        now = time.monotonic()
+        now = self.clock()
         p, t = odom.pose.pose, odom.twist.twist
         ox, oy, oth = float(p.position.x), float(p.position.y), messages.yaw(p.orientation)
         v, w = float(t.linear.x), float(t.angular.z)
@@ -240,11 +239,11 @@ class Ros2BaseDriver(ArcosDriver):
         if self.on_sip is not None:
             self.on_sip(state)
         with self._lock:  # between the stack's commands, the one standing is repeated for the base's watchdog
-            if (self._v or self._w) and time.monotonic() - self._sent_at >= KEEPALIVE:
+            if (self._v or self._w) and now - self._sent_at >= KEEPALIVE:
                 self._send()
 
     def _on_battery(self, data: bytes) -> None:
-        from erni.plugins.ros2 import messages
+        from erni import ros2_messages as messages
 
         try:
             voltage = float(messages.deserialize(data, BATTERY_STATE).voltage)
@@ -255,7 +254,7 @@ class Ros2BaseDriver(ArcosDriver):
             self._battery = round(voltage, 2)
 
     def _on_scan(self, data: bytes) -> None:
-        from erni.plugins.ros2 import messages
+        from erni import ros2_messages as messages
 
         try:
             scan = messages.deserialize(data, messages.LASER_SCAN)
@@ -277,7 +276,7 @@ class Ros2BaseDriver(ArcosDriver):
         return False
 
     def _send(self) -> bool:
-        from erni.plugins.ros2 import messages
+        from erni import ros2_messages as messages
 
         if self._cmd is None or not self.connected:
             self.stats.dropped_commands += 1
@@ -286,7 +285,7 @@ class Ros2BaseDriver(ArcosDriver):
         twist = messages.make(messages.TWIST, linear=messages.make(vec, x=self._v),
                               angular=messages.make(vec, z=math.radians(self._w)))
         self._cmd.put(messages.serialize(twist))
-        self._sent_at = time.monotonic()
+        self._sent_at = self.clock()
         self.stats.commands += 1
         return True
 

@@ -20,7 +20,6 @@ that a client that just subscribed sees a team standing still.
 from __future__ import annotations
 
 import math
-import time
 from collections import deque
 from typing import Any
 
@@ -117,7 +116,7 @@ class FoxglovePlugin(Plugin[FoxgloveSettings]):
             self._extend_trail(pose)
         for pose in self.poses.removed:
             self.trails.pop(pose.robot, None)
-        now = time.monotonic()
+        now = self.clock()
         self._pending = self._pending or changed or now - self._last >= self.settings.refresh
         if not self._pending:
             return
@@ -165,7 +164,7 @@ class FoxglovePlugin(Plugin[FoxgloveSettings]):
             Vector3,
         )
 
-        frame, now = self.settings.frame, time.time()
+        frame, now = self.settings.frame, self.clock.wall()
         stamp = Timestamp.from_epoch_secs(now)
         poses = {p.robot: p for p in self.poses}
         peers = {p.name: p for p in self.peers}

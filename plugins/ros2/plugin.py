@@ -17,19 +17,18 @@ import json
 import math
 import queue
 import threading
-import time
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
 import zenoh
 from pydantic import ConfigDict, Field, field_validator, model_validator
 
+from erni import ros2_messages as messages
 from erni.blackboard.errors import NetworkError, UsageError
 from erni.blackboard.objects import Model
 from erni.blackboard.plugin import Plugin
 from erni.blackboard.tasks import NetInfo, Pose, Task, TaskState
-from erni.plugins.ros2 import messages
-from erni.plugins.ros2.rmw import DEFAULT_QOS, QoS, Request, RmwNode
+from erni.ros2_rmw import DEFAULT_QOS, QoS, Request, RmwNode
 from erni.transport.zenoh_keys import check_endpoints
 
 NAME_CHARS = "abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_"
@@ -305,7 +304,7 @@ class ROS2Plugin(Plugin[ROS2Settings]):
         except (ValueError, KeyError, IndexError) as err:
             self.log.warning("ros2: cmd_vel for %s refused: %s", robot, err)
             return
-        now = time.monotonic()
+        now = self.clock()
         with self._lock:
             d = self._drives.setdefault(robot, _Drive())
             d.previous, d.heard, d.params = d.heard, now, params
@@ -387,7 +386,7 @@ class ROS2Plugin(Plugin[ROS2Settings]):
                 self._pending_odom[pose.robot] = pose
         if self.node is None or not self._pending_odom:
             return
-        now = time.monotonic()
+        now = self.clock()
         period = 1.0 / self.settings.odom_rate_hz
         due = []
         for robot, pose in list(self._pending_odom.items()):
@@ -435,7 +434,7 @@ class ROS2Plugin(Plugin[ROS2Settings]):
             positions.update({name: (p.x, p.y) for name, p in n.positions.items()})
         positions.update({p.robot: (p.x, p.y) for p in self.poses})
         cut = {a for n in infos for a in n.articulation_points}
-        stamp_ns = time.time_ns()
+        stamp_ns = int(self.clock.wall() * 1_000_000_000)
         self._send(messages.MARKER_ARRAY, "/erni/network",
                    messages.network_markers(list(links.values()), positions, stamp_ns, self.settings.frame, cut),
                    stamp_ns)
@@ -450,7 +449,7 @@ class ROS2Plugin(Plugin[ROS2Settings]):
         stream stops for cmd_vel_timeout. A task ended by anyone else (an ERNI stop, a failure) latches
         the stream: commands are ignored until it pauses for cmd_vel_timeout."""
         s = self.settings
-        now = time.monotonic()
+        now = self.clock()
         with self._lock:
             drives = {r: d for r, d in self._drives.items() if r in robots}
             pending: dict[str, list[tuple[dict[str, float], float | None, bytes | None]]] = {}
@@ -530,12 +529,12 @@ class ROS2Plugin(Plugin[ROS2Settings]):
             self.add(task)
             uids[name] = task.uid
         self.log.info("ros2: stop called for %s", ", ".join(targets))
-        self._stops.append(_Stop(request, uids, time.monotonic() + self.settings.stop_timeout, self._run))
+        self._stops.append(_Stop(request, uids, self.clock() + self.settings.stop_timeout, self._run))
 
     def _answer_stops(self) -> None:
         """A stop's answer: success once every robot's stop task succeeded (the robot halted); a failure as soon
         as one failed or was refused, or when one has not halted within stop_timeout."""
-        now = time.monotonic()
+        now = self.clock()
         waiting = []
         for stop in self._stops:
             failed: list[str] = []
@@ -565,7 +564,7 @@ class ROS2Plugin(Plugin[ROS2Settings]):
     def _call_send_goal(self, robot: str, request: Request) -> None:
         msg = messages.deserialize(request.payload, f"{messages.SEND_GOAL}_Request")
         goal_id = bytes(msg.goal_id.uuid)
-        now_ns = time.time_ns()
+        now_ns = int(self.clock.wall() * 1_000_000_000)
         try:
             if goal_id in self._goals:
                 raise UsageError("a goal with this id exists")
@@ -576,7 +575,7 @@ class ROS2Plugin(Plugin[ROS2Settings]):
                                                            stamp=messages.stamp(now_ns))))
             return
         heading = messages.goal_heading(msg.goal.pose) if self.settings.goal_heading else None
-        self._goals[goal_id] = _Goal(goal_id, robot, now_ns, params["x"], params["y"], time.monotonic(), self._run)
+        self._goals[goal_id] = _Goal(goal_id, robot, now_ns, params["x"], params["y"], self.clock(), self._run)
         with self._lock:
             self._drives.setdefault(robot, _Drive()).goals.append((params, heading, goal_id))
         request.reply(messages.serialize(messages.make(f"{messages.SEND_GOAL}_Response", accepted=True,
@@ -627,7 +626,7 @@ class ROS2Plugin(Plugin[ROS2Settings]):
 
     def _update_goals(self) -> None:
         """Each goal's status from its goto and turn; feedback while it runs; the result to those waiting."""
-        now = time.monotonic()
+        now = self.clock()
         changed: set[str] = set()
         for goal in self._goals.values():
             if goal.ended or goal.goto is None or goal.run == self._run:
@@ -683,7 +682,7 @@ class ROS2Plugin(Plugin[ROS2Settings]):
                    stamp_ns)
 
     def _publish_goal_status(self, robot: str) -> None:
-        stamp_ns = time.time_ns()
+        stamp_ns = int(self.clock.wall() * 1_000_000_000)
         statuses = [messages.make("action_msgs/msg/GoalStatus", status=g.status,
                                   goal_info=messages.make("action_msgs/msg/GoalInfo", goal_id=messages.uuid(g.goal_id),
                                                           stamp=messages.stamp(g.stamp_ns)))

@@ -227,7 +227,7 @@ class UIPlugin(Plugin[UISettings]):
         for peer in self.peers.changed:
             reports = self.peers.reports(peer)
             if "down" in reports:
-                self._log("error", f"{peer.name}: link lost (not heard for {time.time() - peer.last_heard:.0f} s)")
+                self._log("error", f"{peer.name}: link lost (not heard for {self.clock.wall() - peer.last_heard:.0f} s)")
             elif "up" in reports:
                 self._log("info", f"{peer.name}: link back")
             elif "restarted" in reports:
@@ -349,7 +349,7 @@ class UIPlugin(Plugin[UISettings]):
         for lk in self._links(set(names), set(names)):
             for end in (lk["a"], lk["b"]):
                 best[end] = max(best.get(end, 0.0), lk["quality"])
-        now = time.time()
+        now = self.clock.wall()
         out = {}
         for name in names:
             pose, peer, task = poses.get(name), peers.get(name), running.get(name)
@@ -372,12 +372,12 @@ class UIPlugin(Plugin[UISettings]):
 
     def _links(self, names: set[str], up: set[str]) -> list[dict[str, Any]]:
         """Links between robots from their NetInfo, best quality first; `stale` when old or an end is lost."""
-        best = best_links(self.netinfo, names, lambda end: end not in up, self.settings.netinfo_max_age, time.time())
+        best = best_links(self.netinfo, names, lambda end: end not in up, self.settings.netinfo_max_age, self.clock.wall())
         return [{"a": a, "b": b, "quality": round(q, 3), "stale": stale}
                 for (a, b), (q, stale) in sorted(best.items())]
 
     def _log(self, level: str, text: str) -> None:
-        self.logs.append({"t": time.time(), "level": level, "text": text})
+        self.logs.append({"t": self.clock.wall(), "level": level, "text": text})
         self._dirty = True
 
     # -- from the page (server thread) ------------------------------------------------------

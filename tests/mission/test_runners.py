@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from erni.blackboard import Params, Pose, Task, TaskState
+from erni.blackboard.clock import SYSTEM
 from erni.plugins.mission.deploy import RelayRunner, WidepRunner
 from erni.plugins.mission.plugin import MissionSettings
 from erni.plugins.mission.team import TeamView, Territory
@@ -26,6 +27,7 @@ class FakeOps:
 
     def __init__(self, me: str = "robot1") -> None:
         self.agent_name = me
+        self.clock = SYSTEM
         self.team = TeamView(me, timeout=5.0)
         self.issued: list[tuple[str, Params]] = []
         self.reports: list[tuple[TaskState, str]] = []

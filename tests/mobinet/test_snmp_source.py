@@ -10,7 +10,7 @@ import pytest
 from erni.blackboard import Position
 from erni.blackboard.testing import wait_until
 from erni.plugins.mobinet.resource import PARTS, NetworkSource, SourceError
-from erni.plugins.mobinet.snmp import SnmpSource, articulation_points
+from erni.plugins.mobinet.snmp import SnmpDecoder, SnmpSource, articulation_points
 from erni.sim.manet import METRIC_UNIT, ManetNetwork, RadioModel
 from erni.sim.snmp_agent import ManetSnmpAgent
 from tests.mobinet.conftest import SYS_NAME as SYS_NAME_OID
@@ -180,8 +180,8 @@ def test_a_position_report_rereads_positions_without_decoding_the_topology_again
     positions are walked again, but the topology (N^2 links in a team of N) is the same walk with the
     same names and is not decoded again; a topology change is."""
     decoded = []
-    original = SnmpSource._decode_topology
-    monkeypatch.setattr(SnmpSource, "_decode_topology",
+    original = SnmpDecoder._decode_topology
+    monkeypatch.setattr(SnmpDecoder, "_decode_topology",
                         lambda self, view, cols: (decoded.append(1), original(self, view, cols))[1])
 
     async def go():

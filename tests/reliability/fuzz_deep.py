@@ -30,16 +30,17 @@ import json
 import math
 import random
 import tempfile
-import time
 import unicodedata
 from collections import Counter
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from erni.blackboard.testing import wait_until
 from tests.reliability.fuzz_run import (
     Violation,
     as_text,
+    confirmed,
     dumps,
     mutate,
     mutated_json,
@@ -258,11 +259,11 @@ class Control:
 
     def __init__(self, status_objects: int = 64, tasks_per_requester: int = 64) -> None:
         from erni.blackboard import Task
-        from erni.transport.bridge import TransportSettings
         from erni.transport.endpoint import Endpoint
         from erni.transport.identity import load_identity
         from erni.transport.limits import Limits
         from erni.transport.policy import STATUS
+        from erni.transport.settings import TransportSettings
         from tests.transport.helpers import identity
 
         self.node = Stepped("control-fuzz")
@@ -286,14 +287,11 @@ class Control:
             _open.append(_Stop(ep))
             ep.send(self.rx.address, "beacon", None, reliable=False)
             self.peers[name] = ep
-        deadline = time.monotonic() + 20
-        for ep in self.peers.values():
-            while (s := ep.session_with(self.rx.address)) is None or not s.confirmed:
-                if time.monotonic() > deadline:
-                    raise RuntimeError("the fuzz peers did not get a session with the control node")
-                self.node.settle()
-                time.sleep(0.01)
-        time.sleep(0.1)
+        def ready() -> bool:  # both ends of every peer's session confirmed
+            self.node.settle()
+            return all(confirmed(ep, self.rx) and confirmed(self.rx, ep) for ep in self.peers.values())
+
+        wait_until(ready, timeout=20, interval=0.01, message="the fuzz peers did not get a session with the control node")
         self.node.settle()
         self.sessions = {name: ep.session_with(self.rx.address) for name, ep in self.peers.items()}
         # tasks the control node gave the robot: its results (task.result) then reach the performer's rule
@@ -337,9 +335,14 @@ class Control:
         problems += [f"{n} tasks of {sender} held (bound {task_limit})" for sender, n in tasks.items()
                      if n > task_limit]
         cap = 4 * limit * (len(self.status_types) + 1) + task_limit + 4096
-        for name in ("status_in", "status_owner", "status_base", "_resend_asked", "tasks_in", "addresses", "peers",
-                     "directory", "watchers"):
-            n = len(getattr(t, name, ()))
+        # every table the transport keeps per sender, in the collaborator that holds it (a name not found is
+        # the harness out of date, an error, never an empty table)
+        held = {"status_in": t.replication.status_in, "status_owner": t.replication.status_owner,
+                "status_base": t.replication.status_base, "_resend_asked": t.replication._resend_asked,
+                "tasks_in": t.tasking.tasks_in, "addresses": t.presence.addresses, "peers": t.presence.peers,
+                "directory": t.presence.directory, "watchers": t.watchers.watchers}
+        for name, table in held.items():
+            n = len(table)
             if n > cap:
                 problems.append(f"the transport holds {n} entries in {name} (more than {cap})")
         return problems

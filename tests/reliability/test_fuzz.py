@@ -15,7 +15,6 @@ import json
 import os
 import socket
 import threading
-import time
 from collections import Counter
 from pathlib import Path
 
@@ -25,6 +24,7 @@ from hypothesis import strategies as st
 
 from erni.blackboard import ConfigError, Task, TaskError
 from erni.blackboard.config import build_agent, parse_config
+from erni.blackboard.testing import wait_until
 from erni.plugins.motion.arcos import PacketReader, ProtocolError, is_sip, parse_sip, parse_sync2
 from erni.replay import read_log
 from erni.transport.wire import (
@@ -71,14 +71,18 @@ def receiver():
     rx.start()
     tx.start()
     tx.send(rx.address, "hello", None, reliable=True)
-    deadline = time.monotonic() + 30  # a progress bound: the session is up in milliseconds unloaded
-    while tx.session_with(rx.address) is None or not tx.session_with(rx.address).confirmed:
-        assert time.monotonic() < deadline, "no session within 30 s"
-        time.sleep(0.01)
-    time.sleep(0.2)
+    # a progress bound: the session is up in milliseconds unloaded; both ends hold it confirmed
+    wait_until(lambda: _confirmed(tx, rx) and _confirmed(rx, tx), timeout=30, interval=0.01,
+               message="no session within 30 s")
     yield rx, tx, tx.session_with(rx.address)
     tx.stop()
     rx.stop()
+
+
+def _confirmed(a, b) -> bool:
+    """Whether endpoint `a` holds a confirmed session to send to `b`."""
+    s = a.session_with(b.address)
+    return s is not None and s.confirmed
 
 
 def _frames(tx, session) -> list[bytes]:

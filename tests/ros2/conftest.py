@@ -19,7 +19,7 @@ from erni.blackboard import Agent, Pose  # noqa: E402
 from erni.blackboard.testing import wait_until  # noqa: E402
 from erni.plugins.motion import RobotMotionControl  # noqa: E402
 from erni.plugins.ros2 import ROS2Plugin  # noqa: E402
-from erni.plugins.ros2.messages import TYPESTORE  # noqa: E402
+from erni.ros2_messages import TYPESTORE  # noqa: E402
 from erni.sim.team import free_port  # noqa: E402
 from erni.testing import fake_robot  # noqa: E402
 

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 from zenoh_ros2_sdk import ROS2Publisher, ROS2Subscriber
 
-from erni.plugins.ros2 import messages
+from erni import ros2_messages as messages
 
 VEC = "geometry_msgs/msg/Vector3"
 

@@ -21,11 +21,11 @@ from rosbags.highlevel import AnyReader
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
+from erni.bags import BagRecorder, read_bag
 from erni.blackboard import NetInfo, Pose, Task
 from erni.blackboard.schemas import Peer
 from erni.blackboard.tasks import Link, Neighbor
 from erni.blackboard.testing import wait_until
-from erni.plugins.ros2.bags import BagRecorder, read_bag
 from erni.replay import FORMAT, LogError, read_log
 from erni.transport import Peer as TransportPeer
 from tests.transport.helpers import free_port, identity, make_agent, two_tasks_recorded
@@ -227,7 +227,7 @@ def test_record_a_live_team_as_mcap_then_replay_it(tmp_path: Path) -> None:
 def test_a_bag_of_the_live_topics_replays_odometry_and_task_status(tmp_path: Path) -> None:
     """A bag of the live ros2 plugin's topics, as `ros2 bag record` saves them (Odometry on
     /<robot>/odom, JSON Strings on /erni/task_status), replays its poses and tasks."""
-    from erni.plugins.ros2 import messages
+    from erni import ros2_messages as messages
 
     path = tmp_path / "tb3"
     writer = Writer(path, version=9, storage_plugin=StoragePlugin.MCAP)

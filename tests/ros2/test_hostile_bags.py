@@ -20,10 +20,10 @@ import pytest
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
+from erni import mcap_bounds
+from erni import ros2_messages as ros
+from erni.bags import read_bag
 from erni.blackboard import Pose
-from erni.plugins.ros2 import mcap_bounds
-from erni.plugins.ros2 import messages as ros
-from erni.plugins.ros2.bags import read_bag
 from erni.replay import LogError, read_log
 
 JAZZY = get_typestore(Stores.ROS2_JAZZY)
@@ -163,7 +163,7 @@ def test_a_topic_that_names_no_robot_is_skipped_and_named_escaped(tmp_path):
 
 
 def test_an_erni_status_naming_an_agent_with_escapes_is_skipped(tmp_path):
-    from erni.plugins.ros2.bags import BagRecorder
+    from erni.bags import BagRecorder
 
     out = tmp_path / "agents.mcap"
     recorder = BagRecorder(out, "127.0.0.1:1", started=1_700_000_000.0)

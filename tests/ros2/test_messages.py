@@ -8,7 +8,7 @@ from fractions import Fraction
 from hypothesis import given
 from hypothesis import strategies as st
 
-from erni.plugins.ros2.messages import stamp_ns_of
+from erni.ros2_messages import stamp_ns_of
 
 
 @given(st.floats(min_value=0.0, max_value=4e9, allow_nan=False))

@@ -166,8 +166,8 @@ def test_a_base_whose_router_comes_later_is_driven_once_it_does(definitions: Any
 def test_odometry_with_nan_or_an_infinity_is_refused_and_the_base_is_read_on() -> None:
     """An Odometry sample of a base whose driver sends NaN or an infinity (as CDR doubles carry them)
     makes no robot state: it is counted as a bad sample and named, and the next good one is read."""
+    from erni import ros2_messages as messages
     from erni.plugins.motion.ros2_base import Ros2BaseDriver
-    from erni.plugins.ros2 import messages
 
     driver = Ros2BaseDriver("ros2://tb3?battery=", name="tb3")  # not opened: fed samples by hand
 

@@ -23,9 +23,11 @@ from zenoh_ros2_sdk.entity import EndpointEntity, EntityKind, NodeEntity  # noqa
 from zenoh_ros2_sdk.keyexpr import endpoint_liveliness_keyexpr, topic_keyexpr  # noqa: E402
 from zenoh_ros2_sdk.qos import QosProfile  # noqa: E402
 
+from erni import ros2_messages as messages  # noqa: E402
+from erni import ros2_rmw as rmw  # noqa: E402
 from erni.blackboard import Agent, Pose, Task, TaskState  # noqa: E402
 from erni.blackboard.testing import wait_until  # noqa: E402
-from erni.plugins.ros2 import ROS2Settings, messages, rmw  # noqa: E402
+from erni.plugins.ros2 import ROS2Settings  # noqa: E402
 from erni.plugins.ros2 import plugin as plugin_module  # noqa: E402
 from erni.testing import find_task, post_task, run_task, wait_for_task  # noqa: E402
 

@@ -26,9 +26,10 @@ from zenoh_ros2_sdk.keyexpr import endpoint_liveliness_keyexpr  # noqa: E402
 from zenoh_ros2_sdk.qos import QosProfile  # noqa: E402
 from zenoh_ros2_sdk.utils import compute_service_type_hash  # noqa: E402
 
+from erni import ros2_messages as messages  # noqa: E402
+from erni import ros2_rmw as rmw  # noqa: E402
 from erni.blackboard import Agent, Pose, Task, TaskState  # noqa: E402
 from erni.blackboard.testing import wait_until  # noqa: E402
-from erni.plugins.ros2 import messages, rmw  # noqa: E402
 from erni.testing import fake_robot, wait_for_task  # noqa: E402
 from tests.ros2.conftest import write_definitions  # noqa: E402
 from tests.ros2.test_ros2_team import team  # noqa: E402, F401  # the fixture: agents on the Zenoh wire

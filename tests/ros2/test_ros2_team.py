@@ -15,9 +15,10 @@ pytest.importorskip("zenoh_ros2_sdk")
 
 from zenoh_ros2_sdk import ROS2Subscriber, get_topic_names_and_types  # noqa: E402
 
+from erni import ros2_messages as messages  # noqa: E402
 from erni.blackboard import Agent, Pose, Task  # noqa: E402
 from erni.blackboard.testing import wait_until  # noqa: E402
-from erni.plugins.ros2 import ROS2Plugin, messages  # noqa: E402
+from erni.plugins.ros2 import ROS2Plugin  # noqa: E402
 from erni.testing import fake_robot  # noqa: E402
 from erni.transport import Peer  # noqa: E402
 from tests.ros2.test_ros2_plugin import Teleop  # noqa: E402

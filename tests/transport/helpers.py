@@ -103,6 +103,16 @@ class HeldClock:
             fn()
 
 
+def settled(agent: Agent, plugin: str = "transport", timeout: float = 10.0) -> None:
+    """Wait until what `agent`'s `plugin` was handed with `later()` so far (the messages its endpoint
+    received) has been handled and its run committed: a marker handed after them runs in a later run
+    (or the same one), and is called after that run's commit."""
+    done = threading.Event()
+    target = agent.plugin(plugin)
+    target.later(lambda: target.after_commit(done.set))
+    assert done.wait(timeout), f"{agent.name}/{plugin} did not run within {timeout} s"
+
+
 def make_agent(name: str, discovery_port: int, *, echo: bool = True, start: bool = True,
                clock: Callable[[], float] | None = None, **settings: Any) -> Agent:
     """An agent with the transport (fast timings, its own identity) and, optionally, the echo performer.

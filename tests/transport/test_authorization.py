@@ -19,7 +19,7 @@ from erni.blackboard.schemas import Cancel, Peer, StatusRemoved, TaskQuery, Watc
 from erni.blackboard.testing import wait_until
 from erni.transport.endpoint import Endpoint
 from erni.transport.identity import load_identity
-from tests.transport.helpers import free_port, identity, make_agent, make_client
+from tests.transport.helpers import free_port, identity, make_agent, make_client, settled
 
 
 @pytest.fixture
@@ -102,7 +102,7 @@ def test_a_robot_may_not_ask_the_control_node_to_relay_a_task(team, holder):
     wait_until(lambda: any(m.kind == "task.result" and m.body.uid == forged.uid for m in mallory.inbox))
     refusal = next(m.body.result for m in mallory.inbox if m.kind == "task.result")
     assert refusal.state is TaskState.FAILED and "not authorized" in refusal.message
-    time.sleep(0.2)
+    settled(control)
     assert not control.blackboard.contains(forged.uid) and not robot1.blackboard.contains(forged.uid)
 
 

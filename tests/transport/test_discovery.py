@@ -264,8 +264,8 @@ def test_broadcast_beacons_back_off_while_the_directory_stands_and_not_when_a_pe
 
     port = free_port()
     a = make_agent("a", port)
-    time.sleep(1.0)  # alone: it keeps announcing every period (nobody has heard it yet)
-    assert a.plugin("transport").endpoint.counters.get("sent.announce", 0) >= 8
+    # alone: it keeps announcing every period (nobody has heard it yet)
+    wait_until(lambda: a.plugin("transport").endpoint.counters.get("sent.announce", 0) >= 8)
     b = make_agent("b", port)
     try:
         wait_until(lambda: peers(a).get("b") and peers(a)["b"].up)
@@ -412,8 +412,8 @@ def test_silences_are_looked_at_every_quarter_timeout_and_a_silent_peer_still_go
         wait_until(lambda: peers(a).get("b") and peers(a)["b"].up)
         bridge = a.plugin("transport")
         looked: list[float] = []
-        down_after = bridge._down_after
-        bridge._down_after = lambda name: looked.append(time.monotonic()) or down_after(name)
+        down_after = bridge.presence.down_after
+        bridge.presence.down_after = lambda name: looked.append(time.monotonic()) or down_after(name)
         t0 = time.monotonic()
         time.sleep(2.0)  # twenty beacon periods, four quarter timeouts
         wait_until(lambda: len(looked) >= 2, timeout=30)

@@ -12,7 +12,7 @@ import pytest
 from erni.blackboard import Agent, BBObject, Plugin, Task, TaskState
 from erni.blackboard.testing import wait_until
 from erni.transport import Peer
-from tests.transport.helpers import HeldClock, free_port, identity, make_agent
+from tests.transport.helpers import HeldClock, free_port, identity, make_agent, settled
 
 
 @pytest.fixture
@@ -97,7 +97,7 @@ def test_retried_message_never_executes_twice(team):
     ep.send(addr, "task.add", task, reliable=True)  # a new id, same task: still one task
     wait_until(lambda: robot.plugin("transport").endpoint.counters.get("duplicates", 0) == 2)
     wait_until(lambda: control.blackboard.get(task.uid).done)
-    time.sleep(0.2)
+    settled(robot)  # what the robot received before has been handled
     assert len(robot.query(Task)) == 1
     assert robot.plugin("motion").runs >= 1
 
@@ -322,7 +322,7 @@ def test_older_result_never_overwrites_newer(team):
     deliver(11, 0.7)
     wait_until(lambda: control.blackboard.get(task.uid).result.progress == 0.7)
     deliver(8, 0.1)
-    time.sleep(0.1)
+    settled(control)
     assert control.blackboard.get(task.uid).result.progress == 0.7
 
 
@@ -350,7 +350,7 @@ def test_a_final_state_is_the_last_word_whatever_its_number(team):
     deliver((10, "succeeded", 1.0), (11, "running", 0.95))  # in one run: the final first, a late status after
     wait_until(lambda: control.blackboard.get(task.uid).done)
     deliver((12, "running", 0.5))
-    time.sleep(0.1)
+    settled(control)
     result = control.blackboard.get(task.uid).result
     assert result.state is TaskState.SUCCEEDED and result.progress == 1.0
 
@@ -402,7 +402,8 @@ def test_a_final_result_that_brings_its_performers_first_word_is_kept(team):
     address = robot.plugin("transport").address
     bridge.later(lambda: bridge._handle(Message("robot1", "robot", address, 1, 7, "m7", "task.result", final)))
     wait_until(lambda: (sent := bridge.tasks_out.get(task.uid)) is None or sent.pending is None)  # performer found
-    time.sleep(0.3)
+    settled(control)  # that run committed, and the next looked at the task again
+    settled(control)
     result = control.blackboard.get(task.uid).result
     assert result.state is TaskState.SUCCEEDED and result.message == "arrived", result
 
@@ -530,7 +531,7 @@ def test_a_keepalive_of_a_shared_object_travels_as_its_stamp_and_a_lost_whole_on
     wait_until(lambda: sent.count("status") == 3)
     publish(stamp=104.0)  # a freshness note for a version the control node never got
     wait_until(lambda: "status.resend" in answered)
-    time.sleep(0.2)
+    settled(control)  # the run that asked for it whole has committed what it did with the note
     assert (at_control().x, at_control().stamp) == (2.0, 102.0), "a stamp is never put on a version not held"
     publish(stamp=105.0)  # asked for: whole again
     wait_until(lambda: at_control().stamp == 105.0)

@@ -1,0 +1,399 @@
+"""rosbag2 MCAP bags of a team's run, written and read with `rosbags` (no ROS 2 install needed).
+
+A bag holds what `erni record` sees, as ROS 2 Jazzy messages a lab's tools open (`ros2 bag`,
+Foxglove, PlotJuggler), on the topics and types the live ros2 plugin uses where it has them:
+
+| topic | type | what |
+|---|---|---|
+| `/<robot>/odom` | `nav_msgs/msg/Odometry` | each robot's Pose: position, heading, v and w, in frame `map` (`messages.odometry`) |
+| `/tf` | `tf2_msgs/msg/TFMessage` | `map` -> `<robot>/base_link` for each Pose |
+| `/diagnostics` | `diagnostic_msgs/msg/DiagnosticArray` | tasks and results, robots' health, network info, peers: one status each (below) |
+| `/erni/network` | `visualization_msgs/msg/MarkerArray` | the network drawn in 3D: nodes, names, links coloured by quality (`messages.network_markers`) |
+| `/erni/record` | `diagnostic_msgs/msg/DiagnosticArray` | the recording's header: who was recorded, when it started |
+
+Tasks, network and peers are diagnostics rather than JSON in a `std_msgs/msg/String`: `/diagnostics`
+is where rqt_robot_monitor and Foxglove's Diagnostics panels look by default; they list each status
+by robot (`hardware_id`) with its level as a colour (a failed task or a stalled wheel red, a
+cancelled task or a degraded network source yellow, a removed object or a lost peer stale), and
+PlotJuggler plots the numeric values (a task's progress, a link's quality, a battery) as series;
+a String shows only as text. Each status also carries the ERNI object itself as JSON under the key
+`erni`, so `erni replay` plays a bag back as exactly as its own JSON-lines logs.
+
+A bag without ERNI's statuses replays too: the poses of its `nav_msgs/msg/Odometry` on
+`/<robot>/odom` and the tasks of its `/erni/task_status` (the live plugin's topics, as `ros2 bag
+record` saves them). A topic whose `<robot>` is no robot's name (`erni.blackboard.text`) is skipped
+and named; an Odometry whose numbers are not finite is a skipped message. Before any of it is read,
+the file is held to `mcap_bounds`' bounds (a chunk's and a message's decompressed size).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+from pydantic import ValidationError
+
+from erni import mcap_bounds
+from erni import ros2_messages as ros
+from erni.blackboard import BBObject, NetInfo, Pose, Task
+from erni.blackboard.errors import ErniError, shown
+from erni.blackboard.schemas import Peer
+from erni.blackboard.tasks import AllocationResult
+from erni.blackboard.text import NAME_CHARS, is_name, printable
+from erni.replay import FORMAT, MCAP_MAGIC, Event, LogError, problem_of, read_log
+from erni.transport.wire import TYPES
+
+FRAME = "map"
+ODOMETRY = ros.ODOMETRY
+DIAGNOSTICS = ros.DIAGNOSTIC_ARRAY
+HEADER_TOPIC = "/erni/record"
+DIAGNOSTICS_TOPIC = "/diagnostics"
+MARKERS_TOPIC = "/erni/network"
+TASK_STATUS_TOPIC = "/erni/task_status"
+OK, WARN, ERROR, STALE = 0, 1, 2, 3
+_STATUS = "diagnostic_msgs/msg/DiagnosticStatus"
+_KV = "diagnostic_msgs/msg/KeyValue"
+
+
+def pose_from_odometry(robot: str, msg: Any) -> Pose:
+    """The Pose an Odometry message says (what a bag without ERNI's diagnostics gives)."""
+    stamp = msg.header.stamp.sec + msg.header.stamp.nanosec / 1e9
+    return Pose(robot=robot, x=float(msg.pose.pose.position.x), y=float(msg.pose.pose.position.y),
+                theta=ros.yaw(msg.pose.pose.orientation), v=float(msg.twist.twist.linear.x),
+                w=float(msg.twist.twist.angular.z), stamp=stamp)
+
+
+def _text(value: Any) -> str:
+    if isinstance(value, float):
+        return f"{value:.6g}"
+    if isinstance(value, str):
+        return value
+    return json.dumps(value, separators=(",", ":"))
+
+
+def _readable(op: str, obj: BBObject | None) -> tuple[int, str, str, str, dict[str, Any]]:
+    """Level, name, hardware id, message and values a diagnostics viewer shows for one object."""
+    match obj:
+        case Pose():
+            trouble = [w for w, on in (("left wheel stalled", obj.stall_left), ("right wheel stalled",
+                       obj.stall_right), ("motors off", not obj.motors_enabled), ("bumper", obj.bumpers)) if on]
+            battery = "" if obj.battery is None else f", battery {obj.battery:.1f} V"
+            return (ERROR if trouble else OK, f"erni/robot/{obj.robot}", obj.robot,
+                    "; ".join(trouble) or f"x {obj.x:.2f} y {obj.y:.2f} heading "
+                    f"{math.degrees(obj.theta):.0f} deg{battery}",
+                    {"x": obj.x, "y": obj.y, "heading_deg": math.degrees(obj.theta), "v": obj.v, "w": obj.w,
+                     "battery": obj.battery, "stall_left": obj.stall_left, "stall_right": obj.stall_right,
+                     "bumpers": obj.bumpers, "motors_enabled": obj.motors_enabled, "sonar": obj.sonar})
+        case Task():
+            result = obj.result
+            state = obj.state.value
+            level = {"failed": ERROR, "cancelled": WARN}.get(state, OK)
+            values: dict[str, Any] = {"uid": obj.uid, "state": state, "verb": obj.verb,
+                                      "preposition": obj.preposition, "source": obj.source,
+                                      "params": obj.params.model_dump(mode="json", exclude_none=True)}
+            if result is not None:
+                values |= {"progress": result.progress, "confidence": result.confidence}
+                values |= {f"value.{k}": v for k, v in result.values.items()}
+            message = state + (f": {result.message}" if result and result.message else "")
+            return level, f"erni/task/{obj.uid} {obj.describe()}", obj.destination or "", message, values
+        case NetInfo():
+            values = {f"link {link.a}-{link.b}": link.quality for link in obj.links}
+            values |= {f"neighbor {n.name}": n.quality for n in obj.neighbors}
+            values |= {f"route {r.destination}": f"via {r.next_hop}, {r.hops} hops, cost {r.cost:g}"
+                       for r in obj.routes}
+            values["articulation_points"] = " ".join(obj.articulation_points)
+            message = obj.message or (f"{len(obj.links)} links, {len(obj.neighbors)} neighbours, "
+                                      f"articulation points: {', '.join(obj.articulation_points) or 'none'}")
+            return WARN if obj.degraded else OK, f"erni/network/{obj.node}/{obj.kind}", obj.node, message, values
+        case Peer():
+            state = "up" if obj.up else "down"
+            message = state + (f" (degraded: {obj.degraded})" if obj.degraded else "")
+            return (OK if obj.up else STALE, f"erni/peer/{obj.name}", obj.name, message,
+                    {"address": obj.address, "role": obj.role, "epoch": obj.epoch, "last_heard": obj.last_heard})
+    return OK, f"erni/{type(obj).__name__}", "", op, {}
+
+
+def _validated(type_name: str, data: dict[str, Any]) -> BBObject | None:
+    cls = TYPES.get(type_name)
+    try:
+        return cls.model_validate(data) if cls is not None and issubclass(cls, BBObject) else None
+    except ValidationError:
+        return None
+
+
+def diagnostics(agent: str, op: str, type_name: str, data: dict[str, Any], when: float,
+                obj: BBObject | None = None) -> Any:
+    """One ERNI event as a DiagnosticArray, the event itself under the key `erni` of its first status
+    (`obj`: `data` already validated, if it was).
+
+    A NetInfo is the network's diagnostics as the live ros2 plugin publishes them (one status for the
+    node, one per neighbour: `messages.diagnostics`), its links and routes added to the node's status."""
+    if obj is None:
+        obj = _validated(type_name, data)
+    level, name, hardware, message, values = _readable(op, obj)
+    if op == "remove":
+        level, message = STALE, "removed"
+    pairs = [ros.make(_KV, key=k, value=_text(v)) for k, v in values.items() if v is not None]
+    pairs.append(ros.make(_KV, key="erni", value=json.dumps(
+        {"agent": agent, "op": op, "type": type_name, "data": data}, separators=(",", ":"))))
+    stamp = getattr(obj, "stamp", None) or when
+    if isinstance(obj, Task):  # when the performer said it (or the task was made)
+        stamp = obj.result.stamp if obj.result else obj.created
+    if isinstance(obj, NetInfo) and op != "remove":
+        array = ros.diagnostics(obj, ros.stamp_ns_of(stamp))
+        own = array.status[0]
+        have = {kv.key for kv in own.values}
+        own.values = own.values + [kv for kv in pairs if kv.key not in have]
+        return array
+    status = ros.make(_STATUS, level=level, name=name, message=message, hardware_id=hardware, values=pairs)
+    return ros.make(DIAGNOSTICS, header=ros.header(ros.stamp_ns_of(stamp), ""), status=[status])
+
+
+class BagRecorder:
+    """Write events into a rosbag2 MCAP file as they arrive (the interface of erni.replay.Recorder).
+
+    The bag is written in a directory beside `path` and its one MCAP file moved to `path` on close:
+    the file holds rosbag2's metadata itself, so `ros2 bag info`, Foxglove and `rosbags` open it alone.
+    """
+
+    def __init__(self, path: str | Path, via: str, started: float | None = None):
+        from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer, WriterError
+
+        self.path = Path(path)
+        self.count = 0
+        self.started = time.time() if started is None else started
+        self._clock = time.monotonic()
+        self._poses: dict[str, Pose] = {}
+        try:
+            self._tmp = Path(tempfile.mkdtemp(prefix=f".{self.path.name}.", dir=self.path.parent))
+        except OSError as err:
+            raise LogError(f"{self.path}: cannot write: {err.strerror or err}") from None
+        self._writer = Writer(self._tmp / "bag", version=9, storage_plugin=StoragePlugin.MCAP)
+        # zstd chunks, as ros2 bag's MCAP storage writes by default: a fifth of the size
+        self._writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
+        try:
+            self._writer.open()
+        except (WriterError, OSError) as err:
+            shutil.rmtree(self._tmp, ignore_errors=True)
+            raise LogError(f"{self.path}: cannot write: {err}") from None
+        self._connections: dict[str, Any] = {}
+        header = {"erni_record": FORMAT, "via": via, "started": self.started}
+        status = ros.make(_STATUS, level=OK, name="erni/record", message=via,
+                          values=[ros.make(_KV, key="erni", value=json.dumps(header))])
+        stamp_ns = ros.stamp_ns_of(self.started)
+        self._put(HEADER_TOPIC, ros.make(DIAGNOSTICS, header=ros.header(stamp_ns, ""), status=[status]), stamp_ns)
+
+    def _put(self, topic: str, msg: Any, stamp_ns: int) -> None:
+        conn = self._connections.get(topic)
+        if conn is None:
+            conn = self._connections[topic] = self._writer.add_connection(topic, msg.__msgtype__,
+                                                                          typestore=ros.TYPESTORE)
+        self._writer.write(conn, stamp_ns, ros.serialize(msg))
+
+    def write(self, agent: str, op: str, type_name: str, data: dict[str, Any], t: float | None = None) -> None:
+        """Record one change at `t` seconds since the recording started (now when None)."""
+        if t is None:
+            t = time.monotonic() - self._clock
+        self.write_object(agent, op, type_name, data, _validated(type_name, data), t)
+
+    def write_object(self, agent: str, op: str, type_name: str, data: dict[str, Any], obj: BBObject | None,
+                     t: float) -> None:
+        """Record one change whose `data` is `obj` (None: not a valid object of `type_name`)."""
+        when = ros.stamp_ns_of(self.started + t)
+        drawn = obj if op != "remove" else None  # a removed Pose or NetInfo draws nothing
+        if isinstance(obj, Pose) and drawn is None:
+            self._poses.pop(obj.robot, None)
+        if isinstance(drawn, Pose):
+            self._poses[drawn.robot] = drawn
+            stamp = ros.stamp_ns_of(drawn.stamp)
+            self._put(f"/{drawn.robot}/odom", ros.odometry(drawn, stamp, FRAME), when)
+            self._put("/tf", ros.tf_message([drawn], stamp, FRAME), when)
+        self._put(DIAGNOSTICS_TOPIC, diagnostics(agent, op, type_name, data, when / 1e9, obj), when)
+        if isinstance(drawn, NetInfo):
+            places = {name: (p.x, p.y) for name, p in self._poses.items()}
+            places |= {name: (p.x, p.y) for name, p in drawn.positions.items()}
+            self._put(MARKERS_TOPIC, ros.network_markers(drawn.links, places, ros.stamp_ns_of(drawn.stamp), FRAME,
+                                                         drawn.articulation_points), when)
+        self.count += 1
+
+    def close(self) -> None:
+        """Finish the bag and move its MCAP file to the path asked for."""
+        try:
+            self._writer.close()
+            os.replace(self._tmp / "bag" / "bag.mcap", self.path)
+        except OSError as err:
+            raise LogError(f"{self.path}: cannot write: {err.strerror or err}") from None
+        finally:
+            shutil.rmtree(self._tmp, ignore_errors=True)
+
+
+def convert(log: str | Path, out: str | Path) -> tuple[int, list[str]]:
+    """Write an ERNI JSON-lines log as an MCAP bag; return the number of events and the lines skipped."""
+    header, events, problems = read_log(log)
+    started = header.get("started")
+    if isinstance(started, bool) or not isinstance(started, (int, float)) or not math.isfinite(started):
+        started = None
+    recorder = BagRecorder(out, str(header.get("via", "")), started)
+    try:
+        for event in events:
+            recorder.write_object(event.agent, event.op, type(event.obj).__name__,
+                                  event.obj.model_dump(mode="json"), event.obj, event.t)
+    finally:
+        recorder.close()
+    return recorder.count, problems
+
+
+def read_bag(path: str | Path, max_chunk: int = mcap_bounds.MAX_CHUNK,
+             max_message: int = mcap_bounds.MAX_MESSAGE) -> tuple[dict[str, Any], list[Event], list[str]]:
+    """Return a bag's header, its ERNI events and one problem line per message that could not be read.
+
+    Poses come from `/erni/robots` when the bag has it (every field), else from the Odometry on
+    `/<robot>/odom` (position, heading, velocities and stamp), so bags from other tools replay too.
+    A bag beyond `max_chunk` or `max_message` (`mcap_bounds`) is refused whole (LogError).
+    """
+    from rosbags.rosbag2 import Reader
+
+    path = Path(path)
+    if not path.exists():
+        raise LogError(f"{path}: no such file")
+    if path.is_dir() and not (path / "metadata.yaml").exists():
+        raise LogError(f"{path}: a directory without metadata.yaml; expected an MCAP file or a rosbag2 directory")
+    link_dir: str | None = None
+    if path.is_file():
+        try:
+            with path.open("rb") as f:
+                magic = f.read(len(MCAP_MAGIC))
+        except OSError as err:
+            raise LogError(f"{path}: cannot read: {err.strerror or err}") from None
+        if magic != MCAP_MAGIC:
+            raise LogError(f"{path}: not an MCAP file (it does not start with MCAP's magic bytes)")
+        if path.suffix != ".mcap":  # rosbags picks its reader by the name
+            link_dir = tempfile.mkdtemp(prefix="erni-bag-")
+            os.symlink(path.resolve(), Path(link_dir) / "bag.mcap")
+    try:
+        for one in sorted(path.glob("*.mcap")) if path.is_dir() else [path]:
+            mcap_bounds.check(one, max_chunk, max_message)
+        with Reader(Path(link_dir) / "bag.mcap" if link_dir else path) as reader:
+            return _events(path, reader)
+    except mcap_bounds.BagBoundError as err:
+        raise LogError(str(err)) from None
+    except LogError:
+        raise
+    except Exception as err:  # rosbags raises its own errors, struct and index errors on damaged files
+        raise LogError(f"{path}: cannot read the bag: {str(err).splitlines()[0] if str(err) else type(err).__name__}"
+                       ) from None
+    finally:
+        if link_dir:
+            shutil.rmtree(link_dir, ignore_errors=True)
+
+
+def _events(path: Path, reader: Any) -> tuple[dict[str, Any], list[Event], list[str]]:
+    topics = {c.topic: c.msgtype for c in reader.connections}
+    problems: list[str] = []
+    connections = _erni_connections(path, reader.connections, HEADER_TOPIC in topics, problems)
+
+    def nothing() -> LogError:
+        found = ", ".join(f"{printable(t)} ({printable(m)})" for t, m in sorted(topics.items())) or "no topics"
+        return LogError(f"{path}: no ERNI topics (expected ERNI's statuses on {DIAGNOSTICS_TOPIC}, {ODOMETRY} on "
+                        f"/<robot>/odom or {TASK_STATUS_TOPIC}); it has {found}")
+
+    if not connections:
+        raise nothing()
+    header: dict[str, Any] = {}
+    raw: list[tuple[int, str, str, BBObject]] = []
+    for conn, stamp, data in reader.messages(connections=connections):
+        try:
+            _message(conn, stamp, data, raw, header)
+        except (ErniError, ValueError, KeyError, TypeError, AttributeError, RecursionError) as err:
+            problems.append(f"{path}: {conn.topic} at {stamp / 1e9:.3f}: {problem_of(err)}")
+    if not raw and not header and not problems:
+        raise nothing()
+    start = _start(reader.start_time, header, raw)
+    header.setdefault("erni_record", FORMAT)
+    header.setdefault("via", str(path))
+    events = [Event(max(0.0, (s - start) / 1e9), agent, op, obj) for s, agent, op, obj in raw]
+    events.sort(key=lambda e: e.t)
+    return header, events, problems
+
+
+def _erni_connections(path: Path, connections: list[Any], erni_bag: bool, problems: list[str]) -> list[Any]:
+    """The connections whose messages are ERNI's: its statuses, and (in a bag not written by ERNI, whose
+    poses are in its statuses with every field) the robots' odometry and the live plugin's task status.
+    An odometry topic that names no robot is skipped, and named in `problems`."""
+    odom = [c for c in connections if c.msgtype == ODOMETRY and c.topic.endswith("/odom")
+            and c.topic.count("/") == 2 and not erni_bag]
+    for conn in [c for c in odom if not is_name(c.topic.split("/")[1])]:  # /r\x1b[2J/odom names no robot
+        odom.remove(conn)
+        problems.append(f"{path}: topic {shown(conn.topic)}: skipped; a robot's topic is /<robot>/odom with the "
+                        f"robot's name of {NAME_CHARS}")
+    diag = [c for c in connections if c.msgtype == DIAGNOSTICS]
+    status = [c for c in connections if c.topic == TASK_STATUS_TOPIC and c.msgtype == ros.STRING
+              and not erni_bag]
+    return odom + diag + status
+
+
+def _message(conn: Any, stamp: int, data: bytes, raw: list[tuple[int, str, str, BBObject]],
+             header: dict[str, Any]) -> None:
+    """Decode one message into `raw`'s events, or into `header` when it is the recording's header."""
+    msg = ros.deserialize(data, conn.msgtype)
+    if conn.msgtype == ODOMETRY:
+        robot = conn.topic.split("/")[1]
+        raw.append((stamp, robot, "change", pose_from_odometry(robot, msg)))
+        return
+    if conn.topic == TASK_STATUS_TOPIC:
+        raw.append((stamp, "", "change", task_from_status(msg.data)))
+        return
+    for one in msg.status:
+        event = next((json.loads(kv.value) for kv in one.values if kv.key == "erni"), None)
+        if event is None:
+            continue
+        if conn.topic == HEADER_TOPIC:
+            header.clear()
+            header.update(event if isinstance(event, dict) else {})
+            continue
+        raw.append(_event(stamp, event))
+
+
+def _start(bag_start: int, header: dict[str, Any], raw: list[tuple[int, str, str, BBObject]]) -> int:
+    """When the recording started (ns): the header's statement when it is a finite number and earlier than
+    the first event, else the first event's stamp (the bag's start without events); the header says so."""
+    start = bag_start if not raw else min(s for s, *_ in raw)
+    started = header.get("started")
+    if isinstance(started, (int, float)) and not isinstance(started, bool) and math.isfinite(started):
+        return min(start, int(started * 1e9))
+    header["started"] = start / 1e9
+    return start
+
+
+def task_from_status(text: str) -> Task:
+    """The Task a `/erni/task_status` String of the live plugin describes (`messages.task_status`)."""
+    body = json.loads(text)
+    if not isinstance(body, dict):
+        raise LogError(f"expected a JSON object, got {type(body).__name__}")
+    result = AllocationResult(state=body.get("state", "pending"), progress=body.get("progress", 0.0),
+                              message=body.get("message", ""), values=body.get("values") or {},
+                              stamp=body.get("stamp", 0.0))
+    return Task(uid=body["uid"], verb=body["verb"], preposition=body["preposition"], params=body.get("params") or {},
+                source=body.get("source") or "", destination=body.get("destination"), result=result,
+                created=result.stamp)  # the status does not say when the task was made
+
+
+def _event(stamp: int, event: Any) -> tuple[int, str, str, BBObject]:
+    if not isinstance(event, dict):
+        raise LogError(f"expected a JSON object under 'erni', got {type(event).__name__}")
+    kind = event.get("type")
+    cls = TYPES.get(kind) if isinstance(kind, str) else None
+    if cls is None or not issubclass(cls, BBObject):
+        raise LogError(f"unknown object type {str(kind)[:60]!r}")
+    if event.get("op") not in ("add", "change", "remove"):
+        raise LogError(f"unknown op {str(event.get('op'))[:60]!r}")
+    agent = event.get("agent", "")
+    if agent != "" and not is_name(agent):
+        raise LogError(f"agent {shown(agent)}: expected a name of {NAME_CHARS}")
+    return stamp, agent, str(event["op"]), cls.model_validate(event.get("data"))
