@@ -355,22 +355,7 @@ def _draw(fig: Any, summary: dict[tuple[str, str], dict[str, tuple[float, float,
               "WiDep": "WiDep (guard off)", "straight goto": "straight goto to the PoI (guard off)"}
     for col, (key, title, top) in enumerate(panels):
         ax = fig.add_subplot(gs[0, col])
-        drawn: set[str] = set()
-        for i, mi in enumerate(missions):
-            for j, arm in enumerate(COMPARISONS[mi].arms):
-                x = i + (j - 0.5) * 0.36
-                m, lo, hi = summary[(mi, arm.label)][key]
-                err = [[max(0.0, m - lo) if math.isfinite(lo) else 0.0], [max(0.0, hi - m) if math.isfinite(hi) else 0.0]]
-                ax.bar([x], [m if math.isfinite(m) else 0.0], width=0.34, color=color(labels.index(arm.label)),
-                       alpha=0.75, yerr=err, capsize=4,
-                       label=None if arm.label in drawn else legend.get(arm.label, arm.label))
-                drawn.add(arm.label)
-                if key != "pooled":
-                    runs = [o for o in outcomes if o.mission == mi and o.arm == arm.label]
-                    vals = [o.connected for o in runs] if key == "connected" else \
-                        [float(np.mean(o.times)) for o in runs if o.times]
-                    ax.scatter(np.full(len(vals), x) + np.linspace(-0.1, 0.1, len(vals)), vals, s=8,
-                               color="black", alpha=0.6, zorder=3)
+        _draw_bars(ax, key, summary, missions, outcomes, labels, legend)
         ax.set_xticks(range(len(missions)), [m if COMPARISONS[m].kind == "guard" else f"{m}\n(two algorithms)"
                                              for m in missions])
         ax.set_title(title, fontsize=11)
@@ -386,3 +371,25 @@ def _draw(fig: Any, summary: dict[tuple[str, str], dict[str, tuple[float, float,
                  "(bars: mean, whiskers: 95 % CI, dots: runs)\n"
                  "WiDep is no arm pair of the guard (the guard holds remote motion jobs only, never a deployment's "
                  f"moves){widep}", fontsize=10.5)
+
+
+def _draw_bars(ax: Any, key: str, summary: dict[tuple[str, str], dict[str, tuple[float, float, float]]],
+               missions: list[str], outcomes: list[Outcome], labels: list[str], legend: dict[str, str]) -> None:
+    """One panel's bars: each arm of each mission, its mean and 95 % interval of `key`, and (but for the
+    pooled share) a dot per run."""
+    drawn: set[str] = set()
+    for i, mi in enumerate(missions):
+        for j, arm in enumerate(COMPARISONS[mi].arms):
+            x = i + (j - 0.5) * 0.36
+            m, lo, hi = summary[(mi, arm.label)][key]
+            err = [[max(0.0, m - lo) if math.isfinite(lo) else 0.0], [max(0.0, hi - m) if math.isfinite(hi) else 0.0]]
+            ax.bar([x], [m if math.isfinite(m) else 0.0], width=0.34, color=color(labels.index(arm.label)),
+                   alpha=0.75, yerr=err, capsize=4,
+                   label=None if arm.label in drawn else legend.get(arm.label, arm.label))
+            drawn.add(arm.label)
+            if key != "pooled":
+                runs = [o for o in outcomes if o.mission == mi and o.arm == arm.label]
+                vals = [o.connected for o in runs] if key == "connected" else \
+                    [float(np.mean(o.times)) for o in runs if o.times]
+                ax.scatter(np.full(len(vals), x) + np.linspace(-0.1, 0.1, len(vals)), vals, s=8,
+                           color="black", alpha=0.6, zorder=3)
