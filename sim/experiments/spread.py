@@ -232,15 +232,20 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode:
                         _kinematic(scenario, progress, v, label))
         over_seeds.append(runs)
     scenario, runs = (_agent_team(base) if mode == "agents" else base), over_seeds[0]
-    sweep: list[tuple[float, Run]] = []
-    if mode == "kinematic":
-        ranges = [float(r) for r in scenario.strategy.get("range_sweep", [])]
-        for k, (r, v) in enumerate((r, v) for r in ranges for v in ("holonomic/physical", "nonholonomic/physical")):
-            data = scenario.model_dump()
-            data["strategy"] = {**scenario.strategy, "range": r}
-            sweep.append((r, _kinematic(type(scenario).model_validate(data), progress, v,
-                                        f"{v}, range {r:g} m ({k + 1}/{2 * len(ranges)})")))
+    sweep = _range_sweep(scenario, progress) if mode == "kinematic" else []
     return _result(scenario, experiment, mode, runs, sweep, over_seeds if seeds > 1 else None)
+
+
+def _range_sweep(scenario: Scenario, progress: Progress) -> list[tuple[float, Run]]:
+    """The physical variants run again at each neighbourhood range R of `strategy.range_sweep`."""
+    sweep: list[tuple[float, Run]] = []
+    ranges = [float(r) for r in scenario.strategy.get("range_sweep", [])]
+    for k, (r, v) in enumerate((r, v) for r in ranges for v in ("holonomic/physical", "nonholonomic/physical")):
+        data = scenario.model_dump()
+        data["strategy"] = {**scenario.strategy, "range": r}
+        sweep.append((r, _kinematic(type(scenario).model_validate(data), progress, v,
+                                    f"{v}, range {r:g} m ({k + 1}/{2 * len(ranges)})")))
+    return sweep
 
 
 def _agent_team(scenario: Scenario) -> Scenario:
