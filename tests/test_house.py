@@ -164,3 +164,12 @@ def test_functions_stay_within_the_complexity_bounds() -> None:
 
 def test_tests_wait_for_conditions_rather_than_sleep() -> None:
     _ratchet(_sleeps(), SLEEPS_ALLOWED, TARGET_SLEEPS, "time.sleep calls in tests")
+
+
+def test_no_runtime_code_writes_pydantic_s_private_slots() -> None:
+    """A model is made through pydantic's API (`model_construct` for values already checked, as
+    `BBObject.trusted` does), never by setting its slots behind its back."""
+    slots = re.compile(r"__pydantic_(fields_set|extra|private)__|object\.__setattr__")
+    found = [f"{p.relative_to(ROOT)}:{i}" for p in _agent_files()
+             for i, line in enumerate(p.read_text().splitlines(), 1) if slots.search(line)]
+    assert not found, f"writes to pydantic's slots: {found}"
