@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 import signal
 import sqlite3
 import subprocess
@@ -153,6 +154,9 @@ def test_an_empty_journal_file_is_not_taken_for_a_new_one(tmp_path):
     assert fresh.stat().st_size > 0
 
 
+FLOOD_UID = re.compile(r"(\w{6})-(\d{8})")  # tests.core.crashy:Flood's tasks: its run's prefix, a number
+
+
 def test_kill_9_mid_write_never_corrupts_the_journal(tmp_path):
     path = tmp_path / "flood.sqlite"
     config = tmp_path / "flood.toml"
@@ -163,14 +167,27 @@ journal = "{path}"
 [[plugin]]
 class = "tests.core.crashy:Flood"
 """)
+    before: set[str] = set()  # the Flood's uid prefixes of the rounds before: one per run
+
+    def flooded(at_least: int) -> bool:  # this run's Flood has written its task number `at_least`
+        if not path.exists() or path.stat().st_size == 0:
+            return False
+        db = sqlite3.connect(path, timeout=10)
+        try:
+            found = [FLOOD_UID.fullmatch(uid) for (uid,) in db.execute("SELECT uid FROM objects")]
+        except sqlite3.OperationalError:  # the table is not made yet
+            return False
+        finally:
+            db.close()
+        return any(m is not None and m[1] not in before and int(m[2]) >= at_least for m in found)
+
     for round_ in range(3):
         proc = subprocess.Popen([sys.executable, "-m", "erni", "agent", str(config)], cwd=ROOT,
                                 stderr=subprocess.PIPE, text=True)
         line = proc.stderr.readline()
         while "started" not in line:
             line = proc.stderr.readline()
-        wait_until(lambda: path.exists() and path.stat().st_size > 0, timeout=10)
-        time.sleep(0.3 + 0.2 * round_)
+        wait_until(lambda round_=round_: flooded(100 * (round_ + 1)), timeout=30)  # killed later each round
         os.kill(proc.pid, signal.SIGKILL)
         proc.wait(timeout=10)
         proc.stderr.close()
@@ -183,6 +200,7 @@ class = "tests.core.crashy:Flood"
         objects, problems = journal.load()
         journal.stop()
         assert problems == [] and len(objects) == count
+        before.update(m[1] for o in objects if (m := FLOOD_UID.fullmatch(o.uid)))
 
 
 def _reader(path: Path):
@@ -215,7 +233,7 @@ def test_progress_changes_linger_for_one_write_while_new_final_and_removed_tasks
         for i in range(20):                                           # progress: lingers
             task = task.with_result(TaskState.RUNNING, progress=i / 20)
             journal.listener([(CHANGE, task, ())])
-        time.sleep(0.3)
+        wait_until(journal._queue.empty, timeout=30)                 # all taken into the lingering batch
         assert '"progress":0.95' not in row(task.uid) and journal.batches == batches
         final = task.with_result(TaskState.SUCCEEDED, progress=1.0)
         journal.listener([(CHANGE, final, ())])                       # final: at once, with the changes before it
