@@ -116,54 +116,68 @@ def run_round(team: Team, number: int, speeds: Sequence[float], *, min_quality: 
         uids.append(team.send_task(s.end, "RemoteBotMotion", "goto", x=round(gx, 2), y=round(gy, 2),
                                    speed=v, tolerance=0.3).uid)
     t0 = time.monotonic()
-    tracks: list[list[tuple[float, float, float]]] = [[] for _ in sp]  # (t, distance, speed)
-    stood: list[float | None] = [None] * len(sp)      # when it last began to stand
-    first_stand: list[float | None] = [None] * len(sp)
-    crossed: list[float | None] = [None] * len(sp)
-    gone = [False] * len(sp)
+    watches = [_Watch() for _ in sp]
     while True:
         now = time.monotonic() - t0
-        for i, s in enumerate(sp):
+        for w, s in zip(watches, sp):
             e, r = team.robot(s.end), team.robot(s.relay)
-            d = math.dist((e.x, e.y), (r.x, r.y))
-            v = abs(e.v)
-            tracks[i].append((now, d, v))
-            if crossed[i] is None and d >= cross:
-                crossed[i] = now
-            if d >= comm:
-                gone[i] = True
-            moved = d > tracks[i][0][1] + 0.1
-            if v < STILL and moved:
-                since = stood[i]
-                if since is None:
-                    since = stood[i] = now
-                if first_stand[i] is None and now - since >= 0.5:
-                    first_stand[i] = since
-            else:
-                stood[i] = None
-        settled = all(g or (t is not None and now - t >= observe) for g, t in zip(gone, stood))
+            w.sample(now, math.dist((e.x, e.y), (r.x, r.y)), abs(e.v), cross, comm)
+        settled = all(w.gone or (w.stood is not None and now - w.stood >= observe) for w in watches)
         if settled or now > limit:
             break
         time.sleep(SAMPLE)
     trials = []
-    for i, s in enumerate(sp):
-        ds = [d for _, d, _ in tracks[i]]
-        far = max(ds)
-        stand = first_stand[i]
-        after = None
-        if stand is not None:
-            c = crossed[i] if crossed[i] is not None else next((t for t, d, _ in tracks[i] if d >= cross), None)
-            # stood before crossing: how long before the robot would have crossed at its speed
-            after = stand - c if c is not None else -((cross - _at(tracks[i], stand)) / max(s.speed, 1e-9))
-        at_stand = _at(tracks[i], stand) if stand is not None else far
-        said = messages(uids[i]) if messages is not None else []
-        held = next((m for m in reversed(said) if m.startswith("holding")), "")
-        trials.append(Trial(number, s.end, s.speed, gone[i], comm - far, after, max(0.0, far - at_stand), held,
-                            sum(m.startswith("resumed") for m in said), max(v for _, _, v in tracks[i]),
-                            [(round(t, 2), round(d, 3)) for t, d, _ in tracks[i][::4]]))
+    for uid, w, s in zip(uids, watches, sp):
+        trials.append(w.trial(number, s, cross, comm, messages(uid) if messages is not None else []))
     for uid, s in zip(uids, sp):
         team.send_task(s.end, "RemoteBotMotion", "cancel", task=uid)
     return trials
+
+
+@dataclass
+class _Watch:
+    """One end robot watched through a round: its track (t, distance from its relay, speed), when it
+    last began to stand, when it first stood (for half a second), when it crossed the link-quality
+    threshold and whether it left its relay's range."""
+
+    track: list[tuple[float, float, float]] = field(default_factory=list)
+    stood: float | None = None
+    first_stand: float | None = None
+    crossed: float | None = None
+    gone: bool = False
+
+    def sample(self, now: float, d: float, v: float, cross: float, comm: float) -> None:
+        """Take the sample at `now`: `d` m from the relay, driving at `v` m/s."""
+        self.track.append((now, d, v))
+        if self.crossed is None and d >= cross:
+            self.crossed = now
+        if d >= comm:
+            self.gone = True
+        moved = d > self.track[0][1] + 0.1
+        if v < STILL and moved:
+            since = self.stood
+            if since is None:
+                since = self.stood = now
+            if self.first_stand is None and now - since >= 0.5:
+                self.first_stand = since
+        else:
+            self.stood = None
+
+    def trial(self, number: int, s: Spoke, cross: float, comm: float, said: list[str]) -> Trial:
+        """The round's Trial of this robot, `said` its task's result messages."""
+        track = self.track
+        far = max(d for _, d, _ in track)
+        stand = self.first_stand
+        after = None
+        if stand is not None:
+            c = self.crossed if self.crossed is not None else next((t for t, d, _ in track if d >= cross), None)
+            # stood before crossing: how long before the robot would have crossed at its speed
+            after = stand - c if c is not None else -((cross - _at(track, stand)) / max(s.speed, 1e-9))
+        at_stand = _at(track, stand) if stand is not None else far
+        held = next((m for m in reversed(said) if m.startswith("holding")), "")
+        return Trial(number, s.end, s.speed, self.gone, comm - far, after, max(0.0, far - at_stand), held,
+                     sum(m.startswith("resumed") for m in said), max(v for _, _, v in track),
+                     [(round(t, 2), round(d, 3)) for t, d, _ in track[::4]])
 
 
 def _at(track: list[tuple[float, float, float]], t: float | None) -> float:

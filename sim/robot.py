@@ -423,6 +423,20 @@ def _cstr(text: str) -> bytes:
     return text.encode("latin-1", "replace") + b"\x00"
 
 
+@dataclass(frozen=True)
+class _Command:
+    """One client command as the firmware's handlers see it: the packet's body, its arguments and the
+    first integer among them (0 when there is none)."""
+    body: bytes
+    args: list[int | bytes]
+    arg: int
+
+    @property
+    def text(self) -> bytes:
+        """The first string argument (empty when there is none)."""
+        return next((a for a in self.args if isinstance(a, bytes)), b"")
+
+
 class ArcosFirmware:
     """The robot end of an ARCOS link: handshake, command handling and the SIP stream."""
 
@@ -510,101 +524,128 @@ class ArcosFirmware:
         return out
 
     def _handle(self, body: bytes) -> None:
-        r = self.robot
         cmd = body[0]
         args = _args(body) if cmd != 224 else []
         arg = next((a for a in args if isinstance(a, int)), 0)
         if self.state != "open":
             self._handshake(cmd)
             return
-        r.touch(self.now)
-        c = r.config
-        if cmd != 0:
-            log.debug("%s: %s %s", self.label, COMMAND_NAMES.get(cmd, f"command {cmd}"),
-                      " ".join(repr(a) for a in args) if cmd != 224 else body[1:].hex())
+        self.robot.touch(self.now)
         if cmd == 0:  # PULSE
             return
-        if cmd == 2:  # CLOSE
-            log.debug("%s: client closed the connection", self.label)
-            self.close()
-        elif cmd == 3:  # POLLING: the firing sequence, as sonar numbers 1..32
-            self._set_polling(next((a for a in args if isinstance(a, bytes)), b""))
-        elif cmd == 4:  # ENABLE
-            r.motors_enabled = bool(arg)
-            if not arg:
-                r.stop()
-        elif cmd == 5:  # SETA: positive accel, negative decel (mm/s^2)
-            if arg > 0:
-                r.accel = min(arg / 1000.0, self.tops[2])
-            elif arg < 0:
-                r.decel = min(-arg / 1000.0, self.tops[2])
-        elif cmd == 6:  # SETV (mm/s)
-            r.max_v = max(0.0, min(arg / 1000.0, self.tops[0]))
-        elif cmd == 7:  # SETO
-            r.reset_odometry()
-        elif cmd == 8:  # MOVE (mm)
-            r.move(arg / 1000.0)
-        elif cmd in (9, 21):  # ROTATE, RVEL (deg/s)
-            r.set_rotation(math.radians(arg))
-        elif cmd == 10:  # SETRV (deg/s)
-            r.max_rv = math.radians(min(abs(arg), self.tops[1]))
-        elif cmd == 11:  # VEL (mm/s)
-            r.set_velocity(arg / 1000.0)
-        elif cmd == 12:  # HEAD (deg, odometric)
-            r.set_heading(math.radians(arg))
-        elif cmd == 13:  # DHEAD
-            base = r.head_target if r.rot_mode == "head" else r.odometry()[2]
-            r.set_heading(base + math.radians(arg))
-        elif cmd == 15:  # SAY
-            r.said.append(next((a for a in args if isinstance(a, bytes)), b""))
-        elif cmd == 18:  # CONFIG
-            if c.answer_config:
-                self._send(self.config_packet())
-            else:
-                self._unknown(body, "CONFIG not answered by this robot:")
-        elif cmd == 23:  # SETRA: positive accel, negative decel (deg/s^2)
-            if arg > 0:
-                r.rot_accel = math.radians(min(arg, self.tops[3]))
-            elif arg < 0:
-                r.rot_decel = math.radians(min(-arg, self.tops[3]))
-        elif cmd == 28:  # SONAR
-            r.sonar_on = bool(arg)
-        elif cmd == 29:  # STOP
-            r.stop()
-        elif cmd == 32:  # VEL2: high byte left, low byte right, signed, x Vel2Divisor mm/s
-            raw = arg & 0xFFFF
-            left, right = struct.unpack("bb", bytes([raw >> 8, raw & 0xFF]))
-            r.set_wheels(left * c.vel2_divisor / 1000.0, right * c.vel2_divisor / 1000.0)
-        elif cmd == 50:  # HOSTBAUD: on a serial line the rate changes after this packet
-            self.host_baud = arg
-            log.debug("%s: host serial rate code %d", self.label, arg)
-        elif cmd == 55:  # ESTOP
-            r.stop(emergency=True)
-        elif cmd == 62:  # BATTERYINFO: 0 stop, 1 one packet, 2 one after every SIP
-            self.battery_info = arg == 2
-            if arg in (1, 2):
-                self._send(self.battery_packet())
-        elif cmd == 224:  # SIM_SET_POSE: type byte, x mm, y mm, th deg as 32-bit little-endian
-            if len(body) < 14:
-                self._unknown(body, "SIM_SET_POSE too short")
-                return
-            x, y, th = struct.unpack_from("<iii", body, 2)
-            log.debug("%s: true pose set to %d mm, %d mm, %d deg; odometry untouched", self.label, x, y, th)
-            r.set_true_pose(x / 1000.0, y / 1000.0, math.radians(th))
-        elif cmd == 225:  # SIM_RESET: back to the start, odometry reading it
-            r.set_pose(*r.start)
-        elif cmd == 237:  # SIM_STAT: 0 stop, 1 one packet now, 2 one after every SIP from now on
-            self.simstat = arg == 2
-            if arg == 1:
-                self._send(self.simstat_packet())
-        elif cmd == 238:  # SIM_MESSAGE
-            text = next((a for a in args if isinstance(a, bytes)), b"").decode("latin-1")
-            self.said_messages.append(text)
-            log.info("%s: message from the client: %s", self.label, text)
-        elif cmd in (19, 30, 40, 44, 236):
-            pass  # ENCODER, DIGOUT, IOREQUEST, BUMPSTALL, SIM_CTRL: accepted, nothing to simulate
-        else:
+        log.debug("%s: %s %s", self.label, COMMAND_NAMES.get(cmd, f"command {cmd}"),
+                  " ".join(repr(a) for a in args) if cmd != 224 else body[1:].hex())
+        if cmd in _ACCEPTED:
+            return  # accepted, nothing to simulate
+        handler = _COMMANDS.get(cmd)
+        if handler is None:
             self._unknown(body, "unknown command")
+        else:
+            handler(self, _Command(body, args, arg))
+
+    def _close_cmd(self, c: _Command) -> None:  # CLOSE
+        log.debug("%s: client closed the connection", self.label)
+        self.close()
+
+    def _polling_cmd(self, c: _Command) -> None:  # POLLING: the firing sequence, as sonar numbers 1..32
+        self._set_polling(c.text)
+
+    def _enable_cmd(self, c: _Command) -> None:  # ENABLE
+        self.robot.motors_enabled = bool(c.arg)
+        if not c.arg:
+            self.robot.stop()
+
+    def _seta_cmd(self, c: _Command) -> None:  # SETA: positive accel, negative decel (mm/s^2)
+        if c.arg > 0:
+            self.robot.accel = min(c.arg / 1000.0, self.tops[2])
+        elif c.arg < 0:
+            self.robot.decel = min(-c.arg / 1000.0, self.tops[2])
+
+    def _setv_cmd(self, c: _Command) -> None:  # SETV (mm/s)
+        self.robot.max_v = max(0.0, min(c.arg / 1000.0, self.tops[0]))
+
+    def _seto_cmd(self, c: _Command) -> None:  # SETO
+        self.robot.reset_odometry()
+
+    def _move_cmd(self, c: _Command) -> None:  # MOVE (mm)
+        self.robot.move(c.arg / 1000.0)
+
+    def _rotate_cmd(self, c: _Command) -> None:  # ROTATE, RVEL (deg/s)
+        self.robot.set_rotation(math.radians(c.arg))
+
+    def _setrv_cmd(self, c: _Command) -> None:  # SETRV (deg/s)
+        self.robot.max_rv = math.radians(min(abs(c.arg), self.tops[1]))
+
+    def _vel_cmd(self, c: _Command) -> None:  # VEL (mm/s)
+        self.robot.set_velocity(c.arg / 1000.0)
+
+    def _head_cmd(self, c: _Command) -> None:  # HEAD (deg, odometric)
+        self.robot.set_heading(math.radians(c.arg))
+
+    def _dhead_cmd(self, c: _Command) -> None:  # DHEAD
+        r = self.robot
+        base = r.head_target if r.rot_mode == "head" else r.odometry()[2]
+        r.set_heading(base + math.radians(c.arg))
+
+    def _say_cmd(self, c: _Command) -> None:  # SAY
+        self.robot.said.append(c.text)
+
+    def _config_cmd(self, c: _Command) -> None:  # CONFIG
+        if self.robot.config.answer_config:
+            self._send(self.config_packet())
+        else:
+            self._unknown(c.body, "CONFIG not answered by this robot:")
+
+    def _setra_cmd(self, c: _Command) -> None:  # SETRA: positive accel, negative decel (deg/s^2)
+        if c.arg > 0:
+            self.robot.rot_accel = math.radians(min(c.arg, self.tops[3]))
+        elif c.arg < 0:
+            self.robot.rot_decel = math.radians(min(-c.arg, self.tops[3]))
+
+    def _sonar_cmd(self, c: _Command) -> None:  # SONAR
+        self.robot.sonar_on = bool(c.arg)
+
+    def _stop_cmd(self, c: _Command) -> None:  # STOP
+        self.robot.stop()
+
+    def _vel2_cmd(self, c: _Command) -> None:  # VEL2: high byte left, low byte right, signed, x Vel2Divisor mm/s
+        raw = c.arg & 0xFFFF
+        left, right = struct.unpack("bb", bytes([raw >> 8, raw & 0xFF]))
+        divisor = self.robot.config.vel2_divisor
+        self.robot.set_wheels(left * divisor / 1000.0, right * divisor / 1000.0)
+
+    def _hostbaud_cmd(self, c: _Command) -> None:  # HOSTBAUD: on a serial line the rate changes after this packet
+        self.host_baud = c.arg
+        log.debug("%s: host serial rate code %d", self.label, c.arg)
+
+    def _estop_cmd(self, c: _Command) -> None:  # ESTOP
+        self.robot.stop(emergency=True)
+
+    def _batteryinfo_cmd(self, c: _Command) -> None:  # BATTERYINFO: 0 stop, 1 one packet, 2 one after every SIP
+        self.battery_info = c.arg == 2
+        if c.arg in (1, 2):
+            self._send(self.battery_packet())
+
+    def _set_pose_cmd(self, c: _Command) -> None:  # SIM_SET_POSE: type byte, x mm, y mm, th deg, 32-bit little-endian
+        if len(c.body) < 14:
+            self._unknown(c.body, "SIM_SET_POSE too short")
+            return
+        x, y, th = struct.unpack_from("<iii", c.body, 2)
+        log.debug("%s: true pose set to %d mm, %d mm, %d deg; odometry untouched", self.label, x, y, th)
+        self.robot.set_true_pose(x / 1000.0, y / 1000.0, math.radians(th))
+
+    def _reset_cmd(self, c: _Command) -> None:  # SIM_RESET: back to the start, odometry reading it
+        self.robot.set_pose(*self.robot.start)
+
+    def _simstat_cmd(self, c: _Command) -> None:  # SIM_STAT: 0 stop, 1 one packet now, 2 one after every SIP from now on
+        self.simstat = c.arg == 2
+        if c.arg == 1:
+            self._send(self.simstat_packet())
+
+    def _message_cmd(self, c: _Command) -> None:  # SIM_MESSAGE
+        text = c.text.decode("latin-1")
+        self.said_messages.append(text)
+        log.info("%s: message from the client: %s", self.label, text)
 
     def _unknown(self, body: bytes, why: str) -> None:
         self.counts["unknown"] += 1
@@ -776,3 +817,15 @@ class ArcosFirmware:
                             max(-32768, min(32767, round(math.degrees(r.w) * 10))), 0, 0, -127,
                             round(r.state_of_charge * 100))
         return body
+
+
+_F = ArcosFirmware
+_COMMANDS: dict[int, Callable[[ArcosFirmware, _Command], None]] = {
+    2: _F._close_cmd, 3: _F._polling_cmd, 4: _F._enable_cmd, 5: _F._seta_cmd, 6: _F._setv_cmd, 7: _F._seto_cmd,
+    8: _F._move_cmd, 9: _F._rotate_cmd, 21: _F._rotate_cmd, 10: _F._setrv_cmd, 11: _F._vel_cmd, 12: _F._head_cmd,
+    13: _F._dhead_cmd, 15: _F._say_cmd, 18: _F._config_cmd, 23: _F._setra_cmd, 28: _F._sonar_cmd, 29: _F._stop_cmd,
+    32: _F._vel2_cmd, 50: _F._hostbaud_cmd, 55: _F._estop_cmd, 62: _F._batteryinfo_cmd, 224: _F._set_pose_cmd,
+    225: _F._reset_cmd, 237: _F._simstat_cmd, 238: _F._message_cmd,
+}
+"""The firmware's handler of each client command it simulates, by command number."""
+_ACCEPTED = frozenset({19, 30, 40, 44, 236})  # ENCODER, DIGOUT, IOREQUEST, BUMPSTALL, SIM_CTRL: nothing to simulate

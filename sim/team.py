@@ -29,7 +29,6 @@ import json
 import logging
 import math
 import os
-import random
 import secrets
 import shutil
 import signal
@@ -46,7 +45,7 @@ from pathlib import Path
 from typing import Any
 
 from erni.blackboard import heap
-from erni.blackboard.errors import ErniError, UsageError
+from erni.blackboard.errors import ErniError
 from erni.sim.host_process import COMMANDED_V, ENERGY, TH, HostProcess, RobotView, V, X, Y
 from erni.sim.manet import ManetNetwork, RadioModel
 from erni.sim.netns import HELLO_INTERVAL, Mesh, TcpForwarder, die_with_parent
@@ -54,13 +53,21 @@ from erni.sim.radio import FD_ENV
 from erni.sim.robot import SimRobotConfig
 from erni.sim.scenario import MAX_AGENT_ROBOTS, Scenario
 from erni.sim.snmp_agent import ManetSnmpAgent
+from erni.sim.team_configs import CONTROL as CONTROL
+from erni.sim.team_configs import CONTROL_HOST as CONTROL_HOST
+from erni.sim.team_configs import AgentConfigs
+from erni.sim.team_configs import AgentProcess as AgentProcess
+from erni.sim.team_configs import agent_toml as agent_toml
+from erni.sim.team_configs import free_port as free_port
+from erni.sim.team_configs import port_free as port_free
+from erni.sim.team_configs import private_file as private_file
+from erni.sim.team_configs import robot_address as robot_address
+from erni.sim.team_configs import toml_value as toml_value
 from erni.sim.world import World
-from erni.transport.identity import REVOKED, Authority
+from erni.transport.identity import Authority
 
 log = logging.getLogger("erni.sim.team")
 
-CONTROL = "control"
-CONTROL_HOST = "127.0.1.250"
 CLI = "cli"  # the identity of command-line clients of the run (RUN/keys/cli.pem)
 LAUNCH_WAIT = 15.0  # the longest a launch waits for room (a robot that never connects must not stall the start)
 
@@ -80,21 +87,9 @@ def private_dir(path: Path) -> Path:
     return path
 
 
-def private_file(path: Path) -> Path:
-    """Create `path` empty unless it exists, readable and writable by this user only (0600)."""
-    os.close(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o600))
-    os.chmod(path, 0o600)
-    return path
-
-
 def gui_address(url: str) -> str:
     """A GUI URL without its token, for messages that may end up in a log."""
     return url.split("?", 1)[0]
-
-
-def robot_address(index: int) -> str:
-    """Loopback address of robot `index` (0-based): 127.0.1.1, 127.0.1.2, ..."""
-    return f"127.0.1.{index + 1}"
 
 
 def plugin_available(module: str, cls: str) -> bool:
@@ -107,92 +102,9 @@ def plugin_available(module: str, cls: str) -> bool:
         return False
 
 
-def free_port(host: str = "127.0.0.1") -> int:
-    """A port free on `host` for both TCP and UDP now (an agent binds one number for both: its
-    transport's UDP datagrams and TCP links, a GUI beside its beacons), chosen below the kernel's
-    ephemeral range, so that no socket bound to port 0 (by this run or any other program) takes it
-    before the agent binds it."""
-    try:
-        low = int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
-    except (OSError, ValueError, IndexError):
-        low = 32768
-    rng = random.Random()
-    for _ in range(200):
-        port = rng.randrange(10_000, max(10_001, low))
-        if port_free(host, port):
-            return port
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:  # pragma: no cover - every low port taken
-        s.bind((host, 0))
-        return int(s.getsockname()[1])
-
-
 def beacon_port() -> int:
     """A free port for every agent's beacons (bound on all addresses)."""
     return free_port("")
-
-
-def port_free(host: str, port: int) -> bool:
-    """True when both TCP and UDP `host:port` can be bound now."""
-    for kind in (socket.SOCK_STREAM, socket.SOCK_DGRAM):
-        with socket.socket(socket.AF_INET, kind) as s:
-            if kind == socket.SOCK_STREAM:  # as the transport does: TIME_WAIT does not block it
-                s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-            try:
-                s.bind((host, port))
-            except OSError:
-                return False
-    return True
-
-
-def toml_value(v: Any) -> str:
-    """Render a str, number, bool, list or dict as a TOML value."""
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, (int, float)):
-        return repr(v)
-    if isinstance(v, str):
-        return json.dumps(v)
-    if isinstance(v, (list, tuple)):
-        return "[" + ", ".join(toml_value(x) for x in v) + "]"
-    if isinstance(v, dict):
-        return "{ " + ", ".join(f"{k} = {toml_value(x)}" for k, x in v.items()) + " }"
-    raise UsageError(f"cannot write {v!r} as TOML")
-
-
-def agent_toml(name: str, plugins: list[tuple[str, dict[str, Any]]], *, journal: str | None = None,
-               workers: int = 4, comment: str = "") -> str:
-    """Return an agent config file with the given `(class, settings)` plugins."""
-    lines = [f"# {comment}" if comment else "", "[agent]", f"name = {toml_value(name)}",
-             f"workers = {workers}"]
-    if journal:
-        lines.append(f"journal = {toml_value(journal)}")
-    for cls, settings in plugins:
-        lines += ["", "[[plugin]]", f"class = {toml_value(cls)}", "[plugin.settings]"]
-        lines += [f"{k} = {toml_value(v)}" for k, v in settings.items()]
-    return "\n".join(lines).lstrip() + "\n"
-
-
-@dataclass
-class AgentProcess:
-    """One agent process of the team."""
-
-    name: str
-    config: Path
-    log: Path
-    address: tuple[str, int]
-    proc: subprocess.Popen[bytes] | None = None
-    failed: bool = False
-    radio: int | None = None  # write end of the agent's radio pipe
-
-    @property
-    def alive(self) -> bool:
-        """True while the process runs."""
-        return self.proc is not None and self.proc.poll() is None
-
-    @property
-    def pid(self) -> int | None:
-        """The process id, once started."""
-        return self.proc.pid if self.proc is not None else None
 
 
 @dataclass
@@ -242,13 +154,10 @@ class Team:
         self._scratch = not run_dir and not keep_run_dir
         self._started_well = False
         self._port_retries = 0  # the control node started again on free ports (`_port_taken_meanwhile`)
-        self._control_common: dict[str, Any] = {}
         self.headless = headless
         self.log_level = log_level
         # agents starting at once: a few per core keep the cores busy without starving the simulator
-        self.launch_batch = launch_batch if launch_batch is not None else 4 * (os.cpu_count() or 1)
-        if self.launch_batch < 1:
-            raise TeamError(f"launch_batch: expected at least 1 agent starting at a time, got {launch_batch}")
+        self.launch_batch = _launch_batch(launch_batch)
         self.feed_period = 1.0 / feed_hz
         self._reach_of: object = None  # the truth's components that `_reach` was worked out from
         self._reach: dict[str, list[str]] = {}  # agent -> the agents its radio reaches
@@ -267,11 +176,7 @@ class Team:
         self.control_port = control_port if control_port and port_free(CONTROL_HOST, control_port) \
             else free_port(CONTROL_HOST)
         self.names = scenario.robot_names()
-        self.mobinet = mobinet or ("babel" if netns else "snmp")
-        if self.mobinet not in ("snmp", "babel"):
-            raise TeamError(f"mobinet: expected 'snmp' or 'babel', got {self.mobinet!r}")
-        if self.mobinet == "babel" and not netns:
-            raise TeamError("mobinet 'babel' reads babeld, which runs only in the real-mesh tier: add --netns")
+        self.mobinet = _mobinet_source(mobinet, netns)
         # the real-mesh tier: namespaces, segment, babeld, radio rules (made in start())
         self.mesh: Mesh | None = Mesh(self.names + [CONTROL], self.run_dir, control=CONTROL,
                                       hello_interval=hello_interval) if netns else None
@@ -291,7 +196,12 @@ class Team:
         self.snmp = ManetSnmpAgent(self.network)
         self.write_communities: dict[str, str] = {}   # robot -> its node's SNMP write community
         self._radio_lock = threading.Lock()
-        self.agents: dict[str, AgentProcess] = {}
+        self.configs = AgentConfigs(scenario, self.run_dir, self.names, world, keys_dir=self.keys_dir,
+                                    robot_url=self.host.url, discovery_port=self.discovery_port,
+                                    transport=self.transport, mission=self.mission, ui=self.ui, mobinet=self.mobinet,
+                                    mission_extra=self.mission_extra, gui_listen=gui_listen,
+                                    gui_token=self.gui_token, mesh=self.mesh)
+        self.agents: dict[str, AgentProcess] = self.configs.agents  # filled as the configs are written
         self.samples: list[Sample] = []
         self.status = TeamStatus()
         self.url: str | None = None
@@ -371,7 +281,8 @@ class Team:
         self._feed = threading.Thread(target=self._feed_loop, name="sim-feed", daemon=True)
         self._feed.start()
         say("agent configs", 0, n)
-        self._write_configs(snmp_ports)
+        self.configs.write(snmp_ports, self.write_communities, self.control_port, self.gui_port)
+        self.url, self._forwarder = self.configs.url, self.configs.forwarder
         env = self.agent_env()
         # the world, the robots and the network live until stop(): full collections skip them. Done
         # before the agents start, so that this collection stalls nobody's SIPs
@@ -407,7 +318,7 @@ class Team:
 
     def identity(self, name: str) -> dict[str, str]:
         """Transport settings naming agent `name`'s identity and the team's revocation list."""
-        return {"identity": str(self.keys_dir / f"{name}.pem"), "revocations": str(self.keys_dir / REVOKED)}
+        return self.configs.identity(name)
 
     def _make_mesh(self) -> None:
         """Build the namespaces; serve robots and SNMP nodes where the namespaces reach them."""
@@ -422,148 +333,6 @@ class Team:
 
     def _snmp_host(self, index: int) -> str:
         return self.mesh.service_address if self.mesh is not None else robot_address(index)
-
-    def _write_configs(self, snmp_ports: dict[str, int]) -> None:
-        if self.mesh is not None:
-            self._write_mesh_configs(snmp_ports)
-            return
-        common = dict(discovery_port=self.discovery_port, beacon_to=["127.255.255.255"], **self.transport)
-        for i, name in enumerate(self.names):
-            addr = robot_address(i)
-            port = 0  # any free port: two simulations side by side never collide
-            plugins: list[tuple[str, dict[str, Any]]] = [
-                ("transport", dict(listen=f"{addr}:{port}", role="robot", **self.identity(name),
-                                   capabilities=["motion", "mobinet"] + (["mission"] if self.mission else []),
-                                   # patrol heartbeats travel between robots; poses only to the control node
-                                   **({"share_with": {"Territory": ["control", "robot"]}} if self.mission else {}),
-                                   **common)),
-                ("motion", dict(url=self.host.url(i), model=self.scenario.robots.model)),
-                # one retry: a busy laptop running a whole team must not turn a late answer into
-                # a degraded network view that holds every deployment
-                ("mobinet", dict(host=addr, port=snmp_ports[name], timeout=1.0, retries=1,
-                                 write_community=self.write_communities[name])),
-            ]
-            if self.mission:
-                plugins.append(("mission", self._mission_settings()))
-            self._add_agent(name, (addr, port), plugins, f"robot {name} of scenario {self.scenario.name}")
-        self._control_common = common
-        self._write_control_config()
-
-    def _write_control_config(self) -> None:
-        """The loopback control node's config: its transport on `control_port`, its GUI."""
-        plugins = [("transport", dict(listen=f"{CONTROL_HOST}:{self.control_port}", role="control",
-                                      **self.identity(CONTROL), **self._control_common))]
-        if self.ui:
-            gui_host, gui_port = "127.0.0.1", self.gui_port
-            if self.gui_listen:
-                from erni.transport import parse_address
-
-                gui_host, gui_port = parse_address(self.gui_listen)
-            bind = "0.0.0.0" if gui_host in ("", "0.0.0.0") else gui_host
-            if not gui_port or not port_free(bind, gui_port):
-                gui_port = free_port(bind)
-            plan = self.run_dir / "world.toml"  # the GUI draws the scenario's walls and obstacles
-            world = self.world.model_dump(mode="json", exclude={"robot", "name"}, exclude_none=True)
-            private_file(plan).write_text("".join(f"{k} = {toml_value(v)}\n" for k, v in world.items() if v),
-                                          encoding="utf-8")
-            plugins.append(("ui", {"listen": f"{bind}:{gui_port}", "floorplan": str(plan), "token": self.gui_token}))
-            shown = bind
-            if bind in ("0.0.0.0", "::"):
-                from erni.plugins.ui.server import public_address
-
-                shown = public_address()
-            shown = f"[{shown}]" if ":" in shown else shown
-            self.url = f"http://{shown}:{gui_port}/?token={self.gui_token}"
-        self._add_agent(CONTROL, (CONTROL_HOST, self.control_port), plugins,
-                        f"control node of scenario {self.scenario.name}", workers=2)
-
-    def _write_mesh_configs(self, snmp_ports: dict[str, int]) -> None:
-        """Agent configs of the real-mesh tier: mesh addresses, segment broadcast, babel or SNMP MobiNet."""
-        mesh = self.mesh
-        assert mesh is not None
-        common = dict(discovery_port=self.discovery_port, beacon_to=[mesh.broadcast], **self.transport)
-
-        def mobinet(name: str) -> dict[str, Any]:
-            # every node watches its routes: the transport beacons each routed node it has not met
-            if self.mobinet == "babel":
-                return dict(source="babel", babel=f"[::1]:{mesh.babel_port}", watch=["path_cost"], timeout=1.0)
-            # SNMP routes name their nodes; neighbour lists carry addresses, shared with the control node
-            return dict(host=mesh.service_address, port=snmp_ports[name], timeout=1.0, retries=1,
-                        write_community=self.write_communities[name], watch=["neighbor_list"])
-
-        # babeld carries no positions: robots share their poses over the mesh (WiDep, relay need them)
-        shared = {"Pose": ["control", "robot"]} if self.mobinet == "babel" else {}
-        if self.mission:
-            shared["Territory"] = ["control", "robot"]
-        for i, name in enumerate(self.names):
-            addr = mesh.node(name).address
-            plugins: list[tuple[str, dict[str, Any]]] = [
-                ("transport", dict(listen=f"{addr}:0", role="robot", **self.identity(name),
-                                   capabilities=["motion", "mobinet"] + (["mission"] if self.mission else []),
-                                   **({"share_with": shared} if shared else {}), **common)),
-                ("motion", dict(url=self.host.url(i), model=self.scenario.robots.model)),
-                ("mobinet", mobinet(name)),
-            ]
-            if self.mission:
-                plugins.append(("mission", self._mission_settings()))
-            self._add_agent(name, (addr, 0), plugins,
-                            f"robot {name} of scenario {self.scenario.name}, namespace {mesh.node(name).netns}")
-        control = mesh.node(CONTROL)
-        plugins = [("transport", dict(listen=f"{control.address}:{self.control_port}", role="control",
-                                      **self.identity(CONTROL), **common))]
-        if self.mobinet == "babel":  # the control node is a mesh node too: its routes name far robots
-            c = self.scenario.control  # and the base station's position, which babeld cannot carry
-            plugins[0][1]["share_with"] = {"Pose": ["control", "robot"]}
-            plugins.append(("mobinet", dict(source="babel", babel=f"[::1]:{mesh.babel_port}",
-                                            watch=["path_cost"], timeout=1.0, position=[c.x, c.y])))
-        if self.ui:
-            from erni.transport import parse_address
-
-            gui_host, gui_port = ("127.0.0.1", self.gui_port) if not self.gui_listen else parse_address(self.gui_listen)
-            bind = "0.0.0.0" if gui_host in ("", "0.0.0.0") else gui_host
-            if not gui_port or not port_free(bind, gui_port):
-                gui_port = free_port(bind)
-            plan = self.run_dir / "world.toml"
-            world = self.world.model_dump(mode="json", exclude={"robot", "name"}, exclude_none=True)
-            private_file(plan).write_text("".join(f"{k} = {toml_value(v)}\n" for k, v in world.items() if v),
-                                          encoding="utf-8")
-            shown = bind
-            allowed = []
-            if bind in ("0.0.0.0", "::"):
-                from erni.plugins.ui.server import public_address
-
-                shown = public_address()
-                allowed.append(shown)
-            # the GUI listens in the control node's namespace; this host's address forwards to it
-            plugins.append(("ui", {"listen": f"{control.mgmt}:{gui_port}", "floorplan": str(plan),
-                                   "token": self.gui_token, "allowed_hosts": allowed}))
-            self._forwarder = TcpForwarder((bind, gui_port), (control.mgmt, gui_port))
-            shown = f"[{shown}]" if ":" in shown else shown
-            self.url = f"http://{shown}:{gui_port}/?token={self.gui_token}"
-        self._add_agent(CONTROL, (control.address, self.control_port), plugins,
-                        f"control node of scenario {self.scenario.name}, namespace {control.netns}", workers=2)
-
-    def _mission_settings(self) -> dict[str, Any]:
-        """What the mission plugin knows of the world: obstacles (circles) and walls."""
-        world = self.scenario.world
-        out: dict[str, Any] = {}
-        if world.circle:
-            out["obstacles"] = [[c.center[0], c.center[1], c.radius] for c in world.circle]
-        walls = [[a[0], a[1], b[0], b[1]] for a, b in world.segments()]
-        if walls:
-            out["walls"] = walls
-        if "speed" in self.scenario.strategy:  # the scenario's deployment speed (m/s)
-            out["speed"] = float(self.scenario.strategy["speed"])
-        return {**out, **self.mission_extra}
-
-    def _add_agent(self, name: str, address: tuple[str, int], plugins: list[tuple[str, dict[str, Any]]],
-                   comment: str, workers: int = 4) -> None:
-        config = self.run_dir / "agents" / f"{name}.toml"
-        journal = str(self.run_dir / "journal" / f"{name}.sqlite")
-        # it holds the node's SNMP write community, the GUI's token
-        private_file(config).write_text(agent_toml(name, plugins, journal=journal, workers=workers, comment=comment),
-                                        encoding="utf-8")
-        self.agents[name] = AgentProcess(name, config, private_file(self.run_dir / "logs" / f"{name}.log"), address)
 
     def _spawn(self, agent: AgentProcess, env: dict[str, str]) -> None:
         if self.mesh is not None:  # the real mesh: plain `erni agent` in the node's namespace, no radio pipe
@@ -690,7 +459,8 @@ class Team:
             os.close(agent.radio)
             agent.radio = None
         agent.log.replace(agent.log.with_suffix(f".log.{self._port_retries}"))  # kept; the next run's log is new
-        self._write_control_config()
+        self.configs.write_control(self.control_port, self.gui_port)
+        self.url = self.configs.url
         self._spawn(self.agents[CONTROL], self.agent_env())
         log.warning("control node's port %d was taken meanwhile: started again on %d", old, self.control_port)
         return True
@@ -846,6 +616,25 @@ class Team:
 
     def __exit__(self, kind: type[BaseException] | None, *exc: object) -> None:
         self.stop(keep_run_dir=kind is not None)
+
+
+def _launch_batch(asked: int | None) -> int:
+    """How many agents may start at once: `asked`, else a few per core (they keep the cores busy
+    without starving the simulator)."""
+    batch = asked if asked is not None else 4 * (os.cpu_count() or 1)
+    if batch < 1:
+        raise TeamError(f"launch_batch: expected at least 1 agent starting at a time, got {asked}")
+    return batch
+
+
+def _mobinet_source(asked: str | None, netns: bool) -> str:
+    """Where MobiNet reads the network: `asked`, else babeld on the real mesh and SNMP on loopback."""
+    mobinet = asked or ("babel" if netns else "snmp")
+    if mobinet not in ("snmp", "babel"):
+        raise TeamError(f"mobinet: expected 'snmp' or 'babel', got {mobinet!r}")
+    if mobinet == "babel" and not netns:
+        raise TeamError("mobinet 'babel' reads babeld, which runs only in the real-mesh tier: add --netns")
+    return mobinet
 
 
 def _tail(path: Path, lines: int = 8) -> str:

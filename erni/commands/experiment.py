@@ -5,9 +5,13 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from erni.commands._text import say, say_lines
+
+if TYPE_CHECKING:
+    from erni.sim.experiments import Experiment
+    from erni.sim.scenario import Scenario
 
 
 def register(sub: Any) -> None:
@@ -47,20 +51,10 @@ def run(args: argparse.Namespace) -> int:
     from erni.sim.experiments import run as run_experiment
     from erni.sim.netns import NetnsError
     from erni.sim.progress import Progress
-    from erni.sim.scenario import ScenarioError, find_scenario, load_scenario
+    from erni.sim.scenario import ScenarioError
 
     if args.list or not args.name:
-        say(f"{'name':<16} {'paper':<6} {'mode (default first)':<22} what")
-        for e in EXPERIMENTS.values():
-            try:
-                default = e.default_mode(load_scenario(find_scenario(e.scenario)))
-            except ScenarioError:
-                default = e.default_mode()
-            modes = [default] + [m for m in e.modes if m != default]
-            say(f"{e.name:<16} {e.paper:<6} {' / '.join(modes):<22} {e.title}")
-        if not args.list:
-            say("erni experiment: name an experiment, e.g. `erni experiment poi --plot poi.png`", file=sys.stderr)
-        return 0 if args.list else 2
+        return _list(args)
     if args.name not in EXPERIMENTS:
         say(f"erni experiment: unknown experiment {args.name!r}; expected one of "
               f"{', '.join(EXPERIMENTS)}", file=sys.stderr)
@@ -73,32 +67,8 @@ def run(args: argparse.Namespace) -> int:
             say(f"erni experiment: {flag} {path}: cannot write there (no such directory?)", file=sys.stderr)
             return 2
     try:
-        scenario = load_scenario(args.scenario or find_scenario(exp.scenario))
-        if args.robots is not None:
-            scenario = scenario.with_robots(args.robots)
-        updates: dict[str, Any] = {}
-        if args.duration is not None:
-            if args.duration <= 0:
-                raise ScenarioError(f"--duration: expected a positive number of seconds, got {args.duration}")
-            updates["duration"] = args.duration
-        if args.seed is not None:
-            updates["seed"] = args.seed
-        scenario = scenario.model_copy(update=updates) if updates else scenario
-        if args.seeds is not None and args.seeds < 1:
-            raise ScenarioError(f"--seeds: expected at least 1, got {args.seeds}")
-        if args.seeds is not None and not exp.seeds:
-            raise ScenarioError(f"--seeds: {exp.name} runs one seed at a time (use --seed K); "
-                                f"--seeds works with {', '.join(e.name for e in EXPERIMENTS.values() if e.seeds)}")
-        if args.netns and not exp.netns:
-            raise ScenarioError(f"--netns: {exp.name} runs on the loopback tier only; --netns works with "
-                                f"{', '.join(e.name for e in EXPERIMENTS.values() if e.netns)}")
-        if args.paper_durations and not exp.paper_durations:
-            raise ScenarioError(f"--paper-durations: {exp.name} has no long form; --paper-durations works with "
-                                f"{', '.join(e.name for e in EXPERIMENTS.values() if e.paper_durations)}")
-        if args.netns:
-            from erni.sim.netns import check_available
-
-            check_available()  # not root, no namespaces, no babeld: say why, before any team starts
+        scenario = _scenario(args, exp)
+        _check_flags(args, exp)
         mode = args.mode or exp.default_mode(scenario)
         if mode not in exp.modes:
             raise ScenarioError(f"{exp.name} runs in {' or '.join(exp.modes)} mode, not {mode!r}")
@@ -110,15 +80,8 @@ def run(args: argparse.Namespace) -> int:
           f"{', real-mesh tier' if args.netns else ''})", flush=True)
     progress = Progress()
     t0 = time.monotonic()
-    options: dict[str, Any] = {"mode": mode}
-    if args.seeds is not None:
-        options["seeds"] = args.seeds
-    if args.netns:
-        options["netns"] = True
-    if args.paper_durations:
-        options["paper_durations"] = True
     try:
-        result = run_experiment(exp.name, scenario, progress, **options)
+        result = run_experiment(exp.name, scenario, progress, **_options(args, mode))
     except (ValueError, RuntimeError, OSError) as err:
         progress.done()
         say(f"erni experiment {exp.name}: {err}", file=sys.stderr)
@@ -132,6 +95,78 @@ def run(args: argparse.Namespace) -> int:
         say(f"figure: {args.plot}")
     say_lines(result.report(), flush=True)
     return 0
+
+
+def _list(args: argparse.Namespace) -> int:
+    """List the experiments with their modes; exit 0 when asked to (--list), 2 when no name was given."""
+    from erni.sim.experiments import EXPERIMENTS
+    from erni.sim.scenario import ScenarioError, find_scenario, load_scenario
+
+    say(f"{'name':<16} {'paper':<6} {'mode (default first)':<22} what")
+    for e in EXPERIMENTS.values():
+        try:
+            default = e.default_mode(load_scenario(find_scenario(e.scenario)))
+        except ScenarioError:
+            default = e.default_mode()
+        modes = [default] + [m for m in e.modes if m != default]
+        say(f"{e.name:<16} {e.paper:<6} {' / '.join(modes):<22} {e.title}")
+    if not args.list:
+        say("erni experiment: name an experiment, e.g. `erni experiment poi --plot poi.png`", file=sys.stderr)
+    return 0 if args.list else 2
+
+
+def _scenario(args: argparse.Namespace, exp: Experiment) -> Scenario:
+    """The experiment's scenario (or --scenario's) with --robots, --duration and --seed applied."""
+    from erni.sim.scenario import ScenarioError, find_scenario, load_scenario
+
+    scenario = load_scenario(args.scenario or find_scenario(exp.scenario))
+    if args.robots is not None:
+        scenario = scenario.with_robots(args.robots)
+    updates: dict[str, Any] = {}
+    if args.duration is not None:
+        if args.duration <= 0:
+            raise ScenarioError(f"--duration: expected a positive number of seconds, got {args.duration}")
+        updates["duration"] = args.duration
+    if args.seed is not None:
+        updates["seed"] = args.seed
+    return scenario.model_copy(update=updates) if updates else scenario
+
+
+def _check_flags(args: argparse.Namespace, exp: Experiment) -> None:
+    """Refuse (ScenarioError) a flag the experiment does not take; with --netns, check the tier is there."""
+    from erni.sim.experiments import EXPERIMENTS
+    from erni.sim.scenario import ScenarioError
+
+    def takers(feature: str) -> str:
+        return ", ".join(e.name for e in EXPERIMENTS.values() if getattr(e, feature))
+
+    if args.seeds is not None and args.seeds < 1:
+        raise ScenarioError(f"--seeds: expected at least 1, got {args.seeds}")
+    if args.seeds is not None and not exp.seeds:
+        raise ScenarioError(f"--seeds: {exp.name} runs one seed at a time (use --seed K); "
+                            f"--seeds works with {takers('seeds')}")
+    if args.netns and not exp.netns:
+        raise ScenarioError(f"--netns: {exp.name} runs on the loopback tier only; --netns works with "
+                            f"{takers('netns')}")
+    if args.paper_durations and not exp.paper_durations:
+        raise ScenarioError(f"--paper-durations: {exp.name} has no long form; --paper-durations works with "
+                            f"{takers('paper_durations')}")
+    if args.netns:
+        from erni.sim.netns import check_available
+
+        check_available()  # not root, no namespaces, no babeld: say why, before any team starts
+
+
+def _options(args: argparse.Namespace, mode: str) -> dict[str, Any]:
+    """The keyword options the experiment's runner takes from the command line."""
+    options: dict[str, Any] = {"mode": mode}
+    if args.seeds is not None:
+        options["seeds"] = args.seeds
+    if args.netns:
+        options["netns"] = True
+    if args.paper_durations:
+        options["paper_durations"] = True
+    return options
 
 
 def _writable(path: str) -> bool:

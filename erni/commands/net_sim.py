@@ -13,6 +13,9 @@ from erni.commands._text import say
 
 if TYPE_CHECKING:
     from erni.plugins.mobinet.usm import UsmUser
+    from erni.sim.manet import ManetNetwork
+    from erni.sim.manet_scenario import MoveSpec, Scenario
+    from erni.sim.snmp_agent import ManetSnmpAgent
 
 AUTH_ENV, PRIV_ENV = "ERNI_SNMP_AUTH_KEY", "ERNI_SNMP_PRIV_KEY"
 
@@ -97,42 +100,56 @@ def run(args: argparse.Namespace) -> int:
         except OSError as err:
             say(f"erni net-sim: {err}", file=sys.stderr)
             return 2
-        addresses = agent.addresses()
-        writable = sum(1 for w in writes.values() if w is not None)
-        access = (f"SNMPv3 only: user {users[0].name!r}, authPriv {users[0].auth_protocol}/{users[0].priv_protocol}"
-                  if users else f"read community {scenario.read_community!r}, "
-                  f"{writable} node(s) writable with their write community")
-        say(f"net-sim: {len(addresses)} node(s), R = {scenario.comm_range} m, "
-              f"loss-free to {scenario.lossless_range} m, {access}")
-        for name, (h, port) in addresses.items():
-            say(f"  {name:<12} {net.info(name).address:<12} snmp udp:{h}:{port}")
-        say(f"  {_topology_line(net)}")
-        say("serving; Ctrl-C to stop", flush=True)
-        start = time.monotonic()
-        moves = sorted(scenario.moves, key=lambda m: m.at)
-        while not stopping:
-            now = time.monotonic() - start
-            if args.duration is not None and now >= args.duration:
-                break
-            while moves and moves[0].at <= now:
-                m = moves.pop(0)
-                net.move(m.node, m.x, m.y)
-                say(f"t={m.at:6.1f} s  {m.node} -> ({m.x:g}, {m.y:g}); {_topology_line(net)}",
-                      flush=True)
-            waits = [0.2]
-            if moves:
-                waits.append(moves[0].at - now)
-            if args.duration is not None:
-                waits.append(args.duration - now)
-            time.sleep(max(0.01, min(waits)))
+        _announce(agent, net, scenario, users, writes)
+        _play_moves(net, sorted(scenario.moves, key=lambda m: m.at), args.duration, stopping)
     finally:
         agent.close()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
-        st = agent.stats
-        say(f"net-sim: stopped ({st['answered']} request(s) answered; dropped: "
-              f"{st['snmpInASNParseErrs']} undecodable, {st['snmpInBadCommunityNames']} unknown community, "
-              f"{st['snmpUnknownPDUHandlers']} response/notification PDU(s)"
-              + (f", {sum(v for k, v in st.items() if k.startswith('usmStats') and k != 'usmStatsUnknownEngineIDs')} "
-                 "refused by USM" if users else "") + ")", flush=True)
+        say(_stopped_line(agent.stats, bool(users)), flush=True)
     return 0
+
+
+def _announce(agent: ManetSnmpAgent, net: ManetNetwork, scenario: Scenario, users: list[UsmUser],
+              writes: dict[str, str | None]) -> None:
+    """Say what is served: the nodes, their SNMP addresses, the access, the topology."""
+    addresses = agent.addresses()
+    writable = sum(1 for w in writes.values() if w is not None)
+    access = (f"SNMPv3 only: user {users[0].name!r}, authPriv {users[0].auth_protocol}/{users[0].priv_protocol}"
+              if users else f"read community {scenario.read_community!r}, "
+              f"{writable} node(s) writable with their write community")
+    say(f"net-sim: {len(addresses)} node(s), R = {scenario.comm_range} m, "
+          f"loss-free to {scenario.lossless_range} m, {access}")
+    for name, (h, port) in addresses.items():
+        say(f"  {name:<12} {net.info(name).address:<12} snmp udp:{h}:{port}")
+    say(f"  {_topology_line(net)}")
+    say("serving; Ctrl-C to stop", flush=True)
+
+
+def _play_moves(net: ManetNetwork, moves: list[MoveSpec], duration: float | None, stopping: list[int]) -> None:
+    """Apply each move at its time (s from now) until `duration` ends or a signal is in `stopping`."""
+    start = time.monotonic()
+    while not stopping:
+        now = time.monotonic() - start
+        if duration is not None and now >= duration:
+            break
+        while moves and moves[0].at <= now:
+            m = moves.pop(0)
+            net.move(m.node, m.x, m.y)
+            say(f"t={m.at:6.1f} s  {m.node} -> ({m.x:g}, {m.y:g}); {_topology_line(net)}",
+                  flush=True)
+        waits = [0.2]
+        if moves:
+            waits.append(moves[0].at - now)
+        if duration is not None:
+            waits.append(duration - now)
+        time.sleep(max(0.01, min(waits)))
+
+
+def _stopped_line(st: dict[str, int], v3: bool) -> str:
+    """The last line: requests answered, and those dropped by kind."""
+    return (f"net-sim: stopped ({st['answered']} request(s) answered; dropped: "
+            f"{st['snmpInASNParseErrs']} undecodable, {st['snmpInBadCommunityNames']} unknown community, "
+            f"{st['snmpUnknownPDUHandlers']} response/notification PDU(s)"
+            + (f", {sum(v for k, v in st.items() if k.startswith('usmStats') and k != 'usmStatsUnknownEngineIDs')} "
+               "refused by USM" if v3 else "") + ")")

@@ -5,12 +5,15 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from erni.blackboard.schemas import PeerList
 from erni.commands._client import add_client_options, dumps, open_client
 from erni.commands._text import say
 from erni.transport.zenoh_keys import wire_of
+
+if TYPE_CHECKING:
+    from erni.transport.endpoint import Address
 
 
 def register(sub: Any) -> None:
@@ -27,51 +30,73 @@ ROUTES_WAIT = 2.0
 
 def run(args: argparse.Namespace) -> int:
     """Print the directory as a table or JSON lines."""
-    from erni.transport.client import ClientError, PeerListParts
+    from erni.transport.client import ClientError
 
     client = open_client(args, "peers")
     if client is None:
         return 2
     with client:
         try:
-            addr = client.find(None)
-            client.send(addr, "peers.request", None)
-            deadline = time.monotonic() + 5.0
-            parts = PeerListParts()  # a large directory comes in parts
-            directory: PeerList | None = None
-            while directory is None and time.monotonic() < deadline:
-                client.check_refused()
-                msg = client.receive(0.2)
-                if msg is not None and msg.kind == "peers.reply" and isinstance(msg.body, PeerList):
-                    directory = parts.add(msg.body)
-            if directory is None:
-                raise ClientError(f"no answer from {addr[0]}:{addr[1]} within 5 s")
+            addr, directory = _ask_directory(client)
         except ClientError as err:
             say(f"erni peers: {err}", file=sys.stderr)
             return 1
-        # on Zenoh: the router each agent is connected through, as its liveliness token says; the
-        # tokens reach this client's own session on their own time, so wait a little for those
-        # of the agents that are up (a '-' then means no token, not one still on its way)
-        route_of = getattr(client.endpoint, "route_of", None)
-        routes: dict[str, str | None] = {}
-        if route_of is not None:
-            deadline = time.monotonic() + ROUTES_WAIT
-            while any(route_of(p.name) is None for p in directory.peers if p.up) and time.monotonic() < deadline:
-                time.sleep(0.05)
-            routes = {p.name: route_of(p.name) for p in directory.peers}
-    now = time.time()
-    peers = sorted(directory.peers, key=lambda p: p.name)
-    beacons, down_after = directory.beacons, directory.down_after
+        routes = _routes(client, directory)
     if args.json:
-        for p in peers:
-            say(dumps({"via": directory.agent, **p.model_dump(mode="json"), "wire": wire_of(p.address),
-                         **({"router": routes.get(p.name)} if routes else {}),
-                         "beacons": beacons.get(p.name), "down_after": down_after.get(p.name)}))
-        return 0
+        _print_json(directory, routes)
+    else:
+        _print_table(directory, routes, addr)
+    return 0
+
+
+def _ask_directory(client: Any) -> tuple[Address, PeerList]:
+    """Ask one agent for its directory: its address and the whole directory (ClientError: no answer in 5 s)."""
+    from erni.transport.client import ClientError, PeerListParts
+
+    addr = client.find(None)
+    client.send(addr, "peers.request", None)
+    deadline = time.monotonic() + 5.0
+    parts = PeerListParts()  # a large directory comes in parts
+    directory: PeerList | None = None
+    while directory is None and time.monotonic() < deadline:
+        client.check_refused()
+        msg = client.receive(0.2)
+        if msg is not None and msg.kind == "peers.reply" and isinstance(msg.body, PeerList):
+            directory = parts.add(msg.body)
+    if directory is None:
+        raise ClientError(f"no answer from {addr[0]}:{addr[1]} within 5 s")
+    return addr, directory
+
+
+def _routes(client: Any, directory: PeerList) -> dict[str, str | None]:
+    """On Zenoh: the router each agent is connected through, as its liveliness token says (empty elsewhere).
+
+    The tokens reach this client's own session on their own time, so wait a little for those of the
+    agents that are up (a '-' then means no token, not one still on its way)."""
+    route_of = getattr(client.endpoint, "route_of", None)
+    if route_of is None:
+        return {}
+    deadline = time.monotonic() + ROUTES_WAIT
+    while any(route_of(p.name) is None for p in directory.peers if p.up) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    return {p.name: route_of(p.name) for p in directory.peers}
+
+
+def _print_json(directory: PeerList, routes: dict[str, str | None]) -> None:
+    beacons, down_after = directory.beacons, directory.down_after
+    for p in sorted(directory.peers, key=lambda p: p.name):
+        say(dumps({"via": directory.agent, **p.model_dump(mode="json"), "wire": wire_of(p.address),
+                     **({"router": routes.get(p.name)} if routes else {}),
+                     "beacons": beacons.get(p.name), "down_after": down_after.get(p.name)}))
+
+
+def _print_table(directory: PeerList, routes: dict[str, str | None], addr: Address) -> None:
+    now = time.time()
+    beacons, down_after = directory.beacons, directory.down_after
     say(f"agents known to {directory.agent} ({addr[0]}:{addr[1]}):")
     say(f"{'name':<16} {'state':<5} {'wire':<5} {'address':<22}" + (f" {'router':<12}" if routes else "")
           + f" {'role':<10} {'heard':>8} {'down after':>10} {'beacons':>8}  capabilities")
-    for p in peers:
+    for p in sorted(directory.peers, key=lambda p: p.name):
         route = routes.get(p.name)
         router = f" {'-' if route is None else route[:12] or 'direct':<12}" if routes else ""
         heard = f"{now - p.last_heard:.1f}s" if p.last_heard else "never"
@@ -80,4 +105,3 @@ def run(args: argparse.Namespace) -> int:
         say(f"{p.name:<16} {'up' if p.up else 'down':<5} {wire_of(p.address) or '-':<5} {p.address:<22}{router} "
               f"{p.role:<10} {heard:>8} {limit:>10} "
               f"{share:>8}  {','.join(p.capabilities)}" + (f"  DEGRADED: {p.degraded}" if p.degraded else ""))
-    return 0

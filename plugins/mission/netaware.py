@@ -284,21 +284,7 @@ class NetGuard:
         anchors = dict(s.critical) or self._best()
         s.closing = {n: v for n in s.critical if (v := self.away_speed(n)) is not None}
         if self.predict:
-            for name in s.critical:
-                got = self.projected(name, now)
-                if got is not None and got[0] < self.min_quality:
-                    q = self.readings[name][-1].quality
-                    self.prediction = (f"the link to {name} ({q:.2f}) is predicted to fall below "
-                                       f"{self.min_quality:.2f} before {self.me} can stand ({got[1]})")
-                    break
-            if not self.prediction and self.readings:  # no bridge: is the best link going too?
-                future = {n: (rows[-1].quality if (got := self.projected(n, now)) is None else got[0])
-                          for n, rows in self.readings.items() if rows}
-                best = max(self.readings, key=lambda n: self.readings[n][-1].quality)
-                if future and max(future.values()) < self.min_quality <= self.readings[best][-1].quality:
-                    self.prediction = (f"every link of {self.me} is predicted to fall below {self.min_quality:.2f} "
-                                       f"before it can stand (the best now: {best}, "
-                                       f"{self.readings[best][-1].quality:.2f})")
+            self.prediction = self._predicted(now)
         reason = self.risk()
         if reason and not reason.endswith("is an articulation point of the network"):
             self.cause = self._cause(reason)  # the link whose state held the robot: no resuming away from it
@@ -310,6 +296,31 @@ class NetGuard:
                 s.at_risk = True
                 return "risk"
             return None
+        return self._recovered(now, position, weak)
+
+    def _predicted(self, now: float) -> str:
+        """Why the links are predicted to fail before the robot can stand ("" when they are not): a
+        critical link's, or (no bridge) every link's."""
+        for name in self.state.critical:
+            got = self.projected(name, now)
+            if got is not None and got[0] < self.min_quality:
+                q = self.readings[name][-1].quality
+                return (f"the link to {name} ({q:.2f}) is predicted to fall below "
+                        f"{self.min_quality:.2f} before {self.me} can stand ({got[1]})")
+        if self.readings:  # no bridge: is the best link going too?
+            future = {n: (rows[-1].quality if (got := self.projected(n, now)) is None else got[0])
+                      for n, rows in self.readings.items() if rows}
+            best = max(self.readings, key=lambda n: self.readings[n][-1].quality)
+            if future and max(future.values()) < self.min_quality <= self.readings[best][-1].quality:
+                return (f"every link of {self.me} is predicted to fall below {self.min_quality:.2f} "
+                        f"before it can stand (the best now: {best}, "
+                        f"{self.readings[best][-1].quality:.2f})")
+        return ""
+
+    def _recovered(self, now: float, position: tuple[float, float] | None, weak: bool) -> str | None:
+        """No risk now: keep the good-position trail, and clear once every anchor link has been back above
+        `resume_quality` (not `weak`) for `resume_after` s; "clear" then, else None."""
+        s = self.state
         if position is not None and s.best is not None and not s.at_risk:
             self.last_good = position
             if not self.trail or math.dist(self.trail[-1], position) >= 0.2:

@@ -32,6 +32,7 @@ speed only.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -76,42 +77,28 @@ def _window(poses: list[PoseSample], t0: float, t1: float) -> list[PoseSample]:
     return [p for p in poses if t0 <= p.t <= t1]
 
 
+@dataclass
+class _Drive:
+    """What one agent did in the experiment: every Pose it published, when each phase began (team clock)
+    and each sweep speed's hold (asked, start, end)."""
+
+    poses: list[PoseSample]
+    t_stand: float
+    t_run: float
+    t_run_end: float
+    levels: list[tuple[float, float, float]]
+
+
 def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode: str,
         paper_durations: bool = False, **_: Any) -> Result:
     """Run standby, the 5 m run and the speed sweep on a real agent; return figure and metrics."""
     p = plan(scenario.strategy, paper_durations)
     standby, distance, speed, hold, battery_wh = p["standby"], p["distance"], p["speed"], p["hold"], p["battery_wh"]
-    sweep: list[float] = p["sweep"]
     radius: float | None = p["radius"]
-    robot = scenario.robot_names()[0]
-    team = TeamRun(scenario.with_robots(1), progress, use_mission=False, feed_hz=20.0,
-                   robot={"battery_wh": battery_wh})
-    levels: list[tuple[float, float, float]] = []  # asked, start, end (team clock)
-    with team.start():
-        team.watch(robot)
-        team.wait("first poses", 10.0, lambda: len(team.poses) > 5)
-        if not team.poses:
-            raise ScenarioError(f"{robot}: its agent published no Pose within 10 s")
-        t_stand = team.now
-        team.wait("standby (P0)", standby)
-        t_run = team.now
-        uid = team.send(robot, "BotMotion", "forward", distance=distance, speed=speed)
-        team.wait(f"{distance:g} m at {speed:g} m/s", distance / speed * 3 + 10, lambda: team.final(uid) is not None)
-        r = team.final(uid)
-        if r is None or r.state.value != "succeeded":
-            raise ScenarioError(f"the {distance:g} m run did not succeed: {r.message if r else 'no result'}")
-        team.wait("at rest after the run", 1.5)
-        t_run_end = team.now
-        for level in sweep:
-            t0 = team.now
-            turn = math.degrees(level / radius) if radius else 0.0  # deg/s: on a circle at the paper's durations
-            held = team.send(robot, "BotMotion", "velocity", v=level, w=turn, duration=hold)
-            team.wait(f"holding {level:g} m/s", hold * 4 + 5, lambda: team.final(held) is not None)  # noqa: B023
-            levels.append((level, t0, team.now))
-        team.wait("at rest", 1.0)
-        poses = list(team.poses)
-    stand = _window(poses, t_stand, t_run)
-    run_p = _window(poses, t_run, t_run_end)
+    drive = _drive(scenario, progress, p)
+    poses, t_run, levels = drive.poses, drive.t_run, drive.levels
+    stand = _window(poses, drive.t_stand, t_run)
+    run_p = _window(poses, t_run, drive.t_run_end)
     if len(stand) < 3 or len(run_p) < 5:
         raise ScenarioError(f"too few Poses from the agent ({len(stand)} standing, {len(run_p)} in the run)")
     res = Result(experiment.name, experiment.title, mode)
@@ -131,14 +118,7 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode:
     res.metrics["peak speed"] = (float(v.max()), "m/s")
     res.metrics["run energy: paper's model on the agent's odometry"] = (e_run, "J")
     res.metrics["run energy: paper's model on an instant step to the asked speed"] = (e_ideal, "J")
-    sweep_rows = []
-    for level, a, b in levels:
-        win = _window(poses, a, b)
-        steady = [p.v for p in win if abs(p.v - level) < 0.05 * max(level, 0.1)]
-        mean_v = float(np.mean([p.v for p in win if p.v > 0.5 * level])) if win else math.nan
-        p_mean = float(np.mean(paper.power(np.array(steady)))) if steady else math.nan
-        sweep_rows.append((level, mean_v, p_mean, len(steady)))
-        res.metrics[f"asked {level:g} m/s: mean odometry speed while moving"] = (mean_v, "m/s")
+    sweep_rows = _sweep_metrics(res, poses, levels)
     batt = [(p.t, float(p.battery)) for p in poses if p.battery is not None]
     whole = _odometry_energy(poses)
     per_volt = battery_wh * 3600.0 / 2.0  # the simulated pack: 13.0 V full, 11.0 V empty (inputs)
@@ -149,17 +129,7 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode:
     res.series["robot1/speed"] = (list(t), list(v), "m/s")
     res.series["robot1/power_model_on_odometry"] = (list(t), list(paper.power(v)), "W")
     res.series["robot1/battery"] = ([b[0] for b in batt], [float(b[1]) for b in batt], "V")
-    res.compare("standby power P0", paper.P0, paper.P0, "W", "the simulated battery is drained by paper 000's "
-                "model: an input, not a finding", "input")
-    res.compare("moving power Pmov", f"{paper.PMOV_SLOPE} v + {paper.PMOV_BASE}",
-                f"{paper.PMOV_SLOPE} v + {paper.PMOV_BASE}", "W", "the same model drains the simulated battery",
-                "input")
-    res.compare("standby; each sweep speed held", "600 s; 120 s", f"{standby:g} s; {hold:g} s", "",
-                f"the paper's durations (--paper-durations), each speed on a circle of {radius:g} m"
-                if paper_durations and radius else
-                "the scenario's, short (--paper-durations: the paper's)", "input")
-    res.compare("battery pack / reading resolution", "Wifibot pack, power from the motor driver",
-                f"{battery_wh:g} Wh / 0.1 V", "", "chosen so 0.1 V steps resolve the run", "input")
+    _input_rows(res, standby, hold, battery_wh, radius if paper_durations else None)
     res.compare(f"{distance:g} m run at {speed:g} m/s: distance", f"{distance:g}", round(travelled, 3), "m",
                 "odometry of the agent's Poses, start to rest")
     res.compare("speed follows the desired speed", "with the controller's lag (Fig. 9)",
@@ -178,6 +148,71 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode:
     asked += [(a - t_run, level, b - t_run) for level, a, b in levels]
     res.draw = lambda fig: _draw(fig, t, v, speed, distance, sweep_rows, batt, t_run, whole_t, whole_v, asked)
     return res
+
+
+def _drive(scenario: Scenario, progress: Progress, p: dict[str, Any]) -> _Drive:
+    """One robot agent through standby, the run and the speed sweep, its Poses watched throughout."""
+    distance, speed, hold = p["distance"], p["speed"], p["hold"]
+    radius: float | None = p["radius"]
+    robot = scenario.robot_names()[0]
+    team = TeamRun(scenario.with_robots(1), progress, use_mission=False, feed_hz=20.0,
+                   robot={"battery_wh": p["battery_wh"]})
+    levels: list[tuple[float, float, float]] = []  # asked, start, end (team clock)
+    with team.start():
+        team.watch(robot)
+        team.wait("first poses", 10.0, lambda: len(team.poses) > 5)
+        if not team.poses:
+            raise ScenarioError(f"{robot}: its agent published no Pose within 10 s")
+        t_stand = team.now
+        team.wait("standby (P0)", p["standby"])
+        t_run = team.now
+        uid = team.send(robot, "BotMotion", "forward", distance=distance, speed=speed)
+        team.wait(f"{distance:g} m at {speed:g} m/s", distance / speed * 3 + 10, lambda: team.final(uid) is not None)
+        r = team.final(uid)
+        if r is None or r.state.value != "succeeded":
+            raise ScenarioError(f"the {distance:g} m run did not succeed: {r.message if r else 'no result'}")
+        team.wait("at rest after the run", 1.5)
+        t_run_end = team.now
+        for level in p["sweep"]:
+            t0 = team.now
+            turn = math.degrees(level / radius) if radius else 0.0  # deg/s: on a circle at the paper's durations
+            held = team.send(robot, "BotMotion", "velocity", v=level, w=turn, duration=hold)
+            team.wait(f"holding {level:g} m/s", hold * 4 + 5, lambda: team.final(held) is not None)  # noqa: B023
+            levels.append((level, t0, team.now))
+        team.wait("at rest", 1.0)
+        poses = list(team.poses)
+    return _Drive(poses, t_stand, t_run, t_run_end, levels)
+
+
+def _sweep_metrics(res: Result, poses: list[PoseSample], levels: list[tuple[float, float, float]]
+                   ) -> list[tuple[float, float, float, int]]:
+    """Each sweep speed's mean odometry speed (a metric) and the model's power while steady at it:
+    rows of (asked, mean speed, mean power, steady samples)."""
+    sweep_rows = []
+    for level, a, b in levels:
+        win = _window(poses, a, b)
+        steady = [p.v for p in win if abs(p.v - level) < 0.05 * max(level, 0.1)]
+        mean_v = float(np.mean([p.v for p in win if p.v > 0.5 * level])) if win else math.nan
+        p_mean = float(np.mean(paper.power(np.array(steady)))) if steady else math.nan
+        sweep_rows.append((level, mean_v, p_mean, len(steady)))
+        res.metrics[f"asked {level:g} m/s: mean odometry speed while moving"] = (mean_v, "m/s")
+    return sweep_rows
+
+
+def _input_rows(res: Result, standby: float, hold: float, battery_wh: float, radius: float | None) -> None:
+    """The comparison's rows of inputs: the power model, the durations (on a circle of `radius` m at the
+    paper's), the pack."""
+    res.compare("standby power P0", paper.P0, paper.P0, "W", "the simulated battery is drained by paper 000's "
+                "model: an input, not a finding", "input")
+    res.compare("moving power Pmov", f"{paper.PMOV_SLOPE} v + {paper.PMOV_BASE}",
+                f"{paper.PMOV_SLOPE} v + {paper.PMOV_BASE}", "W", "the same model drains the simulated battery",
+                "input")
+    res.compare("standby; each sweep speed held", "600 s; 120 s", f"{standby:g} s; {hold:g} s", "",
+                f"the paper's durations (--paper-durations), each speed on a circle of {radius:g} m"
+                if radius else
+                "the scenario's, short (--paper-durations: the paper's)", "input")
+    res.compare("battery pack / reading resolution", "Wifibot pack, power from the motor driver",
+                f"{battery_wh:g} Wh / 0.1 V", "", "chosen so 0.1 V steps resolve the run", "input")
 
 
 def _draw(fig: Any, t: NDArray[np.float64], v: NDArray[np.float64], speed: float, distance: float,

@@ -276,26 +276,7 @@ def _result(scenario: Scenario, experiment: Experiment, mode: str, outcomes: lis
     for mission in missions:
         for arm in COMPARISONS[mission].arms:
             runs = [o for o in outcomes if o.mission == mission and o.arm == arm.label]
-            conn = mean_ci([o.connected for o in runs], bounds=(0.0, 1.0))
-            share = mean_ci([o.completed / o.tasks for o in runs], bounds=(0.0, 1.0))
-            pooled = wilson(sum(o.completed for o in runs), sum(o.tasks for o in runs))
-            per_run_time = [float(np.mean(o.times)) for o in runs if o.times]
-            tcomp = mean_ci(per_run_time, bounds=(0.0, math.inf))
-            summary[(mission, arm.label)] = {"connected": conn, "completed": share, "pooled": pooled, "time": tcomp}
-            key = f"{mission}, {arm.label}"
-            res.metrics[f"{key}: connectivity kept (share of time)"] = (fmt_ci(*conn), "mean [95 % CI]")
-            res.metrics[f"{key}: tasks completed"] = (
-                f"{sum(o.completed for o in runs)}/{sum(o.tasks for o in runs)} = {fmt_ci(*pooled)}", "Wilson 95 %")
-            res.metrics[f"{key}: tasks completed per run"] = (fmt_ci(*share), "share, mean [95 % CI]")
-            res.metrics[f"{key}: time to complete"] = (fmt_ci(*tcomp, 1),
-                                                       f"s, mean [95 % CI] over {len(per_run_time)} runs")
-            res.metrics[f"{key}: successes the control node heard of"] = (
-                f"{sum(o.reported for o in runs)}/{sum(o.tasks for o in runs)}", "tasks")
-            for o in runs:
-                res.robots[f"{mission}/{arm.label}/s{o.seed}"] = {
-                    "connected": round(o.connected, 3), "completed": f"{o.completed}/{o.tasks}",
-                    "time_s": round(float(np.mean(o.times)), 1) if o.times else "-",
-                    "heard": f"{o.reported}/{o.tasks}", "length_s": round(o.length, 1)}
+            summary[(mission, arm.label)] = _arm_metrics(res, f"{mission}, {arm.label}", runs)
     res.compare("robots / radio range R / lossless", "not stated (paper 004 asks the question)",
                 f"{n} / {scenario.radio.comm_range:g} m / {scenario.radio.lossless_range:g} m", "",
                 "the scenario's setting", "input")
@@ -306,32 +287,61 @@ def _result(scenario: Scenario, experiment: Experiment, mode: str, outcomes: lis
     res.compare("seeds per mission and arm", "-", n_seeds, "", "start layout fixed; the seed draws targets, walks, "
                 "the PoI's direction and the simulated robots' noise", "input")
     for mission in missions:
-        c = COMPARISONS[mission]
-        (la, lb) = (arm.label for arm in c.arms)
-        a, b = summary[(mission, la)], summary[(mission, lb)]
-        pair = f"{la} / {lb}"
-        res.compare(f"{mission}: what differs between the arms", "-", c.kind, "", c.differs, "input")
-        res.compare(f"{mission}: connectivity kept, {pair}", "open question",
-                    f"{a['connected'][0]:.2f} / {b['connected'][0]:.2f}", "share",
-                    f"{la} {fmt_ci(*a['connected'])}, {lb} {fmt_ci(*b['connected'])}")
-        res.compare(f"{mission}: tasks completed, {pair}", "open question",
-                    f"{a['pooled'][0]:.2f} / {b['pooled'][0]:.2f}", "share",
-                    f"{la} {fmt_ci(*a['pooled'])}, {lb} {fmt_ci(*b['pooled'])} (Wilson)")
-        heard = {arm.label: (sum(o.reported for o in outcomes if o.mission == mission and o.arm == arm.label),
-                             sum(o.tasks for o in outcomes if o.mission == mission and o.arm == arm.label))
-                 for arm in c.arms}
-        res.compare(f"{mission}: successes the control node heard of, {pair}", "open question",
-                    f"{heard[la][0]}/{heard[la][1]} / {heard[lb][0]}/{heard[lb][1]}", "tasks",
-                    "task results that reached the control node")
-        res.compare(f"{mission}: time to complete, {pair}", "open question",
-                    f"{a['time'][0]:.0f} / {b['time'][0]:.0f}", "s",
-                    f"{la} {fmt_ci(*a['time'], 1)}, {lb} {fmt_ci(*b['time'], 1)}")
+        _mission_rows(res, mission, summary, outcomes)
     if any(COMPARISONS[m].kind == "guard" for m in missions):
         res.notes.append("guard on / guard off: the same team, tasks and seeds; only the mission's network_aware "
                          "setting differs (true: the guard with its policy hold; false: no guard)")
     res.notes.append(NO_WIDEP_SPLIT + "; widep-vs-goto, when run, compares two algorithms with the guard off in both")
     res.draw = lambda fig: _draw(fig, summary, missions, outcomes, netns)
     return res
+
+
+def _arm_metrics(res: Result, key: str, runs: list[Outcome]) -> dict[str, tuple[float, float, float]]:
+    """The metrics of one arm of one mission over its runs, a row per run; returns its summary (mean and
+    95 % interval of connectivity, completed share, pooled completions and time to complete)."""
+    conn = mean_ci([o.connected for o in runs], bounds=(0.0, 1.0))
+    share = mean_ci([o.completed / o.tasks for o in runs], bounds=(0.0, 1.0))
+    pooled = wilson(sum(o.completed for o in runs), sum(o.tasks for o in runs))
+    per_run_time = [float(np.mean(o.times)) for o in runs if o.times]
+    tcomp = mean_ci(per_run_time, bounds=(0.0, math.inf))
+    res.metrics[f"{key}: connectivity kept (share of time)"] = (fmt_ci(*conn), "mean [95 % CI]")
+    res.metrics[f"{key}: tasks completed"] = (
+        f"{sum(o.completed for o in runs)}/{sum(o.tasks for o in runs)} = {fmt_ci(*pooled)}", "Wilson 95 %")
+    res.metrics[f"{key}: tasks completed per run"] = (fmt_ci(*share), "share, mean [95 % CI]")
+    res.metrics[f"{key}: time to complete"] = (fmt_ci(*tcomp, 1), f"s, mean [95 % CI] over {len(per_run_time)} runs")
+    res.metrics[f"{key}: successes the control node heard of"] = (
+        f"{sum(o.reported for o in runs)}/{sum(o.tasks for o in runs)}", "tasks")
+    for o in runs:
+        res.robots[f"{o.mission}/{o.arm}/s{o.seed}"] = {
+            "connected": round(o.connected, 3), "completed": f"{o.completed}/{o.tasks}",
+            "time_s": round(float(np.mean(o.times)), 1) if o.times else "-",
+            "heard": f"{o.reported}/{o.tasks}", "length_s": round(o.length, 1)}
+    return {"connected": conn, "completed": share, "pooled": pooled, "time": tcomp}
+
+
+def _mission_rows(res: Result, mission: str, summary: dict[tuple[str, str], dict[str, tuple[float, float, float]]],
+                  outcomes: list[Outcome]) -> None:
+    """One mission's rows of the comparison: its two arms side by side."""
+    c = COMPARISONS[mission]
+    (la, lb) = (arm.label for arm in c.arms)
+    a, b = summary[(mission, la)], summary[(mission, lb)]
+    pair = f"{la} / {lb}"
+    res.compare(f"{mission}: what differs between the arms", "-", c.kind, "", c.differs, "input")
+    res.compare(f"{mission}: connectivity kept, {pair}", "open question",
+                f"{a['connected'][0]:.2f} / {b['connected'][0]:.2f}", "share",
+                f"{la} {fmt_ci(*a['connected'])}, {lb} {fmt_ci(*b['connected'])}")
+    res.compare(f"{mission}: tasks completed, {pair}", "open question",
+                f"{a['pooled'][0]:.2f} / {b['pooled'][0]:.2f}", "share",
+                f"{la} {fmt_ci(*a['pooled'])}, {lb} {fmt_ci(*b['pooled'])} (Wilson)")
+    heard = {arm.label: (sum(o.reported for o in outcomes if o.mission == mission and o.arm == arm.label),
+                         sum(o.tasks for o in outcomes if o.mission == mission and o.arm == arm.label))
+             for arm in c.arms}
+    res.compare(f"{mission}: successes the control node heard of, {pair}", "open question",
+                f"{heard[la][0]}/{heard[la][1]} / {heard[lb][0]}/{heard[lb][1]}", "tasks",
+                "task results that reached the control node")
+    res.compare(f"{mission}: time to complete, {pair}", "open question",
+                f"{a['time'][0]:.0f} / {b['time'][0]:.0f}", "s",
+                f"{la} {fmt_ci(*a['time'], 1)}, {lb} {fmt_ci(*b['time'], 1)}")
 
 
 def _draw(fig: Any, summary: dict[tuple[str, str], dict[str, tuple[float, float, float]]], missions: list[str],
@@ -345,22 +355,7 @@ def _draw(fig: Any, summary: dict[tuple[str, str], dict[str, tuple[float, float,
               "WiDep": "WiDep (guard off)", "straight goto": "straight goto to the PoI (guard off)"}
     for col, (key, title, top) in enumerate(panels):
         ax = fig.add_subplot(gs[0, col])
-        drawn: set[str] = set()
-        for i, mi in enumerate(missions):
-            for j, arm in enumerate(COMPARISONS[mi].arms):
-                x = i + (j - 0.5) * 0.36
-                m, lo, hi = summary[(mi, arm.label)][key]
-                err = [[max(0.0, m - lo) if math.isfinite(lo) else 0.0], [max(0.0, hi - m) if math.isfinite(hi) else 0.0]]
-                ax.bar([x], [m if math.isfinite(m) else 0.0], width=0.34, color=color(labels.index(arm.label)),
-                       alpha=0.75, yerr=err, capsize=4,
-                       label=None if arm.label in drawn else legend.get(arm.label, arm.label))
-                drawn.add(arm.label)
-                if key != "pooled":
-                    runs = [o for o in outcomes if o.mission == mi and o.arm == arm.label]
-                    vals = [o.connected for o in runs] if key == "connected" else \
-                        [float(np.mean(o.times)) for o in runs if o.times]
-                    ax.scatter(np.full(len(vals), x) + np.linspace(-0.1, 0.1, len(vals)), vals, s=8,
-                               color="black", alpha=0.6, zorder=3)
+        _draw_bars(ax, key, summary, missions, outcomes, labels, legend)
         ax.set_xticks(range(len(missions)), [m if COMPARISONS[m].kind == "guard" else f"{m}\n(two algorithms)"
                                              for m in missions])
         ax.set_title(title, fontsize=11)
@@ -376,3 +371,25 @@ def _draw(fig: Any, summary: dict[tuple[str, str], dict[str, tuple[float, float,
                  "(bars: mean, whiskers: 95 % CI, dots: runs)\n"
                  "WiDep is no arm pair of the guard (the guard holds remote motion jobs only, never a deployment's "
                  f"moves){widep}", fontsize=10.5)
+
+
+def _draw_bars(ax: Any, key: str, summary: dict[tuple[str, str], dict[str, tuple[float, float, float]]],
+               missions: list[str], outcomes: list[Outcome], labels: list[str], legend: dict[str, str]) -> None:
+    """One panel's bars: each arm of each mission, its mean and 95 % interval of `key`, and (but for the
+    pooled share) a dot per run."""
+    drawn: set[str] = set()
+    for i, mi in enumerate(missions):
+        for j, arm in enumerate(COMPARISONS[mi].arms):
+            x = i + (j - 0.5) * 0.36
+            m, lo, hi = summary[(mi, arm.label)][key]
+            err = [[max(0.0, m - lo) if math.isfinite(lo) else 0.0], [max(0.0, hi - m) if math.isfinite(hi) else 0.0]]
+            ax.bar([x], [m if math.isfinite(m) else 0.0], width=0.34, color=color(labels.index(arm.label)),
+                   alpha=0.75, yerr=err, capsize=4,
+                   label=None if arm.label in drawn else legend.get(arm.label, arm.label))
+            drawn.add(arm.label)
+            if key != "pooled":
+                runs = [o for o in outcomes if o.mission == mi and o.arm == arm.label]
+                vals = [o.connected for o in runs] if key == "connected" else \
+                    [float(np.mean(o.times)) for o in runs if o.times]
+                ax.scatter(np.full(len(vals), x) + np.linspace(-0.1, 0.1, len(vals)), vals, s=8,
+                           color="black", alpha=0.6, zorder=3)

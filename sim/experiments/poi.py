@@ -193,42 +193,65 @@ def _result(scenario: Scenario, experiment: Experiment, mode: str, runs: list[Ru
                      "others from MobiNet (SNMP); gotos over ARCOS; judged on the simulator's truth"
                      if mode == "agents" else
                      "WiDep rounds stepped in one process from one shared snapshot (the synchronous algorithm)")
-    ok = [r for r in runs if r.connected and math.isfinite(r.covered_at)]
     last = runs[-1]
     if len(runs) > 1:
-        share, lo, hi = wilson(len(ok), len(runs))
-        res.metrics["runs that covered the PoI, always connected to the base"] = (
-            f"{len(ok)} of {len(runs)}", f"(95 % CI of the share {lo:.2f}-{hi:.2f})")
-        res.metrics["runs that covered the PoI"] = (float(sum(math.isfinite(r.covered_at) for r in runs)), "runs")
-        res.metrics["runs always connected to the base"] = (float(sum(r.connected for r in runs)), "runs")
-        m, lo, hi = mean_ci([r.covered_at for r in runs])
-        res.metrics["time to cover the PoI, mean [95 % CI]"] = (fmt_ci(m, lo, hi, 1), "s")
-        for r in runs:
-            res.robots[f"seed {r.seed}"] = {
-                "covered_s": round(r.covered_at, 1), "min_reach": round(float(r.reach.min()), 2),
-                "closest_m": round(float(np.min(np.hypot(*(r.ps - poi).transpose(2, 0, 1)))), 2),
-                **({"ended": "; ".join(sorted(set(o.split(":")[0] for o in r.outcomes.values())))}
-                   if r.outcomes else {})}
-            res.series[f"seed{r.seed}/connected_to_base"] = (list(r.ts), list(r.reach), "share")
-        covered_txt = f"{len(ok)} of {len(runs)} runs"
+        covered_txt = _seeds_metrics(res, runs, poi)
     else:
-        r = last
-        res.metrics["PoI covered at"] = (r.covered_at, "s")
-        if r.rounds is not None:
-            res.metrics["WiDep rounds"] = (float(r.rounds), "rounds")
-        res.metrics["connected to the base the whole run"] = (float(r.connected), "yes=1")
-        res.metrics["lowest share connected to the base"] = (float(r.reach.min()), "share")
-        res.metrics["closest approach to the obstacle surface"] = (_clearance(r.ps, obstacles), "m")
-        for i, name in enumerate(names):
-            res.robots[name] = {"distance_m": round(paper_energy.track_energy(r.ts, r.ps[:, i, 0], r.ps[:, i, 1])[1], 2),
-                                "energy_j": round(r.energy[name], 1),
-                                "from_base_m": round(float(np.hypot(*(r.ps[-1, i] - base))), 2)}
-            if r.outcomes:
-                res.robots[name]["task"] = r.outcomes[name][:60]
-        covered_txt = f"at {r.covered_at:.0f} s" if math.isfinite(r.covered_at) else "no"
+        covered_txt = _one_run_metrics(res, last, names, base, obstacles)
     for r in runs:
         res.series[f"seed{r.seed}/distance_to_poi"] = (
             list(r.ts), list(np.min(np.hypot(*(r.ps - poi).transpose(2, 0, 1)), axis=1)), "m")
+    _compare(res, runs, names, p, base, covered_txt, mode)
+    res.notes.append("paper 000 gives no time or energy numbers for this run; its Figure 5 shows the "
+                     "trajectories and Figure 11 the energy by position")
+    if len(runs) == 1 and not math.isfinite(last.covered_at):
+        res.notes.append(f"the PoI was not covered within {scenario.duration or 300.0:g} s")
+    res.draw = lambda fig: _draw(fig, scenario, names, runs, base, poi, p["range"], res, mode)
+    return res
+
+
+def _seeds_metrics(res: Result, runs: list[Run], poi: NDArray[np.float64]) -> str:
+    """The metrics of runs over several seeds, a row per seed; returns how many covered, as text."""
+    ok = [r for r in runs if r.connected and math.isfinite(r.covered_at)]
+    share, lo, hi = wilson(len(ok), len(runs))
+    res.metrics["runs that covered the PoI, always connected to the base"] = (
+        f"{len(ok)} of {len(runs)}", f"(95 % CI of the share {lo:.2f}-{hi:.2f})")
+    res.metrics["runs that covered the PoI"] = (float(sum(math.isfinite(r.covered_at) for r in runs)), "runs")
+    res.metrics["runs always connected to the base"] = (float(sum(r.connected for r in runs)), "runs")
+    m, lo, hi = mean_ci([r.covered_at for r in runs])
+    res.metrics["time to cover the PoI, mean [95 % CI]"] = (fmt_ci(m, lo, hi, 1), "s")
+    for r in runs:
+        res.robots[f"seed {r.seed}"] = {
+            "covered_s": round(r.covered_at, 1), "min_reach": round(float(r.reach.min()), 2),
+            "closest_m": round(float(np.min(np.hypot(*(r.ps - poi).transpose(2, 0, 1)))), 2),
+            **({"ended": "; ".join(sorted(set(o.split(":")[0] for o in r.outcomes.values())))}
+               if r.outcomes else {})}
+        res.series[f"seed{r.seed}/connected_to_base"] = (list(r.ts), list(r.reach), "share")
+    return f"{len(ok)} of {len(runs)} runs"
+
+
+def _one_run_metrics(res: Result, r: Run, names: list[str], base: NDArray[np.float64],
+                     obstacles: NDArray[np.float64]) -> str:
+    """The metrics of one run, a row per robot; returns when the PoI was covered, as text."""
+    res.metrics["PoI covered at"] = (r.covered_at, "s")
+    if r.rounds is not None:
+        res.metrics["WiDep rounds"] = (float(r.rounds), "rounds")
+    res.metrics["connected to the base the whole run"] = (float(r.connected), "yes=1")
+    res.metrics["lowest share connected to the base"] = (float(r.reach.min()), "share")
+    res.metrics["closest approach to the obstacle surface"] = (_clearance(r.ps, obstacles), "m")
+    for i, name in enumerate(names):
+        res.robots[name] = {"distance_m": round(paper_energy.track_energy(r.ts, r.ps[:, i, 0], r.ps[:, i, 1])[1], 2),
+                            "energy_j": round(r.energy[name], 1),
+                            "from_base_m": round(float(np.hypot(*(r.ps[-1, i] - base))), 2)}
+        if r.outcomes:
+            res.robots[name]["task"] = r.outcomes[name][:60]
+    return f"at {r.covered_at:.0f} s" if math.isfinite(r.covered_at) else "no"
+
+
+def _compare(res: Result, runs: list[Run], names: list[str], p: dict[str, Any], base: NDArray[np.float64],
+             covered_txt: str, mode: str) -> None:
+    """The paper's statements beside ours: settings, coverage, connectivity, time, energy by position."""
+    last = runs[-1]
     energy_note = ("each agent's own meter: its odometry poses through paper 000's model"
                    if mode == "agents" else "paper 000's model on each simulated track")
     res.compare("robots / communication range R", "3 / 4.5 m", f"{len(names)} / {p['range']:g} m", "",
@@ -247,12 +270,6 @@ def _result(scenario: Scenario, experiment: Experiment, mode: str, runs: list[Ru
         rho = _spearman(order, [last.energy[n] for n in names])
         res.compare("energy grows with distance from the base", "yes (Figure 11)", f"rank corr. {rho:.2f}", "",
                     energy_note)
-    res.notes.append("paper 000 gives no time or energy numbers for this run; its Figure 5 shows the "
-                     "trajectories and Figure 11 the energy by position")
-    if len(runs) == 1 and not math.isfinite(last.covered_at):
-        res.notes.append(f"the PoI was not covered within {scenario.duration or 300.0:g} s")
-    res.draw = lambda fig: _draw(fig, scenario, names, runs, base, poi, p["range"], res, mode)
-    return res
 
 
 def _spearman(a: list[float], b: list[float]) -> float:
@@ -276,7 +293,22 @@ def _clearance(ps: NDArray[np.float64], obstacles: NDArray[np.float64]) -> float
 def _draw(fig: Any, scenario: Scenario, names: list[str], runs: list[Run], base: NDArray[np.float64],
           poi: NDArray[np.float64], R: float, res: Result, mode: str) -> None:
     gs = fig.add_gridspec(2, 2, width_ratios=[1.0, 1.1])
-    ax = fig.add_subplot(gs[:, 0])
+    _draw_map(fig.add_subplot(gs[:, 0]), scenario, names, runs, base, poi, R)
+    _draw_distance(fig.add_subplot(gs[0, 1]), scenario, runs, res)
+    ax = fig.add_subplot(gs[1, 1])
+    if len(runs) > 1:
+        for k, r in enumerate(runs):
+            ax.plot(r.ts, r.reach * 100, color=color(k), lw=1.0)
+        time_axes(ax, "Robots connected to the base, every run", "robots connected to the base (%)")
+        ax.set_ylim(0, 110)
+    else:
+        _draw_energy(ax, names, res, mode)
+    fig.suptitle(f"{scenario.title} ({mode} mode)", fontsize=13)
+
+
+def _draw_map(ax: Any, scenario: Scenario, names: list[str], runs: list[Run], base: NDArray[np.float64],
+              poi: NDArray[np.float64], R: float) -> None:
+    """The trajectories on the world, the base and the PoI; for one run, the ranges and links at the end."""
     draw_world(ax, scenario.world)
     many = len(runs) > 1
     last = runs[-1]
@@ -308,7 +340,11 @@ def _draw(fig: Any, scenario: Scenario, names: list[str], runs: list[Run], base:
     map_axes(ax, f"Trajectories of {len(runs)} runs (seeds {runs[0].seed}-{last.seed})" if many
              else "Trajectories (WiDep, one obstacle)")
     ax.legend(loc="upper left", fontsize=7.5, framealpha=0.92)
-    ax = fig.add_subplot(gs[0, 1])
+
+
+def _draw_distance(ax: Any, scenario: Scenario, runs: list[Run], res: Result) -> None:
+    """The closest robot's distance to the PoI over time, each run."""
+    many = len(runs) > 1
     for k, r in enumerate(runs):
         t, d, _ = res.series[f"seed{r.seed}/distance_to_poi"]
         ax.plot(t, d, color=color(k) if many else color(0), lw=1.0 if many else 1.5,
@@ -318,25 +354,21 @@ def _draw(fig: Any, scenario: Scenario, names: list[str], runs: list[Run], base:
     ax.axhline(_params(scenario)["tolerance"], color="#e6a100", ls=":", lw=1, label="covered within")
     time_axes(ax, "Closest robot to the PoI over time", "distance to the PoI (m)")
     ax.legend(loc="upper right", fontsize=7, ncol=2 if many else 1)
-    ax = fig.add_subplot(gs[1, 1])
-    if many:
-        for k, r in enumerate(runs):
-            ax.plot(r.ts, r.reach * 100, color=color(k), lw=1.0)
-        time_axes(ax, "Robots connected to the base, every run", "robots connected to the base (%)")
-        ax.set_ylim(0, 110)
-    else:
-        order = sorted(range(len(names)), key=lambda i: float(res.robots[names[i]]["from_base_m"]))
-        xs = np.arange(len(order))
-        vals = [float(res.robots[names[i]]["energy_j"]) for i in order]
-        ax.bar(xs, vals, color=[color(i) for i in order])
-        for x, v in zip(xs, vals):
-            ax.text(x, v, f"{v:.0f} J", ha="center", va="bottom", fontsize=9)
-        ax.set_xticks(xs, [f"{names[i]}\n{res.robots[names[i]]['from_base_m']} m" for i in order])
-        ax.set_xlabel("robot, and its final distance from the base station")
-        ax.set_ylabel("energy (J)")
-        ax.set_title("Energy by robot position: " + ("each agent's meter on its own odometry (paper 000's model)"
-                                                     if mode == "agents" else "paper 000's model on each track"),
-                     fontsize=10)
-        ax.grid(True, axis="y", color="#e0e0e0", lw=0.6)
-        ax.set_ylim(0, max(vals) * 1.18 if vals and max(vals) > 0 else 1)
-    fig.suptitle(f"{scenario.title} ({mode} mode)", fontsize=13)
+
+
+def _draw_energy(ax: Any, names: list[str], res: Result, mode: str) -> None:
+    """One run's energy by robot, in the order of their final distance from the base."""
+    order = sorted(range(len(names)), key=lambda i: float(res.robots[names[i]]["from_base_m"]))
+    xs = np.arange(len(order))
+    vals = [float(res.robots[names[i]]["energy_j"]) for i in order]
+    ax.bar(xs, vals, color=[color(i) for i in order])
+    for x, v in zip(xs, vals):
+        ax.text(x, v, f"{v:.0f} J", ha="center", va="bottom", fontsize=9)
+    ax.set_xticks(xs, [f"{names[i]}\n{res.robots[names[i]]['from_base_m']} m" for i in order])
+    ax.set_xlabel("robot, and its final distance from the base station")
+    ax.set_ylabel("energy (J)")
+    ax.set_title("Energy by robot position: " + ("each agent's meter on its own odometry (paper 000's model)"
+                                                 if mode == "agents" else "paper 000's model on each track"),
+                 fontsize=10)
+    ax.grid(True, axis="y", color="#e0e0e0", lw=0.6)
+    ax.set_ylim(0, max(vals) * 1.18 if vals and max(vals) > 0 else 1)

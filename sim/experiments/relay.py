@@ -95,19 +95,7 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode:
     last = np.array(qualities[-1]) if qualities else np.full((n, 2), np.nan)
     res.metrics["weakest link quality at the end"] = (float(np.nanmin(last)) if np.isfinite(last).any()
                                                      else math.nan, "delivery ratio")
-    for i, name in enumerate(names):
-        res.robots[name] = {"slot_m": round(float(slot_along[i]), 2), "final_m": round(float(a[-1, i]), 2),
-                            "q_prev": round(float(last[i, 0]), 2), "q_next": round(float(last[i, 1]), 2)}
-        if outcomes:
-            res.robots[name]["task"] = outcomes[name][:50]
-        res.series[f"{name}/position_along"] = (list(np.arange(len(a)) * period), list(a[:, i]), "m")
-        if qualities:
-            q = np.array(qualities, dtype=float).reshape(-1, n, 2)
-            # kinematic: measured at the start of decision k; agents: the relay's report by its end
-            ts = list((np.arange(len(q)) + (mode == "agents")) * period)
-            before, after = (["S"] + names)[i], (names + ["D"])[i + 1]
-            res.series[f"{name}/link_quality_to_{before}"] = (ts, [float(v) for v in q[:, i, 0]], "delivery ratio")
-            res.series[f"{name}/link_quality_to_{after}"] = (ts, [float(v) for v in q[:, i, 1]], "delivery ratio")
+    _robot_rows(res, names, a, qualities, outcomes, slot_along, last, period, mode)
     start_gap = float(np.max(np.abs(a[0] - slot_along)))
     step = float(s.get("step", 1.0))
     res.compare("relays / S-D distance / decision period", "1-2 / <= 30 m / 16 s",
@@ -135,6 +123,26 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode:
                      f"{scenario.radio.lossless_range:g} m, falling linearly to 0 at R = {scenario.radio.comm_range:g} m")
     res.draw = lambda fig: _draw(fig, scenario, names, a, slot_along, length, qualities, period, mode)
     return res
+
+
+def _robot_rows(res: Result, names: list[str], a: NDArray[np.float64], qualities: list[list[tuple[float, float]]],
+                outcomes: dict[str, str], slot_along: NDArray[np.float64], last: NDArray[np.float64], period: float,
+                mode: str) -> None:
+    """Each relay's row (its slot, where it ended, its last link qualities) and its series over the decisions."""
+    n = len(names)
+    for i, name in enumerate(names):
+        res.robots[name] = {"slot_m": round(float(slot_along[i]), 2), "final_m": round(float(a[-1, i]), 2),
+                            "q_prev": round(float(last[i, 0]), 2), "q_next": round(float(last[i, 1]), 2)}
+        if outcomes:
+            res.robots[name]["task"] = outcomes[name][:50]
+        res.series[f"{name}/position_along"] = (list(np.arange(len(a)) * period), list(a[:, i]), "m")
+        if qualities:
+            q = np.array(qualities, dtype=float).reshape(-1, n, 2)
+            # kinematic: measured at the start of decision k; agents: the relay's report by its end
+            ts = list((np.arange(len(q)) + (mode == "agents")) * period)
+            before, after = (["S"] + names)[i], (names + ["D"])[i + 1]
+            res.series[f"{name}/link_quality_to_{before}"] = (ts, [float(v) for v in q[:, i, 0]], "delivery ratio")
+            res.series[f"{name}/link_quality_to_{after}"] = (ts, [float(v) for v in q[:, i, 1]], "delivery ratio")
 
 
 def _agents(scenario: Scenario, progress: Progress, src: NDArray[np.float64], dst: NDArray[np.float64],

@@ -232,15 +232,20 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode:
                         _kinematic(scenario, progress, v, label))
         over_seeds.append(runs)
     scenario, runs = (_agent_team(base) if mode == "agents" else base), over_seeds[0]
-    sweep: list[tuple[float, Run]] = []
-    if mode == "kinematic":
-        ranges = [float(r) for r in scenario.strategy.get("range_sweep", [])]
-        for k, (r, v) in enumerate((r, v) for r in ranges for v in ("holonomic/physical", "nonholonomic/physical")):
-            data = scenario.model_dump()
-            data["strategy"] = {**scenario.strategy, "range": r}
-            sweep.append((r, _kinematic(type(scenario).model_validate(data), progress, v,
-                                        f"{v}, range {r:g} m ({k + 1}/{2 * len(ranges)})")))
+    sweep = _range_sweep(scenario, progress) if mode == "kinematic" else []
     return _result(scenario, experiment, mode, runs, sweep, over_seeds if seeds > 1 else None)
+
+
+def _range_sweep(scenario: Scenario, progress: Progress) -> list[tuple[float, Run]]:
+    """The physical variants run again at each neighbourhood range R of `strategy.range_sweep`."""
+    sweep: list[tuple[float, Run]] = []
+    ranges = [float(r) for r in scenario.strategy.get("range_sweep", [])]
+    for k, (r, v) in enumerate((r, v) for r in ranges for v in ("holonomic/physical", "nonholonomic/physical")):
+        data = scenario.model_dump()
+        data["strategy"] = {**scenario.strategy, "range": r}
+        sweep.append((r, _kinematic(type(scenario).model_validate(data), progress, v,
+                                    f"{v}, range {r:g} m ({k + 1}/{2 * len(ranges)})")))
+    return sweep
 
 
 def _agent_team(scenario: Scenario) -> Scenario:
@@ -301,11 +306,8 @@ def _kinematic(scenario: Scenario, progress: Progress, variant: str, label: str)
     frozen: list[NDArray[np.intp]] | None = None
     on = off = damped = 0.0
     energy = [(0.0, 0.0, 0.0)]
-    before: set[tuple[int, int]] | None = None  # the links in effect the step before
-    earlier: NDArray[np.intp] | None = None  # ... and the kept triangulation then
-    changes: deque[Change] = deque()  # the last CHANGES_WINDOW s of them
-    reach = cfg.reach if cfg.reach is not None else scenario.radio.comm_range
-    sensing = cfg.sensing if cfg.sensing is not None else cfg.range
+    log = _ChangeLog(cfg.distance, cfg.reach if cfg.reach is not None else scenario.radio.comm_range, walls,
+                     cfg.sensing if cfg.sensing is not None else cfg.range)
     for k in range(steps):
         if frozen is None:
             nb = team_neighbourhoods(pos, cfg, memory)
@@ -315,17 +317,7 @@ def _kinematic(scenario: Scenario, progress: Progress, variant: str, label: str)
             nb = frozen
         new, th, vel, om = spread_step(pos, th, vel, om, cfg, circles, walls, memory, nb)
         now = set(memory.effective)  # the links in effect this step (leaving ones too)
-        if before is not None and now != before:
-            made, tri = _change_kinds(k * cfg.dt, now - before, before - now, pos, memory.triangles,
-                                      cfg.distance, reach, walls, sensing, earlier)
-            changes.extend(made)
-            if memory.triangles is None:  # the Delaunay triangulation changes only with the links
-                earlier = tri
-            while changes and changes[0].t < k * cfg.dt - CHANGES_WINDOW:
-                changes.popleft()
-        before = now
-        if memory.triangles is not None:
-            earlier = memory.triangles
+        log.update(k * cfg.dt, now, pos, memory.triangles)
         on, off = memory.switched_on, memory.switched_off  # a spring holds w (L - rest)^2 / 2 when switched
         stop = kinematic.blocked_by_walls(pos, new, walls)  # walls are solid: a robot stops at them
         pos = np.where(stop[:, None], pos, new)
@@ -349,15 +341,45 @@ def _kinematic(scenario: Scenario, progress: Progress, variant: str, label: str)
         else:
             still_since = None
     ts, ps, ths, sps = track.arrays()
-    window = [(t, e) for t, e in links if t >= links[-1][0] - hold - 1e-9] if links else []
-    churn = (sum(len(a ^ b) for (_, a), (_, b) in zip(window, window[1:])) / (window[-1][0] - window[0][0])
-             if len(window) > 1 else math.nan)
     f, _ = forces(pos, th, cfg, circles, walls)
     across = np.abs(f[:, 0] * np.sin(th) - f[:, 1] * np.cos(th))
     e = np.array(energy)
     end = float(ts[-1])
-    return Run(variant, ts, ps, ths, sps, converged, churn, float(np.hypot(f[:, 0], f[:, 1]).max()),
-               float(across.max()), e[:, 0], e[:, 1], e[:, 2], [c for c in changes if c.t >= end - CHANGES_WINDOW])
+    return Run(variant, ts, ps, ths, sps, converged, _churn(links, hold), float(np.hypot(f[:, 0], f[:, 1]).max()),
+               float(across.max()), e[:, 0], e[:, 1], e[:, 2],
+               [c for c in log.changes if c.t >= end - CHANGES_WINDOW])
+
+
+class _ChangeLog:
+    """The links made or broken over the last `CHANGES_WINDOW` s of a kinematic run, each of its kinds."""
+
+    def __init__(self, distance: float, reach: float, walls: NDArray[np.float64], sensing: float) -> None:
+        self.distance, self.reach, self.walls, self.sensing = distance, reach, walls, sensing
+        self.before: set[tuple[int, int]] | None = None  # the links in effect the step before
+        self.earlier: NDArray[np.intp] | None = None  # ... and the kept triangulation then
+        self.changes: deque[Change] = deque()  # the last CHANGES_WINDOW s of them
+
+    def update(self, t: float, now: set[tuple[int, int]], pos: NDArray[np.float64],
+               triangles: NDArray[np.intp] | None) -> None:
+        """Log the step at `t` whose links in effect are `now` (the team at `pos`, the kept triangulation)."""
+        if self.before is not None and now != self.before:
+            made, tri = _change_kinds(t, now - self.before, self.before - now, pos, triangles,
+                                      self.distance, self.reach, self.walls, self.sensing, self.earlier)
+            self.changes.extend(made)
+            if triangles is None:  # the Delaunay triangulation changes only with the links
+                self.earlier = tri
+            while self.changes and self.changes[0].t < t - CHANGES_WINDOW:
+                self.changes.popleft()
+        self.before = now
+        if triangles is not None:
+            self.earlier = triangles
+
+
+def _churn(links: list[tuple[float, set[tuple[int, int]]]], hold: float) -> float:
+    """Neighbourhood links made or broken per s over the last `hold` s of the samples (NaN: too few)."""
+    window = [(t, e) for t, e in links if t >= links[-1][0] - hold - 1e-9] if links else []
+    return (sum(len(a ^ b) for (_, a), (_, b) in zip(window, window[1:])) / (window[-1][0] - window[0][0])
+            if len(window) > 1 else math.nan)
 
 
 def _change_kinds(t: float, added: set[tuple[int, int]], removed: set[tuple[int, int]], pos: NDArray[np.float64],
@@ -499,19 +521,33 @@ def _pinned(pos: NDArray[np.float64], walls: NDArray[np.float64], within: float)
     return count
 
 
+@dataclass(frozen=True)
+class _Judge:
+    """What a spread run is measured against: the desired distance, the radio reach, the wall
+    pinning distance and the stillness the scenario asks for, and the walls."""
+
+    d: float
+    R: float
+    pinned_within: float
+    threshold: float
+    hold: float
+    radius: float
+    walls: NDArray[np.float64]
+
+    @classmethod
+    def of(cls, scenario: Scenario) -> _Judge:
+        s = scenario.strategy
+        return cls(float(s.get("distance", 5.0)), scenario.radio.comm_range, float(s.get("pinned", 0.5)),
+                   float(s.get("still_speed", 0.05)), float(s.get("hold", 10.0)), float(s.get("still_radius", 0.1)),
+                   _obstacles(scenario)[1])
+
+
 def _result(scenario: Scenario, experiment: Experiment, mode: str, runs: list[Run],
             sweep: list[tuple[float, Run]] | None = None, over_seeds: list[list[Run]] | None = None) -> Result:
     s = scenario.strategy
-    d = float(s.get("distance", 5.0))
-    R = scenario.radio.comm_range
-    pinned_within = float(s.get("pinned", 0.5))
-    threshold = float(s.get("still_speed", 0.05))
-    hold = float(s.get("hold", 10.0))
-    radius = float(s.get("still_radius", 0.1))
-    _, walls = _obstacles(scenario)
+    judge = _Judge.of(scenario)
     n = runs[0].pos.shape[1]
     res = Result(experiment.name, experiment.title, mode)
-    weight = s.get("obstacle_weight", "neighbourhood")
     res.mode_note = (f"{n} robot agent processes per variant, each given Deploy spread by the control node; "
                      "velocity commands over ARCOS from positions learned through MobiNet"
                      if mode == "agents" else
@@ -520,112 +556,15 @@ def _result(scenario: Scenario, experiment: Experiment, mode: str, runs: list[Ru
     finals = {}
     in_place: dict[str, float] = {}  # variant -> when a run that did not converge settled in place
     for r in runs:
-        v = r.variant
-        final = r.pos[-1]
-        k30 = int(np.argmin(np.abs(r.t - 30.0)))
-        nn = _nn(final)
-        finals[v] = nn
-        energies = [energy_model.track_energy(r.t, r.pos[:, i, 0], r.pos[:, i, 1])[0] for i in range(n)]
-        res.metrics[f"{v}: converged at (all slower than {threshold:g} m/s for {hold:g} s)"] = (r.converged, "s")
-        if not math.isfinite(r.converged):  # a converged run stops: its track may end before such a stretch
-            in_place[v] = _in_place(r.t, r.pos, radius, hold)
-            res.metrics[f"{v}: settled in place at (every robot within {radius:g} m for {hold:g} s)"] = (
-                in_place[v], "s")
-        res.metrics[f"{v}: mean NN distance at the end (d = {d:g})"] = (float(nn.mean()), "m")
-        res.metrics[f"{v}: smallest NN distance at the end"] = (float(nn.min()), "m")
-        res.metrics[f"{v}: mean NN distance at t = 30 s"] = (mean_nn_distance(r.pos[k30]), "m")
-        res.metrics[f"{v}: largest radio component at the end (R = {R:g} m)"] = (
-            kinematic.largest_share(final, R), "share")
-        if len(walls):
-            res.metrics[f"{v}: robots within {pinned_within:g} m of a wall at the end"] = (
-                float(_pinned(final, walls, pinned_within)), "robots")
-        res.metrics[f"{v}: run length"] = (float(r.t[-1]), "s")
-        if math.isfinite(r.churn):
-            res.metrics[f"{v}: neighbourhood links made or broken per s in the last {hold:g} s"] = (r.churn, "1/s")
-            res.metrics[f"{v}: largest move of a robot in the last {hold:g} s"] = (_moved(r, hold), "m")
-            res.metrics[f"{v}: largest unbalanced force at the end"] = (r.force, "N")
-            res.metrics[f"{v}: ... of it across the heading"] = (r.across, "N")
-        if r.switched_on is not None and r.switched_off is not None and r.damped is not None:
-            k = int(np.searchsorted(r.t, r.t[-1] - 100.0))  # the last 100 s (or the whole run)
-            last = f"{min(100.0, float(r.t[-1])):g} s"
-            res.metrics[f"{v}: spring energy switched on by neighbourhood changes, last {last}"] = (
-                float(r.switched_on[-1] - r.switched_on[k]), "J")
-            res.metrics[f"{v}: ... switched off"] = (float(r.switched_off[-1] - r.switched_off[k]), "J")
-            res.metrics[f"{v}: ... taken out by the damping"] = (float(r.damped[-1] - r.damped[k]), "J")
-        if r.changes:
-            _change_metrics(res, v, r.changes, float(r.t[-1]))
-        res.metrics[f"{v}: energy per robot, mean"] = (float(np.mean(energies)), "J")
-        stride = max(1, len(r.t) // 300)
-        res.series[f"{v}/mean_nn_distance"] = (list(r.t[::stride]), [mean_nn_distance(p) for p in r.pos[::stride]],
-                                               "m")
-        res.series[f"{v}/largest_component"] = (list(r.t[::stride]),
-                                                [kinematic.largest_share(p, R) for p in r.pos[::stride]], "share")
-        res.series[f"{v}/max_speed"] = (list(r.t[::stride]), list(r.speed[::stride].max(axis=1)), "m/s")
-        for i, e in enumerate(energies):
-            res.robots.setdefault(f"robot{i + 1}", {})[f"{v} energy_j"] = round(e, 2)
-    res.compare("robots / desired distance d / damping k / dt",
-                "120 (12 for paths) / 5 m / 2 / 0.2 s",
-                f"{n} / {d:g} m / {s.get('gain', 2.0):g} / {s.get('dt', 0.2):g} s", "", "the paper's setting", "input")
-    res.compare("physical neighbourhood range R", "not stated (sensing or radio range, d <= r_c)",
-                f"{s.get('range', 6.0):g}", "m", "the scenario's setting (about 1.2 d)", "input")
-    if len(walls):
-        res.compare("wall sensed within (sensing range)", "\"only when it is inside the sensing range\"",
-                    f"{s['sensing']:g}" if s.get("sensing") is not None else f"{s.get('range', 6.0):g} (R)", "m",
-                    "the scenario's setting", "input")
-        res.compare("wall: desired distance c, weight w", "c not stated, w = 1",
-                    f"{s.get('wall_distance', 2.5):g} m, "
-                    + ("neighbourhood size" if weight == "neighbourhood" else f"{float(weight):g}"), "",
-                    "the scenario's setting", "input")
-    corridor = len(walls) > 0
+        finals[r.variant] = _run_metrics(res, r, judge, in_place)
+    _input_rows(res, s, n, judge)
     for r in runs:
-        v = r.variant
-        k30 = int(np.argmin(np.abs(r.t - 30.0)))
-        still = (f"not by {r.t[-1]:.0f} s" + (f" ({r.churn:.2g} link changes/s)" if math.isfinite(r.churn) else "")
-                 + (f", in place from {in_place[v]:.0f} s" if math.isfinite(in_place.get(v, math.nan)) else ""))
-        ours = ((f"{r.converged:.0f} s" if math.isfinite(r.converged) else still)
-                + f"; {float(finals[v].mean()):.2f} ({float(finals[v].min()):.2f}) m; {mean_nn_distance(r.pos[k30]):.2f} m")
-        paper = PAPER_FIGURES.get(v)
-        fig_no = (f"; Fig. {6 if v.startswith('holonomic') else 7}, paths" if experiment.name == "spread-paths" else
-                  f"; Fig. {paper[1 if corridor else 0]} at 30 s" if paper else "")
-        res.compare(f"{_name(v)}" + (f", seed {scenario.seed} (drawn)" if over_seeds else "")
-                    + ": converged at; NN at the end (smallest); NN at 30 s", "converges" + fig_no, ours, "",
-                    f"all < {threshold:g} m/s for {hold:g} s"
-                    + (f"; in place: all within {radius:g} m for {hold:g} s" if v in in_place else "")
-                    + (f"; pinned to a wall: {_pinned(r.pos[-1], walls, pinned_within)}" if corridor else ""))
+        _variant_row(res, r, judge, finals[r.variant], in_place, experiment, scenario, bool(over_seeds))
     sweep = sweep or []
-    for r_range, r in sweep:
-        nn = _nn(r.pos[-1])
-        res.metrics[f"{r.variant}, R = {r_range:g} m: mean NN distance at the end"] = (float(nn.mean()), "m")
-        res.metrics[f"{r.variant}, R = {r_range:g} m: converged at"] = (r.converged, "s")
     if sweep:
-        text = "; ".join(
-            f"{r_range / d:.2g} d: " + " / ".join(f"{float(_nn(r.pos[-1]).mean()):.2f}"
-                                                   for q, r in sweep if q == r_range)
-            for r_range in dict.fromkeys(q for q, _ in sweep))
-        res.compare("mean NN distance against R (holonomic / nonholonomic, physical)", "not stated", text, "m",
-                    "each run to convergence; every robot within R pulls or pushes toward d")
-        for q, r in sweep:
-            if any(math.isclose(q, f * d) for f in (1.0, 1.2)):
-                k30 = int(np.argmin(np.abs(r.t - 30.0)))
-                res.metrics[f"{r.variant}, R = {q:g} m: mean NN distance at t = 30 s"] = (
-                    mean_nn_distance(r.pos[k30]), "m")
-        side = [(q, r) for q, r in sweep if any(math.isclose(q, f * d) for f in (1.0, 1.2))]
-
-        def at30(r: Run) -> float:
-            return mean_nn_distance(r.pos[int(np.argmin(np.abs(r.t - 30.0)))])
-
-        def both(q: float) -> str:
-            got = [r for q2, r in side if q2 == q]
-            when = " / ".join(f"{r.converged:.0f}" if math.isfinite(r.converged) else "-" for r in got)
-            return (f"R = {q / d:.2g} d: {when} s, NN " + " / ".join(f"{float(_nn(r.pos[-1]).mean()):.2f}" for r in got)
-                    + " m (" + " / ".join(f"{at30(r):.2f}" for r in got) + " at 30 s)")
-
-        if side:
-            res.compare("physical, R = d and 1.2 d (holonomic / nonholonomic): converged at; NN at the end (at 30 s)",
-                        "R not stated", "; ".join(both(q) for q in dict.fromkeys(q for q, _ in side)), "",
-                        "-: not settled by the end of the run")
+        _sweep_rows(res, sweep, judge.d)
     if over_seeds:
-        _seed_rows(res, over_seeds, threshold, hold, d, scenario.seed)
+        _seed_rows(res, over_seeds, judge.threshold, judge.hold, judge.d, scenario.seed)
     res.notes.append("paper 001 shows the teams at t = 30 s (Figs 2-5, 8-11) and the paths of 12 robots (Figs 6-7); "
                      "it gives no convergence times or distances")
     paths = experiment.name == "spread-paths"
@@ -636,6 +575,127 @@ def _result(scenario: Scenario, experiment: Experiment, mode: str, runs: list[Ru
     else:  # square maps side by side
         res.figure_height = 5.0
     return res
+
+
+def _run_metrics(res: Result, r: Run, judge: _Judge, in_place: dict[str, float]) -> NDArray[np.float64]:
+    """One variant's metrics, series and energies per robot; when it did not converge, when it settled
+    in place (into `in_place`). Returns the nearest-neighbour distances at the end."""
+    v, n, hold = r.variant, r.pos.shape[1], judge.hold
+    final = r.pos[-1]
+    k30 = int(np.argmin(np.abs(r.t - 30.0)))
+    nn = _nn(final)
+    energies = [energy_model.track_energy(r.t, r.pos[:, i, 0], r.pos[:, i, 1])[0] for i in range(n)]
+    res.metrics[f"{v}: converged at (all slower than {judge.threshold:g} m/s for {hold:g} s)"] = (r.converged, "s")
+    if not math.isfinite(r.converged):  # a converged run stops: its track may end before such a stretch
+        in_place[v] = _in_place(r.t, r.pos, judge.radius, hold)
+        res.metrics[f"{v}: settled in place at (every robot within {judge.radius:g} m for {hold:g} s)"] = (
+            in_place[v], "s")
+    res.metrics[f"{v}: mean NN distance at the end (d = {judge.d:g})"] = (float(nn.mean()), "m")
+    res.metrics[f"{v}: smallest NN distance at the end"] = (float(nn.min()), "m")
+    res.metrics[f"{v}: mean NN distance at t = 30 s"] = (mean_nn_distance(r.pos[k30]), "m")
+    res.metrics[f"{v}: largest radio component at the end (R = {judge.R:g} m)"] = (
+        kinematic.largest_share(final, judge.R), "share")
+    if len(judge.walls):
+        res.metrics[f"{v}: robots within {judge.pinned_within:g} m of a wall at the end"] = (
+            float(_pinned(final, judge.walls, judge.pinned_within)), "robots")
+    res.metrics[f"{v}: run length"] = (float(r.t[-1]), "s")
+    if math.isfinite(r.churn):
+        res.metrics[f"{v}: neighbourhood links made or broken per s in the last {hold:g} s"] = (r.churn, "1/s")
+        res.metrics[f"{v}: largest move of a robot in the last {hold:g} s"] = (_moved(r, hold), "m")
+        res.metrics[f"{v}: largest unbalanced force at the end"] = (r.force, "N")
+        res.metrics[f"{v}: ... of it across the heading"] = (r.across, "N")
+    if r.switched_on is not None and r.switched_off is not None and r.damped is not None:
+        k = int(np.searchsorted(r.t, r.t[-1] - 100.0))  # the last 100 s (or the whole run)
+        last = f"{min(100.0, float(r.t[-1])):g} s"
+        res.metrics[f"{v}: spring energy switched on by neighbourhood changes, last {last}"] = (
+            float(r.switched_on[-1] - r.switched_on[k]), "J")
+        res.metrics[f"{v}: ... switched off"] = (float(r.switched_off[-1] - r.switched_off[k]), "J")
+        res.metrics[f"{v}: ... taken out by the damping"] = (float(r.damped[-1] - r.damped[k]), "J")
+    if r.changes:
+        _change_metrics(res, v, r.changes, float(r.t[-1]))
+    res.metrics[f"{v}: energy per robot, mean"] = (float(np.mean(energies)), "J")
+    stride = max(1, len(r.t) // 300)
+    res.series[f"{v}/mean_nn_distance"] = (list(r.t[::stride]), [mean_nn_distance(p) for p in r.pos[::stride]],
+                                           "m")
+    res.series[f"{v}/largest_component"] = (list(r.t[::stride]),
+                                            [kinematic.largest_share(p, judge.R) for p in r.pos[::stride]], "share")
+    res.series[f"{v}/max_speed"] = (list(r.t[::stride]), list(r.speed[::stride].max(axis=1)), "m/s")
+    for i, e in enumerate(energies):
+        res.robots.setdefault(f"robot{i + 1}", {})[f"{v} energy_j"] = round(e, 2)
+    return nn
+
+
+def _input_rows(res: Result, s: dict[str, Any], n: int, judge: _Judge) -> None:
+    """The comparison's rows of settings: the paper's against the scenario's."""
+    weight = s.get("obstacle_weight", "neighbourhood")
+    res.compare("robots / desired distance d / damping k / dt",
+                "120 (12 for paths) / 5 m / 2 / 0.2 s",
+                f"{n} / {judge.d:g} m / {s.get('gain', 2.0):g} / {s.get('dt', 0.2):g} s", "", "the paper's setting",
+                "input")
+    res.compare("physical neighbourhood range R", "not stated (sensing or radio range, d <= r_c)",
+                f"{s.get('range', 6.0):g}", "m", "the scenario's setting (about 1.2 d)", "input")
+    if len(judge.walls):
+        res.compare("wall sensed within (sensing range)", "\"only when it is inside the sensing range\"",
+                    f"{s['sensing']:g}" if s.get("sensing") is not None else f"{s.get('range', 6.0):g} (R)", "m",
+                    "the scenario's setting", "input")
+        res.compare("wall: desired distance c, weight w", "c not stated, w = 1",
+                    f"{s.get('wall_distance', 2.5):g} m, "
+                    + ("neighbourhood size" if weight == "neighbourhood" else f"{float(weight):g}"), "",
+                    "the scenario's setting", "input")
+
+
+def _variant_row(res: Result, r: Run, judge: _Judge, final_nn: NDArray[np.float64], in_place: dict[str, float],
+                 experiment: Experiment, scenario: Scenario, seeded: bool) -> None:
+    """One variant's row of the comparison: when it converged (or why not), its distances, the paper's figure."""
+    v = r.variant
+    corridor = len(judge.walls) > 0
+    k30 = int(np.argmin(np.abs(r.t - 30.0)))
+    still = (f"not by {r.t[-1]:.0f} s" + (f" ({r.churn:.2g} link changes/s)" if math.isfinite(r.churn) else "")
+             + (f", in place from {in_place[v]:.0f} s" if math.isfinite(in_place.get(v, math.nan)) else ""))
+    ours = ((f"{r.converged:.0f} s" if math.isfinite(r.converged) else still)
+            + f"; {float(final_nn.mean()):.2f} ({float(final_nn.min()):.2f}) m; {mean_nn_distance(r.pos[k30]):.2f} m")
+    paper = PAPER_FIGURES.get(v)
+    fig_no = (f"; Fig. {6 if v.startswith('holonomic') else 7}, paths" if experiment.name == "spread-paths" else
+              f"; Fig. {paper[1 if corridor else 0]} at 30 s" if paper else "")
+    res.compare(f"{_name(v)}" + (f", seed {scenario.seed} (drawn)" if seeded else "")
+                + ": converged at; NN at the end (smallest); NN at 30 s", "converges" + fig_no, ours, "",
+                f"all < {judge.threshold:g} m/s for {judge.hold:g} s"
+                + (f"; in place: all within {judge.radius:g} m for {judge.hold:g} s" if v in in_place else "")
+                + (f"; pinned to a wall: {_pinned(r.pos[-1], judge.walls, judge.pinned_within)}" if corridor else ""))
+
+
+def _sweep_rows(res: Result, sweep: list[tuple[float, Run]], d: float) -> None:
+    """The metrics and comparison rows of the sweep over the neighbourhood range R."""
+    for r_range, r in sweep:
+        nn = _nn(r.pos[-1])
+        res.metrics[f"{r.variant}, R = {r_range:g} m: mean NN distance at the end"] = (float(nn.mean()), "m")
+        res.metrics[f"{r.variant}, R = {r_range:g} m: converged at"] = (r.converged, "s")
+    text = "; ".join(
+        f"{r_range / d:.2g} d: " + " / ".join(f"{float(_nn(r.pos[-1]).mean()):.2f}"
+                                               for q, r in sweep if q == r_range)
+        for r_range in dict.fromkeys(q for q, _ in sweep))
+    res.compare("mean NN distance against R (holonomic / nonholonomic, physical)", "not stated", text, "m",
+                "each run to convergence; every robot within R pulls or pushes toward d")
+    for q, r in sweep:
+        if any(math.isclose(q, f * d) for f in (1.0, 1.2)):
+            k30 = int(np.argmin(np.abs(r.t - 30.0)))
+            res.metrics[f"{r.variant}, R = {q:g} m: mean NN distance at t = 30 s"] = (
+                mean_nn_distance(r.pos[k30]), "m")
+    side = [(q, r) for q, r in sweep if any(math.isclose(q, f * d) for f in (1.0, 1.2))]
+
+    def at30(r: Run) -> float:
+        return mean_nn_distance(r.pos[int(np.argmin(np.abs(r.t - 30.0)))])
+
+    def both(q: float) -> str:
+        got = [r for q2, r in side if q2 == q]
+        when = " / ".join(f"{r.converged:.0f}" if math.isfinite(r.converged) else "-" for r in got)
+        return (f"R = {q / d:.2g} d: {when} s, NN " + " / ".join(f"{float(_nn(r.pos[-1]).mean()):.2f}" for r in got)
+                + " m (" + " / ".join(f"{at30(r):.2f}" for r in got) + " at 30 s)")
+
+    if side:
+        res.compare("physical, R = d and 1.2 d (holonomic / nonholonomic): converged at; NN at the end (at 30 s)",
+                    "R not stated", "; ".join(both(q) for q in dict.fromkeys(q for q, _ in side)), "",
+                    "-: not settled by the end of the run")
 
 
 def _seed_rows(res: Result, over_seeds: list[list[Run]], threshold: float, hold: float, d: float,

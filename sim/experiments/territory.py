@@ -21,6 +21,7 @@ the share of the territory visited within a sliding window over time.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -57,14 +58,47 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode:
         ts, ps, events, holds = _agents(scenario, progress, blocks, fail_at, duration)
     else:
         ts, ps, events, holds = _kinematic(scenario, progress, blocks, fail_at, duration)
+    alive_until = {i: fail_at.get(name, math.inf) for i, name in enumerate(names)}
+    coverage_t, coverage_v = _visited_in_window(ts, ps, territory, cell, window, alive_until)
+    res = Result(experiment.name, experiment.title, mode)
+    res.mode_note = ("six robot agent processes given Deploy patrol by the control node; heartbeats are Territory "
+                     "objects carried by the transport between robots; the failed robot's agent process is killed"
+                     if mode == "agents" else "takeover tables stepped in one process; heartbeats delivered "
+                     "to every robot the radio model connects")
+    res.series["team/territory_visited_in_window"] = (coverage_t, coverage_v, "share")
+    failed = [name for name in names if name in fail_at]
+    for name in failed:
+        _failure_metrics(res, name, fail_at[name], events)
+    first_failure = min(fail_at.values(), default=duration)
+    before = [v for t, v in zip(coverage_t, coverage_v) if t <= first_failure]
+    res.metrics["territory visited within the window, before failure"] = (max(before) if before else math.nan, "share")
+    res.metrics["territory visited within the window, at the end"] = (coverage_v[-1], "share")
+    res.metrics["territory visited within the window, lowest after failure"] = (
+        min((v for t, v in zip(coverage_t, coverage_v) if t > first_failure), default=math.nan), "share")
+    for i, name in enumerate(names):
+        dist = paper_energy.track_energy(ts, ps[:, i, 0], ps[:, i, 1])[1]
+        res.robots[name] = {"block": i + 1, "distance_m": round(dist, 1), "holds": holds.get(name, 0)}
+    _compare(res, failed, events, heartbeat=heartbeat, silence=silence, base=base, mode=mode)
+    res.notes.append(f"window for 'visited': the last {window:g} s")
+    res.notes.append("paper 002's Table II round trips are measured by `erni experiment roundtrip`")
+    res.draw = lambda fig: _draw(fig, scenario, names, blocks, ps, ts, events, res, fail_at, duration, window, mode)
+    return res
+
+
+Event = tuple[float, str, str, str]  # t, robot, kind, about
+
+
+def _visited_in_window(ts: NDArray[np.float64], ps: NDArray[np.float64], territory: patrol.Block, cell: float,
+                       window: float, alive_until: dict[int, float]) -> tuple[list[float], list[float]]:
+    """The share of the territory's cells some live robot was in or next to within the last `window`
+    seconds, every fifth sample: times and shares."""
     xs = np.arange(territory[0] + cell / 2, territory[2], cell)
     ys = np.arange(territory[1] + cell / 2, territory[3], cell)
     last_visit = np.full((len(ys), len(xs)), -math.inf)
     coverage_t: list[float] = []
     coverage_v: list[float] = []
-    alive_until = {i: fail_at.get(name, math.inf) for i, name in enumerate(names)}
     for k, t in enumerate(ts):
-        for i in range(n):
+        for i in range(len(alive_until)):
             if t > alive_until[i]:
                 continue
             cx = int((ps[k, i, 0] - territory[0]) / cell)
@@ -75,34 +109,26 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode:
         if k % 5 == 0:
             coverage_t.append(float(t))
             coverage_v.append(float((last_visit >= t - window).mean()))
-    res = Result(experiment.name, experiment.title, mode)
-    res.mode_note = ("six robot agent processes given Deploy patrol by the control node; heartbeats are Territory "
-                     "objects carried by the transport between robots; the failed robot's agent process is killed"
-                     if mode == "agents" else "takeover tables stepped in one process; heartbeats delivered "
-                     "to every robot the radio model connects")
-    res.series["team/territory_visited_in_window"] = (coverage_t, coverage_v, "share")
-    failed = [name for name in names if name in fail_at]
-    for name in failed:
-        t_fail = fail_at[name]
-        silent = [e for e in events if e[2] == "silent" and e[3] == name]
-        claims = [e for e in events if e[2] == "claim" and e[3] == name]
-        yields = [e for e in events if e[2] == "yield" and e[3] == name]
-        res.metrics[f"{name}: fails at"] = (t_fail, "s")
-        res.metrics[f"{name}: first detection after the failure"] = (
-            (min(e[0] for e in silent) - t_fail) if silent else math.nan, "s")
-        res.metrics[f"{name}: takeover after the failure"] = ((claims[0][0] - t_fail) if claims else math.nan, "s")
-        res.metrics[f"{name}: claims made (1 is right)"] = (float(len(claims)), "claims")
-        res.metrics[f"{name}: neighbours that yielded"] = (float(len(yields)), "robots")
-        res.metrics[f"{name}: block taken over by"] = (claims[0][1] if claims else "nobody", "")
-    before = [v for t, v in zip(coverage_t, coverage_v) if t <= min(fail_at.values(), default=duration)]
-    res.metrics["territory visited within the window, before failure"] = (max(before) if before else math.nan, "share")
-    res.metrics["territory visited within the window, at the end"] = (coverage_v[-1], "share")
-    res.metrics["territory visited within the window, lowest after failure"] = (
-        min((v for t, v in zip(coverage_t, coverage_v) if t > min(fail_at.values(), default=duration)),
-            default=math.nan), "share")
-    for i, name in enumerate(names):
-        dist = paper_energy.track_energy(ts, ps[:, i, 0], ps[:, i, 1])[1]
-        res.robots[name] = {"block": i + 1, "distance_m": round(dist, 1), "holds": holds.get(name, 0)}
+    return coverage_t, coverage_v
+
+
+def _failure_metrics(res: Result, name: str, t_fail: float, events: list[Event]) -> None:
+    """The metrics of one failed robot: when it failed, when it was found silent, who claimed its block."""
+    silent = [e for e in events if e[2] == "silent" and e[3] == name]
+    claims = [e for e in events if e[2] == "claim" and e[3] == name]
+    yields = [e for e in events if e[2] == "yield" and e[3] == name]
+    res.metrics[f"{name}: fails at"] = (t_fail, "s")
+    res.metrics[f"{name}: first detection after the failure"] = (
+        (min(e[0] for e in silent) - t_fail) if silent else math.nan, "s")
+    res.metrics[f"{name}: takeover after the failure"] = ((claims[0][0] - t_fail) if claims else math.nan, "s")
+    res.metrics[f"{name}: claims made (1 is right)"] = (float(len(claims)), "claims")
+    res.metrics[f"{name}: neighbours that yielded"] = (float(len(yields)), "robots")
+    res.metrics[f"{name}: block taken over by"] = (claims[0][1] if claims else "nobody", "")
+
+
+def _compare(res: Result, failed: list[str], events: list[Event], *, heartbeat: float, silence: float,
+             base: float, mode: str) -> None:
+    """The paper's statements beside ours: settings, detection, the one claim, the neighbour that took over."""
     claims_all = [e for e in events if e[2] == "claim"]
     detect = [res.metrics[f"{name}: first detection after the failure"][0] for name in failed]
     takeover = [res.metrics[f"{name}: takeover after the failure"][0] for name in failed]
@@ -121,13 +147,6 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode:
                 ", ".join(str(res.metrics[f"{name}: block taken over by"][0]) for name in failed) or "-", "",
                 "the robot whose claim stood, and the time from the failure: "
                 + ", ".join(f"{t:.1f} s" for t in takeover if isinstance(t, float)))
-    res.notes.append(f"window for 'visited': the last {window:g} s")
-    res.notes.append("paper 002's Table II round trips are measured by `erni experiment roundtrip`")
-    res.draw = lambda fig: _draw(fig, scenario, names, blocks, ps, ts, events, res, fail_at, duration, window, mode)
-    return res
-
-
-Event = tuple[float, str, str, str]  # t, robot, kind, about
 
 
 def _agents(scenario: Scenario, progress: Progress, blocks: list[patrol.Block], fail_at: dict[str, float],
@@ -208,40 +227,61 @@ def _kinematic(scenario: Scenario, progress: Progress, blocks: list[patrol.Block
     track.add(0.0, pos, th, np.zeros(n))
     next_beat = 0.0
     steps = int(round(duration / dt))
+
+    def reroute(i: int) -> None:
+        _reroute(routes, waypoint, i, tables[i], blocks, names, spacing)
+
     for k in range(steps):
         t = (k + 1) * dt
-        for i, name in enumerate(names):
-            if alive[i] and name in fail_at and t >= fail_at[name]:
-                alive[i] = False
-                events.append((t, name, "fails", name))
+        _fail_due(t, names, alive, fail_at, events)
         if t >= next_beat:
             next_beat += heartbeat
-            comps = kinematic.components(pos[alive], R)
             idx = np.flatnonzero(alive)
-            for comp in comps:
-                members = [int(idx[c]) for c in comp]
-                for i in members:
-                    beat = tables[i].heartbeat()
-                    for j in members:
-                        if j != i:
-                            for ev in tables[j].heard(names[i], blocks[i], t, tuple(beat["holds"]), beat["claims"]):
-                                events.append((t, names[j], ev.kind, ev.about))
-                                _reroute(routes, waypoint, j, tables[j], blocks, names, spacing)
+            for comp in kinematic.components(pos[alive], R):
+                _exchange_beats(t, [int(idx[c]) for c in comp], tables, names, blocks, events, reroute)
         for i in np.flatnonzero(alive).tolist():
             for ev in tables[i].tick(t):
                 events.append((t, names[i], ev.kind, ev.about))
                 if ev.kind in ("claim", "yield", "return"):
-                    _reroute(routes, waypoint, i, tables[i], blocks, names, spacing)
+                    reroute(i)
         targets = np.array([routes[i][waypoint[i]] for i in range(n)])
         pos, th, sp = kinematic.drive(pos, th, targets, dt, speed, moving=alive)
-        for i in range(n):
-            if alive[i] and math.hypot(*(pos[i] - targets[i])) < 0.15:
-                waypoint[i] = (waypoint[i] + 1) % len(routes[i])
+        _next_waypoints(pos, targets, alive, waypoint, routes)
         track.add(t, pos, th, sp)
         if k % 5 == 0:
             progress("patrolling", round(t), round(duration))
     ts, ps, _th, _speed = track.arrays()
     return ts, ps, events, {names[i]: len(tables[i].holds) for i in range(n)}
+
+
+def _fail_due(t: float, names: list[str], alive: NDArray[np.bool_], fail_at: dict[str, float],
+              events: list[Event]) -> None:
+    """The robots whose failure time has come stop (logged in `events`)."""
+    for i, name in enumerate(names):
+        if alive[i] and name in fail_at and t >= fail_at[name]:
+            alive[i] = False
+            events.append((t, name, "fails", name))
+
+
+def _next_waypoints(pos: NDArray[np.float64], targets: NDArray[np.float64], alive: NDArray[np.bool_],
+                    waypoint: list[int], routes: list[list[NDArray[np.float64]]]) -> None:
+    """A live robot at its waypoint heads for the next one of its route (round and round)."""
+    for i in range(len(waypoint)):
+        if alive[i] and math.hypot(*(pos[i] - targets[i])) < 0.15:
+            waypoint[i] = (waypoint[i] + 1) % len(routes[i])
+
+
+def _exchange_beats(t: float, members: list[int], tables: list[patrol.TakeoverTable], names: list[str],
+                    blocks: list[patrol.Block], events: list[Event], reroute: Callable[[int], None]) -> None:
+    """Every member of one connected group hears every other's heartbeat; a robot whose table decides
+    something (logged in `events`) is rerouted."""
+    for i in members:
+        beat = tables[i].heartbeat()
+        for j in members:
+            if j != i:
+                for ev in tables[j].heard(names[i], blocks[i], t, tuple(beat["holds"]), beat["claims"]):
+                    events.append((t, names[j], ev.kind, ev.about))
+                    reroute(j)
 
 
 def _reroute(routes: list[list[NDArray[np.float64]]], waypoint: list[int], i: int, table: patrol.TakeoverTable,

@@ -73,7 +73,7 @@ def test_a_bad_robot_config_is_one_line_from_the_child_and_nothing_is_left(tmp_p
 
 
 LAUNCHER = """
-import sys, time
+import signal, sys
 from pathlib import Path
 from erni.sim.host_process import HostProcess
 from erni.sim.robot import SimRobotConfig
@@ -82,7 +82,7 @@ host = HostProcess(World(), physics_hz=20.0)
 host.add_robot(SimRobotConfig(name="r0"))
 host.start(Path(sys.argv[1]) / "robots.state", Path(sys.argv[1]) / "robots.log")
 print(host.pid, flush=True)
-time.sleep(60)
+signal.pause()  # until the test kills it
 """
 
 

@@ -8,6 +8,7 @@ import threading
 import time
 
 from erni.blackboard import Task
+from erni.blackboard.testing import wait_until
 from erni.plugins.motion.driver import RobotState
 from erni.plugins.motion.resource import RobotMotionResource
 from erni.plugins.motion.robots import resolve_model
@@ -49,12 +50,12 @@ def sip(seq: int, v: float) -> RobotState:
 
 
 def wait(condition, timeout: float = 5.0) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if condition():
-            return True
-        time.sleep(0.005)
-    return condition()
+    """Whether `condition()` came true within `timeout` s."""
+    try:
+        wait_until(condition, timeout)
+    except AssertionError:
+        return bool(condition())
+    return True
 
 
 def test_the_stack_cycles_on_the_sip_after_a_task_though_its_rate_would_wait():

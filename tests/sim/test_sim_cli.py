@@ -8,7 +8,6 @@ import socket
 import subprocess
 import sys
 import threading
-import time
 from pathlib import Path
 
 import pytest
@@ -42,23 +41,30 @@ class SimProcess:
             cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True,
             env={**os.environ, "PYTHONUNBUFFERED": "1"})
         self.lines: list[str] = []
+        self._heard = threading.Condition()  # notified on every line and at the end of the output
+        self._ended = False
         self._reader = threading.Thread(target=self._read, name="sim-cli-reader", daemon=True)
         self._reader.start()
 
     def _read(self) -> None:
         assert self.proc.stdout is not None
         for line in self.proc.stdout:
-            self.lines.append(line.rstrip("\n"))
+            with self._heard:
+                self.lines.append(line.rstrip("\n"))
+                self._heard.notify_all()
+        with self._heard:
+            self._ended = True
+            self._heard.notify_all()
 
     def wait_for(self, text: str, timeout: float) -> str:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            for line in self.lines:
-                if text in line:
-                    return line
-            if self.proc.poll() is not None and not self._reader.is_alive():
-                break
-            time.sleep(0.05)
+        def found() -> str | None:
+            return next((line for line in self.lines if text in line), None)
+
+        with self._heard:
+            self._heard.wait_for(lambda: found() is not None or self._ended, timeout)
+            line = found()
+        if line is not None:
+            return line
         raise AssertionError(f"no line with {text!r} within {timeout} s; output:\n" + "\n".join(self.lines))
 
     def gui_url(self, timeout: float = 1.0) -> str:

@@ -57,8 +57,11 @@ def test_remote_goto_from_the_control_node_reaches_its_goal(tmp_path, verb, miss
         assert all(math.hypot(r.x - r.start[0], r.y - r.start[1]) < 0.05 for r in others)
         team.sips_since()
         start = time.monotonic()
-        time.sleep(1.0)
-        sent, skipped = team.sips_since()  # three robots at 10 Hz, counted by the robot host
+        begun = team.host.timing()
+        # about a second of SIP slots: three robots at 10 Hz, counted by the robot host
+        wait_until(lambda: sum(team.host.timing()[k] - begun[k] for k in ("sips", "skipped")) >= 30,
+                   timeout=30, interval=0.05)
+        sent, skipped = team.sips_since()
         slots = 3 * (time.monotonic() - start) / 0.1
         assert abs(sent + skipped - slots) <= 9 and skipped <= sent, (sent, skipped, slots)
     finally:
