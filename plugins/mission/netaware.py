@@ -115,15 +115,7 @@ class NetGuard:
             return  # the very rows of the last reading (a walk not redone; compared by identity): judged
         self._rows = rows
         s = self.state
-        known = any(link.quality > 0 for link in links)
-        good = [link for link in links if not known or link.quality >= self.min_quality]
-        key = (tuple((link.a, link.b) for link in good), len(links))
-        if key != self._judged[0]:  # the graph work only when which links are good changed
-            adj = netgraph.from_edges(((link.a, link.b) for link in good),
-                                      nodes=[self.me, *(n for link in links for n in (link.a, link.b))])
-            mine = next(c for c in netgraph.connected_components(adj) if self.me in c)
-            self._judged = (key, self.me in netgraph.articulation_points(adj), mine)
-        _, s.articulation, mine = self._judged
+        s.articulation, mine = self._judge(rows)
         across = [(link.quality, link.b if link.a == self.me else link.a) for link in links
                   if self.me in (link.a, link.b)]  # this robot's links: (quality, the other end)
         quality, other = max(((q, n) for q, n in across if n not in mine), default=(0.0, ""))
@@ -131,6 +123,20 @@ class NetGuard:
         edges = tuple((link.a, link.b) for link in links)
         if edges != self._edges:  # which links exist changed: find the critical ones again
             self._edges, self._critical = edges, _bridges(self.me, edges)
+
+    def _judge(self, links: list[Link]) -> tuple[bool, set[str]]:
+        """Whether this robot is an articulation point of the graph of good links (those whose quality is
+        known, any above 0, and not below `min_quality`), and the nodes it reaches over them; the graph
+        work is done again only when which links are good changed."""
+        known = any(link.quality > 0 for link in links)
+        good = [link for link in links if not known or link.quality >= self.min_quality]
+        key = (tuple((link.a, link.b) for link in good), len(links))
+        if key != self._judged[0]:
+            adj = netgraph.from_edges(((link.a, link.b) for link in good),
+                                      nodes=[self.me, *(n for link in links for n in (link.a, link.b))])
+            mine = next(c for c in netgraph.connected_components(adj) if self.me in c)
+            self._judged = (key, self.me in netgraph.articulation_points(adj), mine)
+        return self._judged[1], self._judged[2]
 
     _critical: set[str] | None = None  # neighbours over critical links (None: no topology read yet)
     _edges: tuple[tuple[str, str], ...] | None = None

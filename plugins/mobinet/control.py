@@ -270,8 +270,9 @@ class MobiNetControl(Plugin[MobiNetSettings]):
                 if host:
                     names[host] = peer.name
             self._names = names   # replaced whole: the resource's thread reads it without a lock
-        if self._fixed is not None and self.clock.wall() - self._fixed.stamp >= 0.9:  # a fresh stamp: not stale
-            self._fixed = self._fixed.evolve(stamp=self.clock.wall())
+        wall = self.clock.wall()
+        if self._fixed is not None and wall - self._fixed.stamp >= 0.9:  # a fresh stamp: not stale
+            self._fixed = self._fixed.evolve(stamp=wall)
             self.change(self._fixed)
         for task in self.tasks.added:
             self._start(task)

@@ -82,7 +82,7 @@ def send_hostile_pose(team: Team, seq: int) -> None:
             b'"sonar":[],"stamp":' + str(9e9).encode() + b"}")
     payload = join_envelope(head_bytes("robot2", "robot", session.peer, endpoint.inst, endpoint.address),
                             item_bytes(seq, f"hostile{seq}", "status", "Pose", body))
-    endpoint._sendto(session.seal(payload, 65536), control)
+    endpoint.send_udp(session.seal(payload, 65536), control)
 
 
 def test_a_robot_keys_pose_of_nan_and_infinity_is_refused_and_the_page_shows_every_robot(team, browser):
