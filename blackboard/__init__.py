@@ -14,23 +14,18 @@ from erni.blackboard.errors import (
     UsageError,
 )
 from erni.blackboard.objects import BBObject, new_uid
+from erni.blackboard.peer import Peer
 from erni.blackboard.plugin import NoSettings, Plugin
-from erni.blackboard.schemas import Peer
 from erni.blackboard.tasks import (
     AllocationResult,
-    Link,
-    Neighbor,
-    NetInfo,
     Params,
-    Pose,
-    Position,
-    Route,
     Task,
     TaskState,
     language_table,
     register_preposition,
     register_verb,
 )
+from erni.blackboard.world import Link, Neighbor, NetInfo, Pose, Position, Route
 
 __all__ = [
     "Agent", "AllocationResult", "BBObject", "Blackboard", "Clock", "ConfigError", "ErniError", "Link", "Neighbor",

@@ -403,30 +403,7 @@ class Blackboard:
         objects = self._objects
         with self._lock:
             route = self._route  # replaced (under this lock) when a subscription comes or goes
-            # validate everything first so a conflicting commit publishes nothing; a change or
-            # removal of an object another transaction removed meanwhile is moot and dropped
-            if len(ops) == 1:  # one publication (most commits): nothing staged before it to consult
-                kind, obj, _ = ops[0]
-                present = obj.uid in objects
-                if kind == ADD and present:
-                    raise TransactionError(f"commit: {obj.uid} was added by another transaction")
-                if kind != ADD and not present:
-                    self.moot += 1
-                    ops = []
-            else:
-                state: dict[str, bool] = {}
-                kept: list[Op] = []
-                for op in ops:
-                    kind, obj, _ = op
-                    present = state.get(obj.uid, obj.uid in objects)
-                    if kind == ADD and present:
-                        raise TransactionError(f"commit: {obj.uid} was added by another transaction")
-                    if kind != ADD and not present:
-                        self.moot += 1
-                        continue
-                    state[obj.uid] = kind != REMOVE
-                    kept.append(op)
-                ops = kept
+            ops = self._valid(ops)
             for kind, obj, reports in ops:
                 if kind == REMOVE:
                     objects.pop(obj.uid, None)
@@ -442,18 +419,50 @@ class Blackboard:
                             owners[id(owner)] = owner
             self.commits += 1
             if ops:
-                for listener, concerns in self._listeners:
-                    if concerns is not None:
-                        for op in ops:
-                            if isinstance(op[1], concerns):
-                                break
-                        else:
-                            continue
-                    listener(ops)
+                self._tell_listeners(ops)
         if owners:
             signal = self.signal
             for owner in owners.values():
                 signal(owner)
+
+    def _valid(self, ops: list[Op]) -> list[Op]:
+        """The operations of a commit that stand (under the lock): everything is validated first so a
+        conflicting commit publishes nothing (TransactionError); a change or removal of an object another
+        transaction removed meanwhile is moot and dropped."""
+        objects = self._objects
+        if len(ops) == 1:  # one publication (most commits): nothing staged before it to consult
+            kind, obj, _ = ops[0]
+            present = obj.uid in objects
+            if kind == ADD and present:
+                raise TransactionError(f"commit: {obj.uid} was added by another transaction")
+            if kind != ADD and not present:
+                self.moot += 1
+                return []
+            return ops
+        state: dict[str, bool] = {}
+        kept: list[Op] = []
+        for op in ops:
+            kind, obj, _ = op
+            present = state.get(obj.uid, obj.uid in objects)
+            if kind == ADD and present:
+                raise TransactionError(f"commit: {obj.uid} was added by another transaction")
+            if kind != ADD and not present:
+                self.moot += 1
+                continue
+            state[obj.uid] = kind != REMOVE
+            kept.append(op)
+        return kept
+
+    def _tell_listeners(self, ops: list[Op]) -> None:
+        """Give a commit's operations to each listener concerned by one of them (under the lock)."""
+        for listener, concerns in self._listeners:
+            if concerns is not None:
+                for op in ops:
+                    if isinstance(op[1], concerns):
+                        break
+                else:
+                    continue
+            listener(ops)
 
     def _drain(self, subs: list[Subscription[Any]]) -> list[list[tuple[str, BBObject, tuple[Any, ...]]]]:
         """Take each subscription's inbox atomically (the start of its owner's run)."""

@@ -85,89 +85,129 @@ def _scan(text: str) -> str:
     A small lexer: strings and comments are skipped whole, a table header's and a key's parts are
     counted (dots outside quotes), arrays and inline tables are a stack. Unterminated strings end
     the scan: the parser then names them."""
-    line = 1
-    table = 0  # the parts of the table header in force
-    stack: list[str] = []  # open arrays ('[') and inline tables ('{') of the value being read
-    saved: list[int] = []  # for each of them, the parts of the key it is the value of
-    key_parts = 0  # the dotted parts of the key being read (0: no key yet)
-    expect_key = True  # at a line's start outside any value, or after '{' or ',' in an inline table
-    i, end = 0, len(text)
-    while i < end:
-        m = _NEXT.search(text, i)
-        if m is None:
-            break
-        token, i = m.group(), m.end()
+    return _Scanner(text).run()
+
+
+def _skip_quoted(text: str, i: int, quote: str) -> tuple[int, int] | None:
+    """Past the string whose opening `quote` ends at `i`: (where it ends, the newlines in it); None
+    when it is not terminated."""
+    if quote == '"':
+        if text.startswith('""', i):
+            rest = _MULTI_BASIC_REST.match(text, i + 2)
+            return None if rest is None else (rest.end(), text.count("\n", i, rest.end()))
+        rest = _BASIC_REST.match(text, i)
+        return None if rest is None else (rest.end(), 0)
+    if text.startswith("''", i):
+        close = text.find("'''", i + 2)
+        return None if close < 0 else (close + 3, text.count("\n", i, close))
+    close = text.find("'", i)
+    return None if close < 0 or "\n" in text[i:close] else (close + 1, 0)
+
+
+class _Scanner:
+    """`_scan`'s state: where it is, the table header in force, the key being read and the open values."""
+
+    def __init__(self, text: str) -> None:
+        self.text = text
+        self.i, self.end = 0, len(text)
+        self.line = 1
+        self.table = 0  # the parts of the table header in force
+        self.stack: list[str] = []  # open arrays ('[') and inline tables ('{') of the value being read
+        self.saved: list[int] = []  # for each of them, the parts of the key it is the value of
+        self.key_parts = 0  # the dotted parts of the key being read (0: no key yet)
+        self.expect_key = True  # at a line's start outside any value, or after '{' or ',' in an inline table
+
+    def run(self) -> str:
+        while self.i < self.end:
+            m = _NEXT.search(self.text, self.i)
+            if m is None:
+                break
+            token, self.i = m.group(), m.end()
+            problem = self._token(token)
+            if problem is None:  # an unterminated string: the parser names it
+                break
+            if problem:
+                return problem
+        return ""
+
+    def _token(self, token: str) -> str | None:
+        """Take one token: '' when it breaks no bound, the problem when it does, None to end the scan."""
         head = token[0]
         if head == "\n":
-            line += 1
-            if not stack:
-                expect_key, key_parts = True, 0
+            self.line += 1
+            if not self.stack:
+                self.expect_key, self.key_parts = True, 0
         elif head == "#":
-            nl = text.find("\n", i)
-            i = end if nl < 0 else nl
-        elif head == '"':
-            if text.startswith('""', i):
-                rest = _MULTI_BASIC_REST.match(text, i + 2)
-                if rest is None:
-                    break
-                line += text.count("\n", i, rest.end())
-                i = rest.end()
-            else:
-                rest = _BASIC_REST.match(text, i)
-                if rest is None:
-                    break
-                i = rest.end()
-            if expect_key:
-                key_parts = max(key_parts, 1)
-        elif head == "'":
-            if text.startswith("''", i):
-                close = text.find("'''", i + 2)
-                if close < 0:
-                    break
-                line += text.count("\n", i, close)
-                i = close + 3
-            else:
-                close = text.find("'", i)
-                if close < 0 or "\n" in text[i:close]:
-                    break
-                i = close + 1
-            if expect_key:
-                key_parts = max(key_parts, 1)
-        elif expect_key and head == "[" and not stack and key_parts == 0:  # a table header: [a.b] or [[a.b]]
-            close = text.find("\n", i)
-            header = text[i:end if close < 0 else close]
-            parts = _header_parts(header)
-            table = parts + 1 if header.startswith("[") else parts
-            if table > MAX_DEPTH:
-                return f"{line}: a table nested {table} levels deep; expected at most {MAX_DEPTH}"
-            i = end if close < 0 else close
-        elif expect_key and head not in "[]{},=":  # a key's part(s), or the dots between quoted parts
-            key_parts = max(key_parts, 1) + token.count(".")
-            depth = table + sum(saved) + key_parts + len(stack)
-            if depth > MAX_DEPTH:
-                return (f"{line}: a key nested {depth} levels deep (tables, dotted keys, arrays); expected at "
-                        f"most {MAX_DEPTH}")
+            nl = self.text.find("\n", self.i)
+            self.i = self.end if nl < 0 else nl
+        elif head in "\"'":
+            return self._string(head)
+        elif self.expect_key and head == "[" and not self.stack and self.key_parts == 0:
+            return self._header()
+        elif self.expect_key and head not in "[]{},=":
+            return self._key(token)
         elif head == "=":
-            expect_key = False
+            self.expect_key = False
         elif head in "[{":
-            stack.append(head)
-            saved.append(key_parts)
-            key_parts = 0
-            if table + sum(saved) + len(stack) > MAX_DEPTH:
-                return (f"{line}: a value nested deeper than {MAX_DEPTH} levels (tables, dotted keys, arrays); "
-                        f"expected at most {MAX_DEPTH}")
-            expect_key = head == "{"
-        elif head in "]}":
-            if stack:
-                stack.pop()
-                key_parts = saved.pop()
-            expect_key = False
-        elif head == ",":
-            if stack and stack[-1] == "{":
-                expect_key, key_parts = True, 0
+            return self._open(head)
+        elif head in "]},":
+            self._close(head)
         elif (head.isdigit() or head in "+-") and len(token) > MAX_NUMBER:
-            return f"{line}: a number of {len(token)} characters; expected at most {MAX_NUMBER} (a 64-bit integer, a float)"
-    return ""
+            return (f"{self.line}: a number of {len(token)} characters; expected at most {MAX_NUMBER} "
+                    "(a 64-bit integer, a float)")
+        return ""
+
+    def _string(self, quote: str) -> str | None:
+        past = _skip_quoted(self.text, self.i, quote)
+        if past is None:
+            return None
+        self.i, newlines = past
+        self.line += newlines
+        if self.expect_key:
+            self.key_parts = max(self.key_parts, 1)
+        return ""
+
+    def _header(self) -> str:
+        """A table header: [a.b] or [[a.b]]."""
+        close = self.text.find("\n", self.i)
+        header = self.text[self.i:self.end if close < 0 else close]
+        parts = _header_parts(header)
+        self.table = parts + 1 if header.startswith("[") else parts
+        if self.table > MAX_DEPTH:
+            return f"{self.line}: a table nested {self.table} levels deep; expected at most {MAX_DEPTH}"
+        self.i = self.end if close < 0 else close
+        return ""
+
+    def _key(self, token: str) -> str:
+        """A key's part(s), or the dots between quoted parts."""
+        self.key_parts = max(self.key_parts, 1) + token.count(".")
+        depth = self.table + sum(self.saved) + self.key_parts + len(self.stack)
+        if depth > MAX_DEPTH:
+            return (f"{self.line}: a key nested {depth} levels deep (tables, dotted keys, arrays); expected at "
+                    f"most {MAX_DEPTH}")
+        return ""
+
+    def _close(self, head: str) -> None:
+        """An array or an inline table closes, or a comma separates its items."""
+        if head == ",":
+            if self.stack and self.stack[-1] == "{":
+                self.expect_key, self.key_parts = True, 0
+            return
+        if self.stack:
+            self.stack.pop()
+            self.key_parts = self.saved.pop()
+        self.expect_key = False
+
+    def _open(self, head: str) -> str:
+        """An array or an inline table opens."""
+        self.stack.append(head)
+        self.saved.append(self.key_parts)
+        self.key_parts = 0
+        if self.table + sum(self.saved) + len(self.stack) > MAX_DEPTH:
+            return (f"{self.line}: a value nested deeper than {MAX_DEPTH} levels (tables, dotted keys, arrays); "
+                    f"expected at most {MAX_DEPTH}")
+        self.expect_key = head == "{"
+        return ""
 
 
 def _header_parts(header: str) -> int:

@@ -33,7 +33,6 @@ import math
 import os
 import shutil
 import tempfile
-import time
 from pathlib import Path
 from typing import Any
 
@@ -42,6 +41,7 @@ from pydantic import ValidationError
 from erni import mcap_bounds
 from erni import ros2_messages as ros
 from erni.blackboard import BBObject, NetInfo, Pose, Task
+from erni.blackboard.clock import SYSTEM, Clock
 from erni.blackboard.errors import ErniError, shown
 from erni.blackboard.schemas import Peer
 from erni.blackboard.tasks import AllocationResult
@@ -162,13 +162,14 @@ class BagRecorder:
     the file holds rosbag2's metadata itself, so `ros2 bag info`, Foxglove and `rosbags` open it alone.
     """
 
-    def __init__(self, path: str | Path, via: str, started: float | None = None):
+    def __init__(self, path: str | Path, via: str, started: float | None = None, clock: Clock = SYSTEM):
         from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer, WriterError
 
         self.path = Path(path)
         self.count = 0
-        self.started = time.time() if started is None else started
-        self._clock = time.monotonic()
+        self.clock = clock  # the recorder's: changes are stamped by it
+        self.started = clock.wall() if started is None else started
+        self._start = clock()
         self._poses: dict[str, Pose] = {}
         try:
             self._tmp = Path(tempfile.mkdtemp(prefix=f".{self.path.name}.", dir=self.path.parent))
@@ -199,7 +200,7 @@ class BagRecorder:
     def write(self, agent: str, op: str, type_name: str, data: dict[str, Any], t: float | None = None) -> None:
         """Record one change at `t` seconds since the recording started (now when None)."""
         if t is None:
-            t = time.monotonic() - self._clock
+            t = self.clock() - self._start
         self.write_object(agent, op, type_name, data, _validated(type_name, data), t)
 
     def write_object(self, agent: str, op: str, type_name: str, data: dict[str, Any], obj: BBObject | None,

@@ -19,7 +19,6 @@ from __future__ import annotations
 import json
 import math
 import threading
-import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,6 +27,7 @@ from typing import Any
 from pydantic import Field, ValidationError
 
 from erni.blackboard import BBObject, Plugin
+from erni.blackboard.clock import SYSTEM, Clock
 from erni.blackboard.errors import ErniError, describe_validation, shown
 from erni.blackboard.objects import Model
 from erni.blackboard.text import NAME_CHARS, is_name
@@ -166,19 +166,20 @@ def problem_of(err: BaseException) -> str:
 class Recorder:
     """Append events to a log file as they arrive."""
 
-    def __init__(self, path: str | Path, via: str):
+    def __init__(self, path: str | Path, via: str, clock: Clock = SYSTEM):
         self.path = Path(path)
-        self.start = time.monotonic()
+        self.clock = clock  # the recorder's: lines are stamped by it
+        self.start = clock()
         self.count = 0
         try:
             self._f = self.path.open("w", encoding="utf-8")
         except OSError as err:
             raise LogError(f"{self.path}: cannot write: {err.strerror or err}") from None
-        self._f.write(json.dumps({"erni_record": FORMAT, "via": via, "started": time.time()}) + "\n")
+        self._f.write(json.dumps({"erni_record": FORMAT, "via": via, "started": self.clock.wall()}) + "\n")
 
     def write(self, agent: str, op: str, type_name: str, data: dict[str, Any]) -> None:
         """Record one change, stamped with the time since the recording started."""
-        line = {"t": round(time.monotonic() - self.start, 6), "agent": agent, "op": op,
+        line = {"t": round(self.clock() - self.start, 6), "agent": agent, "op": op,
                 "type": type_name, "data": data}
         self._f.write(json.dumps(line, separators=(",", ":")) + "\n")
         self.count += 1
@@ -221,24 +222,24 @@ class ReplayPlugin(Plugin[ReplaySettings]):
 
     def _run(self) -> None:
         while not self._stop.is_set():
-            clock, last_t = time.monotonic(), 0.0
+            clock, last_t = self.clock(), 0.0
             for index in range(len(self.events)):
                 event = self.events[index]
                 wait = (event.t - last_t) / self.speed
                 deadline = clock + wait
                 while not self._stop.is_set():
                     if self.paused.is_set():
-                        held = time.monotonic()
+                        held = self.clock()
                         self._stop.wait(0.05)
-                        deadline += time.monotonic() - held
+                        deadline += self.clock() - held
                         continue
-                    left = deadline - time.monotonic()
+                    left = deadline - self.clock()
                     if left <= 0:
                         break
                     self._stop.wait(min(left, 0.05))
                 if self._stop.is_set():
                     return
-                clock, last_t = time.monotonic(), event.t
+                clock, last_t = self.clock(), event.t
                 self._publish(event)
                 self.position = index + 1
             self.finished.set()

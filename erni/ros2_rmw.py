@@ -23,19 +23,25 @@ import itertools
 import os
 import struct
 import threading
-import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
 import zenoh
 
+from erni.blackboard.clock import SYSTEM, Clock
 from erni.blackboard.errors import UsageError
 from erni.ros2_messages import dds_type_name, type_hash
 
 ADMIN_SPACE = "@ros2_lv"
 GID_SIZE = 16
 RMW_ZENOH_DEFAULT_DEPTH = 42  # the depth rmw_zenoh gives a keep-last QoS of depth 0, left out of tokens
+
+
+def _ns(seconds: float) -> int:
+    """Seconds since the epoch as rmw_zenoh's source time (integer nanoseconds)."""
+    return int(seconds * 1_000_000_000)
+
 
 
 @dataclass(frozen=True)
@@ -109,6 +115,7 @@ class Publisher:
                                     node.name, topic, typename, qos)
         self._sequence = itertools.count(1)
         self._lock = threading.Lock()
+        self._wall = node.clock.wall
         reliability = zenoh.Reliability.RELIABLE if qos.reliable else zenoh.Reliability.BEST_EFFORT
         self._pub = node.session.declare_publisher(self.key, encoding=zenoh.Encoding("application/cdr"),
                                                    congestion_control=zenoh.CongestionControl.DROP,
@@ -119,7 +126,7 @@ class Publisher:
         """Send one CDR payload (as `messages.serialize` makes it)."""
         with self._lock:
             sequence = next(self._sequence)
-        self._pub.put(payload, attachment=attachment(sequence, stamp_ns or time.time_ns(), self.gid))
+        self._pub.put(payload, attachment=attachment(sequence, stamp_ns or _ns(self._wall()), self.gid))
 
     def close(self) -> None:
         self._token.undeclare()  # type: ignore[no-untyped-call]  # untyped in Zenoh's stubs
@@ -161,7 +168,7 @@ class Request:
             return False
         try:
             query.reply(self.service.key, payload, encoding=zenoh.Encoding("application/cdr"),
-                        attachment=attachment(self.sequence, time.time_ns(), self.gid))
+                        attachment=attachment(self.sequence, _ns(self.service.clock.wall()), self.gid))
         except zenoh.ZError:
             return False
         finally:
@@ -195,6 +202,7 @@ class Service:
         self.token = endpoint_token(node.domain_id, node.zid, node.node_id, entity_id, "SS", node.namespace,
                                     node.name, name, srvtype, qos)
         self._handler = handler
+        self.clock = node.clock
         self._queryable = node.session.declare_queryable(self.key, self._on_query, complete=True)
         self._token = node.session.liveliness().declare_token(self.token)
 
@@ -220,8 +228,10 @@ class RmwNode:
 
     _node_ids = itertools.count(1000)  # ids unique in this process (a shared session may hold several nodes)
 
-    def __init__(self, session: zenoh.Session, name: str, *, namespace: str = "/", domain_id: int = 0) -> None:
+    def __init__(self, session: zenoh.Session, name: str, *, namespace: str = "/", domain_id: int = 0,
+                 clock: Clock = SYSTEM) -> None:
         self.session, self.name, self.namespace, self.domain_id = session, name, namespace, domain_id
+        self.clock = clock  # its wall readings stamp what it sends without a stamp of its own
         self.zid = str(session.info.zid())
         self.node_id = next(self._node_ids)
         self._entity_ids = itertools.count(self.node_id * 1000 + 1)

@@ -116,9 +116,6 @@ def test_the_reach_check_sees_a_plugin_reading_another_ones_attributes() -> None
     assert reaches_into_plugins("import erni.plugins\nfrom erni.plugins import motion\ns = self.provided('x')\n") == []
 
 
-# ros2's three reads (the transport's Zenoh session and role, the motion plugin's sonar positions) go when the
-# transport and the motion plugin offer them (Agent.provide): then this is empty.
-STILL_REACHING = {"plugins/ros2/plugin.py": 3}
 
 
 def test_no_plugin_reaches_into_another_plugins_attributes() -> None:
@@ -128,4 +125,4 @@ def test_no_plugin_reaches_into_another_plugins_attributes() -> None:
             lines = reaches_into_plugins(path.read_text(encoding="utf-8"))
             if lines:
                 found[str(path.relative_to(ROOT))] = len(lines)
-    assert found == STILL_REACHING
+    assert found == {}

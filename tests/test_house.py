@@ -32,18 +32,12 @@ TARGET_SHARE_ABOVE_20 = 0.01
 TARGET_SLEEPS = 52
 
 # The ratchets: today's figures where the target is not met yet.
-CLOCK_READS_ALLOWED = 16
-SLEEPS_ALLOWED = 163
-ABOVE_25_ALLOWED = 26
-ABOVE_20_ALLOWED = 52
+CLOCK_READS_ALLOWED = 0
+SLEEPS_ALLOWED = 148
+ABOVE_25_ALLOWED = 5
+ABOVE_20_ALLOWED = 26
 # Classes in blackboard/, transport/ and plugins/ still above the target, with their length today.
-LONG_CLASSES_ALLOWED: dict[str, int] = {
-    "transport/endpoint.py:Endpoint": 625,
-    "plugins/ui/dialogue.py:Dialogue": 552,
-    "plugins/mission/plugin.py:MissionControl": 538,
-    "plugins/ros2/plugin.py:ROS2Plugin": 537,
-    "plugins/motion/driver.py:ArcosDriver": 524,
-}
+LONG_CLASSES_ALLOWED: dict[str, int] = {}
 
 _CLOCK_FUNCS = {
     "time": {"time", "monotonic", "perf_counter", "time_ns", "monotonic_ns", "perf_counter_ns",
@@ -170,3 +164,12 @@ def test_functions_stay_within_the_complexity_bounds() -> None:
 
 def test_tests_wait_for_conditions_rather_than_sleep() -> None:
     _ratchet(_sleeps(), SLEEPS_ALLOWED, TARGET_SLEEPS, "time.sleep calls in tests")
+
+
+def test_no_runtime_code_writes_pydantic_s_private_slots() -> None:
+    """A model is made through pydantic's API (`model_construct` for values already checked, as
+    `BBObject.trusted` does), never by setting its slots behind its back."""
+    slots = re.compile(r"__pydantic_(fields_set|extra|private)__|object\.__setattr__")
+    found = [f"{p.relative_to(ROOT)}:{i}" for p in _agent_files()
+             for i, line in enumerate(p.read_text().splitlines(), 1) if slots.search(line)]
+    assert not found, f"writes to pydantic's slots: {found}"

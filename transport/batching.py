@@ -41,6 +41,7 @@ from erni.transport.wire import (
 if TYPE_CHECKING:
     from erni.transport.session import Auth, Session
     from erni.transport.sessions import Sessions
+    from erni.transport.wires import Wire
 
 Address = tuple[str, int]
 
@@ -63,6 +64,7 @@ class FastMessages:
     """Statuses and their batching (a mixin of `Endpoint`; what it uses of the rest is declared below)."""
 
     if TYPE_CHECKING:
+        carrier: Wire
         _cond: threading.Condition
         auth: Auth | None
         _dests: dict[Address, Dest]
@@ -92,7 +94,6 @@ class FastMessages:
         def _queue(self, addr: Address, out: Outgoing, lane: str) -> None: ...
         def _make_ready(self, dest: Dest) -> None: ...
         def _schedule(self, dest: Dest, when: float) -> None: ...
-        def _sendto(self, frame: bytes, addr: Address) -> None: ...
         def count(self, name: str, n: int = 1) -> None: ...
         def warn(self, reason: str, text: str) -> None: ...
 
@@ -119,7 +120,7 @@ class FastMessages:
             if (dest is None or not (dest.fast or dest.announce)) and not self._gathers(addr, dest, self.pace()):
                 head = self._head_opens.get(session.peer) or self._head_open(session.peer)
                 try:
-                    self._sendto(session.seal(b'%b"seq":%d,"id":%b,%b,"body":%b}' % (
+                    self.carrier.sendto(session.seal(b'%b"seq":%d,"id":%b,%b,"body":%b}' % (
                         head, seq, to_json(msg_id), kind_and_type(kind, type_name), data), self._udp_frame), addr)
                 except (OSError, FrameError) as err:
                     dropped = self._unsent(addr, err)  # True: too big, or an error; False: the buffer is full
@@ -215,7 +216,7 @@ class FastMessages:
                 except FrameError as err:
                     self._unsent(addr, err)
         sent = 0
-        sendto = self._sendto
+        sendto = self.carrier.sendto
         for frame, addr, to in frames:
             try:
                 sendto(frame, addr)
@@ -282,7 +283,7 @@ class FastMessages:
                 frame = self._frame(outs[0], None, max_frame)
             else:
                 frame = batch.session.seal(batch_payload(batch.head, batch.items), max_frame)
-            self._sendto(frame, addr)
+            self.carrier.sendto(frame, addr)
         except (OSError, FrameError) as err:
             return self._unsent(addr, err)
         self.count("sent.fast", len(outs))
@@ -341,9 +342,10 @@ class FastMessages:
 
     def _batch(self, session: Session | None) -> Batch:
         """An empty datagram for messages to `session`'s peer, with the head they will share."""
-        if session is None:
-            return Batch(None)
-        return Batch(session, self._head(session.peer))
+        batch = Batch(None) if session is None else Batch(session, self._head(session.peer))
+        if self.carrier.batch_limit is not None:
+            batch.limit = self.carrier.batch_limit
+        return batch
 
     def _item(self, out: Outgoing) -> bytes:
         return item_bytes(out.seq, out.id, out.kind, out.type, out.data)

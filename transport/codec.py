@@ -21,7 +21,6 @@ from typing import Annotated, Any, Literal
 
 import msgspec
 from msgspec import UNSET, Meta, Raw, Struct, UnsetType
-from pydantic import BaseModel
 
 from erni.blackboard import Pose
 from erni.blackboard.clock import wall
@@ -123,13 +122,7 @@ _frame = msgspec.json.Decoder(Envelope | tuple[Head, list[Item]])
 _pose = msgspec.json.Decoder(PoseBody)
 _pose_full = msgspec.json.Decoder(PoseFull)
 _asdict = msgspec.structs.asdict
-_set_attr = object.__setattr__
-_new = object.__new__
 _POSE_FIELDS = tuple(Pose.model_fields)
-# a model's own slots, set without BaseModel.__setattr__ (which validates, and refuses on a frozen model)
-_set_fields_set = BaseModel.__dict__["__pydantic_fields_set__"].__set__
-_set_extra = BaseModel.__dict__["__pydantic_extra__"].__set__
-_set_private = BaseModel.__dict__["__pydantic_private__"].__set__
 
 
 def _pose_of(raw: Raw | bytes) -> Pose:
@@ -161,13 +154,9 @@ def _named(head: Head) -> bool:
 
 
 def _pose_from(values: dict[str, Any], given: set[str]) -> Pose:
-    """A Pose of values already checked as pydantic checks them, set without validating again."""
-    pose = _new(Pose)
-    _set_attr(pose, "__dict__", values)
-    _set_fields_set(pose, given)
-    _set_extra(pose, None)
-    _set_private(pose, None)
-    return pose
+    """A Pose of values already checked as pydantic checks them, made without validating again
+    (through pydantic's `model_construct`, never its private slots)."""
+    return Pose.trusted(values, given)
 
 
 _status = msgspec.json.Decoder(PoseEnvelope)

@@ -24,6 +24,7 @@ from erni.transport.wire import BEACON, UDP_MAX_FRAME, FrameError, Message, body
 if TYPE_CHECKING:
     from erni.transport.limits import TokenBucket
     from erni.transport.session import Auth, Session
+    from erni.transport.wires import Wire
 
 Address = tuple[str, int]
 Accepted = tuple[list[Message], "Session | None"] | None
@@ -33,6 +34,7 @@ class Beacons:
     """Signed beacons (a mixin of `Endpoint`; what it uses of the rest is declared below)."""
 
     if TYPE_CHECKING:
+        carrier: Wire
         auth: Auth | None
         name: str
         inst: str
@@ -46,7 +48,6 @@ class Beacons:
                      ttl: float | None, to: str | None) -> str: ...
         def _frame(self, out: Outgoing, session: Session | None, max_frame: int) -> bytes: ...
         def _envelope(self, out: Outgoing, to: str) -> bytes: ...
-        def _sendto(self, frame: bytes, addr: Address) -> None: ...
         def _filter(self, sender: str, role: str) -> None: ...
 
     def announce(self, addr: Address, kind: str, body: BaseModel | Any = None) -> str:
@@ -57,7 +58,7 @@ class Beacons:
         try:
             frame = self._frame(replace(out, to=""), None, UDP_MAX_FRAME) if self.auth is None else \
                 self.auth.sign(BEACON, self._envelope(out, ""))
-            self._sendto(frame, dest.addr)
+            self.carrier.sendto(frame, dest.addr)
             self.count("sent.announce")
         except (OSError, FrameError) as err:
             self.count("dropped.fast_error")

@@ -11,9 +11,11 @@ An endpoint is these parts, each a module a reader can take alone:
 - `batching.py`: fast messages (statuses) from the caller's thread, gathered per datagram in a burst;
 - `reliable.py`: reliable delivery over TCP, acknowledged, retried, in order;
 - `discovery.py`: signed beacons to and from agents not in session yet;
+- `inbound.py`: the frame path (`FramePath`: one handler per kind of frame: data, hint,
+  handshake, answer, refusal, beacon), frames in, messages out;
 - `codec.py` and `wire.py`: frames, envelopes and typed bodies;
-- here: construction and life cycle, `send`, the frame path (one handler per kind of
-  frame: data, hint, handshake, answer, beacon) and what the parts above need of each other.
+- here: construction and life cycle, `send`, the acknowledgement of reliable messages and what the
+  parts above need of each other.
 
 Every message to a peer travels in a session with that peer's current instance: the first
 message to an address starts a handshake, which the sender pool drives without blocking (the
@@ -53,46 +55,31 @@ from erni.blackboard.clock import SYSTEM
 from erni.blackboard.errors import ConfigError, NetworkError
 from erni.logs import RateLimitedLog
 from erni.transport.batching import FastMessages
-from erni.transport.codec import DecodedHead, decode_data, decode_status
 from erni.transport.discovery import Beacons
 from erni.transport.identity import Identity
+from erni.transport.inbound import INTERNAL, Accepted, FramePath
 from erni.transport.limits import Limits, TokenBucket
 from erni.transport.outbox import Dest, Outgoing, SenderPool
 from erni.transport.receiver import Receiver, close
 from erni.transport.reliable import ReliableDelivery
-from erni.transport.session import Auth, CertificateRefused, IdentityAuth, Initiation, Session, TeamKeyAuth
+from erni.transport.session import Auth, IdentityAuth, Initiation, Session, TeamKeyAuth
 from erni.transport.sessions import Sessions
 from erni.transport.wire import (
-    BEACON,
-    DATA,
     DEFAULT_MAX_FRAME,
     HEADER,
-    HELLO,
-    HINT,
     KIND,
-    KINDS,
     PLAIN,
-    REFUSAL,
-    REPLY,
     UDP_MAX_FRAME,
-    EnvelopeHead,
     FrameError,
     Message,
     SeenIds,
-    body_of,
-    check_frame,
     encode_body,
     envelope_bytes,
     join_envelope,
-    parse_batch,
-    parse_envelope,
-    parse_item,
-    parse_typed,
 )
+from erni.transport.wires import UdpTcpWire, Wire
 
 Address = tuple[str, int]
-Accepted = tuple[list[Message], Session | None] | None
-"""What a frame brings: its messages (several in a batch of statuses) and their session, or nothing."""
 
 CLIENT_ROLE = "cli"
 """The role of a command-line client's endpoint (`erni task`, `erni watch` ...): never a peer."""
@@ -100,7 +87,6 @@ CLIENT_ROLE = "cli"
 InboundFilter = Callable[[str, str], bool]
 """`(sender, role) -> bool`: whether a verified frame may be delivered (False: dropped and counted)."""
 
-INTERNAL = ("ack", "crl")  # kinds the endpoint handles itself
 
 HELD_LIMIT = 10_000
 """Reliable messages whose acknowledgement is held back at once (`Endpoint.held_kinds`): past this
@@ -199,7 +185,6 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
         self._id_prefix = os.urandom(6).hex() + "."  # message ids: unique per instance, cheap (no uuid)
         self.log = logging.getLogger(f"erni.{name}.transport")
         self._drops = RateLimitedLog(self.log)
-        self._last_fault = -1e9  # when a fault of the frame path was last logged (monotonic)
         self.counters: dict[str, int] = {}
         self._counter_lock = threading.Lock()
         self._seen = SeenIds()
@@ -207,7 +192,7 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
         self.sessions = Sessions(self, self.auth, name, self.inst, self.limits, max_frame, self.handshake_timeout,
                                  identity, self.revocations, self.log)
         self._beacon_bucket = TokenBucket(self.limits.beacons_total, clock=self.pace)
-        self._frame_handlers = self._handlers()
+        self.inbound = FramePath(self, self._on_beacon)  # inbound.py: frames in, messages out
         self._clients: OrderedDict[Address, None] = OrderedDict()  # reply addresses of command-line clients heard
         # sender pool
         self._dests: dict[Address, Dest] = {}
@@ -229,7 +214,8 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
         self.hint_wanted: Callable[[str], bool] | None = None
         # the agent of this name has left (a wire that tells, as Zenoh's liveliness does; UDP never calls it)
         self.on_gone: Callable[[str], None] = lambda name: None
-        self.wire = "udp"  # the wire the frames travel on ('zenoh' for zenoh_wire.ZenohEndpoint)
+        self.carrier: Wire = UdpTcpWire(self)  # the wire the frames travel on (zenoh_wire.ZenohWire on Zenoh)
+        self.wire = self.carrier.name
         # reliable kinds acknowledged only when the owner calls the message's `ack` (a task: once the
         # agent's journal holds it); any other is acknowledged as it arrives
         self.held_kinds: frozenset[str] = frozenset()
@@ -374,7 +360,7 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
         self._drops.warning(reason, text)
 
     def send_datagram(self, frame: bytes, addr: Address) -> None:
-        self._sendto(frame, addr)
+        self.carrier.sendto(frame, addr)
 
     def admit(self, sender: str, role: str) -> None:
         self._filter(sender, role)
@@ -421,7 +407,7 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
         if lane == "fast":
             if not self._send_now(addr, out):  # it also notes when (`_fast_at`): a burst is told by the time
                 self._queue(addr, out, lane)  # until the next
-        elif lane != "reliable" or not self._write_now(addr, out):
+        elif lane != "reliable" or not self.carrier.write_now(addr, out):
             self._queue(addr, out, lane)
         return out.id
 
@@ -486,209 +472,36 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
             return KIND.pack(length, PLAIN) + payload
         return session.seal(join_envelope(self._head(session.peer), self._item(out)), max_frame)
 
-    def _sendto(self, frame: bytes, addr: Address) -> None:
+    def send_udp(self, frame: bytes, addr: Address) -> None:
+        """A datagram on this endpoint's UDP socket (`UdpTcpWire.sendto`), never waiting."""
         if self.udp_loss and self._rng.random() < self.udp_loss:
             self.count("dropped.injected")
             return
         self._udp.sendto(frame, socket.MSG_DONTWAIT, addr)
 
+    _sendto = send_udp  # the former name (a test sends a crafted datagram with it)
+
     # -- receiving ------------------------------------------------------------------------
 
-    def _dropped(self, channel: str, err: FrameError) -> None:
-        self.count(f"dropped.{err.reason}")
-        self._drops.warning(err.reason, f"dropped a {channel} frame: {err}")
+    # -- receiving (inbound.py) -----------------------------------------------------------
 
     def accept_frame(self, raw: bytes, channel: str, src: Address) -> Accepted:
-        """Check a frame; count and log what fails; return its messages (several in a batch of
-        statuses) and their session, or None. A fault of the frame path itself (any exception
-        other than a FrameError) drops the frame and is logged with its traceback, rate-limited:
-        one frame must never end the receive thread."""
-        try:
-            return self._accept_frame(raw, channel, src)
-        except Exception:
-            self._fault(channel, raw, src)
-            return None
+        """Check a frame; count and log what fails; return its messages and their session, or None
+        (`FramePath.accept_frame`)."""
+        return self.inbound.accept_frame(raw, channel, src)
 
-    def _fault(self, channel: str, raw: bytes, src: Address | None) -> None:
-        """Count a frame dropped by a fault of the frame path; log it with its traceback, rate-limited."""
-        self.count("dropped.fault")
-        now = self.pace()
-        if now - self._last_fault >= 5.0:
-            self._last_fault = now
-            self.log.exception("dropped a %s frame of %d bytes from %s: the frame path failed on it",
-                               channel, len(raw), src[0] if src else "?")
-
-    def _accept_frame(self, raw: bytes, channel: str, src: Address) -> Accepted:
-        try:
-            kind = check_frame(raw, self.max_frame)
-            if self.auth is None:
-                if kind != PLAIN:
-                    raise FrameError("auth", f"a {KINDS[kind]} frame at an agent running insecure")
-                return self._plain(raw, channel, src)
-            if channel == "tcp" and kind not in (DATA, HINT):  # a hint: on the stream a sender awaits its ack on
-                raise FrameError("parse", f"a {KINDS[kind]} frame on a TCP stream")
-            return self._frame_handlers[kind](raw, channel, src)
-        except FrameError as err:
-            self._dropped(channel, err)
-        return None
-
-    @property
-    def refusals(self) -> dict[Address, str]:
-        """Address -> why the agent there refused our certificate (another authority's, revoked)."""
-        return self.sessions.refusals
-
-    def _handlers(self) -> dict[int, Callable[[bytes, str, Address], Accepted]]:
-        """The handler of each kind of frame, in a session (`wire.py` lists the kinds)."""
-        def hint(raw: bytes, channel: str, src: Address) -> Accepted:
-            self.sessions.on_hint(raw, src)
-            return None
-
-        def hello(raw: bytes, channel: str, src: Address) -> Accepted:
-            try:
-                self.sessions.on_hello(raw, src)
-            except CertificateRefused as err:
-                self.sessions.refuse(raw, src, err)
-                raise
-            return None
-
-        def refusal(raw: bytes, channel: str, src: Address) -> Accepted:
-            self.on_refused(src, self.sessions.on_refusal(raw, src))
-            return None
-
-        def reply(raw: bytes, channel: str, src: Address) -> Accepted:
-            self.sessions.on_reply(raw)
-            return None
-
-        def plain(raw: bytes, channel: str, src: Address) -> Accepted:
-            raise FrameError("auth", "an unauthenticated frame (is the sender running insecure?)")
-
-        return {DATA: self._data, HINT: hint, HELLO: hello, REFUSAL: refusal, REPLY: reply, BEACON: self._on_beacon,
-                PLAIN: plain}
-
-    def _plain(self, raw: bytes, channel: str, src: Address) -> Accepted:
-        env = parse_envelope(raw[KIND.size:])
-        if env.sender == self.name and env.inst == self.inst:
-            return None  # our own beacon, heard back
-        if env.to and env.to != self.name:
-            raise FrameError("receiver", f"frame for {env.to} arrived at {self.name}")
-        self._filter(env.sender, env.role)
-        body = body_of(env.type, env.body)
-        self.count("received")
-        # no hint: without authentication a beacon is as good a sign of life as any other frame
-        return [Message(env.sender, env.role, (env.reply[0], env.reply[1]), self.sessions.epoch(env.sender, env.inst),
-                        env.seq, env.id, env.kind, body)], None
+    def receive_datagram(self, raw: bytes, src: Address) -> None:
+        """The UDP receive thread's whole path for one datagram (`FramePath.receive_datagram`)."""
+        self.inbound.receive_datagram(raw, src)
 
     def _filter(self, sender: str, role: str) -> None:
         if self.inbound_filter is not None and not self.inbound_filter(sender, role):
             raise FrameError("unreachable", f"{sender} cannot reach {self.name} now")
 
-    def _data(self, raw: bytes, channel: str, src: Address) -> tuple[list[Message], Session | None]:
-        """Open a data frame of a session: one envelope, or a batch of statuses (`[head, [message,
-        ...]]`), and decode its messages (`_messages`)."""
-        sid = raw[KIND.size:KIND.size + 8]
-        session = self.sessions.by_sid.get(sid)
-        if session is None:
-            self.sessions.hint(sid, src)
-            raise FrameError("session", f"unknown session {sid.hex()} (its sender or this agent restarted)")
-        return self._messages(session.open(raw), session, channel), session
-
-    def _messages(self, plain: bytes, session: Session, channel: str) -> list[Message]:
-        """The messages of an opened data frame. A batch's message or body that does not validate
-        is dropped alone; a head or an envelope that does not validate, or that names another
-        sender or receiver, drops the whole frame."""
-        fast = decode_data(plain)  # msgspec: head, messages and typed bodies from the bytes, or None
-        head: DecodedHead | EnvelopeHead
-        pairs: list[tuple[Any, Any]]  # each message (its seq, id, kind, type) and its body
-        if fast is not None:
-            head, pairs = fast
-            checked = True
-        else:
-            head, pairs, checked = self._parse_data(plain, channel)
-        if head.sender != session.peer or head.role != session.role or head.inst != session.inst:
-            raise FrameError("auth", f"envelope names {head.sender[:64]} but the session is with {session.peer}")
-        if head.to != self.name:
-            raise FrameError("receiver", f"frame for {head.to} arrived at {self.name}")
-        if not session.confirmed:
-            self.sessions.confirm(session)
-        if self.inbound_filter is not None:
-            self._filter(session.peer, session.role)
-        peer, role, addr, epoch = session.peer, session.role, session.addr, session.epoch
-        msgs = []
-        for item, body in pairs:
-            kind = item.kind
-            if kind == "crl" or not checked:
-                try:
-                    if kind == "crl" and isinstance(body, str):
-                        try:
-                            self.sessions.adopt_crl(base64.b64decode(body, validate=True), session.peer)
-                        except ValueError:
-                            raise FrameError("parse", "revocation list is not base64") from None
-                    if not checked:
-                        body = body_of(item.type, body)
-                except FrameError as err:
-                    if plain[:1] != b"[":  # one envelope: the frame is dropped
-                        raise
-                    self._dropped(channel, err)
-                    continue
-            msgs.append(Message(peer, role, addr, epoch, item.seq, item.id, kind, body))
-        self.count("received", len(msgs))
-        return msgs
-
-    def _parse_data(self, plain: bytes, channel: str) -> tuple[EnvelopeHead, list[tuple[Any, Any]], bool]:
-        """The pydantic parse of a data frame the codec did not take: its head, its messages with
-        their bodies, and whether the bodies are typed already (one step) or still to be (two)."""
-        typed = parse_typed(plain)  # pydantic in one step, or None: two steps
-        if typed is not None:
-            return typed[0], [(item, item.body) for item in typed[1]], True
-        if plain[:1] == b"[":  # a message of the batch that does not validate is dropped alone
-            head, values = parse_batch(plain)
-            pairs: list[tuple[Any, Any]] = []
-            for value in values:
-                try:
-                    parsed = parse_item(value)
-                    pairs.append((parsed, parsed.body))
-                except FrameError as err:
-                    self._dropped(channel, err)
-            return head, pairs, False
-        envelope = parse_envelope(plain)
-        return envelope, [(envelope, envelope.body)], False
-
-    def receive_datagram(self, raw: bytes, src: Address) -> None:
-        """The UDP receive thread's whole path for one datagram: a data frame of a confirmed
-        session is opened, decoded and handed to `on_message` here, in one call with the checks
-        of `accept_frame` written out; any other frame goes through `accept_frame`. What fails is
-        counted and logged the same way: a frame that fails a check is dropped, and a fault of
-        the frame path never ends the receive thread."""
-        try:
-            session = self.sessions.by_sid.get(raw[5:13]) if raw[4:5] == b"D" and self.auth is not None else None
-            if session is None or not session.confirmed or len(raw) > self.max_frame \
-                    or HEADER.unpack_from(raw)[0] != len(raw) - 4:
-                got = self.accept_frame(raw, "udp", src)
-                if got is not None:
-                    for msg in got[0]:
-                        self.deliver(msg)
-                return
-            plain = session.open(raw)
-            status = decode_status(plain)  # the common frame: one Pose, decoded in one pass (or None)
-            if status is not None:
-                env, pose = status
-                if env.sender == session.peer and env.role == session.role and env.inst == session.inst \
-                        and env.to == self.name and env.kind not in INTERNAL:
-                    if self.inbound_filter is not None:
-                        self._filter(session.peer, session.role)
-                    self.count("received")
-                    self._dispatch(Message(session.peer, session.role, session.addr, session.epoch, env.seq,
-                                           env.id, env.kind, pose))
-                    return
-            msgs = self._messages(plain, session, "udp")  # anything else (and what fails a check above)
-        except FrameError as err:
-            self._dropped("udp", err)
-            return
-        except Exception:
-            self._fault("udp", raw, src)
-            return
-        for msg in msgs:
-            self.deliver(msg)
+    @property
+    def refusals(self) -> dict[Address, str]:
+        """Address -> why the agent there refused our certificate (another authority's, revoked)."""
+        return self.sessions.refusals
 
     # -- what the receive loop needs of this endpoint (`ReceiverHost`) ----------------------
 
@@ -698,13 +511,13 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
 
     def deliver(self, msg: Message) -> None:
         if msg.kind not in INTERNAL:
-            self._dispatch(msg)
+            self.dispatch(msg)
 
     def deliver_once(self, msg: Message) -> None:
         if msg.kind in INTERNAL:
             return
         if self._seen.first_time(msg.sender, msg.id):
-            self._dispatch(msg)
+            self.dispatch(msg)
         else:
             self.count("duplicates")
 
@@ -738,7 +551,7 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
                 reply(self.ack_frame(msg, session))
             return
         msg.ack = functools.partial(self._acknowledge, key, msg)
-        self._dispatch(msg)
+        self.dispatch(msg)
 
     def _acknowledge(self, key: tuple[str, str], msg: Message) -> None:
         """Send the held acknowledgement of `msg` (once; from any thread)."""
@@ -757,7 +570,7 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
         ack = Outgoing(f"{self._id_prefix}{seq:x}", "ack", None, msg.id, to_json(msg.id), seq, 0.0, msg.sender)
         return self._frame(ack, session, self.max_frame)
 
-    def _dispatch(self, msg: Message) -> None:
+    def dispatch(self, msg: Message) -> None:
         if msg.role == CLIENT_ROLE and msg.reply not in self._clients:
             self._clients[msg.reply] = None
             if len(self._clients) > 1024:

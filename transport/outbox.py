@@ -27,6 +27,7 @@ from erni.transport.wire import BATCH_BYTES, StreamDecoder
 if TYPE_CHECKING:
     from erni.transport.session import Auth, Session
     from erni.transport.sessions import Sessions
+    from erni.transport.wires import Wire
 
 Address = tuple[str, int]
 
@@ -51,7 +52,7 @@ class Outgoing:
     deadline: float
     to: str = ""
     attempts: int = 0
-    written: socket.socket | None = None  # the connection the caller's thread wrote it on (`_write_now`)
+    written: socket.socket | None = None  # the connection the caller's thread wrote it on (`tcp_write_now`)
     rest: bytes = b""  # what the socket did not take then
 
 
@@ -112,6 +113,7 @@ class SenderPool:
     declared below)."""
 
     if TYPE_CHECKING:
+        carrier: Wire
         clock: Callable[[], float]
         pace: Callable[[], float]
         _cond: threading.Condition
@@ -133,7 +135,6 @@ class SenderPool:
         def _send_datagram(self, addr: Address, batch: Batch) -> bool: ...
         def _send_fast(self, dest: Dest, session: Session | None, outs: list[Outgoing]) -> float | None: ...
         def _send_reliable(self, dest: Dest, session: Session | None) -> float | None: ...
-        def _sendto(self, frame: bytes, addr: Address) -> None: ...
         def count(self, name: str, n: int = 1) -> None: ...
         def session_with(self, addr: Address) -> Session | None: ...
         def warn(self, reason: str, text: str) -> None: ...
@@ -272,7 +273,7 @@ class SenderPool:
             return dest.hs_not_before if dest.reliable else None
         if real >= init.next_try:
             try:
-                self._sendto(init.frame, dest.addr)
+                self.carrier.sendto(init.frame, dest.addr)
                 self.count("handshakes.sent")
             except OSError as err:
                 self.warn("udp", f"handshake to {dest.addr[0]}:{dest.addr[1]} failed: {err}")

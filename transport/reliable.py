@@ -1,7 +1,7 @@
 """Reliable delivery: each message over the destination's TCP connection, acknowledged by id,
 retried with exponential backoff until its time to live runs out, in order per destination.
 
-The caller's thread writes a message itself when its destination is idle (`_write_now`: never
+The caller's thread writes a message itself when its destination is idle (`tcp_write_now`: never
 waiting; what the socket does not take is finished by a sender thread). A sender thread then
 waits for the acknowledgement on that connection (`_deliver`), and reports each message as
 delivered (`on_delivered`) or, past its deadline or to the wrong peer, undeliverable
@@ -26,6 +26,7 @@ if TYPE_CHECKING:
     from erni.transport.limits import Limits
     from erni.transport.session import Session
     from erni.transport.wire import Message
+    from erni.transport.wires import Wire
 
 Address = tuple[str, int]
 
@@ -34,6 +35,7 @@ class ReliableDelivery:
     """Reliable messages (a mixin of `Endpoint`; what it uses of the rest is declared below)."""
 
     if TYPE_CHECKING:
+        carrier: Wire
         clock: Callable[[], float]
         pace: Callable[[], float]
         _clients: OrderedDict[Address, None]
@@ -57,7 +59,7 @@ class ReliableDelivery:
         def session_with(self, addr: Address) -> Session | None: ...
         def warn(self, reason: str, text: str) -> None: ...
 
-    def _write_now(self, addr: Address, out: Outgoing) -> bool:
+    def tcp_write_now(self, addr: Address, out: Outgoing) -> bool:
         """Write a reliable message on its destination's open connection from the caller's thread.
 
         Only when that destination is idle (nothing queued, no sender serving it, no backoff) in a
@@ -119,7 +121,7 @@ class ReliableDelivery:
                 self.on_undeliverable(dest.addr, out.id, out.kind, out.body)
                 continue
             out.attempts += 1
-            if self._deliver(dest, out, session):
+            if self.carrier.deliver(dest, out, session):
                 with self._cond:
                     if dest.reliable and dest.reliable[0] is out:
                         dest.reliable.popleft()
@@ -149,10 +151,10 @@ class ReliableDelivery:
             self.warn("too_big", f"not sent: {err}")
             return None
 
-    def _deliver(self, dest: Dest, out: Outgoing, session: Session | None) -> bool:
+    def tcp_deliver(self, dest: Dest, out: Outgoing, session: Session | None) -> bool:
         written, out.written = out.written, None
         if written is not None and written is dest.sock:
-            frame: bytes | None = out.rest  # written by the caller's thread (`_write_now`): the rest, then the ack
+            frame: bytes | None = out.rest  # written by the caller's thread (`tcp_write_now`): the rest, then the ack
         else:
             frame = self._frame_or_drop(dest, out, session)
         if frame is None:

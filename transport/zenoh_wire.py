@@ -7,10 +7,10 @@ forge nor replay; every frame that arrives goes through the endpoint's one frame
 (`accept_frame`), and every message through the transport plugin's authorization. What this
 module replaces is only how bytes move (key expressions in `zenoh_keys.py`):
 
-- a datagram (`_sendto`: a status, a handshake, its answer, a hint) is a put to the receiver's
+- a datagram (`ZenohWire.sendto`: a status, a handshake, its answer, a hint) is a put to the receiver's
   `d` key, best effort and dropped rather than queued when the link is congested (statuses: the
   newest wins, and the receiver orders them by number anyway);
-- a reliable message (`_deliver`) is a query to the receiver's `r` key: its reply carries the
+- a reliable message (`ZenohWire.deliver`) is a query to the receiver's `r` key: its reply carries the
   acknowledgement sealed in the session (or a hint that the session is unknown), as ERNI's TCP
   stream does (a task's when the receiver's journal holds it: the query is kept until then); the sender pool retries, de-duplication and order per destination are the
   endpoint's, unchanged;
@@ -40,7 +40,7 @@ from erni.blackboard.errors import ConfigError, NetworkError
 from erni.blackboard.schemas import Beacon
 from erni.transport.endpoint import CLIENT_ROLE, Endpoint
 from erni.transport.identity import Identity
-from erni.transport.outbox import Batch, Dest, Outgoing
+from erni.transport.outbox import Dest, Outgoing
 from erni.transport.receiver import HEADER_KIND
 from erni.transport.session import Session
 from erni.transport.wire import DATA, KIND, FrameError, Message
@@ -153,8 +153,8 @@ class ZenohEndpoint(Endpoint):
         self.zenoh_settings = zenoh_settings
         self.keys = Keys(zenoh_settings.team)
         self._zs: zenoh.Session | None = None
-        self._publishers: dict[Address, zenoh.Publisher] = {}  # a receiver's address -> its publisher
-        self._pub_lock = threading.Lock()
+        self.zenoh_wire = ZenohWire(self)
+        self.carrier = self.zenoh_wire  # puts and queries instead of UDP datagrams and TCP streams
         self._alive: dict[str, set[tuple[str, str]]] = {}  # agent -> (instance, router) of its tokens held now
         self._routes: dict[str, str] = {}  # agent -> the router its newest token names ('' direct)
         self._router_names: dict[str, str] = {}  # a router's Zenoh id -> its name, from its token
@@ -166,7 +166,7 @@ class ZenohEndpoint(Endpoint):
         self._rx: threading.Thread | None = None  # the datagram thread (`_receive_loop`)
         self._next_open = 0.0  # when to try again to open a session that could not be opened (monotonic)
         self._declared: list[Any] = []  # subscribers, queryable, token: undeclared at stop
-        self.wire = "zenoh"
+        self.wire = self.carrier.name
 
     # -- life cycle -----------------------------------------------------------------------
 
@@ -235,8 +235,7 @@ class ZenohEndpoint(Endpoint):
             t.join(max(0.0, deadline - self.pace()))
         self._threads, self._rx = [], None
         zs, self._zs = self._zs, None
-        with self._pub_lock:
-            self._publishers.clear()
+        self.zenoh_wire.forget_publishers()
         if zs is not None:
             zs.close()  # type: ignore[no-untyped-call]  # untyped in Zenoh's stubs
 
@@ -284,82 +283,6 @@ class ZenohEndpoint(Endpoint):
         return self._zs
 
     # -- sending --------------------------------------------------------------------------
-
-    def _batch(self, session: Session | None) -> Batch:
-        """A burst's statuses gathered for one put: up to `BATCH_BYTES` on Zenoh, which keeps no
-        datagram under a link's MTU (its links are streams, and it fragments what is larger)."""
-        batch = super()._batch(session)
-        batch.limit = BATCH_BYTES
-        return batch
-
-    def _sendto(self, frame: bytes, addr: Address) -> None:
-        """Put one frame to the agent at `addr`, best effort (NetworkError, an OSError, when it cannot go)."""
-        if self.udp_loss and self._rng.random() < self.udp_loss:
-            self.count("dropped.injected")
-            return
-        pub = self._publishers.get(addr)  # one dictionary look-up a frame once the publisher is declared
-        if pub is None:
-            pub = self._publisher(addr)
-        try:
-            pub.put(frame)
-        except zenoh.ZError as err:
-            raise NetworkError(f"Zenoh put to {addr[0]} failed: {err}") from None
-
-    def _publisher(self, addr: Address) -> zenoh.Publisher:
-        """The publisher of frames to the agent at `addr`, declared on first use (NetworkError for an
-        address of no agent, or when Zenoh refuses)."""
-        name = name_at(addr)
-        if name is None:
-            raise NetworkError(f"{addr[0]}:{addr[1]} is no address on the Zenoh wire (expected zenoh/NAME:0)")
-        with self._pub_lock:
-            pub = self._publishers.get(addr)
-            if pub is None:
-                if len(self._publishers) >= PUBLISHERS:
-                    for old in self._publishers.values():
-                        old.undeclare()  # type: ignore[no-untyped-call]  # untyped in Zenoh's stubs
-                    self._publishers.clear()
-                try:
-                    pub = self.session.declare_publisher(self.keys.inbox(name, DATAGRAM, self.name),
-                                                         congestion_control=zenoh.CongestionControl.DROP)
-                except zenoh.ZError as err:
-                    raise NetworkError(f"Zenoh put to {name} failed: {err}") from None
-                self._publishers[addr] = pub
-        return pub
-
-    def _write_now(self, addr: Address, out: Outgoing) -> bool:
-        """Reliable messages always go through the sender pool here: it waits for the reply."""
-        return False
-
-    def _deliver(self, dest: Dest, out: Outgoing, session: Session | None) -> bool:
-        """Query the receiver with the sealed frame; True when a reply acknowledges `out`."""
-        frame = self._frame_or_drop(dest, out, session)
-        if frame is None:
-            return True
-        name = name_at(dest.addr)
-        if name is None:
-            self.warn("link", f"{dest.addr[0]}:{dest.addr[1]} is no address on the Zenoh wire")
-            return False
-        try:
-            replies = self.session.get(self.keys.inbox(name, RELIABLE, self.name), payload=frame,
-                                       timeout=self.ack_timeout, target=zenoh.QueryTarget.ALL,
-                                       consolidation=zenoh.ConsolidationMode.NONE,
-                                       congestion_control=zenoh.CongestionControl.BLOCK)
-            answered = False
-            for reply in replies:
-                answered = True
-                sample = reply.ok
-                if sample is None:
-                    continue
-                got = self.accept_frame(sample.payload.to_bytes(), "tcp", dest.addr)
-                if got is not None and any(m.kind == "ack" and m.body == out.id for m in got[0]):
-                    return True
-        except (zenoh.ZError, NetworkError) as err:
-            self.warn("link", f"query to {name} failed: {err}")
-            return False
-        self.count("zenoh.unanswered")
-        if not answered and dest.addr in self._clients:
-            self._client_gone(dest)  # nothing answers for a command-line client: it exited
-        return False
 
     # -- receiving (on Zenoh's threads) ---------------------------------------------------
 
@@ -473,7 +396,7 @@ class ZenohEndpoint(Endpoint):
             if not self._beacon_bucket.take():  # unsigned: anyone the router admits may declare one
                 self.count("dropped.rate")
                 return
-            self._dispatch(Message(name, role, address_of(name), 0, 0, "", "beacon", Beacon(role=role), hint=True,
+            self.dispatch(Message(name, role, address_of(name), 0, 0, "", "beacon", Beacon(role=role), hint=True,
                                    source=f"router {router}" if router else "direct"))
             return
         with self._alive_lock:
@@ -511,3 +434,91 @@ def _router_of(zs: zenoh.Session) -> str:
 
 
 __all__ = ["ALIVE", "ZenohEndpoint", "open_router", "open_session"]
+
+
+class ZenohWire:
+    """The Zenoh wire: a datagram is a put to the receiver's datagram key (a publisher per receiver,
+    declared on first use), a reliable message a query to its reliable key, acknowledged by the reply."""
+
+    name = "zenoh"
+    batch_limit: int | None = BATCH_BYTES  # Zenoh keeps no datagram under a link's MTU (its links are
+    # streams, and it fragments what is larger): a burst's statuses gather up to this for one put
+
+    def __init__(self, endpoint: ZenohEndpoint) -> None:
+        self.endpoint = endpoint
+        self._publishers: dict[Address, zenoh.Publisher] = {}  # a receiver's address -> its publisher
+        self._pub_lock = threading.Lock()
+
+    def forget_publishers(self) -> None:
+        """Drop every publisher (the session closes)."""
+        with self._pub_lock:
+            self._publishers.clear()
+
+    def sendto(self, frame: bytes, addr: Address) -> None:
+        """Put one frame to the agent at `addr`, best effort (NetworkError, an OSError, when it cannot go)."""
+        if self.endpoint.udp_loss and self.endpoint._rng.random() < self.endpoint.udp_loss:
+            self.endpoint.count("dropped.injected")
+            return
+        pub = self._publishers.get(addr)  # one dictionary look-up a frame once the publisher is declared
+        if pub is None:
+            pub = self._publisher(addr)
+        try:
+            pub.put(frame)
+        except zenoh.ZError as err:
+            raise NetworkError(f"Zenoh put to {addr[0]} failed: {err}") from None
+
+    def _publisher(self, addr: Address) -> zenoh.Publisher:
+        """The publisher of frames to the agent at `addr`, declared on first use (NetworkError for an
+        address of no agent, or when Zenoh refuses)."""
+        name = name_at(addr)
+        if name is None:
+            raise NetworkError(f"{addr[0]}:{addr[1]} is no address on the Zenoh wire (expected zenoh/NAME:0)")
+        with self._pub_lock:
+            pub = self._publishers.get(addr)
+            if pub is None:
+                if len(self._publishers) >= PUBLISHERS:
+                    for old in self._publishers.values():
+                        old.undeclare()  # type: ignore[no-untyped-call]  # untyped in Zenoh's stubs
+                    self._publishers.clear()
+                try:
+                    pub = self.endpoint.session.declare_publisher(self.endpoint.keys.inbox(name, DATAGRAM, self.endpoint.name),
+                                                         congestion_control=zenoh.CongestionControl.DROP)
+                except zenoh.ZError as err:
+                    raise NetworkError(f"Zenoh put to {name} failed: {err}") from None
+                self._publishers[addr] = pub
+        return pub
+
+    def write_now(self, addr: Address, out: Outgoing) -> bool:
+        """Reliable messages always go through the sender pool here: it waits for the reply."""
+        return False
+
+    def deliver(self, dest: Dest, out: Outgoing, session: Session | None) -> bool:
+        """Query the receiver with the sealed frame; True when a reply acknowledges `out`."""
+        frame = self.endpoint._frame_or_drop(dest, out, session)
+        if frame is None:
+            return True
+        name = name_at(dest.addr)
+        if name is None:
+            self.endpoint.warn("link", f"{dest.addr[0]}:{dest.addr[1]} is no address on the Zenoh wire")
+            return False
+        try:
+            replies = self.endpoint.session.get(self.endpoint.keys.inbox(name, RELIABLE, self.endpoint.name), payload=frame,
+                                       timeout=self.endpoint.ack_timeout, target=zenoh.QueryTarget.ALL,
+                                       consolidation=zenoh.ConsolidationMode.NONE,
+                                       congestion_control=zenoh.CongestionControl.BLOCK)
+            answered = False
+            for reply in replies:
+                answered = True
+                sample = reply.ok
+                if sample is None:
+                    continue
+                got = self.endpoint.accept_frame(sample.payload.to_bytes(), "tcp", dest.addr)
+                if got is not None and any(m.kind == "ack" and m.body == out.id for m in got[0]):
+                    return True
+        except (zenoh.ZError, NetworkError) as err:
+            self.endpoint.warn("link", f"query to {name} failed: {err}")
+            return False
+        self.endpoint.count("zenoh.unanswered")
+        if not answered and dest.addr in self.endpoint._clients:
+            self.endpoint._client_gone(dest)  # nothing answers for a command-line client: it exited
+        return False

@@ -115,15 +115,7 @@ class NetGuard:
             return  # the very rows of the last reading (a walk not redone; compared by identity): judged
         self._rows = rows
         s = self.state
-        known = any(link.quality > 0 for link in links)
-        good = [link for link in links if not known or link.quality >= self.min_quality]
-        key = (tuple((link.a, link.b) for link in good), len(links))
-        if key != self._judged[0]:  # the graph work only when which links are good changed
-            adj = netgraph.from_edges(((link.a, link.b) for link in good),
-                                      nodes=[self.me, *(n for link in links for n in (link.a, link.b))])
-            mine = next(c for c in netgraph.connected_components(adj) if self.me in c)
-            self._judged = (key, self.me in netgraph.articulation_points(adj), mine)
-        _, s.articulation, mine = self._judged
+        s.articulation, mine = self._judge(rows)
         across = [(link.quality, link.b if link.a == self.me else link.a) for link in links
                   if self.me in (link.a, link.b)]  # this robot's links: (quality, the other end)
         quality, other = max(((q, n) for q, n in across if n not in mine), default=(0.0, ""))
@@ -131,6 +123,20 @@ class NetGuard:
         edges = tuple((link.a, link.b) for link in links)
         if edges != self._edges:  # which links exist changed: find the critical ones again
             self._edges, self._critical = edges, _bridges(self.me, edges)
+
+    def _judge(self, links: list[Link]) -> tuple[bool, set[str]]:
+        """Whether this robot is an articulation point of the graph of good links (those whose quality is
+        known, any above 0, and not below `min_quality`), and the nodes it reaches over them; the graph
+        work is done again only when which links are good changed."""
+        known = any(link.quality > 0 for link in links)
+        good = [link for link in links if not known or link.quality >= self.min_quality]
+        key = (tuple((link.a, link.b) for link in good), len(links))
+        if key != self._judged[0]:
+            adj = netgraph.from_edges(((link.a, link.b) for link in good),
+                                      nodes=[self.me, *(n for link in links for n in (link.a, link.b))])
+            mine = next(c for c in netgraph.connected_components(adj) if self.me in c)
+            self._judged = (key, self.me in netgraph.articulation_points(adj), mine)
+        return self._judged[1], self._judged[2]
 
     _critical: set[str] | None = None  # neighbours over critical links (None: no topology read yet)
     _edges: tuple[tuple[str, str], ...] | None = None
@@ -284,21 +290,7 @@ class NetGuard:
         anchors = dict(s.critical) or self._best()
         s.closing = {n: v for n in s.critical if (v := self.away_speed(n)) is not None}
         if self.predict:
-            for name in s.critical:
-                got = self.projected(name, now)
-                if got is not None and got[0] < self.min_quality:
-                    q = self.readings[name][-1].quality
-                    self.prediction = (f"the link to {name} ({q:.2f}) is predicted to fall below "
-                                       f"{self.min_quality:.2f} before {self.me} can stand ({got[1]})")
-                    break
-            if not self.prediction and self.readings:  # no bridge: is the best link going too?
-                future = {n: (rows[-1].quality if (got := self.projected(n, now)) is None else got[0])
-                          for n, rows in self.readings.items() if rows}
-                best = max(self.readings, key=lambda n: self.readings[n][-1].quality)
-                if future and max(future.values()) < self.min_quality <= self.readings[best][-1].quality:
-                    self.prediction = (f"every link of {self.me} is predicted to fall below {self.min_quality:.2f} "
-                                       f"before it can stand (the best now: {best}, "
-                                       f"{self.readings[best][-1].quality:.2f})")
+            self.prediction = self._predicted(now)
         reason = self.risk()
         if reason and not reason.endswith("is an articulation point of the network"):
             self.cause = self._cause(reason)  # the link whose state held the robot: no resuming away from it
@@ -310,6 +302,31 @@ class NetGuard:
                 s.at_risk = True
                 return "risk"
             return None
+        return self._recovered(now, position, weak)
+
+    def _predicted(self, now: float) -> str:
+        """Why the links are predicted to fail before the robot can stand ("" when they are not): a
+        critical link's, or (no bridge) every link's."""
+        for name in self.state.critical:
+            got = self.projected(name, now)
+            if got is not None and got[0] < self.min_quality:
+                q = self.readings[name][-1].quality
+                return (f"the link to {name} ({q:.2f}) is predicted to fall below "
+                        f"{self.min_quality:.2f} before {self.me} can stand ({got[1]})")
+        if self.readings:  # no bridge: is the best link going too?
+            future = {n: (rows[-1].quality if (got := self.projected(n, now)) is None else got[0])
+                      for n, rows in self.readings.items() if rows}
+            best = max(self.readings, key=lambda n: self.readings[n][-1].quality)
+            if future and max(future.values()) < self.min_quality <= self.readings[best][-1].quality:
+                return (f"every link of {self.me} is predicted to fall below {self.min_quality:.2f} "
+                        f"before it can stand (the best now: {best}, "
+                        f"{self.readings[best][-1].quality:.2f})")
+        return ""
+
+    def _recovered(self, now: float, position: tuple[float, float] | None, weak: bool) -> str | None:
+        """No risk now: keep the good-position trail, and clear once every anchor link has been back above
+        `resume_quality` (not `weak`) for `resume_after` s; "clear" then, else None."""
+        s = self.state
         if position is not None and s.best is not None and not s.at_risk:
             self.last_good = position
             if not self.trail or math.dist(self.trail[-1], position) >= 0.2:

@@ -21,7 +21,6 @@ Local BotMotion tasks of other plugins are never touched (mixed initiative), exc
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
 from typing import TYPE_CHECKING, Literal
 
@@ -40,6 +39,9 @@ from erni.blackboard import (
 from erni.blackboard.objects import Model
 from erni.blackboard.schemas import Peer
 from erni.blackboard.tasks import CancelParams, ForwardParams, GotoParams, SayParams, StopParams
+from erni.plugins.mission.keeper import CUE_BACK as CUE_BACK
+from erni.plugins.mission.keeper import CUE_LOST as CUE_LOST
+from erni.plugins.mission.keeper import LinkKeeper
 from erni.plugins.mission.netaware import NetGuard
 from erni.plugins.mission.remote import RemoteJob, Significance, plan, resumable
 from erni.plugins.mission.team import TeamView, Territory
@@ -49,8 +51,6 @@ if TYPE_CHECKING:
     from erni.plugins.mission.deploy import Runner
 
 CUE_TASK = [(4, 72), (4, 79)]          # remote task received: short rising fifth
-CUE_LOST = [(10, 67), (10, 60)]        # connectivity at risk: falling
-CUE_BACK = [(10, 60), (10, 67)]        # connectivity back: rising
 
 
 class MissionSettings(Model):
@@ -134,6 +134,7 @@ class MissionControl(Plugin[MissionSettings]):
                               resume_after=s.resume_after, resume_quality=s.resume_quality,
                               latency=s.reading_latency, braking=s.braking, fade_distance=s.fade_distance,
                               predict=s.predict)
+        self.keeper = LinkKeeper(self, self.guard, self.team, s, self.log)
         self.jobs: dict[str, RemoteJob] = {}
         self.runners: dict[str, Runner] = {}
         self.results: dict[str, AllocationResult] = {}    # remote/deploy uid -> last result published
@@ -145,8 +146,6 @@ class MissionControl(Plugin[MissionSettings]):
         self.says: dict[str, float] = {}
         self.watches: dict[str, str] = {}
         self.qualities: dict[str, float] | None = None
-        self.guard_stop: str | None = None
-        self.retreat: str | None = None
         self.territory: Territory | None = None
         self.due: dict[str, float] = {}
         self._timer: Timer | None = None
@@ -259,8 +258,7 @@ class MissionControl(Plugin[MissionSettings]):
             self._received(task, now)
         for task in self.mine.removed:
             self.issued.pop(task.uid, None)
-            if self.guard_stop == task.uid:
-                self.guard_stop = None
+            self.keeper.forget(task.uid)
         for task in self.mine.added + self.mine.changed:
             self.issued.pop(task.uid, None)
             self._sub_result(task, now)
@@ -305,7 +303,7 @@ class MissionControl(Plugin[MissionSettings]):
                         f"{task.preposition} is not resumed", force=True)
             return
         if not resumed:
-            self._say(CUE_TASK)
+            self.say(CUE_TASK)
         if task.verb == "RemoteBotMotion" and task.preposition == "cancel":
             self._cancel_task(task, now)
             return
@@ -342,8 +340,7 @@ class MissionControl(Plugin[MissionSettings]):
         begun = f"resumed after a restart of {self.agent_name}" if job.resumed else "started"
         self.report(uid, TaskState.RUNNING, f"{begun}: {len(job.steps)} step(s){slowed and '; ' + slowed}",
                     progress=0.0)
-        if job.moving and self.guard.state.at_risk and not self._improves(job):
-            self._apply_policy([job], self.guard.state.reason)
+        self.keeper.admit(job)
 
     def _start_step(self, job: RemoteJob) -> str:
         """Issue the job's current step; return why it was slowed ("" when it was not)."""
@@ -351,24 +348,19 @@ class MissionControl(Plugin[MissionSettings]):
         params, slowed = step.params, ""
         s = self.settings
         if s.network_aware and s.predict and isinstance(params, (GotoParams, ForwardParams)):
-            ends = self._ends(job)
-            leaving = "" if ends is None else self.guard.leaving(*ends)
-            cap = round(self.guard.safe_speed(), 2)
-            if leaving and params.speed > cap:
-                slowed = (f"slowed from {params.speed:g} to {cap:g} m/s: moving away from {leaving}, "
-                          "its only link to the team")
-                params = params.model_copy(update={"speed": cap})
+            params, slowed = self.keeper.slowed(job, params)
         job.sub = self.issue(job.uid, step.preposition, params)
         job.subs.append(job.sub)
         return slowed
 
     def _supersede(self, newcomer: str) -> None:
         for uid in list(self.jobs):
-            self._end_job(uid, TaskState.CANCELLED, f"superseded by task {newcomer}")
+            self.end_job(uid, TaskState.CANCELLED, f"superseded by task {newcomer}")
         for uid in list(self.runners):
             self._end_runner(uid, TaskState.CANCELLED, f"superseded by task {newcomer}")
 
-    def _end_job(self, uid: str, state: TaskState, message: str, **values: JsonValue) -> None:
+    def end_job(self, uid: str, state: TaskState, message: str, **values: JsonValue) -> None:
+        """End remote job `uid`: withdraw its sub-tasks, report its final state."""
         job = self.jobs.pop(uid, None)
         if job is None:
             return
@@ -377,7 +369,7 @@ class MissionControl(Plugin[MissionSettings]):
         self.report(uid, state, message, values=values or None, force=True,
                     progress=1.0 if state == TaskState.SUCCEEDED else None)
         if not any(j.moving for j in self.jobs.values()):
-            self._release_guard()
+            self.keeper.release()
 
     def _end_runner(self, uid: str, state: TaskState, message: str) -> None:
         runner = self.runners.pop(uid, None)
@@ -402,8 +394,8 @@ class MissionControl(Plugin[MissionSettings]):
         self.reports.pop(task.uid, None)
         if had:
             if not any(j.moving for j in self.jobs.values()):
-                self._release_guard()
-            self._halt(None, hold=True)
+                self.keeper.release()
+            self.halt(None, hold=True)
 
     def _cancel_task(self, task: Task, now: float) -> None:
         target = task.params_as(CancelParams).task
@@ -415,16 +407,17 @@ class MissionControl(Plugin[MissionSettings]):
         victims = [target] if target is not None else active
         who = f"{task.source} (task {task.uid})" if task.source else f"task {task.uid}"
         for uid in victims:
-            self._end_job(uid, TaskState.CANCELLED, f"cancelled by {who}")
+            self.end_job(uid, TaskState.CANCELLED, f"cancelled by {who}")
             self._end_runner(uid, TaskState.CANCELLED, f"cancelled by {who}")
-        self._release_guard()
+        self.keeper.release()
         self.report(task.uid, TaskState.RUNNING, f"stopping; cancelled {len(victims)} task(s)",
                     values={"cancelled": [*victims]})
         # a cancel of everything is a stop: it ends every motion on the robot, whoever started it;
         # a cancel of one task halts the robot only until it stands (what else runs goes on)
-        self._halt(task.uid, hold=target is not None, by=task.source or None)
+        self.halt(task.uid, hold=target is not None, by=task.source or None)
 
-    def _halt(self, cancel: str | None, *, hold: bool, by: str | None = None) -> None:
+    def halt(self, cancel: str | None, *, hold: bool, by: str | None = None) -> None:
+        """Stop the robot (holding it with `hold`); the `cancel` task succeeds once it stands."""
         uid = self.issue(cancel, "stop", StopParams(hold=hold, by=by))
         self.halts[uid] = (cancel, self.clock.wall() + self.settings.halt_timeout)
 
@@ -434,12 +427,21 @@ class MissionControl(Plugin[MissionSettings]):
         params = stop.params_as(StopParams)
         who = f"{params.by or stop.source or 'a stop'} (task {stop.uid})"
         for uid in list(self.jobs):
-            self._end_job(uid, TaskState.CANCELLED, f"stopped by {who}")
+            self.end_job(uid, TaskState.CANCELLED, f"stopped by {who}")
         for uid in list(self.runners):
             self._end_runner(uid, TaskState.CANCELLED, f"stopped by {who}")
-        self._release_guard()
+        self.keeper.release()
 
     def _sub_result(self, sub: Task, now: float) -> None:
+        if self._own_result(sub) or self.keeper.finished(sub):
+            return
+        parent = self.parent_of.get(sub.uid)
+        job = self.jobs.get(parent) if parent else None
+        if job is not None and job.sub == sub.uid and sub.result is not None:
+            self._step_result(job, sub, sub.result)
+
+    def _own_result(self, sub: Task) -> bool:
+        """Whether `sub` is one of the mission's halts or cues (then its result is taken here)."""
         uid = sub.uid
         if uid in self.halts:
             r = sub.result  # a failed halt has a result too
@@ -450,25 +452,16 @@ class MissionControl(Plugin[MissionSettings]):
                     ok = r.state != TaskState.FAILED
                     self.report(cancel, TaskState.SUCCEEDED if ok else TaskState.FAILED,
                                 "robot halted" if ok else f"halt failed: {r.message}", force=True)
-            return
+            return True
         if uid in self.says:
             if sub.done:
                 del self.says[uid]
                 self.withdraw(uid)
-            return
-        if uid == self.retreat and sub.done:
-            self.retreat = None
-            self.withdraw(uid)
-            if self.guard.state.at_risk and self.guard_stop is None:
-                self.guard_stop = self.issue(None, "stop", StopParams(hold=True))
-            return
-        parent = self.parent_of.get(uid)
-        job = self.jobs.get(parent) if parent else None
-        if job is None or job.sub != uid:
-            return
-        r = sub.result
-        if r is None:
-            return
+            return True
+        return False
+
+    def _step_result(self, job: RemoteJob, sub: Task, r: AllocationResult) -> None:
+        """The current step of `job` reported: on to the next step, the job's end, or its progress."""
         values = dict(r.values)
         if r.state == TaskState.SUCCEEDED:
             if job.index + 1 < len(job.steps):
@@ -477,11 +470,11 @@ class MissionControl(Plugin[MissionSettings]):
                 self.report(job.uid, TaskState.RUNNING, job.held and f"holding: {job.held}" or
                             f"step {job.index + 1} of {len(job.steps)}", progress=job.progress(0.0), values=values)
             else:
-                self._end_job(job.uid, TaskState.SUCCEEDED, r.message or "done", **values)
+                self.end_job(job.uid, TaskState.SUCCEEDED, r.message or "done", **values)
         elif r.state == TaskState.FAILED:
-            self._end_job(job.uid, TaskState.FAILED, f"{sub.preposition} failed: {r.message}", **values)
+            self.end_job(job.uid, TaskState.FAILED, f"{sub.preposition} failed: {r.message}", **values)
         elif r.state == TaskState.CANCELLED:
-            self._end_job(job.uid, TaskState.CANCELLED, f"{sub.preposition} cancelled: {r.message}", **values)
+            self.end_job(job.uid, TaskState.CANCELLED, f"{sub.preposition} cancelled: {r.message}", **values)
         else:
             msg = f"holding: {job.held}" if job.held else ""
             self.report(job.uid, TaskState.RUNNING, msg, progress=job.progress(r.progress), values=values)
@@ -509,113 +502,16 @@ class MissionControl(Plugin[MissionSettings]):
     def _guard(self, now: float) -> None:
         if not self.settings.network_aware:
             return
-        mine = self.team.mine()
-        self.guard.positions({n: (p[0], p[1]) for n, p in self.team.fresh(now).items()})
-        change = self.guard.update(now, None if mine is None else mine[:2])
-        moving = [j for j in self.jobs.values() if j.moving]
-        if change == "risk":
-            self.log.info("connectivity at risk: %s", self.guard.state.reason)
-            self._say(CUE_LOST)
-            self._apply_policy([j for j in moving if not self._improves(j)], self.guard.state.reason)
-        elif change == "clear":
-            self.log.info("connectivity restored")
-            self._say(CUE_BACK)
-        if not self.guard.state.at_risk and any(j.held for j in moving):
-            self._resume(moving)
-        wait = self.guard.pending_clear_in(now)
+        wait = self.keeper.check(now, [j for j in self.jobs.values() if j.moving])
         if wait is not None:
             self.due["guard"] = now + wait + 0.01
         else:
             self.due.pop("guard", None)
 
-    def _resume(self, moving: list[RemoteJob]) -> None:
-        """Connectivity is no longer at risk: resume the held jobs, except those whose motion would
-        take the robot further from the neighbour of a critical link that shows loss."""
-        free = []
-        for job in moving:
-            if not job.held:
-                continue
-            away = self._heads_away(job)
-            if away:
-                why = f"{self.agent_name} stays: moving on would take it further from {away}, its only link to the team"
-                if job.held != why:
-                    job.held = why
-                    self.report(job.uid, TaskState.RUNNING, f"holding: {why}")
-                continue
-            free.append(job)
-        if len(free) == sum(1 for j in moving if j.held):
-            self._release_guard()
-        for job in free:
-            job.held = ""
-            self.report(job.uid, TaskState.RUNNING, "resumed: connectivity restored")
-
-    def _ends(self, job: RemoteJob) -> tuple[tuple[float, float], tuple[float, float]] | None:
-        """Where the robot is and where the job's current step drives it (None: not known, or a
-        random walk, which picks its own ways)."""
-        mine = self.team.mine()
-        if mine is None or not job.steps:
-            return None
-        step = job.steps[min(job.index, len(job.steps) - 1)]
-        p = step.params
-        here = (mine[0], mine[1])
-        if isinstance(p, GotoParams):
-            return here, (p.x, p.y)
-        if isinstance(p, ForwardParams):
-            return here, (here[0] + math.cos(mine[2]), here[1] + math.sin(mine[2]))
-        return None
-
-    def _heads_away(self, job: RemoteJob) -> str:
-        """The neighbour of a lossy critical link that the job's motion takes the robot away from
-        (a random walk: none; if one of its ways leads off, the prediction holds it again)."""
-        ends = self._ends(job)
-        return "" if ends is None else self.guard.away(*ends)
-
-    def _improves(self, job: RemoteJob) -> bool:
-        """A motion towards the neighbour of every critical link: it improves connectivity."""
-        if not job.steps or not self.guard.state.critical or not self.guard.where:
-            return False
-        mine = self.team.mine()
-        if mine is None or not isinstance(job.steps[job.index].params, GotoParams):
-            return False
-        p = job.steps[job.index].params
-        assert isinstance(p, GotoParams)
-        return all(n in self.guard.where and math.dist((p.x, p.y), self.guard.where[n]) + 0.3
-                   < math.dist(mine[:2], self.guard.where[n]) for n in self.guard.state.critical)
-
-    def _apply_policy(self, jobs: list[RemoteJob], reason: str) -> None:
-        if not jobs:
-            return
-        policy = self.settings.policy
-        if policy == "stop":
-            for job in jobs:
-                self._end_job(job.uid, TaskState.FAILED, f"stopped: {reason}")
-            self._halt(None, hold=False, by="the network guard")
-            return
-        mine = self.team.mine()
-        target = None if mine is None else self.guard.retreat_point(mine[:2], self.settings.retreat_distance)
-        if policy == "retreat" and target is not None and mine is not None and \
-                ((mine[0] - target[0]) ** 2 + (mine[1] - target[1]) ** 2) ** 0.5 > 0.2:
-            if self.retreat is None:
-                self.retreat = self.issue(None, "goto", GotoParams(x=round(target[0], 3), y=round(target[1], 3),
-                                                                   speed=self.settings.speed, tolerance=0.15))
-            why = f"retreating to ({target[0]:.2f}, {target[1]:.2f}): {reason}"
-        else:
-            if self.guard_stop is None:
-                self.guard_stop = self.issue(None, "stop", StopParams(hold=True))
-            why = f"holding: {reason}"
-        for job in jobs:
-            job.held = reason
-            self.report(job.uid, TaskState.RUNNING, why)
-
-    def _release_guard(self) -> None:
-        self.withdraw(self.guard_stop)
-        self.guard_stop = None
-        self.withdraw(self.retreat)
-        self.retreat = None
-
     # -- audio cues and housekeeping -----------------------------------------------------
 
-    def _say(self, tones: list[tuple[int, int]]) -> None:
+    def say(self, tones: list[tuple[int, int]]) -> None:
+        """Play an audio cue (when the mission's `audio` is on)."""
         if self.settings.audio:
             uid = self.issue(None, "say", SayParams(tones=tones))
             self.says[uid] = self.clock.wall() + 10.0

@@ -244,79 +244,108 @@ def _host(prefix: str) -> str | None:
     return str(net.network_address) if net.prefixlen == net.max_prefixlen else None
 
 
+@dataclass(frozen=True)
+class _Names:
+    """How a view names addresses: the team directory with this node's own addresses, and each
+    neighbour's own address (the host prefix it originates) for its link-local one."""
+
+    names: dict[str, str]
+    neighbour_ip: dict[str, str]
+
+    def of(self, addr: str) -> str:
+        return self.names.get(addr, addr)
+
+    def neighbour(self, via: str) -> str:
+        return self.of(self.neighbour_ip.get(via, via))
+
+    def destination(self, prefix: str) -> str:
+        host = _host(prefix)
+        return self.of(host) if host else prefix
+
+
 def build_view(dump: BabelDump, parts: frozenset[str], *, node: str, where: str,
                names: Mapping[str, str] | None = None, avoid_margin: float = AVOID_MARGIN) -> NetView:
     """Turn a dump into a NetView with the requested parts (see the module's docstring)."""
-    names = dict(names or {})
     mine = {ifc.ipv4 for ifc in dump.interfaces if ifc.ipv4}
     mine |= {h for prefix, _ in dump.xroutes if (h := _host(prefix))}
     address = next((ifc.ipv4 for ifc in dump.interfaces if ifc.up and ifc.ipv4), "") or min(mine, default="")
-    for own in mine:
-        names[own] = node
-    # a neighbour's own address: the host prefix it originates (advertised through it with refmetric 0)
-    neighbour_ip: dict[str, str] = {}
-    for r in sorted(dump.routes, key=lambda r: r.prefix):
-        host = _host(r.prefix)
-        if host and r.refmetric == 0 and r.via not in neighbour_ip and ipaddress.ip_address(host).version == 4:
-            neighbour_ip[r.via] = host
-    by_via = {n.address: n for n in dump.neighbours}
-
-    def name_of(addr: str) -> str:
-        return names.get(addr, addr)
-
-    def neighbour_name(via: str) -> str:
-        return name_of(neighbour_ip.get(via, via))
-
-    def destination(prefix: str) -> str:
-        host = _host(prefix)
-        return name_of(host) if host else prefix
-
+    naming = _naming(dump, node, mine, names)
     view = NetView(node=node, address=address)
-    view.names = {a: n for a, n in names.items()}
-    bad_neighbours = {n.address for n in dump.neighbours if implausible_neighbour(n)}
-    bad_routes = {r.id for r in dump.routes if implausible_route(r)}
+    view.names = dict(naming.names)
     view.sources["node"] = f"{where} ({dump.version or 'babeld'}, my-id {dump.my_id or '?'})"
     named = "; names: the team directory (agents' beacons)"
     if NEIGHBORS in parts:
-        for n in dump.neighbours:
-            why = implausible_neighbour(n)
-            if why:
-                view.dropped.append(Absurd(where, NEIGHBORS, "neighbour", why))
-                continue
-            finite = n.cost < INFINITY
-            ip = neighbour_ip.get(n.address, "")
-            view.neighbors.append(Neighbor(name=neighbour_name(n.address), address=ip or n.address,
-                                           quality=quality(n.rxcost, n.txcost) if finite else 0.0,
-                                           symmetric=finite, metric=n.cost if finite else None,
-                                           recent=recent_delivery(n.reach)))
+        _neighbours(view, dump, naming, where)
         view.sources[NEIGHBORS] = (f"{where} neighbour table (quality 256/sqrt(rxcost*txcost), recent: the "
                                    f"last {RECENT_HELLOS} Hellos of reach, metric: babeld's cost){named}")
     if ROUTES in parts:
-        for r in dump.routes:
-            if not r.installed or r.metric >= INFINITY:
-                continue
-            why = implausible_route(r)
-            if why:
-                view.dropped.append(Absurd(where, ROUTES, "route", why))
-                continue
-            hop = neighbour_ip.get(r.via, r.via)
-            view.routes.append(Route(destination=destination(r.prefix), next_hop=neighbour_name(r.via),
-                                     hops=1 if _host(r.prefix) == hop else 0, cost=r.metric / UNIT))
+        _routes(view, dump, naming, where)
         view.sources[ROUTES] = f"{where} route table (installed routes; cost = metric/256; hops unknown past 1){named}"
     if TOPOLOGY in parts:
-        sane = BabelDump(dump.version, dump.host, dump.my_id, dump.interfaces,
-                         [n for n in dump.neighbours if n.address not in bad_neighbours], dump.xroutes,
-                         [r for r in dump.routes if r.id not in bad_routes])
-        by_via = {n.address: n for n in sane.neighbours}
-        view.links = _topology(sane, node, neighbour_ip, by_via, mine, neighbour_name, destination, avoid_margin)
-        view.dropped.extend(Absurd(where, TOPOLOGY, kind, why) for kind, why in
-                            [*(("neighbour", implausible_neighbour(n)) for n in dump.neighbours),
-                             *(("route", implausible_route(r)) for r in dump.routes)] if why)
+        _links(view, dump, naming, mine, where, avoid_margin)
         view.sources[TOPOLOGY] = (f"{where} neighbour table (this node's links) and route table (an edge "
                                   f"N-D where neighbour N's refmetric to D shows a path avoiding this node){named}")
     if POSITIONS in parts:
         view.missing[POSITIONS] = "babeld carries no positions (Babel has no such TLV)"
     return view
+
+
+def _naming(dump: BabelDump, node: str, mine: set[str], names: Mapping[str, str] | None) -> _Names:
+    """The team directory with this node's own addresses, and each neighbour's own address: the host
+    prefix it originates (advertised through it with refmetric 0)."""
+    named = dict(names or {})
+    for own in mine:
+        named[own] = node
+    neighbour_ip: dict[str, str] = {}
+    for r in sorted(dump.routes, key=lambda r: r.prefix):
+        host = _host(r.prefix)
+        if host and r.refmetric == 0 and r.via not in neighbour_ip and ipaddress.ip_address(host).version == 4:
+            neighbour_ip[r.via] = host
+    return _Names(named, neighbour_ip)
+
+
+def _links(view: NetView, dump: BabelDump, naming: _Names, mine: set[str], where: str, margin: float) -> None:
+    """The topology from the plausible rows as `view.links` (the implausible dropped and said)."""
+    bad_neighbours = {n.address for n in dump.neighbours if implausible_neighbour(n)}
+    bad_routes = {r.id for r in dump.routes if implausible_route(r)}
+    sane = BabelDump(dump.version, dump.host, dump.my_id, dump.interfaces,
+                     [n for n in dump.neighbours if n.address not in bad_neighbours], dump.xroutes,
+                     [r for r in dump.routes if r.id not in bad_routes])
+    by_via = {n.address: n for n in sane.neighbours}
+    view.links = _topology(sane, view.node, naming.neighbour_ip, by_via, mine, naming.neighbour, naming.destination,
+                           margin)
+    view.dropped.extend(Absurd(where, TOPOLOGY, kind, why) for kind, why in
+                        [*(("neighbour", implausible_neighbour(n)) for n in dump.neighbours),
+                         *(("route", implausible_route(r)) for r in dump.routes)] if why)
+
+
+def _neighbours(view: NetView, dump: BabelDump, naming: _Names, where: str) -> None:
+    """The neighbour table's plausible rows as `view.neighbors` (the others dropped and said)."""
+    for n in dump.neighbours:
+        why = implausible_neighbour(n)
+        if why:
+            view.dropped.append(Absurd(where, NEIGHBORS, "neighbour", why))
+            continue
+        finite = n.cost < INFINITY
+        ip = naming.neighbour_ip.get(n.address, "")
+        view.neighbors.append(Neighbor(name=naming.neighbour(n.address), address=ip or n.address,
+                                       quality=quality(n.rxcost, n.txcost) if finite else 0.0,
+                                       symmetric=finite, metric=n.cost if finite else None,
+                                       recent=recent_delivery(n.reach)))
+
+
+def _routes(view: NetView, dump: BabelDump, naming: _Names, where: str) -> None:
+    """The installed, reachable, plausible routes as `view.routes` (the implausible dropped and said)."""
+    for r in dump.routes:
+        if not r.installed or r.metric >= INFINITY:
+            continue
+        why = implausible_route(r)
+        if why:
+            view.dropped.append(Absurd(where, ROUTES, "route", why))
+            continue
+        hop = naming.neighbour_ip.get(r.via, r.via)
+        view.routes.append(Route(destination=naming.destination(r.prefix), next_hop=naming.neighbour(r.via),
+                                 hops=1 if _host(r.prefix) == hop else 0, cost=r.metric / UNIT))
 
 
 def _topology(dump: BabelDump, node: str, neighbour_ip: dict[str, str], by_via: dict[str, BabelNeighbour],

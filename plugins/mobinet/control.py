@@ -270,8 +270,9 @@ class MobiNetControl(Plugin[MobiNetSettings]):
                 if host:
                     names[host] = peer.name
             self._names = names   # replaced whole: the resource's thread reads it without a lock
-        if self._fixed is not None and self.clock.wall() - self._fixed.stamp >= 0.9:  # a fresh stamp: not stale
-            self._fixed = self._fixed.evolve(stamp=self.clock.wall())
+        wall = self.clock.wall()
+        if self._fixed is not None and wall - self._fixed.stamp >= 0.9:  # a fresh stamp: not stale
+            self._fixed = self._fixed.evolve(stamp=wall)
             self.change(self._fixed)
         for task in self.tasks.added:
             self._start(task)
@@ -405,21 +406,11 @@ class MobiNetControl(Plugin[MobiNetSettings]):
         return new.stamp - old.stamp < self.settings.netinfo_keepalive and only_stamp_differs(old, new)
 
     def _answer(self, task: Task, info: NetInfo, view: NetView) -> tuple[NetInfo, dict[str, Any], str]:
-        provenance = {"node": view.sources.get("node", "")}
-        for part in PARTS_OF[task.preposition]:
-            for name in FIELDS_OF[part]:
-                provenance[name] = (f"missing: {view.missing[part]}" if part in view.missing
-                                    else view.sources.get(part, ""))
-        if TOPOLOGY in PARTS_OF[task.preposition] and TOPOLOGY not in view.missing:
-            provenance["articulation_points"] = "computed from links"
-        lacking = [view.missing[p] for p in sorted(PARTS_OF[task.preposition]) if p in view.missing]
-        dropped = [row for row in view.dropped if row.part in PARTS_OF[task.preposition]]
-        if dropped:   # the good rows stand; a reader that trusts only whole readings skips this one
-            more = f" and {len(dropped) - 1} more" if len(dropped) > 1 else ""
-            lacking.append(f"{dropped[0]}{more}")
+        parts = PARTS_OF[task.preposition]
+        lacking = self._lacking(parts, view)
         fields: dict[str, Any] = {"degraded": bool(lacking), "message": "; ".join(lacking),
                                   "stamp": self.clock.wall(), "node": view.node or self.agent_name,
-                                  "provenance": provenance}
+                                  "provenance": self._provenance(parts, view)}
         values: dict[str, Any] = {}
         message = f"degraded: {fields['message']}" if lacking else ""
         match task.params:
@@ -432,12 +423,7 @@ class MobiNetControl(Plugin[MobiNetSettings]):
             case PathCostParams() as params:
                 message = self._path_cost(view, params, fields, values) or message
             case TopologyParams():
-                cuts = self._articulation_points(view.links)
-                nodes = {n for link in view.links for n in (link.a, link.b)} | {view.node}
-                fields["links"] = view.links
-                fields["articulation_points"] = cuts
-                values.update(nodes=len(nodes), links=len(view.links), articulation_points=cuts,
-                              articulation_point=view.node in cuts)
+                self._topology(view, fields, values)
             case NodePositionParams():
                 fields["positions"] = view.positions
                 values["positions"] = {n: {"x": p.x, "y": p.y, "heading": p.heading}
@@ -445,6 +431,36 @@ class MobiNetControl(Plugin[MobiNetSettings]):
         # the fields are this reading's own validated rows: copied in, not validated again (a team's
         # topology of N^2 links is read twice a second)
         return info.model_copy(update=fields), values, message
+
+    @staticmethod
+    def _provenance(parts: frozenset[str], view: NetView) -> dict[str, str]:
+        """Where each field of the answer came from (`missing: <why>` for a part the source lacks)."""
+        provenance = {"node": view.sources.get("node", "")}
+        for part in parts:
+            for name in FIELDS_OF[part]:
+                provenance[name] = (f"missing: {view.missing[part]}" if part in view.missing
+                                    else view.sources.get(part, ""))
+        if TOPOLOGY in parts and TOPOLOGY not in view.missing:
+            provenance["articulation_points"] = "computed from links"
+        return provenance
+
+    @staticmethod
+    def _lacking(parts: frozenset[str], view: NetView) -> list[str]:
+        """What the reading lacks of `parts`: the parts missing, and the rows dropped (said once)."""
+        lacking = [view.missing[p] for p in sorted(parts) if p in view.missing]
+        dropped = [row for row in view.dropped if row.part in parts]
+        if dropped:   # the good rows stand; a reader that trusts only whole readings skips this one
+            more = f" and {len(dropped) - 1} more" if len(dropped) > 1 else ""
+            lacking.append(f"{dropped[0]}{more}")
+        return lacking
+
+    def _topology(self, view: NetView, fields: dict[str, Any], values: dict[str, Any]) -> None:
+        cuts = self._articulation_points(view.links)
+        nodes = {n for link in view.links for n in (link.a, link.b)} | {view.node}
+        fields["links"] = view.links
+        fields["articulation_points"] = cuts
+        values.update(nodes=len(nodes), links=len(view.links), articulation_points=cuts,
+                      articulation_point=view.node in cuts)
 
     def _articulation_points(self, links: list[Any]) -> list[str]:
         """The cut vertices, found again only when the links changed (a team reporting positions

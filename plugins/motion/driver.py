@@ -14,13 +14,9 @@ each `RobotState`. Commands may be sent from any thread.
 
 from __future__ import annotations
 
-import fcntl
 import logging
 import math
 import pkgutil
-import socket
-import sys
-import termios
 import threading
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
@@ -34,6 +30,9 @@ from erni.blackboard.errors import NetworkError
 from erni.plugins.motion import arcos
 from erni.plugins.motion.arcos import Cmd
 from erni.plugins.motion.damage import LineDamage
+from erni.plugins.motion.opening import LinkOpening
+from erni.plugins.motion.opening import RobotInfo as RobotInfo
+from erni.plugins.motion.opening import waiting as waiting
 from erni.plugins.motion.robots import DEFAULT_LIMITS, ModelSpec, RobotModel, model_spec
 
 log = logging.getLogger("erni.motion.driver")
@@ -64,38 +63,8 @@ def known_url_schemes() -> list[str]:
     return sorted(set(builtin) | set(register_url_handlers()) | {"ros2"})
 
 
-def waiting(port: Any) -> int:
-    """Bytes the port can give without blocking.
-
-    pyserial's `in_waiting` counts them on a serial line, but its socket:// handler (MobileSim,
-    AMRISim, `erni robot-sim`) only says 0 or 1, so a reader trusting it takes a SIP a byte at a
-    time (about 60 reads per SIP); for a socket the kernel's count (FIONREAD) is asked instead.
-    """
-    sock = getattr(port, "_socket", None)  # pyserial's socket handler keeps its socket here
-    if isinstance(sock, socket.socket):
-        try:
-            return int.from_bytes(fcntl.ioctl(sock.fileno(), termios.FIONREAD, bytes(4)), sys.byteorder, signed=True)
-        except OSError:
-            pass
-    return int(port.in_waiting)
-
-
-def _sync_reply(sync: int) -> Callable[[bytes], bool]:
-    """Whether a packet body is the reply to SYNC`sync` (SYNC0/1 echo one byte; SYNC2 names the robot)."""
-    return lambda body: body[0] == sync and (sync == 2 or len(body) == 1)
-
-
 class LinkError(NetworkError, ConnectionError):
     """The robot could not be reached or did not complete the ARCOS handshake."""
-
-
-@dataclass(frozen=True)
-class RobotInfo:
-    """What the robot said in its SYNC2 reply."""
-
-    name: str = ""
-    robot_class: str = ""
-    subclass: str = ""
 
 
 @dataclass(frozen=True)
@@ -471,7 +440,10 @@ class ArcosDriver:
 
     def _start_session(self, port: serial.SerialBase) -> bool:
         """Handshake, OPEN, CONFIG, HOSTBAUD, ENABLE and the limits: everything before the link is up."""
-        info = self._handshake(port)
+        opening = LinkOpening(self.url, port, self._reader, lambda packet: self._write(packet, during_handshake=True),
+                              self._stop, self.clock)
+        info = opening.handshake(self.sync_attempts, self.sync_timeout)
+        self.last_error = opening.last_error or self.last_error
         if info is None:
             return False
         self.info = info
@@ -480,7 +452,7 @@ class ArcosDriver:
             log.warning("%s: %s", self.url, w)
         self._ux, self._uy = _Unwrapper(), _Unwrapper()
         self._write(arcos.encode_command(Cmd.OPEN), during_handshake=True)
-        self.robot_config = self._request_config(port)
+        self.robot_config = opening.request_config(self.config_timeout, self._packet)
         if self.robot_config is None:
             log.info("%s: no CONFIG reply within %.1f s; using the model's values", self.url, self.config_timeout)
         elif self.robot_config.subclass and info.subclass and self.robot_config.subclass != info.subclass:
@@ -489,7 +461,8 @@ class ArcosDriver:
         self.line_baud = port.baudrate if isinstance(port, serial.Serial) else None
         if (self.switch_baud and isinstance(port, serial.Serial) and self.robot_config is not None
                 and self.robot_config.can_switch_baud and model.switch_baud > port.baudrate):
-            self._switch_baud(port, model.switch_baud)
+            opening.switch_baud(model.switch_baud)
+            self.line_baud = port.baudrate
         if self.enable_motors:
             self._write(arcos.encode_command(Cmd.ENABLE, 1), during_handshake=True)
         self.model = fill_limits(model, self.robot_config)
@@ -501,75 +474,6 @@ class ArcosDriver:
                 self._write(arcos.encode_command(cmd, _clamp16(round(value))), during_handshake=True)
         self._write(arcos.encode_command(Cmd.BATTERYINFO, 1), during_handshake=True)
         return True
-
-    def _handshake(self, port: serial.SerialBase) -> RobotInfo | None:
-        for attempt in range(self.sync_attempts):
-            if self._stop.is_set():
-                return None
-            if attempt:
-                self._write(arcos.encode_command(Cmd.CLOSE), during_handshake=True)
-                self._stop.wait(0.05)
-            port.reset_input_buffer()
-            self._reader.reset()
-            reply: bytes | None = None
-            for sync in (0, 1, 2):
-                self._write(arcos.encode_command(sync), during_handshake=True)
-                reply = self._await(port, _sync_reply(sync), self.sync_timeout)
-                if reply is None:
-                    self.last_error = f"no SYNC{sync} reply (attempt {attempt + 1}/{self.sync_attempts})"
-                    break
-            else:
-                assert reply is not None  # the loop ran to its end: SYNC2 answered
-                return RobotInfo(*arcos.parse_sync2(reply))
-        return None
-
-    def _request_config(self, port: serial.SerialBase) -> arcos.RobotConfig | None:
-        """Send CONFIG and wait for the reply, decoding the SIPs that arrive meanwhile."""
-        if self.config_timeout <= 0:
-            return None
-        self._write(arcos.encode_command(Cmd.CONFIG, 1), during_handshake=True)
-        reply = self._await(port, lambda b: b[0] == arcos.CONFIG_REPLY, self.config_timeout, self._packet)
-        if reply is None:
-            return None
-        try:
-            return arcos.parse_config(reply)
-        except arcos.ProtocolError as err:
-            log.warning("%s: bad CONFIG reply: %s", self.url, err)
-            return None
-
-    def _switch_baud(self, port: serial.SerialBase, baud: int) -> None:
-        """HOSTBAUD, then the same rate on our side; back to the old rate if the robot falls silent."""
-        code = arcos.BAUD_CODES.get(baud)
-        if code is None:
-            log.warning("%s: switch_baud %d is not a HOSTBAUD rate; expected one of %s", self.url, baud,
-                        ", ".join(map(str, arcos.BAUD_CODES)))
-            return
-        old = port.baudrate
-        self._write(arcos.encode_command(Cmd.HOSTBAUD, code), during_handshake=True)
-        port.flush()
-        self._stop.wait(0.01)
-        port.baudrate = baud
-        self._reader.reset()
-        self._stop.wait(0.01)
-        self._write(arcos.encode_command(Cmd.PULSE), during_handshake=True)
-        if self._await(port, lambda b: True, 0.9, None) is None:
-            log.warning("%s: the robot did not answer at %d baud; staying at %d", self.url, baud, old)
-            port.baudrate = old
-            self._reader.reset()
-        else:
-            log.info("%s: serial line switched from %d to %d baud", self.url, old, baud)
-        self.line_baud = port.baudrate
-
-    def _await(self, port: serial.SerialBase, match: Callable[[bytes], bool], timeout: float,
-               other: Callable[[bytes], None] | None = None) -> bytes | None:
-        deadline = self.clock() + timeout
-        while self.clock() < deadline and not self._stop.is_set():
-            for body in self._reader.feed(port.read(waiting(port) or 1)):
-                if match(body):
-                    return body
-                if other is not None:
-                    other(body)
-        return None
 
     def _service(self) -> None:
         port = self._port

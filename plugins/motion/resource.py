@@ -32,7 +32,18 @@ from typing import Any
 from erni.blackboard import Task, TaskState
 from erni.blackboard.clock import monotonic
 from erni.blackboard.errors import UsageError
-from erni.blackboard.tasks import AvoidParams, StopParams
+from erni.blackboard.tasks import (
+    AvoidParams,
+    BackwardParams,
+    ForwardParams,
+    GotoParams,
+    RandomWalkParams,
+    SayParams,
+    StopParams,
+    TeleportParams,
+    TurnParams,
+    VelocityParams,
+)
 from erni.plugins.motion.behaviours import (
     STILL_V,
     STILL_W,
@@ -287,7 +298,6 @@ class RobotMotionResource:
         if task.done or self.stack.find(task.uid) is not None:
             return
         prep = task.preposition
-        p = task.params
         if prep == "clear":
             gone = self.stack.clear(keep=lambda b: b.task_uid is None)
             for b in gone:
@@ -297,24 +307,24 @@ class RobotMotionResource:
                                   f"behaviour stack cleared ({len(gone)} removed)"))
             return
         if prep == "stop":
-            assert isinstance(p, StopParams)
+            p = task.params_as(StopParams)
             ended = 0 if p.hold else self._end_motions(task.uid, p.by or task.source)
             self.stack.push(Stop(task.uid, hold=p.hold, ended=ended))
             return
         if prep == "say":
-            tones = bytes(b for d, n in task.params.tones  # type: ignore[attr-defined]
+            tones = bytes(b for d, n in task.params_as(SayParams).tones
                           for b in (max(1, min(255, d)), max(1, min(127, n))))
             self._says[task.uid] = (tones, now + self.link_grace)
             self._play_says(now)
             return
         if prep == "avoid_obstacles":
-            assert isinstance(p, AvoidParams)
+            enabled = task.params_as(AvoidParams).enabled
             for b in [b for b in self.stack.items if isinstance(b, AvoidObstacles)]:
                 self.stack.remove(b)
                 if b.task_uid:
                     b.cancel(f"avoidance replaced by task {task.uid}")
                     self._record(b)
-            if not p.enabled:
+            if not enabled:
                 self._emit(TaskUpdate(task.uid, TaskState.SUCCEEDED, 1.0, {"enabled": False},
                                       "obstacle avoidance off"))
                 return
@@ -348,17 +358,18 @@ class RobotMotionResource:
                                       f"link lost: SAY not sent within {self.link_grace:g} s ({why})"))
 
     def _behaviour(self, task: Task) -> Behaviour | None:
-        p, uid, prep = task.params, task.uid, task.preposition
+        uid, prep, params = task.uid, task.preposition, task.params_as
         blocked = self.stack.blocked_timeout
         makers: dict[str, Callable[[], Behaviour]] = {
-            "goto": lambda: GoTo(p, uid, self.default_timeout),  # type: ignore[arg-type]
-            "turn": lambda: Turn(p, uid, self.default_timeout),  # type: ignore[arg-type]
-            "forward": lambda: Straight(p, 1, uid, self.default_timeout),  # type: ignore[arg-type]
-            "backward": lambda: Straight(p, -1, uid, self.default_timeout),  # type: ignore[arg-type]
-            "velocity": lambda: Velocity(p, uid),  # type: ignore[arg-type]
-            "randomwalk": lambda: RandomWalk(p, uid, turn_distance=max(0.6, 2 * self.avoid_distance)),  # type: ignore[arg-type]
-            "teleport": lambda: Teleport(p, uid),  # type: ignore[arg-type]
-            "avoid_obstacles": lambda: AvoidObstacles(p, uid, blocked),  # type: ignore[arg-type]
+            "goto": lambda: GoTo(params(GotoParams), uid, self.default_timeout),
+            "turn": lambda: Turn(params(TurnParams), uid, self.default_timeout),
+            "forward": lambda: Straight(params(ForwardParams), 1, uid, self.default_timeout),
+            "backward": lambda: Straight(params(BackwardParams), -1, uid, self.default_timeout),
+            "velocity": lambda: Velocity(params(VelocityParams), uid),
+            "randomwalk": lambda: RandomWalk(params(RandomWalkParams), uid,
+                                             turn_distance=max(0.6, 2 * self.avoid_distance)),
+            "teleport": lambda: Teleport(params(TeleportParams), uid),
+            "avoid_obstacles": lambda: AvoidObstacles(params(AvoidParams), uid, blocked),
         }
         maker = makers.get(prep)
         return maker() if maker else None

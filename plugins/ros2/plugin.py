@@ -24,10 +24,11 @@ import zenoh
 from pydantic import ConfigDict, Field, field_validator, model_validator
 
 from erni import ros2_messages as messages
-from erni.blackboard.errors import NetworkError, UsageError
+from erni.blackboard.errors import NetworkError
 from erni.blackboard.objects import Model
 from erni.blackboard.plugin import Plugin
 from erni.blackboard.tasks import NetInfo, Pose, Task, TaskState
+from erni.plugins.ros2.navigate import CANCELED, Navigator
 from erni.ros2_rmw import DEFAULT_QOS, QoS, Request, RmwNode
 from erni.transport.zenoh_keys import check_endpoints
 
@@ -124,36 +125,6 @@ class _Drive:
     action: bytes | None = None  # the NavigateToPose goal that goal is, if it is one
 
 
-# action_msgs/msg/GoalStatus
-ACCEPTED, EXECUTING, CANCELING, SUCCEEDED, CANCELED, ABORTED = 1, 2, 3, 4, 5, 6
-UNKNOWN_ERROR = 9000  # nav2_msgs/action/NavigateToPose_Result.UNKNOWN
-KEEP_ENDED_GOALS = 100  # ended goals whose results are kept for get_result
-
-
-@dataclass
-class _Goal:
-    """A NavigateToPose goal: the goto (then the turn) that carries it, its status, who waits for its result."""
-
-    goal_id: bytes
-    robot: str
-    stamp_ns: int
-    x: float
-    y: float
-    started: float
-    run: int  # the plugin's run that posted it (its tasks are on the blackboard from the next one)
-    status: int = ACCEPTED
-    goto: str | None = None
-    turn: str | None = None  # None: not decided yet; "": no turn
-    cancel: bool = False
-    error: str = ""
-    waiters: list[Request] = field(default_factory=list)
-    feedback_at: float = -math.inf
-
-    @property
-    def ended(self) -> bool:
-        return self.status in (SUCCEEDED, CANCELED, ABORTED)
-
-
 @dataclass
 class _Stop:
     """A call of a stop service: the stop task posted for each robot, answered once all halted (or not)."""
@@ -178,7 +149,9 @@ class ROS2Plugin(Plugin[ROS2Settings]):
         self._drives: dict[str, _Drive] = {}
         self._calls: list[tuple[str, str | None, Request]] = []  # service calls from Zenoh's threads
         self._stops: list[_Stop] = []
-        self._goals: dict[bytes, _Goal] = {}
+        self.navigator = Navigator(get=self.get, remove=self.remove, send=self._send, wake_in=self.wake_in,
+                                   topic=lambda robot: f"/{ros_name(robot)}/navigate_to_pose/_action",
+                                   frame=s.frame, feedback_hz=s.odom_rate_hz, log=self.log)
         self._run = 0
         self._lock = threading.Lock()
         self._last_odom: dict[str, float] = {}
@@ -196,17 +169,13 @@ class ROS2Plugin(Plugin[ROS2Settings]):
         """The transport's Zenoh session (auto, wire = zenoh, once started) or a session of the plugin's own."""
         s = self.settings
         if s.session == "auto":
-            from erni.transport.bridge import TransportPlugin
-            from erni.transport.zenoh_wire import ZenohEndpoint
-            for plugin in self._require_agent().plugins:
-                if isinstance(plugin, TransportPlugin) and plugin.settings.wire == "zenoh":
-                    endpoint = getattr(plugin, "endpoint", None)
-                    if isinstance(endpoint, ZenohEndpoint):
-                        try:
-                            return endpoint.session
-                        except NetworkError:
-                            return None  # not started yet: asked again
-                    return None
+            offered = self.provided("transport.zenoh_session")  # the transport's, on the Zenoh wire
+            if offered is not None:
+                try:
+                    session: zenoh.Session = offered()
+                    return session
+                except NetworkError:
+                    return None  # not started yet: asked again
         conf = zenoh.Config()
         values: dict[str, Any] = {"mode": s.mode, "connect/endpoints": s.connect,
                                   "scouting/multicast/enabled": False}
@@ -237,7 +206,7 @@ class ROS2Plugin(Plugin[ROS2Settings]):
                     self._closing.wait(0.2)
                     continue
                 self.node = RmwNode(session, self.settings.node_name or f"erni_{ros_name(self.agent_name)}",
-                                    domain_id=self.settings.domain_id)
+                                    domain_id=self.settings.domain_id, clock=self.clock)
                 self.log.info("ROS 2 node %s on Zenoh session %s (domain %d)", self.node.name, self.node.zid,
                               self.settings.domain_id)
                 for typename, topic, wanted in ((messages.TF_MESSAGE, "/tf", self.settings.tf),
@@ -335,10 +304,9 @@ class ROS2Plugin(Plugin[ROS2Settings]):
     def _robots(self) -> set[str]:
         if self._robots_fixed is not None:
             return set(self._robots_fixed)
-        from erni.transport.bridge import TransportPlugin
-        for plugin in self._require_agent().plugins:
-            if isinstance(plugin, TransportPlugin) and plugin.settings.role != "control":
-                return {self.agent_name}
+        role = self.provided("transport.role")
+        if role is not None and role != "control":
+            return {self.agent_name}
         return {p.robot for p in self.poses}
 
     def execute(self) -> None:
@@ -353,9 +321,9 @@ class ROS2Plugin(Plugin[ROS2Settings]):
                 elif kind == "send_goal":
                     self._call_send_goal(str(robot), request)
                 elif kind == "get_result":
-                    self._call_get_result(request)
+                    self.navigator.get_result(request)
                 else:
-                    self._call_cancel_goal(str(robot), request)
+                    self.navigator.cancel_goal(str(robot), request, self._now_ns())
             except (ValueError, KeyError, IndexError, AssertionError) as err:  # a request that does not decode
                 self.log.warning("ros2: %s for %s refused: %s", kind, robot or "every robot", err)
                 request.fail(f"{kind}: the request does not decode: {err}")
@@ -376,7 +344,7 @@ class ROS2Plugin(Plugin[ROS2Settings]):
                 self._send(messages.DIAGNOSTIC_ARRAY, "/diagnostics", messages.diagnostics(info, stamp_ns), stamp_ns)
         self._drive(robots)
         self._answer_stops()
-        self._update_goals()
+        self.navigator.update(self.clock(), self._now_ns(), self._run)
 
     def _publish_poses(self, robots: set[str]) -> None:
         """Odometry (and /tf) of the robots' new poses, at most odom_rate_hz per robot; a pose held back by
@@ -416,14 +384,11 @@ class ROS2Plugin(Plugin[ROS2Settings]):
 
     def _transducers(self, robot: str) -> tuple[tuple[float, float, float] | None, ...]:
         """Where a robot's sonars sit: its motion plugin's model when it runs in this agent, else a Pioneer 3-DX's."""
-        from erni.plugins.motion import RobotMotionControl
         from erni.plugins.motion.robots import MODELS
 
-        if robot == self.agent_name:
-            for plugin in self._require_agent().plugins:
-                resource = getattr(plugin, "resource", None) if isinstance(plugin, RobotMotionControl) else None
-                if resource is not None and resource.driver.model.sonar:
-                    return tuple(resource.driver.model.sonar)
+        sonar = self.provided("motion.sonar") if robot == self.agent_name else None
+        if sonar is not None and (found := sonar()):
+            return tuple(found)
         return tuple(MODELS["p3dx-sh"].sonar)
 
     def _publish_network(self) -> None:
@@ -448,7 +413,6 @@ class ROS2Plugin(Plugin[ROS2Settings]):
         when the command changes (at most cmd_vel_rate_hz a second), removed (the robot stops) when the
         stream stops for cmd_vel_timeout. A task ended by anyone else (an ERNI stop, a failure) latches
         the stream: commands are ignored until it pauses for cmd_vel_timeout."""
-        s = self.settings
         now = self.clock()
         with self._lock:
             drives = {r: d for r, d in self._drives.items() if r in robots}
@@ -456,42 +420,53 @@ class ROS2Plugin(Plugin[ROS2Settings]):
             for robot, d in drives.items():
                 pending[robot], d.goals = d.goals, []
             for robot, d in drives.items():
-                if d.task is not None:
-                    current = self.get(d.task.uid)
-                    if not isinstance(current, Task) or current.done:
-                        d.task = None
-                        d.latched = True  # ended by a stop, a failure or a canceller: not restarted behind its back
-                if d.latched and now - d.heard >= s.cmd_vel_timeout:
-                    d.latched = False
-                    d.params = None
-                if d.task is not None and now - d.heard >= s.cmd_vel_timeout:
-                    self.remove(d.task)  # the stream stopped: so does the robot
-                    d.task, d.params = None, None
-                elif d.params is not None and not d.latched and now - d.heard < s.cmd_vel_timeout:
-                    same = d.task is not None and d.task.params.model_dump(include={"v", "w"}) == d.params
-                    if not same and now - d.started >= 1.0 / s.cmd_vel_rate_hz:
-                        if d.task is not None:
-                            self.remove(d.task)
-                        d.task = self._task(robot, "velocity", d.params)
-                        d.started = now
-                        self.add(d.task)
-                for goal, heading, goal_id in pending[robot]:
-                    action = self._goals.get(goal_id) if goal_id is not None else None
-                    if action is not None and action.cancel:  # cancelled in the run that accepted it
-                        self._end_goal(action, CANCELED, "canceled before it started")
-                        continue
-                    for earlier in (d.goal, d.turn):
-                        current = self.get(earlier.uid) if earlier is not None else None
-                        if isinstance(current, Task) and not current.done:
-                            self.remove(current)  # a new goal replaces the one being driven to
-                    d.goal = self._task(robot, "goto", {**goal, "speed": s.goal_speed, "tolerance": s.goal_tolerance})
-                    d.heading, d.turn, d.action = heading, None, goal_id
-                    self.add(d.goal)
-                    if action is not None:
-                        action.goto, action.run = d.goal.uid, self._run
-                        if heading is None:
-                            action.turn = ""
+                self._stream(robot, d, now)
+                self._start_goals(robot, d, pending[robot])
                 self._turn_after_goal(robot, d)
+
+    def _stream(self, robot: str, d: _Drive, now: float) -> None:
+        """A robot's cmd_vel stream as its velocity task (called holding the lock)."""
+        s = self.settings
+        if d.task is not None:
+            current = self.get(d.task.uid)
+            if not isinstance(current, Task) or current.done:
+                d.task = None
+                d.latched = True  # ended by a stop, a failure or a canceller: not restarted behind its back
+        if d.latched and now - d.heard >= s.cmd_vel_timeout:
+            d.latched = False
+            d.params = None
+        if d.task is not None and now - d.heard >= s.cmd_vel_timeout:
+            self.remove(d.task)  # the stream stopped: so does the robot
+            d.task, d.params = None, None
+        elif d.params is not None and not d.latched and now - d.heard < s.cmd_vel_timeout:
+            same = d.task is not None and d.task.params.model_dump(include={"v", "w"}) == d.params
+            if not same and now - d.started >= 1.0 / s.cmd_vel_rate_hz:
+                if d.task is not None:
+                    self.remove(d.task)
+                d.task = self._task(robot, "velocity", d.params)
+                d.started = now
+                self.add(d.task)
+
+    def _start_goals(self, robot: str, d: _Drive,
+                     goals: list[tuple[dict[str, float], float | None, bytes | None]]) -> None:
+        """A robot's new goals (goal_pose or NavigateToPose) as gotos, each replacing the one before."""
+        s = self.settings
+        for goal, heading, goal_id in goals:
+            action = self.navigator.goal(goal_id)
+            if action is not None and action.cancel:  # cancelled in the run that accepted it
+                self.navigator.end(action, CANCELED, "canceled before it started")
+                continue
+            for earlier in (d.goal, d.turn):
+                current = self.get(earlier.uid) if earlier is not None else None
+                if isinstance(current, Task) and not current.done:
+                    self.remove(current)  # a new goal replaces the one being driven to
+            d.goal = self._task(robot, "goto", {**goal, "speed": s.goal_speed, "tolerance": s.goal_tolerance})
+            d.heading, d.turn, d.action = heading, None, goal_id
+            self.add(d.goal)
+            if action is not None:
+                action.goto, action.run = d.goal.uid, self._run
+                if heading is None:
+                    action.turn = ""
 
     def _turn_after_goal(self, robot: str, d: _Drive) -> None:
         """Once a goal's goto succeeded, a turn to the goal's heading (relative to where the robot heads now)."""
@@ -502,7 +477,7 @@ class ROS2Plugin(Plugin[ROS2Settings]):
             return  # not committed yet (posted in this run), running, or removed (then a new goal resets it)
         heading, d.heading = d.heading, None
         pose = self.get(f"pose:{robot}")
-        action = self._goals.get(d.action) if d.action is not None else None
+        action = self.navigator.goal(d.action)
         if action is not None:
             action.turn = ""
         if current.state is not TaskState.SUCCEEDED or not isinstance(pose, Pose):
@@ -562,133 +537,14 @@ class ROS2Plugin(Plugin[ROS2Settings]):
         self._stops = waiting
 
     def _call_send_goal(self, robot: str, request: Request) -> None:
-        msg = messages.deserialize(request.payload, f"{messages.SEND_GOAL}_Request")
-        goal_id = bytes(msg.goal_id.uuid)
-        now_ns = int(self.clock.wall() * 1_000_000_000)
-        try:
-            if goal_id in self._goals:
-                raise UsageError("a goal with this id exists")
-            params = messages.goto_params(msg.goal.pose)
-        except ValueError as err:
-            self.log.warning("ros2: navigate_to_pose goal for %s rejected: %s", robot, err)
-            request.reply(messages.serialize(messages.make(f"{messages.SEND_GOAL}_Response", accepted=False,
-                                                           stamp=messages.stamp(now_ns))))
-            return
-        heading = messages.goal_heading(msg.goal.pose) if self.settings.goal_heading else None
-        self._goals[goal_id] = _Goal(goal_id, robot, now_ns, params["x"], params["y"], self.clock(), self._run)
-        with self._lock:
-            self._drives.setdefault(robot, _Drive()).goals.append((params, heading, goal_id))
-        request.reply(messages.serialize(messages.make(f"{messages.SEND_GOAL}_Response", accepted=True,
-                                                       stamp=messages.stamp(now_ns))))
-        self._publish_goal_status(robot)
+        accepted = self.navigator.send_goal(robot, request, goal_heading=self.settings.goal_heading, now=self.clock(),
+                                            now_ns=self._now_ns(), run=self._run)
+        if accepted is not None:
+            with self._lock:
+                self._drives.setdefault(robot, _Drive()).goals.append(accepted)
 
-    def _call_get_result(self, request: Request) -> None:
-        msg = messages.deserialize(request.payload, f"{messages.GET_RESULT}_Request")
-        goal = self._goals.get(bytes(msg.goal_id.uuid))
-        if goal is None:  # rcl_action answers an unknown goal at once, with status UNKNOWN
-            request.reply(self._result(None))
-        elif goal.ended:
-            request.reply(self._result(goal))
-        else:
-            goal.waiters.append(request)
-
-    @staticmethod
-    def _result(goal: _Goal | None) -> bytes:
-        code = 0 if goal is None or goal.status == SUCCEEDED else UNKNOWN_ERROR
-        result = messages.make(f"{messages.NAVIGATE_TO_POSE}_Result", error_code=code,
-                               error_msg=goal.error if goal is not None else "")
-        return messages.serialize(messages.make(f"{messages.GET_RESULT}_Response",
-                                                status=goal.status if goal is not None else 0, result=result))
-
-    def _call_cancel_goal(self, robot: str, request: Request) -> None:
-        """rcl_action's rules: a zero goal id and a zero stamp cancel every goal, a zero id and a stamp every goal
-        accepted at or before it, an id that goal (and those at or before a stamp given with it)."""
-        msg = messages.deserialize(request.payload, f"{messages.CANCEL_GOAL}_Request")
-        goal_id = bytes(msg.goal_info.goal_id.uuid)
-        stamp_ns = msg.goal_info.stamp.sec * 1_000_000_000 + msg.goal_info.stamp.nanosec
-        mine = [g for g in self._goals.values() if g.robot == robot]
-        chosen = [g for g in mine if g.goal_id == goal_id or (not any(goal_id) and not stamp_ns)
-                  or (stamp_ns and g.stamp_ns <= stamp_ns)]
-        canceling = [g for g in chosen if not g.ended]
-        for goal in canceling:
-            goal.cancel, goal.status = True, CANCELING
-            for uid in (goal.goto, goal.turn):
-                task = self.get(uid) if uid else None
-                if isinstance(task, Task) and not task.done:
-                    self.remove(task)
-        code = 0 if canceling else (3 if chosen else (2 if any(goal_id) else 0))  # NONE, GOAL_TERMINATED, UNKNOWN_GOAL_ID
-        infos = [messages.make("action_msgs/msg/GoalInfo", goal_id=messages.uuid(g.goal_id),
-                               stamp=messages.stamp(g.stamp_ns)) for g in canceling]
-        request.reply(messages.serialize(messages.make(f"{messages.CANCEL_GOAL}_Response", return_code=code,
-                                                       goals_canceling=infos)))
-        if canceling:
-            self._publish_goal_status(robot)
-
-    def _update_goals(self) -> None:
-        """Each goal's status from its goto and turn; feedback while it runs; the result to those waiting."""
-        now = self.clock()
-        changed: set[str] = set()
-        for goal in self._goals.values():
-            if goal.ended or goal.goto is None or goal.run == self._run:
-                continue
-            before = goal.status
-            goto = self.get(goal.goto)
-            turn = self.get(goal.turn) if goal.turn else None
-            if isinstance(goto, Task) and goto.state is TaskState.SUCCEEDED and goal.turn:
-                current: Any = turn
-            else:
-                current = goto
-            if not isinstance(current, Task):
-                self._end_goal(goal, CANCELED if goal.cancel else ABORTED, "the task was removed")
-            elif current.state is TaskState.SUCCEEDED and (current is turn or goal.turn == ""):
-                self._end_goal(goal, SUCCEEDED, "")
-            elif current.done:
-                message = current.result.message if current.result else ""
-                self._end_goal(goal, CANCELED if goal.cancel else ABORTED, f"{current.preposition} "
-                               f"{current.state.value}" + (f": {message}" if message else ""))
-            elif not goal.cancel and current.state is TaskState.RUNNING:
-                goal.status = EXECUTING
-            if goal.status != before:
-                changed.add(goal.robot)
-            if goal.status == EXECUTING and now - goal.feedback_at >= 1.0 / self.settings.odom_rate_hz:
-                goal.feedback_at = now
-                self._publish_feedback(goal, now)
-            if not goal.ended:
-                self.wake_in(0.1)
-        for robot in changed:
-            self._publish_goal_status(robot)
-        ended = [g.goal_id for g in self._goals.values() if g.ended]
-        for goal_id in ended[:max(0, len(ended) - KEEP_ENDED_GOALS)]:
-            del self._goals[goal_id]
-
-    def _end_goal(self, goal: _Goal, status: int, error: str) -> None:
-        goal.status, goal.error = status, error
-        waiters, goal.waiters = goal.waiters, []
-        for request in waiters:
-            request.reply(self._result(goal))
-
-    def _publish_feedback(self, goal: _Goal, now: float) -> None:
-        pose = self.get(f"pose:{goal.robot}")
-        if not isinstance(pose, Pose):
-            return
-        stamp_ns = messages.stamp_ns_of(pose.stamp)
-        current = messages.make(messages.POSE_STAMPED, header=messages.header(stamp_ns, self.settings.frame),
-                                pose=messages.ros_pose(pose.x, pose.y, pose.theta))
-        feedback = messages.make(f"{messages.NAVIGATE_TO_POSE}_Feedback", current_pose=current,
-                                 navigation_time=messages.duration(now - goal.started),
-                                 distance_remaining=math.hypot(goal.x - pose.x, goal.y - pose.y))
-        self._send(messages.FEEDBACK_MESSAGE, f"/{ros_name(goal.robot)}/navigate_to_pose/_action/feedback",
-                   messages.make(messages.FEEDBACK_MESSAGE, goal_id=messages.uuid(goal.goal_id), feedback=feedback),
-                   stamp_ns)
-
-    def _publish_goal_status(self, robot: str) -> None:
-        stamp_ns = int(self.clock.wall() * 1_000_000_000)
-        statuses = [messages.make("action_msgs/msg/GoalStatus", status=g.status,
-                                  goal_info=messages.make("action_msgs/msg/GoalInfo", goal_id=messages.uuid(g.goal_id),
-                                                          stamp=messages.stamp(g.stamp_ns)))
-                    for g in self._goals.values() if g.robot == robot]
-        self._send(messages.GOAL_STATUS_ARRAY, f"/{ros_name(robot)}/navigate_to_pose/_action/status",
-                   messages.make(messages.GOAL_STATUS_ARRAY, status_list=statuses), stamp_ns)
+    def _now_ns(self) -> int:
+        return int(self.clock.wall() * 1_000_000_000)
 
     def teardown(self) -> None:
         self._closing.set()

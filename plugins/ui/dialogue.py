@@ -30,22 +30,20 @@ from __future__ import annotations
 
 import math
 import re
-import time
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
 from erni.blackboard import Task
+from erni.blackboard.clock import monotonic
 from erni.blackboard.errors import ConfigError, TaskError
 from erni.blackboard.tasks import PREPOSITIONS
+from erni.plugins.ui.caution import Caution, Cautious, _num
+from erni.plugins.ui.caution import quantities as quantities  # its home before the caution had one
 from erni.plugins.ui.grammar import (
-    _NUMBER,
     ATTENTION,
-    ONES,
     STOP_WORDS,
     STRATEGY_VERB,
-    TEENS,
-    TENS,
     Command,
     Refusal,
     _Reader,
@@ -153,10 +151,6 @@ def tasks_for(action: str, params: Mapping[str, Any], robots: Iterable[str], *, 
     return tasks
 
 
-def _num(v: float) -> str:
-    return f"{round(v, 2):g}"
-
-
 def _metres(d: float) -> str:
     return f"{_num(d)} metre" + ("" if d == 1 else "s")
 
@@ -243,11 +237,17 @@ Team = Mapping[str, RobotView] | Iterable[str]
 class Dialogue:
     """Listening state and sticky targets of one operator; `hear()` answers each utterance."""
 
+    read_back: Cautious[float | None] = Cautious()  # what waits for a yes: see `Caution`
+    confirm_beyond: Cautious[float | None] = Cautious()
+    read_back_numbers: Cautious[bool] = Cautious()
+    area: Cautious[tuple[float, float, float, float] | None] = Cautious()
+
     def __init__(self, naming: Naming | None = None, *, verb: str = "RemoteBotMotion", source: str = "control",
                  listening: bool = True, control: str = "control", memory: Memory | None = None,
                  read_back: float | None = None, area: tuple[float, float, float, float] | None = None,
                  read_back_timeout: float = 20.0, read_back_numbers: bool = False, echo: bool = False,
-                 wake: tuple[str, ...] = ATTENTION, confirm_beyond: float | None = None) -> None:
+                 wake: tuple[str, ...] = ATTENTION, confirm_beyond: float | None = None,
+                 clock: Callable[[], float] = monotonic) -> None:
         self.naming = naming or Naming()
         self.wake = wake  # the phrases that wake a standing-by dialogue
         self.verb = verb
@@ -256,13 +256,9 @@ class Dialogue:
         self.listening = listening
         self.targets: list[str] = []
         self.memory = memory or Memory()
-        self.read_back = read_back  # metres: a longer move is read back first; None: nothing is read back
-        self.area = area  # xmin, ymin, xmax, ymax of the map: a move that ends outside is read back first
-        # metres (math.inf: no bound): with `read_back` None (typed), a move that leaves the map is confirmed
-        # once, and where `area` cannot tell, one longer than this; None: typed moves run at once
-        self.confirm_beyond = confirm_beyond
+        self.caution = Caution(read_back, confirm_beyond, read_back_numbers, area)  # what waits for a yes
         self.read_back_timeout = read_back_timeout
-        self.read_back_numbers = read_back_numbers  # a motion command heard with a number is read back too
+        self.clock = clock  # monotonic seconds: when a read-back expires
         self.echo = echo  # a refusal names what was heard (speech: the operator cannot see it)
         self.pending: _Pending | None = None
 
@@ -323,7 +319,7 @@ class Dialogue:
             if pending is None:
                 reply.say = self._refused(text, "Nothing to confirm; yes answers a read-back", None)
                 return reply
-            if time.monotonic() > pending.until:
+            if self.clock() > pending.until:
                 reply.say = self._refused(text, f"Too late: {pending.what} was not sent; say it again", None)
                 return reply
             if pending.redo is not None:  # made now, with the tasks running now
@@ -369,10 +365,10 @@ class Dialogue:
             if cmd.action == "speed":
                 self._cruise(cmd, targets)  # refused now rather than after a read-back
                 probe = Reply(reply.heard, targets=list(targets), action="speed")
-                if not self._risk(probe, views):
+                if not self.caution.risk(probe, views):
                     return self._speed(cmd, targets, views, live, note, reply)
                 what = f"{self.who(targets, cmd.everyone, views)}, {restate('speed', cmd.params)}"
-                self.pending = _Pending(probe, what, time.monotonic() + self.read_back_timeout,
+                self.pending = _Pending(probe, what, self.clock() + self.read_back_timeout,
                                         redo=lambda now: self._speed(cmd, targets, views, now, note, Reply(probe.heard)))
                 return Reply(reply.heard, say=f"{what[0].upper()}{what[1:]} \u2014 {CONFIRM_PROMPT}",
                              targets=list(targets), accepted=True, asked=True)
@@ -396,14 +392,14 @@ class Dialogue:
         what += self._at_speed(reply.action, targets)
         who = self.who(targets, cmd.everyone, views)
         reply.accepted = True
-        risk = "doubt" if doubt and reply.tasks else self._risk(reply, views)
+        risk = "doubt" if doubt and reply.tasks else self.caution.risk(reply, views)
         if risk:
             reply.say = f"{ROGER}: {who}, {what}" + (f" ({note})" if note else "")
-            self.pending = _Pending(reply, f"{who}, {what}", time.monotonic() + self.read_back_timeout)
+            self.pending = _Pending(reply, f"{who}, {what}", self.clock() + self.read_back_timeout)
             if risk in ("doubt", "number"):
                 ask = f"{DID_YOU_SAY} {who}, {what}? {YES_OR_NO}"
             elif self.read_back is None:  # typed: asked once, saying why
-                ask = f"{who[0].upper()}{who[1:]}, {what} \u2014 {self._why(risk)}; {TYPED_PROMPT}"
+                ask = f"{who[0].upper()}{who[1:]}, {what} \u2014 {self.caution.why(risk)}; {TYPED_PROMPT}"
             else:
                 ask = f"{who[0].upper()}{who[1:]}, {what} \u2014 {CONFIRM_PROMPT}"
             return Reply(reply.heard, say=ask, targets=list(targets), accepted=True, asked=True)
@@ -566,79 +562,6 @@ class Dialogue:
             what += f" (x {_num(g['x'])}, y {_num(g['y'])})"
         return {m: goals[m] for m in movers}, what
 
-    def _risk(self, reply: Reply, views: Mapping[str, RobotView]) -> str:
-        """Why a command waits for a "yes" before it is carried out; '' when it is carried out at once.
-
-        Spoken (`read_back` set), however sure the hearing: a command to several robots, a clear, a
-        teleport, a deployment, a held velocity, a move that leaves the map or is longer than
-        `read_back` metres, and with `read_back_numbers` one that says a number. Typed (`confirm_beyond`
-        set): only a move that leaves the map (`_beyond`). A stop never waits.
-        """
-        if reply.action == "stop" or not (reply.tasks or reply.action == "speed"):
-            return ""
-        if self.read_back is None:
-            if self.confirm_beyond is None:
-                return ""
-            return next((why for t in reply.tasks if (why := self._beyond(t, views, self.confirm_beyond))), "")
-        if len(set(reply.targets)) > 1:
-            return "several robots"
-        if not reply.tasks:
-            return ""  # a cruise speed for one robot
-        for t in reply.tasks:
-            if t.preposition == "clear":  # ends every tasked behaviour: a held stop, the network guard's too
-                return "clear"
-            if t.preposition == "teleport":  # on a real robot a teleport re-bases its odometry
-                return "teleport"
-            if t.verb == STRATEGY_VERB:  # a deployment moves the robot for as long as it runs
-                return "deployment"
-        for t in reply.tasks:
-            why = self._beyond(t, views, self.read_back, always=True)
-            if why:
-                return why
-        if self.read_back_numbers and quantities(reply.heard):
-            return "number"
-        return ""
-
-    def _beyond(self, t: Task, views: Mapping[str, RobotView], limit: float, always: bool = False) -> str:
-        """Whether a task's move leaves the map: "off the map" when it ends outside `area` (a goal, the
-        end of a forward or backward from the robot's pose and heading, a patrol block's corner);
-        "unbounded" for a held velocity; "far" when it is longer than `limit` metres: `always`, or only
-        where `area` cannot tell (no floor plan, or no pose to measure a forward or backward from)."""
-        p = t.params.model_dump()
-        v = views.get(t.destination or "")
-        here = (v.x, v.y) if v is not None and v.x is not None and v.y is not None else None
-        ends: list[tuple[float, float]] = []
-        length: float | None = None
-        if t.preposition in ("forward", "backward"):
-            length = p["distance"]
-            if here is not None and v is not None and v.theta is not None:
-                d = length if t.preposition == "forward" else -length
-                ends.append((here[0] + d * math.cos(v.theta), here[1] + d * math.sin(v.theta)))
-        elif t.preposition == "velocity":
-            return "unbounded" if p["v"] != 0 else ""
-        elif t.preposition in ("goto", "teleport", "widep") and "x" in p and "y" in p:
-            ends.append((p["x"], p["y"]))
-            if here is not None:
-                length = math.hypot(p["x"] - here[0], p["y"] - here[1])
-        elif t.preposition == "patrol":
-            ends += [(p["xmin"], p["ymin"]), (p["xmax"], p["ymax"])]
-        if self.area is not None and ends:
-            xmin, ymin, xmax, ymax = self.area
-            if not all(xmin <= x <= xmax and ymin <= y <= ymax for x, y in ends):
-                return "off the map"
-            if not always:
-                return ""  # on the map: the floor plan decides
-        return "far" if length is not None and length > limit else ""
-
-    def _why(self, risk: str) -> str:
-        """A typed command's confirmation says why it is asked."""
-        if risk == "off the map":
-            xmin, ymin, xmax, ymax = self.area or (0.0, 0.0, 0.0, 0.0)
-            return f"it ends off the map (x {_num(xmin)} to {_num(xmax)}, y {_num(ymin)} to {_num(ymax)})"
-        if risk == "unbounded":
-            return "it drives until stopped"
-        return f"more than {_num(self.confirm_beyond or 0.0)} metres"
-
     # -- who -------------------------------------------------------------------------------
 
     def _spoken(self, name: str) -> str:
@@ -792,22 +715,6 @@ class Dialogue:
         if question == "link":
             return f"{who} {link}"
         return f"{who}: {where}; {doing}; {battery}; {link}"
-
-
-_NUMBER_WORDS = {*ONES, *TEENS, *TENS, "hundred", "thousand", "point"}
-_ROBOT_LIST = {"robot", "robots", "and"}  # "robots one two and three", "relay between robot 1 and ..."
-
-
-def quantities(text: str) -> bool:
-    """Whether an utterance says a quantity (a distance, an angle, a coordinate): a number that does
-    not name a robot ("robot 2 turn 180 degrees" does, "robots one and two stop" does not)."""
-    naming = False  # inside a list of robot numbers
-    for w in tokens(text):
-        number = w in _NUMBER_WORDS or _NUMBER.fullmatch(w) is not None
-        if number and not naming:
-            return True
-        naming = w in ("robot", "robots") or (naming and (number or w in _ROBOT_LIST))
-    return False
 
 
 def _plain(text: str) -> str:

@@ -137,10 +137,10 @@ class UIPlugin(Plugin[UISettings]):
         memory = Memory()  # "cancel that" and cruise speeds: the same whether typed, spoken or clicked
         area = load_floorplan(s.floorplan).bounds if s.floorplan else None
         self.typed = Dialogue(self.naming, verb=s.verb, source=me, listening=True, control=me, memory=memory,
-                              area=area, confirm_beyond=s.confirm_beyond or math.inf)
+                              area=area, confirm_beyond=s.confirm_beyond or math.inf, clock=self.clock)
         self.spoken = Dialogue(self.naming, verb=s.verb, source=me, listening=False, control=me, memory=memory,
                                read_back=s.read_back or None, read_back_numbers=s.read_back_numbers, area=area,
-                               echo=True, wake=tuple(s.wake))
+                               echo=True, wake=tuple(s.wake), clock=self.clock)
         self.poses = self.subscribe(Pose)
         self.netinfo = self.subscribe(NetInfo)
         self.peers = self.subscribe(Peer)

@@ -42,6 +42,13 @@ class Recorder(Plugin):
             return [o for v in self.views for o in v[key]]
 
 
+def settled(plugin: Plugin) -> bool:
+    """Whether the scheduler has done with `plugin`: neither queued nor running (a signal queues it at
+    once, so after one this says its run, or its skipped run, is over)."""
+    with plugin._sched_lock:
+        return not plugin._scheduled and not plugin._running
+
+
 class Sleeper(Plugin):
     """Runs for `delay` seconds every time it is woken; counts concurrent runs."""
 

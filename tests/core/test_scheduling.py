@@ -12,7 +12,7 @@ import pytest
 from erni.blackboard import Agent, Plugin
 from erni.blackboard.testing import wait_until
 from erni.testing import ManualClock
-from tests.core.helpers import Item, Recorder, Sleeper
+from tests.core.helpers import Item, Recorder, Sleeper, settled
 
 
 def test_execute_runs_only_with_news():
@@ -24,7 +24,7 @@ def test_execute_runs_only_with_news():
             tx.add(Item())
         wait_until(lambda: rec.runs == 1)
         agent.scheduler.signal(rec)  # a signal with no delta and no wake-up
-        time.sleep(0.05)
+        wait_until(lambda: settled(rec))
         assert rec.runs == 1
     finally:
         agent.stop()
@@ -40,7 +40,7 @@ def test_plugin_never_runs_concurrently_and_signals_coalesce():
         for _ in range(20):  # 20 signals during one run ...
             sleeper.wake()
         wait_until(lambda: sleeper.count == 2 and sleeper.active == 0)
-        time.sleep(sleeper.delay * 3)
+        wait_until(lambda: settled(sleeper))
         assert sleeper.count == 2, "... cause exactly one more run"
         assert sleeper.max_active == 1
     finally:
@@ -73,7 +73,7 @@ def test_a_plugin_signalled_during_its_run_runs_again_on_the_same_worker():
     try:
         sleeper.wake()
         wait_until(lambda: len(threads) == 20)
-        time.sleep(0.05)
+        wait_until(lambda: settled(sleeper))
         assert len(threads) == 20 and len(set(threads)) == 1, threads
         assert sleeper.runs == 20
         assert queued == [sleeper]  # the first signal only: no worker was woken for the other 19

@@ -171,3 +171,15 @@ def test_the_language_table_shows_every_default_as_a_value():
     assert "PydanticUndefined" not in table
     (say,) = [row for row in table.splitlines() if "| `say` |" in row]
     assert "`tones` = [[10, 72]]:" in say
+
+
+def test_a_trusted_pose_is_the_pose_validation_makes():
+    """`BBObject.trusted` (a codec's hot path) makes what `model_validate` makes of the same checked
+    values: the same fields, the same fields given, frozen."""
+    data = {"robot": "robot2", "x": 1.5, "y": -2.0, "theta": 0.5, "battery": 12.5, "sonar": [0.5, 1.0], "stamp": 1000.5}
+    checked = Pose.model_validate(data)
+    trusted = Pose.trusted(dict(checked.__dict__), set(checked.model_fields_set))
+    assert trusted == checked and trusted.model_fields_set == checked.model_fields_set
+    assert trusted.model_dump_json() == checked.model_dump_json()
+    with pytest.raises(Exception, match="frozen"):
+        trusted.x = 2.0

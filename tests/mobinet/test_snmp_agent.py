@@ -21,6 +21,7 @@ from pysnmp.proto.api import v2c
 
 import erni.plugins.mobinet.snmp as client_mib
 import erni.sim.manet_mib as agent_mib
+from erni.blackboard.testing import wait_until
 from erni.sim.manet import link_metric
 from erni.sim.snmp_agent import ManetSnmpAgent
 from tests.mobinet.conftest import WRITE, line_network
@@ -93,8 +94,7 @@ def test_snmpget_scalars(served, net):
 def test_sysuptime_counts_from_when_the_node_was_served(snmp_agent):
     address = snmp_agent.addresses()["robot1"]
     first = counter(address, "1.3.6.1.2.1.1.3.0")
-    time.sleep(0.3)
-    second = counter(address, "1.3.6.1.2.1.1.3.0")
+    second = wait_until(lambda: (c := counter(address, "1.3.6.1.2.1.1.3.0")) > first and c, timeout=5, interval=0.05)
     assert 0 <= first < second < first + 1000
 
 

@@ -18,7 +18,7 @@ from erni.blackboard.testing import wait_until
 from erni.transport import Peer
 from erni.transport.endpoint import Endpoint
 from erni.transport.identity import load_identity
-from tests.transport.helpers import free_port, identity, make_agent, make_client
+from tests.transport.helpers import free_port, identity, make_agent, make_client, settled
 
 
 def robot_key(name: str = "robot2") -> Endpoint:
@@ -214,7 +214,7 @@ def test_liveliness_tokens_in_fresh_names_are_bounded_and_forgotten_when_undecla
             if i % 100 == 99:
                 time.sleep(0.6)  # within the rate at which hints are looked at
         wait_until(lambda: counter(control, "zenoh.tokens") >= 600, timeout=20)
-        time.sleep(0.5)
+        settled(control)  # the hints the tokens brought are on the board
         fakes = [p for p in control.query(Peer) if p.name.startswith("fake")]
         assert 0 < len(fakes) <= 100 and counter(control, "dropped.hint_bound") > 0
         for token in tokens:

@@ -40,8 +40,8 @@ def test_a_status_goes_out_from_the_callers_thread_once_a_session_is_up():
     with session_up("fp-a", "fp-b") as (a, b, got):
         sender = threading.current_thread().name
         seen: list[str] = []
-        real = a._sendto
-        a._sendto = lambda frame, addr: (seen.append(threading.current_thread().name), real(frame, addr))[1]
+        real = a.send_udp
+        a.send_udp = lambda frame, addr: (seen.append(threading.current_thread().name), real(frame, addr))[1]
         for i in range(1, 6):
             time.sleep(0.001)  # statuses apart, as a robot's are: not a burst
             a.send(b.address, "status", Pose(robot=f"r{i}"), reliable=False, to="fp-b")
@@ -58,8 +58,8 @@ def test_a_burst_of_statuses_goes_several_to_a_datagram_and_arrives_whole():
     with session_up("fp-burst-a", "fp-burst-b") as (a, b, got):
         b.receive_buffer(1 << 20)  # a burst on loopback: room for all of it (UDP drops what overflows)
         datagrams: list[int] = []
-        real = a._sendto
-        a._sendto = lambda frame, addr: (datagrams.append(len(frame)), real(frame, addr))[1]
+        real = a.send_udp
+        a.send_udp = lambda frame, addr: (datagrams.append(len(frame)), real(frame, addr))[1]
         for i in range(1, 201):
             a.send(b.address, "status", Pose(robot=f"r{i}", x=float(i)), reliable=False, to="fp-burst-b")
         wait_until(lambda: len(got) == 201, message=f"{len(got)} of 201 arrived; sent {a.counters}")
@@ -288,8 +288,8 @@ def test_a_burst_to_a_peer_that_began_the_session_is_gathered():
         a.send(b_addr, "status", Pose(robot="r0"), reliable=False, to="fp-began-b")  # a's way back is in session
         assert b_addr not in a._dests, "the test needs a destination never queued for"
         sizes: list[int] = []
-        put = a._sendto
-        a._sendto = lambda frame, addr: (sizes.append(len(frame)), put(frame, addr))[1]  # type: ignore[method-assign]
+        put = a.send_udp
+        a.send_udp = lambda frame, addr: (sizes.append(len(frame)), put(frame, addr))[1]  # type: ignore[method-assign]
         for i in range(200):
             a.send(b_addr, "status", Pose(uid=f"p{i}", robot="r0", x=float(i)), reliable=False, to="fp-began-b")
         wait_until(lambda: not a._dests.get(b_addr) or a._dests[b_addr].batch is None)

@@ -371,16 +371,16 @@ def test_a_short_data_frame_naming_a_live_session_is_dropped_and_the_agent_hears
 def test_a_fault_of_the_frame_path_drops_that_frame_only(robot, monkeypatch, caplog):
     """Any exception of the frame path but a FrameError (a bug, as the short frame above was) is
     counted and logged once with its traceback; the receive thread goes on."""
-    import erni.transport.endpoint as endpoint
+    import erni.transport.inbound as inbound
 
-    real = endpoint.check_frame
+    real = inbound.check_frame
 
     def faulty(raw, max_frame):
         if raw.endswith(b"POISON"):
             raise RuntimeError("a bug in the frame path")
         return real(raw, max_frame)
 
-    monkeypatch.setattr(endpoint, "check_frame", faulty)
+    monkeypatch.setattr(inbound, "check_frame", faulty)
     addr = addr_of(robot)
     udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     for _ in range(3):

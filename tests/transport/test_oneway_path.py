@@ -158,8 +158,8 @@ def test_a_status_for_another_agent_than_the_one_in_session_is_not_sealed_by_the
     not the one in session at that address goes to the sender pool, which refuses it."""
     with pair("ow-f", "ow-g") as (a, b, got):
         sealed: list[bytes] = []
-        real = a._sendto
-        a._sendto = lambda frame, addr: (sealed.append(frame), real(frame, addr))[1]  # type: ignore[method-assign]
+        real = a.send_udp
+        a.send_udp = lambda frame, addr: (sealed.append(frame), real(frame, addr))[1]  # type: ignore[method-assign]
         a.send(b.address, "status", Pose(robot="r1"), reliable=False, to="someone-else")
         wait_until(lambda: a.counters.get("dropped.wrong_peer", 0) == 1)
         a.send(b.address, "status", Pose(robot="r2"), reliable=False, to="ow-g")
@@ -254,8 +254,8 @@ def test_a_caller_that_waits_for_each_status_is_not_taken_for_a_burst(monkeypatc
     with pair("ow-l", "ow-m") as (a, b, got):
         caller = threading.current_thread().name
         seen: list[str] = []
-        real = a._sendto
-        a._sendto = lambda frame, addr: (seen.append(threading.current_thread().name), real(frame, addr))[1]  # type: ignore[method-assign]
+        real = a.send_udp
+        a.send_udp = lambda frame, addr: (seen.append(threading.current_thread().name), real(frame, addr))[1]  # type: ignore[method-assign]
         for i in range(1, 6):
             a.send(b.address, "status", Pose(robot=f"r{i}"), reliable=False, to="ow-m")
             wait_until(lambda n=i: len(got) == n)  # the caller waits for each one's delivery

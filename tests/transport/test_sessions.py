@@ -122,7 +122,7 @@ def test_a_handshake_answer_that_cannot_be_sent_leaves_the_receiver_listening():
     host': the receive thread reports it and goes on, and the sender's retransmission gets through."""
     a, _ = endpoint("alpha")
     b, got = endpoint("beta")
-    real = b._sendto
+    real = b.send_udp
     failures = []
 
     def no_route_once(frame: bytes, addr) -> None:
@@ -131,7 +131,7 @@ def test_a_handshake_answer_that_cannot_be_sent_leaves_the_receiver_listening():
             raise OSError(113, "No route to host")
         real(frame, addr)
 
-    b._sendto = no_route_once  # type: ignore[method-assign]
+    b.send_udp = no_route_once  # type: ignore[method-assign]
     try:
         a.send(b.address, "one", Pose(robot="x"), reliable=True, to="beta")
         wait_until(lambda: got, timeout=5)

@@ -442,8 +442,8 @@ def test_a_burst_of_statuses_goes_in_frames_larger_than_a_udp_datagram(router):
     got: list[Any] = []
     receiver.on_message = lambda msg: got.append(msg) if msg.kind == "status" else None  # not the token's hint
     sizes: list[int] = []
-    put = sender._sendto
-    sender._sendto = lambda frame, addr: (sizes.append(len(frame)), put(frame, addr))[1]  # type: ignore[method-assign]
+    put = sender.carrier.sendto
+    sender.carrier.sendto = lambda frame, addr: (sizes.append(len(frame)), put(frame, addr))[1]  # type: ignore[method-assign]
     receiver.start()
     sender.start()
     try:
