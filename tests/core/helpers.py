@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 import threading
-import time
 from typing import Any
 
 from erni.blackboard import BBObject, Plugin
+from erni.blackboard.testing import wait_until
 
 
 class Item(BBObject):
@@ -50,21 +50,44 @@ def settled(plugin: Plugin) -> bool:
 
 
 class Sleeper(Plugin):
-    """Runs for `delay` seconds every time it is woken; counts concurrent runs."""
-
-    delay = 0.05
+    """Counts its runs and the runs at once; each run waits for `gate`, open unless the test closes it
+    (`gate.clear()`, then `gate.set()` to let the run held end)."""
 
     def setup(self) -> None:
         self.active = 0
         self.max_active = 0
         self.count = 0
         self.lock = threading.Lock()
+        self.gate = threading.Event()
+        self.gate.set()
 
     def execute(self) -> None:
         with self.lock:
             self.active += 1
             self.count += 1
             self.max_active = max(self.max_active, self.active)
-        time.sleep(self.delay)
+        self.gate.wait(10)
         with self.lock:
             self.active -= 1
+
+
+class Probe(Plugin):
+    """Runs only when woken: `timers_caught_up` times the agent's timer thread with it."""
+
+    def setup(self) -> None:
+        self.count = 0
+
+    def execute(self) -> None:
+        self.count += 1
+
+
+def timers_caught_up(probe: Probe, timeout: float = 10.0) -> None:
+    """Wait until the timer thread of `probe`'s agent has gone round twice since the call: each wake-up
+    due on the agent's clock by now has been handed to its plugin (before the probe's own, due now),
+    and the slow-run watch has looked at the clock after that."""
+    wait_until(lambda: settled(probe), timeout=timeout)
+    for _ in range(2):
+        runs = probe.count
+        probe.wake_in(0.0)
+        wait_until(lambda runs=runs: probe.count > runs and settled(probe), timeout=timeout,
+                   message="the agent's timer thread did not fire a wake-up due now")

@@ -14,6 +14,7 @@ from erni.blackboard.errors import UsageError
 from erni.blackboard.tasks import AllocationResult
 from erni.blackboard.testing import wait_until
 from erni.testing import ManualClock, agent_with, post_task
+from tests.core.helpers import Probe, settled, timers_caught_up
 
 
 class Ticker(Plugin):
@@ -29,25 +30,26 @@ class Ticker(Plugin):
         self.ticked.set()
 
 
-def ticks_after(plugin: Ticker, clock: ManualClock, seconds: float) -> int:
-    plugin.ticked.clear()
+def ticks_after(plugin: Ticker, probe: Probe, clock: ManualClock, seconds: float) -> int:
     clock.advance(seconds)
-    plugin.ticked.wait(0.5)  # a due wake-up runs at once; one not due must not run in this half second
+    timers_caught_up(probe)  # what is due by now has been handed to the ticker ...
+    wait_until(lambda: settled(plugin))  # ... and run
     return plugin.ticks
 
 
 def test_wake_ups_follow_the_injected_clock_not_the_wall_clock():
     clock = ManualClock()
     agent = agent_with(Ticker, clock=clock)
+    probe = agent.add_plugin(Probe, name="probe")
     with agent:
         ticker = agent.plugins[0]
         assert isinstance(ticker, Ticker)
+        wait_until(lambda: settled(ticker))
         base = ticker.ticks  # setup's own run
-        assert ticks_after(ticker, clock, 4.9) == base  # 4.9 s on the agent's clock: not due
-        assert ticks_after(ticker, clock, 0.2) == base + 1  # 5.1 s: due, run without waiting 5 s
-        assert ticks_after(ticker, clock, 5.0) == base + 2
-        time.sleep(0.3)
-        assert ticker.ticks == base + 2  # real time passing moves nothing
+        assert ticks_after(ticker, probe, clock, 4.9) == base  # 4.9 s on the agent's clock: not due
+        assert ticks_after(ticker, probe, clock, 0.2) == base + 1  # 5.1 s: due, run without waiting 5 s
+        assert ticks_after(ticker, probe, clock, 5.0) == base + 2
+        assert ticks_after(ticker, probe, clock, 0.0) == base + 2  # the timers going round moves nothing
 
 
 class Stuck(Plugin):
@@ -66,15 +68,17 @@ class Stuck(Plugin):
 
 def test_a_slow_run_is_reported_by_the_agent_s_clock(caplog):
     clock = ManualClock()
-    agent = agent_with(Stuck, clock=clock, plugin_name="stuck")
+    agent = agent_with(Stuck, clock=clock, plugin_name="stuck", workers=2)
+    probe = agent.add_plugin(Probe, name="probe")  # runs on the other worker
     with agent, caplog.at_level(logging.WARNING):
         stuck = agent.plugins[0]
         assert isinstance(stuck, Stuck)
         post_task(agent, "BotMotion", "stop")
         assert stuck.running.wait(2)
-        time.sleep(0.3)
-        assert "has been running" not in caplog.text  # real time alone does not make it slow
-        clock.advance(1.5)  # past the 1 s limit on the agent's clock
+        clock.advance(0.9)
+        timers_caught_up(probe)  # the slow-run watch has looked at 0.9 s
+        assert "has been running" not in caplog.text  # within the 1 s limit of the agent's clock
+        clock.advance(0.6)  # past the 1 s limit on the agent's clock
         try:
             wait_until(lambda: "has been running" in caplog.text, timeout=2)
         finally:

@@ -12,7 +12,7 @@ import pytest
 from erni.blackboard import Agent, Plugin
 from erni.blackboard.testing import wait_until
 from erni.testing import ManualClock
-from tests.core.helpers import Item, Recorder, Sleeper, settled
+from tests.core.helpers import Item, Probe, Recorder, Sleeper, settled, timers_caught_up
 
 
 def test_execute_runs_only_with_news():
@@ -35,10 +35,12 @@ def test_plugin_never_runs_concurrently_and_signals_coalesce():
     sleeper = agent.add_plugin(Sleeper)
     agent.start()
     try:
+        sleeper.gate.clear()
         sleeper.wake()
         wait_until(lambda: sleeper.active == 1)
         for _ in range(20):  # 20 signals during one run ...
             sleeper.wake()
+        sleeper.gate.set()
         wait_until(lambda: sleeper.count == 2 and sleeper.active == 0)
         wait_until(lambda: settled(sleeper))
         assert sleeper.count == 2, "... cause exactly one more run"
@@ -54,7 +56,6 @@ def test_a_plugin_signalled_during_its_run_runs_again_on_the_same_worker():
     lock would pass between them, for every received frame."""
     agent = Agent("again", workers=4)
     sleeper = agent.add_plugin(Sleeper)
-    sleeper.delay = 0
     threads: list[str] = []
 
     def execute() -> None:
@@ -98,19 +99,24 @@ def test_worker_pool_runs_plugins_in_parallel():
 
 
 def test_wake_in_and_wake_every():
-    agent = Agent("w")
+    clock = ManualClock()
+    agent = Agent("w", clock=clock)
     once, periodic = agent.add_plugin(Sleeper, name="once"), agent.add_plugin(Sleeper, name="periodic")
-    once.delay = periodic.delay = 0
+    probe = agent.add_plugin(Probe, name="probe")
     agent.start()
     try:
         once.wake_in(0.05)
         handle = periodic.wake_every(0.02)
-        wait_until(lambda: once.count == 1 and periodic.count >= 5)
+        for k in range(1, 6):  # a little over a period each time: one run each
+            clock.advance(0.021)
+            wait_until(lambda k=k: periodic.count == k and settled(periodic))
+        assert once.count == 1  # 0.105 s: past its 0.05 s
         handle.cancel()
-        count = periodic.count
-        time.sleep(0.1)
-        assert periodic.count <= count + 1
-        assert once.count == 1
+        clock.advance(1.0)  # fifty periods more
+        timers_caught_up(probe)
+        wait_until(lambda: settled(periodic))
+        assert periodic.count == 5, "a cancelled wake_every fires no more"
+        assert once.count == 1, "wake_in fires once"
         with pytest.raises(ValueError, match="period > 0"):
             periodic.wake_every(0)
     finally:
@@ -169,13 +175,14 @@ def test_exceptions_are_isolated_and_logged_with_names(caplog):
 def test_slow_plugin_is_reported(caplog):
     agent = Agent("slow", slow_plugin_seconds=0.05)
     sleeper = agent.add_plugin(Sleeper)
-    sleeper.delay = 0.3
     with caplog.at_level(logging.WARNING):
         agent.start()
         try:
+            sleeper.gate.clear()  # its run lasts until the warning is seen
             sleeper.wake()
             wait_until(lambda: "has been running for" in caplog.text, timeout=3)
         finally:
+            sleeper.gate.set()
             agent.stop()
     assert "plugin Sleeper of agent slow" in caplog.text
 
@@ -223,7 +230,8 @@ def test_signals_during_setup_run_execute_only_after_setup_committed():
         def setup(self):
             self.sub = self.subscribe(Item)
             self.wake()  # e.g. a socket thread started here hands work over at once
-            time.sleep(0.1)
+            # held for one run after setup (or, wrongly, run by another worker now: then wait for it)
+            wait_until(lambda: self._dirty or "execute" in order)
             self.add(Item(value=1))
             order.append("setup")
 
@@ -274,10 +282,11 @@ def test_a_setup_within_the_limit_is_never_reported_as_slow(caplog):
 
     agent = Agent("quiet", slow_plugin_seconds=1.0, clock=clock)
     agent.add_plugin(Careful)
+    probe = agent.add_plugin(Probe, name="probe")
     with caplog.at_level("WARNING"):
         agent.start()
         clock.advance(5.0)  # long past the limit, with the setup over: the watch looks again
-        time.sleep(0.3)
+        timers_caught_up(probe)
         agent.stop()
     assert [r.getMessage() for r in caplog.records if "has been running" in r.getMessage()] == []
 

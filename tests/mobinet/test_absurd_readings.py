@@ -8,7 +8,6 @@ import ipaddress
 import logging
 import socket
 import threading
-import time
 from collections.abc import Iterator
 from typing import Any
 
@@ -312,12 +311,11 @@ def test_the_warning_comes_again_after_a_minute_counting_what_it_held_back(hosti
                                lambda key, view, error: delivered.append(view), log, clock=clock)
 
     def reads(n: int) -> None:  # n more reads of the 50 Hz watch, a period of the clock each
-        target = len(delivered) + n
-        deadline = time.monotonic() + 10
-        while len(delivered) < target and time.monotonic() < deadline:
+        for _ in range(n):
+            count = len(delivered)
             clock.advance(0.02)
-            time.sleep(0.01)
-        assert len(delivered) >= target, f"{len(delivered)} reads of {target}"
+            wait_until(lambda count=count: len(delivered) > count, timeout=10,
+                       message=f"no read of the watch due after {count} reads")
 
     resource.start()
     try:
