@@ -121,27 +121,7 @@ def _read_lines(path: Path, lines: Iterator[tuple[int, bytes | None]]) -> tuple[
             line = data.decode("utf-8")
             if not line.strip():
                 continue
-            raw = loads(line)
-            if not isinstance(raw, dict):
-                raise LogError(f"expected a JSON object, got {type(raw).__name__}")
-            missing = [k for k in ("t", "agent", "op", "type", "data") if k not in raw]
-            if missing:
-                raise LogError(f"missing {', '.join(missing)}")
-            t = raw["t"]
-            if isinstance(t, bool) or not isinstance(t, (int, float)) or (
-                    isinstance(t, float) and not math.isfinite(t)) or t < 0:
-                raise LogError(f"t: expected a finite number of seconds >= 0, got {shown(t)}")
-            if t > MAX_SECONDS:  # replaying would wait that long for it
-                raise LogError(f"t: expected seconds since the recording started, at most {MAX_SECONDS:.0f} "
-                               f"(30 days), got {shown(t)}")
-            if not is_name(raw["agent"]):
-                raise LogError(f"agent {shown(raw['agent'])}: expected a name of {NAME_CHARS}")
-            cls = TYPES.get(raw["type"]) if isinstance(raw["type"], str) else None
-            if cls is None or not issubclass(cls, BBObject):
-                raise LogError(f"unknown object type {shown(raw['type'])}")
-            if raw["op"] not in ("add", "change", "remove"):
-                raise LogError(f"unknown op {shown(raw['op'])}")
-            events.append(Event(float(t), raw["agent"], raw["op"], cls.model_validate(raw["data"])))
+            events.append(_event_of(line))
         except (LogError, ValueError, KeyError, TypeError, RecursionError) as err:  # UnicodeDecodeError too
             if len(problems) < MAX_PROBLEMS:
                 problems.append(f"{path}:{number}: {problem_of(err)}")
@@ -151,6 +131,31 @@ def _read_lines(path: Path, lines: Iterator[tuple[int, bytes | None]]) -> tuple[
         problems.append(f"{path}: {skipped} more lines skipped")
     events.sort(key=lambda e: e.t)
     return header, events, problems
+
+
+def _event_of(line: str) -> Event:
+    """One recorded change from its JSON line (LogError, or pydantic's or json's error, when it is none)."""
+    raw = loads(line)
+    if not isinstance(raw, dict):
+        raise LogError(f"expected a JSON object, got {type(raw).__name__}")
+    missing = [k for k in ("t", "agent", "op", "type", "data") if k not in raw]
+    if missing:
+        raise LogError(f"missing {', '.join(missing)}")
+    t = raw["t"]
+    if isinstance(t, bool) or not isinstance(t, (int, float)) or (
+            isinstance(t, float) and not math.isfinite(t)) or t < 0:
+        raise LogError(f"t: expected a finite number of seconds >= 0, got {shown(t)}")
+    if t > MAX_SECONDS:  # replaying would wait that long for it
+        raise LogError(f"t: expected seconds since the recording started, at most {MAX_SECONDS:.0f} "
+                       f"(30 days), got {shown(t)}")
+    if not is_name(raw["agent"]):
+        raise LogError(f"agent {shown(raw['agent'])}: expected a name of {NAME_CHARS}")
+    cls = TYPES.get(raw["type"]) if isinstance(raw["type"], str) else None
+    if cls is None or not issubclass(cls, BBObject):
+        raise LogError(f"unknown object type {shown(raw['type'])}")
+    if raw["op"] not in ("add", "change", "remove"):
+        raise LogError(f"unknown op {shown(raw['op'])}")
+    return Event(float(t), raw["agent"], raw["op"], cls.model_validate(raw["data"]))
 
 
 def problem_of(err: BaseException) -> str:

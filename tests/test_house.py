@@ -33,9 +33,7 @@ TARGET_SLEEPS = 52
 
 # The ratchets: today's figures where the target is not met yet.
 CLOCK_READS_ALLOWED = 0
-SLEEPS_ALLOWED = 147
-ABOVE_25_ALLOWED = 5
-ABOVE_20_ALLOWED = 26
+SLEEPS_ALLOWED = 138
 # Classes in blackboard/, transport/ and plugins/ still above the target, with their length today.
 LONG_CLASSES_ALLOWED: dict[str, int] = {}
 
@@ -154,12 +152,19 @@ def test_no_class_in_the_agent_grows_past_its_bound() -> None:
 
 def test_functions_stay_within_the_complexity_bounds() -> None:
     cc = _complexities()
-    above_25 = sorted((c, n) for c, n in cc if c > TARGET_MAX_COMPLEXITY)
-    above_20 = [n for c, n in cc if c > 20]
     assert len(cc) > 1000, "radon found too few functions: is the source tree where the test looks?"
-    _ratchet(len(above_25), ABOVE_25_ALLOWED, 0, f"functions above {TARGET_MAX_COMPLEXITY} ({above_25[-5:]} ...)")
-    _ratchet(len(above_20), ABOVE_20_ALLOWED, int(TARGET_SHARE_ABOVE_20 * len(cc)),
-             f"functions above 20 of {len(cc)}")
+    above_25 = sorted((c, n) for c, n in cc if c > TARGET_MAX_COMPLEXITY)
+    assert not above_25, f"functions above a cyclomatic complexity of {TARGET_MAX_COMPLEXITY}: {above_25}"
+    above_20 = sorted((c, n) for c, n in cc if c > 20)
+    share = len(above_20) / len(cc)
+    assert share <= TARGET_SHARE_ABOVE_20, (f"{len(above_20)} of {len(cc)} functions ({share:.1%}) above 20, more than "
+                                            f"{TARGET_SHARE_ABOVE_20:.0%}: {above_20}")
+
+
+def test_the_complexity_count_sees_a_branchy_function() -> None:
+    branches = "\n".join(f"    if x == {i}:\n        return {i}" for i in range(30))
+    blocks = [b for b in cc_visit(f"def f(x):\n{branches}\n    return -1\n") if isinstance(b, Function)]
+    assert [b.complexity for b in blocks] == [31]
 
 
 def test_tests_wait_for_conditions_rather_than_sleep() -> None:

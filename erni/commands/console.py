@@ -288,22 +288,7 @@ def run(args: argparse.Namespace) -> int:
             if interactive:
                 say(f"erni console through {addr[0]}:{addr[1]}; tasks as {args.verb}")
                 say_lines(HELP)
-            while True:
-                try:
-                    line = input("erni> " if interactive else "")
-                except EOFError:
-                    break
-                line = line.strip()
-                if not line or line.startswith("#"):
-                    continue
-                if line in ("quit", "exit"):
-                    break
-                if line in ("help", "?"):
-                    say_lines(HELP)
-                    continue
-                if not interactive and not args.json:
-                    console.print(f"> {line}")
-                console.say(line)
+            _read_lines(console, interactive, echo=not interactive and not args.json)
             if not interactive:
                 console.wait(args.timeout)
         except KeyboardInterrupt:
@@ -311,9 +296,35 @@ def run(args: argparse.Namespace) -> int:
         finally:
             console.stop()
             if rl is not None:
-                try:
-                    Path(args.history_file).parent.mkdir(parents=True, exist_ok=True)
-                    rl.write_history_file(args.history_file)
-                except OSError:
-                    pass
+                _save_history(rl, args.history_file)
     return 1 if not interactive and (console.failed or console.refused) else 0
+
+
+def _read_lines(console: Console, interactive: bool, echo: bool) -> None:
+    """Say each line read to the console until EOF or `quit` (`help` shows the help; `echo`: each line
+    is printed before its answers)."""
+    while True:
+        try:
+            line = input("erni> " if interactive else "")
+        except EOFError:
+            break
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        if line in ("quit", "exit"):
+            break
+        if line in ("help", "?"):
+            say_lines(HELP)
+            continue
+        if echo:
+            console.print(f"> {line}")
+        console.say(line)
+
+
+def _save_history(rl: Any, history_file: str) -> None:
+    """Keep the lines read for the next session (quietly not, where the file cannot be written)."""
+    try:
+        Path(history_file).parent.mkdir(parents=True, exist_ok=True)
+        rl.write_history_file(history_file)
+    except OSError:
+        pass

@@ -44,15 +44,7 @@ def run(args: argparse.Namespace) -> int:
     from erni.sim.world import World, WorldError
 
     setup_logging(args.log_level)
-    problems = []
-    if args.robots < 1:
-        problems.append(f"--robots: expected at least 1, got {args.robots}")
-    if not args.pty and not 0 <= args.port <= 65535 - args.robots + 1:
-        problems.append(f"--port: expected 0..{65536 - args.robots}, got {args.port}")
-    if args.sip_period <= 0 or args.watchdog <= 0 or args.physics_hz <= 0:
-        problems.append("--sip-period, --watchdog and --physics-hz: expected positive numbers")
-    if args.sonar_cycle < 0:
-        problems.append(f"--sonar-cycle: expected seconds >= 0, got {args.sonar_cycle}")
+    problems = _problems(args)
     model = lookup(args.model)
     if model is None:
         problems.append(f"--model: unknown robot model {args.model!r}; expected one of {', '.join(MODELS)} "
@@ -96,3 +88,17 @@ def run(args: argparse.Namespace) -> int:
         for s, handler in previous.items():
             signal.signal(s, handler)
     return 0
+
+
+def _problems(args: argparse.Namespace) -> list[str]:
+    """What is wrong with the numbers on the command line (each a message)."""
+    problems = []
+    if args.robots < 1:
+        problems.append(f"--robots: expected at least 1, got {args.robots}")
+    if not args.pty and not 0 <= args.port <= 65535 - args.robots + 1:
+        problems.append(f"--port: expected 0..{65536 - args.robots}, got {args.port}")
+    if args.sip_period <= 0 or args.watchdog <= 0 or args.physics_hz <= 0:
+        problems.append("--sip-period, --watchdog and --physics-hz: expected positive numbers")
+    if args.sonar_cycle < 0:
+        problems.append(f"--sonar-cycle: expected seconds >= 0, got {args.sonar_cycle}")
+    return problems

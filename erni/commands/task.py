@@ -205,6 +205,22 @@ def _cancel(client: Any, addr: tuple[str, int], task: Task, wait: float = 2.0) -
         time.sleep(0.01)
 
 
+def _given_up(args: argparse.Namespace, client: Any, addr: tuple[str, int], task: Task, now: float,
+              end: float | None, heard: float) -> bool:
+    """Whether to stop following at `now`: the timeout passed (the task is cancelled) or the agent
+    reached through has been silent past the link deadline (each said on stderr)."""
+    if end and now > end:
+        say(f"erni task: no final result within {args.timeout:g} s; cancelling", file=sys.stderr)
+        client.send(addr, "task.cancel", Cancel(uid=task.uid))
+        time.sleep(0.2)
+        return True
+    if now - heard > args.link_deadline:
+        say(f"erni task: link lost: no answer from {addr[0]}:{addr[1]} for {now - heard:.0f} s; "
+              f"task {task.uid} may still run there", file=sys.stderr)
+        return True
+    return False
+
+
 def _follow(args: argparse.Namespace, client: Any, addr: tuple[str, int], task: Task) -> int:
     """Print the task's updates until it is final, the timeout passes, or the agent goes silent."""
     start = time.monotonic()
@@ -216,14 +232,7 @@ def _follow(args: argparse.Namespace, client: Any, addr: tuple[str, int], task: 
     while True:
         known.ask()
         now = time.monotonic()
-        if end and now > end:
-            say(f"erni task: no final result within {args.timeout:g} s; cancelling", file=sys.stderr)
-            client.send(addr, "task.cancel", Cancel(uid=task.uid))
-            time.sleep(0.2)
-            return 1
-        if now - heard > args.link_deadline:
-            say(f"erni task: link lost: no answer from {addr[0]}:{addr[1]} for {now - heard:.0f} s; "
-                  f"task {task.uid} may still run there", file=sys.stderr)
+        if _given_up(args, client, addr, task, now, end, heard):
             return 1
         if now >= next_query:  # the agent answers with the task's state: a heartbeat, and a lost update found
             client.send(addr, "task.query", TaskQuery(uid=task.uid), reliable=False)

@@ -298,17 +298,7 @@ class Dialogue:
         if cmd.is_stop:
             return self._stop(cmd, views, reply)  # never waits, never asked again; drops a read-back
         if unsure:
-            if not (self.listening or cmd.kind == "attention"):
-                return reply
-            if self.read_back is not None and cmd.kind == "action" and cmd.action != "speed" and not (
-                    cmd.action == "cancel" and cmd.params.get("last") and not cmd.names_targets):
-                asked = self._understood(cmd, views, live, Reply(text), doubt=True)
-                if asked.asked:  # a doubted command is read back: it runs only on "yes"
-                    if pending is not None and asked.say is not None:
-                        asked.say = f"Not sent: {pending.what}. {asked.say}"
-                    return asked
-            reply.say, reply.asked = self._unsure(text, pending), True
-            return reply
+            return self._doubted(cmd, views, live, pending, reply)
         if cmd.kind == "attention":
             self.listening = True
             reply.say, reply.accepted = LISTENING, True
@@ -316,24 +306,7 @@ class Dialogue:
         if not self.listening:
             return reply  # ignored until the next "attention"
         if cmd.kind == "confirm":
-            if pending is None:
-                reply.say = self._refused(text, "Nothing to confirm; yes answers a read-back", None)
-                return reply
-            if self.clock() > pending.until:
-                reply.say = self._refused(text, f"Too late: {pending.what} was not sent; say it again", None)
-                return reply
-            if pending.redo is not None:  # made now, with the tasks running now
-                try:
-                    done = pending.redo(live)
-                except Refusal as why:
-                    reply.say = self._refused(text, str(why), None)
-                    return reply
-                done.heard = text
-                return done
-            pending.reply.heard = text
-            self.targets = list(pending.reply.targets) or self.targets
-            self._carried_out(pending.reply)
-            return pending.reply
+            return self._confirmed(pending, live, reply)
         dropped = f"Not sent: {pending.what}" if pending is not None else ""
         if dropped and (cmd.kind == "deny" or (cmd.action == "cancel" and "last" in cmd.params
                                                and not cmd.names_targets)):
@@ -343,6 +316,44 @@ class Dialogue:
         if dropped and answered.say is not None:
             answered.say = f"{dropped}. {answered.say}"
         return answered
+
+    def _doubted(self, cmd: Command, views: Mapping[str, RobotView], live: set[str] | None,
+                 pending: _Pending | None, reply: Reply) -> Reply:
+        """A command the recogniser doubts: read back when it would send tasks (and the dialogue reads back),
+        else asked again."""
+        if not (self.listening or cmd.kind == "attention"):
+            return reply
+        if self.read_back is not None and cmd.kind == "action" and cmd.action != "speed" and not (
+                cmd.action == "cancel" and cmd.params.get("last") and not cmd.names_targets):
+            asked = self._understood(cmd, views, live, Reply(reply.heard), doubt=True)
+            if asked.asked:  # a doubted command is read back: it runs only on "yes"
+                if pending is not None and asked.say is not None:
+                    asked.say = f"Not sent: {pending.what}. {asked.say}"
+                return asked
+        reply.say, reply.asked = self._unsure(reply.heard, pending), True
+        return reply
+
+    def _confirmed(self, pending: _Pending | None, live: set[str] | None, reply: Reply) -> Reply:
+        """A "yes": the command read back carried out (made again now when it says how), or why not."""
+        text = reply.heard
+        if pending is None:
+            reply.say = self._refused(text, "Nothing to confirm; yes answers a read-back", None)
+            return reply
+        if self.clock() > pending.until:
+            reply.say = self._refused(text, f"Too late: {pending.what} was not sent; say it again", None)
+            return reply
+        if pending.redo is not None:  # made now, with the tasks running now
+            try:
+                done = pending.redo(live)
+            except Refusal as why:
+                reply.say = self._refused(text, str(why), None)
+                return reply
+            done.heard = text
+            return done
+        pending.reply.heard = text
+        self.targets = list(pending.reply.targets) or self.targets
+        self._carried_out(pending.reply)
+        return pending.reply
 
     def _understood(self, cmd: Command, views: Mapping[str, RobotView], live: set[str] | None, reply: Reply,
                     doubt: bool = False) -> Reply:
@@ -363,15 +374,7 @@ class Dialogue:
                 return self._cancel_last(live, reply)
             targets, note = self._targets(cmd, views)
             if cmd.action == "speed":
-                self._cruise(cmd, targets)  # refused now rather than after a read-back
-                probe = Reply(reply.heard, targets=list(targets), action="speed")
-                if not self.caution.risk(probe, views):
-                    return self._speed(cmd, targets, views, live, note, reply)
-                what = f"{self.who(targets, cmd.everyone, views)}, {restate('speed', cmd.params)}"
-                self.pending = _Pending(probe, what, self.clock() + self.read_back_timeout,
-                                        redo=lambda now: self._speed(cmd, targets, views, now, note, Reply(probe.heard)))
-                return Reply(reply.heard, say=f"{what[0].upper()}{what[1:]} \u2014 {CONFIRM_PROMPT}",
-                             targets=list(targets), accepted=True, asked=True)
+                return self._speed_heard(cmd, targets, views, live, note, reply)
             params = {k: v for k, v in cmd.params.items() if k != "last"}
             ends = self._relay_ends(cmd, views, targets) if cmd.action == "relay" else None
             params = {**params, **ends} if ends else params
@@ -393,19 +396,35 @@ class Dialogue:
         who = self.who(targets, cmd.everyone, views)
         reply.accepted = True
         risk = "doubt" if doubt and reply.tasks else self.caution.risk(reply, views)
-        if risk:
-            reply.say = f"{ROGER}: {who}, {what}" + (f" ({note})" if note else "")
-            self.pending = _Pending(reply, f"{who}, {what}", self.clock() + self.read_back_timeout)
-            if risk in ("doubt", "number"):
-                ask = f"{DID_YOU_SAY} {who}, {what}? {YES_OR_NO}"
-            elif self.read_back is None:  # typed: asked once, saying why
-                ask = f"{who[0].upper()}{who[1:]}, {what} \u2014 {self.caution.why(risk)}; {TYPED_PROMPT}"
-            else:
-                ask = f"{who[0].upper()}{who[1:]}, {what} \u2014 {CONFIRM_PROMPT}"
-            return Reply(reply.heard, say=ask, targets=list(targets), accepted=True, asked=True)
         reply.say = f"{ROGER}: {who}, {what}" + (f" ({note})" if note else "")
+        if risk:
+            return self._ask(reply, f"{who}, {what}", risk)
         self._carried_out(reply)
         return reply
+
+    def _speed_heard(self, cmd: Command, targets: list[str], views: Mapping[str, RobotView], live: set[str] | None,
+                     note: str, reply: Reply) -> Reply:
+        """A cruise speed: set at once, or read back (and made again on "yes") when risky."""
+        self._cruise(cmd, targets)  # refused now rather than after a read-back
+        probe = Reply(reply.heard, targets=list(targets), action="speed")
+        if not self.caution.risk(probe, views):
+            return self._speed(cmd, targets, views, live, note, reply)
+        what = f"{self.who(targets, cmd.everyone, views)}, {restate('speed', cmd.params)}"
+        self.pending = _Pending(probe, what, self.clock() + self.read_back_timeout,
+                                redo=lambda now: self._speed(cmd, targets, views, now, note, Reply(probe.heard)))
+        return Reply(reply.heard, say=f"{what[0].upper()}{what[1:]} \u2014 {CONFIRM_PROMPT}",
+                     targets=list(targets), accepted=True, asked=True)
+
+    def _ask(self, reply: Reply, what: str, risk: str) -> Reply:
+        """Hold a risky command (`what`: who, what) until "yes", and say so as its risk asks."""
+        self.pending = _Pending(reply, what, self.clock() + self.read_back_timeout)
+        if risk in ("doubt", "number"):
+            ask = f"{DID_YOU_SAY} {what}? {YES_OR_NO}"
+        elif self.read_back is None:  # typed: asked once, saying why
+            ask = f"{what[0].upper()}{what[1:]} \u2014 {self.caution.why(risk)}; {TYPED_PROMPT}"
+        else:
+            ask = f"{what[0].upper()}{what[1:]} \u2014 {CONFIRM_PROMPT}"
+        return Reply(reply.heard, say=ask, targets=list(reply.targets), accepted=True, asked=True)
 
     # -- what was heard, what is expected ----------------------------------------------------
 
@@ -544,18 +563,7 @@ class Dialogue:
         if unknown:
             raise Refusal(f"I don't know where {self.who(unknown, False, views)} "
                           f"{'is' if len(unknown) == 1 else 'are'}; say go to and a point, like go to 3 4")
-        goals: dict[str, dict[str, float]] = {}
-        order = sorted(movers, key=lambda m: math.hypot((views[m].x or 0.0) - tx, (views[m].y or 0.0) - ty))
-        for m in order:
-            mx, my = views[m].x or 0.0, views[m].y or 0.0
-            away = math.atan2(my - ty, mx - tx)
-            radius = min(SHORT, math.hypot(mx - tx, my - ty)) if not goals else SHORT
-            while True:
-                gx, gy = tx + radius * math.cos(away), ty + radius * math.sin(away)
-                if all(math.hypot(gx - g["x"], gy - g["y"]) >= APART for g in goals.values()):
-                    break
-                radius += APART
-            goals[m] = {"x": round(gx, 2), "y": round(gy, 2)}
+        goals = goals_short_of(tx, ty, {m: (views[m].x or 0.0, views[m].y or 0.0) for m in movers})
         what = f"go to robot {number}"
         if len(goals) == 1:
             g = next(iter(goals.values()))
@@ -715,6 +723,23 @@ class Dialogue:
         if question == "link":
             return f"{who} {link}"
         return f"{who}: {where}; {doing}; {battery}; {link}"
+
+
+def goals_short_of(tx: float, ty: float, movers: Mapping[str, tuple[float, float]]) -> dict[str, dict[str, float]]:
+    """Goals short of (tx, ty) for robots at `movers`' positions: the nearest stops SHORT away (or where it
+    is, when nearer), each on its side of the point, the others further out until at least APART from each other."""
+    goals: dict[str, dict[str, float]] = {}
+    for m in sorted(movers, key=lambda m: math.hypot(movers[m][0] - tx, movers[m][1] - ty)):
+        mx, my = movers[m]
+        away = math.atan2(my - ty, mx - tx)
+        radius = min(SHORT, math.hypot(mx - tx, my - ty)) if not goals else SHORT
+        while True:
+            gx, gy = tx + radius * math.cos(away), ty + radius * math.sin(away)
+            if all(math.hypot(gx - g["x"], gy - g["y"]) >= APART for g in goals.values()):
+                break
+            radius += APART
+        goals[m] = {"x": round(gx, 2), "y": round(gy, 2)}
+    return goals
 
 
 def _plain(text: str) -> str:

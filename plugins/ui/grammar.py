@@ -399,6 +399,10 @@ def did_you_mean(word: str) -> str:
     return "; say a command like robot 1 go forward 2 metres"
 
 
+Found = tuple[str, dict[str, Any]] | None
+"""An action and its parameters, or None when the words are not of this kind of command."""
+
+
 def _verb_object(r: _Reader) -> tuple[str, dict[str, Any]]:
     word = r.peek()
     if not word:
@@ -407,6 +411,17 @@ def _verb_object(r: _Reader) -> tuple[str, dict[str, Any]]:
             or r.take_seq("don t avoid obstacles"):
         return "avoid_obstacles", {"enabled": False}
     r.take_seq("do a") or r.take_seq("start a") or r.take("start", "do")
+    for kind in (_control_verb, _speed_verb, _strategy_verb, _motion_verb):
+        found = kind(r)
+        if found is not None:
+            return found
+    if word == "[unk]":
+        raise Refusal("I didn't understand; say a command like robot 1 go forward 2 metres")
+    raise Refusal(f"I didn't understand {word}{did_you_mean(word)}")
+
+
+def _control_verb(r: _Reader) -> Found:
+    """stop, cancel, clear, random walk, avoid obstacles."""
     if r.take(*STOP_WORDS):
         while r.take(*STOP_WORDS, "everything", "moving", "all"):
             pass
@@ -432,6 +447,11 @@ def _verb_object(r: _Reader) -> tuple[str, dict[str, Any]]:
         if r.take("at", "within", "by"):
             params["distance"] = _distance(r)["distance"]
         return "avoid_obstacles", params
+    return None
+
+
+def _speed_verb(r: _Reader) -> Found:
+    """faster, slower, a cruise speed, a held velocity."""
     mark = r.i
     r.take(*MOVE)
     if r.take("faster", "quicker") or r.take_seq("speed up"):
@@ -443,6 +463,11 @@ def _verb_object(r: _Reader) -> tuple[str, dict[str, Any]]:
         return "speed", _cruise(r)  # the cruise speed of later moves
     if r.take_seq("drive at") or r.take_seq("move at") or r.take_seq("go at"):
         return "velocity", _velocity(r)
+    return None
+
+
+def _strategy_verb(r: _Reader) -> Found:
+    """The deployment strategies: spread, cover, relay, patrol and those without parameters."""
     if r.take("spread"):
         r.take("out")
         d = r.distance()
@@ -456,6 +481,11 @@ def _verb_object(r: _Reader) -> tuple[str, dict[str, Any]]:
     for words, name in _plain_strategies().items():
         if r.take_seq(words):
             return name, {}
+    return None
+
+
+def _motion_verb(r: _Reader) -> Found:
+    """teleport, turn, go to (a point or a robot), forward, backward."""
     if r.take("teleport", "jump"):
         r.take("to")
         return "teleport", _point(r, heading=True)
@@ -479,9 +509,7 @@ def _verb_object(r: _Reader) -> tuple[str, dict[str, Any]]:
         return "backward", _distance(r)
     if moved:
         raise Refusal("Go where? Say go to 3 4, go forward 2 metres or go back 1 metre")
-    if word == "[unk]":
-        raise Refusal("I didn't understand; say a command like robot 1 go forward 2 metres")
-    raise Refusal(f"I didn't understand {word}{did_you_mean(word)}")
+    return None
 
 
 def _positive(d: float) -> float:

@@ -53,6 +53,15 @@ PORT = 47100                    # the destination's port on the mesh (netns tier
 CLONE_NEWNET = 0x40000000
 
 
+def _positions(s: dict[str, Any], length: float) -> list[float]:
+    """The relay's positions (m from the source): `strategy.positions`, else every metre; each strictly
+    between the ends (ScenarioError)."""
+    positions = [float(x) for x in s.get("positions", list(np.arange(1.0, length, 1.0)))]
+    if not positions or min(positions) <= 0 or max(positions) >= length:
+        raise ScenarioError(f"strategy.positions: expected distances from the source inside (0, {length:g}) m")
+    return positions
+
+
 def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode: str, netns: bool = False,
         **_: Any) -> Result:
     """Stream through the relay at each position; return figure and table."""
@@ -62,14 +71,12 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode:
     src, dst = ends(scenario, "relay-video")
     length = float(np.hypot(*(dst - src)))
     radio = RadioModel(scenario.radio.comm_range, scenario.radio.lossless_range, scenario.radio.min_quality)
-    positions = [float(x) for x in s.get("positions", list(np.arange(1.0, length, 1.0)))]
+    positions = _positions(s, length)
     fps = float(s.get("fps", 25.0))
     seconds = float(s.get("seconds", 2.0))
     packet = int(s.get("packet", 1400))
     width, height = (int(v) for v in s.get("image_size", [320, 240]))
     quality = int(s.get("jpeg_quality", 75))
-    if not positions or min(positions) <= 0 or max(positions) >= length:
-        raise ScenarioError(f"strategy.positions: expected distances from the source inside (0, {length:g}) m")
     jpegs = [compress(f, quality) for f in camera_frames(width, height, seed=scenario.seed)]
     if netns:
         settle = float(s.get("netns_settle", 2.0))
@@ -198,6 +205,26 @@ def _via(mesh: Any, a: str, b: str) -> bool:
     return any(line.startswith(prefix) for line in mesh.kernel_routes(a))
 
 
+def _await_relay_routes(mesh: Any) -> None:
+    """Wait until babeld routes S -> D and D -> S through the relay (ScenarioError after 30 s)."""
+    end = time.monotonic() + 30.0
+    while not (_via(mesh, "source", "destination") and _via(mesh, "destination", "source")):
+        if time.monotonic() > end:
+            raise ScenarioError("relay-video --netns: babeld did not route S -> D through the relay within 30 s")
+        time.sleep(0.2)
+
+
+def _route_after(mesh: Any, settle: float, route_wait: float) -> float:
+    """After the links changed (now): wait `settle` s, and up to `route_wait` s more until babeld routes
+    S -> D through the relay; the seconds that took (NaN: no such route by then)."""
+    changed = time.monotonic()
+    time.sleep(settle)  # babeld sees the new links (Hellos every 0.5 s)
+    while not (routed_before := _via(mesh, "source", "destination")) and \
+            time.monotonic() - changed < settle + route_wait:
+        time.sleep(0.2)
+    return time.monotonic() - changed if routed_before else math.nan
+
+
 def _stream_netns(positions: list[float], length: float, radio: RadioModel, jpegs: list[bytes], fps: float,
                   seconds: float, packet: int, settle: float, route_wait: float, pinned: bool,
                   progress: Progress) -> tuple[list[dict[str, float]], dict[float, list[float]]]:
@@ -228,11 +255,7 @@ def _stream_netns(positions: list[float], length: float, radio: RadioModel, jpeg
         if pinned:
             _pin_neighbours(mesh)
         mesh.start_babel()
-        end = time.monotonic() + 30.0
-        while not (_via(mesh, "source", "destination") and _via(mesh, "destination", "source")):
-            if time.monotonic() > end:
-                raise ScenarioError("relay-video --netns: babeld did not route S -> D through the relay within 30 s")
-            time.sleep(0.2)
+        _await_relay_routes(mesh)
         dst = (mesh.node("destination").address, PORT)
         rx = _udp_in(mesh.node("destination").netns, ("0.0.0.0", PORT))
         tx = _udp_in(mesh.node("source").netns, ("0.0.0.0", 0))
@@ -260,12 +283,8 @@ def _stream_netns(positions: list[float], length: float, radio: RadioModel, jpeg
             q1, q2 = radio.quality(x), radio.quality(length - x)
             links = {sr: q1, rd: q2}
             mesh.apply(links)  # the radio rules of this position (their counters start at 0)
-            changed = time.monotonic()
-            time.sleep(settle)  # babeld sees the new links (Hellos every 0.5 s)
-            while not (routed_before := _via(mesh, "source", "destination")) and \
-                    time.monotonic() - changed < settle + route_wait:
-                time.sleep(0.2)
-            route_after = time.monotonic() - changed if routed_before else math.nan
+            route_after = _route_after(mesh, settle, route_wait)
+            routed_before = not math.isnan(route_after)
             sent: dict[tuple[int, int], float] = {}
             refused = 0
             first = frame_no

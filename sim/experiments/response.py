@@ -83,6 +83,26 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode:
     return _result(experiment, mode, data, iterations, period)
 
 
+def _await_remote(client: Any, port: int, remote: subprocess.Popen[bytes], run_dir: Path,
+                  remote_poses: list[tuple[float, float]], lock: threading.Lock) -> None:
+    """Lease a watch from the robot agent process until it streams a Pose (ScenarioError when it exits
+    or sends none within 20 s)."""
+    from erni.blackboard.schemas import WatchRequest
+
+    deadline = time.monotonic() + 20
+    while time.monotonic() < deadline:  # the remote agent is up when its watch streams a Pose
+        if remote.poll() is not None:  # it exited: say why, from its own log, at once
+            said = (run_dir / "robot.log").read_text(encoding="utf-8", errors="replace").strip().splitlines()
+            raise ScenarioError(f"the robot agent process exited with status {remote.returncode}: "
+                                f"{said[-1] if said else '(nothing logged)'}; log in {run_dir}")
+        client.send(("127.0.0.1", port), "watch.request", WatchRequest(lease=15.0), reliable=False)
+        time.sleep(0.5)
+        with lock:
+            if remote_poses:
+                return
+    raise ScenarioError(f"the robot agent process sent no Pose through the transport; log in {run_dir}")
+
+
 def _measure(iterations: int, runs: int, period: float, rest: float, seed: int, progress: Progress
              ) -> dict[str, list[list[float]]]:
     from erni.blackboard import Agent
@@ -131,20 +151,7 @@ def _measure(iterations: int, runs: int, period: float, rest: float, seed: int, 
                     remote_poses.append((time.monotonic(), float(msg.body.data.get("v") or 0.0)))
 
         client.endpoint.on_message = on_message
-        lease = 0.0
-        deadline = time.monotonic() + 20
-        while time.monotonic() < deadline:  # the remote agent is up when its watch streams a Pose
-            if remote.poll() is not None:  # it exited: say why, from its own log, at once
-                said = (run_dir / "robot.log").read_text(encoding="utf-8", errors="replace").strip().splitlines()
-                raise ScenarioError(f"the robot agent process exited with status {remote.returncode}: "
-                                    f"{said[-1] if said else '(nothing logged)'}; log in {run_dir}")
-            client.send(("127.0.0.1", port), "watch.request", WatchRequest(lease=15.0), reliable=False)
-            time.sleep(0.5)
-            with lock:
-                if remote_poses:
-                    break
-        else:
-            raise ScenarioError(f"the robot agent process sent no Pose through the transport; log in {run_dir}")
+        _await_remote(client, port, remote, run_dir, remote_poses, lock)
         lease = time.monotonic()
         total = iterations * runs
         done = 0
