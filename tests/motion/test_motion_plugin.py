@@ -464,12 +464,17 @@ def test_a_standing_robot_publishes_its_pose_at_the_keepalive_and_a_moving_one_a
 
 def test_a_running_tasks_progress_is_published_at_most_every_progress_interval(start_agent, robot_url):
     agent, _ = start_agent(robot_url, progress_interval=0.5)
-    task = post(agent, "randomwalk", speed=0.1, duration=2.0, seed=3)
-    seen, t0 = set(), time.monotonic()
-    while not (t := current(agent, task)).done and time.monotonic() - t0 < 10:
-        if t.result is not None:
-            seen.add((t.result.state, t.result.progress, t.result.stamp))
-        time.sleep(0.005)
+    seen: set[tuple[TaskState, float, float]] = set()  # every result published, from the commits
+
+    def results(ops: list) -> None:
+        seen.update((t.result.state, t.result.progress, t.result.stamp) for _, t, _ in ops
+                    if isinstance(t, Task) and t.uid == task.uid and t.result is not None)
+    task = Task(verb="BotMotion", preposition="randomwalk", params=dict(speed=0.1, duration=2.0, seed=3),
+                source="test")
+    agent.blackboard.add_listener(results, Task)
+    with agent.transaction() as tx:
+        tx.add(task)
+    wait_until(lambda: current(agent, task).done, timeout=10)
     assert current(agent, task).result.state is TaskState.SUCCEEDED
     running = [s for s in seen if s[0] is TaskState.RUNNING]
     assert 2 <= len(running) <= 7, f"{len(running)} running results in a 2 s task"  # 25/s without the limit
@@ -508,35 +513,46 @@ class _LinkDownDriver:
         return self.connected
 
 
-def _say_through(driver: _LinkDownDriver, link_grace: float, up_after: float | None) -> TaskUpdate:
-    outcomes: list[TaskUpdate] = []
-    res = RobotMotionResource(driver, lambda updates, state: outcomes.extend(updates), link_grace=link_grace,  # type: ignore[arg-type]
-                              avoid_distance=0).start()
+def _say_through(driver: _LinkDownDriver, link_grace: float, up_after: float | None) -> tuple[TaskUpdate, float]:
+    """A SAY sent with the link down, the link up after `up_after` s of the resource's clock (never if
+    None); its outcome and when it came, on that clock, after the SAY. The clock moves a stack cycle's
+    fallback at a time, each advance taken by the stack thread before the next."""
+    from erni.testing import ManualClock
+
+    clock = ManualClock()
+    outcomes: list[tuple[TaskUpdate, float]] = []
+    res = RobotMotionResource(driver, lambda updates, state: outcomes.extend((u, clock()) for u in updates),  # type: ignore[arg-type]
+                              link_grace=link_grace, avoid_distance=0, clock=clock).start()
+    clock.on_advance(res._wake.set)  # the stack thread looks at the clock again when it moves
     try:
-        res.submit(Task(verb="BotMotion", preposition="say", params={"tones": [(10, 60)]}, source="test"))
-        if up_after is not None:
-            time.sleep(up_after)
-            driver.connected = True
-        wait_until(lambda: any(u.state.done for u in outcomes), timeout=link_grace + 3)
-        return next(u for u in outcomes if u.state.done)
+        say = Task(verb="BotMotion", preposition="say", params={"tones": [(10, 60)]}, source="test")
+        res.submit(say)
+        wait_until(lambda: say.uid in res._says)  # tried once: it waits for the link
+        start = clock()
+        while not any(u.state.done for u, _ in outcomes) and clock() - start < link_grace + 1.0:
+            if up_after is not None and clock() - start >= up_after:
+                driver.connected = True
+            clock.advance(0.1)
+            wait_until(lambda: not res._wake.is_set() or any(u.state.done for u, _ in outcomes))
+        done, at = wait_until(lambda: next(((u, t) for u, t in outcomes if u.state.done), None), timeout=5)
+        return done, at - start
     finally:
         res.close()
 
 
 def test_a_say_sent_while_the_link_is_down_plays_when_it_comes_back_within_the_grace():
     driver = _LinkDownDriver()
-    done = _say_through(driver, link_grace=2.0, up_after=0.4)
+    done, _ = _say_through(driver, link_grace=2.0, up_after=0.4)
     assert done.state == TaskState.SUCCEEDED, done.message
     assert driver.said == [bytes([10, 60])]
 
 
 def test_a_say_fails_naming_the_link_when_it_stays_down_past_the_grace():
     driver = _LinkDownDriver()
-    t0 = time.monotonic()
-    done = _say_through(driver, link_grace=0.5, up_after=None)
+    done, after = _say_through(driver, link_grace=0.5, up_after=None)
     assert done.state == TaskState.FAILED
     assert done.message == "link lost: SAY not sent within 0.5 s (no SYNC answer)"
-    assert time.monotonic() - t0 >= 0.5 and driver.said == []
+    assert after >= 0.5 and driver.said == []  # on the resource's clock: not before the grace
 
 
 def _pose_times(sip_gaps: list[float], pose_rate_hz: float,
