@@ -159,6 +159,7 @@ class ROS2Plugin(Plugin[ROS2Settings]):
         self._robots_fixed = s.robots
         self._declared: set[str] = set()
         self._closing = threading.Event()
+        self._agent_set_up = threading.Event()  # set on the first run: every plugin's setup has run by then
         self._sender = threading.Thread(target=self._send_loop, name=f"erni-{self.agent_name}-ros2", daemon=True)
         self._sender.start()
         self.wake_every(min(0.1, s.cmd_vel_timeout / 2))
@@ -169,6 +170,9 @@ class ROS2Plugin(Plugin[ROS2Settings]):
         """The transport's Zenoh session (auto, wire = zenoh, once started) or a session of the plugin's own."""
         s = self.settings
         if s.session == "auto":
+            # what the transport offers is known once every plugin has been set up, whatever their order
+            if not self._agent_set_up.is_set():
+                return None  # asked again
             offered = self.provided("transport.zenoh_session")  # the transport's, on the Zenoh wire
             if offered is not None:
                 try:
@@ -310,6 +314,7 @@ class ROS2Plugin(Plugin[ROS2Settings]):
         return {p.robot for p in self.poses}
 
     def execute(self) -> None:
+        self._agent_set_up.set()
         self._run += 1
         robots = self._robots()
         with self._lock:

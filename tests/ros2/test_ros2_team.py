@@ -75,6 +75,21 @@ def test_a_control_node_shows_the_team_and_drives_a_robot_through_erni(team: Cal
         sub.close()
 
 
+def test_the_plugin_rides_on_the_transports_session_whatever_the_plugins_order(team: Callable[..., Agent]) -> None:
+    """Plugin order is unspecified: set up before the transport, the plugin still takes the session
+    the transport offers (once every plugin has been set up), not a session of its own."""
+    def ros2_first(agent: Agent) -> None:
+        agent.add_plugin(ROS2Plugin, name="ros2")
+        agent.plugins.insert(0, agent.plugins.pop())  # listed, and so set up, before the transport
+
+    control = team("control", ros2_first)
+    plugin = control.plugins[0]
+    assert isinstance(plugin, ROS2Plugin)
+    wait_until(lambda: plugin.node is not None, timeout=10, message="no ROS 2 node")
+    zid = str(control.plugin("transport").endpoint.session.info.zid())  # type: ignore[attr-defined]
+    assert plugin.node is not None and plugin.node.zid == zid
+
+
 def test_the_role_policy_decides_a_robot_agent_may_not_drive_another_robot(team: Callable[..., Agent],
                                                                             ros: dict[str, Any]) -> None:
     """robot2's plugin is told to serve robot1 too: its cmd_vel becomes a task from robot2 to robot1,
