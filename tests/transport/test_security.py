@@ -284,8 +284,9 @@ def test_handshake_floods_are_answered_at_a_bounded_rate(team):
             udp.sendto(frame, addr_of(robot1))
             if i % 20 == 19:
                 time.sleep(0.005)  # stay within the socket buffer: datagrams lost by the kernel go uncounted
+    # a progress bound: each hello costs a signature check, slow on a loaded machine (5 s was missed at load 14)
     wait_until(lambda: counters(robot1).get("dropped.rate", 0) + counters(robot1).get("handshakes.answered", 0)
-               >= 150)
+               >= 150, timeout=30, message="the hellos were not all answered or dropped within 30 s")
     assert counters(robot1).get("handshakes.answered", 0) <= 60  # burst of 20, then 20 per second
     assert counters(robot1).get("dropped.rate", 0) >= 100
 

@@ -5,7 +5,6 @@ counts only live agents and the robots the control node really hears."""
 from __future__ import annotations
 
 import asyncio
-import os
 from pathlib import Path
 
 from erni.plugins.ui.plugin import is_loopback
@@ -18,20 +17,7 @@ class GuiSim(SimProcess):
     """`erni sim` with its GUI (the base class runs it headless)."""
 
     def __init__(self, run_dir: Path, *args: str) -> None:
-        import subprocess
-        import sys
-        import threading
-
-        from tests.sim.test_sim_cli import ROOT
-
-        self.run_dir = run_dir
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "erni", "sim", "--run-dir", str(run_dir), *args],
-            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True,
-            env={**os.environ, "PYTHONUNBUFFERED": "1"})
-        self.lines: list[str] = []
-        self._reader = threading.Thread(target=self._read, name="sim-cli-reader", daemon=True)
-        self._reader.start()
+        super().__init__(run_dir, *args, headless=False)
 
 
 def test_remote_gui_url_pids_and_an_honest_status_line(tmp_path):
