@@ -46,6 +46,13 @@ def test_check_validates_without_running():
     assert out.returncode == 0 and "ok (agent robot1" in out.stdout
 
 
+def catches(pid: int, signum: int) -> bool:
+    """Whether process `pid` has a handler of its own for `signum` (its SigCgt mask in /proc)."""
+    status = Path(f"/proc/{pid}/status").read_text()
+    caught = int(status.split("SigCgt:")[1].split()[0], 16)
+    return bool(caught >> (signum - 1) & 1)
+
+
 def test_agent_runs_until_sigterm_and_stops_cleanly():
     proc = subprocess.Popen([sys.executable, "-m", "erni", "agent", "examples/robot.toml"],
                             cwd=ROOT, stderr=subprocess.PIPE, text=True,
@@ -54,7 +61,7 @@ def test_agent_runs_until_sigterm_and_stops_cleanly():
         lines = [proc.stderr.readline() for _ in range(3)]
         assert any("erni.robot1: agent robot1 started with 2 plugin(s)" in ln for ln in lines), lines
         assert any("WITHOUT authentication" in ln for ln in lines), "insecure mode is warned about"
-        time.sleep(0.2)
+        wait_until(lambda: catches(proc.pid, signal.SIGTERM), timeout=30)  # its handler is in place
         proc.send_signal(signal.SIGTERM)
         rest = proc.stderr.read()
         # 0, not the 3 of the stop watchdog, which ends a stop still busy 5 s (--stop-grace) after

@@ -92,10 +92,15 @@ def test_an_idle_agents_timer_and_worker_threads_sleep():
 
 
 def test_a_slow_plugin_is_still_reported_at_its_limit(caplog):
+    """The watch waits a whole limit while nothing runs; a run that starts in the middle of that wait
+    is still reported within a limit of its start (here 0.7 s into it, at the watch's next look)."""
     import logging
 
+    from erni.testing import ManualClock
+    from tests.core.helpers import Probe, timers_caught_up
+
     caplog.set_level(logging.WARNING)
-    started = threading.Event()
+    started, release = threading.Event(), threading.Event()
 
     class Slow(Plugin):
         def setup(self) -> None:
@@ -103,20 +108,25 @@ def test_a_slow_plugin_is_still_reported_at_its_limit(caplog):
 
         def execute(self) -> None:
             started.set()
-            time.sleep(1.2)
+            release.wait(10)
 
-    agent = Agent("slowidle", workers=1, slow_plugin_seconds=0.6)
+    clock = ManualClock()
+    agent = Agent("slowidle", workers=1, slow_plugin_seconds=0.6, clock=clock)
     agent.add_plugin(Slow, name="slow")
+    probe = agent.add_plugin(Probe, name="probe")
     agent.start()
     try:
-        time.sleep(0.9)   # the watch sleeps a whole limit; the run starts in the middle of it
+        clock.advance(0.9)
+        timers_caught_up(probe)  # the watch looked at 0.9 s with nothing running: its next look is a limit on
         with agent.transaction() as tx:
-            tx.add(Item(value=1))
+            tx.add(Item(value=1))  # the run starts in the middle of the watch's wait
         assert started.wait(5)
-        wait_until(lambda: any("has been running" in r.getMessage() for r in caplog.records), timeout=3)
+        clock.advance(0.7)  # past the run's limit (0.6 s) and the watch's next look (a limit after 0.9 s)
+        wait_until(lambda: any("has been running" in r.getMessage() for r in caplog.records), timeout=5)
     finally:
+        release.set()
         agent.stop()
-    assert any("plugin slow of agent slowidle has been running" in r.getMessage() for r in caplog.records)
+    assert any("plugin slow of agent slowidle has been running for 0.7 s" in r.getMessage() for r in caplog.records)
 
 
 def test_erni_agent_stops_at_once_on_sigterm(tmp_path):
