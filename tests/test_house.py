@@ -33,7 +33,7 @@ TARGET_SLEEPS = 52
 
 # The ratchets: today's figures where the target is not met yet.
 CLOCK_READS_ALLOWED = 0
-SLEEPS_ALLOWED = 129
+SLEEPS_ALLOWED = 125
 # Classes in blackboard/, transport/ and plugins/ still above the target, with their length today.
 LONG_CLASSES_ALLOWED: dict[str, int] = {}
 
