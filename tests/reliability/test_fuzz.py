@@ -36,6 +36,7 @@ from erni.transport.wire import (
     batch_payload,
     encode_plain,
 )
+from tests.reliability.fuzz_run import confirmed
 
 EXAMPLES = int(os.environ.get("ERNI_FUZZ_EXAMPLES", "300"))
 FUZZ = settings(max_examples=EXAMPLES, deadline=None,
@@ -72,17 +73,11 @@ def receiver():
     tx.start()
     tx.send(rx.address, "hello", None, reliable=True)
     # a progress bound: the session is up in milliseconds unloaded; both ends hold it confirmed
-    wait_until(lambda: _confirmed(tx, rx) and _confirmed(rx, tx), timeout=30, interval=0.01,
+    wait_until(lambda: confirmed(tx, rx) and confirmed(rx, tx), timeout=30, interval=0.01,
                message="no session within 30 s")
     yield rx, tx, tx.session_with(rx.address)
     tx.stop()
     rx.stop()
-
-
-def _confirmed(a, b) -> bool:
-    """Whether endpoint `a` holds a confirmed session to send to `b`."""
-    s = a.session_with(b.address)
-    return s is not None and s.confirmed
 
 
 def _frames(tx, session) -> list[bytes]:
