@@ -144,19 +144,13 @@ def _pose_of(raw: Raw | bytes) -> Pose:
                     Pose.model_fields[name].get_default(call_default_factory=True)
     if not is_name(values["robot"]):
         raise msgspec.ValidationError("robot: not a name")
-    return _pose_from(values, given)
+    return Pose.trusted(values, given)  # values checked as pydantic checks them: not validated again
 
 
 def _named(head: Head) -> bool:
     """Whether a head's sender and receiver keep to the name character set (checked after the decode:
     a dict lookup for the few names a team has, where a msgspec pattern would run a regex a field)."""
     return is_name(head.sender) and (head.to == "" or is_name(head.to))
-
-
-def _pose_from(values: dict[str, Any], given: set[str]) -> Pose:
-    """A Pose of values already checked as pydantic checks them, made without validating again
-    (through pydantic's `model_construct`, never its private slots)."""
-    return Pose.trusted(values, given)
 
 
 _status = msgspec.json.Decoder(PoseEnvelope)
@@ -176,7 +170,7 @@ def decode_status(payload: bytes) -> tuple[PoseEnvelope, Pose] | None:
         return None  # the tag taken by another type: its own validator decides
     if not (_named(env) and is_name(env.body.robot)):
         return None
-    return env, _pose_from(_asdict(env.body), set(_POSE_FIELDS))
+    return env, Pose.trusted(_asdict(env.body), set(_POSE_FIELDS))
 
 
 def body_of(type_name: str, raw: Raw) -> Any:
