@@ -98,9 +98,12 @@ class TransportPlugin(Plugin[TransportSettings]):
         # what other plugins may use of the transport, through the agent (never this plugin's attributes):
         # the role its frames carry and, on the Zenoh wire, the session the ROS 2 edge shares
         self.provide("transport.role", s.role)
-        if isinstance(getattr(type(self.endpoint), "session", None), property):  # the Zenoh wire's endpoint
-            zenoh_endpoint: Any = self.endpoint
-            self.provide("transport.zenoh_session", lambda: zenoh_endpoint.session)
+        if s.wire == "zenoh":
+            from erni.transport.zenoh_wire import ZenohEndpoint  # imports zenoh: only on its wire
+
+            endpoint = self.endpoint
+            if isinstance(endpoint, ZenohEndpoint):  # (not a test's mock endpoint)
+                self.provide("transport.zenoh_session", lambda: endpoint.session)
         if s.insecure:
             self.log.warning("transport of %s runs WITHOUT authentication (insecure = true): any "
                              "host on the network can task this agent", self.agent_name)
