@@ -40,7 +40,7 @@ from erni.transport.wire import (
 
 if TYPE_CHECKING:
     from erni.transport.session import Auth, Session
-    from erni.transport.sessions import Sessions
+    from erni.transport.session_table import SessionTable
     from erni.transport.wires import Wire
 
 Address = tuple[str, int]
@@ -84,7 +84,7 @@ class FastMessages:
         queue_limit: int
         ttl: float
         role: str
-        sessions: Sessions
+        sessions: SessionTable
         def send(self, addr: Address, kind: str, body: Any = None, *, reliable: bool, msg_id: str | None = None,
                  ttl: float | None = None, to: str | None = None) -> str: ...
         def _dest_for(self, addr: Address) -> Dest: ...

@@ -5,7 +5,7 @@ An endpoint is these parts, each a module a reader can take alone:
 - `receiver.py`: the sockets and the receive loop (a thread blocked in the UDP socket's recvfrom,
   a selector thread for TCP connections, the discovery port and the sweeps) and every bound on
   what comes in before it is authenticated;
-- `sessions.py`: the session table, handshakes, hints and revocation (`session.py`: one
+- `session_table.py`: the session table, handshakes, hints and revocation (`session.py`: one
   session's cryptography); the endpoint is its `SessionHost`, the seam another wire would fill;
 - `outbox.py`: the sender pool, a record per destination (`Dest`) and the threads that serve them;
 - `batching.py`: fast messages (statuses) from the caller's thread, gathered per datagram in a burst;
@@ -63,7 +63,7 @@ from erni.transport.outbox import Dest, Outgoing, SenderPool
 from erni.transport.receiver import Receiver, close
 from erni.transport.reliable import ReliableDelivery
 from erni.transport.session import Auth, IdentityAuth, Initiation, Session, TeamKeyAuth
-from erni.transport.sessions import Sessions
+from erni.transport.session_table import SessionTable
 from erni.transport.wire import (
     DEFAULT_MAX_FRAME,
     HEADER,
@@ -189,7 +189,7 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
         self._counter_lock = threading.Lock()
         self._seen = SeenIds()
         self.address: Address = listen
-        self.sessions = Sessions(self, self.auth, name, self.inst, self.limits, max_frame, self.handshake_timeout,
+        self.sessions = SessionTable(self, self.auth, name, self.inst, self.limits, max_frame, self.handshake_timeout,
                                  identity, self.revocations, self.log)
         self._beacon_bucket = TokenBucket(self.limits.beacons_total, clock=self.pace)
         self.inbound = FramePath(self, self._on_beacon)  # inbound.py: frames in, messages out
@@ -350,7 +350,7 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
         except OSError:
             pass
 
-    # -- sessions (sessions.py), and what they need of this endpoint (`SessionHost`) -----------
+    # -- sessions (session_table.py), and what they need of this endpoint (`SessionHost`) -----------
 
     def session_with(self, addr: Address) -> Session | None:
         """The confirmed session used to send to `addr` now (None: the next send starts one)."""

@@ -16,7 +16,7 @@ from typing import Any, Protocol
 
 from erni.transport.codec import DecodedHead, decode_data, decode_status
 from erni.transport.session import Auth, CertificateRefused, Session
-from erni.transport.sessions import Sessions
+from erni.transport.session_table import SessionTable
 from erni.transport.wire import (
     BEACON,
     DATA,
@@ -54,7 +54,7 @@ class FrameHost(Protocol):
     inst: str
     auth: Auth | None
     max_frame: int
-    sessions: Sessions
+    sessions: SessionTable
     log: logging.Logger
 
     @property

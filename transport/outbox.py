@@ -26,7 +26,7 @@ from erni.transport.wire import BATCH_BYTES, StreamDecoder
 
 if TYPE_CHECKING:
     from erni.transport.session import Auth, Session
-    from erni.transport.sessions import Sessions
+    from erni.transport.session_table import SessionTable
     from erni.transport.wires import Wire
 
 Address = tuple[str, int]
@@ -126,7 +126,7 @@ class SenderPool:
         handshake_timeout: float
         log: logging.Logger
         retry_max: float
-        sessions: Sessions
+        sessions: SessionTable
         def _envelope(self, out: Outgoing, to: str) -> bytes: ...
         def _expired(self, dest: Dest, out: Outgoing, now: float) -> bool: ...
         def _frame(self, out: Outgoing, session: Session | None, max_frame: int) -> bytes: ...

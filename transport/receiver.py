@@ -30,7 +30,7 @@ from erni.transport.session import Auth, Session
 from erni.transport.wire import DATA, KIND, KINDS, PLAIN, SESSION_END, FrameError, Message, StreamDecoder
 
 if TYPE_CHECKING:
-    from erni.transport.sessions import Sessions
+    from erni.transport.session_table import SessionTable
 
 Address = tuple[str, int]
 HEADER_KIND = 4  # offset of the kind byte in a frame
@@ -42,7 +42,7 @@ class ReceiverHost(Protocol):
     limits: Limits
     max_frame: int
     auth: Auth | None
-    sessions: Sessions
+    sessions: SessionTable
 
     def clock(self) -> float:
         """Seconds on the endpoint's monotonic clock: connection timeouts and the sweeps use it."""
@@ -237,7 +237,7 @@ class Receiver:
             per_host.pop(conn.peer[0], None)
 
     def _sweep(self, conns: dict[socket.socket, Conn], now: float) -> list[Conn]:
-        """Connections past a timeout or over the byte budget; expired handshakes and sessions (`Sessions.sweep`)."""
+        """Connections past a timeout or over the byte budget; expired handshakes and sessions (`SessionTable.sweep`)."""
         limits = self.host.limits
         late: list[Conn] = []
         buffered = 0

@@ -75,7 +75,7 @@ class SessionHost(Protocol):
         """Send our revocation list to a peer whose list is older."""
 
 
-class Sessions:
+class SessionTable:
     """The session table of one endpoint instance (`inst`) of agent `name`."""
 
     def __init__(self, host: SessionHost, auth: Auth | None, name: str, inst: str, limits: Limits, max_frame: int,
