@@ -42,7 +42,7 @@ class Recorder(Plugin):
             return [o for v in self.views for o in v[key]]
 
 
-def settled(plugin: Plugin) -> bool:
+def scheduler_idle(plugin: Plugin) -> bool:
     """Whether the scheduler has done with `plugin`: neither queued nor running (a signal queues it at
     once, so after one this says its run, or its skipped run, is over)."""
     with plugin._sched_lock:
@@ -85,9 +85,9 @@ def timers_caught_up(probe: Probe, timeout: float = 10.0) -> None:
     """Wait until the timer thread of `probe`'s agent has gone round twice since the call: each wake-up
     due on the agent's clock by now has been handed to its plugin (before the probe's own, due now),
     and the slow-run watch has looked at the clock after that."""
-    wait_until(lambda: settled(probe), timeout=timeout)
+    wait_until(lambda: scheduler_idle(probe), timeout=timeout)
     for _ in range(2):
         runs = probe.count
         probe.wake_in(0.0)
-        wait_until(lambda runs=runs: probe.count > runs and settled(probe), timeout=timeout,
+        wait_until(lambda runs=runs: probe.count > runs and scheduler_idle(probe), timeout=timeout,
                    message="the agent's timer thread did not fire a wake-up due now")

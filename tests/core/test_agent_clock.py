@@ -14,7 +14,7 @@ from erni.blackboard.errors import UsageError
 from erni.blackboard.tasks import AllocationResult
 from erni.blackboard.testing import wait_until
 from erni.testing import ManualClock, agent_with, post_task
-from tests.core.helpers import Probe, settled, timers_caught_up
+from tests.core.helpers import Probe, scheduler_idle, timers_caught_up
 
 
 class Ticker(Plugin):
@@ -33,7 +33,7 @@ class Ticker(Plugin):
 def ticks_after(plugin: Ticker, probe: Probe, clock: ManualClock, seconds: float) -> int:
     clock.advance(seconds)
     timers_caught_up(probe)  # what is due by now has been handed to the ticker ...
-    wait_until(lambda: settled(plugin))  # ... and run
+    wait_until(lambda: scheduler_idle(plugin))  # ... and run
     return plugin.ticks
 
 
@@ -44,7 +44,7 @@ def test_wake_ups_follow_the_injected_clock_not_the_wall_clock():
     with agent:
         ticker = agent.plugins[0]
         assert isinstance(ticker, Ticker)
-        wait_until(lambda: settled(ticker))
+        wait_until(lambda: scheduler_idle(ticker))
         base = ticker.ticks  # setup's own run
         assert ticks_after(ticker, probe, clock, 4.9) == base  # 4.9 s on the agent's clock: not due
         assert ticks_after(ticker, probe, clock, 0.2) == base + 1  # 5.1 s: due, run without waiting 5 s

@@ -8,7 +8,7 @@ import pytest
 
 from erni.blackboard import Agent, Plugin, Task, TransactionError
 from erni.blackboard.testing import wait_until
-from tests.core.helpers import Item, Recorder, settled
+from tests.core.helpers import Item, Recorder, scheduler_idle
 
 
 @pytest.fixture
@@ -254,12 +254,12 @@ def test_a_change_of_ignored_fields_alone_neither_wakes_nor_is_delivered(agent):
     with agent.transaction() as tx:
         tx.add(item)
     wait_until(lambda: any(v["added"] for v in rec.views))
-    wait_until(lambda: settled(rec))
+    wait_until(lambda: scheduler_idle(rec))
     runs = rec.runs
     for tag in "bcd":
         with agent.transaction() as tx:
             tx.change(agent.blackboard.get(item.uid).evolve(tag=tag))
-    wait_until(lambda: settled(rec))  # a wake-up would have queued it at the commit
+    wait_until(lambda: scheduler_idle(rec))  # a wake-up would have queued it at the commit
     assert rec.runs == runs                                    # not woken
     with agent.transaction() as tx:   # a change the plugin cares about comes through
         tx.add(Item(value=9))
@@ -305,12 +305,12 @@ def test_a_subscription_that_does_not_wake_is_delivered_at_the_next_run(agent):
     rec = agent.add_plugin(_Quiet)
     agent.start()
     wait_until(lambda: rec.runs >= 0 and rec._setup_ran)
-    wait_until(lambda: settled(rec))
+    wait_until(lambda: scheduler_idle(rec))
     runs = rec.runs
     for v in (1, 2, 3):
         with agent.transaction() as tx:
             tx.add(Item(value=v))
-    wait_until(lambda: settled(rec))  # a wake-up would have queued it at the commit
+    wait_until(lambda: scheduler_idle(rec))  # a wake-up would have queued it at the commit
     assert rec.runs == runs                      # not woken by them
     rec.wake()
     wait_until(lambda: rec.runs > runs)

@@ -12,7 +12,7 @@ import pytest
 from erni.blackboard import Agent, Plugin
 from erni.blackboard.testing import wait_until
 from erni.testing import ManualClock
-from tests.core.helpers import Item, Probe, Recorder, Sleeper, settled, timers_caught_up
+from tests.core.helpers import Item, Probe, Recorder, Sleeper, scheduler_idle, timers_caught_up
 
 
 def test_execute_runs_only_with_news():
@@ -24,7 +24,7 @@ def test_execute_runs_only_with_news():
             tx.add(Item())
         wait_until(lambda: rec.runs == 1)
         agent.scheduler.signal(rec)  # a signal with no delta and no wake-up
-        wait_until(lambda: settled(rec))
+        wait_until(lambda: scheduler_idle(rec))
         assert rec.runs == 1
     finally:
         agent.stop()
@@ -42,7 +42,7 @@ def test_plugin_never_runs_concurrently_and_signals_coalesce():
             sleeper.wake()
         sleeper.gate.set()
         wait_until(lambda: sleeper.count == 2 and sleeper.active == 0)
-        wait_until(lambda: settled(sleeper))
+        wait_until(lambda: scheduler_idle(sleeper))
         assert sleeper.count == 2, "... cause exactly one more run"
         assert sleeper.max_active == 1
     finally:
@@ -74,7 +74,7 @@ def test_a_plugin_signalled_during_its_run_runs_again_on_the_same_worker():
     try:
         sleeper.wake()
         wait_until(lambda: len(threads) == 20)
-        wait_until(lambda: settled(sleeper))
+        wait_until(lambda: scheduler_idle(sleeper))
         assert len(threads) == 20 and len(set(threads)) == 1, threads
         assert sleeper.runs == 20
         assert queued == [sleeper]  # the first signal only: no worker was woken for the other 19
@@ -109,12 +109,12 @@ def test_wake_in_and_wake_every():
         handle = periodic.wake_every(0.02)
         for k in range(1, 6):  # a little over a period each time: one run each
             clock.advance(0.021)
-            wait_until(lambda k=k: periodic.count == k and settled(periodic))
+            wait_until(lambda k=k: periodic.count == k and scheduler_idle(periodic))
         assert once.count == 1  # 0.105 s: past its 0.05 s
         handle.cancel()
         clock.advance(1.0)  # fifty periods more
         timers_caught_up(probe)
-        wait_until(lambda: settled(periodic))
+        wait_until(lambda: scheduler_idle(periodic))
         assert periodic.count == 5, "a cancelled wake_every fires no more"
         assert once.count == 1, "wake_in fires once"
         with pytest.raises(ValueError, match="period > 0"):

@@ -11,7 +11,7 @@ from erni.blackboard import Agent, Pose, Task, TaskState
 from erni.blackboard.testing import wait_until
 from erni.plugins.mission.plugin import CUE_TASK
 from erni.sim.world import World
-from tests.core.helpers import settled
+from tests.core.helpers import scheduler_idle
 from tests.mission.conftest import FAST, MOTION, current, plugin, pose_of, send, subs_of
 
 
@@ -226,7 +226,7 @@ def test_an_idle_mission_is_not_run_by_every_pose_but_reads_the_newest(robots):
                     tx.change(pose)
                 else:
                     tx.add(pose)
-            wait_until(lambda: settled(mission))  # the run this Pose asked for, if it asked, is over
+            wait_until(lambda: scheduler_idle(mission))  # the run this Pose asked for, if it asked, is over
 
     walk(1, 0.0)
     wait_until(lambda: mission.team.mine() is not None, timeout=5, message="the mission never read the Pose")

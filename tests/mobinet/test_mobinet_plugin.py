@@ -12,7 +12,7 @@ from erni.blackboard import Agent, NetInfo, Pose, Task, TaskState
 from erni.blackboard.testing import wait_until
 from erni.sim.manet import METRIC_UNIT, link_metric
 from erni.sim.snmp_agent import ManetSnmpAgent
-from tests.core.helpers import settled
+from tests.core.helpers import scheduler_idle
 from tests.mobinet.conftest import WRITE
 
 PREPOSITIONS = ["node_position", "network_topology", "path_cost", "link_quality", "neighbor_list"]
@@ -329,7 +329,7 @@ def test_a_standing_robot_is_written_once_and_a_moving_one_at_most_once_per_inte
         with agent.transaction() as tx:
             tx.change(pose)
     # Poses wake the plugin again (the interval is over: a run looked at those collected) and none waits
-    wait_until(lambda: plugin.poses.wakes and settled(plugin), timeout=10)
+    wait_until(lambda: plugin.poses.wakes and scheduler_idle(plugin), timeout=10)
     assert plugin._written is not None and plugin._written.x == 10.0, "a standing robot is not written again"
     assert net.view("robot2").position_updates == 1
     t0 = time.monotonic()
@@ -338,7 +338,7 @@ def test_a_standing_robot_is_written_once_and_a_moving_one_at_most_once_per_inte
         pose = pose.evolve(x=10.0 + 0.1 * i, stamp=pose.stamp + 0.1)
         with agent.transaction() as tx:
             tx.change(pose)
-        wait_until(lambda: settled(plugin))  # a run for each Pose, were they not collected
+        wait_until(lambda: scheduler_idle(plugin))  # a run for each Pose, were they not collected
     wait_until(lambda: net.view("robot1").positions["robot2"].x == pytest.approx(13.0))  # the newest, in the end
     elapsed = time.monotonic() - t0
     assert 2 <= net.view("robot2").position_updates <= 2 + math.ceil(elapsed / 0.3)
@@ -357,7 +357,7 @@ def test_a_steady_network_is_republished_only_at_the_keepalive(served, net, make
     fresh(agent, topo, timeout=30)
     first, polls = info_of(agent, topo), plugin._polls[topo.uid]
     wait_until(lambda: plugin._polls[topo.uid] - polls >= 15, timeout=30, message="not 15 readings in 30 s at 20 Hz")
-    wait_until(lambda: settled(plugin))  # the last reading is published (or not)
+    wait_until(lambda: scheduler_idle(plugin))  # the last reading is published (or not)
     readings = plugin._polls[topo.uid] - polls
     assert info_of(agent, topo).stamp == first.stamp, f"a steady network republished within {readings} readings"
     before = set(info_of(agent, topo).articulation_points)
