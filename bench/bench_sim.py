@@ -44,9 +44,9 @@ import numpy as np  # noqa: E402
 from hall import start_hall_team  # noqa: E402  # bench/hall.py
 from procstat import cpu_seconds, rss_mb  # noqa: E402  # bench/procstat.py
 
-from erni.transport.bridge import WatchEvent, WatchRequest  # noqa: E402
+from erni.blackboard.schemas import WatchEvent, WatchRequest  # noqa: E402
 
-AGENT_IMPORTS = "import erni.blackboard, erni.transport.bridge, erni.plugins.motion, erni.plugins.mobinet, erni.plugins.mission"
+AGENT_IMPORTS = "import erni.blackboard, erni.transport.plugin, erni.plugins.motion, erni.plugins.mobinet, erni.plugins.mission"
 
 
 def pct(values: list[float], q: float) -> float:

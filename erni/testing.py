@@ -40,8 +40,8 @@ from erni.blackboard.plugin import Plugin
 from erni.blackboard.schemas import Peer
 from erni.blackboard.tasks import Task, TaskState
 from erni.blackboard.testing import wait_until
-from erni.transport.bridge import TransportPlugin
 from erni.transport.mock import MockNetwork
+from erni.transport.plugin import TransportPlugin
 
 __all__ = ["MockNetwork", "MockTeam", "agent_with", "fake_robot", "find_task", "post_task", "run_task",
            "wait_for_task", "wait_until"]

@@ -20,7 +20,7 @@ import sys
 import threading
 
 from erni.blackboard.agent import Agent
-from erni.transport.bridge import TransportPlugin
+from erni.transport.plugin import TransportPlugin
 
 FD_ENV = "ERNI_SIM_RADIO_FD"
 """Environment variable naming the inherited pipe the launcher writes reachability to."""

@@ -73,13 +73,13 @@ def test_every_part_of_erni_is_under_a_contract(options: dict[str, Any], graph: 
 # Each break: (contract, importer, imported) — an import the architecture refuses, put back on a copy of the graph.
 BREAKS = [
     ("layers", "erni.sim.radio", "erni.commands.agent"),             # the simulator's radio on the command line
-    ("layers", "erni.transport.bridge", "erni.plugins.motion"),      # the transport on a plugin
-    ("layers", "erni.blackboard.agent", "erni.transport.bridge"),    # the blackboard on the transport
+    ("layers", "erni.transport.plugin", "erni.plugins.motion"),      # the transport on a plugin
+    ("layers", "erni.blackboard.agent", "erni.transport.plugin"),    # the blackboard on the transport
     ("runtime", "erni.plugins.ui.plugin", "erni.sim.team"),          # a plugin on the simulator
     ("runtime", "erni.replay", "erni.commands.replay"),              # a library on the command line
     ("libraries", "erni.replay", "erni.plugins.ros2.bags"),          # replay on a plugin's module
     ("libraries", "erni.ros2_rmw", "erni.plugins.ros2.plugin"),
-    ("plugins", "erni.plugins.ros2.plugin", "erni.transport.bridge"),  # allowed: a plugin over the transport
+    ("plugins", "erni.plugins.ros2.plugin", "erni.transport.plugin"),  # allowed: a plugin over the transport
     ("plugins", "erni.plugins.ui.dialogue", "erni.plugins.mission"),   # one plugin on another
     ("plugins", "erni.plugins.mission.plugin", "erni.plugins.mobinet.snmp"),
 ]
@@ -91,7 +91,7 @@ def test_each_contract_fails_when_a_break_is_put_back(options: dict[str, Any], g
     broken = copy.deepcopy(graph)
     broken.add_import(importer=importer, imported=imported, line_number=1, line_contents=f"import {imported}")
     check = _check(options, key, broken)
-    if (key, imported) == ("plugins", "erni.transport.bridge"):
+    if (key, imported) == ("plugins", "erni.transport.plugin"):
         assert check.kept  # the control: an import the contracts allow keeps them kept
     else:
         assert not check.kept, f"{key} kept with {importer} -> {imported}"

@@ -12,10 +12,10 @@ import time
 import pytest
 
 from erni.blackboard import TaskState
+from erni.blackboard.schemas import ResultUpdate
 from erni.blackboard.testing import wait_until
 from erni.sim.scenario import find_scenario, load_scenario
 from erni.sim.team import CONTROL, Team
-from erni.transport.bridge import ResultUpdate
 
 pytestmark = [pytest.mark.netns, pytest.mark.slow]
 
