@@ -10,12 +10,12 @@ import math
 import os
 import subprocess
 import sys
-import time
 from collections.abc import Iterator
+from functools import partial
 
 import pytest
 
-from erni.blackboard import Agent, Task
+from erni.blackboard import Agent, Pose, Task
 from erni.blackboard.testing import wait_until
 from tests.ui.team import KEY, Team, start_team
 from tests.ui.test_console import ROOT, console
@@ -50,7 +50,8 @@ def halted(team: Team, name: str) -> None:
 
 
 def console_sampling(team: Team, lines: str, name: str) -> tuple[subprocess.CompletedProcess[str], float]:
-    """Run `erni console` and sample the robot's speed while it runs: the output and the top speed (m/s)."""
+    """Run `erni console` and sample the robot's speed while it runs, at each Pose it publishes: the output
+    and the top speed (m/s)."""
     env = {**os.environ, "ERNI_TEAM_KEY": KEY}
     proc = subprocess.Popen([sys.executable, "-m", "erni", "console", "--via", team.via, "--verb", "BotMotion",
                              "--timeout", "20"], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
@@ -59,11 +60,18 @@ def console_sampling(team: Team, lines: str, name: str) -> tuple[subprocess.Comp
     proc.stdin.write(lines)
     proc.stdin.close()
     top = 0.0
+    seen: Pose | None = None
+
+    def moved_on(last: Pose | None) -> bool:
+        """The console ended, or the robot published a Pose after `last`."""
+        return proc.poll() is not None or team.pose(name) != last
+
     while proc.poll() is None:
-        pose = team.pose(name)
-        if pose is not None:
-            top = max(top, abs(pose.v))
-        time.sleep(0.03)
+        wait_until(partial(moved_on, seen), timeout=60,
+                   message="the console neither ended nor did the robot publish a Pose")
+        seen = team.pose(name)
+        if seen is not None:
+            top = max(top, abs(seen.v))
     assert proc.stdout is not None and proc.stderr is not None
     out = subprocess.CompletedProcess(proc.args, proc.returncode, proc.stdout.read(), proc.stderr.read())
     return out, top

@@ -52,6 +52,15 @@ def spoken(team: Team, say: str) -> None:
     wait_until(lambda: say in speaker.spoken, timeout=20, message=f"{say!r} was not spoken")
 
 
+def answered(team: Team) -> None:
+    """Wait until the UI's run that answered the last utterance has committed: a marker handed to
+    the plugin now runs in a later run (each run takes what was handed before it began), so any
+    task that answer sent is on the control node's blackboard by then."""
+    done = threading.Event()
+    team.ui.later(lambda: team.ui.after_commit(done.set))
+    assert done.wait(10), "the UI did not run again within 10 s"
+
+
 def sent(team: Team, preposition: str) -> list[Task]:
     return [t for t in team.control.query(Task) if t.preposition == preposition]
 
@@ -62,7 +71,7 @@ def test_a_long_spoken_move_is_read_back_and_runs_only_on_yes(team):
     assert say == "Robot 1, go forward 52 metres \u2014 say yes to confirm"
     spoken(team, say)
     assert heard(team, "no") == "Not sent: robot 1, go forward 52 metres"
-    time.sleep(0.5)
+    answered(team)
     assert not sent(team, "forward")  # nothing went out
     assert heard(team, "robot one go forward fifty two metres").endswith("say yes to confirm")
     assert heard(team, "robot two where are you").startswith("Not sent: robot 1, go forward 52 metres. Robot 2 is at")
@@ -114,7 +123,7 @@ def test_a_confident_clear_to_two_robots_is_read_back_and_runs_only_on_yes(team)
     say = heard(team, "robots one and two clear please")
     assert say == "Robots 1 and 2, clear your behaviours \u2014 say yes to confirm"
     spoken(team, say)
-    time.sleep(0.5)
+    answered(team)
     assert not sent(team, "clear")
     assert heard(team, "yes") == "Roger: robots 1 and 2, clear your behaviours"
     for name in ("robot1", "robot2"):
@@ -129,7 +138,7 @@ def test_a_typed_move_off_the_map_is_confirmed_once(team):
     """Typed on the page, a move that would end off the arena's floor plan waits for one "yes"."""
     assert typed(team, "robot 1 go forward 100 meters") == [
         "Robot 1, go forward 100 metres \u2014 it ends off the map (x -4 to 6, y -4 to 4.5); type yes to confirm"]
-    time.sleep(0.5)
+    answered(team)
     assert not [t for t in sent(team, "forward") if t.params.distance == 100]
     assert typed(team, "yes", "yes") == ["Roger: robot 1, go forward 100 metres",
                                          "Nothing to confirm; yes answers a read-back"]
@@ -159,7 +168,7 @@ def test_an_unsure_hearing_is_read_back_or_asked_again_and_nothing_moves(team):
     assert heard(team, "yes", unsure=True) == (
         "Say again? I heard \u201cyes\u201d, but I am not sure; robot 1, go forward 52 metres not sent")
     assert heard(team, "yes").startswith("I heard \u201cyes\u201d: Nothing to confirm")
-    time.sleep(0.5)
+    answered(team)
     assert len(team.control.query(Task)) == before
     assert heard(team, "halt", unsure=True).startswith("Roger: ")  # a stop acts however it was heard
 
@@ -179,7 +188,7 @@ def test_every_refused_utterance_gets_one_spoken_and_printed_line_saying_what_wa
     before = len(team.control.query(Task))
     assert heard(team, text) == say
     spoken(team, say)
-    time.sleep(0.3)
+    answered(team)
     assert len(team.control.query(Task)) == before
 
 

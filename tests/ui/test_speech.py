@@ -7,7 +7,6 @@ import os
 import shutil
 import subprocess
 import threading
-import time
 import wave
 from pathlib import Path
 from typing import Any
@@ -223,15 +222,16 @@ def test_each_source_has_its_own_stream_so_microphones_never_mix():
 def test_a_stop_does_not_wait_for_queued_audio_and_nothing_queued_is_heard_after_it():
     """A slow recogniser with a full queue (a loaded machine): stop() returns at once and the audio
     queued before it is dropped, not recognised after the stop. "At once" is told by what was
-    heard and by the thread, not by a time: the queue holds 20 s of recognition, and a stop that
-    waited for it would hear it, or leave the thread recognising after its 5 s join."""
+    heard and by the thread, not by a time: the recogniser is busy with each chunk until the stop
+    is asked for (then it finishes the one in hand), and a stop that waited for the queue would hear
+    all 100 chunks, or one that never told the thread would leave it recognising after its 5 s join."""
     heard: list[tuple[str, str]] = []
     begun = threading.Event()
 
     class Slow(Echo):
         def feed(self, pcm: bytes) -> str | None:
             begun.set()
-            time.sleep(0.2)
+            listener._stopping.wait(30)  # recognising, until the stop comes
             return pcm.decode()
 
     class SlowRecogniser:
@@ -239,7 +239,7 @@ def test_a_stop_does_not_wait_for_queued_audio_and_nothing_queued_is_heard_after
             return Slow()
 
     listener = Listener(SlowRecogniser(), lambda source, text: heard.append((source, text))).start()
-    for i in range(100):  # 20 s of recognition queued
+    for i in range(100):  # a chunk in hand and the rest queued
         listener.feed("page1", f"chunk {i}".encode())
     assert begun.wait(30)
     listener.stop()
@@ -314,11 +314,14 @@ def test_vosk_hears_espeak_korean_commands_through_the_listener_restricted_to_th
                 source = f"ko-{speed}-{i}"
                 said.append((source, text))
                 for frame in frames(korean_speech(tmp_path, text, speed)):
+                    # as fast as the recogniser takes it: the queue never fills, no audio is dropped
+                    wait_until(lambda: listener.queue.qsize() < listener.queue.maxsize // 2, timeout=30)
                     listener.feed(source, frame)
-                    time.sleep(0.01)  # ten times real time: the recogniser keeps up, no audio is dropped
                 listener.end_utterance(source)
                 wait_until(lambda: listener.queue.empty(), timeout=30)
-        time.sleep(0.5)
+        # a flush of a source of our own is taken off the queue once the last utterance was heard
+        listener.end_utterance("marker")
+        wait_until(lambda: listener.queue.empty(), timeout=30)
     finally:
         listener.stop()
     by_source: dict[str, list[Any]] = {}
