@@ -49,6 +49,38 @@ def write_definitions(root: Path, typenames: tuple[str, ...] = TYPES) -> Path:
     return root
 
 
+def erni_publisher_matched(agent: Agent, topic: str, timeout: float = 20.0) -> None:
+    """Until the publisher of `topic` of `agent`'s ros2 plugin knows a subscriber of it (its Zenoh
+    publisher matches one, as the router told its session): what it publishes from then on reaches it."""
+    def matching() -> bool:
+        node = agent.plugin("ros2").node
+        pub = node.publishers.get(topic) if node is not None else None
+        return pub is not None and bool(pub._pub.matching_status.matching)
+
+    wait_until(matching, timeout=timeout, message=f"ERNI's publisher of {topic} knows no subscriber")
+
+
+def sdk_publisher_matched(pub: Any, timeout: float = 20.0) -> None:
+    """Until the SDK's publisher `pub` knows a subscription of its topic (ERNI's, once declared)."""
+    wait_until(lambda: pub.pub.matching_status.matching, timeout=timeout,
+               message=f"the SDK's publisher of {pub.topic} knows no subscription")
+
+
+def commands_heard(agent: Agent, n: int, robot: str = "robot1", timeout: float = 30.0) -> None:
+    """Until `agent`'s ros2 plugin has heard `n` more cmd_vel commands for `robot` (each one's arrival on
+    its clock) and a run of it that began after the last of them is over: what it made of them is on the
+    blackboard."""
+    from tests.core.helpers import settled
+
+    plugin = agent.plugin("ros2")
+    drive = plugin._drives[robot]
+    arrivals = {drive.heard}
+    wait_until(lambda: arrivals.add(drive.heard) or len(arrivals) > n, timeout=timeout,
+               message=f"{len(arrivals) - 1} of {n} cmd_vel commands for {robot} heard")
+    runs = plugin._run
+    wait_until(lambda: plugin._run > runs and settled(plugin), timeout=timeout, message="the ros2 plugin did not run")
+
+
 @pytest.fixture(scope="session")
 def definitions(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return write_definitions(tmp_path_factory.mktemp("msg"))

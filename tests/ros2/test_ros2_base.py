@@ -6,7 +6,6 @@ their tolerances, a stop halts it, a wall in the scan stops it short, a silent b
 from __future__ import annotations
 
 import math
-import time
 from collections.abc import Callable, Iterator
 from typing import Any
 
@@ -89,12 +88,12 @@ def test_a_stop_halts_the_base_and_a_silent_base_fails_the_task(
     base, agent = base_and_agent()
     moving = post_task(agent, "BotMotion", "velocity", v=0.3)
     wait_until(lambda: base.v > 0.25, timeout=5, message="the base did not take the velocity")
-    # a standing command is repeated for the base's cmd_vel watchdog (0.5 s here): it never slows down
-    before, speeds = base.commands, []
-    for _ in range(20):
-        time.sleep(0.05)
-        speeds.append(base.v)
-    assert base.commands - before >= 4 and min(speeds) > 0.25, (base.commands - before, min(speeds))
+    # a standing command is repeated for the base's cmd_vel watchdog (0.5 s here): it never slows down,
+    # watched (the speed sampled at each look) until the base has heard commands for twice its watchdog
+    before, first, speeds = base.commands, base.cmd_at, []
+    wait_until(lambda: speeds.append(base.v) or (base.commands - before >= 4 and base.cmd_at - first >= 1.0),
+               timeout=20, message="the standing command was not repeated")
+    assert min(speeds) > 0.25, (base.commands - before, min(speeds))
     stop = run_task(agent, "BotMotion", "stop", timeout=5)
     assert stop.state is TaskState.SUCCEEDED, stop.result
     assert wait_for_task(agent, moving, timeout=5).state is TaskState.CANCELLED
@@ -106,8 +105,8 @@ def test_a_stop_halts_the_base_and_a_silent_base_fails_the_task(
     failed = wait_for_task(agent, long, timeout=10)
     assert failed.state is TaskState.FAILED and failed.result is not None
     assert failed.result.message.startswith("link lost: no Odometry on /tb3/odom within 1 s"), failed.result
-    time.sleep(0.7)
-    assert abs(base.v) < 0.01  # no command for 0.5 s: the base stopped itself
+    # no command for 0.5 s: the base stopped itself (it would go on at 0.2 m/s on a repeated command)
+    wait_until(lambda: abs(base.v) < 0.01, timeout=20, message="the base still drives")
 
 
 def test_a_wall_in_the_scan_stops_the_base_short(base_and_agent: Callable[..., tuple[DiffDriveBase, Agent]]) -> None:
@@ -115,7 +114,9 @@ def test_a_wall_in_the_scan_stops_the_base_short(base_and_agent: Callable[..., t
     task = post_task(agent, "BotMotion", "velocity", v=0.3)
     wait_until(lambda: base.v > 0.25, timeout=5)
     wait_until(lambda: base.x > 0.5 and abs(base.v) < 0.01, timeout=15, message="the base did not stop at the wall")
-    time.sleep(0.5)
+    odometry = agent.plugin("motion").resource.driver.stats
+    seen = odometry.sips
+    wait_until(lambda: odometry.sips >= seen + 10, timeout=20)  # ten Odometry samples (0.5 s) on, it still stands
     assert 0.5 < base.x < 1.5 - 0.3, base.x  # stopped short of the wall
     pose = agent.query(Pose)[0]
     assert pose.sonar and min(pose.sonar) < 1.0  # the scan reached the avoidance as sonar echoes
@@ -140,7 +141,7 @@ def test_a_base_whose_router_comes_later_is_driven_once_it_does(definitions: Any
     router = base = None
     agent.start()
     try:
-        time.sleep(0.5)
+        wait_until(lambda: plugin.resource.driver.last_error, timeout=20, message="the driver says nothing")
         assert not agent.query(Pose)
         assert plugin.resource.driver.last_error.startswith("cannot open a Zenoh session: Unable to connect")
         router = open_router([f"tcp/127.0.0.1:{port}"])

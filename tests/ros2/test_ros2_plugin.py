@@ -30,6 +30,7 @@ from erni.blackboard.testing import wait_until  # noqa: E402
 from erni.plugins.ros2 import ROS2Settings  # noqa: E402
 from erni.plugins.ros2 import plugin as plugin_module  # noqa: E402
 from erni.testing import find_task, post_task, run_task, wait_for_task  # noqa: E402
+from tests.ros2.conftest import commands_heard, erni_publisher_matched, sdk_publisher_matched  # noqa: E402
 
 ODOM_HASH = "RIHS01_3cc97dc7fb7502f8714462c526d369e35b603cfc34d946e3f2eda2766dfec6e0"
 TWIST_HASH = "RIHS01_9c45bf16fe0983d80e3cfe750d6835843d265a9a6c46bd2e609fcddde6fb8d2a"
@@ -227,13 +228,14 @@ def test_cmd_vel_moves_the_robot_and_an_erni_stop_halts_it(robot: Callable[..., 
     assert stop.state is TaskState.SUCCEEDED, stop.result
     ended = wait_for_task(agent, task.uid, timeout=5)
     assert ended.state is TaskState.CANCELLED and "stopped by" in (ended.result.message if ended.result else "")
-    time.sleep(1.0)  # ten more commands came
+    commands_heard(agent, 10)  # ten more commands came
     pose = agent.query(Pose)[0]
     assert abs(pose.v) < 0.01, pose
     assert not [t for t in _velocity_tasks(agent) if not t.done]
     # once the operator lets go (a pause longer than cmd_vel_timeout), a new command drives again
     teleop.running.clear()
-    time.sleep(0.8)
+    drive = agent.plugin("ros2")._drives["robot1"]
+    wait_until(lambda: not drive.latched, timeout=20, message="the stream stays latched after the pause")
     teleop.running.set()
     wait_until(lambda: agent.query(Pose)[0].v > 0.25, timeout=5, message="cmd_vel after the pause did not drive")
     # and when the stream stops, so does the robot (the velocity task is removed)
@@ -250,11 +252,20 @@ def test_a_zero_twist_is_a_velocity_not_a_stop_bypass(robot: Callable[..., Agent
     wait_for_task(agent, hold, state=TaskState.RUNNING, timeout=5)
     teleop.v = 0.3
     teleop.running.set()
-    wait_until(lambda: _velocity_tasks(agent), timeout=5, message="no velocity task from cmd_vel")
-    time.sleep(1.0)
+    (moving,) = wait_until(lambda: _velocity_tasks(agent), timeout=5, message="no velocity task from cmd_vel")
+    wait_for_task(agent, moving, state=TaskState.RUNNING, timeout=10)  # taken by the motion plugin, under the hold
+    sips = agent.plugin("motion").resource.driver.stats
+    seen = sips.sips
+    wait_until(lambda: sips.sips >= seen + 10, timeout=20)  # ten SIPs of the robot since
     assert abs(agent.query(Pose)[0].v) < 0.01  # the hold has priority over the command
+    assert find_task(agent, moving.uid).state is TaskState.RUNNING  # type: ignore[union-attr]
     teleop.v = 0.0
-    time.sleep(0.5)
+
+    def zero() -> list[Task]:
+        return [t for t in _velocity_tasks(agent) if not t.done and t.params.model_dump(include={"v", "w"}) ==
+                {"v": 0.0, "w": 0.0}]
+
+    wait_until(zero, timeout=20, message="the zero twist made no velocity task")
     (task,) = [t for t in _velocity_tasks(agent) if not t.done]
     assert task.params.model_dump(include={"v", "w"}) == {"v": 0.0, "w": 0.0}
     still = find_task(agent, hold.uid)  # still holding
@@ -268,7 +279,8 @@ def test_goal_pose_is_a_goto_that_reaches_the_point_then_a_turn_to_its_heading(r
     sub = ROS2Subscriber("/erni/task_status", messages.STRING, lambda m: statuses.append(m.data),
                          router_port=ros["router_port"])
     try:
-        time.sleep(0.5)  # the publisher's declaration reaches ERNI's subscription through the router
+        sdk_publisher_matched(pub)  # ERNI's subscription is known to the publisher's session
+        erni_publisher_matched(agent, "/erni/task_status")  # and the status subscriber to ERNI's
         goal = messages.make(messages.POSE_STAMPED, header=messages.header(time.time_ns(), "map"),
                              pose=messages.make("geometry_msgs/msg/Pose",
                                                 position=messages.make("geometry_msgs/msg/Point", x=1.0, y=-0.5),
@@ -308,7 +320,8 @@ def test_the_network_as_markers_and_diagnostics_and_the_robot_on_tf(robot: Calla
             ROS2Subscriber("/diagnostics", messages.DIAGNOSTIC_ARRAY, diags.append, router_port=ros["router_port"]),
             ROS2Subscriber("/tf", messages.TF_MESSAGE, tfs.append, router_port=ros["router_port"])]
     try:
-        time.sleep(0.5)  # the subscriptions reach the router
+        for topic in ("/erni/network", "/diagnostics", "/tf"):  # the subscriptions are known to ERNI's publishers
+            erni_publisher_matched(agent, topic)
         with agent.transaction() as tx:
             tx.add(NetInfo(node="robot1", kind="network_topology", links=[Link(a="robot1", b="robot2", quality=0.8)],
                            neighbors=[Neighbor(name="robot2", quality=0.3)], positions={"robot2": Position(x=2, y=1)},
@@ -372,7 +385,8 @@ def test_the_sdks_subscriber_decodes_the_sonar_of_the_simulated_robot(robot: Cal
     assert math.isinf(ranges[269]) and math.isinf(ranges[91])  # left and right (89.2 deg from the centre)
 
 
-def test_a_client_whose_router_comes_later_declares_its_topics_once_it_does() -> None:
+def test_a_client_whose_router_comes_later_declares_its_topics_once_it_does(
+        caplog: pytest.LogCaptureFixture) -> None:
     from erni.plugins.ros2 import ROS2Plugin
     from erni.sim.team import free_port
     from erni.testing import agent_with
@@ -383,7 +397,8 @@ def test_a_client_whose_router_comes_later_declares_its_topics_once_it_does() ->
                                           "robots": ["robot1"]}) as agent:
         plugin = agent.plugin("ROS2Plugin")
         assert isinstance(plugin, ROS2Plugin)
-        time.sleep(0.5)
+        wait_until(lambda: any("cannot open a Zenoh session" in r.getMessage() for r in caplog.records),
+                   timeout=20, message="no word of the missing router")
         assert plugin.node is None  # no router: no session yet, the agent runs all the same
         late = open_router([f"tcp/127.0.0.1:{port}"])
         session = None

@@ -31,7 +31,12 @@ from erni import ros2_rmw as rmw  # noqa: E402
 from erni.blackboard import Agent, Pose, Task, TaskState  # noqa: E402
 from erni.blackboard.testing import wait_until  # noqa: E402
 from erni.testing import fake_robot, wait_for_task  # noqa: E402
-from tests.ros2.conftest import write_definitions  # noqa: E402
+from tests.ros2.conftest import (  # noqa: E402
+    commands_heard,
+    erni_publisher_matched,
+    sdk_publisher_matched,
+    write_definitions,
+)
 from tests.ros2.test_ros2_team import team  # noqa: E402, F401  # the fixture: agents on the Zenoh wire
 
 TRIGGER_HASH = "RIHS01_eeff2cd6fa5ad9d27cdf4dec64818317839b62f212a91e6b5304b634b2062c5f"
@@ -190,8 +195,9 @@ def test_the_sdks_client_stops_a_robot_driven_by_cmd_vel(robot: Callable[..., Ag
         ended = wait_for_task(agent, velocity.uid, timeout=5)
         assert ended.state is TaskState.CANCELLED
         assert stop.source == "robot1"
-        time.sleep(1.0)  # ten more commands came: the stream is latched until the teleop pauses
+        commands_heard(agent, 10)  # ten more commands came: the stream is latched until the teleop pauses
         assert abs(agent.query(Pose)[0].v) < 0.02
+        assert not [t for t in agent.query(Task) if t.preposition == "velocity" and not t.done]
     finally:
         teleop.close()
         client.close()
@@ -202,7 +208,7 @@ def test_erni_stop_halts_a_goto_from_goal_pose(robot: Callable[..., Agent], ros:
     pub = ROS2Publisher("/robot1/goal_pose", messages.POSE_STAMPED, router_port=ros["router_port"])
     client = _stop_client(ros, "/erni/stop")
     try:
-        time.sleep(0.5)
+        sdk_publisher_matched(pub)  # ERNI's goal_pose subscription is known to the publisher's session
         pub.publish(header=messages.header(time.time_ns(), "map"), pose=messages.ros_pose(3.0, 0.0, 0.0))
         gotos = wait_until(lambda: [t for t in agent.query(Task) if t.preposition == "goto"], timeout=5,
                            message="goal_pose made no goto")
@@ -213,9 +219,14 @@ def test_erni_stop_halts_a_goto_from_goal_pose(robot: Callable[..., Agent], ros:
         x = agent.query(Pose)[0].x
         assert x < 2.5
         assert wait_for_task(agent, gotos[0].uid, timeout=5).state is TaskState.CANCELLED
-        time.sleep(0.5)
-        assert agent.query(Pose)[0].x == pytest.approx(x, abs=0.02)  # no turn, no resumed goto
+        # the ros2 plugin's runs after the cancel (a turn would follow a goto's end in the next one) and
+        # ten more SIPs of the robot: no turn, no resumed goto
+        ros2, sips = agent.plugin("ros2"), agent.plugin("motion").resource.driver.stats
+        runs, seen = ros2._run, sips.sips
+        wait_until(lambda: ros2._run > runs + 1 and sips.sips >= seen + 10, timeout=20)
+        assert agent.query(Pose)[0].x == pytest.approx(x, abs=0.02)
         assert not [t for t in agent.query(Task) if t.preposition == "turn"]
+        assert not [t for t in agent.query(Task) if t.preposition == "goto" and not t.done]
     finally:
         pub.close()
         client.close()
@@ -280,6 +291,11 @@ class Navigator:
                      ROS2Subscriber(f"{action}/status", messages.GOAL_STATUS_ARRAY, self.status.append,
                                     router_port=port)]
 
+    def heard_by(self, agent: Agent) -> None:
+        """Until the agent's feedback and status publishers know this navigator's subscribers."""
+        for topic in ("feedback", "status"):
+            erni_publisher_matched(agent, f"{self.action}/{topic}")
+
     def uuid(self, goal_id: bytes) -> Any:
         return self.send.session_mgr.store.types["unique_identifier_msgs/msg/UUID"](
             uuid=__import__("numpy").frombuffer(goal_id, dtype="uint8").copy())
@@ -306,7 +322,7 @@ def navigator(ros: dict[str, Any], definitions: Path) -> Iterator[Navigator]:
 def test_a_navigate_to_pose_goal_reaches_the_point_and_succeeds(robot: Callable[..., Agent],
                                                                navigator: Navigator) -> None:
     agent = robot()
-    time.sleep(0.5)  # the subscriptions reach the router
+    navigator.heard_by(agent)
     goal_id = os.urandom(16)
     accepted = navigator.goal(goal_id, 1.0, 0.5, math.pi / 2)
     assert accepted is not None and accepted.accepted is True
@@ -343,7 +359,7 @@ def test_a_navigate_to_pose_goal_reaches_the_point_and_succeeds(robot: Callable[
 def test_cancel_goal_stops_the_robot_and_the_result_is_canceled(robot: Callable[..., Agent],
                                                                navigator: Navigator) -> None:
     agent = robot()
-    time.sleep(0.5)
+    navigator.heard_by(agent)
     goal_id = os.urandom(16)
     accepted = navigator.goal(goal_id, 4.0, 0.0, 0.0)
     assert accepted is not None and accepted.accepted is True
@@ -368,7 +384,7 @@ def test_cancel_goal_stops_the_robot_and_the_result_is_canceled(robot: Callable[
 def test_a_stop_aborts_a_navigate_to_pose_goal(robot: Callable[..., Agent], navigator: Navigator,
                                               ros: dict[str, Any]) -> None:
     agent = robot()
-    time.sleep(0.5)
+    navigator.heard_by(agent)
     goal_id = os.urandom(16)
     assert navigator.goal(goal_id, 4.0, 0.0, 0.0).accepted is True
     wait_until(lambda: agent.query(Pose)[0].v > 0.2, timeout=10, message="the goal did not move the robot")
@@ -430,8 +446,9 @@ def test_a_control_nodes_erni_stop_halts_a_robot_through_the_transport(team: Cal
         wait_until(lambda: abs(robot1.query(Pose)[0].v) < 0.02, timeout=1, message="robot1's Pose does not stand")
         (stop,) = [t for t in robot1.query(Task) if t.preposition == "stop"]
         assert stop.source == "control" and stop.state is TaskState.SUCCEEDED
-        time.sleep(1.0)  # the stick still pushes: the stream is latched at the control node
+        commands_heard(control, 10)  # the stick still pushes: the stream is latched at the control node
         assert abs(robot1.query(Pose)[0].v) < 0.02
+        assert not [t for t in control.query(Task) if t.preposition == "velocity" and not t.done]
     finally:
         stick.close()
         client.close()
