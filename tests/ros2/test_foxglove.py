@@ -222,10 +222,15 @@ def test_foxglove_client_sees_robots_headings_trails_and_links(control):
                 "/erni/trails": "foxglove.SceneUpdate", "/erni/links": "foxglove.SceneUpdate",
                 "/robot1/pose": "foxglove.PoseInFrame", "/robot2/pose": "foxglove.PoseInFrame"}.items() \
             <= client.topics().items()
+        def seen_at(x: float) -> bool:  # the plugin has run on the Pose at x (its trail took it) and sent it
+            client.pump(0.05)
+            pose = client.latest.get("/robot1/pose", (0, {}))[1].get("pose", {})
+            return xy(pose.get("position", {})) == (x, 2.0)
+
         for x in (1.2, 1.4, 1.6):  # robot1 drives along +x: its trail grows
             with agent.transaction() as tx:
                 tx.change(r1.evolve(x=x))
-            time.sleep(0.15)
+            wait_until(lambda x=x: seen_at(x), timeout=10)
         with agent.transaction() as tx:
             tx.change(r1.evolve(x=1.6, y=2.0, theta=math.radians(30)))
 
@@ -303,7 +308,8 @@ def test_a_client_gets_a_team_standing_still(control):
     agent, plugin = control
     with agent.transaction() as tx:
         tx.add(Pose(robot="robot1", x=-1.0, y=0.5, theta=math.pi))
-    time.sleep(0.5)  # published to no one
+    # published to no one: the plugin has drawn robot1, with nothing left pending
+    wait_until(lambda: "robot1" in plugin._drawn and not plugin._pending, timeout=10)
     with foxglove_client(plugin.port) as client:  # type: ignore[attr-defined]
         wait_until(lambda: client.pump(0.2) or "/erni/robots" in client.latest and "/tf" in client.latest, timeout=10)
         arrow = client.latest["/erni/robots"][1]["entities"][0]["arrows"][0]
@@ -311,28 +317,48 @@ def test_a_client_gets_a_team_standing_still(control):
         assert abs(heading(arrow["pose"]["orientation"])) == pytest.approx(math.pi)
 
 
-def test_updates_are_rate_limited(control):
-    agent, plugin = control
-    pose = Pose(robot="robot1")
-    with agent.transaction() as tx:
-        tx.add(pose)
-    with foxglove_client(plugin.port) as client:  # type: ignore[attr-defined]
-        client.pump(0.5)
-        before = client.received.get("/erni/robots", 0)
-        start = time.monotonic()
-        for i in range(100):  # 100 changes in about a second, 20 updates a second at most
-            with agent.transaction() as tx:
-                tx.change(pose.evolve(x=i * 0.01))
-            time.sleep(0.01)
+def test_updates_are_rate_limited():
+    """On the agent's clock (a ManualClock moved 10 ms after each change has been taken): 100 changes in
+    a second make 20 updates a second at most."""
+    from erni.testing import ManualClock
+    from tests.core.helpers import settled
 
-        def the_last_came() -> bool:
-            client.pump(0.1)
-            return xy(client.latest["/erni/robots"][1]["entities"][0]["arrows"][0]["pose"]["position"]) == (0.99, 0.0)
+    clock = ManualClock()
+    agent = Agent("control", workers=2, clock=clock)
+    plugin = agent.add_plugin(PLUGIN, settings={"listen": "127.0.0.1:0", "rate_hz": 20, "trail_step": 0.05},
+                              name="foxglove")
+    agent.start()
+    try:
+        pose = Pose(robot="robot1")
+        with agent.transaction() as tx:
+            tx.add(pose)
+        with foxglove_client(plugin.port) as client:  # type: ignore[attr-defined]
+            wait_until(lambda: client.pump(0.05) or "/erni/robots" in client.topics(), timeout=10)
+            client.pump(0.2)  # its subscriptions sent
+            before = client.received.get("/erni/robots", 0)
+            start = clock()
+            for i in range(100):  # 100 changes in a second, 20 updates a second at most
+                with agent.transaction() as tx:
+                    tx.change(pose.evolve(x=i * 0.01))
+                wait_until(lambda: settled(plugin), timeout=10)  # the plugin's run on it is over
+                clock.advance(0.01)
 
-        wait_until(the_last_came, timeout=10)
-        took = time.monotonic() - start
-        sent = client.received["/erni/robots"] - before
-        assert 2 <= sent <= 21 * took + 2, (sent, took)  # and a refresh a second at most
+            def the_last_came() -> bool:
+                client.pump(0.05)
+                if xy(client.latest.get("/erni/robots", (0, {}))[1].get("entities", [{}])[0].get("arrows", [{}])[0]
+                      .get("pose", {}).get("position", {})) == (0.99, 0.0):
+                    return True
+                clock.advance(0.01)  # a publication held back by the rate goes when its time comes
+                return False
+
+            wait_until(the_last_came, timeout=10)
+            took = clock() - start
+            client.pump(0.2)
+            sent = client.received["/erni/robots"] - before
+    finally:
+        agent.stop()
+    assert 2 <= sent <= 21 * took + 2, (sent, took)  # and a refresh a second at most
+    assert sent >= 15 * took, (sent, took)  # the changes kept coming: about 20 updates a second went
 
 
 def test_replay_serves_a_log_to_foxglove(tmp_path: Path) -> None:
