@@ -70,7 +70,7 @@ def commands_heard(agent: Agent, n: int, robot: str = "robot1", timeout: float =
     """Until `agent`'s ros2 plugin has heard `n` more cmd_vel commands for `robot` (each one's arrival on
     its clock) and a run of it that began after the last of them is over: what it made of them is on the
     blackboard."""
-    from tests.core.helpers import settled
+    from tests.core.helpers import scheduler_idle
 
     plugin = agent.plugin("ros2")
     drive = plugin._drives[robot]
@@ -78,7 +78,7 @@ def commands_heard(agent: Agent, n: int, robot: str = "robot1", timeout: float =
     wait_until(lambda: arrivals.add(drive.heard) or len(arrivals) > n, timeout=timeout,
                message=f"{len(arrivals) - 1} of {n} cmd_vel commands for {robot} heard")
     runs = plugin._run
-    wait_until(lambda: plugin._run > runs and settled(plugin), timeout=timeout, message="the ros2 plugin did not run")
+    wait_until(lambda: plugin._run > runs and scheduler_idle(plugin), timeout=timeout, message="the ros2 plugin did not run")
 
 
 @pytest.fixture(scope="session")

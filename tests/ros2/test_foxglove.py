@@ -321,7 +321,7 @@ def test_updates_are_rate_limited():
     """On the agent's clock (a ManualClock moved 10 ms after each change has been taken): 100 changes in
     a second make 20 updates a second at most."""
     from erni.testing import ManualClock
-    from tests.core.helpers import settled
+    from tests.core.helpers import scheduler_idle
 
     clock = ManualClock()
     agent = Agent("control", workers=2, clock=clock)
@@ -340,7 +340,7 @@ def test_updates_are_rate_limited():
             for i in range(100):  # 100 changes in a second, 20 updates a second at most
                 with agent.transaction() as tx:
                     tx.change(pose.evolve(x=i * 0.01))
-                wait_until(lambda: settled(plugin), timeout=10)  # the plugin's run on it is over
+                wait_until(lambda: scheduler_idle(plugin), timeout=10)  # the plugin's run on it is over
                 clock.advance(0.01)
 
             def the_last_came() -> bool:
