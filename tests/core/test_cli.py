@@ -191,7 +191,7 @@ def test_an_agents_threads_share_one_malloc_arena():
         threads = lambda: int(Path(f"/proc/{agent.pid}/status").read_text().split("Threads:")[1].split()[0])  # noqa: E731
         wait_until(lambda: agent.poll() is not None or threads() >= 10, timeout=30)
         assert agent.poll() is None, agent.communicate()[1]
-        time.sleep(1.0)  # the started agent's threads at work
+        time.sleep(1.0)  # the started agent's threads at work: a soak in real time (nothing to wait for)
         assert heap.thread_arenas(agent.pid) == 0
     finally:
         agent.terminate()

@@ -18,14 +18,19 @@ ROOT = Path(__file__).resolve().parents[2]
 # A robot agent as the examples configure it (transport, motion, mobinet, mission), its robot and
 # network subsystem unreachable: every plugin's setup runs and its threads start.
 START_ROBOT_AGENT = """
-import sys, time
+import sys
 from erni.blackboard.config import build_agent, read_config
 from erni.blackboard.agent import Agent
+from erni.blackboard.testing import wait_until
+from tests.core.helpers import scheduler_idle
 path = sys.argv[1]
 config = read_config(path)
 agent = build_agent(config, path)
 agent.start()
-time.sleep(0.5)
+# at work: the driver has tried the robot, the SNMP thread has made its source, every plugin is idle
+wait_until(lambda: agent.plugin("motion").resource.driver.last_error, timeout=30)
+wait_until(lambda: agent.plugin("mobinet").resource.source is not None, timeout=30)
+wait_until(lambda: all(scheduler_idle(p) for p in agent.plugins), timeout=30)
 heavy = sorted(m for m in ("numpy", "aiohttp", "scipy", "pysnmp", "pyasn1", "erni.sim", "erni.strategies.potential")
                if m in sys.modules)
 agent.stop()
@@ -73,16 +78,20 @@ class Quiet(Plugin):
 
 
 def test_an_idle_agents_timer_and_worker_threads_sleep():
+    from tests.core.helpers import Probe, timers_caught_up
+
     agent = Agent("idle", workers=2, slow_plugin_seconds=1.0)
     agent.add_plugin(Quiet, name="quiet")
+    probe = agent.add_plugin(Probe, name="probe")
     agent.start()
     try:
-        time.sleep(0.3)
+        # started: its first runs over, the timer thread gone round (and the slow-run watch looked) since
+        timers_caught_up(probe)
         mine = {t.native_id: t.name for t in threading.enumerate()
                 if t.name.startswith("erni-idle-") and t.native_id is not None}
         assert any(n.endswith("timers") for n in mine.values()) and len(mine) >= 3, mine
         before = {tid: switches(tid) for tid in mine}
-        time.sleep(2.0)
+        time.sleep(2.0)  # what is measured: the wake-ups of threads left alone for 2 s of real time
         woke = {mine[tid]: switches(tid) - n for tid, n in before.items()}
     finally:
         agent.stop()
@@ -140,11 +149,11 @@ def test_erni_agent_stops_at_once_on_sigterm(tmp_path):
         # counted from the agent's own "started" (a loaded machine takes seconds to import it)
         wait_until(lambda: "agent a started" in log.read_text() or p.poll() is not None, timeout=60)
         assert p.poll() is None, log.read_text()
-        time.sleep(1.0)  # then it freezes and trims the heap, and waits
+        time.sleep(1.0)  # then it freezes and trims the heap, and waits (it says nothing of it: real time passes)
         main_tid = p.pid
         with open(f"/proc/{p.pid}/task/{main_tid}/status") as f:
             a = sum(int(line.split()[1]) for line in f if line.startswith("voluntary_ctxt_switches"))
-        time.sleep(1.5)
+        time.sleep(1.5)  # what is measured: the main thread's wake-ups in 1.5 s of real time
         with open(f"/proc/{p.pid}/task/{main_tid}/status") as f:
             b = sum(int(line.split()[1]) for line in f if line.startswith("voluntary_ctxt_switches"))
         os.kill(p.pid, 15)

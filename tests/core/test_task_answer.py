@@ -142,12 +142,16 @@ def test_a_robot_that_starts_with_the_command_is_tasked() -> None:
     disc, port = free_port(), free_port()
     control = make_agent("control", disc, echo=False, role="control", listen=f"127.0.0.1:{port}")
     env = {**os.environ, "ERNI_IDENTITY": identity("cli", "cli")}
+    counters = control.plugin("transport").endpoint.counters
+    before = counters.get("received", 0)
     proc = subprocess.Popen([sys.executable, "-c", COMMAND, str(PATIENT), str(PATIENT), "task", "--via",
                              f"127.0.0.1:{port}", "robot1", "BotMotion", "forward", "distance=1", "--wait"],
                             cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     robot = None
     try:
-        time.sleep(0.5)
+        # the command has reached the control node (its directory still empty) before the robot starts
+        wait_until(lambda: counters.get("received", 0) > before or proc.poll() is not None, timeout=PROGRESS)
+        assert proc.poll() is None
         robot = make_agent("robot1", disc)
         out, err = proc.communicate(timeout=PATIENT + 30)
     finally:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import time
 from collections.abc import Iterator
 
 import pytest
@@ -13,6 +12,7 @@ from erni.blackboard.testing import wait_until
 from erni.plugins.mission.netaware import NetGuard
 from erni.sim.manet import ManetNetwork, RadioModel
 from erni.sim.snmp_agent import ManetSnmpAgent
+from tests.core.helpers import scheduler_idle
 from tests.mission.conftest import current, plugin, pose_of, send, subs_of
 
 
@@ -202,6 +202,13 @@ def test_a_stop_while_held_by_the_guard_ends_the_task_and_it_does_not_resume_whe
     assert wait_until(lambda: (t := current(agent, stop.uid)).done and t, timeout=5).state == TaskState.SUCCEEDED
     held_at = pose_of(agent).x
     net.move("robot2", -30.0, 10.0)  # connectivity returns
-    wait_until(lambda: not plugin(agent).guard.state.at_risk, timeout=10)
-    time.sleep(1.0)
+    mission = plugin(agent)
+    wait_until(lambda: not mission.guard.state.at_risk, timeout=10)
+    # the run that cleared (it would resume a held job at once) is over; then a second of SIPs
+    wait_until(lambda: scheduler_idle(mission), timeout=10)
+    assert not [t for t in agent.query(Task) if t.verb == "BotMotion" and not t.done], "a motion resumed"
+    driver = agent.plugin("motion").resource.driver
+    sips = driver.stats.sips
+    wait_until(lambda: driver.stats.sips >= sips + max(1, round(1.0 / driver.sip_interval)), timeout=30)
     assert abs(pose_of(agent).x - held_at) < 0.02 and abs(pose_of(agent).v) < 0.01  # nothing resumed
+    assert not [t for t in agent.query(Task) if t.verb == "BotMotion" and not t.done], "a motion resumed"
