@@ -32,7 +32,7 @@ TARGET_SHARE_ABOVE_20 = 0.01
 TARGET_SLEEPS = 52
 
 # The ratchet: today's figure, while the target is not met yet.
-SLEEPS_ALLOWED = 125
+SLEEPS_ALLOWED = 84
 
 _CLOCK_FUNCS = {
     "time": {"time", "monotonic", "perf_counter", "time_ns", "monotonic_ns", "perf_counter_ns",
