@@ -113,6 +113,61 @@ def settled(agent: Agent, plugin: str = "transport", timeout: float = 10.0) -> N
     assert done.wait(timeout), f"{agent.name}/{plugin} did not run within {timeout} s"
 
 
+def _transport(agent: Agent) -> Any:
+    """The agent's transport plugin (its collaborators, untyped here)."""
+    return agent.plugin("transport")
+
+
+def datagrams_read(target: Any, udp: socket.socket, timeout: float = 30.0) -> None:
+    """Wait until `target` (an agent with the transport, or an Endpoint) has read every datagram sent
+    on `udp` so far: a datagram too short to be a frame is sent after them on the same socket, and
+    its drop counted (one receive thread reads a port's datagrams in order, and hands what they carry
+    on before it reads the next). For an agent, then wait until what they handed its transport has
+    been handled (`settled`)."""
+    endpoint: Any = _transport(target).endpoint if isinstance(target, Agent) else target
+    counters: dict[str, int] = endpoint.counters
+    before = counters.get("dropped.size", 0)
+    udp.sendto(b"?", endpoint.address)
+    wait_until(lambda: counters.get("dropped.size", 0) > before, timeout=timeout,
+               message=f"{endpoint.name} read no marker datagram within {timeout} s")
+    if isinstance(target, Agent):
+        settled(target, timeout=timeout)
+
+
+def beacon_after(sender: Agent, receiver: Agent, timeout: float = 30.0) -> None:
+    """Wait until `receiver` has heard an in-session beacon that `sender` sent it after everything
+    it sent it unreliably so far (statuses and beacons to one peer leave in order, one socket to
+    one port, read in order), and has handled what came before it (`settled`): a status `sender`
+    shared with `receiver` before now would be on its board."""
+    name = receiver.name
+    record = _transport(sender).presence.peers.get(name)
+    sent: int = record.beacons_sent if record is not None else 0
+    heard: dict[str, Any] = _transport(receiver).presence.peers
+
+    def later_beacon() -> bool:
+        rec = heard.get(sender.name)
+        return rec is not None and rec.beacon_count is not None and rec.beacon_count.last > sent
+
+    wait_until(later_beacon, timeout=timeout,
+               message=f"{name} heard no beacon {sender.name} sent after #{sent} within {timeout} s")
+    settled(receiver, timeout=timeout)
+
+
+class SkipClock:
+    """Monotonic time that runs as the wall's, plus what `skip()` added: a timer of the code under
+    test on it falls due at once when the test skips past it, and nothing else stands still."""
+
+    def __init__(self) -> None:
+        self.skipped = 0.0
+
+    def __call__(self) -> float:
+        return time.monotonic() + self.skipped
+
+    def skip(self, seconds: float) -> None:
+        assert seconds >= 0
+        self.skipped += seconds
+
+
 def make_agent(name: str, discovery_port: int, *, echo: bool = True, start: bool = True,
                clock: Callable[[], float] | None = None, **settings: Any) -> Agent:
     """An agent with the transport (fast timings, its own identity) and, optionally, the echo performer.
@@ -263,13 +318,16 @@ def agent_config(path: Path, name: str, *, listen: str = "127.0.0.1:0", discover
     return path
 
 
-def two_tasks_recorded(control: Agent, robot: Agent, recorder: subprocess.Popen[str], *, warmup: float,
+def two_tasks_recorded(control: Agent, robot: Agent, recorder: subprocess.Popen[str], *, warmup: float = 0.0,
                        theta: float = 0.0, timeout: float = 30.0) -> tuple[list[Task], str, str]:
-    """While `recorder` (an `erni record ...` of the control node) runs: wait `warmup` s for it to
-    lease its watch, then robot1 publishes its Pose and the control node sends it two forward tasks,
-    the Pose stepping to x = 1 and 2 as they go; wait until both end and the recorder exits.
-    Returns the tasks and the recorder's stdout and stderr."""
-    time.sleep(warmup)
+    """While `recorder` (an `erni record ...` of the control node) runs: wait until it has leased its
+    watch, then robot1 publishes its Pose and the control node sends it two forward tasks, one after
+    the other, the Pose stepping to x = 1 and 2 as they go; wait until both end and the recorder exits.
+    Returns the tasks and the recorder's stdout and stderr. (`warmup` is no longer waited: the lease
+    is; callers still pass it.)"""
+    # the recorder has leased its watch of the control node (its stream starts with what is there now)
+    watchers = _transport(control).watchers.watchers
+    wait_until(lambda: watchers, timeout=timeout, message=f"the recorder leased no watch within {timeout} s")
     pose = Pose(robot="robot1", x=0.0, theta=theta)
     with robot.transaction() as tx:
         tx.add(pose)
@@ -280,7 +338,16 @@ def two_tasks_recorded(control: Agent, robot: Agent, recorder: subprocess.Popen[
             tx.add(task)
         with robot.transaction() as tx:
             tx.change(pose.evolve(x=float(i + 1)))
-        time.sleep(0.3)
+        # the step has reached the control node (a watch event of its own) and the task has ended
+        # before the next one goes: the recording shows the Pose stepping as the tasks go
+        def stepped(x: float = float(i + 1)) -> bool:
+            return getattr(control.blackboard.get(pose.uid), "x", None) == x
+
+        def ended(uid: str = task.uid) -> bool:
+            return bool(getattr(control.blackboard.get(uid), "done", False))
+
+        wait_until(stepped, timeout=timeout)
+        wait_until(ended, timeout=timeout)
     wait_until(lambda: all(control.blackboard.get(t.uid).done for t in tasks))
     out, err = recorder.communicate(timeout=timeout)
     assert recorder.returncode == 0, err
@@ -317,9 +384,10 @@ def endpoint(name: str, **kw: Any) -> tuple[Any, list[Any]]:
 
 
 @contextmanager
-def session_up(a_name: str, b_name: str) -> Iterator[tuple[Any, Any, list[Any]]]:
-    """Two endpoints whose session is up (a's first status, r0, has reached b); stopped after."""
-    a, _ = endpoint(a_name)
+def session_up(a_name: str, b_name: str, **a_kw: Any) -> Iterator[tuple[Any, Any, list[Any]]]:
+    """Two endpoints whose session is up (a's first status, r0, has reached b); stopped after.
+    `a_kw`: more arguments of a's Endpoint (its `pace`, say)."""
+    a, _ = endpoint(a_name, **a_kw)
     b, got = endpoint(b_name)
     try:
         a.send(b.address, "status", Pose(robot="r0"), reliable=False, to=b_name)  # starts the session

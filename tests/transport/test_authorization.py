@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import itertools
 import logging
-import time
 
 import pytest
 
@@ -84,7 +83,10 @@ def test_a_task_disguised_as_a_status_is_refused_and_never_relayed(team, holder,
         for _ in range(5):
             mallory.send(addr_of(control), "status", forged, reliable=False, to="control")
         wait_until(lambda: counters(control).get("refused.status", 0) >= 3 or robot1.blackboard.contains(forged.uid))
-        time.sleep(0.3)
+        # robot2's own Pose after them, on the same path: once it is on control's board, the five were handled
+        mallory.send(addr_of(control), "status", Pose(robot="robot2"), reliable=False, to="control")
+        wait_until(lambda: control.blackboard.get("pose:robot2") is not None, timeout=30)
+        settled(control)
     assert not robot1.blackboard.contains(forged.uid), "robot1 was given robot2's task in control's name"
     assert not control.blackboard.contains(forged.uid)
     assert not robot1.blackboard.contains(forged.uid)
@@ -175,7 +177,7 @@ def test_a_robot_cannot_overwrite_or_delete_another_robots_pose(team, holder):
     mallory.send(addr_of(control), "status.remove", StatusRemoved(uid="pose:robot1"), reliable=True, to="control")
     wait_until(lambda: counters(control).get("refused.status", 0) >= 3
                or (p := control.blackboard.get("pose:robot1")) is None or p.x != 1.0)
-    time.sleep(0.2)
+    settled(control)  # the run that refused the third has committed (an accepted forgery would be on the board)
     pose = control.blackboard.get("pose:robot1")
     assert pose is not None and (pose.x, pose.y) == (1.0, 1.0)
     with robot1.transaction() as tx:  # robot1's own updates still count
@@ -198,7 +200,8 @@ def test_a_robot_cannot_watch_the_team(team, holder):
     mallory.send(addr_of(control), "watch.request", WatchRequest(lease=5.0), reliable=True, to="control")
     mallory.send(addr_of(control), "peers.request", None, reliable=True, to="control")
     wait_until(lambda: counters(control).get("refused.watch", 0) >= 2 or mallory.inbox)
-    time.sleep(0.3)
+    # both were refused, in runs now over: a refused request runs no handler, so nothing was sent for it
+    settled(control)
     assert not [m for m in mallory.inbox if m.kind in ("watch.event", "peers.reply")]
     client = make_client(addr_of(control))  # the operator's client watches
     try:

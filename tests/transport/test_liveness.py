@@ -5,7 +5,6 @@ from __future__ import annotations
 import logging
 import math
 import re
-import time
 
 from hypothesis import given
 from hypothesis import strategies as st
@@ -103,10 +102,19 @@ def test_a_live_peer_on_a_link_losing_most_frames_stays_up_and_a_dead_one_goes_d
     try:
         up = lambda agent, name: any(p.name == name and p.up for p in agent.query(Peer))  # noqa: E731
         wait_until(lambda: up(a, "b") and up(b, "a"), timeout=10)
-        time.sleep(2.0)  # the first beacons counted
+
+        def numbered(agent: Agent, name: str) -> int:
+            """The number of the newest beacon of `name` that reached `agent` (one a beacon period)."""
+            count = next(p for p in agent.plugins if isinstance(p, TransportPlugin)).peers[name].beacon_count
+            return count.last if count is not None else 0
+
+        # the first beacons counted: twenty periods of each
+        wait_until(lambda: numbered(a, "b") >= 20 and numbered(b, "a") >= 20, timeout=60)
         with caplog.at_level(logging.WARNING):
             caplog.clear()
-            time.sleep(6.0)
+            ab, ba = numbered(a, "b"), numbered(b, "a")
+            # six seconds of them: sixty beacon periods of each
+            wait_until(lambda: numbered(a, "b") >= ab + 60 and numbered(b, "a") >= ba + 60, timeout=60)
             downs = [r.getMessage() for r in caplog.records if " is down" in r.getMessage()]
         assert len(downs) <= 2, downs
         transport = next(p for p in a.plugins if isinstance(p, TransportPlugin))

@@ -11,7 +11,6 @@ from __future__ import annotations
 import json
 import math
 import threading
-import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
@@ -31,7 +30,7 @@ from erni.transport.wire import (
     item_bytes,
     join_envelope,
 )
-from tests.transport.helpers import session_up
+from tests.transport.helpers import SkipClock, session_up
 from tests.transport.test_codec import _heads, _items, _same_pose
 from tests.transport.test_wire import _two_step
 
@@ -62,9 +61,9 @@ def test_a_pose_body_is_the_json_pydantic_writes_value_for_value(pose):
 
 
 @contextmanager
-def pair(a_name: str, b_name: str) -> Iterator[tuple[Endpoint, Endpoint, list]]:
+def pair(a_name: str, b_name: str, **a_kw: Any) -> Iterator[tuple[Endpoint, Endpoint, list]]:
     """Two endpoints in a confirmed session (a's first status has reached b, and is forgotten)."""
-    with session_up(a_name, b_name) as (a, b, got):
+    with session_up(a_name, b_name, **a_kw) as (a, b, got):
         got.clear()
         yield a, b, got
 
@@ -267,12 +266,14 @@ def test_a_caller_that_waits_for_each_status_is_not_taken_for_a_burst(monkeypatc
 def test_statuses_are_gathered_again_once_the_solo_time_is_over(monkeypatch):
     monkeypatch.setattr(batching, "COALESCE", 10.0)
     monkeypatch.setattr(outbox, "SOLO_FOR", 0.05)
-    with pair("ow-n", "ow-o") as (a, b, got):
+    pace = SkipClock()  # a's threads' own time: the test skips past its solo time
+    with pair("ow-n", "ow-o", pace=pace) as (a, b, got):
         for i in range(1, 3):  # a ping-pong: the second goes out alone from a batch, gathering stops
             a.send(b.address, "status", Pose(robot=f"p{i}"), reliable=False, to="ow-o")
             wait_until(lambda n=i: len(got) == n)
         assert a._dests[b.address].solo_until > 0
-        time.sleep(0.1)
+        pace.skip(0.1)  # past the solo time (SOLO_FOR 0.05 s here)
+        assert a.pace() >= a._dests[b.address].solo_until
         for i in range(40):  # a burst after the solo time: several to a datagram again
             a.send(b.address, "status", Pose(robot=f"b{i}"), reliable=False, to="ow-o")
         wait_until(lambda: len(got) == 42)

@@ -12,7 +12,7 @@ import pytest
 from erni.blackboard import Agent, BBObject, Plugin, Task, TaskState
 from erni.blackboard.testing import wait_until
 from erni.transport import Peer
-from tests.transport.helpers import HeldClock, free_port, identity, make_agent, settled
+from tests.transport.helpers import HeldClock, SkipClock, beacon_after, free_port, identity, make_agent, settled
 
 
 @pytest.fixture
@@ -110,8 +110,9 @@ def test_peer_restart_gets_queued_tasks_exactly_once(team):
     with control.transaction() as tx:
         for t in tasks:
             tx.add(t)
-    time.sleep(0.5)  # the robot is not there yet: tasks wait in the queue, the handshake is retried
-    assert control.plugin("transport").endpoint.counters.get("handshakes.sent", 0) >= 2
+    # the robot is not there yet: tasks wait in the queue, the handshake is retried
+    wait_until(lambda: control.plugin("transport").endpoint.counters.get("handshakes.sent", 0) >= 2, timeout=30)
+    assert not any(control.blackboard.get(t.uid).done for t in tasks)
     robot = team("robot1", listen=f"127.0.0.1:{port}", discovery_port=0,
                  peers=[f"control@127.0.0.1:{control.plugin('transport').address[1]}"])
     wait_until(lambda: all(control.blackboard.get(t.uid).done for t in tasks), timeout=10)
@@ -435,7 +436,8 @@ def test_robot_poses_reach_the_control_node_newest_first(team):
             tx.change(pose.evolve(x=x))
     wait_until(lambda: (p := control.blackboard.get("pose:robot1")) is not None and p.x == 4.0)
     other = team("robot2", echo=False)  # a robot does not receive another robot's pose
-    time.sleep(0.3)
+    wait_until(lambda: any(p.name == "robot2" and p.up for p in robot.query(Peer)), timeout=30)
+    beacon_after(robot, other)  # what robot1 shared with robot2 once it came up has arrived before
     assert other.blackboard.get("pose:robot1") is None
     with robot.transaction() as tx:  # gone on the robot: gone on the control node
         tx.remove("pose:robot1")
@@ -479,7 +481,7 @@ def test_share_with_sends_a_type_to_more_roles_than_the_rest(team):
         tx.add(Pose(robot="robotA", x=1.0))
     wait_until(lambda: b.blackboard.contains("beat:robotA") and control.blackboard.contains("beat:robotA"))
     wait_until(lambda: control.blackboard.contains("pose:robotA"))
-    time.sleep(0.2)
+    beacon_after(a, b)  # b would have had the Pose before this beacon (a's statuses to b go in order)
     assert not b.blackboard.contains("pose:robotA"), "poses go to the control node only"
 
 
@@ -504,7 +506,9 @@ def test_a_keepalive_of_a_shared_object_travels_as_its_stamp_and_a_lost_whole_on
     from erni.blackboard import Pose
 
     control = team("control", echo=False, role="control")
-    robot = team("robot1", echo=False, status_refresh=2.0)
+    # the robot's clock skips its status_refresh at the end (its peers' silence limit longer than the skip)
+    clock = SkipClock()
+    robot = team("robot1", echo=False, status_refresh=2.0, peer_timeout=10.0, clock=clock)
     wait_until(lambda: any(p.up and p.role == "control" for p in robot.query(Peer)))
     lose: list[str] = []
     sent, answered = record_sends(robot, lose), record_sends(control, [])
@@ -537,7 +541,7 @@ def test_a_keepalive_of_a_shared_object_travels_as_its_stamp_and_a_lost_whole_on
     wait_until(lambda: at_control().stamp == 105.0)
     assert at_control().x == 3.0 and sent.count("status") == 4
 
-    time.sleep(2.1)  # status_refresh: the whole object again, even if only its stamp changed
+    clock.skip(2.1)  # status_refresh: the whole object again, even if only its stamp changed
     publish(stamp=106.0)
     wait_until(lambda: at_control().stamp == 106.0)
     assert sent.count("status") == 5
@@ -631,11 +635,11 @@ def test_a_busy_requester_looks_at_its_performers_silence_a_few_times_a_period_a
     while (time.monotonic() - t0 < 1.0 or runs[0] < 100) and time.monotonic() - t0 < 60:
         with robot.transaction() as tx:
             pose = robot.blackboard.get("pose:robot1")
-            if pose is None:
-                tx.add(Pose(robot="robot1"))
-            else:
-                tx.change(pose.evolve(x=pose.x + 1))
-        time.sleep(0.004)
+            pose = Pose(robot="robot1") if pose is None else pose.evolve(x=pose.x + 1)
+            tx.change(pose) if robot.blackboard.contains(pose.uid) else tx.add(pose)
+        # each Pose reaches the control node before the next goes: a stream, not a burst of one run
+        wait_until(lambda x=pose.x: (p := control.blackboard.get("pose:robot1")) is not None and p.x == x,
+                   timeout=30)
     elapsed = time.monotonic() - t0
     assert runs[0] >= 100, runs[0]
     assert checks[0] <= elapsed / (0.1 / 4) + 3, (checks[0], runs[0])  # beacon_period 0.1 s in these tests

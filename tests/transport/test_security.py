@@ -15,7 +15,17 @@ import pytest
 from erni.blackboard import Task, TaskState
 from erni.blackboard.testing import wait_until
 from erni.transport.wire import Envelope, Message
-from tests.transport.helpers import KEY, Tap, authority, free_port, identity, make_agent, make_client
+from tests.transport.helpers import (
+    KEY,
+    Tap,
+    authority,
+    datagrams_read,
+    free_port,
+    identity,
+    make_agent,
+    make_client,
+    settled,
+)
 
 BEACON, DATA = b"B"[0], b"D"[0]  # frame kinds (transport/wire.py)
 
@@ -111,18 +121,23 @@ def test_captured_task_frames_do_nothing_at_another_agent_or_after_a_restart(tea
     tap, client, task = _sniff_a_task(control, robot1)
     try:
         runs = robot1.plugin("motion").runs
-        for stream in tap.streams:  # replayed at another agent
-            send_raw_tcp(addr_of(robot2), bytes(stream))
-        for datagram in tap.datagrams:
-            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as udp:
+        streams = [bytes(s) for s in tap.streams if s]
+        before = counters(robot2).get("dropped.session", 0)
+        for stream in streams:  # replayed at another agent
+            send_raw_tcp(addr_of(robot2), stream)
+        # each stream is closed at its first frame, of a session robot2 never had
+        wait_until(lambda: counters(robot2).get("dropped.session", 0) >= before + len(streams), timeout=30)
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as udp:
+            for datagram in tap.datagrams:
                 udp.sendto(datagram, addr_of(robot2))
-        time.sleep(0.5)
+            datagrams_read(robot2, udp)  # read, and what they brought handled
         listen = "{}:{}".format(*addr_of(control))
         control.stop()  # replayed at the same agent after it restarted
         again = team("control", echo=False, role="control", listen=listen)
-        for stream in tap.streams:
-            send_raw_tcp(addr_of(again), bytes(stream))
-        time.sleep(0.5)
+        for stream in streams:
+            send_raw_tcp(addr_of(again), stream)
+        wait_until(lambda: counters(again).get("dropped.session", 0) >= len(streams), timeout=30)
+        settled(again)
         for agent in (robot1, robot2, again):
             assert not agent.blackboard.contains(task.uid), f"{agent.name} took the replayed task"
         assert robot1.plugin("motion").runs == runs, "robot1 did not act on a replay"
@@ -141,12 +156,12 @@ def test_a_frame_replayed_in_its_own_session_is_dropped(team):
         wait_until(lambda: any(d[4] == DATA for d in tap.datagrams))  # the handshake, then the data frame
         data = [d for d in tap.datagrams if d[4] == DATA]
         wait_until(lambda: counters(control).get("received", 0) >= 1)  # the original arrived
-        time.sleep(0.1)
         before = counters(control).get("received", 0)
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as udp:
             for _ in range(3):
                 udp.sendto(data[0], addr_of(control))
-        wait_until(lambda: counters(control).get("dropped.replay", 0) >= 3)
+            datagrams_read(control, udp)  # all three read
+        assert counters(control).get("dropped.replay", 0) >= 3
         assert counters(control).get("received", 0) == before
     finally:
         client.endpoint.stop()
@@ -233,7 +248,7 @@ def test_beacons_cannot_lock_a_peer_out_or_fake_a_dead_one(team):
             for _ in range(20):
                 udp.sendto(frame, ("127.0.0.1", port))
                 udp.sendto(frame, addr_of(robot2))
-        time.sleep(0.3)
+            datagrams_read(robot2, udp)  # the forgeries at robot2's port read, and what they brought handled
         peer = robot2.blackboard.get("peer:control")
         assert peer.up and peer.address == "{}:{}".format(*addr_of(control)), "a beacon never moves a live peer"
         task = Task(verb="BotMotion", preposition="forward", params={"distance": 1}, source="control",
@@ -257,7 +272,7 @@ def test_beacons_cannot_lock_a_peer_out_or_fake_a_dead_one(team):
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as udp:
             for _ in range(10):
                 udp.sendto(tap_frames[0], addr_of(robot2))
-                time.sleep(0.05)
+            datagrams_read(robot2, udp)  # all ten read, and what they brought handled
         assert not up(robot2, "robot9"), "a replayed beacon is a hint, never a sign of life"
     finally:
         for agent in (control, robot2, dead):
@@ -282,8 +297,10 @@ def test_handshake_floods_are_answered_at_a_bounded_rate(team):
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as udp:
         for i, frame in enumerate(frames):
             udp.sendto(frame, addr_of(robot1))
-            if i % 20 == 19:
-                time.sleep(0.005)  # stay within the socket buffer: datagrams lost by the kernel go uncounted
+            if i % 20 == 19:  # stay within the socket buffer (datagrams lost by the kernel go uncounted):
+                # the batch before this one has been answered or dropped before more go
+                wait_until(lambda i=i: counters(robot1).get("dropped.rate", 0)
+                           + counters(robot1).get("handshakes.answered", 0) >= i + 1 - 20, timeout=30)
     # a progress bound: each hello costs a signature check, slow on a loaded machine (5 s was missed at load 14)
     wait_until(lambda: counters(robot1).get("dropped.rate", 0) + counters(robot1).get("handshakes.answered", 0)
                >= 150, timeout=30, message="the hellos were not all answered or dropped within 30 s")
