@@ -7,7 +7,7 @@ import re
 from erni.blackboard import Agent, NetInfo, Task
 from erni.blackboard.testing import wait_until
 from erni.transport import Peer
-from tests.transport.helpers import free_port, make_agent
+from tests.transport.helpers import SkipClock, free_port, make_agent, settled
 
 
 def peers(agent: Agent) -> dict[str, Peer]:
@@ -86,7 +86,6 @@ def test_addresses_learned_from_the_network_topology():
 def test_a_learned_address_is_announced_to_only_until_its_agent_is_up():
     """Announcements are for agents not known yet. Once the agent at a learned address is up, its
     session carries the beacons; a learned address with nobody up there is still tried."""
-    import time
 
     port = free_port()
     a = make_agent("a", port, beacon_to=[], announce_backoff=1)  # announce every period
@@ -107,10 +106,10 @@ def test_a_learned_address_is_announced_to_only_until_its_agent_is_up():
             tx.add(NetInfo(node="b", kind="neighbor_list", neighbors=[{"name": "a", "address": a_addr},
                                                                        {"name": "c", "address": nobody}]))
         wait_until(lambda: peers(b).get("a") and peers(b)["a"].up)
-        time.sleep(0.3)  # an announcement in flight when a came up may still go
+        settled(b)  # a run that began before a came up (and may have announced to it) is over
         announced.clear()
-        time.sleep(1.0)  # ten beacon periods
-        assert announced, "the address with nobody up there is still announced to"
+        # ten beacon periods: one announcement each (announce_backoff 1) to the address with nobody there
+        wait_until(lambda: len(announced) >= 10, timeout=30)
         targets = {"{}:{}".format(*addr) for addr in announced}
         assert targets == {nobody}, targets
         assert peers(b)["a"].up
@@ -122,7 +121,6 @@ def test_a_learned_address_is_announced_to_only_until_its_agent_is_up():
 def test_an_inbound_filter_fed_through_a_pipe_drops_traffic_between_unconnected_agents():
     import json
     import os
-    import time
 
     from erni.blackboard import Task, TaskState
     from erni.sim.radio import RadioFilter, install
@@ -151,11 +149,15 @@ def test_an_inbound_filter_fed_through_a_pipe_drops_traffic_between_unconnected_
         tell(pipe_b, [])
         wait_until(lambda: not peers(a)["b"].up, timeout=3)
         task = Task(verb="BotMotion", preposition="stop", source="a", destination="b")
+        a_counters, b_counters = a.plugin("transport").endpoint.counters, b.plugin("transport").endpoint.counters
+        retries, unreachable = a_counters.get("retries", 0), b_counters.get("dropped.unreachable", 0)
         with a.transaction() as tx:
             tx.add(task)
-        time.sleep(0.5)
+        # the task went to b twice, unacknowledged, and b dropped what a sent it since: b's radio
+        wait_until(lambda: a_counters.get("retries", 0) >= retries + 2
+                   and b_counters.get("dropped.unreachable", 0) > unreachable, timeout=30)
+        settled(b)
         assert not b.blackboard.contains(task.uid)
-        assert b.plugin("transport").endpoint.counters.get("dropped.unreachable", 0) > 0
         tell(pipe_a, ["b"])  # back in range: the queued task gets through
         tell(pipe_b, ["a"])
         wait_until(lambda: a.blackboard.get(task.uid).state is TaskState.SUCCEEDED, timeout=5)
@@ -199,9 +201,13 @@ def test_quiet_peers_share_a_beacon_budget_and_their_receivers_wait_as_much_long
             wait_until(lambda o=o: peers(o).get("a") and peers(o)["a"].up)
         sent = _spy_beacons(a)
         t0 = time.monotonic()
-        while time.monotonic() - t0 < 2.0:  # nobody calls a down meanwhile (limit 0.6 s x 4 = 2.4 s)
+
+        def four_each() -> bool:  # nobody calls a down meanwhile (limit 0.6 s x 4 = 2.4 s)
             assert all(peers(o)["a"].up for o in others)
-            time.sleep(0.05)
+            return all(sum(to == o.name for _, to in sent) >= 4 for o in others)
+
+        # four beacons to each peer (1.6 s at one to each every 0.4 s), far past the unscaled 0.6 s limit
+        wait_until(four_each, timeout=30, interval=0.05)
         counted, window = len(sent), time.monotonic() - t0
         # at most about fanout / period = 10 a second, where a beacon to each peer each period was 44
         # (the window as long as it took: a loaded machine stretches it, and the beacons with it)
@@ -248,7 +254,8 @@ def test_a_peer_that_gets_statuses_gets_no_beacons():
             pose = pose.evolve(x=pose.x + 0.1)
             with robot.transaction() as tx:
                 tx.change(pose)
-            time.sleep(0.03)
+            # each Pose reaches the control node before the next goes (a robot's stream, not a burst)
+            wait_until(lambda x=pose.x, uid=pose.uid: getattr(control.blackboard.get(uid), "x", None) == x, timeout=30)
         talking = [t for t, to in sent if to == "c" and t > t0 + 1.0]  # (one may have been due at the start)
         assert talking == []
         assert peers(control)["r"].up
@@ -269,12 +276,24 @@ def test_broadcast_beacons_back_off_while_the_directory_stands_and_not_when_a_pe
     b = make_agent("b", port)
     try:
         wait_until(lambda: peers(a).get("b") and peers(a)["b"].up)
-        counters = a.plugin("transport").endpoint.counters
-        time.sleep(1.0)  # the back-off reaches 8 periods (0.8 s)
-        before = counters.get("sent.announce", 0)
-        time.sleep(2.4)
-        standing = counters.get("sent.announce", 0) - before
-        assert 1 <= standing <= 5, standing  # 24 at one a period
+        bridge = a.plugin("transport")
+        counters, presence = bridge.endpoint.counters, bridge.presence
+
+        def numbered() -> int:  # the newest of b's beacons a heard: b (quiet toward a) sends one a period
+            count = presence.peers["b"].beacon_count
+            return count.last if count is not None else 0
+
+        def periods(n: int) -> None:
+            """Wait until b has beaconed a n times more: n beacon periods (as long as a loaded machine makes them)."""
+            start = numbered()
+            wait_until(lambda: numbered() >= start + n, timeout=60)
+
+        wait_until(lambda: presence._announce_every >= 0.8 - 1e-9, timeout=30)  # the back-off reaches 8 periods
+        before, t0 = counters.get("sent.announce", 0), time.monotonic()
+        periods(24)
+        standing, window = counters.get("sent.announce", 0) - before, time.monotonic() - t0
+        # 24 at one a period; one every 8 periods (0.8 s, the next due a little early) in the window it took
+        assert 1 <= standing <= 2 + window / 0.72, (standing, window)
         c = make_agent("c", port)  # a newcomer announces every period and is answered at once
         try:
             wait_until(lambda: peers(a).get("c") and peers(a)["c"].up, timeout=1.0)
@@ -282,7 +301,7 @@ def test_broadcast_beacons_back_off_while_the_directory_stands_and_not_when_a_pe
             c.stop()
         wait_until(lambda: not peers(a)["c"].up, timeout=3)
         before = counters.get("sent.announce", 0)
-        time.sleep(1.0)
+        periods(10)
         assert counters.get("sent.announce", 0) - before >= 7  # a peer down: every period again
     finally:
         a.stop()
@@ -292,7 +311,6 @@ def test_broadcast_beacons_back_off_while_the_directory_stands_and_not_when_a_pe
 def test_statuses_received_and_peers_heard_do_not_run_the_transport_twice():
     """The transport commits each status it receives and each peer it hears; those commits are
     its own and must not run it once more (a control node gets ten Poses a second per robot)."""
-    import time
 
     from erni.blackboard import Pose
 
@@ -311,8 +329,8 @@ def test_statuses_received_and_peers_heard_do_not_run_the_transport_twice():
             pose = pose.evolve(x=pose.x + 0.1)
             with robot.transaction() as tx:
                 tx.change(pose)
-            time.sleep(0.03)
-        wait_until(lambda: control.blackboard.get(pose.uid).x == pose.x)
+            # each Pose is on the control node before the next goes: a frame a run, not a burst in one
+            wait_until(lambda x=pose.x, uid=pose.uid: control.blackboard.get(uid).x == x, timeout=30)
         got = bridge.endpoint.counters.get("received", 0) - received
         assert got >= 30
         assert bridge.runs - runs <= got + 4, (bridge.runs - runs, got)  # one run per frame, not two
@@ -325,7 +343,6 @@ def test_a_configured_peer_that_only_talks_is_known_by_its_role_and_gets_shared_
     """b is configured with a's address; a learns b (and its role) from b's first beacon, then
     talks to b without beacons. b must take a's role from a's session frames: its status shared
     with robots would otherwise wait for a beacon that never comes while a talks."""
-    import time
 
     from erni.blackboard import Pose
 
@@ -341,14 +358,14 @@ def test_a_configured_peer_that_only_talks_is_known_by_its_role_and_gets_shared_
                 tx.add(poses[agent.name])
 
         def b_pose_at_a():
-            for agent in (a, b):  # both keep moving: every change is shared again
+            for agent in (a, b):  # both keep moving (a step each look): every change is shared again
                 poses[agent.name] = poses[agent.name].evolve(x=poses[agent.name].x + 0.1)
                 with agent.transaction() as tx:
                     tx.change(poses[agent.name])
-            time.sleep(0.05)
             return a.blackboard.get(poses["b"].uid)
 
-        wait_until(b_pose_at_a, timeout=3.0, message="b never shared its Pose with a (a's role unknown to b)")
+        wait_until(b_pose_at_a, timeout=3.0, interval=0.05,
+                   message="b never shared its Pose with a (a's role unknown to b)")
         assert peers(b)["a"].role == "robot"
     finally:
         a.stop()
@@ -383,11 +400,13 @@ def test_a_beacon_that_says_nothing_new_costs_no_run_and_still_keeps_its_peer_up
 
         bridge._handle = spy_handle
         bridge.endpoint.on_message = spy_received
-        t0, w0 = time.monotonic(), time.time()
-        while time.monotonic() - t0 < 1.5:  # 2.5 peer timeouts of b saying nothing new
+        w0 = time.time()
+
+        def fifteen_beacons() -> bool:  # 2.5 peer timeouts of b saying nothing new
             assert peers(a)["b"].up
-            time.sleep(0.05)
-        wait_until(lambda: received.count("b") >= 8, timeout=30)  # b (quiet toward a) beacons it every 0.1 s
+            return received.count("b") >= 15  # b (quiet toward a) beacons it every 0.1 s
+
+        wait_until(fifteen_beacons, timeout=30, interval=0.05)
         # and the Peer on the board moved on with them, though no run handled one: its last_heard is
         # refreshed by the liveness pass (frozen, it would stay where it was before the window)
         wait_until(lambda: peers(a)["b"].last_heard > w0 + 1.0, timeout=30)
@@ -415,8 +434,7 @@ def test_silences_are_looked_at_every_quarter_timeout_and_a_silent_peer_still_go
         down_after = bridge.presence.down_after
         bridge.presence.down_after = lambda name: looked.append(time.monotonic()) or down_after(name)
         t0 = time.monotonic()
-        time.sleep(2.0)  # twenty beacon periods, four quarter timeouts
-        wait_until(lambda: len(looked) >= 2, timeout=30)
+        wait_until(lambda: len(looked) >= 4, timeout=30)  # four quarter timeouts: twenty beacon periods
         n, window = len(looked), time.monotonic() - t0
         # about once every 0.5 s of the window, however long a loaded machine made it (four times a
         # beacon period would be 40 a second)
@@ -444,12 +462,14 @@ def test_agents_running_insecure_are_up_by_their_beacons_alone():
     try:
         wait_until(lambda: peers(a).get("b") and peers(a)["b"].up and peers(b).get("a") and peers(b)["a"].up,
                    timeout=3)
-        t0, w0 = time.monotonic(), time.time()
-        while time.monotonic() - t0 < 1.5:  # 2.5 peer timeouts
+        w0 = time.time()
+
+        def heard_on() -> bool:  # up all along, 2.5 peer timeouts
             assert peers(a)["b"].up
-            time.sleep(0.05)
+            return peers(a)["b"].last_heard > w0 + 1.5
+
         # heard all along: last_heard moved on with b's beacons (the age of a reading would be the load's)
-        wait_until(lambda: peers(a)["b"].last_heard > w0 + 1.0, timeout=30)
+        wait_until(heard_on, timeout=30, interval=0.05)
     finally:
         a.stop()
         b.stop()
@@ -459,10 +479,10 @@ def test_a_peer_heard_only_by_its_signed_beacons_shows_when_it_was_heard():
     """A signed broadcast beacon is only a hint (it can be replayed): it never marks a peer up.
     But a peer not up shows when its beacon was last heard, not `never`."""
     import socket
-    import time
 
     port = free_port()
-    a, b = make_agent("a", port, echo=False), make_agent("b", port, echo=False)
+    clock = SkipClock()  # a's: the test moves it on past b's down
+    a, b = make_agent("a", port, echo=False, clock=clock), make_agent("b", port, echo=False)
     try:
         wait_until(lambda: peers(a).get("b") and peers(a)["b"].up)
         beacon = b""
@@ -479,8 +499,8 @@ def test_a_peer_heard_only_by_its_signed_beacons_shows_when_it_was_heard():
         down_at = peers(a)["b"].last_heard
         address = a.plugin("transport").address
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as udp:
-            time.sleep(0.2)  # the beacon comes a while after the down: its arrival can be told apart
-            sent_at = time.time()
+            clock.skip(0.2)  # the beacon comes a while after the down on a's clock: its arrival can be told apart
+            sent_at = a.clock.wall()
             udp.sendto(beacon, address)
             wait_until(lambda: peers(a)["b"].last_heard > down_at + 0.1, timeout=30)
         seen = peers(a)["b"]
