@@ -209,7 +209,7 @@ def test_liveliness_tokens_in_fresh_names_are_bounded_and_forgotten_when_undecla
         for i in range(600):
             tokens.append(stranger.liveliness().declare_token(keys.token(f"fake{i:03d}", "robot", f"i{i}", "")))
             if i % 100 == 99:
-                time.sleep(0.6)  # within the rate at which hints are looked at
+                time.sleep(0.6)  # kept: within the rate (real time, the endpoint's token bucket) at which hints are looked at
         wait_until(lambda: counter(control, "zenoh.tokens") >= 600, timeout=20)
         settled(control)  # the hints the tokens brought are on the board
         fakes = [p for p in control.query(Peer) if p.name.startswith("fake")]

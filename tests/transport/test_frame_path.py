@@ -43,7 +43,7 @@ def test_a_status_goes_out_from_the_callers_thread_once_a_session_is_up():
         real = a.send_udp
         a.send_udp = lambda frame, addr: (seen.append(threading.current_thread().name), real(frame, addr))[1]
         for i in range(1, 6):
-            time.sleep(0.001)  # statuses apart, as a robot's are: not a burst
+            time.sleep(0.001)  # kept: statuses apart, as a robot's are, not a burst (the pace is what is tested)
             a.send(b.address, "status", Pose(robot=f"r{i}"), reliable=False, to="fp-b")
         wait_until(lambda: len(got) == 6)
         assert seen == [sender] * 5  # sent by the caller, no sender thread involved

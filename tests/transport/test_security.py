@@ -19,6 +19,7 @@ from tests.transport.helpers import (
     KEY,
     Tap,
     authority,
+    beacon_after,
     datagrams_read,
     free_port,
     identity,
@@ -348,13 +349,15 @@ def test_a_robot_restarted_with_a_wrong_clock_joins(team, monkeypatch):
 
 def test_the_client_sees_each_final_state_once(team):
     control = team("control", echo=False, role="control")
-    team("robot1")
+    robot1 = team("robot1")
     wait_until(lambda: up(control, "robot1"))
     client = make_client(addr_of(control))
     finals: list[Message] = []
+    kinds: list[str] = []
     original = client.endpoint.on_message
 
     def count(msg: Message) -> None:
+        kinds.append(msg.kind)
         if msg.kind == "task.result" and msg.body.result.state.done:
             finals.append(msg)
         original(msg)
@@ -364,7 +367,11 @@ def test_the_client_sees_each_final_state_once(team):
         task = Task(verb="BotMotion", preposition="stop", destination="robot1", source=client.endpoint.name)
         client.send(addr_of(control), "task.add", task)
         wait_until(lambda: finals)
-        time.sleep(0.5)
+        beacon_after(robot1, control)  # what robot1 sent control of the task has come and been handled
+        # then a reply on the path control's results take to the client: a second final, sent before
+        # it, would have arrived before it
+        client.send(addr_of(control), "peers.request", None)
+        wait_until(lambda: "peers.reply" in kinds, timeout=30)
         assert len(finals) == 1, f"the final state crossed the wire {len(finals)} times"
     finally:
         client.endpoint.stop()
