@@ -537,6 +537,7 @@ def test_a_keepalive_of_a_shared_object_travels_as_its_stamp_and_a_lost_whole_on
     wait_until(lambda: "status.resend" in answered)
     settled(control)  # the run that asked for it whole has committed what it did with the note
     assert (at_control().x, at_control().stamp) == (2.0, 102.0), "a stamp is never put on a version not held"
+    beacon_after(control, robot)  # the robot has had the request (it travels as a status does) and handled it
     publish(stamp=105.0)  # asked for: whole again
     wait_until(lambda: at_control().stamp == 105.0)
     assert at_control().x == 3.0 and sent.count("status") == 4
