@@ -66,6 +66,7 @@ def test_garbage_datagrams_and_streams_reach_nothing(robot):
     udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     payloads = [bytes(rng.randrange(256) for _ in range(rng.randrange(1, 600))) for _ in range(200)]
     payloads += [struct.pack(">I", 2**31) + b"D" + b"x" * 20, b"\x00" * 4, b"\x00\x00\x00\x09K12345678"]
+
     def dropped() -> int:
         return sum(v for k, v in counters(robot).items() if k.startswith("dropped."))
 
