@@ -191,7 +191,7 @@ def test_record_a_live_team_as_mcap_then_replay_it(tmp_path: Path) -> None:
         wait_until(lambda: any(p.up and p.role == "control" for p in robot.query(TransportPeer)))
         rec = erni("record", "--via", f"127.0.0.1:{port}", "--seconds", "4", "--format", "mcap", str(bag))
         # warm-up: the recorder has loaded the types and leased its watch
-        tasks, _, err = two_tasks_recorded(control, robot, rec, warmup=1.5, theta=0.5)
+        tasks, _, err = two_tasks_recorded(control, robot, rec, theta=0.5)
     finally:
         control.stop()
         robot.stop()

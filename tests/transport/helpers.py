@@ -318,13 +318,12 @@ def agent_config(path: Path, name: str, *, listen: str = "127.0.0.1:0", discover
     return path
 
 
-def two_tasks_recorded(control: Agent, robot: Agent, recorder: subprocess.Popen[str], *, warmup: float = 0.0,
+def two_tasks_recorded(control: Agent, robot: Agent, recorder: subprocess.Popen[str], *,
                        theta: float = 0.0, timeout: float = 30.0) -> tuple[list[Task], str, str]:
     """While `recorder` (an `erni record ...` of the control node) runs: wait until it has leased its
     watch, then robot1 publishes its Pose and the control node sends it two forward tasks, one after
     the other, the Pose stepping to x = 1 and 2 as they go; wait until both end and the recorder exits.
-    Returns the tasks and the recorder's stdout and stderr. (`warmup` is no longer waited: the lease
-    is; callers still pass it.)"""
+    Returns the tasks and the recorder's stdout and stderr."""
     # the recorder has leased its watch of the control node (its stream starts with what is there now)
     watchers = _transport(control).watchers.watchers
     wait_until(lambda: watchers, timeout=timeout, message=f"the recorder leased no watch within {timeout} s")
