@@ -1,8 +1,8 @@
 """UIPlugin: the control node's web GUI and speech front end, meeting the team on the blackboard.
 
 The plugin watches robots' `Pose`, `NetInfo` and `transport.Peer` objects and the tasks
-sent to robots, and hands a JSON-ready picture of the team to its web server (thread
-`ui-http`) at `rate_hz`. Commands from the page, typed utterances and recognised speech come
+sent to robots, and hands a typed picture of the team (`protocol.Picture`) to its web server
+(thread `ui-http`) at `rate_hz`. Commands from the page, typed utterances and recognised speech come
 back through `later()` and become tasks for the robots (`RemoteBotMotion`, or `BotMotion`
 with `verb = "BotMotion"`). Spoken feedback runs on thread `ui-voice`, recognition on
 `ui-speech`; no I/O happens inside a transaction.
@@ -29,13 +29,33 @@ from erni.blackboard.tasks import best_links
 from erni.logs import mask_secrets
 from erni.plugins.ui.dialogue import ROGER, Dialogue, Memory, Naming, Reply, RobotView, Sent, restate, tasks_for
 from erni.plugins.ui.grammar import ATTENTION, STANDARD_ACTIONS, Refusal, strategies
-from erni.plugins.ui.protocol import CancelTaskMsg, CommandMsg, MicMsg, SayMsg, SelectMsg
+from erni.plugins.ui.protocol import (
+    CancelTaskMsg,
+    CommandMsg,
+    ErrorMsg,
+    JsonDict,
+    LinkRow,
+    LogLevel,
+    LogLine,
+    Metrics,
+    MicMsg,
+    Picture,
+    PoseRow,
+    ReplyMsg,
+    RobotRow,
+    SayMsg,
+    SelectMsg,
+    SelectOut,
+    SpeechState,
+    TaskRow,
+)
 from erni.plugins.ui.server import WebServer
 from erni.plugins.ui.speech import Listener, Microphone, SpeechError, choose_recognizer, wav_frames
 from erni.plugins.ui.voice import Speaker
 from erni.transport import parse_address
 
 _LOOPBACK_NAMES = {"localhost", "ip6-localhost"}
+_ENDED_LEVEL: dict[str, LogLevel] = {"succeeded": "info", "cancelled": "dim"}  # a task's end in the log; else error
 
 
 def announce(url: str) -> None:
@@ -145,17 +165,17 @@ class UIPlugin(Plugin[UISettings]):
         self.netinfo = self.subscribe(NetInfo)
         self.peers = self.subscribe(Peer)
         self.tasks = self.subscribe(Task, where=lambda t: t.destination not in (None, "", me))
-        self.logs: deque[dict[str, Any]] = deque(maxlen=200)
+        self.logs: deque[LogLine] = deque(maxlen=200)
         self.mic_clients: set[str] = set()
         self._ended: set[str] = set()
-        self.retired: deque[dict[str, Any]] = deque(maxlen=s.history)  # tasks cancelled before they ended
+        self.retired: deque[TaskRow] = deque(maxlen=s.history)  # tasks cancelled before they ended
         self._retired_uids: set[str] = set()
-        self._published: dict[str, Any] | None = None
+        self._published: Picture | None = None
         self._lock = threading.Lock()
         self._dirty = True
         self._threads: list[Any] = []
         self._stopping = threading.Event()
-        self.floorplan = load_floorplan(s.floorplan).model_dump(mode="json") if s.floorplan else None
+        self.floorplan = load_floorplan(s.floorplan) if s.floorplan else None
         host, port = parse_address(s.listen)
         # always a token, on localhost too: any local program or web page could otherwise drive the robots
         token = s.token.get_secret_value() if s.token else secrets.token_urlsafe(16)
@@ -168,7 +188,7 @@ class UIPlugin(Plugin[UISettings]):
                                 on_close=self._page_closed, rate_hz=s.rate_hz,
                                 announce=announce,
                                 allowed_hosts=tuple(s.allowed_hosts))
-        self.server.publish(self.picture())
+        self.server.publish(self.snapshot())
         try:
             self.server.start()
         except OSError:
@@ -251,7 +271,7 @@ class UIPlugin(Plugin[UISettings]):
 
     def _publish(self) -> None:
         """Hand the page a new picture only when something it shows changed: an idle page does no work."""
-        picture = self.picture()
+        picture = self.snapshot()
         if picture != self._published:
             self._published = picture
             self.server.publish(picture)
@@ -263,7 +283,7 @@ class UIPlugin(Plugin[UISettings]):
         if task.uid in self._ended:
             return
         self._ended.add(task.uid)
-        level = {"succeeded": "info", "cancelled": "dim"}.get(r.state.value, "error")
+        level = _ENDED_LEVEL.get(r.state.value, "error")
         self._log(level, f"{task.destination}: {task.preposition} {r.state.value}"
                   + (f" — {r.message}" if r.message else ""))
 
@@ -295,11 +315,15 @@ class UIPlugin(Plugin[UISettings]):
                 running[t.destination] = t
         return poses, peers, self.robots(), running
 
-    def picture(self) -> dict[str, Any]:
+    def picture(self) -> JsonDict:
+        """Return what the page shows as JSON-ready data: `snapshot()` dumped as the page gets it."""
+        return self.snapshot().model_dump(mode="json")
+
+    def snapshot(self) -> Picture:
         """Return what the page shows: robots, links, metrics, tasks, log, settings."""
         s = self.settings
         poses, peers, names, running = self._known()
-        robots: list[dict[str, Any]] = []
+        robots: list[RobotRow] = []
         up_names: set[str] = set()
         for name in names:
             pose, peer = poses.get(name), peers.get(name)
@@ -317,38 +341,29 @@ class UIPlugin(Plugin[UISettings]):
             if up:
                 up_names.add(name)
             task = running.get(name)
-            robots.append({
-                "name": name, "number": number if (number := self.naming.number(name)) is not None else name[:2],
-                "up": up,
-                "state": "lost" if not up else ("warn" if reasons else "ok"), "reasons": reasons,
-                "pose": None if pose is None else {  # rounded: sensor noise below this redraws nothing
-                    "x": round(pose.x, 3), "y": round(pose.y, 3), "theta": round(pose.theta, 3),
-                    "v": round(pose.v, 2), "w": round(pose.w, 2),
-                    "battery": None if pose.battery is None else round(pose.battery, 1)},
-                "address": peer.address if peer else "",
-                "task": short(task) if task else "",
-            })
+            robots.append(RobotRow(
+                name=name, number=number if (number := self.naming.number(name)) is not None else name[:2],
+                up=up, state="lost" if not up else ("warn" if reasons else "ok"), reasons=reasons,
+                pose=None if pose is None else PoseRow.of(pose.x, pose.y, pose.theta, pose.v, pose.w, pose.battery),
+                address=peer.address if peer else "", task=short(task) if task else ""))
         links = self._links(set(names), up_names)
         rows = [_task_row(t) for t in self.tasks] + list(self.retired)
-        rows.sort(key=lambda r: r["created"], reverse=True)
-        return {
-            "agent": self.agent_name, "verb": s.verb,
-            "actions": list(STANDARD_ACTIONS), "strategies": strategies(),
-            "speech": {"available": self.listener is not None and not self.speech_error, "error": self.speech_error,
-                       "recogniser": self.recogniser_name},
-            "listening": self.spoken.listening,
-            "robots": robots, "links": links, "floorplan": self.floorplan,
-            "metrics": {**_metrics(names, robots, links), "network_known": any(True for _ in self.netinfo)},
-            "tasks": rows[: s.history + 20], "log": list(self.logs),
-        }
+        rows.sort(key=lambda r: r.created, reverse=True)
+        return Picture(
+            agent=self.agent_name, verb=s.verb, actions=list(STANDARD_ACTIONS), strategies=strategies(),
+            speech=SpeechState(available=self.listener is not None and not self.speech_error,
+                               error=self.speech_error, recogniser=self.recogniser_name),
+            listening=self.spoken.listening, robots=robots, links=links, floorplan=self.floorplan,
+            metrics=_metrics(names, robots, links, network_known=any(True for _ in self.netinfo)),
+            tasks=rows[: s.history + 20], log=list(self.logs))
 
     def views(self) -> dict[str, RobotView]:
         """What the dialogue may tell the operator about each robot: pose, task, battery, link."""
         poses, peers, names, running = self._known()
         best: dict[str, float] = {}
         for lk in self._links(set(names), set(names)):
-            for end in (lk["a"], lk["b"]):
-                best[end] = max(best.get(end, 0.0), lk["quality"])
+            for end in (lk.a, lk.b):
+                best[end] = max(best.get(end, 0.0), lk.quality)
         now = self.clock.wall()
         out = {}
         for name in names:
@@ -370,14 +385,13 @@ class UIPlugin(Plugin[UISettings]):
                 link=best.get(name))
         return out
 
-    def _links(self, names: set[str], up: set[str]) -> list[dict[str, Any]]:
+    def _links(self, names: set[str], up: set[str]) -> list[LinkRow]:
         """Links between robots from their NetInfo, best quality first; `stale` when old or an end is lost."""
         best = best_links(self.netinfo, names, lambda end: end not in up, self.settings.netinfo_max_age, self.clock.wall())
-        return [{"a": a, "b": b, "quality": round(q, 3), "stale": stale}
-                for (a, b), (q, stale) in sorted(best.items())]
+        return [LinkRow(a=a, b=b, quality=round(q, 3), stale=stale) for (a, b), (q, stale) in sorted(best.items())]
 
-    def _log(self, level: str, text: str) -> None:
-        self.logs.append({"t": self.clock.wall(), "level": level, "text": text})
+    def _log(self, level: LogLevel, text: str) -> None:
+        self.logs.append(LogLine(t=self.clock.wall(), level=level, text=text))
         self._dirty = True
 
     # -- from the page (server thread) ------------------------------------------------------
@@ -394,7 +408,7 @@ class UIPlugin(Plugin[UISettings]):
     def _mic(self, client: str, on: bool) -> None:
         if on and (self.listener is None or self.listener.error):
             why = self.listener.error if self.listener is not None else self.speech_error
-            self.server.emit({"type": "error", "message": f"speech recognition off: {why}"}, client)
+            self.server.emit(ErrorMsg(message=f"speech recognition off: {why}"), client)
             return
         with self._lock:
             was = client in self.mic_clients
@@ -448,15 +462,15 @@ class UIPlugin(Plugin[UISettings]):
         elif isinstance(msg, CancelTaskMsg):
             task = self.tasks.get(msg.uid)
             if task is None or task.done:
-                self.server.emit({"type": "error", "message": f"no running task {msg.uid}"}, client)
+                self.server.emit(ErrorMsg(message=f"no running task {msg.uid}"), client)
             else:
                 self._retire(task, "cancelled from the GUI")
 
     def _command(self, client: str, msg: CommandMsg) -> None:
         known = set(strategies()) | set(STANDARD_ACTIONS)
         if msg.action not in known:
-            self.server.emit({"type": "error", "message": f"unknown action {msg.action!r}; expected one of "
-                              f"{', '.join(sorted(known))}"}, client)
+            self.server.emit(ErrorMsg(message=f"unknown action {msg.action!r}; expected one of "
+                                      f"{', '.join(sorted(known))}"), client)
             return
         robots = list(msg.robots)
         if not robots and msg.action == "stop":
@@ -466,7 +480,7 @@ class UIPlugin(Plugin[UISettings]):
                 raise Refusal("Select robots first (checkbox, click, or shift-drag a rectangle)")
             tasks = tasks_for(msg.action, msg.params, robots, verb=self.settings.verb, source=self.agent_name)
         except Refusal as why:
-            self.server.emit({"type": "error", "message": str(why)}, client)
+            self.server.emit(ErrorMsg(message=str(why)), client)
             return
         self._send(msg.action, tasks)
         views = self.views()
@@ -479,8 +493,7 @@ class UIPlugin(Plugin[UISettings]):
             self.typed.memory.last = Sent(f"{self.typed.who(robots, False, views)}, {what}", tasks)
         say = f"{ROGER}: {self.typed.who(robots, False, views)}, {what}" + (
             f" ({', '.join(lost)} {'is' if len(lost) == 1 else 'are'} lost)" if lost else "")
-        self.server.emit({"type": "reply", "text": say, "heard": "", "channel": "page", "client": client,
-                          "accepted": True})
+        self.server.emit(ReplyMsg(text=say, heard="", channel="page", client=client, accepted=True))
         self._log("info", f"page: {tasks[0].verb} {short(tasks[0])} -> {', '.join(robots)}")
 
     def _answer(self, reply: Reply, channel: str, client: str) -> None:
@@ -497,11 +510,11 @@ class UIPlugin(Plugin[UISettings]):
         if reply.targets:
             self.typed.select(reply.targets)
             self.spoken.select(reply.targets)
-            self.server.emit({"type": "select", "robots": reply.targets})
+            self.server.emit(SelectOut(robots=reply.targets))
         if self.speaker is not None:
             self.speaker.say(reply.say)
-        self.server.emit({"type": "reply", "text": reply.say, "heard": reply.heard, "channel": channel,
-                          "client": client, "accepted": reply.accepted, "asked": reply.asked})
+        self.server.emit(ReplyMsg(text=reply.say, heard=reply.heard, channel=channel, client=client,
+                                  accepted=reply.accepted, asked=reply.asked))
         detail = f" ({', '.join(reply.targets)})" if reply.targets else ""
         self._log("info" if reply.accepted else "warn",
                   f"{channel}: \u201c{reply.heard}\u201d \u2192 {reply.say}{detail}")
@@ -532,7 +545,7 @@ class UIPlugin(Plugin[UISettings]):
         self._log("dim", f"{task.destination}: {task.preposition} cancelled \u2014 {why}")
 
     def _keep_row(self, task: Task, why: str) -> None:
-        self.retired.append({**_task_row(task), "state": "cancelled", "message": why})
+        self.retired.append(_task_row(task).model_copy(update={"state": "cancelled", "message": why}))
         self._dirty = True
 
 
@@ -542,22 +555,22 @@ def short(t: Task) -> str:
     return f"{t.preposition} {args}".rstrip()
 
 
-def _task_row(t: Task) -> dict[str, Any]:
+def _task_row(t: Task) -> TaskRow:
     r = t.result
     params = {k: v for k, v in t.params.model_dump().items() if isinstance(v, (int, float, str))}
-    return {"uid": t.uid, "robot": t.destination, "verb": t.verb, "preposition": t.preposition,
-            "text": short(t), "params": params, "source": t.source, "created": t.created,
-            "state": t.state.value, "progress": r.progress if r else 0.0, "message": r.message if r else "",
-            "values": {k: v for k, v in (r.values if r else {}).items() if isinstance(v, (int, float, str))}}
+    return TaskRow(uid=t.uid, robot=t.destination, verb=t.verb, preposition=t.preposition, text=short(t),
+                   params=params, source=t.source, created=t.created, state=t.state.value,
+                   progress=r.progress if r else 0.0, message=r.message if r else "",
+                   values={k: v for k, v in (r.values if r else {}).items() if isinstance(v, (int, float, str))})
 
 
-def _metrics(names: list[str], robots: list[dict[str, Any]], links: list[dict[str, Any]]) -> dict[str, Any]:
-    links = [lk for lk in links if not lk["stale"]]
-    adj = netgraph.from_edges(((lk["a"], lk["b"], 1.0) for lk in links if lk["quality"] > 0), nodes=names)
+def _metrics(names: list[str], robots: list[RobotRow], links: list[LinkRow], *, network_known: bool) -> Metrics:
+    links = [lk for lk in links if not lk.stale]
+    adj = netgraph.from_edges(((lk.a, lk.b, 1.0) for lk in links if lk.quality > 0), nodes=names)
     comps = netgraph.connected_components(adj) if names else []
     cut = sorted(netgraph.articulation_points(adj)) if names else []
-    quality = [lk["quality"] for lk in links]
-    return {"robots": len(names), "up": sum(1 for r in robots if r["up"]), "links": len(links),
-            "mean_quality": round(sum(quality) / len(quality), 3) if quality else None,
-            "components": len(comps), "articulation_points": cut,
-            "degree": round(2 * len(links) / len(names), 2) if names else 0}
+    quality = [lk.quality for lk in links]
+    return Metrics(robots=len(names), up=sum(1 for r in robots if r.up), links=len(links),
+                   mean_quality=round(sum(quality) / len(quality), 3) if quality else None,
+                   components=len(comps), articulation_points=cut,
+                   degree=round(2 * len(links) / len(names), 2) if names else 0, network_known=network_known)

@@ -1,4 +1,9 @@
-"""Messages the GUI page sends over its WebSocket, validated before anything acts on them.
+"""Messages between the GUI page and the control node over its WebSocket, typed both ways.
+
+Inbound (what the page sends) is validated before anything acts on it; outbound (what the
+server sends) is built as the types below, so the page reads the fields it was written for:
+`Picture` (the state the page draws, sent as `{"type": "state", ...}` and served at
+`/api/state`) and the events `HelloMsg`, `ReplyMsg`, `SelectOut`, `ErrorMsg`, `PongMsg`.
 
 Text frames are JSON objects with a `type`; binary frames are microphone audio (16 kHz mono
 int16 little-endian) while the page's microphone is on. `parse_message` returns the typed
@@ -10,12 +15,14 @@ Text no page sends (nested deeper than `MAX_DEPTH`, longer than `MAX_TEXT`) rais
 from __future__ import annotations
 
 import json
+import math
 from typing import Annotated, Any, Literal
 
-from pydantic import ConfigDict, Field, TypeAdapter, ValidationError
+from pydantic import BeforeValidator, ConfigDict, Field, JsonValue, TypeAdapter, ValidationError
 
 from erni.blackboard.errors import ErniError, describe_validation
 from erni.blackboard.objects import Model
+from erni.blackboard.schemas import FloorPlan
 from erni.blackboard.text import Name
 from erni.transport.wire import json_depth
 
@@ -112,3 +119,179 @@ def parse_message(text: str | bytes) -> Any:
         return _ADAPTER.validate_python(data)
     except ValidationError as err:
         raise BadMessage(describe_validation(err, str(data["type"]), skip=1)) from None
+
+
+# -- what the server sends ------------------------------------------------------------------------
+# Field names and JSON shapes are what plugins/ui/static/app.js reads (tests/ui/test_picture_types.py
+# holds the two sides together). Numbers are finite (`Model`), text is str, lists are bounded where
+# they are built (the log and the task list).
+
+
+def finite_or_none(value: object) -> object:
+    """A float that is not finite as None; anything else as it is (validated by the field's type)."""
+    return None if isinstance(value, float) and not math.isfinite(value) else value
+
+
+FiniteOrNone = Annotated[float | None, BeforeValidator(finite_or_none)]
+"""A number the page may get as null: given NaN or an infinity, it holds None."""
+
+LogLevel = Literal["info", "warn", "error", "dim"]
+Param = bool | int | float | str
+
+
+class _Out(Model):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class PoseRow(_Out):
+    """A robot's pose as the page draws it, rounded (sensor noise below this redraws nothing).
+
+    A number that is not finite (in a Pose no validator checked: the codec's hot path trusts its
+    decoder) is held as None and goes to the page as null, as the server's JSON writer sent it
+    before these types: the page reads x, y or theta that is not a number as "position unreadable",
+    lists the robot as faulty and draws no pose of it on the map; v, w or battery as null shows "–".
+    """
+
+    x: FiniteOrNone
+    y: FiniteOrNone
+    theta: FiniteOrNone
+    v: FiniteOrNone
+    w: FiniteOrNone
+    battery: FiniteOrNone = None
+
+    @classmethod
+    def of(cls, x: float, y: float, theta: float, v: float, w: float, battery: float | None) -> PoseRow:
+        """The row of a Pose's numbers, rounded: positions to mm, speeds to cm/s, the battery to 0.1 V."""
+        return cls(x=round(x, 3), y=round(y, 3), theta=round(theta, 3), v=round(v, 2), w=round(w, 2),
+                   battery=None if battery is None else round(battery, 1))
+
+
+class RobotRow(_Out):
+    """One robot of the robot table and the map."""
+
+    name: str
+    number: int | str  # the robot's number, or the first two letters of a name without one
+    up: bool
+    state: Literal["ok", "warn", "lost"]
+    reasons: list[str]  # why it warns: battery, stalled, motors off, bumper
+    pose: PoseRow | None  # None: no Pose heard yet
+    address: str
+    task: str  # its running task in short (`goto x=1.0`), or ""
+
+
+class LinkRow(_Out):
+    """A link between two robots from their NetInfo; `stale` when old or an end is lost."""
+
+    a: str
+    b: str
+    quality: float
+    stale: bool
+
+
+class TaskRow(_Out):
+    """One row of the task list: a task sent to a robot, or one cancelled before it ended."""
+
+    uid: str
+    robot: str | None
+    verb: str
+    preposition: str
+    text: str
+    params: dict[str, Param]
+    source: str
+    created: float
+    state: str  # a TaskState's value
+    progress: float
+    message: str
+    values: dict[str, Param]
+
+
+class Metrics(_Out):
+    """The network's numbers over the robots and their links that are not stale."""
+
+    robots: int
+    up: int
+    links: int
+    mean_quality: float | None
+    components: int
+    articulation_points: list[str]
+    degree: float
+    network_known: bool
+
+
+class LogLine(_Out):
+    """A line of the page's log (`t`: wall-clock seconds)."""
+
+    t: float
+    level: LogLevel
+    text: str
+
+
+class SpeechState(_Out):
+    """Whether the control node's recogniser runs, and why not."""
+
+    available: bool
+    error: str
+    recogniser: str
+
+
+class Picture(_Out):
+    """What the page shows: robots, links, metrics, tasks, log, settings (the state message's body)."""
+
+    agent: str
+    verb: str
+    actions: list[str]
+    strategies: list[str]
+    speech: SpeechState
+    listening: bool
+    robots: list[RobotRow]
+    links: list[LinkRow]
+    floorplan: FloorPlan | None
+    metrics: Metrics
+    tasks: list[TaskRow]
+    log: list[LogLine]
+
+
+class HelloMsg(_Out):
+    """The first message on a WebSocket: the name the page's replies are addressed to."""
+
+    type: Literal["hello"] = "hello"
+    client: str
+
+
+class ReplyMsg(_Out):
+    """The answer to a command or an utterance (`client`: the page it answers; voice: every page)."""
+
+    type: Literal["reply"] = "reply"
+    text: str
+    heard: str
+    channel: str  # page, typed or voice
+    client: str
+    accepted: bool
+    asked: bool = False  # a read-back or "say again?": an answer is awaited
+
+
+class SelectOut(_Out):
+    """The robots an utterance named become the page's selection."""
+
+    type: Literal["select"] = "select"
+    robots: list[str]
+
+
+class ErrorMsg(_Out):
+    """A refused command or message, in one line."""
+
+    type: Literal["error"] = "error"
+    message: str
+
+
+class PongMsg(_Out):
+    """The answer to a ping."""
+
+    type: Literal["pong"] = "pong"
+
+
+Event = HelloMsg | ReplyMsg | SelectOut | ErrorMsg | PongMsg
+"""Every message the server sends but the state."""
+
+JsonDict = dict[str, JsonValue]
+"""A JSON object as Python data: a `Picture` dumped as the page gets it (`model_dump(mode="json")`)."""

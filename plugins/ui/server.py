@@ -1,6 +1,7 @@
 """The GUI's web server: aiohttp (HTTP + WebSocket) on thread `ui-http` with its own asyncio loop.
 
-The plugin hands the server plain data (`publish(state)`, `emit(event)`) under a lock; a pump
+The plugin hands the server typed messages (`publish(picture)`, `emit(event)`: `protocol.Picture`
+and `protocol.Event`) under a lock; a pump
 on the server's loop sends the newest state to every page when it changed, at most `rate_hz`
 times a second, and events at once. Page messages are validated (`protocol.parse_message`)
 and handed to the plugin's callbacks; nothing on this thread touches the blackboard.
@@ -12,8 +13,8 @@ carries an `Origin` must come from this same origin, so a page of another site c
 WebSocket or read the state; and everything but the page's static assets needs the token.
 
 What the server sends is JSON a browser parses (`page_json`): a number that is not finite (no
-validated model holds one, but the state is plain data) goes as `null`, never as `NaN`, which
-`JSON.parse` refuses and which would blank the page. Bad page messages and refused requests are
+validated message holds one, but a state published as plain data may: the page's own checks are
+tested so) goes as `null`, never as `NaN`, which `JSON.parse` refuses and which would blank the page. Bad page messages and refused requests are
 logged at most once every `LOG_PERIOD` seconds each, with the count held back since.
 """
 
@@ -34,12 +35,25 @@ from pathlib import Path
 from typing import Any
 
 from aiohttp import WSMsgType, web
+from pydantic import JsonValue
 
 from erni.blackboard.errors import NetworkError
 from erni.logs import RateLimitedLog
-from erni.plugins.ui.protocol import BadMessage, HostileMessage, PingMsg, parse_message
+from erni.plugins.ui.protocol import (
+    BadMessage,
+    ErrorMsg,
+    Event,
+    HelloMsg,
+    HostileMessage,
+    JsonDict,
+    Picture,
+    PingMsg,
+    PongMsg,
+    parse_message,
+)
 
 STATIC = Path(__file__).with_name("static")
+PONG = PongMsg().model_dump_json()
 MAX_AUDIO_FRAME = 64 * 1024
 
 log = logging.getLogger("erni.ui.http")
@@ -47,7 +61,7 @@ LOG_PERIOD = 10.0
 """Seconds between two log lines of one kind (a bad page message, a refused request, a number sent as null)."""
 
 
-def page_json(data: Any, on_non_finite: Callable[[], None] | None = None) -> str:
+def page_json(data: JsonValue, on_non_finite: Callable[[], None] | None = None) -> str:
     """JSON text of plain data for the page: a NaN or an infinity anywhere in it becomes null (what
     `JSON.parse` reads), so the text is always JSON; `on_non_finite` is called when one was there."""
     try:
@@ -58,7 +72,7 @@ def page_json(data: Any, on_non_finite: Callable[[], None] | None = None) -> str
         return json.dumps(_finite_or_null(data), allow_nan=False)
 
 
-def _finite_or_null(data: Any) -> Any:
+def _finite_or_null(data: JsonValue) -> JsonValue:
     if isinstance(data, float):
         return data if math.isfinite(data) else None
     if isinstance(data, dict):
@@ -152,9 +166,9 @@ class WebServer:
         self.non_finite = 0  # messages to a page that held a number that is not finite (sent as null)
         self._rare = RateLimitedLog(log, LOG_PERIOD)
         self._lock = threading.Lock()
-        self._state: dict[str, Any] = {}
+        self._state: JsonDict = {}
         self._version = 0
-        self._events: deque[tuple[str | None, dict[str, Any]]] = deque(maxlen=1000)
+        self._events: deque[tuple[str | None, Event]] = deque(maxlen=1000)
         self._count = 0
         self._ready = threading.Event()
         self._error: BaseException | None = None
@@ -212,8 +226,13 @@ class WebServer:
                 self._host_ok[name] = ok
         return ok
 
-    def publish(self, state: dict[str, Any]) -> None:
-        """Make `state` (JSON-ready data) the newest state; pages get it on the next pump."""
+    def publish(self, state: Picture | JsonDict) -> None:
+        """Make `state` the newest state; pages get it on the next pump.
+
+        A `Picture` is what the plugin publishes; JSON-ready data is taken as it is (a test hands the
+        page what no Picture holds, to see the page's own checks)."""
+        if isinstance(state, Picture):
+            state = state.model_dump(mode="json")
         with self._lock:
             self._state = state
             self._version += 1
@@ -228,12 +247,12 @@ class WebServer:
             except RuntimeError:  # the loop closed meanwhile
                 pass
 
-    def state(self) -> dict[str, Any]:
-        """Return the newest published state."""
+    def state(self) -> JsonDict:
+        """Return the newest published state, as the page gets it (JSON-ready data)."""
         with self._lock:
             return self._state
 
-    def emit(self, event: dict[str, Any], client: str | None = None) -> None:
+    def emit(self, event: Event, client: str | None = None) -> None:
         """Send an event to one page (`client`) or to all, at once."""
         with self._lock:
             self._events.append((client, event))
@@ -241,7 +260,7 @@ class WebServer:
 
     # -- the server's thread ----------------------------------------------------------------
 
-    def _json(self, data: Any) -> str:
+    def _json(self, data: JsonValue) -> str:
         """`page_json`, counting and logging (rarely) a number that had to go as null."""
         return page_json(data, self._non_finite)
 
@@ -345,7 +364,7 @@ class WebServer:
         with self._lock:
             state = self._state
         try:
-            await ws.send_str(self._json({"type": "hello", "client": client}))
+            await ws.send_str(self._json(HelloMsg(client=client).model_dump(mode="json")))
             await ws.send_str(self._json({"type": "state", **state}))
             async for msg in ws:
                 if msg.type == WSMsgType.TEXT:
@@ -373,7 +392,7 @@ class WebServer:
             await self._reject(ws, str(err))
             return
         if isinstance(msg, PingMsg):
-            await ws.send_str('{"type":"pong"}')
+            await ws.send_str(PONG)
             return
         try:
             self.on_message(client, msg)
@@ -383,7 +402,7 @@ class WebServer:
     async def _reject(self, ws: web.WebSocketResponse, why: str) -> None:
         self.bad_messages += 1
         self._rare.info("bad message", f"bad message from a page: {why}")
-        await ws.send_str(self._json({"type": "error", "message": why}))
+        await ws.send_str(self._json(ErrorMsg(message=why).model_dump(mode="json")))
 
     async def _pump(self) -> None:
         """Send events at once and the state when it changed, at most once a period; idle, send nothing."""
@@ -409,7 +428,7 @@ class WebServer:
                 text = self._json({"type": "state", **state})
                 await asyncio.gather(*(self._send(ws, text) for ws in list(self.clients.values())))
             for client, event in events:
-                text = self._json(event)
+                text = self._json(event.model_dump(mode="json"))
                 targets = [self.clients[client]] if client in self.clients else (
                     [] if client else list(self.clients.values()))
                 await asyncio.gather(*(self._send(ws, text) for ws in targets))

@@ -724,7 +724,7 @@ class Page:
         self.server = self.ui.server
         self.emitted: list[dict[str, Any]] = []   # what the handlers emit, before the server's pump takes it
         emit = self.server.emit
-        self.server.emit = lambda event, client=None: (self.emitted.append(event), emit(event, client))  # type: ignore[method-assign]
+        self.server.emit = lambda event, client=None: (self.emitted.append(event.model_dump(warnings=False)), emit(event, client))  # type: ignore[method-assign]
         self.loop = asyncio.new_event_loop()
         self.node.problems()
 
