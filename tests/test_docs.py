@@ -22,19 +22,21 @@ pinned below, so a block added, dropped or newly skipped is a decision made here
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import re
 import signal
 import subprocess
 import sys
-import time
 import tomllib
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 import pytest
 
+from erni.blackboard.testing import wait_until
 from erni.sim.team import port_free
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -135,9 +137,9 @@ def _env(cwd: Path) -> dict[str, str]:
 def _run_sh(block: Block, cwd: Path, timeout: float = 90.0) -> subprocess.CompletedProcess[str]:
     for port in sorted({int(p) for p in re.findall(r"127\.0\.0\.1:(\d{4,5})", block.text)}):
         # a port of the kernel's ephemeral range (47100 is) may be held a moment by any socket bound to 0
-        deadline = time.monotonic() + 20
-        while "&" in block.text and not port_free("127.0.0.1", port) and time.monotonic() < deadline:
-            time.sleep(0.2)
+        if "&" in block.text:
+            with contextlib.suppress(AssertionError):  # still held: skipped below
+                wait_until(partial(port_free, "127.0.0.1", port), timeout=20, interval=0.2)
         if not port_free("127.0.0.1", port) and "&" in block.text:
             pytest.skip(f"{block.id}: 127.0.0.1:{port} is in use on this machine; the block starts an agent there")
     # background jobs the block leaves (the agents of a two-terminal example) stop with it

@@ -315,8 +315,9 @@ def test_control_at_site_a_tasks_and_cancels_robot1_at_site_b_and_sees_its_pose(
     uid = json.loads(done.stdout.splitlines()[0])["uid"]
     wait_until(lambda: any(e["op"] == "remove" and e["type"] == "Task" and e["data"]["uid"] == uid
                            for e in sites.events), timeout=10, message="the cancelled task stayed at control")
-    time.sleep(1.0)  # robot1 stopped: the task was cancelled there, not only here
-    stopped = sites.pose()
+    # robot1 stopped: the task was cancelled there, not only here
+    stopped = wait_until(lambda: (p := sites.pose()) and p["v"] == 0 and p, timeout=10,
+                         message="robot1 did not stop: its task was not cancelled there")
     time.sleep(1.5)
     assert dist(sites.pose(), stopped) < 0.02
     assert 0.05 < dist(stopped, moved) < 5.0

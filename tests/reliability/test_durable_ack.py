@@ -9,18 +9,20 @@ acknowledgement a client heard must be in the journal.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
+import socket
 import sqlite3
 import subprocess
 import sys
 import threading
-import time
 from pathlib import Path
 
 import pytest
 
 from erni.blackboard import Task
+from erni.blackboard.testing import wait_until
 from erni.transport.endpoint import CLIENT_ROLE, Endpoint
 from erni.transport.identity import load_identity
 from tests.transport.helpers import free_port, identity
@@ -59,17 +61,18 @@ class Control:
         with self.log.open("ab") as out:
             self.proc = subprocess.Popen([sys.executable, "-m", "erni", "agent", str(self.config)], cwd=ROOT,
                                          stdout=out, stderr=subprocess.STDOUT)
-        deadline = time.monotonic() + 30
-        while time.monotonic() < deadline:  # its TCP port takes connections: the transport is up
-            assert self.proc.poll() is None, f"the control node exited:\n{self.log.read_text()[-2000:]}"
-            try:
-                import socket
+        proc = self.proc
 
+        def up() -> bool:
+            """Its TCP port takes connections: the transport is up."""
+            assert proc.poll() is None, f"the control node exited:\n{self.log.read_text()[-2000:]}"
+            try:
                 socket.create_connection(("127.0.0.1", port), timeout=0.2).close()
-                return
             except OSError:
-                time.sleep(0.05)
-        raise AssertionError("the control node did not start within 30 s")
+                return False
+            return True
+
+        wait_until(up, timeout=30, interval=0.05, message="the control node did not start within 30 s")
 
     def kill9(self) -> None:
         if self.proc is not None and self.proc.poll() is None:
@@ -129,15 +132,13 @@ def test_no_acknowledged_task_is_lost_across_six_kill_9s_with_100_in_flight(tmp_
                             destination="control")
                 with lock:
                     uid_of[client.send(target, "task.add", task, reliable=True)] = task.uid
-            deadline = time.monotonic() + 60
-            while kill_at and time.monotonic() < deadline:
-                time.sleep(0.01)
+            with contextlib.suppress(AssertionError):  # said below
+                wait_until(lambda: not kill_at, timeout=60)
             assert not kill_at, f"round {rnd}: only {round_acked[0]} tasks acknowledged in 60 s"
             control.wait()
             control.start(port)
-            deadline = time.monotonic() + 60
-            while round_acked[0] < 100 and time.monotonic() < deadline:
-                time.sleep(0.05)
+            with contextlib.suppress(AssertionError):
+                wait_until(lambda: round_acked[0] >= 100, timeout=60, interval=0.05)
             assert round_acked[0] == 100, f"round {rnd}: {round_acked[0]} of 100 tasks acknowledged after the restart"
     finally:
         for c in clients:

@@ -6,14 +6,14 @@ from __future__ import annotations
 import errno
 import sqlite3
 import subprocess
-import time
 from pathlib import Path
 
 import pytest
 
-from erni.blackboard import Agent, Pose, Task, TaskState
+from erni.blackboard import Agent, Peer, Pose, Task, TaskState
 from erni.blackboard.testing import wait_until
 from erni.transport.bridge import Received
+from erni.transport.plugin import TransportPlugin
 from tests.transport.helpers import HeldClock, auth_settings, free_port, make_agent
 
 
@@ -224,20 +224,37 @@ def test_a_task_on_a_peer_that_died_fails_with_link_lost_within_its_deadline():
         robot.stop()
 
 
-def test_a_peer_back_within_the_deadline_goes_on_and_one_back_late_is_told_to_stop(tmp_path):
+def test_a_peer_back_within_the_deadline_goes_on_and_one_back_late_is_told_to_stop(tmp_path, monkeypatch):
     port = free_port()
     control = make_agent("control", port, echo=False, role="control", link_deadline=2.5)
     robot = robot_with_journal("robot1", port, tmp_path / "robot1.sqlite", delay=60.0)
     listen = "{}:{}".format(*robot.plugin("transport").address)
+    bridge = control.plugin("transport")
+    assert isinstance(bridge, TransportPlugin)
+    looks: list[float] = []  # when the control node looked at its links, in runs that have committed
+    check = bridge._check_links
+
+    def looked() -> None:
+        at = bridge.clock()
+        check()
+        bridge.after_commit(lambda: looks.append(at))
+
+    def robot1_up() -> bool:
+        peer = control.blackboard.get("peer:robot1")
+        return isinstance(peer, Peer) and peer.up
+
+    monkeypatch.setattr(bridge, "_check_links", looked)
     try:
-        wait_until(lambda: (p := control.blackboard.get("peer:robot1")) is not None and p.up)
+        wait_until(robot1_up)
         task = send(control, "robot1", 1.0)
         wait_until(lambda: robot.blackboard.contains(task.uid))
         robot.stop()
-        time.sleep(1.0)  # back in time: the task goes on
+        wait_until(lambda: not robot1_up(), timeout=5)  # seen gone
+        left = bridge.peers["robot1"].heard_at  # its last frame before it went
         robot = robot_with_journal("robot1", port, tmp_path / "robot1.sqlite", delay=60.0, listen=listen)
-        wait_until(lambda: control.blackboard.get("peer:robot1").up, timeout=5)
-        time.sleep(2.0)
+        wait_until(robot1_up, timeout=5)  # back in time: the task goes on
+        # and goes on past the deadline counted from when it left: the deadline runs from the last frame
+        wait_until(lambda: looks and looks[-1] > left + 2.5 + 0.1, timeout=10)
         assert not control.blackboard.get(task.uid).done, "a peer back within the deadline keeps its task"
         robot.stop()
         assert final(control, task, timeout=6).result.message.startswith("link lost")  # away too long

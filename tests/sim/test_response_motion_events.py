@@ -5,7 +5,6 @@ stand still or move by hand, so a SIP or a Pose held back by a rate would be hel
 from __future__ import annotations
 
 import threading
-import time
 
 from erni.blackboard import Task
 from erni.blackboard.testing import wait_until
@@ -58,11 +57,28 @@ def wait(condition, timeout: float = 5.0) -> bool:
     return True
 
 
+class Holding(threading.Event):
+    """The stack thread's wake-up, counting the waits it goes into with a new SIP in hand: it looked at
+    that SIP and holds it back for its rate (a cycle takes the SIP in hand: `_new_sip` is reset)."""
+
+    def __init__(self, res: RobotMotionResource) -> None:
+        super().__init__()
+        self.res = res
+        self.held = 0
+
+    def wait(self, timeout: float | None = None) -> bool:
+        if self.res._new_sip:
+            self.held += 1
+        return super().wait(timeout)
+
+
 def test_the_stack_cycles_on_the_sip_after_a_task_though_its_rate_would_wait():
     driver = Driver()
     shown: list[float] = []
     res = RobotMotionResource(driver, lambda updates, state: state and shown.append(state.v),  # type: ignore[arg-type]
-                              rate_hz=0.1, avoid_distance=0, clock=lambda: 0.0).start()
+                              rate_hz=0.1, avoid_distance=0, clock=lambda: 0.0)
+    holding = res._wake = Holding(res)
+    res.start()
     try:
         res.submit(Task(verb="BotMotion", preposition="velocity", params={"v": 0.2}, source="test"))
         assert driver.asked.wait(5.0), "the task's cycle sent no velocity"
@@ -72,9 +88,10 @@ def test_the_stack_cycles_on_the_sip_after_a_task_though_its_rate_would_wait():
         res._sip(driver.state)  # a moment after the task's cycle (the clock stands still)
         # (the rate would hold it 10 s: a wait of its own, beside the frozen clock's)
         assert wait(lambda: res.cycles == cycles + 1, 3.0), "no stack cycle on the SIP after the task's"
+        held = holding.held
         driver.state = sip(2, 0.2)  # a second SIP within the rate's period: no cycle for it
         res._sip(driver.state)
-        time.sleep(0.2)
+        assert wait(lambda: holding.held > held or res.cycles > cycles + 1), "the stack thread did not look at the SIP"
         assert res.cycles == cycles + 1
     finally:
         res.close()

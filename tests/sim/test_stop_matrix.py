@@ -28,6 +28,7 @@ from typing import Any
 import aiohttp
 import pytest
 
+from erni.blackboard.testing import wait_until
 from tests.sim.test_sim_cli import ROOT, SimProcess
 
 ROBOTS = ("robot1", "robot2", "robot3", "robot4")
@@ -125,13 +126,7 @@ class Team:
 
 
 def wait_for(check: Callable[[], Any], timeout: float, what: str) -> Any:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        got = check()
-        if got:
-            return got
-        time.sleep(0.02)
-    raise AssertionError(f"{what} within {timeout} s")
+    return wait_until(check, timeout, interval=0.02, message=f"{what} within {timeout} s")
 
 
 def open_team(sim: SimProcess, run: Path) -> Team:
