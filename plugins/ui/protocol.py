@@ -147,8 +147,7 @@ class PoseRow(_Out):
     """A robot's pose as the page draws it, rounded (sensor noise below this redraws nothing).
 
     A number that is not finite (in a Pose no validator checked: the codec's hot path trusts its
-    decoder) is held as None and goes to the page as null, as the server's JSON writer sent it
-    before these types: the page reads x, y or theta that is not a number as "position unreadable",
+    decoder) is held as None and goes to the page as null: the page reads x, y or theta that is not a number as "position unreadable",
     lists the robot as faulty and draws no pose of it on the map; v, w or battery as null shows "–".
     """
 

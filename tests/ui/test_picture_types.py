@@ -120,6 +120,12 @@ def scene(monkeypatch) -> Iterator[tuple[Agent, UIPlugin, dict[str, Any]]]:
                 {"t": WALL, "level": "dim", "text": "robot2: forward cancelled \u2014 cancelled from the GUI"},
             ],
         }
+        # the cancel's log line may come a run after the cancelled row: let the page's state settle on it
+        # (should it never, the test's comparisons say how it differs)
+        try:
+            wait_until(lambda: ui.server.state() == before, timeout=10)
+        except AssertionError:
+            pass
         yield agent, ui, before
 
 
