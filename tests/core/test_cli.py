@@ -95,7 +95,16 @@ def set_with_a_second_signal_inside(self):
         self._cond.notify_all()
 
 threading.Event.set = set_with_a_second_signal_inside
-threading.Timer(1.5, lambda: (armed.append(1), os.kill(os.getpid(), signal.SIGTERM))).start()
+from erni.blackboard import heap
+trim = heap.trim
+
+def trim_then_arm():
+    # start-up's last step: the agent's signal handlers are in place, so the burst comes after it (a
+    # signal before running was set abandons the start: the same handler, the same exit 0)
+    threading.Timer(0.5, lambda: (armed.append(1), os.kill(os.getpid(), signal.SIGTERM))).start()
+    return trim()
+
+heap.trim = trim_then_arm
 sys.exit(main(["agent", "examples/robot.toml", "--log-level", "WARNING"]))
 '''
 
@@ -107,13 +116,15 @@ from erni.cli import main
 
 trimmed = []
 trim = heap.trim
-heap.trim = lambda: trimmed.append(trim()) or trimmed[-1]
 
-def report():
+def trim_then_report():
+    # start-up's last step (after the freeze): report, then stop the agent, whose handlers are in place
+    trimmed.append(trim())
     print(gc.get_freeze_count(), len(gc.get_objects()), len(trimmed), flush=True)
     os.kill(os.getpid(), signal.SIGTERM)
+    return trimmed[-1]
 
-threading.Timer(2.0, report).start()
+heap.trim = trim_then_report
 sys.exit(main(["agent", "examples/robot.toml", "--log-level", "ERROR"]))
 """
 
