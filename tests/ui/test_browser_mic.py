@@ -10,7 +10,7 @@ import os
 import shutil
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -61,6 +61,39 @@ def start_control(settings: dict[str, Any]) -> tuple[Agent, UIPlugin]:
     with agent.transaction() as tx:
         tx.add(Pose(robot="robot1", x=0.0, y=0.0))
     return agent, ui  # type: ignore[return-value]
+
+
+def streamed(ui: UIPlugin, monkeypatch: pytest.MonkeyPatch) -> Callable[[], float]:
+    """Count the audio the page streams to the recogniser: return a function giving the seconds of it
+    received so far (16 kHz, 16-bit mono)."""
+    listener = ui.listener
+    assert listener is not None, ui.speech_error
+    got = [0]
+    feed = listener.feed
+
+    def counted(source: str, pcm: bytes) -> None:
+        got[0] += len(pcm)
+        feed(source, pcm)
+
+    monkeypatch.setattr(listener, "feed", counted)
+    return lambda: got[0] / (2 * RATE)
+
+
+def heard_everything(ui: UIPlugin, timeout: float = 30.0) -> None:
+    """Wait until the recogniser has heard all the audio the page streamed and the UI's answers are
+    committed and shown. The page's microphone is off once its utterance was flushed (its stream is
+    gone); a flush of a source of our own queued after that is taken off the queue only when the
+    page's last utterance was heard (one thread hears them in turn); a marker handed to the UI then
+    runs after the runs that answered it, and its picture holds the tasks they sent."""
+    listener = ui.listener
+    assert listener is not None
+    wait_until(lambda: not ui.mic_clients and not listener.streams, timeout=timeout,
+               message="the page's microphone was not turned off and flushed")
+    listener.end_utterance("test")
+    wait_until(listener.queue.empty, timeout=timeout, message="the recogniser did not hear what it was given")
+    done = threading.Event()
+    ui.later(lambda: ui.after_commit(done.set))
+    assert done.wait(timeout), f"the UI did not run within {timeout} s"
 
 
 def open_with_microphone(wav: Path, url: str, body: Any) -> Any:
@@ -164,6 +197,7 @@ def test_spoken_commands_streamed_in_real_time_through_the_page_do_only_what_was
     wav = write_wav(tmp_path / "session.wav", pcm, RATE)
     seconds = len(pcm) / RATE
     agent, ui = start_control({})
+    received = streamed(ui, monkeypatch)
     with agent.transaction() as tx:
         for name in ("robot2", "robot3"):
             tx.add(Pose(robot=name, x=1.0, y=1.0))
@@ -172,7 +206,9 @@ def test_spoken_commands_streamed_in_real_time_through_the_page_do_only_what_was
             page.wait_for_selector("#mic:not([disabled])", timeout=20000)
             page.click("#mic")
             page.wait_for_selector("#mic.on")
-            time.sleep(seconds - 0.5)  # one pass of the file, in real time (Chromium loops it)
+            # one pass of the file, as the control node receives it (Chromium loops it)
+            wait_until(lambda: received() >= seconds - 0.5, timeout=seconds + 60,
+                       message=f"the {seconds:.1f} s session did not reach the recogniser in one pass")
             # on a loaded machine the stream runs behind the file: the mic stays on until the session's
             # last command, its second stop, has been heard (a loop's replay says nothing new)
             with contextlib.suppress(AssertionError):
@@ -181,7 +217,7 @@ def test_spoken_commands_streamed_in_real_time_through_the_page_do_only_what_was
             page.click("#mic")
 
         open_with_microphone(wav, ui.url, body)
-        time.sleep(2.0)
+        heard_everything(ui)
         tasks = [(t.preposition, t.destination, t.params.model_dump().get("angle")) for t in agent.query(Task)]
         log = [line["text"] for line in ui.server.state()["log"] if line["text"].startswith("voice:")]
     finally:
@@ -217,30 +253,32 @@ def test_a_confident_command_to_two_robots_streamed_through_the_page_waits_for_t
     pcm = np.frombuffer(S.as_heard(np.concatenate(parts), None, rng), dtype="<i2")
     wav = write_wav(tmp_path / "read-back.wav", pcm, RATE)
     seconds = len(pcm) / RATE
-    from erni.blackboard import Task
-
     agent, ui = start_control({})
+    received = streamed(ui, monkeypatch)
     ui.spoken.listening = True
     with agent.transaction() as tx:
         for name in ("robot2", "robot3"):
             tx.add(Pose(robot=name, x=1.0, y=1.0))
-    published: dict[str, float] = {}  # uid of each clear -> when it was first on the control node's blackboard
-    watching = threading.Event()
+    # uid of each clear -> when the UI put it on the control node's blackboard (its run commits it next);
+    # a clear that got there any other way has no time here and fails the check below
+    published: dict[str, float] = {}
+    send = ui._send
 
-    def watch() -> None:
-        while not watching.wait(0.02):
-            for t in agent.query(Task):
-                if t.preposition == "clear":
-                    published.setdefault(t.uid, time.time())
+    def sending(action: str, tasks: list[Any]) -> None:
+        for t in tasks:
+            if t.preposition == "clear":
+                published.setdefault(t.uid, time.time())
+        send(action, tasks)
 
-    watcher = threading.Thread(target=watch, daemon=True)
-    watcher.start()
+    monkeypatch.setattr(ui, "_send", sending)
     try:
         def body(page: Any) -> None:
             page.wait_for_selector("#mic:not([disabled])", timeout=20000)
             page.click("#mic")
             page.wait_for_selector("#mic.on")
-            time.sleep(seconds - 0.5)  # one pass of the file, in real time (Chromium loops it)
+            # one pass of the file, as the control node receives it (Chromium loops it)
+            wait_until(lambda: received() >= seconds - 0.5, timeout=seconds + 60,
+                       message=f"the {seconds:.1f} s session did not reach the recogniser in one pass")
             page.click("#mic")
 
         open_with_microphone(wav, ui.url, body)
@@ -248,14 +286,12 @@ def test_a_confident_command_to_two_robots_streamed_through_the_page_waits_for_t
             wait_until(lambda: any("everybody stop" in line["text"] for line in ui.server.state()["log"]), timeout=20)
         except AssertionError:
             pass  # the assertions below say what was heard
-        time.sleep(0.5)
+        heard_everything(ui)
         state = ui.server.state()
         tasks = state["tasks"]  # sent, running or not (a stop supersedes the clear: its row stays)
         everything = [line["text"] for line in state["log"]]
         log = [(line["t"], line["text"]) for line in state["log"] if line["text"].startswith("voice:")]
     finally:
-        watching.set()
-        watcher.join(5)
         agent.stop()
     said = [text for _, text in log]
     print(everything)
