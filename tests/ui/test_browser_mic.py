@@ -144,7 +144,7 @@ def test_the_page_streams_its_microphone_as_16k_mono_pcm(tmp_path, recorder):
     with recorder.lock:
         pcm = bytes(recorder.pcm)
     assert len(pcm) % 2 == 0 and recorder.threads == {"ui-speech"}
-    second = pcm[RATE * 2 // 2: RATE * 2 // 2 + RATE * 2]  # one second, past the start-up
+    second = pcm[RATE * 2: 2 * RATE * 2]  # the second second: past the start-up (slower on a loaded machine)
     assert dominant_hz(second) == pytest.approx(440.0, abs=5)  # 16 kHz: a 440 Hz tone stays at 440 Hz
     level = np.abs(np.frombuffer(second, dtype="<i2")).max()
     assert 3000 < level < 20000  # a mono signal at the file's level, not silence or clipping
