@@ -15,7 +15,10 @@ An endpoint is these parts, each a module a reader can take alone:
   handshake, answer, refusal, beacon), frames in, messages out;
 - `codec.py` and `wire.py`: frames, envelopes and typed bodies;
 - here: construction and life cycle, `send`, the acknowledgement of reliable messages and what the
-  parts above need of each other.
+  parts above need of the endpoint. The endpoint holds each sending part (`fast`, `reliable`,
+  `beacons`, `pool`) and hands each, in its constructor, what it uses: the queues they share
+  (`outbox.SendQueues`), the wire, the clocks, settings, and itself as the narrow `Protocol` each
+  part declares for what it needs back (its counters, frames, reports).
 
 Every message to a peer travels in a session with that peer's current instance: the first
 message to an address starts a handshake, which the sender pool drives without blocking (the
@@ -37,14 +40,13 @@ from __future__ import annotations
 import base64
 import errno
 import functools
-import itertools
 import logging
 import os
 import random
 import socket
 import threading
-from collections import OrderedDict, deque
-from collections.abc import Callable
+from collections import OrderedDict
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -54,12 +56,12 @@ from pydantic_core import to_json
 from erni.blackboard.clock import SYSTEM
 from erni.blackboard.errors import ConfigError, NetworkError
 from erni.logs import RateLimitedLog
-from erni.transport.batching import FastMessages
+from erni.transport.batching import FastMessages, item_of
 from erni.transport.discovery import Beacons
 from erni.transport.identity import Identity
 from erni.transport.inbound import INTERNAL, Accepted, FramePath
 from erni.transport.limits import Limits, TokenBucket
-from erni.transport.outbox import Dest, Outgoing, SenderPool
+from erni.transport.outbox import Dest, MessageIds, Outgoing, SenderPool, SendQueues
 from erni.transport.receiver import Receiver, close
 from erni.transport.reliable import ReliableDelivery
 from erni.transport.session import Auth, IdentityAuth, Initiation, Session, TeamKeyAuth
@@ -75,6 +77,7 @@ from erni.transport.wire import (
     SeenIds,
     encode_body,
     envelope_bytes,
+    head_bytes,
     join_envelope,
 )
 from erni.transport.wires import UdpTcpWire, Wire
@@ -127,7 +130,7 @@ def parse_address(text: str, default_port: int = 0) -> Address:
     return host, number
 
 
-class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
+class Endpoint:
     """Sockets and threads of one agent; deliver verified messages to `on_message`.
 
     Give an `identity` (per-agent certificate), or a shared team `key`, or `insecure=True`.
@@ -181,8 +184,7 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
         self.inbound_filter = inbound_filter
         self.limits = limits or Limits()
         self.inst = os.urandom(16).hex()
-        self._seq = itertools.count(1)
-        self._id_prefix = os.urandom(6).hex() + "."  # message ids: unique per instance, cheap (no uuid)
+        self.ids = MessageIds(os.urandom(6).hex() + ".")  # message ids: unique per instance, cheap (no uuid)
         self.log = logging.getLogger(f"erni.{name}.transport")
         self._drops = RateLimitedLog(self.log)
         self.counters: dict[str, int] = {}
@@ -192,19 +194,11 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
         self.sessions = SessionTable(self, self.auth, name, self.inst, self.limits, max_frame, self.handshake_timeout,
                                  identity, self.revocations, self.log)
         self._beacon_bucket = TokenBucket(self.limits.beacons_total, clock=self.pace)
-        self.inbound = FramePath(self, self._on_beacon)  # inbound.py: frames in, messages out
         self._clients: OrderedDict[Address, None] = OrderedDict()  # reply addresses of command-line clients heard
-        # sender pool
-        self._dests: dict[Address, Dest] = {}
-        self._fast_at: dict[Address, float] = {}  # destination -> when the caller's last status to it was handled
-        self._heads: dict[str, bytes] = {}  # peer -> the envelope head of messages to it (`_head`)
-        self._head_opens: dict[str, bytes] = {}  # peer -> that head, open for one message's fields (`_head_open`)
-        self._cond = threading.Condition()
-        self._ready: deque[Dest] = deque()
-        self._delayed: list[tuple[float, int, int, Dest]] = []
-        self._tick = itertools.count()
+        self._heads: dict[str, bytes] = {}  # peer -> the envelope head of messages to it (`head`)
+        self._head_opens: dict[str, bytes] = {}  # peer -> that head, open for one message's fields (`head_open`)
+        self.queues = SendQueues(self, queue_limit, pace)  # what the sending parts share (outbox.py)
         self._threads: list[threading.Thread] = []
-        self._stopping = False
         self.on_message: Callable[[Message], None] = lambda msg: None
         self.on_undeliverable: Callable[[Address, str, str, Any], None] = lambda addr, id, kind, body: None
         self.on_delivered: Callable[[Address, str], None] = lambda addr, id: None
@@ -214,8 +208,21 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
         self.hint_wanted: Callable[[str], bool] | None = None
         # the agent of this name has left (a wire that tells, as Zenoh's liveliness does; UDP never calls it)
         self.on_gone: Callable[[str], None] = lambda name: None
-        self.carrier: Wire = UdpTcpWire(self)  # the wire the frames travel on (zenoh_wire.ZenohWire on Zenoh)
+        self.carrier: Wire = self._make_wire()  # the wire the frames travel on (zenoh_wire.ZenohWire on Zenoh)
         self.wire = self.carrier.name
+        secure = self.auth is not None
+        self.fast = FastMessages(self.queues, self.ids, self.carrier, self.sessions, self, secure=secure,
+                                 udp_frame=self._udp_frame, pace=pace)  # batching.py
+        self.reliable = ReliableDelivery(self.queues, self.carrier, self.sessions, self, self._clients, secure=secure,
+                                         clock=clock, pace=pace, limits=self.limits, max_frame=max_frame,
+                                         ack_timeout=ack_timeout, connect_timeout=connect_timeout,
+                                         retry_base=retry_base, retry_max=retry_max, log=self.log)  # reliable.py
+        self.beacons = Beacons(self.carrier, self, self.auth, self._beacon_bucket, name=name, inst=self.inst,
+                               max_frame=max_frame)  # discovery.py
+        self.pool = SenderPool(self.queues, self.carrier, self.sessions, self, self.fast, self.reliable, self.beacons,
+                               secure=secure, clock=clock, pace=pace, handshake_timeout=self.handshake_timeout,
+                               retry_max=retry_max, log=self.log)  # outbox.py
+        self.inbound = FramePath(self, self.beacons.on_beacon)  # inbound.py: frames in, messages out
         # reliable kinds acknowledged only when the owner calls the message's `ack` (a task: once the
         # agent's journal holds it); any other is acknowledged as it arrives
         self.held_kinds: frozenset[str] = frozenset()
@@ -223,11 +230,29 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
         self._held_lock = threading.Lock()
         watch = getattr(clock, "on_advance", None)
         if callable(watch):  # a test's clock moved: the senders look again at what has expired
-            watch(self._clock_moved)
+            watch(self.queues.wake_all)
 
-    def _clock_moved(self) -> None:
-        with self._cond:
-            self._cond.notify_all()
+    def _make_wire(self) -> Wire:
+        """The wire this endpoint's frames travel on (a subclass for another wire makes its own)."""
+        return UdpTcpWire(self)
+
+    # -- the state the parts share, by its former names (tests read them) ------------------------
+
+    @property
+    def _cond(self) -> threading.Condition:
+        return self.queues.cond
+
+    @property
+    def _dests(self) -> dict[Address, Dest]:
+        return self.queues.dests
+
+    @property
+    def _seq(self) -> Iterator[int]:
+        return self.ids.seq
+
+    @_seq.setter
+    def _seq(self, seq: Iterator[int]) -> None:  # a test numbers its messages from elsewhere
+        self.ids.seq = seq
 
     # -- counters -------------------------------------------------------------------------
 
@@ -240,7 +265,7 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
 
     def start(self) -> None:
         """Bind the sockets and start the receive thread and the sender pool (NetworkError if it cannot)."""
-        self._stopping = False
+        self.queues.stopping = False
         self._tcp, self._udp = self._bind_pair()
         self._tcp.listen(128)
         self._tcp.setblocking(False)
@@ -267,11 +292,8 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
         udp = threading.Thread(target=receiver.run_datagrams, name=f"erni-{self.name}-net-udp", daemon=True)
         rx.start()
         udp.start()
-        self._threads = [rx, udp]
-        for i in range(self.senders):
-            t = threading.Thread(target=self._send_loop, name=f"erni-{self.name}-net-tx-{i}", daemon=True)
-            t.start()
-            self._threads.append(t)
+        self._threads = [rx, udp] + self.pool.start(f"erni-{self.name}-net-tx", self.senders)
+        self.queues.started = True
 
     def receive_buffer(self, size: int) -> int:
         """Ask the kernel for a UDP receive buffer of `size` bytes (beyond `net.core.rmem_max` where
@@ -318,9 +340,7 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
         """Stop every thread and close every socket."""
         if not self._threads:
             return
-        with self._cond:
-            self._stopping = True
-            self._cond.notify_all()
+        self.queues.stop()
         try:
             self._wake_w.send(b"x")
         except OSError:
@@ -330,14 +350,15 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
         for t in self._threads:
             t.join(max(0.0, deadline - self.pace()))
         self._threads = []
-        for dest in self._dests.values():
+        self.queues.started = False
+        for dest in self.queues.dests.values():
             close(dest.sock)
             dest.sock = None
         for s in (self._udp, self._tcp, self._disc, self._wake_r, self._wake_w):
             close(s)
 
     def _wake_udp(self) -> None:
-        """Wake the thread blocked in the UDP socket's recvfrom, so that it sees `_stopping`: shut
+        """Wake the thread blocked in the UDP socket's recvfrom, so that it sees `stopping`: shut
         the socket for reading (Linux wakes its readers even for an unconnected datagram socket) and,
         in case that does not, send it an empty datagram."""
         try:
@@ -366,25 +387,13 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
         self._filter(sender, role)
 
     def session_up(self, session: Session) -> None:
-        with self._cond:
-            dest = self._dests.get(session.addr)
-            if dest is not None:
-                dest.hs_backoff = dest.hs_not_before = 0.0
-                dest.hs_failures = 0
-                if dest.has_work():
-                    self._make_ready(dest)
+        self.pool.session_up(session)
 
     def session_lost(self, addr: Address) -> None:
-        with self._cond:
-            dest = self._dests.get(addr)
-            if dest is not None and dest.has_work():
-                self._make_ready(dest)
+        self.pool.session_lost(addr)
 
     def handshake_done(self, init: Initiation) -> None:
-        with self._cond:
-            dest = self._dests.get(init.addr)
-            if dest is not None and dest.handshake is init:
-                dest.handshake = None
+        self.pool.handshake_done(init)
 
     def send_crl(self, session: Session, der: bytes) -> None:
         self.send(session.addr, "crl", base64.b64encode(der).decode(), reliable=True, to=session.peer)
@@ -396,81 +405,92 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
         """Queue a message for `addr` (the agent `to`, when known); return its id. Never blocks."""
         if reliable:
             return self._enqueue(addr, kind, body, "reliable", msg_id, ttl, to)
-        return self._send_status(addr, kind, body, msg_id, ttl, to)  # batching.py
+        return self.fast.send_status(addr, kind, body, msg_id, ttl, to)  # batching.py
+
+    def send_fanout(self, targets: Sequence[tuple[Address, str]], kind: str, body: Any) -> str:
+        """Send one status to each `(address, agent)` of `targets`, as one message: sealed for each
+        peer in session at once (`FastMessages.fanout`), through `send` for the others; its id."""
+        msg_id, later = self.fast.fanout(targets, kind, body)
+        for addr, to in later:
+            self.send(addr, kind, body, reliable=False, msg_id=msg_id, to=to)
+        return msg_id
+
+    def announce(self, addr: Address, kind: str, body: BaseModel | Any = None) -> str:
+        """Queue a signed, sessionless datagram for receivers not known yet (beacons, discovery.py)."""
+        return self._enqueue(addr, kind, body, "announce", None, None, None)
 
     def _enqueue(self, addr: Address, kind: str, body: Any, lane: str, msg_id: str | None,
                  ttl: float | None, to: str | None) -> str:
-        seq = next(self._seq)
-        msg_id = msg_id or f"{self._id_prefix}{seq:x}"
+        seq = next(self.ids.seq)
+        msg_id = msg_id or f"{self.ids.prefix}{seq:x}"
         type_name, data = encode_body(body)
-        out = self._outgoing(msg_id, kind, type_name, body, data, seq, ttl, to)
+        out = self.outgoing(msg_id, kind, type_name, body, data, seq, ttl, to)
         if lane == "fast":
-            if not self._send_now(addr, out):  # it also notes when (`_fast_at`): a burst is told by the time
+            if not self.fast.send_now(addr, out):  # it also notes when (`fast_at`): a burst is told by the time
                 self._queue(addr, out, lane)  # until the next
         elif lane != "reliable" or not self.carrier.write_now(addr, out):
             self._queue(addr, out, lane)
         return out.id
 
-    def _outgoing(self, msg_id: str, kind: str, type_name: str | None, body: Any, data: bytes, seq: int,
-                  ttl: float | None, to: str | None) -> Outgoing:
+    def _queue(self, addr: Address, out: Outgoing, lane: str) -> None:
+        """Queue a message for the sender pool (`SendQueues.queue`); a reliable one refused (its
+        queue is full) is reported undeliverable."""
+        if not self.queues.queue(addr, out, lane):
+            self.on_undeliverable(addr, out.id, out.kind, out.body)
+
+    # -- what the parts need of this endpoint (`FrameMaker`, `Deliveries`, `BeaconHost`) ------
+
+    def outgoing(self, msg_id: str, kind: str, type_name: str | None, body: Any, data: bytes, seq: int,
+                 ttl: float | None, to: str | None) -> Outgoing:
         """A message to queue or send: it expires `ttl` (the endpoint's own by default) from now."""
         return Outgoing(msg_id, kind, type_name, body, data, seq, self.clock() + (ttl or self.ttl), to or "")
 
-    def _queue(self, addr: Address, out: Outgoing, lane: str) -> None:
-        """Queue a message for the sender pool (a reliable one is refused when its queue is full; the
-        fast and announcement queues drop their oldest)."""
-        msg_id, kind = out.id, out.kind
-        undeliverable = False
-        with self._cond:
-            if self._stopping:
-                return
-            dest = self._dest_for(addr)
-            if lane == "reliable":
-                if len(dest.reliable) >= self.queue_limit:
-                    self.count("dropped.queue_full")
-                    self._drops.warning("queue", f"reliable queue to {addr[0]}:{addr[1]} is full "
-                                        f"({self.queue_limit}); refusing {kind} {msg_id}")
-                    undeliverable = True
-                else:
-                    dest.reliable.append(out)
-            else:
-                queue = dest.fast if lane == "fast" else dest.announce
-                if len(queue) >= self.queue_limit:
-                    queue.popleft()
-                    self.count("dropped.fast_oldest")
-                queue.append(out)
-            if not undeliverable:
-                self._make_ready(dest)
-        if undeliverable:
-            self.on_undeliverable(addr, msg_id, kind, out.body)
-
-    def _caller_session(self, addr: Address, out: Outgoing) -> tuple[bool, Session | None]:
-        """Whether the caller's thread may send `out` to `addr` itself, and the session to seal it in.
-
-        Not while starting or stopping, and only in a confirmed session with the intended peer: a
-        handshake to drive, or a wrong peer to report, is the sender pool's work.
-        """
-        if not self._threads or self._stopping:
-            return False, None
-        if self.auth is None:
-            return True, None
-        session = self.sessions.usable(addr)
-        if session is None:
-            return False, None
-        return not (out.to and out.to != session.peer), session
-
-    def _envelope(self, out: Outgoing, to: str) -> bytes:
+    def envelope(self, out: Outgoing, to: str) -> bytes:
         return envelope_bytes(self.name, self.role, to, self.inst, self.address, out.seq, out.id, out.kind,
                               out.type, out.data)  # our own fields: no need to validate
 
-    def _frame(self, out: Outgoing, session: Session | None, max_frame: int) -> bytes:
+    def frame(self, out: Outgoing, session: Session | None, max_frame: int) -> bytes:
         if session is None:
-            payload = self._envelope(out, out.to)
+            payload = self.envelope(out, out.to)
             length = 1 + len(payload)
             if HEADER.size + length > max_frame:
                 raise FrameError("size", f"frame of {HEADER.size + length} bytes exceeds the limit of {max_frame}")
             return KIND.pack(length, PLAIN) + payload
-        return session.seal(join_envelope(self._head(session.peer), self._item(out)), max_frame)
+        return session.seal(join_envelope(self.head(session.peer), item_of(out)), max_frame)
+
+    def head(self, peer: str) -> bytes:
+        """The envelope head of every message to `peer` (our own fields, made once per peer)."""
+        head = self._heads.get(peer)
+        if head is None:
+            if len(self._heads) >= 4096:
+                self._heads.clear()
+            head = self._heads[peer] = head_bytes(self.name, self.role, peer, self.inst, self.address)
+        return head
+
+    _head = head  # the former name (a test reads a peer's head with it)
+
+    def head_open(self, peer: str) -> bytes:
+        """`head` without its closing brace, and a comma: the start of one message's envelope."""
+        head = self._head_opens.get(peer)
+        if head is None:
+            if len(self._head_opens) >= 4096:
+                self._head_opens.clear()
+            head = self._head_opens[peer] = self.head(peer)[:-1] + b","
+        return head
+
+    def report_delivered(self, addr: Address, msg_id: str) -> None:
+        self.on_delivered(addr, msg_id)
+
+    def report_undeliverable(self, addr: Address, msg_id: str, kind: str, body: Any) -> None:
+        self.on_undeliverable(addr, msg_id, kind, body)
+
+    def tcp_write_now(self, addr: Address, out: Outgoing) -> bool:
+        """Write a reliable message on its idle connection from the caller's thread (`ReliableDelivery.write_now`)."""
+        return self.reliable.write_now(addr, out)
+
+    def tcp_deliver(self, dest: Dest, out: Outgoing, session: Session | None) -> bool:
+        """Deliver a reliable message over TCP on a sender thread (`ReliableDelivery.tcp_deliver`)."""
+        return self.reliable.tcp_deliver(dest, out, session)
 
     def send_udp(self, frame: bytes, addr: Address) -> None:
         """A datagram on this endpoint's UDP socket (`UdpTcpWire.sendto`), never waiting."""
@@ -480,8 +500,6 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
         self._udp.sendto(frame, socket.MSG_DONTWAIT, addr)
 
     _sendto = send_udp  # the former name (a test sends a crafted datagram with it)
-
-    # -- receiving ------------------------------------------------------------------------
 
     # -- receiving (inbound.py) -----------------------------------------------------------
 
@@ -507,7 +525,7 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
 
     @property
     def stopping(self) -> bool:
-        return self._stopping
+        return self.queues.stopping
 
     def deliver(self, msg: Message) -> None:
         if msg.kind not in INTERNAL:
@@ -566,9 +584,9 @@ class Endpoint(FastMessages, ReliableDelivery, Beacons, SenderPool):
         self.count("acks.held")
 
     def ack_frame(self, msg: Message, session: Session | None) -> bytes:
-        seq = next(self._seq)
-        ack = Outgoing(f"{self._id_prefix}{seq:x}", "ack", None, msg.id, to_json(msg.id), seq, 0.0, msg.sender)
-        return self._frame(ack, session, self.max_frame)
+        seq = next(self.ids.seq)
+        ack = Outgoing(f"{self.ids.prefix}{seq:x}", "ack", None, msg.id, to_json(msg.id), seq, 0.0, msg.sender)
+        return self.frame(ack, session, self.max_frame)
 
     def dispatch(self, msg: Message) -> None:
         if msg.role == CLIENT_ROLE and msg.reply not in self._clients:

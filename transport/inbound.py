@@ -84,7 +84,7 @@ class FramePath:
 
     def __init__(self, host: FrameHost, on_beacon: Handler) -> None:
         self.host = host
-        self._on_beacon = on_beacon  # discovery.py: a signed beacon of an agent not in session
+        self._on_beacon = on_beacon  # discovery.py (`Beacons.on_beacon`): a signed beacon of an agent not in session
         self._last_fault = -1e9  # when a fault of the frame path was last logged (monotonic)
         self._by_kind = self._handlers()
 

@@ -53,7 +53,7 @@ class UdpTcpWire:
         self.endpoint.send_udp(frame, addr)
 
     def write_now(self, addr: Address, out: Outgoing) -> bool:
-        return self.endpoint.tcp_write_now(addr, out)
+        return self.endpoint.reliable.write_now(addr, out)
 
     def deliver(self, dest: Dest, out: Outgoing, session: Session | None) -> bool:
-        return self.endpoint.tcp_deliver(dest, out, session)
+        return self.endpoint.reliable.tcp_deliver(dest, out, session)

@@ -44,6 +44,7 @@ from erni.transport.outbox import Dest, Outgoing
 from erni.transport.receiver import HEADER_KIND
 from erni.transport.session import Session
 from erni.transport.wire import DATA, KIND, FrameError, Message
+from erni.transport.wires import Wire
 from erni.transport.zenoh_keys import ALIVE, DATAGRAM, RELIABLE, Keys, ZenohSettings, address_of, name_at
 
 Address = tuple[str, int]
@@ -153,8 +154,6 @@ class ZenohEndpoint(Endpoint):
         self.zenoh_settings = zenoh_settings
         self.keys = Keys(zenoh_settings.team)
         self._zs: zenoh.Session | None = None
-        self.zenoh_wire = ZenohWire(self)
-        self.carrier = self.zenoh_wire  # puts and queries instead of UDP datagrams and TCP streams
         self._alive: dict[str, set[tuple[str, str]]] = {}  # agent -> (instance, router) of its tokens held now
         self._routes: dict[str, str] = {}  # agent -> the router its newest token names ('' direct)
         self._router_names: dict[str, str] = {}  # a router's Zenoh id -> its name, from its token
@@ -166,7 +165,12 @@ class ZenohEndpoint(Endpoint):
         self._rx: threading.Thread | None = None  # the datagram thread (`_receive_loop`)
         self._next_open = 0.0  # when to try again to open a session that could not be opened (monotonic)
         self._declared: list[Any] = []  # subscribers, queryable, token: undeclared at stop
-        self.wire = self.carrier.name
+
+    def _make_wire(self) -> Wire:
+        """Puts and queries instead of UDP datagrams and TCP streams (made while `Endpoint.__init__`
+        builds the parts that send on it)."""
+        self.zenoh_wire = ZenohWire(self)
+        return self.zenoh_wire
 
     # -- life cycle -----------------------------------------------------------------------
 
@@ -175,7 +179,7 @@ class ZenohEndpoint(Endpoint):
         start the sender pool (NetworkError if Zenoh refuses). An agent in client mode whose routers
         are not reachable yet starts all the same and tries again every `RECONNECT` seconds (a
         command-line client fails at once); once connected, Zenoh itself reconnects after a loss."""
-        self._stopping = False
+        self.queues.stopping = False
         self._halt.clear()
         try:
             self._attach(open_session(self.zenoh_settings, identity=self.identity))
@@ -186,11 +190,8 @@ class ZenohEndpoint(Endpoint):
             self._next_open = self.pace() + RECONNECT
         sweeper = threading.Thread(target=self._sweep_loop, name=f"erni-{self.name}-zenoh-sweep", daemon=True)
         sweeper.start()
-        self._threads = [sweeper]
-        for i in range(self.senders):
-            t = threading.Thread(target=self._send_loop, name=f"erni-{self.name}-net-tx-{i}", daemon=True)
-            t.start()
-            self._threads.append(t)
+        self._threads = [sweeper] + self.pool.start(f"erni-{self.name}-net-tx", self.senders)
+        self.queues.started = True
 
     def _attach(self, zs: zenoh.Session) -> None:
         """Declare this agent's subscriber, queryable, token and token subscriber on a new session."""
@@ -216,9 +217,7 @@ class ZenohEndpoint(Endpoint):
         """Stop the sender pool, undeclare the token (peers see this agent go) and close the session."""
         if not self._threads:
             return
-        with self._cond:
-            self._stopping = True
-            self._cond.notify_all()
+        self.queues.stop()
         self._halt.set()
         deadline = self.pace() + timeout
         for t in self._threads[:1]:  # the sweeper: it may be attaching a session
@@ -234,6 +233,7 @@ class ZenohEndpoint(Endpoint):
         for t in self._threads[1:] + ([self._rx] if self._rx is not None else []):
             t.join(max(0.0, deadline - self.pace()))
         self._threads, self._rx = [], None
+        self.queues.started = False
         zs, self._zs = self._zs, None
         self.zenoh_wire.forget_publishers()
         if zs is not None:
@@ -310,7 +310,7 @@ class ZenohEndpoint(Endpoint):
                     if len(sources) >= 4096:
                         sources.clear()
                     sources[key] = src
-                if self._stopping:
+                if self.queues.stopping:
                     pass
                 elif src is None:
                     self.count("dropped.key")
@@ -328,7 +328,7 @@ class ZenohEndpoint(Endpoint):
         """A reliable frame: acknowledge each message in the reply, then hand it on once."""
         sender = self.keys.sender_of(str(query.key_expr))
         payload = query.payload
-        if self._stopping:
+        if self.queues.stopping:
             return
         if sender is None or payload is None:
             self.count("dropped.key")
@@ -494,7 +494,7 @@ class ZenohWire:
 
     def deliver(self, dest: Dest, out: Outgoing, session: Session | None) -> bool:
         """Query the receiver with the sealed frame; True when a reply acknowledges `out`."""
-        frame = self.endpoint._frame_or_drop(dest, out, session)
+        frame = self.endpoint.reliable.frame_or_drop(dest, out, session)
         if frame is None:
             return True
         name = name_at(dest.addr)
@@ -520,5 +520,5 @@ class ZenohWire:
             return False
         self.endpoint.count("zenoh.unanswered")
         if not answered and dest.addr in self.endpoint._clients:
-            self.endpoint._client_gone(dest)  # nothing answers for a command-line client: it exited
+            self.endpoint.reliable.client_gone(dest)  # nothing answers for a command-line client: it exited
         return False
