@@ -3,7 +3,7 @@
 An authenticated peer is not an authorized one, and an authorized one may still be hostile or
 broken: a robot's key that sends 20,000 `NetInfo` objects under fresh uids, a client that gives
 10,000 tasks, a Zenoh router without access control that lets anyone declare liveliness tokens in
-fresh names. `SenderBounds` counts, for the transport plugin (`bridge.py`):
+fresh names. `SenderBounds` counts, for the transport plugin (`plugin.py`):
 
 - status objects held per sender and type, in number and in bytes (their JSON), for the types
   whose uid the policy leaves free (a `Pose`, a `Peer`, a `Territory` has one uid per sender:

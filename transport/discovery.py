@@ -6,7 +6,7 @@ by the sender pool (`Beacons.send_beacon`). A beacon heard is a hint of presence
 replayable): its signature is checked only when the owner wants the hint (`hint_wanted`: not for
 a peer already in session) and at most `limits.beacons_total` a second. The peers' liveliness
 (in-session beacons, silences, the numbered beacons of `liveness.py`) is the transport plugin's
-(`bridge.py`).
+(`presence.py`).
 """
 
 from __future__ import annotations

@@ -16,10 +16,10 @@ from typing import Any
 import pytest
 
 from erni.blackboard import TaskState
+from erni.blackboard.schemas import ResultUpdate
 from erni.blackboard.testing import wait_until
 from erni.sim.scenario import Scenario
 from erni.sim.team import Team
-from erni.transport.bridge import ResultUpdate
 
 pytestmark = [pytest.mark.fault, pytest.mark.slow]
 

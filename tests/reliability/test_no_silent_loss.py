@@ -12,8 +12,8 @@ import pytest
 
 from erni.blackboard import Agent, Peer, Pose, Task, TaskState
 from erni.blackboard.testing import wait_until
-from erni.transport.bridge import Received
 from erni.transport.plugin import TransportPlugin
+from erni.transport.tasking import Received
 from tests.transport.helpers import HeldClock, auth_settings, free_port, make_agent
 
 

@@ -8,10 +8,10 @@ import time
 import pytest
 
 from erni.blackboard import Task, TaskState
+from erni.blackboard.schemas import ResultUpdate
 from erni.blackboard.testing import wait_until
 from erni.sim.scenario import Scenario
 from erni.sim.team import CONTROL, Team, TeamError
-from erni.transport.bridge import ResultUpdate
 
 FAST = {"beacon_period": 0.3, "peer_timeout": 1.5, "task_ttl": 10.0}
 

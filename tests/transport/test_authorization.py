@@ -122,7 +122,7 @@ def test_a_relayed_task_keeps_its_originator_and_a_relay_must_be_allowed_to_rela
     finally:
         client.endpoint.stop()
     # a robot that claims to relay the operator's task is no relay
-    from erni.transport.bridge import Relayed
+    from erni.transport.tasking import Relayed
 
     mallory = holder("robot2")
     forged = goto("robot1", source="cli")

@@ -172,7 +172,7 @@ def test_a_robot_may_not_task_another_robot_as_the_control_node(team, router):
 def test_a_bad_zenoh_setting_is_named_in_one_line(settings, expected):
     from pydantic import ValidationError
 
-    from erni.transport.bridge import TransportSettings
+    from erni.transport.settings import TransportSettings
 
     with pytest.raises(ValidationError) as err:
         TransportSettings(insecure=True, **settings)
@@ -417,7 +417,7 @@ def test_without_the_zenoh_package_the_agent_says_what_to_install_in_one_line():
 
     code = ("import sys\nsys.modules['zenoh'] = None  # as if eclipse-zenoh were not installed\n"
             "from erni.blackboard.errors import ConfigError\n"
-            "from erni.transport.bridge import TransportSettings\n"
+            "from erni.transport.settings import TransportSettings\n"
             "try:\n    TransportSettings(wire='zenoh', insecure=True).make_endpoint('robot1')\n"
             "except ConfigError as err:\n    print(err)\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)

@@ -17,7 +17,7 @@ import pytest
 
 from erni.blackboard import Task
 from erni.blackboard.testing import wait_until
-from erni.transport.bridge import TransportPlugin
+from erni.transport.plugin import TransportPlugin
 from tests.ui.team import Team, start_team
 from tests.ui.test_two_tier import say
 
