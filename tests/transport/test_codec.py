@@ -245,3 +245,17 @@ def test_nan_and_infinities_are_refused_by_the_codec_and_by_pydantic_in_every_fr
     assert codec.decode_status(payload) is None
     want = _two_step(payload)
     assert want is None  # the pydantic parse refuses the frame (a batch: it names the bad message)
+
+
+def test_the_codecs_pose_structs_have_poses_fields_in_its_order():
+    """The codec's msgspec structs copy Pose's fields for speed: a field added to, dropped from or
+    moved in Pose and not in them (or the other way round) fails here, not on the wire."""
+    from erni.blackboard import Pose
+    from erni.transport.codec import PoseBody, PoseFull
+
+    fields = tuple(Pose.model_fields)
+    assert PoseBody.__struct_fields__ == fields
+    assert PoseFull.__struct_fields__ == fields
+    required = tuple(name for name, f in Pose.model_fields.items() if f.is_required())
+    assert tuple(f.name for f in msgspec.structs.fields(PoseBody) if f.required) == required
+    assert all(f.required for f in msgspec.structs.fields(PoseFull))  # every field given, as ERNI sends
