@@ -18,7 +18,7 @@ import json
 import math
 from typing import Annotated, Any, Literal
 
-from pydantic import BeforeValidator, ConfigDict, Field, JsonValue, TypeAdapter, ValidationError
+from pydantic import ConfigDict, Field, JsonValue, TypeAdapter, ValidationError
 
 from erni.blackboard.errors import ErniError, describe_validation
 from erni.blackboard.objects import Model
@@ -127,13 +127,10 @@ def parse_message(text: str | bytes) -> Any:
 # they are built (the log and the task list).
 
 
-def finite_or_none(value: object) -> object:
-    """A float that is not finite as None; anything else as it is (validated by the field's type)."""
-    return None if isinstance(value, float) and not math.isfinite(value) else value
+def _shown(value: float | None, digits: int) -> float | None:
+    """`value` rounded to `digits`, or None when there is none or it is not finite."""
+    return None if value is None or not math.isfinite(value) else round(value, digits)
 
-
-FiniteOrNone = Annotated[float | None, BeforeValidator(finite_or_none)]
-"""A number the page may get as null: given NaN or an infinity, it holds None."""
 
 LogLevel = Literal["info", "warn", "error", "dim"]
 Param = bool | int | float | str
@@ -146,23 +143,26 @@ class _Out(Model):
 class PoseRow(_Out):
     """A robot's pose as the page draws it, rounded (sensor noise below this redraws nothing).
 
-    A number that is not finite (in a Pose no validator checked: the codec's hot path trusts its
-    decoder) is held as None and goes to the page as null: the page reads x, y or theta that is not a number as "position unreadable",
-    lists the robot as faulty and draws no pose of it on the map; v, w or battery as null shows "–".
+    A row refuses a number that is not finite, as every model does; `of` builds one from a Pose's
+    numbers and holds such a number as None (a Pose no validator checked may carry one: the codec's
+    hot path trusts its decoder). The page gets null: it reads x, y or theta that is not a number as
+    "position unreadable", lists the robot as faulty and draws no pose of it on the map; v, w or
+    battery as null shows "–".
     """
 
-    x: FiniteOrNone
-    y: FiniteOrNone
-    theta: FiniteOrNone
-    v: FiniteOrNone
-    w: FiniteOrNone
-    battery: FiniteOrNone = None
+    x: float | None
+    y: float | None
+    theta: float | None
+    v: float | None
+    w: float | None
+    battery: float | None = None
 
     @classmethod
     def of(cls, x: float, y: float, theta: float, v: float, w: float, battery: float | None) -> PoseRow:
-        """The row of a Pose's numbers, rounded: positions to mm, speeds to cm/s, the battery to 0.1 V."""
-        return cls(x=round(x, 3), y=round(y, 3), theta=round(theta, 3), v=round(v, 2), w=round(w, 2),
-                   battery=None if battery is None else round(battery, 1))
+        """The row of a Pose's numbers, rounded (positions to mm, speeds to cm/s, the battery to 0.1 V),
+        a number that is not finite as None."""
+        return cls(x=_shown(x, 3), y=_shown(y, 3), theta=_shown(theta, 3), v=_shown(v, 2), w=_shown(w, 2),
+                   battery=_shown(battery, 1))
 
 
 class RobotRow(_Out):

@@ -49,6 +49,10 @@ _GOOD_POSE = {"robot": "robot2", "x": 1.5, "y": -2.25, "theta": 0.5, "v": 0.25, 
               "sonar": [0.5, 1.25, 2.0], "stamp": 1000.5}
 _RESULT = {"state": "running", "confidence": 0.75, "progress": 0.5, "values": {"distance": 1.5, "pose": [1.0, 2.0],
            "deep": {"a": [{"b": 0.5}]}}, "message": "on its way", "stamp": 1000.25}
+_POSE_ROW = {"x": 1.5, "y": -2.25, "theta": 0.5, "v": 0.25, "w": -0.125, "battery": 12.5}
+_TASK_ROW = {"uid": "u", "robot": "robot1", "verb": "BotMotion", "preposition": "forward", "text": "forward distance=1.5",
+             "params": {"distance": 1.5}, "source": "control", "created": 1000.5, "state": "running", "progress": 0.5,
+             "message": "", "values": {"d": 0.25}}
 SAMPLES: dict[str, dict[str, Any]] = {
     "AgentConfig": {"agent": {"name": "a"}, "plugin": [{"class": "echo", "settings": {"delay": 0.5, "t": [1.5]}}]},
     "AgentSection": {"name": "a", "slow_plugin_seconds": 1.5, "retention": 60.5},
@@ -105,6 +109,26 @@ SAMPLES: dict[str, dict[str, Any]] = {
     "Envelope": {"sender": "robot2", "id": "m1", "kind": "status", "type": "Pose", "body": dict(_GOOD_POSE)},
     "EnvelopeHead": {"sender": "robot2", "reply": ["127.0.0.1", 5000]},
     "EnvelopeItem": {"id": "m1", "kind": "status", "body": {"a": [1.5, {"b": 2.5}]}},
+    # what the control node's server sends the page
+    "PoseRow": dict(_POSE_ROW),
+    "RobotRow": {"name": "robot1", "number": 1, "up": True, "state": "ok", "reasons": [], "pose": dict(_POSE_ROW),
+                 "address": "127.0.0.1:5000", "task": ""},
+    "LinkRow": {"a": "robot1", "b": "robot2", "quality": 0.75, "stale": False},
+    "TaskRow": dict(_TASK_ROW),
+    "Metrics": {"robots": 2, "up": 2, "links": 1, "mean_quality": 0.75, "components": 1, "articulation_points": [],
+                "degree": 1.5, "network_known": True},
+    "LogLine": {"t": 1000.5, "level": "info", "text": "hello"},
+    "SpeechState": {"available": False, "error": "", "recogniser": ""},
+    "Picture": {"agent": "control", "verb": "BotMotion", "actions": ["goto"], "strategies": [],
+                "speech": {"available": False, "error": "", "recogniser": ""}, "listening": False,
+                "robots": [], "links": [], "floorplan": None,
+                "metrics": {"robots": 0, "up": 0, "links": 0, "mean_quality": 0.5, "components": 0,
+                            "articulation_points": [], "degree": 0.5, "network_known": False},
+                "tasks": [dict(_TASK_ROW)], "log": [{"t": 1000.5, "level": "info", "text": "hello"}]},
+    "HelloMsg": {"client": "page1"},
+    "ReplyMsg": {"text": "Roger", "heard": "", "channel": "page", "client": "page1", "accepted": True},
+    "SelectOut": {"robots": ["robot1"]},
+    "ErrorMsg": {"message": "bad"},
 }
 
 
