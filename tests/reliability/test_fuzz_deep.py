@@ -183,6 +183,8 @@ def test_a_page_command_becomes_tasks_and_a_bad_one_an_answer():
     p.node.problems()
 
 
+# pydantic warns as it dumps the NaN where a str belongs: that is the handler bug this test stages
+@pytest.mark.filterwarnings("ignore:Pydantic serializer warnings:UserWarning")
 def test_the_page_oracle_reports_a_handler_that_emits_a_non_finite_number(monkeypatch):
     p = fuzz_deep.page()
     gen, check = fuzz_run.SURFACES["WebSocket messages (GUI)"][1](None)
