@@ -467,8 +467,6 @@ class Endpoint:
             head = self._heads[peer] = head_bytes(self.name, self.role, peer, self.inst, self.address)
         return head
 
-    _head = head  # the former name (a test reads a peer's head with it)
-
     def head_open(self, peer: str) -> bytes:
         """`head` without its closing brace, and a comma: the start of one message's envelope."""
         head = self._head_opens.get(peer)

@@ -14,8 +14,9 @@ WebSocket or read the state; and everything but the page's static assets needs t
 
 What the server sends is JSON a browser parses (`page_json`): a number that is not finite (no
 validated message holds one, but a state published as plain data may: the page's own checks are
-tested so) goes as `null`, never as `NaN`, which `JSON.parse` refuses and which would blank the page. Bad page messages and refused requests are
-logged at most once every `LOG_PERIOD` seconds each, with the count held back since.
+tested so) goes as `null`, never as `NaN`, which `JSON.parse` refuses and which would blank the
+page. Bad page messages and refused requests are logged at most once every `LOG_PERIOD` seconds
+each, with the count held back since.
 """
 
 from __future__ import annotations

@@ -72,7 +72,7 @@ def _frames(a: Endpoint, b: Endpoint) -> list[tuple[str, bytes]]:
     """Data frames of a's session with b, sealed in order: good, damaged, replayed, misaddressed ..."""
     session = a.session_with(b.address)
     assert session is not None
-    head = a._head(session.peer)
+    head = a.head(session.peer)
 
     def seal(item: bytes, to_head: bytes = head) -> bytes:
         return session.seal(join_envelope(to_head, item), 65536)
