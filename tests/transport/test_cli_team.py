@@ -112,6 +112,20 @@ def test_unreachable_via_exits_1(team):
     assert out.returncode == 1 and "could not reach the agent" in out.stderr
 
 
+@pytest.mark.parametrize("command", [["watch"], ["record", "{tmp}/out.jsonl"]])
+def test_a_watch_of_an_address_where_nothing_answers_says_so(team, tmp_path, command):
+    """Not silence: the first watch request goes unacknowledged and the command says so within seconds,
+    goes on asking until --seconds ends, and a watch that no one ever answered exits 1."""
+    command = [part.format(tmp=tmp_path) for part in command]
+    out = subprocess.run([sys.executable, "-m", "erni", *command, "--via", f"127.0.0.1:{free_port()}",
+                          "--seconds", "9"], capture_output=True, text=True, timeout=60, cwd=ROOT, env=team["env"])
+    said = [ln for ln in out.stderr.splitlines() if "nothing answers at 127.0.0.1:" in ln]
+    assert len(said) == 1 and said[0].startswith(f"erni {command[0]}: "), out.stderr
+    assert "Traceback" not in out.stderr and out.stdout == ""
+    if command[0] == "watch":
+        assert out.returncode == 1 and out.stderr.splitlines()[-1].startswith("erni watch: nothing answered at")
+
+
 def test_peers_table(team):
     out = cli(team["env"], "peers", "--via", team["via"])
     assert out.returncode == 0
