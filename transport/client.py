@@ -184,17 +184,21 @@ class Client:
         except queue.Empty:
             return None
 
+    def take_failed(self, msg_ids: set[str]) -> bool:
+        """Take the ids of undeliverable messages reported so far; True if one of them is in `msg_ids`."""
+        hit = False
+        while True:
+            try:
+                hit = self.failed.get_nowait() in msg_ids or hit
+            except queue.Empty:
+                return hit
+
     def check_failed(self, msg_id: str) -> None:
         """Raise ClientError if the message with this id could not be delivered, or at once if the
         agent refused this client's certificate."""
         self.check_refused()
-        while True:
-            try:
-                failed = self.failed.get_nowait()
-            except queue.Empty:
-                return
-            if failed == msg_id:
-                raise ClientError("could not reach the agent: no acknowledgement within 5 s (is it running, "
+        if self.take_failed({msg_id}):
+            raise ClientError("could not reach the agent: no acknowledgement within 5 s (is it running, "
                                   "and does it trust this identity?)")
 
 

@@ -7,7 +7,7 @@ import json
 import math
 import sys
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from typing import Any
 
 from erni.blackboard.errors import ErniError, UsageError
@@ -89,14 +89,14 @@ def make_room_for_a_stream(client: Any) -> int:
     return int(client.endpoint.receive_buffer(STREAM_BUFFER))
 
 
-def watch_events(client: Any, addr: Address, end: float | None, lease: float = 10.0,
-                 unanswered: Callable[[], None] | None = None) -> Iterator[Any]:
+def watch_events(client: Any, addr: Address, end: float | None, lease: float = 10.0, *,
+                 command: str) -> Iterator[Any]:
     """Lease a watch from the agent at `addr`, renewing it, and yield its events until `end`.
 
     Yields None about every 0.1 s without an event, so callers can show progress. A request that
     goes unacknowledged (nothing answers at `addr` within the client's delivery time, about 5 s) is
-    sent again within a second, and `unanswered` is called once, so a watch of nothing says so
-    instead of printing nothing; an agent that starts later is still found.
+    sent again within a second, and `erni COMMAND` says so once on stderr, so a watch of nothing
+    does not print nothing; an agent that starts later is still found.
     """
     from erni.blackboard.schemas import WatchEvent, WatchRequest
 
@@ -108,12 +108,13 @@ def watch_events(client: Any, addr: Address, end: float | None, lease: float = 1
         if time.monotonic() >= renew:
             asked.add(client.send(addr, "watch.request", WatchRequest(lease=lease)))
             renew = time.monotonic() + lease / 2
-        while not client.failed.empty():  # only the endpoint's thread puts, this one takes
-            if client.failed.get_nowait() in asked:
-                renew = min(renew, time.monotonic() + 1.0)
-                if not told and unanswered is not None:
-                    unanswered()
-                told = True
+        if client.take_failed(asked):
+            renew = min(renew, time.monotonic() + 1.0)
+            if not told:
+                say(f"erni {command}: nothing answers at {addr[0]}:{addr[1]} (no acknowledgement within 5 s: is an "
+                    "agent running there, and does it trust this identity?); still asking, Ctrl-C stops",
+                    file=sys.stderr, flush=True)
+            told = True
         msg = client.receive(0.1)
         if msg is not None and msg.kind == "watch.event" and isinstance(msg.body, WatchEvent):
             yield msg.body

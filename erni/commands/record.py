@@ -11,7 +11,6 @@ from typing import Any
 
 from erni.commands._client import add_client_options, check_seconds, open_client, watch_events
 from erni.commands._text import say
-from erni.commands.watch import unanswered
 from erni.replay import LogError, Recorder
 
 LEASE = 10.0
@@ -67,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
         say(f"recording {addr[0]}:{addr[1]} into {args.out} (Ctrl-C stops)", file=sys.stderr)
         shown = 0.0
         try:
-            for ev in watch_events(client, addr, end, LEASE, lambda: unanswered("record", addr)):
+            for ev in watch_events(client, addr, end, LEASE, command="record"):
                 if ev is not None:
                     recorder.write(ev.agent, ev.op, ev.type, ev.data)
                 if sys.stderr.isatty() and time.monotonic() >= shown:

@@ -61,7 +61,7 @@ def run(args: argparse.Namespace) -> int:
             say(f"erni watch: {err}", file=sys.stderr)
             return 1
         try:
-            for ev in watch_events(client, addr, end, LEASE, lambda: unanswered("watch", addr)):
+            for ev in watch_events(client, addr, end, LEASE, command="watch"):
                 if ev is None:
                     client.check_refused()
                     continue
@@ -79,8 +79,3 @@ def run(args: argparse.Namespace) -> int:
             return 1
     return 0
 
-
-def unanswered(command: str, addr: tuple[str, int]) -> None:
-    """Say, once, that the agent asked for a watch has not answered (the watch goes on asking)."""
-    say(f"erni {command}: nothing answers at {addr[0]}:{addr[1]} (no acknowledgement within 5 s: is an agent "
-        "running there, and does it trust this identity?); still asking, Ctrl-C stops", file=sys.stderr, flush=True)
