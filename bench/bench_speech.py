@@ -39,10 +39,12 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from erni.plugins.ui.frontend import DENOISERS, VADS, FrontEnd  # noqa: E402
 from erni.plugins.ui.speech import RATE, SpeechError, choose_recognizer  # noqa: E402
 from tests.ui import speech_set as S  # noqa: E402
 
 COLUMNS = ("exact", "confirmed", "asked", "refused", "wrong", "false stop")  # exact counts the confirmed too
+ANSWERS = True  # the answer to a read-back decoded against the answers alone (--no-answers: the whole grammar)
 PRIME = 2.0  # seconds of each condition's room before its first clip: the background is there before anyone speaks
 
 
@@ -63,7 +65,11 @@ class Answers:
 
     def __call__(self, word: str) -> tuple[str, bool]:
         said = S.synthesise(word, self.c.voice, self.c.speed)
-        a = S.hear(self.stream, S.as_heard(said, self.c.snr, self.rng), S.speech_end(said))
+        self.stream.answering = ANSWERS  # as the UI tells its listener while a read-back waits
+        try:
+            a = S.hear(self.stream, S.as_heard(said, self.c.snr, self.rng), S.speech_end(said))
+        finally:
+            self.stream.answering = False
         self.heard.append({"said": word, "heard": a.text, "unsure": a.unsure, "why": a.why})
         self.seconds += a.seconds
         return a.text, a.unsure
@@ -76,7 +82,10 @@ def save(args: argparse.Namespace, rows: list[dict[str, Any]], clips: list[dict[
     which = (f"vosk {args.vosk_model or os.environ.get('VOSK_MODEL_PATH', '')}, ERNI grammar, word confidences"
              if args.backend == "vosk" else "pocketsphinx en-us, ERNI grammar as JSGF, two decodes + word scores, "
              "noise-floor endpointer, stop keyphrases")
-    out.write_text(json.dumps({"recogniser": which,
+    which += f"; front end: denoise {args.denoise}, vad {args.vad}, gain {args.gain}, answers " + (
+        "against the answers alone" if ANSWERS else "against the whole grammar")
+    out.write_text(json.dumps({"recogniser": which, "cost": getattr(args, "cost", {}), "front_end": {"denoise": args.denoise, "vad": args.vad,
+                               "gain": args.gain, "answers": ANSWERS},
                                "seed": args.seed, "every": args.every, "part": args.part, "rows": rows,
                                "clips": clips}, indent=1) + "\n")
 
@@ -119,13 +128,112 @@ def report(paths: list[str]) -> str:
     return "\n".join(out)
 
 
+def load_runs(paths: list[str]) -> list[dict[str, Any]]:
+    runs = []
+    for path in paths:
+        try:
+            run = json.loads(Path(path).read_text())
+            run["rows"], run["clips"]
+        except (OSError, ValueError, KeyError) as err:
+            raise SystemExit(f"{path}: not a speech bench run saved with --json ({err})") from None
+        runs.append(run)
+    return runs
+
+
+def front_name(run: dict[str, Any]) -> str:
+    f = run.get("front_end") or {"denoise": "off", "vad": "off", "gain": 0, "answers": False}
+    parts = [f"denoise {f['denoise']}", f"vad {f['vad']}"] + ([f"gain {f['gain']} dBFS"] if f.get("gain") else [])
+    return ", ".join(parts) + (", answers alone" if f.get("answers") else ", answers by the whole grammar")
+
+
+def compare(paths: list[str]) -> str:
+    """One row per run (a front-end candidate): exact, stops heard and their latency, false stops, wrong, cost."""
+    runs = load_runs(paths)
+    noises = list(dict.fromkeys(r["noise"] for run in runs for r in run["rows"]))
+    head = ["front end", "conditions"] + [f"exact, {n}" for n in noises] + [f"stops heard, {n}" for n in noises] + [
+        "stop heard: median after the voice", "false stops", "wrong", "front end CPU per audio second"]
+    out = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for run in runs:
+        rows, clips = run["rows"], run["clips"]
+        cells = [front_name(run), str(len(rows))]
+        for n in noises:
+            part = [r for r in rows if r["noise"] == n]
+            m = sum(r["n"] for r in part)
+            cells.append(f"{sum(r['exact'] for r in part) / m:.0%}" if m else "-")
+        lat = []
+        for n in noises:
+            said = [c for c in clips if c["condition"].split(" wpm ")[1] == n and c["said"] in S.STOPS]
+            heard = [c for c in said if c["outcome"] == "exact"]
+            lat += [c["latency"] for c in heard]
+            cells.append(f"{len(heard)}/{len(said)}" if said else "-")
+        cells.append(f"{statistics.median(lat):.2f} s" if lat else "-")
+        cells += [str(sum(r["false stop"] for r in rows)), str(sum(r["wrong"] for r in rows))]
+        cost = run.get("cost") or {}
+        cells.append(f"{1000 * cost['front_end']:.0f} ms" if "front_end" in cost else "-")
+        out.append("| " + " | ".join(cells) + " |")
+    return "\n".join(out)
+
+
+def into(path: str, title: str, markdown: str) -> None:
+    """Keep `markdown` in a results file's tables under `title` (replacing a table of that title)."""
+    data = json.loads(Path(path).read_text(encoding="utf-8"))
+    tables = [t for t in data.get("tables", []) if t["title"] != title]
+    data["tables"] = [*tables, {"title": title, "markdown": markdown}]
+    Path(path).write_text(json.dumps(data, indent=2, ensure_ascii=False) + "\n", encoding="utf-8")
+
+
+def tables_main(argv: list[str]) -> int:
+    """`--report|--compare RUN.json ... [--into RESULTS.json --title TITLE]`: print a table, or keep it in a results file."""
+    ap = argparse.ArgumentParser(prog=f"bench_speech.py {argv[0]}")
+    ap.add_argument("runs", nargs="+")
+    ap.add_argument("--into", default=None, help="a results file (bench/results/bench_speech.json) to keep the table in")
+    ap.add_argument("--title", default=None)
+    mode, args = argv[0], ap.parse_args(argv[1:])
+    text = report(args.runs) if mode == "--report" else compare(args.runs)
+    print(text)
+    if args.into:
+        into(args.into, args.title or ("per condition" if mode == "--report" else "front-end candidates"), text)
+    return 0
+
+
+class Timed:
+    """A part of the stream (its suppressor, its endpointer) whose `process` calls are timed."""
+
+    def __init__(self, inner: Any) -> None:
+        self.inner, self.seconds = inner, 0.0
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.inner, name)
+
+    def process(self, *args: Any, **kwargs: Any) -> Any:
+        t0 = time.perf_counter()
+        try:
+            return self.inner.process(*args, **kwargs)
+        finally:
+            self.seconds += time.perf_counter() - t0
+
+
+def suppressor_delay(front: FrontEnd) -> float | None:
+    """The suppressor's delay (s): where a spoken clip's cleaned copy best matches it."""
+    suppressor = front.suppressor()
+    if suppressor is None or S.ESPEAK is None:
+        return None
+    x = S.synthesise("robot one go forward two meters", "en-us", 160)
+    pcm = np.clip(np.round(np.concatenate([np.zeros(RATE), x])), -32768, 32767).astype("<i2").tobytes()
+    y = np.frombuffer(suppressor.process(pcm[: len(pcm) // 320 * 320]), dtype="<i2").astype(np.float64)
+    x = np.frombuffer(pcm[: len(y) * 2], dtype="<i2").astype(np.float64)
+    lags = range(0, 800)
+    best = max(lags, key=lambda k: float(np.dot(x[: len(x) - k], y[k:])))
+    return best / RATE
+
+
 def main() -> int:
-    if sys.argv[1:2] == ["--report"]:
+    if sys.argv[1:2] in (["--report"], ["--compare"]):
         if len(sys.argv) < 3:
-            print("usage: bench_speech.py --report RUN.json [RUN.json ...]", file=sys.stderr)
+            print("usage: bench_speech.py --report|--compare RUN.json [RUN.json ...] [--into RESULTS.json --title T]",
+                  file=sys.stderr)
             return 2
-        print(report(sys.argv[2:]))
-        return 0
+        return tables_main(sys.argv[1:])
     import results  # bench/results.py, beside this script: the latest results, for the site's benchmarks page
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -136,12 +244,19 @@ def main() -> int:
     ap.add_argument("--recogniser", choices=("auto", "vosk", "pocketsphinx"), default="pocketsphinx",
                     help="as the UI's setting: vosk needs --vosk-model or VOSK_MODEL_PATH")
     ap.add_argument("--vosk-model", default=None, help="a vosk model directory (an English one)")
+    ap.add_argument("--denoise", choices=DENOISERS, default="off", help="the front end's noise suppressor")
+    ap.add_argument("--vad", choices=VADS, default="off", help="the front end's voice-activity detector "
+                    "(off: the level-based endpointer)")
+    ap.add_argument("--gain", type=int, default=0, help="WebRTC's automatic gain target, dBFS (0 = off)")
+    ap.add_argument("--no-answers", action="store_true", help="decode answers to read-backs with the whole grammar")
     ap.add_argument("--json", default="artifacts/ui/speech_set.json")
     ap.add_argument("--every", type=int, default=1, help="the stop phrasings and every K-th other line of the set")
     ap.add_argument("--part", default="1/1", help="run the I-th of N shares of the conditions (I/N), "
                     "for N processes side by side")
     results.add_argument(ap)
     args = ap.parse_args()
+    global ANSWERS
+    ANSWERS = not args.no_answers
     if S.ESPEAK is None:
         print("espeak-ng is not installed (apt install espeak-ng)", file=sys.stderr)
         return 2
@@ -152,13 +267,20 @@ def main() -> int:
     texts = S.utterances()
     texts = [t for t in texts if t in S.STOPS] + [t for t in texts if t not in S.STOPS][::args.every]
     try:  # the control node's own choice and loading of its recogniser
-        loader = choose_recognizer(args.recogniser, args.vosk_model)
+        front = FrontEnd(args.denoise, args.vad, args.gain)
+        loader = choose_recognizer(args.recogniser, args.vosk_model, front=front)
         args.backend = getattr(loader, "backend", args.recogniser)
         recogniser = loader()
     except SpeechError as err:
         print(f"bench_speech: {err}", file=sys.stderr)
         return 2
     stream = recogniser.stream()  # one decoder, as for one microphone
+    parts = {"suppressor": getattr(stream, "suppressor", None), "endpointer": getattr(stream, "ep", None)}
+    if parts["suppressor"] is not None:
+        stream.suppressor = parts["suppressor"] = Timed(parts["suppressor"])
+    if parts["endpointer"] is not None:
+        stream.ep = parts["endpointer"] = Timed(parts["endpointer"])
+    args.cost = {}
     rng = np.random.default_rng(args.seed)
     rows: list[dict[str, Any]] = []
     wrong: list[dict[str, Any]] = []
@@ -218,6 +340,15 @@ def main() -> int:
                  f"max {max(lat):.2f} s, {sum(x < 1.0 for x in lat)}/{len(lat)} under 1 s" if lat else ""))
     print(f"{audio_s:.0f} s of audio decoded in {compute_s:.0f} s ({compute_s / audio_s:.2f} x real time); "
           f"wall {time.time() - started:.0f} s")
+    front_s = sum(p.seconds for p in parts.values() if isinstance(p, Timed))
+    delay = suppressor_delay(front)
+    args.cost = {"front_end": front_s / audio_s, "suppressor": getattr(parts["suppressor"], "seconds", 0.0) / audio_s,
+                 "endpointer": getattr(parts["endpointer"], "seconds", 0.0) / audio_s,
+                 "recogniser": (compute_s - front_s) / audio_s, "suppressor_delay": delay}
+    print(f"front end ({front.name}): {1000 * args.cost['front_end']:.1f} ms of CPU per second of audio (suppressor "
+          f"{1000 * args.cost['suppressor']:.1f}, endpointer and VAD {1000 * args.cost['endpointer']:.1f}); "
+          f"the recogniser {1000 * args.cost['recogniser']:.0f} ms per second; the suppressor's delay "
+          + (f"{1000 * delay:.1f} ms" if delay is not None else "none (no suppressor)"))
     targets = [results.target("commands carried out as something else", "none", "the typed line",
                               f"{total['wrong']} wrong", total["wrong"] == 0)]
     for noise in dict.fromkeys(r["noise"] for r in rows):

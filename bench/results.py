@@ -56,8 +56,10 @@ def machine() -> str:
 
 
 def write(name: str, targets: list[dict[str, Any]], *, about: str, argv: list[str] | None = None,
-          path: str | Path | None = None) -> Path | None:
-    """Write `targets` as the latest results of bench/NAME.py; return the file (None when turned off)."""
+          path: str | Path | None = None, tables: list[dict[str, str]] | None = None) -> Path | None:
+    """Write `targets` as the latest results of bench/NAME.py; return the file (None when turned off).
+
+    `tables`: Markdown tables the page shows under the benchmark's entry, each {"title", "markdown"}."""
     if path == "":
         return None
     path = Path(path) if path is not None else RESULTS / f"{name}.json"
@@ -67,6 +69,8 @@ def write(name: str, targets: list[dict[str, Any]], *, about: str, argv: list[st
     data = {"command": " ".join([f"python bench/{name}.py", *map(shlex.quote, argv)]), "commit": _commit(),
             "date": datetime.datetime.now(datetime.UTC).date().isoformat(), "machine": machine(), "about": about,
             "targets": targets}
+    if tables:
+        data["tables"] = tables
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(data, indent=2, ensure_ascii=False) + "\n", encoding="utf-8")
     print(f"results: {path}")

@@ -372,6 +372,8 @@ def render_benchmarks() -> str:
         runs += [f"### {r['name']}", "", cell(r.get("about", "")), "",
                  f"- command: {code(r['command'])}", f"- commit: `{r['commit']}` ({cell(r.get('date', ''))})",
                  f"- machine: {cell(r.get('machine', ''))}", ""]
+        for table in r.get("tables", []):
+            runs += [f"#### {cell(table['title'])}", "", table["markdown"], ""]
     return "\n".join(lines + ["", "## How each was measured", "", *runs])
 
 

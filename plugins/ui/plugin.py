@@ -103,6 +103,12 @@ class UISettings(Model):
     recogniser: Literal["auto", "vosk", "pocketsphinx"] = Field(
         "auto", description="speech recogniser: auto = vosk when a vosk model is given, else pocketsphinx")
     vosk_model: str | None = Field(None, description="vosk model directory (default: VOSK_MODEL_PATH)")
+    denoise: Literal["off", "webrtc", "speex", "rnnoise"] = Field(
+        "webrtc", description="noise suppressor before the recogniser (PocketSphinx), for every microphone and WAV")
+    vad: Literal["off", "silero", "webrtc"] = Field(
+        "silero", description="voice-activity detector that ends utterances (off: the background's level does)")
+    auto_gain: int = Field(0, ge=0, le=31, description="WebRTC's automatic gain target below full scale (dBFS); "
+                           "0 = off")
     microphone: bool = Field(False, description="listen to the control node's own microphone (arecord)")
     microphone_device: str | None = Field(None, description="ALSA device of the local microphone")
     wav: str | None = Field(None, description="a WAV file of commands to recognise at start")
@@ -203,7 +209,10 @@ class UIPlugin(Plugin[UISettings]):
 
     def _start_speech(self, s: UISettings) -> None:
         try:
-            load = choose_recognizer(s.recogniser, s.vosk_model, wake=tuple(s.wake))
+            from erni.plugins.ui.frontend import FrontEnd
+
+            front = FrontEnd(s.denoise, s.vad, s.auto_gain)
+            load = choose_recognizer(s.recogniser, s.vosk_model, wake=tuple(s.wake), front=front)
         except SpeechError as err:
             self.speech_error = str(err)
             self.log.warning("speech recognition off: %s", err)
@@ -497,6 +506,8 @@ class UIPlugin(Plugin[UISettings]):
         self._log("info", f"page: {tasks[0].verb} {short(tasks[0])} -> {', '.join(robots)}")
 
     def _answer(self, reply: Reply, channel: str, client: str) -> None:
+        if self.listener is not None:  # a spoken read-back waits: short utterances are heard against its answers
+            self.listener.answering = self.spoken.pending is not None
         if reply.say is None:
             self._log("dim", f"({channel}, standing by) \u201c{reply.heard}\u201d ignored")
             return

@@ -280,8 +280,10 @@ class NoiseFloorEndpointer:
         self.cancelled = False  # the utterance that just ended was steady background: drop its audio
         self.snr = 0.0
         self.span = (0.0, 0.0)
-        self._before: list[tuple[bytes, float]] = []  # pre-roll frames and their levels
+        self._before: list[tuple[bytes, float, float]] = []  # pre-roll frames, their levels, and as they came in
         self._levels: list[float] = []  # the current utterance's frame levels
+        self._raw: list[float] = []  # and their levels as the audio came in (before a suppressor), for the SNR
+        self.raw_floor: float | None = None
         self._onset = 0
 
     @staticmethod
@@ -290,26 +292,37 @@ class NoiseFloorEndpointer:
         x = np.frombuffer(frame, dtype="<i2").astype(np.float64)
         return 10.0 * math.log10(float(np.mean(x * x)) + 1.0) if x.size else 0.0
 
-    def process(self, frame: bytes) -> bytes | None:
+    def _follow(self, floor: float | None, db: float) -> float:
+        """The floor after a frame outside speech: a quieter frame at once, a louder one slowly."""
+        floor = max(self.QUIETEST, db if floor is None else floor)
+        return max(self.QUIETEST, db if db < floor else min(db, floor + self.RISE * self.FRAME))
+
+    def process(self, frame: bytes, raw: bytes | None = None) -> bytes | None:
+        """`raw`: the same frame as it came in, when `frame` was cleaned (the SNR is measured on it)."""
         db = self.level(frame)
+        rdb = db if raw is None else self.level(raw)
         floor = max(self.QUIETEST, db if self.floor is None else self.floor)
         self.cancelled = False
         if not self.in_speech:
-            self._before = [*self._before, (frame, db)][-(int(self.PREROLL / self.FRAME) + self.ONSET):]
+            self._before = [*self._before, (frame, db, rdb)][-(int(self.PREROLL / self.FRAME) + self.ONSET):]
             if db > floor + self.START_DB:
                 self._onset += 1
                 if self._onset >= self.ONSET:
                     self.in_speech, self._onset = True, 0
-                    self._levels = [lv for _, lv in self._before]
-                    audio = b"".join(f for f, _ in self._before)
+                    self._levels = [lv for _, lv, _ in self._before]
+                    self._raw = [r for _, _, r in self._before]
+                    audio = b"".join(f for f, _, _ in self._before)
                     self._before = []
                     self.floor = floor
                     return audio
             else:
                 self._onset = 0
-            self.floor = max(self.QUIETEST, db if db < floor else min(db, floor + self.RISE * self.FRAME))
+                if raw is not None:
+                    self.raw_floor = self._follow(self.raw_floor, rdb)
+            self.floor = self._follow(floor, db)
             return None
         self._levels.append(db)
+        self._raw.append(rdb)
         if db < floor:
             self.floor = floor = max(self.QUIETEST, db)
         levels = self._levels
@@ -318,6 +331,8 @@ class NoiseFloorEndpointer:
             new = sum(levels[-steady:]) / steady
             spoke = any(lv > new + self.START_DB for lv in levels[:-steady])
             self.floor = new
+            if self.raw_floor is not None and self._raw:
+                self.raw_floor = sum(self._raw[-steady:]) / len(self._raw[-steady:])
             self._finish(levels[:-steady], floor)
             self.cancelled = not spoke
             return frame
@@ -341,10 +356,13 @@ class NoiseFloorEndpointer:
         if not speech:
             self.snr, self.span = 0.0, (0.0, 0.0)
             return
+        if self.raw_floor is not None and len(self._raw) >= len(levels):  # cleaned audio: the SNR as it came in
+            floor = self.raw_floor
+            speech = [(i, self._raw[i]) for i, _ in speech]
         noise = 10 ** (floor / 10)
         power = [10 ** (lv / 10) - noise for _, lv in speech]
         loud = [p for p in power if p > 0.1 * max(power)]  # within 10 dB of the loudest, as SNRs are quoted
-        self.snr = 10 * math.log10(max(sum(loud) / len(loud), 1e-9) / noise)
+        self.snr = 10 * math.log10(max(sum(loud) / max(len(loud), 1), 1e-9) / noise)
         self.span = (speech[0][0] * self.FRAME, (speech[-1][0] + 1) * self.FRAME)
 
 
@@ -375,7 +393,7 @@ class SphinxRecognizer:
     BEAM, WBEAM = 1e-35, 1e-25
 
     def __init__(self, grammar: str, *, wake: Iterable[str] | None = None, model: Path | None = None,
-                 dictionary: Path | None = None) -> None:
+                 dictionary: Path | None = None, front: Any = None) -> None:
         from erni.plugins.ui.grammar import ATTENTION
         from erni.plugins.ui.jsgf import Rules, words
 
@@ -393,6 +411,7 @@ class SphinxRecognizer:
         if missing:
             raise lacking(self.dictionary, missing, len(needed))
         self.grammar = grammar
+        self.front = front if front is not None and front.active else None  # frontend.FrontEnd: cleans and cuts the audio
         self.rules = Rules(grammar)
         self.wake = tuple(p for p in (ATTENTION if wake is None else wake) if set(p.split()) <= known)
         self.others = tuple(p for p in (*NOT_STOPS, *self.wake) if set(p.split()) <= known)
@@ -414,13 +433,15 @@ class SphinxRecognizer:
                     listed = Path(tmp) / f"{name}.kws"
                     listed.write_text("".join(f"{p} /{threshold:g}/\n" for p, threshold in phrases))
                     decoder.add_kws(name, str(listed))
-            decoder.add_jsgf_string(SphinxStream.SHORT, self.short)
+            decoder.add_jsgf_string(SphinxStream.SHORT, self.short)  # the stop phrases, the answers, short commands
             decoder.add_jsgf_string(SphinxStream.COMMANDS, self.grammar)
             decoder.activate_search(SphinxStream.COMMANDS)
         except (RuntimeError, ValueError) as err:
             raise SpeechError(f"cannot start PocketSphinx with {self.model}: {err}") from None
-        return SphinxStream(decoder, NoiseFloorEndpointer(RATE), complete=self.rules.accepts,
-                            wake=bool(self.wake), others=self.others)
+        suppressor = self.front.suppressor() if self.front is not None else None
+        endpointer = self.front.endpointer(suppressor) if self.front is not None else NoiseFloorEndpointer(RATE)
+        return SphinxStream(decoder, endpointer, complete=self.rules.accepts, wake=bool(self.wake),
+                            others=self.others, suppressor=suppressor, answers=True)
 
 
 # The stop phrasings a keyphrase search listens for in every short utterance, whatever the grammar
@@ -466,6 +487,7 @@ class SphinxStream:
     """
 
     COMMANDS, WAKE, STOPS, SHORT = "erni", "wake", "stops", "short"
+    LONGEST_ANSWER = 1.5  # seconds of speech: a longer utterance is no answer to a read-back
     # a word's acoustic score per 10 ms frame (natural log, against the best-scoring sound of each
     # frame): nearly every word of the right hearings of the speech test set scores above it
     MIN_WORD_SCORE = -7.0
@@ -476,8 +498,12 @@ class SphinxStream:
     LONGEST_STOP = 2.5  # seconds of speech: a longer utterance is not searched for a lone stop phrase
 
     def __init__(self, decoder: Any, endpointer: Any, complete: Callable[[str], bool] | None = None,
-                 wake: bool = False, others: Iterable[str] = ()) -> None:
+                 wake: bool = False, others: Iterable[str] = (), suppressor: Any = None,
+                 answers: bool = False) -> None:
         self.decoder, self.ep = decoder, endpointer
+        self.suppressor = suppressor  # the front end's noise suppressor: what is heard is its cleaned audio
+        self.answers = answers  # the answers to a read-back are among the SHORT search's lines
+        self.answering = False  # a read-back awaits "yes" or "no": a short utterance is decoded against the answers
         self.others = frozenset(others)  # the short lines of the SHORT search that overrule a spotted stop
         self.complete = complete  # is a text a whole sentence of the grammar?
         self.wake = wake  # the decoder has the keyphrase search of the wake phrases
@@ -496,7 +522,10 @@ class SphinxStream:
         while len(self.buffer) >= size:
             frame = bytes(self.buffer[:size])
             del self.buffer[:size]
-            speech = self.ep.process(frame)
+            if self.suppressor is not None:
+                speech = self.ep.process(self.suppressor.process(frame), raw=frame)
+            else:
+                speech = self.ep.process(frame)
             if speech is None:
                 continue
             self.in_utterance = True
@@ -584,9 +613,9 @@ class SphinxStream:
         if not audio:
             return None
         snr = getattr(self.ep, "snr", None)
-        if not self.settled:  # a fresh front end: let it settle on this voice and room first
-            self._decode(audio, whole=False)
-            self.settled = True
+        if not self.settled and self.suppressor is None:  # a fresh front end: let it settle on this voice and room
+            self._decode(audio, whole=False)  # (on cleaned audio this first decode in pieces unsettles it instead: the
+        self.settled = True  # first command after it was heard as nothing, and heard at once without it)
         stop = self._spotted(audio, self.STOPS, self.LONE_STOP, self.LONGEST_STOP)
         near = self.near
         self.evidence = {"stop": stop, "snr": snr}
@@ -597,6 +626,10 @@ class SphinxStream:
                 return Heard(stop, False, f"a stop phrase spotted ({stop!r})")
             if short not in self.others:  # a stop, but which is unsure: a stop to everyone, at once
                 return Heard("everybody stop", False, f"a stop phrase spotted ({stop!r}, then {short!r})")
+        if self.answering and self.answers:
+            answer = self._answer(audio)
+            if answer is not None:
+                return answer
         self._decode(audio, whole=True)
         text, scores = self._decoded()
         self.evidence.update(text=text, scores=scores)
@@ -614,6 +647,37 @@ class SphinxStream:
         if wake:
             return Heard(wake) if wake == text else Heard(wake, False, f"a lone wake phrase (the grammar: {text!r})")
         return self._judged(text, partial, again, poor, snr)
+
+    def _answer(self, audio: bytes) -> Heard | None:
+        """A short utterance heard as an answer to a read-back: decoded against the short lines (`NOT_STOPS`: the
+        answers, the stop phrases and the short commands they could be taken for, so that a short command has a
+        sentence of its own to go to), twice, both hearing the same answer with every word fitting the audio, and
+        the whole grammar not surely hearing a command that is no answer. Else None: the utterance then goes to
+        the whole grammar (the operator may have said a command instead)."""
+        from erni.plugins.ui.grammar import CONFIRM, DENY
+
+        first, last = self._span(audio)
+        if last - first > self.LONGEST_ANSWER:
+            return None
+        self.decoder.activate_search(self.SHORT)
+        try:
+            self._decode(audio, whole=True)
+            text, scores = self._decoded()
+            self._decode(audio, whole=False)
+            again, _ = self._decoded()
+        finally:
+            self.decoder.activate_search(self.COMMANDS)
+        self.evidence.update(answer=text, answer_again=again, answer_scores=scores)
+        if (text not in CONFIRM + DENY or text != again
+                or any(score < self.MIN_WORD_SCORE for _, score in scores)):
+            return None
+        self._decode(audio, whole=True)
+        command, command_scores = self._decoded()
+        self.evidence.update(answer_command=command)
+        if (command and command != text and (self.complete is None or self.complete(command))
+                and all(score >= self.MIN_WORD_SCORE for _, score in command_scores)):
+            return None  # the whole grammar is sure of a command that is no answer
+        return Heard(text, False, "heard as an answer to a read-back")
 
     @classmethod
     def _judged(cls, text: str, partial: bool, again: str, poor: list[str], snr: float | None) -> Heard | None:
@@ -671,11 +735,13 @@ def same_meaning(a: str, b: str) -> bool:
         return False
 
 
-def choose_recognizer(kind: str, vosk_model: str | None, wake: tuple[str, ...] | None = None) -> Callable[[], Any]:
+def choose_recognizer(kind: str, vosk_model: str | None, wake: tuple[str, ...] | None = None,
+                      front: Any = None) -> Callable[[], Any]:
     """Return a loader of the recogniser to use (run on the speech thread), or raise SpeechError saying why none.
 
     `auto`: vosk when a vosk model is given (setting or VOSK_MODEL_PATH), else PocketSphinx.
-    `wake`: the wake phrases to hear (default `grammar.ATTENTION`).
+    `wake`: the wake phrases to hear (default `grammar.ATTENTION`). `front`: the `frontend.FrontEnd` the
+    audio goes through before PocketSphinx (vosk hears the audio as it came).
     """
     from erni.plugins.ui.grammar import vocabulary
     from erni.plugins.ui.jsgf import jsgf
@@ -687,7 +753,7 @@ def choose_recognizer(kind: str, vosk_model: str | None, wake: tuple[str, ...] |
         return _Loader("vosk", lambda: Recognizer(path, vocabulary() + extra))
     sphinx_model()  # installed?
     grammar = jsgf(wake=wake)
-    return _Loader("pocketsphinx", lambda: SphinxRecognizer(grammar, wake=wake))
+    return _Loader("pocketsphinx", lambda: SphinxRecognizer(grammar, wake=wake, front=front))
 
 
 class _Loader:
@@ -724,6 +790,7 @@ class Listener:
         self.error = ""
         self.queue: queue.Queue[tuple[str, bytes] | None] = queue.Queue(max_queue)
         self.dropped = 0
+        self.answering = False  # a read-back waits for "yes" or "no" (set by the UI; every stream is told)
         self.streams: dict[str, Any] = {}
         self._stopping = threading.Event()
         self._thread = threading.Thread(target=self._run, name="ui-speech", daemon=True)
@@ -773,6 +840,8 @@ class Listener:
                     text = stream.flush() if stream is not None else None
                 else:
                     stream = self.streams.get(source) or self.streams.setdefault(source, self.recognizer.stream())
+                    if hasattr(stream, "answering"):
+                        stream.answering = self.answering
                     text = stream.feed(pcm)
             except Exception:  # a recogniser failure must not end speech input
                 log.exception("speech recogniser failed")
