@@ -6,7 +6,11 @@ y 5", "I don't know robot 9") and prints a line when each task it sent starts an
 also when it was stopped or superseded (obstacle avoidance is not superseded: it stays on until
 turned off, and the console does not wait for it to end). "cancel that" withdraws the tasks of the
 last command carried out; "set speed 0.2", "faster" and "slower" set the cruise speed of later
-moves. Status questions are answered from the agent's
+moves. A command that names no robot goes to the robots last named: at once, naming them ("Roger:
+robot 3, clear your behaviours"), when they were named or answered about in the line just before;
+older than that, the console asks ("Robot 3: clear your behaviours? ... type yes to confirm") and
+sends nothing until "yes". A move longer than `--confirm-beyond` metres and a held velocity are
+asked the same way. A stop never asks. Status questions are answered from the agent's
 directory (link) and the poses and tasks it streams to the console (pose, battery, task).
 Lines from a pipe are read to the end, then the console waits for the tasks it sent to finish
 (`--timeout`).
@@ -15,6 +19,7 @@ Lines from a pipe are read to the end, then the console waits for the tasks it s
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import queue
 import sys
@@ -31,6 +36,7 @@ from erni.commands._text import say, say_lines
 from erni.transport.client import PeerListParts
 
 WATCH_LEASE = 10.0
+CONFIRM_BEYOND = 10.0  # m: a typed move longer than this is confirmed first (the GUI's typed box's default)
 
 HELP = """examples:  robot 1 go to 2 3 | robots 1 and 2 turn right 90 degrees | go forward 2 feet
            everyone stop | cancel that | random walk | robot 2 status | where are you | how many robots
@@ -50,6 +56,9 @@ def register(sub: Any) -> None:
     p.add_argument("--robot-names", default="robot{n}", help="agent name of robot n (default robot{n})")
     p.add_argument("--timeout", type=float, default=30.0,
                    help="after piped input ends, wait this long for the tasks to finish (s)")
+    p.add_argument("--confirm-beyond", type=float, default=CONFIRM_BEYOND, metavar="METRES",
+                   help="a move longer than this, or a held velocity, waits for a typed yes "
+                   f"(default {CONFIRM_BEYOND:g}; 0: only a held velocity)")
     p.add_argument("--history-file", default=os.path.expanduser("~/.erni_console_history"),
                    help="readline history (interactive only)")
     add_client_options(p)
@@ -268,6 +277,10 @@ def run(args: argparse.Namespace) -> int:
     from erni.plugins.ui.dialogue import Dialogue, Naming
     from erni.transport.client import ClientError
 
+    if not math.isfinite(args.confirm_beyond) or args.confirm_beyond < 0:
+        say(f"erni console: --confirm-beyond: expected a number of metres >= 0, got {args.confirm_beyond}",
+            file=sys.stderr)
+        return 2
     try:
         naming = Naming(args.robot_names)
         client = make_client(args)
@@ -281,7 +294,9 @@ def run(args: argparse.Namespace) -> int:
         except ClientError as err:
             say(f"erni console: {err}", file=sys.stderr)
             return 1
-        dialogue = Dialogue(naming, verb=args.verb, source=client.endpoint.name, listening=True)
+        # a command that names no robot acts at once only on the robots named in the exchange just before
+        dialogue = Dialogue(naming, verb=args.verb, source=client.endpoint.name, listening=True,
+                            confirm_remembered=True, confirm_beyond=args.confirm_beyond or math.inf)
         console = Console(client, addr, dialogue, sys.stdout, json_lines=args.json).start()
         rl = _readline(args.history_file) if interactive else None
         try:

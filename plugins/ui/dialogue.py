@@ -20,7 +20,10 @@ is read back too ("Did you say: robot 1, go forward 2 metres? Say yes or no"), a
 hearing is asked again ("Say again?"); a stop never waits. A dialogue made with `confirm_beyond`
 (the typed one) asks once before a move that leaves the map: its end off the floor plan's bounds
 (`area`), a held velocity, or, where the bounds cannot tell, a move longer than `confirm_beyond`
-metres.
+metres. A dialogue made with `confirm_remembered` (the console's) carries out a command that names no
+robot for the robots last named only when they were named, or answered about, in the exchange just
+before ("Roger: robot 3, clear your behaviours"); older than that, it asks ("Robot 3: clear your
+behaviours? No robot named; robot 3 was named 4 commands ago ..."). A stop never asks.
 `Naming` maps robot numbers to agent names (`robot3`) and back; `tasks_for` maps an action
 of the grammar onto the task language in either tier (RemoteBotMotion through each robot's
 MissionControl, or BotMotion straight to its motion plugin).
@@ -247,20 +250,43 @@ class Dialogue:
                  read_back: float | None = None, area: tuple[float, float, float, float] | None = None,
                  read_back_timeout: float = 20.0, read_back_numbers: bool = False, echo: bool = False,
                  wake: tuple[str, ...] = ATTENTION, confirm_beyond: float | None = None,
-                 clock: Callable[[], float] = monotonic) -> None:
+                 confirm_remembered: bool = False, clock: Callable[[], float] = monotonic) -> None:
         self.naming = naming or Naming()
         self.wake = wake  # the phrases that wake a standing-by dialogue
         self.verb = verb
         self.source = source
         self.control = control  # agent name of the control node: "relay between robot 1 and control"
         self.listening = listening
-        self.targets: list[str] = []
+        # with `confirm_remembered`, a command that names no robot goes to the remembered ones at once
+        # only when they were named (or answered about) in the exchange just before; else it is asked
+        self.confirm_remembered = confirm_remembered
+        self.exchanges = 0  # utterances heard
+        self._sticky: list[str] = []
+        self._targets_at = 0  # the exchange in which the targets were last named or answered about
         self.memory = memory or Memory()
         self.caution = Caution(read_back, confirm_beyond, read_back_numbers, area)  # what waits for a yes
         self.read_back_timeout = read_back_timeout
         self.clock = clock  # monotonic seconds: when a read-back expires
         self.echo = echo  # a refusal names what was heard (speech: the operator cannot see it)
         self.pending: _Pending | None = None
+
+    @property
+    def targets(self) -> list[str]:
+        """The robots a command that names none goes to: the last ones named or answered about."""
+        return self._sticky
+
+    @targets.setter
+    def targets(self, names: list[str]) -> None:
+        self._sticky = names
+        self._targets_at = self.exchanges
+
+    def _remembered(self, cmd: Command) -> int:
+        """How many exchanges ago the robots a command goes to without naming them were last named, when
+        that is older than the exchange just before and the dialogue asks then (`confirm_remembered`); else 0."""
+        if not self.confirm_remembered or cmd.names_targets:
+            return 0
+        age = self.exchanges - self._targets_at
+        return age if age > 1 else 0
 
     def select(self, robots: Iterable[str]) -> None:
         """Make these robots the current targets (the GUI's selection)."""
@@ -285,6 +311,7 @@ class Dialogue:
         views = self._views(team)
         live = None if running is None else {t.uid for t in running}
         reply = Reply(text)
+        self.exchanges += 1
         pending, self.pending = self.pending, None
         try:
             cmd = parse(text, self.wake)
@@ -389,14 +416,17 @@ class Dialogue:
         except Refusal as why:
             reply.say = self._refused(reply.heard, str(why), None)
             return reply
-        if not doubt:  # a doubted hearing picks no robots until it is confirmed
+        stale = self._remembered(cmd) if reply.tasks and not doubt else 0
+        if not doubt and not stale:  # a doubted or asked hearing picks no robots until it is confirmed
             self.targets = targets
         reply.targets, reply.action = list(targets), "goto" if cmd.action == "goto_robot" else cmd.action
         what += self._at_speed(reply.action, targets)
         who = self.who(targets, cmd.everyone, views)
         reply.accepted = True
-        risk = "doubt" if doubt and reply.tasks else self.caution.risk(reply, views)
         reply.say = f"{ROGER}: {who}, {what}" + (f" ({note})" if note else "")
+        if stale:
+            return self._ask_remembered(reply, who, what, stale)
+        risk = "doubt" if doubt and reply.tasks else self.caution.risk(reply, views)
         if risk:
             return self._ask(reply, f"{who}, {what}", risk)
         self._carried_out(reply)
@@ -407,13 +437,16 @@ class Dialogue:
         """A cruise speed: set at once, or read back (and made again on "yes") when risky."""
         self._cruise(cmd, targets)  # refused now rather than after a read-back
         probe = Reply(reply.heard, targets=list(targets), action="speed")
-        if not self.caution.risk(probe, views):
+        stale = self._remembered(cmd)
+        if not stale and not self.caution.risk(probe, views):
             return self._speed(cmd, targets, views, live, note, reply)
-        what = f"{self.who(targets, cmd.everyone, views)}, {restate('speed', cmd.params)}"
+        who = self.who(targets, cmd.everyone, views)
+        what = f"{who}, {restate('speed', cmd.params)}"
         self.pending = _Pending(probe, what, self.clock() + self.read_back_timeout,
                                 redo=lambda now: self._speed(cmd, targets, views, now, note, Reply(probe.heard)))
-        return Reply(reply.heard, say=f"{what[0].upper()}{what[1:]} \u2014 {CONFIRM_PROMPT}",
-                     targets=list(targets), accepted=True, asked=True)
+        say = (self._remembered_question(who, restate("speed", cmd.params), stale) if stale
+               else f"{what[0].upper()}{what[1:]} \u2014 {CONFIRM_PROMPT}")
+        return Reply(reply.heard, say=say, targets=list(targets), accepted=True, asked=True)
 
     def _ask(self, reply: Reply, what: str, risk: str) -> Reply:
         """Hold a risky command (`what`: who, what) until "yes", and say so as its risk asks."""
@@ -425,6 +458,19 @@ class Dialogue:
         else:
             ask = f"{what[0].upper()}{what[1:]} \u2014 {CONFIRM_PROMPT}"
         return Reply(reply.heard, say=ask, targets=list(reply.targets), accepted=True, asked=True)
+
+    def _ask_remembered(self, reply: Reply, who: str, what: str, age: int) -> Reply:
+        """Hold a command that names no robot, for robots last named `age` exchanges ago, until "yes"."""
+        self.pending = _Pending(reply, f"{who}, {what}", self.clock() + self.read_back_timeout)
+        return Reply(reply.heard, say=self._remembered_question(who, what, age), targets=list(reply.targets),
+                     accepted=True, asked=True)
+
+    def _remembered_question(self, who: str, what: str, age: int) -> str:
+        """`Robot 3: clear your behaviours? No robot named; robot 3 was named 4 commands ago — type yes ...`"""
+        prompt = CONFIRM_PROMPT if self.read_back is not None else TYPED_PROMPT
+        return (f"{who[0].upper()}{who[1:]}: {what}? No robot named; {who} "
+                f"{'were' if who.startswith('robots ') or ' and ' in who else 'was'} named {age} commands ago \u2014 {prompt}, "
+                "or name the robots")
 
     # -- what was heard, what is expected ----------------------------------------------------
 
@@ -697,7 +743,11 @@ class Dialogue:
             self.targets = names
             reply.targets = list(names)
         else:
-            names = [n for n in self.targets if n in views] or list(views)
+            names = [n for n in self.targets if n in views]
+            if names:
+                self.targets = names  # answered about: they are the ones just mentioned
+            else:
+                names = list(views)
         if not names:
             raise Refusal("I don't know any robots yet")
         reply.say = "; ".join(self._answer(cmd.action, views[n]) for n in names)

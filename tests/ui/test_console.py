@@ -35,10 +35,13 @@ def console(team: Team, lines: str, *args: str, key: str = KEY) -> subprocess.Co
 
 def test_typed_commands_task_the_team_and_print_feedback_and_results(team):
     p0 = team.pose("robot1")
-    out = console(team, "robot 1 go forward 2 feet\nrobot 9 turn left\n# a comment\nturn left 90 degrees\n")
+    out = console(team, "robot 1 go forward 2 feet\nrobot 9 turn left\n# a comment\nturn left 90 degrees\nyes\n")
     lines = out.stdout.splitlines()
     assert "Roger: robot 1, go forward 0.61 metres" in lines and "I don't know robot 9; I know robots 1 and 2" in lines
-    assert "Roger: robot 1, turn left 90 degrees" in lines  # the turn went to the last target
+    # robot 1 was named before the refused line: the turn that names no robot is asked first
+    assert ("Robot 1: turn left 90 degrees? No robot named; robot 1 was named 2 commands ago \u2014 "
+            "type yes to confirm, or name the robots") in lines
+    assert "Roger: robot 1, turn left 90 degrees" in lines  # on "yes" the turn went to the last target
     assert "robot1: turn succeeded" in out.stdout
     assert out.returncode == 1  # a piped command was refused
     assert "robot1: forward succeeded" not in out.stdout  # superseded by the turn: cancelled on the robot
@@ -94,6 +97,20 @@ def test_after_sleep_everyone_stop_stops_every_moving_robot_and_every_task_ends_
         pose = team.pose(robot)
         assert pose is not None and abs(pose.v) < 0.05
     assert not any("turn" in line and "robot1:" in line for line in lines)
+
+
+def test_a_command_naming_no_robot_long_after_one_was_named_is_asked_and_not_sent(team):
+    out = console(team, "robot 2 turn left 10 degrees\nhow many robots\nclear\nrobot 1 go forward 100 metres\n"
+                  "no\n", "--json")
+    replies = [json.loads(line) for line in out.stdout.splitlines()]
+    replies = [r for r in replies if "heard" in r]
+    assert [r["heard"] for r in replies] == ["robot 2 turn left 10 degrees", "how many robots", "clear",
+                                             "robot 1 go forward 100 metres", "no"]
+    clear, far, no = replies[2:]
+    assert clear["say"].startswith("Robot 2: clear your behaviours? No robot named") and clear["tasks"] == []
+    assert far["say"].endswith("more than 10 metres; type yes to confirm") and far["tasks"] == []
+    assert no["say"] == "Not sent: robot 1, go forward 100 metres" and no["tasks"] == []
+    assert out.returncode == 0, out.stdout + out.stderr
 
 
 def test_status_questions_are_answered_from_the_streamed_poses_and_the_directory(team):
