@@ -12,8 +12,10 @@ older than that, the console asks ("Robot 3: clear your behaviours? ... type yes
 sends nothing until "yes". A move longer than `--confirm-beyond` metres and a held velocity are
 asked the same way. A stop never asks. Status questions are answered from the agent's
 directory (link) and the poses and tasks it streams to the console (pose, battery, task).
-Lines from a pipe are read to the end, then the console waits for the tasks it sent to finish
-(`--timeout`).
+On a terminal the lines are read at an `erni>` prompt (prompt_toolkit): an event line that
+arrives while a line is typed is printed above the prompt, which is drawn again below it with the
+line as it was; the lines typed are kept in `--history-file`, one per line. Lines from a pipe are
+read to the end, then the console waits for the tasks it sent to finish (`--timeout`).
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ import queue
 import sys
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TextIO
 
@@ -60,7 +63,7 @@ def register(sub: Any) -> None:
                    help="a move longer than this, or a held velocity, waits for a typed yes "
                    f"(default {CONFIRM_BEYOND:g}; 0: only a held velocity)")
     p.add_argument("--history-file", default=os.path.expanduser("~/.erni_console_history"),
-                   help="readline history (interactive only)")
+                   help="the lines typed, kept for the next session (on a terminal only)")
     add_client_options(p)
     p.set_defaults(func=run)
 
@@ -259,17 +262,42 @@ class Console:
                    **r.model_dump(mode="json")})
 
 
-def _readline(history: str) -> Any:
-    try:
-        import readline
-    except ImportError:  # not on every platform: plain input() then
-        return None
-    try:
-        readline.read_history_file(history)
-    except OSError:
-        pass
-    readline.set_history_length(1000)
-    return readline
+HISTORY_LENGTH = 1000  # lines kept in the history file
+
+
+def _history(path: str) -> Any:
+    """The console's line history in `path`: one line per command, as readline keeps it (the file of an
+    earlier console reads as it was); the newest HISTORY_LENGTH lines are kept. Quietly none where the
+    file cannot be read or written."""
+    from prompt_toolkit.history import History
+
+    class LineHistory(History):
+        def load_history_strings(self) -> list[str]:
+            try:
+                lines = Path(path).read_text(encoding="utf-8", errors="replace").splitlines()
+            except OSError:
+                return []
+            lines = [ln for ln in lines if ln.strip()]
+            if len(lines) > 2 * HISTORY_LENGTH:  # trimmed now and then, not at every line
+                lines = lines[-HISTORY_LENGTH:]
+                self._write(lines)
+            return list(reversed(lines[-HISTORY_LENGTH:]))  # newest first
+
+        def store_string(self, string: str) -> None:
+            try:
+                Path(path).parent.mkdir(parents=True, exist_ok=True)
+                with open(path, "a", encoding="utf-8") as f:
+                    f.write(string.replace("\n", " ") + "\n")
+            except OSError:
+                pass
+
+        def _write(self, lines: list[str]) -> None:
+            try:
+                Path(path).write_text("".join(f"{ln}\n" for ln in lines), encoding="utf-8")
+            except OSError:
+                pass
+
+    return LineHistory()
 
 
 def run(args: argparse.Namespace) -> int:
@@ -287,7 +315,7 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as err:
         say(f"erni console: {err}", file=sys.stderr)
         return 2
-    interactive = sys.stdin.isatty()
+    interactive = sys.stdin.isatty() and sys.stdout.isatty()
     with client:
         try:
             addr = client.find(None)
@@ -297,30 +325,45 @@ def run(args: argparse.Namespace) -> int:
         # a command that names no robot acts at once only on the robots named in the exchange just before
         dialogue = Dialogue(naming, verb=args.verb, source=client.endpoint.name, listening=True,
                             confirm_remembered=True, confirm_beyond=args.confirm_beyond or math.inf)
+        if interactive:
+            _interactive(client, addr, dialogue, args)
+            return 0
         console = Console(client, addr, dialogue, sys.stdout, json_lines=args.json).start()
-        rl = _readline(args.history_file) if interactive else None
         try:
-            if interactive:
-                say(f"erni console through {addr[0]}:{addr[1]}; tasks as {args.verb}")
-                say_lines(HELP)
-            _read_lines(console, interactive, echo=not interactive and not args.json)
-            if not interactive:
-                console.wait(args.timeout)
+            _read_lines(console, lambda: input(""), echo=not args.json)
+            console.wait(args.timeout)
         except KeyboardInterrupt:
             say()
         finally:
             console.stop()
-            if rl is not None:
-                _save_history(rl, args.history_file)
-    return 1 if not interactive and (console.failed or console.refused) else 0
+    return 1 if console.failed or console.refused else 0
 
 
-def _read_lines(console: Console, interactive: bool, echo: bool) -> None:
-    """Say each line read to the console until EOF or `quit` (`help` shows the help; `echo`: each line
-    is printed before its answers)."""
+def _interactive(client: Any, addr: Any, dialogue: Any, args: argparse.Namespace) -> None:
+    """Read lines at a prompt on a terminal: event lines from the team are printed above the prompt, and
+    the prompt with the line being typed is drawn again below them."""
+    from prompt_toolkit import PromptSession
+    from prompt_toolkit.patch_stdout import patch_stdout
+
+    session: PromptSession[str] = PromptSession(history=_history(args.history_file))
+    with patch_stdout():  # sys.stdout is a proxy that writes above the prompt from here on
+        console = Console(client, addr, dialogue, sys.stdout, json_lines=args.json).start()
+        try:
+            say(f"erni console through {addr[0]}:{addr[1]}; tasks as {args.verb}")
+            say_lines(HELP)
+            _read_lines(console, lambda: session.prompt("erni> "), echo=False)
+        except KeyboardInterrupt:
+            say()
+        finally:
+            console.stop()
+
+
+def _read_lines(console: Console, read: Callable[[], str], echo: bool) -> None:
+    """Say each line `read` returns to the console until EOF or `quit` (`help` shows the help; `echo`: each
+    line is printed before its answers)."""
     while True:
         try:
-            line = input("erni> " if interactive else "")
+            line = read()
         except EOFError:
             break
         line = line.strip()
@@ -334,12 +377,3 @@ def _read_lines(console: Console, interactive: bool, echo: bool) -> None:
         if echo:
             console.print(f"> {line}")
         console.say(line)
-
-
-def _save_history(rl: Any, history_file: str) -> None:
-    """Keep the lines read for the next session (quietly not, where the file cannot be written)."""
-    try:
-        Path(history_file).parent.mkdir(parents=True, exist_ok=True)
-        rl.write_history_file(history_file)
-    except OSError:
-        pass
