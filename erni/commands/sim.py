@@ -20,6 +20,9 @@ KEEP_RUNS = 3  # run directories of finished `erni sim` runs kept in the tempora
 RUN_PREFIX = "erni-sim-"  # what `erni sim` names its run directory in the temporary directory
 OWNER_FILE = "erni-sim.pid"  # in a run directory: the PID of the `erni sim` that made it
 UNMARKED_AGE = 86400.0  # a run directory without an owner file (an older ERNI's) is finished after a day
+# Robots a core holds in real time, as measured: bench/bench_team.py on a quiet 2-core machine, 50 robots
+# keep the control node's Pose interval p99 within 2x the period and 100 do not (bench/results/bench_team.json)
+ROBOTS_PER_CORE = 25
 
 
 def register(sub: Any) -> None:
@@ -96,6 +99,7 @@ def run(args: argparse.Namespace) -> int:
         if args.hello_interval is not None and not args.netns:
             raise TeamError("--hello-interval is babeld's, which runs only with --netns")
         scenario = load(args)
+        too_many = capacity_warning(scenario.count, cores())
         if args.gui_listen:
             from erni.transport import parse_address
 
@@ -126,6 +130,8 @@ def run(args: argparse.Namespace) -> int:
             raise KeyboardInterrupt
 
     previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    if too_many:
+        say(f"erni sim: {too_many}", file=sys.stderr, flush=True)
     progress = Progress()
     code = 0
     try:
@@ -158,6 +164,24 @@ def run(args: argparse.Namespace) -> int:
             signal.signal(sig, handler)
         say(f"erni sim: stopped; configs and logs in {team.run_dir}", flush=True)
     return code
+
+
+def cores() -> int:
+    """The cores this process may run on (its CPU affinity, else the machine's count)."""
+    try:
+        return len(os.sched_getaffinity(0)) or 1
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+def capacity_warning(robots: int, cores: int) -> str:
+    """'' when `robots` is within what `cores` are measured to hold in real time, else the one-line warning."""
+    holds = ROBOTS_PER_CORE * cores
+    if robots <= holds:
+        return ""
+    return (f"{robots} robots is more than this machine is measured to hold in real time (about "
+            f"{ROBOTS_PER_CORE} robots per core: {holds} on its {cores} core{'' if cores == 1 else 's'}, "
+            "bench/bench_team.py); starting anyway, expect a slow start and skipped SIPs")
 
 
 def prune_run_dirs(tmp: Path, keep: int = KEEP_RUNS, now: float | None = None) -> list[Path]:
