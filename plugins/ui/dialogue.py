@@ -35,7 +35,7 @@ import math
 import re
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, overload
 
 from erni.blackboard import Task
 from erni.blackboard.clock import monotonic
@@ -237,6 +237,48 @@ class _Pending:
 Team = Mapping[str, RobotView] | Iterable[str]
 
 
+@dataclass
+class Sticky:
+    """The robots a command that names none goes to (the last named, or answered about) and when they were
+    named; with `ask`, a command for robots named longer ago than the exchange just before waits for a yes."""
+
+    ask: bool = False
+    names: list[str] = field(default_factory=list)
+    heard: int = 0  # utterances heard
+    at: int = 0  # the utterance that last named them
+
+    def age(self, named: bool) -> int:
+        """How many utterances ago the robots were named, when a command that does not name them (`named`
+        False) is to wait for a yes for it (older than the one just before, and `ask`); else 0."""
+        age = self.heard - self.at
+        return age if self.ask and not named and age > 1 else 0
+
+    def question(self, who: str, doing: str, prompt: str) -> str:
+        """`Robot 3: clear your behaviours? No robot named; robot 3 was named 4 commands ago \u2014 ...`"""
+        were = "were" if len(self.names) > 1 else "was"
+        return (f"{who[0].upper()}{who[1:]}: {doing}? No robot named; {who} {were} named {self.heard - self.at} "
+                f"commands ago \u2014 {prompt}, or name the robots")
+
+
+class _Targets:
+    """`Dialogue.targets`: the sticky targets; setting them marks them named in the utterance heard now."""
+
+    @overload
+    def __get__(self, dialogue: None, owner: type[Any] | None = None) -> _Targets: ...
+
+    @overload
+    def __get__(self, dialogue: object, owner: type[Any] | None = None) -> list[str]: ...
+
+    def __get__(self, dialogue: Any, owner: type[Any] | None = None) -> list[str] | _Targets:
+        if dialogue is None:
+            return self
+        names: list[str] = dialogue.sticky.names
+        return names
+
+    def __set__(self, dialogue: Any, names: list[str]) -> None:
+        dialogue.sticky.names, dialogue.sticky.at = names, dialogue.sticky.heard
+
+
 class Dialogue:
     """Listening state and sticky targets of one operator; `hear()` answers each utterance."""
 
@@ -244,6 +286,7 @@ class Dialogue:
     confirm_beyond: Cautious[float | None] = Cautious()
     read_back_numbers: Cautious[bool] = Cautious()
     area: Cautious[tuple[float, float, float, float] | None] = Cautious()
+    targets = _Targets()  # the last robots named: `sticky`
 
     def __init__(self, naming: Naming | None = None, *, verb: str = "RemoteBotMotion", source: str = "control",
                  listening: bool = True, control: str = "control", memory: Memory | None = None,
@@ -257,36 +300,13 @@ class Dialogue:
         self.source = source
         self.control = control  # agent name of the control node: "relay between robot 1 and control"
         self.listening = listening
-        # with `confirm_remembered`, a command that names no robot goes to the remembered ones at once
-        # only when they were named (or answered about) in the exchange just before; else it is asked
-        self.confirm_remembered = confirm_remembered
-        self.exchanges = 0  # utterances heard
-        self._sticky: list[str] = []
-        self._targets_at = 0  # the exchange in which the targets were last named or answered about
+        self.sticky = Sticky(ask=confirm_remembered)  # `targets`, and when they were named
         self.memory = memory or Memory()
         self.caution = Caution(read_back, confirm_beyond, read_back_numbers, area)  # what waits for a yes
         self.read_back_timeout = read_back_timeout
         self.clock = clock  # monotonic seconds: when a read-back expires
         self.echo = echo  # a refusal names what was heard (speech: the operator cannot see it)
         self.pending: _Pending | None = None
-
-    @property
-    def targets(self) -> list[str]:
-        """The robots a command that names none goes to: the last ones named or answered about."""
-        return self._sticky
-
-    @targets.setter
-    def targets(self, names: list[str]) -> None:
-        self._sticky = names
-        self._targets_at = self.exchanges
-
-    def _remembered(self, cmd: Command) -> int:
-        """How many exchanges ago the robots a command goes to without naming them were last named, when
-        that is older than the exchange just before and the dialogue asks then (`confirm_remembered`); else 0."""
-        if not self.confirm_remembered or cmd.names_targets:
-            return 0
-        age = self.exchanges - self._targets_at
-        return age if age > 1 else 0
 
     def select(self, robots: Iterable[str]) -> None:
         """Make these robots the current targets (the GUI's selection)."""
@@ -311,7 +331,7 @@ class Dialogue:
         views = self._views(team)
         live = None if running is None else {t.uid for t in running}
         reply = Reply(text)
-        self.exchanges += 1
+        self.sticky.heard += 1
         pending, self.pending = self.pending, None
         try:
             cmd = parse(text, self.wake)
@@ -416,19 +436,16 @@ class Dialogue:
         except Refusal as why:
             reply.say = self._refused(reply.heard, str(why), None)
             return reply
-        stale = self._remembered(cmd) if reply.tasks and not doubt else 0
-        if not doubt and not stale:  # a doubted or asked hearing picks no robots until it is confirmed
-            self.targets = targets
         reply.targets, reply.action = list(targets), "goto" if cmd.action == "goto_robot" else cmd.action
+        risk = self._risk(cmd, reply, views, doubt)
+        if not doubt and risk != "remembered":  # a doubted hearing, or one for robots named long ago,
+            self.targets = targets              # picks no robots until it is confirmed
         what += self._at_speed(reply.action, targets)
         who = self.who(targets, cmd.everyone, views)
         reply.accepted = True
         reply.say = f"{ROGER}: {who}, {what}" + (f" ({note})" if note else "")
-        if stale:
-            return self._ask_remembered(reply, who, what, stale)
-        risk = "doubt" if doubt and reply.tasks else self.caution.risk(reply, views)
         if risk:
-            return self._ask(reply, f"{who}, {what}", risk)
+            return self._ask(reply, who, what, risk)
         self._carried_out(reply)
         return reply
 
@@ -437,40 +454,41 @@ class Dialogue:
         """A cruise speed: set at once, or read back (and made again on "yes") when risky."""
         self._cruise(cmd, targets)  # refused now rather than after a read-back
         probe = Reply(reply.heard, targets=list(targets), action="speed")
-        stale = self._remembered(cmd)
-        if not stale and not self.caution.risk(probe, views):
+        remembered = self.sticky.age(cmd.names_targets)
+        if not remembered and not self.caution.risk(probe, views):
             return self._speed(cmd, targets, views, live, note, reply)
         who = self.who(targets, cmd.everyone, views)
         what = f"{who}, {restate('speed', cmd.params)}"
         self.pending = _Pending(probe, what, self.clock() + self.read_back_timeout,
                                 redo=lambda now: self._speed(cmd, targets, views, now, note, Reply(probe.heard)))
-        say = (self._remembered_question(who, restate("speed", cmd.params), stale) if stale
+        say = (self.sticky.question(who, restate("speed", cmd.params), self._prompt()) if remembered
                else f"{what[0].upper()}{what[1:]} \u2014 {CONFIRM_PROMPT}")
         return Reply(reply.heard, say=say, targets=list(targets), accepted=True, asked=True)
 
-    def _ask(self, reply: Reply, what: str, risk: str) -> Reply:
-        """Hold a risky command (`what`: who, what) until "yes", and say so as its risk asks."""
+    def _risk(self, cmd: Command, reply: Reply, views: Mapping[str, RobotView], doubt: bool) -> str:
+        """Why an understood command waits for a "yes"; '' when it is carried out at once."""
+        if doubt and reply.tasks:
+            return "doubt"
+        if not doubt and reply.tasks and self.sticky.age(cmd.names_targets):
+            return "remembered"
+        return self.caution.risk(reply, views)
+
+    def _prompt(self) -> str:
+        return CONFIRM_PROMPT if self.read_back is not None else TYPED_PROMPT
+
+    def _ask(self, reply: Reply, who: str, doing: str, risk: str) -> Reply:
+        """Hold a risky command until "yes", and say so as its risk asks."""
+        what = f"{who}, {doing}"
         self.pending = _Pending(reply, what, self.clock() + self.read_back_timeout)
-        if risk in ("doubt", "number"):
+        if risk == "remembered":
+            ask = self.sticky.question(who, doing, self._prompt())
+        elif risk in ("doubt", "number"):
             ask = f"{DID_YOU_SAY} {what}? {YES_OR_NO}"
         elif self.read_back is None:  # typed: asked once, saying why
             ask = f"{what[0].upper()}{what[1:]} \u2014 {self.caution.why(risk)}; {TYPED_PROMPT}"
         else:
             ask = f"{what[0].upper()}{what[1:]} \u2014 {CONFIRM_PROMPT}"
         return Reply(reply.heard, say=ask, targets=list(reply.targets), accepted=True, asked=True)
-
-    def _ask_remembered(self, reply: Reply, who: str, what: str, age: int) -> Reply:
-        """Hold a command that names no robot, for robots last named `age` exchanges ago, until "yes"."""
-        self.pending = _Pending(reply, f"{who}, {what}", self.clock() + self.read_back_timeout)
-        return Reply(reply.heard, say=self._remembered_question(who, what, age), targets=list(reply.targets),
-                     accepted=True, asked=True)
-
-    def _remembered_question(self, who: str, what: str, age: int) -> str:
-        """`Robot 3: clear your behaviours? No robot named; robot 3 was named 4 commands ago — type yes ...`"""
-        prompt = CONFIRM_PROMPT if self.read_back is not None else TYPED_PROMPT
-        return (f"{who[0].upper()}{who[1:]}: {what}? No robot named; {who} "
-                f"{'were' if who.startswith('robots ') or ' and ' in who else 'was'} named {age} commands ago \u2014 {prompt}, "
-                "or name the robots")
 
     # -- what was heard, what is expected ----------------------------------------------------
 
@@ -750,29 +768,31 @@ class Dialogue:
                 names = list(views)
         if not names:
             raise Refusal("I don't know any robots yet")
-        reply.say = "; ".join(self._answer(cmd.action, views[n]) for n in names)
+        reply.say = "; ".join(answer(cmd.action, views[n], self._spoken(n)) for n in names)
         reply.accepted = True
         return reply
 
-    def _answer(self, question: str, v: RobotView) -> str:
-        who = self._spoken(v.name).capitalize()
-        where = (f"at x {v.x:.1f}, y {v.y:.1f}, heading {math.degrees(v.theta or 0.0):.0f} degrees"
-                 if v.x is not None and v.y is not None else "position unknown")
-        doing = v.doing or "idle"
-        battery = f"battery {v.battery:.1f} volts" if v.battery is not None else "battery unknown"
-        if v.up:
-            link = "link up" + (f", best link quality {v.link:.2f}" if v.link is not None else "")
-        else:
-            link = "link lost" + (f", not heard for {v.silent:.0f} s" if v.silent is not None else "")
-        if question == "where":
-            return (f"{who} is {where}" if v.x is not None else f"{who}: {where}") + ("" if v.up else f" ({link})")
-        if question == "doing":
-            return f"{who} is {doing}" + ("" if v.up else f" ({link})")
-        if question == "battery":
-            return f"{who} {battery}"
-        if question == "link":
-            return f"{who} {link}"
-        return f"{who}: {where}; {doing}; {battery}; {link}"
+
+def answer(question: str, v: RobotView, spoken: str) -> str:
+    """The answer to a status question about one robot (`spoken`: its name as said, `robot 2`)."""
+    who = spoken.capitalize()
+    where = (f"at x {v.x:.1f}, y {v.y:.1f}, heading {math.degrees(v.theta or 0.0):.0f} degrees"
+             if v.x is not None and v.y is not None else "position unknown")
+    doing = v.doing or "idle"
+    battery = f"battery {v.battery:.1f} volts" if v.battery is not None else "battery unknown"
+    if v.up:
+        link = "link up" + (f", best link quality {v.link:.2f}" if v.link is not None else "")
+    else:
+        link = "link lost" + (f", not heard for {v.silent:.0f} s" if v.silent is not None else "")
+    if question == "where":
+        return (f"{who} is {where}" if v.x is not None else f"{who}: {where}") + ("" if v.up else f" ({link})")
+    if question == "doing":
+        return f"{who} is {doing}" + ("" if v.up else f" ({link})")
+    if question == "battery":
+        return f"{who} {battery}"
+    if question == "link":
+        return f"{who} {link}"
+    return f"{who}: {where}; {doing}; {battery}; {link}"
 
 
 def goals_short_of(tx: float, ty: float, movers: Mapping[str, tuple[float, float]]) -> dict[str, dict[str, float]]:
