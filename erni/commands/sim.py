@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from erni.commands._team_file import announce, withdraw
 from erni.commands._text import say
 from erni.logs import mask_secrets
 
@@ -134,6 +135,7 @@ def run(args: argparse.Namespace) -> int:
         say(f"erni sim: {too_many}", file=sys.stderr, flush=True)
     progress = Progress()
     code = 0
+    announced = None
     try:
         say(f"erni sim: {scenario.title} ({scenario.name}): {scenario.count} robot(s), "
               f"R = {scenario.radio.comm_range:g} m; starting...", flush=True)
@@ -141,7 +143,8 @@ def run(args: argparse.Namespace) -> int:
         t0 = time.monotonic()
         team.start(progress, timeout=args.timeout)
         progress.done()
-        _print_team(team, time.monotonic() - t0)
+        announced = announce(team.control_address, team.discovery_port, team.cli_identity, team.run_dir)
+        _print_team(team, time.monotonic() - t0, announced)
         for note in speech_notes(team.url is None):
             say(f"erni sim: {note}", flush=True)
         running.append(True)
@@ -154,6 +157,7 @@ def run(args: argparse.Namespace) -> int:
         progress.done()
     finally:
         signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C must not cut the clean stop short
+        withdraw(announced)  # the commands no longer find a team that is stopping
         say("erni sim: stopping the team...", flush=True)
         # a stop that hangs says where: every thread's stack on stderr after 30 s (the stop waits at
         # most 8 s for the agents, then kills them)
@@ -245,7 +249,7 @@ def speech_notes(headless: bool) -> list[str]:
     return notes
 
 
-def _print_team(team: Any, seconds: float) -> None:
+def _print_team(team: Any, seconds: float, announced: Path | None = None) -> None:
     host, port = team.control_address
     say(f"team up in {seconds:.1f} s: {len(team.names)} robot agent(s) and the control node; "
           f"run directory {team.run_dir}")
@@ -271,6 +275,11 @@ def _print_team(team: Any, seconds: float) -> None:
     say(f"  erni peers --via {host}:{port}")
     say(f"  erni task --via {host}:{port} {team.names[0]} BotMotion goto x=1 y=2 --wait")
     say(f"  erni watch --via {host}:{port}")
+    if announced is not None:
+        from erni.transport.client import IDENTITY_ENV
+
+        say(f"  (while it runs, erni peers, task, watch, record and console find this team without --via and "
+            f"{IDENTITY_ENV}: it is named in {announced})")
     say("Ctrl-C stops the team", flush=True)
 
 
