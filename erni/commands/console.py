@@ -50,8 +50,11 @@ HELP = """examples:  robot 1 go to 2 3 | robots 1 and 2 turn right 90 degrees | 
 def register(sub: Any) -> None:
     """Add the `console` sub-command."""
     p = sub.add_parser("console", help="type commands to the team in the speech grammar",
-                       description="Type commands such as 'robot 3 go to 4 5' or 'everyone stop'; they go to "
-                       "the robots through one agent (--via, or one found by its beacons). Exit 0, or 1 when a "
+                       description="Type commands such as 'robot 3 go to 4 5' or 'everyone stop'; they go to the "
+                       "robots through one agent\n(--via; else the control node of a running erni sim of this "
+                       "user's, or one found by its beacons).\nA command that names no robot goes to the robots "
+                       "named in the line before; named longer ago, the console\nasks first (type yes), as it "
+                       "does before a move longer than --confirm-beyond. A stop never asks.\nExit 0, or 1 when a "
                        "piped command was refused or a task failed; 2 on bad arguments.",
                        epilog=HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--verb", choices=["RemoteBotMotion", "BotMotion"], default="RemoteBotMotion",

@@ -32,7 +32,10 @@ def register(sub: Any) -> None:
         "sim", help="run a whole simulated team on this machine until Ctrl-C",
         description="Start a simulated team: the world, one simulated ARCOS robot and one simulated "
                     "SNMP network node per robot, one agent process per robot on 127.0.1.N, and the "
-                    "control node. Traffic between robots the radio cannot connect is dropped.")
+                    "control node. Traffic between robots the radio cannot connect is dropped. While it runs, "
+                    "erni task, peers, watch, record and console of the same user reach its control node "
+                    "without --via. A team larger than this machine is measured to hold in real time "
+                    f"(about {ROBOTS_PER_CORE} robots per core, bench/bench_team.py) starts with a warning.")
     p.add_argument("scenario", nargs="?", help="scenario TOML or the name of one in examples/ "
                    "(default: four robots in an open room)")
     p.add_argument("--robots", type=int, help="number of robots (overrides the scenario)")
