@@ -49,7 +49,7 @@ def announce(via: tuple[str, int], discovery_port: int, identity: str | Path, ru
         temp = folder / f".{path.name}.tmp"
         fd = os.open(temp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
         with os.fdopen(fd, "w", encoding="utf-8") as f:
-            json.dump({"pid": os.getpid(), "via": f"{via[0]}:{via[1]}", "discovery_port": discovery_port,
+            json.dump({"pid": os.getpid(), "started": started(os.getpid()), "via": f"{via[0]}:{via[1]}", "discovery_port": discovery_port,
                        "identity": str(identity), "run_dir": str(run_dir)}, f)
         os.replace(temp, path)
         return path
@@ -82,18 +82,29 @@ def running_sim() -> dict[str, Any] | None:
             str(team["via"]), str(team["identity"])
         except (OSError, ValueError, KeyError, TypeError):
             continue
-        if _runs(pid):
+        if _runs(pid, str(team.get("started", ""))):
             found.append((when, team))
         else:
             withdraw(path)
     return max(found, key=lambda f: f[0])[1] if found else None
 
 
-def _runs(pid: int) -> bool:
+def started(pid: int) -> str:
+    """When process `pid` started (clock ticks after boot, from /proc), or '' where it cannot be told."""
+    try:
+        stat_line = Path(f"/proc/{pid}/stat").read_text(encoding="ascii", errors="replace")
+        return stat_line.rsplit(")", 1)[1].split()[19]  # field 22, after the command name in parentheses
+    except (OSError, IndexError):
+        return ""
+
+
+def _runs(pid: int, since: str) -> bool:
+    """Whether the process that wrote a team's file still runs (one that took its PID since does not count)."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
         return False
     except (PermissionError, OverflowError, ValueError):
         return False  # not this user's: not a run of this user's erni sim
-    return True
+    now = started(pid)
+    return not (since and now) or now == since

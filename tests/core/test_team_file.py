@@ -9,7 +9,7 @@ import subprocess
 import sys
 
 from erni.commands import _team_file
-from erni.commands._team_file import announce, running_sim, runtime_dir, withdraw
+from erni.commands._team_file import announce, running_sim, runtime_dir, started, withdraw
 
 
 def test_a_running_team_is_found_and_withdrawn(tmp_path, monkeypatch):
@@ -52,3 +52,21 @@ def test_without_xdg_runtime_dir_it_is_in_the_temporary_directory(monkeypatch):
     monkeypatch.delenv("XDG_RUNTIME_DIR", raising=False)
     assert runtime_dir().name == f"erni-{os.getuid()}"
     assert _team_file.PREFIX == "sim-"
+
+
+def test_a_pid_another_program_took_is_not_a_running_sim(tmp_path, monkeypatch):
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path))
+    other = subprocess.Popen(["sleep", "30"])  # runs, but is no erni
+    try:
+        folder = tmp_path / "erni"
+        folder.mkdir(mode=0o700)
+        taken = folder / f"sim-{other.pid}.json"
+        mine = json.loads(announce(("127.0.1.250", 1), 1, "x", "run").read_text())  # type: ignore[union-attr]
+        assert mine["started"] and mine["started"] != started(other.pid)
+        taken.write_text(json.dumps({**mine, "pid": other.pid}))  # the PID of a run, taken by another process
+        taken.chmod(0o600)
+        withdraw(folder / f"sim-{os.getpid()}.json")
+        assert running_sim() is None and not taken.exists()
+    finally:
+        other.kill()
+        other.wait()
