@@ -40,6 +40,7 @@ from erni.transport.client import PeerListParts
 
 WATCH_LEASE = 10.0
 CONFIRM_BEYOND = 10.0  # m: a typed move longer than this is confirmed first (the GUI's typed box's default)
+HISTORY_LENGTH = 1000  # lines kept in the history file
 
 HELP = """examples:  robot 1 go to 2 3 | robots 1 and 2 turn right 90 degrees | go forward 2 feet
            everyone stop | cancel that | random walk | robot 2 status | where are you | how many robots
@@ -263,9 +264,6 @@ class Console:
         self.emit(f"{stamp(r.stamp)} {task.destination}: {task.preposition} {r.state.value}{message}",
                   {"uid": task.uid, "agent": task.destination, "preposition": task.preposition,
                    **r.model_dump(mode="json")})
-
-
-HISTORY_LENGTH = 1000  # lines kept in the history file
 
 
 def _history(path: str) -> Any:
