@@ -5,24 +5,30 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import sys
 import time
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 from erni.blackboard.errors import ErniError, UsageError
 from erni.commands._text import say
 from erni.transport.endpoint import STREAM_BUFFER, Address, parse_address
 
+DISCOVERY_PORT = 47000  # the beacon port of a team that names no other
+
 
 def add_client_options(p: argparse.ArgumentParser) -> None:
     """Add --via, --discovery-port, --zenoh, --team, --identity, --key-env, --insecure and --json."""
     p.add_argument("--via", metavar="HOST:PORT", help="an agent's transport address, or with --zenoh its name "
-                   "(default: find one by its beacons or liveliness token)")
+                   "(default: the control node of a running erni sim of this user's, else find one by its "
+                   "beacons or liveliness token)")
     p.add_argument("--zenoh", metavar="ENDPOINT", action="append", help="reach a team that runs over Zenoh "
                    "through this router or peer, e.g. tcp/192.0.2.1:7447 (repeatable)")
     p.add_argument("--team", default="team", help="with --zenoh: the team's key chunk (default: team)")
-    p.add_argument("--discovery-port", type=int, default=47000, help="beacon port (default 47000)")
+    p.add_argument("--discovery-port", type=int, default=None,
+                   help=f"beacon port (default {DISCOVERY_PORT})")
     p.add_argument("--identity", metavar="FILE", help="this client's identity bundle, role cli "
                    "(default: $ERNI_IDENTITY)")
     p.add_argument("--key-env", default="ERNI_TEAM_KEY", help="environment variable with a shared team key "
@@ -57,7 +63,8 @@ def via_address(args: argparse.Namespace) -> Address | None:
 
 
 def make_client(args: argparse.Namespace) -> Any:
-    """Build a Client from the shared options."""
+    """Build a Client from the shared options (without --via, --zenoh and --discovery-port: to the control node
+    of a running `erni sim` of this user's, if there is one and no other credentials were given)."""
     from erni.transport.client import Client
 
     zenoh = None
@@ -69,8 +76,29 @@ def make_client(args: argparse.Namespace) -> Any:
         except ValueError as err:  # pydantic's: the first problem, on one line
             errors = getattr(err, "errors", None)
             raise UsageError(f"--zenoh/--team: {errors()[0]['msg'] if errors else err}") from None
-    return Client(via_address(args), discovery_port=args.discovery_port, identity=args.identity,
+    via, identity = via_address(args), args.identity
+    if via is None and zenoh is None and args.discovery_port is None:
+        via, identity = _sim_team(args) or (None, identity)
+    return Client(via, discovery_port=args.discovery_port or DISCOVERY_PORT, identity=identity,
                   key_env=args.key_env, insecure=args.insecure, zenoh=zenoh)
+
+
+def _sim_team(args: argparse.Namespace) -> tuple[Address, str] | None:
+    """The control node's address and the identity of a running `erni sim` of this user's, when the command
+    was given no credentials of its own or that run's identity; else None."""
+    from erni.commands._team_file import running_sim
+    from erni.transport.client import IDENTITY_ENV
+
+    if args.insecure:
+        return None
+    given = args.identity or os.environ.get(IDENTITY_ENV) or ""
+    if not given and os.environ.get(args.key_env):
+        return None  # a shared team key: another team's
+    team = running_sim()
+    if team is None or (given and Path(given).resolve() != Path(team["identity"]).resolve()):
+        return None
+    host, port = parse_address(team["via"])
+    return (host, port), team["identity"]
 
 
 def open_client(args: argparse.Namespace, command: str) -> Any:

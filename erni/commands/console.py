@@ -6,20 +6,28 @@ y 5", "I don't know robot 9") and prints a line when each task it sent starts an
 also when it was stopped or superseded (obstacle avoidance is not superseded: it stays on until
 turned off, and the console does not wait for it to end). "cancel that" withdraws the tasks of the
 last command carried out; "set speed 0.2", "faster" and "slower" set the cruise speed of later
-moves. Status questions are answered from the agent's
+moves. A command that names no robot goes to the robots last named: at once, naming them ("Roger:
+robot 3, clear your behaviours"), when they were named or answered about in the line just before;
+older than that, the console asks ("Robot 3: clear your behaviours? ... type yes to confirm") and
+sends nothing until "yes". A move longer than `--confirm-beyond` metres and a held velocity are
+asked the same way. A stop never asks. Status questions are answered from the agent's
 directory (link) and the poses and tasks it streams to the console (pose, battery, task).
-Lines from a pipe are read to the end, then the console waits for the tasks it sent to finish
-(`--timeout`).
+On a terminal the lines are read at an `erni>` prompt (prompt_toolkit): an event line that
+arrives while a line is typed is printed above the prompt, which is drawn again below it with the
+line as it was; the lines typed are kept in `--history-file`, one per line. Lines from a pipe are
+read to the end, then the console waits for the tasks it sent to finish (`--timeout`).
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import queue
 import sys
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TextIO
 
@@ -31,6 +39,8 @@ from erni.commands._text import say, say_lines
 from erni.transport.client import PeerListParts
 
 WATCH_LEASE = 10.0
+CONFIRM_BEYOND = 10.0  # m: a typed move longer than this is confirmed first (the GUI's typed box's default)
+HISTORY_LENGTH = 1000  # lines kept in the history file
 
 HELP = """examples:  robot 1 go to 2 3 | robots 1 and 2 turn right 90 degrees | go forward 2 feet
            everyone stop | cancel that | random walk | robot 2 status | where are you | how many robots
@@ -41,8 +51,11 @@ HELP = """examples:  robot 1 go to 2 3 | robots 1 and 2 turn right 90 degrees | 
 def register(sub: Any) -> None:
     """Add the `console` sub-command."""
     p = sub.add_parser("console", help="type commands to the team in the speech grammar",
-                       description="Type commands such as 'robot 3 go to 4 5' or 'everyone stop'; they go to "
-                       "the robots through one agent (--via, or one found by its beacons). Exit 0, or 1 when a "
+                       description="Type commands such as 'robot 3 go to 4 5' or 'everyone stop'; they go to the "
+                       "robots through one agent\n(--via; else the control node of a running erni sim of this "
+                       "user's, or one found by its beacons).\nA command that names no robot goes to the robots "
+                       "named in the line before; named longer ago, the console\nasks first (type yes), as it "
+                       "does before a move longer than --confirm-beyond. A stop never asks.\nExit 0, or 1 when a "
                        "piped command was refused or a task failed; 2 on bad arguments.",
                        epilog=HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--verb", choices=["RemoteBotMotion", "BotMotion"], default="RemoteBotMotion",
@@ -50,8 +63,11 @@ def register(sub: Any) -> None:
     p.add_argument("--robot-names", default="robot{n}", help="agent name of robot n (default robot{n})")
     p.add_argument("--timeout", type=float, default=30.0,
                    help="after piped input ends, wait this long for the tasks to finish (s)")
+    p.add_argument("--confirm-beyond", type=float, default=CONFIRM_BEYOND, metavar="METRES",
+                   help="a move longer than this, or a held velocity, waits for a typed yes "
+                   f"(default {CONFIRM_BEYOND:g}; 0: only a held velocity)")
     p.add_argument("--history-file", default=os.path.expanduser("~/.erni_console_history"),
-                   help="readline history (interactive only)")
+                   help="the lines typed, kept for the next session (on a terminal only)")
     add_client_options(p)
     p.set_defaults(func=run)
 
@@ -250,17 +266,39 @@ class Console:
                    **r.model_dump(mode="json")})
 
 
-def _readline(history: str) -> Any:
-    try:
-        import readline
-    except ImportError:  # not on every platform: plain input() then
-        return None
-    try:
-        readline.read_history_file(history)
-    except OSError:
-        pass
-    readline.set_history_length(1000)
-    return readline
+def _history(path: str) -> Any:
+    """The console's line history in `path`: one line per command, as readline keeps it (the file of an
+    earlier console reads as it was); the newest HISTORY_LENGTH lines are kept. Quietly none where the
+    file cannot be read or written."""
+    from prompt_toolkit.history import History
+
+    class LineHistory(History):
+        def load_history_strings(self) -> list[str]:
+            try:
+                lines = Path(path).read_text(encoding="utf-8", errors="replace").splitlines()
+            except OSError:
+                return []
+            lines = [ln for ln in lines if ln.strip()]
+            if len(lines) > 2 * HISTORY_LENGTH:  # trimmed now and then, not at every line
+                lines = lines[-HISTORY_LENGTH:]
+                self._write(lines)
+            return list(reversed(lines[-HISTORY_LENGTH:]))  # newest first
+
+        def store_string(self, string: str) -> None:
+            try:
+                Path(path).parent.mkdir(parents=True, exist_ok=True)
+                with open(path, "a", encoding="utf-8") as f:
+                    f.write(string.replace("\n", " ") + "\n")
+            except OSError:
+                pass
+
+        def _write(self, lines: list[str]) -> None:
+            try:
+                Path(path).write_text("".join(f"{ln}\n" for ln in lines), encoding="utf-8")
+            except OSError:
+                pass
+
+    return LineHistory()
 
 
 def run(args: argparse.Namespace) -> int:
@@ -268,44 +306,65 @@ def run(args: argparse.Namespace) -> int:
     from erni.plugins.ui.dialogue import Dialogue, Naming
     from erni.transport.client import ClientError
 
+    if not math.isfinite(args.confirm_beyond) or args.confirm_beyond < 0:
+        say(f"erni console: --confirm-beyond: expected a number of metres >= 0, got {args.confirm_beyond}",
+            file=sys.stderr)
+        return 2
     try:
         naming = Naming(args.robot_names)
         client = make_client(args)
     except ValueError as err:
         say(f"erni console: {err}", file=sys.stderr)
         return 2
-    interactive = sys.stdin.isatty()
+    interactive = sys.stdin.isatty() and sys.stdout.isatty()
     with client:
         try:
             addr = client.find(None)
         except ClientError as err:
             say(f"erni console: {err}", file=sys.stderr)
             return 1
-        dialogue = Dialogue(naming, verb=args.verb, source=client.endpoint.name, listening=True)
+        # a command that names no robot acts at once only on the robots named in the exchange just before
+        dialogue = Dialogue(naming, verb=args.verb, source=client.endpoint.name, listening=True,
+                            confirm_remembered=True, confirm_beyond=args.confirm_beyond or math.inf)
+        if interactive:
+            _interactive(client, addr, dialogue, args)
+            return 0
         console = Console(client, addr, dialogue, sys.stdout, json_lines=args.json).start()
-        rl = _readline(args.history_file) if interactive else None
         try:
-            if interactive:
-                say(f"erni console through {addr[0]}:{addr[1]}; tasks as {args.verb}")
-                say_lines(HELP)
-            _read_lines(console, interactive, echo=not interactive and not args.json)
-            if not interactive:
-                console.wait(args.timeout)
+            _read_lines(console, lambda: input(""), echo=not args.json)
+            console.wait(args.timeout)
         except KeyboardInterrupt:
             say()
         finally:
             console.stop()
-            if rl is not None:
-                _save_history(rl, args.history_file)
-    return 1 if not interactive and (console.failed or console.refused) else 0
+    return 1 if console.failed or console.refused else 0
 
 
-def _read_lines(console: Console, interactive: bool, echo: bool) -> None:
-    """Say each line read to the console until EOF or `quit` (`help` shows the help; `echo`: each line
-    is printed before its answers)."""
+def _interactive(client: Any, addr: Any, dialogue: Any, args: argparse.Namespace) -> None:
+    """Read lines at a prompt on a terminal: event lines from the team are printed above the prompt, and
+    the prompt with the line being typed is drawn again below them."""
+    from prompt_toolkit import PromptSession
+    from prompt_toolkit.patch_stdout import patch_stdout
+
+    session: PromptSession[str] = PromptSession(history=_history(args.history_file))
+    with patch_stdout():  # sys.stdout is a proxy that writes above the prompt from here on
+        console = Console(client, addr, dialogue, sys.stdout, json_lines=args.json).start()
+        try:
+            say(f"erni console through {addr[0]}:{addr[1]}; tasks as {args.verb}")
+            say_lines(HELP)
+            _read_lines(console, lambda: session.prompt("erni> "), echo=False)
+        except KeyboardInterrupt:
+            say()
+        finally:
+            console.stop()
+
+
+def _read_lines(console: Console, read: Callable[[], str], echo: bool) -> None:
+    """Say each line `read` returns to the console until EOF or `quit` (`help` shows the help; `echo`: each
+    line is printed before its answers)."""
     while True:
         try:
-            line = input("erni> " if interactive else "")
+            line = read()
         except EOFError:
             break
         line = line.strip()
@@ -319,12 +378,3 @@ def _read_lines(console: Console, interactive: bool, echo: bool) -> None:
         if echo:
             console.print(f"> {line}")
         console.say(line)
-
-
-def _save_history(rl: Any, history_file: str) -> None:
-    """Keep the lines read for the next session (quietly not, where the file cannot be written)."""
-    try:
-        Path(history_file).parent.mkdir(parents=True, exist_ok=True)
-        rl.write_history_file(history_file)
-    except OSError:
-        pass

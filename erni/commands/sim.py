@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from erni.commands._team_file import announce, withdraw
 from erni.commands._text import say
 from erni.logs import mask_secrets
 
@@ -20,6 +21,9 @@ KEEP_RUNS = 3  # run directories of finished `erni sim` runs kept in the tempora
 RUN_PREFIX = "erni-sim-"  # what `erni sim` names its run directory in the temporary directory
 OWNER_FILE = "erni-sim.pid"  # in a run directory: the PID of the `erni sim` that made it
 UNMARKED_AGE = 86400.0  # a run directory without an owner file (an older ERNI's) is finished after a day
+# Robots a core holds in real time, as measured: bench/bench_team.py on a quiet 2-core machine, 50 robots
+# keep the control node's Pose interval p99 within 2x the period and 100 do not (bench/results/bench_team.json)
+ROBOTS_PER_CORE = 25
 
 
 def register(sub: Any) -> None:
@@ -28,7 +32,10 @@ def register(sub: Any) -> None:
         "sim", help="run a whole simulated team on this machine until Ctrl-C",
         description="Start a simulated team: the world, one simulated ARCOS robot and one simulated "
                     "SNMP network node per robot, one agent process per robot on 127.0.1.N, and the "
-                    "control node. Traffic between robots the radio cannot connect is dropped.")
+                    "control node. Traffic between robots the radio cannot connect is dropped. While it runs, "
+                    "erni task, peers, watch, record and console of the same user reach its control node "
+                    "without --via. A team larger than this machine is measured to hold in real time "
+                    f"(about {ROBOTS_PER_CORE} robots per core, bench/bench_team.py) starts with a warning.")
     p.add_argument("scenario", nargs="?", help="scenario TOML or the name of one in examples/ "
                    "(default: four robots in an open room)")
     p.add_argument("--robots", type=int, help="number of robots (overrides the scenario)")
@@ -96,6 +103,7 @@ def run(args: argparse.Namespace) -> int:
         if args.hello_interval is not None and not args.netns:
             raise TeamError("--hello-interval is babeld's, which runs only with --netns")
         scenario = load(args)
+        too_many = capacity_warning(scenario.count, cores())
         if args.gui_listen:
             from erni.transport import parse_address
 
@@ -126,8 +134,11 @@ def run(args: argparse.Namespace) -> int:
             raise KeyboardInterrupt
 
     previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    if too_many:
+        say(f"erni sim: {too_many}", file=sys.stderr, flush=True)
     progress = Progress()
     code = 0
+    announced = None
     try:
         say(f"erni sim: {scenario.title} ({scenario.name}): {scenario.count} robot(s), "
               f"R = {scenario.radio.comm_range:g} m; starting...", flush=True)
@@ -135,7 +146,8 @@ def run(args: argparse.Namespace) -> int:
         t0 = time.monotonic()
         team.start(progress, timeout=args.timeout)
         progress.done()
-        _print_team(team, time.monotonic() - t0)
+        announced = announce(team.control_address, team.discovery_port, team.cli_identity, team.run_dir)
+        _print_team(team, time.monotonic() - t0, announced)
         for note in speech_notes(team.url is None):
             say(f"erni sim: {note}", flush=True)
         running.append(True)
@@ -148,6 +160,7 @@ def run(args: argparse.Namespace) -> int:
         progress.done()
     finally:
         signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C must not cut the clean stop short
+        withdraw(announced)  # the commands no longer find a team that is stopping
         say("erni sim: stopping the team...", flush=True)
         # a stop that hangs says where: every thread's stack on stderr after 30 s (the stop waits at
         # most 8 s for the agents, then kills them)
@@ -158,6 +171,24 @@ def run(args: argparse.Namespace) -> int:
             signal.signal(sig, handler)
         say(f"erni sim: stopped; configs and logs in {team.run_dir}", flush=True)
     return code
+
+
+def cores() -> int:
+    """The cores this process may run on (its CPU affinity, else the machine's count)."""
+    try:
+        return len(os.sched_getaffinity(0)) or 1
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+def capacity_warning(robots: int, cores: int) -> str:
+    """'' when `robots` is within what `cores` are measured to hold in real time, else the one-line warning."""
+    holds = ROBOTS_PER_CORE * cores
+    if robots <= holds:
+        return ""
+    return (f"{robots} robots is more than this machine is measured to hold in real time (about "
+            f"{ROBOTS_PER_CORE} robots per core: {holds} on its {cores} core{'' if cores == 1 else 's'}, "
+            "bench/bench_team.py); starting anyway, expect a slow start and skipped SIPs")
 
 
 def prune_run_dirs(tmp: Path, keep: int = KEEP_RUNS, now: float | None = None) -> list[Path]:
@@ -221,7 +252,7 @@ def speech_notes(headless: bool) -> list[str]:
     return notes
 
 
-def _print_team(team: Any, seconds: float) -> None:
+def _print_team(team: Any, seconds: float, announced: Path | None = None) -> None:
     host, port = team.control_address
     say(f"team up in {seconds:.1f} s: {len(team.names)} robot agent(s) and the control node; "
           f"run directory {team.run_dir}")
@@ -247,6 +278,11 @@ def _print_team(team: Any, seconds: float) -> None:
     say(f"  erni peers --via {host}:{port}")
     say(f"  erni task --via {host}:{port} {team.names[0]} BotMotion goto x=1 y=2 --wait")
     say(f"  erni watch --via {host}:{port}")
+    if announced is not None:
+        from erni.transport.client import IDENTITY_ENV
+
+        say(f"  (while it runs, erni peers, task, watch, record and console find this team without --via and "
+            f"{IDENTITY_ENV}: it is named in {announced})")
     say("Ctrl-C stops the team", flush=True)
 
 

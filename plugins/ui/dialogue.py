@@ -20,7 +20,10 @@ is read back too ("Did you say: robot 1, go forward 2 metres? Say yes or no"), a
 hearing is asked again ("Say again?"); a stop never waits. A dialogue made with `confirm_beyond`
 (the typed one) asks once before a move that leaves the map: its end off the floor plan's bounds
 (`area`), a held velocity, or, where the bounds cannot tell, a move longer than `confirm_beyond`
-metres.
+metres. A dialogue made with `confirm_remembered` (the console's) carries out a command that names no
+robot for the robots last named only when they were named, or answered about, in the exchange just
+before ("Roger: robot 3, clear your behaviours"); older than that, it asks ("Robot 3: clear your
+behaviours? No robot named; robot 3 was named 4 commands ago ..."). A stop never asks.
 `Naming` maps robot numbers to agent names (`robot3`) and back; `tasks_for` maps an action
 of the grammar onto the task language in either tier (RemoteBotMotion through each robot's
 MissionControl, or BotMotion straight to its motion plugin).
@@ -32,7 +35,7 @@ import math
 import re
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, overload
 
 from erni.blackboard import Task
 from erni.blackboard.clock import monotonic
@@ -234,6 +237,48 @@ class _Pending:
 Team = Mapping[str, RobotView] | Iterable[str]
 
 
+@dataclass
+class Sticky:
+    """The robots a command that names none goes to (the last named, or answered about) and when they were
+    named; with `ask`, a command for robots named longer ago than the exchange just before waits for a yes."""
+
+    ask: bool = False
+    names: list[str] = field(default_factory=list)
+    heard: int = 0  # utterances heard
+    at: int = 0  # the utterance that last named them
+
+    def age(self, named: bool) -> int:
+        """How many utterances ago the robots were named, when a command that does not name them (`named`
+        False) is to wait for a yes for it (older than the one just before, and `ask`); else 0."""
+        age = self.heard - self.at
+        return age if self.ask and not named and age > 1 else 0
+
+    def question(self, who: str, doing: str, prompt: str) -> str:
+        """`Robot 3: clear your behaviours? No robot named; robot 3 was named 4 commands ago \u2014 ...`"""
+        were = "were" if len(self.names) > 1 else "was"
+        return (f"{who[0].upper()}{who[1:]}: {doing}? No robot named; {who} {were} named {self.heard - self.at} "
+                f"commands ago \u2014 {prompt}, or name the robots")
+
+
+class _Targets:
+    """`Dialogue.targets`: the sticky targets; setting them marks them named in the utterance heard now."""
+
+    @overload
+    def __get__(self, dialogue: None, owner: type[Any] | None = None) -> _Targets: ...
+
+    @overload
+    def __get__(self, dialogue: object, owner: type[Any] | None = None) -> list[str]: ...
+
+    def __get__(self, dialogue: Any, owner: type[Any] | None = None) -> list[str] | _Targets:
+        if dialogue is None:
+            return self
+        names: list[str] = dialogue.sticky.names
+        return names
+
+    def __set__(self, dialogue: Any, names: list[str]) -> None:
+        dialogue.sticky.names, dialogue.sticky.at = names, dialogue.sticky.heard
+
+
 class Dialogue:
     """Listening state and sticky targets of one operator; `hear()` answers each utterance."""
 
@@ -241,20 +286,21 @@ class Dialogue:
     confirm_beyond: Cautious[float | None] = Cautious()
     read_back_numbers: Cautious[bool] = Cautious()
     area: Cautious[tuple[float, float, float, float] | None] = Cautious()
+    targets = _Targets()  # the last robots named: `sticky`
 
     def __init__(self, naming: Naming | None = None, *, verb: str = "RemoteBotMotion", source: str = "control",
                  listening: bool = True, control: str = "control", memory: Memory | None = None,
                  read_back: float | None = None, area: tuple[float, float, float, float] | None = None,
                  read_back_timeout: float = 20.0, read_back_numbers: bool = False, echo: bool = False,
                  wake: tuple[str, ...] = ATTENTION, confirm_beyond: float | None = None,
-                 clock: Callable[[], float] = monotonic) -> None:
+                 confirm_remembered: bool = False, clock: Callable[[], float] = monotonic) -> None:
         self.naming = naming or Naming()
         self.wake = wake  # the phrases that wake a standing-by dialogue
         self.verb = verb
         self.source = source
         self.control = control  # agent name of the control node: "relay between robot 1 and control"
         self.listening = listening
-        self.targets: list[str] = []
+        self.sticky = Sticky(ask=confirm_remembered)  # `targets`, and when they were named
         self.memory = memory or Memory()
         self.caution = Caution(read_back, confirm_beyond, read_back_numbers, area)  # what waits for a yes
         self.read_back_timeout = read_back_timeout
@@ -285,6 +331,7 @@ class Dialogue:
         views = self._views(team)
         live = None if running is None else {t.uid for t in running}
         reply = Reply(text)
+        self.sticky.heard += 1
         pending, self.pending = self.pending, None
         try:
             cmd = parse(text, self.wake)
@@ -389,16 +436,16 @@ class Dialogue:
         except Refusal as why:
             reply.say = self._refused(reply.heard, str(why), None)
             return reply
-        if not doubt:  # a doubted hearing picks no robots until it is confirmed
-            self.targets = targets
         reply.targets, reply.action = list(targets), "goto" if cmd.action == "goto_robot" else cmd.action
+        risk = self._risk(cmd, reply, views, doubt)
+        if not doubt and risk != "remembered":  # a doubted hearing, or one for robots named long ago,
+            self.targets = targets              # picks no robots until it is confirmed
         what += self._at_speed(reply.action, targets)
         who = self.who(targets, cmd.everyone, views)
         reply.accepted = True
-        risk = "doubt" if doubt and reply.tasks else self.caution.risk(reply, views)
         reply.say = f"{ROGER}: {who}, {what}" + (f" ({note})" if note else "")
         if risk:
-            return self._ask(reply, f"{who}, {what}", risk)
+            return self._ask(reply, who, what, risk)
         self._carried_out(reply)
         return reply
 
@@ -407,18 +454,35 @@ class Dialogue:
         """A cruise speed: set at once, or read back (and made again on "yes") when risky."""
         self._cruise(cmd, targets)  # refused now rather than after a read-back
         probe = Reply(reply.heard, targets=list(targets), action="speed")
-        if not self.caution.risk(probe, views):
+        remembered = self.sticky.age(cmd.names_targets)
+        if not remembered and not self.caution.risk(probe, views):
             return self._speed(cmd, targets, views, live, note, reply)
-        what = f"{self.who(targets, cmd.everyone, views)}, {restate('speed', cmd.params)}"
+        who = self.who(targets, cmd.everyone, views)
+        what = f"{who}, {restate('speed', cmd.params)}"
         self.pending = _Pending(probe, what, self.clock() + self.read_back_timeout,
                                 redo=lambda now: self._speed(cmd, targets, views, now, note, Reply(probe.heard)))
-        return Reply(reply.heard, say=f"{what[0].upper()}{what[1:]} \u2014 {CONFIRM_PROMPT}",
-                     targets=list(targets), accepted=True, asked=True)
+        say = (self.sticky.question(who, restate("speed", cmd.params), self._prompt()) if remembered
+               else f"{what[0].upper()}{what[1:]} \u2014 {CONFIRM_PROMPT}")
+        return Reply(reply.heard, say=say, targets=list(targets), accepted=True, asked=True)
 
-    def _ask(self, reply: Reply, what: str, risk: str) -> Reply:
-        """Hold a risky command (`what`: who, what) until "yes", and say so as its risk asks."""
+    def _risk(self, cmd: Command, reply: Reply, views: Mapping[str, RobotView], doubt: bool) -> str:
+        """Why an understood command waits for a "yes"; '' when it is carried out at once."""
+        if doubt and reply.tasks:
+            return "doubt"
+        if not doubt and reply.tasks and self.sticky.age(cmd.names_targets):
+            return "remembered"
+        return self.caution.risk(reply, views)
+
+    def _prompt(self) -> str:
+        return CONFIRM_PROMPT if self.read_back is not None else TYPED_PROMPT
+
+    def _ask(self, reply: Reply, who: str, doing: str, risk: str) -> Reply:
+        """Hold a risky command until "yes", and say so as its risk asks."""
+        what = f"{who}, {doing}"
         self.pending = _Pending(reply, what, self.clock() + self.read_back_timeout)
-        if risk in ("doubt", "number"):
+        if risk == "remembered":
+            ask = self.sticky.question(who, doing, self._prompt())
+        elif risk in ("doubt", "number"):
             ask = f"{DID_YOU_SAY} {what}? {YES_OR_NO}"
         elif self.read_back is None:  # typed: asked once, saying why
             ask = f"{what[0].upper()}{what[1:]} \u2014 {self.caution.why(risk)}; {TYPED_PROMPT}"
@@ -697,32 +761,38 @@ class Dialogue:
             self.targets = names
             reply.targets = list(names)
         else:
-            names = [n for n in self.targets if n in views] or list(views)
+            names = [n for n in self.targets if n in views]
+            if names:
+                self.targets = names  # answered about: they are the ones just mentioned
+            else:
+                names = list(views)
         if not names:
             raise Refusal("I don't know any robots yet")
-        reply.say = "; ".join(self._answer(cmd.action, views[n]) for n in names)
+        reply.say = "; ".join(answer(cmd.action, views[n], self._spoken(n)) for n in names)
         reply.accepted = True
         return reply
 
-    def _answer(self, question: str, v: RobotView) -> str:
-        who = self._spoken(v.name).capitalize()
-        where = (f"at x {v.x:.1f}, y {v.y:.1f}, heading {math.degrees(v.theta or 0.0):.0f} degrees"
-                 if v.x is not None and v.y is not None else "position unknown")
-        doing = v.doing or "idle"
-        battery = f"battery {v.battery:.1f} volts" if v.battery is not None else "battery unknown"
-        if v.up:
-            link = "link up" + (f", best link quality {v.link:.2f}" if v.link is not None else "")
-        else:
-            link = "link lost" + (f", not heard for {v.silent:.0f} s" if v.silent is not None else "")
-        if question == "where":
-            return (f"{who} is {where}" if v.x is not None else f"{who}: {where}") + ("" if v.up else f" ({link})")
-        if question == "doing":
-            return f"{who} is {doing}" + ("" if v.up else f" ({link})")
-        if question == "battery":
-            return f"{who} {battery}"
-        if question == "link":
-            return f"{who} {link}"
-        return f"{who}: {where}; {doing}; {battery}; {link}"
+
+def answer(question: str, v: RobotView, spoken: str) -> str:
+    """The answer to a status question about one robot (`spoken`: its name as said, `robot 2`)."""
+    who = spoken.capitalize()
+    where = (f"at x {v.x:.1f}, y {v.y:.1f}, heading {math.degrees(v.theta or 0.0):.0f} degrees"
+             if v.x is not None and v.y is not None else "position unknown")
+    doing = v.doing or "idle"
+    battery = f"battery {v.battery:.1f} volts" if v.battery is not None else "battery unknown"
+    if v.up:
+        link = "link up" + (f", best link quality {v.link:.2f}" if v.link is not None else "")
+    else:
+        link = "link lost" + (f", not heard for {v.silent:.0f} s" if v.silent is not None else "")
+    if question == "where":
+        return (f"{who} is {where}" if v.x is not None else f"{who}: {where}") + ("" if v.up else f" ({link})")
+    if question == "doing":
+        return f"{who} is {doing}" + ("" if v.up else f" ({link})")
+    if question == "battery":
+        return f"{who} {battery}"
+    if question == "link":
+        return f"{who} {link}"
+    return f"{who}: {where}; {doing}; {battery}; {link}"
 
 
 def goals_short_of(tx: float, ty: float, movers: Mapping[str, tuple[float, float]]) -> dict[str, dict[str, float]]:

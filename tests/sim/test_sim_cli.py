@@ -168,3 +168,38 @@ def test_the_status_line_says_when_the_simulated_robots_skip_sips():
     assert sips_note(995, 5) == "; SIPs on time 99.5%"  # within 1 %: no alarm
     busy = sips_note(900, 100)
     assert busy.startswith("; SIPs on time 90.0% (100 of 1000 skipped: this machine is too busy")
+
+
+def test_the_commands_find_a_running_sim_team_without_via_until_it_stops(sim, tmp_path, monkeypatch):
+    runtime = tmp_path / "runtime"
+    runtime.mkdir(mode=0o700)
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(runtime))  # this test's runtime directory, for the sim and the commands
+    for var in ("ERNI_IDENTITY", "ERNI_TEAM_KEY"):
+        monkeypatch.delenv(var, raising=False)
+
+    def erni(*args: str, typed: str = "", **env: str) -> subprocess.CompletedProcess[str]:
+        return subprocess.run([sys.executable, "-m", "erni", *args], env={**os.environ, **env}, cwd=ROOT,
+                              input=typed, capture_output=True, text=True, timeout=60)
+
+    p = sim("--robots", "1", "--control-port", "0")
+    p.wait_for("Ctrl-C stops the team", timeout=90)
+    named = p.wait_for("find this team without --via", timeout=1)
+    files = list((runtime / "erni").glob("sim-*.json"))
+    assert len(files) == 1 and str(files[0]) in named, named
+    assert files[0].stat().st_mode & 0o777 == 0o600
+    via = p.wait_for("erni peers --via", timeout=1).split("--via")[1].strip()
+    peers = erni("peers", "--json")  # no --via, no identity: the sim's team, with the run's identity
+    assert peers.returncode == 0, peers.stderr
+    assert "robot1" in peers.stdout and "neither ERNI_IDENTITY" not in peers.stderr
+    task = erni("task", "robot1", "BotMotion", "forward", "distance=0.1", "--wait")
+    assert task.returncode == 0 and "succeeded" in task.stdout, task.stdout + task.stderr
+    typed = erni("console", typed="robot 1 turn left 10 degrees\n")
+    assert typed.returncode == 0 and "robot1: turn succeeded" in typed.stdout, typed.stdout + typed.stderr
+    # credentials of another team: that team is looked for by its beacons, not this one
+    other = erni("peers", ERNI_TEAM_KEY="another-team-key")
+    assert other.returncode == 1 and "no beacon" in other.stderr
+    p.proc.send_signal(signal.SIGINT)
+    assert p.proc.wait(30) == 0
+    assert not files[0].exists()  # gone with the team
+    gone = erni("peers")
+    assert gone.returncode == 1 and "no beacon" in gone.stderr and via not in gone.stdout
