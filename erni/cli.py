@@ -32,6 +32,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "robot-sim": ("robot_sim", "run simulated ARCOS robots (MobileSim-compatible port 8101)"),
     "router": ("router", "run a Zenoh router for a team on wire = \"zenoh\""),
     "sim": ("sim", "run a whole simulated team on this machine until Ctrl-C"),
+    "stop": ("stop", "stop robots of a running team (every robot without names)"),
     "task": ("task", "send a task to an agent and print its result"),
     "tasks": ("tasks", "print the task language"),
     "watch": ("watch", "stream poses, results and peer events as lines"),

@@ -7,7 +7,7 @@ import sys
 import time
 from typing import TYPE_CHECKING, Any
 
-from erni.blackboard.schemas import PeerList
+from erni.blackboard.messages import PeerList
 from erni.commands._client import add_client_options, dumps, open_client
 from erni.commands._text import say
 from erni.transport.zenoh_keys import wire_of
@@ -37,7 +37,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
     with client:
         try:
-            addr, directory = _ask_directory(client)
+            addr, directory = ask_directory(client)
         except ClientError as err:
             say(f"erni peers: {err}", file=sys.stderr)
             return 1
@@ -49,11 +49,12 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _ask_directory(client: Any) -> tuple[Address, PeerList]:
-    """Ask one agent for its directory: its address and the whole directory (ClientError: no answer in 5 s)."""
+def ask_directory(client: Any, addr: Address | None = None) -> tuple[Address, PeerList]:
+    """Ask one agent (the one at `addr`, or any found) for its directory: its address and the whole
+    directory (ClientError: no answer in 5 s)."""
     from erni.transport.client import ClientError, PeerListParts
 
-    addr = client.find(None)
+    addr = addr or client.find(None)
     client.send(addr, "peers.request", None)
     deadline = time.monotonic() + 5.0
     parts = PeerListParts()  # a large directory comes in parts

@@ -141,7 +141,7 @@ class Answer:
         return self.state not in ("sent", "pending")  # pending may be a relay's note
 
 
-def answers(args: argparse.Namespace, client: Any, addr: tuple[str, int], tasks: list[Task], *,
+def answers(client: Any, addr: tuple[str, int], tasks: list[Task], *,
             check_names: bool) -> dict[str, Answer]:
     """Wait at most `ANSWER_WAIT` s for each task's performer to take it (running, or done) or refuse it;
     return the answer of each (by uid).
@@ -180,7 +180,7 @@ def answers(args: argparse.Namespace, client: Any, addr: tuple[str, int], tasks:
 def _answer(args: argparse.Namespace, client: Any, addr: tuple[str, int], task: Task) -> int:
     """Without --wait: wait for the agent to take the task (running, or done) or refuse it; 1 on refusal
     (or when it is no agent of the team the agent reached through, --via, knows)."""
-    answer = answers(args, client, addr, [task], check_names=bool(args.via))[task.uid]
+    answer = answers(client, addr, [task], check_names=bool(args.via))[task.uid]
     if answer.state == "unknown":
         say(f"erni task: {answer.reason}", file=sys.stderr)
         return 1
