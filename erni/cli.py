@@ -11,6 +11,7 @@ registers them all (the reference pages read every option of every command from 
 from __future__ import annotations
 
 import argparse
+import gc
 import importlib
 import os
 import sys
@@ -70,13 +71,26 @@ def chosen(argv: list[str]) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     """Run the `erni` command line; return the process exit code."""
-    argv = sys.argv[1:] if argv is None else list(argv)
+    collecting = gc.isenabled()
+    # importing builds thousands of objects that live until the process ends (the task language's
+    # models, the wire's types): the collector, left on, would walk them again and again for nothing
+    gc.disable()
+    try:
+        return _main(sys.argv[1:] if argv is None else list(argv))
+    finally:
+        if collecting:
+            gc.enable()
+
+
+def _main(argv: list[str]) -> int:
     command = chosen(argv)
     parser = build_parser(command or "")
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
         parser.print_help(sys.stderr)
         return 2
+    if not getattr(args, "collect_later", False):  # a command that sends first turns the collector on itself
+        gc.enable()
     from erni.blackboard.errors import ErniError
     from erni.commands._text import say
 

@@ -39,7 +39,7 @@ def register(sub: Any) -> None:
     p.add_argument("--verb", choices=sorted(STOP), default="RemoteBotMotion",
                    help="RemoteBotMotion (default) or BotMotion for teams without MissionControl")
     add_client_options(p)
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, collect_later=True)  # the collector is on once the tasks went (`deliver`)
 
 
 def stops(verb: str, robots: list[str], source: str) -> list[Task]:

@@ -8,6 +8,7 @@ build the parser: a stop typed in a hurry goes out in a fraction of a second.
 from __future__ import annotations
 
 import argparse
+import gc
 import sys
 import time
 from dataclasses import dataclass
@@ -45,7 +46,7 @@ def register(sub: Any) -> None:
                    help="with --wait: give up when the agent reached through does not answer for S "
                    "seconds (default 30)")
     add_client_options(p)
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, collect_later=True)  # the collector is on once the tasks went (`deliver`)
 
 
 def parse_params(items: list[str]) -> dict[str, Any]:
@@ -115,10 +116,14 @@ def run(args: argparse.Namespace) -> int:
 
 def deliver(client: Any, addr: tuple[str, int], tasks: list[Task]) -> None:
     """Send each task to the agent at `addr`, all at once; return when that agent acknowledged every
-    one (ClientError: one could not be delivered, or no acknowledgement within 6 s)."""
+    one (ClientError: one could not be delivered, or no acknowledgement within 6 s).
+
+    The garbage collector is turned on once the tasks are on their way: `erni task` and `erni stop`
+    start with it off (erni.cli), so that importing what sends them is not slowed by it."""
     from erni.transport.client import ClientError
 
     ids = [client.send(addr, "task.add", task) for task in tasks]
+    gc.enable()
     deadline = time.monotonic() + 6.0
     while not all(msg_id in client.delivered for msg_id in ids):
         client.check_failed(*ids)
