@@ -11,7 +11,7 @@ agent's runtime), and the `erni` command line.
 """
 
 import importlib as _importlib
-from pathlib import Path as _Path
+import os as _os
 from typing import TYPE_CHECKING, Any
 
 
@@ -19,14 +19,14 @@ def _find_the_source_folders() -> None:
     """In a checkout without symbolic links (a zip, Windows, `core.symlinks=false`) `erni/blackboard`
     is a small text file naming `../blackboard`: look for the design card's folders beside `erni/`
     then, as the links would. An installed copy holds the folders themselves and never gets here."""
-    here = _Path(__file__).resolve().parent
-    if (here / "blackboard").is_dir():
+    here = _os.path.dirname(_os.path.realpath(__file__))  # os.path, not pathlib: `import erni` stays light
+    if _os.path.isdir(_os.path.join(here, "blackboard")):
         return
-    root = here.parent
-    if not (root / "blackboard" / "__init__.py").is_file():
-        raise ImportError(f"erni: {here / 'blackboard'} is not a folder and no blackboard/ package lies beside "
-                          f"{here}; reinstall ERNI (pip install erni) or check out the whole repository")
-    __path__.append(str(root))
+    root = _os.path.dirname(here)
+    if not _os.path.isfile(_os.path.join(root, "blackboard", "__init__.py")):
+        raise ImportError(f"erni: {_os.path.join(here, 'blackboard')} is not a folder and no blackboard/ package "
+                          f"lies beside {here}; reinstall ERNI (pip install erni) or check out the whole repository")
+    __path__.append(root)
 
 
 _find_the_source_folders()
