@@ -10,7 +10,6 @@ from typing import TYPE_CHECKING, Any
 from erni.blackboard.messages import PeerList
 from erni.commands._client import add_client_options, dumps, open_client
 from erni.commands._text import say
-from erni.transport.zenoh_keys import wire_of
 
 if TYPE_CHECKING:
     from erni.transport.endpoint import Address
@@ -84,6 +83,8 @@ def _routes(client: Any, directory: PeerList) -> dict[str, str | None]:
 
 
 def _print_json(directory: PeerList, routes: dict[str, str | None]) -> None:
+    from erni.transport.zenoh_keys import wire_of
+
     beacons, down_after = directory.beacons, directory.down_after
     for p in sorted(directory.peers, key=lambda p: p.name):
         say(dumps({"via": directory.agent, **p.model_dump(mode="json"), "wire": wire_of(p.address),
@@ -92,6 +93,8 @@ def _print_json(directory: PeerList, routes: dict[str, str | None]) -> None:
 
 
 def _print_table(directory: PeerList, routes: dict[str, str | None], addr: Address) -> None:
+    from erni.transport.zenoh_keys import wire_of
+
     now = time.time()
     beacons, down_after = directory.beacons, directory.down_after
     say(f"agents known to {directory.agent} ({addr[0]}:{addr[1]}):")
