@@ -71,13 +71,15 @@ def chosen(argv: list[str]) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     """Run the `erni` command line; return the process exit code."""
-    collecting = gc.isenabled()
+    collecting, frozen = gc.isenabled(), gc.get_freeze_count()
     # importing builds thousands of objects that live until the process ends (the task language's
     # models, the wire's types): the collector, left on, would walk them again and again for nothing
     gc.disable()
     try:
         return _main(sys.argv[1:] if argv is None else list(argv))
-    finally:
+    finally:  # as it was, for a caller in-process (erni task freezes what its start built)
+        if not frozen:
+            gc.unfreeze()
         if collecting:
             gc.enable()
 

@@ -119,10 +119,13 @@ def deliver(client: Any, addr: tuple[str, int], tasks: list[Task]) -> None:
     one (ClientError: one could not be delivered, or no acknowledgement within 6 s).
 
     The garbage collector is turned on once the tasks are on their way: `erni task` and `erni stop`
-    start with it off (erni.cli), so that importing what sends them is not slowed by it."""
+    start with it off (erni.cli), so that importing what sends them is not slowed by it. What the
+    start built is frozen first (it lives to the end): the collector, back on, does not walk it
+    while the handshake that carries the tasks is made."""
     from erni.transport.client import ClientError
 
     ids = [client.send(addr, "task.add", task) for task in tasks]
+    gc.freeze()
     gc.enable()
     deadline = time.monotonic() + 6.0
     while not all(msg_id in client.delivered for msg_id in ids):
