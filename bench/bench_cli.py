@@ -7,7 +7,9 @@ identity of a team authority made for the run, as against `erni sim`), then kill
 Measured in the same run, the same way: `python -c pass` and `python -c "import erni"` (launch ->
 exit), and a Python process that sends one datagram to the same socket (launch -> its arrival:
 the floor of any Python command that sends). Every figure is the median over `--repeat`
-samples; ratio = median / the `python -c pass` median.
+samples; ratio = median / the `python -c pass` median. Beside each, the CPU time the process had
+used by then (user + system, as the kernel counts it at its end): what a busy machine's waiting
+does not add to, unlike the time.
 
     python bench/bench_cli.py [--repeat 15] [--beside COMMIT]
 
@@ -36,15 +38,27 @@ sys.path.insert(0, str(ROOT))
 GOAL = 0.3  # s: process start -> the first packet of a stop
 
 
-def to_exit(argv: list[str], cwd: Path, env: dict[str, str]) -> float:
-    """Launch -> exit (s)."""
+def _cpu(proc: subprocess.Popen[bytes]) -> float:
+    """Reap `proc`; return the CPU time (user + system, every thread) it used (s)."""
+    _, status, usage = os.wait4(proc.pid, 0)
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    return usage.ru_utime + usage.ru_stime
+
+
+def to_exit(argv: list[str], cwd: Path, env: dict[str, str]) -> tuple[float, float]:
+    """Launch -> exit, and the CPU time it took (s)."""
     t0 = time.monotonic()
-    subprocess.run(argv, cwd=cwd, env=env, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    return time.monotonic() - t0
+    proc = subprocess.Popen(argv, cwd=cwd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    cpu = _cpu(proc)
+    wall = time.monotonic() - t0
+    if proc.returncode != 0:
+        raise RuntimeError(f"{' '.join(argv)} exited {proc.returncode}")
+    return wall, cpu
 
 
-def to_first_packet(argv: list[str], cwd: Path, env: dict[str, str], sock: socket.socket) -> float:
-    """Launch -> the first datagram at `sock` (s); the process is killed then."""
+def to_first_packet(argv: list[str], cwd: Path, env: dict[str, str], sock: socket.socket) -> tuple[float, float]:
+    """Launch -> the first datagram at `sock`, and the CPU time the process had used by then (s;
+    it is killed at once, while it waits for an answer)."""
     sock.setblocking(False)
     while True:  # nothing left over from the previous sample
         try:
@@ -60,10 +74,10 @@ def to_first_packet(argv: list[str], cwd: Path, env: dict[str, str], sock: socke
         except TimeoutError:
             err = proc.stderr.read().decode(errors="replace") if proc.poll() is not None and proc.stderr else ""
             raise RuntimeError(f"no packet from {' '.join(argv)} within 20 s {err}") from None
-        return time.monotonic() - t0
+        wall = time.monotonic() - t0
     finally:
         proc.kill()
-        proc.wait(10)
+    return wall, _cpu(proc)
 
 
 def main() -> int:
@@ -103,27 +117,28 @@ def main() -> int:
             subprocess.run(["tar", "-x", "-C", str(old)], input=tree, check=True)
             exits[f"python -c \"import erni\" at {args.beside}"] = ([py, "-c", "import erni"], old)
             packets[f"erni task ROBOT RemoteBotMotion cancel at {args.beside}"] = ([py, *task], old)
-        samples: dict[str, list[float]] = {name: [] for name in [*exits, *packets]}
+        samples: dict[str, list[tuple[float, float]]] = {name: [] for name in [*exits, *packets]}
         for k in range(args.repeat):  # interleaved: a busy moment of the machine falls on every command alike
             for name, (argv, cwd) in exits.items():
                 samples[name].append(to_exit(argv, cwd, env))
             for name, (argv, cwd) in packets.items():
                 samples[name].append(to_first_packet(argv, cwd, env, sock))
             print(f"  round {k + 1}/{args.repeat}", file=sys.stderr)
-    floor = statistics.median(samples["python -c pass"])
-    print(f"{'command':<52} {'until':<13} {'min ms':>7} {'median':>7} {'max':>7} {'ratio':>6}")
+    floor = statistics.median(wall for wall, _ in samples["python -c pass"])
+    print(f"{'command':<52} {'until':<13} {'min ms':>7} {'median':>7} {'max':>7} {'ratio':>6} {'CPU ms':>7}")
     targets = []
-    for name, xs in samples.items():
-        med = statistics.median(xs)
+    for name, got in samples.items():
+        xs = [wall for wall, _ in got]
+        med, cpu = statistics.median(xs), statistics.median(c for _, c in got)
         until = "exit" if name in exits else "first packet"
         print(f"{name:<52} {until:<13} {min(xs) * 1000:7.0f} {med * 1000:7.0f} {max(xs) * 1000:7.0f} "
-              f"{med / floor:6.1f}")
+              f"{med / floor:6.1f} {cpu * 1000:7.0f}")
         erni_sends = name.startswith("erni ") and " at " not in name  # this commit's commands
         targets.append(results.target(
             f"`{name}`: launch → {until}", f"≤ {GOAL * 1000:.0f} ms" if erni_sends else "reported",
             f"`python -c pass`, {floor * 1000:.0f} ms",
-            f"{med / floor:.1f}x ({med * 1000:.0f} ms; min {min(xs) * 1000:.0f}, max {max(xs) * 1000:.0f})",
-            med <= GOAL if erni_sends else None))
+            f"{med / floor:.1f}x ({med * 1000:.0f} ms; min {min(xs) * 1000:.0f}, max {max(xs) * 1000:.0f}; "
+            f"CPU {cpu * 1000:.0f} ms)", med <= GOAL if erni_sends else None))
     if args.beside:
         print("results: not written (a run --beside another commit is printed only)")
         return 0
