@@ -7,7 +7,7 @@ remote forward, a random walk and a remote goto), then stops the whole team from
 "everybody stop" spoken by espeak-ng and streamed through the page's microphone path, the page's
 Stop button, its typed line, `erni console`, `erni task ... RemoteBotMotion cancel` and `erni task
 ... BotMotion stop` (both of these start one `erni task` process per robot, and their time is
-counted). Latency: from the moment the command is complete (the last spoken word, the message
+counted), and `erni stop` in either tier (one process for the whole team, its start counted). Latency: from the moment the command is complete (the last spoken word, the message
 sent, the console taking the line, the `erni task` processes launched) until the robot stands for
 good, as the control node sees its Pose (10 a second).
 

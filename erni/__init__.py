@@ -10,79 +10,102 @@ strategies), `erni.netgraph` (graph helpers), `erni.sim` (the simulator, never i
 agent's runtime), and the `erni` command line.
 """
 
-from pathlib import Path as _Path
+import importlib as _importlib
+import os as _os
+from typing import TYPE_CHECKING, Any
 
 
 def _find_the_source_folders() -> None:
     """In a checkout without symbolic links (a zip, Windows, `core.symlinks=false`) `erni/blackboard`
     is a small text file naming `../blackboard`: look for the design card's folders beside `erni/`
     then, as the links would. An installed copy holds the folders themselves and never gets here."""
-    here = _Path(__file__).resolve().parent
-    if (here / "blackboard").is_dir():
+    here = _os.path.dirname(_os.path.realpath(__file__))  # os.path, not pathlib: `import erni` stays light
+    if _os.path.isdir(_os.path.join(here, "blackboard")):
         return
-    root = here.parent
-    if not (root / "blackboard" / "__init__.py").is_file():
-        raise ImportError(f"erni: {here / 'blackboard'} is not a folder and no blackboard/ package lies beside "
-                          f"{here}; reinstall ERNI (pip install erni) or check out the whole repository")
-    __path__.append(str(root))
+    root = _os.path.dirname(here)
+    if not _os.path.isfile(_os.path.join(root, "blackboard", "__init__.py")):
+        raise ImportError(f"erni: {_os.path.join(here, 'blackboard')} is not a folder and no blackboard/ package "
+                          f"lies beside {here}; reinstall ERNI (pip install erni) or check out the whole repository")
+    __path__.append(root)
 
 
 _find_the_source_folders()
 
-from erni.blackboard.agent import Agent  # noqa: E402
-from erni.blackboard.blackboard import Predicate, Subscription, Transaction  # noqa: E402
-from erni.blackboard.errors import (  # noqa: E402
-    ConfigError,
-    ErniError,
-    NetworkError,
-    NotFoundError,
-    PluginError,
-    TaskError,
-    TransactionError,
-    UsageError,
-    describe_validation,
-)
-from erni.blackboard.objects import BBObject, new_uid  # noqa: E402
-from erni.blackboard.plugin import NoSettings, Plugin  # noqa: E402
-from erni.blackboard.schemas import FloorPlan, Peer  # noqa: E402
-from erni.blackboard.tasks import (  # noqa: E402
-    AllocationResult,
-    AvoidParams,
-    BackwardParams,
-    CancelParams,
-    ClearParams,
-    DistanceParams,
-    ForwardParams,
-    GotoParams,
-    Link,
-    LinkQualityParams,
-    Neighbor,
-    NeighborListParams,
-    NetInfo,
-    NodePositionParams,
-    NoParams,
-    Params,
-    PathCostParams,
-    PatrolParams,
-    Pose,
-    Position,
-    RandomWalkParams,
-    RelayParams,
-    Route,
-    SayParams,
-    SpreadParams,
-    StopParams,
-    Task,
-    TaskState,
-    TeleportParams,
-    TopologyParams,
-    TurnParams,
-    VelocityParams,
-    WatchParams,
-    WidepParams,
-    register_preposition,
-    register_verb,
-)
+if TYPE_CHECKING:  # what a type checker and an IDE see; at run time each name is imported when first used
+    from erni.blackboard.agent import Agent
+    from erni.blackboard.blackboard import Predicate, Subscription, Transaction
+    from erni.blackboard.errors import (
+        ConfigError,
+        ErniError,
+        NetworkError,
+        NotFoundError,
+        PluginError,
+        TaskError,
+        TransactionError,
+        UsageError,
+        describe_validation,
+    )
+    from erni.blackboard.objects import BBObject, new_uid
+    from erni.blackboard.plugin import NoSettings, Plugin
+    from erni.blackboard.schemas import FloorPlan, Peer
+    from erni.blackboard.tasks import (
+        AllocationResult,
+        AvoidParams,
+        BackwardParams,
+        CancelParams,
+        ClearParams,
+        DistanceParams,
+        ForwardParams,
+        GotoParams,
+        Link,
+        LinkQualityParams,
+        Neighbor,
+        NeighborListParams,
+        NetInfo,
+        NodePositionParams,
+        NoParams,
+        Params,
+        PathCostParams,
+        PatrolParams,
+        Pose,
+        Position,
+        RandomWalkParams,
+        RelayParams,
+        Route,
+        SayParams,
+        SpreadParams,
+        StopParams,
+        Task,
+        TaskState,
+        TeleportParams,
+        TopologyParams,
+        TurnParams,
+        VelocityParams,
+        WatchParams,
+        WidepParams,
+        register_preposition,
+        register_verb,
+    )
+
+# where each public name lives: `import erni` imports none of them (a command line that sends one
+# stop starts in a fraction of a second); `erni.Task` or `from erni import Task` imports its module then
+_HOMES = {
+    "erni.blackboard.agent": ("Agent",),
+    "erni.blackboard.blackboard": ("Predicate", "Subscription", "Transaction"),
+    "erni.blackboard.errors": ("ConfigError", "ErniError", "NetworkError", "NotFoundError", "PluginError", "TaskError",
+                               "TransactionError", "UsageError", "describe_validation"),
+    "erni.blackboard.objects": ("BBObject", "new_uid"),
+    "erni.blackboard.plugin": ("NoSettings", "Plugin"),
+    "erni.blackboard.schemas": ("FloorPlan", "Peer"),
+    "erni.blackboard.tasks": (
+        "AllocationResult", "AvoidParams", "BackwardParams", "CancelParams", "ClearParams", "DistanceParams",
+        "ForwardParams", "GotoParams", "Link", "LinkQualityParams", "Neighbor", "NeighborListParams", "NetInfo",
+        "NodePositionParams", "NoParams", "Params", "PathCostParams", "PatrolParams", "Pose", "Position",
+        "RandomWalkParams", "RelayParams", "Route", "SayParams", "SpreadParams", "StopParams", "Task", "TaskState",
+        "TeleportParams", "TopologyParams", "TurnParams", "VelocityParams", "WatchParams", "WidepParams",
+        "register_preposition", "register_verb"),
+}
+_HOME_OF = {name: module for module, names in _HOMES.items() for name in names}
 
 __version__ = "0.1.0"
 
@@ -101,3 +124,24 @@ __all__ = [
     "ConfigError", "ErniError", "NetworkError", "NotFoundError", "PluginError", "TaskError",
     "TransactionError", "UsageError", "describe_validation",
 ]
+
+
+def __getattr__(name: str) -> Any:
+    """A public name (`erni.Task`), imported from its module when first asked for; or a sub-package
+    (`erni.blackboard`) not imported yet."""
+    module = _HOME_OF.get(name)
+    if module is not None:
+        value = getattr(_importlib.import_module(module), name)
+        globals()[name] = value  # asked once: later uses find it here
+        return value
+    if not name.startswith("__"):
+        try:
+            return _importlib.import_module(f"{__name__}.{name}")
+        except ModuleNotFoundError as err:
+            if err.name != f"{__name__}.{name}":
+                raise
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_HOME_OF))

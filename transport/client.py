@@ -18,15 +18,17 @@ import socket
 import sys
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from erni.blackboard.clock import SYSTEM
 from erni.blackboard.errors import ErniError
-from erni.blackboard.schemas import Beacon, PeerList, ResultUpdate
+from erni.blackboard.messages import Beacon, PeerList, ResultUpdate
 from erni.transport.endpoint import CLIENT_ROLE, Address, Endpoint, team_key
 from erni.transport.identity import load_identity
 from erni.transport.wire import Message
-from erni.transport.zenoh_keys import ZenohSettings
+
+if TYPE_CHECKING:
+    from erni.transport.zenoh_keys import ZenohSettings
 
 IDENTITY_ENV = "ERNI_IDENTITY"
 
@@ -193,11 +195,11 @@ class Client:
             except queue.Empty:
                 return hit
 
-    def check_failed(self, msg_id: str) -> None:
-        """Raise ClientError if the message with this id could not be delivered, or at once if the
+    def check_failed(self, *msg_ids: str) -> None:
+        """Raise ClientError if a message with one of these ids could not be delivered, or at once if the
         agent refused this client's certificate."""
         self.check_refused()
-        if self.take_failed({msg_id}):
+        if self.take_failed(set(msg_ids)):
             raise ClientError("could not reach the agent: no acknowledgement within 5 s (is it running, "
                                   "and does it trust this identity?)")
 

@@ -38,18 +38,13 @@ from typing import Any, ClassVar
 from erni.blackboard import BBObject, NetInfo, Plugin, Task
 from erni.blackboard.errors import ConfigError
 from erni.blackboard.schemas import (
-    Beacon,
     Cancel,
     Fresh,
-    Peer,
-    PeerList,
     ResultUpdate,
     StatusRemoved,
     StatusResend,
     TaskQuery,
     TaskRescind,
-    TaskUnknown,
-    WatchEvent,
     WatchRequest,
 )
 from erni.transport.authorization import Authorization
@@ -62,13 +57,9 @@ from erni.transport.replication import StatusReplication
 from erni.transport.settings import TransportSettings
 from erni.transport.tasking import Received, Relayed, Tasking
 from erni.transport.watchers import WATCHED, Watchers
-from erni.transport.wire import Message, register_type
+from erni.transport.wire import Message
 
 __all__ = ["WATCHED", "Received", "Relayed", "TransportPlugin", "TransportSettings"]
-
-for _cls in (Peer, Received, Relayed, Beacon, ResultUpdate, Cancel, TaskRescind, TaskQuery, TaskUnknown, StatusResend,
-             StatusRemoved, Fresh, PeerList, WatchRequest, WatchEvent):
-    register_type(_cls)
 
 
 class TransportPlugin(Plugin[TransportSettings]):

@@ -30,7 +30,7 @@ from erni.transport.bounds import SenderBounds
 from erni.transport.endpoint import Address, Endpoint, parse_address
 from erni.transport.presence import Presence
 from erni.transport.settings import TransportSettings
-from erni.transport.wire import Message
+from erni.transport.wire import Message, register_type
 
 
 class Received(BBObject):
@@ -54,6 +54,10 @@ class Relayed(Model):
 
     task: Task
     role: str = Field(max_length=32)
+
+
+for _cls in (Received, Relayed):  # the transport's own wire types (the blackboard's are the wire's)
+    register_type(_cls)
 
 
 class Tasking:

@@ -34,7 +34,22 @@ from pydantic_core import PydanticSerializationError, from_json, to_json
 from erni.blackboard import AllocationResult, NetInfo, Pose, Task
 from erni.blackboard.clock import monotonic
 from erni.blackboard.errors import ErniError, UsageError, shown
+from erni.blackboard.messages import (  # the messages themselves (erni.blackboard.schemas adds configs)
+    Beacon,
+    Cancel,
+    Fresh,
+    PeerList,
+    ResultUpdate,
+    StatusRemoved,
+    StatusResend,
+    TaskQuery,
+    TaskRescind,
+    TaskUnknown,
+    WatchEvent,
+    WatchRequest,
+)
 from erni.blackboard.objects import FiniteAny, Model
+from erni.blackboard.peer import Peer
 from erni.blackboard.text import Name, NameOrEmpty
 
 HEADER = struct.Struct(">I")
@@ -72,7 +87,11 @@ def register_type(cls: type[BaseModel], name: str | None = None) -> type[BaseMod
     return cls
 
 
-for _cls in (Task, Pose, NetInfo, AllocationResult):
+# the blackboard's objects and messages that travel: registered with the wire itself, so that any
+# endpoint (an agent's, a command-line client's) sends and reads them (the transport plugin's own,
+# Received and Relayed, are registered by erni.transport.tasking)
+for _cls in (Task, Pose, NetInfo, AllocationResult, Peer, Beacon, ResultUpdate, Cancel, TaskRescind, TaskQuery,
+             TaskUnknown, StatusResend, StatusRemoved, Fresh, PeerList, WatchRequest, WatchEvent):
     register_type(_cls)
 
 

@@ -1,4 +1,9 @@
-"""Options and helpers shared by the commands that talk to a running team."""
+"""Options and helpers shared by the commands that talk to a running team.
+
+Adding the options imports nothing of the transport: a command's parser is built before anything
+is known to be sent (`erni stop --help`, a bad argument), and the transport is imported when the
+client is made.
+"""
 
 from __future__ import annotations
 
@@ -10,11 +15,13 @@ import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from erni.blackboard.errors import ErniError, UsageError
 from erni.commands._text import say
-from erni.transport.endpoint import STREAM_BUFFER, Address, parse_address
+
+if TYPE_CHECKING:
+    from erni.transport.endpoint import Address
 
 DISCOVERY_PORT = 47000  # the beacon port of a team that names no other
 
@@ -56,6 +63,8 @@ def via_address(args: argparse.Namespace) -> Address | None:
         if not NAME.match(args.via):
             raise UsageError(f"--via {args.via!r}: with --zenoh, expected an agent's name")
         return address_of(args.via)
+    from erni.transport.endpoint import parse_address
+
     host, port = parse_address(args.via)
     if port == 0:
         raise UsageError(f"--via {args.via!r}: expected HOST:PORT")
@@ -88,6 +97,7 @@ def _sim_team(args: argparse.Namespace) -> tuple[Address, str] | None:
     was given no credentials of its own or that run's identity; else None."""
     from erni.commands._team_file import running_sim
     from erni.transport.client import IDENTITY_ENV
+    from erni.transport.endpoint import parse_address
 
     if args.insecure:
         return None
@@ -114,6 +124,8 @@ def make_room_for_a_stream(client: Any) -> int:
     """Ask the kernel for a receive buffer that holds seconds of a team's watch stream
     (`STREAM_BUFFER`); return the size granted (beyond `net.core.rmem_max` only for a process
     allowed to: root, CAP_NET_ADMIN)."""
+    from erni.transport.endpoint import STREAM_BUFFER
+
     return int(client.endpoint.receive_buffer(STREAM_BUFFER))
 
 
@@ -126,7 +138,7 @@ def watch_events(client: Any, addr: Address, end: float | None, lease: float = 1
     sent again within a second, and `erni COMMAND` says so once on stderr, so a watch of nothing
     does not print nothing; an agent that starts later is still found.
     """
-    from erni.blackboard.schemas import WatchEvent, WatchRequest
+    from erni.blackboard.messages import WatchEvent, WatchRequest
 
     make_room_for_a_stream(client)
     renew = 0.0

@@ -12,11 +12,10 @@ from __future__ import annotations
 import sys
 from typing import IO
 
-from erni.blackboard.text import printable
-
 
 def say(text: object = "", *, file: IO[str] | None = None, end: str = "\n", flush: bool = False) -> None:
     """Print `text` as one line with its control characters escaped (stdout unless `file`)."""
+    from erni.blackboard.text import printable  # imported at the first line said: a parser is built without it
     print(printable(str(text)), file=file or sys.stdout, end=end, flush=flush)
 
 

@@ -7,10 +7,9 @@ import sys
 import time
 from typing import TYPE_CHECKING, Any
 
-from erni.blackboard.schemas import PeerList
+from erni.blackboard.messages import PeerList
 from erni.commands._client import add_client_options, dumps, open_client
 from erni.commands._text import say
-from erni.transport.zenoh_keys import wire_of
 
 if TYPE_CHECKING:
     from erni.transport.endpoint import Address
@@ -37,7 +36,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
     with client:
         try:
-            addr, directory = _ask_directory(client)
+            addr, directory = ask_directory(client)
         except ClientError as err:
             say(f"erni peers: {err}", file=sys.stderr)
             return 1
@@ -49,11 +48,12 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _ask_directory(client: Any) -> tuple[Address, PeerList]:
-    """Ask one agent for its directory: its address and the whole directory (ClientError: no answer in 5 s)."""
+def ask_directory(client: Any, addr: Address | None = None) -> tuple[Address, PeerList]:
+    """Ask one agent (the one at `addr`, or any found) for its directory: its address and the whole
+    directory (ClientError: no answer in 5 s)."""
     from erni.transport.client import ClientError, PeerListParts
 
-    addr = client.find(None)
+    addr = addr or client.find(None)
     client.send(addr, "peers.request", None)
     deadline = time.monotonic() + 5.0
     parts = PeerListParts()  # a large directory comes in parts
@@ -83,6 +83,8 @@ def _routes(client: Any, directory: PeerList) -> dict[str, str | None]:
 
 
 def _print_json(directory: PeerList, routes: dict[str, str | None]) -> None:
+    from erni.transport.zenoh_keys import wire_of
+
     beacons, down_after = directory.beacons, directory.down_after
     for p in sorted(directory.peers, key=lambda p: p.name):
         say(dumps({"via": directory.agent, **p.model_dump(mode="json"), "wire": wire_of(p.address),
@@ -91,6 +93,8 @@ def _print_json(directory: PeerList, routes: dict[str, str | None]) -> None:
 
 
 def _print_table(directory: PeerList, routes: dict[str, str | None], addr: Address) -> None:
+    from erni.transport.zenoh_keys import wire_of
+
     now = time.time()
     beacons, down_after = directory.beacons, directory.down_after
     say(f"agents known to {directory.agent} ({addr[0]}:{addr[1]}):")

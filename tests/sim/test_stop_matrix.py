@@ -2,8 +2,8 @@
 
 A team of four runs as a user starts it (`erni sim`, the default RemoteBotMotion tier). For each
 front end — the spoken "everybody stop" streamed as audio through the page's microphone path,
-the page's typed line and its Stop button, `erni console`, `erni task ... RemoteBotMotion cancel`
-and `erni task ... BotMotion stop` — the robots are first set moving the way an operator does
+the page's typed line and its Stop button, `erni console`, `erni task ... RemoteBotMotion cancel`,
+`erni task ... BotMotion stop` and `erni stop` in either tier — the robots are first set moving the way an operator does
 (typed commands that the dialogue sends as BotMotion straight to the robot, RemoteBotMotion
 tasks that MissionControl expands, a Deploy spread it runs), one robot left idle, then stopped. Each case checks what the
 operator sees from the control node: every robot stands within a second or two, stays standing,
@@ -284,9 +284,26 @@ def by_task_stop(team: Team, tmp: Path) -> float:
     return _each_robot(team, "BotMotion", "stop")
 
 
+def _stop(team: Team, *options: str) -> float:
+    sent = time.monotonic()  # this includes starting `erni stop` itself, as a user types it
+    out = team.cli("stop", *options)
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert out.stdout.startswith(f"stop taken by {len(ROBOTS)} of {len(ROBOTS)} robots"), out.stdout
+    return sent
+
+
+def by_stop(team: Team, tmp: Path) -> float:
+    return _stop(team)
+
+
+def by_stop_botmotion(team: Team, tmp: Path) -> float:
+    return _stop(team, "--verb", "BotMotion")
+
+
 FRONT_ENDS: dict[str, Callable[[Team, Path], float]] = {
     "voice": by_voice, "page button": by_page_button, "page typing": by_page_typing, "console": by_console,
-    "task cancel": by_task_cancel, "task BotMotion stop": by_task_stop}
+    "task cancel": by_task_cancel, "task BotMotion stop": by_task_stop, "erni stop": by_stop,
+    "erni stop BotMotion": by_stop_botmotion}
 
 # Two sets of motions, as an operator starts them: typed lines go through the dialogue (turn and
 # backward go as BotMotion straight to the robot, forward as RemoteBotMotion), the rest by `erni
