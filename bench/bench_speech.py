@@ -19,7 +19,11 @@ waited for plus the decodes), and every wrong hearing and false stop; written to
     python bench/bench_speech.py [--voices en-us,en-gb,en-us+f3] [--speeds 130,160,190]
                                  [--noises clean,15,5] [--seed 36] [--every 1] [--part 1/1]
                                  [--json artifacts/ui/speech_set.json]
+    python bench/bench_speech.py --denoise webrtc|speex|rnnoise|off --vad silero|webrtc|off  # a front end
     python bench/bench_speech.py --recogniser vosk --vosk-model DIR ...  # an English vosk model instead
+
+The front end's other candidates are not dependencies of ERNI (RNNoise's package pulls in PyAV and requests
+for its command line): `pip install speexdsp-ns pyrnnoise` before measuring `--denoise speex|rnnoise`.
     python bench/bench_speech.py --report RUN.json [RUN.json ...]   # the Markdown tables of saved runs
 """
 
@@ -143,7 +147,7 @@ def load_runs(paths: list[str]) -> list[dict[str, Any]]:
 def front_name(run: dict[str, Any]) -> str:
     f = run.get("front_end") or {"denoise": "off", "vad": "off", "gain": 0, "answers": False}
     parts = [f"denoise {f['denoise']}", f"vad {f['vad']}"] + ([f"gain {f['gain']} dBFS"] if f.get("gain") else [])
-    return ", ".join(parts) + (", answers alone" if f.get("answers") else ", answers by the whole grammar")
+    return ", ".join(parts) + (", answers among the short lines" if f.get("answers") else ", answers by the whole grammar")
 
 
 def compare(paths: list[str]) -> str:
