@@ -132,6 +132,81 @@ def report(paths: list[str]) -> str:
     return "\n".join(out)
 
 
+ABOUT = "the speech test set through the control node's front end and recogniser, per voice, speed and noise"
+EXACT_GOAL = {"clean": 0.95, "15 dB": 0.85, "5 dB": 0.60}  # exact (after a read-back and "yes") at least
+STOPS_GOAL = {"clean": 0.98, "15 dB": 0.98, "5 dB": 0.90}  # stop phrasings heard as a stop at least
+
+
+def speech_targets(rows: list[dict[str, Any]], clips: list[dict[str, Any]], cost: dict[str, Any]) -> list[dict[str, Any]]:
+    """The benchmark's targets from a run's rows and clips (or the parts of one, side by side)."""
+    import results
+
+    wrong = sum(r["wrong"] for r in rows)
+    false = sum(r["false stop"] for r in rows)
+    others = sum(1 for c in clips if c["said"] not in S.STOPS)
+    out = [results.target("commands carried out as something else", "none", "the typed line", f"{wrong} wrong",
+                          wrong == 0),
+           results.target("false stops, of the commands that are no stop", "at most 1 %", "the typed line",
+                          f"{false}/{others} ({false / max(others, 1):.1%})", false <= 0.01 * others)]
+    for noise in dict.fromkeys(r["noise"] for r in rows):
+        part = [r for r in rows if r["noise"] == noise]
+        exact = sum(r["exact"] for r in part) / max(sum(r["n"] for r in part), 1)
+        said = [c for c in clips if c["condition"].split(" wpm ")[1] == noise and c["said"] in S.STOPS]
+        heard = [c["latency"] for c in said if c["outcome"] == "exact"]
+        goal, stops_goal = EXACT_GOAL.get(noise), STOPS_GOAL.get(noise)
+        out.append(results.target(f"understood exactly (after a read-back and a yes), noise {noise}",
+                                  f"at least {goal:.0%}" if goal else "reported", "the typed line", f"{exact:.1%}",
+                                  exact >= goal if goal else None))
+        share = len(heard) / max(len(said), 1)
+        out.append(results.target(f"stop phrasings heard as a stop, noise {noise}",
+                                  f"at least {stops_goal:.0%}" if stops_goal else "reported", "the typed line",
+                                  f"{len(heard)}/{len(said)} ({share:.0%})", share >= stops_goal if stops_goal else None))
+        if heard:
+            under = sum(x < 1.0 for x in heard)
+            out.append(results.target(f"stops acted on within 1 s of the voice's end, noise {noise}", "every one",
+                                      "the endpointer's 0.4 s of hangover", f"{under}/{len(heard)}, median "
+                                      f"{statistics.median(heard):.2f} s", under == len(heard)))
+    if cost.get("front_end") is not None:
+        delay = cost.get("suppressor_delay")
+        out.append(results.target("front end's CPU per second of audio", "reported", "the recogniser's "
+                                  f"{1000 * cost['recogniser']:.0f} ms", f"{1000 * cost['front_end']:.0f} ms (suppressor "
+                                  f"{1000 * cost['suppressor']:.0f}, voice detector {1000 * cost['endpointer']:.0f})",
+                                  None))
+        out.append(results.target("suppressor's delay", "reported", "none without it",
+                                  f"{1000 * delay:.1f} ms" if delay is not None else "no suppressor", None))
+    return out
+
+
+def combine(argv: list[str]) -> int:
+    """`--combine RUN.json ... [--results PATH] [--tables RUN.json ...]`: the parts of one run (`--part I/N`) as its
+    results, with the per-condition table and, given `--tables`, the candidates compared (these runs first)."""
+    import results
+
+    ap = argparse.ArgumentParser(prog="bench_speech.py --combine")
+    ap.add_argument("runs", nargs="+")
+    ap.add_argument("--candidates", nargs="*", default=[], help="runs of other front ends, for the comparison")
+    ap.add_argument("--before", nargs="*", default=[], help="the parts of a run without the front end")
+    ap.add_argument("--command", required=True, help="the command the parts were run with (without --part)")
+    results.add_argument(ap)
+    args = ap.parse_args(argv)
+    runs = load_runs(args.runs)
+    rows = [r for run in runs for r in run["rows"]]
+    clips = [c for run in runs for c in run["clips"]]
+    costs = [run.get("cost") or {} for run in runs]
+    cost = {k: statistics.mean(c[k] for c in costs if c.get(k) is not None) for k in costs[0]
+            if any(c.get(k) is not None for c in costs)}
+    tables = [{"title": f"per condition, {front_name(runs[0])}", "markdown": report(args.runs)}]
+    if args.before:
+        tables.append({"title": f"per condition, {front_name(load_runs(args.before)[0])} (before)",
+                       "markdown": report(args.before)})
+    if args.candidates:
+        tables.append({"title": "front-end candidates (3 voices at 160 words a minute, clean, 15 and 5 dB)",
+                       "markdown": compare(args.candidates)})
+    results.write("bench_speech", speech_targets(rows, clips, cost), path=args.results, about=ABOUT,
+                  argv=args.command.split(), tables=tables)
+    return 0
+
+
 def load_runs(paths: list[str]) -> list[dict[str, Any]]:
     runs = []
     for path in paths:
@@ -232,6 +307,8 @@ def suppressor_delay(front: FrontEnd) -> float | None:
 
 
 def main() -> int:
+    if sys.argv[1:2] == ["--combine"]:
+        return combine(sys.argv[2:])
     if sys.argv[1:2] in (["--report"], ["--compare"]):
         if len(sys.argv) < 3:
             print("usage: bench_speech.py --report|--compare RUN.json [RUN.json ...] [--into RESULTS.json --title T]",
@@ -353,22 +430,8 @@ def main() -> int:
           f"{1000 * args.cost['suppressor']:.1f}, endpointer and VAD {1000 * args.cost['endpointer']:.1f}); "
           f"the recogniser {1000 * args.cost['recogniser']:.0f} ms per second; the suppressor's delay "
           + (f"{1000 * delay:.1f} ms" if delay is not None else "none (no suppressor)"))
-    targets = [results.target("commands carried out as something else", "none", "the typed line",
-                              f"{total['wrong']} wrong", total["wrong"] == 0)]
-    for noise in dict.fromkeys(r["noise"] for r in rows):
-        part = [r for r in rows if r["noise"] == noise]
-        got, lat = stops.get(noise, Counter()), latency.get(noise, [])
-        targets.append(results.target(f"stop phrasings heard, noise {noise}", "every one" if noise == "clean"
-                                      else "reported", "the typed line", f"{got['exact']}/{sum(got.values())}",
-                                      got["exact"] == sum(got.values()) if noise == "clean" else None))
-        targets.append(results.target(f"understood exactly, noise {noise}", "reported", "the typed line",
-                                      f"{sum(r['exact'] for r in part) / sum(r['n'] for r in part):.0%}", None))
-        if lat:
-            targets.append(results.target(f"stop latency after the voice ends, noise {noise}", "reported",
-                                          "the endpointer's 0.4 s", f"median {statistics.median(lat):.2f} s", None))
     if args.part == "1/1":  # a share of the conditions is not the benchmark's result
-        results.write("bench_speech", targets, path=args.results,
-                      about="the speech test set through the control node's recogniser, per voice, speed and noise")
+        results.write("bench_speech", speech_targets(rows, clips, args.cost), path=args.results, about=ABOUT)
     for w in wrong:
         said_back = "; ".join(f"answered {a['said']!r}, heard {a['heard']!r}" for a in w["answers"])
         print(f"  {w['outcome'].upper()} [{w['condition']}] said {w['said']!r} heard {w['heard']!r}"
