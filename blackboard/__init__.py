@@ -1,7 +1,8 @@
 """The agent core: transactional blackboard, plugins, agent host and the task language."""
 
-import importlib as _importlib
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
+
+from erni._lazy import lazy_names as _lazy_names
 
 if TYPE_CHECKING:  # at run time each name is imported when first used (see `__getattr__`)
     from erni.blackboard.agent import Agent
@@ -46,7 +47,6 @@ _HOMES = {
                               "register_preposition", "register_verb"),
     "erni.blackboard.world": ("Link", "Neighbor", "NetInfo", "Pose", "Position", "Route"),
 }
-_HOME_OF = {name: module for module, names in _HOMES.items() for name in names}
 
 __all__ = [
     "Agent", "AllocationResult", "BBObject", "Blackboard", "Clock", "ConfigError", "ErniError", "Link", "Neighbor",
@@ -56,22 +56,4 @@ __all__ = [
 ]
 
 
-def __getattr__(name: str) -> Any:
-    """A name of `__all__`, imported from its module when first asked for; or a module of the package
-    not imported yet (`erni.blackboard.agent`)."""
-    module = _HOME_OF.get(name)
-    if module is not None:
-        value = getattr(_importlib.import_module(module), name)
-        globals()[name] = value
-        return value
-    if not name.startswith("__"):
-        try:
-            return _importlib.import_module(f"{__name__}.{name}")
-        except ModuleNotFoundError as err:
-            if err.name != f"{__name__}.{name}":
-                raise
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_HOME_OF))
+__getattr__, __dir__ = _lazy_names(__name__, _HOMES, globals())

@@ -10,9 +10,10 @@ strategies), `erni.netgraph` (graph helpers), `erni.sim` (the simulator, never i
 agent's runtime), and the `erni` command line.
 """
 
-import importlib as _importlib
 import os as _os
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
+
+from erni._lazy import lazy_names as _lazy_names
 
 
 def _find_the_source_folders() -> None:
@@ -105,7 +106,6 @@ _HOMES = {
         "TeleportParams", "TopologyParams", "TurnParams", "VelocityParams", "WatchParams", "WidepParams",
         "register_preposition", "register_verb"),
 }
-_HOME_OF = {name: module for module, names in _HOMES.items() for name in names}
 
 __version__ = "0.1.0"
 
@@ -126,22 +126,4 @@ __all__ = [
 ]
 
 
-def __getattr__(name: str) -> Any:
-    """A public name (`erni.Task`), imported from its module when first asked for; or a sub-package
-    (`erni.blackboard`) not imported yet."""
-    module = _HOME_OF.get(name)
-    if module is not None:
-        value = getattr(_importlib.import_module(module), name)
-        globals()[name] = value  # asked once: later uses find it here
-        return value
-    if not name.startswith("__"):
-        try:
-            return _importlib.import_module(f"{__name__}.{name}")
-        except ModuleNotFoundError as err:
-            if err.name != f"{__name__}.{name}":
-                raise
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_HOME_OF))
+__getattr__, __dir__ = _lazy_names(__name__, _HOMES, globals())

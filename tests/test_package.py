@@ -161,9 +161,9 @@ def test_no_builtin_exception_is_raised_outside_pydantic_validators() -> None:
         tree = ast.parse(path.read_text(encoding="utf-8"))
         in_validator = {id(node) for fn in ast.walk(tree) if isinstance(fn, ast.FunctionDef)
                         and any("validator" in ast.unparse(d) for d in fn.decorator_list) for node in ast.walk(fn)}
-        # a module's __getattr__ (PEP 562: a package's names imported when first used) says a name it
+        # a module's __getattr__ (PEP 562: a package's names imported when first used, made by erni/_lazy.py) says a name it
         # lacks with AttributeError, which hasattr and getattr with a default rely on
-        in_getattr = {id(node) for fn in tree.body if isinstance(fn, ast.FunctionDef) and fn.name == "__getattr__"
+        in_getattr = {id(node) for fn in ast.walk(tree) if isinstance(fn, ast.FunctionDef) and fn.name == "__getattr__"
                       for node in ast.walk(fn)}
         for node in ast.walk(tree):
             if isinstance(node, ast.Raise) and node.exc is not None and id(node) not in in_validator:
