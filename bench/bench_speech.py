@@ -86,9 +86,9 @@ def save(args: argparse.Namespace, rows: list[dict[str, Any]], clips: list[dict[
     which = (f"vosk {args.vosk_model or os.environ.get('VOSK_MODEL_PATH', '')}, ERNI grammar, word confidences"
              if args.backend == "vosk" else "pocketsphinx en-us, ERNI grammar as JSGF, two decodes + word scores, "
              "noise-floor endpointer, stop keyphrases")
-    which += f"; front end: denoise {args.denoise}, vad {args.vad}, gain {args.gain}, answers " + (
+    which += f"; front end: denoise {args.denoise} (WebRTC level {args.suppression}), vad {args.vad}, gain {args.gain}, answers " + (
         "against the answers alone" if ANSWERS else "against the whole grammar")
-    out.write_text(json.dumps({"recogniser": which, "cost": getattr(args, "cost", {}), "front_end": {"denoise": args.denoise, "vad": args.vad,
+    out.write_text(json.dumps({"recogniser": which, "cost": getattr(args, "cost", {}), "front_end": {"denoise": args.denoise, "vad": args.vad, "suppression": args.suppression,
                                "gain": args.gain, "answers": ANSWERS},
                                "seed": args.seed, "every": args.every, "part": args.part, "rows": rows,
                                "clips": clips}, indent=1) + "\n")
@@ -329,6 +329,7 @@ def main() -> int:
     ap.add_argument("--vad", choices=VADS, default="off", help="the front end's voice-activity detector "
                     "(off: the level-based endpointer)")
     ap.add_argument("--gain", type=int, default=0, help="WebRTC's automatic gain target, dBFS (0 = off)")
+    ap.add_argument("--suppression", type=int, choices=range(5), default=2, help="WebRTC's suppression level (0-4)")
     ap.add_argument("--no-answers", action="store_true", help="decode answers to read-backs with the whole grammar")
     ap.add_argument("--json", default="artifacts/ui/speech_set.json")
     ap.add_argument("--every", type=int, default=1, help="the stop phrasings and every K-th other line of the set")
@@ -348,7 +349,7 @@ def main() -> int:
     texts = S.utterances()
     texts = [t for t in texts if t in S.STOPS] + [t for t in texts if t not in S.STOPS][::args.every]
     try:  # the control node's own choice and loading of its recogniser
-        front = FrontEnd(args.denoise, args.vad, args.gain)
+        front = FrontEnd(args.denoise, args.vad, args.gain, args.suppression)
         loader = choose_recognizer(args.recogniser, args.vosk_model, front=front)
         args.backend = getattr(loader, "backend", args.recogniser)
         recogniser = loader()

@@ -98,9 +98,9 @@ def test_the_frames_oracles_report_a_non_finite_number_on_the_page_and_on_the_bl
 
 
 def test_the_printed_text_oracle_reports_an_escape_a_command_would_print(monkeypatch):
-    from erni.commands import _text
+    from erni.blackboard import text as _text
 
-    monkeypatch.setattr(_text, "printable", lambda text: text)   # a say() that escapes nothing
+    monkeypatch.setattr(_text, "printable", lambda text: text)   # a say() that escapes nothing (it imports printable when it says)
     task = Task(verb="BotMotion", preposition="stop", destination="robot1", source="cli")
     task = task.with_result(TaskState.RUNNING, message="\x1b]0;owned\x07working\nrobot9 succeeded 100% arrived")
     found = fuzz_deep.object_problems("control", task)

@@ -116,7 +116,7 @@ def open_with_microphone(wav: Path, url: str, body: Any) -> Any:
 @pytest.fixture
 def recorder(monkeypatch) -> Iterator[Recorder]:
     rec = Recorder("attention")
-    monkeypatch.setattr(ui_plugin, "choose_recognizer", lambda kind, vosk_model, wake=None: lambda: rec)
+    monkeypatch.setattr(ui_plugin, "choose_recognizer", lambda kind, vosk_model, wake=None, front=None: lambda: rec)
     yield rec
 
 

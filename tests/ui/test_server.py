@@ -291,7 +291,7 @@ def test_a_wav_file_setting_is_recognised_and_answered(control, tmp_path, monkey
 
     wav = write_wav(tmp_path / "cmd.wav", 5000 * np.sin(np.arange(RATE * 2) / 3.0), 22050)
     rec = Recorder("attention")
-    monkeypatch.setattr(ui_plugin, "choose_recognizer", lambda kind, vosk_model, wake=None: lambda: rec)
+    monkeypatch.setattr(ui_plugin, "choose_recognizer", lambda kind, vosk_model, wake=None, front=None: lambda: rec)
     agent, ui = control(wav=str(wav))
     wait_until(lambda: any("voice: \u201cattention\u201d \u2192 Listening" in line["text"]
                            for line in ui.server.state()["log"]), timeout=20)
