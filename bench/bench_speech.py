@@ -221,7 +221,8 @@ def load_runs(paths: list[str]) -> list[dict[str, Any]]:
 
 def front_name(run: dict[str, Any]) -> str:
     f = run.get("front_end") or {"denoise": "off", "vad": "off", "gain": 0, "answers": False}
-    parts = [f"denoise {f['denoise']}", f"vad {f['vad']}"] + ([f"gain {f['gain']} dBFS"] if f.get("gain") else [])
+    level = f" (level {f['suppression']})" if f["denoise"] == "webrtc" and f.get("suppression", 2) != 2 else ""
+    parts = [f"denoise {f['denoise']}{level}", f"vad {f['vad']}"] + ([f"gain {f['gain']} dBFS"] if f.get("gain") else [])
     return ", ".join(parts) + (", answers among the short lines" if f.get("answers") else ", answers by the whole grammar")
 
 

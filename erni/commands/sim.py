@@ -278,10 +278,11 @@ def _print_team(team: Any, seconds: float, announced: Path | None = None) -> Non
     say(f"  erni peers --via {host}:{port}")
     say(f"  erni task --via {host}:{port} {team.names[0]} BotMotion goto x=1 y=2 --wait")
     say(f"  erni watch --via {host}:{port}")
+    say(f"  erni stop --via {host}:{port}            (every robot; or name them)")
     if announced is not None:
         from erni.transport.client import IDENTITY_ENV
 
-        say(f"  (while it runs, erni peers, task, watch, record and console find this team without --via and "
+        say(f"  (while it runs, erni peers, task, stop, watch, record and console find this team without --via and "
             f"{IDENTITY_ENV}: it is named in {announced})")
     say("Ctrl-C stops the team", flush=True)
 

@@ -104,7 +104,8 @@ class UISettings(Model):
         "auto", description="speech recogniser: auto = vosk when a vosk model is given, else pocketsphinx")
     vosk_model: str | None = Field(None, description="vosk model directory (default: VOSK_MODEL_PATH)")
     denoise: Literal["off", "webrtc", "speex", "rnnoise"] = Field(
-        "webrtc", description="noise suppressor before the recogniser (PocketSphinx), for every microphone and WAV")
+        "webrtc", description="noise suppressor before the recogniser (PocketSphinx), for every microphone and WAV; "
+        "speex and rnnoise need speexdsp-ns and pyrnnoise installed")
     vad: Literal["off", "silero", "webrtc"] = Field(
         "silero", description="voice-activity detector that ends utterances (off: the background's level does)")
     auto_gain: int = Field(0, ge=0, le=31, description="WebRTC's automatic gain target below full scale (dBFS); "
