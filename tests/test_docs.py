@@ -246,7 +246,7 @@ def test_the_readme_names_the_commands_erni_sim_prints() -> None:
         _print_team(team, 1.0)
     commands = [line.strip() for line in printed.getvalue().splitlines()
                 if line.strip().startswith(("export ", "erni "))]
-    assert len(commands) == 4, printed.getvalue()
+    assert len(commands) == 5, printed.getvalue()
     setup = (ROOT / "README.md").read_text(encoding="utf-8").split("## Set up", 1)[1].split("Run the tests", 1)[0]
     setup = " ".join(setup.split())
     for command in commands:

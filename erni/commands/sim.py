@@ -278,7 +278,7 @@ def _print_team(team: Any, seconds: float, announced: Path | None = None) -> Non
     say(f"  erni peers --via {host}:{port}")
     say(f"  erni task --via {host}:{port} {team.names[0]} BotMotion goto x=1 y=2 --wait")
     say(f"  erni watch --via {host}:{port}")
-    say(f"  erni stop --via {host}:{port}            (every robot; or name them)")
+    say(f"  erni stop --via {host}:{port}")
     if announced is not None:
         from erni.transport.client import IDENTITY_ENV
 
