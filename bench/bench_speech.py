@@ -326,10 +326,14 @@ def main() -> int:
     ap.add_argument("--recogniser", choices=("auto", "vosk", "pocketsphinx"), default="pocketsphinx",
                     help="as the UI's setting: vosk needs --vosk-model or VOSK_MODEL_PATH")
     ap.add_argument("--vosk-model", default=None, help="a vosk model directory (an English one)")
-    ap.add_argument("--denoise", choices=DENOISERS, default="off", help="the front end's noise suppressor")
-    ap.add_argument("--vad", choices=VADS, default="off", help="the front end's voice-activity detector "
-                    "(off: the level-based endpointer)")
-    ap.add_argument("--gain", type=int, default=0, help="WebRTC's automatic gain target, dBFS (0 = off)")
+    from erni.plugins.ui.plugin import UISettings
+
+    ui = UISettings()  # the control node's defaults
+    ap.add_argument("--denoise", choices=DENOISERS, default=ui.denoise, help="the front end's noise suppressor "
+                    "(default: the control node's)")
+    ap.add_argument("--vad", choices=VADS, default=ui.vad, help="the front end's voice-activity detector "
+                    "(off: the level-based endpointer; default: the control node's)")
+    ap.add_argument("--gain", type=int, default=ui.auto_gain, help="WebRTC's automatic gain target, dBFS (0 = off)")
     ap.add_argument("--suppression", type=int, choices=range(5), default=2, help="WebRTC's suppression level (0-4)")
     ap.add_argument("--no-answers", action="store_true", help="decode answers to read-backs with the whole grammar")
     ap.add_argument("--json", default="artifacts/ui/speech_set.json")
