@@ -441,7 +441,7 @@ class SphinxRecognizer:
         suppressor = self.front.suppressor() if self.front is not None else None
         endpointer = self.front.endpointer(suppressor) if self.front is not None else NoiseFloorEndpointer(RATE)
         return SphinxStream(decoder, endpointer, complete=self.rules.accepts, wake=bool(self.wake),
-                            others=self.others, suppressor=suppressor, answers=True)
+                            others=self.others, suppressor=suppressor)
 
 
 # The stop phrasings a keyphrase search listens for in every short utterance, whatever the grammar
@@ -498,11 +498,9 @@ class SphinxStream:
     LONGEST_STOP = 2.5  # seconds of speech: a longer utterance is not searched for a lone stop phrase
 
     def __init__(self, decoder: Any, endpointer: Any, complete: Callable[[str], bool] | None = None,
-                 wake: bool = False, others: Iterable[str] = (), suppressor: Any = None,
-                 answers: bool = False) -> None:
+                 wake: bool = False, others: Iterable[str] = (), suppressor: Any = None) -> None:
         self.decoder, self.ep = decoder, endpointer
         self.suppressor = suppressor  # the front end's noise suppressor: what is heard is its cleaned audio
-        self.answers = answers  # the answers to a read-back are among the SHORT search's lines
         self.answering = False  # a read-back awaits "yes" or "no": a short utterance is decoded against the answers
         self.others = frozenset(others)  # the short lines of the SHORT search that overrule a spotted stop
         self.complete = complete  # is a text a whole sentence of the grammar?
@@ -626,12 +624,15 @@ class SphinxStream:
                 return Heard(stop, False, f"a stop phrase spotted ({stop!r})")
             if short not in self.others:  # a stop, but which is unsure: a stop to everyone, at once
                 return Heard("everybody stop", False, f"a stop phrase spotted ({stop!r}, then {short!r})")
-        if self.answering and self.answers:
-            answer = self._answer(audio)
+        decoded = None  # the whole grammar's decode, when the answers' check made it already
+        if self.answering:
+            answer, decoded = self._answer(audio)
             if answer is not None:
                 return answer
-        self._decode(audio, whole=True)
-        text, scores = self._decoded()
+        if decoded is None:
+            self._decode(audio, whole=True)
+            decoded = self._decoded()
+        text, scores = decoded
         self.evidence.update(text=text, scores=scores)
         partial = self.complete is not None and bool(text) and not self.complete(text)
         poor = [f"{w!r} ({score:.1f})" for w, score in scores if score < self.MIN_WORD_SCORE]
@@ -648,17 +649,18 @@ class SphinxStream:
             return Heard(wake) if wake == text else Heard(wake, False, f"a lone wake phrase (the grammar: {text!r})")
         return self._judged(text, partial, again, poor, snr)
 
-    def _answer(self, audio: bytes) -> Heard | None:
+    def _answer(self, audio: bytes) -> tuple[Heard | None, tuple[str, list[tuple[str, float]]] | None]:
         """A short utterance heard as an answer to a read-back: decoded against the short lines (`NOT_STOPS`: the
         answers, the stop phrases and the short commands they could be taken for, so that a short command has a
         sentence of its own to go to), twice, both hearing the same answer with every word fitting the audio, and
         the whole grammar not surely hearing a command that is no answer. Else None: the utterance then goes to
-        the whole grammar (the operator may have said a command instead)."""
+        the whole grammar (the operator may have said a command instead), with that grammar's decode when it was
+        made here."""
         from erni.plugins.ui.grammar import CONFIRM, DENY
 
         first, last = self._span(audio)
         if last - first > self.LONGEST_ANSWER:
-            return None
+            return None, None
         self.decoder.activate_search(self.SHORT)
         try:
             self._decode(audio, whole=True)
@@ -670,14 +672,14 @@ class SphinxStream:
         self.evidence.update(answer=text, answer_again=again, answer_scores=scores)
         if (text not in CONFIRM + DENY or text != again
                 or any(score < self.MIN_WORD_SCORE for _, score in scores)):
-            return None
+            return None, None
         self._decode(audio, whole=True)
-        command, command_scores = self._decoded()
+        decoded = command, command_scores = self._decoded()
         self.evidence.update(answer_command=command)
         if (command and command != text and (self.complete is None or self.complete(command))
                 and all(score >= self.MIN_WORD_SCORE for _, score in command_scores)):
-            return None  # the whole grammar is sure of a command that is no answer
-        return Heard(text, False, "heard as an answer to a read-back")
+            return None, decoded  # the whole grammar is sure of a command that is no answer
+        return Heard(text, False, "heard as an answer to a read-back"), decoded
 
     @classmethod
     def _judged(cls, text: str, partial: bool, again: str, poor: list[str], snr: float | None) -> Heard | None:
