@@ -50,12 +50,23 @@ COMFORT = 32.0  # rms of the comfort noise under cleaned audio (about -60 dBFS, 
 
 
 class _Comfort:
-    """Comfort noise under a suppressor's output: seeded white noise at `COMFORT` rms. PocketSphinx's acoustic
-    model knows quiet rooms, not the near digital silence a suppressor leaves between words (a clean command
-    was heard as a partial one over it, and right over a quiet room's floor)."""
+    """A suppressor cleaning whole 10 ms chunks (`clean`, one `_chunk` each unless it cleans them together),
+    with comfort noise under its output: seeded white noise at `COMFORT` rms. PocketSphinx's acoustic model
+    knows quiet rooms, not the near digital silence a suppressor leaves between words (a clean command was
+    heard as a partial one over it, and right over a quiet room's floor)."""
 
     def __init__(self) -> None:
         self._rng = np.random.default_rng(0)
+
+    def process(self, pcm: bytes) -> bytes:
+        return self.comfort(self.clean(pcm[: len(pcm) // (2 * CHUNK) * 2 * CHUNK]))
+
+    def clean(self, pcm: bytes) -> bytes:
+        step = 2 * CHUNK
+        return b"".join(self._chunk(pcm[i:i + step]) for i in range(0, len(pcm), step))
+
+    def _chunk(self, chunk: bytes) -> bytes:
+        raise NotImplementedError
 
     def comfort(self, pcm: bytes) -> bytes:
         x = np.frombuffer(pcm, dtype="<i2").astype(np.float64) + self._rng.normal(0.0, COMFORT, len(pcm) // 2)
@@ -76,14 +87,10 @@ class WebRtcSuppressor(_Comfort):
         self.processor = AudioProcessor(auto_gain, suppression)
         self.speech = False  # WebRTC's voice flag of the last 10 ms
 
-    def process(self, pcm: bytes) -> bytes:
-        out = bytearray()
-        step = 2 * CHUNK
-        for i in range(0, len(pcm) - step + 1, step):
-            done = self.processor.Process10ms(pcm[i:i + step])
-            self.speech = bool(done.is_speech)
-            out += done.audio
-        return self.comfort(bytes(out))
+    def _chunk(self, chunk: bytes) -> bytes:
+        done = self.processor.Process10ms(chunk)
+        self.speech = bool(done.is_speech)
+        return bytes(done.audio)
 
 
 class SpeexSuppressor(_Comfort):
@@ -99,12 +106,8 @@ class SpeexSuppressor(_Comfort):
         super().__init__()
         self.ns = NoiseSuppression.create(CHUNK, RATE)
 
-    def process(self, pcm: bytes) -> bytes:
-        out = bytearray()
-        step = 2 * CHUNK
-        for i in range(0, len(pcm) - step + 1, step):
-            out += self.ns.process(pcm[i:i + step])
-        return self.comfort(bytes(out))
+    def _chunk(self, chunk: bytes) -> bytes:
+        return bytes(self.ns.process(chunk))
 
 
 class _Resampler:
@@ -156,8 +159,8 @@ class RnnoiseSuppressor(_Comfort):
         self.probability = 0.0  # RNNoise's voice probability of the last 10 ms
         self._ctypes = ctypes
 
-    def process(self, pcm: bytes) -> bytes:
-        x = np.frombuffer(pcm[: len(pcm) // (2 * CHUNK) * 2 * CHUNK], dtype="<i2").astype(np.float64)
+    def clean(self, pcm: bytes) -> bytes:  # the chunks together: the resamplers take them in one call
+        x = np.frombuffer(pcm, dtype="<i2").astype(np.float64)
         high = self.up(x).astype(np.float32)
         out = np.empty_like(high)
         c = self._ctypes
@@ -167,7 +170,7 @@ class RnnoiseSuppressor(_Comfort):
             self.probability = self.lib.rnnoise_process_frame(
                 self.state, clean.ctypes.data_as(c.POINTER(c.c_float)), frame.ctypes.data_as(c.POINTER(c.c_float)))
             out[i:i + self.size] = clean
-        low = self.down(out.astype(np.float64)) + self._rng.normal(0.0, COMFORT, len(x))
+        low = self.down(out.astype(np.float64))
         return np.clip(np.round(low), -32768, 32767).astype("<i2").tobytes()
 
     def __del__(self) -> None:
