@@ -48,7 +48,6 @@ from erni.plugins.ui.speech import RATE, SpeechError, choose_recognizer  # noqa:
 from tests.ui import speech_set as S  # noqa: E402
 
 COLUMNS = ("exact", "confirmed", "asked", "refused", "wrong", "false stop")  # exact counts the confirmed too
-ANSWERS = True  # the answer to a read-back decoded against the answers alone (--no-answers: the whole grammar)
 PRIME = 2.0  # seconds of each condition's room before its first clip: the background is there before anyone speaks
 
 
@@ -62,14 +61,15 @@ def noises(text: str) -> tuple[float | None, ...]:
 class Answers:
     """The operator's answers to read-backs in one condition: spoken, mixed with its noise, heard."""
 
-    def __init__(self, stream: Any, condition: S.Condition, rng: np.random.Generator) -> None:
+    def __init__(self, stream: Any, condition: S.Condition, rng: np.random.Generator, answering: bool) -> None:
         self.stream, self.c, self.rng = stream, condition, rng
+        self.answering = answering  # heard among the short lines, as while the UI's read-back waits (--no-answers: not)
         self.heard: list[dict[str, Any]] = []
         self.seconds = 0.0
 
     def __call__(self, word: str) -> tuple[str, bool]:
         said = S.synthesise(word, self.c.voice, self.c.speed)
-        self.stream.answering = ANSWERS  # as the UI tells its listener while a read-back waits
+        self.stream.answering = self.answering  # as the UI tells its listener while a read-back waits
         try:
             a = S.hear(self.stream, S.as_heard(said, self.c.snr, self.rng), S.speech_end(said))
         finally:
@@ -87,9 +87,9 @@ def save(args: argparse.Namespace, rows: list[dict[str, Any]], clips: list[dict[
              if args.backend == "vosk" else "pocketsphinx en-us, ERNI grammar as JSGF, two decodes + word scores, "
              "noise-floor endpointer, stop keyphrases")
     which += f"; front end: denoise {args.denoise} (WebRTC level {args.suppression}), vad {args.vad}, gain {args.gain}, answers " + (
-        "against the answers alone" if ANSWERS else "against the whole grammar")
+        "among the short lines" if not args.no_answers else "against the whole grammar")
     out.write_text(json.dumps({"recogniser": which, "cost": getattr(args, "cost", {}), "front_end": {"denoise": args.denoise, "vad": args.vad, "suppression": args.suppression,
-                               "gain": args.gain, "answers": ANSWERS},
+                               "gain": args.gain, "answers": not args.no_answers},
                                "seed": args.seed, "every": args.every, "part": args.part, "rows": rows,
                                "clips": clips}, indent=1) + "\n")
 
@@ -342,8 +342,6 @@ def main() -> int:
                     "for N processes side by side")
     results.add_argument(ap)
     args = ap.parse_args()
-    global ANSWERS
-    ANSWERS = not args.no_answers
     if S.ESPEAK is None:
         print("espeak-ng is not installed (apt install espeak-ng)", file=sys.stderr)
         return 2
@@ -385,7 +383,7 @@ def main() -> int:
             speech = S.synthesise(text, c.voice, c.speed)
             pcm = S.as_heard(speech, c.snr, rng)
             h = S.hear(stream, pcm, S.speech_end(speech))
-            answer = Answers(stream, c, rng)
+            answer = Answers(stream, c, rng, answering=not args.no_answers)
             outcome = S.judge(text, h.text, h.unsure, answer)
             answers = answer.heard
             clips.append({"condition": str(c), "said": text, "heard": h.text, "unsure": h.unsure, "why": h.why,
