@@ -424,13 +424,9 @@ class Mesh:
         _ip("addr", "add", f"{node.address}/{prefix}", "brd", self.broadcast, "dev", "mesh0", netns=node.netns)
         _ip("link", "set", "mesh0", "up", netns=node.netns)
 
-    def mac(self, node: MeshNode) -> str:
-        """The MAC address of `node`'s `mesh0` on the ns-3 channel (locally administered: slot, index)."""
-        return f"02:65:72:{self.slot:02x}:{node.index >> 8:02x}:{node.index & 0xff:02x}"
-
     def _start_ns3(self) -> None:
         """Start the ns-3 channel in the segment's namespace: it makes every node's `mesh0` (a TAP)."""
-        channel = Ns3Channel([ChannelNode(n.name, n.netns, self.mac(n), *self._positions.get(n.name, (0.0, 0.0)))
+        channel = Ns3Channel([ChannelNode(n.name, n.netns, *self._positions.get(n.name, (0.0, 0.0)))
                               for n in self.nodes.values()], self.range_m, self.run_dir / "logs" / "ns3-channel.log",
                              seed=self.seed)
         (self.run_dir / "logs").mkdir(parents=True, exist_ok=True)

@@ -69,6 +69,16 @@ def unavailable_reason() -> str | None:
     return None
 
 
+def check_channel(nodes: int) -> None:
+    """Raise Ns3Unavailable when ns-3 is missing, Ns3Error when `nodes` are more than keep real time."""
+    reason = unavailable_reason()
+    if reason:
+        raise Ns3Unavailable(reason)
+    if nodes > MAX_NODES:
+        raise Ns3Error(f"--channel ns3: {nodes} nodes (robots and the control node) asked, but one ns-3 "
+                       f"channel keeps real time on this machine with at most {MAX_NODES}")
+
+
 def cache_dir() -> Path:
     """Where compiled channel programs are kept."""
     base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
@@ -124,12 +134,21 @@ class Lag:
 
 
 @dataclass
+class MacDrops:
+    """Frames the kernels handed to the ns-3 wifi devices, and those the MACs dropped (all nodes)."""
+
+    sent: int = 0
+    queue_full: int = 0
+    expired: int = 0          # waited longer than the MAC queue's lifetime (ns-3's 500 ms)
+    retry_limit: int = 0      # unicast frames not acknowledged after every retry
+
+
+@dataclass
 class ChannelNode:
-    """One node of the ns-3 channel: its name, namespace, MAC address and first position."""
+    """One node of the ns-3 channel: its name, namespace and first position."""
 
     name: str
     netns: str
-    mac: str
     x: float = 0.0
     y: float = 0.0
 
@@ -144,6 +163,7 @@ class Ns3Channel:
     seed: int = 1
     run: int = 1
     lag: Lag = field(default_factory=Lag)
+    mac: MacDrops = field(default_factory=MacDrops)
     proc: subprocess.Popen[str] | None = None
     _lock: threading.Lock = field(default_factory=threading.Lock)
     _warned_at: float = 0.0
@@ -153,15 +173,13 @@ class Ns3Channel:
         argv = [str(program), "emulate", "--range-m", f"{self.range_m:g}", "--seed", str(self.seed),
                 "--run", str(self.run), "--late-ms", f"{LAG_WARN_MS:g}"]
         for n in self.nodes:
-            argv += ["--node", n.name, n.netns, n.mac, f"{n.x:.3f}", f"{n.y:.3f}"]
+            argv += ["--node", n.name, n.netns, f"{n.x:.3f}", f"{n.y:.3f}"]
         return argv
 
     def start(self, wrap: Sequence[str] = (), preexec_fn: Callable[[], None] | None = None,
               timeout: float = 20.0) -> None:
         """Start the program (inside `wrap`, e.g. `ip netns exec HUB`) and wait until its TAPs exist."""
-        if len(self.nodes) > MAX_NODES:
-            raise Ns3Error(f"--channel ns3: {len(self.nodes)} nodes asked, but one ns-3 channel keeps "
-                           f"real time on this machine with at most {MAX_NODES} (robots and the control node)")
+        check_channel(len(self.nodes))
         program = binary()
         errors = open(self.log_path, "a")
         try:
@@ -194,6 +212,8 @@ class Ns3Channel:
                 continue
             if words[0] == "ready":
                 ready.set()
+            elif words[0] == "mac" and len(words) == 5:
+                self.mac = MacDrops(*(int(w) for w in words[1:]))
             elif words[0] == "lag" and len(words) == 6:
                 lag = Lag(float(words[1]), float(words[2]), float(words[3]), int(words[4]), int(words[5]))
                 self.lag = lag

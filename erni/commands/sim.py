@@ -63,6 +63,10 @@ def register(sub: Any) -> None:
                    "or the simulated SNMP nodes (snmp, the default without)")
     p.add_argument("--hello-interval", type=float, default=None, metavar="S",
                    help="babeld's Hello interval with --netns (default 0.5 s)")
+    p.add_argument("--channel", choices=["nftables", "ns3"],
+                   help="what carries the frames with --netns: the radio model as nftables drop rules "
+                   "(nftables, the default) or ns-3's 802.11a ad-hoc network in real time (ns3: needs "
+                   "Debian's libns3-dev, g++ and pkg-config); default: the scenario's radio.channel")
     p.add_argument("--netns-clean", action="store_true",
                    help="remove what killed --netns runs left behind (namespaces, links) and exit")
     p.set_defaults(func=run)
@@ -102,7 +106,16 @@ def run(args: argparse.Namespace) -> int:
             return 0
         if args.hello_interval is not None and not args.netns:
             raise TeamError("--hello-interval is babeld's, which runs only with --netns")
+        if args.channel is not None and not args.netns:
+            raise TeamError("--channel chooses the real-mesh tier's channel: add --netns")
         scenario = load(args)
+        if args.netns and (args.channel or scenario.radio.channel) == "ns3":
+            from erni.sim.ns3_channel import Ns3Error, check_channel
+
+            try:  # ns-3 missing, or more nodes than it carries in real time: one line, before anything starts
+                check_channel(scenario.count + 1)
+            except Ns3Error as err:
+                raise TeamError(str(err)) from None
         too_many = capacity_warning(scenario.count, cores())
         if args.gui_listen:
             from erni.transport import parse_address
@@ -112,7 +125,7 @@ def run(args: argparse.Namespace) -> int:
             prune_run_dirs(Path(tempfile.gettempdir()))
         team = Team(scenario, run_dir=args.run_dir, headless=args.headless,
                     control_port=args.control_port, log_level=args.log_level, gui_listen=args.gui_listen,
-                    netns=args.netns, mobinet=args.mobinet,
+                    netns=args.netns, mobinet=args.mobinet, channel=args.channel,
                     hello_interval=args.hello_interval if args.hello_interval is not None else HELLO_INTERVAL,
                     keep_run_dir=True)  # it prints where the configs and logs are
         if not args.run_dir:
@@ -264,7 +277,8 @@ def _print_team(team: Any, seconds: float, announced: Path | None = None) -> Non
     say(f"  control    agent {host}:{port}  pid {team.agents['control'].pid or '-'}" +
           (f" netns {team.mesh.node('control').netns}" if team.mesh is not None else ""))
     if team.mesh is not None:
-        say(f"  mesh       segment {team.mesh.subnet} (namespace {team.mesh.hub}), babeld in every node, "
+        say(f"  mesh       segment {team.mesh.subnet} (namespace {team.mesh.hub}, {team.mesh.channel} channel), "
+              "babeld in every node, "
               f"MobiNet reads {team.mobinet}; routes: ip -n {team.mesh.node(team.names[-1]).netns} route")
     if not team.url:
         say("  GUI        none (headless, or the UI plugin is not installed)")

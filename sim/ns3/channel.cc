@@ -3,9 +3,9 @@
 //
 // Built by erni.sim.ns3 on first use against Debian's libns3-dev (3.37). Two modes:
 //
-//   emulate:  erni-ns3-channel emulate --node NAME NETNS MAC X Y [--node ...] [options]
+//   emulate:  erni-ns3-channel emulate --node NAME NETNS X Y [--node ...] [options]
 //             For each node, opens a TAP device `mesh0` inside namespace NETNS (setns), gives it
-//             MAC, and attaches it to the node's ns-3 FdNetDevice; frames the kernel sends on the
+//             the MAC address of the node's wifi device, and attaches it to the node's ns-3 FdNetDevice; frames the kernel sends on the
 //             TAP go out on the node's WifiNetDevice, frames the wifi device receives are written
 //             into the TAP (source address kept). No ns-3 internet stack: Linux does IP.
 //             stdin, one line each:  "pos NAME X Y"   move a node (metres)
@@ -130,6 +130,21 @@ struct EmuNode
     Ptr<WifiNetDevice> wifi;
 };
 
+// frames the MAC gave up on: [0] queue full, [1] too long in the queue, [2] retry limit reached
+uint64_t g_dropped[4] = {0, 0, 0, 0};
+uint64_t g_sent = 0;  // frames handed from the TAPs to the wifi devices
+
+void
+Dropped(WifiMacDropReason reason, Ptr<const WifiMpdu>)
+{
+    if (reason == WIFI_MAC_DROP_FAILED_ENQUEUE)
+        g_dropped[0]++;
+    else if (reason == WIFI_MAC_DROP_EXPIRED_LIFETIME || reason == WIFI_MAC_DROP_QOS_OLD_PACKET)
+        g_dropped[1]++;
+    else if (reason == WIFI_MAC_DROP_REACHED_RETRY_LIMIT)
+        g_dropped[2]++;
+}
+
 int
 OpenTapIn(const std::string& netns, const Mac48Address& mac)
 {
@@ -165,6 +180,7 @@ bool
 FromTap(Ptr<WifiNetDevice> wifi, Ptr<NetDevice>, Ptr<const Packet> packet, uint16_t protocol,
         const Address&, const Address& to, NetDevice::PacketType)
 {
+    g_sent++;
     wifi->Send(packet->Copy(), to, protocol);
     return true;
 }
@@ -214,6 +230,9 @@ Probe()
         std::printf("lag %.1f %.1f %.1f %llu %llu\n", Simulator::Now().GetSeconds(), lagMs,
                     g_probe.maxMs, (unsigned long long)g_probe.late,
                     (unsigned long long)g_probe.probes);
+        std::printf("mac %llu %llu %llu %llu\n", (unsigned long long)g_sent,
+                    (unsigned long long)g_dropped[0], (unsigned long long)g_dropped[1],
+                    (unsigned long long)g_dropped[2]);
         std::fflush(stdout);
     }
     Simulator::Schedule(MilliSeconds(100), &Probe);
@@ -272,8 +291,6 @@ Emulate(std::vector<EmuNode>& nodes, const Options& opt)
     // best effort: a simulator that falls behind runs its events late rather than aborting; the
     // lag probe reports by how much
     Config::SetDefault("ns3::RealtimeSimulatorImpl::SynchronizationMode", StringValue("BestEffort"));
-    for (auto& n : nodes)
-        n.fd = OpenTapIn(n.netns, n.mac);
     NodeContainer container;
     container.Create(nodes.size());
     NetDeviceContainer devices = InstallWifi(container, opt);
@@ -283,7 +300,10 @@ Emulate(std::vector<EmuNode>& nodes, const Options& opt)
         EmuNode& n = nodes[i];
         n.node = container.Get(i);
         n.wifi = DynamicCast<WifiNetDevice>(devices.Get(i));
-        n.wifi->SetAddress(n.mac);
+        // the TAP takes the wifi device's address (the MAC acknowledges frames to the address it
+        // was made with): the kernel's frames then name the right node, and go out unchanged
+        n.mac = Mac48Address::ConvertFrom(n.wifi->GetAddress());
+        n.fd = OpenTapIn(n.netns, n.mac);
         n.node->GetObject<MobilityModel>()->SetPosition(Vector(n.x, n.y, 0.0));
         n.tap = CreateObject<FdNetDevice>();
         n.tap->SetAddress(n.mac);
@@ -291,6 +311,7 @@ Emulate(std::vector<EmuNode>& nodes, const Options& opt)
         n.node->AddDevice(n.tap);
         n.tap->SetPromiscReceiveCallback(MakeBoundCallback(&FromTap, n.wifi));
         n.wifi->SetPromiscReceiveCallback(MakeBoundCallback(&FromAir, n.tap));
+        n.wifi->GetMac()->TraceConnectWithoutContext("DroppedMpdu", MakeCallback(&Dropped));
         byName[n.name] = &n;
     }
     g_probe.lateMs = opt.lateMs;
@@ -371,15 +392,14 @@ main(int argc, char** argv)
         };
         if (a == "--node")
         {
-            need(5);
+            need(4);
             EmuNode n;
             n.name = argv[i + 1];
             n.netns = argv[i + 2];
-            n.mac = Mac48Address(argv[i + 3]);
-            n.x = Number(argv[i + 4], "x");
-            n.y = Number(argv[i + 5], "y");
+            n.x = Number(argv[i + 3], "x");
+            n.y = Number(argv[i + 4], "y");
             nodes.push_back(n);
-            i += 5;
+            i += 4;
         }
         else if (a == "--range-m" || a == "--seed" || a == "--run" || a == "--late-ms" ||
                  a == "--distance" || a == "--packets" || a == "--interval" || a == "--size")
