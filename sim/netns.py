@@ -55,6 +55,7 @@ import shutil
 import signal
 import socket
 import subprocess
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterator, Mapping
@@ -580,6 +581,66 @@ class Mesh:
                     passed += packets
                 out[(pair[0], pair[1])] = (dropped, passed)
         return out
+
+    # -- traffic between the nodes, for tests and benchmarks ------------------------------
+
+    def udp_flows(self, flows: list[tuple[str, str]], count: int, interval: float, size: int,
+                  port: int = 47990, settle: float = 1.0) -> list[int]:
+        """Send `count` UDP datagrams of `size` bytes every `interval` s over each (sender, receiver)
+        flow at once, through the nodes' own sockets; return how many each receiver got (distinct).
+
+        Each flow first sends a few datagrams that are not counted, so that ARP has resolved the
+        receiver before the counted ones start (Linux queues only a few behind an unresolved address).
+        """
+        if not 0 < len(flows) < 100 or count < 1 or not interval > 0 or not 8 <= size <= 65000:
+            raise NetnsError("udp_flows: expected 1..99 flows, count >= 1, interval > 0 and size in 8..65000")
+        receive = (
+            "import socket, sys, time\n"
+            "s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM); s.bind(('', int(sys.argv[1])))\n"
+            "s.settimeout(0.2); got = set(); print('ready', flush=True)\n"
+            "end = time.monotonic() + float(sys.argv[2])\n"
+            "while time.monotonic() < end:\n"
+            "    try:\n"
+            "        got.add(int.from_bytes(s.recv(65535)[:4], 'big'))\n"
+            "    except socket.timeout:\n"
+            "        pass\n"
+            "print(len([n for n in got if n < 0x7fffffff]))\n")
+        send = (
+            "import socket, sys, time\n"
+            "host, port, n, gap, size = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), float(sys.argv[4]), "
+            "int(sys.argv[5])\n"
+            "s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)\n"
+            "for _ in range(5):\n"
+            "    s.sendto(b'\\x7f\\xff\\xff\\xff' + bytes(size - 4), (host, port)); time.sleep(0.05)\n"
+            "time.sleep(float(sys.argv[6]))\n"
+            "t = time.monotonic()\n"
+            "for i in range(n):\n"
+            "    s.sendto(i.to_bytes(4, 'big') + bytes(size - 4), (host, port))\n"
+            "    t += gap; time.sleep(max(0.0, t - time.monotonic()))\n")
+        listen = count * interval + settle + 3.0
+        receivers: list[subprocess.Popen[str]] = []
+        for k, (_, b) in enumerate(flows):
+            proc = subprocess.Popen(self.exec_argv(b, [sys.executable, "-c", receive, str(port + k), f"{listen:g}"]),
+                                    stdout=subprocess.PIPE, text=True, preexec_fn=die_with_parent())
+            receivers.append(proc)
+        try:
+            for proc in receivers:
+                assert proc.stdout is not None
+                if proc.stdout.readline().strip() != "ready":
+                    raise NetnsError("udp_flows: a receiver did not start")
+            senders = [subprocess.Popen(self.exec_argv(a, [sys.executable, "-c", send, self.node(b).address,
+                                                           str(port + k), str(count), f"{interval:g}", str(size),
+                                                           f"{settle:g}"]),
+                                        preexec_fn=die_with_parent())
+                       for k, (a, b) in enumerate(flows)]
+            for sender in senders:
+                sender.wait(listen + 30)
+            return [int(proc.communicate(timeout=listen + 30)[0].strip() or 0) for proc in receivers]
+        finally:
+            for proc in receivers:
+                if proc.poll() is None:
+                    proc.kill()
+                    proc.wait(5)
 
     # -- babeld's view, for tests and benchmarks ----------------------------------------
 

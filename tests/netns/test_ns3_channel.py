@@ -1,0 +1,76 @@
+"""The ns-3 channel of the real-mesh tier: namespaces' own sockets through ns-3's 802.11a ad-hoc network.
+
+Runs where namespaces can be made (the `netns` mark) and Debian's libns3-dev, g++ and
+pkg-config are installed (CI installs them); the channel program is built on first use.
+"""
+
+from __future__ import annotations
+
+import shutil
+
+import pytest
+
+from erni.cli import main
+from erni.sim import ns3_channel
+from erni.sim.netns import Mesh, NetnsError
+
+pytestmark = pytest.mark.netns
+
+needs_ns3 = pytest.mark.skipif(ns3_channel.unavailable_reason() is not None,
+                               reason=str(ns3_channel.unavailable_reason()))
+
+
+@needs_ns3
+def test_frames_cross_at_short_range_not_beyond_reach_and_follow_a_node_that_moves(tmp_path):
+    # range 10 m: b 5 m from a (well inside), c 60 m away (ns-3's loss puts it 27 dB below the
+    # wifi preamble detection threshold at that distance), then c is moved beside a
+    mesh = Mesh(["a", "b", "c"], tmp_path, channel="ns3", range_m=10.0).create()
+    try:
+        assert mesh.ns3 is not None and mesh.ns3.alive
+        mesh.apply({}, {"a": (0.0, 0.0), "b": (5.0, 0.0), "c": (60.0, 0.0)})
+        near, far = mesh.udp_flows([("a", "b"), ("a", "c")], count=50, interval=0.01, size=200)
+        assert near >= 45, near   # unicast with 802.11 retries: all but the rare loss
+        assert far == 0, far
+        mesh.apply({}, {"c": (0.0, 4.0)})  # what the team's feed does as a robot drives
+        (moved,) = mesh.udp_flows([("a", "c")], count=50, interval=0.01, size=200)
+        assert moved >= 45, moved
+        assert mesh.ns3.lag.probes > 0  # the real-time simulator reports its lag
+        assert mesh.ns3.mac.sent >= 100  # ...and the frames the kernels handed to it
+        with pytest.raises(NetnsError, match="nftables radio"):
+            mesh.cut("a", "b")  # faults by rule are the nftables channel's
+    finally:
+        mesh.destroy()
+    assert mesh.leftovers() == []
+    assert mesh.ns3 is None
+
+
+@needs_ns3
+def test_the_pure_ns3_run_of_the_same_channel_delivers_near_and_not_far():
+    program = ns3_channel.binary()
+    assert ns3_channel.pure_run(program, 5.0, 50, 0.01, 200, range_m=10.0) == (50, 50)
+    assert ns3_channel.pure_run(program, 60.0, 50, 0.01, 200, range_m=10.0) == (50, 0)
+
+
+def test_a_missing_ns3_is_one_line_naming_the_packages(monkeypatch, capsys):
+    real = shutil.which
+    monkeypatch.setattr(shutil, "which", lambda tool: None if tool == "g++" else real(tool))
+    reason = ns3_channel.unavailable_reason()
+    assert reason is not None and "apt install libns3-dev g++ pkg-config" in reason and "\n" not in reason
+    with pytest.raises(ns3_channel.Ns3Unavailable, match="libns3-dev"):
+        ns3_channel.binary()
+    assert main(["sim", "--netns", "--channel", "ns3", "--headless"]) == 2
+    err = capsys.readouterr().err
+    assert "--channel ns3 needs ns-3: apt install libns3-dev g++ pkg-config" in err and "\n" not in err.strip()
+
+
+@needs_ns3
+def test_more_nodes_than_keep_real_time_are_refused_with_the_figure(capsys):
+    robots = ns3_channel.MAX_NODES  # with the control node, one more than the channel carries
+    assert main(["sim", "--netns", "--channel", "ns3", "--headless", "--robots", str(robots)]) == 2
+    err = capsys.readouterr().err
+    assert f"{robots + 1} nodes" in err and f"at most {ns3_channel.MAX_NODES}" in err
+
+
+def test_channel_without_netns_is_refused(capsys):
+    assert main(["sim", "--channel", "ns3", "--headless"]) == 2
+    assert "add --netns" in capsys.readouterr().err
