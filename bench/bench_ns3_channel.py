@@ -63,6 +63,7 @@ def delivery(run_dir: Path, count: int, seeds: int) -> list[dict[str, Any]]:
         mesh.apply({}, {"a": (0.0, 0.0), "b": (d, 0.0)})
         mesh.create()
         try:
+            mesh.static_neighbours()  # as in the pure run: only the channel decides
             (got,) = mesh.udp_flows([("a", "b")], count=count, interval=INTERVAL, size=SIZE)
         finally:
             mesh.destroy()

@@ -584,6 +584,19 @@ class Mesh:
 
     # -- traffic between the nodes, for tests and benchmarks ------------------------------
 
+    def static_neighbours(self) -> None:
+        """Give every node a permanent ARP entry for every other (no ARP on the air from now on):
+        benchmarks that compare the channel with a pure ns-3 run, whose neighbours are known too."""
+        macs = {}
+        for node in self.nodes.values():
+            link = json.loads(_ip("-j", "link", "show", "mesh0", netns=node.netns))
+            macs[node.name] = link[0]["address"]
+        for node in self.nodes.values():
+            for other in self.nodes.values():
+                if other is not node:
+                    _ip("neigh", "replace", other.address, "lladdr", macs[other.name], "dev", "mesh0",
+                        "nud", "permanent", netns=node.netns)
+
     def udp_flows(self, flows: list[tuple[str, str]], count: int, interval: float, size: int,
                   port: int = 47990, settle: float = 1.0) -> list[int]:
         """Send `count` UDP datagrams of `size` bytes every `interval` s over each (sender, receiver)

@@ -277,7 +277,7 @@ def _print_team(team: Any, seconds: float, announced: Path | None = None) -> Non
     say(f"  control    agent {host}:{port}  pid {team.agents['control'].pid or '-'}" +
           (f" netns {team.mesh.node('control').netns}" if team.mesh is not None else ""))
     if team.mesh is not None:
-        say(f"  mesh       segment {team.mesh.subnet} (namespace {team.mesh.hub}, {team.mesh.channel} channel), "
+        say(f"  mesh       segment {team.mesh.subnet} (namespace {team.mesh.hub}), {team.mesh.channel} channel, "
               "babeld in every node, "
               f"MobiNet reads {team.mobinet}; routes: ip -n {team.mesh.node(team.names[-1]).netns} route")
     if not team.url:
