@@ -27,6 +27,13 @@ link a delivery ratio of 1, are dropped with probability 1 - q (`numgen random`,
 replaced in one nft transaction whenever the model's links change (robots move); broadcasts
 and babeld's multicast Hellos are filtered per receiving port like every other frame.
 
+The ns-3 channel (`channel="ns3"`, `erni sim --netns --channel ns3`): no bridge and no rules;
+one ns-3 process in the segment's namespace opens each node's `mesh0` as a TAP device inside
+that node's namespace and carries the frames through ns-3's 802.11a ad-hoc network, its nodes
+moved to the robots' positions (`Mesh.apply(links, positions)`); see `erni.sim.ns3_channel`.
+Addresses, babeld, the management links and the clean-up are the same; the process dies with the
+launcher and with the segment's namespace, and its TAP devices with it.
+
 Clean-up: everything the run creates lives in its namespaces, and deleting a namespace deletes
 its links, addresses, routes and rules (the root ends of the management links die with their
 peers). `Mesh.destroy()` stops the daemons and deletes the namespaces. A launcher killed with

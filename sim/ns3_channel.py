@@ -45,9 +45,12 @@ LAG_WARN_MS = 50.0      # a probe this late counts as late, and a report beyond 
 MAX_NODES = 24
 """The most nodes (robots and the control node) one ns-3 channel carries in real time here.
 
-Measured on this 2-core machine with bench/bench_ns3_channel.py's load test: every node
-broadcasting babeld-sized Hellos and an agent's beacon and status traffic, the simulator's lag
-stayed under LAG_WARN_MS up to this many nodes; a scenario asking for more is refused."""
+Measured on this 2-core machine with bench/bench_ns3_channel.py's real-time steps (every node in
+range of every other, broadcasting a team's traffic: 40 datagrams of 700 bytes a second): up to
+24 nodes the simulator's largest lag stayed under 5 ms in two runs out of three (290 ms in the
+third, beside a second run on the machine); 32 nodes lagged 13 ms in one run and 419 ms in
+another, 40 nodes over 400 ms in every run. A scenario asking for more is refused; under other load
+the lag warning reports what happens below the limit."""
 
 
 class Ns3Error(ErniError):

@@ -74,3 +74,37 @@ def test_more_nodes_than_keep_real_time_are_refused_with_the_figure(capsys):
 def test_channel_without_netns_is_refused(capsys):
     assert main(["sim", "--channel", "ns3", "--headless"]) == 2
     assert "add --netns" in capsys.readouterr().err
+
+
+@needs_ns3
+@pytest.mark.slow
+def test_a_team_on_the_ns3_channel_takes_a_task_two_hops_out_and_ctrl_c_removes_everything(tmp_path):
+    import os
+    import re
+    import signal
+    import subprocess
+    import sys
+
+    from erni.sim import netns
+    from tests.netns.test_sim_netns_cli import launch, namespaces, tag_of
+
+    proc, lines = launch(tmp_path, "--robots", "2", "--headless", "--channel", "ns3")
+    tag = tag_of(lines)
+    try:
+        text = "\n".join(lines)
+        assert "ns3 channel" in text
+        # robot2 is 11 m from the control node on mesh-line: its tasks go through robot1 on babeld's routes
+        via = re.search(r"erni task --via (\S+)", text).group(1)
+        env = {**os.environ, "ERNI_IDENTITY": re.search(r"export ERNI_IDENTITY=(\S+)", text).group(1)}
+        done = subprocess.run([sys.executable, "-m", "erni", "task", "--via", via, "robot2", "BotMotion", "turn",
+                               "angle=30", "--wait"], capture_output=True, text=True, env=env, timeout=90)
+        assert done.returncode == 0 and "succeeded" in done.stdout.lower(), done.stdout + done.stderr
+        channel = [int(p) for p in netns._ip("netns", "pids", f"erni-{tag}").split()]
+        assert channel  # the ns-3 process runs in the segment's namespace
+    finally:
+        proc.send_signal(signal.SIGINT)
+        out, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 0, out
+    assert namespaces(tag) == []
+    for pid in channel:
+        assert not os.path.exists(f"/proc/{pid}") or "zombie" in open(f"/proc/{pid}/status").read().lower()
