@@ -22,7 +22,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import subprocess
 import sys
@@ -31,6 +30,9 @@ from pathlib import Path
 from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import results  # noqa: E402
 
 from erni.sim import ns3_channel  # noqa: E402
 from erni.sim.netns import Mesh, die_with_parent, unavailable_reason  # noqa: E402
@@ -135,7 +137,7 @@ def main() -> int:
     ap.add_argument("--seeds", type=int, default=5, help="pure ns-3 runs per distance")
     ap.add_argument("--seconds", type=float, default=8.0, help="load per real-time step")
     ap.add_argument("--nodes", default="6,12,18,24,32,40", help="node counts of the real-time steps")
-    ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "bench_ns3_channel.json"))
+    results.add_argument(ap)
     ap.add_argument("--run-dir", default="/tmp/erni-bench-ns3")
     args = ap.parse_args()
     for reason in (unavailable_reason(), ns3_channel.unavailable_reason()):
@@ -151,8 +153,6 @@ def main() -> int:
     rt = real_time(run_dir, [int(x) for x in args.nodes.split(",")], args.seconds)
     keep = [r["nodes"] for r in rt if r["late_probes"] == 0]
     agree = sum(r["agree"] for r in curve)
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                            cwd=Path(__file__).parent).stdout.strip()
     table = ["| distance (m) | through the sockets | pure ns-3 | 95 % CI of the difference | agree |",
              "|---|---|---|---|---|"]
     table += [f"| {r['distance_m']:g} | {r['sockets']:.3f} | {r['pure_ns3']:.3f} | ±{r['ci95']:.3f} | "
@@ -160,33 +160,22 @@ def main() -> int:
     rt_table = ["| nodes | largest lag (ms) | probes later than 50 ms | probes |", "|---|---|---|---|"]
     rt_table += [f"| {r['nodes']} | {r['max_lag_ms']} | {r['late_probes']} | {r['probes']} |" for r in rt]
     alone, together = shared["alone"], shared["together"]
-    result = {
-        "command": "sudo python bench/bench_ns3_channel.py",
-        "commit": commit,
-        "date": time.strftime("%Y-%m-%d"),
-        "machine": "2 cores (AMD EPYC in a Firecracker VM), 24 GB, shared with other jobs",
-        "about": ("the ns-3 channel of the real-mesh tier (802.11a ad hoc, LogDistance + Nakagami, Minstrel; "
-                  f"range {RANGE:g} m) against a pure ns-3 run of the same configuration; "
-                  f"{args.count} datagrams of {SIZE} bytes at {1 / INTERVAL:g}/s per distance, "
-                  f"{args.seeds} pure ns-3 seeds"),
-        "targets": [
-            {"target": "delivery ratio by distance: ERNI's sockets vs pure ns-3", "goal": "within the 95 % CI",
-             "floor": "pure ns-3, same configuration", "figure": f"{agree} of {len(curve)} distances agree",
-             "met": agree == len(curve)},
-            {"target": "contention: two flows share the medium", "goal": "each gets less than alone",
-             "floor": f"alone {alone[0]} and {alone[1]} of {shared['offered']}",
-             "figure": f"together {together[0]} and {together[1]}",
-             "met": together[0] < alone[0] and together[1] < alone[1]},
-            {"target": "real time: nodes with team traffic and no probe 50 ms late", "goal": "reported",
-             "floor": f"MAX_NODES = {ns3_channel.MAX_NODES}",
-             "figure": f"up to {max(keep) if keep else 0} nodes", "met": None},
-        ],
-        "tables": [{"title": "Delivery ratio against distance", "markdown": "\n".join(table)},
-                   {"title": "Lag of the real-time simulator", "markdown": "\n".join(rt_table)}],
-        "curve": curve, "contention": shared, "real_time": rt,
-    }
-    Path(args.out).write_text(json.dumps(result, indent=1) + "\n")
-    print(f"wrote {args.out}")
+    about = ("the ns-3 channel of the real-mesh tier (802.11a ad hoc, LogDistance + Nakagami, Minstrel; "
+             f"range {RANGE:g} m) against a pure ns-3 run of the same configuration; "
+             f"{args.count} datagrams of {SIZE} bytes at {1 / INTERVAL:g}/s per distance, {args.seeds} pure ns-3 seeds")
+    results.write("bench_ns3_channel", [
+        results.target("delivery ratio by distance: ERNI's sockets vs pure ns-3", "within the 95 % CI",
+                       "pure ns-3, same configuration", f"{agree} of {len(curve)} distances agree",
+                       agree == len(curve)),
+        results.target("contention: two flows share the medium", "each gets less than alone",
+                       f"alone {alone[0]} and {alone[1]} of {shared['offered']}",
+                       f"together {together[0]} and {together[1]}",
+                       together[0] < alone[0] and together[1] < alone[1]),
+        results.target("real time: nodes with team traffic and no probe 50 ms late", "reported",
+                       f"MAX_NODES = {ns3_channel.MAX_NODES}", f"up to {max(keep) if keep else 0} nodes", None),
+    ], about=about, path=args.results, tables=[
+        {"title": "Delivery ratio against distance", "markdown": "\n".join(table)},
+        {"title": "Lag of the real-time simulator", "markdown": "\n".join(rt_table)}])
     return 0
 
 
