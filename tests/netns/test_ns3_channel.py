@@ -108,3 +108,35 @@ def test_a_team_on_the_ns3_channel_takes_a_task_two_hops_out_and_ctrl_c_removes_
     assert namespaces(tag) == []
     for pid in channel:
         assert not os.path.exists(f"/proc/{pid}") or "zombie" in open(f"/proc/{pid}/status").read().lower()
+
+
+@needs_ns3
+def test_a_killed_launcher_takes_the_ns3_process_and_its_taps_along_and_clean_stale_removes_the_rest(tmp_path):
+    import os
+    import signal
+    import subprocess
+    import sys
+    import textwrap
+
+    from erni.blackboard.testing import wait_until
+    from erni.sim import netns
+
+    launcher = subprocess.Popen([sys.executable, "-c", textwrap.dedent(f"""
+        import sys, time
+        from erni.sim.netns import Mesh
+        mesh = Mesh(["a", "b"], {str(tmp_path)!r}, channel="ns3").create()
+        print(mesh.tag, mesh.ns3.proc.pid, flush=True)
+        time.sleep(120)
+    """)], stdout=subprocess.PIPE, text=True)
+    assert launcher.stdout is not None
+    tag, pid = launcher.stdout.readline().split()
+    assert os.path.exists(f"/proc/{pid}")
+    os.kill(launcher.pid, signal.SIGKILL)
+    launcher.wait(10)
+    # the kernel kills the channel with its launcher; the TAPs close with it
+    wait_until(lambda: not os.path.exists(f"/proc/{pid}") or "zombie" in open(f"/proc/{pid}/status").read().lower(),
+               timeout=15)
+    wait_until(lambda: "mesh0" not in netns._ip("-o", "link", "show", netns=f"erni-{tag}-a", check=False),
+               timeout=15)
+    assert tag in netns.clean_stale()
+    assert not [n for n in netns._namespaces() if n.startswith(f"erni-{tag}")]
