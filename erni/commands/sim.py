@@ -355,7 +355,16 @@ def status_line(team: Any) -> str:
         return line + "; the control node does not answer"
     return line + f"; control hears {len(heard)}/{len(names)}" + (
         f" (not {', '.join(n for n in names if n not in heard)})" if len(heard) < len(names) else "") + (
-        f"; {team.status.components} radio component(s)") + sips_note(*team.sips_since())
+        f"; {team.status.components} radio component(s)") + sips_note(*team.sips_since()) + channel_note(team)
+
+
+def channel_note(team: Any) -> str:
+    """The ns-3 channel's lag behind real time (its probe's latest and largest), when it carries the mesh."""
+    channel = team.mesh.ns3 if team.mesh is not None else None
+    if channel is None or not channel.lag.probes:
+        return ""
+    lag = channel.lag
+    return f"; ns-3 lag {lag.now_ms:.0f} ms (at most {lag.max_ms:.0f} ms, {lag.late} of {lag.probes} probes late)"
 
 
 def sips_note(sent: int, skipped: int) -> str:
