@@ -445,6 +445,7 @@ class Mesh:
         self.ns3 = channel
         for node in self.nodes.values():
             self._address_mesh0(node)
+
     def babeld_config(self, node: MeshNode) -> str:
         """The babeld configuration of `node`."""
         return "\n".join([
@@ -487,15 +488,17 @@ class Mesh:
               positions: Mapping[str, tuple[float, float]] | None = None) -> bool:
         """Make the radio follow the model: on the nftables channel the rules match the links' delivery
         ratios, on the ns-3 channel the nodes move to `positions` (m); True when something changed."""
+        if positions is not None and self.channel == "ns3":
+            with self._lock:
+                moved = {k: v for k, v in positions.items() if self._positions.get(k) != v}
+                self._positions.update(moved)
+                channel = self.ns3
+            if channel is not None and moved:
+                channel.move(moved)  # a line each to the channel's input, outside the lock
+            return bool(moved)
         with self._lock:
             if links is not None:
                 self._links = dict(links)
-            if positions is not None and self.channel == "ns3":
-                moved = {k: v for k, v in positions.items() if self._positions.get(k) != v}
-                self._positions.update(moved)
-                if self.ns3 is not None and moved:
-                    self.ns3.move(moved)
-                return bool(moved)
             if not self._created or not self.nodes or self.channel != "nftables":
                 return False
             rules = self.rules(self._links)
