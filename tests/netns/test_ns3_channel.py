@@ -140,3 +140,17 @@ def test_a_killed_launcher_takes_the_ns3_process_and_its_taps_along_and_clean_st
                timeout=15)
     assert tag in netns.clean_stale()
     assert not [n for n in netns._namespaces() if n.startswith(f"erni-{tag}")]
+
+
+def test_a_scenario_chooses_the_channel_and_a_wrong_one_is_refused_with_the_choices(tmp_path):
+    from erni.sim.scenario import ScenarioError, load_scenario
+
+    path = tmp_path / "s.toml"
+    path.write_text('name = "s"\n[radio]\ncomm_range = 8.0\nlossless_range = 5.0\nchannel = "ns3"\n')
+    assert load_scenario(path).radio.channel == "ns3"
+    path.write_text('name = "s"\n[radio]\nchannel = "netem"\n')
+    with pytest.raises(ScenarioError, match="nftables.*ns3"):
+        load_scenario(path)
+    assert Mesh(["a"], tmp_path, channel="ns3", range_m=8.0).channel == "ns3"
+    with pytest.raises(NetnsError, match="nftables, ns3"):
+        Mesh(["a"], tmp_path, channel="netem")
