@@ -170,6 +170,7 @@ class Ns3Channel:
     proc: subprocess.Popen[str] | None = None
     _lock: threading.Lock = field(default_factory=threading.Lock)
     _warned_at: float = 0.0
+    _reported_exit: bool = False
 
     def argv(self, program: Path) -> list[str]:
         """The program's command line."""
@@ -232,7 +233,12 @@ class Ns3Channel:
         return self.proc is not None and self.proc.poll() is None
 
     def move(self, positions: Mapping[str, tuple[float, float]]) -> None:
-        """Move nodes of the channel (metres); names it does not know are left out."""
+        """Move nodes of the channel (metres); names it does not know are left out. A channel that
+        exited is logged once, as an error: the namespaces then have no medium at all."""
+        if self.proc is not None and self.proc.poll() is not None and not self._reported_exit:
+            self._reported_exit = True
+            log.error("the ns-3 channel exited (code %s): no frame crosses between the namespaces; "
+                      "its log: %s (%s)", self.proc.returncode, self.log_path, self._log_tail() or "empty")
         known = {n.name for n in self.nodes}
         text = "".join(f"pos {name} {x:.3f} {y:.3f}\n" for name, (x, y) in positions.items() if name in known)
         if not text or self.proc is None or self.proc.stdin is None:

@@ -361,7 +361,11 @@ def status_line(team: Any) -> str:
 def channel_note(team: Any) -> str:
     """The ns-3 channel's lag behind real time (its probe's latest and largest), when it carries the mesh."""
     channel = team.mesh.ns3 if team.mesh is not None else None
-    if channel is None or not channel.lag.probes:
+    if channel is None:
+        return ""
+    if not channel.alive:
+        return f"; the ns-3 channel is not running (see {channel.log_path})"
+    if not channel.lag.probes:
         return ""
     lag = channel.lag
     return f"; ns-3 lag {lag.now_ms:.0f} ms (at most {lag.max_ms:.0f} ms, {lag.late} of {lag.probes} probes late)"

@@ -154,3 +154,21 @@ def test_a_scenario_chooses_the_channel_and_a_wrong_one_is_refused_with_the_choi
     assert Mesh(["a"], tmp_path, channel="ns3", range_m=8.0).channel == "ns3"
     with pytest.raises(NetnsError, match="nftables, ns3"):
         Mesh(["a"], tmp_path, channel="netem")
+
+
+@needs_ns3
+def test_a_channel_that_dies_is_reported_once_as_an_error(tmp_path, caplog):
+    mesh = Mesh(["a", "b"], tmp_path, channel="ns3").create()
+    try:
+        assert mesh.ns3 is not None and mesh.ns3.proc is not None
+        mesh.ns3.proc.kill()
+        mesh.ns3.proc.wait(5)
+        with caplog.at_level("ERROR", logger="erni.sim.ns3_channel"):
+            mesh.apply({}, {"a": (1.0, 0.0)})
+            mesh.apply({}, {"a": (2.0, 0.0)})
+        errors = [r.getMessage() for r in caplog.records if r.levelname == "ERROR"]
+        assert len(errors) == 1 and "the ns-3 channel exited" in errors[0], errors
+        assert not mesh.ns3.alive
+    finally:
+        mesh.destroy()
+    assert mesh.leftovers() == []
