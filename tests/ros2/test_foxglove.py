@@ -4,8 +4,9 @@ messageData frames (opcode 1) with a protobuf reader of its own, driven by the F
 channel advertises (no foxglove code decodes anything here).
 
 foxglove-sdk 0.30 names the protocol `foxglove.sdk.v1` (and `foxglove.sdk.v1.1`, where schemas are
-advertised apart from channels); it refuses a client that offers only the older name
-`foxglove.websocket.v1`. The messages of `foxglove.sdk.v1` are those of foxglove.websocket.v1."""
+advertised apart from channels) and refuses a client that offers only the published name
+`foxglove.websocket.v1`, as foxglove/ws-protocol's clients do; the plugin's own listener accepts
+both names (the messages are the same) and refuses a client offering neither."""
 
 from __future__ import annotations
 
@@ -128,7 +129,6 @@ class Protobuf:
 
 class Client:
     def __init__(self, ws: Any):
-        assert ws.subprotocol == "foxglove.sdk.v1"
         self.ws = ws
         self.server_info: dict[str, Any] = {}
         self.channels: dict[int, dict[str, Any]] = {}
@@ -136,6 +136,7 @@ class Client:
         self.subscribed: dict[int, int] = {}  # subscription id -> channel id
         self.latest: dict[str, tuple[int, dict[str, Any]]] = {}  # topic -> (log time, message)
         self.received: dict[str, int] = {}
+        self.history: list[tuple[str, int, dict[str, Any]]] = []  # every message: (topic, log time, message)
 
     def pump(self, seconds: float) -> None:
         """Read frames for `seconds`: subscribe to every channel advertised, decode every message."""
@@ -153,6 +154,7 @@ class Client:
                 channel = self.channels[self.subscribed[sub]]
                 message = self.schemas[channel["id"]].decode(frame[13:], "." + channel["schemaName"])
                 self.latest[channel["topic"]] = (log_time, message)
+                self.history.append((channel["topic"], log_time, message))
                 self.received[channel["topic"]] = self.received.get(channel["topic"], 0) + 1
 
     def _control(self, msg: dict[str, Any]) -> None:
@@ -173,12 +175,21 @@ class Client:
         return {c["topic"]: c["schemaName"] for c in self.channels.values()}
 
 
+SDK, OLD = "foxglove.sdk.v1", "foxglove.websocket.v1"
+
+
 @contextmanager
-def foxglove_client(port: int) -> Iterator[Client]:
-    """A client offering both names of the protocol, as Foxglove's app does."""
+def foxglove_client(port: int, offer: tuple[str, ...] = (SDK, OLD)) -> Iterator[Client]:
+    """A client offering `offer` (by default both names of the protocol, as Foxglove's app does); the
+    server must choose the first name of the protocol offered (websockets refuses a name not offered)."""
     with websockets_sync.connect(f"ws://127.0.0.1:{port}", proxy=None, open_timeout=10,
-                                 subprotocols=["foxglove.sdk.v1", "foxglove.websocket.v1"]) as ws:
+                                 subprotocols=list(offer)) as ws:  # type: ignore[arg-type]
+        assert ws.subprotocol == next(name for name in offer if name in (SDK, OLD))
         yield Client(ws)
+
+
+def timestamp_ns(t: dict[str, Any]) -> int:
+    return t.get("seconds", 0) * 1_000_000_000 + t.get("nanos", 0)
 
 
 def colour(c: dict[str, Any]) -> tuple[float, ...]:
@@ -242,13 +253,16 @@ def test_foxglove_client_sees_robots_headings_trails_and_links(control):
 
         wait_until(seen_last_pose, timeout=10)
         client.pump(0.3)
-        _, pose = client.latest["/robot1/pose"]
-        # stamped with the wall clock's seconds (not 0, ns or another epoch): a sanity bound, not a latency
-        assert pose["frame_id"] == "map" and abs(pose["timestamp"]["seconds"] - time.time()) < 300
+        log_time, pose = client.latest["/robot1/pose"]
+        # stamped with the Pose's own time (evolve keeps r1's), as the log time and in the message
+        assert pose["frame_id"] == "map" and log_time == round(r1.stamp * 1e9)
+        assert timestamp_ns(pose["timestamp"]) == log_time
 
-        _, tf = client.latest["/tf"]
+        tf_time, tf = client.latest["/tf"]
         frames = {t["child_frame_id"]: t for t in tf["transforms"]}
         assert set(frames) == {"robot1/base_link", "robot2/base_link"}
+        assert tf_time == round(max(r1.stamp, r2.stamp) * 1e9)  # the team's message: its newest Pose
+        assert timestamp_ns(frames["robot2/base_link"]["timestamp"]) == round(r2.stamp * 1e9)
         assert frames["robot1/base_link"]["parent_frame_id"] == "map"
         assert xy(frames["robot1/base_link"]["translation"]) == (1.6, 2.0)
         assert heading(frames["robot1/base_link"]["rotation"]) == pytest.approx(math.radians(30))
@@ -303,18 +317,42 @@ def test_foxglove_client_sees_robots_headings_trails_and_links(control):
         assert "entities" not in client.latest["/erni/links"][1], "no link without both ends placed"
 
 
-def test_a_client_gets_a_team_standing_still(control):
-    """Nothing changes after the client connects: it still gets the robots as they stand."""
+@pytest.mark.parametrize("offer", [(OLD,), (SDK,), (SDK, OLD), ("x.v2", OLD)],
+                         ids=["published-name-only", "sdk-name-only", "both", "other-then-published"])
+def test_a_client_gets_a_team_standing_still(control, offer):
+    """Nothing changes after the client connects: it still gets the robots as they stand, whichever
+    name of the protocol it offers (foxglove/ws-protocol's clients offer only foxglove.websocket.v1)."""
     agent, plugin = control
     with agent.transaction() as tx:
         tx.add(Pose(robot="robot1", x=-1.0, y=0.5, theta=math.pi))
     # published to no one: the plugin has drawn robot1, with nothing left pending
     wait_until(lambda: "robot1" in plugin._drawn and not plugin._pending, timeout=10)
-    with foxglove_client(plugin.port) as client:  # type: ignore[attr-defined]
+    with foxglove_client(plugin.port, offer) as client:  # type: ignore[attr-defined]
         wait_until(lambda: client.pump(0.2) or "/erni/robots" in client.latest and "/tf" in client.latest, timeout=10)
+        assert client.server_info["name"] == "ERNI control"
         arrow = client.latest["/erni/robots"][1]["entities"][0]["arrows"][0]
         assert xy(arrow["pose"]["position"]) == (-1.0, 0.5)
         assert abs(heading(arrow["pose"]["orientation"])) == pytest.approx(math.pi)
+        transform = client.latest["/tf"][1]["transforms"][0]
+        assert transform["child_frame_id"] == "robot1/base_link" and xy(transform["translation"]) == (-1.0, 0.5)
+
+
+@pytest.mark.parametrize("offer", [(), ("foxglove.websocket.v2", "x.v1")], ids=["none", "other-names"])
+def test_a_client_offering_neither_name_is_refused(control, offer):
+    """HTTP 400 with a line naming both accepted names; the server goes on serving others."""
+    from websockets.exceptions import InvalidStatus
+
+    _, plugin = control
+    with pytest.raises(InvalidStatus) as refused:
+        websockets_sync.connect(f"ws://127.0.0.1:{plugin.port}", proxy=None, open_timeout=10,
+                                subprotocols=list(offer) or None)
+    response = refused.value.response
+    assert response.status_code == 400
+    said = ", ".join(offer) if offer else "none"
+    assert response.body.decode() == (f"Foxglove WebSocket: offer the subprotocol {SDK} or {OLD} "
+                                      f"({'offered: ' + said if offer else 'this request offered none'})\n")
+    with foxglove_client(plugin.port, (OLD,)) as client:
+        wait_until(lambda: client.pump(0.1) or bool(client.server_info), timeout=10)
 
 
 def test_updates_are_rate_limited():
@@ -362,12 +400,16 @@ def test_updates_are_rate_limited():
 
 
 def test_replay_serves_a_log_to_foxglove(tmp_path: Path) -> None:
-    """`erni replay LOG --foxglove HOST:PORT`: a recorded run, seen live in Foxglove."""
+    """`erni replay LOG --foxglove HOST:PORT`: a recorded run, seen live in Foxglove at its recorded
+    times: each message's log time and timestamps are the stamps of the Poses it draws."""
     from tests.transport.helpers import free_port
 
     log = tmp_path / "run.jsonl"
-    poses = [Pose(robot="robot1", x=0.5 * i, y=1.0, theta=0.25 * i) for i in range(4)]
-    lines = [{"erni_record": 1, "via": "x", "started": 1_700_000_000.0}]
+    started = 1_700_000_000.0  # November 2023: far from the time the test runs
+    poses = [Pose(robot="robot1", x=0.5 * i, y=1.0, theta=0.25 * i, stamp=started + 0.4 * i + 0.123456789)
+             for i in range(4)]
+    recorded = {(p.x, p.y): round(p.stamp * 1e9) for p in poses}
+    lines = [{"erni_record": 1, "via": "x", "started": started}]
     lines += [{"t": 0.4 * i, "agent": "control", "op": "add" if i == 0 else "change", "type": "Pose",
                "data": p.model_dump(mode="json")} for i, p in enumerate(poses)]
     # the last pose stands 0.4 s too, before --loop clears the board and starts again
@@ -386,17 +428,41 @@ def test_replay_serves_a_log_to_foxglove(tmp_path: Path) -> None:
                 port = int(line.rsplit(":", 1)[1])
                 break
         assert port, "no Foxglove line"
-        with foxglove_client(port) as client:
+        with foxglove_client(port, (OLD,)) as client:
             seen: set[tuple[float, float]] = set()
 
             def all_poses() -> bool:
                 client.pump(0.2)
-                if "/robot1/pose" in client.latest:
-                    seen.add(xy(client.latest["/robot1/pose"][1]["pose"]["position"]))
-                return {(0.5 * i, 1.0) for i in range(4)} <= seen
+                seen.update(xy(m["pose"]["position"]) for topic, _, m in client.history if topic == "/robot1/pose")
+                return set(recorded) <= seen
 
             wait_until(all_poses, timeout=20)
             assert client.topics()["/erni/robots"] == "foxglove.SceneUpdate"
+
+            def looped() -> bool:  # --loop cleared the board and the first pose came again after the last
+                client.pump(0.2)
+                at = [xy(m["pose"]["position"]) for topic, _, m in client.history if topic == "/robot1/pose"]
+                return (1.5, 1.0) in at and (0.0, 1.0) in at[at.index((1.5, 1.0)):]
+
+            wait_until(looped, timeout=20)
+            times: dict[str, set[int]] = {}
+            for topic, log_time, message in client.history:
+                if topic == "/robot1/pose":
+                    at = xy(message["pose"]["position"])
+                    assert log_time == timestamp_ns(message["timestamp"]) == recorded[at], (at, log_time)
+                elif topic == "/tf" and message.get("transforms"):
+                    (transform,) = message["transforms"]
+                    at = xy(transform["translation"])
+                    assert log_time == timestamp_ns(transform["timestamp"]) == recorded[at], (at, log_time)
+                elif topic == "/erni/robots" and message.get("entities"):
+                    (robot,) = message["entities"]
+                    at = xy(robot["arrows"][0]["pose"]["position"])
+                    assert log_time == timestamp_ns(robot["timestamp"]) == recorded[at], (at, log_time)
+                times.setdefault(topic, set()).add(log_time)
+            # every message at a recorded time, each recorded time seen: none at the time of watching, not
+            # even when --loop clears the board
+            assert times["/robot1/pose"] == times["/tf"] == set(recorded.values()), times
+            assert set().union(*times.values()) == set(recorded.values()), times
     finally:
         proc.send_signal(signal.SIGINT)
         try:
