@@ -34,6 +34,7 @@ import socket
 import threading
 from collections import deque
 from collections.abc import Iterable
+from decimal import Decimal
 from typing import Any
 
 from pydantic import Field
@@ -93,6 +94,7 @@ OLD_NAME = "foxglove.websocket.v1"  # the name of the published ws-protocol (fox
 HEAD_LIMIT = 64 * 1024  # the most an HTTP head may take, and the relay's read size
 HANDSHAKE_TIMEOUT = 10.0  # s for a client's request head and the SDK's answer
 CLOSE_GRACE = 5.0  # s the other direction may go on after one side closed
+STOP_GRACE = 1.0  # s open connections may take to finish their closing handshakes when the relay stops
 
 
 def _head_lines(head: bytes) -> list[bytes]:
@@ -143,34 +145,53 @@ class Relay:
         self.port: int = self.sock.getsockname()[1]
         self.upstream, self.log = upstream, log
         self.loop = asyncio.new_event_loop()
+        self._connections: set[asyncio.Task[None]] = set()
         self._started = threading.Event()
         self._thread = threading.Thread(target=self._run, name=f"erni-{name}-relay", daemon=True)
         self._thread.start()
         self._started.wait(10)
 
-    def stop(self) -> None:
-        """Close the listener and every relayed connection, and end the thread."""
+    def stop(self, grace: float = STOP_GRACE) -> None:
+        """Close the listener, give open connections `grace` s to finish (the SDK's server stopped
+        first closes them), then cut the rest and end the thread."""
         try:
-            self.loop.call_soon_threadsafe(self.loop.stop)
+            self.loop.call_soon_threadsafe(lambda: self.loop.create_task(self._shutdown(grace)))
         except RuntimeError:  # the loop has ended already
             pass
-        self._thread.join(5)
+        self._thread.join(grace + 5)
+
+    async def _shutdown(self, grace: float) -> None:
+        self._server.close()
+        if self._connections:
+            _, left = await asyncio.wait(set(self._connections), timeout=grace)
+            for task in left:
+                task.cancel()
+            await asyncio.gather(*left, return_exceptions=True)
+        self.loop.stop()
 
     def _run(self) -> None:
         asyncio.set_event_loop(self.loop)
-        server = self.loop.run_until_complete(asyncio.start_server(self._serve, sock=self.sock, limit=HEAD_LIMIT))
+        self._server = self.loop.run_until_complete(asyncio.start_server(self._serve, sock=self.sock,
+                                                                         limit=HEAD_LIMIT))
         self._started.set()
         try:
             self.loop.run_forever()
         finally:
-            server.close()
-            tasks = asyncio.all_tasks(self.loop)
-            for task in tasks:
-                task.cancel()
-            self.loop.run_until_complete(asyncio.gather(*tasks, return_exceptions=True))
+            self._server.close()
             self.loop.close()
 
     async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        task = asyncio.current_task()
+        assert task is not None
+        self._connections.add(task)
+        try:
+            await self._relay(reader, writer)
+        except asyncio.CancelledError:  # the relay stops: end quietly (asyncio would log a cancelled task)
+            pass
+        finally:
+            self._connections.discard(task)
+
+    async def _relay(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         client = writer.get_extra_info("peername")
         upstream: asyncio.StreamWriter | None = None
         try:
@@ -224,10 +245,12 @@ class Relay:
 
 
 def _stamp(seconds: float) -> tuple[int, Any]:
-    """A time in seconds since the epoch as nanoseconds (a log time) and a Foxglove Timestamp."""
+    """A time in seconds since the epoch as nanoseconds (a log time) and a Foxglove Timestamp; the
+    nanoseconds of the shortest decimal that is the float (a stamp ...0.25 is ...250_000_000 ns, not
+    `seconds * 1e9`, which is 256 ns coarse today), as the bags and the ROS 2 plugin stamp."""
     from foxglove.messages import Timestamp
 
-    ns = max(0, round(seconds * 1e9))
+    ns = max(0, int((Decimal(repr(seconds)) * 1_000_000_000).to_integral_value()))
     return ns, Timestamp(sec=ns // 1_000_000_000, nsec=ns % 1_000_000_000)
 
 
@@ -269,8 +292,8 @@ class FoxglovePlugin(Plugin[FoxgloveSettings]):
         self.wake_every(s.refresh)
 
     def teardown(self) -> None:
+        self.server.stop()  # it closes its clients' connections; the relay passes that on, then stops
         self.relay.stop()
-        self.server.stop()
 
     def execute(self) -> None:
         changed = bool(self.poses.added or self.poses.changed or self.poses.removed or self.netinfo.added

@@ -20,6 +20,7 @@ import sys
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
+from decimal import Decimal
 from pathlib import Path
 from typing import Any
 
@@ -188,6 +189,13 @@ def foxglove_client(port: int, offer: tuple[str, ...] = (SDK, OLD)) -> Iterator[
         yield Client(ws)
 
 
+def ns(seconds: float) -> int:
+    """The exact nanoseconds of a time the tests give in quarters of a second (exact in a float)."""
+    exact = Decimal(seconds) * 1_000_000_000
+    assert exact == exact.to_integral_value(), seconds
+    return int(exact)
+
+
 def timestamp_ns(t: dict[str, Any]) -> int:
     return t.get("seconds", 0) * 1_000_000_000 + t.get("nanos", 0)
 
@@ -218,8 +226,8 @@ def control():
 
 def test_foxglove_client_sees_robots_headings_trails_and_links(control):
     agent, plugin = control
-    r1 = Pose(robot="robot1", x=1.0, y=2.0, theta=math.pi / 2, battery=12.6)
-    r2 = Pose(robot="robot2", x=4.0, y=2.0, theta=0.0, battery=10.9)  # low: drawn pink
+    r1 = Pose(robot="robot1", x=1.0, y=2.0, theta=math.pi / 2, battery=12.6, stamp=1_750_000_001.25)
+    r2 = Pose(robot="robot2", x=4.0, y=2.0, theta=0.0, battery=10.9, stamp=1_750_000_000.5)  # low: drawn pink
     with agent.transaction() as tx:
         tx.add(r1)
         tx.add(r2)
@@ -255,14 +263,14 @@ def test_foxglove_client_sees_robots_headings_trails_and_links(control):
         client.pump(0.3)
         log_time, pose = client.latest["/robot1/pose"]
         # stamped with the Pose's own time (evolve keeps r1's), as the log time and in the message
-        assert pose["frame_id"] == "map" and log_time == round(r1.stamp * 1e9)
+        assert pose["frame_id"] == "map" and log_time == ns(r1.stamp)
         assert timestamp_ns(pose["timestamp"]) == log_time
 
         tf_time, tf = client.latest["/tf"]
         frames = {t["child_frame_id"]: t for t in tf["transforms"]}
         assert set(frames) == {"robot1/base_link", "robot2/base_link"}
-        assert tf_time == round(max(r1.stamp, r2.stamp) * 1e9)  # the team's message: its newest Pose
-        assert timestamp_ns(frames["robot2/base_link"]["timestamp"]) == round(r2.stamp * 1e9)
+        assert tf_time == ns(max(r1.stamp, r2.stamp))  # the team's message: its newest Pose
+        assert timestamp_ns(frames["robot2/base_link"]["timestamp"]) == ns(r2.stamp)
         assert frames["robot1/base_link"]["parent_frame_id"] == "map"
         assert xy(frames["robot1/base_link"]["translation"]) == (1.6, 2.0)
         assert heading(frames["robot1/base_link"]["rotation"]) == pytest.approx(math.radians(30))
@@ -406,9 +414,9 @@ def test_replay_serves_a_log_to_foxglove(tmp_path: Path) -> None:
 
     log = tmp_path / "run.jsonl"
     started = 1_700_000_000.0  # November 2023: far from the time the test runs
-    poses = [Pose(robot="robot1", x=0.5 * i, y=1.0, theta=0.25 * i, stamp=started + 0.4 * i + 0.123456789)
+    poses = [Pose(robot="robot1", x=0.5 * i, y=1.0, theta=0.25 * i, stamp=started + 0.25 * (i + 1))
              for i in range(4)]
-    recorded = {(p.x, p.y): round(p.stamp * 1e9) for p in poses}
+    recorded = {(p.x, p.y): ns(p.stamp) for p in poses}
     lines = [{"erni_record": 1, "via": "x", "started": started}]
     lines += [{"t": 0.4 * i, "agent": "control", "op": "add" if i == 0 else "change", "type": "Pose",
                "data": p.model_dump(mode="json")} for i, p in enumerate(poses)]
