@@ -363,6 +363,22 @@ def test_a_client_offering_neither_name_is_refused(control, offer):
         wait_until(lambda: client.pump(0.1) or bool(client.server_info), timeout=10)
 
 
+def test_a_connected_client_sees_a_clean_close_when_the_agent_stops():
+    """The SDK's server closes its clients; the relay passes the closing handshake on and ends."""
+    from websockets.exceptions import ConnectionClosedOK
+
+    agent = Agent("control", workers=2)
+    plugin = agent.add_plugin(PLUGIN, settings={"listen": "127.0.0.1:0"}, name="foxglove")
+    agent.start()
+    with foxglove_client(plugin.port, (OLD,)) as client:  # type: ignore[attr-defined]
+        wait_until(lambda: client.pump(0.1) or bool(client.server_info), timeout=10)
+        agent.stop()
+        with pytest.raises(ConnectionClosedOK):
+            while True:
+                client.ws.recv(timeout=5)
+    assert not plugin.relay._thread.is_alive()  # type: ignore[attr-defined]
+
+
 def test_updates_are_rate_limited():
     """On the agent's clock (a ManualClock moved 10 ms after each change has been taken): 100 changes in
     a second make 20 updates a second at most."""
