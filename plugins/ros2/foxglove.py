@@ -30,6 +30,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
+import os
 import socket
 import threading
 from collections import deque
@@ -141,15 +142,19 @@ class Relay:
             family = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)[0][0]
             self.sock = socket.create_server((host, port), family=family)
         except OSError as err:
-            raise ErniError(f"foxglove: cannot listen on {host}:{port}: {err.strerror or err}") from None
+            why = os.strerror(err.errno) if err.errno else str(err)
+            raise ErniError(f"foxglove: cannot listen on {host}:{port}: {why}") from None
         self.port: int = self.sock.getsockname()[1]
         self.upstream, self.log = upstream, log
         self.loop = asyncio.new_event_loop()
         self._connections: set[asyncio.Task[None]] = set()
         self._started = threading.Event()
+        self._failed: BaseException | None = None
         self._thread = threading.Thread(target=self._run, name=f"erni-{name}-relay", daemon=True)
         self._thread.start()
-        self._started.wait(10)
+        self._started.wait()
+        if self._failed is not None:
+            raise ErniError(f"foxglove: cannot serve on {host}:{port}: {self._failed}")
 
     def stop(self, grace: float = STOP_GRACE) -> None:
         """Close the listener, give open connections `grace` s to finish (the SDK's server stopped
@@ -171,9 +176,16 @@ class Relay:
 
     def _run(self) -> None:
         asyncio.set_event_loop(self.loop)
-        self._server = self.loop.run_until_complete(asyncio.start_server(self._serve, sock=self.sock,
-                                                                         limit=HEAD_LIMIT))
-        self._started.set()
+        try:
+            self._server = self.loop.run_until_complete(asyncio.start_server(self._serve, sock=self.sock,
+                                                                             limit=HEAD_LIMIT))
+        except Exception as err:  # told to the thread that started the relay
+            self._failed = err
+            self.sock.close()
+            self.loop.close()
+            return
+        finally:
+            self._started.set()
         try:
             self.loop.run_forever()
         finally:
@@ -292,8 +304,9 @@ class FoxglovePlugin(Plugin[FoxgloveSettings]):
         self.wake_every(s.refresh)
 
     def teardown(self) -> None:
-        self.server.stop()  # it closes its clients' connections; the relay passes that on, then stops
-        self.relay.stop()
+        if hasattr(self, "relay"):  # else setup failed, and stopped the SDK's server
+            self.server.stop()  # it closes its clients' connections; the relay passes that on, then stops
+            self.relay.stop()
 
     def execute(self) -> None:
         changed = bool(self.poses.added or self.poses.changed or self.poses.removed or self.netinfo.added

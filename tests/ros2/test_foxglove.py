@@ -363,6 +363,25 @@ def test_a_client_offering_neither_name_is_refused(control, offer):
         wait_until(lambda: client.pump(0.1) or bool(client.server_info), timeout=10)
 
 
+def test_a_port_in_use_is_one_clear_error(caplog):
+    """The plugin cannot listen: its setup fails with the address and the reason, and stops the SDK's
+    server it had started; the agent goes on without it."""
+    import socket
+
+    with socket.create_server(("127.0.0.1", 0)) as busy:
+        port = busy.getsockname()[1]
+        agent = Agent("control", workers=2)
+        plugin = agent.add_plugin(PLUGIN, settings={"listen": f"127.0.0.1:{port}"}, name="foxglove")
+        agent.start()
+        try:
+            errors = [r.exc_info[1] for r in caplog.records if r.exc_info and r.exc_info[1]]
+            assert [str(e) for e in errors] == [f"foxglove: cannot listen on 127.0.0.1:{port}: Address already in use"]
+            assert not hasattr(plugin, "port")
+        finally:
+            agent.stop()
+    assert not [r for r in caplog.records if "teardown" in r.getMessage()]
+
+
 def test_a_connected_client_sees_a_clean_close_when_the_agent_stops():
     """The SDK's server closes its clients; the relay passes the closing handshake on and ends."""
     from websockets.exceptions import ConnectionClosedOK
