@@ -442,9 +442,11 @@ def test_updates_are_rate_limited():
     assert sent >= 15 * took, (sent, took)  # the changes kept coming: about 20 updates a second went
 
 
-def test_replay_serves_a_log_to_foxglove(tmp_path: Path) -> None:
-    """`erni replay LOG --foxglove HOST:PORT`: a recorded run, seen live in Foxglove at its recorded
-    times: each message's log time and timestamps are the stamps of the Poses it draws."""
+@pytest.mark.parametrize("form", ["jsonl", "mcap"])
+def test_replay_serves_a_log_to_foxglove(tmp_path: Path, form: str) -> None:
+    """`erni replay LOG --foxglove HOST:PORT`: a recorded run (ERNI's log, or the rosbag2 bag
+    `erni record --convert` makes of it), seen live in Foxglove at its recorded times: each message's
+    log time and timestamps are the stamps of the Poses it draws."""
     from tests.transport.helpers import free_port
 
     log = tmp_path / "run.jsonl"
@@ -460,6 +462,13 @@ def test_replay_serves_a_log_to_foxglove(tmp_path: Path) -> None:
                   "data": Peer(name="robot1", up=True).model_dump(mode="json")})
     log.write_text("\n".join(json.dumps(line) for line in lines) + "\n")
     root = Path(__file__).resolve().parents[2]
+    if form == "mcap":  # the poses' stamps become the odometry's header stamps, and back
+        pytest.importorskip("rosbags")
+        bag = tmp_path / "run.mcap"
+        out = subprocess.run([sys.executable, "-m", "erni", "record", "--convert", str(log), str(bag)], cwd=root,
+                             capture_output=True, text=True, timeout=60)
+        assert out.returncode == 0, out.stderr
+        log = bag
     proc = subprocess.Popen([sys.executable, "-m", "erni", "replay", str(log), "--no-gui", "--insecure", "--loop",
                              "--listen", f"127.0.0.1:{free_port()}", "--foxglove", "127.0.0.1:0"],
                             cwd=root, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
