@@ -132,9 +132,11 @@ def ros2_lines(team: Any) -> list[str]:
     where = f"listening on {', '.join(listen)}" if listen else f"a client of {', '.join(settings['connect'])}"
     lines = [f"ROS 2 (domain {settings.get('domain_id', 0)}): {topics}, /tf, /ROBOT/cmd_vel, /ROBOT/goal_pose, "
              f"/erni/stop from the control node's Zenoh session, {where}"]
-    if RMW_ZENOHD in settings.get("connect", []):
-        lines.append(f"  it joins rmw_zenohd at {RMW_ZENOHD} whenever one runs (ros2 run rmw_zenoh_cpp rmw_zenohd): "
-                     "rviz2, Foxglove's bridge and ros2 topic list see the team with RMW_IMPLEMENTATION=rmw_zenoh_cpp")
+    connect = settings.get("connect", [])
+    if listen and connect:
+        lines.append(f"  it joins the router at {', '.join(connect)} whenever one runs there" + (
+            " (ros2 run rmw_zenoh_cpp rmw_zenohd): rviz2, Foxglove's bridge and ros2 topic list see the team with "
+            "RMW_IMPLEMENTATION=rmw_zenoh_cpp" if RMW_ZENOHD in connect else ""))
     if listen:
         endpoints = ",".join(f'"{e}"' for e in listen)
         lines.append(f"  a Zenoh client or router of another port connects with "

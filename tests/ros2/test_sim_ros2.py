@@ -63,23 +63,21 @@ def sim(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Any]:
 
 @pytest.fixture
 def sdk(definitions: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Any]:
-    """`connect(override)`: the SDK's shared session, configured by ZENOH_CONFIG_OVERRIDE = `override` (the
-    router address the SDK is given is replaced by it), its registry reading `definitions` offline."""
+    """`connect(port, override)`: the SDK's shared session, connected to the router on 127.0.0.1:`port`, or
+    configured by ZENOH_CONFIG_OVERRIDE = `override` (which replaces that address); its registry reads
+    `definitions` offline."""
     monkeypatch.setenv("ZENOH_ROS2_SDK_CACHE", str(definitions / "no-cache"))
     message_registry._registry = None
     message_registry.get_registry(str(definitions))
     ZenohSession._instance = None
-    sessions: list[Any] = []
 
-    def connect(override: str) -> Any:
+    def connect(port: int, override: str = "") -> Any:
         monkeypatch.setenv("ZENOH_CONFIG_OVERRIDE", override)
-        session = ZenohSession.get_instance("127.0.0.1", 1)  # port 1: only the override can reach the team
-        sessions.append(session)
-        return session
+        return ZenohSession.get_instance("127.0.0.1", port)
 
     yield connect
-    for session in sessions:
-        session.close()
+    if ZenohSession._instance is not None:
+        ZenohSession._instance.close()
     ZenohSession._instance = None
     message_registry._registry = None
 
@@ -117,9 +115,10 @@ def test_erni_sim_ros2_shows_every_robot_to_a_ros2_client_and_takes_cmd_vel(sim:
     hint = p.wait_for("ZENOH_CONFIG_OVERRIDE=", timeout=1)
     override = hint.split("ZENOH_CONFIG_OVERRIDE=", 1)[1].strip().strip("'")
     assert override == f'connect/endpoints=["{endpoint.group(1)}"]', hint
-    assert "rmw_zenohd at tcp/127.0.0.1:7447" in p.wait_for("joins rmw_zenohd", timeout=1)
+    assert "joins the router at tcp/127.0.0.1:7447 whenever one runs there (ros2 run rmw_zenoh_cpp rmw_zenohd)" \
+        in p.wait_for("joins the router", timeout=1)
 
-    sdk(override)
+    sdk(1, override)  # port 1: only the override reaches the team
     odom: dict[str, list[Any]] = {"robot1": [], "robot2": []}
     subs = [ROS2Subscriber(f"/{name}/odom", messages.ODOMETRY, got.append, domain_id=domain)
             for name, got in odom.items()]
@@ -182,6 +181,37 @@ def test_erni_sim_ros2_shows_every_robot_to_a_ros2_client_and_takes_cmd_vel(sim:
     p.proc.send_signal(signal.SIGINT)
     assert p.proc.wait(30) == 0
     assert processes_mentioning(str(p.run_dir)) == []
+
+
+def test_a_router_started_after_the_team_carries_its_topics(sim: Any, sdk: Any, tmp_path: Path) -> None:
+    """As rmw_zenohd started after `erni sim`: the control node's session joins the router once it runs, and
+    a ROS 2 client of that router (as rviz2 is of rmw_zenohd) gets the odometry. The scenario's [ros2]
+    table names the router (here on a free port, rmw_zenohd's 7447 being this machine's to use)."""
+    from erni.sim.team import free_port
+    from erni.transport.zenoh_wire import open_router
+
+    domain = int(os.environ["ROS_DOMAIN_ID"])
+    port = free_port()
+    scenario = tmp_path / "ros2.toml"
+    scenario.write_text(f'name = "ros2"\n[robots]\ncount = 1\n[ros2]\nconnect = ["tcp/127.0.0.1:{port}"]\n')
+    p = sim(str(scenario), "--control-port", "0")  # no --ros2: the scenario's table turns it on
+    p.wait_for("Ctrl-C stops the team", timeout=120)
+    assert f"joins the router at tcp/127.0.0.1:{port} whenever one runs there" in p.wait_for("joins the", timeout=1)
+    time.sleep(1.0)  # the team runs a while without a router
+    router = open_router([f"tcp/127.0.0.1:{port}"])
+    try:
+        sdk(port)
+        got: list[Any] = []
+        sub = ROS2Subscriber("/robot1/odom", messages.ODOMETRY, got.append, domain_id=domain)
+        try:
+            joined = time.monotonic()
+            wait_until(lambda: got, timeout=20, message="no odometry through the router started after the team")
+            print(f"odometry through the router {time.monotonic() - joined:.2f} s after it started")
+            assert abs(got[-1].pose.pose.position.x) < 0.05 and abs(got[-1].pose.pose.position.y) < 0.05
+        finally:
+            sub.close()
+    finally:
+        router.close()
 
 
 def test_a_scenario_key_turns_it_on_and_its_table_sets_the_plugin(tmp_path: Path) -> None:
