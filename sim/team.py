@@ -178,8 +178,11 @@ class Team:
             else free_port(CONTROL_HOST)
         self.names = scenario.robot_names()
         self.mobinet = _mobinet_source(mobinet, netns)
-        # the control node's ros2 plugin (`ros2`, else the scenario's `ros2` key): its settings, None without
-        asked = scenario.ros2_settings() if ros2 is None else (scenario.ros2_settings() or {}) if ros2 else None
+        # the control node's ros2 plugin, when `ros2` (None: the scenario's `ros2` key) asks for it: the
+        # scenario's settings of it over the simulator's (`ros2_settings`); None without the plugin
+        asked = scenario.ros2_settings()
+        if ros2 is not None:
+            asked = (asked or {}) if ros2 else None
         if asked is not None and netns:
             raise TeamError("--ros2 runs on the loopback team only, not with --netns (the control node's "
                             "namespace is not reachable from this host's ROS 2 tools)")

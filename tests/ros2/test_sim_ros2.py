@@ -218,7 +218,7 @@ def test_a_scenario_key_turns_it_on_and_its_table_sets_the_plugin(tmp_path: Path
     """`ros2 = true` or a `[ros2]` table: the control node's config runs the ros2 plugin with the sim's
     session settings under the scenario's, and `erni agent --check` takes it."""
     from erni.sim.scenario import load_scenario
-    from erni.sim.team import Team
+    from erni.sim.team import Team, TeamError
     from erni.transport.identity import Authority
 
     on = tmp_path / "on.toml"
@@ -231,6 +231,8 @@ def test_a_scenario_key_turns_it_on_and_its_table_sets_the_plugin(tmp_path: Path
     assert Team(load_scenario(off), run_dir=tmp_path / "off", headless=True).ros2 is None
     assert Team(load_scenario(off), run_dir=tmp_path / "off", headless=True, ros2=True).ros2 is not None
     assert Team(load_scenario(on), run_dir=tmp_path / "on-off", headless=True, ros2=False).ros2 is None
+    with pytest.raises(TeamError, match=r"^--ros2 runs on the loopback team only, not with --netns"):
+        Team(load_scenario(on), run_dir=tmp_path / "netns", headless=True, netns=True)
 
     team = Team(load_scenario(on), run_dir=tmp_path / "on", headless=True)
     assert team.ros2 is not None
