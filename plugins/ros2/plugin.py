@@ -59,7 +59,9 @@ class ROS2Settings(Model):
                                               "<robot>/base_link, odometry in <robot>/odom (REP 105; frame → "
                                               "<robot>/odom is the identity, published with each pose); flat: "
                                               "frame → <robot>/base_link, odometry in frame")
-    odom_rate_hz: float = Field(10.0, gt=0, le=100, description="at most this many Odometry messages a second per robot")
+    odom_rate_hz: float = Field(10.0, gt=0, le=100, description="at most this many Odometry messages a second per "
+                                "robot on average (two may come in a row); a robot whose Pose comes no faster "
+                                "has each sent at once")
     tf: bool = Field(True, description="publish each robot's transform on /tf")
     sonar: bool = Field(True, description="publish each robot's sonar echoes as a LaserScan on /<robot>/sonar")
     status: bool = Field(True, description="publish task results on /erni/task_status")
@@ -114,6 +116,42 @@ def ros_name(name: str) -> str:
     return out if out and not out[0].isdigit() else f"r{out}"
 
 
+class RateBudget:
+    """At most `rate` events a second per key on average, without delaying a source that keeps to it.
+
+    A token bucket of 2 tokens filled at `rate`: a source at `rate` with jitter almost always finds a
+    token, and any window of T s lets at most rate * T + 2 through. An event that finds none is held,
+    not sent the moment a token comes: a newer event that finds a token goes at once in its place, and
+    the held one goes only when none came within one and a half periods after its token (so a source's
+    last event is never lost, and an on-time successor with jitter comes first). Sending each held
+    event at its token instead would spend the token of the next on-time event and keep every later
+    one late by that lag for as long as the source keeps to the rate (a source at `rate` loads the
+    bucket fully). Pure: time is passed in."""
+
+    BURST = 2.0
+
+    def __init__(self, rate: float) -> None:
+        self.rate, self.grace = rate, 1.5 / rate
+        self._tokens: dict[str, tuple[float, float]] = {}  # key -> (tokens, when counted)
+        self._held: dict[str, float] = {}  # key -> when its held event goes, newer or not
+
+    def offer(self, key: str, now: float, fresh: bool) -> float:
+        """An event of `key` waiting at `now` (`fresh`: it has just come): 0 when it goes now (and is
+        counted), else the seconds after which to offer it (or a newer one) again."""
+        tokens, then = self._tokens.get(key, (self.BURST, now))
+        tokens = min(self.BURST, tokens + max(0.0, now - then) * self.rate)
+        held = self._held.get(key)
+        if tokens >= 1.0 and (fresh or held is None or now >= held):
+            self._tokens[key] = (tokens - 1.0, now)
+            self._held.pop(key, None)
+            return 0.0
+        self._tokens[key] = (tokens, now)
+        short = max(0.0, (1.0 - tokens) / self.rate)
+        if held is None:
+            held = self._held[key] = now + short + self.grace
+        return max(held - now, short, 1e-3)
+
+
 @dataclass
 class _Drive:
     """What the plugin knows of one robot's cmd_vel stream."""
@@ -161,7 +199,7 @@ class ROS2Plugin(Plugin[ROS2Settings]):
                                    frame=s.frame, feedback_hz=s.odom_rate_hz, log=self.log)
         self._run = 0
         self._lock = threading.Lock()
-        self._last_odom: dict[str, float] = {}
+        self._odom_budget = RateBudget(s.odom_rate_hz)
         self._pending_odom: dict[str, Pose] = {}
         self._robots_fixed = s.robots
         self._declared: set[str] = set()
@@ -381,22 +419,23 @@ class ROS2Plugin(Plugin[ROS2Settings]):
         self.remove(task)
 
     def _publish_poses(self, robots: set[str]) -> None:
-        """Odometry (and /tf) of the robots' new poses, at most odom_rate_hz per robot; a pose held back by
-        the rate goes out when its robot's slot comes (the newest one: a robot's last state is never lost)."""
+        """Odometry (and /tf) of the robots' new poses, at most odom_rate_hz per robot (`RateBudget`): a pose
+        held back by the rate is replaced by a newer one, or goes out itself when none came (a robot's last
+        state is never lost)."""
+        fresh = set()
         for pose in [*self.poses.added, *self.poses.changed]:
             if pose.robot in robots:
                 self._pending_odom[pose.robot] = pose
+                fresh.add(pose.robot)
         if self.node is None or not self._pending_odom:
             return
         now = self.clock()
-        period = 1.0 / self.settings.odom_rate_hz
         due = []
         for robot, pose in list(self._pending_odom.items()):
-            wait = self._last_odom.get(robot, -math.inf) + period - now
+            wait = self._odom_budget.offer(robot, now, robot in fresh)
             if wait <= 0:
                 due.append(pose)
                 del self._pending_odom[robot]
-                self._last_odom[robot] = now
             else:
                 self.wake_in(wait)
         if not due:

@@ -465,6 +465,64 @@ def test_a_client_whose_router_comes_later_declares_its_topics_once_it_does(
             late.close()
 
 
+def _replay(budget: plugin_module.RateBudget, arrivals: list[float]) -> list[tuple[float, float | None]]:
+    """Each event's (arrival, when it was sent, None if a newer one replaced it), the plugin's way: a fresh
+    offer at each arrival, a held one offered again when the budget said (the plugin's wake_in)."""
+    sent: dict[int, float] = {}
+    held: tuple[int, float] | None = None  # (event, when to offer it again)
+    for i, t in enumerate([*arrivals, math.inf]):
+        while held is not None and held[1] <= t:
+            j, at = held
+            wait = budget.offer("r", at, fresh=False)
+            held = (j, at + wait) if wait > 0 else None
+            if held is None:
+                sent[j] = at
+        if i == len(arrivals):
+            break
+        held = None  # a newer one replaces it
+        wait = budget.offer("r", t, fresh=True)
+        if wait <= 0:
+            sent[i] = t
+        else:
+            held = (i, t + wait)
+    return [(t, sent.get(i)) for i, t in enumerate(arrivals)]
+
+
+def test_the_odom_rate_holds_back_no_pose_of_a_robot_that_keeps_to_it() -> None:
+    """A robot whose Pose comes at odom_rate_hz (with jitter, after a burst of three): each Odometry goes as
+    its Pose comes; a pose that finds no token is replaced by the next, never sent late (a strict interval,
+    or a held pose sent at its slot, kept every later pose late by the same lag)."""
+    import random
+
+    rng = random.Random(56)
+    arrivals = [0.0, 0.005, 0.01, *(0.1 * k + rng.uniform(-0.01, 0.01) for k in range(1, 600))]
+    events = _replay(plugin_module.RateBudget(10.0), arrivals)
+    assert not [(t, sent) for t, sent in events if sent is not None and sent != t]
+    assert events[2][1] is None  # the burst's third, replaced
+    assert sum(sent == t for t, sent in events) >= 0.97 * len(events)
+    # a source slower than the rate is never held at all
+    slow = _replay(plugin_module.RateBudget(10.0), [0.12 * k for k in range(300)])
+    assert all(sent == t for t, sent in slow)
+
+
+def test_the_odom_rate_thins_a_faster_robot_to_fresh_poses() -> None:
+    """A robot at 25 Hz, odom_rate_hz 10: 10 a second on average, at most rate * T + 2 in any window of T s,
+    each sent the moment its Pose came; a pose held with none after it (the robot stands) still goes."""
+    arrivals = [0.04 * k for k in range(250)]  # 10 s
+    events = _replay(plugin_module.RateBudget(10.0), arrivals)
+    sent = [s for _, s in events if s is not None]
+    assert 99 <= len(sent) <= 102
+    assert all(s == t for t, s in events[:-1] if s is not None)
+    assert events[-1][1] is not None  # the last pose is not lost
+    assert all(sum(1 for u in sent if a <= u < a + 1.0) <= 12 for a in sent)
+    budget = plugin_module.RateBudget(10.0)
+    assert budget.offer("r", 0.0, fresh=True) == 0 and budget.offer("r", 0.001, fresh=True) == 0
+    wait = budget.offer("r", 0.002, fresh=True)  # a third at once: held, and the robot then stands still
+    assert 0 < wait <= 0.25
+    assert budget.offer("r", 0.002 + wait / 2, fresh=False) > 0  # not before its time
+    assert budget.offer("r", 0.002 + wait, fresh=False) == 0  # then it goes, without a newer pose
+
+
 def test_goal_heading_of_a_pose_stamped() -> None:
     goal = messages.make(messages.POSE_STAMPED)  # a zero quaternion: no heading asked
     assert messages.goal_heading(goal) is None
