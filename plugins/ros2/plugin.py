@@ -26,7 +26,7 @@ from pydantic import ConfigDict, Field, field_validator, model_validator
 
 from erni import ros2_messages as messages
 from erni.blackboard.errors import NetworkError
-from erni.blackboard.objects import Model
+from erni.blackboard.objects import BBObject, Model
 from erni.blackboard.plugin import Plugin
 from erni.blackboard.tasks import NetInfo, Pose, Task, TaskState
 from erni.plugins.ros2.navigate import CANCELED, Navigator
@@ -194,7 +194,9 @@ class ROS2Plugin(Plugin[ROS2Settings]):
         self._calls: list[tuple[str, str | None, Request]] = []  # service calls from Zenoh's threads
         self._stops: list[_Stop] = []
         self._ending: dict[str, tuple[TaskState, str]] = {}  # uid -> the end of a task this plugin removes
-        self.navigator = Navigator(get=self.get, remove=self.remove, send=self._send, wake_in=self.wake_in,
+        self.navigator = Navigator(get=self.get, send=self._send, wake_in=self.wake_in,
+                                   remove=lambda task: self._end(task, TaskState.CANCELLED,
+                                                                 "cancelled through NavigateToPose's cancel_goal"),
                                    topic=lambda robot: f"/{ros_name(robot)}/navigate_to_pose/_action",
                                    frame=s.frame, feedback_hz=s.odom_rate_hz, log=self.log)
         self._run = 0
@@ -413,7 +415,7 @@ class ROS2Plugin(Plugin[ROS2Settings]):
         self._send(messages.STRING, "/erni/task_status", messages.task_status(ended),
                    messages.stamp_ns_of(ended.result.stamp))
 
-    def _end(self, task: Task, state: TaskState, message: str) -> None:
+    def _end(self, task: BBObject, state: TaskState, message: str) -> None:
         """Remove a task this plugin posted, with the status /erni/task_status gives it once it is gone."""
         self._ending[task.uid] = (state, message)
         self.remove(task)
