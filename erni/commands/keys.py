@@ -40,7 +40,7 @@ def register(sub: Any) -> None:
     a.add_argument("dir")
     a.add_argument("name")
     a.add_argument("--role", default="robot", help="the agent's role, which says what it may do (see above): "
-                   "robot, control or cli; another word is a role with no rights but its own status "
+                   "robot, control, cli or observer (may only watch); another word is a role with no rights but its own status "
                    "(default robot)")
     a.add_argument("--out", help="where to write the bundle (default DIR/NAME.pem)")
     a = actions.add_parser("revoke", help="revoke every identity issued to NAME (or one serial, in hex)")

@@ -364,8 +364,20 @@ def test_erni_router_prints_the_access_control_of_the_teams_certificates(tmp_pat
     assert main(["router", "--acl", str(tmp_path / "keys"), "--team", "lab", "--print-acl"]) == 0
     acl = json.loads(capsys.readouterr().out)["access_control"]
     names = {s["id"]: s["cert_common_names"] for s in acl["subjects"]}
-    assert names == {"control": ["control"], "robot1": ["robot1"], "routers": ["site-b"]}
+    # the control node's certificate also carries ROS 2 (its ros2 plugin); a robot's none of it
+    assert names == {"control": ["control"], "robot1": ["robot1"], "routers": ["site-b"], "ROS 2 node": ["control"]}
     assert acl["default_permission"] == "deny"
+    ros = [r for r in acl["rules"] if r["id"].startswith("ROS 2")]
+    assert ros and all(k.startswith(("0/", "@ros2_lv/0/")) for r in ros for k in r["key_exprs"])
+    assert main(["router", "--acl", str(tmp_path / "keys"), "--team", "lab", "--print-acl", "--ros2-domain", "7"]) == 0
+    acl = json.loads(capsys.readouterr().out)["access_control"]
+    assert {k for r in acl["rules"] if r["id"].startswith("ROS 2") for k in r["key_exprs"]} == {"7/**", "@ros2_lv/7/**"}
+    assert main(["router", "--acl", str(tmp_path / "keys"), "--team", "lab", "--print-acl", "--no-ros2"]) == 0
+    acl = json.loads(capsys.readouterr().out)["access_control"]
+    assert not [r for r in acl["rules"] if r["id"].startswith("ROS 2")]
+    assert main(["router", "--acl", str(tmp_path / "keys"), "--team", "lab", "--print-acl", "--ros2-domain", "300"]) == 2
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1 and "--ros2-domain" in err
     assert main(["router", "--acl", str(tmp_path / "keys"), "--team", "lab"]) == 2
     err = capsys.readouterr().err
     assert len(err.splitlines()) == 1 and "--identity" in err
