@@ -19,7 +19,8 @@ import pytest
 pytest.importorskip("zenoh")
 pytest.importorskip("zenoh_ros2_sdk")
 
-from zenoh_ros2_sdk import ROS2Subscriber, get_topic_names_and_types, message_registry  # noqa: E402
+from zenoh_ros2_sdk import ROS2ServiceClient, ROS2Subscriber, get_topic_names_and_types, message_registry  # noqa: E402
+from zenoh_ros2_sdk.discovery import get_service_names_and_types  # noqa: E402
 from zenoh_ros2_sdk.session import ZenohSession  # noqa: E402
 
 from erni import ros2_messages as messages  # noqa: E402
@@ -152,6 +153,10 @@ def test_a_watcher_sees_the_team_through_the_acl_router_and_only_an_operator_dri
         assert "robot1" not in plugin._drives, "the watcher's cmd_vel reached the ros2 plugin"
         assert not [t for t in robot.query(Task) if t.preposition == "velocity"]
         assert abs(robot.query(Pose)[0].x - x0) < 0.01
+        # it sees the stop service, but its call is not let through (an operator's is, below)
+        assert "/robot1/stop" in dict(get_service_names_and_types(router_port=port))
+        assert stop_client(port, timeout=2.0).call() is None
+        assert not [t for t in robot.query(Task) if t.preposition == "stop"]
     finally:
         teleop.close()
         sub.close()
@@ -166,7 +171,36 @@ def test_a_watcher_sees_the_team_through_the_acl_router_and_only_an_operator_dri
                    "not move robot1")
         tasks = [t for t in robot.query(Task) if t.preposition == "velocity"]
         assert tasks and tasks[0].source == "control"
-        teleop.running.clear()
-        wait_until(lambda: abs(robot.query(Pose)[0].v) < 0.01, timeout=5, message="robot1 kept going")
+        response = stop_client(port).call()  # the operator's stop, while its teleop goes on
+        assert response is not None and response.success is True and response.message == "halted: robot1"
+        wait_until(lambda: abs(robot.query(Pose)[0].v) < 0.02, timeout=5, message="robot1 kept going")
     finally:
         teleop.close()
+
+
+def stop_client(port: int, timeout: float = 10.0) -> Any:
+    """The SDK's client of std_srvs/Trigger on /robot1/stop (its definitions given, as rosidl makes them)."""
+    return ROS2ServiceClient("/robot1/stop", messages.TRIGGER, router_port=port, timeout=timeout,
+                             request_definition="uint8 structure_needs_at_least_one_member\n",
+                             response_definition="bool success\nstring message\n")
+
+
+def test_a_client_without_a_team_certificate_gets_no_link(secured: dict[str, Any]) -> None:
+    """A ROS 2 client that trusts the team's authority but shows no certificate of it: the router's
+    mutual TLS refuses the link, so a client session does not even open."""
+    import zenoh
+
+    from erni.transport.zenoh_wire import tls_config
+
+    def config(tls: dict[str, Any]) -> zenoh.Config:
+        conf = zenoh.Config()
+        for key, value in (("mode", "client"), ("connect/endpoints", [secured["endpoint"]]),
+                           ("transport/link/tls", tls)):
+            conf.insert_json5(key, json.dumps(value))
+        return conf
+
+    tls = tls_config(load_identity(secured["paths"]["rviz-viewer"]))
+    zenoh.open(config(tls)).close()  # with its certificate it connects
+    with pytest.raises(zenoh.ZError):
+        zenoh.open(config({"root_ca_certificate_base64": tls["root_ca_certificate_base64"],
+                           "verify_name_on_connect": False})).close()
