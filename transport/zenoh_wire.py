@@ -16,7 +16,9 @@ module replaces is only how bytes move (key expressions in `zenoh_keys.py`):
   endpoint's, unchanged;
 - discovery is Zenoh's liveliness: each agent holds a token `erni/<team>/<name>/alive/<role>/<inst>/<router>`;
   a token that appears is a hint of presence (as a broadcast beacon is: the session decides), one
-  that goes marks its agent gone (`on_gone`) at once instead of after its silence limit; the
+  that goes marks its agent gone (`on_gone`) at once instead of after its silence limit; a hint
+  that leads to no session is forgotten and given again a bounded number of times (`HINT_WAITS`:
+  tokens are unsigned, anyone the router admits may declare one); the
   router in it (declared again when the agent's router changes) says where the agent is reached.
 
 Datagrams wait in a bounded ring channel (the oldest dropped when it is full) for one receive
