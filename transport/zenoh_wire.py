@@ -327,9 +327,21 @@ class ZenohEndpoint(Endpoint):
         for name in forget:
             if not self._in_session(name):  # not reached meanwhile
                 self.count("zenoh.hints_forgotten")
+                self._drop_statuses(name)
                 self._gone(name)
         for name, hint in again:
             self._hint(name, hint.role, hint.router)
+
+    def _drop_statuses(self, name: str) -> None:
+        """Drop the statuses waiting for a session with agent `name` (a forgotten hint): its handshake
+        then stops with nothing left to carry (a reliable message waits out its own deadline)."""
+        with self.queues.cond:
+            dest = self.queues.dests.get(address_of(name))
+            dropped = len(dest.fast) if dest is not None else 0
+            if dest is not None:
+                dest.fast.clear()
+        if dropped:
+            self.count("dropped.no_session", dropped)
 
     def _in_session(self, name: str) -> bool:
         """Whether agent `name` is reached: a confirmed session with it, or its peer up (an agent

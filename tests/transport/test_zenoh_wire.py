@@ -378,6 +378,14 @@ def test_erni_router_prints_the_access_control_of_the_teams_certificates(tmp_pat
     assert main(["router", "--acl", str(tmp_path / "keys"), "--team", "lab", "--print-acl", "--ros2-domain", "300"]) == 2
     err = capsys.readouterr().err
     assert len(err.splitlines()) == 1 and "--ros2-domain" in err
+    # a watcher (observer) and an operator (cli) as ROS 2 clients; a name issued in two roles gets neither
+    for name, role in (("rviz", "observer"), ("operator", "cli"), ("dual", "cli"), ("dual", "robot")):
+        keys.issue(name, role)
+    assert main(["router", "--acl", str(tmp_path / "keys"), "--team", "lab", "--print-acl"]) == 0
+    acl = json.loads(capsys.readouterr().out)["access_control"]
+    names = {s["id"]: s["cert_common_names"] for s in acl["subjects"]}
+    assert names["ROS 2 watchers"] == ["operator", "rviz"] and names["ROS 2 drivers"] == ["operator"]
+    assert "dual" in names and not any("dual" in v for k, v in names.items() if k.startswith("ROS 2"))
     assert main(["router", "--acl", str(tmp_path / "keys"), "--team", "lab"]) == 2
     err = capsys.readouterr().err
     assert len(err.splitlines()) == 1 and "--identity" in err
@@ -538,6 +546,7 @@ def test_a_forged_token_costs_a_bounded_number_of_hints_and_leaves_no_entry(team
         assert "robot9" not in peers_of(control)
         assert shown <= 3, f"robot9 shown {shown} of 40 steps"
         sent = counters.get("handshakes.sent", 0)
+        assert sent <= 4 * 6, f"{sent} handshakes for 4 hints"
         for _ in range(5):  # the hints are spent: nothing more while the token is held
             clock.advance(60.0)
             time.sleep(0.3)
