@@ -36,8 +36,8 @@ def register(sub: Any) -> None:
                    "certificate of the same team authority (mutual TLS)")
     p.add_argument("--acl", metavar="KEYS_DIR", help="access control from the team authority in KEYS_DIR (erni "
                    "keys init): each agent's certificate may put, query and hold a token only as itself, and "
-                   "receives only what is addressed to it; certificates of role router may carry anything "
-                   "(needs --identity, --team and tls/ endpoints)")
+                   "receives only what is addressed to it; certificates of role router may carry anything; "
+                   "ROS 2 traffic is admitted by role (--ros2-domain) (needs --identity, --team and tls/ endpoints)")
     p.add_argument("--ros2-domain", type=int, default=0, metavar="ID",
                    help="with --acl, the ROS 2 domain (ROS_DOMAIN_ID, default 0) whose rmw_zenoh traffic is "
                    "admitted by role: the control node's ros2 plugin publishes and serves; certificates of a "
@@ -128,7 +128,8 @@ def serve(listen: list[str], connect: list[str], scouting: bool, stop: threading
     try:
         say(f"erni router {session.zid()}: listening on {' '.join(listen)}"
               + (f", linked to {' '.join(connect)}" if connect else "")
-              + (f"; access control for {len(access['subjects'])} certificate name(s)" if access else ""),
+              + (f"; access control for {len({n for s in access['subjects'] for n in s['cert_common_names']})} "
+                 "certificate name(s)" if access else ""),
               file=out, flush=True)
         routers: set[str] = set()
         while not stop.wait(1.0):
