@@ -59,7 +59,8 @@ RELAYS: Mapping[str, frozenset[str]] = {
 
 WATCHERS = OPERATORS | {"observer"}
 """Roles that may watch the blackboard (`erni watch`) and list the peers (`erni peers`): the
-operators, and `observer`, which may only watch (a ROS 2 viewer's certificate, say)."""
+operators, and `observer`, which may watch and never task (a ROS 2 viewer's certificate behind
+`erni router --acl`; ERNI's command-line client always runs as `cli`)."""
 
 
 @dataclass(frozen=True)

@@ -18,6 +18,8 @@ ROLES = """\
            Pose and NetInfo
   cli      a command-line client (erni task, watch, peers): tasks any agent, directly or
            through the control node, cancels any task, watches the team; never a peer
+  observer may watch, never task or cancel: a ROS 2 viewer's certificate (its topics through
+           erni router --acl); ERNI's command-line tools take a cli certificate
 A task is cancelled by the agent it came from or by control and cli (the one that gave it
 is told who cancelled it)."""
 
