@@ -23,6 +23,7 @@ Given the certificates' roles, it admits ROS 2 (rmw_zenoh) traffic of one domain
 - a role that may also move a robot (`policy.check_task` of a velocity task): publish `cmd_vel` and
   `goal_pose` and call the services (`stop`, NavigateToPose's), with tokens of publishers and
   service clients (`MP`, `SC`);
+- another site's router (role `router`) carries the domain's traffic as it carries the team's;
 - any other role (`robot`, a role of no rights) nothing of ROS 2; a client without a certificate of
   the team's authority does not get a TLS link at all.
 
@@ -86,10 +87,11 @@ def access_control(team: str, names: list[str], routers: list[str] | None = None
         for name in routers:
             if not NAME.match(name):
                 raise ConfigError(f"router name {name[:80]!r}: expected letters, digits, '_', '.', '-'")
+        carried = [f"{root}/**"]
+        if roles is not None and ros2_domain is not None:  # and ROS 2 between the sites
+            carried += [f"{ros2_domain}/**", f"@ros2_lv/{ros2_domain}/**"]
         rules.append({"id": "routers carry the team", "permission": "allow", "flows": ["ingress", "egress"],
-                      "messages": ["put", "delete", "query", "reply", "declare_subscriber", "declare_queryable",
-                                   "liveliness_token", "declare_liveliness_subscriber", "liveliness_query"],
-                      "key_exprs": [f"{root}/**"]})
+                      "messages": ALL, "key_exprs": carried})
         subjects.append({"id": "routers", "cert_common_names": sorted(set(routers))})
         policies.append({"id": "routers carry the team", "rules": ["routers carry the team"], "subjects": ["routers"]})
     if roles is not None and ros2_domain is not None:

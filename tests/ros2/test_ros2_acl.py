@@ -36,7 +36,7 @@ from tests.transport.helpers import authority, identity, make_agent  # noqa: E40
 
 TEAM = "rosacl"
 CERTS = {"control": "control", "robot1": "robot", "robot2": "robot", "rviz-viewer": "observer",
-         "rviz-operator": "cli", "zrouter": "router"}
+         "rviz-operator": "cli", "zrouter": "router", "site-b": "router"}
 
 
 @pytest.fixture
@@ -51,33 +51,43 @@ def secured(definitions: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[dict
     access = access_control(TEAM, sorted(agents), routers, roles=agents)
     port = free_port()
     endpoint = f"tls/127.0.0.1:{port}"
-    stop, out = threading.Event(), io.StringIO()
-    thread = threading.Thread(target=serve, args=([endpoint], [], False, stop, out),
-                              kwargs={"identity": load_identity(paths["zrouter"]), "access": access, "team": TEAM})
-    thread.start()
-    wait_until(lambda: "listening" in out.getvalue(), timeout=10, message="the router did not start")
+    stop = threading.Event()
+    threads: list[threading.Thread] = []
+
+    def router(listen: str, connect: list[str], name: str) -> None:
+        out = io.StringIO()
+        thread = threading.Thread(target=serve, args=([listen], connect, False, stop, out),
+                                  kwargs={"identity": load_identity(paths[name]), "access": access, "team": TEAM})
+        thread.start()
+        threads.append(thread)
+        wait_until(lambda: "listening" in out.getvalue(), timeout=10, message=f"router {name} did not start")
+
+    router(endpoint, [], "zrouter")
     monkeypatch.setenv("ZENOH_ROS2_SDK_CACHE", str(definitions / "no-cache"))
     monkeypatch.delenv("ROS_DOMAIN_ID", raising=False)
     message_registry._registry = None
     message_registry.get_registry(str(definitions))
     sessions: list[ZenohSession] = []
     yield {"endpoint": endpoint, "port": port, "paths": paths, "access": access, "sessions": sessions,
-           "definitions": definitions}
+           "definitions": definitions, "router": router}
     for session in sessions:
         session.close()
     ZenohSession._instance = None
     message_registry._registry = None
     stop.set()
-    thread.join(10)
+    for thread in threads:
+        thread.join(10)
 
 
-def ros_client(secured: dict[str, Any], monkeypatch: pytest.MonkeyPatch, name: str) -> ZenohSession:
-    """The SDK's shared session, on the TLS router with the certificate of `name` (as rmw_zenoh is
-    given one: ZENOH_CONFIG_OVERRIDE), made the one its publishers and subscribers use from now on."""
+def ros_client(secured: dict[str, Any], monkeypatch: pytest.MonkeyPatch, name: str,
+               endpoint: str | None = None) -> ZenohSession:
+    """The SDK's shared session, on the TLS router (at `endpoint`, by default the first one) with the
+    certificate of `name` (as rmw_zenoh is given one: ZENOH_CONFIG_OVERRIDE), made the one its
+    publishers and subscribers use from now on (whatever router_port they are given)."""
     from erni.transport.zenoh_wire import tls_config
 
     tls = json.dumps(tls_config(load_identity(secured["paths"][name])))
-    monkeypatch.setenv("ZENOH_CONFIG_OVERRIDE", f'mode="client";connect/endpoints=["{secured["endpoint"]}"];'
+    monkeypatch.setenv("ZENOH_CONFIG_OVERRIDE", f'mode="client";connect/endpoints=["{endpoint or secured["endpoint"]}"];'
                        f"transport/link/tls={tls}")
     ZenohSession._instance = None
     message_registry._registry = None  # it remembers which types it gave a session: a new one needs them again
@@ -183,6 +193,41 @@ def stop_client(port: int, timeout: float = 10.0) -> Any:
     return ROS2ServiceClient("/robot1/stop", messages.TRIGGER, router_port=port, timeout=timeout,
                              request_definition="uint8 structure_needs_at_least_one_member\n",
                              response_definition="bool success\nstring message\n")
+
+
+def test_at_another_site_a_watcher_sees_the_team_and_an_operator_drives_it_through_both_routers(
+        secured: dict[str, Any], team: Callable[..., Agent], monkeypatch: pytest.MonkeyPatch) -> None:
+    """Site B's router (a certificate of role router) linked to site A's, both with the access control:
+    ROS 2 clients at site B, the control node and robot1 at site A."""
+    site_b = f"tls/127.0.0.1:{free_port()}"
+    secured["router"](site_b, [secured["endpoint"]], "site-b")
+    control = team("control", lambda a: a.add_plugin(ROS2Plugin, name="ros2"))
+    robot = team("robot1", lambda a: a.add_plugin("motion", settings=fake_robot("robot1"), name="motion"))
+    wait_until(lambda: any(p.name == "robot1" and p.up for p in control.query(Peer)), timeout=15)
+    plugin = control.plugin("ros2")
+    assert isinstance(plugin, ROS2Plugin)
+    wait_until(lambda: plugin.node is not None, timeout=10, message="no ROS 2 node")
+    ros_client(secured, monkeypatch, "rviz-viewer", site_b)
+    wait_until(lambda: dict(get_topic_names_and_types(router_port=0)).get("/robot1/odom"), timeout=10,
+               message="the watcher at site B does not see robot1's odometry topic")
+    got: list[Any] = []
+    sub = ROS2Subscriber("/robot1/odom", messages.ODOMETRY, got.append, router_port=0)
+    try:
+        wait_until(lambda: got, timeout=10, message="the watcher at site B received no odometry")
+    finally:
+        sub.close()
+    ros_client(secured, monkeypatch, "rviz-operator", site_b)
+    x0 = robot.query(Pose)[0].x
+    teleop = Teleop(0)
+    try:
+        teleop.v = 0.25
+        teleop.running.set()
+        wait_until(lambda: robot.query(Pose)[0].x > x0 + 0.2, timeout=15,
+                   message="the operator's cmd_vel at site B did not move robot1")
+        teleop.running.clear()
+        wait_until(lambda: abs(robot.query(Pose)[0].v) < 0.01, timeout=5, message="robot1 kept going")
+    finally:
+        teleop.close()
 
 
 def test_a_client_without_a_team_certificate_gets_no_link(secured: dict[str, Any]) -> None:
