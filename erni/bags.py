@@ -31,10 +31,14 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import shutil
+import struct
+import sys
 import tempfile
+import zlib
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 from pydantic import ValidationError
 
@@ -56,6 +60,7 @@ HEADER_TOPIC = "/erni/record"
 DIAGNOSTICS_TOPIC = "/diagnostics"
 MARKERS_TOPIC = "/erni/network"
 TASK_STATUS_TOPIC = "/erni/task_status"
+SINGLE_ODOM = "/odom"  # a robot's own ROS 2 stack: its odometry without a robot's namespace
 OK, WARN, ERROR, STALE = 0, 1, 2, 3
 _STATUS = "diagnostic_msgs/msg/DiagnosticStatus"
 _KV = "diagnostic_msgs/msg/KeyValue"
@@ -155,35 +160,232 @@ def diagnostics(agent: str, op: str, type_name: str, data: dict[str, Any], when:
     return ros.make(DIAGNOSTICS, header=ros.header(ros.stamp_ns_of(stamp), ""), status=[status])
 
 
-class BagRecorder:
-    """Write events into a rosbag2 MCAP file as they arrive (the interface of erni.replay.Recorder).
+# --- writing: an MCAP file as rosbag2's MCAP storage (Jazzy) writes it -------------------------
 
-    The bag is written in a directory beside `path` and its one MCAP file moved to `path` on close:
-    the file holds rosbag2's metadata itself, so `ros2 bag info`, Foxglove and `rosbags` open it alone.
+ROS_DISTRO = "jazzy"  # the distribution whose message types (and hashes) the bag holds
+COMPRESSIONS = ("none", "zstd", "lz4")
+"""Chunk compressions of `erni record --compression`: none is rosbag2's default MCAP preset (`none`:
+chunks, uncompressed, no chunk CRC); zstd is its `zstd_fast`/`zstd_small` choice; lz4 its other one."""
+CHUNK_SIZE = 768 * 1024  # the MCAP writer's chunk size, which rosbag2's presets (but zstd_small) keep
+_INFINITE = {"sec": 9223372036, "nsec": 854775807}  # RMW_DURATION_INFINITE, rmw_zenoh's default durations
+_DEPTHS = {"/tf": 100}  # the live plugin's publishers: keep last 10, /tf keep last 100 (plugins/ros2)
+_PLAIN = re.compile(r"[A-Za-z_/][A-Za-z0-9_./-]*")
+_YAML_WORDS = {"true", "false", "yes", "no", "on", "off", "null", "y", "n"}
+_U16, _U32, _U64 = struct.Struct("<H"), struct.Struct("<I"), struct.Struct("<Q")
+_MESSAGE_HEAD = struct.Struct("<HIQQ")  # channel, sequence, log time, publish time
+
+
+def offered_qos(topic: str) -> dict[str, Any]:
+    """The QoS profile ERNI's ros2 plugin offers on `topic`, as rosbag2 (format 9) writes a profile:
+    reliable, volatile, keep last 10 (100 on /tf), rmw_zenoh's infinite durations, automatic liveliness."""
+    return {"history": "keep_last", "depth": _DEPTHS.get(topic, 10), "reliability": "reliable",
+            "durability": "volatile", "deadline": dict(_INFINITE), "lifespan": dict(_INFINITE),
+            "liveliness": "automatic", "liveliness_lease_duration": dict(_INFINITE),
+            "avoid_ros_namespace_conventions": False}
+
+
+def _scalar(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int):
+        return str(value)
+    text = str(value)
+    if _PLAIN.fullmatch(text) and text.lower() not in _YAML_WORDS:
+        return text
+    return json.dumps(text)  # a JSON string is a YAML double-quoted scalar
+
+
+def to_yaml(value: Any, indent: int = 0) -> str:
+    """Block YAML of dicts, lists, strings, ints and bools, in yaml-cpp's layout (what rosbag2 writes)."""
+    pad = " " * indent
+    if isinstance(value, dict):
+        if not value:
+            return pad + "{}"
+        lines = []
+        for key, item in value.items():
+            if isinstance(item, (dict, list)) and item:
+                lines.append(f"{pad}{_scalar(key)}:\n{to_yaml(item, indent + 2)}")
+            else:
+                lines.append(f"{pad}{_scalar(key)}: {to_yaml(item).strip()}")
+        return "\n".join(lines)
+    if isinstance(value, list):
+        if not value:
+            return pad + "[]"
+        lines = []
+        for item in value:
+            body = to_yaml(item, indent + 2)
+            lines.append(f"{pad}- {body[indent + 2:]}")
+        return "\n".join(lines)
+    return pad + _scalar(value)
+
+
+def _compressor(name: str) -> Any:
+    if name == "zstd":
+        if sys.version_info >= (3, 14):
+            from compression import zstd  # type: ignore[import-not-found,unused-ignore]
+        else:
+            from backports import zstd  # type: ignore[import-not-found,unused-ignore]
+        return zstd.compress
+    if name == "lz4":
+        from lz4.frame import compress  # type: ignore[import-untyped,unused-ignore]
+
+        return compress
+    return None
+
+
+def _string(text: str) -> bytes:
+    data = text.encode("utf-8")
+    return _U32.pack(len(data)) + data
+
+
+def _map(pairs: dict[str, str]) -> bytes:
+    body = b"".join(_string(k) + _string(v) for k, v in pairs.items())
+    return _U32.pack(len(body)) + body
+
+
+def _record(op: int, body: bytes) -> bytes:
+    return bytes([op]) + _U64.pack(len(body)) + body
+
+
+class McapWriter:
+    """Writes MCAP's records (header, chunks of schemas, channels and messages with their indexes,
+    metadata, and the summary: schemas, channels, statistics, chunk and metadata indexes, offsets)."""
+
+    def __init__(self, f: BinaryIO, library: str, compression: str = "none", chunk_size: int = CHUNK_SIZE):
+        self.f, self.chunk_size = f, chunk_size
+        self.compression = "" if compression == "none" else compression
+        self._compress = _compressor(compression)
+        self.schemas: dict[str, int] = {}
+        self._summary: dict[int, list[bytes]] = {0x03: [], 0x04: [], 0x08: [], 0x0D: []}
+        self._chunk = bytearray()
+        self._index: dict[int, list[tuple[int, int]]] = {}
+        self._span = [2**64 - 1, 0]  # the open chunk's first and last log time
+        self.counts: dict[int, int] = {}
+        self.start, self.end = 2**64 - 1, 0
+        self._chunks = 0
+        f.write(mcap_bounds.MAGIC + _record(0x01, _string("ros2") + _string(library)))
+
+    def schema(self, name: str, encoding: str, data: str) -> int:
+        """The id of type `name`'s schema, written once."""
+        if name not in self.schemas:
+            self.schemas[name] = len(self.schemas) + 1
+            raw = data.encode("utf-8")
+            record = _record(0x03, _U16.pack(self.schemas[name]) + _string(name) + _string(encoding)
+                             + _U32.pack(len(raw)) + raw)
+            self._chunk += record
+            self._summary[0x03].append(record)
+        return self.schemas[name]
+
+    def channel(self, topic: str, schema: int, encoding: str, metadata: dict[str, str]) -> int:
+        """A new channel's id."""
+        cid = len(self.counts) + 1
+        record = _record(0x04, _U16.pack(cid) + _U16.pack(schema) + _string(topic) + _string(encoding)
+                         + _map(metadata))
+        self._chunk += record
+        self._summary[0x04].append(record)
+        self.counts[cid] = 0
+        return cid
+
+    def write(self, channel: int, log_time: int, data: bytes) -> None:
+        """One message, logged at `log_time` (ns since the epoch)."""
+        self._index.setdefault(channel, []).append((log_time, len(self._chunk)))
+        self._chunk += _record(0x05, _MESSAGE_HEAD.pack(channel, 0, log_time, log_time) + data)
+        self.counts[channel] += 1
+        self._span = [min(self._span[0], log_time), max(self._span[1], log_time)]
+        self.start, self.end = min(self.start, log_time), max(self.end, log_time)
+        if len(self._chunk) >= self.chunk_size:
+            self._flush()
+
+    def _flush(self) -> None:
+        if not self._chunk:
+            return
+        raw = bytes(self._chunk)
+        data = self._compress(raw) if self._compress else raw
+        first, last = self._span if self._index else (0, 0)
+        start = self.f.tell()
+        self.f.write(_record(0x06, _U64.pack(first) + _U64.pack(last) + _U64.pack(len(raw))
+                             + _U32.pack(zlib.crc32(raw)) + _string(self.compression) + _U64.pack(len(data)) + data))
+        end = self.f.tell()
+        offsets = b""
+        for cid, entries in sorted(self._index.items()):
+            offsets += _U16.pack(cid) + _U64.pack(self.f.tell())
+            pairs = b"".join(_U64.pack(t) + _U64.pack(o) for t, o in entries)
+            self.f.write(_record(0x07, _U16.pack(cid) + _U32.pack(len(pairs)) + pairs))
+        self._summary[0x08].append(_record(0x08, _U64.pack(first) + _U64.pack(last) + _U64.pack(start)
+                                           + _U64.pack(end - start) + _U32.pack(len(offsets)) + offsets
+                                           + _U64.pack(self.f.tell() - end) + _string(self.compression)
+                                           + _U64.pack(len(data)) + _U64.pack(len(raw))))
+        self._chunks += 1
+        self._chunk, self._index, self._span = bytearray(), {}, [2**64 - 1, 0]
+
+    def close(self, metadata: dict[str, dict[str, str]]) -> None:
+        """Write the last chunk, `metadata` (name -> its pairs), the summary and the footer."""
+        self._flush()
+        for name, pairs in metadata.items():
+            offset = self.f.tell()
+            record = _record(0x0C, _string(name) + _map(pairs))
+            self.f.write(record)
+            self._summary[0x0D].append(_record(0x0D, _U64.pack(offset) + _U64.pack(len(record)) + _string(name)))
+        self.f.write(_record(0x0F, _U32.pack(0)))  # the data section's CRC, not computed (rosbag2's default)
+        counts = b"".join(_U16.pack(cid) + _U64.pack(n) for cid, n in sorted(self.counts.items()))
+        first, last = (self.start, self.end) if self.end else (0, 0)
+        stats = _record(0x0B, _U64.pack(sum(self.counts.values())) + _U16.pack(len(self.schemas))
+                        + _U32.pack(len(self.counts)) + _U32.pack(0) + _U32.pack(len(metadata))
+                        + _U32.pack(self._chunks) + _U64.pack(first) + _U64.pack(last) + _U32.pack(len(counts)) + counts)
+        summary_start = self.f.tell()
+        summary, groups = bytearray(), []
+        for op, records in ((0x03, self._summary[0x03]), (0x04, self._summary[0x04]), (0x0B, [stats]),
+                            (0x08, self._summary[0x08]), (0x0D, self._summary[0x0D])):
+            if records:
+                groups.append(_record(0x0E, bytes([op]) + _U64.pack(summary_start + len(summary))
+                                      + _U64.pack(sum(map(len, records)))))
+                summary += b"".join(records)
+        offsets_start = summary_start + len(summary)
+        summary += b"".join(groups)
+        summary += bytes([0x02]) + _U64.pack(20) + _U64.pack(summary_start) + _U64.pack(offsets_start)
+        self.f.write(bytes(summary) + _U32.pack(zlib.crc32(summary)) + mcap_bounds.MAGIC)
+
+
+class BagRecorder:
+    """Write events into a rosbag2 bag in MCAP storage as they arrive (the interface of erni.replay.Recorder),
+    as `ros2 bag record` (Jazzy) writes one.
+
+    A `path` ending in `.mcap` is one MCAP file, which holds rosbag2's metadata itself (`ros2 bag info`,
+    Foxglove and `rosbags` open it alone); any other name is a rosbag2 directory as `ros2 bag record -o
+    path` writes: `path/metadata.yaml` and `path/<name>_0.mcap`. Either is written beside `path` under a
+    hidden name and moved there on close. Each channel carries the type's hash (`topic_type_hash`) and the
+    QoS the live plugin offers (`offered_qos_profiles`); chunks are compressed as `compression` says
+    (`COMPRESSIONS`; none by default, as rosbag2's default MCAP preset).
     """
 
-    def __init__(self, path: str | Path, via: str, started: float | None = None, clock: Clock = SYSTEM):
-        from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer, WriterError
+    def __init__(self, path: str | Path, via: str, started: float | None = None, clock: Clock = SYSTEM,
+                 compression: str = "none"):
+        from erni import __version__
 
+        if compression not in COMPRESSIONS:
+            raise LogError(f"compression {shown(compression)}: expected one of {', '.join(COMPRESSIONS)}")
         self.path = Path(path)
+        self.directory = self.path.suffix.lower() != ".mcap"
+        self.file_name = f"{self.path.name}_0.mcap" if self.directory else self.path.name
+        self.compression = compression
         self.count = 0
         self.clock = clock  # the recorder's: changes are stamped by it
         self.started = clock.wall() if started is None else started
         self._start = clock()
         self._poses: dict[str, Pose] = {}
+        if self.directory and self.path.exists():
+            raise LogError(f"{self.path}: exists already; a bag directory is written anew (as ros2 bag record "
+                           f"does), or give a name ending in .mcap for one file")
         try:
             self._tmp = Path(tempfile.mkdtemp(prefix=f".{self.path.name}.", dir=self.path.parent))
+            self._file = (self._tmp / self.file_name).open("xb")
         except OSError as err:
+            if hasattr(self, "_tmp"):
+                shutil.rmtree(self._tmp, ignore_errors=True)
             raise LogError(f"{self.path}: cannot write: {err.strerror or err}") from None
-        self._writer = Writer(self._tmp / "bag", version=9, storage_plugin=StoragePlugin.MCAP)
-        # zstd chunks, as ros2 bag's MCAP storage writes by default: a fifth of the size
-        self._writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
-        try:
-            self._writer.open()
-        except (WriterError, OSError) as err:
-            shutil.rmtree(self._tmp, ignore_errors=True)
-            raise LogError(f"{self.path}: cannot write: {err}") from None
-        self._connections: dict[str, Any] = {}
+        self._writer = McapWriter(self._file, f"erni {__version__}", compression)
+        self._channels: dict[str, int] = {}
+        self._topics: list[tuple[str, str]] = []
         header = {"erni_record": FORMAT, "via": via, "started": self.started}
         status = ros.make(_STATUS, level=OK, name="erni/record", message=via,
                           values=[ros.make(_KV, key="erni", value=json.dumps(header))])
@@ -191,11 +393,14 @@ class BagRecorder:
         self._put(HEADER_TOPIC, ros.make(DIAGNOSTICS, header=ros.header(stamp_ns, ""), status=[status]), stamp_ns)
 
     def _put(self, topic: str, msg: Any, stamp_ns: int) -> None:
-        conn = self._connections.get(topic)
-        if conn is None:
-            conn = self._connections[topic] = self._writer.add_connection(topic, msg.__msgtype__,
-                                                                          typestore=ros.TYPESTORE)
-        self._writer.write(conn, stamp_ns, ros.serialize(msg))
+        cid = self._channels.get(topic)
+        if cid is None:
+            typename = msg.__msgtype__
+            schema = self._writer.schema(typename, "ros2msg", ros.message_definition(typename))
+            cid = self._channels[topic] = self._writer.channel(topic, schema, "cdr", {
+                "offered_qos_profiles": to_yaml([offered_qos(topic)]), "topic_type_hash": ros.type_hash(typename)})
+            self._topics.append((topic, typename))
+        self._writer.write(cid, stamp_ns, ros.serialize(msg))
 
     def write(self, agent: str, op: str, type_name: str, data: dict[str, Any], t: float | None = None) -> None:
         """Record one change at `t` seconds since the recording started (now when None)."""
@@ -223,24 +428,50 @@ class BagRecorder:
                                                          drawn.articulation_points), when)
         self.count += 1
 
+    def metadata(self) -> dict[str, Any]:
+        """rosbag2's metadata of the bag (format 9): what `metadata.yaml` and the file's `rosbag2` record hold."""
+        w = self._writer
+        first, duration = (w.start, w.end - w.start) if w.end else (0, 0)
+        count = sum(w.counts.values())
+        topics = [{"topic_metadata": {"name": topic, "type": typename, "serialization_format": "cdr",
+                                      "offered_qos_profiles": [offered_qos(topic)],
+                                      "type_description_hash": ros.type_hash(typename)},
+                   "message_count": w.counts[self._channels[topic]]} for topic, typename in self._topics]
+        return {"version": 9, "storage_identifier": "mcap", "duration": {"nanoseconds": duration},
+                "starting_time": {"nanoseconds_since_epoch": first}, "message_count": count,
+                "topics_with_message_count": topics, "compression_format": "", "compression_mode": "",
+                "relative_file_paths": [self.file_name],
+                "files": [{"path": self.file_name, "starting_time": {"nanoseconds_since_epoch": first},
+                           "duration": {"nanoseconds": duration}, "message_count": count}],
+                "custom_data": {}, "ros_distro": ROS_DISTRO}
+
     def close(self) -> None:
-        """Finish the bag and move its MCAP file to the path asked for."""
+        """Finish the bag and move it to the path asked for."""
         try:
-            self._writer.close()
-            os.replace(self._tmp / "bag" / "bag.mcap", self.path)
+            info = self.metadata()
+            try:
+                self._writer.close({"rosbag2": {"serialized_metadata": to_yaml(info) + "\n"}})
+            finally:
+                self._file.close()
+            if self.directory:
+                (self._tmp / "metadata.yaml").write_text(
+                    to_yaml({"rosbag2_bagfile_information": info}) + "\n", encoding="utf-8")
+                os.rename(self._tmp, self.path)
+            else:
+                os.replace(self._tmp / self.file_name, self.path)
         except OSError as err:
             raise LogError(f"{self.path}: cannot write: {err.strerror or err}") from None
         finally:
             shutil.rmtree(self._tmp, ignore_errors=True)
 
 
-def convert(log: str | Path, out: str | Path) -> tuple[int, list[str]]:
+def convert(log: str | Path, out: str | Path, compression: str = "none") -> tuple[int, list[str]]:
     """Write an ERNI JSON-lines log as an MCAP bag; return the number of events and the lines skipped."""
     header, events, problems = read_log(log)
     started = header.get("started")
     if isinstance(started, bool) or not isinstance(started, (int, float)) or not math.isfinite(started):
         started = None
-    recorder = BagRecorder(out, str(header.get("via", "")), started)
+    recorder = BagRecorder(out, str(header.get("via", "")), started, compression=compression)
     try:
         for event in events:
             recorder.write_object(event.agent, event.op, type(event.obj).__name__,
@@ -251,16 +482,20 @@ def convert(log: str | Path, out: str | Path) -> tuple[int, list[str]]:
 
 
 def read_bag(path: str | Path, max_chunk: int = mcap_bounds.MAX_CHUNK,
-             max_message: int = mcap_bounds.MAX_MESSAGE) -> tuple[dict[str, Any], list[Event], list[str]]:
+             max_message: int = mcap_bounds.MAX_MESSAGE, robot: str | None = None
+             ) -> tuple[dict[str, Any], list[Event], list[str]]:
     """Return a bag's header, its ERNI events and one problem line per message that could not be read.
 
-    Poses come from `/erni/robots` when the bag has it (every field), else from the Odometry on
-    `/<robot>/odom` (position, heading, velocities and stamp), so bags from other tools replay too.
+    Poses come from ERNI's statuses on `/diagnostics` when the bag has them (every field), else from the
+    Odometry on `/<robot>/odom` (position, heading, velocities and stamp), so bags from other tools replay
+    too; a single robot's own bag (Odometry on `/odom`) replays as `robot`, and is refused without it.
     A bag beyond `max_chunk` or `max_message` (`mcap_bounds`) is refused whole (LogError).
     """
     from rosbags.rosbag2 import Reader
 
     path = Path(path)
+    if robot is not None and not is_name(robot):
+        raise LogError(f"--robot {shown(robot)}: expected a robot's name of {NAME_CHARS}")
     if not path.exists():
         raise LogError(f"{path}: no such file")
     if path.is_dir() and not (path / "metadata.yaml").exists():
@@ -281,7 +516,7 @@ def read_bag(path: str | Path, max_chunk: int = mcap_bounds.MAX_CHUNK,
         for one in sorted(path.glob("*.mcap")) if path.is_dir() else [path]:
             mcap_bounds.check(one, max_chunk, max_message)
         with Reader(Path(link_dir) / "bag.mcap" if link_dir else path) as reader:
-            return _events(path, reader)
+            return _events(path, reader, robot)
     except mcap_bounds.BagBoundError as err:
         raise LogError(str(err)) from None
     except LogError:
@@ -294,10 +529,10 @@ def read_bag(path: str | Path, max_chunk: int = mcap_bounds.MAX_CHUNK,
             shutil.rmtree(link_dir, ignore_errors=True)
 
 
-def _events(path: Path, reader: Any) -> tuple[dict[str, Any], list[Event], list[str]]:
+def _events(path: Path, reader: Any, robot: str | None) -> tuple[dict[str, Any], list[Event], list[str]]:
     topics = {c.topic: c.msgtype for c in reader.connections}
     problems: list[str] = []
-    connections = _erni_connections(path, reader.connections, HEADER_TOPIC in topics, problems)
+    connections = _erni_connections(path, reader.connections, HEADER_TOPIC in topics, problems, robot)
 
     def nothing() -> LogError:
         found = ", ".join(f"{printable(t)} ({printable(m)})" for t, m in sorted(topics.items())) or "no topics"
@@ -310,7 +545,7 @@ def _events(path: Path, reader: Any) -> tuple[dict[str, Any], list[Event], list[
     raw: list[tuple[int, str, str, BBObject]] = []
     for conn, stamp, data in reader.messages(connections=connections):
         try:
-            _message(conn, stamp, data, raw, header)
+            _message(conn, stamp, data, raw, header, robot)
         except (ErniError, ValueError, KeyError, TypeError, AttributeError, RecursionError) as err:
             problems.append(f"{path}: {conn.topic} at {stamp / 1e9:.3f}: {problem_of(err)}")
     if not raw and not header and not problems:
@@ -323,12 +558,15 @@ def _events(path: Path, reader: Any) -> tuple[dict[str, Any], list[Event], list[
     return header, events, problems
 
 
-def _erni_connections(path: Path, connections: list[Any], erni_bag: bool, problems: list[str]) -> list[Any]:
+def _erni_connections(path: Path, connections: list[Any], erni_bag: bool, problems: list[str],
+                      robot: str | None = None) -> list[Any]:
     """The connections whose messages are ERNI's: its statuses, and (in a bag not written by ERNI, whose
     poses are in its statuses with every field) the robots' odometry and the live plugin's task status.
-    An odometry topic that names no robot is skipped, and named in `problems`."""
+    An odometry topic that names no robot is skipped, and named in `problems`; a single robot's `/odom`
+    is `robot`'s (LogError without it when the bag has nothing else to replay)."""
     odom = [c for c in connections if c.msgtype == ODOMETRY and c.topic.endswith("/odom")
             and c.topic.count("/") == 2 and not erni_bag]
+    single = [c for c in connections if c.msgtype == ODOMETRY and c.topic == SINGLE_ODOM and not erni_bag]
     for conn in [c for c in odom if not is_name(c.topic.split("/")[1])]:  # /r\x1b[2J/odom names no robot
         odom.remove(conn)
         problems.append(f"{path}: topic {shown(conn.topic)}: skipped; a robot's topic is /<robot>/odom with the "
@@ -336,16 +574,23 @@ def _erni_connections(path: Path, connections: list[Any], erni_bag: bool, proble
     diag = [c for c in connections if c.msgtype == DIAGNOSTICS]
     status = [c for c in connections if c.topic == TASK_STATUS_TOPIC and c.msgtype == ros.STRING
               and not erni_bag]
-    return odom + diag + status
+    if single and robot is None:
+        if not odom and not status:
+            raise LogError(f"{path}: {SINGLE_ODOM} names no robot (one robot's own bag); give --robot NAME to "
+                           f"replay it as robot NAME")
+        problems.append(f"{path}: topic {SINGLE_ODOM}: skipped; it names no robot (give --robot NAME)")
+        single = []
+    return odom + single + diag + status
 
 
 def _message(conn: Any, stamp: int, data: bytes, raw: list[tuple[int, str, str, BBObject]],
-             header: dict[str, Any]) -> None:
-    """Decode one message into `raw`'s events, or into `header` when it is the recording's header."""
+             header: dict[str, Any], robot: str | None = None) -> None:
+    """Decode one message into `raw`'s events, or into `header` when it is the recording's header
+    (`robot`: whose a single robot's `/odom` is)."""
     msg = ros.deserialize(data, conn.msgtype)
     if conn.msgtype == ODOMETRY:
-        robot = conn.topic.split("/")[1]
-        raw.append((stamp, robot, "change", pose_from_odometry(robot, msg)))
+        name = robot if conn.topic == SINGLE_ODOM and robot else conn.topic.split("/")[1]
+        raw.append((stamp, name, "change", pose_from_odometry(name, msg)))
         return
     if conn.topic == TASK_STATUS_TOPIC:
         raw.append((stamp, "", "change", task_from_status(msg.data)))
