@@ -10,6 +10,7 @@ import json
 import math
 import os
 import re
+import signal
 import subprocess
 import sys
 import time
@@ -478,18 +479,24 @@ def test_a_single_robots_bag_replays_as_the_robot_named(tmp_path: Path) -> None:
     assert out.returncode == 2 and "--robot NAME" in out.stderr and "Traceback" not in out.stderr
     assert len(out.stderr.strip().splitlines()) == 1, out.stderr
 
+    out = erni_run("replay", str(bag), "--robot", "tb3", "--speed", "20", "--no-gui", "--insecure",
+                   "--listen", f"127.0.0.1:{free_port()}")
+    assert out.returncode == 0 and "replay finished (3 events)" in out.stderr, out.stderr
+
+    # looping, so that the watch sees it whenever its lease is granted
     port = free_port()
-    replay = erni("replay", str(bag), "--robot", "tb3", "--speed", "2", "--no-gui", "--listen", f"127.0.0.1:{port}",
-                  "--identity", identity("control", "control"))
+    replay = erni("replay", str(bag), "--robot", "tb3", "--loop", "--speed", "4", "--no-gui",
+                  "--listen", f"127.0.0.1:{port}", "--identity", identity("control", "control"))
     try:
-        time.sleep(1.0)  # as above: the watch's start-up overlaps the replay's
-        watch = erni_run("watch", "--via", f"127.0.0.1:{port}", "--json", "--seconds", "3")
-        _, err = replay.communicate(timeout=30)
+        watch = erni_run("watch", "--via", f"127.0.0.1:{port}", "--json", "--seconds", "8")
     finally:
-        if replay.poll() is None:
+        replay.send_signal(signal.SIGINT)
+        try:
+            replay.communicate(timeout=15)
+        except subprocess.TimeoutExpired:
             replay.kill()
             replay.wait()
-    assert "replay finished (3 events)" in err, err
     poses = [(e["data"]["robot"], e["data"]["x"]) for e in map(json.loads, watch.stdout.splitlines())
              if e["type"] == "Pose"]
-    assert poses and poses[-1] == ("tb3", 1.0) and {r for r, _ in poses} == {"tb3"}, watch.stdout
+    # (a loop removes its objects right after its last event: a watch may see that pose or not)
+    assert {r for r, _ in poses} == {"tb3"} and {0.0, 0.5} <= {x for _, x in poses} <= {0.0, 0.5, 1.0}, watch.stdout
