@@ -1,4 +1,5 @@
-"""rosbag2 MCAP bags of a team's run, written and read with `rosbags` (no ROS 2 install needed).
+"""rosbag2 MCAP bags of a team's run, written as `ros2 bag record` (Jazzy) writes them and read with
+`rosbags` (no ROS 2 install needed).
 
 A bag holds what `erni record` sees, as ROS 2 Jazzy messages a lab's tools open (`ros2 bag`,
 Foxglove, PlotJuggler), on the topics and types the live ros2 plugin uses where it has them:
@@ -19,11 +20,22 @@ PlotJuggler plots the numeric values (a task's progress, a link's quality, a bat
 a String shows only as text. Each status also carries the ERNI object itself as JSON under the key
 `erni`, so `erni replay` plays a bag back as exactly as its own JSON-lines logs.
 
+The file is what rosbag2's MCAP storage writes (`McapWriter`, ERNI's own): profile `ros2`, each type's
+`ros2msg` schema, each channel's `topic_type_hash` (RIHS01, which rosbag2's reader takes from there
+only) and `offered_qos_profiles` (the QoS the live plugin's publisher offers: `offered_qos`), the
+`rosbag2` metadata record (format 9, `ros_distro: jazzy`), chunks with their message indexes and the
+summary. Chunks are stored uncompressed, as rosbag2's default MCAP preset (`none`) writes them, or
+compressed with zstd or lz4 when asked (`COMPRESSIONS`). A name ending in `.mcap` is one file; any
+other is the directory `ros2 bag record -o NAME` writes (`NAME/metadata.yaml`, `NAME/NAME_0.mcap`):
+rosbags takes a lone file for a bag only by its `.mcap` suffix.
+
 A bag without ERNI's statuses replays too: the poses of its `nav_msgs/msg/Odometry` on
 `/<robot>/odom` and the tasks of its `/erni/task_status` (the live plugin's topics, as `ros2 bag
-record` saves them). A topic whose `<robot>` is no robot's name (`erni.blackboard.text`) is skipped
-and named; an Odometry whose numbers are not finite is a skipped message. Before any of it is read,
-the file is held to `mcap_bounds`' bounds (a chunk's and a message's decompressed size).
+record` saves them), and a single robot's own bag (Odometry on `/odom`, no namespace) as the robot
+named by `robot` (`erni replay --robot NAME`). A topic whose `<robot>` is no robot's name
+(`erni.blackboard.text`) is skipped and named; an Odometry whose numbers are not finite is a skipped
+message. Before any of it is read, the file is held to `mcap_bounds`' bounds (a chunk's and a
+message's decompressed size).
 """
 
 from __future__ import annotations

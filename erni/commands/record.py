@@ -33,7 +33,7 @@ def register(sub: Any) -> None:
                    "needs rosbags); default: mcap when OUT ends in .mcap, else jsonl")
     p.add_argument("--compression", choices=COMPRESSIONS, default="none",
                    help="the bag's chunk compression: none (the default of ros2 bag record's MCAP storage), "
-                   "zstd (about a fifth of the size) or lz4")
+                   "zstd (a ninth of the size, for poses) or lz4")
     p.add_argument("--convert", metavar="LOG", help="convert this JSON-lines log (from `erni record`) into "
                    "the MCAP bag OUT and exit")
     p.add_argument("--seconds", type=float, default=0, help="stop after S seconds (0 = at Ctrl-C)")
