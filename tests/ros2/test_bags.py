@@ -332,11 +332,11 @@ def test_bad_bags_are_one_line_errors(tmp_path: Path) -> None:
 INFINITE = {"sec": 9223372036, "nsec": 854775807}  # RMW_DURATION_INFINITE
 
 
-def live_qos(topic: str, typename: str) -> dict[str, Any]:
-    """The QoS the live ros2 plugin's publisher of `topic` offers (its own `_qos`), in rosbag2's form."""
+def live_qos(typename: str) -> dict[str, Any]:
+    """The QoS the live ros2 plugin's publisher of a type offers (its own `_qos`), in rosbag2's form."""
     from erni.plugins.ros2.plugin import ROS2Plugin
 
-    qos = ROS2Plugin._qos(typename) if topic != "/erni/record" and not topic.endswith("/odom") else ROS2Plugin._qos("")
+    qos = ROS2Plugin._qos(typename)
     return {"history": "keep_last", "depth": qos.depth, "reliability": "reliable" if qos.reliable else "best_effort",
             "durability": "transient_local" if qos.transient_local else "volatile", "deadline": INFINITE,
             "lifespan": INFINITE, "liveliness": "automatic", "liveliness_lease_duration": INFINITE,
@@ -363,7 +363,7 @@ def test_the_file_says_what_ros2_bag_record_writes(tmp_path: Path) -> None:
         assert set(channel.metadata) == {"offered_qos_profiles", "topic_type_hash"}
         # ERNI's own RIHS01 (erni.ros2_messages) is rosbags' Jazzy hash of the schema's type
         assert channel.metadata["topic_type_hash"] == JAZZY.hash_rihs01(schema.name) == messages.type_hash(schema.name)
-        assert yaml.safe_load(channel.metadata["offered_qos_profiles"]) == [live_qos(topic, schema.name)], topic
+        assert yaml.safe_load(channel.metadata["offered_qos_profiles"]) == [live_qos(schema.name)], topic
         assert schema.data.decode() == JAZZY.generate_msgdef(schema.name, ros_version=2)[0]
     assert yaml.safe_load(channels["/tf"].metadata["offered_qos_profiles"])[0]["depth"] == 100
     assert yaml.safe_load(channels["/robot1/odom"].metadata["offered_qos_profiles"])[0]["depth"] == 10
