@@ -27,7 +27,7 @@ def register(sub: Any) -> None:
                        "blackboard at the recorded pace; `erni watch --via` it or open its GUI. "
                        "Type p + Enter to pause or resume, a number + Enter to set the speed.")
     p.add_argument("log", help="log file or MCAP bag written by `erni record` (a bag from other tools "
-                   "replays its nav_msgs/msg/Odometry on /<robot>/odom as poses)")
+                   "replays its nav_msgs/msg/Odometry on /<robot>/odom as poses, and on /odom with --robot)")
     p.add_argument("--robot", metavar="NAME", help="replay a single robot's own bag (nav_msgs/msg/Odometry on "
                    "/odom, as the robot's ROS 2 stack records it) as robot NAME")
     p.add_argument("--speed", type=float, default=1.0, help="1 = recorded pace, 0.25 = slow motion")

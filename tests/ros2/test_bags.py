@@ -14,6 +14,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections import Counter
 from pathlib import Path
 from typing import Any
 
@@ -21,6 +22,7 @@ import numpy as np
 import pytest
 import yaml
 from mcap.reader import make_reader
+from mcap.stream_reader import StreamReader
 from mcap_ros2.decoder import DecoderFactory
 from rosbags.highlevel import AnyReader
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer
@@ -383,6 +385,13 @@ def test_the_file_says_what_ros2_bag_record_writes(tmp_path: Path) -> None:
         assert topics[topic]["message_count"] == stats.channel_message_counts[channel.id]
         assert meta["type_description_hash"] == channel.metadata["topic_type_hash"]
         assert meta["offered_qos_profiles"] == yaml.safe_load(channel.metadata["offered_qos_profiles"])
+
+    # read as a stream too, record by record (CRCs checked): chunks with message indexes, then the summary
+    with bag.open("rb") as f:
+        kinds = Counter(type(r).__name__ for r in StreamReader(f, emit_chunks=True, validate_crcs=True).records)
+    assert kinds == {"Header": 1, "Chunk": 1, "MessageIndex": 5, "Metadata": 1, "DataEnd": 1, "Schema": 4,
+                     "Channel": 5, "Statistics": 1, "ChunkIndex": 1, "MetadataIndex": 1, "SummaryOffset": 5,
+                     "Footer": 1}, kinds
 
     # rosbags reads the QoS as rosbag2 would replay it
     with Reader(bag) as reader:
