@@ -47,7 +47,8 @@ def run(args: argparse.Namespace) -> int:
 
     fmt = args.format or ("mcap" if args.out.lower().endswith(".mcap") else "jsonl")
     if fmt == "jsonl" and args.compression != "none" and not args.convert:
-        say("erni record: --compression is the MCAP bag's: OUT must end in .mcap, or give --format mcap or give --format mcap", file=sys.stderr)
+        say("erni record: --compression is the MCAP bag's: OUT must end in .mcap, or give --format mcap",
+            file=sys.stderr)
         return 2
     if args.convert:
         return _convert(args.convert, args.out, fmt, args.compression)
