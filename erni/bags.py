@@ -177,7 +177,8 @@ def diagnostics(agent: str, op: str, type_name: str, data: dict[str, Any], when:
 ROS_DISTRO = "jazzy"  # the distribution whose message types (and hashes) the bag holds
 COMPRESSIONS = ("none", "zstd", "lz4")
 """Chunk compressions of `erni record --compression`: none is rosbag2's default MCAP preset (`none`:
-chunks, uncompressed, no chunk CRC); zstd is its `zstd_fast`/`zstd_small` choice; lz4 its other one."""
+chunks stored as they are); zstd is its `zstd_fast`/`zstd_small` presets' choice; lz4 its other one.
+Each chunk carries its CRC (as `zstd_small` writes), which readers check."""
 CHUNK_SIZE = 768 * 1024  # the MCAP writer's chunk size, which rosbag2's presets (but zstd_small) keep
 _INFINITE = {"sec": 9223372036, "nsec": 854775807}  # RMW_DURATION_INFINITE, rmw_zenoh's default durations
 _DEPTHS = {"/tf": 100}  # the live plugin's publishers: keep last 10, /tf keep last 100 (plugins/ros2)
