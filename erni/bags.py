@@ -20,12 +20,13 @@ PlotJuggler plots the numeric values (a task's progress, a link's quality, a bat
 a String shows only as text. Each status also carries the ERNI object itself as JSON under the key
 `erni`, so `erni replay` plays a bag back as exactly as its own JSON-lines logs.
 
-The file is what rosbag2's MCAP storage writes (`McapWriter`, ERNI's own): profile `ros2`, each type's
-`ros2msg` schema, each channel's `topic_type_hash` (RIHS01, which rosbag2's reader takes from there
-only) and `offered_qos_profiles` (the QoS the live plugin's publisher offers: `offered_qos`), the
-`rosbag2` metadata record (format 9, `ros_distro: jazzy`), chunks with their message indexes and the
-summary. Chunks are stored uncompressed, as rosbag2's default MCAP preset (`none`) writes them, or
-compressed with zstd or lz4 when asked (`COMPRESSIONS`). A name ending in `.mcap` is one file; any
+The file is what rosbag2's MCAP storage writes, written by Foxglove's own MCAP writer (`mcap.writer`;
+rosbags' writer puts no type hash in a channel and no lz4 chunks): profile `ros2`, each type's `ros2msg`
+schema, each channel's `topic_type_hash` (RIHS01, which rosbag2's reader takes from there only) and
+`offered_qos_profiles` (the QoS the live plugin's publisher offers: `offered_qos`), the `rosbag2`
+metadata record (format 9, `ros_distro: jazzy`), chunks with their message indexes and the summary;
+rosbag2's metadata is YAML written by PyYAML. Chunks are stored uncompressed, as rosbag2's default MCAP
+preset (`none`) writes them, or compressed with zstd or lz4 when asked (`COMPRESSIONS`). A name ending in `.mcap` is one file; any
 other is the directory `ros2 bag record -o NAME` writes (`NAME/metadata.yaml`, `NAME/NAME_0.mcap`):
 rosbags takes a lone file for a bag only by its `.mcap` suffix.
 
@@ -43,15 +44,13 @@ from __future__ import annotations
 import json
 import math
 import os
-import re
 import shutil
-import struct
-import sys
 import tempfile
-import zlib
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import Any
 
+import yaml  # type: ignore[import-untyped,unused-ignore]
+from mcap.writer import LIBRARY_IDENTIFIER, CompressionType, IndexType, Writer
 from pydantic import ValidationError
 
 from erni import mcap_bounds
@@ -175,17 +174,22 @@ def diagnostics(agent: str, op: str, type_name: str, data: dict[str, Any], when:
 # --- writing: an MCAP file as rosbag2's MCAP storage (Jazzy) writes it -------------------------
 
 ROS_DISTRO = "jazzy"  # the distribution whose message types (and hashes) the bag holds
-COMPRESSIONS = ("none", "zstd", "lz4")
+_COMPRESSION = {"none": CompressionType.NONE, "zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4}
+COMPRESSIONS = tuple(_COMPRESSION)
 """Chunk compressions of `erni record --compression`: none is rosbag2's default MCAP preset (`none`:
 chunks stored as they are); zstd is its `zstd_fast`/`zstd_small` presets' choice; lz4 its other one.
 Each chunk carries its CRC (as `zstd_small` writes), which readers check."""
 CHUNK_SIZE = 768 * 1024  # the MCAP writer's chunk size, which rosbag2's presets (but zstd_small) keep
+# the file's indexes: chunks, messages and metadata (a bag has no attachments, and the C++ MCAP writer of
+# rosbag2 leaves an empty index group out of the summary)
+_INDEXES = IndexType.CHUNK | IndexType.MESSAGE | IndexType.METADATA
 _INFINITE = {"sec": 9223372036, "nsec": 854775807}  # RMW_DURATION_INFINITE, rmw_zenoh's default durations
 _DEPTHS = {"/tf": 100}  # the live plugin's publishers: keep last 10, /tf keep last 100 (plugins/ros2)
-_PLAIN = re.compile(r"[A-Za-z_/][A-Za-z0-9_./-]*")
-_YAML_WORDS = {"true", "false", "yes", "no", "on", "off", "null", "y", "n"}
-_U16, _U32, _U64 = struct.Struct("<H"), struct.Struct("<I"), struct.Struct("<Q")
-_MESSAGE_HEAD = struct.Struct("<HIQQ")  # channel, sequence, log time, publish time
+
+
+def _yaml(value: Any) -> str:
+    """Block YAML of rosbag2's metadata (PyYAML's): keys in their order, as rosbag2 writes them."""
+    return str(yaml.safe_dump(value, sort_keys=False, default_flow_style=False))
 
 
 def offered_qos(topic: str) -> dict[str, Any]:
@@ -195,168 +199,6 @@ def offered_qos(topic: str) -> dict[str, Any]:
             "durability": "volatile", "deadline": dict(_INFINITE), "lifespan": dict(_INFINITE),
             "liveliness": "automatic", "liveliness_lease_duration": dict(_INFINITE),
             "avoid_ros_namespace_conventions": False}
-
-
-def _scalar(value: Any) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, int):
-        return str(value)
-    text = str(value)
-    if _PLAIN.fullmatch(text) and text.lower() not in _YAML_WORDS:
-        return text
-    return json.dumps(text)  # a JSON string is a YAML double-quoted scalar
-
-
-def to_yaml(value: Any, indent: int = 0) -> str:
-    """Block YAML of dicts, lists, strings, ints and bools, in yaml-cpp's layout (what rosbag2 writes)."""
-    pad = " " * indent
-    if isinstance(value, dict):
-        if not value:
-            return pad + "{}"
-        lines = []
-        for key, item in value.items():
-            if isinstance(item, (dict, list)) and item:
-                lines.append(f"{pad}{_scalar(key)}:\n{to_yaml(item, indent + 2)}")
-            else:
-                lines.append(f"{pad}{_scalar(key)}: {to_yaml(item).strip()}")
-        return "\n".join(lines)
-    if isinstance(value, list):
-        if not value:
-            return pad + "[]"
-        lines = []
-        for item in value:
-            body = to_yaml(item, indent + 2)
-            lines.append(f"{pad}- {body[indent + 2:]}")
-        return "\n".join(lines)
-    return pad + _scalar(value)
-
-
-def _compressor(name: str) -> Any:
-    if name == "zstd":
-        if sys.version_info >= (3, 14):
-            from compression import zstd  # type: ignore[import-not-found,unused-ignore]
-        else:
-            from backports import zstd  # type: ignore[import-not-found,unused-ignore]
-        return zstd.compress
-    if name == "lz4":
-        from lz4.frame import compress  # type: ignore[import-untyped,unused-ignore]
-
-        return compress
-    return None
-
-
-def _string(text: str) -> bytes:
-    data = text.encode("utf-8")
-    return _U32.pack(len(data)) + data
-
-
-def _map(pairs: dict[str, str]) -> bytes:
-    body = b"".join(_string(k) + _string(v) for k, v in pairs.items())
-    return _U32.pack(len(body)) + body
-
-
-def _record(op: int, body: bytes) -> bytes:
-    return bytes([op]) + _U64.pack(len(body)) + body
-
-
-class McapWriter:
-    """Writes MCAP's records (header, chunks of schemas, channels and messages with their indexes,
-    metadata, and the summary: schemas, channels, statistics, chunk and metadata indexes, offsets)."""
-
-    def __init__(self, f: BinaryIO, library: str, compression: str = "none", chunk_size: int = CHUNK_SIZE):
-        self.f, self.chunk_size = f, chunk_size
-        self.compression = "" if compression == "none" else compression
-        self._compress = _compressor(compression)
-        self.schemas: dict[str, int] = {}
-        self._summary: dict[int, list[bytes]] = {0x03: [], 0x04: [], 0x08: [], 0x0D: []}
-        self._chunk = bytearray()
-        self._index: dict[int, list[tuple[int, int]]] = {}
-        self._span = [2**64 - 1, 0]  # the open chunk's first and last log time
-        self.counts: dict[int, int] = {}
-        self.start, self.end = 2**64 - 1, 0
-        self._chunks = 0
-        f.write(mcap_bounds.MAGIC + _record(0x01, _string("ros2") + _string(library)))
-
-    def schema(self, name: str, encoding: str, data: str) -> int:
-        """The id of type `name`'s schema, written once."""
-        if name not in self.schemas:
-            self.schemas[name] = len(self.schemas) + 1
-            raw = data.encode("utf-8")
-            record = _record(0x03, _U16.pack(self.schemas[name]) + _string(name) + _string(encoding)
-                             + _U32.pack(len(raw)) + raw)
-            self._chunk += record
-            self._summary[0x03].append(record)
-        return self.schemas[name]
-
-    def channel(self, topic: str, schema: int, encoding: str, metadata: dict[str, str]) -> int:
-        """A new channel's id."""
-        cid = len(self.counts) + 1
-        record = _record(0x04, _U16.pack(cid) + _U16.pack(schema) + _string(topic) + _string(encoding)
-                         + _map(metadata))
-        self._chunk += record
-        self._summary[0x04].append(record)
-        self.counts[cid] = 0
-        return cid
-
-    def write(self, channel: int, log_time: int, data: bytes) -> None:
-        """One message, logged at `log_time` (ns since the epoch)."""
-        self._index.setdefault(channel, []).append((log_time, len(self._chunk)))
-        self._chunk += _record(0x05, _MESSAGE_HEAD.pack(channel, 0, log_time, log_time) + data)
-        self.counts[channel] += 1
-        self._span = [min(self._span[0], log_time), max(self._span[1], log_time)]
-        self.start, self.end = min(self.start, log_time), max(self.end, log_time)
-        if len(self._chunk) >= self.chunk_size:
-            self._flush()
-
-    def _flush(self) -> None:
-        if not self._chunk:
-            return
-        raw = bytes(self._chunk)
-        data = self._compress(raw) if self._compress else raw
-        first, last = self._span if self._index else (0, 0)
-        start = self.f.tell()
-        self.f.write(_record(0x06, _U64.pack(first) + _U64.pack(last) + _U64.pack(len(raw))
-                             + _U32.pack(zlib.crc32(raw)) + _string(self.compression) + _U64.pack(len(data)) + data))
-        end = self.f.tell()
-        offsets = b""
-        for cid, entries in sorted(self._index.items()):
-            offsets += _U16.pack(cid) + _U64.pack(self.f.tell())
-            pairs = b"".join(_U64.pack(t) + _U64.pack(o) for t, o in entries)
-            self.f.write(_record(0x07, _U16.pack(cid) + _U32.pack(len(pairs)) + pairs))
-        self._summary[0x08].append(_record(0x08, _U64.pack(first) + _U64.pack(last) + _U64.pack(start)
-                                           + _U64.pack(end - start) + _U32.pack(len(offsets)) + offsets
-                                           + _U64.pack(self.f.tell() - end) + _string(self.compression)
-                                           + _U64.pack(len(data)) + _U64.pack(len(raw))))
-        self._chunks += 1
-        self._chunk, self._index, self._span = bytearray(), {}, [2**64 - 1, 0]
-
-    def close(self, metadata: dict[str, dict[str, str]]) -> None:
-        """Write the last chunk, `metadata` (name -> its pairs), the summary and the footer."""
-        self._flush()
-        for name, pairs in metadata.items():
-            offset = self.f.tell()
-            record = _record(0x0C, _string(name) + _map(pairs))
-            self.f.write(record)
-            self._summary[0x0D].append(_record(0x0D, _U64.pack(offset) + _U64.pack(len(record)) + _string(name)))
-        self.f.write(_record(0x0F, _U32.pack(0)))  # the data section's CRC, not computed (rosbag2's default)
-        counts = b"".join(_U16.pack(cid) + _U64.pack(n) for cid, n in sorted(self.counts.items()))
-        first, last = (self.start, self.end) if self.end else (0, 0)
-        stats = _record(0x0B, _U64.pack(sum(self.counts.values())) + _U16.pack(len(self.schemas))
-                        + _U32.pack(len(self.counts)) + _U32.pack(0) + _U32.pack(len(metadata))
-                        + _U32.pack(self._chunks) + _U64.pack(first) + _U64.pack(last) + _U32.pack(len(counts)) + counts)
-        summary_start = self.f.tell()
-        summary, groups = bytearray(), []
-        for op, records in ((0x03, self._summary[0x03]), (0x04, self._summary[0x04]), (0x0B, [stats]),
-                            (0x08, self._summary[0x08]), (0x0D, self._summary[0x0D])):
-            if records:
-                groups.append(_record(0x0E, bytes([op]) + _U64.pack(summary_start + len(summary))
-                                      + _U64.pack(sum(map(len, records)))))
-                summary += b"".join(records)
-        offsets_start = summary_start + len(summary)
-        summary += b"".join(groups)
-        summary += bytes([0x02]) + _U64.pack(20) + _U64.pack(summary_start) + _U64.pack(offsets_start)
-        self.f.write(bytes(summary) + _U32.pack(zlib.crc32(summary)) + mcap_bounds.MAGIC)
 
 
 class BagRecorder:
@@ -396,9 +238,14 @@ class BagRecorder:
             if hasattr(self, "_tmp"):
                 shutil.rmtree(self._tmp, ignore_errors=True)
             raise LogError(f"{self.path}: cannot write: {err.strerror or err}") from None
-        self._writer = McapWriter(self._file, f"erni {__version__}", compression)
+        self._writer = Writer(self._file, chunk_size=CHUNK_SIZE, compression=_COMPRESSION[compression],
+                              index_types=_INDEXES)
+        self._writer.start(profile="ros2", library=f"erni {__version__} ({LIBRARY_IDENTIFIER})")
+        self._schemas: dict[str, int] = {}
         self._channels: dict[str, int] = {}
-        self._topics: list[tuple[str, str]] = []
+        self._topics: dict[str, str] = {}  # topic -> its type, in the order of the channels
+        self._counts: dict[str, int] = {}  # topic -> messages written
+        self._span: tuple[int, int] | None = None  # the first and last log time (ns)
         header = {"erni_record": FORMAT, "via": via, "started": self.started}
         status = ros.make(_STATUS, level=OK, name="erni/record", message=via,
                           values=[ros.make(_KV, key="erni", value=json.dumps(header))])
@@ -409,11 +256,17 @@ class BagRecorder:
         cid = self._channels.get(topic)
         if cid is None:
             typename = msg.__msgtype__
-            schema = self._writer.schema(typename, "ros2msg", ros.message_definition(typename))
-            cid = self._channels[topic] = self._writer.channel(topic, schema, "cdr", {
-                "offered_qos_profiles": to_yaml([offered_qos(topic)]), "topic_type_hash": ros.type_hash(typename)})
-            self._topics.append((topic, typename))
-        self._writer.write(cid, stamp_ns, ros.serialize(msg))
+            schema = self._schemas.get(typename)
+            if schema is None:
+                schema = self._schemas[typename] = self._writer.register_schema(
+                    typename, "ros2msg", ros.message_definition(typename).encode("utf-8"))
+            cid = self._channels[topic] = self._writer.register_channel(topic, "cdr", schema, {
+                "offered_qos_profiles": _yaml([offered_qos(topic)]), "topic_type_hash": ros.type_hash(typename)})
+            self._topics[topic], self._counts[topic] = typename, 0
+        self._writer.add_message(cid, stamp_ns, ros.serialize(msg), stamp_ns)
+        self._counts[topic] += 1
+        first, last = self._span or (stamp_ns, stamp_ns)
+        self._span = (min(first, stamp_ns), max(last, stamp_ns))
 
     def write(self, agent: str, op: str, type_name: str, data: dict[str, Any], t: float | None = None) -> None:
         """Record one change at `t` seconds since the recording started (now when None)."""
@@ -443,13 +296,13 @@ class BagRecorder:
 
     def metadata(self) -> dict[str, Any]:
         """rosbag2's metadata of the bag (format 9): what `metadata.yaml` and the file's `rosbag2` record hold."""
-        w = self._writer
-        first, duration = (w.start, w.end - w.start) if w.end else (0, 0)
-        count = sum(w.counts.values())
+        first, last = self._span or (0, 0)
+        duration = last - first
+        count = sum(self._counts.values())
         topics = [{"topic_metadata": {"name": topic, "type": typename, "serialization_format": "cdr",
                                       "offered_qos_profiles": [offered_qos(topic)],
                                       "type_description_hash": ros.type_hash(typename)},
-                   "message_count": w.counts[self._channels[topic]]} for topic, typename in self._topics]
+                   "message_count": self._counts[topic]} for topic, typename in self._topics.items()]
         return {"version": 9, "storage_identifier": "mcap", "duration": {"nanoseconds": duration},
                 "starting_time": {"nanoseconds_since_epoch": first}, "message_count": count,
                 "topics_with_message_count": topics, "compression_format": "", "compression_mode": "",
@@ -463,12 +316,17 @@ class BagRecorder:
         try:
             info = self.metadata()
             try:
-                self._writer.close({"rosbag2": {"serialized_metadata": to_yaml(info) + "\n"}})
+                # the last chunk, so that rosbag2's record follows every message; then the summary (schemas,
+                # channels, statistics, chunk and metadata indexes, offsets) and the footer. mcap's flush and
+                # finish are not annotated
+                self._writer.flush()  # type: ignore[no-untyped-call]
+                self._writer.add_metadata("rosbag2", {"serialized_metadata": _yaml(info)})
+                self._writer.finish()  # type: ignore[no-untyped-call]
             finally:
                 self._file.close()
             if self.directory:
-                (self._tmp / "metadata.yaml").write_text(
-                    to_yaml({"rosbag2_bagfile_information": info}) + "\n", encoding="utf-8")
+                (self._tmp / "metadata.yaml").write_text(_yaml({"rosbag2_bagfile_information": info}),
+                                                         encoding="utf-8")
                 os.rename(self._tmp, self.path)
             else:
                 os.replace(self._tmp / self.file_name, self.path)
