@@ -1,7 +1,8 @@
 """Recorded team logs: the file format, reading it back, and a plugin that replays it.
 
 A log is JSON lines, or a rosbag2 MCAP bag written by `erni record --format mcap` (read by
-`erni.bags`, which needs `rosbags`). The first line is a header `{"erni_record": 1, "via": ..., "started": t}`;
+`erni.bags`, which needs the ros2 extra: `rosbags`, `mcap`, PyYAML). The first line is a header
+`{"erni_record": 1, "via": ..., "started": t}`;
 every other line is one blackboard change seen by the recorded agent:
 `{"t": seconds since start, "agent": ..., "op": "add"|"change"|"remove", "type": "Pose", "data": {...}}`.
 Replaying publishes the same objects, in order and with the same spacing divided by the speed,
@@ -76,7 +77,7 @@ def read_log(path: str | Path, robot: str | None = None) -> tuple[dict[str, Any]
         try:
             from erni.bags import read_bag
         except ImportError as err:
-            raise LogError(f"{path}: reading MCAP bags needs rosbags (pip install 'erni[ros2]'): {err}") from None
+            raise LogError(f"{path}: reading MCAP bags needs the ros2 extra (pip install 'erni[ros2]'): {err}") from None
         return read_bag(path, robot=robot)
     try:
         with path.open("rb") as f:

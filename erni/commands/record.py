@@ -13,7 +13,7 @@ from erni.commands._client import add_client_options, check_seconds, open_client
 from erni.commands._text import say
 from erni.replay import LogError, Recorder
 
-COMPRESSIONS = ("none", "zstd", "lz4")  # erni.bags.COMPRESSIONS, named without importing rosbags
+COMPRESSIONS = ("none", "zstd", "lz4")  # erni.bags.COMPRESSIONS, named without importing the ros2 extra
 LEASE = 10.0
 
 
@@ -30,7 +30,7 @@ def register(sub: Any) -> None:
                    "else (with --format mcap) a rosbag2 directory OUT/ as `ros2 bag record -o OUT` writes")
     p.add_argument("--format", choices=("jsonl", "mcap"), default=None,
                    help="jsonl (ERNI's log) or mcap (a rosbag2 bag that ros2 bag, Foxglove and PlotJuggler open; "
-                   "needs rosbags); default: mcap when OUT ends in .mcap, else jsonl")
+                   "needs the ros2 extra); default: mcap when OUT ends in .mcap, else jsonl")
     p.add_argument("--compression", choices=COMPRESSIONS, default="none",
                    help="the bag's chunk compression: none (the default of ros2 bag record's MCAP storage), "
                    "zstd (a ninth of the size, for poses) or lz4")
@@ -105,11 +105,11 @@ def _close(recorder: Any) -> str:
 
 
 def _bags() -> Any:
-    """The bag module, or None after saying on stderr that rosbags is missing."""
+    """The bag module, or None after saying on stderr that the ros2 extra (rosbags, mcap, PyYAML) is missing."""
     try:
         from erni import bags
     except ImportError as err:
-        say(f"erni record: MCAP bags need rosbags (pip install 'erni[ros2]'): {err}", file=sys.stderr)
+        say(f"erni record: MCAP bags need the ros2 extra (pip install 'erni[ros2]'): {err}", file=sys.stderr)
         return None
     return bags
 
