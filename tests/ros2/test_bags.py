@@ -356,7 +356,7 @@ def test_the_file_says_what_ros2_bag_record_writes(tmp_path: Path) -> None:
         header, summary = reader.get_header(), reader.get_summary()
         records = list(reader.iter_metadata())
     assert summary is not None and summary.statistics is not None
-    assert header.profile == "ros2" and header.library.startswith("erni ")
+    assert header.profile == "ros2" and re.fullmatch(r"erni \S+ \(mcap-python/[0-9.]+\)", header.library), header
     channels = {c.topic: c for c in summary.channels.values()}
     assert list(channels) == ["/erni/record", "/robot1/odom", "/tf", "/diagnostics", "/erni/network"]
     for topic, channel in channels.items():
@@ -386,9 +386,12 @@ def test_the_file_says_what_ros2_bag_record_writes(tmp_path: Path) -> None:
         assert meta["type_description_hash"] == channel.metadata["topic_type_hash"]
         assert meta["offered_qos_profiles"] == yaml.safe_load(channel.metadata["offered_qos_profiles"])
 
-    # read as a stream too, record by record (CRCs checked): chunks with message indexes, then the summary
+    # read as a stream too, record by record (CRCs checked): chunks with message indexes, rosbag2's record
+    # after every message, then the summary
     with bag.open("rb") as f:
-        kinds = Counter(type(r).__name__ for r in StreamReader(f, emit_chunks=True, validate_crcs=True).records)
+        order = [type(r).__name__ for r in StreamReader(f, emit_chunks=True, validate_crcs=True).records]
+    kinds = Counter(order)
+    assert order.index("Metadata") > max(i for i, kind in enumerate(order) if kind in ("Chunk", "MessageIndex"))
     assert kinds == {"Header": 1, "Chunk": 1, "MessageIndex": 5, "Metadata": 1, "DataEnd": 1, "Schema": 4,
                      "Channel": 5, "Statistics": 1, "ChunkIndex": 1, "MetadataIndex": 1, "SummaryOffset": 5,
                      "Footer": 1}, kinds
