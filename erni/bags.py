@@ -1,4 +1,5 @@
-"""rosbag2 MCAP bags of a team's run, written and read with `rosbags` (no ROS 2 install needed).
+"""rosbag2 MCAP bags of a team's run, written as `ros2 bag record` (Jazzy) writes them and read with
+`rosbags` (no ROS 2 install needed).
 
 A bag holds what `erni record` sees, as ROS 2 Jazzy messages a lab's tools open (`ros2 bag`,
 Foxglove, PlotJuggler), on the topics and types the live ros2 plugin uses where it has them:
@@ -19,11 +20,23 @@ PlotJuggler plots the numeric values (a task's progress, a link's quality, a bat
 a String shows only as text. Each status also carries the ERNI object itself as JSON under the key
 `erni`, so `erni replay` plays a bag back as exactly as its own JSON-lines logs.
 
+The file is what rosbag2's MCAP storage writes, written by Foxglove's own MCAP writer (`mcap.writer`;
+rosbags' writer puts no type hash in a channel and no lz4 chunks): profile `ros2`, each type's `ros2msg`
+schema, each channel's `topic_type_hash` (RIHS01, which rosbag2's reader takes from there only) and
+`offered_qos_profiles` (the QoS the live plugin's publisher offers: `offered_qos`), the `rosbag2`
+metadata record (format 9, `ros_distro: jazzy`), chunks with their message indexes and the summary;
+rosbag2's metadata is YAML written by PyYAML. Chunks are stored uncompressed, as rosbag2's default MCAP
+preset (`none`) writes them, or compressed with zstd or lz4 when asked (`COMPRESSIONS`). A name ending in `.mcap` is one file; any
+other is the directory `ros2 bag record -o NAME` writes (`NAME/metadata.yaml`, `NAME/NAME_0.mcap`):
+rosbags takes a lone file for a bag only by its `.mcap` suffix.
+
 A bag without ERNI's statuses replays too: the poses of its `nav_msgs/msg/Odometry` on
 `/<robot>/odom` and the tasks of its `/erni/task_status` (the live plugin's topics, as `ros2 bag
-record` saves them). A topic whose `<robot>` is no robot's name (`erni.blackboard.text`) is skipped
-and named; an Odometry whose numbers are not finite is a skipped message. Before any of it is read,
-the file is held to `mcap_bounds`' bounds (a chunk's and a message's decompressed size).
+record` saves them), and a single robot's own bag (Odometry on `/odom`, no namespace) as the robot
+named by `robot` (`erni replay --robot NAME`). A topic whose `<robot>` is no robot's name
+(`erni.blackboard.text`) is skipped and named; an Odometry whose numbers are not finite is a skipped
+message. Before any of it is read, the file is held to `mcap_bounds`' bounds (a chunk's and a
+message's decompressed size).
 """
 
 from __future__ import annotations
@@ -36,6 +49,8 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
+import yaml  # type: ignore[import-untyped,unused-ignore]
+from mcap.writer import LIBRARY_IDENTIFIER, CompressionType, IndexType, Writer
 from pydantic import ValidationError
 
 from erni import mcap_bounds
@@ -56,6 +71,7 @@ HEADER_TOPIC = "/erni/record"
 DIAGNOSTICS_TOPIC = "/diagnostics"
 MARKERS_TOPIC = "/erni/network"
 TASK_STATUS_TOPIC = "/erni/task_status"
+SINGLE_ODOM = "/odom"  # a robot's own ROS 2 stack: its odometry without a robot's namespace
 OK, WARN, ERROR, STALE = 0, 1, 2, 3
 _STATUS = "diagnostic_msgs/msg/DiagnosticStatus"
 _KV = "diagnostic_msgs/msg/KeyValue"
@@ -155,35 +171,81 @@ def diagnostics(agent: str, op: str, type_name: str, data: dict[str, Any], when:
     return ros.make(DIAGNOSTICS, header=ros.header(ros.stamp_ns_of(stamp), ""), status=[status])
 
 
-class BagRecorder:
-    """Write events into a rosbag2 MCAP file as they arrive (the interface of erni.replay.Recorder).
+# --- writing: an MCAP file as rosbag2's MCAP storage (Jazzy) writes it -------------------------
 
-    The bag is written in a directory beside `path` and its one MCAP file moved to `path` on close:
-    the file holds rosbag2's metadata itself, so `ros2 bag info`, Foxglove and `rosbags` open it alone.
+ROS_DISTRO = "jazzy"  # the distribution whose message types (and hashes) the bag holds
+_COMPRESSION = {"none": CompressionType.NONE, "zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4}
+COMPRESSIONS = tuple(_COMPRESSION)
+"""Chunk compressions of `erni record --compression`: none is rosbag2's default MCAP preset (`none`:
+chunks stored as they are); zstd is its `zstd_fast`/`zstd_small` presets' choice; lz4 its other one.
+Each chunk carries its CRC (as `zstd_small` writes), which readers check."""
+CHUNK_SIZE = 768 * 1024  # the MCAP writer's chunk size, which rosbag2's presets (but zstd_small) keep
+# the file's indexes: chunks, messages and metadata (a bag has no attachments, and the C++ MCAP writer of
+# rosbag2 leaves an empty index group out of the summary)
+_INDEXES = IndexType.CHUNK | IndexType.MESSAGE | IndexType.METADATA
+_INFINITE = {"sec": 9223372036, "nsec": 854775807}  # RMW_DURATION_INFINITE, rmw_zenoh's default durations
+_DEPTHS = {"/tf": 100}  # the live plugin's publishers: keep last 10, /tf keep last 100 (plugins/ros2)
+
+
+def _yaml(value: Any) -> str:
+    """Block YAML of rosbag2's metadata (PyYAML's): keys in their order, as rosbag2 writes them."""
+    return str(yaml.safe_dump(value, sort_keys=False, default_flow_style=False))
+
+
+def offered_qos(topic: str) -> dict[str, Any]:
+    """The QoS profile ERNI's ros2 plugin offers on `topic`, as rosbag2 (format 9) writes a profile:
+    reliable, volatile, keep last 10 (100 on /tf), rmw_zenoh's infinite durations, automatic liveliness."""
+    return {"history": "keep_last", "depth": _DEPTHS.get(topic, 10), "reliability": "reliable",
+            "durability": "volatile", "deadline": dict(_INFINITE), "lifespan": dict(_INFINITE),
+            "liveliness": "automatic", "liveliness_lease_duration": dict(_INFINITE),
+            "avoid_ros_namespace_conventions": False}
+
+
+class BagRecorder:
+    """Write events into a rosbag2 bag in MCAP storage as they arrive (the interface of erni.replay.Recorder),
+    as `ros2 bag record` (Jazzy) writes one.
+
+    A `path` ending in `.mcap` is one MCAP file, which holds rosbag2's metadata itself (`ros2 bag info`,
+    Foxglove and `rosbags` open it alone); any other name is a rosbag2 directory as `ros2 bag record -o
+    path` writes: `path/metadata.yaml` and `path/<name>_0.mcap`. Either is written beside `path` under a
+    hidden name and moved there on close. Each channel carries the type's hash (`topic_type_hash`) and the
+    QoS the live plugin offers (`offered_qos_profiles`); chunks are compressed as `compression` says
+    (`COMPRESSIONS`; none by default, as rosbag2's default MCAP preset).
     """
 
-    def __init__(self, path: str | Path, via: str, started: float | None = None, clock: Clock = SYSTEM):
-        from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer, WriterError
+    def __init__(self, path: str | Path, via: str, started: float | None = None, clock: Clock = SYSTEM,
+                 compression: str = "none"):
+        from erni import __version__
 
+        if compression not in COMPRESSIONS:
+            raise LogError(f"compression {shown(compression)}: expected one of {', '.join(COMPRESSIONS)}")
         self.path = Path(path)
+        self.directory = self.path.suffix.lower() != ".mcap"
+        self.file_name = f"{self.path.name}_0.mcap" if self.directory else self.path.name
+        self.compression = compression
         self.count = 0
         self.clock = clock  # the recorder's: changes are stamped by it
         self.started = clock.wall() if started is None else started
         self._start = clock()
         self._poses: dict[str, Pose] = {}
+        if self.directory and self.path.exists():
+            raise LogError(f"{self.path}: exists already; a bag directory is written anew (as ros2 bag record "
+                           f"does), or give a name ending in .mcap for one file")
         try:
             self._tmp = Path(tempfile.mkdtemp(prefix=f".{self.path.name}.", dir=self.path.parent))
+            self._file = (self._tmp / self.file_name).open("xb")
         except OSError as err:
+            if hasattr(self, "_tmp"):
+                shutil.rmtree(self._tmp, ignore_errors=True)
             raise LogError(f"{self.path}: cannot write: {err.strerror or err}") from None
-        self._writer = Writer(self._tmp / "bag", version=9, storage_plugin=StoragePlugin.MCAP)
-        # zstd chunks, as ros2 bag's MCAP storage writes by default: a fifth of the size
-        self._writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
-        try:
-            self._writer.open()
-        except (WriterError, OSError) as err:
-            shutil.rmtree(self._tmp, ignore_errors=True)
-            raise LogError(f"{self.path}: cannot write: {err}") from None
-        self._connections: dict[str, Any] = {}
+        self._writer = Writer(self._file, chunk_size=CHUNK_SIZE, compression=_COMPRESSION[compression],
+                              index_types=_INDEXES)
+        self._writer.start(profile="ros2", library=f"erni {__version__} ({LIBRARY_IDENTIFIER})")
+        self._schemas: dict[str, int] = {}
+        self._channels: dict[str, int] = {}
+        self._topics: dict[str, str] = {}  # topic -> its type, in the order of the channels
+        self._counts: dict[str, int] = {}  # topic -> messages written
+        self._span: tuple[int, int] | None = None  # the first and last log time (ns)
         header = {"erni_record": FORMAT, "via": via, "started": self.started}
         status = ros.make(_STATUS, level=OK, name="erni/record", message=via,
                           values=[ros.make(_KV, key="erni", value=json.dumps(header))])
@@ -191,11 +253,20 @@ class BagRecorder:
         self._put(HEADER_TOPIC, ros.make(DIAGNOSTICS, header=ros.header(stamp_ns, ""), status=[status]), stamp_ns)
 
     def _put(self, topic: str, msg: Any, stamp_ns: int) -> None:
-        conn = self._connections.get(topic)
-        if conn is None:
-            conn = self._connections[topic] = self._writer.add_connection(topic, msg.__msgtype__,
-                                                                          typestore=ros.TYPESTORE)
-        self._writer.write(conn, stamp_ns, ros.serialize(msg))
+        cid = self._channels.get(topic)
+        if cid is None:
+            typename = msg.__msgtype__
+            schema = self._schemas.get(typename)
+            if schema is None:
+                schema = self._schemas[typename] = self._writer.register_schema(
+                    typename, "ros2msg", ros.message_definition(typename).encode("utf-8"))
+            cid = self._channels[topic] = self._writer.register_channel(topic, "cdr", schema, {
+                "offered_qos_profiles": _yaml([offered_qos(topic)]), "topic_type_hash": ros.type_hash(typename)})
+            self._topics[topic], self._counts[topic] = typename, 0
+        self._writer.add_message(cid, stamp_ns, ros.serialize(msg), stamp_ns)
+        self._counts[topic] += 1
+        first, last = self._span or (stamp_ns, stamp_ns)
+        self._span = (min(first, stamp_ns), max(last, stamp_ns))
 
     def write(self, agent: str, op: str, type_name: str, data: dict[str, Any], t: float | None = None) -> None:
         """Record one change at `t` seconds since the recording started (now when None)."""
@@ -223,24 +294,55 @@ class BagRecorder:
                                                          drawn.articulation_points), when)
         self.count += 1
 
+    def metadata(self) -> dict[str, Any]:
+        """rosbag2's metadata of the bag (format 9): what `metadata.yaml` and the file's `rosbag2` record hold."""
+        first, last = self._span or (0, 0)
+        duration = last - first
+        count = sum(self._counts.values())
+        topics = [{"topic_metadata": {"name": topic, "type": typename, "serialization_format": "cdr",
+                                      "offered_qos_profiles": [offered_qos(topic)],
+                                      "type_description_hash": ros.type_hash(typename)},
+                   "message_count": self._counts[topic]} for topic, typename in self._topics.items()]
+        return {"version": 9, "storage_identifier": "mcap", "duration": {"nanoseconds": duration},
+                "starting_time": {"nanoseconds_since_epoch": first}, "message_count": count,
+                "topics_with_message_count": topics, "compression_format": "", "compression_mode": "",
+                "relative_file_paths": [self.file_name],
+                "files": [{"path": self.file_name, "starting_time": {"nanoseconds_since_epoch": first},
+                           "duration": {"nanoseconds": duration}, "message_count": count}],
+                "custom_data": {}, "ros_distro": ROS_DISTRO}
+
     def close(self) -> None:
-        """Finish the bag and move its MCAP file to the path asked for."""
+        """Finish the bag and move it to the path asked for."""
         try:
-            self._writer.close()
-            os.replace(self._tmp / "bag" / "bag.mcap", self.path)
+            info = self.metadata()
+            try:
+                # the last chunk, so that rosbag2's record follows every message; then the summary (schemas,
+                # channels, statistics, chunk and metadata indexes, offsets) and the footer. mcap's flush and
+                # finish are not annotated
+                self._writer.flush()  # type: ignore[no-untyped-call]
+                self._writer.add_metadata("rosbag2", {"serialized_metadata": _yaml(info)})
+                self._writer.finish()  # type: ignore[no-untyped-call]
+            finally:
+                self._file.close()
+            if self.directory:
+                (self._tmp / "metadata.yaml").write_text(_yaml({"rosbag2_bagfile_information": info}),
+                                                         encoding="utf-8")
+                os.rename(self._tmp, self.path)
+            else:
+                os.replace(self._tmp / self.file_name, self.path)
         except OSError as err:
             raise LogError(f"{self.path}: cannot write: {err.strerror or err}") from None
         finally:
             shutil.rmtree(self._tmp, ignore_errors=True)
 
 
-def convert(log: str | Path, out: str | Path) -> tuple[int, list[str]]:
+def convert(log: str | Path, out: str | Path, compression: str = "none") -> tuple[int, list[str]]:
     """Write an ERNI JSON-lines log as an MCAP bag; return the number of events and the lines skipped."""
     header, events, problems = read_log(log)
     started = header.get("started")
     if isinstance(started, bool) or not isinstance(started, (int, float)) or not math.isfinite(started):
         started = None
-    recorder = BagRecorder(out, str(header.get("via", "")), started)
+    recorder = BagRecorder(out, str(header.get("via", "")), started, compression=compression)
     try:
         for event in events:
             recorder.write_object(event.agent, event.op, type(event.obj).__name__,
@@ -251,16 +353,20 @@ def convert(log: str | Path, out: str | Path) -> tuple[int, list[str]]:
 
 
 def read_bag(path: str | Path, max_chunk: int = mcap_bounds.MAX_CHUNK,
-             max_message: int = mcap_bounds.MAX_MESSAGE) -> tuple[dict[str, Any], list[Event], list[str]]:
+             max_message: int = mcap_bounds.MAX_MESSAGE, robot: str | None = None
+             ) -> tuple[dict[str, Any], list[Event], list[str]]:
     """Return a bag's header, its ERNI events and one problem line per message that could not be read.
 
-    Poses come from `/erni/robots` when the bag has it (every field), else from the Odometry on
-    `/<robot>/odom` (position, heading, velocities and stamp), so bags from other tools replay too.
+    Poses come from ERNI's statuses on `/diagnostics` when the bag has them (every field), else from the
+    Odometry on `/<robot>/odom` (position, heading, velocities and stamp), so bags from other tools replay
+    too; a single robot's own bag (Odometry on `/odom`) replays as `robot`, and is refused without it.
     A bag beyond `max_chunk` or `max_message` (`mcap_bounds`) is refused whole (LogError).
     """
     from rosbags.rosbag2 import Reader
 
     path = Path(path)
+    if robot is not None and not is_name(robot):
+        raise LogError(f"--robot {shown(robot)}: expected a robot's name of {NAME_CHARS}")
     if not path.exists():
         raise LogError(f"{path}: no such file")
     if path.is_dir() and not (path / "metadata.yaml").exists():
@@ -281,7 +387,7 @@ def read_bag(path: str | Path, max_chunk: int = mcap_bounds.MAX_CHUNK,
         for one in sorted(path.glob("*.mcap")) if path.is_dir() else [path]:
             mcap_bounds.check(one, max_chunk, max_message)
         with Reader(Path(link_dir) / "bag.mcap" if link_dir else path) as reader:
-            return _events(path, reader)
+            return _events(path, reader, robot)
     except mcap_bounds.BagBoundError as err:
         raise LogError(str(err)) from None
     except LogError:
@@ -294,10 +400,10 @@ def read_bag(path: str | Path, max_chunk: int = mcap_bounds.MAX_CHUNK,
             shutil.rmtree(link_dir, ignore_errors=True)
 
 
-def _events(path: Path, reader: Any) -> tuple[dict[str, Any], list[Event], list[str]]:
+def _events(path: Path, reader: Any, robot: str | None) -> tuple[dict[str, Any], list[Event], list[str]]:
     topics = {c.topic: c.msgtype for c in reader.connections}
     problems: list[str] = []
-    connections = _erni_connections(path, reader.connections, HEADER_TOPIC in topics, problems)
+    connections = _erni_connections(path, reader.connections, HEADER_TOPIC in topics, problems, robot)
 
     def nothing() -> LogError:
         found = ", ".join(f"{printable(t)} ({printable(m)})" for t, m in sorted(topics.items())) or "no topics"
@@ -310,7 +416,7 @@ def _events(path: Path, reader: Any) -> tuple[dict[str, Any], list[Event], list[
     raw: list[tuple[int, str, str, BBObject]] = []
     for conn, stamp, data in reader.messages(connections=connections):
         try:
-            _message(conn, stamp, data, raw, header)
+            _message(conn, stamp, data, raw, header, robot)
         except (ErniError, ValueError, KeyError, TypeError, AttributeError, RecursionError) as err:
             problems.append(f"{path}: {conn.topic} at {stamp / 1e9:.3f}: {problem_of(err)}")
     if not raw and not header and not problems:
@@ -323,12 +429,15 @@ def _events(path: Path, reader: Any) -> tuple[dict[str, Any], list[Event], list[
     return header, events, problems
 
 
-def _erni_connections(path: Path, connections: list[Any], erni_bag: bool, problems: list[str]) -> list[Any]:
+def _erni_connections(path: Path, connections: list[Any], erni_bag: bool, problems: list[str],
+                      robot: str | None = None) -> list[Any]:
     """The connections whose messages are ERNI's: its statuses, and (in a bag not written by ERNI, whose
     poses are in its statuses with every field) the robots' odometry and the live plugin's task status.
-    An odometry topic that names no robot is skipped, and named in `problems`."""
+    An odometry topic that names no robot is skipped, and named in `problems`; a single robot's `/odom`
+    is `robot`'s (LogError without it when the bag has nothing else to replay)."""
     odom = [c for c in connections if c.msgtype == ODOMETRY and c.topic.endswith("/odom")
             and c.topic.count("/") == 2 and not erni_bag]
+    single = [c for c in connections if c.msgtype == ODOMETRY and c.topic == SINGLE_ODOM and not erni_bag]
     for conn in [c for c in odom if not is_name(c.topic.split("/")[1])]:  # /r\x1b[2J/odom names no robot
         odom.remove(conn)
         problems.append(f"{path}: topic {shown(conn.topic)}: skipped; a robot's topic is /<robot>/odom with the "
@@ -336,16 +445,23 @@ def _erni_connections(path: Path, connections: list[Any], erni_bag: bool, proble
     diag = [c for c in connections if c.msgtype == DIAGNOSTICS]
     status = [c for c in connections if c.topic == TASK_STATUS_TOPIC and c.msgtype == ros.STRING
               and not erni_bag]
-    return odom + diag + status
+    if single and robot is None:
+        if not odom and not status:
+            raise LogError(f"{path}: {SINGLE_ODOM} names no robot (one robot's own bag); give --robot NAME to "
+                           f"replay it as robot NAME")
+        problems.append(f"{path}: topic {SINGLE_ODOM}: skipped; it names no robot (give --robot NAME)")
+        single = []
+    return odom + single + diag + status
 
 
 def _message(conn: Any, stamp: int, data: bytes, raw: list[tuple[int, str, str, BBObject]],
-             header: dict[str, Any]) -> None:
-    """Decode one message into `raw`'s events, or into `header` when it is the recording's header."""
+             header: dict[str, Any], robot: str | None = None) -> None:
+    """Decode one message into `raw`'s events, or into `header` when it is the recording's header
+    (`robot`: whose a single robot's `/odom` is)."""
     msg = ros.deserialize(data, conn.msgtype)
     if conn.msgtype == ODOMETRY:
-        robot = conn.topic.split("/")[1]
-        raw.append((stamp, robot, "change", pose_from_odometry(robot, msg)))
+        name = robot if conn.topic == SINGLE_ODOM and robot else conn.topic.split("/")[1]
+        raw.append((stamp, name, "change", pose_from_odometry(name, msg)))
         return
     if conn.topic == TASK_STATUS_TOPIC:
         raw.append((stamp, "", "change", task_from_status(msg.data)))

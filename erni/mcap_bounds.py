@@ -132,7 +132,7 @@ def _check_chunk(f: BinaryIO, where: str, length: int, max_chunk: int, max_messa
                 break
         else:
             if decompressor.eof:  # a frame ended: what follows is another frame (or nothing)
-                pending = decompressor.unused_data + pending
+                pending = (decompressor.unused_data or b"") + pending  # lz4 says None for none
                 if not pending and not left:
                     break
                 decompressor = _decompressor(compression)

@@ -1,7 +1,8 @@
 """Recorded team logs: the file format, reading it back, and a plugin that replays it.
 
 A log is JSON lines, or a rosbag2 MCAP bag written by `erni record --format mcap` (read by
-`erni.bags`, which needs `rosbags`). The first line is a header `{"erni_record": 1, "via": ..., "started": t}`;
+`erni.bags`, which needs the ros2 extra: `rosbags`, `mcap`, PyYAML). The first line is a header
+`{"erni_record": 1, "via": ..., "started": t}`;
 every other line is one blackboard change seen by the recorded agent:
 `{"t": seconds since start, "agent": ..., "op": "add"|"change"|"remove", "type": "Pose", "data": {...}}`.
 Replaying publishes the same objects, in order and with the same spacing divided by the speed,
@@ -68,16 +69,16 @@ def is_bag(path: Path) -> bool:
         return False
 
 
-def read_log(path: str | Path) -> tuple[dict[str, Any], list[Event], list[str]]:
+def read_log(path: str | Path, robot: str | None = None) -> tuple[dict[str, Any], list[Event], list[str]]:
     """Return the header, the events, and one problem line per line (or bag message) that could not
-    be read."""
+    be read. `robot`: whose poses a single robot's own bag (Odometry on `/odom`) holds."""
     path = Path(path)
     if is_bag(path):
         try:
             from erni.bags import read_bag
         except ImportError as err:
-            raise LogError(f"{path}: reading MCAP bags needs rosbags (pip install 'erni[ros2]'): {err}") from None
-        return read_bag(path)
+            raise LogError(f"{path}: reading MCAP bags needs the ros2 extra (pip install 'erni[ros2]'): {err}") from None
+        return read_bag(path, robot=robot)
     try:
         with path.open("rb") as f:
             return _read_lines(path, _lines(f))
@@ -200,13 +201,15 @@ class ReplaySettings(Model):
     log: str = Field(description="log file or MCAP bag written by `erni record`")
     speed: float = Field(1.0, gt=0, le=1000, description="1 = recorded pace, 0.5 = slow motion")
     loop: bool = False
+    robot: str | None = Field(None, description="the robot whose poses a single robot's own bag (Odometry on "
+                              "/odom, no robot's namespace) holds")
 
 
 class ReplayPlugin(Plugin[ReplaySettings]):
     """Publishes a recorded log on this agent's blackboard at the recorded pace × speed."""
 
     def setup(self) -> None:
-        _, self.events, problems = read_log(self.settings.log)
+        _, self.events, problems = read_log(self.settings.log, self.settings.robot)
         for line in problems:
             self.log.warning("skipped %s", line)
         self.speed = self.settings.speed

@@ -7,6 +7,8 @@ A scenario file looks like this (every table is optional; `erni sim` without a f
     title = "Paper 000: PoI coverage by three robots"
     duration = 120.0                  # s; `erni sim` runs until Ctrl-C when absent
     seed = 1
+    ros2 = true                       # the control node shows the team to ROS 2, as `erni sim --ros2`
+                                      # does; or a [ros2] table of the ros2 plugin's settings
 
     world = "world-corridor.toml"     # a world file (relative to this file), or a [world] table
     [world]                           # the same keys as a world file: bounds, wall, circle, polygon
@@ -65,7 +67,7 @@ from typing import Any, Literal
 
 from pydantic import ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from erni.blackboard.errors import ConfigError, TaskError, describe_validation
+from erni.blackboard.errors import ConfigError, TaskError, describe_validation, shown
 from erni.blackboard.objects import FiniteAny, Model
 from erni.blackboard.schemas import read_toml
 from erni.blackboard.tasks import Task
@@ -171,6 +173,15 @@ class Scenario(_Strict):
     task: list[TaskSpec] = Field(default_factory=list)
     failure: list[FailureSpec] = Field(default_factory=list)
     strategy: dict[str, FiniteAny] = Field(default_factory=dict, description="experiment parameters")
+    ros2: bool | dict[str, FiniteAny] = Field(False, description="the control node runs the ros2 plugin: true, "
+                                              "or a table of its settings")
+
+    @field_validator("ros2", mode="before")
+    @classmethod
+    def _ros2(cls, value: Any) -> Any:
+        if not isinstance(value, (bool, dict)):
+            raise ValueError(f"expected true, false or a table of the ros2 plugin's settings, got {shown(value)}")
+        return value
 
     @field_validator("robot")
     @classmethod
@@ -243,6 +254,12 @@ class Scenario(_Strict):
             out.append(RobotStart(name=f"robot{i + 1}", x=x, y=y, heading=heading))
         return out
 
+    def ros2_settings(self) -> dict[str, Any] | None:
+        """The settings the scenario gives the control node's ros2 plugin; None when it runs none."""
+        if self.ros2 is False:
+            return None
+        return {} if self.ros2 is True else dict(self.ros2)
+
     def with_robots(self, count: int) -> Scenario:
         """Return this scenario with `count` robots (listed starts are kept as far as they go)."""
         if count < 1:
@@ -278,9 +295,26 @@ def parse_scenario(data: dict[str, Any], source: str = "<scenario>", base: Path 
         except ScenarioError as err:
             raise ScenarioError(f"{source}: {err}") from None
     try:
-        return Scenario.model_validate(data)
+        scenario = Scenario.model_validate(data)
     except ValidationError as err:
         raise ScenarioError(describe_validation(err, source, sep="\n")) from None
+    check_ros2_settings(scenario.ros2_settings(), source)
+    return scenario
+
+
+def check_ros2_settings(settings: dict[str, Any] | None, source: str = "<scenario>") -> None:
+    """Raise ScenarioError (`SOURCE: ros2.KEY: message`) when the ros2 plugin would refuse `settings`.
+    Without the plugin's libraries nothing is checked here: running it says which extra to install."""
+    if not settings:
+        return
+    try:
+        from erni.plugins.ros2 import ROS2Settings
+    except ImportError:
+        return
+    try:
+        ROS2Settings.model_validate(settings)
+    except ValidationError as err:
+        raise ScenarioError(describe_validation(err, source, prefix="ros2", sep="\n")) from None
 
 
 def load_scenario(path: str | Path) -> Scenario:

@@ -11,7 +11,8 @@ Every robot runs `python -m erni.sim.radio` (the `erni agent` command behind the
 radio) with the plugins it would run on a robot
 (transport on `127.0.1.N`, motion, mobinet, mission when installed); only the serial URL and
 the SNMP address differ. The control node runs the same agent with the transport in role
-`control` (and the UI plugin when installed). A team authority made for the run (in
+`control` (and the UI plugin when installed; with `ros2`, the ros2 plugin, which shows every robot
+it hears to ROS 2 on a Zenoh session of its own: `team_configs.ros2_settings`). A team authority made for the run (in
 `RUN/keys`) gives every agent, and the command-line client, its own identity.
 
 With `netns=True` (`erni sim --netns`, the real-mesh tier) every agent runs as plain
@@ -55,7 +56,7 @@ from erni.sim.scenario import MAX_AGENT_ROBOTS, Scenario
 from erni.sim.snmp_agent import ManetSnmpAgent
 from erni.sim.team_configs import CONTROL as CONTROL
 from erni.sim.team_configs import CONTROL_HOST as CONTROL_HOST
-from erni.sim.team_configs import AgentConfigs
+from erni.sim.team_configs import AgentConfigs, ros2_settings
 from erni.sim.team_configs import AgentProcess as AgentProcess
 from erni.sim.team_configs import agent_toml as agent_toml
 from erni.sim.team_configs import free_port as free_port
@@ -142,7 +143,8 @@ class Team:
                  gui_listen: str | None = None, netns: bool = False, mobinet: str | None = None,
                  hello_interval: float = HELLO_INTERVAL, mission_settings: dict[str, Any] | None = None,
                  robot_settings: dict[str, Any] | None = None, keep_run_dir: bool = False,
-                 launch_batch: int | None = None, channel: str | None = None) -> None:
+                 launch_batch: int | None = None, ros2: bool | None = None,
+                 channel: str | None = None) -> None:
         if scenario.count > MAX_AGENT_ROBOTS:
             raise TeamError(f"--robots: at most {MAX_AGENT_ROBOTS} robot agents (one loopback "
                             f"address each), got {scenario.count}; use the kinematic mode of "
@@ -177,6 +179,15 @@ class Team:
             else free_port(CONTROL_HOST)
         self.names = scenario.robot_names()
         self.mobinet = _mobinet_source(mobinet, netns)
+        # the control node's ros2 plugin, when `ros2` (None: the scenario's `ros2` key) asks for it: the
+        # scenario's settings of it over the simulator's (`ros2_settings`); None without the plugin
+        asked = scenario.ros2_settings()
+        if ros2 is not None:
+            asked = (asked or {}) if ros2 else None
+        if asked is not None and netns:
+            raise TeamError("--ros2 runs on the loopback team only, not with --netns (the control node's "
+                            "namespace is not reachable from this host's ROS 2 tools)")
+        self.ros2: dict[str, Any] | None = None if asked is None else ros2_settings(asked)
         # the real-mesh tier: namespaces, segment, babeld, radio rules (made in start())
         self.mesh: Mesh | None = Mesh(self.names + [CONTROL], self.run_dir, control=CONTROL,
                                       hello_interval=hello_interval, channel=channel or scenario.radio.channel,
@@ -201,7 +212,7 @@ class Team:
                                     robot_url=self.host.url, discovery_port=self.discovery_port,
                                     transport=self.transport, mission=self.mission, ui=self.ui, mobinet=self.mobinet,
                                     mission_extra=self.mission_extra, gui_listen=gui_listen,
-                                    gui_token=self.gui_token, mesh=self.mesh)
+                                    gui_token=self.gui_token, mesh=self.mesh, ros2=self.ros2)
         self.agents: dict[str, AgentProcess] = self.configs.agents  # filled as the configs are written
         self.samples: list[Sample] = []
         self.status = TeamStatus()
@@ -433,12 +444,15 @@ class Team:
             up = {name for name, p in self.peers(1.0).items() if p.up} if connected == n else set()
             heard = len(up & expected)
             say("robots connected", connected, n) if connected < n else say("robots heard by control", heard, len(expected))
-            # the control node is heard before its GUI plugin may listen: the URL printed must open
-            if connected == n and expected <= up and self._gui_answers():
+            # the control node is heard before its GUI plugin may listen: the URL printed must open; so
+            # must the ROS 2 endpoint printed
+            if connected == n and expected <= up and self._gui_answers() and self._ros2_answers():
                 return
             if time.monotonic() > deadline:
-                late = "" if connected < n or not expected <= up else \
-                    f"; its GUI at {gui_address(self.url or '')} does not answer"
+                late = ""
+                if connected == n and expected <= up:
+                    late = f"; its GUI at {gui_address(self.url or '')} does not answer" if not self._gui_answers() \
+                        else f"; its ROS 2 session at {', '.join(self.ros2_listen)} does not answer"
                 raise TeamError(f"the team did not come up within {timeout:.0f} s: {connected}/{n} robots "
                                 f"connected, control hears {heard}/{len(expected)} reachable robots{late}; "
                                 f"logs in {self.run_dir / 'logs'}")
@@ -476,6 +490,26 @@ class Team:
                 return True
         except OSError:
             return False
+
+    @property
+    def ros2_listen(self) -> list[str]:
+        """The TCP endpoints the control node's ROS 2 session listens on (none without the ros2 plugin)."""
+        if self.ros2 is None or self.ros2.get("mode") == "client":
+            return []
+        return [e for e in self.ros2.get("listen", []) if e.startswith("tcp/")]
+
+    def _ros2_answers(self) -> bool:
+        """Whether the control node's ROS 2 session (if the team has one) accepts a connection where it listens."""
+        for endpoint in self.ros2_listen:
+            host, _, port = endpoint.removeprefix("tcp/").split("#", 1)[0].rpartition(":")
+            host = host.strip("[]")
+            try:
+                with socket.create_connection(("127.0.0.1" if host in ("0.0.0.0", "::", "") else host, int(port)),
+                                              timeout=0.5):
+                    pass
+            except (OSError, ValueError):
+                return False
+        return True
 
     # --- running ------------------------------------------------------------------------
 

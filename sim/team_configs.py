@@ -27,6 +27,8 @@ from erni.transport.identity import REVOKED
 
 CONTROL = "control"
 CONTROL_HOST = "127.0.1.250"
+RMW_ZENOHD = "tcp/127.0.0.1:7447"  # where rmw_zenohd listens by default (ros2 run rmw_zenoh_cpp rmw_zenohd)
+ROS2_PORT = 7448  # where the control node's ROS 2 session listens, when free: beside rmw_zenohd's port
 
 
 def private_file(path: Path) -> Path:
@@ -101,6 +103,17 @@ def agent_toml(name: str, plugins: list[tuple[str, dict[str, Any]]], *, journal:
     return "\n".join(lines).lstrip() + "\n"
 
 
+def ros2_settings(asked: dict[str, Any]) -> dict[str, Any]:
+    """The settings of the control node's ros2 plugin: a Zenoh session of its own (the team's transport
+    is not on Zenoh) in peer mode, connected to rmw_zenohd's default port (tried again until a router
+    runs there) and listening on 127.0.0.1 (ROS2_PORT when free, else a free port) for ROS 2 clients
+    and routers pointed at it; the scenario's `asked` settings win."""
+    out: dict[str, Any] = {"session": "own", "mode": "peer", "connect": [RMW_ZENOHD], **asked}
+    if "listen" not in asked and out["mode"] == "peer":
+        port = ROS2_PORT if port_free("127.0.0.1", ROS2_PORT) else free_port("127.0.0.1")
+        out["listen"] = [f"tcp/127.0.0.1:{port}"]
+    return out
+
 
 @dataclass
 class AgentProcess:
@@ -132,11 +145,12 @@ class AgentConfigs:
     def __init__(self, scenario: Scenario, run_dir: Path, names: list[str], world: World, *, keys_dir: Path,
                  robot_url: Callable[[int], str], discovery_port: int, transport: dict[str, Any], mission: bool,
                  ui: bool, mobinet: str, mission_extra: dict[str, Any], gui_listen: str | None, gui_token: str,
-                 mesh: Mesh | None) -> None:
+                 mesh: Mesh | None, ros2: dict[str, Any] | None = None) -> None:
         self.scenario, self.run_dir, self.names, self.world = scenario, run_dir, names, world
         self.keys_dir, self.robot_url, self.discovery_port = keys_dir, robot_url, discovery_port
         self.transport, self.mission, self.ui, self.mobinet = transport, mission, ui, mobinet
         self.mission_extra, self.gui_listen, self.gui_token, self.mesh = mission_extra, gui_listen, gui_token, mesh
+        self.ros2 = ros2  # the control node's ros2 plugin settings (None: no plugin)
         self.agents: dict[str, AgentProcess] = {}
         self.url: str | None = None
         self._forwarder: TcpForwarder | None = None
@@ -176,7 +190,8 @@ class AgentConfigs:
     def write(self, snmp_ports: dict[str, int], write_communities: dict[str, str], control_port: int,
               gui_port: int) -> None:
         """Write every agent's config: each robot's node serves SNMP on its port of `snmp_ports` with its
-        write community; the control node listens on `control_port`, its GUI on `gui_port` (or a free one)."""
+        write community; the control node listens on `control_port`, its GUI on `gui_port` (or a free one),
+        and runs the ros2 plugin when asked."""
         self.write_communities = write_communities
         self.control_port, self.gui_port = control_port, gui_port
         if self.mesh is not None:
@@ -224,6 +239,8 @@ class AgentConfigs:
                 shown = public_address()
             shown = f"[{shown}]" if ":" in shown else shown
             self.url = f"http://{shown}:{gui_port}/?token={self.gui_token}"
+        if self.ros2 is not None:  # it hears every robot's Pose: it serves the whole team's topics
+            plugins.append(("ros2", self.ros2))
         self._add_agent(CONTROL, (CONTROL_HOST, self.control_port), plugins,
                         f"control node of scenario {self.scenario.name}", workers=2)
 

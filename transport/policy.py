@@ -15,7 +15,7 @@ issue --role` writes (in team-key and insecure mode from what the sender states)
 | `task.result` | `ResultUpdate` | the agent the task was sent to (its performer) | `performer` |
 | `task.query` | `TaskQuery` | `control` and `cli`; else the task's requester or performer | `query` |
 | `status`, `status.fresh`, `status.remove` | the object, `Fresh`, `StatusRemoved` | an agent about its own objects only: a type of `STATUS`, from a role it names, the object naming its sender (and, where the type has one, under its uid); a uid is held by one sender until it removes it | `status` |
-| `watch.request`, `peers.request` | `WatchRequest`, any | `control` and `cli` (a robot does not watch the team) | `watch` |
+| `watch.request`, `peers.request` | `WatchRequest`, any | `control`, `cli` and `observer` (a robot does not watch the team) | `watch` |
 | `beacon`, `status.resend` | `Beacon`, `StatusResend` | any agent of the team | — |
 | anything else | | nobody | `kind` |
 
@@ -57,8 +57,10 @@ RELAYS: Mapping[str, frozenset[str]] = {
     "control": frozenset({"cli", "control"}),
 }
 
-WATCHERS = OPERATORS
-"""Roles that may watch the blackboard (`erni watch`) and list the peers (`erni peers`)."""
+WATCHERS = OPERATORS | {"observer"}
+"""Roles that may watch the blackboard (`erni watch`) and list the peers (`erni peers`): the
+operators, and `observer`, which may watch and never task (a ROS 2 viewer's certificate behind
+`erni router --acl`; ERNI's command-line client always runs as `cli`)."""
 
 
 @dataclass(frozen=True)

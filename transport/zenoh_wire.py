@@ -16,7 +16,9 @@ module replaces is only how bytes move (key expressions in `zenoh_keys.py`):
   endpoint's, unchanged;
 - discovery is Zenoh's liveliness: each agent holds a token `erni/<team>/<name>/alive/<role>/<inst>/<router>`;
   a token that appears is a hint of presence (as a broadcast beacon is: the session decides), one
-  that goes marks its agent gone (`on_gone`) at once instead of after its silence limit; the
+  that goes marks its agent gone (`on_gone`) at once instead of after its silence limit; a hint
+  that leads to no session is forgotten and given again a bounded number of times (`HINT_WAITS`:
+  tokens are unsigned, anyone the router admits may declare one); the
   router in it (declared again when the agent's router changes) says where the agent is reached.
 
 Datagrams wait in a bounded ring channel (the oldest dropped when it is full) for one receive
@@ -30,6 +32,7 @@ from __future__ import annotations
 import base64
 import json
 import threading
+from dataclasses import dataclass
 from typing import Any
 
 import zenoh
@@ -56,6 +59,19 @@ DATAGRAM_QUEUE = 8192
 BATCH_BYTES = 16_000  # statuses gathered in one frame in a burst (ERNI's UDP wire: 1400, one datagram)
 """Datagrams waiting for the receive thread; when more arrive the oldest go first (newest wins),
 as statuses are meant to (a UDP socket's buffer drops the newest instead)."""
+
+HINT_STAND = 3.0
+"""A token's hint stands for this many handshake timeouts: an agent whose token is held but whose
+handshake has not completed by then is forgotten (`on_gone`) until its next hint."""
+
+HINT_WAITS = (5.0, 15.0, 45.0)
+"""Seconds (agent clock) from one forgotten hint to the next of a token that never led to a session:
+a token is hinted 1 + len(HINT_WAITS) times at most while it is held, then no more until it goes.
+Anyone the router admits may declare a token in any agent's name; this bounds the handshakes one
+such token costs each agent (a real agent reaches this one by its own handshake meanwhile)."""
+
+HINTS_KEPT = 4096
+"""Names whose tokens are waited on for a session at once; a newer one is not hinted past this."""
 
 PUBLISHERS = 4096
 """Publishers kept declared (one per receiver); past this many they are all declared again on use."""
@@ -140,6 +156,18 @@ def open_router(listen: list[str], *, connect: list[str] | None = None, scouting
     return session
 
 
+@dataclass(slots=True)
+class _Hint:
+    """A token's hint that has not led to a session yet: when it was given, how many were, when the
+    next is due (None: it stands now) and what it announced."""
+
+    given: float
+    role: str
+    router: str
+    hints: int = 1
+    due: float | None = None
+
+
 ROUTER_ROLE = "router"
 _router_tokens: dict[int, Any] = {}  # a router's name token lives as long as the process's router
 
@@ -161,6 +189,7 @@ class ZenohEndpoint(Endpoint):
         self._token_router = ""
         self._next_route_check = 0.0
         self._alive_lock = threading.Lock()
+        self._hints: dict[str, _Hint] = {}  # agent -> its token's hint, until a session with it (`_follow_hints`)
         self._halt = threading.Event()
         self._rx: threading.Thread | None = None  # the datagram thread (`_receive_loop`)
         self._next_open = 0.0  # when to try again to open a session that could not be opened (monotonic)
@@ -256,6 +285,7 @@ class ZenohEndpoint(Endpoint):
                 if now >= self._next_route_check:
                     self._next_route_check = now + 1.0
                     self._follow_router()
+                self._follow_hints()
                 self.sessions.sweep(self.clock())
             except NetworkError:
                 self.count("zenoh.unreachable")
@@ -274,6 +304,65 @@ class ZenohEndpoint(Endpoint):
         self._token = zs.liveliness().declare_token(self.keys.token(self.name, self.role, self.inst, router))
         self._token_router = router
         old.undeclare()  # type: ignore[no-untyped-call]  # untyped in Zenoh's stubs
+
+    def _follow_hints(self) -> None:
+        """The tokens hinted that have not led to a session: a hint that stood `HINT_STAND` handshake
+        timeouts (agent clock) is forgotten (`on_gone`: a peer known only from it leaves the team's
+        directory, and nothing is sent to it); one forgotten is hinted again after the next of
+        `HINT_WAITS`, and after the last not until its token goes and comes again."""
+        now = self.clock()
+        stand = HINT_STAND * self.handshake_timeout
+        again: list[tuple[str, _Hint]] = []
+        forget: list[str] = []
+        with self._alive_lock:
+            for name, hint in list(self._hints.items()):
+                if self._in_session(name):
+                    del self._hints[name]  # a peer now: its token's end says when it leaves
+                elif hint.due is None and now - hint.given >= stand:
+                    forget.append(name)
+                    hint.due = now + HINT_WAITS[hint.hints - 1] if hint.hints <= len(HINT_WAITS) else float("inf")
+                elif hint.due is not None and now >= hint.due:
+                    hint.given, hint.hints, hint.due = now, hint.hints + 1, None
+                    again.append((name, hint))
+        for name in forget:
+            if not self._in_session(name):  # not reached meanwhile
+                self.count("zenoh.hints_forgotten")
+                self._drop_statuses(name)
+                self._gone(name)
+        for name, hint in again:
+            self._hint(name, hint.role, hint.router)
+
+    def _drop_statuses(self, name: str) -> None:
+        """Drop the statuses waiting for a session with agent `name` (a forgotten hint): its handshake
+        then stops with nothing left to carry (a reliable message waits out its own deadline)."""
+        with self.queues.cond:
+            dest = self.queues.dests.get(address_of(name))
+            dropped = len(dest.fast) if dest is not None else 0
+            if dest is not None:
+                dest.fast.clear()
+        if dropped:
+            self.count("dropped.no_session", dropped)
+
+    def _in_session(self, name: str) -> bool:
+        """Whether agent `name` is reached: a confirmed session with it, or its peer up (an agent
+        running insecure has no sessions)."""
+        return (self.sessions.usable(address_of(name)) is not None
+                or (self.hint_wanted is not None and not self.hint_wanted(name)))
+
+    def _hint(self, name: str, role: str, router: str) -> None:
+        """Tell the owner an agent may be up there (its token): a session will tell."""
+        if not self._beacon_bucket.take():  # unsigned: anyone the router admits may declare one
+            self.count("dropped.rate")
+            return
+        self.count("zenoh.hints")
+        self.dispatch(Message(name, role, address_of(name), 0, 0, "", "beacon", Beacon(role=role), hint=True,
+                               source=f"router {router}" if router else "direct"))
+
+    def _gone(self, name: str) -> None:
+        try:
+            self.on_gone(name)
+        except Exception:
+            self.log.exception("handling the end of %s's liveliness failed", name)
 
     @property
     def session(self) -> zenoh.Session:
@@ -393,11 +482,16 @@ class ZenohEndpoint(Endpoint):
             self.count("zenoh.tokens")
             if self.hint_wanted is not None and not self.hint_wanted(name):
                 return  # a peer in session already: its token tells nothing new
-            if not self._beacon_bucket.take():  # unsigned: anyone the router admits may declare one
-                self.count("dropped.rate")
-                return
-            self.dispatch(Message(name, role, address_of(name), 0, 0, "", "beacon", Beacon(role=role), hint=True,
-                                   source=f"router {router}" if router else "direct"))
+            with self._alive_lock:
+                hint = self._hints.get(name)
+                if hint is not None:  # hinted already (or waiting to be again): `_follow_hints` paces it
+                    hint.role, hint.router = role, router
+                    return
+                if len(self._hints) >= HINTS_KEPT:
+                    self.count("dropped.hints")
+                    return
+                self._hints[name] = _Hint(self.clock(), role, router)
+            self._hint(name, role, router)
             return
         with self._alive_lock:
             held = self._alive.get(name, set())
@@ -406,12 +500,10 @@ class ZenohEndpoint(Endpoint):
             if gone:
                 self._alive.pop(name, None)
                 self._routes.pop(name, None)
+                self._hints.pop(name, None)
         if gone:
             self.count("zenoh.gone")
-            try:
-                self.on_gone(name)
-            except Exception:
-                self.log.exception("handling the end of %s's liveliness failed", name)
+            self._gone(name)
 
     def alive(self) -> dict[str, set[str]]:
         """The agents whose liveliness tokens are held now, with their instances."""

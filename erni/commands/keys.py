@@ -18,6 +18,8 @@ ROLES = """\
            Pose and NetInfo
   cli      a command-line client (erni task, watch, peers): tasks any agent, directly or
            through the control node, cancels any task, watches the team; never a peer
+  observer may watch, never task or cancel: a ROS 2 viewer's certificate (its topics through
+           erni router --acl); ERNI's command-line tools take a cli certificate
 A task is cancelled by the agent it came from or by control and cli (the one that gave it
 is told who cancelled it)."""
 
@@ -40,7 +42,7 @@ def register(sub: Any) -> None:
     a.add_argument("dir")
     a.add_argument("name")
     a.add_argument("--role", default="robot", help="the agent's role, which says what it may do (see above): "
-                   "robot, control or cli; another word is a role with no rights but its own status "
+                   "robot, control, cli or observer (may only watch); another word is a role with no rights but its own status "
                    "(default robot)")
     a.add_argument("--out", help="where to write the bundle (default DIR/NAME.pem)")
     a = actions.add_parser("revoke", help="revoke every identity issued to NAME (or one serial, in hex)")

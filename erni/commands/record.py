@@ -13,6 +13,7 @@ from erni.commands._client import add_client_options, check_seconds, open_client
 from erni.commands._text import say
 from erni.replay import LogError, Recorder
 
+COMPRESSIONS = ("none", "zstd", "lz4")  # erni.bags.COMPRESSIONS, named without importing the ros2 extra
 LEASE = 10.0
 
 
@@ -25,11 +26,14 @@ def register(sub: Any) -> None:
                        "diagnostic_msgs/DiagnosticArray on /diagnostics; network markers on /erni/network), "
                        "until Ctrl-C. Replay either with `erni replay`. With --convert LOG, write the ERNI "
                        "log LOG as the MCAP bag OUT instead, without reaching any agent.")
-    p.add_argument("out", help="file to write: JSON lines, or an MCAP bag when it ends in .mcap or with "
-                   "--format mcap")
+    p.add_argument("out", help="what to write: JSON lines; or an MCAP bag, one file when OUT ends in .mcap, "
+                   "else (with --format mcap) a rosbag2 directory OUT/ as `ros2 bag record -o OUT` writes")
     p.add_argument("--format", choices=("jsonl", "mcap"), default=None,
                    help="jsonl (ERNI's log) or mcap (a rosbag2 bag that ros2 bag, Foxglove and PlotJuggler open; "
-                   "needs rosbags); default: mcap when OUT ends in .mcap, else jsonl")
+                   "needs the ros2 extra); default: mcap when OUT ends in .mcap, else jsonl")
+    p.add_argument("--compression", choices=COMPRESSIONS, default="none",
+                   help="the bag's chunk compression: none (the default of ros2 bag record's MCAP storage), "
+                   "zstd (a ninth of the size, for poses) or lz4")
     p.add_argument("--convert", metavar="LOG", help="convert this JSON-lines log (from `erni record`) into "
                    "the MCAP bag OUT and exit")
     p.add_argument("--seconds", type=float, default=0, help="stop after S seconds (0 = at Ctrl-C)")
@@ -42,8 +46,12 @@ def run(args: argparse.Namespace) -> int:
     from erni.transport.client import ClientError
 
     fmt = args.format or ("mcap" if args.out.lower().endswith(".mcap") else "jsonl")
+    if fmt == "jsonl" and args.compression != "none" and not args.convert:
+        say("erni record: --compression is the MCAP bag's: OUT must end in .mcap, or give --format mcap",
+            file=sys.stderr)
+        return 2
     if args.convert:
-        return _convert(args.convert, args.out, fmt)
+        return _convert(args.convert, args.out, fmt, args.compression)
     problem = check_seconds(args.seconds, "--seconds", zero=True)
     if problem:
         say(f"erni record: {problem}", file=sys.stderr)
@@ -59,7 +67,8 @@ def run(args: argparse.Namespace) -> int:
             addr = client.find(None)
             via = f"{addr[0]}:{addr[1]}"
             bags = _bags() if fmt == "mcap" else None
-            recorder: Recorder | Any = bags.BagRecorder(args.out, via) if bags else Recorder(args.out, via)
+            recorder: Recorder | Any = (bags.BagRecorder(args.out, via, compression=args.compression) if bags
+                                        else Recorder(args.out, via))
         except (ClientError, LogError) as err:
             say(f"erni record: {err}", file=sys.stderr)
             return 1 if isinstance(err, ClientError) else 2
@@ -96,16 +105,16 @@ def _close(recorder: Any) -> str:
 
 
 def _bags() -> Any:
-    """The bag module, or None after saying on stderr that rosbags is missing."""
+    """The bag module, or None after saying on stderr that the ros2 extra (rosbags, mcap, PyYAML) is missing."""
     try:
         from erni import bags
     except ImportError as err:
-        say(f"erni record: MCAP bags need rosbags (pip install 'erni[ros2]'): {err}", file=sys.stderr)
+        say(f"erni record: MCAP bags need the ros2 extra (pip install 'erni[ros2]'): {err}", file=sys.stderr)
         return None
     return bags
 
 
-def _convert(log: str, out: str, fmt: str) -> int:
+def _convert(log: str, out: str, fmt: str, compression: str = "none") -> int:
     """Write the JSON-lines log `log` as the MCAP bag `out`."""
     if fmt != "mcap":
         say("erni record: --convert writes an MCAP bag: OUT must end in .mcap, or give --format mcap",
@@ -118,7 +127,7 @@ def _convert(log: str, out: str, fmt: str) -> int:
     if bags is None:
         return 2
     try:
-        count, problems = bags.convert(log, out)
+        count, problems = bags.convert(log, out, compression)
     except LogError as err:
         say(f"erni record: {err}", file=sys.stderr)
         return 2

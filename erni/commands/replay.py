@@ -27,7 +27,9 @@ def register(sub: Any) -> None:
                        "blackboard at the recorded pace; `erni watch --via` it or open its GUI. "
                        "Type p + Enter to pause or resume, a number + Enter to set the speed.")
     p.add_argument("log", help="log file or MCAP bag written by `erni record` (a bag from other tools "
-                   "replays its nav_msgs/msg/Odometry on /<robot>/odom as poses)")
+                   "replays its nav_msgs/msg/Odometry on /<robot>/odom as poses, and on /odom with --robot)")
+    p.add_argument("--robot", metavar="NAME", help="replay a single robot's own bag (nav_msgs/msg/Odometry on "
+                   "/odom, as the robot's ROS 2 stack records it) as robot NAME")
     p.add_argument("--speed", type=float, default=1.0, help="1 = recorded pace, 0.25 = slow motion")
     p.add_argument("--listen", default="127.0.0.1:47100", help="transport address of the replay node")
     p.add_argument("--name", default="control", help="agent name of the replay node")
@@ -70,7 +72,7 @@ def _commands(plugin: ReplayPlugin, stop: threading.Event) -> None:
 def run(args: argparse.Namespace) -> int:
     """Check the log, start the replay node, report progress until the end or Ctrl-C."""
     try:
-        _, events, problems = read_log(args.log)
+        _, events, problems = read_log(args.log, args.robot)
     except LogError as err:
         say(f"erni replay: {err}", file=sys.stderr)
         return 2
@@ -86,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
         agent.add_plugin("transport", settings={"listen": args.listen, "role": "control", "discovery_port": 0,
                                                 "forward_tasks": False, **auth}, name="transport")
         plugin = agent.add_plugin(ReplayPlugin, settings={"log": args.log, "speed": args.speed,
-                                                          "loop": args.loop}, name="replay")
+                                                          "loop": args.loop, "robot": args.robot}, name="replay")
         fox = None
         if args.foxglove:
             if importlib.util.find_spec("foxglove") is None:

@@ -36,8 +36,14 @@ def register(sub: Any) -> None:
                    "certificate of the same team authority (mutual TLS)")
     p.add_argument("--acl", metavar="KEYS_DIR", help="access control from the team authority in KEYS_DIR (erni "
                    "keys init): each agent's certificate may put, query and hold a token only as itself, and "
-                   "receives only what is addressed to it; certificates of role router may carry anything "
-                   "(needs --identity, --team and tls/ endpoints)")
+                   "receives only what is addressed to it; certificates of role router may carry anything; "
+                   "ROS 2 traffic is admitted by role (--ros2-domain) (needs --identity, --team and tls/ endpoints)")
+    p.add_argument("--ros2-domain", type=int, default=0, metavar="ID",
+                   help="with --acl, the ROS 2 domain (ROS_DOMAIN_ID, default 0) whose rmw_zenoh traffic is "
+                   "admitted by role: the control node's ros2 plugin publishes and serves; certificates of a "
+                   "role that may watch subscribe to the topics; of one that may also task publish cmd_vel and "
+                   "goal_pose and call the services; others get none of it")
+    p.add_argument("--no-ros2", action="store_true", help="with --acl, admit no ROS 2 traffic")
     p.add_argument("--team", help="the team's key chunk, as the agents' zenoh.team: needed by --acl; with it "
                    "the router also holds a token in its name, so `erni peers` names the router each peer "
                    "is reached through")
@@ -65,10 +71,11 @@ def run(args: argparse.Namespace) -> int:
     try:
         access = None
         if args.acl:
-            from erni.transport.zenoh_acl import access_control, team_names
+            from erni.transport.zenoh_acl import access_control, team_roles
 
-            agents, routers = team_names(args.acl)
-            access = access_control(args.team, agents, routers)
+            agents, routers = team_roles(args.acl)
+            access = access_control(args.team, sorted(agents), routers, roles=agents,
+                                    ros2_domain=None if args.no_ros2 else args.ros2_domain)
             if args.print_acl:
                 say_lines(json.dumps({"access_control": access}, indent=2))
                 return 0
@@ -95,6 +102,8 @@ def _acl_problem(args: argparse.Namespace, endpoints: list[str]) -> str:
             return f"{option}: expected letters, digits, '_', '.', '-', got {value!r}"
     if args.print_acl and not args.acl:
         return "--print-acl needs --acl KEYS_DIR"
+    if not 0 <= args.ros2_domain <= 232:
+        return f"--ros2-domain: expected a ROS_DOMAIN_ID in 0-232, got {args.ros2_domain}"
     if not args.acl:
         return ""
     if not args.team or not NAME.match(args.team):
@@ -119,7 +128,8 @@ def serve(listen: list[str], connect: list[str], scouting: bool, stop: threading
     try:
         say(f"erni router {session.zid()}: listening on {' '.join(listen)}"
               + (f", linked to {' '.join(connect)}" if connect else "")
-              + (f"; access control for {len(access['subjects'])} certificate name(s)" if access else ""),
+              + (f"; access control for {len({n for s in access['subjects'] for n in s['cert_common_names']})} "
+                 "certificate name(s)" if access else ""),
               file=out, flush=True)
         routers: set[str] = set()
         while not stop.wait(1.0):

@@ -67,6 +67,11 @@ def register(sub: Any) -> None:
                    help="what carries the frames with --netns: the radio model as nftables drop rules "
                    "(nftables, the default) or ns-3's 802.11a ad-hoc network in real time (ns3: needs "
                    "Debian's libns3-dev, g++ and pkg-config); default: the scenario's radio.channel")
+    p.add_argument("--ros2", action="store_true",
+                   help="show the team to ROS 2 (as the scenario's ros2 = true does): the control node runs the "
+                   "ros2 plugin, every robot's /ROBOT/odom, /tf and cmd_vel on a Zenoh session listening on "
+                   "tcp/127.0.0.1:7448 (or a free port; printed) and joining rmw_zenohd on 127.0.0.1:7447 when "
+                   "one runs; domain $ROS_DOMAIN_ID, else 0 (needs pip install 'erni[ros2]')")
     p.add_argument("--netns-clean", action="store_true",
                    help="remove what killed --netns runs left behind (namespaces, links) and exit")
     p.set_defaults(func=run)
@@ -85,7 +90,62 @@ def load(args: argparse.Namespace) -> Any:
         if args.duration <= 0:
             raise ScenarioError(f"--duration: expected a positive number of seconds, got {args.duration}")
         scenario = scenario.model_copy(update={"duration": args.duration})
+    if args.ros2 and scenario.ros2 is False:
+        scenario = scenario.model_copy(update={"ros2": True})
+    settings = scenario.ros2_settings()
+    if settings is not None and "domain_id" not in settings and os.environ.get("ROS_DOMAIN_ID", "").strip():
+        # the ROS 2 side's domain, as ROS 2 tools take it
+        scenario = scenario.model_copy(update={"ros2": {**settings, "domain_id": domain_id(os.environ["ROS_DOMAIN_ID"])}})
     return scenario
+
+
+def domain_id(text: str) -> int:
+    """ROS_DOMAIN_ID as a number (raises ScenarioError naming it)."""
+    from erni.sim.scenario import ScenarioError
+
+    try:
+        value = int(text.strip())
+    except ValueError:
+        value = -1
+    if not 0 <= value <= 232:
+        raise ScenarioError(f"ROS_DOMAIN_ID: expected a ROS 2 domain 0-232, got {text[:40]!r}")
+    return value
+
+
+def ros2_missing() -> str:
+    """'' when the ros2 plugin's libraries are installed, else the one line naming the extra that adds them."""
+    try:
+        import erni.plugins.ros2  # noqa: F401  # the plugin and every library it imports
+    except ImportError as err:
+        package = {"zenoh": "eclipse-zenoh"}.get(err.name or "", err.name or "a library of the ros2 plugin")
+        return f"--ros2 needs {package}, which is not installed: pip install 'erni[ros2]'"
+    return ""
+
+
+def ros2_lines(team: Any) -> list[str]:
+    """How ROS 2 tools reach the team, when its control node runs the ros2 plugin ([] when not)."""
+    from erni.plugins.ros2.plugin import ros_name
+    from erni.sim.team_configs import RMW_ZENOHD
+
+    settings = team.ros2
+    if settings is None:
+        return []
+    names = [ros_name(name) for name in team.names]
+    topics = f"/{names[0]}/odom" + (f" ... /{names[-1]}/odom" if len(names) > 1 else "")
+    listen = team.ros2_listen
+    where = f"listening on {', '.join(listen)}" if listen else f"a client of {', '.join(settings['connect'])}"
+    lines = [f"ROS 2 (domain {settings.get('domain_id', 0)}): {topics}, /tf, /ROBOT/cmd_vel, /ROBOT/goal_pose, "
+             f"/erni/stop from the control node's Zenoh session, {where}"]
+    connect = settings.get("connect", [])
+    if listen and connect:
+        lines.append(f"  it joins the router at {', '.join(connect)} whenever one runs there" + (
+            " (ros2 run rmw_zenoh_cpp rmw_zenohd): rviz2, Foxglove's bridge and ros2 topic list see the team with "
+            "RMW_IMPLEMENTATION=rmw_zenoh_cpp" if RMW_ZENOHD in connect else ""))
+    if listen:
+        endpoints = ",".join(f'"{e}"' for e in listen)
+        lines.append(f"  a Zenoh client or router of another port connects with "
+                     f"ZENOH_CONFIG_OVERRIDE='connect/endpoints=[{endpoints}]'")
+    return lines
 
 
 def run(args: argparse.Namespace) -> int:
@@ -116,6 +176,8 @@ def run(args: argparse.Namespace) -> int:
                 check_channel(scenario.count + 1)
             except Ns3Error as err:
                 raise TeamError(str(err)) from None
+        if scenario.ros2 is not False and (missing := ros2_missing()):
+            raise TeamError(missing)
         too_many = capacity_warning(scenario.count, cores())
         if args.gui_listen:
             from erni.transport import parse_address
@@ -161,6 +223,9 @@ def run(args: argparse.Namespace) -> int:
         progress.done()
         announced = announce(team.control_address, team.discovery_port, team.cli_identity, team.run_dir)
         _print_team(team, time.monotonic() - t0, announced)
+        for line in ros2_lines(team):
+            say(line)
+        say("Ctrl-C stops the team", flush=True)
         for note in speech_notes(team.url is None):
             say(f"erni sim: {note}", flush=True)
         running.append(True)
@@ -297,8 +362,7 @@ def _print_team(team: Any, seconds: float, announced: Path | None = None) -> Non
         from erni.transport.client import IDENTITY_ENV
 
         say(f"  (while it runs, erni peers, task, stop, watch, record and console find this team without --via and "
-            f"{IDENTITY_ENV}: it is named in {announced})")
-    say("Ctrl-C stops the team", flush=True)
+            f"{IDENTITY_ENV}: it is named in {announced})", flush=True)
 
 
 def _run_scenario(team: Any, scenario: Any, stopping: list[int]) -> None:

@@ -2,7 +2,8 @@
 
 Serves std_srvs/Trigger on `/<robot>/stop` and `/erni/stop` (a BotMotion stop, answered once the robot
 halted) and Nav2's NavigateToPose action on `/<robot>/navigate_to_pose` (a goto, then a turn).
-Publishes each robot's Pose as nav_msgs/Odometry on `/<robot>/odom`, as a transform on `/tf` and its
+Publishes each robot's Pose as nav_msgs/Odometry on `/<robot>/odom`, as transforms on `/tf` (REP 105's
+map → odom → base_link, or a flat map → base_link) and its
 sonar echoes as a sensor_msgs/LaserScan on `/<robot>/sonar`, task
 results as std_msgs/String (JSON) on `/erni/task_status`, the network as a MarkerArray on
 `/erni/network` and a DiagnosticArray on `/diagnostics`; listens to geometry_msgs/Twist on `/<robot>/cmd_vel` (a BotMotion velocity task, so the
@@ -25,7 +26,7 @@ from pydantic import ConfigDict, Field, field_validator, model_validator
 
 from erni import ros2_messages as messages
 from erni.blackboard.errors import NetworkError
-from erni.blackboard.objects import Model
+from erni.blackboard.objects import BBObject, Model
 from erni.blackboard.plugin import Plugin
 from erni.blackboard.tasks import NetInfo, Pose, Task, TaskState
 from erni.plugins.ros2.navigate import CANCELED, Navigator
@@ -52,8 +53,15 @@ class ROS2Settings(Model):
                                      "letters, digits and '_' become '_'); default: every robot whose Pose the "
                                      "agent has on a control node, the agent itself elsewhere")
     node_name: str | None = Field(None, description="the ROS 2 node's name (default erni_<agent>)")
-    frame: str = Field("map", min_length=1, description="the world frame of odometry, /tf and markers")
-    odom_rate_hz: float = Field(10.0, gt=0, le=100, description="at most this many Odometry messages a second per robot")
+    frame: str = Field("map", min_length=1, description="the world frame: the root of /tf, and the frame of "
+                       "markers and of a goal's feedback")
+    frames: Literal["rep105", "flat"] = Field("rep105", description="rep105: /tf is frame → <robot>/odom → "
+                                              "<robot>/base_link, odometry in <robot>/odom (REP 105; frame → "
+                                              "<robot>/odom is the identity, published with each pose); flat: "
+                                              "frame → <robot>/base_link, odometry in frame")
+    odom_rate_hz: float = Field(10.0, gt=0, le=100, description="at most this many Odometry messages a second per "
+                                "robot on average (two may come in a row); a robot whose Pose comes no faster "
+                                "has each sent at once")
     tf: bool = Field(True, description="publish each robot's transform on /tf")
     sonar: bool = Field(True, description="publish each robot's sonar echoes as a LaserScan on /<robot>/sonar")
     status: bool = Field(True, description="publish task results on /erni/task_status")
@@ -108,6 +116,42 @@ def ros_name(name: str) -> str:
     return out if out and not out[0].isdigit() else f"r{out}"
 
 
+class RateBudget:
+    """At most `rate` events a second per key on average, without delaying a source that keeps to it.
+
+    A token bucket of 2 tokens filled at `rate`: a source at `rate` with jitter almost always finds a
+    token, and any window of T s lets at most rate * T + 2 through. An event that finds none is held,
+    not sent the moment a token comes: a newer event that finds a token goes at once in its place, and
+    the held one goes only when none came within one and a half periods after its token (so a source's
+    last event is never lost, and an on-time successor with jitter comes first). Sending each held
+    event at its token instead would spend the token of the next on-time event and keep every later
+    one late by that lag for as long as the source keeps to the rate (a source at `rate` loads the
+    bucket fully). Pure: time is passed in."""
+
+    BURST = 2.0
+
+    def __init__(self, rate: float) -> None:
+        self.rate, self.grace = rate, 1.5 / rate
+        self._tokens: dict[str, tuple[float, float]] = {}  # key -> (tokens, when counted)
+        self._held: dict[str, float] = {}  # key -> when its held event goes, newer or not
+
+    def offer(self, key: str, now: float, fresh: bool) -> float:
+        """An event of `key` waiting at `now` (`fresh`: it has just come): 0 when it goes now (and is
+        counted), else the seconds after which to offer it (or a newer one) again."""
+        tokens, then = self._tokens.get(key, (self.BURST, now))
+        tokens = min(self.BURST, tokens + max(0.0, now - then) * self.rate)
+        held = self._held.get(key)
+        if tokens >= 1.0 and (fresh or held is None or now >= held):
+            self._tokens[key] = (tokens - 1.0, now)
+            self._held.pop(key, None)
+            return 0.0
+        self._tokens[key] = (tokens, now)
+        short = max(0.0, (1.0 - tokens) / self.rate)
+        if held is None:
+            held = self._held[key] = now + short + self.grace
+        return max(held - now, short, 1e-3)
+
+
 @dataclass
 class _Drive:
     """What the plugin knows of one robot's cmd_vel stream."""
@@ -149,12 +193,15 @@ class ROS2Plugin(Plugin[ROS2Settings]):
         self._drives: dict[str, _Drive] = {}
         self._calls: list[tuple[str, str | None, Request]] = []  # service calls from Zenoh's threads
         self._stops: list[_Stop] = []
-        self.navigator = Navigator(get=self.get, remove=self.remove, send=self._send, wake_in=self.wake_in,
+        self._ending: dict[str, tuple[TaskState, str]] = {}  # uid -> the end of a task this plugin removes
+        self.navigator = Navigator(get=self.get, send=self._send, wake_in=self.wake_in,
+                                   remove=lambda task: self._end(task, TaskState.CANCELLED,
+                                                                 "cancelled through NavigateToPose's cancel_goal"),
                                    topic=lambda robot: f"/{ros_name(robot)}/navigate_to_pose/_action",
                                    frame=s.frame, feedback_hz=s.odom_rate_hz, log=self.log)
         self._run = 0
         self._lock = threading.Lock()
-        self._last_odom: dict[str, float] = {}
+        self._odom_budget = RateBudget(s.odom_rate_hz)
         self._pending_odom: dict[str, Pose] = {}
         self._robots_fixed = s.robots
         self._declared: set[str] = set()
@@ -342,6 +389,9 @@ class ROS2Plugin(Plugin[ROS2Settings]):
                 if task.result is not None:
                     self._send(messages.STRING, "/erni/task_status", messages.task_status(task),
                                messages.stamp_ns_of(task.result.stamp))
+            for task in self.tasks.removed:
+                self._status_of_removed(task)
+        self._ending = {uid: why for uid, why in self._ending.items() if self.get(uid) is not None}
         if self.settings.network and (self.nets.added or self.nets.changed):
             self._publish_network()
             for info in [*self.nets.added, *self.nets.changed]:
@@ -351,32 +401,51 @@ class ROS2Plugin(Plugin[ROS2Settings]):
         self._answer_stops()
         self.navigator.update(self.clock(), self._now_ns(), self._run)
 
+    def _status_of_removed(self, task: Task) -> None:
+        """The last status of a task removed before it ended (its performer reports nothing more): what this
+        plugin removed it for (a velocity task whose cmd_vel stream stopped or changed succeeded: it held its
+        command as long as it was given), else cancelled."""
+        state, message = self._ending.pop(task.uid, (TaskState.CANCELLED, "removed before it ended"))
+        if task.done:
+            return
+        ended = task.with_result(state, message=message, stamp=self.clock.wall(),
+                                 progress=1.0 if state is TaskState.SUCCEEDED else
+                                 (task.result.progress if task.result else 0.0))
+        assert ended.result is not None
+        self._send(messages.STRING, "/erni/task_status", messages.task_status(ended),
+                   messages.stamp_ns_of(ended.result.stamp))
+
+    def _end(self, task: BBObject, state: TaskState, message: str) -> None:
+        """Remove a task this plugin posted, with the status /erni/task_status gives it once it is gone."""
+        self._ending[task.uid] = (state, message)
+        self.remove(task)
+
     def _publish_poses(self, robots: set[str]) -> None:
-        """Odometry (and /tf) of the robots' new poses, at most odom_rate_hz per robot; a pose held back by
-        the rate goes out when its robot's slot comes (the newest one: a robot's last state is never lost)."""
+        """Odometry (and /tf) of the robots' new poses, at most odom_rate_hz per robot (`RateBudget`): a pose
+        held back by the rate is replaced by a newer one, or goes out itself when none came (a robot's last
+        state is never lost)."""
+        fresh = set()
         for pose in [*self.poses.added, *self.poses.changed]:
             if pose.robot in robots:
                 self._pending_odom[pose.robot] = pose
+                fresh.add(pose.robot)
         if self.node is None or not self._pending_odom:
             return
         now = self.clock()
-        period = 1.0 / self.settings.odom_rate_hz
         due = []
         for robot, pose in list(self._pending_odom.items()):
-            wait = self._last_odom.get(robot, -math.inf) + period - now
+            wait = self._odom_budget.offer(robot, now, robot in fresh)
             if wait <= 0:
                 due.append(pose)
                 del self._pending_odom[robot]
-                self._last_odom[robot] = now
             else:
                 self.wake_in(wait)
         if not due:
             return
-        frame = self.settings.frame
         for pose in due:
             stamp_ns = messages.stamp_ns_of(pose.stamp)
-            self._send(messages.ODOMETRY, f"/{ros_name(pose.robot)}/odom", messages.odometry(pose, stamp_ns, frame),
-                       stamp_ns)
+            self._send(messages.ODOMETRY, f"/{ros_name(pose.robot)}/odom",
+                       messages.odometry(pose, stamp_ns, self._odom_frame(pose.robot)), stamp_ns)
         if self.settings.sonar:
             for pose in due:
                 if pose.sonar:
@@ -385,7 +454,34 @@ class ROS2Plugin(Plugin[ROS2Settings]):
                                messages.sonar_echo_scan(pose, self._transducers(pose.robot), stamp_ns), stamp_ns)
         if self.settings.tf:
             stamp_ns = max(messages.stamp_ns_of(p.stamp) for p in due)
-            self._send(messages.TF_MESSAGE, "/tf", messages.tf_message(due, stamp_ns, frame), stamp_ns)
+            self._send(messages.TF_MESSAGE, "/tf", self._tf_message(due), stamp_ns)
+
+    def _odom_frame(self, robot: str) -> str:
+        """The frame a robot's odometry is given in: '<robot>/odom' (rep105) or the world frame (flat)."""
+        return f"{robot}/odom" if self.settings.frames == "rep105" else self.settings.frame
+
+    def _tf_message(self, poses: list[Pose]) -> Any:
+        """/tf of the robots' poses, each transform stamped with its Pose's time. rep105: world →
+        <robot>/odom (the identity: an ERNI Pose is already in the world frame, so odometry and map
+        coincide and nothing drifts between them) and <robot>/odom → <robot>/base_link (the Pose); both
+        with the Pose's stamp, so a lookup at any time the odometry is known finds the whole chain. flat:
+        world → <robot>/base_link."""
+        world = self.settings.frame
+        transforms = []
+        for pose in poses:
+            stamp_ns = messages.stamp_ns_of(pose.stamp)
+            if self.settings.frames == "rep105":
+                odom = self._odom_frame(pose.robot)
+                identity = messages.make(
+                    "geometry_msgs/msg/Transform", translation=messages.make("geometry_msgs/msg/Vector3"),
+                    rotation=messages.quaternion(0.0))
+                transforms.append(messages.make("geometry_msgs/msg/TransformStamped",
+                                                header=messages.header(stamp_ns, world), child_frame_id=odom,
+                                                transform=identity))
+                transforms.append(messages.transform(pose, stamp_ns, odom))
+            else:
+                transforms.append(messages.transform(pose, stamp_ns, world))
+        return messages.make(messages.TF_MESSAGE, transforms=transforms)
 
     def _transducers(self, robot: str) -> tuple[tuple[float, float, float] | None, ...]:
         """Where a robot's sonars sit: its motion plugin's model when it runs in this agent, else a Pioneer 3-DX's."""
@@ -441,13 +537,14 @@ class ROS2Plugin(Plugin[ROS2Settings]):
             d.latched = False
             d.params = None
         if d.task is not None and now - d.heard >= s.cmd_vel_timeout:
-            self.remove(d.task)  # the stream stopped: so does the robot
+            self._end(d.task, TaskState.SUCCEEDED,  # the stream stopped: so does the robot
+                      f"the cmd_vel stream stopped (none for {s.cmd_vel_timeout:g} s)")
             d.task, d.params = None, None
         elif d.params is not None and not d.latched and now - d.heard < s.cmd_vel_timeout:
             same = d.task is not None and d.task.params.model_dump(include={"v", "w"}) == d.params
             if not same and now - d.started >= 1.0 / s.cmd_vel_rate_hz:
                 if d.task is not None:
-                    self.remove(d.task)
+                    self._end(d.task, TaskState.SUCCEEDED, "replaced by a newer cmd_vel")
                 d.task = self._task(robot, "velocity", d.params)
                 d.started = now
                 self.add(d.task)
@@ -464,7 +561,7 @@ class ROS2Plugin(Plugin[ROS2Settings]):
             for earlier in (d.goal, d.turn):
                 current = self.get(earlier.uid) if earlier is not None else None
                 if isinstance(current, Task) and not current.done:
-                    self.remove(current)  # a new goal replaces the one being driven to
+                    self._end(current, TaskState.CANCELLED, "replaced by a newer goal")  # the one being driven to
             d.goal = self._task(robot, "goto", {**goal, "speed": s.goal_speed, "tolerance": s.goal_tolerance})
             d.heading, d.turn, d.action = heading, None, goal_id
             self.add(d.goal)

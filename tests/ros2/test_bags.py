@@ -10,17 +10,25 @@ import json
 import math
 import os
 import re
+import signal
 import subprocess
 import sys
 import time
+from collections import Counter
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
+import yaml
+from mcap.reader import make_reader
+from mcap.stream_reader import StreamReader
+from mcap_ros2.decoder import DecoderFactory
 from rosbags.highlevel import AnyReader
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
+from erni import ros2_messages as messages
 from erni.bags import BagRecorder, read_bag
 from erni.blackboard import NetInfo, Pose, Task
 from erni.blackboard.schemas import Peer
@@ -53,6 +61,35 @@ def bag_messages(path: Path) -> tuple[dict[str, str], list[tuple[str, int, Any]]
     return topics, msgs
 
 
+def plain(value: Any) -> Any:
+    """A message as nested dicts and lists of its fields (rosbags' and mcap_ros2's classes alike)."""
+    names = getattr(value, "__dataclass_fields__", None) or getattr(value, "__slots__", None)
+    if names and not isinstance(value, (str, bytes)):
+        return {k: plain(getattr(value, k)) for k in names if not k.startswith("_") and not k.isupper()}
+    if isinstance(value, np.ndarray):
+        return [plain(x) for x in value.tolist()]
+    if isinstance(value, (bytes, bytearray)):
+        return list(value)
+    if isinstance(value, (list, tuple)):
+        return [plain(x) for x in value]
+    return value
+
+
+def mcap_messages(path: Path) -> list[tuple[str, int, Any]]:
+    """Every message as Foxglove's mcap reader (CRCs checked) and mcap-ros2-support decode it from the
+    file's own schemas."""
+    with path.open("rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()], validate_crcs=True)
+        return [(c.topic, m.log_time, plain(d)) for _, c, m, d in reader.iter_decoded_messages(log_time_order=True)]
+
+
+def chunk_compressions(path: Path) -> list[str]:
+    with path.open("rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None
+    return sorted({c.compression for c in summary.chunk_indexes})
+
+
 def erni_values(status: Any) -> dict[str, str]:
     return {kv.key: kv.value for kv in status.values}
 
@@ -83,7 +120,7 @@ def test_bag_has_ros2_types_and_values_that_rosbags_reads(tmp_path: Path) -> Non
     events = write_sample(bag)
     assert bag.is_file() and bag.read_bytes()[:8] == b"\x89MCAP0\r\n"
     assert [p.name for p in tmp_path.iterdir()] == ["run.mcap"], "the writer's directory is gone"
-    assert b"\x04\x00\x00\x00zstd" in bag.read_bytes(), "its chunks are zstd-compressed"
+    assert chunk_compressions(bag) == [""], "its chunks are stored as they are: rosbag2's default MCAP preset"
     topics, msgs = bag_messages(bag)
     assert topics == {"/erni/record": "diagnostic_msgs/msg/DiagnosticArray",
                       "/robot1/odom": "nav_msgs/msg/Odometry", "/tf": "tf2_msgs/msg/TFMessage",
@@ -92,6 +129,8 @@ def test_bag_has_ros2_types_and_values_that_rosbags_reads(tmp_path: Path) -> Non
     # the type hash rosbag2 (Jazzy) checks, in the rosbag2 metadata record the MCAP file carries
     found = re.search(rb"name: /robot1/odom\n.*?type_description_hash:\s+(RIHS01_\w+)", bag.read_bytes(), re.S)
     assert found and found.group(1).decode() == JAZZY.hash_rihs01("nav_msgs/msg/Odometry")
+    # Foxglove's mcap reader, checking every CRC, and its own ROS 2 decoder read the same values
+    assert mcap_messages(bag) == [(topic, t, plain(m)) for topic, t, m in msgs]
 
     # the file describes itself: the definitions it carries (ros2msg) decode it to the same values,
     # as Foxglove and PlotJuggler decode a bag without ROS 2 installed
@@ -230,8 +269,6 @@ def test_record_a_live_team_as_mcap_then_replay_it(tmp_path: Path) -> None:
 def test_a_bag_of_the_live_topics_replays_odometry_and_task_status(tmp_path: Path) -> None:
     """A bag of the live ros2 plugin's topics, as `ros2 bag record` saves them (Odometry on
     /<robot>/odom, JSON Strings on /erni/task_status), replays its poses and tasks."""
-    from erni import ros2_messages as messages
-
     path = tmp_path / "tb3"
     writer = Writer(path, version=9, storage_plugin=StoragePlugin.MCAP)
     writer.open()
@@ -292,3 +329,186 @@ def test_bad_bags_are_one_line_errors(tmp_path: Path) -> None:
         assert len(out.stderr.strip().splitlines()) == 1, out.stderr
     out = erni_run("record", "--convert", str(not_mcap), str(tmp_path / "out.mcap"))
     assert out.returncode == 2 and "not an MCAP file" in out.stderr and "Traceback" not in out.stderr
+
+
+INFINITE = {"sec": 9223372036, "nsec": 854775807}  # RMW_DURATION_INFINITE
+
+
+def live_qos(typename: str) -> dict[str, Any]:
+    """The QoS the live ros2 plugin's publisher of a type offers (its own `_qos`), in rosbag2's form."""
+    from erni.plugins.ros2.plugin import ROS2Plugin
+
+    qos = ROS2Plugin._qos(typename)
+    return {"history": "keep_last", "depth": qos.depth, "reliability": "reliable" if qos.reliable else "best_effort",
+            "durability": "transient_local" if qos.transient_local else "volatile", "deadline": INFINITE,
+            "lifespan": INFINITE, "liveliness": "automatic", "liveliness_lease_duration": INFINITE,
+            "avoid_ros_namespace_conventions": False}
+
+
+def test_the_file_says_what_ros2_bag_record_writes(tmp_path: Path) -> None:
+    """Channel metadata (`topic_type_hash`, `offered_qos_profiles`), the profile, the `rosbag2` metadata
+    record (format 9, `ros_distro: jazzy`) as rosbag2's MCAP storage (Jazzy) writes them, read with
+    Foxglove's mcap reader, PyYAML and rosbags."""
+    bag = tmp_path / "run.mcap"
+    write_sample(bag)
+    with bag.open("rb") as f:
+        reader = make_reader(f, validate_crcs=True)
+        header, summary = reader.get_header(), reader.get_summary()
+        records = list(reader.iter_metadata())
+    assert summary is not None and summary.statistics is not None
+    assert header.profile == "ros2" and re.fullmatch(r"erni \S+ \(mcap-python/[0-9.]+\)", header.library), header
+    channels = {c.topic: c for c in summary.channels.values()}
+    assert list(channels) == ["/erni/record", "/robot1/odom", "/tf", "/diagnostics", "/erni/network"]
+    for topic, channel in channels.items():
+        schema = summary.schemas[channel.schema_id]
+        assert channel.message_encoding == "cdr" and schema.encoding == "ros2msg"
+        assert set(channel.metadata) == {"offered_qos_profiles", "topic_type_hash"}
+        # ERNI's own RIHS01 (erni.ros2_messages) is rosbags' Jazzy hash of the schema's type
+        assert channel.metadata["topic_type_hash"] == JAZZY.hash_rihs01(schema.name) == messages.type_hash(schema.name)
+        assert yaml.safe_load(channel.metadata["offered_qos_profiles"]) == [live_qos(schema.name)], topic
+        assert schema.data.decode() == JAZZY.generate_msgdef(schema.name, ros_version=2)[0]
+    assert yaml.safe_load(channels["/tf"].metadata["offered_qos_profiles"])[0]["depth"] == 100
+    assert yaml.safe_load(channels["/robot1/odom"].metadata["offered_qos_profiles"])[0]["depth"] == 10
+
+    assert [r.name for r in records] == ["rosbag2"] and list(records[0].metadata) == ["serialized_metadata"]
+    info = yaml.safe_load(records[0].metadata["serialized_metadata"])
+    assert info["version"] == 9 and info["storage_identifier"] == "mcap" and info["ros_distro"] == "jazzy"
+    assert info["relative_file_paths"] == ["run.mcap"] and info["files"][0]["path"] == "run.mcap"
+    assert (info["compression_format"], info["compression_mode"]) == ("", "")
+    stats = summary.statistics
+    assert info["message_count"] == stats.message_count == 13
+    assert info["starting_time"]["nanoseconds_since_epoch"] == stats.message_start_time == 1_700_000_000 * 10**9
+    assert info["duration"]["nanoseconds"] == stats.message_end_time - stats.message_start_time == 3 * 10**9
+    topics = {t["topic_metadata"]["name"]: t for t in info["topics_with_message_count"]}
+    for topic, channel in channels.items():
+        meta = topics[topic]["topic_metadata"]
+        assert topics[topic]["message_count"] == stats.channel_message_counts[channel.id]
+        assert meta["type_description_hash"] == channel.metadata["topic_type_hash"]
+        assert meta["offered_qos_profiles"] == yaml.safe_load(channel.metadata["offered_qos_profiles"])
+
+    # read as a stream too, record by record (CRCs checked): chunks with message indexes, rosbag2's record
+    # after every message, then the summary
+    with bag.open("rb") as f:
+        order = [type(r).__name__ for r in StreamReader(f, emit_chunks=True, validate_crcs=True).records]
+    kinds = Counter(order)
+    assert order.index("Metadata") > max(i for i, kind in enumerate(order) if kind in ("Chunk", "MessageIndex"))
+    assert kinds == {"Header": 1, "Chunk": 1, "MessageIndex": 5, "Metadata": 1, "DataEnd": 1, "Schema": 4,
+                     "Channel": 5, "Statistics": 1, "ChunkIndex": 1, "MetadataIndex": 1, "SummaryOffset": 5,
+                     "Footer": 1}, kinds
+
+    # rosbags reads the QoS as rosbag2 would replay it
+    with Reader(bag) as reader:
+        odom = next(c for c in reader.connections if c.topic == "/robot1/odom")
+        (qos,) = odom.ext.offered_qos_profiles  # type: ignore[union-attr]
+    assert (qos.history.name, qos.depth, qos.reliability.name, qos.durability.name, qos.liveliness.name) == (
+        "KEEP_LAST", 10, "RELIABLE", "VOLATILE", "AUTOMATIC")
+    assert (qos.deadline.sec, qos.deadline.nsec) == (INFINITE["sec"], INFINITE["nsec"])
+
+
+def test_any_name_is_a_rosbag2_directory_and_compression_is_asked_for(tmp_path: Path) -> None:
+    """A name without `.mcap` is a bag directory as `ros2 bag record -o NAME` writes (rosbags picks its
+    reader by a file's suffix, so an MCAP file named otherwise is no bag to it); chunks are compressed
+    only when asked, and every compression reads back to the same messages."""
+    plain_bag = tmp_path / "plain.mcap"
+    write_sample(plain_bag)
+    expected = mcap_messages(plain_bag)
+    sizes = {"none": plain_bag.stat().st_size}
+    for compression in ("zstd", "lz4"):
+        out = tmp_path / f"run-{compression}"
+        recorder = BagRecorder(out, "127.0.0.1:47100", started=1_700_000_000.0, compression=compression)
+        recorder.close()  # only the header: written and read like any other
+        assert [topic for topic, _, _ in mcap_messages(out / f"run-{compression}_0.mcap")] == ["/erni/record"]
+        out = tmp_path / f"team-{compression}"
+        recorder = BagRecorder(out, "127.0.0.1:47100", started=1_700_000_000.0, compression=compression)
+        events = [("add", POSE), ("add", TASK), ("change", DONE), ("add", NET), ("change", PEER),
+                  ("change", POSE.evolve(x=2.0, theta=-math.pi / 2)), ("remove", TASK)]
+        for i, (op, obj) in enumerate(events):
+            recorder.write("control", op, type(obj).__name__, obj.model_dump(mode="json"), t=0.5 * i)
+        recorder.close()
+        assert sorted(p.name for p in out.iterdir()) == ["metadata.yaml", f"team-{compression}_0.mcap"]
+        file = out / f"team-{compression}_0.mcap"
+        assert chunk_compressions(file) == [compression]
+        assert mcap_messages(file) == expected
+        sizes[compression] = file.stat().st_size
+        with Reader(out) as reader:  # the directory, through its metadata.yaml
+            assert reader.ros_distro == "jazzy" and reader.message_count == 13
+            assert {c.topic: c.digest for c in reader.connections}["/robot1/odom"] == \
+                JAZZY.hash_rihs01("nav_msgs/msg/Odometry")
+            assert [(c.topic, t, plain(JAZZY.deserialize_cdr(d, c.msgtype))) for c, t, d in reader.messages()] \
+                == expected
+        meta = yaml.safe_load((out / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+        assert meta["relative_file_paths"] == [file.name] and meta["version"] == 9
+        with AnyReader([out]) as any_reader:
+            assert len(list(any_reader.messages())) == 13
+        assert [(e.op, e.obj) for e in read_log(out)[1]] == [(op, obj) for op, obj in events]
+    assert sizes["zstd"] < sizes["none"] and sizes["lz4"] < sizes["none"], sizes
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == [], "no writer's directory is left"
+
+    with pytest.raises(LogError, match="exists already"):
+        BagRecorder(tmp_path / "team-zstd", "v")
+    with pytest.raises(LogError, match="compression 'gzip': expected one of none, zstd, lz4"):
+        BagRecorder(tmp_path / "g.mcap", "v", compression="gzip")
+
+    # from the command line: --convert into a directory, --compression
+    log = tmp_path / "team.jsonl"
+    log.write_text(json.dumps({"erni_record": FORMAT, "via": "10.1.1.1:47100", "started": 1_750_000_000.5}) + "\n"
+                   + json.dumps({"t": 0.5, "agent": "control", "op": "add", "type": "Pose",
+                                 "data": POSE.model_dump(mode="json")}) + "\n")
+    out = erni_run("record", "--convert", str(log), "--format", "mcap", "--compression", "zstd", str(tmp_path / "conv"))
+    assert out.returncode == 0 and "converted 1 events" in out.stderr, out.stderr
+    assert chunk_compressions(tmp_path / "conv" / "conv_0.mcap") == ["zstd"]
+    assert [e.obj for e in read_log(tmp_path / "conv")[1]] == [POSE]
+    out = erni_run("record", "--convert", str(log), "--format", "mcap", str(tmp_path / "conv"))
+    assert out.returncode == 2 and "exists already" in out.stderr and len(out.stderr.strip().splitlines()) == 1
+    out = erni_run("record", "--compression", "zstd", str(tmp_path / "x.jsonl"))
+    assert out.returncode == 2 and "--compression" in out.stderr and len(out.stderr.strip().splitlines()) == 1
+
+
+def single_robot_bag(path: Path, xs: list[float]) -> Path:
+    """A robot's own bag as `ros2 bag record` writes it on the robot: Odometry on /odom, /tf, no namespace."""
+    writer = Writer(path, version=9, storage_plugin=StoragePlugin.MCAP)
+    writer.open()
+    odom = writer.add_connection("/odom", "nav_msgs/msg/Odometry", typestore=JAZZY)
+    writer.add_connection("/tf", "tf2_msgs/msg/TFMessage", typestore=JAZZY)
+    for i, x in enumerate(xs):
+        pose = Pose(robot="base", x=x, theta=0.1 * i, v=0.2, stamp=1_700_000_000 + i)
+        writer.write(odom, (1_700_000_000 + i) * 10**9, messages.serialize(messages.odometry(pose, pose.stamp * 10**9)))
+    writer.close()
+    return path
+
+
+def test_a_single_robots_bag_replays_as_the_robot_named(tmp_path: Path) -> None:
+    bag = single_robot_bag(tmp_path / "tb3_run", [0.0, 0.5, 1.0])
+    _, events, problems = read_log(bag, robot="tb3")
+    assert problems == [] and [(e.t, e.agent, e.obj.robot, e.obj.x) for e in events] == [  # type: ignore[attr-defined]
+        (0.0, "tb3", "tb3", 0.0), (1.0, "tb3", "tb3", 0.5), (2.0, "tb3", "tb3", 1.0)]
+    with pytest.raises(LogError, match=r"/odom names no robot .*give --robot NAME"):
+        read_log(bag)
+    with pytest.raises(LogError, match="--robot 'a b': expected a robot's name"):
+        read_log(bag, robot="a b")
+
+    out = erni_run("replay", str(bag), "--no-gui", "--insecure", "--listen", f"127.0.0.1:{free_port()}")
+    assert out.returncode == 2 and "--robot NAME" in out.stderr and "Traceback" not in out.stderr
+    assert len(out.stderr.strip().splitlines()) == 1, out.stderr
+
+    out = erni_run("replay", str(bag), "--robot", "tb3", "--speed", "20", "--no-gui", "--insecure",
+                   "--listen", f"127.0.0.1:{free_port()}")
+    assert out.returncode == 0 and "replay finished (3 events)" in out.stderr, out.stderr
+
+    # looping, so that the watch sees it whenever its lease is granted
+    port = free_port()
+    replay = erni("replay", str(bag), "--robot", "tb3", "--loop", "--speed", "4", "--no-gui",
+                  "--listen", f"127.0.0.1:{port}", "--identity", identity("control", "control"))
+    try:
+        watch = erni_run("watch", "--via", f"127.0.0.1:{port}", "--json", "--seconds", "8")
+    finally:
+        replay.send_signal(signal.SIGINT)
+        try:
+            replay.communicate(timeout=15)
+        except subprocess.TimeoutExpired:
+            replay.kill()
+            replay.wait()
+    poses = [(e["data"]["robot"], e["data"]["x"]) for e in map(json.loads, watch.stdout.splitlines())
+             if e["type"] == "Pose"]
+    # (a loop removes its objects right after its last event: a watch may see that pose or not)
+    assert {r for r, _ in poses} == {"tb3"} and {0.0, 0.5} <= {x for _, x in poses} <= {0.0, 0.5, 1.0}, watch.stdout

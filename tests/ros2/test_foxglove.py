@@ -4,8 +4,9 @@ messageData frames (opcode 1) with a protobuf reader of its own, driven by the F
 channel advertises (no foxglove code decodes anything here).
 
 foxglove-sdk 0.30 names the protocol `foxglove.sdk.v1` (and `foxglove.sdk.v1.1`, where schemas are
-advertised apart from channels); it refuses a client that offers only the older name
-`foxglove.websocket.v1`. The messages of `foxglove.sdk.v1` are those of foxglove.websocket.v1."""
+advertised apart from channels) and refuses a client that offers only the published name
+`foxglove.websocket.v1`, as foxglove/ws-protocol's clients do; the plugin's own listener accepts
+both names (the messages are the same) and refuses a client offering neither."""
 
 from __future__ import annotations
 
@@ -19,6 +20,7 @@ import sys
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
+from decimal import Decimal
 from pathlib import Path
 from typing import Any
 
@@ -128,7 +130,6 @@ class Protobuf:
 
 class Client:
     def __init__(self, ws: Any):
-        assert ws.subprotocol == "foxglove.sdk.v1"
         self.ws = ws
         self.server_info: dict[str, Any] = {}
         self.channels: dict[int, dict[str, Any]] = {}
@@ -136,6 +137,7 @@ class Client:
         self.subscribed: dict[int, int] = {}  # subscription id -> channel id
         self.latest: dict[str, tuple[int, dict[str, Any]]] = {}  # topic -> (log time, message)
         self.received: dict[str, int] = {}
+        self.history: list[tuple[str, int, dict[str, Any]]] = []  # every message: (topic, log time, message)
 
     def pump(self, seconds: float) -> None:
         """Read frames for `seconds`: subscribe to every channel advertised, decode every message."""
@@ -153,6 +155,7 @@ class Client:
                 channel = self.channels[self.subscribed[sub]]
                 message = self.schemas[channel["id"]].decode(frame[13:], "." + channel["schemaName"])
                 self.latest[channel["topic"]] = (log_time, message)
+                self.history.append((channel["topic"], log_time, message))
                 self.received[channel["topic"]] = self.received.get(channel["topic"], 0) + 1
 
     def _control(self, msg: dict[str, Any]) -> None:
@@ -173,12 +176,28 @@ class Client:
         return {c["topic"]: c["schemaName"] for c in self.channels.values()}
 
 
+SDK, OLD = "foxglove.sdk.v1", "foxglove.websocket.v1"
+
+
 @contextmanager
-def foxglove_client(port: int) -> Iterator[Client]:
-    """A client offering both names of the protocol, as Foxglove's app does."""
+def foxglove_client(port: int, offer: tuple[str, ...] = (SDK, OLD)) -> Iterator[Client]:
+    """A client offering `offer` (by default both names of the protocol, as Foxglove's app does); the
+    server must choose the first name of the protocol offered (websockets refuses a name not offered)."""
     with websockets_sync.connect(f"ws://127.0.0.1:{port}", proxy=None, open_timeout=10,
-                                 subprotocols=["foxglove.sdk.v1", "foxglove.websocket.v1"]) as ws:
+                                 subprotocols=list(offer)) as ws:  # type: ignore[arg-type]
+        assert ws.subprotocol == next(name for name in offer if name in (SDK, OLD))
         yield Client(ws)
+
+
+def ns(seconds: float) -> int:
+    """The exact nanoseconds of a time the tests give in quarters of a second (exact in a float)."""
+    exact = Decimal(seconds) * 1_000_000_000
+    assert exact == exact.to_integral_value(), seconds
+    return int(exact)
+
+
+def timestamp_ns(t: dict[str, Any]) -> int:
+    return t.get("seconds", 0) * 1_000_000_000 + t.get("nanos", 0)
 
 
 def colour(c: dict[str, Any]) -> tuple[float, ...]:
@@ -207,8 +226,8 @@ def control():
 
 def test_foxglove_client_sees_robots_headings_trails_and_links(control):
     agent, plugin = control
-    r1 = Pose(robot="robot1", x=1.0, y=2.0, theta=math.pi / 2, battery=12.6)
-    r2 = Pose(robot="robot2", x=4.0, y=2.0, theta=0.0, battery=10.9)  # low: drawn pink
+    r1 = Pose(robot="robot1", x=1.0, y=2.0, theta=math.pi / 2, battery=12.6, stamp=1_750_000_001.25)
+    r2 = Pose(robot="robot2", x=4.0, y=2.0, theta=0.0, battery=10.9, stamp=1_750_000_000.5)  # low: drawn pink
     with agent.transaction() as tx:
         tx.add(r1)
         tx.add(r2)
@@ -242,13 +261,16 @@ def test_foxglove_client_sees_robots_headings_trails_and_links(control):
 
         wait_until(seen_last_pose, timeout=10)
         client.pump(0.3)
-        _, pose = client.latest["/robot1/pose"]
-        # stamped with the wall clock's seconds (not 0, ns or another epoch): a sanity bound, not a latency
-        assert pose["frame_id"] == "map" and abs(pose["timestamp"]["seconds"] - time.time()) < 300
+        log_time, pose = client.latest["/robot1/pose"]
+        # stamped with the Pose's own time (evolve keeps r1's), as the log time and in the message
+        assert pose["frame_id"] == "map" and log_time == ns(r1.stamp)
+        assert timestamp_ns(pose["timestamp"]) == log_time
 
-        _, tf = client.latest["/tf"]
+        tf_time, tf = client.latest["/tf"]
         frames = {t["child_frame_id"]: t for t in tf["transforms"]}
         assert set(frames) == {"robot1/base_link", "robot2/base_link"}
+        assert tf_time == ns(max(r1.stamp, r2.stamp))  # the team's message: its newest Pose
+        assert timestamp_ns(frames["robot2/base_link"]["timestamp"]) == ns(r2.stamp)
         assert frames["robot1/base_link"]["parent_frame_id"] == "map"
         assert xy(frames["robot1/base_link"]["translation"]) == (1.6, 2.0)
         assert heading(frames["robot1/base_link"]["rotation"]) == pytest.approx(math.radians(30))
@@ -303,18 +325,77 @@ def test_foxglove_client_sees_robots_headings_trails_and_links(control):
         assert "entities" not in client.latest["/erni/links"][1], "no link without both ends placed"
 
 
-def test_a_client_gets_a_team_standing_still(control):
-    """Nothing changes after the client connects: it still gets the robots as they stand."""
+@pytest.mark.parametrize("offer", [(OLD,), (SDK,), (SDK, OLD), ("x.v2", OLD)],
+                         ids=["published-name-only", "sdk-name-only", "both", "other-then-published"])
+def test_a_client_gets_a_team_standing_still(control, offer):
+    """Nothing changes after the client connects: it still gets the robots as they stand, whichever
+    name of the protocol it offers (foxglove/ws-protocol's clients offer only foxglove.websocket.v1)."""
     agent, plugin = control
     with agent.transaction() as tx:
         tx.add(Pose(robot="robot1", x=-1.0, y=0.5, theta=math.pi))
     # published to no one: the plugin has drawn robot1, with nothing left pending
     wait_until(lambda: "robot1" in plugin._drawn and not plugin._pending, timeout=10)
-    with foxglove_client(plugin.port) as client:  # type: ignore[attr-defined]
+    with foxglove_client(plugin.port, offer) as client:  # type: ignore[attr-defined]
         wait_until(lambda: client.pump(0.2) or "/erni/robots" in client.latest and "/tf" in client.latest, timeout=10)
+        assert client.server_info["name"] == "ERNI control"
         arrow = client.latest["/erni/robots"][1]["entities"][0]["arrows"][0]
         assert xy(arrow["pose"]["position"]) == (-1.0, 0.5)
         assert abs(heading(arrow["pose"]["orientation"])) == pytest.approx(math.pi)
+        transform = client.latest["/tf"][1]["transforms"][0]
+        assert transform["child_frame_id"] == "robot1/base_link" and xy(transform["translation"]) == (-1.0, 0.5)
+
+
+@pytest.mark.parametrize("offer", [(), ("foxglove.websocket.v2", "x.v1")], ids=["none", "other-names"])
+def test_a_client_offering_neither_name_is_refused(control, offer):
+    """HTTP 400 with a line naming both accepted names; the server goes on serving others."""
+    from websockets.exceptions import InvalidStatus
+
+    _, plugin = control
+    with pytest.raises(InvalidStatus) as refused:
+        websockets_sync.connect(f"ws://127.0.0.1:{plugin.port}", proxy=None, open_timeout=10,
+                                subprotocols=list(offer) or None)
+    response = refused.value.response
+    assert response.status_code == 400
+    said = ", ".join(offer) if offer else "none"
+    assert response.body.decode() == (f"Foxglove WebSocket: offer the subprotocol {SDK} or {OLD} "
+                                      f"({'offered: ' + said if offer else 'this request offered none'})\n")
+    with foxglove_client(plugin.port, (OLD,)) as client:
+        wait_until(lambda: client.pump(0.1) or bool(client.server_info), timeout=10)
+
+
+def test_a_port_in_use_is_one_clear_error(caplog):
+    """The plugin cannot listen: its setup fails with the address and the reason, and stops the SDK's
+    server it had started; the agent goes on without it."""
+    import socket
+
+    with socket.create_server(("127.0.0.1", 0)) as busy:
+        port = busy.getsockname()[1]
+        agent = Agent("control", workers=2)
+        plugin = agent.add_plugin(PLUGIN, settings={"listen": f"127.0.0.1:{port}"}, name="foxglove")
+        agent.start()
+        try:
+            errors = [r.exc_info[1] for r in caplog.records if r.exc_info and r.exc_info[1]]
+            assert [str(e) for e in errors] == [f"foxglove: cannot listen on 127.0.0.1:{port}: Address already in use"]
+            assert not hasattr(plugin, "port")
+        finally:
+            agent.stop()
+    assert not [r for r in caplog.records if "teardown" in r.getMessage()]
+
+
+def test_a_connected_client_sees_a_clean_close_when_the_agent_stops():
+    """The SDK's server closes its clients; the relay passes the closing handshake on and ends."""
+    from websockets.exceptions import ConnectionClosedOK
+
+    agent = Agent("control", workers=2)
+    plugin = agent.add_plugin(PLUGIN, settings={"listen": "127.0.0.1:0"}, name="foxglove")
+    agent.start()
+    with foxglove_client(plugin.port, (OLD,)) as client:  # type: ignore[attr-defined]
+        wait_until(lambda: client.pump(0.1) or bool(client.server_info), timeout=10)
+        agent.stop()
+        with pytest.raises(ConnectionClosedOK):
+            while True:
+                client.ws.recv(timeout=5)
+    assert not plugin.relay._thread.is_alive()  # type: ignore[attr-defined]
 
 
 def test_updates_are_rate_limited():
@@ -361,13 +442,19 @@ def test_updates_are_rate_limited():
     assert sent >= 15 * took, (sent, took)  # the changes kept coming: about 20 updates a second went
 
 
-def test_replay_serves_a_log_to_foxglove(tmp_path: Path) -> None:
-    """`erni replay LOG --foxglove HOST:PORT`: a recorded run, seen live in Foxglove."""
+@pytest.mark.parametrize("form", ["jsonl", "mcap"])
+def test_replay_serves_a_log_to_foxglove(tmp_path: Path, form: str) -> None:
+    """`erni replay LOG --foxglove HOST:PORT`: a recorded run (ERNI's log, or the rosbag2 bag
+    `erni record --convert` makes of it), seen live in Foxglove at its recorded times: each message's
+    log time and timestamps are the stamps of the Poses it draws."""
     from tests.transport.helpers import free_port
 
     log = tmp_path / "run.jsonl"
-    poses = [Pose(robot="robot1", x=0.5 * i, y=1.0, theta=0.25 * i) for i in range(4)]
-    lines = [{"erni_record": 1, "via": "x", "started": 1_700_000_000.0}]
+    started = 1_700_000_000.0  # November 2023: far from the time the test runs
+    poses = [Pose(robot="robot1", x=0.5 * i, y=1.0, theta=0.25 * i, stamp=started + 0.25 * (i + 1))
+             for i in range(4)]
+    recorded = {(p.x, p.y): ns(p.stamp) for p in poses}
+    lines = [{"erni_record": 1, "via": "x", "started": started}]
     lines += [{"t": 0.4 * i, "agent": "control", "op": "add" if i == 0 else "change", "type": "Pose",
                "data": p.model_dump(mode="json")} for i, p in enumerate(poses)]
     # the last pose stands 0.4 s too, before --loop clears the board and starts again
@@ -375,6 +462,13 @@ def test_replay_serves_a_log_to_foxglove(tmp_path: Path) -> None:
                   "data": Peer(name="robot1", up=True).model_dump(mode="json")})
     log.write_text("\n".join(json.dumps(line) for line in lines) + "\n")
     root = Path(__file__).resolve().parents[2]
+    if form == "mcap":  # the poses' stamps become the odometry's header stamps, and back
+        pytest.importorskip("rosbags")
+        bag = tmp_path / "run.mcap"
+        out = subprocess.run([sys.executable, "-m", "erni", "record", "--convert", str(log), str(bag)], cwd=root,
+                             capture_output=True, text=True, timeout=60)
+        assert out.returncode == 0, out.stderr
+        log = bag
     proc = subprocess.Popen([sys.executable, "-m", "erni", "replay", str(log), "--no-gui", "--insecure", "--loop",
                              "--listen", f"127.0.0.1:{free_port()}", "--foxglove", "127.0.0.1:0"],
                             cwd=root, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -386,17 +480,41 @@ def test_replay_serves_a_log_to_foxglove(tmp_path: Path) -> None:
                 port = int(line.rsplit(":", 1)[1])
                 break
         assert port, "no Foxglove line"
-        with foxglove_client(port) as client:
+        with foxglove_client(port, (OLD,)) as client:
             seen: set[tuple[float, float]] = set()
 
             def all_poses() -> bool:
                 client.pump(0.2)
-                if "/robot1/pose" in client.latest:
-                    seen.add(xy(client.latest["/robot1/pose"][1]["pose"]["position"]))
-                return {(0.5 * i, 1.0) for i in range(4)} <= seen
+                seen.update(xy(m["pose"]["position"]) for topic, _, m in client.history if topic == "/robot1/pose")
+                return set(recorded) <= seen
 
             wait_until(all_poses, timeout=20)
             assert client.topics()["/erni/robots"] == "foxglove.SceneUpdate"
+
+            def looped() -> bool:  # --loop cleared the board and the first pose came again after the last
+                client.pump(0.2)
+                at = [xy(m["pose"]["position"]) for topic, _, m in client.history if topic == "/robot1/pose"]
+                return (1.5, 1.0) in at and (0.0, 1.0) in at[at.index((1.5, 1.0)):]
+
+            wait_until(looped, timeout=20)
+            times: dict[str, set[int]] = {}
+            for topic, log_time, message in client.history:
+                if topic == "/robot1/pose":
+                    at = xy(message["pose"]["position"])
+                    assert log_time == timestamp_ns(message["timestamp"]) == recorded[at], (at, log_time)
+                elif topic == "/tf" and message.get("transforms"):
+                    (transform,) = message["transforms"]
+                    at = xy(transform["translation"])
+                    assert log_time == timestamp_ns(transform["timestamp"]) == recorded[at], (at, log_time)
+                elif topic == "/erni/robots" and message.get("entities"):
+                    (robot,) = message["entities"]
+                    at = xy(robot["arrows"][0]["pose"]["position"])
+                    assert log_time == timestamp_ns(robot["timestamp"]) == recorded[at], (at, log_time)
+                times.setdefault(topic, set()).add(log_time)
+            # every message at a recorded time, each recorded time seen: none at the time of watching, not
+            # even when --loop clears the board
+            assert times["/robot1/pose"] == times["/tf"] == set(recorded.values()), times
+            assert set().union(*times.values()) == set(recorded.values()), times
     finally:
         proc.send_signal(signal.SIGINT)
         try:

@@ -187,3 +187,41 @@ def test_a_bag_of_no_erni_topic_is_refused_in_one_line_its_topics_escaped(tmp_pa
     assert "no ERNI topics" in str(err.value)
     assert "\n" not in str(err.value) and "\x1b" not in str(err.value)
     assert "/robot1\\n/odom" in str(err.value) and "/r\\x1b[2J/odom" in str(err.value)
+
+
+def test_an_lz4_chunk_that_holds_more_than_it_declares_is_refused(tmp_path):
+    """lz4 chunks (rosbag2's other MCAP compression) are walked as zstd ones are: read when honest,
+    refused in one line when a chunk holds more than it declares."""
+    from erni.bags import BagRecorder
+
+    out = tmp_path / "lz4.mcap"
+    recorder = BagRecorder(out, "127.0.0.1:1", started=1_700_000_000.0, compression="lz4")
+    for i in range(200):
+        recorder.write("control", "change", "Pose", Pose(robot="robot1", x=float(i)).model_dump(mode="json"), t=i / 10)
+    recorder.close()
+    assert [e.obj.x for e in read_log(out)[1]] == [float(i) for i in range(200)]  # type: ignore[attr-defined]
+    data = bytearray(out.read_bytes())
+    at = data.index(b"\x03\x00\x00\x00lz4") - 9 - 28  # the first chunk: start, end, size, crc, then "lz4"
+    assert data[at] == 0x06
+    struct.pack_into("<QI", data, at + 9 + 16, 1000, 0)  # its declared uncompressed size (and no CRC to check)
+    liar = tmp_path / "liar.mcap"
+    liar.write_bytes(bytes(data))
+    with pytest.raises(LogError, match="holds more than the 1000 bytes it declares"):
+        read_log(liar)
+
+
+def test_a_single_robots_bag_with_nan_odometry_or_a_hostile_robot_name(tmp_path):
+    """A robot's own bag (Odometry on /odom) replayed with --robot: a NaN message is skipped and named;
+    a --robot that is no name is refused in one line, its escapes shown escaped."""
+    path = real_bag(tmp_path / "own", {"/odom": [odometry("x", 1.0), odometry("x", math.nan), odometry("x", 2.0)]})
+    _, events, problems = read_log(path, robot="tb3")
+    assert [(e.obj.robot, e.obj.x) for e in events] == [("tb3", 1.0), ("tb3", 2.0)]  # type: ignore[attr-defined]
+    assert len(problems) == 1 and "/odom" in problems[0] and "finite number" in problems[0], problems
+    with pytest.raises(LogError) as err:
+        read_log(path, robot="r\x1b[2J")
+    assert "\x1b" not in str(err.value) and "\\x1b[2J" in str(err.value) and "\n" not in str(err.value)
+    # beside a namespaced robot's odometry, /odom without --robot is skipped and named; the rest replays
+    both = real_bag(tmp_path / "both", {"/odom": [odometry("x", 1.0)], "/robot1/odom": [odometry("robot1", 2.0)]})
+    _, events, problems = read_log(both)
+    assert [(e.obj.robot, e.obj.x) for e in events] == [("robot1", 2.0)]  # type: ignore[attr-defined]
+    assert len(problems) == 1 and "/odom" in problems[0] and "--robot NAME" in problems[0], problems

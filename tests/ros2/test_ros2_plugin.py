@@ -166,7 +166,7 @@ def test_the_sdks_subscriber_decodes_erni_odometry(robot: Callable[..., Agent], 
     finally:
         sub.close()
         tap.undeclare()
-    assert msg.header.frame_id == "map" and msg.child_frame_id == "robot1/base_link"
+    assert msg.header.frame_id == "robot1/odom" and msg.child_frame_id == "robot1/base_link"  # REP 105
     assert msg.pose.pose.position.x == pytest.approx(pose.x) and msg.pose.pose.position.y == pytest.approx(pose.y)
     assert messages.yaw(msg.pose.pose.orientation) == pytest.approx(pose.theta)
     assert msg.twist.twist.linear.x == pytest.approx(pose.v) and msg.twist.twist.angular.z == pytest.approx(pose.w)
@@ -242,6 +242,48 @@ def test_cmd_vel_moves_the_robot_and_an_erni_stop_halts_it(robot: Callable[..., 
     teleop.running.clear()
     wait_until(lambda: abs(agent.query(Pose)[0].v) < 0.01, timeout=5, message="the robot kept going")
     wait_until(lambda: not [t for t in _velocity_tasks(agent) if not t.done], timeout=2)
+
+
+def test_velocity_tasks_end_on_task_status_when_the_teleop_stops(robot: Callable[..., Agent], teleop: Teleop,
+                                                                 ros: dict[str, Any]) -> None:
+    """Each velocity task a cmd_vel stream made has a final status on /erni/task_status once the stream
+    stops: the one replaced by a changed command and the last one, removed by the plugin's watchdog."""
+    import json
+
+    agent = robot()
+    statuses: list[dict[str, Any]] = []
+    sub = ROS2Subscriber("/erni/task_status", messages.STRING, lambda m: statuses.append(json.loads(m.data)),
+                         router_port=ros["router_port"])
+    try:
+        erni_publisher_matched(agent, "/erni/task_status")
+        sdk_publisher_matched(teleop.pub)
+        teleop.v = 0.2
+        teleop.running.set()
+        wait_until(lambda: any(s["preposition"] == "velocity" and s["state"] == "running" for s in statuses),
+                   timeout=5, message="no running velocity task on /erni/task_status")
+        teleop.v = 0.3  # a changed command: a new task replaces the first
+        wait_until(lambda: len({s["uid"] for s in statuses if s["preposition"] == "velocity"
+                                and s["state"] == "running"}) >= 2, timeout=5, message="the change made no task")
+        teleop.running.clear()  # the teleop stops publishing
+        wait_until(lambda: abs(agent.query(Pose)[0].v) < 0.01, timeout=5, message="the robot kept going")
+
+        def last_states() -> dict[str, dict[str, Any]]:
+            last: dict[str, dict[str, Any]] = {}
+            for s in statuses:
+                if s["preposition"] == "velocity":
+                    last[s["uid"]] = s
+            return last
+
+        wait_until(lambda: all(s["state"] != "running" for s in last_states().values()), timeout=5,
+                   message=f"a velocity task stays running on /erni/task_status: {last_states()}")
+    finally:
+        sub.close()
+    last = last_states()
+    assert len(last) >= 2 and {s["state"] for s in last.values()} == {"succeeded"}, last
+    *replaced, final = sorted(last.values(), key=lambda s: s["stamp"])
+    assert final["params"]["v"] == 0.3 and "stream stopped" in final["message"] and final["progress"] == 1.0
+    assert all(s["message"] == "replaced by a newer cmd_vel" for s in replaced)
+    assert not [t for t in _velocity_tasks(agent) if not t.done]  # and gone from the blackboard
 
 
 def test_a_zero_twist_is_a_velocity_not_a_stop_bypass(robot: Callable[..., Agent], teleop: Teleop) -> None:
@@ -349,8 +391,9 @@ def test_the_network_as_markers_and_diagnostics_and_the_robot_on_tf(robot: Calla
     assert set(status) == {"erni/robot1/network", "erni/robot1/neighbor/robot2"}
     assert status["erni/robot1/neighbor/robot2"].level == 1  # WARN: quality 0.3
     assert {kv.key: kv.value for kv in status["erni/robot1/network"].values}["articulation_points"] == "robot1"
-    (tf,) = tfs[-1].transforms
-    assert tf.header.frame_id == "map" and tf.child_frame_id == "robot1/base_link"
+    odom, tf = tfs[-1].transforms  # map → robot1/odom → robot1/base_link (tests/ros2/test_frames.py)
+    assert (odom.header.frame_id, odom.child_frame_id) == ("map", "robot1/odom")
+    assert tf.header.frame_id == "robot1/odom" and tf.child_frame_id == "robot1/base_link"
     assert tf.transform.translation.x == pytest.approx(agent.query(Pose)[0].x, abs=0.05)
 
 
@@ -420,6 +463,64 @@ def test_a_client_whose_router_comes_later_declares_its_topics_once_it_does(
                 session.close()
             agent.stop()
             late.close()
+
+
+def _replay(budget: plugin_module.RateBudget, arrivals: list[float]) -> list[tuple[float, float | None]]:
+    """Each event's (arrival, when it was sent, None if a newer one replaced it), the plugin's way: a fresh
+    offer at each arrival, a held one offered again when the budget said (the plugin's wake_in)."""
+    sent: dict[int, float] = {}
+    held: tuple[int, float] | None = None  # (event, when to offer it again)
+    for i, t in enumerate([*arrivals, math.inf]):
+        while held is not None and held[1] <= t:
+            j, at = held
+            wait = budget.offer("r", at, fresh=False)
+            held = (j, at + wait) if wait > 0 else None
+            if held is None:
+                sent[j] = at
+        if i == len(arrivals):
+            break
+        held = None  # a newer one replaces it
+        wait = budget.offer("r", t, fresh=True)
+        if wait <= 0:
+            sent[i] = t
+        else:
+            held = (i, t + wait)
+    return [(t, sent.get(i)) for i, t in enumerate(arrivals)]
+
+
+def test_the_odom_rate_holds_back_no_pose_of_a_robot_that_keeps_to_it() -> None:
+    """A robot whose Pose comes at odom_rate_hz (with jitter, after a burst of three): each Odometry goes as
+    its Pose comes; a pose that finds no token is replaced by the next, never sent late (a strict interval,
+    or a held pose sent at its slot, kept every later pose late by the same lag)."""
+    import random
+
+    rng = random.Random(56)
+    arrivals = [0.0, 0.005, 0.01, *(0.1 * k + rng.uniform(-0.01, 0.01) for k in range(1, 600))]
+    events = _replay(plugin_module.RateBudget(10.0), arrivals)
+    assert not [(t, sent) for t, sent in events if sent is not None and sent != t]
+    assert events[2][1] is None  # the burst's third, replaced
+    assert sum(sent == t for t, sent in events) >= 0.97 * len(events)
+    # a source slower than the rate is never held at all
+    slow = _replay(plugin_module.RateBudget(10.0), [0.12 * k for k in range(300)])
+    assert all(sent == t for t, sent in slow)
+
+
+def test_the_odom_rate_thins_a_faster_robot_to_fresh_poses() -> None:
+    """A robot at 25 Hz, odom_rate_hz 10: 10 a second on average, at most rate * T + 2 in any window of T s,
+    each sent the moment its Pose came; a pose held with none after it (the robot stands) still goes."""
+    arrivals = [0.04 * k for k in range(250)]  # 10 s
+    events = _replay(plugin_module.RateBudget(10.0), arrivals)
+    sent = [s for _, s in events if s is not None]
+    assert 99 <= len(sent) <= 102
+    assert all(s == t for t, s in events[:-1] if s is not None)
+    assert events[-1][1] is not None  # the last pose is not lost
+    assert all(sum(1 for u in sent if a <= u < a + 1.0) <= 12 for a in sent)
+    budget = plugin_module.RateBudget(10.0)
+    assert budget.offer("r", 0.0, fresh=True) == 0 and budget.offer("r", 0.001, fresh=True) == 0
+    wait = budget.offer("r", 0.002, fresh=True)  # a third at once: held, and the robot then stands still
+    assert 0 < wait <= 0.25
+    assert budget.offer("r", 0.002 + wait / 2, fresh=False) > 0  # not before its time
+    assert budget.offer("r", 0.002 + wait, fresh=False) == 0  # then it goes, without a newer pose
 
 
 def test_goal_heading_of_a_pose_stamped() -> None:

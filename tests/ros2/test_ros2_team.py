@@ -5,6 +5,7 @@ another robot, the other robot's role policy refuses the motion task."""
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable, Iterator
 from typing import Any
 
@@ -58,7 +59,10 @@ def test_a_control_node_shows_the_team_and_drives_a_robot_through_erni(team: Cal
     wait_until(lambda: dict(get_topic_names_and_types(router_port=ros["router_port"])).get("/robot1/cmd_vel"),
                timeout=5, message="robot1's topics not listed")
     got: list[Any] = []
+    statuses: list[dict[str, Any]] = []
     sub = ROS2Subscriber("/robot1/odom", messages.ODOMETRY, got.append, router_port=ros["router_port"])
+    status_sub = ROS2Subscriber("/erni/task_status", messages.STRING, lambda m: statuses.append(json.loads(m.data)),
+                                router_port=ros["router_port"])
     teleop = Teleop(ros["router_port"])
     try:
         teleop.v = 0.25
@@ -70,9 +74,22 @@ def test_a_control_node_shows_the_team_and_drives_a_robot_through_erni(team: Cal
                    message="robot1's odometry not published by the control node")
         teleop.running.clear()
         wait_until(lambda: abs(robot.query(Pose)[0].v) < 0.01, timeout=5, message="robot1 kept going")
+        # robot1's results came back to the control node; the task it removed ends on /erni/task_status
+        uid = tasks[0].uid
+
+        def last() -> dict[str, Any] | None:
+            mine = [st for st in statuses if st["uid"] == uid]
+            return mine[-1] if mine else None
+
+        wait_until(lambda: (found := last()) is not None and found["state"] != "running", timeout=5,
+                   message=f"robot1's velocity task stays running on /erni/task_status: {last()}")
+        final = last()
+        assert final is not None and final["state"] == "succeeded" and "stream stopped" in final["message"]
+        assert any(st["uid"] == uid and st["state"] == "running" for st in statuses)  # robot1's own report
     finally:
         teleop.close()
         sub.close()
+        status_sub.close()
 
 
 def test_the_plugin_rides_on_the_transports_session_whatever_the_plugins_order(team: Callable[..., Agent]) -> None:

@@ -364,8 +364,28 @@ def test_erni_router_prints_the_access_control_of_the_teams_certificates(tmp_pat
     assert main(["router", "--acl", str(tmp_path / "keys"), "--team", "lab", "--print-acl"]) == 0
     acl = json.loads(capsys.readouterr().out)["access_control"]
     names = {s["id"]: s["cert_common_names"] for s in acl["subjects"]}
-    assert names == {"control": ["control"], "robot1": ["robot1"], "routers": ["site-b"]}
+    # the control node's certificate also carries ROS 2 (its ros2 plugin); a robot's none of it
+    assert names == {"control": ["control"], "robot1": ["robot1"], "routers": ["site-b"], "ROS 2 node": ["control"]}
     assert acl["default_permission"] == "deny"
+    ros = [r for r in acl["rules"] if r["id"].startswith("ROS 2")]
+    assert ros and all(k.startswith(("0/", "@ros2_lv/0/")) for r in ros for k in r["key_exprs"])
+    assert main(["router", "--acl", str(tmp_path / "keys"), "--team", "lab", "--print-acl", "--ros2-domain", "7"]) == 0
+    acl = json.loads(capsys.readouterr().out)["access_control"]
+    assert {k for r in acl["rules"] if r["id"].startswith("ROS 2") for k in r["key_exprs"]} == {"7/**", "@ros2_lv/7/**"}
+    assert main(["router", "--acl", str(tmp_path / "keys"), "--team", "lab", "--print-acl", "--no-ros2"]) == 0
+    acl = json.loads(capsys.readouterr().out)["access_control"]
+    assert not [r for r in acl["rules"] if r["id"].startswith("ROS 2")]
+    assert main(["router", "--acl", str(tmp_path / "keys"), "--team", "lab", "--print-acl", "--ros2-domain", "300"]) == 2
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1 and "--ros2-domain" in err
+    # a watcher (observer) and an operator (cli) as ROS 2 clients; a name issued in two roles gets neither
+    for name, role in (("rviz", "observer"), ("operator", "cli"), ("dual", "cli"), ("dual", "robot")):
+        keys.issue(name, role)
+    assert main(["router", "--acl", str(tmp_path / "keys"), "--team", "lab", "--print-acl"]) == 0
+    acl = json.loads(capsys.readouterr().out)["access_control"]
+    names = {s["id"]: s["cert_common_names"] for s in acl["subjects"]}
+    assert names["ROS 2 watchers"] == ["operator", "rviz"] and names["ROS 2 drivers"] == ["operator"]
+    assert "dual" in names and not any("dual" in v for k, v in names.items() if k.startswith("ROS 2"))
     assert main(["router", "--acl", str(tmp_path / "keys"), "--team", "lab"]) == 2
     err = capsys.readouterr().err
     assert len(err.splitlines()) == 1 and "--identity" in err
@@ -488,3 +508,55 @@ def test_sessions_send_frames_over_their_links_not_through_a_shared_memory_pool(
     assert len(opened) == 2
     for conf in opened:
         assert conf.get_json("transport/shared_memory/transport_optimization/enabled") == "false"
+
+
+def test_a_forged_token_costs_a_bounded_number_of_hints_and_leaves_no_entry(team, router):
+    """A liveliness token in the name of an agent that never answers (anyone the router admits may
+    declare one): hinted four times at most, each hint forgotten after three handshake timeouts, the
+    waits between them growing (5, 15, 45 s of the agent's clock); never a permanent 'down' peer."""
+    import time
+
+    from erni.testing import ManualClock
+    from erni.transport.zenoh_wire import HINT_STAND, HINT_WAITS
+
+    clock = ManualClock()
+    control = team("control", echo=False, clock=clock)
+    endpoint = control.plugin("transport").endpoint
+    counters = endpoint.counters
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"client"')
+    conf.insert_json5("connect/endpoints", f'["{router}"]')
+    forger = zenoh.open(conf)
+    try:
+        token = forger.liveliness().declare_token(f"erni/{TEAM}/robot9/alive/robot/f0f0/-")
+        wait_until(lambda: "robot9" in peers_of(control), timeout=10)
+        assert counters.get("zenoh.hints") == 1
+        stand = HINT_STAND * endpoint.handshake_timeout
+        assert stand == 3.0 and HINT_WAITS == (5.0, 15.0, 45.0)
+        shown, hints_at, elapsed = 0, {}, 0.0
+        while elapsed < 120.0:  # two minutes of the agent's clock, 3 s a step
+            clock.advance(3.0)
+            elapsed += 3.0
+            time.sleep(0.3)  # the sweep looks at the clock every 0.25 s
+            shown += "robot9" in peers_of(control)
+            hints_at[elapsed] = counters.get("zenoh.hints", 0)
+        # hints at 0, 3 + 5 = 8 (seen at 9), 12 + 15 = 27, 30 + 45 = 75: each forgotten at its next step
+        assert hints_at[60.0] == 3 and hints_at[120.0] == 4, hints_at
+        assert counters.get("zenoh.hints_forgotten") == 4
+        assert "robot9" not in peers_of(control)
+        assert shown <= 3, f"robot9 shown {shown} of 40 steps"
+        sent = counters.get("handshakes.sent", 0)
+        assert sent <= 4 * 6, f"{sent} handshakes for 4 hints"
+        for _ in range(5):  # the hints are spent: nothing more while the token is held
+            clock.advance(60.0)
+            time.sleep(0.3)
+        assert counters.get("zenoh.hints") == 4 and counters.get("handshakes.sent", 0) == sent
+        assert "robot9" not in peers_of(control)
+        token.undeclare()
+        wait_until(lambda: "robot9" not in endpoint._hints, timeout=5)  # its record goes with it
+        token = forger.liveliness().declare_token(f"erni/{TEAM}/robot9/alive/robot/f0f0/-")
+        wait_until(lambda: counters.get("zenoh.hints") == 5, timeout=5)  # a new token: hinted again
+        robot1 = team("robot1")  # a real agent still joins at once
+        wait_until(lambda: up(control, "robot1") and up(robot1, "control"), timeout=10)
+    finally:
+        forger.close()
