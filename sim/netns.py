@@ -27,6 +27,13 @@ link a delivery ratio of 1, are dropped with probability 1 - q (`numgen random`,
 replaced in one nft transaction whenever the model's links change (robots move); broadcasts
 and babeld's multicast Hellos are filtered per receiving port like every other frame.
 
+The ns-3 channel (`channel="ns3"`, `erni sim --netns --channel ns3`): no bridge and no rules;
+one ns-3 process in the segment's namespace opens each node's `mesh0` as a TAP device inside
+that node's namespace and carries the frames through ns-3's 802.11a ad-hoc network, its nodes
+moved to the robots' positions (`Mesh.apply(links, positions)`); see `erni.sim.ns3_channel`.
+Addresses, babeld, the management links and the clean-up are the same; the process dies with the
+launcher and with the segment's namespace, and its TAP devices with it.
+
 Clean-up: everything the run creates lives in its namespaces, and deleting a namespace deletes
 its links, addresses, routes and rules (the root ends of the management links die with their
 peers). `Mesh.destroy()` stops the daemons and deletes the namespaces. A launcher killed with
@@ -55,6 +62,7 @@ import shutil
 import signal
 import socket
 import subprocess
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterator, Mapping
@@ -62,6 +70,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from erni.blackboard.errors import ErniError
+from erni.sim.ns3_channel import ChannelNode, Ns3Channel, Ns3Error
 
 log = logging.getLogger("erni.sim.netns")
 
@@ -74,6 +83,7 @@ MGMT_NET = "10.232.{slot}.0/24"
 SERVICE_INDEX = 254            # the service address of the root namespace: 10.232.K.254
 BABEL_PORT = 33123             # babeld's read-only local interface in every namespace ([::1])
 HELLO_INTERVAL = 0.5           # s; babeld's default on wireless links is 4 s
+CHANNELS = ("nftables", "ns3")  # what carries the frames between the namespaces (see `Mesh`)
 LOSS_STEP = 0.05               # drop probabilities are rounded to this step (fewer rule updates)
 INSTALL_HINT = ("run `erni sim` without --netns for the loopback tier (the same agents on "
                 "127.0.1.N behind the simulated radio), which needs neither root nor these tools")
@@ -291,7 +301,10 @@ class Mesh:
     """The namespaces, segment, management links, babeld daemons and radio rules of one run."""
 
     def __init__(self, names: list[str], run_dir: str | Path, *, control: str | None = None,
-                 hello_interval: float = HELLO_INTERVAL, babel_port: int = BABEL_PORT) -> None:
+                 hello_interval: float = HELLO_INTERVAL, babel_port: int = BABEL_PORT,
+                 channel: str = "nftables", range_m: float = 10.0, seed: int = 1) -> None:
+        if channel not in CHANNELS:
+            raise NetnsError(f"channel: expected one of {', '.join(CHANNELS)}, got {channel!r}")
         if len(names) > SERVICE_INDEX - 1:
             raise NetnsError(f"at most {SERVICE_INDEX - 1} nodes fit one mesh segment, got {len(names)}")
         if not hello_interval > 0:
@@ -310,6 +323,11 @@ class Mesh:
         self._links: dict[frozenset[str], float] = {}
         self._lock = threading.Lock()
         self._created = False
+        self.channel = channel          # "nftables": the radio model as rules; "ns3": ns-3's 802.11 (erni.sim.ns3_channel)
+        self.range_m = range_m          # the ns-3 channel's reach (the scenario's comm_range)
+        self.seed = seed
+        self.ns3: Ns3Channel | None = None
+        self._positions: dict[str, tuple[float, float]] = {}
 
     # -- addresses ---------------------------------------------------------------------
 
@@ -375,9 +393,10 @@ class Mesh:
         mgmt = ipaddress.ip_network(MGMT_NET.format(slot=self.slot))
         service = self.service_address
         _ip("netns", "add", self.hub)
-        _ip("link", "add", "mesh", "type", "bridge", "mcast_snooping", "0", netns=self.hub)
-        _ip("link", "set", "mesh", "up", netns=self.hub)
-        self._write_rules({})  # the radio exists before any port: nothing passes until told
+        if self.channel == "nftables":
+            _ip("link", "add", "mesh", "type", "bridge", "mcast_snooping", "0", netns=self.hub)
+            _ip("link", "set", "mesh", "up", netns=self.hub)
+            self._write_rules({})  # the radio exists before any port: nothing passes until told
         for i, name in enumerate(self.names, start=1):
             node = MeshNode(name, i, f"{PREFIX}{self.tag}-{name}", str(mesh.network_address + i),
                             str(mgmt.network_address + i), f"erni{self.tag}m{i}")
@@ -394,10 +413,10 @@ class Mesh:
                 "net.ipv4.conf.default.accept_redirects=0", "net.ipv4.conf.all.rp_filter=0",
                 "net.ipv4.conf.default.rp_filter=0")
             _ip("link", "set", "lo", "up", netns=ns)
-            _ip("link", "add", node.port, "type", "veth", "peer", "name", "mesh0", "netns", ns, netns=self.hub)
-            _ip("link", "set", node.port, "master", "mesh", "up", netns=self.hub)
-            _ip("addr", "add", f"{node.address}/{mesh.prefixlen}", "brd", self.broadcast, "dev", "mesh0", netns=ns)
-            _ip("link", "set", "mesh0", "up", netns=ns)
+            if self.channel == "nftables":
+                _ip("link", "add", node.port, "type", "veth", "peer", "name", "mesh0", "netns", ns, netns=self.hub)
+                _ip("link", "set", node.port, "master", "mesh", "up", netns=self.hub)
+                self._address_mesh0(node)
             _ip("link", "add", node.host_link, "type", "veth", "peer", "name", "mgmt0", "netns", ns)
             _ip("addr", "add", f"{service}/32", "peer", f"{node.mgmt}/32", "dev", node.host_link)
             _ip("link", "set", node.host_link, "up")
@@ -405,6 +424,27 @@ class Mesh:
             _ip("link", "set", "mgmt0", "up", netns=ns)
             if name == self.control:  # tasks from this host reach the control node over its link
                 _ip("route", "add", f"{node.address}/32", "dev", node.host_link, "src", service)
+        if self.channel == "ns3":
+            self._start_ns3()
+
+    def _address_mesh0(self, node: MeshNode) -> None:
+        prefix = ipaddress.ip_network(self.subnet).prefixlen
+        _ip("addr", "add", f"{node.address}/{prefix}", "brd", self.broadcast, "dev", "mesh0", netns=node.netns)
+        _ip("link", "set", "mesh0", "up", netns=node.netns)
+
+    def _start_ns3(self) -> None:
+        """Start the ns-3 channel in the segment's namespace: it makes every node's `mesh0` (a TAP)."""
+        channel = Ns3Channel([ChannelNode(n.name, n.netns, *self._positions.get(n.name, (0.0, 0.0)))
+                              for n in self.nodes.values()], self.range_m, self.run_dir / "logs" / "ns3-channel.log",
+                             seed=self.seed)
+        (self.run_dir / "logs").mkdir(parents=True, exist_ok=True)
+        try:
+            channel.start(wrap=["ip", "netns", "exec", self.hub], preexec_fn=die_with_parent())
+        except Ns3Error as err:
+            raise NetnsError(str(err)) from None
+        self.ns3 = channel
+        for node in self.nodes.values():
+            self._address_mesh0(node)
 
     def babeld_config(self, node: MeshNode) -> str:
         """The babeld configuration of `node`."""
@@ -444,12 +484,22 @@ class Mesh:
 
     # -- the radio -----------------------------------------------------------------------
 
-    def apply(self, links: Mapping[frozenset[str], float] | None = None) -> bool:
-        """Make the rules match the radio model's link delivery ratios; True when they changed."""
+    def apply(self, links: Mapping[frozenset[str], float] | None = None,
+              positions: Mapping[str, tuple[float, float]] | None = None) -> bool:
+        """Make the radio follow the model: on the nftables channel the rules match the links' delivery
+        ratios, on the ns-3 channel the nodes move to `positions` (m); True when something changed."""
+        if positions is not None and self.channel == "ns3":
+            with self._lock:
+                moved = {k: v for k, v in positions.items() if self._positions.get(k) != v}
+                self._positions.update(moved)
+                channel = self.ns3
+            if channel is not None and moved:
+                channel.move(moved)  # a line each to the channel's input, outside the lock
+            return bool(moved)
         with self._lock:
             if links is not None:
                 self._links = dict(links)
-            if not self._created or not self.nodes:
+            if not self._created or not self.nodes or self.channel != "nftables":
                 return False
             rules = self.rules(self._links)
             if rules == self._rules:
@@ -457,8 +507,13 @@ class Mesh:
             self._write_rules_locked(rules)
             return True
 
+    def _nftables_only(self, what: str) -> None:
+        if self.channel != "nftables":
+            raise NetnsError(f"{what} is the nftables radio's: the {self.channel} channel decides loss itself")
+
     def cut(self, a: str, b: str, cut: bool = True) -> None:
         """Cut (or restore) the link between nodes a and b whatever the radio model says."""
+        self._nftables_only("cutting a link")
         key = frozenset((self.node(a).name, self.node(b).name))
         with self._lock:
             (self.radio.cut.add if cut else self.radio.cut.discard)(key)
@@ -466,6 +521,7 @@ class Mesh:
 
     def set_extra_loss(self, loss: float) -> None:
         """Drop this share of the frames of every link on top of the radio model (0 to stop)."""
+        self._nftables_only("an extra loss")
         if not 0.0 <= loss <= 1.0:
             raise NetnsError(f"extra loss: expected a probability in 0..1, got {loss}")
         with self._lock:
@@ -517,6 +573,7 @@ class Mesh:
 
     def counters(self) -> dict[tuple[str, str], tuple[int, int]]:
         """Frames (dropped at random, passed) per ordered pair of nodes with a link, from the kernel."""
+        self._nftables_only("the radio's counters")
         out: dict[tuple[str, str], tuple[int, int]] = {}
         data = json.loads(_in(self.hub, "nft", "-j", "list", "chain", "bridge", "erni", "radio"))
         for item in data.get("nftables", []):
@@ -535,6 +592,79 @@ class Mesh:
                 out[(pair[0], pair[1])] = (dropped, passed)
         return out
 
+    # -- traffic between the nodes, for tests and benchmarks ------------------------------
+
+    def static_neighbours(self) -> None:
+        """Give every node a permanent ARP entry for every other (no ARP on the air from now on):
+        benchmarks that compare the channel with a pure ns-3 run, whose neighbours are known too."""
+        macs = {}
+        for node in self.nodes.values():
+            link = json.loads(_ip("-j", "link", "show", "mesh0", netns=node.netns))
+            macs[node.name] = link[0]["address"]
+        for node in self.nodes.values():
+            for other in self.nodes.values():
+                if other is not node:
+                    _ip("neigh", "replace", other.address, "lladdr", macs[other.name], "dev", "mesh0",
+                        "nud", "permanent", netns=node.netns)
+
+    def udp_flows(self, flows: list[tuple[str, str]], count: int, interval: float, size: int,
+                  port: int = 47990, settle: float = 1.0) -> list[int]:
+        """Send `count` UDP datagrams of `size` bytes every `interval` s over each (sender, receiver)
+        flow at once, through the nodes' own sockets; return how many each receiver got (distinct).
+
+        Each flow first sends a few datagrams that are not counted, so that ARP has resolved the
+        receiver before the counted ones start (Linux queues only a few behind an unresolved address).
+        """
+        if not 0 < len(flows) < 100 or count < 1 or not interval > 0 or not 8 <= size <= 65000:
+            raise NetnsError("udp_flows: expected 1..99 flows, count >= 1, interval > 0 and size in 8..65000")
+        receive = (
+            "import socket, sys, time\n"
+            "s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM); s.bind(('', int(sys.argv[1])))\n"
+            "s.settimeout(0.2); got = set(); print('ready', flush=True)\n"
+            "end = time.monotonic() + float(sys.argv[2])\n"
+            "while time.monotonic() < end:\n"
+            "    try:\n"
+            "        got.add(int.from_bytes(s.recv(65535)[:4], 'big'))\n"
+            "    except socket.timeout:\n"
+            "        pass\n"
+            "print(len([n for n in got if n < 0x7fffffff]))\n")
+        send = (
+            "import socket, sys, time\n"
+            "host, port, n, gap, size = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), float(sys.argv[4]), "
+            "int(sys.argv[5])\n"
+            "s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)\n"
+            "for _ in range(5):\n"
+            "    s.sendto(b'\\x7f\\xff\\xff\\xff' + bytes(size - 4), (host, port)); time.sleep(0.05)\n"
+            "time.sleep(float(sys.argv[6]))\n"
+            "t = time.monotonic()\n"
+            "for i in range(n):\n"
+            "    s.sendto(i.to_bytes(4, 'big') + bytes(size - 4), (host, port))\n"
+            "    t += gap; time.sleep(max(0.0, t - time.monotonic()))\n")
+        listen = count * interval + settle + 3.0
+        receivers: list[subprocess.Popen[str]] = []
+        for k, (_, b) in enumerate(flows):
+            proc = subprocess.Popen(self.exec_argv(b, [sys.executable, "-c", receive, str(port + k), f"{listen:g}"]),
+                                    stdout=subprocess.PIPE, text=True, preexec_fn=die_with_parent())
+            receivers.append(proc)
+        try:
+            for proc in receivers:
+                assert proc.stdout is not None
+                if proc.stdout.readline().strip() != "ready":
+                    raise NetnsError("udp_flows: a receiver did not start")
+            senders = [subprocess.Popen(self.exec_argv(a, [sys.executable, "-c", send, self.node(b).address,
+                                                           str(port + k), str(count), f"{interval:g}", str(size),
+                                                           f"{settle:g}"]),
+                                        preexec_fn=die_with_parent())
+                       for k, (a, b) in enumerate(flows)]
+            for sender in senders:
+                sender.wait(listen + 30)
+            return [int(proc.communicate(timeout=listen + 30)[0].strip() or 0) for proc in receivers]
+        finally:
+            for proc in receivers:
+                if proc.poll() is None:
+                    proc.kill()
+                    proc.wait(5)
+
     # -- babeld's view, for tests and benchmarks ----------------------------------------
 
     def kernel_routes(self, name: str) -> list[str]:
@@ -549,6 +679,9 @@ class Mesh:
         if not self._created:
             return
         self._created = False
+        if self.ns3 is not None:
+            self.ns3.stop()
+            self.ns3 = None
         for node in self.nodes.values():
             if node.babeld is not None and node.babeld.poll() is None:
                 node.babeld.terminate()

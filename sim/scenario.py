@@ -17,6 +17,7 @@ A scenario file looks like this (every table is optional; `erni sim` without a f
     [radio]                           # sim.manet.RadioModel
     comm_range = 4.5                  # R (m): no link beyond
     lossless_range = 3.0              # no loss up to here (m)
+    channel = "nftables"              # --netns: this model as nftables rules, or "ns3" (802.11a in ns-3)
 
     [robots]                          # how many and where, unless listed one by one in [[robot]]
     count = 3
@@ -90,6 +91,9 @@ class RadioSpec(_Strict):
     comm_range: float = Field(10.0, gt=0, description="communication range R (m)")
     lossless_range: float = Field(6.0, ge=0, description="range without loss (m)")
     min_quality: float = Field(0.1, gt=0, le=1, description="weakest link used for routing")
+    channel: Literal["nftables", "ns3"] = Field(
+        "nftables", description="what carries the frames in the real-mesh tier (--netns): this model as "
+        "nftables drop rules, or ns-3's 802.11a ad-hoc network reaching about comm_range (--channel wins)")
 
     @model_validator(mode="after")
     def _ranges(self) -> RadioSpec:

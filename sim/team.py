@@ -143,7 +143,8 @@ class Team:
                  gui_listen: str | None = None, netns: bool = False, mobinet: str | None = None,
                  hello_interval: float = HELLO_INTERVAL, mission_settings: dict[str, Any] | None = None,
                  robot_settings: dict[str, Any] | None = None, keep_run_dir: bool = False,
-                 launch_batch: int | None = None, ros2: bool | None = None) -> None:
+                 launch_batch: int | None = None, ros2: bool | None = None,
+                 channel: str | None = None) -> None:
         if scenario.count > MAX_AGENT_ROBOTS:
             raise TeamError(f"--robots: at most {MAX_AGENT_ROBOTS} robot agents (one loopback "
                             f"address each), got {scenario.count}; use the kinematic mode of "
@@ -189,7 +190,8 @@ class Team:
         self.ros2: dict[str, Any] | None = None if asked is None else ros2_settings(asked)
         # the real-mesh tier: namespaces, segment, babeld, radio rules (made in start())
         self.mesh: Mesh | None = Mesh(self.names + [CONTROL], self.run_dir, control=CONTROL,
-                                      hello_interval=hello_interval) if netns else None
+                                      hello_interval=hello_interval, channel=channel or scenario.radio.channel,
+                                      range_m=scenario.radio.comm_range, seed=scenario.seed) if netns else None
         self._forwarder: TcpForwarder | None = None
         if netns:
             self.control_port = control_port or 47100  # the control node's namespace has every port free
@@ -567,7 +569,8 @@ class Team:
         self.status.components = len(truth.components)
         self.status.control_reach = control_reach
         if self.mesh is not None:  # the radio as packet-filter rules (rewritten only when they change)
-            self.mesh.apply(truth.links)
+            c = self.scenario.control  # the ns-3 channel moves its nodes instead
+            self.mesh.apply(truth.links, {**self._fed, CONTROL: (c.x, c.y)})
         if self.record:
             self.samples.append(Sample(
                 self.elapsed(), state[:, X].tolist(), state[:, Y].tolist(), state[:, TH].tolist(),

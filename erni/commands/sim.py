@@ -63,6 +63,10 @@ def register(sub: Any) -> None:
                    "or the simulated SNMP nodes (snmp, the default without)")
     p.add_argument("--hello-interval", type=float, default=None, metavar="S",
                    help="babeld's Hello interval with --netns (default 0.5 s)")
+    p.add_argument("--channel", choices=["nftables", "ns3"],
+                   help="what carries the frames with --netns: the radio model as nftables drop rules "
+                   "(nftables, the default) or ns-3's 802.11a ad-hoc network in real time (ns3: needs "
+                   "Debian's libns3-dev, g++ and pkg-config); default: the scenario's radio.channel")
     p.add_argument("--ros2", action="store_true",
                    help="show the team to ROS 2 (as the scenario's ros2 = true does): the control node runs the "
                    "ros2 plugin, every robot's /ROBOT/odom, /tf and cmd_vel on a Zenoh session listening on "
@@ -162,7 +166,16 @@ def run(args: argparse.Namespace) -> int:
             return 0
         if args.hello_interval is not None and not args.netns:
             raise TeamError("--hello-interval is babeld's, which runs only with --netns")
+        if args.channel is not None and not args.netns:
+            raise TeamError("--channel chooses the real-mesh tier's channel: add --netns")
         scenario = load(args)
+        if args.netns and (args.channel or scenario.radio.channel) == "ns3":
+            from erni.sim.ns3_channel import Ns3Error, check_channel
+
+            try:  # ns-3 missing, or more nodes than it carries in real time: one line, before anything starts
+                check_channel(scenario.count + 1)
+            except Ns3Error as err:
+                raise TeamError(str(err)) from None
         if scenario.ros2 is not False and (missing := ros2_missing()):
             raise TeamError(missing)
         too_many = capacity_warning(scenario.count, cores())
@@ -174,7 +187,7 @@ def run(args: argparse.Namespace) -> int:
             prune_run_dirs(Path(tempfile.gettempdir()))
         team = Team(scenario, run_dir=args.run_dir, headless=args.headless,
                     control_port=args.control_port, log_level=args.log_level, gui_listen=args.gui_listen,
-                    netns=args.netns, mobinet=args.mobinet,
+                    netns=args.netns, mobinet=args.mobinet, channel=args.channel,
                     hello_interval=args.hello_interval if args.hello_interval is not None else HELLO_INTERVAL,
                     keep_run_dir=True)  # it prints where the configs and logs are
         if not args.run_dir:
@@ -329,7 +342,8 @@ def _print_team(team: Any, seconds: float, announced: Path | None = None) -> Non
     say(f"  control    agent {host}:{port}  pid {team.agents['control'].pid or '-'}" +
           (f" netns {team.mesh.node('control').netns}" if team.mesh is not None else ""))
     if team.mesh is not None:
-        say(f"  mesh       segment {team.mesh.subnet} (namespace {team.mesh.hub}), babeld in every node, "
+        say(f"  mesh       segment {team.mesh.subnet} (namespace {team.mesh.hub}), {team.mesh.channel} channel, "
+              "babeld in every node, "
               f"MobiNet reads {team.mobinet}; routes: ip -n {team.mesh.node(team.names[-1]).netns} route")
     if not team.url:
         say("  GUI        none (headless, or the UI plugin is not installed)")
@@ -405,7 +419,20 @@ def status_line(team: Any) -> str:
         return line + "; the control node does not answer"
     return line + f"; control hears {len(heard)}/{len(names)}" + (
         f" (not {', '.join(n for n in names if n not in heard)})" if len(heard) < len(names) else "") + (
-        f"; {team.status.components} radio component(s)") + sips_note(*team.sips_since())
+        f"; {team.status.components} radio component(s)") + sips_note(*team.sips_since()) + channel_note(team)
+
+
+def channel_note(team: Any) -> str:
+    """The ns-3 channel's lag behind real time (its probe's latest and largest), when it carries the mesh."""
+    channel = team.mesh.ns3 if team.mesh is not None else None
+    if channel is None:
+        return ""
+    if not channel.alive:
+        return f"; the ns-3 channel is not running (see {channel.log_path})"
+    if not channel.lag.probes:
+        return ""
+    lag = channel.lag
+    return f"; ns-3 lag {lag.now_ms:.0f} ms (at most {lag.max_ms:.0f} ms, {lag.late} of {lag.probes} probes late)"
 
 
 def sips_note(sent: int, skipped: int) -> str:
