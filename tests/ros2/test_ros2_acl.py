@@ -9,7 +9,6 @@ from __future__ import annotations
 import io
 import json
 import threading
-import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -136,15 +135,22 @@ def test_a_watcher_sees_the_team_through_the_acl_router_and_only_an_operator_dri
     wait_until(lambda: plugin.node is not None, timeout=10, message="no ROS 2 node")
     port = secured["port"]
 
-    # a robot's certificate: a TLS link, but no ROS 2 topic, token or sample
-    ros_client(secured, monkeypatch, "robot2")
-    time.sleep(1.0)  # the control node's tokens would have come by now (the watcher's below come in ms)
-    assert not dict(get_topic_names_and_types(router_port=port)), "a robot's certificate saw ROS 2 tokens"
-    denied: list[Any] = []
-    sub = ROS2Subscriber("/robot1/odom", messages.ODOMETRY, denied.append, router_port=port)
-    time.sleep(2.0)  # odometry goes out at 10 Hz while robot1's Pose changes; none may arrive
-    sub.close()
-    assert not denied, "a robot's certificate received odometry"
+    # a robot's certificate: a TLS link, but no ROS 2 topic, token or sample; what it is refused, a
+    # watcher's session beside it (a witness) gets from the same router
+    witness = zenoh_client(secured, "rviz-viewer")
+    try:
+        ros_client(secured, monkeypatch, "robot2")
+        wait_until(lambda: odom_token(witness), timeout=10, message="the router has no token of robot1's odometry")
+        assert not dict(get_topic_names_and_types(router_port=port)), "a robot's certificate saw ROS 2 tokens"
+        denied: list[Any] = []
+        sub = ROS2Subscriber("/robot1/odom", messages.ODOMETRY, denied.append, router_port=port)
+        witnessed: list[Any] = []
+        witness.declare_subscriber("0/robot1/odom/**", witnessed.append)  # declared after the robot's
+        wait_until(lambda: len(witnessed) >= 3, timeout=15, message="the witness received no odometry")
+        sub.close()
+        assert not denied, "a robot's certificate received odometry"
+    finally:
+        witness.close()
 
     # a watcher's certificate (role observer): the team's topics and odometry
     ros_client(secured, monkeypatch, "rviz-viewer")
@@ -158,7 +164,10 @@ def test_a_watcher_sees_the_team_through_the_acl_router_and_only_an_operator_dri
     try:
         teleop.v = 0.25
         teleop.running.set()
-        time.sleep(2.0)
+        # 20 Twists sent (2 s), and odometry through the same router to the same session meanwhile
+        heard = len(got)
+        wait_until(lambda: teleop.sent >= 20 and len(got) >= heard + 2, timeout=30,
+                   message="the watcher's teleop did not run, or its odometry stopped")
         teleop.running.clear()
         assert "robot1" not in plugin._drives, "the watcher's cmd_vel reached the ros2 plugin"
         assert not [t for t in robot.query(Task) if t.preposition == "velocity"]
@@ -186,6 +195,28 @@ def test_a_watcher_sees_the_team_through_the_acl_router_and_only_an_operator_dri
         wait_until(lambda: abs(robot.query(Pose)[0].v) < 0.02, timeout=5, message="robot1 kept going")
     finally:
         teleop.close()
+
+
+def zenoh_client(secured: dict[str, Any], name: str) -> Any:
+    """A Zenoh client session of its own (not the SDK's shared one) on the TLS router, with the
+    certificate of `name`."""
+    import zenoh
+
+    from erni.transport.zenoh_wire import tls_config
+
+    conf = zenoh.Config()
+    for key, value in (("mode", "client"), ("connect/endpoints", [secured["endpoint"]]),
+                       ("transport/link/tls", tls_config(load_identity(secured["paths"][name])))):
+        conf.insert_json5(key, json.dumps(value))
+    return zenoh.open(conf)
+
+
+def odom_token(session: Any) -> bool:
+    """Whether the router answers `session`'s liveliness query with the token of a publisher of
+    /robot1/odom (rmw_zenoh's, '/' written '%')."""
+    replies = session.liveliness().get("@ros2_lv/0/**", timeout=1.0)
+    return any(r.ok is not None and "/MP/" in str(r.ok.key_expr) and "%robot1%odom/" in str(r.ok.key_expr)
+               for r in replies)
 
 
 def stop_client(port: int, timeout: float = 10.0) -> Any:

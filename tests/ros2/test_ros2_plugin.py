@@ -185,6 +185,7 @@ class Teleop:
     def __init__(self, port: int, topic: str = "/robot1/cmd_vel") -> None:
         self.pub = ROS2Publisher(topic, messages.TWIST, router_port=port)
         self.v, self.w = 0.0, 0.0
+        self.sent = 0  # Twists published
         self.running = threading.Event()
         self.closing = threading.Event()
         self.thread = threading.Thread(target=self._loop, name="test-teleop")
@@ -195,6 +196,7 @@ class Teleop:
             if self.running.is_set():
                 self.pub.publish(linear=messages.make("geometry_msgs/msg/Vector3", x=self.v),
                                  angular=messages.make("geometry_msgs/msg/Vector3", z=self.w))
+                self.sent += 1
             self.closing.wait(0.1)
 
     def close(self) -> None:

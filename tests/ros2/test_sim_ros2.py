@@ -15,6 +15,8 @@ import os
 import random
 import re
 import signal
+import socket
+import struct
 import subprocess
 import sys
 import threading
@@ -97,6 +99,17 @@ def watched_poses(names: set[str]) -> dict[str, dict[str, Any]]:
     return poses
 
 
+def at_rest(odom: list[Any], samples: int = 3) -> bool:
+    """Whether the last `samples` odometry messages in `odom` show the robot still: no speed, and one
+    position (within a millimetre)."""
+    last = odom[-samples:]
+    if len(last) < samples:
+        return False
+    xs, ys = [m.pose.pose.position.x for m in last], [m.pose.pose.position.y for m in last]
+    return (all(abs(m.twist.twist.linear.x) < 0.01 for m in last)
+            and max(xs) - min(xs) < 0.001 and max(ys) - min(ys) < 0.001)
+
+
 def yaw(odom: Any) -> float:
     q = odom.pose.pose.orientation
     return 2 * math.atan2(q.z, q.w)
@@ -165,8 +178,8 @@ def test_erni_sim_ros2_shows_every_robot_to_a_ros2_client_and_takes_cmd_vel(sim:
             driving.clear()  # the teleop goes quiet: the robot stops (cmd_vel_timeout)
             wait_until(lambda: abs(odom["robot1"][-1].twist.twist.linear.x) < 0.01, timeout=10,
                        message="robot1 kept going after the teleop stopped")
-            # where it stopped is where erni watch sees it
-            time.sleep(0.5)
+            # where it stopped is where erni watch sees it, once its odometry shows it at rest
+            wait_until(lambda: at_rest(odom["robot1"]), timeout=10, message="robot1's odometry does not settle")
             pose = watched_poses({"robot1"})["robot1"]
             position = odom["robot1"][-1].pose.pose.position
             assert abs(position.x - pose["x"]) < 0.02 and abs(position.y - pose["y"]) < 0.02, (position, pose)
@@ -197,7 +210,19 @@ def test_a_router_started_after_the_team_carries_its_topics(sim: Any, sdk: Any, 
     p = sim(str(scenario), "--control-port", "0")  # no --ros2: the scenario's table turns it on
     p.wait_for("Ctrl-C stops the team", timeout=120)
     assert f"joins the router at tcp/127.0.0.1:{port} whenever one runs there" in p.wait_for("joins the", timeout=1)
-    time.sleep(1.0)  # the team runs a while without a router
+    # the team runs without a router: its session tries the router's address and finds no Zenoh there
+    # (a plain socket that takes the connection and resets it), then the router starts
+    with socket.socket() as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        probe.bind(("127.0.0.1", port))
+        probe.listen()
+        probe.settimeout(30)
+        try:
+            conn, _ = probe.accept()
+        except TimeoutError:
+            raise AssertionError(f"the control node's session never tried tcp/127.0.0.1:{port}") from None
+        conn.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+        conn.close()
     router = open_router([f"tcp/127.0.0.1:{port}"])
     try:
         sdk(port)

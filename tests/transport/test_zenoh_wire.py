@@ -4,6 +4,7 @@ authorization as on ERNI's own wire."""
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Callable, Iterator
 from typing import Any
 
@@ -14,11 +15,11 @@ zenoh = pytest.importorskip("zenoh")
 from erni.blackboard import Agent, Pose, Task, TaskState  # noqa: E402
 from erni.blackboard.testing import wait_until  # noqa: E402
 from erni.sim.team import free_port  # noqa: E402
-from erni.testing import post_task, run_task, wait_for_task  # noqa: E402
+from erni.testing import ManualClock, post_task, run_task, wait_for_task  # noqa: E402
 from erni.transport import Peer  # noqa: E402
 from erni.transport.wire import DATA, DATA_HEADER  # noqa: E402
 from erni.transport.zenoh_wire import open_router  # noqa: E402
-from tests.transport.helpers import make_agent  # noqa: E402
+from tests.transport.helpers import make_agent, settled  # noqa: E402
 
 TEAM = "ztest"
 
@@ -510,19 +511,42 @@ def test_sessions_send_frames_over_their_links_not_through_a_shared_memory_pool(
         assert conf.get_json("transport/shared_memory/transport_optimization/enabled") == "false"
 
 
+class SweptClock(ManualClock):
+    """A ManualClock that tells when a Zenoh endpoint's sweep has last finished a round: each round
+    reads it to look at the hints (`_follow_hints`), then reads it itself to sweep the sessions;
+    `swept` is the time the last finished round's look at the hints saw."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.swept = self._looked = float("-inf")
+
+    def __call__(self) -> float:
+        caller = sys._getframe(1).f_code.co_name
+        if caller == "_follow_hints":
+            self._looked = self.now
+        elif caller == "_sweep_loop":
+            self.swept = self._looked
+        return self.now
+
+
 def test_a_forged_token_costs_a_bounded_number_of_hints_and_leaves_no_entry(team, router):
     """A liveliness token in the name of an agent that never answers (anyone the router admits may
     declare one): hinted four times at most, each hint forgotten after three handshake timeouts, the
     waits between them growing (5, 15, 45 s of the agent's clock); never a permanent 'down' peer."""
-    import time
-
-    from erni.testing import ManualClock
     from erni.transport.zenoh_wire import HINT_STAND, HINT_WAITS
 
-    clock = ManualClock()
+    clock = SweptClock()
     control = team("control", echo=False, clock=clock)
     endpoint = control.plugin("transport").endpoint
     counters = endpoint.counters
+
+    def step(seconds: float) -> None:
+        """Move the agent's clock, then wait until a round of the endpoint's sweep has looked at the hints
+        at the new time, and what it handed the transport is on the board."""
+        now = clock.advance(seconds)
+        wait_until(lambda: clock.swept >= now, timeout=10, message="the sweep did not look at the clock")
+        settled(control)
+
     conf = zenoh.Config()
     conf.insert_json5("mode", '"client"')
     conf.insert_json5("connect/endpoints", f'["{router}"]')
@@ -535,21 +559,20 @@ def test_a_forged_token_costs_a_bounded_number_of_hints_and_leaves_no_entry(team
         assert stand == 3.0 and HINT_WAITS == (5.0, 15.0, 45.0)
         shown, hints_at, elapsed = 0, {}, 0.0
         while elapsed < 120.0:  # two minutes of the agent's clock, 3 s a step
-            clock.advance(3.0)
+            step(3.0)
             elapsed += 3.0
-            time.sleep(0.3)  # the sweep looks at the clock every 0.25 s
             shown += "robot9" in peers_of(control)
             hints_at[elapsed] = counters.get("zenoh.hints", 0)
         # hints at 0, 3 + 5 = 8 (seen at 9), 12 + 15 = 27, 30 + 45 = 75: each forgotten at its next step
-        assert hints_at[60.0] == 3 and hints_at[120.0] == 4, hints_at
+        expected = {t: 1 + (t >= 9.0) + (t >= 27.0) + (t >= 75.0) for t in hints_at}
+        assert hints_at == expected, hints_at
         assert counters.get("zenoh.hints_forgotten") == 4
         assert "robot9" not in peers_of(control)
-        assert shown <= 3, f"robot9 shown {shown} of 40 steps"
+        assert shown == 3, f"robot9 shown {shown} of 40 steps"  # at 9, 27 and 75 s
         sent = counters.get("handshakes.sent", 0)
         assert sent <= 4 * 6, f"{sent} handshakes for 4 hints"
         for _ in range(5):  # the hints are spent: nothing more while the token is held
-            clock.advance(60.0)
-            time.sleep(0.3)
+            step(60.0)
         assert counters.get("zenoh.hints") == 4 and counters.get("handshakes.sent", 0) == sent
         assert "robot9" not in peers_of(control)
         token.undeclare()
