@@ -164,25 +164,8 @@ def run(args: argparse.Namespace) -> int:
             say(f"erni sim: removed {len(removed)} dead run(s) of --netns" +
                   (f" ({', '.join(removed)})" if removed else ""))
             return 0
-        if args.hello_interval is not None and not args.netns:
-            raise TeamError("--hello-interval is babeld's, which runs only with --netns")
-        if args.channel is not None and not args.netns:
-            raise TeamError("--channel chooses the real-mesh tier's channel: add --netns")
-        scenario = load(args)
-        if args.netns and (args.channel or scenario.radio.channel) == "ns3":
-            from erni.sim.ns3_channel import Ns3Error, check_channel
-
-            try:  # ns-3 missing, or more nodes than it carries in real time: one line, before anything starts
-                check_channel(scenario.count + 1)
-            except Ns3Error as err:
-                raise TeamError(str(err)) from None
-        if scenario.ros2 is not False and (missing := ros2_missing()):
-            raise TeamError(missing)
+        scenario = _checked(args)
         too_many = capacity_warning(scenario.count, cores())
-        if args.gui_listen:
-            from erni.transport import parse_address
-
-            parse_address(args.gui_listen)
         if not args.run_dir:
             prune_run_dirs(Path(tempfile.gettempdir()))
         team = Team(scenario, run_dir=args.run_dir, headless=args.headless,
@@ -249,6 +232,33 @@ def run(args: argparse.Namespace) -> int:
             signal.signal(sig, handler)
         say(f"erni sim: stopped; configs and logs in {team.run_dir}", flush=True)
     return code
+
+
+def _checked(args: argparse.Namespace) -> Any:
+    """The scenario of `args`, once the options and what they need are checked: a wrong combination, a
+    missing ns-3 or Zenoh, a bad GUI address is one line (a `TeamError`, `ScenarioError` or `ValueError`)
+    before anything starts."""
+    from erni.sim.team import TeamError
+
+    if args.hello_interval is not None and not args.netns:
+        raise TeamError("--hello-interval is babeld's, which runs only with --netns")
+    if args.channel is not None and not args.netns:
+        raise TeamError("--channel chooses the real-mesh tier's channel: add --netns")
+    scenario = load(args)
+    if args.netns and (args.channel or scenario.radio.channel) == "ns3":
+        from erni.sim.ns3_channel import Ns3Error, check_channel
+
+        try:  # ns-3 missing, or more nodes than it carries in real time
+            check_channel(scenario.count + 1)
+        except Ns3Error as err:
+            raise TeamError(str(err)) from None
+    if scenario.ros2 is not False and (missing := ros2_missing()):
+        raise TeamError(missing)
+    if args.gui_listen:
+        from erni.transport import parse_address
+
+        parse_address(args.gui_listen)
+    return scenario
 
 
 def cores() -> int:

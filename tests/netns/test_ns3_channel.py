@@ -122,11 +122,11 @@ def test_a_killed_launcher_takes_the_ns3_process_and_its_taps_along_and_clean_st
     from erni.sim import netns
 
     launcher = subprocess.Popen([sys.executable, "-c", textwrap.dedent(f"""
-        import sys, time
+        import signal
         from erni.sim.netns import Mesh
         mesh = Mesh(["a", "b"], {str(tmp_path)!r}, channel="ns3").create()
         print(mesh.tag, mesh.ns3.proc.pid, flush=True)
-        time.sleep(120)
+        signal.pause()  # until the test kills it
     """)], stdout=subprocess.PIPE, text=True)
     assert launcher.stdout is not None
     tag, pid = launcher.stdout.readline().split()
