@@ -512,6 +512,7 @@ class SphinxStream:
         self.decoder, self.ep = decoder, endpointer
         self.live = live  # a second decoder of the grammar, fed the utterance as it is spoken (a stop waits for no decode)
         self._live_on = False  # the live decoder is inside an utterance
+        self._live_left = False  # ... of an utterance already heard (its end waits for the next one)
         self.suppressor = suppressor  # the front end's noise suppressor: what is heard is its cleaned audio
         self.answering = False  # a read-back awaits "yes" or "no": a short utterance is decoded against the answers
         self.others = frozenset(others)  # the short lines of the SHORT search that overrule a spotted stop
@@ -562,6 +563,8 @@ class SphinxStream:
         """Decode the utterance's audio as it comes, on the live decoder."""
         if self.live is None:
             return
+        if self._live_left:  # the last utterance's, left open by a stop heard before it was needed
+            self._live_end()
         if not self._live_on:
             self.live.start_utt()
             self._live_on = True
@@ -571,7 +574,7 @@ class SphinxStream:
         """End the live decoder's utterance: its hearing and word scores (None without one)."""
         if not self._live_on:
             return None
-        self._live_on = False
+        self._live_on = self._live_left = False
         self.live.end_utt()
         return self._decoded(self.live)
 
@@ -641,7 +644,7 @@ class SphinxStream:
     def _end(self) -> Heard | None:
         self.in_utterance = False
         audio, self.audio = bytes(self.audio), bytearray()
-        live = self._live_end()
+        self._live_left = self._live_on  # the live decode is ended when it is needed, or at the next utterance
         if not audio:
             return None
         snr = getattr(self.ep, "snr", None)
@@ -663,6 +666,7 @@ class SphinxStream:
             answer, decoded = self._answer(audio)
             if answer is not None:
                 return answer
+        live = self._live_end()
         if live is not None:
             self.evidence.update(live=live[0])
             if is_stop(live[0]):  # the live decode heard a stop as it was said: it acts at once, however sure
