@@ -88,10 +88,10 @@ def save(args: argparse.Namespace, rows: list[dict[str, Any]], clips: list[dict[
              "noise-floor endpointer, stop keyphrases")
     which += f"; front end: denoise {args.denoise} (WebRTC level {args.suppression}), vad {args.vad}, gain {args.gain}, answers " + (
         "among the short lines" if not args.no_answers else "against the whole grammar") + (
-        ", no live decode" if args.no_live else ", live decode")
+        ", no live decode" if args.no_live else ", live decode" + (" as the second decode" if args.live_again else ""))
     out.write_text(json.dumps({"recogniser": which, "cost": getattr(args, "cost", {}), "front_end": {"denoise": args.denoise, "vad": args.vad, "suppression": args.suppression,
                                "gain": args.gain, "answers": not args.no_answers,
-                               "live": not args.no_live},
+                               "live": not args.no_live, "live_again": args.live_again},
                                "seed": args.seed, "every": args.every, "part": args.part, "rows": rows,
                                "clips": clips}, indent=1) + "\n")
 
@@ -340,6 +340,8 @@ def main() -> int:
     ap.add_argument("--no-answers", action="store_true", help="decode answers to read-backs with the whole grammar")
     ap.add_argument("--no-live", action="store_true", help="no live decode as the voice goes on (a stop then waits "
                     "for the decodes after the utterance)")
+    ap.add_argument("--live-again", action="store_true", help="the live decode stands for the second decode "
+                    "(the doubt rule's decode in pieces)")
     ap.add_argument("--json", default="artifacts/ui/speech_set.json")
     ap.add_argument("--every", type=int, default=1, help="the stop phrasings and every K-th other line of the set")
     ap.add_argument("--part", default="1/1", help="run the I-th of N shares of the conditions (I/N), "
@@ -366,6 +368,7 @@ def main() -> int:
     stream = recogniser.stream()  # one decoder, as for one microphone
     if args.no_live:
         stream.live = None
+    stream.live_again = args.live_again
     parts = {"suppressor": getattr(stream, "suppressor", None), "endpointer": getattr(stream, "ep", None)}
     if parts["suppressor"] is not None:
         stream.suppressor = parts["suppressor"] = Timed(parts["suppressor"])

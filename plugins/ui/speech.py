@@ -513,6 +513,7 @@ class SphinxStream:
         self.live = live  # a second decoder of the grammar, fed the utterance as it is spoken (a stop waits for no decode)
         self._live_on = False  # the live decoder is inside an utterance
         self._live_left = False  # ... of an utterance already heard (its end waits for the next one)
+        self.live_again = False  # the live decode stands for the second decode (else one in pieces after the first)
         self.suppressor = suppressor  # the front end's noise suppressor: what is heard is its cleaned audio
         self.answering = False  # a read-back awaits "yes" or "no": a short utterance is decoded against the answers
         self.others = frozenset(others)  # the short lines of the SHORT search that overrule a spotted stop
@@ -566,6 +567,10 @@ class SphinxStream:
         if self._live_left:  # the last utterance's, left open by a stop heard before it was needed
             self._live_end()
         if not self._live_on:
+            try:  # the cepstral mean the main decoder settled on (a live decode from its own start hears poorly)
+                self.live.set_cmn(self.decoder.get_cmn())
+            except (AttributeError, RuntimeError, ValueError):
+                pass
             self.live.start_utt()
             self._live_on = True
         self.live.process_raw(speech, False, False)
@@ -682,8 +687,11 @@ class SphinxStream:
         if near and (partial or poor or not text) and self._short(audio) not in self.others:
             # a stop phrase spotted in a short utterance the grammar heard only doubtfully: a stop to everyone
             return Heard("everybody stop", False, f"a stop phrase spotted ({near!r}) where the grammar doubts {text!r}")
-        self._decode(audio, whole=False)  # the second decode: the front end settled on this utterance
-        again, _ = self._decoded()
+        if self.live_again and live is not None:  # the second hearing: the live decode's, in the pieces it came in
+            again = live[0]
+        else:  # the second decode: the front end settled on this utterance
+            self._decode(audio, whole=False)
+            again, _ = self._decoded()
         wake = self._spotted(audio, self.WAKE, self.LONE_WAKE, self.LONGEST_WAKE) if self.wake else ""
         self.evidence.update(again=again, wake=wake)
         if wake:
