@@ -87,9 +87,11 @@ def save(args: argparse.Namespace, rows: list[dict[str, Any]], clips: list[dict[
              if args.backend == "vosk" else "pocketsphinx en-us, ERNI grammar as JSGF, two decodes + word scores, "
              "noise-floor endpointer, stop keyphrases")
     which += f"; front end: denoise {args.denoise} (WebRTC level {args.suppression}), vad {args.vad}, gain {args.gain}, answers " + (
-        "among the short lines" if not args.no_answers else "against the whole grammar")
+        "among the short lines" if not args.no_answers else "against the whole grammar") + (
+        ", no live decode" if args.no_live else ", live decode" + (" as the second hearing" if args.live_again else " for stops"))
     out.write_text(json.dumps({"recogniser": which, "cost": getattr(args, "cost", {}), "front_end": {"denoise": args.denoise, "vad": args.vad, "suppression": args.suppression,
-                               "gain": args.gain, "answers": not args.no_answers},
+                               "gain": args.gain, "answers": not args.no_answers,
+                               "live": not args.no_live, "live_again": not args.no_live and args.live_again},
                                "seed": args.seed, "every": args.every, "part": args.part, "rows": rows,
                                "clips": clips}, indent=1) + "\n")
 
@@ -223,7 +225,10 @@ def front_name(run: dict[str, Any]) -> str:
     f = run.get("front_end") or {"denoise": "off", "vad": "off", "gain": 0, "answers": False}
     level = f" (level {f['suppression']})" if f["denoise"] == "webrtc" and f.get("suppression", 2) != 2 else ""
     parts = [f"denoise {f['denoise']}{level}", f"vad {f['vad']}"] + ([f"gain {f['gain']} dBFS"] if f.get("gain") else [])
-    return ", ".join(parts) + (", answers among the short lines" if f.get("answers") else ", answers by the whole grammar")
+    live = ("live decode as the second hearing" if f.get("live_again") else "live decode for stops") if f.get("live") \
+        else "no live decode"
+    return ", ".join(parts) + (", answers among the short lines" if f.get("answers") else ", answers by the whole grammar") \
+        + f", {live}"
 
 
 def compare(paths: list[str]) -> str:
@@ -336,6 +341,10 @@ def main() -> int:
     ap.add_argument("--gain", type=int, default=ui.auto_gain, help="WebRTC's automatic gain target, dBFS (0 = off)")
     ap.add_argument("--suppression", type=int, choices=range(5), default=2, help="WebRTC's suppression level (0-4)")
     ap.add_argument("--no-answers", action="store_true", help="decode answers to read-backs with the whole grammar")
+    ap.add_argument("--no-live", action="store_true", help="no live decode as the voice goes on (a stop then waits "
+                    "for the decodes after the utterance)")
+    ap.add_argument("--live-again", action="store_true", help="the live decode as the doubt rule's second hearing "
+                    "(instead of a decode in pieces after the utterance)")
     ap.add_argument("--json", default="artifacts/ui/speech_set.json")
     ap.add_argument("--every", type=int, default=1, help="the stop phrasings and every K-th other line of the set")
     ap.add_argument("--part", default="1/1", help="run the I-th of N shares of the conditions (I/N), "
@@ -360,6 +369,9 @@ def main() -> int:
         print(f"bench_speech: {err}", file=sys.stderr)
         return 2
     stream = recogniser.stream()  # one decoder, as for one microphone
+    if args.no_live:
+        stream.live = None
+    stream.live_again = args.live_again
     parts = {"suppressor": getattr(stream, "suppressor", None), "endpointer": getattr(stream, "ep", None)}
     if parts["suppressor"] is not None:
         stream.suppressor = parts["suppressor"] = Timed(parts["suppressor"])

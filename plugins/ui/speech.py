@@ -436,12 +436,16 @@ class SphinxRecognizer:
             decoder.add_jsgf_string(SphinxStream.SHORT, self.short)  # the stop phrases, the answers, short commands
             decoder.add_jsgf_string(SphinxStream.COMMANDS, self.grammar)
             decoder.activate_search(SphinxStream.COMMANDS)
+            live = Decoder(hmm=str(self.model), dict=str(self.dictionary), lm=None, samprate=RATE,
+                           loglevel="FATAL", beam=self.BEAM, wbeam=self.WBEAM)
+            live.add_jsgf_string(SphinxStream.COMMANDS, self.grammar)
+            live.activate_search(SphinxStream.COMMANDS)
         except (RuntimeError, ValueError) as err:
             raise SpeechError(f"cannot start PocketSphinx with {self.model}: {err}") from None
         suppressor = self.front.suppressor() if self.front is not None else None
         endpointer = self.front.endpointer(suppressor) if self.front is not None else NoiseFloorEndpointer(RATE)
         return SphinxStream(decoder, endpointer, complete=self.rules.accepts, wake=bool(self.wake),
-                            others=self.others, suppressor=suppressor)
+                            others=self.others, suppressor=suppressor, live=live)
 
 
 # The stop phrasings a keyphrase search listens for in every short utterance, whatever the grammar
@@ -484,6 +488,15 @@ class SphinxStream:
     grammar hears only in part, poorly or not at all. A wake phrase said on its own is spotted by a
     keyphrase search over the same audio: spotted with at most `LONE_WAKE` seconds of the utterance's
     speech outside it, it is the hearing (a wake phrase moves nothing).
+
+    A second decoder (`live`) decodes the utterance against the grammar as it is spoken, so that a stop
+    said inside a longer line ("hey robot one stop", "everyone freeze"), which no keyphrase search takes
+    for a lone stop, is heard when the voice ends, not after the decodes that follow it: a stop it hears
+    acts at once, as one the grammar's first decode hears does (after a spotted lone stop and an answer
+    to a read-back, which it does not overrule). The whole grammar then decodes that audio at the next
+    audio handed over, and a stop it hears to other robots ("robot one" where the live decode heard
+    "robot twenty") is heard too. The live decoder starts each utterance from the cepstral mean the
+    main decoder settled on; before the main decoder has heard an utterance it is not listened to.
     """
 
     COMMANDS, WAKE, STOPS, SHORT = "erni", "wake", "stops", "short"
@@ -498,8 +511,18 @@ class SphinxStream:
     LONGEST_STOP = 2.5  # seconds of speech: a longer utterance is not searched for a lone stop phrase
 
     def __init__(self, decoder: Any, endpointer: Any, complete: Callable[[str], bool] | None = None,
-                 wake: bool = False, others: Iterable[str] = (), suppressor: Any = None) -> None:
+                 wake: bool = False, others: Iterable[str] = (), suppressor: Any = None, live: Any = None) -> None:
         self.decoder, self.ep = decoder, endpointer
+        self.live = live  # a second decoder of the grammar, fed the utterance as it is spoken (a stop waits for no decode)
+        self._live_on = False  # the live decoder is inside an utterance
+        self._live_left = False  # ... of an utterance already heard (its end waits for the next one)
+        # the live decode as the second hearing, instead of a decode in pieces after the first: off, as the
+        # 5 dB test of the front end hears fewer lines with it (the main decoder's cepstral mean then moves
+        # differently), though the whole speech set heard more in noise (bench_speech --live-again)
+        self.live_again = False
+        self._stopped: tuple[bytes, str] | None = None  # a stop the live decode heard, and its audio, to decode again
+        self._heard_one = False  # the main decoder has decoded an utterance (its cepstral mean is this room's)
+        self._live_primed = False  # the live decode started from such a mean
         self.suppressor = suppressor  # the front end's noise suppressor: what is heard is its cleaned audio
         self.answering = False  # a read-back awaits "yes" or "no": a short utterance is decoded against the answers
         self.others = frozenset(others)  # the short lines of the SHORT search that overrule a spotted stop
@@ -516,7 +539,7 @@ class SphinxStream:
         """Accept audio; return the hearing of an utterance that just ended, if any."""
         self.buffer += pcm
         size = self.ep.frame_bytes
-        heard = None
+        heard = self._recheck()
         while len(self.buffer) >= size:
             frame = bytes(self.buffer[:size])
             del self.buffer[:size]
@@ -528,9 +551,11 @@ class SphinxStream:
                 continue
             self.in_utterance = True
             self.audio += speech
+            self._hear_live(speech)
             if not self.ep.in_speech:
                 if getattr(self.ep, "cancelled", False):  # steady background, no speech: nothing to decode
                     self.in_utterance, self.audio = False, bytearray()
+                    self._live_end()
                     continue
                 heard = self._end() or heard
         return heard
@@ -542,7 +567,47 @@ class SphinxStream:
         self.buffer.clear()
         if hasattr(self.ep, "end"):
             self.ep.end()
-        return self._end() if self.in_utterance else None
+        again = self._recheck()
+        return (self._end() if self.in_utterance else None) or again
+
+    def _recheck(self) -> Heard | None:
+        """After a stop the live decode heard, the whole grammar's decode of the same audio: a stop it hears to
+        other robots is heard too (a stop to one robot too many is safe, one to the wrong robot is not)."""
+        if self._stopped is None:
+            return None
+        audio, live = self._stopped
+        self._stopped = None
+        self._decode(audio, whole=True)
+        text, _ = self._decoded()
+        self.evidence.update(recheck=text)
+        if is_stop(text) and not same_meaning(text, live):
+            return Heard(text, False, f"a stop, heard by the whole grammar after the live decode's {live!r}")
+        return None
+
+    def _hear_live(self, speech: bytes) -> None:
+        """Decode the utterance's audio as it comes, on the live decoder."""
+        if self.live is None:
+            return
+        if self._live_left:  # the last utterance's, left open by a stop heard before it was needed
+            self._live_end()
+        if not self._live_on:
+            try:  # the cepstral mean the main decoder settled on (a live decode from its own start hears poorly)
+                self.live.set_cmn(self.decoder.get_cmn())
+                self._live_primed = self._heard_one
+            except (AttributeError, RuntimeError, ValueError):
+                self._live_primed = False
+            self.live.start_utt()
+            self._live_on = True
+        self.live.process_raw(speech, False, False)
+
+    def _live_end(self) -> tuple[str, list[tuple[str, float]]] | None:
+        """End the live decoder's utterance: its hearing and word scores (None without one)."""
+        if not self._live_on:
+            return None
+        self._live_on = self._live_left = False
+        self.live.end_utt()
+        # before the main decoder has heard an utterance there is no mean to start from: not a hearing to go by
+        return self._decoded(self.live) if self._live_primed else None
 
     def _decode(self, audio: bytes, whole: bool) -> None:
         self.decoder.start_utt()
@@ -554,12 +619,14 @@ class SphinxStream:
                 self.decoder.process_raw(audio[i:i + step], False, False)
         self.decoder.end_utt()
 
-    def _decoded(self) -> tuple[str, list[tuple[str, float]]]:
-        """The hypothesis of the utterance just decoded, and each word's acoustic score per frame."""
-        hyp = self.decoder.hyp()
+    def _decoded(self, decoder: Any = None) -> tuple[str, list[tuple[str, float]]]:
+        """The hypothesis of the utterance just decoded (by `decoder`, default the main one), and each word's
+        acoustic score per frame."""
+        decoder = self.decoder if decoder is None else decoder
+        hyp = decoder.hyp()
         text = hyp.hypstr.strip() if hyp is not None else ""
         scores = []
-        for seg in self.decoder.seg() or []:
+        for seg in decoder.seg() or []:
             if seg.word.startswith(("<", "[")) or seg.word == "<sil>":
                 continue
             frames = max(1, seg.end_frame - seg.start_frame + 1)
@@ -608,8 +675,15 @@ class SphinxStream:
     def _end(self) -> Heard | None:
         self.in_utterance = False
         audio, self.audio = bytes(self.audio), bytearray()
+        self._live_left = self._live_on  # the live decode is ended when it is needed, or at the next utterance
         if not audio:
             return None
+        try:
+            return self._hearing(audio)
+        finally:
+            self._heard_one = True
+
+    def _hearing(self, audio: bytes) -> Heard | None:
         snr = getattr(self.ep, "snr", None)
         if not self.settled and self.suppressor is None:  # a fresh front end: let it settle on this voice and room
             self._decode(audio, whole=False)  # (on cleaned audio this first decode in pieces unsettles it instead: the
@@ -629,25 +703,33 @@ class SphinxStream:
             answer, decoded = self._answer(audio)
             if answer is not None:
                 return answer
+        live = self._live_end()
+        if live is not None:
+            self.evidence.update(live=live[0])
+            if is_stop(live[0]):  # the live decode heard a stop as it was said: it acts at once, however sure,
+                self._stopped = (audio, live[0])  # and the whole grammar's decode may add to it (`_recheck`)
+                return self._judged(live[0], *self._doubts(*live), live[0], None)
         if decoded is None:
             self._decode(audio, whole=True)
             decoded = self._decoded()
         text, scores = decoded
         self.evidence.update(text=text, scores=scores)
-        partial = self.complete is not None and bool(text) and not self.complete(text)
-        poor = [f"{w!r} ({score:.1f})" for w, score in scores if score < self.MIN_WORD_SCORE]
+        partial, poor = self._doubts(text, scores)
         if is_stop(text):  # a stop acts however sure it is: its hearing waits for no second decode
-            return self._judged(text, partial, text, poor, None)
+            return self._judged(text, partial, poor, text, None)
         if near and (partial or poor or not text) and self._short(audio) not in self.others:
             # a stop phrase spotted in a short utterance the grammar heard only doubtfully: a stop to everyone
             return Heard("everybody stop", False, f"a stop phrase spotted ({near!r}) where the grammar doubts {text!r}")
-        self._decode(audio, whole=False)  # the second decode: the front end settled on this utterance
-        again, _ = self._decoded()
+        if self.live_again and live is not None:  # the second hearing: the live decode's, in the pieces it came in
+            again = live[0]
+        else:  # the second decode: the front end settled on this utterance
+            self._decode(audio, whole=False)
+            again, _ = self._decoded()
         wake = self._spotted(audio, self.WAKE, self.LONE_WAKE, self.LONGEST_WAKE) if self.wake else ""
         self.evidence.update(again=again, wake=wake)
         if wake:
             return Heard(wake) if wake == text else Heard(wake, False, f"a lone wake phrase (the grammar: {text!r})")
-        return self._judged(text, partial, again, poor, snr)
+        return self._judged(text, partial, poor, again, snr)
 
     def _answer(self, audio: bytes) -> tuple[Heard | None, tuple[str, list[tuple[str, float]]] | None]:
         """A short utterance heard as an answer to a read-back: decoded against the short lines (`NOT_STOPS`: the
@@ -681,8 +763,13 @@ class SphinxStream:
             return None, decoded  # the whole grammar is sure of a command that is no answer
         return Heard(text, False, "heard as an answer to a read-back"), decoded
 
+    def _doubts(self, text: str, scores: list[tuple[str, float]]) -> tuple[bool, list[str]]:
+        """Whether the search ended inside a sentence, and the words that fit the audio poorly."""
+        partial = self.complete is not None and bool(text) and not self.complete(text)
+        return partial, [f"{w!r} ({score:.1f})" for w, score in scores if score < self.MIN_WORD_SCORE]
+
     @classmethod
-    def _judged(cls, text: str, partial: bool, again: str, poor: list[str], snr: float | None) -> Heard | None:
+    def _judged(cls, text: str, partial: bool, poor: list[str], again: str, snr: float | None) -> Heard | None:
         if not text:
             return None
         if partial:  # the search ended inside a sentence

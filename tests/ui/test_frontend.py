@@ -130,6 +130,70 @@ def test_an_answer_in_noise_is_heard_against_the_short_lines(recognisers):
         assert not answers & set(said), (text, said)
 
 
+@needs_espeak
+def test_a_stop_inside_a_longer_line_is_heard_by_the_live_decode_without_a_decode_after_it(recognisers):
+    """ "robot two stop" and "everyone stop" are no lone stop phrase for the keyphrase search: the live decoder,
+    fed the utterance as it is spoken, hears the stop, and it acts when the utterance ends, with no decode of the
+    whole grammar before it (which is what took a stop said this way seconds on a busy machine); that decode comes
+    after it, and hearing the same stop adds nothing. A command that is no stop still gets its two decodes."""
+    stream, rng = recognisers["front"].stream(), np.random.default_rng(3)
+    decodes: list[tuple[str, bool]] = []
+    decode = stream._decode
+
+    def recorded(audio: bytes, whole: bool) -> None:
+        decodes.append((stream.decoder.current_search(), whole))
+        decode(audio, whole)
+
+    stream._decode = recorded
+    first = S.synthesise("robot one go home", "en-us", 160)  # the first utterance: no live hearing (no mean yet)
+    heard(stream, S.room(first, None, rng, 1.0) + S.as_heard(first, None, rng))
+    assert "live" not in stream.evidence, stream.evidence
+    for text in ("robot two stop", "everyone stop", "where are you"):
+        decodes.clear()
+        speech = S.synthesise(text, "en-us", 160)
+        audio = S.room(speech, None, rng, 1.0) + S.as_heard(speech, None, rng)
+        said, before = [], None  # the hearings, and the decodes made until the first
+        for i in range(0, len(audio), 3200):
+            if h := stream.feed(audio[i:i + 3200]):
+                said.append(str(h))
+                before = list(decodes) if before is None else before
+        said += [str(h) for h in [stream.flush()] if h]
+        grammar = [whole for search, whole in decodes if search == stream.COMMANDS]
+        if text.endswith("stop"):
+            assert said == [text] and stream.evidence.get("live") == text, (text, said, stream.evidence)
+            assert before is not None and [s for s, _ in before if s == stream.COMMANDS] == [], (text, before)
+            assert grammar == [True], (text, decodes)  # after it, the whole grammar's, hearing the same: nothing more
+        else:
+            assert said == [text] and stream.evidence["live"] == text, (text, said, stream.evidence)
+            assert grammar == [True, False], (text, decodes)  # whole, then in pieces: the doubt rule's two decodes
+
+
+def test_a_stop_the_live_decode_heard_for_another_robot_is_added_by_the_whole_grammar():
+    """The live decode heard "robot twenty stop" where the whole grammar, decoding the same audio after it,
+    hears "robot one stop": the stop to robot 1 is heard too, at the next audio; the same stop adds nothing."""
+    from erni.plugins.ui.speech import SphinxStream
+
+    class Decoder:  # the whole grammar's decode of the kept audio
+        def __init__(self, text: str) -> None:
+            self.text = text
+
+        def start_utt(self) -> None: ...
+        def process_raw(self, *a: object) -> None: ...
+        def end_utt(self) -> None: ...
+        def seg(self) -> list[object]:
+            return []
+
+        def hyp(self) -> object:
+            return type("Hyp", (), {"hypstr": self.text})()
+
+    for whole, extra in (("robot one stop", "robot one stop"), ("robot twenty stop", None), ("robot one turn left", None)):
+        stream = SphinxStream(Decoder(whole), VoiceEndpointer(lambda f, s: 0.0))
+        stream._stopped = (bytes(960), "robot twenty stop")
+        got = stream.feed(bytes(960))
+        assert (str(got) if got else None) == extra, (whole, got)
+        assert stream._stopped is None and stream.feed(bytes(960)) is None
+
+
 def test_a_missing_library_is_one_line_naming_its_package(monkeypatch):
     monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None)
     with pytest.raises(SpeechError, match=r"needs the pyrnnoise package: pip install pyrnnoise") as err:

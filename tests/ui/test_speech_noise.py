@@ -102,7 +102,7 @@ def test_the_recognisers_stream_ends_an_utterance_in_steady_noise():
     ("listen", 3.0, False),
 ])
 def test_a_hearing_in_poor_audio_is_doubted_when_it_would_move_robots(text, snr, doubted):
-    heard = SphinxStream._judged(text, False, text, [], snr)
+    heard = SphinxStream._judged(text, False, [], text, snr)
     assert heard is not None and heard.unsure == doubted, heard
     if doubted:
         assert heard.why == f"the speech is only {snr:.0f} dB above the background"
