@@ -493,9 +493,9 @@ class SphinxStream:
     said inside a longer line ("hey robot one stop", "everyone freeze"), which no keyphrase search takes
     for a lone stop, is heard when the voice ends, not after the decodes that follow it: a stop it hears
     acts at once, as one the grammar's first decode hears does (after a spotted lone stop and an answer
-    to a read-back, which it does not overrule). The whole grammar then decodes that audio at the next
-    audio handed over, and a stop it hears to other robots ("robot one" where the live decode heard
-    "robot twenty") is heard too. The live decoder starts each utterance from the cepstral mean the
+    to a read-back, which it does not overrule). The live decoder then decodes that audio whole at the
+    next audio handed over, and a stop it hears to other robots ("robot one" where the live decode
+    heard "robot twenty") is heard too (the main decoder is left as it was). The live decoder starts each utterance from the cepstral mean the
     main decoder settled on; before the main decoder has heard an utterance it is not listened to.
     """
 
@@ -573,12 +573,17 @@ class SphinxStream:
     def _recheck(self) -> Heard | None:
         """After a stop the live decode heard, the whole grammar's decode of the same audio: a stop it hears to
         other robots is heard too (a stop to one robot too many is safe, one to the wrong robot is not)."""
-        if self._stopped is None:
+        if self._stopped is None or self._live_on:
             return None
         audio, live = self._stopped
         self._stopped = None
-        self._decode(audio, whole=True)
-        text, _ = self._decoded()
+        # on the live decoder, idle between utterances: a decode on the main one would move its cepstral mean,
+        # and with it how the next utterances are heard
+        self.live.set_cmn(self.decoder.get_cmn())
+        self.live.start_utt()
+        self.live.process_raw(audio, False, True)
+        self.live.end_utt()
+        text, _ = self._decoded(self.live)
         self.evidence.update(recheck=text)
         if is_stop(text) and not same_meaning(text, live):
             return Heard(text, False, f"a stop, heard by the whole grammar after the live decode's {live!r}")

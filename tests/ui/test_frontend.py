@@ -134,8 +134,9 @@ def test_an_answer_in_noise_is_heard_against_the_short_lines(recognisers):
 def test_a_stop_inside_a_longer_line_is_heard_by_the_live_decode_without_a_decode_after_it(recognisers):
     """ "robot two stop" and "everyone stop" are no lone stop phrase for the keyphrase search: the live decoder,
     fed the utterance as it is spoken, hears the stop, and it acts when the utterance ends, with no decode of the
-    whole grammar before it (which is what took a stop said this way seconds on a busy machine); that decode comes
-    after it, and hearing the same stop adds nothing. A command that is no stop still gets its two decodes."""
+    whole grammar before it (which is what took a stop said this way seconds on a busy machine); the live decoder
+    decodes it whole after it, and hearing the same stop adds nothing. A command that is no stop still gets its two
+    decodes."""
     stream, rng = recognisers["front"].stream(), np.random.default_rng(3)
     decodes: list[tuple[str, bool]] = []
     decode = stream._decode
@@ -162,20 +163,27 @@ def test_a_stop_inside_a_longer_line_is_heard_by_the_live_decode_without_a_decod
         if text.endswith("stop"):
             assert said == [text] and stream.evidence.get("live") == text, (text, said, stream.evidence)
             assert before is not None and [s for s, _ in before if s == stream.COMMANDS] == [], (text, before)
-            assert grammar == [True], (text, decodes)  # after it, the whole grammar's, hearing the same: nothing more
+            assert grammar == [], (text, decodes)  # the main decoder decodes no grammar for it, before or after
+            assert stream.evidence.get("recheck") == text, stream.evidence  # the live decoder's whole decode after it
         else:
             assert said == [text] and stream.evidence["live"] == text, (text, said, stream.evidence)
             assert grammar == [True, False], (text, decodes)  # whole, then in pieces: the doubt rule's two decodes
 
 
 def test_a_stop_the_live_decode_heard_for_another_robot_is_added_by_the_whole_grammar():
-    """The live decode heard "robot twenty stop" where the whole grammar, decoding the same audio after it,
-    hears "robot one stop": the stop to robot 1 is heard too, at the next audio; the same stop adds nothing."""
+    """The live decode heard "robot twenty stop" where the whole grammar, decoding the same audio after it on the
+    live decoder (not the main one), hears "robot one stop": the stop to robot 1 is heard too, at the next audio;
+    the same stop adds nothing."""
     from erni.plugins.ui.speech import SphinxStream
 
-    class Decoder:  # the whole grammar's decode of the kept audio
+    class Decoder:  # the whole grammar's decode of the kept audio, on the live decoder
         def __init__(self, text: str) -> None:
             self.text = text
+
+        def get_cmn(self) -> str:
+            return "40,3,-1"
+
+        def set_cmn(self, cmn: str) -> None: ...
 
         def start_utt(self) -> None: ...
         def process_raw(self, *a: object) -> None: ...
@@ -187,7 +195,7 @@ def test_a_stop_the_live_decode_heard_for_another_robot_is_added_by_the_whole_gr
             return type("Hyp", (), {"hypstr": self.text})()
 
     for whole, extra in (("robot one stop", "robot one stop"), ("robot twenty stop", None), ("robot one turn left", None)):
-        stream = SphinxStream(Decoder(whole), VoiceEndpointer(lambda f, s: 0.0))
+        stream = SphinxStream(Decoder("robot seven stop"), VoiceEndpointer(lambda f, s: 0.0), live=Decoder(whole))
         stream._stopped = (bytes(960), "robot twenty stop")
         got = stream.feed(bytes(960))
         assert (str(got) if got else None) == extra, (whole, got)
