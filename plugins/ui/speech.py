@@ -495,8 +495,9 @@ class SphinxStream:
     acts at once, as one the grammar's first decode hears does (after a spotted lone stop and an answer
     to a read-back, which it does not overrule). The live decoder then decodes that audio whole at the
     next audio handed over, and a stop it hears to other robots ("robot one" where the live decode
-    heard "robot twenty") is heard too (the main decoder is left as it was). The live decoder starts each utterance from the cepstral mean the
-    main decoder settled on; before the main decoder has heard an utterance it is not listened to.
+    heard "robot twenty") is heard too (the main decoder is left as it was). The live decoder starts
+    each utterance from the cepstral mean the main decoder settled on; before the main decoder has
+    heard an utterance there is no such mean, and the live decode is not listened to.
     """
 
     COMMANDS, WAKE, STOPS, SHORT = "erni", "wake", "stops", "short"
@@ -522,7 +523,6 @@ class SphinxStream:
         self.live_again = False
         self._stopped: tuple[bytes, str] | None = None  # a stop the live decode heard, and its audio, to decode again
         self._heard_one = False  # the main decoder has decoded an utterance (its cepstral mean is this room's)
-        self._live_primed = False  # the live decode started from such a mean
         self.suppressor = suppressor  # the front end's noise suppressor: what is heard is its cleaned audio
         self.answering = False  # a read-back awaits "yes" or "no": a short utterance is decoded against the answers
         self.others = frozenset(others)  # the short lines of the SHORT search that overrule a spotted stop
@@ -579,8 +579,7 @@ class SphinxStream:
         self._stopped = None
         # on the live decoder, idle between utterances: a decode on the main one would move its cepstral mean,
         # and with it how the next utterances are heard
-        self.live.set_cmn(self.decoder.get_cmn())
-        self.live.start_utt()
+        self._start_live()
         self.live.process_raw(audio, False, True)
         self.live.end_utt()
         text, _ = self._decoded(self.live)
@@ -596,14 +595,15 @@ class SphinxStream:
         if self._live_left:  # the last utterance's, left open by a stop heard before it was needed
             self._live_end()
         if not self._live_on:
-            try:  # the cepstral mean the main decoder settled on (a live decode from its own start hears poorly)
-                self.live.set_cmn(self.decoder.get_cmn())
-                self._live_primed = self._heard_one
-            except (AttributeError, RuntimeError, ValueError):
-                self._live_primed = False
-            self.live.start_utt()
+            self._start_live()
             self._live_on = True
         self.live.process_raw(speech, False, False)
+
+    def _start_live(self) -> None:
+        """Start an utterance on the live decoder, from the cepstral mean the main decoder settled on (from its
+        own it heard "everybody stop" as "move reverse ...")."""
+        self.live.set_cmn(self.decoder.get_cmn())
+        self.live.start_utt()
 
     def _live_end(self) -> tuple[str, list[tuple[str, float]]] | None:
         """End the live decoder's utterance: its hearing and word scores (None without one)."""
@@ -611,8 +611,9 @@ class SphinxStream:
             return None
         self._live_on = self._live_left = False
         self.live.end_utt()
-        # before the main decoder has heard an utterance there is no mean to start from: not a hearing to go by
-        return self._decoded(self.live) if self._live_primed else None
+        # before the main decoder has heard an utterance there was no mean to start from: not a hearing to go by
+        # (an end left for the next utterance comes when this is already true, and is not used)
+        return self._decoded(self.live) if self._heard_one else None
 
     def _decode(self, audio: bytes, whole: bool) -> None:
         self.decoder.start_utt()
