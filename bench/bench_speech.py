@@ -86,12 +86,10 @@ def save(args: argparse.Namespace, rows: list[dict[str, Any]], clips: list[dict[
     which = (f"vosk {args.vosk_model or os.environ.get('VOSK_MODEL_PATH', '')}, ERNI grammar, word confidences"
              if args.backend == "vosk" else "pocketsphinx en-us, ERNI grammar as JSGF, two decodes + word scores, "
              "noise-floor endpointer, stop keyphrases")
-    which += f"; front end: denoise {args.denoise} (WebRTC level {args.suppression}), vad {args.vad}, gain {args.gain}, answers " + (
-        "among the short lines" if not args.no_answers else "against the whole grammar") + (
-        ", no live decode" if args.no_live else ", live decode" + (" as the second hearing" if args.live_again else " for stops"))
-    out.write_text(json.dumps({"recogniser": which, "cost": getattr(args, "cost", {}), "front_end": {"denoise": args.denoise, "vad": args.vad, "suppression": args.suppression,
-                               "gain": args.gain, "answers": not args.no_answers,
-                               "live": not args.no_live, "live_again": not args.no_live and args.live_again},
+    front = {"denoise": args.denoise, "vad": args.vad, "suppression": args.suppression, "gain": args.gain,
+             "answers": not args.no_answers, "live": not args.no_live, "live_again": not args.no_live and args.live_again}
+    which += "; front end: " + front_name({"front_end": front})
+    out.write_text(json.dumps({"recogniser": which, "cost": getattr(args, "cost", {}), "front_end": front,
                                "seed": args.seed, "every": args.every, "part": args.part, "rows": rows,
                                "clips": clips}, indent=1) + "\n")
 
