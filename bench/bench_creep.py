@@ -10,6 +10,7 @@ has stood for 12 s (a release on a flicker shows), reached its goal, or left its
     sudo python bench/bench_creep.py --rounds 10 --netns    # real-mesh tier (namespaces, babeld)
     ... --loss 0.3                                          # and 30 % background loss
     ... --blind                                             # the same with the guard off
+    sudo python bench/bench_creep.py --rounds 3 --netns --channel ns3   # ns-3's 802.11a channel
 
 Printed per speed: partitions (the end robot left its relay's range: the team split), the closest
 approach to the range limit (m), the time from crossing the distance where the radio delivers 0.3
@@ -40,13 +41,13 @@ from erni.sim.team import Team  # noqa: E402
 FAST = {"beacon_period": 0.3, "peer_timeout": 1.5, "task_ttl": 60.0}
 
 
-def team_for(netns: bool, loss: float, blind: bool, run_dir: str) -> Team:
+def team_for(netns: bool, loss: float, blind: bool, run_dir: str, channel: str | None = None) -> Team:
     scenario = load_scenario(find_scenario("creep"))
     transport = dict(FAST)
     if loss and not netns:  # the loopback tier has no radio to lose frames on: each agent drops its own
         transport["udp_loss"] = loss
     team = Team(scenario, run_dir=run_dir, headless=True, transport=transport, netns=netns, mission=True,
-                mission_settings={"network_aware": not blind})
+                mission_settings={"network_aware": not blind}, channel=channel)
     return team
 
 
@@ -72,6 +73,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--rounds", type=int, default=3, help="trials per speed (default 3)")
     ap.add_argument("--netns", action="store_true", help="the real-mesh tier (root: namespaces, babeld)")
+    ap.add_argument("--channel", choices=["nftables", "ns3"], help="with --netns: the channel between the "
+                    "namespaces (default nftables; ns3: ns-3's 802.11a, reaching as far as the radio model)")
     ap.add_argument("--loss", type=float, default=0.0, help="background loss on every link, 0..1 (default 0)")
     ap.add_argument("--blind", action="store_true", help="the mission's network awareness off")
     ap.add_argument("--speeds", type=float, nargs="+", default=list(creep.SPEEDS), help="m/s, one per spoke")
@@ -89,10 +92,14 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if not 0.0 <= args.loss < 1.0:
         ap.error(f"--loss: expected a share in 0..1, got {args.loss}")
+    if args.channel and not args.netns:
+        ap.error("--channel chooses the real-mesh tier's channel: add --netns")
+    if args.channel == "ns3" and args.loss:
+        ap.error("--loss is the nftables channel's: on ns-3 the channel decides loss itself")
     trials: list[creep.Trial] = []
     loads = [os.getloadavg()[0]]
     with tempfile.TemporaryDirectory(prefix="erni-creep-") as tmp:
-        team = team_for(args.netns, args.loss, args.blind, tmp)
+        team = team_for(args.netns, args.loss, args.blind, tmp, args.channel)
         t0 = time.monotonic()
         try:
             team.start(timeout=120)
@@ -113,7 +120,8 @@ def main(argv: list[str] | None = None) -> int:
         finally:
             team.stop()
         took = time.monotonic() - t0
-    tier = "netns (babeld)" if args.netns else "loopback (SNMP)"
+    tier = ("netns-ns3 (babeld, ns-3's 802.11a)" if args.channel == "ns3" else "netns (babeld)") if args.netns \
+        else "loopback (SNMP)"
     print(f"\ncreep, tier {tier}, loss {args.loss:.0%}, guard {'off' if args.blind else 'on'}, "
           f"{args.rounds} round(s), {took:.0f} s, load average {min(loads):.1f}-{max(loads):.1f}")
     print(f"{'speed':>6} {'partitions':>11} {'closest to limit (m)':>30} {'stood after crossing (s)':>32} "

@@ -324,7 +324,7 @@ class Mesh:
         self._lock = threading.Lock()
         self._created = False
         self.channel = channel          # "nftables": the radio model as rules; "ns3": ns-3's 802.11 (erni.sim.ns3_channel)
-        self.range_m = range_m          # the ns-3 channel's reach (the scenario's comm_range)
+        self.range_m = range_m          # the ns-3 channel's reach (`ns3_channel.reach` of the comm_range)
         self.seed = seed
         self.ns3: Ns3Channel | None = None
         self._positions: dict[str, tuple[float, float]] = {}

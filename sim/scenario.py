@@ -93,7 +93,7 @@ class RadioSpec(_Strict):
     min_quality: float = Field(0.1, gt=0, le=1, description="weakest link used for routing")
     channel: Literal["nftables", "ns3"] = Field(
         "nftables", description="what carries the frames in the real-mesh tier (--netns): this model as "
-        "nftables drop rules, or ns-3's 802.11a ad-hoc network reaching about comm_range (--channel wins)")
+        "nftables drop rules, or ns-3's 802.11a ad-hoc network delivering about 10 % at comm_range (--channel wins)")
 
     @model_validator(mode="after")
     def _ranges(self) -> RadioSpec:

@@ -50,6 +50,7 @@ from erni.blackboard.errors import ErniError
 from erni.sim.host_process import COMMANDED_V, ENERGY, TH, HostProcess, RobotView, V, X, Y
 from erni.sim.manet import ManetNetwork, RadioModel
 from erni.sim.netns import HELLO_INTERVAL, Mesh, TcpForwarder, die_with_parent
+from erni.sim.ns3_channel import reach as ns3_reach
 from erni.sim.radio import FD_ENV
 from erni.sim.robot import SimRobotConfig
 from erni.sim.scenario import MAX_AGENT_ROBOTS, Scenario
@@ -191,7 +192,7 @@ class Team:
         # the real-mesh tier: namespaces, segment, babeld, radio rules (made in start())
         self.mesh: Mesh | None = Mesh(self.names + [CONTROL], self.run_dir, control=CONTROL,
                                       hello_interval=hello_interval, channel=channel or scenario.radio.channel,
-                                      range_m=scenario.radio.comm_range, seed=scenario.seed) if netns else None
+                                      range_m=ns3_reach(scenario.radio.comm_range), seed=scenario.seed) if netns else None
         self._forwarder: TcpForwarder | None = None
         if netns:
             self.control_port = control_port or 47100  # the control node's namespace has every port free

@@ -38,7 +38,10 @@ def register(sub: Any) -> None:
     p.add_argument("--seeds", type=int, help="repeat over this many seeds (from --seed) and summarise "
                    "(poi, spread-open, spread-corridor, spread-paths, netaware)")
     p.add_argument("--netns", action="store_true", help="run the teams on the real-mesh tier, as `erni sim --netns` "
-                   "(namespaces, babeld; needs root) (netaware)")
+                   "(namespaces, babeld; needs root) (netaware, relay-video, roundtrip)")
+    p.add_argument("--channel", choices=["nftables", "ns3"], help="with --netns: the channel between the "
+                   "namespaces, the radio model as nftables rules or ns-3's 802.11a network (needs Debian's "
+                   "libns3-dev, g++ and pkg-config); default: the scenario's radio.channel")
     p.add_argument("--paper-durations", action="store_true", help="hold every phase as long as the paper does "
                    "(energy: standby 600 s, each sweep speed 120 s; about 30 minutes)")
     p.add_argument("--list", action="store_true", help="list the experiments and exit")
@@ -68,7 +71,7 @@ def run(args: argparse.Namespace) -> int:
             return 2
     try:
         scenario = _scenario(args, exp)
-        _check_flags(args, exp)
+        _check_flags(args, exp, scenario)
         mode = args.mode or exp.default_mode(scenario)
         if mode not in exp.modes:
             raise ScenarioError(f"{exp.name} runs in {' or '.join(exp.modes)} mode, not {mode!r}")
@@ -77,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
     say(f"erni experiment {exp.name}: paper {exp.paper}, {exp.title} ({mode} mode, "
           f"{scenario.count} robot(s){f', {args.seeds} seeds' if args.seeds else ''}"
-          f"{', real-mesh tier' if args.netns else ''})", flush=True)
+          f"{f', real-mesh tier, {scenario.radio.channel} channel' if args.netns else ''})", flush=True)
     progress = Progress()
     t0 = time.monotonic()
     try:
@@ -129,11 +132,14 @@ def _scenario(args: argparse.Namespace, exp: Experiment) -> Scenario:
         updates["duration"] = args.duration
     if args.seed is not None:
         updates["seed"] = args.seed
+    if args.channel is not None:
+        updates["radio"] = scenario.radio.model_copy(update={"channel": args.channel})
     return scenario.model_copy(update=updates) if updates else scenario
 
 
-def _check_flags(args: argparse.Namespace, exp: Experiment) -> None:
-    """Refuse (ScenarioError) a flag the experiment does not take; with --netns, check the tier is there."""
+def _check_flags(args: argparse.Namespace, exp: Experiment, scenario: Scenario) -> None:
+    """Refuse (ScenarioError) a flag the experiment does not take; with --netns, check the tier (and the
+    ns-3 channel, when it carries the mesh) is there."""
     from erni.sim.experiments import EXPERIMENTS
     from erni.sim.scenario import ScenarioError
 
@@ -151,10 +157,18 @@ def _check_flags(args: argparse.Namespace, exp: Experiment) -> None:
     if args.paper_durations and not exp.paper_durations:
         raise ScenarioError(f"--paper-durations: {exp.name} has no long form; --paper-durations works with "
                             f"{takers('paper_durations')}")
+    if args.channel is not None and not args.netns:
+        raise ScenarioError("--channel chooses the real-mesh tier's channel: add --netns")
     if args.netns:
         from erni.sim.netns import check_available
+        from erni.sim.ns3_channel import Ns3Error, check_channel
 
         check_available()  # not root, no namespaces, no babeld: say why, before any team starts
+        if scenario.radio.channel == "ns3":
+            try:
+                check_channel(scenario.count + 1)
+            except Ns3Error as err:
+                raise ScenarioError(str(err)) from None
 
 
 def _options(args: argparse.Namespace, mode: str) -> dict[str, Any]:

@@ -83,7 +83,7 @@ EXPERIMENTS: dict[str, Experiment] = {e.name: e for e in [
     Experiment("territory", "territory", "002", "six territories; one robot fails and is taken over",
                ("agents", "kinematic"), "territory"),
     Experiment("roundtrip", "roundtrip", "002", "sensor data and images from one robot to 1-5 consumers: round "
-               "trip (Table II)", ("agents",), "roundtrip"),
+               "trip (Table II)", ("agents",), "roundtrip", netns=True),
     Experiment("response", "response", "003", "motor command to odometry: raw, poll, notify (Table I)",
                ("agents",), "response"),
     Experiment("memory", "memory", "004", "resident memory of a robot agent and a robot's processes (Table 1)",

@@ -260,18 +260,22 @@ def _one(scenario: Scenario, mission: str, arm: Arm, progress: Progress, *, netn
                    settings, sent)
 
 
-def tier_name(netns: bool) -> str:
+def tier_name(netns: bool, channel: str = "nftables") -> str:
     """How the teams' network ran, for titles and notes."""
-    return ("real-mesh tier: network namespaces, the radio as packet-filter rules, babeld, MobiNet reading babeld"
-            if netns else "loopback tier: the simulated radio, MobiNet over SNMP")
+    if not netns:
+        return "loopback tier: the simulated radio, MobiNet over SNMP"
+    medium = ("ns-3's 802.11a ad-hoc channel (fading, CSMA/CA, retries, Minstrel) moved by the robots' poses"
+              if channel == "ns3" else "the radio as packet-filter rules")
+    return f"real-mesh tier: network namespaces, {medium}, babeld, MobiNet reading babeld"
 
 
 def _result(scenario: Scenario, experiment: Experiment, mode: str, outcomes: list[Outcome], missions: list[str],
             n_seeds: int, netns: bool = False) -> Result:
     res = Result(experiment.name, experiment.title, mode)
     n = scenario.count
+    channel = scenario.radio.channel
     res.mode_note = (f"{n} robot agent processes and a control node per run, a new team for every mission, arm and "
-                     f"seed; {tier_name(netns)}; connectivity judged on the simulator's radio model every 0.1 s")
+                     f"seed; {tier_name(netns, channel)}; connectivity judged on the simulator's radio model every 0.1 s")
     summary: dict[tuple[str, str], dict[str, tuple[float, float, float]]] = {}
     for mission in missions:
         for arm in COMPARISONS[mission].arms:
@@ -280,7 +284,8 @@ def _result(scenario: Scenario, experiment: Experiment, mode: str, outcomes: lis
     res.compare("robots / radio range R / lossless", "not stated (paper 004 asks the question)",
                 f"{n} / {scenario.radio.comm_range:g} m / {scenario.radio.lossless_range:g} m", "",
                 "the scenario's setting", "input")
-    res.compare("network", "-", "netns + babeld" if netns else "loopback", "", tier_name(netns), "input")
+    res.compare("network", "-", f"netns + babeld, {channel} channel" if netns else "loopback", "",
+                tier_name(netns, channel), "input")
     if "widep-vs-goto" in missions:
         res.compare("widep-vs-goto: WiDep's R", "R = communication range", f"{widep_range(scenario):g}", "m",
                     "the longest link of quality min_link_quality on the radio model", "input")
@@ -292,7 +297,7 @@ def _result(scenario: Scenario, experiment: Experiment, mode: str, outcomes: lis
         res.notes.append("guard on / guard off: the same team, tasks and seeds; only the mission's network_aware "
                          "setting differs (true: the guard with its policy hold; false: no guard)")
     res.notes.append(NO_WIDEP_SPLIT + "; widep-vs-goto, when run, compares two algorithms with the guard off in both")
-    res.draw = lambda fig: _draw(fig, summary, missions, outcomes, netns)
+    res.draw = lambda fig: _draw(fig, summary, missions, outcomes, netns, channel)
     return res
 
 
@@ -345,7 +350,7 @@ def _mission_rows(res: Result, mission: str, summary: dict[tuple[str, str], dict
 
 
 def _draw(fig: Any, summary: dict[tuple[str, str], dict[str, tuple[float, float, float]]], missions: list[str],
-          outcomes: list[Outcome], netns: bool = False) -> None:
+          outcomes: list[Outcome], netns: bool = False, channel: str = "nftables") -> None:
     gs = fig.add_gridspec(1, 3)
     panels = [("connected", "connectivity kept (share of time)", 1.05), ("pooled", "tasks completed (share)", 1.05),
               ("time", "time to complete (s)", None)]
@@ -363,7 +368,7 @@ def _draw(fig: Any, summary: dict[tuple[str, str], dict[str, tuple[float, float,
             ax.set_ylim(0, top)
         ax.grid(True, axis="y", color="#e0e0e0", lw=0.6)
         ax.legend(fontsize=8, loc="lower right" if key != "time" else "upper left")
-    tier = "the real-mesh tier (netns, babeld)" if netns else "the loopback tier"
+    tier = f"the real-mesh tier (netns, babeld, {channel} channel)" if netns else "the loopback tier"
     widep = ("; widep-vs-goto compares two algorithms, the guard off in both" if "widep-vs-goto" in missions
              else "")
     fig.suptitle(f"Paper 004's open question on {tier}: the mission's network guard on against off\n"

@@ -82,9 +82,11 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode:
         settle = float(s.get("netns_settle", 2.0))
         route_wait = float(s.get("netns_route_wait", 10.0))
         pinned = bool(s.get("netns_static_arp", True))
+        channel = scenario.radio.channel
         on_mesh = _stream_netns(positions, length, radio, jpegs, fps, seconds, packet, settle, route_wait, pinned,
-                                progress)
-        return _result(scenario, experiment, mode, *on_mesh, length, fps, packet, len(jpegs[0]), tier="netns")
+                                progress, channel)
+        return _result(scenario, experiment, mode, *on_mesh, length, fps, packet, len(jpegs[0]),
+                       tier="netns" if channel == "nftables" else "ns3")
     key = secrets.token_bytes(32)
     s_end = Endpoint("source", key=key, role="robot", seed=scenario.seed)
     r_end = Endpoint("relay", key=key, role="robot", seed=scenario.seed + 1)
@@ -227,17 +229,21 @@ def _route_after(mesh: Any, settle: float, route_wait: float) -> float:
 
 def _stream_netns(positions: list[float], length: float, radio: RadioModel, jpegs: list[bytes], fps: float,
                   seconds: float, packet: int, settle: float, route_wait: float, pinned: bool,
-                  progress: Progress) -> tuple[list[dict[str, float]], dict[float, list[float]]]:
+                  progress: Progress, channel: str = "nftables") -> tuple[list[dict[str, float]], dict[float, list[float]]]:
     """The stream on the real-mesh tier: S -> D as UDP, forwarded by R's kernel on babeld's route; each
     hop's loss the kernel's radio rules'. At each position the stream starts `settle` s after the links
     change, or once babeld routes S -> D through R if that takes longer (at most `route_wait` s more).
     Rows as the loopback tier's, with the kernel's counts and the routing beside. `pinned`: each node
     knows the others' link addresses (static ARP entries), as a WLAN's MAC retries would let ARP
-    succeed; without them ARP itself crosses the lossy link, frame by frame with no retry below it."""
+    succeed; without them ARP itself crosses the lossy link, frame by frame with no retry below it.
+    `channel` "ns3": ns-3's 802.11a channel carries the frames instead, S, R and D placed on a line at
+    their distances, so each hop's loss, the MAC's retries and the airtime are ns-3's (measured)."""
     from erni.sim.netns import Mesh, NetnsError
+    from erni.sim.ns3_channel import reach
 
     run_dir = Path(tempfile.mkdtemp(prefix="erni-relay-video-"))
-    mesh = Mesh(["source", "relay", "destination"], run_dir)
+    mesh = Mesh(["source", "relay", "destination"], run_dir, channel=channel, range_m=reach(radio.comm_range))
+    on_air = channel == "ns3"
     try:
         mesh.create()
     except NetnsError as err:
@@ -251,7 +257,9 @@ def _stream_netns(positions: list[float], length: float, radio: RadioModel, jpeg
     delays: dict[float, list[float]] = {}
     socks: list[socket.socket] = []
     try:
-        mesh.apply({sr: 1.0, rd: 1.0})  # S and D out of each other's range: no link between them
+        # S and D out of each other's range: no link between them (no rule; on ns-3, 16 m apart)
+        mesh.apply({sr: 1.0, rd: 1.0}, {"source": (0.0, 0.0), "relay": (length / 2, 0.0),
+                                        "destination": (length, 0.0)} if on_air else None)
         if pinned:
             _pin_neighbours(mesh)
         mesh.start_babel()
@@ -282,7 +290,8 @@ def _stream_netns(positions: list[float], length: float, radio: RadioModel, jpeg
         for k, x in enumerate(positions):
             q1, q2 = radio.quality(x), radio.quality(length - x)
             links = {sr: q1, rd: q2}
-            mesh.apply(links)  # the radio rules of this position (their counters start at 0)
+            mesh.apply(links, {"relay": (x, 0.0)} if on_air else None)  # the rules (counters from 0), or the move
+            mac_before = _mac(mesh)
             route_after = _route_after(mesh, settle, route_wait)
             routed_before = not math.isnan(route_after)
             sent: dict[tuple[int, int], float] = {}
@@ -304,19 +313,21 @@ def _stream_netns(positions: list[float], length: float, radio: RadioModel, jpeg
                 time.sleep(max(0.0, t_next - time.perf_counter()))
             time.sleep(0.3)  # the last datagrams through
             routed_after = _via(mesh, "source", "destination")
-            counts = mesh.counters()
+            counts = {} if on_air else mesh.counters()
             with lock:
                 got = {key_: at for key_, at in arrived.items() if first <= key_[0] < frame_no}
             d = [1000.0 * (got[key_] - t0) for key_, t0 in sent.items() if key_ in got]
             whole = sum(1 for fr in range(first, frame_no) if all((fr, p) in got for p in range(_parts(sent, fr))))
-            applied = [1.0 - mesh.loss(links, "source", "relay"), 1.0 - mesh.loss(links, "relay", "destination")]
+            applied = [q1, q2] if on_air else [1.0 - mesh.loss(links, "source", "relay"),
+                                               1.0 - mesh.loss(links, "relay", "destination")]
 
             delays[x] = d
             rows.append({"x": x, "q1": q1, "q2": q2, "packets": float(len(sent)),
                          "packet_loss": 1 - len(d) / len(sent), "frame_loss": 1 - whole / (frame_no - first),
                          "model_loss": 1 - applied[0] * applied[1], "refused": refused / len(sent),
-                         "kernel_loss_sr": _kernel_loss(counts, "source", "relay"),
-                         "kernel_loss_rd": _kernel_loss(counts, "relay", "destination"),
+                         "kernel_loss_sr": math.nan if on_air else _kernel_loss(counts, "source", "relay"),
+                         "kernel_loss_rd": math.nan if on_air else _kernel_loss(counts, "relay", "destination"),
+                         **_mac_shares(mac_before, _mac(mesh)),
                          "routed": float(routed_before and routed_after), "route_after": route_after,
                          "delay_median": float(np.median(d)) if d else math.nan,
                          "delay_p95": float(np.percentile(d, 95)) if d else math.nan})
@@ -328,6 +339,21 @@ def _stream_netns(positions: list[float], length: float, radio: RadioModel, jpeg
         mesh.destroy()
         shutil.rmtree(run_dir, ignore_errors=True)
     return rows, delays
+
+
+def _mac(mesh: Any) -> tuple[int, int, int, int]:
+    """The ns-3 channel's MAC counts so far (frames handed to it, dropped: queue full, expired, retries
+    out), or zeros on the nftables channel."""
+    m = mesh.ns3.mac if mesh.ns3 is not None else None
+    return (m.sent, m.queue_full, m.expired, m.retry_limit) if m is not None else (0, 0, 0, 0)
+
+
+def _mac_shares(before: tuple[int, int, int, int], after: tuple[int, int, int, int]) -> dict[str, float]:
+    """The frames the ns-3 MACs dropped at one position, as shares of the frames handed to them there
+    (NaN without the ns-3 channel)."""
+    sent = after[0] - before[0]
+    names = ("mac_queue_full", "mac_expired", "mac_retry_limit")
+    return {n: (after[i + 1] - before[i + 1]) / sent if sent else math.nan for i, n in enumerate(names)}
 
 
 def _kernel_loss(counts: dict[tuple[str, str], tuple[int, int]], a: str, b: str) -> float:
@@ -358,6 +384,8 @@ def _warm_up(s_end: Any, r_end: Any, d_end: Any, arrived: dict[tuple[int, int], 
 def _result(scenario: Scenario, experiment: Experiment, mode: str, rows: list[dict[str, float]],
             delays: dict[float, list[float]], length: float, fps: float, packet: int, frame_bytes: int,
             tier: str = "loopback") -> Result:
+    if tier == "ns3":
+        return _result_ns3(scenario, experiment, mode, rows, delays, length, fps, packet, frame_bytes)
     if tier == "netns":
         return _result_netns(scenario, experiment, mode, rows, delays, length, fps, packet, frame_bytes)
     res = Result(experiment.name, experiment.title, mode)
@@ -432,6 +460,48 @@ def _result_netns(scenario: Scenario, experiment: Experiment, mode: str, rows: l
     return res
 
 
+def _result_ns3(scenario: Scenario, experiment: Experiment, mode: str, rows: list[dict[str, float]],
+                delays: dict[float, list[float]], length: float, fps: float, packet: int,
+                frame_bytes: int) -> Result:
+    """The real-mesh tier on the ns-3 channel: the loss and the delay are both measured."""
+    res = Result(experiment.name, f"{experiment.title}, real-mesh tier, ns-3 channel", mode)
+    res.mode_note = ("real-mesh tier on ns-3's 802.11a channel: S, R, D in network namespaces placed on a line, "
+                     "babeld routing S -> D through R's kernel; each hop's loss, retries, rate and airtime are "
+                     "ns-3's (measured); the radio model's 1 - q1 q2 is drawn for reference only")
+    xs = [r["x"] for r in rows]
+    for q in ("packet_loss", "frame_loss", "model_loss", "refused", "routed", "route_after", "mac_queue_full",
+              "mac_expired", "mac_retry_limit", "delay_median", "delay_p95"):
+        unit = "ms" if q.startswith("delay") else "s" if q == "route_after" else "share"
+        res.series[f"relay/{q}"] = (xs, [r[q] for r in rows], unit)
+    best = min(rows, key=lambda r: r["packet_loss"])
+    res.metrics["source-destination distance"] = (length, "m")
+    res.metrics["relay position with the least packet loss"] = (best["x"], "m from the source")
+    res.metrics["least packet loss"] = (best["packet_loss"], "share")
+    res.metrics["positions where babeld's route through the relay held from the stream's start to its end"] = (
+        ", ".join(f"{r['x']:g}" for r in rows if r["routed"]) or "none", "m from the source")
+    res.compare("stream", "video, S -> relay -> D (WLAN)", f"{fps:g} JPEG frames/s of {frame_bytes / 1000:.1f} kB, "
+                f"UDP datagrams of <= {packet} B of frame", "", "synthetic camera frames, plain UDP (no ERNI "
+                "envelope); R forwards in its kernel on babeld's route", "input")
+    res.compare("the channel", "an 802.11 WLAN", "802.11a ad hoc in ns-3: LogDistance + Nakagami fading, Minstrel, "
+                "CSMA/CA and retries", "", f"reach set so that ns-3 delivers about 10 % of unicast datagrams at "
+                f"R = {scenario.radio.comm_range:g} m", "input")
+    res.compare("lowest loss where", "the middle (section 5.2, Fig. 7: 'exactly the middle region')",
+                f"{best['x']:g} m of {length:g} m", "m", "datagrams S -> D that arrived, per position, through "
+                "ns-3's channel (measured)")
+    low = [r["x"] for r in rows if r["packet_loss"] <= best["packet_loss"] + 0.02]
+    res.compare("positions within 2 points of the least loss", "-", f"{min(low):g}-{max(low):g} m", "m",
+                "the band where the relay serves the stream about as well as it can")
+    med = [r["delay_median"] for r in rows if math.isfinite(r["delay_median"])]
+    res.compare("delay against the relay's position", "grows towards the ends (Figure 6)",
+                f"median {min(med):.2f}-{max(med):.2f} ms" if med else "-", "ms",
+                "S's send to D's receipt, per datagram (one clock): airtime at Minstrel's rate, the MAC's "
+                "backoff, retries and queue, and R's forwarding")
+    res.notes.append("ns-3 channel: loss and delay are measured; the radio model's line is the scenario's input, "
+                     "drawn beside for reference; the MAC's drops are counted over each position's window")
+    res.draw = lambda fig: _draw(fig, rows, delays, length, tier="ns3")
+    return res
+
+
 def _draw(fig: Any, rows: list[dict[str, float]], delays: dict[float, list[float]], length: float,
           tier: str = "loopback") -> None:
     gs = fig.add_gridspec(1, 2)
@@ -440,8 +510,9 @@ def _draw(fig: Any, rows: list[dict[str, float]], delays: dict[float, list[float
     ax.set_xticks(range(0, int(length) + 1, 2))
     ax.plot(xs, [100 * r["packet_loss"] for r in rows], "o-", color=color(0), label="datagrams lost (measured)")
     ax.plot(xs, [100 * r["frame_loss"] for r in rows], "s-", color=color(1), label="frames with a datagram lost")
-    ax.plot(xs, [100 * r["model_loss"] for r in rows], ":", color="#444444", label="radio model: 1 - q1 q2 (input)")
-    if tier == "netns":
+    ax.plot(xs, [100 * r["model_loss"] for r in rows], ":", color="#444444",
+            label="radio model: 1 - q1 q2 (" + ("reference, not applied)" if tier == "ns3" else "input)"))
+    if tier in ("netns", "ns3"):
         ax.plot(xs, [100 * r["refused"] for r in rows], "x--", color=color(2),
                 label="sends refused: no route (babeld)")
     ax.set_xlim(0, length)
@@ -459,11 +530,12 @@ def _draw(fig: Any, rows: list[dict[str, float]], delays: dict[float, list[float
     ax.set_xticks(range(0, int(length) + 1, 2))
     ax.set_xlabel("relay's distance from the source (m)")
     ax.set_ylabel("delay S -> D (ms)")
-    where = "kernel forwarding through R, no radio airtime" if tier == "netns" else "loopback: no radio"
+    where = {"netns": "kernel forwarding through R, no radio airtime", "ns3": "ns-3's 802.11a: airtime, MAC, "
+             "forwarding"}.get(tier, "loopback: no radio")
     ax.set_title(f"Delay of the datagrams that arrived ({where})\n(box: quartiles; none arrive "
                  "where a hop is out of range)", fontsize=10)
     ax.grid(True, axis="y", color="#e0e0e0", lw=0.6)
-    what = ("real-mesh tier: namespaces, babeld, the kernel's drop" if tier == "netns"
-            else "loopback tier, first cut")
+    what = {"netns": "real-mesh tier: namespaces, babeld, the kernel's drop",
+            "ns3": "real-mesh tier: namespaces, babeld, ns-3's 802.11a channel"}.get(tier, "loopback tier, first cut")
     fig.suptitle(f"Paper 000, Figure 6: video through one relay, loss and delay against its position ({what})",
                  fontsize=12)

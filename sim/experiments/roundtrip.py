@@ -300,8 +300,11 @@ class Measured:
     lost: dict[str, int] = field(default_factory=dict)
 
 
-def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode: str, **_: Any) -> Result:
-    """Measure the round trips for each number of consumers; return figure and table."""
+def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode: str, netns: bool = False,
+        **_: Any) -> Result:
+    """Measure the round trips for each number of consumers; return figure and table. `netns`: every
+    agent in a network namespace of its own, one hop apart on the real-mesh tier's channel (the
+    scenario's `radio.channel`: nftables rules passing every frame, or ns-3's 802.11a)."""
     s = scenario.strategy
     counts = [int(c) for c in s.get("consumers", [1, 2, 3, 4, 5])]
     per = int(s.get("count", 200))
@@ -314,11 +317,59 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode:
         def told(what: str, done: float, total: float, tag: str = tag) -> None:
             progress(f"{tag}: {what}", done, total)
 
-        measured.append(_measure(scenario, n, per, told))
-    return _result(scenario, experiment, mode, measured, per)
+        measured.append(_measure(scenario, n, per, told, netns=netns))
+    return _result(scenario, experiment, mode, measured, per, tier=scenario.radio.channel if netns else "loopback")
 
 
-def _measure(scenario: Scenario, consumers: int, count: int, progress: Progress) -> Measured:
+def _wlan(scenario: Scenario, names: list[str], run_dir: Path) -> Any:
+    """The real-mesh tier for the round trips: a namespace per agent, every pair one hop apart (the
+    nftables channel passes every frame; on ns-3's channel the consumers stand on a circle of
+    `strategy.netns_radius` m, default 3, around the robot). No routing daemon: one hop needs none."""
+    from erni.sim.netns import Mesh, NetnsError
+    from erni.sim.ns3_channel import reach
+
+    channel = scenario.radio.channel
+    mesh = Mesh(names, run_dir, channel=channel, range_m=reach(scenario.radio.comm_range), seed=scenario.seed)
+    radius = float(scenario.strategy.get("netns_radius", 3.0))
+    around = {n: (radius * math.cos(2 * math.pi * k / max(1, len(names) - 1)),
+                  radius * math.sin(2 * math.pi * k / max(1, len(names) - 1))) for k, n in enumerate(names[1:])}
+    links = {frozenset((a, b)): 1.0 for i, a in enumerate(names) for b in names[i + 1:]}
+    mesh.apply(links, {names[0]: (0.0, 0.0), **around} if channel == "ns3" else None)  # kept until created
+    try:
+        mesh.create()
+    except NetnsError as err:
+        raise ScenarioError(f"roundtrip --netns: {err}") from None
+    mesh.apply(links)
+    return mesh
+
+
+def _configs(names: list[str], address: dict[str, str], common: dict[str, Any], robot_url: str,
+             source: dict[str, Any]) -> dict[str, list[tuple[str, dict[str, Any]]]]:
+    """The agents' plugins: the robot (transport, motion, SensorSource) and each consumer (transport,
+    SensorSink), each listening on its own address."""
+    configs: dict[str, list[tuple[str, dict[str, Any]]]] = {names[0]: [
+        ("transport", {"listen": f"{address[names[0]]}:0", "role": "robot", **common,
+                       "share": ["Pose", "NetInfo", "SensorReading"], "share_with": {"SensorReading": ["consumer"]}}),
+        ("motion", {"url": robot_url}),
+        ("erni.sim.experiments.roundtrip:SensorSource", source)]}
+    for name in names[1:]:
+        configs[name] = [("transport", {"listen": f"{address[name]}:0", "role": "consumer", **common,
+                                        "share": ["SensorAck"], "share_with": {"SensorAck": ["robot"]}}),
+                         ("erni.sim.experiments.roundtrip:SensorSink", {})]
+    return configs
+
+
+def _start_agent(mesh: Any, name: str, config: Path, log_path: Path, env: dict[str, str]) -> subprocess.Popen[bytes]:
+    """`erni agent CONFIG`, in node `name`'s namespace when there is a mesh."""
+    argv = [sys.executable, "-m", "erni", "agent", str(config), "--log-level", "WARNING"]
+    if mesh is not None:
+        proc: subprocess.Popen[bytes] = mesh.popen(name, argv, log_path, env=env)
+        return proc
+    with open(log_path, "ab") as log:
+        return subprocess.Popen(argv, stdout=log, stderr=subprocess.STDOUT, env=env, start_new_session=True)
+
+
+def _measure(scenario: Scenario, consumers: int, count: int, progress: Progress, *, netns: bool = False) -> Measured:
     """Start the robot agent and `consumers` consumer agents; return the robot's measurements."""
     from erni.sim.robot import SimRobotConfig
     from erni.sim.robot_host import RobotHost
@@ -330,9 +381,13 @@ def _measure(scenario: Scenario, consumers: int, count: int, progress: Progress)
     out = run_dir / "roundtrips.json"
     key = secrets.token_hex(16)
     discovery = free_port()
-    common = {"discovery_port": discovery, "beacon_to": ["127.255.255.255"], "peer_timeout": 3.0,
-              "beacon_period": 0.5}
-    host = RobotHost(World(robot=[RobotStart(name="robot1")]), physics_hz=50.0)
+    names = ["robot1", *(f"consumer{i + 1}" for i in range(consumers))]
+    mesh = _wlan(scenario, names, run_dir) if netns else None
+    address = {n: mesh.node(n).address if mesh is not None else f"127.0.1.{k + 1}" for k, n in enumerate(names)}
+    common = {"discovery_port": discovery, "beacon_to": [mesh.broadcast if mesh is not None else "127.255.255.255"],
+              "peer_timeout": 3.0, "beacon_period": 0.5}
+    host = RobotHost(World(robot=[RobotStart(name="robot1")]), physics_hz=50.0,
+                     host=mesh.service_address if mesh is not None else "127.0.0.1")
     host.add_robot(SimRobotConfig(name="robot1", seed=scenario.seed), port=0)
     host.start()
     source = {"consumers": consumers, "count": count, "warmup": int(s.get("warmup", 20)),
@@ -340,15 +395,7 @@ def _measure(scenario: Scenario, consumers: int, count: int, progress: Progress)
               "image_size": tuple(int(v) for v in s.get("image_size", [320, 240])),
               "jpeg_quality": int(s.get("jpeg_quality", 75)),
               "gap": float(s.get("gap", 0.03)), "timeout": float(s.get("timeout", 1.0)), "out": str(out)}
-    configs: dict[str, list[tuple[str, dict[str, Any]]]] = {"robot1": [("transport", {"listen": "127.0.1.1:0", "role": "robot", **common,
-                                         "share": ["Pose", "NetInfo", "SensorReading"],
-                                         "share_with": {"SensorReading": ["consumer"]}}),
-                          ("motion", {"url": host.url(0)}),
-                          ("erni.sim.experiments.roundtrip:SensorSource", source)]}
-    for i in range(consumers):
-        configs[f"consumer{i + 1}"] = [("transport", {"listen": f"127.0.1.{i + 2}:0", "role": "consumer", **common,
-                                                      "share": ["SensorAck"], "share_with": {"SensorAck": ["robot"]}}),
-                                       ("erni.sim.experiments.roundtrip:SensorSink", {})]
+    configs = _configs(names, address, common, host.url(0), source)
     procs: list[subprocess.Popen[bytes]] = []
     env = {**os.environ, "ERNI_TEAM_KEY": key, "PYTHONUNBUFFERED": "1"}
     expected = (int(s.get("warmup", 20)) + count) * len(source["kinds"])  # type: ignore[arg-type]
@@ -356,10 +403,7 @@ def _measure(scenario: Scenario, consumers: int, count: int, progress: Progress)
         for name, plugins in configs.items():
             path = run_dir / f"{name}.toml"
             path.write_text(agent_toml(name, plugins, workers=2), encoding="utf-8")
-            with open(run_dir / f"{name}.log", "ab") as log:
-                procs.append(subprocess.Popen([sys.executable, "-m", "erni", "agent", str(path), "--log-level",
-                                               "WARNING"], stdout=log, stderr=subprocess.STDOUT, env=env,
-                                              start_new_session=True))
+            procs.append(_start_agent(mesh, name, path, run_dir / f"{name}.log", env))
         # the robot writes its measurements when it stops; give it the time the round trips need
         budget = 20.0 + expected * (float(s.get("gap", 0.03)) + 0.05)
         t0 = time.monotonic()
@@ -381,6 +425,8 @@ def _measure(scenario: Scenario, consumers: int, count: int, progress: Progress)
                 p.kill()
                 p.wait(5)
         host.stop()
+        if mesh is not None:
+            mesh.destroy()
     if not out.exists():
         raise ScenarioError(f"the robot agent wrote no measurements; logs in {run_dir}")
     data = json.loads(out.read_text(encoding="utf-8"))
@@ -399,9 +445,19 @@ def _stats(xs: list[float]) -> tuple[float, float, float, float]:
     return float(a.mean()), float(np.median(a)), float(np.percentile(a, 95)), float(a.max())
 
 
-def _result(scenario: Scenario, experiment: Experiment, mode: str, measured: list[Measured], per: int) -> Result:
-    res = Result(experiment.name, experiment.title, mode)
-    res.mode_note = ("one robot agent and N consumer agents, each its own process on loopback; readings and "
+TIERS = {"loopback": ("on loopback", "loopback UDP, ERNI transport"),
+         "nftables": ("in a network namespace of its own, one hop apart on the real-mesh tier (a bridge whose rules "
+                      "pass every frame)", "UDP through namespaces and a bridge, ERNI transport"),
+         "ns3": ("in a network namespace of its own, one hop apart on ns-3's 802.11a channel (the consumers 3 m "
+                 "around the robot)", "802.11a ad hoc in ns-3 (airtime, CSMA/CA, retries), ERNI transport")}
+
+
+def _result(scenario: Scenario, experiment: Experiment, mode: str, measured: list[Measured], per: int,
+            tier: str = "loopback") -> Result:
+    res = Result(experiment.name, experiment.title if tier == "loopback" else
+                 f"{experiment.title}, real-mesh tier, {tier} channel", mode)
+    where, path = TIERS[tier]
+    res.mode_note = (f"one robot agent and N consumer agents, each its own process {where}; readings and "
                      "acknowledgements are blackboard objects the transport shares (UDP, authenticated)")
     kinds = sorted({k for m in measured for k in m.rtt_ms}, key=lambda k: k != "sensor")
     for m in measured:
@@ -417,7 +473,7 @@ def _result(scenario: Scenario, experiment: Experiment, mode: str, measured: lis
                 float(m.lost.get(k, 0)), f"of {per}")
             res.series[f"{m.consumers}/{k}_rtt_ms"] = (list(range(len(m.rtt_ms.get(k, [])))), m.rtt_ms.get(k, []),
                                                          "ms")
-    res.compare("data path", "WLAN, P2P overlay (JXTA)", "loopback UDP, ERNI transport", "",
+    res.compare("data path", "WLAN, P2P overlay (JXTA)", path, "",
                 "every agent a process on one 2-core machine", "input")
     res.compare("round trips averaged", "11000 per kind", f"{per} per kind and team size", "", "after "
                 f"{int(scenario.strategy.get('warmup', 20))} discarded", "input")
@@ -452,11 +508,11 @@ def _result(scenario: Scenario, experiment: Experiment, mode: str, measured: lis
                      "consumer after the other (about 0.15 ms each), and every consumer is a process needing "
                      "about 0.6 ms of CPU per reading on this one 2-core machine, where each of the paper's "
                      "SCPs had its own and a 67-91 ms WLAN round trip hid the rest")
-    res.draw = lambda fig: _draw(fig, measured, kinds)
+    res.draw = lambda fig: _draw(fig, measured, kinds, "loopback" if tier == "loopback" else f"{tier} channel")
     return res
 
 
-def _draw(fig: Any, measured: list[Measured], kinds: list[str]) -> None:
+def _draw(fig: Any, measured: list[Measured], kinds: list[str], tier: str = "loopback") -> None:
     gs = fig.add_gridspec(1, 2, width_ratios=[1.2, 1])
     ax = fig.add_subplot(gs[0, 0])
     positions, data, labels, colours = [], [], [], []
@@ -489,7 +545,7 @@ def _draw(fig: Any, measured: list[Measured], kinds: list[str]) -> None:
     ax.set_xlim(min(counts) - 0.5, max(counts) + 0.5)
     ax.set_xlabel("consumers at once")
     ax.set_ylabel("mean round trip (ms, log scale)")
-    ax.set_title("Mean round trip: ours (loopback)\nand paper 002 (WLAN)", fontsize=10)
+    ax.set_title(f"Mean round trip: ours ({tier})\nand paper 002 (WLAN)", fontsize=10)
     ax.grid(True, which="both", color="#e0e0e0", lw=0.6)
     ax.legend(fontsize=8)
     fig.suptitle("Paper 002, Table II: sensor data from one robot to several consumers, round trip", fontsize=13)

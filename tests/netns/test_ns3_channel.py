@@ -7,12 +7,15 @@ pkg-config are installed (CI installs them); the channel program is built on fir
 from __future__ import annotations
 
 import shutil
+import statistics
 
 import pytest
 
 from erni.cli import main
-from erni.sim import ns3_channel
+from erni.sim import experiments, ns3_channel
+from erni.sim.manet import RadioModel
 from erni.sim.netns import Mesh, NetnsError
+from erni.sim.scenario import find_scenario, load_scenario
 
 pytestmark = pytest.mark.netns
 
@@ -50,6 +53,24 @@ def test_the_pure_ns3_run_of_the_same_channel_delivers_near_and_not_far():
     assert ns3_channel.pure_run(program, 5.0, 50, 0.01, 200, range_m=10.0) == (50, 50)
     assert ns3_channel.pure_run(program, 60.0, 50, 0.01, 200, range_m=10.0) == (50, 0)
 
+
+
+@needs_ns3
+def test_the_reach_a_team_gets_makes_ns3_deliver_what_the_radio_model_says_at_its_edge_and_middle():
+    # the default radio: none beyond 10 m, the weakest counted link (0.1) at 10 m, 0.3 at 8.8 m, all
+    # up to 6 m; ns-3 at the reach a team asks for, by its own pure runs (2 seeds of 400 datagrams)
+    program, comm = ns3_channel.binary(), 10.0
+    model = RadioModel(comm, 6.0, 0.1)
+
+    def delivered(d: float) -> float:
+        runs = [ns3_channel.pure_run(program, d, 400, 0.01, 500, range_m=ns3_channel.reach(comm), seed=s)
+                for s in (1, 2)]
+        return sum(r for _, r in runs) / sum(n for n, _ in runs)
+
+    assert 0.05 <= delivered(comm) <= 0.16          # the model counts 0.1 as the weakest link
+    assert abs(delivered(model.range_for(0.3)) - 0.3) <= 0.08
+    assert delivered(6.0) >= 0.9
+    assert delivered(1.2 * comm) <= 0.03            # and beyond the model's range, next to nothing
 
 def test_a_missing_ns3_is_one_line_naming_the_packages(monkeypatch, capsys):
     real = shutil.which
@@ -172,3 +193,24 @@ def test_a_channel_that_dies_is_reported_once_as_an_error(tmp_path, caplog):
     finally:
         mesh.destroy()
     assert mesh.leftovers() == []
+
+
+@needs_ns3
+def test_status_round_trips_cross_the_ns3_channel_between_agents_in_namespaces_of_their_own():
+    # paper 002's round trips on the real-mesh tier: the robot agent and its consumer one hop apart on
+    # ns-3's 802.11a; a compressed camera frame takes several frames of airtime, a sensor reading one
+    sc = load_scenario(find_scenario("roundtrip"))
+    sc = sc.model_copy(update={"radio": sc.radio.model_copy(update={"channel": "ns3"}),
+                               "strategy": {**sc.strategy, "consumers": [1], "count": 12, "warmup": 3}})
+    result = experiments.run("roundtrip", sc, netns=True)
+    assert "ns-3" in result.mode_note and "namespace" in result.mode_note
+    sensor, image = (result.series[f"1/{k}_rtt_ms"][1] for k in ("sensor", "image"))
+    assert len(sensor) == 12 and len(image) == 12 and all(0.1 < x < 1000 for x in sensor + image)
+    assert statistics.median(image) > statistics.median(sensor)
+    rows = {r.quantity: r for r in result.rows}
+    assert "802.11a" in str(rows["data path"].ours) and rows["data path"].kind == "input"
+
+
+def test_the_channel_option_of_an_experiment_needs_the_real_mesh_tier(capsys):
+    assert main(["experiment", "relay-video", "--channel", "ns3", "--no-plot"]) == 2
+    assert "--channel chooses the real-mesh tier's channel: add --netns" in capsys.readouterr().err
