@@ -416,16 +416,13 @@ def _result(scenario: Scenario, experiment: Experiment, mode: str, rows: list[di
     return res
 
 
-def _result_netns(scenario: Scenario, experiment: Experiment, mode: str, rows: list[dict[str, float]],
-                  delays: dict[float, list[float]], length: float, fps: float, packet: int,
-                  frame_bytes: int) -> Result:
-    res = Result(experiment.name, f"{experiment.title}, real-mesh tier", mode)
-    res.mode_note = ("real-mesh tier: S, R, D in network namespaces on one bridge, babeld routing S -> D through "
-                     "R's kernel; each link's frames dropped by nftables with the radio model's loss (an input); "
-                     "the delay is the kernel's forwarding, no radio airtime")
+def _mesh_rows(res: Result, rows: list[dict[str, float]], extra: tuple[str, ...], length: float, fps: float,
+               packet: int, frame_bytes: int) -> dict[str, float]:
+    """What both channels of the real-mesh tier report: the series (the common ones and `extra`), the
+    least loss and where, the positions babeld routed, and the stream; returns the row of least loss."""
     xs = [r["x"] for r in rows]
-    for q in ("packet_loss", "frame_loss", "model_loss", "refused", "kernel_loss_sr", "kernel_loss_rd", "routed",
-              "route_after", "delay_median", "delay_p95"):
+    for q in ("packet_loss", "frame_loss", "model_loss", "refused", *extra, "routed", "route_after",
+              "delay_median", "delay_p95"):
         unit = "ms" if q.startswith("delay") else "s" if q == "route_after" else "share"
         res.series[f"relay/{q}"] = (xs, [r[q] for r in rows], unit)
     best = min(rows, key=lambda r: r["packet_loss"])
@@ -437,6 +434,17 @@ def _result_netns(scenario: Scenario, experiment: Experiment, mode: str, rows: l
     res.compare("stream", "video, S -> relay -> D (WLAN)", f"{fps:g} JPEG frames/s of {frame_bytes / 1000:.1f} kB, "
                 f"UDP datagrams of <= {packet} B of frame", "", "synthetic camera frames, plain UDP (no ERNI "
                 "envelope); R forwards in its kernel on babeld's route", "input")
+    return best
+
+
+def _result_netns(scenario: Scenario, experiment: Experiment, mode: str, rows: list[dict[str, float]],
+                  delays: dict[float, list[float]], length: float, fps: float, packet: int,
+                  frame_bytes: int) -> Result:
+    res = Result(experiment.name, f"{experiment.title}, real-mesh tier", mode)
+    res.mode_note = ("real-mesh tier: S, R, D in network namespaces on one bridge, babeld routing S -> D through "
+                     "R's kernel; each link's frames dropped by nftables with the radio model's loss (an input); "
+                     "the delay is the kernel's forwarding, no radio airtime")
+    best = _mesh_rows(res, rows, ("kernel_loss_sr", "kernel_loss_rd"), length, fps, packet, frame_bytes)
     res.compare("loss of a hop", "measured on the WLAN", "1 - delivery ratio of the radio model, per frame, "
                 "in the kernel (nftables on the bridge, rounded to 5 %)", "",
                 f"lossless to {scenario.radio.lossless_range:g} m, none beyond {scenario.radio.comm_range:g} m; "
@@ -468,20 +476,8 @@ def _result_ns3(scenario: Scenario, experiment: Experiment, mode: str, rows: lis
     res.mode_note = ("real-mesh tier on ns-3's 802.11a channel: S, R, D in network namespaces placed on a line, "
                      "babeld routing S -> D through R's kernel; each hop's loss, retries, rate and airtime are "
                      "ns-3's (measured); the radio model's 1 - q1 q2 is drawn for reference only")
-    xs = [r["x"] for r in rows]
-    for q in ("packet_loss", "frame_loss", "model_loss", "refused", "routed", "route_after", "mac_queue_full",
-              "mac_expired", "mac_retry_limit", "delay_median", "delay_p95"):
-        unit = "ms" if q.startswith("delay") else "s" if q == "route_after" else "share"
-        res.series[f"relay/{q}"] = (xs, [r[q] for r in rows], unit)
-    best = min(rows, key=lambda r: r["packet_loss"])
-    res.metrics["source-destination distance"] = (length, "m")
-    res.metrics["relay position with the least packet loss"] = (best["x"], "m from the source")
-    res.metrics["least packet loss"] = (best["packet_loss"], "share")
-    res.metrics["positions where babeld's route through the relay held from the stream's start to its end"] = (
-        ", ".join(f"{r['x']:g}" for r in rows if r["routed"]) or "none", "m from the source")
-    res.compare("stream", "video, S -> relay -> D (WLAN)", f"{fps:g} JPEG frames/s of {frame_bytes / 1000:.1f} kB, "
-                f"UDP datagrams of <= {packet} B of frame", "", "synthetic camera frames, plain UDP (no ERNI "
-                "envelope); R forwards in its kernel on babeld's route", "input")
+    best = _mesh_rows(res, rows, ("mac_queue_full", "mac_expired", "mac_retry_limit"), length, fps, packet,
+                      frame_bytes)
     res.compare("the channel", "an 802.11 WLAN", "802.11a ad hoc in ns-3: LogDistance + Nakagami fading, Minstrel, "
                 "CSMA/CA and retries", "", f"reach set so that ns-3 delivers about 10 % of unicast datagrams at "
                 f"R = {scenario.radio.comm_range:g} m", "input")
