@@ -330,16 +330,16 @@ def _wlan(scenario: Scenario, names: list[str], run_dir: Path) -> Any:
 
     channel = scenario.radio.channel
     mesh = Mesh(names, run_dir, channel=channel, range_m=reach(scenario.radio.comm_range), seed=scenario.seed)
-    radius = float(scenario.strategy.get("netns_radius", 3.0))
-    around = {n: (radius * math.cos(2 * math.pi * k / max(1, len(names) - 1)),
-                  radius * math.sin(2 * math.pi * k / max(1, len(names) - 1))) for k, n in enumerate(names[1:])}
-    links = {frozenset((a, b)): 1.0 for i, a in enumerate(names) for b in names[i + 1:]}
-    mesh.apply(links, {names[0]: (0.0, 0.0), **around} if channel == "ns3" else None)  # kept until created
+    if channel == "ns3":  # the places are kept until the channel starts with the mesh
+        radius = float(scenario.strategy.get("netns_radius", 3.0))
+        step = 2 * math.pi / max(1, len(names) - 1)
+        mesh.apply(positions={names[0]: (0.0, 0.0), **{n: (radius * math.cos(k * step), radius * math.sin(k * step))
+                                                       for k, n in enumerate(names[1:])}})
     try:
         mesh.create()
     except NetnsError as err:
         raise ScenarioError(f"roundtrip --netns: {err}") from None
-    mesh.apply(links)
+    mesh.apply({frozenset((a, b)): 1.0 for i, a in enumerate(names) for b in names[i + 1:]})  # nftables: every pair
     return mesh
 
 
