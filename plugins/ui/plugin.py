@@ -50,7 +50,7 @@ from erni.plugins.ui.protocol import (
     TaskRow,
 )
 from erni.plugins.ui.server import WebServer
-from erni.plugins.ui.speech import Listener, Microphone, SpeechError, choose_recognizer, wav_frames
+from erni.plugins.ui.speech import LOUD_ROOM, Listener, Microphone, SpeechError, choose_recognizer, wav_frames
 from erni.plugins.ui.voice import Speaker
 from erni.transport import parse_address
 
@@ -103,9 +103,12 @@ class UISettings(Model):
     recogniser: Literal["auto", "vosk", "pocketsphinx"] = Field(
         "auto", description="speech recogniser: auto = vosk when a vosk model is given, else pocketsphinx")
     vosk_model: str | None = Field(None, description="vosk model directory (default: VOSK_MODEL_PATH)")
-    denoise: Literal["off", "webrtc", "speex", "rnnoise"] = Field(
-        "webrtc", description="noise suppressor before the recogniser (PocketSphinx), for every microphone and WAV; "
-        "speex and rnnoise need speexdsp-ns and pyrnnoise installed")
+    denoise: Literal["off", "auto", "webrtc", "speex", "rnnoise"] = Field(
+        "auto", description="noise suppressor before the recogniser (PocketSphinx), for every microphone and WAV; "
+        "auto: WebRTC's in a quiet room, RNNoise while the room is louder than loud_room (WebRTC alone without "
+        "pyrnnoise); speex and rnnoise need speexdsp-ns and pyrnnoise installed")
+    loud_room: float = Field(LOUD_ROOM, ge=-90.0, le=0.0, description="the room's own level (dBFS, between words) "
+                             "above which denoise auto hears through RNNoise")
     vad: Literal["off", "silero", "webrtc"] = Field(
         "silero", description="voice-activity detector that ends utterances (off: the background's level does)")
     auto_gain: int = Field(0, ge=0, le=31, description="WebRTC's automatic gain target below full scale (dBFS); "
@@ -212,7 +215,9 @@ class UIPlugin(Plugin[UISettings]):
         try:
             from erni.plugins.ui.frontend import FrontEnd
 
-            front = FrontEnd(s.denoise, s.vad, s.auto_gain)
+            front = FrontEnd(s.denoise, s.vad, s.auto_gain, loud=s.loud_room)
+            if front.note:
+                self.log.info("%s", front.note)
             load = choose_recognizer(s.recogniser, s.vosk_model, wake=tuple(s.wake), front=front)
         except SpeechError as err:
             self.speech_error = str(err)

@@ -48,6 +48,7 @@ import numpy as np
 from erni.blackboard.errors import ErniError
 
 RATE = 16000
+LOUD_ROOM = -40.0  # dBFS: the room's own level above which the front end's `auto` hears through RNNoise (quiet: -56)
 FRAME_SAMPLES = 1600  # 100 ms
 MODELS_URL = "https://alphacephei.com/vosk/models"
 
@@ -696,7 +697,7 @@ class SphinxStream:
         self.settled = True  # first command after it was heard as nothing, and heard at once without it)
         stop = self._spotted(audio, self.STOPS, self.LONE_STOP, self.LONGEST_STOP)
         near = self.near
-        self.evidence = {"stop": stop, "snr": snr}
+        self.evidence = {"stop": stop, "near": near, "snr": snr}
         if stop:  # a lone stop phrase, if a decode against it and what it could be taken for agrees
             short = self._short(audio)
             self.evidence.update(short=short)
@@ -710,11 +711,14 @@ class SphinxStream:
             if answer is not None:
                 return answer
         live = self._live_end()
+        doubted = ""  # a stop the live decode heard doubtfully: it acts if the whole grammar hears a stop too
         if live is not None:
             self.evidence.update(live=live[0])
             if is_stop(live[0]):  # the live decode heard a stop as it was said: it acts at once, however sure,
-                self._stopped = (audio, live[0])  # and the whole grammar's decode may add to it (`_recheck`)
-                return self._judged(live[0], *self._doubts(*live), live[0], None)
+                if not self._doubtful(live[0], audio):  # unless garbled or a short line of its own
+                    self._stopped = (audio, live[0])  # and the whole grammar's decode may add to it (`_recheck`)
+                    return self._judged(live[0], *self._doubts(*live), live[0], None)
+                doubted = live[0]
         if decoded is None:
             self._decode(audio, whole=True)
             decoded = self._decoded()
@@ -722,7 +726,11 @@ class SphinxStream:
         self.evidence.update(text=text, scores=scores)
         partial, poor = self._doubts(text, scores)
         if is_stop(text):  # a stop acts however sure it is: its hearing waits for no second decode
-            return self._judged(text, partial, poor, text, None)
+            if doubted or not self._doubtful(text, audio):  # (heard by both decoders, or not garbled)
+                return self._judged(text, partial, poor, text, None)
+            return self._unconfirmed(text, audio, live)
+        if doubted:
+            self.evidence.update(doubted=doubted)
         if near and (partial or poor or not text) and self._short(audio) not in self.others:
             # a stop phrase spotted in a short utterance the grammar heard only doubtfully: a stop to everyone
             return Heard("everybody stop", False, f"a stop phrase spotted ({near!r}) where the grammar doubts {text!r}")
@@ -736,6 +744,37 @@ class SphinxStream:
         if wake:
             return Heard(wake) if wake == text else Heard(wake, False, f"a lone wake phrase (the grammar: {text!r})")
         return self._judged(text, partial, poor, again, snr)
+
+    def _doubtful(self, stop: str, audio: bytes) -> bool:
+        """Whether a stop a grammar decode heard needs a second decode's hearing to act: the keyphrase search
+        spotted no stop phrase anywhere in the utterance, and either the hearing has a hesitation (the grammar
+        fit garbled audio with numbers, an "uh" and a stop word: "robots two thirteen one uh freeze") or the
+        utterance is short and the short lines' decode hears one of the lines a stop could be taken for
+        ("cancel that" heard as "please all stop")."""
+        if self.near:
+            return False
+        if any(w in HESITATIONS for w in stop.split()):
+            return True
+        first, last = self._span(audio)
+        if last - first > self.LONGEST_STOP:
+            return False
+        short = self._short(audio)
+        self.evidence.update(short=short)
+        return short in self.others
+
+    def _unconfirmed(self, stop: str, audio: bytes, live: tuple[str, list[tuple[str, float]]] | None) -> Heard | None:
+        """A doubtful stop the whole grammar heard: it acts if the other decode (the live one, or the decode in
+        pieces) hears a stop too; else the utterance is heard as that other decode heard it, doubted (a command
+        is then read back or asked again: nothing moves on a hearing heard once)."""
+        if live is not None:
+            again = live[0]
+        else:
+            self._decode(audio, whole=False)
+            again, _ = self._decoded()
+        self.evidence.update(again=again, doubted=stop)
+        if is_stop(again):
+            return Heard(stop, False, f"a stop, heard again as {again!r}")
+        return Heard(again, True, f"a stop heard once and doubtfully ({stop!r})") if again else None
 
     def _answer(self, audio: bytes) -> tuple[Heard | None, tuple[str, list[tuple[str, float]]] | None]:
         """A short utterance heard as an answer to a read-back: decoded against the short lines (`NOT_STOPS`: the

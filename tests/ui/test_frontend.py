@@ -207,15 +207,147 @@ def test_a_missing_library_is_one_line_naming_its_package(monkeypatch):
     with pytest.raises(SpeechError, match=r"needs the pyrnnoise package: pip install pyrnnoise") as err:
         FrontEnd("rnnoise", "off")
     assert "\n" not in str(err.value)
-    with pytest.raises(SpeechError, match=r"denoise 'loud': expected one of off, webrtc, speex, rnnoise"):
+    with pytest.raises(SpeechError, match=r"denoise 'loud': expected one of off, auto, webrtc, speex, rnnoise"):
         FrontEnd("loud", "off")
+    auto = FrontEnd("auto", "off")  # auto without pyrnnoise: WebRTC alone, and a line that says so
+    assert "pyrnnoise is not installed" in auto.note and "\n" not in auto.note
+    suppressor = auto.suppressor()
+    assert isinstance(suppressor, frontend.AutoSuppressor) and suppressor.rnnoise is None
 
 
 def test_the_ui_hears_through_the_front_end_by_default():
     from erni.plugins.ui.plugin import UISettings
 
     s = UISettings()
-    front = FrontEnd(s.denoise, s.vad, s.auto_gain)
-    assert front.active and isinstance(front.suppressor(), frontend.WebRtcSuppressor)
+    front = FrontEnd(s.denoise, s.vad, s.auto_gain, loud=s.loud_room)
+    assert front.active and isinstance(front.suppressor(), frontend.AutoSuppressor)
     assert isinstance(front.endpointer(), VoiceEndpointer)
     assert isinstance(FrontEnd("off", "off").endpointer(), frontend.NoiseFloorEndpointer)
+
+
+needs_rnnoise = pytest.mark.skipif(importlib.util.find_spec("pyrnnoise") is None,
+                                   reason="pyrnnoise is not installed (pip install 'erni[denoise]')")
+
+
+def room_then_voice(snr: float | None, rng: np.random.Generator) -> tuple[bytes, np.ndarray]:
+    speech = S.synthesise("everybody stop", "en-us", 160)
+    return S.room(speech, snr, rng, 3.0) + S.as_heard(speech, snr, rng), speech
+
+
+@needs_espeak
+@needs_rnnoise
+def test_auto_hears_a_quiet_room_through_webrtc_and_a_loud_one_through_rnnoise():
+    """The same auto suppressor on one stream: a quiet room (-56 dBFS) and then 15 and 5 dB of white noise under
+    a voice at about -20 dBFS. In the quiet room its output is WebRTC's, sample for sample; once the room is
+    loud it is RNNoise's (which leaves less of the noise between words than WebRTC does), and back in the quiet
+    room WebRTC's again once the room's window has forgotten the noise; the voice never switches it, and the
+    room's level it reads is the noise's within 2 dB."""
+    rng = np.random.default_rng(57)
+    auto = FrontEnd("auto", "off").suppressor()
+    twin = WebRtcSuppressor()  # what WebRTC alone gives the same audio
+    for snr, noisy in ((None, False), (15.0, True), (5.0, True), (None, False)):
+        audio, speech = room_then_voice(snr, rng)
+        out, alone = cleaned(auto, audio), cleaned(twin, audio)
+        assert auto.noisy is noisy, (snr, auto.room())
+        level = 20 * np.log10(S.noise_level(speech, snr) / 32768)
+        assert abs(auto.room() - level) < 2.0, (snr, auto.room(), level)
+        tail = slice(len(alone) - int(0.3 * RATE), len(alone))  # the room after the voice
+        if noisy:
+            assert db(out[tail]) < db(alone[tail]) - 3.0, (snr, db(out[tail]), db(alone[tail]))
+        else:  # the voice and after: WebRTC's (in the first quiet room from the start)
+            assert np.array_equal(out[3 * RATE:], alone[3 * RATE:])
+    assert auto.switches == 2
+
+
+@needs_rnnoise
+def test_the_loud_rooms_level_is_a_setting():
+    """`loud_room` moves the point where auto hands over: 5 dB noise at -22 dBFS is heard through WebRTC when
+    the setting is -15 dBFS, and a setting outside 0..-90 dBFS is refused by the UI's settings."""
+    from pydantic import ValidationError
+
+    from erni.plugins.ui.plugin import UISettings
+
+    rng = np.random.default_rng(58)
+    noise = pcm(rng.normal(0.0, 2600.0, 3 * RATE))  # about -22 dBFS
+    high = FrontEnd("auto", "off", loud=-15.0).suppressor()
+    cleaned(high, noise)
+    low = FrontEnd("auto", "off", loud=UISettings().loud_room).suppressor()
+    cleaned(low, noise)
+    assert (high.noisy, low.noisy) == (False, True)
+    with pytest.raises(ValidationError, match="loud_room"):
+        UISettings(loud_room=3.0)
+
+
+class Scripted:
+    """A decoder whose hearing per search (and per whole or piecewise decode) is given: the keyphrase searches
+    spot nothing; `texts[search]` is a hearing, or a pair (whole, in pieces)."""
+
+    def __init__(self, texts: dict[str, object]) -> None:
+        self.texts, self.search, self.pieces, self.text = texts, "erni", False, ""
+
+    def activate_search(self, name: str) -> None:
+        self.search = name
+
+    def current_search(self) -> str:
+        return self.search
+
+    def get_cmn(self) -> str:
+        return "40,3,-1"
+
+    def set_cmn(self, cmn: str) -> None: ...
+
+    def start_utt(self) -> None:
+        self.pieces = False
+
+    def process_raw(self, audio: bytes, no_search: bool, full: bool) -> None:
+        self.pieces = not full
+
+    def end_utt(self) -> None:
+        got = self.texts.get(self.search, "")
+        self.text = got[self.pieces] if isinstance(got, tuple) else got
+
+    def seg(self) -> list[object]:
+        return []
+
+    def hyp(self) -> object:
+        return type("Hyp", (), {"hypstr": self.text})() if self.text else None
+
+
+@pytest.mark.parametrize("whole, live, pieces, short, heard, stops", [
+    # the garbled line a grammar fits with an "uh" before a stop word, heard by one decode only: doubted, no stop
+    ("robots one and two uh freeze moving", "robot two where are you please", None, "", "robot two where are you please", False),
+    ("robots two thirteen one uh freeze", None, "robot two turn one hundred eighty degrees", "",
+     "robot two turn one hundred eighty degrees", False),
+    ("robot two turn left", "robots two thirteen one uh freeze", None, "", "robot two turn left", False),
+    # a short line the short lines' decode hears as one a stop is taken for: heard as a stop by one decode only
+    ("cancel that", "please all stop", None, "cancel that", "cancel that", False),
+    ("please all stop", None, "cancel that", "cancel that", "cancel that", False),
+    # heard as a stop by both decoders, or not doubtful: the stop acts
+    ("please all stop", "please all stop", None, "cancel that", "please all stop", True),
+    ("robots one and two uh freeze", None, "robots one and two freeze", "", "robots one and two uh freeze", True),
+    ("robot two freeze", "robot two freeze", None, "", "robot two freeze", True),
+    ("everybody stop", None, "everybody stop", "everybody stop", "everybody stop", True),
+])
+def test_a_stop_heard_once_from_garbled_audio_or_a_short_line_needs_a_second_hearing(
+        whole, live, pieces, short, heard, stops):
+    """A stop the keyphrase search did not spot, heard by a grammar decode with a hesitation or in a short line the
+    short lines' decode hears as no stop ("cancel that" heard as "please all stop", "robot 2 turn 180 degrees" as
+    "robots two thirteen one uh freeze"), acts only when the other decode (the live one, else the decode in pieces)
+    hears a stop too; else the utterance is heard as that other decode heard it, doubted (nothing moves). A stop
+    that is not doubtful acts at once, as before."""
+    from erni.plugins.ui.speech import SphinxStream, is_stop
+
+    decoder = Scripted({SphinxStream.COMMANDS: (whole, pieces if pieces is not None else whole),
+                        SphinxStream.SHORT: short})
+    stream = SphinxStream(decoder, VoiceEndpointer(lambda f, s: 0.0), others=("cancel that", "listen"),
+                          live=Scripted({SphinxStream.COMMANDS: live or ""}) if live is not None else None)
+    stream._heard_one = True  # the main decoder has settled: the live decode is listened to
+    stream.settled = True
+    if live is not None:
+        stream._hear_live(bytes(960))
+    got = stream._hearing(bytes(32000))
+    assert got is not None and str(got) == heard, (got, stream.evidence)
+    assert is_stop(str(got)) is stops
+    if not stops:
+        assert got.unsure or not is_stop(whole), (got, stream.evidence)
+        assert stream._stopped is None
