@@ -68,9 +68,9 @@ EXPERIMENTS: dict[str, Experiment] = {e.name: e for e in [
     Experiment("poi", "poi", "000", "PoI coverage by three robots around an obstacle (WiDep)",
                ("agents", "kinematic"), "poi", seeds=True),
     Experiment("relay1", "relay1", "000", "one robot relaying between a source and a destination",
-               ("agents", "kinematic"), "relay"),
+               ("agents", "kinematic"), "relay", netns=True),
     Experiment("relay2", "relay2", "000", "two robots relaying between a source and a destination",
-               ("agents", "kinematic"), "relay"),
+               ("agents", "kinematic"), "relay", netns=True),
     Experiment("relay-video", "relay-video", "000", "video through one relay: loss and delay against its position "
                "(Figure 6)", ("transport",), "relayvideo", netns=True),
     Experiment("spread-open", "spread-open", "001", "robots spreading in an open field until they settle",

@@ -60,6 +60,7 @@ class TeamRun:
     use_mission: bool = True
     feed_hz: float = 10.0
     netns: bool = False    # the real-mesh tier (`erni sim --netns`): namespaces, babeld, MobiNet reading babeld
+    heard: list[str] | None = None  # the robots the start waits for the control node to hear (default: every reachable one)
     team: Team | None = None
     t0: float = 0.0
     results: dict[str, AllocationResult] = field(default_factory=dict)
@@ -77,7 +78,8 @@ class TeamRun:
                          mission=self.use_mission, mission_settings={"audio": False, **self.mission},
                          robot_settings=self.robot, transport=self.transport or None, feed_hz=self.feed_hz,
                          netns=self.netns)
-        self.team.start(lambda label, done, total: self.progress(f"start: {label}", done, total), timeout=timeout)
+        self.team.start(lambda label, done, total: self.progress(f"start: {label}", done, total), timeout=timeout,
+                        heard=self.heard)
         self.t0 = self.team.elapsed()
         return self
 

@@ -39,6 +39,7 @@ from numpy.typing import NDArray
 
 from erni.sim import kinematic
 from erni.sim.experiments import Experiment, Progress, Result
+from erni.sim.experiments.netaware import tier_name
 from erni.sim.experiments.plots import color
 from erni.sim.manet import RadioModel
 from erni.sim.scenario import Scenario, ScenarioError
@@ -60,7 +61,8 @@ def ends(scenario: Scenario, experiment: str) -> tuple[np.ndarray, np.ndarray]:
     return (np.array([scenario.poi[0].x, scenario.poi[0].y]), np.array([scenario.poi[1].x, scenario.poi[1].y]))
 
 
-def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode: str, **_: Any) -> Result:
+def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode: str, netns: bool = False,
+        **_: Any) -> Result:
     """Run the relays' decisions for the scenario's duration; return figure and metrics."""
     s = scenario.strategy
     src, dst = ends(scenario, "relay")
@@ -72,8 +74,10 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode:
     length = float(np.hypot(*(dst - src)))
     unit = (dst - src) / length
     slot_along = (slots - src) @ unit
+    if netns and mode != "agents":
+        raise ScenarioError(f"{experiment.name} --netns runs its agents on the real-mesh tier: agents mode only")
     if mode == "agents":
-        a, qualities, outcomes = _agents(scenario, progress, src, dst, slot_along, settle)
+        a, qualities, outcomes = _agents(scenario, progress, src, dst, slot_along, settle, netns)
     else:
         a, qualities = _kinematic(scenario, progress, src, dst)
         outcomes = {}
@@ -82,8 +86,9 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode:
     settled = next((k for k in range(len(inside)) if inside[k:].all()), None)
     res = Result(experiment.name, experiment.title, mode)
     res.mode_note = ("S, D and each relay are agent processes; the control node sent each relay Deploy relay; "
-                     "link qualities and positions from MobiNet (SNMP); gotos over ARCOS; positions judged on the "
-                     "simulator's truth" if mode == "agents" else
+                     "link qualities and positions from MobiNet ("
+                     + (tier_name(True, scenario.radio.channel) if netns else "SNMP") + "); gotos over ARCOS; "
+                     "positions judged on the simulator's truth" if mode == "agents" else
                      f"relays stepped in one process; links measured with {int(s.get('probes', 50))} hello "
                      "packets per decision over the radio model")
     res.metrics["source-destination distance"] = (length, "m")
@@ -110,7 +115,8 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode:
                     f"first decision after which it stays within {settle:g} m of the midpoint")
         res.compare("after that", "slight oscillation around the middle",
                     f"std {spread:.2f} m" if math.isfinite(spread) else "-", "", "spread of its position "
-                    "over the remaining decisions" + ("; MobiNet reports the simulated radio's delivery ratio, "
+                    "over the remaining decisions" + ("; MobiNet reports babeld's reading of its Hellos" if netns
+                                                      else "; MobiNet reports the simulated radio's delivery ratio, "
                                                       "a noiseless function of distance" if mode == "agents"
                                                       else "; each link probed with noisy hello counts"))
     else:
@@ -119,8 +125,17 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode:
                     f"every relay within {settle:g} m of its equal-spacing slot from then on")
         res.compare("final positions along S-D", ", ".join(f"{x:.1f}" for x in slot_along) + " (equal spacing)",
                     ", ".join(f"{x:.1f}" for x in a[-1]), "m", "simulator's truth at the last decision")
-    res.notes.append("link quality model (input): delivery ratio 1 up to "
-                     f"{scenario.radio.lossless_range:g} m, falling linearly to 0 at R = {scenario.radio.comm_range:g} m")
+    if not netns:
+        res.notes.append("link quality model (input): delivery ratio 1 up to "
+                         f"{scenario.radio.lossless_range:g} m, falling linearly to 0 at R = {scenario.radio.comm_range:g} m")
+    elif scenario.radio.channel == "ns3":
+        res.notes.append("link qualities (measured): babeld's reading of its Hellos over ns-3's 802.11a channel, as "
+                         "MobiNet reports them; the channel's reach follows the scenario's radio "
+                         f"(comm_range {scenario.radio.comm_range:g} m)")
+    else:
+        res.notes.append("link qualities (measured): babeld's reading of its Hellos through the packet-filter rules "
+                         "that drop as the radio model does (input: delivery ratio 1 up to "
+                         f"{scenario.radio.lossless_range:g} m, 0 at R = {scenario.radio.comm_range:g} m)")
     res.draw = lambda fig: _draw(fig, scenario, names, a, slot_along, length, qualities, period, mode)
     return res
 
@@ -146,9 +161,12 @@ def _robot_rows(res: Result, names: list[str], a: NDArray[np.float64], qualities
 
 
 def _agents(scenario: Scenario, progress: Progress, src: NDArray[np.float64], dst: NDArray[np.float64],
-            slot_along: NDArray[np.float64], settle: float
+            slot_along: NDArray[np.float64], settle: float, netns: bool = False
             ) -> tuple[NDArray[np.float64], list[list[tuple[float, float]]], dict[str, str]]:
-    """S and D as untasked robot agents, the relays given Deploy relay; positions at each decision."""
+    """S and D as untasked robot agents, the relays given Deploy relay; positions at each decision. On the
+    real-mesh tier the start waits for the control node to hear the relays and S only: D is never tasked, and
+    its one link (to the farthest relay, near the edge of the range) is too weak for handshakes to complete
+    soon."""
     from erni.sim.experiments.agents import TeamRun
     from erni.sim.world import RobotStart
 
@@ -169,7 +187,10 @@ def _agents(scenario: Scenario, progress: Progress, src: NDArray[np.float64], ds
                "speed": float(s.get("speed", 0.2)), "network_aware": False}
     along: list[list[float]] = []
     qualities: list[list[tuple[float, float]]] = []
-    with TeamRun(team_scenario, progress, mission=mission).start() as team:
+    if netns:
+        _check_mesh_start(scenario, [ends[0]] + relays + [ends[1]])
+    heard = [*names, ends[0].name] if netns else None
+    with TeamRun(team_scenario, progress, mission=mission, netns=netns, heard=heard).start() as team:
         assert team.team is not None
         idx = [team.team.names.index(nm) for nm in names]
 
@@ -192,6 +213,28 @@ def _agents(scenario: Scenario, progress: Progress, src: NDArray[np.float64], ds
         outcomes = {nm: (f"{r.state.value}: {r.message}" if (r := team.results.get(uids[nm])) else "no result")
                     for nm in names}
     return np.array(along), qualities, outcomes
+
+
+NETNS_START_QUALITY = 0.3  # the weakest chain link a real-mesh run starts on (by the radio model; see below)
+
+
+def _check_mesh_start(scenario: Scenario, chain: list[Any]) -> None:
+    """Refuse a real-mesh start where a link of the chain S - relays - D is weaker than `NETNS_START_QUALITY` by the
+    radio model: a relay learns its neighbours' positions from their Poses, shared over transport sessions, and a
+    session's handshake over a link that delivers one datagram in ten did not complete in 480 s (relay1's robot1,
+    11 m from D at comm_range 12 m), so the relay never moved."""
+    radio = RadioModel(scenario.radio.comm_range, scenario.radio.lossless_range, scenario.radio.min_quality)
+    for a, b in zip(chain, chain[1:]):
+        d = math.hypot(a.x - b.x, a.y - b.y)
+        q = radio.quality(d)
+        if q < NETNS_START_QUALITY:
+            reach = scenario.radio.lossless_range + (1 - NETNS_START_QUALITY) * (
+                scenario.radio.comm_range - scenario.radio.lossless_range)
+            raise ScenarioError(
+                f"{scenario.name} --netns: {a.name} and {b.name} start {d:.1f} m apart, link quality {q:.2f} by the "
+                f"radio model; a relay needs its neighbours' Poses over the mesh, and handshakes over a link below "
+                f"{NETNS_START_QUALITY:g} rarely complete: start the chain's links within {reach:.1f} m, or widen "
+                f"radio.comm_range (for example examples/scenario-{scenario.name}-mesh.toml)")
 
 
 def _q(result: Any) -> tuple[float, float]:

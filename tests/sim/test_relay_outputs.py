@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import csv
 
+import pytest
+
 from erni.sim import experiments
 from erni.sim.experiments import relay
 from erni.sim.scenario import find_scenario, load_scenario
@@ -42,3 +44,24 @@ def test_the_csv_holds_the_link_qualities_the_figure_draws(tmp_path):
     for robot, quantity in quantities - {("robot1", "position_along"), ("robot2", "position_along")}:
         values = [float(r["value"]) for r in rows if (r["robot"], r["quantity"]) == (robot, quantity)]
         assert len(values) == decisions and all(0.0 <= v <= 1.0 for v in values)
+
+
+def test_a_real_mesh_relay_run_refuses_a_start_whose_links_cannot_carry_a_handshake():
+    """On the real-mesh tier a relay learns its neighbours' positions from their Poses over transport sessions:
+    relay1's start (robot1 11 m from D at comm_range 12 m, a delivery ratio of 0.11) is refused at once, in one
+    line naming the link, its quality and a start that works, where the run used to wait 480 s with the relay
+    "waiting for the position of destination"; the mesh variants of relay1 and relay2 start."""
+    from erni.sim.scenario import ScenarioError
+    from erni.sim.world import RobotStart
+
+    def chain(name: str) -> tuple[object, list[RobotStart]]:
+        sc = load_scenario(find_scenario(name))
+        ends = [RobotStart(name=p.name, x=p.x, y=p.y, heading=0.0) for p in sc.poi[:2]]
+        return sc, [ends[0], *sc.starts(), ends[1]]
+
+    with pytest.raises(ScenarioError) as err:
+        relay._check_mesh_start(*chain("relay1"))
+    assert "robot1 and destination start 11.0 m apart, link quality 0.11" in str(err.value)
+    assert "\n" not in str(err.value) and "scenario-relay1-mesh.toml" in str(err.value)
+    for name in ("relay1-mesh", "relay2-mesh"):
+        relay._check_mesh_start(*chain(name))  # every link at 0.38 or better
