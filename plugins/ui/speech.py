@@ -726,9 +726,9 @@ class SphinxStream:
         self.evidence.update(text=text, scores=scores)
         partial, poor = self._doubts(text, scores)
         if is_stop(text):  # a stop acts however sure it is: its hearing waits for no second decode
-            if doubted or not self._doubtful(text, audio):  # (heard by both decoders, or not garbled)
+            if not self._doubtful(text, audio):  # (unless garbled or a short line of its own)
                 return self._judged(text, partial, poor, text, None)
-            return self._unconfirmed(text, audio, live)
+            return self._unconfirmed(text, audio, live[0] if live is not None else None)
         if doubted:
             self.evidence.update(doubted=doubted)
         if near and (partial or poor or not text) and self._short(audio) not in self.others:
@@ -746,35 +746,40 @@ class SphinxStream:
         return self._judged(text, partial, poor, again, snr)
 
     def _doubtful(self, stop: str, audio: bytes) -> bool:
-        """Whether a stop a grammar decode heard needs a second decode's hearing to act: the keyphrase search
-        spotted no stop phrase anywhere in the utterance, and either the hearing has a hesitation (the grammar
-        fit garbled audio with numbers, an "uh" and a stop word: "robots two thirteen one uh freeze") or the
-        utterance is short and the short lines' decode hears one of the lines a stop could be taken for
-        ("cancel that" heard as "please all stop")."""
-        if self.near:
-            return False
+        """Whether a stop a grammar decode heard needs the decode in pieces to hear a stop too before it acts:
+        the hearing has a hesitation (the grammar fit garbled audio with numbers, an "uh" and a stop word:
+        "robots two thirteen one uh freeze"), or the utterance is short and the short lines' decode hears it as
+        a line a stop could be taken for ("cancel that" heard as "please all stop", where the keyphrase search
+        may spot "all stop" too: a lone stop phrase that decode agrees with acted before this)."""
         if any(w in HESITATIONS for w in stop.split()):
             return True
         first, last = self._span(audio)
         if last - first > self.LONGEST_STOP:
             return False
-        short = self._short(audio)
-        self.evidence.update(short=short)
-        return short in self.others
+        if "short" not in self.evidence:  # (the lone-stop check may have decoded it already)
+            self.evidence.update(short=self._short(audio))
+        return self.evidence["short"] in self.others
 
-    def _unconfirmed(self, stop: str, audio: bytes, live: tuple[str, list[tuple[str, float]]] | None) -> Heard | None:
-        """A doubtful stop the whole grammar heard: it acts if the other decode (the live one, or the decode in
-        pieces) hears a stop too; else the utterance is heard as that other decode heard it, doubted (a command
-        is then read back or asked again: nothing moves on a hearing heard once)."""
-        if live is not None:
-            again = live[0]
-        else:
-            self._decode(audio, whole=False)
-            again, _ = self._decoded()
-        self.evidence.update(again=again, doubted=stop)
-        if is_stop(again):
+    def _unconfirmed(self, stop: str, audio: bytes, live: str | None = None) -> Heard | None:
+        """A doubtful stop the whole grammar heard: it acts if the decode in pieces (the doubt rule's second
+        decode, the front end settled on this utterance) hears a stop too, and, for a hearing with a hesitation,
+        the live decode (when it heard the utterance) did too and the keyphrase search spots a stop phrase
+        somewhere in the utterance (an independent search: garbled audio that all the grammar's decodes fit to
+        "... uh freeze" mostly holds none). Else the utterance is heard as the decode in pieces heard it,
+        without its stop words, and doubted: a command is read back or asked again, so nothing moves, and an
+        operator who meant a stop says it again or presses Stop."""
+        from erni.plugins.ui.grammar import STOP_WORDS
+
+        hesitant = any(w in HESITATIONS for w in stop.split())
+        if hesitant and not self.near:  # the stop phrases searched for in all of it, however long
+            self._spotted(audio, self.STOPS, self.LONE_STOP, math.inf)
+        self._decode(audio, whole=False)
+        again, _ = self._decoded()
+        self.evidence.update(again=again, doubted=stop, near=self.near)
+        if is_stop(again) and (not hesitant or (self.near and (live is None or is_stop(live)))):
             return Heard(stop, False, f"a stop, heard again as {again!r}")
-        return Heard(again, True, f"a stop heard once and doubtfully ({stop!r})") if again else None
+        rest = " ".join(w for w in again.split() if w not in STOP_WORDS)
+        return Heard(rest, True, f"a stop heard doubtfully ({stop!r}), then {again!r}") if rest else None
 
     def _answer(self, audio: bytes) -> tuple[Heard | None, tuple[str, list[tuple[str, float]]] | None]:
         """A short utterance heard as an answer to a read-back: decoded against the short lines (`NOT_STOPS`: the

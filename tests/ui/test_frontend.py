@@ -306,39 +306,49 @@ class Scripted:
         got = self.texts.get(self.search, "")
         self.text = got[self.pieces] if isinstance(got, tuple) else got
 
-    def seg(self) -> list[object]:
-        return []
+    def seg(self) -> list[object]:  # the keyphrase search's hit: texts["stops"] over the first half second
+        spotted = self.texts.get("stops") if self.search == "stops" else None
+        return [type("Seg", (), {"word": spotted, "start_frame": 0, "end_frame": 49, "ascore": 1.0})()] if spotted else []
 
     def hyp(self) -> object:
-        return type("Hyp", (), {"hypstr": self.text})() if self.text else None
+        return type("Hyp", (), {"hypstr": self.text})() if self.text and self.search != "stops" else None
 
 
-@pytest.mark.parametrize("whole, live, pieces, short, heard, stops", [
-    # the garbled line a grammar fits with an "uh" before a stop word, heard by one decode only: doubted, no stop
-    ("robots one and two uh freeze moving", "robot two where are you please", None, "", "robot two where are you please", False),
-    ("robots two thirteen one uh freeze", None, "robot two turn one hundred eighty degrees", "",
-     "robot two turn one hundred eighty degrees", False),
-    ("robot two turn left", "robots two thirteen one uh freeze", None, "", "robot two turn left", False),
-    # a short line the short lines' decode hears as one a stop is taken for: heard as a stop by one decode only
-    ("cancel that", "please all stop", None, "cancel that", "cancel that", False),
-    ("please all stop", None, "cancel that", "cancel that", "cancel that", False),
-    # heard as a stop by both decoders, or not doubtful: the stop acts
-    ("please all stop", "please all stop", None, "cancel that", "please all stop", True),
-    ("robots one and two uh freeze", None, "robots one and two freeze", "", "robots one and two uh freeze", True),
-    ("robot two freeze", "robot two freeze", None, "", "robot two freeze", True),
-    ("everybody stop", None, "everybody stop", "everybody stop", "everybody stop", True),
+@pytest.mark.parametrize("whole, live, pieces, short, heard, stops, spot", [  # spot: the keyphrase search's hit
+    # the garbled line a grammar fits with an "uh" before a stop word, which the decode in pieces hears otherwise:
+    # doubted, as the decode in pieces heard it; no stop (the live decode hearing the same garbled stop adds nothing)
+    ("robots one and two uh freeze moving", "robot two where are you please", "robot one go to three four", "",
+     "robot one go to three four", False, ""),
+    ("robots two thirteen one uh freeze", "robots two thirteen one uh freeze", "robot two turn one hundred eighty "
+     "degrees", "", "robot two turn one hundred eighty degrees", False, ""),
+    # ... and heard so by every decode, where the keyphrase search spots no stop phrase: doubted, without the stop
+    ("robots two thirteen one uh freeze", "robots two thirteen one uh freeze", None, "", "robots two thirteen one uh",
+     False, ""),
+    ("robot two turn left", "robots two thirteen one uh freeze", None, "", "robot two turn left", False, ""),
+    # a short line the short lines' decode hears as one a stop is taken for
+    ("cancel that", "please all stop", None, "cancel that", "cancel that", False, ""),
+    ("please all stop", "please all stop", "cancel that", "cancel that", "cancel that", False, ""),
+    # heard as a stop by the decode in pieces too, or not doubtful: the stop acts
+    ("please all stop", "please all stop", None, "cancel that", "please all stop", True, ""),
+    ("robot two uh freeze", None, "robot two freeze", "", "robot two uh freeze", True, "freeze"),
+    # ... unless the live decode heard the line otherwise ("degrees" heard as "uh freeze" by the whole grammar)
+    ("robot two uh freeze", "robot two turn one hundred eighty degrees", "robot two freeze", "", "robot two", False, "freeze"),
+    # a short line: the keyphrase search spotted "all stop" (not alone), the short lines' decode "cancel that"
+    ("please all stop", "please all stop", "cancel that", "cancel that", "cancel that", False, "all stop"),
+    ("robot two freeze", "robot two freeze", "robot two where are you", "", "robot two freeze", True, ""),
+    ("everybody stop", None, "everybody", "everybody stop", "everybody stop", True, ""),
 ])
 def test_a_stop_heard_once_from_garbled_audio_or_a_short_line_needs_a_second_hearing(
-        whole, live, pieces, short, heard, stops):
-    """A stop the keyphrase search did not spot, heard by a grammar decode with a hesitation or in a short line the
-    short lines' decode hears as no stop ("cancel that" heard as "please all stop", "robot 2 turn 180 degrees" as
-    "robots two thirteen one uh freeze"), acts only when the other decode (the live one, else the decode in pieces)
-    hears a stop too; else the utterance is heard as that other decode heard it, doubted (nothing moves). A stop
-    that is not doubtful acts at once, as before."""
+        whole, live, pieces, short, heard, stops, spot):
+    """A stop a grammar decode heard in a short line the short lines' decode hears as no stop ("cancel that" as
+    "please all stop") acts only when the decode in pieces hears a stop too; one heard with a hesitation ("robot 2
+    turn 180 degrees" as "robots two thirteen one uh freeze") only when the live decode did too and the keyphrase
+    search spots a stop phrase. Else the utterance is heard as the decode in pieces heard it, without its stop
+    words, doubted (nothing moves). A stop that is not doubtful acts at once, whatever a later decode hears."""
     from erni.plugins.ui.speech import SphinxStream, is_stop
 
     decoder = Scripted({SphinxStream.COMMANDS: (whole, pieces if pieces is not None else whole),
-                        SphinxStream.SHORT: short})
+                        SphinxStream.SHORT: short, SphinxStream.STOPS: spot})
     stream = SphinxStream(decoder, VoiceEndpointer(lambda f, s: 0.0), others=("cancel that", "listen"),
                           live=Scripted({SphinxStream.COMMANDS: live or ""}) if live is not None else None)
     stream._heard_one = True  # the main decoder has settled: the live decode is listened to
