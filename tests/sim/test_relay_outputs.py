@@ -6,7 +6,7 @@ import csv
 
 import pytest
 
-from erni.sim import experiments
+from erni.sim import experiments, netns
 from erni.sim.experiments import relay
 from erni.sim.scenario import find_scenario, load_scenario
 
@@ -65,3 +65,26 @@ def test_a_real_mesh_relay_run_refuses_a_start_whose_links_cannot_carry_a_handsh
     assert "\n" not in str(err.value) and "scenario-relay1-mesh.toml" in str(err.value)
     for name in ("relay1-mesh", "relay2-mesh"):
         relay._check_mesh_start(*chain(name))  # every link at 0.38 or better
+
+
+@pytest.mark.netns
+@pytest.mark.skipif(bool(netns.unavailable_reason()), reason="real-mesh tier unavailable")
+def test_on_the_real_mesh_the_relay_moves_toward_its_weaker_link_as_babeld_reads_it(tmp_path):
+    """relay1 on the mesh variant (16 m radio), six decisions of 8 s on the real-mesh tier: S, D and the relay in
+    namespaces with babeld, the relay's link qualities from MobiNet reading babeld. It starts 6 m from S and 10 m
+    from D (the model's 0.77 and 0.46: nearer D than the scenario's start, so that its handshake with D completes
+    within the test), so it moves toward D along S-D; its links are babeld's readings (between 0 and 1, not the
+    model's values), and the notes say the qualities are measured."""
+    sc = load_scenario(find_scenario("relay1-mesh"))
+    start = sc.robot[0].model_copy(update={"x": -2.0})
+    sc = sc.model_copy(update={"duration": 48.0, "robot": [start], "strategy": {**sc.strategy, "period": 8.0}})
+    result = experiments.run("relay1", sc, mode="agents", netns=True)
+    assert "babeld" in result.mode_note
+    _, along, _ = result.series["robot1/position_along"]
+    assert along[-1] > along[0] + 0.5, along  # toward D, the weaker link
+    _, q_s, _ = result.series["robot1/link_quality_to_S"]
+    _, q_d, _ = result.series["robot1/link_quality_to_D"]
+    read = [(s, d) for s, d in zip(q_s, q_d) if s > 0 and d > 0]  # 0 until the relay has both neighbours' Poses
+    assert len(read) >= 2 and all(s <= 1.0 and d <= 1.0 for s, d in read), (q_s, q_d)
+    assert (q_s[-1], q_d[-1]) != (pytest.approx(0.77, abs=1e-3), pytest.approx(0.46, abs=1e-3))
+    assert any("link qualities (measured): babeld's reading" in n for n in result.notes), result.notes
