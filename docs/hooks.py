@@ -119,7 +119,7 @@ def _anchor(words: str) -> str:
 
 # -- settings models ------------------------------------------------------------------------
 
-UNITS = ("s", "m", "Hz", "m/s", "m/s^2", "deg", "deg/s", "V", "bytes", "hops", "mm", "ms")
+UNITS = ("s", "m", "Hz", "m/s", "m/s^2", "deg", "deg/s", "V", "bytes", "hops", "mm", "ms", "dBFS")
 UNIT_WORDS = {"seconds": "s", "volts": "V", "metres": "m", "a second": "Hz", "per second": "Hz"}
 _UNIT = re.compile(r"\((" + "|".join(re.escape(u) for u in UNITS) + r")(?:[;,)]| =| \()")
 

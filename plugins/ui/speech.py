@@ -698,27 +698,18 @@ class SphinxStream:
         stop = self._spotted(audio, self.STOPS, self.LONE_STOP, self.LONGEST_STOP)
         near = self.near
         self.evidence = {"stop": stop, "near": near, "snr": snr}
-        if stop:  # a lone stop phrase, if a decode against it and what it could be taken for agrees
-            short = self._short(audio)
-            self.evidence.update(short=short)
-            if short == stop:  # both heard the same stop phrase: it is the hearing, at once
-                return Heard(stop, False, f"a stop phrase spotted ({stop!r})")
-            if short not in self.others:  # a stop, but which is unsure: a stop to everyone, at once
-                return Heard("everybody stop", False, f"a stop phrase spotted ({stop!r}, then {short!r})")
+        if stop and (lone := self._lone_stop(audio, stop)) is not None:
+            return lone
         decoded = None  # the whole grammar's decode, when the answers' check made it already
         if self.answering:
             answer, decoded = self._answer(audio)
             if answer is not None:
                 return answer
         live = self._live_end()
-        doubted = ""  # a stop the live decode heard doubtfully: it acts if the whole grammar hears a stop too
         if live is not None:
             self.evidence.update(live=live[0])
-            if is_stop(live[0]):  # the live decode heard a stop as it was said: it acts at once, however sure,
-                if not self._doubtful(live[0], audio):  # unless garbled or a short line of its own
-                    self._stopped = (audio, live[0])  # and the whole grammar's decode may add to it (`_recheck`)
-                    return self._judged(live[0], *self._doubts(*live), live[0], None)
-                doubted = live[0]
+            if is_stop(live[0]) and (heard := self._live_stop(audio, live)) is not None:
+                return heard
         if decoded is None:
             self._decode(audio, whole=True)
             decoded = self._decoded()
@@ -729,11 +720,25 @@ class SphinxStream:
             if not self._doubtful(text, audio):  # (unless garbled or a short line of its own)
                 return self._judged(text, partial, poor, text, None)
             return self._unconfirmed(text, audio, live[0] if live is not None else None)
-        if doubted:
-            self.evidence.update(doubted=doubted)
         if near and (partial or poor or not text) and self._short(audio) not in self.others:
             # a stop phrase spotted in a short utterance the grammar heard only doubtfully: a stop to everyone
             return Heard("everybody stop", False, f"a stop phrase spotted ({near!r}) where the grammar doubts {text!r}")
+        return self._second(audio, text, partial, poor, live, snr)
+
+    def _live_stop(self, audio: bytes, live: tuple[str, list[tuple[str, float]]]) -> Heard | None:
+        """The live decode heard a stop as it was said: it acts at once, however sure, and the whole grammar's
+        decode may add to it (`_recheck`); unless it is doubtful (garbled, or a short line of its own), when it
+        acts only if the whole grammar hears a stop too (None: go on to that decode)."""
+        if self._doubtful(live[0], audio):
+            self.evidence.update(doubted=live[0])
+            return None
+        self._stopped = (audio, live[0])
+        return self._judged(live[0], *self._doubts(*live), live[0], None)
+
+    def _second(self, audio: bytes, text: str, partial: bool, poor: list[str],
+                live: tuple[str, list[tuple[str, float]]] | None, snr: float | None) -> Heard | None:
+        """A hearing that is no stop, judged with its second decode (the front end settled on this utterance, or
+        the live decode's with `live_again`); a lone wake phrase spotted is the hearing instead."""
         if self.live_again and live is not None:  # the second hearing: the live decode's, in the pieces it came in
             again = live[0]
         else:  # the second decode: the front end settled on this utterance
@@ -745,12 +750,23 @@ class SphinxStream:
             return Heard(wake) if wake == text else Heard(wake, False, f"a lone wake phrase (the grammar: {text!r})")
         return self._judged(text, partial, poor, again, snr)
 
+    def _lone_stop(self, audio: bytes, stop: str) -> Heard | None:
+        """A lone stop phrase the keyphrase search spotted is the hearing if a decode against it and what it could
+        be taken for agrees (None when that decode hears one of those lines instead)."""
+        short = self._short(audio)
+        self.evidence.update(short=short)
+        if short == stop:  # both heard the same stop phrase: it is the hearing, at once
+            return Heard(stop, False, f"a stop phrase spotted ({stop!r})")
+        if short not in self.others:  # a stop, but which is unsure: a stop to everyone, at once
+            return Heard("everybody stop", False, f"a stop phrase spotted ({stop!r}, then {short!r})")
+        return None
+
     def _doubtful(self, stop: str, audio: bytes) -> bool:
         """Whether a stop a grammar decode heard needs the decode in pieces to hear a stop too before it acts:
         the hearing has a hesitation (the grammar fit garbled audio with numbers, an "uh" and a stop word:
         "robots two thirteen one uh freeze"), or the utterance is short and the short lines' decode hears it as
-        a line a stop could be taken for ("cancel that" heard as "please all stop", where the keyphrase search
-        may spot "all stop" too: a lone stop phrase that decode agrees with acted before this)."""
+        a line a stop could be taken for that is no part of the stop ("cancel that" heard as "please all stop",
+        where the keyphrase search may spot "all stop" too; "robot two" of "robot two stop" is part of it)."""
         if any(w in HESITATIONS for w in stop.split()):
             return True
         first, last = self._span(audio)
@@ -758,7 +774,8 @@ class SphinxStream:
             return False
         if "short" not in self.evidence:  # (the lone-stop check may have decoded it already)
             self.evidence.update(short=self._short(audio))
-        return self.evidence["short"] in self.others
+        short = self.evidence["short"]  # a line that is part of the stop ("robot two" of "robot two stop") is no doubt
+        return short in self.others and not set(short.split()) <= set(stop.split())
 
     def _unconfirmed(self, stop: str, audio: bytes, live: str | None = None) -> Heard | None:
         """A doubtful stop the whole grammar heard: it acts if the decode in pieces (the doubt rule's second

@@ -125,19 +125,22 @@ def run(scenario: Scenario, progress: Progress, *, experiment: Experiment, mode:
                     f"every relay within {settle:g} m of its equal-spacing slot from then on")
         res.compare("final positions along S-D", ", ".join(f"{x:.1f}" for x in slot_along) + " (equal spacing)",
                     ", ".join(f"{x:.1f}" for x in a[-1]), "m", "simulator's truth at the last decision")
-    if not netns:
-        res.notes.append("link quality model (input): delivery ratio 1 up to "
-                         f"{scenario.radio.lossless_range:g} m, falling linearly to 0 at R = {scenario.radio.comm_range:g} m")
-    elif scenario.radio.channel == "ns3":
-        res.notes.append("link qualities (measured): babeld's reading of its Hellos over ns-3's 802.11a channel, as "
-                         "MobiNet reports them; the channel's reach follows the scenario's radio "
-                         f"(comm_range {scenario.radio.comm_range:g} m)")
-    else:
-        res.notes.append("link qualities (measured): babeld's reading of its Hellos through the packet-filter rules "
-                         "that drop as the radio model does (input: delivery ratio 1 up to "
-                         f"{scenario.radio.lossless_range:g} m, 0 at R = {scenario.radio.comm_range:g} m)")
+    res.notes.append(_link_note(scenario, netns))
     res.draw = lambda fig: _draw(fig, scenario, names, a, slot_along, length, qualities, period, mode)
     return res
+
+
+def _link_note(scenario: Scenario, netns: bool) -> str:
+    """Where the link qualities came from: the radio model (an input), or babeld's reading on the real mesh."""
+    r = scenario.radio
+    if not netns:
+        return (f"link quality model (input): delivery ratio 1 up to {r.lossless_range:g} m, falling linearly to 0 "
+                f"at R = {r.comm_range:g} m")
+    if r.channel == "ns3":
+        return ("link qualities (measured): babeld's reading of its Hellos over ns-3's 802.11a channel, as MobiNet "
+                f"reports them; the channel's reach follows the scenario's radio (comm_range {r.comm_range:g} m)")
+    return ("link qualities (measured): babeld's reading of its Hellos through the packet-filter rules that drop as "
+            f"the radio model does (input: delivery ratio 1 up to {r.lossless_range:g} m, 0 at R = {r.comm_range:g} m)")
 
 
 def _robot_rows(res: Result, names: list[str], a: NDArray[np.float64], qualities: list[list[tuple[float, float]]],

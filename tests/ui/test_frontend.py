@@ -337,6 +337,8 @@ class Scripted:
     ("please all stop", "please all stop", "cancel that", "cancel that", "cancel that", False, "all stop"),
     ("robot two freeze", "robot two freeze", "robot two where are you", "", "robot two freeze", True, ""),
     ("everybody stop", None, "everybody", "everybody stop", "everybody stop", True, ""),
+    # the short lines' decode hears the stop's subject alone ("robot two"; it has no "robot two stop"): no doubt
+    ("robot two stop", "robot two stop", "robot two where are you", "robot two", "robot two stop", True, ""),
 ])
 def test_a_stop_heard_once_from_garbled_audio_or_a_short_line_needs_a_second_hearing(
         whole, live, pieces, short, heard, stops, spot):
