@@ -107,7 +107,10 @@ class RobotMotionControl(Plugin[MotionSettings]):
     def setup(self) -> None:
         s = self.settings
         me = self.agent_name
-        self.tasks = self.subscribe(Task, where=lambda t: t.verb == "BotMotion" and t.destination in (None, "", me))
+        # tasks come and go here; their results are this plugin's own (the resource's outcomes, a few a
+        # second while one runs), which must not run it again
+        self.tasks = self.subscribe(Task, where=lambda t: t.verb == "BotMotion" and t.destination in (None, "", me),
+                                    ignore=("result",))
         if is_ros2_url(s.url):  # a ROS 2 base (cmd_vel, odom, scan) behind the same driver interface
             driver: ArcosDriver = Ros2BaseDriver(s.url, s.model_spec(), name=me, link_timeout=s.link_timeout)
         else:
