@@ -3,7 +3,8 @@
 The resource is the thread that polls the network subsystem and writes the robot's pose.
 It owns one asyncio loop (thread `mobinet-<agent>`) and one `NetworkSource` created inside
 it. Watches (one per NetWatch task) are polled at their own rates; watches due at about
-the same time share one read. Results and failures go to a callback that must not block
+the same time share one read, and a watch whose period is a multiple of another's falls into
+that one's pace after its first read (a watch added later shares reads too). Results and failures go to a callback that must not block
 (MobiNetControl hands them to the blackboard with `later()`). Pose writes keep only the
 latest pose. Nothing here ever touches the blackboard, and no call made from another
 thread waits for SNMP.
@@ -13,6 +14,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import math
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -275,11 +277,29 @@ class MobiNetResource:
             for w in due:
                 if self._watches.get(w.key) is not w:
                     continue  # cancelled or replaced during the read
-                w.due = w.due + w.period if w.due + w.period > done else done + w.period
+                w.due = self._aligned(w, w.due + w.period if w.due + w.period > done else done + w.period, done)
                 try:
                     self._deliver(w.key, view, error)
                 except Exception:
                     self.log.exception("delivering a MobiNet result failed")
+
+    def _aligned(self, w: _Watch, due: float, done: float) -> float:
+        """When `w` is read next: `due`, or the latest read of a faster (or as fast) watch whose period
+        divides its own in the half period before it, after which it keeps that watch's pace. Watches
+        added at different times then share their reads (a 1 Hz watch every other read of a 2 Hz one)
+        instead of each waking the source at its own phase."""
+        best = due
+        for o in self._watches.values():
+            if o is w or o.period > w.period:
+                continue
+            ratio = w.period / o.period
+            if abs(ratio - round(ratio)) > 0.01 * ratio:
+                continue  # not on a common pace: joining its reads would change this watch's rate
+            k = math.floor((due - o.due) / o.period + 1e-9)
+            point = o.due + k * o.period
+            if done < point < best and point >= due - 0.5 * w.period - 1e-9:
+                best = point
+        return best
 
     async def _read(self, parts: frozenset[str]) -> tuple[NetView | None, str]:
         assert self.source is not None

@@ -175,3 +175,31 @@ def test_watches_fall_due_on_the_injected_clock():
         assert rec.keys() == ["w", "probe1", "probe2", "w"] and len(src.reads) == 4
     finally:
         res.close()
+
+
+def test_a_watch_added_later_falls_into_the_pace_of_a_faster_one():
+    """A 1 Hz watch added between two reads of a 2 Hz one is read once at once, then only with the
+    2 Hz watch (every other read of it): the source is read twice a second, not three times (ManualClock)."""
+    from erni.testing import ManualClock
+
+    clock = ManualClock()
+    src, rec = ScriptedSource(), Recorder()
+    res = MobiNetResource(lambda: src, rec, logging.getLogger("test"), clock=clock).start()
+    try:
+        res.watch("fast", frozenset({"neighbors"}), 2.0)
+        wait_until(lambda: len(src.reads) == 1, timeout=30)
+        clock.advance(0.2)
+        res.watch("slow", frozenset({"topology"}), 1.0)
+        wait_until(lambda: len(src.reads) == 2, timeout=30)  # a new watch is read at once
+        assert src.reads[1] == frozenset({"topology"})
+        # 4 s in steps of 0.25 s, the poller made to look at each (a watch due within a fifth of its
+        # period joins that look): unaligned, the slow watch would be read at 1.2 s, 2.2 s ... alone
+        for i in range(16):
+            clock.advance(0.25)
+            looked_again(res, rec, f"probe{i}")
+        later = src.reads[2:]
+        slow = [r for r in later if "topology" in r]
+        assert slow and all("neighbors" in r for r in slow)  # never read on its own again
+        assert 3 <= len(slow) <= 5 and 7 <= sum("neighbors" in r for r in later) <= 9
+    finally:
+        res.close()
