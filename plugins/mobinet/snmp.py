@@ -734,6 +734,7 @@ class SnmpSource:
         self.cache_seconds = cache_seconds
         self._cache = WalkCache()
         self._uptime: int | None = None  # the agent's sysUpTime in its last answer (a restart resets it)
+        self._ident: dict[OID, Value] | None = None  # the identity scalars of the last read (`_standing_identity`)
         self.decoder = SnmpDecoder(self.where, self.limits)
         self.requests = 0
 
@@ -856,12 +857,15 @@ class SnmpSource:
 
     async def read(self, parts: frozenset[str]) -> NetView:
         """Read the requested parts from whichever served modules provide them."""
-        steady = await self._steady(parts)
+        steady, current = await self._steady(parts)
         if steady is not None:
             return steady
-        scalars = [SYS_NAME, ERNI_NODE_NAME, ERNI_NODE_ADDRESS, OLSRV2_ORIG_ADDR_TYPE, OLSRV2_ORIG_ADDR,
-                   *PROBES.values(), *VERSIONS]
-        ident = await self.get(dict.fromkeys([*scalars, SYS_UP_TIME]), frozenset([*scalars, SYS_UP_TIME]))
+        ident = self._standing_identity(current)
+        if ident is None:
+            scalars = [SYS_NAME, ERNI_NODE_NAME, ERNI_NODE_ADDRESS, OLSRV2_ORIG_ADDR_TYPE, OLSRV2_ORIG_ADDR,
+                       *PROBES.values(), *VERSIONS]
+            ident = await self.get(dict.fromkeys([*scalars, SYS_UP_TIME]), frozenset([*scalars, SYS_UP_TIME]))
+        self._ident = ident
         served = {module for module, oid in PROBES.items()
                   if oid in ident and (self.modules is None or module in self.modules)}
         view = self.decoder.identity(ident, served)
@@ -879,22 +883,36 @@ class SnmpSource:
         self._cache.view = CachedView(stamp, oldest, view)
         return view
 
-    async def _steady(self, parts: frozenset[str]) -> NetView | None:
+    async def _steady(self, parts: frozenset[str]) -> tuple[NetView | None, dict[OID, Value] | None]:
         """The last view, when the node's name and its change counters alone say it stands (the steady
-        state), unless the agent restarted (sysUpTime went back: its counters began anew); else None."""
+        state), unless the agent restarted (sysUpTime went back: its counters began anew); else None,
+        with the name, counters and sysUpTime the check read (None when it read nothing)."""
         last = self._cache.view
         if last is None or not last.stamp.complete or last.stamp.parts != parts \
                 or not self._fresh(last.when, self.clock()):
-            return None
+            return None, None
         check = [ERNI_NODE_NAME, *VERSIONS]
         current = await self.get([*check, SYS_UP_TIME], frozenset([*check, SYS_UP_TIME]))
         if not all(oid in current for oid in check):
-            return None
+            return None, None
         topo_v, state_v = (_int(oid, current[oid], "Counter32") for oid in VERSIONS)
         if last.stamp.stands(_text(ERNI_NODE_NAME, current[ERNI_NODE_NAME]), topo_v, state_v) \
                 and not self._restarted(current):
-            return self._copy(last.view)
-        return None
+            return self._copy(last.view), None
+        return None, current
+
+    def _standing_identity(self, current: dict[OID, Value] | None) -> dict[OID, Value] | None:
+        """The identity scalars of the last read with the steady check's new readings in, when that
+        check says only the state moved (the same node and topology version, no restart: robots
+        moved); else None (read them again). A walking robot's reads then skip one GET each."""
+        last = self._ident
+        if current is None or last is None or SYS_UP_TIME not in current or SYS_UP_TIME not in last \
+                or any(oid not in last for oid in (ERNI_NODE_NAME, VERSIONS[0])):
+            return None
+        same = (current[ERNI_NODE_NAME] == last[ERNI_NODE_NAME] and current[VERSIONS[0]] == last[VERSIONS[0]]
+                and _int(SYS_UP_TIME, current[SYS_UP_TIME], "TimeTicks") >= _int(SYS_UP_TIME, last[SYS_UP_TIME],
+                                                                               "TimeTicks"))
+        return {**last, **current} if same else None
 
     def _fresh(self, when: float, now: float) -> bool:
         """Whether something read at `when` may still be used at `now` (younger than `cache_seconds`)."""
