@@ -12,6 +12,7 @@ report their outcome in `state`, `progress`, `values` and `message`; no I/O happ
 
 from __future__ import annotations
 
+import functools
 import math
 import random
 from collections.abc import Callable
@@ -29,7 +30,7 @@ from erni.blackboard.tasks import (
     VelocityParams,
 )
 from erni.plugins.motion.driver import RobotState
-from erni.plugins.motion.robots import RobotModel
+from erni.plugins.motion.robots import RobotModel, Transducer
 
 
 @dataclass(frozen=True)
@@ -93,16 +94,22 @@ class Context:
         return abs(self.state.v) < 0.005 and abs(self.state.w) < math.radians(0.5)
 
     def echoes(self) -> list[tuple[float, float, float]]:
-        """Each sonar echo as (x, y) in the robot's frame (m, ahead and left) and the transducer's bearing."""
+        """Each sonar echo as (x, y) in the robot's frame (m, ahead and left) and the transducer's bearing
+        (worked out once per state: every behaviour of a cycle asks for the same; not to be altered)."""
+        global _last_echoes
+        state, model = self.state, self.model
+        last = _last_echoes
+        if last is not None and last[0] is state and last[1] is model:
+            return last[2]
         out = []
-        sonar = self.model.sonar
-        for num, rng in self.state.sonar.items():
-            pose = sonar[num] if 0 <= num < len(sonar) else None
-            if pose is None:
+        ring = _ring_of(model.sonar)
+        for num, rng in state.sonar.items():
+            t = ring[num] if 0 <= num < len(ring) else None
+            if t is None:
                 continue
-            sx, sy, deg = pose
-            a = math.radians(deg)
-            out.append((sx + rng * math.cos(a), sy + rng * math.sin(a), deg))
+            sx, sy, deg, cos_a, sin_a = t
+            out.append((sx + rng * cos_a, sy + rng * sin_a, deg))
+        _last_echoes = (state, model, out)
         return out
 
     def path_clearance(self, direction: int, corridor: float | None = None) -> float:
@@ -129,6 +136,17 @@ class Context:
             elif -180 < a < 0:
                 right += min(rng, 3.0) * -math.sin(math.radians(a))
         return left - right
+
+
+_last_echoes: tuple[RobotState, RobotModel, list[tuple[float, float, float]]] | None = None
+"""The echoes of the last state `Context.echoes` worked out (replaced whole: any thread may read it)."""
+
+
+@functools.lru_cache(maxsize=16)
+def _ring_of(sonar: tuple[Transducer | None, ...]) -> tuple[tuple[float, float, float, float, float] | None, ...]:
+    """Each transducer as (x, y, bearing in deg, cos and sin of the bearing), by sonar number."""
+    return tuple(None if t is None else (t[0], t[1], t[2], math.cos(math.radians(t[2])), math.sin(math.radians(t[2])))
+                 for t in sonar)
 
 
 def wrap(a: float) -> float:
