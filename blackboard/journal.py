@@ -119,6 +119,9 @@ class Journal:
         self.linger = linger  # a batch of progress changes only waits this long for more (s)
         self.log = logging.getLogger(f"erni.{agent}.journal")
         self._queue: queue.SimpleQueue[Item] = queue.SimpleQueue()
+        self._hold_lock = threading.Lock()
+        self._lingering = False  # the journal thread waits out a batch's linger (`listener` holds commits)
+        self._held: list[Item] = []  # commits made during the linger, in commit order
         self._durable_calls: list[Callable[[], Any]] = []  # `when_durable` calls waiting for a write that succeeds
         self._thread: threading.Thread | None = None
         self._flushed = threading.Condition()
@@ -247,11 +250,18 @@ class Journal:
     # -- writing --------------------------------------------------------------------------
 
     def listener(self, ops: list[Op]) -> None:
-        """Blackboard commit listener: queue the durable operations (no I/O here)."""
+        """Blackboard commit listener: queue the durable operations (no I/O here). While a batch
+        lingers they join it without waking the journal thread, unless they end the linger."""
         durable = [op for op in ops if getattr(op[1], "durable", False)]
         if durable:
             self._enqueued += 1
-            self._queue.put(durable)
+            with self._hold_lock:  # (commits come in order: the blackboard calls its listeners under its lock)
+                if not self._lingering:
+                    self._queue.put(durable)
+                    return
+                self._held.append(durable)
+                if _urgent(durable):
+                    self._queue.put([])  # ends the linger: the batch, this commit in it, goes now
 
     def when_durable(self, fn: Callable[[], Any]) -> None:
         """Call `fn` on the journal thread once every commit queued before this call is on disk (at
@@ -302,18 +312,29 @@ class Journal:
             # take whatever else is waiting: one SQLite transaction (one fsync) for all of it; a batch
             # of changes that are not news (a running task's progress: a control node gets two a
             # second from every robot) waits up to `linger` for more; a new, final or removed
-            # object, a flush or the stop is written at once
+            # object, a flush or the stop is written at once; the commits of a lingering batch are held
+            # beside the queue (`listener`): only what ends the linger wakes this thread
             until = monotonic() + self.linger
             urgent = _urgent_item(batch[0])
-            while True:
-                try:
+            if not urgent:
+                with self._hold_lock:
+                    self._lingering = True
+                while not urgent:
                     left = until - monotonic()
-                    item = (self._queue.get(timeout=left) if not urgent and left > 0
-                            else self._queue.get_nowait())
-                except queue.Empty:
-                    break
-                batch.append(item)
-                urgent = urgent or _urgent_item(item)
+                    if left <= 0:
+                        break
+                    try:
+                        item = self._queue.get(timeout=left)
+                    except queue.Empty:
+                        break
+                    batch.append(item)
+                    urgent = _urgent_item(item)
+                batch += self._taken()  # commits queued before the linger began, calls, flush markers
+                with self._hold_lock:  # commits queued from now on come after the held ones
+                    self._lingering = False
+                    batch += self._held
+                    self._held = []
+            batch += self._taken()
             stop = None in batch
             ops = [op for item in batch if isinstance(item, list) for op in item]
             if ops:
@@ -324,6 +345,15 @@ class Journal:
             self._durable([item for item in batch if item is not None and not isinstance(item, list)])
             if stop:
                 return
+
+    def _taken(self) -> list[Item]:
+        """Everything the queue holds now."""
+        items = []
+        while True:
+            try:
+                items.append(self._queue.get_nowait())
+            except queue.Empty:
+                return items
 
     def _durable(self, calls: list[Callable[[], Any]]) -> None:
         """Make the calls waiting for the disk, once nothing waits to be written (a failed write's

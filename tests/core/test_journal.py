@@ -249,6 +249,47 @@ def test_progress_changes_linger_for_one_write_while_new_final_and_removed_tasks
         journal.stop()
 
 
+def test_progress_changes_during_a_linger_do_not_wake_the_journal_thread(tmp_path):
+    """A robot's running tasks change a few times a second: while a batch lingers, each such commit
+    joins it without waking the journal thread (its voluntary context switches, from /proc, stay
+    put while it sleeps through twenty of them); the final state still ends the linger at once."""
+    from erni.blackboard.blackboard import ADD, CHANGE
+
+    path = tmp_path / "j.sqlite"
+    journal = Journal(path, linger=300.0)
+    journal.start()
+    assert journal._thread is not None and journal._thread.native_id is not None
+    task_dir = f"/proc/self/task/{journal._thread.native_id}"
+    reader, row = _reader(path)
+
+    def asleep() -> bool:
+        with open(f"{task_dir}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] == "S" and journal._queue.empty()
+
+    def switches() -> int:
+        with open(f"{task_dir}/status") as f:
+            return next(int(line.split()[1]) for line in f if line.startswith("voluntary_ctxt_switches"))
+
+    try:
+        task = Task(verb="BotMotion", preposition="randomwalk", source="robot1")
+        journal.listener([(ADD, task, ())])
+        wait_until(lambda: row(task.uid) is not None, timeout=30)
+        task = task.with_result(TaskState.RUNNING, progress=0.0)
+        journal.listener([(CHANGE, task, ())])  # the linger begins
+        wait_until(asleep, timeout=30)
+        before = switches()
+        for i in range(1, 21):
+            task = task.with_result(TaskState.RUNNING, progress=i / 40)
+            journal.listener([(CHANGE, task, ())])
+            wait_until(asleep, timeout=30)  # had it been woken, it took the commit and sleeps again
+        assert switches() - before < 5
+        journal.listener([(CHANGE, task.with_result(TaskState.SUCCEEDED, progress=1.0), ())])
+        wait_until(lambda: '"succeeded"' in row(task.uid), timeout=30)
+    finally:
+        reader.close()
+        journal.stop()
+
+
 def test_lingering_progress_is_written_in_one_batch_when_the_linger_ends(tmp_path):
     from erni.blackboard.blackboard import ADD, CHANGE
 
