@@ -301,6 +301,7 @@ def test_lingering_progress_is_written_in_one_batch_when_the_linger_ends(tmp_pat
         task = Task(verb="BotMotion", preposition="randomwalk", source="control")
         journal.listener([(ADD, task, ())])
         wait_until(lambda: row(task.uid) is not None, timeout=10)
+        assert journal.flush(timeout=10)  # the write that put the row there is counted (after its commit)
         batches = journal.batches
         for i in range(20):
             task = task.with_result(TaskState.RUNNING, progress=i / 20)
