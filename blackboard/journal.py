@@ -113,10 +113,12 @@ def _urgent_item(item: Item) -> bool:
 class Journal:
     """Journal durable objects of one blackboard to a SQLite file."""
 
-    def __init__(self, path: str | Path, agent: str = "agent", linger: float = 0.2, *, clock: Clock = SYSTEM):
+    def __init__(self, path: str | Path, agent: str = "agent", linger: float = 1.0, *, clock: Clock = SYSTEM):
         self.path = Path(path)
         self.clock = clock  # the agent's: its wall reading stamps each row's last write (`updated`)
-        self.linger = linger  # a batch of progress changes only waits this long for more (s)
+        # a batch of progress changes only waits this long for more (s): a walking robot's running tasks
+        # change a few times a second, and each write is an fsync and a dozen wake-ups of this thread
+        self.linger = linger
         self.log = logging.getLogger(f"erni.{agent}.journal")
         self._queue: queue.SimpleQueue[Item] = queue.SimpleQueue()
         self._hold_lock = threading.Lock()
