@@ -934,17 +934,23 @@ class SnmpSource:
                 oldest = min(oldest, entry.when)
             else:
                 walks[job] = key
-        done = await asyncio.gather(*(self.walk(jobs[job]) for job in walks), return_exceptions=True)
-        walked: list[Columns] = []
-        for value in done:
+        # the node table and the position table have a row per node: walked together, one request
+        # a round (robots move: both are walked at every position report)
+        groups = [[job] for job in walks if job not in ("nodes", POSITIONS)]
+        together = [job for job in ("nodes", POSITIONS) if job in walks]
+        if together:
+            groups.append(together)
+        done = await asyncio.gather(*(self.walk([c for job in group for c in jobs[job]]) for group in groups),
+                                    return_exceptions=True)
+        for group, value in zip(groups, done):
             if isinstance(value, BaseException):
                 if isinstance(value, SourceError):
                     raise value
                 raise SourceError(f"SNMP agent {self.where}: {type(value).__name__}: {value}") from value
-            walked.append(value)
-        for (job, key), columns in zip(walks.items(), walked):
-            got[job] = columns
-            self._cache.walks[job] = CachedWalk(key, now, columns)
+            for job in group:
+                columns = {c: value[c] for c in jobs[job]}
+                got[job] = columns
+                self._cache.walks[job] = CachedWalk(walks[job], now, columns)
         return got, oldest
 
     def _restarted(self, values: dict[OID, Value]) -> bool:

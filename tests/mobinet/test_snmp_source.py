@@ -236,8 +236,8 @@ def test_a_position_report_costs_a_read_without_positions_only_the_change_counte
 
 def test_a_position_report_reads_the_identity_scalars_once(served, net, monkeypatch):
     """A read after robots moved (the state version, not the topology version) takes the node's
-    identity from the change-counter check and the last read: one GET, then the walks; a topology
-    change reads the identity again."""
+    identity from the change-counter check and the last read: one GET, then one walk of the node and
+    position tables together; a topology change reads the identity again."""
     gets: list[int] = []
     original = SnmpSource.get
 
@@ -251,17 +251,18 @@ def test_a_position_report_reads_the_identity_scalars_once(served, net, monkeypa
         src = source(*served["robot3"], cache_seconds=60.0)
         try:
             first = await src.read(PARTS)
-            g0 = len(gets)
+            g0, r0 = len(gets), src.requests
             net.set_position("robot5", 241.5, 2.0, 90.0)
             reported = await src.read(PARTS)
-            g1 = len(gets)
+            g1, requests = len(gets), src.requests - r0
             net.move("robot5", 150.0, 40.0)
             moved = await src.read(PARTS)
-            return first, reported, gets[g0:g1], gets[g1:], moved
+            return first, reported, gets[g0:g1], gets[g1:], moved, requests
         finally:
             await src.aclose()
-    first, reported, after_report, after_move, moved = run(go())
+    first, reported, after_report, after_move, moved, requests = run(go())
     assert len(after_report) == 1 and len(after_move) == 2 and after_move[1] > after_move[0]
+    assert requests == 2  # the check, then the node and position tables walked in one GETBULK
     assert (reported.node, reported.address, reported.sources["node"]) == (first.node, first.address,
                                                                          first.sources["node"])
     assert reported.positions["robot5"] == Position(x=241.5, y=2.0, heading=90.0)
