@@ -207,7 +207,8 @@ class MobiNetControl(Plugin[MobiNetSettings]):
         robot = self.settings.robot or me
         self.tasks = self.subscribe(
             Task, where=lambda t: t.verb == "NetWatch" and t.destination in (None, "", me))
-        self.poses = self.subscribe(Pose, where=lambda p: p.robot == robot)
+        # a standing robot's keep-alive Pose (every second) moves only its stamp: nothing to write
+        self.poses = self.subscribe(Pose, where=lambda p: p.robot == robot, ignore=("stamp",))
         # a routing daemon knows addresses; the team directory (the transport's Peers) names them
         self.peers = self.subscribe(Peer, ignore=("last_heard",))   # addresses; a peer heard again is no news
         self._names: dict[str, str] = {}

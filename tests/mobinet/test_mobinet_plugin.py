@@ -347,6 +347,28 @@ def test_a_standing_robot_is_written_once_and_a_moving_one_at_most_once_per_inte
     assert plugin.resource.stats["write_errors"] == 0
 
 
+def test_a_standing_robots_keepalive_poses_do_not_run_the_plugin(served, net, make_agent):
+    """A standing robot's Pose is published again every second with nothing but a newer stamp: no
+    run of MobiNet for it (it has nothing to write); a Pose that moved runs it and is written."""
+    agent, plugin = make_agent("robot2", served["robot2"], write_interval=0.0)
+    with agent.transaction() as tx:
+        tx.add(Pose(robot="robot2", x=10.0, y=1.0))
+    wait_until(lambda: net.view("robot5").positions["robot2"].x == 10.0)
+    wait_until(lambda: scheduler_idle(plugin), timeout=10)
+    pose = agent.query(Pose, where=lambda p: p.robot == "robot2")[0]
+    runs = plugin.runs
+    for _ in range(10):
+        pose = pose.evolve(stamp=pose.stamp + 1.0)
+        with agent.transaction() as tx:
+            tx.change(pose)
+        wait_until(lambda: scheduler_idle(plugin), timeout=10)
+    assert plugin.runs == runs
+    with agent.transaction() as tx:
+        tx.change(pose.evolve(x=11.0, stamp=pose.stamp + 1.0))
+    wait_until(lambda: net.view("robot5").positions["robot2"].x == 11.0)
+    assert net.view("robot2").position_updates == 2
+
+
 def test_a_steady_network_is_republished_only_at_the_keepalive(served, net, make_agent):
     """Readings that change nothing but the stamp cost no transaction; a change is published at once.
     The keep-alive is a minute here (its most), so "at once" and "at the keep-alive" stay far apart
