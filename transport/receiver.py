@@ -34,6 +34,10 @@ if TYPE_CHECKING:
 
 Address = tuple[str, int]
 HEADER_KIND = 4  # offset of the kind byte in a frame
+SWEEP_PERIOD = 1.0
+"""How often (s) the stream thread sweeps its connections' timeouts (frame_timeout, idle_timeout: seconds
+and a minute), the expired handshakes and idle sessions and a changed revocation list; between sweeps it
+sleeps until a socket is ready (it woke four times a second, every agent at rest)."""
 
 
 class ReceiverHost(Protocol):
@@ -154,13 +158,13 @@ class Receiver:
             while not self.host.stopping:
                 real = self.host.pace()  # the loop's own pace is real time; what times out, the endpoint's clock
                 if real >= next_sweep:
-                    next_sweep = real + 0.25
+                    next_sweep = real + SWEEP_PERIOD
                     for conn in self._sweep(conns, self.host.clock()):
                         self._drop_conn(sel, conns, per_host, conn)
                     if not listening and real >= paused_until:
                         sel.register(self.tcp, selectors.EVENT_READ, "listen")
                         listening = True
-                for key, _ in sel.select(timeout=0.25):
+                for key, _ in sel.select(timeout=max(0.0, next_sweep - real)):  # asleep until the sweep
                     sock, what = key.fileobj, key.data
                     if what == "wake":
                         if not self._woken(sel, conns, per_host):

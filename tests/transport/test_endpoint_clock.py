@@ -111,3 +111,27 @@ def test_a_task_for_an_agent_never_discovered_fails_when_the_agents_clock_passes
         assert failed.result.state == TaskState.FAILED and "never discovered" in failed.result.message
     finally:
         control.stop()
+
+
+def test_the_stream_thread_sleeps_until_its_next_sweep(monkeypatch):
+    """With no connection and no frame, the stream thread's selector waits out the time to its next
+    sweep (a second), not a quarter of a second: an agent at rest is not woken four times a second."""
+    import selectors
+
+    from erni.transport import receiver
+
+    waits: list[float | None] = []
+    base = selectors.DefaultSelector
+
+    class Recording(base):  # type: ignore[misc, valid-type]
+        def select(self, timeout=None):
+            waits.append(timeout)
+            return super().select(timeout)
+
+    monkeypatch.setattr(receiver.selectors, "DefaultSelector", Recording)
+    a, _ = endpoint("alpha", ManualClock())
+    try:
+        wait_until(lambda: waits, timeout=10)
+        assert waits[0] is not None and 0.5 < waits[0] <= receiver.SWEEP_PERIOD  # just after the first sweep
+    finally:
+        a.stop()
