@@ -495,6 +495,20 @@ def test_a_running_tasks_progress_is_published_at_most_every_progress_interval(s
     assert 2 <= len(running) <= 7, f"{len(running)} running results in a 2 s task"  # 25/s without the limit
 
 
+def test_the_tasks_own_results_do_not_run_the_plugin_again(start_agent, robot_url):
+    """The resource publishes a running task's progress several times over a 2 s walk: the plugin
+    runs for the task's arrival (and its end), not for each result it published itself."""
+    agent, plugin = start_agent(robot_url, progress_interval=0.1)
+    results: list[float] = []
+    agent.blackboard.add_listener(lambda ops: results.extend(
+        t.result.progress for _, t, _ in ops if isinstance(t, Task) and t.result is not None), Task)
+    runs = plugin.runs
+    task = post(agent, "randomwalk", speed=0.1, duration=2.0, seed=3)
+    wait_until(lambda: current(agent, task).done, timeout=10)
+    assert len(results) >= 8  # progress every 0.1 s, and the end
+    assert plugin.runs - runs <= 3, f"{plugin.runs - runs} runs for {len(results)} results"
+
+
 class _LinkDownDriver:
     """Stands in for the ARCOS driver, its link down until told (isolates the say and Pose paths from a real link)."""
 
