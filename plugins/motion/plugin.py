@@ -147,29 +147,30 @@ class RobotMotionControl(Plugin[MotionSettings]):
         self.resource.close()
 
     def _publish(self, updates: list[TaskUpdate], state: RobotState | None) -> None:
-        """Publish the pose, then the outcome changes, each in a short transaction (the resource's
-        poll or stack thread, one at a time). The pose goes first: whoever sees an outcome ("stop
-        succeeded: halted") finds the pose of the state it was decided on, or a newer one, already
-        on the blackboard, never the one before it."""
-        if state is not None:
-            pose = pose_of(self.agent_name, state)
-            with self.transaction():
+        """Publish the pose and the outcome changes in one short transaction (the resource's poll or
+        stack thread, one at a time): one commit, so the plugins that follow both (the transport
+        sends the Pose and the results) run once for them. The pose goes first: whoever sees an
+        outcome ("stop succeeded: halted") finds the pose of the state it was decided on, or a newer
+        one, already on the blackboard, never the one before it."""
+        pose = pose_of(self.agent_name, state) if state is not None else None
+        with self.transaction():
+            if pose is not None:
                 if self.pose is None and not self.query(Pose, where=lambda p: p.uid == pose.uid):
                     self.add(pose)
                 else:
                     self.change(pose)
-            self.pose = pose
-        for u in updates:
-            try:
-                with self.transaction():
-                    current = self._current(u.uid)
-                    if current is None or current.done:
-                        continue
-                    result = AllocationResult(state=u.state, progress=u.progress,
-                                              values=_jsonable(u.values), message=u.message)
+            for u in updates:
+                current = self._current(u.uid)
+                if current is None or current.done:
+                    continue
+                result = AllocationResult(state=u.state, progress=u.progress,
+                                          values=_jsonable(u.values), message=u.message)
+                try:
                     self.change(current.evolve(result=result), reports=[u.state.value])
-            except TransactionError:
-                pass  # the task was removed (cancelled) meanwhile: nothing to report to
+                except TransactionError:
+                    pass  # the task was removed (cancelled) meanwhile: nothing to report to
+        if pose is not None:
+            self.pose = pose
 
     def _current(self, uid: str) -> Task | None:
         found = self.get(uid)

@@ -509,6 +509,17 @@ def test_the_tasks_own_results_do_not_run_the_plugin_again(start_agent, robot_ur
     assert plugin.runs - runs <= 3, f"{plugin.runs - runs} runs for {len(results)} results"
 
 
+def test_a_pose_and_the_results_decided_on_it_are_one_commit(start_agent, robot_url):
+    """While a task runs, its progress is published with the Pose of the SIP it was decided on, in
+    one commit: the plugins that follow both (the transport) run once for them."""
+    agent, _ = start_agent(robot_url, progress_interval=0.1)
+    commits: list[set[str]] = []
+    agent.blackboard.add_listener(lambda ops: commits.append({type(o).__name__ for _, o, _ in ops}), Task)
+    task = post(agent, "randomwalk", speed=0.1, duration=1.0, seed=3)
+    wait_until(lambda: current(agent, task).done, timeout=10)
+    assert any(kinds == {"Pose", "Task"} for kinds in commits), commits
+
+
 class _LinkDownDriver:
     """Stands in for the ARCOS driver, its link down until told (isolates the say and Pose paths from a real link)."""
 
