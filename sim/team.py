@@ -309,7 +309,7 @@ class Team:
             self._make_room(order[:k])
             self._spawn(self.agents[name], env)
             say("agents launched", k + 1, len(order))
-        self._wait_up(say, timeout, None if heard is None else set(heard))
+        self._wait_up(say, timeout, set(self.names if heard is None else heard))
         self._started_well = True
         return self
 
@@ -432,7 +432,7 @@ class Team:
                     continue
                 os.chmod(path, 0o700 if path.is_dir() else path.stat().st_mode & 0o600)
 
-    def _wait_up(self, say: Callable[[str, int, int], None], timeout: float, only: set[str] | None = None) -> None:
+    def _wait_up(self, say: Callable[[str, int, int], None], timeout: float, only: set[str]) -> None:
         deadline = time.monotonic() + timeout
         n = len(self.names)
         while True:
@@ -444,9 +444,7 @@ class Team:
                     raise TeamError(f"agent {agent.name} exited with code {agent.proc.returncode if agent.proc else '?'}"
                                     f" during start-up; its log ({agent.log}) ends:\n{tail}")
             connected = sum(self.host.connected())
-            expected = set(self.status.reach.get(CONTROL, []))
-            if only is not None:
-                expected &= only
+            expected = set(self.status.reach.get(CONTROL, [])) & only
             up = {name for name, p in self.peers(1.0).items() if p.up} if connected == n else set()
             heard = len(up & expected)
             say("robots connected", connected, n) if connected < n else say("robots heard by control", heard, len(expected))
