@@ -24,6 +24,7 @@ from __future__ import annotations
 import importlib.util
 import math
 from collections import deque
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -133,6 +134,14 @@ class _Resampler:
         return np.asarray(y if self.up else y[:: self.factor])
 
 
+def rnnoise_library() -> Path | None:
+    """The RNNoise library inside the installed pyrnnoise package (found without importing it, or its CLI's
+    PyAV), or None."""
+    spec = importlib.util.find_spec("pyrnnoise")
+    where = list(spec.submodule_search_locations or []) if spec is not None else []
+    return next((Path(p) / "librnnoise.so" for p in where if (Path(p) / "librnnoise.so").is_file()), None)
+
+
 class RnnoiseSuppressor(_Comfort):
     """Xiph's RNNoise (the library shipped in `pyrnnoise`, called directly), at its 48 kHz: each 10 ms is
     resampled up, cleaned and resampled back (the two low-pass filters add 1 ms of delay)."""
@@ -143,9 +152,7 @@ class RnnoiseSuppressor(_Comfort):
         import ctypes
 
         super().__init__()
-        spec = importlib.util.find_spec("pyrnnoise")  # the package's library, without its CLI's imports
-        where = list(spec.submodule_search_locations or []) if spec is not None else []
-        lib = next((Path(p) / "librnnoise.so" for p in where if (Path(p) / "librnnoise.so").is_file()), None)
+        lib = rnnoise_library()
         if lib is None:
             raise _missing("pyrnnoise", "RNNoise noise suppression")
         self.lib = ctypes.CDLL(str(lib))
@@ -195,8 +202,9 @@ class AutoSuppressor:
     name = "auto"
     WINDOW, HYSTERESIS = 2.0, 3.0
 
-    def __init__(self, loud: float, webrtc: WebRtcSuppressor, rnnoise: RnnoiseSuppressor | None) -> None:
-        self.loud, self.webrtc, self.rnnoise = loud, webrtc, rnnoise
+    def __init__(self, loud: float, webrtc: WebRtcSuppressor, rnnoise: Callable[[], RnnoiseSuppressor] | None) -> None:
+        self.loud, self.webrtc, self.make = loud, webrtc, rnnoise  # RNNoise is made when a room first is loud
+        self.rnnoise: RnnoiseSuppressor | None = None  # (its resamplers import scipy: a second, off the start)
         self.levels: deque[float] = deque(maxlen=int(self.WINDOW * RATE / CHUNK))
         self.noisy = False  # RNNoise is the one heard
         self.switches = 0
@@ -218,11 +226,15 @@ class AutoSuppressor:
             self.levels.append(10 * math.log10(max(power, 1.0) / 32768.0 ** 2))
         cleaned = self.webrtc.process(pcm)
         room = self.room()
-        if self.rnnoise is not None and room is not None:
+        if self.make is not None and room is not None:
             noisy = room > self.loud - (self.HYSTERESIS if self.noisy else 0.0)
             self.switches += noisy != self.noisy
             self.noisy = noisy
-        return self.rnnoise.process(pcm) if self.noisy and self.rnnoise is not None else cleaned
+        if not self.noisy or self.make is None:
+            return cleaned
+        if self.rnnoise is None:
+            self.rnnoise = self.make()
+        return self.rnnoise.process(pcm)
 
 
 class SileroVad:
@@ -355,11 +367,8 @@ class FrontEnd:
         self.loud = loud
         self.note = ""
         if denoise == "auto":
-            try:
-                RnnoiseSuppressor()
-                self.rnnoise = True
-            except SpeechError:
-                self.rnnoise = False
+            self.rnnoise = rnnoise_library() is not None
+            if not self.rnnoise:
                 self.note = ("denoise auto: pyrnnoise is not installed, so WebRTC's suppressor hears loud rooms too "
                              "(pip install 'erni[denoise]' on x86-64 Linux)")
         self.suppressor(), self._detector()  # the libraries are there, or one line says which is not
@@ -376,7 +385,7 @@ class FrontEnd:
     def suppressor(self) -> Suppressor | None:
         if self.denoise == "auto":
             return AutoSuppressor(self.loud, WebRtcSuppressor(self.suppression, self.auto_gain),
-                                  RnnoiseSuppressor() if self.rnnoise else None)
+                                  RnnoiseSuppressor if self.rnnoise else None)
         if self.denoise == "webrtc" or (self.denoise == "off" and self.auto_gain):
             return WebRtcSuppressor(self.suppression if self.denoise == "webrtc" else 0, self.auto_gain)
         if self.denoise == "speex":

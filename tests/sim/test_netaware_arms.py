@@ -55,9 +55,9 @@ def test_widep_is_no_arm_pair_of_the_guard_and_its_comparison_is_labelled_two_al
 def test_netns_is_an_option_of_netaware_alone():
     with pytest.raises(ScenarioError, match="loopback tier only"):
         experiments.run("memory", scenario(), netns=True)
-    out = subprocess.run([sys.executable, "-m", "erni", "experiment", "relay1", "--netns"],
+    out = subprocess.run([sys.executable, "-m", "erni", "experiment", "territory", "--netns"],
                          capture_output=True, text=True, timeout=60)
-    assert out.returncode == 2 and "--netns: relay1 runs on the loopback tier only" in out.stderr
+    assert out.returncode == 2 and "--netns: territory runs on the loopback tier only" in out.stderr
 
 
 def recording(monkeypatch: pytest.MonkeyPatch) -> list[dict[str, Any]]:

@@ -212,7 +212,7 @@ def test_a_missing_library_is_one_line_naming_its_package(monkeypatch):
     auto = FrontEnd("auto", "off")  # auto without pyrnnoise: WebRTC alone, and a line that says so
     assert "pyrnnoise is not installed" in auto.note and "\n" not in auto.note
     suppressor = auto.suppressor()
-    assert isinstance(suppressor, frontend.AutoSuppressor) and suppressor.rnnoise is None
+    assert isinstance(suppressor, frontend.AutoSuppressor) and suppressor.make is None
 
 
 def test_the_ui_hears_through_the_front_end_by_default():
