@@ -195,8 +195,8 @@ class AutoSuppressor:
     audio as it comes in (minimum statistics: the pauses between words reach down to the room, speech
     does not lift it). RNNoise takes over while that level is above `loud` dBFS and hands back once it
     falls `HYSTERESIS` dB below. RNNoise runs only while it is chosen (it costs some 25 times WebRTC's
-    CPU); WebRTC runs all along, so it is settled on the room when it takes over again. Without
-    `pyrnnoise` (`rnnoise` None) it is WebRTC alone.
+    CPU); WebRTC runs all along, so it is settled on the room when it takes over again. RNNoise is made
+    (`make`) when a room first is loud; without `pyrnnoise` (`make` None) it is WebRTC alone.
     """
 
     name = "auto"

@@ -767,7 +767,7 @@ class SphinxStream:
         "robots two thirteen one uh freeze"), or the utterance is short and the short lines' decode hears it as
         a line a stop could be taken for that is no part of the stop ("cancel that" heard as "please all stop",
         where the keyphrase search may spot "all stop" too; "robot two" of "robot two stop" is part of it)."""
-        if any(w in HESITATIONS for w in stop.split()):
+        if has_hesitation(stop):
             return True
         first, last = self._span(audio)
         if last - first > self.LONGEST_STOP:
@@ -787,13 +787,13 @@ class SphinxStream:
         operator who meant a stop says it again or presses Stop."""
         from erni.plugins.ui.grammar import STOP_WORDS
 
-        hesitant = any(w in HESITATIONS for w in stop.split())
-        if hesitant and not self.near:  # the stop phrases searched for in all of it, however long
+        garbled = has_hesitation(stop)
+        if garbled and not self.near:  # the stop phrases searched for in all of it, however long
             self._spotted(audio, self.STOPS, self.LONE_STOP, math.inf)
         self._decode(audio, whole=False)
         again, _ = self._decoded()
         self.evidence.update(again=again, doubted=stop, near=self.near)
-        if is_stop(again) and (not hesitant or (self.near and (live is None or is_stop(live)))):
+        if is_stop(again) and (not garbled or (self.near and (live is None or is_stop(live)))):
             return Heard(stop, False, f"a stop, heard again as {again!r}")
         rest = " ".join(w for w in again.split() if w not in STOP_WORDS)
         return Heard(rest, True, f"a stop heard doubtfully ({stop!r}), then {again!r}") if rest else None
@@ -856,6 +856,11 @@ class SphinxStream:
 # Hesitations the grammar lets stand anywhere: the recogniser fits them to audio that fits no word of a
 # command, so a command heard with one is doubted.
 HESITATIONS = frozenset({"uh", "um", "umm", "uhm", "er", "erm", "ah"})
+
+
+def has_hesitation(text: str) -> bool:
+    """Whether a hearing has a hesitation in it (audio the grammar fit to no command word)."""
+    return any(w in HESITATIONS for w in text.split())
 
 
 def moves(text: str) -> bool:

@@ -231,8 +231,7 @@ def _check_mesh_start(scenario: Scenario, chain: list[Any]) -> None:
         d = math.hypot(a.x - b.x, a.y - b.y)
         q = radio.quality(d)
         if q < NETNS_START_QUALITY:
-            reach = scenario.radio.lossless_range + (1 - NETNS_START_QUALITY) * (
-                scenario.radio.comm_range - scenario.radio.lossless_range)
+            reach = radio.range_for(NETNS_START_QUALITY)
             raise ScenarioError(
                 f"{scenario.name} --netns: {a.name} and {b.name} start {d:.1f} m apart, link quality {q:.2f} by the "
                 f"radio model; a relay needs its neighbours' Poses over the mesh, and handshakes over a link below "
