@@ -26,15 +26,12 @@ the service address of the management links, and the GUI through a forwarder on 
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import os
 import secrets
 import shutil
-import signal
 import socket
-import subprocess
 import sys
 import tempfile
 import threading
@@ -47,17 +44,17 @@ from typing import Any
 
 from erni.blackboard import heap
 from erni.blackboard.errors import ErniError
+from erni.sim.agent_hosts import Placement, RadioFeed, bundle_dir, spawn_behind_radio, tell_pipe, write_join_file
 from erni.sim.host_process import COMMANDED_V, ENERGY, TH, HostProcess, RobotView, V, X, Y
 from erni.sim.manet import ManetNetwork, RadioModel
-from erni.sim.netns import HELLO_INTERVAL, Mesh, TcpForwarder, die_with_parent
+from erni.sim.netns import HELLO_INTERVAL, Mesh, TcpForwarder
 from erni.sim.ns3_channel import reach as ns3_reach
-from erni.sim.radio import FD_ENV
 from erni.sim.robot import SimRobotConfig
 from erni.sim.scenario import MAX_AGENT_ROBOTS, Scenario
 from erni.sim.snmp_agent import ManetSnmpAgent
 from erni.sim.team_configs import CONTROL as CONTROL
 from erni.sim.team_configs import CONTROL_HOST as CONTROL_HOST
-from erni.sim.team_configs import AgentConfigs, ros2_settings
+from erni.sim.team_configs import AgentConfigs, ros2_settings, stop_processes
 from erni.sim.team_configs import AgentProcess as AgentProcess
 from erni.sim.team_configs import agent_toml as agent_toml
 from erni.sim.team_configs import free_port as free_port
@@ -66,7 +63,7 @@ from erni.sim.team_configs import private_file as private_file
 from erni.sim.team_configs import robot_address as robot_address
 from erni.sim.team_configs import toml_value as toml_value
 from erni.sim.world import World
-from erni.transport.identity import Authority
+from erni.transport.identity import REVOKED, Authority
 
 log = logging.getLogger("erni.sim.team")
 
@@ -145,7 +142,8 @@ class Team:
                  hello_interval: float = HELLO_INTERVAL, mission_settings: dict[str, Any] | None = None,
                  robot_settings: dict[str, Any] | None = None, keep_run_dir: bool = False,
                  launch_batch: int | None = None, ros2: bool | None = None,
-                 channel: str | None = None) -> None:
+                 channel: str | None = None, listen: str | None = None,
+                 agent_hosts: list[str] | None = None) -> None:
         if scenario.count > MAX_AGENT_ROBOTS:
             raise TeamError(f"--robots: at most {MAX_AGENT_ROBOTS} robot agents (one loopback "
                             f"address each), got {scenario.count}; use the kinematic mode of "
@@ -176,8 +174,6 @@ class Team:
         self.keys_dir = self.run_dir / "keys"
         self.cli_identity = self.keys_dir / f"{CLI}.pem"
         self.discovery_port = beacon_port()
-        self.control_port = control_port if control_port and port_free(CONTROL_HOST, control_port) \
-            else free_port(CONTROL_HOST)
         self.names = scenario.robot_names()
         self.mobinet = _mobinet_source(mobinet, netns)
         # the control node's ros2 plugin, when `ros2` (None: the scenario's `ros2` key) asks for it: the
@@ -189,20 +185,25 @@ class Team:
             raise TeamError("--ros2 runs on the loopback team only, not with --netns (the control node's "
                             "namespace is not reachable from this host's ROS 2 tools)")
         self.ros2: dict[str, Any] | None = None if asked is None else ros2_settings(asked)
+        # robots' agents on other hosts: every agent on its host's address, the world served on `listen`
+        self.placement = _placement(self.names, listen, agent_hosts, netns)
+        self.feed: RadioFeed | None = None
         # the real-mesh tier: namespaces, segment, babeld, radio rules (made in start())
         self.mesh: Mesh | None = Mesh(self.names + [CONTROL], self.run_dir, control=CONTROL,
                                       hello_interval=hello_interval, channel=channel or scenario.radio.channel,
                                       range_m=ns3_reach(scenario.radio.comm_range), seed=scenario.seed) if netns else None
         self._forwarder: TcpForwarder | None = None
-        if netns:
-            self.control_port = control_port or 47100  # the control node's namespace has every port free
+        # the control node listens on 127.0.1.250, on the world host's address with agent hosts
+        self._control_host = self.placement.world if self.placement is not None else CONTROL_HOST
+        self.control_port = _control_port(self._control_host, control_port, netns)
         starts = [s.model_dump() for s in scenario.starts()]  # the scenario's start poses win
         self.world = World.model_validate({**scenario.world.model_dump(), "robot": starts})
         world = self.world
         # big teams step slower: the host's cost grows with the team, and SIPs keep their period at either rate
         # the robots' firmware runs in a process of its own (`erni.sim.host_process`): here it would
         # share one interpreter with the SNMP nodes, the radio feed and the team's client
-        self.host = HostProcess(world, physics_hz=physics_hz or (50.0 if scenario.count <= 10 else 20.0))
+        self.host = HostProcess(world, physics_hz=physics_hz or (50.0 if scenario.count <= 10 else 20.0),
+                                host=self.placement.world if self.placement is not None else "127.0.0.1")
         r = scenario.radio
         self.network = ManetNetwork(RadioModel(r.comm_range, r.lossless_range, r.min_quality),
                                     subnet="127.0.1.0/24")
@@ -213,7 +214,8 @@ class Team:
                                     robot_url=self.host.url, discovery_port=self.discovery_port,
                                     transport=self.transport, mission=self.mission, ui=self.ui, mobinet=self.mobinet,
                                     mission_extra=self.mission_extra, gui_listen=gui_listen,
-                                    gui_token=self.gui_token, mesh=self.mesh, ros2=self.ros2)
+                                    gui_token=self.gui_token, mesh=self.mesh, ros2=self.ros2,
+                                    placement=self.placement)
         self.agents: dict[str, AgentProcess] = self.configs.agents  # filled as the configs are written
         self.samples: list[Sample] = []
         self.status = TeamStatus()
@@ -236,12 +238,14 @@ class Team:
         """The control node's transport address (for `erni task --via HOST:PORT`)."""
         if self.mesh is not None:
             return self.mesh.node(CONTROL).address, self.control_port
-        return CONTROL_HOST, self.control_port
+        return self._control_host, self.control_port
 
     def address_of(self, name: str) -> str:
         """The address agent `name` listens on (its loopback address, or its mesh address)."""
         if self.mesh is not None:
             return self.mesh.node(name).address
+        if self.placement is not None:
+            return self.placement.address(name)
         return CONTROL_HOST if name == CONTROL else robot_address(self.names.index(name))
 
     @property
@@ -299,12 +303,15 @@ class Team:
         say("agent configs", 0, n)
         self.configs.write(snmp_ports, self.write_communities, self.control_port, self.gui_port)
         self.url, self._forwarder = self.configs.url, self.configs.forwarder
+        if self.placement is not None:
+            self._write_bundles(authority, say)
         env = self.agent_env()
         # the world, the robots and the network live until stop(): full collections skip them. Done
         # before the agents start, so that this collection stalls nobody's SIPs
         heap.freeze()
         self._frozen = True
         order = [CONTROL] + self.names
+        order = [name for name in order if self.placement is None or not self.placement.remote(name)]
         for k, name in enumerate(order):
             self._make_room(order[:k])
             self._spawn(self.agents[name], env)
@@ -348,41 +355,42 @@ class Team:
         self.host.host = self.mesh.service_address
 
     def _snmp_host(self, index: int) -> str:
+        if self.placement is not None:
+            return self.placement.world
         return self.mesh.service_address if self.mesh is not None else robot_address(index)
+
+    def _write_bundles(self, authority: Authority, say: Callable[[str, int, int], None]) -> None:
+        """Each agent host's bundle (`RUN/hosts/host-K`): its agents' configs and keys, the team's
+        revocation list and the join file; then serve the radio feed they join."""
+        placement = self.placement
+        assert placement is not None
+        self.feed = RadioFeed(placement, lambda name: self.status.reach.get(name))
+        for k in range(2, 2 + len(placement.hosts)):
+            bundle = bundle_dir(self.run_dir, k)
+            shutil.copyfile(self.keys_dir / REVOKED, private_file(bundle / "keys" / REVOKED))
+            for name in placement.names_of(k):
+                authority.issue(name, "robot", out=bundle / "keys" / f"{name}.pem")
+            write_join_file(bundle, world=self.feed.address, host=k, secret=self.feed.secrets[k],
+                            agents=placement.names_of(k), log_level=self.log_level)
+        say("agent hosts joined", 0, len(placement.hosts))
 
     def _spawn(self, agent: AgentProcess, env: dict[str, str]) -> None:
         if self.mesh is not None:  # the real mesh: plain `erni agent` in the node's namespace, no radio pipe
             agent.proc = self.mesh.popen(agent.name, [sys.executable, "-m", "erni", "agent", str(agent.config),
                                                       "--log-level", self.log_level], agent.log, env=env)
             return
-        read, write = os.pipe()  # the agent's radio: reachability lines from us
-        os.set_blocking(write, False)  # the feed loop never waits on an agent
-        with self._radio_lock:  # the feed thread pushes too: the agent's first line is the latest
-            agent.radio = write
+        # the agent's radio: reachability lines from us. The feed thread pushes too: under the lock
+        # the agent's first line is the latest
+        with self._radio_lock:
+            agent.radio = spawn_behind_radio(agent, env, self.log_level)
             self._tell_radio(agent, self.status.reach.get(agent.name))
-        try:
-            with open(agent.log, "ab") as out:
-                agent.proc = subprocess.Popen(
-                    [sys.executable, "-m", "erni.sim.radio", str(agent.config), "--log-level", self.log_level],
-                    stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT,
-                    env={**env, FD_ENV: str(read)}, pass_fds=(read,),
-                    start_new_session=True, umask=0o077,  # its journal: this user's only
-                    # SIGTERM: a loopback agent still stops cleanly (its journal closed) when the launcher dies
-                    preexec_fn=die_with_parent(signal.SIGTERM))
-        finally:
-            os.close(read)
 
     def _tell_radio(self, agent: AgentProcess, names: list[str] | None) -> None:
-        """Push the names `agent` can hear now into its radio pipe (never blocks)."""
-        if agent.radio is None:
-            return
-        try:
-            os.write(agent.radio, (json.dumps(names) + "\n").encode())
-        except BlockingIOError:
-            log.warning("radio pipe of %s is full: it is not reading (stuck?)", agent.name)
-        except OSError:  # the agent is gone
-            os.close(agent.radio)
-            agent.radio = None
+        """Tell `agent` the names it can hear now: into its radio pipe, or its host's radio feed (never blocks)."""
+        if self.feed is not None and self.placement is not None and self.placement.remote(agent.name):
+            self.feed.tell(agent.name, names)
+        else:
+            tell_pipe(agent, names)
 
     def client(self) -> Any:
         """A started transport client of this team, reaching it through the control node."""
@@ -436,18 +444,18 @@ class Team:
         deadline = time.monotonic() + timeout
         n = len(self.names)
         while True:
-            for agent in self.agents.values():
-                if not agent.alive and self._port_taken_meanwhile(agent):
-                    continue  # started again on other ports
-                if not agent.alive:
-                    tail = _tail(agent.log)
-                    raise TeamError(f"agent {agent.name} exited with code {agent.proc.returncode if agent.proc else '?'}"
-                                    f" during start-up; its log ({agent.log}) ends:\n{tail}")
+            self._check_started()
             connected = sum(self.host.connected())
+            joined, hosts = self._hosts_joined()
+            missing = hosts - joined
             expected = set(self.status.reach.get(CONTROL, [])) & only
             up = {name for name, p in self.peers(1.0).items() if p.up} if connected == n else set()
             heard = len(up & expected)
-            say("robots connected", connected, n) if connected < n else say("robots heard by control", heard, len(expected))
+            if missing:
+                say("agent hosts joined", joined, hosts)
+            else:
+                say("robots connected", connected, n) if connected < n else say("robots heard by control", heard,
+                                                                                  len(expected))
             # the control node is heard before its GUI plugin may listen: the URL printed must open; so
             # must the ROS 2 endpoint printed
             if connected == n and expected <= up and self._gui_answers() and self._ros2_answers():
@@ -457,10 +465,34 @@ class Team:
                 if connected == n and expected <= up:
                     late = f"; its GUI at {gui_address(self.url or '')} does not answer" if not self._gui_answers() \
                         else f"; its ROS 2 session at {', '.join(self.ros2_listen)} does not answer"
+                if missing:
+                    late += (f"; {missing} agent host(s) did not join (erni sim --join on each, with its bundle "
+                             f"from {self.run_dir / 'hosts'})")
                 raise TeamError(f"the team did not come up within {timeout:.0f} s: {connected}/{n} robots "
                                 f"connected, control hears {heard}/{len(expected)} reachable robots{late}; "
                                 f"logs in {self.run_dir / 'logs'}")
             time.sleep(0.3)
+
+    def _check_started(self) -> None:
+        """Raise TeamError when an agent this process started exited during start-up (a control node
+        whose port was taken meanwhile is started again instead)."""
+        for agent in self._local_agents():
+            if not agent.alive and self._port_taken_meanwhile(agent):
+                continue  # started again on other ports
+            if not agent.alive:
+                tail = _tail(agent.log)
+                raise TeamError(f"agent {agent.name} exited with code {agent.proc.returncode if agent.proc else '?'}"
+                                f" during start-up; its log ({agent.log}) ends:\n{tail}")
+
+    def _hosts_joined(self) -> tuple[int, int]:
+        """How many agent hosts have joined, of how many ((0, 0) without agent hosts)."""
+        if self.feed is None or self.placement is None:
+            return 0, 0
+        return len(self.feed.joined()), len(self.placement.hosts)
+
+    def _local_agents(self) -> list[AgentProcess]:
+        """The agents this process starts (not those of agent hosts)."""
+        return [a for a in self.agents.values() if self.placement is None or not self.placement.remote(a.name)]
 
     def _port_taken_meanwhile(self, agent: AgentProcess) -> bool:
         """The loopback control node found its port (or its GUI's) taken after it was checked free
@@ -471,7 +503,7 @@ class Team:
             return False
         self._port_retries += 1
         old = self.control_port
-        self.control_port = free_port(CONTROL_HOST)
+        self.control_port = free_port(self._control_host)
         if not self.gui_listen:
             self.gui_port = free_port("127.0.0.1")
         if agent.radio is not None:
@@ -525,7 +557,9 @@ class Team:
         """Make robot `name` fail: its agent is killed at once (its robot stops on the watchdog)."""
         agent = self.agents[name]
         agent.failed = True
-        if agent.alive:
+        if self.feed is not None and self.placement is not None and self.placement.remote(name):
+            self.feed.fail(name)  # its agent host kills it
+        elif agent.alive:
             assert agent.proc is not None
             agent.proc.kill()
             agent.proc.wait(5)
@@ -614,23 +648,12 @@ class Team:
         if self._stopped:
             return
         self._stopped = True
-        procs = [a.proc for a in self.agents.values() if a.proc is not None]
-        for p in procs:
-            if p.poll() is None:
-                try:
-                    p.send_signal(signal.SIGTERM)
-                except ProcessLookupError:
-                    pass
-        deadline = time.monotonic() + timeout
-        for p in procs:
-            try:
-                p.wait(max(0.1, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait(5)
+        stop_processes([a.proc for a in self.agents.values() if a.proc is not None], timeout)
         self._stop.set()
         if self._feed is not None:
             self._feed.join(5)
+        if self.feed is not None:  # every agent host sees its feed end, and stops its agents
+            self.feed.close()
         for agent in self.agents.values():
             if agent.radio is not None:
                 os.close(agent.radio)
@@ -665,6 +688,27 @@ def _launch_batch(asked: int | None) -> int:
     if batch < 1:
         raise TeamError(f"launch_batch: expected at least 1 agent starting at a time, got {asked}")
     return batch
+
+
+def _control_port(host: str, asked: int | None, netns: bool) -> int:
+    """The control node's port: `asked` when free on `host` (any free one when not); on the real mesh
+    `asked` or 47100, as the control node's namespace has every port free."""
+    if netns:
+        return asked or 47100
+    return asked if asked and port_free(host, asked) else free_port(host)
+
+
+def _placement(names: list[str], listen: str | None, agent_hosts: list[str] | None, netns: bool) -> Placement | None:
+    """Where each robot's agent runs: every one here on loopback (None) unless agent hosts are named."""
+    if not agent_hosts:
+        if listen:
+            raise TeamError("--listen: the address agent hosts reach this host at; name them with --agent-host")
+        return None
+    if netns:
+        raise TeamError("--agent-host runs on the loopback tier only, not with --netns")
+    if not listen:
+        raise TeamError("--agent-host: name this host's address the agent hosts reach with --listen ADDR")
+    return Placement.plan(names, listen, agent_hosts)
 
 
 def _mobinet_source(asked: str | None, netns: bool) -> str:

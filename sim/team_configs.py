@@ -12,18 +12,23 @@ from __future__ import annotations
 import json
 import os
 import random
+import signal
 import socket
 import subprocess
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from erni.blackboard.errors import UsageError
 from erni.sim.netns import Mesh, TcpForwarder
 from erni.sim.scenario import Scenario
 from erni.sim.world import World
 from erni.transport.identity import REVOKED
+
+if TYPE_CHECKING:
+    from erni.sim.agent_hosts import Placement
 
 CONTROL = "control"
 CONTROL_HOST = "127.0.1.250"
@@ -138,6 +143,23 @@ class AgentProcess:
         return self.proc.pid if self.proc is not None else None
 
 
+def stop_processes(procs: list[subprocess.Popen[bytes]], timeout: float) -> None:
+    """Stop `procs` together: SIGTERM to each still running, then SIGKILL to any not gone within `timeout` s."""
+    for p in procs:
+        if p.poll() is None:
+            try:
+                p.send_signal(signal.SIGTERM)
+            except ProcessLookupError:
+                pass
+    deadline = time.monotonic() + timeout
+    for p in procs:
+        try:
+            p.wait(max(0.1, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait(5)
+
+
 class AgentConfigs:
     """Write the config of every agent of a team and record each as an `AgentProcess` (`agents`);
     the GUI's `url` (and on the real mesh the `forwarder` that reaches it) once written."""
@@ -145,12 +167,13 @@ class AgentConfigs:
     def __init__(self, scenario: Scenario, run_dir: Path, names: list[str], world: World, *, keys_dir: Path,
                  robot_url: Callable[[int], str], discovery_port: int, transport: dict[str, Any], mission: bool,
                  ui: bool, mobinet: str, mission_extra: dict[str, Any], gui_listen: str | None, gui_token: str,
-                 mesh: Mesh | None, ros2: dict[str, Any] | None = None) -> None:
+                 mesh: Mesh | None, ros2: dict[str, Any] | None = None, placement: Placement | None = None) -> None:
         self.scenario, self.run_dir, self.names, self.world = scenario, run_dir, names, world
         self.keys_dir, self.robot_url, self.discovery_port = keys_dir, robot_url, discovery_port
         self.transport, self.mission, self.ui, self.mobinet = transport, mission, ui, mobinet
         self.mission_extra, self.gui_listen, self.gui_token, self.mesh = mission_extra, gui_listen, gui_token, mesh
         self.ros2 = ros2  # the control node's ros2 plugin settings (None: no plugin)
+        self.placement = placement  # robots' agents on agent hosts (None: every agent here on loopback)
         self.agents: dict[str, AgentProcess] = {}
         self.url: str | None = None
         self._forwarder: TcpForwarder | None = None
@@ -164,8 +187,19 @@ class AgentConfigs:
         return self._forwarder
 
     def identity(self, name: str) -> dict[str, str]:
-        """Transport settings naming agent `name`'s identity and the team's revocation list."""
+        """Transport settings naming agent `name`'s identity and the team's revocation list (on an agent
+        host, relative to its bundle: the agents run there)."""
+        if self.placement is not None and self.placement.remote(name):
+            return {"identity": f"keys/{name}.pem", "revocations": f"keys/{REVOKED}"}
         return {"identity": str(self.keys_dir / f"{name}.pem"), "revocations": str(self.keys_dir / REVOKED)}
+
+    def _robot_address(self, index: int) -> str:
+        """Where robot `index`'s agent listens: its loopback address, or its host's."""
+        return robot_address(index) if self.placement is None else self.placement.address(self.names[index])
+
+    @property
+    def _control_host(self) -> str:
+        return CONTROL_HOST if self.placement is None else self.placement.world
 
     def _gui_bind(self) -> tuple[str, int]:
         """The GUI's listening address: `gui_listen`, else 127.0.0.1 on `gui_port` (a free port when it is taken)."""
@@ -197,9 +231,10 @@ class AgentConfigs:
         if self.mesh is not None:
             self._write_mesh_configs(snmp_ports)
             return
-        common = dict(discovery_port=self.discovery_port, beacon_to=["127.255.255.255"], **self.transport)
+        broadcast = "127.255.255.255" if self.placement is None else self.placement.broadcast
+        common = dict(discovery_port=self.discovery_port, beacon_to=[broadcast], **self.transport)
         for i, name in enumerate(self.names):
-            addr = robot_address(i)
+            addr = self._robot_address(i)
             port = 0  # any free port: two simulations side by side never collide
             plugins: list[tuple[str, dict[str, Any]]] = [
                 ("transport", dict(listen=f"{addr}:{port}", role="robot", **self.identity(name),
@@ -210,7 +245,8 @@ class AgentConfigs:
                 ("motion", dict(url=self.robot_url(i), model=self.scenario.robots.model)),
                 # one retry: a busy laptop running a whole team must not turn a late answer into
                 # a degraded network view that holds every deployment
-                ("mobinet", dict(host=addr, port=snmp_ports[name], timeout=1.0, retries=1,
+                ("mobinet", dict(host=addr if self.placement is None else self.placement.world,  # the world's node
+                                 port=snmp_ports[name], timeout=1.0, retries=1,
                                  write_community=self.write_communities[name])),
             ]
             if self.mission:
@@ -226,7 +262,7 @@ class AgentConfigs:
 
     def _write_control_config(self) -> None:
         """The loopback control node's config: its transport on `control_port`, its GUI."""
-        plugins = [("transport", dict(listen=f"{CONTROL_HOST}:{self.control_port}", role="control",
+        plugins = [("transport", dict(listen=f"{self._control_host}:{self.control_port}", role="control",
                                       **self.identity(CONTROL), **self._control_common))]
         if self.ui:
             bind, gui_port = self._gui_bind()
@@ -241,7 +277,7 @@ class AgentConfigs:
             self.url = f"http://{shown}:{gui_port}/?token={self.gui_token}"
         if self.ros2 is not None:  # it hears every robot's Pose: it serves the whole team's topics
             plugins.append(("ros2", self.ros2))
-        self._add_agent(CONTROL, (CONTROL_HOST, self.control_port), plugins,
+        self._add_agent(CONTROL, (self._control_host, self.control_port), plugins,
                         f"control node of scenario {self.scenario.name}", workers=2)
 
     def _write_mesh_configs(self, snmp_ports: dict[str, int]) -> None:
@@ -317,9 +353,14 @@ class AgentConfigs:
 
     def _add_agent(self, name: str, address: tuple[str, int], plugins: list[tuple[str, dict[str, Any]]],
                    comment: str, workers: int = 4) -> None:
-        config = self.run_dir / "agents" / f"{name}.toml"
-        journal = str(self.run_dir / "journal" / f"{name}.sqlite")
+        folder, journal = self.run_dir, str(self.run_dir / "journal" / f"{name}.sqlite")
+        if self.placement is not None and self.placement.remote(name):  # its host's bundle, paths within it
+            from erni.sim.agent_hosts import bundle_dir, private_bundle
+
+            folder = private_bundle(bundle_dir(self.run_dir, self.placement.share[name]))
+            journal = f"journal/{name}.sqlite"
+        config = folder / "agents" / f"{name}.toml"
         # it holds the node's SNMP write community, the GUI's token
         private_file(config).write_text(agent_toml(name, plugins, journal=journal, workers=workers, comment=comment),
                                         encoding="utf-8")
-        self.agents[name] = AgentProcess(name, config, private_file(self.run_dir / "logs" / f"{name}.log"), address)
+        self.agents[name] = AgentProcess(name, config, private_file(folder / "logs" / f"{name}.log"), address)

@@ -72,6 +72,16 @@ def register(sub: Any) -> None:
                    "ros2 plugin, every robot's /ROBOT/odom, /tf and cmd_vel on a Zenoh session listening on "
                    "tcp/127.0.0.1:7448 (or a free port; printed) and joining rmw_zenohd on 127.0.0.1:7447 when "
                    "one runs; domain $ROS_DOMAIN_ID, else 0 (needs pip install 'erni[ros2]')")
+    p.add_argument("--listen", metavar="ADDR",
+                   help="with --agent-host: this host's IPv4 address on the segment it shares with the agent hosts "
+                   "(the simulated robots, their SNMP nodes, the radio feed and the control node listen there)")
+    p.add_argument("--agent-host", action="append", metavar="ADDR", dest="agent_hosts",
+                   help="run a share of the robots' agents on the host at ADDR (repeat for more hosts): this "
+                   "run writes RUN_DIR/hosts/host-K for each, to copy there and start with --join "
+                   "(see docs/how-to/agent-hosts.md)")
+    p.add_argument("--join", metavar="BUNDLE",
+                   help="be an agent host: run the agents of BUNDLE (a RUN_DIR/hosts/host-K another host's "
+                   "erni sim --agent-host wrote) until that run ends or Ctrl-C")
     p.add_argument("--netns-clean", action="store_true",
                    help="remove what killed --netns runs left behind (namespaces, links) and exit")
     p.set_defaults(func=run)
@@ -156,6 +166,8 @@ def run(args: argparse.Namespace) -> int:
     from erni.sim.team import Team, TeamError
 
     os.umask(0o077)  # everything the run makes (configs, logs, journals, keys) is this user's only
+    if args.join:
+        return run_join(args)
     try:
         if args.netns_clean or args.netns:
             check_available()  # not root, no namespaces, no babeld: say why and how to run without
@@ -165,13 +177,15 @@ def run(args: argparse.Namespace) -> int:
                   (f" ({', '.join(removed)})" if removed else ""))
             return 0
         scenario = _checked(args)
-        too_many = capacity_warning(scenario.count, cores())
+        hosts = args.agent_hosts or []
+        too_many = capacity_warning(-(-scenario.count // (1 + len(hosts))), cores())  # this host's share
         if not args.run_dir:
             prune_run_dirs(Path(tempfile.gettempdir()))
         team = Team(scenario, run_dir=args.run_dir, headless=args.headless,
                     control_port=args.control_port, log_level=args.log_level, gui_listen=args.gui_listen,
                     netns=args.netns, mobinet=args.mobinet, channel=args.channel,
                     hello_interval=args.hello_interval if args.hello_interval is not None else HELLO_INTERVAL,
+                    listen=args.listen, agent_hosts=hosts,
                     keep_run_dir=True)  # it prints where the configs and logs are
         if not args.run_dir:
             (team.run_dir / OWNER_FILE).write_text(f"{os.getpid()}\n", encoding="utf-8")
@@ -201,6 +215,8 @@ def run(args: argparse.Namespace) -> int:
         say(f"erni sim: {scenario.title} ({scenario.name}): {scenario.count} robot(s), "
               f"R = {scenario.radio.comm_range:g} m; starting...", flush=True)
         say(f"erni sim: run directory {team.run_dir} (agent configs, logs, journals, the team's keys)", flush=True)
+        for line in join_lines(team):
+            say(f"erni sim: {line}", flush=True)
         t0 = time.monotonic()
         team.start(progress, timeout=args.timeout)
         progress.done()
@@ -232,6 +248,56 @@ def run(args: argparse.Namespace) -> int:
             signal.signal(sig, handler)
         say(f"erni sim: stopped; configs and logs in {team.run_dir}", flush=True)
     return code
+
+
+def join_lines(team: Any) -> list[str]:
+    """What to run on each agent host of `team` ([] when every agent runs here)."""
+    from erni.sim.agent_hosts import bundle_dir
+
+    placement = team.placement
+    if placement is None:
+        return []
+    lines = []
+    for k, host in enumerate(placement.hosts, start=2):
+        bundle = bundle_dir(team.run_dir, k)
+        lines.append(f"agent host {k} ({host}, {len(placement.names_of(k))} robot agents): once the start shows "
+                     f"'agent hosts joined', copy {bundle} there (scp -r) and run: erni sim --join {bundle.name}")
+    return lines
+
+
+def run_join(args: argparse.Namespace) -> int:
+    """`erni sim --join BUNDLE`: run an agent host's agents until the world host's run ends or Ctrl-C."""
+    from erni.blackboard.errors import UsageError
+    from erni.sim.agent_hosts import AgentHost
+
+    def on_term(signum: int, frame: Any) -> None:
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, on_term)
+    host: AgentHost | None = None
+    why = "interrupted"
+    try:
+        host = AgentHost(args.join)
+        say(f"erni sim: agent host {host.host} of the team at {host.world[0]}:{host.world[1]}, "
+            f"{len(host.names)} robot agent(s) ({host.names[0]} ... {host.names[-1]}); joining...", flush=True)
+        host.connect(timeout=args.timeout)
+        host.start()
+        say(f"erni sim: joined; {len(host.names)} agent(s) started, logs in {host.dir / 'logs'}; "
+            "Ctrl-C stops them", flush=True)
+        why = host.relay()
+    except UsageError as err:
+        say(f"erni sim: {err}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        pass
+    finally:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C must not cut the clean stop short
+        if host is not None:
+            host.stop()
+        signal.signal(signal.SIGTERM, previous)
+    if host is not None:
+        say(f"erni sim: {why}; the agents of host {host.host} stopped", flush=True)
+    return 0
 
 
 def _checked(args: argparse.Namespace) -> Any:
@@ -418,9 +484,14 @@ def _run_scenario(team: Any, scenario: Any, stopping: list[int]) -> None:
 def status_line(team: Any) -> str:
     """Robot agents running, and the robots the control node hears (its own directory, not the radio model)."""
     names = team.names
-    dead = [n for n in names if not team.agents[n].alive]
-    line = f"{len(names) - len(dead)}/{len(names)} robot agents running" + (
+    placement = team.placement
+    here = [n for n in names if placement is None or not placement.remote(n)]
+    dead = [n for n in here if not team.agents[n].alive]
+    line = f"{len(here) - len(dead)}/{len(here)} robot agents running" + (
         f" ({', '.join(dead)} exited)" if dead else "")
+    if team.feed is not None:  # the agent hosts' agents: heard or not below
+        line += (f" here, {len(names) - len(here)} on agent hosts ({len(team.feed.joined())}/"
+                 f"{len(placement.hosts)} joined)")
     if not team.agents["control"].alive:
         return line + "; the control node is not running"
     peers = team.peers(1.0)

@@ -41,6 +41,7 @@ class _Team:
 
         self.error = TeamError
         self.run_dir, self.names = kw["run_dir"], scenario.robot_names()
+        self.placement = None  # where the agents run does not matter to the warning
 
     def start(self, progress, timeout):
         raise self.error("start skipped by the test")
@@ -55,18 +56,22 @@ def parse(*argv: str) -> argparse.Namespace:
     return parser.parse_args(["sim", *argv])
 
 
-@pytest.mark.parametrize("robots,warned", [(200, True), (50, False)])
-def test_erni_sim_says_it_on_stderr_before_it_starts(robots, warned, monkeypatch, tmp_path, capfd):
+@pytest.mark.parametrize("robots,hosts,warned", [(200, [], True), (50, [], False), (100, ["127.0.0.2"], False),
+                                                 (200, ["127.0.0.2", "127.0.0.3"], True)])
+def test_erni_sim_says_it_on_stderr_before_it_starts(robots, hosts, warned, monkeypatch, tmp_path, capfd):
+    """Only this host's share counts: 100 robots over two hosts is 50 here."""
     import erni.sim.team
 
     monkeypatch.setattr(erni.sim.team, "Team", _Team)
     monkeypatch.setattr(sim, "cores", lambda: 2)
     monkeypatch.setattr(os, "umask", lambda mask: 0o022)  # run() sets the process's umask; not the test's
-    assert sim.run(parse("--headless", "--robots", str(robots), "--run-dir", str(tmp_path))) == 1
+    placed = [arg for host in hosts for arg in ("--agent-host", host)] + (["--listen", "127.0.0.1"] if hosts else [])
+    assert sim.run(parse("--headless", "--robots", str(robots), "--run-dir", str(tmp_path), *placed)) == 1
     out, err = capfd.readouterr()
     lines = err.splitlines()
     if warned:
-        assert lines[0].startswith("erni sim: 200 robots is more than this machine is measured to hold")
+        assert lines[0].startswith(f"erni sim: {-(-robots // (1 + len(hosts)))} robots is more than this machine "
+                                   "is measured to hold")
         assert lines[1] == "erni sim: start skipped by the test"
     else:
         assert lines == ["erni sim: start skipped by the test"]
