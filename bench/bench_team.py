@@ -27,7 +27,9 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -42,8 +44,11 @@ def pct(values: list[float], q: float) -> float:
     return s[min(len(s) - 1, max(0, math.ceil(q * len(s)) - 1))] if s else float("nan")
 
 
-def run(n: int, window: float, idle: bool) -> dict[str, float]:
-    team, startup = start_hall_team(f"team{n}", n, walk=not idle, settle=3.0)
+def run(n: int, window: float, idle: bool, *, team_kw: dict[str, Any] | None = None,
+        more_pids: Callable[[], dict[str, int]] | None = None) -> dict[str, float]:
+    """One team of `n` robots measured for `window` s; `team_kw` goes to `Team`, `more_pids` names the
+    processes of agents this process did not start (an agent host's)."""
+    team, startup = start_hall_team(f"team{n}", n, walk=not idle, settle=3.0, **(team_kw or {}))
     watcher = None
     with tempfile.TemporaryFile("w+b") as out:
         try:
@@ -60,6 +65,7 @@ def run(n: int, window: float, idle: bool) -> dict[str, float]:
                                      f"event (exit {watcher.poll()}); expected a stream of Poses")
                 time.sleep(0.1)
             pids = {name: a.proc.pid for name, a in team.agents.items() if a.proc}
+            pids.update(more_pids() if more_pids is not None else {})
             cpu0 = {name: cpu_seconds(pid) for name, pid in pids.items()}
             sims = [os.getpid()] + ([team.host.pid] if team.host.pid else [])  # the simulator and its robot host
             sim0 = sum(cpu_seconds(pid) for pid in sims)
@@ -109,6 +115,31 @@ def run(n: int, window: float, idle: bool) -> dict[str, float]:
             "skipped": skipped / max(1, sips + skipped)}
 
 
+def header(idle: bool, extra: str = "") -> None:
+    """What the table's rows say, and its head."""
+    print(f"robots {'stand' if idle else 'random-walk'}; Pose period {PERIOD * 1000:.0f} ms (input); "
+          f"real time = interval p99 <= {2 * PERIOD * 1000:.0f} ms and every robot heard{extra}")
+    print("| robots | start-up s | interval p50 / p99 ms at control | p99 / period | Poses at control / expected "
+          "| heard (directory / Poses) | walks ended | SIPs skipped | CPU / robot % | control % | sim % | watcher % | "
+          "RSS / robot MB | load | real time |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+
+
+def report(n: int, r: dict[str, float], what: str = "") -> dict[str, Any]:
+    """Print the row of a team of `n` robots measured as `r`; return its target."""
+    import results  # bench/results.py
+
+    ok = r["p99"] <= 2 * PERIOD * 1000 and r["heard_peers"] == n and r["heard_poses"] == n and not r["stopped"]
+    print(f"| {n} | {r['startup']:.1f} | {r['p50']:.0f} / {r['p99']:.0f} | {r['p99'] / (PERIOD * 1000):.1f} | "
+          f"{r['share']:.2f} | {r['heard_peers']} / {r['heard_poses']} of {n} | {r['stopped']} | {r['skipped']:.1%} | "
+          f"{r['cpu']:.1f} | {r['control_cpu']:.1f} | {r['sim_cpu']:.1f} | {r['watch_cpu']:.1f} | {r['rss']:.0f} | "
+          f"{r['load']:.1f} | {'yes' if ok else 'no'} |", flush=True)
+    return results.target(
+        f"{n} robots in real time{what}", "Pose interval p99 ≤ 2x the period, every robot heard",
+        f"the {PERIOD:g} s Pose period", f"p99 {r['p99'] / (PERIOD * 1000):.1f}x ({r['p99']:.0f} ms), "
+        f"{r['share']:.2f} of the Poses, {r['skipped']:.1%} of SIPs skipped", ok)
+
+
 def main() -> int:
     import results  # bench/results.py, beside this script: the latest results, for the site's benchmarks page
 
@@ -119,22 +150,9 @@ def main() -> int:
     results.add_argument(ap)
     args = ap.parse_args()
     targets = []
-    print(f"robots {'stand' if args.idle else 'random-walk'}; Pose period {PERIOD * 1000:.0f} ms (input); "
-          f"real time = interval p99 <= {2 * PERIOD * 1000:.0f} ms and every robot heard")
-    print("| robots | start-up s | interval p50 / p99 ms at control | p99 / period | Poses at control / expected "
-          "| heard (directory / Poses) | walks ended | SIPs skipped | CPU / robot % | control % | sim % | watcher % | RSS / robot MB | load | real time |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    header(args.idle)
     for n in [int(x) for x in args.robots.split(",") if x]:
-        r = run(n, args.window, args.idle)
-        ok = r["p99"] <= 2 * PERIOD * 1000 and r["heard_peers"] == n and r["heard_poses"] == n and not r["stopped"]
-        print(f"| {n} | {r['startup']:.1f} | {r['p50']:.0f} / {r['p99']:.0f} | {r['p99'] / (PERIOD * 1000):.1f} | "
-              f"{r['share']:.2f} | {r['heard_peers']} / {r['heard_poses']} of {n} | {r['stopped']} | {r['skipped']:.1%} | {r['cpu']:.1f} | "
-              f"{r['control_cpu']:.1f} | {r['sim_cpu']:.1f} | {r['watch_cpu']:.1f} | {r['rss']:.0f} | {r['load']:.1f} | "
-              f"{'yes' if ok else 'no'} |", flush=True)
-        targets.append(results.target(
-            f"{n} robots in real time", "Pose interval p99 ≤ 2x the period, every robot heard",
-            f"the {PERIOD:g} s Pose period", f"p99 {r['p99'] / (PERIOD * 1000):.1f}x ({r['p99']:.0f} ms), "
-            f"{r['share']:.2f} of the Poses, {r['skipped']:.1%} of SIPs skipped", ok))
+        targets.append(report(n, run(n, args.window, args.idle)))
     results.write("bench_team", targets, path=args.results,
                   about="does `erni sim --headless --robots N` hold real time: the Pose interval at the control node")
     return 0

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import sys
 import time
+from typing import Any
 
 from erni.blackboard.schemas import ResultUpdate
 from erni.blackboard.tasks import TaskState
@@ -14,20 +15,20 @@ from erni.sim.team import Team
 WALK_TRIES = 4  # a walk that fails (its robot's link lost under the start-up's load) is sent again
 
 
-def start_hall_team(name: str, n: int, *, walk: bool, settle: float) -> tuple[Team, float]:
+def start_hall_team(name: str, n: int, *, walk: bool, settle: float, **team: Any) -> tuple[Team, float]:
     """Start the team as `erni sim` does, random-walk every robot unless told not to, wait `settle`
     seconds; return the started team (the caller stops it) and its start-up time (s).
 
     Every walk must be running before this returns: a robot whose walk failed would stand, and a
     standing robot's Pose goes out when it changes (the others' echoes in its sonar) or once a
     second, not every period. Such a walk is sent again, and a robot that will not walk stops the
-    benchmark with its reason."""
+    benchmark with its reason. `team` goes to `Team` (where the agents run: `listen`, `agent_hosts`)."""
     side = max(1, math.ceil(math.sqrt(n))) * 3.0
     scenario = Scenario(name=name, robots={"count": n, "layout": "grid", "spacing": 3.0,
                                            "origin": [0.0, 0.0], "heading": "random"},
                         radio={"comm_range": 1000.0, "lossless_range": 1000.0},
                         world={"name": "hall", "bounds": [-side / 2 - 3, -3.0, side / 2 + 3, side + 3]})
-    team = Team(scenario, headless=True, control_port=0, ui=False)  # robots run what a robot runs
+    team = Team(scenario, headless=True, control_port=0, ui=False, **team)  # robots run what a robot runs
     t0 = time.monotonic()
     try:
         team.start(timeout=60 + 3 * n)
