@@ -32,7 +32,8 @@ INNER = "ERNI_BENCH_HOSTS"  # set in the re-run inside host A: the hosts' addres
 
 def pinned(cpu: int, argv: list[str]) -> list[str]:
     """`argv` on CPU `cpu` only, when this machine has it."""
-    return ["taskset", "-c", str(cpu), *argv] if cpu in os.sched_getaffinity(0) else argv
+    # the machine's CPUs, not this process's: host A's process is pinned to CPU 0 and starts host B's
+    return ["taskset", "-c", str(cpu), *argv] if cpu < (os.cpu_count() or 1) else argv
 
 
 def agents_under(pid: int) -> dict[str, int]:

@@ -28,7 +28,7 @@ ROBOTS = 4  # robot1, robot2 on host A; robot3, robot4 on host B
 
 def erni(mesh: Mesh, node: str, cpu: int, *args: str) -> list[str]:
     """`erni ARGS` in `node`'s namespace, on CPU `cpu` only (when this machine has it)."""
-    pin = ["taskset", "-c", str(cpu)] if cpu in os.sched_getaffinity(0) and shutil.which("taskset") else []
+    pin = ["taskset", "-c", str(cpu)] if cpu < (os.cpu_count() or 1) and shutil.which("taskset") else []
     return mesh.exec_argv(node, [*pin, sys.executable, "-m", "erni", *args])
 
 
