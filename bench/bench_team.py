@@ -140,15 +140,22 @@ def report(n: int, r: dict[str, float], what: str = "") -> dict[str, Any]:
         f"{r['share']:.2f} of the Poses, {r['skipped']:.1%} of SIPs skipped", ok)
 
 
-def main() -> int:
-    import results  # bench/results.py, beside this script: the latest results, for the site's benchmarks page
+def arguments(doc: str, robots: str) -> argparse.Namespace:
+    """The options of a team benchmark: the team sizes (default `robots`), the window, idle, --results."""
+    import results  # bench/results.py
 
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--robots", default="10,20,50")
+    ap = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--robots", default=robots)
     ap.add_argument("--window", type=float, default=20.0)
     ap.add_argument("--idle", action="store_true", help="robots stand (default: they random-walk)")
     results.add_argument(ap)
-    args = ap.parse_args()
+    return ap.parse_args()
+
+
+def main() -> int:
+    import results  # bench/results.py, beside this script: the latest results, for the site's benchmarks page
+
+    args = arguments(__doc__ or "", "10,20,50")
     targets = []
     header(args.idle)
     for n in [int(x) for x in args.robots.split(",") if x]:

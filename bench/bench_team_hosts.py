@@ -25,7 +25,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench_team import header, report, run  # noqa: E402  # bench/bench_team.py
+from bench_team import arguments, header, report, run  # noqa: E402  # bench/bench_team.py
 
 INNER = "ERNI_BENCH_HOSTS"  # set in the re-run inside host A: the hosts' addresses and host B's namespace
 
@@ -98,14 +98,7 @@ def inner(args: argparse.Namespace, hosts: dict[str, str]) -> int:
 
 
 def main() -> int:
-    import results  # bench/results.py
-
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--robots", default="50,150")
-    ap.add_argument("--window", type=float, default=20.0)
-    ap.add_argument("--idle", action="store_true", help="robots stand (default: they random-walk)")
-    results.add_argument(ap)
-    args = ap.parse_args()
+    args = arguments(__doc__ or "", "50,150")
     if os.environ.get(INNER):
         return inner(args, json.loads(os.environ[INNER]))
     from erni.sim.netns import Mesh, NetnsError
