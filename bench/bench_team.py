@@ -140,14 +140,16 @@ def report(n: int, r: dict[str, float], what: str = "") -> dict[str, Any]:
         f"{r['share']:.2f} of the Poses, {r['skipped']:.1%} of SIPs skipped", ok)
 
 
-def arguments(doc: str, robots: str) -> argparse.Namespace:
-    """The options of a team benchmark: the team sizes (default `robots`), the window, idle, --results."""
+def arguments(doc: str, robots: str, more: dict[str, dict[str, Any]] | None = None) -> argparse.Namespace:
+    """The options of a team benchmark: the team sizes (default `robots`), the window, idle, --results, `more`."""
     import results  # bench/results.py
 
     ap = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--robots", default=robots)
     ap.add_argument("--window", type=float, default=20.0)
     ap.add_argument("--idle", action="store_true", help="robots stand (default: they random-walk)")
+    for flag, kw in (more or {}).items():
+        ap.add_argument(flag, **kw)
     results.add_argument(ap)
     return ap.parse_args()
 

@@ -78,8 +78,9 @@ class Placement:
     broadcast: str
 
     @classmethod
-    def plan(cls, names: list[str], world: str, hosts: list[str]) -> Placement:
-        """Deal `names` out in contiguous shares, as even as they go, this host's first."""
+    def plan(cls, names: list[str], world: str, hosts: list[str], here: int | None = None) -> Placement:
+        """Deal `names` out in contiguous shares, this host's first: `here` of them on this host (default an
+        even share; this host also runs the simulator and the control node), the rest as even as they go."""
         for h in hosts:
             try:
                 ipaddress.IPv4Address(h)
@@ -87,11 +88,16 @@ class Placement:
                 raise UsageError(f"--agent-host {h!r}: expected the IPv4 address of an agent host") from None
         if world in hosts or len(set(hosts)) != len(hosts):
             raise UsageError(f"--agent-host: every host once, and not this one ({world}); got {', '.join(hosts)}")
-        count = 1 + len(hosts)
-        if len(names) < count:
-            raise UsageError(f"--agent-host: {len(names)} robot(s) cannot fill {count} hosts; "
+        if len(names) < 1 + len(hosts):
+            raise UsageError(f"--agent-host: {len(names)} robot(s) cannot fill {1 + len(hosts)} hosts; "
                              f"expected at least one robot per host")
-        share = {name: 1 + i * count // len(names) for i, name in enumerate(names)}
+        if here is None:
+            here = -(-len(names) // (1 + len(hosts)))
+        if not 0 <= here <= len(names) - len(hosts):
+            raise UsageError(f"--agents-here {here}: expected 0 to {len(names) - len(hosts)} (of {len(names)} robots, "
+                             f"at least one for each agent host)")
+        rest = len(names) - here
+        share = {name: 1 if i < here else 2 + (i - here) * len(hosts) // rest for i, name in enumerate(names)}
         return cls(world, tuple(hosts), share, broadcast_of(world))
 
     def address(self, name: str) -> str:

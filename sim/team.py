@@ -143,7 +143,7 @@ class Team:
                  robot_settings: dict[str, Any] | None = None, keep_run_dir: bool = False,
                  launch_batch: int | None = None, ros2: bool | None = None,
                  channel: str | None = None, listen: str | None = None,
-                 agent_hosts: list[str] | None = None) -> None:
+                 agent_hosts: list[str] | None = None, agents_here: int | None = None) -> None:
         if scenario.count > MAX_AGENT_ROBOTS:
             raise TeamError(f"--robots: at most {MAX_AGENT_ROBOTS} robot agents (one loopback "
                             f"address each), got {scenario.count}; use the kinematic mode of "
@@ -186,7 +186,7 @@ class Team:
                             "namespace is not reachable from this host's ROS 2 tools)")
         self.ros2: dict[str, Any] | None = None if asked is None else ros2_settings(asked)
         # robots' agents on other hosts: every agent on its host's address, the world served on `listen`
-        self.placement = _placement(self.names, listen, agent_hosts, netns)
+        self.placement = _placement(self.names, listen, agent_hosts, netns, agents_here)
         self.feed: RadioFeed | None = None
         # the real-mesh tier: namespaces, segment, babeld, radio rules (made in start())
         self.mesh: Mesh | None = Mesh(self.names + [CONTROL], self.run_dir, control=CONTROL,
@@ -698,17 +698,19 @@ def _control_port(host: str, asked: int | None, netns: bool) -> int:
     return asked if asked and port_free(host, asked) else free_port(host)
 
 
-def _placement(names: list[str], listen: str | None, agent_hosts: list[str] | None, netns: bool) -> Placement | None:
+def _placement(names: list[str], listen: str | None, agent_hosts: list[str] | None, netns: bool,
+               here: int | None = None) -> Placement | None:
     """Where each robot's agent runs: every one here on loopback (None) unless agent hosts are named."""
     if not agent_hosts:
-        if listen:
-            raise TeamError("--listen: the address agent hosts reach this host at; name them with --agent-host")
+        if listen or here is not None:
+            raise TeamError(f"{'--listen' if listen else '--agents-here'}: for a team across hosts; name the agent "
+                            "hosts with --agent-host")
         return None
     if netns:
         raise TeamError("--agent-host runs on the loopback tier only, not with --netns")
     if not listen:
         raise TeamError("--agent-host: name this host's address the agent hosts reach with --listen ADDR")
-    return Placement.plan(names, listen, agent_hosts)
+    return Placement.plan(names, listen, agent_hosts, here)
 
 
 def _mobinet_source(asked: str | None, netns: bool) -> str:

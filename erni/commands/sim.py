@@ -79,6 +79,9 @@ def register(sub: Any) -> None:
                    help="run a share of the robots' agents on the host at ADDR (repeat for more hosts): this "
                    "run writes RUN_DIR/hosts/host-K for each, to copy there and start with --join "
                    "(see docs/how-to/agent-hosts.md)")
+    p.add_argument("--agents-here", type=int, metavar="N",
+                   help="with --agent-host: how many robots' agents run on this host, which also runs the simulator "
+                   "and the control node (default: an even share); the rest are dealt evenly over the agent hosts")
     p.add_argument("--join", metavar="BUNDLE",
                    help="be an agent host: run the agents of BUNDLE (a RUN_DIR/hosts/host-K another host's "
                    "erni sim --agent-host wrote) until that run ends or Ctrl-C")
@@ -178,14 +181,15 @@ def run(args: argparse.Namespace) -> int:
             return 0
         scenario = _checked(args)
         hosts = args.agent_hosts or []
-        too_many = capacity_warning(-(-scenario.count // (1 + len(hosts))), cores())  # this host's share
+        here = args.agents_here if args.agents_here is not None else -(-scenario.count // (1 + len(hosts)))
+        too_many = capacity_warning(here if hosts else scenario.count, cores())  # this host's share
         if not args.run_dir:
             prune_run_dirs(Path(tempfile.gettempdir()))
         team = Team(scenario, run_dir=args.run_dir, headless=args.headless,
                     control_port=args.control_port, log_level=args.log_level, gui_listen=args.gui_listen,
                     netns=args.netns, mobinet=args.mobinet, channel=args.channel,
                     hello_interval=args.hello_interval if args.hello_interval is not None else HELLO_INTERVAL,
-                    listen=args.listen, agent_hosts=hosts,
+                    listen=args.listen, agent_hosts=hosts, agents_here=args.agents_here,
                     keep_run_dir=True)  # it prints where the configs and logs are
         if not args.run_dir:
             (team.run_dir / OWNER_FILE).write_text(f"{os.getpid()}\n", encoding="utf-8")

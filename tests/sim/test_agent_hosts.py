@@ -59,6 +59,25 @@ def test_every_robot_runs_on_one_host_in_even_contiguous_shares(n, others):
     assert p.address("control") == WORLD and not p.remote("control")
 
 
+@given(st.integers(3, 200), st.integers(1, 4), st.data())
+def test_a_world_host_given_fewer_agents_runs_that_many_and_the_rest_share_evenly(n, others, data):
+    names = [f"robot{i + 1}" for i in range(n)]
+    hosts = [f"127.0.0.{k + 2}" for k in range(others)]
+    if n < 1 + others:
+        return
+    here = data.draw(st.integers(0, n - others))
+    p = Placement.plan(names, WORLD, hosts, here)
+    assert p.names_of(1) == names[:here]
+    rest = [p.names_of(k) for k in range(2, 2 + others)]
+    assert sum(rest, []) == names[here:] and min(map(len, rest)) >= 1 and max(map(len, rest)) - min(map(len, rest)) <= 1
+
+
+@pytest.mark.parametrize("here", [-1, 4])
+def test_a_world_share_that_leaves_an_agent_host_empty_is_refused(here):
+    with pytest.raises(UsageError, match=r"--agents-here .*: expected 0 to 3 \(of 4 robots"):
+        Placement.plan(["robot1", "robot2", "robot3", "robot4"], WORLD, ["127.0.0.2"], here)
+
+
 def test_the_loopback_broadcast_is_the_one_beacons_reach():
     assert broadcast_of("127.0.0.1") == "127.255.255.255"
     assert placement(["robot1", "robot2"], ["127.0.0.2"]).broadcast == "127.255.255.255"
@@ -79,7 +98,8 @@ def test_a_placement_that_cannot_be_is_one_line(world, hosts, message):
 
 @pytest.mark.parametrize("kw,message", [
     (dict(agent_hosts=["127.0.0.2"]), "with --listen ADDR"),
-    (dict(listen=WORLD), "name them with --agent-host"),
+    (dict(listen=WORLD), "--listen: for a team across hosts"),
+    (dict(agents_here=1), "--agents-here: for a team across hosts"),
     (dict(listen=WORLD, agent_hosts=["127.0.0.2"], netns=True), "loopback tier only"),
 ])
 def test_the_team_refuses_what_cannot_be_placed(tmp_path, kw, message):

@@ -56,21 +56,25 @@ def parse(*argv: str) -> argparse.Namespace:
     return parser.parse_args(["sim", *argv])
 
 
-@pytest.mark.parametrize("robots,hosts,warned", [(200, [], True), (50, [], False), (100, ["127.0.0.2"], False),
-                                                 (200, ["127.0.0.2", "127.0.0.3"], True)])
-def test_erni_sim_says_it_on_stderr_before_it_starts(robots, hosts, warned, monkeypatch, tmp_path, capfd):
+@pytest.mark.parametrize("robots,hosts,here,warned", [(200, [], None, True), (50, [], None, False),
+                                                      (100, ["127.0.0.2"], None, False),
+                                                      (200, ["127.0.0.2", "127.0.0.3"], None, True),
+                                                      (200, ["127.0.0.2"], 20, False), (80, ["127.0.0.2"], 60, True)])
+def test_erni_sim_says_it_on_stderr_before_it_starts(robots, hosts, here, warned, monkeypatch, tmp_path, capfd):
     """Only this host's share counts: 100 robots over two hosts is 50 here."""
     import erni.sim.team
 
     monkeypatch.setattr(erni.sim.team, "Team", _Team)
     monkeypatch.setattr(sim, "cores", lambda: 2)
     monkeypatch.setattr(os, "umask", lambda mask: 0o022)  # run() sets the process's umask; not the test's
-    placed = [arg for host in hosts for arg in ("--agent-host", host)] + (["--listen", "127.0.0.1"] if hosts else [])
+    placed = [arg for host in hosts for arg in ("--agent-host", host)] + (["--listen", "127.0.0.1"] if hosts else []) \
+        + (["--agents-here", str(here)] if here is not None else [])
     assert sim.run(parse("--headless", "--robots", str(robots), "--run-dir", str(tmp_path), *placed)) == 1
     out, err = capfd.readouterr()
     lines = err.splitlines()
     if warned:
-        assert lines[0].startswith(f"erni sim: {-(-robots // (1 + len(hosts)))} robots is more than this machine "
+        share = here if here is not None else -(-robots // (1 + len(hosts)))
+        assert lines[0].startswith(f"erni sim: {share} robots is more than this machine "
                                    "is measured to hold")
         assert lines[1] == "erni sim: start skipped by the test"
     else:
