@@ -85,7 +85,8 @@ def inner(args: argparse.Namespace, hosts: dict[str, str]) -> int:
             print(f"| {n} | did not come up: {str(err).splitlines()[0][:200]} (logs in {tmp}) |", flush=True)
             targets.append(results.target(f"{n} robots in real time{what}", "Pose interval p99 ≤ 2x the period, "
                                           "every robot heard", "the 0.1 s Pose period",
-                                          f"did not come up: {str(err).splitlines()[0][:160]}", False))
+                                          f"did not come up: {str(err).splitlines()[0].split('; logs in ')[0][:160]}",
+                                          False))
             continue
         targets.append(report(n, r, what))
         shutil.rmtree(tmp, ignore_errors=True)
