@@ -181,8 +181,7 @@ def run(args: argparse.Namespace) -> int:
             return 0
         scenario = _checked(args)
         hosts = args.agent_hosts or []
-        here = args.agents_here if args.agents_here is not None else -(-scenario.count // (1 + len(hosts)))
-        too_many = capacity_warning(here if hosts else scenario.count, cores())  # this host's share
+        too_many = capacity_warning(local_share(scenario.count, hosts, args.agents_here), cores())
         if not args.run_dir:
             prune_run_dirs(Path(tempfile.gettempdir()))
         team = Team(scenario, run_dir=args.run_dir, headless=args.headless,
@@ -252,6 +251,13 @@ def run(args: argparse.Namespace) -> int:
             signal.signal(sig, handler)
         say(f"erni sim: stopped; configs and logs in {team.run_dir}", flush=True)
     return code
+
+
+def local_share(robots: int, hosts: list[str], here: int | None) -> int:
+    """How many of `robots` agents run on this host: `here`, else an even share with the agent `hosts`."""
+    if not hosts:
+        return robots
+    return here if here is not None else -(-robots // (1 + len(hosts)))
 
 
 def join_lines(team: Any) -> list[str]:
