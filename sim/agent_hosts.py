@@ -8,8 +8,9 @@ by broadcast beacons on the hosts' shared segment.
 
 The simulated radio crosses hosts as well: the world host serves the agents' reachability on a
 TCP port of its own (the radio feed) and each agent host hands it on to its agents through the
-same pipes `erni sim` gives agents on one host (`erni.sim.radio`). An agent host proves it is
-one of the run's by answering a challenge with the secret of its bundle (HMAC-SHA256); the bundle
+same pipes `erni sim` gives agents on one host (`erni.sim.radio`). The agent host and the world
+host each prove to the other that they hold the secret of the bundle (a challenge answered with
+HMAC-SHA256), so neither takes lines from a stranger; the bundle
 (`RUN/hosts/host-K`: configs, keys, the join file) is this user's only and is copied to the host.
 When the world host ends the run its feed closes, and every agent host stops its agents.
 """
@@ -127,8 +128,9 @@ def private_bundle(bundle: Path) -> Path:
     return bundle
 
 
-def _mac(secret: str, nonce: str, host: int) -> str:
-    return hmac.new(bytes.fromhex(secret), f"{nonce}:{host}".encode(), hashlib.sha256).hexdigest()
+def _mac(secret: str, nonce: str, who: int | str) -> str:
+    """The proof that `who` (an agent host's number, or "world") holds `secret`, for challenge `nonce`."""
+    return hmac.new(bytes.fromhex(secret), f"{nonce}:{who}".encode(), hashlib.sha256).hexdigest()
 
 
 def _read_line(f: IO[bytes]) -> Any:
@@ -234,7 +236,8 @@ class RadioFeed:
             thread.start()
 
     def _greet(self, conn: socket.socket, peer: tuple[str, int]) -> None:
-        """Challenge a connecting host; a host that answers with its bundle's secret is served."""
+        """Challenge a connecting host; a host that answers with its bundle's secret is served, once this host
+        has answered the host's own challenge (its agents take reach and failures only from their run's world)."""
         nonce = secrets.token_hex(16)
         conn.settimeout(HANDSHAKE_TIMEOUT)
         try:
@@ -249,6 +252,7 @@ class RadioFeed:
                 log.warning("radio feed: %s:%d did not prove it is an agent host of this run", *peer)
                 conn.close()
                 return
+            conn.sendall((json.dumps({"proof": _mac(secret, str(answer.get("nonce", ""))[:64], "world")}) + "\n").encode())
         except (OSError, ValueError, AttributeError) as err:
             log.warning("radio feed: %s:%d: bad greeting (%s)", peer[0], peer[1], err)
             conn.close()
@@ -371,14 +375,21 @@ class AgentHost:
                                      f"does not answer ({err}); is its `erni sim` running?") from None
                 self._stopping.wait(0.5)
         f = sock.makefile("rb")
+        where = f"the radio feed at {self.world[0]}:{self.world[1]}"
         try:
-            hello = _read_line(f)
-            nonce = str(hello["nonce"])
-            sock.sendall((json.dumps({"host": self.host, "mac": _mac(self.secret, nonce, self.host)}) + "\n").encode())
+            nonce, mine = str(_read_line(f)["nonce"]), secrets.token_hex(16)
+            sock.sendall((json.dumps({"host": self.host, "mac": _mac(self.secret, nonce, self.host), "nonce": mine})
+                          + "\n").encode())
+            proof = _read_line(f)
+            if isinstance(proof, dict) and "error" in proof:
+                raise UsageError(f"--join: {where} refused this host: {str(proof['error'])[:200]}")
+            if not hmac.compare_digest(str(proof["proof"]), _mac(self.secret, mine, "world")):
+                raise UsageError(f"--join: {where} did not prove it is the world host of this bundle's run")
         except (OSError, ValueError, TypeError, KeyError) as err:
             sock.close()
-            raise UsageError(f"--join: the radio feed at {self.world[0]}:{self.world[1]} did not greet as "
-                             f"`erni sim` does ({err})") from None
+            if isinstance(err, UsageError):
+                raise
+            raise UsageError(f"--join: {where} did not greet as `erni sim` does ({type(err).__name__}: {err})") from None
         sock.settimeout(None)
         self._sock, self._feed = sock, f
 

@@ -131,7 +131,8 @@ def answer(feed: RadioFeed, host: int, secret: str) -> tuple[socket.socket, obje
     sock = socket.create_connection(feed.address, timeout=5)
     reader = sock.makefile("rb")
     nonce = json.loads(reader.readline())["nonce"]
-    sock.sendall((json.dumps({"host": host, "mac": _mac(secret, nonce, host)}) + "\n").encode())
+    sock.sendall((json.dumps({"host": host, "mac": _mac(secret, nonce, host), "nonce": "c0ffee"}) + "\n").encode())
+    assert json.loads(reader.readline()) == {"proof": _mac(secret, "c0ffee", "world")}  # the world proves itself too
     return sock, reader
 
 
@@ -247,9 +248,30 @@ def test_an_agent_host_of_the_run_joins_and_relays_until_the_run_ends(feed, tmp_
 
 def test_a_bundle_for_another_run_is_refused_by_the_world(feed, tmp_path):
     host = AgentHost(bundle(tmp_path, world=feed.address, secret="ef" * 32))
-    host.connect(timeout=5)
-    assert host.relay().startswith("the world host refused this host: not an agent host of this run")
+    with pytest.raises(UsageError, match="refused this host: not an agent host of this run"):
+        host.connect(timeout=5)
     assert feed.joined() == set()
+
+
+@pytest.mark.parametrize("proof", ["a wrong proof", "no proof"])
+def test_an_agent_host_takes_no_line_from_a_world_that_cannot_prove_it_is_its_run(tmp_path, proof):
+    """Someone else at the world's address (or in the path to it) neither fails agents nor cuts their radio."""
+    with socket.create_server((WORLD, 0)) as server:
+        def impostor() -> None:
+            conn, _ = server.accept()
+            with conn:
+                conn.sendall(b'{"nonce": "1234"}\n')
+                conn.makefile("rb").readline()
+                conn.sendall(b'{"proof": "' + b"00" * 32 + b'"}\n' if proof == "a wrong proof" else b'{"agent": "robot3"}\n')
+                conn.sendall(b'{"agent": "robot3", "fail": true}\n')
+
+        thread = threading.Thread(target=impostor)
+        thread.start()
+        host = AgentHost(bundle(tmp_path, world=server.getsockname()[:2]))
+        with pytest.raises(UsageError, match="did not prove it is the world host|did not greet as `erni sim` does"):
+            host.connect(timeout=5)
+        thread.join(5)
+    assert host._sock is None  # no feed: relay() has nothing to take lines from
 
 
 def test_a_line_longer_than_the_feed_reads_is_refused_not_buffered(feed):
