@@ -68,6 +68,12 @@ def broadcast_of(address: str) -> str:
                      "(expected the address the agent hosts reach this host at)")
 
 
+def world_share(robots: int, hosts: int, here: int | None = None) -> int:
+    """How many of `robots` agents the world host runs beside `hosts` agent hosts: `here`, else an even share
+    (rounded up: this host's first)."""
+    return here if here is not None else -(-robots // (1 + hosts))
+
+
 @dataclass(frozen=True)
 class Placement:
     """Which host runs which robot's agent: host 1 is this (the world) host at `world`, host K >= 2
@@ -92,8 +98,7 @@ class Placement:
         if len(names) < 1 + len(hosts):
             raise UsageError(f"--agent-host: {len(names)} robot(s) cannot fill {1 + len(hosts)} hosts; "
                              f"expected at least one robot per host")
-        if here is None:
-            here = -(-len(names) // (1 + len(hosts)))
+        here = world_share(len(names), len(hosts), here)
         if not 0 <= here <= len(names) - len(hosts):
             raise UsageError(f"--agents-here {here}: expected 0 to {len(names) - len(hosts)} (of {len(names)} robots, "
                              f"at least one for each agent host)")
@@ -332,8 +337,7 @@ def tell_pipe(agent: AgentProcess, names: list[str] | None) -> None:
     except BlockingIOError:
         log.warning("radio pipe of %s is full: it is not reading (stuck?)", agent.name)
     except OSError:  # the agent is gone
-        os.close(agent.radio)
-        agent.radio = None
+        agent.close_radio()
 
 
 class AgentHost:
@@ -419,7 +423,8 @@ class AgentHost:
                 return f"the world host refused this host: {str(line['error'])[:200]}"
             agent = self.agents.get(str(line.get("agent"))) if isinstance(line, dict) else None
             if agent is not None and line.get("fail") is True:
-                self._fail(agent)
+                agent.kill()
+                log.warning("agent %s killed: the scenario fails it", agent.name)
                 continue
             hears = line.get("hears") if isinstance(line, dict) else None
             if agent is None or not (hears is None or (isinstance(hears, list)
@@ -427,16 +432,6 @@ class AgentHost:
                 log.warning("radio feed: ignored a line that is not an agent's reach: %.80r", line)
                 continue
             tell_pipe(agent, hears)
-
-    @staticmethod
-    def _fail(agent: AgentProcess) -> None:
-        """Kill `agent` at once, as `erni sim` does a scenario's failed robot."""
-        agent.failed = True
-        if agent.alive:
-            assert agent.proc is not None
-            agent.proc.kill()
-            agent.proc.wait(5)
-        log.warning("agent %s killed: the scenario fails it", agent.name)
 
     def alive(self) -> list[str]:
         """The agents still running."""
@@ -452,8 +447,6 @@ class AgentHost:
                 pass
         stop_processes([a.proc for a in self.agents.values() if a.proc is not None], timeout)
         for agent in self.agents.values():
-            if agent.radio is not None:
-                os.close(agent.radio)
-                agent.radio = None
+            agent.close_radio()
         if self._sock is not None:
             self._sock.close()

@@ -506,9 +506,7 @@ class Team:
         self.control_port = free_port(self._control_host)
         if not self.gui_listen:
             self.gui_port = free_port("127.0.0.1")
-        if agent.radio is not None:
-            os.close(agent.radio)
-            agent.radio = None
+        agent.close_radio()
         agent.log.replace(agent.log.with_suffix(f".log.{self._port_retries}"))  # kept; the next run's log is new
         self.configs.write_control(self.control_port, self.gui_port)
         self.url = self.configs.url
@@ -555,14 +553,11 @@ class Team:
 
     def fail(self, name: str) -> None:
         """Make robot `name` fail: its agent is killed at once (its robot stops on the watchdog)."""
-        agent = self.agents[name]
-        agent.failed = True
         if self.feed is not None and self.placement is not None and self.placement.remote(name):
+            self.agents[name].failed = True
             self.feed.fail(name)  # its agent host kills it
-        elif agent.alive:
-            assert agent.proc is not None
-            agent.proc.kill()
-            agent.proc.wait(5)
+        else:
+            self.agents[name].kill()
 
     def teleport(self, name: str, x: float, y: float, heading: float = 0.0) -> None:
         """Move robot `name` in the world (the simulator's hand, not a task)."""
@@ -655,9 +650,7 @@ class Team:
         if self.feed is not None:  # every agent host sees its feed end, and stops its agents
             self.feed.close()
         for agent in self.agents.values():
-            if agent.radio is not None:
-                os.close(agent.radio)
-                agent.radio = None
+            agent.close_radio()
         if self._client is not None:
             self._client.endpoint.stop()
             self._client = None

@@ -142,6 +142,20 @@ class AgentProcess:
         """The process id, once started."""
         return self.proc.pid if self.proc is not None else None
 
+    def kill(self) -> None:
+        """Fail it at once (a scenario's failure): marked failed, its process killed and reaped."""
+        self.failed = True
+        if self.alive:
+            assert self.proc is not None
+            self.proc.kill()
+            self.proc.wait(5)
+
+    def close_radio(self) -> None:
+        """Close the write end of its radio pipe, when open."""
+        if self.radio is not None:
+            os.close(self.radio)
+            self.radio = None
+
 
 def stop_processes(procs: list[subprocess.Popen[bytes]], timeout: float) -> None:
     """Stop `procs` together: SIGTERM to each still running, then SIGKILL to any not gone within `timeout` s."""

@@ -254,10 +254,10 @@ def run(args: argparse.Namespace) -> int:
 
 
 def local_share(robots: int, hosts: list[str], here: int | None) -> int:
-    """How many of `robots` agents run on this host: `here`, else an even share with the agent `hosts`."""
-    if not hosts:
-        return robots
-    return here if here is not None else -(-robots // (1 + len(hosts)))
+    """How many of `robots` agents run on this host: all without agent `hosts`, else the world host's share."""
+    from erni.sim.agent_hosts import world_share
+
+    return world_share(robots, len(hosts), here) if hosts else robots
 
 
 def join_lines(team: Any) -> list[str]:
